@@ -1,0 +1,183 @@
+"""Translate a CasADi SX function into a vectorised NumPy function.
+
+``casadi.Function.map`` evaluates one sample per call of the compiled kernel and
+was measured about 20x slower than plain NumPy for a range-bearing function at
+500 particles.  Instead, we walk the SX instruction list of the function once
+and emit straight-line Python source in which every CasADi work register is a
+NumPy array over the batch dimensions.  The result evaluates the *same*
+operations in the *same* order as CasADi's virtual machine, so it agrees with
+CasADi to rounding (1e-12 is checked in the tests), while each operation is one
+vectorised NumPy call over all particles.
+
+Inputs of the generated function are arrays of shape ``(..., n_in)`` (scalars
+and shape-``(n_in,)`` arrays broadcast); each output has shape
+``(..., n_rows)`` for a column vector or ``(..., n_rows, n_cols)`` otherwise.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["to_numpy", "UnsupportedOperation"]
+
+
+class UnsupportedOperation(NotImplementedError):
+    """The CasADi expression uses an operation the NumPy translation lacks."""
+
+
+def _op(name: str) -> int:
+    return int(getattr(ca, "OP_" + name))
+
+
+# Unary and binary operations: a template over the argument names a, b.
+_TEMPLATES: dict[int, str] = {
+    _op("ASSIGN"): "{a}",
+    _op("ADD"): "{a} + {b}",
+    _op("SUB"): "{a} - {b}",
+    _op("MUL"): "{a} * {b}",
+    _op("DIV"): "{a} / {b}",
+    _op("NEG"): "-{a}",
+    _op("TWICE"): "2.0 * {a}",
+    _op("SQ"): "{a} * {a}",
+    _op("INV"): "1.0 / {a}",
+    _op("EXP"): "_np.exp({a})",
+    _op("LOG"): "_np.log({a})",
+    _op("SQRT"): "_np.sqrt({a})",
+    _op("POW"): "_np.power({a}, {b})",
+    _op("CONSTPOW"): "_np.power({a}, {b})",
+    _op("SIN"): "_np.sin({a})",
+    _op("COS"): "_np.cos({a})",
+    _op("TAN"): "_np.tan({a})",
+    _op("ASIN"): "_np.arcsin({a})",
+    _op("ACOS"): "_np.arccos({a})",
+    _op("ATAN"): "_np.arctan({a})",
+    _op("ATAN2"): "_np.arctan2({a}, {b})",
+    _op("SINH"): "_np.sinh({a})",
+    _op("COSH"): "_np.cosh({a})",
+    _op("TANH"): "_np.tanh({a})",
+    _op("ASINH"): "_np.arcsinh({a})",
+    _op("ACOSH"): "_np.arccosh({a})",
+    _op("ATANH"): "_np.arctanh({a})",
+    _op("FABS"): "_np.abs({a})",
+    _op("SIGN"): "_np.sign({a})",
+    _op("COPYSIGN"): "_np.copysign({a}, {b})",
+    _op("FLOOR"): "_np.floor({a})",
+    _op("CEIL"): "_np.ceil({a})",
+    _op("FMOD"): "_np.fmod({a}, {b})",
+    _op("FMIN"): "_np.fmin({a}, {b})",
+    _op("FMAX"): "_np.fmax({a}, {b})",
+    _op("HYPOT"): "_np.hypot({a}, {b})",
+    _op("LOG1P"): "_np.log1p({a})",
+    _op("EXPM1"): "_np.expm1({a})",
+    _op("ERF"): "_erf({a})",
+    _op("ERFINV"): "_erfinv({a})",
+    _op("LT"): "_f64({a} < {b})",
+    _op("LE"): "_f64({a} <= {b})",
+    _op("EQ"): "_f64({a} == {b})",
+    _op("NE"): "_f64({a} != {b})",
+    _op("NOT"): "_f64({a} == 0.0)",
+    _op("AND"): "_f64(({a} != 0.0) & ({b} != 0.0))",
+    _op("OR"): "_f64(({a} != 0.0) | ({b} != 0.0))",
+    _op("IF_ELSE_ZERO"): "_np.where({a} != 0.0, {b}, 0.0)",
+}
+
+_OP_NAMES = {int(getattr(ca, n)): n for n in dir(ca) if n.startswith("OP_")}
+
+
+def _f64(a):
+    return np.asarray(a, dtype=np.float64)
+
+
+def _erf(a):
+    from scipy.special import erf
+
+    return erf(a)
+
+
+def _erfinv(a):
+    from scipy.special import erfinv
+
+    return erfinv(a)
+
+
+def _source(fun: ca.Function, fname: str) -> str:
+    """Python source of the vectorised translation of ``fun``."""
+    n_in, n_out = fun.n_in(), fun.n_out()
+    args = [f"i{j}" for j in range(n_in)]
+    lines = [f"def {fname}({', '.join(args)}):"]
+    for j in range(n_in):
+        if not fun.sparsity_in(j).is_dense():
+            raise UnsupportedOperation(f"input {fun.name_in(j)!r} of {fun.name()!r} is sparse")
+        lines.append(f"    i{j} = _np.asarray(i{j}, dtype=_np.float64)")
+        lines.append(f"    if i{j}.ndim == 0: i{j} = i{j}.reshape(1)")
+    batch = ", ".join(f"i{j}.shape[:-1]" for j in range(n_in))
+    lines.append(f"    _shape = _np.broadcast_shapes({batch}{',' if n_in == 1 else ''})")
+    out_shapes = []
+    for j in range(n_out):
+        sp = fun.sparsity_out(j)
+        rows, cols = sp.size1(), sp.size2()
+        shape = (rows,) if cols == 1 else (rows, cols)
+        out_shapes.append(shape)
+        lines.append(f"    o{j} = _np.zeros(_shape + {shape!r})")
+    # Destination index of every structural nonzero of every output.
+    dest = []
+    for j in range(n_out):
+        sp = fun.sparsity_out(j)
+        r, c = sp.get_triplet()
+        if sp.size2() == 1:
+            dest.append([f"{ri}" for ri in r])
+        else:
+            dest.append([f"{ri}, {ci}" for ri, ci in zip(r, c)])
+
+    for k in range(fun.n_instructions()):
+        op = fun.instruction_id(k)
+        ins = fun.instruction_input(k)
+        outs = fun.instruction_output(k)
+        if op == _op("INPUT"):
+            lines.append(f"    w{outs[0]} = i{ins[0]}[..., {ins[1]}]")
+        elif op == _op("OUTPUT"):
+            lines.append(f"    o{outs[0]}[..., {dest[outs[0]][outs[1]]}] = w{ins[0]}")
+        elif op == _op("CONST"):
+            lines.append(f"    w{outs[0]} = {float(fun.instruction_constant(k))!r}")
+        elif op in _TEMPLATES:
+            a = f"w{ins[0]}"
+            b = f"w{ins[1]}" if len(ins) > 1 else ""
+            lines.append(f"    w{outs[0]} = " + _TEMPLATES[op].format(a=a, b=b))
+        else:
+            raise UnsupportedOperation(
+                f"CasADi operation {_OP_NAMES.get(op, op)} in {fun.name()!r} has no NumPy translation"
+            )
+    rets = ", ".join(f"o{j}" for j in range(n_out))
+    lines.append(f"    return {rets}{',' if n_out == 1 else ''}")
+    # ``inf``/``nan`` constants print as names; bind them in the namespace.
+    return "\n".join(lines).replace("= inf", "= _np.inf").replace("= -inf", "= -_np.inf").replace(
+        "= nan", "= _np.nan"
+    )
+
+
+def to_numpy(fun: ca.Function) -> Callable[..., tuple[np.ndarray, ...]]:
+    """Compile a CasADi function into a batched NumPy function.
+
+    Parameters
+    ----------
+    fun : casadi.Function
+        A function of SX type (an MX function is expanded first).
+
+    Returns
+    -------
+    callable
+        ``g(*inputs) -> tuple of outputs``; inputs have shape ``(..., n_in)``
+        and broadcast against each other over the leading dimensions.
+    """
+    if fun.is_a("MXFunction"):
+        fun = fun.expand()
+    fname = "_cg_" + "".join(ch if ch.isalnum() else "_" for ch in fun.name())
+    src = _source(fun, fname)
+    namespace = {"_np": np, "_f64": _f64, "_erf": _erf, "_erfinv": _erfinv}
+    exec(compile(src, f"<cfdesign numpy translation of {fun.name()}>", "exec"), namespace)
+    g = namespace[fname]
+    g.__doc__ = f"NumPy translation of CasADi function {fun.name()!r}."
+    g.source = src
+    return g

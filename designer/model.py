@@ -1,0 +1,401 @@
+"""The symbolic model layer: one CasADi definition, every numeric view of it.
+
+A model is written once with CasADi SX expressions::
+
+    x_{k+1} = f(x_k, k, u_k, r_k) + G w_k,     w_k ~ process_noise
+    z_{i,k} = h_i(x_k, k) + v_{i,k},           v_{i,k} ~ sensors[i].noise
+    x_0 ~ prior
+
+where ``u_k`` are known inputs and ``r_k`` an optional discrete mode drawn
+independently at every step with probabilities ``mode_probs`` (randomly
+switching nonlinearities).  From that single definition :class:`Model` builds,
+once, the CasADi functions (values, Jacobians ``F``, ``H_i`` and Hessians by
+automatic differentiation) and their vectorised NumPy translations for particle
+arrays of shape ``(..., n_x)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+
+from .codegen import to_numpy
+from .noise import Noise
+from .validation import InputError, check_finite
+
+__all__ = ["Sensor", "Model"]
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """One sensor: a symbolic measurement function and its additive noise.
+
+    Parameters
+    ----------
+    name : str
+        Label used in results and files.
+    h : casadi.SX
+        Column expression of the model's state symbol (and optionally of the
+        time symbol ``k``).
+    noise : Noise
+        Additive measurement noise, of the same dimension as ``h``.
+    position : sequence of float, optional
+        Where the sensor is, for figures and descriptions only.
+    """
+
+    name: str
+    h: ca.SX
+    noise: Noise
+    position: tuple[float, ...] | None = None
+
+    @property
+    def dim(self) -> int:
+        return int(self.h.shape[0])
+
+
+def _symbol(name: str, value, size: int | None = None) -> ca.SX:
+    if value is None:
+        return ca.SX.sym(name, 0 if size is None else size)
+    if not isinstance(value, ca.SX):
+        raise InputError(f"{name} must be a casadi.SX symbol, got {type(value).__name__}")
+    if not value.is_symbolic() or value.shape[1] != 1:
+        raise InputError(f"{name} must be a purely symbolic column vector (casadi.SX.sym)")
+    return value
+
+
+def _column(name: str, expr, rows: int | None = None) -> ca.SX:
+    if isinstance(expr, (ca.MX, ca.DM)) or not isinstance(expr, ca.SX):
+        try:
+            expr = ca.SX(expr)
+        except Exception:
+            raise InputError(f"{name} must be a casadi.SX expression") from None
+    if expr.shape[1] != 1 and expr.shape[0] == 1:
+        expr = expr.T
+    if expr.shape[1] != 1:
+        raise InputError(f"{name} must be a column vector, got shape {expr.shape}")
+    if rows is not None and expr.shape[0] != rows:
+        raise InputError(f"{name} must have {rows} rows, got {expr.shape[0]}")
+    return expr
+
+
+def _function(name: str, inputs, names, outputs, out_names) -> ca.Function:
+    try:
+        return ca.Function(name, inputs, outputs, names, out_names)
+    except RuntimeError as exc:
+        msg = str(exc)
+        if "free variables" in msg or "free" in msg:
+            raise InputError(
+                f"{name} depends on symbols other than {', '.join(names)}; "
+                "declare every symbol the expressions use"
+            ) from None
+        raise
+
+
+class Model:
+    """A state-space model defined once, symbolically.
+
+    Parameters
+    ----------
+    name : str
+        Model name.
+    x : casadi.SX
+        State symbol, ``casadi.SX.sym('x', n_x)``.
+    f : casadi.SX
+        Transition expression (``n_x`` rows) in ``x`` and optionally ``k``, ``u``, ``mode``.
+    sensors : sequence of Sensor
+        One entry per sensor; ``h`` may use ``x`` and ``k``.
+    process_noise : Noise
+        Distribution of ``w_k``.
+    prior : Noise
+        Distribution of ``x_0``.
+    k : casadi.SX, optional
+        Scalar time symbol used by ``f`` or ``h`` (time-varying models).
+    u : casadi.SX, optional
+        Known input symbol used by ``f``.
+    mode : casadi.SX, optional
+        Scalar discrete mode symbol used by ``f`` (values ``0 .. len(mode_probs)-1``).
+    mode_probs : sequence of float, optional
+        Probability of each mode, drawn independently at every step.
+    noise_gain : array_like, shape (n_x, n_w), optional
+        Matrix ``G`` through which the process noise enters (identity by default).
+    state_names : sequence of str, optional
+        Names of the state components.
+    position_index, velocity_index : sequence of int, optional
+        Which state components are positions and velocities (for RMSE_p, RMSE_v).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        x: ca.SX,
+        f,
+        sensors: Sequence[Sensor],
+        process_noise: Noise,
+        prior: Noise,
+        *,
+        k: ca.SX | None = None,
+        u: ca.SX | None = None,
+        mode: ca.SX | None = None,
+        mode_probs: Sequence[float] | None = None,
+        noise_gain=None,
+        state_names: Sequence[str] | None = None,
+        position_index: Sequence[int] = (),
+        velocity_index: Sequence[int] = (),
+        description: str = "",
+    ):
+        self.name = str(name)
+        self.description = description
+        self.x = _symbol("x", x)
+        self.n_x = int(self.x.shape[0])
+        if self.n_x < 1:
+            raise InputError("x must have at least one component")
+        self.k = _symbol("k", k, 1)
+        if self.k.shape[0] != 1:
+            raise InputError("k must be a scalar symbol")
+        self.u = _symbol("u", u)
+        self.n_u = int(self.u.shape[0])
+        self.mode = _symbol("mode", mode)
+        if self.mode.shape[0] not in (0, 1):
+            raise InputError("mode must be a scalar symbol")
+        self.f_expr = _column("f", f, self.n_x)
+
+        if self.mode.shape[0] == 1:
+            if mode_probs is None:
+                raise InputError("mode_probs must be given when the model has a mode symbol")
+            p = check_finite("mode_probs", mode_probs).ravel()
+            if p.size < 1 or np.any(p < 0) or abs(p.sum() - 1.0) > 1e-9:
+                raise InputError("mode_probs must be non-negative and sum to 1")
+            self.mode_probs = p / p.sum()
+        else:
+            if mode_probs is not None:
+                raise InputError("mode_probs given but the model has no mode symbol")
+            self.mode_probs = None
+
+        if not isinstance(process_noise, Noise):
+            raise InputError("process_noise must be a Noise distribution")
+        if not isinstance(prior, Noise) or prior.dim != self.n_x:
+            raise InputError(f"prior must be a Noise distribution of dimension {self.n_x}")
+        self.process_noise = process_noise
+        self.prior = prior
+        if noise_gain is None:
+            if process_noise.dim != self.n_x:
+                raise InputError(
+                    f"process_noise has dimension {process_noise.dim} but the state has {self.n_x}; "
+                    "give noise_gain"
+                )
+            self.noise_gain = np.eye(self.n_x)
+        else:
+            G = check_finite("noise_gain", noise_gain)
+            if G.shape != (self.n_x, process_noise.dim):
+                raise InputError(f"noise_gain must have shape ({self.n_x}, {process_noise.dim}), got {G.shape}")
+            self.noise_gain = G
+
+        sensors = tuple(sensors)
+        if not sensors:
+            raise InputError("sensors must contain at least one Sensor")
+        for i, s in enumerate(sensors):
+            if not isinstance(s, Sensor):
+                raise InputError(f"sensors[{i}] must be a Sensor")
+            _column(f"sensors[{i}].h", s.h)
+            if s.noise.dim != s.dim:
+                raise InputError(f"sensors[{i}].noise has dimension {s.noise.dim}, its h has {s.dim}")
+        names = [s.name for s in sensors]
+        if len(set(names)) != len(names):
+            raise InputError("sensor names must be unique")
+        self.sensors = sensors
+        self.state_names = tuple(state_names) if state_names else tuple(f"x{i + 1}" for i in range(self.n_x))
+        if len(self.state_names) != self.n_x:
+            raise InputError(f"state_names must have {self.n_x} entries")
+        for label, idx in (("position_index", position_index), ("velocity_index", velocity_index)):
+            if any(not (0 <= int(i) < self.n_x) for i in idx):
+                raise InputError(f"{label} must index state components 0..{self.n_x - 1}")
+        self.position_index = tuple(int(i) for i in position_index)
+        self.velocity_index = tuple(int(i) for i in velocity_index)
+        self._build()
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        x, k, u, r = self.x, self.k, self.u, self.mode
+        fin, fnames = [x, k, u, r], ["x", "k", "u", "mode"]
+        f = self.f_expr
+        F = ca.jacobian(f, x)
+        self.casadi_f = _function("f", fin, fnames, [f], ["x_next"])
+        self.casadi_F = _function("F", fin, fnames, [F], ["F"])
+        self.casadi_f_hess = _function(
+            "f_hess", fin, fnames, [ca.hessian(f[j], x)[0] for j in range(self.n_x)],
+            [f"d2f{j}" for j in range(self.n_x)],
+        )
+        hin, hnames = [x, k], ["x", "k"]
+        self.casadi_h, self.casadi_H, self.casadi_h_hess = [], [], []
+        for i, s in enumerate(self.sensors):
+            h = _column(f"sensors[{i}].h", s.h)
+            self.casadi_h.append(_function(f"h{i}", hin, hnames, [h], ["z"]))
+            self.casadi_H.append(_function(f"H{i}", hin, hnames, [ca.jacobian(h, x)], ["H"]))
+            self.casadi_h_hess.append(
+                _function(f"h{i}_hess", hin, hnames, [ca.hessian(h[j], x)[0] for j in range(s.dim)],
+                          [f"d2h{j}" for j in range(s.dim)])
+            )
+        h_all = ca.vertcat(*[s.h for s in self.sensors])
+        self.casadi_h_all = _function("h_all", hin, hnames, [h_all], ["z"])
+        self.casadi_H_all = _function("H_all", hin, hnames, [ca.jacobian(h_all, x)], ["H"])
+
+        self._np_f = to_numpy(self.casadi_f)
+        self._np_F = to_numpy(self.casadi_F)
+        self._np_f_hess = to_numpy(self.casadi_f_hess)
+        self._np_h = [to_numpy(fn) for fn in self.casadi_h]
+        self._np_H = [to_numpy(fn) for fn in self.casadi_H]
+        self._np_h_hess = [to_numpy(fn) for fn in self.casadi_h_hess]
+        self._np_h_all = to_numpy(self.casadi_h_all)
+        dims = [s.dim for s in self.sensors]
+        self._offsets = np.concatenate([[0], np.cumsum(dims)])
+
+    # ------------------------------------------------------------ properties
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensors)
+
+    @property
+    def sensor_dims(self) -> tuple[int, ...]:
+        return tuple(s.dim for s in self.sensors)
+
+    @property
+    def n_z(self) -> int:
+        """Total measurement dimension over all sensors."""
+        return int(self._offsets[-1])
+
+    @property
+    def n_modes(self) -> int:
+        return 0 if self.mode_probs is None else len(self.mode_probs)
+
+    @property
+    def process_cov(self) -> np.ndarray:
+        """Covariance ``G Q Gᵀ`` of the process noise as it enters the state."""
+        G = self.noise_gain
+        return G @ self.process_noise.cov @ G.T
+
+    def measurement_cov(self, i: int) -> np.ndarray:
+        return self.sensors[self._sensor(i)].noise.cov
+
+    # ------------------------------------------------------------- argument checks
+    def _sensor(self, i) -> int:
+        if not isinstance(i, (int, np.integer)) or not 0 <= i < self.n_sensors:
+            raise InputError(f"sensor index must be an integer in 0..{self.n_sensors - 1}, got {i!r}")
+        return int(i)
+
+    def _state(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim == 0 or x.shape[-1] != self.n_x:
+            raise InputError(f"x must have shape (..., {self.n_x}), got {x.shape}")
+        return x
+
+    def _u(self, u) -> np.ndarray:
+        if self.n_u == 0:
+            if u is not None and np.size(u) != 0:
+                raise InputError("u given but the model has no inputs")
+            return np.zeros(0)
+        if u is None:
+            raise InputError(f"u (known input of length {self.n_u}) is required by model {self.name!r}")
+        u = np.asarray(u, dtype=np.float64)
+        if u.ndim == 0 or u.shape[-1] != self.n_u:
+            raise InputError(f"u must have shape (..., {self.n_u}), got {u.shape}")
+        return u
+
+    def _mode(self, mode) -> np.ndarray:
+        if self.mode_probs is None:
+            if mode is not None:
+                raise InputError("mode given but the model has no switching modes")
+            return np.zeros(0)
+        if mode is None:
+            raise InputError(f"mode (0..{self.n_modes - 1}) is required by switching model {self.name!r}")
+        m = np.asarray(mode, dtype=np.float64)
+        if np.any((m < 0) | (m >= self.n_modes) | (m != np.round(m))):
+            raise InputError(f"mode must be an integer in 0..{self.n_modes - 1}")
+        return m[..., None]
+
+    @staticmethod
+    def _k(k) -> np.ndarray:
+        return np.asarray(k, dtype=np.float64)[..., None]
+
+    # ----------------------------------------------------------- evaluation
+    def f(self, x, k=0, u=None, mode=None) -> np.ndarray:
+        """Transition ``f(x, k, u, mode)`` for states of shape ``(..., n_x)``."""
+        with np.errstate(all="ignore"):
+            return self._np_f(self._state(x), self._k(k), self._u(u), self._mode(mode))[0]
+
+    def f_expected(self, x, k=0, u=None) -> np.ndarray:
+        """Transition averaged over the switching modes (``f`` itself without modes)."""
+        if self.mode_probs is None:
+            return self.f(x, k, u)
+        return sum(p * self.f(x, k, u, m) for m, p in enumerate(self.mode_probs))
+
+    def F(self, x, k=0, u=None, mode=None) -> np.ndarray:
+        """Jacobian ``df/dx``, shape ``(..., n_x, n_x)``."""
+        with np.errstate(all="ignore"):
+            return self._np_F(self._state(x), self._k(k), self._u(u), self._mode(mode))[0]
+
+    def F_expected(self, x, k=0, u=None) -> np.ndarray:
+        if self.mode_probs is None:
+            return self.F(x, k, u)
+        return sum(p * self.F(x, k, u, m) for m, p in enumerate(self.mode_probs))
+
+    def f_hessian(self, x, k=0, u=None, mode=None) -> np.ndarray:
+        """Hessians of every component of ``f``, shape ``(..., n_x, n_x, n_x)`` (component first)."""
+        with np.errstate(all="ignore"):
+            parts = self._np_f_hess(self._state(x), self._k(k), self._u(u), self._mode(mode))
+        return np.stack(parts, axis=-3)
+
+    def h(self, i: int, x, k=0) -> np.ndarray:
+        """Measurement function of sensor ``i``, shape ``(..., n_z_i)``."""
+        with np.errstate(all="ignore"):
+            return self._np_h[self._sensor(i)](self._state(x), self._k(k))[0]
+
+    def H(self, i: int, x, k=0) -> np.ndarray:
+        """Jacobian ``dh_i/dx``, shape ``(..., n_z_i, n_x)``."""
+        with np.errstate(all="ignore"):
+            return self._np_H[self._sensor(i)](self._state(x), self._k(k))[0]
+
+    def h_hessian(self, i: int, x, k=0) -> np.ndarray:
+        """Hessians of every component of ``h_i``, shape ``(..., n_z_i, n_x, n_x)``."""
+        with np.errstate(all="ignore"):
+            parts = self._np_h_hess[self._sensor(i)](self._state(x), self._k(k))
+        return np.stack(parts, axis=-3)
+
+    def h_all(self, x, k=0) -> np.ndarray:
+        """All sensors' measurement functions stacked, shape ``(..., n_z)``."""
+        with np.errstate(all="ignore"):
+            return self._np_h_all(self._state(x), self._k(k))[0]
+
+    def split(self, z) -> list[np.ndarray]:
+        """Split a stacked measurement ``(..., n_z)`` into one array per sensor."""
+        z = np.asarray(z)
+        return [z[..., a:b] for a, b in zip(self._offsets[:-1], self._offsets[1:])]
+
+    def measurement_logpdf(self, i: int, z, x, k=0) -> np.ndarray:
+        """``log p(z_i | x)`` for particles ``x`` of shape ``(..., n_x)``."""
+        i = self._sensor(i)
+        return self.sensors[i].noise.logpdf(np.asarray(z, dtype=float) - self.h(i, x, k))
+
+    def describe(self) -> dict:
+        """A JSON-ready description of the model."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "n_x": self.n_x,
+            "state_names": list(self.state_names),
+            "n_u": self.n_u,
+            "modes": None if self.mode_probs is None else self.mode_probs.tolist(),
+            "sensors": [
+                {"name": s.name, "dim": s.dim, "noise": s.noise.describe(),
+                 "position": None if s.position is None else list(s.position)}
+                for s in self.sensors
+            ],
+            "process_noise": self.process_noise.describe(),
+            "noise_gain": self.noise_gain.tolist(),
+            "prior": self.prior.describe(),
+        }
+
+    def __repr__(self) -> str:
+        return f"Model({self.name!r}, n_x={self.n_x}, sensors={self.n_sensors}, modes={self.n_modes})"
+

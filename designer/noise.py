@@ -1,0 +1,367 @@
+"""Noise distributions with batched densities and explicit random generators.
+
+Every distribution is an immutable value over vectors of dimension ``dim``:
+``logpdf(x)`` and ``pdf(x)`` take ``x`` of shape ``(..., dim)`` and return shape
+``(...)``; ``cdf(x)`` is the joint distribution function P(X <= x) where it has a
+closed form (independent components, or one dimension); ``sample(rng, shape)``
+returns ``shape + (dim,)`` and draws only from the ``numpy.random.Generator``
+passed in.  ``mean`` and ``cov`` are the exact first two moments.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy import special, stats
+
+from .validation import InputError, as_vector, check_covariance, check_positive, check_probability
+
+__all__ = [
+    "Noise", "Gaussian", "GaussianMixture", "TruncatedGaussian", "UniformBox", "PolarVelocityPrior", "spawn_generators",
+]
+
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def spawn_generators(seed: int | np.random.SeedSequence, n: int) -> list[np.random.Generator]:
+    """Independent generators for ``n`` Monte Carlo runs from one seed (``SeedSequence.spawn``)."""
+    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    return [np.random.default_rng(child) for child in ss.spawn(n)]
+
+
+def _check_rng(rng) -> np.random.Generator:
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    return rng
+
+
+def _shape(shape) -> tuple[int, ...]:
+    if shape is None:
+        return ()
+    if isinstance(shape, (int, np.integer)):
+        return (int(shape),)
+    return tuple(int(s) for s in shape)
+
+
+def _points(x, dim: int) -> np.ndarray:
+    arr = np.asarray(x, dtype=np.float64)
+    if dim == 1 and (arr.ndim == 0 or arr.shape[-1] != 1):
+        arr = arr[..., None]
+    if arr.shape[-1] != dim:
+        raise InputError(f"x must have last dimension {dim}, got shape {arr.shape}")
+    return arr
+
+
+class Noise:
+    """Common interface; subclasses define ``dim``, ``mean``, ``cov``, ``logpdf``, ``sample``."""
+
+    dim: int
+
+    def pdf(self, x) -> np.ndarray:
+        return np.exp(self.logpdf(x))
+
+    def cdf(self, x) -> np.ndarray:  # pragma: no cover - overridden where defined
+        raise NotImplementedError(f"{type(self).__name__} has no closed-form joint CDF")
+
+    def describe(self) -> dict:
+        return {"type": type(self).__name__, "mean": self.mean.tolist(), "cov": self.cov.tolist()}
+
+
+@dataclass(frozen=True, eq=False)
+class Gaussian(Noise):
+    """Multivariate normal N(mean, cov) with a Cholesky factor computed once."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    _chol: np.ndarray = field(init=False, repr=False)
+    _chol_inv: np.ndarray = field(init=False, repr=False)
+    _logdet: float = field(init=False, repr=False)
+
+    def __post_init__(self):
+        mean = as_vector("mean", self.mean)
+        cov = check_covariance("cov", self.cov, mean.shape[0])
+        chol = np.linalg.cholesky(cov)
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "cov", cov)
+        object.__setattr__(self, "_chol", chol)
+        object.__setattr__(self, "_chol_inv", np.linalg.inv(chol))  # triangular, well conditioned by check
+        object.__setattr__(self, "_logdet", 2.0 * float(np.sum(np.log(np.diag(chol)))))
+
+    @classmethod
+    def zero_mean(cls, cov) -> "Gaussian":
+        cov = np.atleast_2d(np.asarray(cov, dtype=float))
+        return cls(np.zeros(cov.shape[0]), cov)
+
+    @property
+    def dim(self) -> int:
+        return self.mean.shape[0]
+
+    def logpdf(self, x) -> np.ndarray:
+        z = (_points(x, self.dim) - self.mean) @ self._chol_inv.T
+        return -0.5 * (self.dim * _LOG_2PI + self._logdet + np.einsum("...i,...i->...", z, z))
+
+    def cdf(self, x) -> np.ndarray:
+        x = _points(x, self.dim)
+        sd = np.sqrt(np.diag(self.cov))
+        if self.dim == 1 or np.count_nonzero(self.cov - np.diag(np.diag(self.cov))) == 0:
+            return np.prod(special.ndtr((x - self.mean) / sd), axis=-1)
+        flat = x.reshape(-1, self.dim)
+        vals = stats.multivariate_normal(self.mean, self.cov).cdf(flat)
+        return np.asarray(vals, dtype=float).reshape(x.shape[:-1])
+
+    def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
+        z = _check_rng(rng).standard_normal(_shape(shape) + (self.dim,))
+        return self.mean + z @ self._chol.T
+
+
+@dataclass(frozen=True, eq=False)
+class GaussianMixture(Noise):
+    """Finite mixture sum_c w_c N(mean_c, cov_c), e.g. glint noise."""
+
+    weights: np.ndarray
+    components: tuple[Gaussian, ...]
+
+    def __post_init__(self):
+        comps = tuple(self.components)
+        if not comps or not all(isinstance(c, Gaussian) for c in comps):
+            raise InputError("components must be a non-empty sequence of Gaussian")
+        if len({c.dim for c in comps}) != 1:
+            raise InputError("components must all have the same dimension")
+        w = check_probability("weights", as_vector("weights", self.weights, len(comps)))
+        if abs(w.sum() - 1.0) > 1e-9:
+            raise InputError(f"weights must sum to 1, got {w.sum():.12g}")
+        object.__setattr__(self, "weights", w / w.sum())
+        object.__setattr__(self, "components", comps)
+
+    @classmethod
+    def from_arrays(cls, weights: Sequence[float], means, covs) -> "GaussianMixture":
+        return cls(np.asarray(weights, float), tuple(Gaussian(m, c) for m, c in zip(means, covs)))
+
+    @property
+    def dim(self) -> int:
+        return self.components[0].dim
+
+    @property
+    def mean(self) -> np.ndarray:
+        return sum(w * c.mean for w, c in zip(self.weights, self.components))
+
+    @property
+    def cov(self) -> np.ndarray:
+        m = self.mean
+        second = sum(w * (c.cov + np.outer(c.mean, c.mean)) for w, c in zip(self.weights, self.components))
+        return second - np.outer(m, m)
+
+    def logpdf(self, x) -> np.ndarray:
+        with np.errstate(divide="ignore"):
+            logw = np.log(self.weights)
+        terms = np.stack([lw + c.logpdf(x) for lw, c in zip(logw, self.components)], axis=0)
+        return special.logsumexp(terms, axis=0)
+
+    def cdf(self, x) -> np.ndarray:
+        return sum(w * c.cdf(x) for w, c in zip(self.weights, self.components))
+
+    def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
+        shape = _shape(shape)
+        rng = _check_rng(rng)
+        labels = rng.choice(len(self.components), size=shape, p=self.weights)
+        z = rng.standard_normal(shape + (self.dim,))
+        out = np.empty(shape + (self.dim,))
+        for c, comp in enumerate(self.components):
+            sel = labels == c
+            out[sel] = comp.mean + z[sel] @ comp._chol.T
+        return out
+
+    def describe(self) -> dict:
+        return {
+            "type": "GaussianMixture",
+            "weights": self.weights.tolist(),
+            "means": [c.mean.tolist() for c in self.components],
+            "covs": [c.cov.tolist() for c in self.components],
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class TruncatedGaussian(Noise):
+    """Independent components, each N(loc, scale^2) truncated to [lower, upper].
+
+    ``loc`` and ``scale`` are those of the parent (untruncated) normal; the
+    bounds are absolute.  ``mean`` and ``cov`` are the truncated moments.
+    """
+
+    loc: np.ndarray
+    scale: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    _dist: object = field(init=False, repr=False)
+
+    def __post_init__(self):
+        loc = as_vector("loc", self.loc)
+        d = loc.shape[0]
+        scale = check_positive("scale", as_vector("scale", self.scale, d))
+        lower = np.asarray(self.lower, dtype=float) * np.ones(d)
+        upper = np.asarray(self.upper, dtype=float) * np.ones(d)
+        if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower >= upper):
+            raise InputError("lower must be < upper for every component of the truncated Gaussian")
+        object.__setattr__(self, "loc", loc)
+        object.__setattr__(self, "scale", scale)
+        object.__setattr__(self, "lower", lower)
+        object.__setattr__(self, "upper", upper)
+        dist = stats.truncnorm((lower - loc) / scale, (upper - loc) / scale, loc=loc, scale=scale)
+        object.__setattr__(self, "_dist", dist)
+
+    @property
+    def dim(self) -> int:
+        return self.loc.shape[0]
+
+    @property
+    def mean(self) -> np.ndarray:
+        return np.asarray(self._dist.mean(), dtype=float)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return np.diag(np.asarray(self._dist.var(), dtype=float))
+
+    def logpdf(self, x) -> np.ndarray:
+        return np.sum(self._dist.logpdf(_points(x, self.dim)), axis=-1)
+
+    def cdf(self, x) -> np.ndarray:
+        return np.prod(self._dist.cdf(_points(x, self.dim)), axis=-1)
+
+    def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
+        size = _shape(shape) + (self.dim,)
+        # Inverse-CDF sampling from the generator passed in.
+        u = _check_rng(rng).random(size)
+        return np.asarray(self._dist.ppf(u), dtype=float).reshape(size)
+
+    def describe(self) -> dict:
+        return {
+            "type": "TruncatedGaussian",
+            "loc": self.loc.tolist(),
+            "scale": self.scale.tolist(),
+            "lower": self.lower.tolist(),
+            "upper": self.upper.tolist(),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class UniformBox(Noise):
+    """Uniform distribution on the box [lower, upper] (deception signals)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def __post_init__(self):
+        lower = as_vector("lower", self.lower)
+        upper = as_vector("upper", self.upper, lower.shape[0])
+        if np.any(lower >= upper):
+            raise InputError("lower must be < upper in every component of the uniform box")
+        object.__setattr__(self, "lower", lower)
+        object.__setattr__(self, "upper", upper)
+
+    @property
+    def dim(self) -> int:
+        return self.lower.shape[0]
+
+    @property
+    def mean(self) -> np.ndarray:
+        return 0.5 * (self.lower + self.upper)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return np.diag((self.upper - self.lower) ** 2 / 12.0)
+
+    def logpdf(self, x) -> np.ndarray:
+        x = _points(x, self.dim)
+        inside = np.all((x >= self.lower) & (x <= self.upper), axis=-1)
+        return np.where(inside, -float(np.sum(np.log(self.upper - self.lower))), -np.inf)
+
+    def cdf(self, x) -> np.ndarray:
+        x = _points(x, self.dim)
+        return np.prod(np.clip((x - self.lower) / (self.upper - self.lower), 0.0, 1.0), axis=-1)
+
+    def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
+        return _check_rng(rng).uniform(self.lower, self.upper, _shape(shape) + (self.dim,))
+
+    def describe(self) -> dict:
+        return {"type": "UniformBox", "lower": self.lower.tolist(), "upper": self.upper.tolist()}
+
+
+@dataclass(frozen=True, eq=False)
+class PolarVelocityPrior(Noise):
+    """Prior of a constant-velocity state ``[px, vx, py, vy]`` given in polar velocity form.
+
+    Position ~ N(position_mean, position_cov); independently speed ~ N(speed_mean,
+    speed_std^2) and heading ~ N(heading_mean, heading_std^2) (radians from the
+    x axis, on the real line), with ``vx = speed cos(heading)``,
+    ``vy = speed sin(heading)`` (the prior of seed 002, after Dias and Bruno).
+    The density sums every preimage ``(s, a)`` of a velocity (both signs of the
+    speed, headings shifted by multiples of 2 pi) with the Jacobian ``1/|v|``.
+    """
+
+    position_mean: np.ndarray
+    position_cov: np.ndarray
+    speed_mean: float
+    speed_std: float
+    heading_mean: float
+    heading_std: float
+    _pos: Gaussian = field(init=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "_pos", Gaussian(as_vector("position_mean", self.position_mean, 2),
+                                                  self.position_cov))
+        check_positive("speed_std", self.speed_std)
+        check_positive("heading_std", self.heading_std)
+        for name in ("speed_mean", "heading_mean"):
+            as_vector(name, getattr(self, name), 1)
+
+    dim = 4
+
+    @property
+    def mean(self) -> np.ndarray:
+        c = np.exp(-0.5 * self.heading_std**2)
+        vx = self.speed_mean * np.cos(self.heading_mean) * c
+        vy = self.speed_mean * np.sin(self.heading_mean) * c
+        m = self._pos.mean
+        return np.array([m[0], vx, m[1], vy])
+
+    @property
+    def cov(self) -> np.ndarray:
+        s2 = self.speed_mean**2 + self.speed_std**2  # E[s^2]
+        mu, sd = self.heading_mean, self.heading_std
+        e2 = np.exp(-2.0 * sd**2)
+        ecc = 0.5 * (1.0 + np.cos(2 * mu) * e2)  # E[cos^2 a]
+        ess = 0.5 * (1.0 - np.cos(2 * mu) * e2)
+        esc = 0.5 * np.sin(2 * mu) * e2
+        m = self.mean
+        vel = np.array([[s2 * ecc, s2 * esc], [s2 * esc, s2 * ess]]) - np.outer(m[[1, 3]], m[[1, 3]])
+        out = np.zeros((4, 4))
+        out[np.ix_([0, 2], [0, 2])] = self._pos.cov
+        out[np.ix_([1, 3], [1, 3])] = vel
+        return out
+
+    def logpdf(self, x) -> np.ndarray:
+        x = _points(x, 4)
+        lp_pos = self._pos.logpdf(x[..., [0, 2]])
+        r = np.hypot(x[..., 1], x[..., 3])
+        phi = np.arctan2(x[..., 3], x[..., 1])
+        dens = 0.0
+        for sign, shift in ((1.0, 0.0), (-1.0, np.pi)):
+            for n in (-2, -1, 0, 1, 2):
+                dens = dens + stats.norm.pdf(sign * r, self.speed_mean, self.speed_std) * stats.norm.pdf(
+                    phi + shift + 2 * np.pi * n, self.heading_mean, self.heading_std
+                )
+        with np.errstate(divide="ignore"):
+            return lp_pos + np.log(dens) - np.log(r)
+
+    def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
+        shape = _shape(shape)
+        pos = self._pos.sample(_check_rng(rng), shape)
+        s = self.speed_mean + self.speed_std * rng.standard_normal(shape)
+        a = self.heading_mean + self.heading_std * rng.standard_normal(shape)
+        return np.stack([pos[..., 0], s * np.cos(a), pos[..., 1], s * np.sin(a)], axis=-1)
+
+    def describe(self) -> dict:
+        return {"type": "PolarVelocityPrior", "position_mean": self._pos.mean.tolist(),
+                "position_cov": self._pos.cov.tolist(), "speed": [float(self.speed_mean), float(self.speed_std)],
+                "heading": [float(self.heading_mean), float(self.heading_std)]}

@@ -1,0 +1,117 @@
+"""Sampling trajectories of the generative model."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .model import Model
+from .validation import InputError, check_finite
+
+__all__ = ["Trajectory", "simulate"]
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A simulated run (or a batch of runs).
+
+    Attributes
+    ----------
+    x : ndarray, shape (*batch, K + 1, n_x)
+        True states ``x_0 .. x_K``.
+    z : ndarray, shape (*batch, K, n_z)
+        Stacked measurements of all sensors; ``z[..., k, :]`` measures ``x[..., k + 1, :]``.
+    modes : ndarray of int, shape (*batch, K), or None
+        Switching mode used in the transition ``x_k -> x_{k+1}``.
+    inputs : ndarray, shape (K, n_u)
+        Known inputs ``u_0 .. u_{K-1}``.
+    """
+
+    x: np.ndarray
+    z: np.ndarray
+    modes: np.ndarray | None
+    inputs: np.ndarray
+
+    def per_sensor(self, model: Model) -> np.ndarray:
+        """Measurements as ``(*batch, K, n_sensors, max n_z_i)``, padded with NaN."""
+        parts = model.split(self.z)
+        width = max(model.sensor_dims)
+        out = np.full(self.z.shape[:-1] + (model.n_sensors, width), np.nan)
+        for i, p in enumerate(parts):
+            out[..., i, : p.shape[-1]] = p
+        return out
+
+
+def _inputs(model: Model, steps: int, inputs) -> np.ndarray:
+    if model.n_u == 0:
+        if inputs is not None and np.size(inputs) != 0:
+            raise InputError("inputs given but the model has no known inputs")
+        return np.zeros((steps, 0))
+    if inputs is None:
+        raise InputError(f"inputs of shape ({steps}, {model.n_u}) are required by model {model.name!r}")
+    u = check_finite("inputs", inputs)
+    if u.shape != (steps, model.n_u):
+        raise InputError(f"inputs must have shape ({steps}, {model.n_u}), got {u.shape}")
+    return u
+
+
+def simulate(
+    model: Model,
+    steps: int,
+    rng: np.random.Generator,
+    *,
+    batch: tuple[int, ...] | int = (),
+    x0=None,
+    inputs=None,
+) -> Trajectory:
+    """Sample ``steps`` steps of the model.
+
+    Draw order (fixed, so a seed reproduces a run bit for bit): ``x_0`` from the
+    prior (unless given), then at every step the mode, the process noise, and
+    the measurement noise of each sensor in turn.
+
+    Parameters
+    ----------
+    model : Model
+    steps : int
+        Number of transitions ``K >= 1``.
+    rng : numpy.random.Generator
+    batch : int or tuple of int
+        Leading shape for independent runs drawn together.
+    x0 : array_like, shape (n_x,) or (*batch, n_x), optional
+        Initial state; sampled from the prior when omitted.
+    inputs : array_like, shape (K, n_u), optional
+        Known inputs, required when the model has inputs.
+    """
+    if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 1:
+        raise InputError(f"steps must be an integer >= 1, got {steps!r}")
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    batch = (batch,) if isinstance(batch, (int, np.integer)) else tuple(batch)
+    u = _inputs(model, steps, inputs)
+    if x0 is None:
+        x = model.prior.sample(rng, batch)
+    else:
+        x = check_finite("x0", x0)
+        if x.shape[-1:] != (model.n_x,):
+            raise InputError(f"x0 must have shape (..., {model.n_x}), got {x.shape}")
+        x = np.broadcast_to(x, batch + (model.n_x,)).copy()
+    xs = np.empty(batch + (steps + 1, model.n_x))
+    zs = np.empty(batch + (steps, model.n_z))
+    modes = np.empty(batch + (steps,), dtype=int) if model.n_modes else None
+    xs[..., 0, :] = x
+    G = model.noise_gain
+    for k in range(steps):
+        mode = None
+        if modes is not None:
+            mode = rng.choice(model.n_modes, size=batch, p=model.mode_probs)
+            modes[..., k] = mode
+        w = model.process_noise.sample(rng, batch)
+        x = model.f(x, k, u[k], mode) + w @ G.T
+        xs[..., k + 1, :] = x
+        z = model.h_all(x, k + 1)
+        for i, s in enumerate(model.sensors):
+            a, b = model._offsets[i], model._offsets[i + 1]
+            z[..., a:b] += s.noise.sample(rng, batch)
+        zs[..., k, :] = z
+    return Trajectory(xs, zs, modes, u)

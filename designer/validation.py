@@ -1,0 +1,112 @@
+"""Boundary checks shared by every layer.
+
+Every check raises a subclass of ``ValueError`` whose message names the
+offending parameter and the allowed range, so that the command line can turn
+it into a one-line error (exit code 2).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "CfdesignError",
+    "InputError",
+    "ComputationError",
+    "check_probability",
+    "check_finite",
+    "check_shape",
+    "check_covariance",
+    "check_positive",
+    "as_vector",
+]
+
+
+class CfdesignError(Exception):
+    """Base class of every error the package raises on purpose."""
+
+
+class InputError(CfdesignError, ValueError):
+    """A parameter is outside its allowed range, has the wrong shape or type."""
+
+
+class ComputationError(CfdesignError, RuntimeError):
+    """A computation failed or is infeasible (CLI exit code 1)."""
+
+
+def check_finite(name: str, value) -> np.ndarray:
+    """Return ``value`` as a float array, rejecting NaN and infinity."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric: {exc}") from None
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} must be finite (no NaN or inf)")
+    return arr
+
+
+def check_shape(name: str, value, shape: tuple) -> np.ndarray:
+    """Finite float array of exactly ``shape`` (``None`` entries match any size)."""
+    arr = check_finite(name, value)
+    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+    if not ok:
+        want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
+        raise InputError(f"{name} must have shape {want}, got {arr.shape}")
+    return arr
+
+
+def as_vector(name: str, value, dim: int | None = None) -> np.ndarray:
+    """Finite 1-D float vector, of length ``dim`` when given (scalars allowed for dim 1)."""
+    arr = check_finite(name, value)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise InputError(f"{name} must be a vector, got shape {arr.shape}")
+    if dim is not None and arr.shape[0] != dim:
+        raise InputError(f"{name} must have length {dim}, got {arr.shape[0]}")
+    return arr
+
+
+def check_covariance(name: str, value, dim: int | None = None, *, semidefinite: bool = False) -> np.ndarray:
+    """Symmetric positive-definite (or semidefinite) ``dim x dim`` matrix.
+
+    A scalar is accepted for ``dim == 1``; a vector is *not* taken as a diagonal
+    so that a mistaken shape is never silently reinterpreted.
+    """
+    arr = check_finite(name, value)
+    if arr.ndim == 0:
+        arr = arr.reshape(1, 1)
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
+        raise InputError(f"{name} must be a square matrix, got shape {arr.shape}")
+    if dim is not None and arr.shape[0] != dim:
+        raise InputError(f"{name} must be {dim}x{dim}, got {arr.shape[0]}x{arr.shape[1]}")
+    scale = max(1.0, float(np.max(np.abs(arr))))
+    if not np.allclose(arr, arr.T, rtol=0.0, atol=1e-12 * scale):
+        raise InputError(f"{name} must be symmetric")
+    arr = 0.5 * (arr + arr.T)
+    eig_min = float(np.linalg.eigvalsh(arr)[0])
+    if semidefinite:
+        if eig_min < -1e-12 * scale:
+            raise InputError(f"{name} must be positive semidefinite (smallest eigenvalue {eig_min:.3g} < 0)")
+    elif eig_min <= 0.0:
+        raise InputError(f"{name} must be positive definite (smallest eigenvalue {eig_min:.3g} <= 0)")
+    return arr
+
+
+def check_probability(name: str, value, *, open_upper: bool = False) -> np.ndarray:
+    """Probabilities in [0, 1] (or [0, 1) with ``open_upper``)."""
+    arr = check_finite(name, value)
+    bad = (arr < 0.0) | ((arr >= 1.0) if open_upper else (arr > 1.0))
+    if np.any(bad):
+        rng = "[0, 1)" if open_upper else "[0, 1]"
+        raise InputError(f"{name} must lie in {rng}, got {arr[bad].ravel()[0]!r}")
+    return arr
+
+
+def check_positive(name: str, value, *, strict: bool = True) -> np.ndarray:
+    """Positive (or non-negative) finite values."""
+    arr = check_finite(name, value)
+    bad = (arr <= 0.0) if strict else (arr < 0.0)
+    if np.any(bad):
+        rel = "> 0" if strict else ">= 0"
+        raise InputError(f"{name} must be {rel}, got {arr[bad].ravel()[0]!r}")
+    return arr

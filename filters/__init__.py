@@ -1,0 +1,1 @@
+"""Estimators that consume models from :mod:`designer` (consensus EKF, particle filters)."""

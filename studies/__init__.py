@@ -1,0 +1,1 @@
+"""Scenarios, studies, results and the ``cfdesign`` command line."""
