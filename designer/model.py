@@ -81,6 +81,9 @@ def _column(name: str, expr, rows: int | None = None) -> ca.SX:
 
 
 def _function(name: str, inputs, names, outputs, out_names) -> ca.Function:
+    # Common subexpressions (e.g. sin(theta) in every camera) are merged once here,
+    # so that both CasADi and the NumPy translation evaluate them once.
+    outputs = [ca.cse(o) for o in outputs]
     try:
         return ca.Function(name, inputs, outputs, names, out_names)
     except RuntimeError as exc:
@@ -288,6 +291,8 @@ class Model:
         x = np.asarray(x, dtype=np.float64)
         if x.ndim == 0 or x.shape[-1] != self.n_x:
             raise InputError(f"x must have shape (..., {self.n_x}), got {x.shape}")
+        if not np.isfinite(x).all():
+            raise InputError("x must be finite (no NaN or inf states)")
         return x
 
     def _u(self, u) -> np.ndarray:
