@@ -1,0 +1,107 @@
+"""The command line: outputs, reproducibility, exit codes and one-line errors."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studies.cli import main
+from studies.scenarios import SCENARIOS, load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """Run the real console entry point in a subprocess (exit code and streams as a user sees them)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "studies", *args], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=300)
+
+
+def test_scenarios_json_lists_parameters():
+    r = run_cli("scenarios", "--json")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)
+    assert [s["name"] for s in info] == list(SCENARIOS)
+    robot = next(s for s in info if s["name"] == "indoor-robot")
+    assert robot["n_x"] == 3 and robot["sensors"] == 8 and robot["paper"] == "003"
+    params = {p["name"]: p for p in robot["parameters"]}
+    assert params["noise"]["default"] == "realistic" and params["noise"]["choices"] == ["realistic", "paper"]
+    assert params["process_var"]["source"] == "assumption"
+
+
+def test_simulate_writes_states_and_measurements_reproducibly(tmp_path):
+    a, b, c = tmp_path / "a.npz", tmp_path / "b.npz", tmp_path / "c.npz"
+    assert main(["simulate", "target-range-bearing", "--steps", "25", "--seed", "5", "--out", str(a)]) == 0
+    assert main(["simulate", "target-range-bearing", "--steps", "25", "--seed", "5", "--out", str(b)]) == 0
+    assert main(["simulate", "target-range-bearing", "--steps", "25", "--seed", "6", "--out", str(c)]) == 0
+    da, db, dc = np.load(a), np.load(b), np.load(c)
+    assert da["x"].shape == (26, 4) and da["y"].shape == (25, 4, 2)
+    assert np.array_equal(da["x"], db["x"]) and np.array_equal(da["y"], db["y"])
+    assert not np.array_equal(da["y"], dc["y"])
+    # The file is the model's own generative process: y[k] = h(x[k+1]) + noise of the stated size.
+    m = load_scenario("target-range-bearing").model
+    resid = da["z"] - m.h_all(da["x"][1:], 1)
+    assert np.abs(resid[:, 0::2]).max() < 5 * 5.0  # range noise: std <= 5 per component
+    assert str(da["scenario"]) == "target-range-bearing" and int(da["seed"]) == 5
+
+
+def test_simulate_with_override_and_modes(tmp_path):
+    out = tmp_path / "s.npz"
+    assert main(["simulate", "switching-2d", "--steps", "10", "--out", str(out), "--set", "switch_prob=1"]) == 0
+    d = np.load(out)
+    assert np.all(d["modes"] == 1)
+    assert json.loads(str(d["params"]))["switch_prob"] == 1.0
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["simulate", "no-such", "--out", "x.npz"], "unknown scenario"),
+        (["simulate", "indoor-robot", "--set", "process_var=-1", "--out", "x.npz"], "process_var"),
+        (["simulate", "indoor-robot", "--set", "dos_prob=2", "--out", "x.npz"], "dos_prob"),
+        (["simulate", "indoor-robot", "--set", "bogus=1", "--out", "x.npz"], "bogus"),
+        (["simulate", "indoor-robot", "--steps", "0", "--out", "x.npz"], "steps"),
+        (["simulate", "indoor-robot", "--seed", "-3", "--out", "x.npz"], "seed"),
+        (["simulate", "indoor-robot", "--out", "x.txt"], "out"),
+        (["simulate", "indoor-robot", "--steps", "abc", "--out", "x.npz"], "--steps"),
+        (["simulate", "indoor-robot"], "--out"),
+        (["nosuchcommand"], "nosuchcommand"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(tmp_path, args, needle):
+    args = [a if not a.endswith((".npz", ".txt")) else str(tmp_path / a) for a in args]
+    r = run_cli(*args)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert needle in lines[0] and "Traceback" not in r.stderr
+    assert not list(tmp_path.iterdir()), "nothing may be written on bad input"
+
+
+def test_debug_shows_traceback():
+    r = run_cli("--debug", "simulate", "indoor-robot", "--set", "process_var=-1", "--out", "x.npz")
+    assert r.returncode == 2 and "Traceback" in r.stderr
+
+
+def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
+    """A failure while writing leaves the old file intact and no temporary file behind."""
+    from studies import io
+
+    target = tmp_path / "keep.npz"
+    assert main(["simulate", "indoor-robot", "--steps", "3", "--out", str(target)]) == 0
+    before = target.read_bytes()
+
+    def boom(fh, **arrays):
+        fh.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(io.np, "savez_compressed", boom)
+    assert main(["simulate", "indoor-robot", "--steps", "4", "--out", str(target)]) == 1
+    assert target.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.npz"]
