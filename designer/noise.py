@@ -48,8 +48,21 @@ def _points(x, dim: int) -> np.ndarray:
     arr = np.asarray(x, dtype=np.float64)
     if dim == 1 and (arr.ndim == 0 or arr.shape[-1] != 1):
         arr = arr[..., None]
-    if arr.shape[-1] != dim:
+    if arr.ndim == 0 or arr.shape[-1] != dim:
         raise InputError(f"x must have last dimension {dim}, got shape {arr.shape}")
+    return arr
+
+
+def _bound(name: str, value, d: int) -> np.ndarray:
+    """Truncation bound: scalar or length-``d`` vector; +-inf allowed, NaN not."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric: {exc}") from None
+    if arr.ndim == 0:
+        arr = np.full(d, float(arr))
+    if arr.shape != (d,):
+        raise InputError(f"{name} must be a scalar or have length {d}, got shape {arr.shape}")
     return arr
 
 
@@ -199,8 +212,7 @@ class TruncatedGaussian(Noise):
         loc = as_vector("loc", self.loc)
         d = loc.shape[0]
         scale = check_positive("scale", as_vector("scale", self.scale, d))
-        lower = np.asarray(self.lower, dtype=float) * np.ones(d)
-        upper = np.asarray(self.upper, dtype=float) * np.ones(d)
+        lower, upper = (_bound(name, getattr(self, name), d) for name in ("lower", "upper"))
         if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower >= upper):
             raise InputError("lower must be < upper for every component of the truncated Gaussian")
         object.__setattr__(self, "loc", loc)
@@ -309,11 +321,11 @@ class PolarVelocityPrior(Noise):
 
     def __post_init__(self):
         object.__setattr__(self, "_pos", Gaussian(as_vector("position_mean", self.position_mean, 2),
-                                                  self.position_cov))
+                                                  check_covariance("position_cov", self.position_cov, 2)))
+        for name in ("speed_mean", "speed_std", "heading_mean", "heading_std"):
+            object.__setattr__(self, name, float(as_vector(name, getattr(self, name), 1)[0]))
         check_positive("speed_std", self.speed_std)
         check_positive("heading_std", self.heading_std)
-        for name in ("speed_mean", "heading_mean"):
-            as_vector(name, getattr(self, name), 1)
 
     dim = 4
 
@@ -345,11 +357,17 @@ class PolarVelocityPrior(Noise):
         lp_pos = self._pos.logpdf(x[..., [0, 2]])
         r = np.hypot(x[..., 1], x[..., 3])
         phi = np.arctan2(x[..., 3], x[..., 1])
+        # Heading preimages phi + shift + 2 pi n: centre n on the heading mean and
+        # cover at least 8 heading standard deviations on either side.
+        k = int(np.ceil(8.0 * float(self.heading_std) / (2 * np.pi))) + 1
         dens = 0.0
         for sign, shift in ((1.0, 0.0), (-1.0, np.pi)):
-            for n in (-2, -1, 0, 1, 2):
-                dens = dens + stats.norm.pdf(sign * r, self.speed_mean, self.speed_std) * stats.norm.pdf(
-                    phi + shift + 2 * np.pi * n, self.heading_mean, self.heading_std
+            base = phi + shift
+            n0 = np.round((self.heading_mean - base) / (2 * np.pi))
+            p_speed = stats.norm.pdf(sign * r, self.speed_mean, self.speed_std)
+            for n in range(-k, k + 1):
+                dens = dens + p_speed * stats.norm.pdf(
+                    base + 2 * np.pi * (n0 + n), self.heading_mean, self.heading_std
                 )
         with np.errstate(divide="ignore"):
             return lp_pos + np.log(dens) - np.log(r)

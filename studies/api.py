@@ -13,7 +13,7 @@ import numpy as np
 from designer.simulate import Trajectory
 from designer.validation import InputError
 
-from .io import write_npz
+from designer.fileio import write_npz
 from .scenarios import SCENARIOS, load_scenario
 
 __all__ = ["list_scenarios", "simulate_scenario"]

@@ -55,6 +55,79 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignme
     click.echo(f"wrote {out}: x {traj.x.shape}, z {traj.z.shape}")
 
 
+@cli.command("design")
+@click.argument("scenario")
+@click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True,
+              help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: convex tuning")
+@click.option("--steps", type=int, default=None, help="time steps (default: the scenario's)")
+@click.option("--seed", type=int, default=0, show_default=True, help="seed of the simulated run")
+@click.option("--out", required=True, help="output directory (schedule.json, schedule.npz)")
+@click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) (default 0.5/d_max)")
+@click.option("--sigma", type=float, default=None, help="sigma of (26) (default 0.1)")
+@click.option("--beta", type=float, default=None, help="beta of (27) (default 0.1)")
+@click.option("--tau", type=float, default=None, help="consensus gain C = tau Phi_pred (default 0.01)")
+@click.option("--dos", type=float, default=None, help="DoS probability on every channel, in [0, 1)")
+@click.option("--fdi", type=float, default=None, help="FDI probability on every channel, in [0, 1)")
+@click.option("--delta", type=float, default=None, help="bound on the injected signal (default: the scenario's)")
+@click.option("--u-scale", type=float, default=None, help="U = u I, linearisation scaling of f (default 0.01)")
+@click.option("--v-scale", type=float, default=None, help="V = v I, linearisation scaling of h (default 0.1)")
+@click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
+def design_cmd(scenario, mode, steps, seed, out, epsilon, sigma, beta, tau, dos, fdi, delta, u_scale, v_scale,
+               assignments) -> None:
+    """Design the consensus filter of SCENARIO and write its gain schedule to OUT."""
+    from .design import design
+
+    res = design(scenario, out=out, mode=mode, steps=steps, seed=seed, epsilon=epsilon, sigma=sigma, beta=beta,
+                 tau=tau, dos=dos, fdi=fdi, delta=delta, u_scale=u_scale, v_scale=v_scale, assignments=assignments)
+    sch = res.schedule
+    click.echo(f"wrote {out}/schedule.json and schedule.npz: {sch.nodes} nodes, {sch.steps} steps, "
+               f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}")
+    hard = [v for v in sch.violations if v["condition"] in ("(28)", "(29)")]
+    for v in hard:
+        click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "
+                   f"margin {v['margin']:.4g}")
+    n_th2 = len(sch.violations) - len(hard)
+    if n_th2:
+        click.echo(f"  Theorem 2 (mean-square boundedness) not certified at {n_th2} (node, step) pairs")
+    if hard:
+        first = min(hard, key=lambda v: (v["step"], v["node"]))
+        raise ComputationError(
+            f"infeasible design: {len(hard)} violations of (28)-(29); first at node {first['node']}, step "
+            f"{first['step']}, condition {first['condition']}, margin {first['margin']:.4g} (schedule written, "
+            "marked feasible: false)")
+
+
+STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5, "encrypted-switching": 6,
+           "fdi-four-tank": 6, "comparison": 7}
+
+
+@cli.command("study")
+@click.argument("study")
+@click.option("--out", required=True, help="output directory (results.json, figures)")
+@click.option("--runs", type=int, default=500, show_default=True, help="Monte Carlo runs")
+@click.option("--seed", type=int, default=0, show_default=True, help="random seed")
+@click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True)
+@click.option("--quiet", is_flag=True, help="no progress bar")
+@click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
+def study_cmd(study, out, runs, seed, mode, quiet, assignments) -> None:
+    """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
+    if study not in STUDIES:
+        raise InputError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
+    if STUDIES[study] is not None:
+        raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: consensus-robot")
+    from .consensus_robot import run_consensus_robot
+
+    res = run_consensus_robot(out=out, runs=runs, seed=seed, mode=mode, quiet=quiet, assignments=assignments)
+    click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
+    for name, f in res["filters"].items():
+        bc = f["bound_check"]
+        frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
+        click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4f} m, spread {f['node_spread']:.4f} m, "
+                   f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}, "
+                   f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, "
+                   f"exceeded at {frac}")
+
+
 def main(argv=None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)

@@ -91,7 +91,7 @@ def test_debug_shows_traceback():
 
 def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
     """A failure while writing leaves the old file intact and no temporary file behind."""
-    from studies import io
+    from designer import fileio as io
 
     target = tmp_path / "keep.npz"
     assert main(["simulate", "indoor-robot", "--steps", "3", "--out", str(target)]) == 0

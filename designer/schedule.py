@@ -1,0 +1,119 @@
+"""Gain schedules of the consensus filter: the files ``schedule.json`` + ``schedule.npz``.
+
+Schema ``cfdesign.schedule/1`` (see ``shared/DESIGN.md``): ``schedule.json`` holds
+``schema, scenario, mode, nodes, steps, epsilon, feasible, violations, sigma, beta,
+trace_bound`` (nodes x steps; entry k is tr Φ_{k+1|k+1}, ``null`` where Φ is not a
+bound) and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z), ``C`` (nodes,
+steps, n_x, n_x), ``Phi`` (nodes, steps + 1, n_x, n_x; NaN where Φ is not a bound)
+and ``valid`` (nodes, steps + 1).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .fileio import write_json, write_npz
+from .validation import InputError
+
+__all__ = ["SCHEMA", "GainSchedule", "load_schedule"]
+
+SCHEMA = "cfdesign.schedule/1"
+
+
+def _finite_or_none(v: float):
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+@dataclass(frozen=True, eq=False)
+class GainSchedule:
+    """A designed (or replayable) gain schedule with its bound and feasibility record."""
+
+    scenario: str
+    mode: str
+    epsilon: float
+    sigma: np.ndarray  # (nodes, steps)
+    beta: np.ndarray  # (nodes, steps)
+    K: np.ndarray  # (nodes, steps, n_x, n_z)
+    C: np.ndarray  # (nodes, steps, n_x, n_x)
+    Phi: np.ndarray  # (nodes, steps + 1, n_x, n_x), NaN where not a bound
+    valid: np.ndarray  # (nodes, steps + 1) bool
+    violations: list
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def nodes(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.K.shape[1]
+
+    @property
+    def feasible(self) -> bool:
+        return not any(v["condition"] in ("(28)", "(29)") for v in self.violations)
+
+    def trace_bound(self) -> list[list[float | None]]:
+        tr = np.trace(self.Phi[:, 1:], axis1=-2, axis2=-1)
+        return [[_finite_or_none(t) if ok else None for t, ok in zip(row, vrow)]
+                for row, vrow in zip(tr, self.valid[:, 1:])]
+
+    def to_json(self) -> dict:
+        return {
+            "schema": SCHEMA,
+            "scenario": self.scenario,
+            "mode": self.mode,
+            "nodes": self.nodes,
+            "steps": self.steps,
+            "epsilon": self.epsilon,
+            "feasible": self.feasible,
+            "violations": [
+                {**v, "margin": _finite_or_none(v["margin"]),
+                 **({} if np.isfinite(v["margin"]) else {"note": "matrix not numerically positive definite"})}
+                for v in self.violations
+            ],
+            "sigma": self.sigma.tolist(),
+            "beta": self.beta.tolist(),
+            "trace_bound": self.trace_bound(),
+            **self.meta,
+        }
+
+    def write(self, out_dir) -> Path:
+        """Write ``schedule.json`` and ``schedule.npz`` atomically into ``out_dir``."""
+        out_dir = Path(out_dir)
+        write_npz(out_dir / "schedule.npz", K=self.K, C=self.C, Phi=self.Phi, valid=self.valid,
+                  sigma=self.sigma, beta=self.beta)
+        write_json(out_dir / "schedule.json", self.to_json())
+        return out_dir
+
+
+def load_schedule(path) -> GainSchedule:
+    """Load a schedule written by :meth:`GainSchedule.write` (a directory or its ``schedule.json``)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "schedule.json"
+    if not path.is_file():
+        raise InputError(f"schedule {str(path)!r} does not exist")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"schedule {str(path)!r} is not valid JSON: {exc}") from None
+    if meta.get("schema") != SCHEMA:
+        raise InputError(f"schedule {str(path)!r} has schema {meta.get('schema')!r}, expected {SCHEMA!r}")
+    npz_path = path.with_suffix(".npz")
+    if not npz_path.is_file():
+        raise InputError(f"schedule arrays {str(npz_path)!r} are missing")
+    with np.load(npz_path) as d:
+        arrays = {k: d[k] for k in ("K", "C", "Phi", "valid", "sigma", "beta")}
+    known = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
+             "trace_bound"}
+    violations = [{**v, "margin": -np.inf if v["margin"] is None else v["margin"]} for v in meta["violations"]]
+    for v in violations:
+        v.pop("note", None)
+    return GainSchedule(meta["scenario"], meta["mode"], float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
+                        arrays["K"], arrays["C"], arrays["Phi"], arrays["valid"].astype(bool), violations,
+                        {k: v for k, v in meta.items() if k not in known})

@@ -1,0 +1,335 @@
+"""Distributed consensus EKF under DoS and FDI attacks on neighbour channels (seed 003).
+
+Every node ``i`` runs (3) and (7)::
+
+    x_pred_i = f(x_post_i)
+    x_post_i = x_pred_i + K_i [z_i - h_i(x_pred_i)]
+               + C_i sum_{j in N_i} (1 - phi_ij) (x_pred_j + gamma_ij xi_ij - x_pred_i)
+
+with ``F``, ``H_i`` from the model layer's CasADi Jacobians and, along the run,
+the bound recursion (26)-(27), the gain (30) and the conditions (28)-(29) of
+:mod:`designer.bounds`.  The node knows which of its channels were DoS'ed
+(the paper's detector); it cannot tell an FDI'd packet from a clean one.
+
+When (28) or (29) fails at a node, the violation is recorded (node, step,
+condition, margin) and from then on that node runs the fallback recursion
+σ = β = 0, U = V = 0 (the consensus EKF without linearisation multipliers, which
+stays positive definite), with the bounding inflation factors (1 + 2 d_i) and 3 of
+(27) set to 1, so that no indefinite matrix is ever carried on.  Its
+Φ is then *not* a bound, and neither is the Φ of a node whose update used a
+neighbour's non-bound ``Φ_{j,k+1|k}`` in (27): ``valid`` tracks both.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from designer.bounds import (
+    condition29_margin,
+    optimal_gain,
+    prediction_bound,
+    theorem2_margin,
+    update_bound,
+)
+from designer.model import Model
+from designer.network import SensorNetwork
+from designer.validation import ComputationError, InputError, check_covariance, check_finite
+
+__all__ = [
+    "ConsensusDesign", "AttackPattern", "simulate_attacks", "node_predict", "exchange", "node_update",
+    "ConsensusResult", "run_consensus", "validate_design",
+]
+
+
+_DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate
+
+
+class ConsensusDesign(NamedTuple):
+    """Design parameters of the consensus filter.
+
+    ``U`` (n_x x n_x) and ``V`` (n_z x n_z) scale the linearisation remainders
+    ``U Ω e`` and ``V Θ e``; ``C_i = tau Φ_{i,k+1|k}`` (the paper's choice).
+    ``delta`` bounds the injected signal, ``||xi|| <= delta``.
+    """
+
+    epsilon: float
+    sigma: float
+    beta: float
+    tau: float
+    U: np.ndarray
+    V: np.ndarray
+    delta: float
+
+
+class AttackPattern(NamedTuple):
+    """Realised attacks: entry ``[k, i, j]`` concerns the channel j -> i at time k + 1."""
+
+    dos: np.ndarray  # bool (steps, N, N)
+    fdi: np.ndarray  # bool (steps, N, N)
+    xi: np.ndarray  # (steps, N, N, n_x) injected signal (zero where no FDI)
+
+
+def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
+    """Check ranges and shapes; raise :class:`InputError` naming the parameter."""
+    d_max = network.d_max
+    eps = float(design.epsilon)
+    upper = np.inf if d_max == 0 else 1.0 / d_max
+    if not (0.0 < eps < upper):
+        raise InputError(f"epsilon must lie in (0, 1/d_max) = (0, {upper:.6g}), got {eps!r}")
+    for name in ("sigma", "beta", "tau", "delta"):
+        v = getattr(design, name)
+        if not np.isfinite(v) or v < 0:
+            raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if network.n_nodes != model.n_sensors:
+        raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors")
+    if len(set(model.sensor_dims)) != 1:
+        raise InputError("the consensus filter needs every sensor to have the same measurement dimension")
+    for name, p in (("dos probability", network.dos_prob), ("fdi probability", network.fdi_prob)):
+        if np.any(p >= 1.0):
+            raise InputError(f"{name} must lie in [0, 1) on every channel")
+    n_z = model.sensor_dims[0]
+    U = check_finite("U", design.U)
+    V = check_finite("V", design.V)
+    if U.shape != (model.n_x, model.n_x):
+        raise InputError(f"U must have shape ({model.n_x}, {model.n_x}), got {U.shape}")
+    if V.shape != (n_z, n_z):
+        raise InputError(f"V must have shape ({n_z}, {n_z}), got {V.shape}")
+    if design.sigma == 0 and np.any(U):
+        raise InputError("sigma must be > 0 when U is nonzero")
+    if design.beta == 0 and np.any(V):
+        raise InputError("beta must be > 0 when V is nonzero")
+    return design._replace(epsilon=eps, U=U, V=V)
+
+
+def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.random.Generator, *,
+                     amplitude: float, components) -> AttackPattern:
+    """Draw DoS / FDI indicators and the injected signal on every channel and step.
+
+    DoS and FDI are exclusive: with ``u ~ U(0, 1)``, DoS iff ``u < phibar``, FDI iff
+    ``phibar <= u < phibar + gammabar``.  The injected signal is
+    ``xi = amplitude * sin(s)`` on each listed state component, ``s ~ N(0, 1)`` per
+    channel and step (so ``||xi|| <= amplitude * sqrt(len(components))``).
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise InputError("rng must be a numpy.random.Generator")
+    n = network.n_nodes
+    u = rng.random((steps, n, n))
+    s = rng.standard_normal((steps, n, n))
+    adj = network.adjacency[None]
+    dos = adj & (u < network.dos_prob[None])
+    fdi = adj & ~dos & (u < network.dos_prob[None] + network.fdi_prob[None])
+    xi = np.zeros((steps, n, n, n_x))
+    comps = list(components)
+    xi[..., comps] = (amplitude * np.sin(s) * fdi)[..., None]
+    return AttackPattern(dos, fdi, xi)
+
+
+class NodePrediction(NamedTuple):
+    x_pred: np.ndarray
+    phi_pred: np.ndarray
+    margin28: float
+    valid: bool
+
+
+def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDesign, valid: bool) -> NodePrediction:
+    """One node's prediction (3) and its bound (26), checking (28) on ``Φ_{k|k}``."""
+    F = model.F_expected(x_post, k, u)
+    x_pred = model.f_expected(x_post, k, u)
+    Q = model.process_cov
+    if valid:
+        pb = prediction_bound(phi_post, F, design.U, Q, design.sigma, design.epsilon)
+        if pb.phi_pred is not None:
+            return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True)
+        margin = pb.margin28
+    else:
+        margin = np.nan
+    # Fallback (sigma = 0, U = 0): F Φ F^T + Q.
+    phi = F @ phi_post @ F.T + Q
+    return NodePrediction(x_pred, 0.5 * (phi + phi.T), margin, False)
+
+
+def exchange(x_pred: np.ndarray, attacks_k: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+             network: SensorNetwork) -> tuple[np.ndarray, np.ndarray]:
+    """The consensus exchange: what every node receives from its neighbours.
+
+    Returns ``innovation`` (N, n_x), ``sum_j (1 - phi_ij)(x_pred_j + gamma_ij xi_ij - x_pred_i)``,
+    and ``s`` (N,), the number of packets each node received.
+    """
+    n = network.n_nodes
+    adj = network.adjacency
+    if attacks_k is None:
+        recv = adj
+        injected = np.zeros((n, x_pred.shape[1]))
+    else:
+        dos, fdi, xi = attacks_k
+        recv = adj & ~dos
+        injected = np.einsum("ij,ijn->in", recv.astype(float), xi)
+    s = recv.sum(axis=1).astype(float)
+    innovation = recv.astype(float) @ x_pred - s[:, None] * x_pred + injected
+    return innovation, s
+
+
+class NodeUpdate(NamedTuple):
+    x_post: np.ndarray
+    phi_post: np.ndarray
+    K: np.ndarray
+    C: np.ndarray
+    margin29: float
+    valid: bool
+
+
+def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innovation_i, s_i: float,
+                neighbour_terms: np.ndarray, design: ConsensusDesign, d_i: int, gains=None) -> NodeUpdate:
+    """One node's update (7), gain (30) and bound (27), checking (29) on ``Φ_{k+1|k}``.
+
+    ``gains``: an optional ``(K, C)`` pair to replay instead of computing them.
+    """
+    x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
+    H = model.H(i, x_pred, k1)
+    R = model.measurement_cov(i)
+    beta, V = design.beta, design.V
+    margin = condition29_margin(phi_pred, beta) if valid else np.nan
+    if valid and margin <= 0:
+        valid = False
+    if not valid:
+        # Fallback: beta = 0, V = 0 and no bounding inflation ((1 + 2 d_i) -> 1, 3 -> 1): a plain
+        # covariance approximation of the consensus EKF, positive definite and free of inverses.
+        beta, V, d_i, neighbour_terms = 0.0, np.zeros_like(V), 0, neighbour_terms / 3.0
+    if gains is None:
+        C = design.tau * phi_pred
+        K = optimal_gain(phi_pred, H, C, s_i, beta, V, R, d_i)
+    else:
+        K, C = gains
+    phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms)
+    x_post = x_pred + K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + C @ innovation_i
+    return NodeUpdate(x_post, phi_post, K, C, margin, valid)
+
+
+class ConsensusResult(NamedTuple):
+    """A run of the consensus filter over all nodes.
+
+    Φ entries whose ``valid`` flag is False come from the fallback recursion and
+    are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
+    condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
+    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``.
+    """
+
+    x_post: np.ndarray  # (steps+1, N, n_x)
+    x_pred: np.ndarray  # (steps, N, n_x)
+    phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
+    phi_pred: np.ndarray  # (steps, N, n_x, n_x)
+    K: np.ndarray  # (steps, N, n_x, n_z)
+    C: np.ndarray  # (steps, N, n_x, n_x)
+    valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
+    margin28: np.ndarray  # (steps, N)
+    margin29: np.ndarray  # (steps, N)
+    theorem2: np.ndarray  # (steps+1, N)
+    violations: list
+
+    @property
+    def feasible(self) -> bool:
+        return not any(v["condition"] in ("(28)", "(29)") for v in self.violations)
+
+
+def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
+                  inputs=None, attacks: AttackPattern | None = None, x0=None, phi0=None,
+                  gains: tuple[np.ndarray, np.ndarray] | None = None) -> ConsensusResult:
+    """Run the consensus filter at every node over the measurements ``z`` (steps, n_z).
+
+    Parameters
+    ----------
+    model, network : the model (one sensor per node) and the communication graph.
+    z : ndarray, shape (steps, n_z)
+        Stacked measurements; ``z[k]`` measures ``x_{k+1}``.
+    design : ConsensusDesign
+    inputs : ndarray, shape (steps, n_u), optional
+    attacks : AttackPattern, optional
+        Realised channel attacks (none when omitted).
+    x0, phi0 : initial estimate and ``Φ_{0|0}`` (default: the prior's mean and covariance).
+    gains : (K, C) arrays of shape (steps, N, ...), optional
+        Replay a fixed gain schedule instead of computing the gains.
+    """
+    design = validate_design(design, model, network)
+    z = check_finite("z", z)
+    steps = z.shape[0]
+    if z.ndim != 2 or z.shape[1] != model.n_z:
+        raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
+    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
+    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
+    phi0 = check_covariance("phi0", model.prior.cov if phi0 is None else phi0, model.n_x)
+    n, nx, nz = network.n_nodes, model.n_x, model.sensor_dims[0]
+    d = network.degrees
+    d_max = network.d_max
+    zs = [model.split(z[k]) for k in range(steps)]
+    # Weights of the neighbour terms in (27): 3 (1 - phibar_ij) and 3 delta^2 gammabar_ij.
+    w_phi = 3.0 * (1.0 - network.dos_prob) * network.adjacency
+    w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+
+    x_post = np.empty((steps + 1, n, nx))
+    x_pred = np.empty((steps, n, nx))
+    phi_post = np.empty((steps + 1, n, nx, nx))
+    phi_pred = np.empty((steps, n, nx, nx))
+    K = np.empty((steps, n, nx, nz))
+    C = np.empty((steps, n, nx, nx))
+    valid = np.zeros((steps + 1, n), dtype=bool)  # phi_post[k, i] is a bound
+    proper = np.ones(n, dtype=bool)  # node still runs Theorem 1's recursion (no violation yet)
+    m28 = np.full((steps, n), np.nan)
+    m29 = np.full((steps, n), np.nan)
+    th2 = np.full((steps + 1, n), np.nan)
+    violations: list[dict] = []
+    x_post[0] = x0
+    phi_post[0] = phi0
+    valid[0] = gains is None
+    th2[0] = theorem2_margin(phi0, design.sigma, d_max)
+    if gains is None and th2[0, 0] < 0:
+        violations += [{"node": i, "step": 0, "condition": "theorem2", "margin": float(th2[0, i])} for i in range(n)]
+
+    for k in range(steps):
+        preds = []
+        for i in range(n):
+            p = node_predict(model, x_post[k, i], phi_post[k, i], k, u[k], design, bool(proper[i] and gains is None))
+            preds.append(p)
+            x_pred[k, i], phi_pred[k, i], m28[k, i] = p.x_pred, p.phi_pred, p.margin28
+            if proper[i] and gains is None and not p.valid:
+                if k == 0:
+                    lam = float(np.linalg.eigvalsh(phi0)[-1])
+                    raise InputError(
+                        f"sigma must satisfy (28) at the first step: sigma < 1/((1+epsilon) lambda_max(Phi_0|0)) = "
+                        f"{1.0 / ((1.0 + design.epsilon) * lam):.6g}, got {design.sigma!r}")
+                proper[i] = False
+                violations.append({"node": i, "step": k, "condition": "(28)", "margin": float(p.margin28)})
+        # A predicted Φ is a bound when the node's recursion is proper and its Φ_{k|k} was a bound.
+        pred_ok = np.array([p.valid for p in preds]) & valid[k]
+        att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
+        innovation, s = exchange(x_pred[k], att, network)
+        neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
+        for i in range(n):
+            g = None if gains is None else (gains[0][k, i], gains[1][k, i])
+            try:
+                upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
+                                  int(d[i]), g)
+            except np.linalg.LinAlgError as exc:
+                raise ComputationError(f"consensus filter broke down at node {i}, step {k + 1}: {exc}") from None
+            if not (np.all(np.isfinite(upd.x_post)) and np.all(np.isfinite(upd.phi_post))
+                    and np.abs(upd.x_post).max() < _DIVERGED):
+                raise ComputationError(
+                    f"consensus filter diverged at node {i}, step {k + 1} (estimate or covariance beyond "
+                    f"{_DIVERGED:g} or not finite)")
+            x_post[k + 1, i], phi_post[k + 1, i], K[k, i], C[k, i] = upd.x_post, upd.phi_post, upd.K, upd.C
+            m29[k, i] = upd.margin29
+            if preds[i].valid and not upd.valid:
+                if k == 0:
+                    lam = float(np.linalg.eigvalsh(phi_pred[0, i])[-1])
+                    raise InputError(
+                        f"beta must satisfy (29) at the first step: beta < 1/lambda_max(Phi_1|0) = {1.0 / lam:.6g} "
+                        f"at node {i}, got {design.beta!r}")
+                proper[i] = False
+                violations.append({"node": i, "step": k + 1, "condition": "(29)", "margin": float(upd.margin29)})
+            valid[k + 1, i] = upd.valid and pred_ok[i] and all(pred_ok[j] for j in network.neighbours[i])
+            if upd.valid:
+                th2[k + 1, i] = theorem2_margin(upd.phi_post, design.sigma, d_max)
+                if th2[k + 1, i] < 0:
+                    violations.append({"node": i, "step": k + 1, "condition": "theorem2",
+                                       "margin": float(th2[k + 1, i])})
+    return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations)
