@@ -55,7 +55,7 @@ class GainSchedule:
 
     @property
     def feasible(self) -> bool:
-        return not any(v["condition"] in ("(28)", "(29)") for v in self.violations)
+        return not any(v["condition"] in ("(28)", "(29)", "diverged") for v in self.violations)
 
     def trace_bound(self) -> list[list[float | None]]:
         tr = np.trace(self.Phi[:, 1:], axis1=-2, axis2=-1)
@@ -73,7 +73,8 @@ class GainSchedule:
             "feasible": self.feasible,
             "violations": [
                 {**v, "margin": _finite_or_none(v["margin"]),
-                 **({} if np.isfinite(v["margin"]) else {"note": "matrix not numerically positive definite"})}
+                 **({} if np.isfinite(v["margin"]) or "reason" in v
+                    else {"note": "matrix not numerically positive definite"})}
                 for v in self.violations
             ],
             "sigma": self.sigma.tolist(),

@@ -34,14 +34,15 @@ from designer.bounds import (
 )
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.validation import ComputationError, InputError, check_covariance, check_finite
+from designer.validation import InputError, check_covariance, check_finite
 
 __all__ = [
     "ConsensusDesign", "AttackPattern", "simulate_attacks", "node_predict", "exchange", "node_update",
-    "ConsensusResult", "run_consensus", "validate_design",
+    "ConsensusResult", "run_consensus", "validate_design", "HARD_CONDITIONS",
 ]
 
 
+HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
 _DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate
 
 
@@ -212,7 +213,9 @@ class ConsensusResult(NamedTuple):
     Φ entries whose ``valid`` flag is False come from the fallback recursion and
     are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
     condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
-    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``.
+    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``; ``'diverged'``
+    (with a ``reason``) when a node's estimate or covariance left finite numbers: the run
+    stops there and every array is NaN from that step on.
     """
 
     x_post: np.ndarray  # (steps+1, N, n_x)
@@ -229,7 +232,12 @@ class ConsensusResult(NamedTuple):
 
     @property
     def feasible(self) -> bool:
-        return not any(v["condition"] in ("(28)", "(29)") for v in self.violations)
+        return not any(v["condition"] in HARD_CONDITIONS for v in self.violations)
+
+    @property
+    def diverged(self) -> dict | None:
+        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
 
 
 def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
@@ -266,12 +274,12 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     w_phi = 3.0 * (1.0 - network.dos_prob) * network.adjacency
     w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
 
-    x_post = np.empty((steps + 1, n, nx))
-    x_pred = np.empty((steps, n, nx))
-    phi_post = np.empty((steps + 1, n, nx, nx))
-    phi_pred = np.empty((steps, n, nx, nx))
-    K = np.empty((steps, n, nx, nz))
-    C = np.empty((steps, n, nx, nx))
+    x_post = np.full((steps + 1, n, nx), np.nan)
+    x_pred = np.full((steps, n, nx), np.nan)
+    phi_post = np.full((steps + 1, n, nx, nx), np.nan)
+    phi_pred = np.full((steps, n, nx, nx), np.nan)
+    K = np.full((steps, n, nx, nz), np.nan)
+    C = np.full((steps, n, nx, nx), np.nan)
     valid = np.zeros((steps + 1, n), dtype=bool)  # phi_post[k, i] is a bound
     proper = np.ones(n, dtype=bool)  # node still runs Theorem 1's recursion (no violation yet)
     m28 = np.full((steps, n), np.nan)
@@ -306,16 +314,27 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
         for i in range(n):
             g = None if gains is None else (gains[0][k, i], gains[1][k, i])
+            failure = None
             try:
                 upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
                                   int(d[i]), g)
             except np.linalg.LinAlgError as exc:
-                raise ComputationError(f"consensus filter broke down at node {i}, step {k + 1}: {exc}") from None
-            if not (np.all(np.isfinite(upd.x_post)) and np.all(np.isfinite(upd.phi_post))
-                    and np.abs(upd.x_post).max() < _DIVERGED):
-                raise ComputationError(
-                    f"consensus filter diverged at node {i}, step {k + 1} (estimate or covariance beyond "
-                    f"{_DIVERGED:g} or not finite)")
+                failure = f"numerical breakdown: {exc}"
+            else:
+                if not (np.all(np.isfinite(upd.x_post)) and np.all(np.isfinite(upd.phi_post))
+                        and np.abs(upd.x_post).max() < _DIVERGED):
+                    failure = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+            if failure is not None:
+                # Stop here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
+                violations.append({"node": i, "step": k + 1, "condition": "diverged", "margin": -np.inf,
+                                   "reason": failure})
+                for arr in (x_post, phi_post):
+                    arr[k + 1:] = np.nan
+                for arr in (x_pred, phi_pred, K, C):
+                    arr[k + 1:] = np.nan
+                K[k], C[k] = np.nan, np.nan
+                valid[k + 1:] = False
+                return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations)
             x_post[k + 1, i], phi_post[k + 1, i], K[k, i], C[k, i] = upd.x_post, upd.phi_post, upd.K, upd.C
             m29[k, i] = upd.margin29
             if preds[i].valid and not upd.valid:

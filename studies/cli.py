@@ -82,19 +82,20 @@ def design_cmd(scenario, mode, steps, seed, out, epsilon, sigma, beta, tau, dos,
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json and schedule.npz: {sch.nodes} nodes, {sch.steps} steps, "
                f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}")
-    hard = [v for v in sch.violations if v["condition"] in ("(28)", "(29)")]
+    hard = [v for v in sch.violations if v["condition"] in ("(28)", "(29)", "diverged")]
     for v in hard:
         click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "
-                   f"margin {v['margin']:.4g}")
+                   + (v["reason"] if "reason" in v else f"margin {v['margin']:.4g}"))
     n_th2 = len(sch.violations) - len(hard)
     if n_th2:
         click.echo(f"  Theorem 2 (mean-square boundedness) not certified at {n_th2} (node, step) pairs")
     if hard:
         first = min(hard, key=lambda v: (v["step"], v["node"]))
         raise ComputationError(
-            f"infeasible design: {len(hard)} violations of (28)-(29); first at node {first['node']}, step "
-            f"{first['step']}, condition {first['condition']}, margin {first['margin']:.4g} (schedule written, "
-            "marked feasible: false)")
+            f"infeasible design: {len(hard)} violations of (28)-(29) or divergence; first at node {first['node']}, "
+            f"step {first['step']}, condition {first['condition']}, "
+            + (first["reason"] if "reason" in first else f"margin {first['margin']:.4g}")
+            + " (schedule written, marked feasible: false)")
 
 
 STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5, "encrypted-switching": 6,

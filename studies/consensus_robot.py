@@ -22,7 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from designer.fileio import atomic_write, write_json
-from designer.validation import ComputationError, InputError
+from designer.validation import InputError
 from filters.consensus import run_consensus, simulate_attacks
 
 from .design import DESIGN_ASSUMPTIONS, consensus_design
@@ -151,13 +151,13 @@ def run_consensus_robot(
         for name, des in variants.items():
             st = store[name]
             t = time.perf_counter()
-            try:
-                res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=att)
-            except ComputationError as exc:
-                st["failed"].append({"run": r, "seed": seed, "spawn_key": list(children[r].spawn_key),
-                                     "error": str(exc)})
-                continue
+            res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=att)
             st["time"] += time.perf_counter() - t
+            if res.diverged is not None:
+                dv = res.diverged
+                st["failed"].append({"run": r, "seed": seed, "spawn_key": list(children[r].spawn_key),
+                                     "node": dv["node"], "step": dv["step"], "error": dv["reason"]})
+                continue
             st["err"][r] = traj.x[:, None, :] - res.x_post
             st["phi"][r] = res.phi_post
             st["valid"][r] = res.valid
@@ -183,7 +183,7 @@ def run_consensus_robot(
             "nodes": [{"node": i, "rmse_position": float(np.sqrt(e2[:, :, i].sum(-1).mean())),
                        "rmse_position_curve": [float(v) for v in node_curve[:, i]]} for i in range(n)],
             "node_spread": float(spread),
-            "time_per_step_s": st["time"] / max(n_ok, 1) / steps,
+            "time_per_step_s": st["time"] / runs / steps,
             "communications": int(2 * len(net.edges)),
             "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]),
             "feasibility": {
@@ -193,7 +193,8 @@ def run_consensus_robot(
                 "first_violation_step_min": int(min(fv)) if fv else None,
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
             },
-            "failed_runs": st["failed"],
+            "diverged_runs": st["failed"],
+            "diverged_fraction": len(st["failed"]) / runs,
             "design": {"epsilon": variants[name].epsilon, "sigma": variants[name].sigma, "beta": variants[name].beta,
                        "tau": variants[name].tau, "delta": variants[name].delta,
                        "U": variants[name].U.tolist(), "V": variants[name].V.tolist()},
