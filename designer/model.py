@@ -382,6 +382,26 @@ class Model:
         i = self._sensor(i)
         return self.sensors[i].noise.logpdf(np.asarray(z, dtype=float) - self.h(i, x, k))
 
+    def with_stacked_sensors(self, name: str = "all") -> "Model":
+        """The same model with one sensor that stacks every sensor (a centralized observer).
+
+        Requires Gaussian measurement noises (their block-diagonal joint is Gaussian).
+        """
+        from scipy.linalg import block_diag
+
+        from .noise import Gaussian
+
+        if not all(isinstance(s.noise, Gaussian) for s in self.sensors):
+            raise InputError("stacking sensors needs Gaussian measurement noise at every sensor")
+        noise = Gaussian(np.concatenate([s.noise.mean for s in self.sensors]),
+                         block_diag(*[s.noise.cov for s in self.sensors]))
+        h = ca.vertcat(*[s.h for s in self.sensors])
+        return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise)], self.process_noise,
+                     self.prior, k=self.k, u=self.u if self.n_u else None, mode=self.mode if self.n_modes else None,
+                     mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
+                     position_index=self.position_index, velocity_index=self.velocity_index,
+                     description=self.description)
+
     def describe(self) -> dict:
         """A JSON-ready description of the model."""
         return {

@@ -77,8 +77,8 @@ class GainSchedule:
                     else {"note": "matrix not numerically positive definite"})}
                 for v in self.violations
             ],
-            "sigma": self.sigma.tolist(),
-            "beta": self.beta.tolist(),
+            "sigma": [[_finite_or_none(v) for v in row] for row in self.sigma],  # null: fallback, no σ
+            "beta": [[_finite_or_none(v) for v in row] for row in self.beta],
             "trace_bound": self.trace_bound(),
             **self.meta,
         }

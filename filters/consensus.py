@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.bounds import (
+    condition28_margin,
     condition29_margin,
     optimal_gain,
     prediction_bound,
@@ -34,6 +35,7 @@ from designer.bounds import (
 )
 from designer.model import Model
 from designer.network import SensorNetwork
+from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite
 
 __all__ = [
@@ -51,7 +53,10 @@ class ConsensusDesign(NamedTuple):
 
     ``U`` (n_x x n_x) and ``V`` (n_z x n_z) scale the linearisation remainders
     ``U Ω e`` and ``V Θ e``; ``C_i = tau Φ_{i,k+1|k}`` (the paper's choice).
-    ``delta`` bounds the injected signal, ``||xi|| <= delta``.
+    ``delta`` bounds the injected signal, ``||xi|| <= delta``.  In ``'tuned'`` mode,
+    ``sigma``, ``beta`` and ``tau`` are not used: σ, β, C and K come from the convex
+    tuning layer (:mod:`designer.tuning`) at every node and step, with (28)-(29)
+    kept at the relative margin ``designer.tuning.MARGIN``.
     """
 
     epsilon: float
@@ -61,6 +66,7 @@ class ConsensusDesign(NamedTuple):
     U: np.ndarray
     V: np.ndarray
     delta: float
+    mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
 
 
 class AttackPattern(NamedTuple):
@@ -82,6 +88,8 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         v = getattr(design, name)
         if not np.isfinite(v) or v < 0:
             raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if design.mode not in ("paper", "tuned"):
+        raise InputError(f"mode must be 'paper' or 'tuned', got {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors")
     if len(set(model.sensor_dims)) != 1:
@@ -131,6 +139,7 @@ class NodePrediction(NamedTuple):
     phi_pred: np.ndarray
     margin28: float
     valid: bool
+    sigma: float = np.nan
 
 
 def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDesign, valid: bool) -> NodePrediction:
@@ -138,10 +147,15 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     F = model.F_expected(x_post, k, u)
     x_pred = model.f_expected(x_post, k, u)
     Q = model.process_cov
-    if valid:
+    if valid and design.mode == "tuned":
+        choice = tune_prediction(phi_post, F, design.U, Q, design.epsilon)
+        margin = condition28_margin(phi_post, choice.sigma, design.epsilon)
+        if margin > 0:
+            return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma)
+    elif valid:
         pb = prediction_bound(phi_post, F, design.U, Q, design.sigma, design.epsilon)
         if pb.phi_pred is not None:
-            return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True)
+            return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True, design.sigma)
         margin = pb.margin28
     else:
         margin = np.nan
@@ -165,7 +179,7 @@ def exchange(x_pred: np.ndarray, attacks_k: tuple[np.ndarray, np.ndarray, np.nda
     else:
         dos, fdi, xi = attacks_k
         recv = adj & ~dos
-        injected = np.einsum("ij,ijn->in", recv.astype(float), xi)
+        injected = np.einsum("ij,ijn->in", (recv & fdi).astype(float), xi)
     s = recv.sum(axis=1).astype(float)
     innovation = recv.astype(float) @ x_pred - s[:, None] * x_pred + injected
     return innovation, s
@@ -178,6 +192,7 @@ class NodeUpdate(NamedTuple):
     C: np.ndarray
     margin29: float
     valid: bool
+    beta: float = np.nan
 
 
 def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innovation_i, s_i: float,
@@ -190,7 +205,15 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     H = model.H(i, x_pred, k1)
     R = model.measurement_cov(i)
     beta, V = design.beta, design.V
-    margin = condition29_margin(phi_pred, beta) if valid else np.nan
+    if valid and design.mode == "tuned" and gains is None:
+        choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms)
+        margin = condition29_margin(phi_pred, choice.beta)
+        if margin > 0:
+            x_post = x_pred + choice.K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + choice.C @ innovation_i
+            return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta)
+        valid = False  # the tuned beta is inside (29) by construction; reaching here means Φ_pred broke down
+    else:
+        margin = condition29_margin(phi_pred, beta) if valid else np.nan
     if valid and margin <= 0:
         valid = False
     if not valid:
@@ -204,7 +227,7 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
         K, C = gains
     phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms)
     x_post = x_pred + K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + C @ innovation_i
-    return NodeUpdate(x_post, phi_post, K, C, margin, valid)
+    return NodeUpdate(x_post, phi_post, K, C, margin, valid, beta if valid else np.nan)
 
 
 class ConsensusResult(NamedTuple):
@@ -229,6 +252,8 @@ class ConsensusResult(NamedTuple):
     margin29: np.ndarray  # (steps, N)
     theorem2: np.ndarray  # (steps+1, N)
     violations: list
+    sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
+    beta: np.ndarray  # (steps, N) β used in (27)
 
     @property
     def feasible(self) -> bool:
@@ -264,7 +289,11 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     if z.ndim != 2 or z.shape[1] != model.n_z:
         raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
     u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
+    if u.ndim != 2 or u.shape[0] != steps:
+        raise InputError(f"inputs must have shape ({steps}, n_u), one row per step, got {u.shape}")
     x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
+    if x0.shape != (model.n_x,):
+        raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
     phi0 = check_covariance("phi0", model.prior.cov if phi0 is None else phi0, model.n_x)
     n, nx, nz = network.n_nodes, model.n_x, model.sensor_dims[0]
     d = network.degrees
@@ -289,18 +318,27 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     x_post[0] = x0
     phi_post[0] = phi0
     valid[0] = gains is None
-    th2[0] = theorem2_margin(phi0, design.sigma, d_max)
-    if gains is None and th2[0, 0] < 0:
-        violations += [{"node": i, "step": 0, "condition": "theorem2", "margin": float(th2[0, i])} for i in range(n)]
+    sig = np.full((steps, n), np.nan)
+    bet = np.full((steps, n), np.nan)
+
+    def check_theorem2(k, i, sigma):
+        th2[k, i] = theorem2_margin(phi_post[k, i], sigma, d_max)
+        if th2[k, i] < 0:
+            violations.append({"node": i, "step": k, "condition": "theorem2", "margin": float(th2[k, i])})
+
+    def result():
+        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
 
     for k in range(steps):
         preds = []
         for i in range(n):
             p = node_predict(model, x_post[k, i], phi_post[k, i], k, u[k], design, bool(proper[i] and gains is None))
             preds.append(p)
-            x_pred[k, i], phi_pred[k, i], m28[k, i] = p.x_pred, p.phi_pred, p.margin28
+            x_pred[k, i], phi_pred[k, i], m28[k, i], sig[k, i] = p.x_pred, p.phi_pred, p.margin28, p.sigma
+            if p.valid:
+                check_theorem2(k, i, p.sigma)
             if proper[i] and gains is None and not p.valid:
-                if k == 0:
+                if k == 0 and design.mode == "paper":
                     lam = float(np.linalg.eigvalsh(phi0)[-1])
                     raise InputError(
                         f"sigma must satisfy (28) at the first step: sigma < 1/((1+epsilon) lambda_max(Phi_0|0)) = "
@@ -334,11 +372,11 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                     arr[k + 1:] = np.nan
                 K[k], C[k] = np.nan, np.nan
                 valid[k + 1:] = False
-                return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations)
+                return result()
             x_post[k + 1, i], phi_post[k + 1, i], K[k, i], C[k, i] = upd.x_post, upd.phi_post, upd.K, upd.C
-            m29[k, i] = upd.margin29
+            m29[k, i], bet[k, i] = upd.margin29, upd.beta
             if preds[i].valid and not upd.valid:
-                if k == 0:
+                if k == 0 and design.mode == "paper":
                     lam = float(np.linalg.eigvalsh(phi_pred[0, i])[-1])
                     raise InputError(
                         f"beta must satisfy (29) at the first step: beta < 1/lambda_max(Phi_1|0) = {1.0 / lam:.6g} "
@@ -346,9 +384,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 proper[i] = False
                 violations.append({"node": i, "step": k + 1, "condition": "(29)", "margin": float(upd.margin29)})
             valid[k + 1, i] = upd.valid and pred_ok[i] and all(pred_ok[j] for j in network.neighbours[i])
-            if upd.valid:
-                th2[k + 1, i] = theorem2_margin(upd.phi_post, design.sigma, d_max)
-                if th2[k + 1, i] < 0:
-                    violations.append({"node": i, "step": k + 1, "condition": "theorem2",
-                                       "margin": float(th2[k + 1, i])})
-    return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations)
+    for i in range(n):  # Φ_{K|K} against the last σ the node used
+        if valid[steps, i]:
+            check_theorem2(steps, i, sig[steps - 1, i])
+    return result()

@@ -122,6 +122,9 @@ def study_cmd(study, out, runs, seed, mode, quiet, assignments) -> None:
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         bc = f["bound_check"]
+        if bc is None:
+            click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4f} m")
+            continue
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
         click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4f} m, spread {f['node_spread']:.4f} m, "
                    f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}, "

@@ -17,13 +17,15 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
 from designer.fileio import atomic_write, write_json
 from designer.validation import InputError
-from filters.consensus import run_consensus, simulate_attacks
+from designer.model import Model
+from designer.network import SensorNetwork
+from filters.consensus import ConsensusDesign, run_consensus, simulate_attacks
 
 from .design import DESIGN_ASSUMPTIONS, consensus_design
 from .scenarios import load_scenario
@@ -105,6 +107,44 @@ def _progress(iterable, total: int, quiet: bool, desc: str):
     return tqdm(iterable, total=total, desc=desc, leave=False)
 
 
+class _Variant(NamedTuple):
+    model: Model
+    network: SensorNetwork
+    design: ConsensusDesign
+    consensus: bool  # runs on the camera network under the channel attacks
+    family: str
+    communications: int = 0  # messages per step for the non-consensus baselines
+
+
+def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict[str, _Variant]:
+    """The filters compared on the same runs.
+
+    Baselines (no bound, no attacks on them since they use no neighbour channel): a
+    local EKF at every camera (isolated nodes) and a centralized EKF with all cameras
+    (one node whose sensor stacks all of them; every camera sends its measurement to
+    the centre each step).  Both are the consensus filter with σ = β = 0, U = V = 0
+    and no neighbours, which is exactly the EKF (tested against FilterPy).
+    """
+    m, net = sc.model, sc.network
+    n = net.n_nodes
+    ekf = paper._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(paper.U), V=np.zeros_like(paper.V),
+                         epsilon=0.5, mode="paper")
+    out = {}
+    if tuned is not None:
+        out["consensus-EKF (tuned)"] = _Variant(m, net, tuned, True, "consensus")
+    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus")
+    if tuned is None:
+        out["consensus-EKF (paper, tau=0, no consensus)"] = _Variant(m, net, paper._replace(tau=0.0), True,
+                                                                      "consensus")
+    isolated = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
+    out["local EKF per camera"] = _Variant(m, isolated, ekf, False, "local", 0)
+    stacked = m.with_stacked_sensors()
+    ekf1 = ekf._replace(V=np.zeros((stacked.n_z, stacked.n_z)))
+    out["centralized EKF (all cameras)"] = _Variant(stacked, SensorNetwork(1, np.zeros((1, 1), int)), ekf1, False,
+                                                    "centralized", n)
+    return out
+
+
 def run_consensus_robot(
     *,
     out: str | Path | None,
@@ -117,8 +157,8 @@ def run_consensus_robot(
     design_options: Mapping[str, Any] | None = None,
 ) -> dict:
     """Run the study and write ``results.json`` and the figures into ``out``."""
-    if mode != "paper":
-        raise InputError("mode 'tuned' needs the convex tuning layer, which is not built yet; use --mode paper")
+    if mode not in ("paper", "tuned"):
+        raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 2:
         raise InputError(f"runs must be an integer >= 2, got {runs!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -126,19 +166,18 @@ def run_consensus_robot(
     t_start = time.perf_counter()
     sc = load_scenario("indoor-robot", overrides, assignments)
     m, net = sc.model, sc.network
-    base = consensus_design(sc, **dict(design_options or {}))
-    variants = {
-        f"consensus-EKF (paper, tau={base.tau:g})": base,
-        "consensus-EKF (paper, tau=0, no consensus)": base._replace(tau=0.0),
-    }
-    steps, n, nx = sc.steps, net.n_nodes, m.n_x
+    opts = dict(design_options or {})
+    paper = consensus_design(sc, **opts)
+    variants = _variants(sc, paper, consensus_design(sc, mode="tuned", **opts) if mode == "tuned" else None)
+    steps, nx = sc.steps, m.n_x
     comps = sc.extras["attack_components"]
-    amp = base.delta / np.sqrt(len(comps))
+    amp = paper.delta / np.sqrt(len(comps))
     children = np.random.SeedSequence(seed).spawn(runs)
     truth = np.empty((runs, steps + 1, nx))
-    store = {name: {"err": np.full((runs, steps + 1, n, nx), np.nan), "phi": np.zeros((runs, steps + 1, n, nx, nx)),
-                    "valid": np.zeros((runs, steps + 1, n), bool), "time": 0.0, "failed": [],
-                    "first_violation": [], "feasible_runs": 0} for name in variants}
+    store = {name: {"err": np.full((runs, steps + 1, v.network.n_nodes, nx), np.nan),
+                    "phi": np.zeros((runs, steps + 1, v.network.n_nodes, nx, nx)),
+                    "valid": np.zeros((runs, steps + 1, v.network.n_nodes), bool), "time": 0.0, "failed": [],
+                    "first_violation": [], "feasible_runs": 0} for name, v in variants.items()}
     attacks0 = None
     est0 = {}
     for r in _progress(range(runs), runs, quiet, "consensus-robot"):
@@ -148,10 +187,11 @@ def run_consensus_robot(
         truth[r] = traj.x
         if r == 0:
             attacks0 = att
-        for name, des in variants.items():
+        for name, v in variants.items():
             st = store[name]
             t = time.perf_counter()
-            res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=att)
+            res = run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs,
+                                attacks=att if v.consensus else None)
             st["time"] += time.perf_counter() - t
             if res.diverged is not None:
                 dv = res.diverged
@@ -161,7 +201,7 @@ def run_consensus_robot(
             st["err"][r] = traj.x[:, None, :] - res.x_post
             st["phi"][r] = res.phi_post
             st["valid"][r] = res.valid
-            hard = [v["step"] for v in res.violations if v["condition"] in ("(28)", "(29)")]
+            hard = [x["step"] for x in res.violations if x["condition"] in ("(28)", "(29)")]
             st["first_violation"].append(min(hard) if hard else None)
             st["feasible_runs"] += not hard
             if r == 0:
@@ -169,35 +209,37 @@ def run_consensus_robot(
     pos = list(m.position_index)
     filters = {}
     for name, st in store.items():
+        v = variants[name]
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         err = st["err"][ok][:, 1:]  # steps 1..K
         e2 = err[..., pos] ** 2
         node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
         spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
-        fv = [v for v in st["first_violation"] if v is not None]
+        fv = [x for x in st["first_violation"] if x is not None]
         n_ok = int(ok.sum())
+        des = v.design
         filters[name] = {
+            "family": v.family,
             "rmse_position": float(np.sqrt(e2.sum(-1).mean())),
-            "rmse_state": [float(v) for v in np.sqrt((err**2).mean(axis=(0, 1, 2)))],
-            "rmse_position_curve": [float(v) for v in np.sqrt(e2.sum(-1).mean(axis=(0, 2)))],
+            "rmse_state": [float(x) for x in np.sqrt((err**2).mean(axis=(0, 1, 2)))],
+            "rmse_position_curve": [float(x) for x in np.sqrt(e2.sum(-1).mean(axis=(0, 2)))],
             "nodes": [{"node": i, "rmse_position": float(np.sqrt(e2[:, :, i].sum(-1).mean())),
-                       "rmse_position_curve": [float(v) for v in node_curve[:, i]]} for i in range(n)],
+                       "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
             "node_spread": float(spread),
             "time_per_step_s": st["time"] / runs / steps,
-            "communications": int(2 * len(net.edges)),
-            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]),
+            "communications": int(2 * len(v.network.edges)) if v.consensus else v.communications,
+            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]) if v.consensus else None,
             "feasibility": {
                 "runs_feasible": st["feasible_runs"],
                 "runs": n_ok,
                 "first_violation_step_median": float(np.median(fv)) if fv else None,
                 "first_violation_step_min": int(min(fv)) if fv else None,
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
-            },
+            } if v.consensus else None,
             "diverged_runs": st["failed"],
             "diverged_fraction": len(st["failed"]) / runs,
-            "design": {"epsilon": variants[name].epsilon, "sigma": variants[name].sigma, "beta": variants[name].beta,
-                       "tau": variants[name].tau, "delta": variants[name].delta,
-                       "U": variants[name].U.tolist(), "V": variants[name].V.tolist()},
+            "design": {"mode": des.mode, "epsilon": des.epsilon, "sigma": des.sigma, "beta": des.beta,
+                       "tau": des.tau, "delta": des.delta, "U": des.U.tolist(), "V": des.V.tolist()},
         }
     results = {
         "schema": SCHEMA,
@@ -284,9 +326,10 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     ax.legend(fontsize=7, ncol=2, loc="upper left")
     _save(fig, out / "fig_trajectories.png")
 
-    # Fig. 5: per-node RMSE.
-    fig, axes = plt.subplots(1, len(filters), figsize=(11, 4), sharey=True)
-    for ax, (fname, res) in zip(np.atleast_1d(axes), filters.items()):
+    # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
+    shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local")}
+    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
+    for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
         for nd in res["nodes"]:
             ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
         ax.set_title(fname, fontsize=9)
@@ -294,6 +337,16 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     np.atleast_1d(axes)[0].set_ylabel("position RMSE (m)")
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
     _save(fig, out / "fig_rmse_nodes.png")
+
+    # Every filter: position RMSE over time (mean over nodes), log scale.
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for fname, res in filters.items():
+        ax.semilogy(t, res["rmse_position_curve"], lw=1.5, label=f"{fname} ({res['rmse_position']:.3g} m)")
+    ax.set_xlabel("time step k")
+    ax.set_ylabel("position RMSE (m)")
+    ax.set_title("position RMSE over the same runs (legend: time average)")
+    ax.legend(fontsize=8)
+    _save(fig, out / "fig_compare.png")
 
     # Bound against the empirical covariance (where Φ is a bound in enough runs).
     fig, ax = plt.subplots(figsize=(8, 4))

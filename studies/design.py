@@ -20,6 +20,7 @@ from typing import Any, Mapping, NamedTuple
 import numpy as np
 
 from designer.schedule import GainSchedule
+from designer.tuning import tuned_epsilon
 from designer.validation import InputError
 from filters.consensus import ConsensusDesign, ConsensusResult, run_consensus, simulate_attacks
 
@@ -70,8 +71,11 @@ def _probability(name: str, p) -> float:
 
 
 def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=None, delta=None,
-                     u_scale=None, v_scale=None) -> ConsensusDesign:
-    """The paper-mode design for a scenario, with the given values overriding the defaults."""
+                     u_scale=None, v_scale=None, mode: str = "paper") -> ConsensusDesign:
+    """The design of a scenario's consensus filter, with the given values overriding the defaults.
+
+    In ``'tuned'`` mode the default ε is :func:`designer.tuning.tuned_epsilon` (optimal, see there).
+    """
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
     m, net = sc.model, sc.network
@@ -82,14 +86,17 @@ def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=N
     if delta < 0:
         raise InputError(f"delta must be >= 0, got {delta!r}")
     d_max = max(net.d_max, 1)
+    if epsilon is None:
+        epsilon = tuned_epsilon(d_max) if mode == "tuned" else PAPER_DEFAULTS["epsilon_fraction"] / d_max
     return ConsensusDesign(
-        epsilon=PAPER_DEFAULTS["epsilon_fraction"] / d_max if epsilon is None else float(epsilon),
+        epsilon=float(epsilon),
         sigma=PAPER_DEFAULTS["sigma"] if sigma is None else float(sigma),
         beta=PAPER_DEFAULTS["beta"] if beta is None else float(beta),
         tau=PAPER_DEFAULTS["tau"] if tau is None else float(tau),
         U=(PAPER_DEFAULTS["u_scale"] if u_scale is None else float(u_scale)) * np.eye(m.n_x),
         V=(PAPER_DEFAULTS["v_scale"] if v_scale is None else float(v_scale)) * np.eye(n_z),
         delta=float(delta),
+        mode=mode,
     )
 
 
@@ -117,10 +124,12 @@ def design(
     An infeasible design is still written, marked ``feasible: false`` with its
     violations; its Φ after a node's first violation is NaN (not a bound).
     """
-    if mode != "paper":
-        if mode == "tuned":
-            raise InputError("mode 'tuned' needs the convex tuning layer, which is not built yet; use --mode paper")
+    if mode not in ("paper", "tuned"):
         raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
+    if mode == "tuned":
+        for name, v in (("sigma", sigma), ("beta", beta), ("tau", tau)):
+            if v is not None:
+                raise InputError(f"{name} is chosen by the tuning layer in mode 'tuned'; do not give --{name}")
     seed = _check_seed(seed)
     sc = load_scenario(scenario, overrides, assignments)
     if sc.network is None:
@@ -133,7 +142,7 @@ def design(
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise InputError(f"steps must be an integer >= 1, got {steps!r}")
     des = consensus_design(sc, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, delta=delta, u_scale=u_scale,
-                           v_scale=v_scale)
+                           v_scale=v_scale, mode=mode)
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)
@@ -147,8 +156,8 @@ def design(
         scenario=sc.name,
         mode=mode,
         epsilon=des.epsilon,
-        sigma=np.full((n, steps), des.sigma),
-        beta=np.full((n, steps), des.beta),
+        sigma=res.sigma.T.copy(),
+        beta=res.beta.T.copy(),
         K=res.K.swapaxes(0, 1),
         C=res.C.swapaxes(0, 1),
         Phi=Phi,

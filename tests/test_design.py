@@ -99,7 +99,8 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
         (["design", "indoor-robot", "--set", "edges=[[0,1],[2,3]]"], "disconnected"),
         (["design", "indoor-robot", "--set", "prior_var=-1"], "prior_var"),
         (["design", "target-range-bearing"], "no sensor network"),
-        (["design", "indoor-robot", "--mode", "tuned"], "tuned"),
+        (["design", "indoor-robot", "--mode", "tuned", "--sigma", "0.1"], "sigma"),
+        (["study", "consensus-robot", "--mode", "bogus"], "--mode"),
         (["study", "consensus-robot", "--runs", "1"], "runs"),
         (["study", "no-such-study"], "unknown study"),
     ],
@@ -140,8 +141,11 @@ def test_consensus_robot_study_writes_results_and_figures(tmp_path):
                 "wall_time_s", "versions", "filters"):
         assert key in res
     assert res["schema"] == "cfdesign.study/1" and res["runs"] == 40 and res["steps"] == 30
-    assert len(res["filters"]) == 2
-    for f in res["filters"].values():
+    fams = {name: f["family"] for name, f in res["filters"].items()}
+    assert sorted(fams.values()) == ["centralized", "consensus", "consensus", "local"]
+    assert res["filters"]["local EKF per camera"]["communications"] == 0
+    assert res["filters"]["centralized EKF (all cameras)"]["communications"] == 8
+    for f in (f for f in res["filters"].values() if f["family"] == "consensus"):
         assert len(f["nodes"]) == 8 and len(f["rmse_position_curve"]) == 30
         assert f["communications"] == 20  # 10 undirected links, one prediction each way per step
         bc = f["bound_check"]
