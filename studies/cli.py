@@ -109,8 +109,9 @@ STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
 @click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True)
 @click.option("--quiet", is_flag=True, help="no progress bar")
+@click.option("--schedule", default=None, help="replay the gains of this design directory (consensus-robot)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, out, runs, seed, mode, quiet, assignments) -> None:
+def study_cmd(study, out, runs, seed, mode, quiet, schedule, assignments) -> None:
     """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
     if study not in STUDIES:
         raise InputError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
@@ -118,7 +119,8 @@ def study_cmd(study, out, runs, seed, mode, quiet, assignments) -> None:
         raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: consensus-robot")
     from .consensus_robot import run_consensus_robot
 
-    res = run_consensus_robot(out=out, runs=runs, seed=seed, mode=mode, quiet=quiet, assignments=assignments)
+    res = run_consensus_robot(out=out, runs=runs, seed=seed, mode=mode, quiet=quiet, assignments=assignments,
+                              schedule=schedule)
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         bc = f["bound_check"]

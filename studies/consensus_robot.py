@@ -25,6 +25,7 @@ from designer.fileio import atomic_write, write_json
 from designer.validation import InputError
 from designer.model import Model
 from designer.network import SensorNetwork
+from designer.schedule import load_schedule
 from filters.consensus import ConsensusDesign, run_consensus, simulate_attacks
 
 from .design import DESIGN_ASSUMPTIONS, consensus_design
@@ -114,6 +115,7 @@ class _Variant(NamedTuple):
     consensus: bool  # runs on the camera network under the channel attacks
     family: str
     communications: int = 0  # messages per step for the non-consensus baselines
+    gains: tuple | None = None  # (K, C) of a replayed schedule, (steps, nodes, ...)
 
 
 def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict[str, _Variant]:
@@ -155,8 +157,13 @@ def run_consensus_robot(
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
     design_options: Mapping[str, Any] | None = None,
+    schedule: str | Path | None = None,
 ) -> dict:
-    """Run the study and write ``results.json`` and the figures into ``out``."""
+    """Run the study and write ``results.json`` and the figures into ``out``.
+
+    ``schedule``: a directory written by ``cfdesign design``; its gains are replayed
+    on every run without re-solving (no bound is claimed for the replay).
+    """
     if mode not in ("paper", "tuned"):
         raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 2:
@@ -169,6 +176,15 @@ def run_consensus_robot(
     opts = dict(design_options or {})
     paper = consensus_design(sc, **opts)
     variants = _variants(sc, paper, consensus_design(sc, mode="tuned", **opts) if mode == "tuned" else None)
+    if schedule is not None:
+        sch = load_schedule(schedule)
+        if sch.nodes != net.n_nodes or sch.steps != sc.steps or sch.K.shape[2:] != (m.n_x, m.sensor_dims[0]):
+            raise InputError(f"schedule {str(schedule)!r} has {sch.nodes} nodes x {sch.steps} steps; the study needs "
+                             f"{net.n_nodes} x {sc.steps} with K of shape ({m.n_x}, {m.sensor_dims[0]})")
+        if not (np.all(np.isfinite(sch.K)) and np.all(np.isfinite(sch.C))):
+            raise InputError(f"schedule {str(schedule)!r} has undefined gains (a diverged design cannot be replayed)")
+        variants[f"consensus-EKF (replayed {sch.mode} schedule)"] = _Variant(
+            m, net, paper, True, "consensus", gains=(sch.K.swapaxes(0, 1), sch.C.swapaxes(0, 1)))
     steps, nx = sc.steps, m.n_x
     comps = sc.extras["attack_components"]
     amp = paper.delta / np.sqrt(len(comps))
@@ -191,7 +207,7 @@ def run_consensus_robot(
             st = store[name]
             t = time.perf_counter()
             res = run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs,
-                                attacks=att if v.consensus else None)
+                                attacks=att if v.consensus else None, gains=v.gains)
             st["time"] += time.perf_counter() - t
             if res.diverged is not None:
                 dv = res.diverged
@@ -228,14 +244,16 @@ def run_consensus_robot(
             "node_spread": float(spread),
             "time_per_step_s": st["time"] / runs / steps,
             "communications": int(2 * len(v.network.edges)) if v.consensus else v.communications,
-            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]) if v.consensus else None,
+            # A replayed schedule claims no bound: nothing to check.
+            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:])
+            if v.consensus and v.gains is None else None,
             "feasibility": {
                 "runs_feasible": st["feasible_runs"],
                 "runs": n_ok,
                 "first_violation_step_median": float(np.median(fv)) if fv else None,
                 "first_violation_step_min": int(min(fv)) if fv else None,
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
-            } if v.consensus else None,
+            } if v.consensus and v.gains is None else None,
             "diverged_runs": st["failed"],
             "diverged_fraction": len(st["failed"]) / runs,
             "design": {"mode": des.mode, "epsilon": des.epsilon, "sigma": des.sigma, "beta": des.beta,

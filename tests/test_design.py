@@ -161,3 +161,15 @@ def test_consensus_robot_study_writes_results_and_figures(tmp_path):
     res2 = json.loads((again / "results.json").read_text())
     for name in res["filters"]:
         assert res2["filters"][name]["rmse_position_curve"] == res["filters"][name]["rmse_position_curve"]
+
+
+def test_study_replays_a_schedule_without_claiming_a_bound(tmp_path):
+    assert main(["design", "indoor-robot", "--mode", "tuned", "--seed", "4", "--out", str(tmp_path / "d")]) == 0
+    assert main(["study", "consensus-robot", "--runs", "3", "--quiet", "--schedule", str(tmp_path / "d"),
+                 "--out", str(tmp_path / "s")]) == 0
+    res = json.loads((tmp_path / "s" / "results.json").read_text())
+    rep = res["filters"]["consensus-EKF (replayed tuned schedule)"]
+    assert rep["bound_check"] is None and rep["feasibility"] is None
+    assert np.isfinite(rep["rmse_position"])
+    r = run_cli("study", "consensus-robot", "--runs", "3", "--schedule", LINEAR, "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "schedule" in r.stderr
