@@ -324,6 +324,11 @@ class Model:
         return np.asarray(k, dtype=np.float64)[..., None]
 
     # ----------------------------------------------------------- evaluation
+    def _mode_average(self, fn, x, k, u) -> np.ndarray:
+        if self.mode_probs is None:
+            return fn(x, k, u)
+        return sum(p * fn(x, k, u, m) for m, p in enumerate(self.mode_probs))
+
     def f(self, x, k=0, u=None, mode=None) -> np.ndarray:
         """Transition ``f(x, k, u, mode)`` for states of shape ``(..., n_x)``."""
         with np.errstate(all="ignore"):
@@ -331,9 +336,7 @@ class Model:
 
     def f_expected(self, x, k=0, u=None) -> np.ndarray:
         """Transition averaged over the switching modes (``f`` itself without modes)."""
-        if self.mode_probs is None:
-            return self.f(x, k, u)
-        return sum(p * self.f(x, k, u, m) for m, p in enumerate(self.mode_probs))
+        return self._mode_average(self.f, x, k, u)
 
     def F(self, x, k=0, u=None, mode=None) -> np.ndarray:
         """Jacobian ``df/dx``, shape ``(..., n_x, n_x)``."""
@@ -341,9 +344,8 @@ class Model:
             return self._np_F(self._state(x), self._k(k), self._u(u), self._mode(mode))[0]
 
     def F_expected(self, x, k=0, u=None) -> np.ndarray:
-        if self.mode_probs is None:
-            return self.F(x, k, u)
-        return sum(p * self.F(x, k, u, m) for m, p in enumerate(self.mode_probs))
+        """Jacobian of :meth:`f_expected`."""
+        return self._mode_average(self.F, x, k, u)
 
     def f_hessian(self, x, k=0, u=None, mode=None) -> np.ndarray:
         """Hessians of every component of ``f``, shape ``(..., n_x, n_x, n_x)`` (component first)."""
