@@ -125,10 +125,11 @@ def study_cmd(study, out, runs, seed, mode, quiet, schedule, assignments) -> Non
     for name, f in res["filters"].items():
         bc = f["bound_check"]
         if bc is None:
-            click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4f} m")
+            click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4g} m (median run {f['rmse_position_median_run']:.4g})")
             continue
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
-        click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4f} m, spread {f['node_spread']:.4f} m, "
+        click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4g} m (median run {f['rmse_position_median_run']:.4g}), "
+                   f"diverged {len(f['diverged_runs'])}, spread {f['node_spread']:.4f} m, "
                    f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}, "
                    f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, "
                    f"exceeded at {frac}")
