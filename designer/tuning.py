@@ -42,7 +42,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import brentq, minimize_scalar
 
 from .bounds import shifted_inverse, symmetrize
 from .validation import ComputationError
@@ -96,10 +96,23 @@ def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN) -> Pr
         # Without linearisation error the trace only grows with σ: σ -> 0 (the EKF prediction).
         sigma = 0.0
     else:
-        f = lambda s: np.trace(_prediction(phi_post, F, UUt, Q, s, eps))  # noqa: E731
-        res = minimize_scalar(f, bounds=(smax * 1e-9, smax), method="bounded",
-                              options={"xatol": smax * 1e-8, "maxiter": 500})
-        sigma = float(res.x)
+        # tr F (Φ^-1 - cσ I)^-1 F^T = Σ_k g_k λ_k / (1 - cσ λ_k) with Φ = Σ λ_k q_k q_k^T, g_k = |F q_k|²;
+        # the trace is convex in σ, so its derivative is increasing: find its root by bracketing.
+        c = 1.0 + eps
+        lam, vec = np.linalg.eigh(symmetrize(phi_post))
+        g = np.sum((F @ vec) ** 2, axis=0)
+        a = np.trace(UUt) / eps
+
+        def slope(sv):
+            return float(np.sum(g * c * lam**2 / (1.0 - c * sv * lam) ** 2) - a / sv**2)
+
+        lo = smax * 1e-12
+        if slope(smax) <= 0:
+            sigma = smax  # the margin on (28) binds
+        elif slope(lo) >= 0:
+            sigma = lo
+        else:
+            sigma = float(brentq(slope, lo, smax, xtol=smax * 1e-13, rtol=1e-14, maxiter=200))
     phi = _prediction(phi_post, F, UUt, Q, sigma, eps) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
     return PredictionChoice(sigma, phi, float(np.trace(phi)))
 

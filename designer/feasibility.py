@@ -1,0 +1,142 @@
+"""Steady-state feasibility of the consensus-filter bounds at an operating point.
+
+For a time-invariant linearisation (``F``, ``H_i`` at an operating point) and the
+expected number of received packets ``s_i = Σ_j (1 - φ̄_ij)``, the bound recursion
+of every node is the map ``Φ_{k|k} -> Φ_{k+1|k+1}`` of (26)-(27) with the tuned
+(or the paper's) σ, β, C, K.  We iterate it from ``Φ_0`` as a fixed-point
+iteration and decide:
+
+* **feasible** — the iteration converges (relative change of every node's Φ below
+  ``tol``) while (28)-(29) hold at every iterate: a bounded steady-state bound
+  exists and is the reported ``trace_bound`` (mean over nodes of tr Φ);
+* **infeasible** — (28) or (29) fails at some iterate, Φ leaves numerically
+  meaningful values, the trace grows beyond ``1e4 x max(tr Φ_0, tr Q)``
+  (``"unbounded"``), or no convergence within ``max_iter`` (``"no convergence"``).
+
+The iteration is Anderson-accelerated (safeguarded, see :class:`_Anderson`); the
+plain iteration reaches the same fixed point (tested), only more slowly.
+
+Theorem 2's condition is evaluated at the fixed point and reported apart
+(``theorem2``): it is a sufficient condition for mean-square boundedness of the
+error, not a condition for the bound to exist.  ``binding`` names the condition
+with the least relative slack at the fixed point, or the one that failed.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from .bounds import condition28_margin, condition29_margin, optimal_gain, prediction_bound, theorem2_margin, update_bound
+from .network import SensorNetwork
+from .tuning import MARGIN, tune_prediction, tune_update
+
+__all__ = ["SteadyState", "steady_state"]
+
+_BLOWUP = 1e8
+_UNBOUNDED = 1e4  # a steady-state trace beyond 1e4 x max(tr Φ_0, tr Q) is reported as unbounded
+
+
+class _Anderson:
+    """Anderson acceleration (type II) of the fixed-point iteration Φ <- T(Φ), with a safeguard.
+
+    The candidate is used only when every node's matrix is symmetric positive
+    definite; otherwise the plain step T(Φ) is taken.  The conditions are always
+    checked on the points where the true map T is evaluated, and convergence is
+    declared only when T(Φ) = Φ to the tolerance, so the answer is a fixed point
+    of the recursion whatever the acceleration did.
+    """
+
+    def __init__(self, memory: int):
+        self.memory = memory
+        self.xs: list[np.ndarray] = []
+        self.gs: list[np.ndarray] = []
+
+    def step(self, x: np.ndarray, gx: np.ndarray) -> np.ndarray:
+        self.xs.append(x.ravel().copy())
+        self.gs.append(gx.ravel().copy())
+        self.xs, self.gs = self.xs[-self.memory - 1:], self.gs[-self.memory - 1:]
+        if len(self.xs) < 2:
+            return gx
+        F = np.array([g - xx for g, xx in zip(self.gs, self.xs)]).T  # residuals, one column per iterate
+        dF = np.diff(F, axis=1)
+        dG = np.diff(np.array(self.gs).T, axis=1)
+        gamma, *_ = np.linalg.lstsq(dF, F[:, -1], rcond=None)
+        cand = (self.gs[-1] - dG @ gamma).reshape(gx.shape)
+        cand = 0.5 * (cand + np.swapaxes(cand, -1, -2))
+        if np.all(np.isfinite(cand)) and np.all(np.linalg.eigvalsh(cand)[:, 0] > 0):
+            return cand
+        self.xs, self.gs = [], []
+        return gx
+
+
+class SteadyState(NamedTuple):
+    feasible: bool
+    trace_bound: float  # mean over nodes of tr Φ at the fixed point (NaN when infeasible)
+    binding: str
+    iterations: int
+    theorem2: bool
+    phi: np.ndarray | None  # (N, n, n) fixed point
+
+
+def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Sequence[np.ndarray],
+                 network: SensorNetwork, *, epsilon: float, delta: float, U: np.ndarray, V: np.ndarray,
+                 mode: str = "tuned", sigma: float = 0.1, beta: float = 0.1, tau: float = 0.01,
+                 phi0: np.ndarray | None = None, tol: float = 1e-8, max_iter: int = 400,
+                 accelerate: bool = True) -> SteadyState:
+    """Iterate the stationary bound recursion to its fixed point (see the module docstring)."""
+    n_nodes, nx = network.n_nodes, F.shape[0]
+    deg = network.degrees
+    s = ((1.0 - network.dos_prob) * network.adjacency).sum(axis=1)
+    w_phi = 3.0 * (1.0 - network.dos_prob) * network.adjacency
+    w_xi = 3.0 * delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+    phi = np.broadcast_to(np.eye(nx) if phi0 is None else phi0, (n_nodes, nx, nx)).copy()
+    sig = np.zeros(n_nodes)
+    scale = max(float(np.trace(phi, axis1=1, axis2=2).max()), float(np.trace(Q)))
+    accel = _Anderson(memory=5)
+    slack28 = np.zeros(n_nodes)
+    slack29 = np.zeros(n_nodes)
+    for it in range(1, max_iter + 1):
+        pred = np.empty_like(phi)
+        for i in range(n_nodes):
+            if mode == "tuned":
+                ch = tune_prediction(phi[i], F, U, Q, epsilon)
+                sig[i], pred[i] = ch.sigma, ch.phi_pred
+            else:
+                pb = prediction_bound(phi[i], F, U, Q, sigma, epsilon)
+                if pb.phi_pred is None:
+                    return SteadyState(False, np.nan, "(28)", it, False, None)
+                sig[i], pred[i] = sigma, pb.phi_pred
+            lam = np.linalg.eigvalsh(phi[i])[-1]
+            slack28[i] = 1.0 - (1.0 + epsilon) * sig[i] * lam
+        neigh = np.einsum("ij,jab->iab", w_phi, pred) + w_xi[:, None, None] * np.eye(nx)
+        new = np.empty_like(phi)
+        for i in range(n_nodes):
+            if mode == "tuned":
+                ch = tune_update(pred[i], H[i], s[i], V, R[i], int(deg[i]), neigh[i])
+                b, new[i] = ch.beta, ch.phi_post
+            else:
+                if condition29_margin(pred[i], beta) <= 0:
+                    return SteadyState(False, np.nan, "(29)", it, False, None)
+                C = tau * pred[i]
+                K = optimal_gain(pred[i], H[i], C, s[i], beta, V, R[i], int(deg[i]))
+                b, new[i] = beta, update_bound(pred[i], H[i], K, C, s[i], beta, V, R[i], int(deg[i]), neigh[i])
+            slack29[i] = 1.0 - b * np.linalg.eigvalsh(pred[i])[-1]
+        if not np.all(np.isfinite(new)) or np.trace(new, axis1=1, axis2=2).max() > _BLOWUP:
+            return SteadyState(False, np.nan, "diverged", it, False, None)
+        for i in range(n_nodes):
+            if condition28_margin(new[i], sig[i], epsilon) <= 0:
+                return SteadyState(False, np.nan, "(28)", it, False, None)
+        change = max(np.abs(new[i] - phi[i]).max() / np.abs(new[i]).max() for i in range(n_nodes))
+        if np.trace(new, axis1=1, axis2=2).max() > _UNBOUNDED * scale:
+            return SteadyState(False, np.nan, "unbounded", it, False, None)
+        if change < tol:
+            phi = new
+            d_max = network.d_max
+            th2 = all(theorem2_margin(phi[i], sig[i], d_max) >= 0 for i in range(n_nodes))
+            binding = "(28)" if slack28.min() <= slack29.min() else "(29)"
+            if min(slack28.min(), slack29.min()) > MARGIN * (1 + 1e-6):
+                binding = "none (interior optimum)" if mode == "tuned" else binding
+            return SteadyState(True, float(np.trace(phi, axis1=1, axis2=2).mean()), binding, it, th2, phi)
+        phi = accel.step(phi, new) if accelerate else new
+    return SteadyState(False, float(np.trace(phi, axis1=1, axis2=2).mean()), "no convergence", max_iter, False, None)

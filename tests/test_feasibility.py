@@ -1,0 +1,117 @@
+"""Feasibility maps: fixed points, monotonicity in the attack strength, files, parallel runs, bad input."""
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from designer.feasibility import steady_state
+from designer.network import SensorNetwork
+from designer.tuning import tune_prediction, tune_update
+from designer.validation import InputError
+from studies.feasibility import feasibility_map, parse_grid
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _robot_linearisation():
+    from studies.design import consensus_design
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    m = sc.model
+    u0 = sc.inputs(1)[0]
+    F = m.F(sc.x0, 0, u0)
+    xp = m.f(sc.x0, 0, u0)
+    H = [m.H(i, xp, 1) for i in range(8)]
+    R = [m.measurement_cov(i) for i in range(8)]
+    return sc, m, F, H, R, consensus_design(sc, mode="tuned")
+
+
+def test_accelerated_and_plain_iterations_reach_the_same_fixed_point():
+    sc, m, F, H, R, d = _robot_linearisation()
+    kw = dict(epsilon=d.epsilon, delta=d.delta, U=d.U, V=d.V, phi0=m.prior.cov)
+    fast = steady_state(F, H, m.process_cov, R, sc.network, **kw)
+    plain = steady_state(F, H, m.process_cov, R, sc.network, accelerate=False, max_iter=2000, **kw)
+    assert fast.feasible and plain.feasible and fast.iterations < plain.iterations
+    np.testing.assert_allclose(fast.phi, plain.phi, rtol=1e-6, atol=1e-10)
+    # It is a fixed point of the tuned recursion: one more step changes nothing.
+    n = sc.network
+    s = ((1 - n.dos_prob) * n.adjacency).sum(1)
+    pred = [tune_prediction(p, F, d.U, m.process_cov, d.epsilon).phi_pred for p in fast.phi]
+    neigh = np.einsum("ij,jab->iab", 3 * (1 - n.dos_prob) * n.adjacency, np.array(pred)) \
+        + (3 * d.delta**2 * (n.fdi_prob * n.adjacency).sum(1))[:, None, None] * np.eye(3)
+    again = [tune_update(pred[i], H[i], s[i], d.V, R[i], int(n.degrees[i]), neigh[i]).phi_post for i in range(8)]
+    np.testing.assert_allclose(np.array(again), fast.phi, rtol=1e-6, atol=1e-10)
+
+
+def test_linear_isolated_node_reaches_the_kalman_steady_state():
+    """No neighbours, U = V = 0: the fixed point is the steady-state posterior covariance of the KF (dare)."""
+    from scipy.linalg import solve_discrete_are
+
+    A = np.array([[0.95, 0.1], [0.0, 0.9]])
+    Hm = np.array([[1.0, 0.0]])
+    Q, R = 0.01 * np.eye(2), np.array([[0.05]])
+    net = SensorNetwork(1, np.zeros((1, 1), int))
+    r = steady_state(A, [Hm], Q, [R], net, epsilon=0.5, delta=0.0, U=np.zeros((2, 2)), V=np.zeros((1, 1)),
+                     tol=1e-12, max_iter=2000)
+    P = solve_discrete_are(A.T, Hm.T, Q, R)  # prior steady state
+    post = P - P @ Hm.T @ np.linalg.inv(Hm @ P @ Hm.T + R) @ Hm @ P
+    assert r.feasible
+    np.testing.assert_allclose(r.phi[0], post, rtol=1e-8)
+
+
+def test_more_fdi_never_helps():
+    """Larger FDI probability or signal bound never lowers the trace nor makes an infeasible point feasible."""
+    rows = feasibility_map("indoor-robot", ["fdi=0:0.6:4", "delta=0.5:3.5:4"], quiet=True,
+                           assignments=["dos_prob=0.15"])
+    tb = np.array([r["trace_bound"] if r["feasible"] else np.inf for r in rows]).reshape(4, 4)
+    assert np.isfinite(tb).any() and np.isinf(tb).any(), "the grid should cross the feasibility boundary"
+    for axis in (0, 1):  # axis 0: fdi grows, axis 1: delta grows
+        a, b = np.take(tb, range(3), axis=axis), np.take(tb, range(1, 4), axis=axis)
+        ok = np.isinf(b) | (b >= a * (1 - 1e-6))
+        assert ok.all(), (axis, tb)
+
+
+def test_map_files_and_workers_agree(tmp_path):
+    rows1 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "a", quiet=True)
+    rows2 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "b", quiet=True,
+                            workers=2)
+    assert rows1 == rows2 or all(
+        r1["feasible"] == r2["feasible"] and (r1["trace_bound"] == r2["trace_bound"] or
+                                              (np.isnan(r1["trace_bound"]) and np.isnan(r2["trace_bound"])))
+        for r1, r2 in zip(rows1, rows2))
+    with open(tmp_path / "a" / "feasibility.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 6 and set(table[0]) == {"dos", "fdi", "feasible", "trace_bound", "binding", "theorem2",
+                                                 "iterations"}
+    assert [float(t["dos"]) for t in table] == [0.0, 0.0, 0.15, 0.15, 0.3, 0.3]
+    assert (tmp_path / "a" / "feasibility.png").stat().st_size > 10_000
+    # The feasible origin has the smallest bound of the map.
+    feas = [float(t["trace_bound"]) for t in table if t["feasible"] == "1"]
+    assert feas and float(table[0]["trace_bound"]) == min(feas)
+
+
+@pytest.mark.parametrize("spec, needle", [
+    ("dos", "NAME=START:STOP:COUNT"), ("bogus=0:1:3", "unknown"), ("dos=0:1:3", "[0, 1)"),
+    ("delta=-1:1:3", ">= 0"), ("fdi=0:0.5", "START:STOP:COUNT"), ("fdi=0:0.5:0", "COUNT"),
+])
+def test_bad_grids(spec, needle):
+    with pytest.raises(InputError, match=needle.replace("[", r"\[").replace("(", r"\(").replace(")", r"\)")):
+        parse_grid(spec)
+
+
+def test_cli_feasibility(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "studies", "feasibility", "indoor-robot", "--grid", "fdi=0:0.2:2",
+                        "--out", str(tmp_path / "f")], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "f" / "feasibility.csv").exists()
+    r = subprocess.run([sys.executable, "-m", "studies", "feasibility", "indoor-robot", "--grid", "tau=0:1:2",
+                        "--out", str(tmp_path / "g")], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 2 and "tau" in r.stderr and len(r.stderr.strip().splitlines()) == 1
