@@ -174,6 +174,11 @@ class _FixedBeta:
 
 def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN) -> UpdateChoice:
     """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search)."""
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverging bound is caught by the caller's checks
+        return _tune_update(phi_pred, H, s, V, R, d_i, N, margin)
+
+
+def _tune_update(phi_pred, H, s, V, R, d_i, N, margin) -> UpdateChoice:
     bmax = (1.0 - margin) / _lam_max(phi_pred)
     fixed = _FixedBeta(phi_pred, H, s, V, R, d_i, N)
     trace_at = fixed.trace

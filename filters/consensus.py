@@ -35,6 +35,7 @@ from designer.bounds import (
 )
 from designer.model import Model
 from designer.network import SensorNetwork
+from designer.linearization import remainder_scale
 from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite
 
@@ -56,7 +57,10 @@ class ConsensusDesign(NamedTuple):
     ``delta`` bounds the injected signal, ``||xi|| <= delta``.  In ``'tuned'`` mode,
     ``sigma``, ``beta`` and ``tau`` are not used: σ, β, C and K come from the convex
     tuning layer (:mod:`designer.tuning`) at every node and step, with (28)-(29)
-    kept at the relative margin ``designer.tuning.MARGIN``.
+    kept at the relative margin ``designer.tuning.MARGIN``.  With
+    ``linearization='hessian'``, ``U`` and ``V`` are replaced at every node and step by
+    ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
+    Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.
     """
 
     epsilon: float
@@ -67,6 +71,8 @@ class ConsensusDesign(NamedTuple):
     V: np.ndarray
     delta: float
     mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
+    linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step
+    radius: float = 3.0  # 'hessian': the remainder bound holds for errors within `radius` standard deviations of Φ
 
 
 class AttackPattern(NamedTuple):
@@ -88,6 +94,10 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         v = getattr(design, name)
         if not np.isfinite(v) or v < 0:
             raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if design.linearization not in ("fixed", "hessian"):
+        raise InputError(f"linearization must be 'fixed' or 'hessian', got {design.linearization!r}")
+    if not np.isfinite(design.radius) or design.radius <= 0:
+        raise InputError(f"radius must be > 0, got {design.radius!r}")
     if design.mode not in ("paper", "tuned"):
         raise InputError(f"mode must be 'paper' or 'tuned', got {design.mode!r}")
     if network.n_nodes != model.n_sensors:
@@ -147,6 +157,10 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     F = model.F_expected(x_post, k, u)
     x_pred = model.f_expected(x_post, k, u)
     Q = model.process_cov
+    if valid and design.linearization == "hessian":
+        hess = (lambda pts: model.f_hessian(pts, k, u)) if model.n_modes == 0 else \
+            (lambda pts: np.concatenate([model.f_hessian(pts, k, u, mm) for mm in range(model.n_modes)], axis=1))
+        design = design._replace(U=remainder_scale(hess, x_post, phi_post, design.radius) * np.eye(model.n_x))
     if valid and design.mode == "tuned":
         choice = tune_prediction(phi_post, F, design.U, Q, design.epsilon)
         margin = condition28_margin(phi_post, choice.sigma, design.epsilon)
@@ -204,6 +218,9 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
     H = model.H(i, x_pred, k1)
     R = model.measurement_cov(i)
+    if valid and design.linearization == "hessian":
+        v = remainder_scale(lambda pts: model.h_hessian(i, pts, k1), x_pred, phi_pred, design.radius)
+        design = design._replace(V=v * np.eye(design.V.shape[0]))
     beta, V = design.beta, design.V
     if valid and design.mode == "tuned" and gains is None:
         choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms)

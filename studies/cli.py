@@ -71,14 +71,19 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignme
 @click.option("--delta", type=float, default=None, help="bound on the injected signal (default: the scenario's)")
 @click.option("--u-scale", type=float, default=None, help="U = u I, linearisation scaling of f (default 0.01)")
 @click.option("--v-scale", type=float, default=None, help="V = v I, linearisation scaling of h (default 0.1)")
+@click.option("--linearization", type=click.Choice(["fixed", "hessian"]), default="fixed", show_default=True,
+              help="fixed: U = u I, V = v I as given; hessian: U, V from the model's Hessians per node and step")
+@click.option("--radius", type=float, default=3.0, show_default=True,
+              help="hessian: the remainder bound covers errors within this many standard deviations of Phi")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def design_cmd(scenario, mode, steps, seed, out, epsilon, sigma, beta, tau, dos, fdi, delta, u_scale, v_scale,
-               assignments) -> None:
+               linearization, radius, assignments) -> None:
     """Design the consensus filter of SCENARIO and write its gain schedule to OUT."""
     from .design import design
 
     res = design(scenario, out=out, mode=mode, steps=steps, seed=seed, epsilon=epsilon, sigma=sigma, beta=beta,
-                 tau=tau, dos=dos, fdi=fdi, delta=delta, u_scale=u_scale, v_scale=v_scale, assignments=assignments)
+                 tau=tau, dos=dos, fdi=fdi, delta=delta, u_scale=u_scale, v_scale=v_scale,
+                 linearization=linearization, radius=radius, assignments=assignments)
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json and schedule.npz: {sch.nodes} nodes, {sch.steps} steps, "
                f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}")
@@ -129,8 +134,10 @@ STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5
 @click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True)
 @click.option("--quiet", is_flag=True, help="no progress bar")
 @click.option("--schedule", default=None, help="replay the gains of this design directory (consensus-robot)")
+@click.option("--linearization", type=click.Choice(["fixed", "hessian"]), default="fixed", show_default=True,
+              help="U, V of the consensus designs: fixed (0.01 I, 0.1 I) or from the model's Hessians")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, out, runs, seed, mode, quiet, schedule, assignments) -> None:
+def study_cmd(study, out, runs, seed, mode, quiet, schedule, linearization, assignments) -> None:
     """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
     if study not in STUDIES:
         raise InputError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
@@ -139,7 +146,7 @@ def study_cmd(study, out, runs, seed, mode, quiet, schedule, assignments) -> Non
     from .consensus_robot import run_consensus_robot
 
     res = run_consensus_robot(out=out, runs=runs, seed=seed, mode=mode, quiet=quiet, assignments=assignments,
-                              schedule=schedule)
+                              schedule=schedule, design_options={"linearization": linearization})
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         bc = f["bound_check"]

@@ -130,7 +130,7 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     m, net = sc.model, sc.network
     n = net.n_nodes
     ekf = paper._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(paper.U), V=np.zeros_like(paper.V),
-                         epsilon=0.5, mode="paper")
+                         epsilon=0.5, mode="paper", linearization="fixed")
     out = {}
     if tuned is not None:
         out["consensus-EKF (tuned)"] = _Variant(m, net, tuned, True, "consensus")
@@ -258,7 +258,7 @@ def run_consensus_robot(
             } if v.consensus and v.gains is None else None,
             "diverged_runs": st["failed"],
             "diverged_fraction": len(st["failed"]) / runs,
-            "design": {"mode": des.mode, "epsilon": des.epsilon, "sigma": des.sigma, "beta": des.beta,
+            "design": {"mode": des.mode, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma, "beta": des.beta,
                        "tau": des.tau, "delta": des.delta, "U": des.U.tolist(), "V": des.V.tolist()},
         }
     results = {

@@ -71,7 +71,8 @@ def _probability(name: str, p) -> float:
 
 
 def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=None, delta=None,
-                     u_scale=None, v_scale=None, mode: str = "paper") -> ConsensusDesign:
+                     u_scale=None, v_scale=None, mode: str = "paper", linearization: str = "fixed",
+                     radius: float = 3.0) -> ConsensusDesign:
     """The design of a scenario's consensus filter, with the given values overriding the defaults.
 
     In ``'tuned'`` mode the default ε is :func:`designer.tuning.tuned_epsilon` (optimal, see there).
@@ -97,6 +98,8 @@ def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=N
         V=(PAPER_DEFAULTS["v_scale"] if v_scale is None else float(v_scale)) * np.eye(n_z),
         delta=float(delta),
         mode=mode,
+        linearization=linearization,
+        radius=float(radius),
     )
 
 
@@ -116,6 +119,8 @@ def design(
     delta: float | None = None,
     u_scale: float | None = None,
     v_scale: float | None = None,
+    linearization: str = "fixed",
+    radius: float = 3.0,
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
 ) -> DesignOutcome:
@@ -142,7 +147,7 @@ def design(
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise InputError(f"steps must be an integer >= 1, got {steps!r}")
     des = consensus_design(sc, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, delta=delta, u_scale=u_scale,
-                           v_scale=v_scale, mode=mode)
+                           v_scale=v_scale, mode=mode, linearization=linearization, radius=radius)
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)
@@ -168,6 +173,8 @@ def design(
             "delta": des.delta,
             "U": des.U.tolist(),
             "V": des.V.tolist(),
+            "linearization": des.linearization,
+            "radius": des.radius if des.linearization == "hessian" else None,
             "seed": seed,
             "trajectory": "seeded simulated run of the scenario: truth and measurements from "
                           "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds along "

@@ -1,0 +1,64 @@
+"""Linearisation-error scaling matrices U, V derived from the model's CasADi Hessians.
+
+The consensus paper writes the Taylor remainders as ``U Ω e`` and ``V Θ e`` with
+``Ω Ωᵀ <= I``, ``Θ Θᵀ <= I`` and "known" U, V, but gives no values.  Here they are
+derived from the model over the region the bound itself describes.
+
+For a twice-differentiable ``g`` (``f`` or ``h_i``) linearised at ``x̂`` with error
+``e``, the mean-value form of Taylor's theorem gives, per component ``j``,
+``r_j = ½ eᵀ ∇²g_j(ξ_j) e`` with ``ξ_j`` on the segment from ``x̂`` to ``x̂ + e``.
+Hence ``||r|| <= ½ ||e||² L``, ``L = max_ξ sqrt(Σ_j ||∇²g_j(ξ)||₂²)``.  On the
+ellipsoid ``E = {e : eᵀ Φ^-1 e <= c²}`` (``c`` standard deviations of the bound,
+default 3), ``||e|| <= c sqrt(λ_max(Φ))``, so with
+
+    U = u I,   u = ½ L c sqrt(λ_max(Φ))
+
+``r = U Ω e`` holds with ``||Ω|| <= ||r|| / (u ||e||) <= 1`` for every error in E:
+the bound then holds by construction for errors inside the ellipsoid (not for the
+tails beyond it).  ``L`` is the largest Hessian norm over a fixed set of points of E
+(its centre, the ends of its axes and the points on its diagonals): a sampled
+supremum, exact when the Hessian norm is largest at those points and an estimate
+otherwise (the Monte Carlo bound check is the arbiter).
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from .bounds import symmetrize
+
+__all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale"]
+
+DEFAULT_RADIUS = 3.0
+
+
+def ellipsoid_points(center: np.ndarray, cov: np.ndarray, radius: float) -> np.ndarray:
+    """Centre, axis ends and diagonal points of ``{center + e : eᵀ cov^-1 e <= radius²}``, shape (P, n)."""
+    n = center.shape[0]
+    lam, vec = np.linalg.eigh(symmetrize(cov))
+    axes = vec * (radius * np.sqrt(np.clip(lam, 0.0, None)))  # columns: semi-axes
+    pts = [np.zeros(n)]
+    for k in range(n):
+        pts += [axes[:, k], -axes[:, k]]
+    if n <= 6:
+        for signs in itertools.product((-1.0, 1.0), repeat=n):
+            pts.append(axes @ np.array(signs) / np.sqrt(n))
+    return center + np.array(pts)
+
+
+def hessian_norm_bound(hessians: np.ndarray) -> float:
+    """``max_points sqrt(Σ_j ||H_j||₂²)`` for hessians of shape (P, components, n, n)."""
+    norms = np.linalg.norm(hessians, ord=2, axis=(-2, -1))  # (P, components)
+    return float(np.sqrt((norms**2).sum(axis=-1)).max())
+
+
+def remainder_scale(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> float:
+    """The scalar ``u`` of ``U = u I`` for the remainder of a function around ``center``.
+
+    ``hessian_at(points)`` returns the Hessians of every component at points (P, n)
+    as (P, components, n, n) (e.g. ``model.f_hessian``).
+    """
+    L = hessian_norm_bound(hessian_at(ellipsoid_points(center, cov, radius)))
+    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
+    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))

@@ -1,0 +1,68 @@
+"""Hessian-derived linearisation scaling: the remainder bound holds inside the ellipsoid (Monte Carlo of Taylor)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from designer.linearization import ellipsoid_points, remainder_scale
+from studies.scenarios import load_scenario
+
+
+def _inside(rng, center, cov, radius, n):
+    """Uniform-direction points inside the ellipsoid, many near its boundary."""
+    L = np.linalg.cholesky(cov)
+    d = rng.standard_normal((n, center.size))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = radius * rng.uniform(0.5, 1.0, n) ** (1 / center.size)
+    return center + (d * r[:, None]) @ L.T
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_remainders_of_the_robot_are_within_u_and_v(seed):
+    sc = load_scenario("indoor-robot")
+    m = sc.model
+    u0 = sc.inputs(1)[0]
+    rng = np.random.default_rng(seed)
+    xhat = sc.x0 + 0.2 * rng.standard_normal(3)
+    B = rng.normal(size=(3, 3))
+    cov = 0.02 * B @ B.T + 0.005 * np.eye(3)
+    radius = 3.0
+    u = remainder_scale(lambda p: m.f_hessian(p, 0, u0), xhat, cov, radius)
+    x = _inside(rng, xhat, cov, radius, 4000)
+    e = x - xhat
+    r = m.f(x, 0, u0) - m.f(xhat, 0, u0) - e @ m.F(xhat, 0, u0).T  # the true Taylor remainder
+    ratio = np.linalg.norm(r, axis=1) / np.linalg.norm(e, axis=1)
+    assert ratio.max() <= u * (1 + 1e-9)
+    for i in range(8):
+        v = remainder_scale(lambda p: m.h_hessian(i, p, 1), xhat, cov, radius)
+        rh = m.h(i, x, 1) - m.h(i, xhat, 1) - e @ m.H(i, xhat, 1).T
+        assert (np.linalg.norm(rh, axis=1) / np.linalg.norm(e, axis=1)).max() <= v * (1 + 1e-9)
+    # The scale is not vacuous: the largest remainder uses a good part of it.
+    assert ratio.max() > 0.2 * u
+
+
+def test_ellipsoid_points_lie_on_or_inside_the_ellipsoid():
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(3, 3))
+    cov = B @ B.T + 0.1 * np.eye(3)
+    c = rng.normal(size=3)
+    pts = ellipsoid_points(c, cov, 2.5)
+    q = np.einsum("pi,ij,pj->p", pts - c, np.linalg.inv(cov), pts - c)
+    assert pts.shape == (1 + 6 + 8, 3)
+    assert np.all(q <= 2.5**2 * (1 + 1e-9)) and np.isclose(q.max(), 2.5**2)
+
+
+def test_linear_model_has_zero_scaling():
+    m = load_scenario("four-tank").model
+    v = remainder_scale(lambda p: m.h_hessian(0, p, 1), np.full(4, 10.0), np.eye(4), 3.0)
+    assert v == 0.0
+
+
+def test_hessian_design_without_fdi_is_feasible_and_with_strong_fdi_reports_divergence():
+    from studies.design import design
+
+    ok = design("indoor-robot", mode="tuned", linearization="hessian", fdi=0.0, seed=0)
+    assert ok.result.feasible and ok.schedule.meta["linearization"] == "hessian"
+    bad = design("indoor-robot", mode="tuned", linearization="hessian", seed=0)
+    assert not bad.result.feasible
+    assert any(v["condition"] in ("diverged", "(28)", "(29)") for v in bad.result.violations)
