@@ -149,6 +149,9 @@ def study_cmd(study, out, runs, seed, mode, quiet, schedule, linearization, assi
                               schedule=schedule, design_options={"linearization": linearization})
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
+        if f["rmse_position"] is None:
+            click.echo(f"  {name}: every run diverged ({len(f['diverged_runs'])})")
+            continue
         bc = f["bound_check"]
         if bc is None:
             click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4g} m (median run {f['rmse_position_median_run']:.4g})")

@@ -227,6 +227,11 @@ def run_consensus_robot(
     for name, st in store.items():
         v = variants[name]
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
+        if not ok.any():  # every run diverged: no error statistics exist
+            filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_median_run": None,
+                             "bound_check": None, "feasibility": None, "diverged_runs": st["failed"],
+                             "diverged_fraction": 1.0, "time_per_step_s": st["time"] / runs / steps}
+            continue
         err = st["err"][ok][:, 1:]  # steps 1..K
         e2 = err[..., pos] ** 2
         node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
@@ -348,7 +353,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     _save(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
-    shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local")}
+    shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v["rmse_position"]}
     fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
     for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
         for nd in res["nodes"]:
@@ -362,6 +367,8 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     # Every filter: position RMSE over time (mean over nodes), log scale.
     fig, ax = plt.subplots(figsize=(8, 4))
     for fname, res in filters.items():
+        if res["rmse_position"] is None:
+            continue
         ax.semilogy(t, res["rmse_position_curve"], lw=1.5, label=f"{fname} ({res['rmse_position']:.3g} m)")
     ax.set_xlabel("time step k")
     ax.set_ylabel("position RMSE (m)")
@@ -371,7 +378,10 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
 
     # Bound against the empirical covariance (where Φ is a bound in enough runs).
     fig, ax = plt.subplots(figsize=(8, 4))
-    fname = next(iter(store))
+    fname = next((k for k, v in filters.items() if v.get("bound_check")), None)
+    if fname is None:
+        plt.close(fig)
+        return
     st = store[fname]
     ok = ~np.isnan(st["err"][:, 1, 0, 0])
     err, phi, valid = st["err"][ok][:, 1:], st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]

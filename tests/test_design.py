@@ -173,3 +173,19 @@ def test_study_replays_a_schedule_without_claiming_a_bound(tmp_path):
     assert np.isfinite(rep["rmse_position"])
     r = run_cli("study", "consensus-robot", "--runs", "3", "--schedule", LINEAR, "--out", str(tmp_path / "x"))
     assert r.returncode == 2 and "schedule" in r.stderr
+
+
+def test_study_survives_variants_whose_every_run_diverges(tmp_path):
+    """With Hessian-derived U, V the paper's fixed sigma, beta diverge; the results still say so, as JSON."""
+    from studies.consensus_robot import run_consensus_robot
+
+    res = run_consensus_robot(out=tmp_path, runs=2, seed=0, mode="tuned", quiet=True,
+                              assignments=["fdi_prob=0"], design_options={"linearization": "hessian"})
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["filters"].keys() == res["filters"].keys()
+    for f in saved["filters"].values():
+        if f["rmse_position"] is None:
+            assert f["diverged_fraction"] == 1.0 and len(f["diverged_runs"]) == 2
+        else:
+            assert np.isfinite(f["rmse_position"])
+    assert saved["filters"]["consensus-EKF (tuned)"]["rmse_position"] is not None
