@@ -57,27 +57,45 @@ def _inv_lam_max(a: np.ndarray) -> float:
     return 1.0 / lam[-1] if lam[0] > _RCOND * lam[-1] else -np.inf
 
 
-def condition28_margin(phi_post: np.ndarray, sigma: float, eps: float) -> float:
-    """``lambda_min(Phi_post^-1) - (1+eps) sigma``; must be > 0 (``-inf`` if Φ is not positive definite)."""
-    return _inv_lam_max(phi_post) - (1.0 + eps) * sigma
+def _inv_lam_max_d(a: np.ndarray, D: np.ndarray | None) -> float:
+    """``1 / lambda_max(D a Dᵀ)`` (``D = I`` when None), ``-inf`` when ``a`` is not numerically PD."""
+    base = _inv_lam_max(a)
+    if D is None or not np.isfinite(base):
+        return base
+    return 1.0 / float(np.linalg.eigvalsh(symmetrize(D @ a @ D.T))[-1])
 
 
-def condition29_margin(phi_pred: np.ndarray, beta: float) -> float:
-    """``lambda_min(Phi_pred^-1) - beta``; must be > 0 (``-inf`` if Φ is not positive definite)."""
-    return _inv_lam_max(phi_pred) - beta
+def condition28_margin(phi_post: np.ndarray, sigma: float, eps: float, D: np.ndarray | None = None) -> float:
+    """``1/lambda_max(D Φ Dᵀ) - (1+eps) sigma`` (``D = I``: the paper's (28)); must be > 0.
+
+    With a structure matrix ``D`` (the remainder is ``U Ω D e``), (28) reads
+    ``Φ^-1 > (1+eps) sigma DᵀD``, i.e. this margin > 0.  ``-inf`` if Φ is not positive definite.
+    """
+    return _inv_lam_max_d(phi_post, D) - (1.0 + eps) * sigma
 
 
-def shifted_inverse(phi: np.ndarray, c: float) -> np.ndarray:
-    """``(Phi^-1 - c I)^-1 = Q diag(lambda / (1 - c lambda)) Q^T`` from the eigendecomposition of ``Phi``.
+def condition29_margin(phi_pred: np.ndarray, beta: float, D: np.ndarray | None = None) -> float:
+    """``1/lambda_max(D Φ_pred Dᵀ) - beta`` (``D = I``: the paper's (29)); must be > 0."""
+    return _inv_lam_max_d(phi_pred, D) - beta
 
-    Exact, positive definite by construction and free of the two explicit
-    inverses (which lose the small eigenvalues when Φ is ill-conditioned).
-    Requires ``c lambda_max < 1`` (conditions (28)/(29)).
+
+def shifted_inverse(phi: np.ndarray, c: float, D: np.ndarray | None = None) -> np.ndarray:
+    """``(Φ^-1 - c DᵀD)^-1`` (``D = I`` when None), positive definite by construction.
+
+    ``D = I``: ``Q diag(λ / (1 - c λ)) Qᵀ`` from the eigendecomposition of Φ.
+    General ``D``: ``Φ + Φ Dᵀ (c^-1 I - D Φ Dᵀ)^-1 D Φ`` (Woodbury), from the
+    eigendecomposition of ``D Φ Dᵀ``.  Both avoid the two explicit inverses (which
+    lose the small eigenvalues when Φ is ill-conditioned).  Requires
+    ``c lambda_max(D Φ Dᵀ) < 1`` (conditions (28)/(29)).
     """
     if c == 0:
         return symmetrize(phi)
-    lam, Q = np.linalg.eigh(symmetrize(phi))
-    return symmetrize((Q * (lam / (1.0 - c * lam))) @ Q.T)
+    if D is None:
+        lam, Q = np.linalg.eigh(symmetrize(phi))
+        return symmetrize((Q * (lam / (1.0 - c * lam))) @ Q.T)
+    mu, Q = np.linalg.eigh(symmetrize(D @ phi @ D.T))
+    G = phi @ D.T @ Q
+    return symmetrize(phi + (G * (c / (1.0 - c * mu))) @ G.T)
 
 
 def theorem2_margin(phi_post: np.ndarray, sigma: float, d_max: int) -> float:
@@ -103,34 +121,37 @@ class PredictionBound(NamedTuple):
     margin28: float
 
 
-def prediction_bound(phi_post, F, U, Q, sigma: float, eps: float) -> PredictionBound:
-    """Evaluate (26) if (28) holds; otherwise return ``phi_pred=None`` and the (negative) margin."""
-    margin = condition28_margin(phi_post, sigma, eps)
+def prediction_bound(phi_post, F, U, Q, sigma: float, eps: float, D=None) -> PredictionBound:
+    """Evaluate (26) if (28) holds; otherwise return ``phi_pred=None`` and the (negative) margin.
+
+    ``D``: structure of the remainder ``U Ω D e`` (``None``: the paper's ``D = I``).
+    """
+    margin = condition28_margin(phi_post, sigma, eps, D)
     if margin <= 0:
         return PredictionBound(None, margin)
-    inner = shifted_inverse(phi_post, (1.0 + eps) * sigma)
+    inner = shifted_inverse(phi_post, (1.0 + eps) * sigma, D)
     lin = _scaled_outer(U, eps * sigma, "U", "sigma")
     return PredictionBound(symmetrize(F @ inner @ F.T + lin + Q), margin)
 
 
-def optimal_gain(phi_pred, H, C, s_i: float, beta: float, V, R, d_i: int) -> np.ndarray:
+def optimal_gain(phi_pred, H, C, s_i: float, beta: float, V, R, d_i: int, D=None) -> np.ndarray:
     """The gain (30) minimising ``tr Phi_post`` (requires (29))."""
     n = phi_pred.shape[0]
-    M = shifted_inverse(phi_pred, beta)
+    M = shifted_inverse(phi_pred, beta, D)
     S = H @ M @ H.T + _scaled_outer(V, beta, "V", "beta") + R / (1.0 + 2 * d_i)
     # K = (I - s C) M H^T S^-1 via a solve with the symmetric positive-definite S.
     return (np.eye(n) - s_i * C) @ np.linalg.solve(symmetrize(S), H @ M).T
 
 
 def update_bound(phi_pred, H, K, C, s_i: float, beta: float, V, R, d_i: int, neighbour_terms: np.ndarray,
-                 ) -> np.ndarray:
+                 D=None) -> np.ndarray:
     """Evaluate (27) (requires (29)).
 
     ``neighbour_terms`` is ``sum_j 3 (1 - phibar_ij) Phi_pred_j + 3 delta^2 gammabar_ij I``,
-    the part sandwiched between ``C`` and ``C^T``.
+    the part sandwiched between ``C`` and ``C^T``; ``D`` the structure of ``V Θ D e``.
     """
     n = phi_pred.shape[0]
-    M = shifted_inverse(phi_pred, beta)
+    M = shifted_inverse(phi_pred, beta, D)
     A = np.eye(n) - s_i * C - K @ H
     meas = (1.0 + 2 * d_i) * _scaled_outer(V, beta, "V", "beta") + R
     out = (1.0 + 2 * d_i) * A @ M @ A.T + C @ neighbour_terms @ C.T + K @ meas @ K.T

@@ -28,7 +28,7 @@ import numpy as np
 
 from .bounds import symmetrize
 
-__all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale"]
+__all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "hessian_cover", "structured_scale", "selection"]
 
 DEFAULT_RADIUS = 3.0
 
@@ -62,3 +62,52 @@ def remainder_scale(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
     L = hessian_norm_bound(hessian_at(ellipsoid_points(center, cov, radius)))
     lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
     return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))
+
+
+# ------------------------------------------------------------------ structured variant
+def hessian_cover(fun) -> tuple[int, ...]:
+    """A smallest set S of variables touching every structural nonzero of the Hessians of ``fun``.
+
+    ``fun`` is a CasADi function whose outputs are the Hessians (n x n) of the
+    components (e.g. ``model.casadi_f_hess``).  Every nonzero (a, b) needs a or b in S
+    (a diagonal entry needs a); then ``eᵀ ∇²g_j e = e_Sᵀ M_j e`` with
+    ``M_j = [∇²g_j[S, S], 2 ∇²g_j[S, N]]`` (N the other variables): the remainder
+    depends on the error only through ``e_S`` times ``e``.
+    """
+    n = fun.sparsity_out(0).size1()
+    pairs = set()
+    for j in range(fun.n_out()):
+        rows, cols = fun.sparsity_out(j).get_triplet()
+        pairs.update((min(a, b), max(a, b)) for a, b in zip(rows, cols))
+    if not pairs:
+        return ()
+    for size in range(1, n + 1):
+        for S in itertools.combinations(range(n), size):
+            s = set(S)
+            if all(a in s or b in s for a, b in pairs):
+                return S
+    return tuple(range(n))
+
+
+def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tuple[int, ...],
+                     radius: float = DEFAULT_RADIUS) -> float:
+    """The scalar ``u`` of the structured remainder ``r = (u I) Ω D e``, ``D`` selecting ``cover``.
+
+    ``|r_j| = ½ |e_Sᵀ M_j e| <= ½ ||e_S|| ||M_j|| ||e||``, so ``||r|| <= ½ L_M ||e_S|| ||e||``
+    with ``L_M = max sqrt(Σ_j ||M_j||²)``; with ``||e|| <= c sqrt(λ_max(Φ))`` on the
+    ellipsoid, ``Ω = r e_Sᵀ / (u ||e_S||²)`` has norm ``||r|| / (u ||e_S||) <= 1``.
+    """
+    if not cover:
+        return 0.0
+    S = list(cover)
+    N = [k for k in range(center.shape[0]) if k not in cover]
+    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
+    M = np.concatenate([Hs[..., S, :][..., :, S], 2.0 * Hs[..., S, :][..., :, N]], axis=-1)
+    L = float(np.sqrt((np.linalg.norm(M, ord=2, axis=(-2, -1)) ** 2).sum(axis=-1)).max())
+    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
+    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))
+
+
+def selection(cover: tuple[int, ...], n: int) -> np.ndarray:
+    """The matrix D (|S| x n) selecting the variables of ``cover``."""
+    return np.eye(n)[list(cover)]

@@ -74,37 +74,43 @@ class UpdateChoice(NamedTuple):
     trace: float
 
 
-def _lam_max(a) -> float:
-    return float(np.linalg.eigvalsh(symmetrize(a))[-1])
+def _lam_max(a, D=None) -> float:
+    """``lambda_max(D a Dᵀ)`` (``D = I`` when None)."""
+    return float(np.linalg.eigvalsh(symmetrize(a if D is None else D @ a @ D.T))[-1])
 
 
 # --------------------------------------------------------------------------- prediction
-def _prediction(phi_post, F, UUt, Q, sigma, eps) -> np.ndarray:
+def _prediction(phi_post, F, UUt, Q, sigma, eps, D=None) -> np.ndarray:
     lin = UUt / (eps * sigma) if np.any(UUt) else 0.0 * UUt
-    return symmetrize(F @ shifted_inverse(phi_post, (1.0 + eps) * sigma) @ F.T + lin + Q)
+    return symmetrize(F @ shifted_inverse(phi_post, (1.0 + eps) * sigma, D) @ F.T + lin + Q)
 
 
-def _sigma_max(phi_post, eps, margin) -> float:
-    return (1.0 - margin) / ((1.0 + eps) * _lam_max(phi_post))
+def _sigma_max(phi_post, eps, margin, D=None) -> float:
+    return (1.0 - margin) / ((1.0 + eps) * _lam_max(phi_post, D))
 
 
-def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN) -> PredictionChoice:
-    """Minimise ``tr Φ_{k+1|k}`` over σ with (28) kept at relative margin ``margin`` (scalar search)."""
+def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionChoice:
+    """Minimise ``tr Φ_{k+1|k}`` over σ with (28) kept at relative margin ``margin`` (scalar search).
+
+    ``D``: structure of the remainder ``U Ω D e`` (``None``: ``D = I``, the paper's form).
+    """
     UUt = U @ U.T
-    smax = _sigma_max(phi_post, eps, margin)
+    smax = _sigma_max(phi_post, eps, margin, D)
     if not np.any(UUt):
         # Without linearisation error the trace only grows with σ: σ -> 0 (the EKF prediction).
         sigma = 0.0
     else:
-        # tr F (Φ^-1 - cσ I)^-1 F^T = Σ_k g_k λ_k / (1 - cσ λ_k) with Φ = Σ λ_k q_k q_k^T, g_k = |F q_k|²;
-        # the trace is convex in σ, so its derivative is increasing: find its root by bracketing.
+        # tr F (Φ^-1 - cσ DᵀD)^-1 F^T = tr F Φ F^T + Σ_k g_k cσ / (1 - cσ μ_k) (Woodbury), with
+        # D Φ Dᵀ = Σ μ_k q_k q_kᵀ and g_k = |F Φ Dᵀ q_k|²; the trace is convex in σ, so its derivative
+        # Σ_k g_k c / (1 - cσ μ_k)² - a / σ² is increasing: find its root by bracketing.
         c = 1.0 + eps
-        lam, vec = np.linalg.eigh(symmetrize(phi_post))
-        g = np.sum((F @ vec) ** 2, axis=0)
+        Dm = np.eye(phi_post.shape[0]) if D is None else D
+        mu, vec = np.linalg.eigh(symmetrize(Dm @ phi_post @ Dm.T))
+        g = np.sum((F @ phi_post @ Dm.T @ vec) ** 2, axis=0)
         a = np.trace(UUt) / eps
 
         def slope(sv):
-            return float(np.sum(g * c * lam**2 / (1.0 - c * sv * lam) ** 2) - a / sv**2)
+            return float(np.sum(g * c / (1.0 - c * sv * mu) ** 2) - a / sv**2)
 
         lo = smax * 1e-12
         if slope(smax) <= 0:
@@ -113,15 +119,15 @@ def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN) -> Pr
             sigma = lo
         else:
             sigma = float(brentq(slope, lo, smax, xtol=smax * 1e-13, rtol=1e-14, maxiter=200))
-    phi = _prediction(phi_post, F, UUt, Q, sigma, eps) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
+    phi = _prediction(phi_post, F, UUt, Q, sigma, eps, D) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
     return PredictionChoice(sigma, phi, float(np.trace(phi)))
 
 
 # ------------------------------------------------------------------------------ update
-def update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N) -> np.ndarray:
-    """Φ_{k+1|k+1} of (27) for given (β, C, K) (``N`` is the neighbour matrix)."""
+def update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D=None) -> np.ndarray:
+    """Φ_{k+1|k+1} of (27) for given (β, C, K) (``N`` is the neighbour matrix, ``D`` the structure of V Θ D e)."""
     w = 1.0 + 2 * d_i
-    M = shifted_inverse(phi_pred, beta)
+    M = shifted_inverse(phi_pred, beta, D)
     A = np.eye(phi_pred.shape[0]) - s * C - K @ H
     VVt = V @ V.T
     W = (w * VVt / beta if np.any(VVt) else 0.0 * VVt) + R
@@ -135,10 +141,14 @@ class _FixedBeta:
     ``Z* = w M B G^-1`` and ``f* = w tr M - w^2 tr(M B G^-1 B^T M)``.
     """
 
-    def __init__(self, phi_pred, H, s, V, R, d_i, N):
+    def __init__(self, phi_pred, H, s, V, R, d_i, N, D=None):
         self.n, m = phi_pred.shape[0], H.shape[0]
         self.w = 1.0 + 2 * d_i
-        self.lam, self.Q = np.linalg.eigh(symmetrize(phi_pred))
+        Dm = np.eye(self.n) if D is None else D
+        # M(β) = Φ + G diag(β / (1 - β μ)) Gᵀ with D Φ Dᵀ = Q diag(μ) Qᵀ and G = Φ Dᵀ Q (Woodbury).
+        self.phi = symmetrize(phi_pred)
+        self.mu, Qd = np.linalg.eigh(symmetrize(Dm @ phi_pred @ Dm.T))
+        self.G = self.phi @ Dm.T @ Qd
         self.B = np.hstack([s * np.eye(self.n), H.T])  # n x (n + m)
         self.VVt = V @ V.T
         self.has_v = bool(np.any(self.VVt))
@@ -147,7 +157,7 @@ class _FixedBeta:
         self.D[: self.n, : self.n] = N
 
     def _parts(self, beta):
-        M = (self.Q * (self.lam / (1.0 - beta * self.lam))) @ self.Q.T
+        M = self.phi + (self.G * (beta / (1.0 - beta * self.mu))) @ self.G.T
         D = self.D.copy()
         D[self.n:, self.n:] = (self.w * self.VVt / beta if self.has_v else 0.0) + self.R
         MB = M @ self.B
@@ -172,15 +182,15 @@ class _FixedBeta:
         return Z[:, : self.n], Z[:, self.n:]
 
 
-def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN) -> UpdateChoice:
+def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
     """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search)."""
     with np.errstate(over="ignore", invalid="ignore"):  # a diverging bound is caught by the caller's checks
-        return _tune_update(phi_pred, H, s, V, R, d_i, N, margin)
+        return _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D)
 
 
-def _tune_update(phi_pred, H, s, V, R, d_i, N, margin) -> UpdateChoice:
-    bmax = (1.0 - margin) / _lam_max(phi_pred)
-    fixed = _FixedBeta(phi_pred, H, s, V, R, d_i, N)
+def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
+    bmax = (1.0 - margin) / _lam_max(phi_pred, D)
+    fixed = _FixedBeta(phi_pred, H, s, V, R, d_i, N, D)
     trace_at = fixed.trace
 
     if not np.any(V):
@@ -191,7 +201,7 @@ def _tune_update(phi_pred, H, s, V, R, d_i, N, margin) -> UpdateChoice:
                               options={"xatol": bmax * 1e-8, "maxiter": 500})
         beta = float(res.x)
     C, K = fixed.gains(beta)
-    phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N)
+    phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
@@ -219,14 +229,14 @@ class PredictionSDP:
 
         self.Pinv = cp.Parameter((n, n), symmetric=True)
         self.F = cp.Parameter((n, n))
-        self.c = cp.Parameter(nonneg=True)  # 1 + eps
+        self.cDtD = cp.Parameter((n, n), PSD=True)  # (1 + eps) DᵀD
         self.a = cp.Parameter(nonneg=True)  # sqrt(tr(U U^T) / eps)
         self.smax = cp.Parameter(nonneg=True)
         self.sigma = cp.Variable(nonneg=True)
         X = cp.Variable((n, n), symmetric=True)
         t = cp.Variable()
         cons = [
-            cp.bmat([[X, self.F], [self.F.T, self.Pinv - self.c * self.sigma * np.eye(n)]]) >> 0,
+            cp.bmat([[X, self.F], [self.F.T, self.Pinv - self.sigma * self.cDtD]]) >> 0,
             cp.bmat([[cp.reshape(t, (1, 1), order="C"), cp.reshape(self.a, (1, 1), order="C")],
                      [cp.reshape(self.a, (1, 1), order="C"), cp.reshape(self.sigma, (1, 1), order="C")]]) >> 0,
             self.sigma <= self.smax,
@@ -234,16 +244,18 @@ class PredictionSDP:
         self.problem = cp.Problem(cp.Minimize(cp.trace(X) + t), cons)
         assert self.problem.is_dpp()
 
-    def solve(self, phi_post, F, U, Q, eps: float, margin: float = MARGIN) -> PredictionChoice:
+    def solve(self, phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionChoice:
+        n = phi_post.shape[0]
+        Dm = np.eye(n) if D is None else D
         self.Pinv.value = symmetrize(np.linalg.inv(phi_post))
         self.F.value = F
-        self.c.value = 1.0 + eps
+        self.cDtD.value = (1.0 + eps) * Dm.T @ Dm
         self.a.value = float(np.sqrt(np.trace(U @ U.T) / eps))
-        self.smax.value = _sigma_max(phi_post, eps, margin)
+        self.smax.value = _sigma_max(phi_post, eps, margin, D)
         _solve(self.problem, "prediction SDP")
         sigma = max(float(self.sigma.value), 0.0)
         UUt = U @ U.T
-        phi = _prediction(phi_post, F, UUt, Q, sigma, eps) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
+        phi = _prediction(phi_post, F, UUt, Q, sigma, eps, D) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
         return PredictionChoice(sigma, phi, float(np.trace(phi)))
 
 
@@ -261,6 +273,7 @@ class UpdateSDP:
         self.LR = cp.Parameter((m, m))
         self.V = cp.Parameter((m, m))
         self.bmax = cp.Parameter(nonneg=True)
+        self.DtD = cp.Parameter((n, n), PSD=True)
         self.C = cp.Variable((n, n))
         self.K = cp.Variable((n, m))
         self.beta = cp.Variable(nonneg=True)
@@ -269,7 +282,7 @@ class UpdateSDP:
         A = np.eye(n) - self.s * self.C - self.K @ self.H
         G = self.K @ self.V
         cons = [
-            cp.bmat([[X, A], [A.T, self.Pinv - self.beta * np.eye(n)]]) >> 0,
+            cp.bmat([[X, A], [A.T, self.Pinv - self.beta * self.DtD]]) >> 0,
             cp.bmat([[T, G], [G.T, self.beta * np.eye(m)]]) >> 0,
             self.beta <= self.bmax,
         ]
@@ -278,8 +291,10 @@ class UpdateSDP:
         self.problem = cp.Problem(cp.Minimize(obj), cons)
         assert self.problem.is_dpp()
 
-    def solve(self, phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN) -> UpdateChoice:
+    def solve(self, phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
         n = phi_pred.shape[0]
+        Dm = np.eye(n) if D is None else D
+        self.DtD.value = Dm.T @ Dm
         self.Pinv.value = symmetrize(np.linalg.inv(phi_pred))
         self.H.value = H
         self.s.value = float(s)
@@ -287,11 +302,11 @@ class UpdateSDP:
         self.LN.value = np.linalg.cholesky(symmetrize(N) + 1e-15 * np.eye(n)) if np.any(N) else np.zeros((n, n))
         self.LR.value = np.linalg.cholesky(R)
         self.V.value = V
-        self.bmax.value = (1.0 - margin) / _lam_max(phi_pred)
+        self.bmax.value = (1.0 - margin) / _lam_max(phi_pred, D)
         _solve(self.problem, "update SDP")
         beta = max(float(self.beta.value), 0.0)
         C, K = self.C.value, self.K.value
-        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N) if beta > 0 or not np.any(V) else None
+        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D) if beta > 0 or not np.any(V) else None
         if phi is None:
             raise ComputationError("update SDP returned beta = 0 with V nonzero")
         return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))

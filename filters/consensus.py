@@ -35,7 +35,7 @@ from designer.bounds import (
 )
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.linearization import remainder_scale
+from designer.linearization import hessian_cover, remainder_scale, selection, structured_scale
 from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite
 
@@ -71,7 +71,9 @@ class ConsensusDesign(NamedTuple):
     V: np.ndarray
     delta: float
     mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
-    linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step
+    linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step;
+    # 'structured': as 'hessian' but with the remainder written U Ω D e, D selecting the variables the model is
+    # nonlinear in (the tighter variant: the multipliers act only along those directions)
     radius: float = 3.0  # 'hessian': the remainder bound holds for errors within `radius` standard deviations of Φ
 
 
@@ -94,8 +96,8 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         v = getattr(design, name)
         if not np.isfinite(v) or v < 0:
             raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-    if design.linearization not in ("fixed", "hessian"):
-        raise InputError(f"linearization must be 'fixed' or 'hessian', got {design.linearization!r}")
+    if design.linearization not in ("fixed", "hessian", "structured"):
+        raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
     if not np.isfinite(design.radius) or design.radius <= 0:
         raise InputError(f"radius must be > 0, got {design.radius!r}")
     if design.mode not in ("paper", "tuned"):
@@ -157,17 +159,26 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     F = model.F_expected(x_post, k, u)
     x_pred = model.f_expected(x_post, k, u)
     Q = model.process_cov
-    if valid and design.linearization == "hessian":
+    D = None
+    if valid and design.linearization != "fixed":
         hess = (lambda pts: model.f_hessian(pts, k, u)) if model.n_modes == 0 else \
             (lambda pts: np.concatenate([model.f_hessian(pts, k, u, mm) for mm in range(model.n_modes)], axis=1))
-        design = design._replace(U=remainder_scale(hess, x_post, phi_post, design.radius) * np.eye(model.n_x))
+        if design.linearization == "structured":
+            cover = hessian_cover(model.casadi_f_hess)
+            D = selection(cover, model.n_x)
+            scale = structured_scale(hess, x_post, phi_post, cover, design.radius)
+        else:
+            scale = remainder_scale(hess, x_post, phi_post, design.radius)
+        design = design._replace(U=scale * np.eye(model.n_x))
+    if D is not None and D.shape[0] == 0:  # f is linear: no remainder, no multiplier
+        D, design = None, design._replace(U=np.zeros_like(design.U))
     if valid and design.mode == "tuned":
-        choice = tune_prediction(phi_post, F, design.U, Q, design.epsilon)
-        margin = condition28_margin(phi_post, choice.sigma, design.epsilon)
+        choice = tune_prediction(phi_post, F, design.U, Q, design.epsilon, D=D)
+        margin = condition28_margin(phi_post, choice.sigma, design.epsilon, D)
         if margin > 0:
             return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma)
     elif valid:
-        pb = prediction_bound(phi_post, F, design.U, Q, design.sigma, design.epsilon)
+        pb = prediction_bound(phi_post, F, design.U, Q, design.sigma, design.epsilon, D)
         if pb.phi_pred is not None:
             return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True, design.sigma)
         margin = pb.margin28
@@ -218,31 +229,38 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
     H = model.H(i, x_pred, k1)
     R = model.measurement_cov(i)
-    if valid and design.linearization == "hessian":
-        v = remainder_scale(lambda pts: model.h_hessian(i, pts, k1), x_pred, phi_pred, design.radius)
+    D = None
+    if valid and design.linearization != "fixed":
+        hess = lambda pts: model.h_hessian(i, pts, k1)  # noqa: E731
+        if design.linearization == "structured":
+            cover = hessian_cover(model.casadi_h_hess[i])
+            D = selection(cover, model.n_x) if cover else None
+            v = structured_scale(hess, x_pred, phi_pred, cover, design.radius)
+        else:
+            v = remainder_scale(hess, x_pred, phi_pred, design.radius)
         design = design._replace(V=v * np.eye(design.V.shape[0]))
     beta, V = design.beta, design.V
     if valid and design.mode == "tuned" and gains is None:
-        choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms)
-        margin = condition29_margin(phi_pred, choice.beta)
+        choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms, D=D)
+        margin = condition29_margin(phi_pred, choice.beta, D)
         if margin > 0:
             x_post = x_pred + choice.K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + choice.C @ innovation_i
             return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta)
         valid = False  # the tuned beta is inside (29) by construction; reaching here means Φ_pred broke down
     else:
-        margin = condition29_margin(phi_pred, beta) if valid else np.nan
+        margin = condition29_margin(phi_pred, beta, D) if valid else np.nan
     if valid and margin <= 0:
         valid = False
     if not valid:
         # Fallback: beta = 0, V = 0 and no bounding inflation ((1 + 2 d_i) -> 1, 3 -> 1): a plain
         # covariance approximation of the consensus EKF, positive definite and free of inverses.
-        beta, V, d_i, neighbour_terms = 0.0, np.zeros_like(V), 0, neighbour_terms / 3.0
+        beta, V, d_i, neighbour_terms, D = 0.0, np.zeros_like(V), 0, neighbour_terms / 3.0, None
     if gains is None:
         C = design.tau * phi_pred
-        K = optimal_gain(phi_pred, H, C, s_i, beta, V, R, d_i)
+        K = optimal_gain(phi_pred, H, C, s_i, beta, V, R, d_i, D)
     else:
         K, C = gains
-    phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms)
+    phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms, D)
     x_post = x_pred + K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + C @ innovation_i
     return NodeUpdate(x_post, phi_post, K, C, margin, valid, beta if valid else np.nan)
 

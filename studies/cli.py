@@ -71,8 +71,9 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignme
 @click.option("--delta", type=float, default=None, help="bound on the injected signal (default: the scenario's)")
 @click.option("--u-scale", type=float, default=None, help="U = u I, linearisation scaling of f (default 0.01)")
 @click.option("--v-scale", type=float, default=None, help="V = v I, linearisation scaling of h (default 0.1)")
-@click.option("--linearization", type=click.Choice(["fixed", "hessian"]), default="fixed", show_default=True,
-              help="fixed: U = u I, V = v I as given; hessian: U, V from the model's Hessians per node and step")
+@click.option("--linearization", type=click.Choice(["fixed", "hessian", "structured"]), default="fixed", show_default=True,
+              help="fixed: U = u I, V = v I as given; hessian: U, V from the model's Hessians per node and step; "
+                   "structured: the same with the remainder restricted to the variables the model is nonlinear in")
 @click.option("--radius", type=float, default=3.0, show_default=True,
               help="hessian: the remainder bound covers errors within this many standard deviations of Phi")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
@@ -134,7 +135,7 @@ STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5
 @click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True)
 @click.option("--quiet", is_flag=True, help="no progress bar")
 @click.option("--schedule", default=None, help="replay the gains of this design directory (consensus-robot)")
-@click.option("--linearization", type=click.Choice(["fixed", "hessian"]), default="fixed", show_default=True,
+@click.option("--linearization", type=click.Choice(["fixed", "hessian", "structured"]), default="fixed", show_default=True,
               help="U, V of the consensus designs: fixed (0.01 I, 0.1 I) or from the model's Hessians")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def study_cmd(study, out, runs, seed, mode, quiet, schedule, linearization, assignments) -> None:

@@ -66,3 +66,51 @@ def test_hessian_design_without_fdi_is_feasible_and_with_strong_fdi_reports_dive
     bad = design("indoor-robot", mode="tuned", linearization="hessian", seed=0)
     assert not bad.result.feasible
     assert any(v["condition"] in ("diverged", "(28)", "(29)") for v in bad.result.violations)
+
+
+def test_hessian_cover_of_the_scenarios():
+    """The symbolic Hessian sparsity gives the variables each model is nonlinear in."""
+    from designer.linearization import hessian_cover
+
+    robot = load_scenario("indoor-robot").model
+    assert hessian_cover(robot.casadi_f_hess) == (2,)  # the unicycle is nonlinear in the heading only
+    assert all(hessian_cover(h) == (2,) for h in robot.casadi_h_hess)  # cameras: every term involves theta
+    rb = load_scenario("target-range-bearing").model
+    assert hessian_cover(rb.casadi_f_hess) == () and hessian_cover(rb.casadi_h_hess[0]) == (0, 2)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_structured_remainders_factor_through_the_cover(seed):
+    """r = (u I) Ω D e with ||Ω|| <= 1: ||r|| <= u ||e_S|| for errors inside the ellipsoid."""
+    from designer.linearization import hessian_cover, structured_scale
+
+    sc = load_scenario("indoor-robot")
+    m = sc.model
+    u0 = sc.inputs(1)[0]
+    rng = np.random.default_rng(10 + seed)
+    xhat = sc.x0 + 0.2 * rng.standard_normal(3)
+    B = rng.normal(size=(3, 3))
+    cov = 0.02 * B @ B.T + 0.005 * np.eye(3)
+    x = _inside(rng, xhat, cov, 3.0, 4000)
+    e = x - xhat
+    cover = hessian_cover(m.casadi_f_hess)
+    u = structured_scale(lambda p: m.f_hessian(p, 0, u0), xhat, cov, cover, 3.0)
+    r = m.f(x, 0, u0) - m.f(xhat, 0, u0) - e @ m.F(xhat, 0, u0).T
+    eS = np.linalg.norm(e[:, list(cover)], axis=1)
+    assert (np.linalg.norm(r, axis=1) / eS).max() <= u * (1 + 1e-9)
+    for i in range(8):
+        cov_h = hessian_cover(m.casadi_h_hess[i])
+        v = structured_scale(lambda p: m.h_hessian(i, p, 1), xhat, cov, cov_h, 3.0)
+        rh = m.h(i, x, 1) - m.h(i, xhat, 1) - e @ m.H(i, xhat, 1).T
+        assert (np.linalg.norm(rh, axis=1) / np.linalg.norm(e[:, list(cov_h)], axis=1)).max() <= v * (1 + 1e-9)
+
+
+def test_structured_design_is_tighter_than_the_unstructured_one():
+    from studies.design import design
+
+    full = design("indoor-robot", mode="tuned", linearization="hessian", fdi=0.0, seed=1)
+    struct = design("indoor-robot", mode="tuned", linearization="structured", fdi=0.0, seed=1)
+    assert full.result.feasible and struct.result.feasible
+    tr_full = np.trace(full.result.phi_post[1:], axis1=-2, axis2=-1).mean()
+    tr_struct = np.trace(struct.result.phi_post[1:], axis1=-2, axis2=-1).mean()
+    assert tr_struct < tr_full

@@ -145,3 +145,34 @@ def test_tuned_design_of_the_robot_is_feasible_where_the_paper_is_not(tmp_path):
     paper = design("indoor-robot", mode="paper", seed=0)
     assert not paper.result.feasible
     assert main(["design", "indoor-robot", "--mode", "tuned", "--out", str(tmp_path / "t")]) == 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_structured_tuning_matches_direct_formulas(seed):
+    """With a structure matrix D the tuned σ and gains match explicit-inverse references and (30)."""
+    rng = np.random.default_rng(300 + seed)
+    phi, F, U, Q, H, V, R, N = _instance(rng)
+    D = np.eye(3)[[2]]
+    eps = 0.3
+    Ud = 0.05 * np.eye(3)
+
+    def direct(sv):
+        inner = np.linalg.inv(np.linalg.inv(phi) - (1 + eps) * sv * D.T @ D)
+        return np.trace(F @ inner @ F.T + Ud @ Ud.T / (eps * sv) + Q)
+
+    smax = (1 - MARGIN) / ((1 + eps) * (D @ phi @ D.T)[0, 0])
+    ref = minimize_scalar(direct, bounds=(1e-12, smax), method="bounded", options={"xatol": 1e-14})
+    got = tune_prediction(phi, F, Ud, Q, eps, D=D)
+    assert got.trace == pytest.approx(ref.fun, rel=1e-6)
+    upd = tune_update(phi, H, 2.0, V, R, 3, N, D=D)
+    np.testing.assert_allclose(upd.K, optimal_gain(phi, H, upd.C, 2.0, upd.beta, V, R, 3, D), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(upd.phi_post, update_bound(phi, H, upd.K, upd.C, 2.0, upd.beta, V, R, 3, N, D),
+                               rtol=1e-10)
+    # The SDPs with D agree with the fast path.
+    assert PredictionSDP(3).solve(phi, F, Ud, Q, eps, D=D).trace == pytest.approx(got.trace, rel=1e-6)
+    assert UpdateSDP(3, 2).solve(phi, H, 2.0, V, R, 3, N, D=D).trace == pytest.approx(upd.trace, rel=1e-6)
+    # D = I reproduces the unstructured tuning; a partial D is never looser.
+    full = tune_update(phi, H, 2.0, V, R, 3, N, D=np.eye(3))
+    assert full.trace == pytest.approx(tune_update(phi, H, 2.0, V, R, 3, N).trace, rel=1e-9)
+    assert upd.trace <= full.trace * (1 + 1e-9)
+    assert got.trace <= tune_prediction(phi, F, Ud, Q, eps).trace * (1 + 1e-9)
