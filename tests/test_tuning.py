@@ -176,3 +176,25 @@ def test_structured_tuning_matches_direct_formulas(seed):
     assert full.trace == pytest.approx(tune_update(phi, H, 2.0, V, R, 3, N).trace, rel=1e-9)
     assert upd.trace <= full.trace * (1 + 1e-9)
     assert got.trace <= tune_prediction(phi, F, Ud, Q, eps).trace * (1 + 1e-9)
+
+
+def test_tuned_never_loses_along_the_steps_of_a_paper_run():
+    """At every (node, step) of a paper-mode robot run where the paper's sigma, beta hold, tuned is no worse."""
+    from designer.bounds import prediction_bound
+    from studies.design import design
+
+    res = design("indoor-robot", mode="paper", seed=2)
+    r, des = res.result, res.design
+    m, net = res.scenario.model, res.scenario.network
+    u = res.scenario.inputs(r.K.shape[0])
+    checked = 0
+    for k in range(r.K.shape[0]):
+        for i in range(net.n_nodes):
+            if not r.valid[k, i] or r.margin28[k, i] <= MARGIN * (1 + des.epsilon) * des.sigma:
+                continue
+            F = m.F(r.x_post[k, i], k, u[k])
+            paper = prediction_bound(r.phi_post[k, i], F, des.U, m.process_cov, des.sigma, des.epsilon).phi_pred
+            tuned = tune_prediction(r.phi_post[k, i], F, des.U, m.process_cov, des.epsilon)
+            assert tuned.trace <= np.trace(paper) * (1 + 1e-9)
+            checked += 1
+    assert checked >= 8
