@@ -1,0 +1,176 @@
+"""Sampling-importance-resampling engine over many Monte Carlo runs at once.
+
+Particles have shape ``(runs, M, n_x)``; weights are kept in the log domain
+(:class:`LogWeights`) and normalised with log-sum-exp.  A filter step is:
+propagate through a proposal (the transition density by default), add
+``log p(z | x) + log p(x | x_prev) - log q(x | x_prev, z)`` to the log weights,
+accumulate the log marginal likelihood, report the weighted mean and covariance,
+and resample (every step, or when ESS < ``ess_threshold * M``).
+
+A proposal is a callable ``proposal(x_prev, k, z_k, rng) -> (x, log_correction)``
+with ``log_correction = log p(x | x_prev) - log q(x | x_prev, z_k)`` (zero for the
+transition density).  A log-likelihood is ``loglik(x, k1, z_k) -> (runs, M)``.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+from scipy.special import logsumexp
+
+from designer.model import Model
+from designer.validation import InputError
+
+from .resampling import get_resampler
+
+__all__ = ["LogWeights", "transition_proposal", "gaussian_loglik", "SIRResult", "run_sir"]
+
+
+class LogWeights(NamedTuple):
+    """Unnormalised log weights ``lw`` (..., M); NaN counts as -inf (zero weight)."""
+
+    lw: np.ndarray
+
+    @classmethod
+    def of(cls, lw) -> "LogWeights":
+        lw = np.asarray(lw, dtype=float)
+        return cls(np.where(np.isnan(lw), -np.inf, lw))
+
+    @property
+    def log_norm(self) -> np.ndarray:
+        """``log Σ exp(lw)`` over the particles."""
+        return logsumexp(self.lw, axis=-1)
+
+    @property
+    def W(self) -> np.ndarray:
+        """Normalised weights; a run whose weights all vanished gets uniform weights."""
+        ln = self.log_norm
+        dead = ~np.isfinite(ln)
+        W = np.exp(self.lw - np.where(dead, 0.0, ln)[..., None])
+        if np.any(dead):
+            W[dead] = 1.0 / self.lw.shape[-1]
+        return W
+
+    @property
+    def ess(self) -> np.ndarray:
+        W = self.W
+        return 1.0 / np.sum(W * W, axis=-1)
+
+    @property
+    def log_mean(self) -> np.ndarray:
+        """``log mean exp(lw)``: the step's contribution to the log marginal likelihood."""
+        return self.log_norm - np.log(self.lw.shape[-1])
+
+
+def transition_proposal(model: Model, inputs: np.ndarray | None = None) -> Callable:
+    """The transition density of the model as the proposal (bootstrap filter)."""
+    G = model.noise_gain
+
+    def propose(x_prev, k, z_k, rng):
+        shape = x_prev.shape[:-1]
+        mode = rng.choice(model.n_modes, size=shape, p=model.mode_probs) if model.n_modes else None
+        u = None if inputs is None or model.n_u == 0 else inputs[k]
+        x = model.f(x_prev, k, u, mode) + model.process_noise.sample(rng, shape) @ G.T
+        return x, 0.0
+
+    return propose
+
+
+def gaussian_loglik(model: Model) -> Callable:
+    """``Σ_i log p_i(z_i - h_i(x))`` with each sensor's own noise density (any Noise, not only Gaussian)."""
+
+    def loglik(x, k1, z_k):
+        h = model.h_all(x, k1)
+        total = 0.0
+        for i, s in enumerate(model.sensors):
+            a, b = model._offsets[i], model._offsets[i + 1]
+            total = total + s.noise.logpdf(z_k[..., None, a:b] - h[..., a:b])
+        return total
+
+    return loglik
+
+
+class SIRResult(NamedTuple):
+    mean: np.ndarray  # (runs, K + 1, n_x) weighted means (k = 0: the prior sample)
+    cov: np.ndarray  # (runs, K + 1, n_x, n_x)
+    ess: np.ndarray  # (runs, K) effective sample size after weighting
+    loglik: np.ndarray  # (runs,) log marginal likelihood estimate log p(z_1:K)
+    resampled: np.ndarray  # (runs, K) bool
+
+
+def _moments(x: np.ndarray, W: np.ndarray):
+    mean = np.einsum("rm,rmn->rn", W, x)
+    d = x - mean[:, None, :]
+    cov = np.einsum("rm,rma,rmb->rab", W, d, d)
+    return mean, cov
+
+
+def run_sir(
+    model: Model,
+    z: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    particles: int,
+    runs: int | None = None,
+    inputs: np.ndarray | None = None,
+    loglik: Callable | None = None,
+    proposal: Callable | None = None,
+    resampler: str = "systematic",
+    ess_threshold: float = 1.0,
+) -> SIRResult:
+    """Run a SIR particle filter on every run's measurements at once.
+
+    Parameters
+    ----------
+    z : ndarray, shape (runs, K, n_z) or (K, n_z)
+        Measurements; ``z[..., k, :]`` measures ``x_{k+1}``.
+    particles : int
+        Particles per run ``M``.
+    ess_threshold : float in (0, 1]
+        Resample when ESS < ``ess_threshold * M``; 1 resamples at every step.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise InputError("rng must be a numpy.random.Generator")
+    if not isinstance(particles, (int, np.integer)) or particles < 1:
+        raise InputError(f"particles must be an integer >= 1, got {particles!r}")
+    if not (0.0 < ess_threshold <= 1.0):
+        raise InputError(f"ess_threshold must lie in (0, 1], got {ess_threshold!r}")
+    z = np.asarray(z, dtype=float)
+    if z.ndim == 2:
+        z = np.broadcast_to(z, (runs or 1,) + z.shape)
+    if z.ndim != 3 or z.shape[-1] != model.n_z:
+        raise InputError(f"z must have shape (runs, K, {model.n_z}) or (K, {model.n_z}), got {z.shape}")
+    if runs is not None and z.shape[0] != runs:
+        raise InputError(f"z has {z.shape[0]} runs, expected {runs}")
+    R, K = z.shape[0], z.shape[1]
+    M = int(particles)
+    resample = get_resampler(resampler)
+    loglik = gaussian_loglik(model) if loglik is None else loglik
+    proposal = transition_proposal(model, inputs) if proposal is None else proposal
+
+    x = model.prior.sample(rng, (R, M))
+    lw = LogWeights.of(np.zeros((R, M)))
+    mean = np.empty((R, K + 1, model.n_x))
+    cov = np.empty((R, K + 1, model.n_x, model.n_x))
+    ess = np.empty((R, K))
+    did = np.zeros((R, K), dtype=bool)
+    total = np.zeros(R)
+    mean[:, 0], cov[:, 0] = _moments(x, lw.W)
+    for k in range(K):
+        x, corr = proposal(x, k, z[:, k], rng)
+        prev_log_norm = lw.log_norm
+        lw = LogWeights.of(lw.lw + loglik(x, k + 1, z[:, k]) + corr)
+        # p(z_k | z_1:k-1) = Σ W_{k-1} w_k: the change of the log normaliser.
+        total += lw.log_norm - prev_log_norm
+        W = lw.W
+        mean[:, k + 1], cov[:, k + 1] = _moments(x, W)
+        ess[:, k] = lw.ess
+        need = ess[:, k] < ess_threshold * M - 1e-9 if ess_threshold < 1.0 else np.ones(R, dtype=bool)
+        if np.any(need):
+            idx = resample(W[need], M, rng)
+            x[need] = np.take_along_axis(x[need], idx[..., None], axis=1)
+            new = lw.lw.copy()
+            new[need] = 0.0
+            lw = LogWeights(new)
+            did[:, k] = need
+    return SIRResult(mean, cov, ess, total, did)

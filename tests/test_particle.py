@@ -1,0 +1,120 @@
+"""The particle-filter engine: resampling schemes and SIR against the Kalman filter on a linear model."""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from designer import Gaussian, InputError, Model, Sensor, simulate
+from filters.particle import LogWeights, run_sir
+from filters.resampling import RESAMPLERS, get_resampler
+
+SCHEMES = sorted(RESAMPLERS)
+
+
+@pytest.mark.parametrize("name", SCHEMES)
+def test_resampling_is_unbiased(name):
+    rng = np.random.default_rng(0)
+    W = rng.dirichlet(np.ones(7) * 0.7)
+    M, reps = 50, 4000
+    idx = get_resampler(name)(np.broadcast_to(W, (reps, 7)), M, rng)  # 4000 runs in one batched call
+    counts = np.stack([np.bincount(row, minlength=7) for row in idx])
+    mean = counts.mean(0)
+    se = counts.std(0, ddof=1) / np.sqrt(reps) + 1e-12
+    assert np.all(np.abs(mean - M * W) < 5 * se + 1e-9)
+
+
+@pytest.mark.parametrize("name", ["systematic", "stratified", "residual"])
+def test_low_variance_schemes_keep_counts_near_M_W(name):
+    rng = np.random.default_rng(1)
+    W = rng.dirichlet(np.ones(9))
+    M = 40
+    for _ in range(200):
+        c = np.bincount(get_resampler(name)(W, M, rng), minlength=9)
+        assert c.sum() == M
+        if name == "systematic":
+            assert np.all(c >= np.floor(M * W) - 1e-9) and np.all(c <= np.ceil(M * W) + 1e-9)
+        if name == "residual":
+            assert np.all(c >= np.floor(M * W))
+
+
+@pytest.mark.parametrize("name", SCHEMES)
+def test_degenerate_weights_and_batching(name):
+    rng = np.random.default_rng(2)
+    W = np.zeros((3, 5))
+    W[0, 2] = W[1, 4] = W[2, 0] = 1.0
+    idx = get_resampler(name)(W, 6, rng)
+    assert idx.shape == (3, 6)
+    assert np.all(idx[0] == 2) and np.all(idx[1] == 4) and np.all(idx[2] == 0)
+
+
+def test_resampling_rejects_bad_input():
+    rng = np.random.default_rng(0)
+    with pytest.raises(InputError, match="sum to 1"):
+        get_resampler("systematic")(np.array([0.5, 0.6]), 3, rng)
+    with pytest.raises(InputError, match="M must be"):
+        get_resampler("systematic")(np.array([0.5, 0.5]), 0, rng)
+    with pytest.raises(InputError, match="Generator"):
+        get_resampler("systematic")(np.array([0.5, 0.5]), 3, np.random.RandomState(0))
+    with pytest.raises(InputError, match="one of"):
+        get_resampler("bogus")
+
+
+def test_log_weights_handle_underflow_and_nan():
+    lw = LogWeights.of(np.array([[-1000.0, -1001.0, np.nan], [-np.inf, -np.inf, -np.inf]]))
+    W = lw.W
+    np.testing.assert_allclose(W[0], [1 / (1 + np.exp(-1)), np.exp(-1) / (1 + np.exp(-1)), 0.0])
+    np.testing.assert_allclose(W[1], 1 / 3)  # every weight vanished: uniform, not NaN
+    assert lw.ess[0] == pytest.approx(1 / np.sum(W[0] ** 2))
+
+
+def _linear_model():
+    x = ca.SX.sym("x", 2)
+    A = np.array([[0.9, 0.2], [-0.1, 0.95]])
+    Hm = np.array([[1.0, 0.5]])
+    model = Model("lin", x, ca.mtimes(ca.DM(A), x), [Sensor("s", ca.mtimes(ca.DM(Hm), x),
+                  Gaussian.zero_mean([[0.3]]))], Gaussian.zero_mean(0.05 * np.eye(2)),
+                  Gaussian([1.0, -1.0], 0.5 * np.eye(2)))
+    return model, A, Hm
+
+
+def _kalman(A, Hm, Q, R, m0, P0, z):
+    m, P, ll, means = m0, P0, 0.0, []
+    for zk in z:
+        m, P = A @ m, A @ P @ A.T + Q
+        S = Hm @ P @ Hm.T + R
+        r = zk - Hm @ m
+        ll += -0.5 * (np.log(2 * np.pi * np.linalg.det(S)) + r @ np.linalg.solve(S, r))
+        K = P @ Hm.T @ np.linalg.inv(S)
+        m, P = m + K @ r, P - K @ S @ K.T
+        means.append(m)
+    return np.array(means), ll
+
+
+@pytest.mark.parametrize("scheme, thr", [("systematic", 1.0), ("residual", 0.5), ("multinomial", 1.0)])
+def test_sir_matches_the_kalman_filter_on_a_linear_model(scheme, thr):
+    model, A, Hm = _linear_model()
+    traj = simulate(model, 25, np.random.default_rng(5))
+    means_kf, ll_kf = _kalman(A, Hm, model.process_cov, model.measurement_cov(0), model.prior.mean,
+                              model.prior.cov, traj.z)
+    runs = 16
+    res = run_sir(model, traj.z, np.random.default_rng(6), particles=3000, runs=runs, resampler=scheme,
+                  ess_threshold=thr)
+    diff = res.mean[:, 1:] - means_kf[None]  # (runs, K, 2)
+    avg = diff.mean(0)
+    se = diff.std(0, ddof=1) / np.sqrt(runs)
+    assert np.all(np.abs(avg) < 5 * se + 5e-3)
+    assert np.sqrt((diff**2).mean()) < 0.05
+    # The likelihood estimate is unbiased; its log is close at this particle count.
+    assert abs(ll_kf - np.mean(res.loglik)) < 5 * res.loglik.std(ddof=1) / np.sqrt(runs) + 0.05
+    if thr < 1.0:
+        assert not res.resampled.all()
+
+
+def test_sir_is_reproducible_and_runs_are_independent():
+    model, _, _ = _linear_model()
+    traj = simulate(model, 10, np.random.default_rng(5))
+    a = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3)
+    b = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3)
+    assert np.array_equal(a.mean, b.mean) and np.array_equal(a.loglik, b.loglik)
+    assert not np.allclose(a.mean[0], a.mean[1])
