@@ -138,8 +138,9 @@ def run_sir(
     z = np.asarray(z, dtype=float)
     if z.ndim == 2:
         z = np.broadcast_to(z, (runs or 1,) + z.shape)
-    if z.ndim != 3 or z.shape[-1] != model.n_z:
-        raise InputError(f"z must have shape (runs, K, {model.n_z}) or (K, {model.n_z}), got {z.shape}")
+    width = model.n_z if loglik is None else z.shape[-1]  # a custom likelihood defines what a measurement is
+    if z.ndim != 3 or z.shape[-1] != width:
+        raise InputError(f"z must have shape (runs, K, {width}) or (K, {width}), got {z.shape}")
     if runs is not None and z.shape[0] != runs:
         raise InputError(f"z has {z.shape[0]} runs, expected {runs}")
     R, K = z.shape[0], z.shape[1]
