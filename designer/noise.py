@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 from scipy import special, stats
 
-from .validation import InputError, as_vector, check_covariance, check_positive, check_probability
+from .validation import InputError, as_vector, check_covariance, check_positive, check_probability, check_rng
 
 __all__ = [
     "Noise", "Gaussian", "GaussianMixture", "TruncatedGaussian", "UniformBox", "PolarVelocityPrior", "spawn_generators",
@@ -28,12 +28,6 @@ def spawn_generators(seed: int | np.random.SeedSequence, n: int) -> list[np.rand
     """Independent generators for ``n`` Monte Carlo runs from one seed (``SeedSequence.spawn``)."""
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     return [np.random.default_rng(child) for child in ss.spawn(n)]
-
-
-def _check_rng(rng) -> np.random.Generator:
-    if not isinstance(rng, np.random.Generator):
-        raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-    return rng
 
 
 def _shape(shape) -> tuple[int, ...]:
@@ -124,7 +118,7 @@ class Gaussian(Noise):
         return np.asarray(vals, dtype=float).reshape(x.shape[:-1])
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
-        z = _check_rng(rng).standard_normal(_shape(shape) + (self.dim,))
+        z = check_rng(rng).standard_normal(_shape(shape) + (self.dim,))
         return self.mean + z @ self._chol.T
 
 
@@ -176,7 +170,7 @@ class GaussianMixture(Noise):
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         shape = _shape(shape)
-        rng = _check_rng(rng)
+        rng = check_rng(rng)
         labels = rng.choice(len(self.components), size=shape, p=self.weights)
         z = rng.standard_normal(shape + (self.dim,))
         out = np.empty(shape + (self.dim,))
@@ -243,7 +237,7 @@ class TruncatedGaussian(Noise):
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         size = _shape(shape) + (self.dim,)
         # Inverse-CDF sampling from the generator passed in.
-        u = _check_rng(rng).random(size)
+        u = check_rng(rng).random(size)
         return np.asarray(self._dist.ppf(u), dtype=float).reshape(size)
 
     def describe(self) -> dict:
@@ -293,7 +287,7 @@ class UniformBox(Noise):
         return np.prod(np.clip((x - self.lower) / (self.upper - self.lower), 0.0, 1.0), axis=-1)
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
-        return _check_rng(rng).uniform(self.lower, self.upper, _shape(shape) + (self.dim,))
+        return check_rng(rng).uniform(self.lower, self.upper, _shape(shape) + (self.dim,))
 
     def describe(self) -> dict:
         return {"type": "UniformBox", "lower": self.lower.tolist(), "upper": self.upper.tolist()}
@@ -374,7 +368,7 @@ class PolarVelocityPrior(Noise):
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         shape = _shape(shape)
-        pos = self._pos.sample(_check_rng(rng), shape)
+        pos = self._pos.sample(check_rng(rng), shape)
         s = self.speed_mean + self.speed_std * rng.standard_normal(shape)
         a = self.heading_mean + self.heading_std * rng.standard_normal(shape)
         return np.stack([pos[..., 0], s * np.cos(a), pos[..., 1], s * np.sin(a)], axis=-1)

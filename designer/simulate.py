@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .model import Model
-from .validation import InputError, check_finite
+from .validation import InputError, check_finite, check_int, check_rng
 
 __all__ = ["Trajectory", "simulate"]
 
@@ -83,10 +83,8 @@ def simulate(
     inputs : array_like, shape (K, n_u), optional
         Known inputs, required when the model has inputs.
     """
-    if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 1:
-        raise InputError(f"steps must be an integer >= 1, got {steps!r}")
-    if not isinstance(rng, np.random.Generator):
-        raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    steps = check_int("steps", steps, 1)
+    check_rng(rng)
     batch = (batch,) if isinstance(batch, (int, np.integer)) else tuple(batch)
     u = _inputs(model, steps, inputs)
     if x0 is None:

@@ -17,6 +17,8 @@ __all__ = [
     "check_shape",
     "check_covariance",
     "check_positive",
+    "check_int",
+    "check_rng",
     "as_vector",
 ]
 
@@ -100,6 +102,20 @@ def check_probability(name: str, value, *, open_upper: bool = False) -> np.ndarr
         rng = "[0, 1)" if open_upper else "[0, 1]"
         raise InputError(f"{name} must lie in {rng}, got {arr[bad].ravel()[0]!r}")
     return arr
+
+
+def check_int(name: str, value, minimum: int) -> int:
+    """An integer (not a bool) ``>= minimum``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_rng(rng) -> np.random.Generator:
+    """The explicit random generator every sampling function takes."""
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    return rng
 
 
 def check_positive(name: str, value, *, strict: bool = True) -> np.ndarray:

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.noise import Noise
-from designer.validation import InputError, check_probability
+from designer.validation import InputError, check_int, check_probability
 
 __all__ = [
     "round_robin_schedule", "DeceptionOutcome", "deception_attack", "round_robin_received",
@@ -23,12 +23,10 @@ def round_robin_schedule(steps: int, n_sensors: int, start: int = 1) -> np.ndarr
 
     Returns 0-based sensor indices of shape (K,); ``start`` is the paper's 1-based ``gamma_ini``.
     """
-    if not isinstance(n_sensors, (int, np.integer)) or n_sensors < 1:
-        raise InputError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
+    n_sensors = check_int("n_sensors", n_sensors, 1)
     if not isinstance(start, (int, np.integer)) or not 1 <= start <= n_sensors:
         raise InputError(f"start (gamma_ini) must be an integer in [1, {n_sensors}], got {start!r}")
-    if not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise InputError(f"steps must be an integer >= 1, got {steps!r}")
+    steps = check_int("steps", steps, 1)
     k = np.arange(1, steps + 1)
     return np.mod(k + start - 2, n_sensors)  # (gamma_k - 1)
 

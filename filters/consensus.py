@@ -37,7 +37,7 @@ from designer.model import Model
 from designer.network import SensorNetwork
 from designer.linearization import hessian_cover, remainder_scale, selection, structured_scale
 from designer.tuning import tune_prediction, tune_update
-from designer.validation import InputError, check_covariance, check_finite
+from designer.validation import InputError, check_covariance, check_finite, check_rng
 
 __all__ = [
     "ConsensusDesign", "AttackPattern", "simulate_attacks", "node_predict", "exchange", "node_update",
@@ -132,8 +132,7 @@ def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.rando
     ``xi = amplitude * sin(s)`` on each listed state component, ``s ~ N(0, 1)`` per
     channel and step (so ``||xi|| <= amplitude * sqrt(len(components))``).
     """
-    if not isinstance(rng, np.random.Generator):
-        raise InputError("rng must be a numpy.random.Generator")
+    check_rng(rng)
     n = network.n_nodes
     u = rng.random((steps, n, n))
     s = rng.standard_normal((steps, n, n))

@@ -19,11 +19,11 @@ import numpy as np
 from scipy.special import logsumexp
 
 from designer.model import Model
-from designer.validation import InputError
+from designer.validation import InputError, check_int, check_rng
 
 from .resampling import get_resampler
 
-__all__ = ["LogWeights", "transition_proposal", "gaussian_loglik", "SIRResult", "run_sir"]
+__all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir"]
 
 
 class LogWeights(NamedTuple):
@@ -76,7 +76,7 @@ def transition_proposal(model: Model, inputs: np.ndarray | None = None) -> Calla
     return propose
 
 
-def gaussian_loglik(model: Model) -> Callable:
+def additive_noise_loglik(model: Model) -> Callable:
     """``Σ_i log p_i(z_i - h_i(x))`` with each sensor's own noise density (any Noise, not only Gaussian)."""
 
     def loglik(x, k1, z_k):
@@ -129,10 +129,8 @@ def run_sir(
     ess_threshold : float in (0, 1]
         Resample when ESS < ``ess_threshold * M``; 1 resamples at every step.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise InputError("rng must be a numpy.random.Generator")
-    if not isinstance(particles, (int, np.integer)) or particles < 1:
-        raise InputError(f"particles must be an integer >= 1, got {particles!r}")
+    check_rng(rng)
+    check_int("particles", particles, 1)
     if not (0.0 < ess_threshold <= 1.0):
         raise InputError(f"ess_threshold must lie in (0, 1], got {ess_threshold!r}")
     z = np.asarray(z, dtype=float)
@@ -146,7 +144,7 @@ def run_sir(
     R, K = z.shape[0], z.shape[1]
     M = int(particles)
     resample = get_resampler(resampler)
-    loglik = gaussian_loglik(model) if loglik is None else loglik
+    loglik = additive_noise_loglik(model) if loglik is None else loglik
     proposal = transition_proposal(model, inputs) if proposal is None else proposal
 
     x = model.prior.sample(rng, (R, M))

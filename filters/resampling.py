@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from designer.validation import InputError
+from designer.validation import InputError, check_int, check_rng
 
 __all__ = ["multinomial", "stratified", "systematic", "residual", "RESAMPLERS", "get_resampler"]
 
@@ -20,10 +20,8 @@ def _check(W, M: int, rng) -> np.ndarray:
     W = np.asarray(W, dtype=float)
     if W.ndim < 1 or W.shape[-1] < 1:
         raise InputError(f"W must have shape (..., N) with N >= 1, got {W.shape}")
-    if not isinstance(M, (int, np.integer)) or M < 1:
-        raise InputError(f"M must be an integer >= 1, got {M!r}")
-    if not isinstance(rng, np.random.Generator):
-        raise InputError("rng must be a numpy.random.Generator")
+    check_int("M", M, 1)
+    check_rng(rng)
     if np.any(W < 0) or not np.all(np.isfinite(W)) or np.any(np.abs(W.sum(-1) - 1.0) > 1e-8):
         raise InputError("W must be finite, non-negative and sum to 1 along its last axis")
     return W

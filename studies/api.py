@@ -11,7 +11,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from designer.simulate import Trajectory
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 
 from designer.fileio import write_npz
 from .scenarios import SCENARIOS, load_scenario
@@ -22,12 +22,6 @@ __all__ = ["list_scenarios", "simulate_scenario"]
 def list_scenarios() -> list[dict]:
     """Describe every built-in scenario: name, dimensions, source paper, parameters and assumptions."""
     return [spec.describe() for spec in SCENARIOS.values()]
-
-
-def _check_seed(seed) -> int:
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
-    return int(seed)
 
 
 def simulate_scenario(
@@ -46,10 +40,10 @@ def simulate_scenario(
     measures ``x[k+1]``), ``z`` (K, n_z) stacked, ``inputs``, ``modes`` when the
     model switches, and metadata (scenario, seed, parameters as JSON).
     """
-    seed = _check_seed(seed)
+    seed = check_int("seed", seed, 0)
     sc = load_scenario(scenario, overrides, assignments)
-    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1):
-        raise InputError(f"steps must be an integer >= 1, got {steps!r}")
+    if steps is not None:
+        steps = check_int("steps", steps, 1)
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     traj = sc.simulate(rng, steps)
     if out is not None:

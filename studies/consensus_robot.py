@@ -22,13 +22,14 @@ from typing import Any, Mapping, NamedTuple
 import numpy as np
 
 from designer.fileio import atomic_write, write_json
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.schedule import load_schedule
 from filters.consensus import ConsensusDesign, run_consensus, simulate_attacks
 
 from .design import DESIGN_ASSUMPTIONS, consensus_design
+from .progress import progress
 from .scenarios import load_scenario
 
 __all__ = ["run_consensus_robot", "bound_check", "Z_EXCESS", "MIN_RUNS_FOR_CHECK"]
@@ -100,14 +101,6 @@ def _versions() -> dict:
             "casadi": casadi.__version__, "platform": platform.platform()}
 
 
-def _progress(iterable, total: int, quiet: bool, desc: str):
-    if quiet or not sys.stderr.isatty():
-        return iterable
-    from tqdm import tqdm
-
-    return tqdm(iterable, total=total, desc=desc, leave=False)
-
-
 class _Variant(NamedTuple):
     model: Model
     network: SensorNetwork
@@ -166,10 +159,8 @@ def run_consensus_robot(
     """
     if mode not in ("paper", "tuned"):
         raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 2:
-        raise InputError(f"runs must be an integer >= 2, got {runs!r}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    runs = check_int("runs", runs, 2)
+    seed = check_int("seed", seed, 0)
     t_start = time.perf_counter()
     sc = load_scenario("indoor-robot", overrides, assignments)
     m, net = sc.model, sc.network
@@ -196,7 +187,7 @@ def run_consensus_robot(
                     "first_violation": [], "feasible_runs": 0} for name, v in variants.items()}
     attacks0 = None
     est0 = {}
-    for r in _progress(range(runs), runs, quiet, "consensus-robot"):
+    for r in progress(range(runs), runs, quiet, "consensus-robot"):
         traj_ss, att_ss = children[r].spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
         att = simulate_attacks(net, steps, nx, np.random.default_rng(att_ss), amplitude=amp, components=comps)

@@ -21,7 +21,7 @@ import numpy as np
 
 from designer.schedule import GainSchedule
 from designer.tuning import tuned_epsilon
-from designer.validation import InputError
+from designer.validation import InputError, check_int, check_probability
 from filters.consensus import ConsensusDesign, ConsensusResult, run_consensus, simulate_attacks
 
 from .scenarios import Scenario, load_scenario
@@ -55,19 +55,8 @@ class DesignOutcome(NamedTuple):
     truth: np.ndarray  # (steps + 1, n_x)
 
 
-def _check_seed(seed) -> int:
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
-    return int(seed)
-
-
-def _probability(name: str, p) -> float:
-    if p is None:
-        return None
-    p = float(p)
-    if not (0.0 <= p < 1.0):
-        raise InputError(f"{name} must lie in [0, 1), got {p!r}")
-    return p
+def _probability(name: str, p) -> float | None:
+    return None if p is None else float(check_probability(name, p, open_upper=True))
 
 
 def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=None, delta=None,
@@ -135,17 +124,14 @@ def design(
         for name, v in (("sigma", sigma), ("beta", beta), ("tau", tau)):
             if v is not None:
                 raise InputError(f"{name} is chosen by the tuning layer in mode 'tuned'; do not give --{name}")
-    seed = _check_seed(seed)
+    seed = check_int("seed", seed, 0)
     sc = load_scenario(scenario, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
     dos, fdi = _probability("dos", dos), _probability("fdi", fdi)
     if dos is not None or fdi is not None:
         sc = dataclasses.replace(sc, network=sc.network.with_attacks(dos, fdi))
-    if steps is None:
-        steps = sc.steps
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise InputError(f"steps must be an integer >= 1, got {steps!r}")
+    steps = check_int("steps", sc.steps if steps is None else steps, 1)
     des = consensus_design(sc, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, delta=delta, u_scale=u_scale,
                            v_scale=v_scale, mode=mode, linearization=linearization, radius=radius)
     m, net = sc.model, sc.network
@@ -156,7 +142,6 @@ def design(
     attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), amplitude=amp, components=comps)
     res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
-    n = net.n_nodes
     schedule = GainSchedule(
         scenario=sc.name,
         mode=mode,

@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import io
 import itertools
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -21,9 +20,10 @@ import numpy as np
 
 from designer.feasibility import steady_state
 from designer.fileio import atomic_write
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 
 from .design import consensus_design
+from .progress import progress
 from .scenarios import load_scenario
 
 __all__ = ["GRID_PARAMETERS", "parse_grid", "feasibility_map"]
@@ -98,8 +98,7 @@ def feasibility_map(
         raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
     if "tau" in names and mode == "tuned":
         raise InputError("--grid tau applies to mode 'paper' only (the tuned design chooses C itself)")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    workers = check_int("workers", workers, 1)
     sc = load_scenario(scenario, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
@@ -124,21 +123,11 @@ def feasibility_map(
 
 
 def _run(jobs, workers: int, quiet: bool) -> list[dict]:
-    show = not quiet and sys.stderr.isatty()
     if workers == 1:
-        it = map(_point, jobs)
-        if show:
-            from tqdm import tqdm
-
-            it = tqdm(it, total=len(jobs), desc="feasibility", leave=False)
-        return list(it)
+        return list(progress(map(_point, jobs), len(jobs), quiet, "feasibility"))
     with ProcessPoolExecutor(max_workers=workers) as pool:
         it = pool.map(_point, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
-        if show:
-            from tqdm import tqdm
-
-            it = tqdm(it, total=len(jobs), desc="feasibility", leave=False)
-        return list(it)  # map keeps the grid order whatever the number of workers
+        return list(progress(it, len(jobs), quiet, "feasibility"))  # map keeps the grid order
 
 
 def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from filters.channels import deception_attack, round_robin_schedule
 from filters.particle import run_sir

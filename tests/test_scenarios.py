@@ -117,7 +117,6 @@ def test_four_tank_operating_point_is_near_equilibrium():
     # Johansson's h0 is an approximate equilibrium: one step changes the levels by < 0.01 cm.
     assert np.abs(m.f(sc.x0, 0, u) - sc.x0).max() < 0.01
     # The continuous-time equilibrium from the closed form of the tank equations.
-    A = np.array([28, 32, 28, 32.0])
     a = np.array([0.071, 0.057, 0.071, 0.057])
     g, k1, k2, g1, g2 = 981.0, 3.33, 3.35, 0.70, 0.60
     h3 = ((1 - g2) * k2 * 3.0 / a[2]) ** 2 / (2 * g)
