@@ -7,6 +7,18 @@ propagate through a proposal (the transition density by default), add
 accumulate the log marginal likelihood, report the weighted mean and covariance,
 and resample (every step, or when ESS < ``ess_threshold * M``).
 
+Numerics.  When every particle's likelihood of a run vanishes (all log weights
+-inf, e.g. a measurement outside the support of every particle's density), the
+weights stay finite: the run keeps its predicted particles with uniform weights
+and the step is recorded in ``SIRResult.collapsed``.  ``linear_weights=True``
+emulates a filter that keeps weights in linear double precision (as the
+published MATLAB-style implementations do): a weight ``W_{k-1} p(z | x)`` below
+the smallest positive double becomes exactly zero, so a measurement that is far
+from every particle collapses the run instead of being absorbed by the log-domain
+normalisation.  Measurements with NaN are rejected unless ``missing="skip"``,
+which treats a run's whole measurement at that step as missing (prediction only,
+recorded in ``SIRResult.skipped``).
+
 A proposal is a callable ``proposal(x_prev, k, z_k, rng) -> (x, log_correction)``
 with ``log_correction = log p(x | x_prev) - log q(x | x_prev, z_k)`` (zero for the
 transition density).  A log-likelihood is ``loglik(x, k1, z_k) -> (runs, M)``.
@@ -96,6 +108,12 @@ class SIRResult(NamedTuple):
     ess: np.ndarray  # (runs, K) effective sample size after weighting
     loglik: np.ndarray  # (runs,) log marginal likelihood estimate log p(z_1:K)
     resampled: np.ndarray  # (runs, K) bool
+    collapsed: np.ndarray  # (runs, K) bool: every weight vanished; predicted particles kept, uniform weights
+    skipped: np.ndarray  # (runs, K) bool: measurement missing (NaN) and skipped on request
+
+
+# log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
+_LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))
 
 
 def _moments(x: np.ndarray, W: np.ndarray):
@@ -117,6 +135,8 @@ def run_sir(
     proposal: Callable | None = None,
     resampler: str = "systematic",
     ess_threshold: float = 1.0,
+    linear_weights: bool = False,
+    missing: str = "reject",
 ) -> SIRResult:
     """Run a SIR particle filter on every run's measurements at once.
 
@@ -128,6 +148,11 @@ def run_sir(
         Particles per run ``M``.
     ess_threshold : float in (0, 1]
         Resample when ESS < ``ess_threshold * M``; 1 resamples at every step.
+    linear_weights : bool
+        Emulate linear-domain weights: a normalised weight that underflows double
+        precision becomes zero (see the module notes).  Default: log domain.
+    missing : {"reject", "skip"}
+        NaN in ``z``: raise (default) or skip that run's measurement at that step.
     """
     check_rng(rng)
     check_int("particles", particles, 1)
@@ -141,6 +166,12 @@ def run_sir(
         raise InputError(f"z must have shape (runs, K, {width}) or (K, {width}), got {z.shape}")
     if runs is not None and z.shape[0] != runs:
         raise InputError(f"z has {z.shape[0]} runs, expected {runs}")
+    if missing not in ("reject", "skip"):
+        raise InputError(f"missing must be 'reject' or 'skip', got {missing!r}")
+    nan_rows = np.isnan(z).any(axis=-1)  # (runs, K)
+    if missing == "reject" and nan_rows.any():
+        r, k = map(int, np.argwhere(nan_rows)[0])
+        raise InputError(f"z has NaN (first at run {r}, step {k}); pass missing='skip' to treat it as missing")
     R, K = z.shape[0], z.shape[1]
     M = int(particles)
     resample = get_resampler(resampler)
@@ -153,14 +184,24 @@ def run_sir(
     cov = np.empty((R, K + 1, model.n_x, model.n_x))
     ess = np.empty((R, K))
     did = np.zeros((R, K), dtype=bool)
+    collapsed = np.zeros((R, K), dtype=bool)
     total = np.zeros(R)
     mean[:, 0], cov[:, 0] = _moments(x, lw.W)
     for k in range(K):
-        x, corr = proposal(x, k, z[:, k], rng)
+        zk = np.where(nan_rows[:, k, None], 0.0, z[:, k])  # skipped rows get a placeholder, then no weight
+        x, corr = proposal(x, k, zk, rng)
         prev_log_norm = lw.log_norm
-        lw = LogWeights.of(lw.lw + loglik(x, k + 1, z[:, k]) + corr)
-        # p(z_k | z_1:k-1) = Σ W_{k-1} w_k: the change of the log normaliser.
-        total += lw.log_norm - prev_log_norm
+        ll = np.where(nan_rows[:, k, None], 0.0, loglik(x, k + 1, zk))
+        new = LogWeights.of(lw.lw + ll + corr).lw
+        if linear_weights:
+            new = np.where(new - prev_log_norm[:, None] < _LOG_TINY, -np.inf, new)
+        dead = np.isneginf(new).all(axis=-1)
+        if np.any(dead):
+            collapsed[dead, k] = True
+            new[dead] = 0.0  # predicted particles, uniform weights; contributes nothing to the likelihood
+        lw = LogWeights(new)
+        # p(z_k | z_1:k-1) = Σ W_{k-1} w_k: the change of the log normaliser (-inf on a collapse).
+        total += np.where(dead, -np.inf, lw.log_norm - prev_log_norm)
         W = lw.W
         mean[:, k + 1], cov[:, k + 1] = _moments(x, W)
         ess[:, k] = lw.ess
@@ -172,4 +213,4 @@ def run_sir(
             new[need] = 0.0
             lw = LogWeights(new)
             did[:, k] = need
-    return SIRResult(mean, cov, ess, total, did)
+    return SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy())

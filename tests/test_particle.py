@@ -118,3 +118,59 @@ def test_sir_is_reproducible_and_runs_are_independent():
     b = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3)
     assert np.array_equal(a.mean, b.mean) and np.array_equal(a.loglik, b.loglik)
     assert not np.allclose(a.mean[0], a.mean[1])
+
+
+def test_collapse_is_recorded_and_the_filter_recovers():
+    """A measurement no particle can explain leaves finite weights, keeps the prediction and is recorded."""
+    model, A, Hm = _linear_model()
+    traj = simulate(model, 12, np.random.default_rng(5))
+    base = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2)
+
+    def loglik(x, k1, z):  # zero density at step 5 (k1 = 6), the model's Gaussian otherwise
+        ll = model.sensors[0].noise.logpdf(z[..., None, :] - model.h(0, x, k1))
+        return np.full_like(ll, -np.inf) if k1 == 6 else ll
+
+    res = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2, loglik=loglik)
+    assert res.collapsed[:, 5].all() and res.collapsed.sum() == 2
+    assert np.all(np.isfinite(res.mean)) and np.all(np.isfinite(res.cov))
+    assert np.all(res.loglik == -np.inf)  # p(z_6 | z_1:5) = 0 under this likelihood
+    # the step without a usable measurement is a pure prediction: the mean follows A (within MC error)
+    pred = np.einsum("ab,rb->ra", A, res.mean[:, 5])
+    assert np.all(np.abs(res.mean[:, 6] - pred) < 4 * np.sqrt(np.diagonal(res.cov[:, 6], axis1=1, axis2=2) / 500) + 0.02)
+    # and it recovers: the final estimates are as close to the truth as without the outage
+    err = lambda r: np.abs(r.mean[:, -1] - traj.x[-1]).max()
+    assert err(res) < err(base) + 1.0
+    assert not base.collapsed.any()
+
+
+def test_linear_weights_underflow_where_log_weights_do_not():
+    """A 60-sigma outlier: every linear-domain weight underflows to 0 (collapse); log weights renormalise."""
+    model, _, Hm = _linear_model()
+    traj = simulate(model, 10, np.random.default_rng(5))
+    z = traj.z.copy()
+    z[4] += 60 * np.sqrt(0.3)  # log-likelihood about -1800 for every particle: exp() == 0 in double precision
+    log = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3)
+    lin = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True)
+    assert not log.collapsed.any()
+    assert lin.collapsed[:, 4].all() and lin.collapsed.sum() == 3
+    # without the outlier the two are the same filter, bit for bit
+    a = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3)
+    b = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True)
+    np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_nan_measurements_are_rejected_or_skipped_explicitly():
+    model, A, _ = _linear_model()
+    traj = simulate(model, 8, np.random.default_rng(5))
+    z = traj.z.copy()
+    z[3] = np.nan
+    with pytest.raises(InputError, match="NaN.*step 3.*missing='skip'"):
+        run_sir(model, z, np.random.default_rng(0), particles=50)
+    with pytest.raises(InputError, match="missing must be"):
+        run_sir(model, traj.z, np.random.default_rng(0), particles=50, missing="ignore")
+    res = run_sir(model, z, np.random.default_rng(0), particles=2000, missing="skip")
+    assert res.skipped[0, 3] and res.skipped.sum() == 1 and not res.collapsed.any()
+    assert np.all(np.isfinite(res.mean)) and np.isfinite(res.loglik).all()
+    # a skipped step is a prediction: the weights stay uniform (ESS = M) and the mean follows A
+    assert res.ess[0, 3] == pytest.approx(2000)
+    np.testing.assert_allclose(res.mean[0, 4], A @ res.mean[0, 3], atol=0.05)
