@@ -22,8 +22,9 @@ import numpy as np
 
 from designer.model import Model
 from designer.noise import Noise
+from designer.validation import InputError
 
-__all__ = ["wrap_angles", "rrp_loglik", "all_sensors_loglik"]
+__all__ = ["wrap_angles", "packet_loglik", "rrp_loglik", "all_sensors_loglik"]
 
 
 def wrap_angles(r: np.ndarray, components: Sequence[int]) -> np.ndarray:
@@ -46,6 +47,32 @@ def _sensor_loglik(model: Model, i: int, x, k1, y, attack_prob: float, signal: N
     return np.logaddexp(np.log1p(-attack_prob) + lp, np.log(attack_prob) + lxi)
 
 
+def packet_loglik(model: Model, sensors, *, attack_prob: float = 0.0, signal: Noise | None = None,
+                  angles: Sequence[int] = ()) -> Callable:
+    """Log-likelihood of ``P`` packets per step, packet ``p`` at step ``k`` from sensor ``sensors[k, p]``.
+
+    The measurement passed at step ``k`` (``z[:, k]``) stacks the ``P`` received
+    packets, shape (runs, Σ n_y); each packet is attack-aware (14) when
+    ``attack_prob > 0`` (independent attacks per packet), standard otherwise.
+    """
+    sensors = np.asarray(sensors)
+    if sensors.ndim != 2 or not np.issubdtype(sensors.dtype, np.integer):
+        raise InputError(f"sensors must be an integer array (K, P), got {sensors.dtype} {sensors.shape}")
+    if sensors.size and (sensors.min() < 0 or sensors.max() >= model.n_sensors):
+        raise InputError(f"sensors must hold sensor indices in [0, {model.n_sensors - 1}]")
+    dims = np.asarray(model.sensor_dims)
+
+    def loglik(x, k1, z):
+        row = sensors[k1 - 1]
+        ends = np.cumsum(dims[row])
+        total = 0.0
+        for i, b, n in zip(row, ends, dims[row]):
+            total = total + _sensor_loglik(model, int(i), x, k1, z[..., b - n:b], attack_prob, signal, angles)
+        return total
+
+    return loglik
+
+
 def rrp_loglik(model: Model, schedule: np.ndarray, *, attack_prob: float = 0.0, signal: Noise | None = None,
                angles: Sequence[int] = ()) -> Callable:
     """Log-likelihood of the scheduled sensor's packet; ``attack_prob = 0`` gives the standard one.
@@ -53,11 +80,7 @@ def rrp_loglik(model: Model, schedule: np.ndarray, *, attack_prob: float = 0.0, 
     The measurement passed at step ``k`` (``z[:, k]``) is the received packet of the
     scheduled sensor ``schedule[k]``, shape (runs, n_y).
     """
-
-    def loglik(x, k1, y):
-        return _sensor_loglik(model, int(schedule[k1 - 1]), x, k1, y, attack_prob, signal, angles)
-
-    return loglik
+    return packet_loglik(model, np.asarray(schedule)[:, None], attack_prob=attack_prob, signal=signal, angles=angles)
 
 
 def all_sensors_loglik(model: Model, *, attack_prob: float = 0.0, signal: Noise | None = None,

@@ -123,31 +123,54 @@ def feasibility_cmd(scenario, grids, out, mode, workers, quiet, assignments) -> 
     click.echo(f"wrote {out}/feasibility.csv: {n_ok} of {len(rows)} grid points feasible")
 
 
-STUDIES = {"consensus-robot": None, "rrp-deception": 5, "binary-multi-attack": 5, "encrypted-switching": 6,
+STUDIES = {"consensus-robot": None, "rrp-deception": None, "binary-multi-attack": None, "encrypted-switching": 6,
            "fdi-four-tank": 6, "comparison": 7}
+_PF_STUDIES = ("rrp-deception", "binary-multi-attack")
+
+
+def _reject(study: str, **given) -> None:
+    """Options that the study does not use are an error, not silently ignored."""
+    for name, value in given.items():
+        if value is not None and value is not False and value != ():
+            raise InputError(f"option --{name.replace('_', '-')} does not apply to study {study!r}")
 
 
 @cli.command("study")
 @click.argument("study")
-@click.option("--out", required=True, help="output directory (results.json, figures)")
-@click.option("--runs", type=int, default=500, show_default=True, help="Monte Carlo runs")
+@click.option("--out", required=True, help="output directory (results.json, table.md, figures)")
+@click.option("--runs", type=int, default=None,
+              help="Monte Carlo runs [default: the paper's: 500 consensus-robot, 50 otherwise]")
+@click.option("--particles", type=int, default=None, help="particles M of the particle filters [default: 500]")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
-@click.option("--mode", type=click.Choice(["paper", "tuned"]), default="paper", show_default=True)
+@click.option("--workers", type=int, default=None, help="threads for the particle filters' runs [default: 1]")
+@click.option("--engine", type=click.Choice(["numpy"]), default=None,
+              help="particle-filter engine [default: numpy]")
+@click.option("--mode", type=click.Choice(["paper", "tuned"]), default=None,
+              help="consensus-robot: design mode [default: paper]")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 @click.option("--schedule", default=None, help="replay the gains of this design directory (consensus-robot)")
-@click.option("--linearization", type=click.Choice(["fixed", "hessian", "structured"]), default="fixed", show_default=True,
-              help="U, V of the consensus designs: fixed (0.01 I, 0.1 I) or from the model's Hessians")
+@click.option("--linearization", type=click.Choice(["fixed", "hessian", "structured"]), default=None,
+              help="consensus-robot: U, V of the consensus designs, fixed (0.01 I, 0.1 I) or from the model's "
+                   "Hessians [default: fixed]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, out, runs, seed, mode, quiet, schedule, linearization, assignments) -> None:
+def study_cmd(study, out, runs, particles, seed, workers, engine, mode, quiet, schedule, linearization,
+              assignments) -> None:
     """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
     if study not in STUDIES:
         raise InputError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
     if STUDIES[study] is not None:
-        raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: consensus-robot")
+        built = ", ".join(k for k, v in STUDIES.items() if v is None)
+        raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: {built}")
+    if study in _PF_STUDIES:
+        _reject(study, mode=mode, schedule=schedule, linearization=linearization)
+        _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments)
+        return
+    _reject(study, particles=particles, workers=workers, engine=engine)
     from .consensus_robot import run_consensus_robot
 
-    res = run_consensus_robot(out=out, runs=runs, seed=seed, mode=mode, quiet=quiet, assignments=assignments,
-                              schedule=schedule, design_options={"linearization": linearization})
+    res = run_consensus_robot(out=out, runs=500 if runs is None else runs, seed=seed, mode=mode or "paper",
+                              quiet=quiet, assignments=assignments, schedule=schedule,
+                              design_options={"linearization": linearization or "fixed"})
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         if f["rmse_position"] is None:
@@ -163,6 +186,22 @@ def study_cmd(study, out, runs, seed, mode, quiet, schedule, linearization, assi
                    f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}, "
                    f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, "
                    f"exceeded at {frac}")
+
+
+def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments) -> None:
+    kw = dict(out=out, runs=50 if runs is None else runs, particles=500 if particles is None else particles,
+              seed=seed, workers=1 if workers is None else workers, engine=engine or "numpy", quiet=quiet,
+              assignments=assignments)
+    if study == "rrp-deception":
+        from .rrp_deception import run_rrp_deception as run
+    else:
+        from .binary_multi_attack import run_binary_multi_attack as run
+    res = run(**kw)
+    click.echo(f"wrote {out}/results.json, table.md and figures ({res['runs']} runs, M = {res['particles']}, "
+               f"{res['wall_time_s']:.1f} s)")
+    for name, f in res["filters"].items():
+        click.echo(f"  {name}: RMSE_p {f['rmse_position']:.4g}, RMSE_v {f['rmse_velocity']:.4g}, "
+                   f"{f['time_per_step_s'] * 1e3:.3g} ms/step, {f['communications']} communications")
 
 
 def main(argv=None) -> int:

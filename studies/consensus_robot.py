@@ -13,15 +13,13 @@ largest excess (a one-sided test at ``Z_EXCESS`` Monte Carlo standard errors).
 """
 from __future__ import annotations
 
-import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
-from designer.fileio import atomic_write, write_json
+from designer.fileio import write_json
 from designer.validation import InputError, check_int
 from designer.model import Model
 from designer.network import SensorNetwork
@@ -30,11 +28,11 @@ from filters.consensus import ConsensusDesign, run_consensus, simulate_attacks
 
 from .design import DESIGN_ASSUMPTIONS, consensus_design
 from .progress import progress
+from .results import SCHEMA, save_figure, versions
 from .scenarios import load_scenario
 
 __all__ = ["run_consensus_robot", "bound_check", "Z_EXCESS", "MIN_RUNS_FOR_CHECK"]
 
-SCHEMA = "cfdesign.study/1"
 Z_EXCESS = 3.0  # standard errors before an excess over Φ counts
 MIN_RUNS_FOR_CHECK = 30  # a (node, step) is checked when Φ is a bound in at least this many runs
 PAPER_NODES = (2, 5)  # the paper's Figs. 2-3 show the channels of nodes 2 and 5 (1-based)
@@ -91,14 +89,6 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
         "z_threshold": Z_EXCESS,
         "min_runs_per_pair": MIN_RUNS_FOR_CHECK,
     }
-
-
-def _versions() -> dict:
-    import casadi
-    import scipy
-
-    return {"python": sys.version.split()[0], "numpy": np.__version__, "scipy": scipy.__version__,
-            "casadi": casadi.__version__, "platform": platform.platform()}
 
 
 class _Variant(NamedTuple):
@@ -275,7 +265,7 @@ def run_consensus_robot(
             "whether or not DoS drops them.",
         ],
         "wall_time_s": None,
-        "versions": _versions(),
+        "versions": versions(),
         "filters": filters,
         "paper": {"note": "seed 003 publishes figures only (no numbers): qualitative claims are that the 8 node "
                           "estimates track the robot under attack and reach approximate consensus (Figs. 4-5)."},
@@ -288,13 +278,6 @@ def run_consensus_robot(
         _figures(out, sc, truth[0], est0, attacks0, filters, store)
         write_json(out / "results.json", results)
     return results
-
-
-def _save(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110, bbox_inches="tight"))
-    plt.close(fig)
 
 
 def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
@@ -323,7 +306,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.set_title(f"attacks on the channels into node {node1} (run 0)")
         ax.legend(fontsize=7, ncol=3, loc="upper right")
     axes[-1].set_xlabel("time step k")
-    _save(fig, out / "fig_attacks.png")
+    save_figure(fig, out / "fig_attacks.png")
 
     # Fig. 4: trajectories.
     if not est0:
@@ -341,7 +324,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     ax.set_title(f"robot path and the 8 node estimates, {name} (run 0)")
     ax.set_aspect("equal")
     ax.legend(fontsize=7, ncol=2, loc="upper left")
-    _save(fig, out / "fig_trajectories.png")
+    save_figure(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
     shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v["rmse_position"]}
@@ -353,7 +336,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.set_xlabel("time step k")
     np.atleast_1d(axes)[0].set_ylabel("position RMSE (m)")
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
-    _save(fig, out / "fig_rmse_nodes.png")
+    save_figure(fig, out / "fig_rmse_nodes.png")
 
     # Every filter: position RMSE over time (mean over nodes), log scale.
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -365,7 +348,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     ax.set_ylabel("position RMSE (m)")
     ax.set_title("position RMSE over the same runs (legend: time average)")
     ax.legend(fontsize=8)
-    _save(fig, out / "fig_compare.png")
+    save_figure(fig, out / "fig_compare.png")
 
     # Bound against the empirical covariance (where Φ is a bound in enough runs).
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -392,4 +375,4 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     ax.set_xlabel("time step k")
     ax.set_ylabel("trace")
     ax.set_title(f"tr Φ̄ (solid) and empirical tr P̂ (dotted) per node, {fname}; gaps: Φ not a bound", fontsize=9)
-    _save(fig, out / "fig_bound.png")
+    save_figure(fig, out / "fig_bound.png")

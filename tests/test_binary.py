@@ -57,3 +57,14 @@ def test_paper_ordering_sec_pf():
     neg = rmse_p(att)
     sta = rmse_p(clean)
     assert neg > 2 * sec and sec < 2 * sta
+
+
+def test_fair_coin_flipping_makes_the_bits_uninformative():
+    """With alpha-bar = 1/2 a received bit says nothing about the state: (13) is constant in x."""
+    sc, kw = _setup()
+    m = sc.model
+    x = m.prior.sample(np.random.default_rng(0), (1, 200))
+    y = np.random.default_rng(1).normal(0.25, 0.3, size=(1, m.n_sensors))
+    ll = binary_loglik(m, dos_prob=0.2, deception_prob=0.3, flip_prob=0.5, **kw)(x, 1, y)
+    assert np.ptp(ll) < 1e-9 * np.abs(ll).max()
+    assert np.ptp(binary_loglik(m, dos_prob=0.2, deception_prob=0.3, flip_prob=0.4, **kw)(x, 1, y)) > 1e-3

@@ -1,0 +1,185 @@
+"""Shared pieces of every study's results: error metrics, Monte Carlo intervals, tables, figures, versions.
+
+Metrics follow the particle-filter papers (seeds 000 and 002):
+``RMSE_{p,k} = sqrt(mean over runs of |p_k - p̂_k|²)`` per step ``k = 1..K`` (the
+curve), and the "average RMSE" of their tables is the mean of that curve over
+``k``.  Its 95 % interval is a percentile bootstrap over runs (runs resampled with
+replacement, the whole statistic recomputed).
+"""
+from __future__ import annotations
+
+import platform
+import sys
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from designer.fileio import atomic_write, write_json
+
+__all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
+           "write_study", "trajectory_figure", "curves_figure", "study_header", "evaluate_filter"]
+
+SCHEMA = "cfdesign.study/1"
+BOOTSTRAP = 1000  # bootstrap resamples of the runs for the intervals
+
+
+def versions() -> dict:
+    """Software versions recorded in every results file."""
+    import casadi
+    import scipy
+
+    out = {"python": sys.version.split()[0], "numpy": np.__version__, "scipy": scipy.__version__,
+           "casadi": casadi.__version__, "platform": platform.platform()}
+    try:
+        import numba
+
+        out["numba"] = numba.__version__
+    except ImportError:  # pragma: no cover - numba is a dependency
+        pass
+    return out
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write a matplotlib figure as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110, bbox_inches="tight"))
+    plt.close(fig)
+
+
+def _curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
+    """Mean over steps of sqrt(mean over runs of e2) and its bootstrap 95 % interval; e2 is (runs, K)."""
+    runs = e2.shape[0]
+    value = float(np.sqrt(e2.mean(axis=0)).mean())
+    if runs < 2:
+        return value, [value, value]
+    idx = rng.integers(0, runs, size=(BOOTSTRAP, runs))
+    boot = np.sqrt(e2[idx].mean(axis=1)).mean(axis=1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return value, [float(lo), float(hi)]
+
+
+def error_metrics(err: np.ndarray, position: Sequence[int], velocity: Sequence[int],
+                  rng: np.random.Generator) -> dict:
+    """Metrics of estimation errors ``err`` (runs, K, n_x) at steps 1..K.
+
+    Returns ``rmse_position``, ``rmse_velocity`` (averages of the per-step curves),
+    their 95 % bootstrap intervals, ``rmse_state`` (per component, same averaging)
+    and the curves ``rmse_position_curve``, ``rmse_velocity_curve``.
+    """
+    e2p = (err[..., list(position)] ** 2).sum(-1)
+    e2v = (err[..., list(velocity)] ** 2).sum(-1)
+    p, p_ci = _curve_mean_ci(e2p, rng)
+    v, v_ci = _curve_mean_ci(e2v, rng)
+    return {
+        "rmse_position": p,
+        "rmse_position_ci95": p_ci,
+        "rmse_velocity": v,
+        "rmse_velocity_ci95": v_ci,
+        "rmse_state": [float(x) for x in np.sqrt((err**2).mean(axis=0)).mean(axis=0)],
+        "rmse_position_curve": [float(x) for x in np.sqrt(e2p.mean(axis=0))],
+        "rmse_velocity_curve": [float(x) for x in np.sqrt(e2v.mean(axis=0))],
+    }
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def markdown_table(rows: Mapping[str, Mapping[str, object]], columns: Sequence[tuple[str, str]]) -> str:
+    """A Markdown table: one row per key of ``rows``, ``columns`` as (key, header) pairs."""
+    head = "| | " + " | ".join(h for _, h in columns) + " |"
+    sep = "|---|" + "---:|" * len(columns)
+    body = ["| " + name + " | " + " | ".join(_fmt(r.get(k)) for k, _ in columns) + " |" for name, r in rows.items()]
+    return "\n".join([head, sep, *body]) + "\n"
+
+
+def rmse_with_ci(f: Mapping) -> str:
+    """``RMSE_p [lo, hi]`` for tables."""
+    lo, hi = f["rmse_position_ci95"]
+    return f"{f['rmse_position']:.4g} [{lo:.3g}, {hi:.3g}]"
+
+
+def write_study(out, results: dict, t_start: float, figures: Callable[[Path], None], table: Callable[[dict], str]):
+    """Stamp the wall time, then write the figures, ``table.md`` and ``results.json`` (each atomically)."""
+    import time
+
+    results["wall_time_s"] = time.perf_counter() - t_start
+    if out is None:
+        return results
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures(out)
+    atomic_write(out / "table.md", lambda fh: fh.write(table(results).encode()))
+    write_json(out / "results.json", results)
+    return results
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def trajectory_figure(path: Path, truth: np.ndarray, estimates: Mapping[str, np.ndarray], sensors: np.ndarray,
+                      position: Sequence[int], title: str) -> None:
+    """One run in the plane: the truth, each filter's estimate, the sensors."""
+    plt = _plt()
+    i, j = position
+    fig, ax = plt.subplots(figsize=(6, 5))
+    ax.plot(sensors[:, 0], sensors[:, 1], "ks", ms=5, label="sensors")
+    ax.plot(truth[:, i], truth[:, j], "k-", lw=2, label="target")
+    for name, est in estimates.items():
+        ax.plot(est[:, i], est[:, j], lw=1, label=name)
+    ax.set(xlabel="x position", ylabel="y position", title=title)
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def curves_figure(path: Path, curves: Mapping[str, Sequence[float]], ylabel: str, title: str,
+                  log: bool = False) -> None:
+    """Per-step curves (k = 1..K), one line per label."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, c in curves.items():
+        ax.plot(np.arange(1, len(c) + 1), c, lw=1.2, label=label)
+    ax.set(xlabel="time step k", ylabel=ylabel, title=title, yscale="log" if log else "linear")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def study_header(study: str, scenario: str, *, runs: int, particles: int | None, steps: int, seed: int,
+                 assumptions: Sequence[str], **extra) -> dict:
+    """The keys every ``results.json`` starts with (``cfdesign.study/1``); ``wall_time_s`` is set on writing."""
+    return {"schema": SCHEMA, "study": study, "scenario": scenario, "runs": int(runs),
+            "particles": None if particles is None else int(particles), "steps": int(steps), "seed": int(seed),
+            **extra, "assumptions": list(assumptions), "wall_time_s": None, "versions": versions()}
+
+
+def evaluate_filter(run: Callable[[], tuple[np.ndarray, np.ndarray]], truth: np.ndarray, position: Sequence[int],
+                    velocity: Sequence[int], rng: np.random.Generator) -> tuple[dict, np.ndarray]:
+    """Time ``run() -> (means (runs, K+1, n_x), collapsed (runs, K))`` and score it against ``truth``.
+
+    Returns the metrics (:func:`error_metrics` plus ``time_per_step_s`` = wall time /
+    (runs x K), ``wall_time_s``, ``collapsed_steps``, ``collapsed_runs``) and run 0's means.
+    """
+    import time
+
+    t = time.perf_counter()
+    mean, collapsed = run()
+    wall = time.perf_counter() - t
+    runs, K = collapsed.shape
+    met = error_metrics(truth[:, 1:] - mean[:, 1:], position, velocity, rng)
+    met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
+                "collapsed_runs": int(collapsed.any(axis=1).sum())})
+    return met, mean[0]
