@@ -50,7 +50,9 @@ ASSUMPTIONS = (
     "binary-multi-attack: Sta-PF-Neg and Sta-PF use Theorem 1's likelihood with phi-bar = varphi-bar = alpha-bar "
     "= 0 (the binary-sensor likelihood without attacks); Sta-PF filters attack-free data from the same runs.",
     "binary-multi-attack: the sweeps vary one attack probability over {0.1, 0.3, 0.5} (values not printed in the "
-    "paper) with the others at Table I's 0.1, and run Sec-PF with the true probabilities.",
+    "paper) with the others at Table I's 0.1, and run Sec-PF with the true probabilities. alpha-bar = 0.5 is a "
+    "limiting case: a fair-coin flip makes every received bit independent of the state (likelihood (13) is then "
+    "constant in x), so Sec-PF runs on its prior and the error grows with the prior's velocity spread.",
     "binary-multi-attack: Table II is Sec-PF at the Table I setting (the paper does not say which filter).",
     "binary-multi-attack: time_per_step_s = the filter's wall time over all runs divided by runs x K (amortised "
     "over runs run together); the paper's times are for one run's step in MATLAB on a 2.5 GHz PC.",
