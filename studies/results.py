@@ -18,7 +18,8 @@ import numpy as np
 from designer.fileio import atomic_write, write_json
 
 __all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_study", "trajectory_figure", "curves_figure", "study_header", "evaluate_filter"]
+           "write_study", "trajectory_figure", "curves_figure", "study_header", "evaluate_filter",
+           "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
 BOOTSTRAP = 1000  # bootstrap resamples of the runs for the intervals
@@ -183,3 +184,33 @@ def evaluate_filter(run: Callable[[], tuple[np.ndarray, np.ndarray]], truth: np.
     met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
                 "collapsed_runs": int(collapsed.any(axis=1).sum())})
     return met, mean[0]
+
+
+def cv_velocity_at_position_rmse(accel_var: float, period: float, rmse_position: float) -> float:
+    """Velocity RMSE of the steady-state Kalman filter of a 2-D constant-velocity target whose position is
+    measured directly (both axes, noise variance ``r`` each, every step), with ``r`` chosen so that its position
+    RMSE equals ``rmse_position``.
+
+    A consistency reference for published (RMSE_p, RMSE_v) pairs: with the paper's own process noise, an
+    optimal filter that is as accurate in position is this accurate in velocity.  Position RMSE grows
+    monotonically with ``r`` (from 0 to infinity), so ``r`` is found by bisection in log scale.
+    """
+    from scipy.linalg import solve_discrete_are
+
+    T = float(period)
+    F = np.array([[1.0, T], [0.0, 1.0]])
+    Q = accel_var * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
+    H = np.array([[1.0, 0.0]])
+
+    def posterior(r: float) -> np.ndarray:
+        P = solve_discrete_are(F.T, H.T, Q, np.array([[r]]))
+        return P - P @ H.T @ H @ P / (P[0, 0] + r)
+
+    lo, hi = -12.0, 12.0  # log10 r
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if np.sqrt(2 * posterior(10**mid)[0, 0]) < rmse_position:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.sqrt(2 * posterior(10 ** (0.5 * (lo + hi)))[1, 1]))

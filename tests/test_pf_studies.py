@@ -12,6 +12,7 @@ import pytest
 
 from studies.binary_multi_attack import run_binary_multi_attack
 from studies.cli import main
+from studies.results import cv_velocity_at_position_rmse
 from studies.rrp_deception import PAPER_TABLE1, run_rrp_deception
 
 ENGINE = "numpy"
@@ -98,3 +99,23 @@ def test_pf_study_cli_is_reproducible(tmp_path):
     for name in a["filters"]:
         assert a["filters"][name]["rmse_position_curve"] == b["filters"][name]["rmse_position_curve"]
     assert not np.isclose(a["filters"]["RRP-PF-DA"]["rmse_position"], a["filters"]["PF-DA"]["rmse_position"])
+
+
+@pytest.mark.parametrize("r", [0.01, 1.0, 30.0])
+def test_velocity_reference_is_the_steady_state_kalman_filter(r):
+    """Against python-control's dlqe: the position RMSE it gives for noise r maps back to its velocity RMSE."""
+    import control
+
+    q, T = 0.055**2, 1.0
+    F = np.array([[1.0, T], [0.0, 1.0]])
+    Q = q * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
+    H = np.array([[1.0, 0.0]])
+    _, P, _ = control.dlqe(F, np.eye(2), H, Q, np.array([[r]]))  # P: steady-state predicted covariance
+    Pp = P - P @ H.T @ H @ P / (P[0, 0] + r)  # after the measurement update
+    p, v = np.sqrt(2 * Pp[0, 0]), np.sqrt(2 * Pp[1, 1])
+    C = np.eye(2)  # and the plain covariance recursion of the Kalman filter, iterated to its fixed point
+    for _ in range(5000):
+        C = F @ C @ F.T + Q
+        C = C - C @ H.T @ H @ C / (C[0, 0] + r)
+    np.testing.assert_allclose(C, Pp, rtol=1e-8)
+    assert cv_velocity_at_position_rmse(q, T, p) == pytest.approx(v, rel=1e-6)
