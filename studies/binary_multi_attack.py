@@ -75,7 +75,7 @@ def run_binary_multi_attack(
     assignments=(),
     sweep: Sequence[float] = SWEEP,
     table2_particles: Sequence[int] = TABLE2_PARTICLES,
-    engine: str = "numpy",
+    engine: str = "fast",
     workers: int = 1,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
@@ -129,6 +129,7 @@ def run_binary_multi_attack(
     metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
     computed: dict[str, dict] = {}
     means0: dict[str, np.ndarray] = {}
+    run_binary(m, attacked, [], particles=particles, engine=engine, warm_up=True, **chan, **default)
     for c, (name, (y, probs, M)) in enumerate(progress(configs.items(), len(configs), quiet,
                                                        "binary-multi-attack filters")):
         if y is None or (M == particles and name.startswith("M=")):

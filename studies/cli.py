@@ -143,8 +143,8 @@ def _reject(study: str, **given) -> None:
 @click.option("--particles", type=int, default=None, help="particles M of the particle filters [default: 500]")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
 @click.option("--workers", type=int, default=None, help="threads for the particle filters' runs [default: 1]")
-@click.option("--engine", type=click.Choice(["numpy"]), default=None,
-              help="particle-filter engine [default: numpy]")
+@click.option("--engine", type=click.Choice(["fast", "numpy"]), default=None,
+              help="particle-filter engine: fused numba kernels or the NumPy reference [default: fast]")
 @click.option("--mode", type=click.Choice(["paper", "tuned"]), default=None,
               help="consensus-robot: design mode [default: paper]")
 @click.option("--quiet", is_flag=True, help="no progress bar")
@@ -190,7 +190,7 @@ def study_cmd(study, out, runs, particles, seed, workers, engine, mode, quiet, s
 
 def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments) -> None:
     kw = dict(out=out, runs=50 if runs is None else runs, particles=500 if particles is None else particles,
-              seed=seed, workers=1 if workers is None else workers, engine=engine or "numpy", quiet=quiet,
+              seed=seed, workers=1 if workers is None else workers, engine=engine or "fast", quiet=quiet,
               assignments=assignments)
     if study == "rrp-deception":
         from .rrp_deception import run_rrp_deception as run

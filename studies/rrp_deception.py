@@ -84,7 +84,7 @@ def run_rrp_deception(
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
     sweep: Sequence[float] = ETA_SWEEP,
-    engine: str = "numpy",
+    engine: str = "fast",
     workers: int = 1,
     linear_weights_row: bool = True,
 ) -> dict:
@@ -96,7 +96,7 @@ def run_rrp_deception(
         Monte Carlo runs ``L`` (paper: 50) and particles ``M`` (paper: 500).
     sweep : sequence of float in [0, 1)
         η̄ values of the sweep (paper: 0.2, 0.4, 0.6); empty to skip it.
-    engine : {"numpy"}
+    engine : {"fast", "numpy"}
         Particle-filter engine (see :mod:`studies.pfrun`).
     linear_weights_row : bool
         Also run RRP-SPF-DA with linear-domain weights (numpy engine) — not in the paper.
@@ -149,6 +149,8 @@ def run_rrp_deception(
     metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
     computed: dict[str, dict] = {}
     means0: dict[str, np.ndarray] = {}
+    run_packets(m, configs["RRP-PF-DA"][0], rr_sensors, [], particles=particles, attack_prob=eta, signal=box,
+                angles=angles, engine=engine, warm_up=True)
     for c, (name, (y, sensors, p, linear)) in enumerate(
             progress(configs.items(), len(configs), quiet, "rrp-deception filters")):
         if name in sweep_keys and float(name.split("=")[1]) == eta and "RRP-PF-DA" in computed:

@@ -15,7 +15,7 @@ from studies.cli import main
 from studies.results import cv_velocity_at_position_rmse
 from studies.rrp_deception import PAPER_TABLE1, run_rrp_deception
 
-ENGINE = "numpy"
+ENGINE = "fast"  # the default; the NumPy engine is checked against it in test_fastsir.py
 
 
 @pytest.fixture(scope="module")
@@ -88,6 +88,20 @@ def test_pf_study_cli_rejects_bad_or_inapplicable_options(tmp_path, capsys, args
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
     assert not (tmp_path / "o" / "results.json").exists()
+
+
+def test_results_do_not_depend_on_the_number_of_workers(tmp_path):
+    kw = dict(runs=4, particles=100, seed=11, sweep=(0.4,), quiet=True, linear_weights_row=False)
+    a = run_rrp_deception(out=None, workers=1, **kw)
+    b = run_rrp_deception(out=None, workers=2, **kw)
+    for name in a["filters"]:
+        assert a["filters"][name]["rmse_position_curve"] == b["filters"][name]["rmse_position_curve"], name
+    # the binary study likewise (timings aside)
+    c = run_binary_multi_attack(out=None, runs=3, particles=80, seed=3, sweep=(), table2_particles=(), quiet=True)
+    d = run_binary_multi_attack(out=None, runs=3, particles=80, seed=3, sweep=(), table2_particles=(), quiet=True,
+                                workers=2)
+    assert c["filters"] == {n: {**f, **{k: c["filters"][n][k] for k in ("time_per_step_s", "wall_time_s")}}
+                            for n, f in d["filters"].items()}
 
 
 def test_pf_study_cli_is_reproducible(tmp_path):
