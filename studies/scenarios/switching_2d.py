@@ -29,6 +29,10 @@ PARAMS = (
     Param("quant_scale", 1.0, "quantizer scaling omega_s (4)", low=0.0, low_open=True),
     Param("quant_levels", 8, "number of quantization levels K = 2^L (4)", kind="int", low=2),
     Param("quant_range", 4.0, "quantizer range Lambda (4)", low=0.0, low_open=True),
+    Param("bit_error_prob", 0.0, "probability that a transmitted bit (ciphertext or CRC) is flipped; a CRC failure "
+          "makes the measurement unavailable (Remark 1; 0 = Assumption 3)", low=0.0, high=1.0, high_open=True),
+    Param("dropout_prob", 0.0, "probability that a sensor's packet is lost (alpha_s = 0, Remark 2)", low=0.0,
+          high=1.0, high_open=True),
     Param("steps", 120, "time steps T of the study", kind="int", low=1),
 )
 
@@ -72,6 +76,8 @@ def build(p: dict) -> Scenario:
         "switching-2d: F has an eigenvalue of about 1.01, so the state drifts slowly; kept as printed.",
         "switching-2d: quantizer cells are half-open [lo, hi) and the index is clipped to 1..K; the key stream is "
         "i.i.d. Bernoulli(1/2) bits per sensor and step (the paper fixes neither).",
+        "switching-2d: with bit_error_prob > 0 a CRC-4 (x^4 + x + 1) of the ciphertext detects transmission errors "
+        "(Remark 1 names CRC without a polynomial); bit errors and dropouts are independent per bit and per packet.",
     )
     return Scenario(
         "switching-2d",
@@ -85,6 +91,8 @@ def build(p: dict) -> Scenario:
             "quant_scale": p["quant_scale"],
             "quant_levels": levels,
             "quant_range": p["quant_range"],
+            "bit_error_prob": p["bit_error_prob"],
+            "dropout_prob": p["dropout_prob"],
         },
     )
 

@@ -1,0 +1,99 @@
+"""Study ``encrypted-switching`` (seed 001): the paper's claim at a reduced size, files, reproducibility, inputs.
+
+The size is reduced from 50 runs to 16 (T = 120 and M = 200 as in the paper); the three
+filters filter the same data with the same random numbers, so the comparison is paired.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from designer import InputError
+from studies.encrypted_switching import FILTERS, MEAN_DYNAMICS, run_encrypted_switching
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("encrypted")
+    return out, run_encrypted_switching(out=out, runs=16, particles=200, seed=0, quiet=True)
+
+
+def test_ppf_beats_both_baselines_on_both_states(study):
+    """The paper's claim (Figs. 5-6): PPF has the lowest RMSE_1 and RMSE_2."""
+    _, res = study
+    f = res["filters"]
+    ppf = f["PPF"]["rmse_state"]
+    for base in ("PF-RSN", "PF-SR-DE"):
+        assert all(a < b for a, b in zip(ppf, f[base]["rmse_state"])), base
+    assert res["claim_check"]["holds"]
+    # ignoring the switching (gamma = 1) biases the prediction: the filter loses the state
+    assert all(b > 3 * a for a, b in zip(ppf, f["PF-RSN"]["rmse_state"]))
+    # ignoring resolution and decryption errors excludes the true state at times: collapses
+    assert f["PF-SR-DE"]["collapsed_steps"] > f["PPF"]["collapsed_steps"] == 0
+    # "able to well track": the median run's error is a fraction of the state's spread (prior std 1.2)
+    assert all(v < 0.5 for v in f["PPF"]["rmse_state_median_run"])
+
+
+def test_results_table_and_figures(study):
+    out, res = study
+    on_disk = json.loads((out / "results.json").read_text())
+    for key in ("schema", "study", "scenario", "runs", "particles", "steps", "seed", "assumptions", "wall_time_s",
+                "versions", "filters", "paper", "claim_check", "transmission", "timing_s"):
+        assert key in on_disk
+    assert on_disk["schema"] == "cfdesign.study/1" and on_disk["steps"] == 120 and on_disk["scenario"] == "switching-2d"
+    assert on_disk["paper"]["numbers"] is None and "superior" in on_disk["paper"]["claim"]
+    assert set(on_disk["filters"]) == {*FILTERS, MEAN_DYNAMICS}
+    for f in on_disk["filters"].values():
+        assert len(f["rmse_state"]) == 2 and all(len(c) == 120 for c in f["rmse_state_curve"])
+        for v, (lo, hi), curve in zip(f["rmse_state"], f["rmse_state_ci95"], f["rmse_state_curve"]):
+            assert lo <= v <= hi and v == pytest.approx(np.mean(curve))
+        tb = f["time_breakdown_s"]
+        assert tb["proposal"] > 0 and tb["likelihood"] > 0 and tb["engine"] > 0
+        assert "rmse_position" not in f
+    tx = on_disk["transmission"]
+    assert tx["available_fraction"] == 1.0 and tx["bits_per_packet"] == 3 and tx["crc_bits"] == 4
+    assert all(e < b for e, b in zip(tx["max_abs_z_minus_decrypted"], tx["bound_L_bar"]))  # (12)
+    assert any("ESS < M/2" in a for a in on_disk["assumptions"])
+    assert any("gamma = 1" in a for a in on_disk["assumptions"])
+    table = (out / "table.md").read_text()
+    assert all(name in table for name in FILTERS) and "Claim holds" in table
+    for fig in ("fig_state1", "fig_state2", "fig_measurements_s1", "fig_measurements_s2", "fig_rmse_1", "fig_rmse_2"):
+        assert (out / f"{fig}.png").stat().st_size > 10_000
+
+
+def _small(**kw):
+    return run_encrypted_switching(out=None, runs=3, particles=40, quiet=True, mean_dynamics_row=False,
+                                   assignments=("steps=15",), **kw)
+
+
+def test_a_seed_reproduces_the_study():
+    a, b, c = _small(seed=5), _small(seed=5), _small(seed=6)
+    for name in FILTERS:
+        assert a["filters"][name]["rmse_state_curve"] == b["filters"][name]["rmse_state_curve"]
+        assert a["filters"][name]["rmse_state_ci95"] == b["filters"][name]["rmse_state_ci95"]
+    assert a["filters"]["PPF"]["rmse_state"] != c["filters"]["PPF"]["rmse_state"]
+
+
+def test_transmission_errors_make_measurements_unavailable():
+    res = _small(seed=1, overrides={"bit_error_prob": 0.05, "dropout_prob": 0.2})
+    tx = res["transmission"]
+    assert 0.5 < tx["available_fraction"] < 0.75  # (1 - 0.2) (0.95^7 + misses) = 0.56
+    assert tx["dropped"] > 0 and tx["crc_detected"] > 0
+    assert all(np.isfinite(f["rmse_state"]).all() for f in res["filters"].values())
+
+
+@pytest.mark.parametrize("kw, name", [
+    ({"engine": "fast"}, "engine"),
+    ({"workers": 2}, "workers"),
+    ({"runs": 1}, "runs"),
+    ({"particles": 0}, "particles"),
+    ({"seed": -1}, "seed"),
+    ({"overrides": {"bit_error_prob": 1.5}}, "bit_error_prob"),
+    ({"assignments": ("quant_levels=6",)}, "quant_levels"),
+    ({"assignments": ("nonsense=1",)}, "nonsense"),
+])
+def test_bad_inputs_name_the_parameter(kw, name):
+    with pytest.raises(InputError, match=name):
+        run_encrypted_switching(out=None, quiet=True, **kw)
