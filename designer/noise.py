@@ -214,7 +214,15 @@ class TruncatedGaussian(Noise):
         object.__setattr__(self, "lower", lower)
         object.__setattr__(self, "upper", upper)
         dist = stats.truncnorm((lower - loc) / scale, (upper - loc) / scale, loc=loc, scale=scale)
-        object.__setattr__(self, "_dist", dist)
+        object.__setattr__(self, "_dist", dist)  # moments only; densities and sampling in closed form below
+        a, b = (lower - loc) / scale, (upper - loc) / scale
+        # Mass of the parent normal on [a, b], from the tail nearer to the interval (no cancellation).
+        upper_side = a > 0
+        mass = np.where(upper_side, special.ndtr(-a) - special.ndtr(-b), special.ndtr(b) - special.ndtr(a))
+        object.__setattr__(self, "_ab", (a, b, upper_side, mass))
+
+    def _std(self, x) -> np.ndarray:
+        return (_points(x, self.dim) - self.loc) / self.scale
 
     @property
     def dim(self) -> int:
@@ -229,16 +237,24 @@ class TruncatedGaussian(Noise):
         return np.diag(np.asarray(self._dist.var(), dtype=float))
 
     def logpdf(self, x) -> np.ndarray:
-        return np.sum(self._dist.logpdf(_points(x, self.dim)), axis=-1)
+        a, b, _, mass = self._ab
+        z = self._std(x)
+        lp = -0.5 * z * z - np.log(np.sqrt(2 * np.pi) * self.scale * mass)
+        return np.sum(np.where((z >= a) & (z <= b), lp, -np.inf), axis=-1)
 
     def cdf(self, x) -> np.ndarray:
-        return np.prod(self._dist.cdf(_points(x, self.dim)), axis=-1)
+        a, b, upper_side, mass = self._ab
+        z = self._std(x)
+        F = np.where(upper_side, special.ndtr(-a) - special.ndtr(-z), special.ndtr(z) - special.ndtr(a)) / mass
+        return np.prod(np.clip(F, 0.0, 1.0), axis=-1)
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         size = _shape(shape) + (self.dim,)
-        # Inverse-CDF sampling from the generator passed in.
+        # Inverse-CDF sampling from the generator passed in (one uniform per component).
+        a, b, upper_side, mass = self._ab
         u = check_rng(rng).random(size)
-        return np.asarray(self._dist.ppf(u), dtype=float).reshape(size)
+        z = np.where(upper_side, -special.ndtri(special.ndtr(-a) - u * mass), special.ndtri(special.ndtr(a) + u * mass))
+        return self.loc + self.scale * np.clip(z, a, b)
 
     def describe(self) -> dict:
         return {
