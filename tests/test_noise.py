@@ -780,3 +780,17 @@ def test_polar_has_no_cdf():
 def test_sample_rejects_non_generator_rng(name, bad_rng):
     with pytest.raises(InputError, match="rng"):
         ALL[name]().sample(bad_rng, 3)
+
+
+def test_truncated_far_tail_is_accurate():
+    """Truncation to [6, 8] of N(0, 1) (mass ~1e-9): closed forms stay accurate where 1 - Phi cancels."""
+    t = TruncatedGaussian([0.0], [1.0], [6.0], [8.0])
+    ref = stats.truncnorm(6.0, 8.0)
+    x = np.linspace(5.5, 8.5, 31)[:, None]
+    np.testing.assert_allclose(t.cdf(x), ref.cdf(x[:, 0]), rtol=1e-9, atol=1e-15)
+    inside = (x[:, 0] >= 6) & (x[:, 0] <= 8)
+    np.testing.assert_allclose(t.logpdf(x)[inside], ref.logpdf(x[inside, 0]), rtol=1e-9)
+    assert np.all(np.isneginf(t.logpdf(x)[~inside]))
+    s = t.sample(np.random.default_rng(0), 20_000)[:, 0]
+    assert s.min() >= 6.0 and s.max() <= 8.0
+    assert abs(s.mean() - ref.mean()) < 5 * ref.std() / np.sqrt(s.size)
