@@ -124,8 +124,8 @@ def feasibility_cmd(scenario, grids, out, mode, workers, quiet, assignments) -> 
 
 
 STUDIES = {"consensus-robot": None, "rrp-deception": None, "binary-multi-attack": None, "encrypted-switching": None,
-           "fdi-four-tank": 6, "comparison": 7}
-_PF_STUDIES = ("rrp-deception", "binary-multi-attack", "encrypted-switching")
+           "fdi-four-tank": None, "comparison": 7}
+_PF_STUDIES = ("rrp-deception", "binary-multi-attack", "encrypted-switching", "fdi-four-tank")
 
 
 def _reject(study: str, **given) -> None:
@@ -141,7 +141,8 @@ def _reject(study: str, **given) -> None:
 @click.option("--runs", type=int, default=None,
               help="Monte Carlo runs [default: the paper's: 500 consensus-robot, 50 otherwise]")
 @click.option("--particles", type=int, default=None,
-              help="particles M of the particle filters [default: the paper's: 500, 200 encrypted-switching]")
+              help="particles M of the particle filters [default: the paper's: 500, 200 encrypted-switching, "
+                   "100 fdi-four-tank]")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
 @click.option("--workers", type=int, default=None, help="threads for the particle filters' runs [default: 1]")
 @click.option("--engine", type=click.Choice(["fast", "numpy"]), default=None,
@@ -198,14 +199,18 @@ def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignm
         from .rrp_deception import run_rrp_deception as run
     elif study == "binary-multi-attack":
         from .binary_multi_attack import run_binary_multi_attack as run
-    else:
+    elif study == "encrypted-switching":
         from .encrypted_switching import run_encrypted_switching as run
+    else:
+        from .fdi_four_tank import run_fdi_four_tank as run
     res = run(**kw)
     click.echo(f"wrote {out}/results.json, table.md and figures ({res['runs']} runs, M = {res['particles']}, "
                f"{res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         if "rmse_position" in f:
             acc = f"RMSE_p {f['rmse_position']:.4g}, RMSE_v {f['rmse_velocity']:.4g}"
+        elif "rmse_truth" in f:
+            acc = f"RMSE {f['rmse']:.4g} against the no-attack PF, {f['rmse_truth']:.4g} against the truth"
         else:
             acc = "RMSE per state " + ", ".join(f"{v:.4g}" for v in f["rmse_state"])
         comm = f", {f['communications']} communications" if "communications" in f else ""

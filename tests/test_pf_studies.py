@@ -133,3 +133,28 @@ def test_velocity_reference_is_the_steady_state_kalman_filter(r):
         C = C - C @ H.T @ H @ C / (C[0, 0] + r)
     np.testing.assert_allclose(C, Pp, rtol=1e-8)
     assert cv_velocity_at_position_rmse(q, T, p) == pytest.approx(v, rel=1e-6)
+
+
+@pytest.mark.parametrize("study, args, needle", [
+    ("encrypted-switching", ["--engine", "fast"], "engine"),
+    ("encrypted-switching", ["--workers", "2"], "workers"),
+    ("fdi-four-tank", ["--engine", "fast"], "engine"),
+    ("fdi-four-tank", ["--linearization", "fixed"], "--linearization"),
+    ("comparison", [], "not built yet (issue 7)"),
+])
+def test_study_cli_rejects_what_a_study_does_not_support(tmp_path, capsys, study, args, needle):
+    assert main(["study", study, "--out", str(tmp_path / "o"), "--quiet", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+
+
+def test_seed_001_and_004_studies_run_from_the_cli(tmp_path, capsys):
+    assert main(["study", "encrypted-switching", "--runs", "2", "--particles", "50", "--quiet",
+                 "--out", str(tmp_path / "es")]) == 0
+    assert main(["study", "fdi-four-tank", "--runs", "2", "--particles", "30", "--quiet", "--set", "steps=40",
+                 "--out", str(tmp_path / "fdi")]) == 0
+    out = capsys.readouterr().out
+    assert "PPF: RMSE per state" in out and "against the no-attack PF" in out
+    for d, study in (("es", "encrypted-switching"), ("fdi", "fdi-four-tank")):
+        res = json.loads((tmp_path / d / "results.json").read_text())
+        assert res["study"] == study and res["runs"] == 2
