@@ -15,12 +15,13 @@ and shape-``(n_in,)`` arrays broadcast); each output has shape
 """
 from __future__ import annotations
 
-from typing import Callable
+import math
+from typing import Callable, Iterator
 
 import casadi as ca
 import numpy as np
 
-__all__ = ["to_numpy", "UnsupportedOperation"]
+__all__ = ["to_numpy", "UnsupportedOperation", "sx_statements", "literal"]
 
 
 class UnsupportedOperation(NotImplementedError):
@@ -84,6 +85,7 @@ _TEMPLATES: dict[int, str] = {
 }
 
 _OP_NAMES = {int(getattr(ca, n)): n for n in dir(ca) if n.startswith("OP_")}
+_INPUT, _OUTPUT, _CONST = _op("INPUT"), _op("OUTPUT"), _op("CONST")
 
 
 def _f64(a):
@@ -102,59 +104,84 @@ def _erfinv(a):
     return erfinv(a)
 
 
+def literal(value: float, module: str) -> str:
+    """Python source of a float constant; ``inf`` and ``nan`` as attributes of ``module`` (e.g. ``"_np"``)."""
+    if math.isnan(value):
+        return f"{module}.nan"
+    if math.isinf(value):
+        return f"{module}.inf" if value > 0 else f"-{module}.inf"
+    return repr(float(value))
+
+
+def sx_statements(fun: ca.Function, templates: dict[int, str], *, load: Callable[[int, int], str],
+                  store: Callable[[int, int], str], constant: Callable[[float], str], target: str,
+                  indent: str = "    ") -> Iterator[str]:
+    """The SX instruction list of ``fun`` as Python assignments, one per instruction.
+
+    CasADi's work registers become variables ``w0, w1, ...`` (reused as CasADi
+    reuses them).  The emitters (:func:`to_numpy` here, :mod:`designer.jit`) differ
+    only in what a register holds and so in the callables:
+
+    load(i, j)
+        source of element ``j`` of input ``i`` (it may raise to refuse an input);
+    store(o, nz)
+        destination of structural nonzero ``nz`` of output ``o``;
+    constant(value)
+        source of a constant;
+    templates
+        ``{op: template}`` over the argument names ``{a}``, ``{b}``.
+
+    Raises :class:`UnsupportedOperation` naming an operation without a template
+    (``target`` says which translation lacks it) or a sparse input.
+    """
+    for j in range(fun.n_in()):
+        if not fun.sparsity_in(j).is_dense():
+            raise UnsupportedOperation(f"input {fun.name_in(j)!r} of {fun.name()!r} is sparse")
+    for n in range(fun.n_instructions()):
+        op = fun.instruction_id(n)
+        ins = fun.instruction_input(n)
+        outs = fun.instruction_output(n)
+        if op == _INPUT:
+            line = f"w{outs[0]} = {load(ins[0], ins[1])}"
+        elif op == _OUTPUT:
+            line = f"{store(outs[0], outs[1])} = w{ins[0]}"
+        elif op == _CONST:
+            line = f"w{outs[0]} = {constant(float(fun.instruction_constant(n)))}"
+        elif op in templates:
+            b = f"w{ins[1]}" if len(ins) > 1 else ""
+            line = f"w{outs[0]} = " + templates[op].format(a=f"w{ins[0]}", b=b)
+        else:
+            raise UnsupportedOperation(
+                f"CasADi operation {_OP_NAMES.get(op, op)} in {fun.name()!r} has no {target} translation"
+            )
+        yield indent + line
+
+
 def _source(fun: ca.Function, fname: str) -> str:
     """Python source of the vectorised translation of ``fun``."""
     n_in, n_out = fun.n_in(), fun.n_out()
     args = [f"i{j}" for j in range(n_in)]
     lines = [f"def {fname}({', '.join(args)}):"]
     for j in range(n_in):
-        if not fun.sparsity_in(j).is_dense():
-            raise UnsupportedOperation(f"input {fun.name_in(j)!r} of {fun.name()!r} is sparse")
         lines.append(f"    i{j} = _np.asarray(i{j}, dtype=_np.float64)")
         lines.append(f"    if i{j}.ndim == 0: i{j} = i{j}.reshape(1)")
     batch = ", ".join(f"i{j}.shape[:-1]" for j in range(n_in))
     lines.append(f"    _shape = _np.broadcast_shapes({batch}{',' if n_in == 1 else ''})")
-    out_shapes = []
-    for j in range(n_out):
-        sp = fun.sparsity_out(j)
-        rows, cols = sp.size1(), sp.size2()
-        shape = (rows,) if cols == 1 else (rows, cols)
-        out_shapes.append(shape)
-        lines.append(f"    o{j} = _np.zeros(_shape + {shape!r})")
     # Destination index of every structural nonzero of every output.
     dest = []
     for j in range(n_out):
         sp = fun.sparsity_out(j)
+        rows, cols = sp.size1(), sp.size2()
+        shape = (rows,) if cols == 1 else (rows, cols)
+        lines.append(f"    o{j} = _np.zeros(_shape + {shape!r})")
         r, c = sp.get_triplet()
-        if sp.size2() == 1:
-            dest.append([f"{ri}" for ri in r])
-        else:
-            dest.append([f"{ri}, {ci}" for ri, ci in zip(r, c)])
-
-    for k in range(fun.n_instructions()):
-        op = fun.instruction_id(k)
-        ins = fun.instruction_input(k)
-        outs = fun.instruction_output(k)
-        if op == _op("INPUT"):
-            lines.append(f"    w{outs[0]} = i{ins[0]}[..., {ins[1]}]")
-        elif op == _op("OUTPUT"):
-            lines.append(f"    o{outs[0]}[..., {dest[outs[0]][outs[1]]}] = w{ins[0]}")
-        elif op == _op("CONST"):
-            lines.append(f"    w{outs[0]} = {float(fun.instruction_constant(k))!r}")
-        elif op in _TEMPLATES:
-            a = f"w{ins[0]}"
-            b = f"w{ins[1]}" if len(ins) > 1 else ""
-            lines.append(f"    w{outs[0]} = " + _TEMPLATES[op].format(a=a, b=b))
-        else:
-            raise UnsupportedOperation(
-                f"CasADi operation {_OP_NAMES.get(op, op)} in {fun.name()!r} has no NumPy translation"
-            )
+        dest.append([f"{ri}" for ri in r] if cols == 1 else [f"{ri}, {ci}" for ri, ci in zip(r, c)])
+    lines += sx_statements(fun, _TEMPLATES, load=lambda i, j: f"i{i}[..., {j}]",
+                           store=lambda o, nz: f"o{o}[..., {dest[o][nz]}]",
+                           constant=lambda v: literal(v, "_np"), target="NumPy")
     rets = ", ".join(f"o{j}" for j in range(n_out))
     lines.append(f"    return {rets}{',' if n_out == 1 else ''}")
-    # ``inf``/``nan`` constants print as names; bind them in the namespace.
-    return "\n".join(lines).replace("= inf", "= _np.inf").replace("= -inf", "= -_np.inf").replace(
-        "= nan", "= _np.nan"
-    )
+    return "\n".join(lines)
 
 
 def to_numpy(fun: ca.Function) -> Callable[..., tuple[np.ndarray, ...]]:

@@ -47,7 +47,7 @@ import casadi as ca
 import numba
 import numpy as np
 
-from .codegen import _OP_NAMES, UnsupportedOperation, _op
+from .codegen import UnsupportedOperation, _op, literal, sx_statements
 from .model import Model
 from .validation import InputError
 
@@ -142,14 +142,6 @@ _TEMPLATES: dict[int, str] = {
 }
 
 
-def _const(value: float) -> str:
-    if math.isnan(value):
-        return "_m.nan"
-    if math.isinf(value):
-        return "_m.inf" if value > 0 else "-_m.inf"
-    return repr(float(value))
-
-
 def scalar_statements(fun: ca.Function, inputs: list[str | None], output: str, indent: str = "    ") -> list[str]:
     """Scalar statements evaluating ``fun``'s (single, column) output for one point.
 
@@ -176,39 +168,20 @@ def scalar_statements(fun: ca.Function, inputs: list[str | None], output: str, i
     sp = fun.sparsity_out(0)
     if sp.size2() != 1:
         raise UnsupportedOperation(f"output of {fun.name()!r} must be a column vector")
-    for j in range(fun.n_in()):
-        if not fun.sparsity_in(j).is_dense():
-            raise UnsupportedOperation(f"input {fun.name_in(j)!r} of {fun.name()!r} is sparse")
-    lines = []
     nz_rows = sp.row()
     present = set(nz_rows)
-    for r in range(sp.size1()):
-        if r not in present:  # never written by the instruction list
-            lines.append(f"{indent}{output.format(r)} = 0.0")
-    for n in range(fun.n_instructions()):
-        op = fun.instruction_id(n)
-        ins = fun.instruction_input(n)
-        outs = fun.instruction_output(n)
-        if op == _op("INPUT"):
-            spec = inputs[ins[0]]
-            if spec is None:
-                raise InputError(
-                    f"{fun.name()!r} uses its input {fun.name_in(ins[0])!r}; the scalar kernels support models "
-                    "without known inputs and switching modes only"
-                )
-            lines.append(f"{indent}w{outs[0]} = {spec.format(ins[1]) if '{}' in spec else spec}")
-        elif op == _op("OUTPUT"):
-            lines.append(f"{indent}{output.format(nz_rows[outs[1]])} = w{ins[0]}")
-        elif op == _op("CONST"):
-            lines.append(f"{indent}w{outs[0]} = {_const(float(fun.instruction_constant(n)))}")
-        elif op in _TEMPLATES:
-            a = f"w{ins[0]}"
-            b = f"w{ins[1]}" if len(ins) > 1 else ""
-            lines.append(f"{indent}w{outs[0]} = " + _TEMPLATES[op].format(a=a, b=b))
-        else:
-            raise UnsupportedOperation(
-                f"CasADi operation {_OP_NAMES.get(op, op)} in {fun.name()!r} has no scalar (numba) translation"
-            )
+    # rows never written by the instruction list are structural zeros
+    lines = [f"{indent}{output.format(r)} = 0.0" for r in range(sp.size1()) if r not in present]
+
+    def load(i: int, j: int) -> str:
+        spec = inputs[i]
+        if spec is None:
+            raise InputError(f"{fun.name()!r} uses its input {fun.name_in(i)!r}; the scalar kernels support models "
+                             "without known inputs and switching modes only")
+        return spec.format(j) if "{}" in spec else spec
+
+    lines += sx_statements(fun, _TEMPLATES, load=load, store=lambda o, nz: output.format(nz_rows[nz]),
+                           constant=lambda v: literal(v, "_m"), target="scalar (numba)", indent=indent)
     if not lines:
         lines.append(f"{indent}pass")
     return lines

@@ -60,6 +60,7 @@ Gaussian or Gaussian-mixture measurement noise.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -79,6 +80,8 @@ __all__ = [
 ]
 
 _NJIT = dict(nogil=True, cache=False, error_model="numpy")
+# Generated kernels may fuse a * b + c into one FMA (rounding only; no effect on inf/NaN handling).
+_FAST = {"contract"}
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 #: Resampling schemes of :mod:`filters.resampling`, by name, as the kernels' codes.
@@ -111,31 +114,38 @@ def _ndtr(a):
 
 
 @numba.njit(**dict(_NJIT, inline="always"))
-def _accumulate(lw, m, ll, fresh):
-    """``lw[m] += ll`` (``lw[m] = ll`` right after resampling); a non-finite result is -inf (zero weight)."""
-    v = ll if fresh else lw[m] + ll
-    if not (v > -math.inf and v < math.inf):  # NaN or +-inf
-        v = -math.inf
-    lw[m] = v
-    return v
+def _exp0(d):
+    """``exp(d)`` for ``d <= 0``: exactly 0 below -745.2 (where exp rounds to 0) without calling libm's slow
+    underflow path; NaN stays NaN."""
+    return 0.0 if d < -745.2 else math.exp(d)
+
+
+@numba.njit(**dict(_NJIT, inline="always"))
+def _neginf_unless_finite(v):
+    return v if (v > -math.inf and v < math.inf) else -math.inf
 
 
 @numba.njit(**_NJIT)
-def _packets_loglik_rows(term, X, k1, data, out):
+def _packets_loglik_rows(term, ne, X, k1, data, out):
     """``out[m]`` = the packet log-likelihood of step 0 of ``data`` for every particle (helper, not the kernel)."""
     sens, y, att, log_clean = data
+    ex = np.empty(ne)
     for m in range(X.shape[0]):
         total = 0.0
         for p in range(sens.shape[1]):
-            total += term(sens[0, p], X, m, k1, y, 0, p, log_clean, att[0, p])
-        out[m] = _accumulate(out, m, total, True)
+            mx = term(sens[0, p], X, m, k1, y, 0, p, log_clean, att[0, p], ex, 0)
+            acc = 1.0
+            for i in range(ne):
+                acc += _exp0(ex[i])
+            total += mx + math.log(acc)
+        out[m] = _neginf_unless_finite(total)
 
 
 @numba.njit(**_NJIT)
 def _binary_loglik_rows(one, X, k1, data, out):
     A, B, T = data
     for m in range(X.shape[0]):
-        out[m] = _accumulate(out, m, one(X, m, k1, A, B, 0, T), True)
+        out[m] = _neginf_unless_finite(one(X, m, k1, A, B, 0, T))
 
 
 @numba.njit(**_NJIT)
@@ -160,10 +170,36 @@ def _cumsum_to_one(W, scale, cdf):
 
 
 @numba.njit(**_NJIT)
+def _systematic(W, scale, u0, idx):
+    """Systematic resampling, ``u_m = (m + u0) / M``: the indices of ``_cumsum_to_one`` + ``_inverse_cdf``.
+
+    One merged pass over the cumulative weights (no cdf or u arrays): particle ``i``
+    gets the ``m`` with ``cdf[i-1] <= u_m < cdf[i]``.
+    """
+    M = idx.shape[0]
+    N = W.shape[0]
+    Mf = float(M)
+    acc = 0.0
+    m = 0
+    for i in range(N):
+        acc += W[i] * scale
+        c = acc if i < N - 1 else 1.0  # the last bin forced to 1, as _cumsum_to_one
+        while m < M and (m + u0) / Mf < c:
+            idx[m] = i
+            m += 1
+    while m < M:  # only if u_m >= 1 to rounding (never): as _inverse_cdf, the last particle
+        idx[m] = N - 1
+        m += 1
+
+
+@numba.njit(**_NJIT)
 def _resample(scheme, W, scale, rng, idx, cdf, u):
     """Indices from the weights ``W * scale`` (normalised): the schemes of filters.resampling, same draws."""
     M = idx.shape[0]
     Mf = float(M)
+    if scheme == 0:  # systematic: one uniform shared by all strata
+        _systematic(W, scale, rng.random(), idx)
+        return
     if scheme == 3:  # residual: floor(M W) copies, the rest multinomially from the residual weights
         N = W.shape[0]
         res = np.empty(N)
@@ -193,11 +229,7 @@ def _resample(scheme, W, scale, rng, idx, cdf, u):
                 m += 1
         return
     _cumsum_to_one(W, scale, cdf)
-    if scheme == 0:  # systematic: one uniform shared by all strata
-        u0 = rng.random()
-        for m in range(M):
-            u[m] = (m + u0) / Mf
-    elif scheme == 1:  # stratified: one uniform per stratum
+    if scheme == 1:  # stratified: one uniform per stratum
         for m in range(M):
             u[m] = (m + rng.random()) / Mf
     else:  # multinomial: sorted independent uniforms
@@ -241,20 +273,27 @@ def _uniform_moments(x, mean, cov, do_cov, W):
 
 
 @numba.njit(**_NJIT)
-def _sir_run(stepper, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled, collapsed):
+def _sir_run(stepper, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled, collapsed):
     """One Monte Carlo run of the bootstrap filter; returns its log marginal likelihood.
 
-    ``stepper(x, anc, xn, k, rng, data, lw, fresh)`` (generated per model and
+    ``stepper(x, anc, xn, k, rng, data, lw, fresh, b, s)`` (generated per model and
     likelihood) writes ``f(x[anc[m]], k) + G w`` of every particle into ``xn``
-    (resampling is the ancestor index ``anc``, no copy), adds its log-likelihood of
-    step ``k``'s data to ``lw[m]`` and returns the largest ``lw``.
+    (resampling is the ancestor index ``anc``, no copy) and its new log weight
+    ``lw[m] + log p(y_k | xn[m])`` as ``b[m] + log s[m]`` — ``b`` a sum of logs, ``s``
+    a linear factor in [1, ...) (the log-sum-exp remainders, not logged: ``-inf`` and
+    0 for a zero weight) — and returns the largest ``b``.  ``weigh(x, b, s, best, W,
+    mean)`` (generated per model) sets ``W = exp(b - best) s`` and the weighted mean
+    and returns ``(Σ W, Σ W²)``.  Only a step that does not resample needs the log
+    weights themselves (one ``log`` per particle).
     """
     M, n_x = x0.shape
     K = ess.shape[0]
     x = x0.copy()
     xn = np.empty((M, n_x))
     lw = np.zeros(M)
-    W = np.empty(M)  # unnormalised weights exp(lw - max)
+    b = np.empty(M)
+    s = np.empty(M)
+    W = np.empty(M)  # unnormalised weights exp(b - best) s
     anc = np.arange(M)
     cdf = np.empty(M)
     u = np.empty(M)
@@ -267,7 +306,7 @@ def _sir_run(stepper, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, re
     for k in range(K):
         mk = mean[k + 1]
         ck = cov[k + 1] if do_cov else cov[0]
-        best = stepper(x, anc, xn, k, rng, data, lw, fresh)
+        best = stepper(x, anc, xn, k, rng, data, lw, fresh, b, s)
         x, xn = xn, x
         if best == -math.inf:
             # Collapse: every weight vanished.  Keep the predicted particles, uniformly weighted.
@@ -281,20 +320,8 @@ def _sir_run(stepper, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, re
             fresh = True
             prev = lnM
             continue
-        acc = 0.0
-        s2 = 0.0
-        for i in range(n_x):
-            mk[i] = 0.0
-        for m in range(M):
-            e = math.exp(lw[m] - best)
-            W[m] = e
-            acc += e
-            s2 += e * e
-            for i in range(n_x):
-                mk[i] += e * x[m, i]
+        acc, s2 = weigh(x, b, s, best, W, mk)  # acc >= 1: the best particle's W is its s >= 1
         inv = 1.0 / acc
-        for i in range(n_x):
-            mk[i] *= inv
         ln = best + math.log(acc)
         total += ln - prev  # log p(z_k | z_1:k-1): the change of the log normaliser
         e = acc * acc / s2  # 1 / Σ W², W = e / acc
@@ -309,6 +336,7 @@ def _sir_run(stepper, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, re
         else:
             for m in range(M):
                 anc[m] = m
+                lw[m] = b[m] + math.log(s[m])  # -inf + log 0 = -inf for a zero weight
             fresh = False
             prev = ln
     return total
@@ -316,7 +344,9 @@ def _sir_run(stepper, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, re
 
 # ============================================================================ generated per-model code
 _KERNELS: "weakref.WeakKeyDictionary[Model, dict]" = weakref.WeakKeyDictionary()
-_NS = {"_ndtr": _ndtr}
+_NS = {"_ndtr": _ndtr, "_exp0": _exp0, "_finite": _neginf_unless_finite}
+#: Particles per block of the packet stepper: propagation and log terms, then the block's exps (L1-resident).
+_BLOCK = 128
 
 
 def _kernels(model: Model) -> dict:
@@ -349,51 +379,106 @@ def _prop_one(model: Model):
         terms = [f"{_c(GL[i, j])} * z{j}" for j in range(n_w) if GL[i, j] != 0.0]
         lines.append(f"    XN[m, {i}] = f{i} + ({_c(gm[i])} + ({' + '.join(terms) if terms else '0.0'}))")
     cache["prop"] = compile_source("\n".join(lines), "prop_one", f"the propagation of {model.name!r}", _NS,
-                                   inline="always")
+                                   inline="always", fastmath=_FAST)
     return cache["prop"]
 
 
-# One step of every particle: propagate, then add the step's log-likelihood to the log weights.
+def _weigh(model: Model):
+    """``weigh(x, b, s, best, W, mean) -> (Σ W, Σ W²)``: ``W = exp(b - best) s`` and the weighted mean.
+
+    Generated per state dimension so that the mean's sums are local scalars.
+    """
+    cache = _kernels(model)
+    if "weigh" in cache:
+        return cache["weigh"]
+    n = model.n_x
+    lines = ["def weigh(x, b, s, best, W, mean):", "    acc = 0.0", "    s2 = 0.0"]
+    lines += [f"    a{i} = 0.0" for i in range(n)]
+    lines += ["    for m in range(x.shape[0]):", "        e = _exp0(b[m] - best) * s[m]", "        W[m] = e",
+              "        acc += e", "        s2 += e * e"]
+    lines += [f"        a{i} += e * x[m, {i}]" for i in range(n)]
+    lines.append("    inv = 1.0 / acc")
+    lines += [f"    mean[{i}] = a{i} * inv" for i in range(n)]
+    lines.append("    return acc, s2")
+    cache["weigh"] = compile_source("\n".join(lines), "weigh", f"the weights of {model.name!r}", _NS, fastmath=_FAST)
+    return cache["weigh"]
+
+
+# One step of every particle: propagate, then the step's log-likelihood as b[m] + log s[m] (see _sir_run).
 _STEPPER = {
+    # Per block of particles, three loops: propagate; each packet's largest log term (into b) and the others
+    # relative to it (into ex, NE per packet); the block's exps, s[m] = Π_p (1 + Σ exp(ex)), with no log:
+    # the log-sum-exp of each packet is b + log s.  Split loops keep fewer values live across the libm and
+    # generator calls (which clobber every floating-point register) and let the calls of many particles
+    # overlap instead of waiting on each particle's chain of h, residual and log terms.
     "packets": """
-def stepper(X, anc, XN, step, rng, data, lw, fresh):
+def stepper(X, anc, XN, step, rng, data, lw, fresh, b, s):
     sens, y, att, log_clean = data
     P = sens.shape[1]
     k = float(step)
     k1 = k + 1.0
+    M = X.shape[0]
+    ex = _np.empty(BLOCK * P * NE)
     best = -_m.inf
-    for m in range(X.shape[0]):
-        PROP(X, anc[m], XN, m, k, rng)
-        total = 0.0
-        for p in range(P):
-            total += LIK(sens[step, p], XN, m, k1, y, step, p, log_clean, att[step, p])
-        v = ACC(lw, m, total, fresh)
-        if v > best:
-            best = v
+    for m0 in range(0, M, BLOCK):
+        m1 = min(m0 + BLOCK, M)
+        j = 0
+        for m in range(m0, m1):
+            PROP(X, anc[m], XN, m, k, rng)
+        for m in range(m0, m1):
+            v = 0.0 if fresh else lw[m]
+            for p in range(P):
+                v += LIK(sens[step, p], XN, m, k1, y, step, p, log_clean, att[step, p], ex, j)
+                j += NE
+            b[m] = v
+        j = 0
+        for m in range(m0, m1):
+            v = b[m]
+            sm = 1.0
+            for p in range(P):
+                acc = 1.0
+                for i in range(NE):
+                    acc += _exp0(ex[j + i])
+                j += NE
+                sm *= acc
+                if sm > 1e250:  # many packets: fold the factor into the log part
+                    v += _m.log(sm)
+                    sm = 1.0
+            if v > -_m.inf and v < _m.inf and sm == sm:
+                b[m] = v
+                s[m] = sm
+                best = v if v > best else best
+            else:  # NaN (e.g. h undefined) or infinite: zero weight
+                b[m] = -_m.inf
+                s[m] = 0.0
     return best
 """,
     "binary": """
-def stepper(X, anc, XN, step, rng, data, lw, fresh):
+def stepper(X, anc, XN, step, rng, data, lw, fresh, b, s):
     A, B, T = data
     k = float(step)
     k1 = k + 1.0
     best = -_m.inf
     for m in range(X.shape[0]):
         PROP(X, anc[m], XN, m, k, rng)
-        v = ACC(lw, m, LIK(XN, m, k1, A, B, step, T), fresh)
-        if v > best:
-            best = v
+        v = LIK(XN, m, k1, A, B, step, T)
+        v = _finite(v if fresh else lw[m] + v)
+        b[m] = v
+        s[m] = 1.0 if v > -_m.inf else 0.0
+        best = v if v > best else best
     return best
 """,
 }
 
 
-def _stepper(model: Model, family: str, lik):
+def _stepper(model: Model, family: str, lik, ne: int = 0):
     cache = _kernels(model)
     key = ("stepper", family, lik)
     if key not in cache:
-        ns = dict(_NS, PROP=_prop_one(model), LIK=lik, ACC=_accumulate)
-        cache[key] = compile_source(_STEPPER[family], "stepper", f"the {family} filter step of {model.name!r}", ns)
+        ns = dict(_NS, PROP=_prop_one(model), LIK=lik, BLOCK=_BLOCK, NE=ne)
+        src = _STEPPER[family].replace("BLOCK", str(_BLOCK)).replace("NE", str(ne))
+        cache[key] = compile_source(src, "stepper", f"the {family} filter step of {model.name!r}", ns,
+                                    fastmath=_FAST)
     return cache[key]
 
 
@@ -428,52 +513,43 @@ def _component_lines(comps: list, r: list[str], indent: str) -> list[str]:
     return out
 
 
-def _lse_lines(terms: list[str], target: str, indent: str) -> list[str]:
-    """``target = log Σ exp(terms)`` as the maximum plus the log of a sum of exps.
+def _max_others_lines(terms: list[str], ne: int, indent: str) -> list[str]:
+    """Statements returning ``mx = max(terms)`` and writing the others minus it into ``ex[j:j + ne]``.
 
-    Two and three terms are ordered with selects (no data-dependent branches) and
-    the maximum's ``exp(0) = 1`` is not computed; all terms ``-inf`` give ``-inf``,
-    a NaN term gives NaN.
+    ``log Σ exp(terms) = mx + log(1 + Σ exp(ex))``.  The maximum is kept by selects
+    (no data-dependent branch); the slots past ``len(terms) - 1`` get ``-inf``.  A
+    NaN term ends up in ``mx`` or in a slot, so the packet's likelihood is NaN
+    (zero weight) as with ``logaddexp``; all terms ``-inf`` give ``mx = -inf``.
     """
-    n = len(terms)
-    if n == 1:
-        return [f"{indent}{target} = {terms[0]}"]
-    if n == 2:
-        a, b = terms
-        return [f"{indent}mx = {a} if {a} > {b} else {b}",
-                f"{indent}o1 = {b} if {a} > {b} else {a}",
-                f"{indent}{target} = mx + _m.log(1.0 + _m.exp(o1 - mx)) if mx > -_m.inf else mx"]
-    if n == 3:
-        a, b, c = terms
-        return [f"{indent}hi = {a} if {a} >= {b} else {b}",
-                f"{indent}lo = {b} if {a} >= {b} else {a}",
-                f"{indent}mx = {c} if {c} > hi else hi",
-                f"{indent}o1 = hi if {c} > hi else lo",
-                f"{indent}o2 = lo if {c} > hi else {c}",
-                f"{indent}{target} = mx + _m.log(1.0 + _m.exp(o1 - mx) + _m.exp(o2 - mx)) if mx > -_m.inf else mx"]
     out = [f"{indent}mx = {terms[0]}"]
-    out += [f"{indent}if {t} > mx: mx = {t}" for t in terms[1:]]
-    out.append(f"{indent}if mx > -_m.inf:")
-    out.append(f"{indent}    {target} = mx + _m.log({' + '.join(f'_m.exp({t} - mx)' for t in terms)})")
-    out.append(f"{indent}else:")
-    out.append(f"{indent}    {target} = mx")
+    for i, t in enumerate(terms[1:]):
+        out += [f"{indent}u = {t}", f"{indent}o{i} = mx if u > mx else u", f"{indent}mx = u if u > mx else mx"]
+    out += [f"{indent}ex[j + {i}] = o{i} - mx" for i in range(len(terms) - 1)]
+    out += [f"{indent}ex[j + {i}] = -_m.inf" for i in range(len(terms) - 1, ne)]
+    out.append(f"{indent}return mx")
     return out
 
 
-def _packet_term(model: Model, wrap: tuple):
-    """``term(s, X, m, k, Y, t, p, lc, a) = logaddexp(lc + log p_ν_s(wrap(Y[t, p] − h_s(X[m], k))), a)``.
+def _packet_term(model: Model, wrap: tuple, attacked: bool):
+    """``(term, NE)``: ``term(s, X, m, k, Y, t, p, lc, a, ex, j) -> mx`` with, for ``r = wrap(Y[t, p] − h_s(X[m], k))``,
 
-    Model, noise constants and the wrapping are inlined (generated per model and
-    wrap set).  ``a = -inf`` gives ``lc + log p_ν``; otherwise one log-sum-exp over
-    ``lc +`` each mixture component's term and ``a`` (one ``log``).
+        logaddexp(lc + log p_ν_s(r), a) = mx + log(1 + Σ_{i < NE} exp(ex[j + i]))
+
+    the log-sum-exp over ``lc +`` each mixture component's log term and ``a``, split
+    into its largest term and the others relative to it (no ``exp`` or ``log``
+    here).  Model, noise constants and the wrapping are inlined (generated per
+    model, wrap set and ``attacked``); ``NE`` is the largest number of components
+    of a sensor, less one unless ``attacked``.  ``attacked=False`` leaves ``a`` out
+    (for ``a = -inf`` everywhere: one slot and its test fewer per packet).
     """
     cache = _kernels(model)
-    key = ("packet", wrap)
+    key = ("packet", wrap, attacked)
     if key in cache:
         return cache[key]
-    lines = ["def term(s, X, m, k, Y, t, p, lc, a):"]
+    comps = [_components(sensor.noise, f"model.sensors[{s}]") for s, sensor in enumerate(model.sensors)]
+    ne = max(len(c) for c in comps) - (0 if attacked else 1)  # the terms less the largest
+    lines = ["def term(s, X, m, k, Y, t, p, lc, a, ex, j):"]
     for s, (sensor, fun) in enumerate(zip(model.sensors, model.casadi_h)):
-        comps = _components(sensor.noise, f"model.sensors[{s}]")
         lines.append(f"    {'if' if s == 0 else 'elif'} s == {s}:")
         ind = "        "
         lines += scalar_statements(fun, ["X[m, {}]", "k"], "h{}", indent=ind)
@@ -484,18 +560,14 @@ def _packet_term(model: Model, wrap: tuple):
                 pi, tau = _c(np.pi), _c(2 * np.pi)
                 lines.append(f"{ind}if not (-{pi} < r{j} <= {pi}): r{j} = {pi} - (({pi} - r{j}) % {tau})")
             r.append(f"r{j}")
-        lines += _component_lines(comps, r, ind)
-        C = len(comps)
-        lines.append(f"{ind}if a == -_m.inf:")
-        lines += _lse_lines([f"t{c}" for c in range(C)], "lp", ind + "    ")
-        lines.append(f"{ind}    return lc + lp")
-        for c in range(C):
-            lines.append(f"{ind}u{c} = lc + t{c}")
-        lines += _lse_lines([f"u{c}" for c in range(C)] + ["a"], "lp", ind)
-        lines.append(f"{ind}return lp")
-    lines.append("    return _m.nan")
+        lines += _component_lines(comps[s], r, ind)
+        terms = [f"lc + t{c}" for c in range(len(comps[s]))] + (["a"] if attacked else [])
+        lines += _max_others_lines(terms, ne, ind)
+    lines += [f"    for i in range({ne}):", "        ex[j + i] = _m.nan", "    return _m.nan"]
     src = "\n".join(lines)
-    cache[key] = compile_source(src, "term", f"the packet likelihood of {model.name!r}", _NS, inline="always")
+    term = compile_source(src, "term", f"the packet likelihood of {model.name!r}", _NS, inline="always",
+                          fastmath=_FAST)
+    cache[key] = term, ne
     return cache[key]
 
 
@@ -523,7 +595,8 @@ def _binary_one(model: Model):
         lines.append(f"    total += _m.log(A[t, {s}] + B[t, {s}] * ({c}))")
     lines.append("    return total")
     src = "\n".join(lines)
-    cache["binary"] = compile_source(src, "one", f"the binary likelihood of {model.name!r}", _NS, inline="always")
+    cache["binary"] = compile_source(src, "one", f"the binary likelihood of {model.name!r}", _NS, inline="always",
+                                     fastmath=_FAST)
     return cache["binary"]
 
 
@@ -674,7 +747,7 @@ def _binary_data(model: Model, R: int, A, B, threshold):
 
 
 # ============================================================================ driver
-def _run_all(stepper, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
+def _run_all(stepper, weigh, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
     cov = np.empty((R, K + 1, n_x, n_x)) if covariance else np.zeros((R, 1, 0, 0))
@@ -684,15 +757,26 @@ def _run_all(stepper, data_of_run, x0, gens, K, scheme, thr, covariance, workers
     loglik = np.empty(R)
 
     def one(r: int) -> None:
-        loglik[r] = _sir_run(stepper, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
+        loglik[r] = _sir_run(stepper, weigh, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
                              ess[r], resampled[r], collapsed[r])
 
     if workers == 1 or R == 1:
         for r in range(R):
             one(r)
     else:
+        # Each thread takes the next run until none is left (itertools.count is atomic under the GIL): as
+        # balanced as one task per run on a busy machine, without a future per run.
+        runs = itertools.count()
+
+        def worker() -> None:
+            for r in runs:
+                if r >= R:
+                    return
+                one(r)
+
         with ThreadPoolExecutor(max_workers=min(workers, R)) as ex:
-            list(ex.map(one, range(R)))  # list(): re-raise any exception from a worker
+            for f in [ex.submit(worker) for _ in range(min(workers, R))]:
+                f.result()  # re-raise any exception from a worker
     return FastSIRResult(mean, cov if covariance else None, ess, loglik, resampled, collapsed)
 
 
@@ -754,8 +838,9 @@ def sir_packets(
     gens = _generators(rngs, R)
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     sens, yy, att, lc = _packet_data(model, R, sensors, y, attack, log_clean)
-    stepper = _stepper(model, "packets", _packet_term(model, _wrap_set(angles, model)))
-    return _run_all(stepper, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr, covariance,
+    term, ne = _packet_term(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
+    stepper = _stepper(model, "packets", term, ne)
+    return _run_all(stepper, _weigh(model), lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr, covariance,
                     workers)
 
 
@@ -795,7 +880,7 @@ def sir_binary(
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     AA, BB, T = _binary_data(model, R, A, B, threshold)
     stepper = _stepper(model, "binary", _binary_one(model))
-    return _run_all(stepper, lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance, workers)
+    return _run_all(stepper, _weigh(model), lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance, workers)
 
 
 # ============================================================================ likelihood helpers
@@ -868,10 +953,10 @@ def packets_loglik(model: Model, x, k1: int, sensors, y, *, attack=None, log_cle
     yy = yy[:, None] if yy.ndim in (2, 3) else yy
     att = None if attack is None else np.asarray(attack, dtype=np.float64)[:, None]
     sens, yy, att, lc = _packet_data(model, R, sens, yy, att, log_clean)
-    lik = _packet_term(model, _wrap_set(angles, model))
+    term, ne = _packet_term(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
     out = np.empty(x.shape[:2])
     for r in range(R):
-        _packets_loglik_rows(lik, x[r], float(k1), (sens, yy[r], att[r], lc), out[r])
+        _packets_loglik_rows(term, ne, x[r], float(k1), (sens, yy[r], att[r], lc), out[r])
     return out
 
 
