@@ -46,6 +46,8 @@ from typing import Callable
 import casadi as ca
 import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 from .codegen import UnsupportedOperation, _op, literal, sx_statements
 from .model import Model
@@ -90,6 +92,67 @@ def _b2f(c):
     return 1.0 if c else 0.0
 
 
+@intrinsic
+def fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's fma; a hardware FMA where there is one).  For use in ``njit`` code."""
+    if not all(isinstance(v, (types.Float, types.Integer)) for v in (a, b, c)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*[context.cast(builder, v, t, types.float64) for v, t in zip(args, signature.args)])
+
+    return types.float64(a, b, c), codegen  # integer operands are converted
+
+
+@numba.njit(**dict(_NJIT, inline="always"))
+def _atan2(y, x):
+    """``atan2(y, x)`` without branches or calls, within 2 ulp of libm's (tests check it), so that a loop of it
+    vectorises (there is no vector libm here).
+
+    ``t = min(|x|, |y|) / max(|x|, |y|)`` in [0, 1] is reduced with ``atan t = atan c + atan((t − c) / (1 + t c))``,
+    ``c`` in {0, tan(π/8), 1} so that ``|u| <= tan(π/16)``, computed as one division
+    ``(mn − c mx) / (mx + c mn)`` (FMAs); ``atan u`` is its Taylor polynomial to ``u^25`` (truncation below
+    1e-18 there) in Estrin's scheme; then ``π/2 − ·`` when ``|y| > |x|``, ``π − ·`` for a negative ``x``
+    (sign bit, so ``-0.0`` too) and the sign of ``y``, with the constants in two parts.  Zeros, infinities and
+    NaN give C's ``atan2`` values (the operands are replaced by selects, no branch).
+    """
+    ax = abs(x)
+    ay = abs(y)
+    swap = ay > ax
+    mn = ax if swap else ay
+    mx = ay if swap else ax
+    # special operands: both zero -> t = 0; max infinite -> t = 1 (both infinite) or 0; huge/tiny: scale by 2^-/+600
+    zero = mx == 0.0
+    inf = mx == math.inf
+    mn = (1.0 if mn == math.inf else 0.0) if inf else (0.0 if zero else mn)
+    mx = 1.0 if (inf or zero) else mx
+    sc = 2.409919865102884e-181 if mx > 1e300 else (4.149515568880993e+180 if mx < 1e-300 else 1.0)
+    mn = mn * sc
+    mx = mx * sc
+    # reduction
+    hi = mn > 0.6681786379192989 * mx  # tan(3π/16)
+    mid = mn > 0.198912367379658 * mx  # tan(π/16)
+    c = 1.0 if hi else (0.41421356237309503 if mid else 0.0)
+    u = fma(-c, mx, mn) / fma(c, mn, mx)
+    z = u * u
+    z2 = z * z
+    z4 = z2 * z2
+    q0 = fma(0.2, z, -0.3333333333333333)
+    q1 = fma(0.1111111111111111, z, -0.14285714285714285)
+    q2 = fma(0.07692307692307693, z, -0.09090909090909091)
+    q3 = fma(0.058823529411764705, z, -0.06666666666666667)
+    q4 = fma(0.047619047619047616, z, -0.05263157894736842)
+    q5 = fma(0.04, z, -0.043478260869565216)
+    poly = fma(fma(q5, z2, q4), z4 * z4, fma(fma(q3, z2, q2), z4, fma(q1, z2, q0)))  # Σ (-1)^k z^(k-1) / (2k+1)
+    base_hi = 0.7853981633974483 if hi else (0.39269908169872414 if mid else 0.0)  # atan c, two parts
+    base_lo = 3.06287113727155e-17 if hi else (3.06287113727155e-18 if mid else 0.0)
+    r = base_hi + (u + fma(u * z, poly, base_lo))
+    r = (1.5707963267948966 - r) + 6.1257422745431e-17 if swap else r
+    r = (3.141592653589793 - r) + 1.22514845490862e-16 if math.copysign(1.0, x) < 0.0 else r
+    r = math.copysign(r, y)
+    return x + y if (x != x or y != y) else r
+
+
 # One template per SX operation over the argument names a, b (scalars).
 _TEMPLATES: dict[int, str] = {
     _op("ASSIGN"): "{a}",
@@ -112,7 +175,7 @@ _TEMPLATES: dict[int, str] = {
     _op("ASIN"): "_m.asin({a})",
     _op("ACOS"): "_m.acos({a})",
     _op("ATAN"): "_m.atan({a})",
-    _op("ATAN2"): "_m.atan2({a}, {b})",
+    _op("ATAN2"): "_atan2({a}, {b})",
     _op("SINH"): "_m.sinh({a})",
     _op("COSH"): "_m.cosh({a})",
     _op("TANH"): "_m.tanh({a})",
@@ -213,7 +276,8 @@ def compile_source(src: str, fname: str, label: str, namespace: dict | None = No
     return numba.njit(**dict(_NJIT, **options))(fn)
 
 
-_NAMESPACE = {"_m": math, "_np": np, "_sign": _sign, "_fmin": _fmin, "_fmax": _fmax, "_b2f": _b2f}
+_NAMESPACE = {"_m": math, "_np": np, "_sign": _sign, "_fmin": _fmin, "_fmax": _fmax, "_b2f": _b2f, "_atan2": _atan2,
+              "_fma": fma}
 
 
 @dataclass(frozen=True, eq=False)

@@ -69,7 +69,7 @@ from typing import NamedTuple, Sequence
 import numba
 import numpy as np
 
-from designer.jit import compile_source, jit_model, scalar_statements
+from designer.jit import compile_source, fma, jit_model, scalar_statements
 from designer.model import Model
 from designer.noise import Gaussian, GaussianMixture, Noise
 from designer.validation import InputError, check_int, check_probability
@@ -82,6 +82,8 @@ __all__ = [
 _NJIT = dict(nogil=True, cache=False, error_model="numpy")
 # Generated kernels may fuse a * b + c into one FMA (rounding only; no effect on inf/NaN handling).
 _FAST = {"contract"}
+#: Particles per block of a filter step: the likelihood's scratch stays in the L1 cache.
+_BLOCK = 128
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 #: Resampling schemes of :mod:`filters.resampling`, by name, as the kernels' codes.
@@ -113,11 +115,39 @@ def _ndtr(a):
     return y
 
 
-@numba.njit(**dict(_NJIT, inline="always"))
-def _exp0(d):
-    """``exp(d)`` for ``d <= 0``: exactly 0 below -745.2 (where exp rounds to 0) without calling libm's slow
-    underflow path; NaN stays NaN."""
-    return 0.0 if d < -745.2 else math.exp(d)
+@numba.njit(**dict(_NJIT, inline="always", fastmath=_FAST))
+def _exp_nonpos(d):
+    """``exp(d)`` for ``d <= 0`` (a difference to a maximum), without branches or calls.
+
+    So that a loop of it vectorises (libm's ``exp`` is a call per element; there
+    is no vector libm here): ``exp(d) = 2^k exp(r)``, ``k = round(d / ln 2)``,
+    ``r = d - k ln 2`` in two parts (Cody-Waite, ``k ln2_hi`` exact), ``exp(r)`` by
+    its Taylor polynomial of degree 13 (``|r| <= ln 2 / 2``: truncation below
+    1e-17), ``2^k`` built in the exponent bits.  Within 1 ulp of libm's ``exp``.
+    Below ``-708`` (results under 1e-307, below the normal range) it gives 0, where
+    libm gives subnormals: a weight that small against the largest one (at least 1)
+    changes no sum.  NaN gives NaN; ``d > 0`` is not supported (it gives 1).
+    """
+    x = d if d > -708.0 else -708.0  # also NaN and -inf: a finite k below
+    x = x if x < 0.0 else 0.0
+    kf = math.floor(x * 1.4426950408889634 + 0.5)
+    r = (x - kf * 0.6931471803691238) - kf * 1.9082149292705877e-10  # ln 2 = 0x1.62e42feep-1 + 0x1.a39ef35793c76p-33
+    p = 1.6059043836821613e-10  # 1 / 13!
+    p = p * r + 2.08767569878681e-09
+    p = p * r + 2.505210838544172e-08
+    p = p * r + 2.755731922398589e-07
+    p = p * r + 2.7557319223985893e-06
+    p = p * r + 2.48015873015873e-05
+    p = p * r + 0.0001984126984126984
+    p = p * r + 0.001388888888888889
+    p = p * r + 0.008333333333333333
+    p = p * r + 0.041666666666666664
+    p = p * r + 0.16666666666666666
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    e = p * np.int64((np.int64(kf) + 1023) << 52).view(np.float64)  # p 2^k
+    return e if d >= -708.0 else (0.0 if d < -708.0 else d)  # d < -708: 0; NaN: NaN
 
 
 @numba.njit(**dict(_NJIT, inline="always"))
@@ -125,27 +155,69 @@ def _neginf_unless_finite(v):
     return v if (v > -math.inf and v < math.inf) else -math.inf
 
 
-@numba.njit(**_NJIT)
-def _packets_loglik_rows(term, ne, X, k1, data, out):
-    """``out[m]`` = the packet log-likelihood of step 0 of ``data`` for every particle (helper, not the kernel)."""
-    sens, y, att, log_clean = data
-    ex = np.empty(ne)
-    for m in range(X.shape[0]):
-        total = 0.0
-        for p in range(sens.shape[1]):
-            mx = term(sens[0, p], X, m, k1, y, 0, p, log_clean, att[0, p], ex, 0)
-            acc = 1.0
-            for i in range(ne):
-                acc += _exp0(ex[i])
-            total += mx + math.log(acc)
-        out[m] = _neginf_unless_finite(total)
+@numba.njit(**dict(_NJIT, inline="always"))
+def _wrap_angle(r):
+    """``r`` if in (−π, π], else ``π − mod(π − r, 2π)`` as :func:`filters.rrp.wrap_angles` (``numpy.mod``).
+
+    Without branches or calls: ``mod`` is ``x − q 2π`` with ``q = floor(x / 2π)``
+    (one less if that rounded up) and one FMA, i.e. the exact remainder rounded
+    once, as ``numpy.mod``'s (``fmod`` and ``+ 2π``).  NaN and ±inf give NaN.
+    """
+    x = 3.141592653589793 - r
+    q = np.floor(x / 6.283185307179586)
+    q = q - 1.0 if fma(-q, 6.283185307179586, x) < 0.0 else q
+    w = 3.141592653589793 - fma(-q, 6.283185307179586, x)
+    return r if (r > -3.141592653589793 and r <= 3.141592653589793) else w
 
 
 @numba.njit(**_NJIT)
-def _binary_loglik_rows(one, X, k1, data, out):
-    A, B, T = data
-    for m in range(X.shape[0]):
-        out[m] = _neginf_unless_finite(one(X, m, k1, A, B, 0, T))
+def _likelihood_block(lik, P, ne, X, m0, n, k1, data, t, b, s, ex):
+    """The log-likelihood of step ``t``'s data for particles ``m0 .. m0 + n − 1`` of ``X`` as ``b + log s``.
+
+    ``lik(X, m0, n, k1, data, t, b, ex)`` (generated per model) adds each particle's
+    sum of logs to ``b[m]`` and writes the ``ne`` log-sum-exp remainders ``<= 0`` of
+    each of the ``P`` packets into the scratch ``ex`` (slot ``q = p ne + i`` of
+    particle ``m0 + mm`` at ``q _BLOCK + mm``).  Here, in loops over the block that
+    vectorise: ``s[m] = Π_p (1 + Σ_i exp(slot))`` (no ``log``); every ``G`` packets
+    (``(ne + 1)^G < 1e300``) the product so far is folded into ``b`` (only with
+    hundreds of packets).
+    """
+    lik(X, m0, n, k1, data, t, b, ex)
+    # views indexed from 0: numba then needs no negative-index wraparound and the loops vectorise
+    bb = b[m0:m0 + n]
+    sb = s[m0:m0 + n]
+    sb[:] = 1.0
+    if ne == 0:
+        return
+    G = max(1, int(690.0 / math.log(ne + 1.0)))
+    for p in range(P):
+        q = p * ne * _BLOCK
+        e0 = ex[q:q + n]
+        for i in range(n):
+            e0[i] = _exp_nonpos(e0[i])
+        for j in range(1, ne):
+            ej = ex[q + j * _BLOCK:q + j * _BLOCK + n]
+            for i in range(n):
+                e0[i] += _exp_nonpos(ej[i])
+        for i in range(n):
+            sb[i] *= 1.0 + e0[i]
+        if (p + 1) % G == 0 and p + 1 < P:
+            for i in range(n):
+                bb[i] += math.log(sb[i])
+                sb[i] = 1.0
+
+
+@numba.njit(**_NJIT)
+def _loglik_rows(lik, P, ne, X, k1, data, out):
+    """``out[m]`` = the log-likelihood of step 0 of ``data`` for every particle (helper, not the kernel)."""
+    M = X.shape[0]
+    ex = np.empty(_BLOCK * P * ne)
+    s = np.empty(M)
+    out[:] = 0.0
+    for m0 in range(0, M, _BLOCK):
+        _likelihood_block(lik, P, ne, X, m0, min(_BLOCK, M - m0), k1, data, 0, out, s, ex)
+    for m in range(M):
+        out[m] = _neginf_unless_finite(out[m] + math.log(s[m]))
 
 
 @numba.njit(**_NJIT)
@@ -273,18 +345,49 @@ def _uniform_moments(x, mean, cov, do_cov, W):
 
 
 @numba.njit(**_NJIT)
-def _sir_run(stepper, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled, collapsed):
+def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex):
+    """Propagate every particle and weigh it with step ``t``'s data, block by block; returns the largest ``b``.
+
+    ``prop(X, anc, XN, m0, n, k, rng)`` (generated per model) writes ``f(X[anc[m]], k)
+    + G w`` into ``XN[m]`` (resampling is the ancestor index ``anc``, no copy); the
+    new log weight ``lw[m] + log p(y_t | XN[m])`` is left as ``b[m] + log s[m]`` (see
+    :func:`_likelihood_block`): ``s`` is a linear factor >= 1, no ``log`` is taken
+    here, and a NaN or infinite one becomes ``b = -inf``, ``s = 0`` (zero weight).
+    Blocks of ``_BLOCK`` particles keep the scratch ``ex`` small; separate loops keep
+    few values live across the generator and libm calls (which clobber every
+    floating-point register) and let the branch-free ones vectorise.
+    """
+    M = X.shape[0]
+    k = float(t)
+    best = -math.inf
+    for m0 in range(0, M, _BLOCK):
+        n = min(_BLOCK, M - m0)
+        prop(X, anc, XN, m0, n, k, rng)
+        bb = b[m0:m0 + n]  # views indexed from 0 (see _likelihood_block)
+        sb = s[m0:m0 + n]
+        if fresh:
+            bb[:] = 0.0
+        else:
+            bb[:] = lw[m0:m0 + n]
+        _likelihood_block(lik, P, ne, XN, m0, n, k + 1.0, data, t, b, s, ex)
+        for i in range(n):
+            v = bb[i]
+            if not (v > -math.inf and v < math.inf and sb[i] == sb[i]):  # NaN (e.g. h undefined) or infinite
+                v = -math.inf
+                sb[i] = 0.0  # zero weight
+            bb[i] = v
+            best = v if v > best else best
+    return best
+
+
+@numba.njit(**_NJIT)
+def _sir_run(prop, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled, collapsed):
     """One Monte Carlo run of the bootstrap filter; returns its log marginal likelihood.
 
-    ``stepper(x, anc, xn, k, rng, data, lw, fresh, b, s)`` (generated per model and
-    likelihood) writes ``f(x[anc[m]], k) + G w`` of every particle into ``xn``
-    (resampling is the ancestor index ``anc``, no copy) and its new log weight
-    ``lw[m] + log p(y_k | xn[m])`` as ``b[m] + log s[m]`` — ``b`` a sum of logs, ``s``
-    a linear factor in [1, ...) (the log-sum-exp remainders, not logged: ``-inf`` and
-    0 for a zero weight) — and returns the largest ``b``.  ``weigh(x, b, s, best, W,
-    mean)`` (generated per model) sets ``W = exp(b - best) s`` and the weighted mean
-    and returns ``(Σ W, Σ W²)``.  Only a step that does not resample needs the log
-    weights themselves (one ``log`` per particle).
+    Each step: :func:`_step` (propagation, and the new log weights as ``b + log s``);
+    ``weigh(x, b, s, best, W, mean)`` (generated per model) sets ``W = exp(b - best) s``
+    and the weighted mean and returns ``(Σ W, Σ W²)``; resample.  Only a step that
+    does not resample needs the log weights themselves (one ``log`` per particle).
     """
     M, n_x = x0.shape
     K = ess.shape[0]
@@ -297,6 +400,7 @@ def _sir_run(stepper, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, 
     anc = np.arange(M)
     cdf = np.empty(M)
     u = np.empty(M)
+    ex = np.empty(_BLOCK * P * ne)  # the likelihood's scratch (see _likelihood_block)
     Mf = float(M)
     lnM = math.log(Mf)
     _uniform_moments(x, mean[0], cov[0], do_cov, W)
@@ -306,7 +410,7 @@ def _sir_run(stepper, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, 
     for k in range(K):
         mk = mean[k + 1]
         ck = cov[k + 1] if do_cov else cov[0]
-        best = stepper(x, anc, xn, k, rng, data, lw, fresh, b, s)
+        best = _step(prop, lik, P, ne, x, anc, xn, k, rng, data, lw, fresh, b, s, ex)
         x, xn = xn, x
         if best == -math.inf:
             # Collapse: every weight vanished.  Keep the predicted particles, uniformly weighted.
@@ -344,9 +448,7 @@ def _sir_run(stepper, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, 
 
 # ============================================================================ generated per-model code
 _KERNELS: "weakref.WeakKeyDictionary[Model, dict]" = weakref.WeakKeyDictionary()
-_NS = {"_ndtr": _ndtr, "_exp0": _exp0, "_finite": _neginf_unless_finite}
-#: Particles per block of the packet stepper: propagation and log terms, then the block's exps (L1-resident).
-_BLOCK = 128
+_NS = {"_ndtr": _ndtr, "_exp": _exp_nonpos, "_wrap": _wrap_angle}
 
 
 def _kernels(model: Model) -> dict:
@@ -360,11 +462,17 @@ def _c(v: float) -> str:
     return repr(float(v))
 
 
-def _prop_one(model: Model):
-    """``prop_one(X, a, XN, m, k, rng)``: ``XN[m] = f(X[a], k) + G (mean + L z)``, z ~ N(0, I) (NumPy's order)."""
+def _compile(model: Model, key, src: str, fname: str, what: str):
+    """The cached compiled ``fname`` of ``src`` (generated for ``model``), with the kernels' options."""
     cache = _kernels(model)
-    if "prop" in cache:
-        return cache["prop"]
+    if key not in cache:
+        cache[key] = compile_source(src, fname, f"{what} of {model.name!r}", _NS, fastmath=_FAST)
+    return cache[key]
+
+
+def _prop(model: Model):
+    """``prop(X, anc, XN, m0, n, k, rng)``: ``XN[m] = f(X[anc[m]], k) + G (mean + L z)``, ``z ~ N(0, I)``, for
+    ``m = m0 .. m0 + n − 1``: one particle's ``n_w`` normals in a row, particle after particle (NumPy's order)."""
     noise = model.process_noise
     if not isinstance(noise, Gaussian):
         raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; "
@@ -372,114 +480,31 @@ def _prop_one(model: Model):
     G = model.noise_gain
     gm, GL = G @ noise.mean, G @ noise._chol
     n_x, n_w = model.n_x, GL.shape[1]
-    lines = ["def prop_one(X, a, XN, m, k, rng):"]
-    lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, None], "f{}")
-    lines += [f"    z{j} = rng.standard_normal()" for j in range(n_w)]  # one particle's n_w normals in a row
+    lines = ["def prop(X, anc, XN, m0, n, k, rng):", "    for m in range(m0, m0 + n):", "        a = anc[m]"]
+    lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, None], "f{}", indent="        ")
+    lines += [f"        z{j} = rng.standard_normal()" for j in range(n_w)]
     for i in range(n_x):
-        terms = [f"{_c(GL[i, j])} * z{j}" for j in range(n_w) if GL[i, j] != 0.0]
-        lines.append(f"    XN[m, {i}] = f{i} + ({_c(gm[i])} + ({' + '.join(terms) if terms else '0.0'}))")
-    cache["prop"] = compile_source("\n".join(lines), "prop_one", f"the propagation of {model.name!r}", _NS,
-                                   inline="always", fastmath=_FAST)
-    return cache["prop"]
+        noise_i = " + ".join(f"{_c(GL[i, j])} * z{j}" for j in range(n_w) if GL[i, j] != 0.0) or "0.0"
+        lines.append(f"        XN[m, {i}] = f{i} + ({noise_i if gm[i] == 0.0 else f'{_c(gm[i])} + ({noise_i})'})")
+    return _compile(model, "prop", "\n".join(lines), "prop", "the propagation")
 
 
 def _weigh(model: Model):
     """``weigh(x, b, s, best, W, mean) -> (Σ W, Σ W²)``: ``W = exp(b - best) s`` and the weighted mean.
 
-    Generated per state dimension so that the mean's sums are local scalars.
+    Generated per state dimension so that the mean's sums are local scalars; the
+    exps in a loop of their own, which vectorises.
     """
-    cache = _kernels(model)
-    if "weigh" in cache:
-        return cache["weigh"]
     n = model.n_x
-    lines = ["def weigh(x, b, s, best, W, mean):", "    acc = 0.0", "    s2 = 0.0"]
+    lines = ["def weigh(x, b, s, best, W, mean):", "    M = x.shape[0]", "    for m in range(M):",
+             "        W[m] = _exp(b[m] - best) * s[m]", "    acc = 0.0", "    s2 = 0.0"]
     lines += [f"    a{i} = 0.0" for i in range(n)]
-    lines += ["    for m in range(x.shape[0]):", "        e = _exp0(b[m] - best) * s[m]", "        W[m] = e",
-              "        acc += e", "        s2 += e * e"]
+    lines += ["    for m in range(M):", "        e = W[m]", "        acc += e", "        s2 += e * e"]
     lines += [f"        a{i} += e * x[m, {i}]" for i in range(n)]
     lines.append("    inv = 1.0 / acc")
     lines += [f"    mean[{i}] = a{i} * inv" for i in range(n)]
     lines.append("    return acc, s2")
-    cache["weigh"] = compile_source("\n".join(lines), "weigh", f"the weights of {model.name!r}", _NS, fastmath=_FAST)
-    return cache["weigh"]
-
-
-# One step of every particle: propagate, then the step's log-likelihood as b[m] + log s[m] (see _sir_run).
-_STEPPER = {
-    # Per block of particles, three loops: propagate; each packet's largest log term (into b) and the others
-    # relative to it (into ex, NE per packet); the block's exps, s[m] = Π_p (1 + Σ exp(ex)), with no log:
-    # the log-sum-exp of each packet is b + log s.  Split loops keep fewer values live across the libm and
-    # generator calls (which clobber every floating-point register) and let the calls of many particles
-    # overlap instead of waiting on each particle's chain of h, residual and log terms.
-    "packets": """
-def stepper(X, anc, XN, step, rng, data, lw, fresh, b, s):
-    sens, y, att, log_clean = data
-    P = sens.shape[1]
-    k = float(step)
-    k1 = k + 1.0
-    M = X.shape[0]
-    ex = _np.empty(BLOCK * P * NE)
-    best = -_m.inf
-    for m0 in range(0, M, BLOCK):
-        m1 = min(m0 + BLOCK, M)
-        j = 0
-        for m in range(m0, m1):
-            PROP(X, anc[m], XN, m, k, rng)
-        for m in range(m0, m1):
-            v = 0.0 if fresh else lw[m]
-            for p in range(P):
-                v += LIK(sens[step, p], XN, m, k1, y, step, p, log_clean, att[step, p], ex, j)
-                j += NE
-            b[m] = v
-        j = 0
-        for m in range(m0, m1):
-            v = b[m]
-            sm = 1.0
-            for p in range(P):
-                acc = 1.0
-                for i in range(NE):
-                    acc += _exp0(ex[j + i])
-                j += NE
-                sm *= acc
-                if sm > 1e250:  # many packets: fold the factor into the log part
-                    v += _m.log(sm)
-                    sm = 1.0
-            if v > -_m.inf and v < _m.inf and sm == sm:
-                b[m] = v
-                s[m] = sm
-                best = v if v > best else best
-            else:  # NaN (e.g. h undefined) or infinite: zero weight
-                b[m] = -_m.inf
-                s[m] = 0.0
-    return best
-""",
-    "binary": """
-def stepper(X, anc, XN, step, rng, data, lw, fresh, b, s):
-    A, B, T = data
-    k = float(step)
-    k1 = k + 1.0
-    best = -_m.inf
-    for m in range(X.shape[0]):
-        PROP(X, anc[m], XN, m, k, rng)
-        v = LIK(XN, m, k1, A, B, step, T)
-        v = _finite(v if fresh else lw[m] + v)
-        b[m] = v
-        s[m] = 1.0 if v > -_m.inf else 0.0
-        best = v if v > best else best
-    return best
-""",
-}
-
-
-def _stepper(model: Model, family: str, lik, ne: int = 0):
-    cache = _kernels(model)
-    key = ("stepper", family, lik)
-    if key not in cache:
-        ns = dict(_NS, PROP=_prop_one(model), LIK=lik, BLOCK=_BLOCK, NE=ne)
-        src = _STEPPER[family].replace("BLOCK", str(_BLOCK)).replace("NE", str(ne))
-        cache[key] = compile_source(src, "stepper", f"the {family} filter step of {model.name!r}", ns,
-                                    fastmath=_FAST)
-    return cache[key]
+    return _compile(model, "weigh", "\n".join(lines), "weigh", "the weights")
 
 
 def _components(noise: Noise, label: str) -> list:
@@ -514,76 +539,79 @@ def _component_lines(comps: list, r: list[str], indent: str) -> list[str]:
 
 
 def _max_others_lines(terms: list[str], ne: int, indent: str) -> list[str]:
-    """Statements returning ``mx = max(terms)`` and writing the others minus it into ``ex[j:j + ne]``.
+    """Statements adding ``mx = max(terms)`` to ``b[m]`` and writing the others minus it into the ``ne`` slots.
 
-    ``log Σ exp(terms) = mx + log(1 + Σ exp(ex))``.  The maximum is kept by selects
-    (no data-dependent branch); the slots past ``len(terms) - 1`` get ``-inf``.  A
-    NaN term ends up in ``mx`` or in a slot, so the packet's likelihood is NaN
-    (zero weight) as with ``logaddexp``; all terms ``-inf`` give ``mx = -inf``.
+    ``log Σ exp(terms) = mx + log(1 + Σ exp(slots))``.  The maximum is kept by
+    selects (no data-dependent branch); slots past ``len(terms) - 1`` get ``-inf``.
+    A NaN term ends up in ``mx`` or in a slot, so the log-likelihood is NaN (zero
+    weight) as with ``logaddexp``; all terms ``-inf`` give ``mx = -inf``.
     """
     out = [f"{indent}mx = {terms[0]}"]
     for i, t in enumerate(terms[1:]):
         out += [f"{indent}u = {t}", f"{indent}o{i} = mx if u > mx else u", f"{indent}mx = u if u > mx else mx"]
-    out += [f"{indent}ex[j + {i}] = o{i} - mx" for i in range(len(terms) - 1)]
-    out += [f"{indent}ex[j + {i}] = -_m.inf" for i in range(len(terms) - 1, ne)]
-    out.append(f"{indent}return mx")
+    slots = [f"o{i} - mx" for i in range(len(terms) - 1)] + ["-_m.inf"] * (ne - len(terms) + 1)
+    out += [f"{indent}x{i}[mm] = {v}" for i, v in enumerate(slots)]
+    out.append(f"{indent}bb[mm] += mx")
     return out
 
 
-def _packet_term(model: Model, wrap: tuple, attacked: bool):
-    """``(term, NE)``: ``term(s, X, m, k, Y, t, p, lc, a, ex, j) -> mx`` with, for ``r = wrap(Y[t, p] − h_s(X[m], k))``,
+def _packet_lik(model: Model, wrap: tuple, attacked: bool):
+    """``(lik, NE)`` of the packet likelihood (see :func:`_likelihood_block`), ``data = (sens, Y, att, lc)``.
 
-        logaddexp(lc + log p_ν_s(r), a) = mx + log(1 + Σ_{i < NE} exp(ex[j + i]))
+    For packet ``p`` of step ``t`` from sensor ``s = sens[t, p]`` with ``a = att[t, p]``
+    and, per particle, ``r = wrap(Y[t, p] − h_s(X[m], k))``::
+
+        logaddexp(lc + log p_ν_s(r), a) = mx + log(1 + Σ_{i < NE} exp(slot_i))
 
     the log-sum-exp over ``lc +`` each mixture component's log term and ``a``, split
-    into its largest term and the others relative to it (no ``exp`` or ``log``
-    here).  Model, noise constants and the wrapping are inlined (generated per
-    model, wrap set and ``attacked``); ``NE`` is the largest number of components
-    of a sensor, less one unless ``attacked``.  ``attacked=False`` leaves ``a`` out
-    (for ``a = -inf`` everywhere: one slot and its test fewer per packet).
+    into its largest term (added to ``b[m]``) and the others relative to it (the
+    ``NE`` slots of the packet).  Model, noise constants and the wrapping are
+    inlined (generated per model, wrap set and ``attacked``); ``NE`` is the largest
+    number of components of a sensor, less one unless ``attacked``
+    (``attacked=False`` leaves ``a`` out: for ``a = -inf`` everywhere).  One loop over
+    the block per sensor, without branches or calls when ``h`` has none, so that
+    it vectorises.
     """
-    cache = _kernels(model)
     key = ("packet", wrap, attacked)
+    cache = _kernels(model)
     if key in cache:
         return cache[key]
     comps = [_components(sensor.noise, f"model.sensors[{s}]") for s, sensor in enumerate(model.sensors)]
     ne = max(len(c) for c in comps) - (0 if attacked else 1)  # the terms less the largest
-    lines = ["def term(s, X, m, k, Y, t, p, lc, a, ex, j):"]
+    # views indexed from 0 (no negative-index wraparound in the loop, which then vectorises), X flat: the stride
+    # of its rows a constant
+    nx = model.n_x
+    lines = ["def lik(X, m0, n, k, data, t, b, ex):", "    sens, Y, att, lc = data", f"    Xf = X.reshape(-1)[m0 * {nx}:(m0 + n) * {nx}]",
+             "    bb = b[m0:m0 + n]", "    for p in range(sens.shape[1]):", "        s = sens[t, p]", "        a = att[t, p]"]
+    lines += [f"        x{i} = ex[p * {ne * _BLOCK} + {i * _BLOCK}:p * {ne * _BLOCK} + {i * _BLOCK} + n]" for i in range(ne)]
+    ind = " " * 16
     for s, (sensor, fun) in enumerate(zip(model.sensors, model.casadi_h)):
-        lines.append(f"    {'if' if s == 0 else 'elif'} s == {s}:")
-        ind = "        "
-        lines += scalar_statements(fun, ["X[m, {}]", "k"], "h{}", indent=ind)
-        r = []
-        for j in range(sensor.dim):
-            lines.append(f"{ind}r{j} = Y[t, p, {j}] - h{j}")
-            if (s, j) in wrap:  # into (-pi, pi] as filters.rrp.wrap_angles (a no-op inside, to rounding)
-                pi, tau = _c(np.pi), _c(2 * np.pi)
-                lines.append(f"{ind}if not (-{pi} < r{j} <= {pi}): r{j} = {pi} - (({pi} - r{j}) % {tau})")
-            r.append(f"r{j}")
-        lines += _component_lines(comps[s], r, ind)
+        lines.append(f"        {'if' if s == 0 else 'elif'} s == {s}:")
+        lines += [f"            y{j} = Y[t, p, {j}]" for j in range(sensor.dim)]
+        lines += ["            for mm in range(n):"]
+        lines += scalar_statements(fun, [f"Xf[mm * {nx} + {{}}]", "k"], "h{}", indent=ind)
+        # angles into (-pi, pi] as filters.rrp.wrap_angles (a no-op inside, to rounding)
+        lines += [f"{ind}r{j} = {'_wrap(' if (s, j) in wrap else '('}y{j} - h{j})" for j in range(sensor.dim)]
+        lines += _component_lines(comps[s], [f"r{j}" for j in range(sensor.dim)], ind)
         terms = [f"lc + t{c}" for c in range(len(comps[s]))] + (["a"] if attacked else [])
         lines += _max_others_lines(terms, ne, ind)
-    lines += [f"    for i in range({ne}):", "        ex[j + i] = _m.nan", "    return _m.nan"]
-    src = "\n".join(lines)
-    term = compile_source(src, "term", f"the packet likelihood of {model.name!r}", _NS, inline="always",
-                          fastmath=_FAST)
-    cache[key] = term, ne
+    lines += ["        else:", "            bb[:] = _m.nan"]
+    cache[key] = _compile(model, ("lik", key), "\n".join(lines), "lik", "the packet likelihood"), ne
     return cache[key]
 
 
-def _binary_one(model: Model):
-    """``one(X, m, k, A, B, t, T) = Σ_s log(A[t, s] + B[t, s] F_ν_s(T − h_s(X[m], k)))``, inlined."""
-    cache = _kernels(model)
-    if "binary" in cache:
-        return cache["binary"]
+def _binary_lik(model: Model):
+    """``lik`` of the binary likelihood (see :func:`_likelihood_block`, no slots), ``data = (A, B, T)``:
+    ``b[m] += Σ_s log(A[t, s] + B[t, s] F_ν_s(T − h_s(X[m], k)))``."""
     if any(d != 1 for d in model.sensor_dims):
         raise InputError("sir_binary needs scalar sensors (every sensor of dimension 1)")
-    lines = ["def one(X, m, k, A, B, t, T):"]
-    lines += scalar_statements(model.casadi_h_all, ["X[m, {}]", "k"], "h{}")
-    lines.append("    total = 0.0")
+    lines = ["def lik(X, m0, n, k, data, t, b, ex):", "    A, B, T = data", "    Xb = X[m0:m0 + n]", "    bb = b[m0:m0 + n]",
+             "    for m in range(n):"]
+    lines += scalar_statements(model.casadi_h_all, ["Xb[m, {}]", "k"], "h{}", indent="        ")
+    lines.append("        total = 0.0")
     for s, sensor in enumerate(model.sensors):
         nz = sensor.noise
-        lines.append(f"    u = T - h{s}")
+        lines.append(f"        u = T - h{s}")
         if isinstance(nz, Gaussian):  # Gaussian.cdf: ndtr((x - mean) / sd)
             c = f"_ndtr((u - {_c(nz.mean[0])}) / {_c(np.sqrt(nz.cov[0, 0]))})"
         elif isinstance(nz, GaussianMixture):  # sum of w * component cdf
@@ -592,12 +620,9 @@ def _binary_one(model: Model):
         else:
             raise InputError(f"model.sensors[{s}] noise is {type(nz).__name__}; the fused kernels support Gaussian "
                              "and GaussianMixture")
-        lines.append(f"    total += _m.log(A[t, {s}] + B[t, {s}] * ({c}))")
-    lines.append("    return total")
-    src = "\n".join(lines)
-    cache["binary"] = compile_source(src, "one", f"the binary likelihood of {model.name!r}", _NS, inline="always",
-                                     fastmath=_FAST)
-    return cache["binary"]
+        lines.append(f"        total += _m.log(A[t, {s}] + B[t, {s}] * ({c}))")
+    lines.append("        bb[m] += total")
+    return _compile(model, "binary", "\n".join(lines), "lik", "the binary likelihood")
 
 
 # ============================================================================ input checks
@@ -747,7 +772,8 @@ def _binary_data(model: Model, R: int, A, B, threshold):
 
 
 # ============================================================================ driver
-def _run_all(stepper, weigh, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
+def _run_all(kernels, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
+    """``kernels = (prop, lik, P, ne, weigh)`` of :func:`_sir_run`; runs spread over ``workers`` threads."""
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
     cov = np.empty((R, K + 1, n_x, n_x)) if covariance else np.zeros((R, 1, 0, 0))
@@ -757,7 +783,7 @@ def _run_all(stepper, weigh, data_of_run, x0, gens, K, scheme, thr, covariance, 
     loglik = np.empty(R)
 
     def one(r: int) -> None:
-        loglik[r] = _sir_run(stepper, weigh, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
+        loglik[r] = _sir_run(*kernels, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
                              ess[r], resampled[r], collapsed[r])
 
     if workers == 1 or R == 1:
@@ -838,9 +864,9 @@ def sir_packets(
     gens = _generators(rngs, R)
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     sens, yy, att, lc = _packet_data(model, R, sensors, y, attack, log_clean)
-    term, ne = _packet_term(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
-    stepper = _stepper(model, "packets", term, ne)
-    return _run_all(stepper, _weigh(model), lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr, covariance,
+    lik, ne = _packet_lik(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
+    kernels = (_prop(model), lik, sens.shape[1], ne, _weigh(model))
+    return _run_all(kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr, covariance,
                     workers)
 
 
@@ -879,8 +905,8 @@ def sir_binary(
     gens = _generators(rngs, R)
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     AA, BB, T = _binary_data(model, R, A, B, threshold)
-    stepper = _stepper(model, "binary", _binary_one(model))
-    return _run_all(stepper, _weigh(model), lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance, workers)
+    kernels = (_prop(model), _binary_lik(model), 0, 0, _weigh(model))
+    return _run_all(kernels, lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance, workers)
 
 
 # ============================================================================ likelihood helpers
@@ -953,10 +979,10 @@ def packets_loglik(model: Model, x, k1: int, sensors, y, *, attack=None, log_cle
     yy = yy[:, None] if yy.ndim in (2, 3) else yy
     att = None if attack is None else np.asarray(attack, dtype=np.float64)[:, None]
     sens, yy, att, lc = _packet_data(model, R, sens, yy, att, log_clean)
-    term, ne = _packet_term(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
+    lik, ne = _packet_lik(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
     out = np.empty(x.shape[:2])
     for r in range(R):
-        _packets_loglik_rows(term, ne, x[r], float(k1), (sens, yy[r], att[r], lc), out[r])
+        _loglik_rows(lik, sens.shape[1], ne, x[r], float(k1), (sens, yy[r], att[r], lc), out[r])
     return out
 
 
@@ -970,8 +996,8 @@ def binary_affine_loglik(model: Model, x, k1: int, A, B, *, threshold: float) ->
     R = x.shape[0]
     AA, BB, T = _binary_data(model, R, np.asarray(A, dtype=float)[:, None], np.asarray(B, dtype=float)[:, None],
                              threshold)
-    lik = _binary_one(model)
+    lik = _binary_lik(model)
     out = np.empty(x.shape[:2])
     for r in range(R):
-        _binary_loglik_rows(lik, x[r], float(k1), (AA[r], BB[r], T), out[r])
+        _loglik_rows(lik, 0, 0, x[r], float(k1), (AA[r], BB[r], T), out[r])
     return out
