@@ -234,8 +234,9 @@ def memory(sc, runs: int, particles: int, steps: int = 10) -> dict:
     fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.extras["angle_components"], workers=workers)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    # numba's allocations bypass tracemalloc: x, xn (M x n_x), lw, ll, W, cdf, u, idx (M) per running thread
-    scratch = min(workers, runs) * particles * (2 * m.n_x + 6) * 8
+    # numba's allocations bypass tracemalloc: x, xn (M x n_x), lw, b, s, W, cdf, u, anc (M) per running thread
+    # (and the likelihood's scratch of a block, independent of M)
+    scratch = min(workers, runs) * particles * (2 * m.n_x + 7) * 8
     inputs = x0.nbytes
     total = peak + scratch + inputs
     return dict(runs=runs, particles=particles, traced_peak=peak, kernel_scratch=scratch, x0_bytes=inputs,
@@ -251,22 +252,20 @@ def _draws(rng, n):
     return s
 
 
-# The propagation and the likelihood alone, with the kernels' generated functions inlined as in the filter.
+# The propagation and the likelihood alone, block by block as in the filter.
 _PARTS = """
 def props(X, XN, K, rng):
+    anc = _np.arange(X.shape[0])
     for k in range(K):
-        for m in range(X.shape[0]):
-            PROP(X, m, XN, m, float(k), rng)
+        for m0 in range(0, X.shape[0], BLOCK):
+            PROP(X, anc, XN, m0, min(BLOCK, X.shape[0] - m0), float(k), rng)
 
 
-def liks(X, K, data, ll):
-    sens, y, att, lc = data
+def liks(X, K, data, P, ne, b, s):
+    ex = _np.empty(BLOCK * P * ne)
     for k in range(K):
-        for m in range(X.shape[0]):
-            total = 0.0
-            for p in range(sens.shape[1]):
-                total += LIK(sens[k, p], X, m, float(k + 1), y, k, p, lc, att[k, p])
-            ll[m] = total
+        for m0 in range(0, X.shape[0], BLOCK):
+            LIKBLOCK(LIK, P, ne, X, m0, min(BLOCK, X.shape[0] - m0), float(k + 1), data, k, b, s, ex)
 """
 
 
@@ -275,29 +274,31 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
     m = sc.model
     K = d["ys"].shape[1]
     box = sc.extras["deception"]
-    term = fastsir._packet_term(m, fastsir._wrap_set(sc.extras["angle_components"], m))
-    stepper = fastsir._stepper(m, "packets", term)
-    ns_ = {"PROP": fastsir._prop_one(m), "LIK": term}
-    props = compile_source(_PARTS, "props", "profile: propagation", ns_)
-    liks = compile_source(_PARTS, "liks", "profile: likelihood", ns_)
+    wrap = fastsir._wrap_set(sc.extras["angle_components"], m)
+    prop, weigh = fastsir._prop(m), fastsir._weigh(m)
+    run = fastsir._drivers("packets")[0]
     lc, att_rr = fastsir.deception_terms(d["rr_att"][:1], ETA, box)
     _, att_all = fastsir.deception_terms(d["all_att"][:1], ETA, box)
+    lik, ne = fastsir._packet_lik(m, wrap, True)  # attack-aware, as both filters below
+    ns_ = {"PROP": prop, "LIK": lik, "LIKBLOCK": fastsir._likelihood_block, "BLOCK": fastsir._BLOCK}
+    props = compile_source(_PARTS, "props", "profile: propagation", ns_)
+    liks = compile_source(_PARTS, "liks", "profile: likelihood", ns_)
     out = {}
     for name, sens, y, att in (("RRP-PF-DA", d["sched"], d["rr_att"][:1], att_rr),
                                ("PF-DA", np.tile(np.arange(m.n_sensors), (K, 1)), d["all_att"][:1], att_all)):
         s, yy, aa, lcc = fastsir._packet_data(m, 1, sens, y, att, lc)
-        data = (s, yy[0], aa[0], lcc)
+        data, P = (s, yy[0], aa[0], lcc), s.shape[1]
         x = np.ascontiguousarray(m.prior.sample(np.random.default_rng(0), particles))
-        xn, ll = np.empty_like(x), np.empty(particles)
+        xn, b, w = np.empty_like(x), np.zeros(particles), np.empty(particles)
         mean, cov, ess = np.empty((K + 1, m.n_x)), np.zeros((1, 0, 0)), np.empty(K)
         flags = np.zeros(K, bool), np.zeros(K, bool)
         n_w = m.process_noise.dim
         parts = {
             "draws": lambda: _draws(np.random.default_rng(1), K * particles * n_w),
             "prop": lambda: props(x, xn, K, np.random.default_rng(1)),
-            "lik": lambda: liks(x, K, data, ll),
-            "full": lambda: fastsir._sir_run(stepper, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
-                                             ess, *flags),
+            "lik": lambda: liks(x, K, data, P, ne, b, w),
+            "full": lambda: run(prop, lik, P, ne, weigh, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
+                                ess, *flags),
         }
         for fn in parts.values():
             fn()
@@ -314,9 +315,10 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
 
 
 def _timed(fn) -> float:
-    t = time.perf_counter()
+    """CPU time of this thread (the kernels run in it): steadier than wall time on a shared machine."""
+    t = time.thread_time()
     fn()
-    return time.perf_counter() - t
+    return time.thread_time() - t
 
 
 def compile_all(sc) -> float:
@@ -326,8 +328,9 @@ def compile_all(sc) -> float:
     d = simulate_data(sc, 1, 2, 0)
     g = np.random.default_rng(0)
     lc, att = fastsir.deception_terms(d["rr_att"], ETA, sc.extras["deception"])
-    fastsir.sir_packets(m, m.prior.sample(g, (1, 4)), [g], d["sched"], d["rr_att"], attack=att, log_clean=lc,
-                        angles=sc.extras["angle_components"])
+    for kw in (dict(attack=att, log_clean=lc), {}):  # the attack-aware and the standard likelihood
+        fastsir.sir_packets(m, m.prior.sample(g, (1, 4)), [g], d["sched"], d["rr_att"],
+                            angles=sc.extras["angle_components"], **kw)
     return time.perf_counter() - t
 
 

@@ -12,6 +12,10 @@ vectorised NumPy call over all particles.
 Inputs of the generated function are arrays of shape ``(..., n_in)`` (scalars
 and shape-``(n_in,)`` arrays broadcast); each output has shape
 ``(..., n_rows)`` for a column vector or ``(..., n_rows, n_cols)`` otherwise.
+
+The instruction walk itself (:func:`sx_statements`) and the operation templates
+(:func:`op_templates`) are shared with the scalar numba translation of
+:mod:`designer.jit`, which differs only in what a work register holds.
 """
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ from typing import Callable, Iterator
 import casadi as ca
 import numpy as np
 
-__all__ = ["to_numpy", "UnsupportedOperation", "sx_statements", "literal"]
+__all__ = ["to_numpy", "UnsupportedOperation", "sx_statements", "op_templates", "literal"]
 
 
 class UnsupportedOperation(NotImplementedError):
@@ -32,57 +36,37 @@ def _op(name: str) -> int:
     return int(getattr(ca, "OP_" + name))
 
 
-# Unary and binary operations: a template over the argument names a, b.
-_TEMPLATES: dict[int, str] = {
-    _op("ASSIGN"): "{a}",
-    _op("ADD"): "{a} + {b}",
-    _op("SUB"): "{a} - {b}",
-    _op("MUL"): "{a} * {b}",
-    _op("DIV"): "{a} / {b}",
-    _op("NEG"): "-{a}",
-    _op("TWICE"): "2.0 * {a}",
-    _op("SQ"): "{a} * {a}",
-    _op("INV"): "1.0 / {a}",
-    _op("EXP"): "_np.exp({a})",
-    _op("LOG"): "_np.log({a})",
-    _op("SQRT"): "_np.sqrt({a})",
-    _op("POW"): "_np.power({a}, {b})",
-    _op("CONSTPOW"): "_np.power({a}, {b})",
-    _op("SIN"): "_np.sin({a})",
-    _op("COS"): "_np.cos({a})",
-    _op("TAN"): "_np.tan({a})",
-    _op("ASIN"): "_np.arcsin({a})",
-    _op("ACOS"): "_np.arccos({a})",
-    _op("ATAN"): "_np.arctan({a})",
-    _op("ATAN2"): "_np.arctan2({a}, {b})",
-    _op("SINH"): "_np.sinh({a})",
-    _op("COSH"): "_np.cosh({a})",
-    _op("TANH"): "_np.tanh({a})",
-    _op("ASINH"): "_np.arcsinh({a})",
-    _op("ACOSH"): "_np.arccosh({a})",
-    _op("ATANH"): "_np.arctanh({a})",
-    _op("FABS"): "_np.abs({a})",
-    _op("SIGN"): "_np.sign({a})",
-    _op("COPYSIGN"): "_np.copysign({a}, {b})",
-    _op("FLOOR"): "_np.floor({a})",
-    _op("CEIL"): "_np.ceil({a})",
-    _op("FMOD"): "_np.fmod({a}, {b})",
-    _op("FMIN"): "_np.fmin({a}, {b})",
-    _op("FMAX"): "_np.fmax({a}, {b})",
-    _op("HYPOT"): "_np.hypot({a}, {b})",
-    _op("LOG1P"): "_np.log1p({a})",
-    _op("EXPM1"): "_np.expm1({a})",
-    _op("ERF"): "_erf({a})",
-    _op("ERFINV"): "_erfinv({a})",
-    _op("LT"): "_f64({a} < {b})",
-    _op("LE"): "_f64({a} <= {b})",
-    _op("EQ"): "_f64({a} == {b})",
-    _op("NE"): "_f64({a} != {b})",
-    _op("NOT"): "_f64({a} == 0.0)",
-    _op("AND"): "_f64(({a} != 0.0) & ({b} != 0.0))",
-    _op("OR"): "_f64(({a} != 0.0) | ({b} != 0.0))",
-    _op("IF_ELSE_ZERO"): "_np.where({a} != 0.0, {b}, 0.0)",
-}
+# The operations every translation writes alike (templates over the argument names a, b) ...
+_ARITHMETIC = {"ASSIGN": "{a}", "ADD": "{a} + {b}", "SUB": "{a} - {b}", "MUL": "{a} * {b}", "DIV": "{a} / {b}",
+               "NEG": "-{a}", "TWICE": "2.0 * {a}", "SQ": "{a} * {a}", "INV": "1.0 / {a}"}
+# ... the functions of one argument, by their NumPy and their Python ``math`` names ...
+_FUNCTIONS = {"EXP": ("exp", "exp"), "LOG": ("log", "log"), "SQRT": ("sqrt", "sqrt"), "SIN": ("sin", "sin"),
+              "COS": ("cos", "cos"), "TAN": ("tan", "tan"), "ASIN": ("arcsin", "asin"), "ACOS": ("arccos", "acos"),
+              "ATAN": ("arctan", "atan"), "SINH": ("sinh", "sinh"), "COSH": ("cosh", "cosh"), "TANH": ("tanh", "tanh"),
+              "ASINH": ("arcsinh", "asinh"), "ACOSH": ("arccosh", "acosh"), "ATANH": ("arctanh", "atanh"),
+              "LOG1P": ("log1p", "log1p"), "EXPM1": ("expm1", "expm1")}
+# ... and the comparisons, as booleans that each translation turns into 0.0 / 1.0.
+_COMPARISONS = {"LT": "{a} < {b}", "LE": "{a} <= {b}", "EQ": "{a} == {b}", "NE": "{a} != {b}", "NOT": "{a} == 0.0"}
+
+
+def op_templates(module: str, names: int, to_float: str, **special: str) -> dict[int, str]:
+    """``{op: template}`` of a translation: the shared arithmetic, ``module.<name>({a})`` for the
+    functions of one argument (``names`` 0: NumPy's names, 1: ``math``'s), the comparisons
+    wrapped in ``to_float(...)``, and ``special`` (by operation name) for the rest."""
+    out = {_op(k): v for k, v in _ARITHMETIC.items()}
+    out.update({_op(k): f"{module}.{v[names]}({{a}})" for k, v in _FUNCTIONS.items()})
+    out.update({_op(k): f"{to_float}({v})" for k, v in _COMPARISONS.items()})
+    out.update({_op(k): v for k, v in special.items()})
+    return out
+
+
+_TEMPLATES = op_templates(
+    "_np", 0, "_f64", POW="_np.power({a}, {b})", CONSTPOW="_np.power({a}, {b})", ATAN2="_np.arctan2({a}, {b})",
+    FABS="_np.abs({a})", SIGN="_np.sign({a})", COPYSIGN="_np.copysign({a}, {b})", FLOOR="_np.floor({a})",
+    CEIL="_np.ceil({a})", FMOD="_np.fmod({a}, {b})", FMIN="_np.fmin({a}, {b})", FMAX="_np.fmax({a}, {b})",
+    HYPOT="_np.hypot({a}, {b})", ERF="_erf({a})", ERFINV="_erfinv({a})", AND="_f64(({a} != 0.0) & ({b} != 0.0))",
+    OR="_f64(({a} != 0.0) | ({b} != 0.0))", IF_ELSE_ZERO="_np.where({a} != 0.0, {b}, 0.0)",
+)
 
 _OP_NAMES = {int(getattr(ca, n)): n for n in dir(ca) if n.startswith("OP_")}
 _INPUT, _OUTPUT, _CONST = _op("INPUT"), _op("OUTPUT"), _op("CONST")

@@ -66,8 +66,10 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
     log_clean, attack = fastsir.deception_terms(y, attack_prob, signal)
     if warm_up:  # compile outside the timed call: one run, two particles, one step
         g = np.random.default_rng(0)
-        fastsir.sir_packets(model, model.prior.sample(g, (1, 2)), [g], sensors[:1], y[:1, :1], attack=attack[:1, :1],
-                            log_clean=log_clean, angles=angles)
+        # the step whose attack terms are most often finite, so that the variant compiled is the one used
+        k = int(np.argmax(np.isfinite(attack).sum(axis=(0, 2)))) if attack.ndim == 3 else 0
+        fastsir.sir_packets(model, model.prior.sample(g, (1, 2)), [g], sensors[k:k + 1], y[:1, k:k + 1],
+                            attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
     res = fastsir.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
                               log_clean=log_clean, angles=angles, workers=workers)

@@ -7,20 +7,23 @@ scheme, both ESS rules, the Round-Robin, all-sensor and binary likelihoods.
 """
 from __future__ import annotations
 
+import math
+
 import casadi as ca
 import numba
 import numpy as np
 import pytest
+from filterpy.kalman import KalmanFilter
 
 from designer import Gaussian, InputError, Model, Sensor, simulate
 from designer.codegen import UnsupportedOperation
-from designer.jit import compile_source, jit_model, scalar_source
+from designer.jit import _atan2, compile_source, jit_model, scalar_source
 from designer.noise import GaussianMixture, TruncatedGaussian, spawn_generators
 from filters.binary import binary_loglik
 from filters.channels import binary_sensor_channel, deception_attack, round_robin_schedule
 from filters.fastsir import (
-    RESAMPLER_CODES, binary_affine_loglik, binary_coefficients, deception_terms, packets_loglik, sir_binary,
-    sir_packets,
+    RESAMPLER_CODES, _cumsum_to_one, _exp_nonpos, _inverse_cdf, _systematic, _wrap_angle, binary_affine_loglik,
+    binary_coefficients, deception_terms, packets_loglik, sir_binary, sir_packets,
 )
 from filters.particle import run_sir
 from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles
@@ -153,6 +156,109 @@ def test_unsupported_operation_is_named(expr, op):
     x = ca.SX.sym("x", 2)
     with pytest.raises(UnsupportedOperation, match=op):
         scalar_source(ca.Function("r", [x], [expr(x)]), "r", ["x"])
+
+
+# ----------------------------------------------------------------------------- branch-free numerics
+@numba.njit
+def _atan2_all(y, x, out):
+    for i in range(x.shape[0]):
+        out[i] = _atan2(y[i], x[i])
+
+
+@numba.njit
+def _exp_all(d, out):
+    for i in range(d.shape[0]):
+        out[i] = _exp_nonpos(d[i])
+
+
+@numba.njit
+def _wrap_all(r, out):
+    for i in range(r.shape[0]):
+        out[i] = _wrap_angle(r[i])
+
+
+def _ulps(ours, exact):
+    """|ours − exact| in units of the last place of the (double) exact value, exact in long double."""
+    return np.abs((ours.astype(np.longdouble) - exact) / np.spacing(np.abs(exact.astype(np.float64))))
+
+
+def test_branch_free_atan2_is_within_rounding_of_libm():
+    rng = np.random.default_rng(3)
+    n = 200_000
+    base = rng.normal(size=n)
+    cases = [
+        (rng.normal(size=n), rng.normal(size=n)),
+        tuple(rng.normal(size=n) * 10.0 ** rng.uniform(-300, 300, n) for _ in range(2)),  # every magnitude
+        (base * np.choose(rng.integers(0, 3, n), [np.tan(np.pi / 16), np.tan(3 * np.pi / 16), np.tan(np.pi / 8)])
+         * (1 + 1e-6 * rng.normal(size=n)), base),  # around the reduction's interval ends
+        (rng.normal(size=n) * 1e-310, rng.normal(size=n) * 1e-310),  # subnormal operands
+    ]
+    out = np.empty(n)
+    for y, x in cases:
+        _atan2_all(y, x, out)
+        exact = np.arctan2(y.astype(np.longdouble), x.astype(np.longdouble))
+        assert _ulps(out, exact).max() <= 2.5
+    special = [0.0, -0.0, 1.0, -2.5, np.inf, -np.inf, np.nan, 5e-324, -1.7e308]
+    for y in special:
+        for x in special:
+            ours, ref = _atan2(y, x), math.atan2(y, x)
+            same = ours == ref and math.copysign(1, ours) == math.copysign(1, ref)  # signed zeros too
+            assert (np.isnan(ours) and np.isnan(ref)) or same or abs(ours - ref) <= 2 * np.spacing(abs(ref)), (y, x)
+
+
+def test_branch_free_exp_is_within_rounding_and_flushes_below_the_normal_range():
+    d = np.concatenate([-np.random.default_rng(4).uniform(0, 708, 200_000), [0.0, -1e-300, -707.9]])
+    out = np.empty_like(d)
+    _exp_all(d, out)
+    assert _ulps(out, np.exp(d.astype(np.longdouble))).max() <= 1.25  # libm's exp: under 1
+    special = np.array([-708.5, -745.0, -1e300, -np.inf, np.nan])
+    out = np.empty_like(special)
+    _exp_all(special, out)
+    assert np.array_equal(out[:4], np.zeros(4)) and np.isnan(out[4])
+
+
+def test_branch_free_wrap_is_numpys_mod():
+    """Outside (−π, π] the same double as filters.rrp.wrap_angles (numpy.mod); inside, the residual itself."""
+    rng = np.random.default_rng(5)
+    r = np.concatenate([rng.uniform(-40, 40, 100_000), np.pi + 2 * np.pi * np.arange(-5, 6), [np.pi, -np.pi]])
+    out = np.empty_like(r)
+    _wrap_all(r, out)
+    inside = (r > -np.pi) & (r <= np.pi)
+    assert np.array_equal(out[inside], r[inside])
+    assert np.array_equal(out[~inside], wrap_angles(r[:, None], [0])[~inside, 0])
+    nan = np.empty(3)
+    _wrap_all(np.array([np.nan, np.inf, -np.inf]), nan)
+    assert np.all(np.isnan(nan))
+
+
+def test_branch_free_systematic_resampling_matches_the_inverse_cdf():
+    """Degenerate weights (zeros, one dominant particle, all but the last zero) and generic ones, u0 at its ends."""
+    M = 60
+    rng = np.random.default_rng(6)
+    cases = [np.ones(M), rng.exponential(size=M), np.where(rng.random(M) < 0.7, 0.0, rng.random(M)),
+             np.eye(M)[17] + 1e-300, np.eye(M)[M - 1], np.eye(M)[0], np.exp(rng.normal(0, 8, M))]
+    cdf, u, a, b = np.empty(M), np.empty(M), np.empty(M, np.int64), np.empty(M, np.int64)
+    for W in cases:
+        for u0 in np.concatenate([rng.random(20), [0.0, 1 - 2.0**-53]]):
+            _systematic(W, 1.0 / W.sum(), u0, a, np.empty(M), np.empty(M + 1))
+            _cumsum_to_one(W, 1.0 / W.sum(), cdf)
+            u[:] = (np.arange(M) + u0) / M
+            _inverse_cdf(cdf, u, b)
+            assert np.array_equal(a, b)
+            assert np.all(W[a][u < 1.0] > 0)  # u0 = 1 - 2^-53 rounds the last u_m to 1: the last particle
+
+
+def test_many_packets_fold_the_likelihood_factor(rb):
+    """Hundreds of packets at one step: the product of the log-sum-exp factors is folded into the log part."""
+    m, R, P = rb["m"], 1, 700  # 3^700 overflows a double: folded every 628 packets
+    x = _particles_around(m, rb["x"][0, 8], R, 20, 7, np.array([3.0, 0.3, 3.0, 0.3]))
+    y1 = rb["rr_att"][:1, 7]
+    lc, att1 = deception_terms(y1, ETA, rb["box"])
+    one = packets_loglik(m, x, 8, [2], y1, attack=att1, log_clean=lc, angles=[1])
+    many = packets_loglik(m, x, 8, np.full(P, 2), np.repeat(y1[:, None], P, 1), attack=np.repeat(att1[:, None], P, 1),
+                          log_clean=lc, angles=[1])
+    assert np.all(np.isfinite(many))
+    np.testing.assert_allclose(many, P * one, rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------- likelihoods
@@ -302,40 +408,30 @@ def test_one_run_reproduces_run_sir_binary(binary, scheme):
     _same_as_run_sir(ours, ref)
 
 
-def _linear_model():
-    x = ca.SX.sym("x", 2)
-    A = np.array([[0.9, 0.2], [-0.1, 0.95]])
-    Hm = np.array([[1.0, 0.5]])
-    model = Model("lin", x, ca.mtimes(ca.DM(A), x), [Sensor("s", ca.mtimes(ca.DM(Hm), x),
-                  Gaussian.zero_mean([[0.3]]))], Gaussian.zero_mean(0.05 * np.eye(2)),
-                  Gaussian([1.0, -1.0], 0.5 * np.eye(2)))
-    return model, A, Hm
-
-
-def _kalman(A, Hm, Q, R, m0, P0, z):
-    m, P, ll, means = m0, P0, 0.0, []
-    for zk in z:
-        m, P = A @ m, A @ P @ A.T + Q
-        S = Hm @ P @ Hm.T + R
-        r = zk - Hm @ m
-        ll += -0.5 * (np.log(2 * np.pi * np.linalg.det(S)) + r @ np.linalg.solve(S, r))
-        K = P @ Hm.T @ np.linalg.inv(S)
-        m, P = m + K @ r, P - K @ S @ K.T
-        means.append(m)
-    return np.array(means), ll
-
-
 def test_matches_the_kalman_filter_on_a_linear_model():
-    model, A, Hm = _linear_model()
-    traj = simulate(model, 25, np.random.default_rng(5))
-    means_kf, ll_kf = _kalman(A, Hm, model.process_cov, model.measurement_cov(0), model.prior.mean,
-                              model.prior.cov, traj.z)
-    runs, M, K = 16, 3000, 25
+    """Against filterpy's Kalman filter (an independent implementation): means and log-likelihood."""
+    x = ca.SX.sym("x", 2)
+    A, Hm = np.array([[0.9, 0.2], [-0.1, 0.95]]), np.array([[1.0, 0.5]])
+    sensor = Sensor("s", ca.mtimes(ca.DM(Hm), x), Gaussian.zero_mean([[0.3]]))
+    model = Model("lin", x, ca.mtimes(ca.DM(A), x), [sensor], Gaussian.zero_mean(0.05 * np.eye(2)),
+                  Gaussian([1.0, -1.0], 0.5 * np.eye(2)))
+    K = 25
+    traj = simulate(model, K, np.random.default_rng(5))
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x, kf.P, kf.F, kf.H = model.prior.mean.copy(), model.prior.cov.copy(), A, Hm
+    kf.Q, kf.R = model.process_cov, model.measurement_cov(0)
+    means_kf, ll_kf = [], 0.0
+    for zk in traj.z:
+        kf.predict()
+        kf.update(zk)
+        means_kf.append(kf.x.copy())
+        ll_kf += kf.log_likelihood
+    runs, M = 16, 3000
     gens = spawn_generators(6, runs)
     x0 = np.stack([model.prior.sample(g, M) for g in gens])
     y = np.broadcast_to(traj.z[None, :, None, :], (runs, K, 1, 1))
     res = sir_packets(model, x0, gens, np.zeros((K, 1), int), y, workers=2)
-    diff = res.mean[:, 1:] - means_kf[None]
+    diff = res.mean[:, 1:] - np.array(means_kf)[None]
     se = diff.std(0, ddof=1) / np.sqrt(runs)
     assert np.all(np.abs(diff.mean(0)) < 5 * se + 5e-3)
     assert np.sqrt((diff**2).mean()) < 0.05
