@@ -1,0 +1,369 @@
+"""One Monte Carlo runner for every study and sweep: chunks of runs, three backends, resumable.
+
+A study describes its Monte Carlo work as a **task**: a picklable callable
+``task(run_ids, seeds) -> {name: array}`` that computes the runs ``run_ids``
+(consecutive integers) from their seeds and returns arrays whose first axis is
+the run (length ``len(run_ids)``).  Run ``r`` of a study with seed ``s`` always
+gets ``SeedSequence(s, spawn_key=(r,))`` — the same as
+``SeedSequence(s).spawn(n)[r]`` for any ``n > r`` — so a run's random numbers do
+not depend on the number of runs, of chunks or of workers.
+
+The runs are cut into **chunks** of ``chunk_size`` consecutive runs; the cut
+depends only on ``runs`` and ``chunk_size`` (a property of the study, never of
+the backend), so a task that is deterministic given its inputs gives the same
+bits with every backend:
+
+* ``Backend("batched")`` — every chunk in this process, one after the other
+  (each chunk is one batched computation);
+* ``Backend("processes", workers=N)`` — ``N`` local worker processes (``fork``:
+  they inherit what the parent has compiled or imported);
+* ``Backend("dask", address=A)`` — the chunks are submitted to the existing Dask
+  distributed scheduler at ``A`` (e.g. ``tcp://10.0.0.5:8786``).
+
+**Resumable and loss-free.**  With a ``store`` directory, every finished chunk is
+written at once, atomically (a temporary file renamed over the target), by the
+parent process only, as ``store/.chunks/<label>/runs_<start>_<stop>.npz``, and a
+line is appended to ``log.jsonl`` there.  ``manifest.json`` records what the
+chunks were computed with (``config``, seed, chunk size).  A second call with the
+same configuration loads the finished chunks and computes only the missing ones,
+so an interrupted study (Ctrl-C, a killed worker) resumes where it stopped; a
+different configuration is refused (it would mix results) unless ``force=True``,
+which deletes the stored chunks and recomputes everything.
+
+**Failures are reported, not swallowed.**  When a chunk raises, the runner
+recomputes its runs one at a time to find the failing run and raises
+:class:`RunFailed` naming the run, its seed and spawn key and the original error;
+the chunks finished before are kept.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import multiprocessing
+import numpy as np
+
+from designer.fileio import atomic_write, write_json
+from designer.validation import ComputationError, InputError, check_int
+
+from .progress import counter, progress
+
+__all__ = ["Backend", "make_backend", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
+           "CHUNKS_DIR"]
+
+CHUNKS_DIR = ".chunks"
+_MANIFEST_SCHEMA = "cfdesign.chunks/1"
+BACKENDS = ("batched", "processes", "dask")
+
+Task = Callable[[np.ndarray, list], Mapping[str, np.ndarray]]
+
+
+class RunFailed(ComputationError):
+    """A Monte Carlo run raised; ``run``, ``seed`` and ``spawn_key`` reproduce it."""
+
+    def __init__(self, message: str, run: int | None = None, seed: int | None = None,
+                 spawn_key: tuple | None = None):
+        super().__init__(message)
+        self.run, self.seed, self.spawn_key = run, seed, spawn_key
+
+    def __reduce__(self):  # keep the fields across processes and Dask
+        return (RunFailed, (str(self), self.run, self.seed, self.spawn_key))
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Where the chunks run: ``batched`` (this process), ``processes`` (``workers``) or ``dask`` (``address``)."""
+
+    kind: str = "batched"
+    workers: int = 1
+    address: str | None = None
+
+    def __post_init__(self):
+        if self.kind not in BACKENDS:
+            raise InputError(f"backend must be one of {', '.join(BACKENDS)}, got {self.kind!r}")
+        check_int("workers", self.workers, 1)
+        if self.kind == "dask" and not self.address:
+            raise InputError("dask backend needs a scheduler address (e.g. tcp://host:8786)")
+
+    def describe(self) -> dict:
+        return {"backend": self.kind, "workers": self.workers if self.kind == "processes" else None,
+                "dask_address": self.address}
+
+
+def make_backend(workers: int | None = None, dask: str | None = None) -> Backend:
+    """The backend of the CLI options ``--workers N`` and ``--dask ADDRESS`` (mutually exclusive).
+
+    Neither, or ``workers == 1``: batched in this process.
+    """
+    if workers is not None and dask is not None:
+        raise InputError("options --workers and --dask exclude each other (local processes or a Dask cluster)")
+    if dask is not None:
+        if not isinstance(dask, str) or not dask.strip():
+            raise InputError(f"dask must be a scheduler address such as tcp://host:8786, got {dask!r}")
+        return Backend("dask", address=dask.strip())
+    if workers is None:
+        return Backend("batched")
+    workers = check_int("workers", workers, 1)
+    return Backend("batched") if workers == 1 else Backend("processes", workers=workers)
+
+
+def run_seed(seed: int, run: int) -> np.random.SeedSequence:
+    """Run ``run``'s seed: ``SeedSequence(seed, spawn_key=(run,))`` (= ``SeedSequence(seed).spawn(n)[run]``)."""
+    return np.random.SeedSequence(seed, spawn_key=(int(run),))
+
+
+def chunk_ranges(runs: int, chunk_size: int) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` covering ``0..runs`` in pieces of ``chunk_size`` (the last may be shorter)."""
+    runs = check_int("runs", runs, 1)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    return [(s, min(s + chunk_size, runs)) for s in range(0, runs, chunk_size)]
+
+
+def _check_output(out, start: int, stop: int) -> dict:
+    if not isinstance(out, Mapping) or not out:
+        raise ComputationError(f"a Monte Carlo task must return a non-empty mapping of arrays, got "
+                               f"{type(out).__name__} for runs {start}..{stop - 1}")
+    arrays = {}
+    for k, v in out.items():
+        a = np.asarray(v)
+        if a.ndim == 0 or a.shape[0] != stop - start or a.dtype == object:
+            raise ComputationError(f"task output {k!r} must be a numeric array with one row per run "
+                                   f"({stop - start}), got shape {a.shape} dtype {a.dtype}")
+        arrays[str(k)] = a
+    return arrays
+
+
+def _compute(task: Task, start: int, stop: int, seed: int) -> dict:
+    """One chunk; on failure, find the failing run by recomputing the runs one at a time."""
+    try:
+        return _check_output(task(np.arange(start, stop), [run_seed(seed, r) for r in range(start, stop)]),
+                             start, stop)
+    except (KeyboardInterrupt, SystemExit, RunFailed):
+        raise
+    except Exception as exc:  # noqa: BLE001 - re-raised with the run that fails
+        first = exc
+    for r in range(start, stop):
+        try:
+            _check_output(task(np.arange(r, r + 1), [run_seed(seed, r)]), r, r + 1)
+        except Exception as exc:  # noqa: BLE001
+            raise RunFailed(f"run {r} failed (seed {seed}, spawn key ({r},)): {type(exc).__name__}: {exc}",
+                            run=r, seed=seed, spawn_key=(r,)) from exc
+    raise RunFailed(f"runs {start}..{stop - 1} failed together (seed {seed}) but each alone succeeds: "
+                    f"{type(first).__name__}: {first}", run=None, seed=seed, spawn_key=None) from first
+
+
+@dataclass
+class MonteCarloResult:
+    """The runs' arrays concatenated in run order, and how they were obtained."""
+
+    arrays: dict[str, np.ndarray]
+    computed: list[tuple[int, int]] = field(default_factory=list)  # chunks computed by this call
+    reused: list[tuple[int, int]] = field(default_factory=list)  # chunks loaded from the store
+    backend: Backend = Backend()
+    chunk_size: int = 1
+    wall_time_s: float = 0.0
+
+    def describe(self) -> dict:
+        """For ``results.json``: backend, chunking and what was resumed (not part of the numbers)."""
+        return {**self.backend.describe(), "chunk_size": self.chunk_size,
+                "chunks": len(self.computed) + len(self.reused), "chunks_computed": len(self.computed),
+                "chunks_reused": len(self.reused), "wall_time_s": self.wall_time_s}
+
+
+class _Store:
+    """The chunk files of one task under ``store/.chunks/<label>``; only the parent process writes."""
+
+    def __init__(self, root: Path, label: str, manifest: dict, force: bool):
+        self.dir = Path(root) / CHUNKS_DIR / label
+        path = self.dir / "manifest.json"
+        if force and self.dir.exists():
+            shutil.rmtree(self.dir)
+        if path.exists():
+            try:
+                old = json.loads(path.read_text())
+            except (OSError, ValueError) as exc:
+                raise InputError(f"cannot read {path} ({exc}); use --force to recompute") from exc
+            if old != manifest:
+                keys = sorted(k for k in set(old) | set(manifest) if old.get(k) != manifest.get(k))
+                diff = keys if "config" not in keys else keys + sorted(
+                    f"config.{k}" for k in set(old.get("config") or {}) | set(manifest["config"])
+                    if (old.get("config") or {}).get(k) != manifest["config"].get(k))
+                raise InputError(f"{self.dir} holds runs computed with other settings ({', '.join(diff)}); "
+                                 f"use --force to recompute them or choose another output directory")
+        else:
+            write_json(path, manifest)
+
+    def file(self, c: tuple[int, int]) -> Path:
+        return self.dir / f"runs_{c[0]:07d}_{c[1]:07d}.npz"
+
+    def load(self, c: tuple[int, int]) -> dict | None:
+        f = self.file(c)
+        if not f.exists():
+            return None
+        try:
+            with np.load(f, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except Exception:  # noqa: BLE001 - an unreadable chunk is recomputed (writes are atomic, so rare)
+            return None
+
+    def save(self, c: tuple[int, int], arrays: dict) -> None:
+        atomic_write(self.file(c), lambda fh: np.savez(fh, **arrays))
+        with open(self.dir / "log.jsonl", "a") as fh:
+            fh.write(json.dumps({"chunk": list(c), "pid": os.getpid(), "time": time.time()}) + "\n")
+
+
+def _normalised(config: Mapping[str, Any]) -> dict:
+    try:
+        return json.loads(json.dumps(dict(config), sort_keys=True, default=str))
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"config must be JSON-serialisable, got {exc}") from exc
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+
+
+def monte_carlo(
+    task: Task,
+    *,
+    runs: int,
+    seed: int,
+    chunk_size: int,
+    backend: Backend | None = None,
+    store: str | Path | None = None,
+    label: str = "runs",
+    config: Mapping[str, Any] | None = None,
+    force: bool = False,
+    quiet: bool = False,
+) -> MonteCarloResult:
+    """Run ``task`` on runs ``0..runs-1`` in chunks and return their arrays in run order.
+
+    Parameters
+    ----------
+    task : callable ``(run_ids (n,), seeds [SeedSequence] * n) -> {name: array (n, ...)}``
+        Must be picklable for the ``processes`` and ``dask`` backends (a module-level
+        function, or ``functools.partial`` of one with picklable arguments) and
+        deterministic given its arguments.
+    runs, seed, chunk_size : int
+        ``chunk_size`` is part of the study (it fixes the cut into chunks); never derive
+        it from the backend, or results would depend on it.
+    backend : Backend, optional
+        Default: batched in this process.
+    store : path, optional
+        Directory under which finished chunks are kept (``.chunks/<label>``); None keeps
+        nothing (no resume).
+    config : mapping
+        JSON-serialisable description of everything the runs depend on besides seed and
+        run index (scenario parameters, particles, filters...); stored chunks computed with
+        another config are refused unless ``force``.
+    force : bool
+        Delete stored chunks first and recompute every run.
+    """
+    runs = check_int("runs", runs, 1)
+    seed = check_int("seed", seed, 0)
+    ranges = chunk_ranges(runs, chunk_size)
+    backend = backend or Backend()
+    if not isinstance(backend, Backend):
+        raise InputError(f"backend must be a Backend, got {type(backend).__name__}")
+    if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
+        raise InputError(f"label must be a plain non-empty name, got {label!r}")
+    t0 = time.perf_counter()
+    st = None
+    if store is not None:
+        manifest = {"schema": _MANIFEST_SCHEMA, "label": label, "seed": seed, "chunk_size": int(chunk_size),
+                    "config": _normalised(config or {})}
+        st = _Store(Path(store), label, manifest, force)
+    done: dict[tuple[int, int], dict] = {}
+    reused = []
+    if st is not None:
+        for c in ranges:
+            arrays = st.load(c)
+            if arrays is not None:
+                done[c], _ = arrays, reused.append(c)
+    pending = [c for c in ranges if c not in done]
+    computed: list[tuple[int, int]] = []
+
+    def finish(c, arrays):
+        if st is not None:
+            st.save(c, arrays)
+        done[c] = arrays
+        computed.append(c)
+
+    if pending:
+        bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
+        if backend.kind == "batched" or len(pending) == 1 and backend.kind == "processes":
+            for c in progress(pending, len(pending), quiet, bar_desc):
+                finish(c, _compute(task, c[0], c[1], seed))
+        elif backend.kind == "processes":
+            _run_processes(task, pending, seed, backend.workers, finish, quiet, bar_desc)
+        else:
+            _run_dask(task, pending, seed, backend.address, finish, quiet, bar_desc)
+    keys = list(done[ranges[0]])
+    for c in ranges:
+        if sorted(done[c]) != sorted(keys):
+            raise ComputationError(f"chunk {c} has outputs {sorted(done[c])}, expected {sorted(keys)}"
+                                   + ("; use --force if the stored chunks are from an older version" if c in reused
+                                      else ""))
+    arrays = {k: np.concatenate([done[c][k] for c in ranges], axis=0) for k in keys}
+    return MonteCarloResult(arrays, computed, reused, backend, int(chunk_size), time.perf_counter() - t0)
+
+
+def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
+                               mp_context=multiprocessing.get_context("fork"), initializer=_ignore_sigint)
+    futures = {}
+    try:
+        futures = {pool.submit(_compute, task, c[0], c[1], seed): c for c in pending}
+        left = set(futures)
+        bar = counter(len(pending), quiet, desc)
+        while left:
+            finished, left = wait(left, return_when=FIRST_COMPLETED)
+            for f in sorted(finished, key=lambda f: futures[f]):
+                c = futures[f]
+                try:
+                    arrays = f.result()
+                except BrokenProcessPool as exc:
+                    raise ComputationError(
+                        f"a worker process died while computing runs {c[0]}..{c[1] - 1}; the chunks finished "
+                        f"before are kept, rerun the same command to resume") from exc
+                finish(c, arrays)
+                bar.update()
+        bar.close()
+    except BaseException:
+        for f in futures:
+            f.cancel()
+        for p in list(getattr(pool, "_processes", {}).values()):  # stop work in flight now, not after it ends
+            p.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_dask(task, pending, seed, address, finish, quiet, desc) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError as exc:
+        raise InputError("--dask needs the 'distributed' package: pip install 'cfdesign[dask]'") from exc
+    try:
+        client = Client(address, set_as_default=False, timeout="20s")
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"dask: cannot reach a scheduler at {address!r} ({exc})") from exc
+    futures = {}
+    try:
+        with client.as_current():  # as_completed looks for the current client
+            futures = {client.submit(_compute, task, c[0], c[1], seed, pure=False): c for c in pending}
+            for f in progress(as_completed(list(futures)), len(futures), quiet, desc):
+                finish(futures[f], f.result())
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+    finally:
+        client.close()

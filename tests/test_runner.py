@@ -1,0 +1,191 @@
+"""The Monte Carlo runner: seeds per run, identical bits on every backend, resume, force, failures."""
+from __future__ import annotations
+
+import functools
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from designer.validation import ComputationError, InputError
+from studies.runner import (CHUNKS_DIR, Backend, RunFailed, chunk_ranges, make_backend, monte_carlo, run_seed)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def toy_task(run_ids, seeds, *, scale=1.0, fail_run=None, kill_flag=None, sleep=0.0):
+    """Per run: 6 normals and a matrix product (BLAS), from the run's own Generator."""
+    if sleep:
+        time.sleep(sleep)
+    rows = []
+    for r, s in zip(run_ids, seeds):
+        if kill_flag is not None and r == fail_run and os.path.exists(kill_flag):
+            os.kill(os.getpid(), signal.SIGKILL)
+        if kill_flag is None and r == fail_run:
+            raise ValueError(f"deliberate failure in run {r}")
+        g = np.random.default_rng(s)
+        a = g.standard_normal((6, 6)) * scale
+        rows.append(np.concatenate([g.standard_normal(6), (a @ a.T).ravel()]))
+    return {"x": np.stack(rows), "run": np.asarray(run_ids)}
+
+
+def reference(runs, seed, scale=1.0):
+    """Independent of the runner: SeedSequence(seed).spawn(runs)[r], one run after the other."""
+    out = []
+    for s in np.random.SeedSequence(seed).spawn(runs):
+        g = np.random.default_rng(s)
+        a = g.standard_normal((6, 6)) * scale
+        out.append(np.concatenate([g.standard_normal(6), (a @ a.T).ravel()]))
+    return np.stack(out)
+
+
+def test_run_seed_is_the_spawned_child():
+    kids = np.random.SeedSequence(11).spawn(7)
+    for r in (0, 3, 6):
+        assert np.array_equal(run_seed(11, r).generate_state(4), kids[r].generate_state(4))
+    assert not np.array_equal(run_seed(11, 1).generate_state(4), run_seed(12, 1).generate_state(4))
+
+
+def test_chunk_ranges_cover_runs_once():
+    assert chunk_ranges(23, 10) == [(0, 10), (10, 20), (20, 23)]
+    assert chunk_ranges(5, 10) == [(0, 5)]
+    with pytest.raises(InputError, match="chunk_size"):
+        chunk_ranges(5, 0)
+
+
+@pytest.mark.parametrize("chunk", [1, 4, 23])
+def test_batched_matches_the_independent_reference(chunk):
+    res = monte_carlo(toy_task, runs=23, seed=5, chunk_size=chunk)
+    assert np.array_equal(res.arrays["x"], reference(23, 5))
+    assert np.array_equal(res.arrays["run"], np.arange(23))
+    assert len(res.computed) == len(chunk_ranges(23, chunk)) and not res.reused
+
+
+def test_same_bits_batched_processes_and_dask():
+    distributed = pytest.importorskip("distributed")
+    kw = dict(runs=17, seed=3, chunk_size=4)
+    task = functools.partial(toy_task, scale=0.5)
+    a = monte_carlo(task, **kw).arrays
+    b = monte_carlo(task, backend=Backend("processes", workers=2), **kw).arrays
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        c = monte_carlo(task, backend=make_backend(dask=cl.scheduler_address), **kw).arrays
+    for other in (b, c):
+        assert other.keys() == a.keys()
+        for k in a:
+            assert np.array_equal(a[k], other[k]), k
+    assert np.array_equal(a["x"], reference(17, 3, 0.5))
+
+
+def test_backend_options():
+    assert make_backend() == Backend("batched")
+    assert make_backend(workers=1) == Backend("batched")
+    assert make_backend(workers=3) == Backend("processes", workers=3)
+    assert make_backend(dask="tcp://h:1").kind == "dask"
+    with pytest.raises(InputError, match="--workers and --dask"):
+        make_backend(workers=2, dask="tcp://h:1")
+    with pytest.raises(InputError, match="workers"):
+        make_backend(workers=0)
+    with pytest.raises(InputError, match="backend"):
+        Backend("threads")
+
+
+def test_failing_run_is_named_with_its_seed_and_finished_chunks_are_kept(tmp_path):
+    bad = functools.partial(toy_task, fail_run=7)
+    with pytest.raises(RunFailed, match=r"run 7 failed \(seed 9, spawn key \(7,\)\).*deliberate") as info:
+        monte_carlo(bad, runs=12, seed=9, chunk_size=3, store=tmp_path, config={"a": 1})
+    assert info.value.run == 7 and info.value.seed == 9 and info.value.spawn_key == (7,)
+    d = tmp_path / CHUNKS_DIR / "runs"
+    assert sorted(p.name for p in d.glob("runs_*.npz")) == ["runs_0000000_0000003.npz", "runs_0000003_0000006.npz"]
+    res = monte_carlo(toy_task, runs=12, seed=9, chunk_size=3, store=tmp_path, config={"a": 1})
+    assert res.reused == [(0, 3), (3, 6)] and res.computed == [(6, 9), (9, 12)]
+    assert np.array_equal(res.arrays["x"], reference(12, 9))
+    log = [tuple(json.loads(line)["chunk"]) for line in (d / "log.jsonl").read_text().splitlines()]
+    assert sorted(log) == chunk_ranges(12, 3)  # every chunk written exactly once
+    assert not list(d.glob("*.tmp"))
+
+
+def test_failing_run_reported_from_worker_processes():
+    with pytest.raises(RunFailed, match="run 5 failed"):
+        monte_carlo(functools.partial(toy_task, fail_run=5), runs=8, seed=1, chunk_size=2,
+                    backend=Backend("processes", workers=2))
+
+
+def test_other_config_refused_unless_forced(tmp_path):
+    monte_carlo(toy_task, runs=4, seed=0, chunk_size=2, store=tmp_path, config={"particles": 100})
+    with pytest.raises(InputError, match=r"other settings \(config, config.particles\).*--force"):
+        monte_carlo(toy_task, runs=4, seed=0, chunk_size=2, store=tmp_path, config={"particles": 200})
+    with pytest.raises(InputError, match="seed"):
+        monte_carlo(toy_task, runs=4, seed=1, chunk_size=2, store=tmp_path, config={"particles": 100})
+    res = monte_carlo(functools.partial(toy_task, scale=2.0), runs=4, seed=1, chunk_size=2, store=tmp_path,
+                      config={"particles": 200}, force=True)
+    assert not res.reused and np.array_equal(res.arrays["x"], reference(4, 1, 2.0))
+    again = monte_carlo(toy_task, runs=4, seed=1, chunk_size=2, store=tmp_path, config={"particles": 200})
+    assert again.reused == chunk_ranges(4, 2) and not again.computed
+    assert np.array_equal(again.arrays["x"], res.arrays["x"])  # loaded, not recomputed with scale 1
+
+
+def test_more_runs_reuse_the_full_chunks(tmp_path):
+    monte_carlo(toy_task, runs=5, seed=2, chunk_size=2, store=tmp_path)
+    res = monte_carlo(toy_task, runs=8, seed=2, chunk_size=2, store=tmp_path)
+    assert res.reused == [(0, 2), (2, 4)] and res.computed == [(4, 6), (6, 8)]
+    assert np.array_equal(res.arrays["x"], reference(8, 2))
+
+
+def test_killed_worker_is_reported_and_the_study_resumes(tmp_path):
+    flag = tmp_path / "kill"
+    flag.touch()
+    task = functools.partial(toy_task, fail_run=9, kill_flag=str(flag))
+    with pytest.raises(ComputationError, match="worker process died.*resume"):
+        monte_carlo(task, runs=12, seed=4, chunk_size=3, store=tmp_path / "s", backend=Backend("processes", workers=2))
+    flag.unlink()
+    res = monte_carlo(task, runs=12, seed=4, chunk_size=3, store=tmp_path / "s", backend=Backend("processes", workers=2))
+    assert (9, 12) in res.computed
+    assert np.array_equal(res.arrays["x"], reference(12, 4))
+
+
+def test_task_output_is_checked():
+    with pytest.raises(ComputationError, match="one row per run"):
+        monte_carlo(lambda ids, seeds: {"x": np.zeros(3)}, runs=2, seed=0, chunk_size=2)
+
+
+SIGINT_SCRIPT = textwrap.dedent("""
+    import functools, sys
+    sys.path.insert(0, {tests!r})
+    from test_runner import toy_task
+    from studies.runner import monte_carlo, Backend
+    backend = Backend("processes", workers=2) if sys.argv[2] == "processes" else Backend()
+    monte_carlo(functools.partial(toy_task, sleep=0.4), runs=16, seed=8, chunk_size=2, store=sys.argv[1],
+                backend=backend, config={{"x": 1}}, quiet=True)
+""")
+
+
+@pytest.mark.parametrize("kind", ["batched", "processes"])
+def test_sigint_then_resume_equals_an_uninterrupted_run(tmp_path, kind):
+    script = tmp_path / "run.py"
+    script.write_text(SIGINT_SCRIPT.format(tests=str(ROOT / "tests")))
+    store = tmp_path / "store"
+    log = store / CHUNKS_DIR / "runs" / "log.jsonl"
+    p = subprocess.Popen([sys.executable, str(script), str(store), kind], cwd=ROOT, stderr=subprocess.PIPE)
+    deadline = time.time() + 60
+    while time.time() < deadline and (not log.exists() or len(log.read_text().splitlines()) < 2):
+        time.sleep(0.05)
+    assert p.poll() is None, p.stderr.read().decode()
+    p.send_signal(signal.SIGINT)
+    err = p.communicate(timeout=30)[1].decode()
+    assert p.returncode != 0 and "KeyboardInterrupt" in err
+    written = len(log.read_text().splitlines())
+    assert 2 <= written < 8
+    res = monte_carlo(functools.partial(toy_task, sleep=0.4), runs=16, seed=8, chunk_size=2, store=store,
+                      config={"x": 1})
+    assert len(res.reused) == written and len(res.computed) == 8 - written
+    chunks = [tuple(json.loads(line)["chunk"]) for line in log.read_text().splitlines()]
+    assert sorted(chunks) == chunk_ranges(16, 2)  # no chunk computed (written) twice
+    assert np.array_equal(res.arrays["x"], reference(16, 8))
+    assert not list(log.parent.glob("*.tmp"))
