@@ -40,7 +40,7 @@ from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite, check_rng
 
 __all__ = [
-    "ConsensusDesign", "AttackPattern", "simulate_attacks", "node_predict", "exchange", "node_update",
+    "ConsensusDesign", "AttackPattern", "simulate_attacks", "channel_draws", "attack_pattern", "node_predict", "exchange", "node_update",
     "ConsensusResult", "run_consensus", "validate_design", "HARD_CONDITIONS",
 ]
 
@@ -123,6 +123,32 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     return design._replace(epsilon=eps, U=U, V=V)
 
 
+def channel_draws(steps: int, n_nodes: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The uniforms ``u`` and normals ``s`` (each ``(steps, N, N)``) behind every channel's attack.
+
+    Entry ``[k, i, j]`` drives the channel ``j -> i``; the diagonal ``[k, i, i]`` is not a
+    network channel and is used for node ``i``'s uplink to a fusion centre
+    (:func:`filters.uplink.uplink_attacks`), so networked and centralized filters can
+    face one realisation of the same attack law.
+    """
+    check_rng(rng)
+    u = rng.random((steps, n_nodes, n_nodes))
+    s = rng.standard_normal((steps, n_nodes, n_nodes))
+    return u, s
+
+
+def attack_pattern(network: SensorNetwork, u: np.ndarray, s: np.ndarray, n_x: int, *, amplitude: float,
+                   components) -> AttackPattern:
+    """Channel attacks from the draws of :func:`channel_draws` (see :func:`simulate_attacks`)."""
+    adj = network.adjacency[None]
+    dos = adj & (u < network.dos_prob[None])
+    fdi = adj & ~dos & (u < network.dos_prob[None] + network.fdi_prob[None])
+    xi = np.zeros(u.shape + (n_x,))
+    comps = list(components)
+    xi[..., comps] = (amplitude * np.sin(s) * fdi)[..., None]
+    return AttackPattern(dos, fdi, xi)
+
+
 def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.random.Generator, *,
                      amplitude: float, components) -> AttackPattern:
     """Draw DoS / FDI indicators and the injected signal on every channel and step.
@@ -132,17 +158,8 @@ def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.rando
     ``xi = amplitude * sin(s)`` on each listed state component, ``s ~ N(0, 1)`` per
     channel and step (so ``||xi|| <= amplitude * sqrt(len(components))``).
     """
-    check_rng(rng)
-    n = network.n_nodes
-    u = rng.random((steps, n, n))
-    s = rng.standard_normal((steps, n, n))
-    adj = network.adjacency[None]
-    dos = adj & (u < network.dos_prob[None])
-    fdi = adj & ~dos & (u < network.dos_prob[None] + network.fdi_prob[None])
-    xi = np.zeros((steps, n, n, n_x))
-    comps = list(components)
-    xi[..., comps] = (amplitude * np.sin(s) * fdi)[..., None]
-    return AttackPattern(dos, fdi, xi)
+    u, s = channel_draws(steps, network.n_nodes, rng)
+    return attack_pattern(network, u, s, n_x, amplitude=amplitude, components=components)
 
 
 class NodePrediction(NamedTuple):

@@ -124,7 +124,7 @@ def feasibility_cmd(scenario, grids, out, mode, workers, quiet, assignments) -> 
 
 
 STUDIES = {"consensus-robot": None, "rrp-deception": None, "binary-multi-attack": None, "encrypted-switching": None,
-           "fdi-four-tank": None, "comparison": 7}
+           "fdi-four-tank": None, "comparison": None}
 _PF_STUDIES = ("rrp-deception", "binary-multi-attack", "encrypted-switching", "fdi-four-tank")
 
 
@@ -144,7 +144,12 @@ def _reject(study: str, **given) -> None:
               help="particles M of the particle filters [default: the paper's: 500, 200 encrypted-switching, "
                    "100 fdi-four-tank]")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
-@click.option("--workers", type=int, default=None, help="threads for the particle filters' runs [default: 1]")
+@click.option("--workers", type=int, default=None,
+              help="comparison: local worker processes; other studies: threads for the particle filters' runs "
+                   "[default: 1]")
+@click.option("--dask", "dask", default=None, metavar="ADDRESS",
+              help="comparison: run the chunks of runs on the Dask scheduler at ADDRESS (e.g. tcp://host:8786)")
+@click.option("--force", is_flag=True, help="comparison: recompute runs already stored in OUT")
 @click.option("--engine", type=click.Choice(["fast", "numpy"]), default=None,
               help="particle-filter engine: fused numba kernels or the NumPy reference [default: fast where the "
                    "study has it, else numpy]")
@@ -156,7 +161,7 @@ def _reject(study: str, **given) -> None:
               help="consensus-robot: U, V of the consensus designs, fixed (0.01 I, 0.1 I) or from the model's "
                    "Hessians [default: fixed]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, out, runs, particles, seed, workers, engine, mode, quiet, schedule, linearization,
+def study_cmd(study, out, runs, particles, seed, workers, dask, force, engine, mode, quiet, schedule, linearization,
               assignments) -> None:
     """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
     if study not in STUDIES:
@@ -164,6 +169,11 @@ def study_cmd(study, out, runs, particles, seed, workers, engine, mode, quiet, s
     if STUDIES[study] is not None:
         built = ", ".join(k for k, v in STUDIES.items() if v is None)
         raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: {built}")
+    if study == "comparison":
+        _reject(study, engine=engine, mode=mode, schedule=schedule, linearization=linearization)
+        _comparison(out, runs, particles, seed, workers, dask, force, quiet, assignments)
+        return
+    _reject(study, dask=dask, force=force)
     if study in _PF_STUDIES:
         _reject(study, mode=mode, schedule=schedule, linearization=linearization)
         _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments)
@@ -189,6 +199,22 @@ def study_cmd(study, out, runs, particles, seed, workers, engine, mode, quiet, s
                    f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}, "
                    f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, "
                    f"exceeded at {frac}")
+
+
+def _comparison(out, runs, particles, seed, workers, dask, force, quiet, assignments) -> None:
+    from .comparison import run_comparison
+    from .runner import make_backend
+
+    kw = {k: v for k, v in {"runs": runs, "particles": particles}.items() if v is not None}
+    res = run_comparison(out=out, seed=seed, quiet=quiet, assignments=assignments, force=force,
+                         backend=make_backend(workers, dask), **kw)
+    rn = res["runner"]
+    click.echo(f"wrote {out}/results.json, table.md and figures ({res['runs']} runs, M = {res['particles']}, "
+               f"{res['wall_time_s']:.1f} s; {rn['chunks_computed']} chunks computed, {rn['chunks_reused']} reused)")
+    for name, f in res["filters"].items():
+        acc = "every run diverged" if f["rmse_position"] is None else f"RMSE_p {f['rmse_position']:.4g} m"
+        click.echo(f"  {name}: {acc}, {f['time_per_step_s'] * 1e3:.3g} ms/step, "
+                   f"{f['messages_per_step']} messages/step")
 
 
 def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments) -> None:

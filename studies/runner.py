@@ -231,6 +231,41 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
+class _Interrupts:
+    """Remember a Ctrl-C even if a library swallows the KeyboardInterrupt it raises.
+
+    Some extension code catches every exception (CasADi's SWIG conversions use bare
+    ``except:``), so a KeyboardInterrupt raised inside it can vanish and the chunk goes
+    on.  This handler records the signal before raising; a chunk that was being
+    computed when Ctrl-C came is then discarded, never stored, and the run stops.
+    """
+
+    def __init__(self):
+        self.seen = False
+        self._old = None
+
+    def __enter__(self):
+        import threading
+
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.seen = True
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.seen:
+            raise KeyboardInterrupt("interrupted: the chunk in progress was discarded")
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
 def monte_carlo(
     task: Task,
     *,
@@ -292,14 +327,17 @@ def monte_carlo(
     computed: list[tuple[int, int]] = []
 
     def finish(c, arrays):
+        interrupts.check()
         if st is not None:
             st.save(c, arrays)
         done[c] = arrays
         computed.append(c)
 
-    if pending:
-        bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
-        if backend.kind == "batched" or len(pending) == 1 and backend.kind == "processes":
+    bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
+    with _Interrupts() as interrupts:
+        if not pending:
+            pass
+        elif backend.kind == "batched" or len(pending) == 1 and backend.kind == "processes":
             for c in progress(pending, len(pending), quiet, bar_desc):
                 finish(c, _compute(task, c[0], c[1], seed))
         elif backend.kind == "processes":

@@ -189,3 +189,27 @@ def test_sigint_then_resume_equals_an_uninterrupted_run(tmp_path, kind):
     assert sorted(chunks) == chunk_ranges(16, 2)  # no chunk computed (written) twice
     assert np.array_equal(res.arrays["x"], reference(16, 8))
     assert not list(log.parent.glob("*.tmp"))
+
+
+def swallowing_task(run_ids, seeds):
+    """Run 2 receives Ctrl-C inside code that swallows every exception (as CasADi's bare excepts do)."""
+    for r in run_ids:
+        if r == 2:
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.5)
+            except BaseException:  # noqa: BLE001 - the point of the test
+                pass
+    return toy_task(run_ids, seeds)
+
+
+def test_a_swallowed_ctrl_c_still_stops_the_study_and_discards_its_chunk(tmp_path):
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is handled by someone else in this process")
+    with pytest.raises(KeyboardInterrupt, match="discarded"):
+        monte_carlo(swallowing_task, runs=6, seed=0, chunk_size=2, store=tmp_path)
+    d = tmp_path / CHUNKS_DIR / "runs"
+    assert sorted(p.name for p in d.glob("runs_*.npz")) == ["runs_0000000_0000002.npz"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    res = monte_carlo(toy_task, runs=6, seed=0, chunk_size=2, store=tmp_path)
+    assert res.reused == [(0, 2)] and np.array_equal(res.arrays["x"], reference(6, 0))

@@ -1,0 +1,259 @@
+"""Comparison study: uplink attacks, the plain EKF, and the study itself (backends, resume, cross-checks)."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from designer.model import Model, Sensor
+from designer.noise import Gaussian
+from designer.simulate import simulate
+from designer.validation import InputError
+from filters.consensus import attack_pattern, channel_draws, run_consensus, simulate_attacks
+from filters.ekf import run_ekf
+from filters.particle import additive_noise_loglik
+from filters.uplink import SIN2_MEAN, fdi_covariances, receive, split_received, uplink_attacks, uplink_loglik
+from studies.cli import main
+from studies.comparison import EKF_PLAIN, FILTERS, PAPER_DESIGN, PF_AWARE, PF_PLAIN, TUNED, run_comparison
+from studies.runner import CHUNKS_DIR, Backend, make_backend
+from studies.scenarios import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_scenario("indoor-robot")
+
+
+# --- uplinks ---------------------------------------------------------------------------------------------------
+
+def test_channel_draws_reproduce_simulate_attacks(robot):
+    net, m = robot.network, robot.model
+    a = simulate_attacks(net, 30, m.n_x, np.random.default_rng(4), amplitude=1.5, components=(0, 1))
+    u, s = channel_draws(30, net.n_nodes, np.random.default_rng(4))
+    b = attack_pattern(net, u, s, m.n_x, amplitude=1.5, components=(0, 1))
+    for x, y in zip(a, b):
+        assert np.array_equal(x, y)
+
+
+def test_uplink_attack_frequencies_and_exclusivity():
+    u, s = channel_draws(4000, 5, np.random.default_rng(1))
+    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, amplitude=2.0, components=(0, 1))
+    n = att.dos.size
+    for got, p in ((att.dos.mean(), 0.2), (att.fdi.mean(), 0.3)):
+        assert abs(got - p) < 4 * np.sqrt(p * (1 - p) / n)
+    assert not (att.dos & att.fdi).any()
+    assert np.all(att.xi[~att.fdi] == 0) and np.all(att.xi[..., 2] == 0)
+    v = att.xi[att.fdi][:, 0]
+    assert np.abs(v).max() <= 2.0
+    assert abs((v**2).mean() - 4.0 * SIN2_MEAN) < 4 * (v**2).std() / np.sqrt(v.size)  # a^2 E[sin^2 s]
+    with pytest.raises(InputError, match="dos_prob \\+ fdi_prob"):
+        uplink_attacks(u, s, 3, dos_prob=0.7, fdi_prob=0.4, amplitude=1.0, components=(0,))
+
+
+def test_received_measurements_shift_by_the_jacobian_and_drop_lost_packets(robot):
+    m = robot.model
+    traj = robot.simulate(np.random.default_rng(2), 30)
+    u, s = channel_draws(30, 8, np.random.default_rng(3))
+    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, amplitude=1.5, components=(0, 1))
+    values, avail = split_received(m, receive(m, traj.x, traj.z, att))
+    assert np.array_equal(avail, ~att.dos)
+    for k in range(30):
+        for i in range(8):
+            sl = slice(2 * i, 2 * i + 2)
+            if att.dos[k, i]:
+                assert np.all(values[k, sl] == 0)
+            else:  # the camera is affine in the position: the falsification is H_c xi exactly
+                shift = m.H(i, traj.x[k + 1], k + 1)[:, :2] @ att.xi[k, i, :2]
+                np.testing.assert_allclose(values[k, sl], traj.z[k, sl] + shift, atol=1e-9)
+    assert att.fdi.any() and att.dos.any()
+
+
+def test_uplink_likelihood_against_scipy(robot):
+    m = robot.model
+    covs = fdi_covariances(m, m.prior.mean, amplitude=1.5, components=(0, 1))
+    x = m.prior.sample(np.random.default_rng(0), (2, 7))
+    traj = robot.simulate(np.random.default_rng(1), 3)
+    avail = np.ones((2, 8), bool)
+    avail[0, [1, 5]] = False
+    y = np.concatenate([np.broadcast_to(traj.z[0], (2, 16)), avail.astype(float)], axis=1)
+    got = uplink_loglik(m, fdi_prob=0.25, fdi_covs=covs)(x, 1, y)
+    h = m.h_all(x, 1)
+    R = m.measurement_cov(0)
+    want = np.zeros((2, 7))
+    for r in range(2):
+        for p in range(7):
+            for i in range(8):
+                if avail[r, i]:
+                    d = traj.z[0, 2 * i:2 * i + 2] - h[r, p, 2 * i:2 * i + 2]
+                    want[r, p] += np.log(0.75 * multivariate_normal(np.zeros(2), R).pdf(d)
+                                         + 0.25 * multivariate_normal(np.zeros(2), R + covs[i]).pdf(d))
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+    plain = uplink_loglik(m)(x, 1, np.concatenate([np.broadcast_to(traj.z[0], (2, 16)), np.ones((2, 8))], 1))
+    np.testing.assert_allclose(plain, additive_noise_loglik(m)(x, 1, np.broadcast_to(traj.z[0], (2, 16))),
+                               rtol=1e-12)
+
+
+# --- the plain EKF ----------------------------------------------------------------------------------------------
+
+def _linear_two_sensors():
+    x = ca.SX.sym("x", 2)
+    A = np.array([[0.9, 0.2], [-0.1, 0.95]])
+    H1, H2 = np.array([[1.0, 0.5]]), np.array([[0.0, 1.0], [1.0, -1.0]])
+    model = Model("lin2", x, ca.mtimes(ca.DM(A), x),
+                  [Sensor("a", ca.mtimes(ca.DM(H1), x), Gaussian.zero_mean([[0.3]])),
+                   Sensor("b", ca.mtimes(ca.DM(H2), x), Gaussian.zero_mean(np.diag([0.2, 0.4])))],
+                  Gaussian.zero_mean(0.05 * np.eye(2)), Gaussian([1.0, -1.0], 0.5 * np.eye(2)))
+    return model, A, (H1, H2)
+
+
+def test_ekf_is_the_kalman_filter_with_missing_sensors():
+    model, A, Hs = _linear_two_sensors()
+    traj = simulate(model, 20, np.random.default_rng(3))
+    avail = np.random.default_rng(4).random((20, 2)) < 0.6
+    res = run_ekf(model, traj.z, available=avail)
+    m, P = model.prior.mean, model.prior.cov
+    Rs = [model.measurement_cov(0), model.measurement_cov(1)]
+    zs = [traj.z[:, :1], traj.z[:, 1:]]
+    for k in range(20):  # textbook KF, information form of the update: an independent formula
+        m, P = A @ m, A @ P @ A.T + model.process_cov
+        info, vec = np.linalg.inv(P), np.linalg.inv(P) @ m
+        for i in (0, 1):
+            if avail[k, i]:
+                info = info + Hs[i].T @ np.linalg.inv(Rs[i]) @ Hs[i]
+                vec = vec + Hs[i].T @ np.linalg.inv(Rs[i]) @ zs[i][k]
+        P = np.linalg.inv(info)
+        m = P @ vec
+        np.testing.assert_allclose(res.x[k + 1], m, atol=1e-10)
+        np.testing.assert_allclose(res.P[k + 1], P, atol=1e-10)
+    with pytest.raises(InputError, match="available"):
+        run_ekf(model, traj.z, available=avail[:, :1])
+
+
+def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):
+    """Second implementation: consensus-robot's centralized baseline (sigma = beta = 0, no neighbours)."""
+    from studies.consensus_robot import _variants
+    from studies.design import consensus_design
+
+    v = _variants(robot, consensus_design(robot), None)["centralized EKF (all cameras)"]
+    traj = robot.simulate(np.random.default_rng(7), robot.steps)
+    ref = run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs)
+    ours = run_ekf(robot.model, traj.z, inputs=traj.inputs)
+    np.testing.assert_allclose(ours.x, ref.x_post[:, 0], atol=1e-9)
+
+
+# --- the study --------------------------------------------------------------------------------------------------
+
+SMALL = dict(runs=3, particles=60, seed=2, quiet=True, sweep_values=(0.3,), chunk_size=1)
+
+
+def _numbers(res: dict) -> dict:
+    """results.json without what legitimately varies between calls (timings, how the runs were computed)."""
+    res = json.loads(json.dumps(res))
+    for key in ("wall_time_s", "runner", "versions"):
+        res.pop(key)
+    for f in res["filters"].values():
+        f.pop("time_per_step_s")
+    res["recommendation"].pop("cheapest")
+    return res
+
+
+def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
+    """Same seeds, same attack draws: the comparison's consensus EKFs reproduce consensus-robot's numbers."""
+    from studies.consensus_robot import run_consensus_robot
+
+    cr = run_consensus_robot(out=None, runs=3, seed=2, mode="tuned", quiet=True)
+    res = run_comparison(out=None, **SMALL)
+    assert res["filters"][TUNED]["rmse_position"] == pytest.approx(
+        cr["filters"]["consensus-EKF (tuned)"]["rmse_position"], rel=1e-12)
+    assert res["filters"][PAPER_DESIGN]["rmse_position"] == pytest.approx(
+        cr["filters"]["consensus-EKF (paper, tau=0.01)"]["rmse_position"], rel=1e-12)
+    assert set(res["filters"]) == set(FILTERS)
+    assert res["filters"][PF_AWARE]["messages_per_step"] == 8 and res["filters"][TUNED]["communications"] == 20
+    assert set(res["sweeps"]["dos_prob"]) == {"0.1", "0.3"} and set(res["sweeps"]["fdi_prob"]) == {"0.1", "0.3"}
+    assert TUNED not in res["sweeps"]["fdi_prob"]["0.3"] and TUNED in res["sweeps"]["fdi_prob"]["0.1"]
+
+
+def test_without_attacks_the_centralized_filters_agree(tmp_path):
+    """No attack: the plain EKF equals consensus-robot's centralized EKF; the two PFs are the same filter."""
+    from studies.consensus_robot import run_consensus_robot
+
+    res = run_comparison(out=None, runs=3, particles=60, seed=1, quiet=True, sweep_values=(),
+                         overrides={"dos_prob": 0.0, "fdi_prob": 0.0})
+    cr = run_consensus_robot(out=None, runs=3, seed=1, quiet=True, overrides={"dos_prob": 0.0, "fdi_prob": 0.0})
+    assert res["filters"][EKF_PLAIN]["rmse_position"] == pytest.approx(
+        cr["filters"]["centralized EKF (all cameras)"]["rmse_position"], rel=1e-9)
+    # q = 0 makes the attack-aware likelihood the plain one; the two PFs differ only in their random streams
+    a, b = res["filters"][PF_AWARE], res["filters"][PF_PLAIN]
+    assert a["rmse_position"] != b["rmse_position"]
+    assert abs(a["rmse_position"] - b["rmse_position"]) < 0.25 * b["rmse_position"]
+
+
+def test_same_numbers_with_every_backend(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    a = run_comparison(out=tmp_path / "a", **SMALL)
+    b = run_comparison(out=tmp_path / "b", backend=Backend("processes", workers=2), **SMALL)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        c = run_comparison(out=tmp_path / "c", backend=make_backend(dask=cl.scheduler_address), **SMALL)
+    assert _numbers(a) == _numbers(b) == _numbers(c)
+    assert c["runner"]["backend"] == "dask" and b["runner"]["workers"] == 2
+    on_disk = json.loads((tmp_path / "b" / "results.json").read_text())
+    assert _numbers(on_disk) == _numbers(a)
+
+
+def test_the_attack_aware_pf_beats_the_trusting_filters_under_heavy_fdi():
+    res = run_comparison(out=None, runs=6, particles=200, seed=3, quiet=True, sweep_values=(0.4,), chunk_size=6)
+    row = res["sweeps"]["fdi_prob"]["0.4"]
+    assert row[PF_AWARE]["rmse_position"] < row[PF_PLAIN]["rmse_position"]
+    assert row[PF_AWARE]["rmse_position"] < row[EKF_PLAIN]["rmse_position"]
+
+
+SIGINT_SCRIPT = textwrap.dedent("""
+    import sys
+    from studies.comparison import run_comparison
+    run_comparison(out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
+""")
+
+
+def test_sigint_then_resume_equals_an_uninterrupted_study(tmp_path):
+    script = tmp_path / "run.py"
+    script.write_text(SIGINT_SCRIPT)
+    out = tmp_path / "study"
+    log = out / CHUNKS_DIR / "comparison" / "log.jsonl"
+    p = subprocess.Popen([sys.executable, str(script), str(out)], cwd=ROOT, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
+        time.sleep(0.05)
+    assert p.poll() is None, p.stderr.read().decode()
+    p.send_signal(signal.SIGINT)
+    err = p.communicate(timeout=60)[1].decode()
+    assert p.returncode != 0 and "KeyboardInterrupt" in err, (p.returncode, err)
+    assert not (out / "results.json").exists()
+    written = len(log.read_text().splitlines())
+    assert 1 <= written < 5
+    resumed = run_comparison(out=out, runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
+    assert resumed["runner"]["chunks_reused"] == written and resumed["runner"]["chunks_computed"] == 5 - written
+    chunks = [tuple(json.loads(line)["chunk"]) for line in log.read_text().splitlines()]
+    assert sorted(chunks) == [(r, r + 1) for r in range(5)]  # none computed twice
+    whole = run_comparison(out=None, runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
+    assert _numbers(resumed) == _numbers(whole)
+
+
+def test_cli_comparison_options(tmp_path, capsys):
+    assert main(["study", "comparison", "--out", str(tmp_path), "--engine", "fast"]) == 2
+    assert "--engine does not apply" in capsys.readouterr().err
+    assert main(["study", "comparison", "--out", str(tmp_path), "--workers", "2", "--dask", "tcp://x:1"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
+    assert main(["study", "rrp-deception", "--out", str(tmp_path), "--dask", "tcp://x:1"]) == 2
+    assert main(["study", "comparison", "--out", str(tmp_path), "--set", "dos_prob=0.8", "--set",
+                 "fdi_prob=0.5"]) == 2
