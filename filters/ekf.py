@@ -16,6 +16,8 @@ from scipy.linalg import block_diag, cho_factor, cho_solve
 from designer.model import Model
 from designer.validation import InputError, check_finite
 
+from .rrp import angle_sets, wrap_angles
+
 __all__ = ["EKFResult", "run_ekf"]
 
 
@@ -25,8 +27,12 @@ class EKFResult(NamedTuple):
 
 
 def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,
-            P0=None) -> EKFResult:
-    """Filter ``z`` (K, n_z), ``z[k]`` measuring ``x_{k+1}``; ``available`` (K, N) bool marks received sensors."""
+            P0=None, angles=()) -> EKFResult:
+    """Filter ``z`` (K, n_z), ``z[k]`` measuring ``x_{k+1}``; ``available`` (K, N) bool marks received sensors.
+
+    ``angles``: ``(sensor, component)`` pairs of angular measurements, whose residuals are
+    wrapped into (-π, π].
+    """
     z = np.asarray(z, dtype=float)
     if z.ndim != 2 or z.shape[1] != model.n_z:
         raise InputError(f"z must have shape (K, {model.n_z}), got {z.shape}")
@@ -41,6 +47,7 @@ def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None,
     x = model.prior.mean.copy() if x0 is None else check_finite("x0", x0).copy()
     P = model.prior.cov.copy() if P0 is None else check_finite("P0", P0).copy()
     Q = model.process_cov
+    wraps = angle_sets(model, angles)
     xs, Ps = np.empty((K + 1, model.n_x)), np.empty((K + 1, model.n_x, model.n_x))
     xs[0], Ps[0] = x, P
     eye = np.eye(model.n_x)
@@ -53,7 +60,8 @@ def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None,
         if idx.size:
             H = np.vstack([model.H(i, x, k + 1) for i in idx])
             R = block_diag(*[model.measurement_cov(i) for i in idx])
-            r = np.concatenate([z[k, model._offsets[i]:model._offsets[i + 1]] - model.h(i, x, k + 1) for i in idx])
+            r = np.concatenate([wrap_angles(z[k, model._offsets[i]:model._offsets[i + 1]] - model.h(i, x, k + 1),
+                                            wraps[i]) for i in idx])
             S = H @ P @ H.T + R
             G = cho_solve(cho_factor(0.5 * (S + S.T)), H @ P).T  # P Hᵀ S⁻¹
             x = x + G @ r

@@ -24,7 +24,7 @@ from designer.model import Model
 from designer.noise import Noise
 from designer.validation import InputError
 
-__all__ = ["wrap_angles", "packet_loglik", "rrp_loglik", "all_sensors_loglik"]
+__all__ = ["wrap_angles", "angle_sets", "packet_loglik", "rrp_loglik", "all_sensors_loglik"]
 
 
 def wrap_angles(r: np.ndarray, components: Sequence[int]) -> np.ndarray:
@@ -35,6 +35,36 @@ def wrap_angles(r: np.ndarray, components: Sequence[int]) -> np.ndarray:
     c = list(components)
     r[..., c] = np.pi - np.mod(np.pi - r[..., c], 2 * np.pi)
     return r
+
+
+def angle_sets(model: Model, angles) -> list[list[int]]:
+    """Per sensor, its angular components, from component indices (every sensor) or (sensor, component) pairs."""
+    S, dims = model.n_sensors, model.sensor_dims
+    msg = "angles must be a sequence of component indices or (sensor, component) pairs"
+    if isinstance(angles, (str, bytes)):
+        raise InputError(msg)
+    try:
+        items = list(angles)
+    except TypeError:
+        raise InputError(msg) from None
+
+    def is_int(v):
+        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+    out: list[set] = [set() for _ in range(S)]
+    for a in items:
+        if is_int(a):
+            pairs = [(s, int(a)) for s in range(S)]
+        elif isinstance(a, (tuple, list)) and len(a) == 2 and all(is_int(v) for v in a):
+            pairs = [(int(a[0]), int(a[1]))]
+        else:
+            raise InputError(f"angles must hold component indices or (sensor, component) pairs, got {a!r}")
+        for s, j in pairs:
+            if not (0 <= s < S) or not (0 <= j < dims[s]):
+                raise InputError(f"angles entry {a!r} is out of range (sensors 0..{S - 1}, and each sensor's "
+                                 "components)")
+            out[s].add(j)
+    return [sorted(c) for c in out]
 
 
 def _sensor_loglik(model: Model, i: int, x, k1, y, attack_prob: float, signal: Noise | None,

@@ -25,6 +25,8 @@ from designer.model import Model
 from designer.noise import Gaussian
 from designer.validation import InputError, check_probability
 
+from .rrp import angle_sets, wrap_angles
+
 __all__ = ["UplinkAttacks", "uplink_attacks", "receive", "SIN2_MEAN", "fdi_covariances", "uplink_loglik",
            "split_received"]
 
@@ -84,22 +86,30 @@ def fdi_covariances(model: Model, x_ref, *, amplitude: float, components, k: int
             for i in range(model.n_sensors)]
 
 
-def uplink_loglik(model: Model, *, fdi_prob: float = 0.0, fdi_covs=None) -> Callable:
+def uplink_loglik(model: Model, *, fdi_prob: float = 0.0, fdi_covs=None, angles=()) -> Callable:
     """``loglik(x, k1, y)`` for :func:`filters.particle.run_sir` over received uplink measurements.
 
-    Per available sensor: ``log[(1 - q) N(ỹ_i; h_i(x), R_i) + q N(ỹ_i; h_i(x), R_i + C_i)]`` with
-    ``q = fdi_prob`` the probability that a received packet was falsified and ``C_i`` the
+    Per available sensor: ``log[(1 - q) p_i(ỹ_i - h_i(x)) + q N(ỹ_i; h_i(x), R_i + C_i)]`` with
+    ``p_i`` the sensor's own noise density (any noise, e.g. glint), ``R_i`` its covariance,
+    ``q = fdi_prob`` (a scalar, or one value per run of a batch) the probability that a
+    received packet was falsified and ``C_i`` the
     falsification's covariance (:func:`fdi_covariances`; a moment-matched Gaussian of
     ``H_i ξ``).  ``fdi_prob = 0`` is the plain likelihood that trusts every packet; lost
-    packets (α_i = 0) contribute nothing.
+    packets (α_i = 0) contribute nothing.  ``angles``: ``(sensor, component)`` pairs whose
+    residuals are wrapped into (-π, π].
     """
-    q = float(check_probability("fdi_prob", fdi_prob))
-    clean = [Gaussian.zero_mean(model.measurement_cov(i)) for i in range(model.n_sensors)]
-    if q > 0:
+    q = np.asarray(check_probability("fdi_prob", fdi_prob), dtype=float)
+    if q.ndim > 1:
+        raise InputError(f"fdi_prob must be a probability or one per run (1-D), got shape {q.shape}")
+    clean = [s.noise for s in model.sensors]
+    wraps = angle_sets(model, angles)
+    attacked = None
+    if np.any(q > 0):
         if fdi_covs is None or len(fdi_covs) != model.n_sensors:
             raise InputError(f"fdi_covs must give one covariance per sensor ({model.n_sensors}) when fdi_prob > 0")
         attacked = [Gaussian.zero_mean(model.measurement_cov(i) + np.asarray(c)) for i, c in enumerate(fdi_covs)]
-    lq, l1q = (np.log(q) if q > 0 else -np.inf), np.log1p(-q)
+    with np.errstate(divide="ignore"):
+        lq, l1q = np.log(q)[..., None], np.log1p(-q)[..., None]  # per run, broadcast over particles
 
     def loglik(x, k1, y):
         values, avail = split_received(model, np.asarray(y, dtype=float))
@@ -107,9 +117,9 @@ def uplink_loglik(model: Model, *, fdi_prob: float = 0.0, fdi_covs=None) -> Call
         total = np.zeros(h.shape[:-1])
         for i in range(model.n_sensors):
             a, b = model._offsets[i], model._offsets[i + 1]
-            r = values[..., None, a:b] - h[..., a:b]
+            r = wrap_angles(values[..., None, a:b] - h[..., a:b], wraps[i])
             t = clean[i].logpdf(r) + l1q
-            if q > 0:
+            if attacked is not None:
                 t = np.logaddexp(t, attacked[i].logpdf(r) + lq)
             total = total + np.where(avail[..., i:i + 1], t, 0.0)
         return total

@@ -150,6 +150,9 @@ def _reject(study: str, **given) -> None:
 @click.option("--dask", "dask", default=None, metavar="ADDRESS",
               help="comparison: run the chunks of runs on the Dask scheduler at ADDRESS (e.g. tcp://host:8786)")
 @click.option("--force", is_flag=True, help="comparison: recompute runs already stored in OUT")
+@click.option("--scenario", "scenarios", multiple=True,
+              help="comparison: a scenario to compare on (repeatable) [default: indoor-robot and "
+                   "target-range-bearing]")
 @click.option("--engine", type=click.Choice(["fast", "numpy"]), default=None,
               help="particle-filter engine: fused numba kernels or the NumPy reference [default: fast where the "
                    "study has it, else numpy]")
@@ -161,8 +164,8 @@ def _reject(study: str, **given) -> None:
               help="consensus-robot: U, V of the consensus designs, fixed (0.01 I, 0.1 I) or from the model's "
                    "Hessians [default: fixed]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, out, runs, particles, seed, workers, dask, force, engine, mode, quiet, schedule, linearization,
-              assignments) -> None:
+def study_cmd(study, out, runs, particles, seed, workers, dask, force, scenarios, engine, mode, quiet, schedule,
+              linearization, assignments) -> None:
     """Run the Monte Carlo study STUDY and write its results and figures to OUT."""
     if study not in STUDIES:
         raise InputError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
@@ -171,9 +174,9 @@ def study_cmd(study, out, runs, particles, seed, workers, dask, force, engine, m
         raise InputError(f"study {study!r} is not built yet (issue {STUDIES[study]}); available: {built}")
     if study == "comparison":
         _reject(study, engine=engine, mode=mode, schedule=schedule, linearization=linearization)
-        _comparison(out, runs, particles, seed, workers, dask, force, quiet, assignments)
+        _comparison(out, runs, particles, seed, workers, dask, force, scenarios, quiet, assignments)
         return
-    _reject(study, dask=dask, force=force)
+    _reject(study, dask=dask, force=force, scenario=scenarios)
     if study in _PF_STUDIES:
         _reject(study, mode=mode, schedule=schedule, linearization=linearization)
         _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments)
@@ -201,16 +204,18 @@ def study_cmd(study, out, runs, particles, seed, workers, dask, force, engine, m
                    f"exceeded at {frac}")
 
 
-def _comparison(out, runs, particles, seed, workers, dask, force, quiet, assignments) -> None:
+def _comparison(out, runs, particles, seed, workers, dask, force, scenarios, quiet, assignments) -> None:
     from .comparison import run_comparison
     from .runner import make_backend
 
-    kw = {k: v for k, v in {"runs": runs, "particles": particles}.items() if v is not None}
+    kw = {k: v for k, v in {"runs": runs, "particles": particles, "scenarios": scenarios or None}.items()
+          if v is not None}
     res = run_comparison(out=out, seed=seed, quiet=quiet, assignments=assignments, force=force,
                          backend=make_backend(workers, dask), **kw)
-    rn = res["runner"]
-    click.echo(f"wrote {out}/results.json, table.md and figures ({res['runs']} runs, M = {res['particles']}, "
-               f"{res['wall_time_s']:.1f} s; {rn['chunks_computed']} chunks computed, {rn['chunks_reused']} reused)")
+    done = sum(r["chunks_computed"] for r in res["runner"].values())
+    reused = sum(r["chunks_reused"] for r in res["runner"].values())
+    click.echo(f"wrote {out}/results.json, table.md, report.html and figures (M = {res['particles']}, "
+               f"{res['wall_time_s']:.1f} s; {done} chunks computed, {reused} reused)")
     for name, f in res["filters"].items():
         acc = "every run diverged" if f["rmse_position"] is None else f"RMSE_p {f['rmse_position']:.4g} m"
         click.echo(f"  {name}: {acc}, {f['time_per_step_s'] * 1e3:.3g} ms/step, "

@@ -154,7 +154,9 @@ def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):
 
 # --- the study --------------------------------------------------------------------------------------------------
 
-SMALL = dict(runs=3, particles=60, seed=2, quiet=True, sweep_values=(0.3,), chunk_size=1)
+SMALL = dict(runs=3, particles=60, seed=2, quiet=True, sweep_values=(0.3,), chunk_size=1,
+             scenarios=("indoor-robot",))
+ROBOT = "indoor-robot: "
 
 
 def _numbers(res: dict) -> dict:
@@ -162,9 +164,14 @@ def _numbers(res: dict) -> dict:
     res = json.loads(json.dumps(res))
     for key in ("wall_time_s", "runner", "versions"):
         res.pop(key)
-    for f in res["filters"].values():
-        f.pop("time_per_step_s")
-    res["recommendation"].pop("cheapest")
+    for block in [res] + list(res["by_scenario"].values()):
+        for f in block["filters"].values():
+            f.pop("time_per_step_s")
+    for block in res["by_scenario"].values():
+        block.pop("runner")
+        block["recommendation"].pop("cheapest")
+    for rec in res["recommendation"].values():
+        rec.pop("cheapest")
     return res
 
 
@@ -174,14 +181,18 @@ def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
 
     cr = run_consensus_robot(out=None, runs=3, seed=2, mode="tuned", quiet=True)
     res = run_comparison(out=None, **SMALL)
-    assert res["filters"][TUNED]["rmse_position"] == pytest.approx(
+    fl = res["filters"]
+    assert fl[ROBOT + TUNED]["rmse_position"] == pytest.approx(
         cr["filters"]["consensus-EKF (tuned)"]["rmse_position"], rel=1e-12)
-    assert res["filters"][PAPER_DESIGN]["rmse_position"] == pytest.approx(
+    assert fl[ROBOT + PAPER_DESIGN]["rmse_position"] == pytest.approx(
         cr["filters"]["consensus-EKF (paper, tau=0.01)"]["rmse_position"], rel=1e-12)
-    assert set(res["filters"]) == set(FILTERS)
-    assert res["filters"][PF_AWARE]["messages_per_step"] == 8 and res["filters"][TUNED]["communications"] == 20
-    assert set(res["sweeps"]["dos_prob"]) == {"0.1", "0.3"} and set(res["sweeps"]["fdi_prob"]) == {"0.1", "0.3"}
-    assert TUNED not in res["sweeps"]["fdi_prob"]["0.3"] and TUNED in res["sweeps"]["fdi_prob"]["0.1"]
+    assert set(fl) == {ROBOT + n for n in FILTERS}
+    assert fl[ROBOT + PF_AWARE]["messages_per_step"] == 8 and fl[ROBOT + TUNED]["communications"] == 20
+    sw = res["sweeps"]
+    assert set(sw["dos_prob"]) == {"0.1", "0.3"} and set(sw["fdi_prob"]) == {"0.1", "0.3"}
+    assert ROBOT + TUNED not in sw["fdi_prob"]["0.3"] and ROBOT + TUNED in sw["fdi_prob"]["0.1"]
+    # the main setting is one of the sweeps' points: the same numbers from the same runs
+    assert sw["fdi_prob"]["0.1"][ROBOT + PF_PLAIN]["rmse_position"] == fl[ROBOT + PF_PLAIN]["rmse_position"]
 
 
 def test_without_attacks_the_centralized_filters_agree(tmp_path):
@@ -189,39 +200,44 @@ def test_without_attacks_the_centralized_filters_agree(tmp_path):
     from studies.consensus_robot import run_consensus_robot
 
     res = run_comparison(out=None, runs=3, particles=60, seed=1, quiet=True, sweep_values=(),
-                         overrides={"dos_prob": 0.0, "fdi_prob": 0.0})
+                         overrides={"dos_prob": 0.0, "fdi_prob": 0.0}, scenarios=("indoor-robot",))
     cr = run_consensus_robot(out=None, runs=3, seed=1, quiet=True, overrides={"dos_prob": 0.0, "fdi_prob": 0.0})
-    assert res["filters"][EKF_PLAIN]["rmse_position"] == pytest.approx(
+    assert res["filters"][ROBOT + EKF_PLAIN]["rmse_position"] == pytest.approx(
         cr["filters"]["centralized EKF (all cameras)"]["rmse_position"], rel=1e-9)
     # q = 0 makes the attack-aware likelihood the plain one; the two PFs differ only in their random streams
-    a, b = res["filters"][PF_AWARE], res["filters"][PF_PLAIN]
+    a, b = res["filters"][ROBOT + PF_AWARE], res["filters"][ROBOT + PF_PLAIN]
     assert a["rmse_position"] != b["rmse_position"]
     assert abs(a["rmse_position"] - b["rmse_position"]) < 0.25 * b["rmse_position"]
 
 
 def test_same_numbers_with_every_backend(tmp_path):
     distributed = pytest.importorskip("distributed")
-    a = run_comparison(out=tmp_path / "a", **SMALL)
-    b = run_comparison(out=tmp_path / "b", backend=Backend("processes", workers=2), **SMALL)
+    kw = {**SMALL, "runs": 2, "particles": 40, "scenarios": ("indoor-robot", "target-range-bearing")}
+    a = run_comparison(out=tmp_path / "a", **kw)
+    b = run_comparison(out=tmp_path / "b", backend=Backend("processes", workers=2), **kw)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
-        c = run_comparison(out=tmp_path / "c", backend=make_backend(dask=cl.scheduler_address), **SMALL)
+        c = run_comparison(out=tmp_path / "c", backend=make_backend(dask=cl.scheduler_address), **kw)
     assert _numbers(a) == _numbers(b) == _numbers(c)
-    assert c["runner"]["backend"] == "dask" and b["runner"]["workers"] == 2
+    assert len(a["filters"]) == 2 * len(FILTERS)
+    rc, rb = c["runner"]["target-range-bearing"], b["runner"]["indoor-robot"]
+    assert rc["backend"] == "dask" and rb["workers"] == 2 and rb["chunks_computed"] == 2
     on_disk = json.loads((tmp_path / "b" / "results.json").read_text())
     assert _numbers(on_disk) == _numbers(a)
 
 
 def test_the_attack_aware_pf_beats_the_trusting_filters_under_heavy_fdi():
-    res = run_comparison(out=None, runs=6, particles=200, seed=3, quiet=True, sweep_values=(0.4,), chunk_size=6)
+    res = run_comparison(out=None, runs=6, particles=200, seed=3, quiet=True, sweep_values=(0.4,), chunk_size=6,
+                         scenarios=("indoor-robot",))
     row = res["sweeps"]["fdi_prob"]["0.4"]
-    assert row[PF_AWARE]["rmse_position"] < row[PF_PLAIN]["rmse_position"]
-    assert row[PF_AWARE]["rmse_position"] < row[EKF_PLAIN]["rmse_position"]
+    assert row[ROBOT + PF_AWARE]["rmse_position"] < row[ROBOT + PF_PLAIN]["rmse_position"]
+    assert row[ROBOT + PF_AWARE]["rmse_position"] < row[ROBOT + EKF_PLAIN]["rmse_position"]
 
 
 SIGINT_SCRIPT = textwrap.dedent("""
     import sys
     from studies.comparison import run_comparison
-    run_comparison(out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
+    run_comparison(out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1,
+                   scenarios=("indoor-robot",))
 """)
 
 
@@ -229,7 +245,7 @@ def test_sigint_then_resume_equals_an_uninterrupted_study(tmp_path):
     script = tmp_path / "run.py"
     script.write_text(SIGINT_SCRIPT)
     out = tmp_path / "study"
-    log = out / CHUNKS_DIR / "comparison" / "log.jsonl"
+    log = out / CHUNKS_DIR / "comparison-indoor-robot" / "log.jsonl"
     p = subprocess.Popen([sys.executable, str(script), str(out)], cwd=ROOT, stderr=subprocess.PIPE)
     deadline = time.time() + 120
     while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
@@ -241,11 +257,13 @@ def test_sigint_then_resume_equals_an_uninterrupted_study(tmp_path):
     assert not (out / "results.json").exists()
     written = len(log.read_text().splitlines())
     assert 1 <= written < 5
-    resumed = run_comparison(out=out, runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
-    assert resumed["runner"]["chunks_reused"] == written and resumed["runner"]["chunks_computed"] == 5 - written
+    kw = dict(runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1, scenarios=("indoor-robot",))
+    resumed = run_comparison(out=out, **kw)
+    rn = resumed["runner"]["indoor-robot"]
+    assert rn["chunks_reused"] == written and rn["chunks_computed"] == 5 - written
     chunks = [tuple(json.loads(line)["chunk"]) for line in log.read_text().splitlines()]
     assert sorted(chunks) == [(r, r + 1) for r in range(5)]  # none computed twice
-    whole = run_comparison(out=None, runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1)
+    whole = run_comparison(out=None, **kw)
     assert _numbers(resumed) == _numbers(whole)
 
 
@@ -257,3 +275,35 @@ def test_cli_comparison_options(tmp_path, capsys):
     assert main(["study", "rrp-deception", "--out", str(tmp_path), "--dask", "tcp://x:1"]) == 2
     assert main(["study", "comparison", "--out", str(tmp_path), "--set", "dos_prob=0.8", "--set",
                  "fdi_prob=0.5"]) == 2
+    assert main(["study", "comparison", "--out", str(tmp_path), "--set", "no_such_parameter=1"]) == 2
+    assert "no parameter of that name" in capsys.readouterr().err
+    assert main(["study", "comparison", "--out", str(tmp_path), "--scenario", "four-tank"]) == 2
+    assert main(["study", "rrp-deception", "--out", str(tmp_path), "--scenario", "indoor-robot"]) == 2
+
+
+def test_assignments_go_to_the_scenarios_that_have_the_parameter():
+    from studies.comparison import _scenario_assignments
+
+    got = _scenario_assignments(("indoor-robot", "target-range-bearing"),
+                                ["meas_var=2", "dos_prob=0.2", "glint_prob=0.1"])
+    assert got == {"indoor-robot": ["meas_var=2", "dos_prob=0.2"],
+                   "target-range-bearing": ["dos_prob=0.2", "glint_prob=0.1"]}
+
+
+def test_target_scenario_tracks_with_wrapped_bearings():
+    """A sensor right of the target sees bearings near +-pi: the EKF must wrap its residuals."""
+    sc = load_scenario("target-range-bearing", {"sensor_positions": [[60.0, 20.0], [60.0, 35.0]],
+                                                "edges": [[0, 1]], "x0": [20.0, 0.3, 17.0, 0.3]})
+    traj = sc.simulate(np.random.default_rng(0), 60)
+    b = traj.z[:, 1]
+    assert (b > 3.0).any() and (b < -3.0).any()  # the bearing of sensor 1 crosses +-pi
+    wrapped = run_ekf(sc.model, traj.z, angles=sc.extras["angle_components"])
+    raw = run_ekf(sc.model, traj.z)
+    err = lambda res: np.sqrt(((res.x[1:, [0, 2]] - traj.x[1:, [0, 2]]) ** 2).sum(-1).mean())  # noqa: E731
+    assert err(wrapped) < 3.0 < err(raw)
+    ll = uplink_loglik(sc.model, angles=sc.extras["angle_components"])
+    x = traj.x[5][None, None]
+    y0 = np.concatenate([traj.z[4], [1.0, 1.0]])[None]
+    y1 = y0.copy()
+    y1[0, 1] += 2 * np.pi
+    np.testing.assert_allclose(ll(x, 5, y0), ll(x, 5, y1), rtol=1e-12)

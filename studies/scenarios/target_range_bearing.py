@@ -10,6 +10,7 @@ import casadi as ca
 import numpy as np
 
 from designer.model import Model, Sensor
+from designer.network import SensorNetwork
 from designer.noise import Gaussian, UniformBox
 from designer.validation import InputError
 
@@ -37,6 +38,14 @@ PARAMS = (
     Param("rr_start", 1, "Round-Robin gamma_ini: the sensor (1-based) with the first access (3)", kind="int",
           low=1, source="assumption"),
     Param("steps", 120, "time steps K of the study", kind="int", low=1, source="assumption"),
+    Param("edges", [[0, 1], [1, 2], [2, 3], [3, 0]], "undirected sensor links of the consensus network (comparison "
+          "study), 0-based node pairs", kind="array", shape=(None, 2), low=0, source="assumption"),
+    Param("dos_prob", 0.1, "DoS probability on every network channel (comparison study)", low=0.0, high=1.0,
+          source="assumption"),
+    Param("fdi_prob", 0.1, "FDI probability on every network channel (comparison study)", low=0.0, high=1.0,
+          source="assumption"),
+    Param("attack_amplitude", 5.0, "amplitude a (m) of the injected signal xi = a sin(s) on px and py "
+          "(comparison study)", low=0.0, source="assumption"),
 )
 
 
@@ -46,6 +55,13 @@ def build(p: dict) -> Scenario:
         raise InputError("parameter sensor_positions needs at least one sensor")
     if not 1 <= p["rr_start"] <= pos.shape[0]:
         raise InputError(f"parameter rr_start must be an integer in [1, {pos.shape[0]}], got {p['rr_start']}")
+    edges = np.asarray(p["edges"], dtype=float)
+    if edges.size and (np.any(edges != np.round(edges)) or np.any(edges >= pos.shape[0])):
+        raise InputError(f"parameter edges must hold integer node indices in [0, {pos.shape[0] - 1}]")
+    if p["dos_prob"] + p["fdi_prob"] > 1.0:
+        raise InputError("parameters dos_prob + fdi_prob must be <= 1 (DoS and FDI never occur together)")
+    network = SensorNetwork.from_edges(pos.shape[0], edges.astype(int).reshape(-1, 2).tolist(),
+                                       dos_prob=p["dos_prob"], fdi_prob=p["fdi_prob"], require_connected=False)
     x = ca.SX.sym("x", 4)
     noise = glint(p["glint_prob"], np.diag(p["glint_cov1"]), np.diag(p["glint_cov2"]))
     sensors = []
@@ -78,6 +94,10 @@ def build(p: dict) -> Scenario:
         "target-range-bearing: deception follows equations (4)-(6) (eta = 1 means the packet is replaced by xi); "
         "Remark 1's wording, which says the opposite, is taken as a typo.",
         "target-range-bearing: bearings are in (-pi, pi]; residuals are wrapped before the glint density.",
+        f"target-range-bearing (comparison study only): the sensors form a consensus network with links "
+        f"{edges.astype(int).tolist()} (a ring; the paper has no network), DoS {p['dos_prob']} and FDI "
+        f"{p['fdi_prob']} on every channel, injected signal xi = {p['attack_amplitude']} sin(s) m on px and py "
+        "(comparable to the glint range noise, 2-5 m).",
     )
     return Scenario(
         "target-range-bearing",
@@ -86,7 +106,10 @@ def build(p: dict) -> Scenario:
         assumptions,
         steps=p["steps"],
         x0=x0,
+        network=network,
         extras={
+            "attack_amplitude": p["attack_amplitude"],
+            "attack_components": (0, 2),
             "deception_prob": p["deception_prob"],
             "deception": UniformBox(lower, upper),
             "rr_start": p["rr_start"],
