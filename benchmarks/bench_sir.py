@@ -256,9 +256,10 @@ def _draws(rng, n):
 _PARTS = """
 def props(X, XN, K, rng):
     anc = _np.arange(X.shape[0])
+    buf = _np.empty(0)  # unused by a propagation that draws as it goes
     for k in range(K):
         for m0 in range(0, X.shape[0], BLOCK):
-            PROP(X, anc, XN, m0, min(BLOCK, X.shape[0] - m0), float(k), rng)
+            PROP(X, anc, XN, m0, min(BLOCK, X.shape[0] - m0), float(k), rng, buf)
 
 
 def liks(X, K, data, P, ne, b, s):
@@ -297,7 +298,7 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
             "draws": lambda: _draws(np.random.default_rng(1), K * particles * n_w),
             "prop": lambda: props(x, xn, K, np.random.default_rng(1)),
             "lik": lambda: liks(x, K, data, P, ne, b, w),
-            "full": lambda: run(prop, lik, P, ne, weigh, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
+            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
                                 ess, *flags),
         }
         for fn in parts.values():

@@ -40,7 +40,7 @@ from designer.validation import InputError
 
 from .encryption import Codec, Transmission
 
-__all__ = ["received", "interval_probability", "interval_loglik", "raw_loglik", "fixed_mode_model",
+__all__ = ["received", "interval_probability", "sensor_bounds", "interval_loglik", "raw_loglik", "fixed_mode_model",
            "mean_dynamics_model"]
 
 
@@ -106,10 +106,10 @@ def _per_sensor(model: Model, term: Callable) -> Callable:
     return loglik
 
 
-def interval_loglik(model: Model, codec: Codec) -> Callable:
-    """PPF's ``log p(Z(t) | x)`` of (13)-(14) for ``run_sir``: Σ_s α_s log[Φ(H+) - Φ(H-)].
+def sensor_bounds(model: Model, codec: Codec) -> np.ndarray:
+    """``L̄_s = ω_s Λ / K + l_s`` of (12) for each of the model's sensors, shape (N,).
 
-    ``codec.resolution`` and ``codec.quant_scale`` are scalars or one value per sensor.
+    ``codec.resolution`` and ``codec.quant_scale`` must be scalars or one value per sensor.
     """
     if not isinstance(codec, Codec):
         raise InputError(f"codec must be a Codec, got {type(codec).__name__}")
@@ -117,7 +117,15 @@ def interval_loglik(model: Model, codec: Codec) -> Callable:
     if bound.ndim > 1 or bound.size not in (1, model.n_sensors):
         raise InputError(f"codec resolution and quant_scale must be scalars or have one value per sensor "
                          f"({model.n_sensors}) for the likelihood, got bound of shape {bound.shape}")
-    bound = np.broadcast_to(bound, (model.n_sensors,))
+    return np.broadcast_to(bound, (model.n_sensors,))
+
+
+def interval_loglik(model: Model, codec: Codec) -> Callable:
+    """PPF's ``log p(Z(t) | x)`` of (13)-(14) for ``run_sir``: Σ_s α_s log[Φ(H+) - Φ(H-)].
+
+    ``codec.resolution`` and ``codec.quant_scale`` are scalars or one value per sensor.
+    """
+    bound = sensor_bounds(model, codec)
     noises = [s.noise for s in model.sensors]
 
     def term(i, v, h):

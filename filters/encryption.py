@@ -46,7 +46,7 @@ from designer.validation import InputError, check_int, check_positive, check_pro
 
 __all__ = [
     "CRC4_ITU", "Codec", "to_bits", "from_bits", "key_stream", "encrypt", "decrypt", "crc", "crc_ok",
-    "Transmission", "transmit",
+    "Transmission", "transmit", "transmit_runs",
 ]
 
 CRC4_ITU = 0b10011  # x^4 + x + 1 (ITU-T G.704)
@@ -208,24 +208,27 @@ class Transmission(NamedTuple):
     undetected: np.ndarray  # bool: bit errors the CRC missed (a wrong value delivered as available)
 
 
-def transmit(z, codec: Codec, rng: np.random.Generator, *, key=None, bit_error_prob: float = 0.0,
-             dropout_prob: float = 0.0, poly: int = CRC4_ITU) -> Transmission:
-    """Send measurements ``z`` (..., N) through resolution, quantizer, cipher and a lossy channel.
-
-    Draw order (fixed, so that a seed reproduces a run and different error
-    probabilities see the same draws): the key stream (unless ``key`` is given),
-    one uniform per transmitted bit (flipped where ``< bit_error_prob``), one uniform
-    per packet (dropped where ``< dropout_prob``).
-    """
+def _channel_checks(z, codec, bit_error_prob, dropout_prob, poly) -> tuple[np.ndarray, float, float]:
     z = np.asarray(z, dtype=float)
     if z.ndim < 1 or not np.all(np.isfinite(z)):
         raise InputError(f"z must be a finite array (..., N) of measurements, got shape {z.shape}")
     if not isinstance(codec, Codec):
         raise InputError(f"codec must be a Codec, got {type(codec).__name__}")
-    check_rng(rng)
     pe = float(check_probability("bit_error_prob", bit_error_prob))
     pd = float(check_probability("dropout_prob", dropout_prob))
     _generator(poly)  # reject a bad polynomial before drawing anything
+    return z, pe, pd
+
+
+def _channel_draws(rng: np.random.Generator, shape, bits: int, r: int, key) -> tuple:
+    """``(key, bit uniforms (*shape, bits + r), packet uniforms shape)`` in :func:`transmit`'s draw order."""
+    if key is None:
+        key = key_stream(rng, shape, bits)
+    return key, rng.random(tuple(shape) + (bits + r,)), rng.random(shape)
+
+
+def _send(z: np.ndarray, codec: Codec, key, flip_u, drop_u, pe: float, pd: float, poly: int) -> Transmission:
+    """The chain for given draws (no randomness): every stage of :class:`Transmission`."""
     L = codec.bits
     try:
         zr = codec.resolve(z)
@@ -233,13 +236,11 @@ def transmit(z, codec: Codec, rng: np.random.Generator, *, key=None, bit_error_p
     except ValueError as exc:  # a per-sensor setting that does not broadcast against z
         raise InputError(f"resolution and quant_scale must broadcast against z of shape {z.shape}: {exc}") from None
     plain = to_bits(k, L)
-    if key is None:
-        key = key_stream(rng, z.shape, L)
     cipher = encrypt(plain, key)
     check = crc(cipher, poly)
     sent = np.concatenate([cipher, check], axis=-1)
-    flips = (rng.random(sent.shape) < pe).astype(np.uint8)
-    dropped = rng.random(z.shape) < pd
+    flips = (flip_u < pe).astype(np.uint8)
+    dropped = drop_u < pd
     received = sent ^ flips
     passed = crc_ok(received[..., :L], received[..., L:], poly)
     available = ~dropped & passed
@@ -249,3 +250,37 @@ def transmit(z, codec: Codec, rng: np.random.Generator, *, key=None, bit_error_p
     return Transmission(z, zr, k, codec.saturated(zr), plain, np.asarray(key, dtype=np.uint8), cipher, check,
                         received, dec_bits, value, available, dropped, ~dropped & ~passed,
                         ~dropped & corrupted & passed)
+
+
+def transmit(z, codec: Codec, rng: np.random.Generator, *, key=None, bit_error_prob: float = 0.0,
+             dropout_prob: float = 0.0, poly: int = CRC4_ITU) -> Transmission:
+    """Send measurements ``z`` (..., N) through resolution, quantizer, cipher and a lossy channel.
+
+    Draw order (fixed, so that a seed reproduces a run and different error
+    probabilities see the same draws): the key stream (unless ``key`` is given),
+    one uniform per transmitted bit (flipped where ``< bit_error_prob``), one uniform
+    per packet (dropped where ``< dropout_prob``).
+    """
+    z, pe, pd = _channel_checks(z, codec, bit_error_prob, dropout_prob, poly)
+    check_rng(rng)
+    key, flip_u, drop_u = _channel_draws(rng, z.shape, codec.bits, int(poly).bit_length() - 1, key)
+    return _send(z, codec, key, flip_u, drop_u, pe, pd, poly)
+
+
+def transmit_runs(z, codec: Codec, rngs, *, bit_error_prob: float = 0.0, dropout_prob: float = 0.0,
+                  poly: int = CRC4_ITU) -> Transmission:
+    """:func:`transmit` of every run ``z[r]`` (R, ..., N) with its own Generator ``rngs[r]``, the chain batched.
+
+    Run ``r``'s draws are exactly those of ``transmit(z[r], codec, rngs[r], ...)``, so
+    every field equals the stacked per-run transmissions; only the deterministic chain
+    (resolution, quantizer, bits, cipher, CRC) runs once over all runs.
+    """
+    z, pe, pd = _channel_checks(z, codec, bit_error_prob, dropout_prob, poly)
+    if isinstance(rngs, np.random.Generator):
+        raise InputError("rngs must be a sequence of numpy.random.Generator, one per run (got a single Generator)")
+    gens = [check_rng(g) for g in rngs]
+    if z.ndim < 2 or len(gens) != z.shape[0]:
+        raise InputError(f"z must have shape (runs, ..., N) with one run per Generator ({len(gens)}), got {z.shape}")
+    draws = [_channel_draws(g, z.shape[1:], codec.bits, int(poly).bit_length() - 1, None) for g in gens]
+    key, flip_u, drop_u = (np.stack(d) for d in zip(*draws))
+    return _send(z, codec, key, flip_u, drop_u, pe, pd, poly)

@@ -37,17 +37,21 @@ next run until none is left).
 
 Randomness: **one** :class:`numpy.random.Generator` **per run**, drawn from in
 a fixed order (per step: ``n_w`` standard normals per particle, particle after
-particle; then the resampler's uniforms).  A run's result depends only on its
-own generator and data, never on how runs are split between threads.  numba's
-``Generator.standard_normal`` and ``Generator.random`` reproduce NumPy's
-streams bit for bit and that order is the NumPy engine's, so a one-run call
-reproduces ``run_sir(..., runs=1)`` with the same generator to rounding
-(given the same initial particles; the tests check it).
+particle; then the resampler's uniforms).  A model with switching modes or
+Gaussian-mixture process noise (the family of :mod:`filters.fastedpf`) draws per
+step the modes' uniforms, then the components' uniforms, then the normals
+(:func:`_prop_predrawn`), as :func:`filters.particle.transition_proposal` does.
+A run's result depends only on its own generator and data, never on how runs are
+split between threads.  numba's ``Generator.standard_normal`` and
+``Generator.random`` reproduce NumPy's streams bit for bit and that order is the
+NumPy engine's, so a one-run call reproduces ``run_sir(..., runs=1)`` with the
+same generator to rounding (given the same initial particles; the tests check it).
 
 Initial particles are sampled by the caller (``x0``, shape ``(runs, M, n_x)``,
 e.g. ``model.prior.sample(rngs[r], M)`` for each run), so any prior works.
 
-Two likelihood families:
+Two likelihood families here (a third, seed 001's interval and truncated-density
+likelihoods on decrypted values, in :mod:`filters.fastedpf`):
 
 * :func:`sir_packets` — at step ``k`` a set of ``P`` packets, packet ``p`` from
   sensor ``sensors[k, p]`` with received value ``y[r, k, p]``::
@@ -72,9 +76,9 @@ is then zero — sets the run's log marginal likelihood to ``-inf``.  A weight
 below ``exp(-708)`` times the step's largest one counts as zero (it changes no
 sum; libm would give a subnormal).
 
-Limitations: models without known inputs and without switching modes
-(:func:`designer.jit.jit_model`); Gaussian process noise (any ``noise_gain``);
-Gaussian or Gaussian-mixture measurement noise.
+Limitations of :func:`sir_packets` and :func:`sir_binary`: models without known
+inputs and without switching modes (:func:`designer.jit.jit_model`); Gaussian
+process noise (any ``noise_gain``); Gaussian or Gaussian-mixture measurement noise.
 """
 from __future__ import annotations
 
@@ -408,11 +412,14 @@ def _uniform_moments(x, mean, cov, do_cov, W):
 
 
 @numba.njit(**_NJIT)
-def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex):
+def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
     """Propagate every particle and weigh it with step ``t``'s data, block by block; returns the largest ``b``.
 
-    ``prop(X, anc, XN, m0, n, k, rng)`` (generated per model) writes ``f(X[anc[m]], k)
-    + G w`` into ``XN[m]`` (resampling is the ancestor index ``anc``, no copy); the
+    ``prop(X, anc, XN, m0, n, k, rng, buf)`` (generated per model) writes ``f(X[anc[m]], k)
+    + G w`` into ``XN[m]`` (resampling is the ancestor index ``anc``, no copy); it is
+    called for the blocks in order, so a propagation that must draw the whole step's
+    random numbers first (NumPy's order for switching modes or mixture noise, see
+    :func:`_prop_predrawn`) does so into ``buf`` at its first block; the
     new log weight ``lw[m] + log p(y_t | XN[m])`` is left as ``b[m] + log s[m]`` (see
     :func:`_likelihood_block`): ``s`` is a linear factor >= 1, no ``log`` is taken
     here, and a NaN or infinite one becomes ``b = -inf``, ``s = 0`` (zero weight).
@@ -425,7 +432,7 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex):
     best = -math.inf
     for m0 in range(0, M, _BLOCK):
         n = min(_BLOCK, M - m0)
-        prop(X, anc, XN, m0, n, k, rng)
+        prop(X, anc, XN, m0, n, k, rng, buf)
         bb = b[m0:m0 + n]  # views indexed from 0 (see _likelihood_block)
         sb = s[m0:m0 + n]
         for i in range(n):
@@ -441,8 +448,12 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex):
     return best
 
 
-def _sir_run(prop, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled, collapsed):
+def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled,
+             collapsed):
     """One Monte Carlo run of the bootstrap filter; returns its log marginal likelihood.
+
+    ``nd``: random numbers per particle that ``prop`` draws ahead of each step into
+    its scratch (0 for a propagation that draws as it goes).
 
     Each step: :func:`_step` (propagation, and the new log weights as ``b + log s``);
     ``weigh(x, b, s, best, W, mean)`` (generated per model) sets ``W = exp(b - best) s``
@@ -461,6 +472,7 @@ def _sir_run(prop, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, me
     cdf = np.empty(M)
     u = np.empty(M + 1)  # the resampler's scratch
     ex = np.empty(_BLOCK * P * ne)  # the likelihood's scratch (see _likelihood_block)
+    buf = np.empty(M * nd)  # the propagation's scratch (see _step)
     Mf = float(M)
     lnM = math.log(Mf)
     _uniform_moments(x, mean[0], cov[0], do_cov, W)
@@ -470,7 +482,7 @@ def _sir_run(prop, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, me
     for k in range(K):
         mk = mean[k + 1]
         ck = cov[k + 1] if do_cov else cov[0]
-        best = _step(prop, lik, P, ne, x, anc, xn, k, rng, data, lw, fresh, b, s, ex)
+        best = _step(prop, lik, P, ne, x, anc, xn, k, rng, data, lw, fresh, b, s, ex, buf)
         x, xn = xn, x
         if best == -math.inf:
             # Collapse: every weight vanished.  Keep the predicted particles, uniformly weighted.
@@ -513,8 +525,9 @@ _F1, _F2, _F3 = types.float64[::1], types.float64[:, ::1], types.float64[:, :, :
 _I1, _I2, _B1 = types.int64[::1], types.int64[:, ::1], types.boolean[::1]
 _GEN = numba.typeof(np.random.default_rng(0))  # one type for every numpy.random.Generator
 _DATA = {"packets": types.Tuple((_I2, _F3, _F2, types.float64)),  # sens, Y, att, log_clean (see sir_packets)
-         "binary": types.Tuple((_F2, _F2, types.float64))}  # A, B, threshold (see sir_binary)
-_PROP_T = types.FunctionType(types.void(_F2, _I1, _F2, types.int64, types.int64, types.float64, _GEN))
+         "binary": types.Tuple((_F2, _F2, types.float64)),  # A, B, threshold (see sir_binary)
+         "edpf": types.Tuple((_F2, _F2))}  # decrypted values, availabilities (see filters.fastedpf)
+_PROP_T = types.FunctionType(types.void(_F2, _I1, _F2, types.int64, types.int64, types.float64, _GEN, _F1))
 _WEIGH_T = types.FunctionType(types.UniTuple(types.float64, 2)(_F2, _F1, _F1, types.float64, _F1, _F1))
 _DRIVERS: dict = {}
 
@@ -534,7 +547,7 @@ def _drivers(family: str) -> tuple:
     """
     if family not in _DRIVERS:
         lik, data, i8, f8 = _lik_type(family), _DATA[family], types.int64, types.float64
-        sigs = (f8(_PROP_T, lik, i8, i8, _WEIGH_T, data, _F2, _GEN, i8, f8, types.boolean, _F2, _F3, _F1, _B1, _B1),
+        sigs = (f8(_PROP_T, i8, lik, i8, i8, _WEIGH_T, data, _F2, _GEN, i8, f8, types.boolean, _F2, _F3, _F1, _B1, _B1),
                 types.void(lik, i8, i8, _F2, f8, data, _F1))
         out = []
         for fn, sig in zip((_sir_run, _loglik_rows), sigs):
@@ -575,23 +588,89 @@ def _compile(model: Model, key, src: str, fname: str, what: str, ftype, namespac
     return cache[key]
 
 
+def _noise_terms(model: Model, comp: Gaussian, z: str) -> list[str]:
+    """Per state component ``i``, the source of ``(G (mean + L z))_i`` for the Gaussian ``comp`` (constants inlined)."""
+    G = model.noise_gain
+    gm, GL = G @ comp.mean, G @ comp._chol
+    out = []
+    for i in range(model.n_x):
+        noise_i = " + ".join(f"{_c(GL[i, j])} * {z}{j}" for j in range(GL.shape[1]) if GL[i, j] != 0.0) or "0.0"
+        out.append(noise_i if gm[i] == 0.0 else f"{_c(gm[i])} + ({noise_i})")
+    return out
+
+
 def _prop(model: Model):
-    """``prop(X, anc, XN, m0, n, k, rng)``: ``XN[m] = f(X[anc[m]], k) + G (mean + L z)``, ``z ~ N(0, I)``, for
-    ``m = m0 .. m0 + n − 1``: one particle's ``n_w`` normals in a row, particle after particle (NumPy's order)."""
+    """``prop(X, anc, XN, m0, n, k, rng, buf)``: ``XN[m] = f(X[anc[m]], k) + G (mean + L z)``, ``z ~ N(0, I)``,
+    for ``m = m0 .. m0 + n − 1``: one particle's ``n_w`` normals in a row, particle after particle (NumPy's
+    order), drawn as it goes (``buf`` unused: ``nd = 0``)."""
     noise = model.process_noise
     if not isinstance(noise, Gaussian):
         raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; "
                          "the fused kernels need Gaussian process noise")
-    G = model.noise_gain
-    gm, GL = G @ noise.mean, G @ noise._chol
-    n_x, n_w = model.n_x, GL.shape[1]
-    lines = ["def prop(X, anc, XN, m0, n, k, rng):", "    for m in range(m0, m0 + n):", "        a = anc[m]"]
+    lines = ["def prop(X, anc, XN, m0, n, k, rng, buf):", "    for m in range(m0, m0 + n):", "        a = anc[m]"]
     lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, None], "f{}", indent="        ")
-    lines += [f"        z{j} = rng.standard_normal()" for j in range(n_w)]
-    for i in range(n_x):
-        noise_i = " + ".join(f"{_c(GL[i, j])} * z{j}" for j in range(n_w) if GL[i, j] != 0.0) or "0.0"
-        lines.append(f"        XN[m, {i}] = f{i} + ({noise_i if gm[i] == 0.0 else f'{_c(gm[i])} + ({noise_i})'})")
+    lines += [f"        z{j} = rng.standard_normal()" for j in range(noise.dim)]
+    lines += [f"        XN[m, {i}] = f{i} + ({t})" for i, t in enumerate(_noise_terms(model, noise, "z"))]
     return _compile(model, "prop", "\n".join(lines), "prop", "the propagation", _PROP_T)
+
+
+def _choice_count(u: str, probs) -> str:
+    """Source of ``Generator.choice(len(probs), p=probs)`` given its uniform ``u``: NumPy's
+    ``searchsorted(cdf, u, 'right')`` with ``cdf = cumsum(p) / sum(p)``, i.e. the number of ``cdf`` entries
+    ``<= u`` (the last, 1, never is)."""
+    cdf = np.cumsum(np.asarray(probs, dtype=np.float64))
+    cdf /= cdf[-1]
+    return " + ".join(["0"] + [f"({u} >= {_c(c)})" for c in cdf[:-1]])
+
+
+def _prop_predrawn(model: Model) -> tuple:
+    """``(prop, nd)``: the propagation of a model with switching modes and/or Gaussian-mixture process noise.
+
+    It draws as :func:`filters.particle.transition_proposal` does, in blocks per step:
+    ``M`` uniforms for the modes (``Generator.choice`` with ``model.mode_probs``), ``M``
+    uniforms for the mixture's components (``GaussianMixture.sample``: ``choice`` with
+    its weights), then ``M n_w`` standard normals, particle after particle.  These
+    ``nd`` numbers per particle are drawn into ``buf`` at the step's first block
+    (``m0 = 0``, see :func:`_step`), then ``XN[m] = f(X[anc[m]], k, mode) + G (mean_c +
+    L_c z)`` with the particle's mode and component ``c``.  A model without modes and
+    with Gaussian noise gets :func:`_prop` (``nd = 0``), which draws as it goes.
+    """
+    noise = model.process_noise
+    if not model.n_modes and isinstance(noise, Gaussian):
+        return _prop(model), 0
+    if isinstance(noise, Gaussian):
+        comps, weights = [noise], None
+    elif isinstance(noise, GaussianMixture):
+        comps, weights = list(noise.components), noise.weights
+    else:
+        raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; the fused kernels "
+                         "support Gaussian and GaussianMixture process noise")
+    n_w = noise.dim
+    nu = int(model.n_modes > 0) + int(weights is not None)  # blocks of M uniforms: the modes', the labels'
+    nd = nu + n_w
+    cache = _kernels(model)
+    if "prop_predrawn" in cache:
+        return cache["prop_predrawn"], nd
+    lines = ["def prop(X, anc, XN, m0, n, k, rng, buf):", "    M = X.shape[0]", f"    zo = {nu} * M",
+             "    if m0 == 0:  # the whole step's draws, in NumPy's order"]
+    for b in range(nu):
+        lines += [f"        for i in range({b} * M, {b + 1} * M):", "            buf[i] = rng.random()"]
+    lines += [f"        for i in range(zo, zo + M * {n_w}):", "            buf[i] = rng.standard_normal()",
+              "    for m in range(m0, m0 + n):", "        a = anc[m]"]
+    if model.n_modes:
+        lines.append(f"        md = float({_choice_count('buf[m]', model.mode_probs)})")
+    lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, "md" if model.n_modes else None], "f{}",
+                               indent="        ")
+    lines += [f"        z{j} = buf[zo + m * {n_w} + {j}]" for j in range(n_w)]
+    terms = [_noise_terms(model, g, "z") for g in comps]
+    if weights is not None:
+        lines.append(f"        lab = {_choice_count(f'buf[{nu - 1} * M + m]', weights)}")
+    for i in range(model.n_x):
+        sel = terms[-1][i]
+        for c in range(len(comps) - 2, -1, -1):
+            sel = f"({terms[c][i]}) if lab == {c} else ({sel})"
+        lines.append(f"        XN[m, {i}] = f{i} + ({sel})")
+    return _compile(model, "prop_predrawn", "\n".join(lines), "prop", "the propagation", _PROP_T), nd
 
 
 def _weigh(model: Model):
@@ -917,7 +996,7 @@ def _binary_data(model: Model, R: int, A, B, threshold):
 
 # ============================================================================ driver
 def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
-    """``kernels = (prop, lik, P, ne, weigh)`` of :func:`_sir_run`; runs spread over ``workers`` threads."""
+    """``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`; runs spread over ``workers`` threads."""
     run = _drivers(family)[0]
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
@@ -1010,7 +1089,7 @@ def sir_packets(
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     sens, yy, att, lc = _packet_data(model, R, sensors, y, attack, log_clean)
     lik, ne = _packet_lik(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
-    kernels = (_prop(model), lik, sens.shape[1], ne, _weigh(model))
+    kernels = (_prop(model), 0, lik, sens.shape[1], ne, _weigh(model))
     return _run_all("packets", kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr,
                     covariance, workers)
 
@@ -1050,7 +1129,7 @@ def sir_binary(
     gens = _generators(rngs, R)
     scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
     AA, BB, T = _binary_data(model, R, A, B, threshold)
-    kernels = (_prop(model), _binary_lik(model), 0, 0, _weigh(model))
+    kernels = (_prop(model), 0, _binary_lik(model), 0, 0, _weigh(model))
     return _run_all("binary", kernels, lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance,
                     workers)
 

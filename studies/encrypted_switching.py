@@ -7,39 +7,60 @@ as the measurements, the noise density as the likelihood); see
 :mod:`filters.edpf`.  Outputs: RMSE_1(t) and RMSE_2(t) over the runs (Figs. 5-6)
 and their time averages with bootstrap intervals, the one-run figures of the
 states and estimates (Figs. 1-2) and of the ideal, resolution-limited and
-decrypted measurements (Figs. 3-4), time per step with where it goes (proposal,
-likelihood, the rest of the engine), collapses.  The paper prints no numbers;
-its claim is that PPF is best.
+decrypted measurements (Figs. 3-4), time per step (with, on the NumPy engine, where
+it goes: proposal, likelihood, the rest of the engine), collapses.  The paper
+prints no numbers; its claim is that PPF is best.
+
+Engines: ``"fast"`` (default) — the fused numba kernels of :mod:`filters.fastedpf`,
+runs spread over ``workers`` threads; ``"numpy"`` — :func:`filters.particle.run_sir`
+with :mod:`filters.edpf`'s likelihoods, the reference.
+
+Structure: :func:`compute_runs` does the per-run work (data, channel, every filter)
+for a chunk of runs given their SeedSequences and a :class:`RunConfig`, and returns
+a mapping of arrays whose first axis is the run (``functools.partial(compute_runs,
+config=config)`` is a task of a Monte Carlo runner); chunks are joined with
+:func:`concatenate_runs` and :func:`summarize` computes the metrics, tables and
+figures' data from the joined arrays.  :func:`run_encrypted_switching` computes all
+runs as one chunk.
 
 Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(3)`` =
-(truth, channel, filters).  The channel's draws are the key stream, then the
-bit-error and dropout uniforms (:func:`filters.encryption.transmit`).  The NumPy
-engine runs every run in one batch and draws all particles from one Generator
-built from run 0's filter stream; every filter starts that same Generator, so
-the filters share their random numbers as well as their data.
+(truth, channel, filters).  The truth's draws are taken per run before any
+propagation (:func:`designer.simulate.simulate_runs`: x(0), the modes, the process
+noises, each sensor's noises); the channel's are the key stream, then the bit-error
+and dropout uniforms (:func:`filters.encryption.transmit_runs`, as ``transmit``).
+The fast engine gives each run's filters a Generator built from the run's filter
+stream (each filter starts it afresh, so the filters share their random numbers as
+well as their data): a run's numbers depend only on ``seed`` and ``r``, not on the
+number of runs, the chunks or ``workers``.  The NumPy engine runs a chunk in one
+batch and draws all its particles from one Generator built from the chunk's first
+run's filter stream (so its numbers depend on the chunking).
 """
 from __future__ import annotations
 
+import json
 import time
+from functools import lru_cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from designer.simulate import simulate_runs
 from designer.validation import InputError, check_int
 from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model, raw_loglik, received
-from filters.encryption import Codec, transmit
+from filters.encryption import CRC4_ITU, Codec, transmit_runs
 from filters.particle import run_sir, transition_proposal
 
+from .pfrun import ENGINES
 from .progress import progress
-from .results import curves_figure, error_metrics, evaluate_filter, markdown_table, study_header, write_study
-from .scenarios import load_scenario
+from .results import BOOTSTRAP, curves_figure, markdown_table, study_header, write_study
+from .scenarios import get_spec, load_scenario, parse_assignments
 
-__all__ = ["run_encrypted_switching", "FILTERS", "MEAN_DYNAMICS", "PAPER"]
+__all__ = ["run_encrypted_switching", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up",
+           "filter_names", "FILTERS", "MEAN_DYNAMICS", "PAPER"]
 
 FILTERS = ("PPF", "PF-RSN", "PF-SR-DE")
 MEAN_DYNAMICS = "PF-RSN (mean dynamics)"
-ENGINES = ("numpy",)
 PAPER = {
     "source": "seed 001, Sec. IV, Figs. 5-6 (RMSE_1(t), RMSE_2(t) over 50 runs)",
     "numbers": None,
@@ -48,6 +69,7 @@ PAPER = {
     "runs": 50, "particles": 200, "steps": 120,
     "note": "no RMSE values are printed; Figs. 1-6 are not available in the text, so only the ordering is compared",
 }
+ESS_THRESHOLD = 0.5  # resample when ESS < M/2
 
 ASSUMPTIONS = (
     "encrypted-switching: resampling is systematic when ESS < M/2 (Algorithm 1 says only 'if necessary, e.g. when "
@@ -61,11 +83,16 @@ ASSUMPTIONS = (
     "encrypted-switching: every filter starts from the true prior N([2, -2], 1.2^2 I); measurements at t = 1..120; "
     "RMSE_i(t) = sqrt(mean over runs of (x_i - xhat_i)^2), its time average is the mean over t = 1..T, 95 % "
     "intervals are percentile bootstraps over runs.",
-    "encrypted-switching: the filters share the data and the filter random numbers (one Generator from run 0's "
-    "filter stream for the whole batch, so the filter numbers depend on the number of runs).",
+    "encrypted-switching: run r's data come from its own streams (SeedSequence(seed).spawn(runs)[r].spawn(3) = "
+    "truth, channel, filters; the truth's randomness drawn per run before the runs are propagated together). The "
+    "filters share the data and the filter random numbers: on the fast engine (default) one Generator per run from "
+    "its filter stream, restarted for every filter, so a run's numbers do not depend on the number of runs or "
+    "threads; on the NumPy engine one Generator from the first run's filter stream for the whole batch, so the "
+    "filter numbers depend on the number of runs.",
     "encrypted-switching: time_per_step_s = a filter's wall time over all runs divided by runs x T (amortised over "
-    "the batch); time_breakdown_s splits it into the proposal (mode and process-noise draws, f), the likelihood "
-    "(h and the CDFs or densities) and the engine's remainder (weights, moments, ESS, resampling).",
+    "the batch, and over the threads on the fast engine); on the NumPy engine time_breakdown_s splits it into the "
+    "proposal (mode and process-noise draws, f), the likelihood (h and the CDFs or densities) and the engine's "
+    "remainder (weights, moments, ESS, resampling); the fast engine fuses them (its split is null).",
 )
 
 
@@ -82,15 +109,266 @@ class _Timed:
         return out
 
 
+# ============================================================================ per-run work
+class RunConfig(NamedTuple):
+    """Everything a chunk of runs needs besides its seeds (picklable: plain values).
+
+    ``params`` are the full, validated parameters of ``switching-2d`` (``Scenario.params``).
+    """
+
+    particles: int
+    params: Mapping[str, Any]
+    engine: str = "fast"
+    workers: int = 1
+    mean_dynamics_row: bool = True
+
+
+class _Setup(NamedTuple):
+    scenario: Any
+    codec: Codec
+    filters: dict  # name -> (model, likelihood kind, description)
+
+
+@lru_cache(maxsize=8)
+def _setup_of(params_json: str) -> _Setup:
+    # Cached per process: the fused kernels are compiled per model object, so the models must be reused.
+    sc = load_scenario("switching-2d", json.loads(params_json))
+    m = sc.model
+    rsn = fixed_mode_model(m, 1)  # mode 1 <=> gamma = 1 (f active) in switching-2d
+    filters = {
+        "PPF": (m, "interval", "mixture proposal (11), interval likelihood (13)"),
+        "PF-RSN": (rsn, "interval", "gamma = 1 always, interval likelihood (13)"),
+        "PF-SR-DE": (m, "raw", "mixture proposal (11), noise density at the decrypted value"),
+        MEAN_DYNAMICS: (mean_dynamics_model(m), "interval", "F x + 0.5 f + 0.5 g, interval likelihood (13)"),
+    }
+    return _Setup(sc, Codec.of(sc.extras), filters)
+
+
+def _params(overrides, assignments) -> dict:
+    """``switching-2d``'s parameters with ``overrides`` and ``NAME=VALUE`` ``assignments``, validated (as JSON
+    values), without building the model (:func:`_setup` builds it once per process)."""
+    spec = get_spec("switching-2d")
+    values = dict(overrides or {})
+    values.update(parse_assignments(spec, assignments))
+    return {**spec.defaults(), **{name: spec.param(name).validate(v) for name, v in values.items()}}
+
+
+def _setup(config: RunConfig) -> _Setup:
+    return _setup_of(json.dumps(dict(config.params), sort_keys=True))
+
+
+def filter_names(config: RunConfig) -> tuple[str, ...]:
+    """The filters of ``config`` in the order of the filter axis of :func:`compute_runs`' arrays."""
+    return (*FILTERS, *([MEAN_DYNAMICS] if config.mean_dynamics_row else []))
+
+
+def _filters(config: RunConfig) -> dict:
+    return {n: _setup(config).filters[n] for n in filter_names(config)}
+
+
+def _streams(ss: np.random.SeedSequence) -> list[np.random.SeedSequence]:
+    """``ss.spawn(3)`` of a fresh ``ss`` (truth, channel, filters), without changing ``ss``'s spawn counter."""
+    if not isinstance(ss, np.random.SeedSequence):
+        raise InputError(f"seeds must hold numpy.random.SeedSequence, got {type(ss).__name__}")
+    return [np.random.SeedSequence(ss.entropy, spawn_key=ss.spawn_key + (i,), pool_size=ss.pool_size)
+            for i in range(3)]
+
+
+def _check_config(config: RunConfig) -> RunConfig:
+    if not isinstance(config, RunConfig):
+        raise InputError(f"config must be a RunConfig, got {type(config).__name__}")
+    check_int("particles", config.particles, 1)
+    workers = check_int("workers", config.workers, 1)
+    if config.engine not in ENGINES:
+        raise InputError(f"engine must be one of {', '.join(ENGINES)}, got {config.engine!r}")
+    if config.engine == "numpy" and workers != 1:
+        raise InputError(f"workers must be 1 with engine 'numpy' (it runs all runs in one batch), got {workers}")
+    return config
+
+
+def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, config: RunConfig):
+    """``(mean, collapsed, resampled, split)`` of one filter on the chunk's received data ``y`` (n, T, 2 N).
+
+    ``split``: the seconds in the proposal and in the likelihood (NumPy engine), None (fast engine).
+    """
+    M = config.particles
+    if config.engine == "numpy":
+        ll = interval_loglik(model, codec) if kind == "interval" else raw_loglik(model)
+        prop, lik = _Timed(transition_proposal(model)), _Timed(ll)
+        res = run_sir(model, y, np.random.default_rng(filter_ss[0]), particles=M, runs=y.shape[0], loglik=lik,
+                      proposal=prop, resampler="systematic", ess_threshold=ESS_THRESHOLD)
+        return res.mean, res.collapsed, res.resampled, (prop.seconds, lik.seconds)
+    from filters.fastedpf import sir_edpf
+
+    gens = [np.random.default_rng(fs) for fs in filter_ss]
+    x0 = np.stack([model.prior.sample(g, M) for g in gens])  # the first draws of each run's stream, as run_sir
+    res = sir_edpf(model, x0, gens, y, likelihood=kind, codec=codec if kind == "interval" else None,
+                   resampler="systematic", ess_threshold=ESS_THRESHOLD, workers=config.workers)
+    return res.mean, res.collapsed, res.resampled, None
+
+
+def warm_up(config: RunConfig) -> None:
+    """Compile the fast engine's kernels for every filter of ``config`` (one run, two particles, one step).
+
+    A few seconds per model and process at the first call, nothing later; the NumPy engine needs none.
+    """
+    config = _check_config(config)
+    if config.engine != "fast":
+        return
+    from filters.fastedpf import sir_edpf
+
+    setup = _setup(config)
+    y = np.zeros((1, 1, 2 * setup.scenario.model.n_sensors))
+    for model, kind, _ in _filters(config).values():
+        g = np.random.default_rng(0)
+        sir_edpf(model, model.prior.sample(g, (1, 2)), [g], y, likelihood=kind,
+                 codec=setup.codec if kind == "interval" else None, ess_threshold=ESS_THRESHOLD)
+
+
+#: The channel's per-run arrays of :func:`compute_runs` (``Transmission`` fields), each (n, T, N).
+CHANNEL = ("z", "zr", "decrypted", "available", "dropped", "detected", "undetected", "saturated")
+
+
+def compute_runs(run_ids: Sequence[int], seeds: Sequence[np.random.SeedSequence], config: RunConfig, *,
+                 quiet: bool = True) -> dict[str, np.ndarray]:
+    """Data, channel and every filter for the runs ``run_ids``, run ``run_ids[i]`` from its SeedSequence ``seeds[i]``.
+
+    ``seeds[i]`` is ``SeedSequence(seed).spawn(total_runs)[run_ids[i]]`` (``=
+    SeedSequence(seed, spawn_key=(run_ids[i],))``); it is not modified (its three
+    streams are derived as ``spawn(3)`` of a fresh copy would be).  On the fast
+    engine a run's arrays do not depend on the other runs of the chunk, so chunks may
+    be computed anywhere and joined with :func:`concatenate_runs`.
+
+    Returns arrays whose first axis is the chunk's run (``n`` of them), ``F`` filters
+    in the order of :func:`filter_names`:
+
+    ``run`` (n,), ``truth`` (n, T + 1, n_x), the channel's :data:`CHANNEL` arrays
+    (n, T, N), ``mean`` (n, F, T + 1, n_x) weighted means, ``collapsed`` and
+    ``resampled`` (n, F, T) bool, ``seconds`` (n, F) each run's share of the chunk's
+    wall time per filter (compilation excluded), ``seconds_data`` and
+    ``seconds_channel`` (n,) likewise, ``breakdown`` (n, F, 3) the NumPy engine's
+    shares of proposal, likelihood and the rest (NaN on the fast engine, which fuses
+    them).
+    """
+    config = _check_config(config)
+    run_ids = np.asarray(run_ids, dtype=np.int64).reshape(-1)
+    seeds = list(seeds)
+    if run_ids.size < 1 or len(seeds) != run_ids.size:
+        raise InputError(f"run_ids and seeds must be non-empty and of equal length, got {run_ids.size} and "
+                         f"{len(seeds)}")
+    streams = [_streams(ss) for ss in seeds]
+    setup = _setup(config)
+    sc, codec = setup.scenario, setup.codec
+    n, K = run_ids.size, sc.steps
+    warm_up(config)  # a no-op once compiled in this process
+    t0 = time.perf_counter()
+    tr = simulate_runs(sc.model, K, [np.random.default_rng(st[0]) for st in streams], x0=sc.x0,
+                       inputs=sc.inputs(K))
+    t1 = time.perf_counter()
+    tx = transmit_runs(tr.z, codec, [np.random.default_rng(st[1]) for st in streams],
+                       bit_error_prob=sc.extras["bit_error_prob"], dropout_prob=sc.extras["dropout_prob"])
+    y = received(tx)
+    t2 = time.perf_counter()
+    configs = _filters(config)
+    F = len(configs)
+    out = {"run": run_ids, "truth": tr.x, **{k: getattr(tx, k) for k in CHANNEL},
+           "mean": np.empty((n, F, K + 1, sc.model.n_x)), "collapsed": np.empty((n, F, K), dtype=bool),
+           "resampled": np.empty((n, F, K), dtype=bool), "seconds": np.empty((n, F)),
+           "seconds_data": np.full(n, (t1 - t0) / n), "seconds_channel": np.full(n, (t2 - t1) / n),
+           "breakdown": np.full((n, F, 3), np.nan)}
+    filter_ss = [st[2] for st in streams]
+    for j, (model, kind, _) in enumerate(progress(configs.values(), F, quiet, "encrypted-switching filters")):
+        t = time.perf_counter()
+        out["mean"][:, j], out["collapsed"][:, j], out["resampled"][:, j], split = _run_filter(
+            model, kind, codec, y, filter_ss, config)
+        wall = time.perf_counter() - t
+        out["seconds"][:, j] = wall / n
+        if split is not None:  # proposal, likelihood, the rest
+            out["breakdown"][:, j] = np.array([split[0], split[1], wall - split[0] - split[1]]) / n
+    return out
+
+
+def concatenate_runs(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Chunks of :func:`compute_runs` joined along the runs, in the given order."""
+    parts = list(parts)
+    if not parts or any(set(p) != set(parts[0]) for p in parts):
+        raise InputError("parts must be one or more outputs of compute_runs (with the same arrays)")
+    return {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+
+
+# ============================================================================ summary
+def _rmse_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
+    """Mean over steps of ``sqrt(mean over runs of e2)`` (``e2``: (runs, T)) and its 95 % percentile bootstrap.
+
+    The bootstrap of :func:`studies.results.error_metrics` — the same ``BOOTSTRAP``
+    resamples of the runs drawn from ``rng`` alike (the tests check the intervals
+    agree) — with each resample's mean over runs taken as a product of its counts
+    matrix with ``e2`` rather than by gathering ``BOOTSTRAP x runs x T`` values (a tenth
+    of the whole study's time at its default size).
+    """
+    runs = e2.shape[0]
+    value = float(np.sqrt(e2.mean(axis=0)).mean())
+    if runs < 2:
+        return value, [value, value]
+    idx = rng.integers(0, runs, size=(BOOTSTRAP, runs))
+    counts = np.bincount((idx + runs * np.arange(BOOTSTRAP)[:, None]).ravel(), minlength=BOOTSTRAP * runs)
+    boot = np.sqrt((counts.reshape(BOOTSTRAP, runs).astype(np.float64) @ e2) / runs).mean(axis=1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return value, [float(lo), float(hi)]
+
+
 def _state_metrics(err: np.ndarray, rng: np.random.Generator) -> dict:
     """Per-state time-averaged RMSE with its bootstrap interval, the RMSE_i(t) curves, the median run's RMSE."""
-    per = [error_metrics(err, [i], [], rng) for i in range(err.shape[-1])]
+    e2 = err**2
+    per = [_rmse_ci(e2[..., i], rng) for i in range(err.shape[-1])]
     return {
-        "rmse_state": [p["rmse_position"] for p in per],
-        "rmse_state_ci95": [p["rmse_position_ci95"] for p in per],
-        "rmse_state_curve": [p["rmse_position_curve"] for p in per],
-        "rmse_state_median_run": [float(v) for v in np.median(np.sqrt((err**2).mean(axis=1)), axis=0)],
+        "rmse_state": [v for v, _ in per],
+        "rmse_state_ci95": [ci for _, ci in per],
+        "rmse_state_curve": [[float(x) for x in c] for c in np.sqrt(e2.mean(axis=0)).T],
+        "rmse_state_median_run": [float(v) for v in np.median(np.sqrt(e2.mean(axis=1)), axis=0)],
     }
+
+
+def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, seed: int,
+              metrics_rng: np.random.Generator) -> dict:
+    """``results.json``'s content (but ``wall_time_s``) from the joined arrays of every run (:func:`compute_runs`)."""
+    setup = _setup(config)
+    sc, a = setup.scenario, arrays
+    truth = a["truth"]
+    runs, K = truth.shape[0], truth.shape[1] - 1
+    filters: dict[str, dict] = {}
+    means = {}
+    for j, (name, (_, _, what)) in enumerate(_filters(config).items()):
+        means[name] = a["mean"][:, j]
+        col = a["collapsed"][:, j]
+        wall = float(a["seconds"][:, j].sum())
+        split = a["breakdown"][:, j].sum(axis=0)
+        met = _state_metrics(truth[:, 1:] - means[name][:, 1:], metrics_rng)
+        met.update({
+            "time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(col.sum()),
+            "collapsed_runs": int(col.any(axis=1).sum()), "description": what, "particles": config.particles,
+            "engine": config.engine, "resampled_fraction": float(a["resampled"][:, j].mean()),
+            "time_breakdown_s": {k: None if np.isnan(v) else float(v)
+                                 for k, v in zip(("proposal", "likelihood", "engine"), split)},
+        })
+        filters[name] = met
+    if config.mean_dynamics_row:
+        filters[MEAN_DYNAMICS]["note"] = "not in the paper: PF-RSN with the mode-averaged dynamics"
+    results = study_header("encrypted-switching", "switching-2d", runs=runs, particles=config.particles, steps=K,
+                           seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=config.engine,
+                           workers=config.workers)
+    results.update({
+        "filters": filters,
+        "sweeps": {},
+        "paper": PAPER,
+        "claim_check": _claim_check(filters, truth, means),
+        "transmission": _transmission_summary(a, setup.codec),
+        "timing_s": {"data": float(a["seconds_data"].sum()), "channel": float(a["seconds_channel"].sum()),
+                     "filters": {n: f["wall_time_s"] for n, f in filters.items()},
+                     "paper_filters": sum(filters[n]["wall_time_s"] for n in FILTERS)},
+        "params": dict(sc.params),
+    })
+    return results
 
 
 def run_encrypted_switching(
@@ -103,7 +381,7 @@ def run_encrypted_switching(
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
     workers: int = 1,
-    engine: str = "numpy",
+    engine: str = "fast",
     mean_dynamics_row: bool = True,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out`` (None: no files).
@@ -115,92 +393,25 @@ def run_encrypted_switching(
     overrides, assignments
         Scenario parameters of ``switching-2d`` (e.g. ``bit_error_prob``, ``dropout_prob``).
     workers : int
-        Only 1: the NumPy engine runs all runs in one batch.
-    engine : {"numpy"}
-        Only the NumPy engine: the fused kernels do not support switching modes yet.
+        Threads the fast engine spreads the runs over (the results do not depend on
+        it); 1 with the NumPy engine, which runs all runs in one batch.
+    engine : {"fast", "numpy"}
+        The fused numba kernels (:mod:`filters.fastedpf`) or the NumPy reference (``run_sir``).
     mean_dynamics_row : bool
         Also run PF-RSN with the mode-averaged dynamics (not in the paper).
     """
     runs = check_int("runs", runs, 2)
     particles = check_int("particles", particles, 1)
     seed = check_int("seed", seed, 0)
-    if check_int("workers", workers, 1) != 1:
-        raise InputError(f"workers must be 1 for encrypted-switching (the NumPy engine runs all runs in one batch), "
-                         f"got {workers}")
-    if engine not in ENGINES:
-        raise InputError(f"engine must be 'numpy' for encrypted-switching (the fused kernels do not support "
-                         f"switching modes yet), got {engine!r}")
     t_start = time.perf_counter()
-    sc = load_scenario("switching-2d", overrides, assignments)
-    m, K = sc.model, sc.steps
-    codec = Codec.of(sc.extras)
-    errors = dict(bit_error_prob=sc.extras["bit_error_prob"], dropout_prob=sc.extras["dropout_prob"])
-
-    seqs = [ss.spawn(3) for ss in np.random.SeedSequence(seed).spawn(runs)]
-    truth = np.empty((runs, K + 1, m.n_x))
-    z = np.empty((runs, K, m.n_z))
-    t0 = time.perf_counter()
-    for r in progress(range(runs), runs, quiet, "encrypted-switching data"):
-        tr = sc.simulate(np.random.default_rng(seqs[r][0]), K)
-        truth[r], z[r] = tr.x, tr.z
-    t1 = time.perf_counter()
-    txs = [transmit(z[r], codec, np.random.default_rng(seqs[r][1]), **errors) for r in range(runs)]
-    y = np.stack([received(tx) for tx in txs])
-    t2 = time.perf_counter()
-
-    rsn = fixed_mode_model(m, 1)  # mode 1 <=> gamma = 1 (f active) in switching-2d
-    configs = {  # name: (filter model, likelihood, description)
-        "PPF": (m, interval_loglik(m, codec), "mixture proposal (11), interval likelihood (13)"),
-        "PF-RSN": (rsn, interval_loglik(rsn, codec), "gamma = 1 always, interval likelihood (13)"),
-        "PF-SR-DE": (m, raw_loglik(m), "mixture proposal (11), noise density at the decrypted value"),
-    }
-    if mean_dynamics_row:
-        avg = mean_dynamics_model(m)
-        configs[MEAN_DYNAMICS] = (avg, interval_loglik(avg, codec), "F x + 0.5 f + 0.5 g, interval likelihood (13)")
-
+    config = _check_config(RunConfig(particles, _params(overrides, assignments), engine, workers,
+                                     bool(mean_dynamics_row)))
+    _setup(config)  # builds the scenario once per process and parameters (the builder's own checks raise here)
+    seqs = np.random.SeedSequence(seed).spawn(runs)
+    arrays = compute_runs(range(runs), seqs, config, quiet=quiet)
     metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
-    filters: dict[str, dict] = {}
-    means: dict[str, np.ndarray] = {}
-    for name, (model, ll, what) in progress(configs.items(), len(configs), quiet, "encrypted-switching filters"):
-        prop, lik, kept = _Timed(transition_proposal(model)), _Timed(ll), {}
-
-        def run(model=model, prop=prop, lik=lik, kept=kept):
-            res = run_sir(model, y, np.random.default_rng(seqs[0][2]), particles=particles, runs=runs, loglik=lik,
-                          proposal=prop, resampler="systematic", ess_threshold=0.5)
-            kept["res"] = res
-            return res.mean, res.collapsed
-
-        met, _ = evaluate_filter(run, truth, (), (), metrics_rng)
-        res = kept["res"]
-        means[name] = res.mean
-        for key in [k for k in met if k.startswith(("rmse_position", "rmse_velocity"))]:
-            del met[key]  # no positions or velocities in this model: per-state metrics instead
-        met.update(_state_metrics(truth[:, 1:] - res.mean[:, 1:], metrics_rng))
-        met.update({
-            "description": what, "particles": particles, "engine": engine,
-            "resampled_fraction": float(res.resampled.mean()),
-            "time_breakdown_s": {"proposal": prop.seconds, "likelihood": lik.seconds,
-                                 "engine": met["wall_time_s"] - prop.seconds - lik.seconds},
-        })
-        filters[name] = met
-    if mean_dynamics_row:
-        filters[MEAN_DYNAMICS]["note"] = "not in the paper: PF-RSN with the mode-averaged dynamics"
-
-    results = study_header("encrypted-switching", "switching-2d", runs=runs, particles=particles, steps=K, seed=seed,
-                           assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine, workers=workers)
-    results.update({
-        "filters": filters,
-        "sweeps": {},
-        "paper": PAPER,
-        "claim_check": _claim_check(filters, truth, means),
-        "transmission": _transmission_summary(txs, codec),
-        "timing_s": {"data": t1 - t0, "channel": t2 - t1,
-                     "filters": {n: f["wall_time_s"] for n, f in filters.items()},
-                     "paper_filters": sum(filters[n]["wall_time_s"] for n in FILTERS)},
-        "params": dict(sc.params),
-    })
-    return write_study(out, results, t_start, lambda d: _figures(d, truth[0], txs[0], means, filters),
-                       table_markdown)
+    results = summarize(arrays, config, seed=seed, metrics_rng=metrics_rng)
+    return write_study(out, results, t_start, lambda d: _figures(d, arrays, results["filters"]), table_markdown)
 
 
 def _claim_check(filters: dict, truth: np.ndarray, means: dict) -> dict:
@@ -221,18 +432,15 @@ def _claim_check(filters: dict, truth: np.ndarray, means: dict) -> dict:
     return out
 
 
-def _transmission_summary(txs, codec: Codec) -> dict:
-    avail = np.stack([tx.available for tx in txs])
-    err = np.stack([np.abs(tx.z - tx.decrypted) for tx in txs])
+def _transmission_summary(a: Mapping[str, np.ndarray], codec: Codec) -> dict:
+    err = np.abs(a["z"] - a["decrypted"])
     return {
-        "packets": int(avail.size), "available_fraction": float(avail.mean()),
-        "dropped": int(sum(tx.dropped.sum() for tx in txs)),
-        "crc_detected": int(sum(tx.detected.sum() for tx in txs)),
-        "crc_undetected": int(sum(tx.undetected.sum() for tx in txs)),
-        "saturated": int(sum(tx.saturated.sum() for tx in txs)),
-        "bits_per_packet": codec.bits, "crc_bits": int(txs[0].checksum.shape[-1]),
-        "bound_L_bar": np.broadcast_to(codec.bound, (txs[0].z.shape[-1],)).tolist(),
-        "max_abs_z_minus_decrypted": np.nanmax(err, axis=(0, 1)).tolist() if avail.any() else None,
+        "packets": int(a["available"].size), "available_fraction": float(a["available"].mean()),
+        "dropped": int(a["dropped"].sum()), "crc_detected": int(a["detected"].sum()),
+        "crc_undetected": int(a["undetected"].sum()), "saturated": int(a["saturated"].sum()),
+        "bits_per_packet": codec.bits, "crc_bits": CRC4_ITU.bit_length() - 1,
+        "bound_L_bar": np.broadcast_to(codec.bound, (a["z"].shape[-1],)).tolist(),
+        "max_abs_z_minus_decrypted": np.nanmax(err, axis=(0, 1)).tolist() if a["available"].any() else None,
     }
 
 
@@ -247,7 +455,8 @@ def table_markdown(results: dict) -> str:
             row[f"rmse{i}"] = f"{v:.4g} [{lo:.3g}, {hi:.3g}]"
             row[f"median{i}"] = med
         tb = f["time_breakdown_s"]
-        row["split"] = " / ".join(f"{100 * tb[k] / f['wall_time_s']:.0f}" for k in ("proposal", "likelihood", "engine"))
+        row["split"] = "fused" if tb["proposal"] is None else " / ".join(
+            f"{100 * tb[k] / f['wall_time_s']:.0f}" for k in ("proposal", "likelihood", "engine"))
         rows[name] = row
     cols = [("rmse1", "RMSE_1"), ("rmse2", "RMSE_2"), ("median1", "RMSE_1 median run"),
             ("median2", "RMSE_2 median run"), ("time_per_step_s", "time/step s"),
@@ -276,15 +485,16 @@ def table_markdown(results: dict) -> str:
     return text
 
 
-def _figures(out: Path, truth0: np.ndarray, tx0, means: dict, filters: dict) -> None:
+def _figures(out: Path, a: Mapping[str, np.ndarray], filters: dict) -> None:
+    truth0, j = a["truth"][0], {n: i for i, n in enumerate(filters)}
     for i in range(truth0.shape[-1]):
         curves_figure(out / f"fig_state{i + 1}.png",
-                      {"true state": truth0[1:, i], **{n: means[n][0, 1:, i] for n in FILTERS}},
+                      {"true state": truth0[1:, i], **{n: a["mean"][0, j[n], 1:, i] for n in FILTERS}},
                       f"x{i + 1}(t)", f"One run: x{i + 1} and its estimates (cf. Fig. {i + 1})")
         curves_figure(out / f"fig_rmse_{i + 1}.png", {n: f["rmse_state_curve"][i] for n, f in filters.items()},
                       f"RMSE_{i + 1}(t)", f"RMSE of x{i + 1} (cf. Fig. {i + 5})", log=True)
-    for s in range(tx0.z.shape[-1]):
+    for s in range(a["z"].shape[-1]):
         curves_figure(out / f"fig_measurements_s{s + 1}.png",
-                      {"ideal z": tx0.z[:, s], "actual (resolution) zr": tx0.zr[:, s],
-                       "decrypted z~": tx0.decrypted[:, s]},
+                      {"ideal z": a["z"][0, :, s], "actual (resolution) zr": a["zr"][0, :, s],
+                       "decrypted z~": a["decrypted"][0, :, s]},
                       f"sensor {s + 1}", f"Sensor {s + 1}: ideal, actual and decrypted measurements (cf. Fig. {s + 3})")

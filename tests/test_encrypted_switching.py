@@ -49,8 +49,9 @@ def test_results_table_and_figures(study):
         assert len(f["rmse_state"]) == 2 and all(len(c) == 120 for c in f["rmse_state_curve"])
         for v, (lo, hi), curve in zip(f["rmse_state"], f["rmse_state_ci95"], f["rmse_state_curve"]):
             assert lo <= v <= hi and v == pytest.approx(np.mean(curve))
-        tb = f["time_breakdown_s"]
-        assert tb["proposal"] > 0 and tb["likelihood"] > 0 and tb["engine"] > 0
+        tb = f["time_breakdown_s"]  # the fast engine (default) fuses proposal, likelihood and engine
+        assert f["engine"] == "fast" and set(tb) == {"proposal", "likelihood", "engine"}
+        assert all(v is None for v in tb.values()) and f["wall_time_s"] > 0
         assert "rmse_position" not in f
     tx = on_disk["transmission"]
     assert tx["available_fraction"] == 1.0 and tx["bits_per_packet"] == 3 and tx["crc_bits"] == 4
@@ -76,6 +77,14 @@ def test_a_seed_reproduces_the_study():
     assert a["filters"]["PPF"]["rmse_state"] != c["filters"]["PPF"]["rmse_state"]
 
 
+def test_numpy_engine_reports_where_the_time_goes():
+    res = _small(seed=2, engine="numpy")
+    for f in res["filters"].values():
+        tb = f["time_breakdown_s"]
+        assert f["engine"] == "numpy" and tb["proposal"] > 0 and tb["likelihood"] > 0 and tb["engine"] > 0
+        assert sum(tb.values()) == pytest.approx(f["wall_time_s"])
+
+
 def test_transmission_errors_make_measurements_unavailable():
     res = _small(seed=1, overrides={"bit_error_prob": 0.05, "dropout_prob": 0.2})
     tx = res["transmission"]
@@ -85,8 +94,9 @@ def test_transmission_errors_make_measurements_unavailable():
 
 
 @pytest.mark.parametrize("kw, name", [
-    ({"engine": "fast"}, "engine"),
-    ({"workers": 2}, "workers"),
+    ({"engine": "gpu"}, "engine"),
+    ({"engine": "numpy", "workers": 2}, "workers"),
+    ({"workers": 0}, "workers"),
     ({"runs": 1}, "runs"),
     ({"particles": 0}, "particles"),
     ({"seed": -1}, "seed"),
