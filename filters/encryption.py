@@ -96,7 +96,10 @@ class Codec:
     def resolve(self, z) -> np.ndarray:
         """Resolution (3): ``l trunc(z / l)``, i.e. floor for z >= l, 0 in (-l, l), ceil for z <= -l."""
         z = np.asarray(z, dtype=float)
-        return self.resolution * np.trunc(z / self.resolution) + 0.0  # + 0.0: no negative zeros
+        zr = self.resolution * np.trunc(z / self.resolution)
+        # z / l can round up onto the next grid point (6.6 / 0.04 -> 165.0, 165 * 0.04 = 6.6000000000000005):
+        # never let rounding push |zr| past |z|; + 0.0: no negative zeros
+        return np.copysign(np.minimum(np.abs(zr), np.abs(z)), z) + 0.0
 
     def index(self, zr) -> np.ndarray:
         """Quantizer cell ``k`` in 1..K of ``zr / ω`` (4), half-open cells, clipped at saturation."""

@@ -98,7 +98,7 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
         (["design", "indoor-robot", "--beta", "500"], "beta"),
         (["design", "indoor-robot", "--set", "edges=[[0,1],[2,3]]"], "disconnected"),
         (["design", "indoor-robot", "--set", "prior_var=-1"], "prior_var"),
-        (["design", "target-range-bearing"], "no sensor network"),
+        (["design", "switching-2d"], "no sensor network"),
         (["design", "indoor-robot", "--mode", "tuned", "--sigma", "0.1"], "sigma"),
         (["study", "consensus-robot", "--mode", "bogus"], "--mode"),
         (["study", "consensus-robot", "--runs", "1"], "runs"),
