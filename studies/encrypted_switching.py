@@ -37,6 +37,7 @@ run's filter stream (so its numbers depend on the chunking).
 """
 from __future__ import annotations
 
+import functools
 import json
 import time
 from functools import lru_cache
@@ -53,6 +54,7 @@ from filters.particle import run_sir, transition_proposal
 
 from .pfrun import ENGINES
 from .progress import progress
+from .runner import Backend, monte_carlo
 from .results import BOOTSTRAP, curves_figure, markdown_table, study_header, write_study
 from .scenarios import get_spec, load_scenario, parse_assignments
 
@@ -371,6 +373,9 @@ def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, seed: int,
     return results
 
 
+CHUNK_SIZE = 25  # runs per stored chunk: part of the study (fixes the NumPy engine's batches), not of the backend
+
+
 def run_encrypted_switching(
     *,
     out: str | Path | None,
@@ -383,6 +388,9 @@ def run_encrypted_switching(
     workers: int = 1,
     engine: str = "fast",
     mean_dynamics_row: bool = True,
+    backend: Backend | None = None,
+    force: bool = False,
+    chunk_size: int = CHUNK_SIZE,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out`` (None: no files).
 
@@ -393,12 +401,16 @@ def run_encrypted_switching(
     overrides, assignments
         Scenario parameters of ``switching-2d`` (e.g. ``bit_error_prob``, ``dropout_prob``).
     workers : int
-        Threads the fast engine spreads the runs over (the results do not depend on
-        it); 1 with the NumPy engine, which runs all runs in one batch.
+        Threads the fast engine spreads a chunk's runs over (the results do not depend on
+        it); 1 with the NumPy engine, which runs a chunk in one batch.
     engine : {"fast", "numpy"}
         The fused numba kernels (:mod:`filters.fastedpf`) or the NumPy reference (``run_sir``).
     mean_dynamics_row : bool
         Also run PF-RSN with the mode-averaged dynamics (not in the paper).
+    backend, force, chunk_size
+        The Monte Carlo runner (:mod:`studies.runner`): where the chunks of ``chunk_size`` runs
+        are computed (this process, local processes or Dask; identical numbers), and whether
+        runs stored in ``out`` by an earlier or interrupted call are recomputed.
     """
     runs = check_int("runs", runs, 2)
     particles = check_int("particles", particles, 1)
@@ -407,10 +419,17 @@ def run_encrypted_switching(
     config = _check_config(RunConfig(particles, _params(overrides, assignments), engine, workers,
                                      bool(mean_dynamics_row)))
     _setup(config)  # builds the scenario once per process and parameters (the builder's own checks raise here)
-    seqs = np.random.SeedSequence(seed).spawn(runs)
-    arrays = compute_runs(range(runs), seqs, config, quiet=quiet)
-    metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
+    warm_up(config)  # compile before timing; forked workers inherit the kernels
+    manifest = {"study": "encrypted-switching", "particles": particles, "engine": config.engine,
+                "mean_dynamics_row": config.mean_dynamics_row,
+                "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in config.params.items()}}
+    mc = monte_carlo(functools.partial(compute_runs, config=config), runs=runs, seed=seed, chunk_size=chunk_size,
+                     backend=backend, store=out, label="encrypted-switching", config=manifest, force=force,
+                     quiet=quiet)
+    arrays = mc.arrays
+    metrics_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31,)))
     results = summarize(arrays, config, seed=seed, metrics_rng=metrics_rng)
+    results["runner"] = mc.describe()
     return write_study(out, results, t_start, lambda d: _figures(d, arrays, results["filters"]), table_markdown)
 
 

@@ -107,3 +107,38 @@ def test_transmission_errors_make_measurements_unavailable():
 def test_bad_inputs_name_the_parameter(kw, name):
     with pytest.raises(InputError, match=name):
         run_encrypted_switching(out=None, quiet=True, **kw)
+
+
+def _same_numbers(a: dict, b: dict) -> bool:
+    """results.json numbers, without timings and the runner's description."""
+    import json
+
+    def strip(r):
+        r = json.loads(json.dumps(r))
+        for key in ("wall_time_s", "runner", "versions", "timing_s"):
+            r.pop(key, None)
+        for f in r["filters"].values():
+            for key in ("time_per_step_s", "wall_time_s", "time_breakdown_s"):
+                f.pop(key, None)
+        return r
+
+    return strip(a) == strip(b)
+
+
+def test_runner_backends_give_the_same_numbers_and_resume(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from studies.runner import Backend, make_backend
+
+    kw = dict(runs=4, particles=30, seed=3, quiet=True, chunk_size=2, mean_dynamics_row=False)
+    a = run_encrypted_switching(out=tmp_path / "a", **kw)
+    b = run_encrypted_switching(out=tmp_path / "b", backend=Backend("processes", workers=2), **kw)
+    assert _same_numbers(a, b) and b["runner"]["chunks_computed"] == 2
+    again = run_encrypted_switching(out=tmp_path / "a", **kw)
+    assert again["runner"]["chunks_reused"] == 2 and _same_numbers(a, again)
+    with pytest.raises(InputError, match="--force"):
+        run_encrypted_switching(out=tmp_path / "a", **{**kw, "particles": 40})
+    n = dict(kw, engine="numpy")
+    c = run_encrypted_switching(out=None, **n)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        d = run_encrypted_switching(out=None, backend=make_backend(dask=cl.scheduler_address), **n)
+    assert _same_numbers(c, d)
