@@ -12,16 +12,28 @@ the paper states for it.  Tables 3 and 4, the detection figures (Figs. 8-11), th
 attack-estimate error case (Figs. 13-14) and the γ̄ = 1 case, with the paper's
 numbers beside ours.
 
-Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(4)`` = (plant
-and measurement noise, attack occurrences, particles, attack-estimate error).
-Every filter of every setting draws its particles from a fresh Generator on the
-third stream, so the filters of a run share their particles (the paper: "the same
-set of particles is considered in both cases"); the noise levels and the γ̄ = 1
-case share the plant draws (the high noise is √5 times the low one, draw for draw)
-and the attack occurrences ``l_k``.
+Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(5)`` (=
+``SeedSequence(seed).spawn(runs)[r].spawn(5)``) = (plant and measurement noise,
+attack occurrences, particles, attack-estimate error, the sampled correction's
+own draws).  Every filter of every setting draws its particles from a fresh
+Generator on the third stream, so the filters of a run share their particles (the
+paper: "the same set of particles is considered in both cases"); the noise levels
+and the γ̄ = 1 case share the plant draws (the high noise is √5 times the low one,
+draw for draw) and the attack occurrences ``l_k``.  The bootstrap intervals use
+``SeedSequence(seed, spawn_key=(2**31,))``.  Nothing is shared between runs, so a
+run's numbers depend only on ``seed`` and its index.
+
+The runs are computed by :mod:`studies.runner` in chunks of ``chunk_size`` runs
+(:func:`_runs` is the task: every setting and filter on a chunk, one batched NumPy
+program per filter, returning per-run arrays), in this process, in local worker
+processes or on a Dask cluster with identical numbers, and an interrupted study
+resumes from the chunks stored in ``out``.  Metrics, tables and figures are
+computed afterwards from the concatenated arrays.
 """
 from __future__ import annotations
 
+import functools
+import json
 import time
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple
@@ -29,15 +41,15 @@ from typing import Any, Mapping, NamedTuple
 import numpy as np
 
 from designer.validation import InputError, check_int
-from filters.fdi import (attack_threshold, bias_attack, deception_mixture_loglik, detection_counts, detection_gain,
-                         false_alarm_condition, measurement_cov, measurement_matrix, modified_detector,
+from filters.fdi import (attack_threshold, attack_values, bias_attack, deception_mixture_loglik, detection_counts,
+                         detection_gain, false_alarm_condition, measurement_cov, measurement_matrix, modified_detector,
                          normal_detector, residual_threshold, run_sis, uniform_loglik)
 
-from .progress import progress
 from .results import curves_figure, error_metrics, markdown_table, save_figure, study_header, write_study
+from .runner import Backend, monte_carlo
 from .scenarios import load_scenario
 
-__all__ = ["run_fdi_four_tank", "FILTERS", "PAPER_TABLE3", "PAPER_TABLE4", "TABLE3_COLUMNS"]
+__all__ = ["run_fdi_four_tank", "FILTERS", "PAPER_TABLE3", "PAPER_TABLE4", "TABLE3_COLUMNS", "CHUNK_SIZE"]
 
 NOATT = "normal PF (no attack)"
 NORMAL = "normal PF (under attack)"
@@ -65,6 +77,8 @@ PAPER_TABLE4 = {
 }
 NORM_BANDS = (0.5, 1.0, 1.5)  # edges (besides ||gamma||_min) of the attack-norm bands of the gamma-bar = 1 case
 SINGLE_RUN_REPEATS = 3  # one-run timings: the best of this many repetitions
+CHUNK_SIZE = 5  # runs per chunk of the Monte Carlo runner (one batched NumPy program per filter and setting)
+BOOTSTRAP_KEY = 2**31  # spawn key of the bootstrap intervals' stream, outside the runs' keys
 
 ASSUMPTIONS = (
     "fdi-four-tank: RMSE (primary, the paper's 'RMSE ... to compare the estimation results with the normal PF "
@@ -100,11 +114,17 @@ ASSUMPTIONS = (
     "the extra row 'weights 1/N'.",
     "fdi-four-tank: the non-Gaussian variant samples the corrected particles from N(f + K(y - G f), Q - K G Q) "
     "(35) given the previous particles (its importance correction uses the true transition density), residuals "
-    "weighted 1/N as in (58); its own draws come from a separate stream.",
-    "fdi-four-tank: time_per_step_s = a filter's wall time (its detector included) over all runs (one batched "
-    "NumPy program) / (runs x K); "
+    "weighted 1/N as in (58); its own draws come from a fifth stream of each run, run by run.",
+    "fdi-four-tank: time_per_step_s = a filter's wall time (its detector included) summed over the chunks of "
+    "runs (each chunk one batched NumPy program of chunk_size runs, timed wherever it ran) / (runs x K); the "
+    "sampled correction's detector runs run by run (each run its own stream); "
     "time_per_step_single_run_s = the same filter on run 0 alone / K, best of 3 (closer to the paper's tic-toc of "
     "one run; at N = 100 it is dominated by the fixed cost of a NumPy call per step).",
+    "fdi-four-tank: randomness: run r uses SeedSequence(seed, spawn_key=(r,)).spawn(5) = (plant and measurement "
+    "noise, attack occurrences, particles, attack-estimate error, the sampled correction's draws), the bootstrap "
+    "intervals SeedSequence(seed, spawn_key=(2**31,)); nothing is shared between runs, so a run's numbers do not "
+    "depend on the number of runs or the backend. The runs are computed in chunks of chunk_size consecutive runs; "
+    "the filters batch the runs of a chunk, so the last bits of floating-point sums may depend on chunk_size.",
 )
 
 
@@ -151,93 +171,215 @@ def _design(sc, sc_low, particles: int) -> _Design:
     })
 
 
-def _filter_specs(sc, d: _Design, data: _Data, which, noisy_estimate: bool) -> dict:
-    """name -> (measurements, run_sis keyword arguments) for the filters in ``which``."""
+def _per_run(detector):
+    """``detector`` applied run by run, run ``r`` drawing from ``rngs[r]`` (given to :func:`run_sis` as aux_rng).
+
+    The sampled correction draws particles; one Generator for a batch of runs would make a
+    run's draws depend on the runs batched with it (the chunking).
+    """
+    def detect(x_prev, x, k1, z_k, rngs):
+        return np.concatenate([detector(x_prev[r:r + 1], x[r:r + 1], k1, z_k[r:r + 1], g)
+                               for r, g in enumerate(rngs)])
+
+    return detect
+
+
+def _filter_specs(sc, d: _Design, which) -> dict:
+    """name -> (measurements ``"y"`` or ``"y_att"``, run_sis keyword arguments, takes gamma_hat) for ``which``."""
     m = sc.model
-    gamma_hat = data.gamma_hat if noisy_estimate else data.gamma
-    sampled = modified_detector(m, d.eta, correction="sampled", inputs=sc.inputs(sc.steps))
-    specs = {
-        NOATT: (data.y, dict(detector=normal_detector(m, d.eta), zeta=d.zeta)),
-        NORMAL: (data.y_att, dict(detector=normal_detector(m, d.eta), zeta=d.zeta)),
-        NORMAL_LIN: (data.y_att, dict(detector=normal_detector(m, d.eta, linear_weights=True), zeta=d.zeta,
-                                      linear_weights=True)),
-        PROPOSED: (data.y_att, dict(detector=modified_detector(m, d.eta), zeta=d.zeta, gamma_hat=gamma_hat)),
-        SAMPLED: (data.y_att, dict(detector=sampled, zeta=d.zeta, gamma_hat=gamma_hat)),
-        L31: (data.y_att, dict(loglik=deception_mixture_loglik(m, attack_prob=sc.extras["attack_prob"],
-                                                               deception=sc.extras["attack_bias"]))),
-        L31_UNIFORM: (data.y_att, dict(loglik=uniform_loglik)),
-    }
-    return {n: specs[n] for n in which}
+    out = {}
+    for n in which:
+        if n == NOATT:
+            out[n] = ("y", dict(detector=normal_detector(m, d.eta), zeta=d.zeta), False)
+        elif n == NORMAL:
+            out[n] = ("y_att", dict(detector=normal_detector(m, d.eta), zeta=d.zeta), False)
+        elif n == NORMAL_LIN:
+            out[n] = ("y_att", dict(detector=normal_detector(m, d.eta, linear_weights=True), zeta=d.zeta,
+                                    linear_weights=True), False)
+        elif n == PROPOSED:
+            out[n] = ("y_att", dict(detector=modified_detector(m, d.eta), zeta=d.zeta), True)
+        elif n == SAMPLED:
+            sampled = modified_detector(m, d.eta, correction="sampled", inputs=sc.inputs(sc.steps))
+            out[n] = ("y_att", dict(detector=_per_run(sampled), zeta=d.zeta), True)
+        elif n == L31:
+            out[n] = ("y_att", dict(loglik=deception_mixture_loglik(m, attack_prob=sc.extras["attack_prob"],
+                                                                    deception=sc.extras["attack_bias"])), False)
+        elif n == L31_UNIFORM:
+            out[n] = ("y_att", dict(loglik=uniform_loglik), False)
+    return out
 
 
-def _run(sc, z, seqs, particles: int, aux: np.random.SeedSequence, **kw):
+class _Plan(NamedTuple):
+    """One setting of the study: its scenario, filters (the first is the no-attack reference) and design."""
+
+    sc: Any
+    which: tuple
+    design: _Design
+    specs: dict  # of _filter_specs
+    noisy_estimate: bool = False
+    single_run: bool = False  # also time every filter on run 0 alone
+
+
+@functools.lru_cache(maxsize=4)
+def _plans(params_json: str, particles: int) -> tuple[dict, dict]:
+    """The settings (key -> _Plan) and which of them is each noise level, built once per process.
+
+    Every setting is the study's scenario with a few parameters changed: ``main`` (every
+    filter), the other noise level, ``noisy`` (low noise, noisy attack estimate), ``bias1``
+    (γ̄ = 1), ``plant`` (a plant with process noise) and ``eta_high`` (high noise, η by (45)
+    at the high R).  A memo of a pure function (scenarios and CasADi functions are costly).
+    """
+    params = json.loads(params_json)
+
+    def variant(**changes):
+        return load_scenario("four-tank", {**params, **changes})
+
+    def plan(sc, which, design=None, **kw):
+        d = _design(sc, sc_low, particles) if design is None else design
+        return _Plan(sc, tuple(which), d, _filter_specs(sc, d, which), **kw)
+
+    sc_low = variant(noise="low")
+    sc = variant()
+    plans = {"main": plan(sc, FILTERS, single_run=True)}
+    levels = {params["noise"]: "main"}
+    for lv in ("low", "high"):
+        if lv not in levels:
+            plans[f"noise_{lv}"] = plan(variant(noise=lv), (NOATT, PROPOSED))
+            levels[lv] = f"noise_{lv}"
+    plans["noisy"] = plan(sc_low, (NOATT, PROPOSED), plans[levels["low"]].design, noisy_estimate=True)
+    plans["bias1"] = plan(variant(attack_bias=[1.0] * sc.model.n_z), (NOATT, NORMAL, NORMAL_LIN, PROPOSED))
+    plans["plant"] = plan(variant(noise="low", plant_noise=True), (NOATT, PROPOSED))
+    d_hi = plans[levels["high"]].design
+    plans["eta_high"] = plan(variant(noise="high"), (NOATT, PROPOSED),
+                             d_hi._replace(eta=d_hi.thresholds["eta_recomputed_here"]))
+    return plans, levels
+
+
+def _key(setting: str, name: str, what: str) -> str:
+    return f"{setting}_{FILTERS.index(name)}_{what}"
+
+
+def _runs(run_ids, seeds, *, params_json: str, particles: int) -> dict:
+    """Task of the runner: every setting and filter on the runs ``run_ids``; per-run arrays.
+
+    Keys per setting ``s``: ``s_truth`` (R, K + 1, n_x), ``s_l`` (R, K) attack occurrences,
+    ``s_gamma_hat`` (R, K, n_y) (the noisy setting); per filter ``f`` (index in ``FILTERS``):
+    ``s_f_mean`` (R, K + 1, n_x), ``s_f_detected`` (R, K) (with a detector), ``s_f_collapsed``
+    (R,) collapsed steps, ``s_f_final_ess`` (R,), ``s_f_seconds`` (R,) the chunk's wall time
+    shared equally by its runs, and in the main setting ``s_f_single_s`` (R,) the best of
+    ``SINGLE_RUN_REPEATS`` timings of run 0 alone (NaN for the other runs).
+    """
+    plans, _ = _plans(params_json, particles)
+    seqs = [s.spawn(5) for s in seeds]
+    R = len(seqs)
+    out = {}
+    for key, p in plans.items():
+        sc = p.sc
+        data = _data(sc, seqs)
+        out[f"{key}_truth"], out[f"{key}_l"] = data.truth, data.l
+        if p.noisy_estimate:
+            out[f"{key}_gamma_hat"] = data.gamma_hat
+        gamma_hat = data.gamma_hat if p.noisy_estimate else data.gamma
+        for name in p.which:
+            zname, kw, takes_gamma = p.specs[name]
+            z = getattr(data, zname)
+            extra = {"gamma_hat": gamma_hat} if takes_gamma else {}
+            res = _run(sc, z, seqs, particles, **kw, **extra)
+            out[_key(key, name, "mean")] = res.mean
+            if "detector" in kw:
+                out[_key(key, name, "detected")] = res.detected
+            out[_key(key, name, "collapsed")] = res.collapsed.sum(axis=1)
+            out[_key(key, name, "final_ess")] = res.ess[:, -1]
+            out[_key(key, name, "seconds")] = np.full(R, res.wall_time_s / R)
+            if p.single_run:
+                single = np.full(R, np.nan)
+                hit = np.flatnonzero(np.asarray(run_ids) == 0)
+                if hit.size:
+                    a = int(hit[0])
+                    one = {"gamma_hat": gamma_hat[a:a + 1] if gamma_hat.ndim == 3 else gamma_hat} if takes_gamma \
+                        else {}
+                    single[a] = min(_run(sc, z[a:a + 1], seqs[a:a + 1], particles, **kw, **one).wall_time_s
+                                    for _ in range(SINGLE_RUN_REPEATS))
+                out[_key(key, name, "single_s")] = single
+    return out
+
+
+def _run(sc, z, seqs, particles: int, **kw):
+    """run_sis with each run's particle Generator (stream 2) and its own Generator for the detector (stream 4)."""
     rngs = [np.random.default_rng(s[2]) for s in seqs]
-    return run_sis(sc.model, z, rngs, particles=particles, inputs=sc.inputs(sc.steps),
-                   aux_rng=np.random.default_rng(aux), **kw)
+    aux = [np.random.default_rng(s[4]) for s in seqs]
+    return run_sis(sc.model, z, rngs, particles=particles, inputs=sc.inputs(sc.steps), aux_rng=aux, **kw)
 
 
-def _counts(res, data: _Data, gamma_min: float, attacked: bool) -> dict:
-    l = data.l if attacked else np.zeros_like(data.l)
-    total = detection_counts(l, res.detected, data.gamma, gamma_min)._asdict()
-    first = detection_counts(l[:1], res.detected[:1], data.gamma, gamma_min)._asdict()
+class _Outcome(NamedTuple):
+    """One setting's results over all runs (from the runner's arrays)."""
+
+    filters: dict  # name -> metrics
+    mean: dict  # name -> (runs, K + 1, n_x)
+    detected: dict  # name -> (runs, K) bool, filters with a detector
+    truth: np.ndarray  # (runs, K + 1, n_x)
+    l: np.ndarray  # (runs, K) bool
+    gamma: np.ndarray  # (K, n_y)
+    gamma_hat: np.ndarray | None  # (runs, K, n_y) of the noisy setting
+    design: _Design
+
+
+def _counts(detected, l, gamma, gamma_min: float, attacked: bool) -> dict:
+    l = l if attacked else np.zeros_like(l)
+    total = detection_counts(l, detected, gamma, gamma_min)._asdict()
+    first = detection_counts(l[:1], detected[:1], gamma, gamma_min)._asdict()
     runs = l.shape[0]
     return {**total, "runs": runs, "steps": int(l.shape[1]),
             "per_run": {k: v / runs for k, v in total.items()}, "run0": first}
 
 
-def _scores(res, ref_mean, truth, rng) -> dict:
+def _scores(mean, ref_mean, truth, seconds, collapsed, final_ess, rng) -> dict:
     n_x = truth.shape[-1]
-    err = res.mean[:, 1:] - ref_mean[:, 1:]
+    err = mean[:, 1:] - ref_mean[:, 1:]
     a = error_metrics(err, range(n_x), (), rng)
-    b = error_metrics(res.mean[:, 1:] - truth[:, 1:], range(n_x), (), rng)
+    b = error_metrics(mean[:, 1:] - truth[:, 1:], range(n_x), (), rng)
     K = err.shape[1]
+    wall = float(seconds.sum())
     return {
         "rmse": a["rmse_position"], "rmse_ci95": a["rmse_position_ci95"],
         "rmse_run0": float(np.linalg.norm(err[0], axis=-1).mean()),
         "rmse_components": a["rmse_state"], "rmse_curve": a["rmse_position_curve"],
         "rmse_truth": b["rmse_position"], "rmse_truth_ci95": b["rmse_position_ci95"], "rmse_state": b["rmse_state"],
         "rmse_truth_curve": b["rmse_position_curve"],
-        "time_per_step_s": res.wall_time_s / (err.shape[0] * K), "wall_time_s": res.wall_time_s,
-        "collapsed_steps": int(res.collapsed.sum()), "final_ess": float(res.ess[:, -1].mean()),
+        "time_per_step_s": wall / (err.shape[0] * K), "wall_time_s": wall,
+        "collapsed_steps": int(collapsed.sum()), "final_ess": float(final_ess.mean()),
     }
 
 
-class _Setting(NamedTuple):
-    filters: dict  # name -> metrics
-    results: dict  # name -> SISResult
-    data: _Data
-    design: _Design
+def _outcome(key: str, p: _Plan, A: dict, rng) -> _Outcome:
+    """Metrics of setting ``key`` from the concatenated arrays ``A`` (filters in ``p.which`` order)."""
+    sc = p.sc
+    gamma = attack_values(sc.steps, sc.extras["attack_bias"], sc.extras["attack_tau"])
+    truth, l = A[f"{key}_truth"], A[f"{key}_l"]
+    gmin = p.design.thresholds["gamma_min"]
+    filters, means, detected = {}, {}, {}
+    for name in p.which:
+        means[name] = A[_key(key, name, "mean")]
+        met = _scores(means[name], means[NOATT], truth, A[_key(key, name, "seconds")],
+                      A[_key(key, name, "collapsed")], A[_key(key, name, "final_ess")], rng)
+        if p.single_run:
+            met["time_per_step_single_run_s"] = float(A[_key(key, name, "single_s")][0]) / sc.steps
+        if _key(key, name, "detected") in A:
+            detected[name] = A[_key(key, name, "detected")]
+            met["detection"] = _counts(detected[name], l, gamma, gmin, attacked=name != NOATT)
+        filters[name] = met
+    return _Outcome(filters, means, detected, truth, l, gamma, A.get(f"{key}_gamma_hat"), p.design)
 
 
-def _setting(sc, sc_low, seqs, particles, aux, metrics_rng, which, *, quiet: bool, label: str,
-             design: _Design | None = None, noisy_estimate: bool = False, single_run: bool = False) -> _Setting:
-    """Run the filters ``which`` (the first is the no-attack reference) on one scenario setting."""
-    d = _design(sc, sc_low, particles) if design is None else design
-    data = _data(sc, seqs)
-    gmin = d.thresholds["gamma_min"]
-    out, results = {}, {}
-    specs = _filter_specs(sc, d, data, which, noisy_estimate)
-    for name, (z, kw) in progress(specs.items(), len(specs), quiet, label):
-        results[name] = _run(sc, z, seqs, particles, aux, **kw)
-        met = _scores(results[name], results[NOATT].mean, data.truth, metrics_rng)
-        if single_run:
-            best = min(_run(sc, z[:1], seqs[:1], particles, aux, **kw).wall_time_s for _ in range(SINGLE_RUN_REPEATS))
-            met["time_per_step_single_run_s"] = best / sc.steps
-        if "detector" in kw:
-            met["detection"] = _counts(results[name], data, gmin, attacked=name != NOATT)
-        out[name] = met
-    return _Setting(out, results, data, d)
-
-
-def _bands(res, data: _Data, gamma_min: float) -> list[dict]:
-    norms = np.linalg.norm(data.gamma, axis=-1)
+def _bands(detected, l, gamma, gamma_min: float) -> list[dict]:
+    norms = np.linalg.norm(gamma, axis=-1)
     edges = [0.0, gamma_min, *[e for e in NORM_BANDS if e > gamma_min], np.inf]
     rows = []
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (norms > lo) & (norms <= hi)
-        att = data.l[:, sel]
+        att = l[:, sel]
         rows.append({"norm_above": lo, "norm_up_to": None if np.isinf(hi) else hi, "attacks": int(att.sum()),
-                     "missed": int((att & ~res.detected[:, sel]).sum())})
+                     "missed": int((att & ~detected[:, sel]).sum())})
     return rows
 
 
@@ -250,88 +392,90 @@ def run_fdi_four_tank(
     quiet: bool = False,
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
-    workers: int = 1,
     engine: str = "numpy",
+    backend: Backend | None = None,
+    force: bool = False,
+    chunk_size: int = CHUNK_SIZE,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
 
     Parameters
     ----------
+    out : path or None
+        Output directory (results, figures, reports, and the runner's stored chunks under
+        ``out/.chunks/fdi-four-tank``); None writes nothing and stores no chunk.
     runs, particles : int
         Monte Carlo runs (the paper reports one realisation; we average over runs and
         also report run 0) and particles ``N`` (paper: 100).
     overrides, assignments
         Four-tank scenario parameters (``noise=high`` makes the high noise the default
         setting; Table 3 always has both noise levels).
-    workers : int
-        Only 1: every run is one batched NumPy array program.
     engine : {"numpy"}
         Only the NumPy SIS engine of :mod:`filters.fdi` exists for this study.
+    backend : studies.runner.Backend, optional
+        Batched in this process (default), local processes or a Dask cluster: identical numbers.
+    force : bool
+        Recompute runs already stored in ``out`` (needed when they were computed with other
+        settings).
+    chunk_size : int
+        Runs per chunk (default ``CHUNK_SIZE`` = 5): each filter runs the runs of a chunk as one
+        batched NumPy program; the unit of resumption and of work sent to a worker; part of the
+        study's configuration, never derived from the backend.
     """
     runs = check_int("runs", runs, 1)
     particles = check_int("particles", particles, 2)
     seed = check_int("seed", seed, 0)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
     if engine != "numpy":
         raise InputError(f"engine: fdi-four-tank has only the NumPy SIS engine ('numpy'), got {engine!r}")
-    if check_int("workers", workers, 1) != 1:
-        raise InputError(f"workers: fdi-four-tank runs all runs as one batched NumPy program; only 1 is supported, "
-                         f"got {workers!r}")
     t_start = time.perf_counter()
-    sc = load_scenario("four-tank", overrides, assignments)
-    params = dict(sc.params)
-
-    def variant(**changes):
-        return load_scenario("four-tank", {**params, **changes})
-
-    sc_low = variant(noise="low")
-    top = np.random.SeedSequence(seed).spawn(runs + 2)
-    common = ([s.spawn(4) for s in top[:runs]], particles, top[runs + 1], np.random.default_rng(top[runs]))
-
-    main = _setting(sc, sc_low, *common, FILTERS, quiet=quiet, label="fdi-four-tank filters", single_run=True)
-    levels = {sc.params["noise"]: main}
-    for lv in ("low", "high"):
-        if lv not in levels:
-            levels[lv] = _setting(variant(noise=lv), sc_low, *common, (NOATT, PROPOSED), quiet=quiet,
-                                  label=f"{lv} noise")
-    noisy = _setting(sc_low, sc_low, *common, (NOATT, PROPOSED), quiet=quiet, label="noisy gamma-hat",
-                     design=levels["low"].design, noisy_estimate=True)
-    table3 = {col: _table3_column(lv, st.filters[PROPOSED])
-              for col, lv, st in zip(TABLE3_COLUMNS, ("low", "high", "low, noisy gamma-hat"),
-                                     (levels["low"], levels["high"], noisy))}
+    sc0 = load_scenario("four-tank", overrides, assignments)
+    params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc0.params.items()}
+    params_json = json.dumps(params, sort_keys=True)
+    plans, levels = _plans(params_json, particles)
+    task = functools.partial(_runs, params_json=params_json, particles=particles)
+    config = {"study": "fdi-four-tank", "scenario": "four-tank", "params": params, "particles": particles,
+              "engine": engine, "settings": {k: list(p.which) for k, p in plans.items()},
+              "streams": "run r: SeedSequence(seed, spawn_key=(r,)).spawn(5)"}
+    mc = monte_carlo(task, runs=runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
+                     label="fdi-four-tank", config=config, force=force, quiet=quiet)
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(BOOTSTRAP_KEY,)))
+    res = {key: _outcome(key, p, mc.arrays, rng) for key, p in plans.items()}  # in the settings' order
+    main, noisy, b1 = res["main"], res["noisy"], res["bias1"]
+    lv = {name: res[key] for name, key in levels.items()}
+    table3 = {col: _table3_column(setting, st.filters[PROPOSED])
+              for col, setting, st in zip(TABLE3_COLUMNS, ("low", "high", "low, noisy gamma-hat"),
+                                          (lv["low"], lv["high"], noisy))}
 
     # gamma-bar = 1: the normal PF misses small and large attacks (Fig. 9), the proposed detects them (Fig. 10)
-    b1 = _setting(variant(attack_bias=[1.0] * sc.model.n_z), sc_low, *common, (NOATT, NORMAL, NORMAL_LIN, PROPOSED),
-                  quiet=quiet, label="gamma-bar = 1")
     gmin = main.design.thresholds["gamma_min"]
     shown = (NORMAL_LIN, NORMAL, PROPOSED)
-    bias1 = {"attack_bias": [1.0] * sc.model.n_z,
+    bias1 = {"attack_bias": [1.0] * sc0.model.n_z,
              "detection": {n: b1.filters[n]["detection"] for n in shown},
-             "missed_by_attack_norm": {n: _bands(b1.results[n], b1.data, gmin) for n in shown}}
+             "missed_by_attack_norm": {n: _bands(b1.detected[n], b1.l, b1.gamma, gmin) for n in shown}}
 
     # Sensitivity: a plant with process noise; eta recomputed by (45) at the high noise
-    plant = _setting(variant(noise="low", plant_noise=True), sc_low, *common, (NOATT, PROPOSED), quiet=quiet,
-                     label="plant noise")
-    d_hi = levels["high"].design
-    eta_hi = d_hi.thresholds["eta_recomputed_here"]
-    recomputed = _setting(variant(noise="high"), sc_low, *common, (NOATT, PROPOSED), quiet=quiet,
-                          label="eta at high R", design=d_hi._replace(eta=eta_hi))
+    plant, recomputed = res["plant"], res["eta_high"]
     sensitivity = {
         "plant_noise_low_R": {"rmse": plant.filters[PROPOSED]["rmse"],
                               "detection": plant.filters[PROPOSED]["detection"],
                               "note": "the plant simulated with the process noise N(0, Q) that the filters assume"},
-        "eta_recomputed_high_R": {"eta": eta_hi, "rmse": recomputed.filters[PROPOSED]["rmse"],
+        "eta_recomputed_high_R": {"eta": recomputed.design.eta, "rmse": recomputed.filters[PROPOSED]["rmse"],
                                   "detection": recomputed.filters[PROPOSED]["detection"]},
     }
 
     detection = {n: {k: f["detection"][k] for k in ("false_alarms", "missed", "stealthy", "attacks", "detected",
                                                      "runs", "steps", "per_run", "run0")}
                  for n, f in main.filters.items() if "detection" in f}
-    results = study_header("fdi-four-tank", "four-tank", runs=runs, particles=particles, steps=sc.steps, seed=seed,
-                           assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine, workers=workers)
+    b = mc.backend
+    results = study_header("fdi-four-tank", "four-tank", runs=runs, particles=particles, steps=sc0.steps, seed=seed,
+                           assumptions=list(sc0.assumptions) + list(ASSUMPTIONS), engine=engine,
+                           workers=b.workers if b.kind == "processes" else (1 if b.kind == "batched" else None),
+                           runner=mc.describe())
     results.update({
         "filters": main.filters,
         "detection": detection,
-        "thresholds": {lv: st.design.thresholds for lv, st in levels.items()},
+        "thresholds": {name: st.design.thresholds for name, st in lv.items()},
         "table3": table3,
         "attack_bias_1": bias1,
         "sensitivity": sensitivity,
@@ -342,10 +486,10 @@ def run_fdi_four_tank(
                              "Fig. 10: the proposed PF detects every attack above ||gamma||_min (gamma-bar = 1)",
                              "Fig. 11: 5 false alarms at the high R",
                              "Table 4: RMSE proposed < method of [31] < normal PF under attack"]},
-        "params": params,
+        "params": dict(sc0.params),
     })
-    figs = {"main": main, "low": levels["low"], "high": levels["high"], "noisy": noisy, "b1": b1, "gmin": gmin}
-    return write_study(out, results, t_start, lambda d: _figures(d, sc, figs), table_markdown)
+    figs = {"main": main, "low": lv["low"], "high": lv["high"], "noisy": noisy, "b1": b1, "gmin": gmin}
+    return write_study(out, results, t_start, lambda d: _figures(d, sc0, figs), table_markdown)
 
 
 def _table3_column(setting: str, f: dict) -> dict:
@@ -429,14 +573,14 @@ def _figures(out: Path, sc, figs: dict) -> None:
 
     def detection_figure(path, st, names, title):
         fig, axes = plt.subplots(1 + len(names), 1, figsize=(8, 2.2 * (1 + len(names))), sharex=True)
-        gn = np.linalg.norm(st.data.gamma, axis=-1)
+        gn = np.linalg.norm(st.gamma, axis=-1)
         axes[0].plot(k, gn, "k-", lw=1.2, label="||gamma_k||")
-        axes[0].step(k, st.data.l[0] * gn.max(), where="mid", lw=0.6, alpha=0.6, label="l_k (scaled)")
+        axes[0].step(k, st.l[0] * gn.max(), where="mid", lw=0.6, alpha=0.6, label="l_k (scaled)")
         axes[0].axhline(gmin, color="r", ls="--", lw=0.8, label="||gamma||_min")
         axes[0].legend(fontsize=7, loc="lower right")
         axes[0].set(title=title)
         for ax, n in zip(axes[1:], names):
-            _detection_panel(ax, st.data.l[0], st.results[n].detected[0], n)
+            _detection_panel(ax, st.l[0], st.detected[n][0], n)
         axes[-1].set(xlabel="time step k")
         save_figure(fig, path)
 
@@ -450,9 +594,9 @@ def _figures(out: Path, sc, figs: dict) -> None:
     main = figs["main"]
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     for j, ax in enumerate(axes.ravel()):
-        ax.plot(np.arange(K + 1), main.data.truth[0, :, j], "k-", lw=1.5, label="truth")
+        ax.plot(np.arange(K + 1), main.truth[0, :, j], "k-", lw=1.5, label="truth")
         for n in (NOATT, NORMAL, PROPOSED, L31):
-            ax.plot(np.arange(K + 1), main.results[n].mean[0, :, j], lw=1.0, label=n)
+            ax.plot(np.arange(K + 1), main.mean[n][0, :, j], lw=1.0, label=n)
         ax.set(ylabel=f"{sc.model.state_names[j]} (cm)")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("One run: levels and estimates (cf. Figs. 7, 15)")
@@ -460,8 +604,8 @@ def _figures(out: Path, sc, figs: dict) -> None:
 
     noisy = figs["noisy"]
     fig, ax = plt.subplots(figsize=(8, 3))
-    ax.plot(k, np.linalg.norm(noisy.data.gamma, axis=-1), "k-", label="||gamma_k||")
-    ax.plot(k, np.linalg.norm(noisy.data.gamma_hat[0], axis=-1), lw=0.8, label="||gammahat_k||")
+    ax.plot(k, np.linalg.norm(noisy.gamma, axis=-1), "k-", label="||gamma_k||")
+    ax.plot(k, np.linalg.norm(noisy.gamma_hat[0], axis=-1), lw=0.8, label="||gammahat_k||")
     ax.set(xlabel="time step k", title="Attack estimate with error covariance 1e-2 I (cf. Fig. 13), run 0")
     ax.legend(fontsize=8)
     save_figure(fig, out / "fig_gamma_hat.png")

@@ -108,7 +108,8 @@ def test_results_table_and_figures_on_disk(study):
 
 @pytest.mark.parametrize("kw, needle", [
     ({"engine": "fast"}, "engine"),
-    ({"workers": 2}, "workers"),
+    ({"backend": "processes"}, "backend"),
+    ({"chunk_size": 0}, "chunk_size"),
     ({"runs": 0}, "runs"),
     ({"particles": 1}, "particles"),
     ({"assignments": ["attack_tau=1"]}, "attack_tau"),
