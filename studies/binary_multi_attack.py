@@ -7,31 +7,43 @@ RMSE curves (Figs. 4-5), the one-parameter sweeps of φ̄ (DoS), ϕ̄ (deception
 ᾱ (flipping) for Sec-PF (Figs. 6-11), and Table II (Sec-PF with M = 200, 400,
 600: time per step, RMSE_p, RMSE_v), with the paper's numbers beside ours.
 
-Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(3)`` =
-(truth, channel, filters).  The channel's draws (DoS, deception, deception
-signal, flips, channel noise, in that order) are replayed from the same seed for
-every setting, so the attack-free data of Sta-PF differ from the attacked data
-only where an attack happened, and a larger attack probability attacks a superset
-of the packets.
+Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(3)`` (=
+``SeedSequence(seed).spawn(runs)[r].spawn(3)``) = (truth, channel, filters).  The
+channel's draws (DoS, deception, deception signal, flips, channel noise, in that
+order) are replayed from the same seed for every setting, so the attack-free data
+of Sta-PF differ from the attacked data only where an attack happened, and a
+larger attack probability attacks a superset of the packets.
+
+The runs are computed by :func:`studies.runner.monte_carlo` in chunks of
+``chunk_size`` runs (a task simulating the chunk's data and running every filter
+configuration, sweeps and Table II included, on it); metrics, tables and figures
+come from the concatenated per-run arrays.  With the fast engine (one Generator
+per run) the numbers do not depend on the backend, the chunk size or the number
+of threads; the NumPy engine draws one Generator per chunk.  With ``out`` the
+chunks are stored there and an interrupted study resumes.
 """
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from designer.validation import InputError, check_int
 from filters.channels import binary_sensor_channel
 
-from .pfrun import run_binary
-from .progress import progress
-from .results import (curves_figure, cv_velocity_at_position_rmse, evaluate_filter, markdown_table, rmse_with_ci, save_figure, study_header,
-                      trajectory_figure, write_study)
+from .pfrun import cached_scenario, check_engine, check_threads, plain_params, run_binary, score
+from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
+                      study_header, trajectory_figure, write_study)
+from .runner import Backend, monte_carlo, run_seed
 from .scenarios import load_scenario
 
-__all__ = ["run_binary_multi_attack", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES"]
+__all__ = ["run_binary_multi_attack", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE"]
+
+SCENARIO = "target-binary-energy"
+CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
 
 FILTERS = ("Sec-PF", "Sta-PF-Neg", "Sta-PF")
 SWEEP = (0.1, 0.3, 0.5)  # values not printed in the paper (assumption)
@@ -54,14 +66,115 @@ ASSUMPTIONS = (
     "limiting case: a fair-coin flip makes every received bit independent of the state (likelihood (13) is then "
     "constant in x), so Sec-PF runs on its prior and the error grows with the prior's velocity spread.",
     "binary-multi-attack: Table II is Sec-PF at the Table I setting (the paper does not say which filter).",
-    "binary-multi-attack: time_per_step_s = the filter's wall time over all runs divided by runs x K (amortised "
-    "over runs run together); the paper's times are for one run's step in MATLAB on a 2.5 GHz PC.",
+    "binary-multi-attack: time_per_step_s = the filter's wall time summed over the chunks of runs (compilation "
+    "excluded) divided by runs x K (amortised over the runs of a chunk, run together; chunks computed in "
+    "parallel, or resumed from an earlier call, keep the time measured where and when they ran); the paper's "
+    "times are for one run's step in MATLAB on a 2.5 GHz PC.",
     "binary-multi-attack: kalman_velocity_at_paper_rmse_position = the velocity RMSE of the steady-state Kalman "
     "filter of the CV model (Xi = 0.045^2) when the position is measured directly with the noise that gives the "
     "paper's RMSE_p: about 0.27-0.28 against the published 0.16-0.17 (position and velocity figures do not fit "
     "one process-noise level).",
     "binary-multi-attack: resampling is systematic at every step (scheme not named).",
+    "binary-multi-attack: the runs are computed in chunks of chunk_size runs (default 10); the fast engine draws "
+    "from one Generator per run, so its numbers do not depend on the chunks, threads or backend; with "
+    "engine='numpy' a whole chunk's particles come from one Generator (the filter stream of the chunk's first "
+    "run), so those numbers depend on chunk_size.",
 )
+
+
+class _Filter(NamedTuple):
+    """One filter configuration computed by the task (picklable)."""
+
+    name: str
+    stream: int  # its random stream: run r's SeedSequence(seed, spawn_key=(r,)).spawn(3)[2].spawn(n)[stream]
+    data_probs: tuple  # (dos, deception, flip) probabilities of the channel that produced its data
+    filter_probs: tuple  # the probabilities its likelihood assumes, same order
+    particles: int
+
+
+def _channel(sc) -> dict:
+    ex = sc.extras
+    return dict(threshold=ex["threshold"], gain=ex["channel_gain"], channel_noise=ex["channel_noise"],
+                deception=ex["deception"])
+
+
+def _data(sc, seeds: Sequence[np.random.SeedSequence], filters: Sequence[_Filter], n_streams: int):
+    """Truth, the received signals of every channel setting the filters use, and the filter streams."""
+    m, K, chan = sc.model, sc.steps, _channel(sc)
+    R = len(seeds)
+    truth = np.empty((R, K + 1, m.n_x))
+    keys = list(dict.fromkeys(f.data_probs for f in filters))
+    data = {key: np.empty((R, K, m.n_sensors)) for key in keys}
+    streams = []
+    for a, seq in enumerate(seeds):
+        s_truth, s_channel, s_filters = seq.spawn(3)
+        tr = sc.simulate(np.random.default_rng(s_truth), K)
+        truth[a] = tr.x
+        for key in keys:  # the channel's draws replayed from the same seed for every setting
+            data[key][a] = binary_sensor_channel(tr.z, **dict(zip(SWEEP_PARAMS, key)), **chan,
+                                                 rng=np.random.default_rng(s_channel)).y
+        streams.append(s_filters.spawn(n_streams))
+    return truth, data, streams
+
+
+def _warm_up(sc, data: Mapping, filters: Sequence[_Filter], engine: str) -> None:
+    """Compile the fused kernels (one variant serves every filter here; once compiled: one tiny call)."""
+    f = filters[0]
+    run_binary(sc.model, data[f.data_probs], [], particles=f.particles, engine=engine, warm_up=True,
+               **_channel(sc), **dict(zip(SWEEP_PARAMS, f.filter_probs)))
+
+
+def _runs(run_ids, seeds, *, params: Mapping[str, Any], engine: str, threads: int, filters: Sequence[_Filter],
+          n_streams: int) -> dict:
+    """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
+
+    Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
+    ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
+    wall time for that filter, compilation excluded).
+    """
+    sc = cached_scenario(SCENARIO, params)
+    m, K, chan = sc.model, sc.steps, _channel(sc)
+    truth, data, streams = _data(sc, seeds, filters, n_streams)
+    _warm_up(sc, data, filters, engine)
+    R, F = len(seeds), len(filters)
+    mean = np.empty((R, F, K + 1, m.n_x))
+    collapsed = np.empty((R, F, K), dtype=bool)
+    seconds = np.empty((R, F))
+    for j, f in enumerate(filters):
+        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
+        t0 = time.perf_counter()
+        mean[:, j], collapsed[:, j] = run_binary(m, data[f.data_probs], rngs, particles=f.particles, engine=engine,
+                                                 threads=threads, **chan, **dict(zip(SWEEP_PARAMS, f.filter_probs)))
+        seconds[:, j] = (time.perf_counter() - t0) / R
+    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
+
+
+def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Sequence[int],
+                    particles: int) -> tuple[list, dict, list]:
+    """The filters to compute, the names that reuse another's numbers, and every name in order.
+
+    Stream ``c`` belongs to the ``c``-th configuration (Table I's, the sweeps', Table II's),
+    whether computed or reused, as in every version of this study.
+    """
+    none = (0.0,) * len(SWEEP_PARAMS)
+    configs = {  # name: (data's probabilities, filter's probabilities, particles)
+        "Sec-PF": (default, default, particles),
+        "Sta-PF-Neg": (default, none, particles),
+        "Sta-PF": (none, none, particles),
+    }
+    for i, p in enumerate(SWEEP_PARAMS):
+        for v in sweep:
+            probs = tuple(v if j == i else d for j, d in enumerate(default))
+            configs[f"sweep {p}={v:g}"] = (probs, probs, particles)
+    for M in table2_particles:
+        configs[f"M={M}"] = (default, default, M)
+    filters, reused = [], {}
+    for c, (name, (data_probs, filter_probs, M)) in enumerate(configs.items()):
+        if name not in FILTERS and (data_probs, filter_probs, M) == configs["Sec-PF"]:
+            reused[name] = "Sec-PF"  # the same filter on the same data: the Table I run
+            continue
+        filters.append(_Filter(name, c, data_probs, filter_probs, M))
+    return filters, reused, list(configs)
 
 
 def run_binary_multi_attack(
@@ -76,94 +189,112 @@ def run_binary_multi_attack(
     sweep: Sequence[float] = SWEEP,
     table2_particles: Sequence[int] = TABLE2_PARTICLES,
     engine: str = "fast",
-    workers: int = 1,
+    threads: int | None = None,
+    backend: Backend | None = None,
+    force: bool = False,
+    chunk_size: int = CHUNK_SIZE,
+    workers: int | None = None,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
 
-    ``sweep``: values of each attack probability in the one-parameter sweeps
-    (empty to skip); ``table2_particles``: particle counts of Table II (empty to skip).
+    Parameters
+    ----------
+    runs, particles : int
+        Monte Carlo runs (paper: 50) and particles ``M`` (paper: 500).
+    sweep : sequence of float in [0, 1)
+        Values of each attack probability in the one-parameter sweeps (empty to skip).
+    table2_particles : sequence of int
+        Particle counts of Table II (empty to skip).
+    engine : {"fast", "numpy"}
+        Particle-filter engine (see :mod:`studies.pfrun`).
+    threads : int
+        Threads of the fused engine within a chunk of runs (default 1); no effect on the numbers.
+    backend : studies.runner.Backend
+        Where the chunks of runs are computed: batched in this process (default), local
+        processes, or a Dask cluster; the numbers are the same.
+    force : bool
+        Recompute runs already stored in ``out`` by an earlier (or interrupted) call, even
+        if they were computed with other settings.
+    chunk_size : int
+        Runs per chunk (default ``CHUNK_SIZE`` = 10): the unit of work sent to a worker and
+        of resumption; part of the study (the NumPy engine's numbers depend on it), never
+        derived from the backend.
+    workers : int
+        Deprecated alias of ``threads``.
     """
     runs = check_int("runs", runs, 2)
     particles = check_int("particles", particles, 1)
     seed = check_int("seed", seed, 0)
-    workers = check_int("workers", workers, 1)
+    threads = check_threads(threads, workers)
+    check_engine(engine)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    backend = backend or Backend()
+    if not isinstance(backend, Backend):
+        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
     sweep = [float(v) for v in sweep]
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (attack probabilities) must lie in [0, 1), got {sweep}")
     table2_particles = [check_int("table2_particles", int(v), 1) for v in table2_particles]
     t_start = time.perf_counter()
-    sc = load_scenario("target-binary-energy", overrides, assignments)
+    sc = load_scenario(SCENARIO, overrides, assignments)
+    params = plain_params(sc.params)
+    sc = cached_scenario(SCENARIO, params)  # the object whose kernels forked workers inherit
     m, K = sc.model, sc.steps
-    ex = sc.extras
-    default = {p: float(ex[p]) for p in SWEEP_PARAMS}
-    chan = dict(threshold=ex["threshold"], gain=ex["channel_gain"], channel_noise=ex["channel_noise"],
-                deception=ex["deception"])
+    default = tuple(float(sc.extras[p]) for p in SWEEP_PARAMS)
+    filters, reused, names = _configurations(default, sweep, table2_particles, particles)
+    n_streams = len(names)  # one filter stream per configuration, computed or reused
 
-    seqs = [ss.spawn(3) for ss in np.random.SeedSequence(seed).spawn(runs)]
-    truth = np.empty((runs, K + 1, m.n_x))
-    yhat = np.empty((runs, K, m.n_sensors))
-    for r in progress(range(runs), runs, quiet, "binary-multi-attack data"):
-        tr = sc.simulate(np.random.default_rng(seqs[r][0]), K)
-        truth[r], yhat[r] = tr.x, tr.z
-
-    def received(probs: Mapping[str, float]) -> np.ndarray:
-        return np.stack([binary_sensor_channel(yhat[r], **probs, **chan, rng=np.random.default_rng(seqs[r][1])).y
-                         for r in range(runs)])
-
-    none = {p: 0.0 for p in SWEEP_PARAMS}
-    attacked = received(default)
-    configs = {  # name: (data, filter's probabilities, particles)
-        "Sec-PF": (attacked, default, particles),
-        "Sta-PF-Neg": (attacked, none, particles),
-        "Sta-PF": (received(none), none, particles),
-    }
-    for p in SWEEP_PARAMS:
-        for v in sweep:
-            probs = {**default, p: v}
-            configs[f"sweep {p}={v:g}"] = (None if probs == default else received(probs), probs, particles)
-    for M in table2_particles:
-        configs[f"M={M}"] = (attacked, default, M)
-    filter_seqs = [s[2].spawn(len(configs)) for s in seqs]
+    if engine == "fast" and backend.kind != "dask":
+        # compile here so that forked workers inherit the kernels (a Dask worker compiles once, in its first
+        # chunk); every chunk also compiles what it lacks before timing, so timings never include compiling
+        _, data0, _ = _data(sc, [run_seed(seed, 0)], filters[:1], n_streams)
+        _warm_up(sc, data0, filters, engine)
+    task = functools.partial(_runs, params=params, engine=engine, threads=threads, filters=tuple(filters),
+                             n_streams=n_streams)
+    config = {"study": "binary-multi-attack", "params": params, "particles": particles, "engine": engine,
+              "filters": [f._asdict() for f in filters], "streams": n_streams}
+    mc = monte_carlo(task, runs=runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
+                     label="binary-multi-attack", config=config, force=force, quiet=quiet)
+    A = mc.arrays
 
     pos, vel = list(m.position_index), list(m.velocity_index)
     metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
+    index = {f.name: j for j, f in enumerate(filters)}
     computed: dict[str, dict] = {}
-    means0: dict[str, np.ndarray] = {}
-    run_binary(m, attacked, [], particles=particles, engine=engine, warm_up=True, **chan, **default)
-    for c, (name, (y, probs, M)) in enumerate(progress(configs.items(), len(configs), quiet,
-                                                       "binary-multi-attack filters")):
-        if y is None or (M == particles and name.startswith("M=")):
-            computed[name] = computed["Sec-PF"]  # the same filter on the same data: the Table I run
+    for name in names:  # the configurations' order: the bootstrap draws follow it
+        if name in reused:
+            computed[name] = computed[reused[name]]
             continue
-        rngs = [np.random.default_rng(fs[c]) for fs in filter_seqs]
-        met, means0[name] = evaluate_filter(
-            lambda: run_binary(m, y, rngs, particles=M, engine=engine, workers=workers, **chan, **probs),
-            truth, pos, vel, metrics_rng)
-        met.update({"particles": M, "communications": int(K * m.n_sensors), "engine": engine,
-                    "attack_probs_assumed": dict(probs)})
+        j, f = index[name], filters[index[name]]
+        met = score(A["truth"], np.ascontiguousarray(A["mean"][:, j]), A["collapsed"][:, j], A["seconds"][:, j],
+                    pos, vel, metrics_rng)
+        met.update({"particles": f.particles, "communications": int(K * m.n_sensors), "engine": engine,
+                    "attack_probs_assumed": dict(zip(SWEEP_PARAMS, f.filter_probs))})
         computed[name] = met
+    means0 = {f.name: A["mean"][0, j] for j, f in enumerate(filters)}
 
-    filters = {k: computed[k] for k in FILTERS}
+    filters_out = {k: computed[k] for k in FILTERS}
     sweeps = {p: {f"{v:g}": {"Sec-PF": computed[f"sweep {p}={v:g}"]} for v in sweep} for p in SWEEP_PARAMS} \
         if sweep else {}
     if table2_particles:
         sweeps["particles"] = {str(M): {"Sec-PF": computed[f"M={M}"]} for M in table2_particles}
-    results = study_header("binary-multi-attack", "target-binary-energy", runs=runs, particles=particles, steps=K,
+    results = study_header("binary-multi-attack", SCENARIO, runs=runs, particles=particles, steps=K,
                            seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine,
-                           workers=workers)
+                           workers=threads, threads=threads, runner=mc.describe())
     results.update({
-        "filters": filters,
+        "filters": filters_out,
         "sweeps": sweeps,
         "paper": {"source": "seed 002, Table II (Sec-PF)", "table2": PAPER_TABLE2,
                   "kalman_velocity_at_paper_rmse_position": {
                       M: cv_velocity_at_position_rmse(sc.params["accel_var"], sc.params["period"],
-                                                      v["rmse_position"]) for M, v in PAPER_TABLE2.items()}, "runs": 50, "particles": 500,
+                                                      v["rmse_position"]) for M, v in PAPER_TABLE2.items()},
+                  "runs": 50, "particles": 500,
                   "note": "Figs. 4-11 are curves without printed numbers; the paper states Sec-PF is close to "
                           "Sta-PF, Sta-PF-Neg is worst, and RMSE grows with each attack probability."},
         "params": dict(sc.params),
     })
-    return write_study(out, results, t_start, lambda d: _figures(d, sc, truth[0], means0, filters, sweeps, K),
-                       table_markdown)
+    return write_study(out, results, t_start,
+                       lambda d: _figures(d, sc, A["truth"][0], means0, filters_out, sweeps, K), table_markdown)
 
 
 def _with_ci(f: dict) -> dict:

@@ -2,38 +2,109 @@
 
 * ``engine="fast"`` (default) — the fused numba kernels of :mod:`filters.fastsir`:
   one Generator per run (spawned from the study seed), initial particles drawn
-  from the model's prior with that Generator, runs spread over ``workers``
+  from the model's prior with that Generator, runs spread over ``threads``
   threads.  A run's numbers depend only on its own seed, not on the number of
-  workers or of runs.
-* ``engine="numpy"`` — :func:`filters.particle.run_sir`, all runs batched in one
-  array program; the reference implementation (any noise, any proposal).  It draws
-  every run's particles from one Generator (the first run's filter stream), so its
-  numbers depend on the number of runs in the batch.
+  threads, of runs or on how the runs are cut into chunks.
+* ``engine="numpy"`` — :func:`filters.particle.run_sir`, all runs of a call batched
+  in one array program; the reference implementation (any noise, any proposal).
+  It draws every run's particles from one Generator (the first run's filter
+  stream), so its numbers depend on the runs batched together: in the studies,
+  one chunk of the Monte Carlo runner (``chunk_size`` consecutive runs, the first
+  run's stream).
 
 Both return ``(mean, collapsed)``: weighted means (runs, K + 1, n_x) and the
 (runs, K) collapse flags.  ``warm_up=True`` only compiles the fast engine's kernels
 (a few seconds per model and process) on a one-step problem and returns None, so
 that timings measure filtering, not compilation.
+
+The studies run these inside a :mod:`studies.runner` task, one chunk of runs at a
+time; ``threads`` is the number of threads of the fused engine within a chunk.
+The compiled kernels are cached per :class:`designer.Model` object, so the tasks
+take their scenario from :func:`cached_scenario`: a worker process forked after the
+parent compiled (``Backend("processes")``) reuses the parent's kernels, and any
+other worker compiles once per model, not once per chunk.  :func:`score` turns a
+filter's concatenated runs into the metrics of :func:`studies.results.evaluate_filter`.
 """
 from __future__ import annotations
 
-from typing import Sequence
+import json
+import warnings
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from designer.model import Model
 from designer.noise import Noise
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 from filters.binary import binary_loglik
 from filters.particle import run_sir
 from filters.rrp import packet_loglik
 
-__all__ = ["ENGINES", "run_packets", "run_binary"]
+from .results import error_metrics
+from .scenarios import load_scenario
+
+__all__ = ["ENGINES", "run_packets", "run_binary", "cached_scenario", "plain_params", "score", "check_threads",
+           "check_engine"]
 
 ENGINES = ("fast", "numpy")
 
 
-def _check_engine(engine: str) -> None:
+_SCENARIOS: dict = {}  # (name, parameters as JSON) -> Scenario; see cached_scenario
+_SCENARIOS_MAX = 8
+
+
+def cached_scenario(name: str, params: Mapping[str, Any]):
+    """The scenario ``name`` built with every parameter given in ``params``, once per process.
+
+    A memo, not state: the same ``(name, params)`` always builds the same scenario.  It
+    exists because the fused engine caches its compiled kernels per Model object; a
+    task that rebuilt its scenario for every chunk would recompile them every time.
+    """
+    key = (name, json.dumps(dict(params), sort_keys=True, default=str))
+    sc = _SCENARIOS.get(key)
+    if sc is None:
+        if len(_SCENARIOS) >= _SCENARIOS_MAX:
+            _SCENARIOS.clear()
+        sc = _SCENARIOS[key] = load_scenario(name, dict(params))
+    return sc
+
+
+def plain_params(params: Mapping[str, Any]) -> dict:
+    """A scenario's parameters as JSON values (arrays as nested lists), for tasks and stored configs."""
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in params.items()}
+
+
+def check_threads(threads, workers) -> int:
+    """``threads``, or the deprecated ``workers`` given in its place (both given: they must agree)."""
+    if workers is not None:
+        workers = check_int("workers", workers, 1)
+        warnings.warn("the 'workers' parameter of the particle-filter studies is now 'threads' (threads of the "
+                      "fused engine within a chunk of runs); pass backend= for worker processes",
+                      DeprecationWarning, stacklevel=3)
+        if threads is not None and check_int("threads", threads, 1) != workers:
+            raise InputError(f"threads ({threads}) and its deprecated alias workers ({workers}) disagree")
+        return workers
+    return check_int("threads", 1 if threads is None else threads, 1)
+
+
+def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: np.ndarray,
+          position: Sequence[int], velocity: Sequence[int], rng: np.random.Generator) -> dict:
+    """:func:`studies.results.evaluate_filter`'s metrics of one filter from the runner's per-run arrays.
+
+    ``truth`` and ``mean`` (runs, K + 1, n_x), ``collapsed`` (runs, K), ``seconds`` (runs,):
+    each run's share of its chunk's wall time for this filter.  ``wall_time_s`` is their
+    sum (the filter's time over every chunk, however the chunks were spread) and
+    ``time_per_step_s`` = ``wall_time_s`` / (runs x K).
+    """
+    runs, K = collapsed.shape
+    met = error_metrics(truth[:, 1:] - mean[:, 1:], position, velocity, rng)
+    wall = float(np.sum(seconds))
+    met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
+                "collapsed_runs": int(collapsed.any(axis=1).sum())})
+    return met
+
+
+def check_engine(engine: str) -> None:
     if engine not in ENGINES:
         raise InputError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
 
@@ -45,12 +116,12 @@ def _prior_particles(model: Model, rngs: Sequence[np.random.Generator], particle
 
 def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence[np.random.Generator], *,
                 particles: int, attack_prob: float = 0.0, signal: Noise | None = None, angles: Sequence[int] = (),
-                engine: str = "fast", workers: int = 1, linear_weights: bool = False, warm_up: bool = False):
+                engine: str = "fast", threads: int = 1, linear_weights: bool = False, warm_up: bool = False):
     """Filters of seed 000: ``y`` (runs, K, P, n_y) received packets, packet p at step k from ``sensors[k, p]``.
 
     ``linear_weights`` (emulated linear-domain weights) exists only in the NumPy engine.
     """
-    _check_engine(engine)
+    check_engine(engine)
     R, K, P, ny = y.shape
     if engine == "numpy":
         if warm_up:
@@ -72,16 +143,16 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
                             attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
     res = fastsir.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
-                              log_clean=log_clean, angles=angles, workers=workers)
+                              log_clean=log_clean, angles=angles, workers=threads)
     return res.mean, res.collapsed
 
 
 def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator], *, particles: int,
                threshold: float, gain: float, channel_noise: Noise, deception: Noise, dos_prob: float = 0.0,
-               deception_prob: float = 0.0, flip_prob: float = 0.0, engine: str = "fast", workers: int = 1,
+               deception_prob: float = 0.0, flip_prob: float = 0.0, engine: str = "fast", threads: int = 1,
                warm_up: bool = False):
     """Filters of seed 002: ``y`` (runs, K, S) received binary-channel signals."""
-    _check_engine(engine)
+    check_engine(engine)
     kw = dict(threshold=threshold, gain=gain, channel_noise=channel_noise, deception=deception, dos_prob=dos_prob,
               deception_prob=deception_prob, flip_prob=flip_prob)
     if engine == "numpy":
@@ -97,5 +168,5 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
         fastsir.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)
         return None
     res = fastsir.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
-                             workers=workers)
+                             workers=threads)
     return res.mean, res.collapsed

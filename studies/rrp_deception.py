@@ -8,17 +8,27 @@ sensors every step, attack-aware, an independent attack per packet).  Table 1
 curves (Figs. 3-4), and the η̄ sweep of RRP-PF-DA (Figs. 5-6), with the paper's
 published numbers beside ours.
 
-Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(4)`` =
-(truth, Round-Robin attacks, all-sensor attacks, filters); the filters' stream is
-spawned once more per filter configuration.  The attack draws are shared by
-every η̄ of the sweep (``eta = u < η̄`` with the same ``u`` and ``ξ``), so the
-packets attacked at 0.2 are also attacked at 0.4 and 0.6.
+Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(4)`` (=
+``SeedSequence(seed).spawn(runs)[r].spawn(4)``) = (truth, Round-Robin attacks,
+all-sensor attacks, filters); the filters' stream is spawned once more per filter
+configuration.  The attack draws are shared by every η̄ of the sweep (``eta = u <
+η̄`` with the same ``u`` and ``ξ``), so the packets attacked at 0.2 are also
+attacked at 0.4 and 0.6.
+
+The runs are computed by :func:`studies.runner.monte_carlo` in chunks of
+``chunk_size`` runs (a task simulating the chunk's data and running every filter
+configuration, sweep included, on it); metrics, tables and figures come from the
+concatenated per-run arrays.  With the fast engine (one Generator per run) the
+numbers do not depend on the backend, the chunk size or the number of threads;
+the NumPy engine (the linear-weights row) draws one Generator per chunk.  With
+``out`` the chunks are stored there and an interrupted study resumes.
 """
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -26,13 +36,16 @@ from designer.validation import InputError, check_int
 from filters.channels import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import run_packets
-from .progress import progress
-from .results import (curves_figure, cv_velocity_at_position_rmse, evaluate_filter, markdown_table, rmse_with_ci, study_header,
+from .pfrun import check_engine, cached_scenario, check_threads, plain_params, run_packets, score
+from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, study_header,
                       trajectory_figure, write_study)
+from .runner import Backend, monte_carlo, run_seed
 from .scenarios import load_scenario
 
-__all__ = ["run_rrp_deception", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP"]
+__all__ = ["run_rrp_deception", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE"]
+
+SCENARIO = "target-range-bearing"
+CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
 
 FILTERS = ("RRP-PF-DA", "RRP-SPF-DA", "RRP-SPF-NM", "PF-DA")
 # Seed 000, Table 1 (verbatim): average RMSEs, running time (s per step, MATLAB, hardware not given), packets
@@ -48,9 +61,10 @@ LINEAR = "RRP-SPF-DA (linear-domain weights)"
 ASSUMPTIONS = (
     "rrp-deception: 'average RMSE' = mean over k = 1..K of RMSE_k = sqrt(mean over runs of the squared position "
     "(velocity) error); 95 % intervals are percentile bootstraps over runs.",
-    "rrp-deception: time_per_step_s = the filter's wall time over all runs divided by runs x K (our engine runs "
-    "many runs at once, so this is an amortised cost, not the latency of one run's step); the paper's times are "
-    "MATLAB on unstated hardware.",
+    "rrp-deception: time_per_step_s = the filter's wall time summed over the chunks of runs (compilation "
+    "excluded) divided by runs x K (our engine runs a chunk's runs together, so this is an amortised cost, not the "
+    "latency of one run's step; chunks computed in parallel, or resumed from an earlier call, keep the time "
+    "measured where and when they ran); the paper's times are MATLAB on unstated hardware.",
     "rrp-deception: communications = packets sent over the whole run (one per step under Round-Robin, one per "
     "sensor and step for PF-DA).",
     "rrp-deception: resampling is systematic at every step (the paper resamples every step, scheme not named).",
@@ -66,12 +80,118 @@ ASSUMPTIONS = (
     "emulates weights kept in linear double precision (a weight below the smallest double becomes 0; a run whose "
     "weights all vanish keeps its predicted particles with uniform weights), to show how much the RRP-SPF-DA "
     "figure depends on that choice.",
+    "rrp-deception: the runs are computed in chunks of chunk_size runs (default 10); the fast engine draws from "
+    "one Generator per run, so its numbers do not depend on the chunks, threads or backend; the NumPy engine "
+    "(the linear-weights row, and every filter with engine='numpy') draws the particles of a whole chunk from one "
+    "Generator (the filter stream of the chunk's first run), so its numbers depend on chunk_size.",
 )
+
+
+class _Filter(NamedTuple):
+    """One filter configuration computed by the task (picklable)."""
+
+    name: str
+    stream: int  # its random stream: run r's SeedSequence(seed, spawn_key=(r,)).spawn(4)[3].spawn(n)[stream]
+    packets: str  # "rr" (the Round-Robin packet of each step) or "all" (every sensor's, PF-DA)
+    data_prob: float | None  # deception probability of the packets it receives (None: attack-free)
+    filter_prob: float  # the deception probability its likelihood assumes
+    linear: bool  # linear-domain weights (NumPy engine)
 
 
 def _attacked(y: np.ndarray, prob: float, signal, ss: np.random.SeedSequence) -> np.ndarray:
     """Packets after deception with probability ``prob``; the same draws for every ``prob`` (a fresh Generator)."""
     return deception_attack(y, prob, signal, np.random.default_rng(ss)).y
+
+
+def _setup(sc) -> dict:
+    m, K = sc.model, sc.steps
+    sched = round_robin_schedule(K, m.n_sensors, sc.extras["rr_start"])
+    return {"angles": sorted({j for _, j in sc.extras["angle_components"]}), "box": sc.extras["deception"],
+            "sched": sched, "sensors": {"rr": sched[:, None], "all": np.tile(np.arange(m.n_sensors), (K, 1))}}
+
+
+def _data(sc, seeds: Sequence[np.random.SeedSequence], filters: Sequence[_Filter], n_streams: int):
+    """Truth, the packets each filter receives (keyed by ``(packets, data_prob)``) and the filter streams."""
+    m, K, st = sc.model, sc.steps, _setup(sc)
+    R, N, ny = len(seeds), m.n_sensors, m.sensor_dims[0]
+    truth = np.empty((R, K + 1, m.n_x))
+    keys = list(dict.fromkeys((f.packets, f.data_prob) for f in filters))
+    data = {key: np.empty((R, K, 1 if key[0] == "rr" else N, ny)) for key in keys}
+    streams = []
+    for a, seq in enumerate(seeds):
+        s_truth, s_rr, s_all, s_filters = seq.spawn(4)
+        tr = sc.simulate(np.random.default_rng(s_truth), K)
+        truth[a] = tr.x
+        y_all = wrap_angles(tr.per_sensor(m), st["angles"])
+        y_rr = y_all[np.arange(K), st["sched"]][:, None, :]  # (K, 1, ny): the scheduled packet
+        for packets, prob in keys:
+            y, ss = (y_rr, s_rr) if packets == "rr" else (y_all, s_all)
+            data[packets, prob][a] = y if prob is None else _attacked(y, prob, st["box"], ss)
+        streams.append(s_filters.spawn(n_streams))
+    return truth, data, streams
+
+
+def _warm_up(sc, data: Mapping, filters: Sequence[_Filter], particles: int, engine: str) -> None:
+    """Compile every fused-kernel variant the filters use (once compiled: one tiny call per filter)."""
+    st = _setup(sc)
+    for f in filters:
+        if not f.linear:
+            run_packets(sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], [], particles=particles,
+                        attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine=engine,
+                        warm_up=True)
+
+
+def _runs(run_ids, seeds, *, params: Mapping[str, Any], particles: int, engine: str, threads: int,
+          filters: Sequence[_Filter], n_streams: int) -> dict:
+    """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
+
+    Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
+    ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
+    wall time for that filter, compilation excluded).
+    """
+    sc = cached_scenario(SCENARIO, params)
+    m, K, st = sc.model, sc.steps, _setup(sc)
+    truth, data, streams = _data(sc, seeds, filters, n_streams)
+    _warm_up(sc, data, filters, particles, engine)
+    R, F = len(seeds), len(filters)
+    mean = np.empty((R, F, K + 1, m.n_x))
+    collapsed = np.empty((R, F, K), dtype=bool)
+    seconds = np.empty((R, F))
+    for j, f in enumerate(filters):
+        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
+        t0 = time.perf_counter()
+        mean[:, j], collapsed[:, j] = run_packets(
+            m, data[f.packets, f.data_prob], st["sensors"][f.packets], rngs, particles=particles,
+            attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine="numpy" if f.linear else engine,
+            threads=threads, linear_weights=f.linear)
+        seconds[:, j] = (time.perf_counter() - t0) / R
+    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
+
+
+def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool) -> tuple[list, dict, list]:
+    """The filters to compute, the names that reuse another's numbers, and every name in order.
+
+    Stream ``c`` belongs to the ``c``-th configuration (Table 1's, the linear row, the
+    sweep's), whether computed or reused, as in every version of this study.
+    """
+    rr_eta = ("rr", eta)
+    configs = {  # name: (packets, data's deception probability, filter's, linear weights)
+        "RRP-PF-DA": (*rr_eta, eta, False),
+        "RRP-SPF-DA": (*rr_eta, 0.0, False),
+        "RRP-SPF-NM": ("rr", None, 0.0, False),
+        "PF-DA": ("all", eta, eta, False),
+    }
+    if linear_weights_row:
+        configs[LINEAR] = (*rr_eta, 0.0, True)
+    for v in sweep:
+        configs[f"sweep eta={v:g}"] = ("rr", v, v, False)
+    filters, reused = [], {}
+    for c, (name, (packets, data_prob, filter_prob, linear)) in enumerate(configs.items()):
+        if name.startswith("sweep eta=") and float(name.split("=")[1]) == eta:
+            reused[name] = "RRP-PF-DA"  # the sweep's default point is the Table 1 run
+            continue
+        filters.append(_Filter(name, c, packets, data_prob, filter_prob, linear))
+    return filters, reused, list(configs)
 
 
 def run_rrp_deception(
@@ -85,8 +205,12 @@ def run_rrp_deception(
     assignments=(),
     sweep: Sequence[float] = ETA_SWEEP,
     engine: str = "fast",
-    workers: int = 1,
+    threads: int | None = None,
     linear_weights_row: bool = True,
+    backend: Backend | None = None,
+    force: bool = False,
+    chunk_size: int = CHUNK_SIZE,
+    workers: int | None = None,
 ) -> dict:
     """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
 
@@ -98,83 +222,84 @@ def run_rrp_deception(
         η̄ values of the sweep (paper: 0.2, 0.4, 0.6); empty to skip it.
     engine : {"fast", "numpy"}
         Particle-filter engine (see :mod:`studies.pfrun`).
+    threads : int
+        Threads of the fused engine within a chunk of runs (default 1); no effect on the numbers.
     linear_weights_row : bool
         Also run RRP-SPF-DA with linear-domain weights (numpy engine) — not in the paper.
+    backend : studies.runner.Backend
+        Where the chunks of runs are computed: batched in this process (default), local
+        processes, or a Dask cluster; the numbers are the same.
+    force : bool
+        Recompute runs already stored in ``out`` by an earlier (or interrupted) call, even
+        if they were computed with other settings.
+    chunk_size : int
+        Runs per chunk (default ``CHUNK_SIZE`` = 10): the unit of work sent to a worker and
+        of resumption; part of the study (the NumPy engine's numbers depend on it), never
+        derived from the backend.
+    workers : int
+        Deprecated alias of ``threads``.
     """
     runs = check_int("runs", runs, 2)
     particles = check_int("particles", particles, 1)
     seed = check_int("seed", seed, 0)
-    workers = check_int("workers", workers, 1)
+    threads = check_threads(threads, workers)
+    check_engine(engine)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    backend = backend or Backend()
+    if not isinstance(backend, Backend):
+        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
     sweep = [float(v) for v in sweep]
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (eta-bar) must lie in [0, 1), got {sweep}")
     t_start = time.perf_counter()
-    sc = load_scenario("target-range-bearing", overrides, assignments)
+    sc = load_scenario(SCENARIO, overrides, assignments)
+    params = plain_params(sc.params)
+    sc = cached_scenario(SCENARIO, params)  # the object whose kernels forked workers inherit
     m, K = sc.model, sc.steps
-    N, ny = m.n_sensors, m.sensor_dims[0]
     eta = float(sc.extras["deception_prob"])
-    box = sc.extras["deception"]
-    angles = sorted({j for _, j in sc.extras["angle_components"]})
-    sched = round_robin_schedule(K, N, sc.extras["rr_start"])
+    filters, reused, names = _configurations(eta, sweep, linear_weights_row)
+    n_streams = len(names)  # one filter stream per configuration, computed or reused
 
-    # --- data: truth, per-sensor measurements, attacks (run r from its own spawned seeds) ---
-    seqs = [ss.spawn(4) for ss in np.random.SeedSequence(seed).spawn(runs)]
-    truth = np.empty((runs, K + 1, m.n_x))
-    y_all = np.empty((runs, K, N, ny))
-    for r in progress(range(runs), runs, quiet, "rrp-deception data"):
-        tr = sc.simulate(np.random.default_rng(seqs[r][0]), K)
-        truth[r] = tr.x
-        y_all[r] = wrap_angles(tr.per_sensor(m), angles)
-    y_rr = y_all[:, np.arange(K), sched][:, :, None, :]  # (runs, K, 1, ny): the scheduled packet
-    rr_sensors = sched[:, None]
-    all_sensors = np.tile(np.arange(N), (K, 1))
-
-    def rr_attacked(p):
-        return np.stack([_attacked(y_rr[r], p, box, seqs[r][1]) for r in range(runs)])
-
-    configs = {  # name: (packets, sensors, filter's attack probability, linear weights)
-        "RRP-PF-DA": (rr_attacked(eta), rr_sensors, eta, False),
-        "RRP-SPF-DA": (rr_attacked(eta), rr_sensors, 0.0, False),
-        "RRP-SPF-NM": (y_rr, rr_sensors, 0.0, False),
-        "PF-DA": (np.stack([_attacked(y_all[r], eta, box, seqs[r][2]) for r in range(runs)]), all_sensors, eta, False),
-    }
-    if linear_weights_row:
-        configs[LINEAR] = (configs["RRP-SPF-DA"][0], rr_sensors, 0.0, True)
-    sweep_keys = [f"sweep eta={v:g}" for v in sweep]
-    for v, key in zip(sweep, sweep_keys):
-        configs[key] = (rr_attacked(v), rr_sensors, v, False)
-    filter_seqs = [s[3].spawn(len(configs)) for s in seqs]
+    if engine == "fast" and backend.kind != "dask":
+        # compile here so that forked workers inherit the kernels (a Dask worker compiles once, in its first
+        # chunk); every chunk also compiles what it lacks before timing, so timings never include compiling
+        _, data0, _ = _data(sc, [run_seed(seed, 0)], filters, n_streams)
+        _warm_up(sc, data0, filters, particles, engine)
+    task = functools.partial(_runs, params=params, particles=particles, engine=engine, threads=threads,
+                             filters=tuple(filters), n_streams=n_streams)
+    config = {"study": "rrp-deception", "params": params, "particles": particles, "engine": engine,
+              "filters": [f._asdict() for f in filters], "streams": n_streams}
+    mc = monte_carlo(task, runs=runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
+                     label="rrp-deception", config=config, force=force, quiet=quiet)
+    A = mc.arrays
 
     pos, vel = list(m.position_index), list(m.velocity_index)
     metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
+    index = {f.name: j for j, f in enumerate(filters)}
     computed: dict[str, dict] = {}
-    means0: dict[str, np.ndarray] = {}
-    for c, (name, (y, sensors, p, linear)) in enumerate(
-            progress(configs.items(), len(configs), quiet, "rrp-deception filters")):
-        if name in sweep_keys and float(name.split("=")[1]) == eta and "RRP-PF-DA" in computed:
-            computed[name] = computed["RRP-PF-DA"]  # the sweep's default point is the Table 1 run
+    for name in names:  # the configurations' order: the bootstrap draws follow it
+        if name in reused:
+            computed[name] = computed[reused[name]]
             continue
-        rngs = [np.random.default_rng(fs[c]) for fs in filter_seqs]
-        eng = "numpy" if linear else engine
-        run_packets(m, y, sensors, [], particles=particles, attack_prob=p, signal=box, angles=angles, engine=eng,
-                    warm_up=True)  # compile this variant outside the timing
-        met, means0[name] = evaluate_filter(
-            lambda: run_packets(m, y, sensors, rngs, particles=particles, attack_prob=p, signal=box, angles=angles,
-                                engine=eng, workers=workers, linear_weights=linear),
-            truth, pos, vel, metrics_rng)
-        met.update({"communications": int(K * sensors.shape[1]), "engine": eng, "attack_prob_assumed": p})
+        j, f = index[name], filters[index[name]]
+        met = score(A["truth"], np.ascontiguousarray(A["mean"][:, j]), A["collapsed"][:, j], A["seconds"][:, j],
+                    pos, vel, metrics_rng)
+        met.update({"communications": int(K * (1 if f.packets == "rr" else m.n_sensors)),
+                    "engine": "numpy" if f.linear else engine, "attack_prob_assumed": f.filter_prob})
         computed[name] = met
+    means0 = {f.name: A["mean"][0, j] for j, f in enumerate(filters)}
 
-    filters = {k: computed[k] for k in (*FILTERS, *([LINEAR] if linear_weights_row else []))}
+    filters_out = {k: computed[k] for k in (*FILTERS, *([LINEAR] if linear_weights_row else []))}
     if linear_weights_row:
-        filters[LINEAR]["note"] = "not in the paper: RRP-SPF-DA with weights emulated in linear double precision"
+        filters_out[LINEAR]["note"] = "not in the paper: RRP-SPF-DA with weights emulated in linear double precision"
+    sweep_keys = [f"sweep eta={v:g}" for v in sweep]
     sweeps = {"deception_prob": {f"{v:g}": {"RRP-PF-DA": computed[k]} for v, k in zip(sweep, sweep_keys)}} \
         if sweep else {}
-    results = study_header("rrp-deception", "target-range-bearing", runs=runs, particles=particles, steps=K,
+    results = study_header("rrp-deception", SCENARIO, runs=runs, particles=particles, steps=K,
                            seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine,
-                           workers=workers)
+                           workers=threads, threads=threads, runner=mc.describe())
     results.update({
-        "filters": filters,
+        "filters": filters_out,
         "sweeps": sweeps,
         "paper": {"source": "seed 000, Table 1", "filters": PAPER_TABLE1,
                   "kalman_velocity_at_paper_rmse_position": {
@@ -184,7 +309,7 @@ def run_rrp_deception(
                   "note": "Figs. 3-6 are curves without printed numbers; the paper states RMSE grows with eta-bar."},
         "params": dict(sc.params),
     })
-    return write_study(out, results, t_start, lambda d: _figures(d, sc, truth[0], means0, filters, sweeps),
+    return write_study(out, results, t_start, lambda d: _figures(d, sc, A["truth"][0], means0, filters_out, sweeps),
                        table_markdown)
 
 
