@@ -109,7 +109,11 @@ def rmse_with_ci(f: Mapping) -> str:
 
 
 def write_study(out, results: dict, t_start: float, figures: Callable[[Path], None], table: Callable[[dict], str]):
-    """Stamp the wall time, then write the figures, ``table.md`` and ``results.json`` (each atomically)."""
+    """Stamp the wall time, then write the figures, ``table.md``, ``results.json`` and the reports (each atomically).
+
+    The reports (``report.md`` and the self-contained ``report.html``, see
+    :func:`studies.report.write_report`) are written last, from the files just written.
+    """
     import time
 
     results["wall_time_s"] = time.perf_counter() - t_start
@@ -120,6 +124,9 @@ def write_study(out, results: dict, t_start: float, figures: Callable[[Path], No
     figures(out)
     atomic_write(out / "table.md", lambda fh: fh.write(table(results).encode()))
     write_json(out / "results.json", results)
+    from .report import write_report  # late: report reads the files this module writes
+
+    write_report(out)
     return results
 
 

@@ -1,0 +1,157 @@
+"""The HTML report in a real browser: headless Chromium through selenium and chromedriver.
+
+A page fails when the browser console has any SEVERE entry (a JavaScript error, a
+resource that failed to load, a Content-Security-Policy violation), when an image is
+not loaded or has no width, or when it has no table.  Negative controls run the same
+checking function on pages with a broken image, a JavaScript error and no table.
+
+Without Chromium or chromedriver the tests are skipped, unless the environment sets
+``CFDESIGN_REQUIRE_BROWSER=1`` (CI does, after installing them), which makes them fail.
+"""
+from __future__ import annotations
+
+import base64
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from studies.consensus_robot import run_consensus_robot
+from studies.encrypted_switching import run_encrypted_switching
+
+REQUIRE = os.environ.get("CFDESIGN_REQUIRE_BROWSER") == "1"
+PNG_1x1 = base64.b64decode(
+    "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8z8BQDwAEhQGAhKmMIQAAAABJRU5ErkJggg==")
+FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         "--window-size=1280,1024")
+
+
+def _first(*candidates) -> str | None:
+    for c in candidates:
+        if c and Path(c).is_file() and os.access(c, os.X_OK):
+            return c
+    return None
+
+
+def _unavailable(reason: str):
+    if REQUIRE:
+        pytest.fail(f"CFDESIGN_REQUIRE_BROWSER=1 but {reason}")
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        _unavailable("selenium is not installed")
+    chromium = _first("/usr/bin/chromium", shutil.which("chromium"), shutil.which("chromium-browser"),
+                      shutil.which("google-chrome"))
+    driver_path = _first("/usr/bin/chromedriver", shutil.which("chromedriver"))
+    if chromium is None or driver_path is None:
+        _unavailable(f"chromium ({chromium}) or chromedriver ({driver_path}) not found")
+    profile = tempfile.mkdtemp(prefix="cfdesign-chromium-")
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium
+    for flag in FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={profile}")
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    try:
+        driver = webdriver.Chrome(service=Service(driver_path), options=options)
+    except Exception as exc:  # a broken install: same policy as a missing one
+        shutil.rmtree(profile, ignore_errors=True)
+        _unavailable(f"chromium did not start: {type(exc).__name__}: {exc}".splitlines()[0])
+    driver.set_page_load_timeout(60)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def page_problems(driver, path: Path) -> list[str]:
+    """Everything wrong with the page at ``path`` once loaded; an empty list means it renders cleanly."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    driver.get_log("browser")  # drop entries of earlier pages
+    driver.get(path.resolve().as_uri())
+    WebDriverWait(driver, 30).until(lambda d: d.execute_script("return document.readyState") == "complete")
+    # let late console entries (image errors, uncaught exceptions) arrive
+    driver.execute_async_script("const done = arguments[arguments.length - 1]; setTimeout(done, 200);")
+    problems = []
+    images = driver.execute_script(
+        "return Array.from(document.images, i => [i.getAttribute('data-file') || i.getAttribute('src'), "
+        "i.complete, i.naturalWidth]);")
+    for name, complete, width in images:
+        if not complete or not width:
+            problems.append(f"image {str(name)[:60]} not rendered (complete={complete}, naturalWidth={width})")
+    if driver.execute_script("return document.getElementsByTagName('table').length;") == 0:
+        problems.append("no <table>")
+    for entry in driver.get_log("browser"):
+        if entry.get("level") == "SEVERE":
+            problems.append(f"console: {entry.get('message')}")
+    return problems
+
+
+@pytest.fixture(scope="module")
+def reports(tmp_path_factory):
+    enc = tmp_path_factory.mktemp("enc")
+    run_encrypted_switching(out=enc, runs=2, particles=20, quiet=True)
+    con = tmp_path_factory.mktemp("con")
+    run_consensus_robot(out=con, runs=2, quiet=True)
+    return [enc / "report.html", con / "report.html"]
+
+
+def test_reports_render_cleanly(browser, reports):
+    for path in reports:
+        assert page_problems(browser, path) == [], path
+        n = browser.execute_script("return document.images.length;")
+        assert n == len(list(path.parent.glob("*.png"))) and n >= 4
+        assert browser.execute_script("return document.querySelectorAll('script').length;") == 0
+
+
+def _page(tmp_path: Path, name: str, body: str) -> Path:
+    path = tmp_path / name
+    path.write_text(f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{name}</title></head>"
+                    f"<body>{body}</body></html>")
+    return path
+
+
+def test_checker_accepts_a_clean_page(browser, tmp_path):
+    src = "data:image/png;base64," + base64.b64encode(PNG_1x1).decode()
+    path = _page(tmp_path, "clean.html", f"<table><tr><td>1</td></tr></table><img src='{src}' alt='dot'>")
+    assert page_problems(browser, path) == []
+
+
+def test_checker_detects_a_broken_image(browser, tmp_path):
+    path = _page(tmp_path, "broken.html", "<table><tr><td>1</td></tr></table><img src='missing.png' alt='x'>")
+    problems = page_problems(browser, path)
+    assert any(p.startswith("image missing.png not rendered") for p in problems), problems
+    assert any(p.startswith("console:") and "missing.png" in p for p in problems), problems
+
+
+def test_checker_detects_a_javascript_error(browser, tmp_path):
+    path = _page(tmp_path, "jserror.html",
+                 "<table><tr><td>1</td></tr></table><script>throw new Error('deliberate failure');</script>")
+    problems = page_problems(browser, path)
+    assert any(p.startswith("console:") and "deliberate failure" in p for p in problems), problems
+
+
+def test_checker_detects_a_page_without_table(browser, tmp_path):
+    assert page_problems(browser, _page(tmp_path, "notable.html", "<p>no table here</p>")) == ["no <table>"]
+
+
+def test_checker_detects_a_blocked_external_resource(browser, tmp_path):
+    # the report's Content-Security-Policy: anything not inline is refused and logged
+    csp = "<meta http-equiv='Content-Security-Policy' content=\"default-src 'none'; img-src data:\">"
+    path = tmp_path / "csp.html"
+    path.write_text(f"<!DOCTYPE html><html><head>{csp}</head><body><table><tr><td>1</td></tr></table>"
+                    "<img src='https://example.invalid/x.png' alt='x'></body></html>")
+    problems = page_problems(browser, path)
+    assert any(p.startswith("image") for p in problems), problems
+    assert any(p.startswith("console:") for p in problems), problems
