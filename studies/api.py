@@ -16,7 +16,7 @@ from designer.validation import InputError, check_int
 from designer.fileio import write_npz
 from .scenarios import SCENARIOS, load_scenario
 
-__all__ = ["list_scenarios", "simulate_scenario"]
+__all__ = ["list_scenarios", "simulate_scenario", "report"]
 
 
 def list_scenarios() -> list[dict]:
@@ -65,3 +65,14 @@ def simulate_scenario(
             arrays["modes"] = traj.modes
         write_npz(out, **arrays)
     return traj
+
+
+def report(directory: str | Path) -> tuple[Path, Path]:
+    """Write ``report.html`` (self-contained) and ``report.md`` for the study results in ``directory``.
+
+    ``cfdesign study`` writes them already; this rebuilds them, e.g. after editing a study's
+    output or for results from an older version.  See :func:`studies.report.write_report`.
+    """
+    from .report import write_report
+
+    return write_report(directory)

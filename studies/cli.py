@@ -145,11 +145,12 @@ def _reject(study: str, **given) -> None:
                    "100 fdi-four-tank]")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
 @click.option("--workers", type=int, default=None,
-              help="comparison: local worker processes; other studies: threads for the particle filters' runs "
-                   "[default: 1]")
+              help="local worker processes that compute the chunks of runs (the numbers do not depend on it) "
+                   "[default: this process]")
 @click.option("--dask", "dask", default=None, metavar="ADDRESS",
-              help="comparison: run the chunks of runs on the Dask scheduler at ADDRESS (e.g. tcp://host:8786)")
-@click.option("--force", is_flag=True, help="comparison: recompute runs already stored in OUT")
+              help="compute the chunks of runs on the Dask scheduler at ADDRESS (e.g. tcp://host:8786)")
+@click.option("--force", is_flag=True,
+              help="recompute runs already stored in OUT (otherwise an interrupted study resumes from them)")
 @click.option("--scenario", "scenarios", multiple=True,
               help="comparison: a scenario to compare on (repeatable) [default: indoor-robot and "
                    "target-range-bearing]")
@@ -176,17 +177,21 @@ def study_cmd(study, out, runs, particles, seed, workers, dask, force, scenarios
         _reject(study, engine=engine, mode=mode, schedule=schedule, linearization=linearization)
         _comparison(out, runs, particles, seed, workers, dask, force, scenarios, quiet, assignments)
         return
-    _reject(study, dask=dask, force=force, scenario=scenarios)
+    _reject(study, scenario=scenarios)
+    from .runner import make_backend
+
+    backend = make_backend(workers, dask)
     if study in _PF_STUDIES:
         _reject(study, mode=mode, schedule=schedule, linearization=linearization)
-        _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments)
+        _pf_study(study, out, runs, particles, seed, backend, force, engine, quiet, assignments)
         return
-    _reject(study, particles=particles, workers=workers, engine=engine)
+    _reject(study, particles=particles, engine=engine)
     from .consensus_robot import run_consensus_robot
 
     res = run_consensus_robot(out=out, runs=500 if runs is None else runs, seed=seed, mode=mode or "paper",
                               quiet=quiet, assignments=assignments, schedule=schedule,
-                              design_options={"linearization": linearization or "fixed"})
+                              design_options={"linearization": linearization or "fixed"}, backend=backend,
+                              force=force)
     click.echo(f"wrote {out}/results.json ({res['runs']} runs, {res['wall_time_s']:.1f} s)")
     for name, f in res["filters"].items():
         if f["rmse_position"] is None:
@@ -222,9 +227,9 @@ def _comparison(out, runs, particles, seed, workers, dask, force, scenarios, qui
                    f"{f['messages_per_step']} messages/step")
 
 
-def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignments) -> None:
-    given = {"runs": runs, "particles": particles, "workers": workers, "engine": engine}
-    kw = dict(out=out, seed=seed, quiet=quiet, assignments=assignments,
+def _pf_study(study, out, runs, particles, seed, backend, force, engine, quiet, assignments) -> None:
+    given = {"runs": runs, "particles": particles, "engine": engine}
+    kw = dict(out=out, seed=seed, quiet=quiet, assignments=assignments, backend=backend, force=force,
               **{k: v for k, v in given.items() if v is not None})  # unset: the study's own default
     if study == "rrp-deception":
         from .rrp_deception import run_rrp_deception as run
@@ -246,6 +251,14 @@ def _pf_study(study, out, runs, particles, seed, workers, engine, quiet, assignm
             acc = "RMSE per state " + ", ".join(f"{v:.4g}" for v in f["rmse_state"])
         comm = f", {f['communications']} communications" if "communications" in f else ""
         click.echo(f"  {name}: {acc}, {f['time_per_step_s'] * 1e3:.3g} ms/step{comm}")
+
+
+@cli.command("report")
+@click.argument("directory")
+def report_cmd(directory: str) -> None:
+    """Write DIRECTORY/report.html (self-contained) and report.md from a study's results.json and figures."""
+    html, md = api.report(directory)
+    click.echo(f"wrote {html} and {md}")
 
 
 def main(argv=None) -> int:

@@ -272,7 +272,7 @@ def test_cli_comparison_options(tmp_path, capsys):
     assert "--engine does not apply" in capsys.readouterr().err
     assert main(["study", "comparison", "--out", str(tmp_path), "--workers", "2", "--dask", "tcp://x:1"]) == 2
     assert "exclude each other" in capsys.readouterr().err
-    assert main(["study", "rrp-deception", "--out", str(tmp_path), "--dask", "tcp://x:1"]) == 2
+    assert main(["study", "rrp-deception", "--out", str(tmp_path), "--workers", "2", "--dask", "tcp://x:1"]) == 2
     assert main(["study", "comparison", "--out", str(tmp_path), "--set", "dos_prob=0.8", "--set",
                  "fdi_prob=0.5"]) == 2
     assert main(["study", "comparison", "--out", str(tmp_path), "--set", "no_such_parameter=1"]) == 2
