@@ -110,15 +110,18 @@ def design_cmd(scenario, mode, steps, seed, out, epsilon, sigma, beta, tau, dos,
               help="grid over dos, fdi, delta or tau (repeatable)")
 @click.option("--out", required=True, help="output directory (feasibility.csv, feasibility.png)")
 @click.option("--mode", type=click.Choice(["paper", "tuned"]), default="tuned", show_default=True)
-@click.option("--workers", type=int, default=1, show_default=True, help="local worker processes")
+@click.option("--workers", type=int, default=None, help="local worker processes [default: this process]")
+@click.option("--dask", "dask", default=None, metavar="ADDRESS",
+              help="compute the chunks of grid points on the Dask scheduler at ADDRESS")
+@click.option("--force", is_flag=True, help="recompute grid points already stored in OUT")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def feasibility_cmd(scenario, grids, out, mode, workers, quiet, assignments) -> None:
+def feasibility_cmd(scenario, grids, out, mode, workers, dask, force, quiet, assignments) -> None:
     """Map where the consensus design of SCENARIO admits a bounded steady-state bound."""
     from .feasibility import feasibility_map
 
-    rows = feasibility_map(scenario, grids, out=out, mode=mode, workers=workers, quiet=quiet,
-                           assignments=assignments)
+    rows = feasibility_map(scenario, grids, out=out, mode=mode, workers=workers, dask=dask, force=force,
+                           quiet=quiet, assignments=assignments)
     n_ok = sum(r["feasible"] for r in rows)
     click.echo(f"wrote {out}/feasibility.csv: {n_ok} of {len(rows)} grid points feasible")
 

@@ -5,14 +5,17 @@ point (its initial state ``x0`` and first input) is iterated to a fixed point
 (:func:`designer.feasibility.steady_state`); ``feasibility.csv`` gets one row per
 point (the grid parameters, ``feasible``, ``trace_bound``, ``binding``,
 ``theorem2``, ``iterations``) and a heat map is drawn for one or two grid
-parameters.  Points run in parallel with ``--workers``.
+parameters.  The grid points go through the Monte Carlo runner
+(:mod:`studies.runner`; a point plays the part of a run, chunks of ``CHUNK_SIZE``
+points): in this process, on ``--workers N`` local processes or on a Dask cluster
+(``--dask ADDRESS``), stored under ``out/.chunks`` so that an interrupted map resumes.
 """
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import itertools
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -20,13 +23,15 @@ import numpy as np
 
 from designer.feasibility import steady_state
 from designer.fileio import atomic_write
-from designer.validation import InputError, check_int
+from designer.validation import InputError
 
 from .design import consensus_design
-from .progress import progress
+from .runner import Backend, make_backend, monte_carlo
 from .scenarios import load_scenario
 
-__all__ = ["GRID_PARAMETERS", "parse_grid", "feasibility_map"]
+__all__ = ["GRID_PARAMETERS", "parse_grid", "feasibility_map", "CHUNK_SIZE"]
+
+CHUNK_SIZE = 8  # grid points per chunk (the unit of resumption and of work sent to a worker)
 
 GRID_PARAMETERS = {
     "dos": "DoS probability on every channel, in [0, 1)",
@@ -61,8 +66,7 @@ def parse_grid(spec: str) -> tuple[str, np.ndarray]:
     return name, values
 
 
-def _point(args) -> dict:
-    point, F, H, Q, R, network, design, phi0 = args
+def _point(point: dict, F, H, Q, R, network, design, phi0) -> dict:
     try:
         net = network.with_attacks(point.get("dos"), point.get("fdi"))
     except InputError:  # DoS and FDI never occur together: dos + fdi > 1 is no attack model
@@ -75,19 +79,37 @@ def _point(args) -> dict:
             "theorem2": int(r.theorem2), "iterations": r.iterations}
 
 
+_OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
+
+
+def _points(run_ids, seeds, *, points, F, H, Q, R, network, design, phi0) -> dict:
+    """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used)."""
+    rows = [_point(points[int(i)], F, H, Q, R, network, design, phi0) for i in run_ids]
+    return {k: np.array([r[k] for r in rows]) for k in _OUTPUTS}
+
+
 def feasibility_map(
     scenario: str,
     grids: Sequence[str],
     *,
     out: str | Path | None = None,
     mode: str = "tuned",
-    workers: int = 1,
+    workers: int | None = None,
     quiet: bool = False,
     overrides: Mapping[str, Any] | None = None,
     assignments=(),
     design_options: Mapping[str, Any] | None = None,
+    dask: str | None = None,
+    backend: Backend | None = None,
+    force: bool = False,
 ) -> list[dict]:
-    """Compute the feasibility map over the grids (``NAME=START:STOP:COUNT`` strings)."""
+    """Compute the feasibility map over the grids (``NAME=START:STOP:COUNT`` strings).
+
+    ``workers`` (local processes) or ``dask`` (a scheduler address), or an explicit
+    ``backend``, choose where the chunks of grid points are computed (the map does not
+    depend on it); with ``out`` the finished chunks are kept under ``out/.chunks`` and a
+    second call resumes from them (``force`` recomputes).
+    """
     if not grids:
         raise InputError("give at least one --grid NAME=START:STOP:COUNT")
     parsed = [parse_grid(g) for g in grids]
@@ -98,7 +120,10 @@ def feasibility_map(
         raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
     if "tau" in names and mode == "tuned":
         raise InputError("--grid tau applies to mode 'paper' only (the tuned design chooses C itself)")
-    workers = check_int("workers", workers, 1)
+    if backend is None:
+        backend = make_backend(workers, dask)
+    elif workers is not None or dask is not None:
+        raise InputError("give either backend or workers/dask, not both")
     sc = load_scenario(scenario, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
@@ -112,22 +137,23 @@ def feasibility_map(
     H = [m.H(i, xp, 1) for i in range(m.n_sensors)]
     R = [m.measurement_cov(i) for i in range(m.n_sensors)]
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
-    jobs = [(p, F, H, m.process_cov, R, sc.network, design, m.prior.cov) for p in points]
-    rows = _run(jobs, workers, quiet)
+    task = functools.partial(_points, points=points, F=F, H=H, Q=m.process_cov, R=R, network=sc.network,
+                             design=design, phi0=m.prior.cov)
+    config = {"study": "feasibility", "scenario": sc.name, "grids": [[n, v.tolist()] for n, v in parsed],
+              "mode": mode, "design_options": dict(design_options or {}),
+              "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.params.items()}}
+    mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=CHUNK_SIZE, backend=backend, store=out,
+                     label="feasibility", config=config, force=force, quiet=quiet)
+    a = mc.arrays
+    rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
+             "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),
+             "iterations": int(a["iterations"][i])} for i, p in enumerate(points)]
     if out is not None:
         out = Path(out)
         _write_csv(out / "feasibility.csv", rows, names)
         if len(names) <= 2:
             _figure(out / "feasibility.png", rows, parsed, sc.name, mode)
     return rows
-
-
-def _run(jobs, workers: int, quiet: bool) -> list[dict]:
-    if workers == 1:
-        return list(progress(map(_point, jobs), len(jobs), quiet, "feasibility"))
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        it = pool.map(_point, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
-        return list(progress(it, len(jobs), quiet, "feasibility"))  # map keeps the grid order
 
 
 def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:

@@ -78,14 +78,18 @@ def test_more_fdi_never_helps():
         assert ok.all(), (axis, tb)
 
 
+def _same_rows(rows1, rows2) -> bool:
+    return len(rows1) == len(rows2) and all(
+        r1.keys() == r2.keys() and all(r1[k] == r2[k] or (isinstance(r1[k], float) and np.isnan(r1[k])
+                                                          and np.isnan(r2[k])) for k in r1)
+        for r1, r2 in zip(rows1, rows2))
+
+
 def test_map_files_and_workers_agree(tmp_path):
     rows1 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "a", quiet=True)
     rows2 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "b", quiet=True,
                             workers=2)
-    assert rows1 == rows2 or all(
-        r1["feasible"] == r2["feasible"] and (r1["trace_bound"] == r2["trace_bound"] or
-                                              (np.isnan(r1["trace_bound"]) and np.isnan(r2["trace_bound"])))
-        for r1, r2 in zip(rows1, rows2))
+    assert _same_rows(rows1, rows2)
     with open(tmp_path / "a" / "feasibility.csv") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == 6 and set(table[0]) == {"dos", "fdi", "feasible", "trace_bound", "binding", "theorem2",
@@ -115,3 +119,23 @@ def test_cli_feasibility(tmp_path):
     r = subprocess.run([sys.executable, "-m", "studies", "feasibility", "indoor-robot", "--grid", "tau=0:1:2",
                         "--out", str(tmp_path / "g")], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 2 and "tau" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_map_on_dask_and_resumed_from_its_chunks(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from studies.runner import CHUNKS_DIR
+
+    grids = ["dos=0:0.3:4", "fdi=0:0.3:3"]  # 12 points: two chunks
+    ref = feasibility_map("indoor-robot", grids, quiet=True)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        rows = feasibility_map("indoor-robot", grids, out=tmp_path, quiet=True, dask=cl.scheduler_address)
+    assert _same_rows(ref, rows)
+    chunks = sorted((tmp_path / CHUNKS_DIR / "feasibility").glob("runs_*.npz"))
+    assert len(chunks) == 2
+    chunks[1].unlink()  # as if interrupted: the second call computes only that chunk
+    again = feasibility_map("indoor-robot", grids, out=tmp_path, quiet=True)
+    assert _same_rows(ref, again)
+    log = (tmp_path / CHUNKS_DIR / "feasibility" / "log.jsonl").read_text().splitlines()
+    assert len(log) == 3
+    with pytest.raises(InputError, match="--force"):
+        feasibility_map("indoor-robot", grids, out=tmp_path, quiet=True, mode="paper")
