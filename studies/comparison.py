@@ -407,10 +407,18 @@ def table_markdown(results: dict) -> str:
         for key, title in (("dos_prob", "DoS probability (FDI fixed)"), ("fdi_prob", "FDI probability (DoS fixed)")):
             sw = b["sweeps"][key]
             names = [n for n in b["filters"] if any(n in row for row in sw.values())]
-            text += f"\n### {sc_name}: position RMSE against the {title}\n\n" + markdown_table(
-                {v: {n: (row[n]["rmse_position"] if n in row else None) for n in names} for v, row in sw.items()},
-                [(n, n) for n in names])
+            text += (f"\n### {sc_name}: position RMSE against the {title}\n\nRMSE over all runs (median run's "
+                     "RMSE in brackets: a few exploding runs dominate the first, not the second).\n\n") + markdown_table(
+                {v: {n: _sweep_cell(row.get(n)) for n in names} for v, row in sw.items()}, [(n, n) for n in names])
     return text
+
+
+def _sweep_cell(m: dict | None) -> str | None:
+    if m is None:
+        return None
+    if m["rmse_position"] is None:
+        return "diverged"
+    return f"{m['rmse_position']:.4g} ({m['rmse_position_median_run']:.3g})"
 
 
 def _figures(out: Path, arrays: dict, built: dict, blocks: dict) -> None:
