@@ -98,6 +98,8 @@ from designer.model import Model
 from designer.noise import Gaussian, GaussianMixture, Noise
 from designer.validation import InputError, check_int, check_probability
 
+from .rrp import angle_sets
+
 __all__ = [
     "FastSIRResult", "RESAMPLER_CODES", "sir_packets", "sir_binary", "deception_terms", "binary_coefficients",
     "packets_loglik", "binary_affine_loglik",
@@ -898,31 +900,8 @@ def _options(resampler, ess_threshold, workers, covariance) -> tuple[int, float,
 
 
 def _wrap_set(angles, model: Model) -> tuple:
-    S, dims = model.n_sensors, model.sensor_dims
-    if isinstance(angles, (str, bytes)):
-        raise InputError("angles must be a sequence of component indices or (sensor, component) pairs")
-    try:
-        items = list(angles)
-    except TypeError:
-        raise InputError("angles must be a sequence of component indices or (sensor, component) pairs") from None
-    out = set()
-
-    def is_int(v):
-        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-    for a in items:
-        if is_int(a):
-            pairs = [(s, int(a)) for s in range(S)]
-        elif isinstance(a, (tuple, list)) and len(a) == 2 and all(is_int(v) for v in a):
-            pairs = [(int(a[0]), int(a[1]))]
-        else:
-            raise InputError(f"angles must hold component indices or (sensor, component) pairs, got {a!r}")
-        for s, j in pairs:
-            if not (0 <= s < S) or not (0 <= j < dims[s]):
-                raise InputError(f"angles entry {a!r} is out of range (sensors 0..{S - 1}, and each sensor's "
-                                 "components)")
-            out.add((s, j))
-    return tuple(sorted(out))
+    """Sorted ``(sensor, component)`` pairs of the angular components (:func:`filters.rrp.angle_sets`)."""
+    return tuple((s, j) for s, comps in enumerate(angle_sets(model, angles)) for j in comps)
 
 
 def _packet_data(model: Model, R: int, sensors, y, attack, log_clean):

@@ -34,7 +34,7 @@ import numpy as np
 from designer.validation import InputError, check_int
 from filters.channels import binary_sensor_channel
 
-from .pfrun import cached_scenario, check_engine, check_threads, plain_params, run_binary, score
+from .pfrun import cached_scenario, check_study_options, plain_params, run_binary, score
 from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
                       study_header, trajectory_figure, write_study)
 from .runner import Backend, monte_carlo, run_seed
@@ -222,15 +222,9 @@ def run_binary_multi_attack(
     workers : int
         Deprecated alias of ``threads``.
     """
-    runs = check_int("runs", runs, 2)
-    particles = check_int("particles", particles, 1)
-    seed = check_int("seed", seed, 0)
-    threads = check_threads(threads, workers)
-    check_engine(engine)
-    chunk_size = check_int("chunk_size", chunk_size, 1)
-    backend = backend or Backend()
-    if not isinstance(backend, Backend):
-        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
+    runs, particles, seed, threads, chunk_size, backend = check_study_options(
+        runs=runs, particles=particles, seed=seed, threads=threads, workers=workers, engine=engine,
+        chunk_size=chunk_size, backend=backend)
     sweep = [float(v) for v in sweep]
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (attack probabilities) must lie in [0, 1), got {sweep}")

@@ -87,6 +87,23 @@ def check_threads(threads, workers) -> int:
     return check_int("threads", 1 if threads is None else threads, 1)
 
 
+def check_study_options(*, runs, particles, seed, threads, workers, engine, chunk_size, backend):
+    """The run options shared by the particle-filter studies, checked before any work:
+    ``(runs, particles, seed, threads, chunk_size, backend)``."""
+    from .runner import Backend
+
+    runs = check_int("runs", runs, 2)
+    particles = check_int("particles", particles, 1)
+    seed = check_int("seed", seed, 0)
+    threads = check_threads(threads, workers)
+    check_engine(engine)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    backend = backend or Backend()
+    if not isinstance(backend, Backend):
+        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
+    return runs, particles, seed, threads, chunk_size, backend
+
+
 def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: np.ndarray,
           position: Sequence[int], velocity: Sequence[int], rng: np.random.Generator) -> dict:
     """:func:`studies.results.evaluate_filter`'s metrics of one filter from the runner's per-run arrays.

@@ -32,11 +32,11 @@ from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from designer.validation import InputError, check_int
+from designer.validation import InputError
 from filters.channels import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import check_engine, cached_scenario, check_threads, plain_params, run_packets, score
+from .pfrun import cached_scenario, check_study_options, plain_params, run_packets, score
 from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, study_header,
                       trajectory_figure, write_study)
 from .runner import Backend, monte_carlo, run_seed
@@ -239,15 +239,9 @@ def run_rrp_deception(
     workers : int
         Deprecated alias of ``threads``.
     """
-    runs = check_int("runs", runs, 2)
-    particles = check_int("particles", particles, 1)
-    seed = check_int("seed", seed, 0)
-    threads = check_threads(threads, workers)
-    check_engine(engine)
-    chunk_size = check_int("chunk_size", chunk_size, 1)
-    backend = backend or Backend()
-    if not isinstance(backend, Backend):
-        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
+    runs, particles, seed, threads, chunk_size, backend = check_study_options(
+        runs=runs, particles=particles, seed=seed, threads=threads, workers=workers, engine=engine,
+        chunk_size=chunk_size, backend=backend)
     sweep = [float(v) for v in sweep]
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (eta-bar) must lie in [0, 1), got {sweep}")
