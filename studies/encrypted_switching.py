@@ -55,7 +55,7 @@ from filters.particle import run_sir, transition_proposal
 from .pfrun import ENGINES
 from .progress import progress
 from .runner import Backend, monte_carlo
-from .results import BOOTSTRAP, curves_figure, markdown_table, study_header, write_study
+from .results import _curve_mean_ci, curves_figure, markdown_table, study_header, write_study
 from .scenarios import get_spec, load_scenario, parse_assignments
 
 __all__ = ["run_encrypted_switching", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up",
@@ -299,30 +299,10 @@ def concatenate_runs(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.
 
 
 # ============================================================================ summary
-def _rmse_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
-    """Mean over steps of ``sqrt(mean over runs of e2)`` (``e2``: (runs, T)) and its 95 % percentile bootstrap.
-
-    The bootstrap of :func:`studies.results.error_metrics` — the same ``BOOTSTRAP``
-    resamples of the runs drawn from ``rng`` alike (the tests check the intervals
-    agree) — with each resample's mean over runs taken as a product of its counts
-    matrix with ``e2`` rather than by gathering ``BOOTSTRAP x runs x T`` values (a tenth
-    of the whole study's time at its default size).
-    """
-    runs = e2.shape[0]
-    value = float(np.sqrt(e2.mean(axis=0)).mean())
-    if runs < 2:
-        return value, [value, value]
-    idx = rng.integers(0, runs, size=(BOOTSTRAP, runs))
-    counts = np.bincount((idx + runs * np.arange(BOOTSTRAP)[:, None]).ravel(), minlength=BOOTSTRAP * runs)
-    boot = np.sqrt((counts.reshape(BOOTSTRAP, runs).astype(np.float64) @ e2) / runs).mean(axis=1)
-    lo, hi = np.percentile(boot, [2.5, 97.5])
-    return value, [float(lo), float(hi)]
-
-
 def _state_metrics(err: np.ndarray, rng: np.random.Generator) -> dict:
     """Per-state time-averaged RMSE with its bootstrap interval, the RMSE_i(t) curves, the median run's RMSE."""
     e2 = err**2
-    per = [_rmse_ci(e2[..., i], rng) for i in range(err.shape[-1])]
+    per = [_curve_mean_ci(e2[..., i], rng) for i in range(err.shape[-1])]
     return {
         "rmse_state": [v for v, _ in per],
         "rmse_state_ci95": [ci for _, ci in per],

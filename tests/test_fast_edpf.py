@@ -24,7 +24,7 @@ from filters.fastedpf import edpf_loglik, sir_edpf
 from filters.particle import run_sir
 from studies.encrypted_switching import (FILTERS, MEAN_DYNAMICS, RunConfig, _state_metrics, _streams,
                                          compute_runs, concatenate_runs, filter_names, run_encrypted_switching)
-from studies.results import error_metrics
+from studies.results import BOOTSTRAP, error_metrics
 from studies.scenarios import load_scenario
 
 TOL = 1e-10
@@ -247,6 +247,12 @@ def test_the_fast_bootstrap_is_error_metrics_bootstrap():
     np.testing.assert_allclose(ours["rmse_state"][:2], [ref["rmse_position"], ref["rmse_velocity"]], rtol=1e-12)
     np.testing.assert_allclose(ours["rmse_state_ci95"][2], ref2["rmse_position_ci95"], rtol=1e-12)
     np.testing.assert_allclose(ours["rmse_state_curve"][2], ref2["rmse_position_curve"], rtol=1e-12)
+    # independent of both: the bootstrap written as a gather of every resample's runs
+    rng = np.random.default_rng(8)
+    e2 = err[..., 0] ** 2
+    idx = rng.integers(0, 30, size=(BOOTSTRAP, 30))
+    gathered = np.percentile(np.sqrt(e2[idx].mean(axis=1)).mean(axis=1), [2.5, 97.5])
+    np.testing.assert_allclose(ours["rmse_state_ci95"][0], gathered, rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------- input checks
