@@ -18,7 +18,9 @@ import time
 
 import numpy as np
 
-from filters.consensus import run_consensus, simulate_attacks
+from designer.attacks import FDISignal
+from filters.attacks import simulate_attacks
+from filters.consensus import run_consensus
 from studies.design import consensus_design
 from studies.scenarios import load_scenario
 
@@ -38,7 +40,7 @@ def time_step(n: int, repeats: int) -> float:
     rng = np.random.default_rng(0)
     traj = sc.simulate(rng)
     des = consensus_design(sc)
-    att = simulate_attacks(sc.network, STEPS, 3, rng, amplitude=1.5, components=(0, 1))
+    att = simulate_attacks(sc.network, STEPS, 3, rng, signal=FDISignal(1.5, (0, 1)))
     best = np.inf
     for _ in range(repeats):
         t = time.perf_counter()

@@ -38,7 +38,7 @@ import numpy as np
 from designer.jit import compile_source
 from designer.noise import spawn_generators
 from filters import fastsir
-from filters.channels import deception_attack, round_robin_schedule
+from filters.attacks import deception_attack, round_robin_schedule
 from filters.particle import run_sir
 from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles
 from studies.scenarios import load_scenario

@@ -56,7 +56,7 @@ def main(argv=None) -> int:
         "prediction fast path": _median_time(lambda p, F, U, Q, *_: tune_prediction(p, F, U, Q, 0.3), items),
         "update fast path": _median_time(lambda p, F, U, Q, H, V, R, N: tune_update(p, H, 3.0, V, R, 3, N), items),
     }
-    from studies.design import design
+    from studies.api import design
 
     design("indoor-robot", mode="tuned", seed=0, steps=2)  # warm-up (imports, CasADi functions)
     t = time.perf_counter()

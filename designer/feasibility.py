@@ -23,13 +23,13 @@ with the least relative slack at the fixed point, or the one that failed.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from .bounds import condition28_margin, condition29_margin, optimal_gain, prediction_bound, theorem2_margin, update_bound
 from .network import SensorNetwork
-from .tuning import MARGIN, tune_prediction, tune_update
+from .tuning import MARGIN, lam_max, tune_prediction, tune_update
 
 __all__ = ["SteadyState", "steady_state"]
 
@@ -80,12 +80,19 @@ class SteadyState(NamedTuple):
 
 
 def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Sequence[np.ndarray],
-                 network: SensorNetwork, *, epsilon: float, delta: float, U: np.ndarray, V: np.ndarray,
+                 network: SensorNetwork, *, epsilon: float, delta: float, U: np.ndarray, V,
                  mode: str = "tuned", sigma: float = 0.1, beta: float = 0.1, tau: float = 0.01,
                  phi0: np.ndarray | None = None, tol: float = 1e-8, max_iter: int = 400,
-                 accelerate: bool = True) -> SteadyState:
-    """Iterate the stationary bound recursion to its fixed point (see the module docstring)."""
+                 accelerate: bool = True, scaling: Callable | None = None) -> SteadyState:
+    """Iterate the stationary bound recursion to its fixed point (see the module docstring).
+
+    ``V``: one matrix for every sensor or one per sensor.  ``scaling``: for a Hessian-derived
+    linearisation, ``scaling(i, phi_post_i, phi_pred_i) -> ((U, D_f), (V_i, D_h))`` at every
+    iterate (``phi_pred_i`` None on the prediction call); None keeps ``U``, ``V`` fixed.
+    """
     n_nodes, nx = network.n_nodes, F.shape[0]
+    Vs = list(V) if isinstance(V, (list, tuple)) else [V] * n_nodes
+    pred_scale = [None] * n_nodes
     deg = network.degrees
     s = ((1.0 - network.dos_prob) * network.adjacency).sum(axis=1)
     w_phi = 3.0 * (1.0 - network.dos_prob) * network.adjacency
@@ -99,33 +106,36 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
     for it in range(1, max_iter + 1):
         pred = np.empty_like(phi)
         for i in range(n_nodes):
+            Ui, Df = (U, None) if scaling is None else scaling(i, phi[i], None)[0]
+            pred_scale[i] = Df
             if mode == "tuned":
-                ch = tune_prediction(phi[i], F, U, Q, epsilon)
+                ch = tune_prediction(phi[i], F, Ui, Q, epsilon, D=Df)
                 sig[i], pred[i] = ch.sigma, ch.phi_pred
             else:
-                pb = prediction_bound(phi[i], F, U, Q, sigma, epsilon)
+                pb = prediction_bound(phi[i], F, Ui, Q, sigma, epsilon, Df)
                 if pb.phi_pred is None:
                     return SteadyState(False, np.nan, "(28)", it, False, None)
                 sig[i], pred[i] = sigma, pb.phi_pred
-            lam = np.linalg.eigvalsh(phi[i])[-1]
+            lam = lam_max(phi[i], Df)
             slack28[i] = 1.0 - (1.0 + epsilon) * sig[i] * lam
         neigh = np.einsum("ij,jab->iab", w_phi, pred) + w_xi[:, None, None] * np.eye(nx)
         new = np.empty_like(phi)
         for i in range(n_nodes):
+            Vi, Dh = (Vs[i], None) if scaling is None else scaling(i, phi[i], pred[i])[1]
             if mode == "tuned":
-                ch = tune_update(pred[i], H[i], s[i], V, R[i], int(deg[i]), neigh[i])
+                ch = tune_update(pred[i], H[i], s[i], Vi, R[i], int(deg[i]), neigh[i], D=Dh)
                 b, new[i] = ch.beta, ch.phi_post
             else:
-                if condition29_margin(pred[i], beta) <= 0:
+                if condition29_margin(pred[i], beta, Dh) <= 0:
                     return SteadyState(False, np.nan, "(29)", it, False, None)
                 C = tau * pred[i]
-                K = optimal_gain(pred[i], H[i], C, s[i], beta, V, R[i], int(deg[i]))
-                b, new[i] = beta, update_bound(pred[i], H[i], K, C, s[i], beta, V, R[i], int(deg[i]), neigh[i])
-            slack29[i] = 1.0 - b * np.linalg.eigvalsh(pred[i])[-1]
+                K = optimal_gain(pred[i], H[i], C, s[i], beta, Vi, R[i], int(deg[i]), Dh)
+                b, new[i] = beta, update_bound(pred[i], H[i], K, C, s[i], beta, Vi, R[i], int(deg[i]), neigh[i], Dh)
+            slack29[i] = 1.0 - b * lam_max(pred[i], Dh)
         if not np.all(np.isfinite(new)) or np.trace(new, axis1=1, axis2=2).max() > _BLOWUP:
             return SteadyState(False, np.nan, "diverged", it, False, None)
         for i in range(n_nodes):
-            if condition28_margin(new[i], sig[i], epsilon) <= 0:
+            if condition28_margin(new[i], sig[i], epsilon, pred_scale[i]) <= 0:
                 return SteadyState(False, np.nan, "(28)", it, False, None)
         change = max(np.abs(new[i] - phi[i]).max() / np.abs(new[i]).max() for i in range(n_nodes))
         if np.trace(new, axis1=1, axis2=2).max() > _UNBOUNDED * scale:

@@ -28,7 +28,8 @@ import numpy as np
 
 from .bounds import symmetrize
 
-__all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "hessian_cover", "structured_scale", "selection"]
+__all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "component_scales", "hessian_cover",
+           "structured_scale", "selection", "DEFAULT_RADIUS"]
 
 DEFAULT_RADIUS = 3.0
 
@@ -62,6 +63,23 @@ def remainder_scale(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
     L = hessian_norm_bound(hessian_at(ellipsoid_points(center, cov, radius)))
     lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
     return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))
+
+
+def component_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
+    """One scale per component ``j`` of a function, for the diagonal scaling ``U = diag(u)``.
+
+    ``|r_j| <= ½ L_j ||e||²`` with ``L_j`` the largest ``||∇²g_j||₂`` over the points of the
+    ellipsoid, so on it ``|r_j| <= ½ L_j c sqrt(λ_max) ||e||``.  With ``m`` the number of
+    components whose Hessian is not zero, ``u_j = ½ L_j c sqrt(λ_max) sqrt(m)`` gives
+    ``||U⁻¹ r|| <= ||e||`` (the zero components have ``r_j = 0``), i.e. ``r = U Ω e`` with
+    ``Ω = U⁻¹ r eᵀ / ||e||²`` and ``||Ω|| <= 1``.  Each ``u_j`` is in the unit of its own
+    component (per metre of error, per radian, ...), which a single ``u I`` cannot be.
+    """
+    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
+    L = np.linalg.norm(Hs, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
+    m = int(np.count_nonzero(L > 0))
+    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
+    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0)) * np.sqrt(max(m, 1))
 
 
 # ------------------------------------------------------------------ structured variant
@@ -111,3 +129,41 @@ def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tup
 def selection(cover: tuple[int, ...], n: int) -> np.ndarray:
     """The matrix D (|S| x n) selecting the variables of ``cover``."""
     return np.eye(n)[list(cover)]
+
+
+# ------------------------------------------------------------------ per node and step
+def _f_hessians(model, k, u):
+    if model.n_modes == 0:
+        return lambda pts: model.f_hessian(pts, k, u)
+    return lambda pts: np.concatenate([model.f_hessian(pts, k, u, m) for m in range(model.n_modes)], axis=1)
+
+
+def prediction_scaling(model, x_post, phi_post, k, u, rule: str, radius: float, U: np.ndarray):
+    """``(U, D)`` of the remainder of ``f`` at ``x_post`` for the linearisation ``rule``.
+
+    ``'fixed'``: the given ``U`` and ``D = None`` (the paper's ``D = I``); ``'hessian'``:
+    ``u I`` over the ``radius``-sigma ellipsoid of ``phi_post``; ``'structured'``: the same
+    with ``D`` selecting the variables ``f`` is nonlinear in (``U = 0``, ``D = None`` when
+    ``f`` is linear).
+    """
+    if rule == "fixed":
+        return U, None
+    hess = _f_hessians(model, k, u)
+    if rule == "structured":
+        cover = hessian_cover(model.casadi_f_hess)
+        if not cover:  # f is linear: no remainder, no multiplier
+            return np.zeros_like(U), None
+        return structured_scale(hess, x_post, phi_post, cover, radius) * np.eye(model.n_x), selection(cover, model.n_x)
+    return remainder_scale(hess, x_post, phi_post, radius) * np.eye(model.n_x), None
+
+
+def update_scaling(model, i: int, x_pred, phi_pred, k1, rule: str, radius: float, V: np.ndarray):
+    """``(V_i, D)`` of the remainder of ``h_i`` at ``x_pred`` (see :func:`prediction_scaling`)."""
+    if rule == "fixed":
+        return V, None
+    hess = lambda pts: model.h_hessian(i, pts, k1)  # noqa: E731
+    if rule == "structured":
+        cover = hessian_cover(model.casadi_h_hess[i])
+        D = selection(cover, model.n_x) if cover else None
+        return structured_scale(hess, x_pred, phi_pred, cover, radius) * np.eye(V.shape[0]), D
+    return remainder_scale(hess, x_pred, phi_pred, radius) * np.eye(V.shape[0]), None

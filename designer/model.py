@@ -43,12 +43,27 @@ class Sensor:
         Additive measurement noise, of the same dimension as ``h``.
     position : sequence of float, optional
         Where the sensor is, for figures and descriptions only.
+    angles : sequence of int
+        The components of ``h`` that are angles in radians: every filter wraps their
+        residuals into (-π, π] (a bearing that crosses ±π is not a 2π error).
     """
 
     name: str
     h: ca.SX
     noise: Noise
     position: tuple[float, ...] | None = None
+    angles: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        try:
+            angles = tuple(int(a) for a in self.angles)
+        except (TypeError, ValueError):
+            raise InputError(f"sensor {self.name!r}: angles must be component indices, got {self.angles!r}") from None
+        dim = int(getattr(self.h, "shape", (0,))[0]) if angles else 0
+        if any(not 0 <= a < dim for a in angles) or len(set(angles)) != len(angles):
+            raise InputError(f"sensor {self.name!r}: angles must be distinct components in 0..{dim - 1}, "
+                             f"got {self.angles!r}")
+        object.__setattr__(self, "angles", angles)
 
     @property
     def dim(self) -> int:
@@ -269,6 +284,11 @@ class Model:
         return int(self._offsets[-1])
 
     @property
+    def angle_components(self) -> tuple[tuple[int, int], ...]:
+        """``(sensor, component)`` pairs of the angular measurement components (see :class:`Sensor`)."""
+        return tuple((i, a) for i, s in enumerate(self.sensors) for a in s.angles)
+
+    @property
     def n_modes(self) -> int:
         return 0 if self.mode_probs is None else len(self.mode_probs)
 
@@ -398,7 +418,10 @@ class Model:
         noise = Gaussian(np.concatenate([s.noise.mean for s in self.sensors]),
                          block_diag(*[s.noise.cov for s in self.sensors]))
         h = ca.vertcat(*[s.h for s in self.sensors])
-        return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise)], self.process_noise,
+        offsets = self._offsets
+        angles = tuple(int(offsets[i] + a) for i, s in enumerate(self.sensors) for a in s.angles)
+        return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise, angles=angles)],
+                     self.process_noise,
                      self.prior, k=self.k, u=self.u if self.n_u else None, mode=self.mode if self.n_modes else None,
                      mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
                      position_index=self.position_index, velocity_index=self.velocity_index,
@@ -415,7 +438,7 @@ class Model:
             "modes": None if self.mode_probs is None else self.mode_probs.tolist(),
             "sensors": [
                 {"name": s.name, "dim": s.dim, "noise": s.noise.describe(),
-                 "position": None if s.position is None else list(s.position)}
+                 "position": None if s.position is None else list(s.position), "angles": list(s.angles)}
                 for s in self.sensors
             ],
             "process_noise": self.process_noise.describe(),

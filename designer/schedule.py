@@ -3,9 +3,13 @@
 Schema ``cfdesign.schedule/1`` (see ``shared/DESIGN.md``): ``schedule.json`` holds
 ``schema, scenario, mode, nodes, steps, epsilon, feasible, violations, sigma, beta,
 trace_bound`` (nodes x steps; entry k is tr Φ_{k+1|k+1}, ``null`` where Φ is not a
-bound) and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z), ``C`` (nodes,
-steps, n_x, n_x), ``Phi`` (nodes, steps + 1, n_x, n_x; NaN where Φ is not a bound)
-and ``valid`` (nodes, steps + 1).
+bound) and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z; with sensors of
+different dimensions ``n_z = max n_z_i`` and node i's gain in its first ``n_z_i``
+columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1,
+n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` and
+``beta`` (nodes, steps) and the condition margins ``margin28`` and ``margin29``
+(nodes, steps; NaN where not checked).  The JSON Schema is
+``studies/schemas/schedule.schema.json``.
 """
 from __future__ import annotations
 
@@ -44,6 +48,8 @@ class GainSchedule:
     valid: np.ndarray  # (nodes, steps + 1) bool
     violations: list
     meta: dict[str, Any] = field(default_factory=dict)
+    margin28: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k|k) - (1+ε)σ, NaN where not checked
+    margin29: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k+1|k) - β
 
     @property
     def nodes(self) -> int:
@@ -86,8 +92,9 @@ class GainSchedule:
     def write(self, out_dir) -> Path:
         """Write ``schedule.json`` and ``schedule.npz`` atomically into ``out_dir``."""
         out_dir = Path(out_dir)
+        margins = {} if self.margin28 is None else {"margin28": self.margin28, "margin29": self.margin29}
         write_npz(out_dir / "schedule.npz", K=self.K, C=self.C, Phi=self.Phi, valid=self.valid,
-                  sigma=self.sigma, beta=self.beta)
+                  sigma=self.sigma, beta=self.beta, **margins)
         write_json(out_dir / "schedule.json", self.to_json())
         return out_dir
 
@@ -108,8 +115,16 @@ def load_schedule(path) -> GainSchedule:
     npz_path = path.with_suffix(".npz")
     if not npz_path.is_file():
         raise InputError(f"schedule arrays {str(npz_path)!r} are missing")
-    with np.load(npz_path) as d:
-        arrays = {k: d[k] for k in ("K", "C", "Phi", "valid", "sigma", "beta")}
+    try:
+        with np.load(npz_path, allow_pickle=False) as d:
+            missing = [k for k in ("K", "C", "Phi", "valid", "sigma", "beta") if k not in d.files]
+            if missing:
+                raise InputError(f"schedule arrays {str(npz_path)!r} lack {', '.join(missing)}")
+            arrays = {k: d[k] for k in d.files}
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line, exit 2
+        raise InputError(f"schedule arrays {str(npz_path)!r} cannot be read: {type(exc).__name__}: {exc}") from None
     known = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
              "trace_bound"}
     violations = [{**v, "margin": -np.inf if v["margin"] is None else v["margin"]} for v in meta["violations"]]
@@ -117,4 +132,5 @@ def load_schedule(path) -> GainSchedule:
         v.pop("note", None)
     return GainSchedule(meta["scenario"], meta["mode"], float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
                         arrays["K"], arrays["C"], arrays["Phi"], arrays["valid"].astype(bool), violations,
-                        {k: v for k, v in meta.items() if k not in known})
+                        {k: v for k, v in meta.items() if k not in known}, arrays.get("margin28"),
+                        arrays.get("margin29"))

@@ -49,7 +49,7 @@ from .validation import ComputationError
 
 __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
-    "PredictionSDP", "UpdateSDP", "update_trace",
+    "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
 ]
 
 MARGIN = 0.05  # relative margin kept in (28), (29) and in epsilon < 1/d_max
@@ -74,7 +74,7 @@ class UpdateChoice(NamedTuple):
     trace: float
 
 
-def _lam_max(a, D=None) -> float:
+def lam_max(a, D=None) -> float:
     """``lambda_max(D a Dᵀ)`` (``D = I`` when None)."""
     return float(np.linalg.eigvalsh(symmetrize(a if D is None else D @ a @ D.T))[-1])
 
@@ -86,7 +86,7 @@ def _prediction(phi_post, F, UUt, Q, sigma, eps, D=None) -> np.ndarray:
 
 
 def _sigma_max(phi_post, eps, margin, D=None) -> float:
-    return (1.0 - margin) / ((1.0 + eps) * _lam_max(phi_post, D))
+    return (1.0 - margin) / ((1.0 + eps) * lam_max(phi_post, D))
 
 
 def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionChoice:
@@ -189,7 +189,7 @@ def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN
 
 
 def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
-    bmax = (1.0 - margin) / _lam_max(phi_pred, D)
+    bmax = (1.0 - margin) / lam_max(phi_pred, D)
     fixed = _FixedBeta(phi_pred, H, s, V, R, d_i, N, D)
     trace_at = fixed.trace
 
@@ -302,7 +302,7 @@ class UpdateSDP:
         self.LN.value = np.linalg.cholesky(symmetrize(N) + 1e-15 * np.eye(n)) if np.any(N) else np.zeros((n, n))
         self.LR.value = np.linalg.cholesky(R)
         self.V.value = V
-        self.bmax.value = (1.0 - margin) / _lam_max(phi_pred, D)
+        self.bmax.value = (1.0 - margin) / lam_max(phi_pred, D)
         _solve(self.problem, "update SDP")
         beta = max(float(self.beta.value), 0.0)
         C, K = self.C.value, self.K.value

@@ -33,133 +33,20 @@ from designer.bounds import (
     theorem2_margin,
     update_bound,
 )
+from designer.design import ConsensusDesign, validate_design
+from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.linearization import hessian_cover, remainder_scale, selection, structured_scale
 from designer.tuning import tune_prediction, tune_update
-from designer.validation import InputError, check_covariance, check_finite, check_rng
+from designer.validation import InputError, check_covariance, check_finite
 
-__all__ = [
-    "ConsensusDesign", "AttackPattern", "simulate_attacks", "channel_draws", "attack_pattern", "node_predict", "exchange", "node_update",
-    "ConsensusResult", "run_consensus", "validate_design", "HARD_CONDITIONS",
-]
+from .attacks import AttackPattern
+
+__all__ = ["node_predict", "exchange", "node_update", "ConsensusResult", "run_consensus", "HARD_CONDITIONS"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
 _DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate
-
-
-class ConsensusDesign(NamedTuple):
-    """Design parameters of the consensus filter.
-
-    ``U`` (n_x x n_x) and ``V`` (n_z x n_z) scale the linearisation remainders
-    ``U Ω e`` and ``V Θ e``; ``C_i = tau Φ_{i,k+1|k}`` (the paper's choice).
-    ``delta`` bounds the injected signal, ``||xi|| <= delta``.  In ``'tuned'`` mode,
-    ``sigma``, ``beta`` and ``tau`` are not used: σ, β, C and K come from the convex
-    tuning layer (:mod:`designer.tuning`) at every node and step, with (28)-(29)
-    kept at the relative margin ``designer.tuning.MARGIN``.  With
-    ``linearization='hessian'``, ``U`` and ``V`` are replaced at every node and step by
-    ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
-    Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.
-    """
-
-    epsilon: float
-    sigma: float
-    beta: float
-    tau: float
-    U: np.ndarray
-    V: np.ndarray
-    delta: float
-    mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
-    linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step;
-    # 'structured': as 'hessian' but with the remainder written U Ω D e, D selecting the variables the model is
-    # nonlinear in (the tighter variant: the multipliers act only along those directions)
-    radius: float = 3.0  # 'hessian': the remainder bound holds for errors within `radius` standard deviations of Φ
-
-
-class AttackPattern(NamedTuple):
-    """Realised attacks: entry ``[k, i, j]`` concerns the channel j -> i at time k + 1."""
-
-    dos: np.ndarray  # bool (steps, N, N)
-    fdi: np.ndarray  # bool (steps, N, N)
-    xi: np.ndarray  # (steps, N, N, n_x) injected signal (zero where no FDI)
-
-
-def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
-    """Check ranges and shapes; raise :class:`InputError` naming the parameter."""
-    d_max = network.d_max
-    eps = float(design.epsilon)
-    upper = np.inf if d_max == 0 else 1.0 / d_max
-    if not (0.0 < eps < upper):
-        raise InputError(f"epsilon must lie in (0, 1/d_max) = (0, {upper:.6g}), got {eps!r}")
-    for name in ("sigma", "beta", "tau", "delta"):
-        v = getattr(design, name)
-        if not np.isfinite(v) or v < 0:
-            raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
-    if design.linearization not in ("fixed", "hessian", "structured"):
-        raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
-    if not np.isfinite(design.radius) or design.radius <= 0:
-        raise InputError(f"radius must be > 0, got {design.radius!r}")
-    if design.mode not in ("paper", "tuned"):
-        raise InputError(f"mode must be 'paper' or 'tuned', got {design.mode!r}")
-    if network.n_nodes != model.n_sensors:
-        raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors")
-    if len(set(model.sensor_dims)) != 1:
-        raise InputError("the consensus filter needs every sensor to have the same measurement dimension")
-    for name, p in (("dos probability", network.dos_prob), ("fdi probability", network.fdi_prob)):
-        if np.any(p >= 1.0):
-            raise InputError(f"{name} must lie in [0, 1) on every channel")
-    n_z = model.sensor_dims[0]
-    U = check_finite("U", design.U)
-    V = check_finite("V", design.V)
-    if U.shape != (model.n_x, model.n_x):
-        raise InputError(f"U must have shape ({model.n_x}, {model.n_x}), got {U.shape}")
-    if V.shape != (n_z, n_z):
-        raise InputError(f"V must have shape ({n_z}, {n_z}), got {V.shape}")
-    if design.sigma == 0 and np.any(U):
-        raise InputError("sigma must be > 0 when U is nonzero")
-    if design.beta == 0 and np.any(V):
-        raise InputError("beta must be > 0 when V is nonzero")
-    return design._replace(epsilon=eps, U=U, V=V)
-
-
-def channel_draws(steps: int, n_nodes: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The uniforms ``u`` and normals ``s`` (each ``(steps, N, N)``) behind every channel's attack.
-
-    Entry ``[k, i, j]`` drives the channel ``j -> i``; the diagonal ``[k, i, i]`` is not a
-    network channel and is used for node ``i``'s uplink to a fusion centre
-    (:func:`filters.uplink.uplink_attacks`), so networked and centralized filters can
-    face one realisation of the same attack law.
-    """
-    check_rng(rng)
-    u = rng.random((steps, n_nodes, n_nodes))
-    s = rng.standard_normal((steps, n_nodes, n_nodes))
-    return u, s
-
-
-def attack_pattern(network: SensorNetwork, u: np.ndarray, s: np.ndarray, n_x: int, *, amplitude: float,
-                   components) -> AttackPattern:
-    """Channel attacks from the draws of :func:`channel_draws` (see :func:`simulate_attacks`)."""
-    adj = network.adjacency[None]
-    dos = adj & (u < network.dos_prob[None])
-    fdi = adj & ~dos & (u < network.dos_prob[None] + network.fdi_prob[None])
-    xi = np.zeros(u.shape + (n_x,))
-    comps = list(components)
-    xi[..., comps] = (amplitude * np.sin(s) * fdi)[..., None]
-    return AttackPattern(dos, fdi, xi)
-
-
-def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.random.Generator, *,
-                     amplitude: float, components) -> AttackPattern:
-    """Draw DoS / FDI indicators and the injected signal on every channel and step.
-
-    DoS and FDI are exclusive: with ``u ~ U(0, 1)``, DoS iff ``u < phibar``, FDI iff
-    ``phibar <= u < phibar + gammabar``.  The injected signal is
-    ``xi = amplitude * sin(s)`` on each listed state component, ``s ~ N(0, 1)`` per
-    channel and step (so ``||xi|| <= amplitude * sqrt(len(components))``).
-    """
-    u, s = channel_draws(steps, network.n_nodes, rng)
-    return attack_pattern(network, u, s, n_x, amplitude=amplitude, components=components)
 
 
 class NodePrediction(NamedTuple):
@@ -175,26 +62,16 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     F = model.F_expected(x_post, k, u)
     x_pred = model.f_expected(x_post, k, u)
     Q = model.process_cov
-    D = None
-    if valid and design.linearization != "fixed":
-        hess = (lambda pts: model.f_hessian(pts, k, u)) if model.n_modes == 0 else \
-            (lambda pts: np.concatenate([model.f_hessian(pts, k, u, mm) for mm in range(model.n_modes)], axis=1))
-        if design.linearization == "structured":
-            cover = hessian_cover(model.casadi_f_hess)
-            D = selection(cover, model.n_x)
-            scale = structured_scale(hess, x_post, phi_post, cover, design.radius)
-        else:
-            scale = remainder_scale(hess, x_post, phi_post, design.radius)
-        design = design._replace(U=scale * np.eye(model.n_x))
-    if D is not None and D.shape[0] == 0:  # f is linear: no remainder, no multiplier
-        D, design = None, design._replace(U=np.zeros_like(design.U))
+    U, D = design.U, None
+    if valid:
+        U, D = prediction_scaling(model, x_post, phi_post, k, u, design.linearization, design.radius, U)
     if valid and design.mode == "tuned":
-        choice = tune_prediction(phi_post, F, design.U, Q, design.epsilon, D=D)
+        choice = tune_prediction(phi_post, F, U, Q, design.epsilon, D=D)
         margin = condition28_margin(phi_post, choice.sigma, design.epsilon, D)
         if margin > 0:
             return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma)
     elif valid:
-        pb = prediction_bound(phi_post, F, design.U, Q, design.sigma, design.epsilon, D)
+        pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
         if pb.phi_pred is not None:
             return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True, design.sigma)
         margin = pb.margin28
@@ -236,6 +113,16 @@ class NodeUpdate(NamedTuple):
     beta: float = np.nan
 
 
+def _residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
+    """``z_i - h_i(x_pred)``, with angular components (``Sensor.angles``) beyond ±π wrapped into (-π, π]."""
+    r = np.asarray(z_i, dtype=float) - model.h(i, x_pred, k1)
+    angles = list(model.sensors[i].angles)
+    if angles:
+        a = r[angles]
+        r[angles] = np.where(np.abs(a) > np.pi, np.pi - np.mod(np.pi - a, 2 * np.pi), a)
+    return r
+
+
 def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innovation_i, s_i: float,
                 neighbour_terms: np.ndarray, design: ConsensusDesign, d_i: int, gains=None) -> NodeUpdate:
     """One node's update (7), gain (30) and bound (27), checking (29) on ``Φ_{k+1|k}``.
@@ -245,22 +132,16 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
     H = model.H(i, x_pred, k1)
     R = model.measurement_cov(i)
-    D = None
-    if valid and design.linearization != "fixed":
-        hess = lambda pts: model.h_hessian(i, pts, k1)  # noqa: E731
-        if design.linearization == "structured":
-            cover = hessian_cover(model.casadi_h_hess[i])
-            D = selection(cover, model.n_x) if cover else None
-            v = structured_scale(hess, x_pred, phi_pred, cover, design.radius)
-        else:
-            v = remainder_scale(hess, x_pred, phi_pred, design.radius)
-        design = design._replace(V=v * np.eye(design.V.shape[0]))
-    beta, V = design.beta, design.V
+    V, D = design.V[i], None
+    if valid:
+        V, D = update_scaling(model, i, x_pred, phi_pred, k1, design.linearization, design.radius, V)
+    beta = design.beta
+    residual = _residual(model, i, z_i, x_pred, k1)
     if valid and design.mode == "tuned" and gains is None:
         choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms, D=D)
         margin = condition29_margin(phi_pred, choice.beta, D)
         if margin > 0:
-            x_post = x_pred + choice.K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + choice.C @ innovation_i
+            x_post = x_pred + choice.K @ residual + choice.C @ innovation_i
             return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta)
         valid = False  # the tuned beta is inside (29) by construction; reaching here means Φ_pred broke down
     else:
@@ -277,7 +158,7 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     else:
         K, C = gains
     phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms, D)
-    x_post = x_pred + K @ (np.asarray(z_i) - model.h(i, x_pred, k1)) + C @ innovation_i
+    x_post = x_pred + K @ residual + C @ innovation_i
     return NodeUpdate(x_post, phi_post, K, C, margin, valid, beta if valid else np.nan)
 
 
@@ -296,7 +177,7 @@ class ConsensusResult(NamedTuple):
     x_pred: np.ndarray  # (steps, N, n_x)
     phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
     phi_pred: np.ndarray  # (steps, N, n_x, n_x)
-    K: np.ndarray  # (steps, N, n_x, n_z)
+    K: np.ndarray  # (steps, N, n_x, max n_z_i): node i's gain in K[..., :n_z_i], zero beyond
     C: np.ndarray  # (steps, N, n_x, n_x)
     valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
     margin28: np.ndarray  # (steps, N)
@@ -332,7 +213,11 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         Realised channel attacks (none when omitted).
     x0, phi0 : initial estimate and ``Φ_{0|0}`` (default: the prior's mean and covariance).
     gains : (K, C) arrays of shape (steps, N, ...), optional
-        Replay a fixed gain schedule instead of computing the gains.
+        Replay a fixed gain schedule instead of computing the gains (K as in the result:
+        node ``i``'s gain in its first ``n_z_i`` columns).
+
+    Sensors may differ in measurement dimension; the gains are then returned in one array
+    of ``max n_z_i`` columns, zero beyond each node's own.
     """
     design = validate_design(design, model, network)
     z = check_finite("z", z)
@@ -346,7 +231,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     if x0.shape != (model.n_x,):
         raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
     phi0 = check_covariance("phi0", model.prior.cov if phi0 is None else phi0, model.n_x)
-    n, nx, nz = network.n_nodes, model.n_x, model.sensor_dims[0]
+    n, nx, dims = network.n_nodes, model.n_x, model.sensor_dims
+    nz = max(dims)
     d = network.degrees
     d_max = network.d_max
     zs = [model.split(z[k]) for k in range(steps)]
@@ -402,7 +288,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         innovation, s = exchange(x_pred[k], att, network)
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
         for i in range(n):
-            g = None if gains is None else (gains[0][k, i], gains[1][k, i])
+            g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
             failure = None
             try:
                 upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
@@ -424,7 +310,9 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 K[k], C[k] = np.nan, np.nan
                 valid[k + 1:] = False
                 return result()
-            x_post[k + 1, i], phi_post[k + 1, i], K[k, i], C[k, i] = upd.x_post, upd.phi_post, upd.K, upd.C
+            x_post[k + 1, i], phi_post[k + 1, i], C[k, i] = upd.x_post, upd.phi_post, upd.C
+            K[k, i] = 0.0
+            K[k, i, :, :dims[i]] = upd.K
             m29[k, i], bet[k, i] = upd.margin29, upd.beta
             if preds[i].valid and not upd.valid:
                 if k == 0 and design.mode == "paper":

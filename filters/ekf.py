@@ -27,11 +27,11 @@ class EKFResult(NamedTuple):
 
 
 def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,
-            P0=None, angles=()) -> EKFResult:
+            P0=None, angles=None) -> EKFResult:
     """Filter ``z`` (K, n_z), ``z[k]`` measuring ``x_{k+1}``; ``available`` (K, N) bool marks received sensors.
 
     ``angles``: ``(sensor, component)`` pairs of angular measurements, whose residuals are
-    wrapped into (-π, π].
+    wrapped into (-π, π] (default: the sensors' declared ``angles``; ``()`` wraps nothing).
     """
     z = np.asarray(z, dtype=float)
     if z.ndim != 2 or z.shape[1] != model.n_z:
@@ -47,7 +47,7 @@ def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None,
     x = model.prior.mean.copy() if x0 is None else check_finite("x0", x0).copy()
     P = model.prior.cov.copy() if P0 is None else check_finite("P0", P0).copy()
     Q = model.process_cov
-    wraps = angle_sets(model, angles)
+    wraps = angle_sets(model, model.angle_components if angles is None else angles)
     xs, Ps = np.empty((K + 1, model.n_x)), np.empty((K + 1, model.n_x, model.n_x))
     xs[0], Ps[0] = x, P
     eye = np.eye(model.n_x)

@@ -62,7 +62,7 @@ from designer.validation import InputError, check_covariance, check_finite, chec
 from .particle import LogWeights, additive_noise_loglik
 
 __all__ = [
-    "attack_values", "BiasAttack", "bias_attack", "measurement_matrix", "measurement_cov", "detection_gain",
+    "measurement_matrix", "measurement_cov", "detection_gain",
     "Thresholds", "residual_threshold", "attack_threshold", "false_alarm_condition", "correct_particles",
     "corrected_proposal", "normal_detector", "modified_detector", "deception_mixture_loglik", "uniform_loglik",
     "SISResult", "run_sis", "DetectionCounts", "detection_counts",
@@ -70,51 +70,6 @@ __all__ = [
 
 # log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
 _LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))
-
-
-# --------------------------------------------------------------------------- the attack (3)-(4)
-def attack_values(steps: int, bias, tau: float) -> np.ndarray:
-    """``γ_1 .. γ_K`` of (4) by its recursion from ``γ_0 = 0``; shape (K, n_y).
-
-    ``γ_k`` is injected into the measurement of step ``k`` (``z[k - 1]`` in the
-    project's convention, which measures ``x_k``).
-    """
-    steps = check_int("steps", steps, 1)
-    bias = check_finite("bias", bias)
-    if bias.ndim != 1:
-        raise InputError(f"bias (gamma-bar) must be a vector, got shape {bias.shape}")
-    tau = float(check_finite("tau", tau))
-    if not 0.0 < tau < 1.0:
-        raise InputError(f"tau must lie in (0, 1), got {tau!r}")
-    out = np.empty((steps, bias.size))
-    g = np.zeros(bias.size)
-    for k in range(steps):
-        g = tau * g + (1.0 - tau) * bias
-        out[k] = g
-    return out
-
-
-class BiasAttack(NamedTuple):
-    y: np.ndarray  # (..., K, n_y) received ỹ_k = y_k + l_k γ_k
-    gamma: np.ndarray  # (K, n_y) the attack value γ_k (it evolves whether or not it is injected)
-    l: np.ndarray  # (..., K) bool: injected at step k
-
-
-def bias_attack(y, *, bias, tau: float, prob: float, rng: np.random.Generator) -> BiasAttack:
-    """Inject the bias attack (3)-(4) into measurements ``y`` of shape (..., K, n_y).
-
-    One Bernoulli(``prob``) per step and leading index (all sensors attacked together).
-    """
-    y = check_finite("y", y)
-    if y.ndim < 2:
-        raise InputError(f"y must have shape (..., K, n_y), got {y.shape}")
-    p = float(check_probability("prob", prob))
-    check_rng(rng)
-    gamma = attack_values(y.shape[-2], bias, tau)
-    if gamma.shape[-1] != y.shape[-1]:
-        raise InputError(f"bias must have length {y.shape[-1]} (the measurement's), got {gamma.shape[-1]}")
-    l = rng.random(y.shape[:-1]) < p
-    return BiasAttack(y + l[..., None] * gamma, gamma, l)
 
 
 # --------------------------------------------------------------------------- gains and thresholds

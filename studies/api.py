@@ -1,22 +1,44 @@
 """The public functions behind every command of the ``cfdesign`` command line.
 
-Design scripts call these directly; the CLI is a thin layer over them.
+Design scripts call these directly; the CLI is a thin layer over them and prints
+what they return, so a script and the CLI give the same numbers.  Every function
+takes what to run on as its first argument: a built-in scenario name, a model file
+path (``"my_model.py"``), a built :class:`~studies.scenarios.Scenario`, or an
+in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_defaults=``,
+``steps=``, ``x0=`` and ``inputs=`` play the part of the model file's ``NETWORK``,
+``ATTACKS``, ``DESIGN``, ``STEPS``, ``X0`` and ``inputs``).
+
+=========================  ==========================================================
+``list_scenarios()``        ``cfdesign scenarios``
+``simulate(...)``           ``cfdesign simulate``      -> :class:`Simulation`
+``design(...)``             ``cfdesign design``        -> :class:`~studies.design.Design`
+``feasibility(...)``        ``cfdesign feasibility``   -> :class:`~studies.feasibility.FeasibilityMap`
+``study(...)``              ``cfdesign study``         -> :class:`~studies.pipeline.StudyResult`
+``report(directory)``       ``cfdesign report``
+=========================  ==========================================================
+
+Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
+what the command writes.
 """
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from designer.simulate import Trajectory
+from designer.attacks import AttackSpec
+from designer.design import DesignOptions
+from designer.fileio import write_npz
+from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
-from designer.fileio import write_npz
-from .scenarios import SCENARIOS, load_scenario
+from .scenarios import SCENARIOS, Scenario, scenario_of
 
-__all__ = ["list_scenarios", "simulate_scenario", "report"]
+__all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report",
+           "DesignOptions"]
 
 
 def list_scenarios() -> list[dict]:
@@ -24,54 +46,260 @@ def list_scenarios() -> list[dict]:
     return [spec.describe() for spec in SCENARIOS.values()]
 
 
-def simulate_scenario(
-    scenario: str,
-    *,
-    steps: int | None = None,
-    seed: int = 0,
-    out: str | Path | None = None,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-) -> Trajectory:
-    """Simulate a scenario and optionally write ``out`` (``.npz``).
+def _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments) -> Scenario:
+    return scenario_of(scenario, network=network, attacks=attacks, design=design_defaults, steps=steps, x0=x0,
+                       inputs=inputs, overrides=overrides, assignments=assignments)
 
-    The file holds ``x`` (K+1, n_x) true states, ``y`` (K, n_sensors, max n_z)
-    measurements per sensor (NaN-padded when sensor dimensions differ; ``y[k]``
-    measures ``x[k+1]``), ``z`` (K, n_z) stacked, ``inputs``, ``modes`` when the
-    model switches, and metadata (scenario, seed, parameters as JSON).
+
+def _options(options: DesignOptions | None, given: Mapping[str, Any]) -> DesignOptions:
+    """``options`` with the keyword options that are set replacing its values."""
+    if options is not None and not isinstance(options, DesignOptions):
+        raise InputError(f"options must be a designer.DesignOptions, got {type(options).__name__}")
+    kw = {k: v for k, v in given.items() if v is not None}
+    return (options or DesignOptions()).merged(DesignOptions(**kw)) if kw else (options or DesignOptions())
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A seeded simulated run of a scenario (what ``cfdesign simulate`` writes).
+
+    ``x`` (K+1, n_x) true states, ``z`` (K, n_z) stacked measurements (``z[k]`` measures
+    ``x[k+1]``), ``y`` (K, sensors, max n_z_i) per sensor (NaN-padded), ``inputs``,
+    ``modes`` (switching models, else None).
+    """
+
+    scenario: Scenario
+    seed: int
+    x: np.ndarray
+    z: np.ndarray
+    y: np.ndarray
+    inputs: np.ndarray
+    modes: np.ndarray | None
+
+    def save(self, path) -> Path:
+        """Write the ``.npz`` file (arrays above plus sensor and state names, scenario, seed, parameters)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise InputError(f"out must be a .npz file, got {str(path)!r}")
+        sc = self.scenario
+        arrays = dict(x=self.x, y=self.y, z=self.z, inputs=self.inputs,
+                      sensor_names=np.array([s.name for s in sc.model.sensors]),
+                      state_names=np.array(sc.model.state_names), scenario=np.array(sc.name),
+                      seed=np.array(self.seed), params=np.array(json.dumps(dict(sc.params))))
+        if self.modes is not None:
+            arrays["modes"] = self.modes
+        return write_npz(path, **arrays)
+
+
+def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Path | None = None,
+             network: SensorNetwork | None = None, attacks: AttackSpec | None = None, x0=None,
+             inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
+             assignments: Sequence[str] = ()) -> Simulation:
+    """Simulate a scenario (truth and measurements) from ``numpy.random.default_rng(SeedSequence(seed))``.
+
+    Parameters
+    ----------
+    scenario : str, path, Scenario or designer.Model
+    steps : int, optional
+        Horizon (default: the scenario's).
+    seed : int
+        The run's seed; the same seed gives the same file bit for bit.
+    out : path, optional
+        Write the ``.npz`` file there (see :meth:`Simulation.save`).
+    overrides, assignments
+        Named scenario parameters (a mapping, or ``NAME=VALUE`` strings as ``--set``).
+
+    Returns
+    -------
+    Simulation
     """
     seed = check_int("seed", seed, 0)
-    sc = load_scenario(scenario, overrides, assignments)
+    if out is not None and Path(out).suffix != ".npz":
+        raise InputError(f"out must be a .npz file, got {str(out)!r}")
+    sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
     if steps is not None:
         steps = check_int("steps", steps, 1)
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
-    traj = sc.simulate(rng, steps)
+    traj = sc.simulate(np.random.default_rng(np.random.SeedSequence(seed)), steps)
+    if not (np.all(np.isfinite(traj.x)) and np.all(np.isfinite(traj.z))):
+        raise InputError("the simulated states or measurements are not finite; check X0, the prior and the model "
+                         "(parameter x0 or the model's f and h)")
+    sim = Simulation(sc, seed, traj.x, traj.z, traj.per_sensor(sc.model), traj.inputs, traj.modes)
     if out is not None:
-        out = Path(out)
-        if out.suffix != ".npz":
-            raise InputError(f"out must be a .npz file, got {str(out)!r}")
-        arrays = dict(
-            x=traj.x,
-            y=traj.per_sensor(sc.model),
-            z=traj.z,
-            inputs=traj.inputs,
-            sensor_names=np.array([s.name for s in sc.model.sensors]),
-            state_names=np.array(sc.model.state_names),
-            scenario=np.array(sc.name),
-            seed=np.array(seed),
-            params=np.array(json.dumps(sc.params)),
-        )
-        if traj.modes is not None:
-            arrays["modes"] = traj.modes
-        write_npz(out, **arrays)
-    return traj
+        sim.save(out)
+    return sim
+
+
+def design(scenario, *, mode: str | None = None, steps: int | None = None, seed: int = 0,
+           epsilon: float | None = None, sigma: float | None = None, beta: float | None = None,
+           tau: float | None = None, dos: float | None = None, fdi: float | None = None,
+           delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
+           linearization: str | None = None, radius: float | None = None, options: DesignOptions | None = None,
+           network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+           design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
+           overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
+           out: str | Path | None = None):
+    """Design the consensus filter of a scenario along a seeded simulated run.
+
+    Parameters
+    ----------
+    scenario : str, path, Scenario or designer.Model
+        What to design for; it needs a sensor network (a model file's ``NETWORK``).
+    mode : {'paper', 'tuned'}
+        The paper's fixed choices or the convex tuning layer (default: paper).
+    steps, seed : int
+        Horizon of the run (default: the scenario's) and its seed (truth and measurements
+        from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius
+        Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
+        default, then the package's.
+    dos, fdi, delta, amplitude
+        Override the attack specification (every channel and uplink; the FDI bound; the
+        injected signal's amplitude).
+    options : DesignOptions, optional
+        All of the above in one object; the keywords that are set replace its values.
+    out : path, optional
+        Write ``schedule.json``, ``schedule.npz`` and the design report there.
+
+    Returns
+    -------
+    Design
+        ``.feasible``, ``.violations``, ``.reason()``, ``.trace_bound`` (nodes, steps), the
+        ``.schedule`` (gains ``K``, ``C``, bounds ``Phi``, ``sigma``, ``beta``), the full
+        ``.result`` of every node, and ``.save(directory)``.  An infeasible design is returned
+        (and written), not raised: check ``.feasible``.
+    """
+    from .design import run_design
+
+    opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
+                                  delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
+                                  linearization=linearization, radius=radius))
+    sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
+    res = run_design(sc, opts, steps=steps, seed=seed)
+    if out is not None:
+        res.save(out)
+    return res
+
+
+def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None, epsilon: float | None = None,
+                sigma: float | None = None, beta: float | None = None, tau: float | None = None,
+                dos: float | None = None, fdi: float | None = None, delta: float | None = None,
+                amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
+                radius: float | None = None, options: DesignOptions | None = None,
+                network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+                design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
+                overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
+                workers: int | None = None, dask: str | None = None, backend=None, force: bool = False,
+                quiet: bool = True, out: str | Path | None = None):
+    """Map where the consensus design admits a bounded steady-state bound at the operating point.
+
+    Parameters
+    ----------
+    scenario : str, path, Scenario or designer.Model
+    grid : str or sequence of str
+        ``NAME=START:STOP:COUNT`` per grid parameter (dos, fdi, delta, amplitude, tau, sigma,
+        beta, epsilon, u_scale, v_scale); the grid's value replaces the option of that name.
+    mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, options
+        The same design options as :func:`design`, with the same defaults.
+    workers, dask, backend
+        Where the chunks of grid points run (the map does not depend on it).
+    force, quiet
+        Recompute points stored in ``out``; no progress bar.
+    out : path, optional
+        Write ``feasibility.csv``, ``feasibility.json``, the heat map and the report there; the
+        finished chunks are kept under ``out/.chunks`` so that an interrupted map resumes.
+
+    Returns
+    -------
+    FeasibilityMap
+        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.save(directory)``.
+
+    Notes
+    -----
+    :func:`design` checks the conditions along one simulated run; this checks the steady
+    state of the recursion at the operating point with the expected DoS pattern.  See
+    :mod:`studies.feasibility` for when the two disagree.
+    """
+    from .feasibility import run_feasibility
+    from .runner import make_backend
+
+    opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
+                                  delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
+                                  linearization=linearization, radius=radius))
+    if backend is None:
+        backend = make_backend(workers, dask)
+    elif workers is not None or dask is not None:
+        raise InputError("give either backend or workers/dask, not both")
+    sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
+    fmap = run_feasibility(sc, grid, opts, backend=backend, store=out, force=force, quiet=quiet)
+    if out is not None:
+        fmap.save(out)
+    return fmap
+
+
+def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int | None = None,
+          particles: int | None = None, seed: int = 0, workers: int | None = None, dask: str | None = None,
+          backend=None, force: bool = False, quiet: bool = True, options: DesignOptions | None = None,
+          mode: str | None = None, dos: float | None = None, fdi: float | None = None,
+          delta: float | None = None, amplitude: float | None = None, network: SensorNetwork | None = None,
+          attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
+          inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
+          assignments: Sequence[str] = (), **study_options):
+    """Run the Monte Carlo study ``name`` on a scenario (or on its default scenarios).
+
+    Parameters
+    ----------
+    name : str
+        A study of :data:`studies.pipeline.STUDIES` (``comparison``, ``consensus-robot``,
+        ``rrp-deception``, ...).
+    scenario : str, path, Scenario, designer.Model or a sequence of them, optional
+        What to run on (default: the study's own scenarios).
+    runs, particles, seed
+        Monte Carlo runs, particles of the particle filters, the study seed (default: the study's).
+    workers, dask, backend, force, quiet
+        The Monte Carlo runner (identical numbers on every backend; ``out`` keeps finished chunks
+        so that an interrupted study resumes, ``force`` recomputes them).
+    options, mode, dos, fdi, delta, amplitude
+        Design options of the consensus designs and attack overrides (studies that use them).
+    study_options
+        Options of that study only (e.g. ``engine`` of the particle-filter studies,
+        ``schedule`` of consensus-robot); an option a study does not take is an error.
+    out : path, optional
+        Write ``results.json`` (schema ``cfdesign.study/1``), ``table.md``, the figures and the
+        reports there.
+
+    Returns
+    -------
+    StudyResult
+        ``.results`` (the ``results.json`` content), ``.filters``, ``.arrays`` (the runner's
+        per-run arrays), ``.save(directory)``.
+    """
+    from .pipeline import run_study
+    from .runner import make_backend
+
+    if backend is None:
+        backend = make_backend(workers, dask)
+    elif workers is not None or dask is not None:
+        raise InputError("give either backend or workers/dask, not both")
+    opts = _options(options, dict(mode=mode, dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))
+    targets = None
+    if scenario is not None:
+        # names and model files are built by the pipeline (which routes overrides to the scenarios that have
+        # them); models and scenarios built here
+        targets = [s if isinstance(s, (str, Path)) and network is None and attacks is None and design_defaults is None
+                   and x0 is None and inputs is None else
+                   _scenario(s, network, attacks, design_defaults, None, x0, inputs, None, ())
+                   for s in (scenario if isinstance(scenario, (list, tuple)) else [scenario])]
+        targets = [str(t) if isinstance(t, Path) else t for t in targets]
+    return run_study(name, targets, out=out, runs=runs, particles=particles, seed=seed, backend=backend, force=force,
+                     quiet=quiet, options=opts, overrides=overrides, assignments=assignments, **study_options)
 
 
 def report(directory: str | Path) -> tuple[Path, Path]:
-    """Write ``report.html`` (self-contained) and ``report.md`` for the study results in ``directory``.
+    """Write ``report.html`` (self-contained) and ``report.md`` for the results in ``directory``.
 
-    ``cfdesign study`` writes them already; this rebuilds them, e.g. after editing a study's
-    output or for results from an older version.  See :func:`studies.report.write_report`.
+    ``directory`` is a study's (``results.json``), a design's (``schedule.json``) or a
+    feasibility map's (``feasibility.csv``).  The commands write their reports already; this
+    rebuilds them, e.g. after editing the output or for results of an older version.
     """
     from .report import write_report
 

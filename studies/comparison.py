@@ -1,65 +1,73 @@
-"""Study ``comparison``: the designed consensus EKF against centralized particle filters and a plain EKF.
+"""Study ``comparison``: every filter family on the same model, runs and attack realisations.
 
-No paper makes this comparison.  On the indoor robot (seed 003's 8 networked
-ceiling cameras) every filter family faces one realisation of the same attack
-law per run (:func:`filters.consensus.channel_draws`):
+It runs on any scenario with a sensor network: the built-in indoor robot and
+range-bearing target by default, or a user's model file.  Every filter family faces
+one realisation of the same attack law per run (:func:`filters.attacks.channel_draws`):
 
-* **consensus EKF** (paper design and tuned design) — every camera is a node that
-  estimates the pose from its own camera and its neighbours' estimates; the
-  node-to-node channels suffer DoS (message lost) and FDI (``ξ = a sin(s)`` added
-  to the estimate sent).  Messages per step: one per directed link (``2 |E|``).
-* **centralized filters** — every camera sends its measurement to one fusion
-  centre over an uplink with the same attack law (:mod:`filters.uplink`: DoS =
-  lost packet, FDI = the measurement falsified as if the robot were displaced by
-  ``ξ``).  Messages per step: one per camera.  Three filters: a bootstrap particle
-  filter whose likelihood knows the attack law (a mixture with the falsified
-  packets' moment-matched density), the same particle filter trusting every packet,
-  and a plain EKF trusting every packet.
+* **consensus EKF** (paper design and tuned design) — every sensor is a node that
+  estimates the state from its own sensor and its neighbours' estimates; the
+  node-to-node channels suffer DoS (message lost) and FDI (the model's injected signal
+  added to the estimate sent).  Messages per step: one per directed link (``2 |E|``).
+* **local EKF at every node** — every node alone with its own sensor, no network (the
+  baseline a networked design must beat).  Messages per step: 0.
+* **centralized filters** — every sensor sends its measurement to one fusion centre
+  over an uplink with the same attack law (:func:`filters.attacks.receive`: DoS = lost
+  packet, FDI = the measurement falsified as if the state were displaced by ``ξ``).
+  Messages per step: one per sensor.  Three filters: a bootstrap particle filter whose
+  likelihood knows the attack law (a mixture with the falsified packets' moment-matched
+  density), the same particle filter trusting every packet, and a plain EKF trusting
+  every packet.
 
-Metrics per filter: position RMSE over runs and steps (consensus filters: also
-over the nodes, each node's own estimate), its 95 % bootstrap interval over runs,
-the per-step curve, time per step (one run, the whole network or centre), messages
-per step, runs where a consensus design's conditions failed or a filter diverged.
-Sweeps: the DoS probability with FDI fixed, and the FDI probability with DoS fixed,
-on the same runs (common random numbers: the same draws turn into more attacks as
-the probability grows).
+Metrics per filter: RMSE of the position (or, for a model without declared position
+components, of the whole state) over runs and steps (consensus and local filters: also
+over the nodes, each node's own estimate), its 95 % bootstrap interval over runs, the
+median run, the per-step curve, time per step (one run, the whole network or centre),
+messages per step, runs where a consensus design's conditions failed or a filter
+diverged.  Sweeps: the DoS probability with FDI as declared, and the FDI probability
+with DoS as declared, on the same runs (common random numbers: the same draws turn into
+more attacks as the probability grows).
 
 Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(3)`` = (truth,
-channel draws, particle filters); the particle filters reuse the same stream at
-every sweep setting.  Runs are computed in chunks by :mod:`studies.runner`, so the
-numbers are identical in-process, with ``--workers N`` or on a Dask cluster, and an
-interrupted study resumes.
+channel draws, particle filters); the particle filters reuse the same stream at every
+sweep setting.  Runs are computed in chunks by :mod:`studies.runner`, so the numbers
+are identical in-process, with ``--workers N`` or on a Dask cluster, and an interrupted
+study resumes.
 """
 from __future__ import annotations
 
 import functools
+import re
 import time
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from designer.validation import InputError, check_int, check_probability
-from filters.consensus import attack_pattern, channel_draws, run_consensus
+from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
+from designer.network import SensorNetwork
+from designer.validation import InputError, check_probability
+from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
+from filters.consensus import HARD_CONDITIONS, run_consensus
 from filters.ekf import run_ekf
 from filters.particle import run_sir
-from filters.uplink import fdi_covariances, receive, split_received, uplink_attacks, uplink_loglik
+from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
-from .design import DESIGN_ASSUMPTIONS, consensus_design
-from .results import curves_figure, markdown_table, save_figure, study_header, write_study, _plt
-from .runner import Backend, monte_carlo
-from .scenarios import load_scenario
+from .design import as_mode, consensus_design
+from .pipeline import Plan, Study, StudyOptions, StudyText
+from .results import curves_figure, markdown_table, save_figure, _plt
+from .scenarios import Scenario, reference
 
-__all__ = ["run_comparison", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE"]
+__all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "local_ekf_design"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
     "centralized EKF (trusts every packet)"
-FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN)
+LOCAL = "local EKF at every node (no network)"
+FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL)  # order of the arrays and of the bootstrap
 FAMILY = {TUNED: "consensus", PAPER_DESIGN: "consensus", PF_AWARE: "particle", PF_PLAIN: "particle",
-          EKF_PLAIN: "EKF"}
+          EKF_PLAIN: "EKF", LOCAL: "local"}
 DESCRIPTION = {
-    TUNED: "distributed: each camera node runs the consensus EKF with sigma, beta and gains tuned by convex "
+    TUNED: "distributed: each node runs the consensus EKF with sigma, beta and gains tuned by convex "
            "optimisation (Clarabel) at every step; exchanges estimates with its neighbours",
     PAPER_DESIGN: "distributed: the consensus EKF with the paper's fixed choices (sigma = beta = 0.1, "
                   "C = 0.01 Phi)",
@@ -67,43 +75,107 @@ DESCRIPTION = {
               "(mixture with the falsification's moment-matched density)",
     PF_PLAIN: "centralized bootstrap particle filter; skips lost packets, trusts every received one",
     EKF_PLAIN: "centralized EKF; skips lost packets, trusts every received one (ignores attacks)",
+    LOCAL: "every node alone: an EKF on its own sensor, no communication (nothing to attack)",
 }
 SWEEP_VALUES = (0.0, 0.1, 0.2, 0.3, 0.4)
 CHUNK_SIZE = 10
 SCENARIOS = ("indoor-robot", "target-range-bearing")
-DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50}
+DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50, None: 50}
 
 ASSUMPTIONS = (
     "comparison: the centralized filters receive every sensor's measurement over its own uplink, attacked with the "
-    "network's law (DoS = packet lost and known to be lost; FDI = the measurement falsified as h(x + xi) instead "
-    "of h(x), with the same xi = a sin(s) on the position components); uplink i uses the diagonal draw [k, i, i] "
-    "of the channel draws whose off-diagonal entries attack the consensus links, so both families face one "
-    "realisation of one attack law (not the same channels: the architectures have different channels).",
-    "comparison: the attack-aware particle filter's likelihood per received packet is (1 - q) N(y; h, R) + "
-    "q N(y; h, R + C) with q = fdi/(1 - dos), the sensor's own noise density in place of N(y; h, R) (glint on "
-    "target-range-bearing), R its covariance, and C = a^2 E[sin^2 s] H_c H_c^T (E[sin^2 s] = (1 - e^-2)/2 for "
-    "s ~ N(0, 1), H_c the sensor Jacobian's position columns at the prior mean): a moment-matched Gaussian of the "
-    "falsification, not its exact density.",
+    "model's uplink law (DoS = packet lost and known to be lost; FDI = the measurement falsified as h(x + xi) "
+    "instead of h(x), with the model's injected signal xi); uplink i uses the diagonal draw [k, i, i] of the "
+    "channel draws whose off-diagonal entries attack the consensus links, so both families face one realisation "
+    "of one attack law (not the same channels: the architectures have different channels).",
+    "comparison: the attack-aware particle filter's likelihood per received packet is (1 - q) p(y - h) + q N(y; h, "
+    "R + C) with q = fdi/(1 - dos) of the sensor's uplink, p the sensor's own noise density (glint on "
+    "target-range-bearing), R its covariance, and C = E[g(s)^2] sum_c a_c^2 h_c h_c^T (the signal xi_c = a_c g(s), "
+    "h_c the sensor Jacobian's attacked columns at the prior mean): a moment-matched Gaussian of the falsification "
+    "that treats the attacked components as independent, not its exact density.",
     "comparison: particle filters resample systematically at every step and report the weighted mean; M = "
     "particles for both.",
-    "comparison: consensus RMSE is over runs, steps 1..K and the nodes (each node's own estimate); centralized "
-    "filters have one estimate. 95 % intervals are percentile bootstraps over runs. A run whose filter leaves "
-    "finite numbers (or 1e12) counts as diverged and is left out of the RMSE; a run that stays finite but far off "
-    "is kept (compare the RMSE with the median run's).",
+    "comparison: consensus and local RMSE is over runs, steps 1..K and the nodes (each node's own estimate); "
+    "centralized filters have one estimate. 95 % intervals are percentile bootstraps over runs. A run whose filter "
+    "leaves finite numbers (or 1e12) counts as diverged and is left out of the RMSE; a run that stays finite but "
+    "far off is kept (compare the RMSE with the median run's).",
     "comparison: time per step = a filter's wall time on one run (all nodes, or the centre) / K at the main "
     "setting, averaged over runs, single-threaded; the tuned design's time includes its convex programs (one per "
     "node and step). In the sweeps the two particle filters of all settings of a run are one NumPy batch.",
-    "comparison: the consensus designs use the scenario's defaults (paper: sigma = beta = 0.1, C = 0.01 Phi, "
-    "U = 0.01 I, V = 0.1 I, epsilon = 0.5/d_max) on both scenarios; they were published for the robot only.",
+    "comparison: the consensus designs use the scenario's design defaults (paper: sigma = beta = 0.1, C = 0.01 "
+    "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the built-in scenarios U = 0.01 I and V_i = 0.1 I, "
+    "published for the robot only.",
     "comparison: messages per step count transmissions attempted (a message lost to DoS still counts): 2|E| "
-    "directed links for the consensus filters, one uplink per sensor for the centralized ones.",
+    "directed links for the consensus filters, one uplink per sensor for the centralized ones, none for the "
+    "local EKFs.",
     "comparison: the sweeps leave out the tuned design (about 0.4 s per run per setting, ten times the paper "
     "design) unless tuned_in_sweeps=True; at the main setting every filter runs.",
+    "comparison: the local EKF of a node is the consensus filter of that node with no neighbours and sigma = "
+    "beta = 0, U = V = 0 (exactly the EKF on the node's own sensor); a node that cannot observe the state alone "
+    "drifts.",
+)
+
+TEXT = StudyText(
+    title="Every filter family of the project side by side under the same attacks",
+    paper="none: no paper makes this comparison (seed 003 gives the consensus filter alone)",
+    summary=(
+        "The filter families of this project run on the same scenario, the same runs and the same attack "
+        "law: distributed consensus Kalman filters, where every sensor node estimates the state from its own "
+        "sensor and its neighbours' messages, against an EKF at every node that uses no network at all, and "
+        "against centralized filters (particle filters and a plain extended Kalman filter) that receive every "
+        "sensor's measurement at one fusion centre over attacked uplinks. The question: which family gives the "
+        "best accuracy for its computing cost and its number of messages, and how does each degrade as the "
+        "attacks become more frequent?"),
+    filters=dict(DESCRIPTION),
+    attacks=(
+        "Every channel suffers denial of service (the message is lost, and the receiver knows it) with "
+        "probability `dos_prob`, and false-data injection (a bounded signal of amplitude `attack_amplitude` "
+        "added to what is sent) with probability `fdi_prob` (on a model file: its ATTACKS). The sweeps raise one "
+        "probability with the other fixed, on the same random draws."),
+    attack_params=("dos_prob", "fdi_prob", "attack_amplitude"),
+    accuracy=(("rmse_position", "position RMSE"), ("rmse_position_median_run", "median-run position RMSE"),
+              ("rmse", "state RMSE"), ("rmse_median_run", "median-run state RMSE")),
+    figures={
+        "fig_tradeoff.png": "Accuracy (with its 95 % interval) against the time per step; the legend gives the "
+                            "messages per step.",
+    },
 )
 
 
-def _settings(dos: float, fdi: float, values: Sequence[float]) -> list[tuple[float, float]]:
-    """The main setting first, then the DoS sweep (FDI fixed) and the FDI sweep (DoS fixed), without repeats."""
+def local_ekf_design(design):
+    """The consensus design reduced to the EKF: σ = β = τ = 0, U = V = 0 (used with an isolated network)."""
+    return design._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(design.U),
+                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, mode="paper",
+                           linearization="fixed")
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip("-") or "scenario"
+
+
+def _uniform(sc: Scenario) -> tuple[float, float] | None:
+    """``(dos, fdi)`` when every channel and uplink has the same probabilities (None otherwise)."""
+    att, net = sc.resolved_attacks, sc.network
+    adj = net.adjacency
+    vals = []
+    for ch, up in ((net.dos_prob, att.uplink_dos), (net.fdi_prob, att.uplink_fdi)):
+        v = np.concatenate([ch[adj], up])
+        if not np.all(v == v[0]):
+            return None
+        vals.append(float(v[0]))
+    return vals[0], vals[1]
+
+
+def _settings(main: tuple[float, float] | None, values: Sequence[float]) -> list[tuple]:
+    """The main setting first, then the DoS sweep (FDI as declared) and the FDI sweep (DoS as declared).
+
+    A setting is ``(dos, fdi)`` with ``None`` meaning "as declared".  With uniform
+    probabilities the main setting is ``(dos, fdi)`` itself and a sweep point equal to it
+    is not repeated.
+    """
+    if main is None:
+        return [(None, None)] + [(v, None) for v in values] + [(None, v) for v in values]
+    dos, fdi = main
     out = [(dos, fdi)]
     for v in values:
         for s in ((v, fdi), (dos, v)):
@@ -112,9 +184,9 @@ def _settings(dos: float, fdi: float, values: Sequence[float]) -> list[tuple[flo
     return out
 
 
-def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settings: Sequence[tuple[float, float]],
-          particles: int, tuned_in_sweeps: bool) -> dict:
-    """Task of the runner: every filter at every setting on the runs ``run_ids`` of ``scenario``.
+def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
+          options: DesignOptions) -> dict:
+    """Task of the runner: every filter at every setting on the runs ``run_ids``.
 
     At the main setting each particle filter runs alone (its time is a single filter's); at
     the sweep settings both particle filters at every setting of one run form one batch of
@@ -122,22 +194,31 @@ def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settin
     filter.  Every Generator comes from the run's own seed, so a run's numbers depend on it
     only.
     """
-    scs = [load_scenario(scenario, {**overrides, "dos_prob": d, "fdi_prob": f}) for d, f in settings]
+    base = ref.build()
+    scs = [base.with_attacks(dos=d, fdi=f) for d, f in settings]
     sc = scs[0]
     m, K, n = sc.model, sc.steps, sc.network.n_nodes
-    comps, amp = sc.extras["attack_components"], float(sc.extras["attack_amplitude"])
-    angles = sc.extras.get("angle_components", ())
-    designs = [{PAPER_DESIGN: consensus_design(s)} for s in scs]
+    signal = sc.resolved_attacks.signal
+    designs = [{PAPER_DESIGN: consensus_design(s, as_mode(options, "paper"))} for s in scs]
     for j, s in enumerate(scs):
         if j == 0 or tuned_in_sweeps:
-            designs[j][TUNED] = consensus_design(s, mode="tuned")
-    covs = fdi_covariances(m, m.prior.mean, amplitude=amp, components=comps)
+            designs[j][TUNED] = consensus_design(s, as_mode(options, "tuned"))
+    local_net = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
+    local = local_ekf_design(designs[0][PAPER_DESIGN])
+    covs = fdi_covariances(m, m.prior.mean, signal)
     S, F, R = len(settings), len(FILTERS), len(run_ids)
     pfs = [FILTERS.index(PF_AWARE), FILTERS.index(PF_PLAIN)]
-    # q: probability that a received packet is falsified, per (setting, PF) row; 0 = trust every packet
-    q = np.array([[f / (1.0 - d) if d < 1 else 0.0, 0.0] for d, f in settings]).ravel()
-    ll_sweep = uplink_loglik(m, fdi_prob=q[2:], fdi_covs=covs, angles=angles)
-    pos = list(m.position_index)
+    # q: probability that a received packet is falsified, per (setting, PF) row (per sensor when the uplinks
+    # differ); 0 = trust every packet
+    qs = []
+    for s in scs:
+        up_d, up_f = s.resolved_attacks.uplink_dos, s.resolved_attacks.uplink_fdi
+        q = np.where(up_d < 1, up_f / np.where(up_d < 1, 1.0 - up_d, 1.0), 0.0)
+        qs += [float(q[0]) if np.all(q == q[0]) else q, 0.0 if np.all(q == q[0]) else np.zeros(n)]
+    per_sensor = any(np.ndim(q) for q in qs)
+    q_sweep = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs[2:]])
+    ll_sweep = uplink_loglik(m, fdi_prob=q_sweep, fdi_covs=covs) if S > 1 else None
+    idx = list(m.position_index) or list(range(m.n_x))
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
@@ -146,7 +227,7 @@ def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settin
 
     def score(a, j, f, xs, ok):
         if ok:
-            e = truth[a, 1:, None][..., pos] - xs[1:][..., pos]  # (K, nodes, 2)
+            e = truth[a, 1:, None][..., idx] - xs[1:][..., idx]  # (K, nodes, components)
             err2[a, j, f] = (e**2).sum(-1).mean(axis=1)
             if j == 0:
                 est[a, f] = xs[:, 0]
@@ -157,10 +238,11 @@ def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settin
         truth[a] = traj.x
         u, s = channel_draws(K, n, np.random.default_rng(cs))
         ys = []
-        for j, ((dos, fdi), scj) in enumerate(zip(settings, scs)):
-            att = attack_pattern(scj.network, u, s, m.n_x, amplitude=amp, components=comps)
-            y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=dos, fdi_prob=fdi, amplitude=amp,
-                                                          components=comps))
+        for j, scj in enumerate(scs):
+            att_j = scj.resolved_attacks
+            att = attack_pattern(scj.network, u, s, m.n_x, signal)
+            y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
+                                                          fdi_prob=att_j.uplink_fdi, signal=signal))
             ys += [y, y]
             for name in (TUNED, PAPER_DESIGN):
                 if name in designs[j]:
@@ -169,20 +251,28 @@ def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settin
                     res = run_consensus(m, scj.network, traj.z, designs[j][name], inputs=traj.inputs, attacks=att)
                     secs[a, j, f] = time.perf_counter() - t0
                     ok = res.diverged is None
-                    feasible[a, j, f] = float(ok and not any(v["condition"] in ("(28)", "(29)")
+                    feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
                                                              for v in res.violations))
                     score(a, j, f, res.x_post, ok)  # x_post (K + 1, nodes, n_x)
             f = FILTERS.index(EKF_PLAIN)
             values, avail = split_received(m, y)
             t0 = time.perf_counter()
-            xs = run_ekf(m, values, available=avail, inputs=traj.inputs, angles=angles).x[:, None]
+            xs = run_ekf(m, values, available=avail, inputs=traj.inputs).x[:, None]
             secs[a, j, f] = time.perf_counter() - t0
             score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
+            if j == 0:  # the local EKFs use no network: one run, the same at every setting
+                f = FILTERS.index(LOCAL)
+                t0 = time.perf_counter()
+                res = run_consensus(m, local_net, traj.z, local, inputs=traj.inputs)
+                secs[a, :, f] = time.perf_counter() - t0
+                for jj in range(S):
+                    score(a, jj, f, res.x_post, res.diverged is None)
         main_seqs = fs.spawn(3)  # the two particle filters at the main setting, then the sweep batch
         for c, f in enumerate(pfs):  # alone, so that their time per step is a single filter's
+            q = qs[c] if not per_sensor else np.broadcast_to(qs[c], (n,))[None]
             t0 = time.perf_counter()
             res = run_sir(m, ys[0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
-                          inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q[c], fdi_covs=covs, angles=angles))
+                          inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
             secs[a, 0, f] = time.perf_counter() - t0
             score(a, 0, f, res.mean[0][:, None], bool(np.all(np.isfinite(res.mean))))
         if S > 1:
@@ -198,179 +288,141 @@ def _runs(run_ids, seeds, *, scenario: str, overrides: Mapping[str, Any], settin
     return {"err2": err2, "seconds": secs, "feasible": feasible, "estimate": est, "truth": truth}
 
 
-def _scenario_assignments(scenarios: Sequence[str], assignments) -> dict[str, list[str]]:
-    """Route each ``NAME=VALUE`` to every scenario that has the parameter NAME; unknown names are an error."""
-    from .scenarios import get_spec
-
-    names = {sc: {p.name for p in get_spec(sc).params} for sc in scenarios}
-    out: dict[str, list[str]] = {sc: [] for sc in scenarios}
-    for a in assignments:
-        name = str(a).split("=", 1)[0].strip()
-        hit = [sc for sc in scenarios if name in names[sc]]
-        if not hit:
-            raise InputError(f"--set {name}: no parameter of that name in the compared scenarios "
-                             f"({', '.join(scenarios)}); see 'cfdesign scenarios'")
-        for sc in hit:
-            out[sc].append(a)
-    return out
+def _accepts(sc: Scenario) -> str | None:
+    if sc.network is None:
+        return "it has no sensor network (a model file defines NETWORK, one node per sensor)"
+    return None
 
 
-def run_comparison(
-    *,
-    out: str | Path | None,
-    runs: int | None = None,
-    particles: int = 500,
-    seed: int = 0,
-    quiet: bool = False,
-    scenarios: Sequence[str] = SCENARIOS,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-    backend: Backend | None = None,
-    force: bool = False,
-    sweep_values: Sequence[float] = SWEEP_VALUES,
-    tuned_in_sweeps: bool = False,
-    chunk_size: int = CHUNK_SIZE,
-) -> dict:
-    """Run the comparison and write ``results.json``, ``table.md`` and the figures into ``out``.
-
-    Parameters
-    ----------
-    runs : int, optional
-        Monte Carlo runs per scenario (default: 100 on indoor-robot, 50 on target-range-bearing).
-    particles, seed : int
-        Particles of both particle filters; the study seed.
-    scenarios : names among ``SCENARIOS``
-    overrides, assignments
-        Scenario parameters (``overrides`` for every scenario; each ``NAME=VALUE`` goes to the
-        scenarios that have ``NAME``); ``dos_prob`` and ``fdi_prob`` set the main setting.
-    backend : studies.runner.Backend
-        Batched in this process (default), local processes, or a Dask cluster: identical numbers.
-    force : bool
-        Recompute runs already stored in ``out`` by an earlier (or interrupted) call.
-    sweep_values : probabilities for the DoS and the FDI sweeps.
-    tuned_in_sweeps : bool
-        Also run the tuned design at every sweep setting (about 10x the cost of the paper design).
-    chunk_size : int
-        Runs per stored chunk (the unit of resumption and of work sent to a worker); part of the
-        study's configuration, never derived from the backend.
-
-    Results: ``filters`` and ``sweeps`` keyed ``"<scenario>: <filter>"``; ``by_scenario`` holds
-    each scenario's own block (filters, sweeps, recommendation, attacks, parameters, runner).
-    """
-    runs = None if runs is None else check_int("runs", runs, 2)
-    particles = check_int("particles", particles, 2)
-    seed = check_int("seed", seed, 0)
-    scenarios = list(dict.fromkeys([scenarios] if isinstance(scenarios, str) else scenarios))
-    bad = [sc for sc in scenarios if sc not in SCENARIOS]
-    if not scenarios or bad:
-        raise InputError(f"scenarios must be among {', '.join(SCENARIOS)}, got {bad or scenarios}")
-    values = [float(check_probability("sweep_values", v)) for v in np.atleast_1d(sweep_values)]
-    t_start = time.perf_counter()
-    routed = _scenario_assignments(scenarios, assignments)
-    blocks, arrays, built = {}, {}, {}
-    for sc_name in scenarios:
-        sc = load_scenario(sc_name, overrides, routed[sc_name])
-        params = dict(sc.params)
-        dos, fdi = float(params["dos_prob"]), float(params["fdi_prob"])
-        settings = _settings(dos, fdi, values)
-        ov = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in params.items()}
-        n_runs = DEFAULT_RUNS[sc_name] if runs is None else runs
-        task = functools.partial(_runs, scenario=sc_name, overrides=ov, settings=settings, particles=particles,
-                                 tuned_in_sweeps=bool(tuned_in_sweeps))
-        config = {"study": "comparison", "scenario": sc_name, "params": ov, "settings": settings,
-                  "particles": particles, "tuned_in_sweeps": bool(tuned_in_sweeps)}
-        mc = monte_carlo(task, runs=n_runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
-                         label=f"comparison-{sc_name}", config=config, force=force, quiet=quiet)
-        blocks[sc_name] = _summarise(sc, mc, settings, dos, fdi, values, particles, seed)
-        arrays[sc_name], built[sc_name] = mc.arrays, sc
-    first = blocks[scenarios[0]]
-    results = study_header(
-        "comparison", ", ".join(scenarios), runs=first["runs"], particles=particles, steps=first["steps"], seed=seed,
-        assumptions=list(dict.fromkeys(a for sc in built.values() for a in sc.assumptions))
-        + list(DESIGN_ASSUMPTIONS) + list(ASSUMPTIONS),
-        runner={sc: b["runner"] for sc, b in blocks.items()})
-    sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
-    for sc_name, b in blocks.items():
-        for key in sweeps:
-            for val, row in b["sweeps"][key].items():
-                sweeps[key].setdefault(val, {}).update({f"{sc_name}: {n}": v for n, v in row.items()})
-    results.update({
-        "filters": {f"{sc_name}: {n}": {**f, "scenario": sc_name}
-                    for sc_name, b in blocks.items() for n, f in b["filters"].items()},
-        "sweeps": sweeps,
-        "paper": {"source": None, "numbers": None,
-                  "note": "no paper compares these filter families; seed 003 gives the consensus filter alone"},
-        "by_scenario": blocks,
-        "recommendation": {sc: b["recommendation"] for sc, b in blocks.items()},
-        "params": {sc: b["params"] for sc, b in blocks.items()},
-    })
-    return write_study(out, results, t_start, lambda d: _figures(d, arrays, built, blocks), table_markdown)
+def _check(so: StudyOptions) -> None:
+    if so.design.mode is not None:
+        raise InputError("option --mode does not apply to study 'comparison' (it runs the paper and the tuned "
+                         "designs side by side)")
+    for v in np.atleast_1d(so["sweep_values"]):
+        check_probability("sweep_values", v)
 
 
-def _summarise(sc, mc, settings, dos, fdi, values, particles, seed) -> dict:
+def _plan(sc: Scenario, so: StudyOptions) -> Plan:
+    values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
+    settings = _settings(_uniform(sc), values)
+    ref = reference(sc)
+    task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
+                             tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design)
+    config = {"study": "comparison", "scenario": sc.name, "source": "memory" if ref.in_memory else ref.source,
+              "params": dict(ref.params), "attacks": sc.attacks.describe(), "settings": settings,
+              "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
+              "options": so.design.as_dict()}
+    return Plan(task, f"comparison-{_slug(sc.name)}", config)
+
+
+def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     """One scenario's block of results from the runner's arrays."""
     A, net, K = mc.arrays, sc.network, sc.steps
-    boot_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31,)))
-    messages = {"consensus": 2 * len(net.edges), "particle": net.n_nodes, "EKF": net.n_nodes}
+    values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
+    main = _uniform(sc)
+    settings = _settings(main, values)
+    key = "rmse_position" if sc.model.position_index else "rmse"
+    boot_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
+    # the local EKFs (added after the others) bootstrap from a stream of their own, so that every other
+    # filter's interval keeps its draws
+    local_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, 1)))
+    messages = {"consensus": 2 * len(net.edges), "particle": net.n_nodes, "EKF": net.n_nodes, "local": 0}
     filters = {}
     for f, name in enumerate(FILTERS):
-        met = _metrics(A["err2"][:, 0, f], boot_rng)
+        met = _metrics(A["err2"][:, 0, f], local_rng if name == LOCAL else boot_rng, key)
         fam = FAMILY[name]
         met.update({
             "family": fam, "description": DESCRIPTION[name],
             "time_per_step_s": float(np.nanmean(A["seconds"][:, 0, f]) / K),
             "communications": messages[fam], "messages_per_step": messages[fam],
-            "particles": particles if fam == "particle" else None,
+            "particles": so.particles if fam == "particle" else None,
         })
         if fam == "consensus":
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
         filters[name] = met
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
-    for key, axis, fixed in (("dos_prob", 0, fdi), ("fdi_prob", 1, dos)):
-        for val, j in sorted((st[axis], j) for j, st in enumerate(settings) if st[1 - axis] == fixed):
+    for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
+        if main is None:
+            pts = [(st[axis], j) for j, st in enumerate(settings) if st[axis] is not None and st[1 - axis] is None]
+        else:
+            pts = sorted((st[axis], j) for j, st in enumerate(settings) if st[1 - axis] == main[1 - axis])
+        for val, j in pts:
             row = {}
             for f, name in enumerate(FILTERS):
                 if np.all(np.isnan(A["seconds"][:, j, f])):
                     continue  # not run at this setting
-                mm = _metrics(A["err2"][:, j, f], boot_rng, curve=False)
-                row[name] = {"rmse_position": mm["rmse_position"], "rmse_position_ci95": mm["rmse_position_ci95"],
-                             "rmse_position_median_run": mm["rmse_position_median_run"],
-                             "diverged_runs": mm["diverged_runs"]}
-            sweeps[key][f"{val:g}"] = row
+                if name == LOCAL:  # no network, nothing attacked: the same numbers at every setting
+                    row[name] = {k: filters[name][k] for k in (key, f"{key}_ci95", f"{key}_median_run",
+                                                               "diverged_runs")}
+                    continue
+                mm = _metrics(A["err2"][:, j, f], boot_rng, key, curve=False)
+                row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
+            sweeps[skey][f"{val:g}"] = row
+    att = sc.resolved_attacks
+    sig = att.signal
     return {
         "scenario": sc.name, "runs": int(A["err2"].shape[0]), "steps": int(K), "nodes": int(net.n_nodes),
         "links": [list(e) for e in net.edges], "filters": filters, "sweeps": sweeps,
-        "attacks": {"dos_prob": dos, "fdi_prob": fdi, "amplitude": float(sc.extras["attack_amplitude"]),
-                    "components": [sc.model.state_names[c] for c in sc.extras["attack_components"]],
-                    "sweep_values": values},
-        "recommendation": _recommend(filters), "params": dict(sc.params), "runner": mc.describe(),
+        "error": {"metric": key, "components": [sc.model.state_names[c] for c in
+                                                (sc.model.position_index or range(sc.model.n_x))]},
+        "attacks": {"dos_prob": None if main is None else main[0], "fdi_prob": None if main is None else main[1],
+                    "amplitude": sig.amplitude[0] if len(set(sig.amplitude)) == 1 else list(sig.amplitude),
+                    "components": [sc.model.state_names[c] for c in sig.components], "law": sig.law,
+                    "delta": att.delta, "declared": att.describe(sc.model.state_names), "sweep_values": values},
+        "recommendation": _recommend(filters, key), "params": dict(sc.params), "runner": mc.describe(),
+        "assumptions": list(sc.assumptions),
     }
 
 
-def _metrics(err2: np.ndarray, rng: np.random.Generator, curve: bool = True) -> dict:
+def _combine(blocks: dict) -> dict:
+    """Several scenarios' blocks: ``filters`` and ``sweeps`` keyed ``"<scenario>: <filter>"``, ``by_scenario``."""
+    first = next(iter(blocks.values()))
+    sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
+    for sc_name, b in blocks.items():
+        for key in sweeps:
+            for val, row in b["sweeps"][key].items():
+                sweeps[key].setdefault(val, {}).update({f"{sc_name}: {n}": v for n, v in row.items()})
+    return {
+        "scenario": ", ".join(blocks), "runs": first["runs"], "steps": first["steps"],
+        "assumptions": list(dict.fromkeys(a for b in blocks.values() for a in b["assumptions"]))
+        + list(DESIGN_ASSUMPTIONS) + list(ASSUMPTIONS),
+        "runner": {sc: b["runner"] for sc, b in blocks.items()},
+        "filters": {f"{sc_name}: {n}": {**f, "scenario": sc_name}
+                    for sc_name, b in blocks.items() for n, f in b["filters"].items()},
+        "sweeps": sweeps,
+        "paper": {"source": None, "numbers": None,
+                  "note": "no paper compares these filter families; seed 003 gives the consensus filter alone"},
+        "by_scenario": {k: {kk: vv for kk, vv in b.items() if kk != "assumptions"} for k, b in blocks.items()},
+        "recommendation": {sc: b["recommendation"] for sc, b in blocks.items()},
+        "params": {sc: b["params"] for sc, b in blocks.items()},
+    }
+
+
+def _metrics(err2: np.ndarray, rng: np.random.Generator, key: str, curve: bool = True) -> dict:
     """RMSE over runs and steps of the runs that did not diverge, bootstrap interval, per-step curve."""
     ok = ~np.isnan(err2).any(axis=1)
     e = err2[ok]
     out = {"diverged_runs": int((~ok).sum())}
     if not len(e):
-        return {**out, "rmse_position": None, "rmse_position_ci95": None, "rmse_position_curve": None,
-                "rmse_position_median_run": None}
+        return {**out, key: None, f"{key}_ci95": None, f"{key}_curve": None, f"{key}_median_run": None}
     per_run = e.mean(axis=1)
     idx = rng.integers(0, len(e), size=(1000, len(e)))
     lo, hi = np.percentile(np.sqrt(per_run[idx].mean(axis=1)), [2.5, 97.5])
-    out.update({"rmse_position": float(np.sqrt(per_run.mean())), "rmse_position_ci95": [float(lo), float(hi)],
-                "rmse_position_median_run": float(np.median(np.sqrt(per_run)))})
+    out.update({key: float(np.sqrt(per_run.mean())), f"{key}_ci95": [float(lo), float(hi)],
+                f"{key}_median_run": float(np.median(np.sqrt(per_run)))})
     if curve:
-        out["rmse_position_curve"] = [float(v) for v in np.sqrt(e.mean(axis=0))]
+        out[f"{key}_curve"] = [float(v) for v in np.sqrt(e.mean(axis=0))]
     return out
 
 
-def _recommend(filters: dict) -> dict:
+def _recommend(filters: dict, key: str) -> dict:
     """The most accurate filter, whether its lead is significant (disjoint intervals), the cheapest, the leanest."""
-    scored = {n: f for n, f in filters.items() if f["rmse_position"] is not None}
-    best = min(scored, key=lambda n: scored[n]["rmse_position"])
-    lo_best = scored[best]["rmse_position_ci95"][1]
-    tied = [n for n in scored if n != best and scored[n]["rmse_position_ci95"][0] <= lo_best]
+    scored = {n: f for n, f in filters.items() if f[key] is not None}
+    if not scored:
+        return {"most_accurate": None, "not_significantly_worse": [], "cheapest": None, "fewest_messages": []}
+    best = min(scored, key=lambda n: scored[n][key])
+    lo_best = scored[best][f"{key}_ci95"][1]
+    tied = [n for n in scored if n != best and scored[n][f"{key}_ci95"][0] <= lo_best]
     fewest = min(f["messages_per_step"] for f in scored.values())
     return {"most_accurate": best, "not_significantly_worse": tied,
             "cheapest": min(scored, key=lambda n: scored[n]["time_per_step_s"]),
@@ -379,97 +431,150 @@ def _recommend(filters: dict) -> dict:
 
 def table_markdown(results: dict) -> str:
     """Per scenario: the trade-off table (accuracy, cost, communication) and the sweeps."""
-    text = ("# comparison: consensus EKF vs centralized particle filters vs plain EKF\n\n"
+    text = ("# comparison: consensus EKF vs local EKFs vs centralized particle filters and EKF\n\n"
             f"Seed {results['seed']}, M = {results['particles']} particles. No paper makes this comparison; "
             "every filter faces one realisation of the same attack law per run.\n")
     for sc_name, b in results["by_scenario"].items():
-        at = b["attacks"]
+        at, key = b["attacks"], b["error"]["metric"]
+        what = "position" if key == "rmse_position" else "state"
         rows = {n: {"family": f["family"],
-                    "rmse": "diverged in every run" if f["rmse_position"] is None else
-                    f"{f['rmse_position']:.4g} [{f['rmse_position_ci95'][0]:.3g}, {f['rmse_position_ci95'][1]:.3g}]",
-                    "median": f["rmse_position_median_run"], "ms": 1e3 * f["time_per_step_s"],
+                    "rmse": "diverged in every run" if f[key] is None else
+                    f"{f[key]:.4g} [{f[f'{key}_ci95'][0]:.3g}, {f[f'{key}_ci95'][1]:.3g}]",
+                    "median": f[f"{key}_median_run"], "ms": 1e3 * f["time_per_step_s"],
                     "msgs": f["messages_per_step"], "div": f["diverged_runs"],
                     "feas": f.get("feasible_runs")} for n, f in b["filters"].items()}
+        probs = ("as declared per channel (see the attacks section)" if at["dos_prob"] is None else
+                 f"DoS {at['dos_prob']:g}, FDI {at['fdi_prob']:g}")
+        amp = at["amplitude"] if isinstance(at["amplitude"], list) else f"{at['amplitude']:g}"
         text += (f"\n## {sc_name}: accuracy, cost and communication\n\n{b['runs']} runs, K = {b['steps']} steps, "
-                 f"{b['nodes']} sensor nodes, links {b['links']}. Attacks on every channel: DoS {at['dos_prob']:g}, "
-                 f"FDI {at['fdi_prob']:g}, injected xi = {at['amplitude']:g} sin(s) on "
-                 f"{', '.join(at['components'])}.\n\n")
-        text += markdown_table(rows, [("family", "family"), ("rmse", "position RMSE [95 % CI]"),
+                 f"{b['nodes']} sensor nodes, links {b['links']}. Attacks on every channel: {probs}, injected "
+                 f"xi = {amp} {at['law']}(s) on {', '.join(at['components'])} (bound delta = {at['delta']:.4g}). "
+                 f"Error over {', '.join(b['error']['components'])}.\n\n")
+        text += markdown_table(rows, [("family", "family"), ("rmse", f"{what} RMSE [95 % CI]"),
                                       ("median", "median run RMSE"), ("ms", "time/step ms"),
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
                                       ("feas", "runs with design conditions met")])
         rec = b["recommendation"]
-        text += (f"\nMost accurate: {rec['most_accurate']}"
-                 + (f" (not significantly better than {', '.join(rec['not_significantly_worse'])})"
-                    if rec["not_significantly_worse"] else " (95 % interval disjoint from every other filter's)")
-                 + f"; cheapest per step: {rec['cheapest']}; fewest messages: "
-                 f"{', '.join(rec['fewest_messages'])}.\n")
-        for key, title in (("dos_prob", "DoS probability (FDI fixed)"), ("fdi_prob", "FDI probability (DoS fixed)")):
-            sw = b["sweeps"][key]
+        if rec["most_accurate"] is not None:
+            text += (f"\nMost accurate: {rec['most_accurate']}"
+                     + (f" (not significantly better than {', '.join(rec['not_significantly_worse'])})"
+                        if rec["not_significantly_worse"] else " (95 % interval disjoint from every other filter's)")
+                     + f"; cheapest per step: {rec['cheapest']}; fewest messages: "
+                     f"{', '.join(rec['fewest_messages'])}.\n")
+        for skey, title in (("dos_prob", "DoS probability (FDI fixed)"), ("fdi_prob", "FDI probability (DoS fixed)")):
+            sw = b["sweeps"][skey]
             names = [n for n in b["filters"] if any(n in row for row in sw.values())]
-            text += (f"\n### {sc_name}: position RMSE against the {title}\n\nRMSE over all runs (median run's "
+            text += (f"\n### {sc_name}: {what} RMSE against the {title}\n\nRMSE over all runs (median run's "
                      "RMSE in brackets: a few exploding runs dominate the first, not the second).\n\n") + markdown_table(
-                {v: {n: _sweep_cell(row.get(n)) for n in names} for v, row in sw.items()}, [(n, n) for n in names])
+                {v: {n: _sweep_cell(row.get(n), key) for n in names} for v, row in sw.items()}, [(n, n) for n in names])
     return text
 
 
-def _sweep_cell(m: dict | None) -> str | None:
+def _sweep_cell(m: dict | None, key: str) -> str | None:
     if m is None:
         return None
-    if m["rmse_position"] is None:
+    if m[key] is None:
         return "diverged"
-    return f"{m['rmse_position']:.4g} ({m['rmse_position_median_run']:.3g})"
+    return f"{m[key]:.4g} ({m[f'{key}_median_run']:.3g})"
 
 
-def _figures(out: Path, arrays: dict, built: dict, blocks: dict) -> None:
+def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
     plt = _plt()
+    blocks = results["by_scenario"]
     names = list(blocks)
     fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 4.8), squeeze=False)
     for ax, sc_name in zip(axes[0], names):
+        key = blocks[sc_name]["error"]["metric"]
         for n, f in blocks[sc_name]["filters"].items():
-            if f["rmse_position"] is None:
+            if f[key] is None:
                 continue
-            lo, hi = f["rmse_position_ci95"]
-            ax.errorbar(1e3 * f["time_per_step_s"], f["rmse_position"],
-                        yerr=[[f["rmse_position"] - lo], [hi - f["rmse_position"]]], fmt="o", capsize=3,
+            lo, hi = f[f"{key}_ci95"]
+            ax.errorbar(1e3 * f["time_per_step_s"], f[key], yerr=[[f[key] - lo], [hi - f[key]]], fmt="o", capsize=3,
                         label=f"{n} ({f['messages_per_step']} msgs/step)")
         ax.set(xscale="log", yscale="log", xlabel="time per step (ms, log scale)",
-               ylabel="position RMSE with 95 % CI (log scale)", title=f"{sc_name}: accuracy against cost")
+               ylabel=f"{'position' if key == 'rmse_position' else 'state'} RMSE with 95 % CI (log scale)",
+               title=f"{sc_name}: accuracy against cost")
         ax.legend(fontsize=7, title="filter (messages per step)", title_fontsize=7)
     save_figure(fig, out / "fig_tradeoff.png")
     for sc_name in names:
         b, A, sc = blocks[sc_name], arrays[sc_name], built[sc_name]
-        curves_figure(out / f"fig_rmse_{sc_name}.png",
-                      {n: f["rmse_position_curve"] for n, f in b["filters"].items()
-                       if f["rmse_position_curve"] is not None},
-                      "position RMSE", f"{sc_name}: position RMSE over time at the main attack setting", log=True)
+        key, slug = b["error"]["metric"], _slug(sc_name)
+        what = "position" if key == "rmse_position" else "state"
+        curves_figure(out / f"fig_rmse_{slug}.png",
+                      {n: f[f"{key}_curve"] for n, f in b["filters"].items() if f[f"{key}_curve"] is not None},
+                      f"{what} RMSE", f"{sc_name}: {what} RMSE over time at the main attack setting", log=True)
         fig, axs = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-        for ax, (key, label) in zip(axs, (("dos_prob", "DoS probability (FDI fixed)"),
-                                          ("fdi_prob", "FDI probability (DoS fixed)"))):
-            xs = sorted(b["sweeps"][key], key=float)
+        for ax, (skey, label) in zip(axs, (("dos_prob", "DoS probability (FDI fixed)"),
+                                           ("fdi_prob", "FDI probability (DoS fixed)"))):
+            xs = sorted(b["sweeps"][skey], key=float)
             for n in b["filters"]:
-                pts = [(float(v), b["sweeps"][key][v][n]) for v in xs if n in b["sweeps"][key][v]
-                       and b["sweeps"][key][v][n]["rmse_position"] is not None]
+                pts = [(float(v), b["sweeps"][skey][v][n]) for v in xs if n in b["sweeps"][skey][v]
+                       and b["sweeps"][skey][v][n][key] is not None]
                 if len(pts) < 2:
                     continue
                 x = [p[0] for p in pts]
-                ax.plot(x, [p[1]["rmse_position"] for p in pts], "o-", label=n)
-                ax.fill_between(x, [p[1]["rmse_position_ci95"][0] for p in pts],
-                                [p[1]["rmse_position_ci95"][1] for p in pts], alpha=0.15)
-            ax.set(xlabel=label, ylabel="position RMSE (log scale)", yscale="log",
+                ax.plot(x, [p[1][key] for p in pts], "o-", label=n)
+                ax.fill_between(x, [p[1][f"{key}_ci95"][0] for p in pts], [p[1][f"{key}_ci95"][1] for p in pts],
+                                alpha=0.15)
+            ax.set(xlabel=label, ylabel=f"{what} RMSE (log scale)", yscale="log",
                    title=f"{sc_name}: degradation with the {label.split(' (')[0]}")
         axs[0].legend(fontsize=7)
-        save_figure(fig, out / f"fig_sweeps_{sc_name}.png")
+        save_figure(fig, out / f"fig_sweeps_{slug}.png")
+        _trajectory(out / f"fig_trajectory_{slug}.png", sc, A, sc_name)
+
+
+def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str) -> None:
+    """Run 1's truth and estimates: in the plane of the position, or per state component over time."""
+    plt = _plt()
+    m = sc.model
+    tr = A["truth"][0]
+    if len(m.position_index) == 2:
         fig, ax = plt.subplots(figsize=(6, 5))
-        tr = A["truth"][0]
-        i, j = sc.model.position_index
-        sens = np.array([s.position for s in sc.model.sensors])
-        ax.plot(sens[:, 0], sens[:, 1], "ks", ms=5, label="sensors")
+        i, j = m.position_index
+        sens = [s.position for s in m.sensors if s.position is not None and len(s.position) >= 2]
+        if sens:
+            sens = np.array(sens)
+            ax.plot(sens[:, 0], sens[:, 1], "ks", ms=5, label="sensors")
         ax.plot(tr[:, i], tr[:, j], "k-", lw=2, label="truth")
         for f, n in enumerate(FILTERS):
             e = A["estimate"][0, f]
             if np.all(np.isfinite(e)):
-                ax.plot(e[:, i], e[:, j], lw=1, label=n + (" (node 1)" if FAMILY[n] == "consensus" else ""))
-        ax.set(xlabel="x position", ylabel="y position", title=f"{sc_name}, run 1: truth and estimates")
+                ax.plot(e[:, i], e[:, j], lw=1, label=n + (" (node 1)" if FAMILY[n] in ("consensus", "local") else ""))
+        ax.set(xlabel=f"{m.state_names[i]}", ylabel=f"{m.state_names[j]}", title=f"{sc_name}, run 1: truth and "
+               "estimates")
         ax.legend(fontsize=7)
-        save_figure(fig, out / f"fig_trajectory_{sc_name}.png")
+    else:
+        comps = list(m.position_index) or list(range(min(m.n_x, 4)))
+        fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
+        t = np.arange(tr.shape[0])
+        for ax, c in zip(axs[:, 0], comps):
+            ax.plot(t, tr[:, c], "k-", lw=2, label="truth")
+            for f, n in enumerate(FILTERS):
+                e = A["estimate"][0, f]
+                if np.all(np.isfinite(e)):
+                    ax.plot(t, e[:, c], lw=1, label=n)
+            ax.set_ylabel(m.state_names[c])
+        axs[0, 0].set_title(f"{sc_name}, run 1: truth and estimates (node 1 for the networked filters)")
+        axs[-1, 0].set_xlabel("time step k")
+        axs[0, 0].legend(fontsize=6)
+    save_figure(fig, path)
+
+
+STUDY = Study(
+    name="comparison",
+    text=TEXT,
+    scenarios=SCENARIOS,
+    runs=DEFAULT_RUNS,
+    particles=500,
+    chunk_size=CHUNK_SIZE,
+    plan=_plan,
+    summarise=_summarise,
+    table=table_markdown,
+    figures=_figures,
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": False},
+    uses_design=True,
+    many_scenarios=True,
+    accepts=_accepts,
+    combine=_combine,
+    check=_check,
+)

@@ -13,138 +13,145 @@ then be recomputed online, which is what the studies do).
 """
 from __future__ import annotations
 
-import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
+from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
 from designer.schedule import GainSchedule
-from designer.tuning import tuned_epsilon
-from designer.validation import InputError, check_int, check_probability
-from filters.consensus import ConsensusDesign, ConsensusResult, run_consensus, simulate_attacks
+from designer.validation import InputError, check_int
+from filters.attacks import simulate_attacks
+from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
-from .scenarios import Scenario, load_scenario
+from .scenarios import Scenario
 
-__all__ = ["PAPER_DEFAULTS", "DesignOutcome", "consensus_design", "design"]
-
-# The published choices of seed 003 and, marked, the values it leaves out.
-PAPER_DEFAULTS = {
-    "sigma": 0.1,
-    "beta": 0.1,
-    "tau": 0.01,
-    "u_scale": 0.01,  # assumption: U = 0.01 I (not given)
-    "v_scale": 0.1,  # assumption: V = 0.1 I (not given)
-    "epsilon_fraction": 0.5,  # assumption: epsilon = 0.5 / d_max (not given)
-}
-DESIGN_ASSUMPTIONS = (
-    "consensus design: the paper gives no scaling matrices U, V; defaults U = 0.01 I (n_x x n_x) and "
-    "V = 0.1 I (n_z x n_z), override with --u-scale / --v-scale.",
-    "consensus design: the paper gives no epsilon; default epsilon = 0.5 / d_max, the middle of (0, 1/d_max).",
-    "consensus design: Phi_0|0 is the prior covariance and every node starts at the prior mean.",
-    "consensus design: neighbours' Phi_{j,k+1|k} used in (27) are exchanged with the predictions and are not "
-    "attacked (the attack model of the paper concerns the estimate packets).",
-)
+__all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode"]
 
 
-class DesignOutcome(NamedTuple):
+def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
+    """``options`` for a design of ``mode`` (a tuned design drops the paper-mode σ, β, τ)."""
+    from dataclasses import replace
+
+    opts = options or DesignOptions()
+    return replace(opts, mode=mode) if mode == "paper" else replace(opts, mode=mode, sigma=None, beta=None, tau=None)
+
+
+def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
+    """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
+
+    The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
+    every value ``options`` sets replaces them.
+    """
+    if sc.network is None:
+        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
+                         "(a model file defines NETWORK)")
+    base = sc.design or DesignOptions()
+    if any(v is not None for v in base.attack_overrides().values()):
+        raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
+                         "attacks in ATTACKS")
+    opts = base.merged(options)
+    return sc.with_attacks(**opts.attack_overrides()), opts
+
+
+def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -> ConsensusDesign:
+    """The consensus design of ``sc`` for ``options`` (or keyword options), merged with the scenario's defaults.
+
+    Attack overrides in the options are applied to the scenario first (its FDI bound
+    becomes the design's δ); use :func:`effective` to get that scenario too.
+    """
+    if kw:
+        options = (options or DesignOptions()).merged(DesignOptions(**kw))
+    sc, opts = effective(sc, options)
+    x0, u0 = sc.operating_point
+    return make_design(sc.model, sc.network, delta=sc.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
+
+
+@dataclass(frozen=True, eq=False)
+class Design:
+    """A consensus filter designed along one seeded run (what ``cfdesign design`` computes).
+
+    Attributes
+    ----------
+    scenario : Scenario
+        The scenario with the attack overrides applied.
+    options : DesignOptions
+        The effective options (scenario defaults merged with the given ones).
+    design : ConsensusDesign
+        The design the nodes ran (ε, σ, β, τ, U, V_i, δ, mode, linearisation).
+    result : ConsensusResult
+        Every node's estimates, bounds, gains, multipliers and condition margins along the run.
+    schedule : GainSchedule
+        The exportable gain schedule (``schedule.json`` / ``schedule.npz``).
+    truth : ndarray (steps + 1, n_x)
+        The simulated true states.
+    seed : int
+    """
+
     scenario: Scenario
+    options: DesignOptions
     design: ConsensusDesign
     result: ConsensusResult
     schedule: GainSchedule
-    truth: np.ndarray  # (steps + 1, n_x)
+    truth: np.ndarray
+    seed: int
+
+    @property
+    def feasible(self) -> bool:
+        """(28)-(29) held at every node and step and no node diverged."""
+        return self.schedule.feasible
+
+    @property
+    def violations(self) -> list[dict]:
+        return self.schedule.violations
+
+    @property
+    def hard_violations(self) -> list[dict]:
+        """The violations that make the design infeasible ((28), (29), divergence)."""
+        return [v for v in self.violations if v["condition"] in HARD_CONDITIONS]
+
+    @property
+    def trace_bound(self) -> np.ndarray:
+        """tr Φ_{k+1|k+1} per node and step, (nodes, steps); NaN where Φ is not a bound."""
+        return np.array([[np.nan if v is None else v for v in row] for row in self.schedule.trace_bound()])
+
+    def reason(self) -> str | None:
+        """Why the design is infeasible, in one line (None when feasible)."""
+        hard = self.hard_violations
+        if not hard:
+            return None
+        first = min(hard, key=lambda v: (v["step"], v["node"]))
+        detail = first["reason"] if "reason" in first else f"margin {first['margin']:.4g}"
+        return (f"{len(hard)} violations of (28)-(29) or divergence; first at node {first['node']}, step "
+                f"{first['step']}, condition {first['condition']}, {detail}")
+
+    def save(self, directory) -> Path:
+        """Write ``schedule.json``, ``schedule.npz``, the figure and ``report.html`` / ``report.md`` into ``directory``."""
+        out = self.schedule.write(directory)
+        from .report import write_report
+
+        write_report(out)
+        return out
 
 
-def _probability(name: str, p) -> float | None:
-    return None if p is None else float(check_probability(name, p, open_upper=True))
-
-
-def consensus_design(sc: Scenario, *, epsilon=None, sigma=None, beta=None, tau=None, delta=None,
-                     u_scale=None, v_scale=None, mode: str = "paper", linearization: str = "fixed",
-                     radius: float = 3.0) -> ConsensusDesign:
-    """The design of a scenario's consensus filter, with the given values overriding the defaults.
-
-    In ``'tuned'`` mode the default ε is :func:`designer.tuning.tuned_epsilon` (optimal, see there).
-    """
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
-    m, net = sc.model, sc.network
-    n_z = m.sensor_dims[0]
-    if delta is None:
-        comps = sc.extras.get("attack_components", tuple(range(m.n_x)))
-        delta = float(sc.extras.get("attack_amplitude", 0.0)) * np.sqrt(len(comps))
-    if delta < 0:
-        raise InputError(f"delta must be >= 0, got {delta!r}")
-    d_max = max(net.d_max, 1)
-    if epsilon is None:
-        epsilon = tuned_epsilon(d_max) if mode == "tuned" else PAPER_DEFAULTS["epsilon_fraction"] / d_max
-    return ConsensusDesign(
-        epsilon=float(epsilon),
-        sigma=PAPER_DEFAULTS["sigma"] if sigma is None else float(sigma),
-        beta=PAPER_DEFAULTS["beta"] if beta is None else float(beta),
-        tau=PAPER_DEFAULTS["tau"] if tau is None else float(tau),
-        U=(PAPER_DEFAULTS["u_scale"] if u_scale is None else float(u_scale)) * np.eye(m.n_x),
-        V=(PAPER_DEFAULTS["v_scale"] if v_scale is None else float(v_scale)) * np.eye(n_z),
-        delta=float(delta),
-        mode=mode,
-        linearization=linearization,
-        radius=float(radius),
-    )
-
-
-def design(
-    scenario: str,
-    *,
-    out: str | Path | None = None,
-    mode: str = "paper",
-    steps: int | None = None,
-    seed: int = 0,
-    epsilon: float | None = None,
-    sigma: float | None = None,
-    beta: float | None = None,
-    tau: float | None = None,
-    dos: float | None = None,
-    fdi: float | None = None,
-    delta: float | None = None,
-    u_scale: float | None = None,
-    v_scale: float | None = None,
-    linearization: str = "fixed",
-    radius: float = 3.0,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-) -> DesignOutcome:
-    """Design the consensus filter of ``scenario`` and (optionally) write its schedule to ``out``.
-
-    An infeasible design is still written, marked ``feasible: false`` with its
-    violations; its Φ after a node's first violation is NaN (not a bound).
-    """
-    if mode not in ("paper", "tuned"):
-        raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
-    if mode == "tuned":
-        for name, v in (("sigma", sigma), ("beta", beta), ("tau", tau)):
-            if v is not None:
-                raise InputError(f"{name} is chosen by the tuning layer in mode 'tuned'; do not give --{name}")
+def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
+               seed: int = 0) -> Design:
+    """Design the consensus filter of ``sc`` along a seeded simulated run (see the module docstring)."""
     seed = check_int("seed", seed, 0)
-    sc = load_scenario(scenario, overrides, assignments)
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
-    dos, fdi = _probability("dos", dos), _probability("fdi", fdi)
-    if dos is not None or fdi is not None:
-        sc = dataclasses.replace(sc, network=sc.network.with_attacks(dos, fdi))
+    sc, opts = effective(sc, options)
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
-    des = consensus_design(sc, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, delta=delta, u_scale=u_scale,
-                           v_scale=v_scale, mode=mode, linearization=linearization, radius=radius)
+    x0, u0 = sc.operating_point
+    att = sc.resolved_attacks
+    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0)
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)
-    comps = sc.extras.get("attack_components", tuple(range(m.n_x)))
-    amp = des.delta / np.sqrt(len(comps))
-    attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), amplitude=amp, components=comps)
+    attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
     res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     schedule = GainSchedule(
         scenario=sc.name,
-        mode=mode,
+        mode=des.mode,
         epsilon=des.epsilon,
         sigma=res.sigma.T.copy(),
         beta=res.beta.T.copy(),
@@ -153,13 +160,15 @@ def design(
         Phi=Phi,
         valid=res.valid.T.copy(),
         violations=res.violations,
+        margin28=res.margin28.T.copy(),
+        margin29=res.margin29.T.copy(),
         meta={
-            "tau": des.tau,
-            "delta": des.delta,
-            "U": des.U.tolist(),
-            "V": des.V.tolist(),
-            "linearization": des.linearization,
-            "radius": des.radius if des.linearization == "hessian" else None,
+            **{k: v for k, v in describe_design(des).items() if k not in ("mode", "epsilon", "sigma", "beta")},
+            "sigma_fixed": des.sigma if des.mode == "paper" else None,
+            "beta_fixed": des.beta if des.mode == "paper" else None,
+            "options": opts.as_dict(),
+            "sensors": [{"name": s.name, "dim": s.dim} for s in m.sensors],
+            "state_names": list(m.state_names),
             "seed": seed,
             "trajectory": "seeded simulated run of the scenario: truth and measurements from "
                           "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds along "
@@ -168,10 +177,9 @@ def design(
                       "the bound holds for the linearisation points and DoS pattern it was computed along",
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "network": net.describe(),
+            "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS),
         },
     )
-    if out is not None:
-        schedule.write(out)
-    return DesignOutcome(sc, des, res, schedule, traj.x)
+    return Design(sc, opts, des, res, schedule, traj.x, seed)

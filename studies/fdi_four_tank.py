@@ -46,6 +46,7 @@ from filters.fdi import (attack_threshold, attack_values, bias_attack, deception
                          normal_detector, residual_threshold, run_sis, uniform_loglik)
 
 from .results import curves_figure, error_metrics, markdown_table, save_figure, study_header, write_study
+from .pipeline import StudyText
 from .runner import Backend, monte_carlo
 from .scenarios import load_scenario
 
@@ -612,3 +613,49 @@ def _figures(out: Path, sc, figs: dict) -> None:
 
     curves_figure(out / "fig_rmse.png", {n: f["rmse_curve"] for n, f in main.filters.items() if n != NOATT},
                   "RMSE against the no-attack normal PF", "RMSE over runs at each step (same particles)", log=True)
+
+
+TEXT = StudyText(
+    title="Detecting false-data injection and estimating the levels of a four-tank process",
+    paper="Sadeghzadeh-Nokhodberiz, Meskin, Hasanzadeh: Modified particle filters for detection of FDI "
+          "attacks and state estimation in networked nonlinear systems (seed 004)",
+    summary=(
+        "Four connected water tanks are measured by four level sensors. At random times an attacker adds a "
+        "bias to the readings (false-data injection, FDI). A filter must both tell when an attack happens "
+        "(detection) and keep estimating the true levels. All filters of a run share the same particles. "
+        "The paper's RMSE measures how far each filter under attack strays from the normal filter that sees "
+        "no attack; we also give the error against the true levels. The question: does the modified filter "
+        "detect attacks without false alarms and estimate as if there were no attack?"),
+    filters={
+        "normal PF (no attack)": "the normal particle filter on attack-free readings: the reference of the "
+                                 "paper's RMSE",
+        "normal PF (under attack)": "the normal particle filter on attacked readings, with its detector",
+        "normal PF (under attack), linear-domain weights": "not in the paper: the same with weights in plain "
+                                                           "double precision",
+        "proposed (modified PF)": "the paper's filter: detects attacks with measurement-corrected particles "
+                                  "and removes the estimated bias",
+        "proposed, sampled correction (non-Gaussian variant)": "the paper's non-Gaussian variant of the "
+                                                               "proposed filter",
+        "method of [31]": "the binary multi-attack paper's likelihood adapted to this plant",
+        "method of [31], weights 1/N (the paper's statement)": "the outcome the paper states for [31]",
+    },
+    attacks=(
+        "False-data injection: at each step, with probability p_l (`attack_prob`), a bias vector gamma_k "
+        "that drifts towards gamma-bar (`attack_bias`, rate `attack_tau`) is added to the four readings. "
+        "Attacks smaller than ||gamma||_min (`attack_norm_min`) are undetectable by design and counted as "
+        "stealthy, not missed."),
+    attack_params=("attack_prob", "attack_bias", "attack_tau", "attack_norm_min", "attack_estimate_var"),
+    accuracy=(("rmse", "RMSE against the attack-free normal PF (the paper's measure)"),
+              ("rmse_truth", "RMSE against the true levels")),
+    references=("normal PF (no attack)",),
+    figures={
+        "fig_estimates.png": "One run: the tank levels and the estimates (the paper's Figs. 7 and 15).",
+        "fig_detection_low.png": "Detection with the low measurement noise, run 0 (the paper's Fig. 8).",
+        "fig_detection_high.png": "Detection with the high measurement noise, run 0 (the paper's Fig. 11).",
+        "fig_detection_bias1.png": "gamma-bar = 1: the normal PF and the proposed filter, run 0 (the paper's "
+                                   "Figs. 9-10).",
+        "fig_gamma_hat.png": "The attack estimate with an error of covariance 1e-2 I, run 0 (the paper's "
+                             "Fig. 13).",
+        "fig_rmse.png": "RMSE against the attack-free normal PF at each step (same particles).",
+    },
+)

@@ -2,13 +2,24 @@
 
 At every grid point the steady-state bound recursion at the scenario's operating
 point (its initial state ``x0`` and first input) is iterated to a fixed point
-(:func:`designer.feasibility.steady_state`); ``feasibility.csv`` gets one row per
-point (the grid parameters, ``feasible``, ``trace_bound``, ``binding``,
-``theorem2``, ``iterations``) and a heat map is drawn for one or two grid
-parameters.  The grid points go through the Monte Carlo runner
+(:func:`designer.feasibility.steady_state`) with the design that ``cfdesign design``
+would build from the same options, the grid's values replacing theirs.
+``feasibility.csv`` gets one row per point (the grid parameters, ``feasible``,
+``trace_bound``, ``binding``, ``theorem2``, ``iterations``) and a heat map is drawn
+for one or two grid parameters.  The grid points go through the Monte Carlo runner
 (:mod:`studies.runner`; a point plays the part of a run, chunks of ``CHUNK_SIZE``
 points): in this process, on ``--workers N`` local processes or on a Dask cluster
 (``--dask ADDRESS``), stored under ``out/.chunks`` so that an interrupted map resumes.
+
+**Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
+the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
+received) and the transient from the prior.  ``feasibility`` checks whether the
+*stationary* recursion at the operating point, with the *expected* number of received
+packets, has a bounded fixed point.  They disagree when the run leaves the operating
+point (a nonlinear model linearised elsewhere), when a run's realised DoS pattern is
+luckier or worse than its mean, or when the transient violates a condition that the
+steady state satisfies (or the reverse: a run that is too short to reach an unbounded
+steady state).
 """
 from __future__ import annotations
 
@@ -16,20 +27,23 @@ import csv
 import functools
 import io
 import itertools
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
+from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state
 from designer.fileio import atomic_write
+from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import InputError
 
-from .design import consensus_design
-from .runner import Backend, make_backend, monte_carlo
-from .scenarios import load_scenario
+from .design import effective
+from .runner import Backend, monte_carlo
+from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["GRID_PARAMETERS", "parse_grid", "feasibility_map", "CHUNK_SIZE"]
+__all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "CHUNK_SIZE", "OUTPUTS"]
 
 CHUNK_SIZE = 8  # grid points per chunk (the unit of resumption and of work sent to a worker)
 
@@ -37,8 +51,16 @@ GRID_PARAMETERS = {
     "dos": "DoS probability on every channel, in [0, 1)",
     "fdi": "FDI probability on every channel, in [0, 1)",
     "delta": "bound on the injected signal, >= 0",
-    "tau": "consensus gain C = tau Phi_pred (paper mode only), >= 0",
+    "amplitude": "amplitude of the injected signal per attacked component, >= 0",
+    "tau": "consensus gain C = tau Phi_pred (paper mode), >= 0",
+    "sigma": "sigma of (26) (paper mode), >= 0",
+    "beta": "beta of (27) (paper mode), >= 0",
+    "epsilon": "epsilon in (0, 1/d_max)",
+    "u_scale": "U = u I, >= 0",
+    "v_scale": "V_i = v I at every sensor, >= 0",
 }
+_PAPER_ONLY = ("tau", "sigma", "beta")
+OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
 
 
 def parse_grid(spec: str) -> tuple[str, np.ndarray]:
@@ -61,104 +83,172 @@ def parse_grid(spec: str) -> tuple[str, np.ndarray]:
     values = np.linspace(start, stop, count)
     if name in ("dos", "fdi") and (values.min() < 0 or values.max() >= 1):
         raise InputError(f"--grid {name} must lie in [0, 1), got {start}:{stop}")
-    if name in ("delta", "tau") and values.min() < 0:
+    if name == "epsilon" and values.min() <= 0:
+        raise InputError(f"--grid epsilon must be > 0, got {start}:{stop}")
+    if values.min() < 0:
         raise InputError(f"--grid {name} must be >= 0, got {start}:{stop}")
     return name, values
 
 
-def _point(point: dict, F, H, Q, R, network, design, phi0) -> dict:
+def _scaling(model, des, x0, u0, xp):
+    """The Hessian-derived scalings at the operating point for the fixed-point iteration (None when fixed)."""
+    if des.linearization == "fixed":
+        return None
+
+    def scaling(i, phi_post, phi_pred):
+        pred = prediction_scaling(model, x0, phi_post, 0, u0, des.linearization, des.radius, des.U)
+        upd = None if phi_pred is None else update_scaling(model, i, xp, phi_pred, 1, des.linearization,
+                                                           des.radius, des.V[i])
+        return pred, upd
+
+    return scaling
+
+
+def _point(sc: Scenario, options: DesignOptions, point: dict, lin) -> dict:
+    """One grid point: the design of ``options`` with the point's values, iterated to its steady state."""
     try:
-        net = network.with_attacks(point.get("dos"), point.get("fdi"))
-    except InputError:  # DoS and FDI never occur together: dos + fdi > 1 is no attack model
-        return {**point, "feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1",
-                "theorem2": 0, "iterations": 0}
-    r = steady_state(F, H, Q, R, net, epsilon=design.epsilon, delta=point.get("delta", design.delta), U=design.U,
-                     V=design.V, mode=design.mode, sigma=design.sigma, beta=design.beta,
-                     tau=point.get("tau", design.tau), phi0=phi0)
-    return {**point, "feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
+        sc_p, opts = effective(sc, options.merged(DesignOptions(**point)))
+    except InputError as exc:
+        if "dos + fdi" not in str(exc):
+            raise
+        # DoS and FDI never occur together: dos + fdi > 1 is no attack model
+        return {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
+                "iterations": 0}
+    x0, u0 = sc_p.operating_point
+    m = sc_p.model
+    des = make_design(m, sc_p.network, delta=sc_p.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
+    F, H, R, xp = lin
+    r = steady_state(F, H, m.process_cov, R, sc_p.network, epsilon=des.epsilon, delta=des.delta, U=des.U, V=des.V,
+                     mode=des.mode, sigma=des.sigma, beta=des.beta, tau=des.tau, phi0=m.prior.cov,
+                     scaling=_scaling(m, des, x0, u0, xp))
+    return {"feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
             "theorem2": int(r.theorem2), "iterations": r.iterations}
 
 
-_OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
+def _linearisation(sc: Scenario):
+    m = sc.model
+    x0, u0 = sc.operating_point
+    xp = m.f_expected(x0, 0, u0)
+    F = m.F_expected(x0, 0, u0)
+    H = [m.H(i, xp, 1) for i in range(m.n_sensors)]
+    R = [m.measurement_cov(i) for i in range(m.n_sensors)]
+    return F, H, R, xp
 
 
-def _points(run_ids, seeds, *, points, F, H, Q, R, network, design, phi0) -> dict:
+def _points(run_ids, seeds, *, ref: ScenarioRef, options: DesignOptions, points: Sequence[dict]) -> dict:
     """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used)."""
-    rows = [_point(points[int(i)], F, H, Q, R, network, design, phi0) for i in run_ids]
-    return {k: np.array([r[k] for r in rows]) for k in _OUTPUTS}
+    sc = ref.build()
+    lin = _linearisation(sc)
+    rows = [_point(sc, options, points[int(i)], lin) for i in run_ids]
+    return {k: np.array([r[k] for r in rows]) for k in OUTPUTS}
 
 
-def feasibility_map(
-    scenario: str,
-    grids: Sequence[str],
-    *,
-    out: str | Path | None = None,
-    mode: str = "tuned",
-    workers: int | None = None,
-    quiet: bool = False,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-    design_options: Mapping[str, Any] | None = None,
-    dask: str | None = None,
-    backend: Backend | None = None,
-    force: bool = False,
-) -> list[dict]:
-    """Compute the feasibility map over the grids (``NAME=START:STOP:COUNT`` strings).
+@dataclass(frozen=True, eq=False)
+class FeasibilityMap:
+    """A feasibility map: one row per grid point (what ``cfdesign feasibility`` computes).
 
-    ``workers`` (local processes) or ``dask`` (a scheduler address), or an explicit
-    ``backend``, choose where the chunks of grid points are computed (the map does not
-    depend on it); with ``out`` the finished chunks are kept under ``out/.chunks`` and a
-    second call resumes from them (``force`` recomputes).
+    Attributes
+    ----------
+    scenario : Scenario
+    options : DesignOptions
+        The effective design options at every point (the grid's values replace theirs).
+    grids : list of (name, values)
+    rows : list of dict
+        Per point: the grid values, ``feasible`` (0/1), ``trace_bound`` (mean over nodes of the
+        steady-state tr Φ, NaN when infeasible), ``binding``, ``theorem2``, ``iterations``.
+    runner : dict
+        What the Monte Carlo runner computed and reused.
     """
+
+    scenario: Scenario
+    options: DesignOptions
+    grids: list
+    rows: list
+    runner: dict
+
+    @property
+    def names(self) -> list[str]:
+        return [n for n, _ in self.grids]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(len(v) for _, v in self.grids)
+
+    @property
+    def feasible(self) -> np.ndarray:
+        """Feasibility per point, shaped like the grid (first grid parameter first)."""
+        return np.array([bool(r["feasible"]) for r in self.rows]).reshape(self.shape)
+
+    @property
+    def trace_bound(self) -> np.ndarray:
+        return np.array([r["trace_bound"] for r in self.rows], dtype=float).reshape(self.shape)
+
+    def save(self, directory) -> Path:
+        """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``."""
+        from designer.fileio import write_json
+
+        out = Path(directory)
+        _write_csv(out / "feasibility.csv", self.rows, self.names)
+        if len(self.grids) <= 2:
+            _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or "paper")
+        sc = self.scenario
+        write_json(out / "feasibility.json", {
+            "schema": "cfdesign.feasibility/1", "scenario": sc.name,
+            "grids": [{"name": n, "values": v.tolist()} for n, v in self.grids],
+            "options": self.options.as_dict(), "points": len(self.rows),
+            "feasible_points": int(sum(r["feasible"] for r in self.rows)),
+            "operating_point": {"x0": sc.operating_point[0].tolist(),
+                                "u0": None if sc.operating_point[1] is None else sc.operating_point[1].tolist()},
+            "network": sc.network.describe(), "attacks": sc.resolved_attacks.describe(sc.model.state_names),
+            "assumptions": list(sc.assumptions), "runner": self.runner,
+        })
+        from .report import write_report
+
+        write_report(out)
+        return out
+
+
+def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions | None = None, *,
+                    backend: Backend | None = None, store=None, force: bool = False,
+                    quiet: bool = False) -> FeasibilityMap:
+    """Compute the feasibility map of ``sc`` over ``grids`` (``NAME=START:STOP:COUNT`` strings)."""
+    if isinstance(grids, str):
+        grids = [grids]
     if not grids:
         raise InputError("give at least one --grid NAME=START:STOP:COUNT")
     parsed = [parse_grid(g) for g in grids]
     names = [n for n, _ in parsed]
     if len(set(names)) != len(names):
         raise InputError("each --grid parameter may be given once")
-    if mode not in ("paper", "tuned"):
-        raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
-    if "tau" in names and mode == "tuned":
-        raise InputError("--grid tau applies to mode 'paper' only (the tuned design chooses C itself)")
-    if backend is None:
-        backend = make_backend(workers, dask)
-    elif workers is not None or dask is not None:
-        raise InputError("give either backend or workers/dask, not both")
-    sc = load_scenario(scenario, overrides, assignments)
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one")
-    design = consensus_design(sc, mode=mode, **dict(design_options or {}))
-    m = sc.model
-    u = sc.inputs(1)
-    u0 = None if u is None else u[0]
-    x0 = m.prior.mean if sc.x0 is None else sc.x0
-    F = m.F_expected(x0, 0, u0)
-    xp = m.f_expected(x0, 0, u0)
-    H = [m.H(i, xp, 1) for i in range(m.n_sensors)]
-    R = [m.measurement_cov(i) for i in range(m.n_sensors)]
+    sc_eff, opts = effective(sc, options)
+    mode = opts.mode or "paper"
+    bad = [n for n in names if n in _PAPER_ONLY and mode == "tuned"]
+    if bad:
+        raise InputError(f"--grid {bad[0]} applies to mode 'paper' only (the tuned design chooses it itself)")
+    d_max = max(sc_eff.network.d_max, 1)
+    for n, v in parsed:
+        if n == "epsilon" and v.max() >= 1.0 / d_max:
+            raise InputError(f"--grid epsilon must lie in (0, 1/d_max) = (0, {1.0 / d_max:.6g}), got up to {v.max():g}")
+    if backend is not None and backend.kind == "dask" and sc.source is None:
+        raise InputError("an in-memory model cannot be sent to a Dask cluster; write it to a model file")
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
-    task = functools.partial(_points, points=points, F=F, H=H, Q=m.process_cov, R=R, network=sc.network,
-                             design=design, phi0=m.prior.cov)
-    config = {"study": "feasibility", "scenario": sc.name, "grids": [[n, v.tolist()] for n, v in parsed],
-              "mode": mode, "design_options": dict(design_options or {}),
-              "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.params.items()}}
-    mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=CHUNK_SIZE, backend=backend, store=out,
+    ref = reference(sc)
+    task = functools.partial(_points, ref=ref, options=options or DesignOptions(), points=points)
+    config = {"study": "feasibility", "scenario": sc.name, "source": ref.source if not ref.in_memory else "memory",
+              "grids": [[n, v.tolist()] for n, v in parsed], "options": (options or DesignOptions()).as_dict(),
+              "params": dict(ref.params), "attacks": sc.attacks.describe()}
+    mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=CHUNK_SIZE, backend=backend, store=store,
                      label="feasibility", config=config, force=force, quiet=quiet)
     a = mc.arrays
     rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
              "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),
              "iterations": int(a["iterations"][i])} for i, p in enumerate(points)]
-    if out is not None:
-        out = Path(out)
-        _write_csv(out / "feasibility.csv", rows, names)
-        if len(names) <= 2:
-            _figure(out / "feasibility.png", rows, parsed, sc.name, mode)
-    return rows
+    return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe())
 
 
 def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:
     buf = io.StringIO()
-    cols = names + ["feasible", "trace_bound", "binding", "theorem2", "iterations"]
+    cols = names + list(OUTPUTS)
     w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
     w.writeheader()
     for r in rows:
@@ -167,12 +257,10 @@ def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:
 
 
 def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .results import _plt, save_figure
     from matplotlib.colors import LogNorm
 
+    plt = _plt()
     tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows])
     fig, ax = plt.subplots(figsize=(7, 5))
     if len(parsed) == 1:
@@ -197,7 +285,4 @@ def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> N
         if ii.size:
             ax.legend(loc="upper right", fontsize=8)
     ax.set_title(f"{scenario}: feasibility of the {mode} consensus design at the operating point", fontsize=10)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    atomic_write(path, lambda fh: fh.write(buf.getvalue()))
+    save_figure(fig, path)

@@ -23,7 +23,7 @@ The compiled kernels are cached per :class:`designer.Model` object, so the tasks
 take their scenario from :func:`cached_scenario`: a worker process forked after the
 parent compiled (``Backend("processes")``) reuses the parent's kernels, and any
 other worker compiles once per model, not once per chunk.  :func:`score` turns a
-filter's concatenated runs into the metrics of :func:`studies.results.evaluate_filter`.
+filter's concatenated runs into its metrics (:func:`studies.results.error_metrics`, time, collapses).
 """
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ def check_study_options(*, runs, particles, seed, threads, workers, engine, chun
 
 def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: np.ndarray,
           position: Sequence[int], velocity: Sequence[int], rng: np.random.Generator) -> dict:
-    """:func:`studies.results.evaluate_filter`'s metrics of one filter from the runner's per-run arrays.
+    """The metrics of one filter from the runner's per-run arrays: :func:`studies.results.error_metrics`, time, collapses.
 
     ``truth`` and ``mean`` (runs, K + 1, n_x), ``collapsed`` (runs, K), ``seconds`` (runs,):
     each run's share of its chunk's wall time for this filter.  ``wall_time_s`` is their

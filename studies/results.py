@@ -18,7 +18,7 @@ import numpy as np
 from designer.fileio import atomic_write, write_json
 
 __all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_study", "trajectory_figure", "curves_figure", "study_header", "evaluate_filter",
+           "write_study", "write_outputs", "trajectory_figure", "curves_figure", "study_header",
            "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
@@ -114,17 +114,12 @@ def rmse_with_ci(f: Mapping) -> str:
     return f"{f['rmse_position']:.4g} [{lo:.3g}, {hi:.3g}]"
 
 
-def write_study(out, results: dict, t_start: float, figures: Callable[[Path], None], table: Callable[[dict], str]):
-    """Stamp the wall time, then write the figures, ``table.md``, ``results.json`` and the reports (each atomically).
+def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Callable[[dict], str]) -> Path:
+    """Write the figures, ``table.md``, ``results.json`` and the reports into ``out`` (each atomically).
 
     The reports (``report.md`` and the self-contained ``report.html``, see
     :func:`studies.report.write_report`) are written last, from the files just written.
     """
-    import time
-
-    results["wall_time_s"] = time.perf_counter() - t_start
-    if out is None:
-        return results
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figures(out)
@@ -133,6 +128,16 @@ def write_study(out, results: dict, t_start: float, figures: Callable[[Path], No
     from .report import write_report  # late: report reads the files this module writes
 
     write_report(out)
+    return out
+
+
+def write_study(out, results: dict, t_start: float, figures: Callable[[Path], None], table: Callable[[dict], str]):
+    """Stamp the wall time, then (with ``out``) :func:`write_outputs`."""
+    import time
+
+    results["wall_time_s"] = time.perf_counter() - t_start
+    if out is not None:
+        write_outputs(out, results, figures, table)
     return results
 
 
@@ -178,25 +183,6 @@ def study_header(study: str, scenario: str, *, runs: int, particles: int | None,
     return {"schema": SCHEMA, "study": study, "scenario": scenario, "runs": int(runs),
             "particles": None if particles is None else int(particles), "steps": int(steps), "seed": int(seed),
             **extra, "assumptions": list(assumptions), "wall_time_s": None, "versions": versions()}
-
-
-def evaluate_filter(run: Callable[[], tuple[np.ndarray, np.ndarray]], truth: np.ndarray, position: Sequence[int],
-                    velocity: Sequence[int], rng: np.random.Generator) -> tuple[dict, np.ndarray]:
-    """Time ``run() -> (means (runs, K+1, n_x), collapsed (runs, K))`` and score it against ``truth``.
-
-    Returns the metrics (:func:`error_metrics` plus ``time_per_step_s`` = wall time /
-    (runs x K), ``wall_time_s``, ``collapsed_steps``, ``collapsed_runs``) and run 0's means.
-    """
-    import time
-
-    t = time.perf_counter()
-    mean, collapsed = run()
-    wall = time.perf_counter() - t
-    runs, K = collapsed.shape
-    met = error_metrics(truth[:, 1:] - mean[:, 1:], position, velocity, rng)
-    met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
-                "collapsed_runs": int(collapsed.any(axis=1).sum())})
-    return met, mean[0]
 
 
 def cv_velocity_at_position_rmse(accel_var: float, period: float, rmse_position: float) -> float:

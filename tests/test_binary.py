@@ -6,7 +6,7 @@ from scipy.integrate import quad
 
 from designer import Model
 from filters.binary import binary_loglik
-from filters.channels import binary_sensor_channel
+from filters.attacks import binary_sensor_channel
 from filters.particle import run_sir
 from studies.scenarios import load_scenario
 

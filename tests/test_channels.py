@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from designer import Gaussian, InputError, UniformBox
-from filters.channels import (
+from filters.attacks import (
     binary_sensor_channel,
     deception_attack,
     round_robin_received,

@@ -18,10 +18,12 @@ from designer.model import Model, Sensor
 from designer.noise import Gaussian
 from designer.simulate import simulate
 from designer.validation import InputError
-from filters.consensus import attack_pattern, channel_draws, run_consensus, simulate_attacks
+from designer.attacks import FDISignal
+from filters.attacks import attack_pattern, channel_draws, receive, simulate_attacks, uplink_attacks
+from filters.consensus import run_consensus
 from filters.ekf import run_ekf
 from filters.particle import additive_noise_loglik
-from filters.uplink import SIN2_MEAN, fdi_covariances, receive, split_received, uplink_attacks, uplink_loglik
+from filters.uplink import fdi_covariances, split_received, uplink_loglik
 from studies.cli import main
 from studies.comparison import EKF_PLAIN, FILTERS, PAPER_DESIGN, PF_AWARE, PF_PLAIN, TUNED, run_comparison
 from studies.runner import CHUNKS_DIR, Backend, make_backend
@@ -39,16 +41,16 @@ def robot():
 
 def test_channel_draws_reproduce_simulate_attacks(robot):
     net, m = robot.network, robot.model
-    a = simulate_attacks(net, 30, m.n_x, np.random.default_rng(4), amplitude=1.5, components=(0, 1))
+    a = simulate_attacks(net, 30, m.n_x, np.random.default_rng(4), signal=FDISignal(1.5, (0, 1)))
     u, s = channel_draws(30, net.n_nodes, np.random.default_rng(4))
-    b = attack_pattern(net, u, s, m.n_x, amplitude=1.5, components=(0, 1))
+    b = attack_pattern(net, u, s, m.n_x, signal=FDISignal(1.5, (0, 1)))
     for x, y in zip(a, b):
         assert np.array_equal(x, y)
 
 
 def test_uplink_attack_frequencies_and_exclusivity():
     u, s = channel_draws(4000, 5, np.random.default_rng(1))
-    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, amplitude=2.0, components=(0, 1))
+    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, signal=FDISignal(2.0, (0, 1)))
     n = att.dos.size
     for got, p in ((att.dos.mean(), 0.2), (att.fdi.mean(), 0.3)):
         assert abs(got - p) < 4 * np.sqrt(p * (1 - p) / n)
@@ -56,16 +58,16 @@ def test_uplink_attack_frequencies_and_exclusivity():
     assert np.all(att.xi[~att.fdi] == 0) and np.all(att.xi[..., 2] == 0)
     v = att.xi[att.fdi][:, 0]
     assert np.abs(v).max() <= 2.0
-    assert abs((v**2).mean() - 4.0 * SIN2_MEAN) < 4 * (v**2).std() / np.sqrt(v.size)  # a^2 E[sin^2 s]
+    assert abs((v**2).mean() - 4.0 * FDISignal(1.0).second_moment) < 4 * (v**2).std() / np.sqrt(v.size)  # a^2 E[sin^2 s]
     with pytest.raises(InputError, match="dos_prob \\+ fdi_prob"):
-        uplink_attacks(u, s, 3, dos_prob=0.7, fdi_prob=0.4, amplitude=1.0, components=(0,))
+        uplink_attacks(u, s, 3, dos_prob=0.7, fdi_prob=0.4, signal=FDISignal(1.0, (0,)))
 
 
 def test_received_measurements_shift_by_the_jacobian_and_drop_lost_packets(robot):
     m = robot.model
     traj = robot.simulate(np.random.default_rng(2), 30)
     u, s = channel_draws(30, 8, np.random.default_rng(3))
-    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, amplitude=1.5, components=(0, 1))
+    att = uplink_attacks(u, s, 3, dos_prob=0.2, fdi_prob=0.3, signal=FDISignal(1.5, (0, 1)))
     values, avail = split_received(m, receive(m, traj.x, traj.z, att))
     assert np.array_equal(avail, ~att.dos)
     for k in range(30):
@@ -81,7 +83,7 @@ def test_received_measurements_shift_by_the_jacobian_and_drop_lost_packets(robot
 
 def test_uplink_likelihood_against_scipy(robot):
     m = robot.model
-    covs = fdi_covariances(m, m.prior.mean, amplitude=1.5, components=(0, 1))
+    covs = fdi_covariances(m, m.prior.mean, signal=FDISignal(1.5, (0, 1)))
     x = m.prior.sample(np.random.default_rng(0), (2, 7))
     traj = robot.simulate(np.random.default_rng(1), 3)
     avail = np.ones((2, 8), bool)

@@ -26,13 +26,10 @@ from designer.bounds import (
     update_bound,
 )
 from designer.validation import InputError
-from filters.consensus import (
-    ConsensusDesign,
-    exchange,
-    run_consensus,
-    simulate_attacks,
-    validate_design,
-)
+from designer.attacks import FDISignal
+from designer.design import ConsensusDesign, validate_design
+from filters.attacks import simulate_attacks
+from filters.consensus import exchange, run_consensus
 from studies.scenarios import load_scenario
 
 inv = np.linalg.inv
@@ -392,7 +389,7 @@ def robot():
 def test_simulate_attacks_statistics(robot):
     net = robot.network.with_attacks(0.3, 0.2)
     steps, amp, comps = 20000, 1.5, (0, 1)
-    att = simulate_attacks(net, steps, 3, np.random.default_rng(7), amplitude=amp, components=comps)
+    att = simulate_attacks(net, steps, 3, np.random.default_rng(7), signal=FDISignal(amp, comps))
     adj = net.adjacency
     assert att.dos.shape == att.fdi.shape == (steps, 8, 8) and att.xi.shape == (steps, 8, 8, 3)
     # nothing off the edges, never both attacks on one channel
@@ -421,14 +418,14 @@ def test_simulate_attacks_statistics(robot):
 
 def test_simulate_attacks_reproducible(robot):
     net = robot.network.with_attacks(0.3, 0.2)
-    a = simulate_attacks(net, 50, 3, np.random.default_rng(3), amplitude=1.5, components=(0, 1))
-    b = simulate_attacks(net, 50, 3, np.random.default_rng(3), amplitude=1.5, components=(0, 1))
-    c = simulate_attacks(net, 50, 3, np.random.default_rng(4), amplitude=1.5, components=(0, 1))
+    a = simulate_attacks(net, 50, 3, np.random.default_rng(3), signal=FDISignal(1.5, (0, 1)))
+    b = simulate_attacks(net, 50, 3, np.random.default_rng(3), signal=FDISignal(1.5, (0, 1)))
+    c = simulate_attacks(net, 50, 3, np.random.default_rng(4), signal=FDISignal(1.5, (0, 1)))
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(a.dos, c.dos)
     with pytest.raises(InputError, match="rng"):
-        simulate_attacks(net, 5, 3, 3, amplitude=1.0, components=(0,))
+        simulate_attacks(net, 5, 3, 3, signal=FDISignal(1.0, (0,)))
 
 
 # ----------------------------------------------------------------------------- 6. exchange
@@ -449,7 +446,7 @@ def _exchange_ref(x_pred, net, dos=None, fdi=None, xi=None):
 def test_exchange_matches_double_loop(robot):
     net = robot.network.with_attacks(0.3, 0.3)
     rng = np.random.default_rng(21)
-    att = simulate_attacks(net, 40, 3, np.random.default_rng(22), amplitude=1.5, components=(0, 1))
+    att = simulate_attacks(net, 40, 3, np.random.default_rng(22), signal=FDISignal(1.5, (0, 1)))
     seen_dos = seen_fdi = False
     for k in range(40):
         x_pred = rng.standard_normal((8, 3))
@@ -471,7 +468,7 @@ def test_exchange_matches_double_loop(robot):
 def test_exchange_uses_fdi_indicator(robot):
     net = robot.network.with_attacks(0.3, 0.3)
     rng = np.random.default_rng(31)
-    att = simulate_attacks(net, 1, 3, np.random.default_rng(32), amplitude=1.5, components=(0, 1))
+    att = simulate_attacks(net, 1, 3, np.random.default_rng(32), signal=FDISignal(1.5, (0, 1)))
     dos, fdi = att.dos[0], att.fdi[0]
     xi = rng.uniform(-1, 1, (8, 8, 3)) * net.adjacency[..., None]  # an attacker's signal on every channel
     x_pred = rng.standard_normal((8, 3))
@@ -491,7 +488,7 @@ def robot_run(robot):
     net = robot.network.with_attacks(0.3, 0.2)
     steps = 30
     traj = robot.simulate(np.random.default_rng(1), steps)
-    att = simulate_attacks(net, steps, 3, np.random.default_rng(2), amplitude=1.5, components=(0, 1))
+    att = simulate_attacks(net, steps, 3, np.random.default_rng(2), signal=FDISignal(1.5, (0, 1)))
     des = paper_design()
     res = run_consensus(robot.model, net, traj.z, des, inputs=traj.inputs, attacks=att)
     return net, traj, att, des, res
@@ -717,7 +714,7 @@ def chain_run():
     net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.2, fdi_prob=0.2)
     steps = 25
     traj = simulate(model, steps, np.random.default_rng(41))
-    att = simulate_attacks(net, steps, 2, np.random.default_rng(42), amplitude=0.1, components=(0,))
+    att = simulate_attacks(net, steps, 2, np.random.default_rng(42), signal=FDISignal(0.1, (0,)))
     des = ConsensusDesign(epsilon=0.25, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(2), V=0.01 * np.eye(2),
                           delta=0.1)
     res = run_consensus(model, net, traj.z, des, attacks=att)
@@ -840,7 +837,7 @@ def test_replayed_schedule_reproduces_estimates(robot):
     net = robot.network.with_attacks(0.3, 0.2)
     steps = 12
     traj = robot.simulate(np.random.default_rng(1), steps)
-    att = simulate_attacks(net, steps, 3, np.random.default_rng(2), amplitude=1.5, components=(0, 1))
+    att = simulate_attacks(net, steps, 3, np.random.default_rng(2), signal=FDISignal(1.5, (0, 1)))
     des = ConsensusDesign(epsilon=1 / 6, sigma=1e-3, beta=1e-3, tau=0.01, U=np.zeros((3, 3)), V=np.zeros((2, 2)),
                           delta=1.5 * np.sqrt(2))
     first = run_consensus(robot.model, net, traj.z, des, inputs=traj.inputs, attacks=att)

@@ -68,8 +68,10 @@ def test_feasible_design_on_a_small_linear_model_exits_0_and_reloads(tmp_path):
 
 def test_schedule_replay_reproduces_the_design_run(tmp_path):
     """Replaying the exported gains on the design's own run gives the same estimates."""
-    from filters.consensus import run_consensus, simulate_attacks
-    from studies.design import design
+    from designer.attacks import FDISignal
+    from filters.attacks import simulate_attacks
+    from filters.consensus import run_consensus
+    from studies.api import design
 
     res = design(LINEAR, sigma=0.01, beta=0.01, u_scale=0, v_scale=0, seed=5, out=tmp_path)
     sch = load_schedule(tmp_path)
@@ -78,7 +80,7 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
     traj = sc.simulate(np.random.default_rng(traj_ss), sch.steps)
     np.testing.assert_array_equal(traj.x, res.truth)
     att = simulate_attacks(sc.network, sch.steps, 2, np.random.default_rng(att_ss),
-                           amplitude=res.design.delta / np.sqrt(2), components=(0, 1))
+                           signal=FDISignal(res.design.delta / np.sqrt(2), (0, 1)))
     rep = run_consensus(sc.model, sc.network, traj.z, res.design, inputs=traj.inputs, attacks=att,
                         gains=(sch.K.swapaxes(0, 1), sch.C.swapaxes(0, 1)))
     np.testing.assert_allclose(rep.x_post, res.result.x_post, rtol=0, atol=1e-12)

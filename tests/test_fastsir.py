@@ -20,7 +20,7 @@ from designer.codegen import UnsupportedOperation
 from designer.jit import _atan2, compile_source, jit_model, scalar_source
 from designer.noise import GaussianMixture, TruncatedGaussian, spawn_generators
 from filters.binary import binary_loglik
-from filters.channels import binary_sensor_channel, deception_attack, round_robin_schedule
+from filters.attacks import binary_sensor_channel, deception_attack, round_robin_schedule
 from filters.fastsir import (
     RESAMPLER_CODES, _cumsum_to_one, _exp_nonpos, _inverse_cdf, _systematic, _wrap_angle, binary_affine_loglik,
     binary_coefficients, deception_terms, packets_loglik, sir_binary, sir_packets,

@@ -59,7 +59,7 @@ def test_linear_model_has_zero_scaling():
 
 
 def test_hessian_design_without_fdi_is_feasible_and_with_strong_fdi_reports_divergence():
-    from studies.design import design
+    from studies.api import design
 
     ok = design("indoor-robot", mode="tuned", linearization="hessian", fdi=0.0, seed=0)
     assert ok.result.feasible and ok.schedule.meta["linearization"] == "hessian"
@@ -106,7 +106,7 @@ def test_structured_remainders_factor_through_the_cover(seed):
 
 
 def test_structured_design_is_tighter_than_the_unstructured_one():
-    from studies.design import design
+    from studies.api import design
 
     full = design("indoor-robot", mode="tuned", linearization="hessian", fdi=0.0, seed=1)
     struct = design("indoor-robot", mode="tuned", linearization="structured", fdi=0.0, seed=1)

@@ -41,7 +41,7 @@ from particles import state_space_models as ssms  # noqa: E402
 from particles.collectors import Moments  # noqa: E402
 
 from designer import Gaussian, Model, Sensor, simulate  # noqa: E402
-from filters.channels import round_robin_schedule  # noqa: E402
+from filters.attacks import round_robin_schedule  # noqa: E402
 from filters.particle import run_sir  # noqa: E402
 from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles  # noqa: E402
 from studies.scenarios import load_scenario  # noqa: E402

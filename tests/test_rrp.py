@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from filters.channels import deception_attack, round_robin_schedule
+from filters.attacks import deception_attack, round_robin_schedule
 from filters.particle import run_sir
 from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles
 from studies.scenarios import load_scenario

@@ -11,7 +11,8 @@ import pytest
 
 import studies.consensus_robot as cr
 from designer import InputError
-from filters.consensus import run_consensus, simulate_attacks
+from filters.attacks import simulate_attacks
+from filters.consensus import run_consensus
 from studies.consensus_robot import run_consensus_robot
 from studies.design import consensus_design
 from studies.fdi_four_tank import run_fdi_four_tank
@@ -76,8 +77,7 @@ def test_consensus_robot_same_numbers_with_every_backend(tmp_path, cluster, few_
         traj = sc.simulate(np.random.default_rng(ts), sc.steps)
         design = consensus_design(sc)
         att = simulate_attacks(sc.network, sc.steps, sc.model.n_x, np.random.default_rng(ats),
-                               amplitude=design.delta / np.sqrt(len(sc.extras["attack_components"])),
-                               components=sc.extras["attack_components"])
+                               sc.resolved_attacks.signal)
         dv = run_consensus(sc.model, sc.network, traj.z, design, inputs=traj.inputs, attacks=att).diverged
         assert (dv["node"], dv["step"], dv["reason"]) == (d["node"], d["step"], d["error"])
     assert f["diverged_fraction"] == len(f["diverged_runs"]) / CR["runs"]

@@ -127,7 +127,7 @@ def test_without_linearisation_error_tuning_gives_the_ekf_choices():
 
 def test_tuned_design_of_the_robot_is_feasible_where_the_paper_is_not(tmp_path):
     from studies.cli import main
-    from studies.design import design
+    from studies.api import design
 
     res = design("indoor-robot", mode="tuned", seed=0)
     assert res.result.feasible and res.schedule.feasible
@@ -181,7 +181,7 @@ def test_structured_tuning_matches_direct_formulas(seed):
 def test_tuned_never_loses_along_the_steps_of_a_paper_run():
     """At every (node, step) of a paper-mode robot run where the paper's sigma, beta hold, tuned is no worse."""
     from designer.bounds import prediction_bound
-    from studies.design import design
+    from studies.api import design
 
     res = design("indoor-robot", mode="paper", seed=2)
     r, des = res.result, res.design

@@ -1,63 +1,112 @@
-"""Built-in scenarios and loading of user model files."""
+"""Built-in scenarios, user model files and in-memory models: everything a command can run on."""
 from __future__ import annotations
 
 import importlib.util
+import pickle
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
+import numpy as np
+
+from designer.attacks import AttackSpec
+from designer.design import DesignOptions
 from designer.model import Model
+from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from . import four_tank, indoor_robot, switching_2d, target_binary_energy, target_range_bearing
 from .base import Param, Scenario, ScenarioSpec, parse_assignments
 
-__all__ = ["SCENARIOS", "Param", "Scenario", "ScenarioSpec", "get_spec", "load_scenario", "parse_assignments"]
+__all__ = ["SCENARIOS", "Param", "Scenario", "ScenarioSpec", "get_spec", "load_scenario", "parse_assignments",
+           "scenario_of", "MODEL_FILE_NAMES", "ScenarioRef", "reference"]
 
 SCENARIOS: dict[str, ScenarioSpec] = {
     m.SPEC.name: m.SPEC
     for m in (target_range_bearing, switching_2d, target_binary_energy, indoor_robot, four_tank)
 }
 
+# What a model file may define (README, "Defining your own model").
+MODEL_FILE_NAMES = {
+    "model": "function model() -> designer.Model (required unless SPEC is given)",
+    "SPEC": "a studies.scenarios.ScenarioSpec with named parameters (--set NAME=VALUE), instead of model()",
+    "STEPS": "default horizon (an integer >= 1; default 50)",
+    "X0": "true initial state (default: drawn from the prior in every run)",
+    "inputs": "function inputs(steps) -> (steps, n_u) known inputs, for models with inputs",
+    "NETWORK": "a designer.SensorNetwork with one node per sensor (the consensus filter's graph)",
+    "ATTACKS": "a designer.AttackSpec: DoS/FDI per channel, the FDI signal and its bound, uplinks",
+    "DESIGN": "a designer.DesignOptions with the model's design defaults (e.g. u_scale, v_scale)",
+    "ASSUMPTIONS": "a list of strings carried into every result",
+}
 
-def _spec_from_file(path: Path) -> ScenarioSpec:
-    """A user model file defines ``SPEC`` (a ScenarioSpec) or ``model()`` returning a Model."""
+
+def _load_module(path: Path):
     if not path.is_file():
         raise InputError(f"model file {str(path)!r} does not exist")
     spec = importlib.util.spec_from_file_location(f"cfdesign_user_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
-    except InputError:
-        raise
+    except InputError as exc:
+        raise InputError(f"model file {str(path)!r}: {exc}") from exc
     except Exception as exc:  # a user's file: report, do not crash with a traceback
         raise InputError(f"model file {str(path)!r} failed to load: {type(exc).__name__}: {exc}") from exc
+    return module
+
+
+def _file_steps(path: Path, module) -> int:
+    steps = getattr(module, "STEPS", 50)
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise InputError(f"STEPS in model file {str(path)!r} must be an integer >= 1, got {steps!r}")
+    return int(steps)
+
+
+def _spec_from_file(path: Path) -> ScenarioSpec:
+    """A user model file defines ``SPEC`` (a ScenarioSpec) or ``model()`` returning a Model (see MODEL_FILE_NAMES)."""
+    module = _load_module(path)
     if isinstance(getattr(module, "SPEC", None), ScenarioSpec):
         return module.SPEC
     fn = getattr(module, "model", None)
     if not callable(fn):
         raise InputError(f"model file {str(path)!r} must define SPEC (a ScenarioSpec) or a function model()")
-    steps = int(getattr(module, "STEPS", 50))
+    steps = _file_steps(path, module)
+    network, attacks = getattr(module, "NETWORK", None), getattr(module, "ATTACKS", None)
+    if network is not None and attacks is not None and isinstance(network, SensorNetwork) and (
+            np.any(network.dos_prob) or np.any(network.fdi_prob)):
+        raise InputError(f"model file {str(path)!r} gives attack probabilities both on NETWORK and in ATTACKS; "
+                         "declare them in ATTACKS only")
 
     def builder(params: dict) -> Scenario:
-        m = fn()
+        try:
+            m = fn()
+        except InputError as exc:
+            raise InputError(f"model() in {str(path)!r}: {exc}") from exc
+        except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
+            raise InputError(f"model() in {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
         if not isinstance(m, Model):
-            raise InputError(f"model() in {str(path)!r} must return a designer.Model")
-        x0 = getattr(module, "X0", None)
-        inputs = getattr(module, "inputs", None)
-        return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
-                        x0=x0, network=getattr(module, "NETWORK", None), input_fn=inputs)
+            raise InputError(f"model() in {str(path)!r} must return a designer.Model, got {type(m).__name__}")
+        try:
+            return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
+                            x0=getattr(module, "X0", None), network=network, input_fn=getattr(module, "inputs", None),
+                            attacks=attacks, design=getattr(module, "DESIGN", None))
+        except InputError as exc:
+            raise InputError(f"model file {str(path)!r}: {exc}") from exc
 
     return ScenarioSpec(path.stem, path.stem, "user", (module.__doc__ or "").strip(), (), builder)
 
 
 def get_spec(name: str) -> ScenarioSpec:
     """The built-in scenario ``name`` or the scenario of a user model file (``*.py``)."""
+    if not isinstance(name, (str, Path)):
+        raise InputError(f"scenario must be a built-in name or a model file path, got {type(name).__name__}")
+    name = str(name)
     if name.endswith(".py"):
         return _spec_from_file(Path(name))
     try:
         return SCENARIOS[name]
     except KeyError:
-        raise InputError(f"unknown scenario {name!r}; built-in scenarios: {', '.join(SCENARIOS)}") from None
+        raise InputError(f"unknown scenario {name!r}; built-in scenarios: {', '.join(SCENARIOS)} "
+                         "(or a model file ending in .py)") from None
 
 
 def load_scenario(name: str, overrides: Mapping[str, Any] | None = None, assignments=()) -> Scenario:
@@ -65,4 +114,98 @@ def load_scenario(name: str, overrides: Mapping[str, Any] | None = None, assignm
     spec = get_spec(name)
     values = dict(overrides or {})
     values.update(parse_assignments(spec, assignments))
-    return spec.build(values)
+    sc = spec.build(values)
+    source = str(Path(name).resolve()) if str(name).endswith(".py") else str(name)
+    object.__setattr__(sc, "source", source)
+    return sc
+
+
+_MEMORY: dict[str, Scenario] = {}  # in-memory scenarios by token; forked workers inherit them
+_BUILT: dict[bytes, Scenario] = {}  # scenarios rebuilt from references in this process
+
+
+@dataclass(frozen=True)
+class ScenarioRef:
+    """A picklable reference to a scenario, for Monte Carlo tasks that run in other processes.
+
+    ``source`` is a built-in name, an absolute model file path, or ``memory:<token>`` for a
+    scenario built in memory (usable in this process and in forked ``--workers``, not on a
+    Dask cluster); ``params`` its parameters and ``attacks`` its attack specification
+    (with any overrides).
+    """
+
+    source: str
+    params: tuple
+    attacks: AttackSpec | None
+
+    @property
+    def in_memory(self) -> bool:
+        return self.source.startswith("memory:")
+
+    def build(self) -> Scenario:
+        """The scenario (built once per process and reference)."""
+        key = pickle.dumps(self)
+        sc = _BUILT.get(key)
+        if sc is None:
+            if self.in_memory:
+                if self.source not in _MEMORY:
+                    raise InputError("an in-memory scenario cannot be rebuilt in another process (e.g. on a Dask "
+                                     "cluster); write the model to a model file")
+                sc = _MEMORY[self.source]
+            else:
+                sc = load_scenario(self.source, dict(self.params))
+            if self.attacks is not None and sc.network is not None:
+                from dataclasses import replace
+
+                sc = replace(sc, attacks=self.attacks)
+            _BUILT[key] = sc
+        return sc
+
+
+def reference(sc: Scenario) -> ScenarioRef:
+    """A :class:`ScenarioRef` that rebuilds ``sc`` (registering it in memory when it has no source)."""
+    params = tuple(sorted((k, v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.params.items()))
+    if sc.source is None:
+        token = f"memory:{id(sc)}"
+        _MEMORY[token] = sc
+        return ScenarioRef(token, params, None)
+    return ScenarioRef(sc.source, params, sc.attacks)
+
+
+def scenario_of(target, *, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+                design: DesignOptions | None = None, steps: int | None = None, x0=None,
+                inputs: Callable[[int], np.ndarray] | None = None, overrides: Mapping[str, Any] | None = None,
+                assignments=()) -> Scenario:
+    """What every public function runs on: a built-in name, a model file path, a Scenario or a Model.
+
+    Parameters
+    ----------
+    target : str, path, Scenario or designer.Model
+        A built-in scenario name, a ``.py`` model file, a built :class:`Scenario`, or an
+        in-memory model (then ``network``, ``attacks``, ``design``, ``steps``, ``x0`` and
+        ``inputs`` play the part of the model file's ``NETWORK``, ``ATTACKS``, ``DESIGN``,
+        ``STEPS``, ``X0`` and ``inputs``; ``steps`` applies to a Model only, the commands take
+        their own ``steps``).
+    overrides, assignments
+        Named scenario parameters (built-ins and ``SPEC`` files).
+    """
+    if isinstance(target, Model):
+        if overrides or assignments:
+            raise InputError("an in-memory Model has no named parameters to override")
+        return Scenario(target.name, target, {}, (), 50 if steps is None else int(steps), x0=x0, network=network,
+                        input_fn=inputs, attacks=attacks, design=design)
+    given = {k: v for k, v in (("network", network), ("attacks", attacks), ("design", design), ("x0", x0),
+                               ("inputs", inputs)) if v is not None}
+    if isinstance(target, Scenario):
+        if overrides or assignments:
+            raise InputError("a built Scenario has no parameters to override; build it with them")
+        sc = target
+    else:
+        sc = load_scenario(target, overrides, assignments)
+    if given:
+        from dataclasses import replace
+
+        if "inputs" in given:
+            given["input_fn"] = given.pop("inputs")
+        sc = replace(sc, **given, source=None)  # no longer what its source builds: keep it in memory
+    return sc

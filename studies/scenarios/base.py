@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from designer.attacks import AttackSpec, ResolvedAttacks
+from designer.design import DesignOptions
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.simulate import Trajectory, simulate
@@ -167,7 +169,15 @@ class Scenario:
     x0 : ndarray or None
         True initial state of the paper's study; ``None`` samples it from the prior.
     network : SensorNetwork or None
-        Communication graph between the sensors (consensus scenarios).
+        Communication graph between the sensors (consensus scenarios), one node per sensor;
+        its per-channel probabilities are those of ``attacks``.
+    attacks : AttackSpec or None
+        What the channels and uplinks suffer (:mod:`designer.attacks`); without it, the
+        network's own probabilities with no FDI signal (an FDI probability > 0 then needs a
+        bound and is an error).
+    design : DesignOptions or None
+        The scenario's own design defaults (e.g. its scalings U, V); every option given to a
+        command overrides them.
     input_fn : callable or None
         ``input_fn(steps) -> (steps, n_u)`` known inputs.
     extras : dict
@@ -183,6 +193,51 @@ class Scenario:
     network: SensorNetwork | None = None
     input_fn: Callable[[int], np.ndarray] | None = None
     extras: Mapping[str, Any] = field(default_factory=dict)
+    attacks: AttackSpec | None = None
+    design: DesignOptions | None = None
+    source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
+
+    def __post_init__(self):
+        net = self.network
+        if net is None:
+            if self.attacks is not None:
+                raise InputError(f"scenario {self.name!r} declares attacks but no NETWORK")
+            object.__setattr__(self, "resolved_attacks", None)
+            return
+        if not isinstance(net, SensorNetwork):
+            raise InputError(f"NETWORK must be a designer.SensorNetwork, got {type(net).__name__}")
+        if net.n_nodes != self.model.n_sensors:
+            raise InputError(f"NETWORK has {net.n_nodes} nodes but the model has {self.model.n_sensors} sensors "
+                             "(one node per sensor, in the order of the model's sensors)")
+        spec = self.attacks
+        if spec is None:
+            spec = AttackSpec(dos=net.dos_prob, fdi=net.fdi_prob)
+        elif not isinstance(spec, AttackSpec):
+            raise InputError(f"ATTACKS must be a designer.AttackSpec, got {type(spec).__name__}")
+        resolved = spec.resolve(net, self.model.n_x)
+        object.__setattr__(self, "attacks", spec)
+        object.__setattr__(self, "network", resolved.network)
+        object.__setattr__(self, "resolved_attacks", resolved)
+        if self.design is not None and not isinstance(self.design, DesignOptions):
+            raise InputError(f"DESIGN must be a designer.DesignOptions, got {type(self.design).__name__}")
+
+    resolved_attacks: ResolvedAttacks | None = field(init=False, default=None, repr=False)
+
+    def with_attacks(self, *, dos=None, fdi=None, delta=None, amplitude=None) -> "Scenario":
+        """The scenario with its attack specification overridden (see :meth:`AttackSpec.override`)."""
+        if self.network is None:
+            raise InputError(f"scenario {self.name!r} has no sensor network; dos, fdi, delta and amplitude apply "
+                             "to network channels")
+        if dos is None and fdi is None and delta is None and amplitude is None:
+            return self
+        return replace(self, attacks=self.attacks.override(dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))
+
+    @property
+    def operating_point(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(x0, u0)``: the true initial state (or the prior mean) and the first input."""
+        u = self.inputs(1)
+        return (self.model.prior.mean if self.x0 is None else np.asarray(self.x0, dtype=float),
+                None if u is None else u[0])
 
     def inputs(self, steps: int) -> np.ndarray | None:
         return None if self.input_fn is None else np.asarray(self.input_fn(steps), dtype=float)

@@ -8,6 +8,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from designer.attacks import AttackSpec, FDISignal
+from designer.design import DesignOptions
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian
@@ -61,7 +63,11 @@ def build(p: dict) -> Scenario:
         raise InputError(f"parameter edges must hold integer node indices in [0, {n - 1}]")
     if p["dos_prob"] + p["fdi_prob"] > 1.0:
         raise InputError("parameters dos_prob + fdi_prob must be <= 1 (DoS and FDI never occur together)")
-    network = SensorNetwork.from_edges(n, edges.astype(int).tolist(), dos_prob=p["dos_prob"], fdi_prob=p["fdi_prob"])
+    network = SensorNetwork.from_edges(n, edges.astype(int).tolist())
+    # The paper's xi = [1.5 1.5]^T sin(s) is 2-D while the pose is 3-D: it is injected on the position
+    # components (x, y) and not on the heading, which keeps the printed bound delta = 1.5 sqrt(2) = 2.12.
+    attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"],
+                         signal=FDISignal(p["attack_amplitude"], components=(0, 1), law="sine"))
 
     x = ca.SX.sym("x", 3)
     u = ca.SX.sym("u", 2)  # wheel displacements [s^R, s^L]
@@ -117,6 +123,8 @@ def build(p: dict) -> Scenario:
         "indoor-robot: the paper's injected signal xi = [1.5 1.5]^T sin(s) is 2-D while the pose is 3-D; it is "
         "injected on the position components only (heading untouched), one s ~ N(0, 1) per channel and step, which "
         "keeps the printed bound delta = 1.5 sqrt(2) = 2.12.",
+        "indoor-robot: the paper gives no scaling matrices U, V; this scenario's design defaults are U = 0.01 I "
+        "and V_i = 0.1 I (override with --u-scale / --v-scale).",
     )
     return Scenario(
         "indoor-robot",
@@ -127,9 +135,8 @@ def build(p: dict) -> Scenario:
         x0=x0,
         network=network,
         input_fn=inputs,
-        # The paper's xi = [1.5 1.5]^T sin(s) is 2-D while the pose is 3-D: it is injected on the position
-        # components (x, y) and not on the heading, which keeps the printed bound delta = 1.5 sqrt(2) = 2.12.
-        extras={"attack_amplitude": p["attack_amplitude"], "attack_components": (0, 1)},
+        attacks=attacks,
+        design=DesignOptions(u_scale=0.01, v_scale=0.1),
     )
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from designer.attacks import AttackSpec, FDISignal
+from designer.design import DesignOptions
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian, UniformBox
@@ -61,14 +63,16 @@ def build(p: dict) -> Scenario:
     if p["dos_prob"] + p["fdi_prob"] > 1.0:
         raise InputError("parameters dos_prob + fdi_prob must be <= 1 (DoS and FDI never occur together)")
     network = SensorNetwork.from_edges(pos.shape[0], edges.astype(int).reshape(-1, 2).tolist(),
-                                       dos_prob=p["dos_prob"], fdi_prob=p["fdi_prob"], require_connected=False)
+                                       require_connected=False)
+    attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"], uplink_dos=p["dos_prob"], uplink_fdi=p["fdi_prob"],
+                         signal=FDISignal(p["attack_amplitude"], components=(0, 2), law="sine"))
     x = ca.SX.sym("x", 4)
     noise = glint(p["glint_prob"], np.diag(p["glint_cov1"]), np.diag(p["glint_cov2"]))
     sensors = []
     for i, (sx, sy) in enumerate(pos):
         dx, dy = x[0] - sx, x[2] - sy
         h = ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx))
-        sensors.append(Sensor(f"s{i + 1}", h, noise, (float(sx), float(sy))))
+        sensors.append(Sensor(f"s{i + 1}", h, noise, (float(sx), float(sy)), angles=(1,)))
     x0 = np.asarray(p["x0"], dtype=float)
     model = Model(
         "target-range-bearing",
@@ -97,7 +101,8 @@ def build(p: dict) -> Scenario:
         f"target-range-bearing (comparison study only): the sensors form a consensus network with links "
         f"{edges.astype(int).tolist()} (a ring; the paper has no network), DoS {p['dos_prob']} and FDI "
         f"{p['fdi_prob']} on every channel, injected signal xi = {p['attack_amplitude']} sin(s) m on px and py "
-        "(comparable to the glint range noise, 2-5 m).",
+        "(comparable to the glint range noise, 2-5 m); the consensus designs' scalings are U = 0.01 I and "
+        "V_i = 0.1 I, as on the indoor robot.",
     )
     return Scenario(
         "target-range-bearing",
@@ -107,13 +112,13 @@ def build(p: dict) -> Scenario:
         steps=p["steps"],
         x0=x0,
         network=network,
+        attacks=attacks,
+        design=DesignOptions(u_scale=0.01, v_scale=0.1),
         extras={
-            "attack_amplitude": p["attack_amplitude"],
-            "attack_components": (0, 2),
             "deception_prob": p["deception_prob"],
             "deception": UniformBox(lower, upper),
             "rr_start": p["rr_start"],
-            "angle_components": [(i, 1) for i in range(len(sensors))],
+            "angle_components": model.angle_components,
         },
     )
 

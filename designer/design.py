@@ -1,0 +1,380 @@
+"""The consensus design's parameters, their validation, and the option set every design command shares.
+
+:class:`ConsensusDesign` is what the consensus filter runs with (ε, σ, β, τ, the
+linearisation scalings ``U`` and ``V_i``, the FDI bound δ, the mode and the
+linearisation rule).  :class:`DesignOptions` is what a user gives (``cfdesign design``
+and ``cfdesign feasibility`` take the same options; a model file may declare its own
+defaults as ``DESIGN = DesignOptions(...)``), and :func:`make_design` turns the options
+into a design for a model, its network and its attack bound.
+
+**Scalings U and V_i.**  The paper writes the Taylor remainders of ``f`` and of each
+``h_i`` as ``U Ω e`` and ``V_i Θ e`` with ``Ω Ωᵀ <= I``, ``Θ Θᵀ <= I`` and gives no values.
+``u_scale`` / ``v_scale`` take
+
+* a number ``c``: ``c I``;
+* a list of numbers: the diagonal (``U``: one per state component; ``V_i``: one per
+  measurement component of the sensor);
+* a square matrix;
+* ``'prior'`` (the default of a model that declares none): derived once from the model's
+  CasADi Hessians over the ``radius``-sigma ellipsoid of the prior around the operating
+  point, per component, in the component's own unit (:func:`designer.linearization.component_scales`),
+  so that metres, radians and pixels each get a scale of their own;
+* for ``v_scale`` only: one entry per sensor (a list of the above, in sensor order) or a
+  mapping from sensor name to an entry (key ``'*'``: every sensor not named; without it
+  they keep the default).  A list of plain numbers is a diagonal when it has as many
+  entries as every sensor has components, else one number per sensor.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Any, Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+from .linearization import DEFAULT_RADIUS, component_scales
+from .model import Model
+from .network import SensorNetwork
+from .validation import InputError, check_finite
+
+__all__ = [
+    "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
+    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale",
+]
+
+MODES = ("paper", "tuned")
+LINEARIZATIONS = ("fixed", "hessian", "structured")
+
+# The published choices of seed 003 and, marked, the values it leaves out.
+PAPER_DEFAULTS = {
+    "sigma": 0.1,
+    "beta": 0.1,
+    "tau": 0.01,
+    "epsilon_fraction": 0.5,  # assumption: epsilon = 0.5 / d_max (not given)
+}
+DESIGN_ASSUMPTIONS = (
+    "consensus design: the paper gives no scaling matrices U, V_i; a model without declared scalings gets them from "
+    "its CasADi Hessians over the 3-sigma ellipsoid of the prior around the operating point, per component "
+    "(--u-scale / --v-scale prior; override with a number, a diagonal or a matrix).",
+    "consensus design: the paper gives no epsilon; default epsilon = 0.5 / d_max, the middle of (0, 1/d_max).",
+    "consensus design: Phi_0|0 is the prior covariance and every node starts at the prior mean.",
+    "consensus design: neighbours' Phi_{j,k+1|k} used in (27) are exchanged with the predictions and are not "
+    "attacked (the attack model of the paper concerns the estimate packets).",
+)
+
+
+class ConsensusDesign(NamedTuple):
+    """Design parameters of the consensus filter.
+
+    ``U`` (n_x x n_x) and ``V`` (one ``n_z_i x n_z_i`` matrix per sensor, or one matrix
+    for every sensor when they have the same dimension) scale the linearisation
+    remainders ``U Ω e`` and ``V_i Θ e``; ``C_i = tau Φ_{i,k+1|k}`` (the paper's choice).
+    ``delta`` bounds the injected signal, ``||xi|| <= delta``.  In ``'tuned'`` mode,
+    ``sigma``, ``beta`` and ``tau`` are not used: σ, β, C and K come from the convex
+    tuning layer (:mod:`designer.tuning`) at every node and step, with (28)-(29)
+    kept at the relative margin ``designer.tuning.MARGIN``.  With
+    ``linearization='hessian'``, ``U`` and ``V_i`` are replaced at every node and step by
+    ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
+    Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.
+    """
+
+    epsilon: float
+    sigma: float
+    beta: float
+    tau: float
+    U: np.ndarray
+    V: Any  # tuple of (n_z_i, n_z_i) arrays, one per sensor (a single matrix is broadcast by validate_design)
+    delta: float
+    mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
+    linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step;
+    # 'structured': as 'hessian' but with the remainder written U Ω D e, D selecting the variables the model is
+    # nonlinear in (the tighter variant: the multipliers act only along those directions)
+    radius: float = DEFAULT_RADIUS  # 'hessian': the bound holds for errors within `radius` standard deviations of Φ
+
+
+def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
+    """Check ranges and shapes; raise :class:`InputError` naming the parameter.
+
+    Returns the design with ``V`` as a tuple of one matrix per sensor.
+    """
+    d_max = network.d_max
+    eps = float(design.epsilon)
+    upper = np.inf if d_max == 0 else 1.0 / d_max
+    if not (0.0 < eps < upper):
+        raise InputError(f"epsilon must lie in (0, 1/d_max) = (0, {upper:.6g}), got {eps!r}")
+    for name in ("sigma", "beta", "tau", "delta"):
+        v = getattr(design, name)
+        if not np.isfinite(v) or v < 0:
+            raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if design.linearization not in LINEARIZATIONS:
+        raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
+    if not np.isfinite(design.radius) or design.radius <= 0:
+        raise InputError(f"radius must be > 0, got {design.radius!r}")
+    if design.mode not in MODES:
+        raise InputError(f"mode must be 'paper' or 'tuned', got {design.mode!r}")
+    if network.n_nodes != model.n_sensors:
+        raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
+                         "(one node per sensor)")
+    for name, p in (("dos probability", network.dos_prob), ("fdi probability", network.fdi_prob)):
+        if np.any(p >= 1.0):
+            raise InputError(f"{name} must lie in [0, 1) on every channel")
+    U = check_finite("U", design.U)
+    if U.shape != (model.n_x, model.n_x):
+        raise InputError(f"U must have shape ({model.n_x}, {model.n_x}), got {U.shape}")
+    V = design.V
+    if isinstance(V, np.ndarray) or (not isinstance(V, (tuple, list))):
+        V = check_finite("V", V)
+        dims = set(model.sensor_dims)
+        if len(dims) != 1:
+            raise InputError("V must give one matrix per sensor when the sensors differ in dimension "
+                             f"({list(model.sensor_dims)})")
+        V = (V,) * model.n_sensors
+    if len(V) != model.n_sensors:
+        raise InputError(f"V must give one matrix per sensor ({model.n_sensors}), got {len(V)}")
+    Vs = []
+    for i, (Vi, s) in enumerate(zip(V, model.sensors)):
+        Vi = check_finite(f"V[{i}]", Vi)
+        if Vi.shape != (s.dim, s.dim):
+            raise InputError(f"V of sensor {s.name!r} must have shape ({s.dim}, {s.dim}), got {Vi.shape}")
+        Vs.append(Vi)
+    if design.sigma == 0 and np.any(U) and design.mode == "paper":
+        raise InputError("sigma must be > 0 when U is nonzero")
+    if design.beta == 0 and any(np.any(v) for v in Vs) and design.mode == "paper":
+        raise InputError("beta must be > 0 when V is nonzero")
+    return design._replace(epsilon=eps, U=U, V=tuple(Vs))
+
+
+# ------------------------------------------------------------------------------------------- scalings
+def parse_scale(name: str, text: str):
+    """A command-line scale: ``prior``, a number, a comma list (diagonal) or a JSON matrix."""
+    import json
+
+    t = text.strip()
+    if t == "prior":
+        return "prior"
+    try:
+        value = json.loads(t) if t.startswith("[") else [float(v) for v in t.split(",")]
+    except (ValueError, json.JSONDecodeError):
+        raise InputError(f"--{name} must be 'prior', a number, a comma-separated diagonal or a JSON matrix, "
+                         f"got {text!r}") from None
+    arr = check_finite(f"--{name}", value)
+    if np.any(arr < 0) and arr.ndim == 1:
+        raise InputError(f"--{name} must be >= 0 (a scale), got {text!r}")
+    return float(arr[0]) if arr.ndim == 1 and arr.size == 1 else arr.tolist()
+
+
+def _one_scale(name: str, value, dim: int, prior_diag: np.ndarray) -> np.ndarray:
+    if isinstance(value, str):
+        if value != "prior":
+            raise InputError(f"{name} must be 'prior', a number, a diagonal or a matrix, got {value!r}")
+        return np.diag(prior_diag)
+    arr = check_finite(name, value)
+    if arr.ndim == 0:
+        if arr < 0:
+            raise InputError(f"{name} must be >= 0, got {float(arr)!r}")
+        return float(arr) * np.eye(dim)
+    if arr.ndim == 1:
+        if arr.shape != (dim,) or np.any(arr < 0):
+            raise InputError(f"{name} as a diagonal must have {dim} entries >= 0, got {arr.tolist()}")
+        return np.diag(arr)
+    if arr.shape != (dim, dim):
+        raise InputError(f"{name} as a matrix must be {dim} x {dim}, got shape {arr.shape}")
+    return arr
+
+
+def _is_per_sensor(value, model: Model) -> bool:
+    """A list with one entry per sensor (not a diagonal or a matrix)."""
+    if isinstance(value, (str, Mapping)) or not isinstance(value, (list, tuple)) or len(value) != model.n_sensors:
+        return False
+    if any(isinstance(v, (str, list, tuple, np.ndarray)) for v in value):
+        return True
+    # plain numbers: a diagonal when every sensor has that many components, else one number per sensor
+    return set(model.sensor_dims) != {len(value)}
+
+
+def resolve_scaling(model: Model, u_scale, v_scale, *, x0, P0, u0=None, radius: float = DEFAULT_RADIUS
+                    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """``U`` (n_x, n_x) and one ``V_i`` per sensor from the option values (see the module docstring)."""
+    prior_u = prior_v = None
+
+    def hessians():
+        nonlocal prior_u, prior_v
+        if prior_u is None:
+            x0a, P = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
+            if model.n_modes:
+                fh = lambda pts: np.concatenate([model.f_hessian(pts, 0, u0, m) for m in range(model.n_modes)],  # noqa
+                                                axis=1)
+            else:
+                fh = lambda pts: model.f_hessian(pts, 0, u0)  # noqa: E731
+            comps = component_scales(fh, x0a, P, radius)
+            prior_u = comps[: model.n_x] if not model.n_modes else comps.reshape(model.n_modes, model.n_x).max(0)
+            prior_v = [component_scales(lambda pts, i=i: model.h_hessian(i, pts, 1), x0a, P, radius)
+                       for i in range(model.n_sensors)]
+        return prior_u, prior_v
+
+    u_val = "prior" if u_scale is None else u_scale
+    U = _one_scale("u_scale", u_val, model.n_x, hessians()[0] if u_val == "prior" else np.zeros(model.n_x))
+    v_val = "prior" if v_scale is None else v_scale
+    names = [s.name for s in model.sensors]
+    if isinstance(v_val, Mapping):
+        unknown = [k for k in v_val if k not in names and k != "*"]
+        if unknown:
+            raise InputError(f"v_scale names unknown sensors {unknown}; sensors: {', '.join(names)}")
+        rest = v_val.get("*", "prior")
+        if isinstance(rest, Mapping):
+            raise InputError("v_scale '*' (the other sensors) must be one scale, not a mapping")
+        entries = [v_val.get(n, rest) for n in names]
+    elif _is_per_sensor(v_val, model):
+        entries = list(v_val)
+    else:
+        entries = [v_val] * model.n_sensors
+    Vs = []
+    for i, (s, e) in enumerate(zip(model.sensors, entries)):
+        diag = hessians()[1][i] if isinstance(e, str) else np.zeros(s.dim)
+        Vs.append(_one_scale(f"v_scale of sensor {s.name!r}", e, s.dim, diag))
+    return U, tuple(Vs)
+
+
+# ------------------------------------------------------------------------------------------- options
+@dataclass(frozen=True)
+class DesignOptions:
+    """The options of ``cfdesign design`` and ``cfdesign feasibility`` (``None``: the default).
+
+    Parameters
+    ----------
+    mode : {'paper', 'tuned'}
+        ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer.
+    epsilon : float in (0, 1/d_max)
+    sigma, beta : float >= 0
+        The multipliers of (26)-(27) in paper mode (the tuning layer chooses them otherwise).
+    tau : float >= 0
+        ``C = tau Φ_pred`` in paper mode.
+    u_scale, v_scale
+        The scalings ``U`` and ``V_i`` (see the module docstring).
+    linearization : {'fixed', 'hessian', 'structured'}
+        ``fixed``: the given scalings; ``hessian``: ``u I``, ``v I`` from the Hessians per node and
+        step over the ``radius``-sigma ellipsoid of Φ; ``structured``: the same restricted to the
+        variables the model is nonlinear in.
+    radius : float > 0
+        Standard deviations covered by the Hessian-derived scalings.
+    dos, fdi : float in [0, 1)
+        Override the attack specification's probability on every channel and uplink.
+    delta : float >= 0
+        Override the FDI bound (and scale the simulated signal to it).
+    amplitude : float >= 0
+        Override the injected signal's amplitude per attacked component (its bound follows).
+    """
+
+    mode: str | None = None
+    epsilon: float | None = None
+    sigma: float | None = None
+    beta: float | None = None
+    tau: float | None = None
+    u_scale: Any = None
+    v_scale: Any = None
+    linearization: str | None = None
+    radius: float | None = None
+    dos: float | None = None
+    fdi: float | None = None
+    delta: float | None = None
+    amplitude: float | None = None
+
+    ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
+
+    def __post_init__(self):
+        if self.mode is not None and self.mode not in MODES:
+            raise InputError(f"mode must be 'paper' or 'tuned', got {self.mode!r}")
+        if self.linearization is not None and self.linearization not in LINEARIZATIONS:
+            raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
+        for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+                raise InputError(f"{name} must be a finite number, got {v!r}")
+            if v < 0:
+                raise InputError(f"{name} must be >= 0, got {v!r}")
+        if self.radius is not None and self.radius <= 0:
+            raise InputError(f"radius must be > 0, got {self.radius!r}")
+        for name in ("dos", "fdi"):
+            v = getattr(self, name)
+            if v is not None and v >= 1:
+                raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
+        if self.mode == "tuned":
+            for name in ("sigma", "beta", "tau"):
+                if getattr(self, name) is not None:
+                    raise InputError(f"{name} is chosen by the tuning layer in mode 'tuned'; do not give --{name}")
+
+    def merged(self, over: "DesignOptions | None") -> "DesignOptions":
+        """These options with every value that ``over`` sets replacing this one's."""
+        if over is None:
+            return self
+        given = {f.name: getattr(over, f.name) for f in fields(over) if getattr(over, f.name) is not None}
+        if isinstance(given.get("v_scale"), Mapping) and self.v_scale is not None and "*" not in given["v_scale"]:
+            # per-sensor values given on top of a default: the sensors not named keep the default
+            rest = self.v_scale.get("*", "prior") if isinstance(self.v_scale, Mapping) else self.v_scale
+            given["v_scale"] = {**(self.v_scale if isinstance(self.v_scale, Mapping) else {}), "*": rest,
+                                **given["v_scale"]}
+        if given.get("mode") == "tuned" and self.mode != "tuned":
+            # the defaults' paper-mode multipliers do not carry over to a tuned design
+            base = replace(self, sigma=None, beta=None, tau=None)
+        else:
+            base = self
+        return replace(base, **given)
+
+    def attack_overrides(self) -> dict:
+        return {k: getattr(self, k) for k in self.ATTACK_FIELDS}
+
+    def as_dict(self) -> dict:
+        """JSON-ready values (arrays as lists)."""
+        def plain(v):
+            if isinstance(v, np.ndarray):
+                return v.tolist()
+            if isinstance(v, Mapping):
+                return {k: plain(x) for k, x in v.items()}
+            if isinstance(v, (list, tuple)):
+                return [plain(x) for x in v]
+            return v
+
+        return {f.name: plain(getattr(self, f.name)) for f in fields(self)}
+
+
+def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
+                u0=None) -> ConsensusDesign:
+    """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
+
+    ``delta`` is the FDI bound of the resolved attack specification; ``x0`` (and ``u0``)
+    the operating point of the ``'prior'`` scalings, ``P0`` the prior covariance there.
+    """
+    from .tuning import tuned_epsilon
+
+    mode = options.mode or "paper"
+    d_max = max(network.d_max, 1)
+    epsilon = options.epsilon
+    if epsilon is None:
+        epsilon = tuned_epsilon(d_max) if mode == "tuned" else PAPER_DEFAULTS["epsilon_fraction"] / d_max
+    radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
+    U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0,
+                           P0=model.prior.cov if P0 is None else P0, u0=u0, radius=radius)
+    des = ConsensusDesign(
+        epsilon=float(epsilon),
+        sigma=PAPER_DEFAULTS["sigma"] if options.sigma is None else float(options.sigma),
+        beta=PAPER_DEFAULTS["beta"] if options.beta is None else float(options.beta),
+        tau=PAPER_DEFAULTS["tau"] if options.tau is None else float(options.tau),
+        U=U,
+        V=V,
+        delta=float(delta),
+        mode=mode,
+        linearization=options.linearization or "fixed",
+        radius=radius,
+    )
+    return validate_design(des, model, network)
+
+
+def describe_design(des: ConsensusDesign) -> dict:
+    """JSON-ready parameters of a design."""
+    return {"mode": des.mode, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
+            "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "U": np.asarray(des.U).tolist(),
+            "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}
+
+
+__all__.append("describe_design")

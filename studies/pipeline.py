@@ -1,0 +1,341 @@
+"""One study pipeline: every study is a configuration of it.
+
+A study is a :class:`Study` in its own module (``studies/<name>.py`` defines ``STUDY``),
+registered by name in :data:`STUDIES`.  The configuration says what the study is about
+(:class:`StudyText`, the report's words), which scenarios it runs on by default and
+which it accepts, its default sizes and its own options, and four functions:
+
+* ``plan(scenario, options) -> Plan`` — the Monte Carlo task of one scenario (a
+  picklable callable of a chunk of runs), its configuration for the chunk store and
+  anything to do in the parent first (compiling kernels that forked workers inherit);
+* ``summarise(scenario, mc, options) -> dict`` — the scenario's results (filters,
+  sweeps, the paper's numbers, ...) from the runner's per-run arrays;
+* ``table(results) -> str`` — ``table.md``;
+* ``figures(out, results, scenarios, arrays)`` — the PNG figures.
+
+:func:`run_study` does the rest the same way for every study: it checks the options
+(an option a study does not take is an error, not silently ignored), builds the
+scenarios (built-in names, model files, in-memory models), refuses a scenario the study
+cannot run on with the reason, runs each scenario's task through :mod:`studies.runner`
+(in this process, local processes or Dask; resumable from ``out``), stamps the results
+header (``cfdesign.study/1``) and returns a :class:`StudyResult` whose ``save`` writes
+``results.json``, ``table.md``, the figures and the reports.  A new study is one module
+with a ``STUDY`` and one line in :data:`STUDIES`.
+"""
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from designer.design import DesignOptions
+from designer.validation import InputError, check_int
+
+from .runner import Backend, MonteCarloResult, monte_carlo
+
+__all__ = ["StudyText", "Plan", "Study", "StudyOptions", "StudyResult", "STUDIES", "get_study", "run_study",
+           "study_text"]
+
+# study name -> the module that defines its STUDY (imported on first use)
+STUDIES: dict[str, str] = {
+    "rrp-deception": "studies.rrp_deception",
+    "encrypted-switching": "studies.encrypted_switching",
+    "binary-multi-attack": "studies.binary_multi_attack",
+    "consensus-robot": "studies.consensus_robot",
+    "fdi-four-tank": "studies.fdi_four_tank",
+    "comparison": "studies.comparison",
+}
+
+
+@dataclass(frozen=True)
+class StudyText:
+    """The plain-language description of one study, for its report.
+
+    Parameters
+    ----------
+    title : str
+        One line: what is estimated, under what.
+    summary : str
+        What the study compares and the question it answers (Markdown text).
+    filters : mapping of str to str
+        A one-line description of each filter the study runs.
+    attacks : str
+        The attacks (or channel faults) the filters face.
+    attack_params : tuple of str
+        Scenario parameters that set the attacks (shown with their values).
+    accuracy : tuple of (metric, label)
+        Accuracy metrics of ``results["filters"]`` in order of importance (lower is better).
+    references : tuple of str
+        Filters that are benchmarks, not options (e.g. they see attack-free data): shown
+        everywhere but left out of "which filter to pick".
+    figures : mapping of str to str
+        Caption of each figure file.
+    paper : str
+        The source paper.
+    """
+
+    title: str
+    summary: str
+    filters: Mapping[str, str] = field(default_factory=dict)
+    attacks: str = ""
+    attack_params: tuple[str, ...] = ()
+    accuracy: tuple[tuple[str, str], ...] = ()
+    references: tuple[str, ...] = ()
+    figures: Mapping[str, str] = field(default_factory=dict)
+    paper: str = ""
+
+
+@dataclass(frozen=True)
+class StudyOptions:
+    """The checked options of one study run, as ``plan`` and ``summarise`` see them.
+
+    ``extra`` holds the study's own options (its :attr:`Study.options` with the given
+    values); ``design`` the design options of the consensus designs (studies that use them).
+    """
+
+    runs: int
+    particles: int | None
+    seed: int
+    chunk_size: int
+    backend: Backend
+    design: DesignOptions
+    extra: Mapping[str, Any]
+
+    def __getitem__(self, name: str):
+        return self.extra[name]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One scenario's Monte Carlo work: the task, its store label and configuration."""
+
+    task: Callable
+    label: str
+    config: Mapping[str, Any]
+    runs: int | None = None  # default: the study's runs
+    before: Callable[[], None] | None = None  # run in the parent first (not for Dask)
+
+
+@dataclass(frozen=True)
+class Study:
+    """A study as a configuration of the pipeline (see the module docstring).
+
+    Parameters
+    ----------
+    name, text
+        The study's name and its report texts.
+    scenarios : tuple of str
+        The scenarios it runs on when none is given.
+    runs : int or mapping
+        Default Monte Carlo runs (a mapping: per default scenario, with key ``None`` for others).
+    particles : int or None
+        Default particles of its particle filters (None: it has none; ``particles`` is an error).
+    chunk_size : int
+        Runs per stored chunk (part of the study: never derived from the backend).
+    options : mapping
+        The study's own options and their defaults (e.g. ``engine``, ``schedule``).
+    uses_design : bool
+        It takes the design options (``mode``, ``dos``, ``fdi``, ``delta``, ``amplitude``).
+    many_scenarios : bool
+        It runs on several scenarios at once (its ``combine`` merges their blocks).
+    accepts : callable ``(scenario) -> str | None``
+        Why a scenario cannot be studied (None: it can).
+    combine : callable ``(blocks) -> dict``, optional
+        Merge the per-scenario blocks (default: the single block).
+    check : callable ``(options) -> None``, optional
+        Further checks of the study's own options, before any computation.
+    min_runs : int
+        Fewest runs the study's statistics need.
+    """
+
+    name: str
+    text: StudyText
+    scenarios: tuple[str, ...]
+    runs: int | Mapping[str | None, int]
+    particles: int | None
+    chunk_size: int
+    plan: Callable[[Any, StudyOptions], Plan]
+    summarise: Callable[[Any, MonteCarloResult, StudyOptions], dict]
+    table: Callable[[dict], str]
+    figures: Callable[[Path, dict, Mapping[str, Any], Mapping[str, Mapping[str, np.ndarray]]], None]
+    options: Mapping[str, Any] = field(default_factory=dict)
+    uses_design: bool = False
+    many_scenarios: bool = False
+    accepts: Callable[[Any], str | None] = lambda sc: None
+    combine: Callable[[dict], dict] | None = None
+    check: Callable[[StudyOptions], None] | None = None
+    min_runs: int = 2
+
+    def default_runs(self, scenario: str) -> int:
+        if isinstance(self.runs, Mapping):
+            return int(self.runs.get(scenario, self.runs.get(None, next(iter(self.runs.values())))))
+        return int(self.runs)
+
+
+def get_study(name: str) -> Study:
+    """The configuration of study ``name``."""
+    if name not in STUDIES:
+        raise InputError(f"unknown study {name!r}; studies: {', '.join(STUDIES)}")
+    return importlib.import_module(STUDIES[name]).STUDY
+
+
+def study_text(name) -> StudyText | None:
+    """The report texts of study ``name`` (None for an unknown name)."""
+    if not isinstance(name, str) or name not in STUDIES:
+        return None
+    mod = importlib.import_module(STUDIES[name])
+    study = getattr(mod, "STUDY", None)
+    return study.text if study is not None else getattr(mod, "TEXT", None)
+
+
+@dataclass(frozen=True, eq=False)
+class StudyResult:
+    """What a study computed (what ``cfdesign study`` writes).
+
+    Attributes
+    ----------
+    study : Study
+    results : dict
+        The content of ``results.json`` (schema ``cfdesign.study/1``).
+    scenarios : dict
+        Scenario name -> the Scenario it ran on.
+    arrays : dict
+        Scenario name -> the runner's per-run arrays (first axis: the run).
+    """
+
+    study: Study
+    results: dict
+    scenarios: Mapping[str, Any]
+    arrays: Mapping[str, Mapping[str, np.ndarray]]
+
+    @property
+    def filters(self) -> dict:
+        return self.results["filters"]
+
+    def __getitem__(self, key):
+        return self.results[key]
+
+    def save(self, directory) -> Path:
+        """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``."""
+        from .results import write_outputs
+
+        out = Path(directory)
+        write_outputs(out, self.results, lambda d: self.study.figures(d, self.results, self.scenarios, self.arrays),
+                      self.study.table)
+        return out
+
+
+def _route(names: Sequence[str], specs: Mapping[str, Any], assignments) -> dict[str, list[str]]:
+    """Each ``NAME=VALUE`` to every scenario that has the parameter NAME; unknown names are an error."""
+    have = {sc: {p.name for p in specs[sc].params} for sc in names}
+    out: dict[str, list[str]] = {sc: [] for sc in names}
+    for a in assignments or ():
+        name = str(a).split("=", 1)[0].strip()
+        hit = [sc for sc in names if name in have[sc]]
+        if not hit:
+            raise InputError(f"--set {name}: no parameter of that name in the scenarios ({', '.join(names)}); "
+                             "see 'cfdesign scenarios'")
+        for sc in hit:
+            out[sc].append(a)
+    return out
+
+
+def _scenarios(study: Study, targets, overrides, assignments) -> list:
+    """Build the scenarios to run on: names and model files (with overrides), or built scenarios."""
+    from .scenarios import Scenario, get_spec, load_scenario
+
+    targets = list(study.scenarios) if targets is None else list(targets)
+    if not targets:
+        raise InputError(f"study {study.name!r} needs at least one scenario")
+    if len(targets) > 1 and not study.many_scenarios:
+        raise InputError(f"study {study.name!r} runs on one scenario at a time, got {len(targets)}")
+    names = [t for t in targets if not isinstance(t, Scenario)]
+    specs = {str(t): get_spec(t) for t in names}
+    routed = _route([str(t) for t in names], specs, assignments) if len(targets) > 1 else \
+        {str(t): list(assignments or ()) for t in names}
+    built = []
+    for t in targets:
+        if isinstance(t, Scenario):
+            built.append(t)
+            continue
+        known = {p.name for p in specs[str(t)].params}
+        ov = {k: v for k, v in (overrides or {}).items() if k in known or len(targets) == 1}
+        built.append(load_scenario(t, ov, routed[str(t)]))
+    seen = [sc.name for sc in built]
+    if len(set(seen)) != len(seen):
+        raise InputError(f"the scenarios must differ, got {seen}")
+    for sc in built:
+        why = study.accepts(sc)
+        if why:
+            raise InputError(f"study {study.name!r} cannot run on scenario {sc.name!r}: {why}")
+    return built
+
+
+def run_study(name: str, targets=None, *, out=None, runs: int | None = None, particles: int | None = None,
+              seed: int = 0, backend: Backend | None = None, force: bool = False, quiet: bool = True,
+              options: DesignOptions | None = None, overrides: Mapping[str, Any] | None = None, assignments=(),
+              chunk_size: int | None = None, **study_options) -> StudyResult:
+    """Run study ``name`` on ``targets`` (default: its own scenarios) and, with ``out``, write its outputs.
+
+    See :func:`studies.api.study` for the parameters.
+    """
+    from .results import study_header
+
+    study = get_study(name)
+    t_start = time.perf_counter()
+    unknown = [k for k in study_options if k not in study.options]
+    if unknown:
+        known = ", ".join(study.options) or "none"
+        raise InputError(f"option {unknown[0]!r} does not apply to study {name!r} (its own options: {known})")
+    if particles is not None and study.particles is None:
+        raise InputError(f"option --particles does not apply to study {name!r} (it runs no particle filter)")
+    design = options or DesignOptions()
+    if not study.uses_design and any(v is not None for v in design.as_dict().values()):
+        given = next(k for k, v in design.as_dict().items() if v is not None)
+        raise InputError(f"option --{given.replace('_', '-')} does not apply to study {name!r}")
+    seed = check_int("seed", seed, 0)
+    chunk = check_int("chunk_size", study.chunk_size if chunk_size is None else chunk_size, 1)
+    backend = backend or Backend()
+    if not isinstance(backend, Backend):
+        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
+    if runs is not None:
+        runs = check_int("runs", runs, study.min_runs)
+    if particles is not None:
+        particles = check_int("particles", particles, 2)
+    extra = {**study.options, **study_options}
+    scenarios = _scenarios(study, targets, overrides, assignments)
+    if backend.kind == "dask":
+        mem = [sc.name for sc in scenarios if sc.source is None]
+        if mem:
+            raise InputError(f"an in-memory model ({mem[0]}) cannot be sent to a Dask cluster; write it to a model "
+                             "file")
+    blocks, arrays, built = {}, {}, {}
+    for sc in scenarios:
+        so = StudyOptions(runs if runs is not None else study.default_runs(sc.source or sc.name),
+                          particles if particles is not None else study.particles, seed, chunk, backend, design,
+                          extra)
+        if study.check is not None:
+            study.check(so)
+        plan = study.plan(sc, so)
+        if plan.before is not None and backend.kind != "dask":
+            plan.before()
+        mc = monte_carlo(plan.task, runs=plan.runs or so.runs, seed=seed, chunk_size=chunk, backend=backend,
+                         store=out, label=plan.label, config=plan.config, force=force, quiet=quiet)
+        blocks[sc.name] = study.summarise(sc, mc, so)
+        arrays[sc.name], built[sc.name] = mc.arrays, sc
+    body = study.combine(blocks) if study.combine is not None else next(iter(blocks.values()))
+    first = next(iter(blocks.values()))
+    results = study_header(name, body.pop("scenario", ", ".join(blocks)), runs=body.pop("runs", first["runs"]),
+                           particles=body.pop("particles", particles if particles is not None else study.particles),
+                           steps=body.pop("steps", first["steps"]), seed=seed,
+                           assumptions=body.pop("assumptions", []))
+    results.update(body)
+    results["wall_time_s"] = time.perf_counter() - t_start
+    res = StudyResult(study, results, built, arrays)
+    if out is not None:
+        res.save(out)
+    return res
