@@ -1,0 +1,647 @@
+"""The design report: a consensus-filter gain schedule (``schedule.json`` + ``schedule.npz``) in plain words.
+
+What ``cfdesign design`` computed and whether it can be used: the verdict (feasible
+or not, and why: the first violation, which condition at which node and step, with
+its margin), which of the conditions (28) and (29) binds where, the bound tr Φ and
+the margins of (28)-(29) per node over time (the report draws ``fig_trace_bound.png``
+and ``fig_margins.png`` itself, from ``schedule.npz``), per node ε, σ, β, the gain
+magnitudes and the final bound, the attacks and δ, the linearisation (U, V_i), the
+network, the scenario, the assumptions, and what the bound means: it holds along
+the simulated run it was computed on, and a filter that replays the gains elsewhere
+keeps the gains, not the guarantee.
+
+Nodes and steps are numbered as in ``schedule.json`` (from 0).  ``margin28[i, k]``
+is (28) on Φ_{k|k} (reported at step k), ``margin29[i, k]`` is (29) on Φ_{k+1|k}
+(reported at step k + 1), as in the violations.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+
+from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
+                   md_cell, md_escape, md_table, network_lines, other_section, params_table, read_record,
+                   scenario_spec)
+
+__all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES"]
+
+HARD = ("(28)", "(29)", "diverged")  # the violations that make a design infeasible
+FIGURES = {
+    "fig_trace_bound.png": "tr Φ_{k|k} of every node over the run (log scale); a line ends where the node's Φ "
+                           "stops being a bound (after a violation at the node or a neighbour), an x marks a "
+                           "node's first violation.",
+    "fig_margins.png": "Margins of (28) (top, on Φ_{k|k}) and (29) (bottom, on Φ_{k+1|k}) per node over the run "
+                       "(symmetric log scale); below the red line a condition is violated.",
+}
+_KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
+          "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
+          "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
+          "params", "assumptions"}
+_CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
+              "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Reading the files.
+
+
+def _float_array(v, shape=None) -> np.ndarray | None:
+    """A JSON list of lists as floats (null as NaN), or None when it is not one."""
+    try:
+        a = np.array([[np.nan if x is None else x for x in row] for row in v], dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return a if a.ndim == 2 and (shape is None or a.shape == shape) else None
+
+
+def _load_arrays(d: Path) -> tuple[dict[str, np.ndarray] | None, str | None]:
+    path = d / "schedule.npz"
+    if not path.is_file():
+        return None, "schedule.npz is missing"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}, None
+    except Exception as exc:  # noqa: BLE001 - a damaged file: the report says so and goes on with the JSON
+        return None, f"schedule.npz cannot be read ({type(exc).__name__}: {exc})"
+
+
+class _Schedule:
+    """What the report needs of a schedule, from ``schedule.json`` and (if readable) ``schedule.npz``."""
+
+    def __init__(self, meta: Mapping, arrays: Mapping[str, np.ndarray] | None):
+        self.meta = meta
+        self.arrays = arrays or {}
+        tb = _float_array(meta.get("trace_bound")) if isinstance(meta.get("trace_bound"), list) else None
+        phi, valid = self.arrays.get("Phi"), self.arrays.get("valid")
+        self.trace = None  # (nodes, steps + 1): tr Φ_{k|k}, NaN where not a bound
+        if phi is not None and valid is not None and phi.ndim == 4 and valid.shape == phi.shape[:2]:
+            with np.errstate(invalid="ignore"):
+                tr = np.trace(phi, axis1=-2, axis2=-1)
+            self.trace = np.where(valid.astype(bool), tr, np.nan)
+        elif tb is not None:
+            self.trace = np.concatenate([np.full((tb.shape[0], 1), np.nan), tb], axis=1)
+        n = meta.get("nodes")
+        self.nodes = int(n) if is_num(n) else (self.trace.shape[0] if self.trace is not None else 0)
+        k = meta.get("steps")
+        self.steps = int(k) if is_num(k) else (self.trace.shape[1] - 1 if self.trace is not None else 0)
+        shape = (self.nodes, self.steps)
+
+        def arr(name):
+            a = self.arrays.get(name)
+            if a is not None and a.shape == shape:
+                return a.astype(float)
+            return _float_array(meta[name], shape) if name in meta and isinstance(meta[name], list) else None
+
+        self.sigma, self.beta = arr("sigma"), arr("beta")
+        self.m28 = self.arrays.get("margin28") if _shaped(self.arrays.get("margin28"), shape) else None
+        self.m29 = self.arrays.get("margin29") if _shaped(self.arrays.get("margin29"), shape) else None
+        v = meta.get("violations")
+        self.violations = [x for x in v if isinstance(x, dict)] if isinstance(v, list) else []
+        self.hard = [x for x in self.violations if x.get("condition") in HARD]
+        self.theorem2 = [x for x in self.violations if x.get("condition") == "theorem2"]
+        f = meta.get("feasible")
+        self.feasible = f if isinstance(f, bool) else not self.hard
+
+    def first_hard(self, node=None) -> dict | None:
+        hard = [v for v in self.hard if node is None or v.get("node") == node]
+        return min(hard, key=_order) if hard else None
+
+    def sensor(self, i: int) -> str:
+        s = self.meta.get("sensors")
+        if isinstance(s, list) and i < len(s) and isinstance(s[i], dict) and s[i].get("name") is not None:
+            return str(s[i]["name"])
+        return ""
+
+
+def _shaped(a, shape) -> bool:
+    return a is not None and a.shape == shape
+
+
+def _order(v: Mapping):
+    step, node = v.get("step"), v.get("node")
+    return (step if is_num(step) else float("inf"), node if is_num(node) else float("inf"))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Figures.
+
+
+def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
+    from ..results import _plt, save_figure
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4.6))
+    tr = s.trace
+    steps = np.arange(tr.shape[1])
+    positive = np.isfinite(tr) & (tr > 0)
+    if positive.any():
+        for i in range(tr.shape[0]):
+            y = np.where(positive[i], tr[i], np.nan)
+            (line,) = ax.plot(steps, y, lw=1.3, label=f"node {i}")
+            first = s.first_hard(i)
+            ok = np.nonzero(positive[i])[0]
+            if first is not None and ok.size:
+                ax.plot(steps[ok[-1]], y[ok[-1]], "x", color=line.get_color(), ms=9, mew=2)
+        ax.set_yscale("log")
+        ncol = 1 if tr.shape[0] <= 10 else 2
+        ax.legend(fontsize=7, ncol=ncol, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    else:
+        ax.text(0.5, 0.5, "no node has a bound at any step", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlim(0, max(1, tr.shape[1] - 1))
+    ax.set_xlabel("step k")
+    ax.set_ylabel(r"tr $\Phi_{k|k}$")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.set_title(title, fontsize=10)
+    save_figure(fig, path)
+
+
+def _linthresh(values: np.ndarray) -> float:
+    a = np.abs(values[np.isfinite(values) & (values != 0)])
+    if not a.size:
+        return 1.0
+    return float(min(1.0, max(1e-6, 10.0 ** np.floor(np.log10(a.min())))))
+
+
+def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
+    from ..results import _plt, save_figure
+
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
+    both = np.concatenate([s.m28.ravel(), s.m29.ravel()])
+    thresh = _linthresh(both)
+    k = np.arange(s.steps)
+    for ax, m, shift, name in ((axes[0], s.m28, 0, "(28)"), (axes[1], s.m29, 1, "(29)")):
+        for i in range(m.shape[0]):
+            (line,) = ax.plot(k + shift, m[i], lw=1.2, label=f"node {i}")
+            bad = np.isfinite(m[i]) & (m[i] <= 0)
+            if bad.any():
+                ax.plot((k + shift)[bad], m[i][bad], "x", color=line.get_color(), ms=9, mew=2)
+        ax.axhline(0.0, color="crimson", lw=1, ls="--")
+        if np.isfinite(m).any():
+            ax.set_yscale("symlog", linthresh=thresh)
+        ax.set_ylabel(f"margin of {name}")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=1 if s.nodes <= 10 else 2, loc="center left", bbox_to_anchor=(1.01, 0.0))
+    axes[1].set_xlabel("step ((28) at k, (29) at k + 1)")
+    axes[0].set_title(title, fontsize=10)
+    save_figure(fig, path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sections.
+
+
+def _node(v) -> str:
+    return md_escape(fmt_num(v))
+
+
+def _violation_words(v: Mapping) -> str:
+    cond = v.get("condition")
+    where = f"at node {_node(v.get('node'))}, step {_node(v.get('step'))}"
+    if cond == "diverged":
+        reason = v.get("reason")
+        return f"node {_node(v.get('node'))} diverged at step {_node(v.get('step'))}" + (
+            f" ({md_escape(reason)})" if reason else "")
+    margin = v.get("margin")
+    m = fmt_num(margin) if is_num(margin) else "not finite (the matrix is not numerically positive definite)"
+    return f"condition {md_escape(cond)} {where}, margin {md_escape(m)}"
+
+
+def _tightest(s: _Schedule) -> list[tuple[int, str, int, float, int, int, int]]:
+    """Per node: (node, condition, step, margin, steps (28) tighter, steps (29) tighter, steps with both)."""
+    out = []
+    for i in range(s.nodes):
+        a, b = s.m28[i], s.m29[i]
+        cand = []
+        if np.isfinite(a).any():
+            j = int(np.nanargmin(a))
+            cand.append((float(a[j]), "(28)", j))
+        if np.isfinite(b).any():
+            j = int(np.nanargmin(b))
+            cand.append((float(b[j]), "(29)", j + 1))
+        both = np.isfinite(a) & np.isfinite(b)
+        n28 = int(np.sum(both & (a <= b)))
+        n29 = int(np.sum(both & (b < a)))
+        if cand:
+            m, cond, step = min(cand, key=lambda c: (c[0], c[2]))
+            out.append((i, cond, step, m, n28, n29, int(both.sum())))
+    return out
+
+
+def _verdict_section(s: _Schedule, tight) -> list[str]:
+    out = ["## Verdict", ""]
+    size = f"{s.nodes} nodes, {s.steps} steps"
+    if s.feasible:
+        line = (f"**Feasible.** Conditions (28) and (29) held at every node and every step of the run ({size}) and "
+                "no node diverged: every node's Φ is a bound along the whole run.")
+        if tight:
+            i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
+            line += (f" The tightest spot: condition {cond} at node {i}, step {step}, margin {fmt_num(m)}.")
+        out += [line, ""]
+    else:
+        first = s.first_hard()
+        nodes = sorted({v.get("node") for v in s.hard if is_num(v.get("node"))})
+        line = (f"**Infeasible.** {len(s.hard)} violation(s) of (28)-(29) or divergence, at {len(nodes)} of "
+                f"{s.nodes} nodes ({size}).")
+        if first is not None:
+            line += f" The first violation: {_violation_words(first)}."
+            if first.get("condition") in _CONDITION:
+                line += f" A margin ≤ 0 is a violation: {_CONDITION[first['condition']]}."
+        out += [line, "",
+                "From its first violation on, a node runs a documented fallback (σ = β = 0, no bounding inflation) "
+                "so that no indefinite matrix is carried on; its Φ is no longer a bound (NaN in schedule.npz, a gap "
+                "in the figure of tr Φ), nor is that of a neighbour that used it. The table per node below gives "
+                "each node's first violation.", ""]
+    cert = s.meta.get("boundedness_certified")
+    if s.theorem2:
+        first = min(s.theorem2, key=_order)
+        out += [f"Theorem 2's sufficient condition for mean-square boundedness of the error did not hold at "
+                f"{len(s.theorem2)} node-step(s) (first at node {_node(first.get('node'))}, step "
+                f"{_node(first.get('step'))}, margin {md_escape(fmt_num(first.get('margin')))}). This does not make "
+                "the design infeasible: where Φ is a bound it still bounds the error covariance along this run, but "
+                "Theorem 2 does not certify that the error stays bounded beyond it.", ""]
+    elif cert is True:
+        out += ["Theorem 2's sufficient condition for mean-square boundedness of the error held at every node "
+                "and step where Φ is a bound.", ""]
+    return out
+
+
+def _binding_section(s: _Schedule, tight) -> list[str]:
+    if s.m28 is None or s.m29 is None:
+        return []
+    out = ["## Which condition binds where", "",
+           "A margin is how far a condition is from failing: for (28) 1/λmax(Φ_{k|k}) − (1+ε)σ, for (29) "
+           "1/λmax(Φ_{k+1|k}) − β; at or below 0 the condition is violated and the bound does not exist. Per "
+           "node: the step where the smaller of the two margins is smallest, which condition that is, and the "
+           "share of the steps (where both are checked) at which each condition is the tighter one. Steps are "
+           "named as in the violations: (28) at k, (29) at k + 1 of the same recursion step k → k + 1.", ""]
+    if not tight:
+        return out + ["No margin was checked at any node (no node had a bound).", ""]
+    rows = []
+    for i, cond, step, m, n28, n29, n in tight:
+        share = (lambda c: f"{fmt_num(100 * c / n, 3)} %") if n else (lambda c: "—")
+        rows.append([f"{i}", md_cell(s.sensor(i)), cond, f"{step}", fmt_num(m), share(n28), share(n29), f"{n}"])
+    out += md_table(["node", "sensor", "tightest condition", "at step", "margin there", "(28) tighter",
+                     "(29) tighter", "steps checked"], rows, ["l", "l", "l", "r", "r", "r", "r", "r"])
+    tot = sum(t[6] for t in tight)
+    if tot:
+        n28, n29 = sum(t[4] for t in tight), sum(t[5] for t in tight)
+        lead = "(29)" if n29 > n28 else "(28)"
+        out += [f"Over all nodes, {lead} is the tighter condition at {fmt_num(100 * max(n28, n29) / tot, 3)} % of "
+                f"the {tot} checked node-steps ((28) at {n28}, (29) at {n29}).", ""]
+    mode = s.meta.get("mode")
+    if mode == "tuned":
+        out += ["In tuned mode σ and β are chosen at every node and step to keep (28)-(29) with a small relative "
+                "margin (see `designer.tuning`): the margins show how much room the tuning left.", ""]
+    elif mode == "paper":
+        out += ["In paper mode σ and β are fixed: the margins shrink as Φ grows, and the first to reach 0 ends the "
+                "bound.", ""]
+    return out
+
+
+def _stats(row: np.ndarray) -> str:
+    f = row[np.isfinite(row)]
+    if not f.size:
+        return "—"
+    return f"{fmt_num(float(f.min()))} / {fmt_num(float(np.median(f)))} / {fmt_num(float(f.max()))}"
+
+
+def _fixed(value, row: np.ndarray | None) -> str:
+    text = f"{fmt_num(value)} (fixed)"
+    if row is not None and np.isnan(row).any():
+        text += f"; fallback 0 from step {int(np.nonzero(np.isnan(row))[0][0])}"
+    return text
+
+
+def _max_norm(a: np.ndarray | None, i: int) -> str:
+    if a is None or a.ndim != 4 or i >= a.shape[0]:
+        return "—"
+    g = a[i]
+    ok = np.all(np.isfinite(g), axis=(-2, -1))
+    if not ok.any():
+        return "—"
+    return fmt_num(float(np.linalg.norm(g[ok], ord=2, axis=(-2, -1)).max()))
+
+
+def _final_bound(s: _Schedule, i: int) -> str:
+    if s.trace is None or i >= s.trace.shape[0]:
+        return "—"
+    row = s.trace[i]
+    if np.isfinite(row[-1]):
+        return fmt_num(float(row[-1]))
+    ok = np.nonzero(np.isfinite(row))[0]
+    ok = ok[ok > 0]
+    if not ok.size:
+        return "none"
+    return f"none (last {fmt_num(float(row[ok[-1]]))} at step {int(ok[-1])})"
+
+
+def _node_section(s: _Schedule) -> list[str]:
+    if not s.nodes:
+        return []
+    mode = s.meta.get("mode")
+    eps = s.meta.get("epsilon")
+    rows = []
+    for i in range(s.nodes):
+        sig = s.sigma[i] if s.sigma is not None else None
+        bet = s.beta[i] if s.beta is not None else None
+        if mode == "paper" and is_num(s.meta.get("sigma_fixed")):
+            sig_text = _fixed(s.meta["sigma_fixed"], sig)
+        else:
+            sig_text = _stats(sig) if sig is not None else "—"
+        if mode == "paper" and is_num(s.meta.get("beta_fixed")):
+            bet_text = _fixed(s.meta["beta_fixed"], bet)
+        else:
+            bet_text = _stats(bet) if bet is not None else "—"
+        first = s.first_hard(i)
+        rows.append([f"{i}", md_cell(s.sensor(i)), md_cell(fmt_num(eps)), md_cell(sig_text), md_cell(bet_text),
+                     _max_norm(s.arrays.get("K"), i), _max_norm(s.arrays.get("C"), i), md_cell(_final_bound(s, i)),
+                     md_cell(_plain_violation(first)) if first else "none"])
+    what = ("the paper's fixed σ and β (a node on its fallback uses 0)" if mode == "paper" else
+            "σ and β as min / median / max over the steps where the node had a bound")
+    out = ["## Per node: ε, σ, β, gains and the final bound", "",
+           f"ε is the same at every node; {what}. Gains: the largest spectral norm over the steps of the update "
+           "gain K_i and of the consensus gain C_i. Final tr Φ: the bound at the last step (or the last step that "
+           "had one).", ""]
+    out += md_table(["node", "sensor", "ε", "σ", "β", "max ‖K_i‖₂", "max ‖C_i‖₂", "final tr Φ", "first violation"],
+                    rows, ["l", "l", "r", "r", "r", "r", "r", "r", "l"])
+    return out
+
+
+def _plain_violation(v: Mapping) -> str:
+    if v.get("condition") == "diverged":
+        return f"diverged at step {fmt_num(v.get('step'))}"
+    return f"{v.get('condition')} at step {fmt_num(v.get('step'))}, margin {fmt_num(v.get('margin'))}"
+
+
+def _figure_section(names: list[str]) -> list[str]:
+    if not names:
+        return []
+    out = ["## The bound and the margins over time", ""]
+    for i, name in enumerate(names, 1):
+        out += figure_lines(i, name, FIGURES[name])
+    return out
+
+
+def _meaning_section(s: _Schedule) -> list[str]:
+    meta = s.meta
+    out = ["## What the bound means and where it holds", "",
+           "Φ_{i,k|k} is Theorem 1's upper bound on the covariance of node i's estimation error at step k, so tr Φ "
+           "bounds the node's mean-square error E‖x_k − x̂_{i,k}‖². It is a bound while (28) and (29) hold at the "
+           "node and its neighbours; after a violation the schedule stores none (NaN).", ""]
+    traj = meta.get("trajectory")
+    out.append("It holds along the simulated run it was computed on"
+               + (f": {md_escape(traj)}." if isinstance(traj, str) and traj else
+                  " (the seeded run of the scenario that `cfdesign design` simulates)."))
+    out.append("")
+    replay = meta.get("replay")
+    out += [("Replaying the schedule: " + md_escape(replay) + "." if isinstance(replay, str) and replay else
+             "A filter that replays this schedule on another run keeps the gains, not the guarantee."), ""]
+    out += ["A feasibility map (`cfdesign feasibility`) asks another question: whether the stationary recursion at "
+            "the operating point, with the expected number of received packets, has a bounded fixed point. Its "
+            "report explains when the two disagree.", ""]
+    return out
+
+
+def _settings_section(s: _Schedule) -> list[str]:
+    meta = s.meta
+    mode = meta.get("mode")
+    out = ["## Design settings", ""]
+    if mode == "paper":
+        out += ["Paper mode, as in the paper: σ and β fixed at every node and step (the published 0.1 unless given), "
+                "the consensus gain C = τ Φ_{k+1|k} and K by (30).", ""]
+    elif mode == "tuned":
+        out += ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
+                "trace of the bounds while keeping (28)-(29)).", ""]
+    facts = [("mode", mode), ("ε", meta.get("epsilon")), ("σ (fixed)", meta.get("sigma_fixed")),
+             ("β (fixed)", meta.get("beta_fixed")), ("τ", meta.get("tau") if mode == "paper" else None),
+             ("δ (bound on the injected signal, ‖ξ‖ ≤ δ)", meta.get("delta")), ("nodes", meta.get("nodes")),
+             ("steps", meta.get("steps")), ("seed of the run", meta.get("seed"))]
+    out += [f"- {k}: {md_escape(fmt_num(v))}" for k, v in facts if v is not None and not isinstance(v, (dict, list))]
+    out.append("")
+    opts = meta.get("options")
+    if isinstance(opts, dict):
+        given = {k: v for k, v in opts.items() if v is not None}
+        if given:
+            out += ["The options the design was made with (the scenario's defaults merged with the given ones; "
+                    "the rest are the package's defaults):", "", *generic(given)]
+    return out
+
+
+def _linearisation_section(meta: Mapping) -> list[str]:
+    lin = meta.get("linearization")
+    U, V = meta.get("U"), meta.get("V")
+    if lin is None and U is None and V is None:
+        return []
+    out = ["## Linearisation", "",
+           "The filter linearises f and h_i at the node's own estimates; the remainders are bounded as U Ω e and "
+           "V_i Θ e with ‖Ω‖, ‖Θ‖ ≤ 1, which is what U and V_i enter (26)-(27) for.", ""]
+    if lin == "fixed":
+        out += ["Linearisation `fixed`: U and V_i are the constant matrices below.", ""]
+    elif isinstance(lin, str):
+        radius = meta.get("radius")
+        out += [f"Linearisation `{md_escape(lin)}`: U and V_i are re-derived at every node and step from the "
+                f"model's Hessians over the {md_escape(fmt_num(radius))}-sigma ellipsoid of Φ"
+                + (" (restricted to the variables the model is nonlinear in)" if lin == "structured" else "")
+                + "; the matrices below only fix the shapes.", ""]
+    if U is not None:
+        out += [f"- U = {md_escape(matrix_text(U))}"]
+    if isinstance(V, list) and V:
+        texts = [matrix_text(v) for v in V]
+        sensors = meta.get("sensors") if isinstance(meta.get("sensors"), list) else []
+        if len(set(texts)) == 1:
+            out.append(f"- V_i = {md_escape(texts[0])} at every sensor")
+        else:
+            for i, t in enumerate(texts):
+                name = sensors[i].get("name") if i < len(sensors) and isinstance(sensors[i], dict) else None
+                out.append(f"- V_{i}" + (f" ({md_escape(name)})" if name else "") + f" = {md_escape(t)}")
+    return out + [""]
+
+
+def _probabilities(entries) -> tuple[str, list]:
+    ps = [e[2] for e in entries if isinstance(e, list) and len(e) == 3 and is_num(e[2])]
+    if not ps:
+        return "", []
+    if min(ps) == max(ps):
+        return f"{fmt_num(ps[0])} on each of the {len(ps)} channels", ps
+    return f"from {fmt_num(min(ps))} to {fmt_num(max(ps))} over the {len(ps)} channels", ps
+
+
+def attack_lines(attacks) -> list[str]:
+    """The attack specification (``AttackSpec.describe()``) in words; unknown keys generically."""
+    if not isinstance(attacks, Mapping) or not attacks:
+        return []
+    out = []
+    ch = attacks.get("channels") if isinstance(attacks.get("channels"), Mapping) else {}
+    for key, name in (("dos", "DoS (the packet is lost)"), ("fdi", "false-data injection (ξ is added to it)")):
+        words, _ = _probabilities(ch.get(key))
+        prob = attacks.get(f"{key}_prob")
+        if words:
+            out.append(f"- {name}: probability {md_escape(words)}")
+        elif prob is not None:
+            out.append(f"- {name}: probability {md_escape(compact(prob))}")
+    sig = attacks.get("signal")
+    if isinstance(sig, Mapping):
+        comps = sig.get("component_names") or sig.get("components")
+        out.append(f"- injected signal: law {md_escape(compact(sig.get('law')))}, amplitude "
+                   f"{md_escape(compact(sig.get('amplitude')))}"
+                   + (f" on the components {md_escape(compact(comps))}" if comps is not None else ""))
+        rest = {k: v for k, v in sig.items() if k not in ("law", "amplitude", "components", "component_names")}
+        if rest:
+            out.append(f"- signal, further: {md_escape(compact(rest))}")
+    elif sig is not None:
+        out.append(f"- injected signal: {md_escape(compact(sig))}")
+    if attacks.get("delta") is not None:
+        out.append(f"- δ = {md_escape(fmt_num(attacks['delta']))}: the bound ‖ξ‖ ≤ δ the design assumes")
+    for key, name in (("uplink_dos", "uplink DoS"), ("uplink_fdi", "uplink FDI")):
+        if attacks.get(key) is not None:
+            out.append(f"- {name} (the centralized filters' uplinks, per node): {md_escape(compact(attacks[key]))}")
+    out.append("")
+    if ch:
+        dos = {(e[0], e[1]): e[2] for e in ch.get("dos") or [] if isinstance(e, list) and len(e) == 3}
+        fdi = {(e[0], e[1]): e[2] for e in ch.get("fdi") or [] if isinstance(e, list) and len(e) == 3}
+        varied = len(set(dos.values())) > 1 or len(set(fdi.values())) > 1
+        if varied and len(set(dos) | set(fdi)) <= 200:
+            rows = [[md_cell(f"{fmt_num(j)} → {fmt_num(i)}"), md_cell(fmt_num(dos.get((i, j)))),
+                     md_cell(fmt_num(fdi.get((i, j))))] for i, j in sorted(set(dos) | set(fdi), key=str)]
+            out += ["Per channel:", "", *md_table(["channel (from → to)", "DoS", "FDI"], rows)]
+        extra = {k: v for k, v in ch.items() if k not in ("dos", "fdi", "format")}
+        if extra:
+            out += generic(extra)
+    rest = {k: v for k, v in attacks.items()
+            if k not in ("dos_prob", "fdi_prob", "channels", "signal", "delta", "uplink_dos", "uplink_fdi")}
+    return out + (generic(rest) if rest else [])
+
+
+def _attack_section(meta: Mapping) -> list[str]:
+    lines = attack_lines(meta.get("attacks"))
+    if not lines and meta.get("delta") is None:
+        return []
+    out = ["## Attacks", "", "What the channels between the nodes suffer (the simulated run draws its DoS and FDI "
+           "pattern from these probabilities; the bound uses the realised pattern):", "", *lines]
+    if not lines:
+        out += [f"- δ = {md_escape(fmt_num(meta['delta']))}: the bound ‖ξ‖ ≤ δ the design assumes", ""]
+    return out
+
+
+def _network_section(meta: Mapping) -> list[str]:
+    lines = network_lines(meta.get("network"))
+    return ["## Network", "", *lines] if lines else []
+
+
+def scenario_lines(name, params) -> list[str]:
+    """The scenario's description and parameter table (design and feasibility reports)."""
+    spec = scenario_spec(name)
+    out = []
+    if spec is not None:
+        summary = spec.summary.strip()
+        if summary and summary[-1] not in ".!?":
+            summary += "."
+        out += [f"**{md_escape(spec.name)}**: {md_escape(spec.title)}. {md_escape(summary)}".rstrip(), ""]
+    elif isinstance(name, str):
+        out += [f"**{md_escape(name)}** (a model file or an in-memory model, not a built-in scenario).", ""]
+    if isinstance(params, Mapping) and params:
+        out += ["The scenario's parameters (`--set NAME=VALUE` changes one):", "", *params_table(spec, params)]
+    return out
+
+
+def _scenario_section(meta: Mapping) -> list[str]:
+    lines = scenario_lines(meta.get("scenario"), meta.get("params"))
+    return ["## Scenario and parameters", "", *lines] if lines else []
+
+
+def _cli_value(v) -> str | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        return None
+    text = fmt_num(v, 12) if is_num(v) else v
+    return text if re.fullmatch(r"[\w.\-]+", text) else None
+
+
+def command_line(command: str, meta: Mapping, extra: str = "") -> str | None:
+    """``cfdesign COMMAND SCENARIO ...`` (Markdown) that redoes this output; None for a scenario not built in."""
+    name = meta.get("scenario")
+    if scenario_spec(name) is None or not re.fullmatch(r"[\w.\-]+", str(name)):
+        return None
+    cmd = f"cfdesign {command} {name}{extra}"
+    opts = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
+    left = []
+    for k, v in opts.items():
+        text = _cli_value(v)
+        if text is not None and re.fullmatch(r"\w+", str(k)):
+            cmd += f" --{str(k).replace('_', '-')} {text}"
+        elif v is not None:
+            left.append(md_escape(k))
+    return f"`{cmd} --out DIR`" + (f" with {', '.join(left)} as listed above" if left else "")
+
+
+def _files_section(meta: Mapping, arrays: Mapping | None, note: str | None, figures: list[str]) -> list[str]:
+    out = ["## Files and reproduction", ""]
+    schema = meta.get("schema")
+    out.append(f"- `schedule.json`: schema `{md_escape(schema)}`; feasibility, ε, σ, β, tr Φ per node and step, "
+               "every violated condition with its node, step and margin" if isinstance(schema, str) else
+               "- `schedule.json`")
+    if arrays:
+        out.append("- `schedule.npz`: " + ", ".join(f"`{k}` {md_escape(' x '.join(map(str, a.shape)))}"
+                                                    for k, a in arrays.items() if re.fullmatch(r"\w+", k)))
+    if note:
+        out.append(f"- {md_escape(note)}: the margins, the gains and the figures are left out")
+    for name in figures:
+        out.append(f"- `{name}`: drawn by this report from schedule.npz")
+    out.append("")
+    extra = ""
+    for key, flag in (("seed", "--seed"), ("steps", "--steps")):
+        text = _cli_value(meta.get(key))
+        if text is not None:
+            extra += f" {flag} {text}"
+    cmd = command_line("design", meta, extra)
+    if cmd:
+        out += [f"To compute it again: {cmd} (add `--set NAME=VALUE` for any parameter changed from its "
+                "default above).", ""]
+    return out
+
+
+def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | None = None,
+                  figures: list[str] = (), note: str | None = None) -> str:
+    """The design report as Markdown from ``schedule.json`` (``meta``) and ``schedule.npz`` (``arrays``)."""
+    s = _Schedule(meta, arrays)
+    scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
+    mode = meta.get("mode") if isinstance(meta.get("mode"), str) else "unknown"
+    head = [f"# Design report: {md_escape(scenario)}", "",
+            f"A gain schedule of the distributed consensus filter ({md_escape(mode)} mode) for {s.nodes} nodes over "
+            f"{s.steps} steps, computed by `cfdesign design` along one seeded simulated run. Nodes and steps are "
+            "numbered from 0, as in `schedule.json`.", ""]
+    tight = _tightest(s) if s.m28 is not None and s.m29 is not None else []
+    return document(head, [
+        _verdict_section(s, tight), _binding_section(s, tight), _figure_section(list(figures)),
+        _node_section(s), _meaning_section(s), _settings_section(s), _linearisation_section(meta),
+        _attack_section(meta), _network_section(meta), _scenario_section(meta),
+        assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario or the "
+                           "design had to decide:"),
+        other_section(meta, _KNOWN, "Other recorded fields"), _files_section(meta, arrays, note, list(figures))])
+
+
+def design_report(d: Path) -> tuple[str, dict[str, bytes], str]:
+    """The design report of directory ``d`` (which holds ``schedule.json``): (Markdown, figures, title).
+
+    Draws ``fig_trace_bound.png`` (from ``schedule.npz``, else from the JSON's
+    ``trace_bound``) and ``fig_margins.png`` (from ``schedule.npz``) into ``d``.
+    """
+    meta = read_record(d, "schedule.json", "cfdesign.schedule/1", "a design's")
+    arrays, note = _load_arrays(d)
+    s = _Schedule(meta, arrays)
+    scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "design"
+    mode = meta.get("mode") if isinstance(meta.get("mode"), str) else ""
+    label = f"{scenario}, {mode} design".replace("$", r"\$")  # no mathtext from a name
+    figures = []
+    if s.trace is not None and s.trace.size:
+        _trace_figure(d / "fig_trace_bound.png", s, f"{label}: tr Φ per node (gaps: no bound)")
+        figures.append("fig_trace_bound.png")
+    if s.m28 is not None and s.m29 is not None and s.m28.size:
+        _margin_figure(d / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
+        figures.append("fig_margins.png")
+    images = {name: (d / name).read_bytes() for name in figures}
+    return render_design(meta, arrays, figures, note), images, f"cfdesign design report: {scenario}"

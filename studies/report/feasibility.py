@@ -1,0 +1,292 @@
+"""The feasibility report: a parameter-feasibility map (``feasibility.csv`` + ``feasibility.json``) in plain words.
+
+What was mapped (the grid, the design options, the operating point), how many grid
+points are feasible and what binds, the grid itself (for one or two grid parameters a
+matrix: the steady-state trace bound of the feasible points, the binding condition of
+the infeasible ones), the heat map ``feasibility.png``, and how this notion of
+feasibility differs from the one of ``cfdesign design`` (:data:`TWO_NOTIONS`, the
+words of the docstring of the module that computes the map), then the attacks, the
+network, the assumptions and the runner.
+
+``feasibility.csv`` is enough: without ``feasibility.json`` the grid is read from the
+CSV's columns (those before ``feasible``) and the sections that need the JSON are
+left out.
+"""
+from __future__ import annotations
+
+import csv
+import importlib
+import io
+import math
+from collections import Counter
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from designer.validation import InputError
+
+from .design import attack_lines, command_line, scenario_lines
+from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
+                   md_escape, md_table, network_lines, other_section, read_record)
+
+__all__ = ["feasibility_report", "render_feasibility", "TWO_NOTIONS"]
+
+TWO_NOTIONS = (
+    "**Two notions of feasibility.** `design` checks (28)-(29) *along one simulated run*: the nodes' own estimates, "
+    "the realised DoS pattern (`s_i` = packets actually received) and the transient from the prior. `feasibility` "
+    "checks whether the *stationary* recursion at the operating point, with the *expected* number of received "
+    "packets, has a bounded fixed point. They disagree when the run leaves the operating point (a nonlinear model "
+    "linearised elsewhere), when a run's realised DoS pattern is luckier or worse than its mean, or when the "
+    "transient violates a condition that the steady state satisfies (or the reverse: a run that is too short to "
+    "reach an unbounded steady state).")
+_KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "operating_point", "network",
+          "attacks", "assumptions", "runner"}
+_THEOREM2 = {True: "holds", False: "fails", None: "—"}
+_ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
+
+
+def _grid_docs() -> Mapping[str, str]:
+    """What each grid parameter is (the map module's GRID_PARAMETERS; {} when it cannot be imported)."""
+    for name in ("studies.feasibility_map", "studies.feasibility"):
+        try:
+            return importlib.import_module(name).GRID_PARAMETERS
+        except (ImportError, AttributeError):
+            continue
+    return {}  # pragma: no cover - a report must not depend on the map module importing
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Reading the files.
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _read_csv(d: Path) -> tuple[list[str], list[dict]]:
+    try:
+        text = (d / "feasibility.csv").read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"directory {str(d)!r}: feasibility.csv cannot be read: {exc}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    header = list(reader.fieldnames or [])
+    if "feasible" not in header:
+        raise InputError(f"directory {str(d)!r}: feasibility.csv has no 'feasible' column (columns: "
+                         f"{', '.join(header) or 'none'})")
+    names = header[:header.index("feasible")]
+    rows = []
+    for raw in reader:
+        row: dict[str, Any] = {n: _number(raw.get(n)) for n in names}
+        row["feasible"] = raw.get("feasible", "").strip() in ("1", "True", "true")
+        row["trace_bound"] = _number(raw.get("trace_bound"))
+        row["binding"] = raw.get("binding") or ""
+        th2 = (raw.get("theorem2") or "").strip()
+        row["theorem2"] = None if th2 == "" else th2 in ("1", "True", "true")
+        row["iterations"] = raw.get("iterations") or ""
+        rows.append(row)
+    return names, rows
+
+
+def _grids(names: Sequence[str], rows: Sequence[Mapping], meta: Mapping) -> list[tuple[str, list[float]]]:
+    """The grid parameters and their values, from feasibility.json or, without it, from the CSV."""
+    given = meta.get("grids")
+    if isinstance(given, list) and [g.get("name") for g in given if isinstance(g, dict)] == list(names):
+        if all(isinstance(g.get("values"), list) and all(is_num(v) for v in g["values"]) for g in given):
+            return [(g["name"], [float(v) for v in g["values"]]) for g in given]
+    out = []
+    for n in names:
+        seen: list[float] = []
+        for r in rows:
+            if r[n] not in seen:
+                seen.append(r[n])
+        out.append((n, seen))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sections.
+
+
+def _cell(row: Mapping | None) -> str:
+    if row is None:
+        return "—"
+    if row["feasible"]:
+        text = fmt_num(row["trace_bound"], 3)
+        return text + (" †" if row["theorem2"] is False else "")
+    return "✗ " + md_cell(row["binding"] or "infeasible")
+
+
+def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
+    docs = _grid_docs()
+    options = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
+    mode = options.get("mode") or "paper"
+    out = ["## What was mapped", "",
+           f"At every grid point the steady-state bound recursion (26)-(27) of the {md_escape(mode)} consensus "
+           f"design of **{md_escape(scenario)}** is iterated at the scenario's operating point to a fixed point, "
+           "with the design `cfdesign design` would build from the same options; the grid's values replace the "
+           "options of the same name.", "", "The grid:", ""]
+    for name, values in grids:
+        shown = ", ".join(fmt_num(v) for v in values[:12]) + (", …" if len(values) > 12 else "")
+        doc = docs.get(name)
+        out.append(f"- `{md_escape(name)}`" + (f" ({md_escape(doc)})" if doc else "")
+                   + f": {len(values)} values ({md_escape(shown)})")
+    out.append("")
+    given = {k: v for k, v in options.items() if v is not None}
+    if given:
+        out += ["The design options at every point (besides the grid's):", "", *generic(given)]
+    op = meta.get("operating_point")
+    if isinstance(op, Mapping) and op:
+        out += ["The operating point (the linearisation of the stationary recursion):", ""]
+        out += [f"- {md_escape(k)} = {md_escape('none' if v is None else compact(v))}" for k, v in op.items()] + [""]
+    return out
+
+
+def _result_section(rows: Sequence[Mapping]) -> list[str]:
+    n = len(rows)
+    ok = [r for r in rows if r["feasible"]]
+    out = ["## How much is feasible", "", f"**{len(ok)} of {n} grid points are feasible.**", ""]
+    if ok:
+        finite = [r for r in ok if math.isfinite(r["trace_bound"])]
+        if finite:
+            lo = min(finite, key=lambda r: r["trace_bound"])
+            hi = max(finite, key=lambda r: r["trace_bound"])
+            spread = (f"is {fmt_num(lo['trace_bound'])}" if lo is hi else
+                      f"ranges from {fmt_num(lo['trace_bound'])} to {fmt_num(hi['trace_bound'])}")
+            out += [f"- the steady-state trace bound (mean over nodes of tr Φ) of the feasible points {spread}"]
+        binding = Counter(r["binding"] or "not recorded" for r in ok)
+        out.append("- the condition with the least relative slack at the fixed point: "
+                   + ", ".join(f"{md_escape(b)} at {c}" for b, c in binding.most_common()))
+        th2 = [r for r in ok if r["theorem2"] is False]
+        if th2:
+            out.append(f"- Theorem 2's sufficient condition for mean-square boundedness of the error fails at the "
+                       f"fixed point of {len(th2)} of them (marked † below): the bound exists there, but Theorem 2 "
+                       "does not certify that the error stays bounded")
+        elif all(r["theorem2"] is True for r in ok):
+            out.append("- Theorem 2's sufficient condition for mean-square boundedness of the error holds at the "
+                       "fixed point of every feasible point")
+    bad = [r for r in rows if not r["feasible"]]
+    if bad:
+        why = Counter(r["binding"] or "not recorded" for r in bad)
+        out.append("- why the infeasible points fail: " + ", ".join(f"{md_escape(b)} at {c}"
+                                                                   for b, c in why.most_common()))
+    return out + [""]
+
+
+def _legend() -> str:
+    return ("A number is the steady-state trace bound (mean over nodes of tr Φ) of a feasible point, † where Theorem "
+            "2's condition fails at its fixed point; ✗ marks an infeasible point with the condition that failed "
+            "((28), (29)) or why (\"unbounded\": the trace grows without bound; \"no convergence\").")
+
+
+def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
+    out = ["## The grid", ""]
+    if len(grids) == 2:
+        (n1, v1), (n2, v2) = grids
+        at = {(r[n1], r[n2]): r for r in rows}
+        out += [_legend() + f" Rows: `{md_escape(n1)}`, columns: `{md_escape(n2)}`.", ""]
+        header = [md_cell(f"{n1} \\ {n2}")] + [md_cell(fmt_num(b)) for b in v2]
+        body = [[md_cell(fmt_num(a))] + [_cell(at.get((a, b))) for b in v2] for a in v1]
+        return out + md_table(header, body)
+    names = [n for n, _ in grids]
+    out += [_legend(), ""]
+    shown = rows[:_ROW_LIMIT]
+    body = [[md_cell(fmt_num(r[n])) for n in names]
+            + ["yes" if r["feasible"] else "no", fmt_num(r["trace_bound"], 4) if r["feasible"] else "—",
+               md_cell(r["binding"]), _THEOREM2[r["theorem2"]] if r["feasible"] else "—", md_cell(r["iterations"])]
+            for r in shown]
+    out += md_table([md_cell(n) for n in names] + ["feasible", "trace bound", "binding", "Theorem 2", "iterations"],
+                    body, ["r"] * len(names) + ["l", "r", "l", "l", "r"])
+    if len(rows) > len(shown):
+        out += [f"The first {len(shown)} of {len(rows)} points; feasibility.csv has them all.", ""]
+    return out
+
+
+def _figure_section(figures: Sequence[str]) -> list[str]:
+    if "feasibility.png" not in figures:
+        return []
+    return ["## Heat map", "", *figure_lines(1, "feasibility.png", "The steady-state trace bound over the grid (log "
+                                             "scale); crosses mark the infeasible points.")]
+
+
+def _notions_section() -> list[str]:
+    return ["## Two notions of feasibility", "",
+            "Here `design` is `cfdesign design` (`studies.api.design`) and `feasibility` is this map "
+            "(`cfdesign feasibility`).", "", TWO_NOTIONS, "",
+            "So a feasible point here says that a bounded bound exists in the long run around the operating point, "
+            "not that every run is feasible from its first step; an infeasible point says the stationary recursion "
+            "has no bounded fixed point there, which a short run may not reach. To see a point's transient along a "
+            "run, design at it (`cfdesign design SCENARIO` with the point's values, e.g. `--dos 0.2 --fdi 0.1`) "
+            "and compare the verdicts.", ""]
+
+
+def _runner_section(meta: Mapping) -> list[str]:
+    runner = meta.get("runner")
+    if not isinstance(runner, Mapping) or not runner:
+        return []
+    return ["## How it was computed", "",
+            "The grid points go through the Monte Carlo runner in chunks (a point plays the part of a run), stored "
+            "under `.chunks` so that an interrupted map resumes; the map does not depend on where the chunks ran.",
+            "", *generic(runner)]
+
+
+def _files_section(meta: Mapping, grids, figures: Sequence[str]) -> list[str]:
+    out = ["## Files and reproduction", "",
+           "- `feasibility.csv`: one row per grid point (the grid values, `feasible`, `trace_bound`, `binding`, "
+           "`theorem2`, `iterations`)"]
+    if isinstance(meta.get("schema"), str):
+        out.append(f"- `feasibility.json`: schema `{md_escape(meta['schema'])}`; the grid, the options, the "
+                   "operating point, the network, the attacks, the assumptions and the runner")
+    if figures:
+        out.append("- `feasibility.png`: the heat map")
+    out.append("")
+    extra = "".join(f" --grid {name}={fmt_num(v[0], 12)}:{fmt_num(v[-1], 12)}:{len(v)}" for name, v in grids if v)
+    cmd = command_line("feasibility", meta, extra)
+    if cmd:
+        out += [f"To compute it again: {cmd} (add `--set NAME=VALUE` for any scenario parameter changed from its "
+                "default).", ""]
+    return out
+
+
+def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapping | None = None,
+                       figures: Sequence[str] = ()) -> str:
+    """The feasibility report as Markdown from the CSV's grid ``names`` and ``rows`` and ``feasibility.json``."""
+    meta = meta if isinstance(meta, Mapping) else {}
+    scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
+    grids = _grids(names, rows, meta)
+    head = [f"# Feasibility report: {md_escape(scenario)}", "",
+            "Where the consensus design admits a bounded steady-state bound, over a grid of parameters "
+            f"({' x '.join(f'{len(v)} {md_escape(n)}' for n, v in grids)} = {len(rows)} points), as computed by "
+            "`cfdesign feasibility`.", ""]
+    attacks = attack_lines(meta.get("attacks"))
+    network = network_lines(meta.get("network"))
+    scen = scenario_lines(meta.get("scenario"), None) if "scenario" in meta else []
+    return document(head, [
+        _mapped_section(scenario, grids, meta), _result_section(rows), _grid_section(grids, rows),
+        _figure_section(figures), _notions_section(),
+        ["## Attacks", "", "The attack specification of the scenario with the options applied; a grid parameter "
+         "(`dos`, `fdi`, `delta`, `amplitude`) replaces its value at every point:", "", *attacks] if attacks else [],
+        ["## Network", "", *network] if network else [],
+        ["## Scenario", "", *scen] if scen else [],
+        assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario had to "
+                           "decide:"),
+        _runner_section(meta), other_section(meta, _KNOWN, "Other recorded fields"),
+        _files_section(meta, grids, figures)])
+
+
+def feasibility_report(d: Path) -> tuple[str, dict[str, bytes], str]:
+    """The feasibility report of directory ``d`` (``feasibility.csv``, optionally ``feasibility.json``, ``.png``)."""
+    names, rows = _read_csv(d)
+    meta: Mapping = {}
+    if (d / "feasibility.json").is_file():
+        meta = read_record(d, "feasibility.json", "cfdesign.feasibility/1", "a feasibility map's")
+    images = {}
+    if (d / "feasibility.png").is_file():
+        try:
+            images["feasibility.png"] = (d / "feasibility.png").read_bytes()
+        except OSError as exc:
+            raise InputError(f"directory {str(d)!r}: feasibility.png cannot be read: {exc}") from None
+    scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "feasibility map"
+    return (render_feasibility(names, rows, meta, list(images)), images,
+            f"cfdesign feasibility report: {scenario}")
