@@ -1,9 +1,13 @@
-"""Study reports (``report.md``, self-contained ``report.html``): content, inlined figures, escaping, robustness.
+"""Reports (``report.md``, self-contained ``report.html``): content, inlined figures, escaping, robustness.
 
-Two real studies run at a tiny size (the particle-filter study ``encrypted-switching``,
-which writes its report through :func:`studies.results.write_study`, and
-``consensus-robot``, which has no ``table.md`` and no intervals); the other cases use
-small hand-written results files.
+Study reports: two real studies run at a tiny size (the particle-filter study
+``encrypted-switching``, which writes its report through
+:func:`studies.results.write_study`, and ``consensus-robot``, which records no
+intervals); the other cases use small hand-written results files.  Design and
+feasibility reports: real outputs of :func:`studies.api.design` and
+:func:`studies.api.feasibility` on the small linear model of
+``examples/linear_network_model.py`` (feasible) and on the indoor robot's paper design
+(infeasible).
 """
 from __future__ import annotations
 
@@ -11,15 +15,17 @@ import base64
 import copy
 import json
 import re
+import sys
 from html.parser import HTMLParser
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from designer.validation import InputError
-from studies.consensus_robot import run_consensus_robot
-from studies.encrypted_switching import run_encrypted_switching
+from studies import api
 from studies.report import markdown_to_html, render_markdown, write_report
+from studies.report.text import md_escape
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 PNG_1x1 = base64.b64decode(
@@ -85,18 +91,30 @@ def norm(s: str) -> str:
     return re.sub(r"\s+", " ", s)
 
 
+RUN_STUDY = {
+    "encrypted-switching": lambda out: api.study("encrypted-switching", out=out, runs=3, particles=30),
+    "consensus-robot": lambda out: api.study("consensus-robot", out=out, runs=2),
+}
+
+
 @pytest.fixture(scope="module")
 def studies(tmp_path_factory):
-    enc = tmp_path_factory.mktemp("enc")
-    run_encrypted_switching(out=enc, runs=3, particles=30, quiet=True)
-    con = tmp_path_factory.mktemp("con")
-    run_consensus_robot(out=con, runs=2, quiet=True)
-    return {"encrypted-switching": enc, "consensus-robot": con}
+    """Each study's output directory, run on first use (one study failing leaves the other's tests alone)."""
+    made: dict[str, Path] = {}
+
+    def get(name: str) -> Path:
+        if name not in made:
+            out = tmp_path_factory.mktemp(name)
+            RUN_STUDY[name](out)
+            made[name] = out
+        return made[name]
+
+    return get
 
 
-@pytest.fixture(params=["encrypted-switching", "consensus-robot"])
+@pytest.fixture(params=list(RUN_STUDY))
 def study_dir(request, studies) -> Path:
-    return studies[request.param]
+    return studies(request.param)
 
 
 def test_study_writes_both_reports(study_dir):
@@ -344,7 +362,10 @@ def test_a_failed_write_keeps_the_old_report(tmp_path, monkeypatch):
 def test_bad_input_names_the_directory(tmp_path):
     with pytest.raises(InputError, match="directory .* does not exist"):
         write_report(tmp_path / "nope")
-    with pytest.raises(InputError, match="directory .* has no results.json"):
+    with pytest.raises(InputError, match="directory .* has no results.json, schedule.json or feasibility.csv"):
+        write_report(tmp_path)
+    with pytest.raises(InputError, match=r"expected one of results.json \(a study's.*schedule.json \(a design's"
+                                         r".*feasibility.csv \(a feasibility map's"):
         write_report(tmp_path)
     (tmp_path / "results.json").write_text("{not json")
     with pytest.raises(InputError, match="directory .*results.json cannot be read"):
@@ -358,25 +379,69 @@ def test_bad_input_names_the_directory(tmp_path):
     with pytest.raises(InputError, match="directory must be a path"):
         write_report(3.5)
     assert not (tmp_path / "report.html").exists()
+    design, feas = tmp_path / "design", tmp_path / "feas"
+    design.mkdir(), feas.mkdir()
+    (design / "schedule.json").write_text(json.dumps({"schema": "cfdesign.study/1"}))
+    with pytest.raises(InputError, match="schedule.json has schema .* not a design's"):
+        write_report(design)
+    (design / "schedule.json").write_text("{")
+    with pytest.raises(InputError, match="directory .*design.*schedule.json cannot be read"):
+        write_report(design)
+    (feas / "feasibility.csv").write_text("dos,trace_bound\n0.1,2\n")
+    with pytest.raises(InputError, match="feasibility.csv has no 'feasible' column"):
+        write_report(feas)
+    (feas / "feasibility.csv").write_text("dos,feasible,trace_bound,binding,theorem2,iterations\n0.1,1,2,(28),1,3\n")
+    (feas / "feasibility.json").write_text(json.dumps({"schema": "cfdesign.schedule/1"}))
+    with pytest.raises(InputError, match="feasibility.json has schema .* not a feasibility map's"):
+        write_report(feas)
+    assert not (design / "report.html").exists() and not (feas / "report.html").exists()
 
 
-def test_markdown_converter_subset():
-    md = ("# Title *x*\n\nA paragraph with `a<b` and **bold \\*star\\***.\n\n- one\n  - one.a\n  - one.b\n"
-          "- two\n\n| | left | right |\n|---|---|---:|\n| r1 | a \\| b | 1 |\n| r2 | c |\n\n"
-          "![A figure](fig_a.png)\n**Figure 1.** caption\n\nSee [the title](#title-x).\n")
+def test_markdown_rendering():
+    """markdown-it-py with tables, raw HTML off, anchors, figures inlined, outside links shown as text."""
+    md = ("# Title *x*\n\nA paragraph with `a<b` and **bold \\*star\\*** <script>alert(1)</script> &amp; "
+          "<b>b</b>.\n\n- one\n  - one.a\n  - one.b\n- two\n\n| | left | right |\n|---|---|---:|\n"
+          "| r1 | a \\| b | 1 |\n| r2 | c |\n\n![A figure](fig_a.png)\n**Figure 1.** caption\n\n"
+          "See [the title](#title-x), [out](https://example.com/x) and <https://example.com/y>.\n\n## Title *x*\n")
     raw = markdown_to_html(md, {"fig_a.png": PNG_1x1}, title="t<")
     page = parse(raw)
     assert page.errors == [] and page.stack == []
-    assert '<h1 id="title-x">Title *x*</h1>' in raw
+    flat = re.sub(r"\s*\n\s*", "", raw)
+    assert '<h1 id="title-x">Title <em>x</em></h1>' in flat and '<h2 id="title-x-1">' in flat  # repeats: -1
     assert "<code>a&lt;b</code>" in raw and "<strong>bold *star*</strong>" in raw
-    assert "<ul><li>one<ul><li>one.a</li><li>one.b</li></ul></li><li>two</li></ul>" in raw
-    assert '<td>a | b</td><td class="right">1</td>' in raw
-    assert "<td>r2</td><td>c</td><td class=\"right\"></td>" in raw  # short rows are padded
-    assert 'width="1" height="1"' in raw and "<figcaption><strong>Figure 1.</strong> caption</figcaption>" in raw
-    assert '<a href="#title-x">the title</a>' in raw
+    assert "&lt;script&gt;alert(1)&lt;/script&gt; &amp; &lt;b&gt;b&lt;/b&gt;" in raw  # raw HTML is text
+    assert "script" not in page.tags and "b" not in page.tags
+    assert "<ul><li>one<ul><li>one.a</li><li>one.b</li></ul></li><li>two</li></ul>" in flat
+    assert '<td>a | b</td><td class="right">1</td>' in flat
+    assert '<td>r2</td><td>c</td><td class="right"></td>' in flat  # short rows are padded
+    assert '<div class="table-wrap"><table>' in flat and "style=" not in raw.split("</style>", 1)[1]
+    assert 'width="1" height="1"' in raw
+    assert "<figcaption><strong>Figure 1.</strong> caption</figcaption></figure>" in flat
+    (img,) = page.images
+    assert base64.b64decode(img["src"].split(",", 1)[1]) == PNG_1x1 and img["data-file"] == "fig_a.png"
+    assert img["alt"] == "A figure"
+    assert page.links == ["#title-x"]  # links out of the page are shown as their text
+    assert "example.com" not in "".join(re.findall(r'(?:href|src)="([^"]*)"', raw))
     assert "<title>t&lt;</title>" in raw
+    assert "default-src 'none'" in raw and "<script" not in raw
     missing = markdown_to_html("![gone](gone.png)\n")
     assert "<img" not in missing and "gone.png" in missing
+
+
+def test_plain_text_renders_as_itself():
+    """Every text from a results file goes through md_escape: no Markdown or HTML comes out of it."""
+    texts = ["<script>alert('x')</script>", "*star* _under_ __dunder__ `tick` ~~strike~~", "&amp; &#60; &lt;",
+             "[link](http://x) [ref][r] ![img](y.png)", "# heading", "> quote", "- item", "+ item", "1. one",
+             "2) two", "---", "***", "___", "| a | b |", "=== setext", "~~~ fence", "    four spaces",
+             "back\\slash \\*", "trailing  ", "x_{k+1} and rmse_position", "a\nb\r\nc", "<http://auto.link>"]
+    for t in texts:
+        raw = markdown_to_html(md_escape(t) + "\n")
+        page = parse(raw)
+        body = raw.split("<main>", 1)[1]
+        assert not {"em", "strong", "code", "a", "img", "h1", "blockquote", "ul", "ol", "hr", "table", "pre",
+                    "script", "del"} & set(page.tags), (t, body)
+        assert page_text(parse(body)).strip() == " ".join(t.split()), (t, body)
+        assert md_plain(md_escape(t)).strip() == " ".join(t.split())
 
 
 def test_report_is_deterministic(tmp_path):
@@ -412,3 +477,329 @@ def test_a_multi_scenario_comparison_is_ranked_per_scenario(tmp_path):
     scen = md.split("## Scenarios and parameters", 1)[1].split("\n## ", 1)[0]
     assert "`glint_prob`" in scen.split("### target-range-bearing", 1)[1]
     assert "`meas_var`" in scen.split("### indoor-robot", 1)[1].split("### target-range-bearing", 1)[0]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Design and feasibility reports, from real outputs.
+
+LINEAR = str(Path(__file__).resolve().parents[1] / "examples" / "linear_network_model.py")
+SMALL = dict(sigma=0.01, beta=0.01, u_scale=0, v_scale=0)  # feasible on the linear model
+HARD = ("(28)", "(29)", "diverged")
+
+
+@pytest.fixture(scope="module")
+def designs(tmp_path_factory):
+    """The linear model's feasible design and the indoor robot's infeasible paper design, written with reports."""
+    lin, robot = tmp_path_factory.mktemp("lin-design"), tmp_path_factory.mktemp("robot-paper")
+    a = api.design(LINEAR, seed=2, out=lin, **SMALL)
+    b = api.design("indoor-robot", seed=1, out=robot)
+    assert a.feasible and not b.feasible  # the premise of the tests below
+    return {"feasible": (lin, a), "infeasible": (robot, b)}
+
+
+@pytest.fixture(params=["feasible", "infeasible"])
+def design_dir(request, designs) -> tuple[Path, object]:
+    return designs[request.param]
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    """Feasibility maps of the linear model: 4 x 4 over (sigma, beta), part feasible, and 1-D over sigma."""
+    two, one = tmp_path_factory.mktemp("map2"), tmp_path_factory.mktemp("map1")
+    m2 = api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], u_scale=0, v_scale=0, out=two)
+    m1 = api.feasibility(LINEAR, ["sigma=0:20:6"], u_scale=0, v_scale=0, out=one)
+    assert 0 < m2.feasible.sum() < m2.feasible.size and 0 < m1.feasible.sum() < m1.feasible.size
+    return {"two": (two, m2), "one": (one, m1)}
+
+
+def _section(md: str, title: str) -> str:
+    return md.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0].strip("\n") + "\n"
+
+
+def _valid_png(data: bytes) -> tuple[int, int]:
+    import io
+
+    from PIL import Image
+
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    with Image.open(io.BytesIO(data)) as im:
+        im.load()  # decodes every pixel: a truncated or damaged file raises
+        return im.size
+
+
+def _check_self_contained(raw: str) -> _Page:
+    page = parse(raw)
+    assert page.errors == [] and page.stack == []
+    assert "script" not in page.tags and "link" not in page.tags and "iframe" not in page.tags
+    assert "Content-Security-Policy" in raw and "default-src 'none'" in raw
+    srcs = re.findall(r"""(?:src|href)\s*=\s*["']([^"']*)""", raw)
+    assert srcs and all(x.startswith(("data:image/png;base64,", "#")) for x in srcs), [x[:40] for x in srcs]
+    ids = re.findall(r'id="([^"]+)"', raw)
+    assert len(ids) == len(set(ids)) and {h[1:] for h in page.links} <= set(ids)
+    return page
+
+
+def test_design_report_verdict(design_dir):
+    d, res = design_dir
+    sched = json.loads((d / "schedule.json").read_text())
+    md = (d / "report.md").read_text()
+    assert md.startswith(f"# Design report: {sched['scenario']}")
+    verdict = _section(md, "Verdict")
+    size = f"({sched['nodes']} nodes, {sched['steps']} steps)"
+    if sched["feasible"]:
+        assert verdict.startswith(f"**Feasible.** Conditions (28) and (29) held at every node and every step of the "
+                                  f"run {size} and no node diverged")
+    else:
+        hard = [v for v in sched["violations"] if v["condition"] in HARD]
+        first = min(hard, key=lambda v: (v["step"], v["node"]))
+        nodes = len({v["node"] for v in hard})
+        assert verdict.startswith(f"**Infeasible.** {len(hard)} violation(s) of (28)-(29) or divergence, at {nodes} "
+                                  f"of {sched['nodes']} nodes {size}. The first violation: condition "
+                                  f"{first['condition']} at node {first['node']}, step {first['step']}, margin "
+                                  f"{first['margin']:.4g}.")
+        # the same violation Design.reason() names
+        assert (f"first at node {first['node']}, step {first['step']}, condition {first['condition']}, margin "
+                f"{first['margin']:.4g}") in res.reason()
+    if any(v["condition"] == "theorem2" for v in sched["violations"]):
+        assert "Theorem 2's sufficient condition for mean-square boundedness of the error did not hold" in verdict
+    page = page_text(parse((d / "report.html").read_text()))
+    assert ("Feasible." if sched["feasible"] else "Infeasible.") in page
+
+
+def test_design_report_binding_table_follows_the_margins(design_dir):
+    d, _ = design_dir
+    sched = json.loads((d / "schedule.json").read_text())
+    z = np.load(d / "schedule.npz")
+    m28, m29 = z["margin28"], z["margin29"]
+    table = _section((d / "report.md").read_text(), "Which condition binds where")
+    rows = [r for r in table.splitlines() if re.match(r"\| \d+ \|", r)]
+    assert len(rows) == sched["nodes"]
+    for i, row in enumerate(rows):
+        cand = [(m28[i, k], k, "(28)", k) for k in range(m28.shape[1]) if np.isfinite(m28[i, k])]
+        cand += [(m29[i, k], k + 1, "(29)", k + 1) for k in range(m29.shape[1]) if np.isfinite(m29[i, k])]
+        margin, _, cond, step = min(cand)
+        both = np.isfinite(m28[i]) & np.isfinite(m29[i])
+        n29 = int(np.sum(both & (m29[i] < m28[i])))
+        sensor = sched["sensors"][i]["name"]
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[:5] == [str(i), sensor, cond, str(step), f"{margin:.4g}"], row
+        assert cells[6] == f"{100 * n29 / both.sum():.3g} %" and cells[7] == str(int(both.sum()))
+    if not sched["feasible"]:
+        # a node's tightest spot is its first violation
+        for v in sched["violations"]:
+            if v["condition"] in ("(28)", "(29)"):
+                name = sched["sensors"][v["node"]]["name"]
+                assert f"| {v['node']} | {name} | {v['condition']} | {v['step']} |" in table
+
+
+def test_design_report_figures_are_written_and_inlined(design_dir):
+    d, _ = design_dir
+    page = _check_self_contained((d / "report.html").read_text())
+    inlined = {img["data-file"]: base64.b64decode(img["src"].split(",", 1)[1], validate=True) for img in page.images}
+    assert set(inlined) == {"fig_trace_bound.png", "fig_margins.png"}
+    for name, data in inlined.items():
+        assert data == (d / name).read_bytes()
+        w, h = _valid_png(data)
+        assert w > 300 and h > 200
+    md = (d / "report.md").read_text()
+    assert "](fig_trace_bound.png)" in md and "](fig_margins.png)" in md
+    assert page.tags.count("table") >= 2  # binding, per node (and the scenario's parameters of a built-in one)
+
+
+def test_design_report_per_node_table(design_dir):
+    d, res = design_dir
+    sched = json.loads((d / "schedule.json").read_text())
+    z = np.load(d / "schedule.npz")
+    md = (d / "report.md").read_text()
+    nodes = _section(md, "Per node: ε, σ, β, gains and the final bound")
+    for i in range(sched["nodes"]):
+        row = next(r for r in nodes.splitlines() if r.startswith(f"| {i} | "))
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[2] == f"{sched['epsilon']:.4g}"
+        k = z["K"][i][np.all(np.isfinite(z["K"][i]), axis=(1, 2))]
+        assert cells[5] == f"{np.linalg.norm(k, 2, axis=(1, 2)).max():.4g}"
+        tb = sched["trace_bound"][i][-1]
+        if tb is not None:
+            assert cells[7] == f"{tb:.4g}" and cells[8] == "none"
+        else:
+            assert cells[7].startswith("none (last ") and cells[8] != "none"
+        if sched["mode"] == "paper":
+            assert cells[3].startswith(f"{sched['sigma_fixed']:.4g} (fixed)")
+        else:
+            sig = np.array([np.nan if x is None else x for x in sched["sigma"][i]])
+            assert cells[3] == f"{np.nanmin(sig):.4g} / {np.nanmedian(sig):.4g} / {np.nanmax(sig):.4g}"
+
+
+def test_design_report_explains_the_bound_and_lists_the_design(design_dir):
+    d, res = design_dir
+    sched = json.loads((d / "schedule.json").read_text())
+    md = (d / "report.md").read_text()
+    text = md_plain(md)
+    meaning = md_plain(_section(md, "What the bound means and where it holds"))
+    assert "It holds along the simulated run it was computed on" in meaning
+    assert sched["trajectory"] in meaning and sched["replay"] in meaning
+    for title in ("Design settings", "Linearisation", "Attacks", "Network", "Assumptions",
+                  "Files and reproduction"):
+        assert f"\n## {title}\n" in md
+    assert f"δ = {sched['delta']:.4g}" in text and "U = " in text and "V_i" in text
+    for a in sched["assumptions"]:
+        assert norm(a) in norm(text)
+    page = page_text(parse((d / "report.html").read_text()))
+    for a in sched["assumptions"]:
+        assert norm(a) in page
+
+
+def test_design_report_escapes_texts_from_the_schedule(designs, tmp_path):
+    src, _ = designs["feasible"]
+    d = tmp_path / "evil"
+    d.mkdir()
+    for name in ("schedule.json", "schedule.npz"):
+        (d / name).write_bytes((src / name).read_bytes())
+    sched = json.loads((d / "schedule.json").read_text())
+    evil = '<script>alert("x")</script> & <img src=x onerror="alert(1)"> [a](https://example.com) *b*'
+    sched["assumptions"].append(evil)
+    sched["scenario"] = "<b>bold</b>"
+    sched["sensors"][0]["name"] = "<script>s()</script>"
+    sched["extra_field"] = {"note": "<iframe src=x></iframe>"}
+    (d / "schedule.json").write_text(json.dumps(sched))
+    write_report(d)
+    raw = (d / "report.html").read_text()
+    assert "<script" not in raw.lower() and "<iframe" not in raw.lower() and "<b>" not in raw
+    assert "<img src=x" not in raw
+    page = _check_self_contained(raw)
+    text = page_text(page)
+    assert evil in text and "<script>s()</script>" in text and "<iframe src=x></iframe>" in text
+    assert "Design report: <b>bold</b>" in text
+    assert len(page.images) == 2 and not [t for t in page.tags if t == "b"]
+
+
+def test_design_report_is_deterministic(designs):
+    d, _ = designs["infeasible"]
+    before = {n: (d / n).read_bytes() for n in ("report.html", "report.md", "fig_trace_bound.png", "fig_margins.png")}
+    write_report(d)
+    assert {n: (d / n).read_bytes() for n in before} == before
+
+
+def test_design_report_without_the_arrays(designs, tmp_path):
+    """schedule.npz lost: the report says so and gives what schedule.json has (the bound from its trace_bound)."""
+    src, _ = designs["infeasible"]
+    (tmp_path / "schedule.json").write_bytes((src / "schedule.json").read_bytes())
+    write_report(tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    assert "schedule.npz is missing" in md and "**Infeasible.**" in md
+    assert "](fig_trace_bound.png)" in md and "fig_margins.png" not in md
+    assert _valid_png((tmp_path / "fig_trace_bound.png").read_bytes())
+    _check_self_contained((tmp_path / "report.html").read_text())
+
+
+def test_feasibility_report_counts_and_grid(maps):
+    d, fmap = maps["two"]
+    md = (d / "report.md").read_text()
+    n_ok = int(fmap.feasible.sum())
+    assert md.startswith(f"# Feasibility report: {fmap.scenario.name}")
+    assert f"**{n_ok} of {len(fmap.rows)} grid points are feasible.**" in md
+    grid = _section(md, "The grid")
+    (n1, v1), (n2, v2) = fmap.grids
+    assert f"| {n1} \\\\ {n2} | " + " | ".join(f"{b:.4g}" for b in v2) + " |" in grid
+    for a in v1:
+        row = next(r for r in grid.splitlines() if r.startswith(f"| {a:.4g} | "))
+        cells = [c.strip() for c in row.strip("|").split("|")][1:]
+        for b, cell in zip(v2, cells):
+            r = next(x for x in fmap.rows if x[n1] == a and x[n2] == b)
+            if r["feasible"]:
+                assert cell == f"{r['trace_bound']:.3g}" + ("" if r["theorem2"] else " †")
+            else:
+                assert cell == f"✗ {r['binding']}"
+    html_raw = (d / "report.html").read_text()
+    page = _check_self_contained(html_raw)
+    assert page.tags.count("table") >= 1
+    (img,) = page.images
+    data = base64.b64decode(img["src"].split(",", 1)[1], validate=True)
+    assert img["data-file"] == "feasibility.png" and data == (d / "feasibility.png").read_bytes()
+    assert _valid_png(data)[0] > 300
+
+
+def test_feasibility_report_one_parameter(maps):
+    d, fmap = maps["one"]
+    md = (d / "report.md").read_text()
+    grid = _section(md, "The grid")
+    (name, values), = fmap.grids
+    for r in fmap.rows:
+        cells = [c.strip() for c in next(x for x in grid.splitlines()
+                                         if x.startswith(f"| {r[name]:.4g} | ")).strip("|").split("|")]
+        assert cells[1] == ("yes" if r["feasible"] else "no")
+        assert cells[2] == (f"{r['trace_bound']:.4g}" if r["feasible"] else "—") and cells[3] == r["binding"]
+    why = _section(md, "How much is feasible")
+    assert f"**{int(fmap.feasible.sum())} of {len(values)} grid points are feasible.**" in why
+
+
+def test_feasibility_report_explains_the_two_notions_in_the_module_words(maps):
+    d, fmap = maps["two"]
+    md = (d / "report.md").read_text()
+    notions = _section(md, "Two notions of feasibility")
+    module = sys.modules[type(fmap).__module__]  # the module that computes the map
+
+    def words(s):
+        return " ".join(s.replace("`", "").replace("*", "").split())
+
+    paragraph = next(p for p in notions.split("\n\n") if p.startswith("**Two notions of feasibility.**"))
+    assert words(paragraph) in words(module.__doc__)
+    for phrase in ("along one simulated run", "realised DoS pattern", "transient from the prior", "stationary",
+                   "expected number of received packets", "leaves the operating point", "luckier or worse",
+                   "too short to reach an unbounded steady state"):
+        assert phrase in words(paragraph)
+    assert "Two notions of feasibility" in page_text(parse((d / "report.html").read_text()))
+
+
+def test_feasibility_report_sections_and_escaping(maps, tmp_path):
+    src, fmap = maps["two"]
+    meta = json.loads((src / "feasibility.json").read_text())
+    md = (src / "report.md").read_text()
+    for title in ("What was mapped", "Heat map", "Attacks", "Network", "How it was computed",
+                  "Files and reproduction") + (("Assumptions",) if meta["assumptions"] else ()):
+        assert f"\n## {title}\n" in md
+    mapped = md_plain(_section(md, "What was mapped"))
+    assert "`sigma`" in _section(md, "What was mapped") and "x0 = [1, -0.5]" in mapped
+    for a in meta["assumptions"]:
+        assert norm(a) in norm(md_plain(md))
+    # negative control: texts from the files are shown, never interpreted
+    for name in ("feasibility.csv", "feasibility.png"):
+        (tmp_path / name).write_bytes((src / name).read_bytes())
+    evil = "<script>alert(1)</script> <img src=x onerror=alert(2)>"
+    meta["assumptions"] = [evil]
+    meta["scenario"] = "<i>x</i>"
+    (tmp_path / "feasibility.json").write_text(json.dumps(meta))
+    write_report(tmp_path)
+    raw = (tmp_path / "report.html").read_text()
+    assert "<script" not in raw.lower() and "<img src=x" not in raw and "<i>" not in raw
+    page = _check_self_contained(raw)
+    assert evil in page_text(page) and "Feasibility report: <i>x</i>" in page_text(page)
+
+
+def test_feasibility_report_from_the_csv_alone(maps, tmp_path):
+    src, fmap = maps["two"]
+    (tmp_path / "feasibility.csv").write_bytes((src / "feasibility.csv").read_bytes())
+    write_report(tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    assert f"**{int(fmap.feasible.sum())} of {len(fmap.rows)} grid points are feasible.**" in md
+    assert "| sigma \\\\ beta |" in md and "Heat map" not in md
+    _check_self_contained((tmp_path / "report.html").read_text())
+
+
+def test_design_report_survives_divergence_and_odd_values(designs, tmp_path):
+    src, _ = designs["infeasible"]
+    base = json.loads((src / "schedule.json").read_text())
+    (tmp_path / "schedule.npz").write_bytes((src / "schedule.npz").read_bytes())
+    diverged = {**base, "violations": [{"node": 3, "step": 2, "condition": "diverged", "margin": None,
+                                        "reason": "estimate or covariance beyond 1e+08 or not finite"}]}
+    for sched in (diverged, {**base, "violations": "?", "sensors": None, "network": [], "attacks": 3, "U": "x",
+                             "V": [[1]], "options": None, "mode": None},
+                  {"schema": "cfdesign.schedule/1"}, {**base, "trace_bound": [[None]], "nodes": "8"}):
+        (tmp_path / "schedule.json").write_text(json.dumps(sched))
+        html_path, md_path = write_report(tmp_path)
+        _check_self_contained(html_path.read_text())
+    (tmp_path / "schedule.json").write_text(json.dumps({**diverged, "feasible": False}))
+    write_report(tmp_path)
+    verdict = _section((tmp_path / "report.md").read_text(), "Verdict")
+    assert ("The first violation: node 3 diverged at step 2 (estimate or covariance beyond 1e+08 or not finite)."
+            in verdict)
