@@ -2,7 +2,9 @@
 
 A page fails when the browser console has any SEVERE entry (a JavaScript error, a
 resource that failed to load, a Content-Security-Policy violation), when an image is
-not loaded or has no width, or when it has no table.  Negative controls run the same
+not loaded or has no width, or when it has no table.  The pages: two study reports,
+a design report (the indoor robot's infeasible paper design) and a feasibility
+report (a 2-D map of the small linear model).  Negative controls run the same
 checking function on pages with a broken image, a JavaScript error and no table.
 
 Without Chromium or chromedriver the tests are skipped, unless the environment sets
@@ -18,8 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from studies.consensus_robot import run_consensus_robot
-from studies.encrypted_switching import run_encrypted_switching
+from studies import api
 
 REQUIRE = os.environ.get("CFDESIGN_REQUIRE_BROWSER") == "1"
 PNG_1x1 = base64.b64decode(
@@ -98,21 +99,51 @@ def page_problems(driver, path: Path) -> list[str]:
     return problems
 
 
+LINEAR = str(Path(__file__).resolve().parents[1] / "examples" / "linear_network_model.py")
+
+
 @pytest.fixture(scope="module")
 def reports(tmp_path_factory):
     enc = tmp_path_factory.mktemp("enc")
-    run_encrypted_switching(out=enc, runs=2, particles=20, quiet=True)
+    api.study("encrypted-switching", out=enc, runs=2, particles=20)
     con = tmp_path_factory.mktemp("con")
-    run_consensus_robot(out=con, runs=2, quiet=True)
+    api.study("consensus-robot", out=con, runs=2)
     return [enc / "report.html", con / "report.html"]
+
+
+@pytest.fixture(scope="module")
+def design_and_map(tmp_path_factory):
+    design = tmp_path_factory.mktemp("design")
+    api.design("indoor-robot", seed=1, out=design)  # paper mode: infeasible, the report says why
+    fmap = tmp_path_factory.mktemp("map")
+    api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], u_scale=0, v_scale=0, out=fmap)
+    return [design / "report.html", fmap / "report.html"]
+
+
+def _renders_cleanly(driver, path: Path, min_images: int, min_tables: int) -> None:
+    assert page_problems(driver, path) == [], path
+    n = driver.execute_script("return document.images.length;")
+    assert n == len(list(path.parent.glob("*.png"))) and n >= min_images, path
+    assert driver.execute_script("return document.getElementsByTagName('table').length;") >= min_tables, path
+    assert driver.execute_script("return document.querySelectorAll('script').length;") == 0
+    # every in-page link of the contents leads to a heading of the page
+    missing = driver.execute_script(
+        "return Array.from(document.querySelectorAll('a[href^=\"#\"]'), a => decodeURIComponent("
+        "a.getAttribute('href').slice(1))).filter(id => !document.getElementById(id));")
+    assert missing == [], path
 
 
 def test_reports_render_cleanly(browser, reports):
     for path in reports:
-        assert page_problems(browser, path) == [], path
-        n = browser.execute_script("return document.images.length;")
-        assert n == len(list(path.parent.glob("*.png"))) and n >= 4
-        assert browser.execute_script("return document.querySelectorAll('script').length;") == 0
+        _renders_cleanly(browser, path, 4, 3)
+
+
+def test_design_and_feasibility_reports_render_cleanly(browser, design_and_map):
+    design, fmap = design_and_map
+    _renders_cleanly(browser, design, 2, 3)  # the bound, the margins; binding, per node, parameters
+    assert "Infeasible." in browser.execute_script("return document.body.innerText;")
+    _renders_cleanly(browser, fmap, 1, 1)  # the heat map; the grid
+    assert "grid points are feasible." in browser.execute_script("return document.body.innerText;")
 
 
 def _page(tmp_path: Path, name: str, body: str) -> Path:
