@@ -298,8 +298,8 @@ def _binding_section(s: _Schedule, tight) -> list[str]:
         out += ["In tuned mode σ and β are chosen at every node and step to keep (28)-(29) with a small relative "
                 "margin (see `designer.tuning`): the margins show how much room the tuning left.", ""]
     elif mode == "paper":
-        out += ["In paper mode σ and β are fixed: the margins shrink as Φ grows, and the first to reach 0 ends the "
-                "bound.", ""]
+        out += ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
+                "ends.", ""]
     return out
 
 
