@@ -21,7 +21,7 @@ import numpy as np
 from designer.attacks import FDISignal
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
-from studies.design import consensus_design
+from studies.consensus_design import consensus_design
 from studies.scenarios import load_scenario
 
 LINEAR_TOLERANCE = 2.0

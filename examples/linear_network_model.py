@@ -1,17 +1,19 @@
 """A small linear system watched by a path of three networked sensors: a user model for the consensus design.
 
-``cfdesign design examples/linear_network_model.py --sigma 0.01 --beta 0.01 --u-scale 0 --v-scale 0 --out d``
-gives a feasible schedule (exit 0); the paper's sigma = beta = 0.1 on the same model does too or reports
-where it fails.
+``cfdesign design examples/linear_network_model.py --sigma 0.01 --beta 0.01 --out d`` gives a feasible
+schedule (exit 0); the paper's sigma = beta = 0.1 on the same model does too or reports where it fails.
+The model is linear, so the default scalings derived from its Hessians are U = 0 and V_i = 0.
 """
 import casadi as ca
 import numpy as np
 
-from designer import Gaussian, Model, SensorNetwork, Sensor
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
 
 STEPS = 40
 X0 = [1.0, -0.5]
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.1, fdi_prob=0.05)
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+# DoS 0.1 on every channel, FDI 0.05; the attacker adds 0.2 sin(s) to both components of a packet
+ATTACKS = AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(amplitude=0.2))
 
 
 def model() -> Model:

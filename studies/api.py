@@ -11,8 +11,8 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 =========================  ==========================================================
 ``list_scenarios()``        ``cfdesign scenarios``
 ``simulate(...)``           ``cfdesign simulate``      -> :class:`Simulation`
-``design(...)``             ``cfdesign design``        -> :class:`~studies.design.Design`
-``feasibility(...)``        ``cfdesign feasibility``   -> :class:`~studies.feasibility.FeasibilityMap`
+``design(...)``             ``cfdesign design``        -> :class:`~studies.consensus_design.Design`
+``feasibility(...)``        ``cfdesign feasibility``   -> :class:`~studies.feasibility_map.FeasibilityMap`
 ``study(...)``              ``cfdesign study``         -> :class:`~studies.pipeline.StudyResult`
 ``report(directory)``       ``cfdesign report``
 =========================  ==========================================================
@@ -168,7 +168,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         ``.result`` of every node, and ``.save(directory)``.  An infeasible design is returned
         (and written), not raised: check ``.feasible``.
     """
-    from .design import run_design
+    from .consensus_design import run_design
 
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
@@ -217,9 +217,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     -----
     :func:`design` checks the conditions along one simulated run; this checks the steady
     state of the recursion at the operating point with the expected DoS pattern.  See
-    :mod:`studies.feasibility` for when the two disagree.
+    :mod:`studies.feasibility_map` for when the two disagree.
     """
-    from .feasibility import run_feasibility
+    from .feasibility_map import run_feasibility
     from .runner import make_backend
 
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,

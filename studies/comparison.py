@@ -52,7 +52,7 @@ from filters.ekf import run_ekf
 from filters.particle import run_sir
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
-from .design import as_mode, consensus_design
+from .consensus_design import as_mode, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import curves_figure, markdown_table, save_figure, _plt
 from .scenarios import Scenario, reference
@@ -375,19 +375,21 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
 
 
 def _combine(blocks: dict) -> dict:
-    """Several scenarios' blocks: ``filters`` and ``sweeps`` keyed ``"<scenario>: <filter>"``, ``by_scenario``."""
+    """The scenarios' blocks: ``filters`` and ``sweeps`` keyed ``"<scenario>: <filter>"`` (just ``"<filter>"``
+    when there is one scenario), and ``by_scenario`` with each block."""
     first = next(iter(blocks.values()))
+    label = (lambda sc, n: n) if len(blocks) == 1 else (lambda sc, n: f"{sc}: {n}")  # noqa: E731
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for sc_name, b in blocks.items():
         for key in sweeps:
             for val, row in b["sweeps"][key].items():
-                sweeps[key].setdefault(val, {}).update({f"{sc_name}: {n}": v for n, v in row.items()})
+                sweeps[key].setdefault(val, {}).update({label(sc_name, n): v for n, v in row.items()})
     return {
         "scenario": ", ".join(blocks), "runs": first["runs"], "steps": first["steps"],
         "assumptions": list(dict.fromkeys(a for b in blocks.values() for a in b["assumptions"]))
         + list(DESIGN_ASSUMPTIONS) + list(ASSUMPTIONS),
         "runner": {sc: b["runner"] for sc, b in blocks.items()},
-        "filters": {f"{sc_name}: {n}": {**f, "scenario": sc_name}
+        "filters": {label(sc_name, n): {**f, "scenario": sc_name}
                     for sc_name, b in blocks.items() for n, f in b["filters"].items()},
         "sweeps": sweeps,
         "paper": {"source": None, "numbers": None,

@@ -42,7 +42,7 @@ from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
 
 from .comparison import local_ekf_design
-from .design import as_mode, consensus_design
+from .consensus_design import as_mode, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import save_figure
 from .runner import run_seed

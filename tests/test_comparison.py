@@ -25,11 +25,24 @@ from filters.ekf import run_ekf
 from filters.particle import additive_noise_loglik
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 from studies.cli import main
-from studies.comparison import EKF_PLAIN, FILTERS, PAPER_DESIGN, PF_AWARE, PF_PLAIN, TUNED, run_comparison
+from studies.comparison import EKF_PLAIN, FILTERS, LOCAL, PAPER_DESIGN, PF_AWARE, PF_PLAIN, SWEEP_VALUES, TUNED
+from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_comparison(*, scenarios=("indoor-robot", "target-range-bearing"), sweep_values=SWEEP_VALUES,
+                   tuned_in_sweeps=False, **kw) -> dict:
+    return run_study("comparison", list(scenarios), sweep_values=sweep_values, tuned_in_sweeps=tuned_in_sweeps,
+                     **kw).results
+
+
+def run_consensus_robot(*, mode="paper", **kw) -> dict:
+    from designer.design import DesignOptions
+
+    return run_study("consensus-robot", options=DesignOptions(mode=mode), **kw).results
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +158,7 @@ def test_ekf_is_the_kalman_filter_with_missing_sensors():
 def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):
     """Second implementation: consensus-robot's centralized baseline (sigma = beta = 0, no neighbours)."""
     from studies.consensus_robot import _variants
-    from studies.design import consensus_design
+    from studies.consensus_design import consensus_design
 
     v = _variants(robot, consensus_design(robot), None)["centralized EKF (all cameras)"]
     traj = robot.simulate(np.random.default_rng(7), robot.steps)
@@ -158,7 +171,7 @@ def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):
 
 SMALL = dict(runs=3, particles=60, seed=2, quiet=True, sweep_values=(0.3,), chunk_size=1,
              scenarios=("indoor-robot",))
-ROBOT = "indoor-robot: "
+ROBOT = ""  # one scenario: filters keyed by their own names
 
 
 def _numbers(res: dict) -> dict:
@@ -179,8 +192,6 @@ def _numbers(res: dict) -> dict:
 
 def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
     """Same seeds, same attack draws: the comparison's consensus EKFs reproduce consensus-robot's numbers."""
-    from studies.consensus_robot import run_consensus_robot
-
     cr = run_consensus_robot(out=None, runs=3, seed=2, mode="tuned", quiet=True)
     res = run_comparison(out=None, **SMALL)
     fl = res["filters"]
@@ -188,8 +199,14 @@ def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
         cr["filters"]["consensus-EKF (tuned)"]["rmse_position"], rel=1e-12)
     assert fl[ROBOT + PAPER_DESIGN]["rmse_position"] == pytest.approx(
         cr["filters"]["consensus-EKF (paper, tau=0.01)"]["rmse_position"], rel=1e-12)
+    assert fl[ROBOT + LOCAL]["rmse_position"] == pytest.approx(
+        cr["filters"]["local EKF per camera"]["rmse_position"], rel=1e-12)
     assert set(fl) == {ROBOT + n for n in FILTERS}
     assert fl[ROBOT + PF_AWARE]["messages_per_step"] == 8 and fl[ROBOT + TUNED]["communications"] == 20
+    assert fl[ROBOT + LOCAL]["messages_per_step"] == 0
+    # no network, nothing attacked: the local EKFs' numbers are the same at every sweep setting
+    assert {row[ROBOT + LOCAL]["rmse_position"] for sw_ in res["sweeps"].values() for row in sw_.values()} == {
+        fl[ROBOT + LOCAL]["rmse_position"]}
     sw = res["sweeps"]
     assert set(sw["dos_prob"]) == {"0.1", "0.3"} and set(sw["fdi_prob"]) == {"0.1", "0.3"}
     assert ROBOT + TUNED not in sw["fdi_prob"]["0.3"] and ROBOT + TUNED in sw["fdi_prob"]["0.1"]
@@ -199,8 +216,6 @@ def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
 
 def test_without_attacks_the_centralized_filters_agree(tmp_path):
     """No attack: the plain EKF equals consensus-robot's centralized EKF; the two PFs are the same filter."""
-    from studies.consensus_robot import run_consensus_robot
-
     res = run_comparison(out=None, runs=3, particles=60, seed=1, quiet=True, sweep_values=(),
                          overrides={"dos_prob": 0.0, "fdi_prob": 0.0}, scenarios=("indoor-robot",))
     cr = run_consensus_robot(out=None, runs=3, seed=1, quiet=True, overrides={"dos_prob": 0.0, "fdi_prob": 0.0})
@@ -220,7 +235,7 @@ def test_same_numbers_with_every_backend(tmp_path):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
         c = run_comparison(out=tmp_path / "c", backend=make_backend(dask=cl.scheduler_address), **kw)
     assert _numbers(a) == _numbers(b) == _numbers(c)
-    assert len(a["filters"]) == 2 * len(FILTERS)
+    assert len(a["filters"]) == 2 * len(FILTERS) and "indoor-robot: " + LOCAL in a["filters"]
     rc, rb = c["runner"]["target-range-bearing"], b["runner"]["indoor-robot"]
     assert rc["backend"] == "dask" and rb["workers"] == 2 and rb["chunks_computed"] == 2
     on_disk = json.loads((tmp_path / "b" / "results.json").read_text())
@@ -284,9 +299,11 @@ def test_cli_comparison_options(tmp_path, capsys):
 
 
 def test_assignments_go_to_the_scenarios_that_have_the_parameter():
-    from studies.comparison import _scenario_assignments
+    from studies.pipeline import _route
+    from studies.scenarios import get_spec
 
-    got = _scenario_assignments(("indoor-robot", "target-range-bearing"),
+    names = ("indoor-robot", "target-range-bearing")
+    got = _route(names, {n: get_spec(n) for n in names},
                                 ["meas_var=2", "dos_prob=0.2", "glint_prob=0.1"])
     assert got == {"indoor-robot": ["meas_var=2", "dos_prob=0.2"],
                    "target-range-bearing": ["dos_prob=0.2", "glint_prob=0.1"]}
@@ -299,11 +316,11 @@ def test_target_scenario_tracks_with_wrapped_bearings():
     traj = sc.simulate(np.random.default_rng(0), 60)
     b = traj.z[:, 1]
     assert (b > 3.0).any() and (b < -3.0).any()  # the bearing of sensor 1 crosses +-pi
-    wrapped = run_ekf(sc.model, traj.z, angles=sc.extras["angle_components"])
-    raw = run_ekf(sc.model, traj.z)
+    wrapped = run_ekf(sc.model, traj.z)  # the sensors declare their bearing as an angle
+    raw = run_ekf(sc.model, traj.z, angles=())
     err = lambda res: np.sqrt(((res.x[1:, [0, 2]] - traj.x[1:, [0, 2]]) ** 2).sum(-1).mean())  # noqa: E731
     assert err(wrapped) < 3.0 < err(raw)
-    ll = uplink_loglik(sc.model, angles=sc.extras["angle_components"])
+    ll = uplink_loglik(sc.model)
     x = traj.x[5][None, None]
     y0 = np.concatenate([traj.z[4], [1.0, 1.0]])[None]
     y1 = y0.copy()

@@ -54,8 +54,7 @@ def test_paper_design_of_the_robot_reports_violations_and_exits_1(tmp_path):
 
 def test_feasible_design_on_a_small_linear_model_exits_0_and_reloads(tmp_path):
     out = tmp_path / "lin"
-    code = main(["design", LINEAR, "--sigma", "0.01", "--beta", "0.01", "--u-scale", "0", "--v-scale", "0",
-                 "--seed", "2", "--out", str(out)])
+    code = main(["design", LINEAR, "--sigma", "0.01", "--beta", "0.01", "--seed", "2", "--out", str(out)])
     assert code == 0
     sch = load_schedule(out)
     assert sch.feasible and sch.nodes == 3 and sch.steps == 40
@@ -73,14 +72,15 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
     from filters.consensus import run_consensus
     from studies.api import design
 
-    res = design(LINEAR, sigma=0.01, beta=0.01, u_scale=0, v_scale=0, seed=5, out=tmp_path)
+    res = design(LINEAR, sigma=0.01, beta=0.01, seed=5, out=tmp_path)
+    assert not np.any(res.design.U) and not any(np.any(v) for v in res.design.V)  # linear: prior scalings are 0
     sch = load_schedule(tmp_path)
     sc = res.scenario
     traj_ss, att_ss = np.random.SeedSequence(5).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), sch.steps)
     np.testing.assert_array_equal(traj.x, res.truth)
     att = simulate_attacks(sc.network, sch.steps, 2, np.random.default_rng(att_ss),
-                           signal=FDISignal(res.design.delta / np.sqrt(2), (0, 1)))
+                           signal=FDISignal(0.2, (0, 1)))  # the model file's ATTACKS signal
     rep = run_consensus(sc.model, sc.network, traj.z, res.design, inputs=traj.inputs, attacks=att,
                         gains=(sch.K.swapaxes(0, 1), sch.C.swapaxes(0, 1)))
     np.testing.assert_allclose(rep.x_post, res.result.x_post, rtol=0, atol=1e-12)
@@ -179,10 +179,11 @@ def test_study_replays_a_schedule_without_claiming_a_bound(tmp_path):
 
 def test_study_survives_variants_whose_every_run_diverges(tmp_path):
     """With Hessian-derived U, V the paper's fixed sigma, beta diverge; the results still say so, as JSON."""
-    from studies.consensus_robot import run_consensus_robot
+    from designer.design import DesignOptions
+    from studies.pipeline import run_study
 
-    res = run_consensus_robot(out=tmp_path, runs=2, seed=0, mode="tuned", quiet=True,
-                              assignments=["fdi_prob=0"], design_options={"linearization": "hessian"})
+    res = run_study("consensus-robot", out=tmp_path, runs=2, seed=0, quiet=True, assignments=["fdi_prob=0"],
+                    options=DesignOptions(mode="tuned", linearization="hessian")).results
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["filters"].keys() == res["filters"].keys()
     for f in saved["filters"].values():

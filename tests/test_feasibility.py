@@ -14,13 +14,19 @@ from designer.feasibility import steady_state
 from designer.network import SensorNetwork
 from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError
-from studies.feasibility import feasibility_map, parse_grid
+from studies.api import feasibility
+from studies.feasibility_map import parse_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def feasibility_map(scenario, grids, mode="tuned", **kw):
+    """The rows of a tuned map (the command's default is the paper's design)."""
+    return feasibility(scenario, grids, mode=mode, **kw).rows
+
+
 def _robot_linearisation():
-    from studies.design import consensus_design
+    from studies.consensus_design import consensus_design
     from studies.scenarios import load_scenario
 
     sc = load_scenario("indoor-robot")
@@ -30,7 +36,7 @@ def _robot_linearisation():
     xp = m.f(sc.x0, 0, u0)
     H = [m.H(i, xp, 1) for i in range(8)]
     R = [m.measurement_cov(i) for i in range(8)]
-    return sc, m, F, H, R, consensus_design(sc, mode="tuned")
+    return sc, m, F, H, R, consensus_design(sc, mode="tuned")  # one V for every camera: d.V[0]
 
 
 def test_accelerated_and_plain_iterations_reach_the_same_fixed_point():
@@ -46,7 +52,7 @@ def test_accelerated_and_plain_iterations_reach_the_same_fixed_point():
     pred = [tune_prediction(p, F, d.U, m.process_cov, d.epsilon).phi_pred for p in fast.phi]
     neigh = np.einsum("ij,jab->iab", 3 * (1 - n.dos_prob) * n.adjacency, np.array(pred)) \
         + (3 * d.delta**2 * (n.fdi_prob * n.adjacency).sum(1))[:, None, None] * np.eye(3)
-    again = [tune_update(pred[i], H[i], s[i], d.V, R[i], int(n.degrees[i]), neigh[i]).phi_post for i in range(8)]
+    again = [tune_update(pred[i], H[i], s[i], d.V[i], R[i], int(n.degrees[i]), neigh[i]).phi_post for i in range(8)]
     np.testing.assert_allclose(np.array(again), fast.phi, rtol=1e-6, atol=1e-10)
 
 
@@ -117,7 +123,8 @@ def test_cli_feasibility(tmp_path):
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "f" / "feasibility.csv").exists()
     r = subprocess.run([sys.executable, "-m", "studies", "feasibility", "indoor-robot", "--grid", "tau=0:1:2",
-                        "--out", str(tmp_path / "g")], capture_output=True, text=True, env=env, timeout=300)
+                        "--mode", "tuned", "--out", str(tmp_path / "g")], capture_output=True, text=True, env=env,
+                       timeout=300)
     assert r.returncode == 2 and "tau" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 

@@ -39,7 +39,7 @@ from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import InputError
 
-from .design import effective
+from .consensus_design import effective
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
