@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from filters.fdi import (attack_threshold, bias_attack, deception_mixture_loglik, detection_gain, measurement_cov,
+from filters.attacks import bias_attack
+from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_gain, measurement_cov,
                          measurement_matrix, modified_detector, normal_detector, residual_threshold, run_sis)
 from filters.particle import run_sir
 from studies.scenarios import load_scenario
@@ -34,13 +35,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sc = load_scenario("four-tank")
     m, K, N = sc.model, sc.steps, 100
-    ex = sc.extras
+    ch = sc.channel
     tr = sc.simulate(np.random.default_rng(1), K)
-    att = bias_attack(tr.z[None], bias=ex["attack_bias"], tau=ex["attack_tau"], prob=ex["attack_prob"],
-                      rng=np.random.default_rng(2))
+    att = bias_attack(tr.z[None], bias=ch.bias, tau=ch.tau, prob=ch.prob, rng=np.random.default_rng(2))
     G = measurement_matrix(m)
-    eta = residual_threshold(G, detection_gain(G, m.process_cov, measurement_cov(m)), ex["attack_norm_min"]).eta
-    zeta, _ = attack_threshold(N, ex["attack_prob"])
+    eta = residual_threshold(G, detection_gain(G, m.process_cov, measurement_cov(m)), ch.norm_min).eta
+    zeta, _ = attack_threshold(N, ch.prob)
     u = sc.inputs(K)
     filters = {
         "plain bootstrap (run_sir, no attack handling)": lambda g: run_sir(m, att.y, g, particles=N, inputs=u),
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
                                                     detector=modified_detector(m, eta), zeta=zeta,
                                                     gamma_hat=att.gamma),
         "method of [31]": lambda g: run_sis(m, att.y, [g], particles=N, inputs=u, loglik=deception_mixture_loglik(
-            m, attack_prob=ex["attack_prob"], deception=ex["attack_bias"])),
+            m, attack_prob=ch.prob, deception=ch.bias)),
     }
     best = {}
     for _ in range(args.repeat):  # interleaved, so load spikes hit every filter alike

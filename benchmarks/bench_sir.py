@@ -60,10 +60,10 @@ def simulate_data(sc, runs: int, steps: int, seed: int) -> dict:
     tr = sc.simulate(rng, steps, batch=runs)
     y = tr.per_sensor(m)  # (R, K, N, 2)
     y[..., 1] = wrap_angles(y, [1])[..., 1]
-    sched = round_robin_schedule(steps, m.n_sensors, sc.extras["rr_start"])
+    sched = round_robin_schedule(steps, m.n_sensors, sc.channel.start)
     ys = y[:, np.arange(steps), sched]  # (R, K, 2): the scheduled sensor's packet
     arng = np.random.default_rng(attack_ss)
-    box = sc.extras["deception"]
+    box = sc.channel.deception
     rr_att = deception_attack(ys, ETA, box, arng).y
     all_att = deception_attack(y, ETA, box, arng).y
     return dict(x=tr.x, y=y, sched=sched, ys=ys, rr_att=rr_att, all_att=all_att, filter_ss=filter_ss)
@@ -78,8 +78,8 @@ def table1_fast(sc, d: dict, particles: int, workers: int) -> dict:
     """The four filters of Table 1 on the fused kernels; returns per-filter RMSE and wall time."""
     m = sc.model
     R, K = d["ys"].shape[:2]
-    angles = sc.extras["angle_components"]
-    box = sc.extras["deception"]
+    angles = sc.model.angle_components
+    box = sc.channel.deception
     allsens = np.tile(np.arange(m.n_sensors), (K, 1))
     lc, att_rr = fastsir.deception_terms(d["rr_att"], ETA, box)
     _, att_all = fastsir.deception_terms(d["all_att"], ETA, box)
@@ -113,7 +113,7 @@ def table1_numpy(sc, d: dict, particles: int) -> tuple[float, dict]:
     """The same four filters on the NumPy engine (run_sir, all runs at once)."""
     m = sc.model
     R, K = d["ys"].shape[:2]
-    box = sc.extras["deception"]
+    box = sc.channel.deception
     filters = {
         "RRP-PF-DA": (d["rr_att"], rrp_loglik(m, d["sched"], attack_prob=ETA, signal=box, angles=[1])),
         "RRP-SPF-DA": (d["rr_att"], rrp_loglik(m, d["sched"], angles=[1])),
@@ -201,7 +201,7 @@ def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> t
     gens = spawn_generators(7, R)
     t = time.perf_counter()
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-    res = fastsir.sir_packets(m, x0, gens, sens, y, angles=sc.extras["angle_components"], workers=workers)
+    res = fastsir.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, workers=workers)
     return time.perf_counter() - t, rmse(res.mean, d["x"], m.position_index)
 
 
@@ -211,14 +211,14 @@ def one_step(sc, particles: int, all_sensors: bool) -> float:
     d = simulate_data(sc, 1, 1, 5)
     g = np.random.default_rng(3)
     x0 = m.prior.sample(g, (1, particles))
-    box = sc.extras["deception"]
+    box = sc.channel.deception
     if all_sensors:
         sens, y = np.arange(m.n_sensors)[None, :], d["all_att"]
     else:
         sens, y = d["sched"], d["rr_att"]
     lc, att = fastsir.deception_terms(y, ETA, box)
     t = time.perf_counter()
-    fastsir.sir_packets(m, x0, [g], sens, y, attack=att, log_clean=lc, angles=sc.extras["angle_components"])
+    fastsir.sir_packets(m, x0, [g], sens, y, attack=att, log_clean=lc, angles=sc.model.angle_components)
     return time.perf_counter() - t
 
 
@@ -231,7 +231,7 @@ def memory(sc, runs: int, particles: int, steps: int = 10) -> dict:
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
     workers = 2
     tracemalloc.start()
-    fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.extras["angle_components"], workers=workers)
+    fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.model.angle_components, workers=workers)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     # numba's allocations bypass tracemalloc: x, xn (M x n_x), lw, b, s, W, cdf, u, anc (M) per running thread
@@ -274,8 +274,8 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
     """ns per particle-step of one run: normal draws, f + G w, h + likelihood, and the rest by difference."""
     m = sc.model
     K = d["ys"].shape[1]
-    box = sc.extras["deception"]
-    wrap = fastsir._wrap_set(sc.extras["angle_components"], m)
+    box = sc.channel.deception
+    wrap = fastsir._wrap_set(sc.model.angle_components, m)
     prop, weigh = fastsir._prop(m), fastsir._weigh(m)
     run = fastsir._drivers("packets")[0]
     lc, att_rr = fastsir.deception_terms(d["rr_att"][:1], ETA, box)
@@ -328,10 +328,10 @@ def compile_all(sc) -> float:
     m = sc.model
     d = simulate_data(sc, 1, 2, 0)
     g = np.random.default_rng(0)
-    lc, att = fastsir.deception_terms(d["rr_att"], ETA, sc.extras["deception"])
+    lc, att = fastsir.deception_terms(d["rr_att"], ETA, sc.channel.deception)
     for kw in (dict(attack=att, log_clean=lc), {}):  # the attack-aware and the standard likelihood
         fastsir.sir_packets(m, m.prior.sample(g, (1, 4)), [g], d["sched"], d["rr_att"],
-                            angles=sc.extras["angle_components"], **kw)
+                            angles=sc.model.angle_components, **kw)
     return time.perf_counter() - t
 
 

@@ -43,9 +43,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from .network import SensorNetwork
-from .validation import InputError, check_finite
+from .noise import Noise
+from .validation import InputError, check_finite, check_int, check_probability
 
-__all__ = ["FDISignal", "AttackSpec", "SIGNAL_LAWS", "NO_ATTACKS"]
+__all__ = ["FDISignal", "AttackSpec", "SIGNAL_LAWS", "NO_ATTACKS", "RoundRobinDeception", "BinarySensorChannel",
+           "BiasFDI"]
 
 # law -> (g(s) as a NumPy function of standard normals, E[g(s)^2])
 SIGNAL_LAWS = ("sine", "uniform", "constant")
@@ -348,3 +350,196 @@ class ResolvedAttacks:
 
 
 NO_ATTACKS = AttackSpec()
+
+
+# --------------------------------------------------------------------------- the particle-filter papers' channels
+# What the sensors' packets suffer on their way to a (centralized) particle filter, one law per paper.  A model
+# file declares one as ``CHANNEL`` (next to its model()); the simulators are in filters.attacks.
+def _number(name: str, value, *, low: float | None = None, low_open: bool = False, high: float | None = None,
+            high_open: bool = False) -> float:
+    v = check_finite(name, value)
+    if v.ndim != 0:
+        raise InputError(f"{name} must be a number, got {value!r}")
+    v = float(v)
+    if (low is not None and (v <= low if low_open else v < low)) or \
+            (high is not None and (v >= high if high_open else v > high)):
+        lo = "-inf" if low is None else f"{low:g}"
+        hi = "inf" if high is None else f"{high:g}"
+        raise InputError(f"{name} must lie in {'(' if low_open or low is None else '['}{lo}, {hi}"
+                         f"{')' if high_open or high is None else ']'}, got {value!r}")
+    return v
+
+
+def _law(name: str, value, dim: int | None = None) -> Noise:
+    if not isinstance(value, Noise):
+        raise InputError(f"{name} must be a designer Noise distribution (e.g. UniformBox, Gaussian), got "
+                         f"{type(value).__name__}")
+    if dim is not None and value.dim != dim:
+        raise InputError(f"{name} must be {dim}-dimensional, got dimension {value.dim}")
+    return value
+
+
+def _scalar_sensors(what: str, model) -> None:
+    if any(d != 1 for d in model.sensor_dims):
+        raise InputError(f"{what} needs scalar sensors (one reading each), the model's have dimensions "
+                         f"{list(model.sensor_dims)}")
+
+
+@dataclass(frozen=True, eq=False)
+class RoundRobinDeception:
+    """Seed 000's channel: the Round-Robin protocol with randomly occurring deception attacks.
+
+    One sensor transmits per step, in turn: at ``k = 1..K`` sensor
+    ``γ_k = mod(k + start - 2, N) + 1`` (3) (``start`` is the paper's 1-based ``γ_ini``).
+    The transmitted packet ``y`` is received as ``ỹ = (1 - η) y + η ξ`` (4)-(6):
+    ``η ~ Bernoulli(deception_prob)`` (the paper's η̄) per packet, the fake packet
+    ``ξ ~ deception`` (the paper: uniform on a box of plausible values).  A model file::
+
+        CHANNEL = RoundRobinDeception(deception_prob=0.2,
+                                      deception=UniformBox([-10.0, -np.pi / 2], [80.0, np.pi / 2]))
+
+    Parameters
+    ----------
+    deception_prob : float in [0, 1)
+        η̄.
+    deception : designer Noise
+        The law of ``ξ``, of the sensors' dimension (every sensor must have the same).
+    start : int >= 1
+        ``γ_ini``: the sensor (1-based) with the first channel access.
+    """
+
+    deception_prob: float
+    deception: Noise
+    start: int = 1
+
+    def __post_init__(self):
+        p = check_probability("RoundRobinDeception deception_prob", self.deception_prob, open_upper=True)
+        if p.ndim:
+            raise InputError(f"RoundRobinDeception deception_prob must be a number, got {self.deception_prob!r}")
+        object.__setattr__(self, "deception_prob", float(p))
+        _law("RoundRobinDeception deception", self.deception)
+        object.__setattr__(self, "start", check_int("RoundRobinDeception start", self.start, 1))
+
+    def check(self, model) -> None:
+        """That it fits ``model``: sensors of one dimension, that of ``deception``; ``start`` a sensor."""
+        dims = sorted(set(model.sensor_dims))
+        if len(dims) != 1:
+            raise InputError(f"RoundRobinDeception needs sensors of one dimension (one packet type), the model's "
+                             f"have dimensions {list(model.sensor_dims)}")
+        _law("RoundRobinDeception deception", self.deception, dims[0])
+        if self.start > model.n_sensors:
+            raise InputError(f"RoundRobinDeception start must be a sensor in [1, {model.n_sensors}], got "
+                             f"{self.start}")
+
+
+@dataclass(frozen=True, eq=False)
+class BinarySensorChannel:
+    """Seed 002's channel: binary (thresholded) sensors under DoS, deception and bit flipping (3)-(7).
+
+    Each sensor's reading ``ŷ`` is independently jammed with probability ``dos_prob``
+    (φ̄; it becomes 0) or else replaced with probability ``deception_prob`` (ϕ̄) by
+    ``μ ~ deception``; the sensor sends the bit ``θ = 1[ȳ > threshold]``, flipped with
+    probability ``flip_prob`` (ᾱ), over a channel that receives ``y = gain θ̄ + ε``,
+    ``ε ~ channel_noise``.  A model file::
+
+        CHANNEL = BinarySensorChannel(dos_prob=0.1, deception_prob=0.1, flip_prob=0.1,
+                                      deception=UniformBox([-3.0], [3.0]), threshold=0.3, gain=0.5,
+                                      channel_noise=Gaussian.zero_mean([[0.01]]))
+
+    Parameters
+    ----------
+    dos_prob, deception_prob, flip_prob : float in [0, 1)
+        φ̄, ϕ̄, ᾱ.
+    deception : designer Noise
+        The one-dimensional law of a deceptive reading ``μ``.
+    threshold : float > 0
+        ``T_δ``.
+    gain : float > 0
+        ``τ_s``: the received level of a 1 bit.
+    channel_noise : designer Noise
+        The one-dimensional channel noise ``ε``.
+    """
+
+    dos_prob: float
+    deception_prob: float
+    flip_prob: float
+    deception: Noise
+    threshold: float
+    gain: float
+    channel_noise: Noise
+
+    def __post_init__(self):
+        for name in ("dos_prob", "deception_prob", "flip_prob"):
+            p = check_probability(f"BinarySensorChannel {name}", getattr(self, name), open_upper=True)
+            if p.ndim:
+                raise InputError(f"BinarySensorChannel {name} must be a number, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, float(p))
+        _law("BinarySensorChannel deception", self.deception, 1)
+        _law("BinarySensorChannel channel_noise", self.channel_noise, 1)
+        object.__setattr__(self, "threshold", _number("BinarySensorChannel threshold", self.threshold, low=0.0,
+                                                      low_open=True))
+        object.__setattr__(self, "gain", _number("BinarySensorChannel gain", self.gain, low=0.0, low_open=True))
+
+    @property
+    def probabilities(self) -> tuple[float, float, float]:
+        """``(dos_prob, deception_prob, flip_prob)``."""
+        return self.dos_prob, self.deception_prob, self.flip_prob
+
+    def check(self, model) -> None:
+        """That it fits ``model``: scalar sensors."""
+        _scalar_sensors("BinarySensorChannel", model)
+
+
+@dataclass(frozen=True, eq=False)
+class BiasFDI:
+    """Seed 004's attack: a bias injected into every measurement at random steps (3)-(4).
+
+    ``ỹ_k = y_k + l_k γ_k`` with ``l_k ~ Bernoulli(prob)`` per step (all sensors
+    together) and ``γ_{k+1} = tau γ_k + (1 - tau) bias``, ``γ_0 = 0``.  The detectors
+    are designed for attacks of norm at least ``norm_min`` (``‖γ‖_min`` of (45)); an
+    attack estimate ``γ̂_k = γ_k + e_k``, ``e_k ~ N(0, estimate_var I)``, is the
+    noisy-estimate case (the paper's Fig. 13).  A model file::
+
+        CHANNEL = BiasFDI(prob=0.5, bias=[0.5, 0.5, 0.5, 0.5], tau=0.9, norm_min=0.28)
+
+    Parameters
+    ----------
+    prob : float in [0, 1]
+        ``p_l``.
+    bias : sequence of float
+        ``γ̄``, one entry per measurement component (the model's ``n_z``).
+    tau : float in (0, 1)
+        The rate of the attack dynamics.
+    norm_min : float > 0
+        ``‖γ‖_min``.
+    estimate_var : float >= 0
+        Variance per component of the attack estimate's error (default the paper's 1e-2).
+    """
+
+    prob: float
+    bias: Sequence[float]
+    tau: float
+    norm_min: float
+    estimate_var: float = 1e-2
+
+    def __post_init__(self):
+        p = check_probability("BiasFDI prob", self.prob)
+        if p.ndim:
+            raise InputError(f"BiasFDI prob must be a number, got {self.prob!r}")
+        object.__setattr__(self, "prob", float(p))
+        bias = check_finite("BiasFDI bias", self.bias).astype(float)
+        if bias.ndim != 1 or bias.size < 1:
+            raise InputError(f"BiasFDI bias must be a vector (one entry per measurement component), got "
+                             f"{self.bias!r}")
+        bias.flags.writeable = False
+        object.__setattr__(self, "bias", bias)
+        object.__setattr__(self, "tau", _number("BiasFDI tau", self.tau, low=0.0, low_open=True, high=1.0,
+                                                high_open=True))
+        object.__setattr__(self, "norm_min", _number("BiasFDI norm_min", self.norm_min, low=0.0, low_open=True))
+        object.__setattr__(self, "estimate_var", _number("BiasFDI estimate_var", self.estimate_var, low=0.0))
+
+    def check(self, model) -> None:
+        """That it fits ``model``: one bias entry per measurement component."""
+        if self.bias.size != model.n_z:
+            raise InputError(f"BiasFDI bias has {self.bias.size} entries but the model measures {model.n_z} "
+                             "components")

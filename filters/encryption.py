@@ -45,8 +45,8 @@ import numpy as np
 from designer.validation import InputError, check_int, check_positive, check_probability, check_rng
 
 __all__ = [
-    "CRC4_ITU", "Codec", "to_bits", "from_bits", "key_stream", "encrypt", "decrypt", "crc", "crc_ok",
-    "Transmission", "transmit", "transmit_runs",
+    "CRC4_ITU", "Codec", "EncryptedChannel", "to_bits", "from_bits", "key_stream", "encrypt", "decrypt", "crc",
+    "crc_ok", "Transmission", "transmit", "transmit_runs",
 ]
 
 CRC4_ITU = 0b10011  # x^4 + x + 1 (ITU-T G.704)
@@ -77,11 +77,6 @@ class Codec:
         if lam.ndim:
             raise InputError(f"quant_range must be a scalar, got shape {lam.shape}")
         object.__setattr__(self, "quant_range", float(lam))
-
-    @classmethod
-    def of(cls, settings) -> "Codec":
-        """From a mapping with the keys ``resolution, quant_scale, quant_levels, quant_range`` (scenario extras)."""
-        return cls(*(settings[k] for k in ("resolution", "quant_scale", "quant_levels", "quant_range")))
 
     @property
     def bits(self) -> int:
@@ -287,3 +282,52 @@ def transmit_runs(z, codec: Codec, rngs, *, bit_error_prob: float = 0.0, dropout
     draws = [_channel_draws(g, z.shape[1:], codec.bits, int(poly).bit_length() - 1, None) for g in gens]
     key, flip_u, drop_u = (np.stack(d) for d in zip(*draws))
     return _send(z, codec, key, flip_u, drop_u, pe, pd, poly)
+
+
+@dataclass(frozen=True, eq=False)
+class EncryptedChannel:
+    """Seed 001's transmission: the sensors' :class:`Codec` and the errors of the channel.
+
+    Every sensor's measurement goes through the codec's resolution, quantizer and cipher
+    with a CRC (:func:`transmit`); each transmitted bit flips with probability
+    ``bit_error_prob`` (a CRC failure discards the packet) and each packet is lost with
+    probability ``dropout_prob``.  A model file::
+
+        CHANNEL = EncryptedChannel(Codec(resolution=0.2, quant_scale=1.0, quant_levels=8, quant_range=4.0))
+
+    Parameters
+    ----------
+    codec : Codec
+        The sensors' resolution and quantizer (scalars or one value per sensor).
+    bit_error_prob, dropout_prob : float in [0, 1)
+        Channel errors (0: Assumption 3's perfect channel).
+    """
+
+    codec: Codec
+    bit_error_prob: float = 0.0
+    dropout_prob: float = 0.0
+
+    def __post_init__(self):
+        if not isinstance(self.codec, Codec):
+            raise InputError(f"EncryptedChannel codec must be a filters.encryption.Codec, got "
+                             f"{type(self.codec).__name__}")
+        for name in ("bit_error_prob", "dropout_prob"):
+            p = check_probability(f"EncryptedChannel {name}", getattr(self, name), open_upper=True)
+            if p.ndim:
+                raise InputError(f"EncryptedChannel {name} must be a number, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, float(p))
+
+    def check(self, model) -> None:
+        """That it fits ``model``: scalar sensors, the codec's settings scalars or one per sensor."""
+        if any(d != 1 for d in model.sensor_dims):
+            raise InputError(f"EncryptedChannel needs scalar sensors (one reading each), the model's have "
+                             f"dimensions {list(model.sensor_dims)}")
+        bound = self.codec.bound
+        if bound.ndim > 1 or bound.size not in (1, model.n_sensors):
+            raise InputError(f"EncryptedChannel codec: resolution and quant_scale must be scalars or have one value "
+                             f"per sensor ({model.n_sensors}), got shape {bound.shape}")
+
+    def transmit_runs(self, z, rngs, *, poly: int = CRC4_ITU) -> Transmission:
+        """:func:`transmit_runs` of ``z`` (R, ..., N) through this channel, run ``r`` drawing from ``rngs[r]``."""
+        return transmit_runs(z, self.codec, rngs, bit_error_prob=self.bit_error_prob,
+                             dropout_prob=self.dropout_prob, poly=poly)

@@ -1047,8 +1047,8 @@ def sir_packets(
         ``log(1 − η̄)`` (0 for the standard likelihood).
     angles : sequence
         Residual components wrapped into (−π, π]: component indices (for every
-        sensor) or ``(sensor, component)`` pairs (as a scenario's
-        ``extras["angle_components"]``).
+        sensor) or ``(sensor, component)`` pairs (as a model's
+        ``angle_components``, from its sensors' ``angles``).
     resampler : {'systematic', 'stratified', 'multinomial', 'residual'}
     ess_threshold : float in (0, 1]
         Resample when ESS < ``ess_threshold * M``; 1 resamples at every step.

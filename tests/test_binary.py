@@ -13,9 +13,8 @@ from studies.scenarios import load_scenario
 
 def _setup():
     sc = load_scenario("target-binary-energy")
-    ex = sc.extras
-    kw = dict(deception=ex["deception"], threshold=ex["threshold"], gain=ex["channel_gain"],
-              channel_noise=ex["channel_noise"])
+    ch = sc.channel
+    kw = dict(deception=ch.deception, threshold=ch.threshold, gain=ch.gain, channel_noise=ch.channel_noise)
     return sc, kw
 
 

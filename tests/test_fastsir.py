@@ -45,7 +45,7 @@ def rb():
     y[..., 1] = wrap_angles(y, [1])[..., 1]
     sched = round_robin_schedule(K, m.n_sensors, 1)
     ys = y[:, np.arange(K), sched]
-    box = sc.extras["deception"]
+    box = sc.channel.deception
     return dict(sc=sc, m=m, R=R, K=K, x=tr.x, y=y, sched=sched, ys=ys, box=box,
                 rr_att=deception_attack(ys, ETA, box, rng).y, all_att=deception_attack(y, ETA, box, rng).y)
 
@@ -53,9 +53,8 @@ def rb():
 @pytest.fixture(scope="module")
 def binary():
     sc = load_scenario("target-binary-energy")
-    ex = sc.extras
-    kw = dict(threshold=ex["threshold"], gain=ex["channel_gain"], channel_noise=ex["channel_noise"],
-              deception=ex["deception"])
+    ch = sc.channel
+    kw = dict(threshold=ch.threshold, gain=ch.gain, channel_noise=ch.channel_noise, deception=ch.deception)
     probs = dict(dos_prob=0.1, deception_prob=0.1, flip_prob=0.1)
     R, K = 3, 25
     rng = np.random.default_rng(20)
@@ -285,7 +284,7 @@ def test_packet_likelihood_equals_the_rrp_likelihoods(rb):
     y = rb["all_att"][:, k]  # (R, 4, 2)
     lc, att = deception_terms(y, ETA, rb["box"])
     ours = packets_loglik(m, x, k + 1, np.arange(4), y, attack=att, log_clean=lc,
-                          angles=rb["sc"].extras["angle_components"])
+                          angles=rb["sc"].model.angle_components)
     ref = all_sensors_loglik(m, attack_prob=ETA, signal=rb["box"], angles=[1])(x, k + 1, y.reshape(R, 8))
     np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-12)
 
@@ -324,7 +323,7 @@ def test_packet_likelihood_with_full_covariances_and_means(noise):
     R = 2
     x = _particles_around(m, np.array([25.0, 0.3, 22.0, 0.3]), R, 300, 3, 4.0)
     y = np.array([[24.0, 0.9], [35.0, 0.5]])
-    box = load_scenario("target-range-bearing").extras["deception"]
+    box = load_scenario("target-range-bearing").channel.deception
     for i in (0, 1):
         np.testing.assert_allclose(packets_loglik(m, x, 2, [i], y, angles=[1]),
                                    rrp_loglik(m, np.array([i, i]), angles=[1])(x, 2, y), rtol=1e-12, atol=1e-12)

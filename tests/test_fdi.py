@@ -8,10 +8,10 @@ import pytest
 from designer import InputError
 from designer.model import Model, Sensor
 from designer.noise import Gaussian, GaussianMixture
-from filters.fdi import (attack_threshold, attack_values, bias_attack, correct_particles, corrected_proposal,
-                         deception_mixture_loglik, detection_counts, detection_gain, false_alarm_condition,
-                         measurement_cov, measurement_matrix, modified_detector, normal_detector, residual_threshold,
-                         run_sis, uniform_loglik)
+from filters.attacks import attack_values, bias_attack
+from filters.fdi import (attack_threshold, correct_particles, corrected_proposal, deception_mixture_loglik,
+                         detection_counts, detection_gain, false_alarm_condition, measurement_cov, measurement_matrix,
+                         modified_detector, normal_detector, residual_threshold, run_sis, uniform_loglik)
 from filters.particle import additive_noise_loglik, run_sir
 from studies.scenarios import load_scenario
 
@@ -27,7 +27,7 @@ def test_eta_of_the_default_four_tank_is_the_papers_0_233():
     m = sc.model
     G = measurement_matrix(m)
     np.testing.assert_array_equal(G, np.eye(4))
-    th = residual_threshold(G, detection_gain(G, m.process_cov, measurement_cov(m)), sc.extras["attack_norm_min"])
+    th = residual_threshold(G, detection_gain(G, m.process_cov, measurement_cov(m)), sc.channel.norm_min)
     assert round(th.eta, 3) == 0.233
     # closed form with G = I, Q = q I, R = diag(r): G K = diag(q / (r + q)), the largest on the r = 5e-4 channels
     assert th.sigma_bar == pytest.approx(1e-4 / (5e-4 + 1e-4), rel=1e-12)
@@ -185,7 +185,7 @@ def test_estimation_mode_with_a_perfect_detection_is_the_attack_free_filter():
     sc = load_scenario("four-tank", {"steps": 40})
     m, K = sc.model, 40
     y = np.stack([sc.simulate(np.random.default_rng(s)).z for s in (10, 11)])
-    att = bias_attack(y, bias=sc.extras["attack_bias"], tau=0.9, prob=0.5, rng=np.random.default_rng(12))
+    att = bias_attack(y, bias=sc.channel.bias, tau=0.9, prob=0.5, rng=np.random.default_rng(12))
     kw = dict(particles=50, inputs=sc.inputs(K))
 
     def gens():

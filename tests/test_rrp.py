@@ -25,7 +25,7 @@ def test_likelihood_14_is_the_density_of_the_received_packet():
     """Box probabilities of simulated received packets match those of (1-eta) p_nu(y - h) + eta p_xi(y)."""
     sc = load_scenario("target-range-bearing")
     m = sc.model
-    box, p = sc.extras["deception"], 0.2
+    box, p = sc.channel.deception, 0.2
     x = np.array([30.0, 0.3, 40.0, 0.3])
     h = m.h(1, x)
     rng = np.random.default_rng(0)
@@ -56,7 +56,7 @@ def test_paper_ordering_of_the_rrp_filters():
     y[..., 1] = wrap_angles(y, [1])[..., 1]
     sched = round_robin_schedule(K, 4, 1)
     ys = y[:, np.arange(K), sched]
-    sig = sc.extras["deception"]
+    sig = sc.channel.deception
     att = deception_attack(ys, 0.2, sig, rng)
     att_all = deception_attack(y, 0.2, sig, rng).y.reshape(runs, K, 8)
 

@@ -46,8 +46,9 @@ def test_range_bearing_published_values():
     # Range and bearing of a known geometry (closed form).
     x = np.array([3.0, 0.0, 4.0, 0.0])
     np.testing.assert_allclose(m.h(0, x), [5.0, np.arctan2(4.0, 3.0)], rtol=1e-15)
-    assert sc.extras["deception_prob"] == 0.2
-    np.testing.assert_allclose(np.exp(sc.extras["deception"].logpdf([0.0, 0.0])), 1 / (90 * np.pi))
+    assert sc.channel.deception_prob == 0.2 and sc.channel.start == 1
+    np.testing.assert_allclose(np.exp(sc.channel.deception.logpdf([0.0, 0.0])), 1 / (90 * np.pi))
+    assert m.angle_components == ((0, 1), (1, 1), (2, 1), (3, 1))  # every sensor's bearing
 
 
 def test_switching_published_values():
@@ -72,7 +73,8 @@ def test_binary_energy_published_values():
     assert m.n_sensors == 16 and [10.0, 10.0] in sc.params["sensor_positions"]
     x = np.array([10.0 + 3.0, 0.0, 10.0 + 4.0, 0.0])  # 5 m from the sensor at (10, 10)
     assert m.h(0, x)[0] == pytest.approx(4000.0 * 5.0**-2.8, rel=1e-13)
-    assert sc.extras["threshold"] == 0.3 and sc.extras["channel_gain"] == 0.5
+    ch = sc.channel
+    assert ch.threshold == 0.3 and ch.gain == 0.5 and ch.probabilities == (0.1, 0.1, 0.1)
     # The prior's mean velocity is (0.4, 0.3) up to the heading spread factor exp(-sd^2/2).
     c = np.exp(-0.5 * (np.pi / 6) ** 2)
     np.testing.assert_allclose(m.prior.mean, [15, 0.4 * c, 20, 0.3 * c], rtol=1e-12)

@@ -16,10 +16,10 @@ from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from . import four_tank, indoor_robot, switching_2d, target_binary_energy, target_range_bearing
-from .base import Param, Scenario, ScenarioSpec, parse_assignments
+from .base import CHANNEL_TYPES, Param, Scenario, ScenarioSpec, parse_assignments
 
 __all__ = ["SCENARIOS", "Param", "Scenario", "ScenarioSpec", "get_spec", "load_scenario", "parse_assignments",
-           "scenario_of", "MODEL_FILE_NAMES", "ScenarioRef", "reference"]
+           "scenario_of", "MODEL_FILE_NAMES", "ScenarioRef", "reference", "CHANNEL_TYPES"]
 
 SCENARIOS: dict[str, ScenarioSpec] = {
     m.SPEC.name: m.SPEC
@@ -35,6 +35,10 @@ MODEL_FILE_NAMES = {
     "inputs": "function inputs(steps) -> (steps, n_u) known inputs, for models with inputs",
     "NETWORK": "a designer.SensorNetwork with one node per sensor (the consensus filter's graph)",
     "ATTACKS": "a designer.AttackSpec: DoS/FDI per channel, the FDI signal and its bound, uplinks",
+    "CHANNEL": "what the packets suffer on their way to the particle filters: a designer.attacks.RoundRobinDeception "
+               "(rrp-deception), filters.encryption.EncryptedChannel (encrypted-switching), "
+               "designer.attacks.BinarySensorChannel (binary-multi-attack) or designer.attacks.BiasFDI "
+               "(fdi-four-tank)",
     "DESIGN": "a designer.DesignOptions with the model's design defaults (e.g. u_scale, v_scale)",
     "ASSUMPTIONS": "a list of strings carried into every result",
 }
@@ -88,7 +92,8 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
         try:
             return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
                             x0=getattr(module, "X0", None), network=network, input_fn=getattr(module, "inputs", None),
-                            attacks=attacks, design=getattr(module, "DESIGN", None))
+                            attacks=attacks, design=getattr(module, "DESIGN", None),
+                            channel=getattr(module, "CHANNEL", None))
         except InputError as exc:
             raise InputError(f"model file {str(path)!r}: {exc}") from exc
 
@@ -175,7 +180,7 @@ def reference(sc: Scenario) -> ScenarioRef:
 def scenario_of(target, *, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design: DesignOptions | None = None, steps: int | None = None, x0=None,
                 inputs: Callable[[int], np.ndarray] | None = None, overrides: Mapping[str, Any] | None = None,
-                assignments=()) -> Scenario:
+                assignments=(), channel=None) -> Scenario:
     """What every public function runs on: a built-in name, a model file path, a Scenario or a Model.
 
     Parameters
@@ -183,9 +188,9 @@ def scenario_of(target, *, network: SensorNetwork | None = None, attacks: Attack
     target : str, path, Scenario or designer.Model
         A built-in scenario name, a ``.py`` model file, a built :class:`Scenario`, or an
         in-memory model (then ``network``, ``attacks``, ``design``, ``steps``, ``x0`` and
-        ``inputs`` play the part of the model file's ``NETWORK``, ``ATTACKS``, ``DESIGN``,
-        ``STEPS``, ``X0`` and ``inputs``; ``steps`` applies to a Model only, the commands take
-        their own ``steps``).
+        ``inputs`` and ``channel`` play the part of the model file's ``NETWORK``, ``ATTACKS``,
+        ``DESIGN``, ``STEPS``, ``X0``, ``inputs`` and ``CHANNEL``; ``steps`` applies to a Model
+        only, the commands take their own ``steps``).
     overrides, assignments
         Named scenario parameters (built-ins and ``SPEC`` files).
     """
@@ -193,9 +198,9 @@ def scenario_of(target, *, network: SensorNetwork | None = None, attacks: Attack
         if overrides or assignments:
             raise InputError("an in-memory Model has no named parameters to override")
         return Scenario(target.name, target, {}, (), 50 if steps is None else int(steps), x0=x0, network=network,
-                        input_fn=inputs, attacks=attacks, design=design)
+                        input_fn=inputs, attacks=attacks, design=design, channel=channel)
     given = {k: v for k, v in (("network", network), ("attacks", attacks), ("design", design), ("x0", x0),
-                               ("inputs", inputs)) if v is not None}
+                               ("inputs", inputs), ("channel", channel)) if v is not None}
     if isinstance(target, Scenario):
         if overrides or assignments:
             raise InputError("a built Scenario has no parameters to override; build it with them")

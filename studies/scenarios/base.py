@@ -7,14 +7,18 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from designer.attacks import AttackSpec, ResolvedAttacks
+from designer.attacks import AttackSpec, BiasFDI, BinarySensorChannel, ResolvedAttacks, RoundRobinDeception
 from designer.design import DesignOptions
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.simulate import Trajectory, simulate
 from designer.validation import InputError
+from filters.encryption import EncryptedChannel
 
-__all__ = ["Param", "Scenario", "ScenarioSpec", "parse_assignments"]
+__all__ = ["Param", "Scenario", "ScenarioSpec", "parse_assignments", "CHANNEL_TYPES"]
+
+# What a scenario's ``channel`` (a model file's ``CHANNEL``) may be: one law per particle-filter paper.
+CHANNEL_TYPES = (RoundRobinDeception, EncryptedChannel, BinarySensorChannel, BiasFDI)
 
 _KINDS = ("float", "int", "array", "choice", "bool")
 
@@ -180,8 +184,11 @@ class Scenario:
         command overrides them.
     input_fn : callable or None
         ``input_fn(steps) -> (steps, n_u)`` known inputs.
-    extras : dict
-        Scenario-specific settings for the channel and attack simulators.
+    channel : one of :data:`CHANNEL_TYPES` or None
+        What the sensors' packets suffer on their way to the particle filters of seeds
+        000-002 and 004 (:class:`designer.attacks.RoundRobinDeception`,
+        :class:`filters.encryption.EncryptedChannel`, :class:`designer.attacks.BinarySensorChannel`,
+        :class:`designer.attacks.BiasFDI`); checked against the model.
     """
 
     name: str
@@ -192,12 +199,18 @@ class Scenario:
     x0: np.ndarray | None = None
     network: SensorNetwork | None = None
     input_fn: Callable[[int], np.ndarray] | None = None
-    extras: Mapping[str, Any] = field(default_factory=dict)
+    channel: Any = None
     attacks: AttackSpec | None = None
     design: DesignOptions | None = None
     source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
 
     def __post_init__(self):
+        ch = self.channel
+        if ch is not None:
+            if not isinstance(ch, CHANNEL_TYPES):
+                raise InputError(f"CHANNEL must be one of {', '.join(t.__name__ for t in CHANNEL_TYPES)}, got "
+                                 f"{type(ch).__name__}")
+            ch.check(self.model)
         net = self.network
         if net is None:
             if self.attacks is not None:

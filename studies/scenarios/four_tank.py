@@ -3,7 +3,8 @@
 Johansson's quadruple-tank process (IEEE TCST 2000) at its minimum-phase
 operating point, discretised by classical Runge-Kutta over the sampling period
 (written symbolically, so Jacobians are exact for the discrete map), with four
-level sensors ``y = G x + v``.
+level sensors ``y = G x + v``; the bias attack (3)-(4) is its ``channel``
+(:class:`designer.attacks.BiasFDI`).
 
 The filters' model always has the process noise ``w_k ~ N(0, Q)``; the simulated
 plant has it only with ``plant_noise=true``.  By default the plant is
@@ -19,6 +20,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
+from designer.attacks import BiasFDI
 from designer.model import Model, Sensor
 from designer.noise import Gaussian
 from designer.simulate import Trajectory, simulate
@@ -136,14 +138,8 @@ def build(p: dict) -> Scenario:
         steps=p["steps"],
         x0=x0,
         input_fn=inputs,
-        extras={
-            "G": G,
-            "attack_prob": p["attack_prob"],
-            "attack_tau": p["attack_tau"],
-            "attack_bias": np.asarray(p["attack_bias"], dtype=float),
-            "attack_norm_min": p["attack_norm_min"],
-            "attack_estimate_var": p["attack_estimate_var"],
-        },
+        channel=BiasFDI(prob=p["attack_prob"], bias=p["attack_bias"], tau=p["attack_tau"],
+                        norm_min=p["attack_norm_min"], estimate_var=p["attack_estimate_var"]),
         plant_noise=p["plant_noise"],
     )
 

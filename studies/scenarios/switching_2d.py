@@ -3,7 +3,8 @@
 x(t+1) = F x + gamma f(x) + (1 - gamma) g(x) + eta,  P(gamma = 1) = gamma_f;
 two scalar sensors z_1 = 2 sin(x1 - x2), z_2 = -2 cos(x1 + x2) with standard
 normal noise truncated to [-2, 2]; Gaussian-mixture process noise.  Sensor
-resolution, quantizer and cipher settings are kept in ``extras``.
+resolution, quantizer, cipher and channel errors are its ``channel``
+(:class:`filters.encryption.EncryptedChannel` with its :class:`filters.encryption.Codec`).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 from designer.model import Model, Sensor
 from designer.noise import Gaussian, GaussianMixture, TruncatedGaussian
 from designer.validation import InputError
+from filters.encryption import Codec, EncryptedChannel
 
 from .base import Param, Scenario, ScenarioSpec
 
@@ -86,14 +88,8 @@ def build(p: dict) -> Scenario:
         assumptions,
         steps=p["steps"],
         x0=None,
-        extras={
-            "resolution": p["resolution"],
-            "quant_scale": p["quant_scale"],
-            "quant_levels": levels,
-            "quant_range": p["quant_range"],
-            "bit_error_prob": p["bit_error_prob"],
-            "dropout_prob": p["dropout_prob"],
-        },
+        channel=EncryptedChannel(Codec(p["resolution"], p["quant_scale"], levels, p["quant_range"]),
+                                 bit_error_prob=p["bit_error_prob"], dropout_prob=p["dropout_prob"]),
     )
 
 

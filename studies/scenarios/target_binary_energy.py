@@ -1,14 +1,15 @@
 """``target-binary-energy``: seed 002 (Song et al. — Sec-PF with binary sensors).
 
 Constant-velocity target (27)-(28) observed by 16 received-energy sensors (29)
-with glint noise; thresholding, DoS, deception, flipping and the channel are
-settings for the channel simulators, kept in ``extras`` (Table I).
+with glint noise; thresholding, DoS, deception, flipping and the channel noise are
+its ``channel`` (:class:`designer.attacks.BinarySensorChannel`, Table I).
 """
 from __future__ import annotations
 
 import casadi as ca
 import numpy as np
 
+from designer.attacks import BinarySensorChannel
 from designer.model import Model, Sensor
 from designer.noise import Gaussian, PolarVelocityPrior, UniformBox
 from designer.validation import InputError
@@ -85,15 +86,15 @@ def build(p: dict) -> Scenario:
         assumptions,
         steps=p["steps"],
         x0=x0,
-        extras={
-            "dos_prob": p["dos_prob"],
-            "deception_prob": p["deception_prob"],
-            "flip_prob": p["flip_prob"],
-            "deception": UniformBox([p["deception_low"]], [p["deception_high"]]),
-            "threshold": p["threshold"],
-            "channel_gain": p["channel_gain"],
-            "channel_noise": Gaussian.zero_mean([[p["channel_std"] ** 2]]),
-        },
+        channel=BinarySensorChannel(
+            dos_prob=p["dos_prob"],
+            deception_prob=p["deception_prob"],
+            flip_prob=p["flip_prob"],
+            deception=UniformBox([p["deception_low"]], [p["deception_high"]]),
+            threshold=p["threshold"],
+            gain=p["channel_gain"],
+            channel_noise=Gaussian.zero_mean([[p["channel_std"] ** 2]]),
+        ),
     )
 
 

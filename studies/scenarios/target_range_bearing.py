@@ -1,15 +1,15 @@
 """``target-range-bearing``: seed 000 (Song, Wang, Wang, Shan — RRP-PF-DA).
 
 Constant-velocity target (16)-(17), four range-bearing sensors (18) with glint
-noise (19); the Round-Robin schedule and the deception attack (4)-(6) are
-channel settings kept in ``extras`` for the channel simulators.
+noise (19); the Round-Robin schedule and the deception attack (4)-(6) are its
+``channel`` (:class:`designer.attacks.RoundRobinDeception`).
 """
 from __future__ import annotations
 
 import casadi as ca
 import numpy as np
 
-from designer.attacks import AttackSpec, FDISignal
+from designer.attacks import AttackSpec, FDISignal, RoundRobinDeception
 from designer.design import DesignOptions
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
@@ -114,12 +114,7 @@ def build(p: dict) -> Scenario:
         network=network,
         attacks=attacks,
         design=DesignOptions(u_scale=0.01, v_scale=0.1),
-        extras={
-            "deception_prob": p["deception_prob"],
-            "deception": UniformBox(lower, upper),
-            "rr_start": p["rr_start"],
-            "angle_components": model.angle_components,
-        },
+        channel=RoundRobinDeception(p["deception_prob"], UniformBox(lower, upper), p["rr_start"]),
     )
 
 
