@@ -361,7 +361,11 @@ class Model:
     def F(self, x, k=0, u=None, mode=None) -> np.ndarray:
         """Jacobian ``df/dx``, shape ``(..., n_x, n_x)``."""
         with np.errstate(all="ignore"):
-            return self._np_F(self._state(x), self._k(k), self._u(u), self._mode(mode))[0]
+            return self._matrix(self._np_F(self._state(x), self._k(k), self._u(u), self._mode(mode))[0], self.n_x)
+
+    def _matrix(self, out: np.ndarray, rows: int) -> np.ndarray:
+        """A matrix output ``(..., rows, n_x)``: the translation returns a column (one column: ``n_x = 1``) flat."""
+        return out[..., None] if self.n_x == 1 and out.shape[-1:] == (rows,) else out
 
     def F_expected(self, x, k=0, u=None) -> np.ndarray:
         """Jacobian of :meth:`f_expected`."""
@@ -371,7 +375,7 @@ class Model:
         """Hessians of every component of ``f``, shape ``(..., n_x, n_x, n_x)`` (component first)."""
         with np.errstate(all="ignore"):
             parts = self._np_f_hess(self._state(x), self._k(k), self._u(u), self._mode(mode))
-        return np.stack(parts, axis=-3)
+        return np.stack([self._matrix(p, self.n_x) for p in parts], axis=-3)
 
     def h(self, i: int, x, k=0) -> np.ndarray:
         """Measurement function of sensor ``i``, shape ``(..., n_z_i)``."""
@@ -380,14 +384,15 @@ class Model:
 
     def H(self, i: int, x, k=0) -> np.ndarray:
         """Jacobian ``dh_i/dx``, shape ``(..., n_z_i, n_x)``."""
+        i = self._sensor(i)
         with np.errstate(all="ignore"):
-            return self._np_H[self._sensor(i)](self._state(x), self._k(k))[0]
+            return self._matrix(self._np_H[i](self._state(x), self._k(k))[0], self.sensors[i].dim)
 
     def h_hessian(self, i: int, x, k=0) -> np.ndarray:
         """Hessians of every component of ``h_i``, shape ``(..., n_z_i, n_x, n_x)``."""
         with np.errstate(all="ignore"):
             parts = self._np_h_hess[self._sensor(i)](self._state(x), self._k(k))
-        return np.stack(parts, axis=-3)
+        return np.stack([self._matrix(p, self.n_x) for p in parts], axis=-3)
 
     def h_all(self, x, k=0) -> np.ndarray:
         """All sensors' measurement functions stacked, shape ``(..., n_z)``."""

@@ -301,6 +301,6 @@ def report(directory: str | Path) -> tuple[Path, Path]:
     feasibility map's (``feasibility.csv``).  The commands write their reports already; this
     rebuilds them, e.g. after editing the output or for results of an older version.
     """
-    from .report import write_report
+    from .reports import write_report
 
     return write_report(directory)

@@ -24,6 +24,7 @@ from designer.validation import InputError, check_int
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
+from .results import versions
 from .scenarios import Scenario
 
 __all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode"]
@@ -126,9 +127,9 @@ class Design:
                 f"{first['step']}, condition {first['condition']}, {detail}")
 
     def save(self, directory) -> Path:
-        """Write ``schedule.json``, ``schedule.npz``, the figure and ``report.html`` / ``report.md`` into ``directory``."""
+        """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``."""
         out = self.schedule.write(directory)
-        from .report import write_report
+        from .reports import write_report
 
         write_report(out)
         return out
@@ -179,7 +180,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "network": net.describe(),
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
+            "source": sc.source,
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS),
+            "versions": versions(),
         },
     )
     return Design(sc, opts, des, res, schedule, traj.x, seed)

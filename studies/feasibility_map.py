@@ -191,18 +191,24 @@ class FeasibilityMap:
         _write_csv(out / "feasibility.csv", self.rows, self.names)
         if len(self.grids) <= 2:
             _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or "paper")
+        from designer.design import DESIGN_ASSUMPTIONS
+
+        from .results import versions
+
         sc = self.scenario
         write_json(out / "feasibility.json", {
-            "schema": "cfdesign.feasibility/1", "scenario": sc.name,
+            "schema": "cfdesign.feasibility/1", "scenario": sc.name, "source": sc.source,
+            "state_names": list(sc.model.state_names),
             "grids": [{"name": n, "values": v.tolist()} for n, v in self.grids],
             "options": self.options.as_dict(), "points": len(self.rows),
             "feasible_points": int(sum(r["feasible"] for r in self.rows)),
             "operating_point": {"x0": sc.operating_point[0].tolist(),
                                 "u0": None if sc.operating_point[1] is None else sc.operating_point[1].tolist()},
             "network": sc.network.describe(), "attacks": sc.resolved_attacks.describe(sc.model.state_names),
-            "assumptions": list(sc.assumptions), "runner": self.runner,
+            "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS), "runner": self.runner,
+            "versions": versions(),
         })
-        from .report import write_report
+        from .reports import write_report
 
         write_report(out)
         return out

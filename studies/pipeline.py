@@ -187,9 +187,7 @@ def study_text(name) -> StudyText | None:
     """The report texts of study ``name`` (None for an unknown name)."""
     if not isinstance(name, str) or name not in STUDIES:
         return None
-    mod = importlib.import_module(STUDIES[name])
-    study = getattr(mod, "STUDY", None)
-    return study.text if study is not None else getattr(mod, "TEXT", None)
+    return get_study(name).text
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,6 +306,10 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
         particles = check_int("particles", particles, 2)
     extra = {**study.options, **study_options}
     scenarios = _scenarios(study, targets, overrides, assignments)
+    attack = design.attack_overrides()
+    if any(v is not None for v in attack.values()):  # --dos/--fdi/--delta/--amplitude: the scenarios' attacks
+        scenarios = [sc.with_attacks(**attack) for sc in scenarios]
+        design = DesignOptions(**{**design.as_dict(), **{k: None for k in attack}})
     if backend.kind == "dask":
         mem = [sc.name for sc in scenarios if sc.source is None]
         if mem:

@@ -40,6 +40,7 @@ def test_matrix_entries_are_directed_channels_and_off_edge_entries_are_refused()
 def test_fdi_without_a_bound_names_both_and_dos_plus_fdi_is_checked():
     with pytest.raises(InputError, match="fdi probability > 0 but no FDI bound.*delta"):
         AttackSpec(fdi=0.1).resolve(RING, 2)
+    assert AttackSpec(fdi=0.1).resolve(RING, 2, require_bound=False).delta is None
     with pytest.raises(InputError, match="fdi probability > 0 but no FDI bound"):
         AttackSpec(uplink_fdi=0.1).resolve(RING, 2)
     AttackSpec(fdi=0.1, delta=0.5).resolve(RING, 2)  # a bound alone is enough: the paper's law at the bound
@@ -114,7 +115,10 @@ def test_scenario_checks_network_size_and_declared_attacks():
     with pytest.raises(InputError, match="NETWORK has 4 nodes but the model has 3 sensors"):
         Scenario("m", m, {}, (), 5, network=RING)
     net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], fdi_prob=0.2)
+    unbounded = Scenario("m", m, {}, (), 5, network=net)  # a command may still give --delta or --amplitude
     with pytest.raises(InputError, match="no FDI bound"):
-        Scenario("m", m, {}, (), 5, network=net)
+        unbounded.resolved_attacks
+    assert unbounded.with_attacks(delta=0.5).resolved_attacks.delta == 0.5
+    assert unbounded.with_attacks(amplitude=0.5).resolved_attacks.delta == 0.5
     sc = Scenario("m", m, {}, (), 5, network=net.with_attacks(0.1, 0.0))
     assert sc.resolved_attacks.network.dos_prob[0, 1] == 0.1

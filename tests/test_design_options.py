@@ -173,3 +173,20 @@ def test_in_memory_model_with_network_and_attacks_designs():
     assert d.feasible and d.design.delta == pytest.approx(0.5 * np.sqrt(2))
     with pytest.raises(InputError, match="no FDI bound"):
         design(m, network=net, attacks=AttackSpec(fdi=0.1), steps=5)
+
+
+def test_scalar_state_models_have_matrix_jacobians_and_hessians():
+    """n_x = 1: F, H_i and the Hessians keep their matrix axes (the translation returns 1-column outputs flat)."""
+    x = ca.SX.sym("x", 1)
+    m = Model("s", x, 0.8 * x + 0.1 * ca.sin(x), [Sensor("a", ca.vertcat(x**2, ca.sin(x)), Gaussian.zero_mean(np.eye(2))),
+                                                 Sensor("b", 3 * x, Gaussian.zero_mean([[1.0]]))],
+              Gaussian.zero_mean([[0.01]]), Gaussian([0.2], [[1.0]]))
+    pts = np.full((5, 1), 0.7)
+    assert m.F(pts).shape == (5, 1, 1) and m.H(0, pts).shape == (5, 2, 1) and m.H(1, pts).shape == (5, 1, 1)
+    assert m.f_hessian(pts).shape == (5, 1, 1, 1) and m.h_hessian(0, pts).shape == (5, 2, 1, 1)
+    np.testing.assert_allclose(m.F(pts)[:, 0, 0], 0.8 + 0.1 * np.cos(0.7))
+    np.testing.assert_allclose(m.h_hessian(0, pts)[:, :, 0, 0], np.tile([2.0, -np.sin(0.7)], (5, 1)))
+    sc = scenario_of(m, network=SensorNetwork.from_edges(2, [(0, 1)]), steps=10)
+    des = consensus_design(sc, mode="tuned")
+    res = run_consensus(m, sc.network, sc.simulate(np.random.default_rng(1)).z, des)
+    assert res.feasible and res.K.shape == (10, 2, 1, 2)

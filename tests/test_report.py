@@ -24,8 +24,8 @@ import pytest
 
 from designer.validation import InputError
 from studies import api
-from studies.report import markdown_to_html, render_markdown, write_report
-from studies.report.text import md_escape
+from studies.reports import markdown_to_html, render_markdown, write_report
+from studies.reports.text import md_escape
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 PNG_1x1 = base64.b64decode(
@@ -347,7 +347,7 @@ def test_a_failed_write_keeps_the_old_report(tmp_path, monkeypatch):
     d = _write(tmp_path, _results())
     write_report(d)
     before = (d / "report.html").read_bytes()
-    import studies.report as report
+    import studies.reports as report
 
     def boom(*a, **k):
         raise RuntimeError("disk full")

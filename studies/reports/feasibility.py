@@ -15,7 +15,6 @@ left out.
 from __future__ import annotations
 
 import csv
-import importlib
 import io
 import math
 from collections import Counter
@@ -39,19 +38,16 @@ TWO_NOTIONS = (
     "transient violates a condition that the steady state satisfies (or the reverse: a run that is too short to "
     "reach an unbounded steady state).")
 _KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "operating_point", "network",
-          "attacks", "assumptions", "runner"}
+          "attacks", "assumptions", "runner", "source", "state_names"}
 _THEOREM2 = {True: "holds", False: "fails", None: "—"}
 _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
 
 
 def _grid_docs() -> Mapping[str, str]:
-    """What each grid parameter is (the map module's GRID_PARAMETERS; {} when it cannot be imported)."""
-    for name in ("studies.feasibility_map", "studies.feasibility"):
-        try:
-            return importlib.import_module(name).GRID_PARAMETERS
-        except (ImportError, AttributeError):
-            continue
-    return {}  # pragma: no cover - a report must not depend on the map module importing
+    """What each grid parameter is (the map module's GRID_PARAMETERS)."""
+    from ..feasibility_map import GRID_PARAMETERS
+
+    return GRID_PARAMETERS
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -626,7 +626,7 @@ def render_markdown(results: Mapping[str, Any], table_md: str | None = None,
     Returns
     -------
     str
-        The Markdown text of ``report.md``; :func:`studies.report.render.markdown_to_html` turns it
+        The Markdown text of ``report.md``; :func:`studies.reports.render.markdown_to_html` turns it
         into the HTML report.
     """
     study = results.get("study")

@@ -2,7 +2,7 @@
 
 The parser is CommonMark with the GFM table extension and **raw HTML disabled**:
 any ``<script>``, ``<iframe>`` or other markup in the Markdown (a study's
-``table.md``, a text from a results file that escaped :func:`studies.report.text.md_escape`)
+``table.md``, a text from a results file that escaped :func:`studies.reports.text.md_escape`)
 is shown as text, never passed through.  On top of the parser, one core rule and a
 few render rules give the page what a report needs:
 
@@ -207,6 +207,6 @@ def markdown_to_html(markdown: str, images: Mapping[str, bytes] | None = None, t
             '<html lang="en">\n<head>\n<meta charset="utf-8">\n'
             f'<meta http-equiv="Content-Security-Policy" content="{CSP}">\n'
             '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
-            '<meta name="generator" content="cfdesign studies.report (markdown-it-py)">\n'
+            '<meta name="generator" content="cfdesign studies.reports (markdown-it-py)">\n'
             f"<title>{html.escape(title)}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n<main>\n"
             + body + "</main>\n</body>\n</html>\n")

@@ -280,7 +280,7 @@ def document(head: Sequence[str], sections: Iterable[Sequence[str]]) -> str:
     """The report: ``head`` (its ``#`` title and lead), a table of contents, then every non-empty section.
 
     Each section starts with its ``## `` heading; the contents link to them by the anchors
-    the HTML page gives them (:func:`studies.report.render.heading_anchors`).
+    the HTML page gives them (:func:`studies.reports.render.heading_anchors`).
     """
     sections = [list(s) for s in sections if s]
     out = [*head, "", "## Contents", ""]

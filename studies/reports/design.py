@@ -40,7 +40,7 @@ FIGURES = {
 _KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
           "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
           "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
-          "params", "assumptions"}
+          "params", "assumptions", "source"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -562,9 +562,12 @@ def _cli_value(v) -> str | None:
 
 
 def command_line(command: str, meta: Mapping, extra: str = "") -> str | None:
-    """``cfdesign COMMAND SCENARIO ...`` (Markdown) that redoes this output; None for a scenario not built in."""
+    """``cfdesign COMMAND SCENARIO|MODEL.py ...`` (Markdown) that redoes this output; None when it cannot be said."""
     name = meta.get("scenario")
-    if scenario_spec(name) is None or not re.fullmatch(r"[\w.\-]+", str(name)):
+    source = meta.get("source")
+    if isinstance(source, str) and source.endswith(".py") and re.fullmatch(r"[\w.\-/]+", source):
+        name = source  # the model file it was loaded from
+    elif scenario_spec(name) is None or not re.fullmatch(r"[\w.\-]+", str(name)):
         return None
     cmd = f"cfdesign {command} {name}{extra}"
     opts = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}

@@ -4,18 +4,18 @@
 that fits:
 
 * ``results.json`` (schema ``cfdesign.study/1``, from ``cfdesign study``): the study
-  report (:mod:`studies.report.study`) — what the study compares, which filter to pick,
+  report (:mod:`studies.reports.study`) — what the study compares, which filter to pick,
   the tables beside the paper's, intervals, sweeps, timings, figures, assumptions;
 * ``schedule.json`` (+ ``schedule.npz``, from ``cfdesign design``): the design report
-  (:mod:`studies.report.design`) — feasible or not and why, which condition binds where,
+  (:mod:`studies.reports.design`) — feasible or not and why, which condition binds where,
   the bound and the margins over time, σ, β, gains per node, attacks, linearisation;
 * ``feasibility.csv`` (+ ``feasibility.json``, from ``cfdesign feasibility``): the
-  feasibility report (:mod:`studies.report.feasibility`) — the grid, how many points are
+  feasibility report (:mod:`studies.reports.feasibility`) — the grid, how many points are
   feasible, the heat map, and how this notion of feasibility differs from the design's.
 
 Both files come from one Markdown document, so they say the same thing: the Markdown
-(:mod:`studies.report.text` writes it; every text from the results is escaped) is
-written as is and rendered to HTML by markdown-it-py (:mod:`studies.report.render`:
+(:mod:`studies.reports.text` writes it; every text from the results is escaped) is
+written as is and rendered to HTML by markdown-it-py (:mod:`studies.reports.render`:
 raw HTML disabled, figures inlined as ``data:`` URIs, inline CSS, no JavaScript, a
 Content-Security-Policy that forbids loading anything).
 """
