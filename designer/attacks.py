@@ -269,8 +269,12 @@ class AttackSpec:
         return spec
 
     # ------------------------------------------------------------------ resolution
-    def resolve(self, network: SensorNetwork, n_x: int) -> "ResolvedAttacks":
-        """Validate against ``network`` and a state of size ``n_x``; per-channel and per-uplink arrays."""
+    def resolve(self, network: SensorNetwork, n_x: int, *, require_bound: bool = True) -> "ResolvedAttacks":
+        """Validate against ``network`` and a state of size ``n_x``; per-channel and per-uplink arrays.
+
+        ``require_bound=False`` accepts an FDI probability > 0 without a bound (``delta`` is
+        then None): for a scenario that a command may still give ``--delta`` or ``--amplitude``.
+        """
         dos = _channel_matrix("dos", self.dos, network)
         fdi = _channel_matrix("fdi", self.fdi, network)
         both = np.argwhere(dos + fdi > 1.0 + 1e-12)
@@ -297,11 +301,14 @@ class AttackSpec:
             elif delta < natural * (1 - 1e-12):
                 raise InputError(f"delta = {delta:g} is below the signal's bound ||a|| = {natural:g}: the design would "
                                  "not bound the injected signal; give delta >= ||a|| or a smaller amplitude")
-        if (np.any(fdi > 0) or np.any(up_fdi > 0)) and delta is None:
-            raise InputError("fdi probability > 0 but no FDI bound: declare the injected signal (AttackSpec signal="
-                             "FDISignal(amplitude=...)) or its bound delta (--delta D or --amplitude A)")
+        any_fdi = bool(np.any(fdi > 0) or np.any(up_fdi > 0))
+        if any_fdi and delta is None:
+            if require_bound:
+                raise MISSING_BOUND
+        elif delta is None:
+            delta = 0.0
         return ResolvedAttacks(network.with_attacks(dos, fdi), signal or FDISignal(0.0).resolve(n_x),
-                               0.0 if delta is None else float(delta), up_dos, up_fdi)
+                               None if delta is None else float(delta), up_dos, up_fdi)
 
     def describe(self) -> dict:
         def plain(v):
@@ -325,7 +332,7 @@ class ResolvedAttacks:
 
     network: SensorNetwork
     signal: FDISignal
-    delta: float
+    delta: float | None  # None: FDI without a bound yet (AttackSpec.resolve(require_bound=False))
     uplink_dos: np.ndarray = field(repr=False)
     uplink_fdi: np.ndarray = field(repr=False)
 
@@ -350,6 +357,8 @@ class ResolvedAttacks:
 
 
 NO_ATTACKS = AttackSpec()
+MISSING_BOUND = InputError("fdi probability > 0 but no FDI bound: declare the injected signal (AttackSpec signal="
+                           "FDISignal(amplitude=...)) or its bound delta (--delta D or --amplitude A)")
 
 
 # --------------------------------------------------------------------------- the particle-filter papers' channels

@@ -7,7 +7,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from designer.attacks import AttackSpec, BiasFDI, BinarySensorChannel, ResolvedAttacks, RoundRobinDeception
+from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorChannel, ResolvedAttacks,
+                              RoundRobinDeception)
 from designer.design import DesignOptions
 from designer.model import Model
 from designer.network import SensorNetwork
@@ -215,7 +216,7 @@ class Scenario:
         if net is None:
             if self.attacks is not None:
                 raise InputError(f"scenario {self.name!r} declares attacks but no NETWORK")
-            object.__setattr__(self, "resolved_attacks", None)
+            object.__setattr__(self, "_resolution", None)
             return
         if not isinstance(net, SensorNetwork):
             raise InputError(f"NETWORK must be a designer.SensorNetwork, got {type(net).__name__}")
@@ -227,14 +228,25 @@ class Scenario:
             spec = AttackSpec(dos=net.dos_prob, fdi=net.fdi_prob)
         elif not isinstance(spec, AttackSpec):
             raise InputError(f"ATTACKS must be a designer.AttackSpec, got {type(spec).__name__}")
-        resolved = spec.resolve(net, self.model.n_x)
+        resolved = spec.resolve(net, self.model.n_x, require_bound=False)  # a command may still give the bound
         object.__setattr__(self, "attacks", spec)
         object.__setattr__(self, "network", resolved.network)
-        object.__setattr__(self, "resolved_attacks", resolved)
+        object.__setattr__(self, "_resolution", resolved)
         if self.design is not None and not isinstance(self.design, DesignOptions):
             raise InputError(f"DESIGN must be a designer.DesignOptions, got {type(self.design).__name__}")
 
-    resolved_attacks: ResolvedAttacks | None = field(init=False, default=None, repr=False)
+    _resolution: ResolvedAttacks | None = field(init=False, default=None, repr=False)
+
+    @property
+    def resolved_attacks(self) -> ResolvedAttacks | None:
+        """The attack specification checked against the network (None without a network).
+
+        Raises :class:`InputError` when an FDI probability is > 0 and no bound was given.
+        """
+        r = self._resolution
+        if r is not None and r.delta is None:
+            raise MISSING_BOUND
+        return r
 
     def with_attacks(self, *, dos=None, fdi=None, delta=None, amplitude=None) -> "Scenario":
         """The scenario with its attack specification overridden (see :meth:`AttackSpec.override`)."""
