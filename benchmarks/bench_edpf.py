@@ -2,7 +2,7 @@
 
 Workload (the target's): the study with the paper's three filters — PPF, PF-RSN and
 PF-SR-DE — ``--runs`` 50 Monte Carlo runs of 120 steps with ``--particles`` 200, as
-:func:`studies.encrypted_switching.run_encrypted_switching` computes it with
+``studies.pipeline.run_study("encrypted-switching", ...)`` computes it with
 ``out=None``: data simulation, channel, the filters, metrics and the claim check;
 figures are not drawn.  JIT compilation is excluded (done first by
 :func:`studies.encrypted_switching.warm_up` and reported apart).
@@ -30,16 +30,17 @@ import time
 import numba
 
 from bench_sir import best_of  # the sibling script (benchmarks/ is on sys.path when run as a script)
-from studies.encrypted_switching import RunConfig, run_encrypted_switching, warm_up
-from studies.scenarios import load_scenario
+from studies.encrypted_switching import RunConfig, warm_up
+from studies.pipeline import run_study
+from studies.scenarios import load_scenario, reference
 
 TARGET_STUDY_S = 1.0
 
 
-def study(runs: int, particles: int, seed: int, engine: str, workers: int, extra_row: bool = False):
+def study(runs: int, particles: int, seed: int, engine: str, threads: int, extra_row: bool = False):
     t = time.perf_counter()
-    res = run_encrypted_switching(out=None, runs=runs, particles=particles, seed=seed, quiet=True, engine=engine,
-                                  workers=workers, mean_dynamics_row=extra_row)
+    res = run_study("encrypted-switching", runs=runs, particles=particles, seed=seed, engine=engine, threads=threads,
+                    mean_dynamics_row=extra_row).results
     return time.perf_counter() - t, res
 
 
@@ -65,15 +66,15 @@ def main(argv=None) -> int:
     out: dict = {"runs": R, "particles": M, "cpus": os.cpu_count(), "numba": numba.__version__}
 
     t = time.perf_counter()
-    warm_up(RunConfig(M, dict(load_scenario("switching-2d").params)))
+    warm_up(RunConfig(M, reference(load_scenario("switching-2d"))))
     out["compile_s"] = time.perf_counter() - t
 
     w2, res2 = best_of(lambda: study(R, M, args.seed, "fast", 2), args.repeats)
     w1, _ = study(R, M, args.seed, "fast", 1)
     w4, res4 = best_of(lambda: study(R, M, args.seed, "fast", 2, extra_row=True), args.repeats)
     wn, resn = study(R, M, args.seed, "numpy", 1)
-    out["fast"] = {"wall_s_workers2": w2, "wall_s_workers1": w1, "split_s": split(res2, w2),
-                   "with_mean_dynamics_row_wall_s_workers2": w4,
+    out["fast"] = {"wall_s_threads2": w2, "wall_s_threads1": w1, "split_s": split(res2, w2),
+                   "with_mean_dynamics_row_wall_s_threads2": w4,
                    "mean_dynamics_row_s": res4["timing_s"]["filters"]["PF-RSN (mean dynamics)"]}
     out["numpy"] = {"wall_s": wn, "split_s": split(resn, wn)}
     out["rmse_state"] = {name: {"fast": f["rmse_state"], "numpy": resn["filters"][name]["rmse_state"]}

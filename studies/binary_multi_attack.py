@@ -7,6 +7,12 @@ RMSE curves (Figs. 4-5), the one-parameter sweeps of φ̄ (DoS), ϕ̄ (deception
 ᾱ (flipping) for Sec-PF (Figs. 6-11), and Table II (Sec-PF with M = 200, 400,
 600: time per step, RMSE_p, RMSE_v), with the paper's numbers beside ours.
 
+It runs on ``target-binary-energy`` by default and on any scenario whose channel is
+a :class:`designer.attacks.BinarySensorChannel` (a model file's ``CHANNEL``; scalar
+sensors): the attack probabilities, the deception law, the threshold and the channel
+come from it.  The paper's Table II and the Kalman velocity reference are given for
+``target-binary-energy`` only.
+
 Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(3)`` (=
 ``SeedSequence(seed).spawn(runs)[r].spawn(3)``) = (truth, channel, filters).  The
 channel's draws (DoS, deception, deception signal, flips, channel noise, in that
@@ -14,34 +20,42 @@ order) are replayed from the same seed for every setting, so the attack-free dat
 of Sta-PF differ from the attacked data only where an attack happened, and a
 larger attack probability attacks a superset of the packets.
 
-The runs are computed by :func:`studies.runner.monte_carlo` in chunks of
-``chunk_size`` runs (a task simulating the chunk's data and running every filter
-configuration, sweeps and Table II included, on it); metrics, tables and figures
-come from the concatenated per-run arrays.  With the fast engine (one Generator
-per run) the numbers do not depend on the backend, the chunk size or the number
-of threads; the NumPy engine draws one Generator per chunk.  With ``out`` the
-chunks are stored there and an interrupted study resumes.
+A :class:`studies.pipeline.Study` (``STUDY``): the runs are computed by
+:mod:`studies.runner` in chunks of ``chunk_size`` runs (:func:`_runs` is the task:
+it simulates the chunk's data and runs every filter configuration, sweeps and Table
+II included, on it); metrics, tables and figures come from the concatenated per-run
+arrays.  With the fast engine (one Generator per run) the numbers do not depend on
+the backend, the chunk size or the number of threads; the NumPy engine draws one
+Generator per chunk.  With ``out`` the chunks are stored there and an interrupted
+study resumes.  Its options: ``engine`` (``"fast"`` or ``"numpy"``, see
+:mod:`studies.pfrun`), ``threads`` (of the fused engine within a chunk; no effect on
+the numbers), ``sweep`` (the values of each attack probability in the
+one-parameter sweeps, in [0, 1), empty to skip) and ``table2_particles`` (the
+particle counts of Table II, empty to skip).
 """
 from __future__ import annotations
 
 import functools
 import time
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from designer.attacks import BinarySensorChannel
 from designer.validation import InputError, check_int
-from filters.channels import binary_sensor_channel
+from filters.attacks import binary_sensor_channel
 
-from .pfrun import cached_scenario, check_study_options, plain_params, run_binary, score
+from .pfrun import check_study_options, results_block, run_binary, score_configurations
+from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
-                      study_header, trajectory_figure, write_study)
-from .pipeline import StudyText
-from .runner import Backend, monte_carlo, run_seed
-from .scenarios import load_scenario
+                      trajectory_figure)
+from .rrp_deception import plane_view
+from .runner import run_seed
+from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["run_binary_multi_attack", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE"]
+__all__ = ["STUDY", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE"]
 
 SCENARIO = "target-binary-energy"
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
@@ -93,26 +107,31 @@ class _Filter(NamedTuple):
     particles: int
 
 
-def _channel(sc) -> dict:
-    ex = sc.extras
-    return dict(threshold=ex["threshold"], gain=ex["channel_gain"], channel_noise=ex["channel_noise"],
-                deception=ex["deception"])
+def _is_paper(sc: Scenario) -> bool:
+    """The paper's own scenario (its published numbers and the Kalman reference apply)."""
+    return sc.source == SCENARIO
+
+
+def _with(channel: BinarySensorChannel, probs: tuple) -> BinarySensorChannel:
+    """The channel with the attack probabilities ``probs`` (``SWEEP_PARAMS`` order)."""
+    return replace(channel, **dict(zip(SWEEP_PARAMS, probs)))
 
 
 def _data(sc, seeds: Sequence[np.random.SeedSequence], filters: Sequence[_Filter], n_streams: int):
     """Truth, the received signals of every channel setting the filters use, and the filter streams."""
-    m, K, chan = sc.model, sc.steps, _channel(sc)
+    m, K, ch = sc.model, sc.steps, sc.channel
     R = len(seeds)
     truth = np.empty((R, K + 1, m.n_x))
     keys = list(dict.fromkeys(f.data_probs for f in filters))
     data = {key: np.empty((R, K, m.n_sensors)) for key in keys}
+    law = dict(threshold=ch.threshold, gain=ch.gain, channel_noise=ch.channel_noise, deception=ch.deception)
     streams = []
     for a, seq in enumerate(seeds):
         s_truth, s_channel, s_filters = seq.spawn(3)
         tr = sc.simulate(np.random.default_rng(s_truth), K)
         truth[a] = tr.x
         for key in keys:  # the channel's draws replayed from the same seed for every setting
-            data[key][a] = binary_sensor_channel(tr.z, **dict(zip(SWEEP_PARAMS, key)), **chan,
+            data[key][a] = binary_sensor_channel(tr.z, **dict(zip(SWEEP_PARAMS, key)), **law,
                                                  rng=np.random.default_rng(s_channel)).y
         streams.append(s_filters.spawn(n_streams))
     return truth, data, streams
@@ -122,10 +141,19 @@ def _warm_up(sc, data: Mapping, filters: Sequence[_Filter], engine: str) -> None
     """Compile the fused kernels (one variant serves every filter here; once compiled: one tiny call)."""
     f = filters[0]
     run_binary(sc.model, data[f.data_probs], [], particles=f.particles, engine=engine, warm_up=True,
-               **_channel(sc), **dict(zip(SWEEP_PARAMS, f.filter_probs)))
+               channel=_with(sc.channel, f.filter_probs))
 
 
-def _runs(run_ids, seeds, *, params: Mapping[str, Any], engine: str, threads: int, filters: Sequence[_Filter],
+def _compile(ref: ScenarioRef, seed: int, engine: str, filters: Sequence[_Filter], n_streams: int) -> None:
+    """``Plan.before``: compile the kernels in the parent, on the scenario object the tasks use, so that forked
+    workers inherit them (a Dask worker compiles once, in its first chunk; every chunk also compiles what it lacks
+    before timing, so timings never include compiling)."""
+    sc = ref.build()
+    _, data0, _ = _data(sc, [run_seed(seed, 0)], filters[:1], n_streams)
+    _warm_up(sc, data0, filters, engine)
+
+
+def _runs(run_ids, seeds, *, ref: ScenarioRef, engine: str, threads: int, filters: Sequence[_Filter],
           n_streams: int) -> dict:
     """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
 
@@ -133,8 +161,8 @@ def _runs(run_ids, seeds, *, params: Mapping[str, Any], engine: str, threads: in
     ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
     wall time for that filter, compilation excluded).
     """
-    sc = cached_scenario(SCENARIO, params)
-    m, K, chan = sc.model, sc.steps, _channel(sc)
+    sc = ref.build()  # once per process: the fused kernels are cached per Model object
+    m, K = sc.model, sc.steps
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, engine)
     R, F = len(seeds), len(filters)
@@ -145,7 +173,7 @@ def _runs(run_ids, seeds, *, params: Mapping[str, Any], engine: str, threads: in
         rngs = [np.random.default_rng(s[f.stream]) for s in streams]
         t0 = time.perf_counter()
         mean[:, j], collapsed[:, j] = run_binary(m, data[f.data_probs], rngs, particles=f.particles, engine=engine,
-                                                 threads=threads, **chan, **dict(zip(SWEEP_PARAMS, f.filter_probs)))
+                                                 threads=threads, channel=_with(sc.channel, f.filter_probs))
         seconds[:, j] = (time.perf_counter() - t0) / R
     return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
 
@@ -155,7 +183,8 @@ def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Se
     """The filters to compute, the names that reuse another's numbers, and every name in order.
 
     Stream ``c`` belongs to the ``c``-th configuration (Table I's, the sweeps', Table II's),
-    whether computed or reused, as in every version of this study.
+    whether computed or reused, as in every version of this study.  ``FILTERS`` come
+    first, in that order, and are always computed.
     """
     none = (0.0,) * len(SWEEP_PARAMS)
     configs = {  # name: (data's probabilities, filter's probabilities, particles)
@@ -178,118 +207,78 @@ def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Se
     return filters, reused, list(configs)
 
 
-def run_binary_multi_attack(
-    *,
-    out: str | Path | None,
-    runs: int = 50,
-    particles: int = 500,
-    seed: int = 0,
-    quiet: bool = False,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-    sweep: Sequence[float] = SWEEP,
-    table2_particles: Sequence[int] = TABLE2_PARTICLES,
-    engine: str = "fast",
-    threads: int | None = None,
-    backend: Backend | None = None,
-    force: bool = False,
-    chunk_size: int = CHUNK_SIZE,
-    workers: int | None = None,
-) -> dict:
-    """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
-
-    Parameters
-    ----------
-    runs, particles : int
-        Monte Carlo runs (paper: 50) and particles ``M`` (paper: 500).
-    sweep : sequence of float in [0, 1)
-        Values of each attack probability in the one-parameter sweeps (empty to skip).
-    table2_particles : sequence of int
-        Particle counts of Table II (empty to skip).
-    engine : {"fast", "numpy"}
-        Particle-filter engine (see :mod:`studies.pfrun`).
-    threads : int
-        Threads of the fused engine within a chunk of runs (default 1); no effect on the numbers.
-    backend : studies.runner.Backend
-        Where the chunks of runs are computed: batched in this process (default), local
-        processes, or a Dask cluster; the numbers are the same.
-    force : bool
-        Recompute runs already stored in ``out`` by an earlier (or interrupted) call, even
-        if they were computed with other settings.
-    chunk_size : int
-        Runs per chunk (default ``CHUNK_SIZE`` = 10): the unit of work sent to a worker and
-        of resumption; part of the study (the NumPy engine's numbers depend on it), never
-        derived from the backend.
-    workers : int
-        Deprecated alias of ``threads``.
-    """
-    runs, particles, seed, threads, chunk_size, backend = check_study_options(
-        runs=runs, particles=particles, seed=seed, threads=threads, workers=workers, engine=engine,
-        chunk_size=chunk_size, backend=backend)
-    sweep = [float(v) for v in sweep]
+def _options(so: StudyOptions) -> tuple[list[float], list[int]]:
+    """The sweep's values and Table II's particle counts, checked."""
+    try:
+        sweep = [float(v) for v in so["sweep"]]
+    except (TypeError, ValueError):
+        raise InputError(f"sweep must be a sequence of probabilities in [0, 1), got {so['sweep']!r}") from None
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (attack probabilities) must lie in [0, 1), got {sweep}")
-    table2_particles = [check_int("table2_particles", int(v), 1) for v in table2_particles]
-    t_start = time.perf_counter()
-    sc = load_scenario(SCENARIO, overrides, assignments)
-    params = plain_params(sc.params)
-    sc = cached_scenario(SCENARIO, params)  # the object whose kernels forked workers inherit
-    m, K = sc.model, sc.steps
-    default = tuple(float(sc.extras[p]) for p in SWEEP_PARAMS)
-    filters, reused, names = _configurations(default, sweep, table2_particles, particles)
+    try:
+        table2 = [check_int("table2_particles", int(v), 1) for v in so["table2_particles"]]
+    except (TypeError, ValueError):
+        raise InputError(f"table2_particles must be a sequence of particle counts, got "
+                         f"{so['table2_particles']!r}") from None
+    return sweep, table2
+
+
+def _check(so: StudyOptions) -> None:
+    check_study_options(so)
+    _options(so)
+
+
+def _accepts(sc: Scenario) -> str | None:
+    if not isinstance(sc.channel, BinarySensorChannel):
+        return ("binary-multi-attack needs binary sensors under DoS, deception and flipping: declare CHANNEL = "
+                "BinarySensorChannel(...) (designer.attacks) in the model file")
+    return None
+
+
+def _configs_of(sc: Scenario, so: StudyOptions):
+    sweep, table2 = _options(so)
+    return _configurations(sc.channel.probabilities, sweep, table2, so.particles)
+
+
+def _plan(sc: Scenario, so: StudyOptions) -> Plan:
+    filters, _, names = _configs_of(sc, so)
     n_streams = len(names)  # one filter stream per configuration, computed or reused
-
-    if engine == "fast" and backend.kind != "dask":
-        # compile here so that forked workers inherit the kernels (a Dask worker compiles once, in its first
-        # chunk); every chunk also compiles what it lacks before timing, so timings never include compiling
-        _, data0, _ = _data(sc, [run_seed(seed, 0)], filters[:1], n_streams)
-        _warm_up(sc, data0, filters, engine)
-    task = functools.partial(_runs, params=params, engine=engine, threads=threads, filters=tuple(filters),
+    ref = reference(sc)
+    engine = so["engine"]
+    task = functools.partial(_runs, ref=ref, engine=engine, threads=int(so["threads"]), filters=tuple(filters),
                              n_streams=n_streams)
-    config = {"study": "binary-multi-attack", "params": params, "particles": particles, "engine": engine,
-              "filters": [f._asdict() for f in filters], "streams": n_streams}
-    mc = monte_carlo(task, runs=runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
-                     label="binary-multi-attack", config=config, force=force, quiet=quiet)
-    A = mc.arrays
+    config = {"study": "binary-multi-attack", "params": dict(ref.params), "particles": so.particles,
+              "engine": engine, "filters": [f._asdict() for f in filters], "streams": n_streams,
+              "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+    before = functools.partial(_compile, ref, so.seed, engine, tuple(filters), n_streams) if engine == "fast" \
+        else None
+    return Plan(task, "binary-multi-attack", config, before=before)
 
-    pos, vel = list(m.position_index), list(m.velocity_index)
-    metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
-    index = {f.name: j for j, f in enumerate(filters)}
-    computed: dict[str, dict] = {}
-    for name in names:  # the configurations' order: the bootstrap draws follow it
-        if name in reused:
-            computed[name] = computed[reused[name]]
-            continue
-        j, f = index[name], filters[index[name]]
-        met = score(A["truth"], np.ascontiguousarray(A["mean"][:, j]), A["collapsed"][:, j], A["seconds"][:, j],
-                    pos, vel, metrics_rng)
-        met.update({"particles": f.particles, "communications": int(K * m.n_sensors), "engine": engine,
-                    "attack_probs_assumed": dict(zip(SWEEP_PARAMS, f.filter_probs))})
-        computed[name] = met
-    means0 = {f.name: A["mean"][0, j] for j, f in enumerate(filters)}
 
+def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
+    m, K, engine = sc.model, sc.steps, so["engine"]
+    sweep, table2_particles = _options(so)
+    filters, reused, names = _configs_of(sc, so)
+    computed = score_configurations(
+        mc.arrays, filters, reused, names, m, so.seed,
+        lambda f: {"particles": f.particles, "communications": int(K * m.n_sensors), "engine": engine,
+                   "attack_probs_assumed": dict(zip(SWEEP_PARAMS, f.filter_probs))})
     filters_out = {k: computed[k] for k in FILTERS}
     sweeps = {p: {f"{v:g}": {"Sec-PF": computed[f"sweep {p}={v:g}"]} for v in sweep} for p in SWEEP_PARAMS} \
         if sweep else {}
     if table2_particles:
         sweeps["particles"] = {str(M): {"Sec-PF": computed[f"M={M}"]} for M in table2_particles}
-    results = study_header("binary-multi-attack", SCENARIO, runs=runs, particles=particles, steps=K,
-                           seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine,
-                           workers=threads, threads=threads, runner=mc.describe())
-    results.update({
-        "filters": filters_out,
-        "sweeps": sweeps,
-        "paper": {"source": "seed 002, Table II (Sec-PF)", "table2": PAPER_TABLE2,
-                  "kalman_velocity_at_paper_rmse_position": {
-                      M: cv_velocity_at_position_rmse(sc.params["accel_var"], sc.params["period"],
-                                                      v["rmse_position"]) for M, v in PAPER_TABLE2.items()},
-                  "runs": 50, "particles": 500,
-                  "note": "Figs. 4-11 are curves without printed numbers; the paper states Sec-PF is close to "
-                          "Sta-PF, Sta-PF-Neg is worst, and RMSE grows with each attack probability."},
-        "params": dict(sc.params),
-    })
-    return write_study(out, results, t_start,
-                       lambda d: _figures(d, sc, A["truth"][0], means0, filters_out, sweeps, K), table_markdown)
+    paper = None
+    if _is_paper(sc):  # the Kalman reference is the paper's scenario's (its accel_var and period)
+        paper = {
+            "source": "seed 002, Table II (Sec-PF)", "table2": PAPER_TABLE2,
+            "kalman_velocity_at_paper_rmse_position": {
+                M: cv_velocity_at_position_rmse(sc.params["accel_var"], sc.params["period"], v["rmse_position"])
+                for M, v in PAPER_TABLE2.items()},
+            "runs": 50, "particles": 500,
+            "note": "Figs. 4-11 are curves without printed numbers; the paper states Sec-PF is close to Sta-PF, "
+                    "Sta-PF-Neg is worst, and RMSE grows with each attack probability."}
+    return results_block("binary-multi-attack", sc, so, mc, ASSUMPTIONS, filters_out, sweeps, paper)
 
 
 def _with_ci(f: dict) -> dict:
@@ -298,10 +287,12 @@ def _with_ci(f: dict) -> dict:
 
 def table_markdown(results: dict) -> str:
     """The three filters, the sweeps and Table II with the paper's numbers."""
-    text = (f"# binary-multi-attack (seed 002)\n\n{results['runs']} runs, M = {results['particles']} particles, "
+    paper = results.get("paper") or {}
+    title = "(seed 002)" if paper else f"on {results['scenario']}"
+    text = (f"# binary-multi-attack {title}\n\n{results['runs']} runs, M = {results['particles']} particles, "
             f"K = {results['steps']} steps, seed {results['seed']}, engine {results['engine']}. "
-            "RMSE_p with its 95 % bootstrap interval over runs. The paper prints no numbers for these "
-            "(Figs. 4-5).\n\n")
+            "RMSE_p with its 95 % bootstrap interval over runs."
+            + (" The paper prints no numbers for these (Figs. 4-5)." if paper else "") + "\n\n")
     text += markdown_table({n: _with_ci(f) for n, f in results["filters"].items()},
                            [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v"),
                             ("time_per_step_s", "time/step s"), ("communications", "communications")])
@@ -316,22 +307,31 @@ def table_markdown(results: dict) -> str:
     if "particles" in sw:
         rows = {}
         for M, d in sw["particles"].items():
-            paper = results["paper"]["table2"].get(M, {})
-            rows[f"M = {M}"] = {**_with_ci(d["Sec-PF"]), **{f"paper_{k}": v for k, v in paper.items()},
-                                "kalman_v": results["paper"]["kalman_velocity_at_paper_rmse_position"].get(M)}
-        text += "\n## Table II: Sec-PF against the number of particles\n\n" + markdown_table(
-            rows, [("time_per_step_s", "time/step s (ours)"), ("paper_time_per_step_s", "time/step s (paper)"),
-                   ("rmse_position", "RMSE_p (ours)"), ("paper_rmse_position", "RMSE_p (paper)"),
-                   ("rmse_velocity", "RMSE_v (ours)"), ("paper_rmse_velocity", "RMSE_v (paper)"),
-                   ("kalman_v", "Kalman RMSE_v at the paper's RMSE_p")])
+            published = paper.get("table2", {}).get(M, {})
+            rows[f"M = {M}"] = {**_with_ci(d["Sec-PF"]), **{f"paper_{k}": v for k, v in published.items()},
+                                "kalman_v": paper.get("kalman_velocity_at_paper_rmse_position", {}).get(M)}
+        cols = [("time_per_step_s", "time/step s (ours)"), ("paper_time_per_step_s", "time/step s (paper)"),
+                ("rmse_position", "RMSE_p (ours)"), ("paper_rmse_position", "RMSE_p (paper)"),
+                ("rmse_velocity", "RMSE_v (ours)"), ("paper_rmse_velocity", "RMSE_v (paper)"),
+                ("kalman_v", "Kalman RMSE_v at the paper's RMSE_p")]
+        if not paper:
+            cols = [(k, h.replace(" (ours)", "")) for k, h in cols if not k.startswith(("paper_", "kalman"))]
+        text += "\n## Table II: Sec-PF against the number of particles\n\n" + markdown_table(rows, cols)
     return text
 
 
-def _figures(out: Path, sc, truth0, means0, filters, sweeps, K) -> None:
-    pos = np.array([s.position for s in sc.model.sensors])
-    trajectory_figure(out / "fig_trajectory.png", truth0, {n: means0[n] for n in FILTERS}, pos,
-                      sc.model.position_index, "One run: target and estimates (cf. Figs. 2-3)")
-    for metric, fig_no in (("position", "4"), ("velocity", "5")):
+def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
+    sc, A = next(iter(built.values())), next(iter(arrays.values()))
+    filters, sweeps, K = results["filters"], results["sweeps"], sc.steps
+    pos = plane_view(sc.model)
+    if pos is not None:  # the three filters are the first configurations, in FILTERS order
+        trajectory_figure(out / "fig_trajectory.png", A["truth"][0],
+                          {n: A["mean"][0, j] for j, n in enumerate(FILTERS)}, pos, sc.model.position_index,
+                          "One run: target and estimates (cf. Figs. 2-3)")
+    metrics = [mt for mt in ("position", "velocity") if all(f[f"rmse_{mt}_curve"] is not None
+                                                             for f in filters.values())]
+    for metric in metrics:
+        fig_no = {"position": "4", "velocity": "5"}[metric]
         curves_figure(out / f"fig_rmse_{metric}.png", {n: f[f"rmse_{metric}_curve"] for n, f in filters.items()},
                       f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})")
     present = [p for p in SWEEP_PARAMS if p in sweeps]
@@ -341,9 +341,10 @@ def _figures(out: Path, sc, truth0, means0, filters, sweeps, K) -> None:
 
     names = {"dos_prob": "phi-bar (DoS)", "deception_prob": "varphi-bar (deception)", "flip_prob": "alpha-bar (flip)"}
     k = np.arange(1, K + 1)
-    fig, axes = plt.subplots(2, len(present), figsize=(4.5 * len(present), 6), squeeze=False)
+    fig, axes = plt.subplots(len(metrics), len(present), figsize=(4.5 * len(present), 3 * len(metrics)),
+                             squeeze=False)
     for j, p in enumerate(present):
-        for i, metric in enumerate(("position", "velocity")):
+        for i, metric in enumerate(metrics):
             ax = axes[i, j]
             for v, d in sweeps[p].items():
                 ax.plot(k, d["Sec-PF"][f"rmse_{metric}_curve"], lw=1.1, label=f"{names[p]} = {v}")
@@ -383,4 +384,21 @@ TEXT = StudyText(
         "fig_rmse_velocity.png": "Velocity RMSE at each time step over the runs (the paper's Fig. 5).",
         "fig_attack_sweeps.png": "Sec-PF's RMSE against each attack probability (the paper's Figs. 6-11).",
     },
+)
+
+
+STUDY = Study(
+    name="binary-multi-attack",
+    text=TEXT,
+    scenarios=(SCENARIO,),
+    runs=50,
+    particles=500,
+    chunk_size=CHUNK_SIZE,
+    plan=_plan,
+    summarise=_summarise,
+    table=table_markdown,
+    figures=_figures,
+    options={"engine": "fast", "threads": 1, "sweep": SWEEP, "table2_particles": TABLE2_PARTICLES},
+    accepts=_accepts,
+    check=_check,
 )

@@ -11,17 +11,26 @@ decrypted measurements (Figs. 3-4), time per step (with, on the NumPy engine, wh
 it goes: proposal, likelihood, the rest of the engine), collapses.  The paper
 prints no numbers; its claim is that PPF is best.
 
-Engines: ``"fast"`` (default) — the fused numba kernels of :mod:`filters.fastedpf`,
-runs spread over ``workers`` threads; ``"numpy"`` — :func:`filters.particle.run_sir`
-with :mod:`filters.edpf`'s likelihoods, the reference.
+It runs on ``switching-2d`` by default and on any scenario whose channel is a
+:class:`filters.encryption.EncryptedChannel` (a model file's ``CHANNEL``) and whose
+model switches between modes (``mode`` with at least two modes; PF-RSN keeps mode 1
+always, the paper's γ = 1), with scalar sensors of truncated-Gaussian noise and no
+known inputs.  The paper's claim is quoted for ``switching-2d`` only (the claim
+check, PPF against both baselines, is computed everywhere).
+
+Engines (the ``engine`` option): ``"fast"`` (default) — the fused numba kernels of
+:mod:`filters.fastedpf`, runs spread over ``threads`` threads; ``"numpy"`` —
+:func:`filters.particle.run_sir` with :mod:`filters.edpf`'s likelihoods, the
+reference (``threads`` must be 1).  ``mean_dynamics_row`` adds PF-RSN with the
+mode-averaged dynamics (not in the paper).
 
 Structure: :func:`compute_runs` does the per-run work (data, channel, every filter)
 for a chunk of runs given their SeedSequences and a :class:`RunConfig`, and returns
 a mapping of arrays whose first axis is the run (``functools.partial(compute_runs,
-config=config)`` is a task of a Monte Carlo runner); chunks are joined with
+config=config)`` is the task of the Monte Carlo runner); chunks are joined with
 :func:`concatenate_runs` and :func:`summarize` computes the metrics, tables and
-figures' data from the joined arrays.  :func:`run_encrypted_switching` computes all
-runs as one chunk.
+figures' data from the joined arrays.  ``STUDY`` is the study's
+:class:`studies.pipeline.Study`.
 
 Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(3)`` =
 (truth, channel, filters).  The truth's draws are taken per run before any
@@ -31,37 +40,37 @@ and dropout uniforms (:func:`filters.encryption.transmit_runs`, as ``transmit``)
 The fast engine gives each run's filters a Generator built from the run's filter
 stream (each filter starts it afresh, so the filters share their random numbers as
 well as their data): a run's numbers depend only on ``seed`` and ``r``, not on the
-number of runs, the chunks or ``workers``.  The NumPy engine runs a chunk in one
+number of runs, the chunks or ``threads``.  The NumPy engine runs a chunk in one
 batch and draws all its particles from one Generator built from the chunk's first
 run's filter stream (so its numbers depend on the chunking).
 """
 from __future__ import annotations
 
 import functools
-import json
+import pickle
 import time
-from functools import lru_cache
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from designer.noise import TruncatedGaussian
 from designer.simulate import simulate_runs
 from designer.validation import InputError, check_int
 from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model, raw_loglik, received
-from filters.encryption import CRC4_ITU, Codec, transmit_runs
+from filters.encryption import CRC4_ITU, Codec, EncryptedChannel
 from filters.particle import run_sir, transition_proposal
 
-from .pfrun import ENGINES
+from .pfrun import check_engine, check_threads
 from .progress import progress
-from .pipeline import StudyText
-from .runner import Backend, monte_carlo
-from .results import _curve_mean_ci, curves_figure, markdown_table, study_header, write_study
-from .scenarios import get_spec, load_scenario, parse_assignments
+from .pipeline import Plan, Study, StudyOptions, StudyText
+from .results import _curve_mean_ci, curves_figure, markdown_table
+from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["run_encrypted_switching", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up",
-           "filter_names", "FILTERS", "MEAN_DYNAMICS", "PAPER"]
+__all__ = ["STUDY", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up", "filter_names",
+           "FILTERS", "MEAN_DYNAMICS", "PAPER", "CHUNK_SIZE"]
 
+SCENARIO = "switching-2d"
 FILTERS = ("PPF", "PF-RSN", "PF-SR-DE")
 MEAN_DYNAMICS = "PF-RSN (mean dynamics)"
 PAPER = {
@@ -73,6 +82,7 @@ PAPER = {
     "note": "no RMSE values are printed; Figs. 1-6 are not available in the text, so only the ordering is compared",
 }
 ESS_THRESHOLD = 0.5  # resample when ESS < M/2
+CHUNK_SIZE = 25  # runs per stored chunk: part of the study (fixes the NumPy engine's batches), not of the backend
 
 ASSUMPTIONS = (
     "encrypted-switching: resampling is systematic when ESS < M/2 (Algorithm 1 says only 'if necessary, e.g. when "
@@ -97,6 +107,9 @@ ASSUMPTIONS = (
     "proposal (mode and process-noise draws, f), the likelihood (h and the CDFs or densities) and the engine's "
     "remainder (weights, moments, ESS, resampling); the fast engine fuses them (its split is null).",
 )
+OTHER_MODEL = ("encrypted-switching (a model other than switching-2d): PF-RSN keeps mode 1 of the model's switching "
+               "always; PF-RSN (mean dynamics) averages the modes' transitions with their probabilities; every "
+               "filter starts from the model's prior.")
 
 
 class _Timed:
@@ -114,50 +127,46 @@ class _Timed:
 
 # ============================================================================ per-run work
 class RunConfig(NamedTuple):
-    """Everything a chunk of runs needs besides its seeds (picklable: plain values).
+    """Everything a chunk of runs needs besides its seeds (picklable).
 
-    ``params`` are the full, validated parameters of ``switching-2d`` (``Scenario.params``).
+    ``scenario`` is a :class:`studies.scenarios.ScenarioRef` (``reference(sc)``) of a
+    scenario with an :class:`filters.encryption.EncryptedChannel`.
     """
 
     particles: int
-    params: Mapping[str, Any]
+    scenario: ScenarioRef
     engine: str = "fast"
-    workers: int = 1
+    threads: int = 1
     mean_dynamics_row: bool = True
 
 
 class _Setup(NamedTuple):
     scenario: Any
-    codec: Codec
+    channel: EncryptedChannel
     filters: dict  # name -> (model, likelihood kind, description)
 
 
-@lru_cache(maxsize=8)
-def _setup_of(params_json: str) -> _Setup:
-    # Cached per process: the fused kernels are compiled per model object, so the models must be reused.
-    sc = load_scenario("switching-2d", json.loads(params_json))
-    m = sc.model
-    rsn = fixed_mode_model(m, 1)  # mode 1 <=> gamma = 1 (f active) in switching-2d
-    filters = {
-        "PPF": (m, "interval", "mixture proposal (11), interval likelihood (13)"),
-        "PF-RSN": (rsn, "interval", "gamma = 1 always, interval likelihood (13)"),
-        "PF-SR-DE": (m, "raw", "mixture proposal (11), noise density at the decrypted value"),
-        MEAN_DYNAMICS: (mean_dynamics_model(m), "interval", "F x + 0.5 f + 0.5 g, interval likelihood (13)"),
-    }
-    return _Setup(sc, Codec.of(sc.extras), filters)
-
-
-def _params(overrides, assignments) -> dict:
-    """``switching-2d``'s parameters with ``overrides`` and ``NAME=VALUE`` ``assignments``, validated (as JSON
-    values), without building the model (:func:`_setup` builds it once per process)."""
-    spec = get_spec("switching-2d")
-    values = dict(overrides or {})
-    values.update(parse_assignments(spec, assignments))
-    return {**spec.defaults(), **{name: spec.param(name).validate(v) for name, v in values.items()}}
+_SETUPS: dict[bytes, _Setup] = {}  # per process: the fused kernels are compiled per model, so the models are reused
+_SETUPS_MAX = 8
 
 
 def _setup(config: RunConfig) -> _Setup:
-    return _setup_of(json.dumps(dict(config.params), sort_keys=True))
+    key = pickle.dumps(config.scenario)
+    setup = _SETUPS.get(key)
+    if setup is None:
+        sc = config.scenario.build()
+        m = sc.model
+        rsn = fixed_mode_model(m, 1)  # mode 1 <=> gamma = 1 (f active) in switching-2d
+        filters = {
+            "PPF": (m, "interval", "mixture proposal (11), interval likelihood (13)"),
+            "PF-RSN": (rsn, "interval", "gamma = 1 always, interval likelihood (13)"),
+            "PF-SR-DE": (m, "raw", "mixture proposal (11), noise density at the decrypted value"),
+            MEAN_DYNAMICS: (mean_dynamics_model(m), "interval", "F x + 0.5 f + 0.5 g, interval likelihood (13)"),
+        }
+        if len(_SETUPS) >= _SETUPS_MAX:
+            _SETUPS.clear()
+        setup = _SETUPS[key] = _Setup(sc, sc.channel, filters)
+    return setup
 
 
 def filter_names(config: RunConfig) -> tuple[str, ...]:
@@ -177,15 +186,21 @@ def _streams(ss: np.random.SeedSequence) -> list[np.random.SeedSequence]:
             for i in range(3)]
 
 
+def _check_engine_threads(engine: str, threads) -> None:
+    check_engine(engine)
+    threads = check_threads(threads)
+    if engine == "numpy" and threads != 1:
+        raise InputError(f"threads must be 1 with engine 'numpy' (it runs all runs in one batch), got {threads}")
+
+
 def _check_config(config: RunConfig) -> RunConfig:
     if not isinstance(config, RunConfig):
         raise InputError(f"config must be a RunConfig, got {type(config).__name__}")
     check_int("particles", config.particles, 1)
-    workers = check_int("workers", config.workers, 1)
-    if config.engine not in ENGINES:
-        raise InputError(f"engine must be one of {', '.join(ENGINES)}, got {config.engine!r}")
-    if config.engine == "numpy" and workers != 1:
-        raise InputError(f"workers must be 1 with engine 'numpy' (it runs all runs in one batch), got {workers}")
+    if not isinstance(config.scenario, ScenarioRef):
+        raise InputError(f"config.scenario must be a studies.scenarios.ScenarioRef (reference(scenario)), got "
+                         f"{type(config.scenario).__name__}")
+    _check_engine_threads(config.engine, config.threads)
     return config
 
 
@@ -206,7 +221,7 @@ def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, 
     gens = [np.random.default_rng(fs) for fs in filter_ss]
     x0 = np.stack([model.prior.sample(g, M) for g in gens])  # the first draws of each run's stream, as run_sir
     res = sir_edpf(model, x0, gens, y, likelihood=kind, codec=codec if kind == "interval" else None,
-                   resampler="systematic", ess_threshold=ESS_THRESHOLD, workers=config.workers)
+                   resampler="systematic", ess_threshold=ESS_THRESHOLD, workers=config.threads)
     return res.mean, res.collapsed, res.resampled, None
 
 
@@ -225,7 +240,7 @@ def warm_up(config: RunConfig) -> None:
     for model, kind, _ in _filters(config).values():
         g = np.random.default_rng(0)
         sir_edpf(model, model.prior.sample(g, (1, 2)), [g], y, likelihood=kind,
-                 codec=setup.codec if kind == "interval" else None, ess_threshold=ESS_THRESHOLD)
+                 codec=setup.channel.codec if kind == "interval" else None, ess_threshold=ESS_THRESHOLD)
 
 
 #: The channel's per-run arrays of :func:`compute_runs` (``Transmission`` fields), each (n, T, N).
@@ -261,15 +276,14 @@ def compute_runs(run_ids: Sequence[int], seeds: Sequence[np.random.SeedSequence]
                          f"{len(seeds)}")
     streams = [_streams(ss) for ss in seeds]
     setup = _setup(config)
-    sc, codec = setup.scenario, setup.codec
+    sc, channel = setup.scenario, setup.channel
     n, K = run_ids.size, sc.steps
     warm_up(config)  # a no-op once compiled in this process
     t0 = time.perf_counter()
     tr = simulate_runs(sc.model, K, [np.random.default_rng(st[0]) for st in streams], x0=sc.x0,
                        inputs=sc.inputs(K))
     t1 = time.perf_counter()
-    tx = transmit_runs(tr.z, codec, [np.random.default_rng(st[1]) for st in streams],
-                       bit_error_prob=sc.extras["bit_error_prob"], dropout_prob=sc.extras["dropout_prob"])
+    tx = channel.transmit_runs(tr.z, [np.random.default_rng(st[1]) for st in streams])
     y = received(tx)
     t2 = time.perf_counter()
     configs = _filters(config)
@@ -283,7 +297,7 @@ def compute_runs(run_ids: Sequence[int], seeds: Sequence[np.random.SeedSequence]
     for j, (model, kind, _) in enumerate(progress(configs.values(), F, quiet, "encrypted-switching filters")):
         t = time.perf_counter()
         out["mean"][:, j], out["collapsed"][:, j], out["resampled"][:, j], split = _run_filter(
-            model, kind, codec, y, filter_ss, config)
+            model, kind, channel.codec, y, filter_ss, config)
         wall = time.perf_counter() - t
         out["seconds"][:, j] = wall / n
         if split is not None:  # proposal, likelihood, the rest
@@ -312,9 +326,9 @@ def _state_metrics(err: np.ndarray, rng: np.random.Generator) -> dict:
     }
 
 
-def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, seed: int,
-              metrics_rng: np.random.Generator) -> dict:
-    """``results.json``'s content (but ``wall_time_s``) from the joined arrays of every run (:func:`compute_runs`)."""
+def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, metrics_rng: np.random.Generator) -> dict:
+    """The study's results (``results.json`` but the header the pipeline stamps) from the joined arrays of every
+    run (:func:`compute_runs`)."""
     setup = _setup(config)
     sc, a = setup.scenario, arrays
     truth = a["truth"]
@@ -337,81 +351,69 @@ def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, seed: int,
         filters[name] = met
     if config.mean_dynamics_row:
         filters[MEAN_DYNAMICS]["note"] = "not in the paper: PF-RSN with the mode-averaged dynamics"
-    results = study_header("encrypted-switching", "switching-2d", runs=runs, particles=config.particles, steps=K,
-                           seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=config.engine,
-                           workers=config.workers)
-    results.update({
-        "filters": filters,
-        "sweeps": {},
-        "paper": PAPER,
+    paper = _is_paper(sc)
+    out = {"scenario": sc.name, "runs": int(runs), "particles": config.particles, "steps": int(K),
+           "assumptions": list(sc.assumptions) + list(ASSUMPTIONS) + ([] if paper else [OTHER_MODEL]),
+           "engine": config.engine, "threads": config.threads, "filters": filters, "sweeps": {}}
+    if paper:
+        out["paper"] = PAPER
+    out.update({
         "claim_check": _claim_check(filters, truth, means),
-        "transmission": _transmission_summary(a, setup.codec),
+        "transmission": _transmission_summary(a, setup.channel.codec),
         "timing_s": {"data": float(a["seconds_data"].sum()), "channel": float(a["seconds_channel"].sum()),
                      "filters": {n: f["wall_time_s"] for n, f in filters.items()},
                      "paper_filters": sum(filters[n]["wall_time_s"] for n in FILTERS)},
         "params": dict(sc.params),
     })
-    return results
+    return out
 
 
-CHUNK_SIZE = 25  # runs per stored chunk: part of the study (fixes the NumPy engine's batches), not of the backend
+def _is_paper(sc: Scenario) -> bool:
+    """The paper's own scenario (its claim is quoted)."""
+    return sc.source == SCENARIO
 
 
-def run_encrypted_switching(
-    *,
-    out: str | Path | None,
-    runs: int = 50,
-    particles: int = 200,
-    seed: int = 0,
-    quiet: bool = False,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-    workers: int = 1,
-    engine: str = "fast",
-    mean_dynamics_row: bool = True,
-    backend: Backend | None = None,
-    force: bool = False,
-    chunk_size: int = CHUNK_SIZE,
-) -> dict:
-    """Run the study and write ``results.json``, ``table.md`` and the figures into ``out`` (None: no files).
+def _accepts(sc: Scenario) -> str | None:
+    m = sc.model
+    if not isinstance(sc.channel, EncryptedChannel):
+        return ("encrypted-switching needs an encrypted channel: declare CHANNEL = EncryptedChannel(Codec(...)) "
+                "(filters.encryption) in the model file")
+    if m.n_modes < 2:
+        return "encrypted-switching needs a model that switches between modes (Model mode= with two or more modes)"
+    if m.n_u:
+        return "encrypted-switching runs models without known inputs"
+    bad = [s for s in m.sensors if not isinstance(s.noise, TruncatedGaussian)]
+    if bad:
+        return (f"encrypted-switching needs truncated-Gaussian measurement noise (PF-SR-DE's density and the fused "
+                f"kernels), sensor {bad[0].name!r} has {type(bad[0].noise).__name__}")
+    return None
 
-    Parameters
-    ----------
-    runs, particles : int
-        Monte Carlo runs (paper: 50) and particles M (paper: 200).
-    overrides, assignments
-        Scenario parameters of ``switching-2d`` (e.g. ``bit_error_prob``, ``dropout_prob``).
-    workers : int
-        Threads the fast engine spreads a chunk's runs over (the results do not depend on
-        it); 1 with the NumPy engine, which runs a chunk in one batch.
-    engine : {"fast", "numpy"}
-        The fused numba kernels (:mod:`filters.fastedpf`) or the NumPy reference (``run_sir``).
-    mean_dynamics_row : bool
-        Also run PF-RSN with the mode-averaged dynamics (not in the paper).
-    backend, force, chunk_size
-        The Monte Carlo runner (:mod:`studies.runner`): where the chunks of ``chunk_size`` runs
-        are computed (this process, local processes or Dask; identical numbers), and whether
-        runs stored in ``out`` by an earlier or interrupted call are recomputed.
-    """
-    runs = check_int("runs", runs, 2)
-    particles = check_int("particles", particles, 1)
-    seed = check_int("seed", seed, 0)
-    t_start = time.perf_counter()
-    config = _check_config(RunConfig(particles, _params(overrides, assignments), engine, workers,
-                                     bool(mean_dynamics_row)))
-    _setup(config)  # builds the scenario once per process and parameters (the builder's own checks raise here)
-    warm_up(config)  # compile before timing; forked workers inherit the kernels
-    manifest = {"study": "encrypted-switching", "particles": particles, "engine": config.engine,
-                "mean_dynamics_row": config.mean_dynamics_row,
-                "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in config.params.items()}}
-    mc = monte_carlo(functools.partial(compute_runs, config=config), runs=runs, seed=seed, chunk_size=chunk_size,
-                     backend=backend, store=out, label="encrypted-switching", config=manifest, force=force,
-                     quiet=quiet)
-    arrays = mc.arrays
-    metrics_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31,)))
-    results = summarize(arrays, config, seed=seed, metrics_rng=metrics_rng)
+
+def _check(so: StudyOptions) -> None:
+    _check_engine_threads(so["engine"], so["threads"])
+
+
+def _config(sc: Scenario, so: StudyOptions) -> RunConfig:
+    return RunConfig(so.particles, reference(sc), so["engine"], int(so["threads"]), bool(so["mean_dynamics_row"]))
+
+
+def _plan(sc: Scenario, so: StudyOptions) -> Plan:
+    config = _config(sc, so)
+    _setup(config)  # builds the filters' models once per process and reference
+    ref = config.scenario
+    manifest = {"study": "encrypted-switching", "particles": config.particles, "engine": config.engine,
+                "mean_dynamics_row": config.mean_dynamics_row, "params": dict(ref.params),
+                "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+    # compile before timing; forked workers inherit the kernels
+    return Plan(functools.partial(compute_runs, config=config), "encrypted-switching", manifest,
+                before=functools.partial(warm_up, config))
+
+
+def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
+    metrics_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
+    results = summarize(mc.arrays, _config(sc, so), metrics_rng=metrics_rng)
     results["runner"] = mc.describe()
-    return write_study(out, results, t_start, lambda d: _figures(d, arrays, results["filters"]), table_markdown)
+    return results
 
 
 def _claim_check(filters: dict, truth: np.ndarray, means: dict) -> dict:
@@ -458,23 +460,29 @@ def table_markdown(results: dict) -> str:
         row["split"] = "fused" if tb["proposal"] is None else " / ".join(
             f"{100 * tb[k] / f['wall_time_s']:.0f}" for k in ("proposal", "likelihood", "engine"))
         rows[name] = row
-    cols = [("rmse1", "RMSE_1"), ("rmse2", "RMSE_2"), ("median1", "RMSE_1 median run"),
-            ("median2", "RMSE_2 median run"), ("time_per_step_s", "time/step s"),
-            ("split", "% proposal / likelihood / engine"), ("collapsed_steps", "collapsed steps"),
-            ("collapsed_runs", "runs with a collapse")]
-    text = (f"# encrypted-switching (seed 001)\n\n{results['runs']} runs, M = {results['particles']} particles, "
+    n_x = len(next(iter(results["filters"].values()))["rmse_state"])
+    states = range(1, n_x + 1)
+    cols = [*((f"rmse{i}", f"RMSE_{i}") for i in states), *((f"median{i}", f"RMSE_{i} median run") for i in states),
+            ("time_per_step_s", "time/step s"), ("split", "% proposal / likelihood / engine"),
+            ("collapsed_steps", "collapsed steps"), ("collapsed_runs", "runs with a collapse")]
+    xs = ", ".join(f"x{i}" for i in states)
+    paper = results.get("paper")
+    title = "(seed 001)" if paper else f"on {results['scenario']}"
+    claim = f" The paper prints no numbers; its claim: {paper['claim']}." if paper else ""
+    text = (f"# encrypted-switching {title}\n\n{results['runs']} runs, M = {results['particles']} particles, "
             f"T = {results['steps']} steps, seed {results['seed']}, engine {results['engine']}. Time-averaged "
-            "RMSE_i = mean over t of RMSE_i(t), with its 95 % bootstrap interval over runs. The paper prints no "
-            f"numbers; its claim: {results['paper']['claim']}.\n\n" + markdown_table(rows, cols))
+            f"RMSE_i = mean over t of RMSE_i(t), with its 95 % bootstrap interval over runs.{claim}\n\n"
+            + markdown_table(rows, cols))
     cc = results["claim_check"]
     text += "\n## The paper's claim\n\n" + markdown_table(
         {f"PPF vs {b}": {"lower": ", ".join("yes" if v else "no" for v in c["ppf_lower"]),
                          "ratio": ", ".join(f"{v:.3g}" for v in c["rmse_ratio"]),
                          "runs": ", ".join(f"{v:.2f}" for v in c["runs_ppf_lower_fraction"])}
          for b, c in cc.items() if b != "holds"},
-        [("lower", "PPF lower (x1, x2)"), ("ratio", "baseline / PPF RMSE (x1, x2)"),
-         ("runs", "share of runs where PPF is lower (x1, x2)")])
-    text += f"\nClaim holds on both states against both baselines: {'yes' if cc['holds'] else 'no'}.\n"
+        [("lower", f"PPF lower ({xs})"), ("ratio", f"baseline / PPF RMSE ({xs})"),
+         ("runs", f"share of runs where PPF is lower ({xs})")])
+    text += (f"\nClaim holds on {'both states' if n_x == 2 else 'every state'} against both baselines: "
+             f"{'yes' if cc['holds'] else 'no'}.\n")
     tm, tx = results["timing_s"], results["transmission"]
     text += (f"\n## Time and transmission\n\nData (truth and measurements) {tm['data']:.3g} s, channel "
              f"{tm['channel']:.3g} s, the paper's three filters {tm['paper_filters']:.3g} s, whole study "
@@ -485,7 +493,8 @@ def table_markdown(results: dict) -> str:
     return text
 
 
-def _figures(out: Path, a: Mapping[str, np.ndarray], filters: dict) -> None:
+def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
+    a, filters = next(iter(arrays.values())), results["filters"]
     truth0, j = a["truth"][0], {n: i for i, n in enumerate(filters)}
     for i in range(truth0.shape[-1]):
         curves_figure(out / f"fig_state{i + 1}.png",
@@ -532,4 +541,21 @@ TEXT = StudyText(
         "fig_rmse_1.png": "RMSE of x1 at each time step over the runs (the paper's Fig. 5).",
         "fig_rmse_2.png": "RMSE of x2 at each time step over the runs (the paper's Fig. 6).",
     },
+)
+
+
+STUDY = Study(
+    name="encrypted-switching",
+    text=TEXT,
+    scenarios=(SCENARIO,),
+    runs=50,
+    particles=200,
+    chunk_size=CHUNK_SIZE,
+    plan=_plan,
+    summarise=_summarise,
+    table=table_markdown,
+    figures=_figures,
+    options={"engine": "fast", "threads": 1, "mean_dynamics_row": True},
+    accepts=_accepts,
+    check=_check,
 )

@@ -18,21 +18,23 @@ Both return ``(mean, collapsed)``: weighted means (runs, K + 1, n_x) and the
 that timings measure filtering, not compilation.
 
 The studies run these inside a :mod:`studies.runner` task, one chunk of runs at a
-time; ``threads`` is the number of threads of the fused engine within a chunk.
-The compiled kernels are cached per :class:`designer.Model` object, so the tasks
-take their scenario from :func:`cached_scenario`: a worker process forked after the
-parent compiled (``Backend("processes")``) reuses the parent's kernels, and any
-other worker compiles once per model, not once per chunk.  :func:`score` turns a
-filter's concatenated runs into its metrics (:func:`studies.results.error_metrics`, time, collapses).
+time; ``threads`` is the number of threads of the fused engine within a chunk (worker
+*processes* are the runner's ``workers``).  The compiled kernels are cached per
+:class:`designer.Model` object, so the tasks rebuild their scenario from a
+:class:`studies.scenarios.ScenarioRef` (built once per process and reference): a
+worker process forked after the parent compiled (``Backend("processes")``) reuses the
+parent's kernels, and any other worker compiles once per model, not once per chunk.
+:func:`score` turns a filter's concatenated runs into its metrics
+(:func:`studies.results.error_metrics`, time, collapses); :func:`check_study_options`
+checks the options the particle-filter studies share.
 """
 from __future__ import annotations
 
-import json
-import warnings
-from typing import Any, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from designer.attacks import BinarySensorChannel
 from designer.model import Model
 from designer.noise import Noise
 from designer.validation import InputError, check_int
@@ -41,67 +43,30 @@ from filters.particle import run_sir
 from filters.rrp import packet_loglik
 
 from .results import error_metrics
-from .scenarios import load_scenario
 
-__all__ = ["ENGINES", "run_packets", "run_binary", "cached_scenario", "plain_params", "score", "check_threads",
-           "check_engine"]
+__all__ = ["ENGINES", "run_packets", "run_binary", "score", "score_configurations", "results_block", "check_threads",
+           "check_engine", "check_study_options", "position_velocity"]
 
 ENGINES = ("fast", "numpy")
 
 
-_SCENARIOS: dict = {}  # (name, parameters as JSON) -> Scenario; see cached_scenario
-_SCENARIOS_MAX = 8
+def check_threads(threads) -> int:
+    """``threads``: threads of the fused engine within a chunk of runs (an integer >= 1)."""
+    return check_int("threads", threads, 1)
 
 
-def cached_scenario(name: str, params: Mapping[str, Any]):
-    """The scenario ``name`` built with every parameter given in ``params``, once per process.
+def check_study_options(options) -> None:
+    """The options the particle-filter studies share (``engine``, ``threads``), checked before any work.
 
-    A memo, not state: the same ``(name, params)`` always builds the same scenario.  It
-    exists because the fused engine caches its compiled kernels per Model object; a
-    task that rebuilt its scenario for every chunk would recompile them every time.
+    ``options`` is the study's :class:`studies.pipeline.StudyOptions`.
     """
-    key = (name, json.dumps(dict(params), sort_keys=True, default=str))
-    sc = _SCENARIOS.get(key)
-    if sc is None:
-        if len(_SCENARIOS) >= _SCENARIOS_MAX:
-            _SCENARIOS.clear()
-        sc = _SCENARIOS[key] = load_scenario(name, dict(params))
-    return sc
+    check_engine(options["engine"])
+    check_threads(options["threads"])
 
 
-def plain_params(params: Mapping[str, Any]) -> dict:
-    """A scenario's parameters as JSON values (arrays as nested lists), for tasks and stored configs."""
-    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in params.items()}
-
-
-def check_threads(threads, workers) -> int:
-    """``threads``, or the deprecated ``workers`` given in its place (both given: they must agree)."""
-    if workers is not None:
-        workers = check_int("workers", workers, 1)
-        warnings.warn("the 'workers' parameter of the particle-filter studies is now 'threads' (threads of the "
-                      "fused engine within a chunk of runs); pass backend= for worker processes",
-                      DeprecationWarning, stacklevel=3)
-        if threads is not None and check_int("threads", threads, 1) != workers:
-            raise InputError(f"threads ({threads}) and its deprecated alias workers ({workers}) disagree")
-        return workers
-    return check_int("threads", 1 if threads is None else threads, 1)
-
-
-def check_study_options(*, runs, particles, seed, threads, workers, engine, chunk_size, backend):
-    """The run options shared by the particle-filter studies, checked before any work:
-    ``(runs, particles, seed, threads, chunk_size, backend)``."""
-    from .runner import Backend
-
-    runs = check_int("runs", runs, 2)
-    particles = check_int("particles", particles, 1)
-    seed = check_int("seed", seed, 0)
-    threads = check_threads(threads, workers)
-    check_engine(engine)
-    chunk_size = check_int("chunk_size", chunk_size, 1)
-    backend = backend or Backend()
-    if not isinstance(backend, Backend):
-        raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
-    return runs, particles, seed, threads, chunk_size, backend
+def position_velocity(model: Model) -> tuple[list[int], list[int]]:
+    """The components scored as position and velocity: the model's, the whole state as position without them."""
+    return list(model.position_index) or list(range(model.n_x)), list(model.velocity_index)
 
 
 def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: np.ndarray,
@@ -111,14 +76,70 @@ def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: n
     ``truth`` and ``mean`` (runs, K + 1, n_x), ``collapsed`` (runs, K), ``seconds`` (runs,):
     each run's share of its chunk's wall time for this filter.  ``wall_time_s`` is their
     sum (the filter's time over every chunk, however the chunks were spread) and
-    ``time_per_step_s`` = ``wall_time_s`` / (runs x K).
+    ``time_per_step_s`` = ``wall_time_s`` / (runs x K).  Without ``velocity`` components
+    the velocity metrics are None.
     """
     runs, K = collapsed.shape
     met = error_metrics(truth[:, 1:] - mean[:, 1:], position, velocity, rng)
+    if not len(velocity):  # a model without velocity components: no velocity error (the draws are kept)
+        met.update({"rmse_velocity": None, "rmse_velocity_ci95": None, "rmse_velocity_curve": None})
     wall = float(np.sum(seconds))
     met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
                 "collapsed_runs": int(collapsed.any(axis=1).sum())})
     return met
+
+
+def score_configurations(arrays, filters: Sequence, reused: Mapping[str, str], names: Sequence[str], model: Model,
+                         seed: int, describe: Callable) -> dict[str, dict]:
+    """Every configuration's metrics (:func:`score`) from the runner's arrays of a seed 000 / 002 study.
+
+    ``filters`` are the computed configurations (with ``name``; index ``j`` along the
+    arrays' filter axis: ``truth`` (runs, K + 1, n_x), ``mean`` (runs, F, K + 1, n_x),
+    ``collapsed`` (runs, F, K), ``seconds`` (runs, F)), ``reused`` maps a name to the
+    configuration whose numbers it shares, and ``names`` is every configuration in order:
+    the bootstrap draws follow it, from ``SeedSequence(seed).spawn(runs + 1)[runs]``.
+    ``describe(f)`` adds a computed filter's own keys.
+    """
+    A = arrays
+    runs = A["truth"].shape[0]
+    pos, vel = position_velocity(model)
+    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
+    index = {f.name: j for j, f in enumerate(filters)}
+    computed: dict[str, dict] = {}
+    for name in names:
+        if name in reused:
+            computed[name] = computed[reused[name]]
+            continue
+        j = index[name]
+        met = score(A["truth"], np.ascontiguousarray(A["mean"][:, j]), A["collapsed"][:, j], A["seconds"][:, j],
+                    pos, vel, rng)
+        met.update(describe(filters[j]))
+        computed[name] = met
+    return computed
+
+
+def results_block(study: str, sc, so, mc, assumptions: Sequence[str], filters: dict, sweeps: dict,
+                  paper: dict | None) -> dict:
+    """The results of a seed 000 / 002 study (all but the header the pipeline stamps).
+
+    ``paper`` (the published numbers and the Kalman velocity reference) is given for the
+    paper's own scenario only; elsewhere it and the assumption on the Kalman reference are
+    left out, and a model without position / velocity components says how it is scored.
+    """
+    m = sc.model
+    notes = [a for a in assumptions if paper is not None or "kalman_velocity" not in a]
+    if not (m.position_index and m.velocity_index):
+        notes.append(f"{study}: the model declares no position components, so 'position' is the whole state; "
+                     "without velocity components the velocity metrics are left out (null)."
+                     if not m.position_index else
+                     f"{study}: the model declares no velocity components; the velocity metrics are left out (null).")
+    out = {"scenario": sc.name, "runs": int(so.runs), "particles": so.particles, "steps": int(sc.steps),
+           "assumptions": list(sc.assumptions) + notes, "engine": so["engine"], "threads": int(so["threads"]),
+           "runner": mc.describe(), "filters": filters, "sweeps": sweeps}
+    if paper is not None:
+        out["paper"] = paper
+    out["params"] = dict(sc.params)
+    return out
 
 
 def check_engine(engine: str) -> None:
@@ -165,13 +186,16 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
 
 
 def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator], *, particles: int,
-               threshold: float, gain: float, channel_noise: Noise, deception: Noise, dos_prob: float = 0.0,
-               deception_prob: float = 0.0, flip_prob: float = 0.0, engine: str = "fast", threads: int = 1,
-               warm_up: bool = False):
-    """Filters of seed 002: ``y`` (runs, K, S) received binary-channel signals."""
+               channel: BinarySensorChannel, engine: str = "fast", threads: int = 1, warm_up: bool = False):
+    """Filters of seed 002: ``y`` (runs, K, S) received binary-channel signals.
+
+    ``channel`` is the channel the filter's likelihood assumes (its attack probabilities
+    may differ from those that produced ``y``).
+    """
     check_engine(engine)
-    kw = dict(threshold=threshold, gain=gain, channel_noise=channel_noise, deception=deception, dos_prob=dos_prob,
-              deception_prob=deception_prob, flip_prob=flip_prob)
+    kw = dict(threshold=channel.threshold, gain=channel.gain, channel_noise=channel.channel_noise,
+              deception=channel.deception, dos_prob=channel.dos_prob, deception_prob=channel.deception_prob,
+              flip_prob=channel.flip_prob)
     if engine == "numpy":
         if warm_up:
             return None
@@ -180,6 +204,7 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
     from filters import fastsir
 
     A, B = fastsir.binary_coefficients(y, **kw)
+    threshold = channel.threshold
     if warm_up:  # compile outside the timed call: one run, two particles, one step
         g = np.random.default_rng(0)
         fastsir.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)

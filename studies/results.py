@@ -18,7 +18,7 @@ import numpy as np
 from designer.fileio import atomic_write, write_json
 
 __all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_study", "write_outputs", "trajectory_figure", "curves_figure", "study_header",
+           "write_outputs", "trajectory_figure", "curves_figure", "study_header",
            "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
@@ -129,16 +129,6 @@ def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Ca
 
     write_report(out)
     return out
-
-
-def write_study(out, results: dict, t_start: float, figures: Callable[[Path], None], table: Callable[[dict], str]):
-    """Stamp the wall time, then (with ``out``) :func:`write_outputs`."""
-    import time
-
-    results["wall_time_s"] = time.perf_counter() - t_start
-    if out is not None:
-        write_outputs(out, results, figures, table)
-    return results
 
 
 def _plt():

@@ -8,6 +8,13 @@ sensors every step, attack-aware, an independent attack per packet).  Table 1
 curves (Figs. 3-4), and the η̄ sweep of RRP-PF-DA (Figs. 5-6), with the paper's
 published numbers beside ours.
 
+It runs on ``target-range-bearing`` by default and on any scenario whose channel is
+a :class:`designer.attacks.RoundRobinDeception` (a model file's ``CHANNEL``): the
+schedule start, η̄ and the law of the fake packets come from it, the angular
+measurement components (wrapped into (-π, π]) from the model's sensors
+(``Sensor.angles``).  The paper's numbers and the Kalman velocity reference are
+given for ``target-range-bearing`` only.
+
 Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(4)`` (=
 ``SeedSequence(seed).spawn(runs)[r].spawn(4)``) = (truth, Round-Robin attacks,
 all-sensor attacks, filters); the filters' stream is spawned once more per filter
@@ -15,35 +22,39 @@ configuration.  The attack draws are shared by every η̄ of the sweep (``eta = 
 η̄`` with the same ``u`` and ``ξ``), so the packets attacked at 0.2 are also
 attacked at 0.4 and 0.6.
 
-The runs are computed by :func:`studies.runner.monte_carlo` in chunks of
-``chunk_size`` runs (a task simulating the chunk's data and running every filter
-configuration, sweep included, on it); metrics, tables and figures come from the
-concatenated per-run arrays.  With the fast engine (one Generator per run) the
-numbers do not depend on the backend, the chunk size or the number of threads;
-the NumPy engine (the linear-weights row) draws one Generator per chunk.  With
-``out`` the chunks are stored there and an interrupted study resumes.
+A :class:`studies.pipeline.Study` (``STUDY``): the runs are computed by
+:mod:`studies.runner` in chunks of ``chunk_size`` runs (:func:`_runs` is the task:
+it simulates the chunk's data and runs every filter configuration, sweep included,
+on it); metrics, tables and figures come from the concatenated per-run arrays.  With
+the fast engine (one Generator per run) the numbers do not depend on the backend,
+the chunk size or the number of threads; the NumPy engine (the linear-weights row)
+draws one Generator per chunk.  With ``out`` the chunks are stored there and an
+interrupted study resumes.  Its options: ``engine`` (``"fast"`` or ``"numpy"``, see
+:mod:`studies.pfrun`), ``threads`` (of the fused engine within a chunk; no effect on
+the numbers), ``sweep`` (η̄ values in [0, 1), empty to skip) and
+``linear_weights_row`` (also RRP-SPF-DA with linear-domain weights, not in the paper).
 """
 from __future__ import annotations
 
 import functools
 import time
 from pathlib import Path
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from designer.attacks import RoundRobinDeception
 from designer.validation import InputError
-from filters.channels import deception_attack, round_robin_schedule
+from filters.attacks import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import cached_scenario, check_study_options, plain_params, run_packets, score
-from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, study_header,
-                      trajectory_figure, write_study)
-from .pipeline import StudyText
-from .runner import Backend, monte_carlo, run_seed
-from .scenarios import load_scenario
+from .pfrun import check_study_options, results_block, run_packets, score_configurations
+from .pipeline import Plan, Study, StudyOptions, StudyText
+from .results import curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, trajectory_figure
+from .runner import run_seed
+from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["run_rrp_deception", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE"]
+__all__ = ["STUDY", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE", "LINEAR"]
 
 SCENARIO = "target-range-bearing"
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
@@ -99,15 +110,20 @@ class _Filter(NamedTuple):
     linear: bool  # linear-domain weights (NumPy engine)
 
 
+def _is_paper(sc: Scenario) -> bool:
+    """The paper's own scenario (its published numbers and the Kalman reference apply)."""
+    return sc.source == SCENARIO
+
+
 def _attacked(y: np.ndarray, prob: float, signal, ss: np.random.SeedSequence) -> np.ndarray:
     """Packets after deception with probability ``prob``; the same draws for every ``prob`` (a fresh Generator)."""
     return deception_attack(y, prob, signal, np.random.default_rng(ss)).y
 
 
 def _setup(sc) -> dict:
-    m, K = sc.model, sc.steps
-    sched = round_robin_schedule(K, m.n_sensors, sc.extras["rr_start"])
-    return {"angles": sorted({j for _, j in sc.extras["angle_components"]}), "box": sc.extras["deception"],
+    m, K, ch = sc.model, sc.steps, sc.channel
+    sched = round_robin_schedule(K, m.n_sensors, ch.start)
+    return {"angles": sorted({j for _, j in m.angle_components}), "box": ch.deception,
             "sched": sched, "sensors": {"rr": sched[:, None], "all": np.tile(np.arange(m.n_sensors), (K, 1))}}
 
 
@@ -142,7 +158,17 @@ def _warm_up(sc, data: Mapping, filters: Sequence[_Filter], particles: int, engi
                         warm_up=True)
 
 
-def _runs(run_ids, seeds, *, params: Mapping[str, Any], particles: int, engine: str, threads: int,
+def _compile(ref: ScenarioRef, seed: int, particles: int, engine: str, filters: Sequence[_Filter],
+             n_streams: int) -> None:
+    """``Plan.before``: compile the kernels in the parent, on the scenario object the tasks use, so that forked
+    workers inherit them (a Dask worker compiles once, in its first chunk; every chunk also compiles what it lacks
+    before timing, so timings never include compiling)."""
+    sc = ref.build()
+    _, data0, _ = _data(sc, [run_seed(seed, 0)], filters, n_streams)
+    _warm_up(sc, data0, filters, particles, engine)
+
+
+def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str, threads: int,
           filters: Sequence[_Filter], n_streams: int) -> dict:
     """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
 
@@ -150,7 +176,7 @@ def _runs(run_ids, seeds, *, params: Mapping[str, Any], particles: int, engine: 
     ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
     wall time for that filter, compilation excluded).
     """
-    sc = cached_scenario(SCENARIO, params)
+    sc = ref.build()  # once per process: the fused kernels are cached per Model object
     m, K, st = sc.model, sc.steps, _setup(sc)
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, particles, engine)
@@ -173,7 +199,8 @@ def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool
     """The filters to compute, the names that reuse another's numbers, and every name in order.
 
     Stream ``c`` belongs to the ``c``-th configuration (Table 1's, the linear row, the
-    sweep's), whether computed or reused, as in every version of this study.
+    sweep's), whether computed or reused, as in every version of this study.  Table 1's
+    filters come first, in ``FILTERS`` order, and are always computed.
     """
     rr_eta = ("rr", eta)
     configs = {  # name: (packets, data's deception probability, filter's, linear weights)
@@ -195,133 +222,90 @@ def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool
     return filters, reused, list(configs)
 
 
-def run_rrp_deception(
-    *,
-    out: str | Path | None,
-    runs: int = 50,
-    particles: int = 500,
-    seed: int = 0,
-    quiet: bool = False,
-    overrides: Mapping[str, Any] | None = None,
-    assignments=(),
-    sweep: Sequence[float] = ETA_SWEEP,
-    engine: str = "fast",
-    threads: int | None = None,
-    linear_weights_row: bool = True,
-    backend: Backend | None = None,
-    force: bool = False,
-    chunk_size: int = CHUNK_SIZE,
-    workers: int | None = None,
-) -> dict:
-    """Run the study and write ``results.json``, ``table.md`` and the figures into ``out``.
+def _sweep(so: StudyOptions) -> list[float]:
+    return [float(v) for v in so["sweep"]]
 
-    Parameters
-    ----------
-    runs, particles : int
-        Monte Carlo runs ``L`` (paper: 50) and particles ``M`` (paper: 500).
-    sweep : sequence of float in [0, 1)
-        η̄ values of the sweep (paper: 0.2, 0.4, 0.6); empty to skip it.
-    engine : {"fast", "numpy"}
-        Particle-filter engine (see :mod:`studies.pfrun`).
-    threads : int
-        Threads of the fused engine within a chunk of runs (default 1); no effect on the numbers.
-    linear_weights_row : bool
-        Also run RRP-SPF-DA with linear-domain weights (numpy engine) — not in the paper.
-    backend : studies.runner.Backend
-        Where the chunks of runs are computed: batched in this process (default), local
-        processes, or a Dask cluster; the numbers are the same.
-    force : bool
-        Recompute runs already stored in ``out`` by an earlier (or interrupted) call, even
-        if they were computed with other settings.
-    chunk_size : int
-        Runs per chunk (default ``CHUNK_SIZE`` = 10): the unit of work sent to a worker and
-        of resumption; part of the study (the NumPy engine's numbers depend on it), never
-        derived from the backend.
-    workers : int
-        Deprecated alias of ``threads``.
-    """
-    runs, particles, seed, threads, chunk_size, backend = check_study_options(
-        runs=runs, particles=particles, seed=seed, threads=threads, workers=workers, engine=engine,
-        chunk_size=chunk_size, backend=backend)
-    sweep = [float(v) for v in sweep]
+
+def _check(so: StudyOptions) -> None:
+    check_study_options(so)
+    try:
+        sweep = _sweep(so)
+    except (TypeError, ValueError):
+        raise InputError(f"sweep must be a sequence of eta-bar values in [0, 1), got {so['sweep']!r}") from None
     if any(not 0.0 <= v < 1.0 for v in sweep):
         raise InputError(f"sweep values (eta-bar) must lie in [0, 1), got {sweep}")
-    t_start = time.perf_counter()
-    sc = load_scenario(SCENARIO, overrides, assignments)
-    params = plain_params(sc.params)
-    sc = cached_scenario(SCENARIO, params)  # the object whose kernels forked workers inherit
-    m, K = sc.model, sc.steps
-    eta = float(sc.extras["deception_prob"])
-    filters, reused, names = _configurations(eta, sweep, linear_weights_row)
+
+
+def _accepts(sc: Scenario) -> str | None:
+    if not isinstance(sc.channel, RoundRobinDeception):
+        return ("rrp-deception needs a Round-Robin deception channel: declare CHANNEL = RoundRobinDeception(...) "
+                "(designer.attacks) in the model file")
+    return None
+
+
+def _configs_of(sc: Scenario, so: StudyOptions):
+    return _configurations(sc.channel.deception_prob, _sweep(so), bool(so["linear_weights_row"]))
+
+
+def _plan(sc: Scenario, so: StudyOptions) -> Plan:
+    filters, _, names = _configs_of(sc, so)
     n_streams = len(names)  # one filter stream per configuration, computed or reused
-
-    if engine == "fast" and backend.kind != "dask":
-        # compile here so that forked workers inherit the kernels (a Dask worker compiles once, in its first
-        # chunk); every chunk also compiles what it lacks before timing, so timings never include compiling
-        _, data0, _ = _data(sc, [run_seed(seed, 0)], filters, n_streams)
-        _warm_up(sc, data0, filters, particles, engine)
-    task = functools.partial(_runs, params=params, particles=particles, engine=engine, threads=threads,
+    ref = reference(sc)
+    engine, threads = so["engine"], int(so["threads"])
+    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=engine, threads=threads,
                              filters=tuple(filters), n_streams=n_streams)
-    config = {"study": "rrp-deception", "params": params, "particles": particles, "engine": engine,
-              "filters": [f._asdict() for f in filters], "streams": n_streams}
-    mc = monte_carlo(task, runs=runs, seed=seed, chunk_size=chunk_size, backend=backend, store=out,
-                     label="rrp-deception", config=config, force=force, quiet=quiet)
-    A = mc.arrays
+    config = {"study": "rrp-deception", "params": dict(ref.params), "particles": so.particles, "engine": engine,
+              "filters": [f._asdict() for f in filters], "streams": n_streams,
+              "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+    before = functools.partial(_compile, ref, so.seed, so.particles, engine, tuple(filters), n_streams) \
+        if engine == "fast" else None
+    return Plan(task, "rrp-deception", config, before=before)
 
-    pos, vel = list(m.position_index), list(m.velocity_index)
-    metrics_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs + 1)[runs])
-    index = {f.name: j for j, f in enumerate(filters)}
-    computed: dict[str, dict] = {}
-    for name in names:  # the configurations' order: the bootstrap draws follow it
-        if name in reused:
-            computed[name] = computed[reused[name]]
-            continue
-        j, f = index[name], filters[index[name]]
-        met = score(A["truth"], np.ascontiguousarray(A["mean"][:, j]), A["collapsed"][:, j], A["seconds"][:, j],
-                    pos, vel, metrics_rng)
-        met.update({"communications": int(K * (1 if f.packets == "rr" else m.n_sensors)),
-                    "engine": "numpy" if f.linear else engine, "attack_prob_assumed": f.filter_prob})
-        computed[name] = met
-    means0 = {f.name: A["mean"][0, j] for j, f in enumerate(filters)}
 
+def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
+    m, K, engine = sc.model, sc.steps, so["engine"]
+    filters, reused, names = _configs_of(sc, so)
+    sweep, linear_weights_row = _sweep(so), bool(so["linear_weights_row"])
+    computed = score_configurations(
+        mc.arrays, filters, reused, names, m, so.seed,
+        lambda f: {"communications": int(K * (1 if f.packets == "rr" else m.n_sensors)),
+                   "engine": "numpy" if f.linear else engine, "attack_prob_assumed": f.filter_prob})
     filters_out = {k: computed[k] for k in (*FILTERS, *([LINEAR] if linear_weights_row else []))}
     if linear_weights_row:
         filters_out[LINEAR]["note"] = "not in the paper: RRP-SPF-DA with weights emulated in linear double precision"
     sweep_keys = [f"sweep eta={v:g}" for v in sweep]
     sweeps = {"deception_prob": {f"{v:g}": {"RRP-PF-DA": computed[k]} for v, k in zip(sweep, sweep_keys)}} \
         if sweep else {}
-    results = study_header("rrp-deception", SCENARIO, runs=runs, particles=particles, steps=K,
-                           seed=seed, assumptions=list(sc.assumptions) + list(ASSUMPTIONS), engine=engine,
-                           workers=threads, threads=threads, runner=mc.describe())
-    results.update({
-        "filters": filters_out,
-        "sweeps": sweeps,
-        "paper": {"source": "seed 000, Table 1", "filters": PAPER_TABLE1,
-                  "kalman_velocity_at_paper_rmse_position": {
-                      n: cv_velocity_at_position_rmse(sc.params["accel_std"] ** 2, sc.params["period"],
-                                                      v["rmse_position"]) for n, v in PAPER_TABLE1.items()},
-                  "runs": 50, "particles": 500, "deception_prob": 0.2,
-                  "note": "Figs. 3-6 are curves without printed numbers; the paper states RMSE grows with eta-bar."},
-        "params": dict(sc.params),
-    })
-    return write_study(out, results, t_start, lambda d: _figures(d, sc, A["truth"][0], means0, filters_out, sweeps),
-                       table_markdown)
+    paper = None
+    if _is_paper(sc):  # the Kalman reference is the paper's scenario's (its accel_std and period)
+        paper = {
+            "source": "seed 000, Table 1", "filters": PAPER_TABLE1,
+            "kalman_velocity_at_paper_rmse_position": {
+                n: cv_velocity_at_position_rmse(sc.params["accel_std"] ** 2, sc.params["period"], v["rmse_position"])
+                for n, v in PAPER_TABLE1.items()},
+            "runs": 50, "particles": 500, "deception_prob": 0.2,
+            "note": "Figs. 3-6 are curves without printed numbers; the paper states RMSE grows with eta-bar."}
+    return results_block("rrp-deception", sc, so, mc, ASSUMPTIONS, filters_out, sweeps, paper)
 
 
 def table_markdown(results: dict) -> str:
-    """Table 1 with ours beside the paper's, and the η̄ sweep."""
+    """Table 1 with ours beside the paper's (its own scenario), and the η̄ sweep."""
+    paper = results.get("paper") or {}
     cols = [("rmse_position", "RMSE_p (ours)"), ("paper_rmse_position", "RMSE_p (paper)"),
             ("rmse_velocity", "RMSE_v (ours)"), ("paper_rmse_velocity", "RMSE_v (paper)"),
             ("time_per_step_s", "time/step s (ours)"), ("paper_time_per_step_s", "time/step s (paper)"),
             ("communications", "communications (ours)"), ("paper_communications", "communications (paper)"),
             ("kalman_v", "Kalman RMSE_v at the paper's RMSE_p"), ("collapsed_steps", "collapsed steps")]
+    if not paper:
+        cols = [(k, h.replace(" (ours)", "")) for k, h in cols if not k.startswith(("paper_", "kalman"))]
     rows = {}
     for name, f in results["filters"].items():
-        paper = results["paper"]["filters"].get(name, {})
-        rows[name] = {**f, **{f"paper_{k}": v for k, v in paper.items()},
-                      "kalman_v": results["paper"]["kalman_velocity_at_paper_rmse_position"].get(name)}
+        published = paper.get("filters", {}).get(name, {})
+        rows[name] = {**f, **{f"paper_{k}": v for k, v in published.items()},
+                      "kalman_v": paper.get("kalman_velocity_at_paper_rmse_position", {}).get(name)}
         rows[name]["rmse_position"] = rmse_with_ci(f)
-    text = (f"# rrp-deception (seed 000): Table 1\n\n{results['runs']} runs, M = {results['particles']} particles, "
+    title = "(seed 000): Table 1" if paper else f"on {results['scenario']}"
+    text = (f"# rrp-deception {title}\n\n{results['runs']} runs, M = {results['particles']} particles, "
             f"K = {results['steps']} steps, seed {results['seed']}, engine {results['engine']}. "
             "RMSE_p with its 95 % bootstrap interval over runs.\n\n" + markdown_table(rows, cols))
     sw = results["sweeps"].get("deception_prob")
@@ -332,19 +316,31 @@ def table_markdown(results: dict) -> str:
     return text
 
 
-def _figures(out: Path, sc, truth0, means0, filters, sweeps) -> None:
-    pos = np.array([s.position for s in sc.model.sensors])
-    trajectory_figure(out / "fig_trajectory.png", truth0, {n: means0[n] for n in FILTERS if n in means0}, pos,
-                      sc.model.position_index, "One run: target and estimates (cf. Fig. 2)")
-    for metric, fig_no in (("position", "3"), ("velocity", "4")):
+def plane_view(model) -> np.ndarray | None:
+    """The sensors' positions (S, 2) for a trajectory figure in the plane, or None (no 2-D position to draw)."""
+    if len(model.position_index) != 2 or any(s.position is None or len(s.position) < 2 for s in model.sensors):
+        return None
+    return np.array([s.position[:2] for s in model.sensors], dtype=float)
+
+
+def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
+    sc, A = next(iter(built.values())), next(iter(arrays.values()))
+    filters, sweeps = results["filters"], results["sweeps"]
+    pos = plane_view(sc.model)
+    if pos is not None:  # Table 1's filters are the first configurations, in FILTERS order
+        trajectory_figure(out / "fig_trajectory.png", A["truth"][0],
+                          {n: A["mean"][0, j] for j, n in enumerate(FILTERS)}, pos, sc.model.position_index,
+                          "One run: target and estimates (cf. Fig. 2)")
+    sw = sweeps.get("deception_prob")
+    for metric, fig_no, sw_no in (("position", "3", "5"), ("velocity", "4", "6")):
+        if any(f[f"rmse_{metric}_curve"] is None for f in filters.values()):
+            continue  # no velocity components
         curves_figure(out / f"fig_rmse_{metric}.png", {n: f[f"rmse_{metric}_curve"] for n, f in filters.items()},
                       f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})", log=True)
-    sw = sweeps.get("deception_prob")
-    for metric, fig_no in (("position", "5"), ("velocity", "6")):
         if sw:
             curves_figure(out / f"fig_eta_sweep_{metric}.png",
                           {f"RRP-PF-DA, eta-bar = {v}": d["RRP-PF-DA"][f"rmse_{metric}_curve"] for v, d in sw.items()},
-                          f"RMSE of {metric}", f"RMSE of {metric} against eta-bar (cf. Fig. {fig_no})")
+                          f"RMSE of {metric}", f"RMSE of {metric} against eta-bar (cf. Fig. {sw_no})")
 
 
 TEXT = StudyText(
@@ -383,4 +379,21 @@ TEXT = StudyText(
         "fig_eta_sweep_velocity.png": "Velocity RMSE of RRP-PF-DA for each deception probability eta-bar "
                                       "(the paper's Fig. 6).",
     },
+)
+
+
+STUDY = Study(
+    name="rrp-deception",
+    text=TEXT,
+    scenarios=(SCENARIO,),
+    runs=50,
+    particles=500,
+    chunk_size=CHUNK_SIZE,
+    plan=_plan,
+    summarise=_summarise,
+    table=table_markdown,
+    figures=_figures,
+    options={"engine": "fast", "threads": 1, "sweep": ETA_SWEEP, "linear_weights_row": True},
+    accepts=_accepts,
+    check=_check,
 )

@@ -6,18 +6,25 @@ filters filter the same data with the same random numbers, so the comparison is 
 from __future__ import annotations
 
 import json
+import textwrap
 
 import numpy as np
 import pytest
 
 from designer import InputError
-from studies.encrypted_switching import FILTERS, MEAN_DYNAMICS, run_encrypted_switching
+from studies.encrypted_switching import FILTERS, MEAN_DYNAMICS
+from studies.pipeline import run_study
+
+
+def encrypted(**kw):
+    """The study through the pipeline (quiet, as every call here)."""
+    return run_study("encrypted-switching", **kw)
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("encrypted")
-    return out, run_encrypted_switching(out=out, runs=16, particles=200, seed=0, quiet=True)
+    return out, encrypted(out=out, runs=16, particles=200, seed=0)
 
 
 def test_ppf_beats_both_baselines_on_both_states(study):
@@ -65,7 +72,7 @@ def test_results_table_and_figures(study):
 
 
 def _small(**kw):
-    return run_encrypted_switching(out=None, runs=3, particles=40, quiet=True, mean_dynamics_row=False,
+    return encrypted(out=None, runs=3, particles=40, mean_dynamics_row=False,
                                    assignments=("steps=15",), **kw)
 
 
@@ -95,8 +102,9 @@ def test_transmission_errors_make_measurements_unavailable():
 
 @pytest.mark.parametrize("kw, name", [
     ({"engine": "gpu"}, "engine"),
-    ({"engine": "numpy", "workers": 2}, "workers"),
-    ({"workers": 0}, "workers"),
+    ({"engine": "numpy", "threads": 2}, "threads"),
+    ({"threads": 0}, "threads"),
+    ({"workers": 2}, "workers"),
     ({"runs": 1}, "runs"),
     ({"particles": 0}, "particles"),
     ({"seed": -1}, "seed"),
@@ -106,7 +114,7 @@ def test_transmission_errors_make_measurements_unavailable():
 ])
 def test_bad_inputs_name_the_parameter(kw, name):
     with pytest.raises(InputError, match=name):
-        run_encrypted_switching(out=None, quiet=True, **kw)
+        encrypted(out=None, **kw)
 
 
 def _same_numbers(a: dict, b: dict) -> bool:
@@ -114,7 +122,7 @@ def _same_numbers(a: dict, b: dict) -> bool:
     import json
 
     def strip(r):
-        r = json.loads(json.dumps(r))
+        r = json.loads(json.dumps(r.results))
         for key in ("wall_time_s", "runner", "versions", "timing_s"):
             r.pop(key, None)
         for f in r["filters"].values():
@@ -129,16 +137,57 @@ def test_runner_backends_give_the_same_numbers_and_resume(tmp_path):
     distributed = pytest.importorskip("distributed")
     from studies.runner import Backend, make_backend
 
-    kw = dict(runs=4, particles=30, seed=3, quiet=True, chunk_size=2, mean_dynamics_row=False)
-    a = run_encrypted_switching(out=tmp_path / "a", **kw)
-    b = run_encrypted_switching(out=tmp_path / "b", backend=Backend("processes", workers=2), **kw)
+    kw = dict(runs=4, particles=30, seed=3, chunk_size=2, mean_dynamics_row=False)
+    a = encrypted(out=tmp_path / "a", **kw)
+    b = encrypted(out=tmp_path / "b", backend=Backend("processes", workers=2), **kw)
     assert _same_numbers(a, b) and b["runner"]["chunks_computed"] == 2
-    again = run_encrypted_switching(out=tmp_path / "a", **kw)
+    again = encrypted(out=tmp_path / "a", **kw)
     assert again["runner"]["chunks_reused"] == 2 and _same_numbers(a, again)
     with pytest.raises(InputError, match="--force"):
-        run_encrypted_switching(out=tmp_path / "a", **{**kw, "particles": 40})
+        encrypted(out=tmp_path / "a", **{**kw, "particles": 40})
     n = dict(kw, engine="numpy")
-    c = run_encrypted_switching(out=None, **n)
+    c = encrypted(out=None, **n)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
-        d = run_encrypted_switching(out=None, backend=make_backend(dask=cl.scheduler_address), **n)
+        d = encrypted(out=None, backend=make_backend(dask=cl.scheduler_address), **n)
     assert _same_numbers(c, d)
+
+
+USER_MODEL = """
+    \"\"\"A user's scalar system switching between two dynamics, one encrypted sensor that drops packets.\"\"\"
+    import casadi as ca
+
+    from designer import Gaussian, Model, Sensor, TruncatedGaussian
+    from filters.encryption import Codec, EncryptedChannel
+
+    STEPS = 10
+
+
+    def model():
+        x, r = ca.SX.sym("x", 1), ca.SX.sym("mode")
+        f = 0.9 * x + r * 0.2 * ca.sin(x) + (1 - r) * 0.1 * ca.cos(x)
+        noise = TruncatedGaussian([0.0], [1.0], [-2.0], [2.0])
+        return Model("user-switching", x, f, [Sensor("s", 2.0 * ca.sin(x), noise)], Gaussian.zero_mean([[0.01]]),
+                     Gaussian([0.5], [[0.25]]), mode=r, mode_probs=[0.5, 0.5])
+
+
+    CHANNEL = EncryptedChannel(Codec(resolution=0.1, quant_scale=1.0, quant_levels=8, quant_range=4.0),
+                               dropout_prob=0.3)
+"""
+
+
+def test_a_user_model_file_with_an_encrypted_channel_runs_the_study(tmp_path):
+    path = tmp_path / "user_switching.py"
+    path.write_text(textwrap.dedent(USER_MODEL))
+    res = run_study("encrypted-switching", [str(path)], runs=3, particles=30, out=tmp_path / "o")
+    r = res.results
+    assert r["scenario"] == "user-switching" and r["steps"] == 10 and "paper" not in r  # the paper's claim: its own
+    assert set(r["filters"]) == {*FILTERS, MEAN_DYNAMICS}
+    tx = r["transmission"]  # the model's channel was used: its codec's bound and its dropouts
+    assert tx["bound_L_bar"] == [pytest.approx(1.0 * 4.0 / 8 + 0.1)] and tx["dropped"] > 0
+    A = res.arrays["user-switching"]
+    assert tx["available_fraction"] == A["available"].mean() < 1.0
+    for j, f in enumerate(r["filters"].values()):  # RMSE_1(t) recomputed from the per-run estimates
+        e2 = (A["truth"][:, 1:, 0] - A["mean"][:, j, 1:, 0]) ** 2
+        np.testing.assert_allclose(f["rmse_state_curve"][0], np.sqrt(e2.mean(axis=0)), rtol=1e-12)
+    assert (tmp_path / "o" / "table.md").read_text().startswith("# encrypted-switching on user-switching")
+    assert (tmp_path / "o" / "fig_rmse_1.png").stat().st_size > 10_000

@@ -19,13 +19,14 @@ from designer import Gaussian, InputError, Model, Sensor
 from designer.noise import GaussianMixture, TruncatedGaussian
 from designer.simulate import simulate, simulate_runs
 from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model, raw_loglik, received
-from filters.encryption import Codec, transmit, transmit_runs
+from filters.encryption import Codec, EncryptedChannel, transmit, transmit_runs
 from filters.fastedpf import edpf_loglik, sir_edpf
 from filters.particle import run_sir
 from studies.encrypted_switching import (FILTERS, MEAN_DYNAMICS, RunConfig, _state_metrics, _streams,
-                                         compute_runs, concatenate_runs, filter_names, run_encrypted_switching)
+                                         compute_runs, concatenate_runs, filter_names)
+from studies.pipeline import run_study
 from studies.results import BOOTSTRAP, error_metrics
-from studies.scenarios import load_scenario
+from studies.scenarios import load_scenario, reference
 
 TOL = 1e-10
 
@@ -34,7 +35,7 @@ TOL = 1e-10
 def sw():
     """switching-2d with a lossy channel (bit errors caught by the CRC, dropouts), so that α varies."""
     sc = load_scenario("switching-2d")
-    m, codec = sc.model, Codec.of(sc.extras)
+    m, codec = sc.model, sc.channel.codec
     K = 50
     tr = sc.simulate(np.random.default_rng(1), K)
     tx = transmit(tr.z, codec, np.random.default_rng(2), bit_error_prob=0.03, dropout_prob=0.15)
@@ -161,9 +162,9 @@ def test_a_runs_result_depends_only_on_its_generator(sw):
 
 
 def test_study_runs_do_not_depend_on_chunks_runs_or_threads():
-    params = dict(load_scenario("switching-2d", assignments=("steps=25", "dropout_prob=0.1")).params)
-    cfg1 = RunConfig(particles=50, params=params, workers=1)
-    cfg2 = cfg1._replace(workers=2)
+    ref = reference(load_scenario("switching-2d", assignments=("steps=25", "dropout_prob=0.1")))
+    cfg1 = RunConfig(particles=50, scenario=ref, threads=1)
+    cfg2 = cfg1._replace(threads=2)
     seqs = np.random.SeedSequence(4).spawn(6)
     whole = compute_runs(range(6), seqs, cfg2)
     parts = concatenate_runs([compute_runs([0, 1], seqs[:2], cfg1), compute_runs([2, 3, 4, 5], seqs[2:], cfg1)])
@@ -180,8 +181,8 @@ def test_study_runs_do_not_depend_on_chunks_runs_or_threads():
     assert np.array_equal(again["mean"], whole["mean"])
     fresh = np.random.SeedSequence(4).spawn(6)[5].spawn(3)
     assert [s.generate_state(4).tolist() for s in _streams(seqs[5])] == [s.generate_state(4).tolist() for s in fresh]
-    with pytest.raises(InputError, match="workers"):
-        compute_runs([0], seqs[:1], cfg1._replace(engine="numpy", workers=2))
+    with pytest.raises(InputError, match="threads"):
+        compute_runs([0], seqs[:1], cfg1._replace(engine="numpy", threads=2))
     with pytest.raises(InputError, match="seeds"):
         compute_runs([0, 1], seqs[:1], cfg1)
 
@@ -222,7 +223,7 @@ def test_simulate_runs_has_simulates_distribution():
 
 def test_transmit_runs_equals_per_run_transmit():
     sc = load_scenario("switching-2d")
-    codec = Codec.of(sc.extras)
+    codec = sc.channel.codec
     z = np.random.default_rng(0).normal(0, 1.5, (5, 30, 2))
     seeds = np.random.SeedSequence(3).spawn(5)
     kw = dict(bit_error_prob=0.05, dropout_prob=0.2)
@@ -232,6 +233,10 @@ def test_transmit_runs_equals_per_run_transmit():
         for field in one._fields:
             assert np.array_equal(getattr(batch, field)[r], getattr(one, field), equal_nan=True), field
     assert batch.detected.any() and batch.dropped.any()
+    # the scenario's typed channel sends through the same chain with its own error probabilities
+    channel = EncryptedChannel(codec, **kw)
+    again = channel.transmit_runs(z, [np.random.default_rng(s) for s in seeds])
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(again, batch))
     with pytest.raises(InputError, match="one run per Generator"):
         transmit_runs(z, codec, [np.random.default_rng(0)])
 
@@ -290,7 +295,7 @@ def test_bad_inputs_name_the_parameter(sw):
 
 # ----------------------------------------------------------------------------- the paper's claim on the fast engine
 def test_ppf_beats_both_baselines_on_the_fast_engine_at_the_default_size():
-    res = run_encrypted_switching(out=None, quiet=True, workers=2, mean_dynamics_row=False)
+    res = run_study("encrypted-switching", threads=2, mean_dynamics_row=False)
     assert res["runs"] == 50 and res["particles"] == 200 and res["steps"] == 120 and res["engine"] == "fast"
     f = res["filters"]
     for base in ("PF-RSN", "PF-SR-DE"):

@@ -6,18 +6,20 @@ particles with the no-attack reference, so the comparisons are sharp at this siz
 from __future__ import annotations
 
 import json
+import textwrap
 
 import pytest
 
 from designer import InputError
-from studies.fdi_four_tank import (L31, L31_UNIFORM, NOATT, NORMAL, NORMAL_LIN, PAPER_TABLE3, PAPER_TABLE4, PROPOSED,
-                                   SAMPLED, TABLE3_COLUMNS, run_fdi_four_tank)
+from studies.fdi_four_tank import (FILTERS, L31, L31_UNIFORM, NOATT, NORMAL, NORMAL_LIN, PAPER_TABLE3, PAPER_TABLE4,
+                                   PROPOSED, SAMPLED, TABLE3_COLUMNS)
+from studies.pipeline import run_study
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("fdi")
-    return out, run_fdi_four_tank(out=out, runs=8, particles=100, seed=3, quiet=True)
+    return out, run_study("fdi-four-tank", out=out, runs=8, particles=100, seed=3)
 
 
 def test_thresholds_are_the_papers(study):
@@ -117,5 +119,50 @@ def test_results_table_and_figures_on_disk(study):
 ])
 def test_study_rejects_bad_options(tmp_path, kw, needle):
     with pytest.raises(InputError, match=needle):
-        run_fdi_four_tank(out=tmp_path / "o", quiet=True, **{"runs": 2, **kw})
+        run_study("fdi-four-tank", out=tmp_path / "o", **{"runs": 2, **kw})
     assert not (tmp_path / "o" / "results.json").exists()
+
+
+USER_MODEL = """
+    \"\"\"A user's two-state linear plant, both states measured, under a bias FDI attack.\"\"\"
+    import casadi as ca
+    import numpy as np
+
+    from designer import Gaussian, Model, Sensor
+    from designer.attacks import BiasFDI
+
+    STEPS = 15
+
+
+    def model():
+        x = ca.SX.sym("x", 2)
+        f = ca.vertcat(0.95 * x[0] + 0.1 * x[1], 0.9 * x[1])
+        sensors = [Sensor(f"y{i}", x[i], Gaussian.zero_mean([[1e-3]])) for i in range(2)]
+        return Model("user-plant", x, f, sensors, Gaussian.zero_mean(1e-4 * np.eye(2)),
+                     Gaussian([1.0, 1.0], 1e-2 * np.eye(2)))
+
+
+    CHANNEL = BiasFDI(prob=0.3, bias=[0.5, 0.5], tau=0.8, norm_min=0.28)
+"""
+
+
+def test_a_user_model_file_with_a_bias_fdi_channel_runs_the_study(tmp_path):
+    path = tmp_path / "user_plant.py"
+    path.write_text(textwrap.dedent(USER_MODEL))
+    res = run_study("fdi-four-tank", [str(path)], runs=2, particles=30, out=tmp_path / "o")
+    r = res.results
+    assert r["scenario"] == "user-plant" and r["steps"] == 15 and set(r["filters"]) == set(FILTERS)
+    # the four-tank's own blocks (Table 3's noise levels, sensitivity, the paper's numbers) are left out
+    assert not {"paper", "table3", "sensitivity"} & set(r)
+    # eta of (45) from the model's own R: G = I, K = q / (q + r) I, varsigma = 1 - q / (q + r)
+    th = r["thresholds"]["default"]
+    assert th["eta"] == pytest.approx((1 - 1e-4 / 1.1e-3) * 0.28, rel=1e-12)
+    assert th["zeta"] == pytest.approx(0.3)  # zeta = p_l (alpha at the lower end of (53))
+    assert r["attack_bias_1"]["attack_bias"] == [1.0, 1.0]
+    A = res.arrays["user-plant"]
+    det = r["detection"][PROPOSED]  # the attack occurrences are the channel's: counted again from the arrays
+    assert det["attacks"] == int(A["main_l"].sum()) and 0 < det["attacks"] < A["main_l"].size
+    assert r["filters"][NOATT]["rmse"] == 0.0
+    for fig in ("fig_detection", "fig_detection_bias1", "fig_estimates", "fig_gamma_hat", "fig_rmse"):
+        assert (tmp_path / "o" / f"{fig}.png").stat().st_size > 10_000, fig
+    assert (tmp_path / "o" / "table.md").read_text().startswith("# fdi-four-tank on user-plant")

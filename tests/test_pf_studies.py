@@ -6,15 +6,16 @@ every comparison uses common random numbers, so the orderings are sharp at these
 from __future__ import annotations
 
 import json
+import textwrap
 
 import numpy as np
 import pytest
 
 from designer.validation import InputError
-from studies.binary_multi_attack import run_binary_multi_attack
 from studies.cli import main
+from studies.pipeline import run_study
 from studies.results import cv_velocity_at_position_rmse
-from studies.rrp_deception import PAPER_TABLE1, run_rrp_deception
+from studies.rrp_deception import PAPER_TABLE1
 
 ENGINE = "fast"  # the default; the NumPy engine is checked against it in test_fastsir.py
 
@@ -22,8 +23,8 @@ ENGINE = "fast"  # the default; the NumPy engine is checked against it in test_f
 @pytest.fixture(scope="module")
 def rrp(tmp_path_factory):
     out = tmp_path_factory.mktemp("rrp")
-    return out, run_rrp_deception(out=out, runs=20, particles=300, seed=4, sweep=(0.2, 0.6), engine=ENGINE,
-                                  quiet=True)
+    return out, run_study("rrp-deception", out=out, runs=20, particles=300, seed=4, sweep=(0.2, 0.6),
+                          engine=ENGINE)
 
 
 def test_rrp_deception_reproduces_the_claims_of_seed_000(rrp):
@@ -61,8 +62,8 @@ def test_rrp_deception_writes_results_table_and_figures(rrp):
 
 
 def test_binary_multi_attack_reproduces_the_claims_of_seed_002(tmp_path):
-    res = run_binary_multi_attack(out=tmp_path, runs=16, particles=300, seed=2, sweep=(0.1, 0.4),
-                                  table2_particles=(60, 600), engine=ENGINE, quiet=True)
+    res = run_study("binary-multi-attack", out=tmp_path, runs=16, particles=300, seed=2, sweep=(0.1, 0.4),
+                    table2_particles=(60, 600), engine=ENGINE)
     p = {k: v["rmse_position"] for k, v in res["filters"].items()}
     assert p["Sta-PF-Neg"] > 2 * p["Sec-PF"]  # neglecting the attacks is worst
     assert p["Sec-PF"] < 2 * p["Sta-PF"]  # Sec-PF is close to the attack-free benchmark
@@ -82,7 +83,7 @@ def test_binary_multi_attack_reproduces_the_claims_of_seed_002(tmp_path):
     (["--particles", "0"], "particles"),
     (["--workers", "0"], "workers"),
     (["--mode", "paper"], "--mode"),
-    (["--schedule", "x"], "--schedule"),
+    (["--schedule", "x"], "schedule"),
 ])
 def test_pf_study_cli_rejects_bad_or_inapplicable_options(tmp_path, capsys, args, needle):
     assert main(["study", "rrp-deception", "--out", str(tmp_path / "o"), "--quiet", *args]) == 2
@@ -92,22 +93,22 @@ def test_pf_study_cli_rejects_bad_or_inapplicable_options(tmp_path, capsys, args
 
 
 def test_results_do_not_depend_on_the_number_of_threads(tmp_path):
-    kw = dict(runs=4, particles=100, seed=11, sweep=(0.4,), quiet=True, linear_weights_row=False)
-    a = run_rrp_deception(out=None, threads=1, **kw)
-    b = run_rrp_deception(out=None, threads=2, **kw)
+    kw = dict(runs=4, particles=100, seed=11, sweep=(0.4,), linear_weights_row=False)
+    a = run_study("rrp-deception", threads=1, **kw)
+    b = run_study("rrp-deception", threads=2, **kw)
     for name in a["filters"]:
         assert a["filters"][name]["rmse_position_curve"] == b["filters"][name]["rmse_position_curve"], name
-    assert b["threads"] == b["workers"] == 2
-    # the binary study likewise (timings aside); 'workers' is the deprecated name of 'threads'
-    c = run_binary_multi_attack(out=None, runs=3, particles=80, seed=3, sweep=(), table2_particles=(), quiet=True)
-    with pytest.warns(DeprecationWarning, match="threads"):
-        d = run_binary_multi_attack(out=None, runs=3, particles=80, seed=3, sweep=(), table2_particles=(),
-                                    quiet=True, workers=2)
+    assert b["threads"] == 2 and "workers" not in b.results  # threads: one word for them
+    # the binary study likewise (timings aside)
+    c = run_study("binary-multi-attack", runs=3, particles=80, seed=3, sweep=(), table2_particles=())
+    d = run_study("binary-multi-attack", runs=3, particles=80, seed=3, sweep=(), table2_particles=(), threads=2)
     assert d["threads"] == 2
     assert c["filters"] == {n: {**f, **{k: c["filters"][n][k] for k in ("time_per_step_s", "wall_time_s")}}
                             for n, f in d["filters"].items()}
-    with pytest.warns(DeprecationWarning), pytest.raises(InputError, match="disagree"):
-        run_binary_multi_attack(out=None, runs=3, particles=80, quiet=True, threads=1, workers=2)
+    # 'workers' (worker processes, the runner's) is no study option: the old alias of threads is refused
+    for bad in ({"workers": 2}, {"threads": 0}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            run_study("binary-multi-attack", runs=3, particles=80, **bad)
 
 
 def test_pf_study_cli_is_reproducible(tmp_path):
@@ -158,7 +159,136 @@ def test_seed_001_and_004_studies_run_from_the_cli(tmp_path, capsys):
     assert main(["study", "fdi-four-tank", "--runs", "2", "--particles", "30", "--quiet", "--set", "steps=40",
                  "--out", str(tmp_path / "fdi")]) == 0
     out = capsys.readouterr().out
-    assert "PPF: RMSE per state" in out and "against the no-attack PF" in out
+    assert "PPF: RMSE per state" in out and "proposed (modified PF): RMSE" in out and "against the truth" in out
     for d, study in (("es", "encrypted-switching"), ("fdi", "fdi-four-tank")):
         res = json.loads((tmp_path / d / "results.json").read_text())
         assert res["study"] == study and res["runs"] == 2
+
+
+# --- user model files: the studies run on any model with the right CHANNEL --------------------------------------
+
+RRP_MODEL = """
+    \"\"\"A user's target in the plane, two range-bearing sensors under Round-Robin deception.\"\"\"
+    import casadi as ca
+    import numpy as np
+
+    from designer import Gaussian, Model, Sensor, UniformBox
+    from designer.attacks import RoundRobinDeception
+
+    STEPS = 10
+
+
+    def model():
+        x = ca.SX.sym("x", 4)
+        sensors = []
+        for i, (sx, sy) in enumerate([(0.0, 0.0), (0.0, 20.0)]):
+            dx, dy = x[0] - sx, x[2] - sy
+            sensors.append(Sensor(f"s{i}", ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx)),
+                                  Gaussian.zero_mean(np.diag([1.0, 1e-3])), (sx, sy), angles=(1,)))
+        f = ca.vertcat(x[0] + x[1], x[1], x[2] + x[3], x[3])
+        return Model("user-target", x, f, sensors, Gaussian.zero_mean(1e-3 * np.eye(4)),
+                     Gaussian([10.0, 0.3, 10.0, 0.3], np.diag([1.0, 0.01, 1.0, 0.01])),
+                     position_index=(0, 2), velocity_index=(1, 3))
+
+
+    CHANNEL = RoundRobinDeception(deception_prob=0.3, deception=UniformBox([0.0, -np.pi], [50.0, np.pi]), start=2)
+"""
+
+BINARY_MODEL = """
+    \"\"\"A user's target watched by four binary energy sensors under DoS, deception and flipping.\"\"\"
+    import casadi as ca
+    import numpy as np
+
+    from designer import Gaussian, Model, Sensor, UniformBox
+    from designer.attacks import BinarySensorChannel
+
+    STEPS = 10
+
+
+    def model():
+        x = ca.SX.sym("x", 4)
+        sensors = [Sensor(f"s{i}", 100.0 / ca.fmax((x[0] - a) ** 2 + (x[2] - b) ** 2, 1e-6),
+                          Gaussian.zero_mean([[0.01]]), (a, b)) for i, (a, b) in enumerate([(0, 0), (0, 20), (20, 0)])]
+        f = ca.vertcat(x[0] + x[1], x[1], x[2] + x[3], x[3])
+        return Model("user-binary", x, f, sensors, Gaussian.zero_mean(1e-3 * np.eye(4)),
+                     Gaussian([10.0, 0.3, 10.0, 0.3], np.diag([4.0, 0.01, 4.0, 0.01])),
+                     position_index=(0, 2), velocity_index=(1, 3))
+
+
+    CHANNEL = BinarySensorChannel(dos_prob=0.2, deception_prob=0.1, flip_prob=0.05,
+                                  deception=UniformBox([-3.0], [3.0]), threshold=0.3, gain=0.5,
+                                  channel_noise=Gaussian.zero_mean([[0.01]]))
+"""
+
+
+def _curve(truth, mean, idx):
+    """RMSE_k of the components idx over runs, recomputed from the per-run arrays."""
+    e = truth[:, 1:, idx] - mean[:, 1:, idx]
+    return np.sqrt((e**2).sum(-1).mean(axis=0))
+
+
+def test_a_user_model_file_with_a_round_robin_channel_runs_rrp_deception(tmp_path):
+    path = tmp_path / "user_target.py"
+    path.write_text(textwrap.dedent(RRP_MODEL))
+    res = run_study("rrp-deception", [str(path)], runs=3, particles=50, sweep=(0.5,), out=tmp_path / "o")
+    r = res.results
+    assert r["scenario"] == "user-target" and r["steps"] == 10
+    assert "paper" not in r and not any("kalman" in a for a in r["assumptions"])  # the paper's scenario only
+    f = r["filters"]
+    assert f["PF-DA"]["communications"] == 2 * f["RRP-PF-DA"]["communications"] == 20  # two sensors, K = 10
+    assert f["RRP-PF-DA"]["attack_prob_assumed"] == f["PF-DA"]["attack_prob_assumed"] == 0.3  # the model's eta-bar
+    assert set(r["sweeps"]["deception_prob"]) == {"0.5"}
+    A = res.arrays["user-target"]
+    for j, name in enumerate(("RRP-PF-DA", "RRP-SPF-DA", "RRP-SPF-NM", "PF-DA")):  # Table 1's filters come first
+        np.testing.assert_allclose(f[name]["rmse_position_curve"], _curve(A["truth"], A["mean"][:, j], [0, 2]),
+                                   rtol=1e-12)
+        np.testing.assert_allclose(f[name]["rmse_velocity_curve"], _curve(A["truth"], A["mean"][:, j], [1, 3]),
+                                   rtol=1e-12)
+    table = (tmp_path / "o" / "table.md").read_text()
+    assert table.startswith("# rrp-deception on user-target") and "paper" not in table
+    for fig in ("fig_trajectory", "fig_rmse_position", "fig_rmse_velocity", "fig_eta_sweep_position"):
+        assert (tmp_path / "o" / f"{fig}.png").stat().st_size > 10_000, fig
+
+
+def test_a_user_model_file_with_a_binary_channel_runs_binary_multi_attack(tmp_path):
+    path = tmp_path / "user_binary.py"
+    path.write_text(textwrap.dedent(BINARY_MODEL))
+    res = run_study("binary-multi-attack", [str(path)], runs=3, particles=50, sweep=(0.3,), table2_particles=(20,),
+                    out=tmp_path / "o")
+    r = res.results
+    assert r["scenario"] == "user-binary" and "paper" not in r
+    f = r["filters"]
+    assert f["Sec-PF"]["attack_probs_assumed"] == {"dos_prob": 0.2, "deception_prob": 0.1, "flip_prob": 0.05}
+    assert f["Sta-PF"]["attack_probs_assumed"] == {"dos_prob": 0.0, "deception_prob": 0.0, "flip_prob": 0.0}
+    assert f["Sec-PF"]["communications"] == 3 * 10
+    assert r["sweeps"]["dos_prob"]["0.3"]["Sec-PF"]["attack_probs_assumed"]["dos_prob"] == 0.3
+    assert r["sweeps"]["particles"]["20"]["Sec-PF"]["particles"] == 20
+    A = res.arrays["user-binary"]
+    for j, name in enumerate(("Sec-PF", "Sta-PF-Neg", "Sta-PF")):
+        np.testing.assert_allclose(f[name]["rmse_position_curve"], _curve(A["truth"], A["mean"][:, j], [0, 2]),
+                                   rtol=1e-12)
+    assert (tmp_path / "o" / "table.md").read_text().startswith("# binary-multi-attack on user-binary")
+    assert (tmp_path / "o" / "fig_attack_sweeps.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("study, scenario, needle", [
+    ("rrp-deception", "four-tank", "CHANNEL = RoundRobinDeception("),
+    ("binary-multi-attack", "target-range-bearing", "CHANNEL = BinarySensorChannel("),
+    ("encrypted-switching", "target-range-bearing", "CHANNEL = EncryptedChannel("),
+    ("fdi-four-tank", "switching-2d", "CHANNEL = BiasFDI("),
+])
+def test_a_scenario_without_the_channel_is_refused_with_the_reason(tmp_path, capsys, study, scenario, needle):
+    assert main(["study", study, scenario, "--out", str(tmp_path / "o"), "--quiet", "--runs", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and scenario in err[0]
+    assert not (tmp_path / "o" / "results.json").exists()
+
+
+def test_a_channel_that_does_not_fit_the_model_is_an_error_of_the_model_file(tmp_path, capsys):
+    """The deception law must have the packets' dimension: the model file fails to load, exit 2, one line."""
+    path = tmp_path / "user_target.py"
+    path.write_text(textwrap.dedent(RRP_MODEL).replace("UniformBox([0.0, -np.pi], [50.0, np.pi])",
+                                                       "UniformBox([0.0], [50.0])"))
+    assert main(["study", "rrp-deception", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "RoundRobinDeception deception must be 2-dimensional" in err[0]

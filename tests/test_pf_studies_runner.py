@@ -6,21 +6,22 @@ refused, not the papers' claims (tests/test_pf_studies.py).
 """
 from __future__ import annotations
 
+import functools
 import json
 
 import pytest
 
 from designer.validation import InputError
-from studies.binary_multi_attack import run_binary_multi_attack
-from studies.rrp_deception import LINEAR, run_rrp_deception
+from studies.pipeline import run_study
+from studies.rrp_deception import LINEAR
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 
 # rrp: the linear-weights row runs the NumPy engine (one Generator per chunk), the others the fused one
 STUDIES = {
-    "rrp-deception": (run_rrp_deception, dict(runs=5, particles=60, seed=7, sweep=(0.2, 0.5), chunk_size=2,
-                                              quiet=True)),
-    "binary-multi-attack": (run_binary_multi_attack, dict(runs=5, particles=60, seed=8, sweep=(0.3,),
-                                                          table2_particles=(40,), chunk_size=2, quiet=True)),
+    "rrp-deception": (functools.partial(run_study, "rrp-deception"),
+                      dict(runs=5, particles=60, seed=7, sweep=(0.2, 0.5), chunk_size=2)),
+    "binary-multi-attack": (functools.partial(run_study, "binary-multi-attack"),
+                            dict(runs=5, particles=60, seed=8, sweep=(0.3,), table2_particles=(40,), chunk_size=2)),
 }
 CHUNKS = 3  # 5 runs in chunks of 2
 
@@ -32,7 +33,7 @@ def _numbers(res: dict) -> dict:
             return {k: strip(v) for k, v in d.items() if k not in ("time_per_step_s", "wall_time_s")}
         return [strip(v) for v in d] if isinstance(d, list) else d
 
-    res = json.loads(json.dumps(res))
+    res = json.loads(json.dumps(getattr(res, "results", res)))
     for key in ("runner", "versions"):
         res.pop(key)
     return strip(res)

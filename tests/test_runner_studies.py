@@ -15,7 +15,7 @@ from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
 from studies.consensus_robot import run_consensus_robot
 from studies.design import consensus_design
-from studies.fdi_four_tank import run_fdi_four_tank
+from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
 
@@ -113,6 +113,11 @@ def test_consensus_robot_runs_do_not_depend_on_the_chunking(few_runs_checked):
 # --- fdi-four-tank ------------------------------------------------------------------------------------------------
 
 FDI = dict(runs=3, particles=30, seed=1, quiet=True, chunk_size=2, overrides={"steps": 40})
+
+
+def run_fdi_four_tank(**kw) -> dict:
+    """The study through the pipeline; its results.json content."""
+    return run_study("fdi-four-tank", **kw).results
 
 
 def test_fdi_four_tank_same_numbers_with_every_backend(tmp_path, cluster):
