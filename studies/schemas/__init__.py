@@ -1,0 +1,259 @@
+"""JSON Schemas (draft 2020-12) of the files the commands write, shipped with the package.
+
+====================  ==================================  ====================================================
+name                  file                                validates
+====================  ==================================  ====================================================
+``study``             ``study.schema.json``               ``results.json`` of a study (``cfdesign.study/1``)
+``schedule``          ``schedule.schema.json``            ``schedule.json`` of a design (``cfdesign.schedule/1``)
+``feasibility``       ``feasibility.schema.json``         one row of ``feasibility.csv`` as
+                                                          :func:`read_feasibility_csv` reads it
+``feasibility_json``  ``feasibility_json.schema.json``    ``feasibility.json`` of a map (``cfdesign.feasibility/1``)
+====================  ==================================  ====================================================
+
+The files are the contract (other tools read them with any JSON Schema validator);
+:func:`validate` applies one and adds the few checks JSON Schema cannot state (a
+schedule's matrices are nodes x steps, a map's point count is the product of its
+grids).  :func:`validate_output` validates what a command wrote, file by file::
+
+    from studies import schemas
+    schemas.validate_output(out)          # results.json, schedule.json, feasibility.csv/json in out
+    schemas.validate("study", results)    # an object in memory
+
+Validation needs ``jsonschema>=4`` (the ``test`` extra); :func:`load` and
+:func:`read_feasibility_csv` do not.
+"""
+from __future__ import annotations
+
+import csv
+import functools
+import json
+import math
+import re
+from importlib import resources
+from pathlib import Path
+from typing import Any, Iterator
+
+from designer.validation import InputError
+
+__all__ = ["SCHEMAS", "FILES", "load", "validate", "read_feasibility_csv", "validate_output"]
+
+# schema name -> its file in this package
+SCHEMAS: dict[str, str] = {
+    "study": "study.schema.json",
+    "schedule": "schedule.schema.json",
+    "feasibility": "feasibility.schema.json",
+    "feasibility_json": "feasibility_json.schema.json",
+}
+
+# output file name -> the schema it follows (feasibility.csv: each of its rows)
+FILES: dict[str, str] = {
+    "results.json": "study",
+    "schedule.json": "schedule",
+    "feasibility.csv": "feasibility",
+    "feasibility.json": "feasibility_json",
+}
+
+_INTEGER_COLUMNS = ("feasible", "theorem2", "iterations")
+_TEXT_COLUMNS = ("binding",)
+_MAX_MESSAGE = 240  # characters of a validator message (they quote the offending value)
+
+
+def load(name: str) -> dict:
+    """The schema ``name`` (a key of :data:`SCHEMAS`) as a fresh dict, read from the package data."""
+    if name not in SCHEMAS:
+        raise InputError(f"unknown schema {name!r}; schemas: {', '.join(SCHEMAS)}")
+    return json.loads(resources.files(__name__).joinpath(SCHEMAS[name]).read_text(encoding="utf-8"))
+
+
+@functools.lru_cache(maxsize=None)
+def _validator(name: str):
+    try:
+        import jsonschema
+    except ImportError:  # pragma: no cover - jsonschema is in the test extra
+        raise InputError("validating against the schemas needs jsonschema>=4 (pip install 'cfdesign[test]')") from None
+    return jsonschema.Draft202012Validator(load(name))
+
+
+_IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def _json_path(parts) -> str:
+    """``$.a[0]['b c']``: the JSONPath of ``parts`` (written as jsonschema writes it)."""
+    out = "$"
+    for p in parts:
+        if isinstance(p, int):
+            out += f"[{p}]"
+        elif _IDENTIFIER.match(p):
+            out += f".{p}"
+        else:
+            out += "['" + p.replace("\\", "\\\\").replace("'", "\\'") + "']"
+    return out
+
+
+def _shorten(message: str) -> str:
+    return message if len(message) <= _MAX_MESSAGE else message[:_MAX_MESSAGE] + " ..."
+
+
+def validate(name: str, obj: Any, *, what: str | None = None) -> None:
+    """Check ``obj`` against schema ``name``; raise :class:`~designer.validation.InputError` on the first error.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`SCHEMAS` (``"feasibility"``: one row of ``feasibility.csv``).
+    obj
+        The parsed JSON (or CSV row) to check.
+    what : str, optional
+        What ``obj`` is, for the message (default: the schema's name).
+
+    Raises
+    ------
+    InputError
+        ``"<what> does not follow schema <name> (<file>): <JSON path>: <message>"`` for the
+        first error (jsonschema's best match: the most specific error at the earliest path), or
+        for the first failed check of the shapes the schema cannot state.
+    """
+    if name not in SCHEMAS:
+        raise InputError(f"unknown schema {name!r}; schemas: {', '.join(SCHEMAS)}")
+    validator = _validator(name)
+    from jsonschema.exceptions import best_match
+
+    error = best_match(validator.iter_errors(obj))
+    found = None if error is None else (list(error.absolute_path), error.message)
+    if found is None:
+        found = next(_SHAPE_CHECKS.get(name, _no_checks)(obj), None)
+    if found is not None:
+        path, message = found
+        raise InputError(f"{what or name} does not follow schema {name!r} ({SCHEMAS[name]}): "
+                         f"{_json_path(path)}: {_shorten(message)}")
+
+
+# ----------------------------------------------------------------------------------- what JSON Schema cannot state
+# Each check runs on an object that the schema accepted and yields (path, message) per failure.
+def _no_checks(obj) -> Iterator[tuple[list, str]]:
+    return iter(())
+
+
+def _matrix_shape(value, rows: int, cols: int, path: list, label: str) -> Iterator[tuple[list, str]]:
+    if len(value) != rows:
+        yield path, f"{label} has {len(value)} rows, expected {rows}"
+        return
+    for i, row in enumerate(value):
+        if len(row) != cols:
+            yield path + [i], f"row {i} of {label} has {len(row)} entries, expected {cols}"
+            return
+
+
+def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
+    nodes, steps = obj["nodes"], obj["steps"]
+    for key in ("sigma", "beta", "trace_bound"):
+        yield from _matrix_shape(obj[key], nodes, steps, [key], f"{key} (nodes x steps)")
+    for i, v in enumerate(obj["violations"]):
+        if v["node"] >= nodes:
+            yield ["violations", i, "node"], f"node {v['node']} of a network of {nodes} nodes"
+        if v["step"] > steps:
+            yield ["violations", i, "step"], f"step {v['step']} of a run of {steps} steps"
+    if "U" in obj and "state_names" in obj:
+        n = len(obj["state_names"])
+        yield from _matrix_shape(obj["U"], n, n, ["U"], "U (n_x x n_x)")
+    if "V" in obj and "sensors" in obj:
+        if len(obj["V"]) != len(obj["sensors"]):
+            yield ["V"], f"{len(obj['V'])} matrices for {len(obj['sensors'])} sensors"
+            return
+        for i, (v, s) in enumerate(zip(obj["V"], obj["sensors"])):
+            yield from _matrix_shape(v, s["dim"], s["dim"], ["V", i], f"V of sensor {s['name']!r} (n_z x n_z)")
+
+
+def _feasibility_json_shapes(obj: dict) -> Iterator[tuple[list, str]]:
+    names = [g["name"] for g in obj["grids"]]
+    for i, n in enumerate(names):
+        if n in names[:i]:
+            yield ["grids", i, "name"], f"grid parameter {n!r} given twice"
+    expected = math.prod(len(g["values"]) for g in obj["grids"])
+    if obj["points"] != expected:
+        yield ["points"], f"{obj['points']} points, but the grids have {expected}"
+    if obj["feasible_points"] > obj["points"]:
+        yield ["feasible_points"], f"{obj['feasible_points']} feasible points of {obj['points']}"
+
+
+_SHAPE_CHECKS = {"schedule": _schedule_shapes, "feasibility_json": _feasibility_json_shapes}
+
+
+# ------------------------------------------------------------------------------------------------ the files
+def _cell(column: str, text: str):
+    """A CSV cell as a JSON value: empty -> None, numbers -> int or float (finite), anything else its text."""
+    if text == "":
+        return None
+    if column in _TEXT_COLUMNS:
+        return text
+    if column in _INTEGER_COLUMNS:
+        try:
+            return int(text)
+        except ValueError:
+            pass
+    try:
+        value = float(text)
+    except ValueError:
+        return text
+    return value if math.isfinite(value) else text  # NaN or inf: left as text for the schema to reject
+
+
+def read_feasibility_csv(path) -> list[dict]:
+    """The rows of a ``feasibility.csv`` as dicts of typed values (see ``feasibility.schema.json``).
+
+    Grid parameters and ``trace_bound`` become floats, ``feasible``, ``theorem2`` and
+    ``iterations`` ints, an empty cell None, ``binding`` stays text; a cell that is not a
+    finite number is left as its text, so that validation names it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{str(path)!r} does not exist")
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh, restkey="\0extra", restval="\0missing")
+        if not reader.fieldnames:
+            raise InputError(f"{path.name} has no header row")
+        rows = []
+        for row in reader:
+            if "\0extra" in row or "\0missing" in row.values():
+                raise InputError(f"{path.name} line {reader.line_num}: {len(reader.fieldnames)} columns in the "
+                                 "header, another number in this row")
+            rows.append({k: _cell(k, v) for k, v in row.items()})
+    return rows
+
+
+def _read_json(path: Path):
+    def no_constant(token):
+        raise InputError(f"{path.name} holds {token}, which is not JSON (write null)")
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"), parse_constant=no_constant)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path.name} is not valid JSON: {exc}") from None
+
+
+def validate_output(path) -> list[Path]:
+    """Validate what a command wrote: one of the files of :data:`FILES`, or every one of them in a directory.
+
+    ``feasibility.csv`` is validated row by row (the message names the row and its line).
+    Returns the files validated; raises :class:`~designer.validation.InputError` on the first
+    error, or when a directory holds none of the files.
+    """
+    path = Path(path)
+    if path.is_dir():
+        files = [path / f for f in FILES if (path / f).is_file()]
+        if not files:
+            raise InputError(f"{str(path)!r} holds none of {', '.join(FILES)}")
+    elif path.name in FILES:
+        if not path.is_file():
+            raise InputError(f"{str(path)!r} does not exist")
+        files = [path]
+    else:
+        raise InputError(f"{path.name!r} has no schema; files with one: {', '.join(FILES)}")
+    for f in files:
+        name = FILES[f.name]
+        if f.suffix == ".csv":
+            for i, row in enumerate(read_feasibility_csv(f)):
+                validate(name, row, what=f"{f.name} row {i} (line {i + 2})")
+        else:
+            validate(name, _read_json(f), what=f.name)
+    return files
