@@ -36,7 +36,6 @@ particle counts of Table II, empty to skip).
 from __future__ import annotations
 
 import functools
-import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Mapping, NamedTuple, Sequence
@@ -47,7 +46,7 @@ from designer.attacks import BinarySensorChannel
 from designer.validation import InputError, check_int
 from filters.attacks import binary_sensor_channel
 
-from .pfrun import check_study_options, results_block, run_binary, score_configurations
+from .pfrun import check_study_options, results_block, run_binary, run_configurations, score_configurations
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
                       trajectory_figure)
@@ -162,20 +161,11 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, engine: str, threads: int, filter
     wall time for that filter, compilation excluded).
     """
     sc = ref.build()  # once per process: the fused kernels are cached per Model object
-    m, K = sc.model, sc.steps
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, engine)
-    R, F = len(seeds), len(filters)
-    mean = np.empty((R, F, K + 1, m.n_x))
-    collapsed = np.empty((R, F, K), dtype=bool)
-    seconds = np.empty((R, F))
-    for j, f in enumerate(filters):
-        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
-        t0 = time.perf_counter()
-        mean[:, j], collapsed[:, j] = run_binary(m, data[f.data_probs], rngs, particles=f.particles, engine=engine,
-                                                 threads=threads, channel=_with(sc.channel, f.filter_probs))
-        seconds[:, j] = (time.perf_counter() - t0) / R
-    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
+    return run_configurations(truth, filters, streams, lambda f, rngs: run_binary(
+        sc.model, data[f.data_probs], rngs, particles=f.particles, engine=engine, threads=threads,
+        channel=_with(sc.channel, f.filter_probs)))
 
 
 def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Sequence[int],

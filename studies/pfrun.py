@@ -30,6 +30,7 @@ checks the options the particle-filter studies share.
 """
 from __future__ import annotations
 
+import time
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -44,8 +45,8 @@ from filters.rrp import packet_loglik
 
 from .results import error_metrics
 
-__all__ = ["ENGINES", "run_packets", "run_binary", "score", "score_configurations", "results_block", "check_threads",
-           "check_engine", "check_study_options", "position_velocity"]
+__all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
+           "results_block", "check_threads", "check_engine", "check_study_options", "position_velocity"]
 
 ENGINES = ("fast", "numpy")
 
@@ -87,6 +88,28 @@ def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: n
     met.update({"time_per_step_s": wall / (runs * K), "wall_time_s": wall, "collapsed_steps": int(collapsed.sum()),
                 "collapsed_runs": int(collapsed.any(axis=1).sum())})
     return met
+
+
+def run_configurations(truth: np.ndarray, filters: Sequence, streams: Sequence, run: Callable) -> dict:
+    """The task's arrays of a seed 000 / 002 study: every filter configuration on a chunk's runs.
+
+    ``truth`` (R, K + 1, n_x); configuration ``f`` (with a ``stream`` index) filters with
+    the Generators of its stream of every run (``streams[r][f.stream]``):
+    ``run(f, rngs) -> (mean (R, K + 1, n_x), collapsed (R, K))``.  Returns ``truth`` and,
+    along a filter axis in ``filters``' order, ``mean``, ``collapsed`` and ``seconds``
+    (each run's share of the filter's wall time).
+    """
+    R, K1, n_x = truth.shape
+    F = len(filters)
+    mean = np.empty((R, F, K1, n_x))
+    collapsed = np.empty((R, F, K1 - 1), dtype=bool)
+    seconds = np.empty((R, F))
+    for j, f in enumerate(filters):
+        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
+        t0 = time.perf_counter()
+        mean[:, j], collapsed[:, j] = run(f, rngs)
+        seconds[:, j] = (time.perf_counter() - t0) / R
+    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
 
 
 def score_configurations(arrays, filters: Sequence, reused: Mapping[str, str], names: Sequence[str], model: Model,

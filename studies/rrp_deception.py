@@ -37,7 +37,6 @@ the numbers), ``sweep`` (η̄ values in [0, 1), empty to skip) and
 from __future__ import annotations
 
 import functools
-import time
 from pathlib import Path
 from typing import Mapping, NamedTuple, Sequence
 
@@ -48,7 +47,7 @@ from designer.validation import InputError
 from filters.attacks import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import check_study_options, results_block, run_packets, score_configurations
+from .pfrun import check_study_options, results_block, run_configurations, run_packets, score_configurations
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, trajectory_figure
 from .runner import run_seed
@@ -177,22 +176,13 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str, thre
     wall time for that filter, compilation excluded).
     """
     sc = ref.build()  # once per process: the fused kernels are cached per Model object
-    m, K, st = sc.model, sc.steps, _setup(sc)
+    st = _setup(sc)
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, particles, engine)
-    R, F = len(seeds), len(filters)
-    mean = np.empty((R, F, K + 1, m.n_x))
-    collapsed = np.empty((R, F, K), dtype=bool)
-    seconds = np.empty((R, F))
-    for j, f in enumerate(filters):
-        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
-        t0 = time.perf_counter()
-        mean[:, j], collapsed[:, j] = run_packets(
-            m, data[f.packets, f.data_prob], st["sensors"][f.packets], rngs, particles=particles,
-            attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine="numpy" if f.linear else engine,
-            threads=threads, linear_weights=f.linear)
-        seconds[:, j] = (time.perf_counter() - t0) / R
-    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
+    return run_configurations(truth, filters, streams, lambda f, rngs: run_packets(
+        sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], rngs, particles=particles,
+        attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine="numpy" if f.linear else engine,
+        threads=threads, linear_weights=f.linear))
 
 
 def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool) -> tuple[list, dict, list]:
