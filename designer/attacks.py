@@ -343,7 +343,7 @@ class ResolvedAttacks:
     def describe(self, state_names: Sequence[str] | None = None) -> dict:
         net = self.network
         uniform = lambda a: float(a.flat[0]) if a.size and np.all(a == a.flat[0]) else None  # noqa: E731
-        on_edges = lambda p: [[i, j, float(p[i, j])] for i, j in np.argwhere(net.adjacency)]  # noqa: E731
+        on_edges = lambda p: [[int(i), int(j), float(p[i, j])] for i, j in np.argwhere(net.adjacency)]  # noqa: E731
         return {
             "dos_prob": uniform(net.dos_prob[net.adjacency]) if net.adjacency.any() else 0.0,
             "fdi_prob": uniform(net.fdi_prob[net.adjacency]) if net.adjacency.any() else 0.0,

@@ -288,7 +288,8 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
     unknown = [k for k in study_options if k not in study.options]
     if unknown:
         known = ", ".join(study.options) or "none"
-        raise InputError(f"option {unknown[0]!r} does not apply to study {name!r} (its own options: {known})")
+        raise InputError(f"option --{unknown[0].replace('_', '-')} does not apply to study {name!r} (its own "
+                         f"options: {known})")
     if particles is not None and study.particles is None:
         raise InputError(f"option --particles does not apply to study {name!r} (it runs no particle filter)")
     design = options or DesignOptions()

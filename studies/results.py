@@ -118,14 +118,14 @@ def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Ca
     """Write the figures, ``table.md``, ``results.json`` and the reports into ``out`` (each atomically).
 
     The reports (``report.md`` and the self-contained ``report.html``, see
-    :func:`studies.report.write_report`) are written last, from the files just written.
+    :func:`studies.reports.write_report`) are written last, from the files just written.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figures(out)
     atomic_write(out / "table.md", lambda fh: fh.write(table(results).encode()))
     write_json(out / "results.json", results)
-    from .report import write_report  # late: report reads the files this module writes
+    from .reports import write_report  # late: report reads the files this module writes
 
     write_report(out)
     return out

@@ -252,9 +252,9 @@ def test_the_attack_aware_pf_beats_the_trusting_filters_under_heavy_fdi():
 
 SIGINT_SCRIPT = textwrap.dedent("""
     import sys
-    from studies.comparison import run_comparison
-    run_comparison(out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True, sweep_values=(0.3,), chunk_size=1,
-                   scenarios=("indoor-robot",))
+    from studies.pipeline import run_study
+    run_study("comparison", ["indoor-robot"], out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True,
+              sweep_values=(0.3,), chunk_size=1)
 """)
 
 

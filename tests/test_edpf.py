@@ -78,7 +78,7 @@ def test_interval_probability_closed_form_matches_the_noise_cdf(sc):
 def test_decrypted_frequencies_match_the_exact_cell_probabilities_and_13_bounds_them(sc, x):
     """Simulate sensor -> resolution -> quantizer -> cipher -> decipher; compare with the exact pmf; check (13)."""
     m = sc.model
-    codec = Codec.of(sc.extras)
+    codec = sc.channel.codec
     rng = np.random.default_rng(7)
     n = 200_000
     h = m.h_all(x)
@@ -117,7 +117,7 @@ def test_interval_likelihood_is_exact_without_resolution_loss(sc):
 
 def test_likelihoods_skip_unavailable_sensors_and_match_the_formulas(sc):
     m = sc.model
-    codec = Codec.of(sc.extras)
+    codec = sc.channel.codec
     rng = np.random.default_rng(3)
     x = m.prior.sample(rng, (2, 5))
     h = m.h_all(x)
@@ -140,7 +140,7 @@ def test_likelihoods_skip_unavailable_sensors_and_match_the_formulas(sc):
 
 
 def test_received_packs_values_and_availabilities(sc):
-    codec = Codec.of(sc.extras)
+    codec = sc.channel.codec
     z = np.random.default_rng(0).normal(size=(40, 2))
     tx = transmit(z, codec, np.random.default_rng(1), dropout_prob=0.5)
     y = received(tx)
@@ -165,7 +165,7 @@ def test_raw_likelihood_collapses_and_the_filter_keeps_going(sc):
     res = run_sir(pinned, z, np.random.default_rng(0), particles=20, runs=1, loglik=raw_loglik(pinned), proposal=stay)
     assert res.collapsed.all() and np.isfinite(res.mean).all()
     res13 = run_sir(pinned, z, np.random.default_rng(0), particles=20, runs=1,
-                    loglik=interval_loglik(pinned, Codec.of(sc.extras)), proposal=stay)
+                    loglik=interval_loglik(pinned, sc.channel.codec), proposal=stay)
     assert not res13.collapsed.any()  # (13) keeps them
 
 
@@ -221,7 +221,7 @@ def test_baseline_models(sc):
 
 def test_bad_inputs_name_the_parameter(sc):
     m = sc.model
-    codec = Codec.of(sc.extras)
+    codec = sc.channel.codec
     with pytest.raises(InputError, match="codec"):
         interval_loglik(m, {"resolution": 0.2})
     with pytest.raises(InputError, match="per sensor"):

@@ -13,8 +13,8 @@ import studies.consensus_robot as cr
 from designer import InputError
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
-from studies.consensus_robot import run_consensus_robot
-from studies.design import consensus_design
+from designer.design import DesignOptions
+from studies.consensus_design import consensus_design
 from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
@@ -49,6 +49,11 @@ def _chunk_files(out, label):
 
 
 # --- consensus-robot ----------------------------------------------------------------------------------------------
+
+def run_consensus_robot(*, mode="paper", **kw) -> dict:
+    """The study through the pipeline; its results.json content."""
+    return run_study("consensus-robot", options=DesignOptions(mode=mode), **kw).results
+
 
 CR = dict(runs=10, seed=2, quiet=True, chunk_size=4)  # chunks 0-3, 4-7, 8-9; run 9 of seed 2 diverges (paper)
 
