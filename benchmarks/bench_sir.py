@@ -95,7 +95,7 @@ def table1_fast(sc, d: dict, particles: int, workers: int) -> dict:
         t = time.perf_counter()
         gens = spawn_generators(seed, R)
         x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-        res = fastsir.sir_packets(m, x0, gens, sens, y, angles=angles, workers=workers, **kw)
+        res = fastsir.sir_packets(m, x0, gens, sens, y, angles=angles, threads=workers, **kw)
         out[name] = dict(rmse_p=rmse(res.mean, d["x"], m.position_index),
                          rmse_v=rmse(res.mean, d["x"], m.velocity_index),
                          time_s=time.perf_counter() - t, collapses=int(res.collapsed.sum()))
@@ -201,7 +201,7 @@ def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> t
     gens = spawn_generators(7, R)
     t = time.perf_counter()
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-    res = fastsir.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, workers=workers)
+    res = fastsir.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers)
     return time.perf_counter() - t, rmse(res.mean, d["x"], m.position_index)
 
 
@@ -231,7 +231,7 @@ def memory(sc, runs: int, particles: int, steps: int = 10) -> dict:
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
     workers = 2
     tracemalloc.start()
-    fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.model.angle_components, workers=workers)
+    fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.model.angle_components, threads=workers)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     # numba's allocations bypass tracemalloc: x, xn (M x n_x), lw, b, s, W, cdf, u, anc (M) per running thread

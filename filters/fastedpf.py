@@ -29,7 +29,7 @@ A sensor with ``α_s = 0`` contributes the factor 1 (Remark 2).  With the same
 generator and the same initial particles, a one-run call reproduces ``run_sir(...,
 runs=1)`` to rounding (numba's draws are NumPy's bit for bit; the tests check
 1e-10).  Randomness is one Generator per run, so a run's result depends only on
-its generator and data, not on the number of runs or of ``workers``.
+its generator and data, not on the number of runs or of ``threads``.
 
 Limitations: scalar sensors with :class:`~designer.noise.TruncatedGaussian` noise
 (infinite bounds give a Gaussian); no known inputs; Gaussian or
@@ -181,7 +181,7 @@ def sir_edpf(
     resampler: str = "systematic",
     ess_threshold: float = 1.0,
     covariance: bool = False,
-    workers: int = 1,
+    threads: int = 1,
 ) -> FastSIRResult:
     """Bootstrap filter of seed 001 on decrypted measurements, many runs, fused numba kernels.
 
@@ -203,7 +203,7 @@ def sir_edpf(
         PPF's interval likelihood (13)-(15) (needs ``codec``) or PF-SR-DE's density.
     codec : Codec
         Resolution and quantizer settings (``L̄_s = ω_s Λ / K + l_s``), interval likelihood only.
-    resampler, ess_threshold, covariance, workers
+    resampler, ess_threshold, covariance, threads
         As in :func:`filters.fastsir.sir_packets` (the study resamples systematically when ESS < M/2).
 
     Returns
@@ -217,12 +217,12 @@ def sir_edpf(
     x0 = fastsir._particles(x0, model.n_x)
     R = x0.shape[0]
     gens = fastsir._generators(rngs, R)
-    scheme, thr, workers, covariance = fastsir._options(resampler, ess_threshold, workers, covariance)
+    scheme, thr, threads, covariance = fastsir._options(resampler, ess_threshold, threads, covariance)
     Z, A = _edpf_data(model, R, y)
     prop, nd = fastsir._prop_predrawn(model)
     kernels = (prop, nd, _lik(model, bound), 0, 0, fastsir._weigh(model))
     return fastsir._run_all("edpf", kernels, lambda r: (Z[r], A[r]), x0, gens, Z.shape[1], scheme, thr, covariance,
-                            workers)
+                            threads)
 
 
 def edpf_loglik(model: Model, x, k1: int, y, *, likelihood: str = "interval", codec: Codec | None = None) -> np.ndarray:

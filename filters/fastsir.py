@@ -32,7 +32,7 @@ stay scalar (the generator's draws, the sums of the weights).  Measured on
 target-range-bearing (Round-Robin, 500 particles, one thread): about 40 ns per
 particle-step, of which the four normal draws are about 15; it was 80 with a
 per-particle log-sum-exp through libm.  Nothing is allocated per particle and
-the GIL is released, so runs are spread over ``workers`` threads (each takes the
+the GIL is released, so runs are spread over ``threads`` threads (each takes the
 next run until none is left).
 
 Randomness: **one** :class:`numpy.random.Generator` **per run**, drawn from in
@@ -888,7 +888,7 @@ def _generators(rngs, R: int) -> list[np.random.Generator]:
     return gens
 
 
-def _options(resampler, ess_threshold, workers, covariance) -> tuple[int, float, int, bool]:
+def _options(resampler, ess_threshold, threads, covariance) -> tuple[int, float, int, bool]:
     if not isinstance(resampler, str) or resampler not in RESAMPLER_CODES:
         raise InputError(f"resampler must be one of {', '.join(RESAMPLER_CODES)}, got {resampler!r}")
     if isinstance(ess_threshold, bool) or not isinstance(ess_threshold, (int, float, np.integer, np.floating)) \
@@ -896,7 +896,7 @@ def _options(resampler, ess_threshold, workers, covariance) -> tuple[int, float,
         raise InputError(f"ess_threshold must lie in (0, 1], got {ess_threshold!r}")
     if not isinstance(covariance, (bool, np.bool_)):
         raise InputError(f"covariance must be True or False, got {covariance!r}")
-    return RESAMPLER_CODES[resampler], float(ess_threshold), check_int("workers", workers, 1), bool(covariance)
+    return RESAMPLER_CODES[resampler], float(ess_threshold), check_int("threads", threads, 1), bool(covariance)
 
 
 def _wrap_set(angles, model: Model) -> tuple:
@@ -974,8 +974,8 @@ def _binary_data(model: Model, R: int, A, B, threshold):
 
 
 # ============================================================================ driver
-def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, workers) -> FastSIRResult:
-    """``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`; runs spread over ``workers`` threads."""
+def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads) -> FastSIRResult:
+    """``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`; runs spread over ``threads`` threads."""
     run = _drivers(family)[0]
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
@@ -989,7 +989,7 @@ def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance,
         loglik[r] = run(*kernels, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
                              ess[r], resampled[r], collapsed[r])
 
-    if workers == 1 or R == 1:
+    if threads == 1 or R == 1:
         for r in range(R):
             one(r)
     else:
@@ -1003,8 +1003,8 @@ def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance,
                     return
                 one(r)
 
-        with ThreadPoolExecutor(max_workers=min(workers, R)) as ex:
-            for f in [ex.submit(worker) for _ in range(min(workers, R))]:
+        with ThreadPoolExecutor(max_workers=min(threads, R)) as ex:
+            for f in [ex.submit(worker) for _ in range(min(threads, R))]:
                 f.result()  # re-raise any exception from a worker
     return FastSIRResult(mean, cov if covariance else None, ess, loglik, resampled, collapsed)
 
@@ -1022,7 +1022,7 @@ def sir_packets(
     resampler: str = "systematic",
     ess_threshold: float = 1.0,
     covariance: bool = False,
-    workers: int = 1,
+    threads: int = 1,
 ) -> FastSIRResult:
     """Bootstrap filter on packets of sensor measurements, many runs, fused numba kernels.
 
@@ -1054,7 +1054,7 @@ def sir_packets(
         Resample when ESS < ``ess_threshold * M``; 1 resamples at every step.
     covariance : bool
         Also return the weighted covariance at every step.
-    workers : int
+    threads : int
         Threads the runs are spread over (the results do not depend on it).
 
     Returns
@@ -1065,12 +1065,12 @@ def sir_packets(
     x0 = _particles(x0, model.n_x)
     R = x0.shape[0]
     gens = _generators(rngs, R)
-    scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
+    scheme, thr, threads, covariance = _options(resampler, ess_threshold, threads, covariance)
     sens, yy, att, lc = _packet_data(model, R, sensors, y, attack, log_clean)
     lik, ne = _packet_lik(model, _wrap_set(angles, model), bool(np.any(att > -np.inf)))
     kernels = (_prop(model), 0, lik, sens.shape[1], ne, _weigh(model))
     return _run_all("packets", kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr,
-                    covariance, workers)
+                    covariance, threads)
 
 
 def sir_binary(
@@ -1084,7 +1084,7 @@ def sir_binary(
     resampler: str = "systematic",
     ess_threshold: float = 1.0,
     covariance: bool = False,
-    workers: int = 1,
+    threads: int = 1,
 ) -> FastSIRResult:
     """Bootstrap filter with the affine-in-CDF likelihood of binary sensors, many runs, fused kernels.
 
@@ -1106,11 +1106,11 @@ def sir_binary(
     x0 = _particles(x0, model.n_x)
     R = x0.shape[0]
     gens = _generators(rngs, R)
-    scheme, thr, workers, covariance = _options(resampler, ess_threshold, workers, covariance)
+    scheme, thr, threads, covariance = _options(resampler, ess_threshold, threads, covariance)
     AA, BB, T = _binary_data(model, R, A, B, threshold)
     kernels = (_prop(model), 0, _binary_lik(model), 0, 0, _weigh(model))
     return _run_all("binary", kernels, lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance,
-                    workers)
+                    threads)
 
 
 # ============================================================================ likelihood helpers

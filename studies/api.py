@@ -242,7 +242,7 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
           mode: str | None = None, dos: float | None = None, fdi: float | None = None,
           delta: float | None = None, amplitude: float | None = None, network: SensorNetwork | None = None,
           attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
-          inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
+          inputs: Callable | None = None, channel=None, overrides: Mapping[str, Any] | None = None,
           assignments: Sequence[str] = (), **study_options):
     """Run the Monte Carlo study ``name`` on a scenario (or on its default scenarios).
 
@@ -260,6 +260,8 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
         so that an interrupted study resumes, ``force`` recomputes them).
     options, mode, dos, fdi, delta, amplitude
         Design options of the consensus designs and attack overrides (studies that use them).
+    network, attacks, design_defaults, x0, inputs, channel
+        For an in-memory model (as for :func:`design`; ``channel`` is a model file's ``CHANNEL``).
     study_options
         Options of that study only (e.g. ``engine`` of the particle-filter studies,
         ``schedule`` of consensus-robot); an option a study does not take is an error.
@@ -285,9 +287,10 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     if scenario is not None:
         # names and model files are built by the pipeline (which routes overrides to the scenarios that have
         # them); models and scenarios built here
-        targets = [s if isinstance(s, (str, Path)) and network is None and attacks is None and design_defaults is None
-                   and x0 is None and inputs is None else
-                   _scenario(s, network, attacks, design_defaults, None, x0, inputs, None, ())
+        in_memory = any(v is not None for v in (network, attacks, design_defaults, x0, inputs, channel))
+        targets = [s if isinstance(s, (str, Path)) and not in_memory else
+                   scenario_of(s, network=network, attacks=attacks, design=design_defaults, x0=x0, inputs=inputs,
+                               channel=channel)
                    for s in (scenario if isinstance(scenario, (list, tuple)) else [scenario])]
         targets = [str(t) if isinstance(t, Path) else t for t in targets]
     return run_study(name, targets, out=out, runs=runs, particles=particles, seed=seed, backend=backend, force=force,

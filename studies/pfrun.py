@@ -204,7 +204,7 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
                             attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
     res = fastsir.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
-                              log_clean=log_clean, angles=angles, workers=threads)
+                              log_clean=log_clean, angles=angles, threads=threads)
     return res.mean, res.collapsed
 
 
@@ -233,5 +233,5 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
         fastsir.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)
         return None
     res = fastsir.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
-                             workers=threads)
+                             threads=threads)
     return res.mean, res.collapsed

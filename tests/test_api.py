@@ -6,7 +6,6 @@ import json
 import os
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -17,27 +16,8 @@ from studies.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
-MODEL = textwrap.dedent('''
-    """A damped oscillator watched by four scalar sensors on a ring (a user's model)."""
-    import casadi as ca
-    import numpy as np
-
-    from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-
-    STEPS = 20
-    X0 = [1.0, 0.0]
-    NETWORK = SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0)])
-    ATTACKS = AttackSpec(dos=0.1, fdi={(0, 1): 0.2, (2, 3): 0.05}, signal=FDISignal(0.3, components=(0,)))
-
-
-    def model():
-        x = ca.SX.sym("x", 2)
-        f = ca.vertcat(x[0] + 0.1 * x[1], x[1] - 0.1 * (ca.sin(x[0]) + 0.2 * x[1]))
-        sensors = [Sensor(f"s{i}", np.cos(0.5 * i) * x[0] + np.sin(0.5 * i) * x[1], Gaussian.zero_mean([[0.05]]))
-                   for i in range(4)]
-        return Model("oscillator", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
-                     prior=Gaussian(X0, 0.05 * np.eye(2)), state_names=("angle", "rate"))
-''')
+# A user's model file, written where the repository is not: the README's model with a shorter horizon.
+MODEL = (ROOT / "examples" / "ring_model.py").read_text().replace("STEPS = 60", "STEPS = 20")
 
 
 @pytest.fixture()
@@ -108,8 +88,8 @@ def test_comparison_on_a_user_model_gives_the_cli_numbers(model_file, tmp_path):
 
 def test_bad_model_files_exit_2_with_one_line(tmp_path):
     bad_fdi = tmp_path / "bad_fdi.py"
-    bad_fdi.write_text(MODEL.replace("ATTACKS = AttackSpec(dos=0.1, fdi={(0, 1): 0.2, (2, 3): 0.05}, "
-                                     "signal=FDISignal(0.3, components=(0,)))", "ATTACKS = AttackSpec(fdi=0.1)"))
+    bad_fdi.write_text(MODEL.replace("signal=FDISignal(amplitude=0.3, components=(0,)))", ")"))
+    assert "signal=" not in bad_fdi.read_text()
     bad_net = tmp_path / "bad_net.py"
     bad_net.write_text(MODEL.replace("from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0)])",
                                      "from_edges(3, [(0, 1), (1, 2)])"))

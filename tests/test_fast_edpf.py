@@ -152,7 +152,7 @@ def test_a_runs_result_depends_only_on_its_generator(sw):
     def go(idx, workers):
         gens = [np.random.default_rng(100 + r) for r in idx]
         x0 = np.stack([m.prior.sample(g, M) for g in gens])
-        return sir_edpf(m, x0, gens, ys[idx], codec=codec, ess_threshold=0.5, workers=workers)
+        return sir_edpf(m, x0, gens, ys[idx], codec=codec, ess_threshold=0.5, threads=workers)
 
     full = go(list(range(R)), 1)
     for idx, w in (([3], 1), ([1, 3, 4], 2), (list(range(R)), 2)):

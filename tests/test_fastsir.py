@@ -429,7 +429,7 @@ def test_matches_the_kalman_filter_on_a_linear_model():
     gens = spawn_generators(6, runs)
     x0 = np.stack([model.prior.sample(g, M) for g in gens])
     y = np.broadcast_to(traj.z[None, :, None, :], (runs, K, 1, 1))
-    res = sir_packets(model, x0, gens, np.zeros((K, 1), int), y, workers=2)
+    res = sir_packets(model, x0, gens, np.zeros((K, 1), int), y, threads=2)
     diff = res.mean[:, 1:] - np.array(means_kf)[None]
     se = diff.std(0, ddof=1) / np.sqrt(runs)
     assert np.all(np.abs(diff.mean(0)) < 5 * se + 5e-3)
@@ -438,16 +438,16 @@ def test_matches_the_kalman_filter_on_a_linear_model():
 
 
 # ----------------------------------------------------------------------------- threads, seeds, numerics
-def _runs(rb, seed, workers, R=None):
+def _runs(rb, seed, threads, R=None):
     m, R = rb["m"], R or rb["R"]
     gens = spawn_generators(seed, R)
     x0 = np.stack([m.prior.sample(g, 200) for g in gens])
     lc, att = deception_terms(rb["rr_att"][:R], ETA, rb["box"])
     return sir_packets(m, x0, gens, rb["sched"], rb["rr_att"][:R], attack=att, log_clean=lc, angles=[1],
-                       workers=workers)
+                       threads=threads)
 
 
-def test_results_do_not_depend_on_workers_and_are_seeded(rb):
+def test_results_do_not_depend_on_threads_and_are_seeded(rb):
     a, b, c = _runs(rb, 3, 1), _runs(rb, 3, 2), _runs(rb, 3, 2)
     for f in ("mean", "ess", "loglik", "resampled", "collapsed"):
         assert np.array_equal(getattr(a, f), getattr(b, f)), f
@@ -523,7 +523,7 @@ def test_bad_inputs_raise_input_error_naming_the_parameter(rb):
         ("log_clean", lambda: sir_packets(m, x0, g, rb["sched"], y, log_clean=0.5)),
         ("resampler", lambda: sir_packets(m, x0, g, rb["sched"], y, resampler="bogus")),
         ("ess_threshold", lambda: sir_packets(m, x0, g, rb["sched"], y, ess_threshold=0.0)),
-        ("workers", lambda: sir_packets(m, x0, g, rb["sched"], y, workers=0)),
+        ("threads", lambda: sir_packets(m, x0, g, rb["sched"], y, threads=0)),
         ("covariance", lambda: sir_packets(m, x0, g, rb["sched"], y, covariance="yes")),
         ("angles", lambda: sir_packets(m, x0, g, rb["sched"], y, angles=[2])),
         ("angles", lambda: sir_packets(m, x0, g, rb["sched"], y, angles=["bearing"])),

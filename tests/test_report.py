@@ -1,8 +1,8 @@
 """Reports (``report.md``, self-contained ``report.html``): content, inlined figures, escaping, robustness.
 
 Study reports: two real studies run at a tiny size (the particle-filter study
-``encrypted-switching``, which writes its report through
-:func:`studies.results.write_study`, and ``consensus-robot``, which records no
+``encrypted-switching``, which writes its report through the pipeline's
+:func:`studies.results.write_outputs`, and ``consensus-robot``, which records no
 intervals); the other cases use small hand-written results files.  Design and
 feasibility reports: real outputs of :func:`studies.api.design` and
 :func:`studies.api.feasibility` on the small linear model of

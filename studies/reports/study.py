@@ -57,7 +57,7 @@ GLOSSARY: dict[str, tuple[str, str]] = {
     "particles": ("particles", "number of particles"),
 }
 
-_HANDLED = {"schema", "study", "scenario", "runs", "particles", "steps", "seed", "engine", "workers", "mode",
+_HANDLED = {"schema", "study", "scenario", "runs", "particles", "steps", "seed", "engine", "threads", "workers", "mode",
             "assumptions", "wall_time_s", "versions", "filters", "sweeps", "paper", "params", "detection",
             "timing_s", "attacks", "recommendation"}
 _ATTACK_WORDS = re.compile(r"attack|dos|fdi|decep|flip|jam|bit_error|dropout|eta_bar")
@@ -298,7 +298,7 @@ def _run_facts(results: Mapping) -> list[str]:
     facts = []
     for key, label in (("scenario", "scenario"), ("runs", "Monte Carlo runs"), ("particles", "particles"),
                        ("steps", "time steps per run"), ("seed", "seed"), ("mode", "design mode"),
-                       ("engine", "engine"), ("workers", "workers")):
+                       ("engine", "engine"), ("threads", "threads per worker"), ("workers", "worker processes")):
         v = results.get(key)
         if v is not None and not isinstance(v, (dict, list)):
             facts.append(f"- {label}: {md_escape(fmt_num(v))}")
