@@ -199,7 +199,13 @@ def feasibility_cmd(scenario, grids, out, workers, dask, force, quiet, assignmen
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, dask, force, quiet, engine, schedule,
               assignments, **kw) -> None:
-    """Run the Monte Carlo study STUDY (on its scenarios or on SCENARIO / MODEL.py) and write its results."""
+    """Run the Monte Carlo study STUDY (on its scenarios or on SCENARIO / MODEL.py) and write its results.
+
+    STUDY is one of: comparison (every filter family on the same runs and attacks; any model with a
+    NETWORK), consensus-robot (seed 003's consensus study; any model with a NETWORK), rrp-deception,
+    encrypted-switching, binary-multi-attack, fdi-four-tank (seeds 000, 001, 002, 004; a model that
+    declares the paper's CHANNEL).
+    """
     from designer.design import DesignOptions
 
     extra = {k: v for k, v in (("engine", engine), ("schedule", schedule)) if v is not None}

@@ -105,3 +105,13 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
     assert main(["simulate", "indoor-robot", "--steps", "4", "--out", str(target)]) == 1
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.npz"]
+
+
+def test_study_help_lists_every_registered_study():
+    from studies.pipeline import STUDIES
+
+    r = run_cli("study", "--help")
+    assert r.returncode == 0
+    text = " ".join(r.stdout.split())
+    for name in STUDIES:
+        assert name in text, name
