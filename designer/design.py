@@ -38,7 +38,7 @@ from .validation import InputError, check_finite
 
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
-    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale",
+    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
 ]
 
 MODES = ("paper", "tuned")
@@ -376,5 +376,3 @@ def describe_design(des: ConsensusDesign) -> dict:
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "U": np.asarray(des.U).tolist(),
             "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}
 
-
-__all__.append("describe_design")

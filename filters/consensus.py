@@ -41,6 +41,7 @@ from designer.tuning import tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
+from .rrp import wrap_angles
 
 __all__ = ["node_predict", "exchange", "node_update", "ConsensusResult", "run_consensus", "HARD_CONDITIONS"]
 
@@ -114,12 +115,14 @@ class NodeUpdate(NamedTuple):
 
 
 def _residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
-    """``z_i - h_i(x_pred)``, with angular components (``Sensor.angles``) beyond ±π wrapped into (-π, π]."""
+    """``z_i - h_i(x_pred)``, with angular components (``Sensor.angles``) beyond ±π wrapped into (-π, π].
+
+    Residuals already inside (-π, π] are left as they are (wrapping them would change their last bit).
+    """
     r = np.asarray(z_i, dtype=float) - model.h(i, x_pred, k1)
     angles = list(model.sensors[i].angles)
     if angles:
-        a = r[angles]
-        r[angles] = np.where(np.abs(a) > np.pi, np.pi - np.mod(np.pi - a, 2 * np.pi), a)
+        r = np.where(np.isin(np.arange(r.size), angles) & (np.abs(r) > np.pi), wrap_angles(r, angles), r)
     return r
 
 
