@@ -129,6 +129,11 @@ class FDISignal:
         """``E[g(s)²]`` of the law."""
         return float(_SECOND_MOMENT[self.law])
 
+    def moment(self, n_x: int) -> np.ndarray:
+        """``E[ξ ξᵀ] = E[g²] a aᵀ`` (n_x x n_x): what one falsified packet adds, in the mean square."""
+        a = self.amplitudes(n_x)
+        return self.second_moment * np.outer(a, a)
+
     def inject(self, s: np.ndarray, mask: np.ndarray, n_x: int) -> np.ndarray:
         """``ξ`` of shape ``s.shape + (n_x,)``: ``a g(s)`` where ``mask``, 0 elsewhere."""
         return (_g(self.law, s) * mask)[..., None] * self.amplitudes(n_x)

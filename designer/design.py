@@ -41,7 +41,7 @@ __all__ = [
     "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
 ]
 
-MODES = ("paper", "tuned")
+MODES = ("paper", "tuned", "mse")
 LINEARIZATIONS = ("fixed", "hessian", "structured")
 
 # The published choices of seed 003 and, marked, the values it leaves out.
@@ -74,7 +74,10 @@ class ConsensusDesign(NamedTuple):
     kept at the relative margin ``designer.tuning.MARGIN``.  With
     ``linearization='hessian'``, ``U`` and ``V_i`` are replaced at every node and step by
     ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
-    Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.
+    Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.  In
+    ``'mse'`` mode the gains minimise the predicted mean-square error of every node
+    (:mod:`designer.mse`, with ``fdi_moment`` = E[ξ ξᵀ] of the injected signal) and σ, β
+    certify them (the smallest bound (26)-(27) for those gains).
     """
 
     epsilon: float
@@ -89,6 +92,7 @@ class ConsensusDesign(NamedTuple):
     # 'structured': as 'hessian' but with the remainder written U Ω D e, D selecting the variables the model is
     # nonlinear in (the tighter variant: the multipliers act only along those directions)
     radius: float = DEFAULT_RADIUS  # 'hessian': the bound holds for errors within `radius` standard deviations of Φ
+    fdi_moment: np.ndarray | None = None  # 'mse': E[ξ ξᵀ] (n_x x n_x) of one falsified packet (None: 0)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -110,7 +114,7 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     if not np.isfinite(design.radius) or design.radius <= 0:
         raise InputError(f"radius must be > 0, got {design.radius!r}")
     if design.mode not in MODES:
-        raise InputError(f"mode must be 'paper' or 'tuned', got {design.mode!r}")
+        raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -140,7 +144,10 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError("sigma must be > 0 when U is nonzero")
     if design.beta == 0 and any(np.any(v) for v in Vs) and design.mode == "paper":
         raise InputError("beta must be > 0 when V is nonzero")
-    return design._replace(epsilon=eps, U=U, V=tuple(Vs))
+    M = np.zeros((model.n_x, model.n_x)) if design.fdi_moment is None else check_finite("fdi_moment", design.fdi_moment)
+    if M.shape != (model.n_x, model.n_x):
+        raise InputError(f"fdi_moment must have shape ({model.n_x}, {model.n_x}), got {M.shape}")
+    return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M)
 
 
 # ------------------------------------------------------------------------------------------- scalings
@@ -241,8 +248,10 @@ class DesignOptions:
 
     Parameters
     ----------
-    mode : {'paper', 'tuned'}
-        ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer.
+    mode : {'paper', 'tuned', 'mse'}
+        ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer
+        minimises the bound; ``mse``: gains minimising the predicted mean-square error
+        (:mod:`designer.mse`), certified by the σ, β that make the bound smallest for them.
     epsilon : float in (0, 1/d_max)
     sigma, beta : float >= 0
         The multipliers of (26)-(27) in paper mode (the tuning layer chooses them otherwise).
@@ -282,7 +291,7 @@ class DesignOptions:
 
     def __post_init__(self):
         if self.mode is not None and self.mode not in MODES:
-            raise InputError(f"mode must be 'paper' or 'tuned', got {self.mode!r}")
+            raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {self.mode!r}")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
         for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude"):
@@ -299,10 +308,10 @@ class DesignOptions:
             v = getattr(self, name)
             if v is not None and v >= 1:
                 raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
-        if self.mode == "tuned":
+        if self.mode in ("tuned", "mse"):
             for name in ("sigma", "beta", "tau"):
                 if getattr(self, name) is not None:
-                    raise InputError(f"{name} is chosen by the tuning layer in mode 'tuned'; do not give --{name}")
+                    raise InputError(f"{name} is chosen by the design in mode {self.mode!r}; do not give --{name}")
 
     def merged(self, over: "DesignOptions | None") -> "DesignOptions":
         """These options with every value that ``over`` sets replacing this one's."""
@@ -314,7 +323,7 @@ class DesignOptions:
             rest = self.v_scale.get("*", "prior") if isinstance(self.v_scale, Mapping) else self.v_scale
             given["v_scale"] = {**(self.v_scale if isinstance(self.v_scale, Mapping) else {}), "*": rest,
                                 **given["v_scale"]}
-        if given.get("mode") == "tuned" and self.mode != "tuned":
+        if given.get("mode") in ("tuned", "mse") and self.mode not in ("tuned", "mse"):
             # the defaults' paper-mode multipliers do not carry over to a tuned design
             base = replace(self, sigma=None, beta=None, tau=None)
         else:
@@ -339,11 +348,12 @@ class DesignOptions:
 
 
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
-                u0=None) -> ConsensusDesign:
+                u0=None, fdi_moment=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
 
-    ``delta`` is the FDI bound of the resolved attack specification; ``x0`` (and ``u0``)
-    the operating point of the ``'prior'`` scalings, ``P0`` the prior covariance there.
+    ``delta`` is the FDI bound of the resolved attack specification and ``fdi_moment`` its
+    signal's ``E[ξ ξᵀ]`` (the mse design's statistics); ``x0`` (and ``u0``) the operating
+    point of the ``'prior'`` scalings, ``P0`` the prior covariance there.
     """
     from .tuning import tuned_epsilon
 
@@ -351,7 +361,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
     d_max = max(network.d_max, 1)
     epsilon = options.epsilon
     if epsilon is None:
-        epsilon = tuned_epsilon(d_max) if mode == "tuned" else PAPER_DEFAULTS["epsilon_fraction"] / d_max
+        epsilon = tuned_epsilon(d_max) if mode in ("tuned", "mse") else PAPER_DEFAULTS["epsilon_fraction"] / d_max
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0,
                            P0=model.prior.cov if P0 is None else P0, u0=u0, radius=radius)
@@ -366,6 +376,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         mode=mode,
         linearization=options.linearization or "fixed",
         radius=radius,
+        fdi_moment=fdi_moment,
     )
     return validate_design(des, model, network)
 

@@ -49,7 +49,7 @@ from .validation import ComputationError
 
 __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
-    "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
+    "PredictionSDP", "UpdateSDP", "CertifySDP", "update_trace", "lam_max", "certify_update",
 ]
 
 MARGIN = 0.05  # relative margin kept in (28), (29) and in epsilon < 1/d_max
@@ -205,6 +205,29 @@ def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
+def certify_update(phi_pred, H, C, K, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
+    """The smallest bound (27) for *given* gains ``(C, K)``: β minimising ``tr Φ_{k+1|k+1}`` with (29) at margin.
+
+    Theorem 1's bound holds for any gains as long as (28)-(29) hold, so gains chosen for
+    another purpose (``mode='mse'``) are certified by choosing only the multiplier.  For fixed
+    gains ``tr Φ(β) = w tr A (Φ_pred^-1 - β DᵀD)^-1 Aᵀ + w tr K V Vᵀ Kᵀ / β + const`` is convex
+    in β on ``0 < β < 1/λmax(D Φ_pred Dᵀ)`` (a matrix-fractional term in an affine matrix plus
+    ``1/β``), so a bounded scalar search finds its minimum (:class:`CertifySDP` solves the same
+    problem as an SDP; the tests compare them).
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        bmax = (1.0 - margin) / lam_max(phi_pred, D)
+        if not np.any(V):
+            beta = 0.0  # without V the trace only grows with β
+        else:
+            res = minimize_scalar(lambda b: float(np.trace(update_trace(phi_pred, H, C, K, s, b, V, R, d_i, N, D))),
+                                  bounds=(bmax * 1e-9, bmax), method="bounded",
+                                  options={"xatol": bmax * 1e-8, "maxiter": 500})
+            beta = float(res.x)
+        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
+    return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
+
+
 # ------------------------------------------------------------------------------ SDPs
 def _solve(problem, what: str) -> None:
     import cvxpy as cp
@@ -309,4 +332,44 @@ class UpdateSDP:
         phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D) if beta > 0 or not np.any(V) else None
         if phi is None:
             raise ComputationError("update SDP returned beta = 0 with V nonzero")
+        return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
+
+
+class CertifySDP:
+    """The β problem of :func:`certify_update` (fixed gains) as an SDP, built once for dimensions (n, m)."""
+
+    def __init__(self, n: int, m: int):
+        import cvxpy as cp
+
+        self.Pinv = cp.Parameter((n, n), symmetric=True)
+        self.A = cp.Parameter((n, n))  # I - s C - K H
+        self.KV = cp.Parameter((n, m))
+        self.w = cp.Parameter(nonneg=True)
+        self.const = cp.Parameter()  # tr C N Cᵀ + tr K R Kᵀ
+        self.bmax = cp.Parameter(nonneg=True)
+        self.DtD = cp.Parameter((n, n), PSD=True)
+        self.beta = cp.Variable(nonneg=True)
+        X = cp.Variable((n, n), symmetric=True)
+        T = cp.Variable((n, n), symmetric=True)
+        cons = [
+            cp.bmat([[X, self.A], [self.A.T, self.Pinv - self.beta * self.DtD]]) >> 0,
+            cp.bmat([[T, self.KV], [self.KV.T, self.beta * np.eye(m)]]) >> 0,
+            self.beta <= self.bmax,
+        ]
+        self.problem = cp.Problem(cp.Minimize(self.w * cp.trace(X) + self.w * cp.trace(T) + self.const), cons)
+        assert self.problem.is_dpp()
+
+    def solve(self, phi_pred, H, C, K, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
+        n = phi_pred.shape[0]
+        Dm = np.eye(n) if D is None else D
+        self.DtD.value = Dm.T @ Dm
+        self.Pinv.value = symmetrize(np.linalg.inv(phi_pred))
+        self.A.value = np.eye(n) - s * C - K @ H
+        self.KV.value = K @ V
+        self.w.value = 1.0 + 2 * d_i
+        self.const.value = float(np.trace(C @ N @ C.T) + np.trace(K @ R @ K.T))
+        self.bmax.value = (1.0 - margin) / lam_max(phi_pred, D)
+        _solve(self.problem, "certification SDP")
+        beta = max(float(self.beta.value), 0.0)
+        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
         return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))

@@ -37,7 +37,8 @@ from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.tuning import tune_prediction, tune_update
+from designer.mse import joint_predict, joint_prior, joint_update, mse_gains
+from designer.tuning import certify_update, tune_prediction, tune_update
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -48,6 +49,7 @@ __all__ = ["node_predict", "exchange", "node_update", "ConsensusResult", "run_co
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
 _DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate
+_BOUND_LIMIT = 1e100  # a bound with this trace certifies nothing, and (26) overflows beyond it
 
 
 class NodePrediction(NamedTuple):
@@ -56,6 +58,8 @@ class NodePrediction(NamedTuple):
     margin28: float
     valid: bool
     sigma: float = np.nan
+    F: np.ndarray | None = None  # the Jacobian the prediction was linearised with
+    reason: str | None = None  # why (28) failed, when it is not its margin
 
 
 def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDesign, valid: bool) -> NodePrediction:
@@ -64,23 +68,27 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     x_pred = model.f_expected(x_post, k, u)
     Q = model.process_cov
     U, D = design.U, None
+    reason = None
+    if valid and not np.trace(phi_post) < _BOUND_LIMIT:
+        valid, reason = False, f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+        margin = -np.inf
     if valid:
         U, D = prediction_scaling(model, x_post, phi_post, k, u, design.linearization, design.radius, U)
-    if valid and design.mode == "tuned":
+    if valid and design.mode in ("tuned", "mse"):  # the σ of (26) does not depend on the gains
         choice = tune_prediction(phi_post, F, U, Q, design.epsilon, D=D)
         margin = condition28_margin(phi_post, choice.sigma, design.epsilon, D)
         if margin > 0:
-            return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma)
+            return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma, F)
     elif valid:
         pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
         if pb.phi_pred is not None:
-            return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True, design.sigma)
+            return NodePrediction(x_pred, pb.phi_pred, pb.margin28, True, design.sigma, F)
         margin = pb.margin28
-    else:
+    elif reason is None:
         margin = np.nan
     # Fallback (sigma = 0, U = 0): F Φ F^T + Q.
     phi = F @ phi_post @ F.T + Q
-    return NodePrediction(x_pred, 0.5 * (phi + phi.T), margin, False)
+    return NodePrediction(x_pred, 0.5 * (phi + phi.T), margin, False, F=F, reason=reason)
 
 
 def exchange(x_pred: np.ndarray, attacks_k: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
@@ -130,7 +138,9 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
                 neighbour_terms: np.ndarray, design: ConsensusDesign, d_i: int, gains=None) -> NodeUpdate:
     """One node's update (7), gain (30) and bound (27), checking (29) on ``Φ_{k+1|k}``.
 
-    ``gains``: an optional ``(K, C)`` pair to replay instead of computing them.
+    ``gains``: an optional ``(K, C)`` pair to use instead of computing them: replayed from a
+    schedule (no bound claimed), or, in ``'mse'`` mode, the mean-square-error gains of
+    :mod:`designer.mse`, certified by the β that makes (27) smallest for them.
     """
     x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
     H = model.H(i, x_pred, k1)
@@ -140,7 +150,14 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
         V, D = update_scaling(model, i, x_pred, phi_pred, k1, design.linearization, design.radius, V)
     beta = design.beta
     residual = _residual(model, i, z_i, x_pred, k1)
-    if valid and design.mode == "tuned" and gains is None:
+    if valid and design.mode == "mse":
+        choice = certify_update(phi_pred, H, gains[1], gains[0], s_i, V, R, d_i, neighbour_terms, D=D)
+        margin = condition29_margin(phi_pred, choice.beta, D)
+        if margin > 0:
+            x_post = x_pred + gains[0] @ residual + gains[1] @ innovation_i
+            return NodeUpdate(x_post, choice.phi_post, gains[0], gains[1], margin, True, choice.beta)
+        valid = False  # the certifying beta is inside (29) by construction; reaching here means Φ_pred broke down
+    elif valid and design.mode == "tuned" and gains is None:
         choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms, D=D)
         margin = condition29_margin(phi_pred, choice.beta, D)
         if margin > 0:
@@ -189,6 +206,7 @@ class ConsensusResult(NamedTuple):
     violations: list
     sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
     beta: np.ndarray  # (steps, N) β used in (27)
+    predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
 
     @property
     def feasible(self) -> bool:
@@ -260,6 +278,15 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     valid[0] = gains is None
     sig = np.full((steps, n), np.nan)
     bet = np.full((steps, n), np.nan)
+    mse = design.mode == "mse" and gains is None
+    pmse = None
+    if mse:  # the joint error covariance of designer.mse, from Φ_0|0 >= P_0|0 (every node at the same estimate)
+        Pj = joint_prior(phi0, n)
+        pmse = np.full((steps + 1, n), np.nan)
+        pmse[0] = np.trace(phi0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q_fdi = np.where(network.adjacency, network.fdi_prob / (1.0 - network.dos_prob), 0.0)
+        R_all = [model.measurement_cov(i) for i in range(n)]
 
     def check_theorem2(k, i, sigma):
         th2[k, i] = theorem2_margin(phi_post[k, i], sigma, d_max)
@@ -267,7 +294,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
             violations.append({"node": i, "step": k, "condition": "theorem2", "margin": float(th2[k, i])})
 
     def result():
-        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
+        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
+                               pmse)
 
     for k in range(steps):
         preds = []
@@ -284,14 +312,25 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                         f"sigma must satisfy (28) at the first step: sigma < 1/((1+epsilon) lambda_max(Phi_0|0)) = "
                         f"{1.0 / ((1.0 + design.epsilon) * lam):.6g}, got {design.sigma!r}")
                 proper[i] = False
-                violations.append({"node": i, "step": k, "condition": "(28)", "margin": float(p.margin28)})
+                violations.append({"node": i, "step": k, "condition": "(28)", "margin": float(p.margin28),
+                                   **({} if p.reason is None else {"reason": p.reason})})
         # A predicted Φ is a bound when the node's recursion is proper and its Φ_{k|k} was a bound.
         pred_ok = np.array([p.valid for p in preds]) & valid[k]
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
         innovation, s = exchange(x_pred[k], att, network)
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
+        if mse:
+            Pm = joint_predict(Pj, [p.F for p in preds], model.process_cov)
+            recv = network.adjacency if att is None else network.adjacency & ~att[0]
+            rec = [np.flatnonzero(recv[i]) for i in range(n)]
+            Hs = [model.H(i, x_pred[k, i], k + 1) for i in range(n)]
+            S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)]
+            mg = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
         for i in range(n):
-            g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
+            if mse:
+                g = mg[i]
+            else:
+                g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
             failure = None
             try:
                 upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
@@ -326,6 +365,9 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 proper[i] = False
                 violations.append({"node": i, "step": k + 1, "condition": "(29)", "margin": float(upd.margin29)})
             valid[k + 1, i] = upd.valid and pred_ok[i] and all(pred_ok[j] for j in network.neighbours[i])
+        if mse:
+            Pj = joint_update(Pm, [m[0] for m in mg], [m[1] for m in mg], Hs, R_all, rec, S)
+            pmse[k + 1] = np.trace(Pj[np.arange(n), np.arange(n)], axis1=-2, axis2=-1)
     for i in range(n):  # Φ_{K|K} against the last σ the node used
         if valid[steps, i]:
             check_theorem2(steps, i, sig[steps - 1, i])

@@ -32,8 +32,10 @@ def cli(ctx: click.Context, debug: bool) -> None:
 def _design_options(f):
     """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
     opts = [
-        click.option("--mode", type=click.Choice(["paper", "tuned"]), default=None,
-                     help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: convex tuning "
+        click.option("--mode", type=click.Choice(["paper", "tuned", "mse"]), default=None,
+                     help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
+                          "the bound (convex tuning); mse: gains minimising the predicted mean-square error, "
+                          "certified by the smallest bound for them "
                           "[default: paper]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),

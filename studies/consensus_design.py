@@ -65,7 +65,9 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -
         options = (options or DesignOptions()).merged(DesignOptions(**kw))
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
-    return make_design(sc.model, sc.network, delta=sc.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
+    att = sc.resolved_attacks
+    return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                       fdi_moment=att.signal.moment(sc.model.n_x))
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,7 +145,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0)
+    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                      fdi_moment=att.signal.moment(sc.model.n_x))
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)
@@ -177,6 +180,10 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
                       "the bound holds for the linearisation points and DoS pattern it was computed along",
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
+            # mode 'mse': the trace of each node's predicted error covariance (nodes x steps + 1), the accuracy the
+            # gains were chosen for (the bound is the certificate)
+            "predicted_mse": None if res.predicted_mse is None else [
+                [float(v) if np.isfinite(v) else None for v in row] for row in res.predicted_mse.T],
             "network": net.describe(),
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),

@@ -300,6 +300,9 @@ def _binding_section(s: _Schedule, tight) -> list[str]:
     elif mode == "paper":
         out += ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
                 "ends.", ""]
+    elif mode == "mse":
+        out += ["In mse mode σ and β are chosen at every node and step to make the bound smallest for the gains "
+                "the mean-square-error design chose, keeping (28)-(29) with a small relative margin.", ""]
     return out
 
 
@@ -417,6 +420,12 @@ def _settings_section(s: _Schedule) -> list[str]:
     elif mode == "tuned":
         out += ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
                 "trace of the bounds while keeping (28)-(29)).", ""]
+    elif mode == "mse":
+        out += ["MSE mode: K and C minimise every node's predicted mean-square error, from the joint linearised error "
+                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the bound is "
+                "Theorem 1's for those gains (it holds for any gains while (28)-(29) hold), with σ and β chosen to "
+                "make it smallest. The gains serve accuracy and the bound certifies them, so the bound can be much "
+                "larger than the error it bounds.", ""]
     facts = [("mode", mode), ("ε", meta.get("epsilon")), ("σ (fixed)", meta.get("sigma_fixed")),
              ("β (fixed)", meta.get("beta_fixed")), ("τ", meta.get("tau") if mode == "paper" else None),
              ("δ (bound on the injected signal, ‖ξ‖ ≤ δ)", meta.get("delta")), ("nodes", meta.get("nodes")),

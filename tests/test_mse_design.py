@@ -1,0 +1,150 @@
+"""The mean-square-error design (mode 'mse'): the joint error covariance against Monte Carlo, its gains against the
+local EKF, and its certificate."""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
+from designer.mse import joint_predict, joint_prior, joint_update, mse_gains
+from designer.tuning import CertifySDP, certify_update
+from filters.attacks import simulate_attacks
+from filters.consensus import run_consensus
+from filters.ekf import run_ekf
+from studies.comparison import local_ekf_design
+from studies.consensus_design import consensus_design
+from studies.scenarios import scenario_of
+
+
+def linear_ring(n_nodes=4, fdi=0.0, dos=0.0, amplitude=0.5, steps=15):
+    """A linear 2-state plant, one scalar sensor per node on a ring (each node alone cannot observe the state)."""
+    x = ca.SX.sym("x", 2)
+    A = ca.DM([[0.98, 0.1], [-0.1, 0.98]])
+    sensors = [Sensor(f"s{i}", np.cos(0.4 * i) * x[0] + np.sin(0.4 * i) * x[1], Gaussian.zero_mean([[0.2]]))
+               for i in range(n_nodes)]
+    m = Model("lin", x, ca.mtimes(A, x), sensors, Gaussian.zero_mean(0.01 * np.eye(2)),
+              Gaussian([0.0, 0.0], 0.5 * np.eye(2)))
+    net = SensorNetwork.from_edges(n_nodes, [(i, (i + 1) % n_nodes) for i in range(n_nodes)])
+    att = AttackSpec(dos=dos, fdi=fdi, signal=FDISignal(amplitude))
+    return scenario_of(m, network=net, attacks=att, steps=steps)
+
+
+def _mc(sc, design, runs, seed):
+    """Errors of every node over runs (runs, steps+1, nodes, n_x) and the run's predicted MSE (first run)."""
+    m, net = sc.model, sc.network
+    errs, pred = [], None
+    for r in range(runs):
+        ts, at = np.random.SeedSequence(seed, spawn_key=(r,)).spawn(2)
+        traj = sc.simulate(np.random.default_rng(ts))
+        att = simulate_attacks(net, sc.steps, m.n_x, np.random.default_rng(at), sc.resolved_attacks.signal)
+        res = run_consensus(m, net, traj.z, design, attacks=att)
+        errs.append(traj.x[:, None, :] - res.x_post)
+        pred = res.predicted_mse if pred is None else pred
+    return np.array(errs), pred
+
+
+@pytest.mark.parametrize("dos, fdi", [(0.0, 0.0), (0.0, 0.3)])
+def test_predicted_mse_is_the_monte_carlo_mse_of_a_linear_network(dos, fdi):
+    """Linear plant, no linearisation error: tr P_ii of the joint recursion is each node's mean-square error.
+
+    Without DoS the received sets are the same in every run, so the predicted MSE is one deterministic sequence
+    (FDI enters through its second moment), and the Monte Carlo of the generative model must agree with it.
+    """
+    sc = linear_ring(fdi=fdi, dos=dos, steps=10)
+    des = consensus_design(sc, mode="mse", u_scale=0, v_scale=0)
+    err, pred = _mc(sc, des, runs=500, seed=3)
+    e2 = (err ** 2).sum(-1)  # (runs, steps+1, nodes)
+    emp = e2.mean(axis=0)
+    se = e2.std(axis=0, ddof=1) / np.sqrt(err.shape[0])
+    z = (emp[1:] - pred[1:]) / se[1:]
+    assert np.abs(z).max() < 4.5, np.abs(z).max()  # 40 (step, node) cells: 4.5 sigma
+    assert np.abs(z.mean()) < 1.0
+
+
+def test_isolated_nodes_get_the_ekf_and_networked_nodes_are_never_worse_in_prediction():
+    sc = linear_ring()
+    m, n = sc.model, sc.network.n_nodes
+    traj = sc.simulate(np.random.default_rng(0))
+    iso = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
+    des = consensus_design(sc, mode="mse", u_scale=0, v_scale=0)
+    alone = run_consensus(m, iso, traj.z, des)
+    for i in range(n):
+        avail = np.zeros((sc.steps, n), bool)
+        avail[:, i] = True
+        ekf = run_ekf(m, np.where(avail, traj.z, 0.0), available=avail)
+        np.testing.assert_allclose(alone.x_post[:, i], ekf.x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(alone.predicted_mse[:, i], np.trace(ekf.P, axis1=1, axis2=2), rtol=1e-9)
+    net = run_consensus(m, sc.network, traj.z, des)
+    assert np.all(net.predicted_mse <= alone.predicted_mse * (1 + 1e-9))
+    assert np.all(net.predicted_mse[-1] < 0.8 * alone.predicted_mse[-1])  # the neighbours' information helps
+
+
+def test_gains_are_the_linear_mmse_of_the_innovations():
+    """Perturbing the mse gains in any direction never lowers node i's predicted error (first-order optimality)."""
+    rng = np.random.default_rng(1)
+    n, N = 2, 3
+    L = rng.normal(size=(N * n, N * n))
+    big = L @ L.T + np.eye(N * n)
+    Pm = big.reshape(N, n, N, n).swapaxes(1, 2)
+    H = [rng.normal(size=(1, n)) for _ in range(N)]
+    R = [np.array([[0.3]])] * N
+    received = [[1, 2], [0], [0, 1]]
+    S = [0.2 * len(r) * np.eye(n) for r in received]
+    gains = [mse_gains(Pm, i, received[i], H[i], R[i], S[i]) for i in range(N)]
+    base = joint_update(Pm, [g[0] for g in gains], [g[1] for g in gains], H, R, received, S)
+    for trial in range(20):
+        i = trial % N
+        dK, dC = 1e-3 * rng.normal(size=(n, 1)), 1e-3 * rng.normal(size=(n, n))
+        Ks = [g[0] + (dK if j == i else 0) for j, g in enumerate(gains)]
+        Cs = [g[1] + (dC if j == i else 0) for j, g in enumerate(gains)]
+        other = joint_update(Pm, Ks, Cs, H, R, received, S)
+        assert np.trace(other[i, i]) >= np.trace(base[i, i]) - 1e-12
+
+
+def test_joint_prediction_and_update_against_a_stacked_linear_system():
+    """The block formulas equal the covariance of the stacked error vector computed as one linear system."""
+    rng = np.random.default_rng(4)
+    n, N = 2, 3
+    L = rng.normal(size=(N * n, N * n))
+    P = (L @ L.T).reshape(N, n, N, n).swapaxes(1, 2)
+    F = [rng.normal(size=(n, n)) for _ in range(N)]
+    Q = 0.1 * np.eye(n)
+    Pm = joint_predict(P, F, Q)
+    Fbig = np.zeros((N * n, N * n))
+    for i in range(N):
+        Fbig[i * n:(i + 1) * n, i * n:(i + 1) * n] = F[i]
+    G = np.tile(np.eye(n), (N, 1))  # one process noise for every node
+    ref = Fbig @ P.swapaxes(1, 2).reshape(N * n, N * n) @ Fbig.T + G @ Q @ G.T
+    np.testing.assert_allclose(Pm.swapaxes(1, 2).reshape(N * n, N * n), ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(joint_prior(np.eye(n), N)[0, 2], np.eye(n))
+
+
+def test_certificate_of_fixed_gains_matches_its_sdp_and_bounds_the_predicted_covariance():
+    rng = np.random.default_rng(2)
+    n, m = 3, 2
+    A = rng.normal(size=(n, n))
+    phi = A @ A.T + np.eye(n)
+    H = rng.normal(size=(m, n))
+    C, K = 0.05 * rng.normal(size=(n, n)), 0.3 * rng.normal(size=(n, m))
+    N = 0.5 * np.eye(n)
+    fast = certify_update(phi, H, C, K, 2.0, 0.2 * np.eye(m), np.eye(m), 2, N)
+    sdp = CertifySDP(n, m).solve(phi, H, C, K, 2.0, 0.2 * np.eye(m), np.eye(m), 2, N)
+    assert fast.trace == pytest.approx(sdp.trace, rel=1e-5)
+    assert fast.beta == pytest.approx(sdp.beta, rel=1e-2)
+
+
+def test_the_mse_design_certifies_its_own_error_on_a_linear_network():
+    """Theorem 1 holds for any gains: along a run, Φ_i bounds the predicted covariance P_ii of the same gains."""
+    sc = linear_ring(fdi=0.2, dos=0.1)
+    des = consensus_design(sc, mode="mse", u_scale=0, v_scale=0)
+    m, net = sc.model, sc.network
+    ts, at = np.random.SeedSequence(7).spawn(2)
+    traj = sc.simulate(np.random.default_rng(ts))
+    att = simulate_attacks(net, sc.steps, m.n_x, np.random.default_rng(at), sc.resolved_attacks.signal)
+    res = run_consensus(m, net, traj.z, des, attacks=att)
+    assert res.feasible and res.valid.all()
+    assert np.all(np.trace(res.phi_post, axis1=-2, axis2=-1) >= res.predicted_mse * (1 - 1e-9))
+    local = run_consensus(m, SensorNetwork(4, np.zeros((4, 4), int), require_connected=False), traj.z,
+                          local_ekf_design(des))
+    assert np.isfinite(local.x_post).all()
