@@ -192,6 +192,7 @@ class FeasibilityMap:
         if len(self.grids) <= 2:
             _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or "paper")
         from designer.design import DESIGN_ASSUMPTIONS
+        from designer.observability import kalman_references, observability
 
         from .results import versions
 
@@ -205,6 +206,8 @@ class FeasibilityMap:
             "operating_point": {"x0": sc.operating_point[0].tolist(),
                                 "u0": None if sc.operating_point[1] is None else sc.operating_point[1].tolist()},
             "network": sc.network.describe(), "attacks": sc.resolved_attacks.describe(sc.model.state_names),
+            "observability": observability(sc.model, *sc.operating_point),
+            "kalman_references": kalman_references(sc.model, *sc.operating_point),
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS), "runner": self.runner,
             "versions": versions(),
         })

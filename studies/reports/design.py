@@ -24,8 +24,8 @@ import numpy as np
 
 
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
-                   md_cell, md_escape, md_table, network_lines, other_section, params_table, read_record,
-                   scenario_spec)
+                   md_cell, md_escape, md_table, network_lines, observability_section, other_section, params_table,
+                   read_record, scenario_spec)
 
 __all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES"]
 
@@ -40,7 +40,7 @@ FIGURES = {
 _KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
           "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
           "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
-          "params", "assumptions", "source"}
+          "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -630,7 +630,7 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
     return document(head, [
         _verdict_section(s, tight), _binding_section(s, tight), _figure_section(list(figures)),
         _node_section(s), _meaning_section(s), _settings_section(s), _linearisation_section(meta),
-        _attack_section(meta), _network_section(meta), _scenario_section(meta),
+        _attack_section(meta), _network_section(meta), observability_section(meta), _scenario_section(meta),
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario or the "
                            "design had to decide:"),
         other_section(meta, _KNOWN, "Other recorded fields"), _files_section(meta, arrays, note, list(figures))])

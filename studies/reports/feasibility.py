@@ -25,7 +25,7 @@ from designer.validation import InputError
 
 from .design import attack_lines, command_line, scenario_lines
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
-                   md_escape, md_table, network_lines, other_section, read_record)
+                   md_escape, md_table, network_lines, observability_section, other_section, read_record)
 
 __all__ = ["feasibility_report", "render_feasibility", "TWO_NOTIONS"]
 
@@ -38,7 +38,7 @@ TWO_NOTIONS = (
     "transient violates a condition that the steady state satisfies (or the reverse: a run that is too short to "
     "reach an unbounded steady state).")
 _KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "operating_point", "network",
-          "attacks", "assumptions", "runner", "source", "state_names"}
+          "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references"}
 _THEOREM2 = {True: "holds", False: "fails", None: "—"}
 _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
 
@@ -264,6 +264,7 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
         ["## Attacks", "", "The attack specification of the scenario with the options applied; a grid parameter "
          "(`dos`, `fdi`, `delta`, `amplitude`) replaces its value at every point:", "", *attacks] if attacks else [],
         ["## Network", "", *network] if network else [],
+        observability_section(meta),
         ["## Scenario", "", *scen] if scen else [],
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario had to "
                            "decide:"),

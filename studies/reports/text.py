@@ -379,3 +379,48 @@ def read_record(d: Path, name: str, schema: str, whose: str, required: bool = Tr
     if (given is not None or required) and not (isinstance(given, str) and given.startswith(family)):
         raise InputError(f"directory {str(d)!r}: {name} has schema {given!r}, not {whose} ({schema})")
     return record
+
+
+def observability_section(meta: Mapping) -> list[str]:
+    """Which nodes observe the state alone, whether the network does, and the steady-state Kalman references.
+
+    Reads ``meta["observability"]`` and ``meta["kalman_references"]`` (:mod:`designer.observability`); empty
+    when neither was recorded.
+    """
+    obs, ref = meta.get("observability"), meta.get("kalman_references")
+    if not isinstance(obs, Mapping) and not isinstance(ref, Mapping):
+        return []
+    out = ["## Observability and the Kalman references", ""]
+    nodes = obs.get("nodes") if isinstance(obs, Mapping) else None
+    local = ref.get("local") if isinstance(ref, Mapping) and isinstance(ref.get("local"), list) else []
+    if isinstance(nodes, list) and nodes:
+        n_x = obs.get("n_x")
+        net = obs.get("network") if isinstance(obs.get("network"), Mapping) else {}
+        alone = [d for d in nodes if isinstance(d, Mapping) and not d.get("observable")]
+        out.append(("**The network observes the state** (every sensor together: rank "
+                    f"{md_escape(fmt_num(net.get('rank')))} of {md_escape(fmt_num(n_x))})" if net.get("observable") else
+                    "**The network does not observe the state**: no gain can make every node's error converge "
+                    f"(every sensor together: rank {md_escape(fmt_num(net.get('rank')))} of {md_escape(fmt_num(n_x))})")
+                   + ("; every node also observes it alone." if not alone else
+                      f"; {len(alone)} of {len(nodes)} nodes cannot observe it alone and depend on their "
+                      "neighbours: " + ", ".join(f"{md_escape(d.get('node'))} ({md_escape(d.get('sensor'))})"
+                                                 for d in alone) + "."))
+        out += ["", f"At the operating point ({md_escape(obs.get('where', 'linearisation'))}; ranks of the "
+                "observability matrices from python-control's `obsv`; steady-state Kalman filters from its `dlqe`, "
+                "trace of the posterior covariance, — where the node alone has no steady state):", ""]
+        rows = []
+        for d in nodes:
+            if not isinstance(d, Mapping):
+                continue
+            i = d.get("node")
+            tr = local[i] if isinstance(i, int) and 0 <= i < len(local) else None
+            rows.append([md_escape(fmt_num(i)), md_cell(d.get("sensor")), md_escape(fmt_num(d.get("rank"))),
+                         "yes" if d.get("observable") else "no", "—" if tr is None else md_escape(fmt_num(tr))])
+        out += md_table(["node", "sensor", "rank", "observes alone", "local steady-state tr P"], rows,
+                        ["r", "l", "r", "l", "r"])
+        out.append("")
+    if isinstance(ref, Mapping) and ref.get("centralized") is not None:
+        out += [f"The centralized steady-state Kalman filter (every sensor, no attack) reaches tr P = "
+                f"{md_escape(fmt_num(ref['centralized']))}: no distributed filter can do better at this point, and a "
+                "bound far above it measures the design's conservatism.", ""]
+    return out

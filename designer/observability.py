@@ -1,0 +1,95 @@
+"""Observability of the nodes and of the network at an operating point, and the steady-state Kalman references.
+
+A consensus design is only as good as what each node can learn: a node whose sensor
+cannot observe the state alone needs its neighbours, and a network whose sensors
+together cannot observe it cannot be made to work by any gain.  At the operating point
+(``x0``, the first input) the model is linearised (``F``, ``H_i`` from its CasADi
+Jacobians) and python-control gives
+
+* per node, the rank of the observability matrix ``[H_i; H_i F; ...]`` (``control.obsv``):
+  full rank ``n_x`` means the node observes the state alone;
+* for the network, the rank with every sensor stacked (collective observability, the
+  condition the distributed filters of the literature need);
+* the steady-state Kalman filters of that linearisation (``control.dlqe``): the
+  centralized one with every sensor and the local one of each node (None when the pair is
+  not detectable: an unobserved mode with ``|λ| >= 1``, the PBH test), as the references a
+  steady-state bound can be held against.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import block_diag
+
+__all__ = ["observability", "kalman_references"]
+
+
+def _rank(F: np.ndarray, H: np.ndarray) -> int:
+    import control
+
+    O = np.asarray(control.obsv(F, H))
+    scale = max(float(np.abs(O).max()), 1e-300)
+    return int(np.linalg.matrix_rank(O, tol=1e-9 * scale * max(O.shape)))
+
+
+def _linearisation(model, x0, u0):
+    F = model.F_expected(x0, 0, u0)
+    xp = model.f_expected(x0, 0, u0)
+    H = [model.H(i, xp, 1) for i in range(model.n_sensors)]
+    return F, H
+
+
+def observability(model, x0, u0=None) -> dict:
+    """Which nodes observe the state alone, and whether the network does, at the operating point.
+
+    Returns ``{"n_x", "nodes": [{"node", "sensor", "rank", "observable"}], "network": {"rank",
+    "observable"}, "unobservable_nodes": [...]}``.
+    """
+    F, H = _linearisation(model, x0, u0)
+    n = model.n_x
+    nodes = []
+    for i, (s, Hi) in enumerate(zip(model.sensors, H)):
+        r = _rank(F, Hi)
+        nodes.append({"node": i, "sensor": s.name, "rank": r, "observable": r == n})
+    r_all = _rank(F, np.vstack(H))
+    return {"n_x": n, "nodes": nodes, "network": {"rank": r_all, "observable": r_all == n},
+            "unobservable_nodes": [d["node"] for d in nodes if not d["observable"]],
+            "where": "linearisation at the operating point (x0 and the first input)"}
+
+
+def _detectable(F: np.ndarray, H: np.ndarray) -> bool:
+    """PBH test: every mode with ``|λ| >= 1`` is seen by ``H`` (``rank [λI - F; H] = n``)."""
+    n = F.shape[0]
+    for lam in np.linalg.eigvals(F):
+        if abs(lam) >= 1.0 - 1e-9:
+            M = np.vstack([lam * np.eye(n) - F, H])
+            if np.linalg.matrix_rank(M, tol=1e-9 * max(1.0, float(np.abs(M).max())) * max(M.shape)) < n:
+                return False
+    return True
+
+
+def _posterior_trace(F, H, Q, R) -> float | None:
+    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R); None when it does not exist."""
+    import control
+
+    if not _detectable(F, H):
+        return None
+    try:
+        _, P, _ = control.dlqe(F, np.eye(F.shape[0]), H, Q, R)
+    except Exception:  # noqa: BLE001 - not detectable / not stabilisable: no steady state
+        return None
+    P = np.asarray(P)
+    S = H @ P @ H.T + R
+    post = P - P @ H.T @ np.linalg.solve(S, H @ P)
+    tr = float(np.trace(post))
+    return tr if np.isfinite(tr) and tr >= 0 else None
+
+
+def kalman_references(model, x0, u0=None) -> dict:
+    """Steady-state posterior ``tr P`` of the centralized and of each local Kalman filter at the operating point."""
+    F, H = _linearisation(model, x0, u0)
+    Q = model.process_cov
+    R = [model.measurement_cov(i) for i in range(model.n_sensors)]
+    return {"centralized": _posterior_trace(F, np.vstack(H), Q, block_diag(*R)),
+            "local": [_posterior_trace(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)],
+            "where": "steady-state Kalman filters (python-control dlqe) of the linearisation at the operating point; "
+                     "trace of the posterior error covariance; None: no steady state (pair not detectable)"}
