@@ -95,8 +95,10 @@ def test_options_merge_and_refuse():
     base = DesignOptions(u_scale=0.01, v_scale=0.1, sigma=0.2)
     assert base.merged(DesignOptions(mode="tuned")).sigma is None  # paper multipliers do not carry over
     assert base.merged(DesignOptions(v_scale={"s1": 0.5})).v_scale == {"*": 0.1, "s1": 0.5}
-    with pytest.raises(InputError, match="sigma is chosen by the tuning layer"):
+    with pytest.raises(InputError, match="sigma is chosen by the design in mode 'tuned'"):
         DesignOptions(mode="tuned", sigma=0.1)
+    with pytest.raises(InputError, match="tau is chosen by the design in mode 'mse'"):
+        DesignOptions(mode="mse", tau=0.1)
     with pytest.raises(InputError, match="dos must be a probability"):
         DesignOptions(dos=1.0)
 
