@@ -11,6 +11,12 @@ the bound recursion (26)-(27), the gain (30) and the conditions (28)-(29) of
 :mod:`designer.bounds`.  The node knows which of its channels were DoS'ed
 (the paper's detector); it cannot tell an FDI'd packet from a clean one.
 
+The gains: the paper's ``C = τ Φ_pred`` with (30) (``mode='paper'``), the convex tuning of
+(β, C, K) that makes the bound smallest (``'tuned'``), or the gains that make every node's
+predicted mean-square error smallest, from the joint error covariance of all nodes
+(:mod:`designer.mse`), certified by the β that makes the bound smallest for them
+(``'mse'``; :attr:`ConsensusResult.predicted_mse` holds that prediction).
+
 When (28) or (29) fails at a node, the violation is recorded (node, step,
 condition, margin) and from then on that node runs the fallback recursion
 σ = β = 0, U = V = 0 (the consensus EKF without linearisation multipliers, which
