@@ -1,0 +1,350 @@
+"""The distributed filters of the literature, as baselines: the Kalman consensus filter and HCMCI.
+
+Both run at every node of the project's :class:`designer.network.SensorNetwork` on the
+model layer's transition and sensors (extended, EKF-linearised forms: ``F``, ``H_i`` from
+the model's CasADi Jacobians, angular residual components wrapped as in
+:mod:`filters.consensus`), and face the same realised channel attacks
+(:class:`filters.attacks.AttackPattern`) as the consensus EKF.
+
+**KCF** — R. Olfati-Saber, "Distributed Kalman filtering for sensor networks", IEEE CDC
+2007, in the form restated as Algorithm 1 of "Kalman-Consensus Filter: Optimality,
+stability, and performance", IEEE CDC 2009.  Every node ``i`` sends one packet per step to
+each neighbour: its measurement information ``u_i = H_iᵀ R_i⁻¹ (z_i - h_i(x̄_i) + H_i x̄_i)``,
+``U_i = H_iᵀ R_i⁻¹ H_i`` (linearised at its own prediction ``x̄_i``) and its prediction
+``x̄_i``.  With ``J_i`` = ``i`` and the neighbours whose packet arrived::
+
+    y_i = Σ_{j∈J_i} u_j,   S_i = Σ_{j∈J_i} U_j,   M_i = (P_i⁻¹ + S_i)⁻¹
+    x̂_i = x̄_i + M_i (y_i - S_i x̄_i) + γ_i M_i Σ_{j∈J_i, j≠i} (x̄_j - x̄_i),   γ_i = ε / (1 + ‖M_i‖_F)
+    P_i ← F M_i Fᵀ + Q,   x̄_i ← f(x̂_i)
+
+``M_i`` is the filter's covariance (the consensus term's effect on it is ignored, as in
+the paper, which also ignores the cross-covariances between nodes).
+
+**HCMCI** — G. Battistelli, L. Chisci, G. Mugnai, A. Farina, A. Graziano, "Consensus-based
+linear and nonlinear filtering", IEEE TAC 60(5), 2015 (the hybrid of consensus on
+measurements and consensus on information; G. Battistelli, L. Chisci, Automatica 50, 2014,
+for the consensus on information).  Every node turns its prediction into an information pair
+``Ω_i = P_i⁻¹``, ``q_i = Ω_i x̄_i`` and its measurement into ``δΩ_i = U_i``, ``δq_i = u_i``
+(as above), then runs ``L`` consensus rounds on all four with the Metropolis weights
+``π_ij = 1 / (1 + max(d_i, d_j))`` (``π_ii = 1 - Σ_j π_ij``), and combines::
+
+    Ω_i ← Σ_j π_ij Ω_j,  q_i ← Σ_j π_ij q_j,  δΩ_i ← Σ_j π_ij δΩ_j,  δq_i ← Σ_j π_ij δq_j   (L times)
+    Ω_i⁺ = Ω_i + ω_i δΩ_i,   q_i⁺ = q_i + ω_i δq_i,   x̂_i = (Ω_i⁺)⁻¹ q_i⁺,   P_i = (Ω_i⁺)⁻¹
+
+``omega="size"`` (default) is the paper's ``ω_i = N``: as ``L → ∞`` the averaged measurement
+information times ``N`` is the sum over all sensors, and from a common prior HCMCI becomes the
+centralized (E)KF.  For small ``L`` it can count a measurement more than once
+(``N π⁽ᴸ⁾_ij > 1``) and be overconfident.  ``omega="consistent"``: ``ω_i = 1 / max_j r_ij``,
+``r_i`` node ``i``'s row of the product of the ``L`` rounds' (realised) weight matrices — the
+largest scaling that counts no measurement more than once, so that for a linear model the
+covariance stays consistent for every ``L`` (covariance intersection on the priors,
+independent measurement noise), ``ω_i → N`` as ``L → ∞`` and ``ω_i = 1`` (the local filter)
+when every channel of the node is lost.  A node can track ``r_i`` by running the same
+consensus on the ``N``-vector ``e_i`` (``N`` more numbers per packet; not counted as packets).
+
+Assumptions where the papers are silent (attacks are not part of either paper):
+
+* **KCF gain**: the CDC 2009 Algorithm 1 consensus gain ``γ M_i`` with
+  ``γ = ε / (1 + ‖M_i‖_F)``; default ``ε = 0.5 / d_max`` (an assumption: the papers give no value;
+  with ``ε < 1 / d_max`` the consensus correction ``‖γ M_i‖ d_i < 1`` never overshoots).
+* **DoS** (a lost packet; the receiver knows it): KCF leaves the neighbour out of ``J_i`` for that
+  step (its measurement information and its prediction); HCMCI gives a lost link's Metropolis
+  weight to the node itself for that round (rows stay stochastic: the consensus on information
+  stays a convex combination, hence consistent; it is no longer an exact average).
+* **One attack realisation per step**: the DoS / FDI state of channel ``j -> i`` and its signal
+  ``ξ_ij`` hold for all ``L`` rounds of step ``k`` (``attacks.dos[k]``, ``fdi[k]``, ``xi[k]``), as
+  if the channel were jammed or compromised for the whole step.
+* **FDI** (the receiver cannot tell): a falsified packet is the one the neighbour would send if the
+  state were displaced by ``ξ_ij`` (``falsify="packet"``, default): its estimate reads ``x_j + ξ_ij``
+  and its measurement ``h_j(x + ξ_ij) ≈ z_j + H_j ξ_ij`` (the law of the comparison's uplinks,
+  linearised), so every information pair ``(Y, y)`` in it becomes ``(Y, y + Y ξ_ij)`` — KCF:
+  ``u_j + U_j ξ_ij`` and the prediction ``x̄_j + ξ_ij`` in the consensus term; HCMCI: ``q_j + Ω_j ξ_ij``
+  and ``δq_j + δΩ_j ξ_ij`` in every round.  ``falsify="estimate"``: only what the estimate
+  ``x_j + ξ_ij`` with the same covariance would give (``x̄_j + ξ_ij``; ``q_j + Ω_j ξ_ij``), the
+  measurement information left intact (for a linear sensor it does not depend on the estimate:
+  ``H_jᵀ R_j⁻¹ (z_j - H_j x̄_j + H_j x̄_j) = H_jᵀ R_j⁻¹ z_j``).  The matrices are never falsified.
+* **Messages**: a packet is one transmission of one node's message to one neighbour;
+  ``messages_per_step`` counts the packets sent (``2|E|`` per step for KCF, ``2|E| L`` for HCMCI;
+  DoS does not stop the sender), ``delivered_per_step`` those that arrived.
+* **Divergence**: a node whose estimate or covariance leaves finite numbers, whose estimate
+  exceeds ``1e12``, or whose information matrix loses positive definiteness stops the run: a
+  ``'diverged'`` violation (as :class:`filters.consensus.ConsensusResult`) and NaN from that step on.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from designer.model import Model
+from designer.network import SensorNetwork
+from designer.validation import InputError, check_covariance, check_finite, check_int
+
+from .attacks import AttackPattern
+from .consensus import _residual
+
+__all__ = ["DistributedResult", "run_kcf", "run_hcmci", "metropolis_weights", "check_run_inputs", "OMEGA_CHOICES",
+           "FALSIFY_CHOICES"]
+
+OMEGA_CHOICES = ("size", "consistent")
+FALSIFY_CHOICES = ("packet", "estimate")
+_DIVERGED = 1e12  # the threshold of filters.consensus: an estimate this large has left any physical meaning
+
+
+class DistributedResult(NamedTuple):
+    """A run of a distributed filter at every node.
+
+    ``violations`` holds at most one ``{node, step, condition: 'diverged', margin, reason}``:
+    the run stopped there and every array is NaN from that step on.
+    """
+
+    x_post: np.ndarray  # (steps+1, N, n_x)
+    P_post: np.ndarray  # (steps+1, N, n_x, n_x)
+    x_pred: np.ndarray  # (steps, N, n_x)
+    P_pred: np.ndarray  # (steps, N, n_x, n_x)
+    messages_per_step: np.ndarray  # (steps,) int: packets sent (every round counted)
+    delivered_per_step: np.ndarray  # (steps,) int: packets received (sent minus DoS'ed)
+    violations: list
+    iterations: int  # consensus rounds per step (1 for KCF)
+    omega: np.ndarray | None = None  # (steps, N) HCMCI's measurement scaling ω_i (None for KCF)
+
+    @property
+    def diverged(self) -> dict | None:
+        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+
+def metropolis_weights(network: SensorNetwork, lost: np.ndarray | None = None) -> np.ndarray:
+    """Metropolis consensus weights ``π_ij = 1 / (1 + max(d_i, d_j))`` on the edges, ``π_ii = 1 - Σ_j π_ij``.
+
+    ``lost`` (N, N) bool: channels ``j -> i`` whose packet did not arrive; their weight goes to ``π_ii``.
+    """
+    d = network.degrees
+    W = np.where(network.adjacency, 1.0 / (1.0 + np.maximum(d[:, None], d[None, :])), 0.0)
+    if lost is not None:
+        W = np.where(lost, 0.0, W)
+    W[np.diag_indices_from(W)] = 1.0 - W.sum(axis=1)
+    return W
+
+
+class _Inputs(NamedTuple):
+    z: list  # per step, one array per sensor
+    u: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray
+    attacks: AttackPattern | None
+    steps: int
+    R_inv: list  # every sensor's R_i⁻¹ (by Cholesky, once)
+
+
+def check_run_inputs(model: Model, z, inputs, x0, cov0, cov_name: str = "P0"):
+    """A filter run's ``z`` (steps, n_z), ``inputs`` (steps, n_u), ``x0`` and initial covariance, checked.
+
+    ``x0`` and ``cov0`` default to the prior's mean and covariance; returns ``(z, u, x0, cov0)``
+    (``u`` of shape ``(steps, 0)`` without inputs).  Errors name the parameter (``cov_name`` for
+    the covariance).
+    """
+    z = check_finite("z", z)
+    if z.ndim != 2 or z.shape[1] != model.n_z:
+        raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
+    steps = z.shape[0]
+    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
+    if u.ndim != 2 or u.shape[0] != steps:
+        raise InputError(f"inputs must have shape ({steps}, n_u), one row per step, got {u.shape}")
+    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
+    if x0.shape != (model.n_x,):
+        raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
+    return z, u, x0, check_covariance(cov_name, model.prior.cov if cov0 is None else cov0, model.n_x)
+
+
+def _check(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _Inputs:
+    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
+        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
+                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
+    z, u, x0, P0 = check_run_inputs(model, z, inputs, x0, P0)
+    steps, n = z.shape[0], network.n_nodes
+    if falsify not in FALSIFY_CHOICES:
+        raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
+    if attacks is not None:
+        want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
+        if not isinstance(attacks, AttackPattern) or [np.shape(a) for a in attacks] != want:
+            raise InputError(f"attacks must be an AttackPattern with dos, fdi of shape {want[0]} and xi of shape "
+                             f"{want[2]}")
+    return _Inputs([model.split(z[k]) for k in range(steps)], u, x0, P0, attacks, steps,
+                   [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)])
+
+
+def _spd_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric positive-definite matrices ``(..., n, n)`` by Cholesky (raises LinAlgError if not)."""
+    L = np.linalg.cholesky(0.5 * (A + np.swapaxes(A, -1, -2)))
+    Li = np.linalg.solve(L, np.broadcast_to(np.eye(A.shape[-1]), A.shape))
+    return np.swapaxes(Li, -1, -2) @ Li
+
+
+def _measurement_information(model: Model, inp: _Inputs, k: int, x_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every node's ``U_i = H_iᵀ R_i⁻¹ H_i`` (N, n_x, n_x) and ``u_i = H_iᵀ R_i⁻¹ (z_i - h_i(x̄_i) + H_i x̄_i)``
+    (N, n_x), linearised at its own prediction ``x̄_i`` (angular residual components wrapped)."""
+    U, u = [], []
+    for i, xi in enumerate(x_pred):
+        H = model.H(i, xi, k + 1)
+        RiH = inp.R_inv[i] @ H
+        U.append(H.T @ RiH)
+        u.append(RiH.T @ (_residual(model, i, inp.z[k][i], xi, k + 1) + H @ xi))
+    return np.stack(U), np.stack(u)
+
+
+def _first_failure(x: np.ndarray, P: np.ndarray) -> int | None:
+    """The first node whose estimate or covariance is not finite or beyond the divergence threshold (None: none)."""
+    ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
+    ok[ok] &= np.abs(x[ok]).max(-1) < _DIVERGED
+    return None if ok.all() else int(np.flatnonzero(~ok)[0])
+
+
+def _not_positive_definite(*mats: np.ndarray) -> int:
+    """The first node whose matrix in one of ``mats`` (each (N, n, n)) has no Cholesky factor (0 if none)."""
+    for i in range(len(mats[0])):
+        for A in mats:
+            try:
+                np.linalg.cholesky(A[i])
+            except np.linalg.LinAlgError:
+                return i
+    return 0
+
+
+def _filter(model: Model, network: SensorNetwork, inp: _Inputs, update, rounds: int) -> DistributedResult:
+    """The loop both filters share: predict at every node, ``update`` it, stop at the first divergence.
+
+    ``update(k, x_pred, P_pred, U, u, recv)`` returns the posteriors ``(x, P)`` of every node and the
+    step's ``ω`` (or None); ``recv`` (N, N) bool marks the channels ``j -> i`` whose packets arrived.
+    """
+    n, nx, steps = network.n_nodes, model.n_x, inp.steps
+    adj = network.adjacency
+    x_post = np.full((steps + 1, n, nx), np.nan)
+    P_post = np.full((steps + 1, n, nx, nx), np.nan)
+    x_pred = np.full((steps, n, nx), np.nan)
+    P_pred = np.full((steps, n, nx, nx), np.nan)
+    omega = np.full((steps, n), np.nan)
+    x_post[0], P_post[0] = inp.x0, inp.P0
+    sent = np.full(steps, int(adj.sum()) * rounds)
+    delivered = np.zeros(steps, int)
+    violations: list[dict] = []
+    for k in range(steps):
+        recv = adj if inp.attacks is None else adj & ~inp.attacks.dos[k]
+        delivered[k] = int(recv.sum()) * rounds
+        x_pred[k] = model.f_expected(x_post[k], k, inp.u[k])  # batched over the nodes
+        F = model.F_expected(x_post[k], k, inp.u[k])
+        Pp = F @ P_post[k] @ np.swapaxes(F, -1, -2) + model.process_cov
+        P_pred[k] = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        beyond = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+        node = _first_failure(x_pred[k], P_pred[k])
+        reason = None if node is None else f"prediction: {beyond}"
+        if reason is None:
+            try:
+                U, u = _measurement_information(model, inp, k, x_pred[k])
+                x, P, om = update(k, x_pred[k], P_pred[k], U, u, recv)
+            except np.linalg.LinAlgError as exc:
+                node, reason = _not_positive_definite(P_pred[k]), f"numerical breakdown: {exc}"
+            else:
+                node = _first_failure(x, P)
+                reason = None if node is None else beyond
+        if reason is not None:
+            # Stop here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
+            violations.append({"node": node, "step": k + 1, "condition": "diverged", "margin": -np.inf,
+                               "reason": reason})
+            x_pred[k:] = P_pred[k:] = np.nan
+            break
+        x_post[k + 1], P_post[k + 1] = x, 0.5 * (P + np.swapaxes(P, -1, -2))
+        if om is not None:
+            omega[k] = om
+    return DistributedResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, rounds, omega)
+
+
+def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None, attacks: AttackPattern | None = None,
+            x0=None, P0=None, epsilon: float | None = None, falsify: str = "packet") -> DistributedResult:
+    """Olfati-Saber's Kalman consensus filter (extended form) at every node over ``z`` (steps, n_z).
+
+    Parameters
+    ----------
+    model, network : the model (one sensor per node) and the communication graph.
+    z : ndarray, shape (steps, n_z)
+        Stacked measurements; ``z[k]`` measures ``x_{k+1}``.
+    inputs : ndarray, shape (steps, n_u), optional
+    attacks : AttackPattern, optional
+        Realised channel attacks (none when omitted); see the module docstring for their effect.
+    x0, P0 : every node's initial estimate and covariance (default: the prior's mean and covariance).
+    epsilon : float >= 0, optional
+        ``ε`` of the consensus gain ``γ = ε / (1 + ‖M_i‖_F)`` (default ``0.5 / d_max``; 0 without links).
+    falsify : {'packet', 'estimate'}
+        What an FDI'd packet falsifies: the whole packet as if the state were displaced by ``ξ`` (default), or
+        the estimate alone (see the module docstring).
+    """
+    inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
+    if epsilon is None:
+        epsilon = 0.5 / network.d_max if network.d_max else 0.0
+    eps = float(check_finite("epsilon", epsilon))
+    if eps < 0:
+        raise InputError(f"epsilon must be >= 0 (the consensus gain gamma = epsilon / (1 + ||M||_F)), got {epsilon!r}")
+    eye = np.eye(network.n_nodes, dtype=bool)
+
+    def update(k, xp, Pp, U, u, recv):
+        J = (recv | eye).astype(float)  # J_i: the node and the neighbours whose packet arrived
+        S = np.einsum("ij,jab->iab", J, U)
+        M = _spd_inverse(_spd_inverse(Pp) + S)
+        gamma = eps / (1.0 + np.linalg.norm(M, axis=(-2, -1)))
+        # Σ_j (x̃_j - x̄_i) over the received packets, x̃_j = x̄_j + ξ_ij where falsified
+        diff = recv.astype(float) @ xp - recv.sum(axis=1)[:, None] * xp
+        y = J @ u
+        if inp.attacks is not None:
+            fdi = (recv & inp.attacks.fdi[k]).astype(float)
+            diff = diff + np.einsum("ij,ija->ia", fdi, inp.attacks.xi[k])
+            if falsify == "packet":  # u_j + U_j ξ_ij: z_j read as h_j(x + ξ), linearised
+                y = y + np.einsum("ij,jab,ijb->ia", fdi, U, inp.attacks.xi[k])
+        innov = y - np.einsum("iab,ib->ia", S, xp) + gamma[:, None] * diff
+        return xp + np.einsum("iab,ib->ia", M, innov), M, None
+
+    return _filter(model, network, inp, update, 1)._replace(omega=None)
+
+
+def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1, omega: str = "size",
+              inputs=None, attacks: AttackPattern | None = None, x0=None, P0=None, falsify: str = "packet"
+              ) -> DistributedResult:
+    """Battistelli et al.'s hybrid consensus on measurements and information (extended form) at every node.
+
+    Parameters
+    ----------
+    model, network, z, inputs, attacks, x0, P0, falsify
+        As :func:`run_kcf`.
+    iterations : int >= 1
+        ``L``, the consensus rounds per time step.
+    omega : {'size', 'consistent'}
+        The measurement scaling ``ω_i``: the network size ``N`` (the paper's), or the largest that counts no
+        measurement more than once (see the module docstring).
+    """
+    inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
+    L = check_int("iterations", iterations, 1)
+    if omega not in OMEGA_CHOICES:
+        raise InputError(f"omega must be one of {', '.join(map(repr, OMEGA_CHOICES))}, got {omega!r}")
+    n = network.n_nodes
+    adj = network.adjacency
+
+    def update(k, xp, Pp, dO, dq, recv):
+        W = metropolis_weights(network, adj & ~recv)
+        # π_ij ξ_ij on the falsified channels j -> i: node i averages q_j + Ω_j ξ_ij instead of q_j (and, with
+        # falsify='packet', δq_j + δΩ_j ξ_ij instead of δq_j)
+        inject = None if inp.attacks is None else (W * (recv & inp.attacks.fdi[k]))[..., None] * inp.attacks.xi[k]
+        O = _spd_inverse(Pp)
+        q = np.einsum("iab,ib->ia", O, xp)
+        for _ in range(L):
+            q_new, dq_new = W @ q, W @ dq
+            if inject is not None:
+                q_new += np.einsum("ijb,jab->ia", inject, O)
+                if falsify == "packet":
+                    dq_new += np.einsum("ijb,jab->ia", inject, dO)
+            q, dq = q_new, dq_new
+            O = np.einsum("ij,jab->iab", W, O)
+            dO = np.einsum("ij,jab->iab", W, dO)
+        om = np.full(n, float(n)) if omega == "size" else 1.0 / np.linalg.matrix_power(W, L).max(axis=1)
+        P = _spd_inverse(O + om[:, None, None] * dO)
+        return np.einsum("iab,ib->ia", P, q + om[:, None] * dq), P, om
+
+    return _filter(model, network, inp, update, L)

@@ -1,0 +1,308 @@
+"""The literature's distributed filters (filters.distributed): KCF and HCMCI against their known properties.
+
+References are computed here independently: a covariance-form Kalman filter on the stacked
+measurements, ``run_ekf`` (Joseph form) for the local and centralized EKFs, the exact joint
+error covariance of HCMCI on a linear model (derived below from the algorithm's equations),
+Metropolis weights from the degrees, packet counts from the edge list.
+"""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from designer.model import Model, Sensor
+from designer.network import SensorNetwork
+from designer.noise import Gaussian
+from designer.simulate import simulate, simulate_runs
+from designer.validation import InputError
+from filters.attacks import AttackPattern
+from filters.distributed import run_hcmci, run_kcf
+from filters.ekf import run_ekf
+from studies.scenarios import load_scenario
+
+A = np.array([[1.0, 0.1], [-0.05, 0.98]])
+N = 5
+RING = [(i, (i + 1) % N) for i in range(N)]
+H_ROWS = [np.array([[np.cos(0.6 * i), np.sin(0.6 * i)]]) for i in range(N)]  # no node observes the state alone
+R_VARS = [0.2 + 0.1 * i for i in range(N)]
+
+
+def linear_model(r_scale: float = 1.0) -> Model:
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor(f"s{i}", ca.mtimes(ca.DM(H_ROWS[i]), x), Gaussian.zero_mean([[r_scale * R_VARS[i]]]))
+               for i in range(N)]
+    return Model("linear ring", x, ca.mtimes(ca.DM(A), x), sensors, Gaussian.zero_mean(0.01 * np.eye(2)),
+                 Gaussian([0.5, -0.5], np.eye(2)))
+
+
+def oscillator(r_scale: float = 1.0) -> Model:
+    """The README's nonlinear oscillator, four scalar sensors (measurement variances scaled by ``r_scale``)."""
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(x[0] + 0.1 * x[1], x[1] - 0.1 * (ca.sin(x[0]) + 0.2 * x[1]))
+    sensors = [Sensor(f"s{i}", np.cos(0.5 * i) * x[0] + np.sin(0.5 * i) * x[1], Gaussian.zero_mean([[r_scale * 0.05]]))
+               for i in range(4)]
+    return Model("oscillator", x, f, sensors, Gaussian.zero_mean(1e-3 * np.eye(2)), Gaussian([1.0, 0.0], 0.05 * np.eye(2)))
+
+
+def ring(n: int = N) -> SensorNetwork:
+    return SensorNetwork.from_edges(n, [(i, (i + 1) % n) for i in range(n)])
+
+
+def kalman_filter(model: Model, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance-form KF on the stacked linear measurements (gain from the innovation covariance)."""
+    H = np.vstack(H_ROWS)
+    R = np.diag([model.measurement_cov(i)[0, 0] for i in range(N)])
+    x, P = model.prior.mean.copy(), model.prior.cov.copy()
+    xs, Ps = [x], [P]
+    for zk in z:
+        x, P = A @ x, A @ P @ A.T + model.process_cov
+        G = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        x, P = x + G @ (zk - H @ x), (np.eye(2) - G @ H) @ P
+        xs.append(x)
+        Ps.append(P)
+    return np.array(xs), np.array(Ps)
+
+
+def metropolis(adj: np.ndarray) -> np.ndarray:
+    d = adj.sum(1)
+    W = np.zeros(adj.shape)
+    for i, j in zip(*np.nonzero(adj)):
+        W[i, j] = 1.0 / (1 + max(d[i], d[j]))
+    return W + np.diag(1.0 - W.sum(1))
+
+
+def local_ekf(model: Model, z: np.ndarray, i: int, **kw) -> np.ndarray:
+    """The EKF on sensor ``i`` alone (run_ekf with every other sensor missing)."""
+    avail = np.zeros((z.shape[0], model.n_sensors), bool)
+    avail[:, i] = True
+    return run_ekf(model, np.where(np.repeat(avail, model.sensor_dims, axis=1), z, 0.0), available=avail, **kw)
+
+
+def no_attacks(steps: int, n: int, nx: int) -> AttackPattern:
+    return AttackPattern(np.zeros((steps, n, n), bool), np.zeros((steps, n, n), bool), np.zeros((steps, n, n, nx)))
+
+
+@pytest.fixture(scope="module")
+def linear_run():
+    m = linear_model()
+    return m, simulate(m, 30, np.random.default_rng(1))
+
+
+# ------------------------------------------------------------------------ HCMCI -> centralized as L grows
+def test_hcmci_tends_to_the_centralized_kalman_filter(linear_run):
+    m, traj = linear_run
+    xs, Ps = kalman_filter(m, traj.z)
+    errors = []
+    for L in (1, 2, 5, 20, 200):
+        res = run_hcmci(m, ring(), traj.z, iterations=L)
+        assert res.diverged is None and res.iterations == L
+        errors.append(max(np.abs(res.x_post - xs[:, None]).max(), np.abs(res.P_post - Ps[:, None]).max()))
+    assert errors[-1] < 1e-10
+    assert all(a > b for a, b in zip(errors, errors[1:])), errors
+    # the consistent scaling tends to N as well, hence to the same limit
+    res = run_hcmci(m, ring(), traj.z, iterations=200, omega="consistent")
+    np.testing.assert_allclose(res.omega, N, rtol=1e-12)
+    np.testing.assert_allclose(res.x_post, np.broadcast_to(xs[:, None], res.x_post.shape), atol=1e-10)
+
+
+# ------------------------------------------------------------------------ consistency of consensus on information
+def joint_error_covariance(m: Model, res, L: int, omega: np.ndarray) -> np.ndarray:
+    """Each node's exact error covariance E[e_i e_iᵀ] of linear HCMCI without attacks, (steps + 1, N, 2, 2).
+
+    With r = W^L, node i's posterior is x̂_i = P_i (Σ_j r_ij Ω_j x̄_j + ω_i Σ_j r_ij H_jᵀ R_j⁻¹ z_j), and since
+    P_i⁻¹ = Σ_j r_ij Ω_j + ω_i Σ_j r_ij H_jᵀ R_j⁻¹ H_j, its error is
+    e_i = P_i (Σ_j r_ij Ω_j ē_j - ω_i Σ_j r_ij H_jᵀ R_j⁻¹ v_j); the prediction errors ē_j = A e_j + w share w.
+    """
+    r = np.linalg.matrix_power(metropolis(ring().adjacency), L)
+    n, nx = N, 2
+    S = np.kron(np.ones((n, n)), m.prior.cov)  # every node starts from the same prior: one error
+    out = [S]
+    AA = np.kron(np.eye(n), A)
+    QQ = np.kron(np.ones((n, n)), m.process_cov)
+    for k in range(res.P_pred.shape[0]):
+        S = AA @ S @ AA.T + QQ
+        G = np.zeros((n * nx, n * nx))
+        V = np.zeros((n * nx, n))
+        for i in range(n):
+            Pi = res.P_post[k + 1, i]
+            for j in range(n):
+                G[2 * i:2 * i + 2, 2 * j:2 * j + 2] = r[i, j] * Pi @ np.linalg.inv(res.P_pred[k, j])
+                V[2 * i:2 * i + 2, j] = -omega[i] * r[i, j] * Pi @ H_ROWS[j][0] / R_VARS[j]
+        S = G @ S @ G.T + V @ np.diag(R_VARS) @ V.T
+        out.append(S)
+    return np.array([[s[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(n)] for s in out])
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_consensus_on_information_covariance_is_consistent(L):
+    """omega='consistent': P_i >= E[e_i e_iᵀ] exactly (joint error covariance), and by Monte Carlo (NEES <= n_x)."""
+    m = linear_model()
+    steps, runs = 15, 150
+    trajs = simulate_runs(m, steps, [np.random.default_rng(s) for s in np.random.SeedSequence(7 + L).spawn(runs)])
+    nees, e_last = [], []
+    for r in range(runs):
+        res = run_hcmci(m, ring(), trajs.z[r], iterations=L, omega="consistent")
+        e = trajs.x[r][:, None] - res.x_post
+        nees.append(np.einsum("kia,kiab,kib->", e[1:], np.linalg.inv(res.P_post[1:]), e[1:]) / (steps * N))
+        e_last.append(e[-1])
+    exact = joint_error_covariance(m, res, L, res.omega[0])
+    gap = np.linalg.eigvalsh(res.P_post - exact)  # the covariances do not depend on the data (linear model)
+    assert gap.min() > -1e-12
+    nees = np.array(nees)
+    assert nees.mean() <= 2 + 3 * nees.std(ddof=1) / np.sqrt(runs)
+    # the Monte Carlo error second moment agrees with the exact one (a check of the derivation, 5 standard errors)
+    e_last = np.array(e_last)
+    emp = np.einsum("ria,rib->iab", e_last, e_last) / runs
+    se = np.sqrt(2.0 / runs) * np.abs(exact[-1]).max()
+    assert np.abs(emp - exact[-1]).max() < 5 * se
+
+
+def test_the_papers_omega_counts_measurements_more_than_once_at_small_L(linear_run):
+    """omega = N at L = 1 weighs measurement j by N r_ij > 1 (3 on this ring): P is below the true error covariance."""
+    m, traj = linear_run
+    res = run_hcmci(m, ring(), traj.z[:10], iterations=1)
+    assert N * metropolis(ring().adjacency).max() > 1
+    exact = joint_error_covariance(m, res, 1, res.omega[0])
+    assert np.linalg.eigvalsh(res.P_post[1:] - exact[1:]).min(axis=-1).max() < 0  # overconfident at every node-step
+
+
+# ------------------------------------------------------------------------ KCF
+def test_kcf_on_a_complete_graph_is_the_centralized_filter(linear_run):
+    m, traj = linear_run
+    complete = SensorNetwork(N, np.ones((N, N), int) - np.eye(N, dtype=int))
+    xs, Ps = kalman_filter(m, traj.z)
+    res = run_kcf(m, complete, traj.z)
+    np.testing.assert_allclose(res.x_post, np.broadcast_to(xs[:, None], res.x_post.shape), atol=1e-10)
+    np.testing.assert_allclose(res.P_post, np.broadcast_to(Ps[:, None], res.P_post.shape), atol=1e-10)
+    # nonlinear: every node linearises at the same prediction, so it is the centralized EKF (run_ekf, Joseph form)
+    sc = load_scenario("indoor-robot", {"steps": 12})
+    n = sc.network.n_nodes
+    tr = sc.simulate(np.random.default_rng(3), sc.steps)
+    res = run_kcf(sc.model, SensorNetwork(n, np.ones((n, n), int) - np.eye(n, dtype=int)), tr.z, inputs=tr.inputs)
+    ekf = run_ekf(sc.model, tr.z, inputs=tr.inputs)
+    np.testing.assert_allclose(res.x_post, np.broadcast_to(ekf.x[:, None], res.x_post.shape), atol=1e-9)
+
+
+def test_without_neighbours_both_are_the_local_ekf():
+    """Isolated nodes: KCF and HCMCI ('consistent', ω = 1) are the EKF on each node's sensor, bearings wrapped."""
+    sc = load_scenario("target-range-bearing", {"steps": 25})
+    m, n = sc.model, sc.network.n_nodes
+    isolated = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
+    tr = sc.simulate(np.random.default_rng(2), sc.steps)
+    kcf = run_kcf(m, isolated, tr.z)
+    hc = run_hcmci(m, isolated, tr.z, iterations=2, omega="consistent")
+    assert kcf.messages_per_step.sum() == hc.messages_per_step.sum() == 0
+    np.testing.assert_allclose(hc.omega, 1.0)
+    for i in range(n):
+        ref = local_ekf(m, tr.z, i)
+        np.testing.assert_allclose(kcf.x_post[:, i], ref.x, atol=1e-7)
+        np.testing.assert_allclose(kcf.P_post[:, i], ref.P, atol=1e-9)
+        np.testing.assert_allclose(hc.x_post[:, i], ref.x, atol=1e-7)
+
+
+def test_under_dos_on_every_channel_both_reduce_to_the_local_filter():
+    m, net = oscillator(), ring(4)
+    tr = simulate(m, 30, np.random.default_rng(5), x0=[1.0, 0.0])
+    att = no_attacks(30, 4, 2)
+    att.dos[:] = net.adjacency
+    att.fdi[:] = False
+    kcf = run_kcf(m, net, tr.z, attacks=att)
+    hc = run_hcmci(m, net, tr.z, attacks=att, iterations=3, omega="consistent")
+    size = run_hcmci(m, net, tr.z, attacks=att, iterations=3)  # ω = N: its own measurement counted N times
+    scaled = oscillator(r_scale=1 / 4)
+    for res in (kcf, hc, size):
+        assert res.delivered_per_step.sum() == 0 and res.diverged is None
+    assert kcf.messages_per_step.tolist() == [8] * 30 and hc.messages_per_step.tolist() == [24] * 30
+    for i in range(4):
+        ref = local_ekf(m, tr.z, i)
+        np.testing.assert_allclose(kcf.x_post[:, i], ref.x, atol=1e-9)
+        np.testing.assert_allclose(hc.x_post[:, i], ref.x, atol=1e-9)
+        np.testing.assert_allclose(hc.P_post[:, i], ref.P, atol=1e-11)
+        np.testing.assert_allclose(size.x_post[:, i], local_ekf(scaled, tr.z, i).x, atol=1e-9)
+
+
+# ------------------------------------------------------------------------ messages and attacks
+def test_messages_per_step_are_counted_exactly():
+    m, net = oscillator(), SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0), (0, 2)])
+    steps = 20
+    tr = simulate(m, steps, np.random.default_rng(8))
+    rng = np.random.default_rng(9)
+    att = no_attacks(steps, 4, 2)
+    att.dos[:] = (rng.random((steps, 4, 4)) < 0.3) & net.adjacency
+    directed = 2 * len(net.edges)
+    lost = [sum(bool(att.dos[k, i, j]) for i, j in net.edges) + sum(bool(att.dos[k, j, i]) for i, j in net.edges)
+            for k in range(steps)]
+    assert 0 < sum(lost) < steps * directed
+    for L in (1, 4):
+        res = run_hcmci(m, net, tr.z, iterations=L, attacks=att)
+        assert res.messages_per_step.tolist() == [L * directed] * steps  # sent, DoS or not
+        assert res.delivered_per_step.tolist() == [L * (directed - lk) for lk in lost]
+        assert run_hcmci(m, net, tr.z, iterations=L).delivered_per_step.tolist() == [L * directed] * steps
+    res = run_kcf(m, net, tr.z, attacks=att)
+    assert res.messages_per_step.tolist() == [directed] * steps
+    assert res.delivered_per_step.tolist() == [directed - lk for lk in lost]
+
+
+def test_a_falsified_packet_is_what_the_displaced_neighbour_would_send(linear_run):
+    """One FDI'd channel j -> i at the first step: the shift of node i's estimate, from the documented semantics."""
+    m, traj = linear_run
+    net, z = ring(), traj.z[:1]
+    i, j, xi = 0, 1, np.array([0.7, -0.4])
+    att = no_attacks(1, N, 2)
+    att.fdi[0, i, j] = True
+    att.xi[0, i, j] = xi
+    U_j = H_ROWS[j].T @ H_ROWS[j] / R_VARS[j]
+    clean = run_kcf(m, net, z)
+    M = clean.P_post[1, i]
+    gamma = (0.5 / 2) / (1 + np.linalg.norm(M))  # default epsilon = 0.5 / d_max
+    for falsify, shift in (("estimate", gamma * M @ xi), ("packet", M @ (U_j @ xi) + gamma * M @ xi)):
+        got = run_kcf(m, net, z, attacks=att, falsify=falsify).x_post[1] - clean.x_post[1]
+        np.testing.assert_allclose(got[i], shift, atol=1e-12)
+        np.testing.assert_allclose(np.delete(got, i, axis=0), 0.0, atol=1e-15)
+    clean = run_hcmci(m, net, z)
+    P, Om = clean.P_post[1, i], np.linalg.inv(clean.P_pred[0, j])
+    w = metropolis(net.adjacency)[i, j]
+    for falsify, shift in (("estimate", P @ (w * Om @ xi)), ("packet", P @ (w * (Om + N * U_j) @ xi))):
+        got = run_hcmci(m, net, z, attacks=att, falsify=falsify).x_post[1] - clean.x_post[1]
+        np.testing.assert_allclose(got[i], shift, atol=1e-12)
+
+
+# ------------------------------------------------------------------------ divergence and bad inputs
+def test_a_diverging_run_stops_with_nan_and_a_violation():
+    x = ca.SX.sym("x", 1)
+    m = Model("explodes", x, 1e4 * x, [Sensor(f"s{i}", x, Gaussian.zero_mean([[1.0]])) for i in range(3)],
+              Gaussian.zero_mean([[1.0]]), Gaussian([1.0], [[1.0]]))
+    net = ring(3)
+    z = np.array([[10.0**(4 * (k + 1))] * 3 for k in range(6)])
+    for res in (run_kcf(m, net, z), run_hcmci(m, net, z, iterations=2)):
+        dv = res.diverged
+        assert dv is not None and dv["condition"] == "diverged" and "1e+12" in dv["reason"]
+        k = dv["step"]
+        assert np.all(np.isfinite(res.x_post[:k])) and np.all(np.isnan(res.x_post[k:]))
+        assert np.all(np.isnan(res.P_post[k:])) and not np.isinf(res.x_post).any()
+    # a prediction that overflows (exp(800) = inf) is caught before any update uses it
+    m = Model("overflows", x, ca.exp(x), [Sensor(f"s{i}", x, Gaussian.zero_mean([[1.0]])) for i in range(3)],
+              Gaussian.zero_mean([[1.0]]), Gaussian([800.0], [[1.0]]))
+    for res in (run_kcf(m, net, np.zeros((4, 3))), run_hcmci(m, net, np.zeros((4, 3)))):
+        assert res.diverged["step"] == 1 and res.diverged["reason"].startswith("prediction")
+        assert np.all(np.isnan(res.x_post[1:])) and np.all(np.isnan(res.x_pred)) and not np.isinf(res.P_post).any()
+
+
+def test_bad_inputs_name_the_parameter(linear_run):
+    m, traj = linear_run
+    for bad in (0, 1.5, True, "3"):
+        with pytest.raises(InputError, match="iterations must be an integer >= 1"):
+            run_hcmci(m, ring(), traj.z, iterations=bad)
+    with pytest.raises(InputError, match="omega must be one of 'size', 'consistent'"):
+        run_hcmci(m, ring(), traj.z, omega="N")
+    with pytest.raises(InputError, match="falsify must be one of"):
+        run_kcf(m, ring(), traj.z, falsify="all")
+    with pytest.raises(InputError, match="epsilon must be >= 0"):
+        run_kcf(m, ring(), traj.z, epsilon=-0.1)
+    with pytest.raises(InputError, match="z must have shape"):
+        run_kcf(m, ring(), traj.z[:, :2])
+    with pytest.raises(InputError, match="one node per sensor"):
+        run_hcmci(m, ring(4), traj.z)
+    with pytest.raises(InputError, match="attacks must be an AttackPattern"):
+        run_kcf(m, ring(), traj.z, attacks=no_attacks(3, N, 2))
