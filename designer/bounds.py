@@ -23,6 +23,12 @@ the most permissive theta tends to ``d_max``, so its margin is
 ``sigma = 0`` with ``U = 0`` (and ``beta = 0`` with ``V = 0``) is allowed: the
 terms ``(eps sigma)^-1 U U^T`` and ``beta^-1 V V^T`` are then zero, and an isolated
 node (no neighbours) reduces exactly to the extended Kalman filter.
+
+**Batches.**  Every function also takes stacks of matrices ``(..., n, n)`` (many runs and
+nodes at once, :mod:`filters.consensus_batch`): scalars such as σ, β, ``s_i`` and ``d_i``
+may then be arrays over the leading axes, a margin is an array of margins, and
+:func:`prediction_bound` returns NaN matrices where (28) fails (``None`` for one matrix).
+One matrix gives the same numbers as an item of a stack, up to rounding.
 """
 from __future__ import annotations
 
@@ -33,8 +39,9 @@ import numpy as np
 from .validation import InputError
 
 __all__ = [
-    "PredictionBound", "prediction_bound", "optimal_gain", "update_bound", "condition28_margin",
-    "condition29_margin", "theorem2_margin", "shifted_inverse", "symmetrize",
+    "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
+    "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
+    "shifted_inverse", "symmetrize",
 ]
 
 
@@ -42,30 +49,71 @@ def symmetrize(a: np.ndarray) -> np.ndarray:
     return 0.5 * (a + np.swapaxes(a, -1, -2))
 
 
+def _t(a: np.ndarray) -> np.ndarray:
+    return a.swapaxes(-1, -2)
+
+
+def _stacked(x) -> bool:
+    """``x`` holds one value per matrix of a stack (not one number for all)."""
+    return isinstance(x, np.ndarray) and x.ndim > 0
+
+
+def _per_matrix(x):
+    """A number as it is, or an array of one value per matrix of a stack, shaped to multiply ``(..., n, n)``."""
+    return x[..., None, None] if _stacked(x) else x
+
+
+def _items(x, batch: tuple, mask, core: int) -> np.ndarray:
+    """The items of ``x`` where ``mask``, ``x`` broadcast to ``batch`` plus its own last ``core`` axes."""
+    x = np.asarray(x)
+    return np.broadcast_to(x, batch + x.shape[x.ndim - core:])[mask]
+
+
+def _one(out, batch: tuple):
+    """A plain number for one matrix (``batch == ()``), the array of them for a stack."""
+    return float(out) if batch == () else out
+
+
 _RCOND = 1e-13
 
 
-def _inv_lam_max(a: np.ndarray) -> float:
+def _inv_lam_max(a: np.ndarray):
     """``1 / lambda_max(a)``, or ``-inf`` when ``a`` is not numerically positive definite.
 
     "Numerically" means finite with a condition number below ``1 / _RCOND``: beyond
     that the smallest eigenvalues are rounding noise and the recursion means nothing.
     """
-    if not np.all(np.isfinite(a)):
-        return -np.inf
+    a = np.asarray(a, dtype=float)
+    batch = a.shape[:-2]
+    if not np.isfinite(a).all():  # -inf for the non-finite matrices, the others as usual
+        out = np.full(batch, -np.inf)
+        finite = np.isfinite(a).all(axis=(-2, -1))
+        if finite.any():
+            out[finite] = _inv_lam_max(a[finite])
+        return _one(out, batch)
     lam = np.linalg.eigvalsh(symmetrize(a))
-    return 1.0 / lam[-1] if lam[0] > _RCOND * lam[-1] else -np.inf
+    if batch == ():
+        return 1.0 / lam[-1] if lam[0] > _RCOND * lam[-1] else -np.inf
+    pd = lam[..., 0] > _RCOND * lam[..., -1]
+    return np.divide(1.0, lam[..., -1], out=np.full(batch, -np.inf), where=pd)
 
 
-def _inv_lam_max_d(a: np.ndarray, D: np.ndarray | None) -> float:
+def _inv_lam_max_d(a: np.ndarray, D: np.ndarray | None):
     """``1 / lambda_max(D a Dᵀ)`` (``D = I`` when None), ``-inf`` when ``a`` is not numerically PD."""
     base = _inv_lam_max(a)
-    if D is None or not np.isfinite(base):
+    if D is None:
         return base
-    return 1.0 / float(np.linalg.eigvalsh(symmetrize(D @ a @ D.T))[-1])
+    a = np.asarray(a, dtype=float)
+    batch = a.shape[:-2]
+    out = np.array(base, dtype=float)
+    pd = np.isfinite(out)
+    if np.any(pd):
+        Dm = _items(D, batch, pd, 2)
+        out[pd] = 1.0 / np.linalg.eigvalsh(symmetrize(Dm @ a[pd] @ _t(Dm)))[:, -1]
+    return _one(out, batch)
 
 
-def condition28_margin(phi_post: np.ndarray, sigma: float, eps: float, D: np.ndarray | None = None) -> float:
+def condition28_margin(phi_post: np.ndarray, sigma, eps: float, D: np.ndarray | None = None):
     """``1/lambda_max(D Φ Dᵀ) - (1+eps) sigma`` (``D = I``: the paper's (28)); must be > 0.
 
     With a structure matrix ``D`` (the remainder is ``U Ω D e``), (28) reads
@@ -74,43 +122,65 @@ def condition28_margin(phi_post: np.ndarray, sigma: float, eps: float, D: np.nda
     return _inv_lam_max_d(phi_post, D) - (1.0 + eps) * sigma
 
 
-def condition29_margin(phi_pred: np.ndarray, beta: float, D: np.ndarray | None = None) -> float:
+def condition29_margin(phi_pred: np.ndarray, beta, D: np.ndarray | None = None):
     """``1/lambda_max(D Φ_pred Dᵀ) - beta`` (``D = I``: the paper's (29)); must be > 0."""
     return _inv_lam_max_d(phi_pred, D) - beta
 
 
-def shifted_inverse(phi: np.ndarray, c: float, D: np.ndarray | None = None) -> np.ndarray:
+def shifted_inverse(phi: np.ndarray, c, D: np.ndarray | None = None) -> np.ndarray:
     """``(Φ^-1 - c DᵀD)^-1`` (``D = I`` when None), positive definite by construction.
 
     ``D = I``: ``Q diag(λ / (1 - c λ)) Qᵀ`` from the eigendecomposition of Φ.
     General ``D``: ``Φ + Φ Dᵀ (c^-1 I - D Φ Dᵀ)^-1 D Φ`` (Woodbury), from the
     eigendecomposition of ``D Φ Dᵀ``.  Both avoid the two explicit inverses (which
     lose the small eigenvalues when Φ is ill-conditioned).  Requires
-    ``c lambda_max(D Φ Dᵀ) < 1`` (conditions (28)/(29)).
+    ``c lambda_max(D Φ Dᵀ) < 1`` (conditions (28)/(29)).  ``c = 0`` gives Φ itself.
     """
-    if c == 0:
-        return symmetrize(phi)
+    phi = np.asarray(phi, dtype=float)
+    if not _stacked(c):
+        return symmetrize(phi) if c == 0 else _shifted(phi, c, D)
+    batch = phi.shape[:-2]
+    shift = np.broadcast_to(c != 0, batch)  # one c per matrix: c = 0 gives Φ
+    out = symmetrize(phi)
+    if np.any(shift):
+        out[shift] = _shifted(phi[shift], _items(c, batch, shift, 0)[:, None],
+                              None if D is None else _items(D, batch, shift, 2))
+    return out
+
+
+def _shifted(phi, c, D):
+    """:func:`shifted_inverse` for ``c != 0`` (a number, or ``(m, 1)`` for a stack of m matrices)."""
     if D is None:
         lam, Q = np.linalg.eigh(symmetrize(phi))
-        return symmetrize((Q * (lam / (1.0 - c * lam))) @ Q.T)
-    mu, Q = np.linalg.eigh(symmetrize(D @ phi @ D.T))
-    G = phi @ D.T @ Q
-    return symmetrize(phi + (G * (c / (1.0 - c * mu))) @ G.T)
+        return symmetrize((Q * (lam / (1.0 - c * lam))[..., None, :]) @ _t(Q))
+    mu, Q = np.linalg.eigh(symmetrize(D @ phi @ _t(D)))
+    G = phi @ _t(D) @ Q
+    return symmetrize(phi + (G * (c / (1.0 - c * mu))[..., None, :]) @ _t(G))
 
 
-def theorem2_margin(phi_post: np.ndarray, sigma: float, d_max: int) -> float:
+def theorem2_margin(phi_post: np.ndarray, sigma, d_max: int):
     """``((1+d_max)/d_max) sigma - lambda_max(Phi_post^-1)``; must be >= 0 (inf when d_max = 0)."""
+    phi_post = np.asarray(phi_post, dtype=float)
+    batch = phi_post.shape[:-2]
     if d_max == 0:
-        return np.inf
-    lam_min = float(np.linalg.eigvalsh(symmetrize(phi_post))[0])
-    return (1.0 + d_max) / d_max * sigma - 1.0 / lam_min
+        return _one(np.full(batch, np.inf), batch)
+    lam_min = np.linalg.eigvalsh(symmetrize(phi_post))[..., 0]
+    return _one((1.0 + d_max) / d_max * sigma - 1.0 / lam_min, batch)
 
 
-def _scaled_outer(m: np.ndarray, scale: float, name: str, mult: str) -> np.ndarray:
-    """``m m^T / scale``, taken as 0 when ``m = 0`` (whatever ``scale``)."""
-    mm = m @ m.T
-    if not np.any(mm):
+def _scaled_outer(m: np.ndarray, scale, name: str, mult: str) -> np.ndarray:
+    """``m m^T / scale``, taken as 0 when ``m = 0`` (whatever ``scale``); per matrix for stacks."""
+    mm = m @ _t(m)
+    if not mm.any():
         return mm
+    if _stacked(scale):
+        bad = scale <= 0  # allowed only where m = 0
+        if bad.any():
+            nonzero = mm.any(axis=(-2, -1))
+            if (nonzero & bad).any():
+                raise InputError(f"{mult} must be > 0 when {name} is nonzero")
+            scale = np.where(nonzero, scale, 1.0)
+        return mm / scale[..., None, None]
     if scale <= 0:
         raise InputError(f"{mult} must be > 0 when {name} is nonzero")
     return mm / scale
@@ -118,41 +188,70 @@ def _scaled_outer(m: np.ndarray, scale: float, name: str, mult: str) -> np.ndarr
 
 class PredictionBound(NamedTuple):
     phi_pred: np.ndarray | None
-    margin28: float
+    margin28: float | np.ndarray
 
 
-def prediction_bound(phi_post, F, U, Q, sigma: float, eps: float, D=None) -> PredictionBound:
+def prediction_recursion(phi_post, F, U, Q, sigma, eps: float, D=None) -> np.ndarray:
+    """The right-hand side of (26), without checking (28) (see :func:`prediction_bound`).
+
+    ``sigma = 0`` with ``U = 0`` is the extended Kalman filter's ``F Φ Fᵀ + Q`` (the fallback
+    of a node that left Theorem 1's recursion).
+    """
+    inner = shifted_inverse(phi_post, (1.0 + eps) * sigma, D)
+    lin = _scaled_outer(np.asarray(U, dtype=float), eps * sigma, "U", "sigma")
+    return symmetrize(F @ inner @ _t(F) + lin + Q)
+
+
+def prediction_bound(phi_post, F, U, Q, sigma, eps: float, D=None) -> PredictionBound:
     """Evaluate (26) if (28) holds; otherwise return ``phi_pred=None`` and the (negative) margin.
 
-    ``D``: structure of the remainder ``U Ω D e`` (``None``: the paper's ``D = I``).
+    ``D``: structure of the remainder ``U Ω D e`` (``None``: the paper's ``D = I``).  For a
+    stack of ``phi_post``, ``phi_pred`` is a stack with NaN matrices where (28) fails.
     """
     margin = condition28_margin(phi_post, sigma, eps, D)
-    if margin <= 0:
-        return PredictionBound(None, margin)
-    inner = shifted_inverse(phi_post, (1.0 + eps) * sigma, D)
-    lin = _scaled_outer(U, eps * sigma, "U", "sigma")
-    return PredictionBound(symmetrize(F @ inner @ F.T + lin + Q), margin)
+    phi_post = np.asarray(phi_post, dtype=float)
+    batch = phi_post.shape[:-2]
+    if batch == ():
+        if margin <= 0:
+            return PredictionBound(None, margin)
+        return PredictionBound(prediction_recursion(phi_post, F, U, Q, sigma, eps, D), margin)
+    ok = margin > 0
+    out = np.full(phi_post.shape, np.nan)
+    if np.any(ok):
+        out[ok] = prediction_recursion(phi_post[ok], _items(F, batch, ok, 2), _items(U, batch, ok, 2),
+                                       _items(Q, batch, ok, 2), _items(sigma, batch, ok, 0), eps,
+                                       None if D is None else _items(D, batch, ok, 2))
+    return PredictionBound(out, margin)
 
 
-def optimal_gain(phi_pred, H, C, s_i: float, beta: float, V, R, d_i: int, D=None) -> np.ndarray:
-    """The gain (30) minimising ``tr Phi_post`` (requires (29))."""
-    n = phi_pred.shape[0]
-    M = shifted_inverse(phi_pred, beta, D)
-    S = H @ M @ H.T + _scaled_outer(V, beta, "V", "beta") + R / (1.0 + 2 * d_i)
+def optimal_gain_from(M, H, C, s_i, beta, V, R, d_i) -> np.ndarray:
+    """The gain (30) given ``M = (Φ_pred^-1 - β DᵀD)^-1`` (:func:`shifted_inverse`)."""
+    n = M.shape[-1]
+    S = H @ M @ _t(H) + _scaled_outer(V, beta, "V", "beta") + R / _per_matrix(1.0 + 2 * d_i)
     # K = (I - s C) M H^T S^-1 via a solve with the symmetric positive-definite S.
-    return (np.eye(n) - s_i * C) @ np.linalg.solve(symmetrize(S), H @ M).T
+    return (np.eye(n) - _per_matrix(s_i) * C) @ _t(np.linalg.solve(symmetrize(S), H @ M))
 
 
-def update_bound(phi_pred, H, K, C, s_i: float, beta: float, V, R, d_i: int, neighbour_terms: np.ndarray,
+def optimal_gain(phi_pred, H, C, s_i, beta, V, R, d_i, D=None) -> np.ndarray:
+    """The gain (30) minimising ``tr Phi_post`` (requires (29))."""
+    return optimal_gain_from(shifted_inverse(phi_pred, beta, D), H, C, s_i, beta, V, R, d_i)
+
+
+def update_bound_from(M, H, K, C, s_i, beta, V, R, d_i, neighbour_terms: np.ndarray) -> np.ndarray:
+    """(27) given ``M = (Φ_pred^-1 - β DᵀD)^-1`` (:func:`shifted_inverse`); see :func:`update_bound`."""
+    n = M.shape[-1]
+    w = _per_matrix(1.0 + 2 * d_i)
+    A = np.eye(n) - _per_matrix(s_i) * C - K @ H
+    meas = w * _scaled_outer(V, beta, "V", "beta") + R
+    out = w * A @ M @ _t(A) + C @ neighbour_terms @ _t(C) + K @ meas @ _t(K)
+    return symmetrize(out)
+
+
+def update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms: np.ndarray,
                  D=None) -> np.ndarray:
     """Evaluate (27) (requires (29)).
 
     ``neighbour_terms`` is ``sum_j 3 (1 - phibar_ij) Phi_pred_j + 3 delta^2 gammabar_ij I``,
     the part sandwiched between ``C`` and ``C^T``; ``D`` the structure of ``V Θ D e``.
     """
-    n = phi_pred.shape[0]
-    M = shifted_inverse(phi_pred, beta, D)
-    A = np.eye(n) - s_i * C - K @ H
-    meas = (1.0 + 2 * d_i) * _scaled_outer(V, beta, "V", "beta") + R
-    out = (1.0 + 2 * d_i) * A @ M @ A.T + C @ neighbour_terms @ C.T + K @ meas @ K.T
-    return symmetrize(out)
+    return update_bound_from(shifted_inverse(phi_pred, beta, D), H, K, C, s_i, beta, V, R, d_i, neighbour_terms)

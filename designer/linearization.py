@@ -19,6 +19,9 @@ tails beyond it).  ``L`` is the largest Hessian norm over a fixed set of points 
 (its centre, the ends of its axes and the points on its diagonals): a sampled
 supremum, exact when the Hessian norm is largest at those points and an estimate
 otherwise (the Monte Carlo bound check is the arbiter).
+
+Every function also takes stacks (centres ``(..., n)``, covariances ``(..., n, n)``, many
+runs and nodes at once) and then returns one scale per item.
 """
 from __future__ import annotations
 
@@ -35,34 +38,42 @@ DEFAULT_RADIUS = 3.0
 
 
 def ellipsoid_points(center: np.ndarray, cov: np.ndarray, radius: float) -> np.ndarray:
-    """Centre, axis ends and diagonal points of ``{center + e : eᵀ cov^-1 e <= radius²}``, shape (P, n)."""
-    n = center.shape[0]
-    lam, vec = np.linalg.eigh(symmetrize(cov))
-    axes = vec * (radius * np.sqrt(np.clip(lam, 0.0, None)))  # columns: semi-axes
-    pts = [np.zeros(n)]
-    for k in range(n):
-        pts += [axes[:, k], -axes[:, k]]
+    """Centre, axis ends and diagonal points of ``{center + e : eᵀ cov^-1 e <= radius²}``, shape (..., P, n)."""
+    center = np.asarray(center, dtype=float)
+    n = center.shape[-1]
+    lam, vec = np.linalg.eigh(symmetrize(np.asarray(cov, dtype=float)))
+    axes = np.swapaxes(vec * (radius * np.sqrt(np.clip(lam, 0.0, None)))[..., None, :], -1, -2)  # rows: semi-axes
+    pts = [np.zeros(axes.shape[:-2] + (1, n)), np.stack([axes, -axes], axis=-2).reshape(axes.shape[:-2] + (2 * n, n))]
     if n <= 6:
-        for signs in itertools.product((-1.0, 1.0), repeat=n):
-            pts.append(axes @ np.array(signs) / np.sqrt(n))
-    return center + np.array(pts)
+        signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))
+        pts.append(signs @ axes / np.sqrt(n))
+    return center[..., None, :] + np.concatenate(pts, axis=-2)
 
 
-def hessian_norm_bound(hessians: np.ndarray) -> float:
-    """``max_points sqrt(Σ_j ||H_j||₂²)`` for hessians of shape (P, components, n, n)."""
-    norms = np.linalg.norm(hessians, ord=2, axis=(-2, -1))  # (P, components)
-    return float(np.sqrt((norms**2).sum(axis=-1)).max())
+def _scalar(x, center: np.ndarray):
+    """A plain number for one centre, the array of them for a stack of centres."""
+    return float(x) if np.ndim(center) == 1 else x
+
+
+def _lam_max(cov: np.ndarray) -> np.ndarray:
+    return np.maximum(np.linalg.eigvalsh(symmetrize(np.asarray(cov, dtype=float)))[..., -1], 0.0)
+
+
+def hessian_norm_bound(hessians: np.ndarray):
+    """``max_points sqrt(Σ_j ||H_j||₂²)`` for hessians of shape (..., P, components, n, n)."""
+    norms = np.linalg.norm(hessians, ord=2, axis=(-2, -1))  # (..., P, components)
+    out = np.sqrt((norms**2).sum(axis=-1)).max(axis=-1)
+    return float(out) if out.ndim == 0 else out
 
 
 def remainder_scale(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> float:
     """The scalar ``u`` of ``U = u I`` for the remainder of a function around ``center``.
 
-    ``hessian_at(points)`` returns the Hessians of every component at points (P, n)
-    as (P, components, n, n) (e.g. ``model.f_hessian``).
+    ``hessian_at(points)`` returns the Hessians of every component at points (..., P, n)
+    as (..., P, components, n, n) (e.g. ``model.f_hessian``).
     """
     L = hessian_norm_bound(hessian_at(ellipsoid_points(center, cov, radius)))
-    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
-    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))
+    return _scalar(0.5 * L * radius * np.sqrt(_lam_max(cov)), center)
 
 
 def component_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
@@ -78,8 +89,7 @@ def component_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: fl
     Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
     L = np.linalg.norm(Hs, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
     m = int(np.count_nonzero(L > 0))
-    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
-    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0)) * np.sqrt(max(m, 1))
+    return 0.5 * L * radius * np.sqrt(_lam_max(cov)) * np.sqrt(max(m, 1))
 
 
 # ------------------------------------------------------------------ structured variant
@@ -116,14 +126,13 @@ def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tup
     ellipsoid, ``Ω = r e_Sᵀ / (u ||e_S||²)`` has norm ``||r|| / (u ||e_S||) <= 1``.
     """
     if not cover:
-        return 0.0
+        return _scalar(np.zeros(np.shape(center)[:-1]), center)
     S = list(cover)
-    N = [k for k in range(center.shape[0]) if k not in cover]
-    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
+    N = [k for k in range(np.shape(center)[-1]) if k not in cover]
+    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (..., P, comps, n, n)
     M = np.concatenate([Hs[..., S, :][..., :, S], 2.0 * Hs[..., S, :][..., :, N]], axis=-1)
-    L = float(np.sqrt((np.linalg.norm(M, ord=2, axis=(-2, -1)) ** 2).sum(axis=-1)).max())
-    lam_max = float(np.linalg.eigvalsh(symmetrize(cov))[-1])
-    return 0.5 * L * radius * np.sqrt(max(lam_max, 0.0))
+    L = hessian_norm_bound(M)
+    return _scalar(0.5 * L * radius * np.sqrt(_lam_max(cov)), center)
 
 
 def selection(cover: tuple[int, ...], n: int) -> np.ndarray:
@@ -133,9 +142,16 @@ def selection(cover: tuple[int, ...], n: int) -> np.ndarray:
 
 # ------------------------------------------------------------------ per node and step
 def _f_hessians(model, k, u):
+    if u is not None and np.ndim(u) > 1:  # one input per centre: broadcast over the points of each ellipsoid
+        u = np.asarray(u)[..., None, :]
     if model.n_modes == 0:
         return lambda pts: model.f_hessian(pts, k, u)
-    return lambda pts: np.concatenate([model.f_hessian(pts, k, u, m) for m in range(model.n_modes)], axis=1)
+    return lambda pts: np.concatenate([model.f_hessian(pts, k, u, m) for m in range(model.n_modes)], axis=-3)
+
+
+def _times_identity(scale, n: int) -> np.ndarray:
+    """``scale I`` (n x n), or a stack of them for an array of scales."""
+    return np.asarray(scale, dtype=float)[..., None, None] * np.eye(n)
 
 
 def prediction_scaling(model, x_post, phi_post, k, u, rule: str, radius: float, U: np.ndarray):
@@ -144,7 +160,7 @@ def prediction_scaling(model, x_post, phi_post, k, u, rule: str, radius: float, 
     ``'fixed'``: the given ``U`` and ``D = None`` (the paper's ``D = I``); ``'hessian'``:
     ``u I`` over the ``radius``-sigma ellipsoid of ``phi_post``; ``'structured'``: the same
     with ``D`` selecting the variables ``f`` is nonlinear in (``U = 0``, ``D = None`` when
-    ``f`` is linear).
+    ``f`` is linear).  Stacks of ``x_post``, ``phi_post`` (and ``u``, one per centre) give stacks of ``U``.
     """
     if rule == "fixed":
         return U, None
@@ -153,8 +169,9 @@ def prediction_scaling(model, x_post, phi_post, k, u, rule: str, radius: float, 
         cover = hessian_cover(model.casadi_f_hess)
         if not cover:  # f is linear: no remainder, no multiplier
             return np.zeros_like(U), None
-        return structured_scale(hess, x_post, phi_post, cover, radius) * np.eye(model.n_x), selection(cover, model.n_x)
-    return remainder_scale(hess, x_post, phi_post, radius) * np.eye(model.n_x), None
+        return (_times_identity(structured_scale(hess, x_post, phi_post, cover, radius), model.n_x),
+                selection(cover, model.n_x))
+    return _times_identity(remainder_scale(hess, x_post, phi_post, radius), model.n_x), None
 
 
 def update_scaling(model, i: int, x_pred, phi_pred, k1, rule: str, radius: float, V: np.ndarray):
@@ -165,5 +182,5 @@ def update_scaling(model, i: int, x_pred, phi_pred, k1, rule: str, radius: float
     if rule == "structured":
         cover = hessian_cover(model.casadi_h_hess[i])
         D = selection(cover, model.n_x) if cover else None
-        return structured_scale(hess, x_pred, phi_pred, cover, radius) * np.eye(V.shape[0]), D
-    return remainder_scale(hess, x_pred, phi_pred, radius) * np.eye(V.shape[0]), None
+        return _times_identity(structured_scale(hess, x_pred, phi_pred, cover, radius), V.shape[-1]), D
+    return _times_identity(remainder_scale(hess, x_pred, phi_pred, radius), V.shape[-1]), None
