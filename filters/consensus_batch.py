@@ -1,0 +1,558 @@
+"""The consensus EKF of :mod:`filters.consensus`, batched over Monte Carlo runs and nodes.
+
+:func:`run_consensus_batch` runs many Monte Carlo runs of the filter at once and gives, run
+by run, the numbers of :func:`filters.consensus.run_consensus` (to rounding): the same
+prediction (3), bound (26), exchange, gain (30), bound (27), conditions (28)-(29) and
+Theorem 2 margins, the same fallback recursion and ``valid`` flags (a node's own violations
+and its neighbours' non-bound predictions), the same violations in the same order, the
+linearisation scalings of ``design.linearization``, wrapped angular residuals, sensors of
+mixed dimensions (gains zero-padded), the bound-trace limit, and divergence: a run whose
+estimate or covariance leaves finite numbers stops there (its arrays NaN from that step on,
+a ``'diverged'`` violation) while the other runs go on.
+
+Every quantity of a step is a stack over (runs, nodes):
+
+* the model's NumPy translation (:mod:`designer.codegen`) evaluates ``f`` and ``F`` at every
+  run and node in one call, and ``h_i``, ``H_i`` per sensor over all runs (the numba kernels
+  of :mod:`designer.jit` do not take known inputs; here the model evaluation costs well
+  under a microsecond per node-step, the linear algebra dominates);
+* the bounds are the functions of :mod:`designer.bounds` and :mod:`designer.linearization`
+  over stacked ``(items, n, n)`` matrices (``np.linalg.eigh`` / ``eigvalsh`` / ``solve``);
+* the exchange and the neighbour terms of (27) are sums over the network's directed
+  channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
+  of edges, so 512-node networks over hundreds of runs fit in memory.
+
+The gains are chosen per mode by a pair of batched functions over stacked items
+(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) so far;
+the ``'tuned'`` and ``'mse'`` modes run with :func:`filters.consensus.run_consensus`.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple, Sequence
+
+import numpy as np
+
+from designer.bounds import (
+    condition29_margin,
+    optimal_gain_from,
+    prediction_bound,
+    prediction_recursion,
+    shifted_inverse,
+    symmetrize,
+    theorem2_margin,
+    update_bound_from,
+)
+from designer.design import ConsensusDesign, validate_design
+from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
+from designer.model import Model
+from designer.network import SensorNetwork
+from designer.validation import InputError, check_covariance, check_finite
+
+from .attacks import AttackPattern
+from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult
+from .rrp import wrap_angles
+
+_LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals"]
+
+
+# --------------------------------------------------------------------------- channels and their attacks
+def _channels(network: SensorNetwork) -> tuple[np.ndarray, np.ndarray]:
+    """``(receiver, sender)`` of every directed channel ``sender -> receiver``, receiver-major."""
+    receiver, sender = np.nonzero(network.adjacency)
+    return receiver, sender
+
+
+class EdgeAttacks(NamedTuple):
+    """Realised channel attacks of many runs, on the network's directed channels only.
+
+    Channel ``e`` is ``sender[e] -> receiver[e]``, in the order of
+    ``np.nonzero(network.adjacency)`` (receiver-major); entry ``[r, k, e]`` is what
+    :class:`filters.attacks.AttackPattern` holds at ``[k, receiver[e], sender[e]]`` for run ``r``.
+    """
+
+    receiver: np.ndarray  # (E,) int
+    sender: np.ndarray  # (E,) int
+    dos: np.ndarray  # bool (runs, steps, E)
+    fdi: np.ndarray  # bool (runs, steps, E)
+    xi: np.ndarray  # (runs, steps, E, n_x), zero where no FDI
+
+    @classmethod
+    def from_patterns(cls, network: SensorNetwork, patterns: Sequence[AttackPattern]) -> "EdgeAttacks":
+        """The attacks of one :class:`~filters.attacks.AttackPattern` per run, on the channels of ``network``."""
+        receiver, sender = _channels(network)
+        n = network.n_nodes
+        dos, fdi, xi = [], [], []
+        for r, p in enumerate(patterns):
+            if not isinstance(p, AttackPattern):
+                raise InputError(f"attacks[{r}] must be a filters.attacks.AttackPattern, got {type(p).__name__}")
+            if p.dos.ndim != 3 or p.dos.shape[1:] != (n, n) or p.fdi.shape != p.dos.shape \
+                    or p.xi.shape[:3] != p.dos.shape:
+                raise InputError(f"attacks[{r}] must hold (steps, {n}, {n}) channels for the {n}-node network, "
+                                 f"got dos {p.dos.shape}, fdi {p.fdi.shape}, xi {p.xi.shape}")
+            dos.append(p.dos[:, receiver, sender])
+            fdi.append(p.fdi[:, receiver, sender])
+            xi.append(p.xi[:, receiver, sender])
+        if not dos:
+            raise InputError("attacks must hold one AttackPattern per run, got none")
+        return cls(receiver, sender, np.stack(dos), np.stack(fdi), np.stack(xi))
+
+    def pattern(self, r: int, n_nodes: int) -> AttackPattern:
+        """Run ``r``'s attacks as the dense :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`."""
+        steps, n_x = self.xi.shape[1], self.xi.shape[3]
+        dos = np.zeros((steps, n_nodes, n_nodes), dtype=bool)
+        fdi = np.zeros_like(dos)
+        xi = np.zeros((steps, n_nodes, n_nodes, n_x))
+        dos[:, self.receiver, self.sender] = self.dos[r]
+        fdi[:, self.receiver, self.sender] = self.fdi[r]
+        xi[:, self.receiver, self.sender] = self.xi[r]
+        return AttackPattern(dos, fdi, xi)
+
+
+class _Exchange:
+    """Sums over each node's incoming channels, for stacks ``(runs, E, ...)`` of per-channel values."""
+
+    def __init__(self, network: SensorNetwork):
+        self.receiver, self.sender = _channels(network)
+        self.n = network.n_nodes
+        deg = np.bincount(self.receiver, minlength=self.n)
+        self.has = deg > 0
+        self.starts = (np.cumsum(deg) - deg)[self.has]
+
+    def sum(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros((values.shape[0], self.n) + values.shape[2:])
+        if self.starts.size:
+            out[:, self.has] = np.add.reduceat(values, self.starts, axis=1)
+        return out
+
+
+# --------------------------------------------------------------------------- the result
+class ConsensusBatchResult(NamedTuple):
+    """Many runs of the consensus filter: the fields of :class:`filters.consensus.ConsensusResult`
+    with a leading runs axis, and ``violations`` one list per run."""
+
+    x_post: np.ndarray  # (runs, steps+1, N, n_x)
+    x_pred: np.ndarray  # (runs, steps, N, n_x)
+    phi_post: np.ndarray  # (runs, steps+1, N, n_x, n_x)
+    phi_pred: np.ndarray  # (runs, steps, N, n_x, n_x)
+    K: np.ndarray  # (runs, steps, N, n_x, max n_z_i), zero beyond each node's n_z_i
+    C: np.ndarray  # (runs, steps, N, n_x, n_x)
+    valid: np.ndarray  # (runs, steps+1, N) bool
+    margin28: np.ndarray  # (runs, steps, N)
+    margin29: np.ndarray  # (runs, steps, N)
+    theorem2: np.ndarray  # (runs, steps+1, N)
+    violations: list  # one list of {node, step, condition, margin[, reason]} per run
+    sigma: np.ndarray  # (runs, steps, N)
+    beta: np.ndarray  # (runs, steps, N)
+    predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse' (not batched yet)
+
+    @property
+    def runs(self) -> int:
+        return self.x_post.shape[0]
+
+    def run(self, r: int) -> ConsensusResult:
+        """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
+        fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
+                  for f in ConsensusResult._fields if f != "predicted_mse"]
+        return ConsensusResult(*fields, None if self.predicted_mse is None else self.predicted_mse[r])
+
+    @property
+    def feasible(self) -> np.ndarray:
+        """Per run: no hard violation ((28), (29) or divergence)."""
+        return np.array([not any(v["condition"] in HARD_CONDITIONS for v in vs) for vs in self.violations])
+
+    @property
+    def diverged(self) -> list:
+        """Per run, its ``'diverged'`` violation or None."""
+        return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+
+# --------------------------------------------------------------------------- gains and bounds per mode
+class PredictionChoice(NamedTuple):
+    """A mode's prediction at stacked items that run Theorem 1's recursion."""
+
+    phi_pred: np.ndarray  # (m, n_x, n_x), NaN where (28) fails
+    margin28: np.ndarray  # (m,)
+    sigma: np.ndarray  # (m,), the σ of (26)
+
+
+class UpdateChoice(NamedTuple):
+    """A mode's update at stacked items whose prediction is a bound."""
+
+    margin29: np.ndarray  # (m,); the items with margin <= 0 take the fallback
+    beta: np.ndarray  # (m,)
+    K: np.ndarray  # (m, n_x, n_z)
+    C: np.ndarray  # (m, n_x, n_x)
+    phi_post: np.ndarray  # (m, n_x, n_x)
+
+
+def _paper_prediction(phi_post, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
+    pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
+    return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
+
+
+def _paper_update(phi_pred, H, s, V, R, d, neighbour_terms, D, design: ConsensusDesign) -> UpdateChoice:
+    """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
+    m, n = phi_pred.shape[:2]
+    margin = condition29_margin(phi_pred, design.beta, D)
+    ok = margin > 0
+    K = np.full((m, n, H.shape[-2]), np.nan)
+    C = np.full((m, n, n), np.nan)
+    phi = np.full((m, n, n), np.nan)
+    if np.any(ok):
+        P = phi_pred[ok]
+        C[ok] = design.tau * P
+        M = shifted_inverse(P, design.beta, D)
+        K[ok] = optimal_gain_from(M, H[ok], C[ok], s[ok], design.beta, V[ok], R[ok], d[ok])
+        phi[ok] = update_bound_from(M, H[ok], K[ok], C[ok], s[ok], design.beta, V[ok], R[ok], d[ok],
+                                    neighbour_terms[ok])
+    return UpdateChoice(margin, np.full(m, design.beta), K, C, phi)
+
+
+# mode -> (prediction, update), both batched over stacked items; 'tuned' and 'mse' go here next.
+GAIN_RULES: dict[str, tuple[Callable[..., PredictionChoice], Callable[..., UpdateChoice]]] = {
+    "paper": (_paper_prediction, _paper_update),
+}
+
+
+def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float):
+    """The fallback of a node off Theorem 1's recursion: β = 0, V = 0, no inflation ((1 + 2 d_i), 3 -> 1)."""
+    C = tau * phi_pred
+    M = shifted_inverse(phi_pred, 0.0)
+    V = np.zeros(H.shape[:-1] + (H.shape[-2],))
+    K = optimal_gain_from(M, H, C, s, 0.0, V, R, 0)
+    return K, C, update_bound_from(M, H, K, C, s, 0.0, V, R, 0, neighbour_terms / 3.0)
+
+
+def wrap_residuals(r: np.ndarray, angles: Sequence[int]) -> np.ndarray:
+    """Residuals ``(..., n_z_i)`` with the angular components beyond ±π wrapped into (-π, π].
+
+    Residuals already inside (-π, π] are left as they are (wrapping them would change their last bit).
+    """
+    if not angles:
+        return r
+    return np.where(np.isin(np.arange(r.shape[-1]), list(angles)) & (np.abs(r) > np.pi), wrap_angles(r, angles), r)
+
+
+class _Group(NamedTuple):
+    """Nodes whose sensors share a dimension (and, for the structured rule, a structure D)."""
+
+    nodes: np.ndarray
+    dim: int
+    columns: np.ndarray  # (g, dim): each node's columns of the stacked measurement
+    R: np.ndarray  # (g, dim, dim)
+    V: np.ndarray  # (g, dim, dim)
+    D: np.ndarray | None
+
+
+def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    keys: dict = {}
+    for i, dim in enumerate(model.sensor_dims):
+        cover = hessian_cover(model.casadi_h_hess[i]) if design.linearization == "structured" else ()
+        keys.setdefault((dim, cover), []).append(i)
+    out = []
+    for (dim, cover), nodes in keys.items():
+        out.append(_Group(np.array(nodes), dim, np.array([np.arange(offsets[i], offsets[i] + dim) for i in nodes]),
+                          np.stack([model.measurement_cov(i) for i in nodes]), np.stack([design.V[i] for i in nodes]),
+                          selection(cover, model.n_x) if cover else None))
+    return out
+
+
+# --------------------------------------------------------------------------- the filter
+def _batch_inputs(model, z, inputs, x0, phi0):
+    z = check_finite("z", z)
+    if z.ndim != 3 or z.shape[2] != model.n_z or z.shape[0] < 1 or z.shape[1] < 1:
+        raise InputError(f"z must have shape (runs, steps, {model.n_z}) with runs, steps >= 1, got {z.shape}")
+    runs, steps = z.shape[:2]
+    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
+    if not ((u.ndim == 2 and u.shape[0] == steps) or (u.ndim == 3 and u.shape[:2] == (runs, steps))):
+        raise InputError(f"inputs must have shape ({steps}, n_u) or ({runs}, {steps}, n_u), one row per step, "
+                         f"got {u.shape}")
+    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
+    if x0.shape not in ((model.n_x,), (runs, model.n_x)):
+        raise InputError(f"x0 must have shape ({model.n_x},) or ({runs}, {model.n_x}), got {x0.shape}")
+    phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
+    if phi0.ndim == 3:
+        if phi0.shape[0] != runs:
+            raise InputError(f"phi0 must have shape ({model.n_x}, {model.n_x}) or ({runs}, {model.n_x}, {model.n_x}), "
+                             f"got {phi0.shape}")
+        phi0 = np.stack([check_covariance(f"phi0[{r}]", p, model.n_x) for r, p in enumerate(phi0)])
+    else:
+        phi0 = check_covariance("phi0", phi0, model.n_x)
+    return z, u, np.broadcast_to(x0, (runs, model.n_x)), np.broadcast_to(phi0, (runs, model.n_x, model.n_x))
+
+
+def _first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign) -> InputError:
+    """The InputError :func:`run_consensus` raises at the first step of run ``r`` in paper mode."""
+    if v28[r].any():
+        lam = float(np.linalg.eigvalsh(phi0[r])[-1])
+        return InputError(
+            f"sigma must satisfy (28) at the first step: sigma < 1/((1+epsilon) lambda_max(Phi_0|0)) = "
+            f"{1.0 / ((1.0 + design.epsilon) * lam):.6g}, got {design.sigma!r}")
+    i = int(np.flatnonzero(v29[r])[0])
+    lam = float(np.linalg.eigvalsh(phi_pred0[r, i])[-1])
+    return InputError(f"beta must satisfy (29) at the first step: beta < 1/lambda_max(Phi_1|0) = {1.0 / lam:.6g} "
+                      f"at node {i}, got {design.beta!r}")
+
+
+def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
+                        inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+                        phi0=None) -> ConsensusBatchResult:
+    """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
+
+    Parameters
+    ----------
+    model, network : the model (one sensor per node) and the communication graph.
+    z : ndarray, shape (runs, steps, n_z)
+        Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
+    design : ConsensusDesign
+        Mode ``'paper'`` (the modes of :data:`GAIN_RULES`).
+    inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
+        Known inputs, shared by every run or one sequence per run.
+    attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
+        Realised channel attacks (none when omitted).
+    x0, phi0 : initial estimate (n_x,) or (runs, n_x) and ``Φ_{0|0}`` (n_x, n_x) or (runs, n_x, n_x)
+        (default: the prior's mean and covariance).
+
+    Returns
+    -------
+    ConsensusBatchResult
+        Run ``r`` equals ``run_consensus(model, network, z[r], design, inputs=..., attacks=attacks[r], ...)``
+        to rounding (:meth:`ConsensusBatchResult.run` gives it as a ``ConsensusResult``).
+
+    Raises
+    ------
+    InputError
+        For bad input, a mode without a batched rule, and, as :func:`run_consensus` does, when σ or
+        β violates (28)/(29) at the first step: with the message ``run_consensus`` raises for the
+        first run (in batch order) it raises for.
+    """
+    design = validate_design(design, model, network)
+    if design.mode not in GAIN_RULES:
+        raise InputError(f"run_consensus_batch runs the modes {sorted(GAIN_RULES)}, got {design.mode!r}; "
+                         "run the others with filters.consensus.run_consensus")
+    predict_rule, update_rule = GAIN_RULES[design.mode]
+    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    ex = _Exchange(network)
+    if attacks is not None and not isinstance(attacks, EdgeAttacks):
+        if len(attacks) != runs:
+            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), got {len(attacks)}")
+        attacks = EdgeAttacks.from_patterns(network, attacks)
+    if attacks is not None:
+        E = ex.receiver.size
+        if not (np.array_equal(attacks.receiver, ex.receiver) and np.array_equal(attacks.sender, ex.sender)):
+            raise InputError("attacks are on other channels than the network's (EdgeAttacks.from_patterns builds them)")
+        shape = attacks.dos.shape
+        if len(shape) != 3 or shape[0] != runs or shape[1] < steps or shape[2] != E or attacks.fdi.shape != shape \
+                or attacks.xi.shape != shape + (model.n_x,):
+            raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {E} channels, n_x = {model.n_x}), "
+                             f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
+
+    n, nx = network.n_nodes, model.n_x
+    nz = max(model.sensor_dims)
+    degrees = network.degrees
+    d_max = network.d_max
+    Q = model.process_cov
+    eye = np.eye(nx)
+    rule, radius = design.linearization, design.radius
+    groups = _groups(model, design)
+    # Weights of the neighbour terms in (27), per channel: 3 (1 - phibar_ij); and 3 delta^2 sum_j gammabar_ij.
+    w_phi = 3.0 * (1.0 - network.dos_prob[ex.receiver, ex.sender])
+    w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+
+    x_post = np.full((runs, steps + 1, n, nx), np.nan)
+    x_pred = np.full((runs, steps, n, nx), np.nan)
+    phi_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
+    phi_pred = np.full((runs, steps, n, nx, nx), np.nan)
+    K = np.full((runs, steps, n, nx, nz), np.nan)
+    C = np.full((runs, steps, n, nx, nx), np.nan)
+    valid = np.zeros((runs, steps + 1, n), dtype=bool)
+    proper = np.ones((runs, n), dtype=bool)
+    m28 = np.full((runs, steps, n), np.nan)
+    m29 = np.full((runs, steps, n), np.nan)
+    th2 = np.full((runs, steps + 1, n), np.nan)
+    sig = np.full((runs, steps, n), np.nan)
+    bet = np.full((runs, steps, n), np.nan)
+    violations: list[list[dict]] = [[] for _ in range(runs)]
+    x_post[:, 0] = x0[:, None]
+    phi_post[:, 0] = phi0[:, None]
+    valid[:, 0] = True
+    act = np.arange(runs)  # the runs still going (not diverged)
+
+    for k in range(steps):
+        a = act.size
+        if a == 0:
+            break
+        at = slice(None) if a == runs else act  # index of the runs going on (a view while none has stopped)
+        xk, Pk, prop = x_post[at, k], phi_post[at, k], proper[at]
+        uk = u[k] if u.ndim == 2 else u[at, k][:, None, :]
+        # ---- prediction (3), (26), (28)
+        F = model.F_expected(xk, k, uk)
+        xp = model.f_expected(xk, k, uk)
+        limit = prop & ~(np.trace(Pk, axis1=-2, axis2=-1) < _BOUND_LIMIT)
+        bound = prop & ~limit
+        margin28 = np.where(limit, -np.inf, np.nan)
+        sigma = np.full((a, n), np.nan)
+        pvalid = np.zeros((a, n), dtype=bool)
+        Pp = np.empty((a, n, nx, nx))
+        if bound.any():
+            ub = uk if uk.ndim == 1 else np.broadcast_to(uk, (a, n, uk.shape[-1]))[bound]
+            U, D = prediction_scaling(model, xk[bound], Pk[bound], k, ub, rule, radius, design.U)
+            choice = predict_rule(Pk[bound], F[bound], U, Q, D, design)
+            margin28[bound] = choice.margin28
+            good = choice.margin28 > 0
+            pvalid[bound] = good
+            Pp[pvalid] = choice.phi_pred[good]
+            sigma[pvalid] = choice.sigma[good]
+        fb = ~pvalid
+        if fb.any():  # the fallback: sigma = 0, U = 0, the EKF's F Phi F^T + Q
+            Pp[fb] = prediction_recursion(Pk[fb], F[fb], np.zeros((nx, nx)), Q, 0.0, design.epsilon)
+        th2k = np.full((a, n), np.nan)
+        if pvalid.any():
+            th2k[pvalid] = theorem2_margin(Pk[pvalid], sigma[pvalid], d_max)
+        v28 = prop & ~pvalid
+        pred_ok = pvalid & valid[at, k]
+        # ---- exchange
+        if attacks is None:
+            recv = np.ones((a, ex.receiver.size), dtype=bool)
+        else:
+            recv = ~attacks.dos[at, k]
+        s = ex.sum(recv.astype(float))
+        innovation = ex.sum(recv[..., None] * xp[:, ex.sender]) - s[..., None] * xp
+        if attacks is not None:
+            innovation = innovation + ex.sum((recv & attacks.fdi[at, k])[..., None] * attacks.xi[at, k])
+        neigh = ex.sum(w_phi[None, :, None, None] * Pp[:, ex.sender]) + w_xi[:, None, None] * eye
+        # ---- update (7), (27), (29), per group of nodes
+        xn = np.empty((a, n, nx))
+        Pn = np.empty((a, n, nx, nx))
+        Kn = np.zeros((a, n, nx, nz))
+        Cn = np.empty((a, n, nx, nx))
+        margin29 = np.full((a, n), np.nan)
+        beta = np.full((a, n), np.nan)
+        uvalid = np.zeros((a, n), dtype=bool)
+        failed = np.zeros((a, n), dtype=bool)
+        reasons: dict = {}  # (run, node) -> why its update failed
+        zk = z[at, k]
+        for grp in groups:
+            ns, g, dim = grp.nodes, grp.nodes.size, grp.dim
+            H = np.stack([model.H(int(i), xp[:, i], k + 1) for i in ns], axis=1)  # (a, g, dim, nx)
+            hz = np.stack([model.h(int(i), xp[:, i], k + 1) for i in ns], axis=1)
+            res = zk[:, grp.columns] - hz
+            for j, i in enumerate(ns):
+                res[:, j] = wrap_residuals(res[:, j], model.sensors[i].angles)
+            vin = pvalid[:, ns]
+            V = np.array(np.broadcast_to(grp.V, (a, g, dim, dim)))
+            if rule != "fixed":
+                for j, i in enumerate(ns):
+                    sel = vin[:, j]
+                    if sel.any():
+                        V[sel, j] = update_scaling(model, int(i), xp[sel, i], Pp[sel, i], k + 1, rule, radius,
+                                                   grp.V[j])[0]
+            flat = dict(P=Pp[:, ns], H=H, s=s[:, ns], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
+                        d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, ns])
+            flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
+            *out, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
+            gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
+            x_g = xp[:, ns] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, ns][..., None])[..., 0]
+            fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
+                    & (np.abs(x_g).max(axis=-1) < _DIVERGED))
+            for j, why in breakdowns.items():
+                reasons[j // g, int(ns[j % g])] = why
+            for r, j in zip(*np.nonzero(~fine)):
+                reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {_DIVERGED:g} or not finite")
+            failed[:, ns] = ~fine
+            xn[:, ns], Pn[:, ns], Cn[:, ns] = x_g, gP, gC
+            Kn[:, ns, :, :dim] = gK
+            margin29[:, ns], beta[:, ns], uvalid[:, ns] = gm29, gbeta, gok
+        v29 = pvalid & ~uvalid
+        # ---- divergence: a run stops at its first failing node (in node order), as run_consensus does
+        first = np.where(failed.any(axis=1), failed.argmax(axis=1), n)
+        before = np.arange(n)[None, :] < first[:, None]
+        v29 &= before
+        margin29[~before], beta[~before] = np.nan, np.nan
+        if k == 0:  # paper mode: sigma or beta is wrong for this model at the first step
+            raising = np.flatnonzero(v28.any(axis=1) | v29.any(axis=1))
+            if raising.size:
+                r = int(raising[0])
+                raise _first_step_error(r, v28, v29, phi0[at], Pp, design)
+        nb_bad = ex.sum((~pred_ok)[:, ex.sender].astype(float)) > 0
+        x_pred[at, k], phi_pred[at, k], m28[at, k], sig[at, k], th2[at, k] = xp, Pp, margin28, sigma, th2k
+        x_post[at, k + 1], phi_post[at, k + 1], K[at, k], C[at, k] = xn, Pn, Kn, Cn
+        m29[at, k], bet[at, k] = margin29, beta
+        valid[at, k + 1] = uvalid & pred_ok & ~nb_bad
+        proper[at] = prop & ~v28 & ~v29
+        # ---- violations, in run_consensus's order: theorem2 and (28) node by node, then (29), then divergence
+        rr, ii = np.nonzero((th2k < 0) | v28)
+        for r, i, t2, c28, mg, lim in zip(act[rr].tolist(), ii.tolist(), th2k[rr, ii].tolist(), v28[rr, ii].tolist(),
+                                          margin28[rr, ii].tolist(), limit[rr, ii].tolist()):
+            vs = violations[r]
+            if t2 < 0:
+                vs.append({"node": i, "step": k, "condition": "theorem2", "margin": t2})
+            if c28:
+                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": _LIMIT_REASON}
+                                                                                     if lim else {})})
+        rr, ii = np.nonzero(v29)
+        for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):
+            violations[r].append({"node": i, "step": k + 1, "condition": "(29)", "margin": mg})
+        dead = np.flatnonzero(first < n)
+        for r in dead:
+            g = act[r]
+            violations[g].append({"node": int(first[r]), "step": k + 1, "condition": "diverged", "margin": -np.inf,
+                                  "reason": reasons[r, int(first[r])]})
+            x_post[g, k + 1], phi_post[g, k + 1], K[g, k], C[g, k] = np.nan, np.nan, np.nan, np.nan
+            valid[g, k + 1] = False
+        act = np.delete(act, dead)
+    # Phi_{K|K} against the last sigma each node used
+    at = slice(None) if act.size == runs else act
+    last = valid[at, steps]
+    if last.any():
+        th = np.full(last.shape, np.nan)
+        th[last] = theorem2_margin(phi_post[at, steps][last], sig[at, steps - 1][last], d_max)
+        th2[at, steps] = th
+        rr, ii = np.nonzero(th < 0)
+        for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
+            violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
+    return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
+
+
+def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):
+    """The update of stacked items (one run and node each): the mode's rule where the prediction is a
+    bound and (29) holds, the fallback elsewhere.  A numerical breakdown (``LinAlgError``) is searched
+    item by item; those items get NaN outputs and a reason (``{item: reason}``), as run_consensus reports it."""
+    m, nx = it["P"].shape[:2]
+    dim = it["H"].shape[-2]
+    margin = np.full(m, np.nan)
+    beta = np.full(m, np.nan)
+    ok = np.zeros(m, dtype=bool)
+    K = np.full((m, nx, dim), np.nan)
+    C = np.full((m, nx, nx), np.nan)
+    P = np.full((m, nx, nx), np.nan)
+    breakdowns: dict[int, str] = {}
+
+    def compute(idx):
+        rows = idx[vin[idx]]
+        if rows.size:
+            ch = update_rule(*(it[key][rows] for key in ("P", "H", "s", "V", "R", "d", "nt")), D, design)
+            good = ch.margin29 > 0
+            margin[rows] = ch.margin29
+            rows = rows[good]
+            ok[rows], beta[rows] = True, ch.beta[good]
+            K[rows], C[rows], P[rows] = ch.K[good], ch.C[good], ch.phi_post[good]
+        rest = idx[~ok[idx]]
+        if rest.size:
+            K[rest], C[rest], P[rest] = _fallback_update(*(it[key][rest] for key in ("P", "H", "s", "R", "nt")),
+                                                         design.tau)
+
+    try:
+        compute(np.arange(m))
+    except np.linalg.LinAlgError:
+        for j in range(m):
+            try:
+                compute(np.array([j]))
+            except np.linalg.LinAlgError as exc:
+                breakdowns[j] = f"numerical breakdown: {exc}"
+                K[j], C[j], P[j] = np.nan, np.nan, np.nan
+    return margin, beta, ok, K, C, P, breakdowns

@@ -1,0 +1,252 @@
+"""The consensus filter batched over Monte Carlo runs (filters.consensus_batch) against the per-run path.
+
+The reference is :func:`filters.consensus.run_consensus`, itself tested against the equations and
+independent filters in tests/test_consensus.py: run by run, the batch must give its numbers
+(rtol 1e-9), its ``valid`` flags and its violations, in the same order, on the indoor robot, a
+user model with mixed sensor dimensions and bearings that cross ±π, and linear models; with the
+fallback recursion, the neighbour rule, every linearisation rule, per-run inputs and initial
+conditions, the bound-trace limit, a divergence in one run of the batch (the others go on), a
+numerical breakdown in one run, and the first-step InputError.
+"""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
+from designer.attacks import FDISignal
+from designer.design import ConsensusDesign, DesignOptions, make_design
+from designer.validation import InputError
+from filters.attacks import simulate_attacks
+from filters.consensus import run_consensus
+from filters.consensus_batch import EdgeAttacks, run_consensus_batch
+from studies.scenarios import load_scenario
+
+ARRAYS = ("x_post", "x_pred", "phi_post", "phi_pred", "K", "C", "margin28", "margin29", "theorem2", "sigma", "beta")
+
+
+def assert_same_as_per_run(batch, refs):
+    """Every run of the batch equals its per-run result: arrays (rtol 1e-9, NaN where NaN), flags, violations."""
+    assert batch.runs == len(refs)
+    for r, ref in enumerate(refs):
+        got = batch.run(r)
+        for name in ARRAYS:
+            a, b = getattr(ref, name), getattr(got, name)
+            assert a.shape == b.shape, (r, name)
+            scale = np.nanmax(np.abs(np.where(np.isfinite(a), a, np.nan)), initial=0.0)
+            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-13 * max(scale, 1e-300), equal_nan=True,
+                                       err_msg=f"run {r}, {name}")
+        np.testing.assert_array_equal(got.valid, ref.valid, err_msg=f"run {r}, valid")
+        assert len(got.violations) == len(ref.violations), r
+        for v, w in zip(got.violations, ref.violations):
+            assert {k: x for k, x in v.items() if k != "margin"} == {k: x for k, x in w.items() if k != "margin"}
+            assert v["margin"] == pytest.approx(w["margin"], rel=1e-9, abs=1e-300), (r, v, w)
+        assert got.feasible == ref.feasible and got.diverged == ref.diverged
+    np.testing.assert_array_equal(batch.feasible, [ref.feasible for ref in refs])
+
+
+# ----------------------------------------------------------------------------- the indoor robot
+ROBOT_STEPS, ROBOT_RUNS = 25, 3
+
+
+@pytest.fixture(scope="module")
+def robot():
+    sc = load_scenario("indoor-robot")
+    net = sc.network.with_attacks(0.3, 0.2)
+    traj = sc.simulate(np.random.default_rng(7), ROBOT_STEPS, batch=ROBOT_RUNS)
+    atts = [simulate_attacks(net, ROBOT_STEPS, 3, np.random.default_rng(70 + r), signal=FDISignal(1.5, (0, 1)))
+            for r in range(ROBOT_RUNS)]
+    return sc, net, traj, atts
+
+
+def robot_design(**kw):
+    return ConsensusDesign(epsilon=1 / 6, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(3), V=0.1 * np.eye(2),
+                           delta=1.5 * np.sqrt(2), **kw)
+
+
+def per_run(model, net, z, des, inputs, atts, x0=None, phi0=None):
+    out = []
+    for r in range(z.shape[0]):
+        u = None if inputs is None else (inputs if inputs.ndim == 2 else inputs[r])
+        out.append(run_consensus(model, net, z[r], des, inputs=u, attacks=None if atts is None else atts[r],
+                                 x0=None if x0 is None else x0[r], phi0=None if phi0 is None else phi0[r]))
+    return out
+
+
+def test_robot_paper_design_matches_per_run(robot):
+    """The paper's σ = β = 0.1 on the robot: (28), (29) and Theorem 2 fail at nodes along the runs."""
+    sc, net, traj, atts = robot
+    des = robot_design()
+    batch = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts)
+    refs = per_run(sc.model, net, traj.z, des, traj.inputs, atts)
+    assert_same_as_per_run(batch, refs)
+    conds = {v["condition"] for vs in batch.violations for v in vs}
+    assert {"(28)", "(29)", "theorem2"} <= conds, "the case must exercise the fallback"
+    assert batch.valid[:, 1:].any() and not batch.valid[:, -1].all()
+    # the same attacks given in the batched form, and back
+    ea = EdgeAttacks.from_patterns(net, atts)
+    for r in range(ROBOT_RUNS):
+        for f in ("dos", "fdi", "xi"):
+            np.testing.assert_array_equal(getattr(ea.pattern(r, net.n_nodes), f), getattr(atts[r], f))
+    again = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=ea)
+    np.testing.assert_array_equal(again.x_post, batch.x_post)
+
+
+@pytest.mark.parametrize("rule", ["hessian", "structured"])
+def test_robot_linearisation_rules_with_inputs_and_priors_per_run(robot, rule):
+    """Hessian-derived scalings per node and step; inputs, x0 and Φ0 that differ between runs."""
+    sc, net, traj, atts = robot
+    rng = np.random.default_rng(3)
+    inputs = traj.inputs[None] * (1.0 + 0.2 * rng.standard_normal((ROBOT_RUNS, 1, 1)))
+    x0 = sc.model.prior.mean + 0.05 * rng.standard_normal((ROBOT_RUNS, 3))
+    phi0 = sc.model.prior.cov[None] * rng.uniform(0.5, 1.5, (ROBOT_RUNS, 1, 1))
+    z = np.stack([sc.simulate(np.random.default_rng(20 + r), ROBOT_STEPS).z for r in range(ROBOT_RUNS)])
+    des = robot_design(linearization=rule)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=inputs, attacks=atts, x0=x0, phi0=phi0)
+    assert_same_as_per_run(batch, per_run(sc.model, net, z, des, inputs, atts, x0, phi0))
+
+
+def test_first_step_input_error_has_the_per_run_message(robot):
+    sc, net, traj, atts = robot
+    for change in (dict(sigma=1e5), dict(beta=1e5)):
+        des = robot_design()._replace(**change)
+        with pytest.raises(InputError) as ref:
+            run_consensus(sc.model, net, traj.z[0], des, inputs=traj.inputs, attacks=atts[0])
+        with pytest.raises(InputError) as got:
+            run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts)
+        assert str(got.value) == str(ref.value) and ("(28)" if "sigma" in change else "(29)") in str(got.value)
+
+
+def test_tuned_mode_and_bad_shapes_are_refused(robot):
+    sc, net, traj, atts = robot
+    with pytest.raises(InputError, match="paper"):
+        run_consensus_batch(sc.model, net, traj.z, robot_design(mode="tuned"), inputs=traj.inputs)
+    with pytest.raises(InputError, match="runs, steps"):
+        run_consensus_batch(sc.model, net, traj.z[0], robot_design(), inputs=traj.inputs)
+    with pytest.raises(InputError, match="one AttackPattern per run"):
+        run_consensus_batch(sc.model, net, traj.z, robot_design(), inputs=traj.inputs, attacks=atts[:2])
+    with pytest.raises(InputError, match="x0"):
+        run_consensus_batch(sc.model, net, traj.z, robot_design(), inputs=traj.inputs, x0=np.zeros((2, 3)))
+
+
+# ----------------------------------------------------------------------------- mixed sensors, bearings across ±π
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+SITES = [(0.0, 0.0), (40.0, 0.0), (0.0, 40.0), (30.0, 12.0), (-20.0, 20.0)]
+
+
+def mixed_model():
+    """The user model examples/mixed_sensors_model.py (sensor dimensions 2, 1, 1, 1, 1 on a star) with
+    bearing-only sensor 3 moved to (30, 12): the target passes left of it through its horizon, so its
+    bearing crosses ±π and the residuals need wrapping; a tighter prior, channels attacked as below."""
+    spec = importlib.util.spec_from_file_location("mixed_sensors_example", EXAMPLES / "mixed_sensors_model.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    example.SITES = SITES
+    m = example.model()
+    model = Model(m.name, m.x, m.f_expr, m.sensors, m.process_noise,
+                  Gaussian(example.X0, np.diag([0.25, 0.01, 0.25, 0.01])))
+    net = SensorNetwork.from_edges(5, [(0, 1), (0, 2), (0, 3), (0, 4)], dos_prob=0.1, fdi_prob=0.05)
+    return model, net
+
+
+@pytest.mark.parametrize("rule", ["fixed", "hessian", "structured"])
+def test_mixed_sensor_dimensions_and_wrapped_bearings(rule):
+    model, net = mixed_model()
+    runs, steps = 4, 20
+    traj = simulate(model, steps, np.random.default_rng(5), batch=runs)
+    bearing3 = np.arctan2(traj.x[:, 1:, 2] - SITES[3][1], traj.x[:, 1:, 0] - SITES[3][0])
+    assert np.any(np.abs(np.diff(bearing3, axis=1)) > np.pi, axis=1).all(), "sensor 3's bearing must cross ±π"
+    atts = [simulate_attacks(net, steps, 4, np.random.default_rng(50 + r), signal=FDISignal(2.0, (0, 2)))
+            for r in range(runs)]
+    des = make_design(model, net, delta=2.0 * np.sqrt(2.0), options=DesignOptions(linearization=rule),
+                      x0=model.prior.mean)
+    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
+    refs = per_run(model, net, traj.z, des, None, atts)
+    assert_same_as_per_run(batch, refs)
+    assert batch.K.shape == (runs, steps, 5, 4, 2) and np.all(batch.K[..., 1:, :, 1] == 0.0)
+    # the filter follows the target across the bearing's jump (no 2π residual taken as an error)
+    assert not any(batch.diverged)
+    assert np.max(np.abs(batch.x_post[:, -1, :, 0] - traj.x[:, -1, None, 0])) < 10.0
+
+
+# ----------------------------------------------------------------------------- linear models
+CHAIN_A = np.array([[1.0, 0.1], [-0.05, 0.98]])
+
+
+def chain_model(R0=1e4):
+    """A path 0 - 1 - 2; node 0's sensor is nearly useless, so its bound blows up and leaves Theorem 1's
+    recursion, and its neighbours' flags drop through its non-bound prediction (tests/test_consensus.py)."""
+    x = ca.SX.sym("x", 2)
+    Rs = [R0 * np.eye(2), 0.01 * np.eye(2), 0.02 * np.eye(2)]
+    sensors = [Sensor(f"s{i}", ca.vertcat(x[0] + 0.1 * i * x[1], x[1]), Gaussian.zero_mean(R)) for i, R in enumerate(Rs)]
+    model = Model("chain", x, ca.mtimes(ca.DM(CHAIN_A), x), sensors, Gaussian.zero_mean(1e-3 * np.eye(2)),
+                  Gaussian(np.zeros(2), 0.01 * np.eye(2)))
+    net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.2, fdi_prob=0.2)
+    des = ConsensusDesign(epsilon=0.25, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(2), V=0.01 * np.eye(2),
+                          delta=0.1)
+    return model, net, des
+
+
+def test_linear_chain_neighbour_rule_and_a_diverging_run():
+    model, net, des = chain_model()
+    runs, steps = 5, 25
+    traj = simulate(model, steps, np.random.default_rng(41), batch=runs)
+    z = traj.z.copy()
+    z[2, 9, 2:4] = 1e14  # run 2: node 1 takes a huge measurement at step 10 and leaves finite numbers
+    atts = [simulate_attacks(net, steps, 2, np.random.default_rng(42 + r), signal=FDISignal(0.1, (0,)))
+            for r in range(runs)]
+    batch = run_consensus_batch(model, net, z, des, attacks=atts)
+    refs = per_run(model, net, z, des, None, atts)
+    assert_same_as_per_run(batch, refs)
+    div = batch.diverged
+    assert [d is not None for d in div] == [False, False, True, False, False]
+    assert div[2]["step"] == 10 and div[2]["node"] == 1
+    assert np.isnan(batch.x_post[2, 10:]).all() and np.isfinite(batch.x_post[[0, 1, 3, 4]]).all()
+    # node 0 leaves the recursion; nodes 1 and 2 lose their flags through it (a neighbour rule case)
+    assert any(v["node"] == 0 and v["condition"] in ("(28)", "(29)") for vs in batch.violations for v in vs)
+    assert not batch.valid[0, -1].any() and batch.valid[0, 1].all()
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning", "ignore:invalid value:RuntimeWarning")
+def test_bound_trace_limit_then_overflow():
+    """σ = β = 0, U = V = 0 and a blind sensor on an unstable plant: every node keeps Theorem 1's recursion
+    until the bound's trace reaches 1e100 (a (28) violation with its reason), then the fallback overflows."""
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor(f"blind{i}", 0.0 * x[0], Gaussian.zero_mean([[1.0]])) for i in range(2)]
+    model = Model("unstable", x, 1e3 * x, sensors, Gaussian.zero_mean(1e-3 * np.eye(2)),
+                  Gaussian(np.zeros(2), np.eye(2)))
+    net = SensorNetwork.from_edges(2, [(0, 1)])
+    des = ConsensusDesign(epsilon=0.5, sigma=0.0, beta=0.0, tau=0.01, U=np.zeros((2, 2)), V=np.zeros((1, 1)),
+                          delta=0.0)
+    z = np.random.default_rng(0).standard_normal((2, 60, 2))
+    batch = run_consensus_batch(model, net, z, des)
+    assert_same_as_per_run(batch, per_run(model, net, z, des, None, None))
+    reasons = [v.get("reason", "") for v in batch.violations[0]]
+    assert any("1e+100" in r for r in reasons) and batch.diverged[0] is not None
+
+
+def test_numerical_breakdown_in_one_run(monkeypatch):
+    """A LinAlgError in one item of a stacked solve is found item by item: only that run stops."""
+    model, net, _ = chain_model(R0=1.0)
+    des = ConsensusDesign(epsilon=0.25, sigma=0.0, beta=0.0, tau=0.01, U=np.zeros((2, 2)), V=np.zeros((2, 2)),
+                          delta=0.0)
+    runs, steps = 3, 6
+    z = simulate(model, steps, np.random.default_rng(1), batch=runs).z
+    phi0 = np.stack([0.01 * np.eye(2), 1e7 * np.eye(2), 0.01 * np.eye(2)])  # run 1: a huge Φ_0|0
+    solve = np.linalg.solve
+
+    def fragile_solve(a, b):  # "singular" whenever the right-hand side H M is huge
+        if np.any(np.abs(b) > 1e6):
+            raise np.linalg.LinAlgError("Singular matrix")
+        return solve(a, b)
+
+    monkeypatch.setattr(np.linalg, "solve", fragile_solve)
+    batch = run_consensus_batch(model, net, z, des, phi0=phi0)
+    refs = per_run(model, net, z, des, None, None, phi0=phi0)
+    assert_same_as_per_run(batch, refs)
+    assert [d is not None for d in batch.diverged] == [False, True, False]
+    assert batch.diverged[1]["reason"] == "numerical breakdown: Singular matrix"
