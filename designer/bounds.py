@@ -41,7 +41,7 @@ from .validation import InputError
 __all__ = [
     "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
     "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
-    "shifted_inverse", "symmetrize",
+    "shifted_inverse", "symmetrize", "Spectrum", "spectrum",
 ]
 
 
@@ -74,36 +74,74 @@ def _one(out, batch: tuple):
     return float(out) if batch == () else out
 
 
+class Spectrum(NamedTuple):
+    """A (stack of) symmetric Φ with its eigendecomposition, computed once by :func:`spectrum`.
+
+    Every function here that takes a Φ also takes its Spectrum, so that the margins (28)/(29),
+    Theorem 2 and the shifted inverse of one Φ share one ``eigh`` (the batched filter does).
+    """
+
+    phi: np.ndarray  # (..., n, n), symmetrised
+    lam: np.ndarray  # (..., n) eigenvalues, ascending; NaN for a non-finite Φ
+    Q: np.ndarray  # (..., n, n) eigenvectors (columns); NaN for a non-finite Φ
+
+    def take(self, index) -> "Spectrum":
+        """The items ``index`` (a mask or indices over the leading axes) of a stack."""
+        return Spectrum(self.phi[index], self.lam[index], self.Q[index])
+
+
+def spectrum(phi) -> Spectrum:
+    """The :class:`Spectrum` of ``phi`` (..., n, n)."""
+    phi = symmetrize(np.asarray(phi, dtype=float))
+    if np.isfinite(phi).all():
+        return Spectrum(phi, *np.linalg.eigh(phi))
+    lam, Q = np.full(phi.shape[:-1], np.nan), np.full(phi.shape, np.nan)
+    finite = np.isfinite(phi).all(axis=(-2, -1))
+    if finite.any():
+        lam[finite], Q[finite] = np.linalg.eigh(phi[finite])
+    return Spectrum(phi, lam, Q)
+
+
+def _matrix(phi) -> np.ndarray:
+    return phi.phi if isinstance(phi, Spectrum) else np.asarray(phi, dtype=float)
+
+
+def _eigenvalues(a) -> np.ndarray:
+    """Eigenvalues (ascending) of symmetric matrices (..., n, n) or of a Spectrum; NaN for a non-finite matrix."""
+    if isinstance(a, Spectrum):
+        return a.lam
+    a = np.asarray(a, dtype=float)
+    if np.isfinite(a).all():
+        return np.linalg.eigvalsh(symmetrize(a))
+    lam = np.full(a.shape[:-1], np.nan)
+    finite = np.isfinite(a).all(axis=(-2, -1))
+    if finite.any():
+        lam[finite] = np.linalg.eigvalsh(symmetrize(a[finite]))
+    return lam
+
+
 _RCOND = 1e-13
 
 
-def _inv_lam_max(a: np.ndarray):
+def _inv_lam_max(a):
     """``1 / lambda_max(a)``, or ``-inf`` when ``a`` is not numerically positive definite.
 
     "Numerically" means finite with a condition number below ``1 / _RCOND``: beyond
     that the smallest eigenvalues are rounding noise and the recursion means nothing.
     """
-    a = np.asarray(a, dtype=float)
-    batch = a.shape[:-2]
-    if not np.isfinite(a).all():  # -inf for the non-finite matrices, the others as usual
-        out = np.full(batch, -np.inf)
-        finite = np.isfinite(a).all(axis=(-2, -1))
-        if finite.any():
-            out[finite] = _inv_lam_max(a[finite])
-        return _one(out, batch)
-    lam = np.linalg.eigvalsh(symmetrize(a))
-    if batch == ():
+    lam = _eigenvalues(a)
+    if lam.ndim == 1:  # one matrix (a NaN fails the comparison: -inf)
         return 1.0 / lam[-1] if lam[0] > _RCOND * lam[-1] else -np.inf
     pd = lam[..., 0] > _RCOND * lam[..., -1]
-    return np.divide(1.0, lam[..., -1], out=np.full(batch, -np.inf), where=pd)
+    return np.divide(1.0, lam[..., -1], out=np.full(pd.shape, -np.inf), where=pd)
 
 
-def _inv_lam_max_d(a: np.ndarray, D: np.ndarray | None):
+def _inv_lam_max_d(a, D: np.ndarray | None):
     """``1 / lambda_max(D a Dᵀ)`` (``D = I`` when None), ``-inf`` when ``a`` is not numerically PD."""
     base = _inv_lam_max(a)
     if D is None:
         return base
-    a = np.asarray(a, dtype=float)
+    a = _matrix(a)
     batch = a.shape[:-2]
     out = np.array(base, dtype=float)
     pd = np.isfinite(out)
@@ -136,23 +174,26 @@ def shifted_inverse(phi: np.ndarray, c, D: np.ndarray | None = None) -> np.ndarr
     lose the small eigenvalues when Φ is ill-conditioned).  Requires
     ``c lambda_max(D Φ Dᵀ) < 1`` (conditions (28)/(29)).  ``c = 0`` gives Φ itself.
     """
-    phi = np.asarray(phi, dtype=float)
+    if not isinstance(phi, Spectrum):
+        phi = np.asarray(phi, dtype=float)
     if not _stacked(c):
-        return symmetrize(phi) if c == 0 else _shifted(phi, c, D)
-    batch = phi.shape[:-2]
+        return symmetrize(_matrix(phi)) if c == 0 else _shifted(phi, c, D)
+    m = _matrix(phi)
+    batch = m.shape[:-2]
     shift = np.broadcast_to(c != 0, batch)  # one c per matrix: c = 0 gives Φ
-    out = symmetrize(phi)
+    out = symmetrize(m)
     if np.any(shift):
-        out[shift] = _shifted(phi[shift], _items(c, batch, shift, 0)[:, None],
-                              None if D is None else _items(D, batch, shift, 2))
+        out[shift] = _shifted(phi.take(shift) if isinstance(phi, Spectrum) else phi[shift],
+                              _items(c, batch, shift, 0)[:, None], None if D is None else _items(D, batch, shift, 2))
     return out
 
 
 def _shifted(phi, c, D):
     """:func:`shifted_inverse` for ``c != 0`` (a number, or ``(m, 1)`` for a stack of m matrices)."""
     if D is None:
-        lam, Q = np.linalg.eigh(symmetrize(phi))
+        lam, Q = (phi.lam, phi.Q) if isinstance(phi, Spectrum) else np.linalg.eigh(symmetrize(phi))
         return symmetrize((Q * (lam / (1.0 - c * lam))[..., None, :]) @ _t(Q))
+    phi = _matrix(phi)
     mu, Q = np.linalg.eigh(symmetrize(D @ phi @ _t(D)))
     G = phi @ _t(D) @ Q
     return symmetrize(phi + (G * (c / (1.0 - c * mu))[..., None, :]) @ _t(G))
@@ -160,11 +201,10 @@ def _shifted(phi, c, D):
 
 def theorem2_margin(phi_post: np.ndarray, sigma, d_max: int):
     """``((1+d_max)/d_max) sigma - lambda_max(Phi_post^-1)``; must be >= 0 (inf when d_max = 0)."""
-    phi_post = np.asarray(phi_post, dtype=float)
-    batch = phi_post.shape[:-2]
+    batch = _matrix(phi_post).shape[:-2]
     if d_max == 0:
         return _one(np.full(batch, np.inf), batch)
-    lam_min = np.linalg.eigvalsh(symmetrize(phi_post))[..., 0]
+    lam_min = _eigenvalues(phi_post)[..., 0]
     return _one((1.0 + d_max) / d_max * sigma - 1.0 / lam_min, batch)
 
 
@@ -209,16 +249,19 @@ def prediction_bound(phi_post, F, U, Q, sigma, eps: float, D=None) -> Prediction
     stack of ``phi_post``, ``phi_pred`` is a stack with NaN matrices where (28) fails.
     """
     margin = condition28_margin(phi_post, sigma, eps, D)
-    phi_post = np.asarray(phi_post, dtype=float)
-    batch = phi_post.shape[:-2]
+    shape = _matrix(phi_post).shape
+    batch = shape[:-2]
     if batch == ():
         if margin <= 0:
             return PredictionBound(None, margin)
         return PredictionBound(prediction_recursion(phi_post, F, U, Q, sigma, eps, D), margin)
     ok = margin > 0
-    out = np.full(phi_post.shape, np.nan)
+    if ok.all():
+        return PredictionBound(prediction_recursion(phi_post, F, U, Q, sigma, eps, D), margin)
+    out = np.full(shape, np.nan)
     if np.any(ok):
-        out[ok] = prediction_recursion(phi_post[ok], _items(F, batch, ok, 2), _items(U, batch, ok, 2),
+        sub = phi_post.take(ok) if isinstance(phi_post, Spectrum) else np.asarray(phi_post, dtype=float)[ok]
+        out[ok] = prediction_recursion(sub, _items(F, batch, ok, 2), _items(U, batch, ok, 2),
                                        _items(Q, batch, ok, 2), _items(sigma, batch, ok, 0), eps,
                                        None if D is None else _items(D, batch, ok, 2))
     return PredictionBound(out, margin)
