@@ -37,8 +37,9 @@ from designer.bounds import (
     optimal_gain_from,
     prediction_bound,
     prediction_recursion,
+    Spectrum,
     shifted_inverse,
-    symmetrize,
+    spectrum,
     theorem2_margin,
     update_bound_from,
 )
@@ -187,26 +188,28 @@ class UpdateChoice(NamedTuple):
     phi_post: np.ndarray  # (m, n_x, n_x)
 
 
-def _paper_prediction(phi_post, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
+def _paper_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
     pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
     return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
 
 
-def _paper_update(phi_pred, H, s, V, R, d, neighbour_terms, D, design: ConsensusDesign) -> UpdateChoice:
+def _paper_update(phi_pred: Spectrum, H, s, V, R, d, neighbour_terms, D, design: ConsensusDesign) -> UpdateChoice:
     """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
-    m, n = phi_pred.shape[:2]
+    m, n = phi_pred.phi.shape[:2]
     margin = condition29_margin(phi_pred, design.beta, D)
     ok = margin > 0
-    K = np.full((m, n, H.shape[-2]), np.nan)
-    C = np.full((m, n, n), np.nan)
-    phi = np.full((m, n, n), np.nan)
-    if np.any(ok):
-        P = phi_pred[ok]
-        C[ok] = design.tau * P
-        M = shifted_inverse(P, design.beta, D)
-        K[ok] = optimal_gain_from(M, H[ok], C[ok], s[ok], design.beta, V[ok], R[ok], d[ok])
-        phi[ok] = update_bound_from(M, H[ok], K[ok], C[ok], s[ok], design.beta, V[ok], R[ok], d[ok],
-                                    neighbour_terms[ok])
+    if not ok.all():  # the rule on the items inside (29); NaN for the others (they take the fallback)
+        out = UpdateChoice(margin, np.full(m, design.beta), np.full((m, n, H.shape[-2]), np.nan),
+                           np.full((m, n, n), np.nan), np.full((m, n, n), np.nan))
+        if ok.any():
+            inner = _paper_update(phi_pred.take(ok), H[ok], s[ok], V[ok], R[ok], d[ok], neighbour_terms[ok], D,
+                                  design)
+            out.K[ok], out.C[ok], out.phi_post[ok] = inner.K, inner.C, inner.phi_post
+        return out
+    C = design.tau * phi_pred.phi
+    M = shifted_inverse(phi_pred, design.beta, D)
+    K = optimal_gain_from(M, H, C, s, design.beta, V, R, d)
+    phi = update_bound_from(M, H, K, C, s, design.beta, V, R, d, neighbour_terms)
     return UpdateChoice(margin, np.full(m, design.beta), K, C, phi)
 
 
@@ -235,10 +238,24 @@ def wrap_residuals(r: np.ndarray, angles: Sequence[int]) -> np.ndarray:
     return np.where(np.isin(np.arange(r.shape[-1]), list(angles)) & (np.abs(r) > np.pi), wrap_angles(r, angles), r)
 
 
+def _take(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``a[mask]`` (mask over the leading axes), a view when the mask is all True."""
+    return a.reshape((-1,) + a.shape[mask.ndim:]) if mask.all() else a[mask]
+
+
+def _put(a: np.ndarray, mask: np.ndarray, values: np.ndarray) -> None:
+    """``a[mask] = values``, without the mask when it is all True."""
+    if mask.all():
+        a[...] = values.reshape(a.shape)
+    else:
+        a[mask] = values
+
+
 class _Group(NamedTuple):
     """Nodes whose sensors share a dimension (and, for the structured rule, a structure D)."""
 
     nodes: np.ndarray
+    index: np.ndarray | slice  # the nodes as an index (a slice when they are all the nodes, in order)
     dim: int
     columns: np.ndarray  # (g, dim): each node's columns of the stacked measurement
     R: np.ndarray  # (g, dim, dim)
@@ -254,7 +271,8 @@ def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
         keys.setdefault((dim, cover), []).append(i)
     out = []
     for (dim, cover), nodes in keys.items():
-        out.append(_Group(np.array(nodes), dim, np.array([np.arange(offsets[i], offsets[i] + dim) for i in nodes]),
+        index = slice(None) if nodes == list(range(model.n_sensors)) else np.array(nodes)
+        out.append(_Group(np.array(nodes), index, dim, np.array([np.arange(offsets[i], offsets[i] + dim) for i in nodes]),
                           np.stack([model.measurement_cov(i) for i in nodes]), np.stack([design.V[i] for i in nodes]),
                           selection(cover, model.n_x) if cover else None))
     return out
@@ -398,21 +416,23 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         sigma = np.full((a, n), np.nan)
         pvalid = np.zeros((a, n), dtype=bool)
         Pp = np.empty((a, n, nx, nx))
+        th2k = np.full((a, n), np.nan)
         if bound.any():
-            ub = uk if uk.ndim == 1 else np.broadcast_to(uk, (a, n, uk.shape[-1]))[bound]
-            U, D = prediction_scaling(model, xk[bound], Pk[bound], k, ub, rule, radius, design.U)
-            choice = predict_rule(Pk[bound], F[bound], U, Q, D, design)
-            margin28[bound] = choice.margin28
+            ub = uk if uk.ndim == 1 else _take(np.broadcast_to(uk, (a, n, uk.shape[-1])), bound)
+            Sk = spectrum(_take(Pk, bound))  # one eigh for (28), (26) and Theorem 2
+            U, D = prediction_scaling(model, _take(xk, bound), Sk.phi, k, ub, rule, radius, design.U)
+            choice = predict_rule(Sk, _take(F, bound), U, Q, D, design)
+            _put(margin28, bound, choice.margin28)
             good = choice.margin28 > 0
-            pvalid[bound] = good
-            Pp[pvalid] = choice.phi_pred[good]
-            sigma[pvalid] = choice.sigma[good]
+            _put(pvalid, bound, good)
+            _put(Pp, pvalid, _take(choice.phi_pred, good))
+            _put(sigma, pvalid, _take(choice.sigma, good))
+            if good.any():
+                _put(th2k, pvalid, theorem2_margin(Sk if good.all() else Sk.take(good), _take(choice.sigma, good),
+                                                   d_max))
         fb = ~pvalid
         if fb.any():  # the fallback: sigma = 0, U = 0, the EKF's F Phi F^T + Q
             Pp[fb] = prediction_recursion(Pk[fb], F[fb], np.zeros((nx, nx)), Q, 0.0, design.epsilon)
-        th2k = np.full((a, n), np.nan)
-        if pvalid.any():
-            th2k[pvalid] = theorem2_margin(Pk[pvalid], sigma[pvalid], d_max)
         v28 = prop & ~pvalid
         pred_ok = pvalid & valid[at, k]
         # ---- exchange
@@ -437,13 +457,13 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         reasons: dict = {}  # (run, node) -> why its update failed
         zk = z[at, k]
         for grp in groups:
-            ns, g, dim = grp.nodes, grp.nodes.size, grp.dim
+            ns, at_g, g, dim = grp.nodes, grp.index, grp.nodes.size, grp.dim
             H = np.stack([model.H(int(i), xp[:, i], k + 1) for i in ns], axis=1)  # (a, g, dim, nx)
             hz = np.stack([model.h(int(i), xp[:, i], k + 1) for i in ns], axis=1)
             res = zk[:, grp.columns] - hz
             for j, i in enumerate(ns):
                 res[:, j] = wrap_residuals(res[:, j], model.sensors[i].angles)
-            vin = pvalid[:, ns]
+            vin = pvalid[:, at_g]
             V = np.array(np.broadcast_to(grp.V, (a, g, dim, dim)))
             if rule != "fixed":
                 for j, i in enumerate(ns):
@@ -451,22 +471,22 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
                     if sel.any():
                         V[sel, j] = update_scaling(model, int(i), xp[sel, i], Pp[sel, i], k + 1, rule, radius,
                                                    grp.V[j])[0]
-            flat = dict(P=Pp[:, ns], H=H, s=s[:, ns], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
-                        d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, ns])
+            flat = dict(P=Pp[:, at_g], H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
+                        d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
             flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
             *out, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
             gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
-            x_g = xp[:, ns] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, ns][..., None])[..., 0]
+            x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
             fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
                     & (np.abs(x_g).max(axis=-1) < _DIVERGED))
             for j, why in breakdowns.items():
                 reasons[j // g, int(ns[j % g])] = why
             for r, j in zip(*np.nonzero(~fine)):
                 reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {_DIVERGED:g} or not finite")
-            failed[:, ns] = ~fine
-            xn[:, ns], Pn[:, ns], Cn[:, ns] = x_g, gP, gC
-            Kn[:, ns, :, :dim] = gK
-            margin29[:, ns], beta[:, ns], uvalid[:, ns] = gm29, gbeta, gok
+            failed[:, at_g] = ~fine
+            xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
+            Kn[:, at_g, :, :dim] = gK
+            margin29[:, at_g], beta[:, at_g], uvalid[:, at_g] = gm29, gbeta, gok
         v29 = pvalid & ~uvalid
         # ---- divergence: a run stops at its first failing node (in node order), as run_consensus does
         first = np.where(failed.any(axis=1), failed.argmax(axis=1), n)
@@ -535,7 +555,10 @@ def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDe
     def compute(idx):
         rows = idx[vin[idx]]
         if rows.size:
-            ch = update_rule(*(it[key][rows] for key in ("P", "H", "s", "V", "R", "d", "nt")), D, design)
+            every = rows.size == m  # no copies when every item is inside
+            ch = update_rule(spectrum(it["P"] if every else it["P"][rows]),
+                             *(it[key] if every else it[key][rows] for key in ("H", "s", "V", "R", "d", "nt")), D,
+                             design)
             good = ch.margin29 > 0
             margin[rows] = ch.margin29
             rows = rows[good]
