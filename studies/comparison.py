@@ -8,6 +8,13 @@ one realisation of the same attack law per run (:func:`filters.attacks.channel_d
   estimates the state from its own sensor and its neighbours' estimates; the
   node-to-node channels suffer DoS (message lost) and FDI (the model's injected signal
   added to the estimate sent).  Messages per step: one per directed link (``2 |E|``).
+* **the literature's distributed filters** (:mod:`filters.distributed`) on the same network and
+  channel realisations — ``KCF``, Olfati-Saber's Kalman consensus filter (CDC 2007 / CDC 2009:
+  neighbours' measurement information plus a consensus term on their predictions; ``2 |E|``
+  messages per step), and ``HCMCI``, the hybrid consensus on measurements and information of
+  Battistelli, Chisci, Mugnai, Farina, Graziano (IEEE TAC 2015: ``L`` consensus rounds per step,
+  study option ``hcmci_iterations``, default 1, so ``2 |E| L`` messages per step).  A DoS'ed packet
+  is lost; an FDI'd packet is the one its sender would send if the state were displaced by ``ξ``.
 * **local EKF at every node** — every node alone with its own sensor, no network (the
   baseline a networked design must beat).  Messages per step: 0.
 * **centralized filters** — every sensor sends its measurement to one fusion centre
@@ -45,9 +52,10 @@ import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.network import SensorNetwork
-from designer.validation import InputError, check_probability
+from designer.validation import InputError, check_int, check_probability
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus import HARD_CONDITIONS, run_consensus
+from filters.distributed import run_hcmci, run_kcf
 from filters.ekf import run_ekf
 from filters.particle import run_sir
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
@@ -57,16 +65,20 @@ from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import curves_figure, markdown_table, save_figure, _plt
 from .scenarios import Scenario, reference
 
-__all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "local_ekf_design"]
+__all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "local_ekf_design"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
     "centralized EKF (trusts every packet)"
 LOCAL = "local EKF at every node (no network)"
 MSE = "consensus EKF (mse design)"
-FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL, MSE)  # order of the arrays and the bootstrap
+KCF, HCMCI = "KCF", "HCMCI"
+FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL, MSE, KCF, HCMCI)  # order of the arrays
 FAMILY = {TUNED: "consensus", PAPER_DESIGN: "consensus", PF_AWARE: "particle", PF_PLAIN: "particle",
-          EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus"}
+          EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus", KCF: "consensus", HCMCI: "consensus"}
+DESIGNED = (TUNED, PAPER_DESIGN, MSE)  # the consensus filters with a design (and its conditions)
+LITERATURE = (KCF, HCMCI)  # the literature's consensus filters (filters.distributed): no design, no bound
+HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
 DESCRIPTION = {
     TUNED: "distributed: each node runs the consensus EKF with sigma, beta and gains tuned by convex "
            "optimisation (Clarabel) at every step; exchanges estimates with its neighbours",
@@ -79,6 +91,13 @@ DESCRIPTION = {
     LOCAL: "every node alone: an EKF on its own sensor, no communication (nothing to attack)",
     MSE: "distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node "
          "(joint error covariance with the channels' DoS/FDI statistics), certified by the smallest bound for them",
+    KCF: "distributed, from the literature: Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, "
+         "Algorithm 1), extended form: each node fuses its own and its neighbours' measurement information and adds "
+         "a consensus term on their predictions with gain eps M_i / (1 + ||M_i||_F), eps = 0.5/d_max",
+    HCMCI: "distributed, from the literature: hybrid consensus on measurements and on information of Battistelli, "
+           "Chisci, Mugnai, Farina, Graziano (IEEE TAC 60(5), 2015), extended form: L Metropolis consensus rounds per "
+           "step on the prior and measurement information (covariance intersection), measurements scaled by the "
+           "network size N (the centralized EKF as L grows, without attacks)",
 }
 SWEEP_VALUES = (0.0, 0.1, 0.2, 0.3, 0.4)
 CHUNK_SIZE = 10
@@ -109,8 +128,19 @@ ASSUMPTIONS = (
     "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the built-in scenarios U = 0.01 I and V_i = 0.1 I, "
     "published for the robot only.",
     "comparison: messages per step count transmissions attempted (a message lost to DoS still counts): 2|E| "
-    "directed links for the consensus filters, one uplink per sensor for the centralized ones, none for the "
-    "local EKFs.",
+    "directed links for the consensus filters and KCF, 2|E| L for HCMCI (L rounds), one uplink per sensor for the "
+    "centralized ones, none for the local EKFs; delivered_per_step (KCF, HCMCI) counts those that arrived.",
+    "comparison: KCF and HCMCI (filters.distributed) are the literature's distributed filters on the same network, "
+    "channel realisations and measurements as the consensus EKF, the papers' algorithms in their EKF-linearised "
+    "forms; the papers do not treat attacks: a DoS'ed packet is left out (KCF) or its Metropolis weight goes to the "
+    "receiving node (HCMCI), one attack realisation holds for all L rounds of a step, and an FDI'd packet is the "
+    "one its sender would send if the state were displaced by xi (estimate x_j + xi, measurement information "
+    "u_j + U_j xi, HCMCI's information vectors q_j + Omega_j xi and dq_j + dOmega_j xi in every round).",
+    "comparison: KCF's consensus gain is CDC 2009 Algorithm 1's gamma M_i with gamma = eps/(1 + ||M_i||_F); eps = "
+    "0.5/d_max is an assumption (the papers give no value). HCMCI's measurement scaling omega = N (the paper's, "
+    "the centralized filter as L grows; for small L it counts a measurement more than once and its covariance is "
+    "overconfident), Metropolis weights 1/(1 + max(d_i, d_j)); L = hcmci_iterations (default 1: the same messages "
+    "per step as the consensus EKF).",
     "comparison: the sweeps leave out the tuned and the mse designs (about 0.4-0.7 s per run per setting, ten "
     "times the paper design) unless tuned_in_sweeps=True; at the main setting every filter runs.",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.mse:"
@@ -130,7 +160,9 @@ TEXT = StudyText(
         "law: distributed consensus Kalman filters, where every sensor node estimates the state from its own "
         "sensor and its neighbours' messages, against an EKF at every node that uses no network at all, and "
         "against centralized filters (particle filters and a plain extended Kalman filter) that receive every "
-        "sensor's measurement at one fusion centre over attacked uplinks. The question: which family gives the "
+        "sensor's measurement at one fusion centre over attacked uplinks, and against two distributed filters of the "
+        "literature, Olfati-Saber's Kalman consensus filter (KCF) and Battistelli and Chisci's hybrid consensus on "
+        "measurements and information (HCMCI). The question: which family gives the "
         "best accuracy for its computing cost and its number of messages, and how does each degrade as the "
         "attacks become more frequent?"),
     filters=dict(DESCRIPTION),
@@ -192,7 +224,7 @@ def _settings(main: tuple[float, float] | None, values: Sequence[float]) -> list
 
 
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
-          options: DesignOptions) -> dict:
+          options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS) -> dict:
     """Task of the runner: every filter at every setting on the runs ``run_ids``.
 
     At the main setting each particle filter runs alone (its time is a single filter's); at
@@ -230,6 +262,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
+    delivered = np.full((R, S, F), np.nan)  # packets delivered per step (KCF, HCMCI), mean over the steps
     est = np.full((R, F, K + 1, m.n_x), np.nan)
     truth = np.empty((R, K + 1, m.n_x))
 
@@ -252,7 +285,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
                                                           fdi_prob=att_j.uplink_fdi, signal=signal))
             ys += [y, y]
-            for name in (TUNED, PAPER_DESIGN, MSE):
+            for name in DESIGNED:
                 if name in designs[j]:
                     f = FILTERS.index(name)
                     t0 = time.perf_counter()
@@ -262,6 +295,13 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                     feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
                                                              for v in res.violations))
                     score(a, j, f, res.x_post, ok)  # x_post (K + 1, nodes, n_x)
+            for name, run, kw in ((KCF, run_kcf, {}), (HCMCI, run_hcmci, {"iterations": hcmci_iterations})):
+                f = FILTERS.index(name)
+                t0 = time.perf_counter()
+                res = run(m, scj.network, traj.z, inputs=traj.inputs, attacks=att, **kw)
+                secs[a, j, f] = time.perf_counter() - t0
+                delivered[a, j, f] = res.delivered_per_step.mean()
+                score(a, j, f, res.x_post, res.diverged is None)
             f = FILTERS.index(EKF_PLAIN)
             values, avail = split_received(m, y)
             t0 = time.perf_counter()
@@ -293,7 +333,8 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                     xs = res.mean[2 * (j - 1) + c][:, None]
                     secs[a, j, f] = per_filter
                     score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
-    return {"err2": err2, "seconds": secs, "feasible": feasible, "estimate": est, "truth": truth}
+    return {"err2": err2, "seconds": secs, "feasible": feasible, "delivered": delivered, "estimate": est,
+            "truth": truth}
 
 
 def _accepts(sc: Scenario) -> str | None:
@@ -308,6 +349,7 @@ def _check(so: StudyOptions) -> None:
                          "designs side by side)")
     for v in np.atleast_1d(so["sweep_values"]):
         check_probability("sweep_values", v)
+    check_int("hcmci_iterations", so["hcmci_iterations"], 1)
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
@@ -315,11 +357,12 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     settings = _settings(_uniform(sc), values)
     ref = reference(sc)
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
-                             tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design)
+                             tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
+                             hcmci_iterations=int(so["hcmci_iterations"]))
     config = {"study": "comparison", "scenario": sc.name, "source": "memory" if ref.in_memory else ref.source,
               "params": dict(ref.params), "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
-              "options": so.design.as_dict()}
+              "hcmci_iterations": int(so["hcmci_iterations"]), "options": so.design.as_dict()}
     return Plan(task, f"comparison-{_slug(sc.name)}", config)
 
 
@@ -333,9 +376,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     boot_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
     # the local EKFs and the mse design (added after the others) bootstrap from streams of their own, so that every
     # other filter's interval keeps its draws
-    own = {LOCAL: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, 1))),
-           MSE: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, 2)))}
-    messages = {"consensus": 2 * len(net.edges), "particle": net.n_nodes, "EKF": net.n_nodes, "local": 0}
+    own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
+           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI), start=1)}
+    L = int(so["hcmci_iterations"])
+    messages = {name: {"consensus": 2 * len(net.edges) * (L if name == HCMCI else 1), "particle": net.n_nodes,
+                       "EKF": net.n_nodes, "local": 0}[FAMILY[name]] for name in FILTERS}
     filters = {}
     for f, name in enumerate(FILTERS):
         met = _metrics(A["err2"][:, 0, f], own.get(name, boot_rng), key)
@@ -343,11 +388,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         met.update({
             "family": fam, "description": DESCRIPTION[name],
             "time_per_step_s": float(np.nanmean(A["seconds"][:, 0, f]) / K),
-            "communications": messages[fam], "messages_per_step": messages[fam],
+            "communications": messages[name], "messages_per_step": messages[name],
             "particles": so.particles if fam == "particle" else None,
         })
-        if fam == "consensus":
+        if name in DESIGNED:
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
+        if name in LITERATURE:
+            met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
+        if name == HCMCI:
+            met["consensus_iterations"] = L
         filters[name] = met
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
@@ -442,7 +491,7 @@ def _recommend(filters: dict, key: str) -> dict:
 
 def table_markdown(results: dict) -> str:
     """Per scenario: the trade-off table (accuracy, cost, communication) and the sweeps."""
-    text = ("# comparison: consensus EKF vs local EKFs vs centralized particle filters and EKF\n\n"
+    text = ("# comparison: consensus EKF vs local EKFs vs KCF and HCMCI vs centralized particle filters and EKF\n\n"
             f"Seed {results['seed']}, M = {results['particles']} particles. No paper makes this comparison; "
             "every filter faces one realisation of the same attack law per run.\n")
     for sc_name, b in results["by_scenario"].items():
@@ -582,7 +631,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": False},
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": False, "hcmci_iterations": HCMCI_ITERATIONS},
     uses_design=True,
     many_scenarios=True,
     accepts=_accepts,

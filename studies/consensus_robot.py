@@ -8,8 +8,11 @@ Every run draws its own truth, measurements and channel attacks from one spawned
 measurements, channel attacks), the same convention as ``cfdesign design``), and
 every filter variant sees the *same* realisations (common random numbers).
 Variants: the paper's design (``C = tau Φ``, tau = 0.01) and the same filter
-without consensus (tau = 0), or the tuned design; a local EKF per camera and a
-centralized EKF; optionally a replayed gain schedule.
+without consensus (tau = 0), or the tuned design; the literature's distributed filters on
+the same network and channel realisations (:mod:`filters.distributed`: ``KCF``, Olfati-Saber's
+Kalman consensus filter, and ``HCMCI``, Battistelli et al.'s hybrid consensus on measurements
+and information with ``hcmci_iterations`` rounds per step, default 1); a local EKF per camera
+and a centralized EKF; optionally a replayed gain schedule.
 
 The runs are computed by :mod:`studies.runner` in chunks of ``chunk_size`` runs
 (:func:`_runs` is the task: every variant on a chunk of runs, returning per-run
@@ -37,11 +40,12 @@ from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, 
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.schedule import load_schedule
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
+from filters.distributed import run_hcmci, run_kcf
 
-from .comparison import local_ekf_design
+from .comparison import HCMCI_ITERATIONS, local_ekf_design
 from .consensus_design import as_mode, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import save_figure
@@ -110,14 +114,19 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
     }
 
 
+CONSENSUS_EKF, KCF, HCMCI = "consensus-EKF", "KCF", "HCMCI"  # which filter a variant runs
+
+
 class _Variant(NamedTuple):
     model: Model
     network: SensorNetwork
     design: ConsensusDesign
     consensus: bool  # runs on the sensor network under the channel attacks
     family: str
-    communications: int = 0  # messages per step for the non-consensus baselines
+    communications: int = 0  # messages per step (sent, whether or not DoS drops them)
     gains: tuple | None = None  # (K, C) of a replayed schedule, (steps, nodes, ...)
+    filter: str = CONSENSUS_EKF  # run_consensus with ``design``, or filters.distributed's KCF / HCMCI
+    iterations: int = 1  # HCMCI's consensus rounds per step
 
 
 def _names(sc: Scenario) -> tuple[str, str]:
@@ -127,7 +136,8 @@ def _names(sc: Scenario) -> tuple[str, str]:
     return "local EKF per node", "centralized EKF (all sensors)"
 
 
-def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict[str, _Variant]:
+def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None,
+              hcmci_iterations: int = HCMCI_ITERATIONS) -> dict[str, _Variant]:
     # ``tuned``: the design compared with the paper's, of mode 'tuned' or 'mse' (None: the paper's without consensus)
     """The filters compared on the same runs.
 
@@ -140,15 +150,20 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     """
     m, net = sc.model, sc.network
     n = net.n_nodes
+    links = 2 * len(net.edges)
     ekf = local_ekf_design(paper)
     local_name, central_name = _names(sc)
     out = {}
     if tuned is not None:
-        out[f"consensus-EKF ({tuned.mode})"] = _Variant(m, net, tuned, True, "consensus")
-    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus")
+        out[f"consensus-EKF ({tuned.mode})"] = _Variant(m, net, tuned, True, "consensus", links)
+    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus", links)
     if tuned is None:
         out["consensus-EKF (paper, tau=0, no consensus)"] = _Variant(m, net, paper._replace(tau=0.0), True,
-                                                                      "consensus")
+                                                                      "consensus", links)
+    # the literature's distributed filters: same network, same channel attacks, no design (``design`` unused)
+    out[KCF] = _Variant(m, net, paper, True, "consensus", links, filter=KCF)
+    out[HCMCI] = _Variant(m, net, paper, True, "consensus", links * hcmci_iterations, filter=HCMCI,
+                          iterations=hcmci_iterations)
     isolated = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
     out[local_name] = _Variant(m, isolated, ekf, False, "local", 0)
     try:
@@ -160,7 +175,8 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     return out
 
 
-def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None) -> tuple:
+def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
+           hcmci_iterations: int = HCMCI_ITERATIONS) -> tuple:
     """The scenario, the paper design and the variants, from picklable arguments (in the parent and in a task).
 
     ``replay``: ``(mode, K (nodes, steps, n_x, n_z), C (nodes, steps, n_x, n_x))`` of a gain
@@ -168,17 +184,29 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
     """
     sc = ref.build()
     paper = consensus_design(sc, as_mode(options, "paper"))
-    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None)
+    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None,
+                         hcmci_iterations)
     if replay is not None:
         sch_mode, K, C = replay
         variants[f"consensus-EKF (replayed {sch_mode} schedule)"] = _Variant(
-            sc.model, sc.network, paper, True, "consensus", gains=(K.swapaxes(0, 1), C.swapaxes(0, 1)))
+            sc.model, sc.network, paper, True, "consensus", 2 * len(sc.network.edges),
+            gains=(K.swapaxes(0, 1), C.swapaxes(0, 1)))
     return sc, paper, variants
 
 
 def _checks_bound(v: _Variant) -> bool:
     """A replayed schedule claims no bound: only the designed consensus filters are checked against Φ."""
-    return v.consensus and v.gains is None
+    return v.consensus and v.gains is None and v.filter == CONSENSUS_EKF
+
+
+def _run_variant(v: _Variant, traj, att):
+    """One variant on one run: ``run_consensus`` with its design, or the distributed filter it names."""
+    attacks = att if v.consensus else None
+    if v.filter == KCF:
+        return run_kcf(v.model, v.network, traj.z, inputs=traj.inputs, attacks=attacks)
+    if v.filter == HCMCI:
+        return run_hcmci(v.model, v.network, traj.z, inputs=traj.inputs, attacks=attacks, iterations=v.iterations)
+    return run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs, attacks=attacks, gains=v.gains)
 
 
 def _encode(text: str) -> np.ndarray:
@@ -190,7 +218,8 @@ def _decode(codes: np.ndarray) -> str:
     return codes.astype(np.uint8).tobytes().rstrip(b"\0").decode(errors="replace")
 
 
-def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None) -> dict:
+def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
+          hcmci_iterations: int = HCMCI_ITERATIONS) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`)
@@ -201,7 +230,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
     """
-    sc, paper, variants = _build(ref, mode, options, replay)
+    sc, paper, variants = _build(ref, mode, options, replay, hcmci_iterations)
     m, net = sc.model, sc.network
     steps, nx = sc.steps, m.n_x
     signal = sc.resolved_attacks.signal
@@ -224,8 +253,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         out["truth"][a] = traj.x
         for j, v in enumerate(variants.values()):
             t = time.perf_counter()
-            res = run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs,
-                                attacks=att if v.consensus else None, gains=v.gains)
+            res = _run_variant(v, traj, att)
             out[f"v{j}_seconds"][a] = time.perf_counter() - t
             if res.diverged is not None:
                 dv = res.diverged
@@ -234,7 +262,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                 out[f"v{j}_diverged_reason"][a] = _encode(str(dv["reason"]))
                 continue
             out[f"v{j}_err"][a] = traj.x[:, None, :] - res.x_post
-            out[f"v{j}_valid"][a] = res.valid
+            if v.filter == CONSENSUS_EKF:
+                out[f"v{j}_valid"][a] = res.valid
             if _checks_bound(v):
                 out[f"v{j}_phi"][a] = res.phi_post
             hard = [x["step"] for x in res.violations if x["condition"] in ("(28)", "(29)")]
@@ -265,17 +294,22 @@ def _mode(so: StudyOptions) -> str:
     return so.design.mode or "paper"
 
 
+def _iterations(so: StudyOptions) -> int:
+    return check_int("hcmci_iterations", so["hcmci_iterations"], 1)
+
+
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    _, _, variants = _build(ref, _mode(so), options, replay)  # checks the designs before any run
-    task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay)
+    _, _, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
+    task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
+                             hcmci_iterations=_iterations(so))
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
               "source": "memory" if ref.in_memory else ref.source, "attacks": sc.attacks.describe(),
               "design_options": {k: v for k, v in options.as_dict().items() if v is not None},
-              "variants": list(variants),
+              "variants": list(variants), "hcmci_iterations": _iterations(so),
               "schedule": None if replay is None else {
                   "mode": replay[0], "sha256": hashlib.sha256(replay[1].tobytes() + replay[2].tobytes()).hexdigest()}}
     return Plan(task, "consensus-robot", config)
@@ -285,7 +319,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    sc, paper, variants = _build(reference(sc), _mode(so), options, replay)
+    sc, paper, variants = _build(reference(sc), _mode(so), options, replay, _iterations(so))
     m, net = sc.model, sc.network
     steps = sc.steps
     A = mc.arrays
@@ -322,7 +356,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                        "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
-            "communications": int(2 * len(v.network.edges)) if v.consensus else v.communications,
+            "communications": v.communications,
             "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:])
             if _checks_bound(v) else None,
             "feasibility": {
@@ -334,7 +368,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             } if _checks_bound(v) else None,
             "diverged_runs": failed,
             "diverged_fraction": len(failed) / runs,
-            "design": describe_design(v.design),
+            "design": describe_design(v.design) if v.filter == CONSENSUS_EKF else None,
+            **({"consensus_iterations": v.iterations} if v.filter == HCMCI else {}),
         }
     return {
         "scenario": sc.name,
@@ -348,8 +383,13 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "likewise; rmse_position_median_run = median over runs of each run's RMSE; node_spread = mean distance "
             "of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite) are "
             "excluded and listed under diverged_runs.",
-            "consensus-robot: communications = predictions sent per step (one per directed channel, 2|E|), "
-            "whether or not DoS drops them.",
+            "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
+            "one per round), whether or not DoS drops them.",
+            "consensus-robot: KCF and HCMCI (filters.distributed) run on the same network, measurements and channel "
+            "attacks as the consensus filters: a DoS'ed packet is left out (KCF) or its Metropolis weight goes to the "
+            "receiving node (HCMCI), one attack realisation holds for all L rounds of a step, an FDI'd packet is the "
+            "one its sender would send if the state were displaced by xi; KCF's eps = 0.5/d_max and HCMCI's "
+            "omega = N (the paper's) are as in the comparison study; neither has a bound (no bound_check).",
             "consensus-robot: run r draws its truth, measurements and attacks from SeedSequence(seed, spawn_key=(r,))"
             ".spawn(2) only, so its numbers do not depend on the number of runs, the chunks (chunk_size runs each) "
             "or the backend; time_per_step_s = a variant's wall time summed over the runs / (runs x K), measured "
@@ -528,14 +568,24 @@ TEXT = StudyText(
         "neighbours; it then corrects its estimate with its own image and with its neighbours' predictions "
         "(consensus). Attackers jam channels between cameras (DoS: the message is lost) or alter messages "
         "(false-data injection). The paper designs the filter gains so that a matrix bound Phi holds on the error "
-        "covariance. The question: does consensus help under attack compared with cameras working alone or with "
-        "one central filter, and does Phi really bound the errors?"),
+        "covariance. Beside it run two distributed filters of the literature on the same channels and attacks: "
+        "Olfati-Saber's Kalman consensus filter (KCF, CDC 2007/2009) and the hybrid consensus on measurements and "
+        "information of Battistelli, Chisci et al. (HCMCI, IEEE TAC 2015). The question: does consensus help "
+        "under attack compared with cameras working alone or with one central filter, how does the designed filter "
+        "fare against the literature's, and does Phi really bound the errors?"),
     filters={
         "consensus-EKF (tuned)": "the consensus filter with gains tuned by our convex optimisation (smallest bound)",
         "consensus-EKF (mse)": "the consensus filter whose gains minimise each node's predicted mean-square error "
                                "(joint error covariance of all nodes), certified by the smallest bound for them",
         "consensus-EKF (paper, tau=0.01)": "the paper's consensus filter (consensus gain C = tau Phi, tau = 0.01)",
         "consensus-EKF (paper, tau=0, no consensus)": "the same filter with the consensus term switched off",
+        "KCF": "Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, Algorithm 1), extended form: every "
+               "node fuses its own and its neighbours' measurement information and adds a consensus term on their "
+               "predictions (gain eps M/(1 + ||M||), eps = 0.5/d_max), on the same channels and attacks",
+        "HCMCI": "the hybrid consensus on measurements and information of Battistelli, Chisci, Mugnai, Farina, "
+                 "Graziano (IEEE TAC 60(5), 2015), extended form: L consensus rounds per step (hcmci_iterations, "
+                 "default 1) on the information pairs with Metropolis weights, measurements scaled by the network "
+                 "size; on the same channels and attacks",
         "local EKF per camera": "every camera alone, no communication",
         "local EKF per node": "every node alone, no communication",
         "centralized EKF (all cameras)": "one filter that receives every camera's measurement each step (a "
@@ -571,7 +621,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_study_figures,
-    options={"schedule": None},
+    options={"schedule": None, "hcmci_iterations": HCMCI_ITERATIONS},
     uses_design=True,
     accepts=_accepts,
 )

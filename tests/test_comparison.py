@@ -25,7 +25,8 @@ from filters.ekf import run_ekf
 from filters.particle import additive_noise_loglik
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 from studies.cli import main
-from studies.comparison import EKF_PLAIN, FILTERS, LOCAL, PAPER_DESIGN, PF_AWARE, PF_PLAIN, SWEEP_VALUES, TUNED
+from studies.comparison import (EKF_PLAIN, FILTERS, HCMCI, KCF, LOCAL, PAPER_DESIGN, PF_AWARE, PF_PLAIN, SWEEP_VALUES,
+                                TUNED)
 from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
@@ -201,6 +202,12 @@ def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
         cr["filters"]["consensus-EKF (paper, tau=0.01)"]["rmse_position"], rel=1e-12)
     assert fl[ROBOT + LOCAL]["rmse_position"] == pytest.approx(
         cr["filters"]["local EKF per camera"]["rmse_position"], rel=1e-12)
+    for name in (KCF, HCMCI):  # the literature's filters face the same channel realisations in both studies
+        assert fl[ROBOT + name]["rmse_position"] == pytest.approx(cr["filters"][name]["rmse_position"], rel=1e-12)
+        assert fl[ROBOT + name]["family"] == "consensus" and fl[ROBOT + name]["messages_per_step"] == 20
+        assert "feasible_runs" not in fl[ROBOT + name]  # no design, no design conditions
+        assert 0 < fl[ROBOT + name]["delivered_per_step"] < 20  # DoS 0.1 on every channel
+        assert {v for v in sw_values(res, ROBOT + name)} == {"0.1", "0.3"}
     assert set(fl) == {ROBOT + n for n in FILTERS}
     assert fl[ROBOT + PF_AWARE]["messages_per_step"] == 8 and fl[ROBOT + TUNED]["communications"] == 20
     assert fl[ROBOT + LOCAL]["messages_per_step"] == 0
@@ -212,6 +219,19 @@ def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
     assert ROBOT + TUNED not in sw["fdi_prob"]["0.3"] and ROBOT + TUNED in sw["fdi_prob"]["0.1"]
     # the main setting is one of the sweeps' points: the same numbers from the same runs
     assert sw["fdi_prob"]["0.1"][ROBOT + PF_PLAIN]["rmse_position"] == fl[ROBOT + PF_PLAIN]["rmse_position"]
+
+
+def sw_values(res: dict, name: str) -> set:
+    """The sweep values at which filter ``name`` ran (either sweep)."""
+    return {v for sw_ in res["sweeps"].values() for v, row in sw_.items() if name in row}
+
+
+def test_hcmci_iterations_is_a_study_option():
+    with pytest.raises(InputError, match="hcmci_iterations must be an integer >= 1, got 0"):
+        run_comparison(out=None, hcmci_iterations=0, **SMALL)
+    res = run_consensus_robot(out=None, runs=2, seed=3, quiet=True, hcmci_iterations=3, overrides={"steps": 5})
+    hc, kcf = res["filters"]["HCMCI"], res["filters"]["KCF"]
+    assert hc["communications"] == 3 * kcf["communications"] == 60 and hc["consensus_iterations"] == 3
 
 
 def test_without_attacks_the_centralized_filters_agree(tmp_path):

@@ -257,6 +257,24 @@ def test_comparison_on_a_user_model_file(tmp_path):
     schemas.validate("study", res.results)  # the object in memory too
 
 
+def test_the_literature_filters_results_are_typed(study_dir, tmp_path):
+    """comparison and consensus-robot carry KCF and HCMCI; their packet counts are typed by the schema."""
+    good = study_dir("comparison") / "results.json"
+    res = json.loads(good.read_text())
+    for sc in ("indoor-robot", "target-range-bearing"):
+        hc = res["filters"][f"{sc}: HCMCI"]
+        assert hc["consensus_iterations"] == 1 and 0 <= hc["delivered_per_step"] <= hc["messages_per_step"]
+        assert res["filters"][f"{sc}: KCF"]["messages_per_step"] == hc["messages_per_step"]
+    robot = json.loads((study_dir("consensus-robot") / "results.json").read_text())["filters"]
+    assert robot["HCMCI"]["bound_check"] is None and robot["KCF"]["communications"] == 20
+
+    def bad(r):
+        r["filters"]["indoor-robot: HCMCI"]["consensus_iterations"] = 0
+
+    with _raises_at(r"\$\.filters\['indoor-robot: HCMCI'\]\.consensus_iterations: 0 is less than the minimum of 1"):
+        schemas.validate_output(_rewrite(good, tmp_path / "a" / "results.json", bad))
+
+
 # ---------------------------------------------------------------------------------------------- negative controls
 def _rewrite(src: Path, dst: Path, change) -> Path:
     obj = json.loads(src.read_text())

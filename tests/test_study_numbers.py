@@ -29,10 +29,11 @@ import numpy as np
 
 from designer.design import DesignOptions, make_design
 from designer.simulate import simulate, simulate_runs
-from filters.attacks import (bias_attack, binary_sensor_channel, channel_draws, deception_attack, receive,
-                             round_robin_schedule, simulate_attacks, uplink_attacks)
+from filters.attacks import (attack_pattern, bias_attack, binary_sensor_channel, channel_draws, deception_attack,
+                             receive, round_robin_schedule, simulate_attacks, uplink_attacks)
 from filters.binary import binary_loglik
 from filters.consensus import run_consensus
+from filters.distributed import run_hcmci, run_kcf
 from filters.edpf import interval_loglik, received
 from filters.ekf import run_ekf
 from filters.encryption import transmit
@@ -68,10 +69,11 @@ def simulate_scenario(sc, ss: np.random.SeedSequence, steps: int):
 
 # ----------------------------------------------------------------------------- consensus-robot (seed 003)
 def test_consensus_robot_paper_design_rmse():
-    """consensus-robot, paper mode: "consensus-EKF (paper, tau=0.01)" rmse_position.
+    """consensus-robot, paper mode: "consensus-EKF (paper, tau=0.01)", "KCF" and "HCMCI" rmse_position.
 
     Run r: ``SeedSequence(seed, spawn_key=(r,)).spawn(2)`` = (truth and measurements, channel
-    attacks); the paper design (the scenario's design defaults in mode "paper") on every node;
+    attacks); the paper design (the scenario's design defaults in mode "paper") on every node,
+    and the literature's filters (``run_kcf``, ``run_hcmci`` with the default L = 1) on the same attacks;
     RMSE_position = sqrt(mean over runs, nodes and steps 1..K of the squared position error).
     """
     seed, runs, steps = 11, 3, 8
@@ -84,33 +86,36 @@ def test_consensus_robot_paper_design_rmse():
     design = make_design(m, net, delta=sc.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
     assert design.tau == 0.01
     pos = list(m.position_index)
-    e2 = []
+    e2 = {"paper": [], "KCF": [], "HCMCI": []}  # KCF, HCMCI (filters.distributed, L = 1) on the same attacks
     for r in range(runs):
         traj_ss, att_ss = run_ss(seed, r).spawn(2)
         traj = simulate_scenario(sc, traj_ss, steps)
         att = simulate_attacks(net, steps, m.n_x, rng(att_ss), sc.resolved_attacks.signal)
-        out = run_consensus(m, net, traj.z, design, inputs=traj.inputs, attacks=att)
-        assert out.diverged is None
-        err = traj.x[1:, None, :] - out.x_post[1:]  # (K, nodes, n_x)
-        e2.append((err[..., pos] ** 2).sum(-1))
-    ours = float(np.sqrt(np.mean(e2)))
-    f = res["filters"]["consensus-EKF (paper, tau=0.01)"]
-    assert f["diverged_runs"] == []
-    np.testing.assert_allclose(f["rmse_position"], ours, rtol=SAME_PATH)
+        for key, out in (("paper", run_consensus(m, net, traj.z, design, inputs=traj.inputs, attacks=att)),
+                         ("KCF", run_kcf(m, net, traj.z, inputs=traj.inputs, attacks=att)),
+                         ("HCMCI", run_hcmci(m, net, traj.z, iterations=1, inputs=traj.inputs, attacks=att))):
+            assert out.diverged is None
+            err = traj.x[1:, None, :] - out.x_post[1:]  # (K, nodes, n_x)
+            e2[key].append((err[..., pos] ** 2).sum(-1))
+    for name, key in (("consensus-EKF (paper, tau=0.01)", "paper"), ("KCF", "KCF"), ("HCMCI", "HCMCI")):
+        f = res["filters"][name]
+        assert f["diverged_runs"] == []
+        np.testing.assert_allclose(f["rmse_position"], float(np.sqrt(np.mean(e2[key]))), rtol=SAME_PATH, err_msg=name)
 
 
 # ----------------------------------------------------------------------------- comparison
 def test_comparison_centralized_filters_rmse():
-    """comparison on indoor-robot, sweeps off: the centralized PFs' and the EKF's rmse_position.
+    """comparison on indoor-robot, sweeps off: the centralized PFs', the EKF's, KCF's and HCMCI's rmse_position.
 
     Run r: ``SeedSequence(seed, spawn_key=(r,)).spawn(3)`` = (truth, channel draws, particle
-    filters); the uplinks use the diagonal of the channel draws; the particle filters at the
+    filters); the uplinks use the diagonal of the channel draws and KCF, HCMCI (``hcmci_iterations=2``)
+    the node-to-node channels of the same draws (mean over nodes too); the particle filters at the
     main setting draw from ``spawn(3)[2].spawn(3)`` = (attack-aware PF, PF trusting every
     packet, sweep batch).  RMSE = sqrt(mean over runs and steps of the squared position error).
     """
     seed, runs, steps, M = 5, 2, 6, 40
     res = run_study("comparison", ["indoor-robot"], runs=runs, particles=M, seed=seed, quiet=True,
-                    sweep_values=(), overrides={"steps": steps}).results
+                    sweep_values=(), overrides={"steps": steps}, hcmci_iterations=2).results
     sc = load_scenario("indoor-robot", {"steps": steps})
     m, n = sc.model, sc.network.n_nodes
     att = sc.resolved_attacks
@@ -121,11 +126,17 @@ def test_comparison_centralized_filters_rmse():
     assert np.all(att.uplink_dos == dos) and np.all(att.uplink_fdi == fdi)
     q = fdi / (1.0 - dos)
     pos = list(m.position_index)
-    e2 = {"aware": [], "plain": [], "ekf": []}
+    e2 = {"aware": [], "plain": [], "ekf": [], "kcf": [], "hcmci": []}
     for r in range(runs):
         ts, cs, fs = run_ss(seed, r).spawn(3)
         traj = simulate_scenario(sc, ts, steps)
         u, s = channel_draws(steps, n, rng(cs))
+        # KCF and HCMCI (L = 2) on the node-to-node channels of the same draws, every node's estimate scored
+        att_net = attack_pattern(sc.network, u, s, m.n_x, signal)
+        for key, out in (("kcf", run_kcf(m, sc.network, traj.z, inputs=traj.inputs, attacks=att_net)),
+                         ("hcmci", run_hcmci(m, sc.network, traj.z, iterations=2, inputs=traj.inputs,
+                                             attacks=att_net))):
+            e2[key].append(((traj.x[1:, None, pos] - out.x_post[1:][..., pos]) ** 2).sum(-1))
         y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att.uplink_dos,
                                                       fdi_prob=att.uplink_fdi, signal=signal))
         pf_ss = fs.spawn(3)
@@ -138,7 +149,7 @@ def test_comparison_centralized_filters_rmse():
         e2["ekf"].append(((traj.x[1:, pos] - xs[1:, pos]) ** 2).sum(-1))
     f = res["filters"]
     for name, key in (("centralized PF (attack-aware)", "aware"), ("centralized PF (trusts every packet)", "plain"),
-                      ("centralized EKF (trusts every packet)", "ekf")):
+                      ("centralized EKF (trusts every packet)", "ekf"), ("KCF", "kcf"), ("HCMCI", "hcmci")):
         assert f[name]["diverged_runs"] == 0
         np.testing.assert_allclose(f[name]["rmse_position"], float(np.sqrt(np.mean(e2[key]))), rtol=SAME_PATH,
                                    err_msg=name)
