@@ -52,6 +52,7 @@ __all__ = ["FDISignal", "AttackSpec", "SIGNAL_LAWS", "NO_ATTACKS", "RoundRobinDe
 # law -> (g(s) as a NumPy function of standard normals, E[g(s)^2])
 SIGNAL_LAWS = ("sine", "uniform", "constant")
 _SECOND_MOMENT = {"sine": 0.5 * (1.0 - np.exp(-2.0)), "uniform": 1.0 / 3.0, "constant": 1.0}
+_MEAN = {"sine": 0.0, "uniform": 0.0, "constant": 1.0}  # E[g(s)]: sin and 2Φ - 1 are odd
 
 
 def _g(law: str, s: np.ndarray) -> np.ndarray:
@@ -133,6 +134,14 @@ class FDISignal:
         """``E[ξ ξᵀ] = E[g²] a aᵀ`` (n_x x n_x): what one falsified packet adds, in the mean square."""
         a = self.amplitudes(n_x)
         return self.second_moment * np.outer(a, a)
+
+    def mean(self, n_x: int) -> np.ndarray:
+        """``E[ξ] = E[g] a`` (n_x,): zero for the odd laws, ``a`` for a constant bias."""
+        return _MEAN[self.law] * self.amplitudes(n_x)
+
+    def span(self, n_x: int) -> np.ndarray:
+        """The projector onto the attacked components (n_x x n_x, diagonal 0/1): ``ξ ξᵀ <= ||ξ||² Π``."""
+        return np.diag((self.amplitudes(n_x) != 0).astype(float))
 
     def inject(self, s: np.ndarray, mask: np.ndarray, n_x: int) -> np.ndarray:
         """``ξ`` of shape ``s.shape + (n_x,)``: ``a g(s)`` where ``mask``, 0 elsewhere."""

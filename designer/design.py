@@ -76,8 +76,11 @@ class ConsensusDesign(NamedTuple):
     ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
     Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.  In
     ``'mse'`` mode the gains minimise the predicted mean-square error of every node
-    (:mod:`designer.mse`, with ``fdi_moment`` = E[ξ ξᵀ] of the injected signal) and σ, β
-    certify them (the smallest bound (26)-(27) for those gains).
+    (:mod:`designer.mse`, with ``fdi_moment`` = E[ξ ξᵀ] and ``fdi_mean`` = E[ξ] of the
+    injected signal) and one σ and one β certify them (the smallest bound (26)-(27) of the
+    stacked error of all nodes for those gains).  ``fdi_span`` (the projector onto the
+    components the signal reaches) shapes the falsified packets' term of the tuned and mse
+    bounds, ``δ² Π`` instead of ``δ² I``.
     """
 
     epsilon: float
@@ -93,6 +96,8 @@ class ConsensusDesign(NamedTuple):
     # nonlinear in (the tighter variant: the multipliers act only along those directions)
     radius: float = DEFAULT_RADIUS  # 'hessian': the bound holds for errors within `radius` standard deviations of Φ
     fdi_moment: np.ndarray | None = None  # 'mse': E[ξ ξᵀ] (n_x x n_x) of one falsified packet (None: 0)
+    fdi_mean: np.ndarray | None = None  # 'mse': E[ξ] (n_x,) of one falsified packet (None: 0)
+    fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -147,7 +152,13 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     M = np.zeros((model.n_x, model.n_x)) if design.fdi_moment is None else check_finite("fdi_moment", design.fdi_moment)
     if M.shape != (model.n_x, model.n_x):
         raise InputError(f"fdi_moment must have shape ({model.n_x}, {model.n_x}), got {M.shape}")
-    return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M)
+    P = np.eye(model.n_x) if design.fdi_span is None else check_finite("fdi_span", design.fdi_span)
+    if P.shape != (model.n_x, model.n_x) or not np.allclose(P @ P, P) or not np.allclose(P, P.T):
+        raise InputError(f"fdi_span must be a symmetric projector of shape ({model.n_x}, {model.n_x})")
+    mu = np.zeros(model.n_x) if design.fdi_mean is None else check_finite("fdi_mean", design.fdi_mean)
+    if mu.shape != (model.n_x,):
+        raise InputError(f"fdi_mean must have shape ({model.n_x},), got {mu.shape}")
+    return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M, fdi_span=P, fdi_mean=mu)
 
 
 # ------------------------------------------------------------------------------------------- scalings
@@ -348,12 +359,14 @@ class DesignOptions:
 
 
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
-                u0=None, fdi_moment=None) -> ConsensusDesign:
+                u0=None, signal=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
 
-    ``delta`` is the FDI bound of the resolved attack specification and ``fdi_moment`` its
-    signal's ``E[ξ ξᵀ]`` (the mse design's statistics); ``x0`` (and ``u0``) the operating
-    point of the ``'prior'`` scalings, ``P0`` the prior covariance there.
+    ``delta`` is the FDI bound of the resolved attack specification and ``signal`` its
+    :class:`designer.attacks.FDISignal`: its ``E[ξ ξᵀ]`` (the mse design's statistics) and the
+    components it reaches (the certificate's FDI term ``δ² Π``; all components without a
+    signal); ``x0`` (and ``u0``) the operating point of the ``'prior'`` scalings, ``P0`` the
+    prior covariance there.
     """
     from .tuning import tuned_epsilon
 
@@ -376,7 +389,9 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         mode=mode,
         linearization=options.linearization or "fixed",
         radius=radius,
-        fdi_moment=fdi_moment,
+        fdi_moment=None if signal is None else signal.moment(model.n_x),
+        fdi_span=None if signal is None else signal.span(model.n_x),
+        fdi_mean=None if signal is None else signal.mean(model.n_x),
     )
     return validate_design(des, model, network)
 

@@ -23,6 +23,22 @@ convex in (β, C, K).  SDP::
 
 Both are built once with cvxpy Parameters (DPP) and re-solved with Clarabel.
 
+**Weights** (:func:`tune_weighted`, the tuned mode's update).  (27)'s factors (1 + 2 d_i) and
+3 bound the outer product of a sum of error groups.  With the groups written out — the node's
+own ``a_0 = A e_i - K V Θ D e_i``, one per received neighbour ``a_j = C e_j`` and one for all
+falsified packets ``b = C Σ_j γ_ij ξ_ij`` — the sharp form of that inequality is
+``(Σ_l a_l)(Σ_l a_l)ᵀ <= Σ_l a_l a_lᵀ / p_l`` for any ``p_l > 0`` with ``Σ p_l = 1`` (no
+independence needed), so the bound is::
+
+    Φ⁺ = (A M Aᵀ + β^-1 K V Vᵀ Kᵀ) / p_0 + Σ_{j∈R_i} C Φ_{j,k+1|k} Cᵀ / p_j
+         + δ² E[(Σ_j γ_ij)²] C Π Cᵀ / p_ξ + K R Kᵀ
+
+(``R_i`` the packets that arrived, which the node knows; ``Π`` the projector onto the
+components the FDI signal reaches; :func:`neighbour_groups`), with the weights optimised
+jointly with (β, C, K).  The paper's factors are not such a choice in general (their
+reciprocals sum to more than 1), so this bound is not always below the paper's for the
+same gains; it is always valid.
+
 **ε.**  σ enters (26) and (28) only through ``c σ`` and ``1/(ε σ)``: with
 ``σ' = (1+ε) σ`` the prediction trace is ``tr F (Φ^-1 - σ' I)^-1 F^T + ((1+ε)/ε) tr(U U^T)/σ'``
 and (28) reads ``σ' < λ_min(Φ^-1)``.  The factor ``(1+ε)/ε`` decreases in ε, so for
@@ -49,7 +65,10 @@ from .validation import ComputationError
 
 __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
-    "PredictionSDP", "UpdateSDP", "CertifySDP", "update_trace", "lam_max", "certify_update",
+    "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
+    "WeightedChoice", "own_term", "optimal_weights", "weighted_bound", "tune_weighted",
+    "neighbour_groups", "best_multiplier",
+    "WeightedSDP",
 ]
 
 MARGIN = 0.05  # relative margin kept in (28), (29) and in epsilon < 1/d_max
@@ -141,9 +160,9 @@ class _FixedBeta:
     ``Z* = w M B G^-1`` and ``f* = w tr M - w^2 tr(M B G^-1 B^T M)``.
     """
 
-    def __init__(self, phi_pred, H, s, V, R, d_i, N, D=None):
+    def __init__(self, phi_pred, H, s, V, R, w: float, N, D=None):
         self.n, m = phi_pred.shape[0], H.shape[0]
-        self.w = 1.0 + 2 * d_i
+        self.w = float(w)
         Dm = np.eye(self.n) if D is None else D
         # M(β) = Φ + G diag(β / (1 - β μ)) Gᵀ with D Φ Dᵀ = Q diag(μ) Qᵀ and G = Φ Dᵀ Q (Woodbury).
         self.phi = symmetrize(phi_pred)
@@ -181,6 +200,18 @@ class _FixedBeta:
         Z = self.w * self._solve(G, MB.T).T
         return Z[:, : self.n], Z[:, self.n:]
 
+    def slope(self, beta) -> float:
+        """``d f*/dβ`` by the envelope theorem: ``w tr A M'(β) Aᵀ - w tr K V Vᵀ Kᵀ / β²`` at the optimal Z,
+        with ``M' = G diag(1/(1 - β μ)²) Gᵀ`` (increasing in β: f* is convex)."""
+        beta = np.float64(beta)  # NumPy division: inf or NaN (caught by the caller) where floats end
+        C, K = self.gains(beta)
+        A = np.eye(self.n) - C @ self.B[:, : self.n].T - K @ self.B[:, self.n:].T  # I - s C - K H
+        AG = A @ self.G
+        out = self.w * float(np.sum(AG**2 / (1.0 - beta * self.mu) ** 2))
+        if self.has_v:
+            out -= self.w * float(np.sum((K @ self.VVt) * K)) / beta**2
+        return out
+
 
 def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
     """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search)."""
@@ -189,43 +220,169 @@ def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN
 
 
 def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
-    bmax = (1.0 - margin) / lam_max(phi_pred, D)
-    fixed = _FixedBeta(phi_pred, H, s, V, R, d_i, N, D)
-    trace_at = fixed.trace
-
-    if not np.any(V):
-        # Without V the trace only grows with β (M grows): β = 0.
-        beta = 0.0
-    else:
-        res = minimize_scalar(trace_at, bounds=(bmax * 1e-9, bmax), method="bounded",
-                              options={"xatol": bmax * 1e-8, "maxiter": 500})
-        beta = float(res.x)
-    C, K = fixed.gains(beta)
+    beta, C, K = _best_gains(phi_pred, H, s, V, R, 1.0 + 2 * d_i, N, margin, D)
     phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
-def certify_update(phi_pred, H, C, K, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
-    """The smallest bound (27) for *given* gains ``(C, K)``: β minimising ``tr Φ_{k+1|k+1}`` with (29) at margin.
+def best_multiplier(trace_at, bmax: float, has_v: bool) -> float:
+    """The β in ``(0, bmax]`` minimising the convex ``trace_at(β)`` (0 without V: the trace only grows with β)."""
+    if not has_v:
+        return 0.0
+    res = minimize_scalar(trace_at, bounds=(bmax * 1e-9, bmax), method="bounded",
+                          options={"xatol": bmax * 1e-8, "maxiter": 500})
+    return float(res.x)
 
-    Theorem 1's bound holds for any gains as long as (28)-(29) hold, so gains chosen for
-    another purpose (``mode='mse'``) are certified by choosing only the multiplier.  For fixed
-    gains ``tr Φ(β) = w tr A (Φ_pred^-1 - β DᵀD)^-1 Aᵀ + w tr K V Vᵀ Kᵀ / β + const`` is convex
-    in β on ``0 < β < 1/λmax(D Φ_pred Dᵀ)`` (a matrix-fractional term in an affine matrix plus
-    ``1/β``), so a bounded scalar search finds its minimum (:class:`CertifySDP` solves the same
-    problem as an SDP; the tests compare them).
-    """
-    with np.errstate(over="ignore", invalid="ignore"):
-        bmax = (1.0 - margin) / lam_max(phi_pred, D)
-        if not np.any(V):
-            beta = 0.0  # without V the trace only grows with β
+
+def _best_gains(phi_pred, H, s, V, R, w, N, margin, D):
+    """(β, C, K) minimising ``w tr(A M Aᵀ + K V Vᵀ Kᵀ / β) + tr C N Cᵀ + tr K R Kᵀ`` with (29) at margin."""
+    bmax = (1.0 - margin) / lam_max(phi_pred, D)
+    fixed = _FixedBeta(phi_pred, H, s, V, R, w, N, D)
+    if not np.any(V):
+        beta = 0.0  # without V the trace only grows with β (M grows)
+    else:  # the root of the increasing slope of the convex f*(β), bracketed
+        lo = bmax * 1e-9
+        hi_slope, lo_slope = fixed.slope(bmax), fixed.slope(lo)
+        if not (np.isfinite(hi_slope) and np.isfinite(lo_slope)):
+            beta = best_multiplier(fixed.trace, bmax, True)  # a bound beyond floats: the plain search
+        elif hi_slope <= 0:
+            beta = bmax  # the margin on (29) binds
+        elif lo_slope >= 0:
+            beta = lo
         else:
-            res = minimize_scalar(lambda b: float(np.trace(update_trace(phi_pred, H, C, K, s, b, V, R, d_i, N, D))),
-                                  bounds=(bmax * 1e-9, bmax), method="bounded",
-                                  options={"xatol": bmax * 1e-8, "maxiter": 500})
-            beta = float(res.x)
-        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
-    return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
+            try:
+                beta = float(brentq(fixed.slope, lo, bmax, xtol=bmax * 1e-12, rtol=1e-12, maxiter=200))
+            except ValueError:  # the slope left floats inside the bracket
+                beta = best_multiplier(fixed.trace, bmax, True)
+    C, K = fixed.gains(beta)
+    return beta, C, K
+
+
+# ----------------------------------------------------------------- optimised weights
+class WeightedChoice(NamedTuple):
+    beta: float
+    C: np.ndarray
+    K: np.ndarray
+    phi_post: np.ndarray
+    trace: float
+    weights: np.ndarray  # (1 + G,) p_0 (the node's own group) then one per neighbour group; sums to 1
+
+
+_P_FLOOR = 1e-12  # a group's weight is never below this (a zero weight would make its term 0/0)
+
+
+def own_term(phi_pred, H, C, K, s: float, beta: float, V, D=None) -> np.ndarray:
+    """The node's own error group of (27): ``A M Aᵀ + K V Vᵀ Kᵀ / β`` (``A = I - sC - KH``, M of (29))."""
+    M = shifted_inverse(phi_pred, beta, D)
+    A = np.eye(phi_pred.shape[0]) - s * C - K @ H
+    KV = K @ V
+    lin = KV @ KV.T / beta if np.any(KV) else 0.0 * M
+    return symmetrize(A @ M @ A.T + lin)
+
+
+def optimal_weights(traces) -> np.ndarray:
+    """``p_l = √t_l / Σ √t_l``: the weights minimising ``Σ t_l / p_l`` over the simplex (floored at 1e-12)."""
+    r = np.sqrt(np.maximum(np.asarray(traces, dtype=float), 0.0))
+    if not r.sum() > 0:
+        return np.full(r.size, 1.0 / r.size)
+    p = np.maximum(r / r.sum(), _P_FLOOR)
+    return p / p.sum()
+
+
+def neighbour_groups(phi_nb, q_fdi, delta: float, receipt=None, span=None) -> np.ndarray:
+    """The neighbour groups of the weighted (27), shape (G, n, n).
+
+    One group per neighbour channel ``j`` (rows of ``phi_nb``, (J, n, n): the neighbours'
+    ``Φ_{j,k+1|k}``, times ``receipt[j]``, the probability the packet arrives, 1 for a packet
+    that did), and one for all falsified packets together: with independent FDI indicators
+    ``γ_j`` of probabilities ``q_fdi[j]`` and ``||ξ_j|| <= δ`` (any signal, not only a
+    zero-mean one), ``||Σ_j γ_j ξ_j||² <= δ² (Σ_j γ_j)²``, whose mean is
+    ``δ² (Σ_j q_j (1 - q_j) + (Σ_j q_j)²)``; that group is ``δ² E[(Σ_j γ_j)²] Π`` (omitted when 0),
+    with ``Π`` (``span``) the projector onto the components the signal can reach (default I).
+    """
+    phi_nb = np.asarray(phi_nb, dtype=float)
+    q = np.asarray(q_fdi, dtype=float)
+    groups = phi_nb if receipt is None else phi_nb * np.asarray(receipt, dtype=float)[:, None, None]
+    m2 = float(np.sum(q * (1.0 - q)) + np.sum(q) ** 2) * delta**2
+    if m2 > 0:
+        span = np.eye(phi_nb.shape[-1]) if span is None else np.asarray(span, dtype=float)
+        groups = np.concatenate([groups, m2 * span[None]])
+    return groups
+
+
+def _group_traces(C, groups) -> np.ndarray:
+    return np.einsum("ab,gbc,ac->g", C, groups, C) if len(groups) else np.zeros(0)
+
+
+def weighted_bound(phi_pred, H, C, K, s: float, beta: float, V, R, groups, weights, D=None) -> np.ndarray:
+    """(27) with weights: ``own / p_0 + Σ_g C N_g Cᵀ / p_g + K R Kᵀ`` (``groups``: (G, n, n), ``weights``: (1+G,))."""
+    p = np.asarray(weights, dtype=float)
+    out = own_term(phi_pred, H, C, K, s, beta, V, D) / p[0] + K @ R @ K.T
+    if len(groups):
+        out = out + C @ np.einsum("gab,g->ab", groups, 1.0 / p[1:]) @ C.T
+    return symmetrize(out)
+
+
+def _weighted_choice(phi_pred, H, C, K, s, beta, V, R, groups, D) -> WeightedChoice:
+    """The bound for given (β, C, K) with the weights that make its trace smallest (closed form)."""
+    p = optimal_weights(np.concatenate([[np.trace(own_term(phi_pred, H, C, K, s, beta, V, D))],
+                                        _group_traces(C, groups)]))
+    phi = weighted_bound(phi_pred, H, C, K, s, beta, V, R, groups, p, D)
+    return WeightedChoice(beta, C, K, phi, float(np.trace(phi)), p)
+
+
+def tune_weighted(phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D=None, *, weights=None,
+                  tol: float = 1e-6, max_iter: int = 30, memory: int = 3) -> WeightedChoice:
+    """Minimise the weighted bound (27) jointly over (β, C, K) and the weights, with (29) at margin.
+
+    With ``b = p_0 β`` the trace is jointly convex in (C, K, b, p) (matrix-fractional terms
+    ``A (p_0 Φ_pred^-1 - b DᵀD)^-1 Aᵀ``, ``K V Vᵀ Kᵀ / b``, ``C N_g Cᵀ / p_g``); we minimise it by
+    blocks: for fixed weights, (β, C, K) by the fast path of :func:`tune_update` with
+    ``w = 1/p_0`` and ``N = Σ_g N_g / p_g``; for fixed (β, C, K), the weights in closed form.
+    Every block step lowers the trace, and a point where neither block can is stationary,
+    hence optimal.  The weight step ``p <- G(p)`` converges linearly, often slowly, so it is
+    Anderson-accelerated in ``log p`` (``memory`` steps; a step that raises the trace restarts
+    from the best point).  Any weights give a valid bound, so ``tol`` (relative change of the
+    trace at which to stop) trades tightness for time, never validity.  ``weights``: a start
+    (e.g. the node's weights at the previous step); default: equal weights.
+    """
+    groups = np.asarray(groups, dtype=float).reshape(-1, *phi_pred.shape)
+    g = len(groups)
+    p = np.full(g + 1, 1.0 / (g + 1)) if weights is None or len(weights) != g + 1 else np.asarray(weights, float)
+    floor = np.log(_P_FLOOR)
+    best, last = None, np.inf
+    ys: list[np.ndarray] = []
+    gs: list[np.ndarray] = []
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(max_iter):
+            N = np.einsum("gab,g->ab", groups, 1.0 / p[1:]) if g else np.zeros_like(phi_pred)
+            beta, C, K = _best_gains(phi_pred, H, s, V, R, 1.0 / p[0], N, margin, D)
+            choice = _weighted_choice(phi_pred, H, C, K, s, beta, V, R, groups, D)
+            improved = best is None or choice.trace < best.trace
+            if improved:
+                best = choice
+            y, gy = np.log(p), np.log(choice.weights)
+            if g == 0 or np.abs(gy - y).max() <= 1e-9 or abs(last - choice.trace) <= tol * choice.trace:
+                break
+            last = choice.trace
+            if not improved:  # the extrapolation overshot: restart from the best point
+                ys, gs = [], []
+                p = best.weights
+                continue
+            ys.append(y)
+            gs.append(gy)
+            ys, gs = ys[-memory - 1:], gs[-memory - 1:]
+            nxt = gy
+            if len(ys) > 1:
+                Fm = np.array([b - a for a, b in zip(ys, gs)]).T
+                gamma = np.linalg.lstsq(np.diff(Fm, axis=1), Fm[:, -1], rcond=None)[0]
+                cand = gy - np.diff(np.array(gs).T, axis=1) @ gamma
+                if np.all(np.isfinite(cand)):
+                    nxt = cand
+            q = np.exp(np.clip(nxt - nxt.max(), floor, 0.0))
+            p = np.maximum(q / q.sum(), _P_FLOOR)
+            p = p / p.sum()
+    return best
 
 
 # ------------------------------------------------------------------------------ SDPs
@@ -335,41 +492,58 @@ class UpdateSDP:
         return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
-class CertifySDP:
-    """The β problem of :func:`certify_update` (fixed gains) as an SDP, built once for dimensions (n, m)."""
+class WeightedSDP:
+    """The weighted (27) problem of :func:`tune_weighted` as one SDP in ``b = p_0 β``, over (C, K, b, p).
 
-    def __init__(self, n: int, m: int):
+    Built once for dimensions ``(n, m)`` and ``groups`` neighbour groups.
+    """
+
+    def __init__(self, n: int, m: int, groups: int):
         import cvxpy as cp
 
         self.Pinv = cp.Parameter((n, n), symmetric=True)
-        self.A = cp.Parameter((n, n))  # I - s C - K H
-        self.KV = cp.Parameter((n, m))
-        self.w = cp.Parameter(nonneg=True)
-        self.const = cp.Parameter()  # tr C N Cᵀ + tr K R Kᵀ
-        self.bmax = cp.Parameter(nonneg=True)
         self.DtD = cp.Parameter((n, n), PSD=True)
-        self.beta = cp.Variable(nonneg=True)
+        self.H = cp.Parameter((m, n))
+        self.s = cp.Parameter(nonneg=True)
+        self.V = cp.Parameter((m, m))
+        self.LR = cp.Parameter((m, m))
+        self.L = [cp.Parameter((n, n)) for _ in range(groups)]
+        self.bmax = cp.Parameter(nonneg=True)
+        self.C, self.K = cp.Variable((n, n)), cp.Variable((n, m))
+        self.b = cp.Variable(nonneg=True)
+        self.p = cp.Variable(groups + 1, nonneg=True)
         X = cp.Variable((n, n), symmetric=True)
         T = cp.Variable((n, n), symmetric=True)
+        Y = [cp.Variable((n, n), symmetric=True) for _ in range(groups)]
+        A = np.eye(n) - self.s * self.C - self.K @ self.H
+        KV = self.K @ self.V
         cons = [
-            cp.bmat([[X, self.A], [self.A.T, self.Pinv - self.beta * self.DtD]]) >> 0,
-            cp.bmat([[T, self.KV], [self.KV.T, self.beta * np.eye(m)]]) >> 0,
-            self.beta <= self.bmax,
+            cp.bmat([[X, A], [A.T, self.p[0] * self.Pinv - self.b * self.DtD]]) >> 0,
+            cp.bmat([[T, KV], [KV.T, self.b * np.eye(m)]]) >> 0,
+            self.b <= self.p[0] * self.bmax,
+            cp.sum(self.p) == 1,
         ]
-        self.problem = cp.Problem(cp.Minimize(self.w * cp.trace(X) + self.w * cp.trace(T) + self.const), cons)
+        for g in range(groups):
+            CL = self.C @ self.L[g]
+            cons.append(cp.bmat([[Y[g], CL], [CL.T, self.p[g + 1] * np.eye(n)]]) >> 0)
+        obj = cp.trace(X) + cp.trace(T) + sum(cp.trace(y) for y in Y) + cp.sum_squares(self.K @ self.LR)
+        self.problem = cp.Problem(cp.Minimize(obj), cons)
         assert self.problem.is_dpp()
 
-    def solve(self, phi_pred, H, C, K, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
+    def solve(self, phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D=None) -> WeightedChoice:
         n = phi_pred.shape[0]
         Dm = np.eye(n) if D is None else D
-        self.DtD.value = Dm.T @ Dm
         self.Pinv.value = symmetrize(np.linalg.inv(phi_pred))
-        self.A.value = np.eye(n) - s * C - K @ H
-        self.KV.value = K @ V
-        self.w.value = 1.0 + 2 * d_i
-        self.const.value = float(np.trace(C @ N @ C.T) + np.trace(K @ R @ K.T))
+        self.DtD.value = Dm.T @ Dm
+        self.H.value, self.s.value, self.V.value = H, float(s), V
+        self.LR.value = np.linalg.cholesky(R)
+        for g, Ng in enumerate(groups):
+            self.L[g].value = np.linalg.cholesky(symmetrize(Ng) + 1e-15 * np.eye(n))
         self.bmax.value = (1.0 - margin) / lam_max(phi_pred, D)
-        _solve(self.problem, "certification SDP")
-        beta = max(float(self.beta.value), 0.0)
-        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
-        return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
+        _solve(self.problem, "weighted update SDP")
+        p = np.maximum(np.asarray(self.p.value, dtype=float), _P_FLOOR)
+        p = p / p.sum()
+        beta = max(float(self.b.value), 0.0) / p[0]
+        groups = np.asarray(groups, dtype=float).reshape(-1, n, n)
+        phi = weighted_bound(phi_pred, H, self.C.value, self.K.value, s, beta, V, R, groups, p, D)
+        return WeightedChoice(beta, self.C.value, self.K.value, phi, float(np.trace(phi)), p)

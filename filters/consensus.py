@@ -11,11 +11,14 @@ the bound recursion (26)-(27), the gain (30) and the conditions (28)-(29) of
 :mod:`designer.bounds`.  The node knows which of its channels were DoS'ed
 (the paper's detector); it cannot tell an FDI'd packet from a clean one.
 
-The gains: the paper's ``C = τ Φ_pred`` with (30) (``mode='paper'``), the convex tuning of
-(β, C, K) that makes the bound smallest (``'tuned'``), or the gains that make every node's
-predicted mean-square error smallest, from the joint error covariance of all nodes
-(:mod:`designer.mse`), certified by the β that makes the bound smallest for them
-(``'mse'``; :attr:`ConsensusResult.predicted_mse` holds that prediction).
+The gains: the paper's ``C = τ Φ_pred`` with (30) and the paper's (27) (``mode='paper'``);
+the convex tuning of (β, C, K) that makes the bound smallest, the bound being (27) with the
+factors (1 + 2 d_i) and 3 replaced by optimised weights over the node's own error, each
+received neighbour's error and the falsified packets (``'tuned'``,
+:func:`designer.tuning.tune_weighted`); or the gains that make every node's predicted
+mean-square error smallest, from the joint error covariance of all nodes, certified by the
+bound of the stacked error of all nodes for those gains (``'mse'``, :mod:`designer.mse`;
+one σ and one β for the network; :attr:`ConsensusResult.predicted_mse` holds the prediction).
 
 When (28) or (29) fails at a node, the violation is recorded (node, step,
 condition, margin) and from then on that node runs the fallback recursion
@@ -43,8 +46,8 @@ from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.mse import joint_predict, joint_prior, joint_update, mse_gains
-from designer.tuning import certify_update, tune_prediction, tune_update
+from designer.mse import certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains
+from designer.tuning import lam_max, neighbour_groups, tune_prediction, tune_weighted
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -126,6 +129,7 @@ class NodeUpdate(NamedTuple):
     margin29: float
     valid: bool
     beta: float = np.nan
+    weights: np.ndarray | None = None  # modes tuned/mse: the weights p of the groups of (27)
 
 
 def _residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
@@ -141,12 +145,15 @@ def _residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
 
 
 def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innovation_i, s_i: float,
-                neighbour_terms: np.ndarray, design: ConsensusDesign, d_i: int, gains=None) -> NodeUpdate:
+                neighbour_terms: np.ndarray, design: ConsensusDesign, d_i: int, gains=None, groups=None,
+                weights=None) -> NodeUpdate:
     """One node's update (7), gain (30) and bound (27), checking (29) on ``Φ_{k+1|k}``.
 
     ``gains``: an optional ``(K, C)`` pair to use instead of computing them: replayed from a
-    schedule (no bound claimed), or, in ``'mse'`` mode, the mean-square-error gains of
-    :mod:`designer.mse`, certified by the β that makes (27) smallest for them.
+    schedule (no bound claimed).
+    ``groups``: modes tuned/mse, the neighbour groups of the weighted (27)
+    (:func:`designer.tuning.neighbour_groups`; ``neighbour_terms`` is then used only by the
+    fallback); ``weights``: a start for the tuned mode's weights (the previous step's).
     """
     x_pred, phi_pred, valid = pred.x_pred, pred.phi_pred, pred.valid
     H = model.H(i, x_pred, k1)
@@ -156,20 +163,15 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
         V, D = update_scaling(model, i, x_pred, phi_pred, k1, design.linearization, design.radius, V)
     beta = design.beta
     residual = _residual(model, i, z_i, x_pred, k1)
-    if valid and design.mode == "mse":
-        choice = certify_update(phi_pred, H, gains[1], gains[0], s_i, V, R, d_i, neighbour_terms, D=D)
-        margin = condition29_margin(phi_pred, choice.beta, D)
-        if margin > 0:
-            x_post = x_pred + gains[0] @ residual + gains[1] @ innovation_i
-            return NodeUpdate(x_post, choice.phi_post, gains[0], gains[1], margin, True, choice.beta)
-        valid = False  # the certifying beta is inside (29) by construction; reaching here means Φ_pred broke down
-    elif valid and design.mode == "tuned" and gains is None:
-        choice = tune_update(phi_pred, H, s_i, V, R, d_i, neighbour_terms, D=D)
+    choice = None
+    if valid and design.mode == "tuned" and gains is None:
+        choice = tune_weighted(phi_pred, H, s_i, V, R, groups, D=D, weights=weights)
+    if choice is not None:
         margin = condition29_margin(phi_pred, choice.beta, D)
         if margin > 0:
             x_post = x_pred + choice.K @ residual + choice.C @ innovation_i
-            return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta)
-        valid = False  # the tuned beta is inside (29) by construction; reaching here means Φ_pred broke down
+            return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta, choice.weights)
+        valid = False  # the chosen beta is inside (29) by construction; reaching here means Φ_pred broke down
     else:
         margin = condition29_margin(phi_pred, beta, D) if valid else np.nan
     if valid and margin <= 0:
@@ -183,7 +185,8 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
         K = optimal_gain(phi_pred, H, C, s_i, beta, V, R, d_i, D)
     else:
         K, C = gains
-    phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms, D)
+    with np.errstate(over="ignore", invalid="ignore"):  # a bound beyond floats is caught as a divergence
+        phi_post = update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms, D)
     x_post = x_pred + K @ residual + C @ innovation_i
     return NodeUpdate(x_post, phi_post, K, C, margin, valid, beta if valid else np.nan)
 
@@ -258,6 +261,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     if x0.shape != (model.n_x,):
         raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
     phi0 = check_covariance("phi0", model.prior.cov if phi0 is None else phi0, model.n_x)
+    if design.mode == "mse" and gains is None:
+        return _run_mse(model, network, z, u, design, attacks, x0, phi0)
     n, nx, dims = network.n_nodes, model.n_x, model.sensor_dims
     nz = max(dims)
     d = network.degrees
@@ -267,32 +272,13 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     w_phi = 3.0 * (1.0 - network.dos_prob) * network.adjacency
     w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
 
-    x_post = np.full((steps + 1, n, nx), np.nan)
-    x_pred = np.full((steps, n, nx), np.nan)
-    phi_post = np.full((steps + 1, n, nx, nx), np.nan)
-    phi_pred = np.full((steps, n, nx, nx), np.nan)
-    K = np.full((steps, n, nx, nz), np.nan)
-    C = np.full((steps, n, nx, nx), np.nan)
-    valid = np.zeros((steps + 1, n), dtype=bool)  # phi_post[k, i] is a bound
+    x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, sig, bet = _arrays(steps, n, nx, nz, x0, phi0)
     proper = np.ones(n, dtype=bool)  # node still runs Theorem 1's recursion (no violation yet)
-    m28 = np.full((steps, n), np.nan)
-    m29 = np.full((steps, n), np.nan)
-    th2 = np.full((steps + 1, n), np.nan)
     violations: list[dict] = []
-    x_post[0] = x0
-    phi_post[0] = phi0
     valid[0] = gains is None
-    sig = np.full((steps, n), np.nan)
-    bet = np.full((steps, n), np.nan)
-    mse = design.mode == "mse" and gains is None
-    pmse = None
-    if mse:  # the joint error covariance of designer.mse, from Φ_0|0 >= P_0|0 (every node at the same estimate)
-        Pj = joint_prior(phi0, n)
-        pmse = np.full((steps + 1, n), np.nan)
-        pmse[0] = np.trace(phi0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q_fdi = np.where(network.adjacency, network.fdi_prob / (1.0 - network.dos_prob), 0.0)
-        R_all = [model.measurement_cov(i) for i in range(n)]
+    weighted = design.mode == "tuned" and gains is None  # (27) with optimised weights
+    q_fdi = _falsified_probability(network)
+    weights = [None] * n  # the tuned mode's weights at the previous step (a warm start)
 
     def check_theorem2(k, i, sigma):
         th2[k, i] = theorem2_margin(phi_post[k, i], sigma, d_max)
@@ -300,8 +286,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
             violations.append({"node": i, "step": k, "condition": "theorem2", "margin": float(th2[k, i])})
 
     def result():
-        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                               pmse)
+        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
 
     for k in range(steps):
         preds = []
@@ -325,22 +310,16 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
         innovation, s = exchange(x_pred[k], att, network)
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
-        if mse:
-            Pm = joint_predict(Pj, [p.F for p in preds], model.process_cov)
-            recv = network.adjacency if att is None else network.adjacency & ~att[0]
-            rec = [np.flatnonzero(recv[i]) for i in range(n)]
-            Hs = [model.H(i, x_pred[k, i], k + 1) for i in range(n)]
-            S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)]
-            mg = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
+        recv = network.adjacency if att is None else network.adjacency & ~att[0]
+        rec = [np.flatnonzero(recv[i]) for i in range(n)]
         for i in range(n):
-            if mse:
-                g = mg[i]
-            else:
-                g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
+            g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
             failure = None
             try:
+                groups = neighbour_groups(phi_pred[k, rec[i]], q_fdi[i, rec[i]], design.delta,
+                                          span=design.fdi_span) if weighted else None
                 upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
-                                  int(d[i]), g)
+                                  int(d[i]), g, groups, weights[i])
             except np.linalg.LinAlgError as exc:
                 failure = f"numerical breakdown: {exc}"
             else:
@@ -348,20 +327,13 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                         and np.abs(upd.x_post).max() < _DIVERGED):
                     failure = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
             if failure is not None:
-                # Stop here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
-                violations.append({"node": i, "step": k + 1, "condition": "diverged", "margin": -np.inf,
-                                   "reason": failure})
-                for arr in (x_post, phi_post):
-                    arr[k + 1:] = np.nan
-                for arr in (x_pred, phi_pred, K, C):
-                    arr[k + 1:] = np.nan
-                K[k], C[k] = np.nan, np.nan
-                valid[k + 1:] = False
+                _stop(violations, i, k, failure, (x_post, phi_post), (x_pred, phi_pred, K, C), valid)
                 return result()
             x_post[k + 1, i], phi_post[k + 1, i], C[k, i] = upd.x_post, upd.phi_post, upd.C
             K[k, i] = 0.0
             K[k, i, :, :dims[i]] = upd.K
             m29[k, i], bet[k, i] = upd.margin29, upd.beta
+            weights[i] = upd.weights
             if preds[i].valid and not upd.valid:
                 if k == 0 and design.mode == "paper":
                     lam = float(np.linalg.eigvalsh(phi_pred[0, i])[-1])
@@ -371,10 +343,153 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 proper[i] = False
                 violations.append({"node": i, "step": k + 1, "condition": "(29)", "margin": float(upd.margin29)})
             valid[k + 1, i] = upd.valid and pred_ok[i] and all(pred_ok[j] for j in network.neighbours[i])
-        if mse:
-            Pj = joint_update(Pm, [m[0] for m in mg], [m[1] for m in mg], Hs, R_all, rec, S)
-            pmse[k + 1] = np.trace(Pj[np.arange(n), np.arange(n)], axis1=-2, axis2=-1)
     for i in range(n):  # Φ_{K|K} against the last σ the node used
         if valid[steps, i]:
             check_theorem2(steps, i, sig[steps - 1, i])
     return result()
+
+
+def _arrays(steps: int, n: int, nx: int, nz: int, x0, phi0) -> tuple:
+    """The result arrays of a run, NaN (False for ``valid``) except the initial estimate and Φ_0|0."""
+    x_post, phi_post = np.full((steps + 1, n, nx), np.nan), np.full((steps + 1, n, nx, nx), np.nan)
+    x_post[0], phi_post[0] = x0, phi0
+    return (x_post, np.full((steps, n, nx), np.nan), phi_post, np.full((steps, n, nx, nx), np.nan),
+            np.full((steps, n, nx, nz), np.nan), np.full((steps, n, nx, nx), np.nan),
+            np.zeros((steps + 1, n), dtype=bool), np.full((steps, n), np.nan), np.full((steps, n), np.nan),
+            np.full((steps + 1, n), np.nan), np.full((steps, n), np.nan), np.full((steps, n), np.nan))
+
+
+def _stop(violations: list, node: int, k: int, reason: str, posts, steps_arrays, valid) -> None:
+    """A divergence at step k+1: flag it, and NaN everything from there on (nothing is carried on)."""
+    violations.append({"node": node, "step": k + 1, "condition": "diverged", "margin": -np.inf, "reason": reason})
+    for arr in posts:
+        arr[k + 1:] = np.nan
+    for arr in steps_arrays:
+        arr[k + 1:] = np.nan
+    steps_arrays[2][k], steps_arrays[3][k] = np.nan, np.nan  # the gains of the failed step
+    valid[k + 1:] = False
+
+
+def _falsified_probability(network: SensorNetwork) -> np.ndarray:
+    """``q_ij``: the probability that a received packet is falsified (DoS and FDI are exclusive)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(network.adjacency, network.fdi_prob / (1.0 - network.dos_prob), 0.0)
+
+
+def _binding_node(phi_blocks: np.ndarray, D) -> int:
+    """The node whose bound is largest along the structure (where a joint condition binds)."""
+    return int(np.argmax([lam_max(phi_blocks[i, i], None if D is None else D[i]) for i in range(len(phi_blocks))]))
+
+
+def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign, attacks, x0, phi0
+             ) -> ConsensusResult:
+    """Mode mse: the gains of :func:`designer.mse.mse_gains` and the joint certificate of :mod:`designer.mse`.
+
+    One σ and one β certify the stacked error of all nodes, so (28)-(29) are conditions on
+    the network: a violation is recorded at the node where it binds and ends every node's
+    certificate (the filter goes on with the same gains, its Φ then the joint covariance
+    without the remainders' inflation, not a bound).
+    """
+    steps = z.shape[0]
+    n, nx, dims = network.n_nodes, model.n_x, model.sensor_dims
+    nz, d_max = max(dims), network.d_max
+    zs = [model.split(z[k]) for k in range(steps)]
+    q_fdi = _falsified_probability(network)
+    R_all = [model.measurement_cov(i) for i in range(n)]
+    Q = model.process_cov
+    x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, sig, bet = _arrays(steps, n, nx, nz, x0, phi0)
+    pmse = np.full((steps + 1, n), np.nan)
+    violations: list[dict] = []
+    valid[0], pmse[0] = True, np.trace(phi0)
+    # Every node starts at the same estimate: their errors are one error (Φ_0|0 >= P_0|0 for the stack too).
+    Pj = joint_prior(phi0, n)  # the joint error covariance the gains are chosen for
+    Bj = joint_prior(phi0, n)  # its certificate (the bound of the stacked error)
+    proper = True
+
+    def result():
+        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
+                               pmse)
+
+    for k in range(steps):
+        F = [model.F_expected(x_post[k, i], k, u[k]) for i in range(n)]
+        for i in range(n):
+            x_pred[k, i] = model.f_expected(x_post[k, i], k, u[k])
+        if proper and not np.trace(_diag(Bj), axis1=1, axis2=2).max() < _BOUND_LIMIT:
+            proper = False
+            violations.append({"node": _binding_node(Bj, None), "step": k, "condition": "(28)", "margin": -np.inf,
+                               "reason": f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and "
+                                         "(26) overflows"})
+        if proper:
+            sc = [prediction_scaling(model, x_post[k, i], Bj[i, i], k, u[k], design.linearization, design.radius,
+                                     design.U) for i in range(n)]
+            Df = None if all(s[1] is None for s in sc) else [s[1] for s in sc]
+            jp = certificate_predict(Bj, F, [s[0] for s in sc], Q, design.epsilon, Df)
+            m28[k], sig[k] = jp.margin, jp.multiplier
+            if jp.margin > 0:
+                Bp = jp.phi
+                for i in range(n):
+                    th2[k, i] = theorem2_margin(phi_post[k, i], jp.multiplier, d_max)
+                    if th2[k, i] < 0:
+                        violations.append({"node": i, "step": k, "condition": "theorem2", "margin": float(th2[k, i])})
+            else:
+                proper = False
+                violations.append({"node": _binding_node(Bj, Df), "step": k, "condition": "(28)",
+                                   "margin": float(jp.margin)})
+        if not proper:
+            Bp = joint_predict(Bj, F, Q)
+        phi_pred[k] = _diag(Bp)
+        att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
+        innovation, s = exchange(x_pred[k], att, network)
+        recv = network.adjacency if att is None else network.adjacency & ~att[0]
+        rec = [np.flatnonzero(recv[i]) for i in range(n)]
+        Hs = [model.H(i, x_pred[k, i], k + 1) for i in range(n)]
+        S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)]
+        Pm = joint_predict(Pj, F, Q)
+        gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
+        Ks, Cs = [g[0] for g in gains], [g[1] for g in gains]
+        for i in range(n):
+            residual = _residual(model, i, zs[k][i], x_pred[k, i], k + 1)
+            x_post[k + 1, i] = x_pred[k, i] + Ks[i] @ residual + Cs[i] @ innovation[i]
+            K[k, i] = 0.0
+            K[k, i, :, :dims[i]] = Ks[i]
+            C[k, i] = Cs[i]
+        Pj = joint_update(Pm, Ks, Cs, Hs, R_all, rec, S)
+        pmse[k + 1] = np.trace(_diag(Pj), axis1=-2, axis2=-1)
+        if proper:
+            sc = [update_scaling(model, i, x_pred[k, i], Bp[i, i], k + 1, design.linearization, design.radius,
+                                 design.V[i]) for i in range(n)]
+            Dh = None if all(s[1] is None for s in sc) else [s[1] for s in sc]
+            with np.errstate(over="ignore", invalid="ignore"):
+                ju = certificate_update(Bp, Ks, Cs, Hs, R_all, [s[0] for s in sc], rec, S, design.fdi_mean,
+                                        [q_fdi[i, rec[i]] for i in range(n)], Dh)
+            m29[k], bet[k] = ju.margin, ju.multiplier
+            if ju.margin > 0:
+                Bj = ju.phi
+            else:
+                proper = False
+                violations.append({"node": _binding_node(Bp, Dh), "step": k + 1, "condition": "(29)",
+                                   "margin": float(ju.margin)})
+        if not proper:
+            with np.errstate(over="ignore", invalid="ignore"):
+                Bj = joint_update(Bp, Ks, Cs, Hs, R_all, rec, S)
+        phi_post[k + 1] = _diag(Bj)
+        valid[k + 1] = proper
+        bad = next((i for i in range(n) if not (np.all(np.isfinite(x_post[k + 1, i]))
+                                               and np.all(np.isfinite(phi_post[k + 1, i]))
+                                               and np.abs(x_post[k + 1, i]).max() < _DIVERGED)), None)
+        if bad is not None:
+            _stop(violations, bad, k, f"estimate or covariance beyond {_DIVERGED:g} or not finite",
+                  (x_post, phi_post, pmse), (x_pred, phi_pred, K, C), valid)
+            return result()
+    if proper:
+        for i in range(n):
+            th2[steps, i] = theorem2_margin(phi_post[steps, i], sig[steps - 1, i], d_max)
+            if th2[steps, i] < 0:
+                violations.append({"node": i, "step": steps, "condition": "theorem2", "margin": float(th2[steps, i])})
+    return result()
+
+
+def _diag(P: np.ndarray) -> np.ndarray:
+    """The diagonal blocks ``P[i, i]`` (N, n, n) of a joint (N, N, n, n) array."""
+    idx = np.arange(P.shape[0])
+    return P[idx, idx]

@@ -67,8 +67,7 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
-                       fdi_moment=att.signal.moment(sc.model.n_x))
+    return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,8 +145,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
-                      fdi_moment=att.signal.moment(sc.model.n_x))
+    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)

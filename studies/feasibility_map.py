@@ -116,11 +116,12 @@ def _point(sc: Scenario, options: DesignOptions, point: dict, lin) -> dict:
                 "iterations": 0}
     x0, u0 = sc_p.operating_point
     m = sc_p.model
-    des = make_design(m, sc_p.network, delta=sc_p.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
+    att = sc_p.resolved_attacks
+    des = make_design(m, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
     F, H, R, xp = lin
     r = steady_state(F, H, m.process_cov, R, sc_p.network, epsilon=des.epsilon, delta=des.delta, U=des.U, V=des.V,
                      mode=des.mode, sigma=des.sigma, beta=des.beta, tau=des.tau, phi0=m.prior.cov,
-                     scaling=_scaling(m, des, x0, u0, xp))
+                     scaling=_scaling(m, des, x0, u0, xp), fdi_span=des.fdi_span)
     return {"feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
             "theorem2": int(r.theorem2), "iterations": r.iterations}
 

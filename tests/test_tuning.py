@@ -198,3 +198,81 @@ def test_tuned_never_loses_along_the_steps_of_a_paper_run():
             assert tuned.trace <= np.trace(paper) * (1 + 1e-9)
             checked += 1
     assert checked >= 8
+
+
+# ------------------------------------------------------------------- optimised weights of (27)
+from designer.tuning import (  # noqa: E402
+    WeightedSDP,
+    neighbour_groups,
+    optimal_weights,
+    own_term,
+    tune_weighted,
+    weighted_bound,
+)
+
+
+def _groups(rng, n, count, scale):
+    return np.stack([_spd(rng, n, scale) for _ in range(count)] + [scale * np.eye(n)])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_weighted_sum_inequality_holds_for_fully_correlated_groups(seed):
+    """(Σ a_l)(Σ a_l)ᵀ <= Σ a_l a_lᵀ / p_l for every p on the simplex: checked in closed form with a_l = B_l w."""
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(4, 3, 5))  # four groups driven by one common w ~ N(0, I): the worst correlation
+    total = B.sum(axis=0)
+    for p in [optimal_weights(np.einsum("lab,lab->l", B, B)), rng.dirichlet(np.ones(4)), rng.dirichlet(0.2 * np.ones(4))]:
+        bound = np.einsum("lab,lcb,l->ac", B, B, 1.0 / p)
+        assert np.linalg.eigvalsh(bound - total @ total.T)[0] >= -1e-10
+
+
+def test_optimal_weights_minimise_the_weighted_sum():
+    rng = np.random.default_rng(3)
+    t = rng.uniform(0.01, 2.0, size=5)
+    p = optimal_weights(t)
+    best = np.sum(t / p)
+    assert best == pytest.approx(np.sum(np.sqrt(t)) ** 2, rel=1e-12)
+    for q in rng.dirichlet(np.ones(5), size=200):
+        assert np.sum(t / q) >= best * (1 - 1e-12)
+    # a zero trace gets (almost) no weight; all zeros give equal weights
+    assert optimal_weights([1.0, 0.0])[1] <= 1e-11
+    np.testing.assert_allclose(optimal_weights([0.0, 0.0]), [0.5, 0.5])
+
+
+def test_fdi_group_is_the_second_moment_of_the_number_of_falsified_packets():
+    """δ² E[(Σ_j γ_j)²] Π, against an exact enumeration of the Bernoulli outcomes."""
+    import itertools
+
+    q = np.array([0.1, 0.25, 0.4])
+    m2 = sum(np.prod([qj if g else 1 - qj for g, qj in zip(gs, q)]) * sum(gs) ** 2
+             for gs in itertools.product([0, 1], repeat=3))
+    span = np.diag([1.0, 1.0, 0.0])
+    phis = np.stack([np.eye(3), 2 * np.eye(3), 3 * np.eye(3)])
+    g = neighbour_groups(phis, q, 2.0, receipt=[0.9, 0.8, 1.0], span=span)
+    assert g.shape == (4, 3, 3)
+    np.testing.assert_allclose(g[:3], phis * np.array([0.9, 0.8, 1.0])[:, None, None])
+    np.testing.assert_allclose(g[3], 4.0 * m2 * span, rtol=1e-12)
+    assert neighbour_groups(phis, np.zeros(3), 2.0).shape == (3, 3, 3)  # no FDI: no group
+    assert neighbour_groups(np.zeros((0, 3, 3)), np.zeros(0), 2.0).shape == (0, 3, 3)
+
+
+@pytest.mark.parametrize("seed, scale", [(0, 0.3), (1, 0.01), (2, 0.05), (3, 1.0)])
+def test_weighted_tuning_matches_its_sdp(seed, scale):
+    """The block-coordinate fast path and the joint SDP in b = p_0 β reach the same optimum."""
+    rng = np.random.default_rng(seed)
+    phi, F, U, Q, H, V, R, N = _instance(rng)
+    groups = _groups(rng, 3, 2, scale)
+    fast = tune_weighted(phi, H, 2.0, V, R, groups, tol=1e-12, max_iter=5000)
+    sdp = WeightedSDP(3, 2, len(groups)).solve(phi, H, 2.0, V, R, groups)
+    assert fast.trace == pytest.approx(sdp.trace, rel=2e-5)
+    assert fast.weights.sum() == pytest.approx(1.0) and np.all(fast.weights > 0)
+    assert condition29_margin(phi, fast.beta) > 0
+    np.testing.assert_allclose(fast.phi_post, weighted_bound(phi, H, fast.C, fast.K, 2.0, fast.beta, V, R, groups,
+                                                             fast.weights), rtol=1e-12)
+    # optimal among all gains: the paper's gain (30) with its β, bounded with the best weights, is never smaller
+    C, beta = 0.01 * phi, 0.1 * condition29_margin(phi, 0.0)
+    K = optimal_gain(phi, H, C, 2.0, beta, V, R, 2)
+    traces = np.concatenate([[np.trace(own_term(phi, H, C, K, 2.0, beta, V))],
+                             np.einsum("ab,gbc,ac->g", C, groups, C)])
+    paper = weighted_bound(phi, H, C, K, 2.0, beta, V, R, groups, optimal_weights(traces))
+    assert np.trace(paper) >= fast.trace * (1 - 1e-6)
