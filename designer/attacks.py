@@ -139,6 +139,21 @@ class FDISignal:
         """``E[ξ] = E[g] a`` (n_x,): zero for the odd laws, ``a`` for a constant bias."""
         return _MEAN[self.law] * self.amplitudes(n_x)
 
+    def passing(self, c, threshold: float, dim: int, nodes: int = 48) -> tuple[np.ndarray, np.ndarray]:
+        """A falsified packet ``d + ξ`` against a χ² gate ``(d + ξ)ᵀ Σ⁻¹ (d + ξ) <= threshold``, ``d ~ N(0, Σ)``.
+
+        ``c = aᵀ Σ⁻¹ a`` (an array, one per packet).  Given ``s`` the statistic is noncentral
+        χ²(dim, g(s)² c), so over ``s ~ N(0, 1)`` (Gauss-Hermite, ``nodes`` points) this returns
+        ``P(pass)`` and ``E[g(s)² 1{pass}]`` (what a kept falsified packet adds, times ``a aᵀ``).
+        """
+        from scipy.special import chndtr
+
+        x, w = np.polynomial.hermite_e.hermegauss(nodes)
+        w = w / w.sum()
+        g2 = _g(self.law, x) ** 2
+        F = chndtr(threshold, dim, np.asarray(c, dtype=float)[..., None] * g2)
+        return F @ w, (F * g2) @ w
+
     def span(self, n_x: int) -> np.ndarray:
         """The projector onto the attacked components (n_x x n_x, diagonal 0/1): ``ξ ξᵀ <= ||ξ||² Π``."""
         return np.diag((self.amplitudes(n_x) != 0).astype(float))

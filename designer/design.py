@@ -97,6 +97,8 @@ class ConsensusDesign(NamedTuple):
     radius: float = DEFAULT_RADIUS  # 'hessian': the bound holds for errors within `radius` standard deviations of Φ
     fdi_moment: np.ndarray | None = None  # 'mse': E[ξ ξᵀ] (n_x x n_x) of one falsified packet (None: 0)
     fdi_mean: np.ndarray | None = None  # 'mse': E[ξ] (n_x,) of one falsified packet (None: 0)
+    gate: float = 0.0  # false-rejection probability of the χ² gate on neighbour packets (0: no gate)
+    fdi_signal: Any = None  # 'mse' with a gate: the designer.attacks.FDISignal (what of it passes the gate)
     fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
 
 
@@ -110,6 +112,8 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     upper = np.inf if d_max == 0 else 1.0 / d_max
     if not (0.0 < eps < upper):
         raise InputError(f"epsilon must lie in (0, 1/d_max) = (0, {upper:.6g}), got {eps!r}")
+    if not (0.0 <= float(design.gate) < 1.0):
+        raise InputError(f"gate must be a false-rejection probability in [0, 1), got {design.gate!r}")
     for name in ("sigma", "beta", "tau", "delta"):
         v = getattr(design, name)
         if not np.isfinite(v) or v < 0:
@@ -282,6 +286,9 @@ class DesignOptions:
         Override the FDI bound (and scale the simulated signal to it).
     amplitude : float >= 0
         Override the injected signal's amplitude per attacked component (its bound follows).
+    gate : float in [0, 1)
+        The χ² gate on received neighbour packets: its false-rejection probability for a
+        clean packet (0: no gate; see :func:`filters.consensus.gate`).
     """
 
     mode: str | None = None
@@ -297,6 +304,7 @@ class DesignOptions:
     fdi: float | None = None
     delta: float | None = None
     amplitude: float | None = None
+    gate: float | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
@@ -305,7 +313,7 @@ class DesignOptions:
             raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {self.mode!r}")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
-        for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude"):
+        for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate"):
             v = getattr(self, name)
             if v is None:
                 continue
@@ -315,7 +323,7 @@ class DesignOptions:
                 raise InputError(f"{name} must be >= 0, got {v!r}")
         if self.radius is not None and self.radius <= 0:
             raise InputError(f"radius must be > 0, got {self.radius!r}")
-        for name in ("dos", "fdi"):
+        for name in ("dos", "fdi", "gate"):
             v = getattr(self, name)
             if v is not None and v >= 1:
                 raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
@@ -392,6 +400,8 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         fdi_moment=None if signal is None else signal.moment(model.n_x),
         fdi_span=None if signal is None else signal.span(model.n_x),
         fdi_mean=None if signal is None else signal.mean(model.n_x),
+        gate=0.0 if options.gate is None else float(options.gate),
+        fdi_signal=signal,
     )
     return validate_design(des, model, network)
 
@@ -399,6 +409,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
     return {"mode": des.mode, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
-            "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "U": np.asarray(des.U).tolist(),
+            "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
+            "U": np.asarray(des.U).tolist(),
             "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}
 

@@ -20,6 +20,17 @@ mean-square error smallest, from the joint error covariance of all nodes, certif
 bound of the stacked error of all nodes for those gains (``'mse'``, :mod:`designer.mse`;
 one σ and one β for the network; :attr:`ConsensusResult.predicted_mse` holds the prediction).
 
+**The gate** (``design.gate = α > 0``, :func:`gate`): a node tests every received packet by
+``(x̂_j - x̂_i)ᵀ Σ_ij⁻¹ (x̂_j - x̂_i) <= χ²_{n_x}(1 - α)`` and drops what fails as if it were
+lost.  ``Σ_ij`` is the predicted covariance of that difference: from the joint covariance in
+mode mse, ``2 (Φ_i + Φ_j)`` (an upper bound) otherwise, so a clean packet is dropped with
+probability at most about α.  In mode mse the gains then count only what the falsified
+packets that pass add (:func:`_kept_fdi_moments`, from the signal's law against the gate),
+and so does the certificate: which packets pass depends on the errors, so with a gate the
+bound is a model that the Monte Carlo bound check validates, not a theorem.
+:attr:`ConsensusResult.gate_counts` counts packets received, rejected, clean rejected,
+falsified received and falsified passed at every step.
+
 When (28) or (29) fails at a node, the violation is recorded (node, step,
 condition, margin) and from then on that node runs the fallback recursion
 σ = β = 0, U = V = 0 (the consensus EKF without linearisation multipliers, which
@@ -53,7 +64,7 @@ from designer.validation import InputError, check_covariance, check_finite
 from .attacks import AttackPattern
 from .rrp import wrap_angles
 
-__all__ = ["node_predict", "exchange", "node_update", "ConsensusResult", "run_consensus", "HARD_CONDITIONS"]
+__all__ = ["node_predict", "gate", "GATE_COUNTS", "exchange", "node_update", "ConsensusResult", "run_consensus", "HARD_CONDITIONS"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
@@ -100,15 +111,54 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     return NodePrediction(x_pred, 0.5 * (phi + phi.T), margin, False, F=F, reason=reason)
 
 
+GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_passed")
+
+
+def gate(x_pred: np.ndarray, attacks_k, network: SensorNetwork, cov_diff: np.ndarray, alpha: float
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """The χ² gate on received neighbour packets: which ones node ``i`` keeps.
+
+    Node ``i`` tests the packet of ``j`` by ``d = x̂_j (+ ξ_ij) - x̂_i`` against the covariance
+    ``cov_diff[i, j]`` that ``x̂_j - x̂_i`` has when nobody lies, and keeps it when
+    ``dᵀ Σ⁻¹ d <= χ²_{n_x}(1 - α)``: a clean packet with that covariance (Gaussian) is lost
+    with probability ``α``, the stated design parameter; a falsified one passes only if its
+    displacement hides in the spread of the clean differences.  Returns the mask ``(N, N)``
+    of packets kept (received and passed) and the counts of :data:`GATE_COUNTS` (what the
+    simulation knows, not the node: which packets were falsified).
+    """
+    from scipy.special import chdtri
+
+    adj = network.adjacency
+    dos, fdi, xi = attacks_k if attacks_k is not None else (np.zeros_like(adj), np.zeros_like(adj), None)
+    recv = adj & ~dos
+    keep = recv.copy()
+    if alpha > 0:
+        i, j = np.nonzero(recv)
+        d = x_pred[j] - x_pred[i]
+        if xi is not None:
+            d = d + fdi[i, j, None] * xi[i, j]
+        S = cov_diff[i, j]
+        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
+        stat = np.zeros(i.size)  # a covariance beyond floats cannot judge: the packet is kept
+        if ok.any():
+            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
+        keep[i, j] = stat <= chdtri(x_pred.shape[1], alpha)
+    rejected = recv & ~keep
+    counts = np.array([recv.sum(), rejected.sum(), (rejected & ~fdi).sum(), (recv & fdi).sum(),
+                       (keep & fdi).sum()])
+    return keep, counts
+
+
 def exchange(x_pred: np.ndarray, attacks_k: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-             network: SensorNetwork) -> tuple[np.ndarray, np.ndarray]:
+             network: SensorNetwork, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The consensus exchange: what every node receives from its neighbours.
 
     Returns ``innovation`` (N, n_x), ``sum_j (1 - phi_ij)(x_pred_j + gamma_ij xi_ij - x_pred_i)``,
-    and ``s`` (N,), the number of packets each node received.
+    and ``s`` (N,), the number of packets each node received (and kept, when ``keep`` — the
+    mask of :func:`gate` — is given: a rejected packet counts as lost).
     """
     n = network.n_nodes
-    adj = network.adjacency
+    adj = network.adjacency if keep is None else network.adjacency & keep
     if attacks_k is None:
         recv = adj
         injected = np.zeros((n, x_pred.shape[1]))
@@ -216,6 +266,7 @@ class ConsensusResult(NamedTuple):
     sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
     beta: np.ndarray  # (steps, N) β used in (27)
     predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
+    gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
 
     @property
     def feasible(self) -> bool:
@@ -276,6 +327,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     proper = np.ones(n, dtype=bool)  # node still runs Theorem 1's recursion (no violation yet)
     violations: list[dict] = []
     valid[0] = gains is None
+    counts = np.zeros((steps, len(GATE_COUNTS)), dtype=np.int64)
     weighted = design.mode == "tuned" and gains is None  # (27) with optimised weights
     q_fdi = _falsified_probability(network)
     weights = [None] * n  # the tuned mode's weights at the previous step (a warm start)
@@ -286,7 +338,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
             violations.append({"node": i, "step": k, "condition": "theorem2", "margin": float(th2[k, i])})
 
     def result():
-        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
+        return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
+                               None, counts)
 
     for k in range(steps):
         preds = []
@@ -308,10 +361,12 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         # A predicted Φ is a bound when the node's recursion is proper and its Φ_{k|k} was a bound.
         pred_ok = np.array([p.valid for p in preds]) & valid[k]
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
-        innovation, s = exchange(x_pred[k], att, network)
+        # The gate tests x̂_j - x̂_i against 2 (Φ_i + Φ_j) >= its covariance (bounds, no cross-covariances).
+        keep, counts[k] = gate(x_pred[k], att, network, 2.0 * (phi_pred[k][:, None] + phi_pred[k][None, :]),
+                               design.gate)
+        innovation, s = exchange(x_pred[k], att, network, keep)
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
-        recv = network.adjacency if att is None else network.adjacency & ~att[0]
-        rec = [np.flatnonzero(recv[i]) for i in range(n)]
+        rec = [np.flatnonzero(keep[i]) for i in range(n)]
         for i in range(n):
             g = None if gains is None else (gains[0][k, i][:, :dims[i]], gains[1][k, i])
             failure = None
@@ -401,6 +456,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
     pmse = np.full((steps + 1, n), np.nan)
     violations: list[dict] = []
     valid[0], pmse[0] = True, np.trace(phi0)
+    counts = np.zeros((steps, len(GATE_COUNTS)), dtype=np.int64)
     # Every node starts at the same estimate: their errors are one error (Φ_0|0 >= P_0|0 for the stack too).
     Pj = joint_prior(phi0, n)  # the joint error covariance the gains are chosen for
     Bj = joint_prior(phi0, n)  # its certificate (the bound of the stacked error)
@@ -408,7 +464,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
 
     def result():
         return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                               pmse)
+                               pmse, counts)
 
     for k in range(steps):
         F = [model.F_expected(x_post[k, i], k, u[k]) for i in range(n)]
@@ -439,12 +495,16 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
             Bp = joint_predict(Bj, F, Q)
         phi_pred[k] = _diag(Bp)
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
-        innovation, s = exchange(x_pred[k], att, network)
-        recv = network.adjacency if att is None else network.adjacency & ~att[0]
-        rec = [np.flatnonzero(recv[i]) for i in range(n)]
-        Hs = [model.H(i, x_pred[k, i], k + 1) for i in range(n)]
-        S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)]
         Pm = joint_predict(Pj, F, Q)
+        cov_diff = _difference_covariance(Pm)
+        keep, counts[k] = gate(x_pred[k], att, network, cov_diff, design.gate)
+        innovation, s = exchange(x_pred[k], att, network, keep)
+        rec = [np.flatnonzero(keep[i]) for i in range(n)]
+        Hs = [model.H(i, x_pred[k, i], k + 1) for i in range(n)]
+        # What the falsified packets add: all of them without a gate; with one, those that pass (a model of the
+        # gate that the Monte Carlo bound check validates: which packets pass depends on the errors).
+        S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)] \
+            if design.gate == 0 or design.fdi_signal is None else _kept_fdi_moments(design, keep, q_fdi, cov_diff)
         gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
         Ks, Cs = [g[0] for g in gains], [g[1] for g in gains]
         for i in range(n):
@@ -487,6 +547,40 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
             if th2[steps, i] < 0:
                 violations.append({"node": i, "step": steps, "condition": "theorem2", "margin": float(th2[steps, i])})
     return result()
+
+
+def _kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q_fdi: np.ndarray, cov_diff: np.ndarray) -> list:
+    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]``: what the falsified packets that pass the gate add.
+
+    For a kept packet ``P(FDI, kept) = q P(pass | FDI)`` and ``P(kept) = q P(pass | FDI) + (1 - q)(1 - α)``,
+    with ``P(pass | FDI)`` and ``E[g² 1{pass}]`` from :meth:`designer.attacks.FDISignal.passing` against the
+    clean difference's covariance (the clean part taken as independent of the signal).
+    """
+    from scipy.special import chdtri
+
+    n, nx = keep.shape[0], cov_diff.shape[-1]
+    a = design.fdi_signal.amplitudes(nx)
+    i, j = np.nonzero(keep)
+    S = [np.zeros((nx, nx)) for _ in range(n)]
+    if not i.size or not np.any(a):
+        return S
+    c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[i, j], hermitian=True), a)
+    p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
+    q = q_fdi[i, j]
+    weight = q * g2_pass / np.maximum(q * p_pass + (1.0 - q) * (1.0 - design.gate), 1e-300)
+    aa = np.outer(a, a)
+    for node, w in zip(i, weight):
+        S[node] = S[node] + w * aa
+    return S
+
+
+def _difference_covariance(P: np.ndarray) -> np.ndarray:
+    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` (N, N, n, n) from the joint covariance, regularised
+    (``1e-12`` of the mean trace: two nodes with one estimate have a zero difference)."""
+    d = _diag(P)
+    out = d[:, None] + d[None, :] - P - np.swapaxes(P, 0, 1)
+    eps = 1e-12 * max(float(np.trace(d, axis1=-2, axis2=-1).mean()), 1e-300)
+    return out + eps * np.eye(P.shape[-1])
 
 
 def _diag(P: np.ndarray) -> np.ndarray:

@@ -129,6 +129,22 @@ class _Exchange:
 
 
 # --------------------------------------------------------------------------- the result
+def _gate_counts(attacks: "EdgeAttacks | None", n_edges: int, runs: int, steps: int, violations) -> np.ndarray:
+    """:data:`filters.consensus.GATE_COUNTS` per run and step without a gate, zero from a run's divergence on."""
+    out = np.zeros((runs, steps, 5), dtype=np.int64)
+    if attacks is None:
+        out[..., 0] = n_edges
+    else:
+        recv = ~attacks.dos
+        out[..., 0] = recv.sum(-1)
+        out[..., 3] = out[..., 4] = (recv & attacks.fdi).sum(-1)
+    for r, vs in enumerate(violations):
+        stop = next((v["step"] for v in vs if v["condition"] == "diverged"), None)
+        if stop is not None:
+            out[r, stop:] = 0
+    return out
+
+
 class ConsensusBatchResult(NamedTuple):
     """Many runs of the consensus filter: the fields of :class:`filters.consensus.ConsensusResult`
     with a leading runs axis, and ``violations`` one list per run."""
@@ -147,6 +163,7 @@ class ConsensusBatchResult(NamedTuple):
     sigma: np.ndarray  # (runs, steps, N)
     beta: np.ndarray  # (runs, steps, N)
     predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse' (not batched yet)
+    gate_counts: np.ndarray | None = None  # (runs, steps, 5) GATE_COUNTS (no gate: nothing rejected)
 
     @property
     def runs(self) -> int:
@@ -155,8 +172,9 @@ class ConsensusBatchResult(NamedTuple):
     def run(self, r: int) -> ConsensusResult:
         """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
-                  for f in ConsensusResult._fields if f != "predicted_mse"]
-        return ConsensusResult(*fields, None if self.predicted_mse is None else self.predicted_mse[r])
+                  for f in ConsensusResult._fields if f not in ("predicted_mse", "gate_counts")]
+        return ConsensusResult(*fields, None if self.predicted_mse is None else self.predicted_mse[r],
+                               None if self.gate_counts is None else self.gate_counts[r])
 
     @property
     def feasible(self) -> np.ndarray:
@@ -351,6 +369,9 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     if design.mode not in GAIN_RULES:
         raise InputError(f"run_consensus_batch runs the modes {sorted(GAIN_RULES)}, got {design.mode!r}; "
                          "run the others with filters.consensus.run_consensus")
+    if design.gate:
+        raise InputError("run_consensus_batch has no gate on neighbour packets yet (design.gate must be 0); run "
+                         "gated designs with filters.consensus.run_consensus")
     predict_rule, update_rule = GAIN_RULES[design.mode]
     z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -535,7 +556,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         rr, ii = np.nonzero(th < 0)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
-    return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet)
+    return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
+                                None, _gate_counts(attacks, len(ex.receiver), runs, steps, violations))
 
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):

@@ -133,8 +133,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            epsilon: float | None = None, sigma: float | None = None, beta: float | None = None,
            tau: float | None = None, dos: float | None = None, fdi: float | None = None,
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
-           linearization: str | None = None, radius: float | None = None, options: DesignOptions | None = None,
-           network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+           linearization: str | None = None, radius: float | None = None, gate: float | None = None,
+           options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
            out: str | Path | None = None):
@@ -144,12 +144,13 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : {'paper', 'tuned'}
-        The paper's fixed choices or the convex tuning layer (default: paper).
+    mode : {'paper', 'tuned', 'mse'}
+        The paper's fixed choices, the convex tuning layer or the mean-square-error gains
+        (default: paper).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
-    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate
         Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
         default, then the package's.
     dos, fdi, delta, amplitude
@@ -172,7 +173,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
 
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
-                                  linearization=linearization, radius=radius))
+                                  linearization=linearization, radius=radius, gate=gate))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
     res = run_design(sc, opts, steps=steps, seed=seed)
     if out is not None:
@@ -184,7 +185,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 sigma: float | None = None, beta: float | None = None, tau: float | None = None,
                 dos: float | None = None, fdi: float | None = None, delta: float | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
-                radius: float | None = None, options: DesignOptions | None = None,
+                radius: float | None = None, gate: float | None = None, options: DesignOptions | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -222,6 +223,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     from .feasibility_map import run_feasibility
     from .runner import make_backend
 
+    if gate:
+        raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
+                         "with no packets to test (use it with design or study)")
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius))

@@ -17,7 +17,8 @@ from designer.validation import ComputationError, InputError
 
 from . import api
 
-_SET_HELP = "override a scenario parameter (repeatable); see 'cfdesign scenarios'"
+_SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
+             "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -34,8 +35,8 @@ def _design_options(f):
     opts = [
         click.option("--mode", type=click.Choice(["paper", "tuned", "mse"]), default=None,
                      help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
-                          "the bound (convex tuning); mse: gains minimising the predicted mean-square error, "
-                          "certified by the smallest bound for them "
+                          "the bound (convex tuning, optimised weights); mse: gains minimising the predicted "
+                          "mean-square error, certified by the bound of the stacked error of all nodes "
                           "[default: paper]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
@@ -61,6 +62,10 @@ def _design_options(f):
                           "[default: fixed]"),
         click.option("--radius", type=float, default=None,
                      help="hessian/prior scalings cover errors within this many standard deviations [default: 3]"),
+        click.option("--gate", type=float, default=None,
+                     help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
+                          "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "
+                          "[default: 0]"),
     ]
     for o in reversed(opts):
         f = o(f)

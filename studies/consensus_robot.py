@@ -42,7 +42,7 @@ from designer.network import SensorNetwork
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int
 from filters.attacks import simulate_attacks
-from filters.consensus import run_consensus
+from filters.consensus import GATE_COUNTS, run_consensus
 from filters.distributed import run_hcmci, run_kcf
 
 from .comparison import HCMCI_ITERATIONS, local_ekf_design
@@ -209,6 +209,16 @@ def _run_variant(v: _Variant, traj, att):
     return run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs, attacks=attacks, gains=v.gains)
 
 
+def exchange_counts(counts: np.ndarray) -> dict:
+    """Totals of :data:`filters.consensus.GATE_COUNTS` over runs, with the gate's three rates."""
+    tot = dict(zip(GATE_COUNTS, (int(x) for x in counts.sum(axis=0))))
+    clean = tot["received"] - tot["fdi_received"]
+    return {**tot,
+            "rejected_fraction": tot["rejected"] / tot["received"] if tot["received"] else None,
+            "clean_lost_fraction": tot["clean_rejected"] / clean if clean else None,
+            "fdi_passed_fraction": tot["fdi_passed"] / tot["fdi_received"] if tot["fdi_received"] else None}
+
+
 def _encode(text: str) -> np.ndarray:
     raw = text.encode()[:REASON_BYTES]
     return np.frombuffer(raw.ljust(REASON_BYTES, b"\0"), dtype=np.uint8)
@@ -246,6 +256,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                     f"v{j}_diverged_reason": np.zeros((R, REASON_BYTES), np.uint8)})
         if _checks_bound(v):
             out[f"v{j}_phi"] = np.zeros((R, steps + 1, n, nx, nx))
+        if v.filter == CONSENSUS_EKF:
+            out[f"v{j}_gate"] = np.zeros((R, len(GATE_COUNTS)), np.int64)
     for a, seq in enumerate(seeds):
         traj_ss, att_ss = seq.spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
@@ -264,6 +276,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
             out[f"v{j}_err"][a] = traj.x[:, None, :] - res.x_post
             if v.filter == CONSENSUS_EKF:
                 out[f"v{j}_valid"][a] = res.valid
+                out[f"v{j}_gate"][a] = res.gate_counts.sum(axis=0)
             if _checks_bound(v):
                 out[f"v{j}_phi"][a] = res.phi_post
             hard = [x["step"] for x in res.violations if x["condition"] in ("(28)", "(29)")]
@@ -369,6 +382,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "diverged_runs": failed,
             "diverged_fraction": len(failed) / runs,
             "design": describe_design(v.design) if v.filter == CONSENSUS_EKF else None,
+            **({"exchange": exchange_counts(A[f"v{j}_gate"][ok])}
+               if v.filter == CONSENSUS_EKF and v.network.adjacency.any() else {}),
             **({"consensus_iterations": v.iterations} if v.filter == HCMCI else {}),
         }
     return {

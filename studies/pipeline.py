@@ -25,6 +25,7 @@ with a ``STUDY`` and one line in :data:`STUDIES`.
 from __future__ import annotations
 
 import importlib
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -227,6 +228,25 @@ class StudyResult:
         return out
 
 
+def _study_assignments(study: Study, assignments) -> tuple[list, dict]:
+    """Split ``NAME=VALUE`` assignments into the scenarios' and the study's own options (``study.options``).
+
+    A study option's value is read as JSON (``3``, ``true``, ``[0, 0.2]``), else kept as the string.
+    """
+    rest, own = [], {}
+    for a in assignments or ():
+        name, sep, value = str(a).partition("=")
+        name = name.strip()
+        if sep and name in study.options:
+            try:
+                own[name] = json.loads(value)
+            except json.JSONDecodeError:
+                own[name] = value.strip()
+        else:
+            rest.append(a)
+    return rest, own
+
+
 def _route(names: Sequence[str], specs: Mapping[str, Any], assignments) -> dict[str, list[str]]:
     """Each ``NAME=VALUE`` to every scenario that has the parameter NAME; unknown names are an error."""
     have = {sc: {p.name for p in specs[sc].params} for sc in names}
@@ -285,6 +305,8 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
 
     study = get_study(name)
     t_start = time.perf_counter()
+    assignments, own = _study_assignments(study, assignments)
+    study_options = {**own, **study_options}
     unknown = [k for k in study_options if k not in study.options]
     if unknown:
         known = ", ".join(study.options) or "none"

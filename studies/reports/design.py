@@ -301,8 +301,9 @@ def _binding_section(s: _Schedule, tight) -> list[str]:
         out += ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
                 "ends.", ""]
     elif mode == "mse":
-        out += ["In mse mode σ and β are chosen at every node and step to make the bound smallest for the gains "
-                "the mean-square-error design chose, keeping (28)-(29) with a small relative margin.", ""]
+        out += ["In mse mode one σ and one β for the whole network are chosen at every step to make the bound of "
+                "the stacked error of all nodes smallest for the gains the mean-square-error design chose, keeping "
+                "(28)-(29) with a small relative margin: the margins are the network's, shown at every node.", ""]
     return out
 
 
@@ -419,13 +420,20 @@ def _settings_section(s: _Schedule) -> list[str]:
                 "the consensus gain C = τ Φ_{k+1|k} and K by (30).", ""]
     elif mode == "tuned":
         out += ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
-                "trace of the bounds while keeping (28)-(29)).", ""]
+                "trace of the bounds while keeping (28)-(29)), with the update bound (27)'s factors (1 + 2 d_i) and 3 "
+                "replaced by weights optimised with them (the node's own error, each received neighbour's and the "
+                "falsified packets, `designer.tuning.tune_weighted`).", ""]
     elif mode == "mse":
         out += ["MSE mode: K and C minimise every node's predicted mean-square error, from the joint linearised error "
-                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the bound is "
-                "Theorem 1's for those gains (it holds for any gains while (28)-(29) hold), with σ and β chosen to "
-                "make it smallest. The gains serve accuracy and the bound certifies them, so the bound can be much "
-                "larger than the error it bounds.", ""]
+                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the certificate "
+                "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
+                "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
+                "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]
+    if meta.get("gate"):
+        out += [f"χ² gate on the neighbour packets with false-rejection probability {meta['gate']:g}: a packet whose "
+                "difference to the node's own prediction is improbable for its predicted covariance is dropped as "
+                "if lost. Which packets pass depends on the errors, so with the gate the bound is validated by "
+                "Monte Carlo only (`study consensus-robot` checks it).", ""]
     facts = [("mode", mode), ("ε", meta.get("epsilon")), ("σ (fixed)", meta.get("sigma_fixed")),
              ("β (fixed)", meta.get("beta_fixed")), ("τ", meta.get("tau") if mode == "paper" else None),
              ("δ (bound on the injected signal, ‖ξ‖ ≤ δ)", meta.get("delta")), ("nodes", meta.get("nodes")),
