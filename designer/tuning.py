@@ -251,7 +251,7 @@ def _best_gains(phi_pred, H, s, V, R, w, N, margin, D):
             beta = lo
         else:
             try:
-                beta = float(brentq(fixed.slope, lo, bmax, xtol=bmax * 1e-12, rtol=1e-12, maxiter=200))
+                beta = float(brentq(fixed.slope, lo, bmax, xtol=bmax * 1e-9, rtol=1e-9, maxiter=200))
             except ValueError:  # the slope left floats inside the bracket
                 beta = best_multiplier(fixed.trace, bmax, True)
     C, K = fixed.gains(beta)

@@ -64,7 +64,8 @@ from designer.validation import InputError, check_covariance, check_finite
 from .attacks import AttackPattern
 from .rrp import wrap_angles
 
-__all__ = ["node_predict", "gate", "GATE_COUNTS", "exchange", "node_update", "ConsensusResult", "run_consensus", "HARD_CONDITIONS"]
+__all__ = ["node_predict", "gate", "GATE_COUNTS", "exchange", "wrapped_residual", "node_update", "ConsensusResult",
+           "run_consensus", "HARD_CONDITIONS"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
@@ -182,7 +183,7 @@ class NodeUpdate(NamedTuple):
     weights: np.ndarray | None = None  # modes tuned/mse: the weights p of the groups of (27)
 
 
-def _residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
+def wrapped_residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
     """``z_i - h_i(x_pred)``, with angular components (``Sensor.angles``) beyond ±π wrapped into (-π, π].
 
     Residuals already inside (-π, π] are left as they are (wrapping them would change their last bit).
@@ -212,7 +213,7 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     if valid:
         V, D = update_scaling(model, i, x_pred, phi_pred, k1, design.linearization, design.radius, V)
     beta = design.beta
-    residual = _residual(model, i, z_i, x_pred, k1)
+    residual = wrapped_residual(model, i, z_i, x_pred, k1)
     choice = None
     if valid and design.mode == "tuned" and gains is None:
         choice = tune_weighted(phi_pred, H, s_i, V, R, groups, D=D, weights=weights)
@@ -508,7 +509,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
         Ks, Cs = [g[0] for g in gains], [g[1] for g in gains]
         for i in range(n):
-            residual = _residual(model, i, zs[k][i], x_pred[k, i], k + 1)
+            residual = wrapped_residual(model, i, zs[k][i], x_pred[k, i], k + 1)
             x_post[k + 1, i] = x_pred[k, i] + Ks[i] @ residual + Cs[i] @ innovation[i]
             K[k, i] = 0.0
             K[k, i, :, :dims[i]] = Ks[i]

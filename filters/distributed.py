@@ -81,7 +81,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_covariance, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import _residual
+from .consensus import wrapped_residual
 
 __all__ = ["DistributedResult", "run_kcf", "run_hcmci", "metropolis_weights", "check_run_inputs", "OMEGA_CHOICES",
            "FALSIFY_CHOICES"]
@@ -189,7 +189,7 @@ def _measurement_information(model: Model, inp: _Inputs, k: int, x_pred: np.ndar
         H = model.H(i, xi, k + 1)
         RiH = inp.R_inv[i] @ H
         U.append(H.T @ RiH)
-        u.append(RiH.T @ (_residual(model, i, inp.z[k][i], xi, k + 1) + H @ xi))
+        u.append(RiH.T @ (wrapped_residual(model, i, inp.z[k][i], xi, k + 1) + H @ xi))
     return np.stack(U), np.stack(u)
 
 

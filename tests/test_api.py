@@ -102,3 +102,15 @@ def test_bad_model_files_exit_2_with_one_line(tmp_path):
         assert not out.exists()
     assert "delta" in cli("design", bad_fdi, "--out", tmp_path / "y").stderr
     assert main(["design", str(bad_fdi), "--delta", "0.5", "--steps", "5", "--out", str(tmp_path / "z")]) in (0, 1)
+
+
+def test_set_reaches_a_studys_own_options_and_the_scenarios_parameters():
+    """``--set NAME=VALUE``: a study option (read as JSON) is peeled off, the rest goes to the scenarios."""
+    from studies.pipeline import _study_assignments, get_study
+
+    rest, own = _study_assignments(get_study("comparison"), ["hcmci_iterations=3", "tuned_in_sweeps=true",
+                                                             "steps=12", "sweep_values=[0, 0.2]"])
+    assert own == {"hcmci_iterations": 3, "tuned_in_sweeps": True, "sweep_values": [0, 0.2]}
+    assert rest == ["steps=12"]
+    rest, own = _study_assignments(get_study("consensus-robot"), ["hcmci_iterations=two"])
+    assert own == {"hcmci_iterations": "two"} and rest == []
