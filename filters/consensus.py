@@ -331,7 +331,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     counts = np.zeros((steps, len(GATE_COUNTS)), dtype=np.int64)
     weighted = design.mode == "tuned" and gains is None  # (27) with optimised weights
     q_fdi = _falsified_probability(network)
-    weights = [None] * n  # the tuned mode's weights at the previous step (a warm start)
+    weights = [{} for _ in range(n)]  # the tuned mode's weights at the previous step, by group (a warm start)
 
     def check_theorem2(k, i, sigma):
         th2[k, i] = theorem2_margin(phi_post[k, i], sigma, d_max)
@@ -375,7 +375,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 groups = neighbour_groups(phi_pred[k, rec[i]], q_fdi[i, rec[i]], design.delta,
                                           span=design.fdi_span) if weighted else None
                 upd = node_update(model, i, preds[i], zs[k][i], k + 1, innovation[i], s[i], neigh[i], design,
-                                  int(d[i]), g, groups, weights[i])
+                                  int(d[i]), g, groups, _warm_start(weights[i], rec[i], groups))
             except np.linalg.LinAlgError as exc:
                 failure = f"numerical breakdown: {exc}"
             else:
@@ -389,7 +389,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
             K[k, i] = 0.0
             K[k, i, :, :dims[i]] = upd.K
             m29[k, i], bet[k, i] = upd.margin29, upd.beta
-            weights[i] = upd.weights
+            if upd.weights is not None:
+                weights[i] = dict(zip(_group_keys(rec[i], len(upd.weights)), upd.weights))
             if preds[i].valid and not upd.valid:
                 if k == 0 and design.mode == "paper":
                     lam = float(np.linalg.eigvalsh(phi_pred[0, i])[-1])
@@ -424,6 +425,24 @@ def _stop(violations: list, node: int, k: int, reason: str, posts, steps_arrays,
         arr[k + 1:] = np.nan
     steps_arrays[2][k], steps_arrays[3][k] = np.nan, np.nan  # the gains of the failed step
     valid[k + 1:] = False
+
+
+def _group_keys(received, count: int) -> list:
+    """The groups of the weighted (27) by name: the node's own, each received neighbour's, the falsified packets'."""
+    keys = ["own"] + [int(j) for j in received]
+    return keys + ["fdi"] if count > len(keys) else keys
+
+
+def _warm_start(previous: dict, received, groups) -> np.ndarray | None:
+    """Last step's weights of the groups that are still there (new ones: their mean), at least 1e-6, renormalised."""
+    if groups is None or not previous:
+        return None
+    keys = _group_keys(received, len(groups) + 1)
+    known = [previous[k] for k in keys if k in previous]
+    fill = float(np.mean(known)) if known else 1.0
+    p = np.array([previous.get(k, fill) for k in keys], dtype=float)
+    p = np.maximum(p / p.sum(), 1e-6)  # a group at the floor may re-enter (the block steps cannot revive a zero)
+    return p / p.sum()
 
 
 def _falsified_probability(network: SensorNetwork) -> np.ndarray:
