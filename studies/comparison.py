@@ -90,7 +90,8 @@ DESCRIPTION = {
     EKF_PLAIN: "centralized EKF; skips lost packets, trusts every received one (ignores attacks)",
     LOCAL: "every node alone: an EKF on its own sensor, no communication (nothing to attack)",
     MSE: "distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node "
-         "(joint error covariance with the channels' DoS/FDI statistics), certified by the smallest bound for them",
+         "(joint error covariance with the channels' DoS/FDI statistics), certified by the bound of the stacked "
+         "error of all nodes for them",
     KCF: "distributed, from the literature: Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, "
          "Algorithm 1), extended form: each node fuses its own and its neighbours' measurement information and adds "
          "a consensus term on their predictions with gain eps M_i / (1 + ||M_i||_F), eps = 0.5/d_max",

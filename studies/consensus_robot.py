@@ -589,9 +589,11 @@ TEXT = StudyText(
         "under attack compared with cameras working alone or with one central filter, how does the designed filter "
         "fare against the literature's, and does Phi really bound the errors?"),
     filters={
-        "consensus-EKF (tuned)": "the consensus filter with gains tuned by our convex optimisation (smallest bound)",
+        "consensus-EKF (tuned)": "the consensus filter with gains tuned by our convex optimisation (smallest bound, "
+                                 "with optimised weights in place of the paper's factors)",
         "consensus-EKF (mse)": "the consensus filter whose gains minimise each node's predicted mean-square error "
-                               "(joint error covariance of all nodes), certified by the smallest bound for them",
+                               "(joint error covariance of all nodes), certified by the bound of the stacked error "
+                               "of all nodes for them",
         "consensus-EKF (paper, tau=0.01)": "the paper's consensus filter (consensus gain C = tau Phi, tau = 0.01)",
         "consensus-EKF (paper, tau=0, no consensus)": "the same filter with the consensus term switched off",
         "KCF": "Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, Algorithm 1), extended form: every "
