@@ -146,3 +146,31 @@ def test_map_on_dask_and_resumed_from_its_chunks(tmp_path):
     assert len(log) == 3
     with pytest.raises(InputError, match="--force"):
         feasibility_map("indoor-robot", grids, out=tmp_path, quiet=True, mode="paper")
+
+
+def test_optimal_weights_steady_state_is_a_fixed_point_and_below_the_paper_factors_here():
+    """weights='optimal': accelerated and plain iterations reach one fixed point of the weighted recursion,
+    and one more weighted step (converged weights) leaves it where it is."""
+    from designer.tuning import neighbour_groups, tune_weighted
+
+    A = np.array([[0.95, 0.1], [0.0, 0.9]])
+    H = [np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]]), np.array([[1.0, 1.0]])]
+    Q, R = 0.01 * np.eye(2), [np.array([[0.05]])] * 3
+    net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.1, fdi_prob=0.1)
+    kw = dict(epsilon=0.4, delta=0.5, U=0.01 * np.eye(2), V=0.01 * np.eye(1), mode="tuned", tol=1e-10,
+              max_iter=3000)
+    fast = steady_state(A, H, Q, R, net, weights="optimal", **kw)
+    plain = steady_state(A, H, Q, R, net, weights="optimal", accelerate=False, **kw)
+    assert fast.feasible and plain.feasible
+    np.testing.assert_allclose(fast.phi, plain.phi, rtol=1e-6, atol=1e-12)
+    pred = [tune_prediction(p, A, kw["U"], Q, kw["epsilon"]).phi_pred for p in fast.phi]
+    s = ((1 - net.dos_prob) * net.adjacency).sum(1)
+    for i in range(3):
+        nb = list(net.neighbours[i])
+        g = neighbour_groups(np.array(pred)[nb], net.fdi_prob[i, nb], kw["delta"], 1 - net.dos_prob[i, nb])
+        again = tune_weighted(pred[i], H[i], s[i], kw["V"], R[i], g, tol=1e-12, max_iter=2000).phi_post
+        np.testing.assert_allclose(again, fast.phi[i], rtol=1e-5, atol=1e-12)
+    paper = steady_state(A, H, Q, R, net, **kw)
+    assert paper.feasible and fast.trace_bound < paper.trace_bound
+    with pytest.raises(InputError, match="weights"):
+        steady_state(A, H, Q, R, net, weights="best", **kw)
