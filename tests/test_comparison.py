@@ -33,6 +33,12 @@ from studies.scenarios import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 
+def _interruptible() -> None:
+    """The child starts with Ctrl-C's default action, as in a terminal, even when this process was started
+    in the background of a shell without job control (which ignores SIGINT, and children inherit that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 
 def run_comparison(*, scenarios=("indoor-robot", "target-range-bearing"), sweep_values=SWEEP_VALUES,
                    tuned_in_sweeps=False, **kw) -> dict:
@@ -283,7 +289,8 @@ def test_sigint_then_resume_equals_an_uninterrupted_study(tmp_path):
     script.write_text(SIGINT_SCRIPT)
     out = tmp_path / "study"
     log = out / CHUNKS_DIR / "comparison-indoor-robot" / "log.jsonl"
-    p = subprocess.Popen([sys.executable, str(script), str(out)], cwd=ROOT, stderr=subprocess.PIPE)
+    p = subprocess.Popen([sys.executable, str(script), str(out)], cwd=ROOT, stderr=subprocess.PIPE,
+                         preexec_fn=_interruptible)
     deadline = time.time() + 120
     while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
         time.sleep(0.05)

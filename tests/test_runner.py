@@ -19,6 +19,12 @@ from studies.runner import (CHUNKS_DIR, Backend, RunFailed, chunk_ranges, make_b
 
 ROOT = Path(__file__).resolve().parents[1]
 
+def _interruptible() -> None:
+    """The child starts with Ctrl-C's default action, as in a terminal, even when this process was started
+    in the background of a shell without job control (which ignores SIGINT, and children inherit that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 
 def toy_task(run_ids, seeds, *, scale=1.0, fail_run=None, kill_flag=None, sleep=0.0):
     """Per run: 6 normals and a matrix product (BLAS), from the run's own Generator."""
@@ -172,7 +178,8 @@ def test_sigint_then_resume_equals_an_uninterrupted_run(tmp_path, kind):
     script.write_text(SIGINT_SCRIPT.format(tests=str(ROOT / "tests")))
     store = tmp_path / "store"
     log = store / CHUNKS_DIR / "runs" / "log.jsonl"
-    p = subprocess.Popen([sys.executable, str(script), str(store), kind], cwd=ROOT, stderr=subprocess.PIPE)
+    p = subprocess.Popen([sys.executable, str(script), str(store), kind], cwd=ROOT, stderr=subprocess.PIPE,
+                         preexec_fn=_interruptible)
     deadline = time.time() + 60
     while time.time() < deadline and (not log.exists() or len(log.read_text().splitlines()) < 2):
         time.sleep(0.05)
