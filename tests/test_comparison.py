@@ -30,14 +30,9 @@ from studies.comparison import (EKF_PLAIN, FILTERS, HCMCI, KCF, LOCAL, PAPER_DES
 from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
+from test_runner import _interruptible  # noqa: E402  (tests/ is on the path: the SIGINT child's default action)
 
 ROOT = Path(__file__).resolve().parents[1]
-
-def _interruptible() -> None:
-    """The child starts with Ctrl-C's default action, as in a terminal, even when this process was started
-    in the background of a shell without job control (which ignores SIGINT, and children inherit that)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
 
 
 def run_comparison(*, scenarios=("indoor-robot", "target-range-bearing"), sweep_values=SWEEP_VALUES,

@@ -19,11 +19,11 @@ from studies.runner import (CHUNKS_DIR, Backend, RunFailed, chunk_ranges, make_b
 
 ROOT = Path(__file__).resolve().parents[1]
 
+
 def _interruptible() -> None:
     """The child starts with Ctrl-C's default action, as in a terminal, even when this process was started
     in the background of a shell without job control (which ignores SIGINT, and children inherit that)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
-
 
 
 def toy_task(run_ids, seeds, *, scale=1.0, fail_run=None, kill_flag=None, sleep=0.0):
