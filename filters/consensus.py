@@ -65,7 +65,7 @@ from .attacks import AttackPattern
 from .rrp import wrap_angles
 
 __all__ = ["node_predict", "gate", "GATE_COUNTS", "exchange", "wrapped_residual", "node_update", "ConsensusResult",
-           "run_consensus", "HARD_CONDITIONS"]
+           "run_consensus", "check_run_inputs", "HARD_CONDITIONS"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
@@ -242,6 +242,26 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     return NodeUpdate(x_post, phi_post, K, C, margin, valid, beta if valid else np.nan)
 
 
+def check_run_inputs(model: Model, z, inputs, x0, cov0, cov_name: str = "P0"):
+    """A filter run's ``z`` (steps, n_z), ``inputs`` (steps, n_u), ``x0`` and initial covariance, checked.
+
+    ``x0`` and ``cov0`` default to the prior's mean and covariance; returns ``(z, u, x0, cov0)``
+    (``u`` of shape ``(steps, 0)`` without inputs).  Errors name the parameter (``cov_name`` for
+    the covariance).
+    """
+    z = check_finite("z", z)
+    if z.ndim != 2 or z.shape[1] != model.n_z:
+        raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
+    steps = z.shape[0]
+    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
+    if u.ndim != 2 or u.shape[0] != steps:
+        raise InputError(f"inputs must have shape ({steps}, n_u), one row per step, got {u.shape}")
+    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
+    if x0.shape != (model.n_x,):
+        raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
+    return z, u, x0, check_covariance(cov_name, model.prior.cov if cov0 is None else cov0, model.n_x)
+
+
 class ConsensusResult(NamedTuple):
     """A run of the consensus filter over all nodes.
 
@@ -302,17 +322,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     of ``max n_z_i`` columns, zero beyond each node's own.
     """
     design = validate_design(design, model, network)
-    z = check_finite("z", z)
+    z, u, x0, phi0 = check_run_inputs(model, z, inputs, x0, phi0, "phi0")
     steps = z.shape[0]
-    if z.ndim != 2 or z.shape[1] != model.n_z:
-        raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
-    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
-    if u.ndim != 2 or u.shape[0] != steps:
-        raise InputError(f"inputs must have shape ({steps}, n_u), one row per step, got {u.shape}")
-    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
-    if x0.shape != (model.n_x,):
-        raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
-    phi0 = check_covariance("phi0", model.prior.cov if phi0 is None else phi0, model.n_x)
     if design.mode == "mse" and gains is None:
         return _run_mse(model, network, z, u, design, attacks, x0, phi0)
     n, nx, dims = network.n_nodes, model.n_x, model.sensor_dims

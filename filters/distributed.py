@@ -78,12 +78,12 @@ import numpy as np
 
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.validation import InputError, check_covariance, check_finite, check_int
+from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import wrapped_residual
+from .consensus import check_run_inputs, wrapped_residual
 
-__all__ = ["DistributedResult", "run_kcf", "run_hcmci", "metropolis_weights", "check_run_inputs", "OMEGA_CHOICES",
+__all__ = ["DistributedResult", "run_kcf", "run_hcmci", "metropolis_weights", "OMEGA_CHOICES",
            "FALSIFY_CHOICES"]
 
 OMEGA_CHOICES = ("size", "consistent")
@@ -135,26 +135,6 @@ class _Inputs(NamedTuple):
     attacks: AttackPattern | None
     steps: int
     R_inv: list  # every sensor's R_i⁻¹ (by Cholesky, once)
-
-
-def check_run_inputs(model: Model, z, inputs, x0, cov0, cov_name: str = "P0"):
-    """A filter run's ``z`` (steps, n_z), ``inputs`` (steps, n_u), ``x0`` and initial covariance, checked.
-
-    ``x0`` and ``cov0`` default to the prior's mean and covariance; returns ``(z, u, x0, cov0)``
-    (``u`` of shape ``(steps, 0)`` without inputs).  Errors name the parameter (``cov_name`` for
-    the covariance).
-    """
-    z = check_finite("z", z)
-    if z.ndim != 2 or z.shape[1] != model.n_z:
-        raise InputError(f"z must have shape (steps, {model.n_z}), got {z.shape}")
-    steps = z.shape[0]
-    u = np.zeros((steps, 0)) if inputs is None else check_finite("inputs", inputs)
-    if u.ndim != 2 or u.shape[0] != steps:
-        raise InputError(f"inputs must have shape ({steps}, n_u), one row per step, got {u.shape}")
-    x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
-    if x0.shape != (model.n_x,):
-        raise InputError(f"x0 must have shape ({model.n_x},), got {x0.shape}")
-    return z, u, x0, check_covariance(cov_name, model.prior.cov if cov0 is None else cov0, model.n_x)
 
 
 def _check(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _Inputs:
