@@ -115,12 +115,12 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
 GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_passed")
 
 
-def gate(x_pred: np.ndarray, attacks_k, network: SensorNetwork, cov_diff: np.ndarray, alpha: float
+def gate(x_pred: np.ndarray, attacks_k, network: SensorNetwork, cov_diff: np.ndarray | None, alpha: float
          ) -> tuple[np.ndarray, np.ndarray]:
     """The χ² gate on received neighbour packets: which ones node ``i`` keeps.
 
     Node ``i`` tests the packet of ``j`` by ``d = x̂_j (+ ξ_ij) - x̂_i`` against the covariance
-    ``cov_diff[i, j]`` that ``x̂_j - x̂_i`` has when nobody lies, and keeps it when
+    ``cov_diff[i, j]`` that ``x̂_j - x̂_i`` has when nobody lies (None will do when ``α = 0``), and keeps it when
     ``dᵀ Σ⁻¹ d <= χ²_{n_x}(1 - α)``: a clean packet with that covariance (Gaussian) is lost
     with probability ``α``, the stated design parameter; a falsified one passes only if its
     displacement hides in the spread of the clean differences.  Returns the mask ``(N, N)``
@@ -374,8 +374,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         pred_ok = np.array([p.valid for p in preds]) & valid[k]
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
         # The gate tests x̂_j - x̂_i against 2 (Φ_i + Φ_j) >= its covariance (bounds, no cross-covariances).
-        keep, counts[k] = gate(x_pred[k], att, network, 2.0 * (phi_pred[k][:, None] + phi_pred[k][None, :]),
-                               design.gate)
+        cov = 2.0 * (phi_pred[k][:, None] + phi_pred[k][None, :]) if design.gate else None  # (N, N, n, n)
+        keep, counts[k] = gate(x_pred[k], att, network, cov, design.gate)
         innovation, s = exchange(x_pred[k], att, network, keep)
         neigh = np.einsum("ij,jab->iab", w_phi, phi_pred[k]) + w_xi[:, None, None] * np.eye(nx)
         rec = [np.flatnonzero(keep[i]) for i in range(n)]
@@ -527,7 +527,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         phi_pred[k] = _diag(Bp)
         att = None if attacks is None else (attacks.dos[k], attacks.fdi[k], attacks.xi[k])
         Pm = joint_predict(Pj, F, Q)
-        cov_diff = _difference_covariance(Pm)
+        cov_diff = _difference_covariance(Pm) if design.gate else None
         keep, counts[k] = gate(x_pred[k], att, network, cov_diff, design.gate)
         innovation, s = exchange(x_pred[k], att, network, keep)
         rec = [np.flatnonzero(keep[i]) for i in range(n)]
