@@ -58,7 +58,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import brentq, minimize_scalar
+from scipy.optimize import minimize_scalar
 
 from .bounds import shifted_inverse, symmetrize
 from .validation import ComputationError
@@ -67,7 +67,7 @@ __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
     "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
     "WeightedChoice", "own_term", "optimal_weights", "weighted_bound", "tune_weighted",
-    "neighbour_groups", "best_multiplier",
+    "neighbour_groups", "best_multiplier", "increasing_root",
     "WeightedSDP",
 ]
 
@@ -128,16 +128,10 @@ def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=Non
         g = np.sum((F @ phi_post @ Dm.T @ vec) ** 2, axis=0)
         a = np.trace(UUt) / eps
 
-        def slope(sv):
-            return float(np.sum(g * c / (1.0 - c * sv * mu) ** 2) - a / sv**2)
+        def slope(sv, _idx):
+            return np.sum(g * c / (1.0 - c * sv[:, None] * mu) ** 2, axis=-1) - a / sv**2
 
-        lo = smax * 1e-12
-        if slope(smax) <= 0:
-            sigma = smax  # the margin on (28) binds
-        elif slope(lo) >= 0:
-            sigma = lo
-        else:
-            sigma = float(brentq(slope, lo, smax, xtol=smax * 1e-13, rtol=1e-14, maxiter=200))
+        sigma = float(increasing_root(slope, smax * 1e-12, smax, xtol=smax * 1e-13, rtol=1e-14)[0])
     phi = _prediction(phi_post, F, UUt, Q, sigma, eps, D) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
     return PredictionChoice(sigma, phi, float(np.trace(phi)))
 
@@ -225,6 +219,81 @@ def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
+def increasing_root(slope, lo, hi, *, xtol, rtol: float = 1e-12, maxiter: int = 200) -> np.ndarray:
+    """For many items at once: the point of ``[lo, hi]`` where an increasing ``slope`` crosses zero.
+
+    ``slope(b, idx)`` returns the slopes of the items ``idx`` (an index array) at the points
+    ``b`` (one per item of ``idx``).  Per item the result is ``hi`` where ``slope(hi) <= 0``
+    (the constraint binds), ``lo`` where ``slope(lo) >= 0``, and otherwise the root, found by
+    the Illinois variant of false position (superlinear) with a bisection step whenever the
+    bracket does not shrink by half, until the bracket is within ``xtol + rtol b``.  A
+    non-finite slope at an end gives NaN (the caller decides).  This is the multiplier search
+    of the tuned and mse designs; a single item is a batch of one, so the per-run and the
+    batched filters take the same steps.
+    """
+    lo = np.array(lo, dtype=float, ndmin=1)
+    hi = np.array(np.broadcast_to(hi, lo.shape), dtype=float)
+    xtol = np.broadcast_to(np.asarray(xtol, dtype=float), lo.shape)
+    idx = np.arange(lo.size)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        f_lo, f_hi = np.asarray(slope(lo, idx), float), np.asarray(slope(hi, idx), float)
+    out = np.full(lo.shape, np.nan)
+    finite = np.isfinite(f_lo) & np.isfinite(f_hi)
+    out[finite & (f_hi <= 0)] = hi[finite & (f_hi <= 0)]
+    low_end = finite & (f_hi > 0) & (f_lo >= 0)
+    out[low_end] = lo[low_end]
+    act = np.flatnonzero(finite & (f_hi > 0) & (f_lo < 0))
+    a, b, fa, fb = lo[act], hi[act], f_lo[act], f_hi[act]
+    width = b - a
+    side = np.zeros(act.size, dtype=int)  # which end was kept last (-1 a, +1 b): Illinois halves its value
+    for _ in range(maxiter):
+        if not act.size:
+            break
+        c = a - fa * (b - a) / (fb - fa)
+        bad = ~((c > a) & (c < b))
+        c[bad] = 0.5 * (a[bad] + b[bad])
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            fc = np.asarray(slope(c, act), float)
+        nan = ~np.isfinite(fc)  # a slope beyond floats inside the bracket: treat as positive (shrink from above)
+        fc = np.where(nan, np.inf, fc)
+        up = fc > 0  # the root is below c
+        keep_b = ~up
+        b = np.where(up, c, b)
+        fb = np.where(up, np.where(nan, np.abs(fa) + 1.0, fc), fb)
+        a = np.where(keep_b, c, a)
+        fa = np.where(keep_b, fc, fa)
+        # Illinois: an end kept twice in a row has its value halved
+        fa = np.where(up & (side == -1), 0.5 * fa, fa)
+        fb = np.where(keep_b & (side == 1), 0.5 * fb, fb)
+        side = np.where(up, -1, 1)
+        new_width = b - a
+        slow = new_width > 0.5 * width
+        mid = 0.5 * (a + b)
+        width = new_width
+        done = (fc == 0) | (width <= xtol[act] + rtol * np.abs(c))
+        out[act[done]] = np.where(fc[done] == 0, c[done], mid[done])
+        if slow.any() and not done.all():  # a bisection step where false position stalls
+            s = np.flatnonzero(slow & ~done)
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                fm = np.asarray(slope(mid[s], act[s]), float)
+            fm = np.where(np.isfinite(fm), fm, np.inf)
+            upm = fm > 0
+            b[s] = np.where(upm, mid[s], b[s])
+            fb[s] = np.where(upm, np.where(np.isinf(fm), np.abs(fa[s]) + 1.0, fm), fb[s])
+            a[s] = np.where(upm, a[s], mid[s])
+            fa[s] = np.where(upm, fa[s], fm)
+            side[s] = 0
+            width[s] = b[s] - a[s]
+            fin = (fm == 0) | (width[s] <= xtol[act[s]] + rtol * np.abs(mid[s]))
+            out[act[s[fin]]] = np.where(fm[fin] == 0, mid[s][fin], 0.5 * (a[s][fin] + b[s][fin]))
+            done[s[fin]] = True
+        keep = ~done
+        act, a, b, fa, fb, side, width = act[keep], a[keep], b[keep], fa[keep], fb[keep], side[keep], width[keep]
+    if act.size:  # maxiter reached: the middle of what is left
+        out[act] = 0.5 * (a + b)
+    return out
+
+
 def best_multiplier(trace_at, bmax: float, has_v: bool) -> float:
     """The β in ``(0, bmax]`` minimising the convex ``trace_at(β)`` (0 without V: the trace only grows with β)."""
     if not has_v:
@@ -241,19 +310,10 @@ def _best_gains(phi_pred, H, s, V, R, w, N, margin, D):
     if not np.any(V):
         beta = 0.0  # without V the trace only grows with β (M grows)
     else:  # the root of the increasing slope of the convex f*(β), bracketed
-        lo = bmax * 1e-9
-        hi_slope, lo_slope = fixed.slope(bmax), fixed.slope(lo)
-        if not (np.isfinite(hi_slope) and np.isfinite(lo_slope)):
+        beta = float(increasing_root(lambda b, _idx: np.array([fixed.slope(b[0])]), bmax * 1e-9, bmax,
+                                     xtol=bmax * 1e-9, rtol=1e-9)[0])
+        if not np.isfinite(beta):
             beta = best_multiplier(fixed.trace, bmax, True)  # a bound beyond floats: the plain search
-        elif hi_slope <= 0:
-            beta = bmax  # the margin on (29) binds
-        elif lo_slope >= 0:
-            beta = lo
-        else:
-            try:
-                beta = float(brentq(fixed.slope, lo, bmax, xtol=bmax * 1e-9, rtol=1e-9, maxiter=200))
-            except ValueError:  # the slope left floats inside the bracket
-                beta = best_multiplier(fixed.trace, bmax, True)
     C, K = fixed.gains(beta)
     return beta, C, K
 
