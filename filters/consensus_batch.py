@@ -23,8 +23,11 @@ Every quantity of a step is a stack over (runs, nodes):
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
 The gains are chosen per mode by a pair of batched functions over stacked items
-(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) so far;
-the ``'tuned'`` and ``'mse'`` modes run with :func:`filters.consensus.run_consensus`.
+(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) so far.
+Every other case — a mode without a batched rule (``'tuned'``, ``'mse'``) or a gate on
+neighbour packets (``design.gate > 0``) — runs :func:`filters.consensus.run_consensus` run by
+run and stacks its results into the same :class:`ConsensusBatchResult` (with
+``predicted_mse`` and ``gate_counts``): the same numbers, without the batch's speed.
 """
 from __future__ import annotations
 
@@ -50,7 +53,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult
+from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult, run_consensus
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
@@ -162,8 +165,8 @@ class ConsensusBatchResult(NamedTuple):
     violations: list  # one list of {node, step, condition, margin[, reason]} per run
     sigma: np.ndarray  # (runs, steps, N)
     beta: np.ndarray  # (runs, steps, N)
-    predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse' (not batched yet)
-    gate_counts: np.ndarray | None = None  # (runs, steps, 5) GATE_COUNTS (no gate: nothing rejected)
+    predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse'
+    gate_counts: np.ndarray | None = None  # (runs, steps, 5) GATE_COUNTS
 
     @property
     def runs(self) -> int:
@@ -344,7 +347,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Mode ``'paper'`` (the modes of :data:`GAIN_RULES`).
+        Any mode; the modes of :data:`GAIN_RULES` without a gate run batched, the other cases run
+        :func:`run_consensus` run by run (same numbers, stacked).
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
     attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
@@ -361,18 +365,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     Raises
     ------
     InputError
-        For bad input, a mode without a batched rule, and, as :func:`run_consensus` does, when σ or
+        For bad input, and, as :func:`run_consensus` does, when σ or
         β violates (28)/(29) at the first step: with the message ``run_consensus`` raises for the
         first run (in batch order) it raises for.
     """
     design = validate_design(design, model, network)
-    if design.mode not in GAIN_RULES:
-        raise InputError(f"run_consensus_batch runs the modes {sorted(GAIN_RULES)}, got {design.mode!r}; "
-                         "run the others with filters.consensus.run_consensus")
-    if design.gate:
-        raise InputError("run_consensus_batch has no gate on neighbour packets yet (design.gate must be 0); run "
-                         "gated designs with filters.consensus.run_consensus")
-    predict_rule, update_rule = GAIN_RULES[design.mode]
     z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
     ex = _Exchange(network)
@@ -389,6 +386,9 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
                 or attacks.xi.shape != shape + (model.n_x,):
             raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {E} channels, n_x = {model.n_x}), "
                              f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
+    if design.mode not in GAIN_RULES or design.gate:
+        return _per_run_batch(model, network, z, design, u, attacks, x0, phi0)
+    predict_rule, update_rule = GAIN_RULES[design.mode]
 
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
@@ -558,6 +558,20 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
     return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
                                 None, _gate_counts(attacks, len(ex.receiver), runs, steps, violations))
+
+
+def _per_run_batch(model: Model, network: SensorNetwork, z, design: ConsensusDesign, u, attacks, x0, phi0
+                   ) -> ConsensusBatchResult:
+    """What the batch cannot vectorise yet: :func:`run_consensus` run by run, its results stacked."""
+    refs = [run_consensus(model, network, z[r], design, inputs=u if u.ndim == 2 else u[r],
+                          attacks=None if attacks is None else attacks.pattern(r, network.n_nodes),
+                          x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])]
+    fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
+              if f not in ("violations", "predicted_mse", "gate_counts")}
+    return ConsensusBatchResult(**fields, violations=[ref.violations for ref in refs],
+                                predicted_mse=None if refs[0].predicted_mse is None
+                                else np.stack([ref.predicted_mse for ref in refs]),
+                                gate_counts=np.stack([ref.gate_counts for ref in refs]))
 
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):

@@ -121,10 +121,31 @@ def test_first_step_input_error_has_the_per_run_message(robot):
         assert str(got.value) == str(ref.value) and ("(28)" if "sigma" in change else "(29)") in str(got.value)
 
 
-def test_tuned_mode_and_bad_shapes_are_refused(robot):
+@pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="mse", gate=0.05)])
+def test_unbatched_cases_run_per_run_and_stack(robot, change):
+    """A mode without a batched rule or a gate: run_consensus run by run, stacked with predicted_mse and
+    gate_counts (attacks given as EdgeAttacks; per-run x0)."""
     sc, net, traj, atts = robot
-    with pytest.raises(InputError, match="paper"):
-        run_consensus_batch(sc.model, net, traj.z, robot_design(mode="tuned"), inputs=traj.inputs)
+    steps = 3
+    z = traj.z[:2, :steps]
+    x0 = sc.model.prior.mean + 0.05 * np.random.default_rng(4).standard_normal((2, 3))
+    des = robot_design(**change)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps],
+                                attacks=EdgeAttacks.from_patterns(net, atts[:2]), x0=x0)
+    refs = per_run(sc.model, net, z, des, traj.inputs[:steps], atts, x0=x0)
+    assert_same_as_per_run(batch, refs)
+    for r, ref in enumerate(refs):
+        np.testing.assert_array_equal(batch.gate_counts[r], ref.gate_counts)
+        if ref.predicted_mse is None:
+            assert batch.predicted_mse is None
+        else:
+            np.testing.assert_array_equal(batch.predicted_mse[r], ref.predicted_mse)
+    if des.gate:
+        assert batch.gate_counts[..., 1].sum() > 0, "the gate must reject some packets"
+
+
+def test_bad_shapes_are_refused(robot):
+    sc, net, traj, atts = robot
     with pytest.raises(InputError, match="runs, steps"):
         run_consensus_batch(sc.model, net, traj.z[0], robot_design(), inputs=traj.inputs)
     with pytest.raises(InputError, match="one AttackPattern per run"):
