@@ -54,7 +54,8 @@ from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int, check_probability
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
-from filters.consensus import HARD_CONDITIONS, run_consensus
+from filters.consensus import HARD_CONDITIONS
+from filters.consensus_batch import run_consensus_batch
 from filters.distributed import run_hcmci, run_kcf
 from filters.ekf import run_ekf
 from filters.particle import run_sir
@@ -275,59 +276,75 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             if j == 0:
                 est[a, f] = xs[:, 0]
 
-    for a, seq in enumerate(seeds):
+    trajs, atts, ys, fss = [], [[] for _ in scs], [], []
+    for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
         ts, cs, fs = seq.spawn(3)
         traj = sc.simulate(np.random.default_rng(ts), K)
         truth[a] = traj.x
         u, s = channel_draws(K, n, np.random.default_rng(cs))
-        ys = []
+        y_a = []
         for j, scj in enumerate(scs):
             att_j = scj.resolved_attacks
-            att = attack_pattern(scj.network, u, s, m.n_x, signal)
+            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
             y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
                                                           fdi_prob=att_j.uplink_fdi, signal=signal))
-            ys += [y, y]
-            for name in DESIGNED:
-                if name in designs[j]:
-                    f = FILTERS.index(name)
-                    t0 = time.perf_counter()
-                    res = run_consensus(m, scj.network, traj.z, designs[j][name], inputs=traj.inputs, attacks=att)
-                    secs[a, j, f] = time.perf_counter() - t0
-                    ok = res.diverged is None
+            y_a += [y, y]
+        trajs.append(traj)
+        ys.append(y_a)
+        fss.append(fs)
+    Z = np.stack([t.z for t in trajs])
+    U = None if trajs[0].inputs is None or not trajs[0].inputs.shape[-1] else np.stack([t.inputs for t in trajs])
+
+    def batch(f, j, network, design, attacks):
+        """A designed consensus filter on every run of the chunk at once (its time: the batch's, per run)."""
+        t0 = time.perf_counter()
+        res = run_consensus_batch(m, network, Z, design, inputs=U, attacks=attacks)
+        secs[:, j, f] = (time.perf_counter() - t0) / R
+        return res
+
+    for j, scj in enumerate(scs):
+        for name in DESIGNED:
+            if name in designs[j]:
+                f = FILTERS.index(name)
+                res = batch(f, j, scj.network, designs[j][name], atts[j])
+                for a, dv in enumerate(res.diverged):
+                    ok = dv is None
                     feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
-                                                             for v in res.violations))
-                    score(a, j, f, res.x_post, ok)  # x_post (K + 1, nodes, n_x)
+                                                             for v in res.violations[a]))
+                    score(a, j, f, res.x_post[a], ok)  # x_post (K + 1, nodes, n_x)
+    f = FILTERS.index(LOCAL)  # the local EKFs use no network: one batch, the same at every setting
+    res = batch(f, 0, local_net, local, None)
+    secs[:, :, f] = secs[:, :1, f]
+    for a, dv in enumerate(res.diverged):
+        for jj in range(S):
+            score(a, jj, f, res.x_post[a], dv is None)
+    for a, traj in enumerate(trajs):
+        for j, scj in enumerate(scs):
             for name, run, kw in ((KCF, run_kcf, {}), (HCMCI, run_hcmci, {"iterations": hcmci_iterations})):
                 f = FILTERS.index(name)
                 t0 = time.perf_counter()
-                res = run(m, scj.network, traj.z, inputs=traj.inputs, attacks=att, **kw)
+                res = run(m, scj.network, traj.z, inputs=traj.inputs, attacks=atts[j][a], **kw)
                 secs[a, j, f] = time.perf_counter() - t0
                 delivered[a, j, f] = res.delivered_per_step.mean()
                 score(a, j, f, res.x_post, res.diverged is None)
             f = FILTERS.index(EKF_PLAIN)
-            values, avail = split_received(m, y)
+            values, avail = split_received(m, ys[a][2 * j])
             t0 = time.perf_counter()
             xs = run_ekf(m, values, available=avail, inputs=traj.inputs).x[:, None]
             secs[a, j, f] = time.perf_counter() - t0
             score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
-            if j == 0:  # the local EKFs use no network: one run, the same at every setting
-                f = FILTERS.index(LOCAL)
-                t0 = time.perf_counter()
-                res = run_consensus(m, local_net, traj.z, local, inputs=traj.inputs)
-                secs[a, :, f] = time.perf_counter() - t0
-                for jj in range(S):
-                    score(a, jj, f, res.x_post, res.diverged is None)
+        fs = fss[a]
         main_seqs = fs.spawn(3)  # the two particle filters at the main setting, then the sweep batch
         for c, f in enumerate(pfs):  # alone, so that their time per step is a single filter's
             q = qs[c] if not per_sensor else np.broadcast_to(qs[c], (n,))[None]
             t0 = time.perf_counter()
-            res = run_sir(m, ys[0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
+            res = run_sir(m, ys[a][0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
                           inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
             secs[a, 0, f] = time.perf_counter() - t0
             score(a, 0, f, res.mean[0][:, None], bool(np.all(np.isfinite(res.mean))))
         if S > 1:
             t0 = time.perf_counter()
-            res = run_sir(m, np.stack(ys[2:]), np.random.default_rng(main_seqs[2]), particles=particles,
+            res = run_sir(m, np.stack(ys[a][2:]), np.random.default_rng(main_seqs[2]), particles=particles,
                           runs=2 * (S - 1), inputs=traj.inputs, loglik=ll_sweep)
             per_filter = (time.perf_counter() - t0) / (2 * (S - 1))  # amortised over the batch
             for j in range(1, S):
