@@ -1,15 +1,42 @@
-"""Atomic file output: a file is either absent, the old version, or complete."""
+"""File output: atomic files (absent, the old version, or complete), one writer per output directory.
+
+* :func:`atomic_write` writes a temporary file beside the target and renames it over it; the
+  file gets the usual permissions (``0666`` less the process's umask, as ``open`` gives).
+* :func:`output_lock` holds an OS-level lock (``fcntl.flock``) on ``<directory>/.cfdesign.lock``
+  for as long as a command writes into the directory; a second writer is refused at once
+  (:class:`designer.validation.InputError`, exit 2) with the holder's PID and command.  The
+  lock goes with the process that holds it, however it ends (even SIGKILL).
+* :func:`append_line` appends one line to a log in a single ``write`` of an ``O_APPEND``
+  descriptor, so concurrent or interrupted appends never interleave or leave half a line.
+* :func:`code_fingerprint` hashes the package's own source files: stored results computed by
+  another version of the code are recognised as such.
+"""
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
+import sys
 import tempfile
+import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_write", "write_json", "write_npz"]
+from .validation import InputError
+
+__all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
+           "LOCK_NAME"]
+
+LOCK_NAME = ".cfdesign.lock"
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write(path, write) -> Path:
@@ -18,6 +45,7 @@ def atomic_write(path, write) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would make every output private
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
@@ -51,3 +79,74 @@ def write_json(path, data: Any) -> Path:
 
 def write_npz(path, **arrays) -> Path:
     return atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
+
+
+def append_line(path, line: str) -> None:
+    """Append ``line`` (a newline is added) to ``path`` in one ``write`` of an ``O_APPEND`` descriptor."""
+    data = (line.rstrip("\n") + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        written = os.write(fd, data)
+        if written != len(data):  # a full disk: do not leave half a line that a reader would take for one
+            os.ftruncate(fd, os.lseek(fd, 0, os.SEEK_END) - written)
+            raise OSError(f"could not append to {path} (disk full?)")
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def output_lock(directory) -> Iterator[Path]:
+    """Hold the one-writer lock of ``directory`` (created if missing) for the ``with`` block.
+
+    Raises InputError at once, naming the holder (PID, command, start time), when another
+    process holds it.  On platforms without ``fcntl`` nothing is locked.
+    """
+    directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise InputError(f"out must be a directory, got the existing file {str(directory)!r}")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        path = directory / LOCK_NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise InputError(f"out: cannot write into {str(directory)!r} ({exc.strerror or exc})") from exc
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        fcntl = None
+    try:
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                try:
+                    holder = json.loads(os.pread(fd, 65536, 0).decode() or "{}")
+                except (OSError, ValueError):
+                    holder = {}
+                who = (f"process {holder.get('pid', '?')} ({holder.get('command', '?')}, started "
+                       f"{holder.get('started', '?')})") if holder else "another process"
+                raise InputError(f"out: {str(directory)!r} is being written by {who}; wait for it to finish or "
+                                 "choose another --out") from None
+        info = json.dumps({"pid": os.getpid(), "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:])[:500],
+                           "started": time.strftime("%Y-%m-%d %H:%M:%S")}).encode()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+        yield directory
+    finally:
+        os.close(fd)  # releases the flock
+
+
+_FINGERPRINT: str | None = None
+
+
+def code_fingerprint() -> str:
+    """SHA-256 of the package's source files (``designer``, ``filters``, ``studies``), computed once per process."""
+    global _FINGERPRINT
+    if _FINGERPRINT is None:
+        root = Path(__file__).resolve().parent.parent
+        h = hashlib.sha256()
+        for pkg in ("designer", "filters", "studies"):
+            for f in sorted((root / pkg).rglob("*.py")):
+                h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
+        _FINGERPRINT = h.hexdigest()
+    return _FINGERPRINT
