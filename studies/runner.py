@@ -30,6 +30,18 @@ so an interrupted study (Ctrl-C, a killed worker) resumes where it stopped; a
 different configuration is refused (it would mix results) unless ``force=True``,
 which deletes the stored chunks and recomputes everything.
 
+**Verified.**  A stored chunk is used only if it proves what it is: every chunk file holds,
+beside its arrays, the fingerprint of everything that determines it (the manifest: study,
+configuration, seed, chunk size, and :func:`designer.fileio.code_fingerprint` of the code)
+with its run range, and a SHA-256 checksum of its arrays (names, dtypes, shapes, bytes).  On
+loading, the fingerprint, the run range, every array's row count and the checksum are
+checked; a chunk that fails any of them (or cannot be read) is named with what differs
+(:attr:`MonteCarloResult.rejected`, and a line on stderr) and recomputed, never
+reused, so neither a deleted manifest, a chunk copied from another run or another
+configuration, nor an edited or truncated file can enter the results.  The checksum detects
+corruption and mixing, not a forger who recomputes it.  The arrays returned always hold
+exactly one row per run (checked).
+
 **Failures are reported, not swallowed.**  When a chunk raises, the runner
 recomputes its runs one at a time to find the failing run and raises
 :class:`RunFailed` naming the run, its seed and spawn key and the original error;
@@ -37,10 +49,13 @@ the chunks finished before are kept.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import signal
+import sys
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -51,7 +66,7 @@ from typing import Any, Callable, Mapping
 import multiprocessing
 import numpy as np
 
-from designer.fileio import atomic_write, write_json
+from designer.fileio import append_line, atomic_write, code_fingerprint, write_json
 from designer.validation import ComputationError, InputError, check_int
 
 from .progress import counter, progress
@@ -60,7 +75,8 @@ __all__ = ["Backend", "make_backend", "run_seed", "chunk_ranges", "monte_carlo",
            "CHUNKS_DIR"]
 
 CHUNKS_DIR = ".chunks"
-_MANIFEST_SCHEMA = "cfdesign.chunks/1"
+_MANIFEST_SCHEMA = "cfdesign.chunks/2"
+_META = "__cfdesign_chunk__"  # the entry of a chunk file that says what it is
 BACKENDS = ("batched", "processes", "dask")
 
 Task = Callable[[np.ndarray, list], Mapping[str, np.ndarray]]
@@ -170,12 +186,33 @@ class MonteCarloResult:
     backend: Backend = Backend()
     chunk_size: int = 1
     wall_time_s: float = 0.0
+    rejected: list[dict] = field(default_factory=list)  # stored chunks not reused: {"runs": [start, stop], "reason"}
 
     def describe(self) -> dict:
         """For ``results.json``: backend, chunking and what was resumed (not part of the numbers)."""
         return {**self.backend.describe(), "chunk_size": self.chunk_size,
                 "chunks": len(self.computed) + len(self.reused), "chunks_computed": len(self.computed),
-                "chunks_reused": len(self.reused), "wall_time_s": self.wall_time_s}
+                "chunks_reused": len(self.reused), "chunks_rejected": list(self.rejected),
+                "wall_time_s": self.wall_time_s}
+
+    @property
+    def runs(self) -> int:
+        """The number of runs the arrays hold (one row each)."""
+        return int(next(iter(self.arrays.values())).shape[0])
+
+
+def checksum(arrays: Mapping[str, np.ndarray]) -> str:
+    """SHA-256 of a chunk's arrays: names, dtypes, shapes and bytes, in name order."""
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(json.dumps([k, a.dtype.str, list(a.shape)]).encode() + b"\0")
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _fingerprint(manifest: Mapping[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()
 
 
 class _Store:
@@ -183,6 +220,7 @@ class _Store:
 
     def __init__(self, root: Path, label: str, manifest: dict, force: bool):
         self.dir = Path(root) / CHUNKS_DIR / label
+        self.fingerprint = _fingerprint(manifest)
         path = self.dir / "manifest.json"
         if force and self.dir.exists():
             shutil.rmtree(self.dir)
@@ -196,7 +234,8 @@ class _Store:
                 diff = keys if "config" not in keys else keys + sorted(
                     f"config.{k}" for k in set(old.get("config") or {}) | set(manifest["config"])
                     if (old.get("config") or {}).get(k) != manifest["config"].get(k))
-                raise InputError(f"{self.dir} holds runs computed with other settings ({', '.join(diff)}); "
+                hint = "the code changed since they were computed; " if diff == ["code"] else ""
+                raise InputError(f"{self.dir} holds runs computed with other settings ({', '.join(diff)}); {hint}"
                                  f"use --force to recompute them or choose another output directory")
         else:
             write_json(path, manifest)
@@ -204,20 +243,41 @@ class _Store:
     def file(self, c: tuple[int, int]) -> Path:
         return self.dir / f"runs_{c[0]:07d}_{c[1]:07d}.npz"
 
-    def load(self, c: tuple[int, int]) -> dict | None:
+    def load(self, c: tuple[int, int]) -> tuple[dict | None, str | None]:
+        """``(arrays, None)`` for a chunk that proves to be chunk ``c`` of this store, else ``(None, why)``
+        (``(None, None)``: not there)."""
         f = self.file(c)
         if not f.exists():
-            return None
+            return None, None
         try:
             with np.load(f, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except Exception:  # noqa: BLE001 - an unreadable chunk is recomputed (writes are atomic, so rare)
-            return None
+                arrays = {k: z[k] for k in z.files}
+        except Exception as exc:  # noqa: BLE001 - whatever the file holds, it is not a chunk
+            return None, f"unreadable ({type(exc).__name__}: {exc})"
+        meta = arrays.pop(_META, None)
+        try:
+            info = json.loads(meta.tobytes().decode()) if meta is not None else None
+        except (ValueError, UnicodeDecodeError):
+            info = None
+        if not isinstance(info, dict):
+            return None, "it carries no fingerprint (written by another version, or not by cfdesign)"
+        if info.get("fingerprint") != self.fingerprint:
+            return None, "its fingerprint differs: it was computed with another configuration, seed or code"
+        if info.get("runs") != list(c):
+            return None, f"it holds runs {info.get('runs')}, not {list(c)}"
+        rows = {k: (a.shape[0] if a.ndim else None) for k, a in arrays.items()}
+        wrong = sorted(k for k, r in rows.items() if r != c[1] - c[0])
+        if not arrays or wrong:
+            return None, (f"array {wrong[0]!r} has {rows[wrong[0]]} rows, not {c[1] - c[0]}" if wrong else "no arrays")
+        if info.get("checksum") != checksum(arrays):
+            return None, "its checksum does not match its arrays (the file was changed)"
+        return arrays, None
 
     def save(self, c: tuple[int, int], arrays: dict) -> None:
-        atomic_write(self.file(c), lambda fh: np.savez(fh, **arrays))
-        with open(self.dir / "log.jsonl", "a") as fh:
-            fh.write(json.dumps({"chunk": list(c), "pid": os.getpid(), "time": time.time()}) + "\n")
+        meta = json.dumps({"fingerprint": self.fingerprint, "runs": list(c), "checksum": checksum(arrays)})
+        atomic_write(self.file(c), lambda fh: np.savez(fh, **arrays, **{_META: np.frombuffer(meta.encode(),
+                                                                                          np.uint8)}))
+        append_line(self.dir / "log.jsonl", json.dumps({"chunk": list(c), "pid": os.getpid(), "time": time.time()}))
 
 
 def _normalised(config: Mapping[str, Any]) -> dict:
@@ -227,8 +287,32 @@ def _normalised(config: Mapping[str, Any]) -> dict:
         raise InputError(f"config must be JSON-serialisable, got {exc}") from exc
 
 
-def _ignore_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+def _worker_init(parent: int) -> None:
+    """A worker process: Ctrl-C is the parent's to handle, and the worker dies with its parent.
+
+    However the parent ends (SIGKILL, SIGTERM, a crash), its workers must not live on: blocked
+    on a pipe write they would hold the caller's stdout and stderr open.  On Linux the kernel
+    sends SIGKILL to the worker when the parent dies (``PR_SET_PDEATHSIG``); everywhere a
+    watchdog thread ends the worker within half a second of being orphaned (its parent PID changes).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):  # not Linux: the watchdog alone
+        pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(0.5)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="cfdesign-parent-watchdog", daemon=True).start()
 
 
 class _Interrupts:
@@ -314,15 +398,19 @@ def monte_carlo(
     st = None
     if store is not None:
         manifest = {"schema": _MANIFEST_SCHEMA, "label": label, "seed": seed, "chunk_size": int(chunk_size),
-                    "config": _normalised(config or {})}
+                    "config": _normalised(config or {}), "code": code_fingerprint()}
         st = _Store(Path(store), label, manifest, force)
     done: dict[tuple[int, int], dict] = {}
-    reused = []
+    reused, rejected = [], []
     if st is not None:
         for c in ranges:
-            arrays = st.load(c)
+            arrays, why = st.load(c)
             if arrays is not None:
                 done[c], _ = arrays, reused.append(c)
+            elif why is not None:
+                rejected.append({"runs": [c[0], c[1]], "reason": why})
+                print(f"cfdesign: stored chunk {st.file(c)} (runs {c[0]}..{c[1] - 1}) not reused: {why}; "
+                      "recomputing it", file=sys.stderr)
     pending = [c for c in ranges if c not in done]
     computed: list[tuple[int, int]] = []
 
@@ -351,12 +439,17 @@ def monte_carlo(
                                    + ("; use --force if the stored chunks are from an older version" if c in reused
                                       else ""))
     arrays = {k: np.concatenate([done[c][k] for c in ranges], axis=0) for k in keys}
-    return MonteCarloResult(arrays, computed, reused, backend, int(chunk_size), time.perf_counter() - t0)
+    short = [k for k, a in arrays.items() if a.shape[0] != runs]
+    if short:
+        raise ComputationError(f"the runs' arrays hold {arrays[short[0]].shape[0]} rows of {short[0]!r} for {runs} "
+                               "runs")
+    return MonteCarloResult(arrays, computed, reused, backend, int(chunk_size), time.perf_counter() - t0, rejected)
 
 
 def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
     pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
-                               mp_context=multiprocessing.get_context("fork"), initializer=_ignore_sigint)
+                               mp_context=multiprocessing.get_context("fork"), initializer=_worker_init,
+                               initargs=(os.getpid(),))
     futures = {}
     try:
         futures = {pool.submit(_compute, task, c[0], c[1], seed): c for c in pending}
