@@ -34,6 +34,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from designer.design import DesignOptions
+from designer.fileio import output_lock
 from designer.validation import InputError, check_int
 
 from .runner import Backend, MonteCarloResult, monte_carlo
@@ -299,8 +300,24 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
               chunk_size: int | None = None, **study_options) -> StudyResult:
     """Run study ``name`` on ``targets`` (default: its own scenarios) and, with ``out``, write its outputs.
 
-    See :func:`studies.api.study` for the parameters.
+    See :func:`studies.api.study` for the parameters.  With ``out``, the directory's one-writer
+    lock (:func:`designer.fileio.output_lock`) is held from before the first computation until
+    the last file is written: a second process on the same ``out`` is refused, and ``force``
+    never deletes under a running writer.
     """
+    get_study(name)
+    if out is None:
+        return _run_study(name, targets, out=None, runs=runs, particles=particles, seed=seed, backend=backend,
+                          force=force, quiet=quiet, options=options, overrides=overrides, assignments=assignments,
+                          chunk_size=chunk_size, **study_options)
+    with output_lock(out):
+        return _run_study(name, targets, out=out, runs=runs, particles=particles, seed=seed, backend=backend,
+                          force=force, quiet=quiet, options=options, overrides=overrides, assignments=assignments,
+                          chunk_size=chunk_size, **study_options)
+
+
+def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force, quiet, options, overrides,
+               assignments, chunk_size, **study_options) -> StudyResult:
     from .results import study_header
 
     study = get_study(name)
