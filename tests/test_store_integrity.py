@@ -1,0 +1,269 @@
+"""Results that cannot be silently wrong: the verified chunk store, one writer per output, workers
+that die with their parent, output permissions."""
+from __future__ import annotations
+
+import functools
+import json
+import os
+import signal
+import stat
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from designer.fileio import LOCK_NAME, append_line, atomic_write, output_lock
+from designer.validation import ComputationError, InputError
+from studies.runner import CHUNKS_DIR, monte_carlo
+
+from test_runner import ROOT, reference, toy_task
+
+KW = dict(runs=12, seed=4, chunk_size=4, label="toy", quiet=True)
+
+
+def _store(tmp_path, **kw):
+    return monte_carlo(toy_task, store=tmp_path, config={"scale": 1.0}, **{**KW, **kw})
+
+
+def _chunk(tmp_path, start, stop):
+    return tmp_path / CHUNKS_DIR / "toy" / f"runs_{start:07d}_{stop:07d}.npz"
+
+
+def _rewrite(path: Path, change) -> None:
+    """Load a chunk file, change its arrays (its metadata entry kept as it is), write it back."""
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    change(arrays)
+    np.savez(path, **arrays)
+
+
+def _reasons(res) -> list[str]:
+    return [r["reason"] for r in res.rejected]
+
+
+def test_an_untouched_store_is_reused_as_it_is(tmp_path):
+    first = _store(tmp_path)
+    again = _store(tmp_path)
+    assert len(again.reused) == 3 and not again.computed and not again.rejected
+    assert np.array_equal(again.arrays["x"], first.arrays["x"])
+    assert np.array_equal(first.arrays["x"], reference(12, 4))
+    assert again.describe()["chunks_rejected"] == []
+
+
+def test_a_chunk_with_scaled_values_is_named_and_recomputed(tmp_path, capfd):
+    _store(tmp_path)
+    _rewrite(_chunk(tmp_path, 4, 8), lambda a: a.__setitem__("x", a["x"] * 1.5))
+    res = _store(tmp_path)
+    assert res.rejected == [{"runs": [4, 8], "reason": _reasons(res)[0]}]
+    assert "checksum" in _reasons(res)[0]
+    assert res.computed == [(4, 8)] and len(res.reused) == 2
+    assert np.array_equal(res.arrays["x"], reference(12, 4))  # the truth, not the tampered values
+    err = capfd.readouterr().err
+    assert "runs_0000004_0000008.npz" in err and "runs 4..7" in err and "checksum" in err
+
+
+def test_a_copy_of_another_chunk_is_not_reused(tmp_path):
+    _store(tmp_path)
+    _chunk(tmp_path, 8, 12).write_bytes(_chunk(tmp_path, 0, 4).read_bytes())
+    res = _store(tmp_path)
+    assert res.computed == [(8, 12)] and "holds runs [0, 4]" in _reasons(res)[0]
+    assert np.array_equal(res.arrays["x"], reference(12, 4))
+
+
+def test_a_chunk_with_missing_rows_is_not_reused(tmp_path):
+    _store(tmp_path)
+    _rewrite(_chunk(tmp_path, 0, 4), lambda a: a.update(x=a["x"][:2], run=a["run"][:2]))
+    res = _store(tmp_path)
+    assert res.computed == [(0, 4)] and "2 rows, not 4" in _reasons(res)[0]
+    assert res.runs == 12 and res.arrays["x"].shape[0] == 12
+
+
+def test_without_the_manifest_chunks_of_another_configuration_are_not_reused(tmp_path):
+    monte_carlo(functools.partial(toy_task, scale=2.0), store=tmp_path, config={"scale": 2.0}, **KW)
+    (tmp_path / CHUNKS_DIR / "toy" / "manifest.json").unlink()
+    res = _store(tmp_path)
+    assert len(res.rejected) == 3 and all("fingerprint differs" in r for r in _reasons(res))
+    assert np.array_equal(res.arrays["x"], reference(12, 4, scale=1.0))
+
+
+@pytest.mark.parametrize("content", [b"", b"garbage, not a zip file", None])
+def test_truncated_or_foreign_files_are_named_and_recomputed(tmp_path, content):
+    _store(tmp_path)
+    f = _chunk(tmp_path, 4, 8)
+    if content is None:  # a valid npz written by someone else: no fingerprint
+        np.savez(f, x=np.zeros((4, 42)), run=np.arange(4, 8))
+    else:
+        f.write_bytes(content)
+    res = _store(tmp_path)
+    assert res.computed == [(4, 8)]
+    assert ("no fingerprint" if content is None else "unreadable") in _reasons(res)[0]
+    assert np.array_equal(res.arrays["x"], reference(12, 4))
+
+
+def test_a_change_of_code_version_is_refused_by_name(tmp_path, monkeypatch):
+    _store(tmp_path)
+    import studies.runner as runner
+
+    monkeypatch.setattr(runner, "code_fingerprint", lambda: "another version")
+    with pytest.raises(InputError, match=r"\(code\); the code changed"):
+        _store(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------- one writer
+_HOLDER = textwrap.dedent("""
+    import sys, time
+    from designer.fileio import output_lock
+    with output_lock(sys.argv[1]):
+        print("locked", flush=True)
+        time.sleep(60)
+""")
+
+
+def _hold(directory: Path) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", _HOLDER, str(directory)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "locked"
+    return p
+
+
+def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
+    holder = _hold(tmp_path / "out")
+    try:
+        with pytest.raises(InputError, match=rf"being written by process {holder.pid} \(.*-c.*started"):
+            with output_lock(tmp_path / "out"):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with output_lock(tmp_path / "out"):  # the lock went with its holder, even on SIGKILL
+        assert json.loads((tmp_path / "out" / LOCK_NAME).read_text())["pid"] == os.getpid()
+
+
+def test_force_never_deletes_under_a_running_writer(tmp_path):
+    out = tmp_path / "study"
+    monte_carlo(toy_task, store=out, config={}, **KW)
+    holder = _hold(out)
+    try:
+        r = subprocess.run([sys.executable, "-m", "studies", "study", "rrp-deception", "--runs", "2", "--particles",
+                            "10", "--force", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert r.returncode == 2, r.stderr
+    assert f"being written by process {holder.pid}" in r.stderr and "Traceback" not in r.stderr
+    assert len(list((out / CHUNKS_DIR / "toy").glob("runs_*.npz"))) == 3  # nothing deleted
+
+
+@pytest.mark.parametrize("make", ["file", "readonly"])
+def test_an_unusable_out_is_refused_before_any_computation(tmp_path, make):
+    target = tmp_path / "x"
+    if make == "file":
+        target.write_text("not a directory")
+    else:
+        if os.geteuid() == 0:
+            pytest.skip("root writes into read-only directories")
+        target.mkdir()
+        target.chmod(0o500)
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "studies", "design", "indoor-robot", "--mode", "tuned", "--out",
+                        str(target)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "out" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert time.perf_counter() - t0 < 60  # refused, not designed first (a tuned design takes longer)
+
+
+# ------------------------------------------------------------------------------ workers die with the parent
+_PARENT = textwrap.dedent("""
+    import functools, os, sys, time
+    sys.path.insert(0, sys.argv[1])
+    from test_runner import toy_task
+    from studies.runner import Backend, monte_carlo
+    print(os.getpid(), flush=True)
+    monte_carlo(functools.partial(toy_task, sleep=60.0), runs=4, seed=0, chunk_size=1,
+                backend=Backend("processes", workers=2), quiet=True)
+""")
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc to find the workers")
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_workers_die_with_their_parent(sig):
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT, str(ROOT / "tests")], cwd=ROOT, stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert int(parent.stdout.readline()) == parent.pid
+        deadline = time.monotonic() + 60
+        workers = []
+        while len(workers) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+            workers = [w for w in _children(parent.pid) if _alive(w)]
+        assert len(workers) >= 2, "the workers did not start"
+        parent.send_signal(sig)
+        parent.wait(timeout=30)
+        deadline = time.monotonic() + 10
+        while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(w) for w in workers), "a worker outlived its parent"
+    finally:
+        parent.kill()
+        parent.wait()
+        for w in _children(parent.pid):
+            os.kill(w, signal.SIGKILL)
+
+
+# ----------------------------------------------------------------------------------------- permissions
+@pytest.mark.parametrize("umask, mode", [(0o027, 0o640), (0o022, 0o644), (0o077, 0o600)])
+def test_output_files_respect_the_umask(tmp_path, umask, mode):
+    old = os.umask(umask)
+    try:
+        atomic_write(tmp_path / "a.txt", lambda fh: fh.write(b"x"))
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == mode
+
+
+def test_appended_lines_are_whole_under_concurrent_writers(tmp_path):
+    log = tmp_path / "log.jsonl"
+    code = textwrap.dedent(f"""
+        import json, sys
+        from designer.fileio import append_line
+        for i in range(300):
+            append_line({str(log)!r}, json.dumps({{"writer": int(sys.argv[1]), "i": i, "pad": "x" * 200}}))
+    """)
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(w)], cwd=ROOT) for w in range(3)]
+    assert all(p.wait(timeout=120) == 0 for p in procs)
+    lines = log.read_text().splitlines()
+    assert len(lines) == 900
+    seen = [json.loads(x) for x in lines]  # every line parses: none interleaved
+    assert sorted((s["writer"], s["i"]) for s in seen) == [(w, i) for w in range(3) for i in range(300)]
+    append_line(log, "last")
+    assert log.read_text().endswith("last\n")
+
+
+def test_the_runs_returned_are_the_runs_asked_for(tmp_path):
+    res = _store(tmp_path)
+    assert res.runs == 12
+    with pytest.raises(ComputationError, match="one row per run"):
+        monte_carlo(lambda r, s: {"x": np.zeros((len(r) + 1, 2))}, runs=4, seed=0, chunk_size=2)
