@@ -60,11 +60,12 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .bounds import shifted_inverse, symmetrize
+from .bounds import Spectrum, prediction_recursion, shifted_inverse, spectrum, symmetrize
 from .validation import ComputationError
 
 __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
+    "PredictionBatch", "tune_prediction_batch",
     "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
     "WeightedChoice", "own_term", "optimal_weights", "weighted_bound", "tune_weighted",
     "neighbour_groups", "best_multiplier", "increasing_root",
@@ -99,41 +100,71 @@ def lam_max(a, D=None) -> float:
 
 
 # --------------------------------------------------------------------------- prediction
-def _prediction(phi_post, F, UUt, Q, sigma, eps, D=None) -> np.ndarray:
-    lin = UUt / (eps * sigma) if np.any(UUt) else 0.0 * UUt
-    return symmetrize(F @ shifted_inverse(phi_post, (1.0 + eps) * sigma, D) @ F.T + lin + Q)
-
-
 def _sigma_max(phi_post, eps, margin, D=None) -> float:
     return (1.0 - margin) / ((1.0 + eps) * lam_max(phi_post, D))
+
+
+class PredictionBatch(NamedTuple):
+    """:func:`tune_prediction_batch`: one σ, Φ_{k+1|k} and trace per item."""
+
+    sigma: np.ndarray  # (m,); NaN where the search left floats
+    phi_pred: np.ndarray  # (m, n, n)
+    trace: np.ndarray  # (m,)
+
+
+def _structure(S: Spectrum, D) -> tuple[np.ndarray, np.ndarray]:
+    """``μ`` (ascending) and ``G = Φ Dᵀ Q`` with ``D Φ Dᵀ = Q diag(μ) Qᵀ`` (``D = I``: Φ's own spectrum)."""
+    if D is None:
+        return S.lam, S.phi @ S.Q
+    mu, Q = np.linalg.eigh(symmetrize(D @ S.phi @ np.swapaxes(D, -1, -2)))
+    return mu, S.phi @ np.swapaxes(D, -1, -2) @ Q
+
+
+def tune_prediction_batch(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionBatch:
+    """:func:`tune_prediction` for stacked items: ``phi_post`` (m, n, n) or its :class:`~designer.bounds.Spectrum`,
+    ``F`` and ``U`` (m, n, n) or one (n, n) for all, ``Q`` (n, n), ``D`` None, (r, n) or (m, r, n).
+
+    ``tr F (Φ^-1 - cσ DᵀD)^-1 Fᵀ = tr F Φ Fᵀ + Σ_k g_k cσ / (1 - cσ μ_k)`` (Woodbury, ``c = 1 + ε``,
+    ``D Φ Dᵀ = Σ μ_k q_k q_kᵀ``, ``g_k = |F Φ Dᵀ q_k|²``), so the trace of (26) is convex in σ with the
+    increasing slope ``p(σ) - a / σ²``, ``p(σ) = Σ_k g_k c / (1 - cσ μ_k)²`` and ``a = tr(U Uᵀ) / ε``: σ is its
+    root (:func:`increasing_root`, all items at once, with the fixed point ``σ = sqrt(a / p(σ))`` as the
+    proposal) below (28)'s bound at margin ``margin``; σ = 0 where ``U = 0`` (the trace only grows with σ).
+    """
+    S = phi_post if isinstance(phi_post, Spectrum) else spectrum(phi_post)
+    m, n = S.phi.shape[:2]
+    F = np.broadcast_to(np.asarray(F, dtype=float), (m, n, n))
+    U = np.broadcast_to(np.asarray(U, dtype=float), (m, n, n))
+    UUt = U @ np.swapaxes(U, -1, -2)
+    mu, G = _structure(S, D)
+    c = 1.0 + eps
+    smax = (1.0 - margin) / (c * mu[:, -1])
+    sigma = np.zeros(m)
+    act = np.flatnonzero(UUt.any(axis=(-2, -1)))
+    if act.size:
+        g = np.sum((F[act] @ G[act]) ** 2, axis=-2)  # (k, r)
+        a = np.trace(UUt[act], axis1=-2, axis2=-1) / eps
+        mu_a = mu[act]
+
+        def slope(sv, idx):
+            p = np.sum(g[idx] * c / (1.0 - c * sv[:, None] * mu_a[idx]) ** 2, axis=-1)
+            return p - a[idx] / sv**2, np.sqrt(a[idx] / p)
+
+        sigma[act] = increasing_root(slope, smax[act] * 1e-12, smax[act], xtol=smax[act] * 1e-13, rtol=1e-14)
+    used = sigma > 0  # σ = 0 or a failed search (NaN): the EKF's F Φ Fᵀ + Q
+    phi = prediction_recursion(S, F, np.where(used[:, None, None], U, 0.0), Q, np.where(used, sigma, 0.0), eps, D)
+    return PredictionBatch(sigma, phi, np.trace(phi, axis1=-2, axis2=-1))
 
 
 def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionChoice:
     """Minimise ``tr Φ_{k+1|k}`` over σ with (28) kept at relative margin ``margin`` (scalar search).
 
-    ``D``: structure of the remainder ``U Ω D e`` (``None``: ``D = I``, the paper's form).
+    ``D``: structure of the remainder ``U Ω D e`` (``None``: ``D = I``, the paper's form).  One item
+    of :func:`tune_prediction_batch` (the batched filter's search, step for step).
     """
-    UUt = U @ U.T
-    smax = _sigma_max(phi_post, eps, margin, D)
-    if not np.any(UUt):
-        # Without linearisation error the trace only grows with σ: σ -> 0 (the EKF prediction).
-        sigma = 0.0
-    else:
-        # tr F (Φ^-1 - cσ DᵀD)^-1 F^T = tr F Φ F^T + Σ_k g_k cσ / (1 - cσ μ_k) (Woodbury), with
-        # D Φ Dᵀ = Σ μ_k q_k q_kᵀ and g_k = |F Φ Dᵀ q_k|²; the trace is convex in σ, so its derivative
-        # Σ_k g_k c / (1 - cσ μ_k)² - a / σ² is increasing: find its root by bracketing.
-        c = 1.0 + eps
-        Dm = np.eye(phi_post.shape[0]) if D is None else D
-        mu, vec = np.linalg.eigh(symmetrize(Dm @ phi_post @ Dm.T))
-        g = np.sum((F @ phi_post @ Dm.T @ vec) ** 2, axis=0)
-        a = np.trace(UUt) / eps
-
-        def slope(sv, _idx):
-            return np.sum(g * c / (1.0 - c * sv[:, None] * mu) ** 2, axis=-1) - a / sv**2
-
-        sigma = float(increasing_root(slope, smax * 1e-12, smax, xtol=smax * 1e-13, rtol=1e-14)[0])
-    phi = _prediction(phi_post, F, UUt, Q, sigma, eps, D) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
-    return PredictionChoice(sigma, phi, float(np.trace(phi)))
+    S = phi_post if isinstance(phi_post, Spectrum) else spectrum(np.asarray(phi_post, dtype=float)[None])
+    out = tune_prediction_batch(S, np.asarray(F, dtype=float)[None], np.asarray(U, dtype=float)[None], Q, eps,
+                                margin, D)
+    return PredictionChoice(float(out.sigma[0]), out.phi_pred[0], float(out.trace[0]))
 
 
 # ------------------------------------------------------------------------------ update
@@ -219,76 +250,92 @@ def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
+def _evaluate(slope, x, idx) -> tuple[np.ndarray, np.ndarray]:
+    """``slope(x, idx)`` as (slopes, proposals), proposals NaN where the slope gives none."""
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        out = slope(x, idx)
+        if isinstance(out, tuple):
+            return np.asarray(out[0], float), np.asarray(out[1], float)
+        return np.asarray(out, float), np.full(x.shape, np.nan)
+
+
+def _log_width(a, b, geo):
+    """The bracket's size: ``log(b/a)`` for a bracket of positive numbers (``geo``), else ``b - a``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(geo, np.log(np.where(geo, b, 1.0) / np.where(geo, a, 1.0)), b - a)
+
+
 def increasing_root(slope, lo, hi, *, xtol, rtol: float = 1e-12, maxiter: int = 200) -> np.ndarray:
     """For many items at once: the point of ``[lo, hi]`` where an increasing ``slope`` crosses zero.
 
     ``slope(b, idx)`` returns the slopes of the items ``idx`` (an index array) at the points
-    ``b`` (one per item of ``idx``).  Per item the result is ``hi`` where ``slope(hi) <= 0``
-    (the constraint binds), ``lo`` where ``slope(lo) >= 0``, and otherwise the root, found by
-    the Illinois variant of false position (superlinear) with a bisection step whenever the
-    bracket does not shrink by half, until the bracket is within ``xtol + rtol b``.  A
-    non-finite slope at an end gives NaN (the caller decides).  This is the multiplier search
-    of the tuned and mse designs; a single item is a batch of one, so the per-run and the
+    ``b`` (one per item of ``idx``), or a pair ``(slopes, proposals)``: ``proposals`` are the
+    caller's guesses of each root from what it knows at ``b`` (e.g. the fixed point
+    ``b = sqrt(q(b) / p(b))`` of a slope ``p(b) - q(b) / b²``; NaN: none).  Per item the result is
+    ``hi`` where ``slope(hi) <= 0`` (the constraint binds), ``lo`` where ``slope(lo) >= 0``, and
+    otherwise a point of a bracket ``[a, b]`` (``slope(a) < 0 < slope(b)``) that is within
+    ``xtol + rtol |b|``.  The bracket shrinks by a safeguarded step per iteration: a proposal
+    (refined by the secant through the last two proposals' residuals) when it falls inside the
+    bracket, else the Illinois variant of false position; a bisection (geometric for a bracket of
+    positive numbers, which may span decades) whenever three steps have not halved the bracket;
+    and no point closer than half the tolerance to an end, so that once the steps converge the
+    next point lands across the root and closes the bracket.  A non-finite slope at an end gives
+    NaN (the caller decides); inside the bracket it counts as positive.  This is the multiplier
+    search of the tuned and mse designs; a single item is a batch of one, so the per-run and the
     batched filters take the same steps.
     """
     lo = np.array(lo, dtype=float, ndmin=1)
     hi = np.array(np.broadcast_to(hi, lo.shape), dtype=float)
     xtol = np.broadcast_to(np.asarray(xtol, dtype=float), lo.shape)
-    idx = np.arange(lo.size)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        f_lo, f_hi = np.asarray(slope(lo, idx), float), np.asarray(slope(hi, idx), float)
+    m = lo.size
+    idx = np.arange(m)
+    f, proposal = _evaluate(slope, np.concatenate([lo, hi]), np.concatenate([idx, idx]))  # both ends, one call
+    f_lo, f_hi, proposal = f[:m], f[m:], proposal[m:]
     out = np.full(lo.shape, np.nan)
     finite = np.isfinite(f_lo) & np.isfinite(f_hi)
     out[finite & (f_hi <= 0)] = hi[finite & (f_hi <= 0)]
     low_end = finite & (f_hi > 0) & (f_lo >= 0)
     out[low_end] = lo[low_end]
     act = np.flatnonzero(finite & (f_hi > 0) & (f_lo < 0))
-    a, b, fa, fb = lo[act], hi[act], f_lo[act], f_hi[act]
-    width = b - a
+    a, b, fa, fb, prop = lo[act], hi[act], f_lo[act], f_hi[act], proposal[act]
+    x0, r0 = np.full(act.size, np.nan), np.full(act.size, np.nan)  # the last two points with a proposal,
+    x1, r1 = b.copy(), prop - b  # and their residuals proposal - point (the secant's data)
+    geo = a > 0
+    sizes = [np.full(act.size, np.inf), np.full(act.size, np.inf), _log_width(a, b, geo)]  # the last three
     side = np.zeros(act.size, dtype=int)  # which end was kept last (-1 a, +1 b): Illinois halves its value
     for _ in range(maxiter):
         if not act.size:
             break
-        c = a - fa * (b - a) / (fb - fa)
-        bad = ~((c > a) & (c < b))
-        c[bad] = 0.5 * (a[bad] + b[bad])
+        slow = sizes[2] > 0.5 * sizes[0]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            fc = np.asarray(slope(c, act), float)
+            secant = x1 - r1 * (x1 - x0) / (r1 - r0)
+            fp = a - fa * (b - a) / (fb - fa)
+        guess = np.where(np.isfinite(secant) & (secant > a) & (secant < b), secant, prop)
+        mid = np.where(geo, np.sqrt(np.abs(a * b)), 0.5 * (a + b))
+        c = np.where(np.isfinite(guess) & (guess > a) & (guess < b) & ~slow, guess,
+                     np.where(slow | ~((fp > a) & (fp < b)), mid, fp))
+        half = 0.5 * (xtol[act] + rtol * np.abs(c))  # keep half the tolerance away from the ends
+        c = np.where(a + half < b - half, np.clip(c, a + half, b - half), 0.5 * (a + b))
+        fc, pc = _evaluate(slope, c, act)
         nan = ~np.isfinite(fc)  # a slope beyond floats inside the bracket: treat as positive (shrink from above)
-        fc = np.where(nan, np.inf, fc)
-        up = fc > 0  # the root is below c
-        keep_b = ~up
+        up = nan | (fc > 0)  # the root is below c
         b = np.where(up, c, b)
         fb = np.where(up, np.where(nan, np.abs(fa) + 1.0, fc), fb)
-        a = np.where(keep_b, c, a)
-        fa = np.where(keep_b, fc, fa)
-        # Illinois: an end kept twice in a row has its value halved
-        fa = np.where(up & (side == -1), 0.5 * fa, fa)
-        fb = np.where(keep_b & (side == 1), 0.5 * fb, fb)
+        a = np.where(up, a, c)
+        fa = np.where(up, fa, fc)
+        fa = np.where(up & (side == -1), 0.5 * fa, fa)  # Illinois: an end kept twice has its value halved
+        fb = np.where(~up & (side == 1), 0.5 * fb, fb)
         side = np.where(up, -1, 1)
-        new_width = b - a
-        slow = new_width > 0.5 * width
-        mid = 0.5 * (a + b)
-        width = new_width
-        done = (fc == 0) | (width <= xtol[act] + rtol * np.abs(c))
-        out[act[done]] = np.where(fc[done] == 0, c[done], mid[done])
-        if slow.any() and not done.all():  # a bisection step where false position stalls
-            s = np.flatnonzero(slow & ~done)
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                fm = np.asarray(slope(mid[s], act[s]), float)
-            fm = np.where(np.isfinite(fm), fm, np.inf)
-            upm = fm > 0
-            b[s] = np.where(upm, mid[s], b[s])
-            fb[s] = np.where(upm, np.where(np.isinf(fm), np.abs(fa[s]) + 1.0, fm), fb[s])
-            a[s] = np.where(upm, a[s], mid[s])
-            fa[s] = np.where(upm, fa[s], fm)
-            side[s] = 0
-            width[s] = b[s] - a[s]
-            fin = (fm == 0) | (width[s] <= xtol[act[s]] + rtol * np.abs(mid[s]))
-            out[act[s[fin]]] = np.where(fm[fin] == 0, mid[s][fin], 0.5 * (a[s][fin] + b[s][fin]))
-            done[s[fin]] = True
+        has = np.isfinite(pc) & ~nan
+        x0, r0 = np.where(has, x1, x0), np.where(has, r1, r0)
+        x1, r1 = np.where(has, c, x1), np.where(has, pc - c, r1)
+        prop = np.where(has, pc, np.nan)
+        done = (fc == 0) | (b - a <= xtol[act] + rtol * np.abs(c))
+        out[act[done]] = np.where(fc[done] == 0, c[done], 0.5 * (a[done] + b[done]))
         keep = ~done
-        act, a, b, fa, fb, side, width = act[keep], a[keep], b[keep], fa[keep], fb[keep], side[keep], width[keep]
+        act, a, b, fa, fb, side, prop, geo, x0, r0, x1, r1 = (
+            v[keep] for v in (act, a, b, fa, fb, side, prop, geo, x0, r0, x1, r1))
+        sizes = [sizes[1][keep], sizes[2][keep], _log_width(a, b, geo)]
     if act.size:  # maxiter reached: the middle of what is left
         out[act] = 0.5 * (a + b)
     return out
@@ -310,7 +357,7 @@ def _best_gains(phi_pred, H, s, V, R, w, N, margin, D):
     if not np.any(V):
         beta = 0.0  # without V the trace only grows with β (M grows)
     else:  # the root of the increasing slope of the convex f*(β), bracketed
-        beta = float(increasing_root(lambda b, _idx: np.array([fixed.slope(b[0])]), bmax * 1e-9, bmax,
+        beta = float(increasing_root(lambda b, _idx: np.array([fixed.slope(x) for x in b]), bmax * 1e-9, bmax,
                                      xtol=bmax * 1e-9, rtol=1e-9)[0])
         if not np.isfinite(beta):
             beta = best_multiplier(fixed.trace, bmax, True)  # a bound beyond floats: the plain search
@@ -494,8 +541,7 @@ class PredictionSDP:
         self.smax.value = _sigma_max(phi_post, eps, margin, D)
         _solve(self.problem, "prediction SDP")
         sigma = max(float(self.sigma.value), 0.0)
-        UUt = U @ U.T
-        phi = _prediction(phi_post, F, UUt, Q, sigma, eps, D) if sigma > 0 else symmetrize(F @ phi_post @ F.T + Q)
+        phi = prediction_recursion(phi_post, F, U if sigma > 0 else 0.0 * U, Q, sigma, eps, D)
         return PredictionChoice(sigma, phi, float(np.trace(phi)))
 
 

@@ -50,6 +50,7 @@ from designer.bounds import (
     condition29_margin,
     optimal_gain,
     prediction_bound,
+    spectrum,
     theorem2_margin,
     update_bound,
 )
@@ -58,7 +59,7 @@ from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.mse import certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains
-from designer.tuning import lam_max, neighbour_groups, tune_prediction, tune_weighted
+from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -96,10 +97,11 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     if valid:
         U, D = prediction_scaling(model, x_post, phi_post, k, u, design.linearization, design.radius, U)
     if valid and design.mode in ("tuned", "mse"):  # the σ of (26) does not depend on the gains
-        choice = tune_prediction(phi_post, F, U, Q, design.epsilon, D=D)
-        margin = condition28_margin(phi_post, choice.sigma, design.epsilon, D)
+        S = spectrum(np.asarray(phi_post, dtype=float)[None])  # one item of the batched filter's stack
+        choice = tune_prediction_batch(S, F[None], np.asarray(U, dtype=float)[None], Q, design.epsilon, D=D)
+        margin = float(condition28_margin(S, choice.sigma, design.epsilon, D)[0])
         if margin > 0:
-            return NodePrediction(x_pred, choice.phi_pred, margin, True, choice.sigma, F)
+            return NodePrediction(x_pred, choice.phi_pred[0], margin, True, float(choice.sigma[0]), F)
     elif valid:
         pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
         if pb.phi_pred is not None:
