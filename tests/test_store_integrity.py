@@ -212,10 +212,10 @@ def _alive(pid: int) -> bool:
 def test_workers_die_with_their_parent(sig):
     parent = subprocess.Popen([sys.executable, "-c", _PARENT, str(ROOT / "tests")], cwd=ROOT, stdout=subprocess.PIPE,
                               text=True)
+    workers = []
     try:
         assert int(parent.stdout.readline()) == parent.pid
         deadline = time.monotonic() + 60
-        workers = []
         while len(workers) < 2 and time.monotonic() < deadline:
             time.sleep(0.2)
             workers = [w for w in _children(parent.pid) if _alive(w)]
@@ -229,8 +229,9 @@ def test_workers_die_with_their_parent(sig):
     finally:
         parent.kill()
         parent.wait()
-        for w in _children(parent.pid):
-            os.kill(w, signal.SIGKILL)
+        for w in workers:  # reparented by now: kill them by the PIDs seen
+            if _alive(w):
+                os.kill(w, signal.SIGKILL)
 
 
 # ----------------------------------------------------------------------------------------- permissions
