@@ -68,6 +68,7 @@ __all__ = [
     "PredictionBatch", "tune_prediction_batch",
     "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
     "WeightedChoice", "own_term", "optimal_weights", "weighted_bound", "tune_weighted",
+    "WeightedBatch", "tune_weighted_batch", "neighbour_group_stack", "warm_start_weights",
     "neighbour_groups", "best_multiplier", "increasing_root",
     "WeightedSDP",
 ]
@@ -178,75 +179,135 @@ def update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D=None) -> np.ndarray
     return symmetrize(w * A @ M @ A.T + C @ N @ C.T + K @ W @ K.T)
 
 
-class _FixedBeta:
-    """For fixed β: the optimal ``Z = [C K]`` and the optimal trace, from one eigendecomposition of Φ_pred.
+def _per_item(x):
+    """A number as it is; one value per item, shaped to multiply stacked ``(m, n, n)`` matrices."""
+    x = np.asarray(x, dtype=float)
+    return x[..., None, None] if x.ndim else x
 
-    ``f(Z) = w tr M - 2 w tr(Z B^T M) + tr(Z G Z^T)`` with ``G = D + w B^T M B``, so
-    ``Z* = w M B G^-1`` and ``f* = w tr M - w^2 tr(M B G^-1 B^T M)``.
+
+def _ordered_sum(x: np.ndarray) -> np.ndarray:
+    """``x.sum(-1)`` added in order, term by term: the same number whatever zeros pad the last axis
+    (a group absent from an item of a stack adds an exact zero), unlike NumPy's pairwise sums."""
+    out = np.array(x[..., 0], dtype=float)
+    for j in range(1, x.shape[-1]):
+        out = out + x[..., j]
+    return out
+
+
+def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``X`` with ``A X = B`` for stacks of symmetric positive semi-definite ``A`` (m, k, k) and ``B`` (m, k, r).
+
+    Cholesky column by column over the whole stack, reading the lower triangle of ``A``: elementwise
+    over the items, no LAPACK call per matrix (these are 3-8 wide), and the same arithmetic for an
+    item in any stack.  A pivot that is not positive (an exactly zero block of ``A``: the consensus
+    gain C of a node that received no packet) drops its unknown: zero rows of X, which for such a
+    block is the minimum-norm solution.
+    """
+    k = A.shape[-1]
+    L = np.zeros(A.shape)
+    inv = np.zeros(A.shape[:-1])  # 1 / L_jj, 0 for a dropped pivot
+    for j in range(k):
+        d = A[:, j, j] - np.sum(L[:, j, :j] ** 2, axis=-1)
+        ok = d > 0
+        inv[:, j] = np.where(ok, 1.0 / np.sqrt(np.where(ok, d, 1.0)), 0.0)
+        if j + 1 < k:
+            L[:, j + 1:, j] = (A[:, j + 1:, j] - (L[:, j + 1:, :j] @ L[:, j, :j, None])[..., 0]) * inv[:, j, None]
+    Y = np.empty(B.shape)
+    for j in range(k):  # L Y = B
+        Y[:, j] = (B[:, j] - (L[:, j, None, :j] @ Y[:, :j])[:, 0]) * inv[:, j, None]
+    X = np.empty(B.shape)
+    for j in reversed(range(k)):  # Lᵀ X = Y
+        X[:, j] = (Y[:, j] - (L[:, None, j + 1:, j] @ X[:, j + 1:])[:, 0]) * inv[:, j, None]
+    return X
+
+
+class _FixedBeta:
+    """For stacked items and fixed β: the optimal ``Z = [C K]``, the optimal trace and its slope in β.
+
+    ``f(Z) = w tr M - 2 w tr(Z Bᵀ M) + tr(Z G Zᵀ)`` with ``B = [s I, Hᵀ]``, ``G = blockdiag(N, W(β)) + w Bᵀ M B``
+    and ``W(β) = w β⁻¹ V Vᵀ + R``, so ``Z* = w M B G⁻¹`` and ``f* = w tr M - w tr(Z* Bᵀ M)``;
+    ``M(β) = Φ + Γ diag(β / (1 - β μ)) Γᵀ`` with ``D Φ Dᵀ = Q diag(μ) Qᵀ`` and ``Γ = Φ Dᵀ Q`` (Woodbury), so
+    one eigendecomposition per item serves every β and every weight.  ``w`` and ``N`` (the weights of
+    (27): ``1 + 2 d_i`` and the paper's neighbour matrix, or ``1/p_0`` and ``Σ_g N_g / p_g``) are given
+    per call, for the items ``it``.
     """
 
-    def __init__(self, phi_pred, H, s, V, R, w: float, N, D=None):
-        self.n, m = phi_pred.shape[0], H.shape[0]
-        self.w = float(w)
-        Dm = np.eye(self.n) if D is None else D
-        # M(β) = Φ + G diag(β / (1 - β μ)) Gᵀ with D Φ Dᵀ = Q diag(μ) Qᵀ and G = Φ Dᵀ Q (Woodbury).
-        self.phi = symmetrize(phi_pred)
-        self.mu, Qd = np.linalg.eigh(symmetrize(Dm @ phi_pred @ Dm.T))
-        self.G = self.phi @ Dm.T @ Qd
-        self.B = np.hstack([s * np.eye(self.n), H.T])  # n x (n + m)
-        self.VVt = V @ V.T
-        self.has_v = bool(np.any(self.VVt))
-        self.R = R
-        self.D = np.zeros((self.n + m, self.n + m))
-        self.D[: self.n, : self.n] = N
+    def __init__(self, S: Spectrum, H, s, V, R, margin: float, D=None):
+        self.phi = S.phi
+        self.mu, self.G = _structure(S, D)
+        self.bmax = (1.0 - margin) / self.mu[:, -1]  # (29) at the margin
+        self.H, self.s, self.R = H, s, R
+        self.VVt = V @ np.swapaxes(V, -1, -2)
+        self.has_v = self.VVt.any(axis=(-2, -1))
+        self.n = self.phi.shape[-1]
 
-    def _parts(self, beta):
-        M = self.phi + (self.G * (beta / (1.0 - beta * self.mu))) @ self.G.T
-        D = self.D.copy()
-        D[self.n:, self.n:] = (self.w * self.VVt / beta if self.has_v else 0.0) + self.R
-        MB = M @ self.B
-        G = symmetrize(D + self.w * self.B.T @ MB)
-        return M, MB, G
+    def solve(self, it, beta, w, N):
+        """``(M, C, K, A)`` of the items ``it`` at ``beta`` (``A = I - sC - KH``), and the solve's right-hand side."""
+        n = self.n
+        G, b = self.G[it], beta[:, None]
+        M = self.phi[it] + (G * (b / (1.0 - b * self.mu[it]))[:, None, :]) @ np.swapaxes(G, -1, -2)
+        H, s = self.H[it], self.s[it]
+        HM = H @ M
+        ws = (w * s)[:, None, None]
+        lin = np.where(self.has_v[it], w / beta, 0.0)[:, None, None] * self.VVt[it]
+        m = H.shape[-2]
+        Gm = np.empty((it.size, n + m, n + m))  # lower triangle only (what the Cholesky reads)
+        Gm[:, :n, :n] = N + ws * s[:, None, None] * M
+        Gm[:, n:, :n] = ws * HM
+        Gm[:, n:, n:] = self.R[it] + lin + w[:, None, None] * HM @ np.swapaxes(H, -1, -2)
+        rhs = np.concatenate([ws * M, w[:, None, None] * HM], axis=1)  # w Bᵀ M
+        Zt = _cholesky_solve(Gm, rhs)
+        C, K = np.swapaxes(Zt[:, :n], -1, -2), np.swapaxes(Zt[:, n:], -1, -2)
+        A = np.eye(n) - s[:, None, None] * C - K @ H
+        return M, C, K, A, Zt, rhs
 
-    @staticmethod
-    def _solve(G, rhs):
-        try:
-            return np.linalg.solve(G, rhs)
-        except np.linalg.LinAlgError:
-            # G is singular when a block of Z does not matter (e.g. C with s = 0 and N = 0): minimum norm.
-            return np.linalg.lstsq(G, rhs, rcond=None)[0]
+    def slope(self, it, beta, w, N):
+        """``d f*/dβ = p(β) - q(β) / β²`` by the envelope theorem at the optimal Z, ``p = w tr A M'(β) Aᵀ``
+        (``M' = Γ diag(1/(1 - β μ)²) Γᵀ``) and ``q = w tr K V Vᵀ Kᵀ`` (increasing in β: f* is convex),
+        with the fixed point ``β = sqrt(q / p)`` as the proposal of :func:`increasing_root`."""
+        M, C, K, A, _, _ = self.solve(it, beta, w, N)
+        AG = A @ self.G[it]
+        p = w * np.sum(AG**2 / ((1.0 - beta[:, None] * self.mu[it]) ** 2)[:, None, :], axis=(-2, -1))
+        q = w * np.sum((K @ self.VVt[it]) * K, axis=(-2, -1))
+        return p - q / beta**2, np.sqrt(q / p)
 
-    def trace(self, beta) -> float:
-        M, MB, G = self._parts(beta)
-        return float(self.w * np.trace(M) - self.w**2 * np.sum(MB * self._solve(G, MB.T).T))
+    def trace(self, it, beta, w, N) -> np.ndarray:
+        M, _, _, _, Zt, rhs = self.solve(it, beta, w, N)
+        return w * np.trace(M, axis1=-2, axis2=-1) - np.sum(Zt * rhs, axis=(-2, -1))
 
-    def gains(self, beta):
-        M, MB, G = self._parts(beta)
-        Z = self.w * self._solve(G, MB.T).T
-        return Z[:, : self.n], Z[:, self.n:]
 
-    def slope(self, beta) -> float:
-        """``d f*/dβ`` by the envelope theorem: ``w tr A M'(β) Aᵀ - w tr K V Vᵀ Kᵀ / β²`` at the optimal Z,
-        with ``M' = G diag(1/(1 - β μ)²) Gᵀ`` (increasing in β: f* is convex)."""
-        beta = np.float64(beta)  # NumPy division: inf or NaN (caught by the caller) where floats end
-        C, K = self.gains(beta)
-        A = np.eye(self.n) - C @ self.B[:, : self.n].T - K @ self.B[:, self.n:].T  # I - s C - K H
-        AG = A @ self.G
-        out = self.w * float(np.sum(AG**2 / (1.0 - beta * self.mu) ** 2))
-        if self.has_v:
-            out -= self.w * float(np.sum((K @ self.VVt) * K)) / beta**2
-        return out
+def _best_gains(fixed: _FixedBeta, it, w, N):
+    """Per item of ``it``: (β, M, C, K, A) minimising ``w tr(A M Aᵀ + K V Vᵀ Kᵀ / β) + tr C N Cᵀ + tr K R Kᵀ``
+    with (29) at the margin.  β = 0 without V (the trace only grows with β: M grows); otherwise the root of
+    the slope of the convex f*(β) (:func:`increasing_root`, all items at once), and where that slope leaves
+    floats, the bounded scalar search of the trace (:func:`best_multiplier`, item by item)."""
+    beta = np.zeros(it.size)
+    v = np.flatnonzero(fixed.has_v[it])
+    if v.size:
+        bmax = fixed.bmax[it[v]]
+
+        def slope(b, idx):
+            j = v[idx]
+            return fixed.slope(it[j], b, w[j], N[j])
+
+        beta[v] = increasing_root(slope, bmax * 1e-9, bmax, xtol=bmax * 1e-9, rtol=1e-9)
+        for j in v[~np.isfinite(beta[v])]:
+            one = it[[j]]
+            beta[j] = best_multiplier(lambda b: float(fixed.trace(one, np.array([b]), w[[j]], N[[j]])[0]),
+                                      float(fixed.bmax[it[j]]), True)
+    M, C, K, A, _, _ = fixed.solve(it, beta, w, N)
+    return beta, M, C, K, A
 
 
 def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
     """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search)."""
-    with np.errstate(over="ignore", invalid="ignore"):  # a diverging bound is caught by the caller's checks
-        return _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D)
-
-
-def _tune_update(phi_pred, H, s, V, R, d_i, N, margin, D) -> UpdateChoice:
-    beta, C, K = _best_gains(phi_pred, H, s, V, R, 1.0 + 2 * d_i, N, margin, D)
-    phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
+    phi_pred = np.asarray(phi_pred, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverging bound: the caller's checks
+        fixed = _FixedBeta(spectrum(phi_pred[None]), np.asarray(H, float)[None], np.array([float(s)]),
+                           np.asarray(V, float)[None], np.asarray(R, float)[None], margin, D)
+        beta, _, C, K, _ = _best_gains(fixed, np.arange(1), np.array([1.0 + 2 * d_i]), np.asarray(N, float)[None])
+        beta, C, K = float(beta[0]), C[0], K[0]
+        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
     return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
 
 
@@ -350,21 +411,6 @@ def best_multiplier(trace_at, bmax: float, has_v: bool) -> float:
     return float(res.x)
 
 
-def _best_gains(phi_pred, H, s, V, R, w, N, margin, D):
-    """(β, C, K) minimising ``w tr(A M Aᵀ + K V Vᵀ Kᵀ / β) + tr C N Cᵀ + tr K R Kᵀ`` with (29) at margin."""
-    bmax = (1.0 - margin) / lam_max(phi_pred, D)
-    fixed = _FixedBeta(phi_pred, H, s, V, R, w, N, D)
-    if not np.any(V):
-        beta = 0.0  # without V the trace only grows with β (M grows)
-    else:  # the root of the increasing slope of the convex f*(β), bracketed
-        beta = float(increasing_root(lambda b, _idx: np.array([fixed.slope(x) for x in b]), bmax * 1e-9, bmax,
-                                     xtol=bmax * 1e-9, rtol=1e-9)[0])
-        if not np.isfinite(beta):
-            beta = best_multiplier(fixed.trace, bmax, True)  # a bound beyond floats: the plain search
-    C, K = fixed.gains(beta)
-    return beta, C, K
-
-
 # ----------------------------------------------------------------- optimised weights
 class WeightedChoice(NamedTuple):
     beta: float
@@ -375,25 +421,70 @@ class WeightedChoice(NamedTuple):
     weights: np.ndarray  # (1 + G,) p_0 (the node's own group) then one per neighbour group; sums to 1
 
 
+class WeightedBatch(NamedTuple):
+    """:func:`tune_weighted_batch`: the fields of :class:`WeightedChoice` per item."""
+
+    beta: np.ndarray  # (m,)
+    C: np.ndarray  # (m, n, n)
+    K: np.ndarray  # (m, n, n_z)
+    phi_post: np.ndarray  # (m, n, n)
+    trace: np.ndarray  # (m,)
+    weights: np.ndarray  # (m, 1 + G): own group, then the groups' slots; NaN where a group is absent
+
+
 _P_FLOOR = 1e-12  # a group's weight is never below this (a zero weight would make its term 0/0)
+_WARM_FLOOR = 1e-6  # a warm-started weight is at least this: a group at the floor may re-enter
 
 
-def own_term(phi_pred, H, C, K, s: float, beta: float, V, D=None) -> np.ndarray:
-    """The node's own error group of (27): ``A M Aᵀ + K V Vᵀ Kᵀ / β`` (``A = I - sC - KH``, M of (29))."""
+def own_term(phi_pred, H, C, K, s, beta, V, D=None) -> np.ndarray:
+    """The node's own error group of (27): ``A M Aᵀ + K V Vᵀ Kᵀ / β`` (``A = I - sC - KH``, M of (29)).
+
+    Stacks ``(..., n, n)`` with ``s``, ``beta`` per item are taken too.
+    """
     M = shifted_inverse(phi_pred, beta, D)
-    A = np.eye(phi_pred.shape[0]) - s * C - K @ H
+    A = np.eye(M.shape[-1]) - _per_item(s) * C - K @ H
     KV = K @ V
-    lin = KV @ KV.T / beta if np.any(KV) else 0.0 * M
-    return symmetrize(A @ M @ A.T + lin)
+    KVt = KV @ np.swapaxes(KV, -1, -2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lin = np.divide(KVt, _per_item(beta), out=np.zeros(KVt.shape), where=KVt != 0)
+    return symmetrize(A @ M @ np.swapaxes(A, -1, -2) + lin)
+
+
+def _optimal_weights(traces: np.ndarray) -> np.ndarray:
+    """:func:`optimal_weights` per row of ``traces`` (m, L)."""
+    r = np.sqrt(np.maximum(traces, 0.0))
+    total = r.sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.maximum(r / total[:, None], _P_FLOOR)
+    p = p / p.sum(axis=-1, keepdims=True)
+    return np.where((total > 0)[:, None], p, 1.0 / r.shape[-1])
 
 
 def optimal_weights(traces) -> np.ndarray:
     """``p_l = √t_l / Σ √t_l``: the weights minimising ``Σ t_l / p_l`` over the simplex (floored at 1e-12)."""
-    r = np.sqrt(np.maximum(np.asarray(traces, dtype=float), 0.0))
-    if not r.sum() > 0:
-        return np.full(r.size, 1.0 / r.size)
-    p = np.maximum(r / r.sum(), _P_FLOOR)
-    return p / p.sum()
+    return _optimal_weights(np.asarray(traces, dtype=float)[None])[0]
+
+
+def neighbour_group_stack(phi_nb, q_fdi, present, delta: float, span=None, receipt=None
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`neighbour_groups` for stacked items with padded channels: ``phi_nb`` (m, J, n, n), ``q_fdi`` and
+    ``present`` (m, J) (the packets that arrived; the others are ignored).
+
+    Returns the groups ``(m, J + 1, n, n)`` (slot ``J``: the falsified packets') and which are present
+    ``(m, J + 1)``; sums over the channels are added in order, so padding changes no number.
+    """
+    phi_nb = np.asarray(phi_nb, dtype=float)
+    present = np.asarray(present, dtype=bool)
+    q = np.where(present, np.asarray(q_fdi, dtype=float), 0.0)
+    J, n = phi_nb.shape[1], phi_nb.shape[-1]
+    if J:
+        m2 = (_ordered_sum(q * (1.0 - q)) + _ordered_sum(q) ** 2) * delta**2
+    else:
+        m2 = np.zeros(phi_nb.shape[0])
+    nb = phi_nb if receipt is None else phi_nb * np.asarray(receipt, dtype=float)[..., None, None]
+    span = np.eye(n) if span is None else np.asarray(span, dtype=float)
+    groups = np.concatenate([np.where(present[..., None, None], nb, 0.0), m2[:, None, None, None] * span], axis=1)
+    return groups, np.concatenate([present, (m2 > 0)[:, None]], axis=1)
 
 
 def neighbour_groups(phi_nb, q_fdi, delta: float, receipt=None, span=None) -> np.ndarray:
@@ -406,36 +497,176 @@ def neighbour_groups(phi_nb, q_fdi, delta: float, receipt=None, span=None) -> np
     zero-mean one), ``||Σ_j γ_j ξ_j||² <= δ² (Σ_j γ_j)²``, whose mean is
     ``δ² (Σ_j q_j (1 - q_j) + (Σ_j q_j)²)``; that group is ``δ² E[(Σ_j γ_j)²] Π`` (omitted when 0),
     with ``Π`` (``span``) the projector onto the components the signal can reach (default I).
+    One item of :func:`neighbour_group_stack`.
     """
     phi_nb = np.asarray(phi_nb, dtype=float)
     q = np.asarray(q_fdi, dtype=float)
-    groups = phi_nb if receipt is None else phi_nb * np.asarray(receipt, dtype=float)[:, None, None]
-    m2 = float(np.sum(q * (1.0 - q)) + np.sum(q) ** 2) * delta**2
-    if m2 > 0:
-        span = np.eye(phi_nb.shape[-1]) if span is None else np.asarray(span, dtype=float)
-        groups = np.concatenate([groups, m2 * span[None]])
-    return groups
+    groups, present = neighbour_group_stack(phi_nb[None], q[None], np.ones((1, q.size), dtype=bool), delta, span,
+                                            None if receipt is None else np.asarray(receipt, dtype=float)[None])
+    return groups[0][present[0]]
 
 
-def _group_traces(C, groups) -> np.ndarray:
-    return np.einsum("ab,gbc,ac->g", C, groups, C) if len(groups) else np.zeros(0)
+def warm_start_weights(previous, present) -> np.ndarray:
+    """The tuned mode's start for a node's weights (m, L), from its weights at its previous tuned update.
+
+    ``previous`` (m, L): those weights by group (own, each neighbour channel, the falsified packets),
+    NaN for a group absent then, a row of NaN where there was no previous update; ``present`` (m, L):
+    the groups there now.  A group still there keeps its weight, a new one gets the mean of the known
+    ones; normalised, floored at 1e-6 (a group at the floor may re-enter: the block steps cannot
+    revive a zero) and renormalised.  NaN for absent groups and rows without a previous update.
+    """
+    prev = np.asarray(previous, dtype=float)
+    present = np.asarray(present, dtype=bool)
+    known = present & np.isfinite(prev)
+    count = known.sum(axis=-1)
+    fill = np.where(count > 0, _ordered_sum(np.where(known, prev, 0.0)) / np.maximum(count, 1), 1.0)
+    p = np.where(present, np.where(known, prev, fill[:, None]), 0.0)
+    p = np.where(present, np.maximum(p / _ordered_sum(p)[:, None], _WARM_FLOOR), 0.0)
+    p = p / _ordered_sum(p)[:, None]
+    return np.where(present & np.isfinite(prev).any(axis=-1)[:, None], p, np.nan)
 
 
-def weighted_bound(phi_pred, H, C, K, s: float, beta: float, V, R, groups, weights, D=None) -> np.ndarray:
-    """(27) with weights: ``own / p_0 + Σ_g C N_g Cᵀ / p_g + K R Kᵀ`` (``groups``: (G, n, n), ``weights``: (1+G,))."""
+def _group_sum(groups: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``Σ_g N_g / p_g`` over stacked groups (..., G, n, n), weights (..., 1 + G), added in order."""
+    out = np.zeros(groups.shape[:-3] + groups.shape[-2:])
+    for g in range(groups.shape[-3]):
+        out = out + groups[..., g, :, :] / _per_item(p[..., 1 + g])
+    return out
+
+
+def weighted_bound(phi_pred, H, C, K, s, beta, V, R, groups, weights, D=None) -> np.ndarray:
+    """(27) with weights: ``own / p_0 + Σ_g C N_g Cᵀ / p_g + K R Kᵀ`` (``groups``: (G, n, n), ``weights``: (1+G,)).
+
+    Stacks (``groups`` (m, G, n, n), ``weights`` (m, 1 + G), ``s``, ``beta`` per item) are taken too.
+    """
     p = np.asarray(weights, dtype=float)
-    out = own_term(phi_pred, H, C, K, s, beta, V, D) / p[0] + K @ R @ K.T
-    if len(groups):
-        out = out + C @ np.einsum("gab,g->ab", groups, 1.0 / p[1:]) @ C.T
+    groups = np.asarray(groups, dtype=float)
+    out = own_term(phi_pred, H, C, K, s, beta, V, D) / _per_item(p[..., 0]) + K @ R @ np.swapaxes(K, -1, -2)
+    if groups.shape[-3]:
+        out = out + C @ _group_sum(groups, p) @ np.swapaxes(C, -1, -2)
     return symmetrize(out)
 
 
-def _weighted_choice(phi_pred, H, C, K, s, beta, V, R, groups, D) -> WeightedChoice:
-    """The bound for given (β, C, K) with the weights that make its trace smallest (closed form)."""
-    p = optimal_weights(np.concatenate([[np.trace(own_term(phi_pred, H, C, K, s, beta, V, D))],
-                                        _group_traces(C, groups)]))
-    phi = weighted_bound(phi_pred, H, C, K, s, beta, V, R, groups, p, D)
-    return WeightedChoice(beta, C, K, phi, float(np.trace(phi)), p)
+def _lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.lstsq(A[i], b[i], rcond=None)[0]`` for every item of a stack ``A`` (m, L, c), ``b`` (m, L):
+    the minimum-norm solution, singular values up to ``eps max(L, c)`` of the largest taken as zero."""
+    L, c = A.shape[-2:]
+    if c == 1:  # one column: its projection
+        a = A[..., 0]
+        aa = np.sum(a * a, axis=-1)
+        return np.where(aa > 0, np.sum(a * b, axis=-1) / np.where(aa > 0, aa, 1.0), 0.0)[:, None]
+    u, sv, vt = np.linalg.svd(A, full_matrices=False)
+    inv = np.where(sv > np.finfo(float).eps * max(L, c) * sv[:, :1], 1.0 / np.where(sv > 0, sv, 1.0), 0.0)
+    return (np.swapaxes(vt, -1, -2) @ (inv * (np.swapaxes(u, -1, -2) @ b[..., None])[..., 0])[..., None])[..., 0]
+
+
+def _tune_weighted(S: Spectrum, H, s, V, R, groups, p, margin, D, tol, max_iter, memory):
+    """:func:`tune_weighted_batch` for items that all have the ``g = groups.shape[1]`` groups (no padding)."""
+    k, g = groups.shape[:2]
+    n = S.phi.shape[-1]
+    fixed = _FixedBeta(S, H, s, V, R, margin, D)
+    best_trace = np.full(k, np.nan)
+    best_beta = np.full(k, np.nan)
+    best_C = np.full((k, n, n), np.nan)
+    best_K = np.full((k, n, H.shape[-2]), np.nan)
+    best_p = np.full((k, g + 1), np.nan)
+    has = np.zeros(k, dtype=bool)
+    last = np.full(k, np.inf)
+    ys = np.zeros((k, memory + 1, g + 1))  # Anderson histories, the newest last; `count` of them are in use
+    gs = np.zeros((k, memory + 1, g + 1))
+    count = np.zeros(k, dtype=int)
+    floor = np.log(_P_FLOOR)
+    p = np.array(p, dtype=float)
+    act = np.arange(k)
+    for _ in range(max_iter):
+        if not act.size:
+            break
+        pa = p[act]
+        # the gains for these weights: w = 1/p_0 and N = Σ_g N_g / p_g in the fast path of tune_update
+        beta, M, C, K, A = _best_gains(fixed, act, 1.0 / pa[:, 0], _group_sum(groups[act], pa))
+        # the weights for these gains, in closed form, and the trace of the bound they give
+        kvv = np.sum((K @ fixed.VVt[act]) * K, axis=(-2, -1))
+        own = np.sum((A @ M) * A, axis=(-2, -1)) + np.divide(kvv, beta, out=np.zeros(kvv.shape), where=kvv != 0)
+        traces = np.stack([own] + [np.sum((C @ groups[act, j]) * C, axis=(-2, -1)) for j in range(g)], axis=1)
+        q = _optimal_weights(traces)
+        trace = _ordered_sum(traces / q) + np.sum((K @ R[act]) * K, axis=(-2, -1))
+        improved = ~has[act] | (trace < best_trace[act])
+        i = act[improved]
+        best_trace[i], best_beta[i], best_C[i], best_K[i], best_p[i] = (
+            trace[improved], beta[improved], C[improved], K[improved], q[improved])
+        has[i] = True
+        y, gy = np.log(pa), np.log(q)
+        stop = (np.abs(gy - y).max(axis=1) <= 1e-9) | (np.abs(last[act] - trace) <= tol * trace)
+        if g == 0:
+            stop[:] = True
+        last[act] = trace
+        go = ~stop
+        back = act[go & ~improved]  # the extrapolation overshot: restart from the best point
+        count[back] = 0
+        p[back] = best_p[back]
+        on = go & improved
+        i = act[on]
+        ys[i, :-1], gs[i, :-1] = ys[i, 1:], gs[i, 1:]
+        ys[i, -1], gs[i, -1] = y[on], gy[on]
+        count[i] = np.minimum(count[i] + 1, memory + 1)
+        nxt = gy[on]
+        for h in range(2, memory + 2):  # Anderson acceleration in log p, per history length
+            sel = np.flatnonzero(count[i] == h)
+            if not sel.size:
+                continue
+            j = i[sel]
+            res = np.swapaxes(gs[j, -h:] - ys[j, -h:], -1, -2)  # (., L, h) residuals g(y) - y
+            gamma = _lstsq(np.diff(res, axis=-1), res[..., -1])
+            cand = gy[on][sel] - (np.diff(np.swapaxes(gs[j, -h:], -1, -2), axis=-1) @ gamma[..., None])[..., 0]
+            fine = np.isfinite(cand).all(axis=1)
+            nxt[sel[fine]] = cand[fine]
+        e = np.exp(np.clip(nxt - nxt.max(axis=1, keepdims=True), floor, 0.0))
+        pn = np.maximum(e / e.sum(axis=1, keepdims=True), _P_FLOOR)
+        p[i] = pn / pn.sum(axis=1, keepdims=True)
+        act = act[go]
+    phi = weighted_bound(S, H, best_C, best_K, s, best_beta, V, R, groups, best_p, D)
+    return best_beta, best_C, best_K, phi, best_trace, best_p
+
+
+def tune_weighted_batch(phi_pred, H, s, V, R, groups, present=None, margin: float = MARGIN, D=None, *,
+                        weights=None, tol: float = 1e-6, max_iter: int = 30, memory: int = 3) -> WeightedBatch:
+    """:func:`tune_weighted` for stacked items, each with its own groups, Anderson history, convergence,
+    restarts and warm start.
+
+    ``phi_pred`` (m, n, n) or its :class:`~designer.bounds.Spectrum`; ``H`` (m, n_z, n), ``s`` (m,),
+    ``V``, ``R`` (m, n_z, n_z); ``groups`` (m, G, n, n) padded, ``present`` (m, G) which of them an item
+    has (default all), in order (:func:`neighbour_group_stack`); ``D`` None, (r, n) or (m, r, n);
+    ``weights`` (m, 1 + G) a start per item (own group first; NaN where a group is absent; a row with a
+    present group NaN starts from equal weights).  Items with the same number of groups are solved
+    together without padding, so every item takes the steps it takes alone (a batch of one).
+    """
+    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(phi_pred)
+    m, n = S.phi.shape[:2]
+    groups = np.asarray(groups, dtype=float).reshape(m, -1, n, n)
+    G = groups.shape[1]
+    present = np.ones((m, G), dtype=bool) if present is None else np.asarray(present, dtype=bool)
+    start = np.full((m, G + 1), np.nan) if weights is None else np.asarray(weights, dtype=float)
+    H, V, R = (np.asarray(x, dtype=float) for x in (H, V, R))
+    s = np.broadcast_to(np.asarray(s, dtype=float), (m,))
+    out = WeightedBatch(np.full(m, np.nan), np.full((m, n, n), np.nan), np.full((m, n, H.shape[-2]), np.nan),
+                        np.full((m, n, n), np.nan), np.full(m, np.nan), np.full((m, G + 1), np.nan))
+    count = present.sum(axis=1)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverging bound: the caller's checks
+        for g in np.unique(count):
+            items = np.flatnonzero(count == g)
+            slots = np.argsort(~present[items], axis=1, kind="stable")[:, :g]  # the present groups, in order
+            cols = np.concatenate([np.zeros((items.size, 1), dtype=int), 1 + slots], axis=1)
+            p0 = np.take_along_axis(start[items], cols, axis=1)
+            p0 = np.where(np.isfinite(p0).all(axis=1)[:, None], p0, 1.0 / (g + 1))
+            Di = D if D is None or np.ndim(D) == 2 else np.asarray(D)[items]
+            res = _tune_weighted(S.take(items), H[items], s[items], V[items], R[items],
+                                 np.take_along_axis(groups[items], slots[:, :, None, None], axis=1), p0, margin, Di,
+                                 tol, max_iter, memory)
+            out.beta[items], out.C[items], out.K[items], out.phi_post[items], out.trace[items] = res[:5]
+            w = np.full((items.size, G + 1), np.nan)
+            np.put_along_axis(w, cols, res[5], axis=1)
+            out.weights[items] = w
+    return out
 
 
 def tune_weighted(phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D=None, *, weights=None,
@@ -451,45 +682,20 @@ def tune_weighted(phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D
     Anderson-accelerated in ``log p`` (``memory`` steps; a step that raises the trace restarts
     from the best point).  Any weights give a valid bound, so ``tol`` (relative change of the
     trace at which to stop) trades tightness for time, never validity.  ``weights``: a start
-    (e.g. the node's weights at the previous step); default: equal weights.
+    (e.g. the node's weights at the previous step); default: equal weights.  ``phi_pred``: the
+    matrix or the :class:`~designer.bounds.Spectrum` of a stack of it alone.  One item of
+    :func:`tune_weighted_batch` (the batched filter's steps).
     """
-    groups = np.asarray(groups, dtype=float).reshape(-1, *phi_pred.shape)
-    g = len(groups)
-    p = np.full(g + 1, 1.0 / (g + 1)) if weights is None or len(weights) != g + 1 else np.asarray(weights, float)
-    floor = np.log(_P_FLOOR)
-    best, last = None, np.inf
-    ys: list[np.ndarray] = []
-    gs: list[np.ndarray] = []
-    with np.errstate(over="ignore", invalid="ignore"):
-        for _ in range(max_iter):
-            N = np.einsum("gab,g->ab", groups, 1.0 / p[1:]) if g else np.zeros_like(phi_pred)
-            beta, C, K = _best_gains(phi_pred, H, s, V, R, 1.0 / p[0], N, margin, D)
-            choice = _weighted_choice(phi_pred, H, C, K, s, beta, V, R, groups, D)
-            improved = best is None or choice.trace < best.trace
-            if improved:
-                best = choice
-            y, gy = np.log(p), np.log(choice.weights)
-            if g == 0 or np.abs(gy - y).max() <= 1e-9 or abs(last - choice.trace) <= tol * choice.trace:
-                break
-            last = choice.trace
-            if not improved:  # the extrapolation overshot: restart from the best point
-                ys, gs = [], []
-                p = best.weights
-                continue
-            ys.append(y)
-            gs.append(gy)
-            ys, gs = ys[-memory - 1:], gs[-memory - 1:]
-            nxt = gy
-            if len(ys) > 1:
-                Fm = np.array([b - a for a, b in zip(ys, gs)]).T
-                gamma = np.linalg.lstsq(np.diff(Fm, axis=1), Fm[:, -1], rcond=None)[0]
-                cand = gy - np.diff(np.array(gs).T, axis=1) @ gamma
-                if np.all(np.isfinite(cand)):
-                    nxt = cand
-            q = np.exp(np.clip(nxt - nxt.max(), floor, 0.0))
-            p = np.maximum(q / q.sum(), _P_FLOOR)
-            p = p / p.sum()
-    return best
+    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(np.asarray(phi_pred, dtype=float)[None])
+    n = S.phi.shape[-1]
+    groups = np.asarray(groups, dtype=float).reshape(1, -1, n, n)
+    g = groups.shape[1]
+    start = None if weights is None or len(weights) != g + 1 else np.asarray(weights, dtype=float)[None]
+    out = tune_weighted_batch(S, np.asarray(H, dtype=float)[None], [float(s)], np.asarray(V, dtype=float)[None],
+                              np.asarray(R, dtype=float)[None], groups, None, margin, D, weights=start, tol=tol,
+                              max_iter=max_iter, memory=memory)
+    return WeightedChoice(float(out.beta[0]), out.C[0], out.K[0], out.phi_post[0], float(out.trace[0]),
+                          out.weights[0])
 
 
 # ------------------------------------------------------------------------------ SDPs

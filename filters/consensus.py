@@ -59,7 +59,7 @@ from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.mse import certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains
-from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted
+from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -218,9 +218,10 @@ def node_update(model: Model, i: int, pred: NodePrediction, z_i, k1: int, innova
     residual = wrapped_residual(model, i, z_i, x_pred, k1)
     choice = None
     if valid and design.mode == "tuned" and gains is None:
-        choice = tune_weighted(phi_pred, H, s_i, V, R, groups, D=D, weights=weights)
+        S = spectrum(np.asarray(phi_pred, dtype=float)[None])  # one item of the batched filter's stack
+        choice = tune_weighted(S, H, s_i, V, R, groups, D=D, weights=weights)
     if choice is not None:
-        margin = condition29_margin(phi_pred, choice.beta, D)
+        margin = float(condition29_margin(S, np.array([choice.beta]), D)[0])
         if margin > 0:
             x_post = x_pred + choice.K @ residual + choice.C @ innovation_i
             return NodeUpdate(x_post, choice.phi_post, choice.K, choice.C, margin, True, choice.beta, choice.weights)
@@ -447,15 +448,13 @@ def _group_keys(received, count: int) -> list:
 
 
 def _warm_start(previous: dict, received, groups) -> np.ndarray | None:
-    """Last step's weights of the groups that are still there (new ones: their mean), at least 1e-6, renormalised."""
+    """Last step's weights of the groups that are still there (new ones: their mean), at least 1e-6, renormalised
+    (:func:`designer.tuning.warm_start_weights` of one node)."""
     if groups is None or not previous:
         return None
     keys = _group_keys(received, len(groups) + 1)
-    known = [previous[k] for k in keys if k in previous]
-    fill = float(np.mean(known)) if known else 1.0
-    p = np.array([previous.get(k, fill) for k in keys], dtype=float)
-    p = np.maximum(p / p.sum(), 1e-6)  # a group at the floor may re-enter (the block steps cannot revive a zero)
-    return p / p.sum()
+    prev = np.array([previous.get(k, np.nan) for k in keys], dtype=float)
+    return warm_start_weights(prev[None], np.ones((1, len(keys)), dtype=bool))[0]
 
 
 def _falsified_probability(network: SensorNetwork) -> np.ndarray:
