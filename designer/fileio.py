@@ -28,7 +28,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
-           "LOCK_NAME"]
+           "check_output_file", "LOCK_NAME"]
 
 LOCK_NAME = ".cfdesign.lock"
 
@@ -81,6 +81,21 @@ def write_npz(path, **arrays) -> Path:
     return atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
 
 
+def check_output_file(name: str, path, suffix: str) -> Path:
+    """An output file's path, checked before any computation: ``suffix``, not a directory, a writable place."""
+    path = Path(path)
+    if path.suffix != suffix:
+        raise InputError(f"{name} must be a {suffix} file, got {str(path)!r}")
+    if path.is_dir():
+        raise InputError(f"{name} must be a {suffix} file, got the existing directory {str(path)!r}")
+    parent = next((p for p in [path.parent, *path.parent.parents] if p.exists()), Path("."))
+    if not parent.is_dir():
+        raise InputError(f"{name}: {str(parent)!r} is a file, not a directory, so {str(path)!r} cannot be written")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{name}: cannot write into {str(parent)!r} (permission denied)")
+    return path
+
+
 def append_line(path, line: str) -> None:
     """Append ``line`` (a newline is added) to ``path`` in one ``write`` of an ``O_APPEND`` descriptor."""
     data = (line.rstrip("\n") + "\n").encode()
@@ -104,6 +119,7 @@ def output_lock(directory) -> Iterator[Path]:
     directory = Path(directory)
     if directory.exists() and not directory.is_dir():
         raise InputError(f"out must be a directory, got the existing file {str(directory)!r}")
+    created = [p for p in [directory, *directory.parents] if not p.exists()]  # what to remove if nothing is written
     try:
         directory.mkdir(parents=True, exist_ok=True)
         path = directory / LOCK_NAME
@@ -132,6 +148,14 @@ def output_lock(directory) -> Iterator[Path]:
         os.ftruncate(fd, 0)
         os.pwrite(fd, info, 0)
         yield directory
+    except BaseException:
+        if created:  # refused or failed before writing anything: leave no empty directory behind
+            with contextlib.suppress(OSError):
+                if [p.name for p in directory.iterdir()] == [LOCK_NAME]:
+                    path.unlink()
+                    for p in created:
+                        p.rmdir()
+        raise
     finally:
         os.close(fd)  # releases the flock
 

@@ -104,10 +104,12 @@ def check_probability(name: str, value, *, open_upper: bool = False) -> np.ndarr
     return arr
 
 
-def check_int(name: str, value, minimum: int) -> int:
-    """An integer (not a bool) ``>= minimum``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+def check_int(name: str, value, minimum: int, maximum: int | None = None) -> int:
+    """An integer (not a bool) ``>= minimum`` (and ``<= maximum`` when given)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum \
+            or (maximum is not None and value > maximum):
+        allowed = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+        raise InputError(f"{name} must be an integer {allowed}, got {value!r}")
     return int(value)
 
 

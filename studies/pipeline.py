@@ -42,6 +42,9 @@ from .runner import Backend, MonteCarloResult, monte_carlo
 __all__ = ["StudyText", "Plan", "Study", "StudyOptions", "StudyResult", "STUDIES", "get_study", "run_study",
            "study_text"]
 
+MAX_RUNS = 1_000_000  # beyond this the per-run results alone outgrow a machine's memory
+MAX_PARTICLES = 10_000_000  # per filter; a particle filter's state is (particles x n_x) doubles several times over
+
 # study name -> the module that defines its STUDY (imported on first use)
 STUDIES: dict[str, str] = {
     "rrp-deception": "studies.rrp_deception",
@@ -341,9 +344,9 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
     if not isinstance(backend, Backend):
         raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
     if runs is not None:
-        runs = check_int("runs", runs, study.min_runs)
+        runs = check_int("runs", runs, study.min_runs, MAX_RUNS)
     if particles is not None:
-        particles = check_int("particles", particles, 2)
+        particles = check_int("particles", particles, 2, MAX_PARTICLES)
     extra = {**study.options, **study_options}
     scenarios = _scenarios(study, targets, overrides, assignments)
     attack = design.attack_overrides()

@@ -414,8 +414,12 @@ def monte_carlo(
     pending = [c for c in ranges if c not in done]
     computed: list[tuple[int, int]] = []
 
+    sized = []
+
     def finish(c, arrays):
         interrupts.check()
+        if not sized:
+            sized.append(_check_memory(arrays, c, runs))
         if st is not None:
             st.save(c, arrays)
         done[c] = arrays
@@ -444,6 +448,28 @@ def monte_carlo(
         raise ComputationError(f"the runs' arrays hold {arrays[short[0]].shape[0]} rows of {short[0]!r} for {runs} "
                                "runs")
     return MonteCarloResult(arrays, computed, reused, backend, int(chunk_size), time.perf_counter() - t0, rejected)
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to this process (Linux ``MemAvailable``), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _check_memory(arrays: Mapping[str, np.ndarray], c: tuple[int, int], runs: int) -> bool:
+    """After the first chunk: refuse (InputError) a study whose per-run results cannot fit in memory."""
+    need = sum(a.nbytes for a in arrays.values()) / (c[1] - c[0]) * runs * 2  # the chunks and their concatenation
+    have = _available_memory()
+    if have is not None and need > have:
+        raise InputError(f"runs = {runs} would hold {need / 1e9:.3g} GB of per-run results, more than the "
+                         f"{have / 1e9:.3g} GB of memory available; use fewer runs")
+    return True
 
 
 def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
