@@ -32,7 +32,7 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.fileio import output_lock, write_npz
+from designer.fileio import check_output_file, output_lock, write_npz
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
@@ -84,9 +84,7 @@ class Simulation:
 
     def save(self, path) -> Path:
         """Write the ``.npz`` file (arrays above plus sensor and state names, scenario, seed, parameters)."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            raise InputError(f"out must be a .npz file, got {str(path)!r}")
+        path = check_output_file("out", path, ".npz")
         sc = self.scenario
         arrays = dict(x=self.x, y=self.y, z=self.z, inputs=self.inputs,
                       sensor_names=np.array([s.name for s in sc.model.sensors]),
@@ -120,8 +118,8 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Pa
     Simulation
     """
     seed = check_int("seed", seed, 0)
-    if out is not None and Path(out).suffix != ".npz":
-        raise InputError(f"out must be a .npz file, got {str(out)!r}")
+    if out is not None:
+        check_output_file("out", out, ".npz")
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
     if steps is not None:
         steps = check_int("steps", steps, 1)

@@ -7,9 +7,11 @@ script and the command line give the same numbers.  Errors: one line on stderr; 
 """
 from __future__ import annotations
 
+import errno
 import json
 import sys
 import traceback
+import warnings
 
 import click
 
@@ -279,6 +281,7 @@ def main(argv=None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
+    warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
     try:
         cli.main(args=argv, prog_name="cfdesign", standalone_mode=False)
     except click.exceptions.Exit as exc:
@@ -286,7 +289,7 @@ def main(argv=None) -> int:
     except click.ClickException as exc:
         click.echo(f"cfdesign: error: {exc.format_message()}", err=True)
         return 2
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("cfdesign: interrupted", err=True)
         return 130
     except InputError as exc:
@@ -299,6 +302,15 @@ def main(argv=None) -> int:
             traceback.print_exc()
         click.echo(f"cfdesign: failed: {exc}", err=True)
         return 1
+    except OSError as exc:  # a path that cannot be made or used is bad input (2); a full disk is a failure (1)
+        if debug:
+            traceback.print_exc()
+        where = f" {exc.filename!r}" if exc.filename else ""
+        bad_path = exc.errno in (errno.ENOENT, errno.EACCES, errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.EROFS,
+                                 errno.ENAMETOOLONG, errno.EEXIST)
+        click.echo(f"cfdesign: {'error' if bad_path else 'failed'}: cannot write or read{where}: "
+                   f"{exc.strerror or exc}", err=True)
+        return 2 if bad_path else 1
     except Exception as exc:  # noqa: BLE001 - the CLI contract is one line, no traceback
         if debug:
             traceback.print_exc()
@@ -309,7 +321,9 @@ def main(argv=None) -> int:
 
 
 def run() -> None:
-    sys.exit(main())
+    from .launch import run as launch
+
+    launch()
 
 
 if __name__ == "__main__":
