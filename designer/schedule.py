@@ -115,6 +115,11 @@ def load_schedule(path) -> GainSchedule:
     npz_path = path.with_suffix(".npz")
     if not npz_path.is_file():
         raise InputError(f"schedule arrays {str(npz_path)!r} are missing")
+    import zipfile
+
+    if not zipfile.is_zipfile(npz_path):  # np.load would take it for a pickle and say so
+        raise InputError(f"schedule arrays {str(npz_path)!r} are not an .npz archive (the file is damaged or not "
+                         "written by cfdesign design)")
     try:
         with np.load(npz_path, allow_pickle=False) as d:
             missing = [k for k in ("K", "C", "Phi", "valid", "sigma", "beta") if k not in d.files]

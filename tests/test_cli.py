@@ -84,6 +84,62 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, needle):
     assert not list(tmp_path.iterdir()), "nothing may be written on bad input"
 
 
+_MODEL = """
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+STEPS = 20
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
+def model() -> Model:
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
+    sensors = [Sensor(f"s{i}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
+    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
+                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
+"""
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["simulate", "{many}", "--out", "{tmp}/a.npz"], "STEPS"),
+        (["simulate", "{raising}", "--out", "{tmp}/a.npz"], "model() in"),
+        (["simulate", "{model}", "--out", "{tmp}/dir.npz"], "existing directory"),
+        (["simulate", "{model}", "--set", "x0=[1,2]", "--out", "{tmp}/a.npz"], "takes no --set parameters"),
+        (["simulate", "indoor-robot", "--set", "x0=[1e308,0,0]", "--out", "{tmp}/a.npz"], "not finite"),
+        (["design", "{model}", "--out", "{model}"], "existing file"),
+        (["design", "{model}", "--u-scale", "-0.01", "--out", "{tmp}/d"], "--u-scale"),
+        (["study", "comparison", "{model}", "--runs", "10000000000", "--out", "{tmp}/c"], "runs must be an integer in"),
+        (["study", "comparison", "{model}", "--runs", "inf", "--out", "{tmp}/c"], "--runs"),
+        (["study", "comparison", "{model}", "--particles", "1e11", "--out", "{tmp}/c"], "--particles"),
+        (["study", "consensus-robot", "--set", "steps=1e400", "--out", "{tmp}/c"], "steps"),
+        (["study", "consensus-robot", "--set", "steps=nan", "--out", "{tmp}/c"], "steps"),
+        (["study", "consensus-robot", "--schedule", "{garbage}", "--out", "{tmp}/c"], "schedule"),
+    ],
+)
+def test_bad_user_input_exits_2_before_computing(tmp_path, args, needle):
+    """The cases of the review: model files, output paths, sizes, integers and files that are not what they say."""
+    files = {"model": _MODEL, "many": _MODEL.replace("STEPS = 20", 'STEPS = "many"'),
+             "raising": _MODEL.replace('    x = ca.SX.sym("x", 2)', '    raise RuntimeError("boom")')}
+    paths = {}
+    for name, text in files.items():
+        paths[name] = tmp_path / f"{name}.py"
+        paths[name].write_text(text)
+    (tmp_path / "dir.npz").mkdir()
+    garbage = tmp_path / "garbage"
+    garbage.mkdir()
+    (garbage / "schedule.json").write_text("{}")
+    (garbage / "schedule.npz").write_bytes(b"garbage")
+    paths.update(tmp=tmp_path, garbage=garbage)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    r = run_cli(*[a.format(**paths) for a in args])
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == before
+
+
 def test_debug_shows_traceback():
     r = run_cli("--debug", "simulate", "indoor-robot", "--set", "process_var=-1", "--out", "x.npz")
     assert r.returncode == 2 and "Traceback" in r.stderr

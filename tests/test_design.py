@@ -196,3 +196,17 @@ def test_study_survives_variants_whose_every_run_diverges(tmp_path):
         else:
             assert np.isfinite(f["rmse_position"])
     assert saved["filters"]["consensus-EKF (tuned)"]["rmse_position"] is not None
+
+
+def test_a_damaged_schedule_npz_is_named_as_such(tmp_path):
+    """A schedule whose arrays file is not an .npz archive: one line that says so (not NumPy's pickle advice)."""
+    from designer.validation import InputError
+
+    out = tmp_path / "d"
+    r = run_cli("design", "indoor-robot", "--mode", "paper", "--steps", "3", "--seed", "3", "--out", str(out))
+    assert r.returncode in (0, 1), r.stderr
+    load_schedule(out)  # intact: loads
+    (out / "schedule.npz").write_bytes(b"garbage, not a zip archive")
+    with pytest.raises(InputError, match="schedule.npz' are not an .npz archive") as err:
+        load_schedule(out)
+    assert "pickle" not in str(err.value)

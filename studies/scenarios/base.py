@@ -104,7 +104,7 @@ class Param:
         if self.kind == "int":
             if isinstance(value, bool) or not isinstance(value, (int, np.integer, float)):
                 raise self._bad(value)
-            if float(value) != int(value):
+            if not np.isfinite(float(value)) or float(value) != int(value):
                 raise self._bad(value)
             self._check_range(np.asarray(float(value)), value)
             return int(value)
@@ -288,6 +288,9 @@ class ScenarioSpec:
         for p in self.params:
             if p.name == name:
                 return p
+        if not self.params:
+            raise InputError(f"scenario {self.name} has no parameter {name!r}: it takes no --set parameters (a model "
+                             "file's values, e.g. X0 or STEPS, are set in the file)")
         known = ", ".join(p.name for p in self.params)
         raise InputError(f"scenario {self.name} has no parameter {name!r}; known parameters: {known}")
 
