@@ -194,8 +194,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
-                workers: int | None = None, dask: str | None = None, backend=None, force: bool = False,
-                quiet: bool = True, out: str | Path | None = None):
+                workers: int | None = None, dask: str | None = None, dask_security: str | None = None,
+                backend=None, force: bool = False, quiet: bool = True, out: str | Path | None = None):
     """Map where the consensus design admits a bounded steady-state bound at the operating point.
 
     Parameters
@@ -206,8 +206,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         beta, epsilon, u_scale, v_scale); the grid's value replaces the option of that name.
     mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, options
         The same design options as :func:`design`, with the same defaults.
-    workers, dask, backend
-        Where the chunks of grid points run (the map does not depend on it).
+    workers, dask, dask_security, backend
+        Where the chunks of grid points run (the map does not depend on it); ``dask_security``: a
+        JSON file of TLS options for the Dask scheduler (:func:`studies.runner.load_security`).
     force, quiet
         Recompute points stored in ``out``; no progress bar.
     out : path, optional
@@ -235,8 +236,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius))
     if backend is None:
-        backend = make_backend(workers, dask)
-    elif workers is not None or dask is not None:
+        backend = make_backend(workers, dask, dask_security)
+    elif workers is not None or dask is not None or dask_security is not None:
         raise InputError("give either backend or workers/dask, not both")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
     with _writing(out):
@@ -248,7 +249,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
 
 def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int | None = None,
           particles: int | None = None, seed: int = 0, workers: int | None = None, dask: str | None = None,
-          backend=None, force: bool = False, quiet: bool = True, options: DesignOptions | None = None,
+          dask_security: str | None = None, backend=None, force: bool = False, quiet: bool = True, options: DesignOptions | None = None,
           mode: str | None = None, dos: float | None = None, fdi: float | None = None,
           delta: float | None = None, amplitude: float | None = None, network: SensorNetwork | None = None,
           attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
@@ -265,8 +266,9 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
         What to run on (default: the study's own scenarios).
     runs, particles, seed
         Monte Carlo runs, particles of the particle filters, the study seed (default: the study's).
-    workers, dask, backend, force, quiet
-        The Monte Carlo runner (identical numbers on every backend; ``out`` keeps finished chunks
+    workers, dask, dask_security, backend, force, quiet
+        The Monte Carlo runner (identical numbers on every backend; ``dask_security``: a JSON file
+        of TLS options for the Dask scheduler, :func:`studies.runner.load_security`; ``out`` keeps finished chunks
         so that an interrupted study resumes, ``force`` recomputes them).
     options, mode, dos, fdi, delta, amplitude
         Design options of the consensus designs and attack overrides (studies that use them).
@@ -289,8 +291,8 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     from .runner import make_backend
 
     if backend is None:
-        backend = make_backend(workers, dask)
-    elif workers is not None or dask is not None:
+        backend = make_backend(workers, dask, dask_security)
+    elif workers is not None or dask is not None or dask_security is not None:
         raise InputError("give either backend or workers/dask, not both")
     opts = _options(options, dict(mode=mode, dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))
     targets = None

@@ -82,6 +82,9 @@ def _runner_options(f):
         click.option("--dask", "dask", default=None, metavar="ADDRESS",
                      help="compute the chunks on the Dask scheduler at ADDRESS (e.g. tcp://host:8786); the "
                           "scheduler and its workers must be trusted"),
+        click.option("--dask-security", "dask_security", default=None, metavar="FILE",
+                     help="JSON file of TLS options for the Dask scheduler: tls_ca_file, tls_client_cert, "
+                          "tls_client_key, require_encryption (address tls://host:port)"),
         click.option("--force", is_flag=True, help="recompute what is stored in OUT (otherwise an interrupted run "
                                                     "resumes from it)"),
         click.option("--quiet", is_flag=True, help="no progress bar"),
@@ -180,9 +183,10 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
 @_design_options
 @_runner_options
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def feasibility_cmd(scenario, grids, out, workers, dask, force, quiet, assignments, **kw) -> None:
+def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, quiet, assignments, **kw) -> None:
     """Map where the consensus design of SCENARIO admits a bounded steady-state bound."""
-    fmap = api.feasibility(scenario, grids, out=out, workers=workers, dask=dask, force=force, quiet=quiet,
+    fmap = api.feasibility(scenario, grids, out=out, workers=workers, dask=dask, dask_security=dask_security,
+                           force=force, quiet=quiet,
                            assignments=assignments, **_options(kw))
     n_ok = sum(r["feasible"] for r in fmap.rows)
     click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible "
@@ -206,8 +210,8 @@ def feasibility_cmd(scenario, grids, out, workers, dask, force, quiet, assignmen
               help="particle-filter studies: fused numba kernels or the NumPy reference [default: fast]")
 @click.option("--schedule", default=None, help="consensus-robot: replay the gains of this design directory")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, dask, force, quiet, engine, schedule,
-              assignments, **kw) -> None:
+def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, dask, dask_security, force, quiet,
+              engine, schedule, assignments, **kw) -> None:
     """Run the Monte Carlo study STUDY (on its scenarios or on SCENARIO / MODEL.py) and write its results.
 
     STUDY is one of: comparison (every filter family on the same runs and attacks; any model with a
@@ -220,7 +224,8 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
     extra = {k: v for k, v in (("engine", engine), ("schedule", schedule)) if v is not None}
     chosen = list(targets) + list(scenarios)
     res = api.study(study, chosen or None, out=out, runs=runs, particles=particles, seed=seed, workers=workers,
-                    dask=dask, force=force, quiet=quiet, options=DesignOptions(**_options(kw)),
+                    dask=dask, dask_security=dask_security, force=force, quiet=quiet,
+                    options=DesignOptions(**_options(kw)),
                     assignments=assignments, **extra)
     r = res.results
     runner = r.get("runner", {})

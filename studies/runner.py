@@ -71,7 +71,7 @@ from designer.validation import ComputationError, InputError, check_int
 
 from .progress import counter, progress
 
-__all__ = ["Backend", "make_backend", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
+__all__ = ["Backend", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
            "CHUNKS_DIR"]
 
 CHUNKS_DIR = ".chunks"
@@ -101,6 +101,7 @@ class Backend:
     kind: str = "batched"
     workers: int = 1
     address: str | None = None
+    security: str | None = None  # Dask: a JSON file of distributed.Security's TLS options (see load_security)
 
     def __post_init__(self):
         if self.kind not in BACKENDS:
@@ -108,14 +109,62 @@ class Backend:
         check_int("workers", self.workers, 1)
         if self.kind == "dask" and not self.address:
             raise InputError("dask backend needs a scheduler address (e.g. tcp://host:8786)")
+        if self.security is not None:
+            if self.kind != "dask":
+                raise InputError("dask_security applies to a Dask scheduler only (give --dask ADDRESS)")
+            load_security(self.security)  # checked now, before any computation
 
     def describe(self) -> dict:
         return {"backend": self.kind, "workers": self.workers if self.kind == "processes" else None,
-                "dask_address": self.address}
+                "dask_address": self.address, "dask_tls": self.security is not None}
 
 
-def make_backend(workers: int | None = None, dask: str | None = None) -> Backend:
-    """The backend of the CLI options ``--workers N`` and ``--dask ADDRESS`` (mutually exclusive).
+SECURITY_KEYS = ("tls_ca_file", "tls_client_cert", "tls_client_key", "require_encryption")
+
+
+def load_security(path) -> dict:
+    """The TLS options of ``distributed.Security`` from a JSON file, checked.
+
+    The file is a JSON object with ``tls_ca_file``, ``tls_client_cert``, ``tls_client_key``
+    (paths to PEM files; relative paths are relative to the file) and ``require_encryption``
+    (true or false), e.g. ``{"tls_ca_file": "ca.pem", "tls_client_cert": "client.pem",
+    "tls_client_key": "client.key", "require_encryption": true}``; the scheduler's address
+    is then ``tls://host:port``.  TLS authenticates the scheduler and encrypts the traffic;
+    results still come back through Dask's pickle protocol, so the scheduler and its
+    workers must be trusted.
+    """
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except OSError as exc:
+        raise InputError(f"dask_security: cannot read {str(p)!r} ({exc.strerror or exc})") from None
+    except ValueError as exc:
+        raise InputError(f"dask_security: {str(p)!r} is not valid JSON ({exc})") from None
+    if not isinstance(data, dict) or not data:
+        raise InputError(f"dask_security: {str(p)!r} must hold a JSON object with some of {', '.join(SECURITY_KEYS)}")
+    unknown = sorted(set(data) - set(SECURITY_KEYS))
+    if unknown:
+        raise InputError(f"dask_security: unknown key {unknown[0]!r} in {str(p)!r}; allowed: {', '.join(SECURITY_KEYS)}")
+    out = {}
+    for k, v in data.items():
+        if k == "require_encryption":
+            if not isinstance(v, bool):
+                raise InputError(f"dask_security: require_encryption must be true or false, got {v!r}")
+            out[k] = v
+            continue
+        f = Path(v) if isinstance(v, str) else None
+        if f is None:
+            raise InputError(f"dask_security: {k} must be a path to a PEM file, got {v!r}")
+        f = f if f.is_absolute() else p.parent / f
+        if not f.is_file():
+            raise InputError(f"dask_security: {k} file {str(f)!r} does not exist")
+        out[k] = str(f)
+    return out
+
+
+def make_backend(workers: int | None = None, dask: str | None = None, dask_security: str | None = None) -> Backend:
+    """The backend of the CLI options ``--workers N`` and ``--dask ADDRESS`` (mutually exclusive),
+    with ``--dask-security FILE`` (TLS options, :func:`load_security`) for the Dask scheduler.
 
     Neither, or ``workers == 1``: batched in this process.
     """
@@ -124,7 +173,9 @@ def make_backend(workers: int | None = None, dask: str | None = None) -> Backend
     if dask is not None:
         if not isinstance(dask, str) or not dask.strip():
             raise InputError(f"dask must be a scheduler address such as tcp://host:8786, got {dask!r}")
-        return Backend("dask", address=dask.strip())
+        return Backend("dask", address=dask.strip(), security=dask_security)
+    if dask_security is not None:
+        raise InputError("--dask-security applies to a Dask scheduler only (give --dask ADDRESS)")
     if workers is None:
         return Backend("batched")
     workers = check_int("workers", workers, 1)
@@ -435,7 +486,7 @@ def monte_carlo(
         elif backend.kind == "processes":
             _run_processes(task, pending, seed, backend.workers, finish, quiet, bar_desc)
         else:
-            _run_dask(task, pending, seed, backend.address, finish, quiet, bar_desc)
+            _run_dask(task, pending, seed, backend, finish, quiet, bar_desc)
     keys = list(done[ranges[0]])
     for c in ranges:
         if sorted(done[c]) != sorted(keys):
@@ -504,15 +555,19 @@ def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
     pool.shutdown(wait=True)
 
 
-def _run_dask(task, pending, seed, address, finish, quiet, desc) -> None:
+def _run_dask(task, pending, seed, backend: Backend, finish, quiet, desc) -> None:
     try:
-        from distributed import Client, as_completed
+        from distributed import Client, Security, as_completed
     except ImportError as exc:
         raise InputError("--dask needs the 'distributed' package: pip install 'cfdesign[dask]'") from exc
+    address = backend.address
+    security = None if backend.security is None else Security(**load_security(backend.security))
     try:
-        client = Client(address, set_as_default=False, timeout="20s")
-    except (OSError, TimeoutError) as exc:
-        raise InputError(f"dask: cannot reach a scheduler at {address!r} ({exc})") from exc
+        client = Client(address, set_as_default=False, timeout="20s", security=security)
+    except (OSError, TimeoutError, TypeError) as exc:  # TypeError: a tls:// address without TLS options
+        hint = "; a tls:// scheduler needs --dask-security FILE" if address.startswith("tls://") and \
+            security is None else ""
+        raise InputError(f"dask: cannot reach a scheduler at {address!r} ({str(exc).splitlines()[0]}){hint}") from exc
     futures = {}
     try:
         with client.as_current():  # as_completed looks for the current client

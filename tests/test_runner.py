@@ -89,6 +89,52 @@ def test_same_bits_batched_processes_and_dask():
     assert np.array_equal(a["x"], reference(17, 3, 0.5))
 
 
+def _self_signed(tmp_path) -> tuple[Path, Path]:
+    import shutil
+
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make a certificate")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out",
+                    str(cert), "-days", "1", "-subj", "/CN=localhost"], check=True, capture_output=True)
+    return cert, key
+
+
+def test_dask_over_tls_with_a_security_file(tmp_path):
+    """A TLS-only scheduler: reached with --dask-security's file, the same bits; without it, a clean refusal."""
+    distributed = pytest.importorskip("distributed")
+    cert, key = _self_signed(tmp_path)
+    sec = distributed.Security(tls_ca_file=str(cert), tls_scheduler_cert=str(cert), tls_scheduler_key=str(key),
+                               tls_worker_cert=str(cert), tls_worker_key=str(key), tls_client_cert=str(cert),
+                               tls_client_key=str(key), require_encryption=True)
+    conf = tmp_path / "dask-security.json"
+    conf.write_text(json.dumps({"tls_ca_file": "cert.pem", "tls_client_cert": "cert.pem", "tls_client_key": "key.pem",
+                                "require_encryption": True}))  # relative to the file
+    kw = dict(runs=9, seed=2, chunk_size=3)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tls://",
+                                  security=sec, dashboard_address=None) as cl:
+        assert cl.scheduler_address.startswith("tls://")
+        res = monte_carlo(toy_task, backend=make_backend(dask=cl.scheduler_address, dask_security=str(conf)), **kw)
+        assert res.describe()["dask_tls"] is True
+        with pytest.raises(InputError, match="dask: cannot reach"):
+            monte_carlo(toy_task, backend=make_backend(dask=cl.scheduler_address), **kw)
+    assert np.array_equal(res.arrays["x"], reference(9, 2))
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("not json", "not valid JSON"), ('{"tls_ca": "x"}', "unknown key 'tls_ca'"),
+    ('{"tls_ca_file": "missing.pem"}', "does not exist"), ('{"require_encryption": "yes"}', "true or false"),
+    ("[]", "JSON object"),
+])
+def test_a_bad_security_file_is_refused_by_name(tmp_path, content, needle):
+    conf = tmp_path / "s.json"
+    conf.write_text(content)
+    with pytest.raises(InputError, match=needle):
+        make_backend(dask="tls://127.0.0.1:1", dask_security=str(conf))
+    with pytest.raises(InputError, match="Dask scheduler only"):
+        make_backend(workers=2, dask_security=str(conf))
+
+
 def test_backend_options():
     assert make_backend() == Backend("batched")
     assert make_backend(workers=1) == Backend("batched")
