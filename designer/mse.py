@@ -57,6 +57,13 @@ terms; with ``μ ≠ 0`` the cross terms are bounded by ``(a + b)(a + b)ᵀ <= a
 b bᵀ / π`` with the ``π`` that makes the trace smallest.  Each node's bound is its diagonal
 block.  For a linear model (``U = V = 0``) with a zero-mean signal the certificate *is* the
 predicted covariance.
+
+**Stacks.**  Every function also takes a stack of runs: joint arrays (..., N, N, n, n), per-node
+arrays with the same leading axes, and the packets each node kept as a mask (..., N, N) instead of
+index lists (:mod:`filters.mse_batch` runs many Monte Carlo runs so).  One run is a stack of none:
+the per-run filter and the batched one take the same steps, so they agree to rounding.  The
+multipliers σ and β are the roots of the trace's increasing slope (:func:`joint_multiplier`), one
+eigendecomposition per matrix serving the margin, the search and the bound.
 """
 from __future__ import annotations
 
@@ -65,105 +72,92 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy.linalg import block_diag
 
-from .bounds import shifted_inverse, symmetrize
-from .tuning import MARGIN, best_multiplier, lam_max, tune_prediction
+from .bounds import symmetrize
+from .tuning import MARGIN, best_multiplier, increasing_root
 
 __all__ = ["joint_prior", "joint_predict", "mse_gains", "joint_update", "certificate_predict", "certificate_update",
-           "JointBound"]
+           "JointBound", "joint_multiplier", "node_blocks"]
 
 
-def joint_prior(cov: np.ndarray, n_nodes: int) -> np.ndarray:
-    """``P_ij = cov`` for every pair: every node starts at the same estimate, so their errors are one error."""
-    return np.broadcast_to(cov, (n_nodes, n_nodes) + cov.shape).copy()
+# --------------------------------------------------------------------------- stacks of nodes
+def _t(a: np.ndarray) -> np.ndarray:
+    return np.swapaxes(a, -1, -2)
 
 
-def joint_predict(P: np.ndarray, F: Sequence[np.ndarray], Q: np.ndarray) -> np.ndarray:
-    """``P⁻_ij = F_i P_ij F_jᵀ + Q``."""
-    Fs = np.asarray(F)
-    out = np.einsum("iab,ijbc,jdc->ijad", Fs, P, Fs) + Q
-    return 0.5 * (out + np.swapaxes(np.swapaxes(out, 0, 1), -1, -2))
+def _nodes(x, n_nodes: int) -> list:
+    """One array per node: the items of a sequence, or the slices ``x[..., i, :, :]`` of an array (..., N, a, b)."""
+    if isinstance(x, np.ndarray):
+        return [x[..., i, :, :] for i in range(n_nodes)]
+    return [np.asarray(v, dtype=float) for v in x]
 
 
-def _moments(Pm: np.ndarray, i: int, received: Sequence[int], H: np.ndarray, R: np.ndarray, fdi_second: np.ndarray):
-    """``E[e_i⁻ y_iᵀ]`` and ``E[y_i y_iᵀ]`` (see the module docstring)."""
-    n = Pm.shape[-1]
-    Pii = Pm[i, i]
-    rec = [int(j) for j in received]
-    if rec:
-        diff = Pii[None] - Pm[i, rec]  # (s, n, n): P_ii - P_ij
-        sum_diff = diff.sum(axis=0)
-        # Σ_{j,l} (P_ii - P_il - P_ji + P_jl) = s² P_ii - s Σ_l P_il - s Σ_j P_ji + Σ_{j,l} P_jl
-        s = len(rec)
-        row = Pm[i, rec].sum(axis=0)
-        col = Pm[rec, i].sum(axis=0)
-        block = Pm[np.ix_(rec, rec)].sum(axis=(0, 1))
-        dd = s * s * Pii - s * row - s * col + block + fdi_second
-    else:
-        sum_diff = np.zeros((n, n))
-        dd = np.zeros((n, n))
-    ey = np.hstack([Pii @ H.T, sum_diff])
-    yy = np.block([[H @ Pii @ H.T + R, H @ sum_diff], [sum_diff.T @ H.T, dd]])
-    return ey, 0.5 * (yy + yy.T)
+def _per_node(x) -> np.ndarray:
+    """One array (..., N, a, b): an array as it is, or a sequence of per-node arrays, leading axes broadcast."""
+    if isinstance(x, np.ndarray):
+        return x
+    arrays = [np.asarray(v, dtype=float) for v in x]
+    batch = np.broadcast_shapes(*(v.shape[:-2] for v in arrays))
+    return np.stack([np.broadcast_to(v, batch + v.shape[-2:]) for v in arrays], axis=-3)
 
 
-def mse_gains(Pm: np.ndarray, i: int, received: Sequence[int], H: np.ndarray, R: np.ndarray,
-              fdi_second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(K_i, C_i)`` minimising node i's mean-square error given its received packets.
-
-    ``fdi_second``: ``Σ_{j∈R_i} q_ij M``, the second moment of what the attacker adds to the
-    consensus innovation.  Without received packets ``C_i = 0`` and ``K_i`` is the EKF gain.
-    A singular ``E[y yᵀ]`` (e.g. neighbours whose estimates equal node i's) is solved in the
-    least-squares sense: the minimum-norm minimiser.
-    """
-    m = H.shape[0]
-    ey, yy = _moments(Pm, i, received, H, R, fdi_second)
-    if len(received) == 0:
-        K = np.linalg.solve(yy[:m, :m], ey[:, :m].T).T
-        return K, np.zeros((Pm.shape[-1],) * 2)
-    scale = max(float(np.abs(np.diag(yy)).max()), 1e-300)
-    try:
-        c = np.linalg.cholesky(yy + 1e-14 * scale * np.eye(yy.shape[0]))
-        Z = np.linalg.solve(c.T, np.linalg.solve(c, ey.T)).T
-    except np.linalg.LinAlgError:
-        Z = np.linalg.lstsq(yy, ey.T, rcond=None)[0].T
-    return Z[:, :m], Z[:, m:]
+def _indices_mask(received, n_nodes: int) -> np.ndarray:
+    """A mask (..., N) from a boolean mask or from one run's list of indices."""
+    received = np.asarray(received)
+    if received.dtype == bool:
+        return received
+    mask = np.zeros(n_nodes, dtype=bool)
+    mask[received.astype(int)] = True
+    return mask
 
 
-def joint_update(Pm: np.ndarray, K: Sequence[np.ndarray], C: Sequence[np.ndarray], H: Sequence[np.ndarray],
-                 R: Sequence[np.ndarray], received: Sequence[Sequence[int]],
-                 fdi_second: Sequence[np.ndarray]) -> np.ndarray:
-    """``P⁺ = T P⁻ Tᵀ + blockdiag(K_i R_i K_iᵀ + C_i S_i C_iᵀ)`` for the given gains (module docstring)."""
-    N = Pm.shape[0]
-    T = _transition(K, C, H, received, Pm.shape[-1])
-    out = np.einsum("ikab,klbc,jldc->ijad", T, Pm, T)
-    for i in range(N):
-        out[i, i] += K[i] @ R[i] @ K[i].T + C[i] @ fdi_second[i] @ C[i].T
-    out = 0.5 * (out + np.swapaxes(np.swapaxes(out, 0, 1), -1, -2))
-    for i in range(N):
-        out[i, i] = symmetrize(out[i, i])
-    return out
+def _received_mask(received, n_nodes: int) -> np.ndarray:
+    """The packets node i kept from node j, (..., N, N) bool: a mask, or one run's index list per node."""
+    if isinstance(received, np.ndarray) and received.dtype == bool:
+        return received
+    return np.stack([_indices_mask(r, n_nodes) for r in received])
 
 
-def _transition(K, C, H, received, n: int) -> np.ndarray:
-    """``T`` (N, N, n, n): ``T_ii = I - K_i H_i - s_i C_i``, ``T_ij = C_i`` for ``j ∈ R_i``."""
-    N = len(K)
-    T = np.zeros((N, N, n, n))
-    for i in range(N):
-        T[i, i] = np.eye(n) - K[i] @ H[i] - len(received[i]) * C[i]
-        for j in received[i]:
-            T[i, j] += C[i]
-    return T
+def node_blocks(P: np.ndarray) -> np.ndarray:
+    """The diagonal blocks ``P[..., i, i]`` (..., N, n, n) of joint arrays (..., N, N, n, n): each node's covariance."""
+    idx = np.arange(P.shape[-4])
+    return P[..., idx, idx, :, :]
 
 
 def _dense(P: np.ndarray) -> np.ndarray:
-    """(N, N, n, m) blocks -> (N n, N m) matrix."""
-    N, M, n, m = P.shape
-    return P.transpose(0, 2, 1, 3).reshape(N * n, M * m)
+    """(..., N, M, n, m) blocks -> (..., N n, M m) matrices."""
+    N, M, n, m = P.shape[-4:]
+    return np.swapaxes(P, -3, -2).reshape(P.shape[:-4] + (N * n, M * m))
 
 
 def _blocks(A: np.ndarray, N: int) -> np.ndarray:
-    n = A.shape[0] // N
-    return A.reshape(N, n, N, n).transpose(0, 2, 1, 3)
+    n = A.shape[-1] // N
+    return np.swapaxes(A.reshape(A.shape[:-2] + (N, n, N, n)), -3, -2)
+
+
+def _left(B: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``blockdiag(B) A`` for blocks ``B`` (..., N, a, b) and matrices ``A`` (..., N b, M), block row by block row."""
+    N, a, b = B.shape[-3:]
+    out = B @ A.reshape(A.shape[:-2] + (N, b, A.shape[-1]))
+    return out.reshape(out.shape[:-3] + (N * a, A.shape[-1]))
+
+
+def _sandwich(B: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``blockdiag(B) A blockdiag(B)ᵀ`` for a symmetric ``A`` (..., N n, N n)."""
+    return _t(_left(B, _t(_left(B, A))))
+
+
+def _add_diagonal_blocks(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A + blockdiag(B)`` in place for a new (contiguous) ``A`` (..., N n, N n) and blocks ``B`` (..., N, n, n)."""
+    N, n = B.shape[-3], B.shape[-1]
+    view = A.reshape(A.shape[:-2] + (N, n, N, n))
+    for i in range(N):
+        view[..., i, :, i, :] += B[..., i, :, :]
+    return A
+
+
+def _symmetric(P: np.ndarray) -> np.ndarray:
+    """``(P + Pᵀ) / 2`` of joint arrays (block (i, j) with the transpose of block (j, i))."""
+    return 0.5 * (P + _t(np.swapaxes(P, -4, -3)))
 
 
 def _structure(D: Sequence[np.ndarray | None] | None, n: int) -> np.ndarray | None:
@@ -172,19 +166,228 @@ def _structure(D: Sequence[np.ndarray | None] | None, n: int) -> np.ndarray | No
     return block_diag(*[np.eye(n) if d is None else d for d in D])
 
 
+def _item(x):
+    """A plain number for one run (0-d), the array for a stack."""
+    return float(x) if np.ndim(x) == 0 else x
+
+
+# --------------------------------------------------------------------------- the joint covariance
+def joint_prior(cov: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``P_ij = cov`` for every pair: every node starts at the same estimate, so their errors are one error.
+
+    ``cov`` (n, n) gives (N, N, n, n); a stack (..., n, n) gives (..., N, N, n, n).
+    """
+    cov = np.asarray(cov, dtype=float)
+    return np.broadcast_to(cov[..., None, None, :, :], cov.shape[:-2] + (n_nodes, n_nodes) + cov.shape[-2:]).copy()
+
+
+def joint_predict(P: np.ndarray, F, Q: np.ndarray) -> np.ndarray:
+    """``P⁻_ij = F_i P_ij F_jᵀ + Q`` (``P`` (..., N, N, n, n), ``F`` one (..., n, n) per node or (..., N, n, n))."""
+    return _symmetric(_blocks(_sandwich(_per_node(F), _dense(P)), P.shape[-4]) + Q)
+
+
+def _weighted_sum(w: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``Σ_j w_j A_j`` over axis -3 of ``A`` (..., J, n, n), ``w`` (..., J) 0/1 (a block outside it never counts)."""
+    return np.where(w[..., None, None], A, 0.0).sum(axis=-3)
+
+
+def _moments(Pm: np.ndarray, i: int, w: np.ndarray, H: np.ndarray, R: np.ndarray, fdi_second):
+    """``E[e_i⁻ y_iᵀ]``, ``E[y_i y_iᵀ]`` and ``s_i`` for the packets ``w`` (..., N) node i kept (module docstring).
+
+    Written with differences of blocks, ``Σ_{j,l} (P_ii - P_il) - (P_ji - P_jl)``, so that nodes whose
+    errors are one error (equal blocks, as at the start) give exact zeros, not rounding noise that the
+    regularised solve would turn into gains.
+    """
+    cand = np.flatnonzero(w.reshape(-1, w.shape[-1]).any(axis=0))  # the packets any item kept
+    wc = w[..., cand]
+    s = wc.sum(axis=-1).astype(float)
+    Pii = Pm[..., i, i, :, :]
+    sum_diff = _weighted_sum(wc, Pii[..., None, :, :] - Pm[..., i, cand, :, :])  # Σ_j (P_ii - P_ij)
+    Pcc = Pm[..., cand, :, :, :][..., cand, :, :]  # (..., c, c, n, n): P_jl
+    inner = _weighted_sum(wc[..., None, :], Pm[..., cand, i, :, :][..., :, None, :, :] - Pcc)  # Σ_l (P_ji - P_jl)
+    dd = s[..., None, None] * sum_diff - _weighted_sum(wc, inner) + fdi_second
+    HD = H @ sum_diff
+    yy = np.concatenate([np.concatenate([H @ Pii @ _t(H) + R, HD], axis=-1),
+                         np.concatenate([_t(HD), dd], axis=-1)], axis=-2)
+    return np.concatenate([Pii @ _t(H), sum_diff], axis=-1), symmetrize(yy), s
+
+
+def _solve_gains(ey: np.ndarray, yy: np.ndarray, m: int, has: np.ndarray) -> np.ndarray:
+    """``Z = E[e yᵀ] E[y yᵀ]⁻¹`` per item; items without packets (``~has``) solve the measurement block alone.
+
+    With packets: Cholesky of ``E[y yᵀ] + 1e-14 scale I`` (scale its largest diagonal entry); where that
+    fails, item by item, the least-squares (minimum-norm) solution.
+    """
+    shape = ey.shape
+    ey, yy, has = ey.reshape((-1,) + shape[-2:]), yy.reshape((-1,) + yy.shape[-2:]), np.reshape(has, -1)
+    Z = np.zeros(ey.shape)
+    alone = np.flatnonzero(~has)
+    if alone.size:
+        Z[alone, :, :m] = _t(np.linalg.solve(yy[alone, :m, :m], _t(ey[alone, :, :m])))
+    rows = np.flatnonzero(has)
+    if rows.size:
+        a, b = yy[rows], ey[rows]
+        scale = np.maximum(np.abs(np.diagonal(a, axis1=-2, axis2=-1)).max(axis=-1), 1e-300)
+        reg = a + 1e-14 * scale[:, None, None] * np.eye(a.shape[-1])
+        try:
+            c = np.linalg.cholesky(reg)
+            Z[rows] = _t(np.linalg.solve(_t(c), np.linalg.solve(c, _t(b))))
+        except np.linalg.LinAlgError:
+            for j, row in enumerate(rows):
+                try:
+                    c = np.linalg.cholesky(reg[j])
+                    Z[row] = np.linalg.solve(c.T, np.linalg.solve(c, b[j].T)).T
+                except np.linalg.LinAlgError:
+                    Z[row] = np.linalg.lstsq(a[j], b[j].T, rcond=None)[0].T
+    return Z.reshape(shape)
+
+
+def mse_gains(Pm: np.ndarray, i: int, received, H: np.ndarray, R: np.ndarray,
+              fdi_second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(K_i, C_i)`` minimising node i's mean-square error given its received packets.
+
+    ``received``: the indices of the packets node i kept, or a mask (..., N) over a stack of runs
+    (``Pm`` (..., N, N, n, n), ``H`` (..., m, n), ``R`` (m, m) or (..., m, m), ``fdi_second`` (..., n, n);
+    the gains are then (..., n, m) and (..., n, n)).
+    ``fdi_second``: ``Σ_{j∈R_i} q_ij M``, the second moment of what the attacker adds to the
+    consensus innovation.  Without received packets ``C_i = 0`` and ``K_i`` is the EKF gain.
+    A singular ``E[y yᵀ]`` (e.g. neighbours whose estimates equal node i's) is solved in the
+    least-squares sense: the minimum-norm minimiser.
+    """
+    H = np.asarray(H, dtype=float)
+    w = np.broadcast_to(_indices_mask(received, Pm.shape[-4]), Pm.shape[:-4] + (Pm.shape[-4],))
+    ey, yy, s = _moments(Pm, i, w, H, np.asarray(R, dtype=float), fdi_second)
+    m = H.shape[-2]
+    Z = _solve_gains(ey, yy, m, s > 0)
+    return Z[..., :m], Z[..., m:]
+
+
+def _transition(KH: np.ndarray, C: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``T`` (..., N, N, n, n): ``T_ii = I - K_i H_i - s_i C_i``, ``T_ij = C_i`` for the kept ``j`` (``keep``)."""
+    N, n = C.shape[-3], C.shape[-1]
+    T = np.where(keep[..., None, None], C[..., :, None, :, :], 0.0)
+    idx = np.arange(N)
+    T[..., idx, idx, :, :] = np.eye(n) - KH - keep.sum(axis=-1)[..., None, None] * C
+    return T
+
+
+def _gain_products(K, C, H, received, n_nodes: int):
+    """``T`` and each node's ``K_i`` as a list (sensors may differ in dimension) from the per-node gains."""
+    Ks = _nodes(K, n_nodes)
+    T = _transition(_per_node([k @ h for k, h in zip(Ks, _nodes(H, n_nodes))]), _per_node(C),
+                    _received_mask(received, n_nodes))
+    return T, Ks
+
+
+def joint_update(Pm: np.ndarray, K, C, H, R, received, fdi_second) -> np.ndarray:
+    """``P⁺ = T P⁻ Tᵀ + blockdiag(K_i R_i K_iᵀ + C_i S_i C_iᵀ)`` for the given gains (module docstring).
+
+    Per node: ``K``, ``H``, ``R`` sequences of N arrays (sensors may differ in dimension; leading runs
+    axes allowed), ``C`` and ``fdi_second`` sequences or arrays (..., N, n, n); ``received``: one index
+    list per node, or the mask (..., N, N) of kept packets.
+    """
+    N = Pm.shape[-4]
+    T, Ks = _gain_products(K, C, H, received, N)
+    Cs = _per_node(C)
+    noise = _per_node([k @ r @ _t(k) for k, r in zip(Ks, _nodes(R, N))]) + Cs @ _per_node(fdi_second) @ _t(Cs)
+    Td = _dense(T)
+    out = _blocks(Td @ _dense(Pm) @ _t(Td), N)
+    idx = np.arange(N)
+    out[..., idx, idx, :, :] += noise
+    return _symmetric(out)
+
+
+# --------------------------------------------------------------------------- the certificate
 class JointBound(NamedTuple):
-    phi: np.ndarray  # (N, N, n, n) the bound of the stacked error; node i's bound is phi[i, i]
-    multiplier: float  # σ of (26) or β of (27), one for the network
-    margin: float  # 1/λmax(D Φ Dᵀ) - (1+ε) σ, or 1/λmax(D Φ⁻ Dᵀ) - β: > 0 where the bound holds
+    phi: np.ndarray  # (..., N, N, n, n) the bound of the stacked error; node i's bound is phi[..., i, i]
+    multiplier: float | np.ndarray  # σ of (26) or β of (27), one for the network (one per run for a stack)
+    margin: float | np.ndarray  # 1/λmax(D Φ Dᵀ) - (1+ε) σ, or 1/λmax(D Φ⁻ Dᵀ) - β: > 0 where the bound holds
 
 
-def certificate_predict(Phi: np.ndarray, F: Sequence[np.ndarray], U: Sequence[np.ndarray], Q: np.ndarray,
-                        eps: float, D=None, margin: float = MARGIN) -> JointBound:
-    """(26) for the stacked error, σ minimising the trace with (28) at ``margin`` (module docstring)."""
-    N, n = Phi.shape[0], Phi.shape[-1]
+def joint_multiplier(h, mu, a, c: float, xmax):
+    """Per item, the ``x`` in ``(0, xmax]`` minimising ``Σ_k h_k c x / (1 - c x μ_k) + a / x``.
+
+    This is the part of ``tr A (P⁻¹ - c x DᵀD)⁻¹ Aᵀ + a / x`` that depends on the multiplier, with
+    ``D P Dᵀ = Σ_k μ_k q_k q_kᵀ`` and ``h_k = |A P Dᵀ q_k|²`` (Woodbury): the trace of (26) for σ
+    (``c = 1 + ε``, ``a = tr U Uᵀ / ε``) and of the own term of (27) for β (``c = 1``,
+    ``a = ||K V||²``).  It is convex, so the minimiser is the root of its increasing slope
+    ``p(x) - a / x²``, ``p(x) = Σ_k h_k c / (1 - c x μ_k)²``, on ``[10⁻¹² xmax, xmax]``
+    (:func:`designer.tuning.increasing_root`, all items at once, to ``10⁻¹¹`` relative); ``x = 0``
+    where ``a = 0`` (the trace only grows with x).  As ``p`` increases, the root lies in
+    ``[√(a / p(xmax)), √(a / p(0))]``, a bracket within a factor ``1 / margin`` that the search
+    starts from.  An item whose slope leaves floats at an end falls back to the bounded scalar
+    search of the trace (:func:`designer.tuning.best_multiplier`).  ``h``, ``mu`` (..., r), ``a``,
+    ``xmax`` (...).
+    """
+    h, mu = np.asarray(h, dtype=float), np.asarray(mu, dtype=float)
+    a = np.asarray(a, dtype=float)
+    shape = a.shape
+    h, mu = h.reshape(-1, h.shape[-1]), mu.reshape(-1, mu.shape[-1])
+    a, xmax = a.reshape(-1), np.broadcast_to(np.asarray(xmax, dtype=float), shape).reshape(-1)
+    out = np.zeros(a.shape)
+    act = np.flatnonzero(a > 0)
+    if act.size:
+        def slope(x, idx):
+            it = act[idx]
+            return np.sum(h[it] * c / (1.0 - c * x[:, None] * mu[it]) ** 2, axis=-1) - a[it] / x**2
+
+        top = xmax[act]
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            p0 = np.sum(h[act] * c, axis=-1)
+            p1 = np.sum(h[act] * c / (1.0 - c * top[:, None] * mu[act]) ** 2, axis=-1)
+            lo = np.minimum(np.maximum(top * 1e-12, np.sqrt(a[act] / p1)), top)
+            hi = np.maximum(np.minimum(top, np.sqrt(a[act] / p0)), lo)
+        lo = np.where(np.isfinite(lo), lo, top * 1e-12)  # p(xmax) beyond floats: the whole interval
+        out[act] = increasing_root(slope, lo, np.where(np.isfinite(hi), hi, top), xtol=top * 1e-13, rtol=1e-11)
+        for j in act[~np.isfinite(out[act])]:
+            out[j] = best_multiplier(lambda x: float(np.sum(h[j] * c * x / (1.0 - c * x * mu[j])) + a[j] / x),
+                                     float(xmax[j]), True)
+    return out.reshape(shape)
+
+
+def _woodbury(P: np.ndarray, D: np.ndarray | None):
+    """``μ`` (ascending) and ``G = P Dᵀ Q`` with ``D P Dᵀ = Q diag(μ) Qᵀ``, so that
+    ``(P⁻¹ - c DᵀD)⁻¹ = P + G diag(c / (1 - c μ)) Gᵀ`` (``D = I`` when None: ``G = Q diag(μ)``): one eigh
+    per matrix serves the margin, the multiplier's search and the bound."""
+    if D is None:  # the joint arrays are symmetric to the bit (eigh reads one triangle)
+        mu, Q = np.linalg.eigh(P)
+        return mu, Q * mu[..., None, :]
+    PD = P @ D.T
+    mu, Q = np.linalg.eigh(symmetrize(D @ PD))
+    return mu, PD @ Q
+
+
+def certificate_predict(Phi: np.ndarray, F, U, Q: np.ndarray, eps: float, D=None,
+                        margin: float = MARGIN) -> JointBound:
+    """(26) for the stacked error, σ minimising the trace with (28) at ``margin`` (module docstring).
+
+    ``Phi`` (N, N, n, n) or a stack (..., N, N, n, n); ``F``, ``U`` one (..., n, n) per node (or
+    (..., N, n, n)); ``D`` one structure per node (None: I), the same for every run.
+    """
+    N, n = Phi.shape[-4], Phi.shape[-1]
     P, Db = _dense(Phi), _structure(D, n)
-    ch = tune_prediction(P, block_diag(*F), block_diag(*U), np.kron(np.ones((N, N)), Q), eps, margin, Db)
-    return JointBound(_blocks(ch.phi_pred, N), ch.sigma, 1.0 / lam_max(P, Db) - (1.0 + eps) * ch.sigma)
+    Fs, Us = _per_node(F), _per_node(U)
+    UU = Us @ _t(Us)
+    mu, G = _woodbury(P, Db)
+    FG = _left(Fs, G)
+    c = 1.0 + eps
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        sigma = joint_multiplier(np.sum(FG**2, axis=-2), mu, np.trace(UU, axis1=-2, axis2=-1).sum(axis=-1) / eps,
+                                 c, (1.0 - margin) / (c * mu[..., -1]))
+        d = c * sigma[..., None] / (1.0 - c * sigma[..., None] * mu)
+        phi = _sandwich(Fs, P) + (FG * d[..., None, :]) @ _t(FG) + _dense(np.broadcast_to(Q, (N, N, n, n)))
+        lin = np.where(sigma > 0, 1.0 / (eps * np.where(sigma > 0, sigma, 1.0)), 0.0)  # (εσ)⁻¹ U Uᵀ, 0 at σ = 0
+        phi = _add_diagonal_blocks(phi, lin[..., None, None, None] * UU)
+    return JointBound(_blocks(symmetrize(phi), N), _item(sigma), _item(1.0 / mu[..., -1] - c * sigma))
+
+
+def _fdi_sums(q_fdi, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``Σ_j q_ij`` and ``Σ_j q_ij²`` per node: from one array of the kept packets' q per node, or from
+    an array (..., N, N) that is 0 outside them."""
+    if isinstance(q_fdi, np.ndarray) and q_fdi.ndim >= 2 and q_fdi.shape[-2:] == (n_nodes, n_nodes):
+        return q_fdi.sum(axis=-1), (q_fdi**2).sum(axis=-1)
+    q = [np.asarray(qi, dtype=float) for qi in q_fdi]
+    return np.array([np.sum(qi) for qi in q]), np.array([np.sum(qi**2) for qi in q])
 
 
 def certificate_update(Pm: np.ndarray, K, C, H, R, V, received, fdi_second, fdi_mean, q_fdi, D=None,
@@ -192,30 +395,37 @@ def certificate_update(Pm: np.ndarray, K, C, H, R, V, received, fdi_second, fdi_
     """(27) for the stacked error and the given gains, β minimising the trace with (29) at ``margin``.
 
     ``fdi_second[i] = Σ_{j∈R_i} q_ij E[ξ ξᵀ]``, ``fdi_mean = E[ξ]`` (n,), ``q_fdi[i]`` the
-    probabilities ``q_ij`` of node i's received packets (module docstring).
+    probabilities ``q_ij`` of node i's received packets (module docstring).  A stack of runs:
+    ``Pm`` (..., N, N, n, n), per-node arrays with the same leading axes (as in :func:`joint_update`),
+    ``received`` the mask (..., N, N) and ``q_fdi`` (..., N, N), zero outside the kept packets.
     """
-    N, n = Pm.shape[0], Pm.shape[-1]
+    N, n = Pm.shape[-4], Pm.shape[-1]
     P, Db = _dense(Pm), _structure(D, n)
-    T = _dense(_transition(K, C, H, received, n))
-    KV = block_diag(*[k @ v for k, v in zip(K, V)])
-    has_v = bool(np.any(KV))
-
-    def own(b):
-        lin = KV @ KV.T / b if has_v else 0.0
-        return symmetrize(T @ shifted_inverse(P, b, Db) @ T.T + lin)
-
-    with np.errstate(over="ignore", invalid="ignore"):
-        bmax = (1.0 - margin) / lam_max(P, Db)
-        beta = best_multiplier(lambda b: float(np.trace(own(b))), bmax, has_v)
-        a = own(beta)
-        mu = np.asarray(fdi_mean, dtype=float)
-        q = [np.asarray(qi, dtype=float) for qi in q_fdi]
-        fdi = block_diag(*[c @ (s - np.sum(qi**2) * np.outer(mu, mu)) @ c.T for c, s, qi in zip(C, fdi_second, q)])
-        c_mu = np.concatenate([np.sum(qi) * (c @ mu) for c, qi in zip(C, q)])
-        fdi = fdi + np.outer(c_mu, c_mu)
-        if np.any(c_mu):  # a biased signal: bound the cross terms with the split of the smallest trace
-            ta, tb = np.sqrt(max(np.trace(a), 0.0)), np.sqrt(max(np.trace(fdi), 0.0))
-            pi = tb / (ta + tb)
-            a, fdi = a / (1.0 - pi), fdi / pi
-        out = a + fdi + block_diag(*[k @ r @ k.T for k, r in zip(K, R)])
-    return JointBound(_blocks(symmetrize(out), N), beta, 1.0 / lam_max(P, Db) - beta)
+    T, Ks = _gain_products(K, C, H, received, N)
+    T = _dense(T)
+    Cs = _per_node(C)
+    KV = [k @ v for k, v in zip(Ks, _nodes(V, N))]
+    KVV = _per_node([kv @ _t(kv) for kv in KV])
+    v = np.trace(KVV, axis1=-2, axis2=-1).sum(axis=-1)  # ||K V||²
+    mu, G = _woodbury(P, Db)
+    TG = T @ G
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        beta = joint_multiplier(np.sum(TG**2, axis=-2), mu, v, 1.0, (1.0 - margin) / mu[..., -1])
+        d = beta[..., None] / (1.0 - beta[..., None] * mu)
+        own = T @ P @ _t(T) + (TG * d[..., None, :]) @ _t(TG)
+        own = _add_diagonal_blocks(own, np.where(v > 0, 1.0 / np.where(v > 0, beta, 1.0), 0.0)[..., None, None, None]
+                                   * KVV)  # β⁻¹ (K V)(K V)ᵀ
+        mean = np.zeros(n) if fdi_mean is None else np.asarray(fdi_mean, dtype=float)
+        q1, q2 = _fdi_sums(q_fdi, N)
+        c_mu = (q1[..., None] * (Cs @ mean)).reshape(Cs.shape[:-3] + (N * n,))
+        fdi = _add_diagonal_blocks(c_mu[..., :, None] * c_mu[..., None, :],
+                                   Cs @ (_per_node(fdi_second) - q2[..., None, None] * np.outer(mean, mean)) @ _t(Cs))
+        biased = np.any(c_mu != 0, axis=-1)  # a biased signal: the cross terms by the split of the smallest trace
+        if np.any(biased):
+            ta = np.sqrt(np.maximum(np.trace(own, axis1=-2, axis2=-1), 0.0))
+            tb = np.sqrt(np.maximum(np.trace(fdi, axis1=-2, axis2=-1), 0.0))
+            pi = np.where(biased, tb / (ta + tb), 0.5)[..., None, None]
+            own = np.where(biased[..., None, None], own / (1.0 - pi), own)
+            fdi = np.where(biased[..., None, None], fdi / pi, fdi)
+        out = _add_diagonal_blocks(own + fdi, _per_node([k @ r @ _t(k) for k, r in zip(Ks, _nodes(R, N))]))
+    return JointBound(_blocks(symmetrize(out), N), _item(beta), _item(1.0 / mu[..., -1] - beta))
