@@ -1,0 +1,402 @@
+"""The consensus EKF in mode ``'mse'`` batched over Monte Carlo runs: :func:`run_mse_batch`.
+
+The per-run reference is :func:`filters.consensus.run_consensus` with ``design.mode == 'mse'``:
+every node's gains are the linear-MMSE ones from the joint error covariance of all nodes, and
+one σ and one β certify the stacked error of all nodes (:mod:`designer.mse`).  Here every
+quantity of a step is a stack over the runs still going: the joint covariance ``(runs, N, N,
+n, n)`` and its certificate go through the functions of :mod:`designer.mse` with a leading
+runs axis (the per-run filter calls the same functions on one run, so both take the same
+steps), the gains are solved per node over all runs at once (the kept packets as masks), and
+the χ² gate on neighbour packets works on the network's directed channels of every run
+(:func:`gate_channels`, :func:`channel_difference_covariance`, :func:`kept_fdi_moments`).
+
+Run ``r`` of the result equals ``run_consensus(..., attacks=attacks.pattern(r, N))`` to rounding:
+estimates, bounds, gains, predicted MSE, σ, β, margins, the ``valid`` flags, the violations in
+the same order (the trace limit, (28), Theorem 2, (29) at the node where a joint condition
+binds), the gate's counts, and divergence, which stops only its run.  Without a gate the two
+paths take the same floating-point steps (equal to the bit on the built-in scenarios).  With a
+gate and an FDI signal, what the kept falsified packets add (:func:`kept_fdi_moments`) comes from
+:meth:`designer.attacks.FDISignal.passing`, whose quadrature (a matrix-vector product) rounds
+differently with the number of packets it is given: the runs then agree to rounding, and a flag
+can differ only where a margin is itself at rounding level (e.g. a bound that has blown up).
+
+**Memory.**  Each run holds a few joint ``(N n) x (N n)`` matrices (the covariance, its
+certificate, their predictions, the transition, eigenvectors and products: about
+:data:`JOINT_COPIES` of them at once), so the runs are processed in sub-batches of at most
+:data:`MEMORY_BUDGET` bytes of joint matrices, and ``N n`` beyond :data:`MAX_JOINT_DIM` is
+refused (one run alone would need more than the budget).  The cost per node and step grows as
+``(N n)²`` (the eigendecompositions of the joint matrices), not linearly like the paper mode's.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from designer.bounds import theorem2_margin
+from designer.design import ConsensusDesign, validate_design
+from designer.linearization import prediction_scaling, update_scaling
+from designer.model import Model
+from designer.mse import (
+    certificate_predict,
+    certificate_update,
+    joint_predict,
+    joint_prior,
+    joint_update,
+    mse_gains,
+    node_blocks,
+)
+from designer.network import SensorNetwork
+from designer.validation import InputError
+
+from .attacks import AttackPattern
+from .consensus import _BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability
+from .consensus_batch import ConsensusBatchResult, EdgeAttacks, _batch_inputs, wrap_residuals
+
+__all__ = ["run_mse_batch", "gate_channels", "channel_difference_covariance", "kept_fdi_moments", "MAX_JOINT_DIM",
+           "MEMORY_BUDGET"]
+
+MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
+MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
+JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
+_LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+
+
+# --------------------------------------------------------------------------- the gate on stacked channels
+def channel_difference_covariance(P: np.ndarray, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
+    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
+
+    ``P`` (..., N, N, n, n) joint covariances; returns (..., E, n, n), regularised by ``1e-12`` of
+    the mean trace of each run's nodes (two nodes with one estimate have a zero difference).
+    """
+    d = node_blocks(P)
+    out = (d[..., receiver, :, :] + d[..., sender, :, :] - P[..., receiver, sender, :, :]
+           - P[..., sender, receiver, :, :])
+    eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
+    return out + eps[..., None, None, None] * np.eye(P.shape[-1])
+
+
+def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
+                  fdi: np.ndarray | None, xi: np.ndarray | None, cov_diff: np.ndarray | None, alpha: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The χ² gate of :func:`filters.consensus.gate` on stacked directed channels.
+
+    Channel ``e`` carries ``x̂_j (+ ξ_e)`` from ``j = sender[e]`` to ``i = receiver[e]``; ``x_pred``
+    (..., N, n) the predictions, ``received`` (..., E) the packets that arrived, ``fdi`` (..., E)
+    the falsified ones and ``xi`` (..., E, n) their signal (None: no attack), ``cov_diff``
+    (..., E, n, n) the covariance of ``x̂_j - x̂_i`` when nobody lies (None will do at ``α = 0``).
+    A received packet is kept when ``dᵀ Σ⁺ d <= χ²_n(1 - α)`` (``d = x̂_j (+ ξ) - x̂_i``; a
+    covariance or difference beyond floats cannot judge: kept).  Returns the mask of kept packets
+    (..., E) and the counts (..., 5) of :data:`filters.consensus.GATE_COUNTS`.
+    """
+    from scipy.special import chdtri
+
+    received = np.asarray(received, dtype=bool)
+    fdi = np.zeros_like(received) if fdi is None else np.asarray(fdi, dtype=bool)
+    keep = received.copy()
+    if alpha > 0:
+        idx = np.nonzero(received)
+        runs, e = idx[:-1], idx[-1]
+        d = x_pred[runs + (sender[e],)] - x_pred[runs + (receiver[e],)]
+        if xi is not None:
+            d = d + fdi[idx][:, None] * xi[idx]
+        S = cov_diff[idx]
+        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
+        stat = np.zeros(e.size)
+        if ok.any():
+            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
+        keep[idx] = stat <= chdtri(x_pred.shape[-1], alpha)
+    rejected = received & ~keep
+    counts = np.stack([received.sum(-1), rejected.sum(-1), (rejected & ~fdi).sum(-1), (received & fdi).sum(-1),
+                       (keep & fdi).sum(-1)], axis=-1)
+    return keep, counts
+
+
+def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, cov_diff: np.ndarray,
+                     receiver: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n) on stacked channels.
+
+    The stacked form of :func:`filters.consensus._kept_fdi_moments`: ``keep`` (..., E) the kept
+    packets, ``q`` (E,) each channel's probability that a received packet is falsified,
+    ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against.
+    """
+    from scipy.special import chdtri
+
+    nx = cov_diff.shape[-1]
+    a = design.fdi_signal.amplitudes(nx)
+    out = np.zeros(keep.shape[:-1] + (n_nodes, nx, nx))
+    idx = np.nonzero(keep)
+    if idx[-1].size and np.any(a):
+        c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[idx], hermitian=True), a)
+        p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
+        qe = q[idx[-1]]
+        weight = qe * g2_pass / np.maximum(qe * p_pass + (1.0 - qe) * (1.0 - design.gate), 1e-300)
+        # one packet after the other, in channel order (the per-run sum's order)
+        np.add.at(out, idx[:-1] + (receiver[idx[-1]],), weight[:, None, None] * np.outer(a, a))
+    return out
+
+
+# --------------------------------------------------------------------------- the filter
+def _edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int) -> EdgeAttacks | None:
+    """The realised attacks as :class:`EdgeAttacks` on the network's channels, checked against the runs."""
+    if attacks is None:
+        return None
+    if not isinstance(attacks, EdgeAttacks):
+        if len(attacks) != runs:
+            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), got {len(attacks)}")
+        attacks = EdgeAttacks.from_patterns(network, attacks)
+    receiver, sender = np.nonzero(network.adjacency)
+    if not (np.array_equal(attacks.receiver, receiver) and np.array_equal(attacks.sender, sender)):
+        raise InputError("attacks are on other channels than the network's (EdgeAttacks.from_patterns builds them)")
+    want = (runs, steps, receiver.size)
+    if attacks.dos.shape[0] != runs or attacks.dos.shape[1] < steps or attacks.dos.shape[2:] != want[2:] \
+            or attacks.fdi.shape != attacks.dos.shape or attacks.xi.shape != attacks.dos.shape + (nx,):
+        raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {receiver.size} channels, n_x = {nx}), "
+                         f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
+    return attacks
+
+
+def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
+                  inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+                  phi0=None) -> ConsensusBatchResult:
+    """Run the consensus filter in mode ``'mse'`` at every node over many runs of measurements ``z``.
+
+    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (``z`` (runs, steps,
+    n_z), inputs shared or per run, attacks as :class:`EdgeAttacks` or one AttackPattern per run, ``x0``
+    and ``phi0`` shared or per run); ``design`` is in mode ``'mse'``, with or without a gate
+    (``design.gate``), under any linearisation rule.
+
+    Returns
+    -------
+    ConsensusBatchResult
+        With ``predicted_mse`` (runs, steps+1, N) and ``gate_counts`` (runs, steps, 5); run ``r``
+        equals ``run_consensus(model, network, z[r], design, attacks=attacks.pattern(r, N), ...)``
+        to rounding.
+
+    Raises
+    ------
+    InputError
+        For bad input, a mode other than ``'mse'``, and a joint covariance too large to hold:
+        ``N n`` above :data:`MAX_JOINT_DIM` (= 1024).  Below it the runs are processed in
+        sub-batches whose joint matrices take at most :data:`MEMORY_BUDGET` bytes (256 MiB).
+    """
+    design = validate_design(design, model, network)
+    if design.mode != "mse":
+        raise InputError(f"run_mse_batch runs mode 'mse', got {design.mode!r} "
+                         "(filters.consensus_batch runs the others)")
+    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    n, nx = network.n_nodes, model.n_x
+    if n * nx > MAX_JOINT_DIM:
+        raise InputError(f"run_mse_batch holds the joint error covariance of all nodes, N n = {n} x {nx} = {n * nx} "
+                         f"rows per run; at most MAX_JOINT_DIM = {MAX_JOINT_DIM} fit its memory budget")
+    attacks = _edge_attacks(network, attacks, runs, steps, nx)
+    nz = max(model.sensor_dims)
+    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
+               phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
+               phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
+               C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
+               margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
+               theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
+               sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
+               predicted_mse=np.full((runs, steps + 1, n), np.nan),
+               gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
+    out["x_post"][:, 0], out["phi_post"][:, 0], out["valid"][:, 0] = x0[:, None], phi0[:, None], True
+    out["predicted_mse"][:, 0] = np.trace(phi0, axis1=-2, axis2=-1)[:, None]
+    chunk = max(1, MEMORY_BUDGET // (JOINT_COPIES * 8 * (n * nx) ** 2))
+    for start in range(0, runs, chunk):
+        sl = slice(start, min(start + chunk, runs))
+        part = {key: v[sl] for key, v in out.items()}  # views (and the runs' own violation lists)
+        att = None if attacks is None else EdgeAttacks(attacks.receiver, attacks.sender, attacks.dos[sl],
+                                                       attacks.fdi[sl], attacks.xi[sl])
+        _Runs(model, network, design, part, z[sl], u if u.ndim == 2 else u[sl], att, phi0[sl]).run()
+    return ConsensusBatchResult(**out)
+
+
+class _Runs:
+    """One sub-batch of runs; writes into the views ``out`` of the result arrays."""
+
+    def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, out: dict, z, u, attacks,
+                 phi0):
+        self.model, self.network, self.design, self.out = model, network, design, out
+        self.z, self.u, self.attacks = z, u, attacks
+        self.n, self.nx = network.n_nodes, model.n_x
+        self.receiver, self.sender = np.nonzero(network.adjacency)
+        self.q = _falsified_probability(network)  # (N, N)
+        self.R = [model.measurement_cov(i) for i in range(self.n)]
+        offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+        self.columns = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
+        self.Pj = joint_prior(phi0, self.n)  # the joint error covariance the gains are chosen for
+        self.Bj = self.Pj.copy()  # its certificate
+        self.act = np.arange(z.shape[0])  # the runs still going (indices into the sub-batch)
+        self.proper = np.ones(z.shape[0], dtype=bool)
+
+    def violation(self, r: int, node: int, step: int, condition: str, margin: float, reason: str | None = None):
+        self.out["violations"][int(self.act[r])].append(
+            {"node": int(node), "step": int(step), "condition": condition, "margin": float(margin),
+             **({} if reason is None else {"reason": reason})})
+
+    def run(self) -> None:
+        steps = self.z.shape[1]
+        for k in range(steps):
+            if not self.act.size:
+                return
+            self.step(k)
+        o, act = self.out, self.act
+        last = np.flatnonzero(self.proper)
+        if last.size:
+            th = theorem2_margin(o["phi_post"][act[last], steps], o["sigma"][act[last], steps - 1], self.network.d_max)
+            o["theorem2"][act[last], steps] = th
+            for r, row in zip(last, th):
+                for i in np.flatnonzero(row < 0):
+                    self.violation(r, i, steps, "theorem2", row[i])
+
+    def step(self, k: int) -> None:
+        model, design, o, n, nx = self.model, self.design, self.out, self.n, self.nx
+        a = self.act.size
+        act = slice(None) if a == self.z.shape[0] else self.act  # the runs going on (a view while none stopped)
+        Q = model.process_cov
+        xk = o["x_post"][act, k]
+        uk = self.u[k] if self.u.ndim == 2 else self.u[act, k][:, None, :]
+        F = model.F_expected(xk, k, uk)
+        xp = model.f_expected(xk, k, uk)
+        o["x_pred"][act, k] = xp
+        Bj, Pj = self.Bj, self.Pj
+        # ---- the certificate's prediction (26), (28)
+        tr = np.trace(node_blocks(Bj), axis1=-2, axis2=-1)
+        for r in np.flatnonzero(self.proper & ~(tr.max(axis=-1) < _BOUND_LIMIT)):
+            self.proper[r] = False
+            self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, _LIMIT_REASON)
+        Bp = None
+        done = np.zeros(a, dtype=bool)
+        sel = np.flatnonzero(self.proper)
+        if sel.size:
+            every = sel.size == a
+            pick = (lambda x: x) if every else (lambda x: x[sel])  # noqa: E731  (no copies when every run is in)
+            ub = uk if uk.ndim == 1 else np.broadcast_to(pick(uk), (sel.size, n, uk.shape[-1]))
+            U, D = prediction_scaling(model, pick(xk), node_blocks(pick(Bj)), k, ub, design.linearization,
+                                      design.radius, design.U)
+            Df = None if D is None else [D] * n
+            jp = certificate_predict(pick(Bj), pick(F), np.broadcast_to(U, (sel.size, n, nx, nx)), Q,
+                                     design.epsilon, Df)
+            Bp, ok = self.certified(jp, sel, Bj, k, "margin28", "sigma")
+            rows = self.act[sel]
+            done[sel[ok]] = True
+            th = theorem2_margin(o["phi_post"][rows, k], jp.multiplier[:, None], self.network.d_max)
+            o["theorem2"][rows[ok], k] = th[ok]
+            for j, i in zip(*np.nonzero(ok[:, None] & (th < 0))):
+                self.violation(sel[j], i, k, "theorem2", th[j, i])
+            for j in np.flatnonzero(~ok):
+                self.proper[sel[j]] = False
+                self.violation(sel[j], _binding_node(Bj[sel[j]], Df), k, "(28)", jp.margin[j])
+        if not done.all():
+            if Bp is None:
+                Bp = np.empty_like(Bj)
+            Bp[~done] = joint_predict(Bj[~done], F[~done], Q)
+        o["phi_pred"][act, k] = node_blocks(Bp)
+        # ---- the gate and the exchange, on the channels
+        Pm = joint_predict(Pj, F, Q)
+        rcv, snd = self.receiver, self.sender
+        att = self.attacks
+        if att is None:
+            received, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
+        else:
+            received, fdi, xi = ~att.dos[act, k], att.fdi[act, k], att.xi[act, k]
+        cov_diff = None if not design.gate else channel_difference_covariance(Pm, rcv, snd)
+        keep, o["gate_counts"][act, k] = gate_channels(xp, rcv, snd, received, fdi, xi, cov_diff, design.gate)
+        kept = np.zeros((a, n, n), dtype=bool)
+        kept[:, rcv, snd] = keep
+        s = kept.sum(axis=-1)
+        innovation = kept.astype(float) @ xp - s[..., None] * xp
+        if xi is not None:
+            falsified = np.zeros((a, n, n, nx))
+            falsified[:, rcv, snd] = (keep & fdi)[..., None] * xi
+            innovation = innovation + falsified.sum(axis=-2)
+        q_kept = np.where(kept, self.q, 0.0)
+        if design.gate == 0 or design.fdi_signal is None:
+            S = q_kept.sum(axis=-1)[..., None, None] * design.fdi_moment
+        else:
+            S = kept_fdi_moments(design, keep, self.q[rcv, snd], cov_diff, rcv, n)
+        # ---- the gains (per node, over the runs) and the estimates
+        H, Ks = [], []
+        C = np.empty((a, n, nx, nx))
+        zk = self.z[act, k]
+        x_new = np.empty((a, n, nx))
+        for i in range(n):
+            Hi = model.H(i, xp[:, i], k + 1)
+            res = wrap_residuals(zk[:, self.columns[i]] - model.h(i, xp[:, i], k + 1), model.sensors[i].angles)
+            Ki, C[:, i] = mse_gains(Pm, i, kept[:, i], Hi, self.R[i], S[:, i])
+            x_new[:, i] = xp[:, i] + (Ki @ res[..., None])[..., 0] + (C[:, i] @ innovation[:, i, :, None])[..., 0]
+            H.append(Hi)
+            Ks.append(Ki)
+            o["K"][act, k, i] = 0.0
+            o["K"][act, k, i, :, :Ki.shape[-1]] = Ki
+        o["x_post"][act, k + 1], o["C"][act, k] = x_new, C
+        self.Pj = joint_update(Pm, Ks, C, H, self.R, kept, S)
+        o["predicted_mse"][act, k + 1] = np.trace(node_blocks(self.Pj), axis1=-2, axis2=-1)
+        # ---- the certificate's update (27), (29)
+        Bn = None
+        done = np.zeros(a, dtype=bool)
+        sel = np.flatnonzero(self.proper)
+        if sel.size:
+            every = sel.size == a
+            pick = (lambda x: x) if every else (lambda x: x[sel])  # noqa: E731
+            Vs, Ds = [], []
+            for i in range(n):
+                Vi, Di = update_scaling(model, i, pick(xp[:, i]), pick(Bp[:, i, i]), k + 1, design.linearization,
+                                        design.radius, design.V[i])
+                Vs.append(Vi)
+                Ds.append(Di)
+            Dh = None if all(d is None for d in Ds) else Ds
+            ju = certificate_update(pick(Bp), [pick(Ki) for Ki in Ks], pick(C), [pick(Hi) for Hi in H], self.R, Vs,
+                                    pick(kept), pick(S), design.fdi_mean, pick(q_kept), Dh)
+            Bn, ok = self.certified(ju, sel, Bp, k, "margin29", "beta")
+            done[sel[ok]] = True
+            for j in np.flatnonzero(~ok):
+                self.proper[sel[j]] = False
+                self.violation(sel[j], _binding_node(Bp[sel[j]], Dh), k + 1, "(29)", ju.margin[j])
+        if not done.all():
+            if Bn is None:
+                Bn = np.empty_like(Bp)
+            with np.errstate(over="ignore", invalid="ignore"):
+                Bn[~done] = joint_update(Bp[~done], [Ki[~done] for Ki in Ks], C[~done], [Hi[~done] for Hi in H],
+                                         self.R, kept[~done], S[~done])
+        self.Bj = Bn
+        o["phi_post"][act, k + 1] = node_blocks(Bn)
+        o["valid"][act, k + 1] = self.proper[:, None]
+        self.stop_diverged(k)
+
+    def certified(self, bound, sel: np.ndarray, like: np.ndarray, k: int, margin: str, multiplier: str):
+        """A joint certificate of the runs ``sel``: its margin and multiplier recorded at every node, and the
+        joint array with its bound where the condition holds (the other runs' entries are the caller's to fill),
+        with the mask of those runs."""
+        rows = self.act[sel]
+        self.out[margin][rows, k] = bound.margin[:, None]
+        self.out[multiplier][rows, k] = bound.multiplier[:, None]
+        ok = bound.margin > 0
+        if sel.size == like.shape[0] and ok.all():
+            return bound.phi, ok
+        out = np.empty_like(like)
+        out[sel[ok]] = bound.phi[ok]
+        return out, ok
+
+    def stop_diverged(self, k: int) -> None:
+        """A run whose estimate or bound left finite numbers stops at its first such node, as run_consensus does."""
+        o, act = self.out, self.act
+        x, phi = o["x_post"][act, k + 1], o["phi_post"][act, k + 1]
+        bad = ~(np.isfinite(x).all(axis=-1) & np.isfinite(phi).all(axis=(-2, -1))
+                & (np.abs(x).max(axis=-1) < _DIVERGED))
+        dead = np.flatnonzero(bad.any(axis=-1))
+        if not dead.size:
+            return
+        for r in dead:
+            self.violation(r, np.argmax(bad[r]), k + 1, "diverged", -np.inf,
+                           f"estimate or covariance beyond {_DIVERGED:g} or not finite")
+            g = act[r]
+            for key in ("x_post", "phi_post", "predicted_mse"):
+                o[key][g, k + 1:] = np.nan
+            o["K"][g, k], o["C"][g, k] = np.nan, np.nan
+            o["valid"][g, k + 1:] = False
+        alive = np.ones(act.size, dtype=bool)
+        alive[dead] = False
+        self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj[alive], self.Bj[alive]
