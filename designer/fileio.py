@@ -10,13 +10,21 @@
   descriptor, so concurrent or interrupted appends never interleave or leave half a line.
 * :func:`code_fingerprint` hashes the package's own source files: stored results computed by
   another version of the code are recognised as such.
+* :func:`replaced_outputs` writes a command's outputs into a staging directory and then
+  replaces the outputs of the last command as a whole: a failure leaves the old outputs
+  complete, and no file of another command (a stale figure, another study's table) stays
+  beside the new ones.  Only files cfdesign listed as its outputs are ever removed.
+* :func:`check_json_finite` names the first non-finite number of a results document, so a
+  NaN is refused before anything is written.
 """
 from __future__ import annotations
 
 import contextlib
 import hashlib
 import json
+import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -28,9 +36,10 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
-           "check_output_file", "LOCK_NAME"]
+           "check_output_file", "replaced_outputs", "check_json_finite", "LOCK_NAME", "OUTPUTS_NAME"]
 
 LOCK_NAME = ".cfdesign.lock"
+OUTPUTS_NAME = ".cfdesign-outputs.json"  # the files the last command wrote into an output directory
 
 
 def _umask() -> int:
@@ -174,3 +183,58 @@ def code_fingerprint() -> str:
                 h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
         _FINGERPRINT = h.hexdigest()
     return _FINGERPRINT
+
+
+@contextlib.contextmanager
+def replaced_outputs(directory) -> Iterator[Path]:
+    """Yield a staging directory inside ``directory``; on success its files replace the last outputs.
+
+    The files the previous command listed in ``OUTPUTS_NAME`` and that the new outputs do not
+    have are removed, the new files are renamed in (each rename atomic), and the list is
+    rewritten.  Hidden entries (the chunk store, the lock) and files cfdesign did not write are
+    left alone.  On failure nothing in ``directory`` changes.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(dir=directory, prefix=".staging-"))
+    try:
+        yield stage
+        try:
+            old = set(json.loads((directory / OUTPUTS_NAME).read_text())["files"])
+        except (OSError, ValueError, KeyError, TypeError):
+            old = set()
+        new = sorted(p.name for p in stage.iterdir())
+        for name in sorted(old - set(new)):
+            target = directory / name
+            if "/" in name or name.startswith("."):  # a list that was edited: touch nothing outside
+                continue
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    target.unlink()
+        for name in new:
+            os.replace(stage / name, directory / name)
+        write_json(directory / OUTPUTS_NAME, {"files": new})
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def check_json_finite(data: Any, name: str) -> None:
+    """Raise :class:`designer.validation.ComputationError` at the first NaN or infinity in ``data``."""
+    from .validation import ComputationError
+
+    def walk(x, path):
+        if isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(x, (list, tuple)):
+            for i, v in enumerate(x):
+                walk(v, f"{path}[{i}]")
+        elif isinstance(x, np.ndarray):
+            if x.dtype.kind in "fc" and not np.all(np.isfinite(x)):
+                raise ComputationError(f"{name}: {path} holds non-finite values; nothing was written")
+        elif isinstance(x, (float, np.floating)) and not math.isfinite(float(x)):
+            raise ComputationError(f"{name}: {path} is {float(x)!r} (not a finite number); nothing was written")
+
+    walk(data, "")

@@ -130,11 +130,14 @@ class Design:
 
     def save(self, directory) -> Path:
         """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``."""
-        out = self.schedule.write(directory)
+        from designer.fileio import replaced_outputs
+
         from .reports import write_report
 
-        write_report(out)
-        return out
+        with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
+            self.schedule.write(stage)
+            write_report(stage)
+        return Path(directory)
 
 
 def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,

@@ -185,10 +185,17 @@ class FeasibilityMap:
         return np.array([r["trace_bound"] for r in self.rows], dtype=float).reshape(self.shape)
 
     def save(self, directory) -> Path:
-        """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``."""
+        """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``
+        (replacing the directory's last outputs as a whole, :func:`designer.fileio.replaced_outputs`)."""
+        from designer.fileio import replaced_outputs
+
+        with replaced_outputs(directory) as stage:
+            self._write(stage)
+        return Path(directory)
+
+    def _write(self, out: Path) -> None:
         from designer.fileio import write_json
 
-        out = Path(directory)
         _write_csv(out / "feasibility.csv", self.rows, self.names)
         if len(self.grids) <= 2:
             _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or "paper")
@@ -215,7 +222,6 @@ class FeasibilityMap:
         from .reports import write_report
 
         write_report(out)
-        return out
 
 
 def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions | None = None, *,

@@ -15,7 +15,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from designer.fileio import atomic_write, write_json
+from designer.fileio import atomic_write, check_json_finite, replaced_outputs, write_json
 
 __all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
            "write_outputs", "trajectory_figure", "curves_figure", "study_header",
@@ -119,16 +119,20 @@ def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Ca
 
     The reports (``report.md`` and the self-contained ``report.html``, see
     :func:`studies.reports.write_report`) are written last, from the files just written.
+    The results are checked for non-finite numbers first, and everything is written into a
+    staging directory that then replaces the directory's last outputs as a whole
+    (:func:`designer.fileio.replaced_outputs`).
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    figures(out)
-    atomic_write(out / "table.md", lambda fh: fh.write(table(results).encode()))
-    write_json(out / "results.json", results)
+    check_json_finite(results, "results.json")
+    text = table(results)
     from .reports import write_report  # late: report reads the files this module writes
 
-    write_report(out)
-    return out
+    with replaced_outputs(out) as stage:
+        figures(stage)
+        atomic_write(stage / "table.md", lambda fh: fh.write(text.encode()))
+        write_json(stage / "results.json", results)
+        write_report(stage)
+    return Path(out)
 
 
 def _plt():

@@ -268,3 +268,38 @@ def test_the_runs_returned_are_the_runs_asked_for(tmp_path):
     assert res.runs == 12
     with pytest.raises(ComputationError, match="one row per run"):
         monte_carlo(lambda r, s: {"x": np.zeros((len(r) + 1, 2))}, runs=4, seed=0, chunk_size=2)
+
+
+# ------------------------------------------------------------------------ outputs replaced as a whole
+def test_outputs_replace_the_last_ones_as_a_whole(tmp_path):
+    from designer.fileio import OUTPUTS_NAME, replaced_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("the user's own file")
+    with replaced_outputs(out) as st:
+        (st / "fig_a.png").write_bytes(b"a")
+        (st / "results.json").write_text("{}")
+    with replaced_outputs(out) as st:  # another command: fig_a.png is not one of its outputs
+        (st / "schedule.json").write_text("{}")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(["mine.txt", "schedule.json", OUTPUTS_NAME])
+    with pytest.raises(RuntimeError):
+        with replaced_outputs(out) as st:  # fails half-way: the last outputs stay, complete
+            (st / "results.json").write_text("{}")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in out.iterdir()) == names
+
+
+def test_a_nan_in_the_results_is_refused_before_anything_is_written(tmp_path):
+    from studies.results import write_outputs
+
+    out = tmp_path / "out"
+    write_outputs(out, {"filters": {"a": {"rmse": 1.0}}}, lambda d: (d / "fig.png").write_bytes(b"png"),
+                  lambda r: "| table |\n")
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    with pytest.raises(ComputationError, match=r"filters\.a\.rmse is nan"):
+        write_outputs(out, {"filters": {"a": {"rmse": float("nan")}}}, lambda d: (d / "fig2.png").write_bytes(b"x"),
+                      lambda r: "| table |\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".staging")]
