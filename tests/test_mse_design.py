@@ -10,7 +10,9 @@ from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwo
 from designer.mse import joint_predict, joint_prior, joint_update, mse_gains
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
+from filters.consensus_batch import run_consensus_batch
 from filters.ekf import run_ekf
+from filters.mse_batch import run_mse_batch
 from studies.comparison import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.scenarios import scenario_of
@@ -29,22 +31,33 @@ def linear_ring(n_nodes=4, fdi=0.0, dos=0.0, amplitude=0.5, steps=15):
     return scenario_of(m, network=net, attacks=att, steps=steps)
 
 
-def _one_run(sc, design, seed, key=()):
-    """One run of the generative model and of the consensus filter on it (run ``key`` of ``seed``)."""
+def _draw(sc, seed, key=()):
+    """Run ``key`` of ``seed`` of the generative model: its trajectory and its channel attacks."""
     ts, at = np.random.SeedSequence(seed, spawn_key=key).spawn(2)
     traj = sc.simulate(np.random.default_rng(ts))
-    att = simulate_attacks(sc.network, sc.steps, sc.model.n_x, np.random.default_rng(at), sc.resolved_attacks.signal)
+    return traj, simulate_attacks(sc.network, sc.steps, sc.model.n_x, np.random.default_rng(at),
+                                  sc.resolved_attacks.signal)
+
+
+def _one_run(sc, design, seed, key=()):
+    """One run of the generative model and of the consensus filter on it (run ``key`` of ``seed``)."""
+    traj, att = _draw(sc, seed, key)
     return traj, run_consensus(sc.model, sc.network, traj.z, design, attacks=att)
+
+
+def _runs(sc, design, runs, seed):
+    """Runs 0..runs-1 of ``seed``: the truths (runs, steps+1, n_x) and the filter on all of them at once (mode mse:
+    filters.mse_batch, which is run_consensus run by run, tests/test_mse_batch.py; else run_consensus_batch)."""
+    draws = [_draw(sc, seed, (r,)) for r in range(runs)]
+    engine = run_mse_batch if design.mode == "mse" else run_consensus_batch
+    res = engine(sc.model, sc.network, np.stack([t.z for t, _ in draws]), design, attacks=[a for _, a in draws])
+    return np.stack([t.x for t, _ in draws]), res
 
 
 def _mc(sc, design, runs, seed):
     """Errors of every node over runs (runs, steps+1, nodes, n_x) and the run's predicted MSE (first run)."""
-    errs, pred = [], None
-    for r in range(runs):
-        traj, res = _one_run(sc, design, seed, (r,))
-        errs.append(traj.x[:, None, :] - res.x_post)
-        pred = res.predicted_mse if pred is None else pred
-    return np.array(errs), pred
+    truth, res = _runs(sc, design, runs, seed)
+    return truth[:, :, None, :] - res.x_post, res.predicted_mse[0]
 
 
 @pytest.mark.parametrize("dos, fdi", [(0.0, 0.0), (0.0, 0.3)])
@@ -162,14 +175,10 @@ def test_certificates_bound_the_monte_carlo_error_of_a_nonlinear_network(mode, l
     net = SensorNetwork.from_edges(4, [(i, (i + 1) % 4) for i in range(4)])
     sc = scenario_of(m, network=net, attacks=AttackSpec(dos=0.1, fdi=0.2, signal=FDISignal(0.3, law=law)), steps=10)
     des = consensus_design(sc, mode=mode)
-    errs, phis = [], []
-    for r in range(runs):
-        traj, res = _one_run(sc, des, 5, (r,))
-        assert res.valid.all()
-        errs.append(traj.x[:, None, :] - res.x_post)
-        phis.append(res.phi_post)
-    e2 = (np.array(errs) ** 2).sum(-1)
-    bound = np.trace(np.array(phis), axis1=-2, axis2=-1).mean(axis=0)
+    truth, res = _runs(sc, des, runs, 5)
+    assert res.valid.all()
+    e2 = ((truth[:, :, None, :] - res.x_post) ** 2).sum(-1)
+    bound = np.trace(res.phi_post, axis1=-2, axis2=-1).mean(axis=0)
     se = e2.std(axis=0, ddof=1) / np.sqrt(runs)
     assert np.all(e2.mean(axis=0)[1:] <= bound[1:] + 4 * se[1:])
     assert np.mean(e2.mean(axis=0)[1:] / bound[1:]) > 0.05  # a certificate, not a vacuous one
@@ -213,10 +222,7 @@ def test_gated_mse_design_drops_the_falsified_packets_and_is_more_accurate():
     gated = consensus_design(sc, mode="mse", u_scale=0, v_scale=0, gate=0.01)
     e_plain, _ = _mc(sc, plain, runs=60, seed=2)
     e_gated, _ = _mc(sc, gated, runs=60, seed=2)
-    counts = np.zeros(5, np.int64)
-    for r in range(20):
-        _, res = _one_run(sc, gated, 2, (r,))
-        counts += res.gate_counts.sum(axis=0)
+    counts = _runs(sc, gated, 20, 2)[1].gate_counts.sum(axis=(0, 1))
     received, rejected, clean_rejected, fdi_received, fdi_passed = counts
     print(counts, np.mean(e_gated[:, 1:] ** 2), np.mean(e_plain[:, 1:] ** 2))
     assert fdi_passed < 0.2 * fdi_received
