@@ -57,6 +57,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from scipy.optimize import minimize_scalar
 
@@ -194,31 +195,110 @@ def _ordered_sum(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``X`` with ``A X = B`` for stacks of symmetric positive semi-definite ``A`` (m, k, k) and ``B`` (m, k, r).
-
-    Cholesky column by column over the whole stack, reading the lower triangle of ``A``: elementwise
-    over the items, no LAPACK call per matrix (these are 3-8 wide), and the same arithmetic for an
-    item in any stack.  A pivot that is not positive (an exactly zero block of ``A``: the consensus
-    gain C of a node that received no packet) drops its unknown: zero rows of X, which for such a
-    block is the minimum-norm solution.
-    """
-    k = A.shape[-1]
-    L = np.zeros(A.shape)
-    inv = np.zeros(A.shape[:-1])  # 1 / L_jj, 0 for a dropped pivot
-    for j in range(k):
-        d = A[:, j, j] - np.sum(L[:, j, :j] ** 2, axis=-1)
-        ok = d > 0
-        inv[:, j] = np.where(ok, 1.0 / np.sqrt(np.where(ok, d, 1.0)), 0.0)
-        if j + 1 < k:
-            L[:, j + 1:, j] = (A[:, j + 1:, j] - (L[:, j + 1:, :j] @ L[:, j, :j, None])[..., 0]) * inv[:, j, None]
-    Y = np.empty(B.shape)
-    for j in range(k):  # L Y = B
-        Y[:, j] = (B[:, j] - (L[:, j, None, :j] @ Y[:, :j])[:, 0]) * inv[:, j, None]
-    X = np.empty(B.shape)
-    for j in reversed(range(k)):  # Lᵀ X = Y
-        X[:, j] = (Y[:, j] - (L[:, None, j + 1:, j] @ X[:, j + 1:])[:, 0]) * inv[:, j, None]
-    return X
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _fixed_beta_kernel(phi, G, mu, H, s, VVt, R, has_v, it, beta, w, N, M, C, K, A, out):  # pragma: no cover
+    """:class:`_FixedBeta` at one β per item ``it[j]``: writes ``M, C, K, A`` (j) and ``out[j] = (f*, slope,
+    proposal)``.  Item by item in compiled loops (these systems are 3-8 wide, where NumPy's stacked calls
+    cost microseconds per item); the same arithmetic for an item in any stack.  The (C, K) system is solved
+    by Cholesky on its lower triangle; a pivot that is not positive (an exactly zero block: C of a node
+    that received no packet) drops its unknown (zero gains, the minimum-norm solution for such a block)."""
+    n, r, mz = phi.shape[1], mu.shape[1], H.shape[1]
+    kk = n + mz
+    d = np.empty(r)
+    Mm = np.empty((n, n))
+    HM = np.empty((mz, n))
+    Gm = np.empty((kk, kk))
+    rhs = np.empty((kk, n))
+    L = np.zeros((kk, kk))
+    inv = np.empty(kk)
+    Y = np.empty((kk, n))
+    X = np.empty((kk, n))
+    for j in range(it.size):
+        i = it[j]
+        b, wj, sj = beta[j], w[j], s[i]
+        for l in range(r):
+            d[l] = b / (1.0 - b * mu[i, l])
+        for a in range(n):  # M = Φ + Γ diag(d) Γᵀ
+            for c in range(n):
+                acc = phi[i, a, c]
+                for l in range(r):
+                    acc += G[i, a, l] * d[l] * G[i, c, l]
+                Mm[a, c] = acc
+        for p in range(mz):
+            for c in range(n):
+                acc = 0.0
+                for a in range(n):
+                    acc += H[i, p, a] * Mm[a, c]
+                HM[p, c] = acc
+        lin = wj / b if has_v[i] else 0.0
+        ws = wj * sj
+        for a in range(n):  # the system's lower triangle and right-hand side w Bᵀ M
+            for c in range(n):
+                Gm[a, c] = N[j, a, c] + ws * sj * Mm[a, c]
+                rhs[a, c] = ws * Mm[a, c]
+        for p in range(mz):
+            for c in range(n):
+                Gm[n + p, c] = ws * HM[p, c]
+                rhs[n + p, c] = wj * HM[p, c]
+            for q in range(mz):
+                acc = 0.0
+                for a in range(n):
+                    acc += HM[p, a] * H[i, q, a]
+                Gm[n + p, n + q] = R[i, p, q] + lin * VVt[i, p, q] + wj * acc
+        for c in range(kk):  # Cholesky
+            dd = Gm[c, c]
+            for l in range(c):
+                dd -= L[c, l] * L[c, l]
+            inv[c] = 1.0 / np.sqrt(dd) if dd > 0.0 else 0.0
+            for q in range(c + 1, kk):
+                acc = Gm[q, c]
+                for l in range(c):
+                    acc -= L[q, l] * L[c, l]
+                L[q, c] = acc * inv[c]
+        for c in range(kk):  # L Y = rhs
+            for e in range(n):
+                acc = rhs[c, e]
+                for l in range(c):
+                    acc -= L[c, l] * Y[l, e]
+                Y[c, e] = acc * inv[c]
+        for c in range(kk - 1, -1, -1):  # Lᵀ X = Y
+            for e in range(n):
+                acc = Y[c, e]
+                for l in range(c + 1, kk):
+                    acc -= L[l, c] * X[l, e]
+                X[c, e] = acc * inv[c]
+        trace, fit = 0.0, 0.0
+        for a in range(n):
+            trace += Mm[a, a]
+            for c in range(n):
+                M[j, a, c] = Mm[a, c]
+                C[j, a, c] = X[c, a]
+            for p in range(mz):
+                K[j, a, p] = X[n + p, a]
+        for c in range(kk):
+            for e in range(n):
+                fit += X[c, e] * rhs[c, e]
+        for a in range(n):  # A = I - sC - KH
+            for c in range(n):
+                acc = (1.0 if a == c else 0.0) - sj * C[j, a, c]
+                for p in range(mz):
+                    acc -= K[j, a, p] * H[i, p, c]
+                A[j, a, c] = acc
+        pos, neg = 0.0, 0.0
+        for a in range(n):  # the envelope slope: w tr A M'(β) Aᵀ and w tr K V Vᵀ Kᵀ
+            for l in range(r):
+                acc = 0.0
+                for c in range(n):
+                    acc += A[j, a, c] * G[i, c, l]
+                e = 1.0 - b * mu[i, l]
+                pos += acc * acc / (e * e)
+            for p in range(mz):
+                for q in range(mz):
+                    neg += K[j, a, p] * VVt[i, p, q] * K[j, a, q]
+        pos, neg = wj * pos, wj * neg
+        out[j, 0] = wj * trace - fit
+        out[j, 1] = pos - neg / (b * b)
+        out[j, 2] = np.sqrt(neg / pos)
 
 
 class _FixedBeta:
@@ -229,51 +309,42 @@ class _FixedBeta:
     ``M(β) = Φ + Γ diag(β / (1 - β μ)) Γᵀ`` with ``D Φ Dᵀ = Q diag(μ) Qᵀ`` and ``Γ = Φ Dᵀ Q`` (Woodbury), so
     one eigendecomposition per item serves every β and every weight.  ``w`` and ``N`` (the weights of
     (27): ``1 + 2 d_i`` and the paper's neighbour matrix, or ``1/p_0`` and ``Σ_g N_g / p_g``) are given
-    per call, for the items ``it``.
+    per call, for the items ``it``.  The slope ``d f*/dβ = p(β) - q(β) / β²`` is the envelope theorem's at
+    the optimal Z, ``p = w tr A M'(β) Aᵀ`` (``M' = Γ diag(1/(1 - β μ)²) Γᵀ``, ``A = I - sC - KH``) and
+    ``q = w tr K V Vᵀ Kᵀ`` (increasing in β: f* is convex); its fixed point ``β = sqrt(q / p)`` is the
+    proposal for :func:`increasing_root`.
     """
 
     def __init__(self, S: Spectrum, H, s, V, R, margin: float, D=None):
-        self.phi = S.phi
-        self.mu, self.G = _structure(S, D)
+        c = np.ascontiguousarray
+        self.phi = c(S.phi, dtype=float)
+        mu, G = _structure(S, D)
+        self.mu, self.G = c(mu, dtype=float), c(G, dtype=float)
         self.bmax = (1.0 - margin) / self.mu[:, -1]  # (29) at the margin
-        self.H, self.s, self.R = H, s, R
-        self.VVt = V @ np.swapaxes(V, -1, -2)
+        self.H, self.s, self.R = c(H, dtype=float), c(s, dtype=float), c(R, dtype=float)
+        self.VVt = c(V @ np.swapaxes(V, -1, -2), dtype=float)
         self.has_v = self.VVt.any(axis=(-2, -1))
-        self.n = self.phi.shape[-1]
+
+    def _run(self, it, beta, w, N):
+        k, n, m = it.size, self.phi.shape[-1], self.H.shape[-2]
+        M, C, A = np.empty((k, n, n)), np.empty((k, n, n)), np.empty((k, n, n))
+        K, out = np.empty((k, n, m)), np.empty((k, 3))
+        _fixed_beta_kernel(self.phi, self.G, self.mu, self.H, self.s, self.VVt, self.R, self.has_v,
+                           np.ascontiguousarray(it, dtype=np.intp), np.ascontiguousarray(beta, dtype=float),
+                           np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(N, dtype=float), M, C, K, A, out)
+        return M, C, K, A, out
 
     def solve(self, it, beta, w, N):
-        """``(M, C, K, A)`` of the items ``it`` at ``beta`` (``A = I - sC - KH``), and the solve's right-hand side."""
-        n = self.n
-        G, b = self.G[it], beta[:, None]
-        M = self.phi[it] + (G * (b / (1.0 - b * self.mu[it]))[:, None, :]) @ np.swapaxes(G, -1, -2)
-        H, s = self.H[it], self.s[it]
-        HM = H @ M
-        ws = (w * s)[:, None, None]
-        lin = np.where(self.has_v[it], w / beta, 0.0)[:, None, None] * self.VVt[it]
-        m = H.shape[-2]
-        Gm = np.empty((it.size, n + m, n + m))  # lower triangle only (what the Cholesky reads)
-        Gm[:, :n, :n] = N + ws * s[:, None, None] * M
-        Gm[:, n:, :n] = ws * HM
-        Gm[:, n:, n:] = self.R[it] + lin + w[:, None, None] * HM @ np.swapaxes(H, -1, -2)
-        rhs = np.concatenate([ws * M, w[:, None, None] * HM], axis=1)  # w Bᵀ M
-        Zt = _cholesky_solve(Gm, rhs)
-        C, K = np.swapaxes(Zt[:, :n], -1, -2), np.swapaxes(Zt[:, n:], -1, -2)
-        A = np.eye(n) - s[:, None, None] * C - K @ H
-        return M, C, K, A, Zt, rhs
+        """``(M, C, K, A)`` of the items ``it`` at ``beta`` (one per item)."""
+        return self._run(it, beta, w, N)[:4]
 
     def slope(self, it, beta, w, N):
-        """``d f*/dβ = p(β) - q(β) / β²`` by the envelope theorem at the optimal Z, ``p = w tr A M'(β) Aᵀ``
-        (``M' = Γ diag(1/(1 - β μ)²) Γᵀ``) and ``q = w tr K V Vᵀ Kᵀ`` (increasing in β: f* is convex),
-        with the fixed point ``β = sqrt(q / p)`` as the proposal of :func:`increasing_root`."""
-        M, C, K, A, _, _ = self.solve(it, beta, w, N)
-        AG = A @ self.G[it]
-        p = w * np.sum(AG**2 / ((1.0 - beta[:, None] * self.mu[it]) ** 2)[:, None, :], axis=(-2, -1))
-        q = w * np.sum((K @ self.VVt[it]) * K, axis=(-2, -1))
-        return p - q / beta**2, np.sqrt(q / p)
+        """The slope of f* at ``beta`` and the proposal ``sqrt(q / p)``."""
+        out = self._run(it, beta, w, N)[4]
+        return out[:, 1], out[:, 2]
 
     def trace(self, it, beta, w, N) -> np.ndarray:
-        M, _, _, _, Zt, rhs = self.solve(it, beta, w, N)
-        return w * np.trace(M, axis1=-2, axis2=-1) - np.sum(Zt * rhs, axis=(-2, -1))
+        return self._run(it, beta, w, N)[4][:, 0]
 
 
 def _best_gains(fixed: _FixedBeta, it, w, N):
@@ -295,7 +366,7 @@ def _best_gains(fixed: _FixedBeta, it, w, N):
             one = it[[j]]
             beta[j] = best_multiplier(lambda b: float(fixed.trace(one, np.array([b]), w[[j]], N[[j]])[0]),
                                       float(fixed.bmax[it[j]]), True)
-    M, C, K, A, _, _ = fixed.solve(it, beta, w, N)
+    M, C, K, A = fixed.solve(it, beta, w, N)
     return beta, M, C, K, A
 
 
