@@ -23,11 +23,17 @@ Every quantity of a step is a stack over (runs, nodes):
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
 The gains are chosen per mode by a pair of batched functions over stacked items
-(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) so far.
-Every other case — a mode without a batched rule (``'tuned'``, ``'mse'``) or a gate on
-neighbour packets (``design.gate > 0``) — runs :func:`filters.consensus.run_consensus` run by
-run and stacks its results into the same :class:`ConsensusBatchResult` (with
-``predicted_mse`` and ``gate_counts``): the same numbers, without the batch's speed.
+(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
+(σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
+weighted (27) by :func:`designer.tuning.tune_weighted_batch`, over the groups own error / each
+received neighbour / the falsified packets, with one group slot per incoming channel; each
+(run, node) carries its weights per slot from one tuned update to the next and warm-starts from
+them as run_consensus does, :func:`designer.tuning.warm_start_weights`).  The per-run path runs
+the same stacked functions with one item, so both take the same steps.
+Every other case — mode ``'mse'`` or a gate on neighbour packets (``design.gate > 0``) — runs
+:func:`filters.consensus.run_consensus` run by run and stacks its results into the same
+:class:`ConsensusBatchResult` (with ``predicted_mse`` and ``gate_counts``): the same numbers,
+without the batch's speed.
 """
 from __future__ import annotations
 
@@ -36,6 +42,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from designer.bounds import (
+    condition28_margin,
     condition29_margin,
     optimal_gain_from,
     prediction_bound,
@@ -50,6 +57,7 @@ from designer.design import ConsensusDesign, validate_design
 from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
+from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_weighted_batch, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -207,6 +215,7 @@ class UpdateChoice(NamedTuple):
     K: np.ndarray  # (m, n_x, n_z)
     C: np.ndarray  # (m, n_x, n_x)
     phi_post: np.ndarray  # (m, n_x, n_x)
+    weights: np.ndarray | None = None  # (m, L) mode tuned: the weights of (27)'s groups (NaN: group absent)
 
 
 def _paper_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
@@ -214,17 +223,17 @@ def _paper_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -
     return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
 
 
-def _paper_update(phi_pred: Spectrum, H, s, V, R, d, neighbour_terms, D, design: ConsensusDesign) -> UpdateChoice:
+def _paper_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
     """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
     m, n = phi_pred.phi.shape[:2]
+    H, s, V, R, d, neighbour_terms = (it[key] for key in ("H", "s", "V", "R", "d", "nt"))
     margin = condition29_margin(phi_pred, design.beta, D)
     ok = margin > 0
     if not ok.all():  # the rule on the items inside (29); NaN for the others (they take the fallback)
         out = UpdateChoice(margin, np.full(m, design.beta), np.full((m, n, H.shape[-2]), np.nan),
                            np.full((m, n, n), np.nan), np.full((m, n, n), np.nan))
         if ok.any():
-            inner = _paper_update(phi_pred.take(ok), H[ok], s[ok], V[ok], R[ok], d[ok], neighbour_terms[ok], D,
-                                  design)
+            inner = _paper_update(phi_pred.take(ok), {key: v[ok] for key, v in it.items()}, D, design)
             out.K[ok], out.C[ok], out.phi_post[ok] = inner.K, inner.C, inner.phi_post
         return out
     C = design.tau * phi_pred.phi
@@ -234,9 +243,27 @@ def _paper_update(phi_pred: Spectrum, H, s, V, R, d, neighbour_terms, D, design:
     return UpdateChoice(margin, np.full(m, design.beta), K, C, phi)
 
 
-# mode -> (prediction, update), both batched over stacked items; 'tuned' and 'mse' go here next.
+def _tuned_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
+    """The σ of (26) that makes its trace smallest (:func:`designer.tuning.tune_prediction_batch`), then (28)."""
+    ch = tune_prediction_batch(phi_post, F, U, Q, design.epsilon, D=D)
+    margin = condition28_margin(phi_post, ch.sigma, design.epsilon, D)
+    return PredictionChoice(np.where((margin > 0)[:, None, None], ch.phi_pred, np.nan), margin, ch.sigma)
+
+
+def _tuned_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
+    """(β, C, K) and the weights of the weighted (27) (:func:`designer.tuning.tune_weighted_batch`, warm-started
+    from each node's previous weights), then (29) at that β."""
+    ch = tune_weighted_batch(phi_pred, it["H"], it["s"], it["V"], it["R"], it["groups"], it["present"], D=D,
+                             weights=it["w0"])
+    return UpdateChoice(condition29_margin(phi_pred, ch.beta, D), ch.beta, ch.K, ch.C, ch.phi_post, ch.weights)
+
+
+# mode -> (prediction, update), both batched over stacked items (an update rule takes the items' Φ_pred as a
+# Spectrum and a dict of their arrays: H, s, V, R, d, nt = the paper's neighbour terms, and in mode tuned the
+# groups of (27), which are present and the warm-start weights w0); 'mse' has filters.mse_batch.
 GAIN_RULES: dict[str, tuple[Callable[..., PredictionChoice], Callable[..., UpdateChoice]]] = {
     "paper": (_paper_prediction, _paper_update),
+    "tuned": (_tuned_prediction, _tuned_update),
 }
 
 
@@ -401,6 +428,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     # Weights of the neighbour terms in (27), per channel: 3 (1 - phibar_ij); and 3 delta^2 sum_j gammabar_ij.
     w_phi = 3.0 * (1.0 - network.dos_prob[ex.receiver, ex.sender])
     w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+    tuned = design.mode == "tuned"
+    if tuned:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
+        slots = _channel_slots(ex, d_max)
+        q_chan = network.fdi_prob[ex.receiver, ex.sender] / (1.0 - network.dos_prob[ex.receiver, ex.sender])
+        W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
 
     x_post = np.full((runs, steps + 1, n, nx), np.nan)
     x_pred = np.full((runs, steps, n, nx), np.nan)
@@ -494,9 +526,15 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
                                                    grp.V[j])[0]
             flat = dict(P=Pp[:, at_g], H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
                         d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
+            if tuned:
+                flat.update(_tuned_items(slots[ns], recv, Pp, ex.sender, q_chan, W[act[:, None], ns], design))
             flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
-            *out, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
+            *out, gW, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
             gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
+            if tuned:
+                gW = gW.reshape(a, g, -1)
+                rr, jj = np.nonzero(gok)
+                W[act[rr], ns[jj]] = gW[rr, jj]
             x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
             fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
                     & (np.abs(x_g).max(axis=-1) < _DIVERGED))
@@ -514,7 +552,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         before = np.arange(n)[None, :] < first[:, None]
         v29 &= before
         margin29[~before], beta[~before] = np.nan, np.nan
-        if k == 0:  # paper mode: sigma or beta is wrong for this model at the first step
+        if k == 0 and design.mode == "paper":  # sigma or beta is wrong for this model at the first step
             raising = np.flatnonzero(v28.any(axis=1) | v29.any(axis=1))
             if raising.size:
                 r = int(raising[0])
@@ -560,6 +598,32 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
                                 None, _gate_counts(attacks, len(ex.receiver), runs, steps, violations))
 
 
+def _channel_slots(ex: _Exchange, d_max: int) -> np.ndarray:
+    """``(N, d_max)``: node i's incoming channels in sender order (run_consensus's received neighbours), -1 beyond."""
+    deg = np.bincount(ex.receiver, minlength=ex.n)
+    first = np.cumsum(deg) - deg
+    j = np.arange(d_max)
+    return np.where(j[None] < deg[:, None], first[:, None] + j[None], -1)
+
+
+def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
+    """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a): the groups of the weighted
+    (27) from the received neighbours' Φ_pred (:func:`designer.tuning.neighbour_group_stack`), which are present,
+    and the warm start from each node's ``previous`` weights (a, g, d_max + 2) by slot, as run_consensus's."""
+    a, g = recv.shape[0], slots.shape[0]
+    chan = np.maximum(slots, 0)
+    present = recv[:, chan] & (slots >= 0)  # (a, g, d_max)
+    nb = Pp[:, sender[chan]]  # (a, g, d_max, n, n)
+    flat = (a * g,)
+    groups, mask = neighbour_group_stack(nb.reshape(flat + nb.shape[2:]), np.broadcast_to(q_chan[chan], present.shape)
+                                         .reshape(flat + present.shape[2:]), present.reshape(flat + present.shape[2:]),
+                                         design.delta, span=design.fdi_span)
+    full = np.concatenate([np.ones(flat + (1,), dtype=bool), mask], axis=1)
+    w0 = warm_start_weights(previous.reshape(flat + previous.shape[2:]), full)
+    return {"groups": groups.reshape((a, g) + groups.shape[1:]), "present": mask.reshape(a, g, -1),
+            "w0": w0.reshape(a, g, -1)}
+
+
 def _per_run_batch(model: Model, network: SensorNetwork, z, design: ConsensusDesign, u, attacks, x0, phi0
                    ) -> ConsensusBatchResult:
     """What the batch cannot vectorise yet: :func:`run_consensus` run by run, its results stacked."""
@@ -576,7 +640,8 @@ def _per_run_batch(model: Model, network: SensorNetwork, z, design: ConsensusDes
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):
     """The update of stacked items (one run and node each): the mode's rule where the prediction is a
-    bound and (29) holds, the fallback elsewhere.  A numerical breakdown (``LinAlgError``) is searched
+    bound and (29) holds, the fallback elsewhere (and, mode tuned, the weights of the items whose rule
+    held; NaN elsewhere: they keep their previous weights).  A numerical breakdown (``LinAlgError``) is searched
     item by item; those items get NaN outputs and a reason (``{item: reason}``), as run_consensus reports it."""
     m, nx = it["P"].shape[:2]
     dim = it["H"].shape[-2]
@@ -586,20 +651,22 @@ def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDe
     K = np.full((m, nx, dim), np.nan)
     C = np.full((m, nx, nx), np.nan)
     P = np.full((m, nx, nx), np.nan)
+    weights = np.full((m,) + it["w0"].shape[1:], np.nan) if "w0" in it else None
     breakdowns: dict[int, str] = {}
 
     def compute(idx):
         rows = idx[vin[idx]]
         if rows.size:
             every = rows.size == m  # no copies when every item is inside
-            ch = update_rule(spectrum(it["P"] if every else it["P"][rows]),
-                             *(it[key] if every else it[key][rows] for key in ("H", "s", "V", "R", "d", "nt")), D,
-                             design)
+            sub = {key: v if every else v[rows] for key, v in it.items() if key != "P"}
+            ch = update_rule(spectrum(it["P"] if every else it["P"][rows]), sub, D, design)
             good = ch.margin29 > 0
             margin[rows] = ch.margin29
             rows = rows[good]
             ok[rows], beta[rows] = True, ch.beta[good]
             K[rows], C[rows], P[rows] = ch.K[good], ch.C[good], ch.phi_post[good]
+            if ch.weights is not None:
+                weights[rows] = ch.weights[good]
         rest = idx[~ok[idx]]
         if rest.size:
             K[rest], C[rest], P[rest] = _fallback_update(*(it[key][rest] for key in ("P", "H", "s", "R", "nt")),
@@ -614,4 +681,4 @@ def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDe
             except np.linalg.LinAlgError as exc:
                 breakdowns[j] = f"numerical breakdown: {exc}"
                 K[j], C[j], P[j] = np.nan, np.nan, np.nan
-    return margin, beta, ok, K, C, P, breakdowns
+    return margin, beta, ok, K, C, P, weights, breakdowns
