@@ -98,6 +98,7 @@ from designer.model import Model
 from designer.noise import Gaussian, GaussianMixture, Noise
 from designer.validation import InputError, check_int, check_probability
 
+from .particle import check_finite_means
 from .rrp import angle_sets
 
 __all__ = [
@@ -1006,7 +1007,8 @@ def _run_all(family, kernels, data_of_run, x0, gens, K, scheme, thr, covariance,
         with ThreadPoolExecutor(max_workers=min(threads, R)) as ex:
             for f in [ex.submit(worker) for _ in range(min(threads, R))]:
                 f.result()  # re-raise any exception from a worker
-    return FastSIRResult(mean, cov if covariance else None, ess, loglik, resampled, collapsed)
+    return FastSIRResult(check_finite_means(mean, "fused particle filter"), cov if covariance else None, ess, loglik,
+                         resampled, collapsed)
 
 
 def sir_packets(

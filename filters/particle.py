@@ -31,11 +31,25 @@ import numpy as np
 from scipy.special import logsumexp
 
 from designer.model import Model
-from designer.validation import InputError, check_int, check_rng
+from designer.validation import ComputationError, InputError, check_int, check_rng
 
 from .resampling import get_resampler
 
-__all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir"]
+__all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir", "check_finite_means"]
+
+
+def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
+    """Raise :class:`ComputationError` naming the first run and step whose filtered mean is not finite.
+
+    ``mean`` (runs, K + 1, n_x), step 0 the initial particles.  Both particle engines call it:
+    a NaN or an infinity in a filter's states or weights reaches its mean at the step it appears.
+    """
+    bad = ~np.isfinite(mean).all(axis=-1)
+    if bad.any():
+        r, k = map(int, np.argwhere(bad)[0])
+        raise ComputationError(f"{engine}: the filtered mean of run {r} is not finite from step {k} on (particle "
+                               "states or weights left finite numbers: check the model's f, h and noise densities)")
+    return mean
 
 
 class LogWeights(NamedTuple):
@@ -61,6 +75,11 @@ class LogWeights(NamedTuple):
         W = np.exp(self.lw - np.where(dead, 0.0, ln)[..., None])
         if np.any(dead):
             W[dead] = 1.0 / self.lw.shape[-1]
+        off = np.abs(W.sum(axis=-1) - 1.0) > 1e-9  # log weights so large (|lw| ~ 1e308) that log_norm lost its digits
+        if np.any(off):
+            lw = self.lw[off]
+            w = np.exp(lw - lw.max(axis=-1, keepdims=True))
+            W[off] = w / w.sum(axis=-1, keepdims=True)
         return W
 
     @property
@@ -191,7 +210,14 @@ def run_sir(
         zk = np.where(nan_rows[:, k, None], 0.0, z[:, k])  # skipped rows get a placeholder, then no weight
         x, corr = proposal(x, k, zk, rng)
         prev_log_norm = lw.log_norm
+        if not np.isfinite(x).all():
+            r = int(np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))[0])
+            raise ComputationError(f"particle filter: run {r} has particle states that are not finite at step {k + 1}")
         ll = np.where(nan_rows[:, k, None], 0.0, loglik(x, k + 1, zk))
+        if np.isposinf(ll).any():
+            r = int(np.flatnonzero(np.isposinf(ll).any(axis=-1))[0])
+            raise ComputationError(f"particle filter: run {r} has a log-likelihood of +inf (a density evaluated at a "
+                                   f"singularity) at step {k + 1}")
         new = LogWeights.of(lw.lw + ll + corr).lw
         if linear_weights:
             new = np.where(new - prev_log_norm[:, None] < _LOG_TINY, -np.inf, new)

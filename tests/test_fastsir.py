@@ -561,3 +561,28 @@ def test_unsupported_models_raise_input_error():
     odd_w = Model("odd-w", x, x, [Sensor("s", x, Gaussian.zero_mean([[1.0]]))], glint_w, Gaussian([0.0], [[1.0]]))
     with pytest.raises(InputError, match="process_noise"):
         sir_packets(odd_w, np.zeros((1, 5, 1)), [g], np.zeros((2, 1), int), np.zeros((1, 2, 1, 1)))
+
+
+def test_non_finite_states_are_flagged_at_their_step_by_both_engines():
+    """x_{k+1} = 10^4 x_k overflows to inf after a few steps: both engines name the run and the step (no NaN means)."""
+    from designer.validation import ComputationError
+
+    x = ca.SX.sym("x", 1)
+    model = Model("overflow", x, 1e4 * x, [Sensor("s", x, Gaussian.zero_mean([[1.0]]))],
+                  process_noise=Gaussian.zero_mean([[1e-6]]), prior=Gaussian([1.0], [[0.01]]))
+    K, M = 120, 50  # 1e4^k passes 1.8e308 at k = 78
+    y = np.zeros((1, K, 1, 1))
+    g = np.random.default_rng(0)
+    with pytest.raises(ComputationError, match=r"fused particle filter: the filtered mean of run 0 is not finite "
+                                               r"from step (7[0-9]|8[0-9])"):
+        sir_packets(model, model.prior.sample(g, (1, M)), [g], np.zeros((K, 1), int), y)
+    with pytest.raises(ComputationError, match=r"run 0 has particle states that are not finite at step (7|8)[0-9]"):
+        run_sir(model, y[:, :, 0], np.random.default_rng(0), particles=M, runs=1)
+    # A log-likelihood of +inf for one particle would make the weights uniform: flagged at its step instead.
+    def singular(xp, k1, z):
+        out = np.zeros(xp.shape[:2])
+        out[0, 3] = np.inf if k1 == 4 else 0.0
+        return out
+
+    with pytest.raises(ComputationError, match=r"run 0 has a log-likelihood of \+inf .* at step 4"):
+        run_sir(model, y[:, :10, 0], np.random.default_rng(0), particles=M, runs=1, loglik=singular)
