@@ -146,9 +146,9 @@ def _gate_counts(attacks: "EdgeAttacks | None", n_edges: int, runs: int, steps: 
     if attacks is None:
         out[..., 0] = n_edges
     else:
-        recv = ~attacks.dos
+        recv = ~attacks.dos[:, :steps]  # the attacks may cover more steps than the run
         out[..., 0] = recv.sum(-1)
-        out[..., 3] = out[..., 4] = (recv & attacks.fdi).sum(-1)
+        out[..., 3] = out[..., 4] = (recv & attacks.fdi[:, :steps]).sum(-1)
     for r, vs in enumerate(violations):
         stop = next((v["step"] for v in vs if v["condition"] == "diverged"), None)
         if stop is not None:
