@@ -2,11 +2,12 @@
 
 The reference is :func:`filters.consensus.run_consensus`, itself tested against the equations and
 independent filters in tests/test_consensus.py: run by run, the batch must give its numbers
-(rtol 1e-9), its ``valid`` flags and its violations, in the same order, on the indoor robot, a
-user model with mixed sensor dimensions and bearings that cross ±π, and linear models; with the
-fallback recursion, the neighbour rule, every linearisation rule, per-run inputs and initial
-conditions, the bound-trace limit, a divergence in one run of the batch (the others go on), a
-numerical breakdown in one run, and the first-step InputError.
+(rtol 1e-9), its ``valid`` flags, its violations in the same order and its packet counts, on the
+indoor robot, a user model with mixed sensor dimensions and bearings that cross ±π, and linear
+models; with the fallback recursion, the neighbour rule, every linearisation rule, per-run inputs
+and initial conditions, the bound-trace limit, a divergence in one run of the batch (the others go
+on), a numerical breakdown in one run, and the first-step InputError; in modes paper and tuned
+(batched), mse and gated designs (run per run and stacked).
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ def assert_same_as_per_run(batch, refs):
             assert {k: x for k, x in v.items() if k != "margin"} == {k: x for k, x in w.items() if k != "margin"}
             assert v["margin"] == pytest.approx(w["margin"], rel=1e-9, abs=1e-300), (r, v, w)
         assert got.feasible == ref.feasible and got.diverged == ref.diverged
+        np.testing.assert_array_equal(got.gate_counts, ref.gate_counts, err_msg=f"run {r}, gate_counts")
     np.testing.assert_array_equal(batch.feasible, [ref.feasible for ref in refs])
 
 
@@ -121,6 +123,23 @@ def test_first_step_input_error_has_the_per_run_message(robot):
         assert str(got.value) == str(ref.value) and ("(28)" if "sigma" in change else "(29)") in str(got.value)
 
 
+@pytest.mark.parametrize("rule", ["fixed", "structured"])
+def test_robot_tuned_design_matches_per_run(robot, rule):
+    """Mode tuned on the robot under DoS and FDI: the σ search, the weighted (27) with its per-node weights
+    carried between steps (groups that come and go with the DoS pattern), Theorem 2 violations."""
+    sc, net, traj, atts = robot
+    steps = 4
+    z = traj.z[:2, :steps]
+    des = robot_design(mode="tuned", linearization=rule)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts[:2])
+    refs = per_run(sc.model, net, z, des, traj.inputs[:steps], atts[:2])
+    assert_same_as_per_run(batch, refs)
+    assert batch.valid.all() and np.isfinite(batch.beta).all() and (batch.beta > 0).all()
+    assert any(v["condition"] == "theorem2" for vs in batch.violations for v in vs)
+    lost = np.stack([a.dos[:steps][:, net.adjacency] for a in atts[:2]])
+    assert lost.any() and not lost.all(), "the DoS pattern must change the nodes' groups"
+
+
 @pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="mse", gate=0.05)])
 def test_unbatched_cases_run_per_run_and_stack(robot, change):
     """A mode without a batched rule or a gate: run_consensus run by run, stacked with predicted_mse and
@@ -194,6 +213,22 @@ def test_mixed_sensor_dimensions_and_wrapped_bearings(rule):
     assert np.max(np.abs(batch.x_post[:, -1, :, 0] - traj.x[:, -1, None, 0])) < 10.0
 
 
+def test_mixed_sensor_dimensions_tuned():
+    """Mode tuned on the user model with sensors of dimensions 2 and 1 (two groups of nodes, gains padded)
+    and a star whose centre has four neighbours while the leaves have one."""
+    model, net = mixed_model()
+    runs, steps = 3, 6
+    traj = simulate(model, steps, np.random.default_rng(6), batch=runs)
+    atts = [simulate_attacks(net, steps, 4, np.random.default_rng(60 + r), signal=FDISignal(2.0, (0, 2)))
+            for r in range(runs)]
+    des = make_design(model, net, delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="tuned"), x0=model.prior.mean,
+                      signal=FDISignal(2.0, (0, 2)))
+    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
+    assert_same_as_per_run(batch, per_run(model, net, traj.z, des, None, atts))
+    assert batch.K.shape == (runs, steps, 5, 4, 2) and np.all(batch.K[..., 1:, :, 1] == 0.0)
+    assert batch.valid.all()
+
+
 # ----------------------------------------------------------------------------- linear models
 CHAIN_A = np.array([[1.0, 0.1], [-0.05, 0.98]])
 
@@ -232,10 +267,28 @@ def test_linear_chain_neighbour_rule_and_a_diverging_run():
     assert not batch.valid[0, -1].any() and batch.valid[0, 1].all()
 
 
+def test_linear_chain_tuned_with_a_diverging_run():
+    """Mode tuned on the chain: run 2 diverges at step 10 and stops there, the others go on."""
+    model, net, des = chain_model()
+    des = des._replace(mode="tuned")
+    runs, steps = 3, 12
+    traj = simulate(model, steps, np.random.default_rng(41), batch=runs)
+    z = traj.z.copy()
+    z[2, 9, 2:4] = 1e14
+    atts = [simulate_attacks(net, steps, 2, np.random.default_rng(42 + r), signal=FDISignal(0.1, (0,)))
+            for r in range(runs)]
+    batch = run_consensus_batch(model, net, z, des, attacks=atts)
+    assert_same_as_per_run(batch, per_run(model, net, z, des, None, atts))
+    assert [d is not None for d in batch.diverged] == [False, False, True]
+    assert batch.diverged[2]["step"] == 10 and np.isfinite(batch.x_post[[0, 1]]).all()
+
+
 @pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning", "ignore:invalid value:RuntimeWarning")
-def test_bound_trace_limit_then_overflow():
-    """σ = β = 0, U = V = 0 and a blind sensor on an unstable plant: every node keeps Theorem 1's recursion
-    until the bound's trace reaches 1e100 (a (28) violation with its reason), then the fallback overflows."""
+@pytest.mark.parametrize("mode", ["paper", "tuned"])
+def test_bound_trace_limit_then_overflow(mode):
+    """σ = β = 0, U = V = 0 (paper) or the tuned searches, and a blind sensor on an unstable plant: every node
+    keeps Theorem 1's recursion until the bound's trace reaches 1e100 (a (28) violation with its reason), then the
+    fallback overflows."""
     x = ca.SX.sym("x", 2)
     sensors = [Sensor(f"blind{i}", 0.0 * x[0], Gaussian.zero_mean([[1.0]])) for i in range(2)]
     model = Model("unstable", x, 1e3 * x, sensors, Gaussian.zero_mean(1e-3 * np.eye(2)),
@@ -243,6 +296,8 @@ def test_bound_trace_limit_then_overflow():
     net = SensorNetwork.from_edges(2, [(0, 1)])
     des = ConsensusDesign(epsilon=0.5, sigma=0.0, beta=0.0, tau=0.01, U=np.zeros((2, 2)), V=np.zeros((1, 1)),
                           delta=0.0)
+    if mode == "tuned":  # the tuned searches at every node until the limit (σ > 0 and β > 0: U, V nonzero)
+        des = des._replace(mode="tuned", U=0.01 * np.eye(2), V=0.1 * np.eye(1), delta=0.1)
     z = np.random.default_rng(0).standard_normal((2, 60, 2))
     batch = run_consensus_batch(model, net, z, des)
     assert_same_as_per_run(batch, per_run(model, net, z, des, None, None))

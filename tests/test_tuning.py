@@ -276,3 +276,163 @@ def test_weighted_tuning_matches_its_sdp(seed, scale):
                              np.einsum("ab,gbc,ac->g", C, groups, C)])
     paper = weighted_bound(phi, H, C, K, 2.0, beta, V, R, groups, optimal_weights(traces))
     assert np.trace(paper) >= fast.trace * (1 - 1e-6)
+
+
+# ------------------------------------------------------------------- stacked items (the batched filter's searches)
+from scipy.optimize import brentq  # noqa: E402
+
+from designer.tuning import (  # noqa: E402
+    increasing_root,
+    neighbour_group_stack,
+    tune_prediction_batch,
+    tune_weighted_batch,
+    warm_start_weights,
+)
+
+
+def _convex_slopes(rng, m, r=3):
+    """Slopes ``p(x) - a / x²`` of random convex traces (the σ and β searches' shape), ``p(x) = Σ_k g_k / (1 - x μ_k)²``
+    on ``[1e-9 hi, hi]``, ``hi = 0.95 / μ_max``; ``a`` spread over decades so that some roots bind at ``hi``."""
+    g = rng.uniform(0.0, 2.0, (m, r))
+    mu = rng.uniform(0.1, 3.0, (m, r))
+    a = 10.0 ** rng.uniform(-8, 4, m)
+    hi = 0.95 / mu.max(axis=1)
+    return g, mu, a, hi
+
+
+def _slope_of(g, mu, a):
+    def one(i, x):
+        return float(np.sum(g[i] / (1.0 - x * mu[i]) ** 2) - a[i] / x**2)
+
+    def stacked(x, idx, proposals):
+        p = np.sum(g[idx] / (1.0 - x[:, None] * mu[idx]) ** 2, axis=-1)
+        f = p - a[idx] / x**2
+        return (f, np.sqrt(a[idx] / p)) if proposals else f
+
+    return one, stacked
+
+
+@pytest.mark.parametrize("proposals", [False, True])
+def test_increasing_root_matches_brentq_on_random_convex_slopes(proposals):
+    """Each item's root within the requested tolerance of brentq's (run far tighter); ``hi`` where the slope is
+    still <= 0 there (binding), ``lo`` where it is already >= 0 (a = 0)."""
+    rng = np.random.default_rng(11)
+    m = 200
+    g, mu, a, hi = _convex_slopes(rng, m)
+    a[:10] = 0.0  # slope > 0 everywhere: the low end
+    one, stacked = _slope_of(g, mu, a)
+    lo, xtol, rtol = 1e-9 * hi, 1e-9 * hi, 1e-9
+    got = increasing_root(lambda x, idx: stacked(x, idx, proposals), lo, hi, xtol=xtol, rtol=rtol)
+    kinds = set()
+    for i in range(m):
+        if one(i, hi[i]) <= 0:
+            ref, kind = hi[i], "hi"
+        elif one(i, lo[i]) >= 0:
+            ref, kind = lo[i], "lo"
+        else:
+            ref, kind = brentq(lambda x: one(i, x), lo[i], hi[i], xtol=1e-15 * hi[i], rtol=1e-15), "inside"
+        kinds.add(kind)
+        assert abs(got[i] - ref) <= xtol[i] + rtol * abs(ref), (i, kind, got[i], ref)
+    assert kinds == {"hi", "lo", "inside"}
+
+
+def test_increasing_root_on_brackets_across_zero_and_non_finite_slopes():
+    """A bracket with lo < 0 (arithmetic bisection), a slope that is NaN or inf at an end (NaN: the caller
+    decides) and one that leaves floats inside the bracket above the root (taken as positive)."""
+    roots = np.array([-0.3, 0.7, 0.2, 0.5, 0.25])
+    lo = np.array([-2.0, -1.0, 0.0, 0.1, 1e-6])
+    hi = np.array([1.0, 3.0, 1.0, 1.0, 1.0])
+
+    def slope(x, idx):
+        f = np.expm1(x - roots[idx])
+        f = np.where((idx == 2) & (x >= 1.0), np.nan, f)  # NaN at the upper end
+        f = np.where((idx == 3) & (x <= 0.1), -np.inf, f)  # -inf at the lower end
+        return np.where((idx == 4) & (x > 0.6) & (x < 0.9), np.inf, f)  # inf inside the bracket, above the root
+
+    got = increasing_root(slope, lo, hi, xtol=1e-12, rtol=1e-12)
+    for i in (0, 1, 4):
+        ref = brentq(lambda x: np.expm1(x - roots[i]), lo[i], hi[i], xtol=1e-15)
+        assert got[i] == pytest.approx(ref, abs=2e-12)
+    assert np.isnan(got[2]) and np.isnan(got[3])
+
+
+def _weighted_items(rng, m=40, n=3, mz=2, J=3):
+    phi = np.stack([_spd(rng, n, 0.3) for _ in range(m)])
+    H = rng.normal(size=(m, mz, n))
+    V = 0.1 * rng.normal(size=(m, mz, mz))
+    V[::7] = 0.0  # no remainder: β = 0
+    R = np.stack([_spd(rng, mz, 0.5, 0.1) for _ in range(m)])
+    nb = np.stack([[_spd(rng, n, 0.3) for _ in range(J)] for _ in range(m)])
+    present = rng.random((m, J)) < 0.6
+    present[3] = False  # nothing received: no group, C = 0
+    q = np.where(rng.random((m, J)) < 0.3, 0.0, rng.uniform(0.0, 0.3, (m, J)))
+    q[3] = 0.0
+    groups, mask = neighbour_group_stack(nb, q, present, 0.5)
+    return phi, H, present.sum(axis=1).astype(float), V, R, groups, mask, nb, q, present
+
+
+@pytest.mark.parametrize("structured", [False, True])
+def test_stacked_weighted_tuning_is_the_per_item_tuning(structured):
+    """tune_weighted_batch over items with different groups (padded, masked), warm starts (some none) and
+    remainders equals tune_weighted item by item; absent groups get NaN weights; no packet gives C = 0."""
+    rng = np.random.default_rng(21)
+    phi, H, s, V, R, groups, mask, *_ = _weighted_items(rng)
+    m, G = mask.shape
+    D = np.eye(3)[[0, 2]] if structured else None
+    full = np.concatenate([np.ones((m, 1), dtype=bool), mask], axis=1)
+    w0 = np.where(full, rng.dirichlet(np.ones(G + 1), size=m), np.nan)
+    w0[::3] = np.nan  # no warm start
+    got = tune_weighted_batch(phi, H, s, V, R, groups, mask, D=D, weights=w0)
+    for i in range(m):
+        start = w0[i][full[i]]
+        one = tune_weighted(phi[i], H[i], s[i], V[i], R[i], groups[i][mask[i]], D=D,
+                            weights=None if np.isnan(start).any() else start)
+        for a, b in [(one.beta, got.beta[i]), (one.C, got.C[i]), (one.K, got.K[i]), (one.phi_post, got.phi_post[i]),
+                     (one.trace, got.trace[i]), (one.weights, got.weights[i][full[i]])]:
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-300, err_msg=f"item {i}")
+        assert np.isnan(got.weights[i][~full[i]]).all()
+    assert np.all(got.C[3] == 0.0) and np.all(got.beta[::7] == 0.0) and np.all(got.beta[1:7] > 0)
+    assert len(set(mask.sum(axis=1))) >= 3, "the items must differ in their number of groups"
+
+
+def test_group_stack_ignores_padding():
+    """The padded groups of an item are its per-run neighbour_groups, to the last bit, whatever it is padded with."""
+    rng = np.random.default_rng(4)
+    _, _, _, _, _, groups, mask, nb, q, present = _weighted_items(rng, m=12)
+    span = np.diag([1.0, 1.0, 0.0])
+    groups, mask = neighbour_group_stack(nb, q, present, 0.7, span=span)
+    for i in range(12):
+        ref = neighbour_groups(nb[i][present[i]], q[i][present[i]], 0.7, span=span)
+        np.testing.assert_array_equal(groups[i][mask[i]], ref)
+
+
+def test_warm_start_keeps_known_weights_fills_new_groups_and_floors():
+    prev = np.array([[0.6, 0.4, np.nan, np.nan],  # own and neighbour 1 known; neighbour 2 new, no FDI group
+                     [1.0 - 1e-9, 1e-9, np.nan, np.nan],  # a group at the floor may re-enter
+                     [np.nan] * 4])  # no previous update
+    present = np.array([[True, True, True, False], [True, True, False, False], [True, True, False, True]])
+    p = warm_start_weights(prev, present)
+    np.testing.assert_allclose(p[0, :3], np.array([0.6, 0.4, 0.5]) / 1.5, rtol=1e-15)
+    expect = np.array([1.0 - 1e-9, 1e-6]) / (1.0 - 1e-9 + 1e-6)
+    np.testing.assert_allclose(p[1, :2], expect, rtol=1e-15)
+    assert np.isnan(p[0, 3]) and np.isnan(p[1, 2:]).all() and np.isnan(p[2]).all()
+
+
+def test_stacked_prediction_tuning_is_the_per_item_tuning():
+    """tune_prediction_batch with U per item (some zero: σ = 0, the EKF prediction) and a structure D
+    equals tune_prediction item by item."""
+    rng = np.random.default_rng(31)
+    items = [_instance(rng) for _ in range(30)]
+    phi = np.stack([it[0] for it in items])
+    F = np.stack([it[1] for it in items])
+    U = np.stack([it[2] for it in items])
+    U[::5] = 0.0
+    Q = items[0][3]
+    for D in (None, np.eye(3)[[1, 2]]):
+        got = tune_prediction_batch(phi, F, U, Q, 0.3, D=D)
+        for i in range(30):
+            one = tune_prediction(phi[i], F[i], U[i], Q, 0.3, D=D)
+            assert got.sigma[i] == pytest.approx(one.sigma, rel=1e-12, abs=0.0)
+            np.testing.assert_allclose(got.phi_pred[i], one.phi_pred, rtol=1e-12)
+        assert np.all(got.sigma[::5] == 0.0) and np.all(got.sigma[1:5] > 0)
+        np.testing.assert_allclose(got.phi_pred[::5], F[::5] @ phi[::5] @ np.swapaxes(F[::5], 1, 2) + Q, rtol=1e-12)
