@@ -67,8 +67,9 @@ class SensorNetwork:
         object.__setattr__(self, "neighbours", tuple(tuple(int(j) for j in np.flatnonzero(row)) for row in adj))
         if self.require_connected and not self.is_connected:
             raise InputError(
-                f"the sensor network is disconnected ({self.n_components} components); "
-                "pass require_connected=False to accept it"
+                f"the sensor network is disconnected ({self.n_components} components): a node cut off from the "
+                "others cannot reach consensus with them; connect them (in a model file: add edges to NETWORK), or "
+                "build it with SensorNetwork(..., require_connected=False) in Python to study it anyway"
             )
 
     @staticmethod
