@@ -52,7 +52,7 @@ import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.network import SensorNetwork
-from designer.validation import InputError, check_int, check_probability
+from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus import HARD_CONDITIONS
 from filters.consensus_batch import run_consensus_batch
@@ -63,7 +63,7 @@ from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
 from .consensus_design import as_mode, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import curves_figure, markdown_table, save_figure, _plt
+from .results import DIVERGENCE_SPREAD, curves_figure, divergence_limit, first_divergence, markdown_table, save_figure, _plt
 from .scenarios import Scenario, reference
 
 __all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "local_ekf_design"]
@@ -121,11 +121,14 @@ ASSUMPTIONS = (
     "particles for both.",
     "comparison: consensus and local RMSE is over runs, steps 1..K and the nodes (each node's own estimate); "
     "centralized filters have one estimate. 95 % intervals are percentile bootstraps over runs. A run whose filter "
-    "leaves finite numbers (or 1e12) counts as diverged and is left out of the RMSE; a run that stays finite but "
+    "leaves finite numbers (or 1e12), or whose error leaves divergence_spread (default 100) times the prior's spread "
+    "sqrt(tr P0), counts as diverged and is left out of the RMSE; a run that stays within that scale but "
     "far off is kept (compare the RMSE with the median run's).",
     "comparison: time per step = a filter's wall time on one run (all nodes, or the centre) / K at the main "
-    "setting, averaged over runs, single-threaded; the tuned design's time includes its convex programs (one per "
-    "node and step). In the sweeps the two particle filters of all settings of a run are one NumPy batch.",
+    "setting, averaged over runs, single-threaded; the designed consensus filters and the local EKFs run every run "
+    "of a chunk (chunk_size runs) in one batch (filters.consensus_batch), and their time is the batch's divided by "
+    "its runs; the tuned design's time includes its weight optimisation (every node and step). In the sweeps the "
+    "two particle filters of all settings of a run are one NumPy batch.",
     "comparison: the consensus designs use the scenario's design defaults (paper: sigma = beta = 0.1, C = 0.01 "
     "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the built-in scenarios U = 0.01 I and V_i = 0.1 I, "
     "published for the robot only.",
@@ -227,7 +230,8 @@ def _settings(main: tuple[float, float] | None, values: Sequence[float]) -> list
 
 
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
-          options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS) -> dict:
+          options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS,
+          divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
     """Task of the runner: every filter at every setting on the runs ``run_ids``.
 
     At the main setting each particle filter runs alone (its time is a single filter's); at
@@ -269,7 +273,12 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     est = np.full((R, F, K + 1, m.n_x), np.nan)
     truth = np.empty((R, K + 1, m.n_x))
 
+    limit = divergence_limit(m.prior.cov, divergence_spread)
+
     def score(a, j, f, xs, ok):
+        xs3 = xs if xs.ndim == 3 else xs[:, None]
+        if ok and first_divergence(truth[a][:, None] - xs3, limit) is not None:
+            ok = False  # finite, but off the problem's scale: diverged
         if ok:
             e = truth[a, 1:, None][..., idx] - xs[1:][..., idx]  # (K, nodes, components)
             err2[a, j, f] = (e**2).sum(-1).mean(axis=1)
@@ -377,11 +386,13 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
-                             hcmci_iterations=int(so["hcmci_iterations"]))
+                             hcmci_iterations=int(so["hcmci_iterations"]),
+                             divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item())
     config = {"study": "comparison", "scenario": sc.name, "source": "memory" if ref.in_memory else ref.source,
               "params": dict(ref.params), "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
-              "hcmci_iterations": int(so["hcmci_iterations"]), "options": so.design.as_dict()}
+              "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
+              "options": so.design.as_dict()}
     return Plan(task, f"comparison-{_slug(sc.name)}", config)
 
 
@@ -650,7 +661,8 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": False, "hcmci_iterations": HCMCI_ITERATIONS},
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": False, "hcmci_iterations": HCMCI_ITERATIONS,
+             "divergence_spread": DIVERGENCE_SPREAD},
     uses_design=True,
     many_scenarios=True,
     accepts=_accepts,

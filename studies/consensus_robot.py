@@ -40,7 +40,7 @@ from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, 
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.schedule import load_schedule
-from designer.validation import InputError, check_int
+from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
 from filters.consensus import GATE_COUNTS, run_consensus
 from filters.consensus_batch import run_consensus_batch
@@ -49,7 +49,7 @@ from filters.distributed import run_hcmci, run_kcf
 from .comparison import HCMCI_ITERATIONS, local_ekf_design
 from .consensus_design import as_mode, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import save_figure
+from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence, save_figure
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -230,7 +230,7 @@ def _decode(codes: np.ndarray) -> str:
 
 
 def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
-          hcmci_iterations: int = HCMCI_ITERATIONS) -> dict:
+          hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`)
@@ -259,6 +259,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
             out[f"v{j}_phi"] = np.zeros((R, steps + 1, n, nx, nx))
         if v.filter == CONSENSUS_EKF:
             out[f"v{j}_gate"] = np.zeros((R, len(GATE_COUNTS)), np.int64)
+    limit = divergence_limit(m.prior.cov, divergence_spread)
     trajs, atts = [], []
     for a, seq in enumerate(seeds):  # the realisations first: every variant then faces the same ones
         traj_ss, att_ss = seq.spawn(2)
@@ -281,8 +282,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                 results.append(_run_variant(v, trajs[a], atts[a]))
                 out[f"v{j}_seconds"][a] = time.perf_counter() - t
         for a, res in enumerate(results):
-            if res.diverged is not None:
-                dv = res.diverged
+            dv = res.diverged
+            far = None if dv is not None else first_divergence(trajs[a].x[:, None, :] - res.x_post, limit)
+            if far is not None:  # finite, but off the problem's scale
+                dv = {"node": far[1], "step": far[0],
+                      "reason": f"the error left {divergence_spread:g} prior spreads ({limit:.3g}) at step {far[0]}"}
+            if dv is not None:
                 out[f"v{j}_diverged"][a] = True
                 out[f"v{j}_diverged_node"][a], out[f"v{j}_diverged_step"][a] = dv["node"], dv["step"]
                 out[f"v{j}_diverged_reason"][a] = _encode(str(dv["reason"]))
@@ -330,13 +335,14 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
     _, _, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
+    spread = check_positive("divergence_spread", so["divergence_spread"]).item()
     task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
-                             hcmci_iterations=_iterations(so))
+                             hcmci_iterations=_iterations(so), divergence_spread=spread)
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
               "source": "memory" if ref.in_memory else ref.source, "attacks": sc.attacks.describe(),
               "design_options": {k: v for k, v in options.as_dict().items() if v is not None},
-              "variants": list(variants), "hcmci_iterations": _iterations(so),
+              "variants": list(variants), "hcmci_iterations": _iterations(so), "divergence_spread": spread,
               "schedule": None if replay is None else {
                   "mode": replay[0], "sha256": hashlib.sha256(replay[1].tobytes() + replay[2].tobytes()).hexdigest()}}
     return Plan(task, "consensus-robot", config)
@@ -410,8 +416,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "consensus-robot: RMSE_position = sqrt(mean over runs, nodes and steps 1..K of the squared position "
             "error; the whole state for a model without position components); per-node and per-step curves "
             "likewise; rmse_position_median_run = median over runs of each run's RMSE; node_spread = mean distance "
-            "of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite) are "
-            "excluded and listed under diverged_runs.",
+            "of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite, or an "
+            "error beyond divergence_spread (default 100, --set divergence_spread=...) times the prior's spread "
+            "sqrt(tr P0)) are excluded and listed under diverged_runs.",
             "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
             "one per round), whether or not DoS drops them.",
             "consensus-robot: KCF and HCMCI (filters.distributed) run on the same network, measurements and channel "
@@ -652,7 +659,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_study_figures,
-    options={"schedule": None, "hcmci_iterations": HCMCI_ITERATIONS},
+    options={"schedule": None, "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD},
     uses_design=True,
     accepts=_accepts,
 )

@@ -18,7 +18,8 @@ import numpy as np
 from designer.fileio import atomic_write, check_json_finite, replaced_outputs, write_json
 
 __all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_outputs", "trajectory_figure", "curves_figure", "study_header",
+           "write_outputs", "trajectory_figure", "curves_figure", "study_header", "DIVERGENCE_SPREAD",
+           "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
@@ -112,6 +113,28 @@ def rmse_with_ci(f: Mapping) -> str:
     """``RMSE_p [lo, hi]`` for tables."""
     lo, hi = f["rmse_position_ci95"]
     return f"{f['rmse_position']:.4g} [{lo:.3g}, {hi:.3g}]"
+
+
+DIVERGENCE_SPREAD = 100.0  # a run whose error leaves this many prior spreads has diverged (study option)
+
+
+def divergence_limit(prior_cov: np.ndarray, spread: float) -> float:
+    """The error norm beyond which a run counts as diverged: ``spread · sqrt(tr P_0)``, P_0 the prior covariance.
+
+    An estimate 100 prior standard deviations away from the truth has left the problem's
+    physical scale (the robot's room, the target's area) even when its numbers are finite.
+    """
+    return float(spread) * float(np.sqrt(np.trace(np.asarray(prior_cov, dtype=float))))
+
+
+def first_divergence(err: np.ndarray, limit: float) -> tuple[int, int] | None:
+    """``(step, node)`` where the error norm first exceeds ``limit`` (err (K + 1, nodes, n_x)), or None."""
+    norm = np.linalg.norm(err, axis=-1)
+    bad = ~(norm <= limit)  # NaN counts as beyond
+    if not bad.any():
+        return None
+    k, i = map(int, np.argwhere(bad.reshape(norm.shape[0], -1))[0])
+    return k, i
 
 
 def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Callable[[dict], str]) -> Path:
