@@ -139,6 +139,25 @@ class _Exchange:
         return out
 
 
+def edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int) -> EdgeAttacks | None:
+    """The realised attacks as :class:`EdgeAttacks` on the network's channels, checked against the runs."""
+    if attacks is None:
+        return None
+    if not isinstance(attacks, EdgeAttacks):
+        if len(attacks) != runs:
+            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), got {len(attacks)}")
+        attacks = EdgeAttacks.from_patterns(network, attacks)
+    receiver, sender = np.nonzero(network.adjacency)
+    if not (np.array_equal(attacks.receiver, receiver) and np.array_equal(attacks.sender, sender)):
+        raise InputError("attacks are on other channels than the network's (EdgeAttacks.from_patterns builds them)")
+    shape = attacks.dos.shape
+    if len(shape) != 3 or shape[0] != runs or shape[1] < steps or shape[2] != receiver.size \
+            or attacks.fdi.shape != shape or attacks.xi.shape != shape + (nx,):
+        raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {receiver.size} channels, n_x = {nx}), "
+                         f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
+    return attacks
+
+
 # --------------------------------------------------------------------------- the result
 def _gate_counts(attacks: "EdgeAttacks | None", n_edges: int, runs: int, steps: int, violations) -> np.ndarray:
     """:data:`filters.consensus.GATE_COUNTS` per run and step without a gate, zero from a run's divergence on."""
@@ -374,7 +393,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any mode; the modes of :data:`GAIN_RULES` without a gate run batched, the other cases run
+        Any mode: 'mse' runs batched in :func:`filters.mse_batch.run_mse_batch` (with or without a
+        gate), the modes of :data:`GAIN_RULES` without a gate run batched here, the other cases run
         :func:`run_consensus` run by run (same numbers, stacked).
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
@@ -400,19 +420,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
     ex = _Exchange(network)
-    if attacks is not None and not isinstance(attacks, EdgeAttacks):
-        if len(attacks) != runs:
-            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), got {len(attacks)}")
-        attacks = EdgeAttacks.from_patterns(network, attacks)
-    if attacks is not None:
-        E = ex.receiver.size
-        if not (np.array_equal(attacks.receiver, ex.receiver) and np.array_equal(attacks.sender, ex.sender)):
-            raise InputError("attacks are on other channels than the network's (EdgeAttacks.from_patterns builds them)")
-        shape = attacks.dos.shape
-        if len(shape) != 3 or shape[0] != runs or shape[1] < steps or shape[2] != E or attacks.fdi.shape != shape \
-                or attacks.xi.shape != shape + (model.n_x,):
-            raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {E} channels, n_x = {model.n_x}), "
-                             f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
+    attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
+    if design.mode == "mse":
+        from .mse_batch import run_mse_batch  # late: it builds on this module
+
+        return run_mse_batch(model, network, z, design, inputs=inputs, attacks=attacks, x0=x0, phi0=phi0)
     if design.mode not in GAIN_RULES or design.gate:
         return _per_run_batch(model, network, z, design, u, attacks, x0, phi0)
     predict_rule, update_rule = GAIN_RULES[design.mode]

@@ -51,7 +51,7 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .consensus import _BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability
-from .consensus_batch import ConsensusBatchResult, EdgeAttacks, _batch_inputs, wrap_residuals
+from .consensus_batch import ConsensusBatchResult, EdgeAttacks, _batch_inputs, edge_attacks, wrap_residuals
 
 __all__ = ["run_mse_batch", "gate_channels", "channel_difference_covariance", "kept_fdi_moments", "MAX_JOINT_DIM",
            "MEMORY_BUDGET"]
@@ -137,25 +137,6 @@ def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, c
 
 
 # --------------------------------------------------------------------------- the filter
-def _edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int) -> EdgeAttacks | None:
-    """The realised attacks as :class:`EdgeAttacks` on the network's channels, checked against the runs."""
-    if attacks is None:
-        return None
-    if not isinstance(attacks, EdgeAttacks):
-        if len(attacks) != runs:
-            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), got {len(attacks)}")
-        attacks = EdgeAttacks.from_patterns(network, attacks)
-    receiver, sender = np.nonzero(network.adjacency)
-    if not (np.array_equal(attacks.receiver, receiver) and np.array_equal(attacks.sender, sender)):
-        raise InputError("attacks are on other channels than the network's (EdgeAttacks.from_patterns builds them)")
-    want = (runs, steps, receiver.size)
-    if attacks.dos.shape[0] != runs or attacks.dos.shape[1] < steps or attacks.dos.shape[2:] != want[2:] \
-            or attacks.fdi.shape != attacks.dos.shape or attacks.xi.shape != attacks.dos.shape + (nx,):
-        raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {receiver.size} channels, n_x = {nx}), "
-                         f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
-    return attacks
-
-
 def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                   phi0=None) -> ConsensusBatchResult:
@@ -190,7 +171,7 @@ def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     if n * nx > MAX_JOINT_DIM:
         raise InputError(f"run_mse_batch holds the joint error covariance of all nodes, N n = {n} x {nx} = {n * nx} "
                          f"rows per run; at most MAX_JOINT_DIM = {MAX_JOINT_DIM} fit its memory budget")
-    attacks = _edge_attacks(network, attacks, runs, steps, nx)
+    attacks = edge_attacks(network, attacks, runs, steps, nx)
     nz = max(model.sensor_dims)
     out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
                phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
