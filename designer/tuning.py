@@ -347,11 +347,12 @@ class _FixedBeta:
         return self._run(it, beta, w, N)[4][:, 0]
 
 
-def _best_gains(fixed: _FixedBeta, it, w, N):
+def _best_gains(fixed: _FixedBeta, it, w, N, guess=None):
     """Per item of ``it``: (β, M, C, K, A) minimising ``w tr(A M Aᵀ + K V Vᵀ Kᵀ / β) + tr C N Cᵀ + tr K R Kᵀ``
     with (29) at the margin.  β = 0 without V (the trace only grows with β: M grows); otherwise the root of
     the slope of the convex f*(β) (:func:`increasing_root`, all items at once), and where that slope leaves
-    floats, the bounded scalar search of the trace (:func:`best_multiplier`, item by item)."""
+    floats, the bounded scalar search of the trace (:func:`best_multiplier`, item by item).  ``guess``: a start
+    per item (the β of the previous weights, NaN: none)."""
     beta = np.zeros(it.size)
     v = np.flatnonzero(fixed.has_v[it])
     if v.size:
@@ -361,7 +362,8 @@ def _best_gains(fixed: _FixedBeta, it, w, N):
             j = v[idx]
             return fixed.slope(it[j], b, w[j], N[j])
 
-        beta[v] = increasing_root(slope, bmax * 1e-9, bmax, xtol=bmax * 1e-9, rtol=1e-9)
+        beta[v] = increasing_root(slope, bmax * 1e-9, bmax, xtol=bmax * 1e-9, rtol=1e-9,
+                                  guess=None if guess is None else guess[v])
         for j in v[~np.isfinite(beta[v])]:
             one = it[[j]]
             beta[j] = best_multiplier(lambda b: float(fixed.trace(one, np.array([b]), w[[j]], N[[j]])[0]),
@@ -391,13 +393,84 @@ def _evaluate(slope, x, idx) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(out, float), np.full(x.shape, np.nan)
 
 
-def _log_width(a, b, geo):
-    """The bracket's size: ``log(b/a)`` for a bracket of positive numbers (``geo``), else ``b - a``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(geo, np.log(np.where(geo, b, 1.0) / np.where(geo, a, 1.0)), b - a)
+_LAZY_STEPS = 8  # proposal steps taken before an end not yet evaluated is
+_ROOT_NJIT = dict(nogil=True, cache=True, error_model="numpy")
 
 
-def increasing_root(slope, lo, hi, *, xtol, rtol: float = 1e-12, maxiter: int = 200) -> np.ndarray:
+@numba.njit(**_ROOT_NJIT)
+def _root_points(live, it, a, b, fa, fb, ka, kb, prop, x0, r0, x1, r1, sizes, geo, xtol, rtol, c):  # pragma: no cover
+    """:func:`increasing_root`'s next point ``c[j]`` for every item ``j`` of ``live`` (step ``it`` >= 1)."""
+    for j in live:
+        slow = ka[j] and kb[j] and sizes[j, 2] > 0.5 * sizes[j, 0]
+        secant = x1[j] - r1[j] * (x1[j] - x0[j]) / (r1[j] - r0[j])
+        g = secant if a[j] < secant < b[j] else prop[j]
+        fp = a[j] - fa[j] * (b[j] - a[j]) / (fb[j] - fa[j]) if ka[j] and kb[j] else np.nan
+        mid = np.sqrt(abs(a[j] * b[j])) if geo[j] else 0.5 * (a[j] + b[j])
+        if a[j] < g < b[j] and not slow:
+            x = g
+        elif slow or not a[j] < fp < b[j]:
+            x = mid
+        else:
+            x = fp
+        half = 0.5 * (xtol[j] + rtol * abs(x))  # keep half the tolerance away from the ends ...
+        x = min(max(x, a[j] + half), b[j] - half) if a[j] + half < b[j] - half else 0.5 * (a[j] + b[j])
+        # ... or take an end not evaluated yet: where a proposal points beyond it, where a proposal would come
+        # within half the tolerance of it, or where no proposal is usable
+        lazy = np.isfinite(g) and not slow and it <= _LAZY_STEPS
+        if not ka[j] and (x <= a[j] + half or not lazy or g <= a[j]):
+            x = a[j]
+        elif not kb[j] and (x >= b[j] - half or not lazy or g >= b[j]):
+            x = b[j]
+        c[j] = x
+
+
+@numba.njit(**_ROOT_NJIT)
+def _root_update(live, c, fc, pc, a, b, fa, fb, ka, kb, side, prop, x0, r0, x1, r1, sizes, geo, xtol, rtol,
+                 out):  # pragma: no cover
+    """:func:`increasing_root`'s bracket after the slopes ``fc`` (and proposals ``pc``) at ``c`` of the items
+    ``live``; returns which of them are done (their result in ``out``: NaN where an evaluated end is not finite)."""
+    done = np.zeros(live.size, dtype=np.bool_)
+    for k in range(live.size):
+        j = live[k]
+        x, f = c[j], fc[k]
+        finite = np.isfinite(f)
+        at_end = (not ka[j] and x == a[j]) or (not kb[j] and x == b[j])  # an end evaluated: it may be the answer
+        at_hi = not kb[j] and x == b[j]
+        at_lo = not ka[j] and x == a[j]
+        if at_end and not finite:
+            done[k] = True  # out stays NaN: the caller decides
+            continue
+        if (at_hi and f <= 0) or (at_lo and f >= 0):
+            out[j] = x
+            done[k] = True
+            continue
+        up = not finite or f > 0  # the root is below x (a slope beyond floats inside the bracket counts as positive)
+        if up:
+            fb[j] = f if finite else (abs(fa[j]) + 1.0 if ka[j] else 1.0)
+            b[j], kb[j] = x, True
+            if side[j] == -1:
+                fa[j] *= 0.5  # Illinois: an end kept twice has its value halved
+            side[j] = -1
+        else:
+            a[j], fa[j], ka[j] = x, f, True
+            if side[j] == 1:
+                fb[j] *= 0.5
+            side[j] = 1
+        if np.isfinite(pc[k]) and finite and not (at_end and np.isfinite(prop[j])):  # an end's proposal: last resort
+            x0[j], r0[j], x1[j], r1[j] = x1[j], r1[j], x, pc[k] - x
+            prop[j] = pc[k]
+        elif not at_end:
+            prop[j] = np.nan
+        if ka[j] and kb[j] and (f == 0 or b[j] - a[j] <= xtol[j] + rtol * abs(x)):
+            out[j] = x if f == 0 else 0.5 * (a[j] + b[j])
+            done[k] = True
+            continue
+        sizes[j, 0], sizes[j, 1] = sizes[j, 1], sizes[j, 2]
+        sizes[j, 2] = np.log(b[j] / a[j]) if geo[j] else b[j] - a[j]
+    return done
+
+
+def increasing_root(slope, lo, hi, *, xtol, rtol: float = 1e-12, maxiter: int = 200, guess=None) -> np.ndarray:
     """For many items at once: the point of ``[lo, hi]`` where an increasing ``slope`` crosses zero.
 
     ``slope(b, idx)`` returns the slopes of the items ``idx`` (an index array) at the points
@@ -406,70 +479,46 @@ def increasing_root(slope, lo, hi, *, xtol, rtol: float = 1e-12, maxiter: int = 
     ``b = sqrt(q(b) / p(b))`` of a slope ``p(b) - q(b) / b²``; NaN: none).  Per item the result is
     ``hi`` where ``slope(hi) <= 0`` (the constraint binds), ``lo`` where ``slope(lo) >= 0``, and
     otherwise a point of a bracket ``[a, b]`` (``slope(a) < 0 < slope(b)``) that is within
-    ``xtol + rtol |b|``.  The bracket shrinks by a safeguarded step per iteration: a proposal
-    (refined by the secant through the last two proposals' residuals) when it falls inside the
-    bracket, else the Illinois variant of false position; a bisection (geometric for a bracket of
-    positive numbers, which may span decades) whenever three steps have not halved the bracket;
-    and no point closer than half the tolerance to an end, so that once the steps converge the
-    next point lands across the root and closes the bracket.  A non-finite slope at an end gives
-    NaN (the caller decides); inside the bracket it counts as positive.  This is the multiplier
-    search of the tuned and mse designs; a single item is a batch of one, so the per-run and the
-    batched filters take the same steps.
+    ``xtol + rtol |b|``.  The search starts at ``guess`` (per item, inside ``(lo, hi)``; NaN or
+    omitted: at ``hi``) and evaluates the other end only when no proposal is usable, a proposal
+    points beyond it or comes within half the tolerance of it, or the proposals have not closed the
+    bracket in ``_LAZY_STEPS`` steps (so a slope without proposals has both ends evaluated first).  The bracket shrinks
+    by a safeguarded step per iteration: a proposal (refined by the secant through the last two
+    proposals' residuals) when it falls inside the bracket, else the Illinois variant of false
+    position; a bisection (geometric for a bracket of positive numbers, which may span decades)
+    whenever three steps have not halved the bracket; and no point closer than half the tolerance
+    to an end, so that once the steps converge the next point lands across the root and closes the
+    bracket.  A non-finite slope at an end it evaluates gives NaN (the caller decides); inside the
+    bracket it counts as positive.  This is the multiplier search of the tuned and mse designs; a
+    single item is a batch of one, so the per-run and the batched filters take the same steps.
     """
     lo = np.array(lo, dtype=float, ndmin=1)
     hi = np.array(np.broadcast_to(hi, lo.shape), dtype=float)
-    xtol = np.broadcast_to(np.asarray(xtol, dtype=float), lo.shape)
+    xtol = np.array(np.broadcast_to(np.asarray(xtol, dtype=float), lo.shape))
     m = lo.size
-    idx = np.arange(m)
-    f, proposal = _evaluate(slope, np.concatenate([lo, hi]), np.concatenate([idx, idx]))  # both ends, one call
-    f_lo, f_hi, proposal = f[:m], f[m:], proposal[m:]
-    out = np.full(lo.shape, np.nan)
-    finite = np.isfinite(f_lo) & np.isfinite(f_hi)
-    out[finite & (f_hi <= 0)] = hi[finite & (f_hi <= 0)]
-    low_end = finite & (f_hi > 0) & (f_lo >= 0)
-    out[low_end] = lo[low_end]
-    act = np.flatnonzero(finite & (f_hi > 0) & (f_lo < 0))
-    a, b, fa, fb, prop = lo[act], hi[act], f_lo[act], f_hi[act], proposal[act]
-    x0, r0 = np.full(act.size, np.nan), np.full(act.size, np.nan)  # the last two points with a proposal,
-    x1, r1 = b.copy(), prop - b  # and their residuals proposal - point (the secant's data)
-    geo = a > 0
-    sizes = [np.full(act.size, np.inf), np.full(act.size, np.inf), _log_width(a, b, geo)]  # the last three
-    side = np.zeros(act.size, dtype=int)  # which end was kept last (-1 a, +1 b): Illinois halves its value
-    for _ in range(maxiter):
-        if not act.size:
-            break
-        slow = sizes[2] > 0.5 * sizes[0]
+    out = np.full(m, np.nan)
+    start = hi if guess is None else np.broadcast_to(np.asarray(guess, dtype=float), lo.shape)
+    c = np.where((start > lo) & (start < hi), start, hi)
+    a, b = lo.copy(), hi.copy()
+    fa, fb = np.full(m, np.nan), np.full(m, np.nan)
+    ka, kb = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)  # the slope's sign is known at a, at b
+    geo = lo > 0
+    side = np.zeros(m, dtype=np.int64)  # which end was kept last (-1 a, +1 b): Illinois halves its value
+    prop, x0, r0, x1, r1 = (np.full(m, np.nan) for _ in range(5))  # the last proposal; the secant's data
+    sizes = np.full((m, 3), np.inf)  # the bracket's size at the last three steps
+    live = np.arange(m)
+    for it in range(maxiter + 1):
+        if it:
+            _root_points(live, it, a, b, fa, fb, ka, kb, prop, x0, r0, x1, r1, sizes, geo, xtol, float(rtol), c)
+        fc, pc = _evaluate(slope, c[live], live)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            secant = x1 - r1 * (x1 - x0) / (r1 - r0)
-            fp = a - fa * (b - a) / (fb - fa)
-        guess = np.where(np.isfinite(secant) & (secant > a) & (secant < b), secant, prop)
-        mid = np.where(geo, np.sqrt(np.abs(a * b)), 0.5 * (a + b))
-        c = np.where(np.isfinite(guess) & (guess > a) & (guess < b) & ~slow, guess,
-                     np.where(slow | ~((fp > a) & (fp < b)), mid, fp))
-        half = 0.5 * (xtol[act] + rtol * np.abs(c))  # keep half the tolerance away from the ends
-        c = np.where(a + half < b - half, np.clip(c, a + half, b - half), 0.5 * (a + b))
-        fc, pc = _evaluate(slope, c, act)
-        nan = ~np.isfinite(fc)  # a slope beyond floats inside the bracket: treat as positive (shrink from above)
-        up = nan | (fc > 0)  # the root is below c
-        b = np.where(up, c, b)
-        fb = np.where(up, np.where(nan, np.abs(fa) + 1.0, fc), fb)
-        a = np.where(up, a, c)
-        fa = np.where(up, fa, fc)
-        fa = np.where(up & (side == -1), 0.5 * fa, fa)  # Illinois: an end kept twice has its value halved
-        fb = np.where(~up & (side == 1), 0.5 * fb, fb)
-        side = np.where(up, -1, 1)
-        has = np.isfinite(pc) & ~nan
-        x0, r0 = np.where(has, x1, x0), np.where(has, r1, r0)
-        x1, r1 = np.where(has, c, x1), np.where(has, pc - c, r1)
-        prop = np.where(has, pc, np.nan)
-        done = (fc == 0) | (b - a <= xtol[act] + rtol * np.abs(c))
-        out[act[done]] = np.where(fc[done] == 0, c[done], 0.5 * (a[done] + b[done]))
-        keep = ~done
-        act, a, b, fa, fb, side, prop, geo, x0, r0, x1, r1 = (
-            v[keep] for v in (act, a, b, fa, fb, side, prop, geo, x0, r0, x1, r1))
-        sizes = [sizes[1][keep], sizes[2][keep], _log_width(a, b, geo)]
-    if act.size:  # maxiter reached: the middle of what is left
-        out[act] = 0.5 * (a + b)
+            done = _root_update(live, c, np.ascontiguousarray(fc), np.ascontiguousarray(pc), a, b, fa, fb, ka, kb,
+                                side, prop, x0, r0, x1, r1, sizes, geo, xtol, float(rtol), out)
+        live = live[~done]
+        if not live.size:
+            break
+    if live.size:  # maxiter reached: the middle of what is left
+        out[live] = 0.5 * (a[live] + b[live])
     return out
 
 
@@ -521,14 +570,18 @@ def own_term(phi_pred, H, C, K, s, beta, V, D=None) -> np.ndarray:
     return symmetrize(A @ M @ np.swapaxes(A, -1, -2) + lin)
 
 
-def _optimal_weights(traces: np.ndarray) -> np.ndarray:
-    """:func:`optimal_weights` per row of ``traces`` (m, L)."""
-    r = np.sqrt(np.maximum(traces, 0.0))
-    total = r.sum(axis=-1)
+def _optimal_weights(traces: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+    """:func:`optimal_weights` per row of ``traces`` (m, L) over the groups ``present`` (default all; the others
+    get weight 1, which their zero terms ignore); sums added in order, so absent groups change no number."""
+    if present is None:
+        present = np.ones(traces.shape, dtype=bool)
+    r = np.where(present, np.sqrt(np.maximum(traces, 0.0)), 0.0)
+    total = _ordered_sum(r)
     with np.errstate(divide="ignore", invalid="ignore"):
-        p = np.maximum(r / total[:, None], _P_FLOOR)
-    p = p / p.sum(axis=-1, keepdims=True)
-    return np.where((total > 0)[:, None], p, 1.0 / r.shape[-1])
+        p = np.where(present, np.maximum(r / total[:, None], _P_FLOOR), 0.0)
+    p = p / _ordered_sum(p)[:, None]
+    p = np.where((total > 0)[:, None], p, 1.0 / present.sum(axis=1, keepdims=True))
+    return np.where(present, p, 1.0)
 
 
 def optimal_weights(traces) -> np.ndarray:
@@ -618,33 +671,88 @@ def weighted_bound(phi_pred, H, C, K, s, beta, V, R, groups, weights, D=None) ->
     return symmetrize(out)
 
 
-def _lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.linalg.lstsq(A[i], b[i], rcond=None)[0]`` for every item of a stack ``A`` (m, L, c), ``b`` (m, L):
-    the minimum-norm solution, singular values up to ``eps max(L, c)`` of the largest taken as zero."""
-    L, c = A.shape[-2:]
-    if c == 1:  # one column: its projection
-        a = A[..., 0]
-        aa = np.sum(a * a, axis=-1)
-        return np.where(aa > 0, np.sum(a * b, axis=-1) / np.where(aa > 0, aa, 1.0), 0.0)[:, None]
-    u, sv, vt = np.linalg.svd(A, full_matrices=False)
-    inv = np.where(sv > np.finfo(float).eps * max(L, c) * sv[:, :1], 1.0 / np.where(sv > 0, sv, 1.0), 0.0)
-    return (np.swapaxes(vt, -1, -2) @ (inv * (np.swapaxes(u, -1, -2) @ b[..., None])[..., 0])[..., None])[..., 0]
+def _anderson_coefficients(A: np.ndarray, b: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The least-squares ``γ`` of ``A γ ≈ b`` per item (``A`` (m, L, c), ``b`` (m, L)) by the normal equations:
+    ``Aᵀ A`` and ``Aᵀ b`` added over the rows in order (zero rows, absent groups, change no number), then a
+    Cholesky that drops a column whose part independent of the earlier ones is within rounding of zero
+    (pivot <= ``(eps L)²`` times its squared norm, ``L`` the item's ``rows``): a zero column (history not yet
+    there) or a repeated one gets ``γ = 0``."""
+    m, L, c = A.shape
+    gram = np.zeros((m, c, c))
+    rhs = np.zeros((m, c))
+    for l in range(L):
+        gram = gram + A[:, l, :, None] * A[:, l, None, :]
+        rhs = rhs + A[:, l] * b[:, l, None]
+    cut = (np.finfo(float).eps * np.maximum(rows, c)) ** 2
+    low = np.zeros((m, c, c))
+    inv = np.zeros((m, c))
+    for j in range(c):
+        d = gram[:, j, j] - np.sum(low[:, j, :j] ** 2, axis=-1)
+        keep = d > cut * gram[:, j, j]
+        inv[:, j] = np.where(keep, 1.0 / np.sqrt(np.where(keep, d, 1.0)), 0.0)
+        for i in range(j + 1, c):
+            low[:, i, j] = (gram[:, i, j] - np.sum(low[:, i, :j] * low[:, j, :j], axis=-1)) * inv[:, j]
+    y = np.zeros((m, c))
+    for j in range(c):
+        y[:, j] = (rhs[:, j] - np.sum(low[:, j, :j] * y[:, :j], axis=-1)) * inv[:, j]
+    out = np.zeros((m, c))
+    for j in reversed(range(c)):
+        out[:, j] = (y[:, j] - np.sum(low[:, j + 1:, j] * out[:, j + 1:], axis=-1)) * inv[:, j]
+    return out
 
 
-def _tune_weighted(S: Spectrum, H, s, V, R, groups, p, margin, D, tol, max_iter, memory):
-    """:func:`tune_weighted_batch` for items that all have the ``g = groups.shape[1]`` groups (no padding)."""
-    k, g = groups.shape[:2]
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _term_traces(it, M, C, K, A, beta, VVt, R, groups):  # pragma: no cover
+    """The traces of the weighted (27)'s terms for the items ``it`` (M, C, K, A, β aligned with ``it``): the own
+    group ``tr(A M Aᵀ) + tr(K V Vᵀ Kᵀ) / β`` (0 / 0 = 0), each group's ``tr(C N_g Cᵀ)``, and ``tr(K R Kᵀ)``."""
+    k, n, mz, G = it.size, M.shape[1], K.shape[2], groups.shape[1]
+    traces = np.zeros((k, G + 1))
+    krk = np.zeros(k)
+    for j in range(k):
+        i = it[j]
+        own, kvv, kr = 0.0, 0.0, 0.0
+        for a in range(n):
+            for c in range(n):
+                am = 0.0
+                for e in range(n):
+                    am += A[j, a, e] * M[j, e, c]
+                own += am * A[j, a, c]
+            for p in range(mz):
+                for q in range(mz):
+                    kvv += K[j, a, p] * VVt[i, p, q] * K[j, a, q]
+                    kr += K[j, a, p] * R[i, p, q] * K[j, a, q]
+        traces[j, 0] = own + (kvv / beta[j] if kvv != 0.0 else 0.0)
+        krk[j] = kr
+        for g in range(G):
+            t = 0.0
+            for a in range(n):
+                for b in range(n):
+                    cn = 0.0
+                    for e in range(n):
+                        cn += C[j, a, e] * groups[i, g, e, b]
+                    t += cn * C[j, a, b]
+            traces[j, 1 + g] = t
+    return traces, krk
+
+
+def _tune_weighted(S: Spectrum, H, s, V, R, groups, present, p, margin, D, tol, max_iter, memory):
+    """:func:`tune_weighted_batch`'s iteration over items with padded ``groups`` (k, G, n, n), zero where absent,
+    ``present`` (k, 1 + G) (own group first) and starting weights ``p`` (k, 1 + G), 1 where absent."""
+    k, G = groups.shape[:2]
     n = S.phi.shape[-1]
+    rows = present.sum(axis=1)
     fixed = _FixedBeta(S, H, s, V, R, margin, D)
     best_trace = np.full(k, np.nan)
     best_beta = np.full(k, np.nan)
     best_C = np.full((k, n, n), np.nan)
     best_K = np.full((k, n, H.shape[-2]), np.nan)
-    best_p = np.full((k, g + 1), np.nan)
+    best_p = np.ones((k, G + 1))
     has = np.zeros(k, dtype=bool)
     last = np.full(k, np.inf)
-    ys = np.zeros((k, memory + 1, g + 1))  # Anderson histories, the newest last; `count` of them are in use
-    gs = np.zeros((k, memory + 1, g + 1))
+    last_beta = np.full(k, np.nan)  # the β search of the next weights starts at the last one's
+    # Anderson histories of log p and log G(p), the newest last, zero where absent or not yet there
+    ys = np.zeros((k, memory + 1, G + 1))
+    gs = np.zeros((k, memory + 1, G + 1))
     count = np.zeros(k, dtype=int)
     floor = np.log(_P_FLOOR)
     p = np.array(p, dtype=float)
@@ -652,28 +760,26 @@ def _tune_weighted(S: Spectrum, H, s, V, R, groups, p, margin, D, tol, max_iter,
     for _ in range(max_iter):
         if not act.size:
             break
-        pa = p[act]
+        pa, pres = p[act], present[act]
         # the gains for these weights: w = 1/p_0 and N = Σ_g N_g / p_g in the fast path of tune_update
-        beta, M, C, K, A = _best_gains(fixed, act, 1.0 / pa[:, 0], _group_sum(groups[act], pa))
+        beta, M, C, K, A = _best_gains(fixed, act, 1.0 / pa[:, 0], _group_sum(groups[act], pa), last_beta[act])
+        last_beta[act] = beta
         # the weights for these gains, in closed form, and the trace of the bound they give
-        kvv = np.sum((K @ fixed.VVt[act]) * K, axis=(-2, -1))
-        own = np.sum((A @ M) * A, axis=(-2, -1)) + np.divide(kvv, beta, out=np.zeros(kvv.shape), where=kvv != 0)
-        traces = np.stack([own] + [np.sum((C @ groups[act, j]) * C, axis=(-2, -1)) for j in range(g)], axis=1)
-        q = _optimal_weights(traces)
-        trace = _ordered_sum(traces / q) + np.sum((K @ R[act]) * K, axis=(-2, -1))
+        traces, krk = _term_traces(act, M, C, K, A, beta, fixed.VVt, fixed.R, groups)
+        q = _optimal_weights(traces, pres)
+        trace = _ordered_sum(np.where(pres, traces / q, 0.0)) + krk
         improved = ~has[act] | (trace < best_trace[act])
         i = act[improved]
         best_trace[i], best_beta[i], best_C[i], best_K[i], best_p[i] = (
             trace[improved], beta[improved], C[improved], K[improved], q[improved])
         has[i] = True
-        y, gy = np.log(pa), np.log(q)
-        stop = (np.abs(gy - y).max(axis=1) <= 1e-9) | (np.abs(last[act] - trace) <= tol * trace)
-        if g == 0:
-            stop[:] = True
+        y, gy = np.log(pa), np.log(q)  # 0 where absent (weight 1)
+        stop = (np.abs(gy - y).max(axis=1) <= 1e-9) | (np.abs(last[act] - trace) <= tol * trace) | (rows[act] == 1)
         last[act] = trace
         go = ~stop
         back = act[go & ~improved]  # the extrapolation overshot: restart from the best point
         count[back] = 0
+        ys[back], gs[back] = 0.0, 0.0
         p[back] = best_p[back]
         on = go & improved
         i = act[on]
@@ -681,22 +787,23 @@ def _tune_weighted(S: Spectrum, H, s, V, R, groups, p, margin, D, tol, max_iter,
         ys[i, -1], gs[i, -1] = y[on], gy[on]
         count[i] = np.minimum(count[i] + 1, memory + 1)
         nxt = gy[on]
-        for h in range(2, memory + 2):  # Anderson acceleration in log p, per history length
-            sel = np.flatnonzero(count[i] == h)
-            if not sel.size:
-                continue
-            j = i[sel]
-            res = np.swapaxes(gs[j, -h:] - ys[j, -h:], -1, -2)  # (., L, h) residuals g(y) - y
-            gamma = _lstsq(np.diff(res, axis=-1), res[..., -1])
-            cand = gy[on][sel] - (np.diff(np.swapaxes(gs[j, -h:], -1, -2), axis=-1) @ gamma[..., None])[..., 0]
-            fine = np.isfinite(cand).all(axis=1)
-            nxt[sel[fine]] = cand[fine]
-        e = np.exp(np.clip(nxt - nxt.max(axis=1, keepdims=True), floor, 0.0))
-        pn = np.maximum(e / e.sum(axis=1, keepdims=True), _P_FLOOR)
-        p[i] = pn / pn.sum(axis=1, keepdims=True)
+        if memory and i.size:  # Anderson acceleration in log p over the last count[i] steps
+            res = np.swapaxes(gs[i] - ys[i], -1, -2)  # (., L, memory + 1) residuals g(y) - y
+            there = np.arange(memory) >= memory + 1 - count[i][:, None]  # both ends of a difference there
+            dres = np.where(there[:, None, :], np.diff(res, axis=-1), 0.0)
+            dgs = np.where(there[:, None, :], np.diff(np.swapaxes(gs[i], -1, -2), axis=-1), 0.0)
+            gamma = _anderson_coefficients(dres, res[..., -1], rows[i])
+            cand = nxt - _ordered_sum(dgs * gamma[:, None, :])
+            fine = (count[i] > 1) & np.isfinite(cand).all(axis=1)
+            nxt[fine] = cand[fine]
+        pres = present[i]
+        top = np.where(pres, nxt, -np.inf).max(axis=1, keepdims=True)
+        e = np.where(pres, np.exp(np.clip(nxt - top, floor, 0.0)), 0.0)
+        pn = np.where(pres, np.maximum(e / _ordered_sum(e)[:, None], _P_FLOOR), 0.0)
+        p[i] = np.where(pres, pn / _ordered_sum(pn)[:, None], 1.0)
         act = act[go]
     phi = weighted_bound(S, H, best_C, best_K, s, best_beta, V, R, groups, best_p, D)
-    return best_beta, best_C, best_K, phi, best_trace, best_p
+    return best_beta, best_C, best_K, phi, best_trace, np.where(present, best_p, np.nan)
 
 
 def tune_weighted_batch(phi_pred, H, s, V, R, groups, present=None, margin: float = MARGIN, D=None, *,
@@ -708,36 +815,24 @@ def tune_weighted_batch(phi_pred, H, s, V, R, groups, present=None, margin: floa
     ``V``, ``R`` (m, n_z, n_z); ``groups`` (m, G, n, n) padded, ``present`` (m, G) which of them an item
     has (default all), in order (:func:`neighbour_group_stack`); ``D`` None, (r, n) or (m, r, n);
     ``weights`` (m, 1 + G) a start per item (own group first; NaN where a group is absent; a row with a
-    present group NaN starts from equal weights).  Items with the same number of groups are solved
-    together without padding, so every item takes the steps it takes alone (a batch of one).
+    present group NaN starts from equal weights).  Every sum over groups is added in order and an absent
+    group is an exact zero in it, so each item takes the steps it takes alone (a batch of one).
     """
     S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(phi_pred)
     m, n = S.phi.shape[:2]
     groups = np.asarray(groups, dtype=float).reshape(m, -1, n, n)
     G = groups.shape[1]
     present = np.ones((m, G), dtype=bool) if present is None else np.asarray(present, dtype=bool)
+    full = np.concatenate([np.ones((m, 1), dtype=bool), present], axis=1)
     start = np.full((m, G + 1), np.nan) if weights is None else np.asarray(weights, dtype=float)
+    warm = np.where(full, np.isfinite(start), True).all(axis=1)
+    start = np.where(full, np.where(warm[:, None], start, 1.0 / full.sum(axis=1, keepdims=True)), 1.0)
     H, V, R = (np.asarray(x, dtype=float) for x in (H, V, R))
     s = np.broadcast_to(np.asarray(s, dtype=float), (m,))
-    out = WeightedBatch(np.full(m, np.nan), np.full((m, n, n), np.nan), np.full((m, n, H.shape[-2]), np.nan),
-                        np.full((m, n, n), np.nan), np.full(m, np.nan), np.full((m, G + 1), np.nan))
-    count = present.sum(axis=1)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverging bound: the caller's checks
-        for g in np.unique(count):
-            items = np.flatnonzero(count == g)
-            slots = np.argsort(~present[items], axis=1, kind="stable")[:, :g]  # the present groups, in order
-            cols = np.concatenate([np.zeros((items.size, 1), dtype=int), 1 + slots], axis=1)
-            p0 = np.take_along_axis(start[items], cols, axis=1)
-            p0 = np.where(np.isfinite(p0).all(axis=1)[:, None], p0, 1.0 / (g + 1))
-            Di = D if D is None or np.ndim(D) == 2 else np.asarray(D)[items]
-            res = _tune_weighted(S.take(items), H[items], s[items], V[items], R[items],
-                                 np.take_along_axis(groups[items], slots[:, :, None, None], axis=1), p0, margin, Di,
-                                 tol, max_iter, memory)
-            out.beta[items], out.C[items], out.K[items], out.phi_post[items], out.trace[items] = res[:5]
-            w = np.full((items.size, G + 1), np.nan)
-            np.put_along_axis(w, cols, res[5], axis=1)
-            out.weights[items] = w
-    return out
+        out = _tune_weighted(S, H, s, V, R, np.where(present[..., None, None], groups, 0.0), full, start, margin,
+                             D, tol, max_iter, memory)
+    return WeightedBatch(*out)
 
 
 def tune_weighted(phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D=None, *, weights=None,

@@ -322,7 +322,8 @@ def test_increasing_root_matches_brentq_on_random_convex_slopes(proposals):
     a[:10] = 0.0  # slope > 0 everywhere: the low end
     one, stacked = _slope_of(g, mu, a)
     lo, xtol, rtol = 1e-9 * hi, 1e-9 * hi, 1e-9
-    got = increasing_root(lambda x, idx: stacked(x, idx, proposals), lo, hi, xtol=xtol, rtol=rtol)
+    guess = np.where(rng.random(m) < 0.5, np.nan, hi * rng.uniform(0.0, 1.0, m))  # some searches start inside
+    got = increasing_root(lambda x, idx: stacked(x, idx, proposals), lo, hi, xtol=xtol, rtol=rtol, guess=guess)
     kinds = set()
     for i in range(m):
         if one(i, hi[i]) <= 0:
@@ -337,23 +338,35 @@ def test_increasing_root_matches_brentq_on_random_convex_slopes(proposals):
 
 
 def test_increasing_root_on_brackets_across_zero_and_non_finite_slopes():
-    """A bracket with lo < 0 (arithmetic bisection), a slope that is NaN or inf at an end (NaN: the caller
-    decides) and one that leaves floats inside the bracket above the root (taken as positive)."""
-    roots = np.array([-0.3, 0.7, 0.2, 0.5, 0.25])
-    lo = np.array([-2.0, -1.0, 0.0, 0.1, 1e-6])
-    hi = np.array([1.0, 3.0, 1.0, 1.0, 1.0])
+    """A bracket with lo < 0 (arithmetic bisection); a slope that is NaN at the upper end or -inf at the lower
+    one (without proposals both ends are evaluated: NaN, the caller decides), unless proposals find the root
+    first; NaN at a lower end the search needs (the root is below lo); inf on a stretch inside the bracket
+    above the root (taken as positive)."""
+    roots = np.array([-0.3, 0.7, 0.2, 0.5, 0.25, 0.05])
+    lo = np.array([-2.0, -1.0, 0.0, 0.1, 1e-6, 0.1])
+    hi = np.array([1.0, 3.0, 1.0, 1.0, 1.0, 1.0])
 
     def slope(x, idx):
         f = np.expm1(x - roots[idx])
-        f = np.where((idx == 2) & (x >= 1.0), np.nan, f)  # NaN at the upper end
-        f = np.where((idx == 3) & (x <= 0.1), -np.inf, f)  # -inf at the lower end
-        return np.where((idx == 4) & (x > 0.6) & (x < 0.9), np.inf, f)  # inf inside the bracket, above the root
+        f = np.where((idx == 2) & (x >= 1.0), np.nan, f)
+        f = np.where((idx == 3) & (x <= 0.1), -np.inf, f)
+        f = np.where((idx == 5) & (x <= 0.1), np.nan, f)
+        return np.where((idx == 4) & (x > 0.6) & (x < 0.9), np.inf, f)
 
     got = increasing_root(slope, lo, hi, xtol=1e-12, rtol=1e-12)
     for i in (0, 1, 4):
         ref = brentq(lambda x: np.expm1(x - roots[i]), lo[i], hi[i], xtol=1e-15)
         assert got[i] == pytest.approx(ref, abs=2e-12)
-    assert np.isnan(got[2]) and np.isnan(got[3])
+    assert np.isnan(got[[2, 3, 5]]).all()
+    # proposals that point at the root: the lower end is not needed (item 3 is found), the upper one is
+    # evaluated first unless the search starts inside (guess)
+    found = increasing_root(lambda x, idx: (slope(x, idx), roots[idx]), lo, hi, xtol=1e-12, rtol=1e-12)
+    np.testing.assert_allclose(found[[0, 1, 3, 4]], roots[[0, 1, 3, 4]], atol=2e-12)
+    assert np.isnan(found[[2, 5]]).all()
+    guess = np.array([0.9, 0.1, 0.5, 0.3, 0.95, 0.5])
+    again = increasing_root(lambda x, idx: (slope(x, idx), roots[idx]), lo, hi, xtol=1e-12, rtol=1e-12, guess=guess)
+    np.testing.assert_allclose(again[:5], roots[:5], atol=2e-12)
+    assert np.isnan(again[5])
 
 
 def _weighted_items(rng, m=40, n=3, mz=2, J=3):
