@@ -30,10 +30,10 @@ received neighbour / the falsified packets, with one group slot per incoming cha
 (run, node) carries its weights per slot from one tuned update to the next and warm-starts from
 them as run_consensus does, :func:`designer.tuning.warm_start_weights`).  The per-run path runs
 the same stacked functions with one item, so both take the same steps.
-Every other case — mode ``'mse'`` or a gate on neighbour packets (``design.gate > 0``) — runs
+Mode ``'mse'`` runs batched in :func:`filters.mse_batch.run_mse_batch`.  What is left — a gate on
+neighbour packets (``design.gate > 0``) in modes paper and tuned — runs
 :func:`filters.consensus.run_consensus` run by run and stacks its results into the same
-:class:`ConsensusBatchResult` (with ``predicted_mse`` and ``gate_counts``): the same numbers,
-without the batch's speed.
+:class:`ConsensusBatchResult` (with ``gate_counts``): the same numbers, without the batch's speed.
 """
 from __future__ import annotations
 

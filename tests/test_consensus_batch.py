@@ -140,10 +140,11 @@ def test_robot_tuned_design_matches_per_run(robot, rule):
     assert lost.any() and not lost.all(), "the DoS pattern must change the nodes' groups"
 
 
-@pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="mse", gate=0.05)])
-def test_unbatched_cases_run_per_run_and_stack(robot, change):
-    """A mode without a batched rule or a gate: run_consensus run by run, stacked with predicted_mse and
-    gate_counts (attacks given as EdgeAttacks; per-run x0)."""
+@pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="tuned", gate=0.05),
+                                    dict(mode="mse", gate=0.05)])
+def test_other_modes_and_gates_match_per_run(robot, change):
+    """Mode mse (filters.mse_batch) and gated designs (paper and tuned: run_consensus run by run, stacked) give
+    run_consensus's numbers, predicted_mse and gate_counts (attacks given as EdgeAttacks; per-run x0)."""
     sc, net, traj, atts = robot
     steps = 3
     z = traj.z[:2, :steps]
