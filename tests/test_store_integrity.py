@@ -90,17 +90,22 @@ def test_without_the_manifest_chunks_of_another_configuration_are_not_reused(tmp
     assert np.array_equal(res.arrays["x"], reference(12, 4, scale=1.0))
 
 
-@pytest.mark.parametrize("content", [b"", b"garbage, not a zip file", None])
-def test_truncated_or_foreign_files_are_named_and_recomputed(tmp_path, content):
+@pytest.mark.parametrize("content", [b"", b"garbage, not a zip file", None, "flip"])
+def test_truncated_foreign_or_flipped_files_are_named_and_recomputed(tmp_path, content):
     _store(tmp_path)
     f = _chunk(tmp_path, 4, 8)
     if content is None:  # a valid npz written by someone else: no fingerprint
         np.savez(f, x=np.zeros((4, 42)), run=np.arange(4, 8))
+    elif content == "flip":  # one bit of the stored data flipped
+        raw = bytearray(f.read_bytes())
+        raw[len(raw) // 3] ^= 0x10
+        f.write_bytes(bytes(raw))
     else:
         f.write_bytes(content)
     res = _store(tmp_path)
     assert res.computed == [(4, 8)]
-    assert ("no fingerprint" if content is None else "unreadable") in _reasons(res)[0]
+    expected = {None: ("no fingerprint",), "flip": ("unreadable", "checksum", "fingerprint", "no fingerprint")}
+    assert any(w in _reasons(res)[0] for w in expected.get(content, ("unreadable",)))
     assert np.array_equal(res.arrays["x"], reference(12, 4))
 
 
