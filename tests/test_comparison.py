@@ -275,7 +275,7 @@ SIGINT_SCRIPT = textwrap.dedent("""
     import sys
     from studies.pipeline import run_study
     run_study("comparison", ["indoor-robot"], out=sys.argv[1], runs=5, particles=60, seed=4, quiet=True,
-              sweep_values=(0.3,), chunk_size=1)
+              sweep_values=(0.3,), chunk_size=1, tuned_in_sweeps=False)  # as run_comparison below
 """)
 
 
