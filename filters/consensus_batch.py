@@ -307,7 +307,7 @@ def wrap_residuals(r: np.ndarray, angles: Sequence[int]) -> np.ndarray:
 
 def _take(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``a[mask]`` (mask over the leading axes), a view when the mask is all True."""
-    return a.reshape((-1,) + a.shape[mask.ndim:]) if mask.all() else a[mask]
+    return a.reshape((mask.size,) + a.shape[mask.ndim:]) if mask.all() else a[mask]  # mask.size: -1 fails for 0 inputs
 
 
 def _put(a: np.ndarray, mask: np.ndarray, values: np.ndarray) -> None:

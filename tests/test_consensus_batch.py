@@ -327,3 +327,17 @@ def test_numerical_breakdown_in_one_run(monkeypatch):
     assert_same_as_per_run(batch, refs)
     assert [d is not None for d in batch.diverged] == [False, True, False]
     assert batch.diverged[1]["reason"] == "numerical breakdown: Singular matrix"
+
+
+@pytest.mark.parametrize("mode", ["paper", "tuned", "mse"])
+def test_per_run_inputs_without_columns_are_no_inputs(mode):
+    """A model without inputs simulated per run has inputs of shape (runs, steps, 0): the same numbers as none."""
+    from studies.consensus_design import consensus_design
+
+    sc = load_scenario("target-range-bearing")
+    traj = sc.simulate(np.random.default_rng(3), 5, batch=2)
+    des = consensus_design(sc, DesignOptions(mode=mode))
+    a = run_consensus_batch(sc.model, sc.network, traj.z, des, inputs=np.zeros((2, 5, 0)))
+    b = run_consensus_batch(sc.model, sc.network, traj.z, des)
+    np.testing.assert_array_equal(a.x_post, b.x_post)
+    np.testing.assert_array_equal(a.phi_post, b.phi_post)
