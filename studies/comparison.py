@@ -301,7 +301,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
         ys.append(y_a)
         fss.append(fs)
     Z = np.stack([t.z for t in trajs])
-    U = None if trajs[0].inputs is None or not trajs[0].inputs.shape[-1] else np.stack([t.inputs for t in trajs])
+    U = None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs])
 
     def batch(f, j, network, design, attacks):
         """A designed consensus filter on every run of the chunk at once (its time: the batch's, per run)."""

@@ -270,8 +270,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         if v.filter == CONSENSUS_EKF and v.gains is None:  # every run of the chunk at once
             t = time.perf_counter()
             batch = run_consensus_batch(v.model, v.network, np.stack([tr.z for tr in trajs]), v.design,
-                                        inputs=None if trajs[0].inputs is None or not trajs[0].inputs.shape[-1]
-                                        else np.stack([tr.inputs for tr in trajs]),
+                                        inputs=None if trajs[0].inputs is None else
+                                        np.stack([tr.inputs for tr in trajs]),
                                         attacks=atts if v.consensus else None)
             out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R  # the batch's time, per run
             results = [batch.run(a) for a in range(R)]
