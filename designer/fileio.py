@@ -36,7 +36,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
-           "check_output_file", "replaced_outputs", "check_json_finite", "LOCK_NAME", "OUTPUTS_NAME"]
+           "check_output_file", "writing", "replaced_outputs", "check_json_finite", "LOCK_NAME", "OUTPUTS_NAME"]
 
 LOCK_NAME = ".cfdesign.lock"
 OUTPUTS_NAME = ".cfdesign-outputs.json"  # the files the last command wrote into an output directory
@@ -167,6 +167,11 @@ def output_lock(directory) -> Iterator[Path]:
         raise
     finally:
         os.close(fd)  # releases the flock
+
+
+def writing(directory):
+    """:func:`output_lock` of ``directory``, or nothing to hold when there is no output directory (None)."""
+    return contextlib.nullcontext() if directory is None else output_lock(directory)
 
 
 _FINGERPRINT: str | None = None

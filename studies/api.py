@@ -22,7 +22,6 @@ what the command writes.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,7 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.fileio import check_output_file, output_lock, write_npz
+from designer.fileio import check_output_file, write_npz, writing
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
@@ -40,11 +39,6 @@ from .scenarios import SCENARIOS, Scenario, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report",
            "DesignOptions"]
-
-
-def _writing(out):
-    """The one-writer lock of the output directory ``out`` (nothing without one), taken before any computation."""
-    return contextlib.nullcontext() if out is None else output_lock(out)
 
 
 def list_scenarios() -> list[dict]:
@@ -179,7 +173,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
-    with _writing(out):
+    with writing(out):  # the one-writer lock, taken before any computation
         res = run_design(sc, opts, steps=steps, seed=seed)
         if out is not None:
             res.save(out)
@@ -240,7 +234,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     elif workers is not None or dask is not None or dask_security is not None:
         raise InputError("give either backend or workers/dask, not both")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
-    with _writing(out):
+    with writing(out):  # the one-writer lock, taken before any computation
         fmap = run_feasibility(sc, grid, opts, backend=backend, store=out, force=force, quiet=quiet)
         if out is not None:
             fmap.save(out)

@@ -34,7 +34,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from designer.design import DesignOptions
-from designer.fileio import output_lock
+from designer.fileio import writing
 from designer.validation import InputError, check_int
 
 from .runner import Backend, MonteCarloResult, monte_carlo
@@ -309,11 +309,7 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
     never deletes under a running writer.
     """
     get_study(name)
-    if out is None:
-        return _run_study(name, targets, out=None, runs=runs, particles=particles, seed=seed, backend=backend,
-                          force=force, quiet=quiet, options=options, overrides=overrides, assignments=assignments,
-                          chunk_size=chunk_size, **study_options)
-    with output_lock(out):
+    with writing(out):
         return _run_study(name, targets, out=out, runs=runs, particles=particles, seed=seed, backend=backend,
                           force=force, quiet=quiet, options=options, overrides=overrides, assignments=assignments,
                           chunk_size=chunk_size, **study_options)
