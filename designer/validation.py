@@ -12,6 +12,7 @@ __all__ = [
     "CfdesignError",
     "InputError",
     "ComputationError",
+    "NonFiniteError",
     "check_probability",
     "check_finite",
     "check_shape",
@@ -33,6 +34,18 @@ class InputError(CfdesignError, ValueError):
 
 class ComputationError(CfdesignError, RuntimeError):
     """A computation failed or is infeasible (CLI exit code 1)."""
+
+
+class NonFiniteError(ComputationError):
+    """A filter's numbers left finite numbers at ``step`` of row ``row`` of the runs it was given
+    (a study names the filter and its own run: :func:`studies.pipeline.naming_filter`)."""
+
+    def __init__(self, message: str, row: int, step: int):
+        super().__init__(message)
+        self.row, self.step = int(row), int(step)
+
+    def __reduce__(self):  # keep the fields across processes and Dask
+        return (NonFiniteError, (str(self), self.row, self.step))
 
 
 def check_finite(name: str, value) -> np.ndarray:

@@ -59,7 +59,7 @@ from designer.model import Model
 from designer.noise import Gaussian
 from designer.validation import InputError, check_covariance, check_finite, check_int, check_probability, check_rng
 
-from .particle import LogWeights, additive_noise_loglik
+from .particle import LogWeights, additive_noise_loglik, check_finite_means
 
 __all__ = [
     "measurement_matrix", "measurement_cov", "detection_gain",
@@ -356,6 +356,9 @@ def run_sis(model: Model, z, rng, *, particles: int, inputs=None, loglik: Callab
     aux_rng : Generator, optional
         Randomness of the detector itself (the sampled correction), kept apart from
         the particles' so that the particles stay common to every filter.
+
+    Raises :class:`~designer.validation.NonFiniteError` naming the first run and step whose
+    estimate is not finite.
     """
     z = check_finite("z", z)
     if z.ndim != 3:
@@ -415,7 +418,8 @@ def run_sis(model: Model, z, rng, *, particles: int, inputs=None, loglik: Callab
         lw = LogWeights(new)
         mean[:, k + 1] = np.einsum("rm,rmn->rn", lw.W, x)  # (60)
         ess[:, k] = lw.ess
-    return SISResult(mean, beta, detected, ess, collapsed, time.perf_counter() - t0)
+    return SISResult(check_finite_means(mean, "SIS particle filter"), beta, detected, ess, collapsed,
+                     time.perf_counter() - t0)
 
 
 # --------------------------------------------------------------------------- scoring

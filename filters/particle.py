@@ -31,7 +31,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from designer.model import Model
-from designer.validation import ComputationError, InputError, check_int, check_rng
+from designer.validation import InputError, NonFiniteError, check_int, check_rng
 
 from .resampling import get_resampler
 
@@ -39,7 +39,8 @@ __all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRRes
 
 
 def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
-    """Raise :class:`ComputationError` naming the first run and step whose filtered mean is not finite.
+    """Raise :class:`~designer.validation.NonFiniteError` naming the first run and step whose filtered mean is
+    not finite.
 
     ``mean`` (runs, K + 1, n_x), step 0 the initial particles.  Both particle engines call it:
     a NaN or an infinity in a filter's states or weights reaches its mean at the step it appears.
@@ -47,8 +48,8 @@ def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
     bad = ~np.isfinite(mean).all(axis=-1)
     if bad.any():
         r, k = map(int, np.argwhere(bad)[0])
-        raise ComputationError(f"{engine}: the filtered mean of run {r} is not finite from step {k} on (particle "
-                               "states or weights left finite numbers: check the model's f, h and noise densities)")
+        raise NonFiniteError(f"{engine}: the filtered mean of run {r} is not finite from step {k} on (particle "
+                             "states or weights left finite numbers: check the model's f, h and noise densities)", r, k)
     return mean
 
 
@@ -212,12 +213,13 @@ def run_sir(
         prev_log_norm = lw.log_norm
         if not np.isfinite(x).all():
             r = int(np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))[0])
-            raise ComputationError(f"particle filter: run {r} has particle states that are not finite at step {k + 1}")
+            raise NonFiniteError(f"particle filter: run {r} has particle states that are not finite at step {k + 1}",
+                                 r, k + 1)
         ll = np.where(nan_rows[:, k, None], 0.0, loglik(x, k + 1, zk))
         if np.isposinf(ll).any():
             r = int(np.flatnonzero(np.isposinf(ll).any(axis=-1))[0])
-            raise ComputationError(f"particle filter: run {r} has a log-likelihood of +inf (a density evaluated at a "
-                                   f"singularity) at step {k + 1}")
+            raise NonFiniteError(f"particle filter: run {r} has a log-likelihood of +inf (a density evaluated at a "
+                                 f"singularity) at step {k + 1}", r, k + 1)
         new = LogWeights.of(lw.lw + ll + corr).lw
         if linear_weights:
             new = np.where(new - prev_log_norm[:, None] < _LOG_TINY, -np.inf, new)

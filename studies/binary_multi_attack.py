@@ -165,7 +165,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, engine: str, threads: int, filter
     _warm_up(sc, data, filters, engine)
     return run_configurations(truth, filters, streams, lambda f, rngs: run_binary(
         sc.model, data[f.data_probs], rngs, particles=f.particles, engine=engine, threads=threads,
-        channel=_with(sc.channel, f.filter_probs)))
+        channel=_with(sc.channel, f.filter_probs)), run_ids)
 
 
 def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Sequence[int],

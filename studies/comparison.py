@@ -61,8 +61,8 @@ from filters.ekf import run_ekf
 from filters.particle import run_sir
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
-from .consensus_design import as_mode, consensus_design
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .consensus_design import as_mode, check_first_step, consensus_design
+from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .results import DIVERGENCE_SPREAD, curves_figure, divergence_limit, first_divergence, markdown_table, save_figure, _plt
 from .scenarios import Scenario, reference
 
@@ -210,20 +210,23 @@ def _uniform(sc: Scenario) -> tuple[float, float] | None:
     return vals[0], vals[1]
 
 
-def _settings(main: tuple[float, float] | None, values: Sequence[float]) -> list[tuple]:
+def _settings(sc: Scenario, values: Sequence[float]) -> list[tuple]:
     """The main setting first, then the DoS sweep (FDI as declared) and the FDI sweep (DoS as declared).
 
     A setting is ``(dos, fdi)`` with ``None`` meaning "as declared".  With uniform
     probabilities the main setting is ``(dos, fdi)`` itself and a sweep point equal to it
-    is not repeated.
+    is not repeated.  A model that declares neither an injected signal nor its bound has no FDI
+    to sweep: its FDI sweep keeps the points without FDI.
     """
+    main = _uniform(sc)
+    fdi_values = [v for v in values if v == 0 or sc.attacks.signal is not None or sc.attacks.delta is not None]
     if main is None:
-        return [(None, None)] + [(v, None) for v in values] + [(None, v) for v in values]
+        return [(None, None)] + [(v, None) for v in values] + [(None, v) for v in fdi_values]
     dos, fdi = main
     out = [(dos, fdi)]
     for v in values:
         for s in ((v, fdi), (dos, v)):
-            if s not in out and s[0] + s[1] <= 1.0:
+            if s not in out and s[0] + s[1] <= 1.0 and (s[1] == fdi or s[1] in fdi_values):
                 out.append(s)
     return out
 
@@ -346,14 +349,16 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
         for c, f in enumerate(pfs):  # alone, so that their time per step is a single filter's
             q = qs[c] if not per_sensor else np.broadcast_to(qs[c], (n,))[None]
             t0 = time.perf_counter()
-            res = run_sir(m, ys[a][0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
-                          inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
+            with naming_filter(FILTERS[f], [run_ids[a]]):
+                res = run_sir(m, ys[a][0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
+                              inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
             secs[a, 0, f] = time.perf_counter() - t0
             score(a, 0, f, res.mean[0][:, None], bool(np.all(np.isfinite(res.mean))))
         if S > 1:
             t0 = time.perf_counter()
-            res = run_sir(m, np.stack(ys[a][2:]), np.random.default_rng(main_seqs[2]), particles=particles,
-                          runs=2 * (S - 1), inputs=traj.inputs, loglik=ll_sweep)
+            with naming_filter("centralized PFs at the sweep settings", [run_ids[a]] * (2 * (S - 1))):
+                res = run_sir(m, np.stack(ys[a][2:]), np.random.default_rng(main_seqs[2]), particles=particles,
+                              runs=2 * (S - 1), inputs=traj.inputs, loglik=ll_sweep)
             per_filter = (time.perf_counter() - t0) / (2 * (S - 1))  # amortised over the batch
             for j in range(1, S):
                 for c, f in enumerate(pfs):
@@ -381,7 +386,8 @@ def _check(so: StudyOptions) -> None:
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
-    settings = _settings(_uniform(sc), values)
+    settings = _settings(sc, values)
+    check_first_step(sc, consensus_design(sc, as_mode(so.design, "paper")), PAPER_DESIGN)
     ref = reference(sc)
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
@@ -400,7 +406,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     A, net, K = mc.arrays, sc.network, sc.steps
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     main = _uniform(sc)
-    settings = _settings(main, values)
+    settings = _settings(sc, values)
     key = "rmse_position" if sc.model.position_index else "rmse"
     boot_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
     # the local EKFs and the mse design (added after the others) bootstrap from streams of their own, so that every

@@ -28,7 +28,8 @@ from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 from .results import versions
 from .scenarios import Scenario
 
-__all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode"]
+__all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
+           "check_first_step"]
 
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
@@ -68,6 +69,26 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
     return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+
+
+def check_first_step(sc: Scenario, design: ConsensusDesign, name: str) -> None:
+    """Refuse, before any run, a paper design whose fixed σ or β breaks (28)/(29) at the first step.
+
+    Every node of every run starts at the prior mean with ``Φ_0|0 = P0`` and the scenario's first
+    input, so the first step's (28) on ``Φ_0|0`` and (29) on ``Φ_1|0`` are the same in every run
+    (neither depends on the measurements or the attacks); a study would otherwise fail in its first
+    run.  One step of the filter at that point raises the :class:`InputError` that ``cfdesign design``
+    gives, here prefixed with the filter's ``name``.
+    """
+    if design.mode != "paper":
+        return
+    m = sc.model
+    u = sc.inputs(1)
+    z = m.h_all(m.prior.mean, 1)[None]
+    try:
+        run_consensus(m, sc.network, z, design, inputs=u)
+    except InputError as exc:
+        raise InputError(f"{name}: {exc} (set --sigma / --beta)") from None
 
 
 @dataclass(frozen=True, eq=False)

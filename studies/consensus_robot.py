@@ -47,7 +47,7 @@ from filters.consensus_batch import run_consensus_batch
 from filters.distributed import run_hcmci, run_kcf
 
 from .comparison import HCMCI_ITERATIONS, local_ekf_design
-from .consensus_design import as_mode, consensus_design
+from .consensus_design import as_mode, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence, save_figure
 from .runner import run_seed
@@ -334,7 +334,8 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    _, _, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
+    built, paper, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
+    check_first_step(built, paper, next(n for n in variants if n.startswith("consensus-EKF (paper")))
     spread = check_positive("divergence_spread", so["divergence_spread"]).item()
     task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
                              hcmci_iterations=_iterations(so), divergence_spread=spread)

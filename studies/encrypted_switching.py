@@ -63,7 +63,7 @@ from filters.particle import run_sir, transition_proposal
 
 from .pfrun import check_engine, check_threads
 from .progress import progress
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .results import _curve_mean_ci, curves_figure, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -294,10 +294,11 @@ def compute_runs(run_ids: Sequence[int], seeds: Sequence[np.random.SeedSequence]
            "seconds_data": np.full(n, (t1 - t0) / n), "seconds_channel": np.full(n, (t2 - t1) / n),
            "breakdown": np.full((n, F, 3), np.nan)}
     filter_ss = [st[2] for st in streams]
-    for j, (model, kind, _) in enumerate(progress(configs.values(), F, quiet, "encrypted-switching filters")):
+    for j, (name, (model, kind, _)) in enumerate(progress(configs.items(), F, quiet, "encrypted-switching filters")):
         t = time.perf_counter()
-        out["mean"][:, j], out["collapsed"][:, j], out["resampled"][:, j], split = _run_filter(
-            model, kind, channel.codec, y, filter_ss, config)
+        with naming_filter(name, run_ids):
+            out["mean"][:, j], out["collapsed"][:, j], out["resampled"][:, j], split = _run_filter(
+                model, kind, channel.codec, y, filter_ss, config)
         wall = time.perf_counter() - t
         out["seconds"][:, j] = wall / n
         if split is not None:  # proposal, likelihood, the rest

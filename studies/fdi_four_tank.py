@@ -55,7 +55,7 @@ from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_c
                          false_alarm_condition, measurement_cov, measurement_matrix, modified_detector,
                          normal_detector, residual_threshold, run_sis, uniform_loglik)
 
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .results import curves_figure, error_metrics, markdown_table, save_figure
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -317,7 +317,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int) -> dict:
             zname, kw, takes_gamma = p.specs[name]
             z = getattr(data, zname)
             extra = {"gamma_hat": gamma_hat} if takes_gamma else {}
-            res = _run(sc, z, seqs, particles, **kw, **extra)
+            with naming_filter(name, run_ids):
+                res = _run(sc, z, seqs, particles, **kw, **extra)
             out[_key(key, name, "mean")] = res.mean
             if "detector" in kw:
                 out[_key(key, name, "detected")] = res.detected

@@ -43,6 +43,7 @@ from filters.binary import binary_loglik
 from filters.particle import run_sir
 from filters.rrp import packet_loglik
 
+from .pipeline import naming_filter
 from .results import error_metrics
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
@@ -90,14 +91,16 @@ def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: n
     return met
 
 
-def run_configurations(truth: np.ndarray, filters: Sequence, streams: Sequence, run: Callable) -> dict:
+def run_configurations(truth: np.ndarray, filters: Sequence, streams: Sequence, run: Callable,
+                       run_ids: Sequence[int] | None = None) -> dict:
     """The task's arrays of a seed 000 / 002 study: every filter configuration on a chunk's runs.
 
     ``truth`` (R, K + 1, n_x); configuration ``f`` (with a ``stream`` index) filters with
     the Generators of its stream of every run (``streams[r][f.stream]``):
     ``run(f, rngs) -> (mean (R, K + 1, n_x), collapsed (R, K))``.  Returns ``truth`` and,
     along a filter axis in ``filters``' order, ``mean``, ``collapsed`` and ``seconds``
-    (each run's share of the filter's wall time).
+    (each run's share of the filter's wall time).  A filter whose numbers leave finite ones fails the
+    chunk naming the filter, the study's run (``run_ids``: the chunk's runs) and the step.
     """
     R, K1, n_x = truth.shape
     F = len(filters)
@@ -107,7 +110,8 @@ def run_configurations(truth: np.ndarray, filters: Sequence, streams: Sequence, 
     for j, f in enumerate(filters):
         rngs = [np.random.default_rng(s[f.stream]) for s in streams]
         t0 = time.perf_counter()
-        mean[:, j], collapsed[:, j] = run(f, rngs)
+        with naming_filter(f.name, run_ids):
+            mean[:, j], collapsed[:, j] = run(f, rngs)
         seconds[:, j] = (time.perf_counter() - t0) / R
     return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
 

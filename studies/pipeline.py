@@ -24,6 +24,7 @@ with a ``STUDY`` and one line in :data:`STUDIES`.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import time
@@ -35,12 +36,12 @@ import numpy as np
 
 from designer.design import DesignOptions
 from designer.fileio import writing
-from designer.validation import InputError, check_int
+from designer.validation import ComputationError, InputError, NonFiniteError, check_int
 
 from .runner import Backend, MonteCarloResult, monte_carlo
 
 __all__ = ["StudyText", "Plan", "Study", "StudyOptions", "StudyResult", "STUDIES", "get_study", "run_study",
-           "study_text"]
+           "study_text", "naming_filter"]
 
 MAX_RUNS = 1_000_000  # beyond this the per-run results alone outgrow a machine's memory
 MAX_PARTICLES = 10_000_000  # per filter; a particle filter's state is (particles x n_x) doubles several times over
@@ -54,6 +55,18 @@ STUDIES: dict[str, str] = {
     "fdi-four-tank": "studies.fdi_four_tank",
     "comparison": "studies.comparison",
 }
+
+
+@contextlib.contextmanager
+def naming_filter(name: str, runs: Sequence[int] | None = None):
+    """A study's filter call: a :class:`~designer.validation.NonFiniteError` from it is re-raised naming the
+    filter as the study's results name it, and the study's run (``runs[row]``: the runs the call was given,
+    in its rows' order; None: the rows are not runs, e.g. one run's sweep settings) and step."""
+    try:
+        yield
+    except NonFiniteError as exc:
+        where = "" if runs is None else f"run {int(runs[exc.row])}, "
+        raise ComputationError(f"filter {name!r} failed at {where}step {exc.step}: {exc}") from exc
 
 
 @dataclass(frozen=True)

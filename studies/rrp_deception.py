@@ -182,7 +182,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str, thre
     return run_configurations(truth, filters, streams, lambda f, rngs: run_packets(
         sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], rngs, particles=particles,
         attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine="numpy" if f.linear else engine,
-        threads=threads, linear_weights=f.linear))
+        threads=threads, linear_weights=f.linear), run_ids)
 
 
 def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool) -> tuple[list, dict, list]:

@@ -116,12 +116,16 @@ def model() -> Model:
         (["study", "consensus-robot", "--set", "steps=1e400", "--out", "{tmp}/c"], "steps"),
         (["study", "consensus-robot", "--set", "steps=nan", "--out", "{tmp}/c"], "steps"),
         (["study", "consensus-robot", "--schedule", "{garbage}", "--out", "{tmp}/c"], "schedule"),
+        # the paper design's sigma = 0.1 breaks (28) at the first step of every run for a prior this wide
+        (["study", "comparison", "{wide}", "--runs", "2", "--out", "{tmp}/c"], "consensus EKF (paper design): sigma"),
+        (["study", "consensus-robot", "{wide}", "--runs", "2", "--out", "{tmp}/c"], "(paper, tau=0.01): sigma"),
     ],
 )
 def test_bad_user_input_exits_2_before_computing(tmp_path, args, needle):
     """The cases of the review: model files, output paths, sizes, integers and files that are not what they say."""
     files = {"model": _MODEL, "many": _MODEL.replace("STEPS = 20", 'STEPS = "many"'),
-             "raising": _MODEL.replace('    x = ca.SX.sym("x", 2)', '    raise RuntimeError("boom")')}
+             "raising": _MODEL.replace('    x = ca.SX.sym("x", 2)', '    raise RuntimeError("boom")'),
+             "wide": _MODEL.replace("0.05 * np.eye(2)))", "25.0 * np.eye(2)))")}
     paths = {}
     for name, text in files.items():
         paths[name] = tmp_path / f"{name}.py"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import re
 import signal
 import stat
 import subprocess
@@ -308,3 +309,59 @@ def test_a_nan_in_the_results_is_refused_before_anything_is_written(tmp_path):
                       lambda r: "| table |\n")
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
     assert not [p for p in out.iterdir() if p.name.startswith(".staging")]
+
+
+_NAN_MODEL = '''
+import casadi as ca
+from designer import AttackSpec, DesignOptions, Gaussian, Model, SensorNetwork, Sensor
+
+STEPS = 12
+X0 = [10.0]
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+ATTACKS = AttackSpec(dos=0.1)  # no FDI signal: the comparison's FDI sweep keeps its points without FDI
+DESIGN = DesignOptions(u_scale=0, v_scale=0, sigma=0.05, beta=0.05)
+
+
+def model() -> Model:
+    x = ca.SX.sym("x", 1)
+    # the truth stays at 10 +- 0.1; a quarter of the prior's particles lie below {edge}: where the square root is
+    # NaN, so the particle filters' states leave the reals at their first propagation
+    f = 0.9 * x + 1.0 + 1e-9 * ca.sqrt(x - {edge})
+    sensors = [Sensor(f"s{{i}}", x, Gaussian.zero_mean([[0.5]])) for i in range(3)]
+    return Model("nan-demo", x, f, sensors, Gaussian.zero_mean([[1e-4]]), Gaussian([10.0], [[9.0]]))
+'''
+
+
+def test_a_filter_that_leaves_the_reals_fails_the_study_by_name_and_keeps_the_last_results(tmp_path):
+    """A study whose particle filter produces NaN states: exit 1, one line naming the filter, the run and the
+    step; the output directory keeps the previous complete results (nothing of the failed run)."""
+    import studies
+
+    good, bad = tmp_path / "good.py", tmp_path / "bad.py"
+    good.write_text(_NAN_MODEL.format(edge=-100.0))
+    bad.write_text(_NAN_MODEL.format(edge=8.0))
+    out = tmp_path / "out"
+    opts = dict(runs=2, particles=50, quiet=True, sweep_values=[0.2], tuned_in_sweeps=False)
+    studies.study("comparison", str(good), out=out, **opts)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file() and not p.name.startswith(".cfdesign")}
+    assert "results.json" in before
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.run([sys.executable, "-m", "studies", "study", "comparison", str(bad), "--runs", "2",
+                           "--particles", "50", "--set", "sweep_values=[0.2]", "--set", "tuned_in_sweeps=false",
+                           "--quiet", "--force", "--out", str(out)], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=600)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert re.search(r"filter 'centralized PF \(attack-aware\)' failed at run 0, step 1:", lines[0]), lines[0]
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file() and not p.name.startswith(".cfdesign")}
+    assert after == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".staging")]
+    # and a fresh directory gets nothing but the runner's own files
+    fresh = tmp_path / "fresh"
+    proc = subprocess.run([sys.executable, "-m", "studies", "study", "comparison", str(bad), "--runs", "2",
+                           "--particles", "50", "--set", "sweep_values=[0.2]", "--set", "tuned_in_sweeps=false",
+                           "--quiet", "--out", str(fresh)], capture_output=True, text=True, env=env, cwd=ROOT,
+                          timeout=600)
+    assert proc.returncode == 1, proc.stderr
+    assert not [p for p in fresh.iterdir() if not p.name.startswith(".")]
