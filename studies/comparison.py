@@ -130,8 +130,9 @@ ASSUMPTIONS = (
     "its runs; the tuned design's time includes its weight optimisation (every node and step). In the sweeps the "
     "two particle filters of all settings of a run are one NumPy batch.",
     "comparison: the consensus designs use the scenario's design defaults (paper: sigma = beta = 0.1, C = 0.01 "
-    "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the built-in scenarios U = 0.01 I and V_i = 0.1 I, "
-    "published for the robot only.",
+    "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the indoor robot U = 0.01 I and V_i = 0.1 I (assumed: "
+    "the paper gives none), on the range-bearing target U = 0 (its transition is linear) and V_i per component "
+    "from the Hessians over the prior, as for a model file that declares none.",
     "comparison: messages per step count transmissions attempted (a message lost to DoS still counts): 2|E| "
     "directed links for the consensus filters and KCF, 2|E| L for HCMCI (L rounds), one uplink per sensor for the "
     "centralized ones, none for the local EKFs; delivered_per_step (KCF, HCMCI) counts those that arrived.",
