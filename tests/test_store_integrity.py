@@ -214,7 +214,7 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc to find the workers")
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT])
 def test_workers_die_with_their_parent(sig):
     parent = subprocess.Popen([sys.executable, "-c", _PARENT, str(ROOT / "tests")], cwd=ROOT, stdout=subprocess.PIPE,
                               text=True)
