@@ -59,7 +59,6 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from .bounds import Spectrum, prediction_recursion, shifted_inverse, spectrum, symmetrize
 from .validation import ComputationError
@@ -526,6 +525,8 @@ def best_multiplier(trace_at, bmax: float, has_v: bool) -> float:
     """The β in ``(0, bmax]`` minimising the convex ``trace_at(β)`` (0 without V: the trace only grows with β)."""
     if not has_v:
         return 0.0
+    from scipy.optimize import minimize_scalar  # here: scipy.optimize takes a second to import
+
     res = minimize_scalar(trace_at, bounds=(bmax * 1e-9, bmax), method="bounded",
                           options={"xatol": bmax * 1e-8, "maxiter": 500})
     return float(res.x)

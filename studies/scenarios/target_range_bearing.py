@@ -6,18 +6,18 @@ noise (19); the Round-Robin schedule and the deception attack (4)-(6) are its
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
 from designer.attacks import AttackSpec, FDISignal, RoundRobinDeception
 from designer.design import DesignOptions
-from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian, UniformBox
 from designer.validation import InputError
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
 from .common import cv_process_cov, cv_transition, glint
+
+N_X = 4  # [px, vx, py, vy]
 
 PARAMS = (
     Param("period", 1.0, "sampling period T (s)", low=0.0, low_open=True),
@@ -51,7 +51,37 @@ PARAMS = (
 )
 
 
+def _assumptions(p: dict) -> tuple[str, ...]:
+    pos, edges = np.asarray(p["sensor_positions"], dtype=float), np.asarray(p["edges"], dtype=float)
+    return (
+        "target-range-bearing: the paper's sensor positions appear only in its Fig. 2; we place the four sensors on "
+        f"the line px = 0 at {pos.tolist()}, so that every true range (<= ~80) and bearing lies inside the "
+        "deception box and an attacked packet is not trivially separable.",
+        f"target-range-bearing: the filters' prior is N(x0, diag{p['prior_var']}) (the paper gives none).",
+        f"target-range-bearing: K = {p['steps']} steps, inferred from the 120 communications of Table 1 "
+        "(one packet per step under Round-Robin).",
+        f"target-range-bearing: Round-Robin starts at sensor {p['rr_start']} (gamma_ini not given).",
+        "target-range-bearing: deception follows equations (4)-(6) (eta = 1 means the packet is replaced by xi); "
+        "Remark 1's wording, which says the opposite, is taken as a typo.",
+        "target-range-bearing: bearings are in (-pi, pi]; residuals are wrapped before the glint density.",
+        f"target-range-bearing (comparison study only): the sensors form a consensus network with links "
+        f"{edges.astype(int).tolist()} (a ring; the paper has no network), DoS {p['dos_prob']} and FDI "
+        f"{p['fdi_prob']} on every channel, injected signal xi = {p['attack_amplitude']} sin(s) m on px and py "
+        "(comparable to the glint range noise, 2-5 m); the consensus designs' scalings are U = 0.01 I and "
+        "V_i = 0.1 I, as on the indoor robot.",
+    )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, len(p["sensor_positions"]), p["steps"], _assumptions(p))
+
+
 def build(p: dict) -> Scenario:
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
     pos = np.asarray(p["sensor_positions"], dtype=float)
     if pos.shape[0] < 1:
         raise InputError("parameter sensor_positions needs at least one sensor")
@@ -66,7 +96,7 @@ def build(p: dict) -> Scenario:
                                        require_connected=False)
     attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"], uplink_dos=p["dos_prob"], uplink_fdi=p["fdi_prob"],
                          signal=FDISignal(p["attack_amplitude"], components=(0, 2), law="sine"))
-    x = ca.SX.sym("x", 4)
+    x = ca.SX.sym("x", N_X)
     noise = glint(p["glint_prob"], np.diag(p["glint_cov1"]), np.diag(p["glint_cov2"]))
     sensors = []
     for i, (sx, sy) in enumerate(pos):
@@ -87,28 +117,11 @@ def build(p: dict) -> Scenario:
         description="2-D constant-velocity target, range-bearing sensors with glint noise (seed 000)",
     )
     lower, upper = np.asarray(p["deception_lower"]), np.asarray(p["deception_upper"])
-    assumptions = (
-        "target-range-bearing: the paper's sensor positions appear only in its Fig. 2; we place the four sensors on "
-        f"the line px = 0 at {pos.tolist()}, so that every true range (<= ~80) and bearing lies inside the "
-        "deception box and an attacked packet is not trivially separable.",
-        f"target-range-bearing: the filters' prior is N(x0, diag{p['prior_var']}) (the paper gives none).",
-        f"target-range-bearing: K = {p['steps']} steps, inferred from the 120 communications of Table 1 "
-        "(one packet per step under Round-Robin).",
-        f"target-range-bearing: Round-Robin starts at sensor {p['rr_start']} (gamma_ini not given).",
-        "target-range-bearing: deception follows equations (4)-(6) (eta = 1 means the packet is replaced by xi); "
-        "Remark 1's wording, which says the opposite, is taken as a typo.",
-        "target-range-bearing: bearings are in (-pi, pi]; residuals are wrapped before the glint density.",
-        f"target-range-bearing (comparison study only): the sensors form a consensus network with links "
-        f"{edges.astype(int).tolist()} (a ring; the paper has no network), DoS {p['dos_prob']} and FDI "
-        f"{p['fdi_prob']} on every channel, injected signal xi = {p['attack_amplitude']} sin(s) m on px and py "
-        "(comparable to the glint range noise, 2-5 m); the consensus designs' scalings are U = 0.01 I and "
-        "V_i = 0.1 I, as on the indoor robot.",
-    )
     return Scenario(
         "target-range-bearing",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=x0,
         network=network,
@@ -125,4 +138,5 @@ SPEC = ScenarioSpec(
     "CV target (16)-(17), 4 range-bearing sensors (18), glint noise (19)",
     PARAMS,
     build,
+    outline,
 )
