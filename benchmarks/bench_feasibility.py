@@ -13,9 +13,10 @@
    each session (``setsid``) a fair share of the CPUs (autogroup scheduling), so what a second process can
    gain depends on what else runs: a probe runs one, then two CPU-bound processes of this session and
    reports how much faster two are (between 1 and 2; 2 on an idle 2-core machine).  ``--check`` asks the
-   workers' speed-up of the runner to reach 0.75 x the probe's, and the CPU time of the whole command
-   (its workers included) to stay within 1.25 x that of one process (the workers redo little: forked, they
-   inherit the imports and the built scenario).
+   CPU time of the whole command (its workers included) to stay within 1.25 x that of one process (the
+   workers redo little: forked, they inherit the imports, the built scenario and the loaded kernels), and,
+   when the probe finds a second CPU for this session (>= 1.5), the workers' speed-up of the runner to reach
+   0.75 x the probe's; without one, a speed-up cannot be measured here and is only printed.
 
 Run: ``python benchmarks/bench_feasibility.py [--small 4] [--skip-full] [--check]``
 """
@@ -35,6 +36,8 @@ from pathlib import Path
 RATIO_TARGET = 0.35
 FULL_TARGET_S = 20.0
 WORKERS_FRACTION = 0.75
+PARALLEL_PROBE = 1.5  # two CPU-bound processes at least this much faster than one: a second CPU is there
+CPU_RATIO_TARGET = 1.25
 FULL_GRID = ["--grid", "dos=0:0.6:13", "--grid", "fdi=0:0.6:13"]
 
 _SPIN = "import time\nwhile time.process_time() < {s}:\n    sum(range(10000))\n"
@@ -126,11 +129,14 @@ def main(argv=None) -> int:
               f"{FULL_TARGET_S:g} s: {'met' if w1 <= FULL_TARGET_S else 'MISSED'}), of which the runner {r1:.2f} s "
               f"(mean), CPU {c1:.2f} s")
         speedup, need, extra = r1 / r2, WORKERS_FRACTION * probe, c2 / c1
-        ok &= speedup >= need and extra <= 1.25
+        parallel = probe >= PARALLEL_PROBE
+        ok &= extra <= CPU_RATIO_TARGET and (speedup >= need or not parallel)
+        verdict = ("met" if speedup >= need else "MISSED") if parallel else \
+            "not checked: this session has no second CPU now"
         print(f"3. --workers 2: {w2:6.2f} s end to end, runner {r2:.2f} s: speed-up {speedup:.2f} of the runner "
-              f"(two CPU-bound processes here: {probe:.2f}; target >= {need:.2f}: "
-              f"{'met' if speedup >= need else 'MISSED'}); CPU {c2:.2f} s, {extra:.2f} x one process's "
-              f"(target <= 1.25: {'met' if extra <= 1.25 else 'MISSED'})")
+              f"(two CPU-bound processes here: {probe:.2f}; target >= {need:.2f}: {verdict}); CPU {c2:.2f} s, "
+              f"{extra:.2f} x one process's (target <= {CPU_RATIO_TARGET}: "
+              f"{'met' if extra <= CPU_RATIO_TARGET else 'MISSED'})")
     return 1 if args.check and not ok else 0
 
 

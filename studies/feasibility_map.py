@@ -283,6 +283,10 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     ref = reference(sc)
     if backend is None or backend.kind != "dask":
         ref.build()  # here, once: the chunks computed in this process and forked workers use it
+    if backend is not None and backend.kind == "processes":
+        from designer.tuning import load_kernels
+
+        load_kernels()  # once, before the workers are forked, rather than in every worker
     task = functools.partial(_points, ref=ref, options=options or DesignOptions(), points=points)
     config = {"study": "feasibility", "scenario": sc.name, "source": ref.source if not ref.in_memory else "memory",
               "grids": [[n, v.tolist()] for n, v in parsed], "options": (options or DesignOptions()).as_dict(),
