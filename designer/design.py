@@ -27,14 +27,16 @@ into a design for a model, its network and its attack bound.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from .linearization import DEFAULT_RADIUS, component_scales
-from .model import Model
 from .network import SensorNetwork
 from .validation import InputError, check_finite
+
+if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
+    from .model import Model
 
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",

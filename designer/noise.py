@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy import special, stats
 
 from .validation import InputError, as_vector, check_covariance, check_positive, check_probability, check_rng
 
@@ -109,6 +108,8 @@ class Gaussian(Noise):
         return -0.5 * (self.dim * _LOG_2PI + self._logdet + np.einsum("...i,...i->...", z, z))
 
     def cdf(self, x) -> np.ndarray:
+        from scipy import special, stats
+
         x = _points(x, self.dim)
         sd = np.sqrt(np.diag(self.cov))
         if self.dim == 1 or np.count_nonzero(self.cov - np.diag(np.diag(self.cov))) == 0:
@@ -160,6 +161,8 @@ class GaussianMixture(Noise):
         return second - np.outer(m, m)
 
     def logpdf(self, x) -> np.ndarray:
+        from scipy import special
+
         with np.errstate(divide="ignore"):
             logw = np.log(self.weights)
         terms = np.stack([lw + c.logpdf(x) for lw, c in zip(logw, self.components)], axis=0)
@@ -203,6 +206,8 @@ class TruncatedGaussian(Noise):
     _dist: object = field(init=False, repr=False)
 
     def __post_init__(self):
+        from scipy import special, stats
+
         loc = as_vector("loc", self.loc)
         d = loc.shape[0]
         scale = check_positive("scale", as_vector("scale", self.scale, d))
@@ -243,6 +248,8 @@ class TruncatedGaussian(Noise):
         return np.sum(np.where((z >= a) & (z <= b), lp, -np.inf), axis=-1)
 
     def cdf(self, x) -> np.ndarray:
+        from scipy import special
+
         a, b, upper_side, mass = self._ab
         z = self._std(x)
         F = np.where(upper_side, special.ndtr(-a) - special.ndtr(-z), special.ndtr(z) - special.ndtr(a)) / mass
@@ -250,6 +257,8 @@ class TruncatedGaussian(Noise):
 
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         size = _shape(shape) + (self.dim,)
+        from scipy import special
+
         # Inverse-CDF sampling from the generator passed in (one uniform per component).
         a, b, upper_side, mass = self._ab
         u = check_rng(rng).random(size)
@@ -363,6 +372,8 @@ class PolarVelocityPrior(Noise):
         return out
 
     def logpdf(self, x) -> np.ndarray:
+        from scipy import stats
+
         x = _points(x, 4)
         lp_pos = self._pos.logpdf(x[..., [0, 2]])
         r = np.hypot(x[..., 1], x[..., 3])

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .model import Model
 from .validation import InputError, check_finite, check_int, check_rng
+
+if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
+    from .model import Model
 
 __all__ = ["Trajectory", "simulate", "simulate_runs"]
 

@@ -59,14 +59,13 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from .bounds import Spectrum, prediction_recursion, shifted_inverse, spectrum, symmetrize
 from .validation import ComputationError
 
 __all__ = [
     "MARGIN", "tuned_epsilon", "PredictionChoice", "UpdateChoice", "tune_prediction", "tune_update",
-    "PredictionBatch", "tune_prediction_batch",
+    "PredictionBatch", "tune_prediction_batch", "UpdateBatch", "tune_update_batch", "load_kernels",
     "PredictionSDP", "UpdateSDP", "update_trace", "lam_max",
     "WeightedChoice", "own_term", "optimal_weights", "weighted_bound", "tune_weighted",
     "WeightedBatch", "tune_weighted_batch", "neighbour_group_stack", "warm_start_weights",
@@ -96,9 +95,11 @@ class UpdateChoice(NamedTuple):
     trace: float
 
 
-def lam_max(a, D=None) -> float:
-    """``lambda_max(D a Dᵀ)`` (``D = I`` when None)."""
-    return float(np.linalg.eigvalsh(symmetrize(a if D is None else D @ a @ D.T))[-1])
+def lam_max(a, D=None):
+    """``lambda_max(D a Dᵀ)`` (``D = I`` when None); one per matrix of a stack ``(m, n, n)``."""
+    a = np.asarray(a, dtype=float)
+    out = np.linalg.eigvalsh(symmetrize(a if D is None else D @ a @ np.swapaxes(D, -1, -2)))[..., -1]
+    return float(out) if out.ndim == 0 else out
 
 
 # --------------------------------------------------------------------------- prediction
@@ -122,9 +123,10 @@ def _structure(S: Spectrum, D) -> tuple[np.ndarray, np.ndarray]:
     return mu, S.phi @ np.swapaxes(D, -1, -2) @ Q
 
 
-def tune_prediction_batch(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=None) -> PredictionBatch:
+def tune_prediction_batch(phi_post, F, U, Q, eps, margin: float = MARGIN, D=None) -> PredictionBatch:
     """:func:`tune_prediction` for stacked items: ``phi_post`` (m, n, n) or its :class:`~designer.bounds.Spectrum`,
-    ``F`` and ``U`` (m, n, n) or one (n, n) for all, ``Q`` (n, n), ``D`` None, (r, n) or (m, r, n).
+    ``F`` and ``U`` (m, n, n) or one (n, n) for all, ``Q`` (n, n), ``eps`` one number or one per item (m,),
+    ``D`` None, (r, n) or (m, r, n).
 
     ``tr F (Φ^-1 - cσ DᵀD)^-1 Fᵀ = tr F Φ Fᵀ + Σ_k g_k cσ / (1 - cσ μ_k)`` (Woodbury, ``c = 1 + ε``,
     ``D Φ Dᵀ = Σ μ_k q_k q_kᵀ``, ``g_k = |F Φ Dᵀ q_k|²``), so the trace of (26) is convex in σ with the
@@ -138,17 +140,20 @@ def tune_prediction_batch(phi_post, F, U, Q, eps: float, margin: float = MARGIN,
     U = np.broadcast_to(np.asarray(U, dtype=float), (m, n, n))
     UUt = U @ np.swapaxes(U, -1, -2)
     mu, G = _structure(S, D)
+    eps = np.asarray(eps, dtype=float)
     c = 1.0 + eps
     smax = (1.0 - margin) / (c * mu[:, -1])
     sigma = np.zeros(m)
     act = np.flatnonzero(UUt.any(axis=(-2, -1)))
     if act.size:
         g = np.sum((F[act] @ G[act]) ** 2, axis=-2)  # (k, r)
-        a = np.trace(UUt[act], axis1=-2, axis2=-1) / eps
+        eps_a = np.broadcast_to(eps, (m,))[act]
+        c_a = (1.0 + eps_a)[:, None]
+        a = np.trace(UUt[act], axis1=-2, axis2=-1) / eps_a
         mu_a = mu[act]
 
         def slope(sv, idx):
-            p = np.sum(g[idx] * c / (1.0 - c * sv[:, None] * mu_a[idx]) ** 2, axis=-1)
+            p = np.sum(g[idx] * c_a[idx] / (1.0 - c_a[idx] * sv[:, None] * mu_a[idx]) ** 2, axis=-1)
             return p - a[idx] / sv**2, np.sqrt(a[idx] / p)
 
         sigma[act] = increasing_root(slope, smax[act] * 1e-12, smax[act], xtol=smax[act] * 1e-13, rtol=1e-14)
@@ -171,13 +176,19 @@ def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=Non
 
 # ------------------------------------------------------------------------------ update
 def update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D=None) -> np.ndarray:
-    """Φ_{k+1|k+1} of (27) for given (β, C, K) (``N`` is the neighbour matrix, ``D`` the structure of V Θ D e)."""
-    w = 1.0 + 2 * d_i
+    """Φ_{k+1|k+1} of (27) for given (β, C, K) (``N`` is the neighbour matrix, ``D`` the structure of V Θ D e).
+
+    Stacks ``(m, ...)`` with ``s``, ``beta`` and ``d_i`` per item are taken too (``phi_pred`` may then be a
+    :class:`~designer.bounds.Spectrum`).
+    """
+    t = lambda a: np.swapaxes(a, -1, -2)  # noqa: E731
+    w = _per_item(1.0 + 2 * np.asarray(d_i, dtype=float))
     M = shifted_inverse(phi_pred, beta, D)
-    A = np.eye(phi_pred.shape[0]) - s * C - K @ H
-    VVt = V @ V.T
-    W = (w * VVt / beta if np.any(VVt) else 0.0 * VVt) + R
-    return symmetrize(w * A @ M @ A.T + C @ N @ C.T + K @ W @ K.T)
+    A = np.eye(M.shape[-1]) - _per_item(s) * C - K @ H
+    VVt = V @ t(V)
+    with np.errstate(divide="ignore", invalid="ignore"):  # β = 0 where V = 0: that term is 0
+        lin = np.where(VVt.any(axis=(-2, -1))[..., None, None], w * VVt / _per_item(beta), 0.0 * VVt)
+    return symmetrize(w * A @ M @ t(A) + C @ N @ t(C) + K @ (lin + R) @ t(K))
 
 
 def _per_item(x):
@@ -316,13 +327,15 @@ class _FixedBeta:
     """
 
     def __init__(self, S: Spectrum, H, s, V, R, margin: float, D=None):
-        c = np.ascontiguousarray
-        self.phi = c(S.phi, dtype=float)
+        def c(x):  # contiguous and writeable whatever the caller passed: one compiled signature of the kernel
+            return np.require(x, dtype=float, requirements=("C", "W"))
+
+        self.phi = c(S.phi)
         mu, G = _structure(S, D)
-        self.mu, self.G = c(mu, dtype=float), c(G, dtype=float)
+        self.mu, self.G = c(mu), c(G)
         self.bmax = (1.0 - margin) / self.mu[:, -1]  # (29) at the margin
-        self.H, self.s, self.R = c(H, dtype=float), c(s, dtype=float), c(R, dtype=float)
-        self.VVt = c(V @ np.swapaxes(V, -1, -2), dtype=float)
+        self.H, self.s, self.R = c(H), c(s), c(R)
+        self.VVt = c(V @ np.swapaxes(V, -1, -2))
         self.has_v = self.VVt.any(axis=(-2, -1))
 
     def _run(self, it, beta, w, N):
@@ -372,16 +385,48 @@ def _best_gains(fixed: _FixedBeta, it, w, N, guess=None):
     return beta, M, C, K, A
 
 
-def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
-    """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search)."""
-    phi_pred = np.asarray(phi_pred, dtype=float)
+class UpdateBatch(NamedTuple):
+    """:func:`tune_update_batch`: the fields of :class:`UpdateChoice` per item."""
+
+    beta: np.ndarray  # (m,)
+    C: np.ndarray  # (m, n, n)
+    K: np.ndarray  # (m, n, n_z)
+    phi_post: np.ndarray  # (m, n, n)
+    trace: np.ndarray  # (m,)
+
+
+def tune_update_batch(phi_pred, H, s, V, R, d, N, margin: float = MARGIN, D=None) -> UpdateBatch:
+    """:func:`tune_update` for stacked items: ``phi_pred`` (m, n, n) or its :class:`~designer.bounds.Spectrum`,
+    ``H`` (m, n_z, n), ``s`` and ``d`` (the node's degree d_i) (m,), ``V``, ``R`` (m, n_z, n_z), ``N`` (m, n, n),
+    ``D`` None, (r, n) or (m, r, n).  Each item takes the steps it takes alone (its β search is an item of
+    :func:`increasing_root`), so an item of a stack has the numbers of a batch of one."""
+    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(phi_pred)
+    m = S.phi.shape[0]
+    H, V, R, N = (np.asarray(x, dtype=float) for x in (H, V, R, N))
+    s, d = (np.broadcast_to(np.asarray(x, dtype=float), (m,)) for x in (s, d))
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverging bound: the caller's checks
-        fixed = _FixedBeta(spectrum(phi_pred[None]), np.asarray(H, float)[None], np.array([float(s)]),
-                           np.asarray(V, float)[None], np.asarray(R, float)[None], margin, D)
-        beta, _, C, K, _ = _best_gains(fixed, np.arange(1), np.array([1.0 + 2 * d_i]), np.asarray(N, float)[None])
-        beta, C, K = float(beta[0]), C[0], K[0]
-        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d_i, N, D)
-    return UpdateChoice(beta, C, K, phi, float(np.trace(phi)))
+        fixed = _FixedBeta(S, H, s, V, R, margin, D)
+        beta, _, C, K, _ = _best_gains(fixed, np.arange(m), 1.0 + 2 * d, N)
+        phi = update_trace(phi_pred, H, C, K, s, beta, V, R, d, N, D)
+    return UpdateBatch(beta, C, K, phi, np.trace(phi, axis1=-2, axis2=-1))
+
+
+def load_kernels() -> None:
+    """Load the compiled kernels of the multiplier searches and the fixed-β update into this process (from
+    numba's cache, or compile them): worker processes forked afterwards inherit them instead of loading them
+    each, which costs 0.6-0.8 s of CPU per process."""
+    tune_update(np.eye(1), np.eye(1), 1.0, np.eye(1), np.eye(1), 1, np.eye(1))
+
+
+def tune_update(phi_pred, H, s: float, V, R, d_i: int, N, margin: float = MARGIN, D=None) -> UpdateChoice:
+    """Minimise ``tr Φ_{k+1|k+1}`` over (β, C, K) with (29) kept at margin (closed form + scalar search).
+
+    One item of :func:`tune_update_batch` (the feasibility maps' steps).
+    """
+    out = tune_update_batch(np.asarray(phi_pred, dtype=float)[None], np.asarray(H, float)[None], [float(s)],
+                            np.asarray(V, float)[None], np.asarray(R, float)[None], [d_i], np.asarray(N, float)[None],
+                            margin, D)
+    return UpdateChoice(float(out.beta[0]), out.C[0], out.K[0], out.phi_post[0], float(out.trace[0]))
 
 
 def _evaluate(slope, x, idx) -> tuple[np.ndarray, np.ndarray]:
@@ -526,6 +571,8 @@ def best_multiplier(trace_at, bmax: float, has_v: bool) -> float:
     """The β in ``(0, bmax]`` minimising the convex ``trace_at(β)`` (0 without V: the trace only grows with β)."""
     if not has_v:
         return 0.0
+    from scipy.optimize import minimize_scalar  # here: scipy.optimize takes a second to import
+
     res = minimize_scalar(trace_at, bounds=(bmax * 1e-9, bmax), method="bounded",
                           options={"xatol": bmax * 1e-8, "maxiter": 500})
     return float(res.x)

@@ -17,8 +17,6 @@ import click
 
 from designer.validation import ComputationError, InputError
 
-from . import api
-
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
 
@@ -125,6 +123,8 @@ def _options(kw: dict) -> dict:
 @click.option("--json", "as_json", is_flag=True, help="machine-readable output with every parameter")
 def scenarios_cmd(as_json: bool) -> None:
     """List the built-in scenarios."""
+    from . import api  # here, not at the top: the model layer loads only for a command that runs
+
     info = api.list_scenarios()
     if as_json:
         click.echo(json.dumps(info, indent=2))
@@ -145,6 +145,8 @@ def scenarios_cmd(as_json: bool) -> None:
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignments) -> None:
     """Simulate SCENARIO (a built-in name or a MODEL.py file) and write true states and measurements."""
+    from . import api
+
     sim = api.simulate(scenario, steps=steps, seed=seed, out=out, assignments=assignments)
     click.echo(f"wrote {out}: x {sim.x.shape}, z {sim.z.shape}")
 
@@ -158,6 +160,8 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignme
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     """Design the consensus filter of SCENARIO (a built-in name or a MODEL.py file) and write its gain schedule."""
+    from . import api
+
     res = api.design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
@@ -185,6 +189,8 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, quiet, assignments, **kw) -> None:
     """Map where the consensus design of SCENARIO admits a bounded steady-state bound."""
+    from . import api
+
     fmap = api.feasibility(scenario, grids, out=out, workers=workers, dask=dask, dask_security=dask_security,
                            force=force, quiet=quiet,
                            assignments=assignments, **_options(kw))
@@ -220,6 +226,8 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
     declares the paper's CHANNEL).
     """
     from designer.design import DesignOptions
+
+    from . import api
 
     extra = {k: v for k, v in (("engine", engine), ("schedule", schedule)) if v is not None}
     chosen = list(targets) + list(scenarios)
@@ -278,6 +286,8 @@ def _summary(f: dict) -> str:
 @click.argument("directory")
 def report_cmd(directory: str) -> None:
     """Write DIRECTORY/report.html (self-contained) and report.md from a study's, design's or feasibility map's files."""
+    from . import api
+
     html, md = api.report(directory)
     click.echo(f"wrote {html} and {md}")
 
@@ -288,7 +298,10 @@ def main(argv=None) -> int:
     debug = "--debug" in argv
     warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
     try:
-        cli.main(args=argv, prog_name="cfdesign", standalone_mode=False)
+        # make_context and invoke rather than cli.main: click.main answers a KeyboardInterrupt with an empty line
+        # on stderr before ours, and the model layer is imported inside the commands (a Ctrl-C there is start-up)
+        with cli.make_context("cfdesign", argv) as ctx:
+            cli.invoke(ctx)
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:

@@ -8,8 +8,9 @@ would build from the same options, the grid's values replacing theirs.
 ``trace_bound``, ``binding``, ``theorem2``, ``iterations``) and a heat map is drawn
 for one or two grid parameters.  The grid points go through the Monte Carlo runner
 (:mod:`studies.runner`; a point plays the part of a run, chunks of ``CHUNK_SIZE``
-points): in this process, on ``--workers N`` local processes or on a Dask cluster
-(``--dask ADDRESS``), stored under ``out/.chunks`` so that an interrupted map resumes.
+points, each iterated as one batch, :func:`designer.feasibility.steady_state_batch`): in
+this process, on ``--workers N`` local processes or on a Dask cluster (``--dask ADDRESS``),
+stored under ``out/.chunks`` so that an interrupted map resumes.
 
 **Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
 the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
@@ -34,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DesignOptions, make_design
-from designer.feasibility import steady_state
+from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import InputError
@@ -43,9 +44,10 @@ from .consensus_design import effective
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "CHUNK_SIZE", "OUTPUTS"]
+__all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
+           "OUTPUTS"]
 
-CHUNK_SIZE = 8  # grid points per chunk (the unit of resumption and of work sent to a worker)
+CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
 
 GRID_PARAMETERS = {
     "dos": "DoS probability on every channel, in [0, 1)",
@@ -91,39 +93,68 @@ def parse_grid(spec: str) -> tuple[str, np.ndarray]:
 
 
 def _scaling(model, des, x0, u0, xp):
-    """The Hessian-derived scalings at the operating point for the fixed-point iteration (None when fixed)."""
+    """The Hessian-derived scalings at the operating point for the fixed-point iteration (None when fixed);
+    ``phi_post`` (and ``phi_pred``) one matrix or a stack of them."""
     if des.linearization == "fixed":
         return None
 
     def scaling(i, phi_post, phi_pred):
-        pred = prediction_scaling(model, x0, phi_post, 0, u0, des.linearization, des.radius, des.U)
-        upd = None if phi_pred is None else update_scaling(model, i, xp, phi_pred, 1, des.linearization,
-                                                           des.radius, des.V[i])
+        centre = np.broadcast_to(x0, np.shape(phi_post)[:-1])  # one centre per matrix of a stack
+        pred = prediction_scaling(model, centre, phi_post, 0, u0, des.linearization, des.radius, des.U)
+        upd = None if phi_pred is None else update_scaling(model, i, np.broadcast_to(xp, np.shape(phi_pred)[:-1]),
+                                                           phi_pred, 1, des.linearization, des.radius, des.V[i])
         return pred, upd
 
     return scaling
 
 
-def _point(sc: Scenario, options: DesignOptions, point: dict, lin) -> dict:
-    """One grid point: the design of ``options`` with the point's values, iterated to its steady state."""
+_NO_ATTACK_MODEL = {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
+                    "iterations": 0}
+
+
+def _design_at(sc: Scenario, options: DesignOptions, point: dict):
+    """The scenario and the design of ``options`` with the point's values; None where dos + fdi > 1."""
     try:
         sc_p, opts = effective(sc, options.merged(DesignOptions(**point)))
     except InputError as exc:
         if "dos + fdi" not in str(exc):
             raise
-        # DoS and FDI never occur together: dos + fdi > 1 is no attack model
-        return {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
-                "iterations": 0}
+        return None  # DoS and FDI never occur together: dos + fdi > 1 is no attack model
     x0, u0 = sc_p.operating_point
-    m = sc_p.model
     att = sc_p.resolved_attacks
-    des = make_design(m, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
-    F, H, R, xp = lin
-    r = steady_state(F, H, m.process_cov, R, sc_p.network, epsilon=des.epsilon, delta=des.delta, U=des.U, V=des.V,
-                     mode=des.mode, sigma=des.sigma, beta=des.beta, tau=des.tau, phi0=m.prior.cov,
-                     scaling=_scaling(m, des, x0, u0, xp), fdi_span=des.fdi_span)
+    return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                             signal=att.signal)
+
+
+def _row(r) -> dict:
     return {"feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
             "theorem2": int(r.theorem2), "iterations": r.iterations}
+
+
+def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, batched: bool = True) -> list[dict]:
+    """The rows (``OUTPUTS``) of the grid ``points`` (dicts of grid values) of ``sc``'s map for ``options``.
+
+    ``batched``: every point's fixed-point iteration at once (:func:`designer.feasibility.steady_state_batch`);
+    False: point by point (:func:`designer.feasibility.steady_state`), the same numbers, much more slowly.
+    """
+    F, H, R, xp = _linearisation(sc)
+    x0, u0 = sc.operating_point
+    m = sc.model
+    designed = [_design_at(sc, options, p) for p in points]
+    ok = [d for d in designed if d is not None]
+    kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
+    if batched:
+        des = [d for _, d in ok]
+        res = iter(steady_state_batch(F, H, m.process_cov, R, [s.network for s, _ in ok],
+                                      epsilon=[d.epsilon for d in des], delta=[d.delta for d in des],
+                                      U=[d.U for d in des], V=[d.V for d in des], mode=des[0].mode if des else "paper",
+                                      sigma=[d.sigma for d in des], beta=[d.beta for d in des],
+                                      tau=[d.tau for d in des], **kw))
+    else:
+        res = (steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U, V=d.V,
+                            mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span, **kw)
+               for s, d in ok)
+    return [dict(_NO_ATTACK_MODEL) if d is None else _row(next(res)) for d in designed]
 
 
 def _linearisation(sc: Scenario):
@@ -137,10 +168,8 @@ def _linearisation(sc: Scenario):
 
 
 def _points(run_ids, seeds, *, ref: ScenarioRef, options: DesignOptions, points: Sequence[dict]) -> dict:
-    """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used)."""
-    sc = ref.build()
-    lin = _linearisation(sc)
-    rows = [_point(sc, options, points[int(i)], lin) for i in run_ids]
+    """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used), batched."""
+    rows = map_points(ref.build(), options, [points[int(i)] for i in run_ids])
     return {k: np.array([r[k] for r in rows]) for k in OUTPUTS}
 
 
@@ -252,6 +281,12 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         raise InputError("an in-memory model cannot be sent to a Dask cluster; write it to a model file")
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
     ref = reference(sc)
+    if backend is None or backend.kind != "dask":
+        ref.build()  # here, once: the chunks computed in this process and forked workers use it
+    if backend is not None and backend.kind == "processes":
+        from designer.tuning import load_kernels
+
+        load_kernels()  # once, before the workers are forked, rather than in every worker
     task = functools.partial(_points, ref=ref, options=options or DesignOptions(), points=points)
     config = {"study": "feasibility", "scenario": sc.name, "source": ref.source if not ref.in_memory else "memory",
               "grids": [[n, v.tolist()] for n, v in parsed], "options": (options or DesignOptions()).as_dict(),

@@ -91,11 +91,13 @@ def _same_rows(rows1, rows2) -> bool:
         for r1, r2 in zip(rows1, rows2))
 
 
-def test_map_files_and_workers_agree(tmp_path):
+def test_map_files_and_workers_agree(tmp_path, monkeypatch):
     rows1 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "a", quiet=True)
-    rows2 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "b", quiet=True,
-                            workers=2)
-    assert _same_rows(rows1, rows2)
+    monkeypatch.setattr("studies.feasibility_map.CHUNK_SIZE", 2)  # three chunks: the workers compute them
+    fmap = feasibility("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], mode="tuned", out=tmp_path / "b",
+                       quiet=True, workers=2)
+    assert fmap.runner["backend"] == "processes" and fmap.runner["chunks_computed"] == 3
+    assert _same_rows(rows1, fmap.rows)
     with open(tmp_path / "a" / "feasibility.csv") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == 6 and set(table[0]) == {"dos", "fdi", "feasible", "trace_bound", "binding", "theorem2",
@@ -128,10 +130,11 @@ def test_cli_feasibility(tmp_path):
     assert r.returncode == 2 and "tau" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
-def test_map_on_dask_and_resumed_from_its_chunks(tmp_path):
+def test_map_on_dask_and_resumed_from_its_chunks(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
     from studies.runner import CHUNKS_DIR
 
+    monkeypatch.setattr("studies.feasibility_map.CHUNK_SIZE", 8)
     grids = ["dos=0:0.3:4", "fdi=0:0.3:3"]  # 12 points: two chunks
     ref = feasibility_map("indoor-robot", grids, quiet=True)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:

@@ -11,7 +11,6 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.model import Model
 from designer.network import SensorNetwork
 from designer.validation import InputError
 
@@ -87,6 +86,8 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
             raise InputError(f"model() in {str(path)!r}: {exc}") from exc
         except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
             raise InputError(f"model() in {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+        from designer.model import Model  # the file imported CasADi already
+
         if not isinstance(m, Model):
             raise InputError(f"model() in {str(path)!r} must return a designer.Model, got {type(m).__name__}")
         try:
@@ -194,6 +195,8 @@ def scenario_of(target, *, network: SensorNetwork | None = None, attacks: Attack
     overrides, assignments
         Named scenario parameters (built-ins and ``SPEC`` files).
     """
+    from designer.model import Model  # here: listing the scenarios needs no CasADi
+
     if isinstance(target, Model):
         if overrides or assignments:
             raise InputError("an in-memory Model has no named parameters to override")

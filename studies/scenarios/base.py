@@ -3,20 +3,22 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 
 from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorChannel, ResolvedAttacks,
                               RoundRobinDeception)
 from designer.design import DesignOptions
-from designer.model import Model
 from designer.network import SensorNetwork
 from designer.simulate import Trajectory, simulate
 from designer.validation import InputError
 from filters.encryption import EncryptedChannel
 
-__all__ = ["Param", "Scenario", "ScenarioSpec", "parse_assignments", "CHANNEL_TYPES"]
+if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
+    from designer.model import Model
+
+__all__ = ["Param", "Scenario", "ScenarioSpec", "Outline", "parse_assignments", "CHANNEL_TYPES"]
 
 # What a scenario's ``channel`` (a model file's ``CHANNEL``) may be: one law per particle-filter paper.
 CHANNEL_TYPES = (RoundRobinDeception, EncryptedChannel, BinarySensorChannel, BiasFDI)
@@ -273,9 +275,23 @@ class Scenario:
         return simulate(self.model, steps, rng, batch=batch, x0=self.x0, inputs=self.inputs(steps))
 
 
+class Outline(NamedTuple):
+    """What ``cfdesign scenarios`` shows of a scenario besides its parameters, known without building its model."""
+
+    n_x: int
+    sensors: int
+    steps: int
+    assumptions: tuple[str, ...]
+
+
 @dataclass(frozen=True, eq=False)
 class ScenarioSpec:
-    """A scenario family: parameters with defaults and a builder."""
+    """A scenario family: parameters with defaults and a builder.
+
+    ``outline(values) -> Outline`` (optional) gives the state dimension, the number of sensors, the
+    horizon and the assumptions without building the model (a CasADi model and its NumPy translation
+    take seconds): :meth:`describe` uses it when given, and builds the scenario otherwise.
+    """
 
     name: str
     title: str
@@ -283,6 +299,7 @@ class ScenarioSpec:
     summary: str
     params: tuple[Param, ...]
     builder: Callable[[dict], Scenario]
+    outline: Callable[[dict], Outline] | None = None
 
     def param(self, name: str) -> Param:
         for p in self.params:
@@ -297,25 +314,35 @@ class ScenarioSpec:
     def defaults(self) -> dict:
         return {p.name: p.default for p in self.params}
 
-    def build(self, overrides: Mapping[str, Any] | None = None) -> Scenario:
-        """Build the scenario with ``overrides`` (name -> value) applied and validated."""
+    def _values(self, overrides: Mapping[str, Any] | None) -> dict:
         values = self.defaults()
         for name, value in (overrides or {}).items():
             values[name] = self.param(name).validate(value)
-        return self.builder(values)
+        return values
+
+    def build(self, overrides: Mapping[str, Any] | None = None) -> Scenario:
+        """Build the scenario with ``overrides`` (name -> value) applied and validated."""
+        return self.builder(self._values(overrides))
+
+    def outlined(self, overrides: Mapping[str, Any] | None = None) -> Outline:
+        """The :class:`Outline` of the scenario with ``overrides``: from ``outline`` when given, else built."""
+        if self.outline is not None:
+            return self.outline(self._values(overrides))
+        sc = self.build(overrides)
+        return Outline(sc.model.n_x, sc.model.n_sensors, sc.steps, tuple(sc.assumptions))
 
     def describe(self) -> dict:
-        sc = self.build()
+        o = self.outlined()
         return {
             "name": self.name,
             "title": self.title,
             "paper": self.paper,
             "summary": self.summary,
-            "n_x": sc.model.n_x,
-            "sensors": sc.model.n_sensors,
-            "steps": sc.steps,
+            "n_x": o.n_x,
+            "sensors": o.sensors,
+            "steps": o.steps,
             "parameters": [p.describe() for p in self.params],
-            "assumptions": list(sc.assumptions),
+            "assumptions": list(o.assumptions),
         }
 
 

@@ -1,7 +1,6 @@
 """Pieces shared by several built-in scenarios."""
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
 from designer.noise import Gaussian, GaussianMixture
@@ -9,8 +8,10 @@ from designer.noise import Gaussian, GaussianMixture
 __all__ = ["cv_transition", "cv_process_cov", "glint"]
 
 
-def cv_transition(x: ca.SX, period: float) -> ca.SX:
-    """Constant-velocity transition for the state ``[px, vx, py, vy]``."""
+def cv_transition(x, period: float):
+    """Constant-velocity transition for the state ``[px, vx, py, vy]`` (``x`` a ``casadi.SX`` symbol)."""
+    import casadi as ca
+
     return ca.vertcat(x[0] + period * x[1], x[1], x[2] + period * x[3], x[3])
 
 

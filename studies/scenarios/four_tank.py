@@ -16,16 +16,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
-import casadi as ca
 import numpy as np
 
 from designer.attacks import BiasFDI
-from designer.model import Model, Sensor
 from designer.noise import Gaussian
 from designer.simulate import Trajectory, simulate
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
+
+if TYPE_CHECKING:
+    from designer.model import Model
+
+N_X = 4  # the four levels
 
 R_SETTINGS = {"low": [1e-3, 1e-3, 0.5e-3, 0.5e-3], "high": [5e-3, 5e-3, 2.5e-3, 2.5e-3]}
 
@@ -65,8 +69,36 @@ PARAMS = (
 )
 
 
+def _assumptions(p: dict) -> tuple[str, ...]:
+    return (
+        "four-tank: the paper gives no tank equations or parameters; we use Johansson's quadruple-tank process "
+        "(IEEE TCST 2000), minimum-phase setting P-, with constant pump voltages.",
+        f"four-tank: discretised by classical Runge-Kutta with {p['substeps']} substeps over a {p['period']} s "
+        "period (the paper's sampling period is not given); outflows use sqrt(max(h, 0)) so levels are kept "
+        "non-negative in the dynamics.",
+        "four-tank: G = I (four levels measured directly) and Q = 1e-4 I: together they reproduce the paper's "
+        "threshold eta = 0.233 from ||gamma||_min = 0.28 via (45).",
+        f"four-tank: horizon {p['steps']} steps and prior N(h0, {p['prior_var']} I) are not given in the paper.",
+        "four-tank: the simulated plant is " + ("the model with its process noise N(0, Q)" if p["plant_noise"] else
+        "deterministic (no process noise; the filters still assume Q): the paper simulates the tank equations in "
+        "Simulink and says nothing of plant noise; its Theorem 2 (no false alarm when 3 tr(R)^1/2 <= eta) involves "
+        "R only, i.e. presumes the corrected particles match the plant up to measurement noise. With plant noise "
+        "the truth drifts ~0.1 cm from the never-resampled SIS particles and false alarms appear at the low noise "
+        "too (the fdi-four-tank study reports that case beside the main one)") + ".",
+    )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, len(p["G"]), p["steps"], _assumptions(p))  # one sensor per row of G
+
+
 def build(p: dict) -> Scenario:
-    x = ca.SX.sym("x", 4)
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
+    x = ca.SX.sym("x", N_X)
     u = ca.SX.sym("u", 2)
     A = np.asarray(p["tank_area"])
     a = np.asarray(p["outlet_area"])
@@ -114,27 +146,11 @@ def build(p: dict) -> Scenario:
     def inputs(steps: int) -> np.ndarray:
         return np.tile(v, (steps, 1))
 
-    assumptions = (
-        "four-tank: the paper gives no tank equations or parameters; we use Johansson's quadruple-tank process "
-        "(IEEE TCST 2000), minimum-phase setting P-, with constant pump voltages.",
-        f"four-tank: discretised by classical Runge-Kutta with {p['substeps']} substeps over a {p['period']} s "
-        "period (the paper's sampling period is not given); outflows use sqrt(max(h, 0)) so levels are kept "
-        "non-negative in the dynamics.",
-        "four-tank: G = I (four levels measured directly) and Q = 1e-4 I: together they reproduce the paper's "
-        "threshold eta = 0.233 from ||gamma||_min = 0.28 via (45).",
-        f"four-tank: horizon {p['steps']} steps and prior N(h0, {p['prior_var']} I) are not given in the paper.",
-        "four-tank: the simulated plant is " + ("the model with its process noise N(0, Q)" if p["plant_noise"] else
-        "deterministic (no process noise; the filters still assume Q): the paper simulates the tank equations in "
-        "Simulink and says nothing of plant noise; its Theorem 2 (no false alarm when 3 tr(R)^1/2 <= eta) involves "
-        "R only, i.e. presumes the corrected particles match the plant up to measurement noise. With plant noise "
-        "the truth drifts ~0.1 cm from the never-resampled SIS particles and false alarms appear at the low noise "
-        "too (the fdi-four-tank study reports that case beside the main one)") + ".",
-    )
     return FourTankScenario(
         "four-tank",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=x0,
         input_fn=inputs,
@@ -153,6 +169,8 @@ class FourTankScenario(Scenario):
     @cached_property
     def plant(self) -> Model:
         """The simulated plant: the model itself, or the model with its process noise switched off."""
+        from designer.model import Model
+
         m = self.model
         if self.plant_noise:
             return m
@@ -173,4 +191,5 @@ SPEC = ScenarioSpec(
     "Johansson's four-tank process, y = G x + v, bias FDI attack (3)-(4)",
     PARAMS,
     build,
+    outline,
 )

@@ -5,21 +5,21 @@ ceiling cameras (46)-(47) that form the sensor network of the consensus filter.
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
 from designer.attacks import AttackSpec, FDISignal
 from designer.design import DesignOptions
-from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian
 from designer.validation import InputError
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
 
 CAMERAS = [[0.6, 0.6], [0.6, 1.8], [1.2, 1.8], [1.8, 1.8], [2.4, 1.8], [2.4, 1.6], [1.8, 1.2], [1.2, 1.2]]
 # Ring in index order plus the chords between cameras 0.6 m apart (3-8 and 4-7, 1-based).
 EDGES = [[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7], [7, 0], [2, 7], [3, 6]]
+
+N_X = 3  # the pose [x, y, theta]
 
 PARAMS = (
     Param("noise", "realistic", "named noise setting: 'paper' = the published Q = I, R = I; 'realistic' = "
@@ -53,7 +53,39 @@ PARAMS = (
 )
 
 
+def _assumptions(p: dict) -> tuple[str, ...]:
+    return (
+        "indoor-robot: the camera topology is only drawn in the paper (Fig. 1, after Li, Jia, Du 2017); we use a ring "
+        "in index order plus the links between cameras 0.6 m apart (3-8, 4-7, 1-based): connected, d_max = 3.",
+        "indoor-robot: with the published Q = diag{1, 1, 1} (1 m and 1 rad per step) the simulated robot itself "
+        "leaves the 2.4 m x 1.8 m room within 30 steps in every run, so it cannot be the paper's simulated "
+        f"noise; the default 'realistic' setting uses Q = {p['process_var']} I (about 3 cm and 0.03 rad "
+        "per 5 cm step; with Q = 0.01 I, 39% of 2000 simulated runs still left the room, with 1e-3 I 0.25%). "
+        "noise=paper restores the published Q = I, R = I.",
+        f"indoor-robot: wheel inputs s^R = {p['wheel_right']} m, s^L = {p['wheel_left']} m per step, b = "
+        f"{p['wheel_base']} m, and x0 = {np.asarray(p['x0'], dtype=float).tolist()} are not given; they drive a "
+        "gentle left arc inside the room.",
+        f"indoor-robot: the filters' prior is N(x0, {p['prior_var']} I).",
+        f"indoor-robot: attack probabilities are not given; DoS {p['dos_prob']} and FDI {p['fdi_prob']} on every "
+        "channel.",
+        "indoor-robot: the paper's injected signal xi = [1.5 1.5]^T sin(s) is 2-D while the pose is 3-D; it is "
+        "injected on the position components only (heading untouched), one s ~ N(0, 1) per channel and step, which "
+        "keeps the printed bound delta = 1.5 sqrt(2) = 2.12.",
+        "indoor-robot: the paper gives no scaling matrices U, V; this scenario's design defaults are U = 0.01 I "
+        "and V_i = 0.1 I (override with --u-scale / --v-scale).",
+    )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, len(p["camera_positions"]), p["steps"], _assumptions(p))
+
+
 def build(p: dict) -> Scenario:
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
     cams = np.asarray(p["camera_positions"], dtype=float)
     n = cams.shape[0]
     if n < 1:
@@ -69,7 +101,7 @@ def build(p: dict) -> Scenario:
     attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"],
                          signal=FDISignal(p["attack_amplitude"], components=(0, 1), law="sine"))
 
-    x = ca.SX.sym("x", 3)
+    x = ca.SX.sym("x", N_X)
     u = ca.SX.sym("u", 2)  # wheel displacements [s^R, s^L]
     b = p["wheel_base"]
     f = ca.vertcat(
@@ -107,30 +139,11 @@ def build(p: dict) -> Scenario:
     def inputs(steps: int) -> np.ndarray:
         return np.tile(wheels, (steps, 1))
 
-    assumptions = (
-        "indoor-robot: the camera topology is only drawn in the paper (Fig. 1, after Li, Jia, Du 2017); we use a ring "
-        "in index order plus the links between cameras 0.6 m apart (3-8, 4-7, 1-based): connected, d_max = 3.",
-        "indoor-robot: with the published Q = diag{1, 1, 1} (1 m and 1 rad per step) the simulated robot itself "
-        "leaves the 2.4 m x 1.8 m room within 30 steps in every run, so it cannot be the paper's simulated "
-        f"noise; the default 'realistic' setting uses Q = {p['process_var']} I (about 3 cm and 0.03 rad "
-        "per 5 cm step; with Q = 0.01 I, 39% of 2000 simulated runs still left the room, with 1e-3 I 0.25%). "
-        "noise=paper restores the published Q = I, R = I.",
-        f"indoor-robot: wheel inputs s^R = {p['wheel_right']} m, s^L = {p['wheel_left']} m per step, b = "
-        f"{p['wheel_base']} m, and x0 = {x0.tolist()} are not given; they drive a gentle left arc inside the room.",
-        f"indoor-robot: the filters' prior is N(x0, {p['prior_var']} I).",
-        f"indoor-robot: attack probabilities are not given; DoS {p['dos_prob']} and FDI {p['fdi_prob']} on every "
-        "channel.",
-        "indoor-robot: the paper's injected signal xi = [1.5 1.5]^T sin(s) is 2-D while the pose is 3-D; it is "
-        "injected on the position components only (heading untouched), one s ~ N(0, 1) per channel and step, which "
-        "keeps the printed bound delta = 1.5 sqrt(2) = 2.12.",
-        "indoor-robot: the paper gives no scaling matrices U, V; this scenario's design defaults are U = 0.01 I "
-        "and V_i = 0.1 I (override with --u-scale / --v-scale).",
-    )
     return Scenario(
         "indoor-robot",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=x0,
         network=network,
@@ -147,4 +160,5 @@ SPEC = ScenarioSpec(
     "unicycle robot (43)-(45), 8 cameras (46)-(47), camera network with attacked channels",
     PARAMS,
     build,
+    outline,
 )

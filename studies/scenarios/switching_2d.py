@@ -8,15 +8,15 @@ resolution, quantizer, cipher and channel errors are its ``channel``
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
-from designer.model import Model, Sensor
 from designer.noise import Gaussian, GaussianMixture, TruncatedGaussian
 from designer.validation import InputError
 from filters.encryption import Codec, EncryptedChannel
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
+
+N_X = 2  # [x1, x2]
 
 PARAMS = (
     Param("F", [[0.85, -0.2], [-0.2, 0.76]], "linear part F(t) of the dynamics", kind="array", shape=(2, 2)),
@@ -39,11 +39,32 @@ PARAMS = (
 )
 
 
+def _assumptions(p: dict) -> tuple[str, ...]:
+    return (
+        "switching-2d: the true x(0) of every run is drawn from the prior N([2, -2], 1.2^2 I) (the paper gives no "
+        "fixed initial state).",
+        "switching-2d: F has an eigenvalue of about 1.01, so the state drifts slowly; kept as printed.",
+        "switching-2d: quantizer cells are half-open [lo, hi) and the index is clipped to 1..K; the key stream is "
+        "i.i.d. Bernoulli(1/2) bits per sensor and step (the paper fixes neither).",
+        "switching-2d: with bit_error_prob > 0 a CRC-4 (x^4 + x + 1) of the ciphertext detects transmission errors "
+        "(Remark 1 names CRC without a polynomial); bit errors and dropouts are independent per bit and per packet.",
+    )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, 2, p["steps"], _assumptions(p))  # sensors s1, s2
+
+
 def build(p: dict) -> Scenario:
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
     levels = p["quant_levels"]
     if levels & (levels - 1):
         raise InputError(f"parameter quant_levels must be a power of two >= 2, got {levels}")
-    x = ca.SX.sym("x", 2)
+    x = ca.SX.sym("x", N_X)
     r = ca.SX.sym("mode")
     F = ca.DM(p["F"])
     f = ca.vertcat(-0.25 * ca.tanh(x[1]), 0.35 * ca.tanh(x[0]))
@@ -72,20 +93,11 @@ def build(p: dict) -> Scenario:
         mode_probs=[1.0 - p["switch_prob"], p["switch_prob"]],
         description="2-state system with randomly switching nonlinearities f/g (seed 001)",
     )
-    assumptions = (
-        "switching-2d: the true x(0) of every run is drawn from the prior N([2, -2], 1.2^2 I) (the paper gives no "
-        "fixed initial state).",
-        "switching-2d: F has an eigenvalue of about 1.01, so the state drifts slowly; kept as printed.",
-        "switching-2d: quantizer cells are half-open [lo, hi) and the index is clipped to 1..K; the key stream is "
-        "i.i.d. Bernoulli(1/2) bits per sensor and step (the paper fixes neither).",
-        "switching-2d: with bit_error_prob > 0 a CRC-4 (x^4 + x + 1) of the ciphertext detects transmission errors "
-        "(Remark 1 names CRC without a polynomial); bit errors and dropouts are independent per bit and per packet.",
-    )
     return Scenario(
         "switching-2d",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=None,
         channel=EncryptedChannel(Codec(p["resolution"], p["quant_scale"], levels, p["quant_range"]),
@@ -100,4 +112,5 @@ SPEC = ScenarioSpec(
     "x+ = F x + gamma f(x) + (1-gamma) g(x) + eta; two sensors; Gaussian-mixture / truncated-Gaussian noise",
     PARAMS,
     build,
+    outline,
 )

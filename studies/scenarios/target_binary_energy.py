@@ -6,16 +6,16 @@ its ``channel`` (:class:`designer.attacks.BinarySensorChannel`, Table I).
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
 from designer.attacks import BinarySensorChannel
-from designer.model import Model, Sensor
 from designer.noise import Gaussian, PolarVelocityPrior, UniformBox
 from designer.validation import InputError
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
 from .common import cv_process_cov, cv_transition, glint
+
+N_X = 4  # [px, vx, py, vy]
 
 _GRID = [[float(a), float(b)] for b in (10, 30, 50, 70) for a in (10, 30, 50, 70)]
 
@@ -44,11 +44,33 @@ PARAMS = (
 )
 
 
+def _assumptions(p: dict) -> tuple[str, ...]:
+    return (
+        "target-binary-energy: the acceleration variance is printed '0.0452'; superscripts were lost in the source "
+        f"(cf. 'diag{{0.252, (pi/6)2}}'), so Xi = 0.045^2 = {p['accel_var']:.6g} is used.",
+        "target-binary-energy: sensor positions appear only in the paper's Fig. 2 (one at (10, 10)); we use the "
+        "4 x 4 grid {10, 30, 50, 70}^2, spacing 20 below the ~29.7 detection radius.",
+        f"target-binary-energy: K = {p['steps']} steps (not given).",
+        "target-binary-energy: the energy model is guarded at distance 1e-6 (h is singular at a sensor).",
+        "target-binary-energy: prior as in section IV-C: position N([15, 20], 100 I); speed N(0.5, 0.25^2), "
+        "heading N(arctan(3/4), (pi/6)^2), vx = s cos(a), vy = s sin(a).",
+    )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, len(p["sensor_positions"]), p["steps"], _assumptions(p))
+
+
 def build(p: dict) -> Scenario:
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
     pos = np.asarray(p["sensor_positions"], dtype=float)
     if pos.shape[0] < 1:
         raise InputError("parameter sensor_positions needs at least one sensor")
-    x = ca.SX.sym("x", 4)
+    x = ca.SX.sym("x", N_X)
     noise = glint(p["glint_prob"], [[p["glint_var1"]]], [[p["glint_var2"]]])
     scale = p["energy"] * p["ref_distance"] ** p["path_loss"]
     sensors = []
@@ -69,21 +91,11 @@ def build(p: dict) -> Scenario:
         velocity_index=(1, 3),
         description="2-D constant-velocity target, received-energy sensors with glint noise (seed 002)",
     )
-    assumptions = (
-        "target-binary-energy: the acceleration variance is printed '0.0452'; superscripts were lost in the source "
-        f"(cf. 'diag{{0.252, (pi/6)2}}'), so Xi = 0.045^2 = {p['accel_var']:.6g} is used.",
-        "target-binary-energy: sensor positions appear only in the paper's Fig. 2 (one at (10, 10)); we use the "
-        "4 x 4 grid {10, 30, 50, 70}^2, spacing 20 below the ~29.7 detection radius.",
-        f"target-binary-energy: K = {p['steps']} steps (not given).",
-        "target-binary-energy: the energy model is guarded at distance 1e-6 (h is singular at a sensor).",
-        "target-binary-energy: prior as in section IV-C: position N([15, 20], 100 I); speed N(0.5, 0.25^2), "
-        "heading N(arctan(3/4), (pi/6)^2), vx = s cos(a), vy = s sin(a).",
-    )
     return Scenario(
         "target-binary-energy",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=x0,
         channel=BinarySensorChannel(
@@ -105,4 +117,5 @@ SPEC = ScenarioSpec(
     "CV target (27)-(28), 16 received-energy sensors (29), Table I parameters",
     PARAMS,
     build,
+    outline,
 )

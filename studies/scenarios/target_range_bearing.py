@@ -6,18 +6,18 @@ noise (19); the Round-Robin schedule and the deception attack (4)-(6) are its
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
 from designer.attacks import AttackSpec, FDISignal, RoundRobinDeception
 from designer.design import DesignOptions
-from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian, UniformBox
 from designer.validation import InputError
 
-from .base import Param, Scenario, ScenarioSpec
+from .base import Outline, Param, Scenario, ScenarioSpec
 from .common import cv_process_cov, cv_transition, glint
+
+N_X = 4  # [px, vx, py, vy]
 
 PARAMS = (
     Param("period", 1.0, "sampling period T (s)", low=0.0, low_open=True),
@@ -51,43 +51,9 @@ PARAMS = (
 )
 
 
-def build(p: dict) -> Scenario:
-    pos = np.asarray(p["sensor_positions"], dtype=float)
-    if pos.shape[0] < 1:
-        raise InputError("parameter sensor_positions needs at least one sensor")
-    if not 1 <= p["rr_start"] <= pos.shape[0]:
-        raise InputError(f"parameter rr_start must be an integer in [1, {pos.shape[0]}], got {p['rr_start']}")
-    edges = np.asarray(p["edges"], dtype=float)
-    if edges.size and (np.any(edges != np.round(edges)) or np.any(edges >= pos.shape[0])):
-        raise InputError(f"parameter edges must hold integer node indices in [0, {pos.shape[0] - 1}]")
-    if p["dos_prob"] + p["fdi_prob"] > 1.0:
-        raise InputError("parameters dos_prob + fdi_prob must be <= 1 (DoS and FDI never occur together)")
-    network = SensorNetwork.from_edges(pos.shape[0], edges.astype(int).reshape(-1, 2).tolist(),
-                                       require_connected=False)
-    attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"], uplink_dos=p["dos_prob"], uplink_fdi=p["fdi_prob"],
-                         signal=FDISignal(p["attack_amplitude"], components=(0, 2), law="sine"))
-    x = ca.SX.sym("x", 4)
-    noise = glint(p["glint_prob"], np.diag(p["glint_cov1"]), np.diag(p["glint_cov2"]))
-    sensors = []
-    for i, (sx, sy) in enumerate(pos):
-        dx, dy = x[0] - sx, x[2] - sy
-        h = ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx))
-        sensors.append(Sensor(f"s{i + 1}", h, noise, (float(sx), float(sy)), angles=(1,)))
-    x0 = np.asarray(p["x0"], dtype=float)
-    model = Model(
-        "target-range-bearing",
-        x,
-        cv_transition(x, p["period"]),
-        sensors,
-        Gaussian.zero_mean(cv_process_cov(p["accel_std"] ** 2, p["period"])),
-        Gaussian(x0, np.diag(p["prior_var"])),
-        state_names=("px", "vx", "py", "vy"),
-        position_index=(0, 2),
-        velocity_index=(1, 3),
-        description="2-D constant-velocity target, range-bearing sensors with glint noise (seed 000)",
-    )
-    lower, upper = np.asarray(p["deception_lower"]), np.asarray(p["deception_upper"])
-    assumptions = (
+def _assumptions(p: dict) -> tuple[str, ...]:
+    pos, edges = np.asarray(p["sensor_positions"], dtype=float), np.asarray(p["edges"], dtype=float)
+    return (
         "target-range-bearing: the paper's sensor positions appear only in its Fig. 2; we place the four sensors on "
         f"the line px = 0 at {pos.tolist()}, so that every true range (<= ~80) and bearing lies inside the "
         "deception box and an attacked packet is not trivially separable.",
@@ -108,11 +74,58 @@ def build(p: dict) -> Scenario:
         "range, radians for the bearing); a single V_i = 0.1 I, as on the indoor robot, would claim a bearing "
         "remainder of 0.1 rad per metre of error, 7 to 100 times the bearing's at these ranges.",
     )
+
+
+def outline(p: dict) -> Outline:
+    """n_x, sensors, steps and assumptions of :func:`build` without the model."""
+    return Outline(N_X, len(p["sensor_positions"]), p["steps"], _assumptions(p))
+
+
+def build(p: dict) -> Scenario:
+    import casadi as ca  # here, not at the top: listing the scenarios needs no model (outline)
+
+    from designer.model import Model, Sensor
+
+    pos = np.asarray(p["sensor_positions"], dtype=float)
+    if pos.shape[0] < 1:
+        raise InputError("parameter sensor_positions needs at least one sensor")
+    if not 1 <= p["rr_start"] <= pos.shape[0]:
+        raise InputError(f"parameter rr_start must be an integer in [1, {pos.shape[0]}], got {p['rr_start']}")
+    edges = np.asarray(p["edges"], dtype=float)
+    if edges.size and (np.any(edges != np.round(edges)) or np.any(edges >= pos.shape[0])):
+        raise InputError(f"parameter edges must hold integer node indices in [0, {pos.shape[0] - 1}]")
+    if p["dos_prob"] + p["fdi_prob"] > 1.0:
+        raise InputError("parameters dos_prob + fdi_prob must be <= 1 (DoS and FDI never occur together)")
+    network = SensorNetwork.from_edges(pos.shape[0], edges.astype(int).reshape(-1, 2).tolist(),
+                                       require_connected=False)
+    attacks = AttackSpec(dos=p["dos_prob"], fdi=p["fdi_prob"], uplink_dos=p["dos_prob"], uplink_fdi=p["fdi_prob"],
+                         signal=FDISignal(p["attack_amplitude"], components=(0, 2), law="sine"))
+    x = ca.SX.sym("x", N_X)
+    noise = glint(p["glint_prob"], np.diag(p["glint_cov1"]), np.diag(p["glint_cov2"]))
+    sensors = []
+    for i, (sx, sy) in enumerate(pos):
+        dx, dy = x[0] - sx, x[2] - sy
+        h = ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx))
+        sensors.append(Sensor(f"s{i + 1}", h, noise, (float(sx), float(sy)), angles=(1,)))
+    x0 = np.asarray(p["x0"], dtype=float)
+    model = Model(
+        "target-range-bearing",
+        x,
+        cv_transition(x, p["period"]),
+        sensors,
+        Gaussian.zero_mean(cv_process_cov(p["accel_std"] ** 2, p["period"])),
+        Gaussian(x0, np.diag(p["prior_var"])),
+        state_names=("px", "vx", "py", "vy"),
+        position_index=(0, 2),
+        velocity_index=(1, 3),
+        description="2-D constant-velocity target, range-bearing sensors with glint noise (seed 000)",
+    )
+    lower, upper = np.asarray(p["deception_lower"]), np.asarray(p["deception_upper"])
     return Scenario(
         "target-range-bearing",
         model,
         dict(p),
-        assumptions,
+        _assumptions(p),
         steps=p["steps"],
         x0=x0,
         network=network,
@@ -129,4 +142,5 @@ SPEC = ScenarioSpec(
     "CV target (16)-(17), 4 range-bearing sensors (18), glint noise (19)",
     PARAMS,
     build,
+    outline,
 )
