@@ -68,6 +68,19 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cfdesign"
 
 
+_TAG = "CACHEDIR.TAG"  # the standard mark of a cache directory (backup tools skip it); clear_cache requires it
+
+
+def _root() -> Path:
+    """The cache directory, made and marked as cfdesign's (``CACHEDIR.TAG``) if it is not yet."""
+    root = cache_dir()
+    tag = root / _TAG
+    if not tag.is_file():
+        atomic_write(tag, lambda fh: fh.write(b"Signature: 8a477f597d28d172789f06886806bc55\n"
+                                              b"# cfdesign's compiled kernels: cfdesign cache clear removes them.\n"))
+    return root
+
+
 def kernels_dir() -> Path:
     """Where the generated kernel modules are (``<cache>/kernels``)."""
     return cache_dir() / "kernels"
@@ -96,7 +109,7 @@ class _Locator(caching._CacheLocator):
         self._stamp = stamp
         parent = Path(py_file).resolve().parent
         tag = hashlib.sha256(str(parent).encode()).hexdigest()[:12]
-        self._cache_path = str(cache_dir() / "numba" / f"{parent.name}_{tag}")
+        self._cache_path = str(_root() / "numba" / f"{parent.name}_{tag}")
 
     def get_cache_path(self) -> str:
         return self._cache_path
@@ -112,8 +125,8 @@ class _Locator(caching._CacheLocator):
         stamp = getattr(py_func, "_cfdesign_stamp", None)
         if stamp is None or not os.path.exists(py_file):
             return None
-        self = cls(py_func, py_file, stamp)
         try:
+            self = cls(py_func, py_file, stamp)
             self.ensure_cache_path()
         except OSError:  # not writable: no on-disk cache
             return None
@@ -181,8 +194,8 @@ def generated_module(source: str, label: str, namespace: dict | None = None, sta
     mod = sys.modules.get(modname)
     if mod is not None:
         return mod
-    path = kernels_dir() / f"{_SLUG.sub('_', label).strip('_')[:60]}-{key}.py"
     try:
+        path = _root() / "kernels" / f"{_SLUG.sub('_', label).strip('_')[:60]}-{key}.py"
         if not path.is_file() or path.read_text() != text:
             atomic_write(path, lambda fh: fh.write(text.encode()))
     except OSError:
@@ -206,12 +219,16 @@ def generated_module(source: str, label: str, namespace: dict | None = None, sta
 def clear_cache() -> list[Path]:
     """Remove the compiled kernels (the generated modules and numba's code); returns the paths removed.
 
-    Kernels compiled in a running process stay usable there; the next process compiles
-    them again.
+    Only a directory marked as cfdesign's cache (its ``CACHEDIR.TAG``) is touched, and in
+    it only what cfdesign writes.  Kernels compiled in a running process stay usable
+    there; the next process compiles them again.
     """
+    root = cache_dir()
+    if not (root / _TAG).is_file():
+        return []
     removed = []
     for sub in ("kernels", "numba"):
-        p = cache_dir() / sub
+        p = root / sub
         if p.exists():
             shutil.rmtree(p)
             removed.append(p)
