@@ -32,7 +32,7 @@ from designer.validation import InputError
 
 from .cache import FAST, STAMP
 from .driver import PROP_T, WEIGH_T
-from .primitives import exp_nonpos, ndtr, wrap_angle
+from .primitives import exp_nonpos, logaddexp, ndtr, wrap_angle
 
 __all__ = ["LOG_2PI", "model_kernels", "kernel_paths", "const", "compile_kernel", "noise_terms", "propagation",
            "propagation_predrawn", "weights", "components", "component_lines", "max_others_lines", "shared_bodies"]
@@ -40,7 +40,7 @@ __all__ = ["LOG_2PI", "model_kernels", "kernel_paths", "const", "compile_kernel"
 LOG_2PI = float(np.log(2.0 * np.pi))
 _KERNELS: "weakref.WeakKeyDictionary[Model, dict]" = weakref.WeakKeyDictionary()
 # The helpers the generated code calls by these names (besides designer.jit's).
-_NS = {"ndtr": ndtr, "_exp": exp_nonpos, "_wrap": wrap_angle}
+_NS = {"ndtr": ndtr, "_exp": exp_nonpos, "_wrap": wrap_angle, "_logaddexp": logaddexp}
 
 
 def model_kernels(model: Model) -> dict:

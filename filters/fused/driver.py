@@ -49,7 +49,7 @@ from .primitives import exp_nonpos, neginf_unless_finite
 from .resampling import resample
 
 __all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "GEN", "PROP_T", "WEIGH_T", "lik_type",
-           "drivers", "run_all", "likelihood_block", "loglik_rows", "covariance", "uniform_moments", "check_model",
+           "drivers", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance", "uniform_moments", "check_model",
            "check_particles", "check_generators", "check_options"]
 
 #: Particles per block of a filter step: the likelihood's scratch stays in the L1 cache.
@@ -301,6 +301,29 @@ def drivers(data, which: int = 0):
     return _DRIVERS[key]
 
 
+def spread(one, R: int, threads: int) -> None:
+    """``one(r)`` for every run ``r < R``, on ``threads`` threads (the kernels release the GIL).
+
+    Each thread takes the next run until none is left (``itertools.count`` is atomic under
+    the GIL): as balanced as one task per run on a busy machine, without a future per run.
+    """
+    if threads == 1 or R == 1:
+        for r in range(R):
+            one(r)
+        return
+    runs = itertools.count()
+
+    def worker() -> None:
+        for r in runs:
+            if r >= R:
+                return
+            one(r)
+
+    with ThreadPoolExecutor(max_workers=min(threads, R)) as ex:
+        for f in [ex.submit(worker) for _ in range(min(threads, R))]:
+            f.result()  # re-raise any exception from a worker
+
+
 def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads) -> FastSIRResult:
     """Every run of a family with data type ``data_type``: ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`,
     ``data_of_run(r)`` run ``r``'s data; runs spread over ``threads`` threads (each takes the next run)."""
@@ -315,25 +338,9 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
 
     def one(r: int) -> None:
         loglik[r] = run(*kernels, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
-                             ess[r], resampled[r], collapsed[r])
+                        ess[r], resampled[r], collapsed[r])
 
-    if threads == 1 or R == 1:
-        for r in range(R):
-            one(r)
-    else:
-        # Each thread takes the next run until none is left (itertools.count is atomic under the GIL): as
-        # balanced as one task per run on a busy machine, without a future per run.
-        runs = itertools.count()
-
-        def worker() -> None:
-            for r in runs:
-                if r >= R:
-                    return
-                one(r)
-
-        with ThreadPoolExecutor(max_workers=min(threads, R)) as ex:
-            for f in [ex.submit(worker) for _ in range(min(threads, R))]:
-                f.result()  # re-raise any exception from a worker
+    spread(one, R, threads)
     return FastSIRResult(check_finite_means(mean, "fused particle filter"), cov if covariance else None, ess, loglik,
                          resampled, collapsed)
 

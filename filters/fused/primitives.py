@@ -17,7 +17,7 @@ from designer.jit import fma
 
 from .cache import FAST, njit
 
-__all__ = ["ndtr", "exp_nonpos", "neginf_unless_finite", "wrap_angle"]
+__all__ = ["ndtr", "exp_nonpos", "neginf_unless_finite", "wrap_angle", "logaddexp"]
 
 
 @njit()
@@ -87,3 +87,16 @@ def wrap_angle(r):
     q = q - 1.0 if fma(-q, 6.283185307179586, x) < 0.0 else q
     w = 3.141592653589793 - fma(-q, 6.283185307179586, x)
     return r if (r > -3.141592653589793 and r <= 3.141592653589793) else w
+
+
+@njit(inline="always")
+def logaddexp(x, y):
+    """``numpy.logaddexp(x, y)``, as NumPy computes it (``log1p`` of the smaller term's ``exp``)."""
+    if x == y:  # also both -inf or +inf
+        return x + 0.6931471805599453
+    d = x - y
+    if d > 0.0:
+        return x + math.log1p(math.exp(-d))
+    if d <= 0.0:
+        return y + math.log1p(math.exp(d))
+    return d  # NaN
