@@ -151,15 +151,23 @@ class _Data(NamedTuple):
     gamma_hat: np.ndarray  # (runs, K, n_y) gamma + e, the noisy attack estimate
 
 
-def _data(sc, seqs) -> _Data:
+def _data(sc, seqs, simulated: dict) -> _Data:
+    """The runs' truth and measurements (stream 0) and attacks (streams 1, 3) in setting ``sc``.
+
+    ``simulated`` memoises the plant's runs by scenario parameters: settings that differ
+    only in their channel (γ̄ = 1, the noisy estimate) simulate the same plant draw for draw.
+    """
     ch = sc.channel
-    truth, y, ya, l, gh = [], [], [], [], []
-    for s in seqs:
-        tr = sc.simulate(np.random.default_rng(s[0]))
-        att = bias_attack(tr.z, bias=ch.bias, tau=ch.tau, prob=ch.prob, rng=np.random.default_rng(s[1]))
+    key = pickle.dumps((sc.name, sorted(sc.params.items()), sc.steps, None if sc.x0 is None else np.asarray(sc.x0)))
+    if key not in simulated:  # the runs together, each drawing from its own stream as a run of its own
+        simulated[key] = sc.simulate([np.random.default_rng(s[0]) for s in seqs], batch=len(seqs))
+    tr = simulated[key]
+    ya, l, gh = [], [], []
+    for s, z in zip(seqs, tr.z):
+        att = bias_attack(z, bias=ch.bias, tau=ch.tau, prob=ch.prob, rng=np.random.default_rng(s[1]))
         e = np.random.default_rng(s[3]).standard_normal(att.gamma.shape) * np.sqrt(ch.estimate_var)
-        truth.append(tr.x), y.append(tr.z), ya.append(att.y), l.append(att.l), gh.append(att.gamma + e)
-    return _Data(np.stack(truth), np.stack(y), np.stack(ya), np.stack(l), att.gamma, np.stack(gh))
+        ya.append(att.y), l.append(att.l), gh.append(att.gamma + e)
+    return _Data(tr.x, tr.z, np.stack(ya), np.stack(l), att.gamma, np.stack(gh))
 
 
 class _Design(NamedTuple):
@@ -314,10 +322,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
     plans, _ = _settings(ref, particles)
     seqs = [s.spawn(5) for s in seeds]
     R = len(seqs)
-    out = {}
+    out, simulated = {}, {}
     for key, p in plans.items():
         sc = p.sc
-        data = _data(sc, seqs)
+        data = _data(sc, seqs, simulated)
+        # the SIS particles depend on no measurement: every filter of the setting weighs the same ones (fast engine)
+        shared = _particles(sc, seqs, particles) if engine == "fast" else None
         out[f"{key}_truth"], out[f"{key}_l"] = data.truth, data.l
         if p.noisy_estimate:
             out[f"{key}_gamma_hat"] = data.gamma_hat
@@ -326,7 +336,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
             zname, kw, takes_gamma = p.specs[name]
             z = getattr(data, zname)
             extra = {"gamma_hat": gamma_hat} if takes_gamma else {}
-            res = _run(sc, p.design, engine, z, seqs, particles, **kw, **extra)
+            res = _run(sc, p.design, engine, z, seqs, particles, shared=shared, **kw, **extra)
             out[_key(key, name, "mean")] = res.mean
             if kw.get("detector"):
                 out[_key(key, name, "detected")] = res.detected
@@ -347,30 +357,40 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
     return out
 
 
-def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, **spec):
+def _particles(sc, seqs, particles: int):
+    """The fused engine's SIS particles of the runs ``seqs``: each run's prior draws then its propagation, from its
+    Generator on stream 2 (as run_sis draws them)."""
+    from filters.fused import sis_particles
+
+    rngs = [np.random.default_rng(s[2]) for s in seqs]
+    x0 = np.stack([sc.model.prior.sample(g, particles) for g in rngs])
+    return sis_particles(sc.model, x0, rngs, sc.steps, inputs=sc.inputs(sc.steps))
+
+
+def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, shared=None, **spec):
     """One filter (``spec``: its detector and likelihood, see ``_FILTER_SPECS``) on the runs ``seqs``.
 
-    Each run's particles from its Generator on stream 2 (the prior's draws first), the
-    sampled correction's from its own Generator on stream 4; the fused kernels
-    (:func:`filters.fused.sis_fdi`) or :func:`filters.fdi.run_sis`.
+    Each run's particles from its Generator on stream 2 (the prior's draws first; the fused
+    engine takes them from ``shared`` if given, see :func:`_particles`), the sampled
+    correction's from its own Generator on stream 4; the fused kernels
+    (:func:`filters.fused.sis_fdi`) or :func:`filters.fdi.run_sis`.  The fused engine's
+    wall time includes the particles' (drawn once per setting, every filter's cost).
     """
-    rngs = [np.random.default_rng(s[2]) for s in seqs]
     aux = [np.random.default_rng(s[4]) for s in seqs]
-    inputs = sc.inputs(sc.steps)
     extra = {} if gamma_hat is None else {"gamma_hat": gamma_hat}
     if engine == "numpy":
-        return run_sis(sc.model, z, rngs, particles=particles, inputs=inputs, aux_rng=aux,
+        rngs = [np.random.default_rng(s[2]) for s in seqs]
+        return run_sis(sc.model, z, rngs, particles=particles, inputs=sc.inputs(sc.steps), aux_rng=aux,
                        **_numpy_filter(sc, d, **spec), **extra)
     from filters.fused import sis_fdi
 
-    x0 = np.stack([sc.model.prior.sample(g, particles) for g in rngs])
     if spec.get("likelihood") == "mixture":
         extra.update(attack_prob=sc.channel.prob, deception=sc.channel.bias)
     if spec.get("detector"):
         extra.update(eta=d.eta, zeta=d.zeta)
     if spec.get("detector") == "sampled":
         extra["aux_rngs"] = aux
-    return sis_fdi(sc.model, x0, rngs, z, inputs=inputs, **spec, **extra)
+    return sis_fdi(sc.model, shared or _particles(sc, seqs, particles), z, **spec, **extra)
 
 
 class _View(NamedTuple):

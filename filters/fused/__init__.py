@@ -36,7 +36,7 @@ from .codegen import kernel_paths
 from .driver import FastSIRResult
 from .edpf import LIKELIHOODS, edpf_loglik, sir_edpf
 from .packets import packets_loglik, sir_packets
-from .sis import sis_fdi
+from .sis import SISParticles, sis_fdi, sis_particles
 
 __all__ = ["FastSIRResult", "sir_packets", "packets_loglik", "sir_binary", "binary_affine_loglik", "sir_edpf",
-           "edpf_loglik", "LIKELIHOODS", "sis_fdi", "kernel_paths"]
+           "edpf_loglik", "LIKELIHOODS", "sis_fdi", "sis_particles", "SISParticles", "kernel_paths"]

@@ -18,7 +18,7 @@ from designer.model import Model
 from designer.noise import Gaussian, GaussianMixture
 from designer.validation import InputError
 
-from .codegen import compile_kernel, const, propagation, weights
+from .codegen import compile_kernel, const, model_kernels, propagation, weights
 from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
 
@@ -91,6 +91,8 @@ def binary_affine_loglik(model: Model, x, k1: int, A, B, *, threshold: float) ->
 def binary_lik(model: Model):
     """``lik`` of the binary likelihood (see :func:`likelihood_block`, no slots), ``data = (A, B, T)``:
     ``b[m] += Σ_s log(A[t, s] + B[t, s] F_ν_s(T − h_s(X[m], k)))``."""
+    if "binary" in model_kernels(model):
+        return model_kernels(model)["binary"]
     if any(d != 1 for d in model.sensor_dims):
         raise InputError("sir_binary needs scalar sensors (every sensor of dimension 1)")
     lines = ["def lik(X, m0, n, k, data, t, b, ex):", "    A, B, T = data", "    Xb = X[m0:m0 + n]",

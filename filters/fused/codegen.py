@@ -108,6 +108,8 @@ def propagation(model: Model):
     """``prop(X, anc, XN, m0, n, k, rng, buf)``: ``XN[m] = f(X[anc[m]], k) + G (mean + L z)``, ``z ~ N(0, I)``,
     for ``m = m0 .. m0 + n − 1``: one particle's ``n_w`` normals in a row, particle after particle (NumPy's
     order), drawn as it goes (``buf`` unused: ``nd = 0``)."""
+    if "prop" in model_kernels(model):  # generating the source costs more than the lookup
+        return model_kernels(model)["prop"]
     noise = model.process_noise
     if not isinstance(noise, Gaussian):
         raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; "
@@ -184,6 +186,8 @@ def weights(model: Model):
     Generated per state dimension so that the mean's sums are local scalars; the
     exps in a loop of their own, which vectorises.
     """
+    if "weigh" in model_kernels(model):
+        return model_kernels(model)["weigh"]
     n = model.n_x
     lines = ["def weigh(x, b, s, best, W, mean):", "    M = x.shape[0]", "    for m in range(M):",
              "        W[m] = _exp(b[m] - best) * s[m]", "    acc = 0.0", "    s2 = 0.0"]

@@ -2,7 +2,7 @@
 
 Sequential importance sampling without resampling, for models **with known inputs**
 (``x+ = f(x, k, u_k) + G w``), with the detectors and likelihoods of :mod:`filters.fdi`,
-one compiled call per run:
+one compiled call per run and filter:
 
 * ``detector="normal"`` — the normal PF's (14)/(17) (:func:`filters.fdi.normal_detector`);
 * ``detector="modified"`` — the modified PF's (36)/(58) with the corrected particles
@@ -16,20 +16,24 @@ one compiled call per run:
   ``linear_weights`` — the NumPy engine's emulation of linear-domain weights, in the
   filter and in the normal detector alike (as the study uses it).
 
-Two functions are generated per model (:mod:`filters.fused.codegen`): the propagation,
-which also keeps ``f(x_{k-1}, k, u_k)`` for the sampled correction, and the
-log-likelihood of every particle (both densities' variants in one function); the
-loop, the detectors and the weights are generic code compiled once.  Draws: per step
-``n_w`` standard normals per particle, particle after particle, as
-``Gaussian.sample``; so with the same initial particles and generator a run
-reproduces ``run_sis`` with one Generator per run to rounding (the tests check it).
+The SIS proposal is the transition, so the particles depend on no measurement and every
+filter of a run sees the same ones (the paper's "same set of particles"): they are drawn
+once (:func:`sis_particles`, kept with ``f(x_{k-1}, k - 1, u_{k-1})`` for the sampled
+correction) and each filter weighs them (:func:`sis_fdi`).  Two functions are generated
+per model (:mod:`filters.fused.codegen`): the propagation and the log-likelihood of every
+particle (both densities' variants in one function); the loops, the detectors and the
+weights are generic code compiled once.  Draws: per step ``n_w`` standard normals per
+particle, particle after particle, as ``Gaussian.sample``; so with the same initial
+particles and generator a run reproduces ``run_sis`` with one Generator per run to
+rounding (the tests check it).  Memory: the particles of every step, ``2 R (K + 1) M n_x``
+doubles.
 
 Limitations: no switching modes; Gaussian process noise; Gaussian measurement noise.
 """
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 from numba.core import types
@@ -42,14 +46,15 @@ from filters.fdi import SISResult, deception_mixture_loglik, detection_gain, mea
 
 from .cache import njit
 from .codegen import component_lines, components, compile_kernel, model_kernels, noise_terms
-from .driver import B1, F1, F2, GEN, check_generators, check_model, check_particles, spread
+from .driver import B1, F1, F2, F3, GEN, check_generators, check_model, check_particles, spread
 
-__all__ = ["DETECTORS", "LIKELIHOODS", "sis_fdi"]
+__all__ = ["DETECTORS", "LIKELIHOODS", "SISParticles", "sis_particles", "sis_fdi"]
 
 #: The detectors by name (None: no detector) and the likelihoods, as the kernel's codes.
 DETECTORS = {None: 0, "normal": 1, "modified": 2, "sampled": 3}
 LIKELIHOODS = {"additive": 0, "mixture": 1, "uniform": 2}
 _LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))  # as filters.fdi: exp(x) == 0.0 below it
+_NO_DRAWS = np.random.default_rng(0)  # the aux Generator of a filter that draws none (a placeholder argument)
 
 PROP_T = types.FunctionType(types.void(F2, F2, F2, types.float64, GEN, F1))
 LIK_T = types.FunctionType(types.void(F2, types.float64, F1, F1, types.float64, types.float64, types.boolean, F1))
@@ -59,6 +64,8 @@ LIK_T = types.FunctionType(types.void(F2, types.float64, F1, F1, types.float64, 
 def _propagation(model: Model):
     """``prop(X, XN, FX, k, rng, u)``: ``FX[m] = f(X[m], k, u)``, ``XN[m] = FX[m] + G (mean + L z)``, for every
     particle, its ``n_w`` normals drawn in a row (``Gaussian.sample``'s order)."""
+    if "sis_prop" in model_kernels(model):
+        return model_kernels(model)["sis_prop"]
     noise = model.process_noise
     if not isinstance(noise, Gaussian):
         raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; the fused SIS filter "
@@ -189,14 +196,18 @@ def _correct(x, z, G, Kd, r, out):
         out[i] = x[i] + acc
 
 
-def _sis_run(prop, lik, x0, rng, aux, U, Z, GH, use_gh, G, Kd, Lq, eta, zeta, det, lin, kind, rho, lq, lp, mean, beta,
-             detected, ess, collapsed):
-    """One run of :func:`filters.fdi.run_sis` (see :func:`sis_fdi`); the outputs are written in place."""
-    M, n = x0.shape
+def _sis_particles(prop, x0, rng, U, X, FX):
+    """The particles of one run: ``X[0] = x0``, ``X[k + 1] = f(X[k], k, u_k) + G w`` (``FX[k]`` = the ``f`` part)."""
+    X[0] = x0
+    for k in range(FX.shape[0]):
+        prop(X[k], X[k + 1], FX[k], float(k), rng, U[k])
+
+
+def _sis_weigh(lik, X, FX, aux, Z, GH, use_gh, G, Kd, Lq, eta, zeta, det, lin, kind, rho, lq, lp, mean, beta,
+               detected, ess, collapsed):
+    """One run of :func:`filters.fdi.run_sis` on its particles ``X`` (see :func:`sis_fdi`); outputs in place."""
+    M, n = X.shape[1], X.shape[2]
     K, ny = Z.shape
-    x = x0.copy()
-    xn = np.empty((M, n))
-    fx = np.empty((M, n))
     lw = np.zeros(M)
     ll = np.empty(M)
     lld = np.empty(M)
@@ -206,14 +217,15 @@ def _sis_run(prop, lik, x0, rng, aux, U, Z, GH, use_gh, G, Kd, Lq, eta, zeta, de
     xt = np.empty(n)
     zz = np.empty(n)
     _normalise(lw, W)
+    x = X[0]
     for i in range(n):
         acc = 0.0
         for m in range(M):
             acc += W[m] * x[m, i]
         mean[0, i] = acc
     for k in range(K):
-        prop(x, xn, fx, float(k), rng, U[k])  # Step 1
-        x, xn = xn, x
+        x = X[k + 1]  # Step 1: the particles, drawn before (sis_particles)
+        fx = FX[k]
         for j in range(ny):
             zk[j] = Z[k, j]
         if det != 0:  # Step 2: detection mode
@@ -284,38 +296,97 @@ def _sis_run(prop, lik, x0, rng, aux, U, Z, GH, use_gh, G, Kd, Lq, eta, zeta, de
 _RUN: dict = {}
 
 
-def _driver():
-    if "run" not in _RUN:
+def _driver(which: str):
+    """The compiled entry point of :func:`_sis_particles` or :func:`_sis_weigh` (no type resolution per call, see
+    :func:`filters.fused.driver.drivers`)."""
+    if which not in _RUN:
         i8, f8, bo = types.int64, types.float64, types.boolean
-        sig = types.void(PROP_T, LIK_T, F2, GEN, GEN, F2, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8, f8, F2,
-                         F1, B1, F1, B1)
-        disp = njit()(_sis_run)
+        if which == "particles":
+            fn, sig = _sis_particles, types.void(PROP_T, F2, GEN, F2, F3, F3)
+        else:
+            fn, sig = _sis_weigh, types.void(LIK_T, F3, F3, GEN, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8, f8,
+                                             F2, F1, B1, F1, B1)
+        disp = njit()(fn)
         disp.compile(sig)
-        _RUN["run"] = disp.overloads[tuple(sig.args)].entry_point  # no type resolution per call (see driver.drivers)
-    return _RUN["run"]
+        _RUN[which] = disp.overloads[tuple(sig.args)].entry_point
+    return _RUN[which]
 
 
 # ============================================================================ public
-def sis_fdi(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generator], z: np.ndarray, *,
-            inputs: np.ndarray | None = None, likelihood: str = "additive", attack_prob: float = 0.0, deception=None,
-            detector: str | None = None, eta: float | None = None, zeta: float | None = None, gamma_hat=None,
-            linear_weights: bool = False, aux_rngs: Sequence[np.random.Generator] | None = None,
-            threads: int = 1):
-    """Seed 004's SIS filter (no resampling) with a detector, fused numba kernels, many runs.
+class SISParticles(NamedTuple):
+    """The particles of every run of an SIS filter (``R`` runs, ``K`` steps, ``M`` particles), from :func:`sis_particles`."""
+
+    x: np.ndarray  # (R, K + 1, M, n_x): x_0 (the initial particles), then x_k ~ p(x_k | x_{k-1})
+    fx: np.ndarray  # (R, K, M, n_x): f(x_{k-1}, k - 1, u_{k-1}) of step k, before the noise (the sampled correction's)
+    wall_time_s: float  # time of the compiled loop over all runs
+
+
+def sis_particles(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generator], steps: int, *,
+                  inputs: np.ndarray | None = None, threads: int = 1) -> SISParticles:
+    """The particles of an SIS filter whose proposal is the transition (Step 1 of :func:`filters.fdi.run_sis`).
+
+    They depend on no measurement, so every filter of :func:`sis_fdi` given them sees the
+    same particles (the paper's "same set of particles"): drawn once, weighed by each.
 
     Parameters
     ----------
     model : Model
-        Known inputs allowed, no switching modes; Gaussian process and measurement
-        noise; a linear measurement ``y = G x + v`` for the detectors.
+        Known inputs allowed, no switching modes; Gaussian process noise.
     x0 : ndarray, shape (R, M, n_x)
         Initial particles of every run (``model.prior.sample(rngs[r], M)``, as ``run_sis`` draws them).
     rngs : sequence of R numpy.random.Generator
-        The particles' randomness, one per run.
-    z : ndarray, shape (R, K, n_z)
-        Received measurements; ``z[:, k]`` measures ``x_{k+1}``.
+        The particles' randomness, one per run: per step ``n_w`` normals per particle, particle after particle.
+    steps : int
+        ``K``.
     inputs : ndarray, shape (K, n_u)
         The known inputs (required by a model with inputs).
+    threads : int
+        Threads the runs are spread over (the results do not depend on it).
+    """
+    model = check_model(model, inputs=True)
+    x0 = check_particles(x0, model.n_x)
+    R, M, n = x0.shape
+    gens = check_generators(rngs, R)
+    K = check_int("steps", steps, 1)
+    if model.n_u:
+        if inputs is None:
+            raise InputError(f"inputs of shape ({K}, {model.n_u}) are required by model {model.name!r}")
+        U = check_finite("inputs", inputs)
+        if U.shape != (K, model.n_u):
+            raise InputError(f"inputs must have shape ({K}, {model.n_u}), got {U.shape}")
+    elif inputs is not None and np.size(inputs):
+        raise InputError(f"inputs: model {model.name!r} has no known inputs")
+    else:
+        U = np.zeros((K, 0))
+    U = np.ascontiguousarray(U, dtype=np.float64)
+    threads = check_int("threads", threads, 1)
+    prop, run = _propagation(model), _driver("particles")
+    X = np.empty((R, K + 1, M, n))
+    FX = np.empty((R, K, M, n))
+    t0 = time.perf_counter()
+    spread(lambda r: run(prop, x0[r], gens[r], U, X[r], FX[r]), R, threads)
+    return SISParticles(X, FX, time.perf_counter() - t0)
+
+
+def sis_fdi(model: Model, particles: SISParticles, z: np.ndarray, *, likelihood: str = "additive",
+            attack_prob: float = 0.0, deception=None, detector: str | None = None, eta: float | None = None,
+            zeta: float | None = None, gamma_hat=None, linear_weights: bool = False,
+            aux_rngs: Sequence[np.random.Generator] | None = None, threads: int = 1):
+    """Seed 004's SIS filter (no resampling) with a detector on given particles, fused numba kernels, many runs.
+
+    ``sis_fdi(model, sis_particles(model, x0, rngs, K, inputs=u), z, ...)`` is
+    ``run_sis(model, z, rngs, particles=M, inputs=u, ...)`` with the detector and
+    likelihood named here (see the module notes), to rounding.
+
+    Parameters
+    ----------
+    model : Model
+        The model of the particles; Gaussian measurement noise; a linear measurement
+        ``y = G x + v`` for the detectors.
+    particles : SISParticles
+        Of every run (:func:`sis_particles`).
+    z : ndarray, shape (R, K, n_z)
+        Received measurements; ``z[:, k]`` measures ``x_{k+1}``.
     likelihood : {'additive', 'mixture', 'uniform'}
         See the module notes; ``'mixture'`` takes ``attack_prob`` (``p_l``) and ``deception`` (``rho``, (n_z,)).
     detector : {None, 'normal', 'modified', 'sampled'}
@@ -332,27 +403,20 @@ def sis_fdi(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generator], z
     Returns
     -------
     filters.fdi.SISResult
-        ``wall_time_s`` is the time of the compiled loop over all runs.
+        ``wall_time_s`` is the time of the compiled loops over all runs, the particles'
+        (:attr:`SISParticles.wall_time_s`) included: the filter's cost had it drawn them alone.
     """
     model = check_model(model, inputs=True)
-    x0 = check_particles(x0, model.n_x)
-    R, M, n = x0.shape
-    gens = check_generators(rngs, R)
+    if not isinstance(particles, SISParticles):
+        raise InputError(f"particles must be the SISParticles of sis_particles, got {type(particles).__name__}")
+    X, FX = particles.x, particles.fx
+    if X.ndim != 4 or X.shape[3] != model.n_x or FX.shape != (X.shape[0], X.shape[1] - 1) + X.shape[2:]:
+        raise InputError(f"particles must be of a model with {model.n_x} states (sis_particles)")
+    R, K1, M, n = X.shape
     Z = np.ascontiguousarray(check_finite("z", z), dtype=np.float64)
-    if Z.ndim != 3 or Z.shape[0] != R or Z.shape[2] != model.n_z or Z.shape[1] < 1:
-        raise InputError(f"z must have shape (runs, K, {model.n_z}) with runs = {R}, got {Z.shape}")
-    K = Z.shape[1]
-    if model.n_u:
-        if inputs is None:
-            raise InputError(f"inputs of shape ({K}, {model.n_u}) are required by model {model.name!r}")
-        U = check_finite("inputs", inputs)
-        if U.shape != (K, model.n_u):
-            raise InputError(f"inputs must have shape ({K}, {model.n_u}), got {U.shape}")
-    elif inputs is not None and np.size(inputs):
-        raise InputError(f"inputs: model {model.name!r} has no known inputs")
-    else:
-        U = np.zeros((K, 0))
-    U = np.ascontiguousarray(U, dtype=np.float64)
+    if Z.shape != (R, K1 - 1, model.n_z):
+        raise InputError(f"z must have shape (runs, K, n_z) = ({R}, {K1 - 1}, {model.n_z}), the particles' runs and "
+                         f"steps, got {Z.shape}")
     if likelihood not in LIKELIHOODS:
         raise InputError(f"likelihood must be one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
     rho = np.zeros(model.n_z)
@@ -393,7 +457,7 @@ def sis_fdi(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generator], z
     else:
         if aux_rngs is not None:
             raise InputError("aux_rngs: only detector='sampled' draws from them")
-        aux = gens
+        aux = [_NO_DRAWS] * R  # never drawn from
     if gamma_hat is not None:
         if detector is None:
             raise InputError("gamma_hat needs a detector (it is subtracted where an attack is declared)")
@@ -406,21 +470,20 @@ def sis_fdi(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generator], z
     if not isinstance(linear_weights, (bool, np.bool_)):
         raise InputError(f"linear_weights must be True or False, got {linear_weights!r}")
     threads = check_int("threads", threads, 1)
-    prop, lik = _propagation(model), _likelihood(model)  # the uniform likelihood never calls lik
-    run = _driver()
-    mean = np.empty((R, K + 1, n))
-    beta = np.full((R, K), np.nan)
-    detected = np.zeros((R, K), dtype=np.bool_)
-    ess = np.empty((R, K))
-    collapsed = np.zeros((R, K), dtype=np.bool_)
+    lik, run = _likelihood(model), _driver("weigh")  # the uniform likelihood never calls lik
+    mean = np.empty((R, K1, n))
+    beta = np.full((R, K1 - 1), np.nan)
+    detected = np.zeros((R, K1 - 1), dtype=np.bool_)
+    ess = np.empty((R, K1 - 1))
+    collapsed = np.zeros((R, K1 - 1), dtype=np.bool_)
     G, Kd, Lq = (np.ascontiguousarray(a, dtype=np.float64) for a in (G, Kd, Lq))
     det, kind = DETECTORS[detector], LIKELIHOODS[likelihood]
 
     def one(r: int) -> None:
-        run(prop, lik, x0[r], gens[r], aux[r], U, Z[r], GH[r if gamma_hat is not None else 0], gamma_hat is not None,
-            G, Kd, Lq, float(eta or 0.0), float(zeta or 0.0), det, bool(linear_weights), kind, rho, lq, lp, mean[r],
-            beta[r], detected[r], ess[r], collapsed[r])
+        run(lik, X[r], FX[r], aux[r], Z[r], GH[r if gamma_hat is not None else 0], gamma_hat is not None, G, Kd, Lq,
+            float(eta or 0.0), float(zeta or 0.0), det, bool(linear_weights), kind, rho, lq, lp, mean[r], beta[r],
+            detected[r], ess[r], collapsed[r])
 
     t0 = time.perf_counter()
     spread(one, R, threads)
-    return SISResult(mean, beta, detected, ess, collapsed, time.perf_counter() - t0)
+    return SISResult(mean, beta, detected, ess, collapsed, time.perf_counter() - t0 + particles.wall_time_s)
