@@ -8,7 +8,7 @@ import numpy as np
 from .model import Model
 from .validation import InputError, check_finite, check_int, check_rng
 
-__all__ = ["Trajectory", "simulate", "simulate_runs"]
+__all__ = ["Trajectory", "simulate", "simulate_runs", "check_inputs"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,7 +42,8 @@ class Trajectory:
         return out
 
 
-def _inputs(model: Model, steps: int, inputs) -> np.ndarray:
+def check_inputs(model: Model, steps: int, inputs) -> np.ndarray:
+    """``inputs`` checked as ``(steps, n_u)`` known inputs of ``model`` (``(steps, 0)`` for a model without)."""
     if model.n_u == 0:
         if inputs is not None and np.size(inputs) != 0:
             raise InputError("inputs given but the model has no known inputs")
@@ -107,7 +108,7 @@ def simulate(
         """``sample(rng, shape)`` for the batch: one call, or one per run's Generator (its own draw order)."""
         return sample(rng, batch) if gens is None else np.stack([sample(g, ()) for g in gens])
 
-    u = _inputs(model, steps, inputs)
+    u = check_inputs(model, steps, inputs)
     if x0 is None:
         x = draw(model.prior.sample)
     else:
@@ -180,7 +181,7 @@ def simulate_runs(
     if not gens:
         raise InputError("rngs must hold at least one Generator (one per run)")
     R = len(gens)
-    u = _inputs(model, steps, inputs)
+    u = check_inputs(model, steps, inputs)
     if x0 is not None:
         x0 = check_finite("x0", x0)
         if x0.shape not in ((model.n_x,), (R, model.n_x)):

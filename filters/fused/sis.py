@@ -41,8 +41,10 @@ from numba.core import types
 from designer.jit import scalar_statements
 from designer.model import Model
 from designer.noise import Gaussian
+from designer.simulate import check_inputs
 from designer.validation import InputError, check_finite, check_int, check_probability
-from filters.fdi import SISResult, deception_mixture_loglik, detection_gain, measurement_cov, measurement_matrix
+from filters.fdi import (SISResult, check_gamma_hat, deception_mixture_loglik, detection_gain, measurement_cov,
+                         measurement_matrix)
 
 from .cache import njit
 from .codegen import component_lines, components, compile_kernel, model_kernels, noise_terms
@@ -101,21 +103,20 @@ def _likelihood(model: Model):
     lines = ["def lik(X, k, z, rho, lq, lp, mixture, ll):", "    for m in range(X.shape[0]):"]
     lines += scalar_statements(model.casadi_h_all, ["X[m, {}]", "k"], "h{}", indent="        ")
     lines.append("        total = 0.0")
-    lines.append("        if mixture:")
-    for s, comps in enumerate(sensors):
-        rows = range(int(offsets[s]), int(offsets[s + 1]))
-        lines += [f"{ind}r{j} = z[{a}] - h{a}" for j, a in enumerate(rows)]
-        lines += component_lines(comps, [f"r{j}" for j in range(len(rows))], ind)
-        lines.append(f"{ind}clean = lq + t0")
-        lines += [f"{ind}r{j} = r{j} - rho[{a}]" for j, a in enumerate(rows)]
-        lines += component_lines(comps, [f"r{j}" for j in range(len(rows))], ind)
-        lines.append(f"{ind}total = total + _logaddexp(clean, lp + t0)")
-    lines.append("        else:")
-    for s, comps in enumerate(sensors):
-        rows = range(int(offsets[s]), int(offsets[s + 1]))
-        lines += [f"{ind}r{j} = z[{a}] - h{a}" for j, a in enumerate(rows)]
-        lines += component_lines(comps, [f"r{j}" for j in range(len(rows))], ind)
-        lines.append(f"{ind}total = total + t0")
+    for branch in ("if mixture:", "else:"):
+        lines.append(f"        {branch}")
+        for s, comps in enumerate(sensors):
+            rows = range(int(offsets[s]), int(offsets[s + 1]))
+            r = [f"r{j}" for j in range(len(rows))]
+            lines += [f"{ind}r{j} = z[{a}] - h{a}" for j, a in enumerate(rows)]
+            lines += component_lines(comps, r, ind)  # t0 = log p_s(r)
+            if branch == "else:":
+                lines.append(f"{ind}total = total + t0")
+                continue
+            lines.append(f"{ind}clean = lq + t0")
+            lines += [f"{ind}r{j} = r{j} - rho[{a}]" for j, a in enumerate(rows)]
+            lines += component_lines(comps, r, ind)
+            lines.append(f"{ind}total = total + _logaddexp(clean, lp + t0)")
     lines.append("        ll[m] = total")
     return compile_kernel(model, key, "\n".join(lines), "lik", "the SIS likelihood", LIK_T)
 
@@ -348,17 +349,7 @@ def sis_particles(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generat
     R, M, n = x0.shape
     gens = check_generators(rngs, R)
     K = check_int("steps", steps, 1)
-    if model.n_u:
-        if inputs is None:
-            raise InputError(f"inputs of shape ({K}, {model.n_u}) are required by model {model.name!r}")
-        U = check_finite("inputs", inputs)
-        if U.shape != (K, model.n_u):
-            raise InputError(f"inputs must have shape ({K}, {model.n_u}), got {U.shape}")
-    elif inputs is not None and np.size(inputs):
-        raise InputError(f"inputs: model {model.name!r} has no known inputs")
-    else:
-        U = np.zeros((K, 0))
-    U = np.ascontiguousarray(U, dtype=np.float64)
+    U = np.ascontiguousarray(check_inputs(model, K, inputs), dtype=np.float64)
     threads = check_int("threads", threads, 1)
     prop, run = _propagation(model), _driver("particles")
     X = np.empty((R, K + 1, M, n))
@@ -459,12 +450,7 @@ def sis_fdi(model: Model, particles: SISParticles, z: np.ndarray, *, likelihood:
             raise InputError("aux_rngs: only detector='sampled' draws from them")
         aux = [_NO_DRAWS] * R  # never drawn from
     if gamma_hat is not None:
-        if detector is None:
-            raise InputError("gamma_hat needs a detector (it is subtracted where an attack is declared)")
-        gh = check_finite("gamma_hat", gamma_hat)
-        if gh.shape not in (Z.shape, Z.shape[1:]):
-            raise InputError(f"gamma_hat must have shape {Z.shape} or {Z.shape[1:]}, got {gh.shape}")
-        GH = np.ascontiguousarray(np.broadcast_to(gh, Z.shape), dtype=np.float64)
+        GH = np.ascontiguousarray(check_gamma_hat(gamma_hat, Z.shape, detector is not None), dtype=np.float64)
     else:
         GH = np.zeros((1, 1, model.n_z))
     if not isinstance(linear_weights, (bool, np.bool_)):
