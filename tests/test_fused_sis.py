@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from designer import Gaussian, InputError, Model, Sensor
+from designer.validation import ComputationError
 from filters.attacks import bias_attack
 from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_gain, measurement_cov,
                          measurement_matrix, modified_detector, normal_detector, residual_threshold, run_sis,
@@ -174,3 +175,13 @@ def test_particles_need_the_inputs_and_the_right_shapes(tank):
     parts = sis_particles(m, x0, [g], K, inputs=u)
     with pytest.raises(InputError, match="z must have shape"):
         sis_fdi(m, parts, tank["attacked"][:1, :-1])
+
+
+def test_a_mean_that_leaves_the_reals_is_named_by_run_and_step():
+    x = ca.SX.sym("x", 1)
+    m = Model("blowup", x, ca.sqrt(x - 10.0), [Sensor("s", x, Gaussian.zero_mean([[0.1]]))],
+              Gaussian.zero_mean([[0.01]]), Gaussian([1.0], [[0.1]]))  # sqrt of a negative number: NaN at step 1
+    g = np.random.default_rng(0)
+    parts = sis_particles(m, m.prior.sample(g, 16)[None], [g], 5)
+    with pytest.raises(ComputationError, match="run 0 is not finite from step 1"):
+        sis_fdi(m, parts, np.zeros((1, 5, 1)))

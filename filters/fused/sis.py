@@ -45,6 +45,7 @@ from designer.simulate import check_inputs
 from designer.validation import InputError, check_finite, check_int, check_probability
 from filters.fdi import (SISResult, check_gamma_hat, deception_mixture_loglik, detection_gain, measurement_cov,
                          measurement_matrix)
+from filters.particle import check_finite_means
 
 from .cache import njit
 from .codegen import component_lines, components, compile_kernel, model_kernels, noise_terms
@@ -472,4 +473,5 @@ def sis_fdi(model: Model, particles: SISParticles, z: np.ndarray, *, likelihood:
 
     t0 = time.perf_counter()
     spread(one, R, threads)
-    return SISResult(mean, beta, detected, ess, collapsed, time.perf_counter() - t0 + particles.wall_time_s)
+    wall = time.perf_counter() - t0 + particles.wall_time_s
+    return SISResult(check_finite_means(mean, "fused SIS particle filter"), beta, detected, ess, collapsed, wall)
