@@ -38,11 +38,12 @@ import numpy as np
 from designer.jit import compile_source
 from designer.noise import spawn_generators
 from filters import fused
-from filters.fused.codegen import propagation, weights
-from filters.fused.driver import BLOCK, drivers, likelihood_block
-from filters.fused.packets import DATA, packet_data, packet_lik, wrap_set
 from filters.attacks import deception_attack, round_robin_schedule
+from filters.fused.codegen import propagation, weights
+from filters.fused.driver import BLOCK, drivers, likelihood_block, resampler
+from filters.fused.packets import DATA, packet_data, packet_lik, wrap_set
 from filters.particle import run_sir
+from filters.resampling import scheme_code
 from filters.rrp import all_sensors_loglik, deception_terms, rrp_loglik, wrap_angles
 from studies.scenarios import load_scenario
 
@@ -280,7 +281,7 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
     box = sc.channel.deception
     wrap = wrap_set(sc.model.angle_components, m)
     prop, weigh = propagation(m), weights(m)
-    run = drivers(DATA)
+    run, systematic = drivers(DATA), resampler(scheme_code("systematic"))
     lc, att_rr = deception_terms(d["rr_att"][:1], ETA, box)
     _, att_all = deception_terms(d["all_att"][:1], ETA, box)
     lik, ne = packet_lik(m, wrap, True)  # attack-aware, as both filters below
@@ -301,8 +302,8 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
             "draws": lambda: _draws(np.random.default_rng(1), K * particles * n_w),
             "prop": lambda: props(prop, x, xn, K, np.random.default_rng(1)),
             "lik": lambda: liks(lik, x, K, data, P, ne, b, w),
-            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
-                                ess, *flags),
+            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), systematic, 1.0, False,
+                                mean, cov, ess, *flags),
         }
         for fn in parts.values():
             fn()

@@ -46,10 +46,10 @@ from filters.resampling import SCHEMES, scheme_code
 
 from .cache import njit
 from .primitives import exp_nonpos, neginf_unless_finite
-from .resampling import resample
+from .resampling import SCHEME_FUNCTIONS
 
 __all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "GEN", "PROP_T", "WEIGH_T", "lik_type",
-           "drivers", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance", "uniform_moments", "check_model",
+           "drivers", "resampler", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance", "uniform_moments", "check_model",
            "check_particles", "check_generators", "check_options"]
 
 #: Particles per block of a filter step: the likelihood's scratch stays in the L1 cache.
@@ -186,7 +186,7 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
     return best
 
 
-def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov, mean, cov, ess, resampled,
+def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_cov, mean, cov, ess, resampled,
              collapsed):
     """One Monte Carlo run of the bootstrap filter; returns its log marginal likelihood.
 
@@ -243,7 +243,7 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, scheme, ess_thr, do_cov
         if do_cov:
             covariance(x, W, inv, mk, ck)
         if ess_thr >= 1.0 or e < ess_thr * Mf - 1e-9:
-            resample(scheme, W, inv, rng, anc, cdf, u)
+            resampler(W, inv, rng, anc, cdf, u)
             resampled[k] = True
             fresh = True
             prev = lnM
@@ -267,7 +267,19 @@ I1, I2, B1 = types.int64[::1], types.int64[:, ::1], types.boolean[::1]
 GEN = numba.typeof(np.random.default_rng(0))  # one type for every numpy.random.Generator
 PROP_T = types.FunctionType(types.void(F2, I1, F2, types.int64, types.int64, types.float64, GEN, F1))
 WEIGH_T = types.FunctionType(types.UniTuple(types.float64, 2)(F2, F1, F1, types.float64, F1, F1))
+SCHEME_T = types.FunctionType(types.void(F1, types.float64, GEN, I1, F1, F1))
 _DRIVERS: dict = {}
+_SCHEMES: dict = {}
+
+
+def resampler(code: int):
+    """The compiled resampling scheme of ``code`` (:data:`filters.fused.resampling.SCHEME_FUNCTIONS`) as a
+    first-class function: compiled (or loaded from the cache) at its first use only."""
+    if code not in _SCHEMES:
+        fn = SCHEME_FUNCTIONS[code]
+        fn.compile(SCHEME_T.signature)
+        _SCHEMES[code] = types.CompileResultWAP(fn.overloads[tuple(SCHEME_T.signature.args)])
+    return _SCHEMES[code]
 
 
 def lik_type(data):
@@ -294,7 +306,7 @@ def drivers(data, which: int = 0):
     if key not in _DRIVERS:
         lik, i8, f8 = lik_type(data), types.int64, types.float64
         if which == 0:
-            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, GEN, i8, f8, types.boolean, F2, F3, F1, B1, B1)
+            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, GEN, SCHEME_T, f8, types.boolean, F2, F3, F1, B1, B1)
             _DRIVERS[key] = _entry(_sir_run, sig)
         else:
             _DRIVERS[key] = _entry(loglik_rows, types.void(lik, i8, i8, F2, f8, data, F1))
@@ -327,7 +339,7 @@ def spread(one, R: int, threads: int) -> None:
 def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads) -> FastSIRResult:
     """Every run of a family with data type ``data_type``: ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`,
     ``data_of_run(r)`` run ``r``'s data; runs spread over ``threads`` threads (each takes the next run)."""
-    run = drivers(data_type)
+    run, scheme = drivers(data_type), resampler(scheme)
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
     cov = np.empty((R, K + 1, n_x, n_x)) if covariance else np.zeros((R, 1, 0, 0))

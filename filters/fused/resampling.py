@@ -1,9 +1,10 @@
 """The resampling schemes of :mod:`filters.resampling`, compiled for one run of the fused kernels.
 
 The registry (names, codes, the schemes' definitions) is :mod:`filters.resampling`'s:
-:func:`resample` takes a scheme by its code (:func:`filters.resampling.scheme_code`) and
-draws the same uniforms from the run's Generator in the same order as the NumPy
-function of that scheme, so both engines resample alike (the tests compare them).
+:data:`SCHEME_FUNCTIONS` maps a scheme's code (:func:`filters.resampling.scheme_code`) to
+its compiled function, which draws the same uniforms from the run's Generator in the same
+order as the NumPy function of that scheme, so both engines resample alike (the tests
+compare them).
 Systematic resampling, the default, is branch-free (:func:`systematic`).
 """
 from __future__ import annotations
@@ -16,7 +17,7 @@ from filters.resampling import scheme_code
 
 from .cache import njit
 
-__all__ = ["SYSTEMATIC", "STRATIFIED", "MULTINOMIAL", "RESIDUAL", "resample", "systematic", "inverse_cdf",
+__all__ = ["SYSTEMATIC", "STRATIFIED", "MULTINOMIAL", "RESIDUAL", "SCHEME_FUNCTIONS", "systematic", "inverse_cdf",
            "cumsum_to_one", "heap_sort"]
 
 SYSTEMATIC, STRATIFIED, MULTINOMIAL, RESIDUAL = (scheme_code(n) for n in ("systematic", "stratified", "multinomial",
@@ -106,52 +107,69 @@ def heap_sort(a):
 
 
 @njit()
-def resample(scheme, W, scale, rng, idx, cdf, u):
-    """Indices from the weights ``W * scale`` (normalised) by scheme code ``scheme`` of :mod:`filters.resampling`, same draws.
+def systematic_scheme(W, scale, rng, idx, cdf, u):
+    """Systematic: one uniform shared by all strata, ``u_m = (m + U) / M`` (:func:`systematic`)."""
+    systematic(W, scale, rng.random(), idx, cdf, u)
 
-    ``cdf`` (N) and ``u`` (M + 1) are scratch.
-    """
+
+@njit()
+def stratified_scheme(W, scale, rng, idx, cdf, u):
+    """Stratified: one uniform per stratum, ``u_m = (m + U_m) / M``."""
+    M = idx.shape[0]
+    cumsum_to_one(W, scale, cdf)
+    for m in range(M):
+        u[m] = (m + rng.random()) / M
+    inverse_cdf(cdf, u[:M], idx)
+
+
+@njit()
+def multinomial_scheme(W, scale, rng, idx, cdf, u):
+    """Multinomial: ``M`` independent uniforms, sorted."""
+    M = idx.shape[0]
+    cumsum_to_one(W, scale, cdf)
+    for m in range(M):
+        u[m] = rng.random()
+    heap_sort(u[:M])
+    inverse_cdf(cdf, u[:M], idx)
+
+
+@njit()
+def residual_scheme(W, scale, rng, idx, cdf, u):
+    """Residual: ``floor(M W)`` copies, the rest multinomially from the residual weights."""
     M = idx.shape[0]
     Mf = float(M)
-    if scheme == SYSTEMATIC:  # systematic: one uniform shared by all strata
-        systematic(W, scale, rng.random(), idx, cdf, u)
-        return
-    u = u[:M]
-    if scheme == RESIDUAL:  # residual: floor(M W) copies, the rest multinomially from the residual weights
-        N = W.shape[0]
-        res = np.empty(N)
-        counts = np.empty(N, np.int64)
-        tot = 0
+    N = W.shape[0]
+    res = np.empty(N)
+    counts = np.empty(N, np.int64)
+    tot = 0
+    for i in range(N):
+        mw = Mf * (W[i] * scale)
+        c = math.floor(mw)
+        counts[i] = c
+        tot += c
+        res[i] = mw - c
+    rest = M - tot
+    if rest > 0:
+        sres = 0.0
         for i in range(N):
-            mw = Mf * (W[i] * scale)
-            c = math.floor(mw)
-            counts[i] = c
-            tot += c
-            res[i] = mw - c
-        rest = M - tot
-        if rest > 0:
-            sres = 0.0
-            for i in range(N):
-                sres += res[i]
-            cumsum_to_one(res, 1.0 / sres, cdf)
-            ur = rng.random(rest)
-            heap_sort(ur)
-            extra = np.empty(rest, np.int64)
-            inverse_cdf(cdf, ur, extra)
-            for e in range(rest):
-                counts[extra[e]] += 1
-        m = 0
-        for i in range(N):
-            for _ in range(counts[i]):
-                idx[m] = i
-                m += 1
-        return
-    cumsum_to_one(W, scale, cdf)
-    if scheme == STRATIFIED:  # stratified: one uniform per stratum
-        for m in range(M):
-            u[m] = (m + rng.random()) / Mf
-    else:  # multinomial: sorted independent uniforms
-        for m in range(M):
-            u[m] = rng.random()
-        heap_sort(u)
-    inverse_cdf(cdf, u, idx)
+            sres += res[i]
+        cumsum_to_one(res, 1.0 / sres, cdf)
+        ur = rng.random(rest)
+        heap_sort(ur)
+        extra = np.empty(rest, np.int64)
+        inverse_cdf(cdf, ur, extra)
+        for e in range(rest):
+            counts[extra[e]] += 1
+    m = 0
+    for i in range(N):
+        for _ in range(counts[i]):
+            idx[m] = i
+            m += 1
+
+
+#: The compiled scheme of each code of :func:`filters.resampling.scheme_code`, all of one signature
+#: ``(W, scale, rng, idx, cdf, u)``: indices ``idx`` (M) from the weights ``W * scale`` (normalised), drawing from
+#: ``rng`` as the NumPy function of the scheme does; ``cdf`` (N) and ``u`` (M + 1) are scratch.  The driver takes
+#: one as a first-class function, so only the schemes in use are compiled.
+SCHEME_FUNCTIONS = {SYSTEMATIC: systematic_scheme, STRATIFIED: stratified_scheme, MULTINOMIAL: multinomial_scheme,
+                    RESIDUAL: residual_scheme}
