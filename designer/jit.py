@@ -31,13 +31,18 @@ zeros, infinities and NaN) rather than a libm call; everything else maps to
 numba's ``math`` functions.  Measured on the range-bearing bootstrap filter:
 about 330 ns per particle-step through first-class dispatchers (with the noise
 parameters in arrays), 80 with generated, inlined per-particle source and
-constants, about 40 with the block loops of :mod:`filters.fastsir`.
+constants, about 40 with the block loops of :mod:`filters.fused`.
 
-Only models **without known inputs and without switching modes** are supported
-(the particle kernels do not need them yet); :func:`jit_model` raises
-:class:`~designer.validation.InputError` for the others.  An SX operation that
-has no scalar translation (e.g. ``erfinv``) raises
-:class:`~designer.codegen.UnsupportedOperation` naming it.
+:func:`jit_model` supports models **without known inputs and without switching
+modes** and raises :class:`~designer.validation.InputError` for the others (the
+fused kernels of :mod:`filters.fused` translate the inputs and modes themselves,
+through :func:`scalar_statements`).  An SX operation that has no scalar
+translation (e.g. ``erfinv``) raises :class:`~designer.codegen.UnsupportedOperation`
+naming it.
+
+Generated source is not compiled from memory: :func:`compile_source` writes it as a
+module of the kernel cache and compiles it with numba's on-disk cache
+(:mod:`designer.jitcache`), so a kernel compiles once per machine.
 """
 from __future__ import annotations
 
