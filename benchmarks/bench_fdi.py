@@ -2,16 +2,17 @@
 
 One run of the four-tank scenario (200 steps, N = 100 particles, the default attack),
 timed in the same process, best of ``--repeat``: our plain bootstrap SIR filter
-(:func:`filters.particle.run_sir`, no detector, resampling every step), the normal
-SIS PF under attack with its detector (14)/(17), the proposed modified PF (36)/(58)
-with the estimation mode (59), and seed 002's likelihood adapted as the paper's
-method of [31]; each SIS filter with the NumPy engine (:func:`filters.fdi.run_sis`) and
-the fused kernels (:func:`filters.fused.sis_fdi`, its particles drawn by
-:func:`filters.fused.sis_particles` and timed with it; compiled before timing).  The
-paper's times (MATLAB "tic-toc" averages, hardware not given) are printed beside ours.  No speed target is set by the issue for these filters; the
-script reports, and ``--check`` fails only if the measured ordering of cost is
-implausible (a filter that does strictly more work per step than the plain
-bootstrap measured faster than 0.5x of it, which would mean the timing is broken).
+(:func:`filters.particle.run_sir`, no detector, resampling every step), the normal SIS
+PF under attack with its detector (14)/(17), the proposed modified PF (36)/(58) with the
+estimation mode (59), and seed 002's likelihood adapted as the paper's method of [31];
+each SIS filter with the NumPy engine (:func:`filters.fdi.run_sis`) and the fused
+kernels (:func:`filters.fused.sis_fdi`, its particles drawn by
+:func:`filters.fused.sis_particles` and timed with it; compiled before timing). The
+paper's times (MATLAB "tic-toc" averages, hardware not given) are printed beside ours.
+No speed target is set by the issue for these filters; the script reports, and
+``--check`` fails only if the measured ordering of cost is implausible (a filter that
+does strictly more work per step than the plain bootstrap measured faster than 0.5x of
+it, which would mean the timing is broken).
 """
 from __future__ import annotations
 

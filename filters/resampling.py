@@ -19,7 +19,8 @@ import numpy as np
 
 from designer.validation import InputError, check_int, check_rng
 
-__all__ = ["multinomial", "stratified", "systematic", "residual", "RESAMPLERS", "SCHEMES", "get_resampler", "scheme_code"]
+__all__ = ["multinomial", "stratified", "systematic", "residual", "RESAMPLERS", "SCHEMES", "get_resampler",
+           "scheme_code"]
 
 
 def _check(W, M: int, rng) -> np.ndarray:

@@ -49,7 +49,8 @@ from .primitives import exp_nonpos, neginf_unless_finite
 from .resampling import SCHEME_FUNCTIONS
 
 __all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "GEN", "PROP_T", "WEIGH_T", "lik_type",
-           "drivers", "resampler", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance", "uniform_moments", "check_model",
+           "drivers", "resampler", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance",
+           "uniform_moments", "check_model",
            "check_particles", "check_generators", "check_options"]
 
 #: Particles per block of a filter step: the likelihood's scratch stays in the L1 cache.
@@ -283,7 +284,8 @@ def resampler(code: int):
 
 
 def lik_type(data):
-    """The function type of a likelihood ``lik(X, m0, n, k1, data, t, b, ex)`` whose family's data has numba type ``data``."""
+    """The function type of a likelihood ``lik(X, m0, n, k1, data, t, b, ex)`` of a family whose data has numba
+    type ``data``."""
     return types.FunctionType(types.void(F2, types.int64, types.int64, types.float64, data, types.int64, F1, F1))
 
 
@@ -337,8 +339,11 @@ def spread(one, R: int, threads: int) -> None:
 
 
 def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads) -> FastSIRResult:
-    """Every run of a family with data type ``data_type``: ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`,
-    ``data_of_run(r)`` run ``r``'s data; runs spread over ``threads`` threads (each takes the next run)."""
+    """Every run of a family with data type ``data_type``, spread over ``threads`` threads.
+
+    ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`, ``data_of_run(r)`` run
+    ``r``'s data, ``scheme`` the resampling scheme's code.
+    """
     run, scheme = drivers(data_type), resampler(scheme)
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))

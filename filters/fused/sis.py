@@ -316,7 +316,7 @@ def _driver(which: str):
 
 # ============================================================================ public
 class SISParticles(NamedTuple):
-    """The particles of every run of an SIS filter (``R`` runs, ``K`` steps, ``M`` particles), from :func:`sis_particles`."""
+    """The particles of every run of an SIS filter (``R`` runs, ``K`` steps, ``M`` particles): :func:`sis_particles`."""
 
     x: np.ndarray  # (R, K + 1, M, n_x): x_0 (the initial particles), then x_k ~ p(x_k | x_{k-1})
     fx: np.ndarray  # (R, K, M, n_x): f(x_{k-1}, k - 1, u_{k-1}) of step k, before the noise (the sampled correction's)
