@@ -24,8 +24,9 @@ files whose code it inlines, which numba alone would not track) and numba's own 
 
 Concurrency: a generated module is written to a temporary file and renamed into place
 (:func:`designer.fileio.atomic_write`; two processes write the same text), and numba
-writes its index and data files the same way, so two processes compiling the same
-kernel at once both succeed and leave a usable cache (the later one's entry wins).
+writes its index and data files the same way, one data file per signature named by it
+(:class:`_KeyedFiles`), so two processes compiling the same kernel, or different
+signatures of one function, at once both succeed and leave a usable cache.
 Any failure to write the cache (a read-only directory) leaves the kernels compiled in
 memory only.  :func:`clear_cache` (``cfdesign cache clear``) removes the cache.
 """
@@ -137,8 +138,30 @@ class _Impl(caching.CompileResultCacheImpl):
     _locator_classes = [_Locator]
 
 
+class _KeyedFiles(caching.IndexDataCacheFile):
+    """numba's index and data files of a function, with a data file per key (named by the key's hash).
+
+    numba numbers the data files in the order the keys (signatures) arrive, so two
+    processes adding different signatures of one function at once could leave an index
+    entry that names the other signature's code.  Here a data file's name is its key's:
+    the worst such a race can do is drop an index entry (compiled again next time).
+    """
+
+    def save(self, key, data):
+        name = f"{self._index_name[:-4]}.{hashlib.sha256(repr(key).encode()).hexdigest()[:16]}.nbc"
+        self._save_data(name, data)  # first: an index entry never names a missing file
+        overloads = self._load_index()
+        overloads[key] = name
+        self._save_index(overloads)
+
+
 class _Cache(caching.FunctionCache):
     _impl_class = _Impl
+
+    def __init__(self, py_func):
+        super().__init__(py_func)
+        self._cache_file = _KeyedFiles(cache_path=self._cache_path, filename_base=self._impl.filename_base,
+                                       source_stamp=self._impl.locator.get_source_stamp())
 
     def save_overload(self, sig, data):
         # the directory may have been cleared since this process found it (cfdesign cache clear)

@@ -178,3 +178,22 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     files = _compiled(cache)
     assert _run(code, cache) == first
     assert _compiled(cache) == files  # nothing compiled by the second process
+
+
+def test_processes_compiling_different_signatures_of_one_function_at_once_leave_a_correct_cache(tmp_path):
+    """numba would number the data files in arrival order; ours are named by signature (designer.jitcache)."""
+    code = textwrap.dedent("""
+        import sys
+        from designer.jit import compile_source
+        g = compile_source("def g(x):\\n    return x * 3 + 1\\n", "g", "signatures")
+        arg = {"f": 1.5, "i": 2, "c": 1j}[sys.argv[1]]
+        print(repr(g(arg)))
+    """)
+    env = {**os.environ, "CFDESIGN_CACHE_DIR": str(tmp_path)}
+    for _ in range(2):
+        procs = [subprocess.Popen([sys.executable, "-c", code, a], cwd=ROOT, env=env, text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE) for a in "fic"]
+        outs = [p.communicate(timeout=600) for p in procs]
+        assert [p.returncode for p in procs] == [0, 0, 0], [e for _, e in outs]
+        assert [o.strip() for o, _ in outs] == ["5.5", "7", "(1+3j)"]
+    assert len(list((tmp_path / "numba").rglob("*.nbc"))) == 3  # one data file per signature
