@@ -6,7 +6,7 @@ RRP-SPF-DA, RRP-SPF-NM (Round-Robin packets) and PF-DA (all four sensors),
 
 Measured (best of ``--repeats``, the peer best of two; JIT compilation excluded and reported apart):
 
-(i)   the whole Table 1 study with :mod:`filters.fastsir` (simulation, channel,
+(i)   the whole Table 1 study with :mod:`filters.fused` (simulation, channel,
       4 filters, RMSE) with 2 worker threads (and 1 for reference) — target <= 1 s;
 (ii)  the peer library ``particles`` (0.3, if importable) running the same bootstrap
       filter (CV model, range-bearing glint likelihood, attacks off, systematic
@@ -37,10 +37,14 @@ import numpy as np
 
 from designer.jit import compile_source
 from designer.noise import spawn_generators
-from filters import fastsir
+from filters import fused
 from filters.attacks import deception_attack, round_robin_schedule
+from filters.fused.codegen import propagation, weights
+from filters.fused.driver import BLOCK, drivers, likelihood_block, resampler
+from filters.fused.packets import DATA, packet_data, packet_lik, wrap_set
 from filters.particle import run_sir
-from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles
+from filters.resampling import scheme_code
+from filters.rrp import all_sensors_loglik, deception_terms, rrp_loglik, wrap_angles
 from studies.scenarios import load_scenario
 
 TARGET_TABLE1_S = 1.0
@@ -81,8 +85,8 @@ def table1_fast(sc, d: dict, particles: int, workers: int) -> dict:
     angles = sc.model.angle_components
     box = sc.channel.deception
     allsens = np.tile(np.arange(m.n_sensors), (K, 1))
-    lc, att_rr = fastsir.deception_terms(d["rr_att"], ETA, box)
-    _, att_all = fastsir.deception_terms(d["all_att"], ETA, box)
+    lc, att_rr = deception_terms(d["rr_att"], ETA, box)
+    _, att_all = deception_terms(d["all_att"], ETA, box)
     filters = {
         "RRP-PF-DA": (d["sched"], d["rr_att"], dict(attack=att_rr, log_clean=lc)),
         "RRP-SPF-DA": (d["sched"], d["rr_att"], {}),
@@ -95,7 +99,7 @@ def table1_fast(sc, d: dict, particles: int, workers: int) -> dict:
         t = time.perf_counter()
         gens = spawn_generators(seed, R)
         x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-        res = fastsir.sir_packets(m, x0, gens, sens, y, angles=angles, threads=workers, **kw)
+        res = fused.sir_packets(m, x0, gens, sens, y, angles=angles, threads=workers, **kw)
         out[name] = dict(rmse_p=rmse(res.mean, d["x"], m.position_index),
                          rmse_v=rmse(res.mean, d["x"], m.velocity_index),
                          time_s=time.perf_counter() - t, collapses=int(res.collapsed.sum()))
@@ -201,7 +205,7 @@ def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> t
     gens = spawn_generators(7, R)
     t = time.perf_counter()
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-    res = fastsir.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers)
+    res = fused.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers)
     return time.perf_counter() - t, rmse(res.mean, d["x"], m.position_index)
 
 
@@ -216,9 +220,9 @@ def one_step(sc, particles: int, all_sensors: bool) -> float:
         sens, y = np.arange(m.n_sensors)[None, :], d["all_att"]
     else:
         sens, y = d["sched"], d["rr_att"]
-    lc, att = fastsir.deception_terms(y, ETA, box)
+    lc, att = deception_terms(y, ETA, box)
     t = time.perf_counter()
-    fastsir.sir_packets(m, x0, [g], sens, y, attack=att, log_clean=lc, angles=sc.model.angle_components)
+    fused.sir_packets(m, x0, [g], sens, y, attack=att, log_clean=lc, angles=sc.model.angle_components)
     return time.perf_counter() - t
 
 
@@ -231,7 +235,7 @@ def memory(sc, runs: int, particles: int, steps: int = 10) -> dict:
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
     workers = 2
     tracemalloc.start()
-    fastsir.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.model.angle_components, threads=workers)
+    fused.sir_packets(m, x0, gens, d["sched"], d["rr_att"], angles=sc.model.angle_components, threads=workers)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     # numba's allocations bypass tracemalloc: x, xn (M x n_x), lw, b, s, W, cdf, u, anc (M) per running thread
@@ -253,20 +257,20 @@ def _draws(rng, n):
 
 
 # The propagation and the likelihood alone, block by block as in the filter.
-_PARTS = """
-def props(X, XN, K, rng):
+_PARTS = f"""
+def props(PROP, X, XN, K, rng):
     anc = _np.arange(X.shape[0])
     buf = _np.empty(0)  # unused by a propagation that draws as it goes
     for k in range(K):
-        for m0 in range(0, X.shape[0], BLOCK):
-            PROP(X, anc, XN, m0, min(BLOCK, X.shape[0] - m0), float(k), rng, buf)
+        for m0 in range(0, X.shape[0], {BLOCK}):
+            PROP(X, anc, XN, m0, min({BLOCK}, X.shape[0] - m0), float(k), rng, buf)
 
 
-def liks(X, K, data, P, ne, b, s):
-    ex = _np.empty(BLOCK * P * ne)
+def liks(LIK, X, K, data, P, ne, b, s):
+    ex = _np.empty({BLOCK} * P * ne)
     for k in range(K):
-        for m0 in range(0, X.shape[0], BLOCK):
-            LIKBLOCK(LIK, P, ne, X, m0, min(BLOCK, X.shape[0] - m0), float(k + 1), data, k, b, s, ex)
+        for m0 in range(0, X.shape[0], {BLOCK}):
+            LIKBLOCK(LIK, P, ne, X, m0, min({BLOCK}, X.shape[0] - m0), float(k + 1), data, k, b, s, ex)
 """
 
 
@@ -275,19 +279,19 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
     m = sc.model
     K = d["ys"].shape[1]
     box = sc.channel.deception
-    wrap = fastsir._wrap_set(sc.model.angle_components, m)
-    prop, weigh = fastsir._prop(m), fastsir._weigh(m)
-    run = fastsir._drivers("packets")[0]
-    lc, att_rr = fastsir.deception_terms(d["rr_att"][:1], ETA, box)
-    _, att_all = fastsir.deception_terms(d["all_att"][:1], ETA, box)
-    lik, ne = fastsir._packet_lik(m, wrap, True)  # attack-aware, as both filters below
-    ns_ = {"PROP": prop, "LIK": lik, "LIKBLOCK": fastsir._likelihood_block, "BLOCK": fastsir._BLOCK}
+    wrap = wrap_set(sc.model.angle_components, m)
+    prop, weigh = propagation(m), weights(m)
+    run, systematic = drivers(DATA), resampler(scheme_code("systematic"))
+    lc, att_rr = deception_terms(d["rr_att"][:1], ETA, box)
+    _, att_all = deception_terms(d["all_att"][:1], ETA, box)
+    lik, ne = packet_lik(m, wrap, True)  # attack-aware, as both filters below
+    ns_ = {"LIKBLOCK": likelihood_block}
     props = compile_source(_PARTS, "props", "profile: propagation", ns_)
     liks = compile_source(_PARTS, "liks", "profile: likelihood", ns_)
     out = {}
     for name, sens, y, att in (("RRP-PF-DA", d["sched"], d["rr_att"][:1], att_rr),
                                ("PF-DA", np.tile(np.arange(m.n_sensors), (K, 1)), d["all_att"][:1], att_all)):
-        s, yy, aa, lcc = fastsir._packet_data(m, 1, sens, y, att, lc)
+        s, yy, aa, lcc = packet_data(m, 1, sens, y, att, lc)
         data, P = (s, yy[0], aa[0], lcc), s.shape[1]
         x = np.ascontiguousarray(m.prior.sample(np.random.default_rng(0), particles))
         xn, b, w = np.empty_like(x), np.zeros(particles), np.empty(particles)
@@ -296,10 +300,10 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
         n_w = m.process_noise.dim
         parts = {
             "draws": lambda: _draws(np.random.default_rng(1), K * particles * n_w),
-            "prop": lambda: props(x, xn, K, np.random.default_rng(1)),
-            "lik": lambda: liks(x, K, data, P, ne, b, w),
-            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), 0, 1.0, False, mean, cov,
-                                ess, *flags),
+            "prop": lambda: props(prop, x, xn, K, np.random.default_rng(1)),
+            "lik": lambda: liks(lik, x, K, data, P, ne, b, w),
+            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), systematic, 1.0, False,
+                                mean, cov, ess, *flags),
         }
         for fn in parts.values():
             fn()
@@ -328,9 +332,9 @@ def compile_all(sc) -> float:
     m = sc.model
     d = simulate_data(sc, 1, 2, 0)
     g = np.random.default_rng(0)
-    lc, att = fastsir.deception_terms(d["rr_att"], ETA, sc.channel.deception)
+    lc, att = deception_terms(d["rr_att"], ETA, sc.channel.deception)
     for kw in (dict(attack=att, log_clean=lc), {}):  # the attack-aware and the standard likelihood
-        fastsir.sir_packets(m, m.prior.sample(g, (1, 4)), [g], d["sched"], d["rr_att"],
+        fused.sir_packets(m, m.prior.sample(g, (1, 4)), [g], d["sched"], d["rr_att"],
                             angles=sc.model.angle_components, **kw)
     return time.perf_counter() - t
 

@@ -31,18 +31,25 @@ zeros, infinities and NaN) rather than a libm call; everything else maps to
 numba's ``math`` functions.  Measured on the range-bearing bootstrap filter:
 about 330 ns per particle-step through first-class dispatchers (with the noise
 parameters in arrays), 80 with generated, inlined per-particle source and
-constants, about 40 with the block loops of :mod:`filters.fastsir`.
+constants, about 40 with the block loops of :mod:`filters.fused`.
 
-Only models **without known inputs and without switching modes** are supported
-(the particle kernels do not need them yet); :func:`jit_model` raises
-:class:`~designer.validation.InputError` for the others.  An SX operation that
-has no scalar translation (e.g. ``erfinv``) raises
-:class:`~designer.codegen.UnsupportedOperation` naming it.
+:func:`jit_model` supports models **without known inputs and without switching
+modes** and raises :class:`~designer.validation.InputError` for the others (the
+fused kernels of :mod:`filters.fused` translate the inputs and modes themselves,
+through :func:`scalar_statements`).  An SX operation that has no scalar
+translation (e.g. ``erfinv``) raises :class:`~designer.codegen.UnsupportedOperation`
+naming it.
+
+Generated source is not compiled from memory: :func:`compile_source` writes it as a
+module of the kernel cache and compiles it with numba's on-disk cache
+(:mod:`designer.jitcache`), so a kernel compiles once per machine.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import weakref
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -53,6 +60,7 @@ from numba.core import types
 from numba.extending import intrinsic
 
 from .codegen import UnsupportedOperation, literal, op_templates, sx_statements
+from .jitcache import cached_njit, generated_module, source_stamp
 from .model import Model
 from .validation import InputError
 
@@ -218,21 +226,33 @@ def scalar_source(fun: ca.Function, fname: str, inputs: list[str | None]) -> str
     return "\n".join([f"def {fname}({', '.join(args)}, out):"] + scalar_statements(fun, specs, "out[{}]"))
 
 
-def compile_source(src: str, fname: str, label: str, namespace: dict | None = None, **options) -> Callable:
-    """``exec`` generated source and compile ``fname`` with ``numba.njit(nogil=True, error_model='numpy')``.
+def compile_source(src: str, fname: str, label: str, namespace: dict | None = None, *, stamp: str = "",
+                   **options) -> Callable:
+    """Generated source as a module of the kernel cache, and ``fname`` of it compiled with numba, cached on disk.
 
-    The namespace has ``_m`` (math), ``_np`` (numpy) and the scalar helpers of
-    :func:`scalar_statements` (plus ``namespace``); ``options`` go to ``numba.njit``.
+    The source is written into :func:`designer.jitcache.kernels_dir` (once per text,
+    :func:`designer.jitcache.generated_module`) and ``fname`` is compiled with
+    ``numba.njit(nogil=True, error_model='numpy')`` and ``options``, its compiled code
+    kept in the same cache (:func:`designer.jitcache.cached_njit`), so that the next
+    process loads instead of compiling it.  The module's namespace has ``_m`` (math),
+    ``_np`` (numpy) and the scalar helpers of :func:`scalar_statements`, plus
+    ``namespace`` (functions only; constants belong in ``src``).  ``stamp`` is the code
+    version of the caller's generator and of the helpers it binds (:func:`designer.jitcache.source_stamp`).
+    The dispatcher's ``source`` is ``src`` and its ``path`` the module's file.
     """
     ns = dict(_NAMESPACE)
     ns.update(namespace or {})
-    exec(compile(src, f"<cfdesign scalar translation of {label}>", "exec"), ns)
-    fn = ns[fname]
+    mod = generated_module(src, label, ns, hashlib.sha256(f"{stamp} {_STAMP}".encode()).hexdigest())
+    fn = getattr(mod, fname)
     fn.__doc__ = f"Scalar translation of {label} (numba, nogil)."
-    fn.source = src
-    return numba.njit(**dict(_NJIT, **options))(fn)
+    disp = cached_njit(mod.__key__, **dict(_NJIT, **options))(fn)
+    disp.source = src
+    disp.path = mod.__file__
+    return disp
 
 
+# The code version of the generated kernels' helpers: this file, the instruction walk, the cache.
+_STAMP = source_stamp([__file__, Path(__file__).with_name("codegen.py"), Path(__file__).with_name("jitcache.py")])
 _NAMESPACE = {"_m": math, "_np": np, "_sign": _sign, "_fmin": _fmin, "_fmax": _fmax, "_b2f": _b2f, "_atan2": _atan2,
               "_fma": fma}
 

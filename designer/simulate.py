@@ -11,7 +11,7 @@ from .validation import InputError, check_finite, check_int, check_rng
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
     from .model import Model
 
-__all__ = ["Trajectory", "simulate", "simulate_runs"]
+__all__ = ["Trajectory", "simulate", "simulate_runs", "check_inputs"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +45,8 @@ class Trajectory:
         return out
 
 
-def _inputs(model: Model, steps: int, inputs) -> np.ndarray:
+def check_inputs(model: Model, steps: int, inputs) -> np.ndarray:
+    """``inputs`` checked as ``(steps, n_u)`` known inputs of ``model`` (``(steps, 0)`` for a model without)."""
     if model.n_u == 0:
         if inputs is not None and np.size(inputs) != 0:
             raise InputError("inputs given but the model has no known inputs")
@@ -78,7 +79,12 @@ def simulate(
     model : Model
     steps : int
         Number of transitions ``K >= 1``.
-    rng : numpy.random.Generator
+    rng : numpy.random.Generator or sequence of numpy.random.Generator
+        One Generator, or one per run (then ``batch`` is ``(R,)`` or omitted): run ``r``
+        draws from ``rng[r]`` exactly as ``simulate(model, steps, rng[r])`` does, and the
+        runs are propagated together, so a run's numbers are that call's wherever ``f``
+        and ``h`` compute element by element (their NumPy translations do; tested bit for
+        bit on the four-tank).
     batch : int or tuple of int
         Leading shape for independent runs drawn together.
     x0 : array_like, shape (n_x,) or (*batch, n_x), optional
@@ -87,11 +93,27 @@ def simulate(
         Known inputs, required when the model has inputs.
     """
     steps = check_int("steps", steps, 1)
-    check_rng(rng)
     batch = (batch,) if isinstance(batch, (int, np.integer)) else tuple(batch)
-    u = _inputs(model, steps, inputs)
+    gens = None
+    if isinstance(rng, np.random.Generator):
+        check_rng(rng)
+    else:  # one Generator per run, each drawing as a run of its own
+        try:
+            gens = [check_rng(g) for g in rng]
+        except TypeError:
+            raise InputError(f"rng must be a numpy.random.Generator or one per run, got {type(rng).__name__}") from None
+        if not gens or batch not in ((), (len(gens),)):
+            raise InputError(f"with one Generator per run ({len(gens)}), batch must be ({len(gens)},) or omitted, "
+                             f"got {batch}")
+        batch = (len(gens),)
+
+    def draw(sample):
+        """``sample(rng, shape)`` for the batch: one call, or one per run's Generator (its own draw order)."""
+        return sample(rng, batch) if gens is None else np.stack([sample(g, ()) for g in gens])
+
+    u = check_inputs(model, steps, inputs)
     if x0 is None:
-        x = model.prior.sample(rng, batch)
+        x = draw(model.prior.sample)
     else:
         x = check_finite("x0", x0)
         if x.shape[-1:] != (model.n_x,):
@@ -105,15 +127,15 @@ def simulate(
     for k in range(steps):
         mode = None
         if modes is not None:
-            mode = rng.choice(model.n_modes, size=batch, p=model.mode_probs)
+            mode = draw(lambda g, shape: g.choice(model.n_modes, size=shape, p=model.mode_probs))
             modes[..., k] = mode
-        w = model.process_noise.sample(rng, batch)
-        x = model.f(x, k, u[k], mode) + w @ G.T
+        w = draw(model.process_noise.sample)
+        x = model.f(x, k, u[k], mode) + (w @ G.T if gens is None else np.stack([wr @ G.T for wr in w]))
         xs[..., k + 1, :] = x
         z = model.h_all(x, k + 1)
         for i, s in enumerate(model.sensors):
             a, b = model._offsets[i], model._offsets[i + 1]
-            z[..., a:b] += s.noise.sample(rng, batch)
+            z[..., a:b] += draw(s.noise.sample)
         zs[..., k, :] = z
     return Trajectory(xs, zs, modes, u)
 
@@ -162,7 +184,7 @@ def simulate_runs(
     if not gens:
         raise InputError("rngs must hold at least one Generator (one per run)")
     R = len(gens)
-    u = _inputs(model, steps, inputs)
+    u = check_inputs(model, steps, inputs)
     if x0 is not None:
         x0 = check_finite("x0", x0)
         if x0.shape not in ((model.n_x,), (R, model.n_x)):

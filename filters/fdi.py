@@ -65,7 +65,7 @@ __all__ = [
     "measurement_matrix", "measurement_cov", "detection_gain",
     "Thresholds", "residual_threshold", "attack_threshold", "false_alarm_condition", "correct_particles",
     "corrected_proposal", "normal_detector", "modified_detector", "deception_mixture_loglik", "uniform_loglik",
-    "SISResult", "run_sis", "DetectionCounts", "detection_counts",
+    "SISResult", "run_sis", "check_gamma_hat", "DetectionCounts", "detection_counts",
 ]
 
 # log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
@@ -326,6 +326,16 @@ def _generators(rng, runs: int):
     return rng
 
 
+def check_gamma_hat(gamma_hat, shape: tuple, detects: bool) -> np.ndarray:
+    """The attack estimate of (59) for measurements of ``shape`` (runs, K, n_z): given as that or (K, n_z)."""
+    if not detects:
+        raise InputError("gamma_hat needs a detector (it is subtracted where an attack is declared)")
+    gh = check_finite("gamma_hat", gamma_hat)
+    if gh.shape not in (shape, shape[1:]):
+        raise InputError(f"gamma_hat must have shape {shape} or {shape[1:]}, got {gh.shape}")
+    return np.broadcast_to(gh, shape)
+
+
 def run_sis(model: Model, z, rng, *, particles: int, inputs=None, loglik: Callable | None = None,
             detector: Callable | None = None, zeta: float | None = None, gamma_hat=None,
             linear_weights: bool = False, aux_rng: np.random.Generator | None = None) -> SISResult:
@@ -379,12 +389,7 @@ def run_sis(model: Model, z, rng, *, particles: int, inputs=None, loglik: Callab
             raise InputError("zeta (the detection threshold) is required with a detector")
         zeta = float(check_finite("zeta", zeta))
     if gamma_hat is not None:
-        if detector is None:
-            raise InputError("gamma_hat needs a detector (it is subtracted where an attack is declared)")
-        gh = check_finite("gamma_hat", gamma_hat)
-        if gh.shape not in (z.shape, z.shape[1:]):
-            raise InputError(f"gamma_hat must have shape {z.shape} or {z.shape[1:]}, got {gh.shape}")
-        gamma_hat = np.broadcast_to(gh, z.shape)
+        gamma_hat = check_gamma_hat(gamma_hat, z.shape, detector is not None)
     loglik = additive_noise_loglik(model) if loglik is None else loglik
     Gw = model.noise_gain
 

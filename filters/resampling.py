@@ -1,9 +1,15 @@
-"""Resampling schemes as pure functions ``(W, M, rng) -> indices``.
+"""Resampling schemes as pure functions ``(W, M, rng) -> indices``: the one registry of both engines.
 
 ``W`` holds normalised weights of shape ``(..., N)`` (leading dimensions are
 independent Monte Carlo runs, resampled in one call); the result has shape
 ``(..., M)`` with indices into the last axis.  Randomness only from the
 ``numpy.random.Generator`` passed in.
+
+:data:`RESAMPLERS` names the schemes and defines them (these functions); the fused
+kernels take a scheme by its code (:func:`scheme_code`, its index in :data:`SCHEMES`)
+and :mod:`filters.fused.resampling` compiles the same schemes with the same draws from
+the Generator (one run at a time), which its tests check against these functions.
+A scheme is added here first.
 """
 from __future__ import annotations
 
@@ -13,7 +19,8 @@ import numpy as np
 
 from designer.validation import InputError, check_int, check_rng
 
-__all__ = ["multinomial", "stratified", "systematic", "residual", "RESAMPLERS", "get_resampler"]
+__all__ = ["multinomial", "stratified", "systematic", "residual", "RESAMPLERS", "SCHEMES", "get_resampler",
+           "scheme_code"]
 
 
 def _check(W, M: int, rng) -> np.ndarray:
@@ -90,8 +97,17 @@ RESAMPLERS: dict[str, Callable] = {
 }
 
 
+#: The schemes' names in the order of their codes (:func:`scheme_code`).
+SCHEMES: tuple[str, ...] = tuple(RESAMPLERS)
+
+
+def scheme_code(name: str) -> int:
+    """The code of scheme ``name`` (its index in :data:`SCHEMES`); an :class:`InputError` for an unknown name."""
+    if not isinstance(name, str) or name not in RESAMPLERS:
+        raise InputError(f"resampling scheme must be one of {', '.join(RESAMPLERS)}, got {name!r}")
+    return SCHEMES.index(name)
+
+
 def get_resampler(name: str) -> Callable:
-    try:
-        return RESAMPLERS[name]
-    except KeyError:
-        raise InputError(f"resampling scheme must be one of {', '.join(RESAMPLERS)}, got {name!r}") from None
+    """The NumPy function of scheme ``name`` (see :data:`RESAMPLERS`)."""
+    return RESAMPLERS[SCHEMES[scheme_code(name)]]

@@ -22,9 +22,9 @@ import numpy as np
 
 from designer.model import Model
 from designer.noise import Noise
-from designer.validation import InputError
+from designer.validation import InputError, check_probability
 
-__all__ = ["wrap_angles", "angle_sets", "packet_loglik", "rrp_loglik", "all_sensors_loglik"]
+__all__ = ["wrap_angles", "angle_sets", "packet_loglik", "rrp_loglik", "all_sensors_loglik", "deception_terms"]
 
 
 def wrap_angles(r: np.ndarray, components: Sequence[int]) -> np.ndarray:
@@ -124,3 +124,22 @@ def all_sensors_loglik(model: Model, *, attack_prob: float = 0.0, signal: Noise 
         return total
 
     return loglik
+
+
+def deception_terms(y, attack_prob: float, signal: Noise | None) -> tuple[float, np.ndarray]:
+    """``(log_clean, attack)`` of seed 000's attack-aware likelihood (14) for received packets ``y`` (..., n_y).
+
+    The terms of the fused packet likelihood (:func:`filters.fused.sir_packets`), the same (14) as
+    :func:`packet_loglik`.
+
+    ``log_clean = log(1 − η̄)`` and ``attack = log η̄ + log p_ξ(y)`` (shape ``y.shape[:-1]``);
+    ``attack_prob = 0`` or no signal gives the standard likelihood ``(0, −inf)``.
+    """
+    p = float(check_probability("attack_prob", attack_prob, open_upper=True))
+    y = np.asarray(y, dtype=np.float64)
+    if p <= 0.0 or signal is None:
+        return 0.0, np.full(y.shape[:-1], -np.inf)
+    if not isinstance(signal, Noise):
+        raise InputError(f"signal must be a Noise distribution, got {type(signal).__name__}")
+    with np.errstate(divide="ignore"):
+        return float(np.log1p(-p)), np.log(p) + signal.logpdf(y)

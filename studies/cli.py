@@ -292,6 +292,23 @@ def report_cmd(directory: str) -> None:
     click.echo(f"wrote {html} and {md}")
 
 
+@cli.group("cache")
+def cache_group() -> None:
+    """The compiled numba kernels, cached per machine in $CFDESIGN_CACHE_DIR (default ~/.cache/cfdesign)."""
+
+
+@cache_group.command("clear")
+def cache_clear_cmd() -> None:
+    """Remove the compiled kernels; the next run compiles them again."""
+    from designer.jitcache import cache_dir, clear_cache  # imports numba: only for this command
+
+    removed = clear_cache()
+    for path in removed:
+        click.echo(f"removed {path}")
+    if not removed:
+        click.echo(f"nothing to remove in {cache_dir()}")
+
+
 def main(argv=None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)

@@ -19,7 +19,7 @@ known inputs.  The paper's claim is quoted for ``switching-2d`` only (the claim
 check, PPF against both baselines, is computed everywhere).
 
 Engines (the ``engine`` option): ``"fast"`` (default) — the fused numba kernels of
-:mod:`filters.fastedpf`, runs spread over ``threads`` threads; ``"numpy"`` —
+:mod:`filters.fused.edpf`, runs spread over ``threads`` threads; ``"numpy"`` —
 :func:`filters.particle.run_sir` with :mod:`filters.edpf`'s likelihoods, the
 reference (``threads`` must be 1).  ``mean_dynamics_row`` adds PF-RSN with the
 mode-averaged dynamics (not in the paper).
@@ -216,7 +216,7 @@ def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, 
         res = run_sir(model, y, np.random.default_rng(filter_ss[0]), particles=M, runs=y.shape[0], loglik=lik,
                       proposal=prop, resampler="systematic", ess_threshold=ESS_THRESHOLD)
         return res.mean, res.collapsed, res.resampled, (prop.seconds, lik.seconds)
-    from filters.fastedpf import sir_edpf
+    from filters.fused import sir_edpf
 
     gens = [np.random.default_rng(fs) for fs in filter_ss]
     x0 = np.stack([model.prior.sample(g, M) for g in gens])  # the first draws of each run's stream, as run_sir
@@ -233,7 +233,7 @@ def warm_up(config: RunConfig) -> None:
     config = _check_config(config)
     if config.engine != "fast":
         return
-    from filters.fastedpf import sir_edpf
+    from filters.fused import sir_edpf
 
     setup = _setup(config)
     y = np.zeros((1, 1, 2 * setup.scenario.model.n_sensors))

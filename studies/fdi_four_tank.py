@@ -32,11 +32,13 @@ run's numbers depend only on ``seed`` and its index.
 
 A :class:`studies.pipeline.Study` (``STUDY``): the runs are computed by
 :mod:`studies.runner` in chunks of ``chunk_size`` runs (:func:`_runs` is the task:
-every setting and filter on a chunk, one batched NumPy program per filter, returning
+every setting and filter on a chunk, the fused kernels run by run or one batched NumPy program per filter, returning
 per-run arrays), in this process, in local worker processes or on a Dask cluster
 with identical numbers, and an interrupted study resumes from the chunks stored in
 ``out``.  Metrics, tables and figures are computed afterwards from the concatenated
-arrays.  Its one option, ``engine``, is ``"numpy"`` (the only SIS engine).
+arrays.  Its one option, ``engine``: ``"fast"`` (default; the fused SIS kernels of
+:func:`filters.fused.sis_fdi`, one compiled call per run) or ``"numpy"`` (:func:`filters.fdi.run_sis`,
+the reference); the two agree per run to rounding (the same draws).
 """
 from __future__ import annotations
 
@@ -88,7 +90,7 @@ PAPER_TABLE4 = {
 }
 NORM_BANDS = (0.5, 1.0, 1.5)  # edges (besides ||gamma||_min) of the attack-norm bands of the gamma-bar = 1 case
 SINGLE_RUN_REPEATS = 3  # one-run timings: the best of this many repetitions
-CHUNK_SIZE = 5  # runs per chunk of the Monte Carlo runner (one batched NumPy program per filter and setting)
+CHUNK_SIZE = 5  # runs per chunk of the Monte Carlo runner
 BOOTSTRAP_KEY = 2**31  # spawn key of the bootstrap intervals' stream, outside the runs' keys
 
 ASSUMPTIONS = (
@@ -127,15 +129,16 @@ ASSUMPTIONS = (
     "(35) given the previous particles (its importance correction uses the true transition density), residuals "
     "weighted 1/N as in (58); its own draws come from a fifth stream of each run, run by run.",
     "fdi-four-tank: time_per_step_s = a filter's wall time (its detector included) summed over the chunks of "
-    "runs (each chunk one batched NumPy program of chunk_size runs, timed wherever it ran) / (runs x K); the "
-    "sampled correction's detector runs run by run (each run its own stream); "
+    "runs (engine fast: the compiled kernel's loop over the chunk's runs; engine numpy: one batched NumPy program "
+    "of chunk_size runs, the sampled correction's detector run by run; timed wherever it ran) / (runs x K); "
     "time_per_step_single_run_s = the same filter on run 0 alone / K, best of 3 (closer to the paper's tic-toc of "
-    "one run; at N = 100 it is dominated by the fixed cost of a NumPy call per step).",
+    "one run; with the NumPy engine at N = 100 it is dominated by the fixed cost of a NumPy call per step).",
     "fdi-four-tank: randomness: run r uses SeedSequence(seed, spawn_key=(r,)).spawn(5) = (plant and measurement "
     "noise, attack occurrences, particles, attack-estimate error, the sampled correction's draws), the bootstrap "
     "intervals SeedSequence(seed, spawn_key=(2**31,)); nothing is shared between runs, so a run's numbers do not "
     "depend on the number of runs or the backend. The runs are computed in chunks of chunk_size consecutive runs; "
-    "the filters batch the runs of a chunk, so the last bits of floating-point sums may depend on chunk_size.",
+    "the NumPy engine batches the runs of a chunk, so there the last bits of floating-point sums may depend on "
+    "chunk_size (the fused engine filters run by run).",
 )
 
 
@@ -148,15 +151,23 @@ class _Data(NamedTuple):
     gamma_hat: np.ndarray  # (runs, K, n_y) gamma + e, the noisy attack estimate
 
 
-def _data(sc, seqs) -> _Data:
+def _data(sc, seqs, simulated: dict) -> _Data:
+    """The runs' truth and measurements (stream 0) and attacks (streams 1, 3) in setting ``sc``.
+
+    ``simulated`` memoises the plant's runs by scenario parameters: settings that differ
+    only in their channel (γ̄ = 1, the noisy estimate) simulate the same plant draw for draw.
+    """
     ch = sc.channel
-    truth, y, ya, l, gh = [], [], [], [], []
-    for s in seqs:
-        tr = sc.simulate(np.random.default_rng(s[0]))
-        att = bias_attack(tr.z, bias=ch.bias, tau=ch.tau, prob=ch.prob, rng=np.random.default_rng(s[1]))
+    key = pickle.dumps((sc.name, sorted(sc.params.items()), sc.steps, None if sc.x0 is None else np.asarray(sc.x0)))
+    if key not in simulated:  # the runs together, each drawing from its own stream as a run of its own
+        simulated[key] = sc.simulate([np.random.default_rng(s[0]) for s in seqs], batch=len(seqs))
+    tr = simulated[key]
+    ya, l, gh = [], [], []
+    for s, z in zip(seqs, tr.z):
+        att = bias_attack(z, bias=ch.bias, tau=ch.tau, prob=ch.prob, rng=np.random.default_rng(s[1]))
         e = np.random.default_rng(s[3]).standard_normal(att.gamma.shape) * np.sqrt(ch.estimate_var)
-        truth.append(tr.x), y.append(tr.z), ya.append(att.y), l.append(att.l), gh.append(att.gamma + e)
-    return _Data(np.stack(truth), np.stack(y), np.stack(ya), np.stack(l), att.gamma, np.stack(gh))
+        ya.append(att.y), l.append(att.l), gh.append(att.gamma + e)
+    return _Data(tr.x, tr.z, np.stack(ya), np.stack(l), att.gamma, np.stack(gh))
 
 
 class _Design(NamedTuple):
@@ -195,29 +206,35 @@ def _per_run(detector):
     return detect
 
 
-def _filter_specs(sc, d: _Design, which) -> dict:
-    """name -> (measurements ``"y"`` or ``"y_att"``, run_sis keyword arguments, takes gamma_hat) for ``which``."""
+# Each filter: (measurements "y" or "y_att", its detector and likelihood as filters.fused.sis_fdi names them, takes
+# gamma_hat); _numpy_filter builds the same filter for filters.fdi.run_sis.
+_FILTER_SPECS = {
+    NOATT: ("y", dict(detector="normal"), False),
+    NORMAL: ("y_att", dict(detector="normal"), False),
+    NORMAL_LIN: ("y_att", dict(detector="normal", linear_weights=True), False),
+    PROPOSED: ("y_att", dict(detector="modified"), True),
+    SAMPLED: ("y_att", dict(detector="sampled"), True),
+    L31: ("y_att", dict(likelihood="mixture"), False),
+    L31_UNIFORM: ("y_att", dict(likelihood="uniform"), False),
+}
+
+
+def _numpy_filter(sc, d: _Design, detector=None, likelihood="additive", linear_weights=False) -> dict:
+    """run_sis's keyword arguments for the filter of :func:`filters.fused.sis_fdi` with these options."""
     m = sc.model
-    out = {}
-    for n in which:
-        if n == NOATT:
-            out[n] = ("y", dict(detector=normal_detector(m, d.eta), zeta=d.zeta), False)
-        elif n == NORMAL:
-            out[n] = ("y_att", dict(detector=normal_detector(m, d.eta), zeta=d.zeta), False)
-        elif n == NORMAL_LIN:
-            out[n] = ("y_att", dict(detector=normal_detector(m, d.eta, linear_weights=True), zeta=d.zeta,
-                                    linear_weights=True), False)
-        elif n == PROPOSED:
-            out[n] = ("y_att", dict(detector=modified_detector(m, d.eta), zeta=d.zeta), True)
-        elif n == SAMPLED:
-            sampled = modified_detector(m, d.eta, correction="sampled", inputs=sc.inputs(sc.steps))
-            out[n] = ("y_att", dict(detector=_per_run(sampled), zeta=d.zeta), True)
-        elif n == L31:
-            out[n] = ("y_att", dict(loglik=deception_mixture_loglik(m, attack_prob=sc.channel.prob,
-                                                                    deception=sc.channel.bias)), False)
-        elif n == L31_UNIFORM:
-            out[n] = ("y_att", dict(loglik=uniform_loglik), False)
-    return out
+    kw = {"linear_weights": linear_weights} if linear_weights else {}
+    if detector == "normal":
+        kw.update(detector=normal_detector(m, d.eta, linear_weights=linear_weights), zeta=d.zeta)
+    elif detector == "modified":
+        kw.update(detector=modified_detector(m, d.eta), zeta=d.zeta)
+    elif detector == "sampled":
+        sampled = modified_detector(m, d.eta, correction="sampled", inputs=sc.inputs(sc.steps))
+        kw.update(detector=_per_run(sampled), zeta=d.zeta)
+    if likelihood == "mixture":
+        kw["loglik"] = deception_mixture_loglik(m, attack_prob=sc.channel.prob, deception=sc.channel.bias)
+    elif likelihood == "uniform":
+        kw["loglik"] = uniform_loglik
+    return kw
 
 
 class _Setting(NamedTuple):
@@ -226,7 +243,7 @@ class _Setting(NamedTuple):
     sc: Any
     which: tuple
     design: _Design
-    specs: dict  # of _filter_specs
+    specs: dict  # name -> _FILTER_SPECS[name]
     noisy_estimate: bool = False
     single_run: bool = False  # also time every filter on run 0 alone
 
@@ -266,7 +283,7 @@ def _build_settings(ref: ScenarioRef, particles: int) -> tuple[dict, dict]:
 
     def setting(sc, which, design=None, **kw):
         d = _design(sc, sc_low, particles) if design is None else design
-        return _Setting(sc, tuple(which), d, _filter_specs(sc, d, which), **kw)
+        return _Setting(sc, tuple(which), d, {n: _FILTER_SPECS[n] for n in which}, **kw)
 
     paper = _is_paper(sc)
     sc_low = variant(noise="low") if paper else sc
@@ -292,7 +309,7 @@ def _key(setting: str, name: str, what: str) -> str:
     return f"{setting}_{FILTERS.index(name)}_{what}"
 
 
-def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int) -> dict:
+def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fast") -> dict:
     """Task of the runner: every setting and filter on the runs ``run_ids``; per-run arrays.
 
     Keys per setting ``s``: ``s_truth`` (R, K + 1, n_x), ``s_l`` (R, K) attack occurrences,
@@ -305,10 +322,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int) -> dict:
     plans, _ = _settings(ref, particles)
     seqs = [s.spawn(5) for s in seeds]
     R = len(seqs)
-    out = {}
+    out, simulated = {}, {}
     for key, p in plans.items():
         sc = p.sc
-        data = _data(sc, seqs)
+        data = _data(sc, seqs, simulated)
+        # the SIS particles depend on no measurement: every filter of the setting weighs the same ones (fast engine)
+        shared = _particles(sc, seqs, particles) if engine == "fast" else None
         out[f"{key}_truth"], out[f"{key}_l"] = data.truth, data.l
         if p.noisy_estimate:
             out[f"{key}_gamma_hat"] = data.gamma_hat
@@ -318,9 +337,9 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int) -> dict:
             z = getattr(data, zname)
             extra = {"gamma_hat": gamma_hat} if takes_gamma else {}
             with naming_filter(name, run_ids):
-                res = _run(sc, z, seqs, particles, **kw, **extra)
+                res = _run(sc, p.design, engine, z, seqs, particles, shared=shared, **kw, **extra)
             out[_key(key, name, "mean")] = res.mean
-            if "detector" in kw:
+            if kw.get("detector"):
                 out[_key(key, name, "detected")] = res.detected
             out[_key(key, name, "collapsed")] = res.collapsed.sum(axis=1)
             out[_key(key, name, "final_ess")] = res.ess[:, -1]
@@ -332,17 +351,47 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int) -> dict:
                     a = int(hit[0])
                     one = {"gamma_hat": gamma_hat[a:a + 1] if gamma_hat.ndim == 3 else gamma_hat} if takes_gamma \
                         else {}
-                    single[a] = min(_run(sc, z[a:a + 1], seqs[a:a + 1], particles, **kw, **one).wall_time_s
+                    single[a] = min(_run(sc, p.design, engine, z[a:a + 1], seqs[a:a + 1], particles, **kw,
+                                         **one).wall_time_s
                                     for _ in range(SINGLE_RUN_REPEATS))
                 out[_key(key, name, "single_s")] = single
     return out
 
 
-def _run(sc, z, seqs, particles: int, **kw):
-    """run_sis with each run's particle Generator (stream 2) and its own Generator for the detector (stream 4)."""
+def _particles(sc, seqs, particles: int):
+    """The fused engine's SIS particles of the runs ``seqs``: each run's prior draws then its propagation, from its
+    Generator on stream 2 (as run_sis draws them)."""
+    from filters.fused import sis_particles
+
     rngs = [np.random.default_rng(s[2]) for s in seqs]
+    x0 = np.stack([sc.model.prior.sample(g, particles) for g in rngs])
+    return sis_particles(sc.model, x0, rngs, sc.steps, inputs=sc.inputs(sc.steps))
+
+
+def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, shared=None, **spec):
+    """One filter (``spec``: its detector and likelihood, see ``_FILTER_SPECS``) on the runs ``seqs``.
+
+    Each run's particles from its Generator on stream 2 (the prior's draws first; the fused
+    engine takes them from ``shared`` if given, see :func:`_particles`), the sampled
+    correction's from its own Generator on stream 4; the fused kernels
+    (:func:`filters.fused.sis_fdi`) or :func:`filters.fdi.run_sis`.  The fused engine's
+    wall time includes the particles' (drawn once per setting, every filter's cost).
+    """
     aux = [np.random.default_rng(s[4]) for s in seqs]
-    return run_sis(sc.model, z, rngs, particles=particles, inputs=sc.inputs(sc.steps), aux_rng=aux, **kw)
+    extra = {} if gamma_hat is None else {"gamma_hat": gamma_hat}
+    if engine == "numpy":
+        rngs = [np.random.default_rng(s[2]) for s in seqs]
+        return run_sis(sc.model, z, rngs, particles=particles, inputs=sc.inputs(sc.steps), aux_rng=aux,
+                       **_numpy_filter(sc, d, **spec), **extra)
+    from filters.fused import sis_fdi
+
+    if spec.get("likelihood") == "mixture":
+        extra.update(attack_prob=sc.channel.prob, deception=sc.channel.bias)
+    if spec.get("detector"):
+        extra.update(eta=d.eta, zeta=d.zeta)
+    if spec.get("detector") == "sampled":
+        extra["aux_rngs"] = aux
+    return sis_fdi(sc.model, shared or _particles(sc, seqs, particles), z, **spec, **extra)
 
 
 class _View(NamedTuple):
@@ -445,14 +494,14 @@ def _accepts(sc: Scenario) -> str | None:
 
 
 def _check(so: StudyOptions) -> None:
-    if so["engine"] != "numpy":
-        raise InputError(f"engine: fdi-four-tank has only the NumPy SIS engine ('numpy'), got {so['engine']!r}")
+    if so["engine"] not in ("fast", "numpy"):
+        raise InputError(f"engine must be 'fast' or 'numpy', got {so['engine']!r}")
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     plans, _ = _settings(ref, so.particles)  # builds the settings and checks the designs before any run
-    task = functools.partial(_runs, ref=ref, particles=so.particles)
+    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=so["engine"])
     config = {"study": "fdi-four-tank", "scenario": sc.name, "params": dict(ref.params), "particles": so.particles,
               "engine": so["engine"], "settings": {k: list(p.which) for k, p in plans.items()},
               "streams": "run r: SeedSequence(seed, spawn_key=(r,)).spawn(5)",
@@ -716,7 +765,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"engine": "numpy"},
+    options={"engine": "fast"},
     accepts=_accepts,
     check=_check,
     min_runs=1,

@@ -1,6 +1,6 @@
 """Run the particle filters of the studies on many Monte Carlo runs, with either engine.
 
-* ``engine="fast"`` (default) — the fused numba kernels of :mod:`filters.fastsir`:
+* ``engine="fast"`` (default) — the fused numba kernels of :mod:`filters.fused`:
   one Generator per run (spawned from the study seed), initial particles drawn
   from the model's prior with that Generator, runs spread over ``threads``
   threads.  A run's numbers depend only on its own seed, not on the number of
@@ -14,16 +14,18 @@
 
 Both return ``(mean, collapsed)``: weighted means (runs, K + 1, n_x) and the
 (runs, K) collapse flags.  ``warm_up=True`` only compiles the fast engine's kernels
-(a few seconds per model and process) on a one-step problem and returns None, so
-that timings measure filtering, not compilation.
+(a few seconds per model at its first run on a machine, then loaded from the on-disk
+cache) on a one-step problem and returns None, so that timings measure filtering, not
+compilation.
 
 The studies run these inside a :mod:`studies.runner` task, one chunk of runs at a
 time; ``threads`` is the number of threads of the fused engine within a chunk (worker
-*processes* are the runner's ``workers``).  The compiled kernels are cached per
-:class:`designer.Model` object, so the tasks rebuild their scenario from a
-:class:`studies.scenarios.ScenarioRef` (built once per process and reference): a
-worker process forked after the parent compiled (``Backend("processes")``) reuses the
-parent's kernels, and any other worker compiles once per model, not once per chunk.
+*processes* are the runner's ``workers``).  The compiled kernels are kept in memory per
+:class:`designer.Model` object and on disk per machine (:mod:`filters.fused`), so the
+tasks rebuild their scenario from a :class:`studies.scenarios.ScenarioRef` (built once per
+process and reference): a worker process forked after the parent compiled
+(``Backend("processes")``) reuses the parent's kernels, and any other worker loads them
+from the disk cache once per model, not once per chunk.
 :func:`score` turns a filter's concatenated runs into its metrics
 (:func:`studies.results.error_metrics`, time, collapses); :func:`check_study_options`
 checks the options the particle-filter studies share.
@@ -39,9 +41,9 @@ from designer.attacks import BinarySensorChannel
 from designer.model import Model
 from designer.noise import Noise
 from designer.validation import InputError, check_int
-from filters.binary import binary_loglik
+from filters.binary import binary_coefficients, binary_loglik
 from filters.particle import run_sir
-from filters.rrp import packet_loglik
+from filters.rrp import deception_terms, packet_loglik
 
 from .pipeline import naming_filter
 from .results import error_metrics
@@ -197,18 +199,18 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
         return res.mean, res.collapsed
     if linear_weights:
         raise InputError("linear_weights needs engine='numpy' (the fused kernels keep log weights only)")
-    from filters import fastsir
+    from filters import fused
 
-    log_clean, attack = fastsir.deception_terms(y, attack_prob, signal)
+    log_clean, attack = deception_terms(y, attack_prob, signal)
     if warm_up:  # compile outside the timed call: one run, two particles, one step
         g = np.random.default_rng(0)
         # the step whose attack terms are most often finite, so that the variant compiled is the one used
         k = int(np.argmax(np.isfinite(attack).sum(axis=(0, 2)))) if attack.ndim == 3 else 0
-        fastsir.sir_packets(model, model.prior.sample(g, (1, 2)), [g], sensors[k:k + 1], y[:1, k:k + 1],
-                            attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
+        fused.sir_packets(model, model.prior.sample(g, (1, 2)), [g], sensors[k:k + 1], y[:1, k:k + 1],
+                          attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
-    res = fastsir.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
-                              log_clean=log_clean, angles=angles, threads=threads)
+    res = fused.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
+                            log_clean=log_clean, angles=angles, threads=threads)
     return res.mean, res.collapsed
 
 
@@ -228,14 +230,14 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
             return None
         res = run_sir(model, y, rngs[0], particles=particles, runs=y.shape[0], loglik=binary_loglik(model, **kw))
         return res.mean, res.collapsed
-    from filters import fastsir
+    from filters import fused
 
-    A, B = fastsir.binary_coefficients(y, **kw)
+    A, B = binary_coefficients(y, **kw)
     threshold = channel.threshold
     if warm_up:  # compile outside the timed call: one run, two particles, one step
         g = np.random.default_rng(0)
-        fastsir.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)
+        fused.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)
         return None
-    res = fastsir.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
+    res = fused.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
                              threads=threads)
     return res.mean, res.collapsed

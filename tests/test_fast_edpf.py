@@ -1,4 +1,4 @@
-"""Seed 001's filters on the fused kernels (:mod:`filters.fastedpf`), the batched data and the fast study.
+"""Seed 001's filters on the fused kernels (:mod:`filters.fused.edpf`), the batched data and the fast study.
 
 The strongest check: numba's Generator draws are NumPy's, bit for bit, and the
 switching / mixture propagation draws in ``transition_proposal``'s order, so one run
@@ -20,7 +20,7 @@ from designer.noise import GaussianMixture, TruncatedGaussian
 from designer.simulate import simulate, simulate_runs
 from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model, raw_loglik, received
 from filters.encryption import Codec, EncryptedChannel, transmit, transmit_runs
-from filters.fastedpf import edpf_loglik, sir_edpf
+from filters.fused import edpf_loglik, sir_edpf
 from filters.particle import run_sir
 from studies.encrypted_switching import (FILTERS, MEAN_DYNAMICS, RunConfig, _state_metrics, _streams,
                                          compute_runs, concatenate_runs, filter_names)

@@ -19,14 +19,14 @@ from designer import Gaussian, InputError, Model, Sensor, simulate
 from designer.codegen import UnsupportedOperation
 from designer.jit import _atan2, compile_source, jit_model, scalar_source
 from designer.noise import GaussianMixture, TruncatedGaussian, spawn_generators
-from filters.binary import binary_loglik
 from filters.attacks import binary_sensor_channel, deception_attack, round_robin_schedule
-from filters.fastsir import (
-    RESAMPLER_CODES, _cumsum_to_one, _exp_nonpos, _inverse_cdf, _systematic, _wrap_angle, binary_affine_loglik,
-    binary_coefficients, deception_terms, packets_loglik, sir_binary, sir_packets,
-)
+from filters.binary import binary_coefficients, binary_loglik
+from filters.fused import binary_affine_loglik, packets_loglik, sir_binary, sir_packets
+from filters.fused.primitives import exp_nonpos, wrap_angle
+from filters.fused.resampling import cumsum_to_one, inverse_cdf, systematic
 from filters.particle import run_sir
-from filters.rrp import all_sensors_loglik, rrp_loglik, wrap_angles
+from filters.resampling import SCHEMES
+from filters.rrp import all_sensors_loglik, deception_terms, rrp_loglik, wrap_angles
 from studies.scenarios import SCENARIOS, load_scenario
 
 ETA = 0.2
@@ -167,13 +167,13 @@ def _atan2_all(y, x, out):
 @numba.njit
 def _exp_all(d, out):
     for i in range(d.shape[0]):
-        out[i] = _exp_nonpos(d[i])
+        out[i] = exp_nonpos(d[i])
 
 
 @numba.njit
 def _wrap_all(r, out):
     for i in range(r.shape[0]):
-        out[i] = _wrap_angle(r[i])
+        out[i] = wrap_angle(r[i])
 
 
 def _ulps(ours, exact):
@@ -239,10 +239,10 @@ def test_branch_free_systematic_resampling_matches_the_inverse_cdf():
     cdf, u, a, b = np.empty(M), np.empty(M), np.empty(M, np.int64), np.empty(M, np.int64)
     for W in cases:
         for u0 in np.concatenate([rng.random(20), [0.0, 1 - 2.0**-53]]):
-            _systematic(W, 1.0 / W.sum(), u0, a, np.empty(M), np.empty(M + 1))
-            _cumsum_to_one(W, 1.0 / W.sum(), cdf)
+            systematic(W, 1.0 / W.sum(), u0, a, np.empty(M), np.empty(M + 1))
+            cumsum_to_one(W, 1.0 / W.sum(), cdf)
             u[:] = (np.arange(M) + u0) / M
-            _inverse_cdf(cdf, u, b)
+            inverse_cdf(cdf, u, b)
             assert np.array_equal(a, b)
             assert np.all(W[a][u < 1.0] > 0)  # u0 = 1 - 2^-53 rounds the last u_m to 1: the last particle
 
@@ -359,7 +359,7 @@ def _same_as_run_sir(ours, ref, covariance=False):
         np.testing.assert_allclose(ours.cov, ref.cov, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("scheme", sorted(RESAMPLER_CODES))
+@pytest.mark.parametrize("scheme", SCHEMES)
 @pytest.mark.parametrize("thr", [1.0, 0.5])
 def test_one_run_reproduces_run_sir_round_robin(rb, scheme, thr):
     m, M = rb["m"], 300

@@ -109,7 +109,7 @@ def test_results_table_and_figures_on_disk(study):
 
 
 @pytest.mark.parametrize("kw, needle", [
-    ({"engine": "fast"}, "engine"),
+    ({"engine": "gpu"}, "engine"),
     ({"backend": "processes"}, "backend"),
     ({"chunk_size": 0}, "chunk_size"),
     ({"runs": 0}, "runs"),

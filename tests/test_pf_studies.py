@@ -144,7 +144,7 @@ def test_velocity_reference_is_the_steady_state_kalman_filter(r):
 
 @pytest.mark.parametrize("study, args, needle", [
     ("encrypted-switching", ["--linearization", "fixed"], "--linearization"),
-    ("fdi-four-tank", ["--engine", "fast"], "engine"),
+    ("fdi-four-tank", ["--engine", "gpu"], "engine"),
     ("fdi-four-tank", ["--linearization", "fixed"], "--linearization"),
 ])
 def test_study_cli_rejects_what_a_study_does_not_support(tmp_path, capsys, study, args, needle):

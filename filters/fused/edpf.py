@@ -1,14 +1,14 @@
-"""Seed 001's filters (PPF, PF-RSN, PF-SR-DE) on the fused kernels of :mod:`filters.fastsir`.
+"""Seed 001's filters (PPF, PF-RSN, PF-SR-DE) on the fused kernels (the NumPy twin: :mod:`filters.edpf`).
 
 The NumPy versions are :func:`filters.edpf.interval_loglik` (PPF and PF-RSN, (13)-(15))
 and :func:`filters.edpf.raw_loglik` (PF-SR-DE) with :func:`filters.particle.run_sir`
 and the transition density as the proposal.  Here the same filters run with
-:mod:`filters.fastsir`'s generic kernel (one compiled call per run, runs over
+:mod:`filters.fused.driver`'s generic kernel (one compiled call per run, runs over
 threads, weights as ``b + log s``, systematic or other resampling, collapse
 handling) and two generated, per-model pieces:
 
 * the propagation of a model with **switching modes** and/or **Gaussian-mixture
-  process noise** (:func:`filters.fastsir._prop_predrawn`): per step, ``M``
+  process noise** (:func:`filters.fused.codegen.propagation_predrawn`): per step, ``M``
   uniforms for the modes, ``M`` for the mixture's components, then ``M n_w``
   normals — :func:`filters.particle.transition_proposal`'s order (``choice`` with
   the mode probabilities, then ``GaussianMixture.sample``);
@@ -40,6 +40,7 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+from numba.core import types
 
 from designer.codegen import literal
 from designer.jit import scalar_statements
@@ -47,17 +48,20 @@ from designer.model import Model
 from designer.noise import TruncatedGaussian
 from designer.validation import InputError
 
-from . import fastsir
-from .edpf import sensor_bounds
-from .encryption import Codec
-from .fastsir import FastSIRResult
+from filters.edpf import sensor_bounds
+from filters.encryption import Codec
+
+from .codegen import compile_kernel, model_kernels, propagation_predrawn, weights
+from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
+    lik_type, run_all
 
 __all__ = ["LIKELIHOODS", "sir_edpf", "edpf_loglik"]
 
 #: ``"interval"``: PPF's (13)-(15); ``"raw"``: PF-SR-DE's density at the decrypted value.
 LIKELIHOODS = ("interval", "raw")
-
-
+#: The family's data per run: decrypted values (K, N), availabilities (K, N).
+DATA = types.Tuple((F2, F2))
+LIK_T = lik_type(DATA)
 
 def _c(v) -> str:
     """Source of a float constant (``±_m.inf`` for infinite truncation bounds)."""
@@ -66,10 +70,7 @@ def _c(v) -> str:
 
 # ============================================================================ checks
 def _checked_model(model) -> Model:
-    if not isinstance(model, Model):
-        raise InputError(f"model must be a designer.Model, got {type(model).__name__}")
-    if model.n_u:
-        raise InputError(f"model {model.name!r} has known inputs u; the fused kernels support models without inputs")
+    model = check_model(model, modes=True)
     if any(d != 1 for d in model.sensor_dims):
         raise InputError(f"model {model.name!r} must have scalar sensors (seed 001), got dimensions "
                          f"{model.sensor_dims}")
@@ -125,7 +126,7 @@ def _interval_terms(s: int, noise: TruncatedGaussian, bound: float, ind: str) ->
         body += [f"{ind}    u = {v} - h{s}",
                  f"{ind}    u = {_c(lo)} if u < {_c(lo)} else ({_c(up)} if u > {_c(up)} else u)",
                  f"{ind}    {name} = (u - {_c(loc)}) / {_c(sc)}"]
-    body += [f"{ind}    p = (_ndtr(-lo) - _ndtr(-hi)) if lo > 0.0 else (_ndtr(hi) - _ndtr(lo))",
+    body += [f"{ind}    p = (ndtr(-lo) - ndtr(-hi)) if lo > 0.0 else (ndtr(hi) - ndtr(lo))",
              f"{ind}    pr *= (0.0 if p < 0.0 else p) / {_c(mass0)}",
              # one log per particle for the product of the sensors' probabilities, unless it could underflow
              f"{ind}    if pr < 1e-280:",
@@ -147,10 +148,10 @@ def _raw_terms(s: int, noise: TruncatedGaussian, ind: str) -> tuple[list[str], l
 
 
 def _lik(model: Model, bound: tuple):
-    """``lik`` of the ``"edpf"`` family (see :func:`filters.fastsir._likelihood_block`, no slots):
+    """``lik`` of the ``"edpf"`` family (see :func:`filters.fused.driver.likelihood_block`, no slots):
     ``b[m] += Σ_s α_s term_s(X[m])``, interval terms for a non-empty ``bound``, raw densities for ``()``."""
     key = ("edpf", bound)
-    cache = fastsir._kernels(model)
+    cache = model_kernels(model)
     if key in cache:
         return cache[key]
     ind = "        "
@@ -165,7 +166,7 @@ def _lik(model: Model, bound: tuple):
     lines += [f"{ind}tot = 0.0", f"{ind}pr = 1.0", *body, f"{ind}bb[m] += tot + _m.log(pr)" if bound
               else f"{ind}bb[m] += tot"]
     what = "the interval likelihood" if bound else "the raw truncated-Gaussian likelihood"
-    cache[key] = fastsir._compile(model, ("lik", key), "\n".join(lines), "lik", what, fastsir._lik_type("edpf"))
+    cache[key] = compile_kernel(model, ("lik", key), "\n".join(lines), "lik", what, LIK_T)
     return cache[key]
 
 
@@ -204,7 +205,7 @@ def sir_edpf(
     codec : Codec
         Resolution and quantizer settings (``L̄_s = ω_s Λ / K + l_s``), interval likelihood only.
     resampler, ess_threshold, covariance, threads
-        As in :func:`filters.fastsir.sir_packets` (the study resamples systematically when ESS < M/2).
+        As in :func:`filters.fused.sir_packets` (the study resamples systematically when ESS < M/2).
 
     Returns
     -------
@@ -214,15 +215,14 @@ def sir_edpf(
     """
     model = _checked_model(model)
     bound = _bound(model, likelihood, codec)
-    x0 = fastsir._particles(x0, model.n_x)
+    x0 = check_particles(x0, model.n_x)
     R = x0.shape[0]
-    gens = fastsir._generators(rngs, R)
-    scheme, thr, threads, covariance = fastsir._options(resampler, ess_threshold, threads, covariance)
+    gens = check_generators(rngs, R)
+    scheme, thr, threads, covariance = check_options(resampler, ess_threshold, threads, covariance)
     Z, A = _edpf_data(model, R, y)
-    prop, nd = fastsir._prop_predrawn(model)
-    kernels = (prop, nd, _lik(model, bound), 0, 0, fastsir._weigh(model))
-    return fastsir._run_all("edpf", kernels, lambda r: (Z[r], A[r]), x0, gens, Z.shape[1], scheme, thr, covariance,
-                            threads)
+    prop, nd = propagation_predrawn(model)
+    kernels = (prop, nd, _lik(model, bound), 0, 0, weights(model))
+    return run_all(DATA, kernels, lambda r: (Z[r], A[r]), x0, gens, Z.shape[1], scheme, thr, covariance, threads)
 
 
 def edpf_loglik(model: Model, x, k1: int, y, *, likelihood: str = "interval", codec: Codec | None = None) -> np.ndarray:
@@ -233,14 +233,14 @@ def edpf_loglik(model: Model, x, k1: int, y, *, likelihood: str = "interval", co
     """
     model = _checked_model(model)
     bound = _bound(model, likelihood, codec)
-    x = fastsir._particles(x, model.n_x, "x")
+    x = check_particles(x, model.n_x, "x")
     R = x.shape[0]
     yy = np.asarray(y, dtype=np.float64)
     if yy.ndim != 2:
         raise InputError(f"y must have shape (runs, N) or (runs, 2 N), got {yy.shape}")
     Z, A = _edpf_data(model, R, yy[:, None])
     lik = _lik(model, bound)
-    rows = fastsir._drivers("edpf")[1]
+    rows = drivers(DATA, 1)
     out = np.empty(x.shape[:2])
     for r in range(R):
         rows(lik, 0, 0, x[r], float(k1), (Z[r], A[r]), out[r])
