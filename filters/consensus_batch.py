@@ -346,7 +346,7 @@ def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
 
 
 # --------------------------------------------------------------------------- the filter
-def _batch_inputs(model, z, inputs, x0, phi0):
+def _batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
     z = check_finite("z", z)
     if z.ndim != 3 or z.shape[2] != model.n_z or z.shape[0] < 1 or z.shape[1] < 1:
         raise InputError(f"z must have shape (runs, steps, {model.n_z}) with runs, steps >= 1, got {z.shape}")
@@ -361,11 +361,11 @@ def _batch_inputs(model, z, inputs, x0, phi0):
     phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
     if phi0.ndim == 3:
         if phi0.shape[0] != runs:
-            raise InputError(f"phi0 must have shape ({model.n_x}, {model.n_x}) or ({runs}, {model.n_x}, {model.n_x}), "
-                             f"got {phi0.shape}")
-        phi0 = np.stack([check_covariance(f"phi0[{r}]", p, model.n_x) for r, p in enumerate(phi0)])
+            raise InputError(f"{cov_name} must have shape ({model.n_x}, {model.n_x}) or ({runs}, {model.n_x}, "
+                             f"{model.n_x}), got {phi0.shape}")
+        phi0 = np.stack([check_covariance(f"{cov_name}[{r}]", p, model.n_x) for r, p in enumerate(phi0)])
     else:
-        phi0 = check_covariance("phi0", phi0, model.n_x)
+        phi0 = check_covariance(cov_name, phi0, model.n_x)
     return z, u, np.broadcast_to(x0, (runs, model.n_x)), np.broadcast_to(phi0, (runs, model.n_x, model.n_x))
 
 
