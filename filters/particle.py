@@ -28,9 +28,8 @@ from __future__ import annotations
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
-from scipy.special import logsumexp
-
 from designer.model import Model
+from designer.noise import logsumexp
 from designer.validation import ComputationError, InputError, check_int, check_rng
 
 from .resampling import get_resampler
@@ -52,6 +51,11 @@ def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
     return mean
 
 
+def effective_size(W: np.ndarray) -> np.ndarray:
+    """The effective sample size ``1 / Σ W²`` of normalised weights (..., M)."""
+    return 1.0 / np.sum(W * W, axis=-1)
+
+
 class LogWeights(NamedTuple):
     """Unnormalised log weights ``lw`` (..., M); NaN counts as -inf (zero weight)."""
 
@@ -70,7 +74,10 @@ class LogWeights(NamedTuple):
     @property
     def W(self) -> np.ndarray:
         """Normalised weights; a run whose weights all vanished gets uniform weights."""
-        ln = self.log_norm
+        return self.normalised(self.log_norm)
+
+    def normalised(self, ln: np.ndarray) -> np.ndarray:
+        """:attr:`W` from the :attr:`log_norm` ``ln`` already computed."""
         dead = ~np.isfinite(ln)
         W = np.exp(self.lw - np.where(dead, 0.0, ln)[..., None])
         if np.any(dead):
@@ -84,8 +91,7 @@ class LogWeights(NamedTuple):
 
     @property
     def ess(self) -> np.ndarray:
-        W = self.W
-        return 1.0 / np.sum(W * W, axis=-1)
+        return effective_size(self.W)
 
     @property
     def log_mean(self) -> np.ndarray:
@@ -262,10 +268,11 @@ def run_sir(
             new[dead] = 0.0  # predicted particles, uniform weights; contributes nothing to the likelihood
         lw = LogWeights(new)
         # p(z_k | z_1:k-1) = Σ W_{k-1} w_k: the change of the log normaliser (-inf on a collapse).
-        total += np.where(dead, -np.inf, lw.log_norm - prev_log_norm)
-        W = lw.W
+        ln = lw.log_norm
+        total += np.where(dead, -np.inf, ln - prev_log_norm)
+        W = lw.normalised(ln)  # (each computed once per step)
         mean[:, k + 1], cov[:, k + 1] = _moments(x, W)
-        ess[:, k] = lw.ess
+        ess[:, k] = effective_size(W)
         need = ess[:, k] < ess_threshold * M - 1e-9 if ess_threshold < 1.0 else np.ones(R, dtype=bool)
         if np.any(need):
             for g, sl in zip(gens, spans):  # each block from its own generator (x[sl] is a view)
