@@ -61,12 +61,13 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult, run_consensus
+from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult, _falsified_probability, run_consensus
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals"]
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
+           "per_run"]
 
 
 # --------------------------------------------------------------------------- channels and their attacks
@@ -156,6 +157,30 @@ def edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int
         raise InputError(f"attacks must cover ({runs} runs, {steps} steps, {receiver.size} channels, n_x = {nx}), "
                          f"got dos {attacks.dos.shape}, xi {attacks.xi.shape}")
     return attacks
+
+
+def run_networks(network, runs: int) -> tuple[SensorNetwork, list[SensorNetwork] | None]:
+    """``network`` as the batches take it: one :class:`SensorNetwork` for every run, or one per run (the same
+    graph, channels of different DoS/FDI probabilities, e.g. the settings of a sweep).  Returns the first
+    network and the list of the runs' networks (None when one serves every run)."""
+    if isinstance(network, SensorNetwork):
+        return network, None
+    try:
+        nets = list(network)
+    except TypeError:
+        nets = []
+    if len(nets) != runs or not all(isinstance(net, SensorNetwork) for net in nets):
+        raise InputError(f"network must be a SensorNetwork or one per run ({runs}), got "
+                         f"{len(nets) if nets else type(network).__name__}")
+    if not all(np.array_equal(net.adjacency, nets[0].adjacency) for net in nets):
+        raise InputError("network: the runs' networks must share one graph (only their channels' DoS and FDI "
+                         "probabilities may differ)")
+    return nets[0], nets
+
+
+def per_run(value_of, network: SensorNetwork, nets: list | None) -> np.ndarray:
+    """``value_of(net)`` of each run's network, stacked over the runs (one item when ``nets`` is None)."""
+    return value_of(network)[None] if nets is None else np.stack([value_of(net) for net in nets])
 
 
 # --------------------------------------------------------------------------- the result
@@ -346,7 +371,7 @@ def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
 
 
 # --------------------------------------------------------------------------- the filter
-def _batch_inputs(model, z, inputs, x0, phi0):
+def _batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
     z = check_finite("z", z)
     if z.ndim != 3 or z.shape[2] != model.n_z or z.shape[0] < 1 or z.shape[1] < 1:
         raise InputError(f"z must have shape (runs, steps, {model.n_z}) with runs, steps >= 1, got {z.shape}")
@@ -361,11 +386,11 @@ def _batch_inputs(model, z, inputs, x0, phi0):
     phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
     if phi0.ndim == 3:
         if phi0.shape[0] != runs:
-            raise InputError(f"phi0 must have shape ({model.n_x}, {model.n_x}) or ({runs}, {model.n_x}, {model.n_x}), "
-                             f"got {phi0.shape}")
-        phi0 = np.stack([check_covariance(f"phi0[{r}]", p, model.n_x) for r, p in enumerate(phi0)])
+            raise InputError(f"{cov_name} must have shape ({model.n_x}, {model.n_x}) or ({runs}, {model.n_x}, "
+                             f"{model.n_x}), got {phi0.shape}")
+        phi0 = np.stack([check_covariance(f"{cov_name}[{r}]", p, model.n_x) for r, p in enumerate(phi0)])
     else:
-        phi0 = check_covariance("phi0", phi0, model.n_x)
+        phi0 = check_covariance(cov_name, phi0, model.n_x)
     return z, u, np.broadcast_to(x0, (runs, model.n_x)), np.broadcast_to(phi0, (runs, model.n_x, model.n_x))
 
 
@@ -382,14 +407,18 @@ def _first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign
                       f"at node {i}, got {design.beta!r}")
 
 
-def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
-                        inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
+                        design: ConsensusDesign, *, inputs=None,
+                        attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                         phi0=None) -> ConsensusBatchResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
     ----------
-    model, network : the model (one sensor per node) and the communication graph.
+    model : the model (one sensor per node).
+    network : SensorNetwork, or a sequence of them (one per run)
+        The communication graph; one network per run gives each run its own channel probabilities (the
+        statistics of its bounds and tuned weights) on one shared graph, e.g. the settings of a sweep.
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
@@ -406,7 +435,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     Returns
     -------
     ConsensusBatchResult
-        Run ``r`` equals ``run_consensus(model, network, z[r], design, inputs=..., attacks=attacks[r], ...)``
+        Run ``r`` equals ``run_consensus(model, network[r], z[r], design, inputs=..., attacks=attacks[r], ...)``
         to rounding (:meth:`ConsensusBatchResult.run` gives it as a ``ConsensusResult``).
 
     Raises
@@ -416,17 +445,19 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         β violates (28)/(29) at the first step: with the message ``run_consensus`` raises for the
         first run (in batch order) it raises for.
     """
-    design = validate_design(design, model, network)
     z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
+    network, nets = run_networks(network, runs)
+    design = validate_design(design, model, network)
     ex = _Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     if design.mode == "mse":
         from .mse_batch import run_mse_batch  # late: it builds on this module
 
-        return run_mse_batch(model, network, z, design, inputs=inputs, attacks=attacks, x0=x0, phi0=phi0)
+        return run_mse_batch(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks,
+                             x0=x0, phi0=phi0)
     if design.mode not in GAIN_RULES or design.gate:
-        return _per_run_batch(model, network, z, design, u, attacks, x0, phi0)
+        return _per_run_batch(model, network if nets is None else nets, z, design, u, attacks, x0, phi0)
     predict_rule, update_rule = GAIN_RULES[design.mode]
 
     n, nx = network.n_nodes, model.n_x
@@ -437,13 +468,14 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
     eye = np.eye(nx)
     rule, radius = design.linearization, design.radius
     groups = _groups(model, design)
-    # Weights of the neighbour terms in (27), per channel: 3 (1 - phibar_ij); and 3 delta^2 sum_j gammabar_ij.
-    w_phi = 3.0 * (1.0 - network.dos_prob[ex.receiver, ex.sender])
-    w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+    # Weights of the neighbour terms in (27), per channel: 3 (1 - phibar_ij); and 3 delta^2 sum_j gammabar_ij;
+    # per run (1 item when every run has the same network)
+    w_phi = per_run(lambda net: 3.0 * (1.0 - net.dos_prob[ex.receiver, ex.sender]), network, nets)
+    w_xi = per_run(lambda net: 3.0 * design.delta**2 * (net.fdi_prob * net.adjacency).sum(axis=1), network, nets)
     tuned = design.mode == "tuned"
     if tuned:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
         slots = _channel_slots(ex, d_max)
-        q_chan = network.fdi_prob[ex.receiver, ex.sender] / (1.0 - network.dos_prob[ex.receiver, ex.sender])
+        q_chan = per_run(lambda net: _falsified_probability(net)[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
 
     x_post = np.full((runs, steps + 1, n, nx), np.nan)
@@ -509,7 +541,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
         innovation = ex.sum(recv[..., None] * xp[:, ex.sender]) - s[..., None] * xp
         if attacks is not None:
             innovation = innovation + ex.sum((recv & attacks.fdi[at, k])[..., None] * attacks.xi[at, k])
-        neigh = ex.sum(w_phi[None, :, None, None] * Pp[:, ex.sender]) + w_xi[:, None, None] * eye
+        each = slice(None) if nets is None else at  # the runs' channel statistics
+        neigh = ex.sum(w_phi[each][:, :, None, None] * Pp[:, ex.sender]) + w_xi[each][..., None, None] * eye
         # ---- update (7), (27), (29), per group of nodes
         xn = np.empty((a, n, nx))
         Pn = np.empty((a, n, nx, nx))
@@ -539,7 +572,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork, z: np.ndarray, des
             flat = dict(P=Pp[:, at_g], H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
                         d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
             if tuned:
-                flat.update(_tuned_items(slots[ns], recv, Pp, ex.sender, q_chan, W[act[:, None], ns], design))
+                flat.update(_tuned_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design))
             flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
             *out, gW, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
             gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
@@ -619,7 +652,8 @@ def _channel_slots(ex: _Exchange, d_max: int) -> np.ndarray:
 
 
 def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
-    """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a): the groups of the weighted
+    """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a; ``q_chan`` (a or 1, E) the
+    channels' probabilities that a received packet is falsified): the groups of the weighted
     (27) from the received neighbours' Φ_pred (:func:`designer.tuning.neighbour_group_stack`), which are present,
     and the warm start from each node's ``previous`` weights (a, g, d_max + 2) by slot, as run_consensus's."""
     a, g = recv.shape[0], slots.shape[0]
@@ -627,7 +661,7 @@ def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDes
     present = recv[:, chan] & (slots >= 0)  # (a, g, d_max)
     nb = Pp[:, sender[chan]]  # (a, g, d_max, n, n)
     flat = (a * g,)
-    groups, mask = neighbour_group_stack(nb.reshape(flat + nb.shape[2:]), np.broadcast_to(q_chan[chan], present.shape)
+    groups, mask = neighbour_group_stack(nb.reshape(flat + nb.shape[2:]), np.broadcast_to(q_chan[:, chan], present.shape)
                                          .reshape(flat + present.shape[2:]), present.reshape(flat + present.shape[2:]),
                                          design.delta, span=design.fdi_span)
     full = np.concatenate([np.ones(flat + (1,), dtype=bool), mask], axis=1)
@@ -636,11 +670,13 @@ def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDes
             "w0": w0.reshape(a, g, -1)}
 
 
-def _per_run_batch(model: Model, network: SensorNetwork, z, design: ConsensusDesign, u, attacks, x0, phi0
+def _per_run_batch(model: Model, network, z, design: ConsensusDesign, u, attacks, x0, phi0
                    ) -> ConsensusBatchResult:
-    """What the batch cannot vectorise yet: :func:`run_consensus` run by run, its results stacked."""
-    refs = [run_consensus(model, network, z[r], design, inputs=u if u.ndim == 2 else u[r],
-                          attacks=None if attacks is None else attacks.pattern(r, network.n_nodes),
+    """What the batch cannot vectorise yet: :func:`run_consensus` run by run (``network`` one for all or one per
+    run), its results stacked."""
+    nets = [network] * z.shape[0] if isinstance(network, SensorNetwork) else network
+    refs = [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
+                          attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
                           x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])]
     fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
               if f not in ("violations", "predicted_mse", "gate_counts")}

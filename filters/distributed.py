@@ -72,7 +72,7 @@ Assumptions where the papers are silent (attacks are not part of either paper):
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -82,9 +82,10 @@ from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
 from .consensus import check_run_inputs, wrapped_residual
+from .consensus_batch import _batch_inputs, wrap_residuals
 
-__all__ = ["DistributedResult", "run_kcf", "run_hcmci", "metropolis_weights", "OMEGA_CHOICES",
-           "FALSIFY_CHOICES"]
+__all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
+           "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES"]
 
 OMEGA_CHOICES = ("size", "consistent")
 FALSIFY_CHOICES = ("packet", "estimate")
@@ -117,13 +118,15 @@ class DistributedResult(NamedTuple):
 def metropolis_weights(network: SensorNetwork, lost: np.ndarray | None = None) -> np.ndarray:
     """Metropolis consensus weights ``π_ij = 1 / (1 + max(d_i, d_j))`` on the edges, ``π_ii = 1 - Σ_j π_ij``.
 
-    ``lost`` (N, N) bool: channels ``j -> i`` whose packet did not arrive; their weight goes to ``π_ii``.
+    ``lost`` (..., N, N) bool: channels ``j -> i`` whose packet did not arrive; their weight goes to ``π_ii``
+    (a stack of them, e.g. one per run, gives one weight matrix each).
     """
     d = network.degrees
     W = np.where(network.adjacency, 1.0 / (1.0 + np.maximum(d[:, None], d[None, :])), 0.0)
     if lost is not None:
         W = np.where(lost, 0.0, W)
-    W[np.diag_indices_from(W)] = 1.0 - W.sum(axis=1)
+    diag = np.arange(network.n_nodes)
+    W[..., diag, diag] = 1.0 - W.sum(axis=-1)
     return W
 
 
@@ -239,6 +242,69 @@ def _filter(model: Model, network: SensorNetwork, inp: _Inputs, update, rounds: 
     return DistributedResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, rounds, omega)
 
 
+def _kcf_epsilon(network: SensorNetwork, epsilon) -> float:
+    """KCF's ``ε``, checked (default ``0.5 / d_max``; 0 without links)."""
+    if epsilon is None:
+        epsilon = 0.5 / network.d_max if network.d_max else 0.0
+    eps = float(check_finite("epsilon", epsilon))
+    if eps < 0:
+        raise InputError(f"epsilon must be >= 0 (the consensus gain gamma = epsilon / (1 + ||M||_F)), got {epsilon!r}")
+    return eps
+
+
+def _hcmci_rounds(iterations, omega: str) -> int:
+    """HCMCI's ``L``, checked with its ``omega`` choice."""
+    L = check_int("iterations", iterations, 1)
+    if omega not in OMEGA_CHOICES:
+        raise InputError(f"omega must be one of {', '.join(map(repr, OMEGA_CHOICES))}, got {omega!r}")
+    return L
+
+
+def _kcf_update(eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
+    """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
+    of all nodes; ``recv`` (N, N) the packets that arrived, ``fdi``, ``xi`` the falsified ones and their
+    signal (None: no attack).  Stacks with leading axes (e.g. runs) are updated item by item."""
+    J = (recv | np.eye(recv.shape[-1], dtype=bool)).astype(float)  # J_i: the node and the neighbours heard
+    S = np.einsum("...ij,...jab->...iab", J, U)
+    M = _spd_inverse(_spd_inverse(Pp) + S)
+    gamma = eps / (1.0 + np.linalg.norm(M, axis=(-2, -1)))
+    # Σ_j (x̃_j - x̄_i) over the received packets, x̃_j = x̄_j + ξ_ij where falsified
+    diff = recv.astype(float) @ xp - recv.sum(axis=-1)[..., None] * xp
+    y = J @ u
+    if fdi is not None:
+        fdi = (recv & fdi).astype(float)
+        diff = diff + np.einsum("...ij,...ija->...ia", fdi, xi)
+        if packet:  # u_j + U_j ξ_ij: z_j read as h_j(x + ξ), linearised
+            y = y + np.einsum("...ij,...jab,...ijb->...ia", fdi, U, xi)
+    innov = y - np.einsum("...iab,...ib->...ia", S, xp) + gamma[..., None] * diff
+    return xp + np.einsum("...iab,...ib->...ia", M, innov), M, None
+
+
+def _hcmci_update(network: SensorNetwork, L: int, omega: str, packet: bool, xp, Pp, dO, dq, recv, fdi=None,
+                  xi=None):
+    """HCMCI's ``L`` consensus rounds and combination at every node (arguments as :func:`_kcf_update`, with the
+    measurement information ``(δΩ, δq)``); returns the posteriors and ``ω``."""
+    n = network.n_nodes
+    W = metropolis_weights(network, network.adjacency & ~recv)
+    # π_ij ξ_ij on the falsified channels j -> i: node i averages q_j + Ω_j ξ_ij instead of q_j (and, with
+    # falsify='packet', δq_j + δΩ_j ξ_ij instead of δq_j)
+    inject = None if fdi is None else (W * (recv & fdi))[..., None] * xi
+    O = _spd_inverse(Pp)
+    q = np.einsum("...iab,...ib->...ia", O, xp)
+    for _ in range(L):
+        q_new, dq_new = W @ q, W @ dq
+        if inject is not None:
+            q_new += np.einsum("...ijb,...jab->...ia", inject, O)
+            if packet:
+                dq_new += np.einsum("...ijb,...jab->...ia", inject, dO)
+        q, dq = q_new, dq_new
+        O = np.einsum("...ij,...jab->...iab", W, O)
+        dO = np.einsum("...ij,...jab->...iab", W, dO)
+    om = np.full(W.shape[:-1], float(n)) if omega == "size" else 1.0 / np.linalg.matrix_power(W, L).max(axis=-1)
+    P = _spd_inverse(O + om[..., None, None] * dO)
+    return np.einsum("...iab,...ib->...ia", P, q + om[..., None] * dq), P, om
+
+
 def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None, attacks: AttackPattern | None = None,
             x0=None, P0=None, epsilon: float | None = None, falsify: str = "packet") -> DistributedResult:
     """Olfati-Saber's Kalman consensus filter (extended form) at every node over ``z`` (steps, n_z).
@@ -259,28 +325,14 @@ def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
         the estimate alone (see the module docstring).
     """
     inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
-    if epsilon is None:
-        epsilon = 0.5 / network.d_max if network.d_max else 0.0
-    eps = float(check_finite("epsilon", epsilon))
-    if eps < 0:
-        raise InputError(f"epsilon must be >= 0 (the consensus gain gamma = epsilon / (1 + ||M||_F)), got {epsilon!r}")
+    eps = _kcf_epsilon(network, epsilon)
     eye = np.eye(network.n_nodes, dtype=bool)
 
+    packet = falsify == "packet"
+
     def update(k, xp, Pp, U, u, recv):
-        J = (recv | eye).astype(float)  # J_i: the node and the neighbours whose packet arrived
-        S = np.einsum("ij,jab->iab", J, U)
-        M = _spd_inverse(_spd_inverse(Pp) + S)
-        gamma = eps / (1.0 + np.linalg.norm(M, axis=(-2, -1)))
-        # Σ_j (x̃_j - x̄_i) over the received packets, x̃_j = x̄_j + ξ_ij where falsified
-        diff = recv.astype(float) @ xp - recv.sum(axis=1)[:, None] * xp
-        y = J @ u
-        if inp.attacks is not None:
-            fdi = (recv & inp.attacks.fdi[k]).astype(float)
-            diff = diff + np.einsum("ij,ija->ia", fdi, inp.attacks.xi[k])
-            if falsify == "packet":  # u_j + U_j ξ_ij: z_j read as h_j(x + ξ), linearised
-                y = y + np.einsum("ij,jab,ijb->ia", fdi, U, inp.attacks.xi[k])
-        innov = y - np.einsum("iab,ib->ia", S, xp) + gamma[:, None] * diff
-        return xp + np.einsum("iab,ib->ia", M, innov), M, None
+        at = () if inp.attacks is None else (inp.attacks.fdi[k], inp.attacks.xi[k])
+        return _kcf_update(eps, packet, xp, Pp, U, u, recv, *at)
 
     return _filter(model, network, inp, update, 1)._replace(omega=None)
 
@@ -301,30 +353,195 @@ def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations
         measurement more than once (see the module docstring).
     """
     inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
-    L = check_int("iterations", iterations, 1)
-    if omega not in OMEGA_CHOICES:
-        raise InputError(f"omega must be one of {', '.join(map(repr, OMEGA_CHOICES))}, got {omega!r}")
+    L = _hcmci_rounds(iterations, omega)
     n = network.n_nodes
     adj = network.adjacency
 
+    packet = falsify == "packet"
+
     def update(k, xp, Pp, dO, dq, recv):
-        W = metropolis_weights(network, adj & ~recv)
-        # π_ij ξ_ij on the falsified channels j -> i: node i averages q_j + Ω_j ξ_ij instead of q_j (and, with
-        # falsify='packet', δq_j + δΩ_j ξ_ij instead of δq_j)
-        inject = None if inp.attacks is None else (W * (recv & inp.attacks.fdi[k]))[..., None] * inp.attacks.xi[k]
-        O = _spd_inverse(Pp)
-        q = np.einsum("iab,ib->ia", O, xp)
-        for _ in range(L):
-            q_new, dq_new = W @ q, W @ dq
-            if inject is not None:
-                q_new += np.einsum("ijb,jab->ia", inject, O)
-                if falsify == "packet":
-                    dq_new += np.einsum("ijb,jab->ia", inject, dO)
-            q, dq = q_new, dq_new
-            O = np.einsum("ij,jab->iab", W, O)
-            dO = np.einsum("ij,jab->iab", W, dO)
-        om = np.full(n, float(n)) if omega == "size" else 1.0 / np.linalg.matrix_power(W, L).max(axis=1)
-        P = _spd_inverse(O + om[:, None, None] * dO)
-        return np.einsum("iab,ib->ia", P, q + om[:, None] * dq), P, om
+        at = () if inp.attacks is None else (inp.attacks.fdi[k], inp.attacks.xi[k])
+        return _hcmci_update(network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
     return _filter(model, network, inp, update, L)
+
+
+# --------------------------------------------------------------------------- many runs at once
+class DistributedBatchResult(NamedTuple):
+    """Many runs of a distributed filter: the fields of :class:`DistributedResult` with a leading runs axis
+    (``violations`` one list per run); :meth:`run` gives run ``r`` as the per-run result."""
+
+    x_post: np.ndarray  # (runs, steps+1, N, n_x)
+    P_post: np.ndarray  # (runs, steps+1, N, n_x, n_x)
+    x_pred: np.ndarray  # (runs, steps, N, n_x)
+    P_pred: np.ndarray  # (runs, steps, N, n_x, n_x)
+    messages_per_step: np.ndarray  # (runs, steps) int
+    delivered_per_step: np.ndarray  # (runs, steps) int
+    violations: list
+    iterations: int
+    omega: np.ndarray | None = None  # (runs, steps, N) HCMCI's ω_i (None for KCF)
+
+    def run(self, r: int) -> DistributedResult:
+        """Run ``r`` as the :class:`DistributedResult` of :func:`run_kcf` / :func:`run_hcmci`."""
+        return DistributedResult(self.x_post[r], self.P_post[r], self.x_pred[r], self.P_pred[r],
+                                 self.messages_per_step[r], self.delivered_per_step[r], self.violations[r],
+                                 self.iterations, None if self.omega is None else self.omega[r])
+
+    @property
+    def diverged(self) -> list:
+        """Per run, its ``'diverged'`` violation or None."""
+        return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+
+class _BatchInputs(NamedTuple):
+    z: np.ndarray  # (runs, steps, n_z)
+    u: np.ndarray  # (steps, n_u) shared or (runs, steps, n_u)
+    x0: np.ndarray  # (runs, n_x)
+    P0: np.ndarray  # (runs, n_x, n_x)
+    attacks: AttackPattern | None  # stacked: dos, fdi (runs, steps, N, N), xi (runs, steps, N, N, n_x)
+    R_inv: list
+
+
+def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _BatchInputs:
+    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
+        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
+                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
+    if falsify not in FALSIFY_CHOICES:
+        raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
+    z, u, x0, P0 = _batch_inputs(model, z, inputs, x0, P0, "P0")
+    runs, steps, n = z.shape[0], z.shape[1], network.n_nodes
+    if attacks is not None:
+        want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
+        if len(attacks) != runs or not all(isinstance(a, AttackPattern) and [np.shape(f) for f in a] == want
+                                           for a in attacks):
+            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), each with dos, fdi of shape "
+                             f"{want[0]} and xi of shape {want[2]}")
+        attacks = AttackPattern(*(np.stack([getattr(a, f) for a in attacks]) for f in AttackPattern._fields))
+    return _BatchInputs(z, u, x0, P0, attacks, [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)])
+
+
+def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """:func:`_first_failure` per run of stacks (a, N, ...): the first failing node, N where none fails."""
+    ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
+    ok &= np.abs(np.where(ok[..., None], x, 0.0)).max(-1) < _DIVERGED
+    return np.where(ok.all(-1), ok.shape[-1], np.argmin(ok, axis=-1))
+
+
+def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int
+                  ) -> DistributedBatchResult:
+    """:func:`_filter` over many runs at once: every step a stack over the runs still going (a run stops at its
+    first divergence, the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes stacks over the
+    runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it raises
+    ``LinAlgError``, the runs are updated one at a time to find those that break down."""
+    n, nx = network.n_nodes, model.n_x
+    runs, steps = inp.z.shape[:2]
+    adj = network.adjacency
+    x_post = np.full((runs, steps + 1, n, nx), np.nan)
+    P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
+    x_pred = np.full((runs, steps, n, nx), np.nan)
+    P_pred = np.full((runs, steps, n, nx, nx), np.nan)
+    omega = np.full((runs, steps, n), np.nan)
+    x_post[:, 0], P_post[:, 0] = inp.x0[:, None], inp.P0[:, None]
+    sent = np.full((runs, steps), int(adj.sum()) * rounds)
+    delivered = np.zeros((runs, steps), int)
+    violations: list[list[dict]] = [[] for _ in range(runs)]
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    beyond = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+    act = np.arange(runs)
+    for k in range(steps):
+        if not act.size:
+            break
+        at = slice(None) if act.size == runs else act
+        recv = np.broadcast_to(adj, (act.size, n, n)) if inp.attacks is None else adj & ~inp.attacks.dos[at, k]
+        delivered[at, k] = recv.sum(axis=(1, 2)) * rounds
+        uk = inp.u[k] if inp.u.ndim == 2 else inp.u[at, k][:, None, :]
+        xk = x_post[at, k]
+        xp = model.f_expected(xk, k, uk)
+        F = model.F_expected(xk, k, uk)
+        Pp = F @ P_post[at, k] @ np.swapaxes(F, -1, -2) + model.process_cov
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        x_pred[at, k], P_pred[at, k] = xp, Pp
+        node = _failures(xp, Pp)
+        reason = {r: "prediction: " + beyond for r in np.flatnonzero(node < n)}
+        go = np.flatnonzero(node == n)
+        if go.size:
+            every = go.size == act.size
+            xg, Pg, rg = (v if every else v[go] for v in (xp, Pp, recv))
+            # every node's measurement information, linearised at its own prediction (stacked over the runs)
+            U, u = np.empty(xg.shape + (nx,)), np.empty(xg.shape)
+            zk = inp.z[act[go], k]
+            for i in range(n):
+                H = model.H(i, xg[:, i], k + 1)
+                RiH = inp.R_inv[i] @ H
+                U[:, i] = np.swapaxes(H, -1, -2) @ RiH
+                res = wrap_residuals(zk[:, offsets[i]:offsets[i + 1]] - model.h(i, xg[:, i], k + 1),
+                                     model.sensors[i].angles)
+                u[:, i] = (np.swapaxes(RiH, -1, -2) @ (res + (H @ xg[:, i, :, None])[..., 0])[..., None])[..., 0]
+            try:
+                x, P, om = update(k, act[go], xg, Pg, U, u, rg)
+            except np.linalg.LinAlgError:
+                x, P, om = np.full(xg.shape, np.nan), np.full(Pg.shape, np.nan), np.full(xg.shape[:-1], np.nan)
+                for j in range(go.size):
+                    try:
+                        xj, Pj, oj = update(k, act[go[j:j + 1]], xg[j:j + 1], Pg[j:j + 1], U[j:j + 1], u[j:j + 1],
+                                            rg[j:j + 1])
+                    except np.linalg.LinAlgError as exc:
+                        node[go[j]] = _not_positive_definite(Pg[j])
+                        reason[go[j]] = f"numerical breakdown: {exc}"
+                    else:
+                        x[j], P[j] = xj[0], Pj[0]
+                        if oj is not None:
+                            om[j] = oj[0]
+            bad = _failures(x, P)
+            for j in np.flatnonzero(bad < n):
+                if go[j] not in reason:
+                    node[go[j]], reason[go[j]] = bad[j], beyond
+            fine = np.array([g not in reason for g in go], dtype=bool)
+            rows = act[go[fine]]
+            x_post[rows, k + 1], P_post[rows, k + 1] = x[fine], 0.5 * (P[fine] + np.swapaxes(P[fine], -1, -2))
+            if om is not None:
+                omega[rows, k] = om[fine]
+        for r in sorted(reason):
+            # Stop run r here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
+            violations[act[r]].append({"node": int(node[r]), "step": k + 1, "condition": "diverged",
+                                       "margin": -np.inf, "reason": reason[r]})
+            x_pred[act[r], k:] = P_pred[act[r], k:] = np.nan
+        act = np.delete(act, sorted(reason))
+    return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, rounds, omega)
+
+
+def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
+                  attacks: Sequence[AttackPattern] | None = None, x0=None, P0=None, epsilon: float | None = None,
+                  falsify: str = "packet") -> DistributedBatchResult:
+    """:func:`run_kcf` on many runs at once: ``z`` (runs, steps, n_z), ``attacks`` one AttackPattern per run.
+
+    ``inputs`` (steps, n_u) shared or (runs, steps, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
+    (runs, n_x, n_x); the other parameters as :func:`run_kcf`.  Every step is one stack over the runs and
+    nodes; run ``r`` of the result equals ``run_kcf`` on run ``r`` to rounding (the same violations; a run
+    that diverges stops alone).
+    """
+    inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
+    eps = _kcf_epsilon(network, epsilon)
+    packet = falsify == "packet"
+
+    def update(k, act, xp, Pp, U, u, recv):
+        at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
+        return _kcf_update(eps, packet, xp, Pp, U, u, recv, *at)
+
+    return _filter_batch(model, network, inp, update, 1)._replace(omega=None)
+
+
+def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1,
+                    omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | None = None, x0=None,
+                    P0=None, falsify: str = "packet") -> DistributedBatchResult:
+    """:func:`run_hcmci` on many runs at once (the parameters of :func:`run_kcf_batch` and :func:`run_hcmci`);
+    run ``r`` of the result equals ``run_hcmci`` on run ``r`` to rounding."""
+    inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
+    L = _hcmci_rounds(iterations, omega)
+    packet = falsify == "packet"
+
+    def update(k, act, xp, Pp, dO, dq, recv):
+        at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
+        return _hcmci_update(network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
+
+    return _filter_batch(model, network, inp, update, L)

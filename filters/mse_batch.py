@@ -51,7 +51,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .consensus import _BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability
-from .consensus_batch import ConsensusBatchResult, EdgeAttacks, _batch_inputs, edge_attacks, wrap_residuals
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, _batch_inputs, edge_attacks, per_run, run_networks,
+                              wrap_residuals)
 
 __all__ = ["run_mse_batch", "gate_channels", "channel_difference_covariance", "kept_fdi_moments", "MAX_JOINT_DIM",
            "MEMORY_BUDGET"]
@@ -117,7 +118,7 @@ def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, c
     """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n) on stacked channels.
 
     The stacked form of :func:`filters.consensus._kept_fdi_moments`: ``keep`` (..., E) the kept
-    packets, ``q`` (E,) each channel's probability that a received packet is falsified,
+    packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per run),
     ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against.
     """
     from scipy.special import chdtri
@@ -129,7 +130,7 @@ def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, c
     if idx[-1].size and np.any(a):
         c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[idx], hermitian=True), a)
         p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
-        qe = q[idx[-1]]
+        qe = np.broadcast_to(q, keep.shape)[idx]
         weight = qe * g2_pass / np.maximum(qe * p_pass + (1.0 - qe) * (1.0 - design.gate), 1e-300)
         # one packet after the other, in channel order (the per-run sum's order)
         np.add.at(out, idx[:-1] + (receiver[idx[-1]],), weight[:, None, None] * np.outer(a, a))
@@ -137,13 +138,13 @@ def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, c
 
 
 # --------------------------------------------------------------------------- the filter
-def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
+def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                   phi0=None) -> ConsensusBatchResult:
     """Run the consensus filter in mode ``'mse'`` at every node over many runs of measurements ``z``.
 
-    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (``z`` (runs, steps,
-    n_z), inputs shared or per run, attacks as :class:`EdgeAttacks` or one AttackPattern per run, ``x0``
+    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (one network or one per
+    run, ``z`` (runs, steps, n_z), inputs shared or per run, attacks as :class:`EdgeAttacks` or one AttackPattern per run, ``x0``
     and ``phi0`` shared or per run); ``design`` is in mode ``'mse'``, with or without a gate
     (``design.gate``), under any linearisation rule.
 
@@ -161,12 +162,14 @@ def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         ``N n`` above :data:`MAX_JOINT_DIM` (= 1024).  Below it the runs are processed in
         sub-batches whose joint matrices take at most :data:`MEMORY_BUDGET` bytes (256 MiB).
     """
+    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
     if design.mode != "mse":
         raise InputError(f"run_mse_batch runs mode 'mse', got {design.mode!r} "
                          "(filters.consensus_batch runs the others)")
-    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
-    runs, steps = z.shape[:2]
+    q = per_run(_falsified_probability, network, nets)  # (1 or runs, N, N)
     n, nx = network.n_nodes, model.n_x
     if n * nx > MAX_JOINT_DIM:
         raise InputError(f"run_mse_batch holds the joint error covariance of all nodes, N n = {n} x {nx} = {n * nx} "
@@ -190,7 +193,8 @@ def run_mse_batch(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         part = {key: v[sl] for key, v in out.items()}  # views (and the runs' own violation lists)
         att = None if attacks is None else EdgeAttacks(attacks.receiver, attacks.sender, attacks.dos[sl],
                                                        attacks.fdi[sl], attacks.xi[sl])
-        _Runs(model, network, design, part, z[sl], u if u.ndim == 2 else u[sl], att, phi0[sl]).run()
+        _Runs(model, network, design, part, z[sl], u if u.ndim == 2 else u[sl], att, phi0[sl],
+              q if nets is None else q[sl]).run()
     return ConsensusBatchResult(**out)
 
 
@@ -198,12 +202,12 @@ class _Runs:
     """One sub-batch of runs; writes into the views ``out`` of the result arrays."""
 
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, out: dict, z, u, attacks,
-                 phi0):
+                 phi0, q):
         self.model, self.network, self.design, self.out = model, network, design, out
         self.z, self.u, self.attacks = z, u, attacks
         self.n, self.nx = network.n_nodes, model.n_x
         self.receiver, self.sender = np.nonzero(network.adjacency)
-        self.q = _falsified_probability(network)  # (N, N)
+        self.q = q  # (1 or runs, N, N): the probability that a received packet is falsified, per channel (and run)
         self.R = [model.measurement_cov(i) for i in range(self.n)]
         offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
         self.columns = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
@@ -293,11 +297,12 @@ class _Runs:
             falsified = np.zeros((a, n, n, nx))
             falsified[:, rcv, snd] = (keep & fdi)[..., None] * xi
             innovation = innovation + falsified.sum(axis=-2)
-        q_kept = np.where(kept, self.q, 0.0)
+        q = self.q if self.q.shape[0] == 1 else self.q[act]
+        q_kept = np.where(kept, q, 0.0)
         if design.gate == 0 or design.fdi_signal is None:
             S = q_kept.sum(axis=-1)[..., None, None] * design.fdi_moment
         else:
-            S = kept_fdi_moments(design, keep, self.q[rcv, snd], cov_diff, rcv, n)
+            S = kept_fdi_moments(design, keep, q[:, rcv, snd], cov_diff, rcv, n)
         # ---- the gains (per node, over the runs) and the estimates
         H, Ks = [], []
         C = np.empty((a, n, nx, nx))

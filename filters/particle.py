@@ -25,12 +25,11 @@ transition density).  A log-likelihood is ``loglik(x, k1, z_k) -> (runs, M)``.
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
-from scipy.special import logsumexp
-
 from designer.model import Model
+from designer.noise import logsumexp
 from designer.validation import InputError, NonFiniteError, check_int, check_rng
 
 from .resampling import get_resampler
@@ -53,6 +52,11 @@ def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
     return mean
 
 
+def effective_size(W: np.ndarray) -> np.ndarray:
+    """The effective sample size ``1 / Σ W²`` of normalised weights (..., M)."""
+    return 1.0 / np.sum(W * W, axis=-1)
+
+
 class LogWeights(NamedTuple):
     """Unnormalised log weights ``lw`` (..., M); NaN counts as -inf (zero weight)."""
 
@@ -71,7 +75,10 @@ class LogWeights(NamedTuple):
     @property
     def W(self) -> np.ndarray:
         """Normalised weights; a run whose weights all vanished gets uniform weights."""
-        ln = self.log_norm
+        return self.normalised(self.log_norm)
+
+    def normalised(self, ln: np.ndarray) -> np.ndarray:
+        """:attr:`W` from the :attr:`log_norm` ``ln`` already computed."""
         dead = ~np.isfinite(ln)
         W = np.exp(self.lw - np.where(dead, 0.0, ln)[..., None])
         if np.any(dead):
@@ -85,8 +92,7 @@ class LogWeights(NamedTuple):
 
     @property
     def ess(self) -> np.ndarray:
-        W = self.W
-        return 1.0 / np.sum(W * W, axis=-1)
+        return effective_size(self.W)
 
     @property
     def log_mean(self) -> np.ndarray:
@@ -101,7 +107,8 @@ def transition_proposal(model: Model, inputs: np.ndarray | None = None) -> Calla
     def propose(x_prev, k, z_k, rng):
         shape = x_prev.shape[:-1]
         mode = rng.choice(model.n_modes, size=shape, p=model.mode_probs) if model.n_modes else None
-        u = None if inputs is None or model.n_u == 0 else inputs[k]
+        # inputs (K, n_u) for every run, or (runs, K, n_u): run r's for the particles x_prev[r]
+        u = None if inputs is None or model.n_u == 0 else (inputs[k] if np.ndim(inputs) == 2 else inputs[:, k, None, :])
         x = model.f(x_prev, k, u, mode) + model.process_noise.sample(rng, shape) @ G.T
         return x, 0.0
 
@@ -143,10 +150,25 @@ def _moments(x: np.ndarray, W: np.ndarray):
     return mean, cov
 
 
+def _rng_blocks(rng, blocks, runs: int) -> tuple[list[np.random.Generator], list[slice]]:
+    """The generators of :func:`run_sir` and the runs each drives (consecutive spans covering ``runs``)."""
+    if isinstance(rng, np.random.Generator) or not isinstance(rng, (list, tuple)):
+        if blocks is not None:
+            raise InputError("blocks go with a sequence of generators (one per block)")
+        return [check_rng(rng)], [slice(0, runs)]
+    gens = [check_rng(g) for g in rng]
+    sizes = [1] * len(gens) if blocks is None else [check_int("blocks", b, 1) for b in blocks]
+    if len(sizes) != len(gens) or sum(sizes) != runs:
+        raise InputError(f"blocks must give one size per generator ({len(gens)}) summing to the runs ({runs}), "
+                         f"got {list(sizes)}")
+    ends = np.cumsum(sizes)
+    return gens, [slice(int(e - b), int(e)) for e, b in zip(ends, sizes)]
+
+
 def run_sir(
     model: Model,
     z: np.ndarray,
-    rng: np.random.Generator,
+    rng: np.random.Generator | Sequence[np.random.Generator],
     *,
     particles: int,
     runs: int | None = None,
@@ -157,6 +179,7 @@ def run_sir(
     ess_threshold: float = 1.0,
     linear_weights: bool = False,
     missing: str = "reject",
+    blocks=None,
 ) -> SIRResult:
     """Run a SIR particle filter on every run's measurements at once.
 
@@ -164,6 +187,14 @@ def run_sir(
     ----------
     z : ndarray, shape (runs, K, n_z) or (K, n_z)
         Measurements; ``z[..., k, :]`` measures ``x_{k+1}``.
+    rng : numpy.random.Generator, or a sequence of them
+        One generator for every run, or one per block of consecutive runs (``blocks``): block ``b`` draws
+        from ``rng[b]`` what a call with its runs alone would draw, so the batch gives every block the
+        numbers of its own call (many separately seeded filters in one batch).
+    blocks : sequence of int, optional
+        With a sequence of generators: the number of runs of each block (default: one run each).
+    inputs : ndarray, shape (K, n_u) or (runs, K, n_u), optional
+        Known inputs of the default (transition) proposal, shared or per run.
     particles : int
         Particles per run ``M``.
     ess_threshold : float in (0, 1]
@@ -174,7 +205,6 @@ def run_sir(
     missing : {"reject", "skip"}
         NaN in ``z``: raise (default) or skip that run's measurement at that step.
     """
-    check_rng(rng)
     check_int("particles", particles, 1)
     if not (0.0 < ess_threshold <= 1.0):
         raise InputError(f"ess_threshold must lie in (0, 1], got {ess_threshold!r}")
@@ -196,9 +226,17 @@ def run_sir(
     M = int(particles)
     resample = get_resampler(resampler)
     loglik = additive_noise_loglik(model) if loglik is None else loglik
-    proposal = transition_proposal(model, inputs) if proposal is None else proposal
+    gens, spans = _rng_blocks(rng, blocks, R)
+    if inputs is not None and np.ndim(inputs) == 3 and np.shape(inputs)[0] != R:
+        raise InputError(f"inputs must have shape (K, n_u) or ({R}, K, n_u), got {np.shape(inputs)}")
+    props = [transition_proposal(model, inputs if np.ndim(inputs) != 3 else np.asarray(inputs)[sl])
+             if proposal is None else proposal for sl in spans]
 
-    x = model.prior.sample(rng, (R, M))
+    def draw(sample):  # sample(generator, span) for every block, stacked over the runs
+        parts = [sample(g, sl) for g, sl in zip(gens, spans)]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    x = draw(lambda g, sl: model.prior.sample(g, (sl.stop - sl.start, M)))
     lw = LogWeights.of(np.zeros((R, M)))
     mean = np.empty((R, K + 1, model.n_x))
     cov = np.empty((R, K + 1, model.n_x, model.n_x))
@@ -209,7 +247,10 @@ def run_sir(
     mean[:, 0], cov[:, 0] = _moments(x, lw.W)
     for k in range(K):
         zk = np.where(nan_rows[:, k, None], 0.0, z[:, k])  # skipped rows get a placeholder, then no weight
-        x, corr = proposal(x, k, zk, rng)
+        moved = [p(x[sl], k, zk[sl], g) for p, g, sl in zip(props, gens, spans)]
+        x = moved[0][0] if len(moved) == 1 else np.concatenate([mv[0] for mv in moved])
+        corr = moved[0][1] if len(moved) == 1 or all(np.ndim(mv[1]) == 0 and mv[1] == 0 for mv in moved) else \
+            np.concatenate([np.broadcast_to(mv[1], (sl.stop - sl.start, M)) for mv, sl in zip(moved, spans)])
         prev_log_norm = lw.log_norm
         if not np.isfinite(x).all():
             r = int(np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))[0])
@@ -229,14 +270,18 @@ def run_sir(
             new[dead] = 0.0  # predicted particles, uniform weights; contributes nothing to the likelihood
         lw = LogWeights(new)
         # p(z_k | z_1:k-1) = Σ W_{k-1} w_k: the change of the log normaliser (-inf on a collapse).
-        total += np.where(dead, -np.inf, lw.log_norm - prev_log_norm)
-        W = lw.W
+        ln = lw.log_norm
+        total += np.where(dead, -np.inf, ln - prev_log_norm)
+        W = lw.normalised(ln)  # (each computed once per step)
         mean[:, k + 1], cov[:, k + 1] = _moments(x, W)
-        ess[:, k] = lw.ess
+        ess[:, k] = effective_size(W)
         need = ess[:, k] < ess_threshold * M - 1e-9 if ess_threshold < 1.0 else np.ones(R, dtype=bool)
         if np.any(need):
-            idx = resample(W[need], M, rng)
-            x[need] = np.take_along_axis(x[need], idx[..., None], axis=1)
+            for g, sl in zip(gens, spans):  # each block from its own generator (x[sl] is a view)
+                nb, xb = need[sl], x[sl]
+                if np.any(nb):
+                    idx = resample(W[sl][nb], M, g)
+                    xb[nb] = np.take_along_axis(xb[nb], idx[..., None], axis=1)
             new = lw.lw.copy()
             new[need] = 0.0
             lw = LogWeights(new)

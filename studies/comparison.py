@@ -42,6 +42,7 @@ study resumes.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import re
 import time
@@ -56,8 +57,8 @@ from designer.validation import InputError, check_int, check_positive, check_pro
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus import HARD_CONDITIONS
 from filters.consensus_batch import run_consensus_batch
-from filters.distributed import run_hcmci, run_kcf
-from filters.ekf import run_ekf
+from filters.distributed import run_hcmci_batch, run_kcf_batch
+from filters.ekf import run_ekf_batch
 from filters.particle import run_sir
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
@@ -125,10 +126,12 @@ ASSUMPTIONS = (
     "sqrt(tr P0), counts as diverged and is left out of the RMSE; a run that stays within that scale but "
     "far off is kept (compare the RMSE with the median run's).",
     "comparison: time per step = a filter's wall time on one run (all nodes, or the centre) / K at the main "
-    "setting, averaged over runs, single-threaded; the designed consensus filters and the local EKFs run every run "
-    "of a chunk (chunk_size runs) in one batch (filters.consensus_batch), and their time is the batch's divided by "
-    "its runs; the tuned design's time includes its weight optimisation (every node and step). In the sweeps the "
-    "two particle filters of all settings of a run are one NumPy batch.",
+    "setting, averaged over runs, single-threaded; the designed consensus filters, KCF, HCMCI and the centralized "
+    "EKF run every run of a chunk (chunk_size runs) at every setting in one batch per filter (filters.consensus_batch, "
+    "filters.distributed, filters.ekf), the local EKFs every run of a chunk, and their time is the batch's divided "
+    "by its runs (runs x settings); the tuned design's time includes its weight optimisation (every node and step); "
+    "the two particle filters of every run and setting of a chunk are one NumPy batch (each run's draws from its own "
+    "streams), each filter's time the batch's divided by its rows.",
     "comparison: the consensus designs use the scenario's design defaults (paper: sigma = beta = 0.1, C = 0.01 "
     "Phi, epsilon = 0.5/d_max, the scenario's U and V_i); on the indoor robot U = 0.01 I and V_i = 0.1 I (assumed: "
     "the paper gives none), on the range-bearing target U = 0 (its transition is linear) and V_i per component "
@@ -237,11 +240,13 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
           divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
     """Task of the runner: every filter at every setting on the runs ``run_ids``.
 
-    At the main setting each particle filter runs alone (its time is a single filter's); at
-    the sweep settings both particle filters at every setting of one run form one batch of
-    ``run_sir`` (rows ``(setting, filter)``), one NumPy call per operation instead of one per
-    filter.  Every Generator comes from the run's own seed, so a run's numbers depend on it
-    only.
+    Each filter runs every run of the chunk at every setting as one batch (the designed consensus
+    filters: one per group of equal designs, the local EKFs once), so that a step costs one NumPy
+    call per operation for all of them; the batched filters give each run the numbers of the
+    per-run filters (filters.consensus_batch, filters.distributed, filters.ekf, and
+    ``run_sir``'s blocks: run ``a``'s particle filters draw from its own streams as three separate
+    filters would, the two at the main setting alone and the sweep's rows together).  Every
+    Generator comes from the run's own seed, so a run's numbers depend on it only.
     """
     base = ref.build()
     scs = [base.with_attacks(dos=d, fdi=f) for d, f in settings]
@@ -266,8 +271,6 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
         q = np.where(up_d < 1, up_f / np.where(up_d < 1, 1.0 - up_d, 1.0), 0.0)
         qs += [float(q[0]) if np.all(q == q[0]) else q, 0.0 if np.all(q == q[0]) else np.zeros(n)]
     per_sensor = any(np.ndim(q) for q in qs)
-    q_sweep = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs[2:]])
-    ll_sweep = uplink_loglik(m, fdi_prob=q_sweep, fdi_covs=covs) if S > 1 else None
     idx = list(m.position_index) or list(range(m.n_x))
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
@@ -307,67 +310,98 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     Z = np.stack([t.z for t in trajs])
     U = None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs])
 
-    def batch(f, j, network, design, attacks):
-        """A designed consensus filter on every run of the chunk at once (its time: the batch's, per run)."""
+    def batch(f, js, network, design, attacks):
+        """A designed consensus filter on every run of the chunk at the settings ``js`` at once (rows j-major, one
+        network per row for its channels' probabilities; its time: the batch's, per row)."""
         t0 = time.perf_counter()
-        res = run_consensus_batch(m, network, Z, design, inputs=U, attacks=attacks)
-        secs[:, j, f] = (time.perf_counter() - t0) / R
+        res = run_consensus_batch(m, network, np.concatenate([Z] * len(js)), design, attacks=attacks,
+                                  inputs=None if U is None else np.concatenate([U] * len(js)))
+        secs[:, js, f] = (time.perf_counter() - t0) / (R * len(js))
         return res
 
-    for j, scj in enumerate(scs):
-        for name in DESIGNED:
-            if name in designs[j]:
-                f = FILTERS.index(name)
-                res = batch(f, j, scj.network, designs[j][name], atts[j])
-                for a, dv in enumerate(res.diverged):
-                    ok = dv is None
-                    feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
-                                                             for v in res.violations[a]))
-                    score(a, j, f, res.x_post[a], ok)  # x_post (K + 1, nodes, n_x)
+    for name in DESIGNED:
+        f = FILTERS.index(name)
+        for js in _alike([j for j in range(S) if name in designs[j]], lambda j: designs[j][name]):
+            res = batch(f, js, [scs[j].network for j in js for _ in range(R)], designs[js[0]][name],
+                        [atts[j][a] for j in js for a in range(R)])
+            for row, dv in enumerate(res.diverged):
+                j, a = js[row // R], row % R
+                ok = dv is None
+                feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
+                                                         for v in res.violations[row]))
+                score(a, j, f, res.x_post[row], ok)  # x_post (K + 1, nodes, n_x)
     f = FILTERS.index(LOCAL)  # the local EKFs use no network: one batch, the same at every setting
-    res = batch(f, 0, local_net, local, None)
+    res = batch(f, [0], local_net, local, None)
     secs[:, :, f] = secs[:, :1, f]
     for a, dv in enumerate(res.diverged):
         for jj in range(S):
             score(a, jj, f, res.x_post[a], dv is None)
-    for a, traj in enumerate(trajs):
-        for j, scj in enumerate(scs):
-            for name, run, kw in ((KCF, run_kcf, {}), (HCMCI, run_hcmci, {"iterations": hcmci_iterations})):
-                f = FILTERS.index(name)
-                t0 = time.perf_counter()
-                res = run(m, scj.network, traj.z, inputs=traj.inputs, attacks=atts[j][a], **kw)
-                secs[a, j, f] = time.perf_counter() - t0
-                delivered[a, j, f] = res.delivered_per_step.mean()
-                score(a, j, f, res.x_post, res.diverged is None)
-            f = FILTERS.index(EKF_PLAIN)
-            values, avail = split_received(m, ys[a][2 * j])
-            t0 = time.perf_counter()
-            xs = run_ekf(m, values, available=avail, inputs=traj.inputs).x[:, None]
-            secs[a, j, f] = time.perf_counter() - t0
-            score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
-        fs = fss[a]
-        main_seqs = fs.spawn(3)  # the two particle filters at the main setting, then the sweep batch
-        for c, f in enumerate(pfs):  # alone, so that their time per step is a single filter's
-            q = qs[c] if not per_sensor else np.broadcast_to(qs[c], (n,))[None]
-            t0 = time.perf_counter()
-            with naming_filter(FILTERS[f], [run_ids[a]]):
-                res = run_sir(m, ys[a][0][None], np.random.default_rng(main_seqs[c]), particles=particles, runs=1,
-                              inputs=traj.inputs, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
-            secs[a, 0, f] = time.perf_counter() - t0
-            score(a, 0, f, res.mean[0][:, None], bool(np.all(np.isfinite(res.mean))))
-        if S > 1:
-            t0 = time.perf_counter()
-            with naming_filter("centralized PFs at the sweep settings", [run_ids[a]] * (2 * (S - 1))):
-                res = run_sir(m, np.stack(ys[a][2:]), np.random.default_rng(main_seqs[2]), particles=particles,
-                              runs=2 * (S - 1), inputs=traj.inputs, loglik=ll_sweep)
-            per_filter = (time.perf_counter() - t0) / (2 * (S - 1))  # amortised over the batch
-            for j in range(1, S):
-                for c, f in enumerate(pfs):
-                    xs = res.mean[2 * (j - 1) + c][:, None]
-                    secs[a, j, f] = per_filter
-                    score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
+    # KCF, HCMCI and the centralized EKF: every run at every setting in one batch each (row j R + a: setting j,
+    # run a; the channels' probabilities are not theirs to know, only the realised attacks); time per run: the
+    # batch's over its rows
+    rows = [(a, j) for j in range(S) for a in range(R)]
+    ZS, US = np.concatenate([Z] * S), None if U is None else np.concatenate([U] * S)
+    for name, run, kw in ((KCF, run_kcf_batch, {}), (HCMCI, run_hcmci_batch, {"iterations": hcmci_iterations})):
+        f = FILTERS.index(name)
+        t0 = time.perf_counter()
+        res = run(m, sc.network, ZS, inputs=US, attacks=[atts[j][a] for a, j in rows], **kw)
+        secs[:, :, f] = (time.perf_counter() - t0) / len(rows)
+        for row, ((a, j), dv) in enumerate(zip(rows, res.diverged)):
+            delivered[a, j, f] = res.delivered_per_step[row].mean()
+            score(a, j, f, res.x_post[row], dv is None)
+    f = FILTERS.index(EKF_PLAIN)
+    values, avail = split_received(m, np.stack([ys[a][2 * j] for a, j in rows]))
+    t0 = time.perf_counter()
+    res = run_ekf_batch(m, values, available=avail, inputs=US)
+    secs[:, :, f] = (time.perf_counter() - t0) / len(rows)
+    for row, (a, j) in enumerate(rows):
+        xs = res.x[row][:, None]
+        score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
+    # The particle filters: every run's 2 S rows (the two at the main setting, then both at every sweep setting)
+    # of the chunk in one NumPy batch, each run's rows drawn from its own streams as three separate filters would
+    # (the main setting's two alone, the sweep's rows together: run_sir's blocks); time per row: the batch's
+    t0 = time.perf_counter()
+    streams = [np.random.default_rng(seq) for fs in fss for seq in fs.spawn(3)]
+    blocks = [1, 1, 2 * (S - 1)] * R
+    if S == 1:
+        streams, blocks = [g for i, g in enumerate(streams) if i % 3 < 2], [1, 1] * R
+    q_rows = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs] * R)
+    with naming_filter([FILTERS[pfs[c]] for _ in range(R * S) for c in range(2)],
+                       [run_ids[a] for a in range(R) for _ in range(2 * S)]):
+        res = run_sir(m, np.stack([y for a in range(R) for y in ys[a]]), streams, blocks=blocks,
+                      particles=particles, inputs=None if U is None else np.repeat(U, 2 * S, axis=0),
+                      loglik=uplink_loglik(m, fdi_prob=q_rows, fdi_covs=covs))
+    for f in pfs:
+        secs[:, :, f] = (time.perf_counter() - t0) / (2 * S * R)
+    for a in range(R):
+        for j in range(S):
+            for c, f in enumerate(pfs):
+                xs = res.mean[2 * S * a + 2 * j + c][:, None]
+                score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
     return {"err2": err2, "seconds": secs, "feasible": feasible, "delivered": delivered, "estimate": est,
             "truth": truth}
+
+
+def _alike(items: list, key) -> list[list]:
+    """``items`` in groups of equal ``key(item)`` (arrays, tuples and dataclasses compared by value), in order."""
+    groups: list[list] = []
+    for it in items:
+        home = next((g for g in groups if _same(key(g[0]), key(it))), None)
+        if home is None:
+            groups.append([it])
+        else:
+            home.append(it)
+    return groups
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return np.shape(a) == np.shape(b) and np.array_equal(a, b)
+    if dataclasses.is_dataclass(a) and type(a) is type(b):
+        return all(_same(getattr(a, fl.name), getattr(b, fl.name)) for fl in dataclasses.fields(a))
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(map(_same, a, b))
+    return type(a) is type(b) and a == b
 
 
 def _accepts(sc: Scenario) -> str | None:

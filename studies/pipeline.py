@@ -58,15 +58,17 @@ STUDIES: dict[str, str] = {
 
 
 @contextlib.contextmanager
-def naming_filter(name: str, runs: Sequence[int] | None = None):
+def naming_filter(name: str | Sequence[str], runs: Sequence[int] | None = None):
     """A study's filter call: a :class:`~designer.validation.NonFiniteError` from it is re-raised naming the
-    filter as the study's results name it, and the study's run (``runs[row]``: the runs the call was given,
-    in its rows' order; None: the rows are not runs, e.g. one run's sweep settings) and step."""
+    filter as the study's results name it (``name``, or ``name[row]`` for a call whose rows are several
+    filters), and the study's run (``runs[row]``: the run of each row the call was given; None: not known) and
+    step."""
     try:
         yield
     except NonFiniteError as exc:
+        label = name if isinstance(name, str) else name[exc.row]
         where = "" if runs is None else f"run {int(runs[exc.row])}, "
-        raise ComputationError(f"filter {name!r} failed at {where}step {exc.step}: {exc}") from exc
+        raise ComputationError(f"filter {label!r} failed at {where}step {exc.step}: {exc}") from exc
 
 
 @dataclass(frozen=True)

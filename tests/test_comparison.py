@@ -21,7 +21,7 @@ from designer.validation import InputError
 from designer.attacks import FDISignal
 from filters.attacks import attack_pattern, channel_draws, receive, simulate_attacks, uplink_attacks
 from filters.consensus import run_consensus
-from filters.ekf import run_ekf
+from filters.ekf import run_ekf, run_ekf_batch
 from filters.particle import additive_noise_loglik
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 from studies.cli import main
@@ -155,6 +155,65 @@ def test_ekf_is_the_kalman_filter_with_missing_sensors():
         np.testing.assert_allclose(res.P[k + 1], P, atol=1e-10)
     with pytest.raises(InputError, match="available"):
         run_ekf(model, traj.z, available=avail[:, :1])
+
+
+def _uplink_runs(sc, runs: int, dos: float, fdi: float, seed: int = 21):
+    """Received uplink measurements of ``runs`` runs of ``sc`` as the comparison draws them."""
+    sc = sc.with_attacks(dos=dos, fdi=fdi)
+    m, att = sc.model, sc.resolved_attacks
+    values, avail, inputs = [], [], []
+    for seq in np.random.SeedSequence(seed).spawn(runs):
+        ts, cs = seq.spawn(2)
+        tr = sc.simulate(np.random.default_rng(ts), sc.steps)
+        u, s = channel_draws(sc.steps, m.n_sensors, np.random.default_rng(cs))
+        y = receive(m, tr.x, tr.z, uplink_attacks(u, s, m.n_x, dos_prob=att.uplink_dos, fdi_prob=att.uplink_fdi,
+                                                  signal=att.signal))
+        v, a = split_received(m, y)
+        values.append(v)
+        avail.append(a)
+        inputs.append(tr.inputs)
+    return np.stack(values), np.stack(avail), None if inputs[0] is None else np.stack(inputs)
+
+
+@pytest.mark.parametrize("name", ["indoor-robot", "target-range-bearing"])
+def test_the_batched_ekf_is_the_ekf_run_by_run(name):
+    """run_ekf_batch = run_ekf run by run to rounding: lost packets (a step without any too), inputs per run or
+    shared, x0 / P0 per run, wrapped bearings on the target."""
+    sc = load_scenario(name, {"steps": 25})
+    m = sc.model
+    z, avail, u = _uplink_runs(sc, 5, dos=0.4, fdi=0.3)
+    avail[1, 3] = False  # a step where nothing arrives
+    assert 0.3 < avail.mean() < 0.9
+    x0 = m.prior.mean + 0.1 * np.arange(5)[:, None]
+    P0 = m.prior.cov * (1.0 + np.arange(5))[:, None, None]
+    for kw, per_run in (({"inputs": u}, lambda r: {"inputs": None if u is None else u[r]}),
+                        ({"inputs": None if u is None else u[0], "x0": x0, "P0": P0},
+                         lambda r: {"inputs": None if u is None else u[0], "x0": x0[r], "P0": P0[r]})):
+        got = run_ekf_batch(m, z, available=avail, **kw)
+        for r in range(5):
+            ref = run_ekf(m, z[r], available=avail[r], **per_run(r))
+            np.testing.assert_allclose(got.x[r], ref.x, rtol=1e-9, atol=1e-12 * np.abs(ref.x).max())
+            np.testing.assert_allclose(got.P[r], ref.P, rtol=1e-9, atol=1e-12 * np.abs(ref.P).max())
+
+
+def test_the_batched_ekf_hands_a_breaking_run_to_run_ekf():
+    """A run whose covariance overflows: run_ekf fails on it (a non-finite innovation covariance), and so does the
+    batch, on that run; without it the other runs come out as run_ekf's."""
+    model, A, Hs = _linear_two_sensors()
+    traj = simulate(model, 6, np.random.default_rng(3))
+    z = np.stack([traj.z] * 3)
+    P0 = np.stack([model.prior.cov, 1e305 * np.eye(2), 2.0 * model.prior.cov])
+    with pytest.raises(ValueError) as alone:
+        run_ekf(model, z[1], P0=P0[1])
+    with pytest.raises(type(alone.value), match=str(alone.value)):
+        run_ekf_batch(model, z, P0=P0)
+    got = run_ekf_batch(model, z[[0, 2]], P0=P0[[0, 2]])
+    for j, r in enumerate((0, 2)):
+        np.testing.assert_allclose(got.x[j], run_ekf(model, z[r], P0=P0[r]).x, rtol=1e-9, atol=1e-14)
+    with pytest.raises(InputError, match="available must have shape"):
+        run_ekf_batch(model, z, available=np.ones((3, 6, 1), bool))
+    with pytest.raises(InputError, match="z must have shape"):
+        run_ekf_batch(model, z[0])
 
 
 def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):

@@ -7,7 +7,8 @@ indoor robot, a user model with mixed sensor dimensions and bearings that cross 
 models; with the fallback recursion, the neighbour rule, every linearisation rule, per-run inputs
 and initial conditions, the bound-trace limit, a divergence in one run of the batch (the others go
 on), a numerical breakdown in one run, and the first-step InputError; in modes paper and tuned
-(batched), mse and gated designs (run per run and stacked).
+(batched), mse and gated designs (run per run and stacked); and one network per run (a sweep's
+channel probabilities on one graph).
 """
 from __future__ import annotations
 
@@ -341,3 +342,54 @@ def test_per_run_inputs_without_columns_are_no_inputs(mode):
     b = run_consensus_batch(sc.model, sc.network, traj.z, des)
     np.testing.assert_array_equal(a.x_post, b.x_post)
     np.testing.assert_array_equal(a.phi_post, b.phi_post)
+
+
+@pytest.mark.parametrize("change", [dict(), dict(mode="tuned"), dict(mode="mse"), dict(mode="tuned", gate=0.05),
+                                    dict(mode="mse", gate=0.05)])
+def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch):
+    """The runs of a sweep in one batch: each run with its own channel probabilities (DoS, FDI; the statistics of
+    its bounds, tuned weights and mse gains) on the shared graph gives run_consensus on its own network; runs given
+    the same network give what one network for all gives."""
+    sc, net, traj, atts = robot
+    steps = 4
+    nets = [sc.network.with_attacks(0.0, 0.3), net, sc.network.with_attacks(0.35, 0.05)]
+    z = traj.z[:, :steps]
+    sig = FDISignal(1.5, (0, 1))  # the attacks' signal: the mse gains use its moments and the falsified share q
+    des = robot_design(**change)._replace(fdi_moment=sig.moment(3), fdi_mean=sig.mean(3), fdi_span=sig.span(3),
+                                          fdi_signal=sig)
+    batch = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)
+    refs = [run_consensus(sc.model, nets[r], z[r], des, inputs=traj.inputs[:steps], attacks=atts[r])
+            for r in range(len(nets))]
+    assert_same_as_per_run(batch, refs)
+    if batch.predicted_mse is not None:
+        for r, ref in enumerate(refs):
+            np.testing.assert_allclose(batch.predicted_mse[r], ref.predicted_mse, rtol=1e-9)
+    # the probabilities matter (in mode tuned little: the weights absorb them), far more than the batch's rounding:
+    # run 0 on run 2's network is farther from run 0 than the batch's run 0 is
+    other = run_consensus(sc.model, nets[2], z[0], des, inputs=traj.inputs[:steps], attacks=atts[0])
+
+    def gap(res):
+        return max(np.nanmax(np.abs(getattr(res, f) - getattr(refs[0], f)), initial=0.0)
+                   for f in ("x_post", "phi_post", "K", "C"))
+
+    assert gap(other) > 1e3 * gap(batch.run(0)) and gap(other) > 0
+    same = run_consensus_batch(sc.model, [net] * 3, z, des, inputs=traj.inputs[:steps], attacks=atts)
+    one = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts)
+    np.testing.assert_array_equal(same.x_post, one.x_post)
+    np.testing.assert_array_equal(same.phi_post, one.phi_post)
+    if des.mode == "mse":  # in sub-batches of one run each, every run keeps its own network
+        import filters.mse_batch as mse_batch
+
+        monkeypatch.setattr(mse_batch, "MEMORY_BUDGET", 1)
+        apart = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)
+        np.testing.assert_array_equal(apart.x_post, batch.x_post)
+        np.testing.assert_array_equal(apart.phi_post, batch.phi_post)
+
+
+def test_networks_per_run_are_checked(robot):
+    sc, net, traj, atts = robot
+    with pytest.raises(InputError, match=r"network must be a SensorNetwork or one per run \(3\)"):
+        run_consensus_batch(sc.model, [net, net], traj.z, robot_design(), inputs=traj.inputs)
+    ring = SensorNetwork.from_edges(8, [(i, (i + 1) % 8) for i in range(8)])
+    with pytest.raises(InputError, match="share one graph"):
+        run_consensus_batch(sc.model, [net, net, ring], traj.z, robot_design(), inputs=traj.inputs)

@@ -17,7 +17,9 @@ from designer.noise import Gaussian
 from designer.simulate import simulate, simulate_runs
 from designer.validation import InputError
 from filters.attacks import AttackPattern
-from filters.distributed import run_hcmci, run_kcf
+import filters.distributed as distributed
+from filters.attacks import attack_pattern, channel_draws
+from filters.distributed import run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
 from filters.ekf import run_ekf
 from studies.scenarios import load_scenario
 
@@ -306,3 +308,113 @@ def test_bad_inputs_name_the_parameter(linear_run):
         run_hcmci(m, ring(4), traj.z)
     with pytest.raises(InputError, match="attacks must be an AttackPattern"):
         run_kcf(m, ring(), traj.z, attacks=no_attacks(3, N, 2))
+
+
+# ------------------------------------------------------------------------ many runs at once
+def assert_batch_is_per_run(batch, refs, rtol=1e-9):
+    """Run r of a batched result equals the per-run filter's result r: arrays to rounding (NaN where it is NaN),
+    violations, packet counts and ω."""
+    assert len(batch.violations) == len(refs)
+    for r, ref in enumerate(refs):
+        got = batch.run(r)
+        assert got.violations == ref.violations, r
+        assert got.iterations == ref.iterations
+        assert np.array_equal(got.messages_per_step, ref.messages_per_step)
+        assert np.array_equal(got.delivered_per_step, ref.delivered_per_step)
+        for field in ("x_post", "P_post", "x_pred", "P_pred", "omega"):
+            a, b = getattr(got, field), getattr(ref, field)
+            if b is None:
+                assert a is None
+                continue
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=f"run {r} {field}")
+            np.testing.assert_allclose(a, b, rtol=rtol, atol=0, err_msg=f"run {r} {field}")
+
+
+def robot_runs(runs: int, dos: float, fdi: float, steps: int = 12):
+    """The indoor robot's runs under DoS/FDI as the comparison draws them (inputs differ per run)."""
+    sc = load_scenario("indoor-robot", {"steps": steps}).with_attacks(dos=dos, fdi=fdi)
+    m, n = sc.model, sc.network.n_nodes
+    z, u, att = [], [], []
+    for seq in np.random.SeedSequence(11).spawn(runs):
+        ts, cs = seq.spawn(2)
+        tr = sc.simulate(np.random.default_rng(ts), steps)
+        draws, sig = channel_draws(steps, n, np.random.default_rng(cs))
+        att.append(attack_pattern(sc.network, draws, sig, m.n_x, sc.resolved_attacks.signal))
+        z.append(tr.z)
+        u.append(tr.inputs)
+    return sc, np.stack(z), np.stack(u), att
+
+
+@pytest.mark.parametrize("kind", ["kcf", "hcmci-size", "hcmci-consistent"])
+@pytest.mark.parametrize("falsify", ["packet", "estimate"])
+def test_the_batch_is_the_per_run_filter_run_by_run(kind, falsify):
+    sc, z, u, att = robot_runs(6, dos=0.3, fdi=0.3)
+    m, net = sc.model, sc.network
+    assert any(a.fdi.any() for a in att) and any(a.dos.any() for a in att)
+    if kind == "kcf":
+        run, batch, kw = run_kcf, run_kcf_batch, {"epsilon": 0.2}
+    else:
+        run, batch, kw = run_hcmci, run_hcmci_batch, {"iterations": 2, "omega": kind.split("-")[1]}
+    refs = [run(m, net, z[r], inputs=u[r], attacks=att[r], falsify=falsify, **kw) for r in range(len(z))]
+    assert_batch_is_per_run(batch(m, net, z, inputs=u, attacks=att, falsify=falsify, **kw), refs)
+    # without attacks, with shared inputs and one x0 / P0 per run
+    x0 = m.prior.mean + 0.05 * np.arange(len(z))[:, None]
+    P0 = m.prior.cov * (1.0 + np.arange(len(z)))[:, None, None]
+    refs = [run(m, net, z[r], inputs=u[0], x0=x0[r], P0=P0[r], falsify=falsify, **kw) for r in range(len(z))]
+    assert_batch_is_per_run(batch(m, net, z, inputs=u[0], x0=x0, P0=P0, falsify=falsify, **kw), refs)
+
+
+def test_a_diverging_run_stops_alone_in_the_batch():
+    """Runs that diverge in the update, in the prediction and by a numerical breakdown stop at their step with the
+    per-run filter's violation; the other runs go on."""
+    x = ca.SX.sym("x", 1)
+    m = Model("explodes", x, 1e4 * x, [Sensor(f"s{i}", x, Gaussian.zero_mean([[1.0]])) for i in range(3)],
+              Gaussian.zero_mean([[1.0]]), Gaussian([1.0], [[1.0]]))
+    net = ring(3)
+    big = np.array([[10.0**(4 * (k + 1))] * 3 for k in range(6)])
+    z = np.stack([big, np.zeros((6, 3)), 1e-3 * big, np.ones((6, 3))])
+    x0 = np.array([[1.0], [1e9], [1.0], [0.0]])  # run 1: 1e13 after one step, beyond 1e12
+    for run, batch, kw in ((run_kcf, run_kcf_batch, {}), (run_hcmci, run_hcmci_batch, {"iterations": 2})):
+        refs = [run(m, net, z[r], x0=x0[r], **kw) for r in range(4)]
+        assert [ref.diverged is not None for ref in refs] == [True, True, True, False]
+        assert refs[1].diverged["step"] == 1 and refs[1].diverged["reason"].startswith("prediction")
+        assert refs[0].diverged["step"] != refs[2].diverged["step"]
+        assert_batch_is_per_run(batch(m, net, z, x0=x0, **kw), refs)
+
+
+def test_a_numerical_breakdown_in_the_batch_is_found_run_by_run(monkeypatch):
+    """A LinAlgError in one run's update: that run stops with the per-run filter's 'numerical breakdown', the
+    others are updated as if alone (the inverse is made to fail on the prediction that marks run 2)."""
+    m, net = oscillator(), ring(4)
+    tr = simulate_runs(m, 8, [np.random.default_rng(s) for s in (1, 2, 3)])
+    P0 = np.stack([m.prior.cov, 2.0 * m.prior.cov, 7.0 * m.prior.cov])
+    inverse = distributed._spd_inverse
+
+    def failing(A):
+        if np.any(np.isclose(A[..., 0, 0], 7.0 * m.prior.cov[0, 0] + m.process_cov[0, 0], rtol=0.2)):
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        return inverse(A)
+
+    monkeypatch.setattr(distributed, "_spd_inverse", failing)
+    for run, batch in ((run_kcf, run_kcf_batch), (run_hcmci, run_hcmci_batch)):
+        refs = [run(m, net, tr.z[r], P0=P0[r]) for r in range(3)]
+        assert [ref.diverged is not None for ref in refs] == [False, False, True]
+        assert refs[2].diverged["reason"].startswith("numerical breakdown") and refs[2].diverged["step"] == 1
+        assert_batch_is_per_run(batch(m, net, tr.z, P0=P0), refs)
+
+
+def test_batch_bad_inputs_name_the_parameter():
+    sc, z, u, att = robot_runs(2, dos=0.1, fdi=0.1, steps=4)
+    m, net = sc.model, sc.network
+    with pytest.raises(InputError, match="attacks must hold one AttackPattern per run"):
+        run_kcf_batch(m, net, z, inputs=u, attacks=att[:1])
+    with pytest.raises(InputError, match="z must have shape"):
+        run_hcmci_batch(m, net, z[0], inputs=u[0])
+    with pytest.raises(InputError, match="P0 must have shape"):
+        run_kcf_batch(m, net, z, inputs=u, P0=np.stack([m.prior.cov] * 3))
+    with pytest.raises(InputError, match="iterations must be an integer >= 1"):
+        run_hcmci_batch(m, net, z, inputs=u, iterations=0)
+    with pytest.raises(InputError, match="epsilon must be >= 0"):
+        run_kcf_batch(m, net, z, inputs=u, epsilon=-1.0)
+    with pytest.raises(InputError, match="one node per sensor"):
+        run_kcf_batch(m, ring(4), z, inputs=u)
