@@ -48,7 +48,7 @@ from filters.attacks import binary_sensor_channel
 
 from .pfrun import check_study_options, results_block, run_binary, run_configurations, score_configurations
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import (curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
+from .results import (_plt, curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
                       trajectory_figure)
 from .rrp_deception import plane_view
 from .runner import run_seed
@@ -327,8 +327,7 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     present = [p for p in SWEEP_PARAMS if p in sweeps]
     if not present:
         return
-    import matplotlib.pyplot as plt
-
+    plt = _plt()
     names = {"dos_prob": "phi-bar (DoS)", "deception_prob": "varphi-bar (deception)", "flip_prob": "alpha-bar (flip)"}
     k = np.arange(1, K + 1)
     fig, axes = plt.subplots(len(metrics), len(present), figsize=(4.5 * len(present), 3 * len(metrics)),
