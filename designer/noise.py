@@ -155,6 +155,7 @@ class GaussianMixture(Noise):
 
     weights: np.ndarray
     components: tuple[Gaussian, ...]
+    _cdf: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
         comps = tuple(self.components)
@@ -167,6 +168,8 @@ class GaussianMixture(Noise):
             raise InputError(f"weights must sum to 1, got {w.sum():.12g}")
         object.__setattr__(self, "weights", w / w.sum())
         object.__setattr__(self, "components", comps)
+        cdf = self.weights.cumsum()  # what Generator.choice(p=weights) searches, computed once
+        object.__setattr__(self, "_cdf", cdf / cdf[-1])
 
     @classmethod
     def from_arrays(cls, weights: Sequence[float], means, covs) -> "GaussianMixture":
@@ -200,8 +203,13 @@ class GaussianMixture(Noise):
     def sample(self, rng: np.random.Generator, shape=()) -> np.ndarray:
         shape = _shape(shape)
         rng = check_rng(rng)
-        labels = rng.choice(len(self.components), size=shape, p=self.weights)
+        # The labels of ``rng.choice(len(components), size=shape, p=weights)``, draw for draw (NumPy's own
+        # steps: one uniform per label against the normalised cumulative weights), without its checks of p.
+        labels = self._cdf.searchsorted(rng.random(shape), side="right")
         z = rng.standard_normal(shape + (self.dim,))
+        if not shape:  # one draw (a simulation step): its component alone, with the same product as below
+            comp = self.components[int(labels)]
+            return comp.mean + (z[None] @ comp._chol.T)[0]
         out = np.empty(shape + (self.dim,))
         for c, comp in enumerate(self.components):
             sel = labels == c

@@ -794,3 +794,23 @@ def test_truncated_far_tail_is_accurate():
     s = t.sample(np.random.default_rng(0), 20_000)[:, 0]
     assert s.min() >= 6.0 and s.max() <= 8.0
     assert abs(s.mean() - ref.mean()) < 5 * ref.std() / np.sqrt(s.size)
+
+
+@pytest.mark.parametrize("make", [mix1, mix2], ids=["d1", "d2"])
+@pytest.mark.parametrize("shape", [(), (7,), (3, 4)])
+def test_mixture_sample_draws_what_generator_choice_and_the_components_draw(make, shape):
+    """A seed's samples are those of the plain recipe, bit for bit, and leave the Generator where it leaves it:
+    the label from ``rng.choice(p=weights)``, then the normals, each point from its own component."""
+    mix = make()
+    a, b = _rng(11), _rng(11)
+    for _ in range(200):
+        got = mix.sample(a, shape)
+        labels = b.choice(len(mix.components), size=shape, p=mix.weights)
+        z = b.standard_normal(shape + (mix.dim,))
+        ref = np.empty(shape + (mix.dim,))
+        for c, comp in enumerate(mix.components):
+            sel = labels == c
+            ref[sel] = comp.mean + z[sel] @ comp._chol.T
+        assert got.shape == ref.shape
+        np.testing.assert_array_equal(got, ref)
+    assert a.bit_generator.state == b.bit_generator.state
