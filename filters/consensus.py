@@ -25,7 +25,7 @@ one σ and one β for the network; :attr:`ConsensusResult.predicted_mse` holds t
 lost.  ``Σ_ij`` is the predicted covariance of that difference: from the joint covariance in
 mode mse, ``2 (Φ_i + Φ_j)`` (an upper bound) otherwise, so a clean packet is dropped with
 probability at most about α.  In mode mse the gains then count only what the falsified
-packets that pass add (:func:`_kept_fdi_moments`, from the signal's law against the gate),
+packets that pass add (:func:`kept_fdi_moments`, from the signal's law against the gate),
 and so does the certificate: which packets pass depends on the errors, so with a gate the
 bound is a model that the Monte Carlo bound check validates, not a theorem.
 :attr:`ConsensusResult.gate_counts` counts packets received, rejected, clean rejected,
@@ -58,14 +58,16 @@ from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.mse import certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains
+from designer.mse import (certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains,
+                          node_blocks)
 from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
 from .rrp import wrap_angles
 
-__all__ = ["node_predict", "gate", "GATE_COUNTS", "exchange", "wrapped_residual", "node_update", "ConsensusResult",
+__all__ = ["node_predict", "gate", "gate_channels", "channel_difference_covariance", "kept_fdi_moments",
+           "GATE_COUNTS", "exchange", "wrapped_residual", "node_update", "ConsensusResult",
            "run_consensus", "check_run_inputs", "HARD_CONDITIONS"]
 
 
@@ -117,6 +119,79 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
 GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_passed")
 
 
+def channel_difference_covariance(P: np.ndarray, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
+    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
+
+    ``P`` (..., N, N, n, n) joint covariances; returns (..., E, n, n), regularised by ``1e-12`` of
+    the mean trace of each run's nodes (two nodes with one estimate have a zero difference).
+    """
+    d = node_blocks(P)
+    out = (d[..., receiver, :, :] + d[..., sender, :, :] - P[..., receiver, sender, :, :]
+           - P[..., sender, receiver, :, :])
+    eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
+    return out + eps[..., None, None, None] * np.eye(P.shape[-1])
+
+
+def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
+                  fdi: np.ndarray | None, xi: np.ndarray | None, cov_diff: np.ndarray | None, alpha: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The χ² gate on stacked directed channels (:func:`gate` on one run's adjacency).
+
+    Channel ``e`` carries ``x̂_j (+ ξ_e)`` from ``j = sender[e]`` to ``i = receiver[e]``; ``x_pred``
+    (..., N, n) the predictions, ``received`` (..., E) the packets that arrived, ``fdi`` (..., E)
+    the falsified ones and ``xi`` (..., E, n) their signal (None: no attack), ``cov_diff``
+    (..., E, n, n) the covariance of ``x̂_j - x̂_i`` when nobody lies (None will do at ``α = 0``).
+    A received packet is kept when ``dᵀ Σ⁺ d <= χ²_n(1 - α)`` (``d = x̂_j (+ ξ) - x̂_i``; a
+    covariance or difference beyond floats cannot judge: kept).  Returns the mask of kept packets
+    (..., E) and the counts (..., 5) of :data:`GATE_COUNTS`.
+    """
+    from scipy.special import chdtri
+
+    received = np.asarray(received, dtype=bool)
+    fdi = np.zeros_like(received) if fdi is None else np.asarray(fdi, dtype=bool)
+    keep = received.copy()
+    if alpha > 0:
+        idx = np.nonzero(received)
+        runs, e = idx[:-1], idx[-1]
+        d = x_pred[runs + (sender[e],)] - x_pred[runs + (receiver[e],)]
+        if xi is not None:
+            d = d + fdi[idx][:, None] * xi[idx]
+        S = cov_diff[idx]
+        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
+        stat = np.zeros(e.size)
+        if ok.any():
+            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
+        keep[idx] = stat <= chdtri(x_pred.shape[-1], alpha)
+    rejected = received & ~keep
+    counts = np.stack([received.sum(-1), rejected.sum(-1), (rejected & ~fdi).sum(-1), (received & fdi).sum(-1),
+                       (keep & fdi).sum(-1)], axis=-1)
+    return keep, counts
+
+
+def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, cov_diff: np.ndarray,
+                     receiver: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n) on stacked channels.
+
+    ``keep`` (..., E) the kept
+    packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per run),
+    ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against.
+    """
+    from scipy.special import chdtri
+
+    nx = cov_diff.shape[-1]
+    a = design.fdi_signal.amplitudes(nx)
+    out = np.zeros(keep.shape[:-1] + (n_nodes, nx, nx))
+    idx = np.nonzero(keep)
+    if idx[-1].size and np.any(a):
+        c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[idx], hermitian=True), a)
+        p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
+        qe = np.broadcast_to(q, keep.shape)[idx]
+        weight = qe * g2_pass / np.maximum(qe * p_pass + (1.0 - qe) * (1.0 - design.gate), 1e-300)
+        # one packet after the other, in channel order (the per-run sum's order)
+        np.add.at(out, idx[:-1] + (receiver[idx[-1]],), weight[:, None, None] * np.outer(a, a))
+    return out
+
+
 def gate(x_pred: np.ndarray, attacks_k, network: SensorNetwork, cov_diff: np.ndarray | None, alpha: float
          ) -> tuple[np.ndarray, np.ndarray]:
     """The χ² gate on received neighbour packets: which ones node ``i`` keeps.
@@ -127,28 +202,19 @@ def gate(x_pred: np.ndarray, attacks_k, network: SensorNetwork, cov_diff: np.nda
     with probability ``α``, the stated design parameter; a falsified one passes only if its
     displacement hides in the spread of the clean differences.  Returns the mask ``(N, N)``
     of packets kept (received and passed) and the counts of :data:`GATE_COUNTS` (what the
-    simulation knows, not the node: which packets were falsified).
+    simulation knows, not the node: which packets were falsified).  One run's form of
+    :func:`gate_channels`, on the network's channels.
     """
-    from scipy.special import chdtri
-
     adj = network.adjacency
-    dos, fdi, xi = attacks_k if attacks_k is not None else (np.zeros_like(adj), np.zeros_like(adj), None)
-    recv = adj & ~dos
-    keep = recv.copy()
-    if alpha > 0:
-        i, j = np.nonzero(recv)
-        d = x_pred[j] - x_pred[i]
-        if xi is not None:
-            d = d + fdi[i, j, None] * xi[i, j]
-        S = cov_diff[i, j]
-        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
-        stat = np.zeros(i.size)  # a covariance beyond floats cannot judge: the packet is kept
-        if ok.any():
-            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
-        keep[i, j] = stat <= chdtri(x_pred.shape[1], alpha)
-    rejected = recv & ~keep
-    counts = np.array([recv.sum(), rejected.sum(), (rejected & ~fdi).sum(), (recv & fdi).sum(),
-                       (keep & fdi).sum()])
+    i, j = np.nonzero(adj)
+    if attacks_k is None:
+        received, fdi, xi = np.ones(i.size, dtype=bool), None, None
+    else:
+        dos, fdi, xi = attacks_k
+        received, fdi, xi = ~dos[i, j], fdi[i, j], None if xi is None else xi[i, j]
+    kept, counts = gate_channels(x_pred, i, j, received, fdi, xi, None if cov_diff is None else cov_diff[i, j], alpha)
+    keep = np.zeros(adj.shape, dtype=bool)
+    keep[i[kept], j[kept]] = True
     return keep, counts
 
 
@@ -482,6 +548,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
     nz, d_max = max(dims), network.d_max
     zs = [model.split(z[k]) for k in range(steps)]
     q_fdi = _falsified_probability(network)
+    ch = np.nonzero(network.adjacency)  # the directed channels (receiver, sender), the gate's order
     R_all = [model.measurement_cov(i) for i in range(n)]
     Q = model.process_cov
     x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, sig, bet = _arrays(steps, n, nx, nz, x0, phi0)
@@ -536,7 +603,8 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         # What the falsified packets add: all of them without a gate; with one, those that pass (a model of the
         # gate that the Monte Carlo bound check validates: which packets pass depends on the errors).
         S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)] \
-            if design.gate == 0 or design.fdi_signal is None else _kept_fdi_moments(design, keep, q_fdi, cov_diff)
+            if design.gate == 0 or design.fdi_signal is None else \
+            kept_fdi_moments(design, keep[ch], q_fdi[ch], cov_diff[ch], ch[0], n)
         gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
         Ks, Cs = [g[0] for g in gains], [g[1] for g in gains]
         for i in range(n):
@@ -581,38 +649,10 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
     return result()
 
 
-def _kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q_fdi: np.ndarray, cov_diff: np.ndarray) -> list:
-    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]``: what the falsified packets that pass the gate add.
-
-    For a kept packet ``P(FDI, kept) = q P(pass | FDI)`` and ``P(kept) = q P(pass | FDI) + (1 - q)(1 - α)``,
-    with ``P(pass | FDI)`` and ``E[g² 1{pass}]`` from :meth:`designer.attacks.FDISignal.passing` against the
-    clean difference's covariance (the clean part taken as independent of the signal).
-    """
-    from scipy.special import chdtri
-
-    n, nx = keep.shape[0], cov_diff.shape[-1]
-    a = design.fdi_signal.amplitudes(nx)
-    i, j = np.nonzero(keep)
-    S = [np.zeros((nx, nx)) for _ in range(n)]
-    if not i.size or not np.any(a):
-        return S
-    c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[i, j], hermitian=True), a)
-    p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
-    q = q_fdi[i, j]
-    weight = q * g2_pass / np.maximum(q * p_pass + (1.0 - q) * (1.0 - design.gate), 1e-300)
-    aa = np.outer(a, a)
-    for node, w in zip(i, weight):
-        S[node] = S[node] + w * aa
-    return S
-
-
 def _difference_covariance(P: np.ndarray) -> np.ndarray:
-    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` (N, N, n, n) from the joint covariance, regularised
-    (``1e-12`` of the mean trace: two nodes with one estimate have a zero difference)."""
-    d = _diag(P)
-    out = d[:, None] + d[None, :] - P - np.swapaxes(P, 0, 1)
-    eps = 1e-12 * max(float(np.trace(d, axis1=-2, axis2=-1).mean()), 1e-300)
-    return out + eps * np.eye(P.shape[-1])
+    """``Cov(e_j - e_i)`` (N, N, n, n) for every pair of nodes from the joint covariance (:func:`channel_difference_covariance`)."""
+    i, j = np.indices(P.shape[:2]).reshape(2, -1)
+    return channel_difference_covariance(P, i, j).reshape(P.shape)
 
 
 def _diag(P: np.ndarray) -> np.ndarray:

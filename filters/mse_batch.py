@@ -8,7 +8,8 @@ n, n)`` and its certificate go through the functions of :mod:`designer.mse` with
 runs axis (the per-run filter calls the same functions on one run, so both take the same
 steps), the gains are solved per node over all runs at once (the kept packets as masks), and
 the χ² gate on neighbour packets works on the network's directed channels of every run
-(:func:`gate_channels`, :func:`channel_difference_covariance`, :func:`kept_fdi_moments`).
+(:func:`filters.consensus.gate_channels`, :func:`~filters.consensus.channel_difference_covariance`,
+:func:`~filters.consensus.kept_fdi_moments`: the gate's one home, whose per-run form the per-run filter uses).
 
 Run ``r`` of the result equals ``run_consensus(..., attacks=attacks.pattern(r, N))`` to rounding:
 estimates, bounds, gains, predicted MSE, σ, β, margins, the ``valid`` flags, the violations in
@@ -50,91 +51,17 @@ from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import _BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability
+from .consensus import (_BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability,
+                        channel_difference_covariance, gate_channels, kept_fdi_moments)
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, _batch_inputs, edge_attacks, per_run, run_networks,
                               wrap_residuals)
 
-__all__ = ["run_mse_batch", "gate_channels", "channel_difference_covariance", "kept_fdi_moments", "MAX_JOINT_DIM",
-           "MEMORY_BUDGET"]
+__all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 
 MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
 MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
 JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
 _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
-
-
-# --------------------------------------------------------------------------- the gate on stacked channels
-def channel_difference_covariance(P: np.ndarray, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
-    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
-
-    ``P`` (..., N, N, n, n) joint covariances; returns (..., E, n, n), regularised by ``1e-12`` of
-    the mean trace of each run's nodes (two nodes with one estimate have a zero difference).
-    """
-    d = node_blocks(P)
-    out = (d[..., receiver, :, :] + d[..., sender, :, :] - P[..., receiver, sender, :, :]
-           - P[..., sender, receiver, :, :])
-    eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
-    return out + eps[..., None, None, None] * np.eye(P.shape[-1])
-
-
-def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
-                  fdi: np.ndarray | None, xi: np.ndarray | None, cov_diff: np.ndarray | None, alpha: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The χ² gate of :func:`filters.consensus.gate` on stacked directed channels.
-
-    Channel ``e`` carries ``x̂_j (+ ξ_e)`` from ``j = sender[e]`` to ``i = receiver[e]``; ``x_pred``
-    (..., N, n) the predictions, ``received`` (..., E) the packets that arrived, ``fdi`` (..., E)
-    the falsified ones and ``xi`` (..., E, n) their signal (None: no attack), ``cov_diff``
-    (..., E, n, n) the covariance of ``x̂_j - x̂_i`` when nobody lies (None will do at ``α = 0``).
-    A received packet is kept when ``dᵀ Σ⁺ d <= χ²_n(1 - α)`` (``d = x̂_j (+ ξ) - x̂_i``; a
-    covariance or difference beyond floats cannot judge: kept).  Returns the mask of kept packets
-    (..., E) and the counts (..., 5) of :data:`filters.consensus.GATE_COUNTS`.
-    """
-    from scipy.special import chdtri
-
-    received = np.asarray(received, dtype=bool)
-    fdi = np.zeros_like(received) if fdi is None else np.asarray(fdi, dtype=bool)
-    keep = received.copy()
-    if alpha > 0:
-        idx = np.nonzero(received)
-        runs, e = idx[:-1], idx[-1]
-        d = x_pred[runs + (sender[e],)] - x_pred[runs + (receiver[e],)]
-        if xi is not None:
-            d = d + fdi[idx][:, None] * xi[idx]
-        S = cov_diff[idx]
-        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
-        stat = np.zeros(e.size)
-        if ok.any():
-            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
-        keep[idx] = stat <= chdtri(x_pred.shape[-1], alpha)
-    rejected = received & ~keep
-    counts = np.stack([received.sum(-1), rejected.sum(-1), (rejected & ~fdi).sum(-1), (received & fdi).sum(-1),
-                       (keep & fdi).sum(-1)], axis=-1)
-    return keep, counts
-
-
-def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, cov_diff: np.ndarray,
-                     receiver: np.ndarray, n_nodes: int) -> np.ndarray:
-    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n) on stacked channels.
-
-    The stacked form of :func:`filters.consensus._kept_fdi_moments`: ``keep`` (..., E) the kept
-    packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per run),
-    ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against.
-    """
-    from scipy.special import chdtri
-
-    nx = cov_diff.shape[-1]
-    a = design.fdi_signal.amplitudes(nx)
-    out = np.zeros(keep.shape[:-1] + (n_nodes, nx, nx))
-    idx = np.nonzero(keep)
-    if idx[-1].size and np.any(a):
-        c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[idx], hermitian=True), a)
-        p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
-        qe = np.broadcast_to(q, keep.shape)[idx]
-        weight = qe * g2_pass / np.maximum(qe * p_pass + (1.0 - qe) * (1.0 - design.gate), 1e-300)
-        # one packet after the other, in channel order (the per-run sum's order)
-        np.add.at(out, idx[:-1] + (receiver[idx[-1]],), weight[:, None, None] * np.outer(a, a))
-    return out
 
 
 # --------------------------------------------------------------------------- the filter
