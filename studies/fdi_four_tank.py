@@ -90,7 +90,8 @@ PAPER_TABLE4 = {
 }
 NORM_BANDS = (0.5, 1.0, 1.5)  # edges (besides ||gamma||_min) of the attack-norm bands of the gamma-bar = 1 case
 SINGLE_RUN_REPEATS = 3  # one-run timings: the best of this many repetitions
-CHUNK_SIZE = 5  # runs per chunk of the Monte Carlo runner
+CHUNK_SIZE = 25  # runs per chunk of the Monte Carlo runner: the plant of a chunk's runs is simulated in one batch, whose
+# per-step cost (the NumPy translation of f, some 650 operations) hardly grows with the runs (default study 19 s -> 13.5 s)
 BOOTSTRAP_KEY = 2**31  # spawn key of the bootstrap intervals' stream, outside the runs' keys
 
 ASSUMPTIONS = (
