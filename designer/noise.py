@@ -237,10 +237,10 @@ class TruncatedGaussian(Noise):
     scale: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
-    _dist: object = field(init=False, repr=False)
+    _dist: object = field(init=False, repr=False, default=None)
 
     def __post_init__(self):
-        from scipy import special, stats
+        from scipy import special
 
         loc = as_vector("loc", self.loc)
         d = loc.shape[0]
@@ -252,8 +252,6 @@ class TruncatedGaussian(Noise):
         object.__setattr__(self, "scale", scale)
         object.__setattr__(self, "lower", lower)
         object.__setattr__(self, "upper", upper)
-        dist = stats.truncnorm((lower - loc) / scale, (upper - loc) / scale, loc=loc, scale=scale)
-        object.__setattr__(self, "_dist", dist)  # moments only; densities and sampling in closed form below
         a, b = (lower - loc) / scale, (upper - loc) / scale
         # Mass of the parent normal on [a, b], from the tail nearer to the interval (no cancellation).
         upper_side = a > 0
@@ -267,13 +265,23 @@ class TruncatedGaussian(Noise):
     def dim(self) -> int:
         return self.loc.shape[0]
 
+    def _truncnorm(self):
+        """SciPy's truncated normal, for the moments only (densities and sampling are in closed form below); made
+        on first use, as importing scipy.stats takes most of a second that a filter run does not need."""
+        if self._dist is None:
+            from scipy import stats
+
+            a, b = (self.lower - self.loc) / self.scale, (self.upper - self.loc) / self.scale
+            object.__setattr__(self, "_dist", stats.truncnorm(a, b, loc=self.loc, scale=self.scale))
+        return self._dist
+
     @property
     def mean(self) -> np.ndarray:
-        return np.asarray(self._dist.mean(), dtype=float)
+        return np.asarray(self._truncnorm().mean(), dtype=float)
 
     @property
     def cov(self) -> np.ndarray:
-        return np.diag(np.asarray(self._dist.var(), dtype=float))
+        return np.diag(np.asarray(self._truncnorm().var(), dtype=float))
 
     def logpdf(self, x) -> np.ndarray:
         a, b, _, mass = self._ab
