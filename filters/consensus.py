@@ -170,11 +170,15 @@ def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, 
 
 def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, cov_diff: np.ndarray,
                      receiver: np.ndarray, n_nodes: int) -> np.ndarray:
-    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n) on stacked channels.
+    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n): what the falsified packets that pass
+    the gate add, on stacked channels.
 
-    ``keep`` (..., E) the kept
-    packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per run),
-    ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against.
+    For a kept packet ``P(FDI, kept) = q P(pass | FDI)`` and ``P(kept) = q P(pass | FDI) + (1 - q)(1 - α)``,
+    with ``P(pass | FDI)`` and ``E[g² 1{pass}]`` from :meth:`designer.attacks.FDISignal.passing` against the
+    clean difference's covariance (the clean part taken as independent of the signal).  ``keep`` (..., E) the
+    kept packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per
+    run), ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against, ``receiver``
+    (E,) each channel's receiving node.
     """
     from scipy.special import chdtri
 
