@@ -256,7 +256,18 @@ def swallowing_task(run_ids, seeds):
     return toy_task(run_ids, seeds)
 
 
-def test_a_swallowed_ctrl_c_still_stops_the_study_and_discards_its_chunk(tmp_path):
+@pytest.fixture
+def ctrl_c_raises():
+    """Ctrl-C raises KeyboardInterrupt in this process, as in a terminal, also when the tests were started in the
+    background of a shell without job control (SIGINT ignored, see :func:`_interruptible`); restored after."""
+    old = signal.getsignal(signal.SIGINT)
+    if old is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_a_swallowed_ctrl_c_still_stops_the_study_and_discards_its_chunk(tmp_path, ctrl_c_raises):
     if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         pytest.skip("SIGINT is handled by someone else in this process")
     with pytest.raises(KeyboardInterrupt, match="discarded"):

@@ -21,7 +21,7 @@ from designer.fileio import LOCK_NAME, append_line, atomic_write, output_lock
 from designer.validation import ComputationError, InputError
 from studies.runner import CHUNKS_DIR, monte_carlo
 
-from test_runner import ROOT, reference, toy_task
+from test_runner import ROOT, _interruptible, reference, toy_task
 
 KW = dict(runs=12, seed=4, chunk_size=4, label="toy", quiet=True)
 
@@ -217,7 +217,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT])
 def test_workers_die_with_their_parent(sig):
     parent = subprocess.Popen([sys.executable, "-c", _PARENT, str(ROOT / "tests")], cwd=ROOT, stdout=subprocess.PIPE,
-                              text=True)
+                              text=True, preexec_fn=_interruptible)  # Ctrl-C's default action, as in a terminal
     workers = []
     try:
         assert int(parent.stdout.readline()) == parent.pid
