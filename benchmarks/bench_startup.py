@@ -7,7 +7,7 @@ interleaved (one of each in turn) and each figure is the best of ``--repeat`` (t
 shared: the best is the least disturbed).  Target (issue 15): every command within 2 x the NumPy
 start-up; ``--check`` exits 1 when one is not.
 
-Run: ``python benchmarks/bench_startup.py [--repeat 7] [--check]``
+Run: ``python benchmarks/bench_startup.py [--repeat 15] [--check]``
 """
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def _run(cmd: list[str]) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--check", action="store_true")
     args = ap.parse_args(argv)
     cli = _cfdesign()

@@ -20,7 +20,6 @@
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import math
 import os
@@ -181,6 +180,8 @@ def code_fingerprint() -> str:
     """SHA-256 of the package's source files (``designer``, ``filters``, ``studies``), computed once per process."""
     global _FINGERPRINT
     if _FINGERPRINT is None:
+        import hashlib  # here: the command line's start-up (cfdesign scenarios) has no use for it
+
         root = Path(__file__).resolve().parent.parent
         h = hashlib.sha256()
         for pkg in ("designer", "filters", "studies"):
