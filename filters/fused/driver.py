@@ -216,7 +216,9 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_
     lnM = math.log(Mf)
     uniform_moments(x, mean[0], cov[0], do_cov, W)
     prev = lnM  # log Σ exp(lw) of the previous step's weights
-    fresh = True  # lw is all zeros (start, or just resampled)
+    # lw is all zeros (start, or just resampled); a comparison, not the constant True, so that numba types
+    # _step's argument as bool at once instead of compiling it for Literal[bool](True) first (a second signature)
+    fresh = M > 0
     total = 0.0
     for k in range(K):
         mk = mean[k + 1]
