@@ -134,12 +134,14 @@ class Gaussian(Noise):
         return -0.5 * (self.dim * _LOG_2PI + self._logdet + np.einsum("...i,...i->...", z, z))
 
     def cdf(self, x) -> np.ndarray:
-        from scipy import special, stats
+        from scipy import special
 
         x = _points(x, self.dim)
         sd = np.sqrt(np.diag(self.cov))
         if self.dim == 1 or np.count_nonzero(self.cov - np.diag(np.diag(self.cov))) == 0:
             return np.prod(special.ndtr((x - self.mean) / sd), axis=-1)
+        from scipy import stats  # the correlated case only: scipy.stats takes most of a second to import
+
         flat = x.reshape(-1, self.dim)
         vals = stats.multivariate_normal(self.mean, self.cov).cdf(flat)
         return np.asarray(vals, dtype=float).reshape(x.shape[:-1])
@@ -190,8 +192,6 @@ class GaussianMixture(Noise):
         return second - np.outer(m, m)
 
     def logpdf(self, x) -> np.ndarray:
-        from scipy import special
-
         with np.errstate(divide="ignore"):
             logw = np.log(self.weights)
         terms = np.stack([lw + c.logpdf(x) for lw, c in zip(logw, self.components)], axis=0)

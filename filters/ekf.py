@@ -72,7 +72,6 @@ def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None,
     return EKFResult(xs, Ps)
 
 
-
 def run_ekf_batch(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,
                   P0=None, angles=None) -> EKFResult:
     """:func:`run_ekf` on many runs at once: ``z`` (runs, K, n_z), ``available`` (runs, K, N) bool.

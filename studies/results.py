@@ -242,8 +242,10 @@ def cv_velocity_at_position_rmse(accel_var: float, period: float, rmse_position:
         return float(np.sqrt(2 * posterior(10**log_r)[0, 0]) - rmse_position)
 
     lo, hi = -12.0, 12.0  # log10 r; an RMSE outside what this range reaches takes the nearer end
-    if excess(lo) >= 0 or excess(hi) <= 0:
-        log_r = lo if excess(lo) >= 0 else hi
+    if excess(lo) >= 0:
+        log_r = lo
+    elif excess(hi) <= 0:
+        log_r = hi
     else:
         log_r = brentq(excess, lo, hi, xtol=1e-13, rtol=1e-13)
     return float(np.sqrt(2 * posterior(10**log_r)[1, 1]))
