@@ -3,24 +3,32 @@
 ``S`` scalar sensors, ``Σ_s log(A + B F_ν(T − h_s(x)))`` with ``F_ν`` the sensor noise's
 CDF: seed 002's likelihood (13)-(16) is affine in ``c = F_ν(T − h)``, and
 :func:`filters.binary.binary_coefficients` gives ``A`` and ``B`` from the received
-signals (:func:`filters.binary.binary_loglik` is the NumPy engine's form).  Draws,
-numerics and limitations as :mod:`filters.fused.packets`.
+signals (:func:`filters.binary.binary_loglik` is the NumPy engine's form).  Draws and
+limitations as :mod:`filters.fused.packets`.  Numerics: the CDFs and the log are the
+branch-free ones of :mod:`filters.fused.primitives` (the likelihood loops vectorise; about
+1.9 times faster than libm's per call on target-binary-energy), within a few ulp of the
+NumPy twin's: the default binary-multi-attack study's results agree with the libm version's
+to 3.2e-15 relative.
 """
 from __future__ import annotations
+
+import math
 
 from typing import Sequence
 
 import numpy as np
 from numba.core import types
 
-from designer.jit import scalar_statements
+from designer.jit import fma, scalar_statements
 from designer.model import Model
 from designer.noise import Gaussian, GaussianMixture
 from designer.validation import InputError
 
+from .cache import njit
 from .codegen import compile_kernel, const, model_kernels, propagation, weights
 from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
+from .primitives import vfrexp, vlog_dd, vndtr
 
 __all__ = ["sir_binary", "binary_affine_loglik"]
 
@@ -88,31 +96,77 @@ def binary_affine_loglik(model: Model, x, k1: int, A, B, *, threshold: float) ->
 
 
 # ============================================================================ generated likelihood and checks
+@njit()
+def _cdf_term(u, n, C, w, mu, sd, add):
+    """``C[m] (+)= w F((u[m] − mu) / sd)`` for ``m < n``, ``F`` the standard normal CDF (branch-free, vectorises)."""
+    if add:
+        for m in range(n):
+            C[m] += w * vndtr((u[m] - mu) / sd)
+    else:
+        for m in range(n):
+            C[m] = w * vndtr((u[m] - mu) / sd)
+
+
+@njit()
+def _affine_factor(C, n, a, c, mant, expo):
+    """Multiply the running products ``mant[m] 2^expo[m]`` by ``a + c C[m]``; a factor that is not positive (or
+    NaN) makes ``expo[m]`` NaN.  Factors below 1e-290 are scaled by 2^64 first, so the mantissa stays normal."""
+    for m in range(n):
+        v = a + c * C[m]
+        tiny = v < 1e-290
+        fm, fe = vfrexp(mant[m] * (v * 1.8446744073709552e19 if tiny else v))
+        mant[m] = fm
+        expo[m] += (fe - 64.0 if tiny else fe) if v > 0.0 else math.nan
+
+
+@njit()
+def _add_log_product(mant, expo, n, b):
+    """``b[m] += log(mant[m] 2^expo[m])``: one branch-free ``log`` per particle (``ln 2`` in two parts)."""
+    for m in range(n):
+        hi, lo = vlog_dd(mant[m])
+        e = expo[m]
+        b[m] += fma(e, 0.6931471803691238, hi) + fma(e, 1.9082149292705877e-10, lo)
+
+
+_HELPERS = {"_cdf_term": _cdf_term, "_affine_factor": _affine_factor, "_add_log_product": _add_log_product}
+
+
 def binary_lik(model: Model):
     """``lik`` of the binary likelihood (see :func:`likelihood_block`, no slots), ``data = (A, B, T)``:
-    ``b[m] += Σ_s log(A[t, s] + B[t, s] F_ν_s(T − h_s(X[m], k)))``."""
+    ``b[m] += log Π_s (A[t, s] + B[t, s] F_ν_s(T − h_s(X[m], k)))``.
+
+    The generated part computes ``T − h_s`` for every particle of the block (the model's
+    ``h``, as the other families); the rest is generic and vectorises (branch-free
+    ``ndtr`` and ``log`` of :mod:`filters.fused.primitives`): per sensor the noise's CDF
+    (one pass per mixture component), the factor, the running product kept as
+    ``mantissa 2^exponent`` (no underflow), and one ``log`` per particle.  A factor that is
+    not positive (or NaN) gives the particle NaN: zero weight.  The NumPy twin sums the
+    logs of libm's values; the two agree to a few ulp.
+    """
     if "binary" in model_kernels(model):
         return model_kernels(model)["binary"]
     if any(d != 1 for d in model.sensor_dims):
         raise InputError("sir_binary needs scalar sensors (every sensor of dimension 1)")
+    S = model.n_sensors
     lines = ["def lik(X, m0, n, k, data, t, b, ex):", "    A, B, T = data", "    Xb = X[m0:m0 + n]",
-             "    bb = b[m0:m0 + n]", "    for m in range(n):"]
+             f"    U = _np.empty(({S}, n))", "    for m in range(n):"]
     lines += scalar_statements(model.casadi_h_all, ["Xb[m, {}]", "k"], "h{}", indent="        ")
-    lines.append("        total = 0.0")
+    lines += [f"        U[{s}, m] = T - h{s}" for s in range(S)]
+    lines += ["    C = _np.empty(n)", "    mant = _np.ones(n)", "    expo = _np.zeros(n)"]
     for s, sensor in enumerate(model.sensors):
         nz = sensor.noise
-        lines.append(f"        u = T - h{s}")
         if isinstance(nz, Gaussian):  # Gaussian.cdf: ndtr((x - mean) / sd)
-            c = f"ndtr((u - {const(nz.mean[0])}) / {const(np.sqrt(nz.cov[0, 0]))})"
+            terms = [(1.0, nz)]
         elif isinstance(nz, GaussianMixture):  # sum of w * component cdf
-            c = " + ".join(f"{const(w)} * ndtr((u - {const(g.mean[0])}) / {const(np.sqrt(g.cov[0, 0]))})"
-                           for w, g in zip(nz.weights, nz.components))
+            terms = list(zip(nz.weights, nz.components))
         else:
             raise InputError(f"model.sensors[{s}] noise is {type(nz).__name__}; the fused kernels support Gaussian "
                              "and GaussianMixture")
-        lines.append(f"        total += _m.log(A[t, {s}] + B[t, {s}] * ({c}))")
-    lines.append("        bb[m] += total")
-    return compile_kernel(model, "binary", "\n".join(lines), "lik", "the binary likelihood", LIK_T)
+        lines += [f"    _cdf_term(U[{s}], n, C, {const(w)}, {const(g.mean[0])}, {const(np.sqrt(g.cov[0, 0]))}, "
+                  f"{j > 0})" for j, (w, g) in enumerate(terms)]
+        lines.append(f"    _affine_factor(C, n, A[t, {s}], B[t, {s}], mant, expo)")
+    lines.append("    _add_log_product(mant, expo, n, b[m0:m0 + n])")
+    return compile_kernel(model, "binary", "\n".join(lines), "lik", "the binary likelihood", LIK_T, _HELPERS)
 
 
 def binary_data(model: Model, R: int, A, B, threshold):

@@ -56,18 +56,20 @@ def const(v: float) -> str:
     return repr(float(v))
 
 
-def compile_kernel(model: Model, key, src: str, fname: str, what: str, ftype):
+def compile_kernel(model: Model, key, src: str, fname: str, what: str, ftype, helpers: dict | None = None):
     """``fname`` of ``src`` (generated for ``model``) compiled for the function type ``ftype``, kept per model.
 
     The source becomes a module of the kernel cache and its compiled code is cached on
     disk (:func:`designer.jit.compile_source`): a later process loads it.  The source's
     path is recorded (:func:`kernel_paths`).  Returned as a first-class function value
     (numba's wrapper address protocol) rather than a dispatcher: passing it to the
-    drivers then costs no signature lookup per call.
+    drivers then costs no signature lookup per call.  ``helpers``: the functions the source calls besides the
+    shared ones (compiled, cached numba functions of the family's module).
     """
     cache = model_kernels(model)
     if key not in cache:
-        fn = compile_source(src, fname, f"{what} of {model.name!r}", _NS, stamp=STAMP, fastmath=FAST)
+        fn = compile_source(src, fname, f"{what} of {model.name!r}", {**_NS, **(helpers or {})}, stamp=STAMP,
+                            fastmath=FAST)
         sig = ftype.signature
         fn.compile(sig)
         cache[key] = types.CompileResultWAP(fn.overloads[tuple(sig.args)])
