@@ -35,7 +35,8 @@ from .driver import PROP_T, WEIGH_T
 from .primitives import exp_nonpos, logaddexp, ndtr, wrap_angle
 
 __all__ = ["LOG_2PI", "model_kernels", "kernel_paths", "const", "compile_kernel", "noise_terms", "propagation",
-           "propagation_predrawn", "weights", "components", "component_lines", "max_others_lines", "shared_bodies"]
+           "propagation_predrawn", "weights", "components", "component_lines", "max_others_lines", "shared_bodies",
+           "split_powers"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 _KERNELS: "weakref.WeakKeyDictionary[Model, dict]" = weakref.WeakKeyDictionary()
@@ -278,3 +279,42 @@ def shared_bodies(bodies: list[str]) -> list[tuple[list[int], str, np.ndarray]]:
 
         out.append((members, _FLOAT.sub(literal, bodies[members[0]]), table))
     return out
+
+
+_POW_LINE = re.compile(r"^(\s*)(w\d+) = (w\d+) \*\* (w\d+)$")  # designer.jit's POW / CONSTPOW template
+_ASSIGN = re.compile(r"^\s*(\w+) = (.*)$")
+_REGISTER = re.compile(r"\bw\d+\b")
+
+
+def split_powers(lines: list[str]) -> tuple[list[str], list[str], int] | None:
+    """The powers of generated statements (:func:`designer.jit.scalar_statements`) taken out of their loop.
+
+    Returns ``(first, second, J)``: ``first`` is ``lines`` with the ``j``-th power
+    ``w = a ** b`` replaced by ``PA[j, m] = a``, ``PB[j, m] = b`` (and ``w = 1.0``), ``second``
+    with it replaced by ``w = PR[j, m]``; between the two loops,
+    ``primitives.vpow_rows(PA, PB, PR, n)`` takes every power in one loop that vectorises
+    (libm's ``pow`` is a call per particle).  ``None`` when there is no power or when a
+    power's operand depends on another power's result (the first loop could not compute it).
+    """
+    first, second, tainted, J = [], [], set(), 0
+    for line in lines:
+        p = _POW_LINE.match(line)
+        if p:
+            ind, w, a, b = p.groups()
+            if {a, b} & tainted:
+                return None
+            first += [f"{ind}PA[{J}, m] = {a}", f"{ind}PB[{J}, m] = {b}", f"{ind}{w} = 1.0"]
+            second.append(f"{ind}{w} = PR[{J}, m]")
+            tainted.add(w)
+            J += 1
+            continue
+        first.append(line)
+        second.append(line)
+        a = _ASSIGN.match(line)
+        if a:
+            lhs, rhs = a.groups()
+            if set(_REGISTER.findall(rhs)) & tainted:
+                tainted.add(lhs)
+            else:
+                tainted.discard(lhs)
+    return (first, second, J) if J else None
