@@ -61,7 +61,7 @@ from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model,
 from filters.encryption import CRC4_ITU, Codec, EncryptedChannel
 from filters.particle import run_sir, transition_proposal
 
-from .pfrun import check_engine, check_threads
+from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
 from .progress import progress
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .results import _curve_mean_ci, curves_figure, markdown_table
@@ -103,7 +103,7 @@ ASSUMPTIONS = (
     "threads; on the NumPy engine one Generator from the first run's filter stream for the whole batch, so the "
     "filter numbers depend on the number of runs.",
     "encrypted-switching: time_per_step_s = a filter's wall time over all runs divided by runs x T (amortised over "
-    "the batch, and over the threads on the fast engine); on the NumPy engine time_breakdown_s splits it into the "
+    "the batch, and over the threads on the fast engine: 'threads', default the machine's cores); on the NumPy engine time_breakdown_s splits it into the "
     "proposal (mode and process-noise draws, f), the likelihood (h and the CDFs or densities) and the engine's "
     "remainder (weights, moments, ESS, resampling); the fast engine fuses them (its split is null).",
 )
@@ -189,7 +189,7 @@ def _streams(ss: np.random.SeedSequence) -> list[np.random.SeedSequence]:
 def _check_engine_threads(engine: str, threads) -> None:
     check_engine(engine)
     threads = check_threads(threads)
-    if engine == "numpy" and threads != 1:
+    if engine == "numpy" and threads not in (1, THREADS_AUTO):
         raise InputError(f"threads must be 1 with engine 'numpy' (it runs all runs in one batch), got {threads}")
 
 
@@ -395,7 +395,8 @@ def _check(so: StudyOptions) -> None:
 
 
 def _config(sc: Scenario, so: StudyOptions) -> RunConfig:
-    return RunConfig(so.particles, reference(sc), so["engine"], int(so["threads"]), bool(so["mean_dynamics_row"]))
+    threads = 1 if so["engine"] == "numpy" else study_threads(so)  # the NumPy engine runs a chunk in one batch
+    return RunConfig(so.particles, reference(sc), so["engine"], threads, bool(so["mean_dynamics_row"]))
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
@@ -556,7 +557,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"engine": "fast", "threads": 1, "mean_dynamics_row": True},
+    options={"engine": "fast", "threads": THREADS_AUTO, "mean_dynamics_row": True},
     accepts=_accepts,
     check=_check,
 )

@@ -32,6 +32,7 @@ checks the options the particle-filter studies share.
 """
 from __future__ import annotations
 
+import os
 import time
 from typing import Callable, Mapping, Sequence
 
@@ -49,14 +50,45 @@ from .pipeline import naming_filter
 from .results import error_metrics
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
-           "results_block", "check_threads", "check_engine", "check_study_options", "position_velocity"]
+           "results_block", "THREADS_AUTO", "check_threads", "study_threads", "check_engine", "check_study_options",
+           "position_velocity"]
 
 ENGINES = ("fast", "numpy")
 
 
-def check_threads(threads) -> int:
-    """``threads``: threads of the fused engine within a chunk of runs (an integer >= 1)."""
+#: The default of the studies' ``threads`` option: see :func:`study_threads`.
+THREADS_AUTO = "auto"
+
+
+def check_threads(threads) -> int | str:
+    """``threads``: threads of the fused engine within a chunk of runs, an integer >= 1 or ``'auto'``."""
+    if isinstance(threads, str):
+        if threads.strip() == THREADS_AUTO:
+            return THREADS_AUTO
+        raise InputError(f"threads must be 'auto' or an integer >= 1, got {threads!r}")
     return check_int("threads", threads, 1)
+
+
+def study_threads(so) -> int:
+    """The threads of a study's fused engine within a chunk: its ``threads`` option, ``'auto'`` resolved.
+
+    ``'auto'`` (the default): the cores this process may run on, shared among the runner's
+    local worker processes (``--workers N``: ``cores // N``, at least 1); 1 on a Dask
+    cluster, whose workers bring their own threads.  The numbers do not depend on it
+    (one Generator per run); the time per step is the wall time shared among the runs
+    computed together, so with more threads it is the machine's, not one core's.
+    """
+    threads = check_threads(so["threads"])
+    if threads != THREADS_AUTO:
+        return threads
+    backend = so.backend
+    if backend.kind == "dask":
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - platforms without affinity masks
+        cores = os.cpu_count() or 1
+    return max(1, cores // (backend.workers if backend.kind == "processes" else 1))
 
 
 def check_study_options(options) -> None:
@@ -163,7 +195,7 @@ def results_block(study: str, sc, so, mc, assumptions: Sequence[str], filters: d
                      if not m.position_index else
                      f"{study}: the model declares no velocity components; the velocity metrics are left out (null).")
     out = {"scenario": sc.name, "runs": int(so.runs), "particles": so.particles, "steps": int(sc.steps),
-           "assumptions": list(sc.assumptions) + notes, "engine": so["engine"], "threads": int(so["threads"]),
+           "assumptions": list(sc.assumptions) + notes, "engine": so["engine"], "threads": study_threads(so),
            "runner": mc.describe(), "filters": filters, "sweeps": sweeps}
     if paper is not None:
         out["paper"] = paper

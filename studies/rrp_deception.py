@@ -47,7 +47,8 @@ from designer.validation import InputError
 from filters.attacks import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import check_study_options, results_block, run_configurations, run_packets, score_configurations
+from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_configurations, run_packets,
+                    score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .results import curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, trajectory_figure
 from .runner import run_seed
@@ -73,8 +74,8 @@ ASSUMPTIONS = (
     "rrp-deception: 'average RMSE' = mean over k = 1..K of RMSE_k = sqrt(mean over runs of the squared position "
     "(velocity) error); 95 % intervals are percentile bootstraps over runs.",
     "rrp-deception: time_per_step_s = the filter's wall time summed over the chunks of runs (compilation "
-    "excluded) divided by runs x K (our engine runs a chunk's runs together, so this is an amortised cost, not the "
-    "latency of one run's step; chunks computed in parallel, or resumed from an earlier call, keep the time "
+    "excluded) divided by runs x K (our engine runs a chunk's runs together, on 'threads' threads (default: the "
+    "machine's cores), so this is an amortised cost of the machine, not the latency of one run's step on one core; chunks computed in parallel, or resumed from an earlier call, keep the time "
     "measured where and when they ran); the paper's times are MATLAB on unstated hardware.",
     "rrp-deception: communications = packets sent over the whole run (one per step under Round-Robin, one per "
     "sensor and step for PF-DA).",
@@ -241,7 +242,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     filters, _, names = _configs_of(sc, so)
     n_streams = len(names)  # one filter stream per configuration, computed or reused
     ref = reference(sc)
-    engine, threads = so["engine"], int(so["threads"])
+    engine, threads = so["engine"], study_threads(so)
     task = functools.partial(_runs, ref=ref, particles=so.particles, engine=engine, threads=threads,
                              filters=tuple(filters), n_streams=n_streams)
     config = {"study": "rrp-deception", "params": dict(ref.params), "particles": so.particles, "engine": engine,
@@ -383,7 +384,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"engine": "fast", "threads": 1, "sweep": ETA_SWEEP, "linear_weights_row": True},
+    options={"engine": "fast", "threads": THREADS_AUTO, "sweep": ETA_SWEEP, "linear_weights_row": True},
     accepts=_accepts,
     check=_check,
 )

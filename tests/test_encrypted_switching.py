@@ -118,12 +118,12 @@ def test_bad_inputs_name_the_parameter(kw, name):
 
 
 def _same_numbers(a: dict, b: dict) -> bool:
-    """results.json numbers, without timings and the runner's description."""
+    """results.json numbers, without timings, the runner's description and the thread count."""
     import json
 
     def strip(r):
         r = json.loads(json.dumps(r.results))
-        for key in ("wall_time_s", "runner", "versions", "timing_s"):
+        for key in ("wall_time_s", "runner", "versions", "timing_s", "threads"):  # how it ran, not what
             r.pop(key, None)
         for f in r["filters"].values():
             for key in ("time_per_step_s", "wall_time_s", "time_breakdown_s"):

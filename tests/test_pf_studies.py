@@ -100,15 +100,37 @@ def test_results_do_not_depend_on_the_number_of_threads(tmp_path):
         assert a["filters"][name]["rmse_position_curve"] == b["filters"][name]["rmse_position_curve"], name
     assert b["threads"] == 2 and "workers" not in b.results  # threads: one word for them
     # the binary study likewise (timings aside)
-    c = run_study("binary-multi-attack", runs=3, particles=80, seed=3, sweep=(), table2_particles=())
+    c = run_study("binary-multi-attack", runs=3, particles=80, seed=3, sweep=(), table2_particles=(), threads=1)
     d = run_study("binary-multi-attack", runs=3, particles=80, seed=3, sweep=(), table2_particles=(), threads=2)
     assert d["threads"] == 2
     assert c["filters"] == {n: {**f, **{k: c["filters"][n][k] for k in ("time_per_step_s", "wall_time_s")}}
                             for n, f in d["filters"].items()}
     # 'workers' (worker processes, the runner's) is no study option: the old alias of threads is refused
-    for bad in ({"workers": 2}, {"threads": 0}):
+    for bad in ({"workers": 2}, {"threads": 0}, {"threads": "many"}):
         with pytest.raises(InputError, match=next(iter(bad))):
             run_study("binary-multi-attack", runs=3, particles=80, **bad)
+
+
+def test_threads_auto_uses_the_cores_the_runner_leaves():
+    """The default 'auto': every core this process may use, shared among local worker processes; 1 on Dask."""
+    import os
+
+    from studies.pfrun import THREADS_AUTO, study_threads
+    from studies.runner import Backend
+
+    class Options(dict):
+        def __init__(self, threads, backend):
+            super().__init__(threads=threads)
+            self.backend = backend
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert study_threads(Options(THREADS_AUTO, Backend())) == cores
+    assert study_threads(Options("auto", Backend("processes", workers=2))) == max(1, cores // 2)
+    assert study_threads(Options("auto", Backend("processes", workers=4 * cores))) == 1
+    assert study_threads(Options("auto", Backend("dask", address="tcp://127.0.0.1:1"))) == 1
+    assert study_threads(Options(3, Backend("processes", workers=2))) == 3  # an explicit count is kept
+    r = run_study("encrypted-switching", runs=2, particles=30, seed=1, mean_dynamics_row=False)
+    assert r["threads"] == cores  # the default is 'auto', resolved in results.json
 
 
 def test_pf_study_cli_is_reproducible(tmp_path):

@@ -36,6 +36,7 @@ def _numbers(res: dict) -> dict:
     res = json.loads(json.dumps(getattr(res, "results", res)))
     for key in ("runner", "versions"):
         res.pop(key)
+    res.pop("threads", None)  # 'auto' resolves per backend (1 on Dask); the numbers do not depend on it
     return strip(res)
 
 
