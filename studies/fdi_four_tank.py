@@ -36,9 +36,11 @@ every setting and filter on a chunk, the fused kernels run by run or one batched
 per-run arrays), in this process, in local worker processes or on a Dask cluster
 with identical numbers, and an interrupted study resumes from the chunks stored in
 ``out``.  Metrics, tables and figures are computed afterwards from the concatenated
-arrays.  Its one option, ``engine``: ``"fast"`` (default; the fused SIS kernels of
+arrays.  Its options: ``engine``, ``"fast"`` (default; the fused SIS kernels of
 :func:`filters.fused.sis_fdi`, one compiled call per run) or ``"numpy"`` (:func:`filters.fdi.run_sis`,
-the reference); the two agree per run to rounding (the same draws).
+the reference; the two agree per run to rounding, the same draws), and ``threads``, the fused
+engine's threads within a chunk (default ``"auto"``: :func:`studies.pfrun.study_threads`; no
+effect on the numbers).
 """
 from __future__ import annotations
 
@@ -57,6 +59,7 @@ from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_c
                          false_alarm_condition, measurement_cov, measurement_matrix, modified_detector,
                          normal_detector, residual_threshold, run_sis, uniform_loglik)
 
+from .pfrun import THREADS_AUTO, check_threads, study_threads
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .results import curves_figure, error_metrics, markdown_table, save_figure
 from .scenarios import Scenario, ScenarioRef, reference
@@ -130,7 +133,8 @@ ASSUMPTIONS = (
     "(35) given the previous particles (its importance correction uses the true transition density), residuals "
     "weighted 1/N as in (58); its own draws come from a fifth stream of each run, run by run.",
     "fdi-four-tank: time_per_step_s = a filter's wall time (its detector included) summed over the chunks of "
-    "runs (engine fast: the compiled kernel's loop over the chunk's runs; engine numpy: one batched NumPy program "
+    "runs (engine fast: the compiled kernel's loop over the chunk's runs, on 'threads' threads, default the "
+    "machine's cores; engine numpy: one batched NumPy program "
     "of chunk_size runs, the sampled correction's detector run by run; timed wherever it ran) / (runs x K); "
     "time_per_step_single_run_s = the same filter on run 0 alone / K, best of 3 (closer to the paper's tic-toc of "
     "one run; with the NumPy engine at N = 100 it is dominated by the fixed cost of a NumPy call per step).",
@@ -310,7 +314,7 @@ def _key(setting: str, name: str, what: str) -> str:
     return f"{setting}_{FILTERS.index(name)}_{what}"
 
 
-def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fast") -> dict:
+def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fast", threads: int = 1) -> dict:
     """Task of the runner: every setting and filter on the runs ``run_ids``; per-run arrays.
 
     Keys per setting ``s``: ``s_truth`` (R, K + 1, n_x), ``s_l`` (R, K) attack occurrences,
@@ -328,7 +332,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
         sc = p.sc
         data = _data(sc, seqs, simulated)
         # the SIS particles depend on no measurement: every filter of the setting weighs the same ones (fast engine)
-        shared = _particles(sc, seqs, particles) if engine == "fast" else None
+        shared = _particles(sc, seqs, particles, threads) if engine == "fast" else None
         out[f"{key}_truth"], out[f"{key}_l"] = data.truth, data.l
         if p.noisy_estimate:
             out[f"{key}_gamma_hat"] = data.gamma_hat
@@ -338,7 +342,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
             z = getattr(data, zname)
             extra = {"gamma_hat": gamma_hat} if takes_gamma else {}
             with naming_filter(name, run_ids):
-                res = _run(sc, p.design, engine, z, seqs, particles, shared=shared, **kw, **extra)
+                res = _run(sc, p.design, engine, z, seqs, particles, shared=shared, threads=threads, **kw,
+                           **extra)
             out[_key(key, name, "mean")] = res.mean
             if kw.get("detector"):
                 out[_key(key, name, "detected")] = res.detected
@@ -359,17 +364,18 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str = "fa
     return out
 
 
-def _particles(sc, seqs, particles: int):
+def _particles(sc, seqs, particles: int, threads: int = 1):
     """The fused engine's SIS particles of the runs ``seqs``: each run's prior draws then its propagation, from its
     Generator on stream 2 (as run_sis draws them)."""
     from filters.fused import sis_particles
 
     rngs = [np.random.default_rng(s[2]) for s in seqs]
     x0 = np.stack([sc.model.prior.sample(g, particles) for g in rngs])
-    return sis_particles(sc.model, x0, rngs, sc.steps, inputs=sc.inputs(sc.steps))
+    return sis_particles(sc.model, x0, rngs, sc.steps, inputs=sc.inputs(sc.steps), threads=threads)
 
 
-def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, shared=None, **spec):
+def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, shared=None, threads: int = 1,
+         **spec):
     """One filter (``spec``: its detector and likelihood, see ``_FILTER_SPECS``) on the runs ``seqs``.
 
     Each run's particles from its Generator on stream 2 (the prior's draws first; the fused
@@ -392,7 +398,7 @@ def _run(sc, d: _Design, engine: str, z, seqs, particles: int, gamma_hat=None, s
         extra.update(eta=d.eta, zeta=d.zeta)
     if spec.get("detector") == "sampled":
         extra["aux_rngs"] = aux
-    return sis_fdi(sc.model, shared or _particles(sc, seqs, particles), z, **spec, **extra)
+    return sis_fdi(sc.model, shared or _particles(sc, seqs, particles, threads), z, threads=threads, **spec, **extra)
 
 
 class _View(NamedTuple):
@@ -497,12 +503,17 @@ def _accepts(sc: Scenario) -> str | None:
 def _check(so: StudyOptions) -> None:
     if so["engine"] not in ("fast", "numpy"):
         raise InputError(f"engine must be 'fast' or 'numpy', got {so['engine']!r}")
+    check_threads(so["threads"])
+
+
+def _threads(so: StudyOptions) -> int:
+    return 1 if so["engine"] == "numpy" else study_threads(so)  # the NumPy engine batches a chunk's runs
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     plans, _ = _settings(ref, so.particles)  # builds the settings and checks the designs before any run
-    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=so["engine"])
+    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=so["engine"], threads=_threads(so))
     config = {"study": "fdi-four-tank", "scenario": sc.name, "params": dict(ref.params), "particles": so.particles,
               "engine": so["engine"], "settings": {k: list(p.which) for k, p in plans.items()},
               "streams": "run r: SeedSequence(seed, spawn_key=(r,)).spawn(5)",
@@ -532,7 +543,7 @@ def _summarise(sc0: Scenario, mc, so: StudyOptions) -> dict:
     b = mc.backend
     out = {"scenario": sc0.name, "runs": int(runs), "particles": particles, "steps": int(sc0.steps),
            "assumptions": list(sc0.assumptions) + list(ASSUMPTIONS) + ([] if paper else [OTHER_MODEL]),
-           "engine": so["engine"],
+           "engine": so["engine"], "threads": _threads(so),
            "workers": b.workers if b.kind == "processes" else (1 if b.kind == "batched" else None),
            "runner": mc.describe(), "filters": main.filters, "detection": detection,
            "thresholds": {name: st.design.thresholds for name, st in lv.items()}}
@@ -766,7 +777,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"engine": "fast"},
+    options={"engine": "fast", "threads": THREADS_AUTO},
     accepts=_accepts,
     check=_check,
     min_runs=1,

@@ -108,8 +108,27 @@ def test_results_table_and_figures_on_disk(study):
         assert (out / f"{fig}.png").stat().st_size > 10_000, fig
 
 
+def test_numbers_do_not_depend_on_the_threads():
+    import json
+
+    def numbers(threads):
+        r = json.loads(json.dumps(run_study("fdi-four-tank", runs=3, particles=30, seed=2, threads=threads).results))
+        assert r.pop("threads") == threads
+
+        def strip(d):  # timings aside
+            if isinstance(d, dict):
+                return {k: strip(v) for k, v in d.items() if not k.startswith("time_per_step") and k != "wall_time_s"}
+            return [strip(v) for v in d] if isinstance(d, list) else d
+
+        return strip({k: v for k, v in r.items() if k not in ("runner", "versions", "wall_time_s")})
+
+    assert numbers(1) == numbers(2)
+
+
 @pytest.mark.parametrize("kw, needle", [
     ({"engine": "gpu"}, "engine"),
+    ({"threads": 0}, "threads"),
+    ({"threads": "all"}, "threads"),
     ({"backend": "processes"}, "backend"),
     ({"chunk_size": 0}, "chunk_size"),
     ({"runs": 0}, "runs"),

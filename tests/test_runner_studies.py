@@ -32,7 +32,7 @@ def _numbers(res: dict) -> dict:
         return d
 
     res = json.loads(json.dumps(res))
-    for key in ("versions", "runner", "workers"):
+    for key in ("versions", "runner", "workers", "threads"):  # how the runs were computed
         res.pop(key, None)
     return strip(res)
 
@@ -132,6 +132,7 @@ def test_fdi_four_tank_same_numbers_with_every_backend(tmp_path, cluster):
     assert _numbers(a) == _numbers(b) == _numbers(c)
     assert a["runner"]["chunks"] == 2 and b["runner"]["workers"] == 2 and c["runner"]["backend"] == "dask"
     assert (a["workers"], b["workers"], c["workers"]) == (1, 2, None)
+    assert c["threads"] == 1 and b["threads"] >= 1  # 'auto': 1 on Dask, the cores left by the worker processes
     assert _numbers(json.loads((tmp_path / "b" / "results.json").read_text())) == _numbers(a)
     for f in a["filters"].values():  # timings come from every chunk
         assert f["time_per_step_s"] > 0 and f["time_per_step_single_run_s"] > 0

@@ -8,10 +8,11 @@ spills all floating-point registers: the kernels take their exps with
 SciPy's normal CDF.
 
 The ``v*`` functions (:func:`vexp`, :func:`vlog_dd`, :func:`vpow`, :func:`vndtr`, :func:`vfrexp`) are
-branch-free versions of libm's ``exp``, ``log``, ``pow``, ``frexp`` and SciPy's ``ndtr`` for likelihood loops that
-must vectorise (the binary sensors' likelihood, :mod:`filters.fused.binary`): selects instead of branches, no float-to-integer conversion (AVX2 has none
-for 64-bit integers), every polynomial in Estrin's scheme with explicit FMAs (short
-dependency chains; the same rounding whatever the caller's fastmath flags).  Their
+branch-free versions of libm's ``exp``, ``log``, ``pow``, ``frexp`` and SciPy's ``ndtr`` for
+likelihood loops that must vectorise (the binary sensors' likelihood,
+:mod:`filters.fused.binary`): selects instead of branches, no float-to-integer conversion
+(AVX2 has none for 64-bit integers), every polynomial in Estrin's scheme with explicit FMAs
+(short dependency chains; the same rounding whatever the caller's fastmath flags).  Their
 coefficients are derived by ``tools/vecmath_coefficients.py`` (Taylor coefficients, and a
 Chebyshev interpolation of ``erfcx`` in 50-digit arithmetic); ``tests/test_vecmath.py``
 measures their errors against NumPy, SciPy and closed forms.  They agree with libm to a
@@ -163,8 +164,8 @@ def vexp(hi, lo):
 
 @njit(inline="always")
 def vlog_dd(x):
-    """``log(x)`` as an unevaluated sum ``hi + lo`` for a finite ``x > 0``, branch-free: within ``2^-54 max(1, |log x|)``
-    (tests): the error does not grow with the exponent of ``x``.
+    """``log(x)`` as an unevaluated sum ``hi + lo`` for a finite ``x > 0``, branch-free: within
+    ``2^-54 max(1, |log x|)`` (tests): the error does not grow with the exponent of ``x``.
 
     ``x = 2^k (1 + f)`` with ``1 + f`` in [√2/2, √2) (subnormals scaled by 2^54 first),
     ``s = f / (2 + f)``, ``log(1 + f) = f − f²/2 + s (f²/2 + R(s²))`` with
@@ -211,8 +212,8 @@ def vpow(x, y):
     exactly by an FMA, so within 2 ulp (tests) whatever the magnitudes.
 
     C's special cases (tests): ``y = 0`` gives 1 (also for a NaN ``x``); a negative ``x`` with an odd integer ``y``
-    negates the result, with a non-integer ``y`` gives NaN (a finite ``x``); a zero ``x`` gives 0 (``y > 0``) or inf (``y < 0``),
-    signed for a negative zero and an odd ``y``; an infinite ``x`` gives inf or 0 (signed likewise).
+    negates the result, with a non-integer ``y`` gives NaN (a finite ``x``); a zero ``x`` gives 0 (``y > 0``) or
+    inf (``y < 0``), signed for a negative zero and an odd ``y``; an infinite ``x`` gives inf or 0 (signed likewise).
     """
     ax = abs(x)
     hi, lo = vlog_dd(ax)
