@@ -103,7 +103,8 @@ ASSUMPTIONS = (
     "threads; on the NumPy engine one Generator from the first run's filter stream for the whole batch, so the "
     "filter numbers depend on the number of runs.",
     "encrypted-switching: time_per_step_s = a filter's wall time over all runs divided by runs x T (amortised over "
-    "the batch, and over the threads on the fast engine: 'threads', default the machine's cores); on the NumPy engine time_breakdown_s splits it into the "
+    "the batch, and over the threads on the fast engine: 'threads', default the machine's cores); on the NumPy "
+    "engine time_breakdown_s splits it into the "
     "proposal (mode and process-noise draws, f), the likelihood (h and the CDFs or densities) and the engine's "
     "remainder (weights, moments, ESS, resampling); the fast engine fuses them (its split is null).",
 )

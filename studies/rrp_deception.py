@@ -75,7 +75,8 @@ ASSUMPTIONS = (
     "(velocity) error); 95 % intervals are percentile bootstraps over runs.",
     "rrp-deception: time_per_step_s = the filter's wall time summed over the chunks of runs (compilation "
     "excluded) divided by runs x K (our engine runs a chunk's runs together, on 'threads' threads (default: the "
-    "machine's cores), so this is an amortised cost of the machine, not the latency of one run's step on one core; chunks computed in parallel, or resumed from an earlier call, keep the time "
+    "machine's cores), so this is an amortised cost of the machine, not the latency of one run's step on one "
+    "core; chunks computed in parallel, or resumed from an earlier call, keep the time "
     "measured where and when they ran); the paper's times are MATLAB on unstated hardware.",
     "rrp-deception: communications = packets sent over the whole run (one per step under Round-Robin, one per "
     "sensor and step for PF-DA).",

@@ -13,7 +13,6 @@ results agree with the libm version's to 3.8e-15 relative.
 from __future__ import annotations
 
 import math
-
 from typing import Sequence
 
 import numpy as np
@@ -138,8 +137,8 @@ def binary_lik(model: Model):
 
     The generated part computes ``T − h_s`` for every particle of the block (the model's
     ``h``, as the other families, its powers taken out into one pass of the branch-free
-    ``pow``: :func:`filters.fused.codegen.split_powers`); the rest is generic and vectorises (branch-free
-    ``ndtr`` and ``log`` of :mod:`filters.fused.primitives`): per sensor the noise's CDF
+    ``pow``: :func:`filters.fused.codegen.split_powers`); the rest is generic and vectorises
+    (branch-free ``ndtr`` and ``log`` of :mod:`filters.fused.primitives`): per sensor the noise's CDF
     (one pass per mixture component), the factor, the running product kept as
     ``mantissa 2^exponent`` (no underflow), and one ``log`` per particle.  A factor that is
     not positive (or NaN) gives the particle NaN: zero weight.  The NumPy twin sums the
