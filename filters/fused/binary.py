@@ -20,11 +20,10 @@ from numba.core import types
 
 from designer.jit import fma, scalar_statements
 from designer.model import Model
-from designer.noise import Gaussian, GaussianMixture
 from designer.validation import InputError
 
 from .cache import njit
-from .codegen import compile_kernel, const, model_kernels, propagation, split_powers, weights
+from .codegen import compile_kernel, components, const, model_kernels, propagation, split_powers, weights
 from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
 from .primitives import vfrexp, vlog_dd, vndtr, vpow_rows
@@ -160,17 +159,10 @@ def binary_lik(model: Model):
     lines += ["    for m in range(n):", *h]
     lines += [f"        U[{s}, m] = T - h{s}" for s in range(S)]
     lines += ["    C = _np.empty(n)", "    mant = _np.ones(n)", "    expo = _np.zeros(n)"]
-    for s, sensor in enumerate(model.sensors):
-        nz = sensor.noise
-        if isinstance(nz, Gaussian):  # Gaussian.cdf: ndtr((x - mean) / sd)
-            terms = [(1.0, nz)]
-        elif isinstance(nz, GaussianMixture):  # sum of w * component cdf
-            terms = list(zip(nz.weights, nz.components))
-        else:
-            raise InputError(f"model.sensors[{s}] noise is {type(nz).__name__}; the fused kernels support Gaussian "
-                             "and GaussianMixture")
-        lines += [f"    _cdf_term(U[{s}], n, C, {const(w)}, {const(g.mean[0])}, {const(np.sqrt(g.cov[0, 0]))}, "
-                  f"{j > 0})" for j, (w, g) in enumerate(terms)]
+    for s, sensor in enumerate(model.sensors):  # Gaussian.cdf: ndtr((x - mean) / sd); a mixture's: Σ w_c cdf_c
+        terms = components(sensor.noise, f"model.sensors[{s}]")
+        lines += [f"    _cdf_term(U[{s}], n, C, {const(1.0 if w is None else w)}, {const(g.mean[0])}, "
+                  f"{const(np.sqrt(g.cov[0, 0]))}, {j > 0})" for j, (w, g) in enumerate(terms)]
         lines.append(f"    _affine_factor(C, n, A[t, {s}], B[t, {s}], mant, expo)")
     lines.append("    _add_log_product(mant, expo, n, b[m0:m0 + n])")
     return compile_kernel(model, "binary", "\n".join(lines), "lik", "the binary likelihood", LIK_T, _HELPERS)
