@@ -44,6 +44,7 @@ from typing import Callable, Iterable
 
 import numba
 from numba.core import caching
+from numba.core.runtime import rtsys
 
 from .fileio import atomic_write
 
@@ -162,6 +163,14 @@ class _Cache(caching.FunctionCache):
         super().__init__(py_func)
         self._cache_file = _KeyedFiles(cache_path=self._cache_path, filename_base=self._impl.filename_base,
                                        source_stamp=self._impl.locator.get_source_stamp())
+
+    def load_overload(self, sig, target_context):
+        # numba's refreshes the target context first (imports and installs every implementation registry of
+        # numba: a quarter of a second, the largest part of a warm process's kernel loading); the loaded code
+        # needs none of them, and a compilation refreshes the context itself
+        rtsys.initialize(target_context)  # the part of the refresh that loaded code needs: NRT's symbols
+        with self._guard_against_spurious_io_errors():
+            return self._load_overload(sig, target_context)
 
     def save_overload(self, sig, data):
         # the directory may have been cleared since this process found it (cfdesign cache clear)

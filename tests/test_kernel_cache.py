@@ -185,11 +185,15 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
         res = sir_packets(m, m.prior.sample(g, (1, 64)), [g], np.zeros(8, dtype=int), np.full((1, 8, 1), 0.1))
         print(repr(float(res.mean.sum())))
         print(" ".join(compiled))
+        import sys
+        print("numba.np.arraymath" in sys.modules)
     """)
     mean, first_compiled = (_run(code, cache) + "\n").split("\n")[:2]
-    again, second_compiled = (_run(code, cache) + "\n").split("\n")[:2]
+    again, second_compiled, registries = (_run(code, cache) + "\n").split("\n")[:3]
     assert again == mean
     assert second_compiled == "", f"the second process compiled {second_compiled}"
+    # nor did loading refresh numba's target context (importing all of numba's implementations: a quarter second)
+    assert registries == "False"
 
 
 def test_processes_compiling_different_signatures_of_one_function_at_once_leave_a_correct_cache(tmp_path):
