@@ -144,12 +144,12 @@ def test_pf_study_cli_is_reproducible(tmp_path):
     assert not np.isclose(a["filters"]["RRP-PF-DA"]["rmse_position"], a["filters"]["PF-DA"]["rmse_position"])
 
 
-@pytest.mark.parametrize("r", [0.01, 1.0, 30.0])
-def test_velocity_reference_is_the_steady_state_kalman_filter(r):
+@pytest.mark.parametrize("q, T, r", [(0.055**2, 1.0, 0.01), (0.055**2, 1.0, 1.0), (0.055**2, 1.0, 30.0),
+                                     (1.0, 0.1, 1e-6), (0.09, 2.0, 1e3)])
+def test_velocity_reference_is_the_steady_state_kalman_filter(q, T, r):
     """Against python-control's dlqe: the position RMSE it gives for noise r maps back to its velocity RMSE."""
     import control
 
-    q, T = 0.055**2, 1.0
     F = np.array([[1.0, T], [0.0, 1.0]])
     Q = q * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
     H = np.array([[1.0, 0.0]])
@@ -162,6 +162,29 @@ def test_velocity_reference_is_the_steady_state_kalman_filter(r):
         C = C - C @ H.T @ H @ C / (C[0, 0] + r)
     np.testing.assert_allclose(C, Pp, rtol=1e-8)
     assert cv_velocity_at_position_rmse(q, T, p) == pytest.approx(v, rel=1e-6)
+
+
+def test_velocity_reference_where_scipys_riccati_solver_gave_up():
+    """q = 0.01, RMSE_p 0.5: SciPy's solve_discrete_are raised for one of the noise levels the search tries
+    (its QZ reordering failed); the doubling solver gives the fixed point of the covariance recursion there."""
+    from studies.results import _cv_posterior
+
+    q, T = 0.01, 1.0
+    F = np.array([[1.0, T], [0.0, 1.0]])
+    Q = q * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
+    for r in (1e-12, 1e-6, 1e3):
+        C = np.eye(2)
+        for _ in range(20000):
+            C = F @ C @ F.T + Q
+            C = C - np.outer(C[:, 0], C[0, :]) / (C[0, 0] + r)
+        np.testing.assert_allclose(_cv_posterior(q, T, r), C, rtol=0, atol=1e-12 * np.abs(C).max())
+    Pp = _cv_posterior(q, T, 1e12)  # the search's upper end, where SciPy's solver raised: a fixed point of one step
+    X = F @ Pp @ F.T + Q
+    np.testing.assert_allclose(X - np.outer(X[:, 0], X[0, :]) / (X[0, 0] + 1e12), Pp, rtol=1e-9)
+    v = cv_velocity_at_position_rmse(q, T, 0.5)
+    p_of = [np.sqrt(2 * _cv_posterior(q, T, r)[0, 0]) for r in np.logspace(-3, 1, 2000)]
+    r = np.logspace(-3, 1, 2000)[np.argmin(np.abs(np.array(p_of) - 0.5))]
+    assert v == pytest.approx(np.sqrt(2 * _cv_posterior(q, T, r)[1, 1]), rel=2e-3)
 
 
 @pytest.mark.parametrize("study, args, needle", [
