@@ -49,8 +49,8 @@ from filters.attacks import binary_sensor_channel
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_binary, run_configurations,
                     score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import (_plt, curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, save_figure,
-                      trajectory_figure)
+from .figures import curves_figure, plotting, save_figure, trajectory_figure
+from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .rrp_deception import plane_view
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
@@ -329,7 +329,7 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     present = [p for p in SWEEP_PARAMS if p in sweeps]
     if not present:
         return
-    plt = _plt()
+    plt = plotting()
     names = {"dos_prob": "phi-bar (DoS)", "deception_prob": "varphi-bar (deception)", "flip_prob": "alpha-bar (flip)"}
     k = np.arange(1, K + 1)
     fig, axes = plt.subplots(len(metrics), len(present), figsize=(4.5 * len(present), 3 * len(metrics)),

@@ -64,7 +64,8 @@ from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
 from .consensus_design import as_mode, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .results import DIVERGENCE_SPREAD, curves_figure, divergence_limit, first_divergence, markdown_table, save_figure, _plt
+from .figures import curves_figure, plotting, save_figure
+from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
 
 __all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "local_ekf_design"]
@@ -611,7 +612,7 @@ def _sweep_cell(m: dict | None, key: str) -> str | None:
 
 
 def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
-    plt = _plt()
+    plt = plotting()
     blocks = results["by_scenario"]
     names = list(blocks)
     fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 4.8), squeeze=False)
@@ -657,7 +658,7 @@ def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
 
 def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str) -> None:
     """Run 1's truth and estimates: in the plane of the position, or per state component over time."""
-    plt = _plt()
+    plt = plotting()
     m = sc.model
     tr = A["truth"][0]
     if len(m.position_index) == 2:

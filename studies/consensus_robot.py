@@ -49,7 +49,8 @@ from filters.distributed import run_hcmci, run_kcf
 from .comparison import HCMCI_ITERATIONS, local_ekf_design
 from .consensus_design import as_mode, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence, save_figure
+from .figures import save_figure
+from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -462,9 +463,9 @@ def _study_figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
 
 
 def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
-    from .results import _plt
+    from .figures import plotting
 
-    plt = _plt()
+    plt = plotting()
     net, m = sc.network, sc.model
     steps = sc.steps
     t = np.arange(1, steps + 1)

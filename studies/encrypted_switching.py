@@ -64,7 +64,8 @@ from filters.particle import run_sir, transition_proposal
 from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
 from .progress import progress
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .results import _curve_mean_ci, curves_figure, markdown_table
+from .figures import curves_figure
+from .results import _curve_mean_ci, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 
 __all__ = ["STUDY", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up", "filter_names",

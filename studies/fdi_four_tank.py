@@ -61,7 +61,8 @@ from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_c
 
 from .pfrun import THREADS_AUTO, check_threads, study_threads
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .results import curves_figure, error_metrics, markdown_table, save_figure
+from .figures import curves_figure, save_figure
+from .results import error_metrics, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 
 __all__ = ["STUDY", "FILTERS", "PAPER_TABLE3", "PAPER_TABLE4", "TABLE3_COLUMNS", "CHUNK_SIZE"]
@@ -655,9 +656,9 @@ def _detection_panel(ax, l, detected, title):
 
 
 def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
-    from .results import _plt
+    from .figures import plotting
 
-    plt = _plt()
+    plt = plotting()
     sc, A = next(iter(built.values())), next(iter(arrays.values()))
     plans, levels = _settings(reference(sc), results["particles"])
     views = {key: _view(key, p, A) for key, p in plans.items()}

@@ -311,10 +311,10 @@ def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:
 
 
 def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> None:
-    from .results import _plt, save_figure
+    from .figures import plotting, save_figure
     from matplotlib.colors import LogNorm
 
-    plt = _plt()
+    plt = plotting()
     tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows])
     fig, ax = plt.subplots(figsize=(7, 5))
     if len(parsed) == 1:

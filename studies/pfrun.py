@@ -32,7 +32,6 @@ checks the options the particle-filter studies share.
 """
 from __future__ import annotations
 
-import os
 import time
 from typing import Callable, Mapping, Sequence
 
@@ -84,11 +83,9 @@ def study_threads(so) -> int:
     backend = so.backend
     if backend.kind == "dask":
         return 1
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - platforms without affinity masks
-        cores = os.cpu_count() or 1
-    return max(1, cores // (backend.workers if backend.kind == "processes" else 1))
+    from .runner import usable_cores
+
+    return max(1, usable_cores() // (backend.workers if backend.kind == "processes" else 1))
 
 
 def check_study_options(options) -> None:

@@ -29,6 +29,7 @@ import importlib
 import json
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -237,13 +238,20 @@ class StudyResult:
     def __getitem__(self, key):
         return self.results[key]
 
-    def save(self, directory) -> Path:
-        """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``."""
+    def save(self, directory, helper=None) -> Path:
+        """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``.
+
+        ``helper``: a :class:`studies.figures.FigureHelper` started for this study, which draws the figures
+        (this process draws them if it cannot).
+        """
         from .results import write_outputs
 
+        def figures(stage: Path) -> None:
+            if helper is None or not helper.figures(stage, self.results, self.arrays):
+                self.study.figures(stage, self.results, self.scenarios, self.arrays)
+
         out = Path(directory)
-        write_outputs(out, self.results, lambda d: self.study.figures(d, self.results, self.scenarios, self.arrays),
-                      self.study.table)
+        write_outputs(out, self.results, figures, self.study.table)
         return out
 
 
@@ -332,8 +340,6 @@ def run_study(name: str, targets=None, *, out=None, runs: int | None = None, par
 
 def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force, quiet, options, overrides,
                assignments, chunk_size, **study_options) -> StudyResult:
-    from .results import study_header
-
     study = get_study(name)
     t_start = time.perf_counter()
     assignments, own = _study_assignments(study, assignments)
@@ -358,7 +364,6 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
         runs = check_int("runs", runs, study.min_runs, MAX_RUNS)
     if particles is not None:
         particles = check_int("particles", particles, 2, MAX_PARTICLES)
-    extra = {**study.options, **study_options}
     scenarios = _scenarios(study, targets, overrides, assignments)
     attack = design.attack_overrides()
     if any(v is not None for v in attack.values()):  # --dos/--fdi/--delta/--amplitude: the scenarios' attacks
@@ -369,6 +374,28 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
         if mem:
             raise InputError(f"an in-memory model ({mem[0]}) cannot be sent to a Dask cluster; write it to a model "
                              "file")
+    helper = None
+    if out is not None:  # draws the figures, and imports matplotlib while the study computes
+        from .figures import FigureHelper
+
+        helper = FigureHelper.start(partial(_draw, study, {sc.name: sc for sc in scenarios}))
+    try:
+        return _compute(study, name, scenarios, out=out, runs=runs, particles=particles, seed=seed, chunk=chunk,
+                        backend=backend, design=design, extra={**study.options, **study_options}, force=force,
+                        quiet=quiet, t_start=t_start, helper=helper)
+    finally:
+        if helper is not None:
+            helper.close()
+
+
+def _draw(study: Study, built: Mapping, out: Path, results: dict, arrays: Mapping) -> None:
+    study.figures(out, results, built, arrays)
+
+
+def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, chunk, backend, design, extra,
+             force, quiet, t_start, helper) -> StudyResult:
+    from .results import study_header
+
     blocks, arrays, built = {}, {}, {}
     for sc in scenarios:
         so = StudyOptions(runs if runs is not None else study.default_runs(sc.source or sc.name),
@@ -393,5 +420,5 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
     results["wall_time_s"] = time.perf_counter() - t_start
     res = StudyResult(study, results, built, arrays)
     if out is not None:
-        res.save(out)
+        res.save(out, helper)
     return res

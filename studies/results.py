@@ -1,4 +1,5 @@
-"""Shared pieces of every study's results: error metrics, Monte Carlo intervals, tables, figures, versions.
+"""Shared pieces of every study's results: error metrics, Monte Carlo intervals, tables, versions (figures:
+:mod:`studies.figures`).
 
 Metrics follow the particle-filter papers (seeds 000 and 002):
 ``RMSE_{p,k} = sqrt(mean over runs of |p_k - p̂_k|²)`` per step ``k = 1..K`` (the
@@ -17,8 +18,8 @@ import numpy as np
 
 from designer.fileio import atomic_write, check_json_finite, replaced_outputs, write_json
 
-__all__ = ["SCHEMA", "versions", "save_figure", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_outputs", "trajectory_figure", "curves_figure", "study_header", "DIVERGENCE_SPREAD",
+__all__ = ["SCHEMA", "versions", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
+           "write_outputs", "study_header", "DIVERGENCE_SPREAD",
            "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse"]
 
@@ -40,11 +41,6 @@ def versions() -> dict:
     except ImportError:  # pragma: no cover - numba is a dependency
         pass
     return out
-
-
-def save_figure(fig, path: Path) -> None:
-    """Write a matplotlib figure (of :func:`_plt`'s ``subplots``) as PNG atomically."""
-    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110, bbox_inches="tight"))
 
 
 def _curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
@@ -145,67 +141,16 @@ def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Ca
     """
     check_json_finite(results, "results.json")
     text = table(results)
+    from .figures import figure_batch
     from .reports import write_report  # late: report reads the files this module writes
 
     with replaced_outputs(out) as stage:
-        figures(stage)
+        with figure_batch():
+            figures(stage)
         atomic_write(stage / "table.md", lambda fh: fh.write(text.encode()))
         write_json(stage / "results.json", results)
         write_report(stage)
     return Path(out)
-
-
-class _Figures:
-    """The part of pyplot the studies' figures use, without pyplot: ``subplots`` makes a bare
-    :class:`matplotlib.figure.Figure` (its ``savefig`` draws with the Agg canvas), so a fresh study does not pay
-    pyplot's import (about half a second) and no figure is kept in pyplot's global state."""
-
-    def __init__(self):
-        from matplotlib.patches import Rectangle
-
-        self.Rectangle = Rectangle
-
-    @staticmethod
-    def subplots(nrows: int = 1, ncols: int = 1, *, figsize=None, **kw):
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=figsize)
-        return fig, fig.subplots(nrows, ncols, **kw)
-
-    @staticmethod
-    def close(fig) -> None:
-        """Nothing to release: a bare figure is garbage once unreferenced."""
-
-
-def _plt() -> _Figures:
-    return _Figures()
-
-
-def trajectory_figure(path: Path, truth: np.ndarray, estimates: Mapping[str, np.ndarray], sensors: np.ndarray,
-                      position: Sequence[int], title: str) -> None:
-    """One run in the plane: the truth, each filter's estimate, the sensors."""
-    plt = _plt()
-    i, j = position
-    fig, ax = plt.subplots(figsize=(6, 5))
-    ax.plot(sensors[:, 0], sensors[:, 1], "ks", ms=5, label="sensors")
-    ax.plot(truth[:, i], truth[:, j], "k-", lw=2, label="target")
-    for name, est in estimates.items():
-        ax.plot(est[:, i], est[:, j], lw=1, label=name)
-    ax.set(xlabel="x position", ylabel="y position", title=title)
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
-
-
-def curves_figure(path: Path, curves: Mapping[str, Sequence[float]], ylabel: str, title: str,
-                  log: bool = False) -> None:
-    """Per-step curves (k = 1..K), one line per label."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for label, c in curves.items():
-        ax.plot(np.arange(1, len(c) + 1), c, lw=1.2, label=label)
-    ax.set(xlabel="time step k", ylabel=ylabel, title=title, yscale="log" if log else "linear")
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
 
 
 def study_header(study: str, scenario: str, *, runs: int, particles: int | None, steps: int, seed: int,

@@ -50,7 +50,8 @@ from filters.rrp import wrap_angles
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_configurations, run_packets,
                     score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .results import curves_figure, cv_velocity_at_position_rmse, markdown_table, rmse_with_ci, trajectory_figure
+from .figures import curves_figure, trajectory_figure
+from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 

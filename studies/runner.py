@@ -338,7 +338,15 @@ def _normalised(config: Mapping[str, Any]) -> dict:
         raise InputError(f"config must be JSON-serialisable, got {exc}") from exc
 
 
-def _worker_init(parent: int) -> None:
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity mask where the platform has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - platforms without affinity masks
+        return os.cpu_count() or 1
+
+
+def worker_init(parent: int) -> None:
     """A worker process: Ctrl-C is the parent's to handle, and the worker dies with its parent.
 
     However the parent ends (SIGKILL, SIGTERM, a crash), its workers must not live on: blocked
@@ -525,7 +533,7 @@ def _check_memory(arrays: Mapping[str, np.ndarray], c: tuple[int, int], runs: in
 
 def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
     pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
-                               mp_context=multiprocessing.get_context("fork"), initializer=_worker_init,
+                               mp_context=multiprocessing.get_context("fork"), initializer=worker_init,
                                initargs=(os.getpid(),))
     futures = {}
     try:

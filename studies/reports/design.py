@@ -131,9 +131,9 @@ def _order(v: Mapping):
 
 
 def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
-    from ..results import _plt, save_figure
+    from ..figures import plotting, save_figure
 
-    plt = _plt()
+    plt = plotting()
     fig, ax = plt.subplots(figsize=(8, 4.6))
     tr = s.trace
     steps = np.arange(tr.shape[1])
@@ -167,9 +167,9 @@ def _linthresh(values: np.ndarray) -> float:
 
 
 def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
-    from ..results import _plt, save_figure
+    from ..figures import plotting, save_figure
 
-    plt = _plt()
+    plt = plotting()
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
     both = np.concatenate([s.m28.ravel(), s.m29.ravel()])
     thresh = _linthresh(both)

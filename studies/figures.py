@@ -1,0 +1,362 @@
+"""The studies' figures: how they are made, drawn and written, in parallel where the platform forks.
+
+A study's figure code (its ``figures(out, results, scenarios, arrays)``) builds bare
+matplotlib figures with :func:`plotting` and hands each to :func:`save_figure`.
+Drawing, not building, is what costs: a tenth of a second per figure of matplotlib's
+Python code (the GIL: threads do not help), plus a quarter of a second to import
+matplotlib, the largest fixed part of a small study.  So:
+
+* :func:`png_tight` draws a figure once where ``savefig(bbox_inches="tight")`` draws it twice;
+* inside :func:`figure_batch` (every study's outputs, :func:`studies.results.write_outputs`),
+  :func:`save_figure` only records, and :func:`draw_figures` draws the batch over the
+  usable cores: children forked from the process draw figures in turn, taking the next
+  from a shared queue (a pipe of indices), while the process draws too;
+* a study that writes outputs starts a :class:`FigureHelper` before it computes: a process
+  forked then, which imports matplotlib (and draws a throwaway figure, loading the fonts)
+  while the study computes, and draws the study's figures from its results when they
+  arrive (pickled: the results and per-run arrays; the scenarios it already has).
+
+Whoever draws a figure, the file is the same.  Every fork is a Linux-only path with a
+serial fallback: a child or helper that fails or is killed costs time only, its figures
+are then drawn by the calling process (which raises any error itself).
+"""
+from __future__ import annotations
+
+import math
+import os
+import pickle
+import signal
+import struct
+import sys
+import warnings
+from contextlib import contextmanager
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from designer.fileio import atomic_write
+
+__all__ = ["FIGURE_DPI", "plotting", "save_figure", "png_tight", "figure_batch", "draw_figures", "FigureHelper",
+           "trajectory_figure", "curves_figure"]
+
+FIGURE_DPI = 110
+
+
+class _Plotting:
+    """The part of pyplot the studies' figures use, without pyplot: ``subplots`` makes a bare
+    :class:`matplotlib.figure.Figure` (drawn with the Agg canvas), so a fresh study does not pay
+    pyplot's import (about half a second) and no figure is kept in pyplot's global state."""
+
+    def __init__(self):
+        from matplotlib.patches import Rectangle
+
+        self.Rectangle = Rectangle
+
+    @staticmethod
+    def subplots(nrows: int = 1, ncols: int = 1, *, figsize=None, **kw):
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=figsize)
+        return fig, fig.subplots(nrows, ncols, **kw)
+
+    @staticmethod
+    def close(fig) -> None:
+        """Nothing to release: a bare figure is garbage once unreferenced."""
+
+
+def plotting() -> _Plotting:
+    """``subplots``, ``Rectangle`` and ``close`` as pyplot's (see :class:`_Plotting`)."""
+    return _Plotting()
+
+
+# ------------------------------------------------------------------------------------------- one figure
+def png_tight(fig, fh, dpi: float = FIGURE_DPI) -> None:
+    """``fig.savefig(fh, format="png", dpi=dpi, bbox_inches="tight")``, drawn once instead of twice.
+
+    matplotlib's tight save draws the figure to measure its artists' extent, then draws it
+    again on a canvas of that extent; here the figure is drawn once on its own canvas, and
+    the pixels inside the extent (plus ``savefig.pad_inches``; padding beyond the canvas in
+    the face colour) are written.  The same picture to within a pixel's offset (tested), in
+    about two thirds of the time.  A figure with an artist reaching beyond its canvas is
+    saved by matplotlib's own tight save, which widens the canvas.
+    """
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.image import imsave
+
+    fig.set_dpi(dpi)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    box = fig.get_tightbbox(canvas.get_renderer())  # inches
+    width, height = canvas.get_width_height()
+    if box.x0 < 0 or box.y0 < 0 or box.x1 * dpi > width or box.y1 * dpi > height:
+        fig.savefig(fh, format="png", dpi=dpi, bbox_inches="tight")
+        return
+    box = box.padded(matplotlib.rcParams["savefig.pad_inches"])
+    x0, x1 = math.floor(box.x0 * dpi), math.ceil(box.x1 * dpi)
+    y0, y1 = math.floor(box.y0 * dpi), math.ceil(box.y1 * dpi)  # from the bottom
+    pixels = np.asarray(canvas.buffer_rgba())  # rows from the top
+    face = np.round(np.array(matplotlib.colors.to_rgba(fig.get_facecolor())) * 255).astype(np.uint8)
+    out = np.empty((y1 - y0, x1 - x0, 4), np.uint8)
+    out[...] = face
+    top, left = max(0, height - y1), max(0, x0)
+    part = pixels[top:height - max(0, y0), left:min(width, x1)]
+    r0, c0 = top - (height - y1), left - x0
+    out[r0:r0 + part.shape[0], c0:c0 + part.shape[1]] = part
+    imsave(fh, out, format="png", dpi=dpi)
+
+
+def _write(fig, path) -> None:
+    atomic_write(path, lambda fh: png_tight(fig, fh))
+
+
+_PENDING: ContextVar[list | None] = ContextVar("cfdesign_pending_figures", default=None)
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write a figure (of :func:`plotting`'s ``subplots``) as PNG atomically (:func:`png_tight`).
+
+    Inside :func:`figure_batch`, the figure is drawn when the batch ends, beside the others.
+    """
+    pending = _PENDING.get()
+    if pending is not None:
+        pending.append((fig, Path(path)))
+    else:
+        _write(fig, path)
+
+
+# ------------------------------------------------------------------------------------------- many figures
+@contextmanager
+def figure_batch(processes: int | None = None):
+    """Within it, :func:`save_figure` only records; when it ends without an exception, the figures are drawn by
+    :func:`draw_figures` (over ``processes``, default every usable core)."""
+    pending: list = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    finally:
+        _PENDING.reset(token)
+    draw_figures(pending, processes)
+
+
+def _fork(parent: int) -> int:
+    """``os.fork()``; in the child, Ctrl-C is the parent's and the child dies with it."""
+    from .runner import worker_init
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; a child here only draws
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
+        worker_init(parent)
+    return pid
+
+
+def _read_all(fd: int) -> bytes:
+    chunks = []
+    while True:
+        b = os.read(fd, 1 << 16)
+        if not b:
+            return b"".join(chunks)
+        chunks.append(b)
+
+
+def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None:
+    """Write each ``(fig, path)`` as :func:`save_figure` does, over ``processes`` processes (default: every usable
+    core).
+
+    Where the platform forks (Linux), ``processes - 1`` children are forked (the figures are
+    in their memory: nothing is serialised); they and this process take the figures' indices
+    in turn from a pipe (reads of 4 bytes are atomic), so a slow figure does not hold up the
+    rest, and each child reports the indices it wrote.  Any figure no child reported (a
+    child failed or was killed) is drawn here afterwards.
+    """
+    from .runner import usable_cores
+
+    figures = list(figures)
+    n = min(len(figures), processes or usable_cores())
+    if n <= 1 or not sys.platform.startswith("linux"):
+        for fig, path in figures:
+            _write(fig, path)
+        return
+    parent = os.getpid()
+    queue_r, queue_w = os.pipe()
+    os.write(queue_w, b"".join(struct.pack("<i", i) for i in range(len(figures))))  # < 64 KiB: 16k figures
+    os.close(queue_w)
+    children = []
+    try:
+        for _ in range(n - 1):
+            done_r, done_w = os.pipe()
+            try:
+                pid = _fork(parent)
+            except OSError:  # no more processes: the ones there are draw the rest
+                os.close(done_r)
+                os.close(done_w)
+                break
+            if pid == 0:  # pragma: no cover - the child
+                code = 1
+                try:
+                    os.close(done_r)
+                    for i in _take(queue_r):
+                        _write(*figures[i])
+                        os.write(done_w, struct.pack("<i", i))
+                    code = 0
+                finally:
+                    os._exit(code)
+            os.close(done_w)
+            children.append((pid, done_r))
+        drawn = set()
+        for i in _take(queue_r):
+            _write(*figures[i])
+            drawn.add(i)
+    except BaseException:
+        for pid, fd in children:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            os.close(fd)
+        raise
+    finally:
+        os.close(queue_r)
+    for pid, fd in children:
+        done = _read_all(fd)
+        os.close(fd)
+        os.waitpid(pid, 0)
+        drawn.update(struct.unpack(f"<{len(done) // 4}i", done[:len(done) // 4 * 4]))
+    for i, (fig, path) in enumerate(figures):
+        if i not in drawn:
+            _write(fig, path)
+
+
+def _read_exactly(fd: int, size: int) -> bytes:
+    chunks, left = [], size
+    while left:
+        b = os.read(fd, min(left, 1 << 20))
+        if not b:
+            raise EOFError("the figures' sender stopped")
+        chunks.append(b)
+        left -= len(b)
+    return b"".join(chunks)
+
+
+def _take(fd: int):
+    """The figure indices this process takes from the queue, until it is empty."""
+    while True:
+        b = os.read(fd, 4)
+        if len(b) < 4:
+            return
+        yield struct.unpack("<i", b)[0]
+
+
+# ------------------------------------------------------------------------------------------- a helper process
+class FigureHelper:
+    """A process that draws a study's figures, forked before the study computes.
+
+    ``draw(out, results, arrays)`` (the study's figure function, bound to its scenarios) is
+    called in the helper once :meth:`figures` sends it the results; meanwhile the helper has
+    imported matplotlib and drawn a throwaway figure, so neither the import nor the fonts'
+    loading waits for the study.  Linux only (:meth:`start` gives None elsewhere).
+    """
+
+    def __init__(self, pid: int, job: int, done: int):
+        self._pid, self._job, self._done = pid, job, done
+
+    @classmethod
+    def start(cls, draw: Callable[[Path, dict, Mapping], None]) -> "FigureHelper | None":
+        if not sys.platform.startswith("linux"):
+            return None
+        parent = os.getpid()
+        job_r, job_w = os.pipe()
+        done_r, done_w = os.pipe()
+        pid = _fork(parent)
+        if pid == 0:  # pragma: no cover - the helper
+            code = 1
+            try:
+                os.close(job_w)
+                os.close(done_r)
+                _warm_up()
+                size = struct.unpack("<q", _read_exactly(job_r, 8))[0]
+                if size > 0:
+                    out, results, arrays = pickle.loads(_read_exactly(job_r, size))
+                    with figure_batch():
+                        draw(Path(out), results, arrays)
+                    os.write(done_w, b"ok")
+                code = 0
+            finally:
+                os._exit(code)
+        os.close(job_r)
+        os.close(done_w)
+        return cls(pid, job_w, done_r)
+
+    def figures(self, out: Path, results: dict, arrays: Mapping) -> bool:
+        """Have the helper draw the figures into ``out``; True when it wrote them all."""
+        if self._job is None:
+            return False
+        try:
+            payload = pickle.dumps((str(out), results, arrays), protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception:  # noqa: BLE001 - not picklable: the caller draws
+            return False
+        try:  # length first: processes forked later (a runner's workers) may hold this pipe's end open too
+            view = memoryview(struct.pack("<q", len(payload)) + payload)
+            while view:
+                view = view[os.write(self._job, view):]
+        except OSError:  # the helper is gone
+            return False
+        finally:
+            os.close(self._job)
+            self._job = None
+        ok = _read_all(self._done) == b"ok"
+        self.close()
+        return ok
+
+    def close(self) -> None:
+        """End the helper and reap it: killed if it was given nothing to draw (it may still be importing)."""
+        if self._job is not None:
+            os.close(self._job)
+            self._job = None
+            os.kill(self._pid, signal.SIGKILL)
+        if self._done is not None:
+            os.close(self._done)
+            self._done = None
+        if self._pid is not None:
+            os.waitpid(self._pid, 0)
+            self._pid = None
+
+
+def _warm_up() -> None:
+    """Import what drawing needs and draw a small figure (fonts, mathtext and the PNG writer loaded)."""
+    import io
+
+    fig, ax = plotting().subplots(figsize=(2, 2))
+    ax.plot([1.0, 10.0], [1.0, 100.0], label="a")
+    ax.set(yscale="log", title="t", xlabel="x", ylabel="y")
+    ax.legend(fontsize=8)
+    png_tight(fig, io.BytesIO())
+
+
+# ------------------------------------------------------------------------------------------- shared figures
+def trajectory_figure(path: Path, truth: np.ndarray, estimates: Mapping[str, np.ndarray], sensors: np.ndarray,
+                      position: Sequence[int], title: str) -> None:
+    """One run in the plane: the truth, each filter's estimate, the sensors."""
+    i, j = position
+    fig, ax = plotting().subplots(figsize=(6, 5))
+    ax.plot(sensors[:, 0], sensors[:, 1], "ks", ms=5, label="sensors")
+    ax.plot(truth[:, i], truth[:, j], "k-", lw=2, label="target")
+    for name, est in estimates.items():
+        ax.plot(est[:, i], est[:, j], lw=1, label=name)
+    ax.set(xlabel="x position", ylabel="y position", title=title)
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def curves_figure(path: Path, curves: Mapping[str, Sequence[float]], ylabel: str, title: str,
+                  log: bool = False) -> None:
+    """Per-step curves (k = 1..K), one line per label."""
+    fig, ax = plotting().subplots(figsize=(7, 4))
+    for label, c in curves.items():
+        ax.plot(np.arange(1, len(c) + 1), c, lw=1.2, label=label)
+    ax.set(xlabel="time step k", ylabel=ylabel, title=title, yscale="log" if log else "linear")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)

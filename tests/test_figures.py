@@ -1,0 +1,140 @@
+"""The figures' drawing (studies.figures): one draw instead of two, in parallel processes, by a helper process.
+
+References: matplotlib's own ``savefig(bbox_inches="tight")`` for the single-draw crop, and
+the serial drawing for every parallel path (the same bytes whoever draws).
+"""
+from __future__ import annotations
+
+import io
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from studies import figures as F
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parallel paths fork (Linux)")
+
+
+def _figure(seed: int, log: bool = True, outside: bool = False):
+    rng = np.random.default_rng(seed)
+    fig, ax = F.plotting().subplots(figsize=(5, 3))
+    for i in range(3):
+        ax.plot(np.arange(1, 51), rng.random(50) + 0.01, label=f"filter {i}")
+    ax.set(xlabel="time step k", ylabel="RMSE", title=f"figure {seed}", yscale="log" if log else "linear")
+    if outside:  # a legend beyond the canvas: matplotlib's tight save widens it
+        ax.legend(loc="upper left", bbox_to_anchor=(1.05, 1.0))
+    else:
+        ax.legend(fontsize=8)
+    return fig
+
+
+def _pixels(data: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGBA")).astype(int)
+
+
+@pytest.mark.parametrize("log", [True, False])
+def test_single_draw_is_matplotlibs_tight_save_to_a_pixel(log):
+    ref, ours = io.BytesIO(), io.BytesIO()
+    _figure(1, log).savefig(ref, format="png", dpi=F.FIGURE_DPI, bbox_inches="tight")
+    F.png_tight(_figure(1, log), ours)
+    a, b = _pixels(ref.getvalue()), _pixels(ours.getvalue())
+    assert abs(a.shape[0] - b.shape[0]) <= 2 and abs(a.shape[1] - b.shape[1]) <= 2
+    h, w = min(a.shape[0], b.shape[0]) - 2, min(a.shape[1], b.shape[1]) - 2
+    best = min(np.abs(a[i:i + h, j:j + w] - b[k:k + h, m:m + w]).mean()
+               for i in range(3) for j in range(3) for k in range(3) for m in range(3))
+    # anti-aliasing at a sub-pixel offset; a misplaced crop (rows flipped, a margin lost) differs by tens
+    assert best < 3.0, best
+    dark = (b[..., :3].sum(-1) < 300).mean()  # the lines and text are there, not a blank canvas
+    assert 0.005 < dark < 0.3
+
+
+def test_an_artist_beyond_the_canvas_takes_matplotlibs_tight_save():
+    ref, ours = io.BytesIO(), io.BytesIO()
+    _figure(2, outside=True).savefig(ref, format="png", dpi=F.FIGURE_DPI, bbox_inches="tight")
+    F.png_tight(_figure(2, outside=True), ours)
+    assert ours.getvalue() == ref.getvalue()
+
+
+def _paths(d, n):
+    return [d / f"fig_{i}.png" for i in range(n)]
+
+
+@linux
+@pytest.mark.parametrize("processes", [2, 3])
+def test_parallel_drawing_writes_the_serial_files(tmp_path, processes):
+    n = 5
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    F.draw_figures([(_figure(i, log=i % 2 == 0), p) for i, p in enumerate(_paths(tmp_path / "a", n))], 1)
+    F.draw_figures([(_figure(i, log=i % 2 == 0), p) for i, p in enumerate(_paths(tmp_path / "b", n))], processes)
+    for pa, pb in zip(_paths(tmp_path / "a", n), _paths(tmp_path / "b", n)):
+        assert pa.read_bytes() == pb.read_bytes()
+    assert sorted(os.listdir(tmp_path / "b")) == sorted(p.name for p in _paths(tmp_path / "b", n))  # no temp files
+
+
+@linux
+def test_figures_a_child_failed_to_draw_are_drawn_by_the_caller(tmp_path, monkeypatch):
+    parent = os.getpid()
+    real = F.png_tight
+
+    def fails_in_children(fig, fh, dpi=F.FIGURE_DPI):
+        if os.getpid() != parent:
+            raise RuntimeError("a child's failure")
+        real(fig, fh, dpi)
+
+    monkeypatch.setattr(F, "png_tight", fails_in_children)
+    paths = _paths(tmp_path, 4)
+    F.draw_figures([(_figure(i), p) for i, p in enumerate(paths)], 2)
+    assert all(p.stat().st_size > 1000 for p in paths)
+
+
+def test_a_batch_that_raises_draws_nothing(tmp_path):
+    with pytest.raises(ValueError, match="inside"):
+        with F.figure_batch():
+            F.save_figure(_figure(0), tmp_path / "x.png")
+            raise ValueError("inside")
+    assert not (tmp_path / "x.png").exists()
+    with F.figure_batch(processes=1):
+        F.save_figure(_figure(0), tmp_path / "y.png")
+        assert not (tmp_path / "y.png").exists()  # drawn when the batch ends
+    assert (tmp_path / "y.png").exists()
+
+
+def _draw_three(out, results, arrays):
+    for i in range(results["n"]):
+        F.save_figure(_figure(int(arrays["seeds"][i])), out / f"fig_{i}.png")
+
+
+def _draw_fails(out, results, arrays):
+    raise RuntimeError("the helper's figure code failed")
+
+
+@linux
+def test_the_helper_draws_what_the_study_would(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    results, arrays = {"n": 3}, {"seeds": np.array([4, 5, 6])}
+    helper = F.FigureHelper.start(_draw_three)
+    assert helper.figures(tmp_path / "a", results, arrays)
+    with F.figure_batch(processes=1):
+        _draw_three(tmp_path / "b", results, arrays)
+    for pa, pb in zip(_paths(tmp_path / "a", 3), _paths(tmp_path / "b", 3)):
+        assert pa.read_bytes() == pb.read_bytes()
+
+
+@linux
+def test_a_failing_or_unused_helper_is_reaped(tmp_path):
+    helper = F.FigureHelper.start(_draw_fails)
+    pid = helper._pid
+    assert helper.figures(tmp_path, {}, {}) is False  # the caller then draws itself
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
+    helper = F.FigureHelper.start(_draw_three)  # given nothing: killed at once, not left importing
+    pid = helper._pid
+    helper.close()
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
