@@ -11,7 +11,9 @@ which it accepts, its default sizes and its own options, and four functions:
 * ``summarise(scenario, mc, options) -> dict`` — the scenario's results (filters,
   sweeps, the paper's numbers, ...) from the runner's per-run arrays;
 * ``table(results) -> str`` — ``table.md``;
-* ``figures(out, results, scenarios, arrays)`` — the PNG figures.
+* ``figures(out, results, scenarios, arrays)`` — the PNG figures, made with :mod:`studies.figures`
+  (with ``out``, drawn by a helper process forked before the study computes: it must need
+  nothing the computation leaves on the scenarios).
 
 :func:`run_study` does the rest the same way for every study: it checks the options
 (an option a study does not take is an error, not silently ignored), builds the
