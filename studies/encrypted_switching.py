@@ -397,8 +397,7 @@ def _check(so: StudyOptions) -> None:
 
 
 def _config(sc: Scenario, so: StudyOptions) -> RunConfig:
-    threads = 1 if so["engine"] == "numpy" else study_threads(so)  # the NumPy engine runs a chunk in one batch
-    return RunConfig(so.particles, reference(sc), so["engine"], threads, bool(so["mean_dynamics_row"]))
+    return RunConfig(so.particles, reference(sc), so["engine"], study_threads(so), bool(so["mean_dynamics_row"]))
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:

@@ -507,14 +507,10 @@ def _check(so: StudyOptions) -> None:
     check_threads(so["threads"])
 
 
-def _threads(so: StudyOptions) -> int:
-    return 1 if so["engine"] == "numpy" else study_threads(so)  # the NumPy engine batches a chunk's runs
-
-
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     plans, _ = _settings(ref, so.particles)  # builds the settings and checks the designs before any run
-    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=so["engine"], threads=_threads(so))
+    task = functools.partial(_runs, ref=ref, particles=so.particles, engine=so["engine"], threads=study_threads(so))
     config = {"study": "fdi-four-tank", "scenario": sc.name, "params": dict(ref.params), "particles": so.particles,
               "engine": so["engine"], "settings": {k: list(p.which) for k, p in plans.items()},
               "streams": "run r: SeedSequence(seed, spawn_key=(r,)).spawn(5)",
@@ -544,7 +540,7 @@ def _summarise(sc0: Scenario, mc, so: StudyOptions) -> dict:
     b = mc.backend
     out = {"scenario": sc0.name, "runs": int(runs), "particles": particles, "steps": int(sc0.steps),
            "assumptions": list(sc0.assumptions) + list(ASSUMPTIONS) + ([] if paper else [OTHER_MODEL]),
-           "engine": so["engine"], "threads": _threads(so),
+           "engine": so["engine"], "threads": study_threads(so),
            "workers": b.workers if b.kind == "processes" else (1 if b.kind == "batched" else None),
            "runner": mc.describe(), "filters": main.filters, "detection": detection,
            "thresholds": {name: st.design.thresholds for name, st in lv.items()}}

@@ -47,6 +47,7 @@ from filters.rrp import deception_terms, packet_loglik
 
 from .pipeline import naming_filter
 from .results import error_metrics
+from .runner import usable_cores
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
            "results_block", "THREADS_AUTO", "check_threads", "study_threads", "check_engine", "check_study_options",
@@ -73,18 +74,19 @@ def study_threads(so) -> int:
 
     ``'auto'`` (the default): the cores this process may run on, shared among the runner's
     local worker processes (``--workers N``: ``cores // N``, at least 1); 1 on a Dask
-    cluster, whose workers bring their own threads.  The numbers do not depend on it
+    cluster, whose workers bring their own threads.  The NumPy engine (``engine='numpy'``)
+    runs a chunk in one thread, whatever the option.  The numbers do not depend on it
     (one Generator per run); the time per step is the wall time shared among the runs
     computed together, so with more threads it is the machine's, not one core's.
     """
     threads = check_threads(so["threads"])
+    if so["engine"] == "numpy":
+        return 1
     if threads != THREADS_AUTO:
         return threads
     backend = so.backend
     if backend.kind == "dask":
         return 1
-    from .runner import usable_cores
-
     return max(1, usable_cores() // (backend.workers if backend.kind == "processes" else 1))
 
 

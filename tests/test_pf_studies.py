@@ -112,15 +112,16 @@ def test_results_do_not_depend_on_the_number_of_threads(tmp_path):
 
 
 def test_threads_auto_uses_the_cores_the_runner_leaves():
-    """The default 'auto': every core this process may use, shared among local worker processes; 1 on Dask."""
+    """The default 'auto': every core this process may use, shared among local worker processes; 1 on Dask and on
+    the NumPy engine (which runs a chunk in one batch)."""
     import os
 
     from studies.pfrun import THREADS_AUTO, study_threads
     from studies.runner import Backend
 
     class Options(dict):
-        def __init__(self, threads, backend):
-            super().__init__(threads=threads)
+        def __init__(self, threads, backend, engine="fused"):
+            super().__init__(threads=threads, engine=engine)
             self.backend = backend
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -129,6 +130,8 @@ def test_threads_auto_uses_the_cores_the_runner_leaves():
     assert study_threads(Options("auto", Backend("processes", workers=4 * cores))) == 1
     assert study_threads(Options("auto", Backend("dask", address="tcp://127.0.0.1:1"))) == 1
     assert study_threads(Options(3, Backend("processes", workers=2))) == 3  # an explicit count is kept
+    assert study_threads(Options(THREADS_AUTO, Backend(), "numpy")) == 1
+    assert study_threads(Options(3, Backend(), "numpy")) == 1
     r = run_study("encrypted-switching", runs=2, particles=30, seed=1, mean_dynamics_row=False)
     assert r["threads"] == cores  # the default is 'auto', resolved in results.json
 
