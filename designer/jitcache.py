@@ -165,7 +165,7 @@ class _Cache(caching.FunctionCache):
                                        source_stamp=self._impl.locator.get_source_stamp())
 
     def load_overload(self, sig, target_context):
-        # numba's refreshes the target context first (imports and installs every implementation registry of
+        # numba refreshes the target context first (imports and installs every implementation registry of
         # numba: a quarter of a second, the largest part of a warm process's kernel loading); the loaded code
         # needs none of them, and a compilation refreshes the context itself
         rtsys.initialize(target_context)  # the part of the refresh that loaded code needs: NRT's symbols

@@ -26,7 +26,7 @@ from .cache import njit
 from .codegen import compile_kernel, components, const, model_kernels, propagation, split_powers, weights
 from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
-from .primitives import vfrexp, vlog_dd, vndtr, vpow_rows
+from .primitives import LN2_HI, LN2_LO, vfrexp, vlog_dd, vndtr, vpow_rows
 
 __all__ = ["sir_binary", "binary_affine_loglik"]
 
@@ -123,7 +123,7 @@ def _add_log_product(mant, expo, n, b):
     for m in range(n):
         hi, lo = vlog_dd(mant[m])
         e = expo[m]
-        b[m] += fma(e, 0.6931471803691238, hi) + fma(e, 1.9082149292705877e-10, lo)
+        b[m] += fma(e, LN2_HI, hi) + fma(e, LN2_LO, lo)
 
 
 _HELPERS = {"_cdf_term": _cdf_term, "_affine_factor": _affine_factor, "_add_log_product": _add_log_product,

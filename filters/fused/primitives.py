@@ -28,8 +28,14 @@ from designer.jit import fma
 
 from .cache import FAST, njit
 
-__all__ = ["ndtr", "exp_nonpos", "neginf_unless_finite", "wrap_angle", "logaddexp", "vexp", "vlog_dd", "vpow",
-           "vndtr", "vfrexp", "vpow_rows"]
+__all__ = ["LN2_HI", "LN2_LO", "ndtr", "exp_nonpos", "neginf_unless_finite", "wrap_angle", "logaddexp", "vexp",
+           "vlog_dd", "vpow", "vndtr", "vfrexp", "vpow_rows"]
+
+
+#: ln 2 = LN2_HI + LN2_LO (0x1.62e42feep-1 + 0x1.a39ef35793c76p-33); LN2_HI has 32 significant bits, so
+#: ``k LN2_HI`` is exact for the exponents ``k`` of a double.
+LN2_HI = 0.6931471803691238
+LN2_LO = 1.9082149292705877e-10
 
 
 @njit()
@@ -62,7 +68,7 @@ def exp_nonpos(d):
     x = d if d > -708.0 else -708.0  # also NaN and -inf: a finite k below
     x = x if x < 0.0 else 0.0
     kf = math.floor(x * 1.4426950408889634 + 0.5)
-    r = (x - kf * 0.6931471803691238) - kf * 1.9082149292705877e-10  # ln 2 = 0x1.62e42feep-1 + 0x1.a39ef35793c76p-33
+    r = (x - kf * LN2_HI) - kf * LN2_LO
     p = 1.6059043836821613e-10  # 1 / 13!
     p = p * r + 2.08767569878681e-09
     p = p * r + 2.505210838544172e-08
@@ -116,6 +122,13 @@ def logaddexp(x, y):
 
 # ============================================================================ vectorisable exp, log, frexp, ndtr
 @njit(inline="always")
+def _int_to_float(i):
+    """``float(i)`` for an integer ``i`` in [-2048, 2^51), without an integer-to-float conversion (AVX2 has none
+    for 64-bit integers): ``i + 2048`` in the low bits of a mantissa of 2^52, less ``2^52 + 2048``."""
+    return np.int64(i + 0x4330000000000800).view(np.float64) - 4503599627372544.0
+
+
+@njit(inline="always")
 def _two_pow(kf):
     """``2^kf`` for an integer-valued float ``kf`` in [-1022, 1023], without a float-to-integer conversion:
     the low bits of ``2^52 + 1023 + kf`` are ``kf + 1023``, shifted into the exponent field."""
@@ -137,7 +150,7 @@ def vexp(hi, lo):
     x = hi if hi > -746.0 else -746.0
     x = x if x < 710.0 else 710.0
     kf = np.floor(fma(x, 1.4426950408889634, 0.5))
-    r = fma(-kf, 1.9082149292705877e-10, fma(-kf, 0.6931471803691238, x)) + lo
+    r = fma(-kf, LN2_LO, fma(-kf, LN2_HI, x)) + lo
     e0_0 = fma(1.0, r, 1.0)
     e0_1 = fma(0.16666666666666666, r, 0.5)
     e0_2 = fma(0.008333333333333333, r, 0.041666666666666664)
@@ -198,10 +211,10 @@ def vlog_dd(x):
     q = l3_0
     R = q * z
     hfsq = 0.5 * f * f
-    dk = np.int64(k + 0x4330000000000800).view(np.float64) - 4503599627372544.0  # float(k) for k >= -2048
-    a = dk * 0.6931471803691238  # exact: ln2_hi has 32 significant bits
+    dk = _int_to_float(k)
+    a = dk * LN2_HI  # exact
     hi = a + f
-    lo = (f - (hi - a)) + (fma(s, hfsq + R, -hfsq) + dk * 1.9082149292705877e-10)  # |a| >= |f| or a = 0
+    lo = (f - (hi - a)) + (fma(s, hfsq + R, -hfsq) + dk * LN2_LO)  # |a| >= |f| or a = 0
     h2 = hi + lo
     return h2, lo - (h2 - hi)
 
@@ -294,5 +307,5 @@ def vfrexp(w):
     """``(m, e)`` with ``w = m 2^e``, ``m`` in [1, 2) and ``e`` an integer-valued float, for a positive normal ``w``;
     branch-free (a running product kept as ``m 2^e`` cannot underflow)."""
     bits = np.float64(w).view(np.int64)
-    e = np.int64(((bits >> 52) & 0x7ff) + 0x4330000000000000).view(np.float64) - 4503599627371519.0
+    e = _int_to_float(((bits >> 52) & 0x7ff) - 1023)
     return np.int64((bits & 0x000fffffffffffff) | 0x3ff0000000000000).view(np.float64), e
