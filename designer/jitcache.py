@@ -156,6 +156,10 @@ class _KeyedFiles(caching.IndexDataCacheFile):
         self._save_index(overloads)
 
 
+#: numba versions whose cached code needs only NRT's symbols from the target context's refresh (tested: 0.68)
+_LIGHT_LOAD = (0, 60) <= tuple(int(p) for p in numba.__version__.split(".")[:2]) < (0, 69)
+
+
 class _Cache(caching.FunctionCache):
     _impl_class = _Impl
 
@@ -167,7 +171,10 @@ class _Cache(caching.FunctionCache):
     def load_overload(self, sig, target_context):
         # numba refreshes the target context first (imports and installs every implementation registry of
         # numba: a quarter of a second, the largest part of a warm process's kernel loading); the loaded code
-        # needs none of them, and a compilation refreshes the context itself
+        # needs none of them, and a compilation refreshes the context itself.  Only for the numba versions
+        # where that is known (a symbol the loaded code needs and nobody defined aborts the process).
+        if not _LIGHT_LOAD:
+            return super().load_overload(sig, target_context)
         rtsys.initialize(target_context)  # the part of the refresh that loaded code needs: NRT's symbols
         with self._guard_against_spurious_io_errors():
             return self._load_overload(sig, target_context)

@@ -192,8 +192,11 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     again, second_compiled, registries = (_run(code, cache) + "\n").split("\n")[:3]
     assert again == mean
     assert second_compiled == "", f"the second process compiled {second_compiled}"
-    # nor did loading refresh numba's target context (importing all of numba's implementations: a quarter second)
-    assert registries == "False"
+    # nor did loading refresh numba's target context (importing all of numba's implementations: a quarter second),
+    # on the numba versions where the loaded code is known to need none of it
+    from designer import jitcache
+
+    assert registries == str(not jitcache._LIGHT_LOAD)
 
 
 def test_processes_compiling_different_signatures_of_one_function_at_once_leave_a_correct_cache(tmp_path):
