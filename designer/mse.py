@@ -72,7 +72,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy.linalg import block_diag
 
-from .bounds import symmetrize
+from .bounds import eigh, symmetrize
 from .tuning import MARGIN, best_multiplier, increasing_root
 
 __all__ = ["joint_prior", "joint_predict", "mse_gains", "joint_update", "certificate_predict", "certificate_update",
@@ -350,10 +350,10 @@ def _woodbury(P: np.ndarray, D: np.ndarray | None):
     ``(P⁻¹ - c DᵀD)⁻¹ = P + G diag(c / (1 - c μ)) Gᵀ`` (``D = I`` when None: ``G = Q diag(μ)``): one eigh
     per matrix serves the margin, the multiplier's search and the bound."""
     if D is None:  # the joint arrays are symmetric to the bit (eigh reads one triangle)
-        mu, Q = np.linalg.eigh(P)
+        mu, Q = eigh(P)
         return mu, Q * mu[..., None, :]
     PD = P @ D.T
-    mu, Q = np.linalg.eigh(symmetrize(D @ PD))
+    mu, Q = eigh(symmetrize(D @ PD))
     return mu, PD @ Q
 
 

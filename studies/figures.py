@@ -174,7 +174,7 @@ def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None
     rest, and each child reports the indices it wrote.  Any figure no child reported (a
     child failed or was killed) is drawn here afterwards.
     """
-    from .runner import usable_cores
+    from designer.cores import usable_cores
 
     figures = list(figures)
     n = min(len(figures), processes or usable_cores())

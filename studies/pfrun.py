@@ -38,6 +38,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from designer.attacks import BinarySensorChannel
+from designer.cores import usable_cores
 from designer.model import Model
 from designer.noise import Noise
 from designer.validation import InputError, check_int
@@ -47,7 +48,6 @@ from filters.rrp import deception_terms, packet_loglik
 
 from .pipeline import naming_filter
 from .results import error_metrics
-from .runner import usable_cores
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
            "results_block", "THREADS_AUTO", "check_threads", "study_threads", "check_engine", "check_study_options",

@@ -338,14 +338,6 @@ def _normalised(config: Mapping[str, Any]) -> dict:
         raise InputError(f"config must be JSON-serialisable, got {exc}") from exc
 
 
-def usable_cores() -> int:
-    """The cores this process may run on (its affinity mask where the platform has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - platforms without affinity masks
-        return os.cpu_count() or 1
-
-
 def worker_init(parent: int) -> None:
     """A worker process: Ctrl-C is the parent's to handle, and the worker dies with its parent.
 

@@ -1,0 +1,61 @@
+"""designer.cores and the stacked eigh that splits a stack over the cores (designer.bounds.eigh)."""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from designer import cores
+from designer.bounds import eigh
+
+
+def _stack(shape, seed=0):
+    a = np.random.default_rng(seed).standard_normal(shape)
+    return a @ np.swapaxes(a, -1, -2)
+
+
+@pytest.mark.parametrize("shape", [(3, 5, 5), (200, 6, 6), (4, 50, 7, 7), (129, 24, 24)])
+def test_eigh_of_a_stack_is_numpys_to_the_bit(shape):
+    a = _stack(shape)
+    lam, Q = eigh(a)
+    ref_lam, ref_Q = np.linalg.eigh(a)
+    assert lam.shape == ref_lam.shape and Q.shape == ref_Q.shape
+    assert np.array_equal(lam, ref_lam) and np.array_equal(Q, ref_Q)
+
+
+def test_eigh_splits_over_the_pool_when_there_are_cores(monkeypatch):
+    calls = []
+    real = np.linalg.eigh
+
+    def counted(x):
+        calls.append(x.shape[0])
+        return real(x)
+
+    monkeypatch.setattr(cores, "usable_cores", lambda: 3)
+    monkeypatch.setattr(np.linalg, "eigh", counted)
+    eigh(_stack((300, 4, 4)))
+    assert sorted(calls) == [100, 100, 100]
+    calls.clear()
+    eigh(_stack((10, 4, 4)))  # a small stack: one call here
+    assert calls == [10]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_a_forked_child_gets_its_own_pool():
+    """The parent's pool has threads; a forked child's copy would have none and wait forever."""
+    eigh(_stack((256, 8, 8)))  # the parent's pool exists now
+    assert cores._POOL is not None or cores.usable_cores() < 2
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        import signal
+
+        signal.alarm(60)
+        ok = cores._POOL is None
+        lam, _ = eigh(_stack((256, 8, 8)))
+        ok = ok and np.array_equal(lam, np.linalg.eigh(_stack((256, 8, 8)))[0])
+        sys.stdout.flush()
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
