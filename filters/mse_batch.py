@@ -148,6 +148,15 @@ class _Runs:
             {"node": int(node), "step": int(step), "condition": condition, "margin": float(margin),
              **({} if reason is None else {"reason": reason})})
 
+    def theorem2_violations(self, runs: np.ndarray, margins: np.ndarray, step: int) -> None:
+        """:meth:`violation` for every negative theorem-2 margin of ``margins`` (runs, N) of the sub-batch's
+        ``runs`` (the loose certificates of mode mse give one per run and node at most steps: the Python
+        conversions are made once per array, not per violation)."""
+        j, i = np.nonzero(margins < 0)
+        lists, step = self.out["violations"], int(step)
+        for r, node, m in zip(self.act[runs[j]].tolist(), i.tolist(), margins[j, i].tolist()):
+            lists[r].append({"node": node, "step": step, "condition": "theorem2", "margin": m})
+
     def run(self) -> None:
         steps = self.z.shape[1]
         for k in range(steps):
@@ -159,9 +168,7 @@ class _Runs:
         if last.size:
             th = theorem2_margin(o["phi_post"][act[last], steps], o["sigma"][act[last], steps - 1], self.network.d_max)
             o["theorem2"][act[last], steps] = th
-            for r, row in zip(last, th):
-                for i in np.flatnonzero(row < 0):
-                    self.violation(r, i, steps, "theorem2", row[i])
+            self.theorem2_violations(last, th, steps)
 
     def step(self, k: int) -> None:
         model, design, o, n, nx = self.model, self.design, self.out, self.n, self.nx
@@ -196,8 +203,7 @@ class _Runs:
             done[sel[ok]] = True
             th = theorem2_margin(o["phi_post"][rows, k], jp.multiplier[:, None], self.network.d_max)
             o["theorem2"][rows[ok], k] = th[ok]
-            for j, i in zip(*np.nonzero(ok[:, None] & (th < 0))):
-                self.violation(sel[j], i, k, "theorem2", th[j, i])
+            self.theorem2_violations(sel[ok], th[ok], k)
             for j in np.flatnonzero(~ok):
                 self.proper[sel[j]] = False
                 self.violation(sel[j], _binding_node(Bj[sel[j]], Df), k, "(28)", jp.margin[j])
