@@ -164,6 +164,9 @@ def _read_all(fd: int) -> bytes:
         chunks.append(b)
 
 
+_QUEUE_BYTES = 65536  # a pipe's capacity on Linux: the queue is written whole before anyone reads it
+
+
 def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None:
     """Write each ``(fig, path)`` as :func:`save_figure` does, over ``processes`` processes (default: every usable
     core).
@@ -178,13 +181,13 @@ def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None
 
     figures = list(figures)
     n = min(len(figures), processes or usable_cores())
-    if n <= 1 or not sys.platform.startswith("linux"):
+    if n <= 1 or not sys.platform.startswith("linux") or 4 * len(figures) > _QUEUE_BYTES:
         for fig, path in figures:
             _write(fig, path)
         return
     parent = os.getpid()
     queue_r, queue_w = os.pipe()
-    os.write(queue_w, b"".join(struct.pack("<i", i) for i in range(len(figures))))  # < 64 KiB: 16k figures
+    os.write(queue_w, b"".join(struct.pack("<i", i) for i in range(len(figures))))  # fits: no reader needed yet
     os.close(queue_w)
     children = []
     try:
