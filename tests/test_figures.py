@@ -138,3 +138,34 @@ def test_a_failing_or_unused_helper_is_reaped(tmp_path):
     helper.close()
     with pytest.raises(ChildProcessError):
         os.waitpid(pid, os.WNOHANG)
+
+
+@linux
+@pytest.mark.parametrize("name, kw", [
+    ("rrp-deception", dict(runs=2, particles=60)),
+    ("binary-multi-attack", dict(runs=2, particles=60)),
+    ("encrypted-switching", dict(runs=2)),
+    ("fdi-four-tank", dict(runs=2)),
+    ("consensus-robot", dict(runs=3)),
+    ("comparison", dict(runs=2, particles=60, assignments=["sweep_values=[0.2]"])),
+])
+def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, monkeypatch, name, kw):
+    """The helper runs a study's figure code on the scenarios as they were before the computation: a figure that
+    read state the computation leaves on a scenario would differ from the one drawn here afterwards."""
+    import studies
+
+    answers = []
+    real = F.FigureHelper.figures
+
+    def figures(self, *args):
+        answers.append(real(self, *args))
+        return answers[-1]
+
+    monkeypatch.setattr(F.FigureHelper, "figures", figures)
+    r = studies.study(name, out=str(tmp_path / "helper"), seed=3, **kw)
+    assert answers == [True]  # the helper drew them (not this process, after a failure)
+    r.save(tmp_path / "here")  # no helper: this process draws
+    pngs = sorted(p.name for p in (tmp_path / "helper").glob("*.png"))
+    assert pngs and pngs == sorted(p.name for p in (tmp_path / "here").glob("*.png"))
+    for p in pngs:
+        assert (tmp_path / "helper" / p).read_bytes() == (tmp_path / "here" / p).read_bytes(), p
