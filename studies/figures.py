@@ -86,18 +86,22 @@ def png_tight(fig, fh, dpi: float = FIGURE_DPI) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.image import imsave
 
+    own_dpi = fig.get_dpi()
     fig.set_dpi(dpi)
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    box = fig.get_tightbbox(canvas.get_renderer())  # inches
-    width, height = canvas.get_width_height()
+    try:
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        box = fig.get_tightbbox(canvas.get_renderer())  # inches
+        pixels = np.asarray(canvas.buffer_rgba())  # rows from the top
+    finally:
+        fig.set_dpi(own_dpi)  # as savefig leaves it
+    height, width = pixels.shape[:2]
     if box.x0 < 0 or box.y0 < 0 or box.x1 * dpi > width or box.y1 * dpi > height:
         fig.savefig(fh, format="png", dpi=dpi, bbox_inches="tight")
         return
     box = box.padded(matplotlib.rcParams["savefig.pad_inches"])
     x0, x1 = math.floor(box.x0 * dpi), math.ceil(box.x1 * dpi)
     y0, y1 = math.floor(box.y0 * dpi), math.ceil(box.y1 * dpi)  # from the bottom
-    pixels = np.asarray(canvas.buffer_rgba())  # rows from the top
     face = np.round(np.array(matplotlib.colors.to_rgba(fig.get_facecolor())) * 255).astype(np.uint8)
     out = np.empty((y1 - y0, x1 - x0, 4), np.uint8)
     out[...] = face
@@ -302,9 +306,10 @@ class FigureHelper:
         except Exception:  # noqa: BLE001 - not picklable: the caller draws
             return False
         try:  # length first: processes forked later (a runner's workers) may hold this pipe's end open too
-            view = memoryview(struct.pack("<q", len(payload)) + payload)
-            while view:
-                view = view[os.write(self._job, view):]
+            for data in (struct.pack("<q", len(payload)), payload):
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(self._job, view):]
         except OSError:  # the helper is gone
             return False
         finally:

@@ -19,7 +19,7 @@ linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the par
 
 def _figure(seed: int, log: bool = True, outside: bool = False):
     rng = np.random.default_rng(seed)
-    fig, ax = F.plotting().subplots(figsize=(5, 3))
+    fig, ax = F.plotting().subplots(figsize=(7, 4))  # as the studies' curves: its artists fit its canvas
     for i in range(3):
         ax.plot(np.arange(1, 51), rng.random(50) + 0.01, label=f"filter {i}")
     ax.set(xlabel="time step k", ylabel="RMSE", title=f"figure {seed}", yscale="log" if log else "linear")
@@ -40,7 +40,11 @@ def _pixels(data: bytes) -> np.ndarray:
 def test_single_draw_is_matplotlibs_tight_save_to_a_pixel(log):
     ref, ours = io.BytesIO(), io.BytesIO()
     _figure(1, log).savefig(ref, format="png", dpi=F.FIGURE_DPI, bbox_inches="tight")
-    F.png_tight(_figure(1, log), ours)
+    fig = _figure(1, log)
+    dpi = fig.get_dpi()
+    fig.savefig = None  # the single draw, not matplotlib's tight save (its fallback)
+    F.png_tight(fig, ours)
+    assert fig.get_dpi() == dpi  # left as savefig leaves it
     a, b = _pixels(ref.getvalue()), _pixels(ours.getvalue())
     assert abs(a.shape[0] - b.shape[0]) <= 2 and abs(a.shape[1] - b.shape[1]) <= 2
     h, w = min(a.shape[0], b.shape[0]) - 2, min(a.shape[1], b.shape[1]) - 2
