@@ -208,9 +208,10 @@ def _cv_posterior(q: float, T: float, r: float) -> np.ndarray:
     X = q * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
     eye = np.eye(2)
     for _ in range(200):
-        W = np.linalg.solve(eye + G @ X, A)  # (I + G X)^-1 A
+        WV = np.linalg.solve(eye + G @ X, np.hstack([A, G]))  # (I + G X)^-1 [A, G]
+        W = WV[:, :2]
         X_next = X + A.T @ X @ W
-        G = G + A @ np.linalg.solve(eye + G @ X, G) @ A.T
+        G = G + A @ WV[:, 2:] @ A.T
         A = A @ W
         done = np.abs(X_next - X).max() <= 1e-15 * np.abs(X_next).max()
         X = 0.5 * (X_next + X_next.T)
