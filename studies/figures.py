@@ -22,6 +22,7 @@ are then drawn by the calling process (which raises any error itself).
 """
 from __future__ import annotations
 
+import gc
 import math
 import os
 import pickle
@@ -146,16 +147,26 @@ def figure_batch(processes: int | None = None):
 
 
 def _fork(parent: int) -> int:
-    """``os.fork()``; in the child, Ctrl-C is the parent's and the child dies with it."""
+    """``os.fork()``; in the child, Ctrl-C is the parent's and the child dies with it.
+
+    The child never collects garbage (it draws, then ends with ``os._exit``): a collection
+    would write into the header of every object it inherited, and so copy nearly all of the
+    parent's memory page by page (``gc.freeze`` before the fork keeps the parent's own
+    collections off those objects until :func:`_unfreeze`).
+    """
     from .runner import worker_init
 
     sys.stdout.flush()
     sys.stderr.flush()
+    gc.freeze()
     with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; a child here only draws
         warnings.simplefilter("ignore", DeprecationWarning)
         pid = os.fork()
     if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
+        gc.disable()
         worker_init(parent)
+    else:
+        gc.unfreeze()
     return pid
 
 
@@ -283,7 +294,7 @@ class FigureHelper:
             try:
                 os.close(job_w)
                 os.close(done_r)
-                _warm_up()
+                _warm_up(job_r)
                 size = struct.unpack("<q", _read_exactly(job_r, 8))[0]
                 if size > 0:
                     out, results, arrays = pickle.loads(_read_exactly(job_r, size))
@@ -299,11 +310,17 @@ class FigureHelper:
 
     def figures(self, out: Path, results: dict, arrays: Mapping) -> bool:
         """Have the helper draw the figures into ``out``; True when it wrote them all."""
+        return self.send(out, results, arrays) and self.wait()
+
+    def send(self, out: Path, results: dict, arrays: Mapping) -> bool:
+        """Give the helper the figures to draw into ``out`` and return at once (True if it has them): the caller
+        may write its other files meanwhile, then :meth:`wait`."""
         if self._job is None:
             return False
         try:
             payload = pickle.dumps((str(out), results, arrays), protocol=pickle.HIGHEST_PROTOCOL)
         except Exception:  # noqa: BLE001 - not picklable: the caller draws
+            self.close()
             return False
         try:  # length first: processes forked later (a runner's workers) may hold this pipe's end open too
             for data in (struct.pack("<q", len(payload)), payload):
@@ -311,10 +328,16 @@ class FigureHelper:
                 while view:
                     view = view[os.write(self._job, view):]
         except OSError:  # the helper is gone
+            self.close()
             return False
-        finally:
-            os.close(self._job)
-            self._job = None
+        os.close(self._job)
+        self._job = None
+        return True
+
+    def wait(self) -> bool:
+        """Wait for the figures :meth:`send` gave; True when the helper wrote them all."""
+        if self._done is None:
+            return False
         ok = _read_all(self._done) == b"ok"
         self.close()
         return ok
@@ -333,11 +356,16 @@ class FigureHelper:
             self._pid = None
 
 
-def _warm_up() -> None:
-    """Import what drawing needs and draw a small figure (fonts, mathtext and the PNG writer loaded)."""
+def _warm_up(job: int | None = None) -> None:
+    """Import what drawing needs and draw a small figure (fonts, mathtext and the PNG writer loaded); the figure
+    is left out when the job ``job`` (a pipe) is already waiting: the study's own first figure loads them then."""
     import io
+    import select
 
-    fig, ax = plotting().subplots(figsize=(2, 2))
+    plt = plotting()
+    if job is not None and select.select([job], [], [], 0)[0]:
+        return
+    fig, ax = plt.subplots(figsize=(2, 2))
     ax.plot([1.0, 10.0], [1.0, 100.0], label="a")
     ax.set(yscale="log", title="t", xlabel="x", ylabel="y")
     ax.legend(fontsize=8)

@@ -246,11 +246,21 @@ class StudyResult:
         ``helper``: a :class:`studies.figures.FigureHelper` started for this study, which draws the figures
         (this process draws them if it cannot).
         """
+        from .figures import figure_batch
         from .results import write_outputs
 
-        def figures(stage: Path) -> None:
-            if helper is None or not helper.figures(stage, self.results, self.arrays):
-                self.study.figures(stage, self.results, self.scenarios, self.arrays)
+        def draw(stage: Path) -> None:
+            self.study.figures(stage, self.results, self.scenarios, self.arrays)
+
+        def figures(stage: Path):
+            if helper is None or not helper.send(stage, self.results, self.arrays):
+                return draw(stage)
+
+            def wait() -> None:  # the helper draws while the caller writes its other files
+                if not helper.wait():
+                    with figure_batch():
+                        draw(stage)
+            return wait
 
         out = Path(directory)
         write_outputs(out, self.results, figures, self.study.table)

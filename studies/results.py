@@ -130,11 +130,14 @@ def first_divergence(err: np.ndarray, limit: float) -> tuple[int, int] | None:
     return k, i
 
 
-def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Callable[[dict], str]) -> Path:
+def write_outputs(out, results: dict, figures: Callable[[Path], Callable[[], None] | None],
+                  table: Callable[[dict], str]) -> Path:
     """Write the figures, ``table.md``, ``results.json`` and the reports into ``out`` (each atomically).
 
-    The reports (``report.md`` and the self-contained ``report.html``, see
-    :func:`studies.reports.write_report`) are written last, from the files just written.
+    ``figures(directory)`` writes the figures, or has another process draw them and returns
+    a function that waits until they are written: ``table.md`` and ``results.json`` are
+    written meanwhile.  The reports (``report.md`` and the self-contained ``report.html``,
+    see :func:`studies.reports.write_report`) are written last, from the files just written.
     The results are checked for non-finite numbers first, and everything is written into a
     staging directory that then replaces the directory's last outputs as a whole
     (:func:`designer.fileio.replaced_outputs`).
@@ -146,9 +149,11 @@ def write_outputs(out, results: dict, figures: Callable[[Path], None], table: Ca
 
     with replaced_outputs(out) as stage:
         with figure_batch():
-            figures(stage)
+            pending = figures(stage)
         atomic_write(stage / "table.md", lambda fh: fh.write(text.encode()))
         write_json(stage / "results.json", results)
+        if callable(pending):
+            pending()
         write_report(stage)
     return Path(out)
 

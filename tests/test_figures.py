@@ -144,6 +144,48 @@ def test_a_failing_or_unused_helper_is_reaped(tmp_path):
         os.waitpid(pid, os.WNOHANG)
 
 
+def test_the_other_files_are_written_while_the_helper_draws_and_the_report_after_it(tmp_path):
+    from studies.results import write_outputs
+
+    seen = {}
+
+    def figures(stage):
+        def wait():  # called once table.md and results.json are in place, before the report
+            seen["at_wait"] = sorted(p.name for p in stage.iterdir())
+            F.save_figure(_figure(1), stage / "fig_a.png")
+        return wait
+
+    out = write_outputs(tmp_path / "out", {"x": 1.0}, figures, lambda r: "| table |\n")
+    assert seen["at_wait"] == ["results.json", "table.md"]
+    assert "fig_a.png" in (out / "report.md").read_text()  # the report was written from the figure
+
+
+def test_the_warm_up_leaves_out_its_figure_when_the_job_is_waiting(monkeypatch):
+    drawn = []
+    monkeypatch.setattr(F, "png_tight", lambda fig, fh, dpi=None: drawn.append(fig))
+    r, w = os.pipe()
+    try:
+        F._warm_up(r)  # nothing sent yet: it draws its throwaway figure
+        assert len(drawn) == 1
+        os.write(w, b"x")
+        F._warm_up(r)  # the job is there: the study's first figure loads the fonts instead
+        assert len(drawn) == 1
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+@linux
+def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was():
+    import gc
+
+    helper = F.FigureHelper.start(_draw_three)
+    try:
+        assert gc.get_freeze_count() == 0 and gc.isenabled()
+    finally:
+        helper.close()
+
+
 @linux
 @pytest.mark.parametrize("name, kw", [
     ("rrp-deception", dict(runs=2, particles=60)),
@@ -159,13 +201,13 @@ def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, m
     import studies
 
     answers = []
-    real = F.FigureHelper.figures
+    real = F.FigureHelper.wait
 
-    def figures(self, *args):
-        answers.append(real(self, *args))
+    def wait(self):
+        answers.append(real(self))
         return answers[-1]
 
-    monkeypatch.setattr(F.FigureHelper, "figures", figures)
+    monkeypatch.setattr(F.FigureHelper, "wait", wait)
     r = studies.study(name, out=str(tmp_path / "helper"), seed=3, **kw)
     assert answers == [True]  # the helper drew them (not this process, after a failure)
     r.save(tmp_path / "here")  # no helper: this process draws
