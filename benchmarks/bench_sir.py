@@ -42,6 +42,7 @@ from filters.attacks import deception_attack, round_robin_schedule
 from filters.fused.codegen import propagation, weights
 from filters.fused.driver import BLOCK, drivers, likelihood_block, resampler
 from filters.fused.packets import DATA, packet_data, packet_lik, wrap_set
+from filters.fused.streams import keep, load, normal, open_stream
 from filters.particle import run_sir
 from filters.resampling import scheme_code
 from filters.rrp import all_sensors_loglik, deception_terms, rrp_loglik, wrap_angles
@@ -249,10 +250,13 @@ def memory(sc, runs: int, particles: int, steps: int = 10) -> dict:
 
 # ------------------------------------------------------------------ where the time goes
 @numba.njit(nogil=True)
-def _draws(rng, n):
+def _draws(st, n):
+    S, h, lo = load(st)
     s = 0.0
     for _ in range(n):
-        s += rng.standard_normal()
+        z, h, lo = normal(S, h, lo)
+        s += z
+    keep(st, h, lo)
     return s
 
 
@@ -299,10 +303,10 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
         flags = np.zeros(K, bool), np.zeros(K, bool)
         n_w = m.process_noise.dim
         parts = {
-            "draws": lambda: _draws(np.random.default_rng(1), K * particles * n_w),
-            "prop": lambda: props(prop, x, xn, K, np.random.default_rng(1)),
+            "draws": lambda: _draws(open_stream(np.random.default_rng(1)), K * particles * n_w),
+            "prop": lambda: props(prop, x, xn, K, open_stream(np.random.default_rng(1))),
             "lik": lambda: liks(lik, x, K, data, P, ne, b, w),
-            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, np.random.default_rng(1), systematic, 1.0, False,
+            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, open_stream(np.random.default_rng(1)), systematic, 1.0, False,
                                 mean, cov, ess, *flags),
         }
         for fn in parts.values():

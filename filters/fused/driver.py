@@ -22,7 +22,8 @@ A weight below ``exp(-708)`` times the step's largest one counts as zero (it cha
 sum; libm would give a subnormal).
 
 Randomness: **one** :class:`numpy.random.Generator` **per run**, drawn from in a fixed
-order (per step: the propagation's draws, then the resampler's uniforms); a run's result
+order (per step: the propagation's draws, then the resampler's uniforms), through its
+stream (:mod:`filters.fused.streams`: the same numbers, drawn faster); a run's result
 depends only on its own generator and data, never on how runs are split between
 threads.  Nothing is allocated per particle and the GIL is released, so runs are spread
 over ``threads`` threads (:func:`run_all`).  The input checks every family shares are
@@ -47,6 +48,7 @@ from filters.resampling import SCHEMES, scheme_code
 from .cache import njit
 from .primitives import exp_nonpos, neginf_unless_finite
 from .resampling import SCHEME_FUNCTIONS
+from .streams import STREAM, close_stream, open_stream
 
 __all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "GEN", "PROP_T", "WEIGH_T", "lik_type",
            "drivers", "resampler", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance",
@@ -267,10 +269,10 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_
 # likelihood family (its data type), not once per model, wrap set and likelihood variant; and cached on disk.
 F1, F2, F3 = types.float64[::1], types.float64[:, ::1], types.float64[:, :, ::1]
 I1, I2, B1 = types.int64[::1], types.int64[:, ::1], types.boolean[::1]
-GEN = numba.typeof(np.random.default_rng(0))  # one type for every numpy.random.Generator
-PROP_T = types.FunctionType(types.void(F2, I1, F2, types.int64, types.int64, types.float64, GEN, F1))
+GEN = numba.typeof(np.random.default_rng(0))  # one type for every numpy.random.Generator (the SIS kernels' draws)
+PROP_T = types.FunctionType(types.void(F2, I1, F2, types.int64, types.int64, types.float64, STREAM, F1))
 WEIGH_T = types.FunctionType(types.UniTuple(types.float64, 2)(F2, F1, F1, types.float64, F1, F1))
-SCHEME_T = types.FunctionType(types.void(F1, types.float64, GEN, I1, F1, F1))
+SCHEME_T = types.FunctionType(types.void(F1, types.float64, STREAM, I1, F1, F1))
 _DRIVERS: dict = {}
 _SCHEMES: dict = {}
 
@@ -310,7 +312,7 @@ def drivers(data, which: int = 0):
     if key not in _DRIVERS:
         lik, i8, f8 = lik_type(data), types.int64, types.float64
         if which == 0:
-            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, GEN, SCHEME_T, f8, types.boolean, F2, F3, F1, B1, B1)
+            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, STREAM, SCHEME_T, f8, types.boolean, F2, F3, F1, B1, B1)
             _DRIVERS[key] = _entry(_sir_run, sig)
         else:
             _DRIVERS[key] = _entry(loglik_rows, types.void(lik, i8, i8, F2, f8, data, F1))
@@ -356,8 +358,12 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
     loglik = np.empty(R)
 
     def one(r: int) -> None:
-        loglik[r] = run(*kernels, data_of_run(r), x0[r], gens[r], scheme, thr, covariance, mean[r], cov[r],
-                        ess[r], resampled[r], collapsed[r])
+        st = open_stream(gens[r])
+        try:
+            loglik[r] = run(*kernels, data_of_run(r), x0[r], st, scheme, thr, covariance, mean[r], cov[r],
+                            ess[r], resampled[r], collapsed[r])
+        finally:
+            close_stream(gens[r], st)
 
     spread(one, R, threads)
     return FastSIRResult(check_finite_means(mean, "fused particle filter"), cov if covariance else None, ess, loglik,

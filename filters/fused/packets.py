@@ -12,8 +12,8 @@ one of seed 000 (14).  ``P = 1`` with the Round-Robin schedule gives the RRP fil
 ``P = N`` with every sensor PF-DA: :func:`filters.rrp.rrp_loglik` and
 :func:`filters.rrp.all_sensors_loglik` are the NumPy engine's forms of the same.
 
-Numbers: numba's ``Generator.standard_normal`` and ``Generator.random`` reproduce
-NumPy's streams bit for bit and the draws come in the NumPy engine's order (per step
+Numbers: the kernels' draws (:mod:`filters.fused.streams`) are NumPy's
+``Generator.standard_normal`` and ``Generator.random`` bit for bit, in the NumPy engine's order (per step
 ``n_w`` normals per particle, particle after particle, then the resampler's uniforms),
 so a one-run call reproduces ``run_sir(..., runs=1)`` with the same generator to
 rounding (given the same initial particles; the tests check it).

@@ -2,8 +2,8 @@
 
 The registry (names, codes, the schemes' definitions) is :mod:`filters.resampling`'s:
 :data:`SCHEME_FUNCTIONS` maps a scheme's code (:func:`filters.resampling.scheme_code`) to
-its compiled function, which draws the same uniforms from the run's Generator in the same
-order as the NumPy function of that scheme, so both engines resample alike (the tests
+its compiled function, which draws the same uniforms from the run's Generator (its stream,
+:mod:`filters.fused.streams`) in the same order as the NumPy function of that scheme, so both engines resample alike (the tests
 compare them).
 Systematic resampling, the default, is branch-free (:func:`systematic`).
 """
@@ -16,6 +16,7 @@ import numpy as np
 from filters.resampling import scheme_code
 
 from .cache import njit
+from .streams import draw_uniform, draw_uniforms
 
 __all__ = ["SYSTEMATIC", "STRATIFIED", "MULTINOMIAL", "RESIDUAL", "SCHEME_FUNCTIONS", "systematic", "inverse_cdf",
            "cumsum_to_one", "heap_sort"]
@@ -109,7 +110,7 @@ def heap_sort(a):
 @njit()
 def systematic_scheme(W, scale, rng, idx, cdf, u):
     """Systematic: one uniform shared by all strata, ``u_m = (m + U) / M`` (:func:`systematic`)."""
-    systematic(W, scale, rng.random(), idx, cdf, u)
+    systematic(W, scale, draw_uniform(rng), idx, cdf, u)
 
 
 @njit()
@@ -117,8 +118,9 @@ def stratified_scheme(W, scale, rng, idx, cdf, u):
     """Stratified: one uniform per stratum, ``u_m = (m + U_m) / M``."""
     M = idx.shape[0]
     cumsum_to_one(W, scale, cdf)
+    draw_uniforms(rng, u, 0, M)
     for m in range(M):
-        u[m] = (m + rng.random()) / M
+        u[m] = (m + u[m]) / M
     inverse_cdf(cdf, u[:M], idx)
 
 
@@ -127,8 +129,7 @@ def multinomial_scheme(W, scale, rng, idx, cdf, u):
     """Multinomial: ``M`` independent uniforms, sorted."""
     M = idx.shape[0]
     cumsum_to_one(W, scale, cdf)
-    for m in range(M):
-        u[m] = rng.random()
+    draw_uniforms(rng, u, 0, M)
     heap_sort(u[:M])
     inverse_cdf(cdf, u[:M], idx)
 
@@ -154,7 +155,8 @@ def residual_scheme(W, scale, rng, idx, cdf, u):
         for i in range(N):
             sres += res[i]
         cumsum_to_one(res, 1.0 / sres, cdf)
-        ur = rng.random(rest)
+        ur = np.empty(rest)
+        draw_uniforms(rng, ur, 0, rest)
         heap_sort(ur)
         extra = np.empty(rest, np.int64)
         inverse_cdf(cdf, ur, extra)
