@@ -230,15 +230,17 @@ def test_branch_free_wrap_is_numpys_mod():
     assert np.all(np.isnan(nan))
 
 
-def test_branch_free_systematic_resampling_matches_the_inverse_cdf():
-    """Degenerate weights (zeros, one dominant particle, all but the last zero) and generic ones, u0 at its ends."""
-    M = 60
+@pytest.mark.parametrize("M", [60, 61, 63, 500])
+def test_branch_free_systematic_resampling_matches_the_inverse_cdf(M):
+    """Degenerate weights (zeros, one dominant particle, all but the last zero) and generic ones, u0 at its ends
+    and a hair from them (with equal weights, ``M c_i - u0`` is then within the margin of an integer: the exact
+    path), for particle counts that are and are not multiples of the four positions per step of the maxima."""
     rng = np.random.default_rng(6)
     cases = [np.ones(M), rng.exponential(size=M), np.where(rng.random(M) < 0.7, 0.0, rng.random(M)),
              np.eye(M)[17] + 1e-300, np.eye(M)[M - 1], np.eye(M)[0], np.exp(rng.normal(0, 8, M))]
     cdf, u, a, b = np.empty(M), np.empty(M), np.empty(M, np.int64), np.empty(M, np.int64)
     for W in cases:
-        for u0 in np.concatenate([rng.random(20), [0.0, 1 - 2.0**-53]]):
+        for u0 in np.concatenate([rng.random(20), [0.0, 1e-13, 0.5, 1 - 1e-13, 1 - 2.0**-53]]):
             systematic(W, 1.0 / W.sum(), u0, a, np.empty(M), np.empty(M + 1))
             cumsum_to_one(W, 1.0 / W.sum(), cdf)
             u[:] = (np.arange(M) + u0) / M
