@@ -36,7 +36,6 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numba.core import types
 
@@ -48,9 +47,9 @@ from filters.resampling import SCHEMES, scheme_code
 from .cache import njit
 from .primitives import exp_nonpos, neginf_unless_finite
 from .resampling import SCHEME_FUNCTIONS
-from .streams import STREAM, close_stream, open_stream
+from .streams import STREAM, drawing
 
-__all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "GEN", "PROP_T", "WEIGH_T", "lik_type",
+__all__ = ["BLOCK", "FastSIRResult", "F1", "F2", "F3", "I1", "I2", "B1", "PROP_T", "WEIGH_T", "lik_type",
            "drivers", "resampler", "run_all", "spread", "likelihood_block", "loglik_rows", "covariance",
            "uniform_moments", "check_model",
            "check_particles", "check_generators", "check_options"]
@@ -269,7 +268,6 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_
 # likelihood family (its data type), not once per model, wrap set and likelihood variant; and cached on disk.
 F1, F2, F3 = types.float64[::1], types.float64[:, ::1], types.float64[:, :, ::1]
 I1, I2, B1 = types.int64[::1], types.int64[:, ::1], types.boolean[::1]
-GEN = numba.typeof(np.random.default_rng(0))  # one type for every numpy.random.Generator (the SIS kernels' draws)
 PROP_T = types.FunctionType(types.void(F2, I1, F2, types.int64, types.int64, types.float64, STREAM, F1))
 WEIGH_T = types.FunctionType(types.UniTuple(types.float64, 2)(F2, F1, F1, types.float64, F1, F1))
 SCHEME_T = types.FunctionType(types.void(F1, types.float64, STREAM, I1, F1, F1))
@@ -358,12 +356,8 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
     loglik = np.empty(R)
 
     def one(r: int) -> None:
-        st = open_stream(gens[r])
-        try:
-            loglik[r] = run(*kernels, data_of_run(r), x0[r], st, scheme, thr, covariance, mean[r], cov[r],
-                            ess[r], resampled[r], collapsed[r])
-        finally:
-            close_stream(gens[r], st)
+        loglik[r] = drawing(gens[r], lambda st: run(*kernels, data_of_run(r), x0[r], st, scheme, thr, covariance,
+                                                    mean[r], cov[r], ess[r], resampled[r], collapsed[r]))
 
     spread(one, R, threads)
     return FastSIRResult(check_finite_means(mean, "fused particle filter"), cov if covariance else None, ess, loglik,

@@ -49,7 +49,8 @@ from filters.particle import check_finite_means
 
 from .cache import njit
 from .codegen import component_lines, components, compile_kernel, model_kernels, noise_terms
-from .driver import B1, F1, F2, F3, GEN, check_generators, check_model, check_particles, spread
+from .driver import B1, F1, F2, F3, check_generators, check_model, check_particles, spread
+from .streams import STREAM, draw_normals, drawing, open_stream
 
 __all__ = ["DETECTORS", "LIKELIHOODS", "SISParticles", "sis_particles", "sis_fdi"]
 
@@ -57,9 +58,9 @@ __all__ = ["DETECTORS", "LIKELIHOODS", "SISParticles", "sis_particles", "sis_fdi
 DETECTORS = {None: 0, "normal": 1, "modified": 2, "sampled": 3}
 LIKELIHOODS = {"additive": 0, "mixture": 1, "uniform": 2}
 _LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))  # as filters.fdi: exp(x) == 0.0 below it
-_NO_DRAWS = np.random.default_rng(0)  # the aux Generator of a filter that draws none (a placeholder argument)
+_NO_DRAWS = open_stream(np.random.default_rng(0))  # the aux stream of a filter that draws none (a placeholder)
 
-PROP_T = types.FunctionType(types.void(F2, F2, F2, types.float64, GEN, F1))
+PROP_T = types.FunctionType(types.void(F2, F2, F2, types.float64, STREAM, F1))
 LIK_T = types.FunctionType(types.void(F2, types.float64, F1, F1, types.float64, types.float64, types.boolean, F1))
 
 
@@ -76,9 +77,10 @@ def _propagation(model: Model):
     # f in a loop of its own (no generator call in it, so LLVM may vectorise it), then the draws
     lines = ["def prop(X, XN, FX, k, rng, u):", "    for m in range(X.shape[0]):"]
     lines += scalar_statements(model.casadi_f, ["X[m, {}]", "k", "u[{}]", None], "FX[m, {}]", indent="        ")
-    lines.append("    for m in range(X.shape[0]):")
-    lines += [f"        z{j} = rng.standard_normal()" for j in range(noise.dim)]
+    lines += ["    S, h, l = _load(rng)  # the generator's state in registers", "    for m in range(X.shape[0]):"]
+    lines += [f"        z{j}, h, l = _normal(S, h, l)" for j in range(noise.dim)]
     lines += [f"        XN[m, {i}] = FX[m, {i}] + ({t})" for i, t in enumerate(noise_terms(model, noise, "z"))]
+    lines.append("    _keep(rng, h, l)")
     return compile_kernel(model, "sis_prop", "\n".join(lines), "prop", "the SIS propagation", PROP_T)
 
 
@@ -254,8 +256,7 @@ def _sis_weigh(lik, X, FX, aux, Z, GH, use_gh, G, Kd, Lq, eta, zeta, det, lin, k
                     if det == 2:
                         _correct(x[m], zk, G, Kd, r, xt)
                     else:  # sampled from N(f + K (z - G f), Q - K G Q), the run's own aux Generator
-                        for i in range(n):
-                            zz[i] = aux.standard_normal()
+                        draw_normals(aux, zz, 0, n)
                         _correct(fx[m], zk, G, Kd, r, xt)
                         for i in range(n):
                             acc = 0.0
@@ -304,9 +305,9 @@ def _driver(which: str):
     if which not in _RUN:
         i8, f8, bo = types.int64, types.float64, types.boolean
         if which == "particles":
-            fn, sig = _sis_particles, types.void(PROP_T, F2, GEN, F2, F3, F3)
+            fn, sig = _sis_particles, types.void(PROP_T, F2, STREAM, F2, F3, F3)
         else:
-            fn, sig = _sis_weigh, types.void(LIK_T, F3, F3, GEN, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8, f8,
+            fn, sig = _sis_weigh, types.void(LIK_T, F3, F3, STREAM, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8, f8,
                                              F2, F1, B1, F1, B1)
         disp = njit()(fn)
         disp.compile(sig)
@@ -356,7 +357,7 @@ def sis_particles(model: Model, x0: np.ndarray, rngs: Sequence[np.random.Generat
     X = np.empty((R, K + 1, M, n))
     FX = np.empty((R, K, M, n))
     t0 = time.perf_counter()
-    spread(lambda r: run(prop, x0[r], gens[r], U, X[r], FX[r]), R, threads)
+    spread(lambda r: drawing(gens[r], lambda st: run(prop, x0[r], st, U, X[r], FX[r])), R, threads)
     return SISParticles(X, FX, time.perf_counter() - t0)
 
 
@@ -449,7 +450,7 @@ def sis_fdi(model: Model, particles: SISParticles, z: np.ndarray, *, likelihood:
     else:
         if aux_rngs is not None:
             raise InputError("aux_rngs: only detector='sampled' draws from them")
-        aux = [_NO_DRAWS] * R  # never drawn from
+        aux = [None] * R  # never drawn from
     if gamma_hat is not None:
         GH = np.ascontiguousarray(check_gamma_hat(gamma_hat, Z.shape, detector is not None), dtype=np.float64)
     else:
@@ -467,9 +468,14 @@ def sis_fdi(model: Model, particles: SISParticles, z: np.ndarray, *, likelihood:
     det, kind = DETECTORS[detector], LIKELIHOODS[likelihood]
 
     def one(r: int) -> None:
-        run(lik, X[r], FX[r], aux[r], Z[r], GH[r if gamma_hat is not None else 0], gamma_hat is not None, G, Kd, Lq,
-            float(eta or 0.0), float(zeta or 0.0), det, bool(linear_weights), kind, rho, lq, lp, mean[r], beta[r],
-            detected[r], ess[r], collapsed[r])
+        def call(st):
+            run(lik, X[r], FX[r], st, Z[r], GH[r if gamma_hat is not None else 0], gamma_hat is not None, G, Kd, Lq,
+                float(eta or 0.0), float(zeta or 0.0), det, bool(linear_weights), kind, rho, lq, lp, mean[r], beta[r],
+                detected[r], ess[r], collapsed[r])
+        if aux[r] is None:  # draws nothing
+            call(_NO_DRAWS)
+        else:
+            drawing(aux[r], call)
 
     t0 = time.perf_counter()
     spread(one, R, threads)

@@ -37,7 +37,7 @@ from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat
 
 from .cache import njit
 
-__all__ = ["STREAM", "open_stream", "close_stream", "load", "keep", "normal", "uniform", "draw_normals",
+__all__ = ["STREAM", "open_stream", "close_stream", "drawing", "load", "keep", "normal", "uniform", "draw_normals",
            "draw_uniforms", "draw_uniform"]
 
 #: The numba type of a stream.
@@ -82,6 +82,16 @@ def close_stream(gen: np.random.Generator, st: np.ndarray) -> None:
         state = bg.state  # its 32-bit buffer (has_uint32, uinteger) as it was: no draw here touches it
         state["state"]["state"] = int(st[S_HI]) << 64 | int(st[S_LO])
         bg.state = state
+
+
+def drawing(gen: np.random.Generator, call):
+    """``call(stream)`` with the stream of ``gen``; afterwards (also after an error) ``gen`` stands where the draws
+    took it.  Returns what ``call`` returns."""
+    st = open_stream(gen)
+    try:
+        return call(st)
+    finally:
+        close_stream(gen, st)
 
 
 # ============================================================================ LLVM helpers
