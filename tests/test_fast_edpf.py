@@ -1,6 +1,6 @@
 """Seed 001's filters on the fused kernels (:mod:`filters.fused.edpf`), the batched data and the fast study.
 
-The strongest check: numba's Generator draws are NumPy's, bit for bit, and the
+The strongest check: the kernels' draws (filters.fused.streams) are NumPy's, bit for bit, and the
 switching / mixture propagation draws in ``transition_proposal``'s order, so one run
 of every filter (PPF, PF-RSN, PF-SR-DE, the mean-dynamics row) reproduces
 ``run_sir(runs=1)`` with the same Generator and initial particles to rounding —

@@ -1,6 +1,6 @@
 """Fused numba kernels: the model translation, the likelihoods and the filter against the NumPy engine.
 
-The strongest check: numba's Generator draws are NumPy's, bit for bit, and the
+The strongest check: the kernels' draws (filters.fused.streams) are NumPy's, bit for bit, and the
 fused filter draws in the NumPy engine's order, so one run of it reproduces
 ``run_sir(runs=1)`` with the same seed to rounding — for every resampling
 scheme, both ESS rules, the Round-Robin, all-sensor and binary likelihoods.
