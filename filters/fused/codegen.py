@@ -123,6 +123,8 @@ def propagation(model: Model):
     lines = ["def prop(X, anc, XN, m0, n, k, rng, buf):", "    S, h, l = _load(rng)  # the generator's state in registers",
              "    for m in range(m0, m0 + n):", "        a = anc[m]"]
     lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, None], "f{}", indent="        ")
+    # one copy of the sampler per normal: drawn in a loop into a scratch array, the same numbers compile 0.6 s
+    # faster, but LLVM then fuses the noise terms otherwise (results move in the last bits)
     lines += [f"        z{j}, h, l = _normal(S, h, l)" for j in range(noise.dim)]
     lines += [f"        XN[m, {i}] = f{i} + ({t})" for i, t in enumerate(noise_terms(model, noise, "z"))]
     lines.append("    _keep(rng, h, l)")

@@ -77,8 +77,10 @@ def _propagation(model: Model):
     # f in a loop of its own (no generator call in it, so LLVM may vectorise it), then the draws
     lines = ["def prop(X, XN, FX, k, rng, u):", "    for m in range(X.shape[0]):"]
     lines += scalar_statements(model.casadi_f, ["X[m, {}]", "k", "u[{}]", None], "FX[m, {}]", indent="        ")
-    lines += ["    S, h, l = _load(rng)  # the generator's state in registers", "    for m in range(X.shape[0]):"]
-    lines += [f"        z{j}, h, l = _normal(S, h, l)" for j in range(noise.dim)]
+    lines += ["    S, h, l = _load(rng)  # the generator's state in registers", f"    z = _np.empty({noise.dim})",
+              "    for m in range(X.shape[0]):", f"        for j in range({noise.dim}):  # one copy of the sampler's code",
+              "            v, h, l = _normal(S, h, l)", "            z[j] = v"]
+    lines += [f"        z{j} = z[{j}]" for j in range(noise.dim)]
     lines += [f"        XN[m, {i}] = FX[m, {i}] + ({t})" for i, t in enumerate(noise_terms(model, noise, "z"))]
     lines.append("    _keep(rng, h, l)")
     return compile_kernel(model, "sis_prop", "\n".join(lines), "prop", "the SIS propagation", PROP_T)
