@@ -1,7 +1,7 @@
 """Fused numba kernels: the model translation, the likelihoods and the filter against the NumPy engine.
 
-The strongest check: the kernels' draws (filters.fused.streams) are NumPy's, bit for bit, and the
-fused filter draws in the NumPy engine's order, so one run of it reproduces
+The strongest check: the kernels' draws (filters.fused.streams, tests/test_streams.py) are
+NumPy's, bit for bit, and the fused filter draws in the NumPy engine's order, so one run of it reproduces
 ``run_sir(runs=1)`` with the same seed to rounding — for every resampling
 scheme, both ESS rules, the Round-Robin, all-sensor and binary likelihoods.
 """
@@ -61,38 +61,6 @@ def binary():
     tr = sc.simulate(rng, K, batch=R)
     y = binary_sensor_channel(tr.z, **probs, rng=rng, **kw).y  # (R, K, S)
     return dict(sc=sc, m=sc.model, kw=kw, probs=probs, R=R, K=K, x=tr.x, y=y)
-
-
-# ----------------------------------------------------------------------------- random streams
-@numba.njit
-def _normals(rng, n):
-    out = np.empty(n)
-    for i in range(n):
-        out[i] = rng.standard_normal()
-    return out
-
-
-@numba.njit
-def _interleaved(rng, n):
-    out = np.empty(2 * n)
-    for i in range(n):
-        out[2 * i] = rng.standard_normal()
-        out[2 * i + 1] = rng.random()
-    return out
-
-
-def test_numba_generator_streams_are_numpys_bit_for_bit():
-    """The premise of the exact comparison with run_sir: same Generator state, same numbers, same next state."""
-    for seed in (0, 12345):
-        a = np.random.default_rng(seed)
-        b = np.random.default_rng(seed)
-        assert np.array_equal(_normals(a, 5000), b.standard_normal(5000))
-        assert np.array_equal(a.standard_normal((7, 3)), b.standard_normal((7, 3)))  # state advanced alike
-        ref = []
-        for _ in range(300):
-            ref += [b.standard_normal(), b.random()]
-        assert np.array_equal(_interleaved(a, 300), np.array(ref))
-        assert np.array_equal(a.random(10), b.random(10))
 
 
 # ----------------------------------------------------------------------------- model translation
@@ -383,13 +351,15 @@ def test_one_run_reproduces_run_sir_round_robin(rb, scheme, thr):
             assert not ours.resampled.all()
 
 
-def test_one_run_reproduces_run_sir_all_sensors(rb):
+@pytest.mark.parametrize("bit_generator", [np.random.PCG64, np.random.MT19937], ids=lambda b: b.__name__)
+def test_one_run_reproduces_run_sir_all_sensors(rb, bit_generator):
+    """Also with a Generator on another bit generator than NumPy's default (its stream calls its C functions)."""
     m, M, K = rb["m"], 300, rb["K"]
     y = rb["all_att"][2:3]
     lc, att = deception_terms(y, ETA, rb["box"])
-    ref = run_sir(m, y.reshape(1, K, 8), np.random.default_rng(5), particles=M, runs=1,
+    ref = run_sir(m, y.reshape(1, K, 8), np.random.Generator(bit_generator(5)), particles=M, runs=1,
                   loglik=all_sensors_loglik(m, attack_prob=ETA, signal=rb["box"], angles=[1]))
-    g = np.random.default_rng(5)
+    g = np.random.Generator(bit_generator(5))
     ours = sir_packets(m, m.prior.sample(g, (1, M)), [g], np.tile(np.arange(4), (K, 1)), y, attack=att,
                        log_clean=lc, angles=[1])
     _same_as_run_sir(ours, ref)
