@@ -306,7 +306,8 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
             "draws": lambda: _draws(open_stream(np.random.default_rng(1)), K * particles * n_w),
             "prop": lambda: props(prop, x, xn, K, open_stream(np.random.default_rng(1))),
             "lik": lambda: liks(lik, x, K, data, P, ne, b, w),
-            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, open_stream(np.random.default_rng(1)), systematic, 1.0, False,
+            "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, open_stream(np.random.default_rng(1)),
+                                systematic, 1.0, False,
                                 mean, cov, ess, *flags),
         }
         for fn in parts.values():

@@ -120,8 +120,9 @@ def propagation(model: Model):
     if not isinstance(noise, Gaussian):
         raise InputError(f"process_noise of model {model.name!r} is {type(noise).__name__}; "
                          "the fused kernels need Gaussian process noise")
-    lines = ["def prop(X, anc, XN, m0, n, k, rng, buf):", "    S, h, l = _load(rng)  # the generator's state in registers",
-             "    for m in range(m0, m0 + n):", "        a = anc[m]"]
+    lines = ["def prop(X, anc, XN, m0, n, k, rng, buf):",
+             "    S, h, l = _load(rng)  # the generator's state in registers", "    for m in range(m0, m0 + n):",
+             "        a = anc[m]"]
     lines += scalar_statements(model.casadi_f, ["X[a, {}]", "k", None, None], "f{}", indent="        ")
     # one copy of the sampler per normal: drawn in a loop into a scratch array, the same numbers compile 0.6 s
     # faster, but LLVM then fuses the noise terms otherwise (results move in the last bits)

@@ -310,7 +310,8 @@ def drivers(data, which: int = 0):
     if key not in _DRIVERS:
         lik, i8, f8 = lik_type(data), types.int64, types.float64
         if which == 0:
-            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, STREAM, SCHEME_T, f8, types.boolean, F2, F3, F1, B1, B1)
+            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, STREAM, SCHEME_T, f8, types.boolean, F2, F3, F1, B1,
+                     B1)
             _DRIVERS[key] = _entry(_sir_run, sig)
         else:
             _DRIVERS[key] = _entry(loglik_rows, types.void(lik, i8, i8, F2, f8, data, F1))

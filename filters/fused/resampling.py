@@ -3,8 +3,8 @@
 The registry (names, codes, the schemes' definitions) is :mod:`filters.resampling`'s:
 :data:`SCHEME_FUNCTIONS` maps a scheme's code (:func:`filters.resampling.scheme_code`) to
 its compiled function, which draws the same uniforms from the run's Generator (its stream,
-:mod:`filters.fused.streams`) in the same order as the NumPy function of that scheme, so both engines resample alike (the tests
-compare them).
+:mod:`filters.fused.streams`) in the same order as the NumPy function of that scheme, so both
+engines resample alike (the tests compare them).
 Systematic resampling, the default, is branch-free (:func:`systematic`).
 """
 from __future__ import annotations

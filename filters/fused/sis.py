@@ -78,7 +78,8 @@ def _propagation(model: Model):
     lines = ["def prop(X, XN, FX, k, rng, u):", "    for m in range(X.shape[0]):"]
     lines += scalar_statements(model.casadi_f, ["X[m, {}]", "k", "u[{}]", None], "FX[m, {}]", indent="        ")
     lines += ["    S, h, l = _load(rng)  # the generator's state in registers", f"    z = _np.empty({noise.dim})",
-              "    for m in range(X.shape[0]):", f"        for j in range({noise.dim}):  # one copy of the sampler's code",
+              "    for m in range(X.shape[0]):",
+              f"        for j in range({noise.dim}):  # one copy of the sampler's code",
               "            v, h, l = _normal(S, h, l)", "            z[j] = v"]
     lines += [f"        z{j} = z[{j}]" for j in range(noise.dim)]
     lines += [f"        XN[m, {i}] = FX[m, {i}] + ({t})" for i, t in enumerate(noise_terms(model, noise, "z"))]
@@ -309,8 +310,8 @@ def _driver(which: str):
         if which == "particles":
             fn, sig = _sis_particles, types.void(PROP_T, F2, STREAM, F2, F3, F3)
         else:
-            fn, sig = _sis_weigh, types.void(LIK_T, F3, F3, STREAM, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8, f8,
-                                             F2, F1, B1, F1, B1)
+            fn, sig = _sis_weigh, types.void(LIK_T, F3, F3, STREAM, F2, F2, bo, F2, F2, F2, f8, f8, i8, bo, i8, F1, f8,
+                                             f8, F2, F1, B1, F1, B1)
         disp = njit()(fn)
         disp.compile(sig)
         _RUN[which] = disp.overloads[tuple(sig.args)].entry_point
