@@ -151,6 +151,25 @@ def uniform_moments(x, mean, cov, do_cov, W):
         covariance(x, W, 1.0 / M, mean, cov)
 
 
+@njit(inline="always")
+def _largest(v):
+    """``max(v)`` (no NaN in ``v``, -inf if empty) over four running maxima: four chains, not one (the maximum is
+    exact in any order)."""
+    n = v.shape[0]
+    m0 = m1 = m2 = m3 = -math.inf
+    i = 0
+    while i + 4 <= n:
+        m0 = max(m0, v[i])
+        m1 = max(m1, v[i + 1])
+        m2 = max(m2, v[i + 2])
+        m3 = max(m3, v[i + 3])
+        i += 4
+    while i < n:
+        m0 = max(m0, v[i])
+        i += 1
+    return max(max(m0, m1), max(m2, m3))
+
+
 @njit()
 def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
     """Propagate every particle and weigh it with step ``t``'s data, block by block; returns the largest ``b``.
@@ -181,10 +200,9 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
         for i in range(n):
             v = bb[i]
             if not (v > -math.inf and v < math.inf and sb[i] == sb[i]):  # NaN (e.g. h undefined) or infinite
-                v = -math.inf
                 sb[i] = 0.0  # zero weight
-            bb[i] = v
-            best = v if v > best else best
+                bb[i] = -math.inf
+        best = max(best, _largest(bb))
     return best
 
 
