@@ -151,17 +151,22 @@ def _fork(parent: int) -> int:
 
     The child never collects garbage (it draws, then ends with ``os._exit``): a collection
     would write into the header of every object it inherited, and so copy nearly all of the
-    parent's memory page by page (``gc.freeze`` before the fork keeps the parent's own
-    collections off those objects until :func:`_unfreeze`).
+    parent's memory page by page.  Its inherited objects are frozen too (``gc.freeze`` around
+    the fork; the parent's are unfrozen at once), so that not even an explicit collection in
+    the child visits them.
     """
     from .runner import worker_init
 
     sys.stdout.flush()
     sys.stderr.flush()
     gc.freeze()
-    with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; a child here only draws
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
+    try:
+        with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; a child here only draws
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except BaseException:
+        gc.unfreeze()
+        raise
     if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
         gc.disable()
         worker_init(parent)

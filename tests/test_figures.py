@@ -176,7 +176,7 @@ def test_the_warm_up_leaves_out_its_figure_when_the_job_is_waiting(monkeypatch):
 
 
 @linux
-def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was():
+def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was(monkeypatch):
     import gc
 
     helper = F.FigureHelper.start(_draw_three)
@@ -184,6 +184,14 @@ def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was():
         assert gc.get_freeze_count() == 0 and gc.isenabled()
     finally:
         helper.close()
+
+    def no_more_processes():
+        raise OSError("fork failed")
+
+    monkeypatch.setattr(F.os, "fork", no_more_processes)
+    with pytest.raises(OSError):
+        F._fork(os.getpid())
+    assert gc.get_freeze_count() == 0  # a failed fork leaves nothing frozen either
 
 
 @linux
