@@ -20,7 +20,9 @@ and afterwards the Generator stands where it would after drawing the same number
   target-range-bearing's model).
 - **any other bit generator**: the kernels call its C functions (``next_uint64``,
   ``next_double``) through the addresses in ``bit_generator.ctypes``, one call per
-  number, as numba's ``Generator`` methods do; its state advances in place.
+  number, as numba's ``Generator`` methods do; its state advances in place.  The
+  ziggurat is the same code for both kinds: only where its 64-bit outputs and doubles
+  come from differs (:func:`_raw`, :func:`uniform`).
 
 A stream belongs to one run: never share one between threads.
 """
@@ -155,37 +157,27 @@ def _from_u64(r):
     return float(r >> np.uint64(11)) * _TWO_M53
 
 
+@njit(inline="always")
+def _raw(S, h, lo):
+    """The next 64-bit output of the stream's bit generator, and the state after it."""
+    if S[0] != PCG64:
+        return _next_uint64(S[3], S[5]), h, lo
+    return _step(S, h, lo)
+
+
 @njit()
 def _slow(S, h, lo, idx, rabs, x):
-    """The ziggurat's rare branches (about 1 % of the draws) on PCG64: ``(accepted, value, h, lo)``."""
+    """The ziggurat's rare branches (about 1 % of the draws): ``(accepted, value, h, lo)``."""
     if idx == 0:  # the tail
         while True:
-            r, h, lo = _step(S, h, lo)
-            xx = -NOR_INV_R * math.log1p(-_from_u64(r))
-            r, h, lo = _step(S, h, lo)
-            yy = -math.log1p(-_from_u64(r))
+            u, h, lo = uniform(S, h, lo)
+            xx = -NOR_INV_R * math.log1p(-u)
+            u, h, lo = uniform(S, h, lo)
+            yy = -math.log1p(-u)
             if yy + yy > xx * xx:
                 return True, (-(NOR_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else NOR_R + xx), h, lo
-    r, h, lo = _step(S, h, lo)
-    return (FI[idx - 1] - FI[idx]) * _from_u64(r) + FI[idx] < math.exp(-0.5 * x * x), x, h, lo
-
-
-@njit()
-def _normal_other(S):
-    """A standard normal of another bit generator, through its C functions (as numba's Generator draws it)."""
-    fn, fd, state = S[3], S[4], S[5]
-    while True:
-        idx, rabs, x = _candidate(_next_uint64(fn, state))
-        if rabs < KI[idx]:
-            return x
-        if idx == 0:
-            while True:
-                xx = -NOR_INV_R * math.log1p(-_next_double(fd, state))
-                yy = -math.log1p(-_next_double(fd, state))
-                if yy + yy > xx * xx:
-                    return -(NOR_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else NOR_R + xx
-        elif (FI[idx - 1] - FI[idx]) * _next_double(fd, state) + FI[idx] < math.exp(-0.5 * x * x):
-            return x
+    u, h, lo = uniform(S, h, lo)
+    return (FI[idx - 1] - FI[idx]) * u + FI[idx] < math.exp(-0.5 * x * x), x, h, lo
 
 
 @njit(inline="always")
@@ -204,10 +196,8 @@ def keep(st, h, lo):
 @njit(inline="always")
 def normal(S, h, lo):
     """``(z, h, lo)``: the next standard normal (``Generator.standard_normal()``) and the state after it."""
-    if S[0] != PCG64:
-        return _normal_other(S), h, lo
     while True:
-        r, h, lo = _step(S, h, lo)
+        r, h, lo = _raw(S, h, lo)
         idx, rabs, x = _candidate(r)
         if rabs < KI[idx]:
             return x, h, lo
