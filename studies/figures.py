@@ -278,7 +278,7 @@ class FigureHelper:
     """A process that draws a study's figures, forked before the study computes.
 
     ``draw(out, results, arrays)`` (the study's figure function, bound to its scenarios) is
-    called in the helper once :meth:`figures` sends it the results; meanwhile the helper has
+    called in the helper once :meth:`send` gives it the results; meanwhile the helper has
     imported matplotlib and drawn a throwaway figure, so neither the import nor the fonts'
     loading waits for the study.  Linux only (:meth:`start` gives None elsewhere).
     """
@@ -312,10 +312,6 @@ class FigureHelper:
         os.close(job_r)
         os.close(done_w)
         return cls(pid, job_w, done_r)
-
-    def figures(self, out: Path, results: dict, arrays: Mapping) -> bool:
-        """Have the helper draw the figures into ``out``; True when it wrote them all."""
-        return self.send(out, results, arrays) and self.wait()
 
     def send(self, out: Path, results: dict, arrays: Mapping) -> bool:
         """Give the helper the figures to draw into ``out`` and return at once (True if it has them): the caller

@@ -123,7 +123,7 @@ def test_the_helper_draws_what_the_study_would(tmp_path):
     (tmp_path / "b").mkdir()
     results, arrays = {"n": 3}, {"seeds": np.array([4, 5, 6])}
     helper = F.FigureHelper.start(_draw_three)
-    assert helper.figures(tmp_path / "a", results, arrays)
+    assert helper.send(tmp_path / "a", results, arrays) and helper.wait()
     with F.figure_batch(processes=1):
         _draw_three(tmp_path / "b", results, arrays)
     for pa, pb in zip(_paths(tmp_path / "a", 3), _paths(tmp_path / "b", 3)):
@@ -134,7 +134,7 @@ def test_the_helper_draws_what_the_study_would(tmp_path):
 def test_a_failing_or_unused_helper_is_reaped(tmp_path):
     helper = F.FigureHelper.start(_draw_fails)
     pid = helper._pid
-    assert helper.figures(tmp_path, {}, {}) is False  # the caller then draws itself
+    assert helper.send(tmp_path, {}, {}) and helper.wait() is False  # the caller then draws itself
     with pytest.raises(ChildProcessError):
         os.waitpid(pid, os.WNOHANG)
     helper = F.FigureHelper.start(_draw_three)  # given nothing: killed at once, not left importing
