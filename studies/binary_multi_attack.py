@@ -49,7 +49,7 @@ from filters.attacks import binary_sensor_channel
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_binary, run_configurations,
                     score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .figures import curves_figure, plotting, save_figure, trajectory_figure
+from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .rrp_deception import plane_view
 from .runner import run_seed
@@ -287,7 +287,7 @@ def table_markdown(results: dict) -> str:
             + (" The paper prints no numbers for these (Figs. 4-5)." if paper else "") + "\n\n")
     text += markdown_table({n: _with_ci(f) for n, f in results["filters"].items()},
                            [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v"),
-                            ("time_per_step_s", "time/step s"), ("communications", "communications")])
+                            ("time_per_step_s", "time/step s"), ("communications", "communications")], "filter")
     sw = results["sweeps"]
     for p, title in (("dos_prob", "DoS probability phi-bar (Figs. 6-7)"),
                      ("deception_prob", "deception probability varphi-bar (Figs. 8-9)"),
@@ -295,7 +295,7 @@ def table_markdown(results: dict) -> str:
         if p in sw:
             text += f"\n## Sec-PF against the {title}\n\n" + markdown_table(
                 {f"{p} = {v}": _with_ci(d["Sec-PF"]) for v, d in sw[p].items()},
-                [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v")])
+                [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v")], "setting")
     if "particles" in sw:
         rows = {}
         for M, d in sw["particles"].items():
@@ -308,24 +308,25 @@ def table_markdown(results: dict) -> str:
                 ("kalman_v", "Kalman RMSE_v at the paper's RMSE_p")]
         if not paper:
             cols = [(k, h.replace(" (ours)", "")) for k, h in cols if not k.startswith(("paper_", "kalman"))]
-        text += "\n## Table II: Sec-PF against the number of particles\n\n" + markdown_table(rows, cols)
+        text += "\n## Table II: Sec-PF against the number of particles\n\n" + markdown_table(rows, cols, "particles")
     return text
 
 
 def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     sc, A = next(iter(built.values())), next(iter(arrays.values()))
     filters, sweeps, K = results["filters"], results["sweeps"], sc.steps
+    colours = filter_colours(filters)
     pos = plane_view(sc.model)
     if pos is not None:  # the three filters are the first configurations, in FILTERS order
         trajectory_figure(out / "fig_trajectory.png", A["truth"][0],
                           {n: A["mean"][0, j] for j, n in enumerate(FILTERS)}, pos, sc.model.position_index,
-                          "One run: target and estimates (cf. Figs. 2-3)")
+                          "One run: target and estimates (cf. Figs. 2-3)", colours)
     metrics = [mt for mt in ("position", "velocity") if all(f[f"rmse_{mt}_curve"] is not None
                                                              for f in filters.values())]
     for metric in metrics:
         fig_no = {"position": "4", "velocity": "5"}[metric]
         curves_figure(out / f"fig_rmse_{metric}.png", {n: f[f"rmse_{metric}_curve"] for n, f in filters.items()},
-                      f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})")
+                      f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})", colours=colours)
     present = [p for p in SWEEP_PARAMS if p in sweeps]
     if not present:
         return
@@ -340,7 +341,7 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
             for v, d in sweeps[p].items():
                 ax.plot(k, d["Sec-PF"][f"rmse_{metric}_curve"], lw=1.1, label=f"{names[p]} = {v}")
             ax.set(xlabel="time step k", ylabel=f"RMSE of {metric}")
-            ax.legend(fontsize=7)
+            legend_beside(ax)
     fig.suptitle("Sec-PF against each attack probability (cf. Figs. 6-11)")
     save_figure(fig, out / "fig_attack_sweeps.png")
 

@@ -64,8 +64,8 @@ from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
 from .consensus_design import as_mode, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .figures import curves_figure, plotting, save_figure
-from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence, markdown_table
+from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
+from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
 
 __all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "local_ekf_design"]
@@ -185,8 +185,12 @@ TEXT = StudyText(
     accuracy=(("rmse_position", "position RMSE"), ("rmse_position_median_run", "median-run position RMSE"),
               ("rmse", "state RMSE"), ("rmse_median_run", "median-run state RMSE")),
     figures={
-        "fig_tradeoff.png": "Accuracy (with its 95 % interval) against the time per step; the legend gives the "
-                            "messages per step.",
+        "fig_rmse_*.png": "The error of every filter at each time step on scenario {}, over the runs at the main "
+                          "attack setting (log scale).",
+        "fig_sweeps_*.png": "How each filter degrades on scenario {} as the DoS probability (left, FDI fixed) and the "
+                            "FDI probability (right, DoS fixed) grow, with 95 % intervals (shaded; log scale).",
+        "fig_trajectory_*.png": "Run 1 on scenario {}: the truth and each filter's estimate (node 1's for the "
+                                "networked filters); a filter that diverged in that run is left out.",
     },
 )
 
@@ -539,9 +543,7 @@ def _metrics(err2: np.ndarray, rng: np.random.Generator, key: str, curve: bool =
     if not len(e):
         return {**out, key: None, f"{key}_ci95": None, f"{key}_curve": None, f"{key}_median_run": None}
     per_run = e.mean(axis=1)
-    idx = rng.integers(0, len(e), size=(1000, len(e)))
-    lo, hi = np.percentile(np.sqrt(per_run[idx].mean(axis=1)), [2.5, 97.5])
-    out.update({key: float(np.sqrt(per_run.mean())), f"{key}_ci95": [float(lo), float(hi)],
+    out.update({key: float(np.sqrt(per_run.mean())), f"{key}_ci95": bootstrap_rmse_ci(per_run, rng),
                 f"{key}_median_run": float(np.median(np.sqrt(per_run)))})
     if curve:
         out[f"{key}_curve"] = [float(v) for v in np.sqrt(e.mean(axis=0))]
@@ -586,7 +588,7 @@ def table_markdown(results: dict) -> str:
         text += markdown_table(rows, [("family", "family"), ("rmse", f"{what} RMSE [95 % CI]"),
                                       ("median", "median run RMSE"), ("ms", "time/step ms"),
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
-                                      ("feas", "runs with design conditions met")])
+                                      ("feas", "runs with design conditions met")], "filter")
         rec = b["recommendation"]
         if rec["most_accurate"] is not None:
             text += (f"\nMost accurate: {rec['most_accurate']}"
@@ -598,8 +600,9 @@ def table_markdown(results: dict) -> str:
             sw = b["sweeps"][skey]
             names = [n for n in b["filters"] if any(n in row for row in sw.values())]
             text += (f"\n### {sc_name}: {what} RMSE against the {title}\n\nRMSE over all runs (median run's "
-                     "RMSE in brackets: a few exploding runs dominate the first, not the second).\n\n") + markdown_table(
-                {v: {n: _sweep_cell(row.get(n), key) for n in names} for v, row in sw.items()}, [(n, n) for n in names])
+                     "RMSE in brackets: a few exploding runs dominate the first, not the second).\n\n")
+            text += markdown_table({v: {n: _sweep_cell(row.get(n), key) for n in names} for v, row in sw.items()},
+                                   [(n, n) for n in names], skey)
     return text
 
 
@@ -612,31 +615,20 @@ def _sweep_cell(m: dict | None, key: str) -> str | None:
 
 
 def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
+    """Per scenario: the error over time, the sweeps and run 1's trajectory, one colour per filter (the summary's
+    trade-off figure is :func:`studies.figures.tradeoff_figure`'s)."""
     plt = plotting()
     blocks = results["by_scenario"]
-    names = list(blocks)
-    fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 4.8), squeeze=False)
-    for ax, sc_name in zip(axes[0], names):
-        key = blocks[sc_name]["error"]["metric"]
-        for n, f in blocks[sc_name]["filters"].items():
-            if f[key] is None:
-                continue
-            lo, hi = f[f"{key}_ci95"]
-            ax.errorbar(1e3 * f["time_per_step_s"], f[key], yerr=[[f[key] - lo], [hi - f[key]]], fmt="o", capsize=3,
-                        label=f"{n} ({f['messages_per_step']} msgs/step)")
-        ax.set(xscale="log", yscale="log", xlabel="time per step (ms, log scale)",
-               ylabel=f"{'position' if key == 'rmse_position' else 'state'} RMSE with 95 % CI (log scale)",
-               title=f"{sc_name}: accuracy against cost")
-        ax.legend(fontsize=7, title="filter (messages per step)", title_fontsize=7)
-    save_figure(fig, out / "fig_tradeoff.png")
-    for sc_name in names:
-        b, A, sc = blocks[sc_name], arrays[sc_name], built[sc_name]
+    for sc_name, b in blocks.items():
+        A, sc = arrays[sc_name], built[sc_name]
         key, slug = b["error"]["metric"], _slug(sc_name)
+        colours = filter_colours(b["filters"])
         what = "position" if key == "rmse_position" else "state"
         curves_figure(out / f"fig_rmse_{slug}.png",
                       {n: f[f"{key}_curve"] for n, f in b["filters"].items() if f[f"{key}_curve"] is not None},
-                      f"{what} RMSE", f"{sc_name}: {what} RMSE over time at the main attack setting", log=True)
-        fig, axs = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+                      f"{what} RMSE", f"{sc_name}: {what} RMSE over time at the main attack setting", log=True,
+                      colours=colours)
+        fig, axs = plt.subplots(1, 2, figsize=(12.5, 4.2), sharey=True)
         for ax, (skey, label) in zip(axs, (("dos_prob", "DoS probability (FDI fixed)"),
                                            ("fdi_prob", "FDI probability (DoS fixed)"))):
             xs = sorted(b["sweeps"][skey], key=float)
@@ -646,23 +638,23 @@ def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
                 if len(pts) < 2:
                     continue
                 x = [p[0] for p in pts]
-                ax.plot(x, [p[1][key] for p in pts], "o-", label=n)
+                ax.plot(x, [p[1][key] for p in pts], "o-", color=colours[n], label=n)
                 ax.fill_between(x, [p[1][f"{key}_ci95"][0] for p in pts], [p[1][f"{key}_ci95"][1] for p in pts],
-                                alpha=0.15)
+                                color=colours[n], alpha=0.15)
             ax.set(xlabel=label, ylabel=f"{what} RMSE (log scale)", yscale="log",
                    title=f"{sc_name}: degradation with the {label.split(' (')[0]}")
-        axs[0].legend(fontsize=7)
+        legend_beside(axs[1])
         save_figure(fig, out / f"fig_sweeps_{slug}.png")
-        _trajectory(out / f"fig_trajectory_{slug}.png", sc, A, sc_name)
+        _trajectory(out / f"fig_trajectory_{slug}.png", sc, A, sc_name, colours)
 
 
-def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str) -> None:
+def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) -> None:
     """Run 1's truth and estimates: in the plane of the position, or per state component over time."""
     plt = plotting()
     m = sc.model
     tr = A["truth"][0]
     if len(m.position_index) == 2:
-        fig, ax = plt.subplots(figsize=(6, 5))
+        fig, ax = plt.subplots(figsize=(8, 5))
         i, j = m.position_index
         sens = [s.position for s in m.sensors if s.position is not None and len(s.position) >= 2]
         if sens:
@@ -672,24 +664,25 @@ def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str) -> None:
         for f, n in enumerate(FILTERS):
             e = A["estimate"][0, f]
             if np.all(np.isfinite(e)):
-                ax.plot(e[:, i], e[:, j], lw=1, label=n + (" (node 1)" if FAMILY[n] in ("consensus", "local") else ""))
+                ax.plot(e[:, i], e[:, j], lw=1, color=colours[n],
+                        label=n + (" (node 1)" if FAMILY[n] in ("consensus", "local") else ""))
         ax.set(xlabel=f"{m.state_names[i]}", ylabel=f"{m.state_names[j]}", title=f"{sc_name}, run 1: truth and "
                "estimates")
-        ax.legend(fontsize=7)
+        legend_beside(ax)
     else:
         comps = list(m.position_index) or list(range(min(m.n_x, 4)))
-        fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
+        fig, axs = plt.subplots(len(comps), 1, figsize=(10, 2.2 * len(comps) + 0.6), sharex=True, squeeze=False)
         t = np.arange(tr.shape[0])
         for ax, c in zip(axs[:, 0], comps):
             ax.plot(t, tr[:, c], "k-", lw=2, label="truth")
             for f, n in enumerate(FILTERS):
                 e = A["estimate"][0, f]
                 if np.all(np.isfinite(e)):
-                    ax.plot(t, e[:, c], lw=1, label=n)
+                    ax.plot(t, e[:, c], lw=1, color=colours[n], label=n)
             ax.set_ylabel(m.state_names[c])
         axs[0, 0].set_title(f"{sc_name}, run 1: truth and estimates (node 1 for the networked filters)")
         axs[-1, 0].set_xlabel("time step k")
-        axs[0, 0].legend(fontsize=6)
+        legend_beside(axs[0, 0])
     save_figure(fig, path)
 
 

@@ -25,6 +25,7 @@ from designer.validation import InputError, check_int
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
+from .invocation import design_invocation
 from .results import versions
 from .scenarios import Scenario
 
@@ -165,6 +166,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                seed: int = 0) -> Design:
     """Design the consensus filter of ``sc`` along a seeded simulated run (see the module docstring)."""
     seed = check_int("seed", seed, 0)
+    invocation = design_invocation(sc, options, steps=None if steps is None else check_int("steps", steps, 1),
+                                   seed=seed)
     sc, opts = effective(sc, options)
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
@@ -213,6 +216,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
             "source": sc.source,
+            "invocation": invocation,
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS),
             "versions": versions(),
         },

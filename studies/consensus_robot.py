@@ -50,7 +50,7 @@ from .comparison import HCMCI_ITERATIONS, local_ekf_design
 from .consensus_design import as_mode, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .figures import save_figure
-from .results import DIVERGENCE_SPREAD, divergence_limit, first_divergence
+from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -369,7 +369,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         if not ok.any():  # every run diverged: no error statistics exist
-            filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_median_run": None,
+            filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_ci95": None,
+                             "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "diverged_runs": failed,
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
             continue
@@ -380,11 +381,14 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         first = A[f"v{j}_first_violation"][ok]
         fv = [int(x) for x in first if x >= 0]
         n_ok = int(ok.sum())
+        per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
+        boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         filters[name] = {
             "family": v.family,
             "rmse_position": float(np.sqrt(e2.sum(-1).mean())),
+            "rmse_position_ci95": bootstrap_rmse_ci(per_run, boot),
             # robust to a few divergent runs: the median over runs of each run's RMSE
-            "rmse_position_median_run": float(np.median(np.sqrt(e2.sum(-1).mean(axis=(1, 2))))),
+            "rmse_position_median_run": float(np.median(np.sqrt(per_run))),
             "rmse_state": [float(x) for x in np.sqrt((err**2).mean(axis=(0, 1, 2)))],
             "rmse_position_curve": [float(x) for x in np.sqrt(e2.sum(-1).mean(axis=(0, 2)))],
             "nodes": [{"node": i, "rmse_position": float(np.sqrt(e2[:, :, i].sum(-1).mean())),
@@ -417,8 +421,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + [
             "consensus-robot: RMSE_position = sqrt(mean over runs, nodes and steps 1..K of the squared position "
             "error; the whole state for a model without position components); per-node and per-step curves "
-            "likewise; rmse_position_median_run = median over runs of each run's RMSE; node_spread = mean distance "
-            "of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite, or an "
+            "likewise; rmse_position_ci95 = its 95 % percentile bootstrap interval over the runs (1000 resamples of "
+            "the runs' mean squared errors); rmse_position_median_run = median over runs of each run's RMSE; "
+            "node_spread = mean distance of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite, or an "
             "error beyond divergence_spread (default 100, --set divergence_spread=...) times the prior's spread "
             "sqrt(tr P0)) are excluded and listed under diverged_runs.",
             "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
@@ -463,9 +468,10 @@ def _study_figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
 
 
 def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
-    from .figures import plotting
+    from .figures import filter_colours, legend_beside, plotting
 
     plt = plotting()
+    colours = filter_colours(filters)
     net, m = sc.network, sc.model
     steps = sc.steps
     t = np.arange(1, steps + 1)
@@ -487,7 +493,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.axhline(0, color="k", lw=0.5)
         ax.set_ylabel(f"injected signal on {m.state_names[comp]}")
         ax.set_title(f"attacks on the channels into node {node1} (run 0)")
-        ax.legend(fontsize=7, ncol=3, loc="upper right")
+        legend_beside(ax)
     axes[-1, 0].set_xlabel("time step k")
     save_figure(fig, out / "fig_attacks.png")
 
@@ -511,7 +517,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.set_ylabel(m.state_names[py] + (" (m)" if robot else ""))
         ax.set_title(f"{'robot' if robot else 'true'} path and the {net.n_nodes} node estimates, {name} (run 0)")
         ax.set_aspect("equal")
-        ax.legend(fontsize=7, ncol=2, loc="upper left")
+        legend_beside(ax)
     else:
         comps = list(m.position_index) or list(range(min(m.n_x, 4)))
         fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
@@ -522,7 +528,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
             ax.set_ylabel(m.state_names[c])
         axs[0, 0].set_title(f"truth and the {net.n_nodes} node estimates, {name} (run 0)")
         axs[-1, 0].set_xlabel("time step k")
-        axs[0, 0].legend(fontsize=7, ncol=2)
+        legend_beside(axs[0, 0])
     save_figure(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
@@ -534,19 +540,20 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.set_title(fname, fontsize=9)
         ax.set_xlabel("time step k")
     np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
-    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
+    legend_beside(np.atleast_1d(axes)[-1])
     save_figure(fig, out / "fig_rmse_nodes.png")
 
     # Every filter: position RMSE over time (mean over nodes), log scale.
-    fig, ax = plt.subplots(figsize=(8, 4))
+    fig, ax = plt.subplots(figsize=(9.5, 4))
     for fname, res in filters.items():
         if res["rmse_position"] is None:
             continue
-        ax.semilogy(t, res["rmse_position_curve"], lw=1.5, label=f"{fname} ({res['rmse_position']:.3g})")
+        ax.semilogy(t, res["rmse_position_curve"], lw=1.5, color=colours[fname],
+                    label=f"{fname} ({res['rmse_position']:.3g})")
     ax.set_xlabel("time step k")
     ax.set_ylabel("position RMSE" if m.position_index else "state RMSE")
     ax.set_title("RMSE over the same runs (legend: time average)")
-    ax.legend(fontsize=8)
+    legend_beside(ax)
     save_figure(fig, out / "fig_compare.png")
 
     # Bound against the empirical covariance (where Φ is a bound in enough runs).
@@ -584,16 +591,19 @@ def table_markdown(results: dict) -> str:
     rows = {}
     for name, f in results["filters"].items():
         bc, fe = f.get("bound_check") or {}, f.get("feasibility") or {}
-        rows[name] = {"rmse": f["rmse_position"], "median": f["rmse_position_median_run"],
+        ci = f.get("rmse_position_ci95")
+        rows[name] = {"rmse": f["rmse_position"] if ci is None or f["rmse_position"] is None else
+                      f"{f['rmse_position']:.4g} [{ci[0]:.3g}, {ci[1]:.3g}]", "median": f["rmse_position_median_run"],
                       "spread": f.get("node_spread"), "div": len(f["diverged_runs"]),
                       "feas": None if not fe else f"{fe['runs_feasible']}/{fe['runs']}",
                       "exceed": bc.get("fraction_exceeding"), "ratio": bc.get("trace_ratio_mean"),
                       "ms": 1e3 * f["time_per_step_s"], "msgs": f.get("communications")}
     return (f"# consensus-robot (seed 003): {results['scenario']}\n\n{results['runs']} runs, K = {results['steps']} "
             f"steps, seed {results['seed']}, mode {results['mode']}.\n\n" + markdown_table(rows, [
-                ("rmse", "RMSE_p"), ("median", "median run"), ("spread", "node spread"), ("div", "diverged runs"),
+                ("rmse", "RMSE_p [95 % CI]"), ("median", "median run"), ("spread", "node spread"),
+                ("div", "diverged runs"),
                 ("feas", "feasible runs"), ("exceed", "bound exceeded (fraction of pairs)"),
-                ("ratio", "tr P / tr Phi"), ("ms", "time/step ms"), ("msgs", "messages/step")]))
+                ("ratio", "tr P / tr Phi"), ("ms", "time/step ms"), ("msgs", "messages/step")], "filter"))
 
 
 TEXT = StudyText(
@@ -638,6 +648,7 @@ TEXT = StudyText(
         "(`dos_prob`) the message is lost (DoS; the receiver knows it), otherwise with probability gamma-bar "
         "(`fdi_prob`) a bounded signal of amplitude `attack_amplitude` is added to it (FDI)."),
     attack_params=("dos_prob", "fdi_prob", "attack_amplitude"),
+    references=("centralized EKF (all cameras)", "centralized EKF (all sensors)"),  # a fusion centre, not attacked
     accuracy=(("rmse_position", "position RMSE over all nodes"),
               ("rmse_position_median_run", "median over runs of the per-run position RMSE")),
     figures={

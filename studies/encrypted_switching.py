@@ -64,7 +64,7 @@ from filters.particle import run_sir, transition_proposal
 from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
 from .progress import progress
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .figures import curves_figure
+from .figures import curves_figure, filter_colours
 from .results import _curve_mean_ci, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -475,7 +475,7 @@ def table_markdown(results: dict) -> str:
     text = (f"# encrypted-switching {title}\n\n{results['runs']} runs, M = {results['particles']} particles, "
             f"T = {results['steps']} steps, seed {results['seed']}, engine {results['engine']}. Time-averaged "
             f"RMSE_i = mean over t of RMSE_i(t), with its 95 % bootstrap interval over runs.{claim}\n\n"
-            + markdown_table(rows, cols))
+            + markdown_table(rows, cols, "filter"))
     cc = results["claim_check"]
     text += "\n## The paper's claim\n\n" + markdown_table(
         {f"PPF vs {b}": {"lower": ", ".join("yes" if v else "no" for v in c["ppf_lower"]),
@@ -483,7 +483,7 @@ def table_markdown(results: dict) -> str:
                          "runs": ", ".join(f"{v:.2f}" for v in c["runs_ppf_lower_fraction"])}
          for b, c in cc.items() if b != "holds"},
         [("lower", f"PPF lower ({xs})"), ("ratio", f"baseline / PPF RMSE ({xs})"),
-         ("runs", f"share of runs where PPF is lower ({xs})")])
+         ("runs", f"share of runs where PPF is lower ({xs})")], "comparison")
     text += (f"\nClaim holds on {'both states' if n_x == 2 else 'every state'} against both baselines: "
              f"{'yes' if cc['holds'] else 'no'}.\n")
     tm, tx = results["timing_s"], results["transmission"]
@@ -499,12 +499,13 @@ def table_markdown(results: dict) -> str:
 def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     a, filters = next(iter(arrays.values())), results["filters"]
     truth0, j = a["truth"][0], {n: i for i, n in enumerate(filters)}
+    colours = {"true state": "black", **filter_colours(filters)}
     for i in range(truth0.shape[-1]):
         curves_figure(out / f"fig_state{i + 1}.png",
                       {"true state": truth0[1:, i], **{n: a["mean"][0, j[n], 1:, i] for n in FILTERS}},
-                      f"x{i + 1}(t)", f"One run: x{i + 1} and its estimates (cf. Fig. {i + 1})")
+                      f"x{i + 1}(t)", f"One run: x{i + 1} and its estimates (cf. Fig. {i + 1})", colours=colours)
         curves_figure(out / f"fig_rmse_{i + 1}.png", {n: f["rmse_state_curve"][i] for n, f in filters.items()},
-                      f"RMSE_{i + 1}(t)", f"RMSE of x{i + 1} (cf. Fig. {i + 5})", log=True)
+                      f"RMSE_{i + 1}(t)", f"RMSE of x{i + 1} (cf. Fig. {i + 5})", log=True, colours=colours)
     for s in range(a["z"].shape[-1]):
         curves_figure(out / f"fig_measurements_s{s + 1}.png",
                       {"ideal z": a["z"][0, :, s], "actual (resolution) zr": a["zr"][0, :, s],

@@ -61,7 +61,7 @@ from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_c
 
 from .pfrun import THREADS_AUTO, check_threads, study_threads
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
-from .figures import curves_figure, save_figure
+from .figures import curves_figure, filter_colours, legend_beside, save_figure
 from .results import error_metrics, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -610,7 +610,7 @@ def table_markdown(results: dict) -> str:
              ("collapsed_steps", "collapsed steps")]
     if not paper:
         cols4 = [(k, h.replace(" (ours)", "")) for k, h in cols4 if not k.startswith("paper_")]
-    text += markdown_table(rows4, cols4)
+    text += markdown_table(rows4, cols4, "filter")
     if "table3" in results:
         rows3 = {}
         for col, v in results["table3"].items():
@@ -621,19 +621,21 @@ def table_markdown(results: dict) -> str:
                     ("false_alarms", "false alarms/run"), ("false_alarms_run0", "false alarms run 0"),
                     ("paper_fa", "false alarms (paper)"), ("stealthy", "stealthy/run"),
                     ("stealthy_run0", "stealthy run 0"), ("paper_st", "stealthy (paper)"),
-                    ("missed", "missed above min/run")])
+                    ("missed", "missed above min/run")], "setting")
     cols = [("false_alarms", "false alarms"), ("missed", "missed (> min)"), ("stealthy", "stealthy (<= min)"),
             ("attacks", "attacks"), ("detected", "detected")]
-    text += "\n## Detection at the default setting (totals over runs)\n\n" + markdown_table(results["detection"], cols)
+    text += ("\n## Detection at the default setting (totals over runs)\n\n"
+             + markdown_table(results["detection"], cols, "filter"))
     b1 = results["attack_bias_1"]
-    text += ("\n## gamma-bar = 1 (Figs. 9-10): totals over runs\n\n" + markdown_table(b1["detection"], cols)
+    text += ("\n## gamma-bar = 1 (Figs. 9-10): totals over runs\n\n"
+             + markdown_table(b1["detection"], cols, "filter")
              + "\nMissed attacks by attack norm (missed / attacks):\n\n")
     bands = next(iter(b1["missed_by_attack_norm"].values()))
     heads = [(f"b{i}", f"({b['norm_above']:.3g}, " + ("inf" if b["norm_up_to"] is None else f"{b['norm_up_to']:.3g}")
               + "]") for i, b in enumerate(bands)]
     rowsb = {n: {f"b{i}": f"{b['missed']} / {b['attacks']}" for i, b in enumerate(v)}
              for n, v in b1["missed_by_attack_norm"].items()}
-    text += markdown_table(rowsb, heads)
+    text += markdown_table(rowsb, heads, "filter (missed / attacks by attack norm)")
     if "sensitivity" in results:
         s = results["sensitivity"]
         rows_s = {"plant with process noise, low R": {**s["plant_noise_low_R"]["detection"],
@@ -641,13 +643,13 @@ def table_markdown(results: dict) -> str:
                   f"high R, eta recomputed by (45) = {s['eta_recomputed_high_R']['eta']:.3g}":
                       {**s["eta_recomputed_high_R"]["detection"], "rmse": s["eta_recomputed_high_R"]["rmse"]}}
         text += "\n## Sensitivity of the proposed method (totals over runs)\n\n" + markdown_table(
-            rows_s, [("rmse", "RMSE"), *cols])
+            rows_s, [("rmse", "RMSE"), *cols], "setting")
     return text
 
 
-def _detection_panel(ax, l, detected, title):
+def _detection_panel(ax, l, detected, title, color=None):
     k = np.arange(1, len(l) + 1)
-    ax.step(k, l.astype(int) - detected.astype(int), where="mid", lw=1.0)
+    ax.step(k, l.astype(int) - detected.astype(int), where="mid", lw=1.0, color=color)
     ax.set(ylim=(-1.3, 1.3), yticks=[-1, 0, 1], ylabel="l_k - lhat_k", title=title)
 
 
@@ -657,6 +659,7 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     plt = plotting()
     sc, A = next(iter(built.values())), next(iter(arrays.values()))
     plans, levels = _settings(reference(sc), results["particles"])
+    colours = filter_colours(results["filters"])
     views = {key: _view(key, p, A) for key, p in plans.items()}
     paper = _is_paper(sc)
     gmin = plans["main"].design.thresholds["gamma_min"]
@@ -672,7 +675,7 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
         axes[0].legend(fontsize=7, loc="lower right")
         axes[0].set(title=title)
         for ax, n in zip(axes[1:], names):
-            _detection_panel(ax, st.l[0], st.detected[n][0], n)
+            _detection_panel(ax, st.l[0], st.detected[n][0], n, colours.get(n))
         axes[-1].set(xlabel="time step k")
         save_figure(fig, path)
 
@@ -696,9 +699,9 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
             continue
         ax.plot(np.arange(K + 1), main.truth[0, :, j], "k-", lw=1.5, label="truth")
         for n in (NOATT, NORMAL, PROPOSED, L31):
-            ax.plot(np.arange(K + 1), main.mean[n][0, :, j], lw=1.0, label=n)
+            ax.plot(np.arange(K + 1), main.mean[n][0, :, j], lw=1.0, color=colours[n], label=n)
         ax.set(ylabel=f"{sc.model.state_names[j]}{' (cm)' if paper else ''}")
-    axes[0, 0].legend(fontsize=7)
+    legend_beside(axes[0, -1])
     fig.suptitle(f"One run: {'levels' if paper else 'states'} and estimates (cf. Figs. 7, 15)")
     save_figure(fig, out / "fig_estimates.png")
 
@@ -712,7 +715,8 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     save_figure(fig, out / "fig_gamma_hat.png")
 
     curves_figure(out / "fig_rmse.png", {n: f["rmse_curve"] for n, f in results["filters"].items() if n != NOATT},
-                  "RMSE against the no-attack normal PF", "RMSE over runs at each step (same particles)", log=True)
+                  "RMSE against the no-attack normal PF", "RMSE over runs at each step (same particles)", log=True,
+                  colours=colours)
 
 
 TEXT = StudyText(
@@ -754,7 +758,7 @@ TEXT = StudyText(
         "fig_detection_high.png": "Detection with the high measurement noise, run 0 (the paper's Fig. 11).",
         "fig_detection.png": "Detection at the model's measurement noise, run 0 (the paper's Fig. 8, on a model "
                              "other than the four-tank).",
-        "fig_detection_bias1.png": "gamma-bar = 1: the normal PF and the proposed filter, run 0 (the paper's "
+        "fig_detection_bias1.png": "With gamma-bar = 1: the normal PF and the proposed filter, run 0 (the paper's "
                                    "Figs. 9-10).",
         "fig_gamma_hat.png": "The attack estimate with an error of covariance 1e-2 I, run 0 (the paper's "
                              "Fig. 13).",

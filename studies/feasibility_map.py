@@ -41,6 +41,7 @@ from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import InputError
 
 from .consensus_design import effective
+from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
@@ -195,6 +196,7 @@ class FeasibilityMap:
     grids: list
     rows: list
     runner: dict
+    invocation: dict | None = None
 
     @property
     def names(self) -> list[str]:
@@ -246,7 +248,7 @@ class FeasibilityMap:
             "observability": observability(sc.model, *sc.operating_point),
             "kalman_references": kalman_references(sc.model, *sc.operating_point),
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS), "runner": self.runner,
-            "versions": versions(),
+            "invocation": self.invocation, "versions": versions(),
         })
         from .reports import write_report
 
@@ -297,7 +299,7 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
              "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),
              "iterations": int(a["iterations"][i])} for i, p in enumerate(points)]
-    return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe())
+    return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options))
 
 
 def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:

@@ -40,9 +40,15 @@ import numpy as np
 from designer.fileio import atomic_write
 
 __all__ = ["FIGURE_DPI", "plotting", "save_figure", "png_tight", "figure_batch", "draw_figures", "FigureHelper",
-           "trajectory_figure", "curves_figure"]
+           "PALETTE", "filter_colours", "legend_beside", "trajectory_figure", "curves_figure", "tradeoff_figure",
+           "TRADEOFF", "study_figures"]
 
 FIGURE_DPI = 110
+# One colour per filter in every figure of a study (:func:`filter_colours`): matplotlib's tab10 without its grey
+# (kept, with black, for the truth, the sensors and references), then the lighter tab20 shades.
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf",
+           "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94", "#f7b6d2", "#dbdb8d", "#9edae5")
+TRADEOFF = "fig_tradeoff.png"  # every study's summary figure: accuracy against cost and messages
 
 
 class _Plotting:
@@ -56,10 +62,12 @@ class _Plotting:
         self.Rectangle = Rectangle
 
     @staticmethod
-    def subplots(nrows: int = 1, ncols: int = 1, *, figsize=None, **kw):
+    def subplots(nrows: int = 1, ncols: int = 1, *, figsize=None, layout: str | None = "constrained", **kw):
+        """A figure, by default with constrained layout: a legend placed beside the axes (:func:`legend_beside`)
+        gets room on the canvas, so the figure is still drawn once (:func:`png_tight`)."""
         from matplotlib.figure import Figure
 
-        fig = Figure(figsize=figsize)
+        fig = Figure(figsize=figsize, layout=layout)
         return fig, fig.subplots(nrows, ncols, **kw)
 
     @staticmethod
@@ -374,26 +382,94 @@ def _warm_up(job: int | None = None) -> None:
 
 
 # ------------------------------------------------------------------------------------------- shared figures
+def filter_colours(names) -> dict[str, str]:
+    """The colour of each filter, in the order of ``names`` (a study's ``results["filters"]`` or a scenario block's):
+    every figure of a study takes its filters' colours from here, so a filter has one colour throughout."""
+    return {str(n): PALETTE[i % len(PALETTE)] for i, n in enumerate(names)}
+
+
+def legend_beside(ax, **kw) -> None:
+    """The legend of ``ax`` to its right, off the data (the figure's constrained layout makes room for it)."""
+    if not ax.get_legend_handles_labels()[0]:
+        return  # nothing drawn with a label (e.g. a sweep of one value)
+    kw.setdefault("fontsize", 7)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, **kw)
+
+
 def trajectory_figure(path: Path, truth: np.ndarray, estimates: Mapping[str, np.ndarray], sensors: np.ndarray,
-                      position: Sequence[int], title: str) -> None:
-    """One run in the plane: the truth, each filter's estimate, the sensors."""
+                      position: Sequence[int], title: str, colours: Mapping[str, str]) -> None:
+    """One run in the plane: the truth, each filter's estimate (in its colour), the sensors."""
     i, j = position
-    fig, ax = plotting().subplots(figsize=(6, 5))
+    fig, ax = plotting().subplots(figsize=(7.5, 5))
     ax.plot(sensors[:, 0], sensors[:, 1], "ks", ms=5, label="sensors")
-    ax.plot(truth[:, i], truth[:, j], "k-", lw=2, label="target")
+    ax.plot(truth[:, i], truth[:, j], "k-", lw=2, label="truth")
     for name, est in estimates.items():
-        ax.plot(est[:, i], est[:, j], lw=1, label=name)
+        ax.plot(est[:, i], est[:, j], lw=1, color=colours.get(name), label=name)
     ax.set(xlabel="x position", ylabel="y position", title=title)
-    ax.legend(fontsize=8)
+    legend_beside(ax)
     save_figure(fig, path)
 
 
 def curves_figure(path: Path, curves: Mapping[str, Sequence[float]], ylabel: str, title: str,
-                  log: bool = False) -> None:
-    """Per-step curves (k = 1..K), one line per label."""
-    fig, ax = plotting().subplots(figsize=(7, 4))
+                  log: bool = False, colours: Mapping[str, str] | None = None) -> None:
+    """Per-step curves (k = 1..K), one line per label (a filter's in its colour of ``colours``)."""
+    fig, ax = plotting().subplots(figsize=(8, 4))
+    colours = colours or {}
     for label, c in curves.items():
-        ax.plot(np.arange(1, len(c) + 1), c, lw=1.2, label=label)
+        ax.plot(np.arange(1, len(c) + 1), c, lw=1.2, color=colours.get(label), label=label)
     ax.set(xlabel="time step k", ylabel=ylabel, title=title, yscale="log" if log else "linear")
-    ax.legend(fontsize=8)
+    legend_beside(ax)
     save_figure(fig, path)
+
+
+def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
+    """The summary figure of a study's report: each filter's accuracy (the report's ranking metric, with its 95 %
+    interval) against its time per step, its messages in the legend; one panel per scenario.  Nothing is drawn
+    when no filter has both numbers."""
+    from .reports.study import summary_blocks
+
+    panels = [b for b in summary_blocks(results, text) if b.drawable]
+    if not panels:
+        return
+    fig, axes = plotting().subplots(1, len(panels), figsize=(5.2 * len(panels) + 3.2, 4.6), squeeze=False)
+    for ax, b in zip(axes[0], panels):
+        colours = filter_colours(b.filters)
+        values = [v for v, _ in b.values.values() if v is not None]
+        log = all(v > 0 for v in values)
+        for name, (v, ci) in b.values.items():
+            t = b.filters[name].get("time_per_step_s")
+            if v is None or not isinstance(t, (int, float)) or not t > 0:
+                continue
+            lo, hi = ci if ci is not None else (v, v)
+            ref = name in b.references
+            ax.errorbar(1e3 * t, v, yerr=[[max(v - lo, 0.0)], [max(hi - v, 0.0)]], fmt="o", capsize=3, ms=6,
+                        color=colours[name], mfc="white" if ref else colours[name],
+                        label=f"{name} ({b.messages_text(name)}{', benchmark' if ref else ''})")
+        ax.set(xscale="log", yscale="log" if log else "linear", xlabel="time per step (ms, log scale)",
+               ylabel=f"{b.label} with its 95 % interval" + (" (log scale)" if log else ""),
+               title=f"{b.title}: accuracy against cost" if b.title else "accuracy against cost")
+        _plain_log_ticks(ax.xaxis)
+        if log:
+            _plain_log_ticks(ax.yaxis)
+        ax.grid(True, which="both", alpha=0.3)
+    legend_beside(axes[0, -1], title="filter (messages; hollow: benchmark)", title_fontsize=7)
+    save_figure(fig, path)
+
+
+def _plain_log_ticks(axis) -> None:
+    """Tick labels of a log axis as plain numbers (0.2, 1, 50), at 1, 2 and 5 per decade over a short range: none
+    overlap, and a range under a decade still gets labels."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    lo, hi = axis.get_view_interval()
+    short = lo > 0 and hi / lo < 100
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if short else (1.0,)))
+    axis.set_major_formatter(plain)
+    axis.set_minor_formatter(NullFormatter())
+
+
+def study_figures(study, out: Path, results: dict, scenarios: Mapping, arrays: Mapping) -> None:
+    """Every figure of a study: the report summary's :func:`tradeoff_figure`, then the study's own."""
+    tradeoff_figure(Path(out) / TRADEOFF, results, study.text)
+    study.figures(Path(out), results, scenarios, arrays)

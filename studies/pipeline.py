@@ -41,6 +41,7 @@ from designer.design import DesignOptions
 from designer.fileio import writing
 from designer.validation import ComputationError, InputError, NonFiniteError, check_int
 
+from .invocation import study_invocation
 from .runner import Backend, MonteCarloResult, monte_carlo
 
 __all__ = ["StudyText", "Plan", "Study", "StudyOptions", "StudyResult", "STUDIES", "get_study", "run_study",
@@ -246,11 +247,11 @@ class StudyResult:
         ``helper``: a :class:`studies.figures.FigureHelper` started for this study, which draws the figures
         (this process draws them if it cannot).
         """
-        from .figures import figure_batch
+        from .figures import figure_batch, study_figures
         from .results import write_outputs
 
         def draw(stage: Path) -> None:
-            self.study.figures(stage, self.results, self.scenarios, self.arrays)
+            study_figures(self.study, stage, self.results, self.scenarios, self.arrays)
 
         def figures(stage: Path):
             if helper is None or not helper.send(stage, self.results, self.arrays):
@@ -377,6 +378,11 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
     if particles is not None:
         particles = check_int("particles", particles, 2, MAX_PARTICLES)
     scenarios = _scenarios(study, targets, overrides, assignments)
+    extra = {**study.options, **study_options}
+    invocation = study_invocation(
+        study, scenarios, runs=[runs if runs is not None else study.default_runs(sc.source or sc.name)
+                                for sc in scenarios],
+        particles=particles if particles is not None else study.particles, seed=seed, design=design, options=extra)
     attack = design.attack_overrides()
     if any(v is not None for v in attack.values()):  # --dos/--fdi/--delta/--amplitude: the scenarios' attacks
         scenarios = [sc.with_attacks(**attack) for sc in scenarios]
@@ -393,19 +399,21 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
         helper = FigureHelper.start(partial(_draw, study, {sc.name: sc for sc in scenarios}))
     try:
         return _compute(study, name, scenarios, out=out, runs=runs, particles=particles, seed=seed, chunk=chunk,
-                        backend=backend, design=design, extra={**study.options, **study_options}, force=force,
-                        quiet=quiet, t_start=t_start, helper=helper)
+                        backend=backend, design=design, extra=extra, force=force, quiet=quiet, t_start=t_start,
+                        helper=helper, invocation=invocation)
     finally:
         if helper is not None:
             helper.close()
 
 
 def _draw(study: Study, built: Mapping, out: Path, results: dict, arrays: Mapping) -> None:
-    study.figures(out, results, built, arrays)
+    from .figures import study_figures
+
+    study_figures(study, out, results, built, arrays)
 
 
 def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, chunk, backend, design, extra,
-             force, quiet, t_start, helper) -> StudyResult:
+             force, quiet, t_start, helper, invocation) -> StudyResult:
     from .results import study_header
 
     blocks, arrays, built = {}, {}, {}
@@ -429,6 +437,7 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
                            steps=body.pop("steps", first["steps"]), seed=seed,
                            assumptions=body.pop("assumptions", []))
     results.update(body)
+    results["invocation"] = invocation
     results["wall_time_s"] = time.perf_counter() - t_start
     res = StudyResult(study, results, built, arrays)
     if out is not None:

@@ -18,8 +18,8 @@ import numpy as np
 
 from designer.fileio import atomic_write, check_json_finite, replaced_outputs, write_json
 
-__all__ = ["SCHEMA", "versions", "error_metrics", "markdown_table", "BOOTSTRAP", "rmse_with_ci",
-           "write_outputs", "study_header", "DIVERGENCE_SPREAD",
+__all__ = ["SCHEMA", "versions", "error_metrics", "bootstrap_rmse_ci", "markdown_table", "BOOTSTRAP",
+           "rmse_with_ci", "write_outputs", "study_header", "DIVERGENCE_SPREAD",
            "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse"]
 
@@ -61,6 +61,15 @@ def _curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, lis
     return value, [float(lo), float(hi)]
 
 
+def bootstrap_rmse_ci(per_run_mse: np.ndarray, rng: np.random.Generator) -> list[float]:
+    """The 95 % percentile-bootstrap interval of ``sqrt(mean(per_run_mse))``: ``BOOTSTRAP`` resamples of the runs
+    (each run's mean squared error), the root of each resample's mean."""
+    per_run_mse = np.asarray(per_run_mse, dtype=float)
+    idx = rng.integers(0, len(per_run_mse), size=(BOOTSTRAP, len(per_run_mse)))
+    lo, hi = np.percentile(np.sqrt(per_run_mse[idx].mean(axis=1)), [2.5, 97.5])
+    return [float(lo), float(hi)]
+
+
 def error_metrics(err: np.ndarray, position: Sequence[int], velocity: Sequence[int],
                   rng: np.random.Generator) -> dict:
     """Metrics of estimation errors ``err`` (runs, K, n_x) at steps 1..K.
@@ -94,9 +103,12 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def markdown_table(rows: Mapping[str, Mapping[str, object]], columns: Sequence[tuple[str, str]]) -> str:
-    """A Markdown table: one row per key of ``rows``, ``columns`` as (key, header) pairs."""
-    head = "| | " + " | ".join(h for _, h in columns) + " |"
+def markdown_table(rows: Mapping[str, Mapping[str, object]], columns: Sequence[tuple[str, str]], first: str) -> str:
+    """A Markdown table: one row per key of ``rows`` (the first column, headed ``first``: what the rows are),
+    ``columns`` as (key, header) pairs."""
+    if not first.strip():
+        raise ValueError("a table's first column needs a header saying what its rows are")
+    head = f"| {first} | " + " | ".join(h for _, h in columns) + " |"
     sep = "|---|" + "---:|" * len(columns)
     body = ["| " + name + " | " + " | ".join(_fmt(r.get(k)) for k, _ in columns) + " |" for name, r in rows.items()]
     return "\n".join([head, sep, *body]) + "\n"

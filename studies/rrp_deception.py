@@ -50,7 +50,7 @@ from filters.rrp import wrap_angles
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_configurations, run_packets,
                     score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions, StudyText
-from .figures import curves_figure, trajectory_figure
+from .figures import curves_figure, filter_colours, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
@@ -300,12 +300,12 @@ def table_markdown(results: dict) -> str:
     title = "(seed 000): Table 1" if paper else f"on {results['scenario']}"
     text = (f"# rrp-deception {title}\n\n{results['runs']} runs, M = {results['particles']} particles, "
             f"K = {results['steps']} steps, seed {results['seed']}, engine {results['engine']}. "
-            "RMSE_p with its 95 % bootstrap interval over runs.\n\n" + markdown_table(rows, cols))
+            "RMSE_p with its 95 % bootstrap interval over runs.\n\n" + markdown_table(rows, cols, "filter"))
     sw = results["sweeps"].get("deception_prob")
     if sw:
         srows = {f"eta-bar = {v}": d["RRP-PF-DA"] for v, d in sw.items()}
         text += "\n## RRP-PF-DA against eta-bar (Figs. 5-6)\n\n" + markdown_table(
-            srows, [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v")])
+            srows, [("rmse_position", "RMSE_p"), ("rmse_velocity", "RMSE_v")], "deception probability")
     return text
 
 
@@ -319,17 +319,18 @@ def plane_view(model) -> np.ndarray | None:
 def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
     sc, A = next(iter(built.values())), next(iter(arrays.values()))
     filters, sweeps = results["filters"], results["sweeps"]
+    colours = filter_colours(filters)
     pos = plane_view(sc.model)
     if pos is not None:  # Table 1's filters are the first configurations, in FILTERS order
         trajectory_figure(out / "fig_trajectory.png", A["truth"][0],
                           {n: A["mean"][0, j] for j, n in enumerate(FILTERS)}, pos, sc.model.position_index,
-                          "One run: target and estimates (cf. Fig. 2)")
+                          "One run: target and estimates (cf. Fig. 2)", colours)
     sw = sweeps.get("deception_prob")
     for metric, fig_no, sw_no in (("position", "3", "5"), ("velocity", "4", "6")):
         if any(f[f"rmse_{metric}_curve"] is None for f in filters.values()):
             continue  # no velocity components
         curves_figure(out / f"fig_rmse_{metric}.png", {n: f[f"rmse_{metric}_curve"] for n, f in filters.items()},
-                      f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})", log=True)
+                      f"RMSE of {metric}", f"RMSE of {metric} (cf. Fig. {fig_no})", log=True, colours=colours)
         if sw:
             curves_figure(out / f"fig_eta_sweep_{metric}.png",
                           {f"RRP-PF-DA, eta-bar = {v}": d["RRP-PF-DA"][f"rmse_{metric}_curve"] for v, d in sw.items()},

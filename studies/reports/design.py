@@ -24,10 +24,10 @@ import numpy as np
 
 
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
-                   md_cell, md_escape, md_table, network_lines, observability_section, other_section, params_table,
-                   read_record, scenario_spec)
+                   md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
+                   recorded_elsewhere, rerun_lines, scenario_spec)
 
-__all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES"]
+__all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES", "software_lines"]
 
 HARD = ("(28)", "(29)", "diverged")  # the violations that make a design infeasible
 FIGURES = {
@@ -40,7 +40,8 @@ FIGURES = {
 _KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
           "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
           "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
-          "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse"}
+          "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
+          "versions", "invocation"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -260,14 +261,29 @@ def _verdict_section(s: _Schedule, tight) -> list[str]:
     if s.theorem2:
         first = min(s.theorem2, key=_order)
         out += [f"Theorem 2's sufficient condition for mean-square boundedness of the error did not hold at "
-                f"{len(s.theorem2)} node-step(s) (first at node {_node(first.get('node'))}, step "
+                f"{len(s.theorem2)}{_theorem2_checked(s)} node-step(s) (first at node {_node(first.get('node'))}, step "
                 f"{_node(first.get('step'))}, margin {md_escape(fmt_num(first.get('margin')))}). This does not make "
                 "the design infeasible: where Φ is a bound it still bounds the error covariance along this run, but "
-                "Theorem 2 does not certify that the error stays bounded beyond it.", ""]
+                "Theorem 2 does not certify that the error stays bounded beyond it.", "", _THEOREM2_STEPS.format(
+                    k=s.steps, n=s.steps + 1, nodes=s.nodes, all2=s.nodes * (s.steps + 1), all1=s.nodes * s.steps),
+                ""]
     elif cert is True:
         out += ["Theorem 2's sufficient condition for mean-square boundedness of the error held at every node "
                 "and step where Φ is a bound.", ""]
     return out
+
+
+_THEOREM2_STEPS = ("Theorem 2's condition is checked on Φ_{{k|k}} at every step k = 0, …, {k} where it is a bound ({n} "
+                   "per node, {all2} node-steps for {nodes} nodes), conditions (28)-(29) once per recursion step "
+                   "k → k + 1 ({k} per node, {all1} node-steps): hence the two counts differ.")
+
+
+def _theorem2_checked(s: _Schedule) -> str:
+    """" of N" where N is the number of node-steps at which Theorem 2 was checked (Φ_{k|k} a bound), when known."""
+    valid = s.arrays.get("valid")
+    if valid is None or valid.shape != (s.nodes, s.steps + 1):
+        return ""
+    return f" of the {int(np.count_nonzero(valid))} checked"
 
 
 def _binding_section(s: _Schedule, tight) -> list[str]:
@@ -383,10 +399,11 @@ def _plain_violation(v: Mapping) -> str:
 
 
 def _figure_section(names: list[str]) -> list[str]:
-    if not names:
+    rest = [n for n in names if n != "fig_trace_bound.png"]  # the summary's figure
+    if not rest:
         return []
-    out = ["## The bound and the margins over time", ""]
-    for i, name in enumerate(names, 1):
+    out = ["## The margins over time", ""]
+    for i, name in enumerate(rest, 1 + (len(rest) < len(names))):
         out += figure_lines(i, name, FIGURES[name])
     return out
 
@@ -429,6 +446,8 @@ def _settings_section(s: _Schedule) -> list[str]:
                 "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
                 "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
                 "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]
+    if is_num(meta.get("gate")) and not meta.get("gate"):
+        out += ["No χ² gate on the neighbour packets: every received packet is used.", ""]
     if meta.get("gate"):
         out += [f"χ² gate on the neighbour packets with false-rejection probability {meta['gate']:g}: a packet whose "
                 "difference to the node's own prediction is improbable for its predicted covariance is dropped as "
@@ -571,31 +590,13 @@ def _scenario_section(meta: Mapping) -> list[str]:
     return ["## Scenario and parameters", "", *lines] if lines else []
 
 
-def _cli_value(v) -> str | None:
-    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
-        return None
-    text = fmt_num(v, 12) if is_num(v) else v
-    return text if re.fullmatch(r"[\w.\-]+", text) else None
-
-
-def command_line(command: str, meta: Mapping, extra: str = "") -> str | None:
-    """``cfdesign COMMAND SCENARIO|MODEL.py ...`` (Markdown) that redoes this output; None when it cannot be said."""
-    name = meta.get("scenario")
-    source = meta.get("source")
-    if isinstance(source, str) and source.endswith(".py") and re.fullmatch(r"[\w.\-/]+", source):
-        name = source  # the model file it was loaded from
-    elif scenario_spec(name) is None or not re.fullmatch(r"[\w.\-]+", str(name)):
-        return None
-    cmd = f"cfdesign {command} {name}{extra}"
-    opts = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
-    left = []
-    for k, v in opts.items():
-        text = _cli_value(v)
-        if text is not None and re.fullmatch(r"\w+", str(k)):
-            cmd += f" --{str(k).replace('_', '-')} {text}"
-        elif v is not None:
-            left.append(md_escape(k))
-    return f"`{cmd} --out DIR`" + (f" with {', '.join(left)} as listed above" if left else "")
+def software_lines(meta: Mapping) -> list[str]:
+    """The software versions a design or a map was computed with (``versions``)."""
+    v = meta.get("versions")
+    if not isinstance(v, Mapping) or not v:
+        return []
+    return ["Computed with:", "", *md_table(["component", "version"], [[md_cell(k), md_cell(compact(x))]
+                                                                     for k, x in v.items()], ["l", "l"])]
 
 
 def _files_section(meta: Mapping, arrays: Mapping | None, note: str | None, figures: list[str]) -> list[str]:
@@ -612,16 +613,58 @@ def _files_section(meta: Mapping, arrays: Mapping | None, note: str | None, figu
     for name in figures:
         out.append(f"- `{name}`: drawn by this report from schedule.npz")
     out.append("")
-    extra = ""
-    for key, flag in (("seed", "--seed"), ("steps", "--steps")):
-        text = _cli_value(meta.get(key))
-        if text is not None:
-            extra += f" {flag} {text}"
-    cmd = command_line("design", meta, extra)
-    if cmd:
-        out += [f"To compute it again: {cmd} (add `--set NAME=VALUE` for any parameter changed from its "
-                "default above).", ""]
-    return out
+    out += software_lines(meta)
+    out += rerun_lines(meta, "this design")
+    return out + recorded_elsewhere(meta, _KNOWN, "schedule.json")
+
+
+def _summary_table(s: _Schedule, tight) -> list[str]:
+    """The nodes from the closest to failing (smallest margin, a violation first) to the farthest."""
+    if not s.nodes:
+        return []
+    at = {t[0]: t for t in tight}
+
+    def order(i):
+        first = s.first_hard(i)
+        return (first is None, first.get("step") if first and is_num(first.get("step")) else 0,
+                at[i][3] if i in at else float("inf"), i)
+
+    rows = []
+    for rank, i in enumerate(sorted(range(s.nodes), key=order), 1):
+        first = s.first_hard(i)
+        t = at.get(i)
+        rows.append([f"{rank}", f"{i}", md_cell(s.sensor(i)) or "—",
+                     md_cell(_plain_violation(first)) if first else "none",
+                     f"{t[1]} at step {t[2]}, margin {fmt_num(t[3])}" if t else "—", md_cell(_final_bound(s, i))])
+    return md_table(["rank", "node", "sensor", "first violation", "tightest condition", "final tr Φ"], rows,
+                    ["r", "r", "l", "l", "l", "r"])
+
+
+def _summary_sentence(s: _Schedule, tight) -> str:
+    lead = "**Use this schedule?** "
+    if not s.feasible:
+        first = s.first_hard()
+        line = lead + "No: the design is infeasible along this run"
+        if first is not None:
+            line += f"; the first violation is {_violation_words(first)}, and from there on that node has no bound"
+        return line + " (change the options, e.g. `--mode tuned`, or the attacks, and design again)."
+    line = lead + "Yes, along this run: (28)-(29) held at every node and step"
+    if tight:
+        i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
+        line += f"; the node closest to failing is {i} ({cond} at step {step}, margin {fmt_num(m)})"
+    if s.theorem2:
+        line += "; Theorem 2 does not certify that the error stays bounded beyond the run"
+    return line + ". The bound holds for this run's linearisation points and DoS pattern; a study replaying the " \
+                  "schedule (`cfdesign study consensus-robot ... --schedule DIR`) checks it over many runs."
+
+
+def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
+    out = ["## Summary", "",
+           f"One seeded run of {s.steps} steps, so no Monte Carlo intervals: the nodes from the closest to failing "
+           "to the farthest (a violation first, then the smallest margin of (28)-(29)).", "", *_summary_table(s, tight)]
+    if "fig_trace_bound.png" in figures:
+        out += figure_lines(1, "fig_trace_bound.png", FIGURES["fig_trace_bound.png"])
+    return out + [_summary_sentence(s, tight), ""]
 
 
 def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | None = None,
@@ -641,7 +684,7 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
         _attack_section(meta), _network_section(meta), observability_section(meta), _scenario_section(meta),
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario or the "
                            "design had to decide:"),
-        other_section(meta, _KNOWN, "Other recorded fields"), _files_section(meta, arrays, note, list(figures))])
+        _files_section(meta, arrays, note, list(figures))], _summary(s, tight, list(figures)))
 
 
 def design_report(d: Path) -> tuple[str, dict[str, bytes], str]:

@@ -23,9 +23,10 @@ from typing import Any, Mapping, Sequence
 
 from designer.validation import InputError
 
-from .design import attack_lines, command_line, scenario_lines
+from .design import attack_lines, scenario_lines, software_lines
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
-                   md_escape, md_table, network_lines, observability_section, other_section, read_record)
+                   md_escape, md_table, network_lines, observability_section, read_record, recorded_elsewhere,
+                   rerun_lines)
 
 __all__ = ["feasibility_report", "render_feasibility", "TWO_NOTIONS"]
 
@@ -38,7 +39,8 @@ TWO_NOTIONS = (
     "transient violates a condition that the steady state satisfies (or the reverse: a run that is too short to "
     "reach an unbounded steady state).")
 _KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "operating_point", "network",
-          "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references"}
+          "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references",
+          "versions", "invocation"}
 _THEOREM2 = {True: "holds", False: "fails", None: "—"}
 _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
 
@@ -199,11 +201,44 @@ def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
     return out
 
 
-def _figure_section(figures: Sequence[str]) -> list[str]:
-    if "feasibility.png" not in figures:
-        return []
-    return ["## Heat map", "", *figure_lines(1, "feasibility.png", "The steady-state trace bound over the grid (log "
-                                             "scale); crosses mark the infeasible points.")]
+def _point(names: Sequence[str], row: Mapping) -> str:
+    return ", ".join(f"{n} = {fmt_num(row[n])}" for n in names)
+
+
+def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[str], meta: Mapping) -> list[str]:
+    ok = sorted((r for r in rows if r["feasible"] and math.isfinite(r["trace_bound"])),
+                key=lambda r: r["trace_bound"])
+    bad = [r for r in rows if not r["feasible"]]
+    mode = (meta.get("options") or {}).get("mode") if isinstance(meta.get("options"), Mapping) else None
+    out = ["## Summary", "",
+           f"{len(ok)} of {len(rows)} grid points admit a bounded steady-state bound ({md_escape(mode or 'paper')} "
+           "design, at the operating point; a deterministic fixed point, so no Monte Carlo intervals). The "
+           "feasible points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first"
+           + (f" (the {min(5, len(ok))} lowest and the highest):" if len(ok) > 6 else ":"), ""]
+    shown = ok[:5] + (ok[-1:] if len(ok) > 6 else ok[5:6])
+    rank = {id(r): i for i, r in enumerate(ok, 1)}
+    out += md_table(["rank", "grid point", "trace bound", "least slack"],
+                    [[f"{rank[id(r)]}", md_cell(_point(names, r)), fmt_num(r["trace_bound"], 4),
+                      md_cell(r["binding"] or "—")] for r in shown], ["r", "l", "r", "l"])
+    if "feasibility.png" in figures:
+        out += figure_lines(1, "feasibility.png", _HEAT_MAP)
+    lead = "**Where the design works:** "
+    why = ", ".join(f"{md_escape(b)} at {c}" for b, c in Counter(r["binding"] or "not recorded"
+                                                               for r in bad).most_common())
+    if not ok:
+        line = lead + f"nowhere on this grid: every point fails ({why})."
+    else:
+        span = (f"lowest at {md_escape(_point(names, ok[0]))} ({fmt_num(ok[0]['trace_bound'])})" if len(ok) == 1 else
+                f"from {fmt_num(ok[0]['trace_bound'])} at {md_escape(_point(names, ok[0]))} to "
+                f"{fmt_num(ok[-1]['trace_bound'])} at {md_escape(_point(names, ok[-1]))}")
+        line = lead + (f"everywhere on this grid, with a bound {span}" if not bad else
+                       f"at {len(ok)} of {len(rows)} points, with a bound {span}; the other {len(bad)} fail ({why}); "
+                       "the grid below shows where")
+        line += "; a point's transient along a run is `cfdesign design`'s question (see the two notions below)."
+    return out + [line, ""]
+
+
+_HEAT_MAP = "The steady-state trace bound over the grid (log scale); crosses mark the infeasible points."
 
 
 def _notions_section() -> list[str]:
@@ -237,12 +272,10 @@ def _files_section(meta: Mapping, grids, figures: Sequence[str]) -> list[str]:
     if figures:
         out.append("- `feasibility.png`: the heat map")
     out.append("")
-    extra = "".join(f" --grid {name}={fmt_num(v[0], 12)}:{fmt_num(v[-1], 12)}:{len(v)}" for name, v in grids if v)
-    cmd = command_line("feasibility", meta, extra)
-    if cmd:
-        out += [f"To compute it again: {cmd} (add `--set NAME=VALUE` for any scenario parameter changed from its "
-                "default).", ""]
-    return out
+    out += software_lines(meta)
+    if meta:
+        out += rerun_lines(meta, "this map")
+    return out + recorded_elsewhere(meta, _KNOWN, "feasibility.json")
 
 
 def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapping | None = None,
@@ -260,7 +293,7 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
     scen = scenario_lines(meta.get("scenario"), None) if "scenario" in meta else []
     return document(head, [
         _mapped_section(scenario, grids, meta), _result_section(rows), _grid_section(grids, rows),
-        _figure_section(figures), _notions_section(),
+        _notions_section(),
         ["## Attacks", "", "The attack specification of the scenario with the options applied; a grid parameter "
          "(`dos`, `fdi`, `delta`, `amplitude`) replaces its value at every point:", "", *attacks] if attacks else [],
         ["## Network", "", *network] if network else [],
@@ -268,8 +301,7 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
         ["## Scenario", "", *scen] if scen else [],
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario had to "
                            "decide:"),
-        _runner_section(meta), other_section(meta, _KNOWN, "Other recorded fields"),
-        _files_section(meta, grids, figures)])
+        _runner_section(meta), _files_section(meta, grids, figures)], _summary(names, rows, figures, meta))
 
 
 def feasibility_report(d: Path) -> tuple[str, dict[str, bytes], str]:

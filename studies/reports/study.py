@@ -1,32 +1,44 @@
 """The study report: what a study (``results.json`` of schema ``cfdesign.study/1``) compares and found.
 
-For a reader who has not read the papers: what the study compares and why (the
-study's own words, :func:`studies.pipeline.study_text`), which filter to pick from
-the numbers (significance from the 95 % intervals; per scenario for a
-multi-scenario study; never a filter that diverged in every run), the scenario and
-its parameters, the attacks, our tables beside the paper's published numbers,
-Monte Carlo intervals, sweeps, detection, timings, the figures, every assumption,
-keys this module does not know (shown generically under "Other recorded
-results") and the software versions.
+It opens with a one-screen **summary** (:func:`summary_blocks`): the filters ranked by the
+study's accuracy metric with their 95 % intervals, time per step and messages, whether each
+can be told apart from the best, the trade-off figure (``fig_tradeoff.png``, drawn from the
+same blocks by :func:`studies.figures.tradeoff_figure`) and the pick in one sentence, never
+stronger than the intervals allow (overlapping intervals: the data cannot tell the filters
+apart).  Then, for a reader who has not read the papers: the pick metric by metric, what
+the study compares and why (the study's own words, :func:`studies.pipeline.study_text`),
+the scenario and its parameters, the attacks, our tables beside the paper's published
+numbers, Monte Carlo intervals, sweeps, detection, the bound check and what diverged, the
+figures (captioned by the study), every assumption, the software and the command line that
+computes the same numbers again (from the recorded ``invocation``).  Raw fields the report
+does not explain stay in ``results.json`` (the report names them).  A multi-scenario study
+is summarised and ranked per scenario: errors in different units are never ranked together.
 
 Every key of the results file is optional except that the file must be a JSON
 object: a section whose data are missing is left out.
 """
 from __future__ import annotations
 
+import fnmatch
 import math
 import re
+from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from designer.validation import InputError
 
 from ..pipeline import StudyText, study_text
+from .design import attack_lines
 from .text import (assumption_section, ci_pair, compact, demote, document, figure_lines, fmt_dur, fmt_num, generic,
-                   is_num, is_time_key, md_cell, md_escape, md_table, metric_value, other_section, params_table,
-                   read_record, scenario_spec, with_ci)
+                   is_num, is_time_key, md_cell, md_escape, md_table, metric_value, params_table, read_record,
+                   recorded_elsewhere, rerun_lines, scenario_spec, with_ci)
 
-__all__ = ["render_markdown", "study_report", "GLOSSARY"]
+__all__ = ["render_markdown", "study_report", "GLOSSARY", "SummaryBlock", "summary_blocks", "bound_verdict",
+           "figure_caption", "FEW_RUNS"]
+
+FEW_RUNS = 30  # below this many runs the bootstrap intervals are rough, and the report says so
 
 # Metric names: a short header and what the number means.
 GLOSSARY: dict[str, tuple[str, str]] = {
@@ -39,6 +51,7 @@ GLOSSARY: dict[str, tuple[str, str]] = {
     "rmse_run0": ("RMSE run 0", "the RMSE of the first run alone"),
     "rmse_position_median_run": ("RMSE position, median run", "the median over runs of each run's position RMSE "
                                                               "(robust to a few bad runs)"),
+    "rmse_median_run": ("RMSE, median run", "the median over runs of each run's RMSE (robust to a few bad runs)"),
     "rmse_state_median_run": ("RMSE per state, median run", "the median over runs of each run's RMSE"),
     "node_spread": ("node spread", "mean distance of the nodes' estimates from their average (consensus "
                                    "reached when small)"),
@@ -46,6 +59,8 @@ GLOSSARY: dict[str, tuple[str, str]] = {
                                          "measured is among the assumptions)"),
     "time_per_step_single_run_s": ("time per step, one run", "the same, timed on a single run"),
     "wall_time_s": ("wall time", "total wall-clock time"),
+    "messages_per_step": ("messages per step", "messages sent over the network per time step (a message lost to "
+                                               "DoS still counts)"),
     "communications": ("communications", "messages sent over the network, as the study counts them (see the "
                                          "assumptions)"),
     "collapsed_steps": ("collapsed steps", "steps at which every particle weight vanished and the filter had to "
@@ -57,9 +72,10 @@ GLOSSARY: dict[str, tuple[str, str]] = {
     "particles": ("particles", "number of particles"),
 }
 
+# keys of results.json the report presents (the rest are named at its end and left to the file)
 _HANDLED = {"schema", "study", "scenario", "runs", "particles", "steps", "seed", "engine", "threads", "workers", "mode",
             "assumptions", "wall_time_s", "versions", "filters", "sweeps", "paper", "params", "detection",
-            "timing_s", "attacks", "recommendation"}
+            "timing_s", "attacks", "recommendation", "by_scenario", "invocation"}
 _ATTACK_WORDS = re.compile(r"attack|dos|fdi|decep|flip|jam|bit_error|dropout|eta_bar")
 
 
@@ -67,16 +83,22 @@ def _label(key: str) -> str:
     return GLOSSARY.get(key, (key.replace("_", " "), ""))[0]
 
 
-def _figure_caption(name: str, text: StudyText | None) -> str:
-    if text is not None and name in text.figures:
-        return text.figures[name]
-    stem = Path(name).stem
-    stem = stem[4:] if stem.startswith("fig_") else stem
-    return stem.replace("_", " ").strip().capitalize() + "."
+def figure_caption(name: str, text: StudyText | None) -> str:
+    """The caption of figure ``name``: the study's (:attr:`StudyText.figures`; a key with ``*`` matches a family of
+    files, and ``{}`` in its caption is replaced by the part ``*`` matched, e.g. a scenario), else a sentence that
+    says no caption was recorded."""
+    figures = text.figures if text is not None else {}
+    if name in figures:
+        return figures[name]
+    for pattern, caption in figures.items():
+        if "*" in pattern and fnmatch.fnmatchcase(name, pattern):
+            head, tail = pattern.split("*", 1)
+            return caption.replace("{}", name[len(head):len(name) - len(tail)])
+    return f"A figure the study wrote; it recorded no caption for {name}."
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# The document.
+# The numbers the report ranks: one block per scenario.
 
 
 def _filters(results: Mapping) -> dict[str, dict]:
@@ -115,37 +137,280 @@ def _component_values(filters: Mapping[str, dict], key: str) -> list[tuple[str, 
     return list(comps.items())
 
 
+def _standing(values: Mapping[str, tuple[float, Any]], runs) -> tuple[str | None, dict[str, str]]:
+    """The filter with the lowest finite value, and each other's standing against it: ``"tied"`` (95 % intervals
+    overlap: the data cannot tell them apart), ``"apart"`` (the intervals are disjoint) or ``"no interval"``
+    (one of the two has none; with fewer than 2 runs no interval counts)."""
+    finite = {n: vc for n, vc in values.items() if is_num(vc[0]) and math.isfinite(vc[0])}
+    if not finite:
+        return None, {}
+    best = min(finite, key=lambda n: finite[n][0])
+    one_run = is_num(runs) and runs < 2
+    bpair = None if one_run else ci_pair(finite[best][1])
+    out = {}
+    for n, (_, ci) in finite.items():
+        if n == best:
+            continue
+        pair = None if one_run else ci_pair(ci)
+        if bpair is None or pair is None:
+            out[n] = "no interval"
+        elif pair[0] <= bpair[1] and bpair[0] <= pair[1]:
+            out[n] = "tied"
+        else:
+            out[n] = "apart"
+    return best, out
+
+
+def _messages(m: Mapping) -> tuple[float, bool] | None:
+    """A filter's messages: (count, per step?) from ``messages_per_step`` or the study's ``communications``."""
+    if is_num(m.get("messages_per_step")):
+        return float(m["messages_per_step"]), True
+    if is_num(m.get("communications")):
+        return float(m["communications"]), False
+    return None
+
+
+def bound_verdict(bc) -> tuple[str, str] | None:
+    """(word, sentence) for a consensus filter's ``bound_check``: the study's own ``verdict`` where it records one,
+    else from the share of checked (node, step) pairs whose empirical covariance exceeded the bound."""
+    if not isinstance(bc, Mapping):
+        return None
+    verdict = bc.get("verdict")
+    checked, total = bc.get("pairs_checked"), bc.get("pairs_total")
+    where = (f" (checked at {fmt_num(checked)} of {fmt_num(total)} (node, step) pairs)"
+             if is_num(checked) and is_num(total) else "")
+    frac = bc.get("fraction_exceeding")
+    if isinstance(verdict, str) and verdict:
+        why = bc.get("reason") or bc.get("verdict_reason")
+        return verdict, f"the bound check's verdict: {verdict}" + (f" ({why})" if isinstance(why, str) else "") + where
+    if not is_num(frac):
+        return "not checked", "the bound was not checked: no (node, step) pair had a bound in enough runs"
+    if frac > 0:
+        return "exceeded", f"the empirical error covariance exceeded the bound at {fmt_num(100 * frac, 3)} % of the " \
+                           f"checked pairs{where}"
+    return "held", f"the empirical error covariance stayed within the bound at every checked pair{where}"
+
+
+@dataclass(frozen=True)
+class SummaryBlock:
+    """One scenario's numbers for the summary: every filter's value of the ranking metric and its interval."""
+
+    title: str  # the scenario in a multi-scenario study, else ""
+    filters: Mapping[str, dict]
+    key: str | None  # the ranking metric (None: the study records none)
+    label: str  # its words, with the component of a metric per state
+    values: Mapping[str, tuple[float | None, tuple[float, float] | None]]
+    references: frozenset
+    runs: Any
+
+    @property
+    def drawable(self) -> bool:
+        return any(v is not None and is_num(self.filters[n].get("time_per_step_s"))
+                   and self.filters[n]["time_per_step_s"] > 0 for n, (v, _) in self.values.items())
+
+    def messages_text(self, name: str) -> str:
+        msg = _messages(self.filters.get(name, {}))
+        if msg is None:
+            return "messages not counted"
+        return f"{fmt_num(msg[0])} {'msgs/step' if msg[1] else 'messages'}"
+
+    def standing(self) -> tuple[str | None, dict[str, str]]:
+        """The best candidate (not a benchmark) and every other candidate's standing (:func:`_standing`)."""
+        cand = {n: vc for n, vc in self.values.items() if n not in self.references and vc[0] is not None}
+        return _standing(cand, self.runs)
+
+    def ranked(self) -> list[str]:
+        return sorted(self.values, key=lambda n: (self.values[n][0] is None, self.values[n][0] or 0.0))
+
+
+def _block(title: str, results: Mapping, text: StudyText | None) -> SummaryBlock:
+    filters = _filters(results)
+    refs = frozenset(n for n in (text.references if text else ()) if n in filters)
+    acc = _accuracy_metrics(results, text)
+    values: dict[str, tuple[float | None, tuple[float, float] | None]] = {n: (None, None) for n in filters}
+    key, label = (acc[0] if acc else (None, "accuracy"))
+    if key is not None:
+        comps = _component_values(filters, key)
+        if comps:
+            comp, vals = comps[0]
+            label = f"{label} of {comp}" if comp else label
+            for n, (v, ci) in vals.items():
+                if math.isfinite(v):
+                    values[n] = (v, ci_pair(ci))
+    return SummaryBlock(title, filters, key, label, values, refs, results.get("runs"))
+
+
+def summary_blocks(results: Mapping, text: StudyText | None = None) -> list[SummaryBlock]:
+    """The summary's blocks: one per scenario of a multi-scenario study, else one (``text``: the study's texts,
+    by default those of ``results["study"]``)."""
+    text = study_text(results.get("study")) if text is None else text
+    blocks = _scenario_blocks(results)
+    if blocks:
+        return [_block(name, {**results, **b}, text) for name, b in blocks.items()]
+    return [_block("", results, text)] if _filters(results) else []
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The summary.
+
+
+def _names(names: Sequence[str]) -> str:
+    names = [md_escape(n) for n in names]
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def _notes(name: str, b: SummaryBlock) -> str:
+    m, runs = b.filters[name], b.runs
+    notes = []
+    if name in b.references:
+        notes.append("benchmark (not an option under attack)")
+    div = m.get("diverged_runs")
+    ndiv = len(div) if isinstance(div, list) else div if is_num(div) else None
+    if ndiv is None and is_num(m.get("diverged_fraction")) and is_num(runs):
+        ndiv = round(m["diverged_fraction"] * runs)
+    if b.values[name][0] is None:
+        notes.append("no value: diverged in every run" if ndiv and is_num(runs) and ndiv >= runs else "no value")
+    elif ndiv:
+        notes.append(f"diverged in {fmt_num(ndiv)}" + (f" of {fmt_num(runs)}" if is_num(runs) else "")
+                     + " runs (left out)")
+    if is_num(m.get("collapsed_runs")) and m["collapsed_runs"] > 0:
+        notes.append(f"collapsed in {fmt_num(m['collapsed_runs'])} runs")
+    bc = m.get("bound_check")
+    bv = bound_verdict(bc)
+    if bv is not None:
+        checked = (f" ({fmt_num(bc['pairs_checked'])} of {fmt_num(bc['pairs_total'])} (node, step) pairs checked)"
+                   if is_num(bc.get("pairs_checked")) and is_num(bc.get("pairs_total")) else "")
+        notes.append(f"bound {bv[0]}{checked}")
+    return "; ".join(md_cell(x) for x in notes)
+
+
+def _ranked_table(b: SummaryBlock) -> list[str]:
+    best, standing = b.standing()
+    words = {"tied": "cannot be told apart", "apart": "worse (intervals apart)", "no interval": "no interval"}
+    has_msgs = any(_messages(m) is not None for m in b.filters.values())
+    per_step = any((_messages(m) or (0, False))[1] for m in b.filters.values())
+    rows, rank = [], 0
+    for n in b.ranked():
+        v, ci = b.values[n]
+        ranked = v is not None and n not in b.references
+        rank += ranked
+        against = ("best" if n == best else "benchmark" if n in b.references else
+                   words.get(standing.get(n, ""), "—"))
+        t = b.filters[n].get("time_per_step_s")
+        row = [str(rank) if ranked else "—", md_cell(n), with_ci(v, ci) if v is not None else "—", against,
+               fmt_dur(t) if is_num(t) else "—"]
+        if has_msgs:
+            msg = _messages(b.filters[n])
+            row.append(fmt_num(msg[0]) if msg is not None else "—")
+        rows.append(row + [_notes(n, b) or "—"])
+    header = ["rank", "filter", md_cell(f"{b.label} [95 % interval]"), "against the best", "time per step"]
+    align = ["r", "l", "r", "l", "r"]
+    if has_msgs:
+        header.append("messages per step" if per_step else "messages")
+        align.append("r")
+    return md_table(header + ["notes"], rows, align + ["l"])
+
+
+def _pick_sentence(b: SummaryBlock) -> str:
+    """The pick in one sentence, no stronger than the intervals."""
+    lead = "**Which to pick" + (f" on {md_escape(b.title)}" if b.title else "") + ":** "
+    label = md_escape(b.label)
+    best, standing = b.standing()
+    runs = b.runs
+    if best is None:
+        return lead + f"none can be named: no filter (benchmarks aside) has a finite {label}."
+    v, ci = b.values[best]
+    times = {n: b.filters[n].get("time_per_step_s") for n in b.values}
+    if not standing:
+        return lead + f"{md_escape(best)}, the only filter with a {label} ({with_ci(v, ci)})."
+    if ci is None or all(s == "no interval" for s in standing.values()):
+        second = min(standing, key=lambda n: b.values[n][0])
+        return (lead + f"{md_escape(best)} has the lowest {label} ({fmt_num(v)}), but no 95 % interval was recorded, "
+                f"so the data cannot say whether it is better than {md_escape(second)} "
+                f"({fmt_num(b.values[second][0])}).")
+    tied = [n for n, s in standing.items() if s == "tied"]
+    few = is_num(runs) and runs < FEW_RUNS
+    if tied:
+        group = [best] + tied
+        timed = [n for n in group if is_num(times[n]) and times[n] > 0]
+        line = (lead + f"the data cannot tell {_names(group)} apart on {label} (their 95 % intervals overlap that of "
+                f"{md_escape(best)}, the lowest, {with_ci(v, ci)})")
+        cheap = min(timed, key=lambda n: times[n]) if timed else None
+        if cheap is not None:
+            line += f"; among them {md_escape(cheap)} costs least per step ({fmt_dur(times[cheap])})"
+        msgs = {n: _messages(b.filters[n]) for n in group}
+        counts = {n: m[0] for n, m in msgs.items() if m is not None}
+        if len(set(counts.values())) > 1:
+            low = min(counts.values())
+            fewest = [n for n, c in counts.items() if c == low]
+            if fewest == [cheap]:
+                line += f" and sends the fewest messages ({fmt_num(low)})"
+            else:
+                line += (f"{' and' if cheap is not None else '; among them'} {_names(fewest)} "
+                         f"{'sends' if len(fewest) == 1 else 'send'} the fewest messages ({fmt_num(low)})")
+        return line + (f"; more than {fmt_num(runs)} runs would narrow the intervals." if few else ".")
+    line = lead + f"{md_escape(best)}: the lowest {label} ({with_ci(v, ci)}), its 95 % interval apart from every " \
+                  "other filter's"
+    if is_num(times[best]):
+        line += f"; it costs {fmt_dur(times[best])} per step"
+        msg = _messages(b.filters[best])
+        if msg is not None:
+            line += f" and sends {fmt_num(msg[0])} messages{' per step' if msg[1] else ''}"
+    return line + (f" (from only {fmt_num(runs)} runs, whose intervals are rough)." if few else ".")
+
+
+def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence[str]) -> list[str]:
+    blocks = summary_blocks(results, text)
+    if not blocks:
+        return []
+    out = ["## Summary", ""]
+    n = len(blocks[0].filters)
+    what = [f"{n} filters" if n != 1 else "1 filter"]
+    if is_num(results.get("runs")):
+        what.append(f"{fmt_num(results['runs'])} Monte Carlo runs"
+                    + (f" of {fmt_num(results['steps'])} steps" if is_num(results.get("steps")) else ""))
+    scen = results.get("scenario")
+    out += [f"{', '.join(what)} on {md_escape(scen) if isinstance(scen, str) else 'the study scenario'}"
+            + (f", seed {fmt_num(results['seed'])}" if is_num(results.get("seed")) else "")
+            + ". Ranked by " + ("each scenario's " if len(blocks) > 1 else "")
+            + f"{md_escape(blocks[0].label)} (lower is better); a filter whose 95 % interval overlaps the best's "
+              "cannot be told apart from it at this number of runs.", ""]
+    from ..figures import TRADEOFF
+
+    for b in blocks:
+        if b.title:
+            out += [f"### {md_escape(b.title)}", ""]
+        out += _ranked_table(b)
+    if TRADEOFF in figures:
+        out += figure_lines(1, TRADEOFF, "Accuracy (the ranking metric, with its 95 % interval) against the time "
+                            "per step, one colour per filter as in every figure of this report; the legend gives "
+                            "each filter's messages, and hollow markers are benchmarks.")
+    out += [_pick_sentence(b) for b in blocks]
+    return out + [""]
+
+
 def _pick_accuracy(label: str, comp: str, values: Mapping[str, tuple[float, Any]], runs) -> str:
     what = f"{label} of {comp}" if comp else label
-    finite = {n: vc for n, vc in values.items() if math.isfinite(vc[0])}
-    if not finite:
+    best, standing = _standing(values, runs)
+    if best is None:
         return ""
-    best = min(finite, key=lambda n: finite[n][0])
-    bv, bci = finite[best]
+    bv, bci = values[best]
     line = f"**Most accurate ({md_escape(what)}):** {md_escape(best)}, {with_ci(bv, bci)}"
-    others = [n for n in finite if n != best]
-    bpair = ci_pair(bci)
-    if bpair is None:
+    others = list(standing)
+    if ci_pair(bci) is None or (is_num(runs) and runs < 2):
         if others:
-            second = min(others, key=lambda n: finite[n][0])
-            line += (f"; next {md_escape(second)}, {fmt_num(finite[second][0])}. No confidence interval was "
+            second = min(others, key=lambda n: values[n][0])
+            line += (f"; next {md_escape(second)}, {fmt_num(values[second][0])}. No confidence interval was "
                      f"recorded for this metric, so whether the difference is significant cannot be said"
                      + (f" from {runs} runs." if is_num(runs) else "."))
         else:
             line += "."
         return line
-    overlap, apart, no_ci = [], [], []
-    for n in others:
-        pair = ci_pair(finite[n][1])
-        if pair is None:
-            no_ci.append(n)
-        elif pair[0] <= bpair[1] and bpair[0] <= pair[1]:
-            overlap.append(n)
-        else:
-            apart.append(n)
+    overlap = [n for n, s in standing.items() if s == "tied"]
+    no_ci = [n for n, s in standing.items() if s == "no interval"]
     if overlap:
         line += (". Its 95 % interval overlaps that of " + ", ".join(
-            f"{md_escape(n)} ({with_ci(*finite[n])})" for n in overlap)
+            f"{md_escape(n)} ({with_ci(*values[n])})" for n in overlap)
                  + ": the difference is not significant at this number of runs; the data cannot tell them apart "
                    "on this metric.")
     elif others:
@@ -184,7 +449,7 @@ def _demote_lines(lines: list[str]) -> list[str]:
 
 def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
     if _scenario_blocks(results):
-        return _per_scenario(results, _pick_section, "Which filter to pick",
+        return _per_scenario(results, _pick_section, "Which filter to pick, metric by metric",
                              "Per scenario: filters are ranked only against the filters of the same scenario.",
                              text)
     filters = _filters(results)
@@ -192,7 +457,7 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
     cand = {n: m for n, m in filters.items() if n not in refs}
     if not cand:
         return []
-    out = ["## Which filter to pick", ""]
+    out = ["## Which filter to pick, metric by metric", ""]
     out.append("Derived from the numbers of this run only (lower is better for every metric below"
                + (f"; benchmarks left out: {', '.join(md_escape(r) for r in sorted(refs & set(filters)))}, since no "
                   "filter can have their data under attack" if refs & set(filters) else "")
@@ -207,11 +472,11 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
             if line:
                 items.append(line)
                 if first_best is None:
-                    first_best = min(values, key=lambda n: values[n][0])
+                    first_best = _standing(values, results.get("runs"))[0]
     # a filter that diverged in every run has no accuracy: never recommend it for its cost or messages
     usable = {n: m for n, m in cand.items()
               if not (is_num(m.get("diverged_fraction")) and m["diverged_fraction"] >= 1)
-              and not ("rmse_position" in m and m["rmse_position"] is None)}
+              and not any(k in m and m[k] is None for k in ("rmse_position", "rmse"))}
     times = {n: float(m["time_per_step_s"]) for n, m in usable.items()
              if is_num(m.get("time_per_step_s")) and m["time_per_step_s"] > 0}
     if times:
@@ -254,17 +519,16 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
             warn.append(f"{md_escape(n)} diverged in {fmt_num(100 * m['diverged_fraction'], 3)} % of the runs")
         elif is_num(m.get("diverged_runs")) and m["diverged_runs"] > 0:
             warn.append(f"{md_escape(n)} diverged in {fmt_num(m['diverged_runs'])} run(s)")
+        bv = bound_verdict(m.get("bound_check"))
+        if bv is not None and bv[0] not in ("held", "not checked"):
+            warn.append(f"{md_escape(n)}: {md_escape(bv[1])}")
     if warn:
         items.append("**Caution:** " + "; ".join(warn) + ".")
     runs = results.get("runs")
-    if is_num(runs) and runs < 30:
+    if is_num(runs) and runs < FEW_RUNS:
         items.append(f"**Few runs:** only {fmt_num(runs)} Monte Carlo runs; the intervals are wide and rough. "
                      "Run the study with more runs (`--runs`) before relying on the ranking.")
-    out += [f"- {i}" for i in items] + [""]
-    rec = results.get("recommendation")
-    if isinstance(rec, dict) and rec:
-        out += ["The study's own recommendation (computed when it ran):", "", *generic(rec)]
-    return out
+    return out + [f"- {i}" for i in items] + [""]
 
 
 def _filters_section(results: Mapping, text: StudyText | None) -> list[str]:
@@ -331,7 +595,11 @@ def _attack_section(results: Mapping, text: StudyText | None) -> list[str]:
     names = [k for k in (text.attack_params if text else ()) if k in params]
     if not names:
         names = [k for k in params if _ATTACK_WORDS.search(str(k))]
-    if not (text and text.attacks) and not names and not isinstance(results.get("attacks"), dict):
+    blocks = _scenario_blocks(results)
+    declared = {name: b["attacks"]["declared"] for name, b in blocks.items()
+                if isinstance(b.get("attacks"), dict) and isinstance(b["attacks"].get("declared"), dict)}
+    attacks = results.get("attacks")
+    if not (text and text.attacks) and not names and not isinstance(attacks, dict) and not declared:
         return []
     out = ["## Under which attacks", ""]
     if text and text.attacks:
@@ -340,9 +608,12 @@ def _attack_section(results: Mapping, text: StudyText | None) -> list[str]:
         out += ["Attack settings of this run:", ""]
         out += [f"- `{k}` = {md_escape(compact(params[k]))}" for k in names]
         out.append("")
-    attacks = results.get("attacks")
     if isinstance(attacks, dict) and attacks:
-        out += ["The attacks as the study recorded them:", "", *generic(attacks)]
+        lines = attack_lines(attacks)
+        if lines:
+            out += ["The attacks the runs drew from:", "", *lines]
+    for name, spec in declared.items():
+        out += [f"### {md_escape(name)}", "", *attack_lines(spec)]
     return out
 
 
@@ -374,7 +645,7 @@ def _key_metric_table(filters: Mapping[str, dict]) -> list[str]:
         return []
     rows = [[md_cell(n)] + [metric_value(k, m.get(k), m.get(k + "_ci95")) if k in m else "—" for k in keys]
             for n, m in filters.items()]
-    return md_table([""] + [md_cell(_label(k)) for k in keys], rows)
+    return md_table(["filter"] + [md_cell(_label(k)) for k in keys], rows)
 
 
 def _paper_side_by_side(filters: Mapping[str, dict], paper: Mapping) -> list[str]:
@@ -388,7 +659,7 @@ def _paper_side_by_side(filters: Mapping[str, dict], paper: Mapping) -> list[str
     if not keys:
         return []
     names = list(filters) + [n for n in pf if n not in filters]
-    header = [""]
+    header = ["filter"]
     for k in keys:
         header += [md_cell(f"{_label(k)} (ours)"), md_cell(f"{_label(k)} (paper)")]
     rows = []
@@ -414,13 +685,13 @@ def _paper_text(paper: Mapping) -> list[str]:
     if isinstance(claims, list) and claims:
         out += ["The paper's claims:", ""] + [f"- {md_escape(compact(c))}" for c in claims] + [""]
     settings = {k: v for k, v in paper.items() if k not in ("source", "claim", "note", "claims", "filters")
-                and (v is None or isinstance(v, (bool, int, float, str)))}
+                and isinstance(v, (bool, int, float, str))}
     if settings:
-        out += ["The paper's settings and scalars:", ""]
+        out += ["The paper's settings:", ""]
         out += [f"- {md_escape(k)}: {md_escape(compact(v))}" for k, v in settings.items()] + [""]
-    rest = {k: v for k, v in paper.items() if isinstance(v, (dict, list)) and k not in ("claims", "filters")}
+    rest = {k: v for k, v in paper.items() if isinstance(v, (dict, list)) and v and k not in ("claims", "filters")}
     for k, v in rest.items():
-        out += [f"#### Paper: {md_escape(k)}", "", *generic(v), ""]
+        out += [f"#### Paper: {md_escape(k.replace('_', ' '))}", "", *generic(v), ""]
     return out
 
 
@@ -495,6 +766,7 @@ def _sweep_section(results: Mapping) -> list[str]:
                 cols += [(fname, k) for k in keys if (fname, k) not in cols]
         if not cols:
             continue
+
         def entry(value, f, k):
             per_filter = by_value[value]
             m = per_filter.get(f) if isinstance(per_filter, dict) else None
@@ -508,12 +780,14 @@ def _sweep_section(results: Mapping) -> list[str]:
         if len(metrics) == 1 and len({f for f, _ in cols}) == len(cols):
             # one metric: a row per filter reads better than a column per filter
             (k,) = metrics
-            header = [md_cell(_label(k) if k else "")] + [md_cell(f"{param} = {v}") for v in by_value]
+            out += [f"### {md_escape(param)}: {md_escape(_label(k)) if k else 'value'} of each filter", ""]
+            header = ["filter"] + [md_cell(f"{param} = {v}") for v in by_value]
             rows = [[md_cell(f)] + [entry(v, f, k) for v in by_value] for f, _ in cols]
         else:
+            out += [f"### {md_escape(param)}", ""]
             header = [md_cell(param)] + [md_cell(f"{f}: {_label(k)}" if k else f) for f, k in cols]
             rows = [[md_cell(v)] + [entry(v, f, k) for f, k in cols] for v in by_value]
-        out += [f"### {md_escape(param)}", "", *md_table(header, rows)]
+        out += md_table(header, rows)
     return out if len(out) > 4 else []
 
 
@@ -521,22 +795,87 @@ def _detection_section(results: Mapping) -> list[str]:
     det = results.get("detection")
     if not isinstance(det, dict) or not det:
         return []
+    rows = {n: d for n, d in det.items() if isinstance(d, dict)}
+    keys = [k for k in ("attacks", "detected", "missed", "stealthy", "false_alarms")
+            if any(is_num(d.get(k)) for d in rows.values())]
+    if not rows or not keys:
+        return []
     out = ["## Attack detection", "", "Totals over the runs at the default settings: attacks counted as missed are "
-           "above the smallest norm the detector is designed for; smaller undetected ones count as stealthy.", ""]
-    return out + generic(det)
+           "above the smallest norm the detector is designed for; smaller undetected ones count as stealthy "
+           "(per-run counts and run 0's are in results.json).", ""]
+    return out + md_table(["filter", *(k.replace("_", " ") for k in keys)],
+                          [[md_cell(n), *(fmt_num(d.get(k)) for k in keys)] for n, d in rows.items()])
+
+
+def _bound_rows(filters: Mapping[str, dict]) -> list[str]:
+    rows = []
+    for n, m in filters.items():
+        bc = m.get("bound_check")
+        bv = bound_verdict(bc)
+        if bv is None:
+            continue
+        rows.append([md_cell(n), md_cell(bv[0]), fmt_num(bc.get("runs")),
+                     f"{fmt_num(bc.get('pairs_checked'))} of {fmt_num(bc.get('pairs_total'))}",
+                     fmt_num(bc.get("fraction_exceeding")), fmt_num(bc.get("max_excess")),
+                     fmt_num(bc.get("trace_ratio_mean")), fmt_num(bc.get("trace_ratio_max"))])
+    if not rows:
+        return []
+    return ["### Does the bound hold?", "",
+            "Per consensus filter with a bound: the bound check's verdict; the runs it used; the (node, step) pairs "
+            "where Φ was a bound in enough runs to compare, of all; the share of those pairs whose empirical error "
+            "covariance exceeded the mean bound beyond Monte Carlo tolerance, and the largest excess; the mean and "
+            "largest ratio tr P̂ / tr Φ (below 1: the bound is above the error). Every field of the check is in "
+            "results.json.", "",
+            *md_table(["filter", "verdict", "runs", "pairs checked", "share exceeding", "largest excess",
+                       "mean tr P̂ / tr Φ", "largest tr P̂ / tr Φ"], rows,
+                      ["l", "l", "r", "r", "r", "r", "r", "r"])]
+
+
+def _feasible_rows(filters: Mapping[str, dict]) -> list[str]:
+    rows = []
+    for n, m in filters.items():
+        fe = m.get("feasibility")
+        if not isinstance(fe, dict):
+            continue
+        rows.append([md_cell(n), f"{fmt_num(fe.get('runs_feasible'))} of {fmt_num(fe.get('runs'))}",
+                     fmt_num(fe.get("first_violation_step_min")), fmt_num(fe.get("first_violation_step_median")),
+                     fmt_num(fe.get("fraction_pairs_bounded"))])
+    if not rows:
+        return []
+    return ["### Were the design conditions met?", "",
+            "Per designed consensus filter: the runs in which (28)-(29) held at every node and step, the earliest "
+            "and the median step of the first violation in the others, and the share of (node, step) pairs at which "
+            "Φ was a bound.", "",
+            *md_table(["filter", "runs meeting (28)-(29)", "first violation, earliest step", "median step",
+                       "share of pairs bounded"], rows, ["l", "r", "r", "r", "r"])]
+
+
+def _diverged_lines(filters: Mapping[str, dict]) -> list[str]:
+    out = []
+    for n, m in filters.items():
+        runs = m.get("diverged_runs")
+        if not isinstance(runs, list) or not runs or not all(isinstance(x, dict) for x in runs):
+            continue
+        ids = [fmt_num(x.get("run")) for x in runs]
+        steps = [x["step"] for x in runs if is_num(x.get("step"))]
+        why = Counter(re.sub(r"\s*\([^)]*\)|\bat step \d+", "", str(x.get("error", "not recorded"))).strip()
+                      for x in runs)
+        line = (f"- **{md_escape(n)}**: {len(runs)} run(s) diverged (run{'s' if len(ids) > 1 else ''} "
+                f"{md_escape(', '.join(ids[:12]) + (', …' if len(ids) > 12 else ''))}")
+        if steps:
+            line += f"; first step {fmt_num(min(steps))}" + (f" to {fmt_num(max(steps))}" if max(steps) > min(steps)
+                                                            else "")
+        line += "): " + "; ".join(f"{md_escape(w)} ({c})" for w, c in why.most_common()) + "."
+        out.append(line)
+    if not out:
+        return []
+    return ["### What diverged", "", "A diverged run is left out of its filter's RMSE; each run's node, step and "
+            "reason are in results.json (`diverged_runs`).", "", *out, ""]
 
 
 def _details_section(results: Mapping) -> list[str]:
     filters = _filters(results)
-    out = []
-    nested = []
-    for m in filters.values():
-        for k, v in m.items():
-            if isinstance(v, dict) and k not in nested and not (k == "detection" and "detection" in results):
-                nested.append(k)
-    for k in nested:
-        rows = {n: m[k] for n, m in filters.items() if isinstance(m.get(k), dict)}
-        out += [f"### {md_escape(k.replace('_', ' '))}", "", *generic(rows), ""]
+    out = _bound_rows(filters) + _feasible_rows(filters)
     node_rows = {}
     for n, m in filters.items():
         nodes = m.get("nodes")
@@ -544,11 +883,10 @@ def _details_section(results: Mapping) -> list[str]:
             node_rows[n] = {f"node {x.get('node', i) + 1 if is_num(x.get('node', i)) else x.get('node')}":
                             x.get("rmse_position") for i, x in enumerate(nodes)}
     if node_rows:
-        out += ["### Position RMSE of each node", "", *generic(node_rows), ""]
-    for n, m in filters.items():
-        runs = m.get("diverged_runs")
-        if isinstance(runs, list) and runs:
-            out += [f"### Diverged runs of {md_escape(n)}", "", *generic(runs), ""]
+        cols = list(dict.fromkeys(c for r in node_rows.values() for c in r))
+        out += ["### Position RMSE of each node", "", *md_table(
+            ["filter", *cols], [[md_cell(n), *(fmt_num(r.get(c)) for c in cols)] for n, r in node_rows.items()])]
+    out += _diverged_lines(filters)
     return (["## Details per filter", ""] + out) if out else []
 
 
@@ -563,7 +901,7 @@ def _timing_section(results: Mapping) -> list[str]:
         keys += [k for k, v in m.items() if is_time_key(k) and is_num(v) and k not in keys]
     if keys:
         rows = [[md_cell(n)] + [fmt_dur(m.get(k)) if k in m else "—" for k in keys] for n, m in filters.items()]
-        out += md_table([""] + [md_cell(_label(k)) for k in keys], rows)
+        out += md_table(["filter"] + [md_cell(_label(k)) for k in keys], rows)
     timing = results.get("timing_s")
     if isinstance(timing, dict) and timing:
         out += ["Where the time went:", ""]
@@ -577,11 +915,15 @@ def _timing_section(results: Mapping) -> list[str]:
 
 
 def _figures_section(figures: Sequence[str], text: StudyText | None) -> list[str]:
-    if not figures:
+    from ..figures import TRADEOFF
+
+    rest = [f for f in figures if f != TRADEOFF]
+    if not rest:
         return []
-    out = ["## Figures", ""]
-    for i, name in enumerate(figures, 1):
-        out += figure_lines(i, name, _figure_caption(name, text))
+    out = ["## Figures", "", "Each filter has one colour in every figure." if len(rest) > 1 else "", ""]
+    first = 2 if TRADEOFF in figures else 1
+    for i, name in enumerate(rest, first):
+        out += figure_lines(i, name, figure_caption(name, text))
     return out
 
 
@@ -597,17 +939,9 @@ def _software_section(results: Mapping) -> list[str]:
         out += md_table(["component", "version"], [[md_cell(k), md_cell(compact(x))] for k, x in v.items()], ["l", "l"])
     if results.get("schema") is not None:
         out += [f"Results schema `{md_escape(results['schema'])}`.", ""]
-    study = results.get("study")
-    if isinstance(study, str) and re.fullmatch(r"[\w.\-]+", study):
-        cmd = f"cfdesign study {study} --out DIR"
-        for key, flag in (("runs", "--runs"), ("particles", "--particles"), ("seed", "--seed")):
-            if is_num(results.get(key)):
-                cmd += f" {flag} {results[key]}"
-        if isinstance(results.get("mode"), str) and re.fullmatch(r"\w+", results["mode"]):
-            cmd += f" --mode {results['mode']}"
-        out += [f"To run it again with the same seed: `{cmd}` (add `--set NAME=VALUE` for any parameter "
-                "changed from its default above).", ""]
-    return out if len(out) > 2 else []
+    out += rerun_lines(results, "this study")
+    out += recorded_elsewhere(results, _HANDLED, "results.json")
+    return out
 
 
 def render_markdown(results: Mapping[str, Any], table_md: str | None = None,
@@ -652,13 +986,14 @@ def render_markdown(results: Mapping[str, Any], table_md: str | None = None,
     intro += _filters_section(results, text)
     intro += _glossary_section(results)
     sections.append(intro)
+    has_table = bool(table_md and table_md.strip())
     for part in (_pick_section(results, text), _scenario_section(results), _attack_section(results, text),
-                 _results_section(results, table_md), _ci_section(results), _sweep_section(results),
+                 _results_section(results, table_md), _ci_section(results),
+                 [] if has_table else _sweep_section(results),  # the study's tables show its sweeps
                  _detection_section(results), _details_section(results), _timing_section(results),
-                 _figures_section(figures, text), _assumption_section(results),
-                 other_section(results, _HANDLED, "Other recorded results"), _software_section(results)):
+                 _figures_section(figures, text), _assumption_section(results), _software_section(results)):
         sections.append(part)
-    return document(out, sections)
+    return document(out, sections, _summary_section(results, text, figures))
 
 
 def study_report(d: Path) -> tuple[str, dict[str, bytes], str]:

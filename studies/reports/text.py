@@ -18,7 +18,8 @@ from .render import heading_anchors
 
 __all__ = ["is_num", "fmt_num", "fmt_dur", "is_time_key", "ci_pair", "with_ci", "metric_value", "compact",
            "flat_numbers", "md_escape", "md_cell", "md_table", "demote", "generic", "document", "figure_lines",
-           "scenario_spec", "params_table", "network_lines", "assumption_section", "matrix_text", "other_section",
+           "scenario_spec", "params_table", "network_lines", "assumption_section", "matrix_text", "recorded_elsewhere",
+           "code_span", "rerun_lines",
            "read_json", "read_record"]
 
 
@@ -252,7 +253,7 @@ def generic(v, depth: int = 0) -> list[str]:
         if flat:
             rows = [[md_cell(name)] + [md_cell(_cell_value(str(k), x[k])) if k in x else "—" for k in flat]
                     for name, x in v.items()]
-            out += md_table([""] + [md_cell(str(c).replace("_", " ")) for c in flat], rows)
+            out += md_table(["name"] + [md_cell(str(c).replace("_", " ")) for c in flat], rows)
         for c in nested:
             sub = {n: x[c] for n, x in v.items() if c in x}
             out += [f"**{md_escape(str(c).replace('_', ' '))}**:", "", *generic(sub, depth + 1)]
@@ -276,18 +277,19 @@ def generic(v, depth: int = 0) -> list[str]:
 # Pieces every report has.
 
 
-def document(head: Sequence[str], sections: Iterable[Sequence[str]]) -> str:
-    """The report: ``head`` (its ``#`` title and lead), a table of contents, then every non-empty section.
+def document(head: Sequence[str], sections: Iterable[Sequence[str]], summary: Sequence[str] = ()) -> str:
+    """The report: ``head`` (its ``#`` title and lead), the ``summary`` (a ``## Summary`` section: what a reader
+    acts on, on one screen), a table of contents, then every non-empty section.
 
     Each section starts with its ``## `` heading; the contents link to them by the anchors
     the HTML page gives them (:func:`studies.reports.render.heading_anchors`).
     """
     sections = [list(s) for s in sections if s]
-    out = [*head, "", "## Contents", ""]
+    out = [*head, "", *summary, "", "## Contents", ""]
     body = "\n".join(line for s in sections for line in s)
     anchors = heading_anchors("\n".join(out) + "\n\n" + body)
     out += [f"- [{md_escape(text).replace(']', chr(92) + ']')}](#{anchor})"
-            for level, text, anchor in anchors if level == 2 and anchor != "contents"]
+            for level, text, anchor in anchors if level == 2 and anchor not in ("contents", "summary")]
     text = "\n".join(out) + "\n\n" + body
     return re.sub(r"\n{3,}", "\n\n", text).strip() + "\n"
 
@@ -347,15 +349,36 @@ def assumption_section(assumptions, intro: str) -> list[str]:
     return ["## Assumptions", "", intro, "", *(f"- {md_escape(x)}" for x in assumptions), ""]
 
 
-def other_section(record: Mapping, known, title: str) -> list[str]:
-    """Every key of ``record`` not in ``known``, generically, under the heading ``title``."""
-    rest = {k: v for k, v in record.items() if k not in known}
+def recorded_elsewhere(record: Mapping, shown, name: str) -> list[str]:
+    """One line naming the keys of ``record`` the report leaves out (``name`` holds them): raw fields stay there."""
+    rest = [str(k) for k in record if k not in shown]
     if not rest:
         return []
-    out = [f"## {title}", ""]
-    for k, v in rest.items():
-        out += [f"### {md_escape(k)}", "", *generic(v), ""]
-    return out
+    return [f"`{name}` also records {', '.join(code_span(k) for k in rest)} (not shown here).", ""]
+
+
+def code_span(text: str) -> str:
+    """``text`` as a Markdown code span, whatever backticks it holds."""
+    ticks = max((len(m) for m in re.findall(r"`+", text)), default=0)
+    fence = "`" * (ticks + 1)
+    pad = " " if text.startswith("`") or text.endswith("`") or ticks else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
+def rerun_lines(record: Mapping, what: str) -> list[str]:
+    """How to compute ``what`` again with the same numbers, from the ``invocation`` the file records
+    (:mod:`studies.invocation`): the command line, or why there is none."""
+    from ..invocation import command_text
+
+    inv = record.get("invocation")
+    cmd = command_text(inv)
+    if cmd is not None:
+        return [f"To compute {what} again, with the same numbers (DIR: a new output directory):", "",
+                code_span(cmd), ""]
+    if isinstance(inv, Mapping) and isinstance(inv.get("note"), str):
+        return [f"No command line computes {what} again: {md_escape(inv['note'])}.", ""]
+    return [f"No command line is recorded for {what} (the file has no `invocation`: an older cfdesign wrote it); "
+            "the settings above are what it ran with.", ""]
 
 
 def read_json(d: Path, name: str) -> Any:
