@@ -19,7 +19,7 @@ linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the par
 
 def _figure(seed: int, log: bool = True, outside: bool = False):
     rng = np.random.default_rng(seed)
-    fig, ax = F.plotting().subplots(figsize=(7, 4))  # as the studies' curves: its artists fit its canvas
+    fig, ax = F.plotting().subplots(figsize=(7, 4), layout=None)  # its artists fit its canvas, legend aside
     for i in range(3):
         ax.plot(np.arange(1, 51), rng.random(50) + 0.01, label=f"filter {i}")
     ax.set(xlabel="time step k", ylabel="RMSE", title=f"figure {seed}", yscale="log" if log else "linear")
@@ -61,6 +61,21 @@ def test_an_artist_beyond_the_canvas_takes_matplotlibs_tight_save():
     _figure(2, outside=True).savefig(ref, format="png", dpi=F.FIGURE_DPI, bbox_inches="tight")
     F.png_tight(_figure(2, outside=True), ours)
     assert ours.getvalue() == ref.getvalue()
+
+
+def test_a_legend_beside_the_axes_fits_the_canvas_and_is_drawn_once():
+    """The studies' figures (constrained layout) keep a legend beside the axes on their canvas: drawn once, and
+    the legend is in the picture (the right part of it is not blank)."""
+    fig, ax = F.plotting().subplots(figsize=(7, 4))
+    for i in range(3):
+        ax.plot(np.arange(10), np.arange(10) * (i + 1), label=f"a long filter name {i} (8 msgs/step)")
+    F.legend_beside(ax)
+    fig.savefig = None  # a fallback to matplotlib's tight save would fail here
+    out = io.BytesIO()
+    F.png_tight(fig, out)
+    px = _pixels(out.getvalue())
+    legend = px[:, int(0.8 * px.shape[1]):, :3]
+    assert (legend.sum(-1) < 300).mean() > 0.002  # the legend's text is there
 
 
 def _paths(d, n):
@@ -223,3 +238,64 @@ def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, m
     assert pngs and pngs == sorted(p.name for p in (tmp_path / "here").glob("*.png"))
     for p in pngs:
         assert (tmp_path / "helper" / p).read_bytes() == (tmp_path / "here" / p).read_bytes(), p
+    # one colour per filter: every figure of the study draws each filter in the colour of the shared mapping
+    figs = _drawn(lambda: F.study_figures(r.study, tmp_path / "here", r.results, r.scenarios, r.arrays))
+    assert sorted(path.name for _, path in figs) == pngs and "fig_tradeoff.png" in pngs
+    blocks = r.results.get("by_scenario") or {"": r.results}
+    colours = {n: c for b in blocks.values() for n, c in F.filter_colours(b["filters"]).items()}
+    checked = {path.name: _filter_colours_in(fig, colours) for fig, path in figs}
+    assert sum(len(v[0]) for v in checked.values()) >= len(colours)  # filters do appear in legends
+    assert {name: v[1] for name, v in checked.items() if v[1]} == {}
+
+
+def _drawn(draw) -> list:
+    """The (figure, path) pairs ``draw`` saves, captured before they are drawn."""
+    pending: list = []
+    token = F._PENDING.set(pending)
+    try:
+        draw()
+    finally:
+        F._PENDING.reset(token)
+    return pending
+
+
+def _filter_colours_in(fig, colours: dict) -> tuple[list, list]:
+    """(legend entries naming a filter, those whose colour is not the filter's) over every axes of ``fig``; an
+    entry names a filter when its label is the name or the name followed by " (" (the longest such name)."""
+    from matplotlib.colors import to_hex
+
+    seen, wrong = [], []
+    for ax in fig.axes:
+        leg = ax.get_legend()
+        if leg is None:
+            continue
+        for handle, text in zip(leg.legend_handles, leg.get_texts()):
+            label = text.get_text()
+            names = [n for n in colours if label == n or label.startswith(n + " (")]
+            if not names:
+                continue
+            name = max(names, key=len)
+            colour = handle.get_color() if hasattr(handle, "get_color") else handle.get_edgecolor()[0]
+            seen.append(label)
+            if to_hex(colour) != to_hex(colours[name]):
+                wrong.append((label, to_hex(colour), colours[name]))
+    return seen, wrong
+
+
+def test_filter_colours_are_one_mapping_in_order():
+    names = [f"filter {i}" for i in range(len(F.PALETTE) + 2)]
+    c = F.filter_colours(names)
+    assert list(c) == names and c == F.filter_colours(names)
+    assert len(set(list(c.values())[:len(F.PALETTE)])) == len(F.PALETTE)  # distinct as far as the palette goes
+    assert not {"#000000", "#7f7f7f"} & set(F.PALETTE)  # black and grey stay for the truth and the sensors
+    assert F.filter_colours(names[:3]) == {n: c[n] for n in names[:3]}  # a filter's colour is its position's
+
+
+def test_the_colour_check_sees_a_figure_that_ignores_the_mapping():
+    colours = F.filter_colours(["a", "b"])
+    fig, ax = F.plotting().subplots()
+    ax.plot([0, 1], [0, 1], label="a")
+    ax.plot([0, 1], [1, 0], color=colours["a"], label="b (node 1)")  # the default cycle's second colour differs
+    F.legend_beside(ax)
+    seen, wrong = _filter_colours_in(fig, colours)
+    assert seen == ["a", "b (node 1)"] and [w[0] for w in wrong] == ["b (node 1)"]

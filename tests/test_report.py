@@ -25,6 +25,7 @@ import pytest
 from designer.validation import InputError
 from studies import api
 from studies.reports import markdown_to_html, render_markdown, write_report
+from studies.pipeline import study_text
 from studies.reports.text import md_escape
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
@@ -180,11 +181,13 @@ def test_pick_section_follows_the_numbers(study_dir):
     results = json.loads((study_dir / "results.json").read_text())
     md = (study_dir / "report.md").read_text()
     pick = md.split("## Which filter to pick", 1)[1].split("\n## ", 1)[0]
-    f = results["filters"]
+    refs = set(study_text(results["study"]).references)
+    f = {n: m for n, m in results["filters"].items() if n not in refs}  # benchmarks are never picked
     if results["study"] == "consensus-robot":
+        assert refs & set(results["filters"])  # the unattacked fusion centre is a benchmark
         best = min(f, key=lambda n: f[n]["rmse_position"])
-        assert f"**Most accurate (position RMSE over all nodes):** {best}," in pick
-        assert "No confidence interval was recorded" in pick
+        assert (f"**Most accurate (position RMSE over all nodes):** {best}, {f[best]['rmse_position']:.4g} "
+                f"[{f[best]['rmse_position_ci95'][0]:.3g}, {f[best]['rmse_position_ci95'][1]:.3g}]") in pick
         fewest = min(v["communications"] for v in f.values())
         assert f"**Fewest communications:** " in pick and f"({fewest} messages" in pick
     else:
@@ -668,7 +671,8 @@ def test_design_report_escapes_texts_from_the_schedule(designs, tmp_path):
     assert "<img src=x" not in raw
     page = _check_self_contained(raw)
     text = page_text(page)
-    assert evil in text and "<script>s()</script>" in text and "<iframe src=x></iframe>" in text
+    assert evil in text and "<script>s()</script>" in text
+    assert "<iframe" not in text and "schedule.json also records extra_field (not shown here)." in text
     assert "Design report: <b>bold</b>" in text
     assert len(page.images) == 2 and not [t for t in page.tags if t == "b"]
 
@@ -755,7 +759,7 @@ def test_feasibility_report_sections_and_escaping(maps, tmp_path):
     src, fmap = maps["two"]
     meta = json.loads((src / "feasibility.json").read_text())
     md = (src / "report.md").read_text()
-    for title in ("What was mapped", "Heat map", "Attacks", "Network", "How it was computed",
+    for title in ("Summary", "What was mapped", "Attacks", "Network", "How it was computed",
                   "Files and reproduction") + (("Assumptions",) if meta["assumptions"] else ()):
         assert f"\n## {title}\n" in md
     mapped = md_plain(_section(md, "What was mapped"))
@@ -782,7 +786,7 @@ def test_feasibility_report_from_the_csv_alone(maps, tmp_path):
     write_report(tmp_path)
     md = (tmp_path / "report.md").read_text()
     assert f"**{int(fmap.feasible.sum())} of {len(fmap.rows)} grid points are feasible.**" in md
-    assert "| sigma \\\\ beta |" in md and "Heat map" not in md
+    assert "| sigma \\\\ beta |" in md and "feasibility.png" not in md
     _check_self_contained((tmp_path / "report.html").read_text())
 
 
@@ -803,3 +807,205 @@ def test_design_report_survives_divergence_and_odd_values(designs, tmp_path):
     verdict = _section((tmp_path / "report.md").read_text(), "Verdict")
     assert ("The first violation: node 3 diverged at step 2 (estimate or covariance beyond 1e+08 or not finite)."
             in verdict)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The summary every report opens with, and reports a reader can act on.
+
+RING = str(Path(__file__).resolve().parents[1] / "examples" / "ring_model.py")
+
+
+@pytest.fixture(scope="module")
+def comparison_dir(tmp_path_factory):
+    """A real comparison on a 4-node model file (the report the issue measured at 752 lines)."""
+    out = tmp_path_factory.mktemp("comparison")
+    api.study("comparison", RING, out=out, runs=2, particles=20, assignments=["sweep_values=[0.1, 0.3]"])
+    return out
+
+
+def _summary(md: str) -> str:
+    head, rest = md.split("\n## Summary\n", 1)
+    assert "\n## " not in head  # the summary comes first, before the contents
+    summary = rest.split("\n## ", 1)[0]
+    assert rest.split("\n## ", 1)[1].startswith("Contents\n")
+    return summary
+
+
+def _table_headers(md: str) -> list[list[str]]:
+    """The header cells of every Markdown table of ``md``."""
+    lines = md.splitlines()
+    return [[c.strip() for c in re.split(r"(?<!\\)\|", lines[i - 1].strip())[1:-1]]
+            for i in range(1, len(lines))
+            if re.fullmatch(r"\|(\s*-{3,}:?\s*\|)+", lines[i].strip()) and lines[i - 1].startswith("|")]
+
+
+def _ranked_rows(summary: str) -> list[list[str]]:
+    rows = [r for r in summary.splitlines() if re.match(r"\| (\d+|—) \| ", r)]
+    return [[c.strip() for c in re.split(r"(?<!\\)\|", r.strip())[1:-1]] for r in rows]
+
+
+def _lead_number(cell: str) -> float:
+    return float(cell.split(" [", 1)[0])
+
+
+@pytest.mark.parametrize("which", ["encrypted-switching", "consensus-robot", "comparison"])
+def test_a_study_report_opens_with_the_ranking_the_figure_and_the_pick(which, studies, comparison_dir):
+    d = comparison_dir if which == "comparison" else studies(which)
+    results = json.loads((d / "results.json").read_text())
+    md = (d / "report.md").read_text()
+    summary = _summary(md)
+    assert len([ln for ln in summary.splitlines() if ln.strip()]) <= 30  # one screen
+    assert ["rank", "filter"] == _table_headers(summary)[0][:2]
+    rows = _ranked_rows(summary)
+    blocks = results.get("by_scenario") or {"": results}
+    assert len(rows) == sum(len(b["filters"]) for b in blocks.values())
+    text = study_text(results["study"])
+    key = next(k for k, _ in text.accuracy if any(k in f for b in blocks.values() for f in b["filters"].values()))
+    for b in blocks.values():
+        f = b["filters"]
+        names = [r[1] for r in rows if r[1] in f]
+        values = [f[n][key][0] if isinstance(f[n][key], list) else f[n][key] for n in names
+                  if f[n][key] is not None]
+        assert values == sorted(values)  # ranked: lowest first
+        for r in rows:
+            if r[1] in f and f[r[1]].get(f"{key}_ci95") is not None:
+                assert re.search(r"\[[-\d.e]+, [-\d.e]+\]", r[2]), r  # the value with its interval
+    assert "](fig_tradeoff.png)" in summary and (d / "fig_tradeoff.png").is_file()
+    picks = [ln for ln in summary.splitlines() if ln.startswith("**Which to pick")]
+    assert len(picks) == len(blocks)
+    for pick, b in zip(picks, blocks.values()):
+        cand = {n: m for n, m in b["filters"].items() if n not in text.references and m[key] is not None}
+        best = min(cand, key=lambda n: cand[n][key] if not isinstance(cand[n][key], list) else cand[n][key][0])
+        assert best in pick
+        assert pick.count(".") >= 1 and "\n" not in pick
+    page = parse((d / "report.html").read_text())
+    assert page.errors == [] and "Which to pick" in page_text(page)
+
+
+def _pick(results: dict) -> str:
+    return next(ln for ln in render_markdown(results).splitlines() if ln.startswith("**Which to pick"))
+
+
+def test_the_pick_is_never_stronger_than_the_intervals():
+    r = _results()  # fast [0.9, 1.1] and close [0.95, 1.2] overlap; far [2.5, 3.5] is apart
+    pick = _pick(r)
+    assert "the data cannot tell fast and close apart on position RMSE" in pick and "far" not in pick
+    assert "among them fast costs least per step" in pick
+    r["filters"]["close"].update(rmse_position=1.2, rmse_position_ci95=[1.15, 1.3])
+    pick = _pick(r)
+    assert pick.startswith("**Which to pick:** fast: the lowest position RMSE (1 [0.9, 1.1]), its 95 % interval "
+                           "apart from every other filter's") and "rough" not in pick
+    assert "(from only 4 runs, whose intervals are rough)." in _pick({**r, "runs": 4})
+    for m in r["filters"].values():
+        m.pop("rmse_position_ci95")
+    assert ("fast has the lowest position RMSE (1), but no 95 % interval was recorded, so the data cannot say "
+            "whether it is better than close (1.2)") in _pick(r)
+    one = _results(runs=1)  # one run: zero-width "intervals" say nothing
+    for m in one["filters"].values():
+        m["rmse_position_ci95"] = [m["rmse_position"]] * 2
+    assert "apart" not in _pick(one) and "cannot say" in _pick(one)
+    gone = _results()
+    for m in gone["filters"].values():
+        m.update(rmse_position=None, rmse_position_ci95=None)
+    assert "none can be named" in _pick(gone)
+
+
+def test_a_benchmark_is_ranked_but_never_picked():
+    r = _results(study="rrp-deception")
+    r["filters"]["RRP-SPF-NM"] = {"rmse_position": 0.1, "rmse_position_ci95": [0.05, 0.15], "time_per_step_s": 1e-6}
+    md = render_markdown(r)
+    pick = _pick(r)
+    assert "RRP-SPF-NM" not in pick and "fast" in pick
+    row = next(x for x in _ranked_rows(_summary(md)) if x[1] == "RRP-SPF-NM")
+    assert row[0] == "—" and row[3] == "benchmark"
+
+
+@pytest.mark.parametrize("check, word", [({"verdict": "violated", "fraction_exceeding": 0.0}, "violated"),
+                                         ({"fraction_exceeding": 0.25, "pairs_checked": 8, "pairs_total": 40},
+                                          "exceeded"),
+                                         ({"fraction_exceeding": 0.0, "pairs_checked": 8, "pairs_total": 40}, "held")])
+def test_the_bound_check_verdict_reaches_the_summary(check, word):
+    """The study's own verdict where it records one (a bound exceeded on average is violated even when no
+    single pair's exceedance is significant), else the share of pairs exceeding."""
+    r = _results()
+    r["filters"]["far"]["bound_check"] = {"runs": 40, **check}
+    md = render_markdown(r)
+    row = next(x for x in _ranked_rows(_summary(md)) if x[1] == "far")
+    assert f"bound {word}" in row[-1]
+    details = md.split("### Does the bound hold?", 1)[1]
+    assert f"| far | {word} |" in details
+    caution = next(ln for ln in md.splitlines() if ln.startswith("- **Caution:**")) if word != "held" else ""
+    assert (word in caution) == (word != "held")
+
+
+def test_raw_fields_stay_in_results_json(comparison_dir, studies):
+    """No section dumps fields the report does not explain: they are named once, their values left to the file."""
+    r = _results(runner={"backend": "batched", "chunks": 3}, extra={"deep": [{"a": 123456}], "nums": [7] * 50})
+    md = render_markdown(r)
+    assert "Other recorded" not in md and "123456" not in md and "batched" not in md
+    assert "`results.json` also records `runner`, `extra` (not shown here)." in md
+    for d in (comparison_dir, studies("consensus-robot")):
+        md = (d / "report.md").read_text()
+        assert "Other recorded" not in md and "{oscillator:" not in md and "values (" not in md
+        assert len(md.splitlines()) < 320, len(md.splitlines())
+
+
+def test_figure_captions_are_sentences_the_studies_wrote(comparison_dir, studies):
+    from studies.reports.study import figure_caption
+
+    for d in (comparison_dir, studies("consensus-robot"), studies("encrypted-switching")):
+        md = (d / "report.md").read_text()
+        captions = dict((f, c) for c, f in re.findall(r"^\*\*Figure \d+\.\*\* (.+) \(`([^`]+)`\)$", md, flags=re.M))
+        assert set(captions) == {p.name for p in d.glob("*.png")}
+        for name, caption in captions.items():
+            stem = Path(name).stem.removeprefix("fig_").replace("_", " ")
+            assert caption[0].isupper() and caption.endswith(".") and len(caption.split()) >= 6, caption
+            assert stem.capitalize() not in caption and "no caption" not in caption, caption
+    assert "recorded no caption" in figure_caption("fig_new.png", study_text("comparison"))
+
+
+def test_no_empty_paper_section():
+    r = _results(paper={"source": None, "numbers": None, "note": "no paper compares these"})
+    md = render_markdown(r)
+    assert "numbers" not in md.split("### What the paper reports", 1)[1].split("\n## ", 1)[0]
+    assert "Note: no paper compares these" in md
+    assert "What the paper reports" not in render_markdown(_results(paper={"source": None, "numbers": None}))
+
+
+def test_every_table_labels_its_first_column_and_the_sweeps_appear_once(comparison_dir, studies, designs, maps):
+    docs = [(d / name).read_text() for d in (comparison_dir, studies("consensus-robot"), studies("encrypted-switching"))
+            for name in ("report.md", "table.md")]
+    docs += [(d / "report.md").read_text() for d, _ in (*designs.values(), *maps.values())]
+    docs.append(render_markdown(_results()))
+    for md in docs:
+        headers = _table_headers(md)
+        assert headers and all(h[0] for h in headers), [h for h in headers if not h[0]]
+    table = "# T\n\n| setting | RMSE |\n|---|---:|\n| dos_prob = 0.1 | 1 |\n"
+    assert "## Sweeps" not in render_markdown(_results(), table)  # the study's own tables show its sweeps
+    assert render_markdown(_results()).count("### dos_prob") == 1
+    sweeps = (comparison_dir / "report.md").read_text()
+    assert sweeps.count("against the DoS probability") == 1 and "## Sweeps" not in sweeps
+
+
+def test_design_and_map_reports_open_with_a_summary(designs, maps):
+    for d, res in designs.values():
+        md = (d / "report.md").read_text()
+        summary = _summary(md)
+        assert _table_headers(summary)[0][:2] == ["rank", "node"]
+        assert "](fig_trace_bound.png)" in summary
+        assert ("**Use this schedule?** Yes, along this run" if res.feasible else
+                "**Use this schedule?** No: the design is infeasible along this run") in summary
+        assert "### gate" not in md and "Other recorded" not in md
+        sched = json.loads((d / "schedule.json").read_text())
+        if any(v["condition"] == "theorem2" for v in sched["violations"]):
+            k, n = sched["steps"], sched["nodes"]
+            assert (f"({k + 1} per node, {n * (k + 1)} node-steps for {n} nodes), conditions (28)-(29) once per "
+                    f"recursion step k → k + 1 ({k} per node, {n * k} node-steps)") in md
+    for d, fmap in maps.values():
+        summary = _summary((d / "report.md").read_text())
+        assert "**Where the design works:**" in summary
+        ok = sorted(r["trace_bound"] for r in fmap.rows if r["feasible"])
+        rows = [x for x in summary.splitlines() if re.match(r"\| \d+ \| ", x)]
+        assert rows and f"{ok[0]:.4g}" in rows[0]
+        if len(fmap.grids) <= 2:
+            assert "](feasibility.png)" in summary
