@@ -2,10 +2,12 @@
 
 A page fails when the browser console has any SEVERE entry (a JavaScript error, a
 resource that failed to load, a Content-Security-Policy violation), when an image is
-not loaded or has no width, or when it has no table.  The pages: two study reports,
+not loaded or has no width, or when it has no table; and when the summary it opens with (the ranked
+table, the figure, the one-sentence conclusion) is not there.  The pages: two study reports,
 a design report (the indoor robot's infeasible paper design) and a feasibility
 report (a 2-D map of the small linear model).  Negative controls run the same
-checking function on pages with a broken image, a JavaScript error and no table.
+checking functions on pages with a broken image, a JavaScript error, no table, and no summary or a
+summary without its figure or its conclusion.
 
 Without Chromium or chromedriver the tests are skipped, unless the environment sets
 ``CFDESIGN_REQUIRE_BROWSER=1`` (CI does, after installing them), which makes them fail.
@@ -133,17 +135,77 @@ def _renders_cleanly(driver, path: Path, min_images: int, min_tables: int) -> No
     assert missing == [], path
 
 
+# What the summary of each kind of report holds: its figure and the first words of its one-sentence conclusion.
+SUMMARY = {"study": ("fig_tradeoff.png", "Which to pick"), "design": ("fig_trace_bound.png", "Use this schedule?"),
+           "feasibility": ("feasibility.png", "Where the design works:")}
+
+
+def summary_problems(driver, path: Path, kind: str) -> list[str]:
+    """What the page's summary lacks: the section right after the title, before the contents, with the ranked
+    table, the figure (rendered) and the one-sentence conclusion."""
+    driver.get(path.resolve().as_uri())
+    found = driver.execute_script(
+        "const h = document.getElementById('summary'); if (!h) return null;"
+        "const els = []; for (let e = h.nextElementSibling; e && e.tagName !== 'H2'; e = e.nextElementSibling)"
+        " els.push(e);"
+        "const next = els.length ? els[els.length - 1].nextElementSibling : h.nextElementSibling;"
+        "const h2 = Array.from(document.querySelectorAll('h2'));"
+        "return {first: h2.length > 0 && h2[0] === h, next: next ? next.id : null,"
+        " heads: els.flatMap(e => Array.from(e.querySelectorAll('th'), t => t.innerText.trim())),"
+        " rows: els.reduce((n, e) => n + e.querySelectorAll('tbody tr').length, 0),"
+        " images: els.flatMap(e => Array.from(e.querySelectorAll('img'),"
+        "   i => [i.getAttribute('data-file'), i.complete && i.naturalWidth > 0])),"
+        " picks: els.filter(e => e.tagName === 'P' && e.firstElementChild && e.firstElementChild.tagName === 'STRONG')"
+        "   .map(e => e.innerText)};")
+    if found is None:
+        return ["no summary section"]
+    figure, lead = SUMMARY[kind]
+    problems = []
+    if not found["first"] or found["next"] != "contents":
+        problems.append(f"the summary is not the first section before the contents ({found['next']})")
+    if "rank" not in found["heads"] or not found["rows"]:
+        problems.append(f"no ranked table in the summary ({found['heads'][:4]})")
+    if [figure, True] not in found["images"]:
+        problems.append(f"no rendered {figure} in the summary ({found['images']})")
+    picks = [p for p in found["picks"] if p.startswith(lead)]
+    if not picks or any("\n" in p.strip() or not p.strip().endswith(".") for p in picks):
+        problems.append(f"no one-sentence conclusion starting {lead!r} ({found['picks']})")
+    return problems
+
+
 def test_reports_render_cleanly(browser, reports):
     for path in reports:
         _renders_cleanly(browser, path, 4, 3)
+        assert summary_problems(browser, path, "study") == [], path
 
 
 def test_design_and_feasibility_reports_render_cleanly(browser, design_and_map):
     design, fmap = design_and_map
     _renders_cleanly(browser, design, 2, 3)  # the bound, the margins; binding, per node, parameters
     assert "Infeasible." in browser.execute_script("return document.body.innerText;")
+    assert summary_problems(browser, design, "design") == []
     _renders_cleanly(browser, fmap, 1, 1)  # the heat map; the grid
     assert "grid points are feasible." in browser.execute_script("return document.body.innerText;")
+    assert summary_problems(browser, fmap, "feasibility") == []
+
+
+def test_the_summary_check_sees_what_is_missing(browser, reports, tmp_path):
+    """Negative controls: the same report without its summary, its figure or its pick sentence."""
+    import re
+
+    page = reports[0].read_text()
+    head, rest = page.split('<h2 id="summary">', 1)
+    summary, tail = rest.split('<h2 id="contents">', 1)
+    cases = {"none": head + '<h2 id="contents">' + tail,
+             "figure": page.replace(re.search(r"<figure>.*?</figure>", summary, flags=re.S).group(0), ""),
+             "pick": page.replace("<strong>Which to pick", "<strong>Perhaps")}
+    for what, html_text in cases.items():
+        path = tmp_path / f"{what}.html"
+        path.write_text(html_text)
+        problems = summary_problems(browser, path, "study")
+        assert problems and (what != "none" or problems == ["no summary section"]), (what, problems)
+        assert what == "none" or any(("fig_tradeoff" if what == "figure" else "conclusion") in p
+                                     for p in problems), (what, problems)
 
 
 def _page(tmp_path: Path, name: str, body: str) -> Path:
