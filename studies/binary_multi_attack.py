@@ -341,7 +341,8 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
             for v, d in sweeps[p].items():
                 ax.plot(k, d["Sec-PF"][f"rmse_{metric}_curve"], lw=1.1, label=f"{names[p]} = {v}")
             ax.set(xlabel="time step k", ylabel=f"RMSE of {metric}")
-            legend_beside(ax)
+            if i == 0:  # one legend per column
+                legend_beside(ax)
     fig.suptitle("Sec-PF against each attack probability (cf. Figs. 6-11)")
     save_figure(fig, out / "fig_attack_sweeps.png")
 

@@ -702,6 +702,8 @@ def _figures(out: Path, results: dict, built: Mapping, arrays: Mapping) -> None:
             ax.plot(np.arange(K + 1), main.mean[n][0, :, j], lw=1.0, color=colours[n], label=n)
         ax.set(ylabel=f"{sc.model.state_names[j]}{' (cm)' if paper else ''}")
     legend_beside(axes[0, -1])
+    for ax in axes[-1]:
+        ax.set_xlabel("time step k")
     fig.suptitle(f"One run: {'levels' if paper else 'states'} and estimates (cf. Figs. 7, 15)")
     save_figure(fig, out / "fig_estimates.png")
 

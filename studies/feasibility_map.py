@@ -29,6 +29,7 @@ import functools
 import io
 import itertools
 from dataclasses import dataclass
+from decimal import Decimal
 from pathlib import Path
 from typing import Sequence
 
@@ -66,6 +67,15 @@ _PAPER_ONLY = ("tau", "sigma", "beta")
 OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
 
 
+def _grid_values(start: str, stop: str, count: int) -> np.ndarray:
+    """``count`` equally spaced values from ``start`` to ``stop`` as written: each the double nearest the decimal
+    value (``0:0.5:6`` gives 0.3, where ``numpy.linspace`` gives 0.30000000000000004)."""
+    a, b = Decimal(start.strip()), Decimal(stop.strip())
+    if count == 1:
+        return np.array([float(a)])
+    return np.array([float(a + (b - a) * i / (count - 1)) for i in range(count)])
+
+
 def parse_grid(spec: str) -> tuple[str, np.ndarray]:
     """``NAME=START:STOP:COUNT`` -> (name, values)."""
     if "=" not in spec:
@@ -83,7 +93,7 @@ def parse_grid(spec: str) -> tuple[str, np.ndarray]:
         raise InputError(f"--grid {name} expects START:STOP:COUNT (COUNT an integer >= 1), got {rng!r}") from None
     if count < 1 or not (np.isfinite(start) and np.isfinite(stop)):
         raise InputError(f"--grid {name}: COUNT must be >= 1 and START, STOP finite, got {rng!r}")
-    values = np.linspace(start, stop, count)
+    values = _grid_values(parts[0], parts[1], count)
     if name in ("dos", "fdi") and (values.min() < 0 or values.max() >= 1):
         raise InputError(f"--grid {name} must lie in [0, 1), got {start}:{stop}")
     if name == "epsilon" and values.min() <= 0:

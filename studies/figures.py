@@ -29,6 +29,7 @@ import pickle
 import signal
 import struct
 import sys
+import textwrap
 import warnings
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -432,6 +433,8 @@ def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
     if not panels:
         return
     fig, axes = plotting().subplots(1, len(panels), figsize=(5.2 * len(panels) + 3.2, 4.6), squeeze=False)
+    counted = any(b.counts_messages for b in panels)
+    refs = any(b.references for b in panels)
     for ax, b in zip(axes[0], panels):
         colours = filter_colours(b.filters)
         values = [v for v, _ in b.values.values() if v is not None]
@@ -442,29 +445,33 @@ def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
                 continue
             lo, hi = ci if ci is not None else (v, v)
             ref = name in b.references
+            notes = ([b.messages_text(name)] if counted else []) + (["benchmark"] if ref else [])
             ax.errorbar(1e3 * t, v, yerr=[[max(v - lo, 0.0)], [max(hi - v, 0.0)]], fmt="o", capsize=3, ms=6,
                         color=colours[name], mfc="white" if ref else colours[name],
-                        label=f"{name} ({b.messages_text(name)}{', benchmark' if ref else ''})")
+                        label=name + (f" ({', '.join(notes)})" if notes else ""))
+        ylabel = f"{b.label} with its 95 % interval" + (" (log scale)" if log else "")
         ax.set(xscale="log", yscale="log" if log else "linear", xlabel="time per step (ms, log scale)",
-               ylabel=f"{b.label} with its 95 % interval" + (" (log scale)" if log else ""),
+               ylabel="\n".join(textwrap.wrap(ylabel, 48)),
                title=f"{b.title}: accuracy against cost" if b.title else "accuracy against cost")
         _plain_log_ticks(ax.xaxis)
         if log:
             _plain_log_ticks(ax.yaxis)
         ax.grid(True, which="both", alpha=0.3)
-    legend_beside(axes[0, -1], title="filter (messages; hollow: benchmark)", title_fontsize=7)
+    notes = (["messages"] if counted else []) + (["hollow: benchmark"] if refs else [])
+    legend_beside(axes[0, -1], title="filter" + (f" ({'; '.join(notes)})" if notes else ""), title_fontsize=7)
     save_figure(fig, path)
 
 
 def _plain_log_ticks(axis) -> None:
-    """Tick labels of a log axis as plain numbers (0.2, 1, 50), at 1, 2 and 5 per decade over a short range: none
-    overlap, and a range under a decade still gets labels."""
+    """Tick labels of a log axis as plain numbers (0.2, 1, 50): one per decade over a long range, at 1, 2 and 5 per
+    decade over two decades or less, at every digit within one, so that none overlap and every range has some."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     lo, hi = axis.get_view_interval()
-    short = lo > 0 and hi / lo < 100
+    span = hi / lo if lo > 0 else math.inf
+    subs = tuple(range(1, 10)) if span < 10 else (1.0, 2.0, 5.0) if span < 100 else (1.0,)
     plain = FuncFormatter(lambda v, _: f"{v:g}")
-    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if short else (1.0,)))
+    axis.set_major_locator(LogLocator(base=10, subs=subs))
     axis.set_major_formatter(plain)
     axis.set_minor_formatter(NullFormatter())
 

@@ -134,7 +134,7 @@ def test_a_particle_study_line_keeps_the_engine_and_a_builtin_parameter(tmp_path
 def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypatch):
     assert main(["design", "scalar.py", "--beta", "0.05", "--sigma", "0.05", "--steps", "12", "--seed", "3",
                  "--set", "noise=0.1", "--out", "d"]) in (0, 1)
-    assert main(["feasibility", "scalar.py", "--grid", "dos=0:0.3:3", "--u-scale", "0", "--set", "gain=0.7",
+    assert main(["feasibility", "scalar.py", "--grid", "dos=0:0.5:6", "--u-scale", "0", "--set", "gain=0.7",
                  "--quiet", "--out", "f"]) == 0
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -148,8 +148,10 @@ def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypat
         assert za.files == zb.files
         for k in za.files:
             assert za[k].tobytes() == zb[k].tobytes(), k
+    assert [ln.split(",", 1)[0] for ln in (user / "f" / "feasibility.csv").read_text().splitlines()] == [
+        "dos", "0.0", "0.1", "0.2", "0.3", "0.4", "0.5"]  # as given (numpy.linspace: 0.30000000000000004)
     f = _line(user / "f" / "report.md")
-    assert {"--grid", "dos=0:0.3:3", "--u-scale", "gain=0.7"} <= set(f)
+    assert {"--grid", "dos=0:0.5:6", "--u-scale", "gain=0.7"} <= set(f)
     assert _rerun(f, elsewhere / "f") == 0
     assert (user / "f" / "feasibility.csv").read_bytes() == (elsewhere / "f" / "feasibility.csv").read_bytes()
     _same(*(json.loads((p / "feasibility.json").read_text()) for p in (user / "f", elsewhere / "f")))

@@ -208,6 +208,10 @@ class SummaryBlock:
         return any(v is not None and is_num(self.filters[n].get("time_per_step_s"))
                    and self.filters[n]["time_per_step_s"] > 0 for n, (v, _) in self.values.items())
 
+    @property
+    def counts_messages(self) -> bool:
+        return any(_messages(m) is not None for m in self.filters.values())
+
     def messages_text(self, name: str) -> str:
         msg = _messages(self.filters.get(name, {}))
         if msg is None:
@@ -382,9 +386,13 @@ def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence
             out += [f"### {md_escape(b.title)}", ""]
         out += _ranked_table(b)
     if TRADEOFF in figures:
-        out += figure_lines(1, TRADEOFF, "Accuracy (the ranking metric, with its 95 % interval) against the time "
-                            "per step, one colour per filter as in every figure of this report; the legend gives "
-                            "each filter's messages, and hollow markers are benchmarks.")
+        caption = ("Accuracy (the ranking metric, with its 95 % interval) against the time per step, one colour per "
+                   "filter as in every figure of this report")
+        if any(b.counts_messages for b in blocks):
+            caption += "; the legend gives each filter's messages"
+        if any(b.references for b in blocks):
+            caption += "; hollow markers are benchmarks"
+        out += figure_lines(1, TRADEOFF, caption + ".")
     out += [_pick_sentence(b) for b in blocks]
     return out + [""]
 
@@ -989,8 +997,8 @@ def render_markdown(results: Mapping[str, Any], table_md: str | None = None,
     has_table = bool(table_md and table_md.strip())
     for part in (_pick_section(results, text), _scenario_section(results), _attack_section(results, text),
                  _results_section(results, table_md), _ci_section(results),
-                 [] if has_table else _sweep_section(results),  # the study's tables show its sweeps
-                 _detection_section(results), _details_section(results), _timing_section(results),
+                 *(([], []) if has_table else (_sweep_section(results), _detection_section(results))),
+                 _details_section(results), _timing_section(results),  # (the study's tables show those two)
                  _figures_section(figures, text), _assumption_section(results), _software_section(results)):
         sections.append(part)
     return document(out, sections, _summary_section(results, text, figures))
