@@ -23,7 +23,7 @@ import fnmatch
 import math
 import re
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -184,7 +184,9 @@ def bound_verdict(bc) -> tuple[str, str] | None:
         why = bc.get("reason") or bc.get("verdict_reason")
         return verdict, f"the bound check's verdict: {verdict}" + (f" ({why})" if isinstance(why, str) else "") + where
     if not is_num(frac):
-        return "not checked", "the bound was not checked: no (node, step) pair had a bound in enough runs"
+        need = bc.get("min_runs_per_pair")
+        return "not checked", ("the bound was not checked: no (node, step) pair had a bound in enough runs"
+                               + (f" (at least {fmt_num(need)}: run more)" if is_num(need) else ""))
     if frac > 0:
         return "exceeded", f"the empirical error covariance exceeded the bound at {fmt_num(100 * frac, 3)} % of the " \
                            f"checked pairs{where}"
@@ -282,9 +284,11 @@ def _notes(name: str, b: SummaryBlock) -> str:
     bc = m.get("bound_check")
     bv = bound_verdict(bc)
     if bv is not None:
-        checked = (f" ({fmt_num(bc['pairs_checked'])} of {fmt_num(bc['pairs_total'])} (node, step) pairs checked)"
+        checked = (f" ({fmt_num(bc['pairs_checked'])} of {fmt_num(bc['pairs_total'])} (node, step) pairs checked"
                    if is_num(bc.get("pairs_checked")) and is_num(bc.get("pairs_total")) else "")
-        notes.append(f"bound {bv[0]}{checked}")
+        if checked and bv[0] == "not checked" and is_num(bc.get("min_runs_per_pair")):
+            checked += f": a pair needs a bound in {fmt_num(bc['min_runs_per_pair'])} runs"
+        notes.append(f"bound {bv[0]}{checked + ')' if checked else ''}")
     return "; ".join(md_cell(x) for x in notes)
 
 
@@ -381,6 +385,8 @@ def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence
               "cannot be told apart from it at this number of runs.", ""]
     from ..figures import TRADEOFF
 
+    if len(blocks) == 1:  # one scenario: no heading of its own
+        blocks = [replace(blocks[0], title="")]
     for b in blocks:
         if b.title:
             out += [f"### {md_escape(b.title)}", ""]
@@ -393,8 +399,9 @@ def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence
         if any(b.references for b in blocks):
             caption += "; hollow markers are benchmarks"
         out += figure_lines(1, TRADEOFF, caption + ".")
-    out += [_pick_sentence(b) for b in blocks]
-    return out + [""]
+    for b in blocks:
+        out += [_pick_sentence(b), ""]
+    return out
 
 
 def _pick_accuracy(label: str, comp: str, values: Mapping[str, tuple[float, Any]], runs) -> str:
