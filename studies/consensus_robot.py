@@ -423,9 +423,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "error; the whole state for a model without position components); per-node and per-step curves "
             "likewise; rmse_position_ci95 = its 95 % percentile bootstrap interval over the runs (1000 resamples of "
             "the runs' mean squared errors); rmse_position_median_run = median over runs of each run's RMSE; "
-            "node_spread = mean distance of node estimates from their average. Runs that diverged (an estimate beyond 1e12 or non-finite, or an "
-            "error beyond divergence_spread (default 100, --set divergence_spread=...) times the prior's spread "
-            "sqrt(tr P0)) are excluded and listed under diverged_runs.",
+            "node_spread = mean distance of node estimates from their average. Runs that diverged (an estimate "
+            "beyond 1e12 or non-finite, or an error beyond divergence_spread (default 100, --set "
+            "divergence_spread=...) times the prior's spread sqrt(tr P0)) are excluded and listed under diverged_runs.",
             "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
             "one per round), whether or not DoS drops them.",
             "consensus-robot: KCF and HCMCI (filters.distributed) run on the same network, measurements and channel "
@@ -586,23 +586,27 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
 
 def table_markdown(results: dict) -> str:
     """Every filter's RMSE, spread, bound check and feasibility, per node below."""
+    from .reports.study import bound_verdict
     from .results import markdown_table
 
     rows = {}
     for name, f in results["filters"].items():
         bc, fe = f.get("bound_check") or {}, f.get("feasibility") or {}
+        verdict = bound_verdict(f.get("bound_check"))
         ci = f.get("rmse_position_ci95")
         rows[name] = {"rmse": f["rmse_position"] if ci is None or f["rmse_position"] is None else
                       f"{f['rmse_position']:.4g} [{ci[0]:.3g}, {ci[1]:.3g}]", "median": f["rmse_position_median_run"],
                       "spread": f.get("node_spread"), "div": len(f["diverged_runs"]),
                       "feas": None if not fe else f"{fe['runs_feasible']}/{fe['runs']}",
+                      "verdict": None if verdict is None else verdict[0],
                       "exceed": bc.get("fraction_exceeding"), "ratio": bc.get("trace_ratio_mean"),
                       "ms": 1e3 * f["time_per_step_s"], "msgs": f.get("communications")}
     return (f"# consensus-robot (seed 003): {results['scenario']}\n\n{results['runs']} runs, K = {results['steps']} "
             f"steps, seed {results['seed']}, mode {results['mode']}.\n\n" + markdown_table(rows, [
                 ("rmse", "RMSE_p [95 % CI]"), ("median", "median run"), ("spread", "node spread"),
                 ("div", "diverged runs"),
-                ("feas", "feasible runs"), ("exceed", "bound exceeded (fraction of pairs)"),
+                ("feas", "feasible runs"), ("verdict", "bound check"),
+                ("exceed", "bound exceeded (fraction of pairs)"),
                 ("ratio", "tr P / tr Phi"), ("ms", "time/step ms"), ("msgs", "messages/step")], "filter"))
 
 

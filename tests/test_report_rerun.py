@@ -122,10 +122,11 @@ def test_a_study_line_has_the_model_file_and_every_option_and_computes_the_same_
 def test_a_particle_study_line_keeps_the_engine_and_a_builtin_parameter(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["study", "rrp-deception", "--runs", "2", "--particles", "30", "--engine", "numpy", "--set",
-                 "deception_prob=0.3", "--set", "sweep=[0.3]", "--quiet", "--out", "a"]) == 0
+                 "deception_prob=0.3", "--set", "steps=40", "--set", "sweep=[0.3]", "--quiet", "--out", "a"]) == 0
     argv = _line(tmp_path / "a" / "report.md")
     assert argv[:3] == ["cfdesign", "study", "rrp-deception"]
-    assert "--engine" in argv and "deception_prob=0.3" in argv and not any(a.startswith("period=") for a in argv)
+    assert "--engine" in argv and {"deception_prob=0.3", "steps=40"} <= set(argv)
+    assert not any(a.startswith("period=") for a in argv)  # parameters at their defaults are left out
     assert _rerun(argv, tmp_path / "b") == 0
     _same(json.loads((tmp_path / "a" / "results.json").read_text()),
           json.loads((tmp_path / "b" / "results.json").read_text()))
