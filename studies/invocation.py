@@ -13,7 +13,9 @@ it came from the command line or from :mod:`studies.api`:
 * a study's own options that differ from its defaults (``--engine``, ``--schedule``, else
   ``--set NAME=VALUE``); a map's ``--grid`` specifications as given.
 
-Nothing else determines the numbers (where the chunks ran does not).  An in-memory model
+Nothing else determines the numbers: where the chunks ran (``--workers``, ``--dask``) and on how many
+threads (``threads``) do not, and are left out, so that two computations with the same numbers
+record the same line.  An in-memory model
 has no command line: ``argv`` is None and ``note`` says why.  Every report shows the line
 (:func:`command_text`).
 """
@@ -35,6 +37,8 @@ _DESIGN_FLAGS = {"mode": "--mode", "epsilon": "--epsilon", "sigma": "--sigma", "
                  "u_scale": "--u-scale", "v_scale": "--v-scale", "linearization": "--linearization",
                  "radius": "--radius", "gate": "--gate"}
 _STUDY_FLAGS = {"engine": "--engine", "schedule": "--schedule"}
+# a study's own options that say where or how wide it computes, not what: like --workers, left out of the line
+_NOT_NUMBERS = ("threads",)
 
 
 def _plain(v):
@@ -132,7 +136,7 @@ def study_invocation(study, scenarios: Sequence, *, runs: Sequence[int], particl
     argv += ["--seed", str(int(seed)), *_design_args(design)]
     own = []
     for key, value in options.items():
-        if _plain(value) == _plain(study.options.get(key)):
+        if key in _NOT_NUMBERS or _plain(value) == _plain(study.options.get(key)):
             continue
         if key == "schedule" and value is not None:
             value = str(Path(value).resolve())

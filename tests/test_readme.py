@@ -1,17 +1,22 @@
 """The README stays true: its two set-up commands are what CI runs, its model example is the shipped one, its
-design script and its SPEC example run."""
+five-minute section runs as written (the shell block and the design script write the same numbers), its SPEC
+example runs."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
 
 
 def _blocks(lang: str) -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    return re.findall(rf"```{lang}\n(.*?)```", text, flags=re.S)
+    return re.findall(rf"```{lang}\n(.*?)```", README, flags=re.S)
 
 
 def test_setup_commands_are_the_ones_ci_runs():
@@ -33,21 +38,72 @@ def test_model_example_is_the_shipped_example_and_builds():
     assert m.n_x == 2 and m.n_sensors == 4 and namespace["NETWORK"].n_nodes == 4
 
 
-def test_design_script_and_spec_example_run(tmp_path, monkeypatch):
-    """The README's script on its model file, in a fresh directory, as a reader would run them."""
+def _files(d: Path) -> dict:
+    """What the five-minute commands write, number by number: the simulated run, the design (JSON and arrays), the
+    map (CSV and JSON) and the study's results; timings (and the cheapest filter, which follows from them) and the
+    runner's bookkeeping left out (they differ by machine load and by whether the runs were stored already)."""
     import numpy as np
 
-    model, script, spec = _blocks("python")
+    def strip(v):
+        if isinstance(v, dict):
+            return {k: strip(x) for k, x in v.items()
+                    if "time" not in k and k not in ("runner", "versions", "cheapest")}  # cheapest: by the timings
+        if isinstance(v, list):
+            return [strip(x) for x in v]
+        return v
+
+    out = {}
+    for name in ("ring.npz", "ring-design/schedule.npz"):
+        with np.load(d / name) as z:
+            out[name] = {k: (z[k].dtype.str, z[k].shape, z[k].tobytes()) for k in z.files}
+    out["ring-map/feasibility.csv"] = (d / "ring-map" / "feasibility.csv").read_text()
+    for name in ("ring-design/schedule.json", "ring-map/feasibility.json", "ring-compare/results.json"):
+        out[name] = strip(json.loads((d / name).read_text()))
+    return out
+
+
+def test_the_five_minute_section_runs_as_written_and_both_blocks_write_the_same_numbers(tmp_path, monkeypatch):
+    """The model file, then the shell block as a reader runs it (the set-up's virtual environment activated, as
+    the README says, in a shell where cfdesign is not on the PATH before), then the design script in the same
+    directory: every block as written, in order, and the script's files hold the shell's numbers exactly."""
+    model, script, _ = _blocks("python")
+    (shell,) = _blocks("sh")
+    assert ". .venv/bin/activate" in README.split("```sh", 1)[0].rsplit("```", 1)[1]  # said before the block
     (tmp_path / "ring.py").write_text(model)
-    (tmp_path / "scalar.py").write_text(spec)
+    bindir = Path(sys.executable).parent
+    activate = bindir / "activate"
+    assert (bindir / "cfdesign").is_file()  # the set-up command installs it beside this Python
+    env = dict(os.environ)
+    env.pop("VIRTUAL_ENV", None)
+    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
+                                  if p and Path(p).resolve() != bindir.resolve())
+    setup = (f". {shlex.quote(str(activate))}" if activate.is_file()  # the README's `. .venv/bin/activate`
+             else f'export PATH={shlex.quote(str(bindir))}:"$PATH"')  # a venv without its scripts (not the README's)
+    proc = subprocess.run(["bash", "-c", f"set -euo pipefail\n{setup}\n{shell}"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    shell_files = _files(tmp_path)
+    for out in ("ring-design", "ring-map", "ring-compare"):
+        assert (tmp_path / out / "report.html").is_file()
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
     exec(compile(script, "README script", "exec"), namespace)
     d, m, c = namespace["d"], namespace["m"], namespace["c"]
     assert d.trace_bound.shape == (4, 60) and m.feasible.shape == (6, 6)
     assert {"consensus", "local", "particle", "EKF"} == {f["family"] for f in c.filters.values()}
-    for out in ("ring-design", "ring-map", "ring-compare"):
-        assert (tmp_path / out / "report.html").is_file()
+    python_files = _files(tmp_path)
+    assert python_files.keys() == shell_files.keys()
+    for name in shell_files:
+        assert python_files[name] == shell_files[name], name
+
+
+def test_spec_example_runs(tmp_path, monkeypatch):
+    """The README's SPEC model file, with the --set command it shows."""
+    import numpy as np
+
+    spec = _blocks("python")[2]
+    (tmp_path / "scalar.py").write_text(spec)
+    monkeypatch.chdir(tmp_path)
     from studies.cli import main
 
     assert main(["design", "scalar.py", "--set", "gain=0.8", "--set", "dos=0.3", "--out", "d"]) in (0, 1)
