@@ -432,6 +432,25 @@ class Model:
                      position_index=self.position_index, velocity_index=self.velocity_index,
                      description=self.description)
 
+    def __digest__(self) -> tuple:
+        """What the model is, for :func:`designer.digest.content_digest`: the NumPy translations of ``f``
+        and every ``h_i`` (the evaluated operations, constants to the last bit), the noises, the prior and
+        every other number and name; the Jacobians and Hessians are derived from these."""
+        sensors = tuple((s.name, fn.source, s.noise, s.position, s.angles) for s, fn in zip(self.sensors, self._np_h))
+        return (self.name, self.description, self._np_f.source, sensors, self.process_noise, self.prior,
+                self.noise_gain, self.mode_probs, self.n_u, self.state_names, self.position_index,
+                self.velocity_index)
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 of the model's content (:meth:`__digest__`): equal for equal models in any process."""
+        d = self.__dict__.get("_digest")
+        if d is None:
+            from .digest import content_digest
+
+            d = self.__dict__["_digest"] = content_digest(self)
+        return d
+
     def describe(self) -> dict:
         """A JSON-ready description of the model."""
         return {

@@ -342,7 +342,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              hcmci_iterations=_iterations(so), divergence_spread=spread)
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
-              "source": "memory" if ref.in_memory else ref.source, "attacks": sc.attacks.describe(),
+              "attacks": sc.attacks.describe(),
               "design_options": {k: v for k, v in options.as_dict().items() if v is not None},
               "variants": list(variants), "hcmci_iterations": _iterations(so), "divergence_spread": spread,
               "schedule": None if replay is None else {

@@ -1,8 +1,10 @@
 """Built-in scenarios, user model files and in-memory models: everything a command can run on."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import pickle
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -43,13 +45,35 @@ MODEL_FILE_NAMES = {
 }
 
 
+@contextlib.contextmanager
+def _user_directory(path: Path):
+    """A model file's own directory first on ``sys.path`` (as ``python MODEL.py`` has it), so that the file may
+    import its helper modules; those are imported afresh at every load (an edited helper is never taken from
+    ``sys.modules``: the model is what its files say now, as :attr:`Scenario.digest` records)."""
+    from designer.digest import source_files
+
+    local = {str(f) for f in source_files(path)}
+    for name, mod in list(sys.modules.items()):
+        f = getattr(mod, "__file__", None)
+        if f and str(Path(f).resolve()) in local:
+            del sys.modules[name]
+    folder = str(path.resolve().parent)
+    sys.path.insert(0, folder)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):
+            sys.path.remove(folder)
+
+
 def _load_module(path: Path):
     if not path.is_file():
         raise InputError(f"model file {str(path)!r} does not exist")
     spec = importlib.util.spec_from_file_location(f"cfdesign_user_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     try:
-        spec.loader.exec_module(module)
+        with _user_directory(path):
+            spec.loader.exec_module(module)
     except InputError as exc:
         raise InputError(f"model file {str(path)!r}: {exc}") from exc
     except Exception as exc:  # a user's file: report, do not crash with a traceback
@@ -117,12 +141,18 @@ def get_spec(name: str) -> ScenarioSpec:
 
 def load_scenario(name: str, overrides: Mapping[str, Any] | None = None, assignments=()) -> Scenario:
     """Build a scenario by name or model file, with overrides and ``NAME=VALUE`` assignments."""
+    from designer.digest import source_files_digest
+
+    is_file = isinstance(name, (str, Path)) and str(name).endswith(".py")
+    # the file's bytes (and its local imports') as they are when it is executed, for Scenario.digest
+    files = source_files_digest(name) if is_file and Path(name).is_file() else None
     spec = get_spec(name)
     values = dict(overrides or {})
     values.update(parse_assignments(spec, assignments))
     sc = spec.build(values)
-    source = str(Path(name).resolve()) if str(name).endswith(".py") else str(name)
-    object.__setattr__(sc, "source", source)
+    object.__setattr__(sc, "source", str(Path(name).resolve()) if is_file else str(name))
+    object.__setattr__(sc, "source_digest", files)
+    sc.__dict__.pop("_digest", None)  # the digest covers the source
     return sc
 
 
@@ -143,13 +173,18 @@ class ScenarioRef:
     source: str
     params: tuple
     attacks: AttackSpec | None
+    digest: str = ""  # Scenario.digest of the scenario it stands for: a rebuilt one must have the same
 
     @property
     def in_memory(self) -> bool:
         return self.source.startswith("memory:")
 
     def build(self) -> Scenario:
-        """The scenario (built once per process and reference)."""
+        """The scenario (built once per process and reference).
+
+        Raises :class:`InputError` when the model file no longer builds the scenario of the reference
+        (edited while a study ran): its runs would not be the runs of the study.
+        """
         key = pickle.dumps(self)
         sc = _BUILT.get(key)
         if sc is None:
@@ -164,18 +199,27 @@ class ScenarioRef:
                 from dataclasses import replace
 
                 sc = replace(sc, attacks=self.attacks)
+            if self.digest and sc.digest != self.digest:
+                raise InputError(f"model {self.source!r} changed after the study started (its content differs from "
+                                 "the model the study was planned with); run the command again")
             _BUILT[key] = sc
         return sc
 
 
 def reference(sc: Scenario) -> ScenarioRef:
-    """A :class:`ScenarioRef` that rebuilds ``sc`` (registering it in memory when it has no source)."""
+    """A :class:`ScenarioRef` that rebuilds ``sc`` (registering it in memory when it has no source).
+
+    ``sc`` itself stands for the reference in this process (and in processes forked from it).
+    """
     params = tuple(sorted((k, v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.params.items()))
     if sc.source is None:
         token = f"memory:{id(sc)}"
         _MEMORY[token] = sc
-        return ScenarioRef(token, params, None)
-    return ScenarioRef(sc.source, params, sc.attacks)
+        ref = ScenarioRef(token, params, None, sc.digest)
+    else:
+        ref = ScenarioRef(sc.source, params, sc.attacks, sc.digest)
+    _BUILT.setdefault(pickle.dumps(ref), sc)
+    return ref
 
 
 def scenario_of(target, *, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,

@@ -206,6 +206,7 @@ class Scenario:
     attacks: AttackSpec | None = None
     design: DesignOptions | None = None
     source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
+    source_digest: str | None = field(default=None, repr=False)  # a model file's bytes when it was loaded
 
     def __post_init__(self):
         ch = self.channel
@@ -258,6 +259,35 @@ class Scenario:
         if dos is None and fdi is None and delta is None and amplitude is None:
             return self
         return replace(self, attacks=self.attacks.override(dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 of everything the scenario's numbers depend on: the model's content
+        (:attr:`designer.model.Model.digest`), every parameter and number of the network, attacks, design
+        defaults, channel, initial state and horizon, the inputs function (its code and its inputs over the
+        horizon) and, for a model file, the file's bytes and those of the modules it imports from its own
+        directory (:func:`designer.digest.source_files_digest`) — never the file's path.  Stored results
+        carry it, so an edited model is never mistaken for the one they were computed with."""
+        d = self.__dict__.get("_digest")
+        if d is None:
+            from designer.digest import content_digest, source_files_digest
+
+            src = self.source
+            if src is None:
+                origin = None
+            elif src.endswith(".py"):
+                origin = ("file", self.source_digest or source_files_digest(src))
+            else:
+                origin = ("built-in", src)
+            try:
+                inputs = self.inputs(self.steps)
+            except Exception as exc:  # noqa: BLE001 - reported where the inputs are used; here a value like any
+                inputs = f"inputs({self.steps}) raised {type(exc).__name__}: {exc}"
+            d = content_digest(self.name, self.model, self.params, self.assumptions, self.steps, self.x0,
+                               self.network, self.attacks, self.design, self.channel, self.input_fn, inputs,
+                               origin)
+            object.__setattr__(self, "_digest", d)
+        return d
 
     @property
     def operating_point(self) -> tuple[np.ndarray, np.ndarray | None]:
@@ -315,7 +345,9 @@ class ScenarioSpec:
         return {p.name: p.default for p in self.params}
 
     def _values(self, overrides: Mapping[str, Any] | None) -> dict:
-        values = self.defaults()
+        # the defaults in their validated form too (a float parameter's 30 is 30.0, an array a list), so that a
+        # scenario rebuilt from its parameters (ScenarioRef) has the very same values as the one built here
+        values = {p.name: p.validate(p.default) for p in self.params}
         for name, value in (overrides or {}).items():
             values[name] = self.param(name).validate(value)
         return values
