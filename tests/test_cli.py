@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from designer.validation import InputError
 from studies.cli import main
 from studies.scenarios import SCENARIOS, load_scenario
 
@@ -175,3 +176,127 @@ def test_study_help_lists_every_registered_study():
     text = " ".join(r.stdout.split())
     for name in STUDIES:
         assert name in text, name
+
+
+# ------------------------------------------------------ the output directory: empty, links, the user's files
+def _tree(root: Path) -> dict:
+    """Every entry under ``root`` (links not followed): path -> the file's bytes, the link's target, or a dir."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            out[str(p.relative_to(root))] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
+                                             else p.read_bytes())
+    return out
+
+
+_OUT_COMMANDS = {
+    "simulate": ["simulate", "indoor-robot", "--steps", "2"],
+    "design": ["design", "indoor-robot", "--steps", "2"],
+    "feasibility": ["feasibility", "indoor-robot", "--grid", "dos=0:0.2:2", "--quiet"],
+    "study": ["study", "consensus-robot", "--runs", "2", "--quiet", "--set", "steps=3"],
+}
+
+
+@pytest.mark.parametrize("out", ["", "  "])
+@pytest.mark.parametrize("command", [*_OUT_COMMANDS, "report"])
+def test_an_empty_out_is_refused_and_the_current_directory_untouched(tmp_path, monkeypatch, capfd, command, out):
+    """``--out "$UNSET"``: exit 2 naming out, nothing written into the current directory (which holds a report)."""
+    (tmp_path / "report.html").write_text("the user's report")
+    (tmp_path / "results.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    before = _tree(tmp_path)
+    args = ["report", out] if command == "report" else [*_OUT_COMMANDS[command], "--out", out]
+    assert main(args) == 2
+    lines = capfd.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in lines[0], lines
+    assert ("out" if command != "report" else "directory") in lines[0] and "empty" in lines[0], lines[0]
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("command", list(_OUT_COMMANDS))
+def test_an_empty_out_is_refused_by_the_api(tmp_path, monkeypatch, command):
+    import studies
+
+    (tmp_path / "report.html").write_text("the user's report")
+    monkeypatch.chdir(tmp_path)
+    before = _tree(tmp_path)
+    call = {"simulate": lambda: studies.simulate("indoor-robot", steps=2, out=""),
+            "design": lambda: studies.design("indoor-robot", steps=2, out=""),
+            "feasibility": lambda: studies.feasibility("indoor-robot", "dos=0:0.2:2", out=""),
+            "study": lambda: studies.study("consensus-robot", runs=2, out="", assignments=["steps=3"])}[command]
+    with pytest.raises(InputError, match="out.*empty"):
+        call()
+    with pytest.raises(InputError, match="directory.*empty"):
+        studies.report("")
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    "command, planted",
+    [
+        ("study", ".cfdesign.lock"),
+        ("study", ".chunks"),
+        ("study", ".chunks/consensus-robot"),
+        ("study", ".chunks/consensus-robot/log.jsonl"),
+        ("study", ".chunks/consensus-robot/manifest.json"),
+        ("study", ".chunks/consensus-robot/runs_0000000_0000002.npz"),
+        ("study", "results.json"),
+        ("study", ".cfdesign-outputs.json"),
+        ("design", ".cfdesign.lock"),
+        ("design", "schedule.json"),
+        ("design", "report.html"),
+        ("feasibility", ".chunks"),
+        ("feasibility", "feasibility.csv"),
+        ("simulate", ""),
+    ],
+)
+@pytest.mark.parametrize("force", [False, True])
+def test_a_planted_link_is_refused_naming_it_before_any_computation(tmp_path, capfd, command, planted, force):
+    """A symbolic link where cfdesign keeps its own files: exit 2, one line naming it, its target untouched
+    (with --force too: nothing of the target directory is deleted)."""
+    if force and command in ("design", "simulate"):
+        pytest.skip("design and simulate take no --force")
+    victim = tmp_path / "victim"
+    (victim / "sub").mkdir(parents=True)
+    for d in (victim, victim / "sub"):
+        for name in ("notes.txt", "log.jsonl", "manifest.json", "runs_0000000_0000002.npz", "results.json"):
+            (d / name).write_text(f"the user's {name}")
+    out = tmp_path / ("out.npz" if command == "simulate" else "out")
+    link = out / planted if planted else out
+    link.parent.mkdir(parents=True, exist_ok=True)
+    is_dir = planted in (".chunks", ".chunks/consensus-robot")
+    link.symlink_to(victim / "sub" if is_dir else victim / "notes.txt")
+    before = _tree(victim)
+    args = [*_OUT_COMMANDS[command], "--out", str(out)] + (["--force"] if force else [])
+    assert main(args) == 2
+    lines = capfd.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in lines[0], lines
+    assert repr(str(link)) in lines[0] and "symbolic link" in lines[0], lines[0]
+    assert _tree(victim) == before
+
+
+@pytest.mark.parametrize("via", ["cli", "api"])
+def test_a_design_never_replaces_a_file_the_user_wrote(tmp_path, capfd, via):
+    """The CLI and the API follow one rule: a file in OUT that cfdesign did not write is not replaced (exit 2)."""
+    import studies
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "schedule.json").write_text("the user's own schedule")
+    (out / "notes.txt").write_text("the user's notes")
+    before = _tree(out)
+    if via == "cli":
+        assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 2
+        line = capfd.readouterr().err.strip()
+    else:
+        with pytest.raises(InputError) as exc:
+            studies.design("indoor-robot", steps=2, out=out)
+        line = str(exc.value)
+    assert repr(str(out / "schedule.json")) in line and "not written by cfdesign" in line, line
+    assert {k: v for k, v in _tree(out).items() if not k.startswith(".cfdesign")} == before
+    # a design directory is cfdesign's: it is replaced by the next design, from either
+    other = tmp_path / "d"
+    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(other)]) == 0
+    studies.design("indoor-robot", steps=3, out=other)
+    assert len(json.loads((other / "schedule.json").read_text())["trace_bound"][0]) == 3
