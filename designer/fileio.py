@@ -271,8 +271,9 @@ def output_lock(directory, *, name: str = "out", replaces=REPORT_NAMES) -> Itera
                     holder = {}
                 who = (f"process {holder.get('pid', '?')} ({holder.get('command', '?')}, started "
                        f"{holder.get('started', '?')})") if holder else "another process"
-                raise InputError(f"{name}: {str(directory)!r} is being written by {who}; wait for it to finish or "
-                                 "choose another --out") from None
+                other = " or choose another output directory" if name == "out" else ""
+                raise InputError(f"{name}: {str(directory)!r} is being written by {who}; wait for it to finish"
+                                 f"{other}") from None
         info = json.dumps({"pid": os.getpid(), "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:])[:500],
                            "started": time.strftime("%Y-%m-%d %H:%M:%S")}).encode()
         try:
