@@ -15,6 +15,7 @@ arrays of shape ``(..., n_x)``.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from .codegen import to_numpy
 from .noise import Noise
-from .validation import InputError, check_finite
+from .validation import InputError, ModelWarning, check_finite
 
 __all__ = ["Sensor", "Model"]
 
@@ -68,6 +69,36 @@ class Sensor:
     @property
     def dim(self) -> int:
         return int(self.h.shape[0])
+
+    def undeclared_angles(self) -> tuple[int, ...]:
+        """The components of ``h`` that are computed with an ``atan2`` but not declared in ``angles``.
+
+        An ``atan2`` jumps by 2π across ±π; a component that passes it on other than through
+        ``sin``, ``cos`` or ``tan`` (which do not see the jump) is an angle whose residual
+        needs wrapping.  Found in the CasADi expression graph of each component.
+        """
+        h = self.h if isinstance(self.h, ca.SX) else ca.SX(self.h)
+        return tuple(j for j in range(self.dim) if j not in self.angles and _passes_atan2(h[j]))
+
+
+_PERIODIC = (ca.OP_SIN, ca.OP_COS, ca.OP_TAN)
+
+
+def _passes_atan2(expr: ca.SX) -> bool:
+    """Whether the scalar ``expr`` contains an ``atan2`` that reaches it other than through sin, cos or tan."""
+    stack, seen = [expr], set()
+    while stack:
+        e = stack.pop()
+        key = e.element_hash()
+        if key in seen or e.is_leaf():
+            continue
+        seen.add(key)
+        op = e.op()
+        if op == ca.OP_ATAN2:
+            return True
+        if op not in _PERIODIC:
+            stack.extend(e.dep(i) for i in range(e.n_dep()))
+    return False
 
 
 def _symbol(name: str, value, size: int | None = None) -> ca.SX:
@@ -222,6 +253,15 @@ class Model:
         names = [s.name for s in sensors]
         if len(set(names)) != len(names):
             raise InputError("sensor names must be unique")
+        for s in sensors:
+            comps = s.undeclared_angles()
+            if comps:
+                which = "h" if s.dim == 1 else f"component{'s' if len(comps) > 1 else ''} " + \
+                    ", ".join(map(str, comps)) + " of h"
+                warnings.warn(f"sensor {s.name!r}: {which} comes from an atan2 but is not declared an angle, so its "
+                              f"residuals are not wrapped into (-pi, pi] (a bearing crossing +-pi is then a 2 pi "
+                              f"error); declare it: Sensor(..., angles={tuple(sorted(s.angles + comps))})",
+                              ModelWarning, stacklevel=2)
         self.sensors = sensors
         self.state_names = tuple(state_names) if state_names else tuple(f"x{i + 1}" for i in range(self.n_x))
         if len(self.state_names) != self.n_x:
@@ -409,6 +449,35 @@ class Model:
         i = self._sensor(i)
         return self.sensors[i].noise.logpdf(np.asarray(z, dtype=float) - self.h(i, x, k))
 
+    def check_finite_at(self, x0, u0=None) -> None:
+        """Refuse (:class:`InputError`, naming the sensor) a model that cannot be linearised at its operating point.
+
+        At ``x0`` (step 0) ``f``, its Jacobian and Hessians (every mode), and at ``x0`` and its
+        prediction ``f(x0)`` (step 1, where the filters' first update and the design's scalings
+        evaluate them) every sensor's ``h``, Jacobian ``H`` and Hessians must be finite: a
+        range sensor placed exactly at the point has no Jacobian there (sqrt at 0).
+        """
+        x0 = self._state(x0)
+        u = None if self.n_u == 0 else u0
+        modes = [None] if self.mode_probs is None else list(range(self.n_modes))
+
+        def where(x):
+            return "x = [" + ", ".join(f"{v:.6g}" for v in np.asarray(x)) + "]"
+
+        for mode in modes:
+            at = f" (mode {mode})" if mode is not None else ""
+            for what, fn in (("f", self.f), ("the Jacobian df/dx", self.F), ("the Hessians of f", self.f_hessian)):
+                if not np.all(np.isfinite(fn(x0, 0, u, mode))):
+                    raise InputError(f"the transition: {what} is not finite at the operating point {where(x0)}{at}")
+        xp = self.f_expected(x0, 0, u)
+        for x, point in ((x0, "the operating point"), (xp, "the operating point's prediction f(x0)")):
+            for i, s in enumerate(self.sensors):
+                for what, fn in (("h", self.h), ("the Jacobian dh/dx", self.H), ("the Hessians of h", self.h_hessian)):
+                    if not np.all(np.isfinite(fn(i, x, 1))):
+                        raise InputError(f"sensor {s.name!r}: {what} is not finite at {point} {where(x)} (step 1), "
+                                         "where the filters and the design linearise it; is the sensor placed "
+                                         "exactly at that point?")
+
     def with_stacked_sensors(self, name: str = "all") -> "Model":
         """The same model with one sensor that stacks every sensor (a centralized observer).
 
@@ -425,12 +494,15 @@ class Model:
         h = ca.vertcat(*[s.h for s in self.sensors])
         offsets = self._offsets
         angles = tuple(int(offsets[i] + a) for i, s in enumerate(self.sensors) for a in s.angles)
-        return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise, angles=angles)],
-                     self.process_noise,
-                     self.prior, k=self.k, u=self.u if self.n_u else None, mode=self.mode if self.n_modes else None,
-                     mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
-                     position_index=self.position_index, velocity_index=self.velocity_index,
-                     description=self.description)
+        with warnings.catch_warnings():  # its sensors' undeclared angles were named when this model was built
+            warnings.simplefilter("ignore", ModelWarning)
+            return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise, angles=angles)],
+                         self.process_noise,
+                         self.prior, k=self.k, u=self.u if self.n_u else None,
+                         mode=self.mode if self.n_modes else None,
+                         mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
+                         position_index=self.position_index, velocity_index=self.velocity_index,
+                         description=self.description)
 
     def describe(self) -> dict:
         """A JSON-ready description of the model."""
