@@ -12,7 +12,7 @@ from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorCh
 from designer.design import DesignOptions
 from designer.network import SensorNetwork
 from designer.simulate import Trajectory, simulate
-from designer.validation import InputError
+from designer.validation import InputError, as_vector
 from filters.encryption import EncryptedChannel
 
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
@@ -208,6 +208,11 @@ class Scenario:
     source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
 
     def __post_init__(self):
+        if self.x0 is not None:  # a model file's X0, the API's x0
+            x0 = as_vector("X0", self.x0)
+            if x0.shape != (self.model.n_x,):
+                raise InputError(f"X0 must have {self.model.n_x} entries (the model's n_x), got {x0.size}")
+            object.__setattr__(self, "x0", x0)
         ch = self.channel
         if ch is not None:
             if not isinstance(ch, CHANNEL_TYPES):
