@@ -91,9 +91,15 @@ class FDISignal:
         if a.ndim > 1 or np.any(a < 0):
             raise InputError(f"FDISignal amplitude must be a number >= 0 or one per component, got {self.amplitude!r}")
         if self.components is not None:
-            comps = tuple(int(c) for c in self.components)
-            if len(set(comps)) != len(comps) or not comps:
-                raise InputError(f"FDISignal components must be distinct state indices, got {self.components!r}")
+            try:
+                comps = tuple(self.components)
+            except TypeError:
+                comps = ()
+            if not comps or len(set(comps)) != len(comps) or any(
+                    isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)) or c < 0 for c in comps):
+                raise InputError(f"FDISignal components must be distinct integer state indices, got "
+                                 f"{self.components!r}")
+            comps = tuple(int(c) for c in comps)
             if a.ndim == 1 and a.size != len(comps):
                 raise InputError(f"FDISignal amplitude has {a.size} entries but components has {len(comps)}")
             object.__setattr__(self, "components", comps)

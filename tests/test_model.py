@@ -265,6 +265,10 @@ def _bearing_model(h_of, angles=()):
     (lambda x, dx, dy: ca.vertcat(ca.cos(ca.atan2(dy, dx)), ca.sin(ca.atan2(dy, dx))), (), ()),  # no jump left
     (lambda x, dx, dy: ca.atan(dy / dx), (), ()),  # not an atan2: no jump at +-pi
     (lambda x, dx, dy: ca.vertcat(dx, 3 * ca.atan2(dy, dx) + ca.sin(ca.atan2(dy, dx))), (), (1,)),
+    # an elevation: atan2(z, sqrt(x^2 + y^2)) stays in [-pi/2, pi/2], no jump to wrap
+    (lambda x, dx, dy: ca.vertcat(ca.atan2(x[2], ca.sqrt(dx**2 + dy**2)), ca.atan2(x[2], dx**2 + ca.fabs(dy) + 1)),
+     (), ()),
+    (lambda x, dx, dy: ca.atan2(x[2], ca.sqrt(dx**2 + dy**2) - 1), (), (0,)),
 ])
 def test_an_atan2_not_declared_an_angle_is_named_in_a_warning(h_of, angles, flagged):
     import warnings
@@ -279,7 +283,7 @@ def test_an_atan2_not_declared_an_angle_is_named_in_a_warning(h_of, angles, flag
     assert len(mine) == (1 if flagged else 0)
     if flagged:
         text = str(mine[0].message)
-        assert "sensor 'b'" in text and f"angles={tuple(sorted(angles + flagged))}" in text
+        assert text.startswith("sensor 'b': an atan2 angle") and f"angles={tuple(sorted(angles + flagged))}" in text
         with warnings.catch_warnings(record=True) as again:  # the stacked model does not name them a second time
             warnings.simplefilter("always")
             m.with_stacked_sensors()

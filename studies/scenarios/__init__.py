@@ -101,6 +101,10 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
 
         if not isinstance(m, Model):
             raise InputError(f"model() in {str(path)!r} must return a designer.Model, got {type(m).__name__}")
+        if callable(getattr(module, "inputs", None)) != bool(m.n_u):
+            raise InputError(f"model file {str(path)!r} defines inputs() but its model has no inputs u" if m.n_u == 0
+                             else f"model file {str(path)!r}: the model has inputs u ({m.n_u}); define inputs(steps) "
+                                  f"returning them, shape (steps, {m.n_u})")
         try:
             return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
                             x0=getattr(module, "X0", None), network=network,
