@@ -11,7 +11,7 @@ from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorCh
                               RoundRobinDeception)
 from designer.design import DesignOptions
 from designer.network import SensorNetwork
-from designer.simulate import Trajectory, simulate
+from designer.simulate import Trajectory, check_inputs, simulate
 from designer.validation import InputError, as_vector
 from filters.encryption import EncryptedChannel
 
@@ -272,7 +272,7 @@ class Scenario:
                 None if u is None else u[0])
 
     def inputs(self, steps: int) -> np.ndarray | None:
-        return None if self.input_fn is None else np.asarray(self.input_fn(steps), dtype=float)
+        return None if self.input_fn is None else check_inputs(self.model, steps, self.input_fn(steps))
 
     def simulate(self, rng: np.random.Generator, steps: int | None = None, *, batch=()) -> Trajectory:
         """Sample a run of the scenario (the paper's fixed ``x0`` when it has one)."""
