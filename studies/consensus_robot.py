@@ -589,13 +589,18 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     # Fig. 4: trajectories (in the plane of the position; over time otherwise).
     if not est0:
         return
-    name = next(iter(est0))
+    # the first filter with a finite run 0, one estimate per node if any has (a centralized one has a single one)
+    name = next((k for k, e in est0.items() if e.shape[1] == net.n_nodes), next(iter(est0)))
+    est = est0[name]
+    lines = ([(i, f"node {i + 1}") for i in range(est.shape[1])] if est.shape[1] == net.n_nodes
+             else [(0, "estimate")])
+    whose = f"the {net.n_nodes} node estimates" if est.shape[1] == net.n_nodes else "the estimate"
     if len(m.position_index) == 2:
         px, py = m.position_index
         fig, ax = plt.subplots(figsize=(7, 5.5))
         ax.plot(truth0[:, px], truth0[:, py], "k-", lw=2.5, label="true path")
-        for i in range(net.n_nodes):
-            ax.plot(est0[name][:, i, px], est0[name][:, i, py], "-", lw=0.9, alpha=0.8, label=f"node {i + 1}")
+        for i, label in lines:
+            ax.plot(est[:, i, px], est[:, i, py], "-", lw=0.9, alpha=0.8, label=label)
         sens = [s.position for s in m.sensors if s.position is not None and len(s.position) >= 2]
         if sens:
             sens = np.asarray(sens)
@@ -604,7 +609,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
             ax.add_patch(plt.Rectangle((0, 0), 2.4, 1.8, fill=False, ls="--", color="gray"))
         ax.set_xlabel(m.state_names[px] + (" (m)" if robot else ""))
         ax.set_ylabel(m.state_names[py] + (" (m)" if robot else ""))
-        ax.set_title(f"{'robot' if robot else 'true'} path and the {net.n_nodes} node estimates, {name} (run 0)")
+        ax.set_title(f"{'robot' if robot else 'true'} path and {whose}, {name} (run 0)")
         ax.set_aspect("equal")
         ax.legend(fontsize=7, ncol=2, loc="upper left")
     else:
@@ -612,25 +617,26 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
         for ax, c in zip(axs[:, 0], comps):
             ax.plot(np.arange(steps + 1), truth0[:, c], "k-", lw=2.5, label="truth")
-            for i in range(net.n_nodes):
-                ax.plot(np.arange(steps + 1), est0[name][:, i, c], "-", lw=0.9, alpha=0.8, label=f"node {i + 1}")
+            for i, label in lines:
+                ax.plot(np.arange(steps + 1), est[:, i, c], "-", lw=0.9, alpha=0.8, label=label)
             ax.set_ylabel(m.state_names[c])
-        axs[0, 0].set_title(f"truth and the {net.n_nodes} node estimates, {name} (run 0)")
+        axs[0, 0].set_title(f"truth and {whose}, {name} (run 0)")
         axs[-1, 0].set_xlabel("time step k")
         axs[0, 0].legend(fontsize=7, ncol=2)
     save_figure(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
     shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v["rmse_position"]}
-    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
-    for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
-        for nd in res["nodes"]:
-            ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
-        ax.set_title(fname, fontsize=9)
-        ax.set_xlabel("time step k")
-    np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
-    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
-    save_figure(fig, out / "fig_rmse_nodes.png")
+    if shown:  # not when every consensus and local filter diverged in every run
+        fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
+        for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
+            for nd in res["nodes"]:
+                ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
+            ax.set_title(fname, fontsize=9)
+            ax.set_xlabel("time step k")
+        np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
+        np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
+        save_figure(fig, out / "fig_rmse_nodes.png")
 
     # Every filter: position RMSE over time (mean over nodes), log scale.
     fig, ax = plt.subplots(figsize=(8, 4))

@@ -777,5 +777,4 @@ STUDY = Study(
     options={"engine": "fast", "threads": THREADS_AUTO},
     accepts=_accepts,
     check=_check,
-    min_runs=1,
 )

@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import pickle
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.network import SensorNetwork
+from designer.network import SensorNetwork, connectivity_checked_later
 from designer.validation import InputError
 
 from . import four_tank, indoor_robot, switching_2d, target_binary_energy, target_range_bearing
@@ -66,18 +67,32 @@ def _user_directory(path: Path):
             sys.path.remove(folder)
 
 
+def _user_call(what: str, fn, *args):
+    """``fn(*args)``, code of a user's model file (``what`` names it): any failure, an exit included, is an
+    InputError naming it (a Ctrl-C stays an interruption)."""
+    try:
+        return fn(*args)
+    except InputError as exc:
+        raise InputError(f"{what}: {exc}") from exc
+    except SystemExit as exc:  # sys.exit() in a model file would end cfdesign with nothing written
+        raise InputError(f"{what} called sys.exit({exc.code!r}); a model file must not exit") from None
+    except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
+        raise InputError(f"{what} failed: {type(exc).__name__}: {exc}") from exc
+
+
+def _guarded(what: str, fn):
+    """``fn`` (a function of a user's model file) failing as :func:`_user_call` says."""
+    return None if fn is None else functools.wraps(fn)(lambda *args: _user_call(what, fn, *args))
+
+
 def _load_module(path: Path):
     if not path.is_file():
         raise InputError(f"model file {str(path)!r} does not exist")
     spec = importlib.util.spec_from_file_location(f"cfdesign_user_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
-    try:
-        with _user_directory(path):
-            spec.loader.exec_module(module)
-    except InputError as exc:
-        raise InputError(f"model file {str(path)!r}: {exc}") from exc
-    except Exception as exc:  # a user's file: report, do not crash with a traceback
-        raise InputError(f"model file {str(path)!r} failed to load: {type(exc).__name__}: {exc}") from exc
+    # a network's node count is checked against the sensors first; the file's own directory first on sys.path
+    with connectivity_checked_later(), _user_directory(path):
+        _user_call(f"model file {str(path)!r}", spec.loader.exec_module, module)
     return module
 
 
@@ -92,7 +107,8 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
     """A user model file defines ``SPEC`` (a ScenarioSpec) or ``model()`` returning a Model (see MODEL_FILE_NAMES)."""
     module = _load_module(path)
     if isinstance(getattr(module, "SPEC", None), ScenarioSpec):
-        return module.SPEC
+        return replace(module.SPEC, builder=_guarded(f"SPEC's builder in {str(path)!r}", module.SPEC.builder),
+                       outline=_guarded(f"SPEC's outline in {str(path)!r}", module.SPEC.outline))
     fn = getattr(module, "model", None)
     if not callable(fn):
         raise InputError(f"model file {str(path)!r} must define SPEC (a ScenarioSpec) or a function model()")
@@ -104,19 +120,19 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
                          "declare them in ATTACKS only")
 
     def builder(params: dict) -> Scenario:
-        try:
-            m = fn()
-        except InputError as exc:
-            raise InputError(f"model() in {str(path)!r}: {exc}") from exc
-        except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
-            raise InputError(f"model() in {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+        m = _user_call(f"model() in {str(path)!r}", fn)
         from designer.model import Model  # the file imported CasADi already
 
         if not isinstance(m, Model):
             raise InputError(f"model() in {str(path)!r} must return a designer.Model, got {type(m).__name__}")
+        if callable(getattr(module, "inputs", None)) != bool(m.n_u):
+            raise InputError(f"model file {str(path)!r} defines inputs() but its model has no inputs u" if m.n_u == 0
+                             else f"model file {str(path)!r}: the model has inputs u ({m.n_u}); define inputs(steps) "
+                                  f"returning them, shape (steps, {m.n_u})")
         try:
             return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
-                            x0=getattr(module, "X0", None), network=network, input_fn=getattr(module, "inputs", None),
+                            x0=getattr(module, "X0", None), network=network,
+                            input_fn=_guarded(f"inputs() in {str(path)!r}", getattr(module, "inputs", None)),
                             attacks=attacks, design=getattr(module, "DESIGN", None),
                             channel=getattr(module, "CHANNEL", None))
         except InputError as exc:

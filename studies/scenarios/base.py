@@ -11,8 +11,8 @@ from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorCh
                               RoundRobinDeception)
 from designer.design import DesignOptions
 from designer.network import SensorNetwork
-from designer.simulate import Trajectory, simulate
-from designer.validation import InputError
+from designer.simulate import Trajectory, check_inputs, simulate
+from designer.validation import InputError, as_vector
 from filters.encryption import EncryptedChannel
 
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
@@ -209,6 +209,11 @@ class Scenario:
     source_digest: str | None = field(default=None, repr=False)  # a model file's bytes when it was loaded
 
     def __post_init__(self):
+        if self.x0 is not None:  # a model file's X0, the API's x0
+            x0 = as_vector("X0", self.x0)
+            if x0.shape != (self.model.n_x,):
+                raise InputError(f"X0 must have {self.model.n_x} entries (the model's n_x), got {x0.size}")
+            object.__setattr__(self, "x0", x0)
         ch = self.channel
         if ch is not None:
             if not isinstance(ch, CHANNEL_TYPES):
@@ -297,7 +302,7 @@ class Scenario:
                 None if u is None else u[0])
 
     def inputs(self, steps: int) -> np.ndarray | None:
-        return None if self.input_fn is None else np.asarray(self.input_fn(steps), dtype=float)
+        return None if self.input_fn is None else check_inputs(self.model, steps, self.input_fn(steps))
 
     def simulate(self, rng: np.random.Generator, steps: int | None = None, *, batch=()) -> Trajectory:
         """Sample a run of the scenario (the paper's fixed ``x0`` when it has one)."""
