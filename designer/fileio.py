@@ -214,6 +214,23 @@ def append_line(path, line: str) -> None:
 _HELD: dict[tuple[int, int], tuple[int, int]] = {}  # directories this process holds: (dev, inode) -> (pid, depth)
 
 
+def _nothing_written(directory: Path) -> bool:
+    """The directory holds only its lock and a chunk store without a chunk (its manifests: written before the
+    first chunk is computed), none of them through a link."""
+    entries = {p.name: p for p in directory.iterdir()}
+    if set(entries) - {LOCK_NAME, CHUNKS_DIR}:
+        return False
+    store = entries.get(CHUNKS_DIR)
+    if store is None:
+        return True
+    if store.is_symlink():
+        return False
+    for root, dirs, files in os.walk(store):
+        if any(Path(root, d).is_symlink() for d in dirs) or any(f != "manifest.json" for f in files):
+            return False
+    return True
+
+
 @contextlib.contextmanager
 def output_lock(directory, *, name: str = "out", replaces=REPORT_NAMES) -> Iterator[Path]:
     """Hold the one-writer lock of ``directory`` (created if missing) for the ``with`` block.
@@ -290,7 +307,8 @@ def output_lock(directory, *, name: str = "out", replaces=REPORT_NAMES) -> Itera
     except BaseException:
         if created:  # refused or failed before writing anything: leave no empty directory behind
             with contextlib.suppress(OSError):
-                if [p.name for p in directory.iterdir()] == [LOCK_NAME]:
+                if _nothing_written(directory):
+                    shutil.rmtree(directory / CHUNKS_DIR, ignore_errors=True)
                     path.unlink()
                     for p in created:
                         p.rmdir()

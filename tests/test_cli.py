@@ -400,6 +400,7 @@ def test_a_nan_measurement_in_a_study_names_the_run_step_and_sensor(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1, err
     assert "run 0 failed" in err[0] and "sensor 'range0': h is not finite at step " in err[0], err
+    assert not (tmp_path / "o").exists()  # no chunk was finished: nothing left behind, the lock neither
 
 
 @pytest.mark.parametrize("where", ["import", "spec"])
