@@ -42,7 +42,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .network import SensorNetwork
+from .network import SensorNetwork, node_pair
 from .noise import Noise
 from .validation import InputError, check_finite, check_int, check_probability
 
@@ -91,9 +91,15 @@ class FDISignal:
         if a.ndim > 1 or np.any(a < 0):
             raise InputError(f"FDISignal amplitude must be a number >= 0 or one per component, got {self.amplitude!r}")
         if self.components is not None:
-            comps = tuple(int(c) for c in self.components)
-            if len(set(comps)) != len(comps) or not comps:
-                raise InputError(f"FDISignal components must be distinct state indices, got {self.components!r}")
+            try:
+                comps = tuple(self.components)
+            except TypeError:
+                comps = ()
+            if not comps or len(set(comps)) != len(comps) or any(
+                    isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)) or c < 0 for c in comps):
+                raise InputError(f"FDISignal components must be distinct integer state indices, got "
+                                 f"{self.components!r}")
+            comps = tuple(int(c) for c in comps)
             if a.ndim == 1 and a.size != len(comps):
                 raise InputError(f"FDISignal amplitude has {a.size} entries but components has {len(comps)}")
             object.__setattr__(self, "components", comps)
@@ -184,14 +190,20 @@ def _channel_matrix(name: str, value, network: SensorNetwork) -> np.ndarray:
     n, adj = network.n_nodes, network.adjacency
     if isinstance(value, Mapping):
         out = np.zeros((n, n))
+        given: dict[tuple[int, int], tuple] = {}  # undirected edge -> (key, p) as first given
         for key, p in value.items():
-            try:
-                i, j = (int(v) for v in key)
-            except (TypeError, ValueError):
-                raise InputError(f"{name}: keys must be node pairs (i, j), got {key!r}") from None
-            if not (0 <= i < n and 0 <= j < n) or not adj[i, j]:
+            i, j = node_pair(f"{name}: key", key, n)
+            if not adj[i, j]:
                 raise InputError(f"{name}: ({i}, {j}) is not an edge of the network (edges: {network.edges})")
-            out[i, j] = out[j, i] = _probability(f"{name}[({i}, {j})]", p)
+            v = _probability(f"{name}[({i}, {j})]", p)
+            edge = (min(i, j), max(i, j))
+            if edge in given and given[edge][1] != v:
+                k0, v0 = given[edge]
+                raise InputError(f"{name}: the undirected edge {edge[0]} - {edge[1]} is given twice with different "
+                                 f"probabilities, {k0!r}: {v0!r} and {key!r}: {v!r} (a mapping sets both directions "
+                                 "of an edge; give an (N, N) array for one per direction)")
+            given[edge] = (key, v)
+            out[i, j] = out[j, i] = v
         return out
     arr = check_finite(name, value)
     if arr.ndim == 0:

@@ -15,6 +15,7 @@ arrays of shape ``(..., n_x)``.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from .codegen import to_numpy
 from .noise import Noise
-from .validation import InputError, check_finite
+from .validation import InputError, ModelWarning, check_finite
 
 __all__ = ["Sensor", "Model"]
 
@@ -55,19 +56,65 @@ class Sensor:
     angles: tuple[int, ...] = ()
 
     def __post_init__(self):
+        h = _column(f"sensor {self.name!r}: h", self.h)
         try:
-            angles = tuple(int(a) for a in self.angles)
-        except (TypeError, ValueError):
+            angles = tuple(self.angles)
+        except TypeError:
             raise InputError(f"sensor {self.name!r}: angles must be component indices, got {self.angles!r}") from None
-        dim = int(getattr(self.h, "shape", (0,))[0]) if angles else 0
-        if any(not 0 <= a < dim for a in angles) or len(set(angles)) != len(angles):
-            raise InputError(f"sensor {self.name!r}: angles must be distinct components in 0..{dim - 1}, "
+        dim = int(h.shape[0])
+        if any(isinstance(a, (bool, np.bool_)) or not isinstance(a, (int, np.integer)) or not 0 <= a < dim
+               for a in angles) or len(set(angles)) != len(angles):
+            raise InputError(f"sensor {self.name!r}: angles must be distinct integer components in 0..{dim - 1}, "
                              f"got {self.angles!r}")
-        object.__setattr__(self, "angles", angles)
+        object.__setattr__(self, "h", h)
+        object.__setattr__(self, "angles", tuple(int(a) for a in angles))
 
     @property
     def dim(self) -> int:
         return int(self.h.shape[0])
+
+    def undeclared_angles(self) -> tuple[int, ...]:
+        """The components of ``h`` that are computed with an ``atan2`` but not declared in ``angles``.
+
+        An ``atan2`` jumps by 2π across ±π; a component that passes it on other than through
+        ``sin``, ``cos`` or ``tan`` (which do not see the jump) is an angle whose residual
+        needs wrapping.  Found in the CasADi expression graph of each component.
+        """
+        h = self.h if isinstance(self.h, ca.SX) else ca.SX(self.h)
+        return tuple(j for j in range(self.dim) if j not in self.angles and _passes_atan2(h[j]))
+
+
+_PERIODIC = (ca.OP_SIN, ca.OP_COS, ca.OP_TAN)
+_NONNEGATIVE = (ca.OP_SQRT, ca.OP_FABS, ca.OP_SQ, ca.OP_HYPOT, ca.OP_EXP)
+
+
+def _nonnegative(e: ca.SX, depth: int = 8) -> bool:
+    """Whether the scalar ``e`` is >= 0 by its form (a sqrt, an absolute value, a square, sums and products of them)."""
+    if e.is_constant():
+        return float(ca.DM(e)) >= 0.0
+    if e.is_leaf() or depth == 0:
+        return False
+    if e.op() in _NONNEGATIVE:
+        return True
+    return e.op() in (ca.OP_ADD, ca.OP_MUL) and all(_nonnegative(e.dep(i), depth - 1) for i in range(2))
+
+
+def _passes_atan2(expr: ca.SX) -> bool:
+    """Whether the scalar ``expr`` contains an ``atan2(y, x)`` that can jump at +-pi (``x`` not >= 0 by its form, as
+    it is for an elevation) and reaches it other than through sin, cos or tan."""
+    stack, seen = [expr], set()
+    while stack:
+        e = stack.pop()
+        key = e.element_hash()
+        if key in seen or e.is_leaf():
+            continue
+        seen.add(key)
+        op = e.op()
+        if op == ca.OP_ATAN2 and not _nonnegative(e.dep(1)):
+            return True
+        if op not in _PERIODIC:
+            stack.extend(e.dep(i) for i in range(e.n_dep()))
+    return False
 
 
 def _symbol(name: str, value, size: int | None = None) -> ca.SX:
@@ -81,11 +128,14 @@ def _symbol(name: str, value, size: int | None = None) -> ca.SX:
 
 
 def _column(name: str, expr, rows: int | None = None) -> ca.SX:
-    if isinstance(expr, (ca.MX, ca.DM)) or not isinstance(expr, ca.SX):
+    if isinstance(expr, ca.MX):
+        raise InputError(f"{name} must be a casadi.SX expression (an MX expression was given: build the model with "
+                         "casadi.SX.sym)")
+    if not isinstance(expr, ca.SX):
         try:
             expr = ca.SX(expr)
         except Exception:
-            raise InputError(f"{name} must be a casadi.SX expression") from None
+            raise InputError(f"{name} must be a casadi.SX expression, got {type(expr).__name__}") from None
     if expr.shape[1] != 1 and expr.shape[0] == 1:
         expr = expr.T
     if expr.shape[1] != 1:
@@ -95,7 +145,7 @@ def _column(name: str, expr, rows: int | None = None) -> ca.SX:
     return expr
 
 
-def _function(name: str, inputs, names, outputs, out_names) -> ca.Function:
+def _function(name: str, inputs, names, outputs, out_names, what: str | None = None) -> ca.Function:
     # Common subexpressions (e.g. sin(theta) in every camera) are merged once here,
     # so that both CasADi and the NumPy translation evaluate them once.
     outputs = [ca.cse(o) for o in outputs]
@@ -105,7 +155,7 @@ def _function(name: str, inputs, names, outputs, out_names) -> ca.Function:
         msg = str(exc)
         if "free variables" in msg or "free" in msg:
             raise InputError(
-                f"{name} depends on symbols other than {', '.join(names)}; "
+                f"{what or name} depends on symbols other than {', '.join(names)}; "
                 "declare every symbol the expressions use"
             ) from None
         raise
@@ -222,6 +272,16 @@ class Model:
         names = [s.name for s in sensors]
         if len(set(names)) != len(names):
             raise InputError("sensor names must be unique")
+        undeclared = [(s, s.undeclared_angles()) for s in sensors]
+        undeclared = [(s, comps) for s, comps in undeclared if comps]
+        if undeclared:  # one warning for the model, naming every sensor
+            named = ", ".join(repr(s.name) for s, _ in undeclared[:8]) + \
+                (f" and {len(undeclared) - 8} more" if len(undeclared) > 8 else "")
+            s, comps = undeclared[0]
+            warnings.warn(f"sensor{'s' if len(undeclared) > 1 else ''} {named}: an atan2 angle in h is not declared "
+                          "in angles=, so its residuals are not wrapped into (-pi, pi] and an angle crossing +-pi is "
+                          f"a 2 pi error; declare it, e.g. Sensor({s.name!r}, ..., "
+                          f"angles={tuple(sorted(s.angles + comps))})", ModelWarning, stacklevel=2)
         self.sensors = sensors
         self.state_names = tuple(state_names) if state_names else tuple(f"x{i + 1}" for i in range(self.n_x))
         if len(self.state_names) != self.n_x:
@@ -239,7 +299,7 @@ class Model:
         fin, fnames = [x, k, u, r], ["x", "k", "u", "mode"]
         f = self.f_expr
         F = ca.jacobian(f, x)
-        self.casadi_f = _function("f", fin, fnames, [f], ["x_next"])
+        self.casadi_f = _function("f", fin, fnames, [f], ["x_next"], "the transition f")
         self.casadi_F = _function("F", fin, fnames, [F], ["F"])
         self.casadi_f_hess = _function(
             "f_hess", fin, fnames, [ca.hessian(f[j], x)[0] for j in range(self.n_x)],
@@ -249,7 +309,7 @@ class Model:
         self.casadi_h, self.casadi_H, self.casadi_h_hess = [], [], []
         for i, s in enumerate(self.sensors):
             h = _column(f"sensors[{i}].h", s.h)
-            self.casadi_h.append(_function(f"h{i}", hin, hnames, [h], ["z"]))
+            self.casadi_h.append(_function(f"h{i}", hin, hnames, [h], ["z"], f"sensor {s.name!r}: h"))
             self.casadi_H.append(_function(f"H{i}", hin, hnames, [ca.jacobian(h, x)], ["H"]))
             self.casadi_h_hess.append(
                 _function(f"h{i}_hess", hin, hnames, [ca.hessian(h[j], x)[0] for j in range(s.dim)],
@@ -409,6 +469,35 @@ class Model:
         i = self._sensor(i)
         return self.sensors[i].noise.logpdf(np.asarray(z, dtype=float) - self.h(i, x, k))
 
+    def check_finite_at(self, x0, u0=None) -> None:
+        """Refuse (:class:`InputError`, naming the sensor) a model that cannot be linearised at its operating point.
+
+        At ``x0`` (step 0) ``f``, its Jacobian and Hessians (every mode), and at ``x0`` and its
+        prediction ``f(x0)`` (step 1, where the filters' first update and the design's scalings
+        evaluate them) every sensor's ``h``, Jacobian ``H`` and Hessians must be finite: a
+        range sensor placed exactly at the point has no Jacobian there (sqrt at 0).
+        """
+        x0 = self._state(x0)
+        u = None if self.n_u == 0 else u0
+        modes = [None] if self.mode_probs is None else list(range(self.n_modes))
+
+        def where(x):
+            return "x = [" + ", ".join(f"{v:.6g}" for v in np.asarray(x)) + "]"
+
+        for mode in modes:
+            at = f" (mode {mode})" if mode is not None else ""
+            for what, fn in (("f", self.f), ("the Jacobian df/dx", self.F), ("the Hessians of f", self.f_hessian)):
+                if not np.all(np.isfinite(fn(x0, 0, u, mode))):
+                    raise InputError(f"the transition: {what} is not finite at the operating point {where(x0)}{at}")
+        xp = self.f_expected(x0, 0, u)
+        for x, point in ((x0, "the operating point"), (xp, "the operating point's prediction f(x0)")):
+            for i, s in enumerate(self.sensors):
+                for what, fn in (("h", self.h), ("the Jacobian dh/dx", self.H), ("the Hessians of h", self.h_hessian)):
+                    if not np.all(np.isfinite(fn(i, x, 1))):
+                        raise InputError(f"sensor {s.name!r}: {what} is not finite at {point} {where(x)} (step 1), "
+                                         "where the filters and the design linearise it; is the sensor placed "
+                                         "exactly at that point?")
+
     def with_stacked_sensors(self, name: str = "all") -> "Model":
         """The same model with one sensor that stacks every sensor (a centralized observer).
 
@@ -425,12 +514,34 @@ class Model:
         h = ca.vertcat(*[s.h for s in self.sensors])
         offsets = self._offsets
         angles = tuple(int(offsets[i] + a) for i, s in enumerate(self.sensors) for a in s.angles)
-        return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise, angles=angles)],
-                     self.process_noise,
-                     self.prior, k=self.k, u=self.u if self.n_u else None, mode=self.mode if self.n_modes else None,
-                     mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
-                     position_index=self.position_index, velocity_index=self.velocity_index,
-                     description=self.description)
+        with warnings.catch_warnings():  # its sensors' undeclared angles were named when this model was built
+            warnings.simplefilter("ignore", ModelWarning)
+            return Model(f"{self.name} (stacked)", self.x, self.f_expr, [Sensor(name, h, noise, angles=angles)],
+                         self.process_noise,
+                         self.prior, k=self.k, u=self.u if self.n_u else None,
+                         mode=self.mode if self.n_modes else None,
+                         mode_probs=self.mode_probs, noise_gain=self.noise_gain, state_names=self.state_names,
+                         position_index=self.position_index, velocity_index=self.velocity_index,
+                         description=self.description)
+
+    def __digest__(self) -> tuple:
+        """What the model is, for :func:`designer.digest.content_digest`: the NumPy translations of ``f``
+        and every ``h_i`` (the evaluated operations, constants to the last bit), the noises, the prior and
+        every other number and name; the Jacobians and Hessians are derived from these."""
+        sensors = tuple((s.name, fn.source, s.noise, s.position, s.angles) for s, fn in zip(self.sensors, self._np_h))
+        return (self.name, self.description, self._np_f.source, sensors, self.process_noise, self.prior,
+                self.noise_gain, self.mode_probs, self.n_u, self.state_names, self.position_index,
+                self.velocity_index)
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 of the model's content (:meth:`__digest__`): equal for equal models in any process."""
+        d = self.__dict__.get("_digest")
+        if d is None:
+            from .digest import content_digest
+
+            d = self.__dict__["_digest"] = content_digest(self)
+        return d
 
     def describe(self) -> dict:
         """A JSON-ready description of the model."""

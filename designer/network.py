@@ -1,14 +1,58 @@
 """Undirected sensor networks with per-edge attack probabilities."""
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from .validation import InputError, check_probability
+from .validation import InputError, check_int, check_probability
 
-__all__ = ["SensorNetwork"]
+__all__ = ["SensorNetwork", "connectivity_checked_later", "node_pair"]
+
+_CONNECTIVITY_LATER = contextvars.ContextVar("cfdesign_connectivity_later", default=False)
+
+
+@contextlib.contextmanager
+def connectivity_checked_later() -> Iterator[None]:
+    """Networks built in the block are not refused for being disconnected (yet).
+
+    While a model file loads, its ``NETWORK`` cannot be compared with the sensors of its
+    ``model()``: a network with a node more than there are sensors would be called
+    disconnected (the extra node has no edge) instead of the wrong size.  Built in this block,
+    a disconnected network that requires connection is refused when it is used with its
+    attacks (:meth:`SensorNetwork.with_attacks`, after the scenario has compared the sizes).
+    """
+    token = _CONNECTIVITY_LATER.set(True)
+    try:
+        yield
+    finally:
+        _CONNECTIVITY_LATER.reset(token)
+
+
+def node_pair(what: str, pair, n_nodes: int) -> tuple[int, int]:
+    """``pair`` as two distinct node indices in ``0..n_nodes-1``; ``what`` names it in the error.
+
+    Indices must be integers (not bools, not floats such as 1.7 that would be truncated).
+    """
+    try:
+        items = tuple(pair)
+    except TypeError:
+        raise InputError(f"{what} must be a pair of node indices (i, j), got {pair!r}") from None
+    if len(items) != 2:
+        raise InputError(f"{what} must be a pair of node indices (i, j), got {pair!r}")
+    for v in items:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+            raise InputError(f"{what} {pair!r}: node indices must be integers in 0..{n_nodes - 1}, got {v!r} "
+                             f"({type(v).__name__})")
+        if not 0 <= v < n_nodes:
+            raise InputError(f"{what} {pair!r} names a node outside 0..{n_nodes - 1}")
+    i, j = int(items[0]), int(items[1])
+    if i == j:
+        raise InputError(f"{what} {pair!r} is a self-loop; self-loops are not allowed")
+    return i, j
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,7 +85,7 @@ class SensorNetwork:
 
     def __post_init__(self):
         n = self.n_nodes
-        if not isinstance(n, (int, np.integer)) or n < 1:
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
             raise InputError(f"n_nodes must be a positive integer, got {n!r}")
         adj = np.asarray(self.adjacency)
         if adj.shape != (n, n):
@@ -65,12 +109,22 @@ class SensorNetwork:
         object.__setattr__(self, "dos_prob", dos)
         object.__setattr__(self, "fdi_prob", fdi)
         object.__setattr__(self, "neighbours", tuple(tuple(int(j) for j in np.flatnonzero(row)) for row in adj))
-        if self.require_connected and not self.is_connected:
-            raise InputError(
-                f"the sensor network is disconnected ({self.n_components} components): a node cut off from the "
-                "others cannot reach consensus with them; connect them (in a model file: add edges to NETWORK), or "
-                "build it with SensorNetwork(..., require_connected=False) in Python to study it anyway"
-            )
+        if self.require_connected and not _CONNECTIVITY_LATER.get():
+            self.check_connected()
+
+    def check_connected(self) -> None:
+        """Refuse a disconnected network that requires connection, naming the nodes cut off."""
+        if not self.require_connected or self.is_connected:
+            return
+        parts = sorted(self.components, key=len, reverse=True)
+        cut = sorted(v for p in parts[1:] for v in p)
+        listed = ", ".join(map(str, cut[:10])) + (", ..." if len(cut) > 10 else "")
+        raise InputError(
+            f"the sensor network of {self.n_nodes} nodes is disconnected ({len(parts)} components; node"
+            f"{'s' if len(cut) > 1 else ''} {listed} cut off from node {parts[0][0]}): a node cut off from the "
+            "others cannot reach consensus with them; connect them (in a model file: add edges to NETWORK), or "
+            "build it with SensorNetwork(..., require_connected=False) in Python to study it anyway"
+        )
 
     @staticmethod
     def _edge_probs(name: str, value, adj: np.ndarray) -> np.ndarray:
@@ -84,16 +138,16 @@ class SensorNetwork:
 
     @classmethod
     def from_edges(cls, n_nodes: int, edges: Iterable[Sequence[int]], **kwargs) -> "SensorNetwork":
-        """Build from undirected edges ``(i, j)`` (each listed once, in either order)."""
+        """Build from undirected edges ``(i, j)`` of integer node indices (in either order; one listed twice counts
+        once)."""
+        n_nodes = check_int("n_nodes", n_nodes, 1)
+        try:
+            edges = list(edges)
+        except TypeError:
+            raise InputError(f"edges must be a list of node pairs (i, j), got {type(edges).__name__}") from None
         adj = np.zeros((n_nodes, n_nodes), dtype=int)
-        for e in edges:
-            if len(e) != 2:
-                raise InputError(f"edges must be pairs (i, j), got {tuple(e)!r}")
-            i, j = int(e[0]), int(e[1])
-            if not (0 <= i < n_nodes and 0 <= j < n_nodes):
-                raise InputError(f"edge ({i}, {j}) names a node outside 0..{n_nodes - 1}")
-            if i == j:
-                raise InputError(f"edge ({i}, {j}) is a self-loop; self-loops are not allowed")
+        for e in edges:  # an edge listed twice (in either order) is the same edge
+            i, j = node_pair("edge", e, n_nodes)
             adj[i, j] = adj[j, i] = 1
         return cls(n_nodes, adj, **kwargs)
 
@@ -112,20 +166,26 @@ class SensorNetwork:
 
     @property
     def n_components(self) -> int:
-        seen = np.zeros(self.n_nodes, dtype=bool)
-        count = 0
+        return len(self.components)
+
+    @property
+    def components(self) -> list[list[int]]:
+        """The connected components, each a sorted list of nodes, in the order of their smallest node."""
+        label = np.full(self.n_nodes, -1)
+        parts = []
         for start in range(self.n_nodes):
-            if seen[start]:
+            if label[start] >= 0:
                 continue
-            count += 1
-            stack = [start]
-            seen[start] = True
+            label[start] = len(parts)
+            stack, part = [start], [start]
             while stack:
                 for j in self.neighbours[stack.pop()]:
-                    if not seen[j]:
-                        seen[j] = True
+                    if label[j] < 0:
+                        label[j] = len(parts)
                         stack.append(j)
-        return count
+                        part.append(j)
+            parts.append(sorted(part))
+        return parts
 
     @property
     def is_connected(self) -> bool:

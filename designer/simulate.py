@@ -11,7 +11,7 @@ from .validation import InputError, check_finite, check_int, check_rng
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
     from .model import Model
 
-__all__ = ["Trajectory", "simulate", "simulate_runs", "check_inputs"]
+__all__ = ["Trajectory", "simulate", "simulate_runs", "check_inputs", "check_simulated"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +57,40 @@ def check_inputs(model: Model, steps: int, inputs) -> np.ndarray:
     if u.shape != (steps, model.n_u):
         raise InputError(f"inputs must have shape ({steps}, {model.n_u}), got {u.shape}")
     return u
+
+
+def check_simulated(model: Model, xs: np.ndarray, zs: np.ndarray) -> None:
+    """Refuse simulated states ``xs`` (*batch, K + 1, n_x) or measurements ``zs`` (*batch, K, n_z) that left the
+    reals, naming the first step where the model's ``f`` or a sensor's ``h`` is not finite, the sensor and, for
+    several runs simulated together, the run (its index in the batch)."""
+    batch = xs.shape[:-2]
+    X = xs.reshape(-1, *xs.shape[-2:])
+    Z = zs.reshape(-1, *zs.shape[-2:])
+    bad_x = ~np.isfinite(X).all(axis=-1)  # (runs, K + 1)
+    bad_z = ~np.isfinite(Z)  # (runs, K, n_z); z[k - 1] measures x[k]
+    never = X.shape[1] + 1
+    k_x = int(np.argmax(bad_x.any(axis=0))) if bad_x.any() else never
+    k_z = int(np.argmax(bad_z.any(axis=(0, 2)))) + 1 if bad_z.any() else never
+    if k_x == never and k_z == never:
+        return
+
+    def at(r: int, k: int) -> str:
+        if not batch:
+            return f"step {k}"
+        where = ", ".join(map(str, np.unravel_index(r, batch)))
+        return f"step {k} of run {where} (of {int(np.prod(batch))} simulated together)"
+
+    def vec(x) -> str:
+        return "[" + ", ".join(f"{v:.6g}" for v in x) + "]"
+
+    if k_x <= k_z:
+        r = int(np.argmax(bad_x[:, k_x]))
+        raise InputError(f"the transition f is not finite at {at(r, k_x)}: f(x) from x = {vec(X[r, k_x - 1])}")
+    r = int(np.argmax(bad_z[:, k_z - 1].any(axis=-1)))
+    comp = int(np.argmax(bad_z[r, k_z - 1]))
+    sensor = int(np.searchsorted(np.cumsum(model.sensor_dims), comp, side="right"))
+    raise InputError(f"sensor {model.sensors[sensor].name!r}: h is not finite at {at(r, k_z)} "
+                     f"(x = {vec(X[r, k_z])})")
 
 
 def simulate(
@@ -132,11 +166,14 @@ def simulate(
         w = draw(model.process_noise.sample)
         x = model.f(x, k, u[k], mode) + (w @ G.T if gens is None else np.stack([wr @ G.T for wr in w]))
         xs[..., k + 1, :] = x
+        if not np.isfinite(x).all():  # named here: the next f or h would refuse the state without saying why
+            check_simulated(model, xs[..., : k + 2, :], zs[..., :k, :])
         z = model.h_all(x, k + 1)
         for i, s in enumerate(model.sensors):
             a, b = model._offsets[i], model._offsets[i + 1]
             z[..., a:b] += draw(s.noise.sample)
         zs[..., k, :] = z
+    check_simulated(model, xs, zs)
     return Trajectory(xs, zs, modes, u)
 
 
@@ -205,5 +242,8 @@ def simulate_runs(
     for k in range(steps):
         x = model.f(x, k, u[k], None if modes is None else modes[:, k]) + Gw[:, k]
         xs[:, k + 1] = x
+        if not np.isfinite(x).all():  # named here: the next f or h would refuse the state without saying why
+            check_simulated(model, xs[:, : k + 2], np.zeros((R, 0, model.n_z)))
     zs = model.h_all(xs[:, 1:], np.arange(1, steps + 1)) + v
+    check_simulated(model, xs, zs)
     return Trajectory(xs, zs, modes, u)

@@ -10,6 +10,8 @@ import numpy as np
 
 __all__ = [
     "CfdesignError",
+    "CfdesignWarning",
+    "ModelWarning",
     "InputError",
     "ComputationError",
     "NonFiniteError",
@@ -46,6 +48,15 @@ class NonFiniteError(ComputationError):
 
     def __reduce__(self):  # keep the fields across processes and Dask
         return (NonFiniteError, (str(self), self.row, self.step))
+
+
+class CfdesignWarning(UserWarning):
+    """Base class of every warning the package gives on purpose (the command line prints it as one line,
+    ``cfdesign: warning: ...``)."""
+
+
+class ModelWarning(CfdesignWarning):
+    """A model is accepted but probably not what its author meant (e.g. an atan2 bearing not declared an angle)."""
 
 
 def check_finite(name: str, value) -> np.ndarray:

@@ -31,7 +31,7 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.fileio import check_output_file, write_npz, writing
+from designer.fileio import check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
@@ -308,8 +308,13 @@ def report(directory: str | Path) -> tuple[Path, Path]:
 
     ``directory`` is a study's (``results.json``), a design's (``schedule.json``) or a
     feasibility map's (``feasibility.csv``).  The commands write their reports already; this
-    rebuilds them, e.g. after editing the output or for results of an older version.
+    rebuilds them, e.g. after editing the output or for results of an older version.  It holds
+    the directory's one-writer lock (a directory another command is writing is refused, naming
+    it) and replaces the report's files as a whole (:func:`designer.fileio.replaced_outputs`).
     """
-    from .reports import write_report
+    from .reports import check_directory, write_report
 
-    return write_report(directory)
+    d = check_directory(directory)
+    with writing(d, name="directory", replaces=()), replaced_outputs(d, keep_others=True) as stage:
+        write_report(d, into=stage)
+    return d / "report.html", d / "report.md"

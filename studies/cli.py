@@ -15,7 +15,7 @@ import warnings
 
 import click
 
-from designer.validation import ComputationError, InputError
+from designer.validation import CfdesignWarning, ComputationError, InputError
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -276,7 +276,7 @@ def _summary(f: dict) -> str:
     if bc:
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
         parts.append(f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, exceeded at "
-                     f"{frac}")
+                     f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else ""))
     if isinstance(f.get("feasibility"), dict):
         parts.append(f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}")
     return ", ".join(parts)
@@ -313,7 +313,28 @@ def main(argv=None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
-    warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
+    with warnings.catch_warnings():  # restored on return (main is also called in-process, by the tests)
+        warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
+        warnings.showwarning = _one_line_warnings(warnings.showwarning)
+        return _main(argv, debug)
+
+
+def _one_line_warnings(show):
+    """A ``warnings.showwarning`` that prints cfdesign's own warnings as one line each on stderr (a text once, however
+    often the model is built), and passes the others to ``show``."""
+    shown = set()
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if not issubclass(category, CfdesignWarning):
+            return show(message, category, filename, lineno, file, line)
+        if str(message) not in shown:
+            shown.add(str(message))
+            click.echo(f"cfdesign: warning: {message}", err=True)
+
+    return showwarning
+
+
+def _main(argv: list, debug: bool) -> int:
     try:
         # make_context and invoke rather than cli.main: click.main answers a KeyboardInterrupt with an empty line
         # on stderr before ours, and the model layer is imported inside the commands (a Ctrl-C there is start-up)

@@ -433,8 +433,8 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
                              hcmci_iterations=int(so["hcmci_iterations"]),
                              divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item())
-    config = {"study": "comparison", "scenario": sc.name, "source": "memory" if ref.in_memory else ref.source,
-              "params": dict(ref.params), "attacks": sc.attacks.describe(), "settings": settings,
+    config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
+              "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
               "options": so.design.as_dict()}

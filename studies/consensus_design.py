@@ -55,6 +55,7 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
         raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
                          "attacks in ATTACKS")
     opts = base.merged(options)
+    sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
     return sc.with_attacks(**opts.attack_overrides()), opts
 
 

@@ -22,9 +22,12 @@ interrupted study resumes from the chunks stored in ``out``.  Metrics, the bound
 check and the figures are computed afterwards from the concatenated arrays.
 
 Besides RMSEs per node and over time, the study checks whether Φ bounds
-anything: at every (node, step) where Φ is a bound in enough runs, it compares
-the empirical error second moment with the run-averaged Φ along the direction of
-largest excess (a one-sided test at ``Z_EXCESS`` Monte Carlo standard errors).
+anything (:func:`bound_check`): at every (node, step) where Φ is a bound in enough
+runs, it compares the empirical error second moment with the run-averaged Φ along
+the direction of largest excess (a one-sided test at ``Z_EXCESS`` Monte Carlo
+standard errors), and, since a few runs with huge errors take that test's power,
+it tests each run's error energy against its bound's trace with Markov's inequality
+(distribution-free); either finding an excess makes the verdict ``violated``.
 """
 from __future__ import annotations
 
@@ -54,17 +57,22 @@ from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, fir
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["STUDY", "bound_check", "Z_EXCESS", "MIN_RUNS_FOR_CHECK", "CHUNK_SIZE"]
+__all__ = ["STUDY", "bound_check", "per_run_check", "Z_EXCESS", "MIN_RUNS_FOR_CHECK", "MAX_FRACTION_EXCEEDING",
+           "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE"]
 
 Z_EXCESS = 3.0  # standard errors before an excess over Φ counts
 MIN_RUNS_FOR_CHECK = 30  # a (node, step) is checked when Φ is a bound in at least this many runs
+MAX_FRACTION_EXCEEDING = 0.05  # more checked (node, step) pairs in excess than this: the bound is violated
+MARKOV_LEVELS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)  # the run test's levels c
+BOUND_TEST_ALPHA = 0.01  # the run test's level: a bound that holds is called violated at most this often
+WINSOR_QUANTILE = 0.9  # the average's tolerance is the spread of the runs' ratios clipped at this quantile
 PAPER_NODES = (2, 5)  # the paper's Figs. 2-3 show the channels of nodes 2 and 5 (1-based)
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (the unit stored and sent to a worker)
 REASON_BYTES = 200  # a diverged run's reason, stored as this many UTF-8 bytes (longer ones are cut)
 
 
 def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
-    """Is Φ an upper bound of the error covariance, run-averaged, at each (node, step)?
+    """Is Φ an upper bound of the error covariance?  Three checks and a verdict.
 
     Parameters
     ----------
@@ -72,10 +80,30 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
     phi : (runs, steps, nodes, n_x, n_x) the bounds of each run.
     valid : (runs, steps, nodes) where ``phi`` is a bound.
 
-    For each (step, node) with at least ``MIN_RUNS_FOR_CHECK`` valid runs: the
-    direction ``v`` of largest eigenvalue of ``P̂ - Φ̄`` (both over the valid runs),
-    the per-run differences ``d_r = (vᵀ e_r)² - vᵀ Φ_r v``, and an excess when
-    ``mean(d) > Z_EXCESS * std(d) / sqrt(n)``.
+    **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
+    least ``MIN_RUNS_FOR_CHECK`` valid runs, the direction ``v`` of largest eigenvalue of
+    ``P̂ - Φ̄`` (both over the valid runs), the per-run differences ``d_r = (vᵀ e_r)² - vᵀ Φ_r v``,
+    and an excess when ``mean(d) > Z_EXCESS * std(d) / sqrt(n)``.  This test is sharp for
+    light-tailed errors, and powerless when a few runs have huge errors (their spread swamps
+    any mean).
+
+    **Per run** (``run_test``): each run's error energy over its bound,
+    ``ρ_r = Σ ‖e_{r,k,i}‖² / Σ tr Φ_{r,k,i}`` over the (node, step) pairs where Φ is a bound.
+    Where Φ bounds each run's error second moment (given the run's DoS pattern and estimates, as
+    the design computes it along the run), ``E[ρ_r] ≤ 1``; the runs are independent.  Two checks:
+
+    * *exceeded on average*: ``mean(ρ) - 1`` beyond ``Z_EXCESS`` standard errors, the standard
+      error taken from the bulk of the runs (``ρ`` clipped at its ``WINSOR_QUANTILE`` quantile), so
+      that a few runs with huge errors cannot hide the excess they make by inflating the spread;
+    * *distribution-free*: by Markov's inequality ``P(ρ_r ≥ c) ≤ 1/c`` whatever the errors' law,
+      so the number of runs with ``ρ_r ≥ c`` is at most Binomial(runs, 1/c); for every ``c`` of
+      ``MARKOV_LEVELS`` the binomial tail of the observed count is a p-value, and their smallest
+      times the number of levels (Bonferroni) below ``BOUND_TEST_ALPHA`` rejects the bound (a
+      bound exceeded twofold in every run is rejected from 10 runs on).
+
+    ``verdict``: ``violated`` when any check finds the bound exceeded (the per-pair one at more
+    than ``MAX_FRACTION_EXCEEDING`` of the checked pairs), ``holds`` when none does, ``not
+    checked`` when Φ is a bound nowhere; ``verdict_reason`` says why in words.
     """
     runs, steps, nodes, nx = err.shape
     checked = exceed = 0
@@ -102,18 +130,85 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
             max_excess = max(max_excess, float(lam[-1]))
             max_rel = max(max_rel, float(lam[-1] / np.trace(Phi_bar)))
             ratios.append(float(np.trace(P) / np.trace(Phi_bar)))
+    fraction = exceed / checked if checked else None
+    rt = per_run_check(err, phi, valid)
+    if fraction is None and rt["runs"] == 0:
+        verdict, why = "not checked", "Φ is a bound at no (node, step) of any run"
+    elif rt["mean_exceeds"] or rt["rejected"] or (fraction is not None and fraction > MAX_FRACTION_EXCEEDING):
+        verdict, why = "violated", []
+        if rt["mean_exceeds"]:
+            why.append(f"the error energy of the {rt['runs']} runs is {rt['ratio_mean']:.3g} times their bound's on "
+                       f"average, beyond the Monte Carlo tolerance of {1 + rt['tolerance']:.3g} (median run "
+                       f"{rt['ratio_median']:.3g}, largest {rt['ratio_max']:.3g})")
+        if rt["rejected"]:
+            why.append(f"{rt['worst_count']} of {rt['runs']} runs exceed {rt['worst_level']:g} times their bound, "
+                       f"which a valid bound allows each run with probability at most 1/{rt['worst_level']:g} "
+                       f"(p = {rt['p_value']:.2g})")
+        if fraction is not None and fraction > MAX_FRACTION_EXCEEDING:
+            why.append(f"the empirical covariance exceeds the run-averaged bound beyond {Z_EXCESS:g} Monte Carlo "
+                       f"standard errors at {fraction:.1%} of the {checked} checked (node, step) pairs")
+        why = "; ".join(why)
+    else:
+        verdict = "holds"
+        why = (f"no check finds an excess: the error energy of the {rt['runs']} runs is {rt['ratio_mean']:.3g} times "
+               f"their bound's on average (largest run {rt['ratio_max']:.3g})"
+               + (f"; {exceed} of {checked} checked (node, step) pairs exceed it beyond {Z_EXCESS:g} standard "
+                  "errors" if checked else f"; no (node, step) pair has the {MIN_RUNS_FOR_CHECK} runs of the "
+                  "per-pair test"))
+        share = float(valid.mean())
+        if share < 1:
+            why += (f"; Φ is a bound at only {share:.0%} of the (run, node, step) triples (none after a node's first "
+                    "violated condition), so this speaks for those")
     return {
         "runs": int(runs),
         "pairs_checked": checked,
         "pairs_total": int(steps * nodes),
-        "fraction_exceeding": exceed / checked if checked else None,
+        "fraction_exceeding": fraction,
         "max_excess": max_excess if checked else None,
         "max_excess_relative_to_trace": max_rel if checked else None,
         "trace_ratio_mean": float(np.mean(ratios)) if ratios else None,
         "trace_ratio_max": float(np.max(ratios)) if ratios else None,
         "z_threshold": Z_EXCESS,
         "min_runs_per_pair": MIN_RUNS_FOR_CHECK,
+        "run_test": rt,
+        "verdict": verdict,
+        "verdict_reason": why,
     }
+
+
+def per_run_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
+    """The per-run checks of :func:`bound_check` (its docstring says what they test).
+
+    Returns ``runs`` (runs with a bound somewhere), ``ratio_mean``, ``ratio_median``, ``ratio_max`` and
+    ``fraction_above_1`` of the per-run ratios ``ρ_r``; ``tolerance`` and ``mean_exceeds`` (the average's
+    check); ``p_value`` (Bonferroni-corrected over the levels), ``worst_level`` and ``worst_count`` (the level
+    ``c`` of the smallest p-value and the runs with ``ρ_r ≥ c``), ``alpha`` and ``rejected`` (Markov's).
+    """
+    from scipy.stats import binom
+
+    sel = valid.astype(bool)
+    energy = np.where(sel, np.einsum("rkia,rkia->rki", err, err), 0.0).sum(axis=(1, 2))
+    tr = np.where(sel, np.trace(np.where(sel[..., None, None], phi, 0.0), axis1=-2, axis2=-1), 0.0).sum(axis=(1, 2))
+    has = tr > 0
+    rho = energy[has] / tr[has]
+    n = int(rho.size)
+    out = {"runs": n, "ratio_mean": None, "ratio_median": None, "ratio_max": None, "fraction_above_1": None,
+           "tolerance": None, "mean_exceeds": False, "levels": list(MARKOV_LEVELS), "p_value": None,
+           "worst_level": None, "worst_count": None, "alpha": BOUND_TEST_ALPHA, "rejected": False}
+    if n == 0:
+        return out
+    bulk = np.minimum(rho, np.quantile(rho, WINSOR_QUANTILE))
+    tolerance = Z_EXCESS * float(bulk.std(ddof=1)) / np.sqrt(n) if n > 1 else np.inf
+    counts = np.array([(rho >= c).sum() for c in MARKOV_LEVELS])
+    # P(Binomial(n, 1/c) >= count): the chance of so many runs above c where the bound holds
+    tails = np.array([binom.sf(x - 1, n, 1.0 / c) if x > 0 else 1.0 for x, c in zip(counts, MARKOV_LEVELS)])
+    j = int(np.argmin(tails))
+    p = float(min(1.0, tails[j] * len(MARKOV_LEVELS)))
+    out.update(ratio_mean=float(rho.mean()), ratio_median=float(np.median(rho)), ratio_max=float(rho.max()),
+               fraction_above_1=float((rho > 1).mean()), tolerance=float(tolerance) if n > 1 else None,
+               mean_exceeds=bool(rho.mean() - 1.0 > tolerance), p_value=p, worst_level=float(MARKOV_LEVELS[j]),
+               worst_count=int(counts[j]), rejected=bool(p < BOUND_TEST_ALPHA))
+    return out
 
 
 CONSENSUS_EKF, KCF, HCMCI = "consensus-EKF", "KCF", "HCMCI"  # which filter a variant runs
@@ -342,7 +437,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              hcmci_iterations=_iterations(so), divergence_spread=spread)
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
-              "source": "memory" if ref.in_memory else ref.source, "attacks": sc.attacks.describe(),
+              "attacks": sc.attacks.describe(),
               "design_options": {k: v for k, v in options.as_dict().items() if v is not None},
               "variants": list(variants), "hcmci_iterations": _iterations(so), "divergence_spread": spread,
               "schedule": None if replay is None else {
@@ -500,13 +595,18 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     # Fig. 4: trajectories (in the plane of the position; over time otherwise).
     if not est0:
         return
-    name = next(iter(est0))
+    # the first filter with a finite run 0, one estimate per node if any has (a centralized one has a single one)
+    name = next((k for k, e in est0.items() if e.shape[1] == net.n_nodes), next(iter(est0)))
+    est = est0[name]
+    lines = ([(i, f"node {i + 1}") for i in range(est.shape[1])] if est.shape[1] == net.n_nodes
+             else [(0, "estimate")])
+    whose = f"the {net.n_nodes} node estimates" if est.shape[1] == net.n_nodes else "the estimate"
     if len(m.position_index) == 2:
         px, py = m.position_index
         fig, ax = plt.subplots(figsize=(7, 5.5))
         ax.plot(truth0[:, px], truth0[:, py], "k-", lw=2.5, label="true path")
-        for i in range(net.n_nodes):
-            ax.plot(est0[name][:, i, px], est0[name][:, i, py], "-", lw=0.9, alpha=0.8, label=f"node {i + 1}")
+        for i, label in lines:
+            ax.plot(est[:, i, px], est[:, i, py], "-", lw=0.9, alpha=0.8, label=label)
         sens = [s.position for s in m.sensors if s.position is not None and len(s.position) >= 2]
         if sens:
             sens = np.asarray(sens)
@@ -515,7 +615,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
             ax.add_patch(plt.Rectangle((0, 0), 2.4, 1.8, fill=False, ls="--", color="gray"))
         ax.set_xlabel(m.state_names[px] + (" (m)" if robot else ""))
         ax.set_ylabel(m.state_names[py] + (" (m)" if robot else ""))
-        ax.set_title(f"{'robot' if robot else 'true'} path and the {net.n_nodes} node estimates, {name} (run 0)")
+        ax.set_title(f"{'robot' if robot else 'true'} path and {whose}, {name} (run 0)")
         ax.set_aspect("equal")
         legend_beside(ax)
     else:
@@ -523,25 +623,26 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
         for ax, c in zip(axs[:, 0], comps):
             ax.plot(np.arange(steps + 1), truth0[:, c], "k-", lw=2.5, label="truth")
-            for i in range(net.n_nodes):
-                ax.plot(np.arange(steps + 1), est0[name][:, i, c], "-", lw=0.9, alpha=0.8, label=f"node {i + 1}")
+            for i, label in lines:
+                ax.plot(np.arange(steps + 1), est[:, i, c], "-", lw=0.9, alpha=0.8, label=label)
             ax.set_ylabel(m.state_names[c])
-        axs[0, 0].set_title(f"truth and the {net.n_nodes} node estimates, {name} (run 0)")
+        axs[0, 0].set_title(f"truth and {whose}, {name} (run 0)")
         axs[-1, 0].set_xlabel("time step k")
         legend_beside(axs[0, 0])
     save_figure(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
     shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v["rmse_position"]}
-    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
-    for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
-        for nd in res["nodes"]:
-            ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
-        ax.set_title(fname, fontsize=9)
-        ax.set_xlabel("time step k")
-    np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
-    legend_beside(np.atleast_1d(axes)[-1])
-    save_figure(fig, out / "fig_rmse_nodes.png")
+    if shown:  # not when every consensus and local filter diverged in every run
+        fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
+        for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
+            for nd in res["nodes"]:
+                ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
+            ax.set_title(fname, fontsize=9)
+            ax.set_xlabel("time step k")
+        np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
+        legend_beside(np.atleast_1d(axes)[-1])
+        save_figure(fig, out / "fig_rmse_nodes.png")
 
     # Every filter: position RMSE over time (mean over nodes), log scale.
     fig, ax = plt.subplots(figsize=(9.5, 4))

@@ -406,7 +406,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = config.scenario
     manifest = {"study": "encrypted-switching", "particles": config.particles, "engine": config.engine,
                 "mean_dynamics_row": config.mean_dynamics_row, "params": dict(ref.params),
-                "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+                "channel": repr(sc.channel)}
     # compile before timing; forked workers inherit the kernels
     return Plan(functools.partial(compute_runs, config=config), "encrypted-switching", manifest,
                 before=functools.partial(warm_up, config))

@@ -514,7 +514,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     config = {"study": "fdi-four-tank", "scenario": sc.name, "params": dict(ref.params), "particles": so.particles,
               "engine": so["engine"], "settings": {k: list(p.which) for k, p in plans.items()},
               "streams": "run r: SeedSequence(seed, spawn_key=(r,)).spawn(5)",
-              "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+              "channel": repr(sc.channel)}
     return Plan(task, "fdi-four-tank", config)
 
 
@@ -783,5 +783,4 @@ STUDY = Study(
     options={"engine": "fast", "threads": THREADS_AUTO},
     accepts=_accepts,
     check=_check,
-    min_runs=1,
 )

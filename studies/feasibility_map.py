@@ -300,7 +300,7 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
 
         load_kernels()  # once, before the workers are forked, rather than in every worker
     task = functools.partial(_points, ref=ref, options=options or DesignOptions(), points=points)
-    config = {"study": "feasibility", "scenario": sc.name, "source": ref.source if not ref.in_memory else "memory",
+    config = {"study": "feasibility", "scenario": sc.name, "model": ref.digest,
               "grids": [[n, v.tolist()] for n, v in parsed], "options": (options or DesignOptions()).as_dict(),
               "params": dict(ref.params), "attacks": sc.attacks.describe()}
     mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=CHUNK_SIZE, backend=backend, store=store,

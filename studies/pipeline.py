@@ -426,8 +426,10 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
         plan = study.plan(sc, so)
         if plan.before is not None and backend.kind != "dask":
             plan.before()
+        # the stored runs are those of this model's content (Scenario.digest), wherever its file lies
         mc = monte_carlo(plan.task, runs=plan.runs or so.runs, seed=seed, chunk_size=chunk, backend=backend,
-                         store=out, label=plan.label, config=plan.config, force=force, quiet=quiet)
+                         store=out, label=plan.label, config={**plan.config, "model": sc.digest}, force=force,
+                         quiet=quiet)
         blocks[sc.name] = study.summarise(sc, mc, so)
         arrays[sc.name], built[sc.name] = mc.arrays, sc
     body = study.combine(blocks) if study.combine is not None else next(iter(blocks.values()))

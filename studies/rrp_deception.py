@@ -249,7 +249,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              filters=tuple(filters), n_streams=n_streams)
     config = {"study": "rrp-deception", "params": dict(ref.params), "particles": so.particles, "engine": engine,
               "filters": [f._asdict() for f in filters], "streams": n_streams,
-              "source": "memory" if ref.in_memory else ref.source, "channel": repr(sc.channel)}
+              "channel": repr(sc.channel)}
     before = functools.partial(_compile, ref, so.seed, so.particles, engine, tuple(filters), n_streams) \
         if engine == "fast" else None
     return Plan(task, "rrp-deception", config, before=before)

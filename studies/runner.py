@@ -28,7 +28,12 @@ chunks were computed with (``config``, seed, chunk size).  A second call with th
 same configuration loads the finished chunks and computes only the missing ones,
 so an interrupted study (Ctrl-C, a killed worker) resumes where it stopped; a
 different configuration is refused (it would mix results) unless ``force=True``,
-which deletes the stored chunks and recomputes everything.
+which deletes the stored chunks and recomputes everything.  ``force`` deletes only what the
+store wrote (its ``manifest.json``, ``log.jsonl`` and ``runs_<start>_<stop>.npz`` files);
+any other file in the store's directory stays.  The store holds the directory's one-writer
+lock (:func:`designer.fileio.output_lock`) while it works, and never reads, writes or removes
+its files through a symbolic link: a link in place of the store, of its directory or of one
+of its files is refused (InputError naming it).
 
 **Verified.**  A stored chunk is used only if it proves what it is: every chunk file holds,
 beside its arrays, the fingerprint of everything that determines it (the manifest: study,
@@ -49,10 +54,11 @@ the chunks finished before are kept.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
-import shutil
+import re
 import signal
 import sys
 import threading
@@ -66,7 +72,8 @@ from typing import Any, Callable, Mapping
 import multiprocessing
 import numpy as np
 
-from designer.fileio import append_line, atomic_write, code_fingerprint, write_json
+from designer.fileio import (CHUNKS_DIR, append_line, atomic_write, code_fingerprint, open_own, own_dir,
+                             refuse_link, temporary_of, write_json, writing)
 from designer.validation import ComputationError, InputError, check_int
 
 from .progress import counter, progress
@@ -74,7 +81,6 @@ from .progress import counter, progress
 __all__ = ["Backend", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
            "CHUNKS_DIR"]
 
-CHUNKS_DIR = ".chunks"
 _MANIFEST_SCHEMA = "cfdesign.chunks/2"
 _META = "__cfdesign_chunk__"  # the entry of a chunk file that says what it is
 BACKENDS = ("batched", "processes", "dask")
@@ -266,30 +272,65 @@ def _fingerprint(manifest: Mapping[str, Any]) -> str:
     return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()
 
 
+_FORCE = "--force (force=True from Python)"  # how a caller of the command line or of the API recomputes
+_OWN = re.compile(r"manifest\.json|log\.jsonl|runs_\d{7,}_\d{7,}\.npz")  # the names the store gives its files
+
+
+def _settings_differ(where: Path, old: Mapping, new: Mapping) -> InputError:
+    """The refusal of a store computed with other settings, naming every key that differs."""
+    keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    was = old.get("config") if isinstance(old.get("config"), dict) else {}
+    diff = keys if "config" not in keys else keys + sorted(
+        f"config.{k}" for k in set(was) | set(new["config"]) if was.get(k) != new["config"].get(k))
+    hints = [h for key, h in (("config.model", "the model changed since these runs were computed"),
+                              ("code", "the code changed since they were computed")) if key in diff]
+    return InputError(f"{where} holds runs computed with other settings ({', '.join(diff)}); "
+                      + "".join(h + "; " for h in hints)
+                      + f"use {_FORCE} to recompute them or choose another output directory")
+
+
 class _Store:
-    """The chunk files of one task under ``store/.chunks/<label>``; only the parent process writes."""
+    """The chunk files of one task under ``store/.chunks/<label>``; only the parent process writes.
+
+    Created with the store's lock held (:func:`monte_carlo`).  Its directories and files are
+    never used through a link (refused by name); ``force`` removes only the files it names
+    itself (``_OWN``), and temporary files that a killed writer left are removed.
+    """
 
     def __init__(self, root: Path, label: str, manifest: dict, force: bool):
-        self.dir = Path(root) / CHUNKS_DIR / label
+        self.dir = own_dir(own_dir(Path(root) / CHUNKS_DIR) / label)
         self.fingerprint = _fingerprint(manifest)
         path = self.dir / "manifest.json"
-        if force and self.dir.exists():
-            shutil.rmtree(self.dir)
-        if path.exists():
-            try:
-                old = json.loads(path.read_text())
-            except (OSError, ValueError) as exc:
-                raise InputError(f"cannot read {path} ({exc}); use --force to recompute") from exc
-            if old != manifest:
-                keys = sorted(k for k in set(old) | set(manifest) if old.get(k) != manifest.get(k))
-                diff = keys if "config" not in keys else keys + sorted(
-                    f"config.{k}" for k in set(old.get("config") or {}) | set(manifest["config"])
-                    if (old.get("config") or {}).get(k) != manifest["config"].get(k))
-                hint = "the code changed since they were computed; " if diff == ["code"] else ""
-                raise InputError(f"{self.dir} holds runs computed with other settings ({', '.join(diff)}); {hint}"
-                                 f"use --force to recompute them or choose another output directory")
-        else:
+        self._clean(force)
+        try:
+            with open_own(path) as fh:
+                raw = fh.read()
+        except FileNotFoundError:
             write_json(path, manifest)
+            return
+        except OSError as exc:
+            raise InputError(f"cannot read {path} ({exc}); use {_FORCE} to recompute") from exc
+        try:
+            old = json.loads(raw)
+        except ValueError as exc:
+            raise InputError(f"cannot read {path} ({exc}); use {_FORCE} to recompute") from exc
+        if not isinstance(old, dict):
+            raise InputError(f"cannot read {path} (not a JSON object); use {_FORCE} to recompute")
+        if old != manifest:
+            raise _settings_differ(self.dir, old, manifest)
+
+    def _clean(self, force: bool) -> None:
+        """Remove the temporary files of a killed writer and, with ``force``, the store's own files (no other)."""
+        with os.scandir(self.dir) as it:
+            entries = list(it)
+        for e in entries:
+            own = _OWN.fullmatch(e.name) is not None
+            if (own or temporary_of(e.name) is not None) and e.is_symlink():
+                refuse_link(e.path)
+            stale = temporary_of(e.name)
+            if (force and own or stale is not None and _OWN.fullmatch(stale)) and e.is_file(follow_symlinks=False):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(e.path)
 
     def file(self, c: tuple[int, int]) -> Path:
         return self.dir / f"runs_{c[0]:07d}_{c[1]:07d}.npz"
@@ -298,10 +339,14 @@ class _Store:
         """``(arrays, None)`` for a chunk that proves to be chunk ``c`` of this store, else ``(None, why)``
         (``(None, None)``: not there)."""
         f = self.file(c)
-        if not f.exists():
-            return None, None
         try:
-            with np.load(f, allow_pickle=False) as z:
+            fh = open_own(f)  # a link: refused by name
+        except FileNotFoundError:
+            return None, None
+        except OSError as exc:
+            return None, f"unreadable ({type(exc).__name__}: {exc})"
+        try:
+            with fh, np.load(fh, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
         except Exception as exc:  # noqa: BLE001 - whatever the file holds, it is not a chunk
             return None, f"unreadable ({type(exc).__name__}: {exc})"
@@ -435,7 +480,7 @@ def monte_carlo(
         run index (scenario parameters, particles, filters...); stored chunks computed with
         another config are refused unless ``force``.
     force : bool
-        Delete stored chunks first and recompute every run.
+        Delete the stored chunks first (only the files the store wrote) and recompute every run.
     """
     runs = check_int("runs", runs, 1)
     seed = check_int("seed", seed, 0)
@@ -445,10 +490,15 @@ def monte_carlo(
         raise InputError(f"backend must be a Backend, got {type(backend).__name__}")
     if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
         raise InputError(f"label must be a plain non-empty name, got {label!r}")
+    with writing(store, name="store", replaces=()):  # the store's one-writer lock (held already under a command)
+        return _monte_carlo(task, runs, seed, ranges, int(chunk_size), backend, store, label, config, force, quiet)
+
+
+def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, config, force, quiet) -> MonteCarloResult:
     t0 = time.perf_counter()
     st = None
     if store is not None:
-        manifest = {"schema": _MANIFEST_SCHEMA, "label": label, "seed": seed, "chunk_size": int(chunk_size),
+        manifest = {"schema": _MANIFEST_SCHEMA, "label": label, "seed": seed, "chunk_size": chunk_size,
                     "config": _normalised(config or {}), "code": code_fingerprint()}
         st = _Store(Path(store), label, manifest, force)
     done: dict[tuple[int, int], dict] = {}
@@ -491,14 +541,14 @@ def monte_carlo(
     for c in ranges:
         if sorted(done[c]) != sorted(keys):
             raise ComputationError(f"chunk {c} has outputs {sorted(done[c])}, expected {sorted(keys)}"
-                                   + ("; use --force if the stored chunks are from an older version" if c in reused
+                                   + (f"; use {_FORCE} if the stored chunks are from an older version" if c in reused
                                       else ""))
     arrays = {k: np.concatenate([done[c][k] for c in ranges], axis=0) for k in keys}
     short = [k for k, a in arrays.items() if a.shape[0] != runs]
     if short:
         raise ComputationError(f"the runs' arrays hold {arrays[short[0]].shape[0]} rows of {short[0]!r} for {runs} "
                                "runs")
-    return MonteCarloResult(arrays, computed, reused, backend, int(chunk_size), time.perf_counter() - t0, rejected)
+    return MonteCarloResult(arrays, computed, reused, backend, chunk_size, time.perf_counter() - t0, rejected)
 
 
 def _available_memory() -> int | None:

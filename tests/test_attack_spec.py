@@ -122,3 +122,13 @@ def test_scenario_checks_network_size_and_declared_attacks():
     assert unbounded.with_attacks(amplitude=0.5).resolved_attacks.delta == 0.5
     sc = Scenario("m", m, {}, (), 5, network=net.with_attacks(0.1, 0.0))
     assert sc.resolved_attacks.network.dos_prob[0, 1] == 0.1
+
+
+def test_an_edge_given_in_both_directions_must_agree():
+    with pytest.raises(InputError, match=r"fdi: the undirected edge 0 - 1 is given twice with different "
+                                         r"probabilities, \(0, 1\): 0.3 and \(1, 0\): 0.01"):
+        AttackSpec(fdi={(0, 1): 0.3, (1, 0): 0.01}, delta=1.0).resolve(RING, 2)
+    with pytest.raises(InputError, match=r"dos: key \(0, 1.5\): node indices must be integers"):
+        AttackSpec(dos={(0, 1.5): 0.1}).resolve(RING, 2)
+    same = AttackSpec(dos={(0, 1): 0.3, (1, 0): 0.3}).resolve(RING, 2).network.dos_prob
+    np.testing.assert_array_equal(same, AttackSpec(dos={(0, 1): 0.3}).resolve(RING, 2).network.dos_prob)

@@ -155,7 +155,10 @@ def test_consensus_robot_study_writes_results_and_figures(tmp_path):
         if name in ("KCF", "HCMCI"):  # the literature's consensus filters (filters.distributed) claim no bound
             assert f["bound_check"] is None
         else:
-            assert set(f["bound_check"]) >= {"runs", "fraction_exceeding", "max_excess"}
+            assert set(f["bound_check"]) >= {"runs", "fraction_exceeding", "max_excess", "verdict", "run_test"}
+            # the paper's bounds hold where they are bounds (exceeded nowhere, on average or in a run)
+            assert f["bound_check"]["verdict"] == "holds", f["bound_check"]["verdict_reason"]
+            assert "verdict: holds" in r.stdout
         # The overall RMSE is the root of the mean of the squared per-node RMSEs.
         per_node = np.array([n["rmse_position"] for n in f["nodes"]])
         assert f["rmse_position"] == pytest.approx(np.sqrt(np.mean(per_node**2)), rel=1e-9)

@@ -245,3 +245,85 @@ def test_model_rejects_bad_evaluation_arguments():
         simulate(m, 2, np.random.default_rng(0), inputs=np.zeros((3, 2)))
     with pytest.raises(InputError, match="x0"):
         simulate(m, 2, np.random.default_rng(0), x0=[np.nan, 0, 0], inputs=np.zeros((2, 2)))
+
+
+# ----------------------------------------------------------------------------- checks of a user's model
+def _bearing_model(h_of, angles=()):
+    x = ca.SX.sym("x", 3)
+    dx, dy = x[0] - 1.0, x[1] + 2.0
+    h = h_of(x, dx, dy)
+    s = Sensor("b", h, Gaussian.zero_mean(np.eye(h.shape[0]) * 0.01), angles=angles)
+    return Model("m", x, x, [s], Gaussian.zero_mean(np.eye(3)), Gaussian(np.zeros(3), np.eye(3)))
+
+
+@pytest.mark.parametrize("h_of, angles, flagged", [
+    (lambda x, dx, dy: ca.atan2(dy, dx), (), (0,)),
+    (lambda x, dx, dy: np.arctan2(dy, dx), (), (0,)),  # NumPy's name, the same CasADi operation
+    (lambda x, dx, dy: ca.atan2(dy, dx), (0,), ()),
+    (lambda x, dx, dy: ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx) - x[2]), (), (1,)),  # relative bearing
+    (lambda x, dx, dy: ca.vertcat(ca.sqrt(dx**2 + dy**2), ca.atan2(dy, dx) - x[2]), (1,), ()),
+    (lambda x, dx, dy: ca.vertcat(ca.cos(ca.atan2(dy, dx)), ca.sin(ca.atan2(dy, dx))), (), ()),  # no jump left
+    (lambda x, dx, dy: ca.atan(dy / dx), (), ()),  # not an atan2: no jump at +-pi
+    (lambda x, dx, dy: ca.vertcat(dx, 3 * ca.atan2(dy, dx) + ca.sin(ca.atan2(dy, dx))), (), (1,)),
+    # an elevation: atan2(z, sqrt(x^2 + y^2)) stays in [-pi/2, pi/2], no jump to wrap
+    (lambda x, dx, dy: ca.vertcat(ca.atan2(x[2], ca.sqrt(dx**2 + dy**2)), ca.atan2(x[2], dx**2 + ca.fabs(dy) + 1)),
+     (), ()),
+    (lambda x, dx, dy: ca.atan2(x[2], ca.sqrt(dx**2 + dy**2) - 1), (), (0,)),
+])
+def test_an_atan2_not_declared_an_angle_is_named_in_a_warning(h_of, angles, flagged):
+    import warnings
+
+    from designer.validation import ModelWarning
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        m = _bearing_model(h_of, angles)
+    mine = [w for w in seen if issubclass(w.category, ModelWarning)]
+    assert m.sensors[0].undeclared_angles() == flagged
+    assert len(mine) == (1 if flagged else 0)
+    if flagged:
+        text = str(mine[0].message)
+        assert text.startswith("sensor 'b': an atan2 angle") and f"angles={tuple(sorted(angles + flagged))}" in text
+        with warnings.catch_warnings(record=True) as again:  # the stacked model does not name them a second time
+            warnings.simplefilter("always")
+            m.with_stacked_sensors()
+        assert not [w for w in again if issubclass(w.category, ModelWarning)]
+
+
+def test_a_model_not_linearisable_at_its_operating_point_names_the_sensor():
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor("fine", x[0], Gaussian.zero_mean([[1.0]])),
+               Sensor("at_point", ca.sqrt((x[0] - 1) ** 2 + (x[1] - 2) ** 2), Gaussian.zero_mean([[1.0]]))]
+    m = Model("m", x, 0.9 * x, sensors, Gaussian.zero_mean(np.eye(2)), Gaussian([1.0, 2.0], np.eye(2)))
+    m.check_finite_at([0.0, 0.0])
+    with pytest.raises(InputError, match=r"sensor 'at_point': the Jacobian dh/dx is not finite at the operating "
+                                         r"point x = \[1, 2\]"):
+        m.check_finite_at([1.0, 2.0])
+    # the filters' first update is at the prediction f(x0) = 0.9 x0
+    with pytest.raises(InputError, match=r"sensor 'at_point'.*prediction f\(x0\) x = \[1, 2\]"):
+        m.check_finite_at([1.0 / 0.9, 2.0 / 0.9])
+    bad_f = Model("m", x, ca.vertcat(ca.log(x[0]), x[1]), sensors[:1], Gaussian.zero_mean(np.eye(2)),
+                  Gaussian([1.0, 2.0], np.eye(2)))
+    with pytest.raises(InputError, match="the transition: f is not finite"):
+        bad_f.check_finite_at([-1.0, 0.0])
+
+
+def test_a_simulated_nan_names_the_sensor_the_step_and_the_run():
+    from designer.simulate import simulate_runs
+
+    x = ca.SX.sym("x", 1)
+    sensors = [Sensor("ok", x, Gaussian.zero_mean([[0.01]])),
+               Sensor("bad", ca.if_else(x[0] > 2.5, np.nan, x[0]), Gaussian.zero_mean([[0.01]]))]
+    m = Model("m", x, x + 1.0, sensors, Gaussian.zero_mean([[1e-12]]), Gaussian([0.0], [[1e-12]]))
+    # x_k = k (to 1e-6): h of sensor 'bad' is NaN from x_3 on, measured at step 3
+    with pytest.raises(InputError, match=r"sensor 'bad': h is not finite at step 3 \(x = \[3"):
+        simulate(m, 5, np.random.default_rng(0))
+    rngs = [np.random.default_rng(s) for s in range(3)]
+    with pytest.raises(InputError, match=r"sensor 'bad': h is not finite at step 2 of run 1 \(of 3 simulated"):
+        simulate_runs(m, 5, rngs, x0=np.array([[0.0], [1.0], [0.0]]))
+    with pytest.raises(InputError, match=r"step 3 of run 2 \(of 3 simulated together\)"):
+        simulate(m, 5, rngs, x0=np.array([[-5.0], [-5.0], [0.0]]))
+    grows = Model("g", x, ca.if_else(x[0] > 1.5, np.inf, x[0] + 1.0), sensors[:1], Gaussian.zero_mean([[1e-12]]),
+                  Gaussian([0.0], [[1e-12]]))
+    with pytest.raises(InputError, match=r"the transition f is not finite at step 3: f\(x\) from x = \[2"):
+        simulate(grows, 5, np.random.default_rng(0))

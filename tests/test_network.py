@@ -161,7 +161,7 @@ def test_bad_n_nodes_rejected(n):
         SensorNetwork(n, np.zeros((1, 1)))
 
 
-@pytest.mark.parametrize("edges, match", [([(0, 5)], "outside"), ([(-1, 0)], "outside"), ([(0, 1, 2)], "pairs")])
+@pytest.mark.parametrize("edges, match", [([(0, 5)], "outside"), ([(-1, 0)], "outside"), ([(0, 1, 2)], "pair")])
 def test_bad_edges_rejected(edges, match):
     with pytest.raises(InputError, match=match):
         SensorNetwork.from_edges(3, edges)
@@ -334,3 +334,34 @@ def test_describe():
     assert d["degrees"] == [len(s) for s in nb]
     assert d["d_max"] == max(len(s) for s in nb)
     assert d["connected"] is True
+
+
+@pytest.mark.parametrize("edges, match", [
+    ([(0, 1.7)], r"edge \(0, 1.7\): node indices must be integers in 0..1, got 1.7"),  # was silently (0, 1)
+    ([(0, True)], "node indices must be integers"),
+    ([(np.float64(0.0), 1)], "node indices must be integers"),
+    ([(0, -1)], "outside 0..1"),
+    ([(1, 1)], "self-loop"),
+    ([0], "pair"),
+])
+def test_an_edge_is_two_integer_node_indices(edges, match):
+    with pytest.raises(InputError, match=match):
+        SensorNetwork.from_edges(2, edges)
+    assert SensorNetwork.from_edges(np.int64(2), [(np.int32(0), np.int64(1))]).edges == [(0, 1)]
+
+
+def test_a_disconnected_network_names_the_nodes_cut_off():
+    with pytest.raises(InputError, match=r"network of 5 nodes is disconnected \(2 components; node 4 cut off from "
+                                         r"node 0\)"):
+        SensorNetwork.from_edges(5, [(0, 1), (1, 2), (2, 3)])
+    assert SensorNetwork.from_edges(5, [(0, 1), (3, 4)], require_connected=False).components == [[0, 1], [2], [3, 4]]
+
+
+def test_connectivity_checked_later_refuses_when_the_network_is_used():
+    from designer.network import connectivity_checked_later
+
+    with connectivity_checked_later():
+        net = SensorNetwork.from_edges(3, [(0, 1)])
+    assert not net.is_connected
+    with pytest.raises(InputError, match="node 2 cut off"):
+        net.with_attacks(dos_prob=0.1)

@@ -179,7 +179,7 @@ def test_user_model_file(tmp_path):
         load_scenario(str(bad))
     broken = tmp_path / "broken.py"
     broken.write_text("raise RuntimeError('boom')\n")
-    with pytest.raises(InputError, match="failed to load: RuntimeError: boom"):
+    with pytest.raises(InputError, match="failed: RuntimeError: boom"):
         load_scenario(str(broken))
     with pytest.raises(InputError, match="does not exist"):
         load_scenario(str(tmp_path / "missing.py"))

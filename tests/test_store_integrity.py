@@ -289,7 +289,7 @@ def test_outputs_replace_the_last_ones_as_a_whole(tmp_path):
     with replaced_outputs(out) as st:  # another command: fig_a.png is not one of its outputs
         (st / "schedule.json").write_text("{}")
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(["mine.txt", "schedule.json", OUTPUTS_NAME])
+    assert names == sorted(["mine.txt", "schedule.json", OUTPUTS_NAME, LOCK_NAME])  # the lock: held while writing
     with pytest.raises(RuntimeError):
         with replaced_outputs(out) as st:  # fails half-way: the last outputs stay, complete
             (st / "results.json").write_text("{}")
@@ -357,11 +357,225 @@ def test_a_filter_that_leaves_the_reals_fails_the_study_by_name_and_keeps_the_la
     after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file() and not p.name.startswith(".cfdesign")}
     assert after == before
     assert not [p for p in out.iterdir() if p.name.startswith(".staging")]
-    # and a fresh directory gets nothing but the runner's own files
+    # and a fresh directory is not left behind (no chunk was finished)
     fresh = tmp_path / "fresh"
     proc = subprocess.run([sys.executable, "-m", "studies", "study", "comparison", str(bad), "--runs", "2",
                            "--particles", "50", "--set", "sweep_values=[0.2]", "--set", "tuned_in_sweeps=false",
                            "--quiet", "--out", str(fresh)], capture_output=True, text=True, env=env, cwd=ROOT,
                           timeout=600)
     assert proc.returncode == 1, proc.stderr
-    assert not [p for p in fresh.iterdir() if not p.name.startswith(".")]
+    assert not fresh.exists()
+
+
+# --------------------------------------------------------------- symlinks, --force, empty out, full disk
+def _snapshot(root: Path) -> dict:
+    """Every entry under ``root`` (links not followed): path -> the file's bytes, the link's target, or a dir."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            rel = str(p.relative_to(root))
+            out[rel] = ("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir() else p.read_bytes()
+    return out
+
+
+def _victim(tmp_path) -> Path:
+    """A directory of the user's, outside OUT, holding files named as cfdesign names its own."""
+    v = tmp_path / "victim"
+    (v / "toy").mkdir(parents=True)
+    for d in (v, v / "toy"):
+        for name in ("manifest.json", "log.jsonl", "runs_0000000_0000004.npz", "notes.txt", LOCK_NAME):
+            (d / name).write_text(f"the user's {name}\n")
+    return v
+
+
+@pytest.mark.parametrize("force", [False, True])
+@pytest.mark.parametrize("planted", [CHUNKS_DIR, f"{CHUNKS_DIR}/toy", f"{CHUNKS_DIR}/toy/manifest.json",
+                                     f"{CHUNKS_DIR}/toy/log.jsonl", f"{CHUNKS_DIR}/toy/runs_0000000_0000004.npz",
+                                     LOCK_NAME])
+def test_a_link_planted_in_the_chunk_store_is_refused_and_its_target_untouched(tmp_path, planted, force):
+    out, victim = tmp_path / "out", _victim(tmp_path)
+    _store(out)
+    link = out / planted
+    target = victim / ("toy" if planted == CHUNKS_DIR + "/toy" else "" if planted == CHUNKS_DIR
+                       else "toy/" + Path(planted).name)
+    if link.is_dir() and not link.is_symlink():
+        import shutil
+        shutil.rmtree(link)
+    else:
+        link.unlink()
+    link.symlink_to(target)
+    before = _snapshot(victim)
+    with pytest.raises(InputError, match=re.escape(str(link))) as exc:
+        _store(out, force=force)
+    assert "symbolic link" in str(exc.value) and "\n" not in str(exc.value)
+    assert _snapshot(victim) == before
+
+
+def test_force_removes_only_what_the_chunk_store_wrote(tmp_path):
+    out = tmp_path / "out"
+    _store(out)
+    label = out / CHUNKS_DIR / "toy"
+    mine = {"notes.txt": b"the user's notes", "runs_0000000_0000004.npz.bak": b"a copy the user keeps",
+            "runs_old.npz": b"not a name the store gives"}
+    for name, data in mine.items():
+        (label / name).write_bytes(data)
+    res = _store(out, force=True)
+    assert len(res.computed) == 3 and not res.reused
+    for name, data in mine.items():
+        assert (label / name).read_bytes() == data, name
+    assert np.array_equal(res.arrays["x"], reference(12, 4))
+
+
+def test_a_stale_staging_directory_is_removed_when_the_lock_is_taken(tmp_path):
+    from designer.fileio import replaced_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    stale = out / ".staging-killed"  # what a killed writer leaves
+    (stale / "sub").mkdir(parents=True)
+    (stale / "results.json").write_text("{}")
+    (out / "mine.txt").write_text("the user's")
+    with output_lock(out):
+        pass
+    assert not stale.exists() and (out / "mine.txt").read_text() == "the user's"
+    holder = _hold(out)  # a live writer's staging directory is never touched
+    try:
+        (out / ".staging-live").mkdir()
+        with pytest.raises(InputError, match="being written"):
+            with replaced_outputs(out):
+                pass
+        assert (out / ".staging-live").is_dir()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@pytest.mark.parametrize("planted", [".cfdesign-outputs.json", "results.json", "report.html", "fig_a.png",
+                                     ".staging-x", "table.md"])
+def test_a_link_planted_among_the_outputs_is_refused_and_its_target_untouched(tmp_path, planted):
+    from studies.results import write_outputs
+
+    out, victim = tmp_path / "out", _victim(tmp_path)
+    results = {"filters": {"a": {"rmse": 1.0}}}
+    write_outputs(out, results, lambda d: (d / "fig_a.png").write_bytes(b"png"), lambda r: "| table |\n")
+    link = out / planted
+    if link.exists():
+        link.unlink()
+    link.symlink_to(victim / "notes.txt")
+    before = _snapshot(victim)
+    with pytest.raises(InputError, match=re.escape(str(link))):
+        write_outputs(out, results, lambda d: (d / "fig_a.png").write_bytes(b"png2"), lambda r: "| table |\n")
+    assert _snapshot(victim) == before
+    assert link.is_symlink()
+
+
+def test_a_file_the_user_wrote_is_never_replaced_by_an_output(tmp_path):
+    """One rule for every command, from the CLI and the API alike: an output replaces only what cfdesign wrote."""
+    from studies.results import write_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.html").write_text("the user's own report")
+    with pytest.raises(InputError, match=re.escape(str(out / "report.html")) + ".*not written by cfdesign"):
+        write_outputs(out, {"filters": {"a": {"rmse": 1.0}}}, lambda d: None, lambda r: "| table |\n")
+    assert (out / "report.html").read_text() == "the user's own report"
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".cfdesign")) == ["report.html"]
+
+
+def test_only_a_changed_model_is_named_as_such(tmp_path):
+    monte_carlo(toy_task, store=tmp_path, config={"scale": 1.0, "model": "sha256:aaa"}, **KW)
+    with pytest.raises(InputError, match=r"other settings \(config, config\.model\); the model changed since these "
+                                         r"runs were computed"):
+        monte_carlo(toy_task, store=tmp_path, config={"scale": 1.0, "model": "sha256:bbb"}, **KW)
+    with pytest.raises(InputError) as exc:  # another key too: still named, the model's hint kept
+        monte_carlo(toy_task, store=tmp_path, config={"scale": 2.0, "model": "sha256:bbb"}, **KW)
+    assert "config.model, config.scale" in str(exc.value) and "the model changed" in str(exc.value)
+    with pytest.raises(InputError) as exc:
+        monte_carlo(toy_task, store=tmp_path, config={"scale": 2.0, "model": "sha256:aaa"}, **KW)
+    assert "model changed" not in str(exc.value)
+
+
+def test_the_refusal_names_force_as_the_caller_gives_it(tmp_path):
+    monte_carlo(toy_task, store=tmp_path, config={"scale": 1.0}, **KW)
+    with pytest.raises(InputError) as exc:
+        monte_carlo(toy_task, store=tmp_path, config={"scale": 2.0}, **KW)
+    assert "force=True" in str(exc.value) and "--force" in str(exc.value)
+
+
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _enospc(*args, **kwargs):
+    import errno
+
+    if args and hasattr(args[0], "write"):
+        args[0].write(b"half a file")
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_while_writing_a_chunk_is_one_line_naming_it(tmp_path, monkeypatch, capfd):
+    from studies.cli import main
+    import studies.runner as runner
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(runner.np, "savez", _enospc)
+    code = main(["study", "consensus-robot", "--runs", "2", "--quiet", "--set", "steps=3", "--out", str(out)])
+    line = _one_line(capfd.readouterr().err)
+    assert code == 1
+    assert str(out / CHUNKS_DIR / "consensus-robot" / "runs_0000000_0000002.npz") in line, line
+    assert "No space left on device" in line
+    left = [str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()]
+    assert not [p for p in left if p.endswith(".tmp") or p.endswith(".npz")], left  # nothing half-written
+
+
+def test_a_full_disk_while_writing_the_outputs_names_the_file_and_keeps_the_last_ones(tmp_path, monkeypatch, capfd):
+    from studies.cli import main
+    import designer.fileio as fileio
+
+    out = tmp_path / "out"
+    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME}
+    capfd.readouterr()
+    monkeypatch.setattr(fileio.os, "fsync", _enospc)
+    code = main(["design", "indoor-robot", "--steps", "3", "--out", str(out)])
+    line = _one_line(capfd.readouterr().err)
+    assert code == 1 and "No space left on device" in line
+    assert re.search(re.escape(str(out)) + r"/(schedule\.npz|schedule\.json|fig_\w+\.png|report\.\w+)'", line), line
+    # the last outputs, complete; no staging directory left
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME} == before
+
+
+def test_a_full_disk_while_appending_to_the_log_names_it(tmp_path, monkeypatch):
+    import designer.fileio as fileio
+
+    monkeypatch.setattr(fileio.os, "write", _enospc)
+    with pytest.raises(OSError) as exc:
+        append_line(tmp_path / "log.jsonl", "a line")
+    assert exc.value.filename == str(tmp_path / "log.jsonl")
+    assert (tmp_path / "log.jsonl").read_bytes() == b""
+
+
+def test_report_takes_the_one_writer_lock(tmp_path, capfd):
+    from studies import api
+    from studies.cli import main
+
+    out = tmp_path / "out"
+    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 0
+    capfd.readouterr()
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME}
+    holder = _hold(out)
+    try:
+        with pytest.raises(InputError, match=rf"being written by process {holder.pid}"):
+            api.report(out)
+        assert main(["report", str(out)]) == 2
+        assert f"being written by process {holder.pid}" in _one_line(capfd.readouterr().err)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME} == before
+    html, md = api.report(out)  # free again: rewritten in place
+    assert html == out / "report.html" and md == out / "report.md" and html.is_file()

@@ -21,16 +21,16 @@ Content-Security-Policy that forbids loading anything).
 """
 from __future__ import annotations
 
-import os
+from functools import partial
 from pathlib import Path
 
-from designer.fileio import atomic_write
+from designer.fileio import atomic_write, check_path
 from designer.validation import InputError
 
 from .render import markdown_to_html
 from .study import render_markdown
 
-__all__ = ["write_report", "render_markdown", "markdown_to_html"]
+__all__ = ["write_report", "check_directory", "render_markdown", "markdown_to_html"]
 
 # what a directory must hold for each kind of report, in the order they are looked for
 KINDS = (("results.json", "a study's, from `cfdesign study STUDY --out DIR`"),
@@ -38,18 +38,16 @@ KINDS = (("results.json", "a study's, from `cfdesign study STUDY --out DIR`"),
          ("feasibility.csv", "a feasibility map's, from `cfdesign feasibility SCENARIO --grid ... --out DIR`"))
 
 
-def _directory(directory) -> Path:
-    try:
-        d = Path(os.fspath(directory))
-    except TypeError:
-        raise InputError(f"directory must be a path, got {type(directory).__name__}") from None
+def check_directory(directory) -> Path:
+    """``directory`` as a Path: a path (not empty) of an existing directory; else InputError naming it."""
+    d = check_path("directory", directory)
     if not d.is_dir():
         raise InputError(f"directory {str(d)!r} does not exist or is not a directory")
     return d
 
 
-def write_report(directory) -> tuple[Path, Path]:
-    """Write ``report.html`` and ``report.md`` for the results in ``directory``.
+def write_report(directory, into=None) -> tuple[Path, Path]:
+    """Write ``report.html`` and ``report.md`` for the results in ``directory`` (into ``into``, default there).
 
     The report follows what ``directory`` holds (see the module docstring):
     ``results.json`` a study report, else ``schedule.json`` a design report (which
@@ -65,6 +63,10 @@ def write_report(directory) -> tuple[Path, Path]:
     directory : str or path-like
         The output directory of ``cfdesign study``, ``cfdesign design`` or
         ``cfdesign feasibility``.
+    into : path, optional
+        Where the report and its figures are written (e.g. a staging directory,
+        :func:`designer.fileio.replaced_outputs`); default: ``directory``.  This function
+        takes no lock: :func:`studies.api.report` does.
 
     Returns
     -------
@@ -77,11 +79,14 @@ def write_report(directory) -> tuple[Path, Path]:
         ``directory`` does not exist, holds none of those files, or one of them cannot
         be read or is not what its name says (the message names ``directory``).
     """
-    d = _directory(directory)
+    d = check_directory(directory)
+    out = d if into is None else Path(into)
     if (d / "results.json").is_file():
         from .study import study_report as make
     elif (d / "schedule.json").is_file():
-        from .design import design_report as make
+        from .design import design_report
+
+        make = partial(design_report, into=out)
     elif (d / "feasibility.csv").is_file():
         from .feasibility import feasibility_report as make
     else:
@@ -90,6 +95,6 @@ def write_report(directory) -> tuple[Path, Path]:
                          f"report on (expected one of {wanted})")
     md, images, title = make(d)
     page = markdown_to_html(md, images, title=title)
-    md_path = atomic_write(d / "report.md", lambda fh: fh.write(md.encode("utf-8")))
-    html_path = atomic_write(d / "report.html", lambda fh: fh.write(page.encode("utf-8")))
+    md_path = atomic_write(out / "report.md", lambda fh: fh.write(md.encode("utf-8")))
+    html_path = atomic_write(out / "report.html", lambda fh: fh.write(page.encode("utf-8")))
     return html_path, md_path

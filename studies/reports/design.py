@@ -687,12 +687,13 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
         _files_section(meta, arrays, note, list(figures))], _summary(s, tight, list(figures)))
 
 
-def design_report(d: Path) -> tuple[str, dict[str, bytes], str]:
+def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, bytes], str]:
     """The design report of directory ``d`` (which holds ``schedule.json``): (Markdown, figures, title).
 
     Draws ``fig_trace_bound.png`` (from ``schedule.npz``, else from the JSON's
-    ``trace_bound``) and ``fig_margins.png`` (from ``schedule.npz``) into ``d``.
+    ``trace_bound``) and ``fig_margins.png`` (from ``schedule.npz``) into ``into`` (default ``d``).
     """
+    into = d if into is None else into
     meta = read_record(d, "schedule.json", "cfdesign.schedule/1", "a design's")
     arrays, note = _load_arrays(d)
     s = _Schedule(meta, arrays)
@@ -701,10 +702,10 @@ def design_report(d: Path) -> tuple[str, dict[str, bytes], str]:
     label = f"{scenario}, {mode} design".replace("$", r"\$")  # no mathtext from a name
     figures = []
     if s.trace is not None and s.trace.size:
-        _trace_figure(d / "fig_trace_bound.png", s, f"{label}: tr Φ per node (gaps: no bound)")
+        _trace_figure(into / "fig_trace_bound.png", s, f"{label}: tr Φ per node (gaps: no bound)")
         figures.append("fig_trace_bound.png")
     if s.m28 is not None and s.m29 is not None and s.m28.size:
-        _margin_figure(d / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
+        _margin_figure(into / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
         figures.append("fig_margins.png")
-    images = {name: (d / name).read_bytes() for name in figures}
+    images = {name: (into / name).read_bytes() for name in figures}
     return render_design(meta, arrays, figures, note), images, f"cfdesign design report: {scenario}"

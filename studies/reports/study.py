@@ -190,7 +190,7 @@ def bound_verdict(bc) -> tuple[str, str] | None:
     if frac > 0:
         return "exceeded", f"the empirical error covariance exceeded the bound at {fmt_num(100 * frac, 3)} % of the " \
                            f"checked pairs{where}"
-    return "held", f"the empirical error covariance stayed within the bound at every checked pair{where}"
+    return "holds", f"the empirical error covariance stayed within the bound at every checked pair{where}"
 
 
 @dataclass(frozen=True)
@@ -535,7 +535,7 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
         elif is_num(m.get("diverged_runs")) and m["diverged_runs"] > 0:
             warn.append(f"{md_escape(n)} diverged in {fmt_num(m['diverged_runs'])} run(s)")
         bv = bound_verdict(m.get("bound_check"))
-        if bv is not None and bv[0] not in ("held", "not checked"):
+        if bv is not None and bv[0] not in ("holds", "not checked"):
             warn.append(f"{md_escape(n)}: {md_escape(bv[1])}")
     if warn:
         items.append("**Caution:** " + "; ".join(warn) + ".")
@@ -823,27 +823,30 @@ def _detection_section(results: Mapping) -> list[str]:
 
 
 def _bound_rows(filters: Mapping[str, dict]) -> list[str]:
-    rows = []
+    rows, reasons = [], []
     for n, m in filters.items():
         bc = m.get("bound_check")
         bv = bound_verdict(bc)
         if bv is None:
             continue
+        rt = bc.get("run_test") if isinstance(bc.get("run_test"), Mapping) else {}
         rows.append([md_cell(n), md_cell(bv[0]), fmt_num(bc.get("runs")),
                      f"{fmt_num(bc.get('pairs_checked'))} of {fmt_num(bc.get('pairs_total'))}",
-                     fmt_num(bc.get("fraction_exceeding")), fmt_num(bc.get("max_excess")),
-                     fmt_num(bc.get("trace_ratio_mean")), fmt_num(bc.get("trace_ratio_max"))])
+                     fmt_num(bc.get("fraction_exceeding")), fmt_num(bc.get("trace_ratio_mean")),
+                     fmt_num(rt.get("ratio_mean")), fmt_num(rt.get("ratio_max"))])
+        reasons.append(f"- **{md_escape(n)}**: {md_escape(bv[1])}.")
     if not rows:
         return []
     return ["### Does the bound hold?", "",
-            "Per consensus filter with a bound: the bound check's verdict; the runs it used; the (node, step) pairs "
-            "where Φ was a bound in enough runs to compare, of all; the share of those pairs whose empirical error "
-            "covariance exceeded the mean bound beyond Monte Carlo tolerance, and the largest excess; the mean and "
-            "largest ratio tr P̂ / tr Φ (below 1: the bound is above the error). Every field of the check is in "
+            "Per consensus filter with a bound: the bound check's verdict and why; the runs it used; the (node, step) "
+            "pairs where Φ was a bound in enough runs to compare, of all, and the share of them whose empirical "
+            "error covariance exceeded the mean bound beyond Monte Carlo tolerance; the mean ratio tr P̂ / tr Φ over "
+            "those pairs; each run's error energy over its bound's (mean and largest over the runs; a valid bound "
+            "keeps the mean at most 1). Below 1 the bound is above the error. Every field of the check is in "
             "results.json.", "",
-            *md_table(["filter", "verdict", "runs", "pairs checked", "share exceeding", "largest excess",
-                       "mean tr P̂ / tr Φ", "largest tr P̂ / tr Φ"], rows,
-                      ["l", "l", "r", "r", "r", "r", "r", "r"])]
+            *md_table(["filter", "verdict", "runs", "pairs checked", "share exceeding", "mean tr P̂ / tr Φ",
+                       "run ratio, mean", "run ratio, largest"], rows, ["l", "l", "r", "r", "r", "r", "r", "r"]),
+            *reasons, ""]
 
 
 def _feasible_rows(filters: Mapping[str, dict]) -> list[str]:

@@ -1,9 +1,12 @@
 """Built-in scenarios, user model files and in-memory models: everything a command can run on."""
 from __future__ import annotations
 
+import contextlib
+import functools
 import importlib.util
 import pickle
-from dataclasses import dataclass
+import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -11,7 +14,7 @@ import numpy as np
 
 from designer.attacks import AttackSpec
 from designer.design import DesignOptions
-from designer.network import SensorNetwork
+from designer.network import SensorNetwork, connectivity_checked_later
 from designer.validation import InputError
 
 from . import four_tank, indoor_robot, switching_2d, target_binary_energy, target_range_bearing
@@ -43,17 +46,53 @@ MODEL_FILE_NAMES = {
 }
 
 
+@contextlib.contextmanager
+def _user_directory(path: Path):
+    """A model file's own directory first on ``sys.path`` (as ``python MODEL.py`` has it), so that the file may
+    import its helper modules; those are imported afresh at every load (an edited helper is never taken from
+    ``sys.modules``: the model is what its files say now, as :attr:`Scenario.digest` records)."""
+    from designer.digest import source_files
+
+    local = {str(f) for f in source_files(path)}
+    for name, mod in list(sys.modules.items()):
+        f = getattr(mod, "__file__", None)
+        if f and str(Path(f).resolve()) in local:
+            del sys.modules[name]
+    folder = str(path.resolve().parent)
+    sys.path.insert(0, folder)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):
+            sys.path.remove(folder)
+
+
+def _user_call(what: str, fn, *args):
+    """``fn(*args)``, code of a user's model file (``what`` names it): any failure, an exit included, is an
+    InputError naming it (a Ctrl-C stays an interruption)."""
+    try:
+        return fn(*args)
+    except InputError as exc:
+        raise InputError(f"{what}: {exc}") from exc
+    except SystemExit as exc:  # sys.exit() in a model file would end cfdesign with nothing written
+        raise InputError(f"{what} called sys.exit({exc.code!r}); a model file must not exit") from None
+    except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
+        raise InputError(f"{what} failed: {type(exc).__name__}: {exc}") from exc
+
+
+def _guarded(what: str, fn):
+    """``fn`` (a function of a user's model file) failing as :func:`_user_call` says."""
+    return None if fn is None else functools.wraps(fn)(lambda *args: _user_call(what, fn, *args))
+
+
 def _load_module(path: Path):
     if not path.is_file():
         raise InputError(f"model file {str(path)!r} does not exist")
     spec = importlib.util.spec_from_file_location(f"cfdesign_user_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(module)
-    except InputError as exc:
-        raise InputError(f"model file {str(path)!r}: {exc}") from exc
-    except Exception as exc:  # a user's file: report, do not crash with a traceback
-        raise InputError(f"model file {str(path)!r} failed to load: {type(exc).__name__}: {exc}") from exc
+    # a network's node count is checked against the sensors first; the file's own directory first on sys.path
+    with connectivity_checked_later(), _user_directory(path):
+        _user_call(f"model file {str(path)!r}", spec.loader.exec_module, module)
     return module
 
 
@@ -68,7 +107,8 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
     """A user model file defines ``SPEC`` (a ScenarioSpec) or ``model()`` returning a Model (see MODEL_FILE_NAMES)."""
     module = _load_module(path)
     if isinstance(getattr(module, "SPEC", None), ScenarioSpec):
-        return module.SPEC
+        return replace(module.SPEC, builder=_guarded(f"SPEC's builder in {str(path)!r}", module.SPEC.builder),
+                       outline=_guarded(f"SPEC's outline in {str(path)!r}", module.SPEC.outline))
     fn = getattr(module, "model", None)
     if not callable(fn):
         raise InputError(f"model file {str(path)!r} must define SPEC (a ScenarioSpec) or a function model()")
@@ -80,19 +120,19 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
                          "declare them in ATTACKS only")
 
     def builder(params: dict) -> Scenario:
-        try:
-            m = fn()
-        except InputError as exc:
-            raise InputError(f"model() in {str(path)!r}: {exc}") from exc
-        except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
-            raise InputError(f"model() in {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+        m = _user_call(f"model() in {str(path)!r}", fn)
         from designer.model import Model  # the file imported CasADi already
 
         if not isinstance(m, Model):
             raise InputError(f"model() in {str(path)!r} must return a designer.Model, got {type(m).__name__}")
+        if callable(getattr(module, "inputs", None)) != bool(m.n_u):
+            raise InputError(f"model file {str(path)!r} defines inputs() but its model has no inputs u" if m.n_u == 0
+                             else f"model file {str(path)!r}: the model has inputs u ({m.n_u}); define inputs(steps) "
+                                  f"returning them, shape (steps, {m.n_u})")
         try:
             return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
-                            x0=getattr(module, "X0", None), network=network, input_fn=getattr(module, "inputs", None),
+                            x0=getattr(module, "X0", None), network=network,
+                            input_fn=_guarded(f"inputs() in {str(path)!r}", getattr(module, "inputs", None)),
                             attacks=attacks, design=getattr(module, "DESIGN", None),
                             channel=getattr(module, "CHANNEL", None))
         except InputError as exc:
@@ -117,12 +157,18 @@ def get_spec(name: str) -> ScenarioSpec:
 
 def load_scenario(name: str, overrides: Mapping[str, Any] | None = None, assignments=()) -> Scenario:
     """Build a scenario by name or model file, with overrides and ``NAME=VALUE`` assignments."""
+    from designer.digest import source_files_digest
+
+    is_file = isinstance(name, (str, Path)) and str(name).endswith(".py")
+    # the file's bytes (and its local imports') as they are when it is executed, for Scenario.digest
+    files = source_files_digest(name) if is_file and Path(name).is_file() else None
     spec = get_spec(name)
     values = dict(overrides or {})
     values.update(parse_assignments(spec, assignments))
     sc = spec.build(values)
-    source = str(Path(name).resolve()) if str(name).endswith(".py") else str(name)
-    object.__setattr__(sc, "source", source)
+    object.__setattr__(sc, "source", str(Path(name).resolve()) if is_file else str(name))
+    object.__setattr__(sc, "source_digest", files)
+    sc.__dict__.pop("_digest", None)  # the digest covers the source
     return sc
 
 
@@ -143,13 +189,18 @@ class ScenarioRef:
     source: str
     params: tuple
     attacks: AttackSpec | None
+    digest: str = ""  # Scenario.digest of the scenario it stands for: a rebuilt one must have the same
 
     @property
     def in_memory(self) -> bool:
         return self.source.startswith("memory:")
 
     def build(self) -> Scenario:
-        """The scenario (built once per process and reference)."""
+        """The scenario (built once per process and reference).
+
+        Raises :class:`InputError` when the model file no longer builds the scenario of the reference
+        (edited while a study ran): its runs would not be the runs of the study.
+        """
         key = pickle.dumps(self)
         sc = _BUILT.get(key)
         if sc is None:
@@ -164,18 +215,27 @@ class ScenarioRef:
                 from dataclasses import replace
 
                 sc = replace(sc, attacks=self.attacks)
+            if self.digest and sc.digest != self.digest:
+                raise InputError(f"model {self.source!r} changed after the study started (its content differs from "
+                                 "the model the study was planned with); run the command again")
             _BUILT[key] = sc
         return sc
 
 
 def reference(sc: Scenario) -> ScenarioRef:
-    """A :class:`ScenarioRef` that rebuilds ``sc`` (registering it in memory when it has no source)."""
+    """A :class:`ScenarioRef` that rebuilds ``sc`` (registering it in memory when it has no source).
+
+    ``sc`` itself stands for the reference in this process (and in processes forked from it).
+    """
     params = tuple(sorted((k, v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.params.items()))
     if sc.source is None:
         token = f"memory:{id(sc)}"
         _MEMORY[token] = sc
-        return ScenarioRef(token, params, None)
-    return ScenarioRef(sc.source, params, sc.attacks)
+        ref = ScenarioRef(token, params, None, sc.digest)
+    else:
+        ref = ScenarioRef(sc.source, params, sc.attacks, sc.digest)
+    _BUILT.setdefault(pickle.dumps(ref), sc)
+    return ref
 
 
 def scenario_of(target, *, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,

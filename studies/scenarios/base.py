@@ -11,8 +11,8 @@ from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorCh
                               RoundRobinDeception)
 from designer.design import DesignOptions
 from designer.network import SensorNetwork
-from designer.simulate import Trajectory, simulate
-from designer.validation import InputError
+from designer.simulate import Trajectory, check_inputs, simulate
+from designer.validation import InputError, as_vector
 from filters.encryption import EncryptedChannel
 
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
@@ -206,8 +206,14 @@ class Scenario:
     attacks: AttackSpec | None = None
     design: DesignOptions | None = None
     source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
+    source_digest: str | None = field(default=None, repr=False)  # a model file's bytes when it was loaded
 
     def __post_init__(self):
+        if self.x0 is not None:  # a model file's X0, the API's x0
+            x0 = as_vector("X0", self.x0)
+            if x0.shape != (self.model.n_x,):
+                raise InputError(f"X0 must have {self.model.n_x} entries (the model's n_x), got {x0.size}")
+            object.__setattr__(self, "x0", x0)
         ch = self.channel
         if ch is not None:
             if not isinstance(ch, CHANNEL_TYPES):
@@ -260,6 +266,35 @@ class Scenario:
         return replace(self, attacks=self.attacks.override(dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))
 
     @property
+    def digest(self) -> str:
+        """SHA-256 of everything the scenario's numbers depend on: the model's content
+        (:attr:`designer.model.Model.digest`), every parameter and number of the network, attacks, design
+        defaults, channel, initial state and horizon, the inputs function (its code and its inputs over the
+        horizon) and, for a model file, the file's bytes and those of the modules it imports from its own
+        directory (:func:`designer.digest.source_files_digest`) — never the file's path.  Stored results
+        carry it, so an edited model is never mistaken for the one they were computed with."""
+        d = self.__dict__.get("_digest")
+        if d is None:
+            from designer.digest import content_digest, source_files_digest
+
+            src = self.source
+            if src is None:
+                origin = None
+            elif src.endswith(".py"):
+                origin = ("file", self.source_digest or source_files_digest(src))
+            else:
+                origin = ("built-in", src)
+            try:
+                inputs = self.inputs(self.steps)
+            except Exception as exc:  # noqa: BLE001 - reported where the inputs are used; here a value like any
+                inputs = f"inputs({self.steps}) raised {type(exc).__name__}: {exc}"
+            d = content_digest(self.name, self.model, self.params, self.assumptions, self.steps, self.x0,
+                               self.network, self.attacks, self.design, self.channel, self.input_fn, inputs,
+                               origin)
+            object.__setattr__(self, "_digest", d)
+        return d
+
+    @property
     def operating_point(self) -> tuple[np.ndarray, np.ndarray | None]:
         """``(x0, u0)``: the true initial state (or the prior mean) and the first input."""
         u = self.inputs(1)
@@ -267,7 +302,7 @@ class Scenario:
                 None if u is None else u[0])
 
     def inputs(self, steps: int) -> np.ndarray | None:
-        return None if self.input_fn is None else np.asarray(self.input_fn(steps), dtype=float)
+        return None if self.input_fn is None else check_inputs(self.model, steps, self.input_fn(steps))
 
     def simulate(self, rng: np.random.Generator, steps: int | None = None, *, batch=()) -> Trajectory:
         """Sample a run of the scenario (the paper's fixed ``x0`` when it has one)."""
@@ -315,7 +350,9 @@ class ScenarioSpec:
         return {p.name: p.default for p in self.params}
 
     def _values(self, overrides: Mapping[str, Any] | None) -> dict:
-        values = self.defaults()
+        # the defaults in their validated form too (a float parameter's 30 is 30.0, an array a list), so that a
+        # scenario rebuilt from its parameters (ScenarioRef) has the very same values as the one built here
+        values = {p.name: p.validate(p.default) for p in self.params}
         for name, value in (overrides or {}).items():
             values[name] = self.param(name).validate(value)
         return values
