@@ -54,6 +54,7 @@ from designer.bounds import (
     theorem2_margin,
     update_bound,
 )
+from designer.cores import one_blas_thread
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
@@ -538,6 +539,7 @@ def _binding_node(phi_blocks: np.ndarray, D) -> int:
     return int(np.argmax([lam_max(phi_blocks[i, i], None if D is None else D[i]) for i in range(len(phi_blocks))]))
 
 
+@one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign, attacks, x0, phi0
              ) -> ConsensusResult:
     """Mode mse: the gains of :func:`designer.mse.mse_gains` and the joint certificate of :mod:`designer.mse`.

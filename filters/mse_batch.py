@@ -35,6 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.bounds import theorem2_margin
+from designer.cores import one_blas_thread
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
@@ -65,6 +66,7 @@ _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothi
 
 
 # --------------------------------------------------------------------------- the filter
+@one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                   phi0=None) -> ConsensusBatchResult:
