@@ -43,8 +43,8 @@ block is ``Σ_{j,l} (P_ii - P_il - P_ji + P_jl)``, which for nodes that share mo
 ``P_ij``, every block carries a rounding error of about ``u |P|`` (``u = 1.1e-16``), that
 difference keeps only ``u |P|`` of absolute accuracy, and the gains solved from it amplified
 it: a consensus gain of 100 multiplies the next step's error by 10⁴, and after two steps of a
-28-node design the gains were set by rounding noise (a relative change of 2.3 between one and two
-BLAS threads).  So the covariance the gains are chosen for is kept as a :class:`JointCovariance`:
+28-node design the gains were set by rounding noise (a relative error of 2.3 against the same
+recursion in long double; one and two BLAS threads gave different designs).  So the covariance the gains are chosen for is kept as a :class:`JointCovariance`:
 each node's own ``P_i = E[e_i e_iᵀ]`` and the pairwise ``G_ij = E[e_i (e_i - e_j)ᵀ] = P_ii - P_ij``
 (``G_ii = 0``), propagated as such, so that ``G⁻_ij = F_i P_i (F_i - F_j)ᵀ + F_i G_ij F_jᵀ`` and the
 update (:func:`joint_update`) are sums of terms that are themselves small where nodes agree: the
