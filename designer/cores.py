@@ -1,17 +1,28 @@
-"""The cores this process may use, and a thread pool for NumPy work that releases the GIL.
+"""The cores this process may use, a thread pool for NumPy work that releases the GIL, and BLAS on one thread.
 
 NumPy's linear algebra on a stack of small matrices (``eigh`` of 500 matrices of 24 x 24:
 LAPACK once per matrix) holds no lock, so splitting the stack over threads divides its
 wall time by the cores; each matrix is still decomposed alone, so the numbers are the
 same bits (:func:`designer.bounds.eigh`).  The pool is made at its first use and not
 inherited by a forked child (whose copy would have no threads).
+
+BLAS's own threads (OpenBLAS, MKL: ``OPENBLAS_NUM_THREADS`` unset means every core) split a
+product or a factorisation of a matrix of some 80 rows or more into blocks whose order of
+summation depends on the number of threads, so the same design gave different bits with one
+BLAS thread (the command line's) and with two (a Python session's).  Every public computation
+runs inside :func:`one_blas_thread`: BLAS and LAPACK on one thread whatever the environment, the
+numbers the same in every process (the pool above still runs its matrices in parallel, each
+on one BLAS thread); the matrices here are too small for BLAS's threads to pay anyway.
 """
 from __future__ import annotations
 
+import functools
 import os
+import sys
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["usable_cores", "thread_pool"]
+__all__ = ["usable_cores", "thread_pool", "one_blas_thread"]
 
 _POOL: ThreadPoolExecutor | None = None
 
@@ -39,3 +50,54 @@ def _forget_pool() -> None:
 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
+
+
+class one_blas_thread:
+    """A context and decorator: BLAS and LAPACK on one thread inside, the previous limits restored after.
+
+    ``with one_blas_thread(): ...`` or ``@one_blas_thread()``; every BLAS library is limited (threadpoolctl),
+    also in the threads of :func:`thread_pool` and in worker processes forked inside.  SciPy's own
+    OpenBLAS is loaded first (with ``import scipy.linalg``, unless the environment already makes every
+    library load on one thread) so that it is limited too.  Nested contexts (a public function calling
+    another, from any thread) limit once: only the outermost restores.
+    """
+
+    _depth = 0
+    _lock = threading.Lock()
+    _limits = None
+
+    def __enter__(self):
+        cls = one_blas_thread
+        with cls._lock:
+            cls._depth += 1
+            if cls._depth == 1:
+                if "scipy.linalg" not in sys.modules and os.environ.get("OPENBLAS_NUM_THREADS") != "1":
+                    import scipy.linalg  # noqa: F401
+                from threadpoolctl import threadpool_limits
+
+                cls._limits = threadpool_limits(limits=1, user_api="blas")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        cls = one_blas_thread
+        with cls._lock:
+            cls._depth -= 1
+            if cls._depth == 0 and cls._limits is not None:
+                cls._limits.restore_original_limits()
+                cls._limits = None
+
+    def __call__(self, fn):
+        @functools.wraps(fn)
+        def wrapped(*args, **kwargs):
+            with one_blas_thread():
+                return fn(*args, **kwargs)
+
+        return wrapped
+
+
+def _fresh_lock() -> None:
+    one_blas_thread._lock = threading.Lock()  # a child forked while another thread held it gets a free one
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_fresh_lock)

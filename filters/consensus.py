@@ -54,12 +54,13 @@ from designer.bounds import (
     theorem2_margin,
     update_bound,
 )
+from designer.cores import one_blas_thread
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.mse import (certificate_predict, certificate_update, joint_predict, joint_prior, joint_update, mse_gains,
-                          node_blocks)
+from designer.mse import (as_difference, certificate_predict, certificate_update, difference_covariance, joint_predict,
+                          joint_prior, joint_update, mse_gains, node_blocks)
 from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
@@ -119,17 +120,17 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
 GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_passed")
 
 
-def channel_difference_covariance(P: np.ndarray, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
+def channel_difference_covariance(P, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
     """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
 
-    ``P`` (..., N, N, n, n) joint covariances; returns (..., E, n, n), regularised by ``1e-12`` of
-    the mean trace of each run's nodes (two nodes with one estimate have a zero difference).
+    ``P`` a :class:`designer.mse.JointCovariance` (the differences without cancellation,
+    :func:`designer.mse.difference_covariance`) or absolute joint blocks (..., N, N, n, n); returns
+    (..., E, n, n), regularised by ``1e-12`` of the mean trace of each run's nodes (two nodes with one
+    estimate have a zero difference).
     """
     d = node_blocks(P)
-    out = (d[..., receiver, :, :] + d[..., sender, :, :] - P[..., receiver, sender, :, :]
-           - P[..., sender, receiver, :, :])
     eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
-    return out + eps[..., None, None, None] * np.eye(P.shape[-1])
+    return difference_covariance(P, receiver, sender) + eps[..., None, None, None] * np.eye(d.shape[-1])
 
 
 def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
@@ -361,6 +362,9 @@ class ConsensusResult(NamedTuple):
     beta: np.ndarray  # (steps, N) β used in (27)
     predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
     gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
+    # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
+    # (designer.mse.mse_gains); NaN where none was solved
+    gain_condition: np.ndarray | None = None
 
     @property
     def feasible(self) -> bool:
@@ -538,6 +542,7 @@ def _binding_node(phi_blocks: np.ndarray, D) -> int:
     return int(np.argmax([lam_max(phi_blocks[i, i], None if D is None else D[i]) for i in range(len(phi_blocks))]))
 
 
+@one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign, attacks, x0, phi0
              ) -> ConsensusResult:
     """Mode mse: the gains of :func:`designer.mse.mse_gains` and the joint certificate of :mod:`designer.mse`.
@@ -557,17 +562,18 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
     Q = model.process_cov
     x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, sig, bet = _arrays(steps, n, nx, nz, x0, phi0)
     pmse = np.full((steps + 1, n), np.nan)
+    kappa = np.full((steps, n), np.nan)
     violations: list[dict] = []
     valid[0], pmse[0] = True, np.trace(phi0)
     counts = np.zeros((steps, len(GATE_COUNTS)), dtype=np.int64)
     # Every node starts at the same estimate: their errors are one error (Φ_0|0 >= P_0|0 for the stack too).
-    Pj = joint_prior(phi0, n)  # the joint error covariance the gains are chosen for
+    Pj = as_difference(joint_prior(phi0, n))  # the joint error covariance the gains are chosen for (difference form)
     Bj = joint_prior(phi0, n)  # its certificate (the bound of the stacked error)
     proper = True
 
     def result():
         return ConsensusResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                               pmse, counts)
+                               pmse, counts, kappa)
 
     for k in range(steps):
         F = [model.F_expected(x_post[k, i], k, u[k]) for i in range(n)]
@@ -609,8 +615,8 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         S = [q_fdi[i, rec[i]].sum() * design.fdi_moment for i in range(n)] \
             if design.gate == 0 or design.fdi_signal is None else \
             kept_fdi_moments(design, keep[ch], q_fdi[ch], cov_diff[ch], ch[0], n)
-        gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i]) for i in range(n)]
-        Ks, Cs = [g[0] for g in gains], [g[1] for g in gains]
+        gains = [mse_gains(Pm, i, rec[i], Hs[i], R_all[i], S[i], condition=True) for i in range(n)]
+        Ks, Cs, kappa[k] = [g[0] for g in gains], [g[1] for g in gains], [g[2] for g in gains]
         for i in range(n):
             residual = wrapped_residual(model, i, zs[k][i], x_pred[k, i], k + 1)
             x_post[k + 1, i] = x_pred[k, i] + Ks[i] @ residual + Cs[i] @ innovation[i]
@@ -618,7 +624,7 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
             K[k, i, :, :dims[i]] = Ks[i]
             C[k, i] = Cs[i]
         Pj = joint_update(Pm, Ks, Cs, Hs, R_all, rec, S)
-        pmse[k + 1] = np.trace(_diag(Pj), axis1=-2, axis2=-1)
+        pmse[k + 1] = np.trace(Pj.P, axis1=-2, axis2=-1)
         if proper:
             sc = [update_scaling(model, i, x_pred[k, i], Bp[i, i], k + 1, design.linearization, design.radius,
                                  design.V[i]) for i in range(n)]
@@ -643,7 +649,8 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
                                                and np.abs(x_post[k + 1, i]).max() < _DIVERGED)), None)
         if bad is not None:
             _stop(violations, bad, k, f"estimate or covariance beyond {_DIVERGED:g} or not finite",
-                  (x_post, phi_post, pmse), (x_pred, phi_pred, K, C), valid)
+                  (x_post, phi_post, pmse), (x_pred, phi_pred, K, C, kappa), valid)
+            kappa[k] = np.nan
             return result()
     if proper:
         for i in range(n):
@@ -653,10 +660,11 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
     return result()
 
 
-def _difference_covariance(P: np.ndarray) -> np.ndarray:
+def _difference_covariance(P) -> np.ndarray:
     """``Cov(e_j - e_i)`` (N, N, n, n) for every pair of nodes from the joint covariance (:func:`channel_difference_covariance`)."""
-    i, j = np.indices(P.shape[:2]).reshape(2, -1)
-    return channel_difference_covariance(P, i, j).reshape(P.shape)
+    N, n = P.P.shape[-3], P.P.shape[-1]
+    i, j = np.indices((N, N)).reshape(2, -1)
+    return channel_difference_covariance(P, i, j).reshape(N, N, n, n)
 
 
 def _diag(P: np.ndarray) -> np.ndarray:

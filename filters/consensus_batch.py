@@ -219,6 +219,7 @@ class ConsensusBatchResult(NamedTuple):
     beta: np.ndarray  # (runs, steps, N)
     predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse'
     gate_counts: np.ndarray | None = None  # (runs, steps, 5) GATE_COUNTS
+    gain_condition: np.ndarray | None = None  # (runs, steps, N), mode 'mse'
 
     @property
     def runs(self) -> int:
@@ -226,10 +227,10 @@ class ConsensusBatchResult(NamedTuple):
 
     def run(self, r: int) -> ConsensusResult:
         """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
+        optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
-                  for f in ConsensusResult._fields if f not in ("predicted_mse", "gate_counts")]
-        return ConsensusResult(*fields, None if self.predicted_mse is None else self.predicted_mse[r],
-                               None if self.gate_counts is None else self.gate_counts[r])
+                  for f in ConsensusResult._fields if f not in optional]
+        return ConsensusResult(*fields, *(None if getattr(self, f) is None else getattr(self, f)[r] for f in optional))
 
     @property
     def feasible(self) -> np.ndarray:
@@ -678,12 +679,12 @@ def _per_run_batch(model: Model, network, z, design: ConsensusDesign, u, attacks
     refs = [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
                           attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
                           x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])]
+    optional = ("predicted_mse", "gate_counts", "gain_condition")
     fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
-              if f not in ("violations", "predicted_mse", "gate_counts")}
-    return ConsensusBatchResult(**fields, violations=[ref.violations for ref in refs],
-                                predicted_mse=None if refs[0].predicted_mse is None
-                                else np.stack([ref.predicted_mse for ref in refs]),
-                                gate_counts=np.stack([ref.gate_counts for ref in refs]))
+              if f != "violations" and f not in optional}
+    stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
+               for f in optional}
+    return ConsensusBatchResult(**fields, violations=[ref.violations for ref in refs], **stacked)
 
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):

@@ -34,11 +34,13 @@ from typing import Sequence
 
 import numpy as np
 
+from designer.cores import one_blas_thread
 from designer.bounds import theorem2_margin
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.mse import (
+    as_difference,
     certificate_predict,
     certificate_update,
     joint_predict,
@@ -65,6 +67,7 @@ _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothi
 
 
 # --------------------------------------------------------------------------- the filter
+@one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                   phi0=None) -> ConsensusBatchResult:
@@ -110,7 +113,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
                margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
                theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
                sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
-               predicted_mse=np.full((runs, steps + 1, n), np.nan),
+               predicted_mse=np.full((runs, steps + 1, n), np.nan), gain_condition=np.full((runs, steps, n), np.nan),
                gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
     out["x_post"][:, 0], out["phi_post"][:, 0], out["valid"][:, 0] = x0[:, None], phi0[:, None], True
     out["predicted_mse"][:, 0] = np.trace(phi0, axis1=-2, axis2=-1)[:, None]
@@ -138,8 +141,8 @@ class _Runs:
         self.R = [model.measurement_cov(i) for i in range(self.n)]
         offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
         self.columns = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
-        self.Pj = joint_prior(phi0, self.n)  # the joint error covariance the gains are chosen for
-        self.Bj = self.Pj.copy()  # its certificate
+        self.Bj = joint_prior(phi0, self.n)  # the certificate (the bound of the stacked error), absolute blocks
+        self.Pj = as_difference(self.Bj)  # the joint error covariance the gains are chosen for (difference form)
         self.act = np.arange(z.shape[0])  # the runs still going (indices into the sub-batch)
         self.proper = np.ones(z.shape[0], dtype=bool)
 
@@ -244,7 +247,8 @@ class _Runs:
         for i in range(n):
             Hi = model.H(i, xp[:, i], k + 1)
             res = wrap_residuals(zk[:, self.columns[i]] - model.h(i, xp[:, i], k + 1), model.sensors[i].angles)
-            Ki, C[:, i] = mse_gains(Pm, i, kept[:, i], Hi, self.R[i], S[:, i])
+            Ki, C[:, i], o["gain_condition"][act, k, i] = mse_gains(Pm, i, kept[:, i], Hi, self.R[i], S[:, i],
+                                                                     condition=True)
             x_new[:, i] = xp[:, i] + (Ki @ res[..., None])[..., 0] + (C[:, i] @ innovation[:, i, :, None])[..., 0]
             H.append(Hi)
             Ks.append(Ki)
@@ -314,8 +318,8 @@ class _Runs:
             g = act[r]
             for key in ("x_post", "phi_post", "predicted_mse"):
                 o[key][g, k + 1:] = np.nan
-            o["K"][g, k], o["C"][g, k] = np.nan, np.nan
+            o["K"][g, k], o["C"][g, k], o["gain_condition"][g, k] = np.nan, np.nan, np.nan
             o["valid"][g, k + 1:] = False
         alive = np.ones(act.size, dtype=bool)
         alive[dead] = False
-        self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj[alive], self.Bj[alive]
+        self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]

@@ -18,7 +18,9 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 =========================  ==========================================================
 
 Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
-what the command writes.
+what the command writes.  Each function computes with BLAS and LAPACK on one thread
+(:class:`designer.cores.one_blas_thread`), whatever ``OPENBLAS_NUM_THREADS`` says, as the
+command line does: the same numbers in a script, a notebook and the shell.
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from designer.attacks import AttackSpec
+from designer.cores import one_blas_thread
 from designer.design import DesignOptions
 from designer.fileio import check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
@@ -89,6 +92,7 @@ class Simulation:
         return write_npz(path, **arrays)
 
 
+@one_blas_thread()
 def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Path | None = None,
              network: SensorNetwork | None = None, attacks: AttackSpec | None = None, x0=None,
              inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
@@ -127,6 +131,7 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Pa
     return sim
 
 
+@one_blas_thread()
 def design(scenario, *, mode: str | None = None, steps: int | None = None, seed: int = 0,
            epsilon: float | None = None, sigma: float | None = None, beta: float | None = None,
            tau: float | None = None, dos: float | None = None, fdi: float | None = None,
@@ -180,6 +185,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     return res
 
 
+@one_blas_thread()
 def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None, epsilon: float | None = None,
                 sigma: float | None = None, beta: float | None = None, tau: float | None = None,
                 dos: float | None = None, fdi: float | None = None, delta: float | None = None,
@@ -241,6 +247,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     return fmap
 
 
+@one_blas_thread()
 def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int | None = None,
           particles: int | None = None, seed: int = 0, workers: int | None = None, dask: str | None = None,
           dask_security: str | None = None, backend=None, force: bool = False, quiet: bool = True, options: DesignOptions | None = None,

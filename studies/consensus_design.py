@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
+from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.validation import InputError, check_int
@@ -211,6 +212,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             # gains were chosen for (the bound is the certificate)
             "predicted_mse": None if res.predicted_mse is None else [
                 [float(v) if np.isfinite(v) else None for v in row] for row in res.predicted_mse.T],
+            "conditioning": conditioning(res.gain_condition),
             "network": net.describe(),
             "observability": observability(m, x0, u0),
             "kalman_references": kalman_references(m, x0, u0),

@@ -33,7 +33,9 @@ def _exit(code: int) -> None:
 # BLAS threads for the command line: its matrices are small (a few states per node), where OpenBLAS's threads
 # cost far more than they save (800 solves of a 4 x 4 triangular system: 1.44 s with its threads on a shared
 # 2-core machine, 0.04 s without); a study's parallelism is across runs (--workers, Dask).  Set before NumPy
-# loads OpenBLAS (it reads the variable once); a value the user set is kept.
+# loads OpenBLAS (it reads the variable once), so that no BLAS thread is even started; a value the user set is
+# kept.  The numbers do not depend on it: every computation of studies.api runs BLAS on one thread anyway
+# (designer.cores.one_blas_thread), as a Python script calling the API does.
 BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 

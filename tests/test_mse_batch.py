@@ -43,10 +43,12 @@ from test_consensus_batch import robot as robot_25_steps  # noqa: F401  (a fixtu
 
 
 def assert_mse_batch_is_per_run(batch, refs):
-    """The fields of tests/test_consensus_batch.py, and the predicted MSE (rtol 1e-9) and the gate's counts."""
+    """The fields of tests/test_consensus_batch.py, and the predicted MSE (rtol 1e-9), the gains' condition numbers
+    (rtol 1e-6: an eigenvalue ratio) and the gate's counts."""
     assert_same_as_per_run(batch, refs)
     for r, ref in enumerate(refs):
         np.testing.assert_allclose(batch.predicted_mse[r], ref.predicted_mse, rtol=1e-9, equal_nan=True)
+        np.testing.assert_allclose(batch.gain_condition[r], ref.gain_condition, rtol=1e-6, equal_nan=True)
         np.testing.assert_array_equal(batch.gate_counts[r], ref.gate_counts)
 
 

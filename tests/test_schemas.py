@@ -332,6 +332,33 @@ def test_schedule_with_a_trace_bound_of_the_wrong_shape_is_rejected(designs, tmp
         schemas.validate_output(liar)
 
 
+def test_mse_schedule_records_its_conditioning(tmp_path):
+    """An mse design records each node's largest gain condition number (paper designs: null); the schema's checks
+    reject entries of the wrong length and an ill-conditioned list that does not match the numbers."""
+    out = tmp_path / "mse"
+    assert main(["design", LINEAR, "--mode", "mse", "--seed", "2", "--steps", "6", "--out", str(out)]) == 0
+    assert schemas.validate_output(out) == [out / "schedule.json"]
+    sched = json.loads((out / "schedule.json").read_text())
+    cond = sched["conditioning"]
+    assert len(cond["gain_condition"]) == sched["nodes"] and all(v >= 1 for v in cond["gain_condition"])
+    assert all(0 <= k < sched["steps"] for k in cond["gain_condition_step"])
+    assert cond["ill_conditioned"] == [i for i, v in enumerate(cond["gain_condition"]) if v > cond["threshold"]]
+    good = out / "schedule.json"
+    short = _rewrite(good, tmp_path / "a" / "schedule.json", lambda s: s["conditioning"]["gain_condition"].pop())
+    with _raises_at(r"\$\.conditioning\.gain_condition: 2 entries for a network of 3 nodes"):
+        schemas.validate_output(short)
+    liar = _rewrite(good, tmp_path / "b" / "schedule.json", lambda s: s["conditioning"].update(ill_conditioned=[1]))
+    with _raises_at(r"\$\.conditioning\.ill_conditioned\[0\]: node 1 is not one whose gain condition number exceeds"):
+        schemas.validate_output(liar)
+
+    def hidden(s):
+        s["conditioning"]["gain_condition"][2] = 10 * s["conditioning"]["threshold"]
+
+    unlisted = _rewrite(good, tmp_path / "c" / "schedule.json", hidden)
+    with _raises_at(r"\$\.conditioning\.gain_condition\[2\]: node 2's gain condition number .* is not listed"):
+        schemas.validate_output(unlisted)
+
+
 def test_feasibility_row_with_feasible_2_is_rejected(maps, tmp_path):
     text = (maps["1d"] / "feasibility.csv").read_text().splitlines()
     header, first = text[0].split(","), text[1].split(",")

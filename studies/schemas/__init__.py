@@ -153,6 +153,23 @@ def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
             yield ["violations", i, "node"], f"node {v['node']} of a network of {nodes} nodes"
         if v["step"] > steps:
             yield ["violations", i, "step"], f"step {v['step']} of a run of {steps} steps"
+    cond = obj.get("conditioning")
+    if isinstance(cond, dict):
+        kappa, where = cond["gain_condition"], cond["gain_condition_step"]
+        for key, value in (("gain_condition", kappa), ("gain_condition_step", where)):
+            if value is not None and len(value) != nodes:
+                yield ["conditioning", key], f"{len(value)} entries for a network of {nodes} nodes"
+                return
+        for j, i in enumerate(cond["ill_conditioned"]):
+            if i >= nodes or kappa is None or kappa[i] is None or not kappa[i] > cond["threshold"]:
+                yield ["conditioning", "ill_conditioned", j], (f"node {i} is not one whose gain condition number "
+                                                               f"exceeds the threshold {cond['threshold']:g}")
+        for i, v in enumerate(kappa or []):
+            if v is not None and v > cond["threshold"] and i not in cond["ill_conditioned"]:
+                yield ["conditioning", "gain_condition", i], (f"node {i}'s gain condition number {v:g} exceeds the "
+                                                              "threshold but the node is not listed as ill-conditioned")
+            if v is not None and where is not None and (where[i] is None or where[i] >= steps):
+                yield ["conditioning", "gain_condition_step", i], f"step {where[i]} of a run of {steps} steps"
     if "U" in obj and "state_names" in obj:
         n = len(obj["state_names"])
         yield from _matrix_shape(obj["U"], n, n, ["U"], "U (n_x x n_x)")
