@@ -44,7 +44,7 @@ import numpy as np
 
 from .network import SensorNetwork
 from .noise import Noise
-from .validation import InputError, check_finite, check_int, check_probability
+from .validation import InputError, check_finite, check_int, check_probability, check_type
 
 __all__ = ["FDISignal", "AttackSpec", "SIGNAL_LAWS", "NO_ATTACKS", "RoundRobinDeception", "BinarySensorChannel",
            "BiasFDI"]
@@ -91,7 +91,9 @@ class FDISignal:
         if a.ndim > 1 or np.any(a < 0):
             raise InputError(f"FDISignal amplitude must be a number >= 0 or one per component, got {self.amplitude!r}")
         if self.components is not None:
-            comps = tuple(int(c) for c in self.components)
+            comps = tuple(check_int("FDISignal components", c, 0) for c in
+                          check_type("FDISignal components", self.components, (list, tuple, range, np.ndarray),
+                                     "a list of state indices"))
             if len(set(comps)) != len(comps) or not comps:
                 raise InputError(f"FDISignal components must be distinct state indices, got {self.components!r}")
             if a.ndim == 1 and a.size != len(comps):
@@ -267,6 +269,10 @@ class AttackSpec:
     def __post_init__(self):
         if self.signal is not None and not isinstance(self.signal, FDISignal):
             raise InputError(f"AttackSpec signal must be an FDISignal, got {type(self.signal).__name__}")
+        for name in ("dos", "fdi", "uplink_dos", "uplink_fdi"):  # the types here, the values on a network
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Mapping):
+                check_finite(f"AttackSpec {name}", value)
         if self.delta is not None:
             d = check_finite("delta", self.delta)
             if d.ndim != 0 or d < 0:

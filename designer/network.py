@@ -6,7 +6,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .validation import InputError, check_probability
+from .validation import InputError, check_int, check_probability, check_type
 
 __all__ = ["SensorNetwork"]
 
@@ -85,8 +85,9 @@ class SensorNetwork:
     @classmethod
     def from_edges(cls, n_nodes: int, edges: Iterable[Sequence[int]], **kwargs) -> "SensorNetwork":
         """Build from undirected edges ``(i, j)`` (each listed once, in either order)."""
+        n_nodes = check_int("n_nodes", n_nodes, 1)
         adj = np.zeros((n_nodes, n_nodes), dtype=int)
-        for e in edges:
+        for e in check_type("edges", edges, (list, tuple), "a list of node pairs (i, j)"):
             if len(e) != 2:
                 raise InputError(f"edges must be pairs (i, j), got {tuple(e)!r}")
             i, j = int(e[0]), int(e[1])
