@@ -19,6 +19,12 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 
 Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
 what the command writes.
+
+Before anything is built or computed, every function checks the types of its arguments
+(an :class:`~designer.validation.InputError` naming the parameter: a string for ``steps``,
+a number for ``out``, ``"yes"`` for ``force``...) and then the memory the command will need
+(:mod:`studies.memory`: refused, with the figure and what to reduce, when it exceeds the
+memory available).
 """
 from __future__ import annotations
 
@@ -228,6 +234,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     grid : str or sequence of str
         ``NAME=START:STOP:COUNT`` per grid parameter (dos, fdi, delta, amplitude, tau, sigma,
         beta, epsilon, u_scale, v_scale); the grid's value replaces the option of that name.
+        The values are the exact numbers meant (``dos=0:0.6:7``: 0, 0.1, ..., 0.6; see
+        :mod:`studies.feasibility_map`).
     mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, options
         The same design options as :func:`design`, with the same defaults.
     workers, dask, dask_security, backend
@@ -242,7 +250,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     Returns
     -------
     FeasibilityMap
-        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.save(directory)``.
+        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.failures`` (the points
+        whose design or iteration raised: not feasible, ``binding`` ``"failed: <reason>"``; the others
+        are mapped), ``.save(directory)``.
 
     Notes
     -----

@@ -12,6 +12,18 @@ points, each iterated as one batch, :func:`designer.feasibility.steady_state_bat
 this process, on ``--workers N`` local processes or on a Dask cluster (``--dask ADDRESS``),
 stored under ``out/.chunks`` so that an interrupted map resumes.
 
+**The grid's values** are the numbers ``START:STOP:COUNT`` means: value ``i`` is the double
+nearest to ``START + i (STOP - START) / (COUNT - 1)`` computed exactly from the decimals
+written, so ``dos=0:0.6:7`` is 0, 0.1, ..., 0.6 and the files write ``0.3`` (the shortest
+decimal that reads back as the same double), never ``np.linspace``'s ``0.30000000000000004``.
+
+**A point that fails** (its design cannot be built at those values, e.g. an amplitude whose
+square overflows, or its iteration raises, e.g. an eigenvalue problem that does not converge
+at an extreme scaling) is not feasible, has no bound and has ``binding`` ``"failed: <reason>"``;
+the other points are mapped as they would be without it (:attr:`FeasibilityMap.failures`,
+``failed_points`` in ``feasibility.json``, the report says how many and why).  Options wrong at
+every point (not a grid value) are the user's input: an InputError before any point.
+
 **Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
 the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
 received) and the transient from the prior.  ``feasibility`` checks whether the
