@@ -5,8 +5,8 @@ compiled kernels, the model's CasADi functions), then the peak resident memory i
 (``/proc/self/clear_refs``) and the measured command runs; the figure is ``VmHWM`` minus the
 resident memory before it, beside the :class:`studies.memory.Need` that the command computed
 for itself (captured from :func:`studies.memory.check`) and their ratio.  The model files are
-written to a temporary directory (a linear chain of ``NX`` states on ``NODES`` nodes, and a
-two-state tank), the sizes chosen so that every case runs in seconds to a minute.
+the README's ``examples/ring_model.py`` and chains of ``NX`` states on ``NODES`` nodes written to a
+temporary directory, the sizes chosen so that every case runs in seconds to a minute.
 
 Run: ``python benchmarks/bench_memory.py [--only NAME ...]`` (Linux only: ``/proc``).
 """
@@ -40,34 +40,20 @@ def model() -> Model:
                  prior=Gaussian(np.zeros(NX), 0.05 * np.eye(NX)))
 """
 
-TANK = """
-import casadi as ca
-import numpy as np
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-STEPS = 20
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
-def model() -> Model:
-    x = ca.SX.sym("x", 2)
-    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
-    sensors = [Sensor(f"s{i}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
-    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
-                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
-"""
-
-# name -> (warm-up arguments, measured arguments); {tank}, {chainNX_NODES_STEPS} and {out} are filled in
+# name -> (warm-up arguments, measured arguments); {ring} (examples/ring_model.py), {chainNX_NODES_STEPS} and
+# {out} are filled in
 CASES = {
-    "simulate 200k steps": (["simulate", "{tank}", "--steps", "20", "--out", "{out}/w.npz"],
-                            ["simulate", "{tank}", "--steps", "200000", "--out", "{out}/s.npz"]),
-    "design 10k steps": (["design", "{tank}", "--out", "{out}/w"], ["design", "{tank}", "--steps", "10000",
+    "simulate 200k steps": (["simulate", "{ring}", "--steps", "20", "--out", "{out}/w.npz"],
+                            ["simulate", "{ring}", "--steps", "200000", "--out", "{out}/s.npz"]),
+    "design 10k steps": (["design", "{ring}", "--out", "{out}/w"], ["design", "{ring}", "--steps", "10000",
                                                                     "--out", "{out}/d"]),
     "design 60 states (Hessians)": (["design", "{chain60_4_5}", "--u-scale", "0", "--v-scale", "0", "--out", "{out}/w"],
                                     ["design", "{chain60_4_5}", "--out", "{out}/d"]),
     "design 40 states x 8 nodes x 200 steps": (
         ["design", "{chain40_8_200}", "--steps", "3", "--u-scale", "0", "--v-scale", "0", "--out", "{out}/w"],
         ["design", "{chain40_8_200}", "--u-scale", "0", "--v-scale", "0", "--out", "{out}/d"]),
-    "feasibility 5000 points": (["feasibility", "{tank}", "--grid", "dos=0:0.5:3", "--out", "{out}/w", "--quiet"],
-                                ["feasibility", "{tank}", "--grid", "dos=0:0.5:100", "--grid", "fdi=0:0.4:50",
+    "feasibility 5000 points": (["feasibility", "{ring}", "--grid", "dos=0:0.5:3", "--out", "{out}/w", "--quiet"],
+                                ["feasibility", "{ring}", "--grid", "dos=0:0.5:100", "--grid", "fdi=0:0.4:50",
                                  "--out", "{out}/f", "--quiet"]),
     "feasibility 30 states x 64 points": (
         ["feasibility", "{chain30_4_20}", "--grid", "dos=0:0.5:2", "--u-scale", "0", "--v-scale", "0", "--out",
@@ -114,8 +100,7 @@ print(json.dumps({"rc": rc, "peak": peak, "estimate": max((n.nbytes for n in nee
 
 
 def _files(tmp: Path) -> dict:
-    files = {"tank": tmp / "tank.py"}
-    files["tank"].write_text(TANK)
+    files = {"ring": Path(__file__).resolve().parents[1] / "examples" / "ring_model.py"}
     for name in {a.split("}")[0] for w, m in CASES.values() for arg in w + m for a in arg.split("{")[1:]}:
         if name.startswith("chain"):
             nx, nodes, steps = name[5:].split("_")

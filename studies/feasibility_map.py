@@ -101,7 +101,8 @@ def _grid_spec(spec: str) -> tuple[str, Fraction, Fraction, int]:
                          f"got {rng!r}") from None
     if count < 1:
         raise InputError(f"--grid {name}: COUNT must be >= 1, got {rng!r}")
-    lo, hi = (min(start, stop), max(start, stop)) if count > 1 else (start, start)
+    ends = (float(start), float(stop)) if count > 1 else (float(start),)  # the values' extremes, as doubles
+    lo, hi = min(ends), max(ends)
     if name in ("dos", "fdi") and (lo < 0 or hi >= 1):
         raise InputError(f"--grid {name} must lie in [0, 1), got {parts[0].strip()}:{parts[1].strip()}")
     if name == "epsilon" and lo <= 0:

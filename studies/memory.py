@@ -49,7 +49,7 @@ _RESULT_COPIES = 1.5  # a filter's per-step results, and the outputs made of the
 _STEP_MATRICES = 40  # (n_x, n_x) matrices per node and run alive within one step of a consensus filter
 _FIXED_POINT_MATRICES = 20  # the same per node and grid point in an iteration of the steady-state recursion
 _HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.model.Model.f_hessian)
-_JSON_VALUE = 120  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
+_JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
@@ -219,7 +219,7 @@ def _per_worker(parts: Sequence[Part | None], workers: int) -> list[Part]:
 def simulate_need(sc, steps: int) -> Need:
     """``simulate``: the states, stacked and per-sensor measurements, inputs and modes of one run."""
     m = sc.model
-    per_step = (m.n_x + 2 * m.n_z + m.n_sensors * max(m.sensor_dims) + m.n_u + 1) * _D
+    per_step = (m.n_x + m.n_z + m.n_sensors * max(m.sensor_dims) + m.n_u + 1) * _D
     return _need("simulate", [Part("the run's states and measurements", 1.5 * steps * per_step,
                                    f"{steps} steps x ({m.n_x} states + {m.n_z} measurements)",
                                    f"{_STEPS} (steps = {steps})")])

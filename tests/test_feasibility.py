@@ -179,26 +179,9 @@ def test_optimal_weights_steady_state_is_a_fixed_point_and_below_the_paper_facto
         steady_state(A, H, Q, R, net, weights="best", **kw)
 
 
-_TANK = """
-import casadi as ca
-import numpy as np
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
-def model() -> Model:
-    x = ca.SX.sym("x", 2)
-    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
-    sensors = [Sensor(f"s{i}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
-    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
-                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
-"""
-
-
 @pytest.fixture
-def tank(tmp_path):
-    path = tmp_path / "tank.py"
-    path.write_text(_TANK)
-    return path
+def tank(tank_model):
+    return tank_model()
 
 
 @pytest.mark.parametrize("spec", ["dos=0:0.6:7", "delta=0.1:0.7:13", "amplitude=1e-3:2.5e3:9", "fdi=0.9:0:4",

@@ -14,21 +14,6 @@ from studies.scenarios import scenario_of
 
 GiB = 2**30
 
-TANK = """
-import casadi as ca
-import numpy as np
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-STEPS = {steps}
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
-def model() -> Model:
-    x = ca.SX.sym("x", 2)
-    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
-    sensors = [Sensor(f"s{{i}}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
-    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
-                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
-"""
-
 # A chain of NX states on NODES nodes, each node measuring NX / NODES of them (the issue's 300-state model).
 CHAIN = """
 import casadi as ca
@@ -80,10 +65,10 @@ def test_available_memory_reads_meminfo():
     (["study", "consensus-robot", "{tank}", "--runs", "1000000", "--out", "{tmp}/c"], ["runs"]),
     (["study", "rrp-deception", "--runs", "10", "--particles", "10000000", "--out", "{tmp}/c"], ["particles"]),
 ])
-def test_what_cannot_fit_is_refused_before_computing(tmp_path, monkeypatch, capsys, args, needles):
+def test_what_cannot_fit_is_refused_before_computing(tmp_path, monkeypatch, capsys, tank_model, args, needles):
     monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
-    (tmp_path / "tank.py").write_text(TANK.format(steps=20))
-    (tmp_path / "huge.py").write_text(TANK.format(steps=10**10))
+    tank_model()
+    tank_model(steps=10**10, name="huge.py")
     before = sorted(p.name for p in tmp_path.iterdir())
     rc = main([a.format(tank=tmp_path / "tank.py", huge=tmp_path / "huge.py", tmp=tmp_path) for a in args])
     err = capsys.readouterr().err.strip()
@@ -137,11 +122,10 @@ def test_the_estimates_follow_the_allocated_peak(tmp_path):
     assert peak > 8e6 and 0.5 < est / peak < 2.5, (est, peak)
 
 
-def test_workers_multiply_the_chunks(tmp_path):
+def test_workers_multiply_the_chunks(tank_model):
     from studies.runner import Backend
 
-    (tmp_path / "tank.py").write_text(TANK.format(steps=20))
-    sc = scenario_of(tmp_path / "tank.py")
+    sc = scenario_of(tank_model())
     one = memory.feasibility_need(sc, DesignOptions(), 10_000, 1, 32)
     four = memory.feasibility_need(sc, DesignOptions(), 10_000, 1, 32, Backend("processes", workers=4))
     rows = next(p for p in one.peak if p.what == "the grid's rows").nbytes
