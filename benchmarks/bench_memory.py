@@ -95,7 +95,8 @@ with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.St
     rc = main(args)
 peak = status("VmHWM") - base
 print(json.dumps({"rc": rc, "peak": peak, "estimate": max((n.nbytes for n in needs), default=0.0),
-                  "parts": [str(p) for n in needs for p in n.peak][:4], "error": err.getvalue()[-300:]}))
+                  "parts": [str(p) for n in needs for p in sorted(n.peak, key=lambda p: -p.nbytes)][:4],
+                  "error": err.getvalue()[-300:]}))
 """
 
 

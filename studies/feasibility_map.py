@@ -193,8 +193,9 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     x0, u0 = sc_p.operating_point
     att = sc_p.resolved_attacks
     try:
-        return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
-                                 signal=att.signal)
+        with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
+            return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                                     signal=att.signal)
     except _POINT_ERRORS as exc:
         if strict:
             raise

@@ -72,11 +72,13 @@ def available_memory() -> int | None:
 
 
 def format_bytes(n: float) -> str:
-    """``n`` bytes with a binary unit and three significant digits (``121 GiB``)."""
-    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if n >= size:
-            return f"{n / size:.3g} {unit}"
-    return f"{n:.0f} B"
+    """``n`` bytes in the largest binary unit it reaches, three significant digits or more (``121 GiB``,
+    ``1010 GiB``, ``20.3 MiB``)."""
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10), ("B", 1)):
+        if n >= size or unit == "B":
+            v = n / size
+            return f"{v:.0f} {unit}" if v >= 100 else f"{v:.3g} {unit}"
+    raise AssertionError("unreachable")
 
 
 @dataclass(frozen=True)
