@@ -257,3 +257,19 @@ def test_bad_options_of_a_map_stay_bad_input(tank):
     """An option wrong at every point is the user's input (exit 2), not a map of failed points."""
     with pytest.raises(InputError, match="u_scale"):
         feasibility(str(tank), "dos=0:0.5:2", u_scale=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], quiet=True)
+
+
+def test_a_scaling_whose_square_overflows_is_not_feasible():
+    """u_scale = 5e153: tr U Uᵀ overflows, the tuned σ search finds no σ (NaN). That is (28) failing, as in the
+    filters, not the EKF's bound without the linearisation term (which made such points feasible with the bound of
+    U = 0)."""
+    from designer.design import DesignOptions
+    from studies.feasibility_map import map_points
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    points = [{"u_scale": 0.0}, {"u_scale": 50.0}, {"u_scale": 5e153}]
+    for batched in (True, False):
+        rows = map_points(sc, DesignOptions(mode="tuned"), points, batched=batched)
+        assert [r["feasible"] for r in rows] == [1, 0, 0], rows
+        assert rows[2]["binding"] == "(28)" and np.isnan(rows[2]["trace_bound"])
