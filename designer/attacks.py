@@ -279,6 +279,10 @@ class AttackSpec:
     def __post_init__(self):
         if self.signal is not None and not isinstance(self.signal, FDISignal):
             raise InputError(f"AttackSpec signal must be an FDISignal, got {type(self.signal).__name__}")
+        for name in ("dos", "fdi", "uplink_dos", "uplink_fdi"):  # the types here, the values on a network
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Mapping):
+                check_finite(f"AttackSpec {name}", value)
         if self.delta is not None:
             d = check_finite("delta", self.delta)
             if d.ndim != 0 or d < 0:

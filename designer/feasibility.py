@@ -183,7 +183,7 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
         if not np.all(np.isfinite(new)) or np.trace(new, axis1=1, axis2=2).max() > _BLOWUP:
             return SteadyState(False, np.nan, "diverged", it, False, None)
         for i in range(n_nodes):
-            if condition28_margin(new[i], sig[i], epsilon, pred_scale[i]) <= 0:
+            if not condition28_margin(new[i], sig[i], epsilon, pred_scale[i]) > 0:  # NaN: no σ was found
                 return SteadyState(False, np.nan, "(28)", it, False, None)
         change = max(np.abs(new[i] - phi[i]).max() / np.abs(new[i]).max() for i in range(n_nodes))
         if optimal:
@@ -291,7 +291,8 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
             L = live.size
             trace = np.trace(new, axis1=-2, axis2=-1)
             diverged = ~np.isfinite(new).all(axis=(1, 2, 3)) | (trace.max(axis=1) > _BLOWUP)
-            bad28 = (condition28_margin(new.reshape(-1, nx, nx), sig, e_it, Df) <= 0).reshape(L, N).any(axis=1)
+            # NaN: the tuned σ search found none (e.g. tr U Uᵀ overflows); never a pass, as in the filters
+            bad28 = ~(condition28_margin(new.reshape(-1, nx, nx), sig, e_it, Df) > 0).reshape(L, N).all(axis=1)
             change = (np.abs(new - ph).max(axis=(-2, -1)) / np.abs(new).max(axis=(-2, -1))).max(axis=1)
         sig = sig.reshape(L, N)
         going = np.zeros(L, dtype=bool)

@@ -24,7 +24,7 @@ import numpy as np
 
 from .codegen import to_numpy
 from .noise import Noise
-from .validation import InputError, ModelWarning, check_finite
+from .validation import InputError, ModelWarning, check_finite, check_type
 
 __all__ = ["Sensor", "Model"]
 
@@ -56,7 +56,9 @@ class Sensor:
     angles: tuple[int, ...] = ()
 
     def __post_init__(self):
+        check_type("Sensor name", self.name, str, "a str")
         h = _column(f"sensor {self.name!r}: h", self.h)
+        check_type(f"sensor {self.name!r}: noise", self.noise, Noise, "a designer noise (e.g. Gaussian)")
         try:
             angles = tuple(self.angles)
         except TypeError:
@@ -213,7 +215,7 @@ class Model:
         velocity_index: Sequence[int] = (),
         description: str = "",
     ):
-        self.name = str(name)
+        self.name = check_type("name", name, str, "a str")
         self.description = description
         self.x = _symbol("x", x)
         self.n_x = int(self.x.shape[0])
@@ -260,7 +262,7 @@ class Model:
                 raise InputError(f"noise_gain must have shape ({self.n_x}, {process_noise.dim}), got {G.shape}")
             self.noise_gain = G
 
-        sensors = tuple(sensors)
+        sensors = tuple(check_type("sensors", sensors, (list, tuple), "a list of designer.Sensor"))
         if not sensors:
             raise InputError("sensors must contain at least one Sensor")
         for i, s in enumerate(sensors):

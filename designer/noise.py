@@ -14,7 +14,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .validation import InputError, as_vector, check_covariance, check_positive, check_probability, check_rng
+from .validation import (InputError, as_vector, check_covariance, check_finite, check_positive, check_probability,
+                         check_rng)
 
 __all__ = [
     "Noise", "Gaussian", "GaussianMixture", "TruncatedGaussian", "UniformBox", "PolarVelocityPrior", "spawn_generators",
@@ -122,7 +123,7 @@ class Gaussian(Noise):
 
     @classmethod
     def zero_mean(cls, cov) -> "Gaussian":
-        cov = np.atleast_2d(np.asarray(cov, dtype=float))
+        cov = np.atleast_2d(check_finite("cov", cov))
         return cls(np.zeros(cov.shape[0]), cov)
 
     @property
@@ -160,7 +161,7 @@ class GaussianMixture(Noise):
     _cdf: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        comps = tuple(self.components)
+        comps = tuple(self.components) if isinstance(self.components, (list, tuple)) else ()
         if not comps or not all(isinstance(c, Gaussian) for c in comps):
             raise InputError("components must be a non-empty sequence of Gaussian")
         if len({c.dim for c in comps}) != 1:

@@ -21,6 +21,10 @@ __all__ = [
     "check_covariance",
     "check_positive",
     "check_int",
+    "check_type",
+    "check_bool",
+    "check_path",
+    "check_strings",
     "check_rng",
     "as_vector",
 ]
@@ -59,9 +63,22 @@ class ModelWarning(CfdesignWarning):
     """A model is accepted but probably not what its author meant (e.g. an atan2 bearing not declared an angle)."""
 
 
+def _type_name(value) -> str:
+    return "None" if value is None else type(value).__name__
+
+
 def check_finite(name: str, value) -> np.ndarray:
-    """Return ``value`` as a float array, rejecting NaN and infinity."""
+    """Return ``value`` as a float array, rejecting NaN and infinity.
+
+    Numbers and (nested sequences or arrays of) numbers only: ``None``, text (``"0.1"``,
+    which NumPy would read as a number) and ragged nesting are refused with the type given.
+    """
+    if value is None or isinstance(value, (str, bytes)):
+        raise InputError(f"{name} must be numeric, got " + ("None" if value is None else
+                                                           f"{type(value).__name__} {value!r}"))
     try:
+        if np.asarray(value).dtype.kind in "USV":  # text or raw bytes inside a sequence
+            raise TypeError("it holds text")
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name} must be numeric: {exc}") from None
@@ -135,6 +152,40 @@ def check_int(name: str, value, minimum: int, maximum: int | None = None) -> int
         allowed = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
         raise InputError(f"{name} must be an integer {allowed}, got {value!r}")
     return int(value)
+
+
+def check_type(name: str, value, types: type | tuple[type, ...], what: str, *, optional: bool = False):
+    """``value`` when it is an instance of ``types`` (or None with ``optional``), else InputError naming ``name``
+    and ``what`` it must be (``"a designer.SensorNetwork"``)."""
+    if (optional and value is None) or (isinstance(value, types) and not (isinstance(value, bool)
+                                                                          and bool not in _as_tuple(types))):
+        return value
+    raise InputError(f"{name} must be {what}{' or None' if optional else ''}, got {_type_name(value)}")
+
+
+def _as_tuple(types) -> tuple:
+    return types if isinstance(types, tuple) else (types,)
+
+
+def check_bool(name: str, value) -> bool:
+    """``True`` or ``False`` (NumPy's too), nothing that merely converts to one (``"no"`` is true in Python)."""
+    return bool(check_type(name, value, (bool, np.bool_), "True or False"))
+
+
+def check_path(name: str, value, *, optional: bool = False):
+    """A path (``str`` or ``os.PathLike``) as given (or None with ``optional``), else InputError."""
+    import os
+
+    return check_type(name, value, (str, os.PathLike), "a path (str or pathlib.Path)", optional=optional)
+
+
+def check_strings(name: str, value, what: str = "strings") -> tuple[str, ...]:
+    """A list or tuple of ``str`` (one string alone is refused: its characters would be taken one by one)."""
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        bad = next((v for v in value if not isinstance(v, str)), None) if isinstance(value, (list, tuple)) else None
+        got = _type_name(value) if not isinstance(value, (list, tuple)) else f"an item {bad!r}"
+        raise InputError(f"{name} must be a list of {what}, got {got}")
+    return tuple(value)
 
 
 def check_rng(rng) -> np.random.Generator:

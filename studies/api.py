@@ -21,6 +21,12 @@ Every result object has ``.save(directory)`` (``Simulation.save(file)``), which 
 what the command writes.  Each function computes with BLAS and LAPACK on one thread
 (:class:`designer.cores.one_blas_thread`), whatever ``OPENBLAS_NUM_THREADS`` says, as the
 command line does: the same numbers in a script, a notebook and the shell.
+
+Before anything is built or computed, every function checks the types of its arguments
+(an :class:`~designer.validation.InputError` naming the parameter: a string for ``steps``,
+a number for ``out``, ``"yes"`` for ``force``...) and then the memory the command will need
+(:mod:`studies.memory`: refused, with the figure and what to reduce, when it exceeds the
+memory available).
 """
 from __future__ import annotations
 
@@ -36,9 +42,10 @@ from designer.cores import one_blas_thread
 from designer.design import DesignOptions
 from designer.fileio import check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
-from designer.validation import InputError, check_int
+from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
-from .scenarios import SCENARIOS, Scenario, scenario_of
+from . import memory
+from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report",
            "DesignOptions"]
@@ -47,6 +54,26 @@ __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", 
 def list_scenarios() -> list[dict]:
     """Describe every built-in scenario: name, dimensions, source paper, parameters and assumptions."""
     return [spec.describe() for spec in SCENARIOS.values()]
+
+
+def _check_arguments(*, out=None, network=None, attacks=None, design_defaults=None, inputs=None, overrides=None,
+                     assignments=(), force=False, quiet=True, dask_security=None, channel=None) -> None:
+    """The types of the arguments every command shares, checked before anything is built or computed (the
+    values are checked where they are used)."""
+    check_path("out", out, optional=True)
+    check_type("network", network, SensorNetwork, "a designer.SensorNetwork", optional=True)
+    check_type("attacks", attacks, AttackSpec, "a designer.AttackSpec", optional=True)
+    check_type("design_defaults", design_defaults, DesignOptions, "a designer.DesignOptions", optional=True)
+    if inputs is not None and not callable(inputs):
+        raise InputError(f"inputs must be a function of the step count returning the (steps, n_u) known inputs, "
+                         f"got {type(inputs).__name__}")
+    check_type("overrides", overrides, Mapping, "a mapping {parameter name: value}", optional=True)
+    check_strings("assignments", assignments, "'NAME=VALUE' strings")
+    check_bool("force", force)
+    check_bool("quiet", quiet)
+    check_path("dask_security", dask_security, optional=True)
+    check_type("channel", channel, CHANNEL_TYPES, "one of " + ", ".join(t.__name__ for t in CHANNEL_TYPES),
+               optional=True)
 
 
 def _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments) -> Scenario:
@@ -116,11 +143,14 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Pa
     Simulation
     """
     seed = check_int("seed", seed, 0)
+    if steps is not None:
+        steps = check_int("steps", steps, 1)
+    _check_arguments(out=out, network=network, attacks=attacks, inputs=inputs, overrides=overrides,
+                     assignments=assignments)
     if out is not None:
         check_output_file("out", out, ".npz")
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
-    if steps is not None:
-        steps = check_int("steps", steps, 1)
+    memory.check(memory.simulate_need(sc, sc.steps if steps is None else steps))
     traj = sc.simulate(np.random.default_rng(np.random.SeedSequence(seed)), steps)
     if not (np.all(np.isfinite(traj.x)) and np.all(np.isfinite(traj.z))):
         raise InputError("the simulated states or measurements are not finite; check X0, the prior and the model "
@@ -174,10 +204,16 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     """
     from .consensus_design import run_design
 
+    seed = check_int("seed", seed, 0)
+    if steps is not None:
+        steps = check_int("steps", steps, 1)
+    _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
+                     overrides=overrides, assignments=assignments)
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
+    memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
     with writing(out):  # the one-writer lock, taken before any computation
         res = run_design(sc, opts, steps=steps, seed=seed)
         if out is not None:
@@ -204,6 +240,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     grid : str or sequence of str
         ``NAME=START:STOP:COUNT`` per grid parameter (dos, fdi, delta, amplitude, tau, sigma,
         beta, epsilon, u_scale, v_scale); the grid's value replaces the option of that name.
+        The values are the exact numbers meant (``dos=0:0.6:7``: 0, 0.1, ..., 0.6; see
+        :mod:`studies.feasibility_map`).
     mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, options
         The same design options as :func:`design`, with the same defaults.
     workers, dask, dask_security, backend
@@ -218,7 +256,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     Returns
     -------
     FeasibilityMap
-        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.save(directory)``.
+        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.failures`` (the points
+        whose design or iteration raised: not feasible, ``binding`` ``"failed: <reason>"``; the others
+        are mapped), ``.save(directory)``.
 
     Notes
     -----
@@ -227,8 +267,12 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     :mod:`studies.feasibility_map` for when the two disagree.
     """
     from .feasibility_map import run_feasibility
-    from .runner import make_backend
+    from .runner import Backend, make_backend
 
+    _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
+                     overrides=overrides, assignments=assignments, force=force, quiet=quiet,
+                     dask_security=dask_security)
+    check_type("backend", backend, Backend, "a studies.runner.Backend", optional=True)
     if gate:
         raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
                          "with no packets to test (use it with design or study)")
@@ -291,6 +335,10 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     from .pipeline import run_study
     from .runner import make_backend
 
+    check_type("name", name, str, "the name of a study (studies.pipeline.STUDIES)")
+    _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
+                     overrides=overrides, assignments=assignments, force=force, quiet=quiet,
+                     dask_security=dask_security, channel=channel)
     if backend is None:
         backend = make_backend(workers, dask, dask_security)
     elif workers is not None or dask is not None or dask_security is not None:

@@ -195,7 +195,8 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
                            force=force, quiet=quiet,
                            assignments=assignments, **_options(kw))
     n_ok = sum(r["feasible"] for r in fmap.rows)
-    click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible "
+    failed = f", {len(fmap.failures)} failed (see the report)" if fmap.failures else ""
+    click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible{failed} "
                f"({fmap.options.mode or 'paper'} design)")
 
 

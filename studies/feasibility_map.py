@@ -12,6 +12,18 @@ points, each iterated as one batch, :func:`designer.feasibility.steady_state_bat
 this process, on ``--workers N`` local processes or on a Dask cluster (``--dask ADDRESS``),
 stored under ``out/.chunks`` so that an interrupted map resumes.
 
+**The grid's values** are the numbers ``START:STOP:COUNT`` means: value ``i`` is the double
+nearest to ``START + i (STOP - START) / (COUNT - 1)`` computed exactly from the decimals
+written, so ``dos=0:0.6:7`` is 0, 0.1, ..., 0.6 and the files write ``0.3`` (the shortest
+decimal that reads back as the same double), never ``np.linspace``'s ``0.30000000000000004``.
+
+**A point that fails** (its design cannot be built at those values, e.g. an amplitude whose
+square overflows, or its iteration raises, e.g. an eigenvalue problem that does not converge
+at an extreme scaling) is not feasible, has no bound and has ``binding`` ``"failed: <reason>"``;
+the other points are mapped as they would be without it (:attr:`FeasibilityMap.failures`,
+``failed_points`` in ``feasibility.json``, the report says how many and why).  Options wrong at
+every point (not a grid value) are the user's input: an InputError before any point.
+
 **Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
 the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
 received) and the transient from the prior.  ``feasibility`` checks whether the
@@ -28,8 +40,9 @@ import csv
 import functools
 import io
 import itertools
+import math
 from dataclasses import dataclass
-from decimal import Decimal
+from fractions import Fraction
 from pathlib import Path
 from typing import Sequence
 
@@ -39,15 +52,16 @@ from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
-from designer.validation import InputError
+from designer.validation import ComputationError, InputError, check_strings
 
+from . import memory
 from .consensus_design import effective
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
 __all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
-           "OUTPUTS"]
+           "OUTPUTS", "FAILED"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
 
@@ -67,17 +81,10 @@ _PAPER_ONLY = ("tau", "sigma", "beta")
 OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
 
 
-def _grid_values(start: str, stop: str, count: int) -> np.ndarray:
-    """``count`` equally spaced values from ``start`` to ``stop`` as written: each the double nearest the decimal
-    value (``0:0.5:6`` gives 0.3, where ``numpy.linspace`` gives 0.30000000000000004)."""
-    a, b = Decimal(start.strip()), Decimal(stop.strip())
-    if count == 1:
-        return np.array([float(a)])
-    return np.array([float(a + (b - a) * i / (count - 1)) for i in range(count)])
-
-
-def parse_grid(spec: str) -> tuple[str, np.ndarray]:
-    """``NAME=START:STOP:COUNT`` -> (name, values)."""
+def _grid_spec(spec: str) -> tuple[str, Fraction, Fraction, int]:
+    """``NAME=START:STOP:COUNT`` -> (name, start, stop, count), START and STOP as the exact numbers written, checked."""
+    if not isinstance(spec, str):
+        raise InputError(f"grid must be a string NAME=START:STOP:COUNT or a list of them, got {type(spec).__name__}")
     if "=" not in spec:
         raise InputError(f"--grid expects NAME=START:STOP:COUNT, got {spec!r}")
     name, rng = spec.split("=", 1)
@@ -88,19 +95,56 @@ def parse_grid(spec: str) -> tuple[str, np.ndarray]:
     try:
         if len(parts) != 3:
             raise ValueError
-        start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-    except ValueError:
-        raise InputError(f"--grid {name} expects START:STOP:COUNT (COUNT an integer >= 1), got {rng!r}") from None
-    if count < 1 or not (np.isfinite(start) and np.isfinite(stop)):
-        raise InputError(f"--grid {name}: COUNT must be >= 1 and START, STOP finite, got {rng!r}")
-    values = _grid_values(parts[0], parts[1], count)
-    if name in ("dos", "fdi") and (values.min() < 0 or values.max() >= 1):
-        raise InputError(f"--grid {name} must lie in [0, 1), got {start}:{stop}")
-    if name == "epsilon" and values.min() <= 0:
-        raise InputError(f"--grid epsilon must be > 0, got {start}:{stop}")
-    if values.min() < 0:
-        raise InputError(f"--grid {name} must be >= 0, got {start}:{stop}")
-    return name, values
+        count = int(parts[2])
+        start, stop = (_exact(p) for p in parts[:2])
+    except (ValueError, OverflowError):
+        raise InputError(f"--grid {name} expects START:STOP:COUNT (finite numbers, COUNT an integer >= 1), "
+                         f"got {rng!r}") from None
+    if count < 1:
+        raise InputError(f"--grid {name}: COUNT must be >= 1, got {rng!r}")
+    ends = (float(start), float(stop)) if count > 1 else (float(start),)  # the values' extremes, as doubles
+    lo, hi = min(ends), max(ends)
+    if name in ("dos", "fdi") and (lo < 0 or hi >= 1):
+        raise InputError(f"--grid {name} must lie in [0, 1), got {parts[0].strip()}:{parts[1].strip()}")
+    if name == "epsilon" and lo <= 0:
+        raise InputError(f"--grid epsilon must be > 0, got {parts[0].strip()}:{parts[1].strip()}")
+    if lo < 0:
+        raise InputError(f"--grid {name} must be >= 0, got {parts[0].strip()}:{parts[1].strip()}")
+    return name, start, stop, count
+
+
+def _exact(text: str) -> Fraction:
+    """The number written in ``text`` exactly (``0.1`` is 1/10, not the double nearest to it); ValueError for
+    anything ``float`` does not read and for inf and NaN."""
+    value = float(text)  # the syntax float() reads, nothing more (no "1/3")
+    if not math.isfinite(value):
+        raise ValueError(text)
+    try:
+        return Fraction(text.strip())
+    except ValueError:  # a spelling float() reads and Fraction does not (e.g. "1_000" before Python 3.12)
+        return Fraction(value)
+
+
+def _grid_values(start: Fraction, stop: Fraction, count: int) -> np.ndarray:
+    """``start + i (stop - start) / (count - 1)``, i = 0 .. count - 1, each the double nearest to that exact number.
+
+    The values the user wrote mean: ``dos=0:0.6:7`` is 0, 0.1, ..., 0.6, and each is written
+    (CSV, JSON, report) as the shortest decimal that reads back as the same double, so ``0.3``
+    and not ``np.linspace``'s ``0.30000000000000004``.  Integer arithmetic on a common denominator, one
+    correctly rounded division per value.
+    """
+    if count == 1:
+        return np.array([float(start)])
+    den = start.denominator * stop.denominator * (count - 1)
+    a = start.numerator * stop.denominator * (count - 1)
+    step = (stop.numerator * start.denominator - start.numerator * stop.denominator)
+    return np.array([(a + i * step) / den for i in range(count)])
+
+
+def parse_grid(spec: str) -> tuple[str, np.ndarray]:
+    """``NAME=START:STOP:COUNT`` -> (name, values), the values as :func:`_grid_values` gives them."""
+    name, start, stop, count = _grid_spec(spec)
+    return name, _grid_values(start, stop, count)
 
 
 def _scaling(model, des, x0, u0, xp):
@@ -121,20 +165,42 @@ def _scaling(model, des, x0, u0, xp):
 
 _NO_ATTACK_MODEL = {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
                     "iterations": 0}
+FAILED = "failed: "  # the start of the binding of a point whose design or iteration raised
+_POINT_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, ComputationError)  # ValueError: InputError too
+_REASON_CHARS = 200
 
 
-def _design_at(sc: Scenario, options: DesignOptions, point: dict):
-    """The scenario and the design of ``options`` with the point's values; None where dos + fdi > 1."""
+def _failed(exc: BaseException) -> dict:
+    """The row of a grid point whose design or fixed-point iteration raised ``exc``: not feasible, no bound."""
+    text = " ".join(str(exc).split())
+    reason = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    if len(reason) > _REASON_CHARS:
+        reason = reason[:_REASON_CHARS - 1] + "…"
+    return {"feasible": 0, "trace_bound": float("nan"), "binding": FAILED + reason, "theorem2": 0, "iterations": 0}
+
+
+def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: bool = False):
+    """The scenario and the design of ``options`` with the point's values, or the row of a point that has none:
+    dos + fdi > 1 (no attack model), or a design that cannot be built at these values (``strict``: raise instead,
+    for the options without a point, whose errors are the user's input)."""
     try:
         sc_p, opts = effective(sc, options.merged(DesignOptions(**point)))
     except InputError as exc:
-        if "dos + fdi" not in str(exc):
+        if "dos + fdi" in str(exc):
+            return dict(_NO_ATTACK_MODEL)  # DoS and FDI never occur together: dos + fdi > 1 is no attack model
+        if strict:
             raise
-        return None  # DoS and FDI never occur together: dos + fdi > 1 is no attack model
+        return _failed(exc)
     x0, u0 = sc_p.operating_point
     att = sc_p.resolved_attacks
-    return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
-                             signal=att.signal)
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
+            return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                                     signal=att.signal)
+    except _POINT_ERRORS as exc:
+        if strict:
+            raise
+        return _failed(exc)
 
 
 def _row(r) -> dict:
@@ -147,25 +213,48 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
 
     ``batched``: every point's fixed-point iteration at once (:func:`designer.feasibility.steady_state_batch`);
     False: point by point (:func:`designer.feasibility.steady_state`), the same numbers, much more slowly.
+
+    A point whose design cannot be built or whose iteration raises (an overflow, an eigenvalue problem that does
+    not converge at an extreme value) is not feasible and has no bound; its ``binding`` is ``"failed: "`` and the
+    error.  When a batch raises, its points are iterated one at a time (a batch's rows do not depend on each
+    other), so that one extreme point does not take the others with it.
     """
     F, H, R, xp = _linearisation(sc)
     x0, u0 = sc.operating_point
     m = sc.model
     designed = [_design_at(sc, options, p) for p in points]
-    ok = [d for d in designed if d is not None]
+    ok = [d for d in designed if isinstance(d, tuple)]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
-    if batched:
-        des = [d for _, d in ok]
-        res = iter(steady_state_batch(F, H, m.process_cov, R, [s.network for s, _ in ok],
-                                      epsilon=[d.epsilon for d in des], delta=[d.delta for d in des],
-                                      U=[d.U for d in des], V=[d.V for d in des], mode=des[0].mode if des else "paper",
-                                      sigma=[d.sigma for d in des], beta=[d.beta for d in des],
-                                      tau=[d.tau for d in des], **kw))
-    else:
-        res = (steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U, V=d.V,
-                            mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span, **kw)
-               for s, d in ok)
-    return [dict(_NO_ATTACK_MODEL) if d is None else _row(next(res)) for d in designed]
+
+    def batch(items):
+        des = [d for _, d in items]
+        return steady_state_batch(F, H, m.process_cov, R, [s.network for s, _ in items],
+                                  epsilon=[d.epsilon for d in des], delta=[d.delta for d in des],
+                                  U=[d.U for d in des], V=[d.V for d in des], mode=des[0].mode,
+                                  sigma=[d.sigma for d in des], beta=[d.beta for d in des],
+                                  tau=[d.tau for d in des], **kw)
+
+    def one(item):
+        s, d = item
+        try:
+            if batched:
+                return _row(batch([item])[0])
+            return _row(steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U,
+                                     V=d.V, mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span,
+                                     **kw))
+        except _POINT_ERRORS as exc:
+            return _failed(exc)
+
+    rows = None
+    if batched and ok:
+        try:
+            rows = [_row(r) for r in batch(ok)]
+        except _POINT_ERRORS:
+            rows = None  # one of them raised: each point alone
+    if rows is None:
+        rows = [one(item) for item in ok]
+    res = iter(rows)
+    return [d if isinstance(d, dict) else next(res) for d in designed]
 
 
 def _linearisation(sc: Scenario):
@@ -196,7 +285,8 @@ class FeasibilityMap:
     grids : list of (name, values)
     rows : list of dict
         Per point: the grid values, ``feasible`` (0/1), ``trace_bound`` (mean over nodes of the
-        steady-state tr Φ, NaN when infeasible), ``binding``, ``theorem2``, ``iterations``.
+        steady-state tr Φ, NaN when infeasible), ``binding`` (``"failed: <reason>"`` where the point's
+        design or iteration raised: :attr:`failures`), ``theorem2``, ``iterations``.
     runner : dict
         What the Monte Carlo runner computed and reused.
     """
@@ -225,6 +315,11 @@ class FeasibilityMap:
     def trace_bound(self) -> np.ndarray:
         return np.array([r["trace_bound"] for r in self.rows], dtype=float).reshape(self.shape)
 
+    @property
+    def failures(self) -> list[dict]:
+        """The rows of the points whose design or iteration raised (``binding`` ``"failed: <reason>"``)."""
+        return [r for r in self.rows if str(r["binding"]).startswith(FAILED)]
+
     def save(self, directory) -> Path:
         """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``
         (replacing the directory's last outputs as a whole, :func:`designer.fileio.replaced_outputs`)."""
@@ -251,7 +346,7 @@ class FeasibilityMap:
             "state_names": list(sc.model.state_names),
             "grids": [{"name": n, "values": v.tolist()} for n, v in self.grids],
             "options": self.options.as_dict(), "points": len(self.rows),
-            "feasible_points": int(sum(r["feasible"] for r in self.rows)),
+            "feasible_points": int(sum(r["feasible"] for r in self.rows)), "failed_points": len(self.failures),
             "operating_point": {"x0": sc.operating_point[0].tolist(),
                                 "u0": None if sc.operating_point[1] is None else sc.operating_point[1].tolist()},
             "network": sc.network.describe(), "attacks": sc.resolved_attacks.describe(sc.model.state_names),
@@ -271,10 +366,13 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     """Compute the feasibility map of ``sc`` over ``grids`` (``NAME=START:STOP:COUNT`` strings)."""
     if isinstance(grids, str):
         grids = [grids]
+    if not isinstance(grids, (list, tuple)):
+        raise InputError(f"grid must be a string NAME=START:STOP:COUNT or a list of them, got {type(grids).__name__}")
+    check_strings("grid", grids, "'NAME=START:STOP:COUNT' strings")
     if not grids:
         raise InputError("give at least one --grid NAME=START:STOP:COUNT")
-    parsed = [parse_grid(g) for g in grids]
-    names = [n for n, _ in parsed]
+    specs = [_grid_spec(g) for g in grids]
+    names = [n for n, *_ in specs]
     if len(set(names)) != len(names):
         raise InputError("each --grid parameter may be given once")
     sc_eff, opts = effective(sc, options)
@@ -286,11 +384,16 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if bad:
         raise InputError(f"--grid {bad[0]} applies to mode 'paper' only (the tuned design chooses it itself)")
     d_max = max(sc_eff.network.d_max, 1)
-    for n, v in parsed:
-        if n == "epsilon" and v.max() >= 1.0 / d_max:
-            raise InputError(f"--grid epsilon must lie in (0, 1/d_max) = (0, {1.0 / d_max:.6g}), got up to {v.max():g}")
+    for n, start, stop, count in specs:
+        top = float(max(start, stop) if count > 1 else start)
+        if n == "epsilon" and top >= 1.0 / d_max:
+            raise InputError(f"--grid epsilon must lie in (0, 1/d_max) = (0, {1.0 / d_max:.6g}), got up to {top:g}")
     if backend is not None and backend.kind == "dask" and sc.source is None:
         raise InputError("an in-memory model cannot be sent to a Dask cluster; write it to a model file")
+    memory.check(memory.feasibility_need(sc, options or DesignOptions(), math.prod(c for *_, c in specs), len(specs),
+                                         CHUNK_SIZE, backend))
+    _design_at(sc, options or DesignOptions(), {}, strict=True)  # the options' own errors: bad input, before any point
+    parsed = [(n, _grid_values(start, stop, count)) for n, start, stop, count in specs]
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
     ref = reference(sc)
     if backend is None or backend.kind != "dask":
@@ -328,12 +431,16 @@ def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> N
 
     plt = plotting()
     tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows])
+    failed = np.array([str(r["binding"]).startswith(FAILED) for r in rows])
     fig, ax = plt.subplots(figsize=(7, 5))
     if len(parsed) == 1:
         (name, vals), = parsed
         ax.semilogy(vals, tb, "o-")
-        bad = np.isnan(tb)
-        ax.plot(vals[bad], np.full(bad.sum(), np.nanmin(tb) if np.any(~bad) else 1.0), "rx", label="infeasible")
+        level = np.full(len(rows), np.nanmin(tb) if np.any(np.isfinite(tb)) else 1.0)
+        bad = np.isnan(tb) & ~failed
+        ax.plot(vals[bad], level[bad], "rx", label="infeasible")
+        if failed.any():
+            ax.plot(vals[failed], level[failed], "s", color="grey", mfc="none", label="failed (not mapped)")
         ax.set_xlabel(name)
         ax.set_ylabel("steady-state tr Φ (mean over nodes)")
         ax.legend()
@@ -343,8 +450,13 @@ def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> N
         finite = grid[np.isfinite(grid)]
         norm = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None
         mesh = ax.pcolormesh(v2, v1, np.ma.masked_invalid(grid), norm=norm, shading="nearest", cmap="viridis")
-        ii, jj = np.nonzero(~np.isfinite(grid))
+        fail = failed.reshape(grid.shape)
+        ii, jj = np.nonzero(~np.isfinite(grid) & ~fail)
         ax.plot(v2[jj], v1[ii], "x", color="crimson", ms=7, label="infeasible")
+        fi, fj = np.nonzero(fail)
+        if fi.size:
+            ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=7, label="failed (not mapped)")
+            ii = np.concatenate([ii, fi])
         fig.colorbar(mesh, ax=ax, label="steady-state tr Φ (mean over nodes)")
         ax.set_xlabel(n2)
         ax.set_ylabel(n1)

@@ -416,13 +416,17 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
              force, quiet, t_start, helper, invocation) -> StudyResult:
     from .results import study_header
 
+    from .memory import check, study_need
+
     blocks, arrays, built = {}, {}, {}
-    for sc in scenarios:
-        so = StudyOptions(runs if runs is not None else study.default_runs(sc.source or sc.name),
-                          particles if particles is not None else study.particles, seed, chunk, backend, design,
-                          extra)
+    chosen = [(sc, StudyOptions(runs if runs is not None else study.default_runs(sc.source or sc.name),
+                                particles if particles is not None else study.particles, seed, chunk, backend, design,
+                                extra)) for sc in scenarios]
+    for sc, so in chosen:  # every scenario's options and memory before the first computes
         if study.check is not None:
             study.check(so)
+        check(study_need(name, sc, so))
+    for sc, so in chosen:
         plan = study.plan(sc, so)
         if plan.before is not None and backend.kind != "dask":
             plan.before()

@@ -76,6 +76,7 @@ from designer.fileio import (CHUNKS_DIR, append_line, atomic_write, code_fingerp
                              refuse_link, temporary_of, write_json, writing)
 from designer.validation import ComputationError, InputError, check_int
 
+from .memory import available_memory
 from .progress import counter, progress
 
 __all__ = ["Backend", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
@@ -551,22 +552,10 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
     return MonteCarloResult(arrays, computed, reused, backend, chunk_size, time.perf_counter() - t0, rejected)
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to this process (Linux ``MemAvailable``), or None where unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
 def _check_memory(arrays: Mapping[str, np.ndarray], c: tuple[int, int], runs: int) -> bool:
     """After the first chunk: refuse (InputError) a study whose per-run results cannot fit in memory."""
     need = sum(a.nbytes for a in arrays.values()) / (c[1] - c[0]) * runs * 2  # the chunks and their concatenation
-    have = _available_memory()
+    have = available_memory()
     if have is not None and need > have:
         raise InputError(f"runs = {runs} would hold {need / 1e9:.3g} GB of per-run results, more than the "
                          f"{have / 1e9:.3g} GB of memory available; use fewer runs")

@@ -15,6 +15,8 @@ import os
 import shutil
 import tempfile
 
+import pytest
+
 _SHARED = "CFDESIGN_TEST_SESSION_CACHE"  # the controller's directory, seen by its xdist workers
 _OWN = None
 if os.environ.get("CFDESIGN_TEST_CACHE_DIR"):
@@ -28,3 +30,31 @@ else:
 def pytest_sessionfinish(session, exitstatus):
     if _OWN is not None:
         shutil.rmtree(_OWN, ignore_errors=True)
+
+
+_TANK_MODEL = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+STEPS = 20
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
+def model() -> Model:
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
+    sensors = [Sensor(f"s{i}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
+    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
+                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
+'''
+
+
+@pytest.fixture
+def tank_model(tmp_path):
+    """A user's model file (a two-state tank on three nodes, STEPS = 20) written as ``tank.py`` in ``tmp_path``;
+    ``tank_model(steps=K, name="other.py")`` writes another one with ``STEPS = K``."""
+    def write(steps: int = 20, name: str = "tank.py"):
+        path = tmp_path / name
+        path.write_text(_TANK_MODEL.replace("STEPS = 20", f"STEPS = {steps}"))
+        return path
+
+    return write

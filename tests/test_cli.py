@@ -120,13 +120,19 @@ def model() -> Model:
         # the paper design's sigma = 0.1 breaks (28) at the first step of every run for a prior this wide
         (["study", "comparison", "{wide}", "--runs", "2", "--out", "{tmp}/c"], "consensus EKF (paper design): sigma"),
         (["study", "consensus-robot", "{wide}", "--runs", "2", "--out", "{tmp}/c"], "(paper, tau=0.01): sigma"),
+        # sizes no machine holds (petabytes): refused with the estimate before computing, not a MemoryError
+        (["simulate", "{model}", "--steps", "100000000000000", "--out", "{tmp}/a.npz"], "steps = 100000000000000"),
+        (["design", "{endless}", "--out", "{tmp}/d"], "steps = 1000000000000000"),
+        (["feasibility", "{model}", "--grid", "dos=0:0.5:1000000000000", "--out", "{tmp}/f"], "--grid"),
+        (["study", "comparison", "{endless}", "--runs", "2", "--out", "{tmp}/c"], "would need about"),
     ],
 )
 def test_bad_user_input_exits_2_before_computing(tmp_path, args, needle):
     """The cases of the review: model files, output paths, sizes, integers and files that are not what they say."""
     files = {"model": _MODEL, "many": _MODEL.replace("STEPS = 20", 'STEPS = "many"'),
              "raising": _MODEL.replace('    x = ca.SX.sym("x", 2)', '    raise RuntimeError("boom")'),
-             "wide": _MODEL.replace("0.05 * np.eye(2)))", "25.0 * np.eye(2)))")}
+             "wide": _MODEL.replace("0.05 * np.eye(2)))", "25.0 * np.eye(2)))"),
+             "endless": _MODEL.replace("STEPS = 20", "STEPS = 10**15")}
     paths = {}
     for name, text in files.items():
         paths[name] = tmp_path / f"{name}.py"

@@ -177,3 +177,99 @@ def test_optimal_weights_steady_state_is_a_fixed_point_and_below_the_paper_facto
     assert paper.feasible and fast.trace_bound < paper.trace_bound
     with pytest.raises(InputError, match="weights"):
         steady_state(A, H, Q, R, net, weights="best", **kw)
+
+
+@pytest.fixture
+def tank(tank_model):
+    return tank_model()
+
+
+@pytest.mark.parametrize("spec", ["dos=0:0.6:7", "delta=0.1:0.7:13", "amplitude=1e-3:2.5e3:9", "fdi=0.9:0:4",
+                                  "tau=0.3:0.3:1", "sigma=1.5e-3:0.0315:11"])
+def test_grid_values_are_the_exact_numbers_meant(spec):
+    """Value i is the double nearest to START + i (STOP - START) / (COUNT - 1), computed exactly (np.linspace's
+    0.09999999999999999 for dos=0:0.6:7 is not the 0.1 the user wrote)."""
+    from fractions import Fraction
+
+    name, values = parse_grid(spec)
+    start, stop, count = spec.split("=")[1].split(":")
+    a, b, n = Fraction(start), Fraction(stop), int(count)
+    exact = [a] if n == 1 else [a + i * (b - a) / (n - 1) for i in range(n)]
+    assert values.tolist() == [float(v) for v in exact]
+
+
+def test_the_files_write_the_grid_values_as_given(tmp_path, tank):
+    feasibility(str(tank), "dos=0:0.6:7", out=tmp_path / "f", quiet=True)
+    with open(tmp_path / "f" / "feasibility.csv") as fh:
+        assert [row["dos"] for row in csv.DictReader(fh)] == ["0.0", "0.1", "0.2", "0.3", "0.4", "0.5", "0.6"]
+    import json
+
+    text = (tmp_path / "f" / "feasibility.json").read_text()
+    assert json.loads(text)["grids"] == [{"name": "dos", "values": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}]
+    assert "0.30000000000000004" not in text and "0.09999999999999999" not in text
+
+
+def test_a_point_whose_design_fails_is_marked_and_the_rest_is_mapped(tmp_path, tank):
+    """amplitude 1e200: the signal's second moment overflows, the design at that point cannot be built."""
+    from studies import schemas
+
+    fmap = feasibility(str(tank), ["amplitude=0:1e200:3", "dos=0:0.2:2"], out=tmp_path / "f", quiet=True)
+    failed = [r for r in fmap.rows if r["binding"].startswith("failed: ")]
+    assert [r["amplitude"] for r in failed] == [5e199, 5e199, 1e200, 1e200] and fmap.failures == failed
+    assert all("fdi_moment must be finite" in r["binding"] and r["feasible"] == 0 and np.isnan(r["trace_bound"])
+               for r in failed)
+    alone = feasibility(str(tank), ["amplitude=0:0:1", "dos=0:0.2:2"], quiet=True).rows
+    assert _same_rows(fmap.rows[:2], alone)  # the points without the failing ones, as mapped alone
+    schemas.validate_output(tmp_path / "f")
+    import json
+
+    assert json.loads((tmp_path / "f" / "feasibility.json").read_text())["failed_points"] == 4
+    report = (tmp_path / "f" / "report.md").read_text()
+    assert "4 of 6 grid points failed" in report and "fdi_moment must be finite" in report
+
+
+def test_a_point_whose_iteration_raises_fails_alone(monkeypatch):
+    """A batch that raises (an eigenvalue problem that does not converge at an extreme value) is iterated point by
+    point: the point that raises is marked failed, the others get the numbers of the batch without it."""
+    import designer.feasibility as dfeas
+    import studies.feasibility_map as fm
+    from designer.design import DesignOptions
+    from studies.scenarios import load_scenario
+
+    real = dfeas.steady_state_batch
+
+    def fragile(*args, U, **kw):
+        if any(np.max(u) > 1e3 for u in U):
+            raise np.linalg.LinAlgError("Eigenvalues did not converge")
+        return real(*args, U=U, **kw)
+
+    monkeypatch.setattr(fm, "steady_state_batch", fragile)
+    sc = load_scenario("indoor-robot")
+    opts = DesignOptions(mode="tuned")
+    points = [{"u_scale": 0.0}, {"u_scale": 1e6}, {"u_scale": 0.01}]
+    rows = fm.map_points(sc, opts, points)
+    assert rows[1]["binding"] == "failed: LinAlgError: Eigenvalues did not converge" and rows[1]["feasible"] == 0
+    assert _same_rows([rows[0], rows[2]], fm.map_points(sc, opts, [points[0], points[2]]))
+    assert rows[0]["feasible"] == 1  # mapped, not failed
+
+
+def test_bad_options_of_a_map_stay_bad_input(tank):
+    """An option wrong at every point is the user's input (exit 2), not a map of failed points."""
+    with pytest.raises(InputError, match="u_scale"):
+        feasibility(str(tank), "dos=0:0.5:2", u_scale=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], quiet=True)
+
+
+def test_a_scaling_whose_square_overflows_is_not_feasible():
+    """u_scale = 5e153: tr U Uᵀ overflows, the tuned σ search finds no σ (NaN). That is (28) failing, as in the
+    filters, not the EKF's bound without the linearisation term (which made such points feasible with the bound of
+    U = 0)."""
+    from designer.design import DesignOptions
+    from studies.feasibility_map import map_points
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    points = [{"u_scale": 0.0}, {"u_scale": 50.0}, {"u_scale": 5e153}]
+    for batched in (True, False):
+        rows = map_points(sc, DesignOptions(mode="tuned"), points, batched=batched)
+        assert [r["feasible"] for r in rows] == [1, 0, 0], rows
+        assert rows[2]["binding"] == "(28)" and np.isnan(rows[2]["trace_bound"])

@@ -38,8 +38,8 @@ TWO_NOTIONS = (
     "linearised elsewhere), when a run's realised DoS pattern is luckier or worse than its mean, or when the "
     "transient violates a condition that the steady state satisfies (or the reverse: a run that is too short to "
     "reach an unbounded steady state).")
-_KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "operating_point", "network",
-          "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references",
+_KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "failed_points", "operating_point",
+          "network", "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references",
           "versions", "invocation"}
 _THEOREM2 = {True: "holds", False: "fails", None: "—"}
 _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
@@ -142,9 +142,13 @@ def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
 
 
 def _result_section(rows: Sequence[Mapping]) -> list[str]:
+    from ..feasibility_map import FAILED
+
     n = len(rows)
     ok = [r for r in rows if r["feasible"]]
-    out = ["## How much is feasible", "", f"**{len(ok)} of {n} grid points are feasible.**", ""]
+    failed = [r for r in rows if r["binding"].startswith(FAILED)]
+    out = ["## How much is feasible", "", f"**{len(ok)} of {n} grid points are feasible"
+           + (f"; {len(failed)} failed (not mapped).**" if failed else ".**"), ""]
     if ok:
         finite = [r for r in ok if math.isfinite(r["trace_bound"])]
         if finite:
@@ -164,11 +168,16 @@ def _result_section(rows: Sequence[Mapping]) -> list[str]:
         elif all(r["theorem2"] is True for r in ok):
             out.append("- Theorem 2's sufficient condition for mean-square boundedness of the error holds at the "
                        "fixed point of every feasible point")
-    bad = [r for r in rows if not r["feasible"]]
+    bad = [r for r in rows if not r["feasible"] and not r["binding"].startswith(FAILED)]
     if bad:
         why = Counter(r["binding"] or "not recorded" for r in bad)
         out.append("- why the infeasible points fail: " + ", ".join(f"{md_escape(b)} at {c}"
                                                                    for b, c in why.most_common()))
+    if failed:
+        why = Counter(r["binding"][len(FAILED):] for r in failed)
+        out.append(f"- **{len(failed)} of {n} grid points failed**: their design or fixed-point iteration raised, so "
+                   "they are neither feasible nor shown infeasible (the other points are mapped): "
+                   + "; ".join(f"{md_escape(b)} at {c}" for b, c in why.most_common()))
     return out + [""]
 
 

@@ -191,6 +191,9 @@ def _feasibility_json_shapes(obj: dict) -> Iterator[tuple[list, str]]:
         yield ["points"], f"{obj['points']} points, but the grids have {expected}"
     if obj["feasible_points"] > obj["points"]:
         yield ["feasible_points"], f"{obj['feasible_points']} feasible points of {obj['points']}"
+    failed = obj.get("failed_points", 0)
+    if isinstance(failed, int) and obj["feasible_points"] + failed > obj["points"]:
+        yield ["failed_points"], f"{failed} failed and {obj['feasible_points']} feasible points of {obj['points']}"
 
 
 _SHAPE_CHECKS = {"schedule": _schedule_shapes, "feasibility_json": _feasibility_json_shapes}

@@ -1,0 +1,351 @@
+"""How much memory a command needs, estimated before it computes anything.
+
+Every command estimates, from the sizes it was given, the bytes it holds at its peak, and
+:func:`check` refuses (:class:`~designer.validation.InputError`, exit 2) one that cannot fit
+in the memory available (Linux ``MemAvailable``), naming what it would hold, the sizes and
+the parameters to reduce, instead of a ``MemoryError`` (or the machine's swap) after hours of
+work.  One estimate per command and study, all here:
+
+==========================  ===========================================================
+:func:`simulate_need`        ``simulate``: the run's states and measurements
+:func:`design_need`          ``design``: the Hessians of the ``'prior'`` scalings, then the
+                             run with every node's bounds and gains and the written schedule
+:func:`feasibility_need`     ``feasibility``: every grid point's row, and one chunk of points
+                             (with its designs' Hessians) per worker
+:func:`study_need`           every study (:data:`STUDY_NEEDS`): the designs' Hessians, one
+                             chunk of runs per worker, and every run's stored results
+==========================  ===========================================================
+
+**What is counted.**  The arrays whose size grows with the parameters, their shapes read off
+the code: the filters' per-step results ``(rows, steps, nodes, n_x, n_x)`` and their channel
+attacks, the Hessians of the ``'prior'`` scalings ``(points, components, n_x, n_x)`` (and of
+``linearization`` ``hessian``/``structured`` at every step), the joint covariance of mode ``mse``,
+the particles, the per-run results the runner keeps, times the copies alive at the peak;
+and the Python objects of what is written (the schedule's JSON, the rows of ``feasibility.csv``).
+A phase that ends before the next begins (the Hessians, then the run) counts once: the need is
+the largest phase.  The interpreter and the libraries already imported (a few hundred MB) are
+not counted.
+
+**How close.**  The copies and the bytes per written value were measured
+(``benchmarks/bench_memory.py`` prints, for commands at sizes that run in seconds, the peak
+resident memory above the imports, ``VmHWM``, beside :attr:`Need.nbytes`); the estimates lie
+within about a factor of 2 of those peaks, mostly above them (the Hessians of a linear model, for
+instance, are allocated but partly never touched).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+from designer.validation import InputError
+
+__all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
+           "feasibility_need", "study_need", "STUDY_NEEDS"]
+
+_D = 8  # bytes of a double
+# Copies and sizes measured at the peak (benchmarks/bench_memory.py):
+_RESULT_COPIES = 1.5  # a filter's per-step results, and the outputs made of them (the schedule, the runs' rows)
+_STEP_MATRICES = 40  # (n_x, n_x) matrices per node and run alive within one step of a consensus filter
+_FIXED_POINT_MATRICES = 20  # the same per node and grid point in an iteration of the steady-state recursion
+_HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.model.Model.f_hessian)
+_JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
+_POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
+_PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
+_JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
+_JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
+
+_STEPS = "fewer steps"
+_SCALINGS = "the scalings u_scale and v_scale (--u-scale, --v-scale; the default 'prior' ones evaluate every Hessian)"
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to this process (Linux ``MemAvailable``), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes in the largest binary unit it reaches, three significant digits or more (``121 GiB``,
+    ``1010 GiB``, ``20.3 MiB``)."""
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10), ("B", 1)):
+        if n >= size or unit == "B":
+            v = n / size
+            return f"{v:.0f} {unit}" if v >= 100 else f"{v:.3g} {unit}"
+    raise AssertionError("unreachable")
+
+
+@dataclass(frozen=True)
+class Part:
+    """One thing a command holds: what it is, its bytes, the sizes they come from and what would shrink it."""
+
+    what: str
+    nbytes: float
+    sizes: str = ""
+    reduce: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.what} ({self.sizes}): {format_bytes(self.nbytes)}" if self.sizes else \
+            f"{self.what}: {format_bytes(self.nbytes)}"
+
+
+@dataclass(frozen=True)
+class Need:
+    """The memory a command needs: ``phases``, each the parts held at once; the command needs the largest."""
+
+    command: str
+    phases: tuple
+
+    @property
+    def peak(self) -> tuple[Part, ...]:
+        """The parts of the largest phase."""
+        return max(self.phases, key=lambda ph: sum(p.nbytes for p in ph), default=())
+
+    @property
+    def nbytes(self) -> float:
+        return float(sum(p.nbytes for p in self.peak))
+
+    def message(self, available: float) -> str:
+        """What the command would hold (its three largest parts) and what to reduce."""
+        parts = sorted((p for p in self.peak if p.nbytes > 0), key=lambda p: -p.nbytes)[:3]
+        big = [p for p in parts if p.nbytes >= 0.1 * self.nbytes] or parts[:1]
+        advice = list(dict.fromkeys(p.reduce for p in big if p.reduce))
+        return (f"{self.command} would need about {format_bytes(self.nbytes)} of memory, more than the "
+                f"{format_bytes(available)} available: " + "; ".join(map(str, parts))
+                + (f"; to fit, use {' or '.join(advice)}" if advice else ""))
+
+
+def _need(command: str, *phases: Sequence[Part | None]) -> Need:
+    return Need(command, tuple(tuple(p for p in ph if p is not None) for ph in phases))
+
+
+def check(need: Need, available: float | None = None) -> None:
+    """Refuse (InputError) a command whose :class:`Need` exceeds the memory available (where it is known)."""
+    have = available_memory() if available is None else available
+    if have is not None and need.nbytes > have:
+        raise InputError(need.message(have))
+
+
+# ------------------------------------------------------------------ building blocks
+def _points(n_x: int) -> int:
+    """Points of the ellipsoid the Hessian-derived scalings sample (designer.linearization.ellipsoid_points)."""
+    return 2 * n_x + 1 + (2**n_x if n_x <= 6 else 0)
+
+
+def _components(model) -> int:
+    """The largest stack of Hessians evaluated at once: ``f``'s (every mode's) or one sensor's."""
+    return max(model.n_x * max(model.n_modes, 1), *model.sensor_dims)
+
+
+def _uses_prior(options) -> bool:
+    """The ``'prior'`` scalings (designer.design.resolve_scaling): U or one V_i not given (None, 'prior')."""
+    def prior(v) -> bool:
+        if v is None or isinstance(v, str):
+            return True
+        if isinstance(v, Mapping):
+            return "*" not in v or any(prior(x) for x in v.values())
+        return isinstance(v, (list, tuple)) and any(isinstance(x, str) for x in v)
+    return prior(options.u_scale) or prior(options.v_scale)
+
+
+def _prior_hessians(model, options) -> Part | None:
+    """The Hessians of ``f`` and of each sensor's ``h`` at the prior's ellipsoid points, one function at a time."""
+    if not _uses_prior(options):
+        return None
+    n_x, comps, P = model.n_x, _components(model), _points(model.n_x)
+    return Part("the Hessians of the 'prior' scalings U and V_i", _HESSIAN_COPIES * P * comps * n_x**2 * _D,
+                f"{P} points x {comps} components x {n_x} x {n_x} states", _SCALINGS)
+
+
+def _step_hessians(model, centres: int, linearization: str | None, reduce: str) -> Part | None:
+    """Per step of linearization 'hessian' or 'structured': the Hessians at the points around every estimate."""
+    if linearization in (None, "fixed"):
+        return None
+    n_x, comps, P = model.n_x, _components(model), _points(model.n_x)
+    return Part(f"the Hessians of linearization '{linearization}' at a step",
+                _HESSIAN_COPIES * centres * P * comps * n_x**2 * _D,
+                f"{centres} estimates x {P} points x {comps} components x {n_x} x {n_x} states",
+                f"linearization 'fixed' or {reduce}")
+
+
+def _consensus(model, network, rows: int, steps: int, mode: str | None, linearization: str | None, what: str,
+               reduce: str) -> list[Part]:
+    """A consensus filter (or KCF, HCMCI) on ``rows`` runs at once: its per-step results, attacks and one step."""
+    n_x, nz = model.n_x, max(model.sensor_dims)
+    n = network.n_nodes
+    channels = int(network.adjacency.sum())
+    per_row = (steps * n * (3 * n_x * n_x + n_x * nz + n_x + 12) + (steps + 1) * n * (n_x * n_x + n_x + 3)) * _D
+    parts = [Part(f"{what}: the bounds, gains and estimates of every node and step", _RESULT_COPIES * rows * per_row,
+                  f"{rows} runs x {steps} steps x {n} nodes x {n_x} x {n_x} states", reduce),
+             Part(f"{what}: the channel attacks", rows * steps * (channels + n * n) * (n_x * _D + 2),
+                  f"{rows} runs x {steps} steps x {n} x {n} channels x {n_x} states", reduce),
+             Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
+                  f"{rows} runs x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
+             _step_hessians(model, rows * n, linearization, "a smaller model")]
+    if mode == "mse":
+        per_run = _JOINT_COPIES * _D * (n * n_x) ** 2
+        parts.append(Part(f"{what}: the joint error covariance of all nodes (mode mse)",
+                          min(rows * per_run, max(_JOINT_BUDGET, per_run)),
+                          f"{_JOINT_COPIES} x ({n} nodes x {n_x} states)^2 per run", "another mode"))
+    return [p for p in parts if p is not None]
+
+
+def _particles(model, rows: int, particles: int, what: str) -> Part:
+    a, b, c = _PARTICLE_DOUBLES
+    return Part(f"{what}: the particles", rows * particles * (a * model.n_x + b * model.n_z + c) * _D,
+                f"{rows} runs x {particles} particles x {model.n_x} states", "fewer particles (--particles)")
+
+
+def _workers(backend, chunks: int) -> int:
+    """Chunks computed at once in this machine's memory (forked workers; a Dask cluster's are elsewhere)."""
+    if backend is None or getattr(backend, "kind", "batched") != "processes":
+        return 1
+    return max(1, min(int(backend.workers or 1), chunks))
+
+
+def _per_worker(parts: Sequence[Part | None], workers: int) -> list[Part]:
+    parts = [p for p in parts if p is not None]
+    if workers == 1:
+        return parts
+    return [Part(f"{p.what}, in each of {workers} workers", p.nbytes * workers, p.sizes,
+                 f"{p.reduce} or fewer workers (--workers)") for p in parts]
+
+
+# ------------------------------------------------------------------ the commands
+def simulate_need(sc, steps: int) -> Need:
+    """``simulate``: the states, stacked and per-sensor measurements, inputs and modes of one run."""
+    m = sc.model
+    per_step = (m.n_x + m.n_z + m.n_sensors * max(m.sensor_dims) + m.n_u + 1) * _D
+    return _need("simulate", [Part("the run's states and measurements", 1.5 * steps * per_step,
+                                   f"{steps} steps x ({m.n_x} states + {m.n_z} measurements)",
+                                   f"{_STEPS} (steps = {steps})")])
+
+
+def design_need(sc, options, steps: int) -> Need:
+    """``design`` of ``sc`` with ``options`` (merged with its DESIGN defaults): the Hessians of the 'prior'
+    scalings; then one run of every node's filter and the schedule it writes."""
+    from .consensus_design import effective
+
+    sc, options = effective(sc, options)
+    m, n = sc.model, sc.network.n_nodes
+    reduce = f"{_STEPS} (steps = {steps})"
+    run = _consensus(m, sc.network, 1, steps, options.mode, options.linearization, "the design's run", reduce)
+    run.append(Part("the schedule's JSON and report", 6 * n * steps * _JSON_VALUE, f"{steps} steps x {n} nodes",
+                    reduce))
+    return _need("design", [_prior_hessians(m, options)], run)
+
+
+def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:
+    """``feasibility``: every grid point's row; one chunk of points per worker, and each point's design."""
+    from .consensus_design import effective
+
+    sc, opts = effective(sc, options)
+    m, n, n_x = sc.model, sc.network.n_nodes, sc.model.n_x
+    batch = min(points, chunk)
+    workers = _workers(backend, math.ceil(points / chunk))
+    fewer = "fewer grid points (the COUNTs of --grid NAME=START:STOP:COUNT)"
+    compute = [Part("the fixed-point iteration of a chunk of points",
+                    batch * n * n_x * n_x * _D * _FIXED_POINT_MATRICES,
+                    f"{batch} points x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
+               _step_hessians(m, batch * n, opts.linearization, "a smaller model")]
+    rows = Part("the grid's rows", points * (_POINT_BYTES + 100 * grid_parameters), f"{points} points", fewer)
+    return _need("feasibility", [rows, *_per_worker(compute, workers)],
+                 [rows, *_per_worker([_prior_hessians(m, opts)], workers)])
+
+
+# ------------------------------------------------------------------ the studies
+def _results(runs: int, per_run: float, what: str, sizes: str) -> Part:
+    """The per-run results of every run as the runner keeps them: the chunks and their concatenation."""
+    return Part(f"the stored results of every run: {what}", 2 * runs * per_run, f"{runs} runs x {sizes}",
+                "fewer runs (--runs)")
+
+
+def _listed(v) -> list:
+    return list(v) if isinstance(v, (list, tuple)) else [v]
+
+
+def _designed(sc, so):
+    """The scenario and the design options its consensus designs use (its DESIGN defaults merged)."""
+    from .consensus_design import effective
+
+    return effective(sc, so.design)
+
+
+def _comparison(sc, so) -> tuple[list, list, list]:
+    sc, opts = _designed(sc, so)
+    m, net = sc.model, sc.network
+    n_x, n_z = m.n_x, m.n_z
+    n, K = net.n_nodes, sc.steps
+    R = min(so.runs, so.chunk_size)
+    S = 1 + 2 * len(_listed(so["sweep_values"]))  # settings: the main one and both sweeps (at most)
+    rows = R * S
+    lin = opts.linearization
+    data = Part("the chunk's runs, attacks and received measurements",
+                rows * K * (n * n * (n_x * _D + 2) + 2 * n_z * _D) + R * K * (n_x + n_z) * _D,
+                f"{R} runs x {S} settings x {K} steps x {n} x {n} channels", "fewer runs per chunk")
+    reduce = f"{_STEPS} (a model file's STEPS)"
+    designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in ("paper", "mse")]
+    sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters"),
+           Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
+                f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)]
+    filters = max((*designs, sir), key=lambda ps: sum(p.nbytes for p in ps))
+    per_run = (S * 9 * K + 10 * (K + 1) * n_x) * _D
+    return ([_prior_hessians(m, opts)], [data, *filters],
+            [_results(so.runs, per_run, "errors and estimates", f"{S} settings x {K} steps")])
+
+
+def _consensus_robot(sc, so) -> tuple[list, list, list]:
+    sc, opts = _designed(sc, so)
+    m, net = sc.model, sc.network
+    n_x, n, K = m.n_x, net.n_nodes, sc.steps
+    R = min(so.runs, so.chunk_size)
+    checked, variants = 2, 7  # the designs checked against their bound; every variant
+    reduce = f"{_STEPS} (a model file's STEPS)"
+    chunk = _consensus(m, net, R, K, opts.mode, opts.linearization, "a consensus filter", reduce)
+    per_run = (K + 1) * n * (checked * n_x * n_x + variants * (n_x + 1)) * _D
+    sizes = f"{K + 1} steps x {n} nodes x {n_x} x {n_x} states"
+    return ([_prior_hessians(m, opts)],
+            [*chunk, Part("the chunk's results", R * per_run, f"{R} runs x {sizes}", reduce)],
+            [_results(so.runs, per_run, f"{checked} bounds and {variants} estimates per run", sizes)])
+
+
+def _particle_study(sc, so) -> tuple[list, list, list]:
+    m, K = sc.model, sc.steps
+    R = min(so.runs, so.chunk_size)
+    particles = max([so.particles or 0, *(int(v) for v in _listed(so.extra.get("table2_particles", ())))])
+    filters = 24  # at most: a study's filter configurations (its tables' rows and its sweeps)
+    per_run = filters * (K + 1) * (m.n_x + 1) * _D
+    return ([], [_particles(m, R, particles, "a particle filter"),
+                 Part("the chunk's runs and estimates", R * per_run, f"{R} runs x {filters} filters x {K + 1} steps",
+                      "fewer steps")],
+            [_results(so.runs, per_run, "every filter's estimates", f"{filters} filters x {K + 1} steps")])
+
+
+# study name -> (scenario, StudyOptions) -> (what the plan holds, what a chunk holds, what the results hold)
+STUDY_NEEDS: dict[str, Callable[[Any, Any], tuple[list, list, list]]] = {
+    "comparison": _comparison,
+    "consensus-robot": _consensus_robot,
+    "rrp-deception": _particle_study,
+    "encrypted-switching": _particle_study,
+    "binary-multi-attack": _particle_study,
+    "fdi-four-tank": _particle_study,
+}
+
+
+def study_need(name: str, sc, so) -> Need:
+    """Study ``name`` on ``sc`` with the checked options ``so`` (:class:`studies.pipeline.StudyOptions`): the
+    designs built in the plan (their Hessians), then one chunk of runs in each worker beside every run's stored
+    results.  A study without an entry in :data:`STUDY_NEEDS` needs nothing here (the runner checks its stored
+    results after the first chunk)."""
+    if name not in STUDY_NEEDS:
+        return _need(f"study {name}")
+    plan, chunk, results = STUDY_NEEDS[name](sc, so)
+    workers = _workers(so.backend, math.ceil(so.runs / so.chunk_size))  # each builds the designs, then its chunk
+    return _need(f"study {name} on {sc.name!r}", [*_per_worker(plan, workers), *results],
+                 [*_per_worker(chunk, workers), *results])

@@ -1,0 +1,132 @@
+"""Memory: every command estimates what it will hold and refuses, before computing, what cannot fit (exit 2)."""
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from designer.design import DesignOptions, resolve_scaling
+from designer.validation import InputError
+from studies import memory
+from studies.cli import main
+from studies.scenarios import scenario_of
+
+GiB = 2**30
+
+# A chain of NX states on NODES nodes, each node measuring NX / NODES of them (the issue's 300-state model).
+CHAIN = """
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+NX, NODES = {nx}, {nodes}
+NETWORK = SensorNetwork.from_edges(NODES, [(i, i + 1) for i in range(NODES - 1)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
+def model() -> Model:
+    x = ca.SX.sym("x", NX)
+    f = ca.vertcat(*[0.99 * x[i] + 0.01 * ca.sin(x[(i + 1) % NX]) for i in range(NX)])
+    per = NX // NODES
+    sensors = [Sensor(f"s{{i}}", x[i * per:(i + 1) * per], Gaussian.zero_mean(0.05 * np.eye(per)))
+               for i in range(NODES)]
+    return Model("chain", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(NX)),
+                 prior=Gaussian(np.zeros(NX), 0.05 * np.eye(NX)))
+"""
+
+
+def test_check_refuses_with_the_figure_and_what_to_reduce(monkeypatch):
+    need = memory.Need("design", ((memory.Part("the Hessians", 3 * GiB, "9 points", "the scalings u_scale"),
+                                   memory.Part("a little", 1 * GiB)),
+                                  (memory.Part("the run", 2 * GiB, "", "fewer steps (steps = 5)"),)))
+    assert need.nbytes == 4 * GiB  # the largest phase, its parts together
+    with pytest.raises(InputError) as exc:
+        memory.check(need, available=2 * GiB)
+    text = str(exc.value)
+    assert text.startswith("design would need about 4 GiB of memory, more than the 2 GiB available")
+    assert "the Hessians (9 points): 3 GiB" in text and "u_scale" in text and "fewer steps" not in text
+    memory.check(need, available=4 * GiB)  # what fits passes
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
+    memory.check(need)  # unknown: no refusal
+
+
+def test_available_memory_reads_meminfo():
+    have = memory.available_memory()
+    assert have is None or 0 < have < 2**50
+
+
+@pytest.mark.parametrize("args, needles", [
+    (["simulate", "{tank}", "--steps", "3000000000", "--out", "{tmp}/s.npz"], ["simulate would need", "steps"]),
+    (["simulate", "{huge}", "--out", "{tmp}/s.npz"], ["steps = 10000000000"]),
+    (["design", "{tank}", "--steps", "100000000", "--out", "{tmp}/d"], ["design would need", "steps = 100000000"]),
+    (["feasibility", "{tank}", "--grid", "dos=0:0.5:100000000", "--out", "{tmp}/f"],
+     ["feasibility would need", "100000000 points", "--grid"]),
+    (["feasibility", "{tank}", "--grid", "dos=0:0.5:20000", "--grid", "fdi=0:0.4:20000", "--out", "{tmp}/f"],
+     ["400000000 points"]),
+    (["study", "comparison", "{huge}", "--runs", "2", "--out", "{tmp}/c"], ["study comparison", "steps"]),
+    (["study", "consensus-robot", "{tank}", "--runs", "1000000", "--out", "{tmp}/c"], ["runs"]),
+    (["study", "rrp-deception", "--runs", "10", "--particles", "10000000", "--out", "{tmp}/c"], ["particles"]),
+])
+def test_what_cannot_fit_is_refused_before_computing(tmp_path, monkeypatch, capsys, tank_model, args, needles):
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
+    tank_model()
+    tank_model(steps=10**10, name="huge.py")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    rc = main([a.format(tank=tmp_path / "tank.py", huge=tmp_path / "huge.py", tmp=tmp_path) for a in args])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "8 GiB available" in err and all(n in err for n in needles), err
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == before
+
+
+def test_the_300_state_model_is_refused_with_its_figure_and_fits_with_given_scalings(tmp_path, monkeypatch, capsys):
+    """The issue's case: the 'prior' scalings' Hessians of a 300-state model, (601 points, 300 components, 300 x
+    300) twice over (the components and their stack), 242 GiB; with the scalings given the design needs little."""
+    path = tmp_path / "big.py"
+    path.write_text(CHAIN.format(nx=300, nodes=10))
+    monkeypatch.setattr(memory, "available_memory", lambda: 20 * GiB)
+    assert main(["design", str(path), "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "design would need about 242 GiB" in err and "601 points x 300 components x 300 x 300" in err
+    assert "u_scale" in err and "--u-scale" in err and not (tmp_path / "d").exists()
+    sc = scenario_of(path)
+    given = memory.design_need(sc, DesignOptions(u_scale=0.0, v_scale=0.0), 50)
+    assert given.nbytes < 4 * GiB  # 10 nodes x 50 steps of 300 x 300 bounds and gains (2.4 GiB): not refused
+    memory.check(given)  # (the 20 GiB above)
+
+
+def _traced_peak(fn) -> int:
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_the_estimates_follow_the_allocated_peak(tmp_path):
+    """Within a small factor of what NumPy and Python really allocate (tracemalloc): the Hessians of the prior
+    scalings, and a design's run (the estimate also counts the schedule written, here not)."""
+    from studies.api import design
+
+    path = tmp_path / "chain.py"
+    path.write_text(CHAIN.format(nx=36, nodes=4))
+    sc = scenario_of(path)
+    m = sc.model
+    resolve_scaling(m, None, None, x0=m.prior.mean, P0=m.prior.cov)  # compiled once, outside the measure
+    peak = _traced_peak(lambda: resolve_scaling(m, None, None, x0=m.prior.mean, P0=m.prior.cov))
+    est = memory.design_need(sc, DesignOptions(), 1).phases[0][0].nbytes
+    assert peak > 40e6 and 0.7 < est / peak < 1.5, (est, peak)
+
+    design(sc, steps=3, u_scale=0.0, v_scale=0.0)
+    peak = _traced_peak(lambda: design(sc, steps=60, u_scale=0.0, v_scale=0.0))
+    est = memory.design_need(sc, DesignOptions(u_scale=0.0, v_scale=0.0), 60).nbytes
+    assert peak > 8e6 and 0.5 < est / peak < 2.5, (est, peak)
+
+
+def test_workers_multiply_the_chunks(tank_model):
+    from studies.runner import Backend
+
+    sc = scenario_of(tank_model())
+    one = memory.feasibility_need(sc, DesignOptions(), 10_000, 1, 32)
+    four = memory.feasibility_need(sc, DesignOptions(), 10_000, 1, 32, Backend("processes", workers=4))
+    rows = next(p for p in one.peak if p.what == "the grid's rows").nbytes
+    assert np.isclose(four.nbytes - rows, 4 * (one.nbytes - rows))
