@@ -257,6 +257,13 @@ def scenario_of(target, *, network: SensorNetwork | None = None, attacks: Attack
     """
     from designer.model import Model  # here: listing the scenarios needs no CasADi
 
+    if x0 is not None:  # named as the caller gave it (a model file's is X0, checked by the Scenario)
+        from designer.validation import as_vector
+
+        x0 = as_vector("x0", x0)
+        n_x = target.n_x if isinstance(target, Model) else None
+        if n_x is not None and x0.size != n_x:
+            raise InputError(f"x0 must have {n_x} entries (the model's n_x), got {x0.size}")
     if isinstance(target, Model):
         if overrides or assignments:
             raise InputError("an in-memory Model has no named parameters to override")
