@@ -32,7 +32,7 @@ def pytest_sessionfinish(session, exitstatus):
         shutil.rmtree(_OWN, ignore_errors=True)
 
 
-_TANK_MODEL = '''
+TANK_MODEL = '''
 import casadi as ca
 import numpy as np
 from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
@@ -54,7 +54,7 @@ def tank_model(tmp_path):
     ``tank_model(steps=K, name="other.py")`` writes another one with ``STEPS = K``."""
     def write(steps: int = 20, name: str = "tank.py"):
         path = tmp_path / name
-        path.write_text(_TANK_MODEL.replace("STEPS = 20", f"STEPS = {steps}"))
+        path.write_text(TANK_MODEL.replace("STEPS = 20", f"STEPS = {steps}"))
         return path
 
     return write

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import TANK_MODEL
 
 from designer.validation import InputError
 from studies.cli import main
@@ -85,20 +86,7 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, needle):
     assert not list(tmp_path.iterdir()), "nothing may be written on bad input"
 
 
-_MODEL = """
-import casadi as ca
-import numpy as np
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-STEPS = 20
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.2, components=(0,)))
-def model() -> Model:
-    x = ca.SX.sym("x", 2)
-    f = ca.vertcat(x[0] + 0.1 * x[1], 0.95 * x[1])
-    sensors = [Sensor(f"s{i}", x[0] + 0.1 * i * x[1], Gaussian.zero_mean([[0.05]])) for i in range(3)]
-    return Model("tank", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(2)),
-                 prior=Gaussian([0.0, 1.0], 0.05 * np.eye(2)))
-"""
+_MODEL = TANK_MODEL  # a user's model file (tests/conftest.py)
 
 
 @pytest.mark.parametrize(
