@@ -165,7 +165,7 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     res = api.design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
-               f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}")
+               f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, verdict {res.verdict}")
     hard = res.hard_violations
     for v in hard[:20]:
         click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "
@@ -177,6 +177,9 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
         click.echo(f"  Theorem 2 (mean-square boundedness) not certified at {n_th2} (node, step) pairs")
     if hard:
         raise ComputationError(f"infeasible design: {res.reason()} (schedule written, marked feasible: false)")
+    if not res.certified:
+        raise ComputationError(f"design {res.verdict_line()} (schedule written, marked certified: false)")
+    click.echo(f"  {res.verdict_line()}")
 
 
 @cli.command("feasibility")
@@ -196,8 +199,9 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
                            assignments=assignments, **_options(kw))
     n_ok = sum(r["feasible"] for r in fmap.rows)
     failed = f", {len(fmap.failures)} failed (see the report)" if fmap.failures else ""
+    counts = ", ".join(f"{c} {v}" for v, c in fmap.verdict_counts.items() if c)
     click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible{failed} "
-               f"({fmap.options.mode or 'paper'} design)")
+               f"({fmap.options.mode or 'paper'} design); verdicts: {counts}")
 
 
 @cli.command("study")

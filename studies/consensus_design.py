@@ -23,6 +23,7 @@ from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.validation import InputError, check_int
+from designer.verdict import GLOBAL_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces, verdict
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
@@ -31,7 +32,7 @@ from .results import versions
 from .scenarios import Scenario
 
 __all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
-           "check_first_step"]
+           "check_first_step", "design_verdict"]
 
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
@@ -94,6 +95,34 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str) -> None:
         raise InputError(f"{name}: {exc} (set --sigma / --beta)") from None
 
 
+def _infeasible_reason(violations: list[dict]) -> str | None:
+    """The first hard violation ((28), (29), divergence) in one line; None when there is none."""
+    hard = [v for v in violations if v["condition"] in HARD_CONDITIONS]
+    if not hard:
+        return None
+    first = min(hard, key=lambda v: (v["step"], v["node"]))
+    detail = first["reason"] if "reason" in first else f"margin {first['margin']:.4g}"
+    return (f"{len(hard)} violations of (28)-(29) or divergence; first at node {first['node']}, step "
+            f"{first['step']}, condition {first['condition']}, {detail}")
+
+
+def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], references: dict) -> Verdict:
+    """The verdict (:func:`designer.verdict.verdict`) on a bound computed along a run of ``model``.
+
+    ``trace``: tr Φ_{k|k} per node for k = 1..K (NaN where Φ is not a bound); the open-loop covariance is
+    the prior covariance propagated through the linearisation at the operating point (``x0``, ``u0``, where
+    ``references`` were computed) with the process noise over the same K steps.
+    """
+    F = model.F_expected(x0, 0, u0)
+    steps = trace.shape[1]
+    ol = open_loop_traces(F, model.process_cov, model.prior.cov, steps)
+    feasible = not any(v["condition"] in HARD_CONDITIONS for v in violations)
+    return verdict(trace, ol, feasible=feasible, centralized=references["centralized"], local=references["local"],
+                   infeasible_reason=_infeasible_reason(violations),
+                   open_loop_how=(f"the prior covariance propagated by P <- F P F^T + Q over the {steps} steps, F the "
+                                  "linearisation at the operating point, no measurement"))
+
+
 @dataclass(frozen=True, eq=False)
 class Design:
     """A consensus filter designed along one seeded run (what ``cfdesign design`` computes).
@@ -142,15 +171,29 @@ class Design:
         """tr Φ_{k+1|k+1} per node and step, (nodes, steps); NaN where Φ is not a bound."""
         return np.array([[np.nan if v is None else v for v in row] for row in self.schedule.trace_bound()])
 
+    @property
+    def verdict(self) -> str:
+        """``certified``, ``vacuous``, ``not steady`` or ``infeasible`` (:mod:`designer.verdict`)."""
+        return self.schedule.meta["verdict"]
+
+    @property
+    def certified(self) -> bool:
+        """Feasible, with a finite, steady and informative bound (``verdict == 'certified'``)."""
+        return bool(self.schedule.meta["certified"])
+
+    @property
+    def verdict_detail(self) -> dict:
+        """The numbers behind the verdict: final tr Φ per node, the open-loop trace, the references, the ratios,
+        the steadiness measure (``schedule.json``'s ``verdict_detail``)."""
+        return self.schedule.meta["verdict_detail"]
+
     def reason(self) -> str | None:
         """Why the design is infeasible, in one line (None when feasible)."""
-        hard = self.hard_violations
-        if not hard:
-            return None
-        first = min(hard, key=lambda v: (v["step"], v["node"]))
-        detail = first["reason"] if "reason" in first else f"margin {first['margin']:.4g}"
-        return (f"{len(hard)} violations of (28)-(29) or divergence; first at node {first['node']}, step "
-                f"{first['step']}, condition {first['condition']}, {detail}")
+        return _infeasible_reason(self.violations)
+
+    def verdict_line(self) -> str:
+        """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it."""
+        return describe(self.verdict_detail) + (f"; {GLOBAL_CLAUSE}" if self.design.mode == "mse" else "")
 
     def save(self, directory) -> Path:
         """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``."""
@@ -181,6 +224,10 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
     res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
+    refs = kalman_references(m, x0, u0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        trace = np.trace(Phi[:, 1:], axis1=-2, axis2=-1)
+    ver = design_verdict(m, x0, u0, trace, res.violations, refs)
     schedule = GainSchedule(
         scenario=sc.name,
         mode=des.mode,
@@ -208,6 +255,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
                       "the bound holds for the linearisation points and DoS pattern it was computed along",
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
+            "certified": ver.certified,
+            "verdict": ver.verdict,
+            "verdict_detail": ver.detail,
             # mode 'mse': the trace of each node's predicted error covariance (nodes x steps + 1), the accuracy the
             # gains were chosen for (the bound is the certificate)
             "predicted_mse": None if res.predicted_mse is None else [
@@ -215,12 +265,12 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "conditioning": conditioning(res.gain_condition),
             "network": net.describe(),
             "observability": observability(m, x0, u0),
-            "kalman_references": kalman_references(m, x0, u0),
+            "kalman_references": refs,
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
             "source": sc.source,
             "invocation": invocation,
-            "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS),
+            "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),
             "versions": versions(),
         },
     )

@@ -24,6 +24,16 @@ the other points are mapped as they would be without it (:attr:`FeasibilityMap.f
 ``failed_points`` in ``feasibility.json``, the report says how many and why).  Options wrong at
 every point (not a grid value) are the user's input: an InputError before any point.
 
+**The verdict of a point** (the ``verdict`` column; :func:`designer.verdict.verdict` on the stationary bound,
+the function ``cfdesign design`` judges its bound with): ``certified`` where the iteration reached a fixed point
+whose tr Φ is below the stationary open-loop covariance's trace at every node (the discrete Lyapunov solution at the
+operating point, or, where ``F`` is not Schur stable, the open-loop covariance at the scenario's horizon),
+``vacuous`` where some node's fixed point is at or above it, ``not steady`` where (28)-(29) held at every iterate but
+no fixed point was reached ("no convergence", "unbounded"), ``infeasible`` where (28), (29) failed, the iteration
+diverged, or the point has no design (``dos + fdi > 1``, a failed point).  ``feasible`` keeps its meaning (a
+bounded fixed point exists); ``feasibility.json`` counts the verdicts (``verdicts``) and records the open-loop
+reference (``open_loop``).
+
 **Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
 the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
 received) and the transient from the prior.  ``feasibility`` checks whether the
@@ -53,6 +63,7 @@ from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
+from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, open_loop_reference, verdict
 
 from . import memory
 from .consensus_design import effective
@@ -61,7 +72,7 @@ from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
 __all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
-           "OUTPUTS", "FAILED"]
+           "OUTPUTS", "FAILED", "point_verdict", "stationary_open_loop"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
 
@@ -78,7 +89,7 @@ GRID_PARAMETERS = {
     "v_scale": "V_i = v I at every sensor, >= 0",
 }
 _PAPER_ONLY = ("tau", "sigma", "beta")
-OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations")
+OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations", "verdict")
 
 
 def _grid_spec(spec: str) -> tuple[str, Fraction, Fraction, int]:
@@ -164,7 +175,7 @@ def _scaling(model, des, x0, u0, xp):
 
 
 _NO_ATTACK_MODEL = {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
-                    "iterations": 0}
+                    "iterations": 0, "verdict": "infeasible"}
 FAILED = "failed: "  # the start of the binding of a point whose design or iteration raised
 _POINT_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, ComputationError)  # ValueError: InputError too
 _REASON_CHARS = 200
@@ -176,7 +187,8 @@ def _failed(exc: BaseException) -> dict:
     reason = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
     if len(reason) > _REASON_CHARS:
         reason = reason[:_REASON_CHARS - 1] + "…"
-    return {"feasible": 0, "trace_bound": float("nan"), "binding": FAILED + reason, "theorem2": 0, "iterations": 0}
+    return {"feasible": 0, "trace_bound": float("nan"), "binding": FAILED + reason, "theorem2": 0, "iterations": 0,
+            "verdict": "infeasible"}
 
 
 def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: bool = False):
@@ -203,9 +215,41 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
         return _failed(exc)
 
 
-def _row(r) -> dict:
+_NOT_STEADY = ("no convergence", "unbounded")  # (28)-(29) held at every iterate, but no fixed point was reached
+
+
+def point_verdict(r, open_loop: float, nodes: int) -> str:
+    """The verdict (:func:`designer.verdict.verdict`) on the stationary bound of one grid point's iteration ``r``
+    (a :class:`designer.feasibility.SteadyState`) against the stationary open-loop trace ``open_loop``.
+
+    A fixed point is steady; an iteration that stopped without one ("no convergence", "unbounded": the conditions
+    held at every iterate) is not steady; (28), (29) or a diverged iteration is infeasible.
+    """
+    if r.feasible:
+        trace = np.trace(r.phi, axis1=1, axis2=2)[:, None]
+        return verdict(trace, open_loop, feasible=True, fixed_point=True).verdict
+    if r.binding in _NOT_STEADY:
+        return verdict(np.full((nodes, 1), np.nan), open_loop, feasible=True, fixed_point=False).verdict
+    return verdict(np.full((nodes, 1), np.nan), open_loop, feasible=False).verdict
+
+
+def _open_loop_record(sc: Scenario) -> dict:
+    """``feasibility.json``'s ``open_loop``: the stationary open-loop trace (null when it overflows) and how."""
+    trace, how = stationary_open_loop(sc)
+    return {"trace": trace if math.isfinite(trace) else None, "how": how}
+
+
+def _row(r, open_loop: float, nodes: int) -> dict:
     return {"feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
-            "theorem2": int(r.theorem2), "iterations": r.iterations}
+            "theorem2": int(r.theorem2), "iterations": r.iterations, "verdict": point_verdict(r, open_loop, nodes)}
+
+
+def stationary_open_loop(sc: Scenario) -> tuple[float, str]:
+    """The open-loop reference of ``sc``'s map (:func:`designer.verdict.open_loop_reference` at the operating point,
+    the scenario's horizon where ``F`` is not Schur stable)."""
+    m = sc.model
+    x0, u0 = sc.operating_point
+    return open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
 
 
 def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, batched: bool = True) -> list[dict]:
@@ -222,6 +266,8 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     F, H, R, xp = _linearisation(sc)
     x0, u0 = sc.operating_point
     m = sc.model
+    ol, _ = stationary_open_loop(sc)
+    N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
@@ -238,17 +284,17 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
         s, d = item
         try:
             if batched:
-                return _row(batch([item])[0])
+                return _row(batch([item])[0], ol, N)
             return _row(steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U,
                                      V=d.V, mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span,
-                                     **kw))
+                                     **kw), ol, N)
         except _POINT_ERRORS as exc:
             return _failed(exc)
 
     rows = None
     if batched and ok:
         try:
-            rows = [_row(r) for r in batch(ok)]
+            rows = [_row(r, ol, N) for r in batch(ok)]
         except _POINT_ERRORS:
             rows = None  # one of them raised: each point alone
     if rows is None:
@@ -286,7 +332,8 @@ class FeasibilityMap:
     rows : list of dict
         Per point: the grid values, ``feasible`` (0/1), ``trace_bound`` (mean over nodes of the
         steady-state tr Φ, NaN when infeasible), ``binding`` (``"failed: <reason>"`` where the point's
-        design or iteration raised: :attr:`failures`), ``theorem2``, ``iterations``.
+        design or iteration raised: :attr:`failures`), ``theorem2``, ``iterations``, ``verdict`` (the
+        stationary bound's verdict, :func:`point_verdict`).
     runner : dict
         What the Monte Carlo runner computed and reused.
     """
@@ -314,6 +361,21 @@ class FeasibilityMap:
     @property
     def trace_bound(self) -> np.ndarray:
         return np.array([r["trace_bound"] for r in self.rows], dtype=float).reshape(self.shape)
+
+    @property
+    def verdict(self) -> np.ndarray:
+        """The verdict per point (``certified``, ``vacuous``, ``not steady``, ``infeasible``), shaped like the grid."""
+        return np.array([r["verdict"] for r in self.rows], dtype=object).reshape(self.shape)
+
+    @property
+    def certified(self) -> np.ndarray:
+        """Whether each point's stationary bound is certified (finite, a fixed point, below the open loop)."""
+        return self.verdict == "certified"
+
+    @property
+    def verdict_counts(self) -> dict[str, int]:
+        """How many points have each verdict."""
+        return {v: sum(r["verdict"] == v for r in self.rows) for v in VERDICTS}
 
     @property
     def failures(self) -> list[dict]:
@@ -347,12 +409,14 @@ class FeasibilityMap:
             "grids": [{"name": n, "values": v.tolist()} for n, v in self.grids],
             "options": self.options.as_dict(), "points": len(self.rows),
             "feasible_points": int(sum(r["feasible"] for r in self.rows)), "failed_points": len(self.failures),
+            "verdicts": self.verdict_counts, "open_loop": _open_loop_record(sc),
             "operating_point": {"x0": sc.operating_point[0].tolist(),
                                 "u0": None if sc.operating_point[1] is None else sc.operating_point[1].tolist()},
             "network": sc.network.describe(), "attacks": sc.resolved_attacks.describe(sc.model.state_names),
             "observability": observability(sc.model, *sc.operating_point),
             "kalman_references": kalman_references(sc.model, *sc.operating_point),
-            "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS), "runner": self.runner,
+            "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),
+            "runner": self.runner,
             "invocation": self.invocation, "versions": versions(),
         })
         from .reports import write_report
@@ -411,7 +475,7 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     a = mc.arrays
     rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
              "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),
-             "iterations": int(a["iterations"][i])} for i, p in enumerate(points)]
+             "iterations": int(a["iterations"][i]), "verdict": str(a["verdict"][i])} for i, p in enumerate(points)]
     return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options))
 
 

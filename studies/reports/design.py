@@ -41,7 +41,7 @@ _KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible",
           "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
           "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
           "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
-          "versions", "invocation", "conditioning"}
+          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -663,8 +663,32 @@ def _summary_table(s: _Schedule, tight) -> list[str]:
                     ["r", "r", "l", "l", "l", "r"])
 
 
+_VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound is vacuous",
+                 "not steady": "Not certified: the bound is not steady", "infeasible": "Not certified: infeasible"}
+
+
+def _verdict_words(s: _Schedule) -> str | None:
+    """The report's first line: the verdict of ``schedule.json`` in words (None for a schedule written without one)."""
+    from designer.verdict import GLOBAL_CLAUSE, describe
+
+    v, detail = s.meta.get("verdict"), s.meta.get("verdict_detail")
+    if v not in _VERDICT_LEAD or not isinstance(detail, Mapping):
+        return None
+    try:
+        text = describe(detail)
+    except (TypeError, ValueError):  # a damaged detail: the verdict alone
+        text = v
+    text = text.split(": ", 1)[1] if ": " in text else text
+    oracle = f"; {GLOBAL_CLAUSE}" if s.meta.get("mode") == "mse" else ""
+    return f"**{_VERDICT_LEAD[v]}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
+
+
 def _summary_sentence(s: _Schedule, tight) -> str:
     lead = "**Use this schedule?** "
+    if s.feasible and s.meta.get("certified") is False:
+        return (lead + f"Not as a certified design: (28)-(29) held at every node and step, but the bound is "
+                f"{md_escape(s.meta.get('verdict'))}, so it does not show what the filter delivers (see the first "
+                "line; change the options or the horizon and design again).")
     if not s.feasible:
         first = s.first_hard()
         line = lead + "No: the design is infeasible along this run"
@@ -682,7 +706,8 @@ def _summary_sentence(s: _Schedule, tight) -> str:
 
 
 def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
-    out = ["## Summary", "",
+    first = _verdict_words(s)
+    out = ["## Summary", "", *([first, ""] if first else []),
            f"One seeded run of {s.steps} steps, so no Monte Carlo intervals: the nodes from the closest to failing "
            "to the farthest (a violation first, then the smallest margin of (28)-(29)).", "", *_summary_table(s, tight)]
     if "fig_trace_bound.png" in figures:

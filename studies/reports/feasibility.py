@@ -40,7 +40,7 @@ TWO_NOTIONS = (
     "reach an unbounded steady state).")
 _KNOWN = {"schema", "scenario", "grids", "options", "points", "feasible_points", "failed_points", "operating_point",
           "network", "attacks", "assumptions", "runner", "source", "state_names", "observability", "kalman_references",
-          "versions", "invocation"}
+          "versions", "invocation", "verdicts", "open_loop"}
 _THEOREM2 = {True: "holds", False: "fails", None: "—"}
 _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
 
@@ -83,6 +83,7 @@ def _read_csv(d: Path) -> tuple[list[str], list[dict]]:
         th2 = (raw.get("theorem2") or "").strip()
         row["theorem2"] = None if th2 == "" else th2 in ("1", "True", "true")
         row["iterations"] = raw.get("iterations") or ""
+        row["verdict"] = (raw.get("verdict") or "").strip() or None  # None: a map written before the verdicts
         rows.append(row)
     return names, rows
 
@@ -219,7 +220,7 @@ def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[st
                 key=lambda r: r["trace_bound"])
     bad = [r for r in rows if not r["feasible"]]
     mode = (meta.get("options") or {}).get("mode") if isinstance(meta.get("options"), Mapping) else None
-    out = ["## Summary", "",
+    out = ["## Summary", "", *_verdict_lines(rows, meta),
            f"{len(ok)} of {len(rows)} grid points admit a bounded steady-state bound ({md_escape(mode or 'paper')} "
            "design, at the operating point; a deterministic fixed point, so no Monte Carlo intervals). The "
            "feasible points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first"
@@ -245,6 +246,28 @@ def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[st
                        "the grid below shows where")
         line += "; a point's transient along a run is `cfdesign design`'s question (see the two notions below)."
     return out + [line, ""]
+
+
+_VERDICT_WORDS = {"certified": "certified (a fixed point below the open-loop covariance at every node)",
+                  "vacuous": "vacuous (a fixed point at or above the open-loop covariance at some node)",
+                  "not steady": "not steady (no fixed point reached)",
+                  "infeasible": "infeasible ((28)/(29) fail, the iteration diverged, or no design)"}
+
+
+def _verdict_lines(rows: Sequence[Mapping], meta: Mapping) -> list[str]:
+    """The report's first line: how many points have each verdict (none for a map written without them)."""
+    verdicts = [r.get("verdict") for r in rows]
+    if not any(verdicts):
+        return []
+    counts = Counter(verdicts)
+    n_cert = counts.get("certified", 0)
+    parts = [f"{counts[v]} {_VERDICT_WORDS.get(v, md_escape(v))}" for v in _VERDICT_WORDS if counts.get(v)]
+    ol = meta.get("open_loop") if isinstance(meta.get("open_loop"), Mapping) else {}
+    ref = (f" The open-loop reference: tr = {fmt_num(ol['trace'])}, {md_escape(ol.get('how'))}."
+           if is_num(ol.get("trace")) else "")
+    lead = ("**No point is certified.**" if not n_cert else
+            f"**Certified at {n_cert} of {len(rows)} grid points.**")
+    return [f"{lead} Verdicts of the stationary bound: " + ", ".join(parts) + "." + ref, ""]
 
 
 _HEAT_MAP = "The steady-state trace bound over the grid (log scale); crosses mark the infeasible points."
@@ -274,7 +297,7 @@ def _runner_section(meta: Mapping) -> list[str]:
 def _files_section(meta: Mapping, grids, figures: Sequence[str]) -> list[str]:
     out = ["## Files and reproduction", "",
            "- `feasibility.csv`: one row per grid point (the grid values, `feasible`, `trace_bound`, `binding`, "
-           "`theorem2`, `iterations`)"]
+           "`theorem2`, `iterations`, `verdict`)"]
     if isinstance(meta.get("schema"), str):
         out.append(f"- `feasibility.json`: schema `{md_escape(meta['schema'])}`; the grid, the options, the "
                    "operating point, the network, the attacks, the assumptions and the runner")

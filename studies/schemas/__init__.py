@@ -54,7 +54,7 @@ FILES: dict[str, str] = {
 }
 
 _INTEGER_COLUMNS = ("feasible", "theorem2", "iterations")
-_TEXT_COLUMNS = ("binding",)
+_TEXT_COLUMNS = ("binding", "verdict")
 _MAX_MESSAGE = 240  # characters of a validator message (they quote the offending value)
 
 
@@ -170,6 +170,18 @@ def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
                                                               "threshold but the node is not listed as ill-conditioned")
             if v is not None and where is not None and (where[i] is None or where[i] >= steps):
                 yield ["conditioning", "gain_condition_step", i], f"step {where[i]} of a run of {steps} steps"
+    detail = obj["verdict_detail"]
+    if detail["verdict"] != obj["verdict"]:
+        yield ["verdict_detail", "verdict"], f"{detail['verdict']!r} but the file's verdict is {obj['verdict']!r}"
+    if detail["horizon"] is not None and detail["horizon"] != steps:
+        yield ["verdict_detail", "horizon"], f"horizon {detail['horizon']} of a run of {steps} steps"
+    for key in ("final_trace", "local", "ratio_open_loop", "ratio_centralized", "ratio_local", "max_ratio_open_loop",
+                "growth"):
+        if detail[key] is not None and len(detail[key]) != nodes:
+            yield ["verdict_detail", key], f"{len(detail[key])} entries for a network of {nodes} nodes"
+    for j, i in enumerate(detail["nodes"]):
+        if i >= nodes:
+            yield ["verdict_detail", "nodes", j], f"node {i} of a network of {nodes} nodes"
     if "U" in obj and "state_names" in obj:
         n = len(obj["state_names"])
         yield from _matrix_shape(obj["U"], n, n, ["U"], "U (n_x x n_x)")
@@ -191,6 +203,12 @@ def _feasibility_json_shapes(obj: dict) -> Iterator[tuple[list, str]]:
         yield ["points"], f"{obj['points']} points, but the grids have {expected}"
     if obj["feasible_points"] > obj["points"]:
         yield ["feasible_points"], f"{obj['feasible_points']} feasible points of {obj['points']}"
+    counts = obj["verdicts"]
+    if sum(counts.values()) != obj["points"]:
+        yield ["verdicts"], f"{sum(counts.values())} verdicts for {obj['points']} points"
+    if counts["certified"] + counts["vacuous"] != obj["feasible_points"]:
+        yield ["verdicts"], (f"{counts['certified']} certified and {counts['vacuous']} vacuous points, but "
+                             f"{obj['feasible_points']} feasible ones (a fixed point is one or the other)")
     failed = obj.get("failed_points", 0)
     if isinstance(failed, int) and obj["feasible_points"] + failed > obj["points"]:
         yield ["failed_points"], f"{failed} failed and {obj['feasible_points']} feasible points of {obj['points']}"
