@@ -93,9 +93,9 @@ def test_contract_keys_are_required():
         "versions", "filters"}
     assert set(schemas.load("schedule")["required"]) == {
         "schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
-        "trace_bound"}
+        "trace_bound", "certified", "verdict", "verdict_detail"}
     assert set(schemas.load("feasibility")["required"]) == {"feasible", "trace_bound", "binding", "theorem2",
-                                                            "iterations"}
+                                                            "iterations", "verdict"}
     from studies.feasibility_map import GRID_PARAMETERS, OUTPUTS
 
     row = schemas.load("feasibility")["properties"]
@@ -204,11 +204,12 @@ def test_feasibility_writes_valid_rows_and_json(maps, which):
 
 def test_read_feasibility_csv_types_the_cells(tmp_path):
     p = tmp_path / "feasibility.csv"
-    p.write_text("dos,tau,feasible,trace_bound,binding,theorem2,iterations\n"
-                 "0.1,0.01,1,2.5,(28),1,7\n0.9,0.01,0,,diverged,0,3\n0.5,nan,0,,(29),0,4\n")
+    p.write_text("dos,tau,feasible,trace_bound,binding,theorem2,iterations,verdict\n"
+                 "0.1,0.01,1,2.5,(28),1,7,certified\n0.9,0.01,0,,diverged,0,3,infeasible\n"
+                 "0.5,nan,0,,(29),0,4,infeasible\n")
     rows = schemas.read_feasibility_csv(p)
     assert rows[0] == {"dos": 0.1, "tau": 0.01, "feasible": 1, "trace_bound": 2.5, "binding": "(28)", "theorem2": 1,
-                       "iterations": 7}
+                       "iterations": 7, "verdict": "certified"}
     assert rows[1]["trace_bound"] is None and rows[2]["tau"] == "nan"
     with _raises_at(r"feasibility.csv row 2 \(line 4\) does not follow .*: \$\.tau: 'nan' is not of type 'number'"):
         schemas.validate_output(p)
@@ -327,7 +328,7 @@ def test_schedule_with_a_trace_bound_of_the_wrong_shape_is_rejected(designs, tmp
     ragged = _rewrite(good, tmp_path / "schedule.json", lambda s: s["sigma"][3].pop())
     with _raises_at(r"\$\.sigma\[3\]: row 3 of sigma \(nodes x steps\) has 9 entries, expected 10"):
         schemas.validate_output(ragged)
-    liar = _rewrite(good, tmp_path / "schedule.json", lambda s: s.update(feasible=True))
+    liar = _rewrite(good, tmp_path / "schedule.json", lambda s: s.update(feasible=True, verdict="not steady"))
     with _raises_at(r"\$\.violations\[\d+\]\.condition: '\(2[89]\)' should not be valid"):
         schemas.validate_output(liar)
 
