@@ -49,7 +49,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 __all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GLOBAL_CLAUSE",
-           "Verdict", "verdict", "describe", "steadiness_window", "open_loop_traces", "open_loop_reference"]
+           "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
+           "open_loop_reference"]
 
 VERDICTS = ("certified", "vacuous", "not steady", "infeasible")
 GROWTH_TOLERANCE = 0.05  # relative growth of the window median a steady bound may show
@@ -250,6 +251,12 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
                 out = Verdict("certified", None)
     detail.update({"verdict": out.verdict, "reason": out.reason, "nodes": out.nodes})
     return Verdict(out.verdict, out.reason, out.nodes, detail)
+
+
+def count_verdicts(verdicts) -> dict[str, int]:
+    """How many of ``verdicts`` (names of :data:`VERDICTS`) are each verdict, in the order of :data:`VERDICTS`."""
+    verdicts = list(verdicts)
+    return {v: verdicts.count(v) for v in VERDICTS}
 
 
 def describe(detail: Mapping) -> str:

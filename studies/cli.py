@@ -284,6 +284,8 @@ def _summary(f: dict) -> str:
                      f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else ""))
     if isinstance(f.get("feasibility"), dict):
         parts.append(f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}")
+    if isinstance(f.get("verdicts"), dict):
+        parts.append(f"certified runs {f['verdicts']['certified']}/{sum(f['verdicts'].values())}")
     return ", ".join(parts)
 
 

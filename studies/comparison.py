@@ -62,7 +62,9 @@ from filters.ekf import run_ekf_batch
 from filters.particle import run_sir
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
-from .consensus_design import as_mode, check_first_step, consensus_design
+from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
+
+from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
@@ -152,7 +154,9 @@ ASSUMPTIONS = (
     "overconfident), Metropolis weights 1/(1 + max(d_i, d_j)); L = hcmci_iterations (default 1: the same messages "
     "per step as the consensus EKF).",
     "comparison: every design runs at every setting (the tuned one is left out of the sweeps with the study option "
-    "--set tuned_in_sweeps=false); the sweep tables give each design's feasible_runs (runs certified throughout).",
+    "--set tuned_in_sweeps=false); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
+    "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
+    "covariance, designer.verdict).",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.mse:"
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
     "received packet); its certificate is the bound (26)-(27) of the stacked error of all nodes for those gains "
@@ -280,6 +284,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
+    verdict = np.full((R, S, F), np.nan)  # index into designer.verdict.VERDICTS of each run's bound
     delivered = np.full((R, S, F), np.nan)  # packets delivered per step (KCF, HCMCI), mean over the steps
     est = np.full((R, F, K + 1, m.n_x), np.nan)
     truth = np.empty((R, K + 1, m.n_x))
@@ -335,6 +340,10 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                 feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
                                                          for v in res.violations[row]))
                 score(a, j, f, res.x_post[row], ok)  # x_post (K + 1, nodes, n_x)
+            rows_j = [(js[row // R], row % R) for row in range(len(res.diverged))]
+            for (j, a), v in zip(rows_j, bound_verdicts(sc, res.phi_post, res.valid,
+                                                        [feasible[a, j, f] == 1 for j, a in rows_j])):
+                verdict[a, j, f] = VERDICTS.index(v)
     f = FILTERS.index(LOCAL)  # the local EKFs use no network: one batch, the same at every setting
     res = batch(f, [0], local_net, local, None)
     secs[:, :, f] = secs[:, :1, f]
@@ -383,8 +392,13 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             for c, f in enumerate(pfs):
                 xs = res.mean[2 * S * a + 2 * j + c][:, None]
                 score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
-    return {"err2": err2, "seconds": secs, "feasible": feasible, "delivered": delivered, "estimate": est,
-            "truth": truth}
+    return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "delivered": delivered,
+            "estimate": est, "truth": truth}
+
+
+def _verdict_counts(codes: np.ndarray) -> dict[str, int]:
+    """How many runs' bounds have each verdict (``codes``: indices into VERDICTS, NaN where not run)."""
+    return count_verdicts(VERDICTS[int(c)] for c in codes[~np.isnan(codes)])
 
 
 def _alike(items: list, key) -> list[list]:
@@ -468,6 +482,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         })
         if name in DESIGNED:
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
+            met["verdicts"] = _verdict_counts(A["verdict"][:, 0, f])
         if name in LITERATURE:
             met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
         if name == HCMCI:
@@ -492,6 +507,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                 row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
                 if name in DESIGNED:  # runs whose design held (28)-(29) throughout: certified at this setting
                     row[name]["feasible_runs"] = int(np.nansum(A["feasible"][:, j, f]))
+                    row[name]["certified_runs"] = _verdict_counts(A["verdict"][:, j, f])["certified"]
             sweeps[skey][f"{val:g}"] = row
     att = sc.resolved_attacks
     sig = att.signal
@@ -522,7 +538,7 @@ def _combine(blocks: dict) -> dict:
     return {
         "scenario": ", ".join(blocks), "runs": first["runs"], "steps": first["steps"],
         "assumptions": list(dict.fromkeys(a for b in blocks.values() for a in b["assumptions"]))
-        + list(DESIGN_ASSUMPTIONS) + list(ASSUMPTIONS),
+        + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS) + list(ASSUMPTIONS),
         "runner": {sc: b["runner"] for sc, b in blocks.items()},
         "filters": {label(sc_name, n): {**f, "scenario": sc_name}
                     for sc_name, b in blocks.items() for n, f in b["filters"].items()},

@@ -32,7 +32,7 @@ from .results import versions
 from .scenarios import Scenario
 
 __all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
-           "check_first_step", "design_verdict"]
+           "check_first_step", "design_verdict", "bound_verdicts"]
 
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
@@ -106,6 +106,14 @@ def _infeasible_reason(violations: list[dict]) -> str | None:
             f"{first['step']}, condition {first['condition']}, {detail}")
 
 
+def _open_loop(model, x0, u0, steps: int) -> tuple[np.ndarray, str]:
+    """The open-loop covariance's trace at steps 1..``steps`` (the prior covariance propagated through the
+    linearisation at the operating point with the process noise, no measurement) and how it was computed."""
+    ol = open_loop_traces(model.F_expected(x0, 0, u0), model.process_cov, model.prior.cov, steps)
+    return ol, (f"the prior covariance propagated by P <- F P F^T + Q over the {steps} steps, F the linearisation "
+                "at the operating point, no measurement")
+
+
 def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], references: dict) -> Verdict:
     """The verdict (:func:`designer.verdict.verdict`) on a bound computed along a run of ``model``.
 
@@ -113,14 +121,26 @@ def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], ref
     the prior covariance propagated through the linearisation at the operating point (``x0``, ``u0``, where
     ``references`` were computed) with the process noise over the same K steps.
     """
-    F = model.F_expected(x0, 0, u0)
-    steps = trace.shape[1]
-    ol = open_loop_traces(F, model.process_cov, model.prior.cov, steps)
+    ol, how = _open_loop(model, x0, u0, trace.shape[1])
     feasible = not any(v["condition"] in HARD_CONDITIONS for v in violations)
     return verdict(trace, ol, feasible=feasible, centralized=references["centralized"], local=references["local"],
-                   infeasible_reason=_infeasible_reason(violations),
-                   open_loop_how=(f"the prior covariance propagated by P <- F P F^T + Q over the {steps} steps, F the "
-                                  "linearisation at the operating point, no measurement"))
+                   infeasible_reason=_infeasible_reason(violations), open_loop_how=how)
+
+
+def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasible) -> list[str]:
+    """The verdict of each run's bound, as ``cfdesign design`` judges its own (:func:`design_verdict`).
+
+    ``phi_post`` (runs, K + 1, nodes, n_x, n_x) and ``valid`` (runs, K + 1, nodes) of a consensus filter run along
+    each run; ``feasible`` (runs,) whether (28)-(29) held throughout and the run did not diverge (a run that
+    diverged or broke a condition is ``infeasible``, whatever its arrays hold).
+    """
+    feasible = np.asarray(feasible, dtype=bool)
+    if not feasible.any():
+        return ["infeasible"] * len(feasible)
+    ol, _ = _open_loop(sc.model, *sc.operating_point, phi_post.shape[1] - 1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        tr = np.where(valid, np.trace(phi_post, axis1=-2, axis2=-1), np.nan)[:, 1:].swapaxes(1, 2)
+    return [verdict(t, ol, feasible=bool(f)).verdict for t, f in zip(tr, feasible)]
 
 
 @dataclass(frozen=True, eq=False)

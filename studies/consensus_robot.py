@@ -50,7 +50,9 @@ from filters.consensus_batch import run_consensus_batch
 from filters.distributed import run_hcmci, run_kcf
 
 from .comparison import HCMCI_ITERATIONS, local_ekf_design
-from .consensus_design import as_mode, check_first_step, consensus_design
+from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
+
+from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .figures import save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
@@ -461,12 +463,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                    "step": int(A[f"v{j}_diverged_step"][r]), "error": _decode(A[f"v{j}_diverged_reason"][r])}
                   for r in np.flatnonzero(div)]
         st = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
+        # each run's bound judged as cfdesign design judges its own (a diverged run is infeasible)
+        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], ~div & (A[f"v{j}_first_violation"] < 0))
+                                  ) if _checks_bound(v) else None
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         if not ok.any():  # every run diverged: no error statistics exist
             filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_ci95": None,
                              "rmse_position_median_run": None,
-                             "bound_check": None, "feasibility": None, "diverged_runs": failed,
+                             "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": failed,
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
             continue
         err = st["err"][ok][:, 1:]  # steps 1..K
@@ -500,6 +505,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                 "first_violation_step_min": int(min(fv)) if fv else None,
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
             } if _checks_bound(v) else None,
+            "verdicts": verdicts,
             "diverged_runs": failed,
             "diverged_fraction": len(failed) / runs,
             "design": describe_design(v.design) if v.filter == CONSENSUS_EKF else None,
@@ -513,7 +519,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         "particles": None,
         "steps": int(steps),
         "mode": _mode(so),
-        "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + [
+        "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS) + [
             "consensus-robot: RMSE_position = sqrt(mean over runs, nodes and steps 1..K of the squared position "
             "error; the whole state for a model without position components); per-node and per-step curves "
             "likewise; rmse_position_ci95 = its 95 % percentile bootstrap interval over the runs (1000 resamples of "

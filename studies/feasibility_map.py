@@ -63,7 +63,7 @@ from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
-from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, open_loop_reference, verdict
+from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_reference, verdict
 
 from . import memory
 from .consensus_design import effective
@@ -375,7 +375,7 @@ class FeasibilityMap:
     @property
     def verdict_counts(self) -> dict[str, int]:
         """How many points have each verdict."""
-        return {v: sum(r["verdict"] == v for r in self.rows) for v in VERDICTS}
+        return count_verdicts(r["verdict"] for r in self.rows)
 
     @property
     def failures(self) -> list[dict]:
