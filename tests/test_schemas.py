@@ -199,7 +199,9 @@ def test_feasibility_writes_valid_rows_and_json(maps, which):
         assert isinstance(r["dos"], float) and r["feasible"] in (0, 1) and isinstance(r["iterations"], int)
         assert isinstance(r["binding"], str)
     if which == "2d":  # dos + fdi > 1: infeasible, the empty cell read as null
-        assert any(r["feasible"] == 0 and r["trace_bound"] is None for r in rows)
+        assert any(r["feasible"] == 0 and r["trace_bound"] is None and r["verdict"] == "infeasible" for r in rows)
+    assert meta["verdicts"] == {v: sum(r["verdict"] == v for r in rows)
+                                for v in ("certified", "vacuous", "not steady", "infeasible")}
 
 
 def test_read_feasibility_csv_types_the_cells(tmp_path):
@@ -333,6 +335,32 @@ def test_schedule_with_a_trace_bound_of_the_wrong_shape_is_rejected(designs, tmp
         schemas.validate_output(liar)
 
 
+def test_a_schedule_whose_verdict_contradicts_itself_is_rejected(designs, tmp_path):
+    """certified and verdict agree, feasible and infeasible agree, and the detail has one entry per node and the
+    file's verdict."""
+    good = designs["feasible"] / "schedule.json"
+    assert json.loads(good.read_text())["verdict"] == "certified"
+    cases = [
+        (lambda s: s.update(certified=False), r"\$\.verdict: 'certified' should not be valid"),
+        (lambda s: s.update(verdict="vacuous"), r"\$\.verdict: 'certified' was expected"),
+        (lambda s: s.update(verdict="infeasible", certified=False), r"\$\.verdict: 'infeasible' should not be valid"),
+        (lambda s: s.update(verdict="unsure"), r"\$\.verdict: 'unsure' is not one of"),
+        (lambda s: s["verdict_detail"]["final_trace"].pop(), r"\$\.verdict_detail\.final_trace: 2 entries for a "
+                                                             r"network of 3 nodes"),
+        (lambda s: s["verdict_detail"].update(verdict="vacuous"), r"\$\.verdict_detail\.verdict: 'vacuous' but the "
+                                                                  r"file's verdict is 'certified'"),
+        (lambda s: s["verdict_detail"].update(horizon=99), r"\$\.verdict_detail\.horizon: horizon 99 of a run of 12"),
+        (lambda s: s.pop("verdict_detail"), r"\$: 'verdict_detail' is a required property"),
+    ]
+    for i, (change, message) in enumerate(cases):
+        with _raises_at(message):
+            schemas.validate_output(_rewrite(good, tmp_path / f"{i}" / "schedule.json", change))
+    bad = designs["infeasible"] / "schedule.json"
+    liar = _rewrite(bad, tmp_path / "liar" / "schedule.json", lambda s: s.update(verdict="certified", certified=True))
+    with _raises_at(r"\$\.verdict: 'infeasible' was expected"):
+        schemas.validate_output(liar)
+
+
 def test_mse_schedule_records_its_conditioning(tmp_path):
     """An mse design records each node's largest gain condition number (paper designs: null); the schema's checks
     reject entries of the wrong length and an ill-conditioned list that does not match the numbers."""
@@ -373,9 +401,17 @@ def test_feasibility_row_with_feasible_2_is_rejected(maps, tmp_path):
         schemas.validate("feasibility", {**row, "gamma": 0.5})
     with _raises_at(r"\$\.trace_bound: None is not of type 'number'"):  # a feasible point has a bound
         schemas.validate("feasibility", {**row, "feasible": 1, "trace_bound": None})
+    with _raises_at(r"\$\.verdict: 'not steady' is not one of \['certified', 'vacuous'\]"):  # a fixed point
+        schemas.validate("feasibility", {**row, "feasible": 1, "verdict": "not steady"})
     meta = maps["2d"] / "feasibility.json"
     wrong = _rewrite(meta, tmp_path / "feasibility.json", lambda m: m.update(points=m["points"] + 1))
     with _raises_at(r"feasibility.json .*: \$\.points: 7 points, but the grids have 6"):
+        schemas.validate_output(wrong)
+
+    def miscount(m):
+        m["verdicts"]["certified"] += 1
+    wrong = _rewrite(meta, tmp_path / "v" / "feasibility.json", miscount)
+    with _raises_at(r"feasibility.json .*: \$\.verdicts: 7 verdicts for 6 points"):
         schemas.validate_output(wrong)
 
 

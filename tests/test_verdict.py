@@ -1,0 +1,318 @@
+"""Verdicts on a design's bound (designer.verdict): constructed trajectories, the open-loop references, and the
+verdicts of ``cfdesign design`` and ``cfdesign feasibility`` on model files written here."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import textwrap
+
+import numpy as np
+import pytest
+from scipy.linalg import solve_discrete_lyapunov
+
+from designer.verdict import (GROWTH_TOLERANCE, MIN_WINDOW, VERDICTS, count_verdicts, describe, open_loop_reference,
+                              open_loop_traces, steadiness_window, verdict)
+from studies.cli import main
+
+K = 40
+W = steadiness_window(K)
+OL = np.full(K, 10.0)  # a flat open loop: every bound below 10 is informative
+
+
+def _median_growth(row: np.ndarray, window: int) -> float:
+    """The steadiness measure recomputed here: median of the last window over the median of the one before, - 1."""
+    n = row.size
+    return float(np.median(row[n - window:]) / np.median(row[n - 2 * window:n - window]) - 1.0)
+
+
+# ------------------------------------------------------------------------------------------- constructed bounds
+def test_a_settled_bound_below_the_open_loop_is_certified_with_its_ratios():
+    k = np.arange(K)
+    t = np.vstack([1.0 + 3.0 * 0.7**k, 2.0 + 0.5**k])
+    v = verdict(t, OL, feasible=True, centralized=0.5, local=[0.8, None])
+    assert v.verdict == "certified" and v.certified and v.reason is None and v.nodes == []
+    d = v.detail
+    assert d["final_trace"] == pytest.approx(t[:, -1])
+    assert d["ratio_open_loop"] == pytest.approx(t[:, -1] / 10.0)
+    assert d["ratio_centralized"] == pytest.approx(t[:, -1] / 0.5)
+    assert d["ratio_local"][0] == pytest.approx(t[0, -1] / 0.8) and d["ratio_local"][1] is None
+    assert d["growth"] == pytest.approx([_median_growth(r, W) for r in t], abs=1e-12)
+    assert d["judged_steps"] == [K - 2 * W + 1, K] and d["window"] == W and d["horizon"] == K
+    assert d["verdict"] == "certified" and d["open_loop_exceeded"] == 0
+    assert describe(d).startswith("certified: the bound is finite, steady")
+
+
+def test_a_bound_still_growing_at_the_horizon_is_not_steady_and_names_the_node():
+    k = np.arange(1, K + 1)
+    t = np.vstack([np.full(K, 1.0), 0.1 * 1.03**k])  # node 1 grows by 3 % a step: λ^W - 1 over a window
+    v = verdict(t, OL, feasible=True)
+    assert v.verdict == "not steady" and not v.certified and v.nodes == [1]
+    assert v.detail["growth"][1] == pytest.approx(1.03**W - 1.0)
+    assert "node 1" in v.reason and f"{1.03**W - 1:.1%}" in v.reason
+    assert describe(v.detail).startswith("not certified (not steady): node 1")
+
+
+@pytest.mark.parametrize("factor, steady", [(1.0 + 0.9 * GROWTH_TOLERANCE, True), (1.0 + 1.1 * GROWTH_TOLERANCE, False)])
+def test_the_growth_tolerance_separates_steady_from_growing(factor, steady):
+    """A bound whose last window sits ``factor`` above the window before: steady within the tolerance only."""
+    t = np.concatenate([np.full(K - W, 1.0), np.full(W, factor)])[None]
+    assert verdict(t, OL, feasible=True).verdict == ("certified" if steady else "not steady")
+
+
+def test_isolated_bursts_are_not_growth_but_a_lifted_window_is():
+    """A stationary bound lifted by 30 % at isolated steps (a burst of lost packets) in the last window is steady;
+    the same lift over the whole last window is growth (the negative control)."""
+    base = np.full(K, 1.0)
+    burst = base.copy()
+    burst[[K - 7, K - 2]] = 1.3
+    assert verdict(burst[None], OL, feasible=True).verdict == "certified"
+    lifted = base.copy()
+    lifted[K - W:] = 1.3
+    assert verdict(lifted[None], OL, feasible=True).verdict == "not steady"
+
+
+def test_a_periodic_or_decaying_bound_is_steady():
+    k = np.arange(K)
+    t = np.vstack([1.0 + 0.5 * (k % 2), 5.0 * 0.9**k + 1.0])
+    assert verdict(t, OL, feasible=True).verdict == "certified"
+
+
+def test_a_bound_above_the_open_loop_in_the_judged_steps_is_vacuous():
+    t = np.full((3, K), 2.0)
+    t[1, K - 3] = 12.0  # node 1, step K - 2: 1.2 x the open loop there
+    v = verdict(t, OL, feasible=True)
+    assert v.verdict == "vacuous" and v.nodes == [1]
+    assert f"step {K - 2}" in v.reason and "node 1" in v.reason and "1.2 x" in v.reason
+    assert v.detail["max_ratio_open_loop"] == pytest.approx([0.2, 1.2, 0.2])
+    assert v.detail["ratio_open_loop"] == pytest.approx([0.2, 0.2, 0.2])  # at the horizon it looks fine
+
+
+def test_the_transient_from_the_prior_is_not_judged():
+    """Above the open loop only at the first steps (the bound's inflation before it settles): certified, and the
+    node-steps above are still counted."""
+    t = np.full((2, K), 2.0)
+    t[0, :3] = 15.0
+    v = verdict(t, OL, feasible=True)
+    assert v.verdict == "certified" and v.detail["open_loop_exceeded"] == 3
+
+
+def test_vacuous_comes_before_not_steady_and_a_non_finite_bound_is_vacuous():
+    k = np.arange(1, K + 1)
+    growing_above = (2.0 * 1.2**k)[None]
+    assert verdict(growing_above, OL, feasible=True).verdict == "vacuous"
+    t = np.full((2, K), 1.0)
+    t[1, -1] = np.inf
+    v = verdict(t, OL, feasible=True)
+    assert v.verdict == "vacuous" and v.nodes == [1] and "not finite" in v.reason
+    assert v.detail["final_trace"][1] is None  # JSON: no inf
+
+
+def test_an_infeasible_design_is_infeasible_whatever_its_bound():
+    t = np.full((2, K), 1.0)
+    v = verdict(t, OL, feasible=False, infeasible_reason="first at node 0, step 3, condition (29)")
+    assert v.verdict == "infeasible" and not v.certified and v.reason == "first at node 0, step 3, condition (29)"
+
+
+def test_a_horizon_too_short_to_show_steadiness_is_not_steady():
+    short = 2 * MIN_WINDOW - 1
+    v = verdict(np.ones((2, short)), np.full(short, 10.0), feasible=True)
+    assert v.verdict == "not steady" and "too short" in v.reason and v.detail["growth"] is None
+    enough = 2 * MIN_WINDOW
+    assert verdict(np.ones((2, enough)), np.full(enough, 10.0), feasible=True).verdict == "certified"
+
+
+def test_an_open_loop_that_overflows_makes_any_finite_steady_bound_informative():
+    t = np.full((1, K), 1e3)
+    v = verdict(t, np.full(K, np.inf), feasible=True)
+    assert v.verdict == "certified" and v.detail["ratio_open_loop"] == [0.0] and v.detail["open_loop_trace"] is None
+
+
+def test_a_stationary_bound_is_judged_as_a_fixed_point():
+    below, above = np.array([[1.0], [3.0]]), np.array([[1.0], [30.0]])
+    assert verdict(below, 10.0, feasible=True, fixed_point=True).verdict == "certified"
+    v = verdict(above, 10.0, feasible=True, fixed_point=True)
+    assert v.verdict == "vacuous" and v.nodes == [1] and "fixed point" in v.reason
+    stuck = verdict(np.full((2, 1), np.nan), 10.0, feasible=True, fixed_point=False)
+    assert stuck.verdict == "not steady" and "fixed point" in stuck.reason
+
+
+def test_count_verdicts():
+    assert count_verdicts(["vacuous", "certified", "vacuous"]) == {"certified": 1, "vacuous": 2, "not steady": 0,
+                                                                   "infeasible": 0}
+    assert list(count_verdicts([])) == list(VERDICTS)
+
+
+# ------------------------------------------------------------------------------------------- open-loop references
+def test_open_loop_traces_follow_the_scalar_closed_form():
+    a, q, p0, n = 0.8, 0.3, 2.0, 25
+    k = np.arange(1, n + 1)
+    exact = a ** (2 * k) * p0 + q * (1 - a ** (2 * k)) / (1 - a**2)
+    got = open_loop_traces(np.array([[a, 0.0], [0.0, 1.1]]), np.diag([q, 0.0]), np.diag([p0, 0.0]), n)
+    assert got == pytest.approx(exact, rel=1e-12)
+    grows = open_loop_traces(np.array([[1e3]]), np.array([[1.0]]), np.array([[1.0]]), 200)
+    assert np.isinf(grows[-1]) and np.all(np.diff(grows[np.isfinite(grows)]) > 0)
+
+
+def test_the_stationary_open_loop_is_the_lyapunov_solution_or_the_horizon():
+    F = np.array([[0.9, 0.2], [-0.1, 0.7]])
+    Q = np.diag([0.1, 0.2])
+    tr, how = open_loop_reference(F, Q, np.eye(2), 30)
+    P = solve_discrete_lyapunov(F, Q)
+    assert np.allclose(F @ P @ F.T + Q, P) and tr == pytest.approx(np.trace(P)) and "Lyapunov" in how
+    cv = np.array([[1.0, 1.0], [0.0, 1.0]])  # marginally stable: no stationary covariance
+    tr, how = open_loop_reference(cv, Q, np.eye(2), 30)
+    P = np.eye(2)
+    for _ in range(30):
+        P = cv @ P @ cv.T + Q
+    assert tr == pytest.approx(np.trace(P)) and "horizon of 30 steps" in how
+
+
+# ------------------------------------------------------------------------------------------- cfdesign design
+CV4 = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, Gaussian, Model, SensorNetwork, Sensor
+
+STEPS = 40
+X0 = [5.0, 0.5, 5.0, 0.3]
+SITES = [(0.0, 0.0), (40.0, 0.0), (40.0, 40.0), (0.0, 40.0)]
+NETWORK = SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.0)
+Q = 0.05 ** 2 * np.kron(np.eye(2), [[1 / 3, 1 / 2], [1 / 2, 1]]) + 1e-9 * np.eye(4)
+P0 = np.diag([4.0, 0.25, 4.0, 0.25])
+
+
+def model():
+    x = ca.SX.sym("x", 4)
+    sensors = []
+    for i, (sx, sy) in enumerate(SITES):
+        dx, dy = x[0] - sx, x[2] - sy
+        if i % 2:
+            sensors.append(Sensor(f"b{i}", ca.atan2(dy, dx), Gaussian.zero_mean([[0.02 ** 2]]), (sx, sy), angles=(0,)))
+        else:
+            sensors.append(Sensor(f"r{i}", ca.sqrt(dx ** 2 + dy ** 2), Gaussian.zero_mean([[1.0]]), (sx, sy)))
+    f = ca.vertcat(x[0] + x[1], x[1], x[2] + x[3], x[3])
+    return Model("cv4", x, f, sensors, process_noise=Gaussian.zero_mean(Q), prior=Gaussian(X0, P0))
+'''
+
+SMALL = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, Gaussian, Model, SensorNetwork, Sensor
+
+STEPS = 30
+X0 = [0.0, 0.0]
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.0)
+
+
+def model():
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor(f"s{i}", x, Gaussian.zero_mean(0.05 * np.eye(2))) for i in range(3)]
+    return Model("small", x, 0.9 * x, sensors, process_noise=Gaussian.zero_mean(0.1 * np.eye(2)),
+                 prior=Gaussian(X0, 0.2 * np.eye(2)))
+'''
+
+
+def _write(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def _open_loop(F, Q, P0, steps):
+    """tr P_k, k = 1..steps, of P <- F P Fᵀ + Q propagated here."""
+    out, P = [], P0
+    for _ in range(steps):
+        P = F @ P @ F.T + Q
+        out.append(np.trace(P))
+    return np.array(out)
+
+
+def test_a_feasible_design_with_a_vacuous_bound_says_so_and_exits_1(tmp_path, capsys):
+    """The mse design of a constant-velocity target seen by range and bearing sensors: (28)-(29) hold (feasible, exit
+    0 before verdicts existed), but its bound rises above the open-loop covariance: vacuous, exit 1, and the message
+    names the node."""
+    path = _write(tmp_path, "cv4.py", CV4)
+    out = tmp_path / "d"
+    assert main(["design", str(path), "--mode", "mse", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    sched = json.loads((out / "schedule.json").read_text())
+    assert sched["feasible"] is True and sched["certified"] is False and sched["verdict"] == "vacuous"
+    detail = sched["verdict_detail"]
+    worst = int(np.argmax([-1.0 if x is None else x for x in detail["max_ratio_open_loop"]]))
+    assert "not certified (vacuous)" in err and f"node {worst}'s tr Φ" in err and "joint state" in err
+    # independently: some node's bound reaches the open loop (propagated here) in the last half of the run
+    cv = np.kron(np.eye(2), [[1.0, 1.0], [0.0, 1.0]])
+    ns = {}
+    exec(compile(CV4, "cv4", "exec"), ns)  # the file's Q and P0
+    ol = _open_loop(cv, ns["Q"], ns["P0"], sched["steps"])
+    tb = np.array([[np.inf if v is None else v for v in row] for row in sched["trace_bound"]])
+    half = sched["steps"] // 2
+    assert np.any(tb[:, half:] >= ol[half:])
+    assert set(detail["nodes"]) == {i for i in range(sched["nodes"]) if np.any(tb[i, half:] >= ol[half:])}
+    assert "**Not certified: the bound is vacuous.**" in (out / "report.md").read_text().split("## Summary", 1)[1]
+
+
+def test_a_certified_design_reports_its_ratios_against_the_references(tmp_path):
+    import studies
+    from designer.observability import kalman_references
+
+    path = _write(tmp_path, "small.py", SMALL)
+    assert main(["design", str(path), "--mode", "tuned", "--out", str(tmp_path / "d")]) == 0
+    sched = json.loads((tmp_path / "d" / "schedule.json").read_text())
+    assert sched["certified"] is True and sched["verdict"] == "certified"
+    d = sched["verdict_detail"]
+    final = np.array([row[-1] for row in sched["trace_bound"]])
+    ol = _open_loop(0.9 * np.eye(2), 0.1 * np.eye(2), 0.2 * np.eye(2), sched["steps"])
+    assert d["open_loop_trace"] == pytest.approx(ol[-1]) and d["ratio_open_loop"] == pytest.approx(final / ol[-1])
+    res = studies.design(path, mode="tuned")  # the API: the same verdict
+    assert res.certified and res.verdict == "certified" and res.verdict_detail == d
+    refs = kalman_references(res.scenario.model, *res.scenario.operating_point)
+    assert d["ratio_centralized"] == pytest.approx(final / refs["centralized"])
+    assert d["ratio_local"] == pytest.approx(final / np.array(refs["local"]))
+    summary = (tmp_path / "d" / "report.md").read_text().split("## Summary", 1)[1].strip()
+    assert summary.startswith("**Certified.** The bound is finite, steady")
+
+
+def test_a_design_too_short_to_show_steadiness_exits_1(tmp_path, capsys):
+    path = _write(tmp_path, "small.py", SMALL)
+    assert main(["design", str(path), "--mode", "tuned", "--steps", "3", "--out", str(tmp_path / "d")]) == 1
+    assert "not certified (not steady): the horizon of 3 steps is too short" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------- cfdesign feasibility
+def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_open_loop(tmp_path):
+    """v_scale from 0 to 1: certified fixed points, one above the open loop (vacuous), one never reaching a fixed
+    point (not steady); each verdict recomputed here from the point's fixed point per node."""
+    from designer.design import DesignOptions, make_design
+    from designer.feasibility import steady_state
+    from studies.consensus_design import effective
+    from studies.scenarios import scenario_of
+
+    path = _write(tmp_path, "small.py", SMALL)
+    out = tmp_path / "m"
+    assert main(["feasibility", str(path), "--mode", "tuned", "--grid", "v_scale=0:1:6", "--quiet",
+                 "--out", str(out)]) == 0
+    with open(out / "feasibility.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    meta = json.loads((out / "feasibility.json").read_text())
+    ol = np.trace(solve_discrete_lyapunov(0.9 * np.eye(2), 0.1 * np.eye(2)))
+    assert meta["open_loop"]["trace"] == pytest.approx(ol)
+    assert meta["verdicts"] == count_verdicts(r["verdict"] for r in rows)
+    H, R = [np.eye(2)] * 3, [0.05 * np.eye(2)] * 3
+    for r in rows:
+        sc, opts = effective(scenario_of(str(path)), DesignOptions(mode="tuned", v_scale=float(r["v_scale"])))
+        des = make_design(sc.model, sc.network, delta=0.0, options=opts, x0=np.zeros(2))
+        st = steady_state(0.9 * np.eye(2), H, 0.1 * np.eye(2), R, sc.network, epsilon=des.epsilon, delta=0.0, U=des.U,
+                          V=des.V, mode="tuned", phi0=0.2 * np.eye(2))
+        if st.feasible:
+            top = max(np.trace(p) for p in st.phi)
+            assert r["verdict"] == ("vacuous" if top >= ol else "certified"), r
+        else:
+            assert r["verdict"] == ("not steady" if st.binding in ("unbounded", "no convergence") else "infeasible")
+    assert {"certified", "vacuous", "not steady"} <= {r["verdict"] for r in rows}
+    summary = (out / "report.md").read_text().split("## Summary", 1)[1]
+    assert summary.strip().startswith(f"**Certified at {meta['verdicts']['certified']} of {len(rows)} grid points.**")
+    assert math.isfinite(meta["open_loop"]["trace"])
