@@ -242,10 +242,10 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
             grow = np.flatnonzero(~(growth <= GROWTH_TOLERANCE))
             if grow.size:
                 worst = int(grow[np.argmax(growth[grow])])
-                more = f" ({grow.size} of {N} nodes)" if grow.size > 1 else ""
+                more = f"{grow.size} of {N} nodes; " if grow.size > 1 else ""
                 out = Verdict("not steady", f"node {worst}'s median tr Φ over the last {W} of {T} steps is "
-                                            f"{growth[worst]:.1%} above that over the {W} steps before (a steady "
-                                            f"bound grows by at most {GROWTH_TOLERANCE:.0%}){more}",
+                                            f"{growth[worst]:.1%} above that over the {W} steps before ({more}a "
+                                            f"steady bound grows by at most {GROWTH_TOLERANCE:.0%})",
                               [int(i) for i in grow])
             else:
                 out = Verdict("certified", None)

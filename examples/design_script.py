@@ -20,6 +20,7 @@ out = Path(sys.argv[1] if len(sys.argv) > 1 else "out/design-script")
 # 1. Design the consensus filter along a seeded simulated run, with the convex tuning layer.
 d = studies.design(MODEL, mode="tuned", seed=1, out=out / "design")
 print(f"tuned design: feasible {d.feasible}; epsilon {d.design.epsilon:.3g}, delta {d.design.delta:.3g}")
+print("  verdict:", d.verdict_line())  # certified, or which condition and node prevent it
 print("  V_i (per sensor, in its own units):", [np.round(np.diag(v), 4).tolist() for v in d.design.V])
 print("  final tr Phi per node:", np.round(d.trace_bound[:, -1], 3).tolist())
 paper = studies.design(MODEL, mode="paper", seed=1)
@@ -27,7 +28,8 @@ print(f"paper design: feasible {paper.feasible}" + ("" if paper.feasible else f"
 
 # 2. Where does the tuned design keep a bounded steady-state bound?  The same design options as above.
 fmap = studies.feasibility(MODEL, ["dos=0:0.4:5", "fdi=0:0.3:4"], mode="tuned", out=out / "feasibility")
-print(f"feasibility map: {int(fmap.feasible.sum())} of {fmap.feasible.size} grid points feasible")
+print(f"feasibility map: {int(fmap.feasible.sum())} of {fmap.feasible.size} grid points feasible; verdicts "
+      f"{fmap.verdict_counts}")
 
 # 3. Compare every filter family on the same runs and attack realisations (reduced size).
 cmp = studies.study("comparison", MODEL, runs=6, particles=200, seed=1, out=out / "comparison")

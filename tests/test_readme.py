@@ -89,7 +89,8 @@ def test_the_five_minute_section_runs_as_written_and_both_blocks_write_the_same_
     namespace: dict = {}
     exec(compile(script, "README script", "exec"), namespace)
     d, m, c = namespace["d"], namespace["m"], namespace["c"]
-    assert d.trace_bound.shape == (4, 60) and m.feasible.shape == (6, 6)
+    assert d.trace_bound.shape == (4, 400) and m.feasible.shape == (6, 6) and m.verdict.shape == (6, 6)
+    assert d.certified  # the README says the 400-step design is certified (the shell block exits 0 on it)
     assert {"consensus", "local", "particle", "EKF"} == {f["family"] for f in c.filters.values()}
     python_files = _files(tmp_path)
     assert python_files.keys() == shell_files.keys()

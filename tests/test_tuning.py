@@ -1,6 +1,8 @@
 """The convex tuning layer: optima against independent references, never worse than the paper's choice."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
@@ -144,7 +146,10 @@ def test_tuned_design_of_the_robot_is_feasible_where_the_paper_is_not(tmp_path):
     assert np.all(np.isfinite(res.schedule.Phi))
     paper = design("indoor-robot", mode="paper", seed=0)
     assert not paper.result.feasible
-    assert main(["design", "indoor-robot", "--mode", "tuned", "--out", str(tmp_path / "t")]) == 0
+    # the command line exits 0 only for a certified design; the robot's tuned bound still grows at the horizon
+    code = main(["design", "indoor-robot", "--mode", "tuned", "--out", str(tmp_path / "t")])
+    sched = json.loads((tmp_path / "t" / "schedule.json").read_text())
+    assert sched["feasible"] is True and code == (0 if sched["certified"] else 1)
 
 
 @pytest.mark.parametrize("seed", range(4))
