@@ -49,6 +49,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 __all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GLOBAL_CLAUSE",
+           "GATE_CLAUSE",
            "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
            "open_loop_reference"]
 
@@ -77,7 +78,10 @@ VERDICT_ASSUMPTIONS = (
 
 # One clause for a design whose gains need the network's joint state (mode mse); the gain-rule registry will own
 # what each rule needs at run time.
-GLOBAL_CLAUSE = "its gains need the network's joint state (mode mse is a global oracle, a reference, not a deployable design)"
+GLOBAL_CLAUSE = ("its gains need the network's joint state (mode mse is a global oracle, a reference, not a deployable "
+                 "design)")
+# With a chi-square gate the packets a node keeps depend on the errors: Theorem 1's bound is not proven for them.
+GATE_CLAUSE = "with the chi-square gate the bound is a model validated by Monte Carlo only, not a proof"
 
 
 def _num(v) -> float | None:
@@ -260,30 +264,33 @@ def count_verdicts(verdicts) -> dict[str, int]:
 
 
 def describe(detail: Mapping) -> str:
-    """The verdict of ``detail`` (:attr:`Verdict.detail`, or ``verdict_detail`` read from a file) in one sentence."""
-    v = detail.get("verdict")
-    if v != "certified":
-        return f"not certified ({v}): {detail.get('reason')}"
+    """The verdict of ``detail`` (:attr:`Verdict.detail`, or ``verdict_detail`` read from a file) in one sentence:
+    what it is, why when not certified, and the final bound against the open loop and the Kalman references."""
 
     def top(key):
         r = [x for x in detail.get(key) or [] if x is not None]
         return max(r) if r else None
 
+    v = detail.get("verdict")
     W, K = detail.get("window"), detail.get("horizon")
     fixed = bool(detail.get("fixed_point"))
-    g = top("growth")
-    steady = ("a fixed point" if fixed else f"median over the last {W} of {K} steps at most {max(g, 0.0):.1%} above "
-              f"the {W} before" if g is not None else "steady")
-    ol, judged = top("max_ratio_open_loop"), detail.get("judged_steps")
-    where = "" if fixed or not judged else f" over steps {judged[0]}..{judged[1]}"
-    text = (f"certified: the bound is finite, steady ({steady}) and informative: at most {ol:.3g} x the "
-            f"{'stationary ' if fixed else ''}open-loop covariance's trace at every node{where}" if ol is not None
-            else f"certified: the bound is finite, steady ({steady}) and informative")
-    final, cen, loc = top("final_trace"), top("ratio_centralized"), top("ratio_local")
-    if final is not None:
-        refs = [f"{cen:.3g} x the centralized steady-state tr P" if cen is not None else None,
-                f"up to {loc:.3g} x a node's own local one" if loc is not None else None]
-        refs = [r for r in refs if r]
+    if v == "certified":
+        g, ol, judged = top("growth"), top("max_ratio_open_loop"), detail.get("judged_steps")
+        steady = ("a fixed point" if fixed else f"median over the last {W} of {K} steps at most {max(g, 0.0):.1%} "
+                  f"above the {W} before" if g is not None else "steady")
+        where = "" if fixed or not judged else f" over steps {judged[0]}..{judged[1]}"
+        text = f"certified: the bound is finite, steady ({steady}) and informative"
+        if ol is not None:
+            text += (f": at most {ol:.3g} x the {'stationary ' if fixed else ''}open-loop covariance's trace at every "
+                     f"node{where}")
+    else:
+        text = f"not certified ({v}): {detail.get('reason')}"
+    final = top("final_trace")
+    if final is not None and v != "infeasible":
+        refs = [f"{r:.3g} x {words}" for r, words in (
+            (top("ratio_open_loop") if v != "certified" else None, "the open loop"),
+            (top("ratio_centralized"), "the centralized steady-state tr P"),
+            (top("ratio_local"), "a node's own local one, at most")) if r is not None]
         text += (f"; {'at the fixed point' if fixed else f'at step {K}'} the largest tr Φ is {final:.4g}"
                  + (f" ({', '.join(refs)})" if refs else ""))
     return text

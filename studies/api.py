@@ -197,10 +197,13 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     Returns
     -------
     Design
-        ``.feasible``, ``.violations``, ``.reason()``, ``.trace_bound`` (nodes, steps), the
+        ``.feasible``, ``.violations``, ``.reason()``, ``.certified``, ``.verdict`` (``certified``,
+        ``vacuous``, ``not steady`` or ``infeasible``: :mod:`designer.verdict`), ``.verdict_detail``
+        (the numbers behind it), ``.verdict_line()``, ``.trace_bound`` (nodes, steps), the
         ``.schedule`` (gains ``K``, ``C``, bounds ``Phi``, ``sigma``, ``beta``), the full
-        ``.result`` of every node, and ``.save(directory)``.  An infeasible design is returned
-        (and written), not raised: check ``.feasible``.
+        ``.result`` of every node, and ``.save(directory)``.  A design that is infeasible or not
+        certified is returned (and written), not raised: check ``.certified`` (the command line
+        exits 1 on it).
     """
     from .consensus_design import run_design
 
@@ -256,7 +259,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     Returns
     -------
     FeasibilityMap
-        ``.rows``, ``.feasible`` and ``.trace_bound`` shaped like the grid, ``.failures`` (the points
+        ``.rows``, ``.feasible``, ``.trace_bound``, ``.verdict`` and ``.certified`` shaped like the grid,
+        ``.verdict_counts``, ``.failures`` (the points
         whose design or iteration raised: not feasible, ``binding`` ``"failed: <reason>"``; the others
         are mapped), ``.save(directory)``.
 

@@ -23,7 +23,8 @@ from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.validation import InputError, check_int
-from designer.verdict import GLOBAL_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces, verdict
+from designer.verdict import (GATE_CLAUSE, GLOBAL_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces,
+                              verdict)
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
@@ -213,7 +214,8 @@ class Design:
 
     def verdict_line(self) -> str:
         """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it."""
-        return describe(self.verdict_detail) + (f"; {GLOBAL_CLAUSE}" if self.design.mode == "mse" else "")
+        return (describe(self.verdict_detail) + (f"; {GLOBAL_CLAUSE}" if self.design.mode == "mse" else "")
+                + (f"; {GATE_CLAUSE}" if self.design.gate else ""))
 
     def save(self, directory) -> Path:
         """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``."""

@@ -669,7 +669,7 @@ _VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound 
 
 def _verdict_words(s: _Schedule) -> str | None:
     """The report's first line: the verdict of ``schedule.json`` in words (None for a schedule written without one)."""
-    from designer.verdict import GLOBAL_CLAUSE, describe
+    from designer.verdict import GATE_CLAUSE, GLOBAL_CLAUSE, describe
 
     v, detail = s.meta.get("verdict"), s.meta.get("verdict_detail")
     if v not in _VERDICT_LEAD or not isinstance(detail, Mapping):
@@ -680,6 +680,7 @@ def _verdict_words(s: _Schedule) -> str | None:
         text = v
     text = text.split(": ", 1)[1] if ": " in text else text
     oracle = f"; {GLOBAL_CLAUSE}" if s.meta.get("mode") == "mse" else ""
+    oracle += f"; {GATE_CLAUSE}" if s.meta.get("gate") else ""
     return f"**{_VERDICT_LEAD[v]}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
 
 
