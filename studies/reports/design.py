@@ -242,6 +242,9 @@ def _verdict_section(s: _Schedule, tight) -> list[str]:
         if tight:
             i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
             line += (f" The tightest spot: condition {cond} at node {i}, step {step}, margin {fmt_num(m)}.")
+        if s.meta.get("certified") is False:
+            line += (f" Feasible is not certified: the bound itself is {md_escape(s.meta.get('verdict'))} (the "
+                     "summary's first line says why).")
         out += [line, ""]
     else:
         first = s.first_hard()
