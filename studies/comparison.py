@@ -469,18 +469,18 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     cannot = [why for _, why in _paper_designs([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design)]
     R = int(A["err2"].shape[0])
     key = "rmse_position" if sc.model.position_index else "rmse"
-    boot_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
-    # the local EKFs and the mse design (added after the others) bootstrap from streams of their own, so that every
-    # other filter's interval keeps its draws
+    # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
+    # (on how many of its runs diverged, or on whether it ran at all)
     own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
-           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI), start=1)}
+           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI, *(n for n in FILTERS
+                                                              if n not in (LOCAL, MSE, KCF, HCMCI))), start=1)}
     L = int(so["hcmci_iterations"])
     messages = {name: {"consensus": 2 * len(net.edges) * (L if name == HCMCI else 1), "particle": net.n_nodes,
                        "EKF": net.n_nodes, "local": 0}[FAMILY[name]] for name in FILTERS}
     filters = {}
     for f, name in enumerate(FILTERS):
         reason = cannot[0] if name == PAPER_DESIGN else None
-        met = (_metrics(A["err2"][:, 0, f], own.get(name, boot_rng), key) if reason is None else
+        met = (_metrics(A["err2"][:, 0, f], own[name], key) if reason is None else
                _not_run(reason, key))
         fam = FAMILY[name]
         met.update({
@@ -514,7 +514,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                     row[name] = {k: filters[name][k] for k in (key, f"{key}_ci95", f"{key}_median_run",
                                                                "diverged_runs")}
                     continue
-                mm = _metrics(A["err2"][:, j, f], own.get(name, boot_rng), key, curve=False)
+                mm = _metrics(A["err2"][:, j, f], own[name], key, curve=False)
                 row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
                 if name in DESIGNED:  # runs whose design held (28)-(29) throughout: certified at this setting
                     row[name]["feasible_runs"] = int(np.nansum(A["feasible"][:, j, f]))

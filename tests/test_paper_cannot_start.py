@@ -160,3 +160,38 @@ def test_the_other_filters_do_not_depend_on_whether_the_paper_design_runs(tmp_pa
     assert {k.split("_")[0] for k in keys} == {"truth", "v2", "v3", "v4", "v5"}  # KCF, HCMCI, local, centralized
     for k in keys:
         assert _same(blocked[k], runs[k]), k
+
+
+def test_no_filters_interval_depends_on_another_filters_runs(tmp_path):
+    """Each filter bootstraps its 95 % intervals from its own stream: the others' intervals, at every setting, are
+    the same whether the paper design kept every run, lost some to divergence or was not run at all."""
+    from types import SimpleNamespace
+
+    from studies.comparison import STUDY as COMPARISON, _summarise
+    from studies.pipeline import StudyOptions
+    from studies.runner import Backend
+
+    path = str(_write(tmp_path, "tank", TANK_MODEL))
+    kw = dict(runs=4, particles=30, sweep_values=[0.3], tuned_in_sweeps=False)
+    res = api.study("comparison", path, **kw)
+    sc = next(iter(res.scenarios.values()))
+    arrays = next(iter(res.arrays.values()))
+    p = FILTERS.index(PAPER_DESIGN)
+    assert not res.filters[PAPER_DESIGN].get("infeasible") and np.isfinite(arrays["err2"][:, 0, p]).all()
+    so = StudyOptions(4, 30, 0, COMPARISON.chunk_size, Backend(), DesignOptions(),
+                      {**COMPARISON.options, "sweep_values": [0.3], "tuned_in_sweeps": False})
+    lost = {k: v.copy() for k, v in arrays.items()}
+    lost["err2"][[1, 3], :, p] = np.nan  # two of the paper design's runs diverged
+
+    def intervals(a):
+        block = _summarise(sc, SimpleNamespace(arrays=a, describe=lambda: {}), so)
+        rows = {n: {k: v for k, v in f.items() if "ci95" in k} for n, f in block["filters"].items()}
+        sweeps = {(prm, val, n): row[n] for prm, by in block["sweeps"].items() for val, row in by.items()
+                  for n in row if n != PAPER_DESIGN}
+        return rows, sweeps
+
+    (full, sw_full), (part, sw_part) = intervals(arrays), intervals(lost)
+    assert full[PAPER_DESIGN] != part[PAPER_DESIGN]  # the paper design's own interval does change
+    assert {n: v for n, v in full.items() if n != PAPER_DESIGN} == {n: v for n, v in part.items() if n != PAPER_DESIGN}
+    assert sw_full == sw_part
+
