@@ -254,7 +254,9 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
 
 
 def _summary(f: dict) -> str:
-    """One filter's line: its accuracy, cost and (consensus) bound check."""
+    """One filter's line: its accuracy, cost and (consensus) bound check; a design that could not start says why."""
+    if f.get("infeasible"):
+        return f"infeasible, not run: {f['infeasible']}"
     parts = []
     for key in ("rmse_position", "rmse"):
         if key in f:

@@ -30,7 +30,9 @@ components, of the whole state) over runs and steps (consensus and local filters
 over the nodes, each node's own estimate), its 95 % bootstrap interval over runs, the
 median run, the per-step curve, time per step (one run, the whole network or centre),
 messages per step, runs where a consensus design's conditions failed or a filter
-diverged.  Sweeps: the DoS probability with FDI as declared, and the FDI probability
+diverged.  A paper design that cannot start (σ or β beyond (28)/(29) at the first step, the
+same in every run) is not run: it is reported as infeasible, with the reason, and every other
+filter runs.  Sweeps: the DoS probability with FDI as declared, and the FDI probability
 with DoS as declared, on the same runs (common random numbers: the same draws turn into
 more attacks as the probability grows).
 
@@ -161,6 +163,11 @@ ASSUMPTIONS = (
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
     "received packet); its certificate is the bound (26)-(27) of the stacked error of all nodes for those gains "
     "(one sigma and one beta for the network, the cross-covariances propagated).",
+    "comparison: a paper design whose fixed sigma or beta breaks (28) or (29) at the first step (the same in every "
+    "run: every node starts at the prior mean with Phi = P0) cannot start: it is not run at that setting and is "
+    "reported as infeasible with the reason (no RMSE), and every other filter runs on the same runs; when sigma, "
+    "beta or tau were given (--sigma, --beta, --tau or the model's DESIGN) the study refuses such a design before "
+    "any run instead.",
     "comparison: the local EKF of a node is the consensus filter of that node with no neighbours and sigma = "
     "beta = 0, U = V = 0 (exactly the EKF on the node's own sensor); a node that cannot observe the state alone "
     "drifts.",
@@ -262,13 +269,14 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     sc = scs[0]
     m, K, n = sc.model, sc.steps, sc.network.n_nodes
     signal = sc.resolved_attacks.signal
-    designs = [{PAPER_DESIGN: consensus_design(s, as_mode(options, "paper"))} for s in scs]
-    for j, s in enumerate(scs):
+    papers = _paper_designs(scs, options)
+    designs = [{} if reason is not None else {PAPER_DESIGN: paper} for paper, reason in papers]  # one that cannot
+    for j, s in enumerate(scs):  # start is not run: its arrays stay NaN and the summary says why
         designs[j][MSE] = consensus_design(s, as_mode(options, "mse"))
         if j == 0 or tuned_in_sweeps:
             designs[j][TUNED] = consensus_design(s, as_mode(options, "tuned"))
     local_net = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-    local = local_ekf_design(designs[0][PAPER_DESIGN])
+    local = local_ekf_design(papers[0][0])
     covs = fdi_covariances(m, m.prior.mean, signal)
     S, F, R = len(settings), len(FILTERS), len(run_ids)
     pfs = [FILTERS.index(PF_AWARE), FILTERS.index(PF_PLAIN)]
@@ -401,6 +409,15 @@ def _verdict_counts(codes: np.ndarray) -> dict[str, int]:
     return count_verdicts(VERDICTS[int(c)] for c in codes[~np.isnan(codes)])
 
 
+def _paper_designs(scs: Sequence[Scenario], options: DesignOptions) -> list[tuple]:
+    """Per setting: the paper design and why it cannot start there (:func:`check_first_step`; None: it can)."""
+    out = []
+    for s in scs:
+        paper = consensus_design(s, as_mode(options, "paper"))
+        out.append((paper, check_first_step(s, paper, PAPER_DESIGN)))
+    return out
+
+
 def _alike(items: list, key) -> list[list]:
     """``items`` in groups of equal ``key(item)`` (arrays, tuples and dataclasses compared by value), in order."""
     groups: list[list] = []
@@ -441,7 +458,8 @@ def _check(so: StudyOptions) -> None:
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     settings = _settings(sc, values)
-    check_first_step(sc, consensus_design(sc, as_mode(so.design, "paper")), PAPER_DESIGN)
+    # a paper design that cannot start is reported as infeasible; one whose sigma, beta or tau was given is refused
+    check_first_step(sc, consensus_design(sc, as_mode(so.design, "paper")), PAPER_DESIGN, so.design)
     ref = reference(sc)
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
@@ -461,22 +479,27 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     main = _uniform(sc)
     settings = _settings(sc, values)
+    # per setting: why the paper design cannot start there (None: it ran), as _runs decided
+    cannot = [why for _, why in _paper_designs([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design)]
+    R = int(A["err2"].shape[0])
     key = "rmse_position" if sc.model.position_index else "rmse"
-    boot_rng = np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31,)))
-    # the local EKFs and the mse design (added after the others) bootstrap from streams of their own, so that every
-    # other filter's interval keeps its draws
+    # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
+    # (on how many of its runs diverged, or on whether it ran at all)
     own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
-           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI), start=1)}
+           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI, *(n for n in FILTERS
+                                                              if n not in (LOCAL, MSE, KCF, HCMCI))), start=1)}
     L = int(so["hcmci_iterations"])
     messages = {name: {"consensus": 2 * len(net.edges) * (L if name == HCMCI else 1), "particle": net.n_nodes,
                        "EKF": net.n_nodes, "local": 0}[FAMILY[name]] for name in FILTERS}
     filters = {}
     for f, name in enumerate(FILTERS):
-        met = _metrics(A["err2"][:, 0, f], own.get(name, boot_rng), key)
+        reason = cannot[0] if name == PAPER_DESIGN else None
+        met = (_metrics(A["err2"][:, 0, f], own[name], key) if reason is None else
+               _not_run(reason, key))
         fam = FAMILY[name]
         met.update({
             "family": fam, "description": DESCRIPTION[name],
-            "time_per_step_s": float(np.nanmean(A["seconds"][:, 0, f]) / K),
+            "time_per_step_s": None if reason is not None else float(np.nanmean(A["seconds"][:, 0, f]) / K),
             "communications": messages[name], "messages_per_step": messages[name],
             "particles": so.particles if fam == "particle" else None,
         })
@@ -497,13 +520,16 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         for val, j in pts:
             row = {}
             for f, name in enumerate(FILTERS):
+                if name == PAPER_DESIGN and cannot[j] is not None:
+                    row[name] = _not_run(cannot[j], key, curve=False)
+                    continue
                 if np.all(np.isnan(A["seconds"][:, j, f])):
                     continue  # not run at this setting
                 if name == LOCAL:  # no network, nothing attacked: the same numbers at every setting
                     row[name] = {k: filters[name][k] for k in (key, f"{key}_ci95", f"{key}_median_run",
                                                                "diverged_runs")}
                     continue
-                mm = _metrics(A["err2"][:, j, f], own.get(name, boot_rng), key, curve=False)
+                mm = _metrics(A["err2"][:, j, f], own[name], key, curve=False)
                 row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
                 if name in DESIGNED:  # runs whose design held (28)-(29) throughout: certified at this setting
                     row[name]["feasible_runs"] = int(np.nansum(A["feasible"][:, j, f]))
@@ -512,7 +538,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     att = sc.resolved_attacks
     sig = att.signal
     return {
-        "scenario": sc.name, "runs": int(A["err2"].shape[0]), "steps": int(K), "nodes": int(net.n_nodes),
+        "scenario": sc.name, "runs": R, "steps": int(K), "nodes": int(net.n_nodes),
         "links": [list(e) for e in net.edges], "filters": filters, "sweeps": sweeps,
         "error": {"metric": key, "components": [sc.model.state_names[c] for c in
                                                 (sc.model.position_index or range(sc.model.n_x))]},
@@ -566,6 +592,13 @@ def _metrics(err2: np.ndarray, rng: np.random.Generator, key: str, curve: bool =
     return out
 
 
+def _not_run(reason: str, key: str, curve: bool = True) -> dict:
+    """The metrics of a design that cannot start (not run): ``infeasible`` with the reason, no error statistics
+    (like a filter that diverged in every run, it draws nothing from the bootstrap stream)."""
+    out = {"infeasible": reason, "diverged_runs": None, key: None, f"{key}_ci95": None, f"{key}_median_run": None}
+    return {**out, f"{key}_curve": None} if curve else out
+
+
 def _recommend(filters: dict, key: str) -> dict:
     """The most accurate filter, whether its lead is significant (disjoint intervals), the cheapest, the leanest."""
     scored = {n: f for n, f in filters.items() if f[key] is not None}
@@ -589,9 +622,11 @@ def table_markdown(results: dict) -> str:
         at, key = b["attacks"], b["error"]["metric"]
         what = "position" if key == "rmse_position" else "state"
         rows = {n: {"family": f["family"],
-                    "rmse": "diverged in every run" if f[key] is None else
+                    "rmse": f"infeasible, not run: {f['infeasible']}" if f.get("infeasible") else
+                    "diverged in every run" if f[key] is None else
                     f"{f[key]:.4g} [{f[f'{key}_ci95'][0]:.3g}, {f[f'{key}_ci95'][1]:.3g}]",
-                    "median": f[f"{key}_median_run"], "ms": 1e3 * f["time_per_step_s"],
+                    "median": f[f"{key}_median_run"],
+                    "ms": None if f["time_per_step_s"] is None else 1e3 * f["time_per_step_s"],
                     "msgs": f["messages_per_step"], "div": f["diverged_runs"],
                     "feas": f.get("feasible_runs")} for n, f in b["filters"].items()}
         probs = ("as declared per channel (see the attacks section)" if at["dos_prob"] is None else
@@ -625,6 +660,8 @@ def table_markdown(results: dict) -> str:
 def _sweep_cell(m: dict | None, key: str) -> str | None:
     if m is None:
         return None
+    if m.get("infeasible"):
+        return "infeasible (not run)"
     if m[key] is None:
         return "diverged"
     return f"{m[key]:.4g} ({m[f'{key}_median_run']:.3g})"

@@ -76,24 +76,38 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -
     return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
 
 
-def check_first_step(sc: Scenario, design: ConsensusDesign, name: str) -> None:
-    """Refuse, before any run, a paper design whose fixed σ or β breaks (28)/(29) at the first step.
+def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
+                     options: DesignOptions | None = None) -> str | None:
+    """Why a paper design whose fixed σ or β breaks (28)/(29) at the first step cannot start (None: it can).
 
     Every node of every run starts at the prior mean with ``Φ_0|0 = P0`` and the scenario's first
     input, so the first step's (28) on ``Φ_0|0`` and (29) on ``Φ_1|0`` are the same in every run
-    (neither depends on the measurements or the attacks); a study would otherwise fail in its first
-    run.  One step of the filter at that point raises the :class:`InputError` that ``cfdesign design``
-    gives, here prefixed with the filter's ``name``.
+    (neither depends on the measurements or the attacks): one step of the filter at that point tells,
+    before any run, whether the design can run at all.  A study then reports such a design as
+    infeasible, with the returned reason (the :class:`InputError` message of ``cfdesign design``), and
+    runs the other filters.  When ``options`` (the study's, merged over the scenario's ``DESIGN``) set
+    the paper design's own σ, β or τ, the user asked for that design: the reason is raised instead as
+    an :class:`InputError` prefixed with the filter's ``name``.
     """
     if design.mode != "paper":
-        return
+        return None
     m = sc.model
     u = sc.inputs(1)
     z = m.h_all(m.prior.mean, 1)[None]
     try:
         run_consensus(m, sc.network, z, design, inputs=u)
     except InputError as exc:
-        raise InputError(f"{name}: {exc} (set --sigma / --beta)") from None
+        reason = str(exc)
+        if "at the first step" not in reason:
+            raise
+        opts = (sc.design or DesignOptions()).merged(options)
+        given = [k for k in ("sigma", "beta", "tau") if getattr(opts, k) is not None]
+        if given:
+            raise InputError(f"{name}: {reason} ({' and '.join(given)} given by the options or the model's DESIGN: "
+                             "set --sigma / --beta within the limit, or give none of sigma, beta, tau to report this "
+                             "design as infeasible and run the other filters)") from None
+        return reason
+    return None
 
 
 def _infeasible_reason(violations: list[dict]) -> str | None:

@@ -12,7 +12,9 @@ without consensus (tau = 0), or the tuned design; the literature's distributed f
 the same network and channel realisations (:mod:`filters.distributed`: ``KCF``, Olfati-Saber's
 Kalman consensus filter, and ``HCMCI``, Battistelli et al.'s hybrid consensus on measurements
 and information with ``hcmci_iterations`` rounds per step, default 1); a local EKF per camera
-and a centralized EKF; optionally a replayed gain schedule.
+and a centralized EKF; optionally a replayed gain schedule.  A paper-design variant whose fixed
+σ or β breaks (28)/(29) at the first step (the same in every run) cannot start: it is not run
+and is reported as infeasible with the reason, and the other variants run on the same runs.
 
 The runs are computed by :mod:`studies.runner` in chunks of ``chunk_size`` runs
 (:func:`_runs` is the task: every variant on a chunk of runs, returning per-run
@@ -226,6 +228,7 @@ class _Variant(NamedTuple):
     gains: tuple | None = None  # (K, C) of a replayed schedule, (steps, nodes, ...)
     filter: str = CONSENSUS_EKF  # run_consensus with ``design``, or filters.distributed's KCF / HCMCI
     iterations: int = 1  # HCMCI's consensus rounds per step
+    infeasible: str | None = None  # why a paper design cannot start (check_first_step): not run, reported as such
 
 
 def _names(sc: Scenario) -> tuple[str, str]:
@@ -285,6 +288,9 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
     paper = consensus_design(sc, as_mode(options, "paper"))
     variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None,
                          hcmci_iterations)
+    for name, v in variants.items():  # a paper design that cannot start is not run (the others are, on the same runs)
+        if v.consensus and v.filter == CONSENSUS_EKF and v.gains is None:
+            variants[name] = v._replace(infeasible=check_first_step(sc, v.design, name))
     if replay is not None:
         sch_mode, K, C = replay
         variants[f"consensus-EKF (replayed {sch_mode} schedule)"] = _Variant(
@@ -365,6 +371,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         atts.append(simulate_attacks(net, steps, nx, np.random.default_rng(att_ss), signal))
         out["truth"][a] = trajs[a].x
     for j, v in enumerate(variants.values()):
+        if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
+            continue
         if v.filter == CONSENSUS_EKF and v.gains is None:  # every run of the chunk at once
             t = time.perf_counter()
             batch = run_consensus_batch(v.model, v.network, np.stack([tr.z for tr in trajs]), v.design,
@@ -433,7 +441,9 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
     built, paper, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
-    check_first_step(built, paper, next(n for n in variants if n.startswith("consensus-EKF (paper")))
+    # a paper design that cannot start is reported as infeasible (_build); one whose sigma, beta or tau was given is
+    # refused
+    check_first_step(built, paper, next(n for n in variants if n.startswith("consensus-EKF (paper")), options)
     spread = check_positive("divergence_spread", so["divergence_spread"]).item()
     task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
                              hcmci_iterations=_iterations(so), divergence_spread=spread)
@@ -467,6 +477,13 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], ~div & (A[f"v{j}_first_violation"] < 0))
                                   ) if _checks_bound(v) else None
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
+        if v.infeasible is not None:  # not run
+            filters[name] = {"family": v.family, "infeasible": v.infeasible, "rmse_position": None,
+                             "rmse_position_ci95": None, "rmse_position_median_run": None, "bound_check": None,
+                             "feasibility": None, "diverged_runs": None, "diverged_fraction": None,
+                             "time_per_step_s": None, "communications": v.communications,
+                             "design": describe_design(v.design)}
+            continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         if not ok.any():  # every run diverged: no error statistics exist
             filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_ci95": None,
@@ -527,6 +544,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "node_spread = mean distance of node estimates from their average. Runs that diverged (an estimate "
             "beyond 1e12 or non-finite, or an error beyond divergence_spread (default 100, --set "
             "divergence_spread=...) times the prior's spread sqrt(tr P0)) are excluded and listed under diverged_runs.",
+            "consensus-robot: a paper-design variant whose fixed sigma or beta breaks (28) or (29) at the first step "
+            "(the same in every run: every node starts at the prior mean with Phi = P0) cannot start: it is not run "
+            "and is reported as infeasible with the reason (no RMSE, no bound check), and every other variant runs on "
+            "the same runs; when sigma, beta or tau were given (--sigma, --beta, --tau or the model's DESIGN) the "
+            "study refuses such a design before any run instead.",
             "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
             "one per round), whether or not DoS drops them.",
             "consensus-robot: KCF and HCMCI (filters.distributed) run on the same network, measurements and channel "
@@ -701,13 +723,16 @@ def table_markdown(results: dict) -> str:
         bc, fe = f.get("bound_check") or {}, f.get("feasibility") or {}
         verdict = bound_verdict(f.get("bound_check"))
         ci = f.get("rmse_position_ci95")
-        rows[name] = {"rmse": f["rmse_position"] if ci is None or f["rmse_position"] is None else
+        rows[name] = {"rmse": f"infeasible, not run: {f['infeasible']}" if f.get("infeasible") else
+                      f["rmse_position"] if ci is None or f["rmse_position"] is None else
                       f"{f['rmse_position']:.4g} [{ci[0]:.3g}, {ci[1]:.3g}]", "median": f["rmse_position_median_run"],
-                      "spread": f.get("node_spread"), "div": len(f["diverged_runs"]),
+                      "spread": f.get("node_spread"),
+                      "div": None if f["diverged_runs"] is None else len(f["diverged_runs"]),
                       "feas": None if not fe else f"{fe['runs_feasible']}/{fe['runs']}",
                       "verdict": None if verdict is None else verdict[0],
                       "exceed": bc.get("fraction_exceeding"), "ratio": bc.get("trace_ratio_mean"),
-                      "ms": 1e3 * f["time_per_step_s"], "msgs": f.get("communications")}
+                      "ms": None if f["time_per_step_s"] is None else 1e3 * f["time_per_step_s"],
+                      "msgs": f.get("communications")}
     return (f"# consensus-robot (seed 003): {results['scenario']}\n\n{results['runs']} runs, K = {results['steps']} "
             f"steps, seed {results['seed']}, mode {results['mode']}.\n\n" + markdown_table(rows, [
                 ("rmse", "RMSE_p [95 % CI]"), ("median", "median run"), ("spread", "node spread"),

@@ -100,7 +100,7 @@ def _fmt(v) -> str:
         return str(int(v))
     if isinstance(v, float):
         return f"{v:.4g}"
-    return str(v)
+    return str(v).replace("|", "\\|")  # a cell's own bar (e.g. Phi_0|0 in a reason) must not split the row
 
 
 def markdown_table(rows: Mapping[str, Mapping[str, object]], columns: Sequence[tuple[str, str]], first: str) -> str:

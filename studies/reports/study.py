@@ -274,7 +274,9 @@ def _notes(name: str, b: SummaryBlock) -> str:
     ndiv = len(div) if isinstance(div, list) else div if is_num(div) else None
     if ndiv is None and is_num(m.get("diverged_fraction")) and is_num(runs):
         ndiv = round(m["diverged_fraction"] * runs)
-    if b.values[name][0] is None:
+    if isinstance(m.get("infeasible"), str):  # a design that could not start: not run, never ranked
+        notes.append(f"infeasible, not run: {m['infeasible']}")
+    elif b.values[name][0] is None:
         notes.append("no value: diverged in every run" if ndiv and is_num(runs) and ndiv >= runs else "no value")
     elif ndiv:
         notes.append(f"diverged in {fmt_num(ndiv)}" + (f" of {fmt_num(runs)}" if is_num(runs) else "")
