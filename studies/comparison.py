@@ -505,7 +505,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         })
         if name in DESIGNED:
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
-            met["verdicts"] = _verdict_counts(A["verdict"][:, 0, f])
+            met["verdicts"] = (_verdict_counts(A["verdict"][:, 0, f]) if reason is None else
+                               count_verdicts(["infeasible"] * R))  # cannot start: infeasible in every run
         if name in LITERATURE:
             met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
         if name == HCMCI:

@@ -473,15 +473,16 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                    "step": int(A[f"v{j}_diverged_step"][r]), "error": _decode(A[f"v{j}_diverged_reason"][r])}
                   for r in np.flatnonzero(div)]
         st = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
-        # each run's bound judged as cfdesign design judges its own (a diverged run is infeasible)
-        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], ~div & (A[f"v{j}_first_violation"] < 0))
-                                  ) if _checks_bound(v) else None
+        # each run's bound judged as cfdesign design judges its own (a diverged run, or a design that cannot start,
+        # is infeasible)
+        feasible = ~div & (A[f"v{j}_first_violation"] < 0) & (v.infeasible is None)
+        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], feasible)) if _checks_bound(v) else None
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         if v.infeasible is not None:  # not run
             filters[name] = {"family": v.family, "infeasible": v.infeasible, "rmse_position": None,
                              "rmse_position_ci95": None, "rmse_position_median_run": None, "bound_check": None,
-                             "feasibility": None, "diverged_runs": None, "diverged_fraction": None,
-                             "time_per_step_s": None, "communications": v.communications,
+                             "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
+                             "diverged_fraction": None, "time_per_step_s": None, "communications": v.communications,
                              "design": describe_design(v.design)}
             continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0])

@@ -316,3 +316,41 @@ def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_o
     summary = (out / "report.md").read_text().split("## Summary", 1)[1]
     assert summary.strip().startswith(f"**Certified at {meta['verdicts']['certified']} of {len(rows)} grid points.**")
     assert math.isfinite(meta["open_loop"]["trace"])
+
+
+# ------------------------------------------------------------------------------------------- the studies
+def _check_counts(f: dict, runs: int, feasible_runs: int) -> None:
+    """A designed filter's runs by verdict: every run once; a run that met (28)-(29) is certified, vacuous or not
+    steady, the others infeasible."""
+    v = f["verdicts"]
+    assert list(v) == list(VERDICTS) and sum(v.values()) == runs
+    assert v["certified"] + v["vacuous"] + v["not steady"] == feasible_runs and v["infeasible"] == runs - feasible_runs
+
+
+def test_the_studies_record_each_designed_filters_runs_by_verdict(tmp_path):
+    from studies.comparison import DESIGNED, PAPER_DESIGN
+
+    path = _write(tmp_path, "small.py", SMALL)
+    wide = _write(tmp_path, "wide.py", SMALL.replace("prior=Gaussian(X0, 0.2 * np.eye(2))",
+                                                     "prior=Gaussian(X0, 25.0 * np.eye(2))"))
+    for model, name in ((path, "c"), (wide, "w")):
+        assert main(["study", "comparison", str(model), "--runs", "2", "--particles", "40", "--quiet",
+                     "--out", str(tmp_path / name)]) == 0
+        res = json.loads((tmp_path / name / "results.json").read_text())
+        for f in DESIGNED:
+            _check_counts(res["filters"][f], 2, res["filters"][f]["feasible_runs"])
+        for row in res["sweeps"]["dos_prob"].values():
+            for f in DESIGNED:
+                if "feasible_runs" in row.get(f, {}):
+                    assert 0 <= row[f]["certified_runs"] <= row[f]["feasible_runs"]
+        assert all("verdicts" not in res["filters"][f] for f in res["filters"] if f not in DESIGNED)
+    # sigma = 0.1 breaks (28) on the wide prior at the first step: not run, infeasible in every run
+    assert res["filters"][PAPER_DESIGN]["verdicts"] == {"certified": 0, "vacuous": 0, "not steady": 0, "infeasible": 2}
+    assert main(["study", "consensus-robot", str(path), "--runs", "2", "--mode", "tuned", "--quiet",
+                 "--out", str(tmp_path / "r")]) == 0
+    res = json.loads((tmp_path / "r" / "results.json").read_text())
+    checked = [f for f in res["filters"].values() if f.get("feasibility")]
+    assert checked
+    for f in checked:
+        _check_counts(f, 2, f["feasibility"]["runs_feasible"])
+    assert all(f["verdicts"] is None for f in res["filters"].values() if f["family"] != "consensus")
