@@ -43,7 +43,7 @@ __all__ = [
     "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
 ]
 
-MODES = ("paper", "tuned", "mse")
+MODES = ("paper", "tuned", "mse", "scheduled")
 LINEARIZATIONS = ("fixed", "hessian", "structured")
 
 # The published choices of seed 003 and, marked, the values it leaves out.
@@ -102,6 +102,7 @@ class ConsensusDesign(NamedTuple):
     gate: float = 0.0  # false-rejection probability of the χ² gate on neighbour packets (0: no gate)
     fdi_signal: Any = None  # 'mse' with a gate: the designer.attacks.FDISignal (what of it passes the gate)
     fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
+    tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -329,7 +330,7 @@ class DesignOptions:
             v = getattr(self, name)
             if v is not None and v >= 1:
                 raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
-        if self.mode in ("tuned", "mse"):
+        if self.mode in ("tuned", "mse", "scheduled"):
             for name in ("sigma", "beta", "tau"):
                 if getattr(self, name) is not None:
                     raise InputError(f"{name} is chosen by the design in mode {self.mode!r}; do not give --{name}")
@@ -344,7 +345,7 @@ class DesignOptions:
             rest = self.v_scale.get("*", "prior") if isinstance(self.v_scale, Mapping) else self.v_scale
             given["v_scale"] = {**(self.v_scale if isinstance(self.v_scale, Mapping) else {}), "*": rest,
                                 **given["v_scale"]}
-        if given.get("mode") in ("tuned", "mse") and self.mode not in ("tuned", "mse"):
+        if given.get("mode") in ("tuned", "mse", "scheduled") and self.mode not in ("tuned", "mse", "scheduled"):
             # the defaults' paper-mode multipliers do not carry over to a tuned design
             base = replace(self, sigma=None, beta=None, tau=None)
         else:
@@ -384,7 +385,8 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
     d_max = max(network.d_max, 1)
     epsilon = options.epsilon
     if epsilon is None:
-        epsilon = tuned_epsilon(d_max) if mode in ("tuned", "mse") else PAPER_DEFAULTS["epsilon_fraction"] / d_max
+        epsilon = tuned_epsilon(d_max) if mode in ("tuned", "mse", "scheduled") else \
+            PAPER_DEFAULTS["epsilon_fraction"] / d_max
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0,
                            P0=model.prior.cov if P0 is None else P0, u0=u0, radius=radius)

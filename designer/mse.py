@@ -94,7 +94,7 @@ from .tuning import MARGIN, best_multiplier, increasing_root
 
 __all__ = ["joint_prior", "joint_predict", "mse_gains", "joint_update", "certificate_predict", "certificate_update",
            "JointBound", "joint_multiplier", "node_blocks", "JointCovariance", "as_difference", "as_absolute",
-           "difference_covariance", "GAIN_RCOND", "ILL_CONDITIONED", "conditioning"]
+           "difference_covariance", "solve_gains", "GAIN_RCOND", "ILL_CONDITIONED", "conditioning"]
 
 
 # --------------------------------------------------------------------------- stacks of nodes
@@ -291,7 +291,7 @@ def _moments(Pm: JointCovariance, i: int, w: np.ndarray, H: np.ndarray, R: np.nd
     """``E[e_i⁻ y_iᵀ]``, ``E[y_i y_iᵀ]``, ``s_i`` and the innovations' scales for the packets ``w`` (..., N) node i
     kept (module docstring).  The scales (..., m + n) are the measurement's standard deviations and ``s_i``
     times those of the node's own error: the size of each innovation component were the nodes' errors
-    independent, never a small difference (the unit of :func:`_solve_gains`).
+    independent, never a small difference (the unit of :func:`solve_gains`).
 
     In difference form: ``Σ_j (P_ii - P_ij) = Σ_j G_ij`` and ``Σ_{j,l} (P_ii - P_il - P_ji + P_jl) =
     s Σ_l G_il - Σ_j (Σ_l G_jl - s G_ji)``: sums of the small differences themselves, so that nodes whose
@@ -316,13 +316,15 @@ def _moments(Pm: JointCovariance, i: int, w: np.ndarray, H: np.ndarray, R: np.nd
 
 
 #: Directions of the unit-diagonal ``E[y yᵀ]`` below this fraction of its largest eigenvalue carry no information
-#: for the gains (:func:`_solve_gains`).
+#: for the gains (:func:`solve_gains`).
 GAIN_RCOND = 1e-9
 
 
-def _solve_gains(ey: np.ndarray, yy: np.ndarray, scale: np.ndarray, has: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def solve_gains(ey: np.ndarray, yy: np.ndarray, scale: np.ndarray, has: np.ndarray, m: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """``Z = E[e yᵀ] E[y yᵀ]⁺`` per item, and the condition number of what was solved; items without packets
-    (``~has``) solve the measurement block alone (its ``m`` rows: ``scale`` has ``m + n`` entries).
+    (``~has``) solve the measurement block alone (its first ``m`` rows; ``m`` defaults to the width of ``ey`` less
+    its rows, one consensus innovation of ``n`` components).
 
     In the units of ``scale`` (``S = D⁻¹ E[y yᵀ] D⁻¹``, ``D = diag(scale)``, the innovations' sizes were the
     nodes' errors independent, :func:`_moments`) the eigenvalues below :data:`GAIN_RCOND` of the largest are
@@ -333,7 +335,7 @@ def _solve_gains(ey: np.ndarray, yy: np.ndarray, scale: np.ndarray, has: np.ndar
     the moments' relative errors grow into the gains by up to that factor.
     """
     shape = ey.shape
-    m = shape[-1] - (shape[-2])  # ey is (n, m + n)
+    m = shape[-1] - shape[-2] if m is None else int(m)  # ey is (n, m + n) unless told
     ey, yy = ey.reshape((-1,) + shape[-2:]), yy.reshape((-1,) + yy.shape[-2:])
     scale, has = scale.reshape(-1, scale.shape[-1]), np.reshape(has, -1)
     Z = np.zeros(ey.shape)
@@ -387,7 +389,7 @@ def mse_gains(Pm, i: int, received, H: np.ndarray, R: np.ndarray, fdi_second: np
     ``fdi_second``: ``Σ_{j∈R_i} q_ij M``, the second moment of what the attacker adds to the
     consensus innovation.  Without received packets ``C_i = 0`` and ``K_i`` is the EKF gain.
     A singular ``E[y yᵀ]`` (e.g. neighbours whose estimates equal node i's) is solved in the
-    least-squares sense: the minimum-norm minimiser (:func:`_solve_gains`).  ``condition=True`` also
+    least-squares sense: the minimum-norm minimiser (:func:`solve_gains`).  ``condition=True`` also
     returns the condition number of the system solved, per item (a float for one run).
     """
     Pm = as_difference(Pm)
@@ -396,7 +398,7 @@ def mse_gains(Pm, i: int, received, H: np.ndarray, R: np.ndarray, fdi_second: np
     w = np.broadcast_to(_indices_mask(received, N), Pm.P.shape[:-3] + (N,))
     ey, yy, s, scale = _moments(Pm, i, w, H, np.asarray(R, dtype=float), fdi_second)
     m = H.shape[-2]
-    Z, kappa = _solve_gains(ey, yy, scale, s > 0)
+    Z, kappa = solve_gains(ey, yy, scale, s > 0)
     if condition:
         return Z[..., :m], Z[..., m:], _item(kappa)
     return Z[..., :m], Z[..., m:]

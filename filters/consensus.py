@@ -403,6 +403,11 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     steps = z.shape[0]
     if design.mode == "mse" and gains is None:
         return _run_mse(model, network, z, u, design, attacks, x0, phi0)
+    if design.mode == "scheduled" and gains is None:  # one run is a batch of one
+        from .scheduled import run_scheduled_batch
+
+        return run_scheduled_batch(model, network, z[None], design, inputs=u, x0=x0, phi0=phi0,
+                                   attacks=None if attacks is None else [attacks]).run(0)
     n, nx, dims = network.n_nodes, model.n_x, model.sensor_dims
     nz = max(dims)
     d = network.degrees

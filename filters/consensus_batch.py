@@ -67,6 +67,7 @@ from .rrp import wrap_angles
 _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
+           "batch_inputs",
            "per_run"]
 
 
@@ -372,7 +373,7 @@ def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
 
 
 # --------------------------------------------------------------------------- the filter
-def _batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
+def batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
     z = check_finite("z", z)
     if z.ndim != 3 or z.shape[2] != model.n_z or z.shape[0] < 1 or z.shape[1] < 1:
         raise InputError(f"z must have shape (runs, steps, {model.n_z}) with runs, steps >= 1, got {z.shape}")
@@ -446,7 +447,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         β violates (28)/(29) at the first step: with the message ``run_consensus`` raises for the
         first run (in batch order) it raises for.
     """
-    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
+    z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
@@ -457,6 +458,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
 
         return run_mse_batch(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks,
                              x0=x0, phi0=phi0)
+    if design.mode == "scheduled":
+        from .scheduled import run_scheduled_batch  # late: it builds on this module
+
+        return run_scheduled_batch(model, network if nets is None else nets, z, design, inputs=inputs,
+                                   attacks=attacks, x0=x0, phi0=phi0)
     if design.mode not in GAIN_RULES or design.gate:
         return _per_run_batch(model, network if nets is None else nets, z, design, u, attacks, x0, phi0)
     predict_rule, update_rule = GAIN_RULES[design.mode]

@@ -82,7 +82,7 @@ from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
 from .consensus import check_run_inputs, wrapped_residual
-from .consensus_batch import _batch_inputs, wrap_residuals
+from .consensus_batch import batch_inputs, wrap_residuals
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES"]
@@ -408,7 +408,7 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
                          f"{getattr(network, 'n_nodes', type(network).__name__)}")
     if falsify not in FALSIFY_CHOICES:
         raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
-    z, u, x0, P0 = _batch_inputs(model, z, inputs, x0, P0, "P0")
+    z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps, n = z.shape[0], z.shape[1], network.n_nodes
     if attacks is not None:
         want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]

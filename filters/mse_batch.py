@@ -55,7 +55,7 @@ from designer.validation import InputError
 from .attacks import AttackPattern
 from .consensus import (_BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability,
                         channel_difference_covariance, gate_channels, kept_fdi_moments)
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, _batch_inputs, edge_attacks, per_run, run_networks,
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run, run_networks,
                               wrap_residuals)
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
@@ -92,7 +92,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
         ``N n`` above :data:`MAX_JOINT_DIM` (= 1024).  Below it the runs are processed in
         sub-batches whose joint matrices take at most :data:`MEMORY_BUDGET` bytes (256 MiB).
     """
-    z, u, x0, phi0 = _batch_inputs(model, z, inputs, x0, phi0)
+    z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)

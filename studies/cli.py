@@ -16,6 +16,7 @@ import warnings
 import click
 
 from designer.validation import CfdesignWarning, ComputationError, InputError
+from designer.design import MODES
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -33,7 +34,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
 def _design_options(f):
     """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
     opts = [
-        click.option("--mode", type=click.Choice(["paper", "tuned", "mse"]), default=None,
+        click.option("--mode", type=click.Choice(list(MODES)), default=None,
                      help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
                           "the bound (convex tuning, optimised weights); mse: gains minimising the predicted "
                           "mean-square error, certified by the bound of the stacked error of all nodes "

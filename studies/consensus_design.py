@@ -32,7 +32,7 @@ from .invocation import design_invocation
 from .results import versions
 from .scenarios import Scenario
 
-__all__ = ["Design", "effective", "consensus_design", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
+__all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
            "check_first_step", "design_verdict", "bound_verdicts"]
 
 
@@ -62,8 +62,12 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
     return sc.with_attacks(**opts.attack_overrides()), opts
 
 
-def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -> ConsensusDesign:
+def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
+                     **kw) -> ConsensusDesign:
     """The consensus design of ``sc`` for ``options`` (or keyword options), merged with the scenario's defaults.
+
+    Mode ``'scheduled'`` gets its offline tables for ``steps`` steps (default the scenario's horizon;
+    :func:`with_tables`).
 
     Attack overrides in the options are applied to the scenario first (its FDI bound
     becomes the design's δ); use :func:`effective` to get that scenario too.
@@ -73,7 +77,22 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, **kw) -
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    return make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+    return with_tables(sc, des, steps)
+
+
+def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None) -> ConsensusDesign:
+    """``design`` with the offline tables of mode ``'scheduled'`` for ``steps`` steps of ``sc`` (default its
+    horizon): designed along the nominal trajectory from the operating point with the scenario's known inputs,
+    from the prior covariance (:func:`designer.scheduled.design_scheduled`).  Other modes are returned as they are."""
+    if design.mode != "scheduled":
+        return design
+    from designer.scheduled import design_scheduled
+
+    steps = sc.steps if steps is None else int(steps)
+    x0, _ = sc.operating_point
+    return design._replace(tables=design_scheduled(sc.model, sc.network, design, steps, x0=x0,
+                                                   inputs=sc.inputs(steps)))
 
 
 def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
@@ -253,7 +272,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+    des = with_tables(sc, make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+                                      signal=att.signal), steps)
     m, net = sc.model, sc.network
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)

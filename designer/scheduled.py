@@ -1,0 +1,620 @@
+"""Mode ``scheduled``: consensus gains designed offline for the attack statistics, applied with what a node knows.
+
+The ``mse`` design chooses each step's gains from the joint error covariance of all nodes along *one*
+realisation of the packet losses: a central computer's knowledge, and a schedule that holds only for
+that run.  This design propagates instead the **expected** joint error covariance over the DoS and FDI
+distributions (cross-covariances included), along the *nominal* trajectory (from the operating point
+with the known inputs), and gives every node a **per-link** rule that it can apply on any realisation:
+
+    x̂⁺_i = x̂⁻_i + K_i (z_i - h_i(x̂⁻_i)) + Σ_{j ∈ N_i} ρ_ij C_ij (x̂⁻_j + γ_ij ξ_ij - x̂⁻_i)
+
+with ``ρ_ij`` = 1 when node j's packet arrived (the node sees it) and ``γ_ij`` = 1 when it was falsified
+(the node cannot see it).  With ``e_i = x - x̂_i``, ``Δ_ij = e_i - e_j``, ``p_ij = P(ρ_ij = 1)`` and
+``q_ij = P(γ_ij = 1 | ρ_ij = 1)``, the channels' draws independent of each other and of the errors, the
+gains minimising ``tr E[e_i⁺ e_i⁺ᵀ]`` (expectation over the noises *and* the attacks) are the linear
+MMSE ones for the innovations ``y_i = [H_i e_i⁻ + v_i ; ρ_ij (Δ_ij + γ_ij ξ_ij), j ∈ N_i]``:
+
+    E[e_i y_iᵀ] = [P_ii H_iᵀ,  p_ij G_ij]                        G_ij = E[e_i Δ_ijᵀ] = P_ii - P_ij
+    E[y_i y_iᵀ] = [[H_i P_ii H_iᵀ + R_i,  p_ij H_i G_ij],
+                   [·ᵀ,  E[ρ_ij ρ_il] S_jl + p_ij q_ij (δ_jl M + (1 - δ_jl) p_il q_il μμᵀ)]]
+
+``S_jl = E[Δ_ij Δ_ilᵀ] = G_il - G_jl + G_ji``, ``E[ρ_ij ρ_il] = p_ij p_il`` (j ≠ l) or ``p_ij``, ``M`` and ``μ``
+the falsification's second moment and mean (:class:`designer.attacks.FDISignal`; the injections are
+taken independent of the errors, exact for the zero-mean sine and uniform laws).  ``C_ij = 0`` is one
+choice: in this model a node never does worse than alone.  Then ``e⁺ = T(ρ) e⁻ - noise`` and, since the
+ρ are independent of ``e⁻``, ``E[T P Tᵀ] = T̄ P T̄ᵀ + blockdiag_i Σ_j p_ij (1 - p_ij) C_ij Cov(Δ_ij) C_ijᵀ``
+with the mean transition ``T̄_ii = I - K_i H_i - Σ_j p_ij C_ij``, ``T̄_ij = p_ij C_ij``: the expected joint
+covariance follows a deterministic recursion (:func:`expected_update`, in the difference form of
+:mod:`designer.mse`, so that nodes whose errors agree give exact zeros).
+
+**At run time** a node does not use the offline gains as they are: where the model is nonlinear its
+Jacobians along the real trajectory differ from the nominal ones (a range sensor's direction to a target
+that drifted), and a fixed gain with the wrong direction diverges.  The offline design hands the node
+**covariance factors** instead, whitened by the node's own predicted covariance ``P̄_ii``:
+``Γ_ij = P̄_ii^{-1/2} G_ij P̄_ii^{-1/2}`` and ``Σ̃_jl = P̄_ii^{-1/2} S_jl P̄_ii^{-1/2}`` (tables per step, node
+and link).  Node i runs its own covariance ``P_ii`` (``P⁻ = F P Fᵀ + Q`` with ``F`` at its estimate),
+colours the factors with it (``G = P⁻^{1/2} Γ P⁻^{1/2}``, a congruence, so the joint moments stay
+positive semidefinite), evaluates ``H_i`` at its prediction and solves the MMSE gains above
+(:func:`link_gains`): it needs its step, its own estimate, its own measurement, which neighbour
+packets arrived and what they carried, and the tables.  Nothing of another node's state or of a
+link it is not on.  For a linear time-invariant model the node's ``P_ii`` is the offline one and the
+rule *is* the offline design (tested against a Monte Carlo of the generative model).  Beyond the
+designed horizon a node uses the stationary tables: the recursion continued at the last nominal point
+until the tables stop changing (:attr:`ScheduledTables.stationary` says whether they converged).
+
+**The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.mse`) in
+expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`)
+and (27) with ``E_ρ[T X Tᵀ]`` for ``X = (Φ⁻^-1 - β I)^-1``, one β for the network minimising the trace
+(:func:`expected_certificate_update`).  It bounds ``E[e eᵀ]`` for the offline gains along the nominal
+linearisation with the remainders ``U``, ``V_i``; for a linear model with ``U = V = 0`` and a zero-mean
+signal it is the expected covariance itself.  What the online rule does on a nonlinear model (other
+Jacobians, hence other gains) it does not cover: there it is a model that the studies' Monte Carlo bound
+check validates on runs the design never saw.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from .bounds import eigh, symmetrize, theorem2_margin
+from .mse import JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier, joint_predict, \
+    joint_prior, solve_gains
+from .tuning import MARGIN
+from .validation import InputError
+
+__all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
+           "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
+           "BOUND_LIMIT"]
+
+#: Relative change of the tables below which the design's last step counts as stationary.
+STATIONARY_TOL = 1e-6
+#: Extra steps at the last nominal point to look for the stationary tables.
+STATIONARY_MAX = 400
+#: A bound with this trace certifies nothing (the consensus filters' limit).
+BOUND_LIMIT = 1e100
+LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing"
+
+
+def _t(a: np.ndarray) -> np.ndarray:
+    return np.swapaxes(a, -1, -2)
+
+
+class Channels(NamedTuple):
+    """The directed channels ``j -> i`` of a network (``np.nonzero(adjacency)`` order: by receiver, then sender)."""
+
+    receiver: np.ndarray  # (E,)
+    sender: np.ndarray  # (E,)
+    p: np.ndarray  # (E,) probability that the packet arrives (1 - DoS probability)
+    q: np.ndarray  # (E,) probability that an arrived packet is falsified
+    slot: np.ndarray  # (E,) the channel's place among its receiver's channels
+    of_node: tuple  # per node, the indices of its incoming channels (in slot order)
+
+    @property
+    def d_max(self) -> int:
+        return max((len(c) for c in self.of_node), default=0)
+
+
+def channels(network) -> Channels:
+    """:class:`Channels` of a :class:`designer.network.SensorNetwork` with its DoS and FDI probabilities."""
+    receiver, sender = np.nonzero(network.adjacency)
+    dos = network.dos_prob[receiver, sender]
+    fdi = network.fdi_prob[receiver, sender]
+    p = 1.0 - dos
+    q = np.where(p > 0, fdi / np.where(p > 0, p, 1.0), 0.0)
+    of_node = tuple(np.flatnonzero(receiver == i) for i in range(network.n_nodes))
+    slot = np.zeros(receiver.size, dtype=int)
+    for idx in of_node:
+        slot[idx] = np.arange(idx.size)
+    return Channels(receiver, sender, p, q, slot, of_node)
+
+
+def sqrtm_psd(P: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """The symmetric square root ``P^{1/2}`` of positive semidefinite matrices (..., n, n), or the
+    pseudo-inverse root ``P^{-1/2}`` (directions below ``1e-14`` of the largest eigenvalue taken as 0).
+    Unique and continuous in ``P``: nearby covariances give nearby roots (a Cholesky or eigenvector
+    factor could turn within a repeated eigenvalue's space)."""
+    lam, V = eigh(symmetrize(P))
+    top = np.maximum(lam[..., -1:], 0.0)
+    keep = lam > 1e-14 * top
+    if inverse:
+        s = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+    else:
+        s = np.sqrt(np.maximum(lam, 0.0))
+    return symmetrize((V * s[..., None, :]) @ _t(V))
+
+
+def colour(root: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """``root F root`` for every factor ``F`` (..., k, n, n) (or (..., k, l, n, n)) and a root (..., n, n)."""
+    extra = factors.ndim - root.ndim
+    r = root.reshape(root.shape[:-2] + (1,) * extra + root.shape[-2:])
+    return r @ factors @ r
+
+
+def _link_blocks(H_n: np.ndarray | None, P: np.ndarray, G: np.ndarray, S: np.ndarray, R_n: np.ndarray | None):
+    """The second moments of the links' innovations before the attacks' expectation: ``core`` (..., d, d, a, a) of
+    ``[H_j e_i + v_j ; Δ_ij]`` and ``[H_l e_i + v_l ; Δ_il]`` (``v_j`` only on the diagonal), ``cross_e`` (..., d, n, a)
+    ``E[e_i ·ᵀ]`` and the maps ``J_j = [H_j ; I]`` (..., d, a, n) of a falsification ``ξ`` (``a = mz + n``; without
+    measurement exchange, ``H_n`` None: ``a = n``, ``[Δ]`` and ``J = I``)."""
+    n = P.shape[-1]
+    d = G.shape[-3]
+    if H_n is None:
+        J = np.broadcast_to(np.eye(n), G.shape[:-2] + (n, n))
+        return S, G, J
+    HP = H_n @ P[..., None, :, :]  # (..., d, mz, n)
+    HPH = np.einsum("...jan,...lbn->...jlab", HP, H_n)
+    HPH = HPH + np.eye(d)[..., None, None] * R_n[:, None, :, :]  # v_j on the diagonal
+    HG = np.einsum("...jan,...lnb->...jlab", H_n, G)  # E[(H_j e_i) Δ_ilᵀ] = H_j G_l
+    GH = np.swapaxes(np.swapaxes(HG, -3, -4), -1, -2)  # E[Δ_ij (H_l e_i)ᵀ] = (H_l G_j)ᵀ
+    core = np.concatenate([np.concatenate([HPH, HG], axis=-1), np.concatenate([GH, S], axis=-1)], axis=-2)
+    cross_e = np.concatenate([_t(HP), G], axis=-1)  # E[e_i [H_j e_i + v_j ; Δ_ij]ᵀ] = [P H_jᵀ, G_j]
+    J = np.concatenate([H_n, np.broadcast_to(np.eye(n), H_n.shape[:-2] + (n, n))], axis=-2)
+    return core, cross_e, J
+
+
+def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np.ndarray, p: np.ndarray,
+               q: np.ndarray, M: np.ndarray, mu: np.ndarray, H_n: np.ndarray | None = None,
+               R_n: np.ndarray | None = None):
+    """Node i's MMSE gains for the per-link rule (module docstring), batched over leading axes.
+
+    ``P`` (..., n, n) the node's predicted covariance, ``H`` (..., m, n) its Jacobian, ``R`` (m, m), ``G`` (..., d, n, n)
+    the ``E[e_i Δ_ijᵀ]`` of its d links, ``S`` (..., d, d, n, n) the ``E[Δ_ij Δ_ilᵀ]``, ``p``, ``q`` (d,) the links'
+    arrival and falsification probabilities (a padded link has ``p = 0`` and gets zero gains), ``M``, ``mu`` the
+    falsification's second moment and mean.  With measurement exchange, ``H_n`` (..., d, mz, n) the neighbours'
+    Jacobians at node i's prediction and ``R_n`` (d, mz, mz) their noise covariances (zero-padded rows, identity
+    padding of ``R``: a padded component gets a zero gain).
+
+    Returns ``K`` (..., n, m), ``K_n`` (..., d, n, mz) (None without exchange), ``C`` (..., d, n, n), the node's
+    expected posterior covariance (..., n, n) (``P - Z E[e yᵀ]ᵀ - E[e yᵀ] Zᵀ + Z E[y yᵀ] Zᵀ``, positive semidefinite
+    for any ``Z``) and the condition number of what was solved (..., ).
+    """
+    n, m, d = P.shape[-1], H.shape[-2], G.shape[-3]
+    lead = P.shape[:-2]
+    p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
+    HP = H @ P
+    my = symmetrize(HP @ _t(H) + R)
+    mz = 0 if H_n is None else H_n.shape[-2]
+    if d:
+        core, cross_e, J = _link_blocks(H_n, P, G, S, R_n)
+        a = core.shape[-1]
+        Epp = p[:, None] * p[None, :] + np.diag(p - p * p)
+        pq = p * q
+        JM = J @ M @ _t(J)  # (..., d, a, a) per link
+        Jmu = J @ mu  # (..., d, a)
+        off = (pq[:, None] * pq[None, :] * (1.0 - np.eye(d)))[..., None, None] * \
+            (Jmu[..., :, None, :, None] * Jmu[..., None, :, None, :])
+        fdi = off + np.eye(d)[..., None, None] * (pq[:, None, None] * JM)[..., :, None, :, :]
+        cons = np.swapaxes(Epp[..., None, None] * core + fdi, -3, -2).reshape(lead + (d * a, d * a))
+        # E[y_0 y_jᵀ] = p_j [H_i P H_jᵀ, H_i G_j]: H_i times E[e_i y_jᵀ]
+        pc = p[:, None, None] * cross_e  # (..., d, n, a)
+        ey_links = np.swapaxes(pc, -3, -2).reshape(lead + (n, d * a))
+        cross = H @ ey_links
+        ey = np.concatenate([_t(HP), ey_links], axis=-1)
+        yy = symmetrize(np.concatenate([np.concatenate([my, cross], axis=-1),
+                                        np.concatenate([_t(cross), cons], axis=-1)], axis=-2))
+        # the innovations' natural sizes: the measurements' standard deviations and the node's own error's
+        own = np.sqrt(np.abs(np.diagonal(P, axis1=-2, axis2=-1)))
+        if H_n is None:
+            scale = np.concatenate([np.sqrt(np.abs(np.diagonal(my, axis1=-2, axis2=-1)))] + [own] * d, axis=-1)
+        else:
+            zs = np.sqrt(np.abs(np.einsum("...jjaa->...ja", core[..., :mz, :mz])))  # (..., d, mz)
+            link_scale = np.concatenate([zs, np.broadcast_to(own[..., None, :], lead + (d, n))], axis=-1)
+            scale = np.concatenate([np.sqrt(np.abs(np.diagonal(my, axis1=-2, axis2=-1))),
+                                    link_scale.reshape(lead + (d * a,))], axis=-1)
+    else:
+        ey, yy = _t(HP), my
+        scale = np.sqrt(np.abs(np.diagonal(my, axis1=-2, axis2=-1)))
+        a = n + mz
+    has = np.broadcast_to(np.any(p > 0), lead)
+    Z, kappa = solve_gains(ey, yy, scale, has, m)
+    ZE = Z @ _t(ey)
+    post = symmetrize(P - ZE - _t(ZE) + Z @ yy @ _t(Z))
+    K = Z[..., :m]
+    links = np.swapaxes(Z[..., m:].reshape(lead + (n, d, a)), -3, -2)  # (..., d, n, a)
+    K_n = None if H_n is None else links[..., :mz]
+    C = links[..., mz:]
+    return K, K_n, C, post, kappa
+
+
+def _mean_transition(A: np.ndarray, W: np.ndarray, C: np.ndarray, ch: Channels) -> np.ndarray:
+    """``T̄`` as blocks (N, N, n, n): ``T̄_ii = A_i - Σ_j p_ij W_ij`` with the links' ``W_ij = K_ij H_j + C_ij`` and
+    ``T̄_ij = p_ij C_ij`` (``A_i = I - K_i H_i``)."""
+    N, n = A.shape[0], A.shape[-1]
+    T = np.zeros((N, N, n, n))
+    T[ch.receiver, ch.sender] = ch.p[:, None, None] * C
+    idx = np.arange(N)
+    T[idx, idx] = A
+    np.add.at(T, (ch.receiver, ch.receiver), -ch.p[:, None, None] * W)
+    return T
+
+
+def _dense(B: np.ndarray) -> np.ndarray:
+    N, M, n, m = B.shape
+    return np.swapaxes(B, 1, 2).reshape(N * n, M * m)
+
+
+def _blocks(X: np.ndarray, N: int) -> np.ndarray:
+    n = X.shape[-1] // N
+    return np.swapaxes(X.reshape(N, n, N, n), 1, 2)
+
+
+class _Rule(NamedTuple):
+    """The network's gains of one step: ``A`` (N, n, n) ``= I - K_i H_i``, the links' ``C``, ``Kn`` (E, n, mz) and
+    ``W = K_n H_j + C`` (E, n, n), the nodes' ``K`` and ``R``, the links' ``R_j``."""
+
+    A: np.ndarray
+    C: np.ndarray
+    W: np.ndarray
+    K: list
+    R: list
+    Kn: np.ndarray | None
+    Rn: np.ndarray | None
+    Hn: np.ndarray | None  # (E, mz, n) the sender's Jacobian at the receiver's (nominal) point
+
+
+def _noise(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
+    """The additive second moment (N, N, n, n) of the update: the measurement noises ``Λ̄ R Λ̄ᵀ`` (a neighbour's
+    measurement is shared by every node that receives it) with their DoS variance, and the falsifications'
+    ``E[b bᵀ]`` (``b_i = Σ_j ρ γ W_ij ξ``, links independent)."""
+    n = rule.A.shape[-1]
+    out = np.zeros((N, N, n, n))
+    idx = np.arange(N)
+    out[idx, idx] = np.stack([k @ r @ _t(k) for k, r in zip(rule.K, rule.R)])
+    if rule.Kn is not None and ch.receiver.size:
+        # Λ̄_im: K_i for m = i, p K_im for a link m -> i; E[w_i w_lᵀ] = Σ_m Λ̄_im R_m Λ̄_lmᵀ (+ DoS variance on i = l)
+        pK = ch.p[:, None, None] * rule.Kn
+        mz = rule.Rn.shape[-1]
+        lam = np.zeros((N, N, n, mz))  # Λ̄_im (padded to mz columns)
+        for i in range(N):
+            lam[i, i, :, : rule.K[i].shape[-1]] = rule.K[i]
+        lam[ch.receiver, ch.sender] = pK
+        Rm = np.zeros((N, mz, mz))
+        for i in range(N):
+            m_i = rule.R[i].shape[-1]
+            Rm[i] = np.eye(mz)
+            Rm[i, :m_i, :m_i] = rule.R[i]
+        out = np.einsum("imab,mbc,lmdc->ilad", lam, Rm, lam)
+        var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
+        np.add.at(out, (ch.receiver, ch.receiver), var)
+    if ch.receiver.size and (np.any(M) or np.any(mu)):
+        pq = ch.p * ch.q
+        W = rule.W
+        own = pq[:, None, None] * (W @ (M - pq[:, None, None] * np.outer(mu, mu)) @ _t(W))
+        np.add.at(out, (ch.receiver, ch.receiver), own)
+        c = np.zeros((N, n))
+        np.add.at(c, ch.receiver, pq[:, None] * (W @ mu))
+        out += c[:, None, :, None] * c[None, :, None, :]
+    return out
+
+
+def _dos_variance(rule: _Rule, ch: Channels, own: np.ndarray, diff: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """``Σ_j p(1-p) E[B_j e eᵀ B_jᵀ]`` per node (N, n, n) for ``B_j e = -(K_ij H_j e_i + C_ij Δ_ij)``: ``own`` (E, n, n)
+    the receivers' ``E[e_i e_iᵀ]``, ``diff`` the ``Cov(Δ_ij)``, ``cross`` the ``E[e_i Δ_ijᵀ]``."""
+    N, n = rule.A.shape[0], rule.A.shape[-1]
+    out = np.zeros((N, n, n))
+    if not ch.receiver.size:
+        return out
+    C = rule.C
+    v = C @ diff @ _t(C)
+    if rule.Kn is not None:
+        KH = rule.Kn @ rule.Hn
+        KHGC = KH @ cross @ _t(C)
+        v = v + KH @ own @ _t(KH) + KHGC + _t(KHGC)
+    np.add.at(out, ch.receiver, (ch.p * (1 - ch.p))[:, None, None] * v)
+    return symmetrize(out)
+
+
+def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray) -> JointCovariance:
+    """The expected joint error covariance after the update, in difference form (:mod:`designer.mse`).
+
+    With ``T̄`` (:func:`_mean_transition`, every row summing to ``A_i = I - K_i H_i - Σ_j p_ij K_ij H_j``),
+    ``c_i = Σ_j T̄_ij P_jj``, ``Y = T̄ G T̄ᵀ`` (``G`` the difference blocks) and the additive terms ``N``
+    (:func:`_noise`, with the DoS variance on the diagonal):
+
+        P⁺_i  = c_i A_iᵀ - Y_ii + N_ii
+        G⁺_ik = c_i (A_i - A_k)ᵀ - Y_ii + Y_ik + N_ii - N_ik     (i ≠ k)
+
+    every term small where the nodes agree (``A_i - A_k`` is taken of the small factors first).
+    """
+    N, n = rule.A.shape[0], rule.A.shape[-1]
+    T = _mean_transition(rule.A, rule.W, rule.C, ch)
+    A = T.sum(axis=1)  # the row sums: I - K_i H_i - Σ p K_ij H_j
+    c = np.einsum("ijab,jbc->iac", T, Pm.P)
+    Td = _dense(T)
+    Y = _blocks(Td @ Pm.G @ Td.T, N)
+    idx = np.arange(N)
+    Yd = Y[idx, idx]
+    Gb = Pm.blocks()
+    i, j = ch.receiver, ch.sender
+    Nz = _noise(rule, ch, M, mu, N)
+    Nz[idx, idx] += _dos_variance(rule, ch, Pm.P[i], symmetrize(Gb[i, j] + Gb[j, i]), Gb[i, j])
+    Nd = Nz[idx, idx]
+    P = symmetrize(c @ _t(A) - Yd + Nd)
+    G = (c[:, None] @ _t(A[:, None] - A[None, :])) - Yd[:, None] + Y + Nd[:, None] - Nz
+    G[idx, idx] = 0.0
+    return JointCovariance(P, _dense(G))
+
+
+def _expected_sandwich(rule: _Rule, ch: Channels, X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``E_ρ[T(ρ) X T(ρ)ᵀ]`` (dense) for absolute ``X``: ``T̄ X T̄ᵀ`` and, per node, ``Σ_j p(1-p) B_j X B_jᵀ`` with
+    ``B_j X B_jᵀ = W X_ii Wᵀ - W X_ij Cᵀ - C X_ji Wᵀ + C X_jj Cᵀ``."""
+    N = T.shape[0]
+    Td = _dense(T)
+    out = Td @ X @ Td.T
+    if ch.receiver.size:
+        Xb = _blocks(X, N)
+        i, j = ch.receiver, ch.sender
+        W, C = rule.W, rule.C
+        WXC = W @ Xb[i, j] @ _t(C)
+        v = W @ Xb[i, i] @ _t(W) - WXC - _t(WXC) + C @ Xb[j, j] @ _t(C)
+        add = np.zeros((N,) + v.shape[1:])
+        np.add.at(add, i, (ch.p * (1 - ch.p))[:, None, None] * v)
+        view = _blocks(out, N)  # a view of ``out``'s blocks
+        idx = np.arange(N)
+        view[idx, idx] += add
+    return out
+
+
+def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, Vn, M: np.ndarray, mu: np.ndarray,
+                                margin: float = MARGIN) -> JointBound:
+    """(27) of the stacked error in expectation over the attacks (module docstring), β minimising the trace.
+
+    ``Phi`` (N, N, n, n) the predicted bound; ``V`` one remainder scaling per node, ``Vn`` (E, mz, mz) the links'
+    (with measurement exchange; node i's own and each received measurement's remainder act on ``e_i``: ``1 + d_i``
+    blocks of ``Ω``, so ``DᵀD = blockdiag((1 + d_i) I)``).  The margin of (29) is ``1/λmax(D Φ⁻ Dᵀ) - β``.
+    """
+    N, n = rule.A.shape[0], rule.A.shape[-1]
+    P = _dense(Phi)
+    T = _mean_transition(rule.A, rule.W, rule.C, ch)
+    copies = np.ones(N) if rule.Kn is None else 1.0 + np.bincount(ch.receiver, minlength=N)
+    w = np.repeat(np.sqrt(copies), n)
+    lam, Qv = eigh(symmetrize(w[:, None] * P * w[None, :]))
+    Wd = (P * w[None, :]) @ Qv  # (P^-1 - β DᵀD)^-1 = P + Wd diag(β / (1 - βλ)) Wdᵀ
+    # h_k = tr E_ρ[T w_k w_kᵀ Tᵀ] for the columns w_k of Wd: |T̄ w_k|² + Σ_j p(1-p) |B_j w_k|²
+    TW = _dense(T) @ Wd
+    h = np.sum(TW**2, axis=0)
+    if ch.receiver.size:
+        Wb = Wd.reshape(N, n, -1)
+        i, j = ch.receiver, ch.sender
+        bw = rule.W @ Wb[i] - rule.C @ Wb[j]  # (E, n, r): B_j w_k
+        h = h + np.einsum("e,er->r", ch.p * (1 - ch.p), np.sum(bw**2, axis=1))
+    KVV = np.stack([k @ v @ _t(v) @ _t(k) for k, v in zip(rule.K, V)])
+    if rule.Kn is not None and ch.receiver.size:
+        lv = rule.Kn @ Vn
+        np.add.at(KVV, ch.receiver, ch.p[:, None, None] * (lv @ _t(lv)))
+    v = float(np.trace(KVV, axis1=-2, axis2=-1).sum())
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        beta = float(joint_multiplier(h, lam, v, 1.0, (1.0 - margin) / lam[-1]))
+        X = P + (Wd * (beta / (1.0 - beta * lam))[None, :]) @ Wd.T
+        own = _expected_sandwich(rule, ch, symmetrize(X), T)
+        ob = _blocks(own, N)
+        idx = np.arange(N)
+        if v > 0:
+            ob[idx, idx] += KVV / beta
+        noise = _noise(rule, ch, M, mu, N)
+        meas = _noise(rule, ch, np.zeros_like(M), np.zeros_like(mu), N)  # the measurement noises alone
+        fdi = _dense(noise - meas)
+        if np.any(mu) and ch.receiver.size:  # a biased signal: (a + b)(a + b)ᵀ <= a aᵀ/(1 - π) + b bᵀ/π
+            ta, tb = np.sqrt(max(np.trace(own), 0.0)), np.sqrt(max(np.trace(fdi), 0.0))
+            pi = tb / (ta + tb) if ta + tb > 0 else 0.5
+            own, fdi = own / (1.0 - pi), fdi / pi
+        out = own + fdi + _dense(meas)
+    return JointBound(_blocks(symmetrize(out), N), beta, 1.0 / lam[-1] - beta)
+
+
+class ScheduledTables(NamedTuple):
+    """What a node of the scheduled design carries: per step ``k`` (the update to ``x_{k+1}``) and link, the whitened
+    factors, with the nominal design's gains, covariances and certificate for the record.
+
+    ``Gamma`` (steps, E, n, n): ``P̄_ii^{-1/2} E[e_i Δ_ijᵀ] P̄_ii^{-1/2}`` of channel ``j -> i``; ``Sigma`` (steps, N, d, d,
+    n, n): ``P̄_ii^{-1/2} E[Δ_ij Δ_ilᵀ] P̄_ii^{-1/2}`` over node i's slots (zero beyond its d_i); ``P_pred`` (steps, N, n,
+    n) the nominal ``P̄_ii``; ``K`` (steps, N, n, max m), ``C`` (steps, E, n, n) the nominal gains; ``P_post`` (steps + 1,
+    N, n, n) the expected covariance; ``Phi`` (steps + 1, N, n, n) the certificate (NaN where not a bound), ``valid``
+    (steps + 1,), ``sigma``, ``beta``, ``margin28``, ``margin29`` (steps,), ``theorem2`` (steps + 1, N);
+    ``violations`` as :class:`filters.consensus.ConsensusResult`'s; ``stationary``: whether the last step's tables
+    are a fixed point of the recursion at the last nominal point (and after how many extra steps).
+    """
+
+    channels: Channels
+    Gamma: np.ndarray
+    Sigma: np.ndarray
+    P_pred: np.ndarray
+    K: np.ndarray
+    C: np.ndarray
+    P_post: np.ndarray
+    Phi: np.ndarray
+    valid: np.ndarray
+    sigma: np.ndarray
+    beta: np.ndarray
+    margin28: np.ndarray
+    margin29: np.ndarray
+    theorem2: np.ndarray
+    violations: list
+    stationary: dict
+    nominal: np.ndarray  # (steps + 1, n_x) the nominal trajectory
+    Gamma_inf: np.ndarray  # (E, n, n) the tables beyond the horizon: the recursion continued at the last nominal point
+    Sigma_inf: np.ndarray  # (N, d, d, n, n)
+    exchange: bool  # the packets carry the sender's measurement beside its prediction
+    Kn: np.ndarray | None  # (steps, E, n, mz) the nominal gains on the neighbours' measurements (exchange)
+
+    @property
+    def steps(self) -> int:
+        return self.Gamma.shape[0]
+
+    def tables(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(Gamma, Sigma)`` of step ``k``; beyond the horizon the stationary ones (:attr:`stationary`)."""
+        if k < self.steps:
+            return self.Gamma[k], self.Sigma[k]
+        return self.Gamma_inf, self.Sigma_inf
+
+
+def _whiten(P: np.ndarray, G: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    root = sqrtm_psd(P, inverse=True)
+    return colour(root, G), colour(root, S)
+
+
+def pad_measurements(H_list, R_list, mz: int) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians (..., m_j, n) and noise covariances (m_j, m_j) padded to ``mz`` rows (zero rows, identity noise):
+    ``(..., d, mz, n)`` and ``(d, mz, mz)``; a padded component carries no information and gets a zero gain."""
+    lead = np.shape(H_list[0])[:-2]
+    n = np.shape(H_list[0])[-1]
+    H = np.zeros(lead + (len(H_list), mz, n))
+    R = np.broadcast_to(np.eye(mz), (len(R_list), mz, mz)).copy()
+    for j, (h, r) in enumerate(zip(H_list, R_list)):
+        m = np.shape(h)[-2]
+        H[..., j, :m, :] = h
+        R[j, :m, :m] = r
+    return H, R
+
+
+class _Setting(NamedTuple):
+    """What every step of the design shares."""
+
+    model: object
+    ch: Channels
+    Q: np.ndarray
+    R: list
+    M: np.ndarray
+    mu: np.ndarray
+    exchange: bool
+    mz: int
+    d: int
+
+
+def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
+    """Every node's nominal gains at the expected joint prediction ``Pm`` and nominal point ``x_pred`` (measuring
+    step ``k1``), with its whitened tables: ``(rule, Gamma (E, n, n), Sigma (N, d, d, n, n))``."""
+    model, ch = st.model, st.ch
+    N, n = Pm.P.shape[0], Pm.P.shape[-1]
+    E = ch.receiver.size
+    Hs = [np.asarray(model.H(i, x_pred, k1), dtype=float) for i in range(N)]
+    Gb = Pm.blocks()
+    A = np.zeros((N, n, n))
+    C, Kn = np.zeros((E, n, n)), (np.zeros((E, n, st.mz)) if st.exchange else None)
+    Hn_all, Rn_all = (pad_measurements(Hs, st.R, st.mz) if st.exchange else (None, None))
+    Ks = []
+    Gam, Sig = np.zeros((E, n, n)), np.zeros((N, st.d, st.d, n, n))
+    for i in range(N):
+        links = ch.of_node[i]
+        js = ch.sender[links]
+        G = Gb[i, js]  # (d_i, n, n)
+        S = Gb[i, js][None, :] - Gb[js][:, js] + Gb[js, i][:, None]  # S_jl = G_il - G_jl + G_ji
+        Hn, Rn = (None, None) if not st.exchange else (Hn_all[js], Rn_all[js])
+        K, K_n, Ci, _, _ = link_gains(Pm.P[i], Hs[i], st.R[i], G, S, ch.p[links], ch.q[links], st.M, st.mu, Hn, Rn)
+        Ks.append(K)
+        A[i] = np.eye(n) - K @ Hs[i]
+        C[links] = Ci
+        if st.exchange:
+            Kn[links] = K_n
+        Gam[links], Sw = _whiten(Pm.P[i], G, S)
+        Sig[i, : len(js), : len(js)] = Sw
+    Hn_e = Hn_all[ch.sender] if st.exchange else None
+    Rn_e = Rn_all[ch.sender] if st.exchange else None
+    W = C if not st.exchange else C + Kn @ Hn_e
+    return _Rule(A, C, W, Ks, st.R, Kn, Rn_e, Hn_e), Gam, Sig
+
+
+def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi0=None,
+                     exchange: bool = True) -> ScheduledTables:
+    """The scheduled design of ``model`` on ``network`` over ``steps`` steps (module docstring).
+
+    ``design`` a :class:`designer.design.ConsensusDesign` (its ε, U, V_i, the FDI moments); ``x0`` the nominal
+    trajectory's start (the operating point), ``inputs`` (steps, n_u) the known inputs, ``phi0`` the prior
+    covariance (default the model's); ``exchange``: the packets carry the sender's measurement beside its
+    prediction (KCF and HCMCI exchange measurement information too), else its prediction alone, as in (7).
+    """
+    if design.linearization != "fixed":
+        raise InputError(f"mode 'scheduled' takes linearization 'fixed' (its scalings U, V_i bound the remainders "
+                         f"along the nominal trajectory), got {design.linearization!r}")
+    if design.gate:
+        raise InputError("mode 'scheduled' does not take a gate (gate must be 0): its gains count every falsified "
+                         "packet that arrives")
+    N, n = network.n_nodes, model.n_x
+    ch = channels(network)
+    mz = max(model.sensor_dims)
+    st = _Setting(model, ch, model.process_cov, [model.measurement_cov(i) for i in range(N)],
+                  np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float),
+                  np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float),
+                  bool(exchange), mz, ch.d_max)
+    phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
+    U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
+    V = list(design.V)
+    Vn = np.zeros((ch.receiver.size, mz, mz)) if exchange else None  # the senders' V_j (padded rows: no remainder)
+    for e, j in enumerate(ch.sender if exchange else ()):
+        Vn[e, : V[j].shape[0], : V[j].shape[0]] = V[j]
+    E = ch.receiver.size
+    out = dict(Gamma=np.zeros((steps, E, n, n)), Sigma=np.zeros((steps, N, st.d, st.d, n, n)),
+               P_pred=np.zeros((steps, N, n, n)), K=np.zeros((steps, N, n, mz)), C=np.zeros((steps, E, n, n)),
+               Kn=np.zeros((steps, E, n, mz)) if exchange else None,
+               P_post=np.zeros((steps + 1, N, n, n)), Phi=np.full((steps + 1, N, n, n), np.nan),
+               valid=np.zeros(steps + 1, dtype=bool), sigma=np.full(steps, np.nan), beta=np.full(steps, np.nan),
+               margin28=np.full(steps, np.nan), margin29=np.full(steps, np.nan),
+               theorem2=np.full((steps + 1, N), np.nan))
+    violations: list[dict] = []
+    Pm = as_difference(joint_prior(phi0, N))
+    Phi = joint_prior(phi0, N)
+    idx = np.arange(N)
+    out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
+    proper = True
+    x = np.asarray(x0, dtype=float).copy()
+    nominal = np.zeros((steps + 1, n))
+    nominal[0] = x
+    u = None if inputs is None else np.asarray(inputs, dtype=float)
+
+    def u_at(k):
+        return None if u is None else u[min(k, len(u) - 1)]
+
+    def worst(phi):
+        return int(np.argmax(np.trace(phi[idx, idx], axis1=-2, axis2=-1)))
+
+    for k in range(steps):
+        F = np.asarray(model.F_expected(x, k, u_at(k)), dtype=float)
+        x = np.asarray(model.f_expected(x, k, u_at(k)), dtype=float)
+        nominal[k + 1] = x
+        Fs = np.broadcast_to(F, (N, n, n))
+        Pm = joint_predict(Pm, Fs, st.Q)
+        rule, out["Gamma"][k], out["Sigma"][k] = _gains(st, Pm, x, k + 1)
+        out["P_pred"][k], out["C"][k] = Pm.P, rule.C
+        for i in range(N):
+            out["K"][k, i, :, : rule.K[i].shape[-1]] = rule.K[i]
+        if exchange:
+            out["Kn"][k] = rule.Kn
+        if proper:  # the certificate: (26) for the nominal F, then (27) in expectation over the attacks
+            jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon)
+            out["sigma"][k], out["margin28"][k] = jb.multiplier, jb.margin
+            out["theorem2"][k] = theorem2_margin(Phi[idx, idx], jb.multiplier, network.d_max)
+            if jb.margin > 0 and np.isfinite(jb.phi).all():
+                ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu)
+                out["beta"][k], out["margin29"][k] = ju.multiplier, ju.margin
+                if ju.margin > 0 and np.isfinite(ju.phi).all() and np.trace(ju.phi[idx, idx], axis1=-2,
+                                                                             axis2=-1).max() < BOUND_LIMIT:
+                    Phi = ju.phi
+                    out["Phi"][k + 1], out["valid"][k + 1] = Phi[idx, idx], True
+                else:
+                    proper = False
+                    violations.append({"node": worst(jb.phi), "step": k + 1, "condition": "(29)",
+                                       "margin": float(ju.margin) if ju.margin <= 0 else -np.inf,
+                                       **({} if ju.margin <= 0 else {"reason": LIMIT_REASON})})
+            else:
+                proper = False
+                violations.append({"node": worst(Phi), "step": k, "condition": "(28)", "margin": float(jb.margin)})
+        Pm = expected_update(Pm, rule, ch, st.M, st.mu)
+        out["P_post"][k + 1] = Pm.P
+    if proper:
+        out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
+    # the stationary tables: the recursion continued at the last nominal point with its input
+    stationary = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": STATIONARY_TOL}
+    last_G, last_S = out["Gamma"][-1], out["Sigma"][-1]
+    F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
+    Fs = np.broadcast_to(F, (N, n, n))
+    for extra in range(1, STATIONARY_MAX + 1):
+        Pm = joint_predict(Pm, Fs, st.Q)
+        rule, G_new, S_new = _gains(st, Pm, x, steps)
+        Pm = expected_update(Pm, rule, ch, st.M, st.mu)
+        change = max(np.max(np.abs(G_new - last_G), initial=0.0), np.max(np.abs(S_new - last_S), initial=0.0))
+        last_G, last_S = G_new, S_new
+        if change <= STATIONARY_TOL:
+            stationary = {"converged": True, "extra_steps": extra, "tolerance": STATIONARY_TOL}
+            break
+    return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
+                           Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange), **out)

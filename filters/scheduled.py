@@ -1,0 +1,177 @@
+"""The consensus EKF of mode ``scheduled`` (:mod:`designer.scheduled`) at every node, batched over Monte Carlo runs.
+
+Node ``i`` at step ``k`` uses only what it has: its estimate ``x̂_i`` (its prediction and the Jacobians
+``F``, ``H_i`` there), its own covariance ``P_ii`` (propagated by itself), its measurement, which of its
+neighbours' packets arrived and what they carried, and the offline tables of step ``k`` (the whitened
+covariance factors of its links; beyond the designed horizon the stationary ones)::
+
+    x̂⁻_i = f(x̂_i),   P⁻ = F P_ii Fᵀ + Q
+    G = P⁻^{1/2} Γ_ij P⁻^{1/2},  S = P⁻^{1/2} Σ̃_jl P⁻^{1/2}          (colour the tables)
+    K_i, C_ij, P_ii⁺ = designer.scheduled.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ)
+    x̂⁺_i = x̂⁻_i + K_i (z_i - h_i(x̂⁻_i)) + Σ_{j arrived} [K_ij (z̃_j - h_j(x̂⁻_i)) + C_ij (x̃⁻_j - x̂⁻_i)]
+
+with the neighbours' measurements ``z̃_j`` only when the design exchanges them (``tables.exchange``); a
+falsified packet carries ``x̃⁻_j = x̂⁻_j + ξ_ij`` and ``z̃_j = z_j + H_j(x̂⁻_j) ξ_ij`` (what the sender would send
+were the state displaced by ξ, as for KCF and HCMCI in :mod:`filters.distributed`).
+
+The bound each node carries is the design's certificate (``ScheduledTables.Phi``: the same for every run,
+since the design does not depend on the run); ``predicted_mse`` is the trace of each node's own ``P_ii``.
+One run is a batch of one: :func:`run_scheduled_batch` is the only implementation.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from designer.design import ConsensusDesign, validate_design
+from designer.model import Model
+from designer.network import SensorNetwork
+from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
+from designer.validation import InputError
+
+from .attacks import AttackPattern
+from .consensus import GATE_COUNTS
+from .consensus_batch import ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, run_networks, wrap_residuals
+
+__all__ = ["run_scheduled_batch", "DIVERGED"]
+
+#: An estimate this large has left any physical meaning: the run stops there (as the other consensus filters do).
+DIVERGED = 1e12
+
+
+def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
+                        design: ConsensusDesign, *, inputs=None,
+                        attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+                        phi0=None) -> ConsensusBatchResult:
+    """Run the scheduled consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
+
+    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch`; ``design`` is in mode
+    ``'scheduled'`` with its tables (``design.tables``, :func:`designer.scheduled.design_scheduled`).  The runs'
+    networks may differ only in what the tables were not designed for: the filter applies the tables it was
+    given (a design for other channel statistics is the user's choice).
+    """
+    z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    network, _ = run_networks(network, runs)
+    design = validate_design(design, model, network)
+    tables = design.tables
+    if design.mode != "scheduled" or tables is None:
+        raise InputError("run_scheduled_batch runs mode 'scheduled' with its tables (designer.scheduled."
+                         "design_scheduled); got mode " + repr(design.mode))
+    ch = tables.channels
+    if not (np.array_equal(ch.receiver, np.nonzero(network.adjacency)[0])
+            and np.array_equal(ch.sender, np.nonzero(network.adjacency)[1])):
+        raise InputError("design.tables were designed for another network (other channels)")
+    attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
+    n, nx = network.n_nodes, model.n_x
+    nz = max(model.sensor_dims)
+    Q = model.process_cov
+    R = [model.measurement_cov(i) for i in range(n)]
+    M = np.zeros((nx, nx)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
+    mu = np.zeros(nx) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    cols = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
+    T = tables.steps
+    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
+               phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
+               phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
+               C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
+               margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
+               theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
+               sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
+               predicted_mse=np.full((runs, steps + 1, n), np.nan), gain_condition=np.full((runs, steps, n), np.nan),
+               gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
+    # the certificate: the design's, the same in every run, up to its horizon
+    H_ = min(steps, T)
+    out["phi_post"][:, : H_ + 1] = tables.Phi[None, : H_ + 1]
+    out["valid"][:, : H_ + 1] = tables.valid[None, : H_ + 1, None]
+    for key in ("sigma", "beta", "margin28", "margin29"):
+        out[key][:, :H_] = getattr(tables, key)[None, :H_, None]
+    out["theorem2"][:, : H_ + 1] = tables.theorem2[None, : H_ + 1]
+    for r in range(runs):
+        out["violations"][r] = [dict(v) for v in tables.violations if v["step"] <= steps]
+    x = np.broadcast_to(x0[:, None, :], (runs, n, nx)).copy()
+    P = np.broadcast_to(phi0[:, None], (runs, n, nx, nx)).copy()
+    out["x_post"][:, 0] = x
+    out["predicted_mse"][:, 0] = np.trace(P, axis1=-2, axis2=-1)
+    rcv, snd = ch.receiver, ch.sender
+    act = np.arange(runs)
+    for k in range(steps):
+        if not act.size:
+            break
+        uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
+        xk, Pk = x[act], P[act]
+        F = model.F_expected(xk, k, uk)
+        xp = model.f_expected(xk, k, uk)
+        Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        root = sqrtm_psd(Pp)
+        Gam, Sig = tables.tables(k)
+        a = act.size
+        if attacks is None:
+            arrived, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
+        else:
+            arrived, fdi, xi = ~attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
+        out["gate_counts"][act, k, 0] = arrived.sum(-1)
+        out["gate_counts"][act, k, 3] = out["gate_counts"][act, k, 4] = (arrived & fdi).sum(-1)
+        diff = xp[:, snd] - xp[:, rcv]  # (a, E, nx): x̂⁻_j - x̂⁻_i on every channel
+        if xi is not None:
+            diff = diff + np.where(fdi[..., None], xi, 0.0)
+        diff = np.where(arrived[..., None], diff, 0.0)
+        zk = z[act, k]
+        if tables.exchange and xi is not None:  # a falsified packet's measurement: as if the state were displaced
+            shift = np.zeros((a, rcv.size, nz))  # by ξ, H_j at the sender's prediction
+            for j in range(n):
+                out_j = np.flatnonzero(snd == j)
+                if out_j.size:
+                    Hj = model.H(j, xp[:, j], k + 1)
+                    shift[:, out_j, : Hj.shape[-2]] = np.einsum("lab,leb->lea", Hj, xi[:, out_j])
+            shift = np.where((fdi & arrived)[..., None], shift, 0.0)
+        xn, Pn = np.empty_like(xp), np.empty_like(Pp)
+        for i in range(n):
+            links = ch.of_node[i]
+            d = links.size
+            Hi = model.H(i, xp[:, i], k + 1)
+            res = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1), model.sensors[i].angles)
+            G = colour(root[:, i], np.broadcast_to(Gam[links], (a, d, nx, nx)))
+            S = colour(root[:, i], np.broadcast_to(Sig[i, :d, :d], (a, d, d, nx, nx)))
+            Hn = Rn = None
+            if tables.exchange:  # the neighbours' measurements, at node i's own prediction
+                js = snd[links]
+                Hn, Rn = pad_measurements([model.H(j, xp[:, i], k + 1) for j in js], [R[j] for j in js], nz)
+                res_n = np.zeros((a, d, nz))
+                for s_, j in enumerate(js):
+                    r_j = zk[:, cols[j]] - model.h(j, xp[:, i], k + 1)
+                    if xi is not None:
+                        r_j = r_j + shift[:, links[s_], : r_j.shape[-1]]
+                    res_n[:, s_, : r_j.shape[-1]] = wrap_residuals(r_j, model.sensors[j].angles)
+                res_n = np.where(arrived[:, links, None], res_n, 0.0)
+            K, K_n, C, post, kappa = link_gains(Pp[:, i], Hi, R[i], G, S, ch.p[links], ch.q[links], M, mu, Hn, Rn)
+            xn[:, i] = xp[:, i] + (K @ res[..., None])[..., 0] + np.einsum("ldab,ldb->la", C, diff[:, links])
+            if K_n is not None:
+                xn[:, i] += np.einsum("ldab,ldb->la", K_n, res_n)
+            Pn[:, i] = post
+            out["K"][act, k, i] = 0.0
+            out["K"][act, k, i, :, : K.shape[-1]] = K
+            out["C"][act, k, i] = np.einsum("ld,ldab->lab", arrived[:, links].astype(float), C)  # Σ_{arrived} C_ij
+            out["gain_condition"][act, k, i] = kappa
+        x[act], P[act] = xn, Pn
+        out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
+        out["predicted_mse"][act, k + 1] = np.trace(Pn, axis1=-2, axis2=-1)
+        bad = ~(np.isfinite(xn).all(axis=-1) & np.isfinite(Pn).all(axis=(-2, -1)) & (np.abs(xn).max(axis=-1) < DIVERGED))
+        dead = np.flatnonzero(bad.any(axis=-1))
+        for j in dead:
+            r = int(act[j])
+            out["violations"][r].append({"node": int(np.argmax(bad[j])), "step": k + 1, "condition": "diverged",
+                                         "margin": -np.inf,
+                                         "reason": f"estimate or covariance beyond {DIVERGED:g} or not finite"})
+            for key in ("x_post", "phi_post", "predicted_mse"):
+                out[key][r, k + 1:] = np.nan
+            out["valid"][r, k + 1:] = False
+        if dead.size:
+            act = np.delete(act, dead)
+    if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
+        out["valid"][:, T + 1:] = False
+    return ConsensusBatchResult(**out)
+

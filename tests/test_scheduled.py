@@ -1,0 +1,176 @@
+"""Mode 'scheduled': gains designed offline for the attack statistics, applied with what a node knows.
+
+References: a Monte Carlo of the generative model (the expected joint covariance is each node's mean-square error
+on a linear network), a brute-force expectation over every packet pattern with a numerical minimisation (the
+per-link gains are the MMSE ones), closed forms (the certificate of a linear model is the covariance), and the
+offline design itself (the online rule reproduces it where the linearisation does not move).
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from designer.scheduled import channels, design_scheduled, link_gains
+from designer.validation import InputError
+from filters.consensus import run_consensus
+from filters.consensus_batch import run_consensus_batch
+from studies.consensus_design import consensus_design
+from test_mse_design import _draw, linear_ring
+
+
+def _scheduled(sc, exchange=True, **kw):
+    des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0, **kw)
+    tab = design_scheduled(sc.model, sc.network, des, sc.steps, x0=sc.model.prior.mean, exchange=exchange)
+    return des._replace(tables=tab)
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange):
+    """DoS and FDI on every channel: the design's expected P_ii is each node's mean-square error over the
+    realisations of the noises and the attacks (the design never saw these runs)."""
+    sc = linear_ring(n_nodes=5, fdi=0.2, dos=0.3, steps=10)
+    des = _scheduled(sc, exchange)
+    runs = 1500
+    draws = [_draw(sc, 11, (r,)) for r in range(runs)]
+    res = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), des,
+                              attacks=[a for _, a in draws])
+    err = np.stack([t.x for t, _ in draws])[:, :, None, :] - res.x_post
+    e2 = (err**2).sum(-1)
+    emp, se = e2.mean(0), e2.std(0, ddof=1) / np.sqrt(runs)
+    pred = np.trace(des.tables.P_post, axis1=-2, axis2=-1)
+    z = (emp[1:] - pred[1:]) / se[1:]
+    assert np.abs(z).max() < 4.5, np.abs(z).max()  # 50 (step, node) cells
+    assert abs(z.mean()) < 1.0
+    # the node's own online covariance is the design's, and the linear certificate (U = V = 0) is the covariance
+    np.testing.assert_allclose(res.predicted_mse[0], pred, rtol=1e-9)
+    np.testing.assert_allclose(np.trace(des.tables.Phi, axis1=-2, axis2=-1), pred, rtol=1e-9)
+
+
+def test_exchanging_measurements_helps_and_consensus_never_hurts():
+    """In the design's own model each node does no worse with its links than alone, and no worse when the packets
+    also carry the senders' measurements."""
+    sc = linear_ring(n_nodes=6, fdi=0.1, dos=0.2, steps=25)
+    both, pred_only = _scheduled(sc, True).tables, _scheduled(sc, False).tables
+    m = sc.model
+    alone = np.zeros((sc.steps + 1, 6))  # each node's Kalman filter on its own sensor (a closed-form Riccati)
+    for i in range(6):
+        P = m.prior.cov
+        alone[0, i] = np.trace(P)
+        for k in range(sc.steps):
+            F, H, R = m.F(m.prior.mean, k), m.H(i, m.prior.mean, k + 1), m.measurement_cov(i)
+            P = F @ P @ F.T + m.process_cov
+            P = P - P @ H.T @ np.linalg.solve(H @ P @ H.T + R, H @ P)
+            alone[k + 1, i] = np.trace(P)
+    tr = lambda t: np.trace(t.P_post, axis1=-2, axis2=-1)  # noqa: E731
+    assert np.all(tr(both) <= tr(pred_only) * (1 + 1e-9))
+    assert np.all(tr(pred_only) <= alone * (1 + 1e-9))
+    assert tr(both)[-1].mean() < 0.9 * alone[-1].mean()
+
+
+def _brute_force_posterior(P_joint, H, R, p, q, M, Z, exchange, n=2):
+    """E over every arrival and falsification pattern of node 0's posterior covariance for the gains Z, from the
+    joint covariance of (e_0, e_1, ..., e_d) and explicit noises: an independent construction of the moments."""
+    d = len(p)
+    m = H[0].shape[0]
+    # random vector: [e_0..e_d (n each), v_0..v_d (m each), xi_1..xi_d (n each)]
+    dim = (d + 1) * n + (d + 1) * m + d * n
+    cov = np.zeros((dim, dim))
+    cov[: (d + 1) * n, : (d + 1) * n] = P_joint
+    o = (d + 1) * n
+    for j in range(d + 1):
+        cov[o + j * m: o + (j + 1) * m, o + j * m: o + (j + 1) * m] = R[j]
+    o2 = o + (d + 1) * m
+    for j in range(d):
+        cov[o2 + j * n: o2 + (j + 1) * n, o2 + j * n: o2 + (j + 1) * n] = M
+
+    def sel(kind, j):
+        out = np.zeros((n if kind in "ex" else m, dim))
+        if kind == "e":
+            out[:, j * n:(j + 1) * n] = np.eye(n)
+        elif kind == "v":
+            out[:, o + j * m: o + (j + 1) * m] = np.eye(m)
+        else:
+            out[:, o2 + (j - 1) * n: o2 + j * n] = np.eye(n)
+        return out
+
+    total = np.zeros((n, n))
+    for rho in itertools.product([0, 1], repeat=d):
+        for gam in itertools.product([0, 1], repeat=d):
+            w = np.prod([(p[j] if rho[j] else 1 - p[j]) * ((q[j] if gam[j] else 1 - q[j]) if rho[j] else
+                                                           (1.0 if not gam[j] else 0.0)) for j in range(d)])
+            if w == 0:
+                continue
+            # e⁺ = e_0 - K (H_0 e_0 + v_0) - Σ ρ_j [K_j (H_j e_0 + v_j + γ_j H_j ξ_j) + C_j (e_0 - e_j + γ_j ξ_j)]
+            L = sel("e", 0) - Z[:, :m] @ (H[0] @ sel("e", 0) + sel("v", 0))
+            col = m
+            for j in range(1, d + 1):
+                if exchange:
+                    Kj = Z[:, col: col + m]
+                    col += m
+                    if rho[j - 1]:
+                        L -= Kj @ (H[j] @ sel("e", 0) + sel("v", j) + gam[j - 1] * H[j] @ sel("x", j))
+                Cj = Z[:, col: col + n]
+                col += n
+                if rho[j - 1]:
+                    L -= Cj @ (sel("e", 0) - sel("e", j) + gam[j - 1] * sel("x", j))
+            total += w * L @ cov @ L.T
+    return total
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_link_gains_minimise_the_expected_posterior_over_every_packet_pattern(exchange):
+    rng = np.random.default_rng(5)
+    n, m, d = 2, 1, 2
+    A = rng.normal(size=((d + 1) * n, (d + 1) * n))
+    P_joint = A @ A.T / 6 + 0.5 * np.kron(np.ones((d + 1, d + 1)), np.eye(n))  # correlated nodes
+    H = [rng.normal(size=(m, n)) for _ in range(d + 1)]
+    R = [np.array([[0.3 + 0.2 * j]]) for j in range(d + 1)]
+    p, q = np.array([0.7, 0.55]), np.array([0.2, 0.1])
+    M = np.diag([0.2, 0.05])
+    B = lambda i, j: P_joint[i * n:(i + 1) * n, j * n:(j + 1) * n]  # noqa: E731
+    G = np.stack([B(0, 0) - B(0, j) for j in (1, 2)])
+    S = np.stack([np.stack([B(0, 0) - B(0, l) - B(j, 0) + B(j, l) for l in (1, 2)]) for j in (1, 2)])
+    Hn, Rn = (np.stack(H[1:]), np.stack(R[1:])) if exchange else (None, None)
+    K, K_n, C, post, _ = link_gains(B(0, 0), H[0], R[0], G, S, p, q, M, np.zeros(n), Hn, Rn)
+    Z = np.concatenate([K] + [np.concatenate(([K_n[j]] if exchange else []) + [C[j]], axis=1) for j in range(d)],
+                       axis=1)
+    brute = _brute_force_posterior(P_joint, H, R, p, q, M, Z, exchange, n)
+    np.testing.assert_allclose(post, brute, rtol=1e-9, atol=1e-12)
+    f = lambda z: np.trace(_brute_force_posterior(P_joint, H, R, p, q, M, z.reshape(Z.shape), exchange, n))  # noqa
+    best = minimize(f, np.zeros(Z.size), method="BFGS", options={"gtol": 1e-10})
+    assert np.trace(post) <= best.fun + 1e-9
+    np.testing.assert_allclose(Z, best.x.reshape(Z.shape), atol=1e-4)
+
+
+def test_one_run_is_a_batch_of_one_and_the_online_rule_is_the_offline_design_on_a_linear_model():
+    sc = linear_ring(n_nodes=4, fdi=0.2, dos=0.3, steps=8)
+    des = _scheduled(sc)
+    draws = [_draw(sc, 2, (r,)) for r in range(3)]
+    batch = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), des,
+                                attacks=[a for _, a in draws])
+    one = run_consensus(sc.model, sc.network, draws[1][0].z, des, attacks=draws[1][1])
+    np.testing.assert_allclose(one.x_post, batch.x_post[1], rtol=1e-12, atol=1e-14)  # stacks of other sizes: to
+    np.testing.assert_array_equal(one.phi_post, batch.phi_post[1])  # rounding; the design's bound: exactly
+    # K does not depend on the packets: the online K is the design's nominal K
+    np.testing.assert_allclose(batch.K[:, :, :, :, :1], np.broadcast_to(des.tables.K, batch.K.shape), atol=1e-10)
+
+
+def test_the_network_channels_and_their_probabilities():
+    sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3)
+    ch = channels(sc.network)
+    assert [list(sc.network.adjacency[i].nonzero()[0]) for i in range(4)] == [list(ch.sender[c]) for c in ch.of_node]
+    np.testing.assert_allclose(ch.p, 0.7)
+    np.testing.assert_allclose(ch.q, 0.1 / 0.7)
+
+
+def test_bad_options_for_the_scheduled_mode_are_refused():
+    sc = linear_ring()
+    with pytest.raises(InputError, match="gate"):
+        consensus_design(sc, mode="scheduled", gate=0.01)
+    with pytest.raises(InputError, match="linearization"):
+        consensus_design(sc, mode="scheduled", linearization="hessian")
+    with pytest.raises(InputError, match="sigma"):
+        consensus_design(sc, mode="scheduled", sigma=0.1)
