@@ -40,11 +40,13 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
+    "EXCHANGES",
     "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
 ]
 
 MODES = ("paper", "tuned", "mse", "scheduled")
 LINEARIZATIONS = ("fixed", "hessian", "structured")
+EXCHANGES = ("measurements", "predictions")  # what a packet carries (mode scheduled): the first is its default
 
 # The published choices of seed 003 and, marked, the values it leaves out.
 PAPER_DEFAULTS = {
@@ -103,6 +105,7 @@ class ConsensusDesign(NamedTuple):
     fdi_signal: Any = None  # 'mse' with a gate: the designer.attacks.FDISignal (what of it passes the gate)
     fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
     tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
+    exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -127,6 +130,9 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"radius must be > 0, got {design.radius!r}")
     if design.mode not in MODES:
         raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {design.mode!r}")
+    if design.exchange not in EXCHANGES or (design.exchange == "measurements" and design.mode != "scheduled"):
+        raise InputError(f"exchange must be 'predictions', or 'measurements' in mode 'scheduled', got "
+                         f"{design.exchange!r} in mode {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -292,6 +298,9 @@ class DesignOptions:
     gate : float in [0, 1)
         The χ² gate on received neighbour packets: its false-rejection probability for a
         clean packet (0: no gate; see :func:`filters.consensus.gate`).
+    exchange : {'measurements', 'predictions'}
+        Mode ``scheduled``: a packet carries the sender's prediction and its measurement (the default),
+        or its prediction alone, as in (7).  The other modes exchange predictions.
     """
 
     mode: str | None = None
@@ -308,12 +317,18 @@ class DesignOptions:
     delta: float | None = None
     amplitude: float | None = None
     gate: float | None = None
+    exchange: str | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
     def __post_init__(self):
         if self.mode is not None and self.mode not in MODES:
             raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {self.mode!r}")
+        if self.exchange is not None and self.exchange not in EXCHANGES:
+            raise InputError(f"exchange must be one of {', '.join(map(repr, EXCHANGES))}, got {self.exchange!r}")
+        if self.exchange == "measurements" and self.mode not in (None, "scheduled"):
+            raise InputError(f"exchange 'measurements' is a design of mode 'scheduled'; mode {self.mode!r} exchanges "
+                             "predictions")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
         for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate"):
@@ -406,13 +421,14 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         fdi_mean=None if signal is None else signal.mean(model.n_x),
         gate=0.0 if options.gate is None else float(options.gate),
         fdi_signal=signal,
+        exchange=options.exchange or (EXCHANGES[0] if mode == "scheduled" else "predictions"),
     )
     return validate_design(des, model, network)
 
 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
-    return {"mode": des.mode, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
+    return {"mode": des.mode, "exchange": des.exchange, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),
             "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}

@@ -8,7 +8,8 @@ different dimensions ``n_z = max n_z_i`` and node i's gain in its first ``n_z_i`
 columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1,
 n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` and
 ``beta`` (nodes, steps) and the condition margins ``margin28`` and ``margin29``
-(nodes, steps; NaN where not checked).  The JSON Schema is
+(nodes, steps; NaN where not checked); a ``scheduled`` design adds the tables its nodes carry,
+``table_<name>`` (:func:`designer.scheduled.table_arrays`).  The JSON Schema is
 ``studies/schemas/schedule.schema.json``.
 """
 from __future__ import annotations
@@ -50,6 +51,7 @@ class GainSchedule:
     meta: dict[str, Any] = field(default_factory=dict)
     margin28: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k|k) - (1+ε)σ, NaN where not checked
     margin29: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k+1|k) - β
+    tables: dict[str, np.ndarray] | None = None  # mode 'scheduled': what the nodes carry (schedule.npz's table_*)
 
     @property
     def nodes(self) -> int:
@@ -93,8 +95,9 @@ class GainSchedule:
         """Write ``schedule.json`` and ``schedule.npz`` atomically into ``out_dir``."""
         out_dir = Path(out_dir)
         margins = {} if self.margin28 is None else {"margin28": self.margin28, "margin29": self.margin29}
+        tables = {f"table_{k}": v for k, v in (self.tables or {}).items()}
         write_npz(out_dir / "schedule.npz", K=self.K, C=self.C, Phi=self.Phi, valid=self.valid,
-                  sigma=self.sigma, beta=self.beta, **margins)
+                  sigma=self.sigma, beta=self.beta, **margins, **tables)
         write_json(out_dir / "schedule.json", self.to_json())
         return out_dir
 
@@ -138,4 +141,4 @@ def load_schedule(path) -> GainSchedule:
     return GainSchedule(meta["scenario"], meta["mode"], float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
                         arrays["K"], arrays["C"], arrays["Phi"], arrays["valid"].astype(bool), violations,
                         {k: v for k, v in meta.items() if k not in known}, arrays.get("margin28"),
-                        arrays.get("margin29"))
+                        arrays.get("margin29"), {k[6:]: v for k, v in arrays.items() if k.startswith("table_")} or None)

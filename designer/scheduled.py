@@ -65,7 +65,7 @@ from .validation import InputError
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
-           "BOUND_LIMIT"]
+           "BOUND_LIMIT", "table_arrays"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
@@ -618,3 +618,17 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
             break
     return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange), **out)
+
+
+def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
+    """The arrays a node of the design carries and the design's record, for ``schedule.npz`` (``table_<name>``):
+    the channels (``receiver``, ``sender``, ``p``, ``q``), the whitened factors per step (``Gamma``, ``Sigma``) and
+    beyond the horizon (``Gamma_inf``, ``Sigma_inf``), the nominal gains (``K``, ``C``, ``Kn``), the nominal
+    trajectory and the expected covariance (``P_pred``, ``P_post``)."""
+    ch = tables.channels
+    out = {"receiver": ch.receiver, "sender": ch.sender, "p": ch.p, "q": ch.q, "Gamma": tables.Gamma,
+           "Sigma": tables.Sigma, "Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "K": tables.K,
+           "C": tables.C, "nominal": tables.nominal, "P_pred": tables.P_pred, "P_post": tables.P_post}
+    if tables.Kn is not None:
+        out["Kn"] = tables.Kn
+    return out

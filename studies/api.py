@@ -167,6 +167,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            tau: float | None = None, dos: float | None = None, fdi: float | None = None,
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
            linearization: str | None = None, radius: float | None = None, gate: float | None = None,
+           exchange: str | None = None,
            options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -177,13 +178,14 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : {'paper', 'tuned', 'mse'}
-        The paper's fixed choices, the convex tuning layer or the mean-square-error gains
-        (default: paper).
+    mode : {'paper', 'tuned', 'mse', 'scheduled'}
+        The paper's fixed choices, the convex tuning layer, the mean-square-error gains along the run's
+        realised packet losses (an oracle) or the gains designed offline for the attack statistics that
+        every node applies with what it knows (:mod:`designer.scheduled`) (default: paper).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
-    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange
         Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
         default, then the package's.
     dos, fdi, delta, amplitude
@@ -214,7 +216,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
                      overrides=overrides, assignments=assignments)
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
-                                  linearization=linearization, radius=radius, gate=gate))
+                                  linearization=linearization, radius=radius, gate=gate, exchange=exchange))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
     memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
     with writing(out):  # the one-writer lock, taken before any computation
@@ -229,7 +231,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 sigma: float | None = None, beta: float | None = None, tau: float | None = None,
                 dos: float | None = None, fdi: float | None = None, delta: float | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
-                radius: float | None = None, gate: float | None = None, options: DesignOptions | None = None,
+                radius: float | None = None, gate: float | None = None, exchange: str | None = None,
+                options: DesignOptions | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -282,7 +285,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                          "with no packets to test (use it with design or study)")
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
-                                  linearization=linearization, radius=radius))
+                                  linearization=linearization, radius=radius, exchange=exchange))
     if backend is None:
         backend = make_backend(workers, dask, dask_security)
     elif workers is not None or dask is not None or dask_security is not None:

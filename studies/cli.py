@@ -16,7 +16,7 @@ import warnings
 import click
 
 from designer.validation import CfdesignWarning, ComputationError, InputError
-from designer.design import MODES
+from designer.design import EXCHANGES, MODES
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -37,7 +37,9 @@ def _design_options(f):
         click.option("--mode", type=click.Choice(list(MODES)), default=None,
                      help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
                           "the bound (convex tuning, optimised weights); mse: gains minimising the predicted "
-                          "mean-square error, certified by the bound of the stacked error of all nodes "
+                          "mean-square error along one run's realised packet losses (an oracle: it needs the "
+                          "joint state of the network); scheduled: gains designed offline for the attack "
+                          "statistics, applied at each node with its own Jacobians and covariance "
                           "[default: paper]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
@@ -63,6 +65,10 @@ def _design_options(f):
                           "[default: fixed]"),
         click.option("--radius", type=float, default=None,
                      help="hessian/prior scalings cover errors within this many standard deviations [default: 3]"),
+        click.option("--exchange", type=click.Choice(list(EXCHANGES)), default=None,
+                     help="what a packet carries, mode scheduled: the sender's prediction and its measurement "
+                          "(as KCF and HCMCI exchange measurement information) or its prediction alone, as in "
+                          "(7) [default: measurements]"),
         click.option("--gate", type=float, default=None,
                      help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
                           "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "

@@ -79,11 +79,13 @@ PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF
     "centralized EKF (trusts every packet)"
 LOCAL = "local EKF at every node (no network)"
 MSE = "consensus EKF (mse design)"
+SCHEDULED = "consensus EKF (scheduled design)"
 KCF, HCMCI = "KCF", "HCMCI"
-FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL, MSE, KCF, HCMCI)  # order of the arrays
+FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL, MSE, KCF, HCMCI, SCHEDULED)  # order of the arrays
 FAMILY = {TUNED: "consensus", PAPER_DESIGN: "consensus", PF_AWARE: "particle", PF_PLAIN: "particle",
-          EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus", KCF: "consensus", HCMCI: "consensus"}
-DESIGNED = (TUNED, PAPER_DESIGN, MSE)  # the consensus filters with a design (and its conditions)
+          EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus", KCF: "consensus", HCMCI: "consensus",
+          SCHEDULED: "consensus"}
+DESIGNED = (TUNED, PAPER_DESIGN, MSE, SCHEDULED)  # the consensus filters with a design (and its conditions)
 LITERATURE = (KCF, HCMCI)  # the literature's consensus filters (filters.distributed): no design, no bound
 HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
 DESCRIPTION = {
@@ -99,6 +101,9 @@ DESCRIPTION = {
     MSE: "distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node "
          "(joint error covariance with the channels' DoS/FDI statistics), certified by the bound of the stacked "
          "error of all nodes for them",
+    SCHEDULED: "distributed: the consensus EKF whose per-link gains are designed offline for the channels' DoS/FDI "
+               "statistics (expected joint error covariance along the nominal trajectory) and applied at each node "
+               "with its own Jacobians and covariance; packets carry the sender's prediction and measurement",
     KCF: "distributed, from the literature: Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, "
          "Algorithm 1), extended form: each node fuses its own and its neighbours' measurement information and adds "
          "a consensus term on their predictions with gain eps M_i / (1 + ||M_i||_F), eps = 0.5/d_max",
@@ -163,6 +168,10 @@ ASSUMPTIONS = (
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
     "received packet); its certificate is the bound (26)-(27) of the stacked error of all nodes for those gains "
     "(one sigma and one beta for the network, the cross-covariances propagated).",
+    "comparison: the scheduled design's tables are designed offline for each setting's DoS/FDI probabilities along "
+    "the nominal trajectory (designer.scheduled), never along the runs it is scored on; its packets carry the "
+    "sender's measurement beside its prediction (the same messages per step as the other consensus filters and "
+    "KCF; set --exchange predictions for the paper's packets).",
     "comparison: a paper design whose fixed sigma or beta breaks (28) or (29) at the first step (the same in every "
     "run: every node starts at the prior mean with Phi = P0) cannot start: it is not run at that setting and is "
     "reported as infeasible with the reason (no RMSE), and every other filter runs on the same runs; when sigma, "
@@ -273,6 +282,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     designs = [{} if reason is not None else {PAPER_DESIGN: paper} for paper, reason in papers]  # one that cannot
     for j, s in enumerate(scs):  # start is not run: its arrays stay NaN and the summary says why
         designs[j][MSE] = consensus_design(s, as_mode(options, "mse"))
+        designs[j][SCHEDULED] = consensus_design(s, as_mode(options, "scheduled"))
         if j == 0 or tuned_in_sweeps:
             designs[j][TUNED] = consensus_design(s, as_mode(options, "tuned"))
     local_net = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)

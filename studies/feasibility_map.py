@@ -444,6 +444,9 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if mode == "mse":
         raise InputError("mode 'mse' is not mapped yet: its gains come from the joint error covariance of a run "
                          "(use cfdesign design or a study); feasibility maps modes 'paper' and 'tuned'")
+    if mode == "scheduled":
+        raise InputError("mode 'scheduled' is not mapped yet: its certificate is computed along the nominal "
+                         "trajectory (use cfdesign design or a study); feasibility maps modes 'paper' and 'tuned'")
     bad = [n for n in names if n in _PAPER_ONLY and mode == "tuned"]
     if bad:
         raise InputError(f"--grid {bad[0]} applies to mode 'paper' only (the tuned design chooses it itself)")
