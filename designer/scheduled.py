@@ -65,12 +65,15 @@ from .validation import InputError
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
-           "BOUND_LIMIT", "table_arrays"]
+           "BOUND_LIMIT", "table_arrays", "CERTIFICATE_MAX_DIM"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
 #: Extra steps at the last nominal point to look for the stationary tables.
 STATIONARY_MAX = 400
+#: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
+#: (seconds per step); the design is then given without a bound.
+CERTIFICATE_MAX_DIM = 600
 #: A bound with this trace certifies nothing (the consensus filters' limit).
 BOUND_LIMIT = 1e100
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing"
@@ -93,6 +96,16 @@ class Channels(NamedTuple):
     @property
     def d_max(self) -> int:
         return max((len(c) for c in self.of_node), default=0)
+
+    @property
+    def slots(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(chan, mask)`` (N, d_max): node i's incoming channels in its slots, and which slots hold one."""
+        d = self.d_max
+        chan = np.zeros((len(self.of_node), d), dtype=int)
+        mask = np.zeros((len(self.of_node), d), dtype=bool)
+        for i, c in enumerate(self.of_node):
+            chan[i, : c.size], mask[i, : c.size] = c, True
+        return chan, mask
 
 
 def channels(network) -> Channels:
@@ -143,7 +156,7 @@ def _link_blocks(H_n: np.ndarray | None, P: np.ndarray, G: np.ndarray, S: np.nda
         return S, G, J
     HP = H_n @ P[..., None, :, :]  # (..., d, mz, n)
     HPH = np.einsum("...jan,...lbn->...jlab", HP, H_n)
-    HPH = HPH + np.eye(d)[..., None, None] * R_n[:, None, :, :]  # v_j on the diagonal
+    HPH = HPH + np.eye(d)[:, :, None, None] * R_n[..., :, None, :, :]  # v_j on the diagonal
     HG = np.einsum("...jan,...lnb->...jlab", H_n, G)  # E[(H_j e_i) Δ_ilᵀ] = H_j G_l
     GH = np.swapaxes(np.swapaxes(HG, -3, -4), -1, -2)  # E[Δ_ij (H_l e_i)ᵀ] = (H_l G_j)ᵀ
     core = np.concatenate([np.concatenate([HPH, HG], axis=-1), np.concatenate([GH, S], axis=-1)], axis=-2)
@@ -157,12 +170,13 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
                R_n: np.ndarray | None = None):
     """Node i's MMSE gains for the per-link rule (module docstring), batched over leading axes.
 
-    ``P`` (..., n, n) the node's predicted covariance, ``H`` (..., m, n) its Jacobian, ``R`` (m, m), ``G`` (..., d, n, n)
-    the ``E[e_i Δ_ijᵀ]`` of its d links, ``S`` (..., d, d, n, n) the ``E[Δ_ij Δ_ilᵀ]``, ``p``, ``q`` (d,) the links'
-    arrival and falsification probabilities (a padded link has ``p = 0`` and gets zero gains), ``M``, ``mu`` the
-    falsification's second moment and mean.  With measurement exchange, ``H_n`` (..., d, mz, n) the neighbours'
-    Jacobians at node i's prediction and ``R_n`` (d, mz, mz) their noise covariances (zero-padded rows, identity
-    padding of ``R``: a padded component gets a zero gain).
+    ``P`` (..., n, n) the node's predicted covariance, ``H`` (..., m, n) its Jacobian, ``R`` (..., m, m), ``G``
+    (..., d, n, n) the ``E[e_i Δ_ijᵀ]`` of its d links, ``S`` (..., d, d, n, n) the ``E[Δ_ij Δ_ilᵀ]``, ``p``, ``q``
+    (..., d) the links' arrival and falsification probabilities (a padded link has ``p = 0`` and gets zero gains),
+    ``M``, ``mu`` the falsification's second moment and mean.  With measurement exchange, ``H_n`` (..., d, mz, n) the
+    neighbours' Jacobians at node i's prediction and ``R_n`` (..., d, mz, mz) their noise covariances.  Measurements
+    may be zero-padded (zero rows of ``H``, identity padding of ``R``): a padded component gets a zero gain, so
+    nodes with sensors of different dimensions stack.
 
     Returns ``K`` (..., n, m), ``K_n`` (..., d, n, mz) (None without exchange), ``C`` (..., d, n, n), the node's
     expected posterior covariance (..., n, n) (``P - Z E[e yᵀ]ᵀ - E[e yᵀ] Zᵀ + Z E[y yᵀ] Zᵀ``, positive semidefinite
@@ -177,16 +191,17 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
     if d:
         core, cross_e, J = _link_blocks(H_n, P, G, S, R_n)
         a = core.shape[-1]
-        Epp = p[:, None] * p[None, :] + np.diag(p - p * p)
+        eye = np.eye(d)
+        Epp = p[..., :, None] * p[..., None, :] + eye * (p - p * p)[..., None, :]
         pq = p * q
         JM = J @ M @ _t(J)  # (..., d, a, a) per link
         Jmu = J @ mu  # (..., d, a)
-        off = (pq[:, None] * pq[None, :] * (1.0 - np.eye(d)))[..., None, None] * \
+        off = (pq[..., :, None] * pq[..., None, :] * (1.0 - eye))[..., None, None] * \
             (Jmu[..., :, None, :, None] * Jmu[..., None, :, None, :])
-        fdi = off + np.eye(d)[..., None, None] * (pq[:, None, None] * JM)[..., :, None, :, :]
+        fdi = off + eye[:, :, None, None] * (pq[..., :, None, None] * JM)[..., :, None, :, :]
         cons = np.swapaxes(Epp[..., None, None] * core + fdi, -3, -2).reshape(lead + (d * a, d * a))
         # E[y_0 y_jᵀ] = p_j [H_i P H_jᵀ, H_i G_j]: H_i times E[e_i y_jᵀ]
-        pc = p[:, None, None] * cross_e  # (..., d, n, a)
+        pc = p[..., :, None, None] * cross_e  # (..., d, n, a)
         ey_links = np.swapaxes(pc, -3, -2).reshape(lead + (n, d * a))
         cross = H @ ey_links
         ey = np.concatenate([_t(HP), ey_links], axis=-1)
@@ -205,7 +220,7 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
         ey, yy = _t(HP), my
         scale = np.sqrt(np.abs(np.diagonal(my, axis1=-2, axis2=-1)))
         a = n + mz
-    has = np.broadcast_to(np.any(p > 0), lead)
+    has = np.broadcast_to(np.any(p > 0, axis=-1), lead)
     Z, kappa = solve_gains(ey, yy, scale, has, m)
     ZE = Z @ _t(ey)
     post = symmetrize(P - ZE - _t(ZE) + Z @ yy @ _t(Z))
@@ -226,6 +241,32 @@ def _mean_transition(A: np.ndarray, W: np.ndarray, C: np.ndarray, ch: Channels) 
     T[idx, idx] = A
     np.add.at(T, (ch.receiver, ch.receiver), -ch.p[:, None, None] * W)
     return T
+
+
+def _block_sparse(rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray, shape: tuple[int, int]):
+    """The sparse matrix (CSR) of the blocks ``blocks[b]`` (B, r, c) at block row ``rows[b]``, column ``cols[b]``
+    (repeated positions add up)."""
+    from scipy.sparse import coo_matrix
+
+    B, r, c = blocks.shape
+    ri = (rows[:, None, None] * r + np.arange(r)[None, :, None]) + 0 * np.arange(c)[None, None, :]
+    ci = (cols[:, None, None] * c + np.arange(c)[None, None, :]) + 0 * np.arange(r)[None, :, None]
+    return coo_matrix((blocks.ravel(), (ri.ravel(), ci.ravel())), shape=shape).tocsr()
+
+
+def _transition_matrix(rule: "_Rule", ch: Channels):
+    """``T̄`` (:func:`_mean_transition`) as a sparse (N n, N n) matrix: N + E blocks, whatever the network's size."""
+    N, n = rule.A.shape[0], rule.A.shape[-1]
+    idx = np.arange(N)
+    pW, pC = ch.p[:, None, None] * rule.W, ch.p[:, None, None] * rule.C
+    rows = np.concatenate([idx, ch.receiver, ch.receiver])
+    cols = np.concatenate([idx, ch.receiver, ch.sender])
+    return _block_sparse(rows, cols, np.concatenate([rule.A, -pW, pC]), (N * n, N * n))
+
+
+def _sandwich_sparse(T, X: np.ndarray) -> np.ndarray:
+    """``T X Tᵀ`` for a sparse ``T`` and a dense ``X``."""
+    return np.asarray((T @ np.asarray(T @ X).T).T)
 
 
 def _dense(B: np.ndarray) -> np.ndarray:
@@ -261,19 +302,14 @@ def _noise(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> 
     idx = np.arange(N)
     out[idx, idx] = np.stack([k @ r @ _t(k) for k, r in zip(rule.K, rule.R)])
     if rule.Kn is not None and ch.receiver.size:
-        # Λ̄_im: K_i for m = i, p K_im for a link m -> i; E[w_i w_lᵀ] = Σ_m Λ̄_im R_m Λ̄_lmᵀ (+ DoS variance on i = l)
-        pK = ch.p[:, None, None] * rule.Kn
-        mz = rule.Rn.shape[-1]
-        lam = np.zeros((N, N, n, mz))  # Λ̄_im (padded to mz columns)
-        for i in range(N):
-            lam[i, i, :, : rule.K[i].shape[-1]] = rule.K[i]
-        lam[ch.receiver, ch.sender] = pK
-        Rm = np.zeros((N, mz, mz))
-        for i in range(N):
-            m_i = rule.R[i].shape[-1]
-            Rm[i] = np.eye(mz)
-            Rm[i, :m_i, :m_i] = rule.R[i]
-        out = np.einsum("imab,mbc,lmdc->ilad", lam, Rm, lam)
+        # Λ̄_im: K_i for m = i, p K_im for a link m -> i; E[w_i w_lᵀ] = Σ_m Λ̄_im R_m Λ̄_lmᵀ (+ DoS variance on i = l);
+        # Λ̄ is sparse (N + E blocks): the product costs what the links do
+        K, R = np.asarray(rule.K), np.asarray(rule.R)
+        mz = R.shape[-1]
+        lam = _block_sparse(np.concatenate([idx, ch.receiver]), np.concatenate([idx, ch.sender]),
+                            np.concatenate([K, ch.p[:, None, None] * rule.Kn]), (N * n, N * mz))
+        Rs = _block_sparse(idx, idx, R, (N * mz, N * mz))
+        out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N).copy()
         var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
         np.add.at(out, (ch.receiver, ch.receiver), var)
     if ch.receiver.size and (np.any(M) or np.any(mu)):
@@ -317,15 +353,16 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
     every term small where the nodes agree (``A_i - A_k`` is taken of the small factors first).
     """
     N, n = rule.A.shape[0], rule.A.shape[-1]
-    T = _mean_transition(rule.A, rule.W, rule.C, ch)
-    A = T.sum(axis=1)  # the row sums: I - K_i H_i - Σ p K_ij H_j
-    c = np.einsum("ijab,jbc->iac", T, Pm.P)
-    Td = _dense(T)
-    Y = _blocks(Td @ Pm.G @ Td.T, N)
+    i, j = ch.receiver, ch.sender
+    pW, pC = ch.p[:, None, None] * rule.W, ch.p[:, None, None] * rule.C
+    A = rule.A.copy()  # the row sums: I - K_i H_i - Σ p K_ij H_j
+    np.add.at(A, i, pC - pW)
+    c = rule.A @ Pm.P  # c_i = Σ_j T̄_ij P_jj
+    np.add.at(c, i, -pW @ Pm.P[i] + pC @ Pm.P[j])
+    Y = _blocks(_sandwich_sparse(_transition_matrix(rule, ch), Pm.G), N)
     idx = np.arange(N)
     Yd = Y[idx, idx]
     Gb = Pm.blocks()
-    i, j = ch.receiver, ch.sender
     Nz = _noise(rule, ch, M, mu, N)
     Nz[idx, idx] += _dos_variance(rule, ch, Pm.P[i], symmetrize(Gb[i, j] + Gb[j, i]), Gb[i, j])
     Nd = Nz[idx, idx]
@@ -448,11 +485,6 @@ class ScheduledTables(NamedTuple):
         return self.Gamma_inf, self.Sigma_inf
 
 
-def _whiten(P: np.ndarray, G: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    root = sqrtm_psd(P, inverse=True)
-    return colour(root, G), colour(root, S)
-
-
 def pad_measurements(H_list, R_list, mz: int) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians (..., m_j, n) and noise covariances (m_j, m_j) padded to ``mz`` rows (zero rows, identity noise):
     ``(..., d, mz, n)`` and ``(d, mz, mz)``; a padded component carries no information and gets a zero gain."""
@@ -483,35 +515,36 @@ class _Setting(NamedTuple):
 
 def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     """Every node's nominal gains at the expected joint prediction ``Pm`` and nominal point ``x_pred`` (measuring
-    step ``k1``), with its whitened tables: ``(rule, Gamma (E, n, n), Sigma (N, d, d, n, n))``."""
+    step ``k1``), with its whitened tables: ``(rule, Gamma (E, n, n), Sigma (N, d, d, n, n))``.  All nodes at once,
+    their links padded to ``d`` slots and their measurements to ``mz`` components (:func:`link_gains`)."""
     model, ch = st.model, st.ch
     N, n = Pm.P.shape[0], Pm.P.shape[-1]
     E = ch.receiver.size
-    Hs = [np.asarray(model.H(i, x_pred, k1), dtype=float) for i in range(N)]
+    H, R = pad_measurements([np.asarray(model.H(i, x_pred, k1), dtype=float) for i in range(N)], st.R, st.mz)
+    chan, mask = ch.slots
+    js = np.where(mask, ch.sender[chan] if E else 0, np.arange(N)[:, None])
+    ii = np.arange(N)[:, None]
     Gb = Pm.blocks()
-    A = np.zeros((N, n, n))
-    C, Kn = np.zeros((E, n, n)), (np.zeros((E, n, st.mz)) if st.exchange else None)
-    Hn_all, Rn_all = (pad_measurements(Hs, st.R, st.mz) if st.exchange else (None, None))
-    Ks = []
-    Gam, Sig = np.zeros((E, n, n)), np.zeros((N, st.d, st.d, n, n))
-    for i in range(N):
-        links = ch.of_node[i]
-        js = ch.sender[links]
-        G = Gb[i, js]  # (d_i, n, n)
-        S = Gb[i, js][None, :] - Gb[js][:, js] + Gb[js, i][:, None]  # S_jl = G_il - G_jl + G_ji
-        Hn, Rn = (None, None) if not st.exchange else (Hn_all[js], Rn_all[js])
-        K, K_n, Ci, _, _ = link_gains(Pm.P[i], Hs[i], st.R[i], G, S, ch.p[links], ch.q[links], st.M, st.mu, Hn, Rn)
-        Ks.append(K)
-        A[i] = np.eye(n) - K @ Hs[i]
-        C[links] = Ci
-        if st.exchange:
-            Kn[links] = K_n
-        Gam[links], Sw = _whiten(Pm.P[i], G, S)
-        Sig[i, : len(js), : len(js)] = Sw
-    Hn_e = Hn_all[ch.sender] if st.exchange else None
-    Rn_e = Rn_all[ch.sender] if st.exchange else None
-    W = C if not st.exchange else C + Kn @ Hn_e
-    return _Rule(A, C, W, Ks, st.R, Kn, Rn_e, Hn_e), Gam, Sig
+    m2 = (mask[:, :, None] & mask[:, None, :])[..., None, None]
+    G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n)
+    S = np.where(m2, Gb[ii, js][:, None] - Gb[js[:, :, None], js[:, None, :]] + Gb[js, ii][:, :, None], 0.0)
+    p = np.where(mask, ch.p[chan] if E else 0.0, 0.0)
+    q = np.where(mask, ch.q[chan] if E else 0.0, 0.0)
+    Hn, Rn = (H[js], R[js]) if st.exchange else (None, None)
+    K, K_n, Cs, _, _ = link_gains(Pm.P, H, R, G, S, p, q, st.M, st.mu, Hn, Rn)
+    A = np.eye(n) - K @ H
+    C = np.zeros((E, n, n))
+    C[chan[mask]] = Cs[mask]
+    root = sqrtm_psd(Pm.P, inverse=True)
+    Gam = np.zeros((E, n, n))
+    Gam[chan[mask]] = colour(root, G)[mask]
+    Sig = colour(root, S)
+    if st.exchange:
+        Kn = np.zeros((E, n, st.mz))
+        Kn[chan[mask]] = K_n[mask]
+        Hn_e, Rn_e = H[ch.sender], R[ch.sender]
+        return _Rule(A, C, C + Kn @ Hn_e, K, R, Kn, Rn_e, Hn_e), Gam, Sig
+    return _Rule(A, C, C, K, R, None, None, None), Gam, Sig
 
 
 def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi0=None,
@@ -538,10 +571,10 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
                   bool(exchange), mz, ch.d_max)
     phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
     U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
-    V = list(design.V)
-    Vn = np.zeros((ch.receiver.size, mz, mz)) if exchange else None  # the senders' V_j (padded rows: no remainder)
-    for e, j in enumerate(ch.sender if exchange else ()):
-        Vn[e, : V[j].shape[0], : V[j].shape[0]] = V[j]
+    V = np.zeros((N, mz, mz))  # each sensor's V_i, padded like its measurement (no remainder there)
+    for i, v in enumerate(design.V):
+        V[i, : v.shape[0], : v.shape[0]] = v
+    Vn = V[ch.sender] if exchange else None  # the remainder of a neighbour's measurement at node i's prediction
     E = ch.receiver.size
     out = dict(Gamma=np.zeros((steps, E, n, n)), Sigma=np.zeros((steps, N, st.d, st.d, n, n)),
                P_pred=np.zeros((steps, N, n, n)), K=np.zeros((steps, N, n, mz)), C=np.zeros((steps, E, n, n)),
@@ -555,7 +588,11 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
     out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
-    proper = True
+    proper = N * n <= CERTIFICATE_MAX_DIM
+    if not proper:
+        violations.append({"node": 0, "step": 0, "condition": "(28)", "margin": -np.inf,
+                           "reason": f"the certificate of the stacked error (N n = {N * n} rows, at most "
+                                     f"{CERTIFICATE_MAX_DIM}) is not computed: the design has no bound"})
     x = np.asarray(x0, dtype=float).copy()
     nominal = np.zeros((steps + 1, n))
     nominal[0] = x
