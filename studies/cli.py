@@ -15,6 +15,7 @@ import warnings
 
 import click
 
+from designer.gain_rules import GAIN_RULES, runtime_label
 from designer.validation import CfdesignWarning, ComputationError, InputError
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
@@ -33,11 +34,9 @@ def cli(ctx: click.Context, debug: bool) -> None:
 def _design_options(f):
     """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
     opts = [
-        click.option("--mode", type=click.Choice(["paper", "tuned", "mse"]), default=None,
-                     help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
-                          "the bound (convex tuning, optimised weights); mse: gains minimising the predicted "
-                          "mean-square error, certified by the bound of the stacked error of all nodes "
-                          "[default: paper]"),
+        click.option("--mode", type=click.Choice(list(GAIN_RULES)), default=None,
+                     help="; ".join(f"{r.name}: {r.summary} [{runtime_label(r.runtime)}]" for r in GAIN_RULES.values())
+                     + " [default: paper]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
         click.option("--beta", type=float, default=None, help="beta of (27), paper mode [default: 0.1]"),
@@ -165,7 +164,8 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     res = api.design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
-               f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, verdict {res.verdict}")
+               f"gain rule: {res.gain_rule.label}, epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, "
+               f"verdict {res.verdict}")
     hard = res.hard_violations
     for v in hard[:20]:
         click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "
