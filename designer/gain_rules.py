@@ -160,7 +160,7 @@ def register(rule: GainRule) -> GainRule:
 
 def unregister(name: str) -> GainRule:
     """Remove the rule ``name`` from :data:`GAIN_RULES` and return it."""
-    return _RULES.pop(gain_rule(name, "name"))
+    return _RULES.pop(gain_rule(name, "name").name)
 
 
 def gain_rule(name, param: str = "mode") -> GainRule:
