@@ -59,6 +59,14 @@ def test_the_built_in_rules_and_their_run_time():
         GAIN_RULES["mse"] = gain_rule("paper")  # type: ignore[index]
 
 
+def test_the_schemas_describe_the_same_run_time_classes():
+    """The JSON Schemas are read by other tools: their run-time classes are the registry's."""
+    rule = schemas.load("schedule")["properties"]["gain_rule"]["properties"]
+    assert rule["runtime"]["enum"] == list(RUNTIMES)
+    metrics = schemas.load("study")["$defs"]["metrics"]["properties"]
+    assert metrics["runtime"]["enum"] == list(FILTER_RUNTIMES)
+
+
 @pytest.mark.parametrize("call", [lambda: gain_rule("bogus"), lambda: DesignOptions(mode="bogus")])
 def test_an_unknown_mode_names_the_parameter_and_every_rule(call):
     with pytest.raises(InputError) as err:
@@ -173,3 +181,19 @@ def test_the_design_summary_and_the_api_name_the_gain_rule(designs, tmp_path, ca
     res = designs["mse"][1]
     assert res.gain_rule is gain_rule("mse") and not res.gain_rule.deployable
     assert designs["tuned"][1].gain_rule.runtime == "local" and "oracle" not in designs["tuned"][1].verdict_line()
+
+
+def test_consensus_robot_records_each_filters_run_time_and_never_picks_a_reference(tmp_path):
+    """The mse design (a global oracle) and the fusion centre are references; a replayed schedule is applied by
+    the step alone (scheduled), whatever rule made it; the pick is a filter the nodes can run."""
+    sched = tmp_path / "design"
+    api.design(LINEAR, mode="mse", seed=1, out=sched)
+    out = tmp_path / "study"
+    res = api.study("consensus-robot", LINEAR, out=out, runs=2, mode="mse", schedule=str(sched)).results
+    runtimes = {n: f["runtime"] for n, f in res["filters"].items()}
+    assert runtimes == {"consensus-EKF (mse)": "global", "consensus-EKF (paper, tau=0.01)": "local", "KCF": "local",
+                        "HCMCI": "local", "local EKF per node": "local", "centralized EKF (all sensors)": "centralized",
+                        "consensus-EKF (replayed mse schedule)": "scheduled"}
+    pick = next(ln for ln in (out / "report.md").read_text().splitlines() if ln.startswith("**Which to pick"))
+    picked = pick.partition("; for reference, ")[0]
+    assert not any(n in picked for n, r in runtimes.items() if r in ("global", "centralized"))

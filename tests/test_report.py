@@ -879,6 +879,10 @@ def test_a_study_report_opens_with_the_ranking_the_figure_and_the_pick(which, st
                 assert re.search(r"\[[-\d.e]+, [-\d.e]+\]", r[2]), r  # the value with its interval
     if which != "encrypted-switching":  # consensus studies record what each filter needs at run time
         assert {f["runtime"] for b in blocks.values() for f in b["filters"].values()} >= {"local", "centralized"}
+    if which == "comparison":  # the mse design is a global oracle, the centralized filters a fusion centre's
+        assert all(b["filters"]["consensus EKF (mse design)"]["runtime"] == "global" for b in blocks.values())
+        assert all(f["runtime"] == "centralized" for b in blocks.values() for n, f in b["filters"].items()
+                   if n.startswith("centralized"))
     assert "](fig_tradeoff.png)" in summary and (d / "fig_tradeoff.png").is_file()
     picks = [ln for ln in summary.splitlines() if ln.startswith("**Which to pick")]
     assert len(picks) == len(blocks)
