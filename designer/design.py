@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from .gain_rules import GAIN_RULES, gain_rule
 from .linearization import DEFAULT_RADIUS, component_scales
 from .network import SensorNetwork
 from .validation import InputError, check_finite
@@ -44,7 +45,7 @@ __all__ = [
     "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
 ]
 
-MODES = ("paper", "tuned", "mse", "scheduled")
+MODES = tuple(GAIN_RULES)  # the gain rules' names (designer.gain_rules: what each needs at run time)
 LINEARIZATIONS = ("fixed", "hessian", "structured")
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (mode scheduled): the first is its default
 
@@ -128,8 +129,7 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
     if not np.isfinite(design.radius) or design.radius <= 0:
         raise InputError(f"radius must be > 0, got {design.radius!r}")
-    if design.mode not in MODES:
-        raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {design.mode!r}")
+    gain_rule(design.mode)  # a registered gain rule, else InputError naming them
     if design.exchange not in EXCHANGES or (design.exchange == "measurements" and design.mode != "scheduled"):
         raise InputError(f"exchange must be 'predictions', or 'measurements' in mode 'scheduled', got "
                          f"{design.exchange!r} in mode {design.mode!r}")
@@ -272,10 +272,11 @@ class DesignOptions:
 
     Parameters
     ----------
-    mode : {'paper', 'tuned', 'mse'}
+    mode : str, a name of :data:`designer.gain_rules.GAIN_RULES`
         ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer
-        minimises the bound; ``mse``: gains minimising the predicted mean-square error
-        (:mod:`designer.mse`), certified by the σ, β that make the bound smallest for them.
+        minimises the bound (both ``local``: computed online at each node); ``mse``: gains minimising the
+        predicted mean-square error (:mod:`designer.mse`), certified by the σ, β that make the bound
+        smallest for them (``global``: an oracle needing the network's joint state, not deployable).
     epsilon : float in (0, 1/d_max)
     sigma, beta : float >= 0
         The multipliers of (26)-(27) in paper mode (the tuning layer chooses them otherwise).
@@ -322,8 +323,8 @@ class DesignOptions:
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
     def __post_init__(self):
-        if self.mode is not None and self.mode not in MODES:
-            raise InputError(f"mode must be 'paper', 'tuned' or 'mse', got {self.mode!r}")
+        if self.mode is not None:
+            gain_rule(self.mode)  # a registered gain rule, else InputError naming them
         if self.exchange is not None and self.exchange not in EXCHANGES:
             raise InputError(f"exchange must be one of {', '.join(map(repr, EXCHANGES))}, got {self.exchange!r}")
         if self.exchange == "measurements" and self.mode not in (None, "scheduled"):

@@ -1,9 +1,11 @@
 """Gain schedules of the consensus filter: the files ``schedule.json`` + ``schedule.npz``.
 
 Schema ``cfdesign.schedule/1`` (see ``shared/DESIGN.md``): ``schedule.json`` holds
-``schema, scenario, mode, nodes, steps, epsilon, feasible, violations, sigma, beta,
+``schema, scenario, mode, gain_rule, nodes, steps, epsilon, feasible, violations, sigma, beta,
 trace_bound`` (nodes x steps; entry k is tr Φ_{k+1|k+1}, ``null`` where Φ is not a
-bound) and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z; with sensors of
+bound), where ``gain_rule`` is the mode's run-time record ``{name, runtime, needs,
+deployable}`` (:mod:`designer.gain_rules`; a file written before it existed loads without
+it), and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z; with sensors of
 different dimensions ``n_z = max n_z_i`` and node i's gain in its first ``n_z_i``
 columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1,
 n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` and
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from .fileio import write_json, write_npz
+from .gain_rules import GainRule, gain_rule
 from .validation import InputError
 
 __all__ = ["SCHEMA", "GainSchedule", "load_schedule"]
@@ -54,6 +57,11 @@ class GainSchedule:
     tables: dict[str, np.ndarray] | None = None  # mode 'scheduled': what the nodes carry (schedule.npz's table_*)
 
     @property
+    def gain_rule(self) -> GainRule:
+        """The mode's gain rule: what a node needs at run time to apply the schedule (:mod:`designer.gain_rules`)."""
+        return gain_rule(self.mode)
+
+    @property
     def nodes(self) -> int:
         return self.K.shape[0]
 
@@ -75,6 +83,7 @@ class GainSchedule:
             "schema": SCHEMA,
             "scenario": self.scenario,
             "mode": self.mode,
+            "gain_rule": self.gain_rule.describe(),
             "nodes": self.nodes,
             "steps": self.steps,
             "epsilon": self.epsilon,
@@ -133,8 +142,14 @@ def load_schedule(path) -> GainSchedule:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line, exit 2
         raise InputError(f"schedule arrays {str(npz_path)!r} cannot be read: {type(exc).__name__}: {exc}") from None
-    known = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
-             "trace_bound"}
+    rule = gain_rule(meta.get("mode"), f"mode of schedule {str(path)!r}")
+    record = meta.get("gain_rule")  # absent from a file written before the gain rules declared their run time
+    if record is not None and (not isinstance(record, dict) or record.get("name") != rule.name
+                               or record.get("runtime") != rule.runtime):
+        raise InputError(f"schedule {str(path)!r}: gain_rule {record!r} is not that of mode {rule.name!r} "
+                         f"(runtime {rule.runtime!r})")
+    known = {"schema", "scenario", "mode", "gain_rule", "nodes", "steps", "epsilon", "feasible", "violations", "sigma",
+             "beta", "trace_bound"}
     violations = [{**v, "margin": -np.inf if v["margin"] is None else v["margin"]} for v in meta["violations"]]
     for v in violations:
         v.pop("note", None)

@@ -48,8 +48,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GLOBAL_CLAUSE",
-           "GATE_CLAUSE",
+__all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GATE_CLAUSE",
            "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
            "open_loop_reference"]
 
@@ -76,10 +75,6 @@ VERDICT_ASSUMPTIONS = (
     "linearisation at the operating point; they are reported as ratios and decide no verdict.",
 )
 
-# One clause for a design whose gains need the network's joint state (mode mse); the gain-rule registry will own
-# what each rule needs at run time.
-GLOBAL_CLAUSE = ("its gains need the network's joint state (mode mse is a global oracle, a reference, not a deployable "
-                 "design)")
 # With a chi-square gate the packets a node keeps depend on the errors: Theorem 1's bound is not proven for them.
 GATE_CLAUSE = "with the chi-square gate the bound is a model validated by Monte Carlo only, not a proof"
 

@@ -178,10 +178,12 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : {'paper', 'tuned', 'mse', 'scheduled'}
-        The paper's fixed choices, the convex tuning layer, the mean-square-error gains along the run's
-        realised packet losses (an oracle) or the gains designed offline for the attack statistics that
-        every node applies with what it knows (:mod:`designer.scheduled`) (default: paper).
+    mode : str, a gain rule of :data:`designer.gain_rules.GAIN_RULES`
+        The paper's fixed choices or the convex tuning layer (both ``local``: computed online at
+        each node), the mean-square-error gains (``global``: an oracle needing the network's
+        joint state, a reference of what the structure can reach, not a design to deploy), or the
+        gains designed offline for the attack statistics that every node applies with what it knows
+        (``scheduled``, :mod:`designer.scheduled`) (default: paper).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
@@ -199,9 +201,11 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     Returns
     -------
     Design
-        ``.feasible``, ``.violations``, ``.reason()``, ``.certified``, ``.verdict`` (``certified``,
-        ``vacuous``, ``not steady`` or ``infeasible``: :mod:`designer.verdict`), ``.verdict_detail``
-        (the numbers behind it), ``.verdict_line()``, ``.trace_bound`` (nodes, steps), the
+        ``.gain_rule`` (:class:`designer.gain_rules.GainRule`: its ``runtime``, what a node ``needs``
+        to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``,
+        ``.verdict`` (``certified``, ``vacuous``, ``not steady`` or ``infeasible``:
+        :mod:`designer.verdict`), ``.verdict_detail`` (the numbers behind it), ``.verdict_line()``,
+        ``.trace_bound`` (nodes, steps), the
         ``.schedule`` (gains ``K``, ``C``, bounds ``Phi``, ``sigma``, ``beta``), the full
         ``.result`` of every node, and ``.save(directory)``.  A design that is infeasible or not
         certified is returned (and written), not raised: check ``.certified`` (the command line

@@ -15,8 +15,9 @@ import warnings
 
 import click
 
+from designer.gain_rules import GAIN_RULES, runtime_label
 from designer.validation import CfdesignWarning, ComputationError, InputError
-from designer.design import EXCHANGES, MODES
+from designer.design import EXCHANGES
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -34,13 +35,9 @@ def cli(ctx: click.Context, debug: bool) -> None:
 def _design_options(f):
     """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
     opts = [
-        click.option("--mode", type=click.Choice(list(MODES)), default=None,
-                     help="paper: the published choices (sigma = beta = 0.1, C = tau Phi); tuned: gains minimising "
-                          "the bound (convex tuning, optimised weights); mse: gains minimising the predicted "
-                          "mean-square error along one run's realised packet losses (an oracle: it needs the "
-                          "joint state of the network); scheduled: gains designed offline for the attack "
-                          "statistics, applied at each node with its own Jacobians and covariance "
-                          "[default: paper]"),
+        click.option("--mode", type=click.Choice(list(GAIN_RULES)), default=None,
+                     help="; ".join(f"{r.name}: {r.summary} [{runtime_label(r.runtime)}]" for r in GAIN_RULES.values())
+                     + " [default: paper]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
         click.option("--beta", type=float, default=None, help="beta of (27), paper mode [default: 0.1]"),
@@ -172,7 +169,8 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     res = api.design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
-               f"epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, verdict {res.verdict}")
+               f"gain rule: {res.gain_rule.label}, epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, "
+               f"verdict {res.verdict}")
     hard = res.hard_violations
     for v in hard[:20]:
         click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "

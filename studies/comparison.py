@@ -54,6 +54,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
+from designer.gain_rules import DEPLOYABLE, gain_rule, runtime_label
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
@@ -86,6 +87,13 @@ FAMILY = {TUNED: "consensus", PAPER_DESIGN: "consensus", PF_AWARE: "particle", P
           EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus", KCF: "consensus", HCMCI: "consensus",
           SCHEDULED: "consensus"}
 DESIGNED = (TUNED, PAPER_DESIGN, MSE, SCHEDULED)  # the consensus filters with a design (and its conditions)
+MODE = {TUNED: "tuned", PAPER_DESIGN: "paper", MSE: "mse", SCHEDULED: "scheduled"}  # each designed filter's gain rule
+# What each filter needs at run time (designer.gain_rules.FILTER_RUNTIMES): a designed filter its gain rule's class
+# (mse: global, an oracle); KCF and HCMCI use only their neighbours' messages and the local EKFs nothing (local); the
+# centralized filters need a fusion centre receiving every uplink (centralized). Oracles and centralized filters are
+# references: ranked apart, never the pick.
+RUNTIME = {**{name: gain_rule(mode).runtime for name, mode in MODE.items()}, KCF: "local", HCMCI: "local",
+           LOCAL: "local", PF_AWARE: "centralized", PF_PLAIN: "centralized", EKF_PLAIN: "centralized"}
 LITERATURE = (KCF, HCMCI)  # the literature's consensus filters (filters.distributed): no design, no bound
 HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
 DESCRIPTION = {
@@ -100,7 +108,8 @@ DESCRIPTION = {
     LOCAL: "every node alone: an EKF on its own sensor, no communication (nothing to attack)",
     MSE: "distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node "
          "(joint error covariance with the channels' DoS/FDI statistics), certified by the bound of the stacked "
-         "error of all nodes for them",
+         "error of all nodes for them; a global oracle (its gains need the network's joint state): a reference, "
+         "not a filter to deploy",
     SCHEDULED: "distributed: the consensus EKF whose per-link gains are designed offline for the channels' DoS/FDI "
                "statistics (expected joint error covariance along the nominal trajectory) and applied at each node "
                "with its own Jacobians and covariance; packets carry the sender's prediction and measurement",
@@ -177,6 +186,11 @@ ASSUMPTIONS = (
     "reported as infeasible with the reason (no RMSE), and every other filter runs on the same runs; when sigma, "
     "beta or tau were given (--sigma, --beta, --tau or the model's DESIGN) the study refuses such a design before "
     "any run instead.",
+    "comparison: each filter records its runtime, what it needs at run time: local (a node's own measurement and its "
+    "neighbours' messages: the paper and tuned designs, KCF, HCMCI, the local EKFs), global (the mse design, whose "
+    "gains need the network's joint state: an oracle) or centralized (a fusion centre receiving every uplink); the "
+    "global and centralized filters are references of what the structure or a fusion centre could reach, ranked "
+    "apart and never recommended.",
     "comparison: the local EKF of a node is the consensus filter of that node with no neighbours and sigma = "
     "beta = 0, U = V = 0 (exactly the EKF on the node's own sensor); a node that cannot observe the state alone "
     "drifts.",
@@ -281,10 +295,10 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     papers = _paper_designs(scs, options)
     designs = [{} if reason is not None else {PAPER_DESIGN: paper} for paper, reason in papers]  # one that cannot
     for j, s in enumerate(scs):  # start is not run: its arrays stay NaN and the summary says why
-        designs[j][MSE] = consensus_design(s, as_mode(options, "mse"))
-        designs[j][SCHEDULED] = consensus_design(s, as_mode(options, "scheduled"))
+        designs[j][MSE] = consensus_design(s, as_mode(options, MODE[MSE]))
+        designs[j][SCHEDULED] = consensus_design(s, as_mode(options, MODE[SCHEDULED]))
         if j == 0 or tuned_in_sweeps:
-            designs[j][TUNED] = consensus_design(s, as_mode(options, "tuned"))
+            designs[j][TUNED] = consensus_design(s, as_mode(options, MODE[TUNED]))
     local_net = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
     local = local_ekf_design(papers[0][0])
     covs = fdi_covariances(m, m.prior.mean, signal)
@@ -423,7 +437,7 @@ def _paper_designs(scs: Sequence[Scenario], options: DesignOptions) -> list[tupl
     """Per setting: the paper design and why it cannot start there (:func:`check_first_step`; None: it can)."""
     out = []
     for s in scs:
-        paper = consensus_design(s, as_mode(options, "paper"))
+        paper = consensus_design(s, as_mode(options, MODE[PAPER_DESIGN]))
         out.append((paper, check_first_step(s, paper, PAPER_DESIGN)))
     return out
 
@@ -508,7 +522,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                _not_run(reason, key))
         fam = FAMILY[name]
         met.update({
-            "family": fam, "description": DESCRIPTION[name],
+            "family": fam, "runtime": RUNTIME[name], "description": DESCRIPTION[name],
             "time_per_step_s": None if reason is not None else float(np.nanmean(A["seconds"][:, 0, f]) / K),
             "communications": messages[name], "messages_per_step": messages[name],
             "particles": so.particles if fam == "particle" else None,
@@ -611,17 +625,23 @@ def _not_run(reason: str, key: str, curve: bool = True) -> dict:
 
 
 def _recommend(filters: dict, key: str) -> dict:
-    """The most accurate filter, whether its lead is significant (disjoint intervals), the cheapest, the leanest."""
-    scored = {n: f for n, f in filters.items() if f[key] is not None}
+    """Among the filters a user can deploy (run time local or scheduled): the most accurate, whether its lead is
+    significant (disjoint intervals), the cheapest, the leanest; and the most accurate reference (a global oracle or
+    a centralized filter: what the structure or a fusion centre could reach, never the pick)."""
+    scored = {n: f for n, f in filters.items() if f[key] is not None and f["runtime"] in DEPLOYABLE}
+    refs = {n: f for n, f in filters.items() if f[key] is not None and f["runtime"] not in DEPLOYABLE}
+    best_ref = min(refs, key=lambda n: refs[n][key]) if refs else None
     if not scored:
-        return {"most_accurate": None, "not_significantly_worse": [], "cheapest": None, "fewest_messages": []}
+        return {"most_accurate": None, "not_significantly_worse": [], "cheapest": None, "fewest_messages": [],
+                "best_reference": best_ref}
     best = min(scored, key=lambda n: scored[n][key])
     lo_best = scored[best][f"{key}_ci95"][1]
     tied = [n for n in scored if n != best and scored[n][f"{key}_ci95"][0] <= lo_best]
     fewest = min(f["messages_per_step"] for f in scored.values())
     return {"most_accurate": best, "not_significantly_worse": tied,
             "cheapest": min(scored, key=lambda n: scored[n]["time_per_step_s"]),
-            "fewest_messages": [n for n in scored if scored[n]["messages_per_step"] == fewest]}
+            "fewest_messages": [n for n in scored if scored[n]["messages_per_step"] == fewest],
+            "best_reference": best_ref}
 
 
 def table_markdown(results: dict) -> str:
@@ -632,7 +652,7 @@ def table_markdown(results: dict) -> str:
     for sc_name, b in results["by_scenario"].items():
         at, key = b["attacks"], b["error"]["metric"]
         what = "position" if key == "rmse_position" else "state"
-        rows = {n: {"family": f["family"],
+        rows = {n: {"family": f["family"], "runtime": runtime_label(f["runtime"]),
                     "rmse": f"infeasible, not run: {f['infeasible']}" if f.get("infeasible") else
                     "diverged in every run" if f[key] is None else
                     f"{f[key]:.4g} [{f[f'{key}_ci95'][0]:.3g}, {f[f'{key}_ci95'][1]:.3g}]",
@@ -650,14 +670,20 @@ def table_markdown(results: dict) -> str:
         text += markdown_table(rows, [("family", "family"), ("rmse", f"{what} RMSE [95 % CI]"),
                                       ("median", "median run RMSE"), ("ms", "time/step ms"),
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
-                                      ("feas", "runs with design conditions met")], "filter")
+                                      ("feas", "runs with design conditions met"), ("runtime", "run time")],
+                               "filter")
         rec = b["recommendation"]
         if rec["most_accurate"] is not None:
-            text += (f"\nMost accurate: {rec['most_accurate']}"
+            text += (f"\nMost accurate of the filters the nodes can run: {rec['most_accurate']}"
                      + (f" (not significantly better than {', '.join(rec['not_significantly_worse'])})"
-                        if rec["not_significantly_worse"] else " (95 % interval disjoint from every other filter's)")
+                        if rec["not_significantly_worse"] else " (95 % interval disjoint from every other one's)")
                      + f"; cheapest per step: {rec['cheapest']}; fewest messages: "
                      f"{', '.join(rec['fewest_messages'])}.\n")
+        ref = rec.get("best_reference")
+        if ref is not None:
+            f = b["filters"][ref]
+            text += (f"\nThe most accurate reference, {ref} ({runtime_label(f['runtime'])}), reaches {f[key]:.4g}: "
+                     "what the structure or a fusion centre could reach, not a filter the nodes run.\n")
         for skey, title in (("dos_prob", "DoS probability (FDI fixed)"), ("fdi_prob", "FDI probability (DoS fixed)")):
             sw = b["sweeps"][skey]
             names = [n for n in b["filters"] if any(n in row for row in sw.values())]

@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
+from designer.gain_rules import GainRule, gain_rule
 from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.scheduled import table_arrays
 from designer.validation import InputError, check_int
-from designer.verdict import (GATE_CLAUSE, GLOBAL_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces,
-                              verdict)
+from designer.verdict import GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces, verdict
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
@@ -271,9 +271,18 @@ class Design:
         """Why the design is infeasible, in one line (None when feasible)."""
         return _infeasible_reason(self.violations)
 
+    @property
+    def gain_rule(self) -> GainRule:
+        """The design's gain rule (:mod:`designer.gain_rules`): its run-time class (``local``, ``scheduled`` or
+        ``global``), what a node needs to apply it, and whether it is ``deployable`` (a ``global`` rule is an
+        oracle: a reference of what the structure can reach, not a design to deploy)."""
+        return gain_rule(self.design.mode)
+
     def verdict_line(self) -> str:
-        """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it."""
-        return (describe(self.verdict_detail) + (f"; {GLOBAL_CLAUSE}" if self.design.mode == "mse" else "")
+        """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it;
+        an oracle's (a gain rule that is not deployable) says so."""
+        caveat = self.gain_rule.caveat
+        return (describe(self.verdict_detail) + (f"; {caveat}" if caveat else "")
                 + (f"; {GATE_CLAUSE}" if self.design.gate else ""))
 
     def save(self, directory) -> Path:

@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
+from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.schedule import load_schedule
@@ -229,6 +230,7 @@ class _Variant(NamedTuple):
     filter: str = CONSENSUS_EKF  # run_consensus with ``design``, or filters.distributed's KCF / HCMCI
     iterations: int = 1  # HCMCI's consensus rounds per step
     infeasible: str | None = None  # why a paper design cannot start (check_first_step): not run, reported as such
+    runtime: str = "local"  # what it needs at run time (designer.gain_rules.FILTER_RUNTIMES)
 
 
 def _names(sc: Scenario) -> tuple[str, str]:
@@ -257,11 +259,14 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None,
     local_name, central_name = _names(sc)
     out = {}
     if tuned is not None:
-        out[f"consensus-EKF ({tuned.mode})"] = _Variant(m, net, tuned, True, "consensus", links)
-    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus", links)
+        out[f"consensus-EKF ({tuned.mode})"] = _Variant(m, net, tuned, True, "consensus", links,
+                                                        runtime=gain_rule(tuned.mode).runtime)
+    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus", links,
+                                                                runtime=gain_rule(paper.mode).runtime)
     if tuned is None:
         out["consensus-EKF (paper, tau=0, no consensus)"] = _Variant(m, net, paper._replace(tau=0.0), True,
-                                                                      "consensus", links)
+                                                                      "consensus", links,
+                                                                      runtime=gain_rule(paper.mode).runtime)
     # the literature's distributed filters: same network, same channel attacks, no design (``design`` unused)
     out[KCF] = _Variant(m, net, paper, True, "consensus", links, filter=KCF)
     out[HCMCI] = _Variant(m, net, paper, True, "consensus", links * hcmci_iterations, filter=HCMCI,
@@ -273,7 +278,8 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None,
     except InputError:  # non-Gaussian sensor noise: no stacked Gaussian model
         return out
     ekf1 = ekf._replace(V=(np.zeros((stacked.n_z, stacked.n_z)),))
-    out[central_name] = _Variant(stacked, SensorNetwork(1, np.zeros((1, 1), int)), ekf1, False, "centralized", n)
+    out[central_name] = _Variant(stacked, SensorNetwork(1, np.zeros((1, 1), int)), ekf1, False, "centralized", n,
+                                 runtime="centralized")
     return out
 
 
@@ -293,9 +299,10 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
             variants[name] = v._replace(infeasible=check_first_step(sc, v.design, name))
     if replay is not None:
         sch_mode, K, C = replay
+        # the schedule's gains looked up by the step: applied with what the node knows, whatever rule made them
         variants[f"consensus-EKF (replayed {sch_mode} schedule)"] = _Variant(
             sc.model, sc.network, paper, True, "consensus", 2 * len(sc.network.edges),
-            gains=(K.swapaxes(0, 1), C.swapaxes(0, 1)))
+            gains=(K.swapaxes(0, 1), C.swapaxes(0, 1)), runtime="scheduled")
     return sc, paper, variants
 
 
@@ -479,16 +486,16 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], feasible)) if _checks_bound(v) else None
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         if v.infeasible is not None:  # not run
-            filters[name] = {"family": v.family, "infeasible": v.infeasible, "rmse_position": None,
-                             "rmse_position_ci95": None, "rmse_position_median_run": None, "bound_check": None,
-                             "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
+            filters[name] = {"family": v.family, "runtime": v.runtime, "infeasible": v.infeasible,
+                             "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
+                             "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
                              "diverged_fraction": None, "time_per_step_s": None, "communications": v.communications,
                              "design": describe_design(v.design)}
             continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         if not ok.any():  # every run diverged: no error statistics exist
-            filters[name] = {"family": v.family, "rmse_position": None, "rmse_position_ci95": None,
-                             "rmse_position_median_run": None,
+            filters[name] = {"family": v.family, "runtime": v.runtime, "rmse_position": None,
+                             "rmse_position_ci95": None, "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": failed,
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
             continue
@@ -502,7 +509,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
         boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         filters[name] = {
-            "family": v.family,
+            "family": v.family, "runtime": v.runtime,
             "rmse_position": float(np.sqrt(e2.sum(-1).mean())),
             "rmse_position_ci95": bootstrap_rmse_ci(per_run, boot),
             # robust to a few divergent runs: the median over runs of each run's RMSE
@@ -550,6 +557,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "and is reported as infeasible with the reason (no RMSE, no bound check), and every other variant runs on "
             "the same runs; when sigma, beta or tau were given (--sigma, --beta, --tau or the model's DESIGN) the "
             "study refuses such a design before any run instead.",
+            "consensus-robot: each filter records its runtime, what it needs at run time: local (a node's own "
+            "measurement and its neighbours' messages: the paper and tuned designs, KCF, HCMCI, the local EKFs), "
+            "scheduled (a replayed schedule: gains looked up by the step), global (the mse design, whose gains need "
+            "the network's joint state: an oracle) or centralized (the fusion centre receiving every sensor's "
+            "measurement); global and centralized filters are references, ranked apart and never picked.",
             "consensus-robot: communications = packets sent per step (one per directed channel, 2|E|; HCMCI 2|E| L, "
             "one per round), whether or not DoS drops them.",
             "consensus-robot: KCF and HCMCI (filters.distributed) run on the same network, measurements and channel "
@@ -763,7 +775,8 @@ TEXT = StudyText(
                                  "with optimised weights in place of the paper's factors)",
         "consensus-EKF (mse)": "the consensus filter whose gains minimise each node's predicted mean-square error "
                                "(joint error covariance of all nodes), certified by the bound of the stacked error "
-                               "of all nodes for them",
+                               "of all nodes for them; a global oracle (its gains need the network's joint state): a "
+                               "reference, not a filter to deploy",
         "consensus-EKF (paper, tau=0.01)": "the paper's consensus filter (consensus gain C = tau Phi, tau = 0.01)",
         "consensus-EKF (paper, tau=0, no consensus)": "the same filter with the consensus term switched off",
         "KCF": "Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, Algorithm 1), extended form: every "

@@ -445,7 +445,8 @@ def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
                 continue
             lo, hi = ci if ci is not None else (v, v)
             ref = name in b.references
-            notes = ([b.messages_text(name)] if counted else []) + (["benchmark"] if ref else [])
+            kind = b.kind(name)
+            notes = ([b.messages_text(name)] if counted else []) + ([{"global": "oracle"}.get(kind, kind)] if ref else [])
             ax.errorbar(1e3 * t, v, yerr=[[max(v - lo, 0.0)], [max(hi - v, 0.0)]], fmt="o", capsize=3, ms=6,
                         color=colours[name], mfc="white" if ref else colours[name],
                         label=name + (f" ({', '.join(notes)})" if notes else ""))
@@ -457,7 +458,7 @@ def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
         if log:
             _plain_log_ticks(ax.yaxis)
         ax.grid(True, which="both", alpha=0.3)
-    notes = (["messages"] if counted else []) + (["hollow: benchmark"] if refs else [])
+    notes = (["messages"] if counted else []) + (["hollow: a reference, never the pick"] if refs else [])
     legend_beside(axes[0, -1], title="filter" + (f" ({'; '.join(notes)})" if notes else ""), title_fontsize=7)
     save_figure(fig, path)
 

@@ -861,22 +861,40 @@ def test_a_study_report_opens_with_the_ranking_the_figure_and_the_pick(which, st
     assert len(rows) == sum(len(b["filters"]) for b in blocks.values())
     text = study_text(results["study"])
     key = next(k for k, _ in text.accuracy if any(k in f for b in blocks.values() for f in b["filters"].values()))
+    value = lambda m: m[key][0] if isinstance(m[key], list) else m[key]  # noqa: E731
+
+    def reference(name: str, m: dict) -> bool:  # never the pick: a benchmark, a global oracle, a fusion centre
+        return name in text.references or m.get("runtime") in ("global", "centralized")
+
     for b in blocks.values():
         f = b["filters"]
         names = [r[1] for r in rows if r[1] in f]
-        values = [f[n][key][0] if isinstance(f[n][key], list) else f[n][key] for n in names
-                  if f[n][key] is not None]
-        assert values == sorted(values)  # ranked: lowest first
+        # the options ranked from the lowest, then the references apart, from the lowest
+        assert [reference(n, f[n]) for n in names] == sorted(reference(n, f[n]) for n in names)
+        for refs in (False, True):
+            values = [value(f[n]) for n in names if f[n][key] is not None and reference(n, f[n]) == refs]
+            assert values == sorted(values)
         for r in rows:
             if r[1] in f and f[r[1]].get(f"{key}_ci95") is not None:
                 assert re.search(r"\[[-\d.e]+, [-\d.e]+\]", r[2]), r  # the value with its interval
+    if which != "encrypted-switching":  # consensus studies record what each filter needs at run time
+        assert {f["runtime"] for b in blocks.values() for f in b["filters"].values()} >= {"local", "centralized"}
+    if which == "comparison":  # the mse design is a global oracle, the centralized filters a fusion centre's
+        assert all(b["filters"]["consensus EKF (mse design)"]["runtime"] == "global" for b in blocks.values())
+        assert all(f["runtime"] == "centralized" for b in blocks.values() for n, f in b["filters"].items()
+                   if n.startswith("centralized"))
     assert "](fig_tradeoff.png)" in summary and (d / "fig_tradeoff.png").is_file()
     picks = [ln for ln in summary.splitlines() if ln.startswith("**Which to pick")]
     assert len(picks) == len(blocks)
     for pick, b in zip(picks, blocks.values()):
-        cand = {n: m for n, m in b["filters"].items() if n not in text.references and m[key] is not None}
-        best = min(cand, key=lambda n: cand[n][key] if not isinstance(cand[n][key], list) else cand[n][key][0])
-        assert best in pick
+        cand = {n: m for n, m in b["filters"].items() if not reference(n, m) and m[key] is not None}
+        best = min(cand, key=lambda n: value(cand[n]))
+        picked, _, beside = pick.partition("; for reference, ")
+        assert best in picked
+        assert not any(reference(n, m) and n in picked for n, m in b["filters"].items())
+        refs = {n: m for n, m in b["filters"].items() if reference(n, m) and m[key] is not None}
+        if refs:  # the best reference beside the pick, as what the structure could reach
+            assert beside.startswith(min(refs, key=lambda n: value(refs[n])))
         assert pick.count(".") >= 1 and "\n" not in pick
     page = parse((d / "report.html").read_text())
     assert page.errors == [] and "Which to pick" in page_text(page)
@@ -914,10 +932,51 @@ def test_a_benchmark_is_ranked_but_never_picked():
     r = _results(study="rrp-deception")
     r["filters"]["RRP-SPF-NM"] = {"rmse_position": 0.1, "rmse_position_ci95": [0.05, 0.15], "time_per_step_s": 1e-6}
     md = render_markdown(r)
-    pick = _pick(r)
-    assert "RRP-SPF-NM" not in pick and "fast" in pick
+    picked, _, beside = _pick(r).partition("; for reference, ")
+    assert "RRP-SPF-NM" not in picked and "fast" in picked
+    assert beside.startswith("RRP-SPF-NM reaches 0.1 [0.05, 0.15] (a benchmark")
     row = next(x for x in _ranked_rows(_summary(md)) if x[1] == "RRP-SPF-NM")
     assert row[0] == "—" and row[3] == "benchmark"
+
+
+def test_an_oracle_or_a_fusion_centre_is_shown_apart_and_never_picked():
+    """The comparison where the global oracle (mse) and a centralized filter are the most accurate: the summary ranks
+    the filters the nodes can run, shows the references in a table of their own after them, and picks the best of the
+    deployable ones, naming the best reference beside it as what the structure could reach."""
+    from studies.comparison import _recommend  # the recommendation results.json records
+
+    r = _results()
+    f = r["filters"]
+    for m in f.values():
+        m["runtime"] = "local"
+    f["consensus EKF (mse design)"] = {"rmse_position": 0.5, "rmse_position_ci95": [0.45, 0.55],
+                                       "time_per_step_s": 1e-3, "communications": 20, "runtime": "global"}
+    f["centralized EKF"] = {"rmse_position": 0.7, "rmse_position_ci95": [0.65, 0.75], "time_per_step_s": 1e-5,
+                            "communications": 4, "runtime": "centralized"}
+    md = render_markdown(r)
+    summary = _summary(md)
+    options, refs = summary.split("**References**", 1)
+    assert [x[1] for x in _ranked_rows(options)] == ["fast", "close", "far"]
+    assert [x[:2] for x in _ranked_rows(options)] == [["1", "fast"], ["2", "close"], ["3", "far"]]
+    rows = _ranked_rows(refs)
+    assert [(x[0], x[1], x[3]) for x in rows] == [("—", "consensus EKF (mse design)", "reference"),
+                                                 ("—", "centralized EKF", "reference")]
+    assert "oracle" in rows[0][-1] and "fusion centre" in rows[1][-1]
+    pick = _pick(r)
+    picked, _, beside = pick.partition("; for reference, ")
+    assert picked.startswith("**Which to pick:** the data cannot tell fast and close apart")
+    assert "mse" not in picked and "centralized" not in picked
+    assert beside.startswith("consensus EKF (mse design) reaches 0.5 [0.45, 0.55] (a global oracle: what the "
+                             "structure could reach")
+    metric_by_metric = md.split("## Which filter to pick", 1)[1].split("\n## ", 1)[0]
+    assert "**Most accurate (position RMSE):** fast" in metric_by_metric
+    # the comparison's own recommendation (results.json) and table: the same pick, the oracle as the best reference
+    rows = {n: {"rmse": m["rmse_position"], "rmse_ci95": m["rmse_position_ci95"], "time_per_step_s":
+                m["time_per_step_s"], "messages_per_step": m["communications"], "runtime": m["runtime"]}
+            for n, m in f.items()}
+    rec = _recommend(rows, "rmse")
+    assert rec["most_accurate"] == "fast" and rec["best_reference"] == "consensus EKF (mse design)"
+    assert rec["not_significantly_worse"] == ["close"] and rec["cheapest"] == "fast"
 
 
 @pytest.mark.parametrize("check, word", [({"verdict": "violated", "fraction_exceeding": 0.0,

@@ -27,7 +27,7 @@ from .text import (assumption_section, compact, document, figure_lines, fmt_num,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
                    recorded_elsewhere, rerun_lines, scenario_spec)
 
-__all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES", "software_lines"]
+__all__ = ["design_report", "render_design", "attack_lines", "HARD", "FIGURES", "software_lines", "gain_rule_record"]
 
 HARD = ("(28)", "(29)", "diverged")  # the violations that make a design infeasible
 FIGURES = {
@@ -37,11 +37,11 @@ FIGURES = {
     "fig_margins.png": "Margins of (28) (top, on Φ_{k|k}) and (29) (bottom, on Φ_{k+1|k}) per node over the run "
                        "(symmetric log scale); below the red line a condition is violated.",
 }
-_KNOWN = {"schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
-          "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed", "options",
-          "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network", "attacks",
-          "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
-          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail"}
+_KNOWN = {"schema", "scenario", "mode", "gain_rule", "nodes", "steps", "epsilon", "feasible", "violations", "sigma",
+          "beta", "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed",
+          "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
+          "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
+          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -472,6 +472,20 @@ def _settings_section(s: _Schedule) -> list[str]:
                 "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
                 "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
                 "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]
+    elif mode == "scheduled":
+        st = meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {}
+        carry = ("its prediction and its measurement" if meta.get("exchange") == "measurements" else
+                 "its prediction alone, as in (7)")
+        out += ["Scheduled mode: the per-link gains are designed offline for the channels' DoS and FDI probabilities "
+                "from the expected joint error covariance of all nodes along the nominal trajectory "
+                "(`designer.scheduled`); every node applies them on any run with its own estimate, covariance and "
+                f"Jacobians and the packets that arrived; a packet carries the sender's {carry}. The tables beyond "
+                "the horizon are the recursion continued at the last nominal point"
+                + (f", stationary after {st.get('extra_steps')} more steps." if st.get("converged") else
+                   ", which did not settle within the steps tried: beyond the horizon the gains are the last ones "
+                   "computed.")
+                + " The bound is the expected one over the attacks, for the nominal gains and linearisation with the "
+                "remainders U, V_i: study consensus-robot validates it on runs the design never saw.", ""]
     if is_num(meta.get("gate")) and not meta.get("gate"):
         out += ["No χ² gate on the neighbour packets: every received packet is used.", ""]
     if meta.get("gate"):
@@ -670,9 +684,37 @@ _VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound 
                  "not steady": "Not certified: the bound is not steady", "infeasible": "Not certified: infeasible"}
 
 
+def gain_rule_record(meta: Mapping) -> dict | None:
+    """The design's gain rule ``{name, runtime, needs, deployable}``: ``schedule.json``'s ``gain_rule``, or for a file
+    written before it existed the registered rule of its mode (:mod:`designer.gain_rules`); None when neither says."""
+    from designer.gain_rules import GAIN_RULES, RUNTIMES
+
+    rec = meta.get("gain_rule")
+    if (isinstance(rec, Mapping) and rec.get("runtime") in RUNTIMES and isinstance(rec.get("needs"), str)
+            and isinstance(rec.get("deployable"), bool)):
+        return dict(rec, name=str(rec.get("name", meta.get("mode"))))
+    rule = GAIN_RULES.get(meta.get("mode")) if isinstance(meta.get("mode"), str) else None
+    return None if rule is None else rule.describe()
+
+
+def _runtime_lines(meta: Mapping) -> list[str]:
+    """The design's run-time class in words (the report's first lines): what a node needs to apply its gains and,
+    for a rule that is not deployable, that it is an oracle."""
+    rule = gain_rule_record(meta)
+    if rule is None:
+        return []
+    name, runtime, needs = md_escape(rule["name"]), rule["runtime"], md_escape(rule["needs"].rstrip("."))
+    if not rule["deployable"]:
+        return [f"**Gain rule {name}, run time {runtime}: an oracle, a reference of what the structure can reach, not "
+                f"a design to deploy.** Its gains need {needs}: no node can apply them with what it has.", ""]
+    return [f"**Gain rule {name}, run time {runtime}: deployable on the nodes.** To apply its gains a node needs "
+            f"{needs}.", ""]
+
+
 def _verdict_words(s: _Schedule) -> str | None:
     """The report's first line: the verdict of ``schedule.json`` in words (None for a schedule written without one)."""
-    from designer.verdict import GATE_CLAUSE, GLOBAL_CLAUSE, describe
+    from designer.gain_rules import caveat
+    from designer.verdict import GATE_CLAUSE, describe
 
     v, detail = s.meta.get("verdict"), s.meta.get("verdict_detail")
     if v not in _VERDICT_LEAD or not isinstance(detail, Mapping):
@@ -682,7 +724,8 @@ def _verdict_words(s: _Schedule) -> str | None:
     except (TypeError, ValueError):  # a damaged detail: the verdict alone
         text = v
     text = text.split(": ", 1)[1] if ": " in text else text
-    oracle = f"; {GLOBAL_CLAUSE}" if s.meta.get("mode") == "mse" else ""
+    rule = gain_rule_record(s.meta)
+    oracle = f"; {caveat(rule)}" if rule is not None and caveat(rule) else ""
     oracle += f"; {GATE_CLAUSE}" if s.meta.get("gate") else ""
     return f"**{_VERDICT_LEAD[v]}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
 
@@ -728,7 +771,7 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
     head = [f"# Design report: {md_escape(scenario)}", "",
             f"A gain schedule of the distributed consensus filter ({md_escape(mode)} mode) for {s.nodes} nodes over "
             f"{s.steps} steps, computed by `cfdesign design` along one seeded simulated run. Nodes and steps are "
-            "numbered from 0, as in `schedule.json`.", ""]
+            "numbered from 0, as in `schedule.json`.", "", *_runtime_lines(meta)]
     tight = _tightest(s) if s.m28 is not None and s.m29 is not None else []
     return document(head, [
         _verdict_section(s, tight), _conditioning_section(meta), _binding_section(s, tight),

@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from designer.gain_rules import DEPLOYABLE, FILTER_RUNTIMES, runtime_label
 from designer.validation import InputError
 
 from ..pipeline import StudyText, study_text
@@ -202,8 +203,24 @@ class SummaryBlock:
     key: str | None  # the ranking metric (None: the study records none)
     label: str  # its words, with the component of a metric per state
     values: Mapping[str, tuple[float | None, tuple[float, float] | None]]
-    references: frozenset
+    references: frozenset  # the filters that are never the pick (reference_kind)
     runs: Any
+    benchmarks: frozenset = frozenset()  # the study's own benchmarks (StudyText.references)
+
+    def kind(self, name: str) -> str | None:
+        """Why ``name`` is never the pick (None: it is an option): its recorded ``runtime`` when no node can run it
+        (``"global"``: an oracle; ``"centralized"``: a fusion centre), else ``"benchmark"`` (the study's)."""
+        rt = self.filters.get(name, {}).get("runtime")
+        if rt in FILTER_RUNTIMES and rt not in DEPLOYABLE:
+            return rt
+        return "benchmark" if name in self.benchmarks else None
+
+    def reference_note(self, name: str) -> str | None:
+        """The kind of :meth:`kind` in a few words."""
+        kind = self.kind(name)
+        if kind is None:
+            return None
+        return "benchmark (not an option under attack)" if kind == "benchmark" else f"reference ({runtime_label(kind)})"
 
     @property
     def drawable(self) -> bool:
@@ -221,17 +238,32 @@ class SummaryBlock:
         return f"{fmt_num(msg[0])} {'msgs/step' if msg[1] else 'messages'}"
 
     def standing(self) -> tuple[str | None, dict[str, str]]:
-        """The best candidate (not a benchmark) and every other candidate's standing (:func:`_standing`)."""
+        """The best option (not a reference) and every other option's standing (:func:`_standing`)."""
         cand = {n: vc for n, vc in self.values.items() if n not in self.references and vc[0] is not None}
         return _standing(cand, self.runs)
 
     def ranked(self) -> list[str]:
-        return sorted(self.values, key=lambda n: (self.values[n][0] is None, self.values[n][0] or 0.0))
+        """The options from the lowest value, then the references from the lowest value (each without a value last)."""
+        return sorted(self.values, key=lambda n: (n in self.references, self.values[n][0] is None,
+                                                  self.values[n][0] or 0.0))
+
+    def best_reference(self) -> str | None:
+        """The reference with the lowest value (None: no reference has one)."""
+        refs = [n for n in self.references if self.values[n][0] is not None]
+        return min(refs, key=lambda n: self.values[n][0]) if refs else None
+
+
+def _references(filters: Mapping[str, Mapping], text: StudyText | None) -> frozenset:
+    """The filters that are never the pick: the study's benchmarks (``text.references``) and every filter whose
+    recorded ``runtime`` no node can run (``global``: an oracle; ``centralized``: a fusion centre)."""
+    return frozenset(n for n, m in filters.items()
+                     if n in (text.references if text else ())
+                     or (m.get("runtime") in FILTER_RUNTIMES and m.get("runtime") not in DEPLOYABLE))
 
 
 def _block(title: str, results: Mapping, text: StudyText | None) -> SummaryBlock:
     filters = _filters(results)
-    refs = frozenset(n for n in (text.references if text else ()) if n in filters)
+    refs = _references(filters, text)
     acc = _accuracy_metrics(results, text)
     values: dict[str, tuple[float | None, tuple[float, float] | None]] = {n: (None, None) for n in filters}
     key, label = (acc[0] if acc else (None, "accuracy"))
@@ -243,7 +275,8 @@ def _block(title: str, results: Mapping, text: StudyText | None) -> SummaryBlock
             for n, (v, ci) in vals.items():
                 if math.isfinite(v):
                     values[n] = (v, ci_pair(ci))
-    return SummaryBlock(title, filters, key, label, values, refs, results.get("runs"))
+    return SummaryBlock(title, filters, key, label, values, refs, results.get("runs"),
+                        frozenset(n for n in (text.references if text else ()) if n in filters))
 
 
 def summary_blocks(results: Mapping, text: StudyText | None = None) -> list[SummaryBlock]:
@@ -269,7 +302,7 @@ def _notes(name: str, b: SummaryBlock) -> str:
     m, runs = b.filters[name], b.runs
     notes = []
     if name in b.references:
-        notes.append("benchmark (not an option under attack)")
+        notes.append(b.reference_note(name))
     div = m.get("diverged_runs")
     ndiv = len(div) if isinstance(div, list) else div if is_num(div) else None
     if ndiv is None and is_num(m.get("diverged_fraction")) and is_num(runs):
@@ -295,16 +328,19 @@ def _notes(name: str, b: SummaryBlock) -> str:
 
 
 def _ranked_table(b: SummaryBlock) -> list[str]:
+    """The options ranked; the references (never the pick) apart, in a table of their own after them."""
     best, standing = b.standing()
     words = {"tied": "cannot be told apart", "apart": "worse (intervals apart)", "no interval": "no interval"}
     has_msgs = any(_messages(m) is not None for m in b.filters.values())
     per_step = any((_messages(m) or (0, False))[1] for m in b.filters.values())
-    rows, rank = [], 0
+    rows: dict[bool, list] = {False: [], True: []}  # options, references
+    rank = 0
     for n in b.ranked():
         v, ci = b.values[n]
-        ranked = v is not None and n not in b.references
+        ref = n in b.references
+        ranked = v is not None and not ref
         rank += ranked
-        against = ("best" if n == best else "benchmark" if n in b.references else
+        against = ("best" if n == best else ("benchmark" if b.kind(n) == "benchmark" else "reference") if ref else
                    words.get(standing.get(n, ""), "—"))
         t = b.filters[n].get("time_per_step_s")
         row = [str(rank) if ranked else "—", md_cell(n), with_ci(v, ci) if v is not None else "—", against,
@@ -312,23 +348,55 @@ def _ranked_table(b: SummaryBlock) -> list[str]:
         if has_msgs:
             msg = _messages(b.filters[n])
             row.append(fmt_num(msg[0]) if msg is not None else "—")
-        rows.append(row + [_notes(n, b) or "—"])
+        rows[ref].append(row + [_notes(n, b) or "—"])
     header = ["rank", "filter", md_cell(f"{b.label} [95 % interval]"), "against the best", "time per step"]
     align = ["r", "l", "r", "l", "r"]
     if has_msgs:
         header.append("messages per step" if per_step else "messages")
         align.append("r")
-    return md_table(header + ["notes"], rows, align + ["l"])
+    out = md_table(header + ["notes"], rows[False], align + ["l"]) if rows[False] else []
+    if rows[True]:
+        out += [f"**References**, apart and never the pick: {_reference_words(b)}.", ""]
+        out += md_table(header + ["notes"], rows[True], align + ["l"])
+    return out
+
+
+def _reference_words(b: SummaryBlock) -> str:
+    """What the block's references are, by kind."""
+    kinds = {b.kind(n) for n in b.references}
+    words = {"global": "global oracles, whose gains need the network's joint state (what the structure could reach)",
+             "centralized": "centralized filters, a fusion centre receiving every sensor's uplink (no node runs them "
+                            "alone)",
+             "benchmark": "benchmarks, which see data no filter has under attack"}
+    return "; ".join(words[k] for k in ("global", "centralized", "benchmark") if k in kinds)
+
+
+_REFERENCE_WORDS = {
+    "global": "a global oracle: what the structure could reach with the network's joint state, not a filter to deploy",
+    "centralized": "a fusion centre receiving every uplink: what centralisation could reach, not a filter the nodes "
+                   "run",
+    "benchmark": "a benchmark: it sees data no filter has under attack"}
 
 
 def _pick_sentence(b: SummaryBlock) -> str:
-    """The pick in one sentence, no stronger than the intervals."""
+    """The pick in one sentence, no stronger than the intervals: never a reference; the best reference beside it."""
+    line = _pick(b)
+    ref = b.best_reference()
+    if ref is None:
+        return line
+    v, ci = b.values[ref]
+    return (line[:-1] + f"; for reference, {md_escape(ref)} reaches {with_ci(v, ci)} "
+            f"({_REFERENCE_WORDS[b.kind(ref)]}).")
+
+
+def _pick(b: SummaryBlock) -> str:
+    """The pick among the options in one sentence (ending with a full stop), no stronger than the intervals."""
     lead = "**Which to pick" + (f" on {md_escape(b.title)}" if b.title else "") + ":** "
     label = md_escape(b.label)
     best, standing = b.standing()
     runs = b.runs
     if best is None:
-        return lead + f"none can be named: no filter (benchmarks aside) has a finite {label}."
+        return lead + f"none can be named: no filter (references aside) has a finite {label}."
     v, ci = b.values[best]
     times = {n: b.filters[n].get("time_per_step_s") for n in b.values}
     if not standing:
@@ -399,7 +467,7 @@ def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence
         if any(b.counts_messages for b in blocks):
             caption += "; the legend gives each filter's messages"
         if any(b.references for b in blocks):
-            caption += "; hollow markers are benchmarks"
+            caption += "; hollow markers are the references, never the pick"
         out += figure_lines(1, TRADEOFF, caption + ".")
     for b in blocks:
         out += [_pick_sentence(b), ""]
@@ -470,14 +538,15 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
                              "Per scenario: filters are ranked only against the filters of the same scenario.",
                              text)
     filters = _filters(results)
-    refs = set(text.references if text else ())
+    block = _block("", results, text)
+    refs = block.references
     cand = {n: m for n, m in filters.items() if n not in refs}
     if not cand:
         return []
     out = ["## Which filter to pick, metric by metric", ""]
     out.append("Derived from the numbers of this run only (lower is better for every metric below"
-               + (f"; benchmarks left out: {', '.join(md_escape(r) for r in sorted(refs & set(filters)))}, since no "
-                  "filter can have their data under attack" if refs & set(filters) else "")
+               + (f"; references left out: {', '.join(md_escape(r) for r in sorted(refs))}, being "
+                  f"{_reference_words(block)}" if refs else "")
                + "). Differences between filters whose 95 % intervals overlap are not significant.")
     out.append("")
     items = []
@@ -552,7 +621,7 @@ def _filters_section(results: Mapping, text: StudyText | None) -> list[str]:
     filters = _filters(results)
     if not filters:
         return []
-    refs = set(text.references if text else ())
+    block = _block("", results, text)
     out = ["### The filters", ""]
     for name, m in filters.items():
         desc = (text.filters.get(name) if text else None) or m.get("description") or ""
@@ -569,8 +638,8 @@ def _filters_section(results: Mapping, text: StudyText | None) -> list[str]:
             line += f": {md_escape(desc)}"
         if extras:
             line += f" ({md_escape('; '.join(extras))})"
-        if name in refs:
-            line += " — a benchmark, not an option under attack"
+        if block.kind(name) is not None:
+            line += f" — {block.reference_note(name)}"
         out.append(line)
     return out + [""]
 

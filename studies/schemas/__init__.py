@@ -145,6 +145,19 @@ def _matrix_shape(value, rows: int, cols: int, path: list, label: str) -> Iterat
 
 
 def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
+    from designer.gain_rules import GAIN_RULES, choices
+
+    rule = GAIN_RULES.get(obj["mode"])
+    if rule is None:
+        yield ["mode"], f"{obj['mode']!r} is not a registered gain rule ({choices()})"
+    record = obj.get("gain_rule")
+    if rule is not None and record is not None:
+        for key in ("name", "runtime", "deployable"):
+            if record[key] != getattr(rule, key):
+                yield ["gain_rule", key], f"{record[key]!r}, but gain rule {rule.name!r} has {getattr(rule, key)!r}"
+    mode = (obj.get("options") or {}).get("mode")
+    if isinstance(mode, str) and mode not in GAIN_RULES:
+        yield ["options", "mode"], f"{mode!r} is not a registered gain rule ({choices()})"
     nodes, steps = obj["nodes"], obj["steps"]
     for key in ("sigma", "beta", "trace_bound"):
         yield from _matrix_shape(obj[key], nodes, steps, [key], f"{key} (nodes x steps)")

@@ -1,0 +1,196 @@
+"""Gain rules: the design modes, each declaring what a node needs at run time to apply its gains.
+
+Every design mode (``cfdesign design --mode NAME``, ``DesignOptions(mode=NAME)``) is a
+:class:`GainRule` of this registry, and every rule belongs to one run-time class of
+:data:`RUNTIMES`:
+
+* ``local`` — the node computes its gains online from what it has: its own measurement,
+  the packets it received and their senders' messages (``paper``, ``tuned``);
+* ``scheduled`` — gains designed offline and applied with what the node itself observes or
+  computes (the step, which neighbour packets arrived, its own estimate);
+* ``global`` — the gains need the joint state of the network (``mse``: the joint error
+  covariance of all nodes and every link's realised packet losses), i.e. a central
+  computer.  Such a rule is an **oracle**: a reference of what the structure can reach,
+  not a design to deploy (``deployable`` is False).
+
+Everything that lists, checks or reports the modes reads this registry: ``designer.design.MODES``
+and the errors naming the allowed modes, the command line's ``--mode`` choices and help,
+``schedule.json``'s ``gain_rule`` record (and its check in :func:`studies.schemas.validate`),
+the design report's first lines, the ``cfdesign design`` summary, and the studies' ``runtime``
+of each filter (with :data:`FILTER_RUNTIMES`, which adds ``centralized`` for the filters of a
+fusion centre, which no node runs).
+
+Adding a rule
+-------------
+One :func:`register` call beside the built-in rules at the end of this module, plus its
+implementation (the gains it computes, in the design and in the filter)::
+
+    register(GainRule("mine", "scheduled", needs="the step and which neighbour packets arrived",
+                      summary="gains designed offline for the attack statistics"))
+
+The command line's ``--mode`` choices and ``designer.design.MODES`` are read when they load, so a
+rule belongs here; a rule registered later (a test's) is known to :func:`gain_rule` and to every
+check that looks a mode up, and :func:`unregister` removes it.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping
+
+from .validation import InputError
+
+__all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "GAIN_RULES", "register", "unregister",
+           "gain_rule", "runtime_label", "choices", "caveat"]
+
+# The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
+RUNTIMES: Mapping[str, str] = MappingProxyType({
+    "local": "the node computes its gains online from its own measurement, the packets it received and their "
+             "senders' messages (predictions and bounds); nothing else is needed at run time.",
+    "scheduled": "gains designed offline and applied with what the node itself observes or computes: the step, "
+                 "which neighbour packets arrived, its own estimate.",
+    "global": "the gains need the joint state of the network (every node's errors and every link's realised "
+              "packet losses), i.e. a central computer: an oracle, a reference of what the structure can reach, "
+              "not a design to deploy.",
+})
+# What a study's filter runs on: the gain rules' classes, and a fusion centre (a filter no node can run alone).
+FILTER_RUNTIMES: Mapping[str, str] = MappingProxyType({
+    **RUNTIMES,
+    "centralized": "a fusion centre receives every sensor's measurement over its uplink: not a filter a node can run "
+                   "alone, a reference of what centralisation reaches.",
+})
+DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; the others are references
+_SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
+          "observes", "global": "an oracle, not deployable", "centralized": "a fusion centre, not a node's filter"}
+_NAME = re.compile(r"[a-z][a-z0-9_-]*")
+
+
+def runtime_label(runtime: str) -> str:
+    """``"global: an oracle, not deployable"``: a run-time class of :data:`FILTER_RUNTIMES` with its short phrase."""
+    if runtime not in FILTER_RUNTIMES:
+        raise InputError(f"runtime must be {_listing(FILTER_RUNTIMES)}, got {runtime!r}")
+    return f"{runtime}: {_SHORT[runtime]}"
+
+
+@dataclass(frozen=True)
+class GainRule:
+    """A design mode and what a node needs at run time to apply its gains.
+
+    Parameters
+    ----------
+    name : str
+        The mode's name (``--mode NAME``): lower-case letters, digits, ``-`` and ``_``.
+    runtime : {'local', 'scheduled', 'global'}
+        Its run-time class (:data:`RUNTIMES`).
+    needs : str
+        One plain sentence: what a node needs at run time to apply the rule.
+    summary : str
+        One line: how the rule chooses the gains.
+    """
+
+    name: str
+    runtime: str
+    needs: str
+    summary: str
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
+            raise InputError(f"gain rule name must be lower-case letters, digits, '-' or '_' (starting with a letter), "
+                             f"got {self.name!r}")
+        if self.runtime not in RUNTIMES:
+            raise InputError(f"runtime of gain rule {self.name!r} must be {_listing(RUNTIMES)}, got {self.runtime!r}")
+        for field in ("needs", "summary"):
+            if not isinstance(getattr(self, field), str) or not getattr(self, field).strip():
+                raise InputError(f"{field} of gain rule {self.name!r} must be a non-empty sentence")
+
+    @property
+    def deployable(self) -> bool:
+        """Whether a user can run the rule on the nodes (its run time is not ``global``)."""
+        return self.runtime in DEPLOYABLE
+
+    @property
+    def label(self) -> str:
+        """``"mse (global: an oracle, not deployable)"``: the name with its run-time class in words."""
+        return f"{self.name} ({runtime_label(self.runtime)})"
+
+    @property
+    def caveat(self) -> str | None:
+        """For a rule that is not deployable, the clause a verdict adds (None for a deployable rule)."""
+        return caveat(self.describe())
+
+    def describe(self) -> dict:
+        """``schedule.json``'s ``gain_rule``: ``{name, runtime, needs, deployable}``."""
+        return {"name": self.name, "runtime": self.runtime, "needs": self.needs, "deployable": self.deployable}
+
+
+_RULES: dict[str, GainRule] = {}
+GAIN_RULES: Mapping[str, GainRule] = MappingProxyType(_RULES)  # name -> rule, in the order registered (read-only)
+
+
+def _listing(names) -> str:
+    """``'paper', 'tuned' or 'mse'``."""
+    quoted = [repr(n) for n in names]
+    return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + " or " + quoted[-1]
+
+
+def choices() -> str:
+    """The registered rules' names as an error message lists them: ``'paper', 'tuned' or 'mse'``."""
+    return _listing(_RULES)
+
+
+def caveat(record: Mapping) -> str | None:
+    """The clause a verdict adds for a rule that is not deployable, from its record (:meth:`GainRule.describe`,
+    ``schedule.json``'s ``gain_rule``); None for a deployable rule."""
+    if record.get("deployable", True):
+        return None
+    return (f"mode {record.get('name')} is a {record.get('runtime')} oracle, a reference of what the structure can "
+            f"reach, not a deployable design: its gains need {str(record.get('needs', '')).rstrip('.')}")
+
+
+def register(rule: GainRule) -> GainRule:
+    """Add ``rule`` to :data:`GAIN_RULES` (after the others) and return it; a name may be registered once."""
+    if not isinstance(rule, GainRule):
+        raise InputError(f"register takes a GainRule, got {type(rule).__name__}")
+    if rule.name in _RULES:
+        raise InputError(f"gain rule {rule.name!r} is registered already")
+    _RULES[rule.name] = rule
+    return rule
+
+
+def unregister(name: str) -> GainRule:
+    """Remove the rule ``name`` from :data:`GAIN_RULES` and return it."""
+    return _RULES.pop(gain_rule(name, "name").name)
+
+
+def gain_rule(name, param: str = "mode") -> GainRule:
+    """The rule called ``name``; :class:`InputError` naming ``param`` and the registered rules otherwise."""
+    rule = _RULES.get(name) if isinstance(name, str) else None
+    if rule is None:
+        raise InputError(f"{param} must be {choices()}, got {name!r}")
+    return rule
+
+
+_LOCAL_NEEDS = ("its own measurement, the packets it received and their senders' predictions and bounds Φ_j")
+register(GainRule(
+    "paper", "local",
+    needs=_LOCAL_NEEDS + "; its gains are computed online at the node (C = τ Φ and the gain (30)).",
+    summary="the published choices (sigma = beta = 0.1, C = tau Phi)"))
+register(GainRule(
+    "tuned", "local",
+    needs=_LOCAL_NEEDS + "; its σ, β and gains come from a small convex problem it solves online at every step.",
+    summary="gains minimising the bound (convex tuning, optimised weights)"))
+register(GainRule(
+    "mse", "global",
+    needs="the joint error covariance of all nodes and every link's realised packet losses (the network's joint "
+          "state), i.e. a central computer.",
+    summary="gains minimising the predicted mean-square error along one run's realised packet losses, certified by "
+            "the bound of the stacked error of all nodes"))
+register(GainRule(
+    "scheduled", "scheduled",
+    needs="the step, its own estimate (its Jacobians F, H_i there and its own covariance), its measurement, which "
+          "neighbour packets arrived and what they carried (their predictions, and their measurements with "
+          "--exchange measurements), and the tables designed offline (designer.scheduled): the whitened covariance "
+          "factors of its links per step.",
+    summary="per-link gains designed offline for the attack statistics (expected joint covariance), applied at each "
+            "node with its own Jacobians and covariance"))
