@@ -96,6 +96,12 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     out["x_post"][:, 0] = x
     out["predicted_mse"][:, 0] = np.trace(P, axis1=-2, axis2=-1)
     rcv, snd = ch.receiver, ch.sender
+    chan, mask = ch.slots  # (N, d): each node's incoming channels in its slots
+    d = chan.shape[1]
+    slot = ch.slot
+    p_slot, q_slot = np.where(mask, ch.p[chan] if rcv.size else 0.0, 0.0), np.where(mask, ch.q[chan] if rcv.size
+                                                                                    else 0.0, 0.0)
+    R_pad = pad_measurements([np.zeros((m_i, nx)) for m_i in model.sensor_dims], R, nz)[1]  # (N, nz, nz)
     act = np.arange(runs)
     for k in range(steps):
         if not act.size:
@@ -108,6 +114,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
         root = sqrtm_psd(Pp)
         Gam, Sig = tables.tables(k)
+        Sig = Sig[:, :d, :d]
         a = act.size
         if attacks is None:
             arrived, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
@@ -120,42 +127,42 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             diff = diff + np.where(fdi[..., None], xi, 0.0)
         diff = np.where(arrived[..., None], diff, 0.0)
         zk = z[act, k]
-        if tables.exchange and xi is not None:  # a falsified packet's measurement: as if the state were displaced
-            shift = np.zeros((a, rcv.size, nz))  # by ξ, H_j at the sender's prediction
-            for j in range(n):
-                out_j = np.flatnonzero(snd == j)
-                if out_j.size:
-                    Hj = model.H(j, xp[:, j], k + 1)
-                    shift[:, out_j, : Hj.shape[-2]] = np.einsum("lab,leb->lea", Hj, xi[:, out_j])
-            shift = np.where((fdi & arrived)[..., None], shift, 0.0)
-        xn, Pn = np.empty_like(xp), np.empty_like(Pp)
+        # every node's own measurement, padded to nz components (a padded component gets a zero gain)
+        H_own, res_own = np.zeros((a, n, nz, nx)), np.zeros((a, n, nz))
         for i in range(n):
-            links = ch.of_node[i]
-            d = links.size
-            Hi = model.H(i, xp[:, i], k + 1)
-            res = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1), model.sensors[i].angles)
-            G = colour(root[:, i], np.broadcast_to(Gam[links], (a, d, nx, nx)))
-            S = colour(root[:, i], np.broadcast_to(Sig[i, :d, :d], (a, d, d, nx, nx)))
-            Hn = Rn = None
-            if tables.exchange:  # the neighbours' measurements, at node i's own prediction
-                js = snd[links]
-                Hn, Rn = pad_measurements([model.H(j, xp[:, i], k + 1) for j in js], [R[j] for j in js], nz)
-                res_n = np.zeros((a, d, nz))
-                for s_, j in enumerate(js):
-                    r_j = zk[:, cols[j]] - model.h(j, xp[:, i], k + 1)
-                    if xi is not None:
-                        r_j = r_j + shift[:, links[s_], : r_j.shape[-1]]
-                    res_n[:, s_, : r_j.shape[-1]] = wrap_residuals(r_j, model.sensors[j].angles)
-                res_n = np.where(arrived[:, links, None], res_n, 0.0)
-            K, K_n, C, post, kappa = link_gains(Pp[:, i], Hi, R[i], G, S, ch.p[links], ch.q[links], M, mu, Hn, Rn)
-            xn[:, i] = xp[:, i] + (K @ res[..., None])[..., 0] + np.einsum("ldab,ldb->la", C, diff[:, links])
-            if K_n is not None:
-                xn[:, i] += np.einsum("ldab,ldb->la", K_n, res_n)
-            Pn[:, i] = post
-            out["K"][act, k, i] = 0.0
-            out["K"][act, k, i, :, : K.shape[-1]] = K
-            out["C"][act, k, i] = np.einsum("ld,ldab->lab", arrived[:, links].astype(float), C)  # Σ_{arrived} C_ij
-            out["gain_condition"][act, k, i] = kappa
+            m_i = model.sensor_dims[i]
+            H_own[:, i, :m_i] = model.H(i, xp[:, i], k + 1)
+            res_own[:, i, :m_i] = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1),
+                                                 model.sensors[i].angles)
+        G = colour(root, np.broadcast_to(np.where(mask[..., None, None], Gam[chan], 0.0), (a, n, d, nx, nx)))
+        S = colour(root, np.broadcast_to(Sig, (a,) + Sig.shape))  # (a, N, d, d, nx, nx)
+        Hn = Rn = res_n = None
+        if tables.exchange:  # the neighbours' measurements, at each receiver's own prediction
+            Hn, res_n = np.zeros((a, n, d, nz, nx)), np.zeros((a, n, d, nz))
+            for j in range(n):  # sensor j at the predictions of the nodes that receive it
+                out_j = np.flatnonzero(snd == j)
+                if not out_j.size:
+                    continue
+                m_j = model.sensor_dims[j]
+                at = xp[:, rcv[out_j]]  # (a, r, nx)
+                Hn[:, rcv[out_j], slot[out_j], :m_j] = model.H(j, at, k + 1)
+                r_j = zk[:, None, cols[j]] - model.h(j, at, k + 1)
+                if xi is not None:  # a falsified packet's measurement: as if the state were displaced by ξ, with
+                    # H_j at the sender's prediction
+                    shift = np.einsum("lab,leb->lea", model.H(j, xp[:, j], k + 1), xi[:, out_j])
+                    r_j = r_j + np.where(fdi[:, out_j, None], shift, 0.0)
+                r_j = wrap_residuals(r_j, model.sensors[j].angles)
+                res_n[:, rcv[out_j], slot[out_j], :m_j] = np.where(arrived[:, out_j, None], r_j, 0.0)
+            Rn = R_pad[np.where(mask, snd[chan], 0)]
+        K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, p_slot, q_slot, M, mu, Hn, Rn)
+        got = np.where(mask, arrived[:, chan], False)  # (a, N, d): the slots whose packet arrived
+        diff_slot = np.where(got[..., None], diff[:, chan], 0.0)  # (a, N, d, nx)
+        xn = xp + (K @ res_own[..., None])[..., 0] + np.einsum("lidab,lidb->lia", C, diff_slot)
+        if K_n is not None:
+            xn += np.einsum("lidab,lidb->lia", K_n, res_n)
+        out["K"][act, k] = K
+        out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij
+        out["gain_condition"][act, k] = kappa
         x[act], P[act] = xn, Pn
         out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
         out["predicted_mse"][act, k + 1] = np.trace(Pn, axis1=-2, axis2=-1)
