@@ -61,13 +61,14 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import _BOUND_LIMIT, _DIVERGED, HARD_CONDITIONS, ConsensusResult, _falsified_probability, run_consensus
+from .consensus import (_BOUND_LIMIT, _DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
+                        run_consensus)
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
-           "batch_inputs",
+           "batch_inputs", "result_arrays",
            "per_run"]
 
 
@@ -199,6 +200,20 @@ def _gate_counts(attacks: "EdgeAttacks | None", n_edges: int, runs: int, steps: 
         if stop is not None:
             out[r, stop:] = 0
     return out
+
+
+def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
+    """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
+    runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
+    return dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
+                phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
+                phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
+                C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
+                margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
+                theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
+                sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
+                predicted_mse=np.full((runs, steps + 1, n), np.nan), gain_condition=np.full((runs, steps, n), np.nan),
+                gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
 
 
 class ConsensusBatchResult(NamedTuple):

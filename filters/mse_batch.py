@@ -53,9 +53,9 @@ from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import (_BOUND_LIMIT, _DIVERGED, GATE_COUNTS, _binding_node, _falsified_probability,
+from .consensus import (_BOUND_LIMIT, _DIVERGED, _binding_node, _falsified_probability,
                         channel_difference_covariance, gate_channels, kept_fdi_moments)
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run, run_networks,
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays, per_run, run_networks,
                               wrap_residuals)
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
@@ -106,15 +106,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
                          f"rows per run; at most MAX_JOINT_DIM = {MAX_JOINT_DIM} fit its memory budget")
     attacks = edge_attacks(network, attacks, runs, steps, nx)
     nz = max(model.sensor_dims)
-    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
-               phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
-               phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
-               C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
-               margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
-               theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
-               sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
-               predicted_mse=np.full((runs, steps + 1, n), np.nan), gain_condition=np.full((runs, steps, n), np.nan),
-               gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
+    out = result_arrays(runs, steps, n, nx, nz)
     out["x_post"][:, 0], out["phi_post"][:, 0], out["valid"][:, 0] = x0[:, None], phi0[:, None], True
     out["predicted_mse"][:, 0] = np.trace(phi0, axis1=-2, axis2=-1)[:, None]
     chunk = max(1, MEMORY_BUDGET // (JOINT_COPIES * 8 * (n * nx) ** 2))

@@ -31,8 +31,8 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import GATE_COUNTS
-from .consensus_batch import ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, run_networks, wrap_residuals
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
+                              run_networks, wrap_residuals)
 
 __all__ = ["run_scheduled_batch", "DIVERGED"]
 
@@ -73,15 +73,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     cols = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
     T = tables.steps
-    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
-               phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
-               phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
-               C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
-               margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
-               theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
-               sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),
-               predicted_mse=np.full((runs, steps + 1, n), np.nan), gain_condition=np.full((runs, steps, n), np.nan),
-               gate_counts=np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64))
+    out = result_arrays(runs, steps, n, nx, nz)
     # the certificate: the design's, the same in every run, up to its horizon
     H_ = min(steps, T)
     out["phi_post"][:, : H_ + 1] = tables.Phi[None, : H_ + 1]
