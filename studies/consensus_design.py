@@ -26,7 +26,8 @@ from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.scheduled import table_arrays
 from designer.validation import InputError, check_int
-from designer.verdict import GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_traces, verdict
+from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_reference,
+                              open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
@@ -142,6 +143,38 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
                              "design as infeasible and run the other filters)") from None
         return reason
     return None
+
+
+#: A stationary LMI solution whose own recursion step exceeds it by more than this (relative to its largest
+#: eigenvalue) does not certify it: the solver's tolerance, not a bound.
+LMI_TOLERANCE = 1e-6
+
+
+def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
+    """The scheduled design's stationary certificate at the operating point (:func:`designer.scheduled.
+    stationary_certificate`) with its verdict: ``certified`` when the bound's recursion with the stationary gains
+    reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
+    stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
+    from designer.scheduled import stationary_certificate
+
+    x0, u0 = sc.operating_point
+    m = sc.model
+    cert = stationary_certificate(m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
+    open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
+    lmi = cert.lmi
+    confirmed = lmi is None or lmi.get("trace") is None and lmi.get("status") == "not solved" or (
+        lmi.get("relative_residual") is not None and lmi["relative_residual"] <= LMI_TOLERANCE)
+    N = sc.network.n_nodes
+    trace = (np.trace(cert.Phi, axis1=-2, axis2=-1)[:, None] if cert.converged else np.full((N, 1), np.nan))
+    broken = not cert.converged and cert.reason is not None and cert.reason.startswith(("(28)", "(29)"))
+    if cert.converged and not confirmed:
+        broken, cert = True, cert._replace(reason="the stationary LMI does not confirm the fixed point")
+    # a recursion that holds the conditions but does not settle is not steady; one that breaks them is infeasible
+    v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
+                infeasible_reason=cert.reason if broken else None, open_loop_how=how)
+    return {**cert.describe(), "verdict": v.verdict, "lmi_tolerance": LMI_TOLERANCE,
+            "where": "at the operating point with the stationary gains of the tables' recursion there; the LMI "
+                     "(cvxpy + Clarabel) for the fixed point's sigma and beta"}
 
 
 _SCHEDULED_RECORD = {
@@ -348,6 +381,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                 "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
                           "the bound holds for the linearisation points and DoS pattern it was computed along"}),
             "stationary": None if des.tables is None else des.tables.stationary,
+            "stationary_certificate": stationary_record(sc, des) if des.mode == "scheduled" else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,

@@ -191,3 +191,38 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     assert main(["design", str(path), "--mode", "mse", "--exchange", "measurements", "--out",
                  str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and_the_lmi_minimum():
+    """U = V = 0, a zero-mean signal: the bound's recursion is the expected covariance's, so its fixed point is the
+    steady expected covariance (the long design's last P), and the LMI's smallest trace is that fixed point's (a
+    monotone affine map: its least solution of Φ ⪰ g(Φ) is the fixed point), confirmed by an independent NumPy step."""
+    from designer.scheduled import stationary_certificate
+
+    sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3, steps=300)
+    des = _scheduled(sc)
+    cert = stationary_certificate(sc.model, sc.network, des, x=sc.model.prior.mean)
+    assert cert.converged
+    steady = np.trace(des.tables.P_post[-1], axis1=-2, axis2=-1)
+    np.testing.assert_allclose(np.trace(cert.Phi, axis1=-2, axis2=-1), steady, rtol=1e-6)
+    assert cert.lmi["status"] == "optimal"
+    np.testing.assert_allclose(cert.lmi["node_trace"], steady, rtol=1e-5)
+    assert abs(cert.lmi["relative_residual"]) < 1e-6
+
+
+def test_stationary_certificate_says_when_the_bound_grows():
+    """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
+    import casadi as ca
+    from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
+    from designer.scheduled import stationary_certificate
+    from studies.scenarios import scenario_of
+
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor(f"s{i}", x[0] + 0 * x[1], Gaussian.zero_mean([[0.1]])) for i in range(3)]
+    m = Model("unobs", x, ca.vertcat(x[0], 1.05 * x[1]), sensors, Gaussian.zero_mean(0.01 * np.eye(2)),
+              Gaussian([0.0, 0.0], np.eye(2)))
+    sc = scenario_of(m, network=SensorNetwork.from_edges(3, [(0, 1), (1, 2)]),
+                     attacks=AttackSpec(dos=0.1, fdi=0.0, signal=FDISignal(0.1)), steps=20)
+    des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0)
+    cert = stationary_certificate(m, sc.network, des, x=m.prior.mean)
+    assert not cert.converged and "grows" in cert.reason and cert.Phi is None

@@ -41,7 +41,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "nodes", "steps", "epsilon"
           "beta", "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed",
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
-          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary"}
+          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
+          "stationary_certificate"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -486,6 +487,23 @@ def _settings_section(s: _Schedule) -> list[str]:
                    "computed.")
                 + " The bound is the expected one over the attacks, for the nominal gains and linearisation with the "
                 "remainders U, V_i: study consensus-robot validates it on runs the design never saw.", ""]
+        sc_ = meta.get("stationary_certificate") if isinstance(meta.get("stationary_certificate"), dict) else None
+        if sc_:
+            lmi = sc_.get("lmi") if isinstance(sc_.get("lmi"), dict) else {}
+            if sc_.get("converged"):
+                tr = sc_.get("trace") or []
+                what = (f"reaches a fixed point after {sc_.get('iterations')} iterations (largest node trace "
+                        f"{fmt_num(max(tr)) if tr else '—'})")
+                if lmi.get("trace") is not None:
+                    what += (f"; the LMI (cvxpy + Clarabel, σ and β of the fixed point) gives a total trace of "
+                             f"{fmt_num(lmi['trace'])}, its own recursion step exceeding it by "
+                             f"{fmt_num(lmi.get('relative_residual'))} of its largest eigenvalue")
+                elif lmi.get("status"):
+                    what += f"; the LMI was {md_escape(str(lmi.get('status')))} ({md_escape(str(lmi.get('reason')))})"
+            else:
+                what = f"does not: {md_escape(str(sc_.get('reason')))}"
+            out += [f"**Stationary certificate** (verdict: {md_escape(str(sc_.get('verdict')))}): the bound's recursion "
+                    "at the operating point with the stationary gains " + what + ".", ""]
     if is_num(meta.get("gate")) and not meta.get("gate"):
         out += ["No χ² gate on the neighbour packets: every received packet is used.", ""]
     if meta.get("gate"):
