@@ -66,7 +66,7 @@ from designer.validation import ComputationError, InputError, check_strings
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_reference, verdict
 
 from . import memory
-from .consensus_design import effective
+from .consensus_design import effective, stationary_record
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
@@ -270,6 +270,9 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
+    if (options.mode or "paper") == "scheduled":  # the design's own stationary certificate at each point
+        res = iter([_scheduled_row(*item) for item in ok])
+        return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
 
     def batch(items):
@@ -301,6 +304,20 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
         rows = [one(item) for item in ok]
     res = iter(rows)
     return [d if isinstance(d, dict) else next(res) for d in designed]
+
+
+def _scheduled_row(sc: Scenario, design) -> dict:
+    """A grid point of mode scheduled: the stationary certificate that ``cfdesign design`` records for the same
+    options (:func:`studies.consensus_design.stationary_record`), so that map and design agree by construction."""
+    try:
+        rec = stationary_record(sc, design)
+    except _POINT_ERRORS as exc:
+        return _failed(exc)
+    tr = rec["trace"]
+    return {"feasible": int(rec["verdict"] != "infeasible" and rec["converged"]),
+            "trace_bound": float(np.mean(tr)) if tr else float("nan"),
+            "binding": rec["reason"] or "none (a fixed point)", "theorem2": 0, "iterations": rec["iterations"],
+            "verdict": rec["verdict"]}
 
 
 def _linearisation(sc: Scenario):
@@ -444,9 +461,6 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if mode == "mse":
         raise InputError("mode 'mse' is not mapped yet: its gains come from the joint error covariance of a run "
                          "(use cfdesign design or a study); feasibility maps modes 'paper' and 'tuned'")
-    if mode == "scheduled":
-        raise InputError("mode 'scheduled' is not mapped yet: its certificate is computed along the nominal "
-                         "trajectory (use cfdesign design or a study); feasibility maps modes 'paper' and 'tuned'")
     bad = [n for n in names if n in _PAPER_ONLY and mode == "tuned"]
     if bad:
         raise InputError(f"--grid {bad[0]} applies to mode 'paper' only (the tuned design chooses it itself)")

@@ -226,3 +226,18 @@ def test_stationary_certificate_says_when_the_bound_grows():
     des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0)
     cert = stationary_certificate(m, sc.network, des, x=m.prior.mean)
     assert not cert.converged and "grows" in cert.reason and cert.Phi is None
+
+
+def test_feasibility_map_of_mode_scheduled_is_the_designs_stationary_certificate(tmp_path):
+    """Map and design agree on the same options: a grid point's verdict and trace are those `design` records."""
+    import json
+
+    from studies import api
+
+    sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.2, steps=40)
+    fmap = api.feasibility(sc, ["dos=0.2:0.3:2"], mode="scheduled", u_scale=0, v_scale=0, out=tmp_path / "map")
+    for row, dos in zip(fmap.rows, (0.2, 0.3)):
+        d = api.design(sc, mode="scheduled", u_scale=0, v_scale=0, dos=dos, out=tmp_path / f"d{dos}")
+        rec = json.loads((tmp_path / f"d{dos}" / "schedule.json").read_text())["stationary_certificate"]
+        assert row["verdict"] == rec["verdict"] == d.schedule.meta["stationary_certificate"]["verdict"]
+        np.testing.assert_allclose(row["trace_bound"], np.mean(rec["trace"]), rtol=1e-12)
