@@ -72,7 +72,7 @@ __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_ce
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
 #: Extra steps at the last nominal point to look for the stationary tables.
-STATIONARY_MAX = 400
+STATIONARY_MAX = 100
 #: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
 #: (seconds per step); the design is then given without a bound.
 CERTIFICATE_MAX_DIM = 600
@@ -549,6 +549,25 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     return _Rule(A, C, C, K, R, None, None, None), Gam, Sig
 
 
+def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.ndarray, k1: int, last):
+    """The expected covariance's recursion at the fixed linearisation ``Fs``, ``x`` from ``Pm`` until the tables
+    change by at most :data:`STATIONARY_TOL` (from ``last``, a pair of tables, or None) or for
+    :data:`STATIONARY_MAX` steps: ``(Pm, rule, Gamma, Sigma, record)`` of the last step, ``record`` saying whether
+    it converged and after how many steps."""
+    record = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": STATIONARY_TOL}
+    for extra in range(1, STATIONARY_MAX + 1):
+        Pm = joint_predict(Pm, Fs, st.Q)
+        rule, G_new, S_new = _gains(st, Pm, x, k1)
+        Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
+        done = last is not None and max(np.max(np.abs(G_new - last[0]), initial=0.0),
+                                        np.max(np.abs(S_new - last[1]), initial=0.0)) <= STATIONARY_TOL
+        last = (G_new, S_new)
+        if done:
+            record = {"converged": True, "extra_steps": extra, "tolerance": STATIONARY_TOL}
+            break
+    return Pm, rule, last[0], last[1], record
+
+
 def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi0=None,
                      exchange: bool = True) -> ScheduledTables:
     """The scheduled design of ``model`` on ``network`` over ``steps`` steps (module docstring).
@@ -642,19 +661,9 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
     # the stationary tables: the recursion continued at the last nominal point with its input
-    stationary = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": STATIONARY_TOL}
-    last_G, last_S = out["Gamma"][-1], out["Sigma"][-1]
     F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
-    Fs = np.broadcast_to(F, (N, n, n))
-    for extra in range(1, STATIONARY_MAX + 1):
-        Pm = joint_predict(Pm, Fs, st.Q)
-        rule, G_new, S_new = _gains(st, Pm, x, steps)
-        Pm = expected_update(Pm, rule, ch, st.M, st.mu)
-        change = max(np.max(np.abs(G_new - last_G), initial=0.0), np.max(np.abs(S_new - last_S), initial=0.0))
-        last_G, last_S = G_new, S_new
-        if change <= STATIONARY_TOL:
-            stationary = {"converged": True, "extra_steps": extra, "tolerance": STATIONARY_TOL}
-            break
+    _, _, last_G, last_S, stationary = _stationary_gains(st, Pm, np.broadcast_to(F, (N, n, n)), x, steps,
+                                                         (out["Gamma"][-1], out["Sigma"][-1]))
     return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange), **out)
 
@@ -744,16 +753,7 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
         V[i, : v.shape[0], : v.shape[0]] = v
     Vn = V[ch.sender] if exchange else None
     # the time-invariant gains: the expected covariance's recursion at x until the tables stop changing
-    Pm = as_difference(joint_prior(phi0, N))
-    last = None
-    for _ in range(STATIONARY_MAX):
-        Pm = joint_predict(Pm, Fs, st.Q)
-        rule, G_new, S_new = _gains(st, Pm, x, 1)
-        Pm = expected_update(Pm, rule, ch, st.M, st.mu)
-        if last is not None and max(np.max(np.abs(G_new - last[0]), initial=0.0),
-                                    np.max(np.abs(S_new - last[1]), initial=0.0)) <= STATIONARY_TOL:
-            break
-        last = (G_new, S_new)
+    _, rule, _, _, _ = _stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
     # the bound's recursion with those gains
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
