@@ -549,6 +549,30 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     return _Rule(A, C, C, K, R, None, None, None), Gam, Sig
 
 
+def _prepare(model, network, design, exchange: bool, phi0):
+    """What the design and its stationary certificate share: the setting, ``U`` per node, the ``V_i`` padded like
+    the measurements, the links' ``V_j`` (with exchange) and the prior covariance; the design's options checked."""
+    if design.linearization != "fixed":
+        raise InputError(f"mode 'scheduled' takes linearization 'fixed' (its scalings U, V_i bound the remainders "
+                         f"along the nominal trajectory), got {design.linearization!r}")
+    if design.gate:
+        raise InputError("mode 'scheduled' does not take a gate (gate must be 0): its gains count every falsified "
+                         "packet that arrives")
+    N, n = network.n_nodes, model.n_x
+    ch = channels(network)
+    mz = max(model.sensor_dims)
+    st = _Setting(model, ch, model.process_cov, [model.measurement_cov(i) for i in range(N)],
+                  np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float),
+                  np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float),
+                  bool(exchange), mz, ch.d_max)
+    U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
+    V = np.zeros((N, mz, mz))  # each sensor's V_i, padded like its measurement (no remainder there)
+    for i, v in enumerate(design.V):
+        V[i, : v.shape[0], : v.shape[0]] = v
+    Vn = V[ch.sender] if exchange else None  # the remainder of a neighbour's measurement at node i's prediction
+    return st, U, V, Vn, model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
+
+
 def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.ndarray, k1: int, last):
     """The expected covariance's recursion at the fixed linearisation ``Fs``, ``x`` from ``Pm`` until the tables
     change by at most :data:`STATIONARY_TOL` (from ``last``, a pair of tables, or None) or for
@@ -577,25 +601,9 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     covariance (default the model's); ``exchange``: the packets carry the sender's measurement beside its
     prediction (KCF and HCMCI exchange measurement information too), else its prediction alone, as in (7).
     """
-    if design.linearization != "fixed":
-        raise InputError(f"mode 'scheduled' takes linearization 'fixed' (its scalings U, V_i bound the remainders "
-                         f"along the nominal trajectory), got {design.linearization!r}")
-    if design.gate:
-        raise InputError("mode 'scheduled' does not take a gate (gate must be 0): its gains count every falsified "
-                         "packet that arrives")
+    st, U, V, Vn, phi0 = _prepare(model, network, design, exchange, phi0)
+    ch, mz = st.ch, st.mz
     N, n = network.n_nodes, model.n_x
-    ch = channels(network)
-    mz = max(model.sensor_dims)
-    st = _Setting(model, ch, model.process_cov, [model.measurement_cov(i) for i in range(N)],
-                  np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float),
-                  np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float),
-                  bool(exchange), mz, ch.d_max)
-    phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
-    U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
-    V = np.zeros((N, mz, mz))  # each sensor's V_i, padded like its measurement (no remainder there)
-    for i, v in enumerate(design.V):
-        V[i, : v.shape[0], : v.shape[0]] = v
-    Vn = V[ch.sender] if exchange else None  # the remainder of a neighbour's measurement at node i's prediction
     E = ch.receiver.size
     out = dict(Gamma=np.zeros((steps, E, n, n)), Sigma=np.zeros((steps, N, st.d, st.d, n, n)),
                P_pred=np.zeros((steps, N, n, n)), K=np.zeros((steps, N, n, mz)), C=np.zeros((steps, E, n, n)),
@@ -734,24 +742,12 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     and cvxpy + Clarabel minimise tr Φ over it.  The map from Φ to the next bound is monotone, so a Φ̄ that
     satisfies the inequality bounds every later bound once one lies below it.
     """
-    if design.linearization != "fixed" or design.gate:
-        raise InputError("the stationary certificate is for mode 'scheduled' (linearization 'fixed', no gate)")
+    st, U, V, Vn, phi0 = _prepare(model, network, design, exchange, phi0)
+    ch = st.ch
     N, n = network.n_nodes, model.n_x
-    ch = channels(network)
-    mz = max(model.sensor_dims)
-    st = _Setting(model, ch, model.process_cov, [model.measurement_cov(i) for i in range(N)],
-                  np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float),
-                  np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float),
-                  bool(exchange), mz, ch.d_max)
-    phi0 = model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
     x = np.asarray(x, dtype=float)
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)
     Fs = np.broadcast_to(F, (N, n, n))
-    U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
-    V = np.zeros((N, mz, mz))
-    for i, v in enumerate(design.V):
-        V[i, : v.shape[0], : v.shape[0]] = v
-    Vn = V[ch.sender] if exchange else None
     # the time-invariant gains: the expected covariance's recursion at x until the tables stop changing
     _, rule, _, _, _ = _stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
     # the bound's recursion with those gains
