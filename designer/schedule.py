@@ -84,6 +84,7 @@ class GainSchedule:
             "scenario": self.scenario,
             "mode": self.mode,
             "gain_rule": self.gain_rule.describe(),
+            "runtime_information": self.gain_rule.describe(),  # the contract's name for it (shared/DESIGN.md)
             "nodes": self.nodes,
             "steps": self.steps,
             "epsilon": self.epsilon,
@@ -148,7 +149,8 @@ def load_schedule(path) -> GainSchedule:
                                or record.get("runtime") != rule.runtime):
         raise InputError(f"schedule {str(path)!r}: gain_rule {record!r} is not that of mode {rule.name!r} "
                          f"(runtime {rule.runtime!r})")
-    known = {"schema", "scenario", "mode", "gain_rule", "nodes", "steps", "epsilon", "feasible", "violations", "sigma",
+    known = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nodes",
+             "steps", "epsilon", "feasible", "violations", "sigma",
              "beta", "trace_bound"}
     violations = [{**v, "margin": -np.inf if v["margin"] is None else v["margin"]} for v in meta["violations"]]
     for v in violations:

@@ -187,6 +187,9 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     sch = load_schedule(out)
     assert sch.gain_rule.runtime == "scheduled" and sch.gain_rule.deployable
     assert sch.meta["exchange"] == "measurements"
+    import json
+    record = json.loads((out / "schedule.json").read_text())
+    assert record["runtime_information"] == record["gain_rule"]  # the contract's name (shared/DESIGN.md)
     assert sch.tables["Gamma"].shape[0] == 15 and sch.tables["Kn"].shape[1] == len(sch.tables["receiver"])
     assert main(["design", str(path), "--mode", "mse", "--exchange", "measurements", "--out",
                  str(tmp_path / "bad")]) == 2

@@ -37,7 +37,8 @@ FIGURES = {
     "fig_margins.png": "Margins of (28) (top, on Φ_{k|k}) and (29) (bottom, on Φ_{k+1|k}) per node over the run "
                        "(symmetric log scale); below the red line a condition is violated.",
 }
-_KNOWN = {"schema", "scenario", "mode", "gain_rule", "nodes", "steps", "epsilon", "feasible", "violations", "sigma",
+_KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nodes",
+          "steps", "epsilon", "feasible", "violations", "sigma",
           "beta", "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed",
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
