@@ -420,6 +420,10 @@ def _load_replay(schedule, sc) -> tuple:
     """``(mode, K, C)`` of the schedule written by ``cfdesign design`` in ``schedule``, checked against ``sc``."""
     m, net = sc.model, sc.network
     sch = load_schedule(schedule)
+    if sch.mode == "scheduled":  # its K and C are one run's; the design is the tables, applied online
+        raise InputError(f"schedule {str(schedule)!r} is a scheduled design: its nodes apply their tables online "
+                         "with their own estimates, not fixed gains; run it with --mode scheduled (the same design "
+                         "options) instead of replaying its K and C")
     nz = max(m.sensor_dims)
     if sch.nodes != net.n_nodes or sch.steps != sc.steps or sch.K.shape[2:] != (m.n_x, nz):
         raise InputError(f"schedule {str(schedule)!r} has {sch.nodes} nodes x {sch.steps} steps; the study needs "

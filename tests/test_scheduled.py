@@ -194,6 +194,10 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     assert main(["design", str(path), "--mode", "mse", "--exchange", "measurements", "--out",
                  str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
+    # its K and C are one run's: replaying them as fixed gains would be another filter, so it is refused
+    assert main(["study", "consensus-robot", str(path), "--runs", "2", "--schedule", str(out), "--out",
+                 str(tmp_path / "replay")]) == 2
+    assert not (tmp_path / "replay").exists()
 
 
 def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and_the_lmi_minimum():
