@@ -27,6 +27,14 @@ with the mean transition ``T̄_ii = I - K_i H_i - Σ_j p_ij C_ij``, ``T̄_ij = p
 covariance follows a deterministic recursion (:func:`expected_update`, in the difference form of
 :mod:`designer.mse`, so that nodes whose errors agree give exact zeros).
 
+**Measurement exchange** (``exchange=True``, the default of ``--exchange measurements``): a packet also
+carries the sender's measurement ``z_j``, and node i adds ``ρ_ij K_ij (z_j - h_j(x̂⁻_i))`` (a falsified packet's
+measurement displaced as if the state were, ``H_j ξ``).  Each link's innovation is then
+``ρ_ij [H_j e_i + v_j + γ H_j ξ ; Δ_ij + γ ξ]``, its moments need only ``P_ii``, ``G_ij``, ``S_jl`` and the
+noises (:func:`_link_blocks`), the mean transition's diagonal loses ``Σ_j p_ij K_ij H_j`` too, and the nodes
+that use one measurement share its noise: the additive term is ``Λ̄ R Λ̄ᵀ`` over the whole network
+(:func:`_noise`, sparse), no longer block-diagonal.
+
 **At run time** a node does not use the offline gains as they are: where the model is nonlinear its
 Jacobians along the real trajectory differ from the nominal ones (a range sensor's direction to a target
 that drifted), and a fixed gain with the wrong direction diverges.  The offline design hands the node
