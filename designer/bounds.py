@@ -41,8 +41,12 @@ from .validation import InputError
 __all__ = [
     "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
     "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
-    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh",
+    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh", "BOUND_LIMIT",
 ]
+
+#: A bound whose trace reaches this certifies nothing, and the prediction bound (26) overflows beyond it: every
+#: recursion of a bound (the consensus filters', the scheduled design's) stops there.
+BOUND_LIMIT = 1e100
 
 
 def symmetrize(a: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.bounds import (
+    BOUND_LIMIT,
     condition28_margin,
     condition29_margin,
     optimal_gain,
@@ -69,12 +70,11 @@ from .rrp import wrap_angles
 
 __all__ = ["node_predict", "gate", "gate_channels", "channel_difference_covariance", "kept_fdi_moments",
            "GATE_COUNTS", "exchange", "wrapped_residual", "node_update", "ConsensusResult",
-           "run_consensus", "check_run_inputs", "HARD_CONDITIONS"]
+           "run_consensus", "check_run_inputs", "HARD_CONDITIONS", "DIVERGED"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
-_DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate
-_BOUND_LIMIT = 1e100  # a bound with this trace certifies nothing, and (26) overflows beyond it
+DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate (every filter)
 
 
 class NodePrediction(NamedTuple):
@@ -94,8 +94,8 @@ def node_predict(model: Model, x_post, phi_post, k: int, u, design: ConsensusDes
     Q = model.process_cov
     U, D = design.U, None
     reason = None
-    if valid and not np.trace(phi_post) < _BOUND_LIMIT:
-        valid, reason = False, f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+    if valid and not np.trace(phi_post) < BOUND_LIMIT:
+        valid, reason = False, f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
         margin = -np.inf
     if valid:
         U, D = prediction_scaling(model, x_post, phi_post, k, u, design.linearization, design.radius, U)
@@ -473,8 +473,8 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
                 failure = f"numerical breakdown: {exc}"
             else:
                 if not (np.all(np.isfinite(upd.x_post)) and np.all(np.isfinite(upd.phi_post))
-                        and np.abs(upd.x_post).max() < _DIVERGED):
-                    failure = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+                        and np.abs(upd.x_post).max() < DIVERGED):
+                    failure = f"estimate or covariance beyond {DIVERGED:g} or not finite"
             if failure is not None:
                 _stop(violations, i, k, failure, (x_post, phi_post), (x_pred, phi_pred, K, C), valid)
                 return result()
@@ -584,10 +584,10 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         F = [model.F_expected(x_post[k, i], k, u[k]) for i in range(n)]
         for i in range(n):
             x_pred[k, i] = model.f_expected(x_post[k, i], k, u[k])
-        if proper and not np.trace(_diag(Bj), axis1=1, axis2=2).max() < _BOUND_LIMIT:
+        if proper and not np.trace(_diag(Bj), axis1=1, axis2=2).max() < BOUND_LIMIT:
             proper = False
             violations.append({"node": _binding_node(Bj, None), "step": k, "condition": "(28)", "margin": -np.inf,
-                               "reason": f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and "
+                               "reason": f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and "
                                          "(26) overflows"})
         if proper:
             sc = [prediction_scaling(model, x_post[k, i], Bj[i, i], k, u[k], design.linearization, design.radius,
@@ -651,9 +651,9 @@ def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign
         valid[k + 1] = proper
         bad = next((i for i in range(n) if not (np.all(np.isfinite(x_post[k + 1, i]))
                                                and np.all(np.isfinite(phi_post[k + 1, i]))
-                                               and np.abs(x_post[k + 1, i]).max() < _DIVERGED)), None)
+                                               and np.abs(x_post[k + 1, i]).max() < DIVERGED)), None)
         if bad is not None:
-            _stop(violations, bad, k, f"estimate or covariance beyond {_DIVERGED:g} or not finite",
+            _stop(violations, bad, k, f"estimate or covariance beyond {DIVERGED:g} or not finite",
                   (x_post, phi_post, pmse), (x_pred, phi_pred, K, C, kappa), valid)
             kappa[k] = np.nan
             return result()

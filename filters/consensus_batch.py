@@ -42,6 +42,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from designer.bounds import (
+    BOUND_LIMIT,
     condition28_margin,
     condition29_margin,
     optimal_gain_from,
@@ -61,11 +62,11 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import (_BOUND_LIMIT, _DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
+from .consensus import (DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
                         run_consensus)
 from .rrp import wrap_angles
 
-_LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
@@ -529,7 +530,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         # ---- prediction (3), (26), (28)
         F = model.F_expected(xk, k, uk)
         xp = model.f_expected(xk, k, uk)
-        limit = prop & ~(np.trace(Pk, axis1=-2, axis2=-1) < _BOUND_LIMIT)
+        limit = prop & ~(np.trace(Pk, axis1=-2, axis2=-1) < BOUND_LIMIT)
         bound = prop & ~limit
         margin28 = np.where(limit, -np.inf, np.nan)
         sigma = np.full((a, n), np.nan)
@@ -604,11 +605,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 W[act[rr], ns[jj]] = gW[rr, jj]
             x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
             fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
-                    & (np.abs(x_g).max(axis=-1) < _DIVERGED))
+                    & (np.abs(x_g).max(axis=-1) < DIVERGED))
             for j, why in breakdowns.items():
                 reasons[j // g, int(ns[j % g])] = why
             for r, j in zip(*np.nonzero(~fine)):
-                reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {_DIVERGED:g} or not finite")
+                reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {DIVERGED:g} or not finite")
             failed[:, at_g] = ~fine
             xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
             Kn[:, at_g, :, :dim] = gK

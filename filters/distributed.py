@@ -81,7 +81,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import check_run_inputs, wrapped_residual
+from .consensus import DIVERGED, check_run_inputs, wrapped_residual
 from .consensus_batch import batch_inputs, wrap_residuals
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
@@ -89,7 +89,6 @@ __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci"
 
 OMEGA_CHOICES = ("size", "consistent")
 FALSIFY_CHOICES = ("packet", "estimate")
-_DIVERGED = 1e12  # the threshold of filters.consensus: an estimate this large has left any physical meaning
 
 
 class DistributedResult(NamedTuple):
@@ -179,7 +178,7 @@ def _measurement_information(model: Model, inp: _Inputs, k: int, x_pred: np.ndar
 def _first_failure(x: np.ndarray, P: np.ndarray) -> int | None:
     """The first node whose estimate or covariance is not finite or beyond the divergence threshold (None: none)."""
     ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
-    ok[ok] &= np.abs(x[ok]).max(-1) < _DIVERGED
+    ok[ok] &= np.abs(x[ok]).max(-1) < DIVERGED
     return None if ok.all() else int(np.flatnonzero(~ok)[0])
 
 
@@ -218,7 +217,7 @@ def _filter(model: Model, network: SensorNetwork, inp: _Inputs, update, rounds: 
         F = model.F_expected(x_post[k], k, inp.u[k])
         Pp = F @ P_post[k] @ np.swapaxes(F, -1, -2) + model.process_cov
         P_pred[k] = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
-        beyond = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+        beyond = f"estimate or covariance beyond {DIVERGED:g} or not finite"
         node = _first_failure(x_pred[k], P_pred[k])
         reason = None if node is None else f"prediction: {beyond}"
         if reason is None:
@@ -423,7 +422,7 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
 def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
     """:func:`_first_failure` per run of stacks (a, N, ...): the first failing node, N where none fails."""
     ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
-    ok &= np.abs(np.where(ok[..., None], x, 0.0)).max(-1) < _DIVERGED
+    ok &= np.abs(np.where(ok[..., None], x, 0.0)).max(-1) < DIVERGED
     return np.where(ok.all(-1), ok.shape[-1], np.argmin(ok, axis=-1))
 
 
@@ -446,7 +445,7 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
     delivered = np.zeros((runs, steps), int)
     violations: list[list[dict]] = [[] for _ in range(runs)]
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
-    beyond = f"estimate or covariance beyond {_DIVERGED:g} or not finite"
+    beyond = f"estimate or covariance beyond {DIVERGED:g} or not finite"
     act = np.arange(runs)
     for k in range(steps):
         if not act.size:

@@ -35,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.cores import one_blas_thread
-from designer.bounds import theorem2_margin
+from designer.bounds import BOUND_LIMIT, theorem2_margin
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
@@ -53,7 +53,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import (_BOUND_LIMIT, _DIVERGED, _binding_node, _falsified_probability,
+from .consensus import (DIVERGED, _binding_node, _falsified_probability,
                         channel_difference_covariance, gate_channels, kept_fdi_moments)
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays, per_run, run_networks,
                               wrap_residuals)
@@ -63,7 +63,7 @@ __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
 MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
 JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
-_LIMIT_REASON = f"the bound's trace reached {_BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 
 # --------------------------------------------------------------------------- the filter
@@ -178,7 +178,7 @@ class _Runs:
         Bj, Pj = self.Bj, self.Pj
         # ---- the certificate's prediction (26), (28)
         tr = np.trace(node_blocks(Bj), axis1=-2, axis2=-1)
-        for r in np.flatnonzero(self.proper & ~(tr.max(axis=-1) < _BOUND_LIMIT)):
+        for r in np.flatnonzero(self.proper & ~(tr.max(axis=-1) < BOUND_LIMIT)):
             self.proper[r] = False
             self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, _LIMIT_REASON)
         Bp = None
@@ -300,13 +300,13 @@ class _Runs:
         o, act = self.out, self.act
         x, phi = o["x_post"][act, k + 1], o["phi_post"][act, k + 1]
         bad = ~(np.isfinite(x).all(axis=-1) & np.isfinite(phi).all(axis=(-2, -1))
-                & (np.abs(x).max(axis=-1) < _DIVERGED))
+                & (np.abs(x).max(axis=-1) < DIVERGED))
         dead = np.flatnonzero(bad.any(axis=-1))
         if not dead.size:
             return
         for r in dead:
             self.violation(r, np.argmax(bad[r]), k + 1, "diverged", -np.inf,
-                           f"estimate or covariance beyond {_DIVERGED:g} or not finite")
+                           f"estimate or covariance beyond {DIVERGED:g} or not finite")
             g = act[r]
             for key in ("x_post", "phi_post", "predicted_mse"):
                 o[key][g, k + 1:] = np.nan

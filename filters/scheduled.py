@@ -31,13 +31,12 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError
 
 from .attacks import AttackPattern
+from .consensus import DIVERGED
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
                               run_networks, wrap_residuals)
 
-__all__ = ["run_scheduled_batch", "DIVERGED"]
+__all__ = ["run_scheduled_batch"]
 
-#: An estimate this large has left any physical meaning: the run stops there (as the other consensus filters do).
-DIVERGED = 1e12
 
 
 def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
