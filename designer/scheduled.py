@@ -33,7 +33,7 @@ measurement displaced as if the state were, ``H_j ξ``).  Each link's innovation
 ``ρ_ij [H_j e_i + v_j + γ H_j ξ ; Δ_ij + γ ξ]``, its moments need only ``P_ii``, ``G_ij``, ``S_jl`` and the
 noises (:func:`_link_blocks`), the mean transition's diagonal loses ``Σ_j p_ij K_ij H_j`` too, and the nodes
 that use one measurement share its noise: the additive term is ``Λ̄ R Λ̄ᵀ`` over the whole network
-(:func:`_noise`, sparse), no longer block-diagonal.
+(:func:`_measurement_noise`, sparse), no longer block-diagonal.
 
 **At run time** a node does not use the offline gains as they are: where the model is nonlinear its
 Jacobians along the real trajectory differ from the nominal ones (a range sensor's direction to a target
@@ -66,7 +66,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from .bounds import eigh, symmetrize, theorem2_margin
+from .bounds import BOUND_LIMIT, eigh, symmetrize, theorem2_margin
 from .mse import JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier, joint_predict, \
     joint_prior, solve_gains
 from .tuning import MARGIN
@@ -74,7 +74,7 @@ from .validation import InputError
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
-           "BOUND_LIMIT", "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
+           "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
            "LMI_MAX_DIM"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
@@ -84,8 +84,6 @@ STATIONARY_MAX = 100
 #: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
 #: (seconds per step); the design is then given without a bound.
 CERTIFICATE_MAX_DIM = 600
-#: A bound with this trace certifies nothing (the consensus filters' limit).
-BOUND_LIMIT = 1e100
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing"
 
 
@@ -241,31 +239,21 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
     return K, K_n, C, post, kappa
 
 
-def _mean_transition(A: np.ndarray, W: np.ndarray, C: np.ndarray, ch: Channels) -> np.ndarray:
-    """``T̄`` as blocks (N, N, n, n): ``T̄_ii = A_i - Σ_j p_ij W_ij`` with the links' ``W_ij = K_ij H_j + C_ij`` and
-    ``T̄_ij = p_ij C_ij`` (``A_i = I - K_i H_i``)."""
-    N, n = A.shape[0], A.shape[-1]
-    T = np.zeros((N, N, n, n))
-    T[ch.receiver, ch.sender] = ch.p[:, None, None] * C
-    idx = np.arange(N)
-    T[idx, idx] = A
-    np.add.at(T, (ch.receiver, ch.receiver), -ch.p[:, None, None] * W)
-    return T
-
-
 def _block_sparse(rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray, shape: tuple[int, int]):
     """The sparse matrix (CSR) of the blocks ``blocks[b]`` (B, r, c) at block row ``rows[b]``, column ``cols[b]``
     (repeated positions add up)."""
     from scipy.sparse import coo_matrix
 
     B, r, c = blocks.shape
-    ri = (rows[:, None, None] * r + np.arange(r)[None, :, None]) + 0 * np.arange(c)[None, None, :]
-    ci = (cols[:, None, None] * c + np.arange(c)[None, None, :]) + 0 * np.arange(r)[None, :, None]
+    ri = np.broadcast_to(rows[:, None, None] * r + np.arange(r)[None, :, None], (B, r, c))
+    ci = np.broadcast_to(cols[:, None, None] * c + np.arange(c)[None, None, :], (B, r, c))
     return coo_matrix((blocks.ravel(), (ri.ravel(), ci.ravel())), shape=shape).tocsr()
 
 
 def _transition_matrix(rule: "_Rule", ch: Channels):
-    """``T̄`` (:func:`_mean_transition`) as a sparse (N n, N n) matrix: N + E blocks, whatever the network's size."""
+    """The mean transition ``T̄`` as a sparse (N n, N n) matrix of N + E blocks, whatever the network's size:
+    ``T̄_ii = A_i - Σ_j p_ij W_ij`` with the links' ``W_ij = K_ij H_j + C_ij`` and ``T̄_ij = p_ij C_ij``
+    (``A_i = I - K_i H_i``)."""
     N, n = rule.A.shape[0], rule.A.shape[-1]
     idx = np.arange(N)
     pW, pC = ch.p[:, None, None] * rule.W, ch.p[:, None, None] * rule.C
@@ -303,25 +291,33 @@ class _Rule(NamedTuple):
     Hn: np.ndarray | None  # (E, mz, n) the sender's Jacobian at the receiver's (nominal) point
 
 
-def _noise(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
-    """The additive second moment (N, N, n, n) of the update: the measurement noises ``Λ̄ R Λ̄ᵀ`` (a neighbour's
-    measurement is shared by every node that receives it) with their DoS variance, and the falsifications'
-    ``E[b bᵀ]`` (``b_i = Σ_j ρ γ W_ij ξ``, links independent)."""
+def _measurement_noise(rule: _Rule, ch: Channels, N: int) -> np.ndarray:
+    """The measurement noises' second moment (N, N, n, n) after the update: ``K_i R_i K_iᵀ`` per node, and with
+    measurement exchange ``Λ̄ R Λ̄ᵀ`` (a neighbour's measurement is shared by every node that receives it) with the
+    DoS variance of the received ones."""
+    n = rule.A.shape[-1]
+    idx = np.arange(N)
+    if rule.Kn is None or not ch.receiver.size:
+        out = np.zeros((N, N, n, n))
+        out[idx, idx] = np.stack([k @ r @ _t(k) for k, r in zip(rule.K, rule.R)])
+        return out
+    # Λ̄_im: K_i for m = i, p K_im for a link m -> i; E[w_i w_lᵀ] = Σ_m Λ̄_im R_m Λ̄_lmᵀ (+ DoS variance on i = l);
+    # Λ̄ is sparse (N + E blocks): the product costs what the links do
+    K, R = np.asarray(rule.K), np.asarray(rule.R)
+    mz = R.shape[-1]
+    lam = _block_sparse(np.concatenate([idx, ch.receiver]), np.concatenate([idx, ch.sender]),
+                        np.concatenate([K, ch.p[:, None, None] * rule.Kn]), (N * n, N * mz))
+    Rs = _block_sparse(idx, idx, R, (N * mz, N * mz))
+    out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N).copy()
+    var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
+    np.add.at(out, (ch.receiver, ch.receiver), var)
+    return out
+
+
+def _falsification_moment(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
+    """The falsifications' second moment ``E[b bᵀ]`` (N, N, n, n), ``b_i = Σ_j ρ γ W_ij ξ`` (links independent)."""
     n = rule.A.shape[-1]
     out = np.zeros((N, N, n, n))
-    idx = np.arange(N)
-    out[idx, idx] = np.stack([k @ r @ _t(k) for k, r in zip(rule.K, rule.R)])
-    if rule.Kn is not None and ch.receiver.size:
-        # Λ̄_im: K_i for m = i, p K_im for a link m -> i; E[w_i w_lᵀ] = Σ_m Λ̄_im R_m Λ̄_lmᵀ (+ DoS variance on i = l);
-        # Λ̄ is sparse (N + E blocks): the product costs what the links do
-        K, R = np.asarray(rule.K), np.asarray(rule.R)
-        mz = R.shape[-1]
-        lam = _block_sparse(np.concatenate([idx, ch.receiver]), np.concatenate([idx, ch.sender]),
-                            np.concatenate([K, ch.p[:, None, None] * rule.Kn]), (N * n, N * mz))
-        Rs = _block_sparse(idx, idx, R, (N * mz, N * mz))
-        out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N).copy()
-        var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
-        np.add.at(out, (ch.receiver, ch.receiver), var)
     if ch.receiver.size and (np.any(M) or np.any(mu)):
         pq = ch.p * ch.q
         W = rule.W
@@ -353,9 +349,9 @@ def _dos_variance(rule: _Rule, ch: Channels, own: np.ndarray, diff: np.ndarray, 
 def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray) -> JointCovariance:
     """The expected joint error covariance after the update, in difference form (:mod:`designer.mse`).
 
-    With ``T̄`` (:func:`_mean_transition`, every row summing to ``A_i = I - K_i H_i - Σ_j p_ij K_ij H_j``),
+    With ``T̄`` (:func:`_transition_matrix`, every row summing to ``A_i = I - K_i H_i - Σ_j p_ij K_ij H_j``),
     ``c_i = Σ_j T̄_ij P_jj``, ``Y = T̄ G T̄ᵀ`` (``G`` the difference blocks) and the additive terms ``N``
-    (:func:`_noise`, with the DoS variance on the diagonal):
+    (:func:`_measurement_noise` and :func:`_falsification_moment`, with the DoS variance on the diagonal):
 
         P⁺_i  = c_i A_iᵀ - Y_ii + N_ii
         G⁺_ik = c_i (A_i - A_k)ᵀ - Y_ii + Y_ik + N_ii - N_ik     (i ≠ k)
@@ -373,7 +369,7 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
     idx = np.arange(N)
     Yd = Y[idx, idx]
     Gb = Pm.blocks()
-    Nz = _noise(rule, ch, M, mu, N)
+    Nz = _measurement_noise(rule, ch, N) + _falsification_moment(rule, ch, M, mu, N)
     Nz[idx, idx] += _dos_variance(rule, ch, Pm.P[i], symmetrize(Gb[i, j] + Gb[j, i]), Gb[i, j])
     Nd = Nz[idx, idx]
     P = symmetrize(c @ _t(A) - Yd + Nd)
@@ -382,12 +378,11 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
     return JointCovariance(P, _dense(G))
 
 
-def _expected_sandwich(rule: _Rule, ch: Channels, X: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``E_ρ[T(ρ) X T(ρ)ᵀ]`` (dense) for absolute ``X``: ``T̄ X T̄ᵀ`` and, per node, ``Σ_j p(1-p) B_j X B_jᵀ`` with
-    ``B_j X B_jᵀ = W X_ii Wᵀ - W X_ij Cᵀ - C X_ji Wᵀ + C X_jj Cᵀ``."""
-    N = T.shape[0]
-    Td = _dense(T)
-    out = Td @ X @ Td.T
+def _expected_sandwich(rule: _Rule, ch: Channels, X: np.ndarray, T) -> np.ndarray:
+    """``E_ρ[T(ρ) X T(ρ)ᵀ]`` (dense) for absolute ``X`` and the sparse ``T̄``: ``T̄ X T̄ᵀ`` and, per node,
+    ``Σ_j p(1-p) B_j X B_jᵀ`` with ``B_j X B_jᵀ = W X_ii Wᵀ - W X_ij Cᵀ - C X_ji Wᵀ + C X_jj Cᵀ``."""
+    N = rule.A.shape[0]
+    out = _sandwich_sparse(T, X)
     if ch.receiver.size:
         Xb = _blocks(X, N)
         i, j = ch.receiver, ch.sender
@@ -412,13 +407,13 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
     """
     N, n = rule.A.shape[0], rule.A.shape[-1]
     P = _dense(Phi)
-    T = _mean_transition(rule.A, rule.W, rule.C, ch)
+    T = _transition_matrix(rule, ch)
     copies = np.ones(N) if rule.Kn is None else 1.0 + np.bincount(ch.receiver, minlength=N)
     w = np.repeat(np.sqrt(copies), n)
     lam, Qv = eigh(symmetrize(w[:, None] * P * w[None, :]))
     Wd = (P * w[None, :]) @ Qv  # (P^-1 - β DᵀD)^-1 = P + Wd diag(β / (1 - βλ)) Wdᵀ
     # h_k = tr E_ρ[T w_k w_kᵀ Tᵀ] for the columns w_k of Wd: |T̄ w_k|² + Σ_j p(1-p) |B_j w_k|²
-    TW = _dense(T) @ Wd
+    TW = np.asarray(T @ Wd)
     h = np.sum(TW**2, axis=0)
     if ch.receiver.size:
         Wb = Wd.reshape(N, n, -1)
@@ -438,9 +433,8 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
         idx = np.arange(N)
         if v > 0:
             ob[idx, idx] += KVV / beta
-        noise = _noise(rule, ch, M, mu, N)
-        meas = _noise(rule, ch, np.zeros_like(M), np.zeros_like(mu), N)  # the measurement noises alone
-        fdi = _dense(noise - meas)
+        meas = _measurement_noise(rule, ch, N)
+        fdi = _dense(_falsification_moment(rule, ch, M, mu, N))
         if np.any(mu) and ch.receiver.size:  # a biased signal: (a + b)(a + b)ᵀ <= a aᵀ/(1 - π) + b bᵀ/π
             ta, tb = np.sqrt(max(np.trace(own), 0.0)), np.sqrt(max(np.trace(fdi), 0.0))
             pi = tb / (ta + tb) if ta + tb > 0 else 0.5
@@ -808,8 +802,9 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     if rule.Kn is not None and ch.receiver.size:
         lv = rule.Kn @ Vn
         np.add.at(KVV, ch.receiver, ch.p[:, None, None] * (lv @ _t(lv)))
-    W2 = _dense(_noise(rule, ch, st.M, st.mu, N)) + (_dense(_diag_blocks(KVV, N)) / beta if beta > 0 else 0.0)
-    T = _dense(_mean_transition(rule.A, rule.W, rule.C, ch))
+    W2 = _dense(_measurement_noise(rule, ch, N) + _falsification_moment(rule, ch, st.M, st.mu, N)) \
+        + (_dense(_diag_blocks(KVV, N)) / beta if beta > 0 else 0.0)
+    T = _transition_matrix(rule, ch).toarray()
     Bs, ws = [], []
     for e in range(ch.receiver.size):  # B_e X B_eᵀ: B_e = -W_e on the receiver's own error, +C_e on the sender's
         if ch.p[e] * (1 - ch.p[e]) <= 0:
