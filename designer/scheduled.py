@@ -115,6 +115,14 @@ class Channels(NamedTuple):
             chan[i, : c.size], mask[i, : c.size] = c, True
         return chan, mask
 
+    def at_slots(self, values: np.ndarray, fill=0.0) -> np.ndarray:
+        """Per-channel ``values`` (E, ...) laid out per node and slot (N, d_max, ...), ``fill`` in the empty slots."""
+        chan, mask = self.slots
+        values = np.asarray(values)
+        if not values.shape[0]:
+            return np.full(chan.shape + values.shape[1:], fill, dtype=np.result_type(values, fill))
+        return np.where(mask.reshape(mask.shape + (1,) * (values.ndim - 1)), values[chan], fill)
+
 
 def channels(network) -> Channels:
     """:class:`Channels` of a :class:`designer.network.SensorNetwork` with its DoS and FDI probabilities."""
@@ -526,14 +534,13 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     E = ch.receiver.size
     H, R = pad_measurements([np.asarray(model.H(i, x_pred, k1), dtype=float) for i in range(N)], st.R, st.mz)
     chan, mask = ch.slots
-    js = np.where(mask, ch.sender[chan] if E else 0, np.arange(N)[:, None])
+    js = np.where(mask, ch.at_slots(ch.sender, 0), np.arange(N)[:, None])
     ii = np.arange(N)[:, None]
     Gb = Pm.blocks()
     m2 = (mask[:, :, None] & mask[:, None, :])[..., None, None]
-    G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n)
+    G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n): E[e_i Δ_ijᵀ] of the slots
     S = np.where(m2, Gb[ii, js][:, None] - Gb[js[:, :, None], js[:, None, :]] + Gb[js, ii][:, :, None], 0.0)
-    p = np.where(mask, ch.p[chan] if E else 0.0, 0.0)
-    q = np.where(mask, ch.q[chan] if E else 0.0, 0.0)
+    p, q = ch.at_slots(ch.p), ch.at_slots(ch.q)
     Hn, Rn = (H[js], R[js]) if st.exchange else (None, None)
     K, K_n, Cs, _, _ = link_gains(Pm.P, H, R, G, S, p, q, st.M, st.mu, Hn, Rn)
     A = np.eye(n) - K @ H

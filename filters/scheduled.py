@@ -90,8 +90,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     chan, mask = ch.slots  # (N, d): each node's incoming channels in its slots
     d = chan.shape[1]
     slot = ch.slot
-    p_slot, q_slot = np.where(mask, ch.p[chan] if rcv.size else 0.0, 0.0), np.where(mask, ch.q[chan] if rcv.size
-                                                                                    else 0.0, 0.0)
+    p_slot, q_slot = ch.at_slots(ch.p), ch.at_slots(ch.q)
     R_pad = pad_measurements([np.zeros((m_i, nx)) for m_i in model.sensor_dims], R, nz)[1]  # (N, nz, nz)
     act = np.arange(runs)
     for k in range(steps):
@@ -125,7 +124,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             H_own[:, i, :m_i] = model.H(i, xp[:, i], k + 1)
             res_own[:, i, :m_i] = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1),
                                                  model.sensors[i].angles)
-        G = colour(root, np.broadcast_to(np.where(mask[..., None, None], Gam[chan], 0.0), (a, n, d, nx, nx)))
+        G = colour(root, np.broadcast_to(ch.at_slots(Gam), (a, n, d, nx, nx)))
         S = colour(root, np.broadcast_to(Sig, (a,) + Sig.shape))  # (a, N, d, d, nx, nx)
         Hn = Rn = res_n = None
         if tables.exchange:  # the neighbours' measurements, at each receiver's own prediction
@@ -144,7 +143,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                     r_j = r_j + np.where(fdi[:, out_j, None], shift, 0.0)
                 r_j = wrap_residuals(r_j, model.sensors[j].angles)
                 res_n[:, rcv[out_j], slot[out_j], :m_j] = np.where(arrived[:, out_j, None], r_j, 0.0)
-            Rn = R_pad[np.where(mask, snd[chan], 0)]
+            Rn = R_pad[ch.at_slots(snd, 0)]
         K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, p_slot, q_slot, M, mu, Hn, Rn)
         got = np.where(mask, arrived[:, chan], False)  # (a, N, d): the slots whose packet arrived
         diff_slot = np.where(got[..., None], diff[:, chan], 0.0)  # (a, N, d, nx)
