@@ -35,7 +35,8 @@ IN_MEMORY = ("it ran on an in-memory model (a Model or Scenario built in Python)
 _DESIGN_FLAGS = {"mode": "--mode", "epsilon": "--epsilon", "sigma": "--sigma", "beta": "--beta", "tau": "--tau",
                  "dos": "--dos", "fdi": "--fdi", "delta": "--delta", "amplitude": "--amplitude",
                  "u_scale": "--u-scale", "v_scale": "--v-scale", "linearization": "--linearization",
-                 "radius": "--radius", "gate": "--gate"}
+                 "radius": "--radius", "gate": "--gate", "exchange": "--exchange",
+                 "robustness": "--robustness"}
 _STUDY_FLAGS = {"engine": "--engine", "schedule": "--schedule"}
 # a study's own options that say where or how wide it computes, not what: like --workers, left out of the line
 _NOT_NUMBERS = ("threads",)

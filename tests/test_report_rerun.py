@@ -197,3 +197,29 @@ def test_an_in_memory_model_has_no_line_and_the_report_says_why(tmp_path):
     md = (tmp_path / "d" / "report.md").read_text()
     assert "No command line computes this design again: it ran on an in-memory model" in md
     assert "To compute this design again" not in md
+
+
+def test_every_design_option_reaches_the_recorded_line_as_a_flag_the_commands_take():
+    """Each field of DesignOptions, when set, appears on the recorded line as a flag ``design`` and ``study`` accept
+    (a new option without its flag made every study given it fail with an internal error)."""
+    from dataclasses import fields
+
+    from designer.design import DesignOptions
+    from studies.cli import cli
+    from studies.invocation import design_invocation
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    paper = DesignOptions(mode="paper", epsilon=0.1, sigma=0.2, beta=0.3, tau=0.01, u_scale=0.5, v_scale=0.5,
+                          linearization="hessian", radius=2.0, dos=0.1, fdi=0.1, delta=1.0, amplitude=1.0,
+                          gate=0.01)
+    scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5)
+    given = {f.name for o in (paper, scheduled) for f in fields(o) if getattr(o, f.name) is not None}
+    assert given == {f.name for f in fields(DesignOptions)}  # the two sets together set every option
+    lines = [design_invocation(sc, o, steps=None, seed=0)["argv"] for o in (paper, scheduled)]
+    flags = {a for line in lines for a in line if a.startswith("--")}
+    for command in ("design", "study"):
+        taken = {o for p in cli.commands[command].params for o in p.opts}
+        assert flags - {"--seed"} <= taken, (command, flags - taken)
+    for f in fields(DesignOptions):
+        assert "--" + f.name.replace("_", "-") in flags, f.name
