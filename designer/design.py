@@ -34,6 +34,7 @@ import numpy as np
 from .gain_rules import GAIN_RULES, gain_rule
 from .linearization import DEFAULT_RADIUS, component_scales
 from .network import SensorNetwork
+from .scheduled import ROBUSTNESS, ROBUSTNESS_MAX
 from .validation import InputError, check_finite
 
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
@@ -107,6 +108,7 @@ class ConsensusDesign(NamedTuple):
     fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
     tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
+    robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -133,6 +135,10 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     if design.exchange not in EXCHANGES or (design.exchange == "measurements" and design.mode != "scheduled"):
         raise InputError(f"exchange must be 'predictions', or 'measurements' in mode 'scheduled', got "
                          f"{design.exchange!r} in mode {design.mode!r}")
+    rob = float(design.robustness)
+    if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and design.mode != "scheduled"):
+        raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in mode 'scheduled' (0 in the other modes), "
+                         f"got {design.robustness!r} in mode {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -302,6 +308,11 @@ class DesignOptions:
     exchange : {'measurements', 'predictions'}
         Mode ``scheduled``: a packet carries the sender's prediction and its measurement (the default),
         or its prediction alone, as in (7).  The other modes exchange predictions.
+    robustness : float in [0, 100]
+        Mode ``scheduled``: the margin δ of the link gains: each neighbour's difference is taken to carry an
+        extra independent error of covariance δ P_ii besides its tabulated moments
+        (default :data:`designer.scheduled.ROBUSTNESS`; 0: the tables' MMSE gains, fragile where the state
+        leaves the nominal geometry).
     """
 
     mode: str | None = None
@@ -319,6 +330,7 @@ class DesignOptions:
     amplitude: float | None = None
     gate: float | None = None
     exchange: str | None = None
+    robustness: float | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
@@ -330,9 +342,12 @@ class DesignOptions:
         if self.exchange == "measurements" and self.mode not in (None, "scheduled"):
             raise InputError(f"exchange 'measurements' is a design of mode 'scheduled'; mode {self.mode!r} exchanges "
                              "predictions")
+        if self.robustness is not None and self.mode not in (None, "scheduled"):
+            raise InputError(f"robustness is a margin of mode 'scheduled''s link gains; mode {self.mode!r} has none")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
-        for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate"):
+        for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate",
+                     "robustness"):
             v = getattr(self, name)
             if v is None:
                 continue
@@ -342,6 +357,8 @@ class DesignOptions:
                 raise InputError(f"{name} must be >= 0, got {v!r}")
         if self.radius is not None and self.radius <= 0:
             raise InputError(f"radius must be > 0, got {self.radius!r}")
+        if self.robustness is not None and self.robustness > ROBUSTNESS_MAX:
+            raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}], got {self.robustness!r}")
         for name in ("dos", "fdi", "gate"):
             v = getattr(self, name)
             if v is not None and v >= 1:
@@ -423,13 +440,15 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         gate=0.0 if options.gate is None else float(options.gate),
         fdi_signal=signal,
         exchange=options.exchange or (EXCHANGES[0] if mode == "scheduled" else "predictions"),
+        robustness=0.0 if mode != "scheduled" else ROBUSTNESS if options.robustness is None
+        else float(options.robustness),
     )
     return validate_design(des, model, network)
 
 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
-    return {"mode": des.mode, "exchange": des.exchange, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
+    return {"mode": des.mode, "exchange": des.exchange, "robustness": des.robustness, "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),
             "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}

@@ -7,7 +7,7 @@ covariance factors of its links; beyond the designed horizon the stationary ones
 
     x̂⁻_i = f(x̂_i),   P⁻ = F P_ii Fᵀ + Q
     G = P⁻^{1/2} Γ_ij P⁻^{1/2},  S = P⁻^{1/2} Σ̃_jl P⁻^{1/2}          (colour the tables)
-    K_i, C_ij, P_ii⁺ = designer.scheduled.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ)
+    K_i, C_ij, P_ii⁺ = designer.scheduled.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ, margin=δ)
     x̂⁺_i = x̂⁻_i + K_i (z_i - h_i(x̂⁻_i)) + Σ_{j arrived} [K_ij (z̃_j - h_j(x̂⁻_i)) + C_ij (x̃⁻_j - x̂⁻_i)]
 
 with the neighbours' measurements ``z̃_j`` only when the design exchanges them (``tables.exchange``); a
@@ -144,7 +144,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 r_j = wrap_residuals(r_j, model.sensors[j].angles)
                 res_n[:, rcv[out_j], slot[out_j], :m_j] = np.where(arrived[:, out_j, None], r_j, 0.0)
             Rn = R_pad[ch.at_slots(snd, 0)]
-        K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, p_slot, q_slot, M, mu, Hn, Rn)
+        K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, p_slot, q_slot, M, mu, Hn, Rn, tables.robustness)
         got = np.where(mask, arrived[:, chan], False)  # (a, N, d): the slots whose packet arrived
         diff_slot = np.where(got[..., None], diff[:, chan], 0.0)  # (a, N, d, nx)
         xn = xp + (K @ res_own[..., None])[..., 0] + np.einsum("lidab,lidb->lia", C, diff_slot)

@@ -44,8 +44,8 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     from dataclasses import replace
 
     opts = options or DesignOptions()
-    if mode != "scheduled":  # what a packet carries is a choice of the scheduled design
-        opts = replace(opts, exchange=None)
+    if mode != "scheduled":  # what a packet carries and the links' margin are choices of the scheduled design
+        opts = replace(opts, exchange=None, robustness=None)
     return replace(opts, mode=mode) if mode == "paper" else replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
@@ -185,6 +185,11 @@ _SCHEDULED_RECORD = {
     "replay": "every node applies the tables on any run with its own estimate, covariance and Jacobians and the "
               "packets that arrived (filters.scheduled); the bound is the expected one over the attacks along the "
               "nominal linearisation with the remainders U, V_i, validated on fresh runs by study consensus-robot",
+    "robustness_note": "the link gains are chosen with the margin robustness = delta (schedule.json robustness): "
+                  "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "
+                  "nodes do not lean on the tables' correlations where the state leaves the nominal geometry; the "
+                  "expected covariance and the bound are those of the gains so chosen (an assumption chosen by "
+                  "measurement, designer.scheduled.ROBUSTNESS)",
 }
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from designer.scheduled import channels, design_scheduled, link_gains
+from designer.scheduled import ROBUSTNESS, channels, design_scheduled, link_gains
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
@@ -120,8 +120,11 @@ def _brute_force_posterior(P_joint, H, R, p, q, M, Z, exchange, n=2):
     return total
 
 
-@pytest.mark.parametrize("exchange", [True, False])
-def test_link_gains_minimise_the_expected_posterior_over_every_packet_pattern(exchange):
+@pytest.mark.parametrize("exchange,margin", [(True, 0.0), (False, 0.0), (True, 0.7)])
+def test_link_gains_minimise_the_expected_posterior_over_every_packet_pattern(exchange, margin):
+    """The gains minimise the brute-force expected posterior over every arrival/falsification pattern, plus, with a
+    robustness margin δ, the margin's penalty δ Σ_j p_j tr(C_j P C_jᵀ) (an extra independent error δ P on each
+    arrived link); the posterior returned is the brute-force one of those gains, without the penalty."""
     rng = np.random.default_rng(5)
     n, m, d = 2, 1, 2
     A = rng.normal(size=((d + 1) * n, (d + 1) * n))
@@ -134,14 +137,21 @@ def test_link_gains_minimise_the_expected_posterior_over_every_packet_pattern(ex
     G = np.stack([B(0, 0) - B(0, j) for j in (1, 2)])
     S = np.stack([np.stack([B(0, 0) - B(0, l) - B(j, 0) + B(j, l) for l in (1, 2)]) for j in (1, 2)])
     Hn, Rn = (np.stack(H[1:]), np.stack(R[1:])) if exchange else (None, None)
-    K, K_n, C, post, _ = link_gains(B(0, 0), H[0], R[0], G, S, p, q, M, np.zeros(n), Hn, Rn)
+    K, K_n, C, post, _ = link_gains(B(0, 0), H[0], R[0], G, S, p, q, M, np.zeros(n), Hn, Rn, margin=margin)
     Z = np.concatenate([K] + [np.concatenate(([K_n[j]] if exchange else []) + [C[j]], axis=1) for j in range(d)],
                        axis=1)
     brute = _brute_force_posterior(P_joint, H, R, p, q, M, Z, exchange, n)
     np.testing.assert_allclose(post, brute, rtol=1e-9, atol=1e-12)
-    f = lambda z: np.trace(_brute_force_posterior(P_joint, H, R, p, q, M, z.reshape(Z.shape), exchange, n))  # noqa
+    a = n + (m if exchange else 0)
+
+    def penalty(z):  # δ Σ_j p_j tr(C_j P C_jᵀ), C_j the last n columns of link j's block
+        cs = [z[:, m + j * a + a - n: m + (j + 1) * a] for j in range(d)]
+        return margin * sum(p[j] * np.trace(c @ B(0, 0) @ c.T) for j, c in enumerate(cs))
+
+    f = lambda z: np.trace(_brute_force_posterior(P_joint, H, R, p, q, M, z.reshape(Z.shape), exchange, n)) + \
+        penalty(z.reshape(Z.shape))  # noqa: E731
     best = minimize(f, np.zeros(Z.size), method="BFGS", options={"gtol": 1e-10})
-    assert np.trace(post) <= best.fun + 1e-9
+    assert np.trace(post) + penalty(Z) <= best.fun + 1e-9
     np.testing.assert_allclose(Z, best.x.reshape(Z.shape), atol=1e-4)
 
 
@@ -174,6 +184,11 @@ def test_bad_options_for_the_scheduled_mode_are_refused():
         consensus_design(sc, mode="scheduled", linearization="hessian")
     with pytest.raises(InputError, match="sigma"):
         consensus_design(sc, mode="scheduled", sigma=0.1)
+    for bad in (-0.1, 101.0, float("nan")):
+        with pytest.raises(InputError, match="robustness"):
+            consensus_design(sc, mode="scheduled", robustness=bad)
+    with pytest.raises(InputError, match="robustness"):
+        consensus_design(sc, mode="tuned", robustness=1.0)
 
 
 def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_modes(tmp_path, tank_model):
@@ -187,6 +202,7 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     sch = load_schedule(out)
     assert sch.gain_rule.runtime == "scheduled" and sch.gain_rule.deployable
     assert sch.meta["exchange"] == "measurements"
+    assert sch.meta["robustness"] == ROBUSTNESS  # the margin the nodes solve their gains with
     import json
     record = json.loads((out / "schedule.json").read_text())
     assert record["runtime_information"] == record["gain_rule"]  # the contract's name (shared/DESIGN.md)
@@ -248,3 +264,50 @@ def test_feasibility_map_of_mode_scheduled_is_the_designs_stationary_certificate
         rec = json.loads((tmp_path / f"d{dos}" / "schedule.json").read_text())["stationary_certificate"]
         assert row["verdict"] == rec["verdict"] == d.schedule.meta["stationary_certificate"]["verdict"]
         np.testing.assert_allclose(row["trace_bound"], np.mean(rec["trace"]), rtol=1e-12)
+
+
+RANGE_GRID = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, Gaussian, Model, SensorNetwork, Sensor
+NX, NY = 4, 3
+STEPS = 12
+NETWORK = SensorNetwork.from_edges(NX * NY, [(a * NY + b, (a + da) * NY + b + db) for a in range(NX) for b in range(NY)
+                                             for da, db in ((1, 0), (0, 1), (1, 1), (1, -1))
+                                             if 0 <= a + da < NX and 0 <= b + db < NY])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.0)
+def model():
+    x = ca.SX.sym("x", 4)
+    sensors = [Sensor(f"r{a}_{b}", ca.sqrt((x[0] - 10 * a) ** 2 + (x[1] - 10 * b) ** 2), Gaussian.zero_mean([[1.0]]))
+               for a in range(NX) for b in range(NY)]
+    Q = 0.01 * np.array([[1/3, 0, 1/2, 0], [0, 1/3, 0, 1/2], [1/2, 0, 1, 0], [0, 1/2, 0, 1]])
+    return Model("grid", x, ca.vertcat(x[0] + x[2], x[1] + x[3], x[2], x[3]), sensors,
+                 process_noise=Gaussian.zero_mean(Q), prior=Gaussian([18.0, 12.0, 0.2, 0.1], np.diag([4.0, 4, .04, .04])))
+'''
+
+
+def test_the_robustness_margin_bounds_how_far_a_node_leans_on_its_neighbours(tmp_path):
+    """With margin δ the gains minimise tr P⁺ + δ Σ_j p_j tr(C_j P⁻ C_jᵀ), and C = 0 is a choice whose value is at
+    most tr P⁻: so δ Σ_j p_j tr(C_j P⁻ C_jᵀ) <= tr P⁻ at every node and step.  The MMSE gains of a range grid
+    (δ = 0) break that bound several times over: per-link gains that cancel between links through the tables'
+    correlations, what diverged where the target left the grid."""
+    from studies.scenarios import load_scenario
+
+    path = tmp_path / "grid.py"
+    path.write_text(RANGE_GRID)
+    sc = load_scenario(str(path))
+    ch = channels(sc.network)
+
+    def lean(des):  # (steps, N): Σ_j p_j tr(C_j P⁻_i C_jᵀ) / tr P⁻_i
+        tab = des.tables
+        Pi = tab.P_pred[:, ch.receiver]  # (steps, E, n, n)
+        per = ch.p * np.einsum("keab,kebc,kead->ke", tab.C, Pi, tab.C)
+        out = np.zeros(tab.P_pred.shape[:2])
+        np.add.at(out, (slice(None), ch.receiver), per)
+        return out / np.trace(tab.P_pred, axis1=-2, axis2=-1)
+
+    margined = consensus_design(sc, mode="scheduled")
+    assert margined.robustness == ROBUSTNESS > 0
+    assert (ROBUSTNESS * lean(margined)).max() <= 1.0 + 1e-9
+    mmse = consensus_design(sc, mode="scheduled", robustness=0.0)
+    assert (ROBUSTNESS * lean(mmse)).max() > 2.0
