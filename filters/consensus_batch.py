@@ -64,6 +64,7 @@ from designer.validation import InputError, check_covariance, check_finite
 from .attacks import AttackPattern
 from .consensus import (DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
                         run_consensus)
+from .result import FilterResult, constant_messages
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
@@ -258,6 +259,28 @@ class ConsensusBatchResult(NamedTuple):
     def diverged(self) -> list:
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+    @classmethod
+    def of_runs(cls, refs: Sequence[ConsensusResult]) -> "ConsensusBatchResult":
+        """Per-run results of :func:`filters.consensus.run_consensus` stacked over the runs (their numbers unchanged)."""
+        optional = ("predicted_mse", "gate_counts", "gain_condition")
+        fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
+                  if f != "violations" and f not in optional}
+        stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
+                   for f in optional}
+        return cls(**fields, violations=[ref.violations for ref in refs], **stacked)
+
+    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound") -> FilterResult:
+        """These runs as a :class:`filters.result.FilterResult`: ``x_post``, Φ (``phi_post``, a bound where
+        ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
+        the EKF's own covariance), the violations, one message per directed link of ``network`` per step
+        (``2 |E|``, lost ones included) and the packets received (``gate_counts``' first column), ``runtime`` the
+        gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
+        runs, steps = self.x_pred.shape[:2]
+        return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
+                            constant_messages(runs, steps, 2 * len(network.edges)), runtime,
+                            delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
+                            detail=self).check()
 
 
 # --------------------------------------------------------------------------- gains and bounds per mode
@@ -698,15 +721,10 @@ def _per_run_batch(model: Model, network, z, design: ConsensusDesign, u, attacks
     """What the batch cannot vectorise yet: :func:`run_consensus` run by run (``network`` one for all or one per
     run), its results stacked."""
     nets = [network] * z.shape[0] if isinstance(network, SensorNetwork) else network
-    refs = [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
-                          attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
-                          x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])]
-    optional = ("predicted_mse", "gate_counts", "gain_condition")
-    fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
-              if f != "violations" and f not in optional}
-    stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
-               for f in optional}
-    return ConsensusBatchResult(**fields, violations=[ref.violations for ref in refs], **stacked)
+    return ConsensusBatchResult.of_runs(
+        [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
+                       attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
+                       x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])])
 
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):
