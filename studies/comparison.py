@@ -62,15 +62,14 @@ from filters.consensus import HARD_CONDITIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
 from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
-from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekf_design,
-                              local_ekfs, particle_filters)
+from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
+                              particle_filters)
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
 
-__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS",
-           "local_ekf_design"]
+__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -345,7 +344,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                             lambda j: designs[j][e.mode])
         for js in groups:
             t0 = time.perf_counter()
-            res = e.run(batch, js, None if e.mode is None else designs[js[0]][e.mode])
+            res = e.run(batch, js, None if e.mode is None else e.design_for(designs[js[0]][e.mode], m))
             per_row = (np.full(res.runs, (time.perf_counter() - t0) / res.runs) if res.seconds is None
                        else res.seconds)
             rows = [(j, a) for j in js for a in range(R)]

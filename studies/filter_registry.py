@@ -25,8 +25,9 @@ from designer.design import ConsensusDesign
 from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
-from filters.consensus_batch import run_consensus_batch
-from filters.distributed import run_hcmci_batch, run_kcf_batch
+from filters.consensus import run_consensus
+from filters.consensus_batch import ConsensusBatchResult, run_consensus_batch
+from filters.distributed import DistributedBatchResult, run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.particle import run_sir
 from filters.result import FilterResult
@@ -35,7 +36,8 @@ from filters.uplink import fdi_covariances, split_received, uplink_loglik
 from .pipeline import naming_filter
 
 __all__ = ["Batch", "FilterEntry", "FilterRegistry", "designed_consensus", "local_ekfs", "kcf", "hcmci",
-           "centralized_ekf", "particle_filters", "local_ekf_design", "FAMILIES"]
+           "centralized_ekf", "particle_filters", "centralized_consensus_ekf", "replayed_schedule", "local_ekf_design",
+           "FAMILIES"]
 
 FAMILIES = ("consensus", "local", "EKF", "particle", "centralized")  # the families a study reports
 
@@ -51,7 +53,9 @@ class Batch:
     ``received[j][a]`` (K, n_z): what run ``a``'s uplinks delivered to a fusion centre at setting ``j``
     (NaN where lost; None when the study has no uplinks).  ``particle_seeds[a]``: the SeedSequence of
     run ``a``'s particle filters; ``particles`` their number; ``iterations``: consensus rounds per step
-    of the filters that take them (HCMCI's L).  A filter run on settings ``js`` returns rows in
+    of the filters that take them (HCMCI's L); ``per_row_networks``: a designed filter gets one network per row
+(its setting's channel probabilities), or the main one for all rows (False).  A filter run on settings
+``js`` returns rows in
     setting-major order, row ``i R + a`` for setting ``js[i]`` and run ``a``.  ``cache`` holds results
     that several entries share (the particle filters run as one batch).
     """
@@ -65,6 +69,7 @@ class Batch:
     particles: int | None = None
     iterations: int = 1
     run_ids: tuple = ()
+    per_row_networks: bool = True
     cache: dict = field(default_factory=dict)
 
     @property
@@ -88,7 +93,9 @@ class Batch:
     def attack_rows(self, js: Sequence[int]) -> list:
         return [self.attacks[j][a] for j in js for a in range(self.runs)]
 
-    def network_rows(self, js: Sequence[int]) -> list[SensorNetwork]:
+    def network_rows(self, js: Sequence[int]) -> SensorNetwork | list[SensorNetwork]:
+        if not self.per_row_networks:
+            return self.network
         return [self.scenarios[j].network for j in js for _ in range(self.runs)]
 
 
@@ -96,8 +103,9 @@ class FilterEntry(NamedTuple):
     """A filter of a study: its label, family, run time, description, needs and how to run it.
 
     ``run(batch, js, design)`` runs the filter on every run of ``batch`` at the settings ``js`` and
-    returns their :class:`FilterResult` (rows setting-major); ``design`` is the design of gain rule
-    ``mode`` at that setting for an entry with a ``mode`` (None otherwise).  ``messages(network,
+    returns their :class:`FilterResult` (rows setting-major); ``design`` is the design it runs with, for an
+    entry with a ``mode``: :meth:`design_for` of the design of gain rule ``mode`` at that setting (None for
+    an entry without).  ``messages(network,
     iterations)``: transmissions per step as the contract counts them (known before any run, also for a
     filter that is not run).  ``designed``: it reports a design's conditions and bound verdicts;
     ``start_check``: its fixed σ, β may break (28)/(29) at the first step, where it is reported as not
@@ -120,6 +128,16 @@ class FilterEntry(NamedTuple):
     counts_delivered: bool = False
     rounds: bool = False
     particles: bool = False
+    derive: Callable | None = None
+
+    def design_for(self, design: ConsensusDesign, model) -> ConsensusDesign:
+        """The design it runs with, from the design of its gain rule ``mode`` (``derive(design, model)``: e.g. the
+        paper design reduced to the EKF; the design itself when it derives none)."""
+        return design if self.derive is None else self.derive(design, model)
+
+    def nodes(self, network: SensorNetwork) -> int:
+        """How many estimates it keeps on ``network``: one at a fusion centre, one per node otherwise."""
+        return 1 if self.runtime == "centralized" else int(network.n_nodes)
 
     def check(self) -> "FilterEntry":
         if not self.name:
@@ -207,34 +225,86 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         n = batch.network.n_nodes
         alone = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-        res = run_consensus_batch(batch.model, alone, batch.z_rows(js), local_ekf_design(design), attacks=None,
+        res = run_consensus_batch(batch.model, alone, batch.z_rows(js), design, attacks=None,
                                   inputs=batch.input_rows(js))
         return res.to_result(alone, "local", cov_kind="covariance")
 
-    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode="paper", attacked=False)
+    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode="paper", attacked=False,
+                       derive=lambda design, model: local_ekf_design(design))
 
 
-def kcf(name: str, description: str) -> FilterEntry:
-    """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`) on the attacked
-    channels (the realised attacks only: the channels' probabilities are not its to know)."""
-
-    def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
-        return run_kcf_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
-                             attacks=batch.attack_rows(js)).to_result()
-
-    return FilterEntry(name, "consensus", "local", description, run, _links, counts_delivered=True)
-
-
-def hcmci(name: str, description: str) -> FilterEntry:
-    """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`) with ``batch.iterations``
-    rounds per step on the attacked channels; ``2 |E| L`` messages per step."""
+def _distributed(batched: Callable, single: Callable, per_run: bool, **kw) -> Callable:
+    """``run`` of a filter of :mod:`filters.distributed`: every row at once (``batched``), or row by row
+    (``single``: each row's own wall time; the batch agrees with it to rounding, not bit for bit)."""
 
     def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
-        return run_hcmci_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
-                               attacks=batch.attack_rows(js), iterations=batch.iterations).to_result()
+        z, u, att = batch.z_rows(js), batch.input_rows(js), batch.attack_rows(js)
+        L = {"iterations": batch.iterations} if kw.get("rounds") else {}
+        if not per_run:
+            return batched(batch.model, batch.network, z, inputs=u, attacks=att, **L).to_result()
+        refs, secs = [], []
+        for r in range(z.shape[0]):
+            t0 = time.perf_counter()
+            refs.append(single(batch.model, batch.network, z[r], inputs=None if u is None else u[r], attacks=att[r],
+                               **L))
+            secs.append(time.perf_counter() - t0)
+        return DistributedBatchResult.of_runs(refs).to_result()._replace(seconds=np.array(secs))
 
-    return FilterEntry(name, "consensus", "local", description, run, lambda net, L: 2 * len(net.edges) * L,
-                       counts_delivered=True, rounds=True)
+    return run
+
+
+def kcf(name: str, description: str, *, per_run: bool = False) -> FilterEntry:
+    """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`, or ``run_kcf`` run by run)
+    on the attacked channels (the realised attacks only: the channels' probabilities are not its to know)."""
+    return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch, run_kcf, per_run), _links,
+                       counts_delivered=True)
+
+
+def hcmci(name: str, description: str, *, per_run: bool = False) -> FilterEntry:
+    """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`, or ``run_hcmci`` run by run) with
+    ``batch.iterations`` rounds per step on the attacked channels; ``2 |E| L`` messages per step."""
+    return FilterEntry(name, "consensus", "local", description,
+                       _distributed(run_hcmci_batch, run_hcmci, per_run, rounds=True),
+                       lambda net, L: 2 * len(net.edges) * L, counts_delivered=True, rounds=True)
+
+
+def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
+    """One filter at a fusion centre receiving every sensor's measurement (unattacked): the consensus filter of the
+    paper design reduced to the EKF (:func:`local_ekf_design`) on the model with its sensors stacked
+    (:meth:`designer.model.Model.with_stacked_sensors`, Gaussian sensor noises only) as one node; one uplink per
+    sensor and step."""
+
+    def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
+        centre = SensorNetwork(1, np.zeros((1, 1), int))
+        res = run_consensus_batch(batch.model.with_stacked_sensors(), centre, batch.z_rows(js), design, attacks=None,
+                                  inputs=batch.input_rows(js))
+        out = res.to_result(centre, "centralized", cov_kind="covariance")
+        return out._replace(messages=np.full_like(out.messages, batch.model.n_sensors))
+
+    def derive(design: ConsensusDesign, model) -> ConsensusDesign:
+        n_z = model.with_stacked_sensors().n_z
+        return local_ekf_design(design)._replace(V=(np.zeros((n_z, n_z)),))
+
+    return FilterEntry(name, "centralized", "centralized", description, run, _uplinks, mode="paper", attacked=False,
+                       derive=derive)
+
+
+def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:
+    """A gain schedule's ``gains`` = (K (steps, nodes, n_x, n_z), C (steps, nodes, n_x, n_x)) looked up by the step
+    and applied at each node (:func:`filters.consensus.run_consensus` run by run with the paper design's σ, β for
+    its bound): runtime ``scheduled``, no bound it can claim (not ``designed``)."""
+
+    def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
+        z, u, att = batch.z_rows(js), batch.input_rows(js), batch.attack_rows(js)
+        refs, secs = [], []
+        for r in range(z.shape[0]):
+            t0 = time.perf_counter()
+            refs.append(run_consensus(batch.model, batch.network, z[r], design, inputs=None if u is None else u[r],
+                                      attacks=att[r], gains=gains))
+            secs.append(time.perf_counter() - t0)
+        return ConsensusBatchResult.of_runs(refs).to_result(batch.network, "scheduled")._replace(seconds=np.array(secs))
+
+    return FilterEntry(name, "consensus", "scheduled", description, run, _links, mode="paper")
 
 
 def centralized_ekf(name: str, description: str) -> FilterEntry:
