@@ -62,9 +62,9 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import (DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
+from .consensus import (GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
                         run_consensus)
-from .result import FilterResult, constant_messages
+from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
@@ -262,7 +262,7 @@ class ConsensusBatchResult(NamedTuple):
 
     @classmethod
     def of_runs(cls, refs: Sequence[ConsensusResult]) -> "ConsensusBatchResult":
-        """Per-run results of :func:`filters.consensus.run_consensus` stacked over the runs (their numbers unchanged)."""
+        """Per-run results of :func:`filters.consensus.run_consensus` stacked over the runs (numbers unchanged)."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
                   if f != "violations" and f not in optional}
@@ -627,12 +627,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 rr, jj = np.nonzero(gok)
                 W[act[rr], ns[jj]] = gW[rr, jj]
             x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
-            fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
-                    & (np.abs(x_g).max(axis=-1) < DIVERGED))
+            fine = ~diverged_nodes(x_g, gP)
             for j, why in breakdowns.items():
                 reasons[j // g, int(ns[j % g])] = why
             for r, j in zip(*np.nonzero(~fine)):
-                reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {DIVERGED:g} or not finite")
+                reasons.setdefault((r, int(ns[j])), DIVERGED_REASON)
             failed[:, at_g] = ~fine
             xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
             Kn[:, at_g, :, :dim] = gK
@@ -667,14 +666,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         rr, ii = np.nonzero(v29)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):
             violations[r].append({"node": i, "step": k + 1, "condition": "(29)", "margin": mg})
-        dead = np.flatnonzero(first < n)
-        for r in dead:
-            g = act[r]
-            violations[g].append({"node": int(first[r]), "step": k + 1, "condition": "diverged", "margin": -np.inf,
-                                  "reason": reasons[r, int(first[r])]})
-            x_post[g, k + 1], phi_post[g, k + 1], K[g, k], C[g, k] = np.nan, np.nan, np.nan, np.nan
-            valid[g, k + 1] = False
-        act = np.delete(act, dead)
+        act = act[stop_diverged(violations, act, failed, k + 1, lambda r, node: reasons[r, node],
+                                nan_from=(x_post, phi_post), nan_before=(K, C), invalid_from=(valid,))]
     # Phi_{K|K} against the last sigma each node used
     at = slice(None) if act.size == runs else act
     last = valid[at, steps]

@@ -18,7 +18,9 @@ directed link and consensus round for the networked filters (``2 |E| L``), one u
 for a fusion centre, none for isolated nodes.
 
 A run that stopped (``diverged``) carries a ``'diverged'`` violation ``{node, step, condition,
-margin, reason}`` and its arrays are NaN from that step on.  The centralized filters report a run as diverged at the
+margin, reason}`` and its arrays are NaN from that step on: :func:`stop_diverged` is that bookkeeping
+for the batched filters (the consensus EKF of every mode), :func:`diverged_nodes` the test they
+share.  The centralized filters report a run as diverged at the
 first step whose estimate is not finite (:func:`nonfinite_violations`).
 """
 from __future__ import annotations
@@ -30,9 +32,13 @@ import numpy as np
 from designer.gain_rules import FILTER_RUNTIMES
 from designer.validation import InputError
 
-__all__ = ["FilterResult", "COV_KINDS", "nonfinite_violations", "constant_messages", "centralized_result"]
+from .consensus import DIVERGED
+
+__all__ = ["FilterResult", "COV_KINDS", "nonfinite_violations", "constant_messages", "centralized_result",
+           "diverged_nodes", "stop_diverged", "DIVERGED_REASON"]
 
 COV_KINDS = ("bound", "covariance")  # what ``FilterResult.cov`` is: a designed bound Φ, or the filter's own P
+DIVERGED_REASON = f"estimate or covariance beyond {DIVERGED:g} or not finite"
 
 
 class FilterResult(NamedTuple):
@@ -141,3 +147,38 @@ def centralized_result(x: np.ndarray, cov: np.ndarray, uplinks: int, detail: Any
     return FilterResult(x[:, :, None], cov[:, :, None], "covariance", np.isfinite(cov).all(axis=(-2, -1))[:, :, None],
                         nonfinite_violations(x), constant_messages(runs, k1 - 1, uplinks), "centralized",
                         detail=detail).check()
+
+
+def diverged_nodes(x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``(..., N)`` True where a node's estimate ``x`` (..., N, n_x) or covariance ``P`` (..., N, n_x, n_x) left
+    finite numbers or an estimate reached :data:`filters.consensus.DIVERGED` (the run must stop there)."""
+    return ~(np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-2, -1)) & (np.abs(x).max(axis=-1) < DIVERGED))
+
+
+def stop_diverged(violations: list, active: np.ndarray, bad: np.ndarray, step: int, reason=DIVERGED_REASON, *,
+                  nan_from: Sequence[np.ndarray] = (), nan_before: Sequence[np.ndarray] = (),
+                  invalid_from: Sequence[np.ndarray] = ()) -> np.ndarray:
+    """Stop the runs of a batch that diverged at ``step``, as :func:`filters.consensus.run_consensus` stops a run.
+
+    ``active`` (a,): the batch's run indices still going; ``bad`` (a, N): which of their nodes failed at ``step``
+    (e.g. :func:`diverged_nodes`).  A run with a failed node stops at its first one (in node order): appends to
+    ``violations[run]`` ``{node, step, condition: 'diverged', margin: -inf, reason}`` (``reason`` a string, or
+    ``reason(j, node)`` for position ``j`` of ``active``), sets ``a[run, step:]`` to NaN for every array of
+    ``nan_from`` (indexed by the step of a posterior, 0..K), ``a[run, step - 1]`` to NaN for every array of
+    ``nan_before`` (indexed by the step of the update, 0..K-1: gains) and ``b[run, step:]`` to False for every
+    array of ``invalid_from``.  Returns the (a,) mask of the runs that go on.
+    """
+    dead = np.flatnonzero(bad.any(axis=-1))
+    for j in dead.tolist():
+        g, node = int(active[j]), int(np.argmax(bad[j]))
+        violations[g].append({"node": node, "step": step, "condition": "diverged", "margin": -np.inf,
+                              "reason": reason if isinstance(reason, str) else reason(j, node)})
+        for a in nan_from:
+            a[g, step:] = np.nan
+        for a in nan_before:
+            a[g, step - 1] = np.nan
+        for b in invalid_from:
+            b[g, step:] = False
+    going = np.ones(bad.shape[0], dtype=bool)
+    going[dead] = False
+    return going
