@@ -69,7 +69,7 @@ from .figures import curves_figure, filter_colours, legend_beside, plotting, sav
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
 
-__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS"]
+__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -268,6 +268,35 @@ def _settings(sc: Scenario, values: Sequence[float]) -> list[tuple]:
     return out
 
 
+def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations: int, run_ids: Sequence[int],
+            truth: np.ndarray | None = None) -> Batch:
+    """The comparison's realisations of the runs ``seeds`` at the settings ``scs`` (the main one first), as the
+    :class:`studies.filter_registry.Batch` every filter runs on: run ``r`` draws its truth and measurements, the
+    channel draws that every setting turns into its attacks (common random numbers) and its particle filters' seed
+    from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states."""
+    sc = scs[0]
+    m, K, n = sc.model, sc.steps, sc.network.n_nodes
+    signal = sc.resolved_attacks.signal
+    trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
+    for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
+        ts, cs, fs = seq.spawn(3)
+        traj = sc.simulate(np.random.default_rng(ts), K)
+        if truth is not None:
+            truth[a] = traj.x
+        u, s = channel_draws(K, n, np.random.default_rng(cs))
+        for j, scj in enumerate(scs):
+            att_j = scj.resolved_attacks
+            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
+            ys[j].append(receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
+                                                                   fdi_prob=att_j.uplink_fdi, signal=signal)))
+        trajs.append(traj)
+        fss.append(fs)
+    return Batch(tuple(scs), np.stack([t.z for t in trajs]),
+                 None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), tuple(map(tuple, atts)),
+                 received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
+                 iterations=iterations, run_ids=tuple(run_ids))
+
+
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
           options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS,
           divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
@@ -284,8 +313,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     base = ref.build()
     scs = [base.with_attacks(dos=d, fdi=f) for d, f in settings]
     sc = scs[0]
-    m, K, n = sc.model, sc.steps, sc.network.n_nodes
-    signal = sc.resolved_attacks.signal
+    m, K = sc.model, sc.steps
     entries = list(FILTER_REGISTRY)
     # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
     # stay NaN and the summary says why)
@@ -316,23 +344,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             if j == 0:
                 est[a, f] = xs[:, 0]
 
-    trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
-    for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
-        ts, cs, fs = seq.spawn(3)
-        traj = sc.simulate(np.random.default_rng(ts), K)
-        truth[a] = traj.x
-        u, s = channel_draws(K, n, np.random.default_rng(cs))
-        for j, scj in enumerate(scs):
-            att_j = scj.resolved_attacks
-            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
-            ys[j].append(receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
-                                                                   fdi_prob=att_j.uplink_fdi, signal=signal)))
-        trajs.append(traj)
-        fss.append(fs)
-    batch = Batch(tuple(scs), np.stack([t.z for t in trajs]),
-                  None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), tuple(map(tuple, atts)),
-                  received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
-                  iterations=hcmci_iterations, run_ids=tuple(run_ids))
+    batch = realise(scs, seeds, particles=particles, iterations=hcmci_iterations, run_ids=run_ids, truth=truth)
 
     for f, e in enumerate(entries):
         if not e.attacked:  # uses no channel: the same numbers at every setting, run once
@@ -459,7 +471,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     key = "rmse_position" if sc.model.position_index else "rmse"
     # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
     # (on how many of its runs diverged, or on whether it ran at all)
-    order = [n for n in _STREAM_ORDER if n in FILTER_REGISTRY] + [e.name for e in entries if e.name not in _STREAM_ORDER]
+    order = ([n for n in _STREAM_ORDER if n in FILTER_REGISTRY]
+             + [e.name for e in entries if e.name not in _STREAM_ORDER])
     own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
            for c, name in enumerate(order, start=1)}
     L = int(so["hcmci_iterations"])

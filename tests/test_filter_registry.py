@@ -10,19 +10,20 @@ iterate over (studies.filter_registry; issue 26, item 7).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from conftest import TANK_MODEL
 from designer.validation import InputError
-from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus import run_consensus
 from filters.consensus_batch import ConsensusBatchResult, run_consensus_batch
 from filters.distributed import DistributedBatchResult, run_hcmci, run_kcf, run_kcf_batch
 from filters.ekf import run_ekf, run_ekf_batch
 from filters.result import FilterResult, nonfinite_violations
 from filters.uplink import split_received
-from studies.comparison import FILTER_REGISTRY, LOCAL
+from studies.comparison import FILTER_REGISTRY, LOCAL, realise
 from studies.consensus_design import as_mode, consensus_design
 from studies.filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_consensus_ekf, hcmci, kcf,
                                      local_ekfs, replayed_schedule)
@@ -41,24 +42,10 @@ def tank(tmp_path_factory):
 
 def _batch(sc, settings=((0.1, 0.1), (0.3, 0.1)), per_row_networks=True, seed=4) -> Batch:
     """Two runs of ``sc`` at ``settings`` (DoS, FDI): the comparison's realisations (common random numbers)."""
-    scs = [sc.with_attacks(dos=d, fdi=f) for d, f in settings]
-    m, n, K = sc.model, sc.network.n_nodes, sc.steps
-    sig = sc.resolved_attacks.signal
-    atts, ys, trajs, fss = [[] for _ in scs], [[] for _ in scs], [], []
-    for r in range(RUNS):
-        ts, cs, fs = np.random.SeedSequence(seed, spawn_key=(r,)).spawn(3)
-        traj = sc.simulate(np.random.default_rng(ts), K)
-        u, s = channel_draws(K, n, np.random.default_rng(cs))
-        for j, scj in enumerate(scs):
-            att = scj.resolved_attacks
-            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, sig))
-            ys[j].append(receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att.uplink_dos,
-                                                                   fdi_prob=att.uplink_fdi, signal=sig)))
-        trajs.append(traj)
-        fss.append(fs)
-    return Batch(tuple(scs), np.stack([t.z for t in trajs]), None, tuple(map(tuple, atts)),
-                 received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=30, iterations=2,
-                 run_ids=tuple(range(RUNS)), per_row_networks=per_row_networks)
+    seeds = [np.random.SeedSequence(seed, spawn_key=(r,)) for r in range(RUNS)]
+    batch = realise([sc.with_attacks(dos=d, fdi=f) for d, f in settings], seeds, particles=30, iterations=2,
+                    run_ids=range(RUNS))
+    return dataclasses.replace(batch, per_row_networks=per_row_networks)
 
 
 def _check_shapes(res: FilterResult, entry: FilterEntry, sc, rows: int, L: int) -> None:
