@@ -299,8 +299,9 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
 
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
           options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS,
-          divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
-    """Task of the runner: every filter of :data:`FILTER_REGISTRY` at every setting on the runs ``run_ids``.
+          divergence_spread: float = DIVERGENCE_SPREAD, filters: Sequence[str] | None = None) -> dict:
+    """Task of the runner: every filter of :data:`FILTER_REGISTRY` at every setting on the runs ``run_ids``
+    (``filters``: the names the study planned, checked against this process's registry).
 
     Each filter runs every run of the chunk at every setting as one batch (the designed consensus
     filters: one per group of equal designs, a filter that uses no channel once), so that a step costs
@@ -315,6 +316,10 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     sc = scs[0]
     m, K = sc.model, sc.steps
     entries = list(FILTER_REGISTRY)
+    if filters is not None and tuple(filters) != FILTER_REGISTRY.names():
+        raise InputError(f"the comparison was planned with the filters {list(filters)} but this process registers "
+                         f"{list(FILTER_REGISTRY.names())}: a filter registered in a script is known to that process "
+                         "only; run the study in it (without --workers or --dask)")
     # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
     # stay NaN and the summary says why)
     designs = [{} for _ in scs]
@@ -449,7 +454,8 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
                              hcmci_iterations=int(so["hcmci_iterations"]),
-                             divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item())
+                             divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item(),
+                             filters=FILTER_REGISTRY.names())
     config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
               "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),

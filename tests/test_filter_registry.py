@@ -209,3 +209,16 @@ def test_a_diverged_run_stops_alone_at_its_first_failing_node():
         assert np.array_equal(x[r, :3], before[0][r, :3]) and np.array_equal(K[r, :2], before[1][r, :2])
     for r in (0, 2):
         assert np.array_equal(x[r], before[0][r]) and np.array_equal(K[r], before[1][r]) and valid[r].all()
+
+
+def test_a_process_without_the_planned_filters_refuses_the_task(tank):
+    """A filter registered in one process is unknown to a worker process: the task says so instead of returning
+    arrays of other filters (a study planned with it would misread them)."""
+    from designer.design import DesignOptions
+    from studies.comparison import _runs
+    from studies.scenarios import reference
+
+    planned = FILTER_REGISTRY.names() + ("my filter",)
+    with pytest.raises(InputError, match="registered in a script is known to that process only"):
+        _runs([0], [np.random.SeedSequence(1)], ref=reference(tank), settings=[(0.1, 0.1)], particles=20,
+              tuned_in_sweeps=False, options=DesignOptions(), filters=planned)
