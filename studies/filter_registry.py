@@ -1,4 +1,5 @@
-"""The filters a study compares, as a registry: one entry per filter, each returning a :class:`filters.result.FilterResult`.
+"""The filters a study compares, as a registry: one entry per filter, each returning a
+:class:`filters.result.FilterResult`.
 
 An entry (:class:`FilterEntry`) names the filter as the report labels it (the key of ``results.json``'s
 ``filters``: a contract), its family, what it needs at run time (``runtime``, of
