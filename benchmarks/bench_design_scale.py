@@ -68,7 +68,7 @@ from filters.attacks import attack_pattern, channel_draws, receive, uplink_attac
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
 from filters.ekf import run_ekf_batch
 from filters.uplink import split_received
-from studies.comparison import local_ekf_design
+from studies.filter_registry import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.results import DIVERGENCE_SPREAD, divergence_limit, first_divergence
 from studies.scenarios import load_scenario

@@ -62,8 +62,9 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import (DIVERGED, GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
+from .consensus import (GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
                         run_consensus)
+from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
@@ -258,6 +259,28 @@ class ConsensusBatchResult(NamedTuple):
     def diverged(self) -> list:
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+    @classmethod
+    def of_runs(cls, refs: Sequence[ConsensusResult]) -> "ConsensusBatchResult":
+        """Per-run results of :func:`filters.consensus.run_consensus` stacked over the runs (numbers unchanged)."""
+        optional = ("predicted_mse", "gate_counts", "gain_condition")
+        fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
+                  if f != "violations" and f not in optional}
+        stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
+                   for f in optional}
+        return cls(**fields, violations=[ref.violations for ref in refs], **stacked)
+
+    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound") -> FilterResult:
+        """These runs as a :class:`filters.result.FilterResult`: ``x_post``, Φ (``phi_post``, a bound where
+        ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
+        the EKF's own covariance), the violations, one message per directed link of ``network`` per step
+        (``2 |E|``, lost ones included) and the packets received (``gate_counts``' first column), ``runtime`` the
+        gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
+        runs, steps = self.x_pred.shape[:2]
+        return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
+                            constant_messages(runs, steps, 2 * len(network.edges)), runtime,
+                            delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
+                            detail=self).check()
 
 
 # --------------------------------------------------------------------------- gains and bounds per mode
@@ -604,12 +627,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 rr, jj = np.nonzero(gok)
                 W[act[rr], ns[jj]] = gW[rr, jj]
             x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
-            fine = (np.isfinite(x_g).all(axis=-1) & np.isfinite(gP).all(axis=(-2, -1))
-                    & (np.abs(x_g).max(axis=-1) < DIVERGED))
+            fine = ~diverged_nodes(x_g, gP)
             for j, why in breakdowns.items():
                 reasons[j // g, int(ns[j % g])] = why
             for r, j in zip(*np.nonzero(~fine)):
-                reasons.setdefault((r, int(ns[j])), f"estimate or covariance beyond {DIVERGED:g} or not finite")
+                reasons.setdefault((r, int(ns[j])), DIVERGED_REASON)
             failed[:, at_g] = ~fine
             xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
             Kn[:, at_g, :, :dim] = gK
@@ -644,14 +666,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         rr, ii = np.nonzero(v29)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):
             violations[r].append({"node": i, "step": k + 1, "condition": "(29)", "margin": mg})
-        dead = np.flatnonzero(first < n)
-        for r in dead:
-            g = act[r]
-            violations[g].append({"node": int(first[r]), "step": k + 1, "condition": "diverged", "margin": -np.inf,
-                                  "reason": reasons[r, int(first[r])]})
-            x_post[g, k + 1], phi_post[g, k + 1], K[g, k], C[g, k] = np.nan, np.nan, np.nan, np.nan
-            valid[g, k + 1] = False
-        act = np.delete(act, dead)
+        act = act[stop_diverged(violations, act, failed, k + 1, lambda r, node: reasons[r, node],
+                                nan_from=(x_post, phi_post), nan_before=(K, C), invalid_from=(valid,))]
     # Phi_{K|K} against the last sigma each node used
     at = slice(None) if act.size == runs else act
     last = valid[at, steps]
@@ -698,15 +714,10 @@ def _per_run_batch(model: Model, network, z, design: ConsensusDesign, u, attacks
     """What the batch cannot vectorise yet: :func:`run_consensus` run by run (``network`` one for all or one per
     run), its results stacked."""
     nets = [network] * z.shape[0] if isinstance(network, SensorNetwork) else network
-    refs = [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
-                          attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
-                          x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])]
-    optional = ("predicted_mse", "gate_counts", "gain_condition")
-    fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
-              if f != "violations" and f not in optional}
-    stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
-               for f in optional}
-    return ConsensusBatchResult(**fields, violations=[ref.violations for ref in refs], **stacked)
+    return ConsensusBatchResult.of_runs(
+        [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
+                       attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
+                       x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])])
 
 
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):

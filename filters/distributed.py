@@ -83,6 +83,7 @@ from designer.validation import InputError, check_finite, check_int
 from .attacks import AttackPattern
 from .consensus import DIVERGED, check_run_inputs, wrapped_residual
 from .consensus_batch import batch_inputs, wrap_residuals
+from .result import FilterResult
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES"]
@@ -390,6 +391,21 @@ class DistributedBatchResult(NamedTuple):
     def diverged(self) -> list:
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+    @classmethod
+    def of_runs(cls, refs: Sequence[DistributedResult]) -> "DistributedBatchResult":
+        """Per-run results of :func:`run_kcf` / :func:`run_hcmci` stacked over the runs (their numbers unchanged)."""
+        return cls(*(np.stack([getattr(r, f) for r in refs]) for f in DistributedResult._fields[:6]),
+                   [r.violations for r in refs], refs[0].iterations,
+                   None if refs[0].omega is None else np.stack([r.omega for r in refs]))
+
+    def to_result(self) -> FilterResult:
+        """These runs as a :class:`filters.result.FilterResult`: each node's estimate and its own covariance P
+        (``cov_kind="covariance"``, not a bound; ``valid`` where finite), the packets sent per step (every round
+        counted, ``2 |E| L``) and delivered, runtime ``local`` (a node needs only its neighbours' packets)."""
+        return FilterResult(self.x_post, self.P_post, "covariance", np.isfinite(self.P_post).all(axis=(-2, -1)),
+                            self.violations, np.asarray(self.messages_per_step, dtype=np.int64), "local",
+                            delivered=np.asarray(self.delivered_per_step, dtype=np.int64), detail=self).check()
 
 
 class _BatchInputs(NamedTuple):

@@ -16,14 +16,21 @@ from scipy.linalg import block_diag, cho_factor, cho_solve
 from designer.model import Model
 from designer.validation import InputError, check_finite
 
+from .result import FilterResult, centralized_result
 from .rrp import angle_sets, wrap_angles
 
 __all__ = ["EKFResult", "run_ekf", "run_ekf_batch"]
 
 
 class EKFResult(NamedTuple):
-    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean
-    P: np.ndarray  # (K + 1, n_x, n_x)
+    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean; (runs, K + 1, n_x) from run_ekf_batch
+    P: np.ndarray  # (K + 1, n_x, n_x); (runs, K + 1, n_x, n_x) from run_ekf_batch
+
+    def to_result(self, uplinks: int) -> FilterResult:
+        """These runs (a run of :func:`run_ekf` is a batch of one) as a :class:`filters.result.FilterResult` of the
+        fusion centre (:func:`filters.result.centralized_result`): ``uplinks`` messages per step, one per sensor."""
+        one = self.x.ndim == 2
+        return centralized_result(self.x[None] if one else self.x, self.P[None] if one else self.P, uplinks, self)
 
 
 def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,

@@ -53,10 +53,11 @@ from designer.network import SensorNetwork
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import (DIVERGED, _binding_node, _falsified_probability,
+from .consensus import (_binding_node, _falsified_probability,
                         channel_difference_covariance, gate_channels, kept_fdi_moments)
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays, per_run, run_networks,
                               wrap_residuals)
+from .result import diverged_nodes, stop_diverged
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 
@@ -298,20 +299,10 @@ class _Runs:
     def stop_diverged(self, k: int) -> None:
         """A run whose estimate or bound left finite numbers stops at its first such node, as run_consensus does."""
         o, act = self.out, self.act
-        x, phi = o["x_post"][act, k + 1], o["phi_post"][act, k + 1]
-        bad = ~(np.isfinite(x).all(axis=-1) & np.isfinite(phi).all(axis=(-2, -1))
-                & (np.abs(x).max(axis=-1) < DIVERGED))
-        dead = np.flatnonzero(bad.any(axis=-1))
-        if not dead.size:
+        bad = diverged_nodes(o["x_post"][act, k + 1], o["phi_post"][act, k + 1])
+        if not bad.any():
             return
-        for r in dead:
-            self.violation(r, np.argmax(bad[r]), k + 1, "diverged", -np.inf,
-                           f"estimate or covariance beyond {DIVERGED:g} or not finite")
-            g = act[r]
-            for key in ("x_post", "phi_post", "predicted_mse"):
-                o[key][g, k + 1:] = np.nan
-            o["K"][g, k], o["C"][g, k], o["gain_condition"][g, k] = np.nan, np.nan, np.nan
-            o["valid"][g, k + 1:] = False
-        alive = np.ones(act.size, dtype=bool)
-        alive[dead] = False
+        alive = stop_diverged(o["violations"], act, bad, k + 1,
+                              nan_from=(o["x_post"], o["phi_post"], o["predicted_mse"]),
+                              nan_before=(o["K"], o["C"], o["gain_condition"]), invalid_from=(o["valid"],))
         self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]

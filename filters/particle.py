@@ -33,6 +33,7 @@ from designer.noise import logsumexp
 from designer.validation import InputError, NonFiniteError, check_int, check_rng
 
 from .resampling import get_resampler
+from .result import FilterResult, centralized_result
 
 __all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir", "check_finite_means"]
 
@@ -137,6 +138,12 @@ class SIRResult(NamedTuple):
     resampled: np.ndarray  # (runs, K) bool
     collapsed: np.ndarray  # (runs, K) bool: every weight vanished; predicted particles kept, uniform weights
     skipped: np.ndarray  # (runs, K) bool: measurement missing (NaN) and skipped on request
+
+    def to_result(self, uplinks: int) -> FilterResult:
+        """These runs as a :class:`filters.result.FilterResult` of the fusion centre
+        (:func:`filters.result.centralized_result`: the weighted mean and covariance, ``uplinks`` messages per step,
+        one per sensor)."""
+        return centralized_result(self.mean, self.cov, uplinks, self)
 
 
 # log of the smallest positive (subnormal) double: exp(x) == 0.0 below it

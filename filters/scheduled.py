@@ -31,7 +31,7 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import DIVERGED
+from .result import diverged_nodes, stop_diverged
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
                               run_networks, wrap_residuals)
 
@@ -156,18 +156,9 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         x[act], P[act] = xn, Pn
         out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
         out["predicted_mse"][act, k + 1] = np.trace(Pn, axis1=-2, axis2=-1)
-        bad = ~(np.isfinite(xn).all(axis=-1) & np.isfinite(Pn).all(axis=(-2, -1)) & (np.abs(xn).max(axis=-1) < DIVERGED))
-        dead = np.flatnonzero(bad.any(axis=-1))
-        for j in dead:
-            r = int(act[j])
-            out["violations"][r].append({"node": int(np.argmax(bad[j])), "step": k + 1, "condition": "diverged",
-                                         "margin": -np.inf,
-                                         "reason": f"estimate or covariance beyond {DIVERGED:g} or not finite"})
-            for key in ("x_post", "phi_post", "predicted_mse"):
-                out[key][r, k + 1:] = np.nan
-            out["valid"][r, k + 1:] = False
-        if dead.size:
-            act = np.delete(act, dead)
+        act = act[stop_diverged(out["violations"], act, diverged_nodes(xn, Pn), k + 1,
+                                nan_from=(out["x_post"], out["phi_post"], out["predicted_mse"]),
+                                invalid_from=(out["valid"],))]
     if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
         out["valid"][:, T + 1:] = False
     return ConsensusBatchResult(**out)

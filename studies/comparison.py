@@ -54,26 +54,22 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
-from designer.gain_rules import DEPLOYABLE, gain_rule, runtime_label
-from designer.network import SensorNetwork
+from designer.gain_rules import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus import HARD_CONDITIONS
-from filters.consensus_batch import run_consensus_batch
-from filters.distributed import run_hcmci_batch, run_kcf_batch
-from filters.ekf import run_ekf_batch
-from filters.particle import run_sir
-from filters.uplink import fdi_covariances, split_received, uplink_loglik
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
 from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
-from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
+from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
+                              particle_filters)
+from .pipeline import Plan, Study, StudyOptions, StudyText
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
 
-__all__ = ["STUDY", "FILTERS", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "local_ekf_design"]
+__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -82,21 +78,8 @@ LOCAL = "local EKF at every node (no network)"
 MSE = "consensus EKF (mse design)"
 SCHEDULED = "consensus EKF (scheduled design)"
 KCF, HCMCI = "KCF", "HCMCI"
-FILTERS = (TUNED, PAPER_DESIGN, PF_AWARE, PF_PLAIN, EKF_PLAIN, LOCAL, MSE, KCF, HCMCI, SCHEDULED)  # order of the arrays
-FAMILY = {TUNED: "consensus", PAPER_DESIGN: "consensus", PF_AWARE: "particle", PF_PLAIN: "particle",
-          EKF_PLAIN: "EKF", LOCAL: "local", MSE: "consensus", KCF: "consensus", HCMCI: "consensus",
-          SCHEDULED: "consensus"}
-DESIGNED = (TUNED, PAPER_DESIGN, MSE, SCHEDULED)  # the consensus filters with a design (and its conditions)
-MODE = {TUNED: "tuned", PAPER_DESIGN: "paper", MSE: "mse", SCHEDULED: "scheduled"}  # each designed filter's gain rule
-# What each filter needs at run time (designer.gain_rules.FILTER_RUNTIMES): a designed filter its gain rule's class
-# (mse: global, an oracle); KCF and HCMCI use only their neighbours' messages and the local EKFs nothing (local); the
-# centralized filters need a fusion centre receiving every uplink (centralized). Oracles and centralized filters are
-# references: ranked apart, never the pick.
-RUNTIME = {**{name: gain_rule(mode).runtime for name, mode in MODE.items()}, KCF: "local", HCMCI: "local",
-           LOCAL: "local", PF_AWARE: "centralized", PF_PLAIN: "centralized", EKF_PLAIN: "centralized"}
-LITERATURE = (KCF, HCMCI)  # the literature's consensus filters (filters.distributed): no design, no bound
 HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
-DESCRIPTION = {
+_DESCRIPTION = {
     TUNED: "distributed: each node runs the consensus EKF with sigma, beta and gains tuned by convex "
            "optimisation (Clarabel) at every step; exchanges estimates with its neighbours",
     PAPER_DESIGN: "distributed: the consensus EKF with the paper's fixed choices (sigma = beta = 0.1, "
@@ -121,6 +104,24 @@ DESCRIPTION = {
            "step on the prior and measurement information (covariance intersection), measurements scaled by the "
            "network size N (the centralized EKF as L grows, without attacks)",
 }
+# The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register).
+# Each records what it needs at run time (designer.gain_rules.FILTER_RUNTIMES): a designed filter its gain rule's
+# (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
+# centre). Oracles and centralized filters are references: ranked apart, never the pick.
+FILTER_REGISTRY = FilterRegistry([
+    designed_consensus(TUNED, "tuned", _DESCRIPTION[TUNED]),
+    designed_consensus(PAPER_DESIGN, "paper", _DESCRIPTION[PAPER_DESIGN], start_check=True),
+    *particle_filters((PF_AWARE, _DESCRIPTION[PF_AWARE]), (PF_PLAIN, _DESCRIPTION[PF_PLAIN])),
+    centralized_ekf(EKF_PLAIN, _DESCRIPTION[EKF_PLAIN]),
+    local_ekfs(LOCAL, _DESCRIPTION[LOCAL]),
+    designed_consensus(MSE, "mse", _DESCRIPTION[MSE]),
+    kcf(KCF, _DESCRIPTION[KCF]),
+    hcmci(HCMCI, _DESCRIPTION[HCMCI]),
+    designed_consensus(SCHEDULED, "scheduled", _DESCRIPTION[SCHEDULED]),
+])
+FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one joins FILTER_REGISTRY, not this tuple)
+# every filter bootstraps its intervals from a stream of its own, numbered in this order first, then the registry's
+_STREAM_ORDER = (LOCAL, MSE, KCF, HCMCI)
 SWEEP_VALUES = (0.0, 0.1, 0.2, 0.3, 0.4)
 CHUNK_SIZE = 10
 SCENARIOS = ("indoor-robot", "target-range-bearing")
@@ -209,7 +210,7 @@ TEXT = StudyText(
         "measurements and information (HCMCI). The question: which family gives the "
         "best accuracy for its computing cost and its number of messages, and how does each degrade as the "
         "attacks become more frequent?"),
-    filters=dict(DESCRIPTION),
+    filters={e.name: e.description for e in FILTER_REGISTRY},
     attacks=(
         "Every channel suffers denial of service (the message is lost, and the receiver knows it) with "
         "probability `dos_prob`, and false-data injection (a bounded signal of amplitude `attack_amplitude` "
@@ -227,13 +228,6 @@ TEXT = StudyText(
                                 "networked filters); a filter that diverged in that run is left out.",
     },
 )
-
-
-def local_ekf_design(design):
-    """The consensus design reduced to the EKF: σ = β = τ = 0, U = V = 0 (used with an isolated network)."""
-    return design._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(design.U),
-                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, mode="paper",
-                           linearization="fixed")
 
 
 def _slug(name: str) -> str:
@@ -274,14 +268,44 @@ def _settings(sc: Scenario, values: Sequence[float]) -> list[tuple]:
     return out
 
 
+def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations: int, run_ids: Sequence[int],
+            truth: np.ndarray | None = None) -> Batch:
+    """The comparison's realisations of the runs ``seeds`` at the settings ``scs`` (the main one first), as the
+    :class:`studies.filter_registry.Batch` every filter runs on: run ``r`` draws its truth and measurements, the
+    channel draws that every setting turns into its attacks (common random numbers) and its particle filters' seed
+    from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states."""
+    sc = scs[0]
+    m, K, n = sc.model, sc.steps, sc.network.n_nodes
+    signal = sc.resolved_attacks.signal
+    trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
+    for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
+        ts, cs, fs = seq.spawn(3)
+        traj = sc.simulate(np.random.default_rng(ts), K)
+        if truth is not None:
+            truth[a] = traj.x
+        u, s = channel_draws(K, n, np.random.default_rng(cs))
+        for j, scj in enumerate(scs):
+            att_j = scj.resolved_attacks
+            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
+            ys[j].append(receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
+                                                                   fdi_prob=att_j.uplink_fdi, signal=signal)))
+        trajs.append(traj)
+        fss.append(fs)
+    return Batch(tuple(scs), np.stack([t.z for t in trajs]),
+                 None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), tuple(map(tuple, atts)),
+                 received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
+                 iterations=iterations, run_ids=tuple(run_ids))
+
+
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
           options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS,
-          divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
-    """Task of the runner: every filter at every setting on the runs ``run_ids``.
+          divergence_spread: float = DIVERGENCE_SPREAD, filters: Sequence[str] | None = None) -> dict:
+    """Task of the runner: every filter of :data:`FILTER_REGISTRY` at every setting on the runs ``run_ids``
+    (``filters``: the names the study planned, checked against this process's registry).
 
     Each filter runs every run of the chunk at every setting as one batch (the designed consensus
-    filters: one per group of equal designs, the local EKFs once), so that a step costs one NumPy
-    call per operation for all of them; the batched filters give each run the numbers of the
+    filters: one per group of equal designs, a filter that uses no channel once), so that a step costs
+    one NumPy call per operation for all of them; the batched filters give each run the numbers of the
     per-run filters (filters.consensus_batch, filters.distributed, filters.ekf, and
     ``run_sir``'s blocks: run ``a``'s particle filters draw from its own streams as three separate
     filters would, the two at the main setting alone and the sweep's rows together).  Every
@@ -290,28 +314,21 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     base = ref.build()
     scs = [base.with_attacks(dos=d, fdi=f) for d, f in settings]
     sc = scs[0]
-    m, K, n = sc.model, sc.steps, sc.network.n_nodes
-    signal = sc.resolved_attacks.signal
-    papers = _paper_designs(scs, options)
-    designs = [{} if reason is not None else {PAPER_DESIGN: paper} for paper, reason in papers]  # one that cannot
-    for j, s in enumerate(scs):  # start is not run: its arrays stay NaN and the summary says why
-        designs[j][MSE] = consensus_design(s, as_mode(options, MODE[MSE]))
-        designs[j][SCHEDULED] = consensus_design(s, as_mode(options, MODE[SCHEDULED]))
-        if j == 0 or tuned_in_sweeps:
-            designs[j][TUNED] = consensus_design(s, as_mode(options, MODE[TUNED]))
-    local_net = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-    local = local_ekf_design(papers[0][0])
-    covs = fdi_covariances(m, m.prior.mean, signal)
-    S, F, R = len(settings), len(FILTERS), len(run_ids)
-    pfs = [FILTERS.index(PF_AWARE), FILTERS.index(PF_PLAIN)]
-    # q: probability that a received packet is falsified, per (setting, PF) row (per sensor when the uplinks
-    # differ); 0 = trust every packet
-    qs = []
-    for s in scs:
-        up_d, up_f = s.resolved_attacks.uplink_dos, s.resolved_attacks.uplink_fdi
-        q = np.where(up_d < 1, up_f / np.where(up_d < 1, 1.0 - up_d, 1.0), 0.0)
-        qs += [float(q[0]) if np.all(q == q[0]) else q, 0.0 if np.all(q == q[0]) else np.zeros(n)]
-    per_sensor = any(np.ndim(q) for q in qs)
+    m, K = sc.model, sc.steps
+    entries = list(FILTER_REGISTRY)
+    if filters is not None and tuple(filters) != FILTER_REGISTRY.names():
+        raise InputError(f"the comparison was planned with the filters {list(filters)} but this process registers "
+                         f"{list(FILTER_REGISTRY.names())}: a filter registered in a script is known to that process "
+                         "only; run the study in it (without --workers or --dask)")
+    # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
+    # stay NaN and the summary says why)
+    designs = [{} for _ in scs]
+    for e in entries:
+        for j, s in enumerate(scs):
+            if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
+                designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
+    cannot = _cannot_start(scs, options, designs)
+    S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
@@ -324,8 +341,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     limit = divergence_limit(m.prior.cov, divergence_spread)
 
     def score(a, j, f, xs, ok):
-        xs3 = xs if xs.ndim == 3 else xs[:, None]
-        if ok and first_divergence(truth[a][:, None] - xs3, limit) is not None:
+        if ok and first_divergence(truth[a][:, None] - xs, limit) is not None:
             ok = False  # finite, but off the problem's scale: diverged
         if ok:
             e = truth[a, 1:, None][..., idx] - xs[1:][..., idx]  # (K, nodes, components)
@@ -333,97 +349,37 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             if j == 0:
                 est[a, f] = xs[:, 0]
 
-    trajs, atts, ys, fss = [], [[] for _ in scs], [], []
-    for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
-        ts, cs, fs = seq.spawn(3)
-        traj = sc.simulate(np.random.default_rng(ts), K)
-        truth[a] = traj.x
-        u, s = channel_draws(K, n, np.random.default_rng(cs))
-        y_a = []
-        for j, scj in enumerate(scs):
-            att_j = scj.resolved_attacks
-            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
-            y = receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
-                                                          fdi_prob=att_j.uplink_fdi, signal=signal))
-            y_a += [y, y]
-        trajs.append(traj)
-        ys.append(y_a)
-        fss.append(fs)
-    Z = np.stack([t.z for t in trajs])
-    U = None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs])
+    batch = realise(scs, seeds, particles=particles, iterations=hcmci_iterations, run_ids=run_ids, truth=truth)
 
-    def batch(f, js, network, design, attacks):
-        """A designed consensus filter on every run of the chunk at the settings ``js`` at once (rows j-major, one
-        network per row for its channels' probabilities; its time: the batch's, per row)."""
-        t0 = time.perf_counter()
-        res = run_consensus_batch(m, network, np.concatenate([Z] * len(js)), design, attacks=attacks,
-                                  inputs=None if U is None else np.concatenate([U] * len(js)))
-        secs[:, js, f] = (time.perf_counter() - t0) / (R * len(js))
-        return res
-
-    for name in DESIGNED:
-        f = FILTERS.index(name)
-        for js in _alike([j for j in range(S) if name in designs[j]], lambda j: designs[j][name]):
-            res = batch(f, js, [scs[j].network for j in js for _ in range(R)], designs[js[0]][name],
-                        [atts[j][a] for j in js for a in range(R)])
-            for row, dv in enumerate(res.diverged):
-                j, a = js[row // R], row % R
-                ok = dv is None
-                feasible[a, j, f] = float(ok and not any(v["condition"] in HARD_CONDITIONS[:2]
-                                                         for v in res.violations[row]))
-                score(a, j, f, res.x_post[row], ok)  # x_post (K + 1, nodes, n_x)
-            rows_j = [(js[row // R], row % R) for row in range(len(res.diverged))]
-            for (j, a), v in zip(rows_j, bound_verdicts(sc, res.phi_post, res.valid,
-                                                        [feasible[a, j, f] == 1 for j, a in rows_j])):
-                verdict[a, j, f] = VERDICTS.index(v)
-    f = FILTERS.index(LOCAL)  # the local EKFs use no network: one batch, the same at every setting
-    res = batch(f, [0], local_net, local, None)
-    secs[:, :, f] = secs[:, :1, f]
-    for a, dv in enumerate(res.diverged):
-        for jj in range(S):
-            score(a, jj, f, res.x_post[a], dv is None)
-    # KCF, HCMCI and the centralized EKF: every run at every setting in one batch each (row j R + a: setting j,
-    # run a; the channels' probabilities are not theirs to know, only the realised attacks); time per run: the
-    # batch's over its rows
-    rows = [(a, j) for j in range(S) for a in range(R)]
-    ZS, US = np.concatenate([Z] * S), None if U is None else np.concatenate([U] * S)
-    for name, run, kw in ((KCF, run_kcf_batch, {}), (HCMCI, run_hcmci_batch, {"iterations": hcmci_iterations})):
-        f = FILTERS.index(name)
-        t0 = time.perf_counter()
-        res = run(m, sc.network, ZS, inputs=US, attacks=[atts[j][a] for a, j in rows], **kw)
-        secs[:, :, f] = (time.perf_counter() - t0) / len(rows)
-        for row, ((a, j), dv) in enumerate(zip(rows, res.diverged)):
-            delivered[a, j, f] = res.delivered_per_step[row].mean()
-            score(a, j, f, res.x_post[row], dv is None)
-    f = FILTERS.index(EKF_PLAIN)
-    values, avail = split_received(m, np.stack([ys[a][2 * j] for a, j in rows]))
-    t0 = time.perf_counter()
-    res = run_ekf_batch(m, values, available=avail, inputs=US)
-    secs[:, :, f] = (time.perf_counter() - t0) / len(rows)
-    for row, (a, j) in enumerate(rows):
-        xs = res.x[row][:, None]
-        score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
-    # The particle filters: every run's 2 S rows (the two at the main setting, then both at every sweep setting)
-    # of the chunk in one NumPy batch, each run's rows drawn from its own streams as three separate filters would
-    # (the main setting's two alone, the sweep's rows together: run_sir's blocks); time per row: the batch's
-    t0 = time.perf_counter()
-    streams = [np.random.default_rng(seq) for fs in fss for seq in fs.spawn(3)]
-    blocks = [1, 1, 2 * (S - 1)] * R
-    if S == 1:
-        streams, blocks = [g for i, g in enumerate(streams) if i % 3 < 2], [1, 1] * R
-    q_rows = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs] * R)
-    with naming_filter([FILTERS[pfs[c]] for _ in range(R * S) for c in range(2)],
-                       [run_ids[a] for a in range(R) for _ in range(2 * S)]):
-        res = run_sir(m, np.stack([y for a in range(R) for y in ys[a]]), streams, blocks=blocks,
-                      particles=particles, inputs=None if U is None else np.repeat(U, 2 * S, axis=0),
-                      loglik=uplink_loglik(m, fdi_prob=q_rows, fdi_covs=covs))
-    for f in pfs:
-        secs[:, :, f] = (time.perf_counter() - t0) / (2 * S * R)
-    for a in range(R):
-        for j in range(S):
-            for c, f in enumerate(pfs):
-                xs = res.mean[2 * S * a + 2 * j + c][:, None]
-                score(a, j, f, xs, bool(np.all(np.isfinite(xs))))
+    for f, e in enumerate(entries):
+        if not e.attacked:  # uses no channel: the same numbers at every setting, run once
+            groups = [[0]]
+        elif e.mode is None:
+            groups = [list(range(S))]
+        else:  # one batch per group of settings with equal designs
+            groups = _alike([j for j in range(S) if e.mode in designs[j] and cannot[j].get(e.name) is None],
+                            lambda j: designs[j][e.mode])
+        for js in groups:
+            t0 = time.perf_counter()
+            res = e.run(batch, js, None if e.mode is None else e.design_for(designs[js[0]][e.mode], m))
+            per_row = (np.full(res.runs, (time.perf_counter() - t0) / res.runs) if res.seconds is None
+                       else res.seconds)
+            rows = [(j, a) for j in js for a in range(R)]
+            for row, ((j, a), dv) in enumerate(zip(rows, res.diverged)):
+                secs[a, j, f] = per_row[row]
+                if e.counts_delivered:
+                    delivered[a, j, f] = res.delivered[row].mean()
+                for jj in (range(S) if not e.attacked else (j,)):
+                    score(a, jj, f, res.x[row], dv is None)
+                if e.designed:
+                    feasible[a, j, f] = float(dv is None and not any(v["condition"] in HARD_CONDITIONS[:2]
+                                                                       for v in res.violations[row]))
+            if not e.attacked:
+                secs[:, :, f] = secs[:, :1, f]
+            if e.designed:
+                for (j, a), v in zip(rows, bound_verdicts(sc, res.cov, res.valid,
+                                                          [feasible[a, j, f] == 1 for j, a in rows])):
+                    verdict[a, j, f] = VERDICTS.index(v)
     return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "delivered": delivered,
             "estimate": est, "truth": truth}
 
@@ -433,12 +389,20 @@ def _verdict_counts(codes: np.ndarray) -> dict[str, int]:
     return count_verdicts(VERDICTS[int(c)] for c in codes[~np.isnan(codes)])
 
 
-def _paper_designs(scs: Sequence[Scenario], options: DesignOptions) -> list[tuple]:
-    """Per setting: the paper design and why it cannot start there (:func:`check_first_step`; None: it can)."""
+def _cannot_start(scs: Sequence[Scenario], options: DesignOptions, designs: list[dict] | None = None
+                  ) -> list[dict]:
+    """Per setting: ``{name: why}`` for every filter whose design cannot start there (:func:`check_first_step`; None:
+    it can), for the entries that declare ``start_check`` (``designs``: the settings' designs by gain rule, made
+    when not given)."""
     out = []
-    for s in scs:
-        paper = consensus_design(s, as_mode(options, MODE[PAPER_DESIGN]))
-        out.append((paper, check_first_step(s, paper, PAPER_DESIGN)))
+    for j, s in enumerate(scs):
+        row = {}
+        for e in FILTER_REGISTRY:
+            if e.start_check:
+                design = (designs[j][e.mode] if designs is not None and e.mode in designs[j]
+                          else consensus_design(s, as_mode(options, e.mode)))
+                row[e.name] = check_first_step(s, design, e.name)
+        out.append(row)
     return out
 
 
@@ -483,17 +447,20 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     settings = _settings(sc, values)
     # a paper design that cannot start is reported as infeasible; one whose sigma, beta or tau was given is refused
-    check_first_step(sc, consensus_design(sc, as_mode(so.design, "paper")), PAPER_DESIGN, so.design)
+    for e in FILTER_REGISTRY:
+        if e.start_check:
+            check_first_step(sc, consensus_design(sc, as_mode(so.design, e.mode)), e.name, so.design)
     ref = reference(sc)
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
                              hcmci_iterations=int(so["hcmci_iterations"]),
-                             divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item())
+                             divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item(),
+                             filters=FILTER_REGISTRY.names())
     config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
               "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
-              "options": so.design.as_dict()}
+              "options": so.design.as_dict(), "filters": list(FILTER_REGISTRY.names())}
     return Plan(task, f"comparison-{_slug(sc.name)}", config)
 
 
@@ -503,37 +470,38 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     main = _uniform(sc)
     settings = _settings(sc, values)
-    # per setting: why the paper design cannot start there (None: it ran), as _runs decided
-    cannot = [why for _, why in _paper_designs([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design)]
+    # per setting: why a filter's design cannot start there (None: it ran), as _runs decided
+    cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design)
+    entries = list(FILTER_REGISTRY)
     R = int(A["err2"].shape[0])
     key = "rmse_position" if sc.model.position_index else "rmse"
     # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
     # (on how many of its runs diverged, or on whether it ran at all)
+    order = ([n for n in _STREAM_ORDER if n in FILTER_REGISTRY]
+             + [e.name for e in entries if e.name not in _STREAM_ORDER])
     own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
-           for c, name in enumerate((LOCAL, MSE, KCF, HCMCI, *(n for n in FILTERS
-                                                              if n not in (LOCAL, MSE, KCF, HCMCI))), start=1)}
+           for c, name in enumerate(order, start=1)}
     L = int(so["hcmci_iterations"])
-    messages = {name: {"consensus": 2 * len(net.edges) * (L if name == HCMCI else 1), "particle": net.n_nodes,
-                       "EKF": net.n_nodes, "local": 0}[FAMILY[name]] for name in FILTERS}
     filters = {}
-    for f, name in enumerate(FILTERS):
-        reason = cannot[0] if name == PAPER_DESIGN else None
+    for f, e in enumerate(entries):
+        name = e.name
+        reason = cannot[0].get(name)
         met = (_metrics(A["err2"][:, 0, f], own[name], key) if reason is None else
                _not_run(reason, key))
-        fam = FAMILY[name]
+        messages = e.messages(net, L)
         met.update({
-            "family": fam, "runtime": RUNTIME[name], "description": DESCRIPTION[name],
+            "family": e.family, "runtime": e.runtime, "description": e.description,
             "time_per_step_s": None if reason is not None else float(np.nanmean(A["seconds"][:, 0, f]) / K),
-            "communications": messages[name], "messages_per_step": messages[name],
-            "particles": so.particles if fam == "particle" else None,
+            "communications": messages, "messages_per_step": messages,
+            "particles": so.particles if e.particles else None,
         })
-        if name in DESIGNED:
+        if e.designed:
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
             met["verdicts"] = (_verdict_counts(A["verdict"][:, 0, f]) if reason is None else
                                count_verdicts(["infeasible"] * R))  # cannot start: infeasible in every run
-        if name in LITERATURE:
+        if e.counts_delivered:
             met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
-        if name == HCMCI:
+        if e.rounds:
             met["consensus_iterations"] = L
         filters[name] = met
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
@@ -544,19 +512,20 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             pts = sorted((st[axis], j) for j, st in enumerate(settings) if st[1 - axis] == main[1 - axis])
         for val, j in pts:
             row = {}
-            for f, name in enumerate(FILTERS):
-                if name == PAPER_DESIGN and cannot[j] is not None:
-                    row[name] = _not_run(cannot[j], key, curve=False)
+            for f, e in enumerate(entries):
+                name = e.name
+                if cannot[j].get(name) is not None:
+                    row[name] = _not_run(cannot[j][name], key, curve=False)
                     continue
                 if np.all(np.isnan(A["seconds"][:, j, f])):
                     continue  # not run at this setting
-                if name == LOCAL:  # no network, nothing attacked: the same numbers at every setting
+                if not e.attacked:  # nothing attacked: the same numbers at every setting
                     row[name] = {k: filters[name][k] for k in (key, f"{key}_ci95", f"{key}_median_run",
                                                                "diverged_runs")}
                     continue
                 mm = _metrics(A["err2"][:, j, f], own[name], key, curve=False)
                 row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
-                if name in DESIGNED:  # runs whose design held (28)-(29) throughout: certified at this setting
+                if e.designed:  # runs whose design held (28)-(29) throughout: certified at this setting
                     row[name]["feasible_runs"] = int(np.nansum(A["feasible"][:, j, f]))
                     row[name]["certified_runs"] = _verdict_counts(A["verdict"][:, j, f])["certified"]
             sweeps[skey][f"{val:g}"] = row
@@ -751,11 +720,11 @@ def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) 
             sens = np.array(sens)
             ax.plot(sens[:, 0], sens[:, 1], "ks", ms=5, label="sensors")
         ax.plot(tr[:, i], tr[:, j], "k-", lw=2, label="truth")
-        for f, n in enumerate(FILTERS):
-            e = A["estimate"][0, f]
+        for f, entry in enumerate(FILTER_REGISTRY):
+            e, n = A["estimate"][0, f], entry.name
             if np.all(np.isfinite(e)):
                 ax.plot(e[:, i], e[:, j], lw=1, color=colours[n],
-                        label=n + (" (node 1)" if FAMILY[n] in ("consensus", "local") else ""))
+                        label=n + (" (node 1)" if entry.family in ("consensus", "local") else ""))
         ax.set(xlabel=f"{m.state_names[i]}", ylabel=f"{m.state_names[j]}", title=f"{sc_name}, run 1: truth and "
                "estimates")
         legend_beside(ax)
@@ -765,7 +734,7 @@ def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) 
         t = np.arange(tr.shape[0])
         for ax, c in zip(axs[:, 0], comps):
             ax.plot(t, tr[:, c], "k-", lw=2, label="truth")
-            for f, n in enumerate(FILTERS):
+            for f, n in enumerate(FILTER_REGISTRY.names()):
                 e = A["estimate"][0, f]
                 if np.all(np.isfinite(e)):
                     ax.plot(t, e[:, c], lw=1, color=colours[n], label=n)

@@ -42,20 +42,17 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.gain_rules import gain_rule
-from designer.model import Model
-from designer.network import SensorNetwork
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
-from filters.consensus import GATE_COUNTS, run_consensus
-from filters.consensus_batch import run_consensus_batch
-from filters.distributed import run_hcmci, run_kcf
+from filters.consensus import GATE_COUNTS
 
-from .comparison import HCMCI_ITERATIONS, local_ekf_design
+from .comparison import HCMCI_ITERATIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
 
 from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
+                              local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions, StudyText
 from .figures import save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
@@ -216,21 +213,17 @@ def per_run_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
     return out
 
 
-CONSENSUS_EKF, KCF, HCMCI = "consensus-EKF", "KCF", "HCMCI"  # which filter a variant runs
+KCF, HCMCI = "KCF", "HCMCI"
 
 
 class _Variant(NamedTuple):
-    model: Model
-    network: SensorNetwork
-    design: ConsensusDesign
-    consensus: bool  # runs on the sensor network under the channel attacks
-    family: str
-    communications: int = 0  # messages per step (sent, whether or not DoS drops them)
-    gains: tuple | None = None  # (K, C) of a replayed schedule, (steps, nodes, ...)
-    filter: str = CONSENSUS_EKF  # run_consensus with ``design``, or filters.distributed's KCF / HCMCI
-    iterations: int = 1  # HCMCI's consensus rounds per step
-    infeasible: str | None = None  # why a paper design cannot start (check_first_step): not run, reported as such
-    runtime: str = "local"  # what it needs at run time (designer.gain_rules.FILTER_RUNTIMES)
+    """A filter of the study: its registry entry, the design it runs with (an entry with a gain rule ``mode``:
+    the consensus EKF) and why it cannot start (a paper design breaking (28)/(29) at the first step: not run,
+    reported as such)."""
+
+    entry: FilterEntry
+    design: ConsensusDesign | None = None
+    infeasible: str | None = None
 
 
 def _names(sc: Scenario) -> tuple[str, str]:
@@ -240,51 +233,43 @@ def _names(sc: Scenario) -> tuple[str, str]:
     return "local EKF per node", "centralized EKF (all sensors)"
 
 
-def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None,
-              hcmci_iterations: int = HCMCI_ITERATIONS) -> dict[str, _Variant]:
+def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict[str, _Variant]:
     # ``tuned``: the design compared with the paper's, of mode 'tuned' or 'mse' (None: the paper's without consensus)
-    """The filters compared on the same runs.
+    """The filters compared on the same runs (:mod:`studies.filter_registry` entries with their designs).
 
     Baselines (no bound, no attacks on them since they use no neighbour channel): a
     local EKF at every node (isolated nodes) and a centralized EKF with all sensors
     (one node whose sensor stacks all of them; every sensor sends its measurement to
     the centre each step; left out when a sensor's noise is not Gaussian).  Both are the
     consensus filter with σ = β = 0, U = V = 0 and no neighbours, which is exactly the EKF
-    (tested against FilterPy).
+    (tested against FilterPy).  KCF and HCMCI run run by run (``run_kcf``, ``run_hcmci``).
     """
-    m, net = sc.model, sc.network
-    n = net.n_nodes
-    links = 2 * len(net.edges)
-    ekf = local_ekf_design(paper)
     local_name, central_name = _names(sc)
+    text = TEXT.filters
     out = {}
     if tuned is not None:
-        out[f"consensus-EKF ({tuned.mode})"] = _Variant(m, net, tuned, True, "consensus", links,
-                                                        runtime=gain_rule(tuned.mode).runtime)
-    out[f"consensus-EKF (paper, tau={paper.tau:g})"] = _Variant(m, net, paper, True, "consensus", links,
-                                                                runtime=gain_rule(paper.mode).runtime)
+        name = f"consensus-EKF ({tuned.mode})"
+        out[name] = _Variant(designed_consensus(name, tuned.mode, text.get(name, name)), tuned)
+    name = f"consensus-EKF (paper, tau={paper.tau:g})"
+    out[name] = _Variant(designed_consensus(name, "paper", text.get(name, name), start_check=True), paper)
     if tuned is None:
-        out["consensus-EKF (paper, tau=0, no consensus)"] = _Variant(m, net, paper._replace(tau=0.0), True,
-                                                                      "consensus", links,
-                                                                      runtime=gain_rule(paper.mode).runtime)
-    # the literature's distributed filters: same network, same channel attacks, no design (``design`` unused)
-    out[KCF] = _Variant(m, net, paper, True, "consensus", links, filter=KCF)
-    out[HCMCI] = _Variant(m, net, paper, True, "consensus", links * hcmci_iterations, filter=HCMCI,
-                          iterations=hcmci_iterations)
-    isolated = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-    out[local_name] = _Variant(m, isolated, ekf, False, "local", 0)
+        name = "consensus-EKF (paper, tau=0, no consensus)"
+        out[name] = _Variant(designed_consensus(name, "paper", text[name], start_check=True), paper._replace(tau=0.0))
+    # the literature's distributed filters: same network, same channel attacks, no design
+    out[KCF] = _Variant(kcf(KCF, text[KCF], per_run=True))
+    out[HCMCI] = _Variant(hcmci(HCMCI, text[HCMCI], per_run=True))
+    local = local_ekfs(local_name, text[local_name])
+    out[local_name] = _Variant(local, local.design_for(paper, sc.model))
     try:
-        stacked = m.with_stacked_sensors()
+        sc.model.with_stacked_sensors()
     except InputError:  # non-Gaussian sensor noise: no stacked Gaussian model
         return out
-    ekf1 = ekf._replace(V=(np.zeros((stacked.n_z, stacked.n_z)),))
-    out[central_name] = _Variant(stacked, SensorNetwork(1, np.zeros((1, 1), int)), ekf1, False, "centralized", n,
-                                 runtime="centralized")
+    centre = centralized_consensus_ekf(central_name, text[central_name])
+    out[central_name] = _Variant(centre, centre.design_for(paper, sc.model))
     return out
 
 
-def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
-           hcmci_iterations: int = HCMCI_ITERATIONS) -> tuple:
+def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None) -> tuple:
     """The scenario, the paper design and the variants, from picklable arguments (in the parent and in a task).
 
     ``replay``: ``(mode, K (nodes, steps, n_x, n_z), C (nodes, steps, n_x, n_x))`` of a gain
@@ -292,33 +277,17 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
     """
     sc = ref.build()
     paper = consensus_design(sc, as_mode(options, "paper"))
-    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None,
-                         hcmci_iterations)
+    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None)
     for name, v in variants.items():  # a paper design that cannot start is not run (the others are, on the same runs)
-        if v.consensus and v.filter == CONSENSUS_EKF and v.gains is None:
+        if v.entry.start_check:
             variants[name] = v._replace(infeasible=check_first_step(sc, v.design, name))
     if replay is not None:
         sch_mode, K, C = replay
         # the schedule's gains looked up by the step: applied with what the node knows, whatever rule made them
-        variants[f"consensus-EKF (replayed {sch_mode} schedule)"] = _Variant(
-            sc.model, sc.network, paper, True, "consensus", 2 * len(sc.network.edges),
-            gains=(K.swapaxes(0, 1), C.swapaxes(0, 1)), runtime="scheduled")
+        name = f"consensus-EKF (replayed {sch_mode} schedule)"
+        variants[name] = _Variant(replayed_schedule(name, f"the gains of a {sch_mode} schedule, looked up by the step",
+                                                    (K.swapaxes(0, 1), C.swapaxes(0, 1))), paper)
     return sc, paper, variants
-
-
-def _checks_bound(v: _Variant) -> bool:
-    """A replayed schedule claims no bound: only the designed consensus filters are checked against Φ."""
-    return v.consensus and v.gains is None and v.filter == CONSENSUS_EKF
-
-
-def _run_variant(v: _Variant, traj, att):
-    """One variant on one run: ``run_consensus`` with its design, or the distributed filter it names."""
-    attacks = att if v.consensus else None
-    if v.filter == KCF:
-        return run_kcf(v.model, v.network, traj.z, inputs=traj.inputs, attacks=attacks)
-    if v.filter == HCMCI:
-        return run_hcmci(v.model, v.network, traj.z, inputs=traj.inputs, attacks=attacks, iterations=v.iterations)
-    return run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs, attacks=attacks, gains=v.gains)
 
 
 def exchange_counts(counts: np.ndarray) -> dict:
@@ -352,23 +321,23 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
     """
-    sc, paper, variants = _build(ref, mode, options, replay, hcmci_iterations)
+    sc, paper, variants = _build(ref, mode, options, replay)
     m, net = sc.model, sc.network
     steps, nx = sc.steps, m.n_x
     signal = sc.resolved_attacks.signal
     R = len(run_ids)
     out = {"truth": np.empty((R, steps + 1, nx))}
     for j, v in enumerate(variants.values()):
-        n = v.network.n_nodes
+        n = v.entry.nodes(net)
         out.update({f"v{j}_err": np.full((R, steps + 1, n, nx), np.nan),
                     f"v{j}_valid": np.zeros((R, steps + 1, n), bool),
                     f"v{j}_seconds": np.zeros(R), f"v{j}_first_violation": np.full(R, -1, np.int64),
                     f"v{j}_diverged": np.zeros(R, bool), f"v{j}_diverged_node": np.full(R, -1, np.int64),
                     f"v{j}_diverged_step": np.full(R, -1, np.int64),
                     f"v{j}_diverged_reason": np.zeros((R, REASON_BYTES), np.uint8)})
-        if _checks_bound(v):
+        if v.entry.designed:
             out[f"v{j}_phi"] = np.zeros((R, steps + 1, n, nx, nx))
-        if v.filter == CONSENSUS_EKF:
+        if v.entry.mode is not None:  # a consensus EKF: its exchange's packet counts
             out[f"v{j}_gate"] = np.zeros((R, len(GATE_COUNTS)), np.int64)
     limit = divergence_limit(m.prior.cov, divergence_spread)
     trajs, atts = [], []
@@ -377,26 +346,17 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         trajs.append(sc.simulate(np.random.default_rng(traj_ss), steps))
         atts.append(simulate_attacks(net, steps, nx, np.random.default_rng(att_ss), signal))
         out["truth"][a] = trajs[a].x
+    batch = Batch((sc,), np.stack([tr.z for tr in trajs]),
+                  None if trajs[0].inputs is None else np.stack([tr.inputs for tr in trajs]), (tuple(atts),),
+                  iterations=hcmci_iterations, run_ids=tuple(run_ids), per_row_networks=False)
     for j, v in enumerate(variants.values()):
         if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
             continue
-        if v.filter == CONSENSUS_EKF and v.gains is None:  # every run of the chunk at once
-            t = time.perf_counter()
-            batch = run_consensus_batch(v.model, v.network, np.stack([tr.z for tr in trajs]), v.design,
-                                        inputs=None if trajs[0].inputs is None else
-                                        np.stack([tr.inputs for tr in trajs]),
-                                        attacks=atts if v.consensus else None)
-            out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R  # the batch's time, per run
-            results = [batch.run(a) for a in range(R)]
-        else:
-            results = []
-            for a in range(R):
-                t = time.perf_counter()
-                results.append(_run_variant(v, trajs[a], atts[a]))
-                out[f"v{j}_seconds"][a] = time.perf_counter() - t
-        for a, res in enumerate(results):
-            dv = res.diverged
-            far = None if dv is not None else first_divergence(trajs[a].x[:, None, :] - res.x_post, limit)
+        t = time.perf_counter()
+        res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once, or run by run (its own times)
+        out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R if res.seconds is None else res.seconds
+        for a, dv in enumerate(res.diverged):
+            far = None if dv is not None else first_divergence(trajs[a].x[:, None, :] - res.x[a], limit)
             if far is not None:  # finite, but off the problem's scale
                 dv = {"node": far[1], "step": far[0],
                       "reason": f"the error left {divergence_spread:g} prior spreads ({limit:.3g}) at step {far[0]}"}
@@ -405,13 +365,13 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                 out[f"v{j}_diverged_node"][a], out[f"v{j}_diverged_step"][a] = dv["node"], dv["step"]
                 out[f"v{j}_diverged_reason"][a] = _encode(str(dv["reason"]))
                 continue
-            out[f"v{j}_err"][a] = trajs[a].x[:, None, :] - res.x_post
-            if v.filter == CONSENSUS_EKF:
-                out[f"v{j}_valid"][a] = res.valid
-                out[f"v{j}_gate"][a] = res.gate_counts.sum(axis=0)
-            if _checks_bound(v):
-                out[f"v{j}_phi"][a] = res.phi_post
-            hard = [x["step"] for x in res.violations if x["condition"] in ("(28)", "(29)")]
+            out[f"v{j}_err"][a] = trajs[a].x[:, None, :] - res.x[a]
+            if v.entry.mode is not None:
+                out[f"v{j}_valid"][a] = res.valid[a]
+                out[f"v{j}_gate"][a] = res.detail.gate_counts[a].sum(axis=0)
+            if v.entry.designed:
+                out[f"v{j}_phi"][a] = res.cov[a]
+            hard = [x["step"] for x in res.violations[a] if x["condition"] in ("(28)", "(29)")]
             out[f"v{j}_first_violation"][a] = min(hard) if hard else -1
     return out
 
@@ -451,7 +411,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    built, paper, variants = _build(ref, _mode(so), options, replay, _iterations(so))  # checks the designs before any run
+    built, paper, variants = _build(ref, _mode(so), options, replay)  # checks the designs before any run
     # a paper design that cannot start is reported as infeasible (_build); one whose sigma, beta or tau was given is
     # refused
     check_first_step(built, paper, next(n for n in variants if n.startswith("consensus-EKF (paper")), options)
@@ -472,13 +432,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    sc, paper, variants = _build(reference(sc), _mode(so), options, replay, _iterations(so))
+    sc, paper, variants = _build(reference(sc), _mode(so), options, replay)
+    L = _iterations(so)
     m, net = sc.model, sc.network
     steps = sc.steps
     A = mc.arrays
     pos = list(m.position_index) or list(range(m.n_x))
     filters = {}
     for j, (name, v) in enumerate(variants.items()):
+        e = v.entry
         div = A[f"v{j}_diverged"]
         failed = [{"run": int(r), "seed": seed, "spawn_key": [int(r)], "node": int(A[f"v{j}_diverged_node"][r]),
                    "step": int(A[f"v{j}_diverged_step"][r]), "error": _decode(A[f"v{j}_diverged_reason"][r])}
@@ -487,18 +449,18 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         # each run's bound judged as cfdesign design judges its own (a diverged run, or a design that cannot start,
         # is infeasible)
         feasible = ~div & (A[f"v{j}_first_violation"] < 0) & (v.infeasible is None)
-        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], feasible)) if _checks_bound(v) else None
+        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], feasible)) if e.designed else None
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         if v.infeasible is not None:  # not run
-            filters[name] = {"family": v.family, "runtime": v.runtime, "infeasible": v.infeasible,
+            filters[name] = {"family": e.family, "runtime": e.runtime, "infeasible": v.infeasible,
                              "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
-                             "diverged_fraction": None, "time_per_step_s": None, "communications": v.communications,
+                             "diverged_fraction": None, "time_per_step_s": None, "communications": e.messages(net, L),
                              "design": describe_design(v.design)}
             continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
         if not ok.any():  # every run diverged: no error statistics exist
-            filters[name] = {"family": v.family, "runtime": v.runtime, "rmse_position": None,
+            filters[name] = {"family": e.family, "runtime": e.runtime, "rmse_position": None,
                              "rmse_position_ci95": None, "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": failed,
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
@@ -513,7 +475,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
         boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         filters[name] = {
-            "family": v.family, "runtime": v.runtime,
+            "family": e.family, "runtime": e.runtime,
             "rmse_position": float(np.sqrt(e2.sum(-1).mean())),
             "rmse_position_ci95": bootstrap_rmse_ci(per_run, boot),
             # robust to a few divergent runs: the median over runs of each run's RMSE
@@ -524,23 +486,23 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                        "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
-            "communications": v.communications,
+            "communications": e.messages(net, L),
             "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:])
-            if _checks_bound(v) else None,
+            if e.designed else None,
             "feasibility": {
                 "runs_feasible": int((first < 0).sum()),
                 "runs": n_ok,
                 "first_violation_step_median": float(np.median(fv)) if fv else None,
                 "first_violation_step_min": int(min(fv)) if fv else None,
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
-            } if _checks_bound(v) else None,
+            } if e.designed else None,
             "verdicts": verdicts,
             "diverged_runs": failed,
             "diverged_fraction": len(failed) / runs,
-            "design": describe_design(v.design) if v.filter == CONSENSUS_EKF else None,
+            "design": describe_design(v.design) if e.mode is not None else None,
             **({"exchange": exchange_counts(A[f"v{j}_gate"][ok])}
-               if v.filter == CONSENSUS_EKF and v.network.adjacency.any() else {}),
-            **({"consensus_iterations": v.iterations} if v.filter == HCMCI else {}),
+               if e.mode is not None and e.attacked and net.adjacency.any() else {}),
+            **({"consensus_iterations": L} if e.rounds else {}),
         }
     return {
         "scenario": sc.name,

@@ -20,7 +20,6 @@ from designer.simulate import simulate
 from designer.validation import InputError
 from designer.attacks import FDISignal
 from filters.attacks import attack_pattern, channel_draws, receive, simulate_attacks, uplink_attacks
-from filters.consensus import run_consensus
 from filters.ekf import run_ekf, run_ekf_batch
 from filters.particle import additive_noise_loglik
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
@@ -221,11 +220,15 @@ def test_ekf_matches_the_consensus_filter_reduced_to_one_node(robot):
     from studies.consensus_robot import _variants
     from studies.consensus_design import consensus_design
 
+    from studies.filter_registry import Batch
+
     v = _variants(robot, consensus_design(robot), None)["centralized EKF (all cameras)"]
     traj = robot.simulate(np.random.default_rng(7), robot.steps)
-    ref = run_consensus(v.model, v.network, traj.z, v.design, inputs=traj.inputs)
+    ref = v.entry.run(Batch((robot,), traj.z[None], None if traj.inputs is None else traj.inputs[None], ((None,),),
+                            per_row_networks=False), [0], v.design)
     ours = run_ekf(robot.model, traj.z, inputs=traj.inputs)
-    np.testing.assert_allclose(ours.x, ref.x_post[:, 0], atol=1e-9)
+    assert ref.x.shape == (1, robot.steps + 1, 1, robot.model.n_x) and ref.runtime == "centralized"
+    np.testing.assert_allclose(ours.x, ref.x[0, :, 0], atol=1e-9)
 
 
 # --- the study --------------------------------------------------------------------------------------------------

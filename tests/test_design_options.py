@@ -13,7 +13,7 @@ from designer.linearization import component_scales
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.ekf import run_ekf
-from studies.comparison import local_ekf_design
+from studies.filter_registry import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.scenarios import load_scenario, scenario_of
 

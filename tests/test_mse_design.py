@@ -13,7 +13,7 @@ from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
 from filters.ekf import run_ekf
 from filters.mse_batch import run_mse_batch
-from studies.comparison import local_ekf_design
+from studies.filter_registry import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.scenarios import scenario_of
 

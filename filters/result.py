@@ -1,0 +1,184 @@
+"""One result type for every filter family: :class:`FilterResult`, batched over Monte Carlo runs.
+
+Each family converts its own result once, with one adapter beside it:
+
+* the consensus EKF (every design mode, the local EKFs as isolated nodes):
+  :meth:`filters.consensus_batch.ConsensusBatchResult.to_result` — ``cov`` is the bound Φ
+  (``cov_kind = "bound"``), ``valid`` where it is one;
+* the literature's distributed filters (KCF, HCMCI):
+  :meth:`filters.distributed.DistributedBatchResult.to_result` — ``cov`` is each node's own
+  covariance P (``"covariance"``), ``messages`` and ``delivered`` as the filter counted them;
+* the centralized EKF: :meth:`filters.ekf.EKFResult.to_result`, and the particle filters:
+  :meth:`filters.particle.SIRResult.to_result` — one estimate, so ``nodes = 1`` (the fusion
+  centre), ``cov`` the filter's covariance (the particles' weighted one).
+
+Messages are counted as the studies' contract counts them (``messages_per_step`` /
+``communications``): transmissions attempted per step, a packet lost to DoS included; one per
+directed link and consensus round for the networked filters (``2 |E| L``), one uplink per sensor
+for a fusion centre, none for isolated nodes.
+
+A run that stopped (``diverged``) carries a ``'diverged'`` violation ``{node, step, condition,
+margin, reason}`` and its arrays are NaN from that step on: :func:`stop_diverged` is that bookkeeping
+for the batched filters (the consensus EKF of every mode), :func:`diverged_nodes` the test they
+share.  The centralized filters report a run as diverged at the
+first step whose estimate is not finite (:func:`nonfinite_violations`).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from designer.gain_rules import FILTER_RUNTIMES
+from designer.validation import InputError
+
+from .consensus import DIVERGED
+
+__all__ = ["FilterResult", "COV_KINDS", "nonfinite_violations", "constant_messages", "centralized_result",
+           "diverged_nodes", "stop_diverged", "DIVERGED_REASON"]
+
+COV_KINDS = ("bound", "covariance")  # what ``FilterResult.cov`` is: a designed bound Φ, or the filter's own P
+DIVERGED_REASON = f"estimate or covariance beyond {DIVERGED:g} or not finite"
+
+
+class FilterResult(NamedTuple):
+    """Runs of one filter, whatever its family.
+
+    ``x`` (runs, steps + 1, nodes, n_x): every node's estimate, ``x[:, 0]`` the initial one (a
+    centralized filter has one node: the fusion centre).  ``cov`` (runs, steps + 1, nodes, n_x, n_x):
+    the covariance the filter believes (``cov_kind == "covariance"``) or the bound it certifies
+    (``"bound"``), trusted where ``valid`` (runs, steps + 1, nodes).  ``violations``: per run, the list
+    of ``{node, step, condition, margin[, reason]}`` (design conditions of the consensus filters, and
+    ``'diverged'`` where the run stopped).  ``messages`` (runs, steps): transmissions attempted per
+    step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
+    ``runtime``: what the filter needs at run time (:data:`designer.gain_rules.FILTER_RUNTIMES`).
+    ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
+    alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.
+    """
+
+    x: np.ndarray
+    cov: np.ndarray
+    cov_kind: str
+    valid: np.ndarray
+    violations: list
+    messages: np.ndarray
+    runtime: str
+    delivered: np.ndarray | None = None
+    detail: Any = None
+    seconds: np.ndarray | None = None
+
+    def check(self) -> "FilterResult":
+        """This result, its shapes and kinds checked (``InputError`` naming the field)."""
+        if self.x.ndim != 4:
+            raise InputError(f"x must have shape (runs, steps + 1, nodes, n_x), got {self.x.shape}")
+        runs, k1, nodes, nx = self.x.shape
+        if self.cov.shape != (runs, k1, nodes, nx, nx):
+            raise InputError(f"cov must have shape {(runs, k1, nodes, nx, nx)}, got {self.cov.shape}")
+        if self.cov_kind not in COV_KINDS:
+            raise InputError(f"cov_kind must be one of {', '.join(COV_KINDS)}, got {self.cov_kind!r}")
+        if self.valid.shape != (runs, k1, nodes):
+            raise InputError(f"valid must have shape {(runs, k1, nodes)}, got {self.valid.shape}")
+        if len(self.violations) != runs:
+            raise InputError(f"violations must hold one list per run ({runs}), got {len(self.violations)}")
+        for name in ("messages", "delivered"):
+            a = getattr(self, name)
+            if a is not None and a.shape != (runs, k1 - 1):
+                raise InputError(f"{name} must have shape {(runs, k1 - 1)}, got {a.shape}")
+        if self.runtime not in FILTER_RUNTIMES:
+            raise InputError(f"runtime must be one of {', '.join(FILTER_RUNTIMES)}, got {self.runtime!r}")
+        return self
+
+    @property
+    def runs(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.x.shape[1] - 1
+
+    @property
+    def nodes(self) -> int:
+        return self.x.shape[2]
+
+    @property
+    def trace(self) -> np.ndarray:
+        """(runs, steps + 1, nodes): tr of ``cov`` (the bound's or the covariance's, as ``cov_kind`` says)."""
+        return np.trace(self.cov, axis1=-2, axis2=-1)
+
+    @property
+    def diverged(self) -> list:
+        """Per run, its ``'diverged'`` violation (``node``, ``step``, ``reason``) or None."""
+        return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
+
+    @property
+    def diverged_step(self) -> np.ndarray:
+        """(runs,) the step where each run stopped, -1 for a run that did not."""
+        return np.array([-1 if d is None else int(d["step"]) for d in self.diverged], dtype=np.int64)
+
+    def row(self, r: int | Sequence[int] | slice) -> "FilterResult":
+        """The runs ``r`` (an index, indices or a slice) as a result of their own."""
+        idx = np.atleast_1d(np.arange(self.runs)[r])
+        pick = (lambda a: None if a is None else a[idx])  # noqa: E731
+        return self._replace(x=self.x[idx], cov=self.cov[idx], valid=self.valid[idx],
+                             violations=[self.violations[i] for i in idx], messages=self.messages[idx],
+                             delivered=pick(self.delivered), seconds=pick(self.seconds))
+
+
+def constant_messages(runs: int, steps: int, per_step: int) -> np.ndarray:
+    """(runs, steps) ``per_step`` transmissions at every step (attempted, whether or not they arrive)."""
+    return np.full((runs, steps), int(per_step), dtype=np.int64)
+
+
+def nonfinite_violations(x: np.ndarray) -> list:
+    """Per run of ``x`` (runs, steps + 1, ...): ``[]``, or the ``'diverged'`` violation at the first step whose
+    estimate is not finite (a centralized filter: node 0)."""
+    bad = ~np.isfinite(x.reshape(x.shape[0], x.shape[1], -1)).all(axis=-1)  # (runs, steps + 1)
+    return [[] if not b.any() else [{"node": 0, "step": int(np.argmax(b)), "condition": "diverged",
+                                     "margin": -np.inf, "reason": "the estimate left finite numbers"}]
+            for b in bad]
+
+
+
+def centralized_result(x: np.ndarray, cov: np.ndarray, uplinks: int, detail: Any = None) -> FilterResult:
+    """A fusion centre's runs, ``x`` (runs, steps + 1, n_x) and its covariance ``cov`` (runs, steps + 1, n_x, n_x),
+    as a :class:`FilterResult` of one node: ``uplinks`` messages per step (one per sensor), diverged at the first
+    step whose estimate is not finite, runtime ``centralized``."""
+    runs, k1 = x.shape[:2]
+    return FilterResult(x[:, :, None], cov[:, :, None], "covariance", np.isfinite(cov).all(axis=(-2, -1))[:, :, None],
+                        nonfinite_violations(x), constant_messages(runs, k1 - 1, uplinks), "centralized",
+                        detail=detail).check()
+
+
+def diverged_nodes(x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``(..., N)`` True where a node's estimate ``x`` (..., N, n_x) or covariance ``P`` (..., N, n_x, n_x) left
+    finite numbers or an estimate reached :data:`filters.consensus.DIVERGED` (the run must stop there)."""
+    return ~(np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-2, -1)) & (np.abs(x).max(axis=-1) < DIVERGED))
+
+
+def stop_diverged(violations: list, active: np.ndarray, bad: np.ndarray, step: int, reason=DIVERGED_REASON, *,
+                  nan_from: Sequence[np.ndarray] = (), nan_before: Sequence[np.ndarray] = (),
+                  invalid_from: Sequence[np.ndarray] = ()) -> np.ndarray:
+    """Stop the runs of a batch that diverged at ``step``, as :func:`filters.consensus.run_consensus` stops a run.
+
+    ``active`` (a,): the batch's run indices still going; ``bad`` (a, N): which of their nodes failed at ``step``
+    (e.g. :func:`diverged_nodes`).  A run with a failed node stops at its first one (in node order): appends to
+    ``violations[run]`` ``{node, step, condition: 'diverged', margin: -inf, reason}`` (``reason`` a string, or
+    ``reason(j, node)`` for position ``j`` of ``active``), sets ``a[run, step:]`` to NaN for every array of
+    ``nan_from`` (indexed by the step of a posterior, 0..K), ``a[run, step - 1]`` to NaN for every array of
+    ``nan_before`` (indexed by the step of the update, 0..K-1: gains) and ``b[run, step:]`` to False for every
+    array of ``invalid_from``.  Returns the (a,) mask of the runs that go on.
+    """
+    dead = np.flatnonzero(bad.any(axis=-1))
+    for j in dead.tolist():
+        g, node = int(active[j]), int(np.argmax(bad[j]))
+        violations[g].append({"node": node, "step": step, "condition": "diverged", "margin": -np.inf,
+                              "reason": reason if isinstance(reason, str) else reason(j, node)})
+        for a in nan_from:
+            a[g, step:] = np.nan
+        for a in nan_before:
+            a[g, step - 1] = np.nan
+        for b in invalid_from:
+            b[g, step:] = False
+    going = np.ones(bad.shape[0], dtype=bool)
+    going[dead] = False
+    return going

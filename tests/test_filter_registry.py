@@ -1,0 +1,224 @@
+"""One result type for every filter family (filters.result.FilterResult) and the registry of filters the studies
+iterate over (studies.filter_registry; issue 26, item 7).
+
+* every entry of the comparison's registry, and the consensus-robot's own entries, returns a FilterResult of the
+  shapes, kinds, run time and message counts it declares, on a user's model file (a tank watched by three nodes);
+* each family's adapter keeps the family's numbers exactly (the same arrays), and a per-run result stacked into a
+  batch is the per-run result;
+* a filter registered in a test appears in the comparison's results with what it declared, and its numbers are
+  those of the filter it runs (the registry drives the study).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import TANK_MODEL
+from designer.validation import InputError
+from filters.consensus import run_consensus
+from filters.consensus_batch import ConsensusBatchResult, run_consensus_batch
+from filters.distributed import DistributedBatchResult, run_hcmci, run_kcf, run_kcf_batch
+from filters.ekf import run_ekf, run_ekf_batch
+from filters.result import FilterResult, nonfinite_violations
+from filters.uplink import split_received
+from studies.comparison import FILTER_REGISTRY, LOCAL, realise
+from studies.consensus_design import as_mode, consensus_design
+from studies.filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_consensus_ekf, hcmci, kcf,
+                                     local_ekfs, replayed_schedule)
+from studies.pipeline import run_study
+from studies.scenarios import load_scenario
+
+RUNS, STEPS = 2, 6
+
+
+@pytest.fixture(scope="module")
+def tank(tmp_path_factory):
+    path = tmp_path_factory.mktemp("model") / "tank.py"
+    path.write_text(TANK_MODEL.replace("STEPS = 20", f"STEPS = {STEPS}"))
+    return load_scenario(str(path))
+
+
+def _batch(sc, settings=((0.1, 0.1), (0.3, 0.1)), per_row_networks=True, seed=4) -> Batch:
+    """Two runs of ``sc`` at ``settings`` (DoS, FDI): the comparison's realisations (common random numbers)."""
+    seeds = [np.random.SeedSequence(seed, spawn_key=(r,)) for r in range(RUNS)]
+    batch = realise([sc.with_attacks(dos=d, fdi=f) for d, f in settings], seeds, particles=30, iterations=2,
+                    run_ids=range(RUNS))
+    return dataclasses.replace(batch, per_row_networks=per_row_networks)
+
+
+def _check_shapes(res: FilterResult, entry: FilterEntry, sc, rows: int, L: int) -> None:
+    m, net = sc.model, sc.network
+    nodes = entry.nodes(net)
+    assert isinstance(res, FilterResult)
+    assert res.x.shape == (rows, sc.steps + 1, nodes, m.n_x)
+    assert res.cov.shape == (rows, sc.steps + 1, nodes, m.n_x, m.n_x)
+    assert res.trace.shape == res.valid.shape == (rows, sc.steps + 1, nodes)
+    # Φ of the consensus EKF's recursion is a bound; the EKFs (the design reduced to it) and KCF, HCMCI, the particle
+    # filters carry their own covariance
+    assert res.cov_kind == ("bound" if entry.family == "consensus" and entry.mode is not None else "covariance")
+    assert res.runtime == entry.runtime
+    assert len(res.violations) == rows and res.diverged_step.shape == (rows,)
+    # the messages it counts are those the entry declares for the contract, at every step
+    assert res.messages.shape == (rows, sc.steps)
+    assert (res.messages == entry.messages(net, L)).all()
+    assert (res.delivered is not None) == entry.counts_delivered or entry.mode is not None
+    if res.delivered is not None:
+        assert ((0 <= res.delivered) & (res.delivered <= res.messages)).all()
+    ok = res.diverged_step < 0
+    assert np.isfinite(res.x[ok]).all()
+
+
+def test_every_entry_of_the_comparison_returns_a_filter_result_of_its_shapes(tank):
+    batch = _batch(tank)
+    js = [0, 1]
+    for e in FILTER_REGISTRY:
+        design = None if e.mode is None else e.design_for(
+            consensus_design(tank.with_attacks(dos=0.1, fdi=0.1), as_mode(None, e.mode)), tank.model)
+        if e.start_check:
+            design = design._replace(sigma=0.01, beta=0.01)  # within (28)-(29) at the first step
+        res = e.run(batch, js if e.attacked else [0], design)
+        _check_shapes(res, e, tank, RUNS * (len(js) if e.attacked else 1), batch.iterations)
+
+
+def test_the_consensus_robots_entries_return_filter_results_of_their_shapes(tank):
+    batch = _batch(tank, settings=((0.1, 0.1),), per_row_networks=False)
+    paper = consensus_design(tank)._replace(sigma=0.01, beta=0.01)
+    K = np.zeros((tank.steps, tank.network.n_nodes, tank.model.n_x, 1))
+    C = np.zeros((tank.steps, tank.network.n_nodes, tank.model.n_x, tank.model.n_x))
+    for e in (centralized_consensus_ekf("centre", "c"), local_ekfs("alone", "a"), kcf("K", "k", per_run=True),
+              hcmci("H", "h", per_run=True), replayed_schedule("replay", "r", (K, C))):
+        res = e.run(batch, [0], None if e.mode is None else e.design_for(paper, tank.model))
+        _check_shapes(res, e, tank, RUNS, batch.iterations)
+        if e.name in ("K", "H", "replay"):  # run by run: each run's own wall time
+            assert res.seconds.shape == (RUNS,) and (res.seconds > 0).all()
+
+
+def test_the_adapters_keep_each_familys_numbers(tank):
+    batch = _batch(tank, settings=((0.2, 0.1),))
+    m, net = tank.model, tank.network
+    design = consensus_design(tank, as_mode(None, "tuned"))
+    cb = run_consensus_batch(m, net, batch.z, design, attacks=list(batch.attacks[0]))
+    res = cb.to_result(net, "local")
+    assert res.x is cb.x_post and res.cov is cb.phi_post and res.valid is cb.valid and res.detail is cb
+    assert res.violations is cb.violations and res.diverged == cb.diverged
+    assert (res.delivered == cb.gate_counts[..., 0]).all() and (res.messages == 2 * len(net.edges)).all()
+    # per-run results stacked: exactly the per-run filter's numbers
+    refs = [run_consensus(m, net, batch.z[r], design, attacks=batch.attacks[0][r]) for r in range(RUNS)]
+    st = ConsensusBatchResult.of_runs(refs)
+    for r, ref in enumerate(refs):
+        for f in ("x_post", "phi_post", "K", "C", "valid", "sigma", "beta"):
+            assert np.array_equal(getattr(st, f)[r], getattr(ref, f), equal_nan=True), f
+        assert st.violations[r] == ref.violations
+    kb = run_kcf_batch(m, net, batch.z, attacks=list(batch.attacks[0]))
+    kr = kb.to_result()
+    assert kr.x is kb.x_post and kr.cov is kb.P_post and kr.cov_kind == "covariance"
+    assert (kr.messages == kb.messages_per_step).all() and (kr.delivered == kb.delivered_per_step).all()
+    for run in (run_kcf, run_hcmci):
+        refs = [run(m, net, batch.z[r], attacks=batch.attacks[0][r]) for r in range(RUNS)]
+        st = DistributedBatchResult.of_runs(refs)
+        for r, ref in enumerate(refs):
+            got = st.run(r)
+            for f in ("x_post", "P_post", "messages_per_step", "delivered_per_step"):
+                assert np.array_equal(getattr(got, f), getattr(ref, f), equal_nan=True), f
+    values, avail = split_received(m, np.stack(batch.received[0]))
+    eb = run_ekf_batch(m, values, available=avail)
+    er = eb.to_result(m.n_sensors)
+    assert np.array_equal(er.x[:, :, 0], eb.x) and np.array_equal(er.cov[:, :, 0], eb.P)
+    assert er.nodes == 1 and er.runtime == "centralized" and (er.messages == m.n_sensors).all()
+    one = run_ekf(m, values[0], available=avail[0]).to_result(m.n_sensors)  # a run is a batch of one
+    assert one.x.shape == (1, tank.steps + 1, 1, m.n_x)
+
+
+def test_a_run_is_diverged_at_its_first_non_finite_estimate():
+    x = np.zeros((3, 8, 2))
+    x[1, 5, 1] = np.nan
+    x[2, 2, 0] = np.inf
+    x[2, 6, 0] = np.nan
+    assert [[v["step"] for v in vs] for vs in nonfinite_violations(x)] == [[], [5], [2]]
+
+
+def test_a_result_of_wrong_shapes_or_kinds_is_refused():
+    x = np.zeros((2, 4, 3, 2))
+    good = FilterResult(x, np.zeros((2, 4, 3, 2, 2)), "bound", np.ones((2, 4, 3), bool), [[], []],
+                        np.zeros((2, 3), np.int64), "local")
+    assert good.check() is good
+    with pytest.raises(InputError, match="cov must have shape"):
+        good._replace(cov=np.zeros((2, 4, 3, 2))).check()
+    with pytest.raises(InputError, match="cov_kind must be"):
+        good._replace(cov_kind="guess").check()
+    with pytest.raises(InputError, match="messages must have shape"):
+        good._replace(messages=np.zeros((2, 4))).check()
+    with pytest.raises(InputError, match="runtime must be"):
+        good._replace(runtime="cloud").check()
+    reg = FilterRegistry([local_ekfs("a", "a")])
+    with pytest.raises(InputError, match="registered already"):
+        reg.register(local_ekfs("a", "again"))
+    with pytest.raises(InputError, match="family must be"):
+        reg.register(local_ekfs("b", "b")._replace(family="magic"))
+    with pytest.raises(InputError, match="gain rule"):
+        reg.register(local_ekfs("c", "c")._replace(mode=None, designed=True))
+
+
+def test_a_registered_filter_appears_in_the_comparison(tank_model):
+    """The registry drives the study: a filter registered here (the local EKFs under another name and description)
+    is run on the same runs, reported with what it declared, and has the numbers of the filter it runs."""
+    mine = local_ekfs("my isolated EKFs", "a test's filter: the local EKFs again")
+    FILTER_REGISTRY.register(mine)
+    try:
+        res = run_study("comparison", [str(tank_model(steps=STEPS))], runs=2, particles=30, seed=1, quiet=True,
+                        sweep_values=(0.3,), tuned_in_sweeps=False).results
+    finally:
+        FILTER_REGISTRY.unregister(mine.name)
+    assert mine.name not in FILTER_REGISTRY
+    got, ref = res["filters"][mine.name], res["filters"][LOCAL]
+    assert got["description"] == mine.description and got["family"] == "local" and got["runtime"] == "local"
+    assert got["messages_per_step"] == 0
+    for key in ("rmse", "rmse_curve", "rmse_median_run", "diverged_runs"):
+        assert got[key] == ref[key], key
+    assert all(mine.name in row for row in res["sweeps"]["dos_prob"].values())
+
+
+def test_a_diverged_run_stops_alone_at_its_first_failing_node():
+    """filters.result.stop_diverged, the bookkeeping of every batched consensus filter: the runs with a failed node
+    stop at the first one, their arrays NaN (posteriors from the step, gains at the update) and invalid; the other runs
+    keep every number."""
+    from filters.result import DIVERGED_REASON, diverged_nodes, stop_diverged
+
+    rng = np.random.default_rng(3)
+    runs, steps, n, nx = 4, 5, 3, 2
+    x = rng.normal(size=(runs, steps + 1, n, nx))
+    P = np.broadcast_to(np.eye(nx), (runs, steps + 1, n, nx, nx)).copy()
+    K = rng.normal(size=(runs, steps, n, nx))
+    valid = np.ones((runs, steps + 1, n), bool)
+    x[1, 3, 2, 0] = np.nan  # run 1: node 2 fails at step 3 ...
+    x[1, 3, 1, 1] = 2e12  # ... and node 1 (beyond filters.consensus.DIVERGED): it stops at node 1
+    P[3, 3, 0, 0, 0] = np.inf  # run 3: node 0
+    active = np.array([0, 1, 3])  # run 2 stopped earlier
+    bad = diverged_nodes(x[active, 3], P[active, 3])
+    assert bad.tolist() == [[False] * 3, [False, True, True], [True, False, False]]
+    before = (x.copy(), K.copy(), valid.copy())
+    violations = [[] for _ in range(runs)]
+    going = stop_diverged(violations, active, bad, 3, nan_from=(x,), nan_before=(K,), invalid_from=(valid,))
+    assert active[going].tolist() == [0]
+    assert [[(v["node"], v["step"], v["condition"], v["reason"]) for v in vs] for vs in violations] == [
+        [], [(1, 3, "diverged", DIVERGED_REASON)], [], [(0, 3, "diverged", DIVERGED_REASON)]]
+    for r in (1, 3):
+        assert np.isnan(x[r, 3:]).all() and np.isnan(K[r, 2]).all() and not valid[r, 3:].any()
+        assert np.array_equal(x[r, :3], before[0][r, :3]) and np.array_equal(K[r, :2], before[1][r, :2])
+    for r in (0, 2):
+        assert np.array_equal(x[r], before[0][r]) and np.array_equal(K[r], before[1][r]) and valid[r].all()
+
+
+def test_a_process_without_the_planned_filters_refuses_the_task(tank):
+    """A filter registered in one process is unknown to a worker process: the task says so instead of returning
+    arrays of other filters (a study planned with it would misread them)."""
+    from designer.design import DesignOptions
+    from studies.comparison import _runs
+    from studies.scenarios import reference
+
+    planned = FILTER_REGISTRY.names() + ("my filter",)
+    with pytest.raises(InputError, match="registered in a script is known to that process only"):
+        _runs([0], [np.random.SeedSequence(1)], ref=reference(tank), settings=[(0.1, 0.1)], particles=20,
+              tuned_in_sweeps=False, options=DesignOptions(), filters=planned)
