@@ -48,7 +48,7 @@ an error within ``ERROR_TARGET`` = 3 x the centralized EKF's.
 * its error exceeds ``ERROR_TARGET`` x the comparison's centralized EKF's at a size.
 
 Run: ``python benchmarks/bench_design_scale.py [--sizes 8 32 128 512] [--steps 100] [--runs 5] [--seed 0]
-[--exchange measurements|predictions] [--local] [--json FILE] [--check]``
+[--exchange measurements|predictions] [--rounds L] [--local] [--json FILE] [--check]``
 """
 from __future__ import annotations
 
@@ -132,11 +132,11 @@ def grid_scenario(folder: Path, nodes: int, steps: int, copy: int = 0):
     return sc
 
 
-def timed_design(sc, exchange: str | None = None):
-    """The scheduled design of ``sc`` (``exchange``: what its packets carry, default the design's): (design, wall s,
-    CPU s)."""
+def timed_design(sc, exchange: str | None = None, rounds: int = 1):
+    """The scheduled design of ``sc`` (``exchange``: what its packets carry, default the design's; ``rounds``: its
+    exchange rounds per step): (design, wall s, CPU s)."""
     t, c = time.perf_counter(), time.process_time()
-    des = consensus_design(sc, mode="scheduled", **({"exchange": exchange} if exchange else {}))
+    des = consensus_design(sc, mode="scheduled", rounds=rounds, **({"exchange": exchange} if exchange else {}))
     return des, time.perf_counter() - t, time.process_time() - c
 
 
@@ -180,13 +180,14 @@ def position_rmse(sc, truth: np.ndarray, est: np.ndarray) -> tuple[float, int]:
     return (float(np.sqrt(np.mean(err2))) if err2 else float("nan")), diverged
 
 
-def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: bool, exchange: str | None) -> dict:
+def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: bool, exchange: str | None,
+            rounds: int = 1) -> dict:
     """One row of the table: the design of the ``nodes`` grid timed (best of ``REPEATS`` when it takes less than
     ``REPEAT_BELOW_S``), then the Monte Carlo runs."""
     best = None
     for copy in range(REPEATS):
         sc = grid_scenario(folder, nodes, steps, copy)
-        timing = timed_design(sc, exchange)
+        timing = timed_design(sc, exchange, rounds)
         best = timing if best is None or timing[1] < best[1] else best
         if timing[1] >= REPEAT_BELOW_S:
             break
@@ -206,7 +207,8 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
     cekf, cekf_div = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).x[:, :, None])
     clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).x[:, :, None])
     row = {"nodes": nodes, "grid": "x".join(map(str, GRIDS[nodes])), "edges": int(net.adjacency.sum()) // 2,
-           "d_max": int(net.d_max), "exchange": des.exchange, "steps": steps, "runs": runs,
+           "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds,
+           "messages_per_step": int(net.adjacency.sum()) * des.rounds, "steps": steps, "runs": runs,
            "design_s": wall, "design_cpu_s": cpu, "stationary": dict(tab.stationary),
            "designed_steps": designed_steps, "design_s_per_step": wall / designed_steps,
            "design_s_per_node_step": wall / (designed_steps * nodes),
@@ -227,21 +229,25 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
 
 def print_table(rows: list[dict]) -> None:
     runs, steps = rows[0]["runs"], rows[0]["steps"]
-    print(f"scheduled design (--steps {steps}, exchange {rows[0]['exchange']}) and {runs} fresh Monte Carlo runs; "
+    print(f"scheduled design (--steps {steps}, exchange {rows[0]['exchange']}, {rows[0]['rounds']} exchange round(s) "
+          f"per step) and {runs} fresh Monte Carlo runs; "
           "BLAS on one thread; model building and its first evaluation not timed")
     local = "rmse_local" in rows[0]
-    print(f"{'nodes':>5s} {'grid':>6s} {'edges':>5s} {'design s':>9s} {'(CPU s)':>8s} {'steps':>6s} {'s/step':>7s} "
+    print(f"{'nodes':>5s} {'grid':>6s} {'edges':>5s} {'msgs':>6s} {'design s':>9s} {'(CPU s)':>8s} {'steps':>6s} "
+          f"{'s/step':>7s} "
           f"{'filter ms/step':>15s} {'RMSE sched':>11s} {'(design)':>9s} {'RMSE CEKF':>10s} {'ratio':>7s} "
           f"{'clean':>7s}" + (f" {'local':>7s}" if local else "") + f" {'certificate':>16s}")
     for r in rows:
         div = ", ".join(f"{k} {v}" for k, v in r["diverged"].items() if v)
-        print(f"{r['nodes']:5d} {r['grid']:>6s} {r['edges']:5d} {r['design_s']:9.2f} {r['design_cpu_s']:8.2f} "
+        print(f"{r['nodes']:5d} {r['grid']:>6s} {r['edges']:5d} {r['messages_per_step']:6d} {r['design_s']:9.2f} "
+              f"{r['design_cpu_s']:8.2f} "
               f"{r['designed_steps']:6d} {r['design_s_per_step']:7.3f} {r['filter_ms_per_step']:15.1f} "
               f"{r['rmse_scheduled']:11.4f} {r['rmse_design']:9.4f} {r['rmse_centralized']:10.4f} "
               f"{r['ratio']:7.2f} {r['ratio_clean']:7.2f}" + (f" {r['ratio_local']:7.2f}" if local else "")
               + f" {r['certificate']:>16s}" + (f"  diverged runs: {div}" if div else "")
               + ("" if r["finite"] else "  NON-FINITE estimates"))
-    print("steps: the horizon plus the extra steps to the stationary tables; filter ms/step: per step of one run, "
+    print("msgs: messages per step (2 |E| L); steps: the horizon plus the extra steps to the stationary tables; "
+          "filter ms/step: per step of one run, "
           "amortised over the batch of runs; RMSE: position, over the runs, steps and (consensus) nodes; (design): the "
           "design's own expected RMSE (its expected covariance along the nominal trajectory); ratio: the scheduled "
           "filter's RMSE / the centralized EKF's (attacked uplinks, as in study comparison); clean: / the "
@@ -283,6 +289,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="the runs' SeedSequence")
     ap.add_argument("--exchange", choices=["measurements", "predictions"], default=None,
                     help="what the scheduled design's packets carry (default: the design's default)")
+    ap.add_argument("--rounds", type=int, default=1, help="the scheduled design's exchange rounds per step L")
     ap.add_argument("--local", action="store_true", help="also the local EKFs (every node alone)")
     ap.add_argument("--json", help="write the rows to this file")
     ap.add_argument("--check", action="store_true")
@@ -296,7 +303,7 @@ def main(argv=None) -> int:
         folder = Path(tmp)
         consensus_design(grid_scenario(folder, min(GRIDS), 2), mode="scheduled")  # warm-up, not timed
         for nodes in sizes:
-            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange))
+            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange, args.rounds))
             print(f"  {nodes} nodes measured: design {rows[-1]['design_s']:.1f} s", flush=True)
     print_table(rows)
     if args.json:

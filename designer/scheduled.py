@@ -75,19 +75,8 @@ from .validation import InputError
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
            "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
-           "LMI_MAX_DIM", "ROBUSTNESS", "ROBUSTNESS_MAX"]
+           "LMI_MAX_DIM"]
 
-#: The default robustness margin δ of the link gains (:func:`link_gains`; ``--robustness``).  With δ = 0 the
-#: gains are the MMSE ones for the tables, and they exploit the tables' correlations between neighbours' errors
-#: to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning 1e7-1e8 on a range
-#: grid): where the state leaves the nominal geometry, those cancellations fail and the network diverges (a 32-node
-#: range grid, 1150 m after 100 steps; 20 of 20 runs of a 28-node coordinated-turn model).  δ = 1 (each link's
-#: difference taken to carry an extra independent error as large as the node's own) removed every divergence we
-#: measured and cost at most 4 % of accuracy on the nominal trajectories (README, "Robustness"): an assumption of
-#: this design, chosen by those measurements, not by a theorem.
-ROBUSTNESS = 1.0
-#: The largest margin accepted (beyond it the links are all but ignored: a node alone is the local EKF).
-ROBUSTNESS_MAX = 100.0
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
 #: Extra steps at the last nominal point to look for the stationary tables.
@@ -207,8 +196,8 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
 
     ``margin`` (the design's robustness δ >= 0): the gains are chosen as if each arrived link's difference
     ``Δ_ij`` carried, besides its modelled moments, an independent error of covariance ``δ P`` (a margin for
-    the gap between the tables and the geometry met at run time, :data:`ROBUSTNESS`); the posterior returned
-    is the one these gains achieve under the modelled moments (without the margin).
+    the gap between the tables and the geometry met at run time, :data:`designer.design.ROBUSTNESS`); the
+    posterior returned is the one these gains achieve under the modelled moments (without the margin).
 
     Returns ``K`` (..., n, m), ``K_n`` (..., d, n, mz) (None without exchange), ``C`` (..., d, n, n), the node's
     expected posterior covariance (..., n, n) (``P - Z E[e yᵀ]ᵀ - E[e yᵀ] Zᵀ + Z E[y yᵀ] Zᵀ``, positive semidefinite
@@ -509,6 +498,11 @@ class ScheduledTables(NamedTuple):
     Sigma_inf: np.ndarray  # (N, d, d, n, n)
     exchange: bool  # the packets carry the sender's measurement beside its prediction
     robustness: float  # the margin δ of the link gains (:func:`link_gains`): the nodes solve theirs with it too
+    rounds: int  # exchange rounds per step: the first with the measurements, rounds 2..L consensus alone
+    round_Gamma: np.ndarray  # (steps, L - 1, E, n, n) the whitened factors of rounds 2..L (empty for L = 1)
+    round_Sigma: np.ndarray  # (steps, L - 1, N, d, d, n, n)
+    round_Gamma_inf: np.ndarray  # (L - 1, E, n, n) beyond the horizon
+    round_Sigma_inf: np.ndarray  # (L - 1, N, d, d, n, n)
     Kn: np.ndarray | None  # (steps, E, n, mz) the nominal gains on the neighbours' measurements (exchange)
 
     @property
@@ -520,6 +514,13 @@ class ScheduledTables(NamedTuple):
         if k < self.steps:
             return self.Gamma[k], self.Sigma[k]
         return self.Gamma_inf, self.Sigma_inf
+
+    def round_tables(self, k: int, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(Gamma, Sigma)`` of exchange round ``r`` (2..``rounds``) of step ``k``; beyond the horizon the
+        stationary ones."""
+        if k < self.steps:
+            return self.round_Gamma[k, r - 2], self.round_Sigma[k, r - 2]
+        return self.round_Gamma_inf[r - 2], self.round_Sigma_inf[r - 2]
 
 
 def pad_measurements(H_list, R_list, mz: int) -> tuple[np.ndarray, np.ndarray]:
@@ -549,16 +550,22 @@ class _Setting(NamedTuple):
     mz: int
     d: int
     margin: float  # the robustness margin δ of the link gains
+    rounds: int  # exchange rounds per step (the first with the measurements, the others consensus alone)
 
 
-def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
+def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int, consensus_only: bool = False):
     """Every node's nominal gains at the expected joint prediction ``Pm`` and nominal point ``x_pred`` (measuring
     step ``k1``), with its whitened tables: ``(rule, Gamma (E, n, n), Sigma (N, d, d, n, n))``.  All nodes at once,
-    their links padded to ``d`` slots and their measurements to ``mz`` components (:func:`link_gains`)."""
+    their links padded to ``d`` slots and their measurements to ``mz`` components (:func:`link_gains`).
+    ``consensus_only``: an exchange round after the first (the packets carry the senders' current estimates, no
+    measurement: every measurement gain is zero)."""
     model, ch = st.model, st.ch
     N, n = Pm.P.shape[0], Pm.P.shape[-1]
     E = ch.receiver.size
     H, R = pad_measurements([np.asarray(model.H(i, x_pred, k1), dtype=float) for i in range(N)], st.R, st.mz)
+    if consensus_only:
+        H = np.zeros_like(H)
+    exchange = st.exchange and not consensus_only
     chan, mask = ch.slots
     js = np.where(mask, ch.at_slots(ch.sender, 0), np.arange(N)[:, None])
     ii = np.arange(N)[:, None]
@@ -567,7 +574,7 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n): E[e_i Δ_ijᵀ] of the slots
     S = np.where(m2, Gb[ii, js][:, None] - Gb[js[:, :, None], js[:, None, :]] + Gb[js, ii][:, :, None], 0.0)
     p, q = ch.at_slots(ch.p), ch.at_slots(ch.q)
-    Hn, Rn = (H[js], R[js]) if st.exchange else (None, None)
+    Hn, Rn = (H[js], R[js]) if exchange else (None, None)
     K, K_n, Cs, _, _ = link_gains(Pm.P, H, R, G, S, p, q, st.M, st.mu, Hn, Rn, st.margin)
     A = np.eye(n) - K @ H
     C = np.zeros((E, n, n))
@@ -576,7 +583,7 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int):
     Gam = np.zeros((E, n, n))
     Gam[chan[mask]] = colour(root, G)[mask]
     Sig = colour(root, S)
-    if st.exchange:
+    if exchange:
         Kn = np.zeros((E, n, st.mz))
         Kn[chan[mask]] = K_n[mask]
         Hn_e, Rn_e = H[ch.sender], R[ch.sender]
@@ -599,7 +606,7 @@ def _prepare(model, network, design, exchange: bool, phi0):
     st = _Setting(model, ch, model.process_cov, [model.measurement_cov(i) for i in range(N)],
                   np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float),
                   np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float),
-                  bool(exchange), mz, ch.d_max, float(design.robustness))
+                  bool(exchange), mz, ch.d_max, float(design.robustness), int(design.rounds))
     U = np.broadcast_to(np.asarray(design.U, dtype=float), (N, n, n))
     V = np.zeros((N, mz, mz))  # each sensor's V_i, padded like its measurement (no remainder there)
     for i, v in enumerate(design.V):
@@ -608,23 +615,45 @@ def _prepare(model, network, design, exchange: bool, phi0):
     return st, U, V, Vn, model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
 
 
+def _more_rounds(st: _Setting, Pm: JointCovariance, x: np.ndarray, k1: int):
+    """Rounds 2..L of a step after the first round's update ``Pm``: each round's per-link gains from the expected
+    joint covariance after the previous one (every node's packet now carries its current estimate), then its
+    expected update: ``(Pm, Gamma (L-1, E, n, n), Sigma (L-1, N, d, d, n, n))``.
+
+    The expectation takes each round's arrivals and falsifications as fresh draws, independent of the errors;
+    the simulated attacks hold one realisation for all the rounds of a step (as for HCMCI,
+    :mod:`filters.distributed`), so for L > 1 the expected covariance is an approximation that the Monte Carlo
+    checks, and the certificate is not computed."""
+    Gs, Ss = [], []
+    for _ in range(st.rounds - 1):
+        rule, G, S = _gains(st, Pm, x, k1, consensus_only=True)
+        Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
+        Gs.append(G)
+        Ss.append(S)
+    n, N = Pm.P.shape[-1], Pm.P.shape[0]
+    if not Gs:
+        return Pm, np.zeros((0, st.ch.receiver.size, n, n)), np.zeros((0, N, st.d, st.d, n, n))
+    return Pm, np.stack(Gs), np.stack(Ss)
+
+
 def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.ndarray, k1: int, last):
     """The expected covariance's recursion at the fixed linearisation ``Fs``, ``x`` from ``Pm`` until the tables
     change by at most :data:`STATIONARY_TOL` (from ``last``, a pair of tables, or None) or for
-    :data:`STATIONARY_MAX` steps: ``(Pm, rule, Gamma, Sigma, record)`` of the last step, ``record`` saying whether
-    it converged and after how many steps."""
+    :data:`STATIONARY_MAX` steps: ``(Pm, rule, Gamma, Sigma, record, round_Gamma, round_Sigma)`` of the last step
+    (the last two: the tables of rounds 2..L), ``record`` saying whether it converged and after how many steps."""
     record = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": STATIONARY_TOL}
     for extra in range(1, STATIONARY_MAX + 1):
         Pm = joint_predict(Pm, Fs, st.Q)
         rule, G_new, S_new = _gains(st, Pm, x, k1)
         Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
+        Pm, rG, rS = _more_rounds(st, Pm, x, k1)
         done = last is not None and max(np.max(np.abs(G_new - last[0]), initial=0.0),
                                         np.max(np.abs(S_new - last[1]), initial=0.0)) <= STATIONARY_TOL
         last = (G_new, S_new)
         if done:
             record = {"converged": True, "extra_steps": extra, "tolerance": STATIONARY_TOL}
             break
-    return Pm, rule, last[0], last[1], record
+    return Pm, rule, last[0], last[1], record, rG, rS
 
 
 def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi0=None,
@@ -643,6 +672,8 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     out = dict(Gamma=np.zeros((steps, E, n, n)), Sigma=np.zeros((steps, N, st.d, st.d, n, n)),
                P_pred=np.zeros((steps, N, n, n)), K=np.zeros((steps, N, n, mz)), C=np.zeros((steps, E, n, n)),
                Kn=np.zeros((steps, E, n, mz)) if exchange else None,
+               round_Gamma=np.zeros((steps, st.rounds - 1, E, n, n)),
+               round_Sigma=np.zeros((steps, st.rounds - 1, N, st.d, st.d, n, n)),
                P_post=np.zeros((steps + 1, N, n, n)), Phi=np.full((steps + 1, N, n, n), np.nan),
                valid=np.zeros(steps + 1, dtype=bool), sigma=np.full(steps, np.nan), beta=np.full(steps, np.nan),
                margin28=np.full(steps, np.nan), margin29=np.full(steps, np.nan),
@@ -652,11 +683,16 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
     out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
-    proper = N * n <= CERTIFICATE_MAX_DIM
-    if not proper:
+    proper = N * n <= CERTIFICATE_MAX_DIM and st.rounds == 1
+    if N * n > CERTIFICATE_MAX_DIM:
         violations.append({"node": 0, "step": 0, "condition": "(28)", "margin": -np.inf,
                            "reason": f"the certificate of the stacked error (N n = {N * n} rows, at most "
                                      f"{CERTIFICATE_MAX_DIM}) is not computed: the design has no bound"})
+    elif st.rounds > 1:
+        violations.append({"node": 0, "step": 0, "condition": "(28)", "margin": -np.inf,
+                           "reason": f"the certificate covers one exchange round per step; with {st.rounds} rounds "
+                                     "it is not computed: the design has no bound (its expected covariance is "
+                                     "checked by Monte Carlo)"})
     x = np.asarray(x0, dtype=float).copy()
     nominal = np.zeros((steps + 1, n))
     nominal[0] = x
@@ -700,29 +736,36 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
                 proper = False
                 violations.append({"node": worst(Phi), "step": k, "condition": "(28)", "margin": float(jb.margin)})
         Pm = expected_update(Pm, rule, ch, st.M, st.mu)
+        Pm, out["round_Gamma"][k], out["round_Sigma"][k] = _more_rounds(st, Pm, x, k + 1)
         out["P_post"][k + 1] = Pm.P
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
     # the stationary tables: the recursion continued at the last nominal point with its input
     F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
-    _, _, last_G, last_S, stationary = _stationary_gains(st, Pm, np.broadcast_to(F, (N, n, n)), x, steps,
-                                                         (out["Gamma"][-1], out["Sigma"][-1]))
+    Fs = np.broadcast_to(F, (N, n, n))
+    _, _, last_G, last_S, stationary, rG_inf, rS_inf = _stationary_gains(st, Pm, Fs, x, steps,
+                                                                         (out["Gamma"][-1], out["Sigma"][-1]))
     return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange),
-                           robustness=st.margin, **out)
+                           robustness=st.margin, rounds=st.rounds, round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,
+                           **out)
 
 
 def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
     """The arrays a node of the design carries and the design's record, for ``schedule.npz`` (``table_<name>``):
     the channels (``receiver``, ``sender``, ``p``, ``q``), the whitened factors per step (``Gamma``, ``Sigma``) and
     beyond the horizon (``Gamma_inf``, ``Sigma_inf``), the nominal gains (``K``, ``C``, ``Kn``), the nominal
-    trajectory and the expected covariance (``P_pred``, ``P_post``)."""
+    trajectory and the expected covariance (``P_pred``, ``P_post``); with L > 1 rounds, rounds 2..L's factors
+    (``round_Gamma``, ``round_Sigma``, ``round_Gamma_inf``, ``round_Sigma_inf``)."""
     ch = tables.channels
     out = {"receiver": ch.receiver, "sender": ch.sender, "p": ch.p, "q": ch.q, "Gamma": tables.Gamma,
            "Sigma": tables.Sigma, "Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "K": tables.K,
            "C": tables.C, "nominal": tables.nominal, "P_pred": tables.P_pred, "P_post": tables.P_post}
     if tables.Kn is not None:
         out["Kn"] = tables.Kn
+    if tables.rounds > 1:  # rounds 2..L's factors
+        out.update(round_Gamma=tables.round_Gamma, round_Sigma=tables.round_Sigma,
+                   round_Gamma_inf=tables.round_Gamma_inf, round_Sigma_inf=tables.round_Sigma_inf)
     return out
 
 
@@ -758,7 +801,10 @@ class StationaryCertificate(NamedTuple):
 
     def describe(self) -> dict:
         tr = None if self.Phi is None else [float(v) for v in np.trace(self.Phi, axis1=-2, axis2=-1)]
-        return {"converged": self.converged, "trace": tr, "sigma": self.sigma, "beta": self.beta,
+        def num(v):
+            return float(v) if np.isfinite(v) else None
+
+        return {"converged": self.converged, "trace": tr, "sigma": num(self.sigma), "beta": num(self.beta),
                 "iterations": self.iterations, "reason": self.reason, "lmi": self.lmi}
 
 
@@ -779,13 +825,17 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     satisfies the inequality bounds every later bound once one lies below it.
     """
     st, U, V, Vn, phi0 = _prepare(model, network, design, exchange, phi0)
+    if st.rounds > 1:
+        return StationaryCertificate(False, None, np.nan, np.nan, 0,
+                                     f"(28)-(29) not checked: the certificate covers one exchange round per step "
+                                     f"({st.rounds} rounds designed)", None)
     ch = st.ch
     N, n = network.n_nodes, model.n_x
     x = np.asarray(x, dtype=float)
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)
     Fs = np.broadcast_to(F, (N, n, n))
     # the time-invariant gains: the expected covariance's recursion at x until the tables stop changing
-    _, rule, _, _, _ = _stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
+    _, rule, _, _, _, _, _ = _stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
     # the bound's recursion with those gains
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)

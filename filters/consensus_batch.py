@@ -270,15 +270,16 @@ class ConsensusBatchResult(NamedTuple):
                    for f in optional}
         return cls(**fields, violations=[ref.violations for ref in refs], **stacked)
 
-    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound") -> FilterResult:
+    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound", rounds: int = 1
+                  ) -> FilterResult:
         """These runs as a :class:`filters.result.FilterResult`: ``x_post``, Φ (``phi_post``, a bound where
         ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
         the EKF's own covariance), the violations, one message per directed link of ``network`` per step
-        (``2 |E|``, lost ones included) and the packets received (``gate_counts``' first column), ``runtime`` the
-        gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
+        and exchange round (``2 |E| rounds``, lost ones included) and the packets received (``gate_counts``' first
+        column), ``runtime`` the gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
         runs, steps = self.x_pred.shape[:2]
         return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
-                            constant_messages(runs, steps, 2 * len(network.edges)), runtime,
+                            constant_messages(runs, steps, 2 * len(network.edges) * rounds), runtime,
                             delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
                             detail=self).check()
 

@@ -10,7 +10,10 @@ covariance factors of its links; beyond the designed horizon the stationary ones
     K_i, C_ij, P_ii⁺ = designer.scheduled.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ, margin=δ)
     x̂⁺_i = x̂⁻_i + K_i (z_i - h_i(x̂⁻_i)) + Σ_{j arrived} [K_ij (z̃_j - h_j(x̂⁻_i)) + C_ij (x̃⁻_j - x̂⁻_i)]
 
-with the neighbours' measurements ``z̃_j`` only when the design exchanges them (``tables.exchange``); a
+and, with L > 1 exchange rounds (``tables.rounds``), rounds 2..L on the same arrived packets of the step: each
+node sends its current estimate and applies ``x̂_i += Σ_{j arrived} C^(r)_ij (x̃_j - x̂_i)`` with the round's
+tables coloured by its current covariance (no measurement); with the neighbours' measurements ``z̃_j`` in the
+first round only when the design exchanges them (``tables.exchange``); a
 falsified packet carries ``x̃⁻_j = x̂⁻_j + ξ_ij`` and ``z̃_j = z_j + H_j(x̂⁻_j) ξ_ij`` (what the sender would send
 were the state displaced by ξ, as for KCF and HCMCI in :mod:`filters.distributed`).
 
@@ -151,8 +154,21 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         if K_n is not None:
             xn += np.einsum("lidab,lidb->lia", K_n, res_n)
         out["K"][act, k] = K
-        out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij
+        out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij (first round)
         out["gain_condition"][act, k] = kappa
+        for rnd in range(2, tables.rounds + 1):  # rounds 2..L: the senders' current estimates, the same packets
+            Gam_r, Sig_r = tables.round_tables(k, rnd)
+            root = sqrtm_psd(Pn)
+            G = colour(root, np.broadcast_to(ch.at_slots(Gam_r), (a, n, d, nx, nx)))
+            S = colour(root, np.broadcast_to(Sig_r[:, :d, :d], (a, n, d, d, nx, nx)))
+            _, _, C, Pn, kappa = link_gains(Pn, np.zeros_like(H_own), R_pad, G, S, p_slot, q_slot, M, mu,
+                                            margin=tables.robustness)
+            diff = xn[:, snd] - xn[:, rcv]
+            if xi is not None:
+                diff = diff + np.where(fdi[..., None], xi, 0.0)
+            diff_slot = np.where(got[..., None], diff[:, chan], 0.0)
+            xn = xn + np.einsum("lidab,lidb->lia", C, diff_slot)
+            out["gain_condition"][act, k] = np.maximum(out["gain_condition"][act, k], kappa)
         x[act], P[act] = xn, Pn
         out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
         out["predicted_mse"][act, k + 1] = np.trace(Pn, axis1=-2, axis2=-1)

@@ -17,8 +17,7 @@ import click
 
 from designer.gain_rules import GAIN_RULES, runtime_label
 from designer.validation import CfdesignWarning, ComputationError, InputError
-from designer.design import EXCHANGES
-from designer.scheduled import ROBUSTNESS
+from designer.design import EXCHANGES, ROBUSTNESS
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -71,6 +70,10 @@ def _design_options(f):
                      help="mode scheduled: the margin δ of the link gains, [0, 100]: each neighbour's difference is "
                           "taken to carry an extra independent error δ P_ii (0: the tables' MMSE gains, fragile "
                           f"where the state leaves the nominal geometry) [default: {ROBUSTNESS:g}]"),
+        click.option("--rounds", type=int, default=None,
+                     help="mode scheduled: exchange rounds per step, [1, 64]: the first carries the predictions "
+                          "and measurements, the others the current estimates (one packet per channel and round; "
+                          "with more than one no certificate) [default: 1]"),
         click.option("--gate", type=float, default=None,
                      help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
                           "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "

@@ -488,7 +488,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         reason = cannot[0].get(name)
         met = (_metrics(A["err2"][:, 0, f], own[name], key) if reason is None else
                _not_run(reason, key))
-        messages = e.messages(net, L)
+        messages = e.messages_per_step(net, L, so.design)
         met.update({
             "family": e.family, "runtime": e.runtime, "description": e.description,
             "time_per_step_s": None if reason is not None else float(np.nanmean(A["seconds"][:, 0, f]) / K),

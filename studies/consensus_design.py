@@ -45,7 +45,7 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
 
     opts = options or DesignOptions()
     if mode != "scheduled":  # what a packet carries and the links' margin are choices of the scheduled design
-        opts = replace(opts, exchange=None, robustness=None)
+        opts = replace(opts, exchange=None, robustness=None, rounds=None)
     return replace(opts, mode=mode) if mode == "paper" else replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
@@ -177,6 +177,34 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
                      "(cvxpy + Clarabel) for the fixed point's sigma and beta"}
 
 
+#: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
+TRADEOFF_ROUNDS = (1, 2, 4)
+
+
+def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int) -> dict:
+    """The accuracy-messages trade-off of the scheduled design: for L in :data:`TRADEOFF_ROUNDS` and the design's
+    own rounds, the messages per step (``2 |E| L``) and the expected RMSE of the nodes at the horizon (square root
+    of the mean over nodes of tr P_ii, the design's expected covariance; for L > 1 its rounds' packet losses taken
+    as fresh draws).  Computed for the other L only where the stacked error has at most
+    :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows (each L is a design of its own)."""
+    from designer.scheduled import CERTIFICATE_MAX_DIM
+
+    N, n = sc.network.n_nodes, sc.model.n_x
+    small = N * n <= CERTIFICATE_MAX_DIM
+    rows = []
+    for L in sorted(set(TRADEOFF_ROUNDS) | {design.rounds}):
+        if L != design.rounds and not small:
+            continue
+        tab = design.tables if L == design.rounds else with_tables(sc, design._replace(rounds=L, tables=None),
+                                                                   steps).tables
+        tr = np.trace(tab.P_post[-1], axis1=-2, axis2=-1)
+        rows.append({"rounds": L, "messages_per_step": 2 * len(sc.network.edges) * L,
+                     "expected_rmse": float(np.sqrt(tr.mean())), "designed": L == design.rounds})
+    return {"rows": rows, "note": None if small else (
+        f"the other L are not designed here (N n = {N * n} > {CERTIFICATE_MAX_DIM}): design with --rounds L to "
+        "compare")}
+
+
 _SCHEDULED_RECORD = {
     "trajectory": "the tables (schedule.npz table_*) and the bound are designed offline along the nominal trajectory "
                   "(the operating point with the known inputs, no noise) for the DoS and FDI probabilities, not "
@@ -189,7 +217,7 @@ _SCHEDULED_RECORD = {
                   "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "
                   "nodes do not lean on the tables' correlations where the state leaves the nominal geometry; the "
                   "expected covariance and the bound are those of the gains so chosen (an assumption chosen by "
-                  "measurement, designer.scheduled.ROBUSTNESS)",
+                  "measurement, designer.design.ROBUSTNESS)",
 }
 
 
@@ -387,6 +415,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                           "the bound holds for the linearisation points and DoS pattern it was computed along"}),
             "stationary": None if des.tables is None else des.tables.stationary,
             "stationary_certificate": stationary_record(sc, des) if des.mode == "scheduled" else None,
+            "rounds_tradeoff": rounds_tradeoff(sc, des, steps) if des.tables is not None else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,

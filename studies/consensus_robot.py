@@ -455,7 +455,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             filters[name] = {"family": e.family, "runtime": e.runtime, "infeasible": v.infeasible,
                              "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
-                             "diverged_fraction": None, "time_per_step_s": None, "communications": e.messages(net, L),
+                             "diverged_fraction": None, "time_per_step_s": None,
+                             "communications": e.messages_per_step(net, L, so.design),
                              "design": describe_design(v.design)}
             continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0])
@@ -486,7 +487,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                        "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
-            "communications": e.messages(net, L),
+            "communications": e.messages_per_step(net, L, so.design),
             "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:])
             if e.designed else None,
             "feasibility": {

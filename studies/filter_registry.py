@@ -136,6 +136,16 @@ class FilterEntry(NamedTuple):
         paper design reduced to the EKF; the design itself when it derives none)."""
         return design if self.derive is None else self.derive(design, model)
 
+    def messages_per_step(self, network: SensorNetwork, iterations: int, options=None) -> int:
+        """Transmissions per step on ``network``: ``messages(network, L)`` with ``L`` the study's consensus rounds
+        ``iterations`` (HCMCI), or for a designed filter its design's exchange rounds (``rounds`` of the study's
+        design ``options``, :class:`designer.design.DesignOptions`, as its gain rule takes them)."""
+        if self.designed and options is not None:
+            from .consensus_design import as_mode
+
+            return int(self.messages(network, as_mode(options, self.mode).rounds or 1))
+        return int(self.messages(network, iterations))
+
     def nodes(self, network: SensorNetwork) -> int:
         """How many estimates it keeps on ``network``: one at a fusion centre, one per node otherwise."""
         return 1 if self.runtime == "centralized" else int(network.n_nodes)
@@ -213,10 +223,11 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         res = run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
                                   attacks=batch.attack_rows(js), inputs=batch.input_rows(js))
-        return res.to_result(batch.network, gain_rule(mode).runtime)
+        return res.to_result(batch.network, gain_rule(mode).runtime, rounds=design.rounds)
 
-    return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run, _links, mode=mode,
-                       designed=True, start_check=start_check)
+    return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run,
+                       lambda net, rounds: 2 * len(net.edges) * rounds, mode=mode, designed=True,
+                       start_check=start_check)
 
 
 def local_ekfs(name: str, description: str) -> FilterEntry:

@@ -36,7 +36,7 @@ _DESIGN_FLAGS = {"mode": "--mode", "epsilon": "--epsilon", "sigma": "--sigma", "
                  "dos": "--dos", "fdi": "--fdi", "delta": "--delta", "amplitude": "--amplitude",
                  "u_scale": "--u-scale", "v_scale": "--v-scale", "linearization": "--linearization",
                  "radius": "--radius", "gate": "--gate", "exchange": "--exchange",
-                 "robustness": "--robustness"}
+                 "robustness": "--robustness", "rounds": "--rounds"}
 _STUDY_FLAGS = {"engine": "--engine", "schedule": "--schedule"}
 # a study's own options that say where or how wide it computes, not what: like --workers, left out of the line
 _NOT_NUMBERS = ("threads",)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import TANK_MODEL
+from designer.design import DesignOptions
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.consensus_batch import ConsensusBatchResult, run_consensus_batch
@@ -60,9 +61,10 @@ def _check_shapes(res: FilterResult, entry: FilterEntry, sc, rows: int, L: int) 
     assert res.cov_kind == ("bound" if entry.family == "consensus" and entry.mode is not None else "covariance")
     assert res.runtime == entry.runtime
     assert len(res.violations) == rows and res.diverged_step.shape == (rows,)
-    # the messages it counts are those the entry declares for the contract, at every step
+    # the messages it counts are those the entry declares for the contract, at every step (a designed filter: its
+    # design's exchange rounds, one with the default options)
     assert res.messages.shape == (rows, sc.steps)
-    assert (res.messages == entry.messages(net, L)).all()
+    assert (res.messages == entry.messages_per_step(net, L, DesignOptions())).all()
     assert (res.delivered is not None) == entry.counts_delivered or entry.mode is not None
     if res.delivered is not None:
         assert ((0 <= res.delivered) & (res.delivered <= res.messages)).all()

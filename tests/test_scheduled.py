@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from designer.scheduled import ROBUSTNESS, channels, design_scheduled, link_gains
+from designer.design import ROBUSTNESS
+from designer.scheduled import channels, design_scheduled, link_gains
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
@@ -187,6 +188,11 @@ def test_bad_options_for_the_scheduled_mode_are_refused():
     for bad in (-0.1, 101.0, float("nan")):
         with pytest.raises(InputError, match="robustness"):
             consensus_design(sc, mode="scheduled", robustness=bad)
+    for bad in (0, 65, 1.5, True):
+        with pytest.raises(InputError, match="rounds"):
+            consensus_design(sc, mode="scheduled", rounds=bad)
+    with pytest.raises(InputError, match="rounds"):
+        consensus_design(sc, mode="tuned", rounds=2)
     with pytest.raises(InputError, match="robustness"):
         consensus_design(sc, mode="tuned", robustness=1.0)
 
@@ -311,3 +317,47 @@ def test_the_robustness_margin_bounds_how_far_a_node_leans_on_its_neighbours(tmp
     assert (ROBUSTNESS * lean(margined)).max() <= 1.0 + 1e-9
     mmse = consensus_design(sc, mode="scheduled", robustness=0.0)
     assert (ROBUSTNESS * lean(mmse)).max() > 2.0
+
+
+def test_more_exchange_rounds_are_the_monte_carlo_mse_without_attacks_and_cost_their_messages(tmp_path):
+    """L = 3 exchange rounds per step on a linear ring without attacks (where the rounds' packets are all there, so
+    the design's expectation is exact): the expected P_ii is each node's mean-square error; more rounds lower it;
+    one run is a batch of one; and the study counts 2 |E| L messages per step for the scheduled filter."""
+    sc = linear_ring(n_nodes=5, fdi=0.0, dos=0.0, steps=10)
+    one = _scheduled(sc, True)
+    des = _scheduled(sc, True, rounds=3)
+    assert des.tables.rounds == 3 and des.tables.round_Gamma.shape[:2] == (10, 2)
+    runs = 1500
+    draws = [_draw(sc, 12, (r,)) for r in range(runs)]
+    z = np.stack([t.z for t, _ in draws])
+    res = run_consensus_batch(sc.model, sc.network, z, des)
+    e2 = ((np.stack([t.x for t, _ in draws])[:, :, None, :] - res.x_post) ** 2).sum(-1)
+    emp, se = e2.mean(0), e2.std(0, ddof=1) / np.sqrt(runs)
+    pred = np.trace(des.tables.P_post, axis1=-2, axis2=-1)
+    zs = (emp[1:] - pred[1:]) / se[1:]
+    assert np.abs(zs).max() < 4.5 and abs(zs.mean()) < 1.0, zs
+    np.testing.assert_allclose(res.predicted_mse[0], pred, rtol=1e-9)  # the node's own covariance is the design's
+    assert pred[-1].mean() < 0.95 * np.trace(one.tables.P_post[-1], axis1=-2, axis2=-1).mean()
+    single = run_consensus(sc.model, sc.network, z[4], des)
+    np.testing.assert_allclose(single.x_post, res.x_post[4], rtol=1e-12, atol=1e-14)
+    # the certificate covers one round: with three the design says it has none
+    assert not des.tables.valid[1:].any()
+    assert any("one exchange round" in v.get("reason", "") for v in des.tables.violations)
+
+
+def test_the_studies_count_every_exchange_round_of_the_scheduled_filter(tmp_path, tank_model):
+    import json
+
+    from studies.cli import main
+
+    path = tank_model(steps=6)
+    out = tmp_path / "r"
+    assert main(["study", "consensus-robot", str(path), "--mode", "scheduled", "--rounds", "2", "--runs", "2",
+                 "--out", str(out)]) in (0, 1)
+    res = json.loads((out / "results.json").read_text())
+    edges = 2 * len(res["network"]["edges"])
+    sched = [f for f in res["filters"].values() if f.get("runtime") == "scheduled"]
+    assert sched and sched[0]["communications"] == 2 * edges
+    paper = [f for n, f in res["filters"].items() if n.startswith("consensus-EKF (paper")]
+    assert paper[0]["communications"] == edges
+    assert "--rounds" in res["invocation"]["argv"]

@@ -43,7 +43,7 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
-          "stationary_certificate"}
+          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -505,6 +505,18 @@ def _settings_section(s: _Schedule) -> list[str]:
                 what = f"does not: {md_escape(str(sc_.get('reason')))}"
             out += [f"**Stationary certificate** (verdict: {md_escape(str(sc_.get('verdict')))}): the bound's recursion "
                     "at the operating point with the stationary gains " + what + ".", ""]
+        out += [f"Robustness margin δ = {fmt_num(meta.get('robustness'))}: each link's gains are chosen as if the "
+                "neighbour's difference carried an extra independent error δ P_ii (a node never leans on its "
+                "neighbours by more than tr P⁻ / δ).", ""]
+        trade = meta.get("rounds_tradeoff") if isinstance(meta.get("rounds_tradeoff"), dict) else None
+        if trade and trade.get("rows"):
+            out += [f"**Accuracy and messages** ({meta.get('rounds')} exchange round(s) per step designed; the "
+                    "expected RMSE of the nodes at the horizon, from the design's expected covariance; for L > 1 "
+                    "the rounds' packet losses are taken as fresh draws and no certificate is computed):", "",
+                    "| rounds L | messages per step | expected RMSE |", "|---:|---:|---:|"]
+            out += [f"| {r['rounds']}{' (designed)' if r.get('designed') else ''} | {r['messages_per_step']} | "
+                    f"{fmt_num(r['expected_rmse'])} |" for r in trade["rows"]]
+            out += [""] + ([md_escape(str(trade["note"])), ""] if trade.get("note") else [])
     if is_num(meta.get("gate")) and not meta.get("gate"):
         out += ["No χ² gate on the neighbour packets: every received packet is used.", ""]
     if meta.get("gate"):
