@@ -54,7 +54,7 @@ EXCHANGES = ("measurements", "predictions")  # what a packet carries (mode sched
 #: 1e7-1e8 on a range grid): where the state leaves the nominal geometry, those cancellations fail and the network
 #: diverges (a 32-node range grid, 1150 m after 100 steps; 20 of 20 runs of a 28-node coordinated-turn model).  δ = 1
 #: (each link's difference taken to carry an extra independent error as large as the node's own) removed every
-#: divergence we measured and cost at most 4 % of accuracy on the nominal trajectories (README, "Robustness"): an
+#: divergence we measured and cost at most 5 % of accuracy on the nominal trajectories (README, "Robustness"): an
 #: assumption of this design, chosen by those measurements, not by a theorem.
 ROBUSTNESS = 1.0
 #: The largest margin accepted (beyond it the links are all but ignored: a node alone is the local EKF).
