@@ -657,13 +657,15 @@ def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.n
 
 
 def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi0=None,
-                     exchange: bool = True) -> ScheduledTables:
+                     exchange: bool = True, stationary: bool = True) -> ScheduledTables:
     """The scheduled design of ``model`` on ``network`` over ``steps`` steps (module docstring).
 
     ``design`` a :class:`designer.design.ConsensusDesign` (its ε, U, V_i, the FDI moments); ``x0`` the nominal
     trajectory's start (the operating point), ``inputs`` (steps, n_u) the known inputs, ``phi0`` the prior
     covariance (default the model's); ``exchange``: the packets carry the sender's measurement beside its
     prediction (KCF and HCMCI exchange measurement information too), else its prediction alone, as in (7).
+    ``stationary=False`` skips the stationary tables (the last step's serve beyond the horizon; ``stationary``
+    records that they were not sought): for a design wanted only for its expected covariance over the horizon.
     """
     st, U, V, Vn, phi0 = _prepare(model, network, design, exchange, phi0)
     ch, mz = st.ch, st.mz
@@ -743,8 +745,13 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     # the stationary tables: the recursion continued at the last nominal point with its input
     F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
     Fs = np.broadcast_to(F, (N, n, n))
-    _, _, last_G, last_S, stationary, rG_inf, rS_inf = _stationary_gains(st, Pm, Fs, x, steps,
-                                                                         (out["Gamma"][-1], out["Sigma"][-1]))
+    if stationary:
+        _, _, last_G, last_S, stationary, rG_inf, rS_inf = _stationary_gains(st, Pm, Fs, x, steps,
+                                                                             (out["Gamma"][-1], out["Sigma"][-1]))
+    else:
+        last_G, last_S, rG_inf, rS_inf = out["Gamma"][-1], out["Sigma"][-1], out["round_Gamma"][-1], \
+            out["round_Sigma"][-1]
+        stationary = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
     return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange),
                            robustness=st.margin, rounds=st.rounds, round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,

@@ -179,28 +179,34 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
 
 #: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
 TRADEOFF_ROUNDS = (1, 2, 4)
+#: The step at which the trade-off compares them (at most; the horizon when shorter).
+TRADEOFF_STEPS = 20
 
 
 def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int) -> dict:
     """The accuracy-messages trade-off of the scheduled design: for L in :data:`TRADEOFF_ROUNDS` and the design's
-    own rounds, the messages per step (``2 |E| L``) and the expected RMSE of the nodes at the horizon (square root
-    of the mean over nodes of tr P_ii, the design's expected covariance; for L > 1 its rounds' packet losses taken
-    as fresh draws).  Computed for the other L only where the stacked error has at most
-    :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows (each L is a design of its own)."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM
+    own rounds, the messages per step (``2 |E| L``) and the expected RMSE of the nodes at step
+    ``min(steps, TRADEOFF_STEPS)`` (square root of the mean over nodes of tr P_ii, the design's expected
+    covariance; for L > 1 its rounds' packet losses taken as fresh draws).  The other L are designed over those
+    steps only, without stationary tables (the first steps of a design do not depend on its horizon), and only
+    where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows."""
+    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
 
     N, n = sc.network.n_nodes, sc.model.n_x
     small = N * n <= CERTIFICATE_MAX_DIM
+    at = min(int(steps), TRADEOFF_STEPS)
+    x0, _ = sc.operating_point
     rows = []
     for L in sorted(set(TRADEOFF_ROUNDS) | {design.rounds}):
         if L != design.rounds and not small:
             continue
-        tab = design.tables if L == design.rounds else with_tables(sc, design._replace(rounds=L, tables=None),
-                                                                   steps).tables
-        tr = np.trace(tab.P_post[-1], axis1=-2, axis2=-1)
+        tab = design.tables if L == design.rounds else design_scheduled(
+            sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0, inputs=sc.inputs(at),
+            exchange=design.exchange == "measurements", stationary=False)
+        tr = np.trace(tab.P_post[at], axis1=-2, axis2=-1)
         rows.append({"rounds": L, "messages_per_step": 2 * len(sc.network.edges) * L,
                      "expected_rmse": float(np.sqrt(tr.mean())), "designed": L == design.rounds})
-    return {"rows": rows, "note": None if small else (
+    return {"step": at, "rows": rows, "note": None if small else (
         f"the other L are not designed here (N n = {N * n} > {CERTIFICATE_MAX_DIM}): design with --rounds L to "
         "compare")}
 

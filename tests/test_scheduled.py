@@ -361,3 +361,23 @@ def test_the_studies_count_every_exchange_round_of_the_scheduled_filter(tmp_path
     paper = [f for n, f in res["filters"].items() if n.startswith("consensus-EKF (paper")]
     assert paper[0]["communications"] == edges
     assert "--rounds" in res["invocation"]["argv"]
+
+
+def test_the_rounds_tradeoff_compares_designs_at_one_step_and_more_rounds_cost_more_messages():
+    """The trade-off's L rows are designs of their own over its first steps; the designed L's row is read from the
+    full design (the first steps of a design do not depend on its horizon, checked here against a short design);
+    on a linear ring more rounds never raise the expected error and cost 2 |E| L messages per step."""
+    from studies.consensus_design import TRADEOFF_STEPS, rounds_tradeoff
+
+    sc = linear_ring(n_nodes=5, fdi=0.1, dos=0.2, steps=30)
+    des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0)
+    trade = rounds_tradeoff(sc, des, sc.steps)
+    assert trade["step"] == TRADEOFF_STEPS < sc.steps
+    rows = {r["rounds"]: r for r in trade["rows"]}
+    assert sorted(rows) == [1, 2, 4] and rows[1]["designed"]
+    short = design_scheduled(sc.model, sc.network, des, TRADEOFF_STEPS, x0=sc.model.prior.mean, stationary=False)
+    assert not short.stationary["sought"]
+    expected = np.sqrt(np.trace(short.P_post[-1], axis1=-2, axis2=-1).mean())
+    np.testing.assert_allclose(rows[1]["expected_rmse"], expected, rtol=1e-10)
+    assert rows[1]["expected_rmse"] >= rows[2]["expected_rmse"] >= rows[4]["expected_rmse"]
+    assert [rows[L]["messages_per_step"] for L in (1, 2, 4)] == [2 * len(sc.network.edges) * L for L in (1, 2, 4)]

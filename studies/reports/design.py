@@ -511,8 +511,9 @@ def _settings_section(s: _Schedule) -> list[str]:
         trade = meta.get("rounds_tradeoff") if isinstance(meta.get("rounds_tradeoff"), dict) else None
         if trade and trade.get("rows"):
             out += [f"**Accuracy and messages** ({meta.get('rounds')} exchange round(s) per step designed; the "
-                    "expected RMSE of the nodes at the horizon, from the design's expected covariance; for L > 1 "
-                    "the rounds' packet losses are taken as fresh draws and no certificate is computed):", "",
+                    f"expected RMSE of the nodes at step {trade.get('step', meta.get('steps'))}, from the design's "
+                    "expected covariance; for L > 1 the rounds' packet losses are taken as fresh draws and no "
+                    "certificate is computed):", "",
                     "| rounds L | messages per step | expected RMSE |", "|---:|---:|---:|"]
             out += [f"| {r['rounds']}{' (designed)' if r.get('designed') else ''} | {r['messages_per_step']} | "
                     f"{fmt_num(r['expected_rmse'])} |" for r in trade["rows"]]
