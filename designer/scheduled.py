@@ -50,6 +50,18 @@ rule *is* the offline design (tested against a Monte Carlo of the generative mod
 designed horizon a node uses the stationary tables: the recursion continued at the last nominal point
 until the tables stop changing (:attr:`ScheduledTables.stationary` says whether they converged).
 
+**Robustness margin** (``design.robustness`` = δ, :data:`designer.design.ROBUSTNESS`): the exact MMSE gains lean on
+the tables' correlations between neighbours' errors to the last digit (per-link gains that cancel between links),
+which fails where the state leaves the nominal geometry.  :func:`link_gains` therefore chooses the gains as if each
+arrived link's difference carried an extra independent error δ P_ii: they minimise ``tr P⁺ + δ Σ_j p_j tr(C_j P⁻
+C_jᵀ)``, so a node never leans on its neighbours by more than ``tr P⁻ / δ``; the expected covariance, the node's
+own covariance and the bound are those of the gains so chosen.
+
+**Exchange rounds** (``design.rounds`` = L): rounds 2..L of a step exchange the nodes' current estimates on the
+step's arrived packets, each with per-link gains from the expected joint covariance after the previous round
+(:func:`_more_rounds`; tables ``round_Gamma``, ``round_Sigma``).  Their expectation takes each round's packet losses
+as fresh draws while the simulations hold one realisation per step, so for L > 1 no certificate is computed.
+
 **The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.mse`) in
 expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`)
 and (27) with ``E_ρ[T X Tᵀ]`` for ``X = (Φ⁻^-1 - β I)^-1``, one β for the network minimising the trace
