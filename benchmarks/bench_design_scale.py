@@ -208,7 +208,7 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
     clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).x[:, :, None])
     row = {"nodes": nodes, "grid": "x".join(map(str, GRIDS[nodes])), "edges": int(net.adjacency.sum()) // 2,
            "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds,
-           "messages_per_step": int(net.adjacency.sum()) * des.rounds, "steps": steps, "runs": runs,
+           "messages_per_step": net.messages_per_step(des.rounds), "steps": steps, "runs": runs,
            "design_s": wall, "design_cpu_s": cpu, "stationary": dict(tab.stationary),
            "designed_steps": designed_steps, "design_s_per_step": wall / designed_steps,
            "design_s_per_node_step": wall / (designed_steps * nodes),

@@ -155,6 +155,11 @@ class SensorNetwork:
     def edges(self) -> list[tuple[int, int]]:
         return [(int(i), int(j)) for i, j in np.argwhere(np.triu(self.adjacency))]
 
+    def messages_per_step(self, rounds: int = 1) -> int:
+        """Packets sent per step: one per directed channel and exchange round, ``2 |E| rounds`` (a packet lost to
+        DoS counts: it was sent)."""
+        return int(np.asarray(self.adjacency).sum()) * int(rounds)
+
     @property
     def degrees(self) -> np.ndarray:
         """Degree ``d_i`` of every node."""

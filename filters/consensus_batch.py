@@ -279,7 +279,7 @@ class ConsensusBatchResult(NamedTuple):
         column), ``runtime`` the gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
         runs, steps = self.x_pred.shape[:2]
         return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
-                            constant_messages(runs, steps, 2 * len(network.edges) * rounds), runtime,
+                            constant_messages(runs, steps, network.messages_per_step(rounds)), runtime,
                             delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
                             detail=self).check()
 

@@ -208,7 +208,7 @@ def _filter(model: Model, network: SensorNetwork, inp: _Inputs, update, rounds: 
     P_pred = np.full((steps, n, nx, nx), np.nan)
     omega = np.full((steps, n), np.nan)
     x_post[0], P_post[0] = inp.x0, inp.P0
-    sent = np.full(steps, int(adj.sum()) * rounds)
+    sent = np.full(steps, network.messages_per_step(rounds))
     delivered = np.zeros(steps, int)
     violations: list[dict] = []
     for k in range(steps):
@@ -457,7 +457,7 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
     P_pred = np.full((runs, steps, n, nx, nx), np.nan)
     omega = np.full((runs, steps, n), np.nan)
     x_post[:, 0], P_post[:, 0] = inp.x0[:, None], inp.P0[:, None]
-    sent = np.full((runs, steps), int(adj.sum()) * rounds)
+    sent = np.full((runs, steps), network.messages_per_step(rounds))
     delivered = np.zeros((runs, steps), int)
     violations: list[list[dict]] = [[] for _ in range(runs)]
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])

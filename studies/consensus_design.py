@@ -204,7 +204,7 @@ def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int) -> dict:
             sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0, inputs=sc.inputs(at),
             exchange=design.exchange == "measurements", stationary=False)
         tr = np.trace(tab.P_post[at], axis1=-2, axis2=-1)
-        rows.append({"rounds": L, "messages_per_step": 2 * len(sc.network.edges) * L,
+        rows.append({"rounds": L, "messages_per_step": sc.network.messages_per_step(L),
                      "expected_rmse": float(np.sqrt(tr.mean())), "designed": L == design.rounds})
     return {"step": at, "rows": rows, "note": None if small else (
         f"the other L are not designed here (N n = {N * n} > {CERTIFICATE_MAX_DIM}): design with --rounds L to "

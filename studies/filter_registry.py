@@ -209,7 +209,11 @@ def local_ekf_design(design):
 
 
 def _links(network: SensorNetwork, iterations: int) -> int:
-    return 2 * len(network.edges)
+    return network.messages_per_step()
+
+
+def _links_per_round(network: SensorNetwork, rounds: int) -> int:
+    return network.messages_per_step(rounds)
 
 
 def _uplinks(network: SensorNetwork, iterations: int) -> int:
@@ -226,7 +230,7 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
         return res.to_result(batch.network, gain_rule(mode).runtime, rounds=design.rounds)
 
     return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run,
-                       lambda net, rounds: 2 * len(net.edges) * rounds, mode=mode, designed=True,
+                       _links_per_round, mode=mode, designed=True,
                        start_check=start_check)
 
 
@@ -277,7 +281,7 @@ def hcmci(name: str, description: str, *, per_run: bool = False) -> FilterEntry:
     ``batch.iterations`` rounds per step on the attacked channels; ``2 |E| L`` messages per step."""
     return FilterEntry(name, "consensus", "local", description,
                        _distributed(run_hcmci_batch, run_hcmci, per_run, rounds=True),
-                       lambda net, L: 2 * len(net.edges) * L, counts_delivered=True, rounds=True)
+                       _links_per_round, counts_delivered=True, rounds=True)
 
 
 def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
