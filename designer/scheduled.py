@@ -233,10 +233,6 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
             (Jmu[..., :, None, :, None] * Jmu[..., None, :, None, :])
         fdi = off + eye[:, :, None, None] * (pq[..., :, None, None] * JM)[..., :, None, :, :]
         cons = np.swapaxes(Epp[..., None, None] * core + fdi, -3, -2).reshape(lead + (d * a, d * a))
-        if margin:  # the gains see each arrived link's difference with an extra independent error margin P_ii
-            extra = np.zeros(lead + (d, d, a, a))
-            extra[..., np.arange(d), np.arange(d), mz:, mz:] = margin * p[..., :, None, None] * P[..., None, :, :]
-            extra = np.swapaxes(extra, -3, -2).reshape(lead + (d * a, d * a))
         # E[y_0 y_jᵀ] = p_j [H_i P H_jᵀ, H_i G_j]: H_i times E[e_i y_jᵀ]
         pc = p[..., :, None, None] * cross_e  # (..., d, n, a)
         ey_links = np.swapaxes(pc, -3, -2).reshape(lead + (n, d * a))
@@ -244,6 +240,12 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
         ey = np.concatenate([_t(HP), ey_links], axis=-1)
         yy = symmetrize(np.concatenate([np.concatenate([my, cross], axis=-1),
                                         np.concatenate([_t(cross), cons], axis=-1)], axis=-2))
+        yy_gains = yy
+        if margin:  # the gains see each arrived link's difference with an extra independent error margin P_ii
+            extra = np.zeros(lead + (d, d, a, a))
+            extra[..., np.arange(d), np.arange(d), mz:, mz:] = margin * p[..., :, None, None] * P[..., None, :, :]
+            yy_gains = yy.copy()
+            yy_gains[..., m:, m:] += np.swapaxes(extra, -3, -2).reshape(lead + (d * a, d * a))
         # the innovations' natural sizes: the measurements' standard deviations and the node's own error's
         own = np.sqrt(np.abs(np.diagonal(P, axis1=-2, axis2=-1)))
         if H_n is None:
@@ -255,14 +257,11 @@ def link_gains(P: np.ndarray, H: np.ndarray, R: np.ndarray, G: np.ndarray, S: np
                                     link_scale.reshape(lead + (d * a,))], axis=-1)
     else:
         ey, yy = _t(HP), my
+        yy_gains = yy
         scale = np.sqrt(np.abs(np.diagonal(my, axis1=-2, axis2=-1)))
         a = n + mz
     has = np.broadcast_to(np.any(p > 0, axis=-1), lead)
-    margined = d and margin
-    if margined:
-        yy_m = yy.copy()
-        yy_m[..., m:, m:] += extra
-    Z, kappa = solve_gains(ey, yy_m if margined else yy, scale, has, m)
+    Z, kappa = solve_gains(ey, yy_gains, scale, has, m)
     ZE = Z @ _t(ey)
     post = symmetrize(P - ZE - _t(ZE) + Z @ yy @ _t(Z))  # the expected posterior of these gains (without the margin)
     K = Z[..., :m]
@@ -754,17 +753,15 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         out["P_post"][k + 1] = Pm.P
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
-    # the stationary tables: the recursion continued at the last nominal point with its input
-    F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
-    Fs = np.broadcast_to(F, (N, n, n))
-    if stationary:
-        _, _, last_G, last_S, stationary, rG_inf, rS_inf = _stationary_gains(st, Pm, Fs, x, steps,
-                                                                             (out["Gamma"][-1], out["Sigma"][-1]))
+    if stationary:  # the stationary tables: the recursion continued at the last nominal point with its input
+        F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
+        _, _, last_G, last_S, record, rG_inf, rS_inf = _stationary_gains(
+            st, Pm, np.broadcast_to(F, (N, n, n)), x, steps, (out["Gamma"][-1], out["Sigma"][-1]))
     else:
-        last_G, last_S, rG_inf, rS_inf = out["Gamma"][-1], out["Sigma"][-1], out["round_Gamma"][-1], \
-            out["round_Sigma"][-1]
-        stationary = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
-    return ScheduledTables(channels=ch, violations=violations, stationary=stationary, nominal=nominal,
+        last_G, last_S = out["Gamma"][-1], out["Sigma"][-1]
+        rG_inf, rS_inf = out["round_Gamma"][-1], out["round_Sigma"][-1]
+        record = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
+    return ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange),
                            robustness=st.margin, rounds=st.rounds, round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,
                            **out)
