@@ -296,7 +296,9 @@ def _summary(f: dict) -> str:
     if bc:
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
         parts.append(f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, exceeded at "
-                     f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else ""))
+                     f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else "")
+                     + (f" but vacuous (the errors reach {bc['run_test']['ratio_mean']:.2g} of it on average)"
+                        if bc.get("informative") is False else ""))
     if isinstance(f.get("feasibility"), dict):
         parts.append(f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}")
     if isinstance(f.get("verdicts"), dict):

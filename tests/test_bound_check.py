@@ -55,6 +55,10 @@ def test_a_loose_or_exact_bound_holds_and_a_tight_one_is_violated():
     assert loose["verdict"] == "holds" and loose["run_test"]["ratio_mean"] == pytest.approx(0.5, rel=0.1)
     assert exact["verdict"] == "holds"
     assert tight["verdict"] == "violated" and tight["run_test"]["mean_exceeds"] and tight["fraction_exceeding"] > 0.05
+    assert loose["informative"] and exact["informative"] and tight["informative"] is None
+    # a bound a million times the error holds and says so, but is called vacuous, not informative
+    huge = _check(err, 1e6)
+    assert huge["verdict"] == "holds" and huge["informative"] is False and "vacuous" in huge["verdict_reason"]
     none = bound_check(err, np.broadcast_to(P, err.shape + (2,)), np.zeros(err.shape[:3], bool))
     assert none["verdict"] == "not checked" and none["fraction_exceeding"] is None
 
