@@ -4,16 +4,19 @@ A consensus design is only as good as what each node can learn: a node whose sen
 cannot observe the state alone needs its neighbours, and a network whose sensors
 together cannot observe it cannot be made to work by any gain.  At the operating point
 (``x0``, the first input) the model is linearised (``F``, ``H_i`` from its CasADi
-Jacobians) and python-control gives
+Jacobians), which gives
 
-* per node, the rank of the observability matrix ``[H_i; H_i F; ...]`` (``control.obsv``):
-  full rank ``n_x`` means the node observes the state alone;
+* per node, the rank of the observability matrix ``[H_i; H_i F; ...]`` (what ``control.obsv``
+  builds): full rank ``n_x`` means the node observes the state alone;
 * for the network, the rank with every sensor stacked (collective observability, the
   condition the distributed filters of the literature need);
-* the steady-state Kalman filters of that linearisation (``control.dlqe``): the
-  centralized one with every sensor and the local one of each node (None when the pair is
-  not detectable: an unobserved mode with ``|λ| >= 1``, the PBH test), as the references a
-  steady-state bound can be held against.
+* the steady-state Kalman filters of that linearisation: the centralized one with every
+  sensor and the local one of each node (None when the pair is not detectable: an
+  unobserved mode with ``|λ| >= 1``, the PBH test), as the references a steady-state bound
+  can be held against.  Their covariance is the stabilising solution of the filter's
+  discrete algebraic Riccati equation, ``scipy.linalg.solve_discrete_are(Fᵀ, Hᵀ, Q, R)``: the
+  call python-control's ``dlqe`` makes (without Slycot), so the same numbers, without
+  importing python-control (some 2 s of every ``cfdesign design``; the tests compare the two).
 """
 from __future__ import annotations
 
@@ -23,10 +26,16 @@ from scipy.linalg import block_diag
 __all__ = ["observability", "kalman_references"]
 
 
-def _rank(F: np.ndarray, H: np.ndarray) -> int:
-    import control
+def _obsv(F: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """The observability matrix ``[H; H F; ...; H F^(n-1)]``."""
+    rows = [np.atleast_2d(np.asarray(H, dtype=float))]
+    for _ in range(F.shape[0] - 1):
+        rows.append(rows[-1] @ F)
+    return np.vstack(rows)
 
-    O = np.asarray(control.obsv(F, H))
+
+def _rank(F: np.ndarray, H: np.ndarray) -> int:
+    O = _obsv(np.asarray(F, dtype=float), H)
     scale = max(float(np.abs(O).max()), 1e-300)
     return int(np.linalg.matrix_rank(O, tol=1e-9 * scale * max(O.shape)))
 
@@ -68,13 +77,16 @@ def _detectable(F: np.ndarray, H: np.ndarray) -> bool:
 
 
 def _posterior_trace(F, H, Q, R) -> float | None:
-    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R); None when it does not exist."""
-    import control
+    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R); None when it does not exist.
+
+    ``P`` the predicted covariance: the stabilising solution of ``P = F P Fᵀ - F P Hᵀ (H P Hᵀ + R)⁻¹ H P Fᵀ + Q``
+    (python-control's ``dlqe(F, I, H, Q, R)`` solves the same equation by the same SciPy call)."""
+    from scipy.linalg import solve_discrete_are
 
     if not _detectable(F, H):
         return None
     try:
-        _, P, _ = control.dlqe(F, np.eye(F.shape[0]), H, Q, R)
+        P = solve_discrete_are(np.asarray(F, dtype=float).T, np.asarray(H, dtype=float).T, Q, R)
     except Exception:  # noqa: BLE001 - not detectable / not stabilisable: no steady state
         return None
     P = np.asarray(P)
@@ -91,5 +103,5 @@ def kalman_references(model, x0, u0=None) -> dict:
     R = [model.measurement_cov(i) for i in range(model.n_sensors)]
     return {"centralized": _posterior_trace(F, np.vstack(H), Q, block_diag(*R)),
             "local": [_posterior_trace(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)],
-            "where": "steady-state Kalman filters (python-control dlqe) of the linearisation at the operating point; "
+            "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the linearisation at the operating point; "
                      "trace of the posterior error covariance; None: no steady state (pair not detectable)"}

@@ -67,3 +67,23 @@ def test_design_and_feasibility_reports_say_who_observes(tmp_path):
     assert "4 of 5 nodes cannot observe it alone" in md and "centralized steady-state Kalman filter" in md
     studies.feasibility(mixed, "dos=0:0.2:2", mode="tuned", out=tmp_path / "f")
     assert "## Observability and the Kalman references" in (tmp_path / "f" / "report.md").read_text()
+
+
+def test_references_and_ranks_equal_python_control():
+    # the Riccati solution and the observability matrix are python-control's, without importing it in production
+    import control
+
+    F = np.array([[1.0, 0.2], [-0.1, 0.97]])
+    H = np.array([[1.0, 0.0], [0.0, 1.0]])
+    m = model(F, H.tolist())
+    ref = kalman_references(m, [0.0, 0.0])
+    Q, R = 0.01 * np.eye(2), 0.1 * np.eye(2)
+    for Hm, Rm, got in ((H, R, ref["centralized"]), (H[:1], R[:1, :1], ref["local"][0]),
+                        (H[1:], R[1:, 1:], ref["local"][1])):
+        _, P, _ = control.dlqe(F, np.eye(2), Hm, Q, Rm)
+        P = np.asarray(P)
+        post = np.trace(P - P @ Hm.T @ np.linalg.solve(Hm @ P @ Hm.T + Rm, Hm @ P))
+        assert got == pytest.approx(post, rel=1e-12)
+    o = observability(m, [0.0, 0.0])
+    for i in range(2):
+        assert o["nodes"][i]["rank"] == np.linalg.matrix_rank(np.asarray(control.obsv(F, H[i:i + 1])))
