@@ -1,0 +1,85 @@
+"""The certificate's shared remainders (designer.mse, **Shared remainders**): every node linearises one f, so its
+remainder is one function φ of the node's error; the deviations' remainder is 2 U times the deviations."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import designer.mse as mse
+from designer.linearization import component_scales
+
+
+def _quadratic_scale(h: float, var: float, radius: float) -> float:
+    """U of φ(y) = -h y² / 2 (the remainder of f(x) = x + h x²/2 at any point) from its Hessian over the prior."""
+    return float(component_scales(lambda pts: np.full((len(pts), 1, 1, 1), h), np.zeros(1), np.array([[var]]),
+                                  radius)[0])
+
+
+def test_the_deviations_remainder_needs_twice_the_scaling_and_no_more():
+    # |φ(a) - φ(b)| <= 2 u |a - b| on the ball U was derived for, and the factor 2 is reached (1 would not hold)
+    h, var, radius = 0.7, 2.0, 3.0
+    u = _quadratic_scale(h, var, radius)
+    edge = radius * np.sqrt(var)
+    assert u == pytest.approx(0.5 * h * edge)
+    pts = np.linspace(-edge, edge, 401)
+    a, b = np.meshgrid(pts, pts)
+    off = a != b
+    ratio = np.abs(-0.5 * h * a**2 + 0.5 * h * b**2)[off] / np.abs(a - b)[off] / u
+    assert ratio.max() <= 2.0 + 1e-12
+    assert ratio.max() > 1.99
+    assert np.max(np.abs(0.5 * h * pts**2)) / edge / u == pytest.approx(1.0)  # and U bounds φ itself
+
+
+def _stacked_truth(points, weights, F, h, Q):
+    """E[e eᵀ] and the exact second moment of the stacked prediction error ``F e_i + φ(e_i)`` (+ the common Q) over a
+    discrete law of the nodes' errors (one scalar state per node)."""
+    E = np.asarray(points, dtype=float)  # (S, N)
+    w = np.asarray(weights, dtype=float)
+    phi = -0.5 * h * E**2
+    X = F * E + phi
+    N = E.shape[1]
+    return np.einsum("s,si,sj->ij", w, E, E), np.einsum("s,si,sj->ij", w, X, X) + Q * np.ones((N, N))
+
+
+def _bound(second, F, u, Q, eps, shared):
+    N = second.shape[0]
+    Phi = second[:, :, None, None] + 1e-12 * np.eye(N)[:, :, None, None]
+    jb = mse.certificate_predict(Phi, np.full((N, 1, 1), F), np.full((N, 1, 1), u), np.array([[Q]]), eps, shared=shared)
+    return jb.phi[:, :, 0, 0]
+
+
+@pytest.mark.parametrize("layout", ["common", "opposite"])
+def test_the_shared_prediction_bound_holds_and_has_power(layout, monkeypatch):
+    h, var, radius, F, Q, eps = 0.1, 1.0, 3.0, 0.9, 1e-3, 0.3
+    u = _quadratic_scale(h, var, radius)
+    edge = radius * np.sqrt(var)
+    N = 4
+    if layout == "common":  # every node with nearly the same error: the remainder is one vector
+        base = np.array([edge, -edge, 0.5 * edge, -0.9 * edge])
+        pts = [b + 0.01 * edge * np.sin(np.arange(N) + b) for b in base]
+    else:  # the nodes' mean error zero, each node at the edge: all of the remainder is in the deviations
+        pts = [edge * np.array(s) for s in itertools.product([1.0, -1.0], repeat=N) if sum(s) == 0]
+    w = np.full(len(pts), 1.0 / len(pts))
+    second, truth = _stacked_truth(pts, w, F, h, Q)
+    shared = _bound(second, F, u, Q, eps, True)
+    alone = _bound(second, F, u, Q, eps, False)
+    for bound in (shared, alone):
+        assert np.linalg.eigvalsh(bound - truth).min() >= -1e-9 * np.abs(truth).max()
+        # power: half the bound does not hold in this case
+        assert np.linalg.eigvalsh(0.5 * bound - truth).min() < 0
+    assert np.trace(shared) <= np.trace(alone) * (1 + 1e-12)  # never looser than the independent blocks
+    if layout == "common":  # the N-fold common-mode factor is gone
+        assert np.trace(shared) < 0.8 * np.trace(alone)
+    # a wrong tightening (the deviations' remainder left out: r_i = φ(ē) for every node) fails on the opposite layout
+    real = mse.shared_structure
+
+    def no_deviation(P, N_, common, copies=None):
+        A, Dd, _ = real(P, N_, common, copies)
+        return A, 0.0 * Dd, mse.SHARED_RATIO_MAX
+
+    monkeypatch.setattr(mse, "shared_structure", no_deviation)
+    wrong = _bound(second, F, u, Q, eps, True)
+    if layout == "opposite":
+        assert np.linalg.eigvalsh(wrong - truth).min() < 0
