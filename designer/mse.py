@@ -92,7 +92,8 @@ linearises the *same* ``f`` (the true state is common): ``r_i = φ(e_i)`` for on
 with ``|U⁻¹ φ(y)| <= |y|`` on the ellipsoid where ``U`` was derived from the Hessian bound ``L``
 (:func:`designer.linearization.component_scales`: ``|φ_j(y)| <= ½ L_j |y|²``), so that the same ``L`` bounds
 its Jacobian, ``|∇φ_j(y)| <= L_j |y|``, and by the mean-value theorem ``|U⁻¹ (φ(a) - φ(b))| <= 2 |a - b|`` for
-``a``, ``b`` in the ellipsoid (twice the scaling: the factor is tight for a quadratic remainder).  With the nodes' mean error ``ē`` (in the ellipsoid when every ``e_i`` is: it is
+``a``, ``b`` in the ellipsoid (twice the scaling: the factor is tight for a quadratic remainder).  With the
+nodes' mean error ``ē`` (in the ellipsoid when every ``e_i`` is: it is
 convex) and the deviations ``δ = Π e`` (``Π = I - 1 1ᵀ/N ⊗ I``):
 
     r_i = φ(ē) + (φ(e_i) - φ(ē)) = U Ω_0 ē + 2 U Ω_i δ_i,        ||Ω_0||, ||Ω_i|| <= 1

@@ -103,5 +103,6 @@ def kalman_references(model, x0, u0=None) -> dict:
     R = [model.measurement_cov(i) for i in range(model.n_sensors)]
     return {"centralized": _posterior_trace(F, np.vstack(H), Q, block_diag(*R)),
             "local": [_posterior_trace(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)],
-            "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the linearisation at the operating point; "
+            "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the "
+                     "linearisation at the operating point; "
                      "trace of the posterior error covariance; None: no steady state (pair not detectable)"}

@@ -29,7 +29,8 @@ the references; it does not know the design mode, so every gain rule is judged a
 The verdicts are checked in that order (a bound above the open loop is called vacuous even
 while it still grows).  The numbers behind the verdict (:attr:`Verdict.detail`) put every
 node's final tr Φ against the open-loop trace, the centralized and the node's own local
-steady-state Kalman filter (the Riccati equation of python-control's ``dlqe``, :func:`designer.observability.kalman_references`),
+steady-state Kalman filter (the Riccati equation of python-control's ``dlqe``,
+:func:`designer.observability.kalman_references`),
 as ratios.
 
 A feasibility map judges a *stationary* bound (the fixed point of the recursion at an
@@ -71,7 +72,8 @@ VERDICT_ASSUMPTIONS = (
     "verdict: a feasibility map's stationary bound is compared with the stationary open-loop covariance (discrete "
     "Lyapunov equation) when F is Schur stable (spectral radius < 1 - 1e-9), else with the open-loop covariance at "
     "the scenario's horizon.",
-    "verdict: the centralized and local references are the steady-state Kalman filters (the Riccati equation of python-control dlqe) of the "
+    "verdict: the centralized and local references are the steady-state Kalman filters (the Riccati equation of "
+    "python-control dlqe) of the "
     "linearisation at the operating point; they are reported as ratios and decide no verdict.",
 )
 

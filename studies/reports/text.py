@@ -429,7 +429,8 @@ def observability_section(meta: Mapping) -> list[str]:
                       "neighbours: " + ", ".join(f"{md_escape(d.get('node'))} ({md_escape(d.get('sensor'))})"
                                                  for d in alone) + "."))
         out += ["", f"At the operating point ({md_escape(obs.get('where', 'linearisation'))}; ranks of the "
-                "observability matrices [H; HF; ...]; steady-state Kalman filters (the Riccati equation of python-control's `dlqe`), "
+                "observability matrices [H; HF; ...]; steady-state Kalman filters (the Riccati equation of "
+                "python-control's `dlqe`), "
                 "trace of the posterior covariance, — where the node alone has no steady state):", ""]
         rows = []
         for d in nodes:
