@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
 import numpy as np
 
 from .gain_rules import GAIN_RULES, gain_rule
-from .linearization import DEFAULT_RADIUS, component_scales
+from .linearization import DEFAULT_RADIUS, component_scales, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
 
@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
     "EXCHANGES",
-    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design",
+    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design", "whitened_scaling",
 ]
 
 MODES = tuple(GAIN_RULES)  # the gain rules' names (designer.gain_rules: what each needs at run time)
@@ -73,6 +73,9 @@ DESIGN_ASSUMPTIONS = (
     "consensus design: the paper gives no scaling matrices U, V_i; a model without declared scalings gets them from "
     "its CasADi Hessians over the 3-sigma ellipsoid of the prior around the operating point, per component "
     "(--u-scale / --v-scale prior; override with a number, a diagonal or a matrix).",
+    "consensus design: mode scheduled with the prior scalings measures the remainders in the prior's units: "
+    "U Omega W e and V_i Theta W e with W = P0^(-1/2), U and V_i from the Hessians whitened by P0 over the same "
+    "ellipsoid (remainder_structure in schedule.json).",
     "consensus design: the paper gives no epsilon; default epsilon = 0.5 / d_max, the middle of (0, 1/d_max).",
     "consensus design: Phi_0|0 is the prior covariance and every node starts at the prior mean.",
     "consensus design: neighbours' Phi_{j,k+1|k} used in (27) are exchanged with the predictions and are not "
@@ -122,6 +125,9 @@ class ConsensusDesign(NamedTuple):
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements)
+    # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
+    # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
+    remainder_structure: np.ndarray | None = None
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -194,7 +200,14 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     mu = np.zeros(model.n_x) if design.fdi_mean is None else check_finite("fdi_mean", design.fdi_mean)
     if mu.shape != (model.n_x,):
         raise InputError(f"fdi_mean must have shape ({model.n_x},), got {mu.shape}")
-    return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M, fdi_span=P, fdi_mean=mu)
+    W = design.remainder_structure
+    if W is not None:
+        W = check_finite("remainder_structure", W)
+        if W.shape != (model.n_x, model.n_x) or design.mode != "scheduled":
+            raise InputError(f"remainder_structure must be a ({model.n_x}, {model.n_x}) matrix of mode 'scheduled', "
+                             f"got shape {W.shape} in mode {design.mode!r}")
+    return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M, fdi_span=P, fdi_mean=mu,
+                           remainder_structure=W)
 
 
 # ------------------------------------------------------------------------------------------- scalings
@@ -286,6 +299,23 @@ def resolve_scaling(model: Model, u_scale, v_scale, *, x0, P0, u0=None, radius: 
         diag = hessians()[1][i] if isinstance(e, str) else np.zeros(s.dim)
         Vs.append(_one_scale(f"v_scale of sensor {s.name!r}", e, s.dim, diag))
     return U, tuple(Vs)
+
+
+def whitened_scaling(model: Model, *, x0, P0, u0=None, radius: float = DEFAULT_RADIUS
+                     ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    """The 'prior' scalings of the scheduled design's certificate in the prior's own units: ``U``, one ``V_i`` per
+    sensor and ``W = P0^{-1/2}``, the remainders ``U Ω W e`` and ``V_i Θ W e``
+    (:func:`designer.linearization.whitened_scales`, over the ``radius``-sigma ellipsoid of ``P0`` at ``x0``)."""
+    x0a, P = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
+    if model.n_modes:
+        fh = lambda pts: np.concatenate([model.f_hessian(pts, 0, u0, m) for m in range(model.n_modes)], axis=1)  # noqa
+    else:
+        fh = lambda pts: model.f_hessian(pts, 0, u0)  # noqa: E731
+    u = whitened_scales(fh, x0a, P, radius)
+    u = u[: model.n_x] if not model.n_modes else u.reshape(model.n_modes, model.n_x).max(0)
+    V = tuple(np.diag(whitened_scales(lambda pts, i=i: model.h_hessian(i, pts, 1), x0a, P, radius))
+              for i in range(model.n_sensors))
+    return np.diag(u), V, whitening(P)
 
 
 # ------------------------------------------------------------------------------------------- options
@@ -449,8 +479,13 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         epsilon = tuned_epsilon(d_max) if mode in ("tuned", "mse", "scheduled") else \
             PAPER_DEFAULTS["epsilon_fraction"] / d_max
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
-    U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0,
-                           P0=model.prior.cov if P0 is None else P0, u0=u0, radius=radius)
+    P0 = model.prior.cov if P0 is None else P0
+    structure = None
+    if mode == "scheduled" and (options.linearization or "fixed") == "fixed" and all(
+            isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale)):
+        U, V, structure = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
+    else:
+        U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0, P0=P0, u0=u0, radius=radius)
     des = ConsensusDesign(
         epsilon=float(epsilon),
         sigma=PAPER_DEFAULTS["sigma"] if options.sigma is None else float(options.sigma),
@@ -471,6 +506,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         robustness=0.0 if mode != "scheduled" else ROBUSTNESS if options.robustness is None
         else float(options.robustness),
         rounds=1 if options.rounds is None else int(options.rounds),
+        remainder_structure=structure,
     )
     return validate_design(des, model, network)
 
@@ -481,5 +517,7 @@ def describe_design(des: ConsensusDesign) -> dict:
             "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),
-            "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))]}
+            "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))],
+            "remainder_structure": None if des.remainder_structure is None else
+            np.asarray(des.remainder_structure).tolist()}
 

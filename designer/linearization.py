@@ -32,7 +32,7 @@ import numpy as np
 from .bounds import symmetrize
 
 __all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "component_scales", "hessian_cover",
-           "structured_scale", "selection", "DEFAULT_RADIUS"]
+           "structured_scale", "selection", "DEFAULT_RADIUS", "whitening", "whitened_scales"]
 
 DEFAULT_RADIUS = 3.0
 
@@ -133,6 +133,33 @@ def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tup
     M = np.concatenate([Hs[..., S, :][..., :, S], 2.0 * Hs[..., S, :][..., :, N]], axis=-1)
     L = hessian_norm_bound(M)
     return _scalar(0.5 * L * radius * np.sqrt(_lam_max(cov)), center)
+
+
+def whitening(cov: np.ndarray) -> np.ndarray:
+    """``W = cov^{-1/2}`` (symmetric; ``cov`` positive definite): ``|W e| <= c`` on the ellipsoid ``eᵀ cov⁻¹ e <= c²``."""
+    lam, vec = np.linalg.eigh(symmetrize(np.asarray(cov, dtype=float)))
+    if not lam[0] > 0:
+        raise ValueError("the whitening needs a positive definite covariance")
+    return symmetrize((vec / np.sqrt(lam)) @ vec.T)
+
+
+def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
+    """One scale per component for the remainder written ``r = diag(u) Ω W e`` with ``W = cov^{-1/2}``
+    (:func:`whitening`): the error measured in the ellipsoid's own units instead of its longest axis.
+
+    With ``e = cov^{1/2} z``, ``|r_j| = ½ |zᵀ cov^{1/2} ∇²g_j cov^{1/2} z| <= ½ L̃_j |z|²`` and ``|z| <= c`` on the
+    ellipsoid, so ``u_j = ½ L̃_j c sqrt(m)`` (``L̃_j`` the largest ``||cov^{1/2} ∇²g_j cov^{1/2}||₂`` over the points of
+    :func:`ellipsoid_points`, ``m`` the components whose Hessian is not zero) gives ``||diag(u)⁻¹ r|| <= |W e|``.
+    A function that is nonlinear only in components of small variance (a turn rate times a velocity) gets a
+    scale that small, where :func:`component_scales` multiplies its Hessian by the longest axis (a position's).
+    The same ``L̃`` bounds the Jacobian's change, ``|∇r_j(a) - ∇r_j(b)|``: ``|r_j(a) - r_j(b)| <= 2 u_j / sqrt(m)
+    |W (a - b)|`` on the ellipsoid (:mod:`designer.mse`, **Shared remainders**)."""
+    cov = symmetrize(np.asarray(cov, dtype=float))
+    root = np.linalg.inv(whitening(cov))
+    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
+    L = np.linalg.norm(root @ Hs @ root, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
+    m = int(np.count_nonzero(L > 0))
+    return 0.5 * L * radius * np.sqrt(max(m, 1))
 
 
 def selection(cover: tuple[int, ...], n: int) -> np.ndarray:

@@ -578,17 +578,27 @@ def _top_eigenvalue(A: np.ndarray, iterations: int = 60) -> float:
     return max(lam, float(x @ (A @ x)))
 
 
-def shared_structure(P: np.ndarray, N: int, common: float, copies: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, float]:
+def _left_apply(M: np.ndarray, W: np.ndarray, N: int) -> np.ndarray:
+    """``M (I ⊗ W)`` for a matrix ``M`` (r, N n) and ``W`` (n, n)."""
+    n = W.shape[0]
+    return (M.reshape(M.shape[0], N, n) @ W).reshape(M.shape)
+
+
+def shared_structure(P: np.ndarray, N: int, common: float, copies: np.ndarray | None = None,
+                     W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """The two parts of the stacked structure of the shared remainders (module docstring) for the bound ``P``
     (N n, N n): ``A = (1ᵀ ⊗ I) / common`` (n, N n), ``Dd = B^{1/2} Π`` (N n, N n) with ``B = diag(copies) ⊗ I`` (how
     many remainder blocks act on each node's deviation; 1 without ``copies``), and the ratio ``t0`` that gives the
     common block ``A P Aᵀ`` and the deviation block ``t0 Dd P Ddᵀ`` the same largest eigenvalue (at most
-    :data:`SHARED_RATIO_MAX`): where the search for ``t`` starts (:func:`shared_search`); ``D = [A ; √t Dd]``."""
+    :data:`SHARED_RATIO_MAX`): where the search for ``t`` starts (:func:`shared_search`); ``D = [A ; √t Dd]``.
+    ``W`` (n, n): the remainders act on ``W e`` (``W ē``, ``W δ_i``) instead of ``e``: ``A`` and ``Dd`` times
+    ``I ⊗ W`` on the right."""
     n = P.shape[-1] // N
     A = np.kron(np.ones((1, N)), np.eye(n)) / common
     Pi = np.eye(N * n) - np.kron(np.full((N, N), 1.0 / N), np.eye(n))
     Dd = Pi if copies is None else np.repeat(np.sqrt(np.asarray(copies, dtype=float)), n)[:, None] * Pi
+    if W is not None:
+        A, Dd = _left_apply(A, W, N), _left_apply(Dd, W, N)
     lc = float(np.linalg.eigvalsh(symmetrize(A @ P @ A.T))[-1])
     ld = _top_eigenvalue(symmetrize(Dd @ P @ Dd.T))
     t = SHARED_RATIO_MAX if not ld > lc / SHARED_RATIO_MAX else lc / ld
@@ -645,9 +655,10 @@ def certificate_predict(Phi: np.ndarray, F, U, Q: np.ndarray, eps: float, D=None
     UU = Us @ _t(Us)
     c = 1.0 + eps
     if shared:
-        if P.ndim != 2 or Db is not None or not np.all(Us == Us[:1]):
-            raise ValueError("shared remainders take one run, D None and one U for every node")
-        A, Dd, t0 = shared_structure(P, N, float(N))
+        same = D is None or all(d is not None and np.array_equal(d, D[0]) for d in D)
+        if P.ndim != 2 or not same or not np.all(Us == Us[:1]):
+            raise ValueError("shared remainders take one run, one D and one U for every node")
+        A, Dd, t0 = shared_structure(P, N, float(N), W=None if D is None else np.asarray(D[0], dtype=float))
         base = _sandwich(Fs, P) + _dense(np.broadcast_to(Q, (N, N, n, n)))
         UUc, UUd = np.kron(np.ones((N, N)), UU[0]), np.kron(np.eye(N), UU[0])
 
@@ -664,7 +675,7 @@ def certificate_predict(Phi: np.ndarray, F, U, Q: np.ndarray, eps: float, D=None
             return float(np.trace(phi)), (phi, sigma, float(1.0 / mu[-1] - c * sigma))
 
         phi, sigma, marg = shared_search(evaluate, t0)
-        alone = certificate_predict(Phi, F, U, Q, eps, margin=margin)  # the independent blocks: also a bound
+        alone = certificate_predict(Phi, F, U, Q, eps, D, margin=margin)  # the independent blocks: also a bound
         if np.trace(_dense(alone.phi)) <= np.trace(phi) or not np.isfinite(np.trace(phi)):
             return alone
         return JointBound(_blocks(symmetrize(phi), N), sigma, marg)

@@ -465,8 +465,15 @@ def _remainder_moments(rule: _Rule, ch: Channels, V, Vn, N: int) -> tuple[np.nda
     return KVV, symmetrize(common)
 
 
+def _update_structure(copies: np.ndarray, W: np.ndarray | None, n: int) -> np.ndarray:
+    """``D`` (N n, N n) of (27)'s independent blocks: ``blockdiag(√(1 + d_i) W)`` (``W`` None: I)."""
+    w = np.repeat(np.sqrt(copies), n)[:, None]
+    return w * (np.eye(copies.size * n) if W is None else np.kron(np.eye(copies.size), W))
+
+
 def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, Vn, M: np.ndarray, mu: np.ndarray,
-                                margin: float = MARGIN, shared: bool = False) -> JointBound:
+                                margin: float = MARGIN, shared: bool = False, W: np.ndarray | None = None
+                                ) -> JointBound:
     """(27) of the stacked error in expectation over the attacks (module docstring), β minimising the trace.
 
     ``Phi`` (N, N, n, n) the predicted bound; ``V`` one remainder scaling per node, ``Vn`` (E, mz, mz) the links'
@@ -478,6 +485,9 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
     (``N`` blocks: ``D_cᵀ D_c = 1 1ᵀ/N ⊗ I``, moment ``E[Ȳ Ȳᵀ]`` of :func:`_remainder_moments`, correlated over the
     nodes that use one sensor), the deviations on each node's ``δ_l`` (``1 + d_l`` blocks, twice the scaling:
     ``4 KVV_l``) with the multiplier ``t β`` (:func:`designer.mse.shared_structure`).
+
+    ``W`` (n, n): the remainders act on ``W e`` (``V_i Θ W e``, :attr:`designer.design.ConsensusDesign.
+    remainder_structure`); None: on ``e``.
     """
     N, n = rule.A.shape[0], rule.A.shape[-1]
     P = _dense(Phi)
@@ -514,10 +524,10 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
         return float(np.trace(out)), JointBound(_blocks(symmetrize(out), N), beta, 1.0 / lam[-1] - beta)
 
     if shared:
-        A, Dd, t0 = shared_structure(P, N, np.sqrt(N), copies)
+        A, Dd, t0 = shared_structure(P, N, np.sqrt(N), copies, W)
         own_dev = _dense(_diag_blocks(KVV, N))
         best = shared_search(lambda t: bound(np.vstack([A, np.sqrt(t) * Dd]), common + (4.0 / t) * own_dev), t0)
-    alone = bound(np.repeat(np.sqrt(copies), n)[:, None] * np.eye(N * n), _dense(_diag_blocks(KVV, N)))[1]
+    alone = bound(_update_structure(copies, W, n), _dense(_diag_blocks(KVV, N)))[1]
     if shared and np.trace(_dense(best.phi)) < np.trace(_dense(alone.phi)):  # both are bounds: the tighter
         return best
     return alone
@@ -743,6 +753,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     Pm = as_difference(joint_prior(phi0, N))
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
+    Wn = None if design.remainder_structure is None else [design.remainder_structure] * N  # (26)'s D per node
     out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
     proper = N * n <= CERTIFICATE_MAX_DIM and st.rounds == 1
     if N * n > CERTIFICATE_MAX_DIM:
@@ -778,11 +789,12 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         if exchange:
             out["Kn"][k] = rule.Kn
         if proper:  # the certificate: (26) for the nominal F, then (27) in expectation over the attacks
-            jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, shared=True)
+            jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn, shared=True)
             out["sigma"][k], out["margin28"][k] = jb.multiplier, jb.margin
             out["theorem2"][k] = theorem2_margin(Phi[idx, idx], jb.multiplier, network.d_max)
             if jb.margin > 0 and np.isfinite(jb.phi).all():
-                ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu, shared=True)
+                ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu, shared=True,
+                                                 W=design.remainder_structure)
                 out["beta"][k], out["margin29"][k] = ju.multiplier, ju.margin
                 if ju.margin > 0 and np.isfinite(ju.phi).all() and np.trace(ju.phi[idx, idx], axis1=-2,
                                                                              axis2=-1).max() < BOUND_LIMIT:
@@ -900,17 +912,19 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     Fs = np.broadcast_to(F, (N, n, n))
     # the time-invariant gains: the expected covariance's recursion at x until the tables stop changing
     _, rule, _, _, _, _, _ = _stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
-    # the bound's recursion with those gains
+    # the bound's recursion with those gains (the independent remainder blocks: those the LMI states)
+    W = design.remainder_structure
+    Wn = None if W is None else [W] * N
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
     prev = np.inf
     sigma = beta = np.nan
     for it in range(1, STATIONARY_CERT_MAX + 1):
-        jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon)
+        jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn)
         if not (jb.margin > 0 and np.isfinite(jb.phi).all()):
             return StationaryCertificate(False, None, float(jb.multiplier), np.nan, it,
                                          f"(28) fails at iteration {it} (margin {float(jb.margin):.3g})", None)
-        ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu)
+        ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu, W=W)
         if not (ju.margin > 0 and np.isfinite(ju.phi).all()):
             return StationaryCertificate(False, None, float(jb.multiplier), float(ju.multiplier), it,
                                          f"(29) fails at iteration {it} (margin {float(ju.margin):.3g})", None)
@@ -925,7 +939,7 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
         if abs(prev - tr) <= STATIONARY_CERT_TOL * tr:
             out = StationaryCertificate(True, Phi[idx, idx].copy(), sigma, beta, it, None, None)
             if lmi:
-                out = out._replace(lmi=_stationary_lmi(Phi, rule, ch, F, U, V, Vn, st, design.epsilon, sigma, beta))
+                out = out._replace(lmi=_stationary_lmi(Phi, rule, ch, F, U, V, Vn, st, design.epsilon, sigma, beta, W))
             return out
         prev = tr
     return StationaryCertificate(False, None, sigma, beta, STATIONARY_CERT_MAX,
@@ -933,9 +947,16 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
 
 
 def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps: float, sigma: float,
-                    beta: float) -> dict | None:
+                    beta: float, W: np.ndarray | None = None) -> dict | None:
     """Minimise tr Φ over the stationary LMI for fixed σ, β (:func:`stationary_certificate`); the solver's Φ is
-    checked against the inequality with NumPy (the residual is what the verdict trusts, not the solver's word)."""
+    checked against the inequality with NumPy (the residual is what the verdict trusts, not the solver's word).
+
+    The remainders' structures are those of the recursion: ``D₁ = blockdiag(W)`` in (26) and ``D₂ =
+    blockdiag(√(1 + d_i) W)`` in (27) (``1 + d_i`` remainder blocks on node i's error with measurement exchange;
+    ``W`` the design's :attr:`~designer.design.ConsensusDesign.remainder_structure`, I when None), so that by
+    Woodbury ``(Φ⁻¹ - s DᵀD)⁻¹ = Φ + Φ Dᵀ (I/s - D Φ Dᵀ)⁻¹ D Φ`` and the Schur complements read
+    ``[[Y - W₁ - F Φ Fᵀ, F Φ D₁ᵀ], [D₁ Φ Fᵀ, I/((1+ε)σ) - D₁ Φ D₁ᵀ]] ⪰ 0`` and
+    ``[[X - Y, Y D₂ᵀ], [D₂ Y, I/β - D₂ Y D₂ᵀ]] ⪰ 0``."""
     N, n = rule.A.shape[0], rule.A.shape[-1]
     D = N * n
     if D > LMI_MAX_DIM:
@@ -945,6 +966,9 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     c = 1.0 + eps
     I = np.eye(D)
     Fd = _dense(_diag_blocks(F, N))
+    copies = np.ones(N) if rule.Kn is None else 1.0 + np.bincount(ch.receiver, minlength=N)
+    D1 = np.eye(D) if W is None else np.kron(np.eye(N), W)
+    D2 = _update_structure(copies, W, n)
     W1 = np.kron(np.ones((N, N)), st.Q) + (_dense(_diag_blocks(U @ _t(U), N)) / (eps * sigma) if sigma > 0 else 0.0)
     KVV = np.stack([k @ v @ _t(v) @ _t(k) for k, v in zip(rule.K, V)])
     if rule.Kn is not None and ch.receiver.size:
@@ -968,9 +992,10 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     P, Y, X = (cp.Variable((D, D), symmetric=True) for _ in range(3))
     sym = lambda M: (M + M.T) / 2  # noqa: E731
     cons = [
-        cp.bmat([[sym(Y - W1 - Fd @ P @ Fd.T), Fd @ P], [P @ Fd.T, I / (c * sigma) - P]]) >> 0
+        cp.bmat([[sym(Y - W1 - Fd @ P @ Fd.T), Fd @ P @ D1.T],
+                 [D1 @ P @ Fd.T, sym(I / (c * sigma) - D1 @ P @ D1.T)]]) >> 0
         if sigma > 0 else sym(Y - W1 - Fd @ P @ Fd.T) >> 0,
-        cp.bmat([[X - Y, Y], [Y, I / beta - Y]]) >> 0 if beta > 0 else X - Y >> 0,
+        cp.bmat([[X - Y, Y @ D2.T], [D2 @ Y, sym(I / beta - D2 @ Y @ D2.T)]]) >> 0 if beta > 0 else X - Y >> 0,
         sym(P - T @ X @ T.T - sum(w * (B @ X @ B.T) for w, B in zip(ws, Bs)) - W2) >> 0,
     ]
     prob = cp.Problem(cp.Minimize(cp.trace(P)), cons)
@@ -984,19 +1009,22 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
         return {"status": str(prob.status), "reason": None, "trace": None, "max_residual": None}
     Pv = 0.5 * (P.value + P.value.T)
     # an independent check in NumPy: one step of the recursion with these σ, β from Φ̄ must stay below it
-    resid = float(np.max(np.linalg.eigvalsh(_fixed_step(Pv, Fd, W1, W2, T, Bs, ws, c * sigma, beta) - Pv)))
+    resid = float(np.max(np.linalg.eigvalsh(_fixed_step(Pv, Fd, W1, W2, T, Bs, ws, c * sigma, beta, D1, D2) - Pv)))
     top = max(float(np.max(np.linalg.eigvalsh(Pv))), 1e-300)
     return {"status": str(prob.status), "reason": None, "trace": float(np.trace(Pv)),
             "node_trace": [float(np.trace(Pv[i * n:(i + 1) * n, i * n:(i + 1) * n])) for i in range(N)],
             "max_residual": resid, "relative_residual": resid / top}
 
 
-def _fixed_step(P, Fd, W1, W2, T, Bs, ws, s: float, beta: float) -> np.ndarray:
-    """One step of the stacked bound's recursion for fixed multipliers ``s = (1+ε)σ`` and ``β`` (dense)."""
+def _fixed_step(P, Fd, W1, W2, T, Bs, ws, s: float, beta: float, D1=None, D2=None) -> np.ndarray:
+    """One step of the stacked bound's recursion for fixed multipliers ``s = (1+ε)σ`` and ``β`` (dense), the
+    remainders' structures ``D1`` in (26) and ``D2`` in (27) (None: I)."""
     I = np.eye(P.shape[0])
-    Pi = P if s == 0 else P + P @ np.linalg.solve(I / s - P, P)  # (P⁻¹ - s I)⁻¹
+    D1 = I if D1 is None else D1
+    D2 = I if D2 is None else D2
+    Pi = P if s == 0 else P + P @ D1.T @ np.linalg.solve(I / s - D1 @ P @ D1.T, D1 @ P)  # (P⁻¹ - s D₁ᵀD₁)⁻¹
     Y = symmetrize(Fd @ Pi @ Fd.T + W1)
-    X = Y if beta == 0 else Y + Y @ np.linalg.solve(I / beta - Y, Y)  # (Y⁻¹ - β I)⁻¹
+    X = Y if beta == 0 else Y + Y @ D2.T @ np.linalg.solve(I / beta - D2 @ Y @ D2.T, D2 @ Y)  # (Y⁻¹ - β D₂ᵀD₂)⁻¹
     X = symmetrize(X)
     return symmetrize(T @ X @ T.T + sum(w * (B @ X @ B.T) for w, B in zip(ws, Bs)) + W2)
 

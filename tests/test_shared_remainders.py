@@ -75,11 +75,49 @@ def test_the_shared_prediction_bound_holds_and_has_power(layout, monkeypatch):
     # a wrong tightening (the deviations' remainder left out: r_i = φ(ē) for every node) fails on the opposite layout
     real = mse.shared_structure
 
-    def no_deviation(P, N_, common, copies=None):
-        A, Dd, _ = real(P, N_, common, copies)
+    def no_deviation(P, N_, common, copies=None, W=None):
+        A, Dd, _ = real(P, N_, common, copies, W)
         return A, 0.0 * Dd, mse.SHARED_RATIO_MAX
 
     monkeypatch.setattr(mse, "shared_structure", no_deviation)
     wrong = _bound(second, F, u, Q, eps, True)
     if layout == "opposite":
         assert np.linalg.eigvalsh(wrong - truth).min() < 0
+
+
+def test_the_stationary_lmi_states_the_recursions_remainders():
+    # with measurement exchange (1 + d_i) remainder blocks act on node i's error in (27): the LMI's minimum is the
+    # recursion's fixed point (the LMI with one block, D = I, certified a bound 6 % below it on this case)
+    from studies.consensus_design import consensus_design, stationary_record
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    des = consensus_design(sc, mode="scheduled", u_scale=0.0, steps=2)
+    assert des.exchange == "measurements"
+    rec = stationary_record(sc, des)
+    assert rec["converged"] and rec["beta"] > 0 and rec["lmi"]["status"] in ("optimal", "optimal_inaccurate")
+    assert rec["lmi"]["relative_residual"] < 1e-8
+    assert rec["lmi"]["trace"] == pytest.approx(sum(rec["trace"]), rel=1e-6)
+
+
+def test_whitened_scales_bound_the_remainder_in_the_priors_units():
+    # f_0 = x0 + x1 x2 (a position driven by velocity times turn rate): nonlinear only in the small-variance states
+    from designer.linearization import whitened_scales, whitening
+
+    cov = np.diag([4.0, 0.1, 1e-4])
+    H = np.zeros((1, 3, 3))
+    H[0, 1, 2] = H[0, 2, 1] = 1.0
+    hess = lambda pts: np.broadcast_to(H, pts.shape[:-1] + H.shape)  # noqa: E731
+    radius = 3.0
+    u = whitened_scales(hess, np.zeros(3), cov, radius)
+    W = whitening(cov)
+    assert np.allclose(W @ cov @ W, np.eye(3))
+    rng = np.random.default_rng(5)
+    z = rng.standard_normal((20000, 3))
+    z *= radius * rng.uniform(0, 1, (len(z), 1)) ** (1 / 3) / np.linalg.norm(z, axis=1, keepdims=True)
+    e = z @ np.linalg.inv(W)  # errors in the ellipsoid
+    r = 0.5 * np.einsum("si,ij,sj->s", e, H[0], e)
+    ratio = np.abs(r) / u[0] / np.linalg.norm(e @ W, axis=1)
+    assert ratio.max() <= 1.0 and ratio.max() > 0.9  # a bound, and nearly reached at the ellipsoid's edge
+    # the isotropic scale multiplies the Hessian by the longest axis (the position's): 200 times larger here
+    assert component_scales(hess, np.zeros(3), cov, radius)[0] > 100 * u[0]
