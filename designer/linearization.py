@@ -136,7 +136,8 @@ def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tup
 
 
 def whitening(cov: np.ndarray) -> np.ndarray:
-    """``W = cov^{-1/2}`` (symmetric; ``cov`` positive definite): ``|W e| <= c`` on the ellipsoid ``eᵀ cov⁻¹ e <= c²``."""
+    """``W = cov^{-1/2}`` (symmetric; ``cov`` positive definite): ``|W e| <= c`` on the ellipsoid
+    ``eᵀ cov⁻¹ e <= c²``."""
     lam, vec = np.linalg.eigh(symmetrize(np.asarray(cov, dtype=float)))
     if not lam[0] > 0:
         raise ValueError("the whitening needs a positive definite covariance")
