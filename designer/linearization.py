@@ -32,7 +32,7 @@ import numpy as np
 from .bounds import symmetrize
 
 __all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "component_scales", "hessian_cover",
-           "structured_scale", "selection", "DEFAULT_RADIUS", "whitening", "whitened_scales"]
+           "structured_scale", "selection", "DEFAULT_RADIUS", "whitening", "whitened_scales", "WHITENING_FLOOR"]
 
 DEFAULT_RADIUS = 3.0
 
@@ -136,12 +136,21 @@ def structured_scale(hessian_at, center: np.ndarray, cov: np.ndarray, cover: tup
 
 
 def whitening(cov: np.ndarray) -> np.ndarray:
-    """``W = cov^{-1/2}`` (symmetric; ``cov`` positive definite): ``|W e| <= c`` on the ellipsoid
-    ``eᵀ cov⁻¹ e <= c²``."""
+    """``W = cov^{-1/2}`` (symmetric): ``|W e| <= c`` on the ellipsoid ``eᵀ cov⁻¹ e <= c²``.  Eigenvalues below
+    :data:`WHITENING_FLOOR` of the largest are raised to it (a direction the ellipsoid all but lacks: its errors'
+    component there is as small)."""
+    return _root(cov, -0.5)
+
+
+#: The smallest eigenvalue, relative to the largest, that :func:`whitening` and :func:`whitened_scales` keep.
+WHITENING_FLOOR = 1e-12
+
+
+def _root(cov, power: float) -> np.ndarray:
     lam, vec = np.linalg.eigh(symmetrize(np.asarray(cov, dtype=float)))
-    if not lam[0] > 0:
-        raise ValueError("the whitening needs a positive definite covariance")
-    return symmetrize((vec / np.sqrt(lam)) @ vec.T)
+    top = max(float(lam[-1]), 1e-300)
+    lam = np.maximum(lam, WHITENING_FLOOR * top)
+    return symmetrize((vec * lam**power) @ vec.T)
 
 
 def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
@@ -156,7 +165,7 @@ def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
     The same ``L̃`` bounds the Jacobian's change, ``|∇r_j(a) - ∇r_j(b)|``: ``|r_j(a) - r_j(b)| <= 2 u_j / sqrt(m)
     |W (a - b)|`` on the ellipsoid (:mod:`designer.mse`, **Shared remainders**)."""
     cov = symmetrize(np.asarray(cov, dtype=float))
-    root = np.linalg.inv(whitening(cov))
+    root = _root(cov, 0.5)  # the inverse of whitening(cov)
     Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
     L = np.linalg.norm(root @ Hs @ root, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
     m = int(np.count_nonzero(L > 0))
