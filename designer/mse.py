@@ -641,19 +641,22 @@ def shared_search(evaluate, t0: float):
 
 
 def certificate_predict(Phi: np.ndarray, F, U, Q: np.ndarray, eps: float, D=None,
-                        margin: float = MARGIN, shared: bool = False) -> JointBound:
+                        margin: float = MARGIN, shared: bool = False, tight: bool = False) -> JointBound:
     """(26) for the stacked error, σ minimising the trace with (28) at ``margin`` (module docstring).
 
     ``Phi`` (N, N, n, n) or a stack (..., N, N, n, n); ``F``, ``U`` one (..., n, n) per node (or
     (..., N, n, n)); ``D`` one structure per node (None: I), the same for every run.  ``shared``: the nodes'
-    remainders are one function of their errors (module docstring, **Shared remainders**; one run, ``D`` None,
-    one ``U`` for every node).
+    remainders are one function of their errors (module docstring, **Shared remainders**; one run, one ``D`` and
+    one ``U`` for every node).  ``tight``: the remainder term ``((1+ε) σ)⁻¹ U Uᵀ`` of the paper's own lemma, the first
+    inequality of its (31), instead of the ``(εσ)⁻¹ U Uᵀ`` that (26) loosens it to (``1/ε > 1/(1+ε)``; the loosening
+    serves Theorem 2's conditions, not the bound): with σ chosen for the trace, ε then drops out.
     """
     N, n = Phi.shape[-4], Phi.shape[-1]
     P, Db = _dense(Phi), _structure(D, n)
     Fs, Us = _per_node(F), _per_node(U)
     UU = Us @ _t(Us)
     c = 1.0 + eps
+    split = c if tight else eps  # the remainder term is U Uᵀ / (split σ)
     if shared:
         same = D is None or all(d is not None and np.array_equal(d, D[0]) for d in D)
         if P.ndim != 2 or not same or not np.all(Us == Us[:1]):
@@ -668,25 +671,25 @@ def certificate_predict(Phi: np.ndarray, F, U, Q: np.ndarray, eps: float, D=None
             FG = _left(Fs, (P @ Ds.T) @ Qv)
             UUs = UUc + (4.0 / t) * UUd
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                sigma = float(joint_multiplier(np.sum(FG**2, axis=-2), mu, float(np.trace(UUs)) / eps, c,
+                sigma = float(joint_multiplier(np.sum(FG**2, axis=-2), mu, float(np.trace(UUs)) / split, c,
                                                (1.0 - margin) / (c * mu[-1])))
                 d = c * sigma / (1.0 - c * sigma * mu)
-                phi = base + (FG * d[None, :]) @ _t(FG) + (UUs / (eps * sigma) if sigma > 0 else 0.0)
+                phi = base + (FG * d[None, :]) @ _t(FG) + (UUs / (split * sigma) if sigma > 0 else 0.0)
             return float(np.trace(phi)), (phi, sigma, float(1.0 / mu[-1] - c * sigma))
 
         phi, sigma, marg = shared_search(evaluate, t0)
-        alone = certificate_predict(Phi, F, U, Q, eps, D, margin=margin)  # the independent blocks: also a bound
+        alone = certificate_predict(Phi, F, U, Q, eps, D, margin=margin, tight=tight)  # independent blocks: a bound
         if np.trace(_dense(alone.phi)) <= np.trace(phi) or not np.isfinite(np.trace(phi)):
             return alone
         return JointBound(_blocks(symmetrize(phi), N), sigma, marg)
     mu, G = _woodbury(P, Db)
-    a = np.trace(UU, axis1=-2, axis2=-1).sum(axis=-1) / eps
+    a = np.trace(UU, axis1=-2, axis2=-1).sum(axis=-1) / split
     FG = _left(Fs, G)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         sigma = joint_multiplier(np.sum(FG**2, axis=-2), mu, a, c, (1.0 - margin) / (c * mu[..., -1]))
         d = c * sigma[..., None] / (1.0 - c * sigma[..., None] * mu)
         phi = _sandwich(Fs, P) + (FG * d[..., None, :]) @ _t(FG) + _dense(np.broadcast_to(Q, (N, N, n, n)))
-        lin = np.where(sigma > 0, 1.0 / (eps * np.where(sigma > 0, sigma, 1.0)), 0.0)  # (εσ)⁻¹ U Uᵀ, 0 at σ = 0
+        lin = np.where(sigma > 0, 1.0 / (split * np.where(sigma > 0, sigma, 1.0)), 0.0)  # (εσ)⁻¹ U Uᵀ, 0 at σ = 0
         phi = _add_diagonal_blocks(phi, lin[..., None, None, None] * UU)
     return JointBound(_blocks(symmetrize(phi), N), _item(sigma), _item(1.0 / mu[..., -1] - c * sigma))
 

@@ -63,7 +63,10 @@ step's arrived packets, each with per-link gains from the expected joint covaria
 as fresh draws while the simulations hold one realisation per step, so for L > 1 no certificate is computed.
 
 **The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.mse`) in
-expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`)
+expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`, with
+the remainder term ``((1+ε)σ)⁻¹ U Uᵀ`` of the paper's lemma, the first inequality of its (31), not the ``(εσ)⁻¹``
+that (26) loosens it to for Theorem 2: the loose term inflates the bound by ``2 |U| sqrt((1+ε)/ε)`` per step,
+which on the indoor robot (``U = 0.01 I``) outgrew the consensus's contraction)
 and (27) with ``E_ρ[T X Tᵀ]`` for ``X = (Φ⁻^-1 - β I)^-1``, one β for the network minimising the trace
 (:func:`expected_certificate_update`).  It bounds ``E[e eᵀ]`` for the offline gains along the nominal
 linearisation with the remainders ``U``, ``V_i``; for a linear model with ``U = V = 0`` and a zero-mean
@@ -789,7 +792,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         if exchange:
             out["Kn"][k] = rule.Kn
         if proper:  # the certificate: (26) for the nominal F, then (27) in expectation over the attacks
-            jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn, shared=True)
+            jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn, shared=True, tight=True)
             out["sigma"][k], out["margin28"][k] = jb.multiplier, jb.margin
             out["theorem2"][k] = theorem2_margin(Phi[idx, idx], jb.multiplier, network.d_max)
             if jb.margin > 0 and np.isfinite(jb.phi).all():
@@ -920,7 +923,7 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     prev = np.inf
     sigma = beta = np.nan
     for it in range(1, STATIONARY_CERT_MAX + 1):
-        jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn)
+        jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn, tight=True)
         if not (jb.margin > 0 and np.isfinite(jb.phi).all()):
             return StationaryCertificate(False, None, float(jb.multiplier), np.nan, it,
                                          f"(28) fails at iteration {it} (margin {float(jb.margin):.3g})", None)
@@ -969,7 +972,7 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     copies = np.ones(N) if rule.Kn is None else 1.0 + np.bincount(ch.receiver, minlength=N)
     D1 = np.eye(D) if W is None else np.kron(np.eye(N), W)
     D2 = _update_structure(copies, W, n)
-    W1 = np.kron(np.ones((N, N)), st.Q) + (_dense(_diag_blocks(U @ _t(U), N)) / (eps * sigma) if sigma > 0 else 0.0)
+    W1 = np.kron(np.ones((N, N)), st.Q) + (_dense(_diag_blocks(U @ _t(U), N)) / (c * sigma) if sigma > 0 else 0.0)
     KVV = np.stack([k @ v @ _t(v) @ _t(k) for k, v in zip(rule.K, V)])
     if rule.Kn is not None and ch.receiver.size:
         lv = rule.Kn @ Vn
