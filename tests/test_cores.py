@@ -59,3 +59,23 @@ def test_a_forked_child_gets_its_own_pool():
         os._exit(0 if ok else 1)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_eigh_splits_a_few_large_matrices_too(monkeypatch):
+    # 28 matrices of 58 x 58 (a 28-node scheduled design's link gains) are worth two threads; 3 of 10 x 10 are not
+    calls = []
+    real = np.linalg.eigh
+
+    def counted(x):
+        calls.append(x.shape[0])
+        return real(x)
+
+    monkeypatch.setattr(cores, "usable_cores", lambda: 2)
+    monkeypatch.setattr(np.linalg, "eigh", counted)
+    a = _stack((28, 58, 58))
+    lam, Q = eigh(a)
+    assert sorted(calls) == [14, 14]
+    assert np.array_equal(lam, real(a)[0]) and np.array_equal(Q, real(a)[1])
+    calls.clear()
+    eigh(_stack((3, 10, 10)))
+    assert calls == [3]
