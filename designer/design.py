@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
 import numpy as np
 
 from .gain_rules import GAIN_RULES, gain_rule
-from .linearization import DEFAULT_RADIUS, component_scales, whitened_scales, whitening
+from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
 
@@ -128,6 +128,9 @@ class ConsensusDesign(NamedTuple):
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
     remainder_structure: np.ndarray | None = None
+    # with it: the sensors' remainders at one common error as one (designer.linearization.remainder_gram), over the
+    # sensors' components padded to the largest sensor's dimension (N mz, N mz)
+    remainder_gram: np.ndarray | None = None
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -206,8 +209,15 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         if W.shape != (model.n_x, model.n_x) or design.mode != "scheduled":
             raise InputError(f"remainder_structure must be a ({model.n_x}, {model.n_x}) matrix of mode 'scheduled', "
                              f"got shape {W.shape} in mode {design.mode!r}")
+    G = design.remainder_gram
+    if G is not None:
+        G = check_finite("remainder_gram", G)
+        size = model.n_sensors * max(model.sensor_dims)
+        if G.shape != (size, size) or W is None:
+            raise InputError(f"remainder_gram must be a ({size}, {size}) matrix beside a remainder_structure, got "
+                             f"shape {G.shape}")
     return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M, fdi_span=P, fdi_mean=mu,
-                           remainder_structure=W)
+                           remainder_structure=W, remainder_gram=G)
 
 
 # ------------------------------------------------------------------------------------------- scalings
@@ -302,10 +312,12 @@ def resolve_scaling(model: Model, u_scale, v_scale, *, x0, P0, u0=None, radius: 
 
 
 def whitened_scaling(model: Model, *, x0, P0, u0=None, radius: float = DEFAULT_RADIUS
-                     ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+                     ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray, np.ndarray]:
     """The 'prior' scalings of the scheduled design's certificate in the prior's own units: ``U``, one ``V_i`` per
     sensor and ``W = P0^{-1/2}``, the remainders ``U Ω W e`` and ``V_i Θ W e``
-    (:func:`designer.linearization.whitened_scales`, over the ``radius``-sigma ellipsoid of ``P0`` at ``x0``)."""
+    (:func:`designer.linearization.whitened_scales`, over the ``radius``-sigma ellipsoid of ``P0`` at ``x0``), and the
+    sensors' joint remainder matrix (:func:`designer.linearization.remainder_gram`, every sensor's components padded
+    to the largest sensor's dimension)."""
     x0a, P = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
     if model.n_modes:
         fh = lambda pts: np.concatenate([model.f_hessian(pts, 0, u0, m) for m in range(model.n_modes)], axis=1)  # noqa
@@ -315,7 +327,13 @@ def whitened_scaling(model: Model, *, x0, P0, u0=None, radius: float = DEFAULT_R
     u = u[: model.n_x] if not model.n_modes else u.reshape(model.n_modes, model.n_x).max(0)
     V = tuple(np.diag(whitened_scales(lambda pts, i=i: model.h_hessian(i, pts, 1), x0a, P, radius))
               for i in range(model.n_sensors))
-    return np.diag(u), V, whitening(P)
+    mz = max(model.sensor_dims)
+    comp = np.concatenate([i * mz + np.arange(m) for i, m in enumerate(model.sensor_dims)])
+    joint = remainder_gram(lambda pts: np.concatenate([model.h_hessian(i, pts, 1) for i in range(model.n_sensors)],
+                                                      axis=-3), x0a, P, radius)
+    gram = np.zeros((model.n_sensors * mz, model.n_sensors * mz))
+    gram[np.ix_(comp, comp)] = joint
+    return np.diag(u), V, whitening(P), gram
 
 
 # ------------------------------------------------------------------------------------------- options
@@ -480,10 +498,10 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
             PAPER_DEFAULTS["epsilon_fraction"] / d_max
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     P0 = model.prior.cov if P0 is None else P0
-    structure = None
+    structure = gram = None
     if mode == "scheduled" and (options.linearization or "fixed") == "fixed" and all(
             isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale)):
-        U, V, structure = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
+        U, V, structure, gram = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
     else:
         U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0, P0=P0, u0=u0, radius=radius)
     des = ConsensusDesign(
@@ -507,6 +525,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         else float(options.robustness),
         rounds=1 if options.rounds is None else int(options.rounds),
         remainder_structure=structure,
+        remainder_gram=gram,
     )
     return validate_design(des, model, network)
 

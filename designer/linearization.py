@@ -32,7 +32,8 @@ import numpy as np
 from .bounds import symmetrize
 
 __all__ = ["ellipsoid_points", "hessian_norm_bound", "remainder_scale", "component_scales", "hessian_cover",
-           "structured_scale", "selection", "DEFAULT_RADIUS", "whitening", "whitened_scales", "WHITENING_FLOOR"]
+           "structured_scale", "selection", "DEFAULT_RADIUS", "whitening", "whitened_scales", "WHITENING_FLOOR",
+           "remainder_gram"]
 
 DEFAULT_RADIUS = 3.0
 
@@ -170,6 +171,38 @@ def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
     L = np.linalg.norm(root @ Hs @ root, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
     m = int(np.count_nonzero(L > 0))
     return 0.5 * L * radius * np.sqrt(max(m, 1))
+
+
+def remainder_gram(hessians_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
+    """A matrix ``Γ`` (c, c) over the ``c`` components of several functions linearised at one point with one error (the
+    sensors' measurements at a common error), such that their stacked remainder ``ψ`` satisfies
+    ``(yᵀ ψ)² <= |W e|² yᵀ Γ y`` for every ``y`` and every error in the ellipsoid (``W = cov^{-1/2}``): ``ψ = Γ^{1/2} Ω W e``
+    with one ``||Ω|| <= 1`` for all of them, where one scale per component (:func:`whitened_scales`) lets each
+    component's remainder take its largest value independently, so that ``c`` of them add up ``c``-fold.
+
+    ``hessians_at(points)`` gives the Hessians (..., P, c, n, n) of every component.  With ``z = W e``, ``|z| <= r``
+    (the radius), the whitened Hessians ``H̃_j = cov^{1/2} ∇²ψ_j cov^{1/2}`` at the centre ``H̃⁰_j`` and their largest
+    change ``δ_j`` over the points of :func:`ellipsoid_points`: ``yᵀ ψ = ½ zᵀ (Σ_j y_j H̃_j(ξ_j)) z``, whose first part
+    is at most ``½ r |z| ||Σ_j y_j H̃⁰_j||_F`` (``||·||_F² = yᵀ G y``, ``G`` the Frobenius Gram matrix of the ``H̃⁰_j``:
+    Hessians of opposite signs cancel there) and whose second at most ``½ r |z| sqrt(m Σ_j y_j² δ_j²)``
+    (``m`` the components that change); with ``(a + b)² <= (1 + 1/τ) a² + (1 + τ) b²``,
+    ``Γ = ¼ r² [(1 + 1/τ) G + (1 + τ) m diag(δ²)]``, ``τ = sqrt(tr(m diag(δ²)) / tr G)``.  A sampled supremum, as for
+    :func:`component_scales`."""
+    cov = symmetrize(np.asarray(cov, dtype=float))
+    root = _root(cov, 0.5)
+    center = np.asarray(center, dtype=float)
+    H0 = root @ np.asarray(hessians_at(center[None, :]), dtype=float)[0] @ root  # (c, n, n)
+    Hs = root @ np.asarray(hessians_at(ellipsoid_points(center, cov, radius)), dtype=float) @ root  # (P, c, n, n)
+    delta = np.linalg.norm(Hs - H0[None], ord=2, axis=(-2, -1)).max(axis=0)  # (c,)
+    G = np.einsum("iab,jab->ij", H0, H0)
+    B = np.count_nonzero(delta > 0) * np.diag(delta**2)
+    ta, tb = float(np.trace(G)), float(np.trace(B))
+    if ta > 0 and tb > 0:
+        tau = np.sqrt(tb / ta)
+        out = (1 + 1 / tau) * G + (1 + tau) * B
+    else:
+        out = G + B
+    return 0.25 * radius**2 * symmetrize(out)
 
 
 def selection(cover: tuple[int, ...], n: int) -> np.ndarray:

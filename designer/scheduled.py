@@ -468,6 +468,29 @@ def _remainder_moments(rule: _Rule, ch: Channels, V, Vn, N: int) -> tuple[np.nda
     return KVV, symmetrize(common)
 
 
+def _joint_common(rule: _Rule, ch: Channels, gram: np.ndarray, N: int) -> np.ndarray:
+    """``E[𝒢 Γ 𝒢ᵀ]`` (N n, N n): the sensors' remainders at one common error as one (``Γ`` the design's
+    :attr:`~designer.design.ConsensusDesign.remainder_gram`, (N mz, N mz)), entering node ``s`` by ``K_s`` and each
+    node ``l`` that received sensor ``s``'s measurement by ``ρ_ls K_ls``; the arrivals' variance on the receivers."""
+    n = rule.A.shape[-1]
+    K = np.stack([np.asarray(k) for k in rule.K])  # (N, n, mz)
+    mz = K.shape[-1]
+    G = np.zeros((N, n, N, mz))
+    G[np.arange(N), :, np.arange(N), :] = K
+    if rule.Kn is not None and ch.receiver.size:
+        np.add.at(G, (ch.receiver, slice(None), ch.sender), ch.p[:, None, None] * rule.Kn)
+    Gd = G.reshape(N * n, N * mz)
+    out = Gd @ gram @ Gd.T
+    if rule.Kn is not None and ch.receiver.size:
+        blocks = _blocks(gram, N)[ch.sender, ch.sender]  # (E, mz, mz): each link's sensor block
+        var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ blocks @ _t(rule.Kn))
+        add = np.zeros((N, n, n))
+        np.add.at(add, ch.receiver, var)
+        view = _blocks(out, N)
+        view[np.arange(N), np.arange(N)] += add
+    return symmetrize(out)
+
+
 def _update_structure(copies: np.ndarray, W: np.ndarray | None, n: int) -> np.ndarray:
     """``D`` (N n, N n) of (27)'s independent blocks: ``blockdiag(√(1 + d_i) W)`` (``W`` None: I)."""
     w = np.repeat(np.sqrt(copies), n)[:, None]
@@ -475,8 +498,8 @@ def _update_structure(copies: np.ndarray, W: np.ndarray | None, n: int) -> np.nd
 
 
 def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, Vn, M: np.ndarray, mu: np.ndarray,
-                                margin: float = MARGIN, shared: bool = False, W: np.ndarray | None = None
-                                ) -> JointBound:
+                                margin: float = MARGIN, shared: bool = False, W: np.ndarray | None = None,
+                                gram: np.ndarray | None = None) -> JointBound:
     """(27) of the stacked error in expectation over the attacks (module docstring), β minimising the trace.
 
     ``Phi`` (N, N, n, n) the predicted bound; ``V`` one remainder scaling per node, ``Vn`` (E, mz, mz) the links'
@@ -490,7 +513,10 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
     ``4 KVV_l``) with the multiplier ``t β`` (:func:`designer.mse.shared_structure`).
 
     ``W`` (n, n): the remainders act on ``W e`` (``V_i Θ W e``, :attr:`designer.design.ConsensusDesign.
-    remainder_structure`); None: on ``e``.
+    remainder_structure`); None: on ``e``.  ``gram`` (with ``shared``): the sensors' remainders as one function
+    of the error (:attr:`~designer.design.ConsensusDesign.remainder_gram`, :func:`_joint_common`): their common parts
+    one block on ``W ē`` (``D_cᵀ D_c = 1 1ᵀ/N² ⊗ WᵀW``) instead of N, each a sensor's; node l's deviations one block
+    on ``W δ_l``, the Lipschitz bound of the same Hessians (twice: ``4 E[𝒢_l Γ 𝒢_lᵀ]``) instead of ``1 + d_l``.
     """
     N, n = rule.A.shape[0], rule.A.shape[-1]
     P = _dense(Phi)
@@ -527,8 +553,14 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
         return float(np.trace(out)), JointBound(_blocks(symmetrize(out), N), beta, 1.0 / lam[-1] - beta)
 
     if shared:
-        A, Dd, t0 = shared_structure(P, N, np.sqrt(N), copies, W)
-        own_dev = _dense(_diag_blocks(KVV, N))
+        if gram is not None:  # the common parts one remainder; each node's deviations one (the sensors it uses)
+            common = _joint_common(rule, ch, gram, N)
+            idx = np.arange(N)
+            own_dev = _dense(_diag_blocks(_blocks(common, N)[idx, idx], N))
+            A, Dd, t0 = shared_structure(P, N, float(N), None, W)
+        else:
+            own_dev = _dense(_diag_blocks(KVV, N))
+            A, Dd, t0 = shared_structure(P, N, np.sqrt(N), copies, W)
         best = shared_search(lambda t: bound(np.vstack([A, np.sqrt(t) * Dd]), common + (4.0 / t) * own_dev), t0)
     alone = bound(_update_structure(copies, W, n), _dense(_diag_blocks(KVV, N)))[1]
     if shared and np.trace(_dense(best.phi)) < np.trace(_dense(alone.phi)):  # both are bounds: the tighter
@@ -797,7 +829,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
             out["theorem2"][k] = theorem2_margin(Phi[idx, idx], jb.multiplier, network.d_max)
             if jb.margin > 0 and np.isfinite(jb.phi).all():
                 ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu, shared=True,
-                                                 W=design.remainder_structure)
+                                                 W=design.remainder_structure, gram=design.remainder_gram)
                 out["beta"][k], out["margin29"][k] = ju.multiplier, ju.margin
                 if ju.margin > 0 and np.isfinite(ju.phi).all() and np.trace(ju.phi[idx, idx], axis1=-2,
                                                                              axis2=-1).max() < BOUND_LIMIT:

@@ -149,3 +149,51 @@ def test_the_tight_prediction_term_is_the_papers_lemma_and_is_reached():
         assert gap.min() >= -1e-9
         worst = min(worst, gap.min() / np.trace(jb.phi[0, 0]))
     assert worst < 0.05  # some Ω comes within 5 % of the bound's trace in some direction: half of it would fail
+
+
+def test_the_joint_remainder_of_several_sensors_bounds_them_and_lets_opposite_curvatures_cancel():
+    # two range-like sensors on opposite sides: their remainders' Hessians have opposite signs in the combination
+    # a node applies; the joint matrix bounds (yᵀ ψ)² by |W e|² yᵀ Γ y on the ellipsoid and is tighter there
+    from designer.linearization import remainder_gram, whitened_scales, whitening
+
+    cov = np.diag([1.0, 0.5])
+    radius = 3.0
+    c0 = np.zeros(2)
+
+    def hess(pts):  # h_0 = |x - s0|, h_1 = -|x - s1| + const: curvature (I - u uᵀ)/r of opposite signs
+        out = []
+        for s, sign in ((np.array([10.0, 0.0]), 1.0), (np.array([-10.0, 0.0]), -1.0)):
+            d = pts - s
+            r = np.linalg.norm(d, axis=-1)[..., None, None]
+            u = d[..., :, None] * d[..., None, :] / r**2
+            out.append(sign * (np.eye(2) - u) / r)
+        return np.stack(out, axis=-3)
+
+    def h(x):
+        return np.stack([np.linalg.norm(x - [10.0, 0.0], axis=-1), -np.linalg.norm(x - [-10.0, 0.0], axis=-1)], -1)
+
+    def jac(x):
+        return np.stack([(x - [10.0, 0.0]) / np.linalg.norm(x - [10.0, 0.0]),
+                         -(x - [-10.0, 0.0]) / np.linalg.norm(x - [-10.0, 0.0])])
+
+    G = remainder_gram(hess, c0, cov, radius)
+    W = whitening(cov)
+    rng = np.random.default_rng(4)
+    worst = 0.0
+    for _ in range(3000):
+        x = rng.standard_normal(2) @ np.linalg.cholesky(cov).T * rng.uniform(0, 1)  # the true state, in the ellipsoid
+        if x @ np.linalg.solve(cov, x) > radius**2:
+            continue
+        e = rng.standard_normal(2) @ np.linalg.cholesky(cov).T * rng.uniform(0, 1)
+        xh = x - e
+        if xh @ np.linalg.solve(cov, xh) > radius**2 or (W @ e) @ (W @ e) > radius**2:
+            continue
+        psi = h(x) - h(xh) - jac(x) @ e  # the remainders of linearising at the true state
+        y = rng.standard_normal(2)
+        worst = max(worst, (y @ psi) ** 2 / ((W @ e) @ (W @ e) * (y @ G @ y)))
+    assert 0.1 < worst <= 1.0  # a bound, and one a tenth of it would fail here
+    # per-sensor scales let both take their largest value independently: the joint bound is smaller in the
+    # direction where the curvatures cancel (y = (1, 1)), and the per-sensor one needs the factor 2 of two blocks
+    v = whitened_scales(hess, c0, cov, radius)
+    y = np.array([1.0, 1.0])
+    assert y @ G @ y < 0.2 * 2 * (v @ v)
