@@ -176,8 +176,8 @@ def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
 def remainder_gram(hessians_at, center: np.ndarray, cov: np.ndarray, radius: float = DEFAULT_RADIUS) -> np.ndarray:
     """A matrix ``Γ`` (c, c) over the ``c`` components of several functions linearised at one point with one error (the
     sensors' measurements at a common error), such that their stacked remainder ``ψ`` satisfies
-    ``(yᵀ ψ)² <= |W e|² yᵀ Γ y`` for every ``y`` and every error in the ellipsoid (``W = cov^{-1/2}``): ``ψ = Γ^{1/2} Ω W e``
-    with one ``||Ω|| <= 1`` for all of them, where one scale per component (:func:`whitened_scales`) lets each
+    ``(yᵀ ψ)² <= |W e|² yᵀ Γ y`` for every ``y`` and every error in the ellipsoid (``W = cov^{-1/2}``):
+    ``ψ = Γ^{1/2} Ω W e`` with one ``||Ω|| <= 1`` for all of them, where one scale per component (:func:`whitened_scales`) lets each
     component's remainder take its largest value independently, so that ``c`` of them add up ``c``-fold.
 
     ``hessians_at(points)`` gives the Hessians (..., P, c, n, n) of every component.  With ``z = W e``, ``|z| <= r``
