@@ -71,17 +71,20 @@ and (27) with ``E_ρ[T X Tᵀ]`` for ``X = (Φ⁻^-1 - β I)^-1``, one β for th
 (:func:`expected_certificate_update`).  It bounds ``E[e eᵀ]`` for the offline gains along the nominal
 linearisation with the remainders ``U``, ``V_i``; for a linear model with ``U = V = 0`` and a zero-mean
 signal it is the expected covariance itself.  The remainders are modelled as shared (:mod:`designer.mse`,
-**Shared remainders**): every node's ``f`` remainder is one function of its error, and so is a sensor's at its node
-and at the nodes that receive its measurement; each step keeps that bound or the one of independent blocks,
-whichever has the smaller trace (both are bounds).  Measured (a 4-node ring, the indoor robot, 20- to 28-node
-user models): it removes the N-fold common-mode inflation (final bound 0.0179 -> 0.0165 on the ring, 6.6e24 ->
-1.7e23 on a 24-node model) but no verdict changes: what makes the nonlinear bounds grow is the relative
-inflation of the nodes' differences by the prior-sized ``U``, ``V`` (the lemma's square-root balance) against a
-consensus that contracts them by less per step, and on a coordinated-turn model a ``U`` of 8 (the prior's
-position variance sets the ellipsoid's radius for a Hessian in velocity and turn rate).  The stationary
-certificate and its LMI keep the independent blocks.  What the online rule does on a nonlinear model (other
-Jacobians, hence other gains) it does not cover: there it is a model that the studies' Monte Carlo bound
-check validates on runs the design never saw.
+**Shared remainders**): every node's ``f`` remainder is one function of its error, and so are the sensors'
+remainders at one error (with the prior scalings: one joint matrix, :func:`designer.linearization.remainder_gram`,
+where opposite curvatures cancel); each step keeps that bound or the one of independent blocks, whichever has the
+smaller trace (both are bounds).  With the prior scalings the remainders act on the error in the prior's units
+(``W = P0^{-1/2}``, :attr:`designer.design.ConsensusDesign.remainder_structure`).  Measured (final bound, main ->
+this model): a 4-node ring 0.0179 -> 0.0137 (certified; expected 0.0113); the indoor robot 0.038 -> 0.025 (its
+stationary certificate now certified by the LMI; the trajectory's median still grows 7 % at one node over its
+30 steps: not steady); a 6-node range/bearing model 6136 (vacuous) -> 14 (not steady; 0.20 with ``V = 0``);
+24- and 20-node models and a 28-node coordinated-turn model still grow (the 24-node one settles at 0.40 with
+``V = 0``, expected 0.078; the 20-node pendulum needs ``U = 0`` too): what remains is the prior-sized scaling of the
+remainders, linear in the error where a remainder is quadratic, which the lemma applies at full size at every step
+however small the bound has become.  The stationary certificate and its LMI keep the independent blocks.  What
+the online rule does on a nonlinear model (other Jacobians, hence other gains) it does not cover: there it is a
+model that the studies' Monte Carlo bound check validates on runs the design never saw.
 """
 from __future__ import annotations
 

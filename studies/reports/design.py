@@ -43,7 +43,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
-          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note"}
+          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note",
+          "remainder_structure"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -550,6 +551,11 @@ def _linearisation_section(meta: Mapping) -> list[str]:
            "V_i Θ e with ‖Ω‖, ‖Θ‖ ≤ 1, which is what U and V_i enter (26)-(27) for.", ""]
     if lin == "fixed":
         out += ["Linearisation `fixed`: U and V_i are the constant matrices below.", ""]
+        if meta.get("remainder_structure") is not None:
+            out += ["The remainders act on the error in the prior's units, U Ω W e and V_i Θ W e with W = P0^(-1/2) "
+                    f"= {md_escape(matrix_text(meta['remainder_structure']))} (the prior scalings of mode "
+                    "`scheduled`: the Hessians whitened by the prior over its ellipsoid); the sensors' remainders "
+                    "at one error are bounded jointly, so that opposite curvatures cancel.", ""]
     elif isinstance(lin, str):
         radius = meta.get("radius")
         out += [f"Linearisation `{md_escape(lin)}`: U and V_i are re-derived at every node and step from the "
