@@ -25,7 +25,8 @@ def test_eigh_of_a_stack_is_numpys_to_the_bit(shape):
     assert np.array_equal(lam, ref_lam) and np.array_equal(Q, ref_Q)
 
 
-def test_eigh_splits_over_the_pool_when_there_are_cores(monkeypatch):
+def _counted_eigh(monkeypatch, n_cores: int) -> list:
+    """The sizes of the stacks numpy's eigh is called with, on ``n_cores`` cores."""
     calls = []
     real = np.linalg.eigh
 
@@ -33,8 +34,13 @@ def test_eigh_splits_over_the_pool_when_there_are_cores(monkeypatch):
         calls.append(x.shape[0])
         return real(x)
 
-    monkeypatch.setattr(cores, "usable_cores", lambda: 3)
+    monkeypatch.setattr(cores, "usable_cores", lambda: n_cores)
     monkeypatch.setattr(np.linalg, "eigh", counted)
+    return calls
+
+
+def test_eigh_splits_over_the_pool_when_there_are_cores(monkeypatch):
+    calls = _counted_eigh(monkeypatch, 3)
     eigh(_stack((300, 4, 4)))
     assert sorted(calls) == [100, 100, 100]
     calls.clear()
@@ -63,15 +69,8 @@ def test_a_forked_child_gets_its_own_pool():
 
 def test_eigh_splits_a_few_large_matrices_too(monkeypatch):
     # 28 matrices of 58 x 58 (a 28-node scheduled design's link gains) are worth two threads; 3 of 10 x 10 are not
-    calls = []
     real = np.linalg.eigh
-
-    def counted(x):
-        calls.append(x.shape[0])
-        return real(x)
-
-    monkeypatch.setattr(cores, "usable_cores", lambda: 2)
-    monkeypatch.setattr(np.linalg, "eigh", counted)
+    calls = _counted_eigh(monkeypatch, 2)
     a = _stack((28, 58, 58))
     lam, Q = eigh(a)
     assert sorted(calls) == [14, 14]
