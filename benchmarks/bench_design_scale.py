@@ -48,7 +48,9 @@ an error within ``ERROR_TARGET`` = 3 x the centralized EKF's.
 * its error exceeds ``ERROR_TARGET`` x the comparison's centralized EKF's at a size.
 
 Run: ``python benchmarks/bench_design_scale.py [--sizes 8 32 128 512] [--steps 100] [--runs 5] [--seed 0]
-[--exchange measurements|predictions] [--rounds L] [--local] [--json FILE] [--check]``
+[--exchange measurements|predictions] [--rounds L] [--bank A] [--local] [--json FILE] [--check]``
+
+``--bank A``: the design's bank of operating points over A axes (``cfdesign design --bank``; default 0, none).
 """
 from __future__ import annotations
 
@@ -132,11 +134,12 @@ def grid_scenario(folder: Path, nodes: int, steps: int, copy: int = 0):
     return sc
 
 
-def timed_design(sc, exchange: str | None = None, rounds: int = 1):
+def timed_design(sc, exchange: str | None = None, rounds: int = 1, bank: int = 0):
     """The scheduled design of ``sc`` (``exchange``: what its packets carry, default the design's; ``rounds``: its
-    exchange rounds per step): (design, wall s, CPU s)."""
+    exchange rounds per step; ``bank``: the axes of its bank of operating points): (design, wall s, CPU s)."""
     t, c = time.perf_counter(), time.process_time()
-    des = consensus_design(sc, mode="scheduled", rounds=rounds, **({"exchange": exchange} if exchange else {}))
+    des = consensus_design(sc, mode="scheduled", rounds=rounds, bank=bank,
+                           **({"exchange": exchange} if exchange else {}))
     return des, time.perf_counter() - t, time.process_time() - c
 
 
@@ -181,13 +184,13 @@ def position_rmse(sc, truth: np.ndarray, est: np.ndarray) -> tuple[float, int]:
 
 
 def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: bool, exchange: str | None,
-            rounds: int = 1) -> dict:
+            rounds: int = 1, bank: int = 0) -> dict:
     """One row of the table: the design of the ``nodes`` grid timed (best of ``REPEATS`` when it takes less than
     ``REPEAT_BELOW_S``), then the Monte Carlo runs."""
     best = None
     for copy in range(REPEATS):
         sc = grid_scenario(folder, nodes, steps, copy)
-        timing = timed_design(sc, exchange, rounds)
+        timing = timed_design(sc, exchange, rounds, bank)
         best = timing if best is None or timing[1] < best[1] else best
         if timing[1] >= REPEAT_BELOW_S:
             break
@@ -207,7 +210,8 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
     cekf, cekf_div = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).x[:, :, None])
     clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).x[:, :, None])
     row = {"nodes": nodes, "grid": "x".join(map(str, GRIDS[nodes])), "edges": int(net.adjacency.sum()) // 2,
-           "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds,
+           "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds, "bank": des.bank,
+           "bank_points": 0 if tab.bank_record is None else tab.bank_record["points"],
            "messages_per_step": net.messages_per_step(des.rounds), "steps": steps, "runs": runs,
            "design_s": wall, "design_cpu_s": cpu, "stationary": dict(tab.stationary),
            "designed_steps": designed_steps, "design_s_per_step": wall / designed_steps,
@@ -230,7 +234,7 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
 def print_table(rows: list[dict]) -> None:
     runs, steps = rows[0]["runs"], rows[0]["steps"]
     print(f"scheduled design (--steps {steps}, exchange {rows[0]['exchange']}, {rows[0]['rounds']} exchange round(s) "
-          f"per step) and {runs} fresh Monte Carlo runs; "
+          f"per step, bank of {rows[0]['bank_points']} operating points) and {runs} fresh Monte Carlo runs; "
           "BLAS on one thread; model building and its first evaluation not timed")
     local = "rmse_local" in rows[0]
     print(f"{'nodes':>5s} {'grid':>6s} {'edges':>5s} {'msgs':>6s} {'design s':>9s} {'(CPU s)':>8s} {'steps':>6s} "
@@ -290,6 +294,7 @@ def main(argv=None) -> int:
     ap.add_argument("--exchange", choices=["measurements", "predictions"], default=None,
                     help="what the scheduled design's packets carry (default: the design's default)")
     ap.add_argument("--rounds", type=int, default=1, help="the scheduled design's exchange rounds per step L")
+    ap.add_argument("--bank", type=int, default=0, help="the axes of the scheduled design's bank of operating points")
     ap.add_argument("--local", action="store_true", help="also the local EKFs (every node alone)")
     ap.add_argument("--json", help="write the rows to this file")
     ap.add_argument("--check", action="store_true")
@@ -303,7 +308,8 @@ def main(argv=None) -> int:
         folder = Path(tmp)
         consensus_design(grid_scenario(folder, min(GRIDS), 2), mode="scheduled")  # warm-up, not timed
         for nodes in sizes:
-            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange, args.rounds))
+            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange, args.rounds,
+                                args.bank))
             print(f"  {nodes} nodes measured: design {rows[-1]['design_s']:.1f} s", flush=True)
     print_table(rows)
     if args.json:

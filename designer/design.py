@@ -61,6 +61,8 @@ ROBUSTNESS = 1.0
 ROBUSTNESS_MAX = 100.0
 #: The most exchange rounds per step a design takes.
 ROUNDS_MAX = 64
+#: The most axes of the scheduled design's bank of operating points (3^A - 1 points: 26 at A = 3).
+BANK_MAX = 3
 
 # The published choices of seed 003 and, marked, the values it leaves out.
 PAPER_DEFAULTS = {
@@ -122,6 +124,7 @@ class ConsensusDesign(NamedTuple):
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements)
+    bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (designer.scheduled; 0: none)
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -156,6 +159,10 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
             1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and design.mode != "scheduled"):
         raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode 'scheduled' (1 in the other "
                          f"modes), got {design.rounds!r} in mode {design.mode!r}")
+    if isinstance(design.bank, bool) or not isinstance(design.bank, (int, np.integer)) or not (
+            0 <= design.bank <= BANK_MAX) or (design.bank and design.mode != "scheduled"):
+        raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in mode 'scheduled' (0 in the other "
+                         f"modes), got {design.bank!r} in mode {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -335,6 +342,13 @@ class DesignOptions:
         senders' predictions (and measurements), the others their current estimates (default 1).  With more
         than one the design computes no certificate (its expected covariance treats the rounds' packet
         losses as fresh draws; the simulations hold one per step): check it with ``study consensus-robot``.
+    bank : int in [0, 3]
+        Mode ``scheduled``: the axes A of its bank of operating points (default 0: none).  Besides the tables
+        along the nominal trajectory the design computes stationary tables at ``3^A - 1`` points off it, on a
+        lattice over the A principal axes of the open-loop covariance at the horizon, and each node uses, at
+        every step, the tables of the point nearest its own prediction (:mod:`designer.scheduled`, "Bank of
+        operating points"): for a state that may leave the region of the nominal geometry (a target leaving
+        the sensor field).  Not covered by the certificate, which is the nominal design's.
     """
 
     mode: str | None = None
@@ -354,6 +368,7 @@ class DesignOptions:
     exchange: str | None = None
     robustness: float | None = None
     rounds: int | None = None
+    bank: int | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
@@ -370,6 +385,11 @@ class DesignOptions:
             raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}], got {self.rounds!r}")
         if self.rounds is not None and self.rounds > 1 and self.mode not in (None, "scheduled"):
             raise InputError(f"rounds > 1 is a design of mode 'scheduled'; mode {self.mode!r} exchanges once per step")
+        if self.bank is not None and (isinstance(self.bank, bool) or not isinstance(self.bank, (int, np.integer))
+                                      or not 0 <= self.bank <= BANK_MAX):
+            raise InputError(f"bank must be an integer in [0, {BANK_MAX}], got {self.bank!r}")
+        if self.bank and self.mode not in (None, "scheduled"):
+            raise InputError(f"bank is the operating points of mode 'scheduled''s tables; mode {self.mode!r} has none")
         if self.robustness is not None and self.mode not in (None, "scheduled"):
             raise InputError(f"robustness is a margin of mode 'scheduled''s link gains; mode {self.mode!r} has none")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
@@ -471,6 +491,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         robustness=0.0 if mode != "scheduled" else ROBUSTNESS if options.robustness is None
         else float(options.robustness),
         rounds=1 if options.rounds is None else int(options.rounds),
+        bank=0 if options.bank is None or mode != "scheduled" else int(options.bank),
     )
     return validate_design(des, model, network)
 
@@ -478,6 +499,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
     return {"mode": des.mode, "exchange": des.exchange, "robustness": des.robustness, "rounds": des.rounds,
+            "bank": des.bank,
             "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),

@@ -420,6 +420,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                 "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
                           "the bound holds for the linearisation points and DoS pattern it was computed along"}),
             "stationary": None if des.tables is None else des.tables.stationary,
+            "bank_record": None if des.tables is None else des.tables.bank_record,
             "stationary_certificate": stationary_record(sc, des) if des.mode == "scheduled" else None,
             "rounds_tradeoff": rounds_tradeoff(sc, des, steps) if des.tables is not None else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),

@@ -43,7 +43,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
-          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note"}
+          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
+          "bank_record"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -508,6 +509,13 @@ def _settings_section(s: _Schedule) -> list[str]:
         out += [f"Robustness margin δ = {fmt_num(meta.get('robustness'))}: each link's gains are chosen as if the "
                 "neighbour's difference carried an extra independent error δ P_ii (a node never leans on its "
                 "neighbours by more than tr P⁻ / δ).", ""]
+        bank = meta.get("bank_record") if isinstance(meta.get("bank_record"), dict) else None
+        if bank:
+            out += [f"**Bank of operating points** ({bank.get('axes')} axes, spread {fmt_num(bank.get('spread'))} "
+                    f"open-loop standard deviations): stationary tables at {bank.get('points')} points off the "
+                    f"nominal trajectory ({bank.get('skipped')} left out: the same Jacobians as the nominal's); "
+                    "each node uses, at every step, the tables of the point nearest its own prediction. They are "
+                    "not covered by the certificate.", ""]
         trade = meta.get("rounds_tradeoff") if isinstance(meta.get("rounds_tradeoff"), dict) else None
         if trade and trade.get("rows"):
             out += [f"**Accuracy and messages** ({meta.get('rounds')} exchange round(s) per step designed; the "
