@@ -44,8 +44,8 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     from dataclasses import replace
 
     opts = options or DesignOptions()
-    if mode != "scheduled":  # what a packet carries and the links' margin are choices of the scheduled design
-        opts = replace(opts, exchange=None, robustness=None, rounds=None)
+    if mode != "scheduled":  # what a packet carries, the links' margin, the rounds and the bank: the scheduled design's
+        opts = replace(opts, exchange=None, robustness=None, rounds=None, bank=None)
     return replace(opts, mode=mode) if mode == "paper" else replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
