@@ -23,8 +23,10 @@ Every quantity of a step is a stack over (runs, nodes):
   channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
-The gains are chosen per mode by a pair of batched functions over stacked items
-(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
+The filter of each gain rule is registered under its name in :data:`RULE_FILTERS`
+(:func:`register_filter`).  The rules a node applies on its own over Theorem 1's recursion are a
+:class:`NodeRule`, a pair of batched functions over stacked items: ``'paper'`` (σ, β fixed,
+``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
 (σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
 weighted (27) by :func:`designer.tuning.tune_weighted_batch`, over the groups own error / each
 received neighbour / the falsified packets, with one group slot per incoming channel; each
@@ -38,7 +40,9 @@ written from is kept as the tests' reference (``tests/consensus_reference.py``).
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Sequence
+from importlib import import_module
+from types import MappingProxyType
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -56,6 +60,7 @@ from designer.bounds import (
     update_bound_from,
 )
 from designer.design import ConsensusDesign, validate_design
+from designer.gain_rules import gain_rule
 from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
@@ -69,7 +74,8 @@ from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "RULE_FILTERS", "register_filter",
+           "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run"]
 
@@ -319,13 +325,55 @@ def _tuned_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> U
     return UpdateChoice(condition29_margin(phi_pred, ch.beta, D), ch.beta, ch.K, ch.C, ch.phi_post, ch.weights)
 
 
-# mode -> (prediction, update), both batched over stacked items (an update rule takes the items' Φ_pred as a
-# Spectrum and a dict of their arrays: H, s, V, R, d, nt = the paper's neighbour terms, and in mode tuned the
-# groups of (27), which are present and the warm-start weights w0); 'mse' has filters.mse_batch.
-GAIN_RULES: dict[str, tuple[Callable[..., PredictionChoice], Callable[..., UpdateChoice]]] = {
-    "paper": (_paper_prediction, _paper_update),
-    "tuned": (_tuned_prediction, _tuned_update),
-}
+class NodeRule(NamedTuple):
+    """A gain rule that each node applies on its own over the bound recursion of Theorem 1, run by
+    :func:`run_consensus_batch`'s loop: its prediction and update, both batched over stacked items (an update
+    takes the items' Φ_pred as a Spectrum and a dict of their arrays: H, s, V, R, d, nt = the paper's neighbour
+    terms, and with ``weighted`` the groups of (27), which are present and the warm-start weights w0)."""
+
+    predict: Callable[..., PredictionChoice]
+    update: Callable[..., UpdateChoice]
+    weighted: bool = False  # the weighted (27): each node's weights per incoming channel, carried between steps
+
+
+# gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
+# function with run_consensus_batch's parameters (without gains); see register_filter
+_FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
+RULE_FILTERS: Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = MappingProxyType(_FILTERS)
+_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled")  # they register the filters of the other built-in rules
+
+
+def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
+    """Register ``run`` as the filter of the gain rule named ``rule`` (registered in :mod:`designer.gain_rules`):
+    a :class:`NodeRule`, or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
+    :class:`ConsensusBatchResult`.  A rule has one filter; returns ``run``."""
+    gain_rule(rule, "rule")
+    if rule in _FILTERS:
+        raise InputError(f"gain rule {rule!r} has a filter already")
+    _FILTERS[rule] = run
+    return run
+
+
+def unregister_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
+    """Remove the filter of the gain rule named ``rule`` and return it."""
+    if rule not in _FILTERS:
+        raise InputError(f"no filter is registered for gain rule {rule!r}")
+    return _FILTERS.pop(rule)
+
+
+def rule_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
+    """The filter registered for the gain rule named ``rule`` (InputError when none is)."""
+    if rule not in _FILTERS:
+        for module in _FILTER_MODULES:  # late: they build on this module
+            import_module(module)
+    if rule not in _FILTERS:
+        raise InputError(f"no filter applies gain rule {rule!r} (filters.consensus_batch.register_filter registers "
+                         "one)")
+    return _FILTERS[rule]
+
+
+register_filter("paper", NodeRule(_paper_prediction, _paper_update))
+register_filter("tuned", NodeRule(_tuned_prediction, _tuned_update, weighted=True))
 
 
 def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float, K=None, C=None):
@@ -456,8 +504,9 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any mode, with or without a gate: 'mse' runs in :func:`filters.mse_batch.run_mse_batch`,
-        'scheduled' in :func:`filters.scheduled.run_scheduled_batch`, the modes of :data:`GAIN_RULES` here.
+        Any gain rule with a filter in :data:`RULE_FILTERS`, with or without a gate: 'mse' runs in
+        :func:`filters.mse_batch.run_mse_batch`, 'scheduled' in :func:`filters.scheduled.run_scheduled_batch`,
+        'paper' and 'tuned' (:class:`NodeRule`) here.
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
     attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
@@ -487,24 +536,17 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     design = validate_design(design, model, network)
     ex = _Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    if design.mode == "mse" and gains is None:
-        from .mse_batch import run_mse_batch  # late: it builds on this module
-
-        return run_mse_batch(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks,
-                             x0=x0, phi0=phi0)
-    if design.mode == "scheduled" and gains is None:
-        from .scheduled import run_scheduled_batch  # late: it builds on this module
-
-        return run_scheduled_batch(model, network if nets is None else nets, z, design, inputs=inputs,
-                                   attacks=attacks, x0=x0, phi0=phi0)
+    filt = None if gains is not None else rule_filter(design.mode)
+    if filt is not None and not isinstance(filt, NodeRule):
+        return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
+                    phi0=phi0)
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
     replay = gains is not None
     if replay:
         gains = _replay_gains(gains, steps, n, nx, nz)
-        predict_rule = update_rule = None
-    else:
-        predict_rule, update_rule = GAIN_RULES[design.mode]
+    predict_rule, update_rule = (None, None) if replay else filt[:2]
+    fixed = gain_rule(design.mode).fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
     degrees = network.degrees
     d_max = network.d_max
     Q = model.process_cov
@@ -515,7 +557,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     # per run (1 item when every run has the same network)
     w_phi = per_run(lambda net: 3.0 * (1.0 - net.dos_prob[ex.receiver, ex.sender]), network, nets)
     w_xi = per_run(lambda net: 3.0 * design.delta**2 * (net.fdi_prob * net.adjacency).sum(axis=1), network, nets)
-    tuned = design.mode == "tuned" and not replay
+    tuned = not replay and filt.weighted
     if tuned:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
         slots = _channel_slots(ex, d_max)
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
@@ -645,7 +687,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         before = np.arange(n)[None, :] < first[:, None]
         v29 &= before
         margin29[~before], beta[~before] = np.nan, np.nan
-        if k == 0 and design.mode == "paper":  # sigma or beta is wrong for this model at the first step
+        if k == 0 and fixed:  # sigma or beta is wrong for this model at the first step
             raising = np.flatnonzero(v28.any(axis=1) | v29.any(axis=1))
             if raising.size:
                 r = int(raising[0])

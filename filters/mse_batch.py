@@ -55,8 +55,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .consensus import channel_difference_covariance, gate_channels, kept_fdi_moments
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays, per_run, run_networks,
-                              wrap_residuals)
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
+                              register_filter, result_arrays, run_networks, wrap_residuals)
 from .result import diverged_nodes, stop_diverged
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
@@ -309,3 +309,6 @@ class _Runs:
                               nan_from=(o["x_post"], o["phi_post"], o["predicted_mse"]),
                               nan_before=(o["K"], o["C"], o["gain_condition"]), invalid_from=(o["valid"],))
         self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]
+
+
+register_filter("mse", run_mse_batch)

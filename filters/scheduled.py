@@ -35,8 +35,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .result import diverged_nodes, stop_diverged
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
-                              run_networks, wrap_residuals)
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+                              result_arrays, run_networks, wrap_residuals)
 
 __all__ = ["run_scheduled_batch"]
 
@@ -179,3 +179,5 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         out["valid"][:, T + 1:] = False
     return ConsensusBatchResult(**out)
 
+
+register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)
