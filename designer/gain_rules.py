@@ -32,7 +32,7 @@ Adding a rule
 -------------
 One :func:`register` call beside the built-in rules at the end of this module, plus its
 implementation: the filter that applies it over a batch of runs, registered under the rule's name in
-:data:`filters.consensus_batch.RULE_FILTERS` (:func:`filters.consensus_batch.register_filter`; the
+``filters.consensus_batch`` (:func:`filters.consensus_batch.register_filter`; the
 designer layer does not import the filters)::
 
     register(GainRule("mine", "scheduled", needs="the step and which neighbour packets arrived",

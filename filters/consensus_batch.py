@@ -23,8 +23,8 @@ Every quantity of a step is a stack over (runs, nodes):
   channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
-The filter of each gain rule is registered under its name in :data:`RULE_FILTERS`
-(:func:`register_filter`).  The rules a node applies on its own over Theorem 1's recursion are a
+The filter of each gain rule is registered under its name (:func:`register_filter`,
+:func:`rule_filters`).  The rules a node applies on its own over Theorem 1's recursion are a
 :class:`NodeRule`, a pair of batched functions over stacked items: ``'paper'`` (σ, β fixed,
 ``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
 (σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
@@ -74,7 +74,7 @@ from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "RULE_FILTERS", "register_filter",
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
            "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run"]
@@ -339,7 +339,6 @@ class NodeRule(NamedTuple):
 # gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
 # function with run_consensus_batch's parameters (without gains); see register_filter
 _FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
-RULE_FILTERS: Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = MappingProxyType(_FILTERS)
 _FILTER_MODULES = ("filters.mse_batch", "filters.scheduled")  # they register the filters of the other built-in rules
 
 
@@ -361,11 +360,17 @@ def unregister_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResu
     return _FILTERS.pop(rule)
 
 
+def rule_filters() -> Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"]:
+    """Every registered filter by gain rule name (read-only), the built-in rules' included."""
+    for module in _FILTER_MODULES:  # late: they build on this module
+        import_module(module)
+    return MappingProxyType(_FILTERS)
+
+
 def rule_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
     """The filter registered for the gain rule named ``rule`` (InputError when none is)."""
     if rule not in _FILTERS:
-        for module in _FILTER_MODULES:  # late: they build on this module
-            import_module(module)
+        rule_filters()
     if rule not in _FILTERS:
         raise InputError(f"no filter applies gain rule {rule!r} (filters.consensus_batch.register_filter registers "
                          "one)")
@@ -504,7 +509,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any gain rule with a filter in :data:`RULE_FILTERS`, with or without a gate: 'mse' runs in
+        Any gain rule with a filter (:func:`rule_filters`), with or without a gate: 'mse' runs in
         :func:`filters.mse_batch.run_mse_batch`, 'scheduled' in :func:`filters.scheduled.run_scheduled_batch`,
         'paper' and 'tuned' (:class:`NodeRule`) here.
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional

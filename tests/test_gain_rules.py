@@ -111,7 +111,7 @@ def test_a_new_rule_is_one_object_and_its_filter_and_the_code_asks_the_rule():
     import numpy as np
 
     from filters.consensus import run_consensus
-    from filters.consensus_batch import RULE_FILTERS, register_filter, rule_filter, run_consensus_batch, \
+    from filters.consensus_batch import register_filter, rule_filter, rule_filters, run_consensus_batch, \
         unregister_filter
     from studies.consensus_design import as_mode, check_first_step, consensus_design
     from studies.scenarios import load_scenario
@@ -121,7 +121,8 @@ def test_a_new_rule_is_one_object_and_its_filter_and_the_code_asks_the_rule():
     try:
         with pytest.raises(InputError, match="no filter applies gain rule 'fixed-copy'"):
             rule_filter("fixed-copy")
-        register_filter("fixed-copy", RULE_FILTERS["paper"])
+        assert set(rule_filters()) == set(GAIN_RULES) - {"fixed-copy"}  # every other rule has its filter
+        register_filter("fixed-copy", rule_filter("paper"))
         sc = load_scenario("indoor-robot", {"steps": 4})
         assert as_mode(DesignOptions(sigma=0.05), "fixed-copy").sigma == 0.05  # the user's σ is kept
         with pytest.raises(InputError, match="exchange 'measurements' is a design of mode 'scheduled'"):
@@ -142,14 +143,14 @@ def test_a_new_rule_is_one_object_and_its_filter_and_the_code_asks_the_rule():
         unregister_filter("fixed-copy")
         unregister("fixed-copy")
         rule = register(GainRule("fixed-copy", "local", needs="x.", summary="y"))
-        register_filter("fixed-copy", RULE_FILTERS["tuned"])
+        register_filter("fixed-copy", rule_filter("tuned"))
         assert as_mode(DesignOptions(sigma=0.05), "fixed-copy").sigma is None
         assert check_first_step(sc, big._replace(mode="fixed-copy"), "mine") is None
         with pytest.raises(InputError, match="sigma is chosen by the design in mode 'fixed-copy'"):
             DesignOptions(mode="fixed-copy", sigma=0.1)
         assert consensus_design(sc, as_mode(None, "fixed-copy")).epsilon != paper.epsilon  # ε of a rule choosing σ, β
     finally:
-        if "fixed-copy" in RULE_FILTERS:
+        if "fixed-copy" in rule_filters():
             unregister_filter("fixed-copy")
         if rule.name in GAIN_RULES:
             unregister(rule.name)
