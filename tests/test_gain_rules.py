@@ -148,7 +148,7 @@ def test_a_new_rule_is_one_object_and_its_filter_and_the_code_asks_the_rule():
         assert check_first_step(sc, big._replace(mode="fixed-copy"), "mine") is None
         with pytest.raises(InputError, match="sigma is chosen by the design in mode 'fixed-copy'"):
             DesignOptions(mode="fixed-copy", sigma=0.1)
-        assert consensus_design(sc, as_mode(None, "fixed-copy")).epsilon != paper.epsilon  # ε of a rule choosing σ, β
+        assert consensus_design(sc, as_mode(None, "fixed-copy")).epsilon != paper.epsilon  # ε of a rule that tunes
     finally:
         if "fixed-copy" in rule_filters():
             unregister_filter("fixed-copy")
