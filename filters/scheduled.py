@@ -35,8 +35,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .result import diverged_nodes, stop_diverged
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
-                              run_networks, wrap_residuals)
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+                              result_arrays, run_networks, wrap_residuals)
 
 __all__ = ["run_scheduled_batch"]
 
@@ -192,3 +192,5 @@ def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | Non
     nodes = np.arange(N)[None, :]
     return slots[nodes, :, choice], Sig[choice, nodes][:, :, :d, :d]
 
+
+register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)
