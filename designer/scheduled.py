@@ -111,9 +111,9 @@ STATIONARY_MAX = 100
 #: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
 #: (seconds per step); the design is then given without a bound.
 CERTIFICATE_MAX_DIM = 600
-#: The bank's lattice spacing in open-loop standard deviations along each axis (an assumption: points at 1.5 σ
-#: reach the states a random walk visits in about 9 runs in 10 along one axis while keeping the lattice's 3^A - 1
-#: points apart; chosen, not derived).
+#: The bank's lattice spacing in open-loop standard deviations along each axis (an assumption, chosen, not derived:
+#: the nominal's tables serve the states within 0.75 σ of it on every axis, a point at 1.5 σ those beyond, 45 % of
+#: a Gaussian's mass on one axis; measured on range grids whose target leaves the grid, README).
 BANK_SPREAD = 1.5
 #: The change of a bank point's whitened tables below which its recursion stops (looser than :data:`STATIONARY_TOL`:
 #: the bank stands for a region, not a point; at 1e-6 its recursions took 60-100 steps each on a 28-node model).

@@ -46,7 +46,7 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
 
     opts = options or DesignOptions()
     rule = gain_rule(mode)
-    if not rule.offline_tables:  # what a packet carries, the links' margin, the rounds and the bank: a design of tables'
+    if not rule.offline_tables:  # the exchange, the links' margin, the rounds and the bank: a design of tables'
         opts = replace(opts, exchange=None, robustness=None, rounds=None, bank=None)
     if rule.fixed_multipliers:
         return replace(opts, mode=mode)
