@@ -3,7 +3,9 @@
 A step is the prediction, the bound (26), the exchange, the gain and the bound (27) at every node.
 Two paths, measured in the same run:
 
-* per run: :func:`filters.consensus.run_consensus`, one run, node by node (best of ``--repeats``);
+* per run: the per-node loop the batch was written from, one run, node by node (best of ``--repeats``;
+  ``tests/consensus_reference.py``, the tests' reference since :func:`filters.consensus.run_consensus`
+  became a batch of one);
 * batched: :func:`filters.consensus_batch.run_consensus_batch` over ``--runs`` runs (default 500),
   the cost amortised per run and node-step (best of ``--batch-repeats``); its first run is
   checked against the per-run path.
@@ -45,17 +47,20 @@ import argparse
 import json
 import resource
 import sys
+from pathlib import Path
 
 import numpy as np
 
 from designer.attacks import FDISignal
 from filters.attacks import simulate_attacks
-from filters.consensus import run_consensus
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
 from studies.consensus_design import consensus_design
 from studies.scenarios import load_scenario
 
 from bench_batched_eval import best_time  # the benchmarks' folder (run as a script)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from consensus_reference import reference_consensus as run_consensus  # noqa: E402  (the per-node loop)
 
 LINEAR_TOLERANCE = 2.0
 STEPS = 4

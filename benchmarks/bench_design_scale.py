@@ -54,8 +54,14 @@ a 28-node model (``TARGET_28_S`` = 10 s) and the machine's load average (a figur
 load enters it).
 
 Run: ``python benchmarks/bench_design_scale.py [--sizes 8 32 128 512] [--steps 100] [--runs 5] [--seed 0]
-[--exchange measurements|predictions] [--rounds L] [--local] [--json FILE] [--check]`` or
+[--exchange measurements|predictions] [--rounds L] [--bank A] [--hcmci L ...] [--local] [--json FILE] [--check]`` or
 ``python benchmarks/bench_design_scale.py --command MODEL.py [--repeat 3]``
+
+``--bank A``: the design's bank of operating points over A axes (``cfdesign design --bank``; default 0, none).
+``--hcmci L [L ...]``: beside it HCMCI (:func:`filters.distributed.run_hcmci_batch`, ``omega="consistent"``) with L
+consensus rounds per step, a filter that needs no design, on the same runs **without channel attacks** (its batch
+takes dense per-run attack patterns, N x N x n_x per step: gigabytes at 512 nodes), its RMSE over the clean
+centralized EKF's (column ``clean``): where the literature's rounds reach at each size.
 """
 from __future__ import annotations
 
@@ -73,6 +79,7 @@ from designer.cores import one_blas_thread
 from designer.network import SensorNetwork
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
+from filters.distributed import run_hcmci_batch
 from filters.ekf import run_ekf_batch
 from filters.uplink import split_received
 from studies.filter_registry import local_ekf_design
@@ -140,11 +147,12 @@ def grid_scenario(folder: Path, nodes: int, steps: int, copy: int = 0):
     return sc
 
 
-def timed_design(sc, exchange: str | None = None, rounds: int = 1):
+def timed_design(sc, exchange: str | None = None, rounds: int = 1, bank: int = 0):
     """The scheduled design of ``sc`` (``exchange``: what its packets carry, default the design's; ``rounds``: its
-    exchange rounds per step): (design, wall s, CPU s)."""
+    exchange rounds per step; ``bank``: the axes of its bank of operating points): (design, wall s, CPU s)."""
     t, c = time.perf_counter(), time.process_time()
-    des = consensus_design(sc, mode="scheduled", rounds=rounds, **({"exchange": exchange} if exchange else {}))
+    des = consensus_design(sc, mode="scheduled", rounds=rounds, bank=bank,
+                           **({"exchange": exchange} if exchange else {}))
     return des, time.perf_counter() - t, time.process_time() - c
 
 
@@ -189,13 +197,13 @@ def position_rmse(sc, truth: np.ndarray, est: np.ndarray) -> tuple[float, int]:
 
 
 def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: bool, exchange: str | None,
-            rounds: int = 1) -> dict:
+            rounds: int = 1, bank: int = 0, hcmci: tuple[int, ...] = ()) -> dict:
     """One row of the table: the design of the ``nodes`` grid timed (best of ``REPEATS`` when it takes less than
     ``REPEAT_BELOW_S``), then the Monte Carlo runs."""
     best = None
     for copy in range(REPEATS):
         sc = grid_scenario(folder, nodes, steps, copy)
-        timing = timed_design(sc, exchange, rounds)
+        timing = timed_design(sc, exchange, rounds, bank)
         best = timing if best is None or timing[1] < best[1] else best
         if timing[1] >= REPEAT_BELOW_S:
             break
@@ -215,7 +223,8 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
     cekf, cekf_div = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).x[:, :, None])
     clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).x[:, :, None])
     row = {"nodes": nodes, "grid": "x".join(map(str, GRIDS[nodes])), "edges": int(net.adjacency.sum()) // 2,
-           "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds,
+           "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds, "bank": des.bank,
+           "bank_points": 0 if tab.bank_record is None else tab.bank_record["points"],
            "messages_per_step": net.messages_per_step(des.rounds), "steps": steps, "runs": runs,
            "design_s": wall, "design_cpu_s": cpu, "stationary": dict(tab.stationary),
            "designed_steps": designed_steps, "design_s_per_step": wall / designed_steps,
@@ -232,13 +241,18 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
         res = run_consensus_batch(m, isolated, z, local_ekf_design(consensus_design(sc)))
         row["rmse_local"], row["diverged"]["local"] = position_rmse(sc, truth, res.x_post)
         row["ratio_local"] = row["rmse_local"] / cekf
+    for L in hcmci:  # the literature's rounds on the clean runs, against the clean centralized EKF
+        res = run_hcmci_batch(m, net, z, iterations=L, omega="consistent")
+        e, div = position_rmse(sc, truth, res.x_post)
+        row.setdefault("hcmci", []).append({"rounds": L, "rmse_clean_runs": e, "ratio_clean": e / clean,
+                                            "diverged": div})
     return row
 
 
 def print_table(rows: list[dict]) -> None:
     runs, steps = rows[0]["runs"], rows[0]["steps"]
     print(f"scheduled design (--steps {steps}, exchange {rows[0]['exchange']}, {rows[0]['rounds']} exchange round(s) "
-          f"per step) and {runs} fresh Monte Carlo runs; "
+          f"per step, bank of {rows[0]['bank_points']} operating points) and {runs} fresh Monte Carlo runs; "
           "BLAS on one thread; model building and its first evaluation not timed")
     local = "rmse_local" in rows[0]
     print(f"{'nodes':>5s} {'grid':>6s} {'edges':>5s} {'msgs':>6s} {'design s':>9s} {'(CPU s)':>8s} {'steps':>6s} "
@@ -254,6 +268,10 @@ def print_table(rows: list[dict]) -> None:
               f"{r['ratio']:7.2f} {r['ratio_clean']:7.2f}" + (f" {r['ratio_local']:7.2f}" if local else "")
               + f" {r['certificate']:>16s}" + (f"  diverged runs: {div}" if div else "")
               + ("" if r["finite"] else "  NON-FINITE estimates"))
+        for h in r.get("hcmci", []):
+            print(f"      HCMCI, L = {h['rounds']} rounds, clean runs: RMSE {h['rmse_clean_runs']:.4f}, "
+                  f"{h['ratio_clean']:.2f} x the clean centralized EKF" + (f" ({h['diverged']} runs diverged)"
+                                                                          if h["diverged"] else ""))
     print("msgs: messages per step (2 |E| L); steps: the horizon plus the extra steps to the stationary tables; "
           "filter ms/step: per step of one run, "
           "amortised over the batch of runs; RMSE: position, over the runs, steps and (consensus) nodes; (design): the "
@@ -326,6 +344,9 @@ def main(argv=None) -> int:
     ap.add_argument("--exchange", choices=["measurements", "predictions"], default=None,
                     help="what the scheduled design's packets carry (default: the design's default)")
     ap.add_argument("--rounds", type=int, default=1, help="the scheduled design's exchange rounds per step L")
+    ap.add_argument("--bank", type=int, default=0, help="the axes of the scheduled design's bank of operating points")
+    ap.add_argument("--hcmci", type=int, nargs="*", default=(), help="also HCMCI with these rounds per step L, on "
+                    "the runs without channel attacks, against the clean centralized EKF")
     ap.add_argument("--local", action="store_true", help="also the local EKFs (every node alone)")
     ap.add_argument("--json", help="write the rows to this file")
     ap.add_argument("--check", action="store_true")
@@ -338,6 +359,8 @@ def main(argv=None) -> int:
         return time_command(args.command, args.repeat)
     if args.steps < 1 or (args.runs is not None and args.runs < 1):
         ap.error("--steps and --runs must be >= 1")
+    if any(L < 1 for L in args.hcmci):
+        ap.error("--hcmci rounds must be >= 1")
     sizes = sorted(args.sizes or (CHECK_SIZES if args.check else GRIDS))
     runs = args.runs or (CHECK_RUNS if args.check else 5)
     rows = []
@@ -345,7 +368,8 @@ def main(argv=None) -> int:
         folder = Path(tmp)
         consensus_design(grid_scenario(folder, min(GRIDS), 2), mode="scheduled")  # warm-up, not timed
         for nodes in sizes:
-            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange, args.rounds))
+            rows.append(measure(folder, nodes, args.steps, runs, args.seed, args.local, args.exchange, args.rounds,
+                                args.bank, tuple(args.hcmci)))
             print(f"  {nodes} nodes measured: design {rows[-1]['design_s']:.1f} s", flush=True)
     print_table(rows)
     if args.json:

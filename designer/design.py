@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from .gain_rules import GAIN_RULES, gain_rule
+from .gain_rules import GAIN_RULES, gain_rule, names_with
 from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
@@ -42,7 +42,8 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
     "EXCHANGES",
-    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design", "whitened_scaling",
+    "LINEARIZATIONS", "make_design", "chooses_multipliers", "resolve_scaling", "parse_scale", "describe_design",
+    "whitened_scaling",
 ]
 
 MODES = tuple(GAIN_RULES)  # the gain rules' names (designer.gain_rules: what each needs at run time)
@@ -61,6 +62,8 @@ ROBUSTNESS = 1.0
 ROBUSTNESS_MAX = 100.0
 #: The most exchange rounds per step a design takes.
 ROUNDS_MAX = 64
+#: The most axes of the scheduled design's bank of operating points (3^A - 1 points: 26 at A = 3).
+BANK_MAX = 3
 
 # The published choices of seed 003 and, marked, the values it leaves out.
 PAPER_DEFAULTS = {
@@ -125,6 +128,7 @@ class ConsensusDesign(NamedTuple):
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements)
+    bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (designer.scheduled; 0: none)
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
     remainder_structure: np.ndarray | None = None
@@ -153,18 +157,23 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
     if not np.isfinite(design.radius) or design.radius <= 0:
         raise InputError(f"radius must be > 0, got {design.radius!r}")
-    gain_rule(design.mode)  # a registered gain rule, else InputError naming them
-    if design.exchange not in EXCHANGES or (design.exchange == "measurements" and design.mode != "scheduled"):
-        raise InputError(f"exchange must be 'predictions', or 'measurements' in mode 'scheduled', got "
+    rule = gain_rule(design.mode)  # a registered gain rule, else InputError naming them
+    tabled = names_with("offline_tables")  # the rules whose design chooses the exchange, rounds and robustness
+    if design.exchange not in EXCHANGES or (design.exchange == "measurements" and not rule.offline_tables):
+        raise InputError(f"exchange must be 'predictions', or 'measurements' in mode {tabled}, got "
                          f"{design.exchange!r} in mode {design.mode!r}")
     rob = float(design.robustness)
-    if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and design.mode != "scheduled"):
-        raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in mode 'scheduled' (0 in the other "
+    if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and not rule.offline_tables):
+        raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in mode {tabled} (0 in the other "
                          f"modes), got {design.robustness!r} in mode {design.mode!r}")
     if isinstance(design.rounds, bool) or not isinstance(design.rounds, (int, np.integer)) or not (
-            1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and design.mode != "scheduled"):
-        raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode 'scheduled' (1 in the other "
+            1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and not rule.offline_tables):
+        raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode {tabled} (1 in the other "
                          f"modes), got {design.rounds!r} in mode {design.mode!r}")
+    if isinstance(design.bank, bool) or not isinstance(design.bank, (int, np.integer)) or not (
+            0 <= design.bank <= BANK_MAX) or (design.bank and not rule.offline_tables):
+        raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in mode {tabled} (0 in the other "
+                         f"modes), got {design.bank!r} in mode {design.mode!r}")
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -190,9 +199,9 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         if Vi.shape != (s.dim, s.dim):
             raise InputError(f"V of sensor {s.name!r} must have shape ({s.dim}, {s.dim}), got {Vi.shape}")
         Vs.append(Vi)
-    if design.sigma == 0 and np.any(U) and design.mode == "paper":
+    if design.sigma == 0 and np.any(U) and rule.fixed_multipliers:
         raise InputError("sigma must be > 0 when U is nonzero")
-    if design.beta == 0 and any(np.any(v) for v in Vs) and design.mode == "paper":
+    if design.beta == 0 and any(np.any(v) for v in Vs) and rule.fixed_multipliers:
         raise InputError("beta must be > 0 when V is nonzero")
     M = np.zeros((model.n_x, model.n_x)) if design.fdi_moment is None else check_finite("fdi_moment", design.fdi_moment)
     if M.shape != (model.n_x, model.n_x):
@@ -206,9 +215,9 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     W = design.remainder_structure
     if W is not None:
         W = check_finite("remainder_structure", W)
-        if W.shape != (model.n_x, model.n_x) or design.mode != "scheduled":
-            raise InputError(f"remainder_structure must be a ({model.n_x}, {model.n_x}) matrix of mode 'scheduled', "
-                             f"got shape {W.shape} in mode {design.mode!r}")
+        if W.shape != (model.n_x, model.n_x) or not gain_rule(design.mode).offline_tables:
+            raise InputError(f"remainder_structure must be a ({model.n_x}, {model.n_x}) matrix of a rule with offline "
+                             f"tables (mode 'scheduled'), got shape {W.shape} in mode {design.mode!r}")
     G = design.remainder_gram
     if G is not None:
         G = check_finite("remainder_gram", G)
@@ -383,6 +392,13 @@ class DesignOptions:
         senders' predictions (and measurements), the others their current estimates (default 1).  With more
         than one the design computes no certificate (its expected covariance treats the rounds' packet
         losses as fresh draws; the simulations hold one per step): check it with ``study consensus-robot``.
+    bank : int in [0, 3]
+        Mode ``scheduled``: the axes A of its bank of operating points (default 0: none).  Besides the tables
+        along the nominal trajectory the design computes stationary tables at ``3^A - 1`` points off it, on a
+        lattice over the A principal axes of the open-loop covariance at the horizon, and each node uses, at
+        every step, the tables of the point nearest its own prediction (:mod:`designer.scheduled`, "Bank of
+        operating points"): for a state that may leave the region of the nominal geometry (a target leaving
+        the sensor field).  Not covered by the certificate, which is the nominal design's.
     """
 
     mode: str | None = None
@@ -402,24 +418,33 @@ class DesignOptions:
     exchange: str | None = None
     robustness: float | None = None
     rounds: int | None = None
+    bank: int | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
     def __post_init__(self):
-        if self.mode is not None:
-            gain_rule(self.mode)  # a registered gain rule, else InputError naming them
+        rule = None if self.mode is None else gain_rule(self.mode)  # a registered gain rule, else InputError
+        tables = rule is None or rule.offline_tables  # the design chooses the exchange, rounds and robustness
         if self.exchange is not None and self.exchange not in EXCHANGES:
             raise InputError(f"exchange must be one of {', '.join(map(repr, EXCHANGES))}, got {self.exchange!r}")
-        if self.exchange == "measurements" and self.mode not in (None, "scheduled"):
-            raise InputError(f"exchange 'measurements' is a design of mode 'scheduled'; mode {self.mode!r} exchanges "
-                             "predictions")
+        if self.exchange == "measurements" and not tables:
+            raise InputError(f"exchange 'measurements' is a design of mode {names_with('offline_tables')}; mode "
+                             f"{self.mode!r} exchanges predictions")
         if self.rounds is not None and (isinstance(self.rounds, bool) or not isinstance(self.rounds, (int, np.integer))
                                         or not 1 <= self.rounds <= ROUNDS_MAX):
             raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}], got {self.rounds!r}")
-        if self.rounds is not None and self.rounds > 1 and self.mode not in (None, "scheduled"):
-            raise InputError(f"rounds > 1 is a design of mode 'scheduled'; mode {self.mode!r} exchanges once per step")
-        if self.robustness is not None and self.mode not in (None, "scheduled"):
-            raise InputError(f"robustness is a margin of mode 'scheduled''s link gains; mode {self.mode!r} has none")
+        if self.rounds is not None and self.rounds > 1 and not tables:
+            raise InputError(f"rounds > 1 is a design of mode {names_with('offline_tables')}; mode {self.mode!r} "
+                             "exchanges once per step")
+        if self.bank is not None and (isinstance(self.bank, bool) or not isinstance(self.bank, (int, np.integer))
+                                      or not 0 <= self.bank <= BANK_MAX):
+            raise InputError(f"bank must be an integer in [0, {BANK_MAX}], got {self.bank!r}")
+        if self.bank and not tables:
+            raise InputError(f"bank is the operating points of mode {names_with('offline_tables')}'s tables; mode "
+                             f"{self.mode!r} has none")
+        if self.robustness is not None and not tables:
+            raise InputError(f"robustness is a margin of mode {names_with('offline_tables')}'s link gains; mode "
+                             f"{self.mode!r} has none")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
         for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate",
@@ -439,7 +464,7 @@ class DesignOptions:
             v = getattr(self, name)
             if v is not None and v >= 1:
                 raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
-        if self.mode in ("tuned", "mse", "scheduled"):
+        if chooses_multipliers(self.mode):
             for name in ("sigma", "beta", "tau"):
                 if getattr(self, name) is not None:
                     raise InputError(f"{name} is chosen by the design in mode {self.mode!r}; do not give --{name}")
@@ -454,8 +479,8 @@ class DesignOptions:
             rest = self.v_scale.get("*", "prior") if isinstance(self.v_scale, Mapping) else self.v_scale
             given["v_scale"] = {**(self.v_scale if isinstance(self.v_scale, Mapping) else {}), "*": rest,
                                 **given["v_scale"]}
-        if given.get("mode") in ("tuned", "mse", "scheduled") and self.mode not in ("tuned", "mse", "scheduled"):
-            # the defaults' paper-mode multipliers do not carry over to a tuned design
+        if chooses_multipliers(given.get("mode")) and not chooses_multipliers(self.mode):
+            # the defaults' paper-mode multipliers do not carry over to a design that chooses its own
             base = replace(self, sigma=None, beta=None, tau=None)
         else:
             base = self
@@ -478,6 +503,12 @@ class DesignOptions:
         return {f.name: plain(getattr(self, f.name)) for f in fields(self)}
 
 
+def chooses_multipliers(mode: str | None) -> bool:
+    """Whether the gain rule ``mode`` chooses σ, β and τ itself (not the paper's fixed multipliers; None: the default
+    mode, paper)."""
+    return mode is not None and not gain_rule(mode).fixed_multipliers
+
+
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
                 u0=None, signal=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
@@ -494,12 +525,12 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
     d_max = max(network.d_max, 1)
     epsilon = options.epsilon
     if epsilon is None:
-        epsilon = tuned_epsilon(d_max) if mode in ("tuned", "mse", "scheduled") else \
+        epsilon = tuned_epsilon(d_max) if chooses_multipliers(mode) else \
             PAPER_DEFAULTS["epsilon_fraction"] / d_max
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     P0 = model.prior.cov if P0 is None else P0
     structure = gram = None
-    if mode == "scheduled" and (options.linearization or "fixed") == "fixed" and all(
+    if gain_rule(mode).offline_tables and (options.linearization or "fixed") == "fixed" and all(
             isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale)):
         U, V, structure, gram = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
     else:
@@ -520,10 +551,11 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         fdi_mean=None if signal is None else signal.mean(model.n_x),
         gate=0.0 if options.gate is None else float(options.gate),
         fdi_signal=signal,
-        exchange=options.exchange or (EXCHANGES[0] if mode == "scheduled" else "predictions"),
-        robustness=0.0 if mode != "scheduled" else ROBUSTNESS if options.robustness is None
+        exchange=options.exchange or (EXCHANGES[0] if gain_rule(mode).offline_tables else "predictions"),
+        robustness=0.0 if not gain_rule(mode).offline_tables else ROBUSTNESS if options.robustness is None
         else float(options.robustness),
         rounds=1 if options.rounds is None else int(options.rounds),
+        bank=0 if options.bank is None or not gain_rule(mode).offline_tables else int(options.bank),
         remainder_structure=structure,
         remainder_gram=gram,
     )
@@ -533,6 +565,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
     return {"mode": des.mode, "exchange": des.exchange, "robustness": des.robustness, "rounds": des.rounds,
+            "bank": des.bank,
             "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),

@@ -20,13 +20,23 @@ the design report's first lines, the ``cfdesign design`` summary, and the studie
 of each filter (with :data:`FILTER_RUNTIMES`, which adds ``centralized`` for the filters of a
 fusion centre, which no node runs).
 
+What a rule is, the code asks the rule, never its name: whether the user fixes its multipliers
+σ, β, τ (``fixed_multipliers``: the paper's design; they may break (28)/(29) at the first step),
+whether its design is a set of tables computed offline and applied online (``offline_tables``:
+it chooses what the nodes exchange, the exchange rounds and a robustness margin, and has a
+stationary certificate; its gains along one run are not the design) or a seeded run of the
+filter (``seeded_design``), and whether it holds the joint error covariance of all nodes
+(``joint_covariance``: (N n)² memory per run, not mapped by the feasibility map).
+
 Adding a rule
 -------------
 One :func:`register` call beside the built-in rules at the end of this module, plus its
-implementation (the gains it computes, in the design and in the filter)::
+implementation: the filter that applies it over a batch of runs, registered under the rule's name in
+``filters.consensus_batch`` (:func:`filters.consensus_batch.register_filter`; the
+designer layer does not import the filters)::
 
     register(GainRule("mine", "scheduled", needs="the step and which neighbour packets arrived",
-                      summary="gains designed offline for the attack statistics"))
+                      summary="gains designed offline for the attack statistics", offline_tables=True))
 
 The command line's ``--mode`` choices and ``designer.design.MODES`` are read when they load, so a
 rule belongs here; a rule registered later (a test's) is known to :func:`gain_rule` and to every
@@ -42,7 +52,7 @@ from typing import Mapping
 from .validation import InputError
 
 __all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "GAIN_RULES", "register", "unregister",
-           "gain_rule", "runtime_label", "choices", "caveat"]
+           "gain_rule", "runtime_label", "choices", "caveat", "names_with"]
 
 # The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
 RUNTIMES: Mapping[str, str] = MappingProxyType({
@@ -87,12 +97,27 @@ class GainRule:
         One plain sentence: what a node needs at run time to apply the rule.
     summary : str
         One line: how the rule chooses the gains.
+    fixed_multipliers : bool
+        The user gives σ, β and τ (``--sigma``, ``--beta``, ``--tau``) and the rule keeps them (the paper's
+        design): they may break (28)/(29) at the first step, where the design cannot start.  Otherwise the rule
+        chooses them (and ε defaults to :func:`designer.tuning.tuned_epsilon`).
+    offline_tables : bool
+        Its design is a set of tables computed offline (:mod:`designer.scheduled`) and applied online by the
+        nodes: it chooses what they exchange (``--exchange``), the exchange rounds (``--rounds``) and a
+        robustness margin (``--robustness``), and has a stationary certificate; its gains along one run are
+        not the design (they cannot be replayed).  Otherwise the design is a seeded run of the filter.
+    joint_covariance : bool
+        The filter carries the joint error covariance of all nodes ((N n)² numbers per run); the feasibility
+        map does not map it (its gains come from that covariance along a run).
     """
 
     name: str
     runtime: str
     needs: str
     summary: str
+    fixed_multipliers: bool = False
+    offline_tables: bool = False
+    joint_covariance: bool = False
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
@@ -103,6 +128,20 @@ class GainRule:
         for field in ("needs", "summary"):
             if not isinstance(getattr(self, field), str) or not getattr(self, field).strip():
                 raise InputError(f"{field} of gain rule {self.name!r} must be a non-empty sentence")
+        for field in ("fixed_multipliers", "offline_tables", "joint_covariance"):
+            if not isinstance(getattr(self, field), bool):
+                raise InputError(f"{field} of gain rule {self.name!r} must be True or False, "
+                                 f"got {getattr(self, field)!r}")
+
+    @property
+    def seeded_design(self) -> bool:
+        """Its design is the filter run along a seeded simulated run (its gains there are the schedule)."""
+        return not self.offline_tables
+
+    @property
+    def mappable(self) -> bool:
+        """The feasibility map maps it (not a rule whose gains come from the joint covariance of a run)."""
+        return not self.joint_covariance
 
     @property
     def deployable(self) -> bool:
@@ -132,6 +171,11 @@ def _listing(names) -> str:
     """``'paper', 'tuned' or 'mse'``."""
     quoted = [repr(n) for n in names]
     return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + " or " + quoted[-1]
+
+
+def names_with(flag: str) -> str:
+    """The registered rules whose attribute ``flag`` is true, as an error message lists them: ``'scheduled'``."""
+    return _listing([name for name, rule in _RULES.items() if getattr(rule, flag)] or ["(none)"])
 
 
 def choices() -> str:
@@ -175,7 +219,7 @@ _LOCAL_NEEDS = ("its own measurement, the packets it received and their senders'
 register(GainRule(
     "paper", "local",
     needs=_LOCAL_NEEDS + "; its gains are computed online at the node (C = τ Φ and the gain (30)).",
-    summary="the published choices (sigma = beta = 0.1, C = tau Phi)"))
+    summary="the published choices (sigma = beta = 0.1, C = tau Phi)", fixed_multipliers=True))
 register(GainRule(
     "tuned", "local",
     needs=_LOCAL_NEEDS + "; its σ, β and gains come from a small convex problem it solves online at every step.",
@@ -185,7 +229,7 @@ register(GainRule(
     needs="the joint error covariance of all nodes and every link's realised packet losses (the network's joint "
           "state), i.e. a central computer.",
     summary="gains minimising the predicted mean-square error along one run's realised packet losses, certified by "
-            "the bound of the stacked error of all nodes"))
+            "the bound of the stacked error of all nodes", joint_covariance=True))
 register(GainRule(
     "scheduled", "scheduled",
     needs="the step, its own estimate (its Jacobians F, H_i there and its own covariance), its measurement, which "
@@ -193,4 +237,4 @@ register(GainRule(
           "--exchange measurements), and the tables designed offline (designer.scheduled): the whitened covariance "
           "factors of its links per step.",
     summary="per-link gains designed offline for the attack statistics (expected joint covariance), applied at each "
-            "node with its own Jacobians and covariance"))
+            "node with its own Jacobians and covariance", offline_tables=True))

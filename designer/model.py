@@ -328,8 +328,8 @@ class Model:
         self._np_H = [to_numpy(fn) for fn in self.casadi_H]
         self._np_h_hess = [to_numpy(fn) for fn in self.casadi_h_hess]
         self._np_h_all = to_numpy(self.casadi_h_all)
-        dims = [s.dim for s in self.sensors]
-        self._offsets = np.concatenate([[0], np.cumsum(dims)])
+        self._dims = tuple(s.dim for s in self.sensors)  # asked per node and step by the filters: computed once
+        self._offsets = np.concatenate([[0], np.cumsum(self._dims)])
 
     # ------------------------------------------------------------ properties
     @property
@@ -338,7 +338,7 @@ class Model:
 
     @property
     def sensor_dims(self) -> tuple[int, ...]:
-        return tuple(s.dim for s in self.sensors)
+        return self._dims
 
     @property
     def n_z(self) -> int:
@@ -448,7 +448,7 @@ class Model:
         """Jacobian ``dh_i/dx``, shape ``(..., n_z_i, n_x)``."""
         i = self._sensor(i)
         with np.errstate(all="ignore"):
-            return self._matrix(self._np_H[i](self._state(x), self._k(k))[0], self.sensors[i].dim)
+            return self._matrix(self._np_H[i](self._state(x), self._k(k))[0], self._dims[i])
 
     def h_hessian(self, i: int, x, k=0) -> np.ndarray:
         """Hessians of every component of ``h_i``, shape ``(..., n_z_i, n_x, n_x)``."""

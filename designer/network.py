@@ -161,6 +161,13 @@ class SensorNetwork:
         return int(np.asarray(self.adjacency).sum()) * int(rounds)
 
     @property
+    def falsified_prob(self) -> np.ndarray:
+        """``q_ij`` (N, N): the probability that a packet node ``i`` receives from ``j`` is falsified (DoS and FDI
+        are exclusive, so ``fdi_prob / (1 - dos_prob)``; 0 off the edges)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.adjacency, self.fdi_prob / (1.0 - self.dos_prob), 0.0)
+
+    @property
     def degrees(self) -> np.ndarray:
         """Degree ``d_i`` of every node."""
         return self.adjacency.sum(axis=1).astype(int)

@@ -62,6 +62,20 @@ step's arrived packets, each with per-link gains from the expected joint covaria
 (:func:`_more_rounds`; tables ``round_Gamma``, ``round_Sigma``).  Their expectation takes each round's packet losses
 as fresh draws while the simulations hold one realisation per step, so for L > 1 no certificate is computed.
 
+**Bank of operating points** (``design.bank`` = A > 0): the tables are designed along the nominal trajectory, and
+where the state leaves that geometry (a target leaving the sensor field, 100 m off the nominal after 100 steps of a
+CV random walk) the tabulated correlations between neighbours' errors are wrong: the nodes grow overconfident and
+their errors grow (mean squared error 19 against the centralized EKF's 0.05 at the end of such a run of a 128-node
+range grid; stationary tables recomputed at the true state brought it to 0.6).  The design therefore also computes
+stationary tables (:func:`_stationary_gains`, started from the nominal's stationary expected covariance) at the
+``3^A - 1`` points ``x̄_K + s Σ_a o_a σ_a v_a`` (``o_a ∈ {-1, 0, 1}``, not all 0; ``σ_a², v_a`` the A largest
+eigenpairs of the open-loop covariance ``F P Fᵀ + Q`` propagated from the prior along the nominal to the horizon K;
+``s`` = :data:`BANK_SPREAD`); a point whose Jacobians equal the nominal's (a linear model, or an axis that changes
+no Jacobian) is left out.  At run time node i uses, at step k, the tables of the candidate nearest its own
+prediction in the coordinates ``v_aᵀ(x̂⁻_i - x)/σ_a``: the step's own (at the nominal ``x̄_{k+1}``) or a bank
+point's (:meth:`ScheduledTables.choose`).  It needs only its prediction and the bank (points, axes, tables).  The bank's
+tables are not covered by the certificate, which is the nominal design's.
+
 **The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.mse`) in
 expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`, with
 the remainder term ``((1+ε)σ)⁻¹ U Uᵀ`` of the paper's lemma, the first inequality of its (31), not the ``(εσ)⁻¹``
@@ -88,6 +102,7 @@ model that the studies' Monte Carlo bound check validates on runs the design nev
 """
 from __future__ import annotations
 
+import itertools
 import warnings
 from typing import NamedTuple, Sequence
 
@@ -102,7 +117,7 @@ from .validation import InputError
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
            "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
-           "LMI_MAX_DIM"]
+           "LMI_MAX_DIM", "BANK_SPREAD"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
@@ -111,6 +126,13 @@ STATIONARY_MAX = 100
 #: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
 #: (seconds per step); the design is then given without a bound.
 CERTIFICATE_MAX_DIM = 600
+#: The bank's lattice spacing in open-loop standard deviations along each axis (an assumption, chosen, not derived:
+#: the nominal's tables serve the states within 0.75 σ of it on every axis, a point at 1.5 σ those beyond, 45 % of
+#: a Gaussian's mass on one axis; measured on range grids whose target leaves the grid, README).
+BANK_SPREAD = 1.5
+#: The change of a bank point's whitened tables below which its recursion stops (looser than :data:`STATIONARY_TOL`:
+#: the bank stands for a region, not a point; at 1e-6 its recursions took 60-100 steps each on a 28-node model).
+BANK_TOL = 1e-4
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing"
 
 
@@ -611,10 +633,45 @@ class ScheduledTables(NamedTuple):
     round_Gamma_inf: np.ndarray  # (L - 1, E, n, n) beyond the horizon
     round_Sigma_inf: np.ndarray  # (L - 1, N, d, d, n, n)
     Kn: np.ndarray | None  # (steps, E, n, mz) the nominal gains on the neighbours' measurements (exchange)
+    # the bank of operating points (module docstring; None without one): B points (B, n), the metric (A, n) whose
+    # rows are v_a / σ_a, their stationary tables, rounds 2..L's, and the record (axes, spread, points, skipped,
+    # converged, extra_steps per point)
+    bank_points: np.ndarray | None = None
+    bank_metric: np.ndarray | None = None
+    bank_Gamma: np.ndarray | None = None  # (B, E, n, n)
+    bank_Sigma: np.ndarray | None = None  # (B, N, d, d, n, n)
+    bank_round_Gamma: np.ndarray | None = None  # (B, L - 1, E, n, n)
+    bank_round_Sigma: np.ndarray | None = None  # (B, L - 1, N, d, d, n, n)
+    bank_record: dict | None = None
 
     @property
     def steps(self) -> int:
         return self.Gamma.shape[0]
+
+    @property
+    def has_bank(self) -> bool:
+        return self.bank_points is not None and len(self.bank_points) > 0
+
+    def choose(self, k: int, x: np.ndarray) -> np.ndarray | None:
+        """Which tables each prediction ``x`` (..., n) of step ``k`` uses: 0 the step's own (at the nominal point
+        ``x̄_{k+1}``), ``b`` > 0 bank point ``b - 1``'s; the candidate nearest ``x`` in the bank's metric.  None
+        without a bank."""
+        if not self.has_bank:
+            return None
+        cand = np.concatenate([self.nominal[min(k + 1, self.steps)][None], self.bank_points])  # (B + 1, n)
+        coords = (np.asarray(x)[..., None, :] - cand) @ self.bank_metric.T  # (..., B + 1, A)
+        return np.argmin(np.sum(coords**2, axis=-1), axis=-1)
+
+    def candidates(self, k: int, r: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``(Gamma (B + 1, E, n, n), Sigma (B + 1, N, d, d, n, n))`` of exchange round ``r`` of step ``k``: the
+        step's own tables (:meth:`tables`, :meth:`round_tables`) first, then the bank's, in the order of
+        :meth:`choose`."""
+        G, S = self.tables(k) if r == 1 else self.round_tables(k, r)
+        if not self.has_bank:
+            return G[None], S[None]
+        bG, bS = (self.bank_Gamma, self.bank_Sigma) if r == 1 else (self.bank_round_Gamma[:, r - 2],
+                                                                    self.bank_round_Sigma[:, r - 2])
+        return np.concatenate([G[None], bG]), np.concatenate([S[None], bS])
 
     def tables(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(Gamma, Sigma)`` of step ``k``; beyond the horizon the stationary ones (:attr:`stationary`)."""
@@ -743,22 +800,23 @@ def _more_rounds(st: _Setting, Pm: JointCovariance, x: np.ndarray, k1: int):
     return Pm, np.stack(Gs), np.stack(Ss)
 
 
-def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.ndarray, k1: int, last):
+def _stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.ndarray, k1: int, last,
+                      tol: float = STATIONARY_TOL):
     """The expected covariance's recursion at the fixed linearisation ``Fs``, ``x`` from ``Pm`` until the tables
-    change by at most :data:`STATIONARY_TOL` (from ``last``, a pair of tables, or None) or for
+    change by at most ``tol`` (default :data:`STATIONARY_TOL`; from ``last``, a pair of tables, or None) or for
     :data:`STATIONARY_MAX` steps: ``(Pm, rule, Gamma, Sigma, record, round_Gamma, round_Sigma)`` of the last step
     (the last two: the tables of rounds 2..L), ``record`` saying whether it converged and after how many steps."""
-    record = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": STATIONARY_TOL}
+    record = {"converged": False, "extra_steps": STATIONARY_MAX, "tolerance": tol}
     for extra in range(1, STATIONARY_MAX + 1):
         Pm = joint_predict(Pm, Fs, st.Q)
         rule, G_new, S_new = _gains(st, Pm, x, k1)
         Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
         Pm, rG, rS = _more_rounds(st, Pm, x, k1)
         done = last is not None and max(np.max(np.abs(G_new - last[0]), initial=0.0),
-                                        np.max(np.abs(S_new - last[1]), initial=0.0)) <= STATIONARY_TOL
+                                        np.max(np.abs(S_new - last[1]), initial=0.0)) <= tol
         last = (G_new, S_new)
         if done:
-            record = {"converged": True, "extra_steps": extra, "tolerance": STATIONARY_TOL}
+            record = {"converged": True, "extra_steps": extra, "tolerance": tol}
             break
     return Pm, rule, last[0], last[1], record, rG, rS
 
@@ -814,10 +872,12 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     def worst(phi):
         return int(np.argmax(np.trace(phi[idx, idx], axis1=-2, axis2=-1)))
 
+    P_open = np.asarray(phi0, dtype=float)  # the open-loop covariance along the nominal (the bank's axes)
     for k in range(steps):
         F = np.asarray(model.F_expected(x, k, u_at(k)), dtype=float)
         x = np.asarray(model.f_expected(x, k, u_at(k)), dtype=float)
         nominal[k + 1] = x
+        P_open = F @ P_open @ F.T + st.Q
         Fs = np.broadcast_to(F, (N, n, n))
         Pm = joint_predict(Pm, Fs, st.Q)
         rule, out["Gamma"][k], out["Sigma"][k] = _gains(st, Pm, x, k + 1)
@@ -851,10 +911,13 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         out["P_post"][k + 1] = Pm.P
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
+    bank = {}
     if stationary:  # the stationary tables: the recursion continued at the last nominal point with its input
         F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
-        _, _, last_G, last_S, record, rG_inf, rS_inf = _stationary_gains(
+        Pm_inf, _, last_G, last_S, record, rG_inf, rS_inf = _stationary_gains(
             st, Pm, np.broadcast_to(F, (N, n, n)), x, steps, (out["Gamma"][-1], out["Sigma"][-1]))
+        if design.bank:
+            bank = _bank(st, Pm_inf, P_open, x, steps, u_at(steps), int(design.bank))
     else:
         last_G, last_S = out["Gamma"][-1], out["Sigma"][-1]
         rG_inf, rS_inf = out["round_Gamma"][-1], out["round_Sigma"][-1]
@@ -862,7 +925,47 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     return ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
                            Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange),
                            robustness=st.margin, rounds=st.rounds, round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,
-                           **out)
+                           **out, **bank)
+
+
+def _linearisation(model, x: np.ndarray, k: int, u) -> list[np.ndarray]:
+    """``F`` and every sensor's ``H`` at ``x`` (step ``k``): what the tables' geometry depends on."""
+    return [np.asarray(model.F_expected(x, k, u), dtype=float)] + [
+        np.asarray(model.H(i, x, k), dtype=float) for i in range(model.n_sensors)]
+
+
+def _bank(st: _Setting, Pm: JointCovariance, P_open: np.ndarray, x: np.ndarray, k: int, u, axes: int) -> dict:
+    """The bank of operating points (module docstring) around the last nominal point ``x`` (step ``k``, input
+    ``u``): the ``ScheduledTables`` fields ``bank_*``.  ``Pm`` the nominal's stationary expected covariance (each
+    point's recursion starts there), ``P_open`` the open-loop covariance at the horizon."""
+    model, N, n = st.model, Pm.P.shape[0], Pm.P.shape[-1]
+    lam, vec = np.linalg.eigh(symmetrize(P_open))
+    top = np.argsort(lam)[::-1][:axes]
+    top = top[lam[top] > 0]
+    sig, vec = np.sqrt(lam[top]), vec[:, top].T  # (A,), (A, n)
+    ref = _linearisation(model, x, k, u)
+    points, skipped, G, S, rG, rS, conv, extra = [], 0, [], [], [], [], [], []
+    for o in itertools.product((-1, 0, 1), repeat=len(sig)):
+        if not any(o):
+            continue
+        p = x + BANK_SPREAD * (np.asarray(o, dtype=float) * sig) @ vec
+        lin = _linearisation(model, p, k, u)
+        if all(np.allclose(a, b, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(b).max(initial=0.0)))
+               for a, b in zip(lin, ref)):
+            skipped += 1  # the same Jacobians as the nominal's: the same tables
+            continue
+        _, _, g, s_, rec, rg, rs = _stationary_gains(st, Pm, np.broadcast_to(lin[0], (N, n, n)), p, k, None,
+                                                     BANK_TOL)
+        points.append(p), G.append(g), S.append(s_), rG.append(rg), rS.append(rs)
+        conv.append(bool(rec["converged"])), extra.append(int(rec["extra_steps"]))
+    record = {"axes": int(axes), "spread": BANK_SPREAD, "tolerance": BANK_TOL, "points": len(points),
+              "skipped": skipped,
+              "sigma": sig.tolist(), "converged": conv, "extra_steps": extra}
+    if not points:
+        return {"bank_record": record}
+    return {"bank_points": np.stack(points), "bank_metric": vec / sig[:, None], "bank_Gamma": np.stack(G),
+            "bank_Sigma": np.stack(S), "bank_round_Gamma": np.stack(rG), "bank_round_Sigma": np.stack(rS),
+            "bank_record": record}
 
 
 def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
@@ -870,7 +973,9 @@ def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
     the channels (``receiver``, ``sender``, ``p``, ``q``), the whitened factors per step (``Gamma``, ``Sigma``) and
     beyond the horizon (``Gamma_inf``, ``Sigma_inf``), the nominal gains (``K``, ``C``, ``Kn``), the nominal
     trajectory and the expected covariance (``P_pred``, ``P_post``); with L > 1 rounds, rounds 2..L's factors
-    (``round_Gamma``, ``round_Sigma``, ``round_Gamma_inf``, ``round_Sigma_inf``)."""
+    (``round_Gamma``, ``round_Sigma``, ``round_Gamma_inf``, ``round_Sigma_inf``); with a bank of operating points its
+    points, metric and tables (``bank_points``, ``bank_metric``, ``bank_Gamma``, ``bank_Sigma``, and with L > 1
+    ``bank_round_Gamma``, ``bank_round_Sigma``)."""
     ch = tables.channels
     out = {"receiver": ch.receiver, "sender": ch.sender, "p": ch.p, "q": ch.q, "Gamma": tables.Gamma,
            "Sigma": tables.Sigma, "Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "K": tables.K,
@@ -880,6 +985,11 @@ def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
     if tables.rounds > 1:  # rounds 2..L's factors
         out.update(round_Gamma=tables.round_Gamma, round_Sigma=tables.round_Sigma,
                    round_Gamma_inf=tables.round_Gamma_inf, round_Sigma_inf=tables.round_Sigma_inf)
+    if tables.has_bank:  # the bank of operating points
+        out.update(bank_points=tables.bank_points, bank_metric=tables.bank_metric, bank_Gamma=tables.bank_Gamma,
+                   bank_Sigma=tables.bank_Sigma)
+        if tables.rounds > 1:
+            out.update(bank_round_Gamma=tables.bank_round_Gamma, bank_round_Sigma=tables.bank_round_Sigma)
     return out
 
 

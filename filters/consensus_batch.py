@@ -1,10 +1,11 @@
-"""The consensus EKF of :mod:`filters.consensus`, batched over Monte Carlo runs and nodes.
+"""The consensus EKF of :mod:`filters.consensus`, batched over Monte Carlo runs and nodes: its one implementation.
 
-:func:`run_consensus_batch` runs many Monte Carlo runs of the filter at once and gives, run
-by run, the numbers of :func:`filters.consensus.run_consensus` (to rounding): the same
-prediction (3), bound (26), exchange, gain (30), bound (27), conditions (28)-(29) and
-Theorem 2 margins, the same fallback recursion and ``valid`` flags (a node's own violations
-and its neighbours' non-bound predictions), the same violations in the same order, the
+:func:`run_consensus_batch` runs many Monte Carlo runs of the filter at once; a run alone
+(:func:`filters.consensus.run_consensus`) is a batch of one, and a run's numbers do not depend on
+the other runs of its batch.  Run by run it computes the prediction (3), bound (26), the χ² gate
+(``design.gate > 0``), exchange, gain (30), bound (27), conditions (28)-(29) and
+Theorem 2 margins, the fallback recursion and ``valid`` flags (a node's own violations
+and its neighbours' non-bound predictions), the violations node by node in step order, the
 linearisation scalings of ``design.linearization``, wrapped angular residuals, sensors of
 mixed dimensions (gains zero-padded), the bound-trace limit, and divergence: a run whose
 estimate or covariance leaves finite numbers stops there (its arrays NaN from that step on,
@@ -22,22 +23,26 @@ Every quantity of a step is a stack over (runs, nodes):
   channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
-The gains are chosen per mode by a pair of batched functions over stacked items
-(:data:`GAIN_RULES`): ``'paper'`` (σ, β fixed, ``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
+The filter of each gain rule is registered under its name (:func:`register_filter`,
+:func:`rule_filters`).  The rules a node applies on its own over Theorem 1's recursion are a
+:class:`NodeRule`, a pair of batched functions over stacked items: ``'paper'`` (σ, β fixed,
+``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
 (σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
 weighted (27) by :func:`designer.tuning.tune_weighted_batch`, over the groups own error / each
 received neighbour / the falsified packets, with one group slot per incoming channel; each
 (run, node) carries its weights per slot from one tuned update to the next and warm-starts from
-them as run_consensus does, :func:`designer.tuning.warm_start_weights`).  The per-run path runs
-the same stacked functions with one item, so both take the same steps.
-Mode ``'mse'`` runs batched in :func:`filters.mse_batch.run_mse_batch`.  What is left — a gate on
-neighbour packets (``design.gate > 0``) in modes paper and tuned — runs
-:func:`filters.consensus.run_consensus` run by run and stacks its results into the same
-:class:`ConsensusBatchResult` (with ``gate_counts``): the same numbers, without the batch's speed.
+them, :func:`designer.tuning.warm_start_weights`).  A fixed gain schedule (``gains=``, e.g. a
+design's, replayed on other runs) takes the place of the rule: every node on the fallback
+recursion with the given gains, nothing certified.  Mode ``'mse'`` runs batched in
+:func:`filters.mse_batch.run_mse_batch`, mode ``'scheduled'`` in
+:func:`filters.scheduled.run_scheduled_batch`.  The straightforward per-node loop this batch was
+written from is kept as the tests' reference (``tests/consensus_reference.py``).
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Sequence
+from importlib import import_module
+from types import MappingProxyType
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -55,6 +60,7 @@ from designer.bounds import (
     update_bound_from,
 )
 from designer.design import ConsensusDesign, validate_design
+from designer.gain_rules import gain_rule
 from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
@@ -62,14 +68,14 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import (GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, _falsified_probability,
-                        run_consensus)
+from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, gate_channels
 from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "GAIN_RULES", "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
+           "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run"]
 
@@ -116,7 +122,8 @@ class EdgeAttacks(NamedTuple):
         return cls(receiver, sender, np.stack(dos), np.stack(fdi), np.stack(xi))
 
     def pattern(self, r: int, n_nodes: int) -> AttackPattern:
-        """Run ``r``'s attacks as the dense :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`."""
+        """Run ``r``'s attacks as the dense :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`
+        (``filters.consensus.run_consensus``)."""
         steps, n_x = self.xi.shape[1], self.xi.shape[3]
         dos = np.zeros((steps, n_nodes, n_nodes), dtype=bool)
         fdi = np.zeros_like(dos)
@@ -188,22 +195,6 @@ def per_run(value_of, network: SensorNetwork, nets: list | None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the result
-def _gate_counts(attacks: "EdgeAttacks | None", n_edges: int, runs: int, steps: int, violations) -> np.ndarray:
-    """:data:`filters.consensus.GATE_COUNTS` per run and step without a gate, zero from a run's divergence on."""
-    out = np.zeros((runs, steps, 5), dtype=np.int64)
-    if attacks is None:
-        out[..., 0] = n_edges
-    else:
-        recv = ~attacks.dos[:, :steps]  # the attacks may cover more steps than the run
-        out[..., 0] = recv.sum(-1)
-        out[..., 3] = out[..., 4] = (recv & attacks.fdi[:, :steps]).sum(-1)
-    for r, vs in enumerate(violations):
-        stop = next((v["step"] for v in vs if v["condition"] == "diverged"), None)
-        if stop is not None:
-            out[r, stop:] = 0
-    return out
-
-
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
@@ -259,16 +250,6 @@ class ConsensusBatchResult(NamedTuple):
     def diverged(self) -> list:
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
-
-    @classmethod
-    def of_runs(cls, refs: Sequence[ConsensusResult]) -> "ConsensusBatchResult":
-        """Per-run results of :func:`filters.consensus.run_consensus` stacked over the runs (numbers unchanged)."""
-        optional = ("predicted_mse", "gate_counts", "gain_condition")
-        fields = {f: np.stack([getattr(ref, f) for ref in refs]) for f in ConsensusResult._fields
-                  if f != "violations" and f not in optional}
-        stacked = {f: None if getattr(refs[0], f) is None else np.stack([getattr(ref, f) for ref in refs])
-                   for f in optional}
-        return cls(**fields, violations=[ref.violations for ref in refs], **stacked)
 
     def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound", rounds: int = 1
                   ) -> FilterResult:
@@ -344,22 +325,86 @@ def _tuned_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> U
     return UpdateChoice(condition29_margin(phi_pred, ch.beta, D), ch.beta, ch.K, ch.C, ch.phi_post, ch.weights)
 
 
-# mode -> (prediction, update), both batched over stacked items (an update rule takes the items' Φ_pred as a
-# Spectrum and a dict of their arrays: H, s, V, R, d, nt = the paper's neighbour terms, and in mode tuned the
-# groups of (27), which are present and the warm-start weights w0); 'mse' has filters.mse_batch.
-GAIN_RULES: dict[str, tuple[Callable[..., PredictionChoice], Callable[..., UpdateChoice]]] = {
-    "paper": (_paper_prediction, _paper_update),
-    "tuned": (_tuned_prediction, _tuned_update),
-}
+class NodeRule(NamedTuple):
+    """A gain rule that each node applies on its own over the bound recursion of Theorem 1, run by
+    :func:`run_consensus_batch`'s loop: its prediction and update, both batched over stacked items (an update
+    takes the items' Φ_pred as a Spectrum and a dict of their arrays: H, s, V, R, d, nt = the paper's neighbour
+    terms, and with ``weighted`` the groups of (27), which are present and the warm-start weights w0)."""
+
+    predict: Callable[..., PredictionChoice]
+    update: Callable[..., UpdateChoice]
+    weighted: bool = False  # the weighted (27): each node's weights per incoming channel, carried between steps
 
 
-def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float):
-    """The fallback of a node off Theorem 1's recursion: β = 0, V = 0, no inflation ((1 + 2 d_i), 3 -> 1)."""
-    C = tau * phi_pred
+# gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
+# function with run_consensus_batch's parameters (without gains); see register_filter
+_FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
+_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled")  # they register the filters of the other built-in rules
+
+
+def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
+    """Register ``run`` as the filter of the gain rule named ``rule`` (registered in :mod:`designer.gain_rules`):
+    a :class:`NodeRule`, or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
+    :class:`ConsensusBatchResult`.  A rule has one filter; returns ``run``."""
+    gain_rule(rule, "rule")
+    if rule in _FILTERS:
+        raise InputError(f"gain rule {rule!r} has a filter already")
+    _FILTERS[rule] = run
+    return run
+
+
+def unregister_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
+    """Remove the filter of the gain rule named ``rule`` and return it."""
+    if rule not in _FILTERS:
+        raise InputError(f"no filter is registered for gain rule {rule!r}")
+    return _FILTERS.pop(rule)
+
+
+def rule_filters() -> Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"]:
+    """Every registered filter by gain rule name (read-only), the built-in rules' included."""
+    for module in _FILTER_MODULES:  # late: they build on this module
+        import_module(module)
+    return MappingProxyType(_FILTERS)
+
+
+def rule_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
+    """The filter registered for the gain rule named ``rule`` (InputError when none is)."""
+    if rule not in _FILTERS:
+        rule_filters()
+    if rule not in _FILTERS:
+        raise InputError(f"no filter applies gain rule {rule!r} (filters.consensus_batch.register_filter registers "
+                         "one)")
+    return _FILTERS[rule]
+
+
+register_filter("paper", NodeRule(_paper_prediction, _paper_update))
+register_filter("tuned", NodeRule(_tuned_prediction, _tuned_update, weighted=True))
+
+
+def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float, K=None, C=None):
+    """The fallback of a node off Theorem 1's recursion: β = 0, V = 0, no inflation ((1 + 2 d_i), 3 -> 1); the gains
+    ``C = τ Φ_pred`` and the gain (30), or the given ``K``, ``C`` (a replayed schedule)."""
     M = shifted_inverse(phi_pred, 0.0)
     V = np.zeros(H.shape[:-1] + (H.shape[-2],))
-    K = optimal_gain_from(M, H, C, s, 0.0, V, R, 0)
-    return K, C, update_bound_from(M, H, K, C, s, 0.0, V, R, 0, neighbour_terms / 3.0)
+    if K is None:
+        C = tau * phi_pred
+        K = optimal_gain_from(M, H, C, s, 0.0, V, R, 0)
+    with np.errstate(over="ignore", invalid="ignore"):  # a bound beyond floats is caught as a divergence
+        return K, C, update_bound_from(M, H, K, C, s, 0.0, V, R, 0, neighbour_terms / 3.0)
+
+
+def _replay_gains(gains, steps: int, n: int, nx: int, nz: int) -> tuple[np.ndarray, np.ndarray]:
+    """A replayed schedule ``(K, C)`` checked against the runs: K (steps' >= steps, N, n_x, >= n_z), C (steps', N,
+    n_x, n_x)."""
+    try:
+        K, C = (np.asarray(g, dtype=float) for g in gains)
+    except (TypeError, ValueError):
+        raise InputError(f"gains must be a pair (K, C) of arrays, got {type(gains).__name__}") from None
+    if K.ndim != 4 or K.shape[0] < steps or K.shape[1:3] != (n, nx) or K.shape[3] < nz \
+            or C.shape != (K.shape[0], n, nx, nx):
+        raise InputError(f"gains must be (K ({steps}+ steps, {n}, {nx}, {nz}+), C (the same steps, {n}, {nx}, {nx})) "
+                         f"for {steps} steps of {n} nodes, got K {K.shape}, C {C.shape}")
+    return K, C
 
 
 def wrap_residuals(r: np.ndarray, angles: Sequence[int]) -> np.ndarray:
@@ -437,7 +482,7 @@ def batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
 
 
 def _first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign) -> InputError:
-    """The InputError :func:`run_consensus` raises at the first step of run ``r`` in paper mode."""
+    """The InputError raised at the first step of run ``r`` in paper mode (σ or β beyond (28)/(29))."""
     if v28[r].any():
         lam = float(np.linalg.eigvalsh(phi0[r])[-1])
         return InputError(
@@ -452,7 +497,7 @@ def _first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign
 def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                        phi0=None) -> ConsensusBatchResult:
+                        phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None) -> ConsensusBatchResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -464,28 +509,31 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any mode: 'mse' runs batched in :func:`filters.mse_batch.run_mse_batch` (with or without a
-        gate), the modes of :data:`GAIN_RULES` without a gate run batched here, the other cases run
-        :func:`run_consensus` run by run (same numbers, stacked).
+        Any gain rule with a filter (:func:`rule_filters`), with or without a gate: 'mse' runs in
+        :func:`filters.mse_batch.run_mse_batch`, 'scheduled' in :func:`filters.scheduled.run_scheduled_batch`,
+        'paper' and 'tuned' (:class:`NodeRule`) here.
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
     attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
         Realised channel attacks (none when omitted).
     x0, phi0 : initial estimate (n_x,) or (runs, n_x) and ``Φ_{0|0}`` (n_x, n_x) or (runs, n_x, n_x)
         (default: the prior's mean and covariance).
+    gains : (K, C), optional
+        Replay a fixed gain schedule in every run instead of computing the gains (any mode): ``K`` (steps', N,
+        n_x, n_z') with node ``i``'s gain in its first ``n_z_i`` columns, ``C`` (steps', N, n_x, n_x), steps' >=
+        steps.  Every node then runs the fallback recursion (no bound claimed, ``valid`` False throughout).
 
     Returns
     -------
     ConsensusBatchResult
-        Run ``r`` equals ``run_consensus(model, network[r], z[r], design, inputs=..., attacks=attacks[r], ...)``
-        to rounding (:meth:`ConsensusBatchResult.run` gives it as a ``ConsensusResult``).
+        One entry per run (:meth:`ConsensusBatchResult.run` gives run ``r`` as a ``ConsensusResult``; a run
+        alone, :func:`filters.consensus.run_consensus`, is a batch of one).
 
     Raises
     ------
     InputError
-        For bad input, and, as :func:`run_consensus` does, when σ or
-        β violates (28)/(29) at the first step: with the message ``run_consensus`` raises for the
-        first run (in batch order) it raises for.
+        For bad input, and when σ or β of a paper design violates (28)/(29) at the first step (the
+        message names the bound, for the first run in batch order that violates it).
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -493,22 +541,17 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     design = validate_design(design, model, network)
     ex = _Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    if design.mode == "mse":
-        from .mse_batch import run_mse_batch  # late: it builds on this module
-
-        return run_mse_batch(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks,
-                             x0=x0, phi0=phi0)
-    if design.mode == "scheduled":
-        from .scheduled import run_scheduled_batch  # late: it builds on this module
-
-        return run_scheduled_batch(model, network if nets is None else nets, z, design, inputs=inputs,
-                                   attacks=attacks, x0=x0, phi0=phi0)
-    if design.mode not in GAIN_RULES or design.gate:
-        return _per_run_batch(model, network if nets is None else nets, z, design, u, attacks, x0, phi0)
-    predict_rule, update_rule = GAIN_RULES[design.mode]
-
+    filt = None if gains is not None else rule_filter(design.mode)
+    if filt is not None and not isinstance(filt, NodeRule):
+        return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
+                    phi0=phi0)
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
+    replay = gains is not None
+    if replay:
+        gains = _replay_gains(gains, steps, n, nx, nz)
+    predict_rule, update_rule = (None, None) if replay else filt[:2]
+    fixed = gain_rule(design.mode).fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
     degrees = network.degrees
     d_max = network.d_max
     Q = model.process_cov
@@ -519,10 +562,10 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     # per run (1 item when every run has the same network)
     w_phi = per_run(lambda net: 3.0 * (1.0 - net.dos_prob[ex.receiver, ex.sender]), network, nets)
     w_xi = per_run(lambda net: 3.0 * design.delta**2 * (net.fdi_prob * net.adjacency).sum(axis=1), network, nets)
-    tuned = design.mode == "tuned"
+    tuned = not replay and filt.weighted
     if tuned:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
         slots = _channel_slots(ex, d_max)
-        q_chan = per_run(lambda net: _falsified_probability(net)[ex.receiver, ex.sender], network, nets)
+        q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
 
     x_post = np.full((runs, steps + 1, n, nx), np.nan)
@@ -532,16 +575,17 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     K = np.full((runs, steps, n, nx, nz), np.nan)
     C = np.full((runs, steps, n, nx, nx), np.nan)
     valid = np.zeros((runs, steps + 1, n), dtype=bool)
-    proper = np.ones((runs, n), dtype=bool)
+    proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)
     m28 = np.full((runs, steps, n), np.nan)
     m29 = np.full((runs, steps, n), np.nan)
     th2 = np.full((runs, steps + 1, n), np.nan)
     sig = np.full((runs, steps, n), np.nan)
     bet = np.full((runs, steps, n), np.nan)
     violations: list[list[dict]] = [[] for _ in range(runs)]
+    counts = np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64)
     x_post[:, 0] = x0[:, None]
     phi_post[:, 0] = phi0[:, None]
-    valid[:, 0] = True
+    valid[:, 0] = not replay
     act = np.arange(runs)  # the runs still going (not diverged)
 
     for k in range(steps):
@@ -579,15 +623,17 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             Pp[fb] = prediction_recursion(Pk[fb], F[fb], np.zeros((nx, nx)), Q, 0.0, design.epsilon)
         v28 = prop & ~pvalid
         pred_ok = pvalid & valid[at, k]
-        # ---- exchange
+        # ---- the gate (design.gate > 0: x̂_j - x̂_i against 2 (Φ_i + Φ_j) >= its covariance) and the exchange
         if attacks is None:
-            recv = np.ones((a, ex.receiver.size), dtype=bool)
+            received, fdi, xi = np.ones((a, ex.receiver.size), dtype=bool), None, None
         else:
-            recv = ~attacks.dos[at, k]
+            received, fdi, xi = ~attacks.dos[at, k], attacks.fdi[at, k], attacks.xi[at, k]
+        cov_diff = 2.0 * (Pp[:, ex.receiver] + Pp[:, ex.sender]) if design.gate else None
+        recv, counts[at, k] = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
         s = ex.sum(recv.astype(float))
         innovation = ex.sum(recv[..., None] * xp[:, ex.sender]) - s[..., None] * xp
         if attacks is not None:
-            innovation = innovation + ex.sum((recv & attacks.fdi[at, k])[..., None] * attacks.xi[at, k])
+            innovation = innovation + ex.sum((recv & fdi)[..., None] * xi)
         each = slice(None) if nets is None else at  # the runs' channel statistics
         neigh = ex.sum(w_phi[each][:, :, None, None] * Pp[:, ex.sender]) + w_xi[each][..., None, None] * eye
         # ---- update (7), (27), (29), per group of nodes
@@ -618,6 +664,9 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                                                    grp.V[j])[0]
             flat = dict(P=Pp[:, at_g], H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
                         d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
+            if replay:
+                flat.update(Kr=np.broadcast_to(gains[0][k, ns, :, :dim], (a, g, nx, dim)),
+                            Cr=np.broadcast_to(gains[1][k, ns], (a, g, nx, nx)))
             if tuned:
                 flat.update(_tuned_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design))
             flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
@@ -638,12 +687,12 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             Kn[:, at_g, :, :dim] = gK
             margin29[:, at_g], beta[:, at_g], uvalid[:, at_g] = gm29, gbeta, gok
         v29 = pvalid & ~uvalid
-        # ---- divergence: a run stops at its first failing node (in node order), as run_consensus does
+        # ---- divergence: a run stops at its first failing node (in node order)
         first = np.where(failed.any(axis=1), failed.argmax(axis=1), n)
         before = np.arange(n)[None, :] < first[:, None]
         v29 &= before
         margin29[~before], beta[~before] = np.nan, np.nan
-        if k == 0 and design.mode == "paper":  # sigma or beta is wrong for this model at the first step
+        if k == 0 and fixed:  # sigma or beta is wrong for this model at the first step
             raising = np.flatnonzero(v28.any(axis=1) | v29.any(axis=1))
             if raising.size:
                 r = int(raising[0])
@@ -654,7 +703,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         m29[at, k], bet[at, k] = margin29, beta
         valid[at, k + 1] = uvalid & pred_ok & ~nb_bad
         proper[at] = prop & ~v28 & ~v29
-        # ---- violations, in run_consensus's order: theorem2 and (28) node by node, then (29), then divergence
+        # ---- violations: theorem2 and (28) node by node, then (29), then divergence
         rr, ii = np.nonzero((th2k < 0) | v28)
         for r, i, t2, c28, mg, lim in zip(act[rr].tolist(), ii.tolist(), th2k[rr, ii].tolist(), v28[rr, ii].tolist(),
                                           margin28[rr, ii].tolist(), limit[rr, ii].tolist()):
@@ -680,11 +729,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
     return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                                None, _gate_counts(attacks, len(ex.receiver), runs, steps, violations))
+                                None, counts)
 
 
 def _channel_slots(ex: _Exchange, d_max: int) -> np.ndarray:
-    """``(N, d_max)``: node i's incoming channels in sender order (run_consensus's received neighbours), -1 beyond."""
+    """``(N, d_max)``: node i's incoming channels in sender order, -1 beyond."""
     deg = np.bincount(ex.receiver, minlength=ex.n)
     first = np.cumsum(deg) - deg
     j = np.arange(d_max)
@@ -695,7 +744,7 @@ def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDes
     """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a; ``q_chan`` (a or 1, E) the
     channels' probabilities that a received packet is falsified): the groups of the weighted
     (27) from the received neighbours' Φ_pred (:func:`designer.tuning.neighbour_group_stack`), which are present,
-    and the warm start from each node's ``previous`` weights (a, g, d_max + 2) by slot, as run_consensus's."""
+    and the warm start from each node's ``previous`` weights (a, g, d_max + 2) by slot."""
     a, g = recv.shape[0], slots.shape[0]
     chan = np.maximum(slots, 0)
     present = recv[:, chan] & (slots >= 0)  # (a, g, d_max)
@@ -710,22 +759,11 @@ def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDes
             "w0": w0.reshape(a, g, -1)}
 
 
-def _per_run_batch(model: Model, network, z, design: ConsensusDesign, u, attacks, x0, phi0
-                   ) -> ConsensusBatchResult:
-    """What the batch cannot vectorise yet: :func:`run_consensus` run by run (``network`` one for all or one per
-    run), its results stacked."""
-    nets = [network] * z.shape[0] if isinstance(network, SensorNetwork) else network
-    return ConsensusBatchResult.of_runs(
-        [run_consensus(model, nets[r], z[r], design, inputs=u if u.ndim == 2 else u[r],
-                       attacks=None if attacks is None else attacks.pattern(r, nets[r].n_nodes),
-                       x0=x0[r], phi0=phi0[r]) for r in range(z.shape[0])])
-
-
 def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDesign):
     """The update of stacked items (one run and node each): the mode's rule where the prediction is a
     bound and (29) holds, the fallback elsewhere (and, mode tuned, the weights of the items whose rule
     held; NaN elsewhere: they keep their previous weights).  A numerical breakdown (``LinAlgError``) is searched
-    item by item; those items get NaN outputs and a reason (``{item: reason}``), as run_consensus reports it."""
+    item by item; those items get NaN outputs and a reason (``{item: reason}``)."""
     m, nx = it["P"].shape[:2]
     dim = it["H"].shape[-2]
     margin = np.full(m, np.nan)
@@ -753,7 +791,8 @@ def _update_items(it: dict, vin: np.ndarray, update_rule, D, design: ConsensusDe
         rest = idx[~ok[idx]]
         if rest.size:
             K[rest], C[rest], P[rest] = _fallback_update(*(it[key][rest] for key in ("P", "H", "s", "R", "nt")),
-                                                         design.tau)
+                                                         design.tau, *((it["Kr"][rest], it["Cr"][rest])
+                                                                       if "Kr" in it else ()))
 
     try:
         compute(np.arange(m))

@@ -1,21 +1,21 @@
 """The consensus EKF in mode ``'mse'`` batched over Monte Carlo runs: :func:`run_mse_batch`.
 
-The per-run reference is :func:`filters.consensus.run_consensus` with ``design.mode == 'mse'``:
-every node's gains are the linear-MMSE ones from the joint error covariance of all nodes, and
-one σ and one β certify the stacked error of all nodes (:mod:`designer.mse`).  Here every
-quantity of a step is a stack over the runs still going: the joint covariance ``(runs, N, N,
-n, n)`` and its certificate go through the functions of :mod:`designer.mse` with a leading
-runs axis (the per-run filter calls the same functions on one run, so both take the same
-steps), the gains are solved per node over all runs at once (the kept packets as masks), and
-the χ² gate on neighbour packets works on the network's directed channels of every run
-(:func:`filters.consensus.gate_channels`, :func:`~filters.consensus.channel_difference_covariance`,
-:func:`~filters.consensus.kept_fdi_moments`: the gate's one home, whose per-run form the per-run filter uses).
+:func:`filters.consensus_batch.run_consensus_batch` (and so :func:`filters.consensus.run_consensus`, a
+batch of one) dispatches ``design.mode == 'mse'`` here: every node's gains are the linear-MMSE ones
+from the joint error covariance of all nodes, and one σ and one β certify the stacked error of all
+nodes (:mod:`designer.mse`).  Here every quantity of a step is a stack over the runs still going:
+the joint covariance ``(runs, N, N, n, n)`` and its certificate go through the functions of
+:mod:`designer.mse` with a leading runs axis, the gains are solved per node over all runs at once
+(the kept packets as masks), and the χ² gate on neighbour packets works on the network's directed
+channels of every run (:func:`filters.consensus.gate_channels`,
+:func:`~filters.consensus.channel_difference_covariance`, :func:`~filters.consensus.kept_fdi_moments`: the
+gate's one home).
 
-Run ``r`` of the result equals ``run_consensus(..., attacks=attacks.pattern(r, N))`` to rounding:
-estimates, bounds, gains, predicted MSE, σ, β, margins, the ``valid`` flags, the violations in
+Run ``r`` of the result equals the per-node loop of the tests' reference (``tests/consensus_reference.py``)
+to rounding: estimates, bounds, gains, predicted MSE, σ, β, margins, the ``valid`` flags, the violations in
 the same order (the trace limit, (28), Theorem 2, (29) at the node where a joint condition
 binds), the gate's counts, and divergence, which stops only its run.  Without a gate the two
-paths take the same floating-point steps (equal to the bit on the built-in scenarios).  With a
+take the same floating-point steps (equal to the bit on the built-in scenarios).  With a
 gate and an FDI signal, what the kept falsified packets add (:func:`kept_fdi_moments`) comes from
 :meth:`designer.attacks.FDISignal.passing`, whose quadrature (a matrix-vector product) rounds
 differently with the number of packets it is given: the runs then agree to rounding, and a flag
@@ -50,13 +50,13 @@ from designer.mse import (
     node_blocks,
 )
 from designer.network import SensorNetwork
+from designer.tuning import lam_max
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import (_binding_node, _falsified_probability,
-                        channel_difference_covariance, gate_channels, kept_fdi_moments)
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays, per_run, run_networks,
-                              wrap_residuals)
+from .consensus import channel_difference_covariance, gate_channels, kept_fdi_moments
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
+                              register_filter, result_arrays, run_networks, wrap_residuals)
 from .result import diverged_nodes, stop_diverged
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
@@ -82,9 +82,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
     Returns
     -------
     ConsensusBatchResult
-        With ``predicted_mse`` (runs, steps+1, N) and ``gate_counts`` (runs, steps, 5); run ``r``
-        equals ``run_consensus(model, network, z[r], design, attacks=attacks.pattern(r, N), ...)``
-        to rounding.
+        With ``predicted_mse`` (runs, steps+1, N) and ``gate_counts`` (runs, steps, 5).
 
     Raises
     ------
@@ -100,7 +98,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
     if design.mode != "mse":
         raise InputError(f"run_mse_batch runs mode 'mse', got {design.mode!r} "
                          "(filters.consensus_batch runs the others)")
-    q = per_run(_falsified_probability, network, nets)  # (1 or runs, N, N)
+    q = per_run(lambda net: net.falsified_prob, network, nets)  # (1 or runs, N, N)
     n, nx = network.n_nodes, model.n_x
     if n * nx > MAX_JOINT_DIM:
         raise InputError(f"run_mse_batch holds the joint error covariance of all nodes, N n = {n} x {nx} = {n * nx} "
@@ -119,6 +117,11 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
         _Runs(model, network, design, part, z[sl], u if u.ndim == 2 else u[sl], att, phi0[sl],
               q if nets is None else q[sl]).run()
     return ConsensusBatchResult(**out)
+
+
+def _binding_node(phi_blocks: np.ndarray, D) -> int:
+    """The node whose bound is largest along the structure (where a joint condition binds)."""
+    return int(np.argmax([lam_max(phi_blocks[i, i], None if D is None else D[i]) for i in range(len(phi_blocks))]))
 
 
 class _Runs:
@@ -297,7 +300,7 @@ class _Runs:
         return out, ok
 
     def stop_diverged(self, k: int) -> None:
-        """A run whose estimate or bound left finite numbers stops at its first such node, as run_consensus does."""
+        """A run whose estimate or bound left finite numbers stops at its first such node."""
         o, act = self.out, self.act
         bad = diverged_nodes(o["x_post"][act, k + 1], o["phi_post"][act, k + 1])
         if not bad.any():
@@ -306,3 +309,6 @@ class _Runs:
                               nan_from=(o["x_post"], o["phi_post"], o["predicted_mse"]),
                               nan_before=(o["K"], o["C"], o["gain_condition"]), invalid_from=(o["valid"],))
         self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]
+
+
+register_filter("mse", run_mse_batch)

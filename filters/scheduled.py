@@ -35,8 +35,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .result import diverged_nodes, stop_diverged
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, result_arrays,
-                              run_networks, wrap_residuals)
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+                              result_arrays, run_networks, wrap_residuals)
 
 __all__ = ["run_scheduled_batch"]
 
@@ -106,9 +106,9 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
         Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
         root = sqrtm_psd(Pp)
-        Gam, Sig = tables.tables(k)
-        Sig = Sig[:, :d, :d]
         a = act.size
+        choice = tables.choose(k, xp)  # (a, N): each node's tables, from its own prediction (None: no bank)
+        Gam_f, Sig_f = _factors(tables.candidates(k), choice, ch, a, n)
         if attacks is None:
             arrived, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
         else:
@@ -127,8 +127,8 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             H_own[:, i, :m_i] = model.H(i, xp[:, i], k + 1)
             res_own[:, i, :m_i] = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1),
                                                  model.sensors[i].angles)
-        G = colour(root, np.broadcast_to(ch.at_slots(Gam), (a, n, d, nx, nx)))
-        S = colour(root, np.broadcast_to(Sig, (a,) + Sig.shape))  # (a, N, d, d, nx, nx)
+        G = colour(root, Gam_f)  # (a, N, d, nx, nx)
+        S = colour(root, Sig_f)  # (a, N, d, d, nx, nx)
         Hn = Rn = res_n = None
         if tables.exchange:  # the neighbours' measurements, at each receiver's own prediction
             Hn, res_n = np.zeros((a, n, d, nz, nx)), np.zeros((a, n, d, nz))
@@ -157,10 +157,9 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij (first round)
         out["gain_condition"][act, k] = kappa
         for rnd in range(2, tables.rounds + 1):  # rounds 2..L: the senders' current estimates, the same packets
-            Gam_r, Sig_r = tables.round_tables(k, rnd)
+            Gam_f, Sig_f = _factors(tables.candidates(k, rnd), choice, ch, a, n)
             root = sqrtm_psd(Pn)
-            G = colour(root, np.broadcast_to(ch.at_slots(Gam_r), (a, n, d, nx, nx)))
-            S = colour(root, np.broadcast_to(Sig_r[:, :d, :d], (a, n, d, d, nx, nx)))
+            G, S = colour(root, Gam_f), colour(root, Sig_f)
             _, _, C, Pn, kappa = link_gains(Pn, np.zeros_like(H_own), R_pad, G, S, p_slot, q_slot, M, mu,
                                             margin=tables.robustness)
             diff = xn[:, snd] - xn[:, rcv]
@@ -179,3 +178,19 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         out["valid"][:, T + 1:] = False
     return ConsensusBatchResult(**out)
 
+
+def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | None, ch, a: int, N: int):
+    """Each node's whitened factors of its slots, ``(Gamma (a, N, d, n, n), Sigma (a, N, d, d, n, n))``, from the
+    candidates' tables (:meth:`designer.scheduled.ScheduledTables.candidates`) and each node's ``choice`` (a, N)
+    (None: the first candidate's, the step's own, for every node)."""
+    Gam, Sig = candidates
+    d = ch.d_max
+    slots = ch.at_slots(np.moveaxis(Gam, 0, 1))  # (N, d, B + 1, n, n)
+    if choice is None:
+        return (np.broadcast_to(slots[:, :, 0], (a,) + slots[:, :, 0].shape),
+                np.broadcast_to(Sig[0, :, :d, :d], (a,) + Sig[0, :, :d, :d].shape))
+    nodes = np.arange(N)[None, :]
+    return slots[nodes, :, choice], Sig[choice, nodes][:, :, :d, :d]
+
+
+register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)

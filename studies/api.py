@@ -168,6 +168,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
            linearization: str | None = None, radius: float | None = None, gate: float | None = None,
            exchange: str | None = None, robustness: float | None = None, rounds: int | None = None,
+           bank: int | None = None,
            options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -187,7 +188,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
-    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds, bank
         Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
         default, then the package's.
     dos, fdi, delta, amplitude
@@ -221,7 +222,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
-                                  robustness=robustness, rounds=rounds))
+                                  robustness=robustness, rounds=rounds, bank=bank))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
     memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
     with writing(out):  # the one-writer lock, taken before any computation
@@ -237,7 +238,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 dos: float | None = None, fdi: float | None = None, delta: float | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
                 radius: float | None = None, gate: float | None = None, exchange: str | None = None,
-                robustness: float | None = None, rounds: int | None = None, options: DesignOptions | None = None,
+                robustness: float | None = None, rounds: int | None = None, bank: int | None = None,
+                options: DesignOptions | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -254,7 +256,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         The values are the exact numbers meant (``dos=0:0.6:7``: 0, 0.1, ..., 0.6; see
         :mod:`studies.feasibility_map`).
     mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
-    robustness, rounds, options
+    robustness, rounds, bank, options
         The same design options as :func:`design`, with the same defaults.
     workers, dask, dask_security, backend
         Where the chunks of grid points run (the map does not depend on it); ``dask_security``: a
@@ -292,7 +294,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, exchange=exchange,
-                                  robustness=robustness, rounds=rounds))
+                                  robustness=robustness, rounds=rounds, bank=bank))
     if backend is None:
         backend = make_backend(workers, dask, dask_security)
     elif workers is not None or dask is not None or dask_security is not None:

@@ -74,6 +74,11 @@ def _design_options(f):
                      help="mode scheduled: exchange rounds per step, [1, 64]: the first carries the predictions "
                           "and measurements, the others the current estimates (one packet per channel and round; "
                           "with more than one no certificate) [default: 1]"),
+        click.option("--bank", type=int, default=None,
+                     help="mode scheduled: axes A of a bank of operating points, [0, 3]: stationary tables also at "
+                          "3^A - 1 points off the nominal trajectory (along the open-loop covariance's A principal "
+                          "axes), each node using those nearest its own prediction, for a state that may leave the "
+                          "nominal geometry; not covered by the certificate [default: 0, none]"),
         click.option("--gate", type=float, default=None,
                      help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
                           "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "

@@ -40,13 +40,17 @@ __all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design
 
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
-    """``options`` for a design of ``mode`` (a tuned design drops the paper-mode σ, β, τ)."""
+    """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
+    without offline tables the scheduled design's exchange, robustness and rounds)."""
     from dataclasses import replace
 
     opts = options or DesignOptions()
-    if mode != "scheduled":  # what a packet carries and the links' margin are choices of the scheduled design
-        opts = replace(opts, exchange=None, robustness=None, rounds=None)
-    return replace(opts, mode=mode) if mode == "paper" else replace(opts, mode=mode, sigma=None, beta=None, tau=None)
+    rule = gain_rule(mode)
+    if not rule.offline_tables:  # the exchange, the links' margin, the rounds and the bank: a design of tables'
+        opts = replace(opts, exchange=None, robustness=None, rounds=None, bank=None)
+    if rule.fixed_multipliers:
+        return replace(opts, mode=mode)
+    return replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
 def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
@@ -89,8 +93,9 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
 def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None) -> ConsensusDesign:
     """``design`` with the offline tables of mode ``'scheduled'`` for ``steps`` steps of ``sc`` (default its
     horizon): designed along the nominal trajectory from the operating point with the scenario's known inputs,
-    from the prior covariance (:func:`designer.scheduled.design_scheduled`).  Other modes are returned as they are."""
-    if design.mode != "scheduled":
+    from the prior covariance (:func:`designer.scheduled.design_scheduled`).  A design of a rule without
+    ``offline_tables`` (:mod:`designer.gain_rules`) is returned as it is."""
+    if not gain_rule(design.mode).offline_tables:
         return design
     from designer.scheduled import design_scheduled
 
@@ -124,7 +129,7 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
     the paper design's own σ, β or τ, the user asked for that design: the reason is raised instead as
     an :class:`InputError` prefixed with the filter's ``name``.
     """
-    if design.mode != "paper":
+    if not gain_rule(design.mode).fixed_multipliers:
         return None
     m = sc.model
     u = sc.inputs(1)
@@ -381,7 +386,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     att = sc.resolved_attacks
     des = with_tables(sc, make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
                                       signal=att.signal), steps)
-    m, net = sc.model, sc.network
+    m, net, rule = sc.model, sc.network, gain_rule(des.mode)
     traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), steps)
     attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
@@ -407,20 +412,21 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         tables=None if des.tables is None else table_arrays(des.tables),
         meta={
             **{k: v for k, v in describe_design(des).items() if k not in ("mode", "epsilon", "sigma", "beta")},
-            "sigma_fixed": des.sigma if des.mode == "paper" else None,
-            "beta_fixed": des.beta if des.mode == "paper" else None,
+            "sigma_fixed": des.sigma if rule.fixed_multipliers else None,
+            "beta_fixed": des.beta if rule.fixed_multipliers else None,
             "options": opts.as_dict(),
             "sensors": [{"name": s.name, "dim": s.dim} for s in m.sensors],
             "state_names": list(m.state_names),
             "seed": seed,
-            **(_SCHEDULED_RECORD if des.mode == "scheduled" else {
+            **(_SCHEDULED_RECORD if rule.offline_tables else {
                 "trajectory": "seeded simulated run of the scenario: truth and measurements from "
                               "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds "
                               "along each node's own estimates and the realised DoS pattern",
                 "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
                           "the bound holds for the linearisation points and DoS pattern it was computed along"}),
             "stationary": None if des.tables is None else des.tables.stationary,
-            "stationary_certificate": stationary_record(sc, des) if des.mode == "scheduled" else None,
+            "bank_record": None if des.tables is None else des.tables.bank_record,
+            "stationary_certificate": stationary_record(sc, des) if rule.offline_tables else None,
             "rounds_tradeoff": rounds_tradeoff(sc, des, steps) if des.tables is not None else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,

@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
+from designer.gain_rules import gain_rule
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -386,7 +387,7 @@ def _load_replay(schedule, sc) -> tuple:
     """``(mode, K, C)`` of the schedule written by ``cfdesign design`` in ``schedule``, checked against ``sc``."""
     m, net = sc.model, sc.network
     sch = load_schedule(schedule)
-    if sch.mode == "scheduled":  # its K and C are one run's; the design is the tables, applied online
+    if not gain_rule(sch.mode).seeded_design:  # its K and C are one run's; the design is the tables, applied online
         raise InputError(f"schedule {str(schedule)!r} is a scheduled design: its nodes apply their tables online "
                          "with their own estimates, not fixed gains; run it with --mode scheduled (the same design "
                          "options) instead of replaying its K and C")

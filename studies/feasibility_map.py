@@ -59,6 +59,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DesignOptions, make_design
+from designer.gain_rules import gain_rule, names_with
 from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
@@ -270,7 +271,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
-    if (options.mode or "paper") == "scheduled":  # the design's own stationary certificate at each point
+    if gain_rule(options.mode or "paper").offline_tables:  # the design's own stationary certificate at each point
         res = iter([_scheduled_row(*item) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
@@ -458,12 +459,14 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         raise InputError("each --grid parameter may be given once")
     sc_eff, opts = effective(sc, options)
     mode = opts.mode or "paper"
-    if mode == "mse":
-        raise InputError("mode 'mse' is not mapped yet: its gains come from the joint error covariance of a run "
-                         "(use cfdesign design or a study); feasibility maps modes 'paper' and 'tuned'")
-    bad = [n for n in names if n in _PAPER_ONLY and mode == "tuned"]
+    rule = gain_rule(mode)
+    if not rule.mappable:
+        raise InputError(f"mode {mode!r} is not mapped yet: its gains come from the joint error covariance of a run "
+                         f"(use cfdesign design or a study); feasibility maps mode {names_with('mappable')}")
+    bad = [n for n in names if n in _PAPER_ONLY and not rule.fixed_multipliers]
     if bad:
-        raise InputError(f"--grid {bad[0]} applies to mode 'paper' only (the tuned design chooses it itself)")
+        raise InputError(f"--grid {bad[0]} applies to mode {names_with('fixed_multipliers')} only (the {mode} design "
+                         "chooses it itself)")
     d_max = max(sc_eff.network.d_max, 1)
     for n, start, stop, count in specs:
         top = float(max(start, stop) if count > 1 else start)

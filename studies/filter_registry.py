@@ -26,8 +26,7 @@ from designer.design import ConsensusDesign
 from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
-from filters.consensus import run_consensus
-from filters.consensus_batch import ConsensusBatchResult, run_consensus_batch
+from filters.consensus_batch import run_consensus_batch
 from filters.distributed import DistributedBatchResult, run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.particle import run_sir
@@ -307,18 +306,13 @@ def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
 
 def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:
     """A gain schedule's ``gains`` = (K (steps, nodes, n_x, n_z), C (steps, nodes, n_x, n_x)) looked up by the step
-    and applied at each node (:func:`filters.consensus.run_consensus` run by run with the paper design's σ, β for
-    its bound): runtime ``scheduled``, no bound it can claim (not ``designed``)."""
+    and applied at each node (:func:`filters.consensus_batch.run_consensus_batch` replaying ``gains`` in every run,
+    with the paper design's τ): runtime ``scheduled``, no bound it can claim (not ``designed``)."""
 
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
-        z, u, att = batch.z_rows(js), batch.input_rows(js), batch.attack_rows(js)
-        refs, secs = [], []
-        for r in range(z.shape[0]):
-            t0 = time.perf_counter()
-            refs.append(run_consensus(batch.model, batch.network, z[r], design, inputs=None if u is None else u[r],
-                                      attacks=att[r], gains=gains))
-            secs.append(time.perf_counter() - t0)
-        return ConsensusBatchResult.of_runs(refs).to_result(batch.network, "scheduled")._replace(seconds=np.array(secs))
+        res = run_consensus_batch(batch.model, batch.network, batch.z_rows(js), design, inputs=batch.input_rows(js),
+                                  attacks=batch.attack_rows(js), gains=gains)
+        return res.to_result(batch.network, "scheduled")
 
     return FilterEntry(name, "consensus", "scheduled", description, run, _links, mode="paper")
 

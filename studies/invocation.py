@@ -36,7 +36,8 @@ _DESIGN_FLAGS = {"mode": "--mode", "epsilon": "--epsilon", "sigma": "--sigma", "
                  "dos": "--dos", "fdi": "--fdi", "delta": "--delta", "amplitude": "--amplitude",
                  "u_scale": "--u-scale", "v_scale": "--v-scale", "linearization": "--linearization",
                  "radius": "--radius", "gate": "--gate", "exchange": "--exchange",
-                 "robustness": "--robustness", "rounds": "--rounds"}
+                 "robustness": "--robustness", "rounds": "--rounds", "bank": "--bank"}
+_INTEGER_FLAGS = ("rounds", "bank")  # the design options the command line reads as integers
 _STUDY_FLAGS = {"engine": "--engine", "schedule": "--schedule"}
 # a study's own options that say where or how wide it computes, not what: like --workers, left out of the line
 _NOT_NUMBERS = ("threads",)
@@ -100,6 +101,8 @@ def _design_args(options) -> list[str]:
         if key == "v_scale" and isinstance(value, Mapping):
             for sensor, scale in value.items():
                 args += [flag, _text(scale) if sensor == "*" else f"{sensor}={_text(scale)}"]
+        elif isinstance(value, (int, np.integer)) and not isinstance(value, bool) and key in _INTEGER_FLAGS:
+            args += [flag, str(int(value))]  # an integer option: click reads '2', not '2.0'
         elif isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
             args += [flag, repr(float(value)) if key not in ("u_scale", "v_scale") else _text(value)]
         else:

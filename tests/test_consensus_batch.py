@@ -1,13 +1,14 @@
 """The consensus filter batched over Monte Carlo runs (filters.consensus_batch) against the per-run path.
 
-The reference is :func:`filters.consensus.run_consensus`, itself tested against the equations and
-independent filters in tests/test_consensus.py: run by run, the batch must give its numbers
+The reference is the per-run, per-node loop of tests/consensus_reference.py (what run_consensus was
+before the batch became the only implementation; production's run_consensus is a batch of one, tested
+against the equations and independent filters in tests/test_consensus.py): run by run, the batch must give its numbers
 (rtol 1e-9), its ``valid`` flags, its violations in the same order and its packet counts, on the
 indoor robot, a user model with mixed sensor dimensions and bearings that cross ±π, and linear
 models; with the fallback recursion, the neighbour rule, every linearisation rule, per-run inputs
 and initial conditions, the bound-trace limit, a divergence in one run of the batch (the others go
-on), a numerical breakdown in one run, and the first-step InputError; in modes paper and tuned
-(batched), mse and gated designs (run per run and stacked); and one network per run (a sweep's
+on), a numerical breakdown in one run, and the first-step InputError; in modes paper, tuned and mse,
+with and without the χ² gate, and replaying a fixed gain schedule; and one network per run (a sweep's
 channel probabilities on one graph).
 """
 from __future__ import annotations
@@ -24,6 +25,7 @@ from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, DesignOptions, make_design
 from designer.validation import InputError
 from filters.attacks import simulate_attacks
+from consensus_reference import reference_consensus  # tests/ on the path
 from filters.consensus import run_consensus
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
 from studies.scenarios import load_scenario
@@ -75,7 +77,7 @@ def per_run(model, net, z, des, inputs, atts, x0=None, phi0=None):
     out = []
     for r in range(z.shape[0]):
         u = None if inputs is None else (inputs if inputs.ndim == 2 else inputs[r])
-        out.append(run_consensus(model, net, z[r], des, inputs=u, attacks=None if atts is None else atts[r],
+        out.append(reference_consensus(model, net, z[r], des, inputs=u, attacks=None if atts is None else atts[r],
                                  x0=None if x0 is None else x0[r], phi0=None if phi0 is None else phi0[r]))
     return out
 
@@ -118,7 +120,7 @@ def test_first_step_input_error_has_the_per_run_message(robot):
     for change in (dict(sigma=1e5), dict(beta=1e5)):
         des = robot_design()._replace(**change)
         with pytest.raises(InputError) as ref:
-            run_consensus(sc.model, net, traj.z[0], des, inputs=traj.inputs, attacks=atts[0])
+            reference_consensus(sc.model, net, traj.z[0], des, inputs=traj.inputs, attacks=atts[0])
         with pytest.raises(InputError) as got:
             run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts)
         assert str(got.value) == str(ref.value) and ("(28)" if "sigma" in change else "(29)") in str(got.value)
@@ -144,8 +146,8 @@ def test_robot_tuned_design_matches_per_run(robot, rule):
 @pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="tuned", gate=0.05),
                                     dict(mode="mse", gate=0.05)])
 def test_other_modes_and_gates_match_per_run(robot, change):
-    """Mode mse (filters.mse_batch) and gated designs (paper and tuned: run_consensus run by run, stacked) give
-    run_consensus's numbers, predicted_mse and gate_counts (attacks given as EdgeAttacks; per-run x0)."""
+    """Mode mse (filters.mse_batch) and gated designs (the χ² gate on the stacked channels) give the reference's
+    numbers, predicted_mse and gate_counts (attacks given as EdgeAttacks; per-run x0)."""
     sc, net, traj, atts = robot
     steps = 3
     z = traj.z[:2, :steps]
@@ -163,6 +165,53 @@ def test_other_modes_and_gates_match_per_run(robot, change):
             np.testing.assert_array_equal(batch.predicted_mse[r], ref.predicted_mse)
     if des.gate:
         assert batch.gate_counts[..., 1].sum() > 0, "the gate must reject some packets"
+
+
+@pytest.mark.parametrize("change", [dict(), dict(gate=0.05), dict(mode="tuned", gate=0.05), dict(mode="mse"),
+                                    dict(mode="mse", gate=0.05)])
+def test_replayed_gain_schedule_matches_per_run(robot, change):
+    """A fixed gain schedule replayed in every run (any mode: the gains are given, every node on the fallback
+    recursion, nothing certified), with and without the gate: the reference's numbers run by run."""
+    sc, net, traj, atts = robot
+    steps = 5
+    z = traj.z[:, :steps]
+    first = reference_consensus(sc.model, net, traj.z[0], robot_design(), inputs=traj.inputs, attacks=atts[0])
+    gains = (first.K, 0.7 * first.C)  # one schedule of ROBOT_STEPS steps, longer than the runs
+    des = robot_design(**change)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=gains)
+    refs = [reference_consensus(sc.model, net, z[r], des, inputs=traj.inputs[:steps], attacks=atts[r], gains=gains)
+            for r in range(ROBOT_RUNS)]
+    assert_same_as_per_run(batch, refs)
+    assert not batch.valid.any() and all(not vs for vs in batch.violations)
+    np.testing.assert_array_equal(batch.C, np.broadcast_to(gains[1][:steps], batch.C.shape))
+    if des.gate:
+        assert batch.gate_counts[..., 1].sum() > 0, "the gate must reject some packets"
+
+
+def test_replayed_gains_are_checked(robot):
+    sc, net, traj, atts = robot
+    K, C = np.zeros((ROBOT_STEPS, 8, 3, 2)), np.zeros((ROBOT_STEPS, 8, 3, 3))
+    for bad in ((K[:3], C[:3]), (K[..., :1], C), (K, C[:, :4]), (K,)):
+        with pytest.raises(InputError, match="gains must"):
+            run_consensus_batch(sc.model, net, traj.z, robot_design(), inputs=traj.inputs, gains=bad)
+
+
+def test_a_run_alone_is_its_row_of_the_batch(robot):
+    """run_consensus (a batch of one) gives, bit for bit, the row of the same run in a batch of several, in every
+    mode, with the gate and with a replayed schedule: a run's numbers do not depend on the other runs."""
+    sc, net, traj, atts = robot
+    steps = 4
+    z = traj.z[:, :steps]
+    gains = (np.full((steps, 8, 3, 2), 0.05), np.full((steps, 8, 3, 3), 0.01))
+    for change, g in ((dict(gate=0.05), None), (dict(mode="tuned"), None), (dict(mode="mse", gate=0.05), None),
+                      (dict(), gains)):
+        des = robot_design(**change)
+        batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=g)
+        for r in range(ROBOT_RUNS):
+            alone = run_consensus(sc.model, net, z[r], des, inputs=traj.inputs[:steps], attacks=atts[r], gains=g)
+            for name in ARRAYS + ("valid", "gate_counts"):
+                np.testing.assert_array_equal(getattr(alone, name), getattr(batch.run(r), name), err_msg=name)
+            assert alone.violations == batch.violations[r]
 
 
 def test_bad_shapes_are_refused(robot):
@@ -348,7 +397,7 @@ def test_per_run_inputs_without_columns_are_no_inputs(mode):
                                     dict(mode="mse", gate=0.05)])
 def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch):
     """The runs of a sweep in one batch: each run with its own channel probabilities (DoS, FDI; the statistics of
-    its bounds, tuned weights and mse gains) on the shared graph gives run_consensus on its own network; runs given
+    its bounds, tuned weights and mse gains) on the shared graph gives the reference on its own network; runs given
     the same network give what one network for all gives."""
     sc, net, traj, atts = robot
     steps = 4
@@ -358,7 +407,7 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
     des = robot_design(**change)._replace(fdi_moment=sig.moment(3), fdi_mean=sig.mean(3), fdi_span=sig.span(3),
                                           fdi_signal=sig)
     batch = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)
-    refs = [run_consensus(sc.model, nets[r], z[r], des, inputs=traj.inputs[:steps], attacks=atts[r])
+    refs = [reference_consensus(sc.model, nets[r], z[r], des, inputs=traj.inputs[:steps], attacks=atts[r])
             for r in range(len(nets))]
     assert_same_as_per_run(batch, refs)
     if batch.predicted_mse is not None:
@@ -366,7 +415,7 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
             np.testing.assert_allclose(batch.predicted_mse[r], ref.predicted_mse, rtol=1e-9)
     # the probabilities matter (in mode tuned little: the weights absorb them), far more than the batch's rounding:
     # run 0 on run 2's network is farther from run 0 than the batch's run 0 is
-    other = run_consensus(sc.model, nets[2], z[0], des, inputs=traj.inputs[:steps], attacks=atts[0])
+    other = reference_consensus(sc.model, nets[2], z[0], des, inputs=traj.inputs[:steps], attacks=atts[0])
 
     def gap(res):
         return max(np.nanmax(np.abs(getattr(res, f) - getattr(refs[0], f)), initial=0.0)

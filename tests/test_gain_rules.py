@@ -103,6 +103,59 @@ def test_a_registered_rule_is_known_everywhere_it_is_looked_up_and_leaves(dummy)
     assert "'dummy-rule'" not in str(err.value).rsplit(", got", 1)[0] and "'mse'" in str(err.value)
 
 
+def test_a_new_rule_is_one_object_and_its_filter_and_the_code_asks_the_rule():
+    """A rule registered with the paper's capabilities (fixed σ, β, τ) and the paper's filter under its own name is
+    designed, run and checked as the paper's, with nothing compared against the name 'paper': the batch dispatches on
+    the filter registry, the options keep its σ, the first step refuses a σ beyond (28); a rule without a filter is
+    refused by name; what only a rule with offline tables takes is refused for it."""
+    import numpy as np
+
+    from filters.consensus import run_consensus
+    from filters.consensus_batch import register_filter, rule_filter, rule_filters, run_consensus_batch, \
+        unregister_filter
+    from studies.consensus_design import as_mode, check_first_step, consensus_design
+    from studies.scenarios import load_scenario
+
+    rule = register(GainRule("fixed-copy", "local", needs="what the paper's nodes need.", summary="the paper's gains",
+                             fixed_multipliers=True))
+    try:
+        with pytest.raises(InputError, match="no filter applies gain rule 'fixed-copy'"):
+            rule_filter("fixed-copy")
+        assert set(rule_filters()) == set(GAIN_RULES) - {"fixed-copy"}  # every other rule has its filter
+        register_filter("fixed-copy", rule_filter("paper"))
+        sc = load_scenario("indoor-robot", {"steps": 4})
+        assert as_mode(DesignOptions(sigma=0.05), "fixed-copy").sigma == 0.05  # the user's σ is kept
+        with pytest.raises(InputError, match="exchange 'measurements' is a design of mode 'scheduled'"):
+            DesignOptions(mode="fixed-copy", exchange="measurements")
+        mine, paper = (consensus_design(sc, as_mode(None, m)) for m in ("fixed-copy", "paper"))
+        assert mine.epsilon == paper.epsilon and mine.sigma == paper.sigma
+        traj = sc.simulate(np.random.default_rng(1), 4, batch=2)
+        a = run_consensus_batch(sc.model, sc.network, traj.z, mine, inputs=traj.inputs)
+        b = run_consensus_batch(sc.model, sc.network, traj.z, paper, inputs=traj.inputs)
+        np.testing.assert_array_equal(a.x_post, b.x_post)
+        np.testing.assert_array_equal(a.phi_post, b.phi_post)
+        assert a.violations == b.violations
+        big = mine._replace(sigma=1e5)
+        with pytest.raises(InputError, match="sigma must satisfy"):
+            run_consensus(sc.model, sc.network, traj.z[0], big, inputs=traj.inputs)
+        assert "sigma must satisfy" in check_first_step(sc, big, "mine")
+        # the same rule choosing its own multipliers: no first-step refusal, σ dropped from the options
+        unregister_filter("fixed-copy")
+        unregister("fixed-copy")
+        rule = register(GainRule("fixed-copy", "local", needs="x.", summary="y"))
+        register_filter("fixed-copy", rule_filter("tuned"))
+        assert as_mode(DesignOptions(sigma=0.05), "fixed-copy").sigma is None
+        assert check_first_step(sc, big._replace(mode="fixed-copy"), "mine") is None
+        with pytest.raises(InputError, match="sigma is chosen by the design in mode 'fixed-copy'"):
+            DesignOptions(mode="fixed-copy", sigma=0.1)
+        assert consensus_design(sc, as_mode(None, "fixed-copy")).epsilon != paper.epsilon  # ε of a rule that tunes
+    finally:
+        if "fixed-copy" in rule_filters():
+            unregister_filter("fixed-copy")
+        if rule.name in GAIN_RULES:
+            unregister(rule.name)
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(name="Bad Name", runtime="local"), "gain rule name must be"),
     (dict(name="ok", runtime="centralized"), r"runtime of gain rule 'ok' must be 'local', 'scheduled' or 'global'"),

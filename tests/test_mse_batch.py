@@ -1,7 +1,8 @@
 """Mode 'mse' batched over Monte Carlo runs (filters.mse_batch) against the per-run path, and the stacked
 functions of designer.mse against the same functions item by item.
 
-The reference is :func:`filters.consensus.run_consensus` in mode 'mse' (tested against the joint
+The reference is the per-run, per-node loop of tests/consensus_reference.py in mode 'mse' (what
+run_consensus was before it became a batch of one; the production filter is tested against the joint
 covariance of a linear network and Monte Carlo in tests/test_mse_design.py): run by run the batch
 must give its numbers (rtol 1e-9), its flags, violations and gate counts, on the indoor robot under
 DoS and FDI with and without the χ² gate, the mixed-sensor example (sensor dimensions 2 and 1, a

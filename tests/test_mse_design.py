@@ -47,7 +47,7 @@ def _one_run(sc, design, seed, key=()):
 
 def _runs(sc, design, runs, seed):
     """Runs 0..runs-1 of ``seed``: the truths (runs, steps+1, n_x) and the filter on all of them at once (mode mse:
-    filters.mse_batch, which is run_consensus run by run, tests/test_mse_batch.py; else run_consensus_batch)."""
+    filters.mse_batch, tested against the per-run reference in tests/test_mse_batch.py; else run_consensus_batch)."""
     draws = [_draw(sc, seed, (r,)) for r in range(runs)]
     engine = run_mse_batch if design.mode == "mse" else run_consensus_batch
     res = engine(sc.model, sc.network, np.stack([t.z for t, _ in draws]), design, attacks=[a for _, a in draws])
@@ -187,31 +187,29 @@ def test_certificates_bound_the_monte_carlo_error_of_a_nonlinear_network(mode, l
 def test_gate_rejects_a_clean_packet_with_its_stated_probability():
     """Clean differences drawn from the covariance the gate is given are dropped at rate α (binomial tolerance);
     a large injected signal is dropped; the counts add up."""
-    from filters.consensus import GATE_COUNTS, gate
+    from filters.consensus import GATE_COUNTS, gate_channels
 
     rng = np.random.default_rng(0)
-    net = SensorNetwork.from_edges(2, [(0, 1)])
+    receiver, sender = np.array([0, 1]), np.array([1, 0])  # the two channels 1 -> 0 and 0 -> 1
     S = np.array([[0.04, 0.01], [0.01, 0.02]])
-    cov = np.broadcast_to(S, (2, 2, 2, 2)).copy()
+    cov = np.broadcast_to(S, (2, 2, 2)).copy()
     L = np.linalg.cholesky(S)
     alpha, trials = 0.05, 4000
-    lost = 0
-    for _ in range(trials):
-        x = np.zeros((2, 2))
-        x[1] = L @ rng.normal(size=2)  # x̂_1 - x̂_0 ~ N(0, S)
-        keep, counts = gate(x, None, net, cov, alpha)
-        lost += int(not keep[0, 1])
-    rate = lost / trials
+    x = np.zeros((trials, 2, 2))
+    x[:, 1] = (L @ rng.normal(size=(trials, 2, 1)))[..., 0]  # x̂_1 - x̂_0 ~ N(0, S), every trial a run
+    keep, counts = gate_channels(x, receiver, sender, np.ones((trials, 2), bool), None, None,
+                                 np.broadcast_to(cov, (trials, 2, 2, 2)), alpha)
+    rate = 1.0 - keep[:, 0].mean()
     assert abs(rate - alpha) < 4 * np.sqrt(alpha * (1 - alpha) / trials)
-    dos, fdi = np.zeros((2, 2), bool), np.array([[False, True], [False, False]])
-    xi = np.zeros((2, 2, 2))
-    xi[0, 1] = [1.0, -1.0]  # 5 standard deviations and more
-    keep, counts = gate(np.zeros((2, 2)), (dos, fdi, xi), net, cov, 0.01)
+    assert (counts[:, 1] == (~keep).sum(axis=1)).all()
+    fdi = np.array([True, False])
+    xi = np.array([[1.0, -1.0], [0.0, 0.0]])  # on channel 1 -> 0: 5 standard deviations and more
+    keep, counts = gate_channels(np.zeros((2, 2)), receiver, sender, np.ones(2, bool), fdi, xi, cov, 0.01)
     c = dict(zip(GATE_COUNTS, counts))
-    assert not keep[0, 1] and keep[1, 0]
+    assert not keep[0] and keep[1]
     assert c == {"received": 2, "rejected": 1, "clean_rejected": 0, "fdi_received": 1, "fdi_passed": 0}
-    keep, counts = gate(np.zeros((2, 2)), (dos, fdi, xi), net, cov, 0.0)  # no gate: everything passes
-    assert keep[0, 1] and dict(zip(GATE_COUNTS, counts))["fdi_passed"] == 1
+    keep, counts = gate_channels(np.zeros((2, 2)), receiver, sender, np.ones(2, bool), fdi, xi, cov, 0.0)  # no gate
+    assert keep.all() and dict(zip(GATE_COUNTS, counts))["fdi_passed"] == 1
 
 
 def test_gated_mse_design_drops_the_falsified_packets_and_is_more_accurate():

@@ -213,7 +213,7 @@ def test_every_design_option_reaches_the_recorded_line_as_a_flag_the_commands_ta
     paper = DesignOptions(mode="paper", epsilon=0.1, sigma=0.2, beta=0.3, tau=0.01, u_scale=0.5, v_scale=0.5,
                           linearization="hessian", radius=2.0, dos=0.1, fdi=0.1, delta=1.0, amplitude=1.0,
                           gate=0.01)
-    scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5, rounds=2)
+    scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5, rounds=2, bank=1)
     given = {f.name for o in (paper, scheduled) for f in fields(o) if getattr(o, f.name) is not None}
     assert given == {f.name for f in fields(DesignOptions)}  # the two sets together set every option
     lines = [design_invocation(sc, o, steps=None, seed=0)["argv"] for o in (paper, scheduled)]
@@ -223,3 +223,6 @@ def test_every_design_option_reaches_the_recorded_line_as_a_flag_the_commands_ta
         assert flags - {"--seed"} <= taken, (command, flags - taken)
     for f in fields(DesignOptions):
         assert "--" + f.name.replace("_", "-") in flags, f.name
+    for line in lines:  # and the commands read the recorded values back (an integer option as '2', not '2.0')
+        ctx = cli.commands["design"].make_context("design", [*line[2:], "--out", "unused"])
+        assert ctx.params["rounds"] in (None, 2) and ctx.params["bank"] in (None, 1)

@@ -352,15 +352,15 @@ def test_the_studies_count_every_exchange_round_of_the_scheduled_filter(tmp_path
 
     path = tank_model(steps=6)
     out = tmp_path / "r"
-    assert main(["study", "consensus-robot", str(path), "--mode", "scheduled", "--rounds", "2", "--runs", "2",
-                 "--out", str(out)]) in (0, 1)
+    assert main(["study", "consensus-robot", str(path), "--mode", "scheduled", "--rounds", "2", "--bank", "1",
+                 "--runs", "2", "--out", str(out)]) in (0, 1)  # the paper design beside it drops the scheduled options
     res = json.loads((out / "results.json").read_text())
     edges = 2 * len(res["network"]["edges"])
     sched = [f for f in res["filters"].values() if f.get("runtime") == "scheduled"]
     assert sched and sched[0]["communications"] == 2 * edges
     paper = [f for n, f in res["filters"].items() if n.startswith("consensus-EKF (paper")]
     assert paper[0]["communications"] == edges
-    assert "--rounds" in res["invocation"]["argv"]
+    assert "--rounds" in res["invocation"]["argv"] and "--bank" in res["invocation"]["argv"]
 
 
 def test_the_rounds_tradeoff_compares_designs_at_one_step_and_more_rounds_cost_more_messages():
@@ -381,3 +381,75 @@ def test_the_rounds_tradeoff_compares_designs_at_one_step_and_more_rounds_cost_m
     np.testing.assert_allclose(rows[1]["expected_rmse"], expected, rtol=1e-10)
     assert rows[1]["expected_rmse"] >= rows[2]["expected_rmse"] >= rows[4]["expected_rmse"]
     assert [rows[L]["messages_per_step"] for L in (1, 2, 4)] == [2 * len(sc.network.edges) * L for L in (1, 2, 4)]
+
+
+def test_bad_bank_options_are_refused():
+    sc = linear_ring()
+    for bad in (-1, 4, 1.5, True):
+        with pytest.raises(InputError, match="bank"):
+            consensus_design(sc, mode="scheduled", bank=bad)
+    with pytest.raises(InputError, match="bank"):
+        consensus_design(sc, mode="tuned", bank=1)
+
+
+def test_a_linear_model_has_no_bank_and_the_same_filter():
+    """Every bank point of a linear model has the nominal's Jacobians, hence its tables: none is kept, and the
+    filter is the one without a bank, bit for bit."""
+    sc = linear_ring(n_nodes=4, fdi=0.2, dos=0.3, steps=6)
+    plain, banked = _scheduled(sc), _scheduled(sc, bank=2)
+    rec = banked.tables.bank_record
+    assert not banked.tables.has_bank and rec["points"] == 0 and rec["skipped"] == 8
+    draws = [_draw(sc, 2, (r,)) for r in range(2)]
+    z, att = np.stack([t.z for t, _ in draws]), [a for _, a in draws]
+    a = run_consensus_batch(sc.model, sc.network, z, plain, attacks=att)
+    b = run_consensus_batch(sc.model, sc.network, z, banked, attacks=att)
+    np.testing.assert_array_equal(a.x_post, b.x_post)
+
+
+def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction(tmp_path):
+    """A range grid (nonlinear): the bank's points lie on the lattice x̄_K + 1.5 Σ o_a σ_a v_a over the open-loop
+    covariance's principal axes; ``choose`` is the nearest candidate in the metric (a brute-force reference); a
+    node whose prediction sits on a bank point updates with that point's tables: the same numbers as a filter
+    whose step tables are that point's."""
+    from designer.scheduled import BANK_SPREAD
+    from studies.scenarios import load_scenario
+
+    path = tmp_path / "grid.py"
+    path.write_text(RANGE_GRID)
+    sc = load_scenario(str(path))
+    des = consensus_design(sc, mode="scheduled", bank=1, steps=6)
+    tab = des.tables
+    assert tab.has_bank and tab.bank_record["points"] == 2 and tab.bank_record["converged"] == [True, True]
+    # the lattice: x̄_K ± 1.5 σ v along the metric's axis (metric rows v / σ)
+    v_over_s = tab.bank_metric[0]
+    sig = 1.0 / np.linalg.norm(v_over_s)
+    offsets = tab.bank_points - tab.nominal[-1]
+    np.testing.assert_allclose(np.abs(offsets @ v_over_s), BANK_SPREAD, rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(offsets, axis=1), BANK_SPREAD * sig, rtol=1e-9)
+    # choose: the nearest candidate, brute force
+    rng = np.random.default_rng(3)
+    xs = tab.nominal[-1] + rng.normal(scale=2 * sig, size=(5, 12, 4))
+    for k in (0, 3, 10):
+        cand = np.vstack([tab.nominal[min(k + 1, tab.steps)], tab.bank_points])
+        ref = np.array([[np.argmin([np.sum(((x - c) @ tab.bank_metric.T) ** 2) for c in cand]) for x in row]
+                        for row in xs])
+        np.testing.assert_array_equal(tab.choose(k, xs), ref)
+    # a prediction on bank point b: the filter applies b's tables (the model's f moves x0 by its velocity, so x0 is
+    # chosen with f(x0) = the point: position - velocity)
+    b = 1
+    point = tab.bank_points[b]
+    x0 = point - np.array([point[2], point[3], 0.0, 0.0])
+    np.testing.assert_allclose(sc.model.f_expected(x0, 0), point, atol=1e-12)
+    assert tab.choose(0, point) == b + 1
+    swapped = tab._replace(Gamma=np.broadcast_to(tab.bank_Gamma[b], tab.Gamma.shape).copy(),
+                           Sigma=np.broadcast_to(tab.bank_Sigma[b], tab.Sigma.shape).copy(), bank_points=None)
+    tr, att = _draw(sc, 1, (5,))
+    z = tr.z[:1][None]
+    with_bank = run_consensus_batch(sc.model, sc.network, z, des, x0=x0, attacks=[att._replace(
+        **{f: getattr(att, f)[:1] for f in att._fields})])
+    reference = run_consensus_batch(sc.model, sc.network, z, des._replace(tables=swapped), x0=x0,
+                                    attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})])
+    np.testing.assert_array_equal(with_bank.x_post, reference.x_post)
+    plain = run_consensus_batch(sc.model, sc.network, z, des._replace(tables=tab._replace(bank_points=None)),
+                                x0=x0, attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})])
+    assert np.abs(plain.x_post[0, 1] - with_bank.x_post[0, 1]).max() > 1e-6  # the bank's tables differ

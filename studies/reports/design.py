@@ -43,8 +43,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "observability", "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
-          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note",
-          "remainder_structure"}
+          "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
+          "bank_record", "remainder_structure"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -389,20 +389,29 @@ def _final_bound(s: _Schedule, i: int) -> str:
     return f"none (last {fmt_num(float(row[ok[-1]]))} at step {int(ok[-1])})"
 
 
+def _fixed_multipliers(mode) -> bool:
+    """Whether the schedule's gain rule keeps the user's σ, β, τ
+    (:attr:`designer.gain_rules.GainRule.fixed_multipliers`; False for a mode no longer registered)."""
+    from designer.gain_rules import GAIN_RULES
+
+    rule = GAIN_RULES.get(mode) if isinstance(mode, str) else None
+    return rule is not None and rule.fixed_multipliers
+
+
 def _node_section(s: _Schedule) -> list[str]:
     if not s.nodes:
         return []
-    mode = s.meta.get("mode")
+    fixed = _fixed_multipliers(s.meta.get("mode"))
     eps = s.meta.get("epsilon")
     rows = []
     for i in range(s.nodes):
         sig = s.sigma[i] if s.sigma is not None else None
         bet = s.beta[i] if s.beta is not None else None
-        if mode == "paper" and is_num(s.meta.get("sigma_fixed")):
+        if fixed and is_num(s.meta.get("sigma_fixed")):
             sig_text = _fixed(s.meta["sigma_fixed"], sig)
         else:
             sig_text = _stats(sig) if sig is not None else "—"
-        if mode == "paper" and is_num(s.meta.get("beta_fixed")):
+        if fixed and is_num(s.meta.get("beta_fixed")):
             bet_text = _fixed(s.meta["beta_fixed"], bet)
         else:
             bet_text = _stats(bet) if bet is not None else "—"
@@ -410,7 +419,7 @@ def _node_section(s: _Schedule) -> list[str]:
         rows.append([f"{i}", md_cell(s.sensor(i)), md_cell(fmt_num(eps)), md_cell(sig_text), md_cell(bet_text),
                      _max_norm(s.arrays.get("K"), i), _max_norm(s.arrays.get("C"), i), md_cell(_final_bound(s, i)),
                      md_cell(_plain_violation(first)) if first else "none"])
-    what = ("the paper's fixed σ and β (a node on its fallback uses 0)" if mode == "paper" else
+    what = ("the paper's fixed σ and β (a node on its fallback uses 0)" if fixed else
             "σ and β as min / median / max over the steps where the node had a bound")
     out = ["## Per node: ε, σ, β, gains and the final bound", "",
            f"ε is the same at every node; {what}. Gains: the largest spectral norm over the steps of the update "
@@ -509,6 +518,13 @@ def _settings_section(s: _Schedule) -> list[str]:
         out += [f"Robustness margin δ = {fmt_num(meta.get('robustness'))}: each link's gains are chosen as if the "
                 "neighbour's difference carried an extra independent error δ P_ii (a node never leans on its "
                 "neighbours by more than tr P⁻ / δ).", ""]
+        bank = meta.get("bank_record") if isinstance(meta.get("bank_record"), dict) else None
+        if bank:
+            out += [f"**Bank of operating points** ({bank.get('axes')} axes, spread {fmt_num(bank.get('spread'))} "
+                    f"open-loop standard deviations): stationary tables at {bank.get('points')} points off the "
+                    f"nominal trajectory ({bank.get('skipped')} left out: the same Jacobians as the nominal's); "
+                    "each node uses, at every step, the tables of the point nearest its own prediction. They are "
+                    "not covered by the certificate.", ""]
         trade = meta.get("rounds_tradeoff") if isinstance(meta.get("rounds_tradeoff"), dict) else None
         if trade and trade.get("rows"):
             out += [f"**Accuracy and messages** ({meta.get('rounds')} exchange round(s) per step designed; the "
@@ -527,7 +543,7 @@ def _settings_section(s: _Schedule) -> list[str]:
                 "if lost. Which packets pass depends on the errors, so with the gate the bound is validated by "
                 "Monte Carlo only (`study consensus-robot` checks it).", ""]
     facts = [("mode", mode), ("ε", meta.get("epsilon")), ("σ (fixed)", meta.get("sigma_fixed")),
-             ("β (fixed)", meta.get("beta_fixed")), ("τ", meta.get("tau") if mode == "paper" else None),
+             ("β (fixed)", meta.get("beta_fixed")), ("τ", meta.get("tau") if _fixed_multipliers(mode) else None),
              ("δ (bound on the injected signal, ‖ξ‖ ≤ δ)", meta.get("delta")), ("nodes", meta.get("nodes")),
              ("steps", meta.get("steps")), ("seed of the run", meta.get("seed"))]
     out += [f"- {k}: {md_escape(fmt_num(v))}" for k, v in facts if v is not None and not isinstance(v, (dict, list))]
