@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import sys
 
 INTERRUPTED = 130
@@ -16,6 +17,10 @@ INTERRUPTED = 130
 
 def _exit(code: int) -> None:
     if code != INTERRUPTED:
+        # The command has ended and said so: a Ctrl-C from now on comes too late to interrupt anything.  Python
+        # restores SIGINT's default action during its shutdown, where such a Ctrl-C would kill the process silently
+        # (exit -2 instead of the code the command reported); an ignored signal stays ignored.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         # The interpreter's shutdown ends with a garbage collection over every object a command loaded (CasADi,
         # numba, matplotlib: about 0.1 s, a tenth of a small study); frozen, they are left to the exit itself.
         # Everything else of the shutdown runs (atexit handlers, threads joined, files flushed).
