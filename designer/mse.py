@@ -118,7 +118,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy.linalg import block_diag
 
-from .bounds import eigh, symmetrize
+from .bounds import eigh, eigvalsh, symmetrize
 from .tuning import MARGIN, best_multiplier, increasing_root
 
 __all__ = ["joint_prior", "joint_predict", "mse_gains", "joint_update", "certificate_predict", "certificate_update",
@@ -363,6 +363,13 @@ def solve_gains(ey: np.ndarray, yy: np.ndarray, scale: np.ndarray, has: np.ndarr
     about ``1e-13`` of that size after earlier steps' gains (measured on a 28-node design): solved, it set
     the gains by rounding noise.  The condition number is ``λmax / λmin`` of ``S`` over the directions kept:
     the moments' relative errors grow into the gains by up to that factor.
+
+    The padding (zero rows and columns: links and components a node does not have) is left out before anything is
+    solved, items of one size together (a node of degree 5 among degree-8 ones solves a 37 x 37 system, not
+    58 x 58), and an item that keeps every direction (its eigenvalues say so) is solved by an LU factorisation,
+    the same ``Z`` to rounding; only items with a direction to drop get the eigendecomposition (the scheduled
+    design's systems have condition numbers below 200; the joint mse gains meet such directions).  On a 28-node
+    design this is 1.8 x less time than one eigendecomposition of every padded system.
     """
     shape = ey.shape
     m = shape[-1] - shape[-2] if m is None else int(m)  # ey is (n, m + n) unless told
@@ -377,13 +384,43 @@ def solve_gains(ey: np.ndarray, yy: np.ndarray, scale: np.ndarray, has: np.ndarr
             continue
         d = np.asarray(scale[rows, :width], dtype=float)  # moments in long double too: solved in double
         d = np.where(d > 0, d, 1.0)
-        lam, V = eigh(np.asarray(yy[rows, :width, :width], dtype=float) / (d[:, :, None] * d[:, None, :]))
-        keep = lam > GAIN_RCOND * lam[:, -1:]
-        inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
-        b = np.asarray(ey[rows, :, :width], dtype=float)
-        Z[rows, :, :width] = (((b / d[:, None, :]) @ V) * inv[:, None, :]) @ _t(V) / d[:, None, :]
-        kappa[rows] = lam[:, -1] / np.min(np.where(keep, lam, np.inf), axis=-1)
+        Sc = np.asarray(yy[rows, :width, :width], dtype=float) / (d[:, :, None] * d[:, None, :])
+        b = np.asarray(ey[rows, :, :width], dtype=float) / d[:, None, :]
+        # the padding (components of zero variance: zero rows and columns, and a zero E[e yᵀ] by Cauchy-Schwarz,
+        # so a zero gain either way) is left out: each item solves the components it has, items of one size at once
+        used = np.diagonal(Sc, axis1=-2, axis2=-1) != 0.0
+        size = used.sum(axis=-1)
+        for s in np.unique(size):
+            it = np.flatnonzero(size == s)
+            if s == 0:
+                continue  # nothing to solve: zero gains, condition 1
+            idx = np.argsort(~used[it], axis=-1, kind="stable")[:, :s]  # (items, s) the used components, in order
+            Zs, kappa[rows[it]] = _solve_kept(Sc[it[:, None, None], idx[:, :, None], idx[:, None, :]],
+                                              np.take_along_axis(b[it], idx[:, None, :], axis=-1))
+            Zi = np.zeros((it.size, Z.shape[1], width))
+            np.put_along_axis(Zi, idx[:, None, :], Zs / np.take_along_axis(d[it], idx, axis=-1)[:, None, :], axis=-1)
+            Z[rows[it], :, :width] = Zi
     return Z.reshape(shape), kappa.reshape(shape[:-2])
+
+
+def _solve_kept(S: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``b S⁺`` for a stack of unit-scaled ``S`` (k, s, s), the eigenvalues below :data:`GAIN_RCOND` of the largest
+    taken as zero, and ``λmax / λmin`` over the kept ones.  The eigenvalues (less than half the work of the
+    eigenvectors) tell which items keep every direction: those are solved by an LU factorisation, the same to
+    rounding; only the others get the eigendecomposition."""
+    lam = eigvalsh(S)
+    keep = lam > GAIN_RCOND * lam[:, -1:]
+    kappa = lam[:, -1] / np.min(np.where(keep, lam, np.inf), axis=-1)
+    Z = np.empty(b.shape)
+    full = keep.all(axis=-1)
+    if full.any():
+        Z[full] = _t(np.linalg.solve(S[full], _t(b[full])))
+    if not full.all():
+        lam_p, V = eigh(S[~full])
+        kp = lam_p > GAIN_RCOND * lam_p[:, -1:]
+        inv = np.where(kp, 1.0 / np.where(kp, lam_p, 1.0), 0.0)
+        Z[~full] = ((b[~full] @ V) * inv[:, None, :]) @ _t(V)
+    return Z, kappa
 
 
 #: A gain condition number beyond which a design is reported ill-conditioned: more than 6 of double precision's 16

@@ -157,11 +157,9 @@ class Channels(NamedTuple):
     @property
     def slots(self) -> tuple[np.ndarray, np.ndarray]:
         """``(chan, mask)`` (N, d_max): node i's incoming channels in its slots, and which slots hold one."""
-        d = self.d_max
-        chan = np.zeros((len(self.of_node), d), dtype=int)
-        mask = np.zeros((len(self.of_node), d), dtype=bool)
-        for i, c in enumerate(self.of_node):
-            chan[i, : c.size], mask[i, : c.size] = c, True
+        shape = (len(self.of_node), self.d_max)
+        chan, mask = np.zeros(shape, dtype=int), np.zeros(shape, dtype=bool)
+        chan[self.receiver, self.slot], mask[self.receiver, self.slot] = np.arange(self.receiver.size), True
         return chan, mask
 
     def at_slots(self, values: np.ndarray, fill=0.0) -> np.ndarray:

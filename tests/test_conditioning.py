@@ -102,3 +102,39 @@ def test_conditioning_record_and_the_report_sentence():
     assert "Ill-conditioned" not in well
     assert "well-conditioned systems: condition number at most 40 (node 1, step 0)" in well
     assert "conditioned" not in render_design({**meta, "mode": "tuned", "conditioning": conditioning(None)})
+
+
+def test_solved_gains_are_the_minimum_norm_solution_of_every_item():
+    """``solve_gains`` (padding left out, items of one size together, an LU solve where every direction is kept)
+    against the definition solved item by item with the eigendecomposition: ``Z = E[e yᵀ] S⁺`` in the units of
+    ``scale``, the directions below ``GAIN_RCOND`` of the largest dropped, and ``λmax / λmin`` over the kept ones.
+    The stack mixes items with zero-padded components (in varied places), rank-deficient ones (a direction to
+    drop), items without packets (the measurement block alone) and a non-finite one."""
+    from designer.mse import GAIN_RCOND, solve_gains
+
+    rng = np.random.default_rng(3)
+    k, n, m, w = 9, 3, 2, 11
+    yy, ey = np.zeros((k, w, w)), np.zeros((k, n, w))
+    for i in range(k):
+        used = np.sort(rng.choice(np.arange(m, w), size=int(rng.integers(2, w - m)), replace=False))
+        used = np.concatenate([np.arange(m), used])
+        rank = used.size - (i % 3 == 0)  # every third item rank-deficient
+        A = rng.standard_normal((used.size, rank)) * rng.uniform(0.5, 3, size=(used.size, 1))
+        yy[i][np.ix_(used, used)] = A @ A.T
+        ey[i][:, used] = rng.standard_normal((n, rank)) @ A.T  # in the range of yy, as E[e yᵀ] is
+    scale = np.sqrt(np.diagonal(yy, axis1=-2, axis2=-1)) * rng.uniform(0.5, 2, size=(k, w))
+    has = np.arange(k) % 4 != 1
+    yy[5, 0, 0] = np.inf
+    Z, kappa = solve_gains(ey, yy, scale, has, m)
+    for i in range(k):
+        if i == 5:
+            assert np.isnan(Z[i]).all() and np.isnan(kappa[i])
+            continue
+        wi = w if has[i] else m
+        d = np.where(scale[i, :wi] > 0, scale[i, :wi], 1.0)
+        lam, V = np.linalg.eigh(yy[i, :wi, :wi] / np.outer(d, d))
+        keep = lam > GAIN_RCOND * lam[-1]
+        ref = (ey[i, :, :wi] / d) @ V[:, keep] @ np.diag(1 / lam[keep]) @ V[:, keep].T / d
+        assert np.allclose(Z[i, :, :wi], ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max()), i
+        assert np.all(Z[i, :, wi:] == 0.0)
+        assert np.isclose(kappa[i], lam[-1] / lam[keep].min(), rtol=1e-8), i
