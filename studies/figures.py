@@ -22,7 +22,6 @@ are then drawn by the calling process (which raises any error itself).
 """
 from __future__ import annotations
 
-import gc
 import math
 import os
 import pickle
@@ -30,7 +29,6 @@ import signal
 import struct
 import sys
 import textwrap
-import warnings
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
@@ -155,35 +153,6 @@ def figure_batch(processes: int | None = None):
     draw_figures(pending, processes)
 
 
-def _fork(parent: int) -> int:
-    """``os.fork()``; in the child, Ctrl-C is the parent's and the child dies with it.
-
-    The child never collects garbage (it draws, then ends with ``os._exit``): a collection
-    would write into the header of every object it inherited, and so copy nearly all of the
-    parent's memory page by page.  Its inherited objects are frozen too (``gc.freeze`` around
-    the fork; the parent's are unfrozen at once), so that not even an explicit collection in
-    the child visits them.
-    """
-    from .runner import worker_init
-
-    sys.stdout.flush()
-    sys.stderr.flush()
-    gc.freeze()
-    try:
-        with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; a child here only draws
-            warnings.simplefilter("ignore", DeprecationWarning)
-            pid = os.fork()
-    except BaseException:
-        gc.unfreeze()
-        raise
-    if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
-        gc.disable()
-        worker_init(parent)
-    else:
-        gc.unfreeze()
-    return pid
-
-
 def _read_all(fd: int) -> bytes:
     chunks = []
     while True:
@@ -208,6 +177,8 @@ def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None
     """
     from designer.cores import usable_cores
 
+    from .runner import fork_worker
+
     figures = list(figures)
     n = min(len(figures), processes or usable_cores())
     if n <= 1 or not sys.platform.startswith("linux") or 4 * len(figures) > _QUEUE_BYTES:
@@ -223,7 +194,7 @@ def draw_figures(figures: Sequence[tuple], processes: int | None = None) -> None
         for _ in range(n - 1):
             done_r, done_w = os.pipe()
             try:
-                pid = _fork(parent)
+                pid = fork_worker(parent)
             except OSError:  # no more processes: the ones there are draw the rest
                 os.close(done_r)
                 os.close(done_w)
@@ -297,12 +268,14 @@ class FigureHelper:
 
     @classmethod
     def start(cls, draw: Callable[[Path, dict, Mapping], None]) -> "FigureHelper | None":
+        from .runner import fork_worker
+
         if not sys.platform.startswith("linux"):
             return None
         parent = os.getpid()
         job_r, job_w = os.pipe()
         done_r, done_w = os.pipe()
-        pid = _fork(parent)
+        pid = fork_worker(parent)
         if pid == 0:  # pragma: no cover - the helper
             code = 1
             try:

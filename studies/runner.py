@@ -55,14 +55,17 @@ the chunks finished before are kept.
 from __future__ import annotations
 
 import contextlib
+import gc
 import hashlib
 import json
 import os
+import pickle
 import re
 import signal
 import sys
 import threading
 import time
+import warnings
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -382,6 +385,104 @@ def _normalised(config: Mapping[str, Any]) -> dict:
         return json.loads(json.dumps(dict(config), sort_keys=True, default=str))
     except (TypeError, ValueError) as exc:
         raise InputError(f"config must be JSON-serialisable, got {exc}") from exc
+
+
+def fork_worker(parent: int) -> int:
+    """``os.fork()``; in the child, Ctrl-C is the parent's and the child dies with it (:func:`worker_init`).
+
+    The child never collects garbage (it computes or draws, then ends with ``os._exit``): a collection
+    would write into the header of every object it inherited, and so copy nearly all of the
+    parent's memory page by page.  Its inherited objects are frozen too (``gc.freeze`` around
+    the fork; the parent's are unfrozen at once), so that not even an explicit collection in
+    the child visits them.
+    """
+    sys.stdout.flush()
+    sys.stderr.flush()
+    gc.freeze()
+    try:
+        with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads; the child uses none it inherits
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except BaseException:
+        gc.unfreeze()
+        raise
+    if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
+        gc.disable()
+        worker_init(parent)
+    else:
+        gc.unfreeze()
+    return pid
+
+
+class Background:
+    """``fn(*args)`` computed in a forked child process while this one goes on; :meth:`result` returns it.
+
+    For the parts of one command that do not depend on each other (the scheduled design's stationary certificate
+    and its other exchange rounds beside its tables and seeded run): on a machine with one usable core, where the
+    platform does not fork, or when the child fails for any reason (an exception, killed, a result that does not
+    pickle), :meth:`result` computes ``fn(*args)`` here instead, so the value, and any exception, are those of a
+    call in this process; the numbers do not depend on where they were computed.  The warnings the child's call
+    raised are raised again here, through this process's filters.  Used as a context manager, the child is killed
+    when the block ends without :meth:`result` having been called (an exception, Ctrl-C).
+    """
+
+    def __init__(self, fn: Callable, *args):
+        from designer.cores import usable_cores
+
+        self._fn, self._args, self._pid, self._fd = fn, args, None, None
+        if usable_cores() < 2 or not sys.platform.startswith("linux"):
+            return
+        parent = os.getpid()
+        r, w = os.pipe()
+        try:
+            pid = fork_worker(parent)
+        except OSError:  # no more processes: computed here
+            os.close(r)
+            os.close(w)
+            return
+        if pid == 0:  # pragma: no cover - the child
+            try:
+                os.close(r)
+                with warnings.catch_warnings(record=True) as caught:  # this process's filters, inherited
+                    value = fn(*args)
+                payload = pickle.dumps((value, [(w_.message, w_.category, w_.filename, w_.lineno) for w_ in caught]))
+                with os.fdopen(w, "wb") as fh:
+                    fh.write(payload)
+            finally:
+                os._exit(0)
+        os.close(w)
+        self._pid, self._fd = pid, r
+
+    @property
+    def pid(self) -> int | None:
+        """The child's process id while it computes (None: computed here, or its result taken)."""
+        return self._pid
+
+    def result(self):
+        """The value of ``fn(*args)``: the child's, or computed here (see the class)."""
+        if self._pid is None:
+            return self._fn(*self._args)
+        with os.fdopen(self._fd, "rb") as fh:
+            payload = fh.read()
+        os.waitpid(self._pid, 0)
+        self._pid = None
+        try:
+            value, caught = pickle.loads(payload)
+        except Exception:  # noqa: BLE001 - the child failed (its exception, if any, is raised by the call here)
+            return self._fn(*self._args)
+        for message, category, filename, lineno in caught:
+            warnings.warn_explicit(message, category, filename, lineno)
+        return value
+
+    def __enter__(self) -> "Background":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pid is not None:
+            os.kill(self._pid, signal.SIGKILL)
+            os.waitpid(self._pid, 0)
+            os.close(self._fd)
+            self._pid = None
 
 
 def worker_init(parent: int) -> None:

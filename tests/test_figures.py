@@ -203,9 +203,11 @@ def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was(monk
     def no_more_processes():
         raise OSError("fork failed")
 
-    monkeypatch.setattr(F.os, "fork", no_more_processes)
+    from studies.runner import fork_worker
+
+    monkeypatch.setattr(os, "fork", no_more_processes)
     with pytest.raises(OSError):
-        F._fork(os.getpid())
+        fork_worker(os.getpid())
     assert gc.get_freeze_count() == 0  # a failed fork leaves nothing frozen either
 
 

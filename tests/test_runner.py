@@ -277,3 +277,45 @@ def test_a_swallowed_ctrl_c_still_stops_the_study_and_discards_its_chunk(tmp_pat
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
     res = monte_carlo(toy_task, runs=6, seed=0, chunk_size=2, store=tmp_path)
     assert res.reused == [(0, 2)] and np.array_equal(res.arrays["x"], reference(6, 0))
+
+
+# ----------------------------------------------------------------------------------------- Background
+def _pid_and_square(x):
+    import warnings
+
+    warnings.warn(f"computed {x}", UserWarning)
+    return os.getpid(), x * x
+
+
+def _fails(x):
+    raise ValueError(f"bad {x}")
+
+
+def test_background_computes_in_a_child_and_replays_its_warnings(monkeypatch):
+    """Where there are two cores, ``Background`` computes in a forked child (another PID) the value a call here
+    gives, and the child's warnings are raised here; with one core it is the call here."""
+    from studies.runner import Background
+
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 2)
+    with pytest.warns(UserWarning, match="computed 7"):
+        with Background(_pid_and_square, 7) as bg:
+            pid, value = bg.result()
+    assert value == 49 and pid != os.getpid()
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 1)
+    with pytest.warns(UserWarning, match="computed 3"):
+        pid, value = Background(_pid_and_square, 3).result()
+    assert value == 9 and pid == os.getpid()
+
+
+def test_background_failure_is_the_exception_of_a_call_here_and_an_abandoned_child_is_killed(monkeypatch):
+    from studies.runner import Background
+
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 2)
+    with pytest.raises(ValueError, match="bad 5"):
+        Background(_fails, 5).result()
+    with pytest.raises(KeyError):
+        with Background(time.sleep, 60) as bg:
+            child = bg.pid
+            raise KeyError("the parent fails first")
+    with pytest.raises(ChildProcessError):  # reaped: no such child any more
+        os.waitpid(child, os.WNOHANG)
