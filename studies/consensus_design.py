@@ -13,6 +13,7 @@ then be recomputed online, which is what the studies do).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
 from .invocation import design_invocation
 from .results import versions
+from .runner import Background
 from .scenarios import Scenario
 
 __all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
@@ -188,32 +190,51 @@ TRADEOFF_ROUNDS = (1, 2, 4)
 TRADEOFF_STEPS = 20
 
 
-def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int) -> dict:
+def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int, others: dict | None = None) -> dict:
     """The accuracy-messages trade-off of the scheduled design: for L in :data:`TRADEOFF_ROUNDS` and the design's
     own rounds, the messages per step (``2 |E| L``) and the expected RMSE of the nodes at step
     ``min(steps, TRADEOFF_STEPS)`` (square root of the mean over nodes of tr P_ii, the design's expected
     covariance; for L > 1 its rounds' packet losses taken as fresh draws).  The other L are designed over those
     steps only, without stationary tables (the first steps of a design do not depend on its horizon), and only
-    where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
+    where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows; ``others``: their
+    expected RMSE as :func:`other_rounds` gives it (computed here when None)."""
+    from designer.scheduled import CERTIFICATE_MAX_DIM
 
     N, n = sc.network.n_nodes, sc.model.n_x
     small = N * n <= CERTIFICATE_MAX_DIM
     at = min(int(steps), TRADEOFF_STEPS)
-    x0, _ = sc.operating_point
-    rows = []
-    for L in sorted(set(TRADEOFF_ROUNDS) | {design.rounds}):
-        if L != design.rounds and not small:
-            continue
-        tab = design.tables if L == design.rounds else design_scheduled(
-            sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0, inputs=sc.inputs(at),
-            exchange=design.exchange == "measurements", stationary=False)
-        tr = np.trace(tab.P_post[at], axis1=-2, axis2=-1)
-        rows.append({"rounds": L, "messages_per_step": sc.network.messages_per_step(L),
-                     "expected_rmse": float(np.sqrt(tr.mean())), "designed": L == design.rounds})
+    others = other_rounds(sc, design, steps) if others is None else others
+    own = np.trace(design.tables.P_post[at], axis1=-2, axis2=-1)
+    rmse = {**others, design.rounds: float(np.sqrt(own.mean()))}
+    rows = [{"rounds": L, "messages_per_step": sc.network.messages_per_step(L), "expected_rmse": rmse[L],
+             "designed": L == design.rounds} for L in sorted(rmse)]
     return {"step": at, "rows": rows, "note": None if small else (
         f"the other L are not designed here (N n = {N * n} > {CERTIFICATE_MAX_DIM}): design with --rounds L to "
         "compare")}
+
+
+def other_rounds(sc: Scenario, design: ConsensusDesign, steps: int) -> dict[int, float]:
+    """The expected RMSE at step ``min(steps, TRADEOFF_STEPS)`` of the scheduled designs with the other exchange
+    rounds of :data:`TRADEOFF_ROUNDS` (:func:`rounds_tradeoff`), by L; none where the stacked error has more than
+    :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows."""
+    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
+
+    if sc.network.n_nodes * sc.model.n_x > CERTIFICATE_MAX_DIM:
+        return {}
+    at = min(int(steps), TRADEOFF_STEPS)
+    x0, _ = sc.operating_point
+    out = {}
+    for L in sorted(set(TRADEOFF_ROUNDS) - {design.rounds}):
+        tab = design_scheduled(sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0,
+                               inputs=sc.inputs(at), exchange=design.exchange == "measurements", stationary=False)
+        out[L] = float(np.sqrt(np.trace(tab.P_post[at], axis1=-2, axis2=-1).mean()))
+    return out
+
+
+def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, dict]:
+    """What a design of a rule with offline tables records beside them and does not compute from them: its
+    stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`)."""
+    return stationary_record(sc, design), other_rounds(sc, design, steps)
 
 
 _SCHEDULED_RECORD = {
@@ -384,13 +405,18 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = with_tables(sc, make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0,
-                                      signal=att.signal), steps)
+    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
     m, net, rule = sc.model, sc.network, gain_rule(des.mode)
-    traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
-    traj = sc.simulate(np.random.default_rng(traj_ss), steps)
-    attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
-    res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
+    with contextlib.ExitStack() as stack:
+        # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
+        # run: computed beside them, in a second process where there is a second core (the same numbers)
+        extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) if rule.offline_tables else None
+        des = with_tables(sc, des, steps)
+        traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
+        traj = sc.simulate(np.random.default_rng(traj_ss), steps)
+        attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
+        res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
+        stationary, others = extras.result() if extras is not None else (None, None)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     refs = kalman_references(m, x0, u0)
     with np.errstate(invalid="ignore", over="ignore"):
@@ -426,8 +452,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                           "the bound holds for the linearisation points and DoS pattern it was computed along"}),
             "stationary": None if des.tables is None else des.tables.stationary,
             "bank_record": None if des.tables is None else des.tables.bank_record,
-            "stationary_certificate": stationary_record(sc, des) if rule.offline_tables else None,
-            "rounds_tradeoff": rounds_tradeoff(sc, des, steps) if des.tables is not None else None,
+            "stationary_certificate": stationary,
+            "rounds_tradeoff": rounds_tradeoff(sc, des, steps, others) if des.tables is not None else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,

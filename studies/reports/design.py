@@ -850,12 +850,15 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "design"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else ""
     label = f"{scenario}, {mode} design".replace("$", r"\$")  # no mathtext from a name
+    from ..figures import figure_batch
+
     figures = []
-    if s.trace is not None and s.trace.size:
-        _trace_figure(into / "fig_trace_bound.png", s, f"{label}: tr Φ per node (gaps: no bound)")
-        figures.append("fig_trace_bound.png")
-    if s.m28 is not None and s.m29 is not None and s.m28.size:
-        _margin_figure(into / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
-        figures.append("fig_margins.png")
+    with figure_batch():  # drawn side by side where there are cores
+        if s.trace is not None and s.trace.size:
+            _trace_figure(into / "fig_trace_bound.png", s, f"{label}: tr Φ per node (gaps: no bound)")
+            figures.append("fig_trace_bound.png")
+        if s.m28 is not None and s.m29 is not None and s.m28.size:
+            _margin_figure(into / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
+            figures.append("fig_margins.png")
     images = {name: (into / name).read_bytes() for name in figures}
     return render_design(meta, arrays, figures, note), images, f"cfdesign design report: {scenario}"
