@@ -104,7 +104,7 @@ from __future__ import annotations
 
 import itertools
 import warnings
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -115,8 +115,8 @@ from .tuning import MARGIN
 from .validation import InputError
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
-           "design_scheduled", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL", "STATIONARY_MAX",
-           "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
+           "design_scheduled", "stationary_tables", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL",
+           "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
            "LMI_MAX_DIM", "BANK_SPREAD"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
@@ -425,7 +425,7 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
 
     every term small where the nodes agree (``A_i - A_k`` is taken of the small factors first).
     """
-    N, n = rule.A.shape[0], rule.A.shape[-1]
+    N = rule.A.shape[0]
     i, j = ch.receiver, ch.sender
     pW, pC = ch.p[:, None, None] * rule.W, ch.p[:, None, None] * rule.C
     A = rule.A.copy()  # the row sums: I - K_i H_i - Σ p K_ij H_j
@@ -641,6 +641,9 @@ class ScheduledTables(NamedTuple):
     bank_round_Gamma: np.ndarray | None = None  # (B, L - 1, E, n, n)
     bank_round_Sigma: np.ndarray | None = None  # (B, L - 1, N, d, d, n, n)
     bank_record: dict | None = None
+    # a design made with stationary=False: where the recursion beyond the horizon starts (the expected joint
+    # covariance's P and G and the open-loop covariance at the horizon), for :func:`stationary_tables`; else None
+    horizon_state: tuple | None = None
 
     @property
     def steps(self) -> int:
@@ -909,21 +912,37 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         out["P_post"][k + 1] = Pm.P
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
-    bank = {}
-    if stationary:  # the stationary tables: the recursion continued at the last nominal point with its input
-        F = np.asarray(model.F_expected(x, steps, u_at(steps)), dtype=float)
-        Pm_inf, _, last_G, last_S, record, rG_inf, rS_inf = _stationary_gains(
-            st, Pm, np.broadcast_to(F, (N, n, n)), x, steps, (out["Gamma"][-1], out["Sigma"][-1]))
-        if design.bank:
-            bank = _bank(st, Pm_inf, P_open, x, steps, u_at(steps), int(design.bank))
-    else:
-        last_G, last_S = out["Gamma"][-1], out["Sigma"][-1]
-        rG_inf, rS_inf = out["round_Gamma"][-1], out["round_Sigma"][-1]
-        record = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
-    return ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
-                           Gamma_inf=last_G, Sigma_inf=last_S, exchange=bool(exchange),
-                           robustness=st.margin, rounds=st.rounds, round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,
-                           **out, **bank)
+    record = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
+    tables = ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
+                             Gamma_inf=out["Gamma"][-1], Sigma_inf=out["Sigma"][-1], exchange=bool(exchange),
+                             robustness=st.margin, rounds=st.rounds, round_Gamma_inf=out["round_Gamma"][-1],
+                             round_Sigma_inf=out["round_Sigma"][-1], horizon_state=(Pm.P, Pm.G, P_open), **out)
+    if not stationary:
+        return tables
+    return tables._replace(**stationary_tables(model, network, design, tables, inputs=inputs), horizon_state=None)
+
+
+def stationary_tables(model, network, design, tables: ScheduledTables, *, inputs=None) -> dict:
+    """The fields of ``tables`` (a design made with ``stationary=False``, same model, network, design and
+    inputs) beyond the horizon: the stationary tables, the recursion continued at the last nominal point with its
+    input until they stop changing (``Gamma_inf``, ``Sigma_inf``, ``round_Gamma_inf``, ``round_Sigma_inf``,
+    ``stationary``), and the bank of operating points when the design has one (``bank_*``).  What
+    :func:`design_scheduled` computes after the horizon, for a caller that needs the horizon's tables first (they
+    do not depend on these): ``tables._replace(**fields, horizon_state=None)`` is the design with
+    ``stationary=True``."""
+    if tables.horizon_state is None:
+        raise ValueError("stationary_tables needs a design made with stationary=False (its horizon_state)")
+    st = _prepare(model, network, design, tables.exchange, None)[0]
+    N, n, steps = network.n_nodes, model.n_x, tables.steps
+    P, G, P_open = tables.horizon_state
+    x = tables.nominal[-1]
+    u = None if inputs is None else np.asarray(inputs, dtype=float)[min(steps, len(inputs) - 1)]
+    F = np.asarray(model.F_expected(x, steps, u), dtype=float)
+    Pm_inf, _, last_G, last_S, record, rG_inf, rS_inf = _stationary_gains(
+        st, JointCovariance(P, G), np.broadcast_to(F, (N, n, n)), x, steps, (tables.Gamma[-1], tables.Sigma[-1]))
+    bank = _bank(st, Pm_inf, P_open, x, steps, u, int(design.bank)) if design.bank else {}
+    return {"Gamma_inf": last_G, "Sigma_inf": last_S, "round_Gamma_inf": rG_inf, "round_Sigma_inf": rS_inf,
+            "stationary": record, **bank}
 
 
 def _linearisation(model, x: np.ndarray, k: int, u) -> list[np.ndarray]:
