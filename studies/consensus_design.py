@@ -17,6 +17,7 @@ import contextlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -102,16 +103,51 @@ def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None)
     from designer.scheduled import design_scheduled
 
     steps = sc.steps if steps is None else int(steps)
-    key = (sc.digest, steps, json.dumps(describe_design(design), sort_keys=True),
-           None if design.fdi_moment is None else design.fdi_moment.tobytes(),
-           None if design.fdi_mean is None else design.fdi_mean.tobytes())
+    key = _tables_key(sc, design, steps)
     if key not in _TABLES:  # a deterministic function of the scenario's content and the design: computed once
         x0, _ = sc.operating_point
-        while len(_TABLES) >= _TABLES_KEPT:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = design_scheduled(sc.model, sc.network, design, steps, x0=x0, inputs=sc.inputs(steps),
-                                        exchange=design.exchange == "measurements")
+        _remember(key, design_scheduled(sc.model, sc.network, design, steps, x0=x0, inputs=sc.inputs(steps),
+                                        exchange=design.exchange == "measurements"))
     return design._replace(tables=_TABLES[key])
+
+
+def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack: contextlib.ExitStack
+                        ) -> tuple[ConsensusDesign, Callable[[], ConsensusDesign]]:
+    """:func:`with_tables` in two parts: ``design`` with the tables of the horizon (all that a run over the horizon
+    uses) and a function that returns it with the complete tables, the part beyond the horizon (the stationary
+    tables, :func:`designer.scheduled.stationary_tables`) computed meanwhile beside this process
+    (:class:`studies.runner.Background`, entered on ``stack``).  The same tables as :func:`with_tables`; a design
+    with a bank of operating points (its nodes use the bank within the horizon too), of a rule without offline
+    tables, or whose tables this process has, is complete at once."""
+    if not gain_rule(design.mode).offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
+        done = with_tables(sc, design, steps)
+        return done, lambda: done
+    from designer.scheduled import design_scheduled, stationary_tables
+
+    x0, _ = sc.operating_point
+    inputs = sc.inputs(steps)
+    horizon = design_scheduled(sc.model, sc.network, design, steps, x0=x0, inputs=inputs,
+                               exchange=design.exchange == "measurements", stationary=False)
+    late = stack.enter_context(Background(stationary_tables, sc.model, sc.network, design, horizon, inputs=inputs))
+
+    def complete() -> ConsensusDesign:
+        tables = horizon._replace(**late.result(), horizon_state=None)
+        _remember(_tables_key(sc, design, steps), tables)
+        return design._replace(tables=tables)
+
+    return design._replace(tables=horizon), complete
+
+
+def _tables_key(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple:
+    return (sc.digest, steps, json.dumps(describe_design(design), sort_keys=True),
+            None if design.fdi_moment is None else design.fdi_moment.tobytes(),
+            None if design.fdi_mean is None else design.fdi_mean.tobytes())
+
+
+def _remember(key: tuple, tables) -> None:
+    while len(_TABLES) >= _TABLES_KEPT:
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES[key] = tables
 
 
 _TABLES: dict = {}  # the scheduled tables of this process, by scenario digest, horizon and design (oldest first)
@@ -411,11 +447,12 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
         extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) if rule.offline_tables else None
-        des = with_tables(sc, des, steps)
+        des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
         attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
         res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
+        des = complete()
         stationary, others = extras.result() if extras is not None else (None, None)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     refs = kalman_references(m, x0, u0)

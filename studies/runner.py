@@ -415,21 +415,21 @@ def fork_worker(parent: int) -> int:
 
 
 class Background:
-    """``fn(*args)`` computed in a forked child process while this one goes on; :meth:`result` returns it.
+    """``fn(*args, **kwargs)`` computed in a forked child process while this one goes on; :meth:`result` returns it.
 
     For the parts of one command that do not depend on each other (the scheduled design's stationary certificate
     and its other exchange rounds beside its tables and seeded run): on a machine with one usable core, where the
     platform does not fork, or when the child fails for any reason (an exception, killed, a result that does not
-    pickle), :meth:`result` computes ``fn(*args)`` here instead, so the value, and any exception, are those of a
+    pickle), :meth:`result` computes the call here instead, so the value, and any exception, are those of a
     call in this process; the numbers do not depend on where they were computed.  The warnings the child's call
     raised are raised again here, through this process's filters.  Used as a context manager, the child is killed
     when the block ends without :meth:`result` having been called (an exception, Ctrl-C).
     """
 
-    def __init__(self, fn: Callable, *args):
+    def __init__(self, fn: Callable, *args, **kwargs):
         from designer.cores import usable_cores
 
-        self._fn, self._args, self._pid, self._fd = fn, args, None, None
+        self._fn, self._args, self._kwargs, self._pid, self._fd = fn, args, kwargs, None, None
         if usable_cores() < 2 or not sys.platform.startswith("linux"):
             return
         parent = os.getpid()
@@ -444,7 +444,7 @@ class Background:
             try:
                 os.close(r)
                 with warnings.catch_warnings(record=True) as caught:  # this process's filters, inherited
-                    value = fn(*args)
+                    value = fn(*args, **kwargs)
                 payload = pickle.dumps((value, [(w_.message, w_.category, w_.filename, w_.lineno) for w_ in caught]))
                 with os.fdopen(w, "wb") as fh:
                     fh.write(payload)
@@ -459,9 +459,9 @@ class Background:
         return self._pid
 
     def result(self):
-        """The value of ``fn(*args)``: the child's, or computed here (see the class)."""
+        """The value of ``fn(*args, **kwargs)``: the child's, or computed here (see the class)."""
         if self._pid is None:
-            return self._fn(*self._args)
+            return self._fn(*self._args, **self._kwargs)
         with os.fdopen(self._fd, "rb") as fh:
             payload = fh.read()
         os.waitpid(self._pid, 0)
@@ -469,7 +469,7 @@ class Background:
         try:
             value, caught = pickle.loads(payload)
         except Exception:  # noqa: BLE001 - the child failed (its exception, if any, is raised by the call here)
-            return self._fn(*self._args)
+            return self._fn(*self._args, **self._kwargs)
         for message, category, filename, lineno in caught:
             warnings.warn_explicit(message, category, filename, lineno)
         return value

@@ -453,3 +453,38 @@ def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction
     plain = run_consensus_batch(sc.model, sc.network, z, des._replace(tables=tab._replace(bank_points=None)),
                                 x0=x0, attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})])
     assert np.abs(plain.x_post[0, 1] - with_bank.x_post[0, 1]).max() > 1e-6  # the bank's tables differ
+
+
+def test_the_tables_beyond_the_horizon_computed_beside_the_run_are_the_designs(tmp_path, monkeypatch):
+    """``cfdesign design`` runs its seeded run on the horizon's tables while the stationary ones are computed in a
+    second process (``with_horizon_tables``): the horizon's tables are at once those of a design without
+    stationary tables, and once completed the tables are exactly those of ``design_scheduled`` with them, on a
+    nonlinear range grid (whose stationary recursion does not start where it ends)."""
+    import contextlib
+
+    from designer.scheduled import ScheduledTables, stationary_tables
+    from studies.consensus_design import with_horizon_tables
+    from studies.scenarios import load_scenario
+
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 2)  # a second core: the forked child
+    path = tmp_path / "grid.py"
+    path.write_text(RANGE_GRID)
+    sc = load_scenario(str(path))
+    base = consensus_design(sc, mode="scheduled", steps=3)._replace(tables=None)
+    x0, _ = sc.operating_point
+    ref = design_scheduled(sc.model, sc.network, base, 4, x0=x0, inputs=sc.inputs(4),
+                           exchange=base.exchange == "measurements")
+    assert ref.stationary["extra_steps"] > 1 and ref.horizon_state is None
+    with contextlib.ExitStack() as stack:
+        early, complete = with_horizon_tables(sc, base, 4, stack)
+        assert early.tables.stationary["sought"] is False and early.tables.horizon_state is not None
+        np.testing.assert_array_equal(early.tables.Gamma, ref.Gamma)
+        done = complete().tables
+    assert done.stationary == ref.stationary and done.horizon_state is None
+    for name in ScheduledTables._fields:
+        a, b = getattr(done, name), getattr(ref, name)
+        if isinstance(b, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert not np.array_equal(done.Gamma_inf, early.tables.Gamma_inf)  # the stationary part was computed
+    with pytest.raises(ValueError, match="stationary=False"):
+        stationary_tables(sc.model, sc.network, base, ref)
