@@ -3,7 +3,9 @@
 References are computed here independently: a covariance-form Kalman filter on the stacked
 measurements, ``run_ekf`` (Joseph form) for the local and centralized EKFs, the exact joint
 error covariance of HCMCI on a linear model (derived below from the algorithm's equations),
-Metropolis weights from the degrees, packet counts from the edge list.
+Metropolis weights from the degrees, packet counts from the edge list; and the batched filter (the only
+implementation: ``run_kcf`` / ``run_hcmci`` are a batch of one) against the node-by-node loop of
+``tests/distributed_reference.py``.
 """
 from __future__ import annotations
 
