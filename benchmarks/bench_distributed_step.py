@@ -4,13 +4,14 @@ The comparison study runs them on every run and sweep setting of a chunk at once
 the same run on the built-in scenarios the comparison uses (the indoor robot, 8 cameras over 30 steps; the
 range-bearing target, 4 sensors over 120 steps), under DoS 0.3 and FDI 0.2 on every channel and uplink:
 
-* per run: :func:`filters.distributed.run_kcf`, :func:`~filters.distributed.run_hcmci` (L = 1) and
-  :func:`filters.ekf.run_ekf`, ``--per-run`` runs one after the other (their mean);
+* per run: :func:`filters.distributed.run_kcf`, :func:`~filters.distributed.run_hcmci` (L = 1; each a batch
+  of one run of the batched filter, their only implementation) and :func:`filters.ekf.run_ekf`, ``--per-run``
+  runs one after the other (their mean): what looping over the runs would cost;
 * batched: :func:`~filters.distributed.run_kcf_batch`, :func:`~filters.distributed.run_hcmci_batch` and
   :func:`filters.ekf.run_ekf_batch` over ``--runs`` runs (default 90: the comparison's chunk of 10 runs at
   its 9 settings), the cost amortised per run (best of ``--repeats``); the batch's runs that the per-run
-  path also ran are checked against it (KCF and HCMCI bit for bit on these runs, rtol 1e-9 by contract;
-  the EKF to rtol 1e-9).
+  path also ran are checked against it (rtol 1e-9; KCF and HCMCI a run alone and in a batch are the same
+  loop, the EKF its own per-run filter).
 
 ``--check`` exits 1 when the batched path takes more than ``RATIO`` of the per-run path's time per run
 (0.15; measured 0.02-0.06 on a shared 2-core machine).

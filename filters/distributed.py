@@ -69,6 +69,12 @@ Assumptions where the papers are silent (attacks are not part of either paper):
 * **Divergence**: a node whose estimate or covariance leaves finite numbers, whose estimate
   exceeds ``1e12``, or whose information matrix loses positive definiteness stops the run: a
   ``'diverged'`` violation (as :class:`filters.consensus.ConsensusResult`) and NaN from that step on.
+
+**One implementation.**  Each filter is one loop batched over runs (:func:`run_kcf_batch`,
+:func:`run_hcmci_batch`: every step one stack over the runs and nodes, a run that diverges stops alone);
+:func:`run_kcf` and :func:`run_hcmci` are a batch of one run of them (a run alone and the same run in a
+batch are the same numbers).  The node-by-node loop they replaced is the tests' independent reference
+(``tests/distributed_reference.py``).
 """
 from __future__ import annotations
 
@@ -81,7 +87,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import DIVERGED, check_run_inputs, wrapped_residual
+from .consensus import DIVERGED, check_run_inputs
 from .consensus_batch import batch_inputs, wrap_residuals
 from .result import FilterResult
 
@@ -130,31 +136,32 @@ def metropolis_weights(network: SensorNetwork, lost: np.ndarray | None = None) -
     return W
 
 
-class _Inputs(NamedTuple):
-    z: list  # per step, one array per sensor
-    u: np.ndarray
-    x0: np.ndarray
-    P0: np.ndarray
-    attacks: AttackPattern | None
-    steps: int
-    R_inv: list  # every sensor's R_i⁻¹ (by Cholesky, once)
-
-
-def _check(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _Inputs:
-    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
-        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
-                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
+def _check_run(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str):
+    """One run's inputs checked with the messages of a run (``z`` (steps, n_z), one AttackPattern), before the
+    batch of one is built: returns ``(z, u, x0, P0)``."""
+    _check_network(model, network)
     z, u, x0, P0 = check_run_inputs(model, z, inputs, x0, P0)
     steps, n = z.shape[0], network.n_nodes
-    if falsify not in FALSIFY_CHOICES:
-        raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
+    if steps < 1:
+        raise InputError(f"z must have shape (steps, {model.n_z}) with steps >= 1, got {z.shape}")
+    _check_falsify(falsify)
     if attacks is not None:
         want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
         if not isinstance(attacks, AttackPattern) or [np.shape(a) for a in attacks] != want:
             raise InputError(f"attacks must be an AttackPattern with dos, fdi of shape {want[0]} and xi of shape "
                              f"{want[2]}")
-    return _Inputs([model.split(z[k]) for k in range(steps)], u, x0, P0, attacks, steps,
-                   [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)])
+    return z, u, x0, P0
+
+
+def _check_network(model: Model, network: SensorNetwork) -> None:
+    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
+        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
+                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
+
+
+def _check_falsify(falsify: str) -> None:
+    if falsify not in FALSIFY_CHOICES:
+        raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
 
 
 def _spd_inverse(A: np.ndarray) -> np.ndarray:
@@ -162,25 +169,6 @@ def _spd_inverse(A: np.ndarray) -> np.ndarray:
     L = np.linalg.cholesky(0.5 * (A + np.swapaxes(A, -1, -2)))
     Li = np.linalg.solve(L, np.broadcast_to(np.eye(A.shape[-1]), A.shape))
     return np.swapaxes(Li, -1, -2) @ Li
-
-
-def _measurement_information(model: Model, inp: _Inputs, k: int, x_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every node's ``U_i = H_iᵀ R_i⁻¹ H_i`` (N, n_x, n_x) and ``u_i = H_iᵀ R_i⁻¹ (z_i - h_i(x̄_i) + H_i x̄_i)``
-    (N, n_x), linearised at its own prediction ``x̄_i`` (angular residual components wrapped)."""
-    U, u = [], []
-    for i, xi in enumerate(x_pred):
-        H = model.H(i, xi, k + 1)
-        RiH = inp.R_inv[i] @ H
-        U.append(H.T @ RiH)
-        u.append(RiH.T @ (wrapped_residual(model, i, inp.z[k][i], xi, k + 1) + H @ xi))
-    return np.stack(U), np.stack(u)
-
-
-def _first_failure(x: np.ndarray, P: np.ndarray) -> int | None:
-    """The first node whose estimate or covariance is not finite or beyond the divergence threshold (None: none)."""
-    ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
-    ok[ok] &= np.abs(x[ok]).max(-1) < DIVERGED
-    return None if ok.all() else int(np.flatnonzero(~ok)[0])
 
 
 def _not_positive_definite(*mats: np.ndarray) -> int:
@@ -192,54 +180,6 @@ def _not_positive_definite(*mats: np.ndarray) -> int:
             except np.linalg.LinAlgError:
                 return i
     return 0
-
-
-def _filter(model: Model, network: SensorNetwork, inp: _Inputs, update, rounds: int) -> DistributedResult:
-    """The loop both filters share: predict at every node, ``update`` it, stop at the first divergence.
-
-    ``update(k, x_pred, P_pred, U, u, recv)`` returns the posteriors ``(x, P)`` of every node and the
-    step's ``ω`` (or None); ``recv`` (N, N) bool marks the channels ``j -> i`` whose packets arrived.
-    """
-    n, nx, steps = network.n_nodes, model.n_x, inp.steps
-    adj = network.adjacency
-    x_post = np.full((steps + 1, n, nx), np.nan)
-    P_post = np.full((steps + 1, n, nx, nx), np.nan)
-    x_pred = np.full((steps, n, nx), np.nan)
-    P_pred = np.full((steps, n, nx, nx), np.nan)
-    omega = np.full((steps, n), np.nan)
-    x_post[0], P_post[0] = inp.x0, inp.P0
-    sent = np.full(steps, network.messages_per_step(rounds))
-    delivered = np.zeros(steps, int)
-    violations: list[dict] = []
-    for k in range(steps):
-        recv = adj if inp.attacks is None else adj & ~inp.attacks.dos[k]
-        delivered[k] = int(recv.sum()) * rounds
-        x_pred[k] = model.f_expected(x_post[k], k, inp.u[k])  # batched over the nodes
-        F = model.F_expected(x_post[k], k, inp.u[k])
-        Pp = F @ P_post[k] @ np.swapaxes(F, -1, -2) + model.process_cov
-        P_pred[k] = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
-        beyond = f"estimate or covariance beyond {DIVERGED:g} or not finite"
-        node = _first_failure(x_pred[k], P_pred[k])
-        reason = None if node is None else f"prediction: {beyond}"
-        if reason is None:
-            try:
-                U, u = _measurement_information(model, inp, k, x_pred[k])
-                x, P, om = update(k, x_pred[k], P_pred[k], U, u, recv)
-            except np.linalg.LinAlgError as exc:
-                node, reason = _not_positive_definite(P_pred[k]), f"numerical breakdown: {exc}"
-            else:
-                node = _first_failure(x, P)
-                reason = None if node is None else beyond
-        if reason is not None:
-            # Stop here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
-            violations.append({"node": node, "step": k + 1, "condition": "diverged", "margin": -np.inf,
-                               "reason": reason})
-            x_pred[k:] = P_pred[k:] = np.nan
-            break
-        x_post[k + 1], P_post[k + 1] = x, 0.5 * (P + np.swapaxes(P, -1, -2))
-        if om is not None:
-            omega[k] = om
-    return DistributedResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, rounds, omega)
 
 
 def _kcf_epsilon(network: SensorNetwork, epsilon) -> float:
@@ -307,7 +247,8 @@ def _hcmci_update(network: SensorNetwork, L: int, omega: str, packet: bool, xp, 
 
 def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None, attacks: AttackPattern | None = None,
             x0=None, P0=None, epsilon: float | None = None, falsify: str = "packet") -> DistributedResult:
-    """Olfati-Saber's Kalman consensus filter (extended form) at every node over ``z`` (steps, n_z).
+    """Olfati-Saber's Kalman consensus filter (extended form) at every node over ``z`` (steps, n_z): a batch of one
+    run of :func:`run_kcf_batch` (its inputs checked as one run's).
 
     Parameters
     ----------
@@ -324,23 +265,16 @@ def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
         What an FDI'd packet falsifies: the whole packet as if the state were displaced by ``ξ`` (default), or
         the estimate alone (see the module docstring).
     """
-    inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
-    eps = _kcf_epsilon(network, epsilon)
-    eye = np.eye(network.n_nodes, dtype=bool)
-
-    packet = falsify == "packet"
-
-    def update(k, xp, Pp, U, u, recv):
-        at = () if inp.attacks is None else (inp.attacks.fdi[k], inp.attacks.xi[k])
-        return _kcf_update(eps, packet, xp, Pp, U, u, recv, *at)
-
-    return _filter(model, network, inp, update, 1)._replace(omega=None)
+    z, u, x0, P0 = _check_run(model, network, z, inputs, attacks, x0, P0, falsify)
+    return run_kcf_batch(model, network, z[None], inputs=u, attacks=None if attacks is None else [attacks], x0=x0,
+                         P0=P0, epsilon=epsilon, falsify=falsify).run(0)
 
 
 def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1, omega: str = "size",
               inputs=None, attacks: AttackPattern | None = None, x0=None, P0=None, falsify: str = "packet"
               ) -> DistributedResult:
-    """Battistelli et al.'s hybrid consensus on measurements and information (extended form) at every node.
+    """Battistelli et al.'s hybrid consensus on measurements and information (extended form) at every node: a
+    batch of one run of :func:`run_hcmci_batch` (its inputs checked as one run's).
 
     Parameters
     ----------
@@ -352,18 +286,9 @@ def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations
         The measurement scaling ``ω_i``: the network size ``N`` (the paper's), or the largest that counts no
         measurement more than once (see the module docstring).
     """
-    inp = _check(model, network, z, inputs, attacks, x0, P0, falsify)
-    L = _hcmci_rounds(iterations, omega)
-    n = network.n_nodes
-    adj = network.adjacency
-
-    packet = falsify == "packet"
-
-    def update(k, xp, Pp, dO, dq, recv):
-        at = () if inp.attacks is None else (inp.attacks.fdi[k], inp.attacks.xi[k])
-        return _hcmci_update(network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
-
-    return _filter(model, network, inp, update, L)
+    z, u, x0, P0 = _check_run(model, network, z, inputs, attacks, x0, P0, falsify)
+    return run_hcmci_batch(model, network, z[None], iterations=iterations, omega=omega, inputs=u,
+                           attacks=None if attacks is None else [attacks], x0=x0, P0=P0, falsify=falsify).run(0)
 
 
 # --------------------------------------------------------------------------- many runs at once
@@ -392,13 +317,6 @@ class DistributedBatchResult(NamedTuple):
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
 
-    @classmethod
-    def of_runs(cls, refs: Sequence[DistributedResult]) -> "DistributedBatchResult":
-        """Per-run results of :func:`run_kcf` / :func:`run_hcmci` stacked over the runs (their numbers unchanged)."""
-        return cls(*(np.stack([getattr(r, f) for r in refs]) for f in DistributedResult._fields[:6]),
-                   [r.violations for r in refs], refs[0].iterations,
-                   None if refs[0].omega is None else np.stack([r.omega for r in refs]))
-
     def to_result(self) -> FilterResult:
         """These runs as a :class:`filters.result.FilterResult`: each node's estimate and its own covariance P
         (``cov_kind="covariance"``, not a bound; ``valid`` where finite), the packets sent per step (every round
@@ -418,11 +336,8 @@ class _BatchInputs(NamedTuple):
 
 
 def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _BatchInputs:
-    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
-        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
-                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
-    if falsify not in FALSIFY_CHOICES:
-        raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
+    _check_network(model, network)
+    _check_falsify(falsify)
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps, n = z.shape[0], z.shape[1], network.n_nodes
     if attacks is not None:
@@ -436,7 +351,8 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
 
 
 def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """:func:`_first_failure` per run of stacks (a, N, ...): the first failing node, N where none fails."""
+    """The first node per run of stacks (a, N, ...) whose estimate or covariance is not finite or beyond the
+    divergence threshold: N where none fails."""
     ok = np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2))
     ok &= np.abs(np.where(ok[..., None], x, 0.0)).max(-1) < DIVERGED
     return np.where(ok.all(-1), ok.shape[-1], np.argmin(ok, axis=-1))
@@ -444,8 +360,9 @@ def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int
                   ) -> DistributedBatchResult:
-    """:func:`_filter` over many runs at once: every step a stack over the runs still going (a run stops at its
-    first divergence, the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes stacks over the
+    """The loop both filters share, over many runs at once: every step, predict at every node of the runs still
+    going, compute every node's measurement information, ``update`` them, and stop a run at its first divergence
+    (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes stacks over the
     runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it raises
     ``LinAlgError``, the runs are updated one at a time to find those that break down."""
     n, nx = network.n_nodes, model.n_x
@@ -532,8 +449,8 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
 
     ``inputs`` (steps, n_u) shared or (runs, steps, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
     (runs, n_x, n_x); the other parameters as :func:`run_kcf`.  Every step is one stack over the runs and
-    nodes; run ``r`` of the result equals ``run_kcf`` on run ``r`` to rounding (the same violations; a run
-    that diverges stops alone).
+    nodes; run ``r`` of the result is :func:`run_kcf` on run ``r`` (a batch of one: the same numbers, the same
+    violations; a run that diverges stops alone).
     """
     inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
     eps = _kcf_epsilon(network, epsilon)
@@ -550,7 +467,7 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
                     omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | None = None, x0=None,
                     P0=None, falsify: str = "packet") -> DistributedBatchResult:
     """:func:`run_hcmci` on many runs at once (the parameters of :func:`run_kcf_batch` and :func:`run_hcmci`);
-    run ``r`` of the result equals ``run_hcmci`` on run ``r`` to rounding."""
+    run ``r`` of the result is :func:`run_hcmci` on run ``r`` (a batch of one)."""
     inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
     L = _hcmci_rounds(iterations, omega)
     packet = falsify == "packet"

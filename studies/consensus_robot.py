@@ -249,7 +249,8 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     (one node whose sensor stacks all of them; every sensor sends its measurement to
     the centre each step; left out when a sensor's noise is not Gaussian).  Both are the
     consensus filter with σ = β = 0, U = V = 0 and no neighbours, which is exactly the EKF
-    (tested against FilterPy).  KCF and HCMCI run run by run (``run_kcf``, ``run_hcmci``).
+    (tested against FilterPy).  KCF and HCMCI run batched over the chunk's runs (``run_kcf_batch``,
+    ``run_hcmci_batch``), as every filter here.
     """
     local_name, central_name = _names(sc)
     text = TEXT.filters
@@ -263,8 +264,8 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
         name = "consensus-EKF (paper, tau=0, no consensus)"
         out[name] = _Variant(designed_consensus(name, "paper", text[name], start_check=True), paper._replace(tau=0.0))
     # the literature's distributed filters: same network, same channel attacks, no design
-    out[KCF] = _Variant(kcf(KCF, text[KCF], per_run=True))
-    out[HCMCI] = _Variant(hcmci(HCMCI, text[HCMCI], per_run=True))
+    out[KCF] = _Variant(kcf(KCF, text[KCF]))
+    out[HCMCI] = _Variant(hcmci(HCMCI, text[HCMCI]))
     local = local_ekfs(local_name, text[local_name])
     out[local_name] = _Variant(local, local.design_for(paper, sc.model))
     try:
@@ -360,7 +361,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
             continue
         t = time.perf_counter()
-        res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once, or run by run (its own times)
+        res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once (its wall time shared by them)
         out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R if res.seconds is None else res.seconds
         for a, dv in enumerate(res.diverged):
             far = None if dv is not None else first_divergence(trajs[a].x[:, None, :] - res.x[a], limit)

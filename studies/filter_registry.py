@@ -27,7 +27,7 @@ from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.distributed import DistributedBatchResult, run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
+from filters.distributed import run_hcmci_batch, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.particle import run_sir
 from filters.result import FilterResult
@@ -248,38 +248,28 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
                        derive=lambda design, model: local_ekf_design(design))
 
 
-def _distributed(batched: Callable, single: Callable, per_run: bool, **kw) -> Callable:
-    """``run`` of a filter of :mod:`filters.distributed`: every row at once (``batched``), or row by row
-    (``single``: each row's own wall time; the batch agrees with it to rounding, not bit for bit)."""
+def _distributed(batched: Callable, **kw) -> Callable:
+    """``run`` of a filter of :mod:`filters.distributed`: every row at once (``batched``)."""
 
     def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
         z, u, att = batch.z_rows(js), batch.input_rows(js), batch.attack_rows(js)
         L = {"iterations": batch.iterations} if kw.get("rounds") else {}
-        if not per_run:
-            return batched(batch.model, batch.network, z, inputs=u, attacks=att, **L).to_result()
-        refs, secs = [], []
-        for r in range(z.shape[0]):
-            t0 = time.perf_counter()
-            refs.append(single(batch.model, batch.network, z[r], inputs=None if u is None else u[r], attacks=att[r],
-                               **L))
-            secs.append(time.perf_counter() - t0)
-        return DistributedBatchResult.of_runs(refs).to_result()._replace(seconds=np.array(secs))
+        return batched(batch.model, batch.network, z, inputs=u, attacks=att, **L).to_result()
 
     return run
 
 
-def kcf(name: str, description: str, *, per_run: bool = False) -> FilterEntry:
-    """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`, or ``run_kcf`` run by run)
-    on the attacked channels (the realised attacks only: the channels' probabilities are not its to know)."""
-    return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch, run_kcf, per_run), _links,
+def kcf(name: str, description: str) -> FilterEntry:
+    """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`) on the attacked channels
+    (the realised attacks only: the channels' probabilities are not its to know)."""
+    return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch), _links,
                        counts_delivered=True)
 
 
-def hcmci(name: str, description: str, *, per_run: bool = False) -> FilterEntry:
-    """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`, or ``run_hcmci`` run by run) with
-    ``batch.iterations`` rounds per step on the attacked channels; ``2 |E| L`` messages per step."""
-    return FilterEntry(name, "consensus", "local", description,
-                       _distributed(run_hcmci_batch, run_hcmci, per_run, rounds=True),
+def hcmci(name: str, description: str) -> FilterEntry:
+    """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`) with ``batch.iterations`` rounds
+    per step on the attacked channels; ``2 |E| L`` messages per step."""
+    return FilterEntry(name, "consensus", "local", description, _distributed(run_hcmci_batch, rounds=True),
                        _links_per_round, counts_delivered=True, rounds=True)
 
 

@@ -3,7 +3,9 @@
 References are computed here independently: a covariance-form Kalman filter on the stacked
 measurements, ``run_ekf`` (Joseph form) for the local and centralized EKFs, the exact joint
 error covariance of HCMCI on a linear model (derived below from the algorithm's equations),
-Metropolis weights from the degrees, packet counts from the edge list.
+Metropolis weights from the degrees, packet counts from the edge list; and the batched filter (the only
+implementation: ``run_kcf`` / ``run_hcmci`` are a batch of one) against the node-by-node loop of
+``tests/distributed_reference.py``.
 """
 from __future__ import annotations
 
@@ -18,10 +20,14 @@ from designer.simulate import simulate, simulate_runs
 from designer.validation import InputError
 from filters.attacks import AttackPattern
 import filters.distributed as distributed
-from filters.attacks import attack_pattern, channel_draws
-from filters.distributed import run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
+from designer.attacks import FDISignal
+from filters.attacks import attack_pattern, channel_draws, simulate_attacks
+from filters.distributed import FALSIFY_CHOICES, DistributedResult, run_hcmci, run_hcmci_batch, run_kcf, run_kcf_batch
 from filters.ekf import run_ekf
 from studies.scenarios import load_scenario
+
+import distributed_reference  # tests/ on the path
+from distributed_reference import reference_hcmci, reference_kcf
 
 A = np.array([[1.0, 0.1], [-0.05, 0.98]])
 N = 5
@@ -308,26 +314,48 @@ def test_bad_inputs_name_the_parameter(linear_run):
         run_hcmci(m, ring(4), traj.z)
     with pytest.raises(InputError, match="attacks must be an AttackPattern"):
         run_kcf(m, ring(), traj.z, attacks=no_attacks(3, N, 2))
+    with pytest.raises(InputError, match=r"z must have shape \(steps, 5\) with steps >= 1"):
+        run_hcmci(m, ring(), traj.z[:0])
 
 
 # ------------------------------------------------------------------------ many runs at once
 def assert_batch_is_per_run(batch, refs, rtol=1e-9):
-    """Run r of a batched result equals the per-run filter's result r: arrays to rounding (NaN where it is NaN),
-    violations, packet counts and ω."""
+    """Run r of a batched result equals the per-run reference's result r (``tests/distributed_reference.py``, node
+    by node): arrays to rounding (NaN where it is NaN; differences relative to each node-step's largest entry, so a
+    structural zero computed as 1e-20 is rounding), violations, packet counts and ω.  Returns the largest relative
+    difference."""
     assert len(batch.violations) == len(refs)
+    worst = 0.0
     for r, ref in enumerate(refs):
         got = batch.run(r)
         assert got.violations == ref.violations, r
         assert got.iterations == ref.iterations
         assert np.array_equal(got.messages_per_step, ref.messages_per_step)
         assert np.array_equal(got.delivered_per_step, ref.delivered_per_step)
-        for field in ("x_post", "P_post", "x_pred", "P_pred", "omega"):
+        for field, item in (("x_post", 1), ("P_post", 2), ("x_pred", 1), ("P_pred", 2), ("omega", 0)):
             a, b = getattr(got, field), getattr(ref, field)
             if b is None:
                 assert a is None
                 continue
             np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=f"run {r} {field}")
-            np.testing.assert_allclose(a, b, rtol=rtol, atol=0, err_msg=f"run {r} {field}")
+            axes = tuple(range(b.ndim - item, b.ndim))
+            scale = np.max(np.abs(np.nan_to_num(b)), axis=axes, keepdims=True) if item else np.abs(np.nan_to_num(b))
+            diff = np.nan_to_num(np.abs(a - b)) / np.where(scale > 0, scale, 1.0)
+            assert diff.max(initial=0.0) <= rtol, (r, field, diff.max())
+            worst = max(worst, float(diff.max(initial=0.0)))
+    return worst
+
+
+def assert_run_is_its_row(run, batch_result, z, kw_of_run):
+    """``run`` (``run_kcf`` / ``run_hcmci``: a batch of one) on run r alone gives row r of the batch, bit for bit."""
+    for r in range(len(z)):
+        one, row = run(z[r], **kw_of_run(r)), batch_result.run(r)
+        for field in DistributedResult._fields:
+            a, b = getattr(one, field), getattr(row, field)
+            if isinstance(b, np.ndarray):
+                assert np.array_equal(a, b, equal_nan=True), (r, field)
+            else:
+                assert a == b, (r, field)
 
 
 def robot_runs(runs: int, dos: float, fdi: float, steps: int = 12):
@@ -345,28 +373,75 @@ def robot_runs(runs: int, dos: float, fdi: float, steps: int = 12):
     return sc, np.stack(z), np.stack(u), att
 
 
+FILTERS = {"kcf": (run_kcf, run_kcf_batch, reference_kcf), "hcmci": (run_hcmci, run_hcmci_batch, reference_hcmci)}
+
+
 @pytest.mark.parametrize("kind", ["kcf", "hcmci-size", "hcmci-consistent"])
 @pytest.mark.parametrize("falsify", ["packet", "estimate"])
 def test_the_batch_is_the_per_run_filter_run_by_run(kind, falsify):
     sc, z, u, att = robot_runs(6, dos=0.3, fdi=0.3)
     m, net = sc.model, sc.network
     assert any(a.fdi.any() for a in att) and any(a.dos.any() for a in att)
-    if kind == "kcf":
-        run, batch, kw = run_kcf, run_kcf_batch, {"epsilon": 0.2}
-    else:
-        run, batch, kw = run_hcmci, run_hcmci_batch, {"iterations": 2, "omega": kind.split("-")[1]}
-    refs = [run(m, net, z[r], inputs=u[r], attacks=att[r], falsify=falsify, **kw) for r in range(len(z))]
-    assert_batch_is_per_run(batch(m, net, z, inputs=u, attacks=att, falsify=falsify, **kw), refs)
+    run, batch, ref = FILTERS[kind.split("-")[0]]
+    kw = {"epsilon": 0.2} if kind == "kcf" else {"iterations": 2, "omega": kind.split("-")[1]}
+    refs = [ref(m, net, z[r], inputs=u[r], attacks=att[r], falsify=falsify, **kw) for r in range(len(z))]
+    got = batch(m, net, z, inputs=u, attacks=att, falsify=falsify, **kw)
+    assert_batch_is_per_run(got, refs)
+    assert_run_is_its_row(lambda zr, **k: run(m, net, zr, falsify=falsify, **kw, **k), got, z,
+                          lambda r: {"inputs": u[r], "attacks": att[r]})
     # without attacks, with shared inputs and one x0 / P0 per run
     x0 = m.prior.mean + 0.05 * np.arange(len(z))[:, None]
     P0 = m.prior.cov * (1.0 + np.arange(len(z)))[:, None, None]
-    refs = [run(m, net, z[r], inputs=u[0], x0=x0[r], P0=P0[r], falsify=falsify, **kw) for r in range(len(z))]
+    refs = [ref(m, net, z[r], inputs=u[0], x0=x0[r], P0=P0[r], falsify=falsify, **kw) for r in range(len(z))]
     assert_batch_is_per_run(batch(m, net, z, inputs=u[0], x0=x0, P0=P0, falsify=falsify, **kw), refs)
+
+
+def mixed_user_model() -> Model:
+    """A model as a user would write it: a nonlinear turning target, four nodes with sensors of dimension 1, 2, 1
+    and 2 (a range, a range and bearing, a bearing, a position fix); the bearings are angles (wrapped)."""
+    x = ca.SX.sym("x", 4)  # px, py, speed, heading
+    dt = 0.2
+    f = ca.vertcat(x[0] + dt * x[2] * ca.cos(x[3]), x[1] + dt * x[2] * ca.sin(x[3]), 0.99 * x[2], x[3] + 0.05)
+    anchors = [(-4.0, 0.0), (0.0, -4.0), (4.0, 0.5), (0.0, 4.0)]  # node 2 sees the target across ±π
+    rng = [ca.sqrt((x[0] - a) ** 2 + (x[1] - b) ** 2) for a, b in anchors]
+    brg = [ca.atan2(x[1] - b, x[0] - a) for a, b in anchors]
+    sensors = [Sensor("range0", rng[0], Gaussian.zero_mean([[0.05]])),
+               Sensor("rb1", ca.vertcat(rng[1], brg[1]), Gaussian.zero_mean(np.diag([0.05, 0.01])), angles=[1]),
+               Sensor("bearing2", brg[2], Gaussian.zero_mean([[0.01]]), angles=[0]),
+               Sensor("fix3", ca.vertcat(x[0], x[1]), Gaussian.zero_mean(0.2 * np.eye(2)))]
+    return Model("user turning target", x, f, sensors, Gaussian.zero_mean(np.diag([1e-3, 1e-3, 1e-3, 1e-4])),
+                 Gaussian([0.5, 0.0, 1.0, 0.3], np.diag([0.1, 0.1, 0.05, 0.02])))
+
+
+@pytest.mark.parametrize("kind, kw", [("kcf", {}), ("hcmci", {"iterations": 1, "omega": "size"}),
+                                      ("hcmci", {"iterations": 3, "omega": "size"}),
+                                      ("hcmci", {"iterations": 1, "omega": "consistent"}),
+                                      ("hcmci", {"iterations": 3, "omega": "consistent"})])
+def test_a_users_nonlinear_mixed_sensor_model_under_dos_and_fdi_matches_the_reference(kind, kw):
+    """The batch against the node-by-node reference on a nonlinear model with sensors of mixed dimensions and
+    wrapped bearings, under DoS and FDI (both falsifications), L = 1 and L = 3, both ω: equal to rounding (the
+    largest relative difference measured is 2.2e-15), and each run alone is its row of the batch."""
+    m = mixed_user_model()
+    net = SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0), (0, 2)])
+    steps, runs = 10, 4
+    seqs = np.random.SeedSequence(26).spawn(runs)
+    tr = simulate_runs(m, steps, [np.random.default_rng(s.spawn(1)[0]) for s in seqs])
+    attacked, signal = net.with_attacks(0.3, 0.3), FDISignal(0.5, components=(0, 1)).resolve(m.n_x)
+    att = [simulate_attacks(attacked, steps, m.n_x, np.random.default_rng(s.spawn(2)[1]), signal) for s in seqs]
+    assert sum(a.dos.sum() for a in att) > 0 and sum(a.fdi.sum() for a in att) > 0
+    run, batch, ref = FILTERS[kind]
+    for falsify in FALSIFY_CHOICES:
+        refs = [ref(m, net, tr.z[r], attacks=att[r], falsify=falsify, **kw) for r in range(runs)]
+        assert not any(r.diverged for r in refs)
+        got = batch(m, net, tr.z, attacks=att, falsify=falsify, **kw)
+        assert assert_batch_is_per_run(got, refs) < 1e-9
+        assert_run_is_its_row(lambda zr, **k: run(m, net, zr, falsify=falsify, **kw, **k), got, tr.z,
+                              lambda r: {"attacks": att[r]})
 
 
 def test_a_diverging_run_stops_alone_in_the_batch():
     """Runs that diverge in the update, in the prediction and by a numerical breakdown stop at their step with the
-    per-run filter's violation; the other runs go on."""
+    reference's violation; the other runs go on."""
     x = ca.SX.sym("x", 1)
     m = Model("explodes", x, 1e4 * x, [Sensor(f"s{i}", x, Gaussian.zero_mean([[1.0]])) for i in range(3)],
               Gaussian.zero_mean([[1.0]]), Gaussian([1.0], [[1.0]]))
@@ -374,33 +449,41 @@ def test_a_diverging_run_stops_alone_in_the_batch():
     big = np.array([[10.0**(4 * (k + 1))] * 3 for k in range(6)])
     z = np.stack([big, np.zeros((6, 3)), 1e-3 * big, np.ones((6, 3))])
     x0 = np.array([[1.0], [1e9], [1.0], [0.0]])  # run 1: 1e13 after one step, beyond 1e12
-    for run, batch, kw in ((run_kcf, run_kcf_batch, {}), (run_hcmci, run_hcmci_batch, {"iterations": 2})):
-        refs = [run(m, net, z[r], x0=x0[r], **kw) for r in range(4)]
-        assert [ref.diverged is not None for ref in refs] == [True, True, True, False]
+    for kind, kw in (("kcf", {}), ("hcmci", {"iterations": 2})):
+        run, batch, ref = FILTERS[kind]
+        refs = [ref(m, net, z[r], x0=x0[r], **kw) for r in range(4)]
+        assert [r.diverged is not None for r in refs] == [True, True, True, False]
         assert refs[1].diverged["step"] == 1 and refs[1].diverged["reason"].startswith("prediction")
         assert refs[0].diverged["step"] != refs[2].diverged["step"]
-        assert_batch_is_per_run(batch(m, net, z, x0=x0, **kw), refs)
+        got = batch(m, net, z, x0=x0, **kw)
+        assert_batch_is_per_run(got, refs)
+        assert_run_is_its_row(lambda zr, **k: run(m, net, zr, **kw, **k), got, z, lambda r: {"x0": x0[r]})
 
 
 def test_a_numerical_breakdown_in_the_batch_is_found_run_by_run(monkeypatch):
-    """A LinAlgError in one run's update: that run stops with the per-run filter's 'numerical breakdown', the
+    """A LinAlgError in one run's update: that run stops with the reference's 'numerical breakdown', the
     others are updated as if alone (the inverse is made to fail on the prediction that marks run 2)."""
     m, net = oscillator(), ring(4)
     tr = simulate_runs(m, 8, [np.random.default_rng(s) for s in (1, 2, 3)])
     P0 = np.stack([m.prior.cov, 2.0 * m.prior.cov, 7.0 * m.prior.cov])
-    inverse = distributed._spd_inverse
 
-    def failing(A):
-        if np.any(np.isclose(A[..., 0, 0], 7.0 * m.prior.cov[0, 0] + m.process_cov[0, 0], rtol=0.2)):
-            raise np.linalg.LinAlgError("Matrix is not positive definite")
-        return inverse(A)
+    def failing(inverse):
+        def inv(A):
+            if np.any(np.isclose(A[..., 0, 0], 7.0 * m.prior.cov[0, 0] + m.process_cov[0, 0], rtol=0.2)):
+                raise np.linalg.LinAlgError("Matrix is not positive definite")
+            return inverse(A)
+        return inv
 
-    monkeypatch.setattr(distributed, "_spd_inverse", failing)
-    for run, batch in ((run_kcf, run_kcf_batch), (run_hcmci, run_hcmci_batch)):
-        refs = [run(m, net, tr.z[r], P0=P0[r]) for r in range(3)]
-        assert [ref.diverged is not None for ref in refs] == [False, False, True]
+    monkeypatch.setattr(distributed, "_spd_inverse", failing(distributed._spd_inverse))
+    monkeypatch.setattr(distributed_reference, "spd_inverse", failing(distributed_reference.spd_inverse))
+    for kind in ("kcf", "hcmci"):
+        run, batch, ref = FILTERS[kind]
+        refs = [ref(m, net, tr.z[r], P0=P0[r]) for r in range(3)]
+        assert [r.diverged is not None for r in refs] == [False, False, True]
         assert refs[2].diverged["reason"].startswith("numerical breakdown") and refs[2].diverged["step"] == 1
-        assert_batch_is_per_run(batch(m, net, tr.z, P0=P0), refs)
+        got = batch(m, net, tr.z, P0=P0)
+        assert_batch_is_per_run(got, refs)
+        assert_run_is_its_row(lambda zr, **k: run(m, net, zr, **k), got, tr.z, lambda r: {"P0": P0[r]})
 
 
 def test_batch_bad_inputs_name_the_parameter():
