@@ -462,7 +462,8 @@ class Background:
         """The value of ``fn(*args, **kwargs)``: the child's, or computed here (see the class)."""
         if self._pid is None:
             return self._fn(*self._args, **self._kwargs)
-        with os.fdopen(self._fd, "rb") as fh:
+        fd, self._fd = self._fd, None  # closed by the reader whatever happens (a Ctrl-C while reading)
+        with os.fdopen(fd, "rb") as fh:
             payload = fh.read()
         os.waitpid(self._pid, 0)
         self._pid = None
@@ -481,8 +482,10 @@ class Background:
         if self._pid is not None:
             os.kill(self._pid, signal.SIGKILL)
             os.waitpid(self._pid, 0)
-            os.close(self._fd)
             self._pid = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def worker_init(parent: int) -> None:

@@ -319,3 +319,33 @@ def test_background_failure_is_the_exception_of_a_call_here_and_an_abandoned_chi
             raise KeyError("the parent fails first")
     with pytest.raises(ChildProcessError):  # reaped: no such child any more
         os.waitpid(child, os.WNOHANG)
+
+
+def test_a_ctrl_c_while_waiting_for_the_background_is_the_ctrl_c(monkeypatch):
+    """A Ctrl-C while this process reads the child's result: the block ends with the KeyboardInterrupt (not an
+    error of closing what the reader closed), and the child is killed and reaped."""
+    from studies import runner
+
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 2)
+
+    class Interrupted:
+        def __init__(self, fd, mode):
+            os.close(fd)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def read(self):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        with runner.Background(time.sleep, 60) as bg:
+            child = bg.pid
+            monkeypatch.setattr(runner.os, "fdopen", Interrupted)
+            bg.result()
+    monkeypatch.undo()
+    with pytest.raises(ChildProcessError):
+        os.waitpid(child, os.WNOHANG)
