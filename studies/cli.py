@@ -364,11 +364,17 @@ def _one_line_warnings(show):
 
 
 def _main(argv: list, debug: bool) -> int:
+    from .launch import Interrupts
+
     try:
         # make_context and invoke rather than cli.main: click.main answers a KeyboardInterrupt with an empty line
         # on stderr before ours, and the model layer is imported inside the commands (a Ctrl-C there is start-up)
-        with cli.make_context("cfdesign", argv) as ctx:
-            cli.invoke(ctx)
+        with Interrupts() as interrupts:
+            try:
+                with cli.make_context("cfdesign", argv) as ctx:
+                    cli.invoke(ctx)
+            finally:  # a Ctrl-C that a library swallowed ends the command as interrupted, whatever it did next
+                interrupts.check()
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:

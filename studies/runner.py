@@ -79,6 +79,7 @@ from designer.fileio import (CHUNKS_DIR, append_line, atomic_write, code_fingerp
                              refuse_link, temporary_of, write_json, writing)
 from designer.validation import ComputationError, InputError, check_int
 
+from .launch import Interrupts
 from .memory import available_memory
 from .progress import counter, progress
 
@@ -516,41 +517,6 @@ def worker_init(parent: int) -> None:
     threading.Thread(target=watch, name="cfdesign-parent-watchdog", daemon=True).start()
 
 
-class _Interrupts:
-    """Remember a Ctrl-C even if a library swallows the KeyboardInterrupt it raises.
-
-    Some extension code catches every exception (CasADi's SWIG conversions use bare
-    ``except:``), so a KeyboardInterrupt raised inside it can vanish and the chunk goes
-    on.  This handler records the signal before raising; a chunk that was being
-    computed when Ctrl-C came is then discarded, never stored, and the run stops.
-    """
-
-    def __init__(self):
-        self.seen = False
-        self._old = None
-
-    def __enter__(self):
-        import threading
-
-        if threading.current_thread() is threading.main_thread() and \
-                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            self._old = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        self.seen = True
-        raise KeyboardInterrupt
-
-    def check(self) -> None:
-        if self.seen:
-            raise KeyboardInterrupt("interrupted: the chunk in progress was discarded")
-
-    def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
-        return False
-
-
 def monte_carlo(
     task: Task,
     *,
@@ -632,7 +598,7 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
         computed.append(c)
 
     bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
-    with _Interrupts() as interrupts:
+    with Interrupts() as interrupts:
         if not pending:
             pass
         elif backend.kind == "batched" or len(pending) == 1 and backend.kind == "processes":

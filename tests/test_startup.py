@@ -138,3 +138,41 @@ def test_a_ctrl_c_after_the_command_ended_keeps_its_exit_code(command):
     expected = 0 if command == ["scenarios"] else 2
     assert p.returncode == expected, (p.returncode, p.stderr)
     assert "Traceback" not in p.stderr and "KeyboardInterrupt" not in p.stderr, p.stderr
+
+
+SWALLOWED = """
+import os, signal, sys, time
+import studies.api
+from designer.validation import ComputationError
+
+class Dropped:
+    def __del__(self):
+        raise KeyboardInterrupt  # Python reports it as "Exception ignored" and goes on (as in a C callback)
+
+def design(*args, **kwargs):
+    if {how!r} == "swallowed":
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)  # the signal is handled here
+        except KeyboardInterrupt:  # a library's bare except
+            pass
+    else:
+        Dropped()
+    raise ComputationError("design not certified: what the command would have said next")
+
+studies.api.design = design
+sys.argv = ["cfdesign", "design", "indoor-robot", "--out", {out!r}]
+from studies.launch import run
+run()
+"""
+
+
+@pytest.mark.parametrize("how", ["swallowed", "dropped"])
+def test_a_ctrl_c_that_a_library_swallows_still_ends_the_command_as_interrupted(tmp_path, how):
+    """A Ctrl-C caught by a library's bare ``except`` (CasADi's conversions) or raised in a callback whose exception
+    Python drops ("Exception ignored": numba's LLVM cache notifications) does not let the command go on to another
+    outcome: one line, exit 130."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.run([sys.executable, "-c", SWALLOWED.format(how=how, out=str(tmp_path / "d"))],
+                       capture_output=True, text=True, env=env, cwd=ROOT, timeout=120, preexec_fn=_interruptible)
+    assert (p.returncode, p.stderr) == (130, "cfdesign: interrupted\n")
