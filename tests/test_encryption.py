@@ -6,18 +6,25 @@ exhaustive enumeration of the error patterns for the CRC's miss rate.
 """
 from __future__ import annotations
 
+import os
 from fractions import Fraction
 from itertools import product
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from designer import InputError
 from filters.encryption import (CRC4_ITU, Codec, crc, crc_ok, decrypt, encrypt, from_bits, key_stream, to_bits,
                                 transmit)
+
+# The same examples on every run (derandomized): a red CI is a real failure, reproduced by rerunning; set
+# HYPOTHESIS_EXPLORE=1 to draw new ones (a search for counterexamples: how the one pinned below was found).
+settings.register_profile("cfdesign-fixed", derandomize=True)
+settings.register_profile("cfdesign-explore", derandomize=False)
+settings.load_profile("cfdesign-explore" if os.environ.get("HYPOTHESIS_EXPLORE") else "cfdesign-fixed")
 
 PAPER = Codec(0.2, 1.0, 8, 4.0)  # l_s = 0.2, omega = 1, K = 8, Lambda = 4 (Sec. IV)
 
@@ -79,12 +86,15 @@ levels = st.sampled_from([2, 4, 8, 16, 64])
 
 
 @given(st.floats(-1.0, 1.0), resolutions, scales, levels, st.floats(0.5, 8.0))
+@example(-5.9099669278051e-10, 1.0, 1.0, 2, 1.0)  # 6e-10 cell widths below a boundary: the upper cell (found by CI)
 def test_quantization_error_bound_5(u, l, om, K, lam):
+    """(5), |zr - ω U| <= ω Λ / K, up to the module's documented cell tolerance: a value within 1e-9 cell widths
+    (2 ω Λ / K) below a boundary goes to the upper cell, so the bound holds within a factor 1 + 2e-9."""
     c = Codec(l, om, K, lam)
     zr = u * om * lam  # |zr / omega| <= Lambda: inside the range
     k = c.index(zr)
     assert 1 <= k <= K
-    assert abs(zr - c.reconstruct(k)) <= om * lam / K * (1 + 1e-9)
+    assert abs(zr - c.reconstruct(k)) <= om * lam / K * (1 + 2e-9) + 1e-15 * om * lam
 
 
 @given(st.floats(-0.999, 0.999), resolutions, scales, levels, st.floats(0.5, 8.0))
