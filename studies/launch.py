@@ -57,19 +57,27 @@ class Interrupts:
     def __enter__(self):
         import threading
 
-        if threading.current_thread() is threading.main_thread() and \
-                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        current = signal.getsignal(signal.SIGINT)
+        # inside another one (the command's around a study's Monte Carlo runner) each records the Ctrl-C
+        if threading.current_thread() is threading.main_thread() and (
+                current is signal.default_int_handler or isinstance(getattr(current, "__self__", None), Interrupts)):
             self._old = signal.signal(signal.SIGINT, self._handle)
             self._old_hook, sys.unraisablehook = sys.unraisablehook, self._unraisable
         return self
 
-    def _handle(self, signum, frame):
+    def _mark(self) -> None:
         self.seen = True
+        outer = getattr(self._old, "__self__", None)
+        if isinstance(outer, Interrupts):
+            outer._mark()
+
+    def _handle(self, signum, frame):
+        self._mark()
         raise KeyboardInterrupt
 
     def _unraisable(self, unraisable) -> None:
         if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
-            self.seen = True  # a Ctrl-C dropped by a callback: check() raises it
+            self._mark()  # a Ctrl-C dropped by a callback: check() raises it
             return
         self._old_hook(unraisable)
 

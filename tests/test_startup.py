@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -176,3 +177,30 @@ def test_a_ctrl_c_that_a_library_swallows_still_ends_the_command_as_interrupted(
     p = subprocess.run([sys.executable, "-c", SWALLOWED.format(how=how, out=str(tmp_path / "d"))],
                        capture_output=True, text=True, env=env, cwd=ROOT, timeout=120, preexec_fn=_interruptible)
     assert (p.returncode, p.stderr) == (130, "cfdesign: interrupted\n")
+
+
+def test_a_swallowed_ctrl_c_is_seen_by_every_enclosing_watch():
+    """The command's watch encloses a study's Monte Carlo runner's: a Ctrl-C swallowed inside is seen by both (the
+    runner discards its chunk, the command ends as interrupted), and each restores what it found."""
+    from studies.launch import Interrupts
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers are set from the main thread")
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with Interrupts() as outer:
+            with Interrupts() as inner:
+                try:
+                    signal.raise_signal(signal.SIGINT)
+                except KeyboardInterrupt:  # a library's bare except
+                    pass
+            assert inner.seen and outer.seen
+            with Interrupts() as later:
+                pass
+            assert not later.seen
+            assert getattr(signal.getsignal(signal.SIGINT), "__self__", None) is outer
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with pytest.raises(KeyboardInterrupt):
+            outer.check()
+    finally:
+        signal.signal(signal.SIGINT, old)
