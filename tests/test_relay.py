@@ -334,5 +334,14 @@ def test_bad_inputs_raise_input_errors_naming_the_parameter():
         run_relay_batch(model, SensorNetwork.from_edges(5, [(i, i + 1) for i in range(4)]), z, 2)
     with pytest.raises(InputError, match="signal"):
         run_relay_batch(model, net, z, 2, attacks=att)
+    x = ca.SX.sym("x", 2)
+    u = ca.SX.sym("u", 1)
+    driven = Model("driven", x, ca.vertcat(x[0] + u[0], x[1]), [Sensor(f"s{i}", x[i % 2], Gaussian.zero_mean([[1.0]]))
+                                                                for i in range(N)],
+                   Gaussian.zero_mean(np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)), u=u)
+    with pytest.raises(InputError, match="inputs"):
+        run_relay_batch(driven, network(), np.zeros((2, 5, N)), 2)
+    with pytest.raises(InputError, match="inputs"):
+        run_relay_batch(driven, network(), np.zeros((2, 5, N)), 2, inputs=np.zeros((5, 2)))
     with pytest.raises(InputError, match="z must"):
         run_relay_batch(model, net, z[..., :3], 2, attacks=att, signal=SIGNAL)
