@@ -196,8 +196,9 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         xk, Pk = x_post[act, k], P_post[act, k]
         xp = model.f_expected(xk, k, uk)
         F = model.F_expected(xk, k, uk)
-        Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
-        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        with np.errstate(over="ignore", invalid="ignore"):  # a run beyond finite numbers stops just below
+            Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
+            Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
         x_pred[act, k], P_pred[act, k] = xp, Pp
         go = stop_diverged(violations, act, diverged_nodes(xp, Pp), k + 1, "prediction: " + DIVERGED_REASON,
                            nan_before=(x_pred, P_pred))

@@ -319,6 +319,17 @@ def test_a_diverging_run_stops_alone():
     assert res.to_result().diverged_step.tolist() == [-1, 4, -1]
 
 
+def test_a_prediction_beyond_finite_numbers_stops_its_run_before_the_update():
+    x = ca.SX.sym("x", 2)
+    model = Model("blows up", x, ca.vertcat(0.9 * x[0], ca.exp(x[1]) - 1.0),
+                  [Sensor(f"s{i}", x[0], Gaussian.zero_mean([[1.0]])) for i in range(N)],
+                  Gaussian.zero_mean(0.01 * np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)))
+    res = run_relay_batch(model, network(), np.zeros((2, 4, N)), 2, x0=np.array([[0.0, 800.0], [0.0, 0.0]]))
+    (v,) = res.violations[0]
+    assert v["step"] == 1 and v["reason"].startswith("prediction") and np.isnan(res.x_post[0, 1:]).all()
+    assert res.violations[1] == [] and np.isfinite(res.x_post[1]).all()
+
+
 def test_bad_inputs_raise_input_errors_naming_the_parameter():
     model = linear_model()
     net = network(0.1, 0.1)
