@@ -31,9 +31,15 @@ from scipy.sparse.csgraph import shortest_path
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "MAX_HOPS", "NodeMoments", "node_moments", "relay_update"]
+__all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "information",
+           "pair_sum", "falsified_information", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update"]
 
-MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.MAX_ROUNDS
+MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
+#: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
+#: at most this many (an assumption, chosen: on a 512-node range grid 31 hops wide, 8 hops bring the nodes' error
+#: within about 2 x the centralized filter's on runs without attacks, README; the packets then carry up to a few
+#: hundred measurements).
+DEFAULT_HOPS_MAX = 8
 
 
 class Routes(NamedTuple):
@@ -124,6 +130,18 @@ def _log_up(network: SensorNetwork) -> np.ndarray:
         return np.log1p(-_channel_values(network, network.dos_prob))
 
 
+def diameter(network: SensorNetwork) -> int:
+    """The network's diameter in hops (the longest shortest path; of the largest component when disconnected)."""
+    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)
+    return int(dist[np.isfinite(dist)].max())
+
+
+def default_hops(network: SensorNetwork) -> int:
+    """The hops of a relay design that gives none: the network's diameter, at most :data:`DEFAULT_HOPS_MAX` (1 for
+    a network without edges)."""
+    return max(1, min(diameter(network), DEFAULT_HOPS_MAX))
+
+
 def relay_routes(network: SensorNetwork, hops: int) -> Routes:
     """The routes of every sensor's measurement over at most ``hops`` channels (``1 <= hops <= MAX_HOPS``)."""
     if not isinstance(network, SensorNetwork):
@@ -186,6 +204,27 @@ def node_moments(routes: Routes, network: SensorNetwork, dims, i: int) -> NodeMo
     return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix])
 
 
+def information(Hw: np.ndarray, mom: NodeMoments) -> np.ndarray:
+    """``S = Σ_a p_a J_a`` (..., n, n): the node's expected measurement information (``Hw`` (..., r, n) its ball's
+    whitened Jacobian rows; ``mom`` its moments, possibly stacked over nodes of equal rows)."""
+    return np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hw)
+
+
+def pair_sum(Hw: np.ndarray, weights: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``Σ_ab w_ab J_a X J_b = Hwᵀ (w ∘ (Hw X Hwᵀ)) Hw`` (..., n, n), linear in ``X``."""
+    Ht = np.swapaxes(Hw, -1, -2)
+    return Ht @ ((weights * (Hw @ X @ Ht)) @ Hw)
+
+
+def falsified_information(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """``Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)`` (..., n, n): what the falsified relays add to the update's
+    second moment (zero without FDI)."""
+    out = pair_sum(Hw, mom.F1, M) if np.any(mom.F1) and np.any(M) else np.zeros(Hw.shape[:-2] + (Hw.shape[-1],) * 2)
+    if np.any(mu) and np.any(mom.F2):
+        out = out + pair_sum(Hw, mom.F2, np.outer(mu, mu))
+    return out
+
+
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
                  rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
     """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(W, P_post)``.
@@ -206,14 +245,8 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     this is the Kalman filter of the ball's measurements.  For a linear model ``P⁺`` is the expected covariance of
     the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    Ht = np.swapaxes(Hw, -1, -2)
-    S = Ht @ (mom.p[:, None] * Hw)
-    Q = S + Ht @ ((mom.A * (Hw @ P_pred @ Ht)) @ Hw)
-    if np.any(mom.F1):
-        Q = Q + Ht @ ((mom.F1 * (Hw @ M @ Ht)) @ Hw)
-    if np.any(mu) and np.any(mom.F2):
-        h = Hw @ mu
-        Q = Q + Ht @ ((mom.F2 * (h[..., :, None] * h[..., None, :])) @ Hw)
+    S = information(Hw, mom)
+    Q = S + pair_sum(Hw, mom.A, P_pred) + falsified_information(Hw, mom, M, mu)
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
     lam, V = np.linalg.eigh(Q)
     keep = lam > rtol * lam[..., -1:]
@@ -222,3 +255,140 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     W = P_pred @ S @ Qp
     P = P_pred - W @ S @ P_pred
     return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
+    """(..., n_z, n) every sensor's whitened Jacobian rows ``R_s^{-1/2} H_s(x)`` at the points ``x`` (..., n), in
+    the model's measurement order (``model.sensor_dims``)."""
+    x = np.asarray(x, dtype=float)
+    out = []
+    for s in range(model.n_sensors):
+        H = np.asarray(model.H(s, x, k), dtype=float)
+        out.append(_inverse_root(model.measurement_cov(s)) @ H)
+    return np.concatenate(out, axis=-2)
+
+
+def _inverse_root(R: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(np.asarray(R, dtype=float))
+    return (V / np.sqrt(lam)) @ V.T
+
+
+#: The relative change of every node's trace below which the stationary recursion has reached its fixed point.
+STATIONARY_TOL = 1e-9
+#: The most iterations of the stationary recursion.
+STATIONARY_MAX = 5000
+#: The LMI's relative residual (its solution's own recursion step above it, relative to its largest eigenvalue)
+#: below which the fixed point counts as confirmed (as :data:`studies.consensus_design.LMI_TOLERANCE`).
+_BOUND_LIMIT = 1e12
+
+
+def _groups(moments: list[NodeMoments]) -> dict[int, np.ndarray]:
+    """The nodes by their number of measurement rows (nodes of one size are iterated as one stack)."""
+    sizes = np.array([m.rows.size for m in moments])
+    return {int(r): np.flatnonzero(sizes == r) for r in np.unique(sizes)}
+
+
+def _stack(moments: list[NodeMoments], nodes: np.ndarray) -> NodeMoments:
+    return NodeMoments(*(np.stack([getattr(moments[i], f) for i in nodes]) for f in NodeMoments._fields))
+
+
+def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True):
+    """The relay design's stationary certificate at the point ``x`` (input ``u``), every node's Jacobians there:
+    each node's recursion ``Φ ← relay_update(F Φ Fᵀ + Q)`` from the prior covariance until every node's trace
+    changes by less than :data:`STATIONARY_TOL` (relative), then, for the fixed point's gains ``W_i``, the
+    stationary inequality ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` (``T_i`` the expected update with the gain held at ``W_i``:
+    linear in Φ) minimised in trace by cvxpy + Clarabel and its solution checked in NumPy.  Since the online gain
+    minimises the expected covariance, ``relay_update``'s map lies below ``T_i`` and is monotone: a Φ̄ that satisfies
+    the inequality bounds every later covariance of the node once one lies below it.  The bound is the expected
+    covariance of the linearised error: exact for a linear model; the linearisation remainders are not in it.
+
+    Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
+    from .scheduled import StationaryCertificate
+
+    routes = relay_routes(network, design.rounds)
+    x = np.asarray(x, dtype=float)
+    n = model.n_x
+    F = np.asarray(model.F_expected(x, 0, u), dtype=float)
+    Q = np.asarray(model.process_cov, dtype=float)
+    Hall = whitened_rows(model, x, 1)
+    M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
+    mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    moments = [node_moments(routes, network, model.sensor_dims, i) for i in range(network.n_nodes)]
+    N = network.n_nodes
+    Phi = np.empty((N, n, n))
+    W = np.empty((N, n, n))
+    iterations = 0
+    for r, nodes in _groups(moments).items():
+        mom = _stack(moments, nodes)
+        rows = np.stack([np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in moments[i].sensors])
+                         for i in nodes])
+        Hw = Hall[rows]  # (g, r, n)
+        P = np.broadcast_to(np.asarray(model.prior.cov, dtype=float), (nodes.size, n, n))
+        prev = np.trace(P, axis1=-2, axis2=-1)
+        for it in range(1, STATIONARY_MAX + 1):
+            Wg, P = relay_update(F @ P @ F.T + Q, Hw, mom, M, mu)
+            tr = np.trace(P, axis1=-2, axis2=-1)
+            if not np.all(np.isfinite(tr)) or np.any(tr > _BOUND_LIMIT):
+                return StationaryCertificate(False, None, np.nan, np.nan, it,
+                                             f"the expected covariance grows without settling (node "
+                                             f"{int(nodes[np.argmax(np.nan_to_num(tr, nan=np.inf))])})", None)
+            if np.all(np.abs(tr - prev) <= STATIONARY_TOL * tr):
+                break
+            prev = tr
+        else:
+            return StationaryCertificate(False, None, np.nan, np.nan, STATIONARY_MAX,
+                                         f"the expected covariance did not settle in {STATIONARY_MAX} iterations",
+                                         None)
+        iterations = max(iterations, it)
+        Phi[nodes], W[nodes] = P, Wg
+    out = StationaryCertificate(True, Phi, np.nan, np.nan, iterations, None, None)
+    if lmi:
+        out = out._replace(lmi=_relay_lmi(Phi, W, F, Q, Hall, moments, offsets, M, mu))
+    return out
+
+
+def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, mu) -> dict:
+    """Minimise Σ_i tr Φ_i subject to ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` for the fixed gains ``W_i`` (one n x n block per
+    node; ``T_i`` written as an n² x n² matrix from its action on a basis), then the solution checked in NumPy."""
+    import warnings
+
+    import cvxpy as cp
+
+    N, n = Phi.shape[0], Phi.shape[-1]
+    basis = np.eye(n * n).reshape(n * n, n, n)
+    maps, consts = [], []
+    for i, mom in enumerate(moments):
+        rows = np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
+        Hw = Hall[rows]
+        S = information(Hw, mom)
+        Wi = W[i]
+        A = np.eye(n) - Wi @ S
+
+        def lin(X, Hw=Hw, mom=mom, Wi=Wi, A=A):  # the expected update's part linear in the predicted covariance X
+            return A @ X @ A.T + Wi @ (pair_sum(Hw, mom.A, X) - S @ X @ S) @ Wi.T
+
+        col = lin(F @ basis @ F.T)  # (n², n, n): the image of each basis matrix
+        maps.append(col.reshape(n * n, n * n).T)  # vec (row-major) of T_i(F E F^T), one column per basis E
+        consts.append(lin(Q) + Wi @ (S + falsified_information(Hw, mom, M, mu)) @ Wi.T)
+    P = [cp.Variable((n, n), symmetric=True) for _ in range(N)]
+    cons = []
+    for i in range(N):
+        image = cp.reshape(maps[i] @ cp.vec(P[i], order="C"), (n, n), order="C")
+        cons.append((P[i] - image + (P[i] - image).T) / 2 - consts[i] >> 0)
+    prob = cp.Problem(cp.Minimize(sum(cp.trace(p) for p in P)), cons)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    except cp.error.SolverError as exc:
+        return {"status": "solver error", "reason": str(exc), "trace": None, "max_residual": None}
+    if prob.status not in ("optimal", "optimal_inaccurate") or any(p.value is None for p in P):
+        return {"status": str(prob.status), "reason": None, "trace": None, "max_residual": None}
+    Pv = np.stack([0.5 * (p.value + p.value.T) for p in P])
+    step = np.stack([(maps[i] @ Pv[i].reshape(-1)).reshape(n, n) + consts[i] for i in range(N)])
+    resid = np.linalg.eigvalsh(0.5 * (step + np.swapaxes(step, -1, -2)) - Pv).max(axis=-1)
+    top = np.maximum(np.linalg.eigvalsh(Pv).max(axis=-1), 1e-300)
+    return {"status": str(prob.status), "reason": None, "trace": float(np.trace(Pv, axis1=-2, axis2=-1).sum()),
+            "node_trace": [float(v) for v in np.trace(Pv, axis1=-2, axis2=-1)],
+            "max_residual": float(resid.max()), "relative_residual": float((resid / top).max())}
