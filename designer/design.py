@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
-    "EXCHANGES", "RELAY",
+    "EXCHANGES", "RELAY", "design_rounds",
     "LINEARIZATIONS", "make_design", "chooses_multipliers", "resolve_scaling", "parse_scale", "describe_design",
     "whitened_scaling",
 ]
@@ -161,6 +161,9 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"radius must be > 0, got {design.radius!r}")
     rule = gain_rule(design.mode)  # a registered gain rule, else InputError naming them
     tabled = names_with("offline_tables")  # the rules whose design chooses the exchange, rounds and robustness
+    if rule.relays and design.gate:
+        raise InputError(f"mode {design.mode!r} does not take a gate (gate must be 0): its gain counts every falsified "
+                         "measurement that arrives, from the falsification's statistics")
     if rule.relays and design.exchange != RELAY:
         raise InputError(f"exchange must be {RELAY!r} in mode {design.mode!r} (it relays the measurements), got "
                          f"{design.exchange!r}")
@@ -520,6 +523,14 @@ def chooses_multipliers(mode: str | None) -> bool:
     return mode is not None and not gain_rule(mode).fixed_multipliers
 
 
+def design_rounds(mode: str, network: SensorNetwork, rounds: int | None = None) -> int:
+    """The exchange rounds per step of a design of gain rule ``mode`` on ``network``: ``rounds`` when given, else the
+    rule's default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
+    if rounds is not None:
+        return int(rounds)
+    return default_hops(network) if gain_rule(mode).relays else 1
+
+
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
                 u0=None, signal=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
@@ -566,8 +577,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
             EXCHANGES[0] if gain_rule(mode).offline_tables else "predictions"),
         robustness=0.0 if not gain_rule(mode).offline_tables else ROBUSTNESS if options.robustness is None
         else float(options.robustness),
-        rounds=(default_hops(network) if gain_rule(mode).relays else 1) if options.rounds is None
-        else int(options.rounds),
+        rounds=design_rounds(mode, network, options.rounds),
         bank=0 if options.bank is None or not gain_rule(mode).offline_tables else int(options.bank),
         remainder_structure=structure,
         remainder_gram=gram,

@@ -147,6 +147,12 @@ class GainRule:
         return self.offline_tables or self.relays
 
     @property
+    def stationary_certificate(self) -> bool:
+        """Its design has a stationary certificate at the operating point (what the feasibility map maps for it):
+        a rule of offline tables or one that relays."""
+        return self.offline_tables or self.relays
+
+    @property
     def mappable(self) -> bool:
         """The feasibility map maps it (not a rule whose gains come from the joint covariance of a run)."""
         return not self.joint_covariance

@@ -282,10 +282,11 @@ STATIONARY_MAX = 5000
 _BOUND_LIMIT = 1e12
 
 
-def _groups(moments: list[NodeMoments]) -> dict[int, np.ndarray]:
-    """The nodes by their number of measurement rows (nodes of one size are iterated as one stack)."""
-    sizes = np.array([m.rows.size for m in moments])
-    return {int(r): np.flatnonzero(sizes == r) for r in np.unique(sizes)}
+def _groups(moments: list[NodeMoments]) -> dict[tuple[int, int], np.ndarray]:
+    """The nodes by their numbers of measurement rows and of sensors (nodes of one size, iterated as one stack;
+    with sensors of different dimensions two balls of as many rows may hold different numbers of sensors)."""
+    sizes = [(m.rows.size, m.sensors.size) for m in moments]
+    return {key: np.array([i for i, s in enumerate(sizes) if s == key]) for key in dict.fromkeys(sizes)}
 
 
 def _stack(moments: list[NodeMoments], nodes: np.ndarray) -> NodeMoments:
