@@ -43,6 +43,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from designer.attacks import FDISignal
+from designer.design import ConsensusDesign, validate_design
+from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_routes, relay_update
@@ -50,11 +52,12 @@ from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .consensus_batch import EdgeAttacks, batch_inputs, edge_attacks, wrap_residuals
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+                              result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
-__all__ = ["run_relay_batch"]
+__all__ = ["run_relay_batch", "run_relay_design"]
 
 
 class _Layout(NamedTuple):
@@ -287,3 +290,49 @@ def _node_update(Pp, Hw, mom, M, mu):
             except np.linalg.LinAlgError:
                 pass
         return W, P
+
+
+def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
+                     design: ConsensusDesign, *, inputs=None,
+                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+                     phi0=None) -> ConsensusBatchResult:
+    """The filter of a gain rule that relays (``design.mode``, e.g. ``'relay'``; :mod:`designer.gain_rules`): the relay
+    filter (:func:`run_relay_batch`) over ``design.rounds`` hops, for the FDI signal the design was made for, with the
+    parameters of :func:`filters.consensus_batch.run_consensus_batch`.
+
+    Runs on networks of different channel probabilities (one network per run, e.g. a sweep's settings) are run in
+    groups of equal probabilities, each with its own arrival and falsification moments.  The result's ``phi_post``
+    is each node's expected posterior covariance of the relay rule (its bound, ``valid`` where finite; the
+    linearisation remainders are not in it), ``predicted_mse`` its trace, ``C`` zero (no consensus on estimates),
+    ``K`` NaN (a node's gain weighs its whole ball, not one measurement of its own: none is recorded) and the first
+    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops).
+    """
+    z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    first, nets = run_networks(network, runs)
+    design = validate_design(design, model, first)
+    if not gain_rule(design.mode).relays:
+        raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
+    attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
+    n, nx = first.n_nodes, model.n_x
+    out = result_arrays(runs, steps, n, nx, max(model.sensor_dims))
+    nets = nets or [first] * runs
+    keys = [(net.dos_prob.tobytes(), net.fdi_prob.tobytes()) for net in nets]
+    for key in dict.fromkeys(keys):  # each group of runs with the same channel probabilities, in order
+        idx = np.array([r for r, k in enumerate(keys) if k == key])
+        att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
+                                                             xi=attacks.xi[idx])
+        res = run_relay_batch(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
+                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal)
+        out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
+        out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
+        out["gate_counts"][idx, :, 0] = res.delivered_per_step
+        for r, vs in zip(idx, res.violations):
+            out["violations"][r] = vs
+    out["C"][:] = 0.0
+    out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
+    out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
+    return ConsensusBatchResult(**out)
+
+
+register_filter("relay", run_relay_design)  # the filter of gain rule 'relay' (filters.consensus_batch)
