@@ -499,7 +499,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
         extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) \
-            if rule.offline_tables or rule.relays else None
+            if rule.stationary_certificate else None
         des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
