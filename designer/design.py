@@ -34,7 +34,6 @@ import numpy as np
 from .gain_rules import GAIN_RULES, gain_rule, names_with
 from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
-from .relay import default_hops
 from .validation import InputError, check_finite
 
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
@@ -528,7 +527,11 @@ def design_rounds(mode: str, network: SensorNetwork, rounds: int | None = None) 
     rule's default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
     if rounds is not None:
         return int(rounds)
-    return default_hops(network) if gain_rule(mode).relays else 1
+    if not gain_rule(mode).relays:
+        return 1
+    from .relay import default_hops  # late: scipy's graph routines, not needed to list or load a scenario
+
+    return default_hops(network)
 
 
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
