@@ -173,9 +173,6 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     hops = check_int("hops", hops, 1, MAX_HOPS)
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps = z.shape[:2]
-    if u.shape[-1] != model.n_u:
-        raise InputError(f"inputs must have shape ({steps}, {model.n_u}) or ({runs}, {steps}, {model.n_u}) (the "
-                         f"model's known inputs), got {None if inputs is None else u.shape}")
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     M, mu = _check_signal(signal, network, model.n_x)
     n, nx = network.n_nodes, model.n_x

@@ -165,3 +165,34 @@ def test_feasibility_map_of_mode_relay_is_the_designs_stationary_certificate(tmp
         traces[dos, fdi] = row["trace_bound"]
     # more losses or more falsification: a larger expected covariance
     assert traces[0.1, 0.0] < traces[0.4, 0.0] < traces[0.4, 0.1] and traces[0.1, 0.0] < traces[0.1, 0.1]
+
+
+def test_every_batched_filter_refuses_a_model_with_inputs_run_without_them():
+    """batch_inputs, which every batched filter calls, names ``inputs`` before the model is evaluated (KCF, HCMCI and
+    the consensus filters used to fail deep in f with a CasADi shape error)."""
+    import casadi as ca
+
+    from designer.model import Model, Sensor
+    from designer.noise import Gaussian
+    from designer.validation import InputError
+    from filters.distributed import run_hcmci_batch, run_kcf_batch
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    driven = Model("driven", x, ca.vertcat(x[0] + u[0], x[1]),
+                   [Sensor(f"s{i}", x[i % 2], Gaussian.zero_mean([[1.0]])) for i in range(N)],
+                   Gaussian.zero_mean(np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)), u=u)
+    net = network()
+    z = np.zeros((2, 5, N))
+    paper = make_design(driven, net, delta=0.0, options=DesignOptions(mode="paper"), x0=driven.prior.mean,
+                        u0=np.zeros(1))
+    relay = make_design(driven, net, delta=0.0, options=DesignOptions(mode="relay", rounds=2), x0=driven.prior.mean,
+                        u0=np.zeros(1))
+    runs = [lambda **kw: run_kcf_batch(driven, net, z, **kw), lambda **kw: run_hcmci_batch(driven, net, z, **kw),
+            lambda **kw: run_consensus_batch(driven, net, z, paper, **kw),
+            lambda **kw: run_consensus_batch(driven, net, z, relay, **kw)]
+    for run in runs:
+        with pytest.raises(InputError, match=r"inputs must have shape \(5, 1\)"):
+            run()
+        with pytest.raises(InputError, match=r"inputs must have shape \(5, 1\)"):
+            run(inputs=np.zeros((5, 2)))
+        run(inputs=np.zeros((5, 1)))  # given: runs
