@@ -32,7 +32,8 @@ from .network import SensorNetwork
 from .validation import InputError, check_int
 
 __all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "information",
-           "pair_sum", "falsified_information", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update"]
+           "pair_sum", "falsified_information", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update",
+           "grouped", "update_moments", "relay_information"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
 #: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
@@ -185,7 +186,8 @@ def relay_routes(network: SensorNetwork, hops: int) -> Routes:
 class NodeMoments(NamedTuple):
     """One node's arrival and falsification moments over its ball (:meth:`Routes.arrival_moments`), expanded to the
     rows of the stacked measurement (a sensor of dimension m contributes m rows): ``p`` (r,), ``A``, ``F1``, ``F2``
-    (r, r) and ``sensors`` (its ball, own first), ``rows`` (r,) the sensor of each row."""
+    (r, r), ``sensors`` (its ball, own first), ``rows`` (r,) the sensor of each row and ``groups`` (r, hops + 1),
+    each row's hop depth one-hot (0: the node's own measurement): the relay rule's gain has one block per depth."""
 
     sensors: np.ndarray
     rows: np.ndarray
@@ -193,15 +195,26 @@ class NodeMoments(NamedTuple):
     A: np.ndarray
     F1: np.ndarray
     F2: np.ndarray
+    groups: np.ndarray
 
 
 def node_moments(routes: Routes, network: SensorNetwork, dims, i: int) -> NodeMoments:
     """Node ``i``'s :class:`NodeMoments`; ``dims`` (n_sensors,) each sensor's measurement dimension."""
     ball = routes.ball(i)
     p, A, F1, F2 = routes.arrival_moments(network, i)
+    depth = np.concatenate([[0], routes.depth[routes.node == i]]).astype(int)
     owner = np.repeat(np.arange(ball.size), np.asarray(dims, int)[ball])
     ix = np.ix_(owner, owner)
-    return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix])
+    groups = np.eye(routes.hops + 1)[depth[owner]]
+    return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix], groups)
+
+
+def grouped(Hw: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``Ĥ`` (..., r, G n): each row ``Hw_a`` (..., r, n) placed in the column block of its group (``groups`` (..., r,
+    G) one-hot), zero elsewhere: ``Ĥᵀ y`` stacks the groups' sums ``Σ_{a in g} Hw_aᵀ y_a``."""
+    r, n = Hw.shape[-2:]
+    G = groups.shape[-1]
+    return (groups[..., :, :, None] * Hw[..., :, None, :]).reshape(Hw.shape[:-2] + (r, G * n))
 
 
 def information(Hw: np.ndarray, mom: NodeMoments) -> np.ndarray:
@@ -210,19 +223,56 @@ def information(Hw: np.ndarray, mom: NodeMoments) -> np.ndarray:
     return np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hw)
 
 
-def pair_sum(Hw: np.ndarray, weights: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """``Σ_ab w_ab J_a X J_b = Hwᵀ (w ∘ (Hw X Hwᵀ)) Hw`` (..., n, n), linear in ``X``."""
+def pair_sum(Hw: np.ndarray, weights: np.ndarray, X: np.ndarray, Hg: np.ndarray | None = None,
+             groups: np.ndarray | None = None) -> np.ndarray:
+    """``Σ_ab w_ab J_a X J_b = Hwᵀ (w ∘ (Hw X Hwᵀ)) Hw`` (..., n, n), linear in ``X``; with ``Hg`` (:func:`grouped`
+    from the one-hot ``groups``) the blocks of every pair of groups, ``Ĥᵀ (w ∘ (Hw X Hwᵀ)) Ĥ`` (..., G n, G n)."""
     Ht = np.swapaxes(Hw, -1, -2)
-    return Ht @ ((weights * (Hw @ X @ Ht)) @ Hw)
+    K = weights * (Hw @ X @ Ht)
+    if Hg is None:
+        return Ht @ K @ Hw
+    return np.swapaxes(Hg, -1, -2) @ _times_grouped(K, Hw, Hg, groups)
 
 
-def falsified_information(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """``Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)`` (..., n, n): what the falsified relays add to the update's
-    second moment (zero without FDI)."""
-    out = pair_sum(Hw, mom.F1, M) if np.any(mom.F1) and np.any(M) else np.zeros(Hw.shape[:-2] + (Hw.shape[-1],) * 2)
-    if np.any(mu) and np.any(mom.F2):
-        out = out + pair_sum(Hw, mom.F2, np.outer(mu, mu))
+def _times_grouped(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``K Ĥ`` (..., r, G n).  One node's rows (``groups`` (r, G), its rows in depth order, as
+    :func:`node_moments` lays them): each group's columns ``K[:, g] Hw[g]``, one product per group, r² n operations
+    instead of r² G n; nodes stacked (``groups`` (..., r, G), their depths at different rows): the product itself."""
+    depth = groups.argmax(-1)
+    if groups.ndim != 2 or np.any(np.diff(depth) < 0):
+        return K @ Hg
+    r, n = Hw.shape[-2:]
+    G = groups.shape[-1]
+    out = np.zeros(K.shape[:-1] + (G * n,))
+    bounds = np.searchsorted(depth, np.arange(G + 1))
+    for g in range(G):
+        a, b = bounds[g], bounds[g + 1]
+        if b > a:
+            out[..., g * n:(g + 1) * n] = K[..., :, a:b] @ Hw[..., a:b, :]
     return out
+
+
+def falsified_information(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
+                          Hg: np.ndarray | None = None) -> np.ndarray:
+    """``Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)`` (..., n, n): what the falsified relays add to the update's
+    second moment (zero without FDI); with ``Hg`` its blocks per pair of groups (:func:`pair_sum`)."""
+    width = (Hw if Hg is None else Hg).shape[-1]
+    out = pair_sum(Hw, mom.F1, M, Hg, mom.groups) if np.any(mom.F1) and np.any(M) \
+        else np.zeros(Hw.shape[:-2] + (width,) * 2)
+    if np.any(mu) and np.any(mom.F2):
+        out = out + pair_sum(Hw, mom.F2, np.outer(mu, mu), Hg, mom.groups)
+    return out
+
+
+def update_moments(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> tuple:
+    """The parts of the relay rule's expected update that do not depend on the prediction: ``(Hg, Sg, Q0)`` with
+    ``Hg`` :func:`grouped`, ``Sg = Σ_a p_a Hw_aᵀ Ĥ_a`` (..., n, G n) (``E[e⁻ yᵀ] = P⁻ Sg``) and ``Q0`` (..., G n, G n)
+    the noises' and falsifications' part of ``E[y yᵀ]``."""
+    Hg = grouped(Hw, mom.groups)
+    pHg = mom.p[..., :, None] * Hg
+    Sg = np.swapaxes(Hw, -1, -2) @ pHg
+    Q0 = np.swapaxes(Hg, -1, -2) @ pHg + falsified_information(Hw, mom, M, mu, Hg)
+    return Hg, Sg, Q0
 
 
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
@@ -232,29 +282,44 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     ``P_pred`` (..., n, n) the node's predicted covariance; ``Hw`` (..., r, n) the whitened Jacobian rows
     ``R_a^{-1/2} H_a`` of its ball's measurements (``mom.rows`` order) at its prediction; ``M``, ``mu`` the
     falsification's second moment and mean (:class:`designer.attacks.FDISignal`).  The node updates with
-    ``x̂⁺ = x̂⁻ + W Σ_{a arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻))``: one gain ``W`` for whichever measurements arrive,
-    chosen to minimise ``tr E[e⁺ e⁺ᵀ]`` over the arrivals, the falsifications and the noises (the linearised error
-    ``e⁺ = (I - W Σ_a γ_a J_a) e⁻ - W Σ_a γ_a H_aᵀ R_a⁻¹ (v_a + η_a)``, ``J_a = H_aᵀ R_a⁻¹ H_a``, the draws
-    independent of ``e⁻``)::
+    ``x̂⁺ = x̂⁻ + Σ_g W_g y_g``, ``y_g = Σ_{a in g, arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻))`` the information of the
+    measurements of hop depth g (0: its own; ``mom.groups``) that arrived: one gain block per depth for whichever
+    measurements arrive, chosen to minimise ``tr E[e⁺ e⁺ᵀ]`` over the arrivals, the falsifications and the noises
+    (the linearised error ``e⁺ = e⁻ - W y``, ``y = Σ_a γ_a Ĥ_aᵀ (Hw_a e⁻ + w_a + η_a)``, ``J_a = H_aᵀ R_a⁻¹ H_a``,
+    ``w_a`` the whitened noise, ``η_a`` the whitened falsification, the draws independent of ``e⁻``)::
 
-        S = Σ_a p_a J_a,   Q = Σ_ab A_ab J_a P⁻ J_b + S + Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)
-        W = P⁻ S Q⁺,       P⁺ = P⁻ - W S P⁻
+        C = E[e⁻ yᵀ] = P⁻ Sg,   Q = E[y yᵀ] = Ĥᵀ (A ∘ (Hw P⁻ Hwᵀ)) Ĥ + Q0
+        W = C Q⁺,               P⁺ = P⁻ - W Cᵀ
 
-    (``Q⁺`` the pseudo-inverse on ``Q``'s range, eigenvalues below ``rtol`` times the largest dropped: directions no
-    measurement of the ball sees).  With every measurement arriving and none falsified, ``W = (P⁻⁻¹ + S)⁻¹`` and
-    this is the Kalman filter of the ball's measurements.  For a linear model ``P⁺`` is the expected covariance of
-    the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
+    (:func:`update_moments`; ``Q⁺`` the pseudo-inverse on ``Q``'s range, eigenvalues below ``rtol`` times the
+    largest dropped: directions no measurement sees).  Far measurements arrive less often and are falsified more
+    often than near ones: a block per depth weighs them apart (one gain for all would weigh every measurement by
+    its ``R⁻¹`` alone).  With every measurement arriving and none falsified, ``P⁺`` is the Kalman filter's of the
+    ball's measurements (its gain applied to ``Σ_g y_g``).  For a linear model ``P⁺`` is the expected covariance
+    of the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    S = information(Hw, mom)
-    Q = S + pair_sum(Hw, mom.A, P_pred) + falsified_information(Hw, mom, M, mu)
+    Hg, Sg, Q0 = update_moments(Hw, mom, M, mu)
+    Q = Q0 + pair_sum(Hw, mom.A, P_pred, Hg, mom.groups)
+    # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
+    # zero rows and columns of Q and zero columns of C: left out of the pseudo-inverse (the same W, a smaller eigh)
+    act = np.flatnonzero(np.any(Hg != 0.0, axis=tuple(range(Hg.ndim - 1))))
+    Q = Q[..., act[:, None], act]
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
     lam, V = np.linalg.eigh(Q)
     keep = lam > rtol * lam[..., -1:]
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     Qp = (V * inv[..., None, :]) @ np.swapaxes(V, -1, -2)
-    W = P_pred @ S @ Qp
-    P = P_pred - W @ S @ P_pred
+    C = P_pred @ Sg[..., act]
+    W = np.zeros(Sg.shape[:-2] + (P_pred.shape[-1], Sg.shape[-1]))
+    W[..., act] = C @ Qp
+    P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
     return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def relay_information(Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.ndarray:
+    """``y`` (..., G n): the groups' information ``Σ_{a in g} Hw_aᵀ res_a`` of the whitened residuals ``res`` (..., r)
+    (zero where a measurement did not arrive), to which the gain of :func:`relay_update` applies."""
+    return (np.swapaxes(grouped(Hw, mom.groups), -1, -2) @ res[..., None])[..., 0]
 
 
 def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
@@ -318,7 +383,7 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     moments = [node_moments(routes, network, model.sensor_dims, i) for i in range(network.n_nodes)]
     N = network.n_nodes
     Phi = np.empty((N, n, n))
-    W = np.empty((N, n, n))
+    W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth
     iterations = 0
     for r, nodes in _groups(moments).items():
         mom = _stack(moments, nodes)
@@ -350,8 +415,9 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
 
 
 def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, mu) -> dict:
-    """Minimise Σ_i tr Φ_i subject to ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` for the fixed gains ``W_i`` (one n x n block per
-    node; ``T_i`` written as an n² x n² matrix from its action on a basis), then the solution checked in NumPy."""
+    """Minimise Σ_i tr Φ_i subject to ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` for the fixed gains ``W_i`` (n x G n; one n x n
+    unknown per node; ``T_i`` written as an n² x n² matrix from its action on a basis), then the solution checked in
+    NumPy."""
     import warnings
 
     import cvxpy as cp
@@ -362,16 +428,16 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
     for i, mom in enumerate(moments):
         rows = np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
         Hw = Hall[rows]
-        S = information(Hw, mom)
+        Hg, Sg, Q0 = update_moments(Hw, mom, M, mu)
         Wi = W[i]
-        A = np.eye(n) - Wi @ S
 
-        def lin(X, Hw=Hw, mom=mom, Wi=Wi, A=A):  # the expected update's part linear in the predicted covariance X
-            return A @ X @ A.T + Wi @ (pair_sum(Hw, mom.A, X) - S @ X @ S) @ Wi.T
+        def lin(X, Hw=Hw, Hg=Hg, mom=mom, Wi=Wi, Sg=Sg):  # the expected update's part linear in the prediction X
+            C = X @ Sg
+            return X - Wi @ np.swapaxes(C, -1, -2) - C @ Wi.T + Wi @ pair_sum(Hw, mom.A, X, Hg, mom.groups) @ Wi.T
 
         col = lin(F @ basis @ F.T)  # (n², n, n): the image of each basis matrix
         maps.append(col.reshape(n * n, n * n).T)  # vec (row-major) of T_i(F E F^T), one column per basis E
-        consts.append(lin(Q) + Wi @ (S + falsified_information(Hw, mom, M, mu)) @ Wi.T)
+        consts.append(lin(Q) + Wi @ Q0 @ Wi.T)
     P = [cp.Variable((n, n), symmetric=True) for _ in range(N)]
     cons = []
     for i in range(N):

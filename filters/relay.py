@@ -5,10 +5,11 @@ Each step every sensor's measurement is relayed over ``hops`` exchange rounds al
 ``hops`` hops (its ball, :meth:`designer.relay.Routes.ball`) that arrived.  Node ``i`` at step ``k``::
 
     x̂⁻_i = f(x̂_i),   P⁻_i = F P_i Fᵀ + Q                              (F at its own estimate)
-    W, P_i⁺ = designer.relay.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain for whichever
-                                                                        measurements arrive, designed for their
-                                                                        expected arrivals and falsifications)
-    x̂_i⁺ = x̂⁻_i + W Σ_{a arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻_i))
+    W, P_i⁺ = designer.relay.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain block per hop
+                                                                        depth for whichever measurements arrive,
+                                                                        designed for their expected arrivals and
+                                                                        falsifications)
+    x̂_i⁺ = x̂⁻_i + Σ_g W_g Σ_{a of depth g, arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻_i))
 
 with ``Hw`` the whitened rows ``R_a^{-1/2} H_a(x̂⁻_i)`` of every sensor of its ball (its own first, then in the
 order of :func:`designer.relay.node_moments`), ``H_a`` and ``h_a`` at the node's own prediction, angular residual
@@ -47,7 +48,7 @@ from designer.design import ConsensusDesign, validate_design
 from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_routes, relay_update
+from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_information, relay_routes, relay_update
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
@@ -264,13 +265,13 @@ def _update(model: Model, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp
         Hw[:, rows] = root @ Hw[:, rows]
         res[:, rows] = (root @ res[:, rows][..., None])[..., 0]
     res = np.where(arrived, res, 0.0)
-    info = np.add.reduceat(Hw * res[..., None], lay.start[:-1], axis=1)  # (a, N, nx): Σ_arrived Hwᵀ R^{-1/2} r
     x = np.empty_like(xp)
     P = np.empty_like(Pp)
     for i in range(n):
         sl = slice(lay.start[i], lay.start[i + 1])
         W, P[:, i] = _node_update(Pp[:, i], Hw[:, sl], moments[i], M, mu)
-        x[:, i] = xp[:, i] + (W @ info[:, i, :, None])[..., 0]
+        y = relay_information(Hw[:, sl], moments[i], res[:, sl])  # (a, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
+        x[:, i] = xp[:, i] + (W @ y[..., None])[..., 0]
     return x, P
 
 
@@ -280,7 +281,8 @@ def _node_update(Pp, Hw, mom, M, mu):
     try:
         return relay_update(Pp, Hw, mom, M, mu)
     except np.linalg.LinAlgError:
-        W, P = np.full(Pp.shape, np.nan), np.full(Pp.shape, np.nan)
+        n, G = Pp.shape[-1], mom.groups.shape[-1]
+        W, P = np.full(Pp.shape[:-1] + (G * n,), np.nan), np.full(Pp.shape, np.nan)
         for r in range(Pp.shape[0]):
             try:
                 W[r], P[r] = relay_update(Pp[r], Hw[r], mom, M, mu)
