@@ -31,9 +31,9 @@ from scipy.sparse.csgraph import shortest_path
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "information",
-           "pair_sum", "falsified_information", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update",
-           "grouped", "update_moments", "relay_information"]
+__all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
+           "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
+           "update_moments", "relay_information"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
 #: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
@@ -217,12 +217,6 @@ def grouped(Hw: np.ndarray, groups: np.ndarray) -> np.ndarray:
     return (groups[..., :, :, None] * Hw[..., :, None, :]).reshape(Hw.shape[:-2] + (r, G * n))
 
 
-def information(Hw: np.ndarray, mom: NodeMoments) -> np.ndarray:
-    """``S = Σ_a p_a J_a`` (..., n, n): the node's expected measurement information (``Hw`` (..., r, n) its ball's
-    whitened Jacobian rows; ``mom`` its moments, possibly stacked over nodes of equal rows)."""
-    return np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hw)
-
-
 def pair_sum(Hw: np.ndarray, weights: np.ndarray, X: np.ndarray, Hg: np.ndarray | None = None,
              groups: np.ndarray | None = None) -> np.ndarray:
     """``Σ_ab w_ab J_a X J_b = Hwᵀ (w ∘ (Hw X Hwᵀ)) Hw`` (..., n, n), linear in ``X``; with ``Hg`` (:func:`grouped`
@@ -252,27 +246,27 @@ def _times_grouped(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.nda
     return out
 
 
-def falsified_information(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
-                          Hg: np.ndarray | None = None) -> np.ndarray:
-    """``Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)`` (..., n, n): what the falsified relays add to the update's
-    second moment (zero without FDI); with ``Hg`` its blocks per pair of groups (:func:`pair_sum`)."""
-    width = (Hw if Hg is None else Hg).shape[-1]
-    out = pair_sum(Hw, mom.F1, M, Hg, mom.groups) if np.any(mom.F1) and np.any(M) \
-        else np.zeros(Hw.shape[:-2] + (width,) * 2)
-    if np.any(mu) and np.any(mom.F2):
-        out = out + pair_sum(Hw, mom.F2, np.outer(mu, mu), Hg, mom.groups)
-    return out
-
-
 def update_moments(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> tuple:
-    """The parts of the relay rule's expected update that do not depend on the prediction: ``(Hg, Sg, Q0)`` with
-    ``Hg`` :func:`grouped`, ``Sg = Σ_a p_a Hw_aᵀ Ĥ_a`` (..., n, G n) (``E[e⁻ yᵀ] = P⁻ Sg``) and ``Q0`` (..., G n, G n)
-    the noises' and falsifications' part of ``E[y yᵀ]``."""
+    """The parts of the relay rule's expected update that do not depend on the prediction: ``(Hg, Sg, K0)`` with
+    ``Hg`` :func:`grouped`, ``Sg = Σ_a p_a Hw_aᵀ Ĥ_a`` (..., n, G n) (``E[e⁻ yᵀ] = P⁻ Sg``) and ``K0`` (..., r, r)
+    the row weights of the noises' and falsifications' part of ``E[y yᵀ]``, ``Ĥᵀ K0 Ĥ``:
+    ``K0 = diag(p) + F1 ∘ (Hw M Hwᵀ) + F2 ∘ (Hw μμᵀ Hwᵀ)``."""
     Hg = grouped(Hw, mom.groups)
-    pHg = mom.p[..., :, None] * Hg
-    Sg = np.swapaxes(Hw, -1, -2) @ pHg
-    Q0 = np.swapaxes(Hg, -1, -2) @ pHg + falsified_information(Hw, mom, M, mu, Hg)
-    return Hg, Sg, Q0
+    Sg = np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hg)
+    K0 = np.zeros(Hw.shape[:-1] + Hw.shape[-2:-1])
+    idx = np.arange(Hw.shape[-2])
+    K0[..., idx, idx] = mom.p
+    Ht = np.swapaxes(Hw, -1, -2)
+    if np.any(mom.F1) and np.any(M):
+        K0 = K0 + mom.F1 * (Hw @ M @ Ht)
+    if np.any(mu) and np.any(mom.F2):
+        K0 = K0 + mom.F2 * (Hw @ np.outer(mu, mu) @ Ht)
+    return Hg, Sg, K0
+
+
+def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``Ĥᵀ K Ĥ`` (..., G n, G n) of row weights ``K`` (..., r, r)."""
+    return np.swapaxes(Hg, -1, -2) @ _times_grouped(K, Hw, Hg, groups)
 
 
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
@@ -288,7 +282,7 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     (the linearised error ``e⁺ = e⁻ - W y``, ``y = Σ_a γ_a Ĥ_aᵀ (Hw_a e⁻ + w_a + η_a)``, ``J_a = H_aᵀ R_a⁻¹ H_a``,
     ``w_a`` the whitened noise, ``η_a`` the whitened falsification, the draws independent of ``e⁻``)::
 
-        C = E[e⁻ yᵀ] = P⁻ Sg,   Q = E[y yᵀ] = Ĥᵀ (A ∘ (Hw P⁻ Hwᵀ)) Ĥ + Q0
+        C = E[e⁻ yᵀ] = P⁻ Sg,   Q = E[y yᵀ] = Ĥᵀ (A ∘ (Hw P⁻ Hwᵀ) + K0) Ĥ
         W = C Q⁺,               P⁺ = P⁻ - W Cᵀ
 
     (:func:`update_moments`; ``Q⁺`` the pseudo-inverse on ``Q``'s range, eigenvalues below ``rtol`` times the
@@ -298,8 +292,8 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     ball's measurements (its gain applied to ``Σ_g y_g``).  For a linear model ``P⁺`` is the expected covariance
     of the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    Hg, Sg, Q0 = update_moments(Hw, mom, M, mu)
-    Q = Q0 + pair_sum(Hw, mom.A, P_pred, Hg, mom.groups)
+    Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
+    Q = _rows_to_groups(K0 + mom.A * (Hw @ P_pred @ np.swapaxes(Hw, -1, -2)), Hw, Hg, mom.groups)
     # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
     # zero rows and columns of Q and zero columns of C: left out of the pseudo-inverse (the same W, a smaller eigh)
     act = np.flatnonzero(np.any(Hg != 0.0, axis=tuple(range(Hg.ndim - 1))))
@@ -428,7 +422,8 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
     for i, mom in enumerate(moments):
         rows = np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
         Hw = Hall[rows]
-        Hg, Sg, Q0 = update_moments(Hw, mom, M, mu)
+        Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
+        Q0 = _rows_to_groups(K0, Hw, Hg, mom.groups)
         Wi = W[i]
 
         def lin(X, Hw=Hw, Hg=Hg, mom=mom, Wi=Wi, Sg=Sg):  # the expected update's part linear in the prediction X

@@ -339,7 +339,8 @@ class NodeRule(NamedTuple):
 # gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
 # function with run_consensus_batch's parameters (without gains); see register_filter
 _FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
-_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled", "filters.relay")  # they register the filters of the other built-in rules
+# they register the filters of the other built-in rules
+_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled", "filters.relay")
 
 
 def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
