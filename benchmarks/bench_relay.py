@@ -16,7 +16,7 @@ signal; printed:
   linear, so this is a figure, not a check).
 
 ``--check`` (the 512-node grid, L = 8, 5 runs of 100 steps) exits 1 when the filter takes more than ``TARGET_S`` =
-60 s or diverges.
+180 s or diverges.
 
 Run: ``python benchmarks/bench_relay.py [--sizes 128 512] [--hops 4 8] [--runs 5] [--steps 100] [--seed 0]
 [--check]``
@@ -37,7 +37,9 @@ from designer.cores import one_blas_thread
 from filters.ekf import run_ekf_batch
 from filters.relay import run_relay_batch
 
-TARGET_S = 60.0  # --check: 5 runs of 100 steps on the 512-node grid, L = 8, within a minute
+# --check: 5 runs of 100 steps on the 512-node grid, L = 8, within 3 minutes (measured about 135 s of CPU with one
+# gain block per hop depth; 37 s with the single gain it replaced, which was 12 % less accurate there)
+TARGET_S = 180.0
 
 
 def measure(folder: Path, nodes: int, hops_list, runs: int, steps: int, seed: int) -> list[dict]:

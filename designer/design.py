@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
-    "EXCHANGES",
+    "EXCHANGES", "RELAY", "design_rounds",
     "LINEARIZATIONS", "make_design", "chooses_multipliers", "resolve_scaling", "parse_scale", "describe_design",
     "whitened_scaling",
 ]
@@ -49,6 +49,7 @@ __all__ = [
 MODES = tuple(GAIN_RULES)  # the gain rules' names (designer.gain_rules: what each needs at run time)
 LINEARIZATIONS = ("fixed", "hessian", "structured")
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (mode scheduled): the first is its default
+RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (designer.gain_rules.GainRule.relays)
 #: The default robustness margin δ of the scheduled design's link gains (:func:`designer.scheduled.link_gains`;
 #: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
 #: between neighbours' errors to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning
@@ -127,7 +128,7 @@ class ConsensusDesign(NamedTuple):
     tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
-    rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements)
+    rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); 'relay': hops
     bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (designer.scheduled; 0: none)
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
@@ -159,7 +160,14 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"radius must be > 0, got {design.radius!r}")
     rule = gain_rule(design.mode)  # a registered gain rule, else InputError naming them
     tabled = names_with("offline_tables")  # the rules whose design chooses the exchange, rounds and robustness
-    if design.exchange not in EXCHANGES or (design.exchange == "measurements" and not rule.offline_tables):
+    if rule.relays and design.gate:
+        raise InputError(f"mode {design.mode!r} does not take a gate (gate must be 0): its gain counts every falsified "
+                         "measurement that arrives, from the falsification's statistics")
+    if rule.relays and design.exchange != RELAY:
+        raise InputError(f"exchange must be {RELAY!r} in mode {design.mode!r} (it relays the measurements), got "
+                         f"{design.exchange!r}")
+    if not rule.relays and (design.exchange not in EXCHANGES
+                            or (design.exchange == "measurements" and not rule.offline_tables)):
         raise InputError(f"exchange must be 'predictions', or 'measurements' in mode {tabled}, got "
                          f"{design.exchange!r} in mode {design.mode!r}")
     rob = float(design.robustness)
@@ -167,9 +175,9 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in mode {tabled} (0 in the other "
                          f"modes), got {design.robustness!r} in mode {design.mode!r}")
     if isinstance(design.rounds, bool) or not isinstance(design.rounds, (int, np.integer)) or not (
-            1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and not rule.offline_tables):
-        raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode {tabled} (1 in the other "
-                         f"modes), got {design.rounds!r} in mode {design.mode!r}")
+            1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and not rule.takes_rounds):
+        raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode {names_with('takes_rounds')} (1 in "
+                         f"the other modes), got {design.rounds!r} in mode {design.mode!r}")
     if isinstance(design.bank, bool) or not isinstance(design.bank, (int, np.integer)) or not (
             0 <= design.bank <= BANK_MAX) or (design.bank and not rule.offline_tables):
         raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in mode {tabled} (0 in the other "
@@ -392,6 +400,8 @@ class DesignOptions:
         senders' predictions (and measurements), the others their current estimates (default 1).  With more
         than one the design computes no certificate (its expected covariance treats the rounds' packet
         losses as fresh draws; the simulations hold one per step): check it with ``study consensus-robot``.
+        Mode ``relay``: the hops L over which every measurement is relayed per step, one packet per channel and
+        round (default :func:`designer.relay.default_hops`: the network's diameter, at most 8).
     bank : int in [0, 3]
         Mode ``scheduled``: the axes A of its bank of operating points (default 0: none).  Besides the tables
         along the nominal trajectory the design computes stationary tables at ``3^A - 1`` points off it, on a
@@ -427,14 +437,17 @@ class DesignOptions:
         tables = rule is None or rule.offline_tables  # the design chooses the exchange, rounds and robustness
         if self.exchange is not None and self.exchange not in EXCHANGES:
             raise InputError(f"exchange must be one of {', '.join(map(repr, EXCHANGES))}, got {self.exchange!r}")
+        if self.exchange is not None and rule is not None and rule.relays:
+            raise InputError(f"exchange is chosen by mode {names_with('offline_tables')}; mode {self.mode!r} relays "
+                             "the measurements (its exchange is 'relay'): do not give --exchange")
         if self.exchange == "measurements" and not tables:
             raise InputError(f"exchange 'measurements' is a design of mode {names_with('offline_tables')}; mode "
                              f"{self.mode!r} exchanges predictions")
         if self.rounds is not None and (isinstance(self.rounds, bool) or not isinstance(self.rounds, (int, np.integer))
                                         or not 1 <= self.rounds <= ROUNDS_MAX):
             raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}], got {self.rounds!r}")
-        if self.rounds is not None and self.rounds > 1 and not tables:
-            raise InputError(f"rounds > 1 is a design of mode {names_with('offline_tables')}; mode {self.mode!r} "
+        if self.rounds is not None and self.rounds > 1 and not (rule is None or rule.takes_rounds):
+            raise InputError(f"rounds > 1 is a design of mode {names_with('takes_rounds')}; mode {self.mode!r} "
                              "exchanges once per step")
         if self.bank is not None and (isinstance(self.bank, bool) or not isinstance(self.bank, (int, np.integer))
                                       or not 0 <= self.bank <= BANK_MAX):
@@ -509,6 +522,18 @@ def chooses_multipliers(mode: str | None) -> bool:
     return mode is not None and not gain_rule(mode).fixed_multipliers
 
 
+def design_rounds(mode: str, network: SensorNetwork, rounds: int | None = None) -> int:
+    """The exchange rounds per step of a design of gain rule ``mode`` on ``network``: ``rounds`` when given, else the
+    rule's default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
+    if rounds is not None:
+        return int(rounds)
+    if not gain_rule(mode).relays:
+        return 1
+    from .relay import default_hops  # late: scipy's graph routines, not needed to list or load a scenario
+
+    return default_hops(network)
+
+
 def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
                 u0=None, signal=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
@@ -551,10 +576,11 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         fdi_mean=None if signal is None else signal.mean(model.n_x),
         gate=0.0 if options.gate is None else float(options.gate),
         fdi_signal=signal,
-        exchange=options.exchange or (EXCHANGES[0] if gain_rule(mode).offline_tables else "predictions"),
+        exchange=RELAY if gain_rule(mode).relays else options.exchange or (
+            EXCHANGES[0] if gain_rule(mode).offline_tables else "predictions"),
         robustness=0.0 if not gain_rule(mode).offline_tables else ROBUSTNESS if options.robustness is None
         else float(options.robustness),
-        rounds=1 if options.rounds is None else int(options.rounds),
+        rounds=design_rounds(mode, network, options.rounds),
         bank=0 if options.bank is None or not gain_rule(mode).offline_tables else int(options.bank),
         remainder_structure=structure,
         remainder_gram=gram,

@@ -5,7 +5,8 @@ Every design mode (``cfdesign design --mode NAME``, ``DesignOptions(mode=NAME)``
 :data:`RUNTIMES`:
 
 * ``local`` — the node computes its gains online from what it has: its own measurement,
-  the packets it received and their senders' messages (``paper``, ``tuned``);
+  the packets it received and their senders' messages (``paper``, ``tuned``; ``relay`` with the measurements
+  relayed to it over L hops);
 * ``scheduled`` — gains designed offline and applied with what the node itself observes or
   computes (the step, which neighbour packets arrived, its own estimate);
 * ``global`` — the gains need the joint state of the network (``mse``: the joint error
@@ -25,8 +26,9 @@ What a rule is, the code asks the rule, never its name: whether the user fixes i
 whether its design is a set of tables computed offline and applied online (``offline_tables``:
 it chooses what the nodes exchange, the exchange rounds and a robustness margin, and has a
 stationary certificate; its gains along one run are not the design) or a seeded run of the
-filter (``seeded_design``), and whether it holds the joint error covariance of all nodes
-(``joint_covariance``: (N n)² memory per run, not mapped by the feasibility map).
+filter (``seeded_design``), whether it holds the joint error covariance of all nodes
+(``joint_covariance``: (N n)² memory per run, not mapped by the feasibility map), and whether its packets
+relay the measurements over L exchange rounds per step (``relays``, :mod:`designer.relay`).
 
 Adding a rule
 -------------
@@ -118,6 +120,7 @@ class GainRule:
     fixed_multipliers: bool = False
     offline_tables: bool = False
     joint_covariance: bool = False
+    relays: bool = False
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
@@ -128,7 +131,7 @@ class GainRule:
         for field in ("needs", "summary"):
             if not isinstance(getattr(self, field), str) or not getattr(self, field).strip():
                 raise InputError(f"{field} of gain rule {self.name!r} must be a non-empty sentence")
-        for field in ("fixed_multipliers", "offline_tables", "joint_covariance"):
+        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays"):
             if not isinstance(getattr(self, field), bool):
                 raise InputError(f"{field} of gain rule {self.name!r} must be True or False, "
                                  f"got {getattr(self, field)!r}")
@@ -137,6 +140,17 @@ class GainRule:
     def seeded_design(self) -> bool:
         """Its design is the filter run along a seeded simulated run (its gains there are the schedule)."""
         return not self.offline_tables
+
+    @property
+    def takes_rounds(self) -> bool:
+        """Its design takes exchange rounds per step (``--rounds``): a rule of offline tables or one that relays."""
+        return self.offline_tables or self.relays
+
+    @property
+    def stationary_certificate(self) -> bool:
+        """Its design has a stationary certificate at the operating point (what the feasibility map maps for it):
+        a rule of offline tables or one that relays."""
+        return self.offline_tables or self.relays
 
     @property
     def mappable(self) -> bool:
@@ -238,3 +252,11 @@ register(GainRule(
           "factors of its links per step.",
     summary="per-link gains designed offline for the attack statistics (expected joint covariance), applied at each "
             "node with its own Jacobians and covariance", offline_tables=True))
+register(GainRule(
+    "relay", "local",
+    needs="its own measurement, the measurements relayed to it over L hops that arrived (their values and sensors), "
+          "its own estimate (the Jacobians of its ball's sensors there) and covariance, and its ball's arrival "
+          "and falsification moments, computed offline from the network and the DoS and FDI probabilities "
+          "(designer.relay); its gain is computed online at the node.",
+    summary="every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
+            "ball with one gain minimising the expected covariance over the attacks", relays=True))

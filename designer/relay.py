@@ -31,9 +31,16 @@ from scipy.sparse.csgraph import shortest_path
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "MAX_HOPS", "NodeMoments", "node_moments", "relay_update"]
+__all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
+           "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
+           "update_moments", "relay_information"]
 
-MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.MAX_ROUNDS
+MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
+#: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
+#: at most this many (an assumption, chosen: on a 512-node range grid 31 hops wide, 8 hops bring the nodes' error
+#: within about 2 x the centralized filter's on runs without attacks, README; the packets then carry up to a few
+#: hundred measurements).
+DEFAULT_HOPS_MAX = 8
 
 
 class Routes(NamedTuple):
@@ -124,6 +131,18 @@ def _log_up(network: SensorNetwork) -> np.ndarray:
         return np.log1p(-_channel_values(network, network.dos_prob))
 
 
+def diameter(network: SensorNetwork) -> int:
+    """The network's diameter in hops (the longest shortest path; of the largest component when disconnected)."""
+    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)
+    return int(dist[np.isfinite(dist)].max())
+
+
+def default_hops(network: SensorNetwork) -> int:
+    """The hops of a relay design that gives none: the network's diameter, at most :data:`DEFAULT_HOPS_MAX` (1 for
+    a network without edges)."""
+    return max(1, min(diameter(network), DEFAULT_HOPS_MAX))
+
+
 def relay_routes(network: SensorNetwork, hops: int) -> Routes:
     """The routes of every sensor's measurement over at most ``hops`` channels (``1 <= hops <= MAX_HOPS``)."""
     if not isinstance(network, SensorNetwork):
@@ -167,7 +186,8 @@ def relay_routes(network: SensorNetwork, hops: int) -> Routes:
 class NodeMoments(NamedTuple):
     """One node's arrival and falsification moments over its ball (:meth:`Routes.arrival_moments`), expanded to the
     rows of the stacked measurement (a sensor of dimension m contributes m rows): ``p`` (r,), ``A``, ``F1``, ``F2``
-    (r, r) and ``sensors`` (its ball, own first), ``rows`` (r,) the sensor of each row."""
+    (r, r), ``sensors`` (its ball, own first), ``rows`` (r,) the sensor of each row and ``groups`` (r, hops + 1),
+    each row's hop depth one-hot (0: the node's own measurement): the relay rule's gain has one block per depth."""
 
     sensors: np.ndarray
     rows: np.ndarray
@@ -175,15 +195,78 @@ class NodeMoments(NamedTuple):
     A: np.ndarray
     F1: np.ndarray
     F2: np.ndarray
+    groups: np.ndarray
 
 
 def node_moments(routes: Routes, network: SensorNetwork, dims, i: int) -> NodeMoments:
     """Node ``i``'s :class:`NodeMoments`; ``dims`` (n_sensors,) each sensor's measurement dimension."""
     ball = routes.ball(i)
     p, A, F1, F2 = routes.arrival_moments(network, i)
+    depth = np.concatenate([[0], routes.depth[routes.node == i]]).astype(int)
     owner = np.repeat(np.arange(ball.size), np.asarray(dims, int)[ball])
     ix = np.ix_(owner, owner)
-    return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix])
+    groups = np.eye(routes.hops + 1)[depth[owner]]
+    return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix], groups)
+
+
+def grouped(Hw: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``Ĥ`` (..., r, G n): each row ``Hw_a`` (..., r, n) placed in the column block of its group (``groups`` (..., r,
+    G) one-hot), zero elsewhere: ``Ĥᵀ y`` stacks the groups' sums ``Σ_{a in g} Hw_aᵀ y_a``."""
+    r, n = Hw.shape[-2:]
+    G = groups.shape[-1]
+    return (groups[..., :, :, None] * Hw[..., :, None, :]).reshape(Hw.shape[:-2] + (r, G * n))
+
+
+def pair_sum(Hw: np.ndarray, weights: np.ndarray, X: np.ndarray, Hg: np.ndarray | None = None,
+             groups: np.ndarray | None = None) -> np.ndarray:
+    """``Σ_ab w_ab J_a X J_b = Hwᵀ (w ∘ (Hw X Hwᵀ)) Hw`` (..., n, n), linear in ``X``; with ``Hg`` (:func:`grouped`
+    from the one-hot ``groups``) the blocks of every pair of groups, ``Ĥᵀ (w ∘ (Hw X Hwᵀ)) Ĥ`` (..., G n, G n)."""
+    Ht = np.swapaxes(Hw, -1, -2)
+    K = weights * (Hw @ X @ Ht)
+    if Hg is None:
+        return Ht @ K @ Hw
+    return np.swapaxes(Hg, -1, -2) @ _times_grouped(K, Hw, Hg, groups)
+
+
+def _times_grouped(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``K Ĥ`` (..., r, G n).  One node's rows (``groups`` (r, G), its rows in depth order, as
+    :func:`node_moments` lays them): each group's columns ``K[:, g] Hw[g]``, one product per group, r² n operations
+    instead of r² G n; nodes stacked (``groups`` (..., r, G), their depths at different rows): the product itself."""
+    depth = groups.argmax(-1)
+    if groups.ndim != 2 or np.any(np.diff(depth) < 0):
+        return K @ Hg
+    r, n = Hw.shape[-2:]
+    G = groups.shape[-1]
+    out = np.zeros(K.shape[:-1] + (G * n,))
+    bounds = np.searchsorted(depth, np.arange(G + 1))
+    for g in range(G):
+        a, b = bounds[g], bounds[g + 1]
+        if b > a:
+            out[..., g * n:(g + 1) * n] = K[..., :, a:b] @ Hw[..., a:b, :]
+    return out
+
+
+def update_moments(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> tuple:
+    """The parts of the relay rule's expected update that do not depend on the prediction: ``(Hg, Sg, K0)`` with
+    ``Hg`` :func:`grouped`, ``Sg = Σ_a p_a Hw_aᵀ Ĥ_a`` (..., n, G n) (``E[e⁻ yᵀ] = P⁻ Sg``) and ``K0`` (..., r, r)
+    the row weights of the noises' and falsifications' part of ``E[y yᵀ]``, ``Ĥᵀ K0 Ĥ``:
+    ``K0 = diag(p) + F1 ∘ (Hw M Hwᵀ) + F2 ∘ (Hw μμᵀ Hwᵀ)``."""
+    Hg = grouped(Hw, mom.groups)
+    Sg = np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hg)
+    K0 = np.zeros(Hw.shape[:-1] + Hw.shape[-2:-1])
+    idx = np.arange(Hw.shape[-2])
+    K0[..., idx, idx] = mom.p
+    Ht = np.swapaxes(Hw, -1, -2)
+    if np.any(mom.F1) and np.any(M):
+        K0 = K0 + mom.F1 * (Hw @ M @ Ht)
+    if np.any(mu) and np.any(mom.F2):
+        K0 = K0 + mom.F2 * (Hw @ np.outer(mu, mu) @ Ht)
+    return Hg, Sg, K0
+
+
+def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``Ĥᵀ K Ĥ`` (..., G n, G n) of row weights ``K`` (..., r, r)."""
+    return np.swapaxes(Hg, -1, -2) @ _times_grouped(K, Hw, Hg, groups)
 
 
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
@@ -193,32 +276,181 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     ``P_pred`` (..., n, n) the node's predicted covariance; ``Hw`` (..., r, n) the whitened Jacobian rows
     ``R_a^{-1/2} H_a`` of its ball's measurements (``mom.rows`` order) at its prediction; ``M``, ``mu`` the
     falsification's second moment and mean (:class:`designer.attacks.FDISignal`).  The node updates with
-    ``x̂⁺ = x̂⁻ + W Σ_{a arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻))``: one gain ``W`` for whichever measurements arrive,
-    chosen to minimise ``tr E[e⁺ e⁺ᵀ]`` over the arrivals, the falsifications and the noises (the linearised error
-    ``e⁺ = (I - W Σ_a γ_a J_a) e⁻ - W Σ_a γ_a H_aᵀ R_a⁻¹ (v_a + η_a)``, ``J_a = H_aᵀ R_a⁻¹ H_a``, the draws
-    independent of ``e⁻``)::
+    ``x̂⁺ = x̂⁻ + Σ_g W_g y_g``, ``y_g = Σ_{a in g, arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻))`` the information of the
+    measurements of hop depth g (0: its own; ``mom.groups``) that arrived: one gain block per depth for whichever
+    measurements arrive, chosen to minimise ``tr E[e⁺ e⁺ᵀ]`` over the arrivals, the falsifications and the noises
+    (the linearised error ``e⁺ = e⁻ - W y``, ``y = Σ_a γ_a Ĥ_aᵀ (Hw_a e⁻ + w_a + η_a)``, ``J_a = H_aᵀ R_a⁻¹ H_a``,
+    ``w_a`` the whitened noise, ``η_a`` the whitened falsification, the draws independent of ``e⁻``)::
 
-        S = Σ_a p_a J_a,   Q = Σ_ab A_ab J_a P⁻ J_b + S + Σ_ab (F1_ab J_a M J_b + F2_ab J_a μμᵀ J_b)
-        W = P⁻ S Q⁺,       P⁺ = P⁻ - W S P⁻
+        C = E[e⁻ yᵀ] = P⁻ Sg,   Q = E[y yᵀ] = Ĥᵀ (A ∘ (Hw P⁻ Hwᵀ) + K0) Ĥ
+        W = C Q⁺,               P⁺ = P⁻ - W Cᵀ
 
-    (``Q⁺`` the pseudo-inverse on ``Q``'s range, eigenvalues below ``rtol`` times the largest dropped: directions no
-    measurement of the ball sees).  With every measurement arriving and none falsified, ``W = (P⁻⁻¹ + S)⁻¹`` and
-    this is the Kalman filter of the ball's measurements.  For a linear model ``P⁺`` is the expected covariance of
-    the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
+    (:func:`update_moments`; ``Q⁺`` the pseudo-inverse on ``Q``'s range, eigenvalues below ``rtol`` times the
+    largest dropped: directions no measurement sees).  Far measurements arrive less often and are falsified more
+    often than near ones: a block per depth weighs them apart (one gain for all would weigh every measurement by
+    its ``R⁻¹`` alone).  With every measurement arriving and none falsified, ``P⁺`` is the Kalman filter's of the
+    ball's measurements (its gain applied to ``Σ_g y_g``).  For a linear model ``P⁺`` is the expected covariance
+    of the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    Ht = np.swapaxes(Hw, -1, -2)
-    S = Ht @ (mom.p[:, None] * Hw)
-    Q = S + Ht @ ((mom.A * (Hw @ P_pred @ Ht)) @ Hw)
-    if np.any(mom.F1):
-        Q = Q + Ht @ ((mom.F1 * (Hw @ M @ Ht)) @ Hw)
-    if np.any(mu) and np.any(mom.F2):
-        h = Hw @ mu
-        Q = Q + Ht @ ((mom.F2 * (h[..., :, None] * h[..., None, :])) @ Hw)
+    Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
+    Q = _rows_to_groups(K0 + mom.A * (Hw @ P_pred @ np.swapaxes(Hw, -1, -2)), Hw, Hg, mom.groups)
+    # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
+    # zero rows and columns of Q and zero columns of C: left out of the pseudo-inverse (the same W, a smaller eigh)
+    act = np.flatnonzero(np.any(Hg != 0.0, axis=tuple(range(Hg.ndim - 1))))
+    Q = Q[..., act[:, None], act]
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
     lam, V = np.linalg.eigh(Q)
     keep = lam > rtol * lam[..., -1:]
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     Qp = (V * inv[..., None, :]) @ np.swapaxes(V, -1, -2)
-    W = P_pred @ S @ Qp
-    P = P_pred - W @ S @ P_pred
+    C = P_pred @ Sg[..., act]
+    W = np.zeros(Sg.shape[:-2] + (P_pred.shape[-1], Sg.shape[-1]))
+    W[..., act] = C @ Qp
+    P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
     return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def relay_information(Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.ndarray:
+    """``y`` (..., G n): the groups' information ``Σ_{a in g} Hw_aᵀ res_a`` of the whitened residuals ``res`` (..., r)
+    (zero where a measurement did not arrive), to which the gain of :func:`relay_update` applies."""
+    return (np.swapaxes(grouped(Hw, mom.groups), -1, -2) @ res[..., None])[..., 0]
+
+
+def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
+    """(..., n_z, n) every sensor's whitened Jacobian rows ``R_s^{-1/2} H_s(x)`` at the points ``x`` (..., n), in
+    the model's measurement order (``model.sensor_dims``)."""
+    x = np.asarray(x, dtype=float)
+    out = []
+    for s in range(model.n_sensors):
+        H = np.asarray(model.H(s, x, k), dtype=float)
+        out.append(_inverse_root(model.measurement_cov(s)) @ H)
+    return np.concatenate(out, axis=-2)
+
+
+def _inverse_root(R: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(np.asarray(R, dtype=float))
+    return (V / np.sqrt(lam)) @ V.T
+
+
+#: The relative change of every node's trace below which the stationary recursion has reached its fixed point.
+STATIONARY_TOL = 1e-9
+#: The most iterations of the stationary recursion.
+STATIONARY_MAX = 5000
+#: The LMI's relative residual (its solution's own recursion step above it, relative to its largest eigenvalue)
+#: below which the fixed point counts as confirmed (as :data:`studies.consensus_design.LMI_TOLERANCE`).
+_BOUND_LIMIT = 1e12
+
+
+def _groups(moments: list[NodeMoments]) -> dict[tuple[int, int], np.ndarray]:
+    """The nodes by their numbers of measurement rows and of sensors (nodes of one size, iterated as one stack;
+    with sensors of different dimensions two balls of as many rows may hold different numbers of sensors)."""
+    sizes = [(m.rows.size, m.sensors.size) for m in moments]
+    return {key: np.array([i for i, s in enumerate(sizes) if s == key]) for key in dict.fromkeys(sizes)}
+
+
+def _stack(moments: list[NodeMoments], nodes: np.ndarray) -> NodeMoments:
+    return NodeMoments(*(np.stack([getattr(moments[i], f) for i in nodes]) for f in NodeMoments._fields))
+
+
+def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True):
+    """The relay design's stationary certificate at the point ``x`` (input ``u``), every node's Jacobians there:
+    each node's recursion ``Φ ← relay_update(F Φ Fᵀ + Q)`` from the prior covariance until every node's trace
+    changes by less than :data:`STATIONARY_TOL` (relative), then, for the fixed point's gains ``W_i``, the
+    stationary inequality ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` (``T_i`` the expected update with the gain held at ``W_i``:
+    linear in Φ) minimised in trace by cvxpy + Clarabel and its solution checked in NumPy.  Since the online gain
+    minimises the expected covariance, ``relay_update``'s map lies below ``T_i`` and is monotone: a Φ̄ that satisfies
+    the inequality bounds every later covariance of the node once one lies below it.  The bound is the expected
+    covariance of the linearised error: exact for a linear model; the linearisation remainders are not in it.
+
+    Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
+    from .scheduled import StationaryCertificate
+
+    routes = relay_routes(network, design.rounds)
+    x = np.asarray(x, dtype=float)
+    n = model.n_x
+    F = np.asarray(model.F_expected(x, 0, u), dtype=float)
+    Q = np.asarray(model.process_cov, dtype=float)
+    Hall = whitened_rows(model, x, 1)
+    M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
+    mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    moments = [node_moments(routes, network, model.sensor_dims, i) for i in range(network.n_nodes)]
+    N = network.n_nodes
+    Phi = np.empty((N, n, n))
+    W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth
+    iterations = 0
+    for r, nodes in _groups(moments).items():
+        mom = _stack(moments, nodes)
+        rows = np.stack([np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in moments[i].sensors])
+                         for i in nodes])
+        Hw = Hall[rows]  # (g, r, n)
+        P = np.broadcast_to(np.asarray(model.prior.cov, dtype=float), (nodes.size, n, n))
+        prev = np.trace(P, axis1=-2, axis2=-1)
+        for it in range(1, STATIONARY_MAX + 1):
+            Wg, P = relay_update(F @ P @ F.T + Q, Hw, mom, M, mu)
+            tr = np.trace(P, axis1=-2, axis2=-1)
+            if not np.all(np.isfinite(tr)) or np.any(tr > _BOUND_LIMIT):
+                return StationaryCertificate(False, None, np.nan, np.nan, it,
+                                             f"the expected covariance grows without settling (node "
+                                             f"{int(nodes[np.argmax(np.nan_to_num(tr, nan=np.inf))])})", None)
+            if np.all(np.abs(tr - prev) <= STATIONARY_TOL * tr):
+                break
+            prev = tr
+        else:
+            return StationaryCertificate(False, None, np.nan, np.nan, STATIONARY_MAX,
+                                         f"the expected covariance did not settle in {STATIONARY_MAX} iterations",
+                                         None)
+        iterations = max(iterations, it)
+        Phi[nodes], W[nodes] = P, Wg
+    out = StationaryCertificate(True, Phi, np.nan, np.nan, iterations, None, None)
+    if lmi:
+        out = out._replace(lmi=_relay_lmi(Phi, W, F, Q, Hall, moments, offsets, M, mu))
+    return out
+
+
+def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, mu) -> dict:
+    """Minimise Σ_i tr Φ_i subject to ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` for the fixed gains ``W_i`` (n x G n; one n x n
+    unknown per node; ``T_i`` written as an n² x n² matrix from its action on a basis), then the solution checked in
+    NumPy."""
+    import warnings
+
+    import cvxpy as cp
+
+    N, n = Phi.shape[0], Phi.shape[-1]
+    basis = np.eye(n * n).reshape(n * n, n, n)
+    maps, consts = [], []
+    for i, mom in enumerate(moments):
+        rows = np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
+        Hw = Hall[rows]
+        Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
+        Q0 = _rows_to_groups(K0, Hw, Hg, mom.groups)
+        Wi = W[i]
+
+        def lin(X, Hw=Hw, Hg=Hg, mom=mom, Wi=Wi, Sg=Sg):  # the expected update's part linear in the prediction X
+            C = X @ Sg
+            return X - Wi @ np.swapaxes(C, -1, -2) - C @ Wi.T + Wi @ pair_sum(Hw, mom.A, X, Hg, mom.groups) @ Wi.T
+
+        col = lin(F @ basis @ F.T)  # (n², n, n): the image of each basis matrix
+        maps.append(col.reshape(n * n, n * n).T)  # vec (row-major) of T_i(F E F^T), one column per basis E
+        consts.append(lin(Q) + Wi @ Q0 @ Wi.T)
+    P = [cp.Variable((n, n), symmetric=True) for _ in range(N)]
+    cons = []
+    for i in range(N):
+        image = cp.reshape(maps[i] @ cp.vec(P[i], order="C"), (n, n), order="C")
+        cons.append((P[i] - image + (P[i] - image).T) / 2 - consts[i] >> 0)
+    prob = cp.Problem(cp.Minimize(sum(cp.trace(p) for p in P)), cons)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    except cp.error.SolverError as exc:
+        return {"status": "solver error", "reason": str(exc), "trace": None, "max_residual": None}
+    if prob.status not in ("optimal", "optimal_inaccurate") or any(p.value is None for p in P):
+        return {"status": str(prob.status), "reason": None, "trace": None, "max_residual": None}
+    Pv = np.stack([0.5 * (p.value + p.value.T) for p in P])
+    step = np.stack([(maps[i] @ Pv[i].reshape(-1)).reshape(n, n) + consts[i] for i in range(N)])
+    resid = np.linalg.eigvalsh(0.5 * (step + np.swapaxes(step, -1, -2)) - Pv).max(axis=-1)
+    top = np.maximum(np.linalg.eigvalsh(Pv).max(axis=-1), 1e-300)
+    return {"status": str(prob.status), "reason": None, "trace": float(np.trace(Pv, axis1=-2, axis2=-1).sum()),
+            "node_trace": [float(v) for v in np.trace(Pv, axis1=-2, axis2=-1)],
+            "max_residual": float(resid.max()), "relative_residual": float((resid / top).max())}

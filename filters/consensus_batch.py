@@ -339,7 +339,8 @@ class NodeRule(NamedTuple):
 # gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
 # function with run_consensus_batch's parameters (without gains); see register_filter
 _FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
-_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled")  # they register the filters of the other built-in rules
+# they register the filters of the other built-in rules
+_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled", "filters.relay")
 
 
 def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
@@ -467,6 +468,9 @@ def batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
     if not ((u.ndim == 2 and u.shape[0] == steps) or (u.ndim == 3 and u.shape[:2] == (runs, steps))):
         raise InputError(f"inputs must have shape ({steps}, n_u) or ({runs}, {steps}, n_u), one row per step, "
                          f"got {u.shape}")
+    if u.shape[-1] != model.n_u:  # a model with known inputs run without them fails later, deep in f: here instead
+        raise InputError(f"inputs must have shape ({steps}, {model.n_u}) or ({runs}, {steps}, {model.n_u}) (the "
+                         f"model's known inputs), got {None if inputs is None else u.shape}")
     x0 = model.prior.mean if x0 is None else check_finite("x0", x0)
     if x0.shape not in ((model.n_x,), (runs, model.n_x)):
         raise InputError(f"x0 must have shape ({model.n_x},) or ({runs}, {model.n_x}), got {x0.shape}")

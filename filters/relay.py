@@ -5,10 +5,11 @@ Each step every sensor's measurement is relayed over ``hops`` exchange rounds al
 ``hops`` hops (its ball, :meth:`designer.relay.Routes.ball`) that arrived.  Node ``i`` at step ``k``::
 
     x̂⁻_i = f(x̂_i),   P⁻_i = F P_i Fᵀ + Q                              (F at its own estimate)
-    W, P_i⁺ = designer.relay.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain for whichever
-                                                                        measurements arrive, designed for their
-                                                                        expected arrivals and falsifications)
-    x̂_i⁺ = x̂⁻_i + W Σ_{a arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻_i))
+    W, P_i⁺ = designer.relay.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain block per hop
+                                                                        depth for whichever measurements arrive,
+                                                                        designed for their expected arrivals and
+                                                                        falsifications)
+    x̂_i⁺ = x̂⁻_i + Σ_g W_g Σ_{a of depth g, arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻_i))
 
 with ``Hw`` the whitened rows ``R_a^{-1/2} H_a(x̂⁻_i)`` of every sensor of its ball (its own first, then in the
 order of :func:`designer.relay.node_moments`), ``H_a`` and ``h_a`` at the node's own prediction, angular residual
@@ -43,18 +44,21 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from designer.attacks import FDISignal
+from designer.design import ConsensusDesign, validate_design
+from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_routes, relay_update
+from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_information, relay_routes, relay_update
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .consensus_batch import EdgeAttacks, batch_inputs, edge_attacks, wrap_residuals
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+                              result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
-__all__ = ["run_relay_batch"]
+__all__ = ["run_relay_batch", "run_relay_design"]
 
 
 class _Layout(NamedTuple):
@@ -170,9 +174,6 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     hops = check_int("hops", hops, 1, MAX_HOPS)
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps = z.shape[:2]
-    if u.shape[-1] != model.n_u:
-        raise InputError(f"inputs must have shape ({steps}, {model.n_u}) or ({runs}, {steps}, {model.n_u}) (the "
-                         f"model's known inputs), got {None if inputs is None else u.shape}")
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     M, mu = _check_signal(signal, network, model.n_x)
     n, nx = network.n_nodes, model.n_x
@@ -264,13 +265,13 @@ def _update(model: Model, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp
         Hw[:, rows] = root @ Hw[:, rows]
         res[:, rows] = (root @ res[:, rows][..., None])[..., 0]
     res = np.where(arrived, res, 0.0)
-    info = np.add.reduceat(Hw * res[..., None], lay.start[:-1], axis=1)  # (a, N, nx): Σ_arrived Hwᵀ R^{-1/2} r
     x = np.empty_like(xp)
     P = np.empty_like(Pp)
     for i in range(n):
         sl = slice(lay.start[i], lay.start[i + 1])
         W, P[:, i] = _node_update(Pp[:, i], Hw[:, sl], moments[i], M, mu)
-        x[:, i] = xp[:, i] + (W @ info[:, i, :, None])[..., 0]
+        y = relay_information(Hw[:, sl], moments[i], res[:, sl])  # (a, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
+        x[:, i] = xp[:, i] + (W @ y[..., None])[..., 0]
     return x, P
 
 
@@ -280,10 +281,57 @@ def _node_update(Pp, Hw, mom, M, mu):
     try:
         return relay_update(Pp, Hw, mom, M, mu)
     except np.linalg.LinAlgError:
-        W, P = np.full(Pp.shape, np.nan), np.full(Pp.shape, np.nan)
+        n, G = Pp.shape[-1], mom.groups.shape[-1]
+        W, P = np.full(Pp.shape[:-1] + (G * n,), np.nan), np.full(Pp.shape, np.nan)
         for r in range(Pp.shape[0]):
             try:
                 W[r], P[r] = relay_update(Pp[r], Hw[r], mom, M, mu)
             except np.linalg.LinAlgError:
                 pass
         return W, P
+
+
+def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
+                     design: ConsensusDesign, *, inputs=None,
+                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
+                     phi0=None) -> ConsensusBatchResult:
+    """The filter of a gain rule that relays (``design.mode``, e.g. ``'relay'``; :mod:`designer.gain_rules`): the relay
+    filter (:func:`run_relay_batch`) over ``design.rounds`` hops, for the FDI signal the design was made for, with the
+    parameters of :func:`filters.consensus_batch.run_consensus_batch`.
+
+    Runs on networks of different channel probabilities (one network per run, e.g. a sweep's settings) are run in
+    groups of equal probabilities, each with its own arrival and falsification moments.  The result's ``phi_post``
+    is each node's expected posterior covariance of the relay rule (its bound, ``valid`` where finite; the
+    linearisation remainders are not in it), ``predicted_mse`` its trace, ``C`` zero (no consensus on estimates),
+    ``K`` NaN (a node's gain weighs its whole ball, not one measurement of its own: none is recorded) and the first
+    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops).
+    """
+    z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
+    runs, steps = z.shape[:2]
+    first, nets = run_networks(network, runs)
+    design = validate_design(design, model, first)
+    if not gain_rule(design.mode).relays:
+        raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
+    attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
+    n, nx = first.n_nodes, model.n_x
+    out = result_arrays(runs, steps, n, nx, max(model.sensor_dims))
+    nets = nets or [first] * runs
+    keys = [(net.dos_prob.tobytes(), net.fdi_prob.tobytes()) for net in nets]
+    for key in dict.fromkeys(keys):  # each group of runs with the same channel probabilities, in order
+        idx = np.array([r for r, k in enumerate(keys) if k == key])
+        att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
+                                                             xi=attacks.xi[idx])
+        res = run_relay_batch(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
+                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal)
+        out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
+        out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
+        out["gate_counts"][idx, :, 0] = res.delivered_per_step
+        for r, vs in zip(idx, res.violations):
+            out["violations"][r] = vs
+    out["C"][:] = 0.0
+    out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
+    out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
+    return ConsensusBatchResult(**out)
+
+
+register_filter("relay", run_relay_design)  # the filter of gain rule 'relay' (filters.consensus_batch)

@@ -71,9 +71,10 @@ def _design_options(f):
                           "taken to carry an extra independent error δ P_ii (0: the tables' MMSE gains, fragile "
                           f"where the state leaves the nominal geometry) [default: {ROBUSTNESS:g}]"),
         click.option("--rounds", type=int, default=None,
-                     help="mode scheduled: exchange rounds per step, [1, 64]: the first carries the predictions "
-                          "and measurements, the others the current estimates (one packet per channel and round; "
-                          "with more than one no certificate) [default: 1]"),
+                     help="exchange rounds per step, [1, 64], one packet per channel and round; mode scheduled: "
+                          "the first carries the predictions and measurements, the others the current estimates "
+                          "(with more than one no certificate) [default: 1]; mode relay: the hops over which every "
+                          "measurement is relayed [default: the network's diameter, at most 8]"),
         click.option("--bank", type=int, default=None,
                      help="mode scheduled: axes A of a bank of operating points, [0, 3]: stationary tables also at "
                           "3^A - 1 points off the nominal trajectory (along the open-loop covariance's A principal "

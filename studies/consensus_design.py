@@ -44,13 +44,15 @@ __all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
-    without offline tables the scheduled design's exchange, robustness and rounds)."""
+    without offline tables the scheduled design's exchange, robustness and bank, and the rounds unless it relays)."""
     from dataclasses import replace
 
     opts = options or DesignOptions()
     rule = gain_rule(mode)
-    if not rule.offline_tables:  # the exchange, the links' margin, the rounds and the bank: a design of tables'
-        opts = replace(opts, exchange=None, robustness=None, rounds=None, bank=None)
+    if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
+        opts = replace(opts, exchange=None, robustness=None, bank=None)
+    if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
+        opts = replace(opts, rounds=None)
     if rule.fixed_multipliers:
         return replace(opts, mode=mode)
     return replace(opts, mode=mode, sigma=None, beta=None, tau=None)
@@ -198,11 +200,14 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     stationary_certificate`) with its verdict: ``certified`` when the bound's recursion with the stationary gains
     reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
     stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
+    from designer.relay import relay_stationary
     from designer.scheduled import stationary_certificate
 
     x0, u0 = sc.operating_point
     m = sc.model
-    cert = stationary_certificate(m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
+    relays = gain_rule(design.mode).relays
+    cert = relay_stationary(m, sc.network, design, x=x0, u=u0) if relays else stationary_certificate(
+        m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
     open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
     lmi = cert.lmi
     confirmed = lmi is None or lmi.get("trace") is None and lmi.get("status") == "not solved" or (
@@ -216,8 +221,14 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
                 infeasible_reason=cert.reason if broken else None, open_loop_how=how)
     return {**cert.describe(), "verdict": v.verdict, "lmi_tolerance": LMI_TOLERANCE,
-            "where": "at the operating point with the stationary gains of the tables' recursion there; the LMI "
-                     "(cvxpy + Clarabel) for the fixed point's sigma and beta"}
+            "where": _RELAY_WHERE if relays else "at the operating point with the stationary gains of the tables' "
+                     "recursion there; the LMI (cvxpy + Clarabel) for the fixed point's sigma and beta"}
+
+
+_RELAY_WHERE = ("at the operating point, every sensor's Jacobian there: each node's expected covariance recursion "
+                "(designer.relay.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
+                "expected update with the fixed point's gain held; the expected covariance of the linearised error "
+                "(exact for a linear model, the linearisation remainders not in it)")
 
 
 #: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
@@ -269,8 +280,37 @@ def other_rounds(sc: Scenario, design: ConsensusDesign, steps: int) -> dict[int,
 
 def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, dict]:
     """What a design of a rule with offline tables records beside them and does not compute from them: its
-    stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`)."""
+    stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`); for a
+    rule that relays, its stationary certificate and its trade-off (:func:`relay_tradeoff`)."""
+    if gain_rule(design.mode).relays:
+        return stationary_record(sc, design), relay_tradeoff(sc, design)
     return stationary_record(sc, design), other_rounds(sc, design, steps)
+
+
+#: The relay hops whose stationary accuracy a relay design reports beside its own.
+RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
+
+
+def relay_tradeoff(sc: Scenario, design: ConsensusDesign) -> dict:
+    """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
+    diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
+    measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
+    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
+    without its LMI)."""
+    from designer.relay import diameter, relay_routes, relay_stationary
+
+    x0, u0 = sc.operating_point
+    net = sc.network
+    hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
+    rows = []
+    for L in hops:
+        cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False)
+        rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
+        rows.append({"rounds": L, "messages_per_step": net.messages_per_step(L),
+                     "values_per_step": relay_routes(net, L).values_per_step(), "expected_rmse": rmse,
+                     "designed": L == design.rounds})
+    return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
+            "(designer.relay.relay_stationary), every state component"}
 
 
 _SCHEDULED_RECORD = {
@@ -286,6 +326,18 @@ _SCHEDULED_RECORD = {
                   "nodes do not lean on the tables' correlations where the state leaves the nominal geometry; the "
                   "expected covariance and the bound are those of the gains so chosen (an assumption chosen by "
                   "measurement, designer.design.ROBUSTNESS)",
+}
+
+
+_RELAY_RECORD = {
+    "trajectory": "seeded simulated run of the scenario: truth and measurements from SeedSequence(seed).spawn(2)[0], "
+                  "channel attacks from spawn(2)[1]; each node's gain and bound (its expected covariance over the "
+                  "attacks, designer.relay.relay_update) along its own estimates and the realised arrivals",
+    "replay": "the gains are not a schedule to replay: every node computes its gain and its bound online on any run, "
+              "from its own estimate and covariance, the measurements relayed to it that arrived, and its ball's "
+              "arrival and falsification moments (designer.relay); the bound is the expected covariance of the "
+              "linearised error (exact for a linear model, the linearisation remainders not in it), validated on "
+              "fresh runs by study consensus-robot and study comparison",
 }
 
 
@@ -446,7 +498,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     with contextlib.ExitStack() as stack:
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
-        extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) if rule.offline_tables else None
+        extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) \
+            if rule.stationary_certificate else None
         des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
@@ -481,7 +534,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "sensors": [{"name": s.name, "dim": s.dim} for s in m.sensors],
             "state_names": list(m.state_names),
             "seed": seed,
-            **(_SCHEDULED_RECORD if rule.offline_tables else {
+            **(_SCHEDULED_RECORD if rule.offline_tables else _RELAY_RECORD if rule.relays else {
                 "trajectory": "seeded simulated run of the scenario: truth and measurements from "
                               "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds "
                               "along each node's own estimates and the realised DoS pattern",
@@ -490,7 +543,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "stationary": None if des.tables is None else des.tables.stationary,
             "bank_record": None if des.tables is None else des.tables.bank_record,
             "stationary_certificate": stationary,
-            "rounds_tradeoff": rounds_tradeoff(sc, des, steps, others) if des.tables is not None else None,
+            "rounds_tradeoff": rounds_tradeoff(sc, des, steps, others) if des.tables is not None else
+            others if rule.relays else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,

@@ -271,7 +271,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
-    if gain_rule(options.mode or "paper").offline_tables:  # the design's own stationary certificate at each point
+    if gain_rule(options.mode or "paper").stationary_certificate:  # the design's own at each point
         res = iter([_scheduled_row(*item) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
@@ -308,7 +308,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
 
 
 def _scheduled_row(sc: Scenario, design) -> dict:
-    """A grid point of mode scheduled: the stationary certificate that ``cfdesign design`` records for the same
+    """A grid point of a rule with a stationary certificate (scheduled, relay): the stationary certificate that ``cfdesign design`` records for the same
     options (:func:`studies.consensus_design.stationary_record`), so that map and design agree by construction."""
     try:
         rec = stationary_record(sc, design)

@@ -22,7 +22,7 @@ from typing import Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from designer.design import ConsensusDesign
+from designer.design import ConsensusDesign, design_rounds
 from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
@@ -142,7 +142,7 @@ class FilterEntry(NamedTuple):
         if self.designed and options is not None:
             from .consensus_design import as_mode
 
-            return int(self.messages(network, as_mode(options, self.mode).rounds or 1))
+            return int(self.messages(network, design_rounds(self.mode, network, as_mode(options, self.mode).rounds)))
         return int(self.messages(network, iterations))
 
     def nodes(self, network: SensorNetwork) -> int:

@@ -1,0 +1,198 @@
+"""The gain rule ``relay`` (designer.gain_rules): its filter behind the rule registry, its stationary certificate
+(designer.relay.relay_stationary) and its design from a user's model file, against independent references.
+
+* the rule's filter (``filters.consensus_batch.rule_filter('relay')``, reached by ``run_consensus_batch``) is the
+  relay filter of :func:`filters.relay.run_relay_batch` run by itself on each run's network (runs on networks of
+  different channel probabilities included) with the design's hops and FDI signal;
+* the stationary certificate's fixed point is where the relay filter's own covariance recursion ends on a linear
+  model (a second implementation: the certificate stacks the nodes by ball size, the filter runs every node), with
+  sensors of different dimensions so that balls of equal rows hold different numbers of sensors; the LMI's optimum
+  is that fixed point;
+* a design from a model file written as a user would: the record says what the rule needs, its hops, the packets
+  per hop count and the certificate; bad options exit 2 naming the parameter before anything is written.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from designer.attacks import FDISignal
+from designer.design import DesignOptions, make_design
+from designer.relay import relay_stationary
+from filters.consensus_batch import run_consensus_batch
+from filters.relay import run_relay_batch
+from studies.cli import main
+from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
+                        simulate_linear, varied_network)
+
+
+def relay_design(model, net, hops, signal=SIGNAL):
+    return make_design(model, net, delta=0.0, options=DesignOptions(mode="relay", rounds=hops),
+                       x0=model.prior.mean, signal=signal)
+
+
+def test_the_rules_filter_is_the_relay_filter_on_each_runs_network():
+    model = bearing_model()
+    nets = [network(0.1, 0.1), varied_network(), network(0.1, 0.1)]
+    rng = np.random.default_rng(3)
+    z = np.abs(rng.normal(5.0, 1.0, (3, 6, model.n_z)))  # any measurements: the filters must agree on them
+    att = edge_attacks(nets[0], 3, 6, model.n_x, seed=5)
+    design = relay_design(model, nets[0], 2)
+    res = run_consensus_batch(model, nets, z, design, attacks=att)
+    for r in range(3):
+        one = att._replace(dos=att.dos[r:r + 1], fdi=att.fdi[r:r + 1], xi=att.xi[r:r + 1])
+        ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL)
+        assert np.array_equal(res.x_post[r], ref.x_post[0]) and np.array_equal(res.phi_post[r], ref.P_post[0])
+        assert np.array_equal(res.gate_counts[r, :, 0], ref.delivered_per_step[0])
+    assert res.valid.all() and np.all(res.C == 0.0)
+    assert np.allclose(res.predicted_mse, np.trace(res.phi_post, axis1=-2, axis2=-1))
+
+
+@pytest.mark.parametrize("hops", [1, 2])
+def test_stationary_certificate_is_where_the_filters_covariance_settles(hops):
+    model = linear_model()  # node 3's sensor is two-dimensional: balls of 4 rows hold 3 or 4 sensors at one hop
+    net = varied_network()
+    design = relay_design(model, net, hops)
+    cert = relay_stationary(model, net, design, x=np.zeros(model.n_x))
+    assert cert.converged and cert.reason is None
+    steps = 300
+    z = np.zeros((1, steps, model.n_z))  # a linear model: the covariance does not depend on the measurements
+    res = run_relay_batch(model, net, z, hops, signal=SIGNAL)
+    assert np.allclose(res.P_post[0, -1], cert.Phi, rtol=1e-7, atol=1e-10)
+    assert cert.lmi["status"] == "optimal" and cert.lmi["relative_residual"] < 1e-6
+    assert cert.lmi["trace"] == pytest.approx(np.trace(cert.Phi, axis1=-2, axis2=-1).sum(), rel=1e-6)
+    # the falsification's moments weigh on it: the same design without FDI settles lower
+    clean = relay_stationary(model, network(0.0, 0.0), relay_design(model, network(0.0, 0.0), hops, None),
+                             x=np.zeros(model.n_x), lmi=False)
+    assert np.trace(clean.Phi, axis1=-2, axis2=-1).sum() < np.trace(cert.Phi, axis1=-2, axis2=-1).sum()
+
+
+USER_MODEL = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
+
+STEPS = 25
+X0 = [1.0, 2.0, 0.3, -0.2]
+_POS = [(6.0 * (i % 4), 6.0 * (i // 4)) for i in range(12)]
+NETWORK = SensorNetwork.from_edges(12, [(i, i + 1) for i in range(12) if i % 4 != 3]
+                                   + [(i, i + 4) for i in range(8)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(amplitude=0.5, components=(0, 1)))
+
+
+def model():
+    x = ca.SX.sym("x", 4)
+    f = ca.vertcat(x[0] + x[2], x[1] + x[3], 0.98 * x[2], 0.98 * x[3])
+    sensors = []
+    for i, (a, b) in enumerate(_POS):
+        rng_ = ca.sqrt((x[0] - a) ** 2 + (x[1] - b) ** 2 + 1.0)
+        brg = ca.atan2(x[1] - b, x[0] - a)
+        if i % 2:
+            sensors.append(Sensor(f"b{i}", brg, Gaussian.zero_mean([[0.003]]), angles=(0,)))
+        else:
+            sensors.append(Sensor(f"rb{i}", ca.vertcat(rng_, brg), Gaussian.zero_mean(np.diag([0.2, 0.003])),
+                                  angles=(1,)))
+    return Model("user grid", x, f, sensors, Gaussian.zero_mean(np.diag([0.01, 0.01, 0.01, 0.01])),
+                 Gaussian(X0, np.diag([1.0, 1.0, 0.1, 0.1])), position_index=(0, 1))
+'''
+
+
+def test_relay_design_of_a_users_model_file(tmp_path, capsys):
+    path = tmp_path / "grid12.py"
+    path.write_text(USER_MODEL)
+    out = tmp_path / "d"
+    code = main(["design", str(path), "--mode", "relay", "--rounds", "2", "--seed", "3", "--out", str(out)])
+    assert code in (0, 1), capsys.readouterr().err  # 1: written, not certified (the verdict says why)
+    rec = json.loads((out / "schedule.json").read_text())
+    assert rec["gain_rule"]["name"] == "relay" and rec["gain_rule"]["runtime"] == "local"
+    assert rec["exchange"] == "relay" and rec["rounds"] == 2 and rec["feasible"]
+    assert (code == 0) == rec["certified"]
+    cert = rec["stationary_certificate"]
+    assert cert["converged"] and cert["verdict"] == "certified" and cert["lmi"]["status"] == "optimal"
+    edges = 9 + 8  # a 4 x 3 grid
+    rows = {r["rounds"]: r for r in rec["rounds_tradeoff"]["rows"]}
+    assert set(rows) == {1, 2, 4} and rows[2]["designed"]  # the grid's diameter is 5: L = 8 adds nothing
+    assert all(r["messages_per_step"] == 2 * edges * L for L, r in rows.items())
+    # the tradeoff's L = 2 row is the certificate's own fixed point
+    assert rows[2]["expected_rmse"] == pytest.approx(np.sqrt(np.mean(cert["trace"])), rel=1e-9)
+    trace = np.asarray(rec["trace_bound"], dtype=float)
+    assert trace.shape == (12, 25) and np.all(np.isfinite(trace)) and np.all(trace > 0)
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--exchange", "predictions"], "exchange"),
+    (["--rounds", "0"], "rounds must be an integer in [1, 64]"),
+    (["--gate", "0.01"], "does not take a gate"),
+])
+def test_bad_relay_options_exit_2_before_anything_is_written(tmp_path, capsys, extra, needle):
+    path = tmp_path / "grid12.py"
+    path.write_text(USER_MODEL)
+    out = tmp_path / "d"
+    capsys.readouterr()
+    code = main(["design", str(path), "--mode", "relay", *extra, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and err.startswith("cfdesign: error: "), err
+    assert not out.exists()
+
+
+def test_without_fdi_on_the_network_no_signal_is_needed():
+    model = linear_model()
+    net = network(0.2, 0.0)
+    design = relay_design(model, net, 2, signal=None)
+    _, z = simulate_linear(model, 2, 5, seed=2)
+    res = run_consensus_batch(model, net, z, design)
+    assert res.valid.all() and np.isfinite(res.x_post).all() and res.x_post.shape == (2, 6, N, 2)
+
+
+def test_feasibility_map_of_mode_relay_is_the_designs_stationary_certificate(tmp_path):
+    """Map and design agree on the same options: each grid point's verdict and trace are those `design` records
+    (the map computes no design run: the stationary certificate at the point's channel probabilities)."""
+    from studies import api
+
+    path = tmp_path / "grid12.py"
+    path.write_text(USER_MODEL)
+    fmap = api.feasibility(str(path), ["dos=0.1:0.4:2", "fdi=0:0.1:2"], mode="relay", rounds=2, out=tmp_path / "map")
+    assert len(fmap.rows) == 4
+    traces = {}
+    for row in fmap.rows:
+        dos, fdi = row["dos"], row["fdi"]
+        d = api.design(str(path), mode="relay", rounds=2, dos=dos, fdi=fdi, steps=3, out=tmp_path / f"d{dos}_{fdi}")
+        rec = d.schedule.meta["stationary_certificate"]
+        assert row["verdict"] == rec["verdict"] == "certified"
+        np.testing.assert_allclose(row["trace_bound"], np.mean(rec["trace"]), rtol=1e-12)
+        traces[dos, fdi] = row["trace_bound"]
+    # more losses or more falsification: a larger expected covariance
+    assert traces[0.1, 0.0] < traces[0.4, 0.0] < traces[0.4, 0.1] and traces[0.1, 0.0] < traces[0.1, 0.1]
+
+
+def test_every_batched_filter_refuses_a_model_with_inputs_run_without_them():
+    """batch_inputs, which every batched filter calls, names ``inputs`` before the model is evaluated (KCF, HCMCI and
+    the consensus filters used to fail deep in f with a CasADi shape error)."""
+    import casadi as ca
+
+    from designer.model import Model, Sensor
+    from designer.noise import Gaussian
+    from designer.validation import InputError
+    from filters.distributed import run_hcmci_batch, run_kcf_batch
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    driven = Model("driven", x, ca.vertcat(x[0] + u[0], x[1]),
+                   [Sensor(f"s{i}", x[i % 2], Gaussian.zero_mean([[1.0]])) for i in range(N)],
+                   Gaussian.zero_mean(np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)), u=u)
+    net = network()
+    z = np.zeros((2, 5, N))
+    paper = make_design(driven, net, delta=0.0, options=DesignOptions(mode="paper"), x0=driven.prior.mean,
+                        u0=np.zeros(1))
+    relay = make_design(driven, net, delta=0.0, options=DesignOptions(mode="relay", rounds=2), x0=driven.prior.mean,
+                        u0=np.zeros(1))
+    runs = [lambda **kw: run_kcf_batch(driven, net, z, **kw), lambda **kw: run_hcmci_batch(driven, net, z, **kw),
+            lambda **kw: run_consensus_batch(driven, net, z, paper, **kw),
+            lambda **kw: run_consensus_batch(driven, net, z, relay, **kw)]
+    for run in runs:
+        with pytest.raises(InputError, match=r"inputs must have shape \(5, 1\)"):
+            run()
+        with pytest.raises(InputError, match=r"inputs must have shape \(5, 1\)"):
+            run(inputs=np.zeros((5, 2)))
+        run(inputs=np.zeros((5, 1)))  # given: runs
