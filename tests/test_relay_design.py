@@ -119,6 +119,12 @@ def test_relay_design_of_a_users_model_file(tmp_path, capsys):
     assert rows[2]["expected_rmse"] == pytest.approx(np.sqrt(np.mean(cert["trace"])), rel=1e-9)
     trace = np.asarray(rec["trace_bound"], dtype=float)
     assert trace.shape == (12, 25) and np.all(np.isfinite(trace)) and np.all(trace > 0)
+    # its gains are computed online: replaying the design's run as a schedule is refused, saying what to run
+    capsys.readouterr()
+    code = main(["study", "consensus-robot", str(path), "--schedule", str(out), "--runs", "2", "--out",
+                 str(tmp_path / "replay")])
+    err = capsys.readouterr().err
+    assert code == 2 and "is a relay design" in err and "--mode relay" in err, err
 
 
 @pytest.mark.parametrize("extra, needle", [
