@@ -271,7 +271,8 @@ def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.nd
 
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
                  rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
-    """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(W, P_post)``.
+    """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(W, P_post)``, ``W``
+    (..., n, G n) one n x n block per hop depth.
 
     ``P_pred`` (..., n, n) the node's predicted covariance; ``Hw`` (..., r, n) the whitened Jacobian rows
     ``R_a^{-1/2} H_a`` of its ball's measurements (``mom.rows`` order) at its prediction; ``M``, ``mu`` the
@@ -336,8 +337,7 @@ def _inverse_root(R: np.ndarray) -> np.ndarray:
 STATIONARY_TOL = 1e-9
 #: The most iterations of the stationary recursion.
 STATIONARY_MAX = 5000
-#: The LMI's relative residual (its solution's own recursion step above it, relative to its largest eigenvalue)
-#: below which the fixed point counts as confirmed (as :data:`studies.consensus_design.LMI_TOLERANCE`).
+#: A node's trace beyond which the stationary recursion is taken to grow without settling.
 _BOUND_LIMIT = 1e12
 
 
