@@ -320,17 +320,17 @@ def relay_information(Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.n
 def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
     """(..., n_z, n) every sensor's whitened Jacobian rows ``R_s^{-1/2} H_s(x)`` at the points ``x`` (..., n), in
     the model's measurement order (``model.sensor_dims``)."""
+    from .scheduled import sqrtm_psd  # late: the scheduled design's modules, not needed for the routes
+
     x = np.asarray(x, dtype=float)
-    out = []
-    for s in range(model.n_sensors):
-        H = np.asarray(model.H(s, x, k), dtype=float)
-        out.append(_inverse_root(model.measurement_cov(s)) @ H)
-    return np.concatenate(out, axis=-2)
+    return np.concatenate([sqrtm_psd(model.measurement_cov(s), inverse=True) @ np.asarray(model.H(s, x, k), dtype=float)
+                           for s in range(model.n_sensors)], axis=-2)
 
 
-def _inverse_root(R: np.ndarray) -> np.ndarray:
-    lam, V = np.linalg.eigh(np.asarray(R, dtype=float))
-    return (V / np.sqrt(lam)) @ V.T
+def _ball_rows(mom: NodeMoments, offsets: np.ndarray) -> np.ndarray:
+    """The rows of the model's stacked measurement (``offsets``: each sensor's first row) that a node's ball holds,
+    in its moments' order."""
+    return np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
 
 
 #: The relative change of every node's trace below which the stationary recursion has reached its fixed point.
@@ -379,10 +379,9 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     Phi = np.empty((N, n, n))
     W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth
     iterations = 0
-    for r, nodes in _groups(moments).items():
+    for nodes in _groups(moments).values():
         mom = _stack(moments, nodes)
-        rows = np.stack([np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in moments[i].sensors])
-                         for i in nodes])
+        rows = np.stack([_ball_rows(moments[i], offsets) for i in nodes])
         Hw = Hall[rows]  # (g, r, n)
         P = np.broadcast_to(np.asarray(model.prior.cov, dtype=float), (nodes.size, n, n))
         prev = np.trace(P, axis1=-2, axis2=-1)
@@ -420,8 +419,7 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
     basis = np.eye(n * n).reshape(n * n, n, n)
     maps, consts = [], []
     for i, mom in enumerate(moments):
-        rows = np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
-        Hw = Hall[rows]
+        Hw = Hall[_ball_rows(mom, offsets)]
         Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
         Q0 = _rows_to_groups(K0, Hw, Hg, mom.groups)
         Wi = W[i]
