@@ -283,7 +283,8 @@ def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[
     stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`); for a
     rule that relays, its stationary certificate and its trade-off (:func:`relay_tradeoff`)."""
     if gain_rule(design.mode).relays:
-        return stationary_record(sc, design), relay_tradeoff(sc, design)
+        record = stationary_record(sc, design)
+        return record, relay_tradeoff(sc, design, record)
     return stationary_record(sc, design), other_rounds(sc, design, steps)
 
 
@@ -291,12 +292,12 @@ def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[
 RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
 
 
-def relay_tradeoff(sc: Scenario, design: ConsensusDesign) -> dict:
+def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = None) -> dict:
     """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
     diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
     measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
     operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
-    without its LMI)."""
+    without its LMI); the design's own hops from its stationary ``record`` (:func:`stationary_record`) when given."""
     from designer.relay import diameter, relay_routes, relay_stationary
 
     x0, u0 = sc.operating_point
@@ -304,8 +305,11 @@ def relay_tradeoff(sc: Scenario, design: ConsensusDesign) -> dict:
     hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
     rows = []
     for L in hops:
-        cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False)
-        rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
+        if record is not None and L == design.rounds:  # the certificate's own fixed point
+            rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
+        else:
+            cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False)
+            rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
         rows.append({"rounds": L, "messages_per_step": net.messages_per_step(L),
                      "values_per_step": relay_routes(net, L).values_per_step(), "expected_rmse": rmse,
                      "designed": L == design.rounds})

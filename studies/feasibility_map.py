@@ -308,8 +308,9 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
 
 
 def _scheduled_row(sc: Scenario, design) -> dict:
-    """A grid point of a rule with a stationary certificate (scheduled, relay): the stationary certificate that ``cfdesign design`` records for the same
-    options (:func:`studies.consensus_design.stationary_record`), so that map and design agree by construction."""
+    """A grid point of a rule with a stationary certificate (scheduled, relay): the stationary certificate that
+    ``cfdesign design`` records for the same options (:func:`studies.consensus_design.stationary_record`), so that
+    map and design agree by construction."""
     try:
         rec = stationary_record(sc, design)
     except _POINT_ERRORS as exc:
