@@ -15,6 +15,15 @@ used: the routes are fixed by the network, so the probability that a measurement
 channels of its route, and two measurements whose routes share channels arrive together more often than
 independent ones (:meth:`Routes.arrival_moments`).
 
+**Flooding** (``routing='flood'``, gain rule ``flood``).  A node forwards, in round r, every measurement it first
+received in round r - 1, to all its neighbours, and keeps the first copy of each measurement that reaches it (of
+copies arriving in the same round, its lowest-numbered neighbour's): a measurement arrives whenever some path of
+the step's surviving channels reaches the node within L hops (:meth:`Routes.realise`), and the copy taken is
+falsified by the channels of the path it took.  The packets are the same one per channel and round; they carry
+more values.  The probability that some path survives has no closed form (network reliability): the arrival and
+falsification moments are estimated by Monte Carlo of the channels (:func:`flood_moments`), once per network from
+a fixed seed, and carry that sampling error.
+
 **Attacks.**  As for every exchange in cfdesign, the channels' draws hold for all the rounds of a step: a channel
 lost to DoS loses everything it carries in the step (the measurements whose routes cross it do not arrive); a
 falsified channel displaces every measurement it carries as if the state were displaced by its ``ξ``:
@@ -31,9 +40,10 @@ from scipy.sparse.csgraph import shortest_path
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
+__all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
            "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
-           "update_moments", "relay_information"]
+           "update_moments", "relay_information", "flood_moments",
+           "relay_moments", "flood_samples"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
 #: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
@@ -41,6 +51,8 @@ MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, 
 #: within about 2 x the centralized filter's on runs without attacks, README; the packets then carry up to a few
 #: hundred measurements).
 DEFAULT_HOPS_MAX = 8
+#: Which copy of a relayed measurement a node takes (:class:`Routes`): its tree parent's, or the first to arrive.
+ROUTINGS = ("tree", "flood")
 
 
 class Routes(NamedTuple):
@@ -52,6 +64,13 @@ class Routes(NamedTuple):
     sender received it as pair ``parent[p]`` (-1 when the sender is the source).  Pairs are sorted by depth, then
     node, then source, so that a pass in order meets every pair after its parent.  ``incidence`` (pairs x
     channels, sparse 0/1) marks the channels of each pair's route.
+
+    ``routing`` says which copy a node takes: ``'tree'``, the copy of its tree parent ``sender`` only (the route
+    above); ``'flood'``, the first copy to arrive from any neighbour (module docstring, "Flooding").  The copies a
+    node may take are its *candidates* ``cand_parent``, ``cand_channel`` (pairs x D, in the order the node prefers
+    them, -1-padded channels): the pair of the neighbour that forwards it (-1: the neighbour is the source) and the
+    channel.  A tree has one candidate per pair, its parent; flooding every neighbour that holds the measurement
+    within ``hops - 1`` hops, lowest-numbered first (:meth:`realise`).
     """
 
     hops: int
@@ -63,6 +82,9 @@ class Routes(NamedTuple):
     channel: np.ndarray
     parent: np.ndarray
     incidence: sp.csr_matrix
+    routing: str = "tree"
+    cand_parent: np.ndarray | None = None
+    cand_channel: np.ndarray | None = None
 
     @property
     def n_pairs(self) -> int:
@@ -77,16 +99,40 @@ class Routes(NamedTuple):
         return 1 + np.bincount(self.node, minlength=self.n_nodes)
 
     def arrival_prob(self, network: SensorNetwork) -> np.ndarray:
-        """(pairs,) the probability that the pair's measurement arrives: no channel of its route lost to DoS."""
+        """(pairs,) the probability that the pair's measurement arrives along its tree route: no channel of its route
+        lost to DoS (for ``routing='tree'``; flooding's is at least this, :func:`flood_moments`)."""
         return np.exp(self.incidence @ _log_up(network))
+
+    def realise(self, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which copy of every pair arrives in one step, over a batch: ``up`` (a, channels) bool, the channels that
+        deliver (not lost to DoS).  Returns ``(rnd, parent, channel)`` (a, pairs): the round in which the pair's
+        measurement first arrived (0: it did not), the pair of the copy taken (-1: from the source itself, or none)
+        and its channel (-1: none).
+
+        Round by round (1..hops), a pair that has not arrived takes its first candidate (:class:`Routes`) whose
+        forwarding node received the measurement in the previous round (the source: round 0) and whose channel
+        delivers: what a node does that forwards, in round r, the measurements it first received in round r - 1
+        and keeps the first copy of each, from its lowest-numbered neighbour among those that arrive together."""
+        up = np.ascontiguousarray(up, dtype=bool)
+        a, P = up.shape[0], self.n_pairs
+        rnd = np.zeros((a, P), dtype=np.int16)
+        parent = np.full((a, P), -1)
+        channel = np.full((a, P), -1)
+        if P:
+            ends = np.searchsorted(self.depth, np.arange(1, self.hops + 1), side="right")  # pairs sorted by depth
+            _kernel(_realise_loop)(up, np.ascontiguousarray(self.cand_parent), np.ascontiguousarray(self.cand_channel),
+                              ends, rnd, parent, channel)
+        return rnd, parent, channel
 
     def messages_per_step(self, network: SensorNetwork) -> int:
         """Packets per step: one per directed channel and round, ``2 |E| hops`` (as for the exchange rounds)."""
         return network.messages_per_step(self.hops)
 
     def values_per_step(self) -> int:
-        """Measurements forwarded per step over all channels (a packet carries those of its round): one per pair."""
-        return self.n_pairs
+        """Measurements forwarded per step over all channels (a packet carries those of its round): along a tree one
+        per pair; flooding, at most one per candidate (every node forwards each measurement it holds within
+        ``hops - 1`` hops to every neighbour but its source, once)."""
+        return self.n_pairs if self.routing == "tree" else int(np.count_nonzero(self.cand_channel >= 0))
 
     def arrival_moments(self, network: SensorNetwork, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                                         np.ndarray]:
@@ -119,6 +165,77 @@ class Routes(NamedTuple):
         return np.exp(s_up), A, A * F1, F2
 
 
+def _realise_loop(up, cand_parent, cand_channel, ends, rnd, parent, channel):  # pragma: no cover (compiled)
+    """:meth:`Routes.realise`'s loop (compiled by :func:`_kernel`): in round r only the pairs of depth <= r
+    (``ends[r - 1]`` first pairs) that have not arrived are examined, a node being reached no sooner than its depth."""
+    for w in range(up.shape[0]):
+        for r in range(1, ends.size + 1):
+            for p in range(ends[r - 1]):
+                if rnd[w, p] != 0:
+                    continue
+                for c in range(cand_parent.shape[1]):
+                    ch = cand_channel[p, c]
+                    if ch < 0 or not up[w, ch]:
+                        continue
+                    q = cand_parent[p, c]
+                    if (r == 1 and q >= 0) or (r > 1 and (q < 0 or rnd[w, q] != r - 1)):
+                        continue
+                    rnd[w, p] = r
+                    parent[w, p] = q
+                    channel[w, p] = ch
+                    break
+
+
+def _falsified_loop(rnd, parent, channel, fals):  # pragma: no cover (compiled)
+    """:func:`flood_moments`' walk (compiled by :func:`_kernel`): for every copy that arrived, the falsified channels
+    of its path (its own and its parents' up to the source): ``(count (a, P), pair (F,), draw_channel (F,))``, the
+    second and third the entries (pair, draw * channels + channel) of every falsified channel of every path."""
+    a, P = rnd.shape
+    E = fals.shape[1]
+    count = np.zeros((a, P), dtype=np.float32)
+    total = 0
+    for w in range(a):
+        for p in range(P):
+            if rnd[w, p] == 0:
+                continue
+            q = p
+            c = 0
+            while q >= 0:
+                if fals[w, channel[w, q]]:
+                    c += 1
+                q = parent[w, q]
+            count[w, p] = c
+            total += c
+    pair = np.empty(total, dtype=np.int64)
+    col = np.empty(total, dtype=np.int64)
+    k = 0
+    for w in range(a):
+        for p in range(P):
+            if count[w, p] == 0:
+                continue
+            q = p
+            while q >= 0:
+                if fals[w, channel[w, q]]:
+                    pair[k] = p
+                    col[k] = w * E + channel[w, q]
+                    k += 1
+                q = parent[w, q]
+    return count, pair, col
+
+
+_KERNELS: dict = {}
+
+
+def _kernel(loop):
+    """``loop`` compiled with numba (on first use, cached on disk: once per machine; numba imported here, not when
+    the routes are listed)."""
+    if loop.__name__ not in _KERNELS:
+        import numba
+
+        _KERNELS[loop.__name__] = numba.njit(nogil=True, cache=True)(loop)
+    return _KERNELS[loop.__name__]
+
+
 def _channel_values(network: SensorNetwork, matrix: np.ndarray) -> np.ndarray:
     """A per-channel quantity ``matrix[receiver, sender]`` (N x N) in channel order."""
     receiver, sender = np.nonzero(network.adjacency)
@@ -143,11 +260,14 @@ def default_hops(network: SensorNetwork) -> int:
     return max(1, min(diameter(network), DEFAULT_HOPS_MAX))
 
 
-def relay_routes(network: SensorNetwork, hops: int) -> Routes:
-    """The routes of every sensor's measurement over at most ``hops`` channels (``1 <= hops <= MAX_HOPS``)."""
+def relay_routes(network: SensorNetwork, hops: int, routing: str = "tree") -> Routes:
+    """The routes of every sensor's measurement over at most ``hops`` channels (``1 <= hops <= MAX_HOPS``), the
+    copies a node takes chosen by ``routing`` (:data:`ROUTINGS`, :class:`Routes`)."""
     if not isinstance(network, SensorNetwork):
         raise InputError(f"network must be a designer.SensorNetwork, got {type(network).__name__}")
     hops = check_int("hops", hops, 1, MAX_HOPS)
+    if routing not in ROUTINGS:
+        raise InputError(f"routing must be one of {', '.join(map(repr, ROUTINGS))}, got {routing!r}")
     N = network.n_nodes
     adj = network.adjacency
     dist = shortest_path(sp.csr_matrix(adj.astype(float)), unweighted=True)  # dist[s, i]
@@ -179,8 +299,24 @@ def relay_routes(network: SensorNetwork, hops: int) -> Routes:
     inc = sp.csr_matrix((np.ones(sum(r.size for r in routes)), (np.concatenate(rows) if rows else [],
                                                                  np.concatenate(cols) if cols else [])),
                         shape=(P, E))
-    return Routes(hops, N, np.array(src, dtype=int), np.array(nod, dtype=int), np.array(dep, dtype=int),
-                  np.array(snd, dtype=int), channel, parent, inc)
+    source, node = np.array(src, dtype=int), np.array(nod, dtype=int)
+    if routing == "tree":
+        cand_parent, cand_channel = parent[:, None], channel[:, None]
+    else:  # every neighbour j of the node holding the measurement within hops - 1 hops, lowest-numbered first
+        pair_index = np.full((N, N), -2)  # pair_index[s, j]: the pair of s's measurement at j (-1: j is s)
+        pair_index[source, node] = np.arange(P)
+        pair_index[np.arange(N), np.arange(N)] = -1
+        deg = adj.sum(axis=1)
+        D = max(int(deg.max()) if N else 0, 1)
+        nbr = np.full((N, D), -1)
+        for i in range(N):
+            nbr[i, :deg[i]] = np.flatnonzero(adj[i])
+        j = nbr[node]  # (P, D)
+        ok = (j >= 0) & (dist[source[:, None], np.maximum(j, 0)] <= hops - 1)
+        cand_parent = np.where(ok, pair_index[source[:, None], np.maximum(j, 0)], -1)
+        cand_channel = np.where(ok, channel_of[node[:, None], np.maximum(j, 0)], -1)
+    return Routes(hops, N, source, node, np.array(dep, dtype=int), np.array(snd, dtype=int), channel, parent, inc,
+                  routing, cand_parent, cand_channel)
 
 
 class NodeMoments(NamedTuple):
@@ -198,15 +334,105 @@ class NodeMoments(NamedTuple):
     groups: np.ndarray
 
 
-def node_moments(routes: Routes, network: SensorNetwork, dims, i: int) -> NodeMoments:
-    """Node ``i``'s :class:`NodeMoments`; ``dims`` (n_sensors,) each sensor's measurement dimension."""
+def node_moments(routes: Routes, network: SensorNetwork, dims, i: int, ball_moments=None) -> NodeMoments:
+    """Node ``i``'s :class:`NodeMoments`; ``dims`` (n_sensors,) each sensor's measurement dimension;
+    ``ball_moments`` its ``(p, A, F1, F2)`` over its ball (default :meth:`Routes.arrival_moments`, a tree's)."""
     ball = routes.ball(i)
-    p, A, F1, F2 = routes.arrival_moments(network, i)
+    p, A, F1, F2 = routes.arrival_moments(network, i) if ball_moments is None else ball_moments
     depth = np.concatenate([[0], routes.depth[routes.node == i]]).astype(int)
     owner = np.repeat(np.arange(ball.size), np.asarray(dims, int)[ball])
     ix = np.ix_(owner, owner)
     groups = np.eye(routes.hops + 1)[depth[owner]]
     return NodeMoments(ball, ball[owner], p[owner], A[ix], F1[ix], F2[ix], groups)
+
+
+#: The channel draws of flooding's Monte Carlo moments (:func:`flood_moments`): as many as fit in this many pair
+#: draws, between FLOOD_SAMPLES_MIN and FLOOD_SAMPLES_MAX (an assumption, chosen: about 20 s on the 512-node grid).
+FLOOD_PAIR_DRAWS = 40_000_000
+FLOOD_SAMPLES_MIN = 256
+FLOOD_SAMPLES_MAX = 20_000
+#: The seed of the Generator behind a design's flooding moments when none is given: the moments are part of the
+#: design, the same network gives the same moments in the design, its certificate and its filter.
+FLOOD_SEED = 20261204
+
+
+def flood_samples(routes: Routes) -> int:
+    """The channel draws :func:`flood_moments` takes by default for ``routes``."""
+    return int(np.clip(FLOOD_PAIR_DRAWS // max(routes.n_pairs, 1), FLOOD_SAMPLES_MIN, FLOOD_SAMPLES_MAX))
+
+
+def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generator | None = None,
+                  samples: int | None = None) -> list[tuple]:
+    """Every node's ``(p, A, F1, F2)`` over its ball (the quantities of :meth:`Routes.arrival_moments`) for the
+    copies :meth:`Routes.realise` takes, by Monte Carlo over ``samples`` (default :func:`flood_samples`) draws of
+    the channels (DoS with probability ``dos_prob``, else FDI with ``fdi_prob``, as the simulations draw them)
+    from ``rng`` (default ``numpy.random.default_rng(FLOOD_SEED)``).  A measurement's falsification is the sum
+    of the offsets of the falsified channels of the path its copy took (``S_a``), so that ``F1 = E[γ_a γ_b |S_a ∩
+    S_b|]`` and ``F2 = E[γ_a γ_b (|S_a| |S_b| - |S_a ∩ S_b|)]``.  The estimates are unbiased (sample means of the
+    same products); their sampling error is that of ``samples`` draws."""
+    rng = np.random.default_rng(FLOOD_SEED) if rng is None else rng
+    samples = flood_samples(routes) if samples is None else check_int("samples", samples, 1, 10 ** 7)
+    P, N = routes.n_pairs, routes.n_nodes
+    dos = _channel_values(network, network.dos_prob)
+    fdi = _channel_values(network, network.fdi_prob)
+    E = dos.size
+    D = routes.cand_parent.shape[1] if P else 1
+    chunk = int(max(1, 4_000_000 // max(P * D, 1)))
+    arrived = np.zeros((P, samples), dtype=bool)
+    count = np.zeros((P, samples), dtype=np.float32)  # |S_a|: the falsified channels on the copy's path
+    ent_row, ent_col = [], []  # the entries (pair, draw * E + channel) of the falsified channels of each path
+    for start in range(0, samples, chunk):
+        a = min(chunk, samples - start)
+        u = rng.random((a, E))
+        lost = u < dos
+        fals = ~lost & (u < dos + fdi)
+        rnd, parent, channel = routes.realise(~lost)
+        arrived[:, start:start + a] = (rnd > 0).T
+        c, q, col = _kernel(_falsified_loop)(rnd, parent, channel, np.ascontiguousarray(fals))
+        count[:, start:start + a] = c.T
+        ent_row.append(q)
+        ent_col.append(col + start * E)
+    S = sp.csr_matrix((np.ones(sum(x.size for x in ent_row)), (np.concatenate(ent_row) if ent_row else [],
+                                                                np.concatenate(ent_col) if ent_col else [])),
+                      shape=(P, samples * E))
+    out = []
+    for i in range(N):
+        idx = np.flatnonzero(routes.node == i)
+        G = arrived[idx].astype(float)
+        C = count[idx].astype(float)
+        X = S[idx]
+        m = idx.size + 1
+        p = np.ones(m)
+        p[1:] = G.mean(axis=1)
+        A = np.ones((m, m))
+        A[1:, 1:] = G @ G.T / samples
+        A[0, 1:] = A[1:, 0] = p[1:]
+        F1 = np.zeros((m, m))
+        F1[1:, 1:] = (X @ X.T).toarray() / samples
+        F2 = np.zeros((m, m))
+        F2[1:, 1:] = C @ C.T / samples - F1[1:, 1:]
+        out.append((p, A, F1, F2))
+    return out
+
+
+def relay_moments(routes: Routes, network: SensorNetwork, dims, rng: np.random.Generator | None = None
+                  ) -> list[NodeMoments]:
+    """Every node's :class:`NodeMoments` for ``routes``: in closed form for a tree (:meth:`Routes.arrival_moments`),
+    by Monte Carlo for flooding (:func:`flood_moments`, ``rng`` its Generator)."""
+    if routes.routing == "tree":
+        return [node_moments(routes, network, dims, i) for i in range(routes.n_nodes)]
+    if rng is not None:
+        balls = flood_moments(routes, network, rng)
+    else:  # the design's own moments (FLOOD_SEED): its certificate, its run and its filter take the same, once
+        key = (routes.hops, network.adjacency.tobytes(), network.dos_prob.tobytes(), network.fdi_prob.tobytes())
+        if _FLOOD_MEMO.get("key") != key:
+            _FLOOD_MEMO.clear()  # one network's at a time: at 512 nodes and 8 hops they take a few hundred MB
+            _FLOOD_MEMO.update(key=key, balls=flood_moments(routes, network))
+        balls = _FLOOD_MEMO["balls"]
+    return [node_moments(routes, network, dims, i, b) for i, b in enumerate(balls)]
+
+
+_FLOOD_MEMO: dict = {}
 
 
 def grouped(Hw: np.ndarray, groups: np.ndarray) -> np.ndarray:
@@ -365,7 +591,9 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
     from .scheduled import StationaryCertificate
 
-    routes = relay_routes(network, design.rounds)
+    from .gain_rules import gain_rule
+
+    routes = relay_routes(network, design.rounds, gain_rule(design.mode).routing)
     x = np.asarray(x, dtype=float)
     n = model.n_x
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)
@@ -374,7 +602,7 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
     mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
-    moments = [node_moments(routes, network, model.sensor_dims, i) for i in range(network.n_nodes)]
+    moments = relay_moments(routes, network, model.sensor_dims)
     N = network.n_nodes
     Phi = np.empty((N, n, n))
     W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth

@@ -1,7 +1,8 @@
 """The relay filter: every node fuses the measurements of its L-hop ball in one update per step, batched over runs.
 
 Each step every sensor's measurement is relayed over ``hops`` exchange rounds along its source's breadth-first tree
-(:func:`designer.relay.relay_routes`), so that node ``i`` holds the step's measurements of every sensor within
+(``routing='tree'``, :func:`designer.relay.relay_routes`) or flooded, each node forwarding the first copy it gets
+from any neighbour (``routing='flood'``), so that node ``i`` holds the step's measurements of every sensor within
 ``hops`` hops (its ball, :meth:`designer.relay.Routes.ball`) that arrived.  Node ``i`` at step ``k``::
 
     x̂⁻_i = f(x̂_i),   P⁻_i = F P_i Fᵀ + Q                              (F at its own estimate)
@@ -18,11 +19,12 @@ falsification's signal (:class:`designer.attacks.FDISignal`).  The node's own me
 never falsified.
 
 **Attacks** (:class:`filters.consensus_batch.EdgeAttacks`, one draw per channel and step for all rounds): pair ``p``
-(sensor ``s``'s measurement at node ``i``, :class:`designer.relay.Routes`) arrives iff its channel is not lost to
-DoS and its parent pair arrived (or its sender is the source); it carries ``z_s + o_p`` with
-``o_p = o_parent + fdi[k, channel_p] H_s(x̂⁻_sender) ξ[k, channel_p]`` (a falsified channel displaces what it
-forwards as if the state were displaced by its ``ξ``, ``H_s`` at the forwarding node's prediction, as the scheduled
-filter falsifies a measurement).
+(sensor ``s``'s measurement at node ``i``, :class:`designer.relay.Routes`) arrives when the copy the routing takes
+arrives (:meth:`designer.relay.Routes.realise`: along a tree, iff its channel is not lost to DoS and its parent pair
+arrived; flooding, the first copy from any neighbour); it carries ``z_s + o_p`` with
+``o_p = o_parent + fdi[k, channel_p] H_s(x̂⁻_sender) ξ[k, channel_p]``, parent, channel and sender those of the copy
+taken (a falsified channel displaces what it forwards as if the state were displaced by its ``ξ``, ``H_s`` at the
+forwarding node's prediction, as the scheduled filter falsifies a measurement).
 
 **Messages**: ``2 |E| hops`` packets per step (one per directed channel and round, a packet lost to DoS counted);
 delivered: the channels not lost to DoS times ``hops``.  **Divergence**: as the other batched filters, a run whose
@@ -34,7 +36,7 @@ go on.
 Each step, every sensor's ``h_s`` and ``H_s`` are evaluated once, at the predictions of every node of its ball
 (the receivers and, among them, the forwarding nodes) over all runs; the values are kept in one flat array of
 measurement rows laid out node by node (each node's rows contiguous, in its moments' order), so that the
-arrivals and offsets are a pass over the route depths and each node's update takes a slice.  Each node's update is
+arrivals and offsets are a pass over the rounds and each node's update takes a slice.  Each node's update is
 one :func:`designer.relay.relay_update` over the runs.  A run alone is a batch of one.
 """
 from __future__ import annotations
@@ -48,7 +50,7 @@ from designer.design import ConsensusDesign, validate_design
 from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import MAX_HOPS, NodeMoments, Routes, node_moments, relay_information, relay_routes, relay_update
+from designer.relay import MAX_HOPS, NodeMoments, Routes, relay_information, relay_moments, relay_routes, relay_update
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
@@ -69,14 +71,13 @@ class _Layout(NamedTuple):
     :func:`designer.relay.node_moments`), a slot of sensor ``s`` taking ``m_s`` consecutive rows."""
 
     start: np.ndarray  # (N + 1,) each node's first row (and the total number of rows)
-    sensor_slots: list  # per sensor s: (its slots' nodes (n_s,), their rows (n_s, m_s), its pairs' local
-    #                     index among them (pairs_s,), their senders' local index (pairs_s,), their channels)
+    sensor_slots: list  # per sensor s: (its slots' nodes (n_s,), their rows (n_s, m_s), its pairs (pairs_s,))
+    pair_local: np.ndarray  # (P,) each pair's index among its sensor's slots (the source's own slot is 0)
     zcol: np.ndarray  # (T,) each row's column of the stacked measurement z
-    levels: list  # per depth d = 1..hops: (the pairs at depth d, their parents (None at d = 1), their rows, the
-    #               parents' rows (None at d = 1))
+    slot_first: np.ndarray  # (N + P,) each slot's first row
     pair_rows: np.ndarray  # the rows of the pairs (not a node's own measurement)
     pair_of_row: np.ndarray  # (len(pair_rows),) their pairs
-    channel: np.ndarray  # (P,) each pair's channel
+    comp_of_row: np.ndarray  # (len(pair_rows),) their component within the measurement
     angle_rows: np.ndarray  # rows of angular components (wrapped)
     scale: np.ndarray | None  # (T,) R^{-1/2} of the rows of scalar sensors (1 elsewhere; None: all 1)
     whiten: list  # per sensor dimension m > 1: (the rows of its slots (n_m, m), R^{-1/2} of their sensors (n_m, m, m))
@@ -85,7 +86,6 @@ class _Layout(NamedTuple):
 def _layout(model: Model, routes: Routes) -> _Layout:
     N, P = routes.n_nodes, routes.n_pairs
     dims = np.asarray(model.sensor_dims, dtype=int)
-    offsets = np.concatenate([[0], np.cumsum(dims)])
     slot_sensor = np.concatenate([np.arange(N), routes.source])
     slot_node = np.concatenate([np.arange(N), routes.node])
     order = np.argsort(slot_node, kind="stable")  # node by node: own slot (index i < N) first, pairs in pair order
@@ -96,29 +96,17 @@ def _layout(model: Model, routes: Routes) -> _Layout:
     start = np.append(first[:N], T)
     comp = np.arange(T) - np.repeat(first[order], length[order])
     row_slot = np.repeat(order, length[order])
+    offsets = np.concatenate([[0], np.cumsum(dims)])
     zcol = offsets[slot_sensor[row_slot]] + comp
     pair_rows = np.flatnonzero(row_slot >= N)
     pair_of_row = row_slot[pair_rows] - N
-    levels = []
-    for d in range(1, routes.hops + 1):
-        pairs = np.flatnonzero(routes.depth == d)
-        rows = pair_rows[routes.depth[pair_of_row] == d]
-        if d == 1:
-            levels.append((pairs, None, rows, None))
-        else:
-            parent_rows = first[N + routes.parent[row_slot[rows] - N]] + comp[rows]
-            levels.append((pairs, routes.parent[pairs], rows, parent_rows))
     sensor_slots = []
+    pair_local = np.zeros(P, dtype=int)
     for s in range(model.n_sensors):
         pairs = np.flatnonzero(routes.source == s)
         slots = np.concatenate([[s], N + pairs])
-        rows = first[slots][:, None] + np.arange(dims[s])
-        # the sender of pair p is the source (local slot 0) or the node of its parent pair (whose slot is N + parent)
-        local = np.full(N + P, -1)
-        local[slots] = np.arange(slots.size)
-        par = routes.parent[pairs]
-        sender_local = np.where(par < 0, 0, local[N + np.maximum(par, 0)])
-        sensor_slots.append((slot_node[slots], rows, np.arange(1, slots.size), sender_local, routes.channel[pairs]))
+        pair_local[pairs] = np.arange(1, slots.size)
+        sensor_slots.append((slot_node[slots], first[slots][:, None] + np.arange(dims[s]), pairs))
     angle_rows = np.flatnonzero(np.array([c in model.sensors[s].angles
                                           for s, c in zip(slot_sensor[row_slot], comp)], dtype=bool)) \
         if any(sen.angles for sen in model.sensors) else np.zeros(0, dtype=int)
@@ -130,7 +118,7 @@ def _layout(model: Model, routes: Routes) -> _Layout:
     for m in sorted(set(dims.tolist()) - {1}):
         slots = np.flatnonzero(length == m)
         whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
-    return _Layout(start, sensor_slots, zcol, levels, pair_rows, pair_of_row, routes.channel, angle_rows,
+    return _Layout(start, sensor_slots, pair_local, zcol, first, pair_rows, pair_of_row, comp[pair_rows], angle_rows,
                    None if np.all(scale == 1.0) else scale, whiten)
 
 
@@ -150,7 +138,7 @@ def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, 
 
 def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                    signal: FDISignal | None = None) -> DistributedBatchResult:
+                    signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
     """The relay filter (module docstring) at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -164,6 +152,9 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     x0, P0 : every node's initial estimate and covariance, (n_x,) / (n_x, n_x) or one per run (default the prior's).
     signal : :class:`designer.attacks.FDISignal`, the falsification the relay rule designs for (its ``E[ξ ξᵀ]`` and
         ``E[ξ]``); required when the network's channels carry FDI.
+    routing : {'tree', 'flood'} (:data:`designer.relay.ROUTINGS`): which copy of a relayed measurement a node takes,
+        its tree parent's (default) or the first to arrive from any neighbour (:meth:`designer.relay.Routes.realise`;
+        the moments then by Monte Carlo, :func:`designer.relay.flood_moments`).
 
     Returns a :class:`filters.distributed.DistributedBatchResult` (``iterations`` = ``hops``; ``P_post`` each node's
     expected posterior covariance of the relay rule).
@@ -177,9 +168,9 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     M, mu = _check_signal(signal, network, model.n_x)
     n, nx = network.n_nodes, model.n_x
-    routes = relay_routes(network, hops)
+    routes = relay_routes(network, hops, routing)
     lay = _layout(model, routes)
-    moments = [_lean(node_moments(routes, network, model.sensor_dims, i), M, mu) for i in range(n)]
+    moments = [_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)]
     x_post = np.full((runs, steps + 1, n, nx), np.nan)
     P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
     x_pred = np.full((runs, steps, n, nx), np.nan)
@@ -212,7 +203,7 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         else:
             dos, fdi, xi = attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
             delivered[act, k] = (~dos).sum(axis=-1) * hops
-        x, P = _update(model, lay, moments, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
+        x, P = _update(model, routes, lay, moments, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
         x_post[act, k + 1], P_post[act, k + 1] = x, P
         act = act[stop_diverged(violations, act, diverged_nodes(x, P), k + 1, nan_from=(x_post, P_post),
                                 nan_before=(x_pred, P_pred))]
@@ -227,7 +218,7 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
     return mom._replace(F1=mom.F1 if np.any(M) else zero, F2=mom.F2 if np.any(mu) else zero)
 
 
-def _update(model: Model, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
+def _update(model: Model, routes: Routes, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
     ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none)."""
     a, n, nx = xp.shape
@@ -235,26 +226,31 @@ def _update(model: Model, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp
     Hw = np.empty((a, T, nx))
     h = np.empty((a, T))
     inj = np.zeros((a, T))
-    for s, (nodes, rows, pairs, sender, chan) in enumerate(lay.sensor_slots):
+    rnd, parent, channel = routes.realise(np.ones((a, routes.incidence.shape[1]), dtype=bool)
+                                          if dos is None else ~dos)
+    for s, (nodes, rows, pairs) in enumerate(lay.sensor_slots):
         at = xp[:, nodes]  # (a, n_s, nx): the predictions of the nodes that hold s's measurement
         H = model.H(s, at, k + 1)  # (a, n_s, m_s, nx)
         h[:, rows] = model.h(s, at, k + 1)
         Hw[:, rows] = H  # whitened below
         if fdi is not None and pairs.size:
-            r, q = np.nonzero(fdi[:, chan])  # the falsified pairs of every run: H_s at the forwarding node's
-            if r.size:  # prediction, times the channel's ξ
-                inj[r[:, None], rows[pairs[q]]] = (H[r, sender[q]] @ xi[r, chan[q], :, None])[..., 0]
-    # pass over the depths (a pair after its parent): arrivals per pair, offsets per row
-    arrived = np.ones((a, T), dtype=bool)
-    got = None if dos is None else ~dos[:, lay.channel]  # (a, P): each pair's own channel delivered
+            chan = channel[:, pairs]  # the falsified copies of every run: H_s at the forwarding node's prediction,
+            r, q = np.nonzero((chan >= 0) & np.take_along_axis(fdi, np.maximum(chan, 0), axis=1))  # times ξ
+            if r.size:
+                par = parent[r, pairs[q]]
+                sender = np.where(par < 0, 0, lay.pair_local[np.maximum(par, 0)])
+                inj[r[:, None], rows[1 + q]] = (H[r, sender] @ xi[r, chan[r, q], :, None])[..., 0]
+    # the rounds in order (a pair after the pair it took its copy from): offsets per row, the parent's first
     offset = inj
-    for pairs, parents, rows, parent_rows in lay.levels:
-        if got is not None and parents is not None:
-            got[:, pairs] &= got[:, parents]
-        if parent_rows is not None:
-            offset[:, rows] += offset[:, parent_rows]
-    if got is not None:
-        arrived[:, lay.pair_rows] = got[:, lay.pair_of_row]
+    rr = rnd[:, lay.pair_of_row]  # (a, R) each pair row's arrival round (0: lost)
+    pp = parent[:, lay.pair_of_row]
+    parent_row = np.where(pp >= 0, lay.slot_first[n + np.maximum(pp, 0)] + lay.comp_of_row, -1)
+    for r in range(2, routes.hops + 1):
+        run, q = np.nonzero((rr == r) & (parent_row >= 0))
+        if run.size:
+            offset[run, lay.pair_rows[q]] += offset[run, parent_row[run, q]]
+    arrived = np.ones((a, T), dtype=bool)
+    arrived[:, lay.pair_rows] = rr > 0
     res = zk[:, lay.zcol] + offset - h
     if lay.angle_rows.size:
         res[:, lay.angle_rows] = wrap_residuals(res[:, lay.angle_rows], range(lay.angle_rows.size))
@@ -295,9 +291,9 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                      phi0=None) -> ConsensusBatchResult:
-    """The filter of a gain rule that relays (``design.mode``, e.g. ``'relay'``; :mod:`designer.gain_rules`): the relay
-    filter (:func:`run_relay_batch`) over ``design.rounds`` hops, for the FDI signal the design was made for, with the
-    parameters of :func:`filters.consensus_batch.run_consensus_batch`.
+    """The filter of a gain rule that relays (``design.mode``, ``'relay'`` or ``'flood'``; :mod:`designer.gain_rules`):
+    the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
+    the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
 
     Runs on networks of different channel probabilities (one network per run, e.g. a sweep's settings) are run in
     groups of equal probabilities, each with its own arrival and falsification moments.  The result's ``phi_post``
@@ -310,7 +306,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     runs, steps = z.shape[:2]
     first, nets = run_networks(network, runs)
     design = validate_design(design, model, first)
-    if not gain_rule(design.mode).relays:
+    rule = gain_rule(design.mode)
+    if not rule.relays:
         raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
     attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
     n, nx = first.n_nodes, model.n_x
@@ -322,7 +319,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
         res = run_relay_batch(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
-                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal)
+                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
         out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
         out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
         out["gate_counts"][idx, :, 0] = res.delivered_per_step
@@ -334,4 +331,5 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     return ConsensusBatchResult(**out)
 
 
-register_filter("relay", run_relay_design)  # the filter of gain rule 'relay' (filters.consensus_batch)
+register_filter("relay", run_relay_design)  # the filters of gain rules 'relay' and 'flood' (filters.consensus_batch)
+register_filter("flood", run_relay_design)

@@ -263,12 +263,15 @@ def test_with_attacks_equals_the_node_by_node_reference():
     assert np.all(res.messages_per_step == net.messages_per_step(3))
 
 
-def independent_moments(routes, net, dims, i):
-    """A wrong node_moments: arrivals as if independent (A = p pᵀ off the diagonal)."""
-    mom = node_moments(routes, net, dims, i)
-    A = np.outer(mom.p, mom.p)
-    same = mom.rows[:, None] == mom.rows[None, :]
-    return mom._replace(A=np.where(same, mom.A, A))
+def independent_moments(routes, net, dims, rng=None):
+    """A wrong relay_moments: arrivals as if independent (A = p pᵀ off the diagonal)."""
+    out = []
+    for i in range(routes.n_nodes):
+        mom = node_moments(routes, net, dims, i)
+        A = np.outer(mom.p, mom.p)
+        same = mom.rows[:, None] == mom.rows[None, :]
+        out.append(mom._replace(A=np.where(same, mom.A, A)))
+    return out
 
 
 def mse_over_bound(model, net, hops, runs, steps, seed):
@@ -288,7 +291,7 @@ def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(m
     mean, se = mse_over_bound(model, line, 4, 3000, 20, seed=21)
     assert np.all(np.abs(mean - 1.0) < 4 * se), (mean, se)
     # the same check against a filter designed for independent arrivals (its P_post is not the error's covariance)
-    monkeypatch.setattr(relay_filter, "node_moments", independent_moments)
+    monkeypatch.setattr(relay_filter, "relay_moments", independent_moments)
     mean, se = mse_over_bound(model, line, 4, 3000, 20, seed=21)
     assert np.any(np.abs(mean - 1.0) > 4 * se), (mean, se)
 
