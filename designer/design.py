@@ -128,7 +128,7 @@ class ConsensusDesign(NamedTuple):
     tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
-    rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); 'relay': hops
+    rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); relaying: hops
     bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (designer.scheduled; 0: none)
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
@@ -400,8 +400,8 @@ class DesignOptions:
         senders' predictions (and measurements), the others their current estimates (default 1).  With more
         than one the design computes no certificate (its expected covariance treats the rounds' packet
         losses as fresh draws; the simulations hold one per step): check it with ``study consensus-robot``.
-        Mode ``relay``: the hops L over which every measurement is relayed per step, one packet per channel and
-        round (default :func:`designer.relay.default_hops`: the network's diameter, at most 8).
+        Modes ``relay`` and ``flood``: the hops L over which every measurement is relayed per step, one packet per
+        channel and round (default :func:`designer.relay.default_hops`: the network's diameter, at most 8).
     bank : int in [0, 3]
         Mode ``scheduled``: the axes A of its bank of operating points (default 0: none).  Besides the tables
         along the nominal trajectory the design computes stationary tables at ``3^A - 1`` points off it, on a

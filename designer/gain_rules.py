@@ -111,6 +111,12 @@ class GainRule:
     joint_covariance : bool
         The filter carries the joint error covariance of all nodes ((N n)² numbers per run); the feasibility
         map does not map it (its gains come from that covariance along a run).
+    relays : bool
+        Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that
+        arrived (:mod:`designer.relay`); its design has a stationary certificate.
+    routing : {'tree', 'flood'}
+        For a rule that relays: which copy of a relayed measurement a node takes (:data:`designer.relay.ROUTINGS`):
+        its shortest-path tree parent's, or the first to arrive from any neighbour.
     """
 
     name: str
@@ -121,6 +127,7 @@ class GainRule:
     offline_tables: bool = False
     joint_covariance: bool = False
     relays: bool = False
+    routing: str = "tree"
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
@@ -135,6 +142,8 @@ class GainRule:
             if not isinstance(getattr(self, field), bool):
                 raise InputError(f"{field} of gain rule {self.name!r} must be True or False, "
                                  f"got {getattr(self, field)!r}")
+        if self.routing not in ("tree", "flood"):  # designer.relay.ROUTINGS (not imported: scipy at listing time)
+            raise InputError(f"routing of gain rule {self.name!r} must be 'tree' or 'flood', got {self.routing!r}")
 
     @property
     def seeded_design(self) -> bool:
@@ -260,3 +269,12 @@ register(GainRule(
           "(designer.relay); its gain is computed online at the node.",
     summary="every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
             "ball with one gain minimising the expected covariance over the attacks", relays=True))
+register(GainRule(
+    "flood", "local",
+    needs="its own measurement, the first copy of every measurement flooded to it within L hops that arrived (its "
+          "value and sensor), its own estimate (the Jacobians of its ball's sensors there) and covariance, and its "
+          "ball's arrival and falsification moments, computed offline by Monte Carlo of the network's DoS and FDI "
+          "(designer.relay.flood_moments); its gain is computed online at the node.",
+    summary="every measurement flooded over L hops (each node forwards the first copy it receives, from any "
+            "neighbour); each node fuses its L-hop ball with one gain minimising the expected covariance over the "
+            "attacks", relays=True, routing="flood"))

@@ -73,8 +73,8 @@ def _design_options(f):
         click.option("--rounds", type=int, default=None,
                      help="exchange rounds per step, [1, 64], one packet per channel and round; mode scheduled: "
                           "the first carries the predictions and measurements, the others the current estimates "
-                          "(with more than one no certificate) [default: 1]; mode relay: the hops over which every "
-                          "measurement is relayed [default: the network's diameter, at most 8]"),
+                          "(with more than one no certificate) [default: 1]; modes relay and flood: the hops over "
+                          "which every measurement is relayed [default: the network's diameter, at most 8]"),
         click.option("--bank", type=int, default=None,
                      help="mode scheduled: axes A of a bank of operating points, [0, 3]: stationary tables also at "
                           "3^A - 1 points off the nominal trajectory (along the open-loop covariance's A principal "

@@ -78,6 +78,7 @@ LOCAL = "local EKF at every node (no network)"
 MSE = "consensus EKF (mse design)"
 SCHEDULED = "consensus EKF (scheduled design)"
 RELAY = "relay EKF (relay design)"
+FLOOD = "relay EKF (flood design)"
 KCF, HCMCI = "KCF", "HCMCI"
 HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
 _DESCRIPTION = {
@@ -101,6 +102,11 @@ _DESCRIPTION = {
            "up to 8) along fixed shortest-path routes; each node fuses the measurements of its L-hop ball that arrived "
            "with one gain minimising its expected covariance over the channels' DoS/FDI statistics (no consensus on "
            "estimates); 2|E| L packets per step",
+    FLOOD: "distributed: every measurement flooded over L hops (the design's rounds, default the network's diameter "
+           "up to 8): each node forwards the first copy it receives, from any neighbour, so that a measurement "
+           "arrives when any path of the step's surviving channels is short enough; each node fuses its L-hop ball "
+           "that arrived with one gain minimising its expected covariance over the channels' DoS/FDI statistics "
+           "(moments by Monte Carlo); 2|E| L packets per step",
     KCF: "distributed, from the literature: Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, "
          "Algorithm 1), extended form: each node fuses its own and its neighbours' measurement information and adds "
          "a consensus term on their predictions with gain eps M_i / (1 + ||M_i||_F), eps = 0.5/d_max",
@@ -124,6 +130,7 @@ FILTER_REGISTRY = FilterRegistry([
     hcmci(HCMCI, _DESCRIPTION[HCMCI]),
     designed_consensus(SCHEDULED, "scheduled", _DESCRIPTION[SCHEDULED]),
     designed_consensus(RELAY, "relay", _DESCRIPTION[RELAY]),
+    designed_consensus(FLOOD, "flood", _DESCRIPTION[FLOOD]),
 ])
 FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one joins FILTER_REGISTRY, not this tuple)
 # every filter bootstraps its intervals from a stream of its own, numbered in this order first, then the registry's

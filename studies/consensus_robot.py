@@ -394,7 +394,7 @@ def _load_replay(schedule, sc) -> tuple:
                          "options) instead of replaying its K and C")
     if gain_rule(sch.mode).relays:  # its gains weigh each node's relayed measurements, computed online
         raise InputError(f"schedule {str(schedule)!r} is a relay design: its nodes compute their gains online from "
-                         "the measurements relayed to them, not fixed gains; run it with --mode relay (the same "
+                         f"the measurements relayed to them, not fixed gains; run it with --mode {sch.mode} (the same "
                          "--rounds) instead of replaying it")
     nz = max(m.sensor_dims)
     if sch.nodes != net.n_nodes or sch.steps != sc.steps or sch.K.shape[2:] != (m.n_x, nz):
