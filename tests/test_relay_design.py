@@ -127,17 +127,18 @@ def test_relay_design_of_a_users_model_file(tmp_path, capsys):
     assert code == 2 and "is a relay design" in err and "--mode relay" in err, err
 
 
+@pytest.mark.parametrize("mode", ["relay", "flood"])
 @pytest.mark.parametrize("extra, needle", [
     (["--exchange", "predictions"], "exchange"),
     (["--rounds", "0"], "rounds must be an integer in [1, 64]"),
     (["--gate", "0.01"], "does not take a gate"),
 ])
-def test_bad_relay_options_exit_2_before_anything_is_written(tmp_path, capsys, extra, needle):
+def test_bad_relay_options_exit_2_before_anything_is_written(tmp_path, capsys, extra, needle, mode):
     path = tmp_path / "grid12.py"
     path.write_text(USER_MODEL)
     out = tmp_path / "d"
     capsys.readouterr()
-    code = main(["design", str(path), "--mode", "relay", *extra, "--out", str(out)])
+    code = main(["design", str(path), "--mode", mode, *extra, "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 and needle in err and err.startswith("cfdesign: error: "), err
     assert not out.exists()
@@ -152,19 +153,20 @@ def test_without_fdi_on_the_network_no_signal_is_needed():
     assert res.valid.all() and np.isfinite(res.x_post).all() and res.x_post.shape == (2, 6, N, 2)
 
 
-def test_feasibility_map_of_mode_relay_is_the_designs_stationary_certificate(tmp_path):
+@pytest.mark.parametrize("mode", ["relay", "flood"])
+def test_feasibility_map_of_a_relay_mode_is_the_designs_stationary_certificate(tmp_path, mode):
     """Map and design agree on the same options: each grid point's verdict and trace are those `design` records
     (the map computes no design run: the stationary certificate at the point's channel probabilities)."""
     from studies import api
 
     path = tmp_path / "grid12.py"
     path.write_text(USER_MODEL)
-    fmap = api.feasibility(str(path), ["dos=0.1:0.4:2", "fdi=0:0.1:2"], mode="relay", rounds=2, out=tmp_path / "map")
+    fmap = api.feasibility(str(path), ["dos=0.1:0.4:2", "fdi=0:0.1:2"], mode=mode, rounds=2, out=tmp_path / "map")
     assert len(fmap.rows) == 4
     traces = {}
     for row in fmap.rows:
         dos, fdi = row["dos"], row["fdi"]
-        d = api.design(str(path), mode="relay", rounds=2, dos=dos, fdi=fdi, steps=3, out=tmp_path / f"d{dos}_{fdi}")
+        d = api.design(str(path), mode=mode, rounds=2, dos=dos, fdi=fdi, steps=3, out=tmp_path / f"d{dos}_{fdi}")
         rec = d.schedule.meta["stationary_certificate"]
         assert row["verdict"] == rec["verdict"] == "certified"
         np.testing.assert_allclose(row["trace_bound"], np.mean(rec["trace"]), rtol=1e-12)
