@@ -146,7 +146,12 @@ class Routes(NamedTuple):
         * ``F1`` (m, m): ``E[γ_a γ_b Σ_{ℓ ∈ a ∩ b} φ_ℓ]`` (the weight of ``M = E[ξ ξᵀ]`` between the two
           measurements' injections);
         * ``F2`` (m, m): ``E[γ_a γ_b Σ_{ℓ ∈ a, k ∈ b, ℓ ≠ k} φ_ℓ φ_k]`` (the weight of ``μ μᵀ``).
+
+        In closed form for a tree's routes only (flooding's: :func:`flood_moments`).
         """
+        if self.routing != "tree":
+            raise InputError(f"arrival_moments: the moments of routing {self.routing!r} have no closed form; use "
+                             "designer.relay.relay_moments (flood_moments, by Monte Carlo of the channels)")
         rows = np.flatnonzero(self.node == i)
         B = self.incidence[rows]
         logup = _log_up(network)

@@ -27,6 +27,7 @@ from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.relay import flood_moments, node_moments, relay_moments, relay_routes, relay_stationary, relay_update
+from designer.validation import InputError
 from filters.consensus import wrapped_residual
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
 from filters.relay import run_relay_batch
@@ -104,6 +105,8 @@ def test_flooding_never_loses_what_the_tree_delivers_and_is_never_early():
     assert (rf > 0).mean() > (rt > 0).mean() + 0.05  # other paths deliver what the tree lost
     assert np.all(tree.arrival_prob(net) <= (rf > 0).mean(0) + 0.07)
     assert flood.values_per_step() > tree.values_per_step() == tree.n_pairs
+    with pytest.raises(InputError, match="no closed form"):
+        flood.arrival_moments(net, 0)
 
 
 def explicit_moments(rt, net: SensorNetwork, u: np.ndarray, i: int):
@@ -234,8 +237,9 @@ def test_the_flood_filter_equals_the_node_by_node_reference():
 
 
 def tree_moments(routes, net, dims, rng=None):
-    """A wrong relay_moments for flooding: the tree's closed form (the arrivals of one fixed path)."""
-    return [node_moments(routes, net, dims, i) for i in range(routes.n_nodes)]
+    """A wrong relay_moments for flooding: the tree's closed form (the arrivals of one fixed path; the same pairs)."""
+    tree = relay_routes(net, routes.hops)
+    return [node_moments(tree, net, dims, i) for i in range(routes.n_nodes)]
 
 
 def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(monkeypatch):
