@@ -355,7 +355,7 @@ def node_moments(routes: Routes, network: SensorNetwork, dims, i: int, ball_mome
 #: draws, between FLOOD_SAMPLES_MIN and FLOOD_SAMPLES_MAX (an assumption, chosen: about 20 s on the 512-node grid).
 FLOOD_PAIR_DRAWS = 40_000_000
 FLOOD_SAMPLES_MIN = 256
-FLOOD_SAMPLES_MAX = 20_000
+FLOOD_SAMPLES_MAX = 8_000
 #: The seed of the Generator behind a design's flooding moments when none is given: the moments are part of the
 #: design, the same network gives the same moments in the design, its certificate and its filter.
 FLOOD_SEED = 20261204
@@ -383,8 +383,8 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
     E = dos.size
     D = routes.cand_parent.shape[1] if P else 1
     chunk = int(max(1, 4_000_000 // max(P * D, 1)))
-    arrived = np.zeros((P, samples), dtype=bool)
-    count = np.zeros((P, samples), dtype=np.float32)  # |S_a|: the falsified channels on the copy's path
+    arrived = np.zeros((samples, P), dtype=bool)
+    count = np.zeros((samples, P), dtype=np.float32)  # |S_a|: the falsified channels on the copy's path
     ent_row, ent_col = [], []  # the entries (pair, draw * E + channel) of the falsified channels of each path
     for start in range(0, samples, chunk):
         a = min(chunk, samples - start)
@@ -392,9 +392,9 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
         lost = u < dos
         fals = ~lost & (u < dos + fdi)
         rnd, parent, channel = routes.realise(~lost)
-        arrived[:, start:start + a] = (rnd > 0).T
+        arrived[start:start + a] = rnd > 0
         c, q, col = _kernel(_falsified_loop)(rnd, parent, channel, np.ascontiguousarray(fals))
-        count[:, start:start + a] = c.T
+        count[start:start + a] = c
         ent_row.append(q)
         ent_col.append(col + start * E)
     S = sp.csr_matrix((np.ones(sum(x.size for x in ent_row)), (np.concatenate(ent_row) if ent_row else [],
@@ -403,19 +403,19 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
     out = []
     for i in range(N):
         idx = np.flatnonzero(routes.node == i)
-        G = arrived[idx].astype(float)
-        C = count[idx].astype(float)
+        G = arrived[:, idx].astype(float)  # (samples, m - 1)
+        C = count[:, idx].astype(float)
         X = S[idx]
         m = idx.size + 1
         p = np.ones(m)
-        p[1:] = G.mean(axis=1)
+        p[1:] = G.mean(axis=0)
         A = np.ones((m, m))
-        A[1:, 1:] = G @ G.T / samples
+        A[1:, 1:] = G.T @ G / samples
         A[0, 1:] = A[1:, 0] = p[1:]
         F1 = np.zeros((m, m))
         F1[1:, 1:] = (X @ X.T).toarray() / samples
         F2 = np.zeros((m, m))
-        F2[1:, 1:] = C @ C.T / samples - F1[1:, 1:]
+        F2[1:, 1:] = C.T @ C / samples - F1[1:, 1:]
         out.append((p, A, F1, F2))
     return out
 
