@@ -43,7 +43,7 @@ from .validation import InputError, check_int
 __all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
            "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
            "update_moments", "relay_information", "flood_moments",
-           "relay_moments", "flood_samples"]
+           "relay_moments", "flood_samples", "node_classes"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
 #: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
@@ -544,8 +544,10 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
 
 def relay_information(Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.ndarray:
     """``y`` (..., G n): the groups' information ``Σ_{a in g} Hw_aᵀ res_a`` of the whitened residuals ``res`` (..., r)
-    (zero where a measurement did not arrive), to which the gain of :func:`relay_update` applies."""
-    return (np.swapaxes(grouped(Hw, mom.groups), -1, -2) @ res[..., None])[..., 0]
+    (zero where a measurement did not arrive), to which the gain of :func:`relay_update` applies.  A sum over the rows
+    in their order (not a matrix-vector product, whose BLAS path depends on the batch's shape): the same numbers for
+    a run alone or in a batch."""
+    return (grouped(Hw, mom.groups) * res[..., :, None]).sum(axis=-2)
 
 
 def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
@@ -572,15 +574,23 @@ STATIONARY_MAX = 5000
 _BOUND_LIMIT = 1e12
 
 
-def _groups(moments: list[NodeMoments]) -> dict[tuple[int, int], np.ndarray]:
-    """The nodes by their numbers of measurement rows and of sensors (nodes of one size, iterated as one stack;
-    with sensors of different dimensions two balls of as many rows may hold different numbers of sensors)."""
-    sizes = [(m.rows.size, m.sensors.size) for m in moments]
-    return {key: np.array([i for i, s in enumerate(sizes) if s == key]) for key in dict.fromkeys(sizes)}
-
-
-def _stack(moments: list[NodeMoments], nodes: np.ndarray) -> NodeMoments:
-    return NodeMoments(*(np.stack([getattr(moments[i], f) for i in nodes]) for f in NodeMoments._fields))
+def node_classes(moments: list[NodeMoments], free: bool = False) -> list[tuple[np.ndarray, NodeMoments]]:
+    """The nodes in classes of equal shape, each with its members' moments stacked: ``[(nodes, stacked), ...]``, the
+    members of a class having as many measurement rows and sensors and the same hop depth at every row, so that
+    one batched :func:`relay_update` serves them all (``stacked.groups`` their shared (r, G) one-hot depths, the
+    other fields stacked along a first axis).  The interior nodes of a regular network share a class.  ``free``:
+    drop each node's own moments from the list once stacked (the memory of one copy)."""
+    keys = [(m.rows.size, m.sensors.size, m.groups.argmax(-1).tobytes()) for m in moments]
+    out = []
+    for key in dict.fromkeys(keys):
+        nodes = np.array([i for i, k in enumerate(keys) if k == key])
+        groups = moments[nodes[0]].groups
+        fields = {f: np.stack([getattr(moments[i], f) for i in nodes]) for f in NodeMoments._fields if f != "groups"}
+        out.append((nodes, NodeMoments(groups=groups, **fields)))
+        if free:
+            for i in nodes:
+                moments[i] = None
+    return out
 
 
 def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True):
@@ -612,8 +622,7 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     Phi = np.empty((N, n, n))
     W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth
     iterations = 0
-    for nodes in _groups(moments).values():
-        mom = _stack(moments, nodes)
+    for nodes, mom in node_classes(moments):
         rows = np.stack([_ball_rows(moments[i], offsets) for i in nodes])
         Hw = Hall[rows]  # (g, r, n)
         P = np.broadcast_to(np.asarray(model.prior.cov, dtype=float), (nodes.size, n, n))

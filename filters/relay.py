@@ -50,7 +50,8 @@ from designer.design import ConsensusDesign, validate_design
 from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import MAX_HOPS, NodeMoments, Routes, relay_information, relay_moments, relay_routes, relay_update
+from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments,
+                           relay_routes, relay_update)
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
@@ -170,7 +171,8 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     n, nx = network.n_nodes, model.n_x
     routes = relay_routes(network, hops, routing)
     lay = _layout(model, routes)
-    moments = [_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)]
+    classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
+                           free=True)
     x_post = np.full((runs, steps + 1, n, nx), np.nan)
     P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
     x_pred = np.full((runs, steps, n, nx), np.nan)
@@ -203,7 +205,7 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         else:
             dos, fdi, xi = attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
             delivered[act, k] = (~dos).sum(axis=-1) * hops
-        x, P = _update(model, routes, lay, moments, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
+        x, P = _update(model, routes, lay, classes, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
         x_post[act, k + 1], P_post[act, k + 1] = x, P
         act = act[stop_diverged(violations, act, diverged_nodes(x, P), k + 1, nan_from=(x_post, P_post),
                                 nan_before=(x_pred, P_pred))]
@@ -218,7 +220,7 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
     return mom._replace(F1=mom.F1 if np.any(M) else zero, F2=mom.F2 if np.any(mu) else zero)
 
 
-def _update(model: Model, routes: Routes, lay: _Layout, moments: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
+def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
     ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none)."""
     a, n, nx = xp.shape
@@ -263,11 +265,12 @@ def _update(model: Model, routes: Routes, lay: _Layout, moments: list, M, mu, k:
     res = np.where(arrived, res, 0.0)
     x = np.empty_like(xp)
     P = np.empty_like(Pp)
-    for i in range(n):
-        sl = slice(lay.start[i], lay.start[i + 1])
-        W, P[:, i] = _node_update(Pp[:, i], Hw[:, sl], moments[i], M, mu)
-        y = relay_information(Hw[:, sl], moments[i], res[:, sl])  # (a, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
-        x[:, i] = xp[:, i] + (W @ y[..., None])[..., 0]
+    for nodes, mom in classes:  # the nodes of one shape at once (designer.relay.node_classes)
+        rows = lay.start[nodes][:, None] + np.arange(mom.groups.shape[0])  # (g, r): each node's rows
+        Hc = Hw[:, rows]  # (a, g, r, nx)
+        W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M, mu)
+        y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
+        x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
     return x, P
 
 
