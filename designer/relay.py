@@ -40,10 +40,9 @@ from scipy.sparse.csgraph import shortest_path
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "pair_sum",
-           "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
-           "update_moments", "relay_information", "flood_moments",
-           "relay_moments", "flood_samples", "node_classes"]
+__all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
+           "pair_sum", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
+           "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
 #: The default hops of a relay design: the network's diameter (every node then holds every measurement that arrives),
@@ -114,14 +113,17 @@ class Routes(NamedTuple):
         delivers: what a node does that forwards, in round r, the measurements it first received in round r - 1
         and keeps the first copy of each, from its lowest-numbered neighbour among those that arrive together."""
         up = np.ascontiguousarray(up, dtype=bool)
+        E = self.incidence.shape[1]
+        if up.ndim != 2 or up.shape[1] != E:
+            raise InputError(f"up must be a (batch, {E}) array of the network's channels, got shape {up.shape}")
         a, P = up.shape[0], self.n_pairs
         rnd = np.zeros((a, P), dtype=np.int16)
         parent = np.full((a, P), -1)
         channel = np.full((a, P), -1)
         if P:
             ends = np.searchsorted(self.depth, np.arange(1, self.hops + 1), side="right")  # pairs sorted by depth
-            _kernel(_realise_loop)(up, np.ascontiguousarray(self.cand_parent), np.ascontiguousarray(self.cand_channel),
-                              ends, rnd, parent, channel)
+            _kernel(_realise_loop)(up, np.ascontiguousarray(self.cand_parent),
+                                   np.ascontiguousarray(self.cand_channel), ends, rnd, parent, channel)
         return rnd, parent, channel
 
     def messages_per_step(self, network: SensorNetwork) -> int:
@@ -352,7 +354,7 @@ def node_moments(routes: Routes, network: SensorNetwork, dims, i: int, ball_mome
 
 
 #: The channel draws of flooding's Monte Carlo moments (:func:`flood_moments`): as many as fit in this many pair
-#: draws, between FLOOD_SAMPLES_MIN and FLOOD_SAMPLES_MAX (an assumption, chosen: about 20 s on the 512-node grid).
+#: draws, between FLOOD_SAMPLES_MIN and FLOOD_SAMPLES_MAX (an assumption, chosen: about 10 s on the 512-node grid).
 FLOOD_PAIR_DRAWS = 40_000_000
 FLOOD_SAMPLES_MIN = 256
 FLOOD_SAMPLES_MAX = 8_000
@@ -604,9 +606,8 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     covariance of the linearised error: exact for a linear model; the linearisation remainders are not in it.
 
     Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
-    from .scheduled import StationaryCertificate
-
     from .gain_rules import gain_rule
+    from .scheduled import StationaryCertificate
 
     routes = relay_routes(network, design.rounds, gain_rule(design.mode).routing)
     x = np.asarray(x, dtype=float)

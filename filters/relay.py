@@ -36,8 +36,9 @@ go on.
 Each step, every sensor's ``h_s`` and ``H_s`` are evaluated once, at the predictions of every node of its ball
 (the receivers and, among them, the forwarding nodes) over all runs; the values are kept in one flat array of
 measurement rows laid out node by node (each node's rows contiguous, in its moments' order), so that the
-arrivals and offsets are a pass over the rounds and each node's update takes a slice.  Each node's update is
-one :func:`designer.relay.relay_update` over the runs.  A run alone is a batch of one.
+arrivals and offsets are a pass over the rounds and each node's update takes a slice.  The nodes of one shape
+(:func:`designer.relay.node_classes`) update in one :func:`designer.relay.relay_update` over them and the runs.  A
+run alone is a batch of one (the same numbers, tested).
 """
 from __future__ import annotations
 

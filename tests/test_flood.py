@@ -107,6 +107,8 @@ def test_flooding_never_loses_what_the_tree_delivers_and_is_never_early():
     assert flood.values_per_step() > tree.values_per_step() == tree.n_pairs
     with pytest.raises(InputError, match="no closed form"):
         flood.arrival_moments(net, 0)
+    with pytest.raises(InputError, match="up must be"):
+        flood.realise(up[:, 1:])
 
 
 def explicit_moments(rt, net: SensorNetwork, u: np.ndarray, i: int):
