@@ -266,13 +266,26 @@ def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k:
     res = np.where(arrived, res, 0.0)
     x = np.empty_like(xp)
     P = np.empty_like(Pp)
-    for nodes, mom in classes:  # the nodes of one shape at once (designer.relay.node_classes)
-        rows = lay.start[nodes][:, None] + np.arange(mom.groups.shape[0])  # (g, r): each node's rows
-        Hc = Hw[:, rows]  # (a, g, r, nx)
-        W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M, mu)
-        y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
-        x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
+    for members, stacked in classes:  # the nodes of one shape together (designer.relay.node_classes), in chunks
+        r = stacked.groups.shape[0]  # whose r x r temporaries stay within CLASS_CHUNK numbers per run (chunks
+        size = max(1, CLASS_CHUNK // (r * r))  # independent of the runs: a run alone gets the numbers of a batch)
+        for c in range(0, members.size, size):
+            nodes = members[c:c + size]
+            mom = stacked._replace(**{f: getattr(stacked, f)[c:c + size] for f in NodeMoments._fields
+                                      if f != "groups"})
+            rows = lay.start[nodes][:, None] + np.arange(r)  # (g, r): each node's rows
+            Hc = Hw[:, rows]  # (a, g, r, nx)
+            W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M, mu)
+            y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
+            x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
     return x, P
+
+
+#: The most numbers of one r x r temporary of a class's update per run (filters.relay._update): one call per node
+#: costs Python overhead at every step (a single run at 512 nodes: most of the design's time), a whole class at once
+#: temporaries beyond the caches (5 runs at 512 nodes: slower than one call per node).  An assumption, chosen on the
+#: 512-node grid (8 nodes of 150 rows per call).
+CLASS_CHUNK = 200_000
 
 
 def _node_update(Pp, Hw, mom, M, mu):
