@@ -54,7 +54,7 @@ from typing import Mapping
 from .validation import InputError
 
 __all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "GAIN_RULES", "register", "unregister",
-           "gain_rule", "runtime_label", "choices", "caveat", "names_with"]
+           "gain_rule", "runtime_label", "choices", "caveat", "names_with", "ROUTINGS"]
 
 # The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
 RUNTIMES: Mapping[str, str] = MappingProxyType({
@@ -73,6 +73,9 @@ FILTER_RUNTIMES: Mapping[str, str] = MappingProxyType({
                    "alone, a reference of what centralisation reaches.",
 })
 DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; the others are references
+#: Which copy of a relayed measurement a node of a rule that relays takes (designer.relay.Routes): its shortest-path
+#: tree parent's, or the first to arrive from any neighbour.
+ROUTINGS = ("tree", "flood")
 _SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
           "observes", "global": "an oracle, not deployable", "centralized": "a fusion centre, not a node's filter"}
 _NAME = re.compile(r"[a-z][a-z0-9_-]*")
@@ -115,8 +118,8 @@ class GainRule:
         Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that
         arrived (:mod:`designer.relay`); its design has a stationary certificate.
     routing : {'tree', 'flood'}
-        For a rule that relays: which copy of a relayed measurement a node takes (:data:`designer.relay.ROUTINGS`):
-        its shortest-path tree parent's, or the first to arrive from any neighbour.
+        For a rule that relays: which copy of a relayed measurement a node takes (:data:`ROUTINGS`): its
+        shortest-path tree parent's, or the first to arrive from any neighbour.
     """
 
     name: str
@@ -142,8 +145,8 @@ class GainRule:
             if not isinstance(getattr(self, field), bool):
                 raise InputError(f"{field} of gain rule {self.name!r} must be True or False, "
                                  f"got {getattr(self, field)!r}")
-        if self.routing not in ("tree", "flood"):  # designer.relay.ROUTINGS (not imported: scipy at listing time)
-            raise InputError(f"routing of gain rule {self.name!r} must be 'tree' or 'flood', got {self.routing!r}")
+        if self.routing not in ROUTINGS:
+            raise InputError(f"routing of gain rule {self.name!r} must be {_listing(ROUTINGS)}, got {self.routing!r}")
 
     @property
     def seeded_design(self) -> bool:

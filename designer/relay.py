@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
+from .gain_rules import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
@@ -50,8 +51,6 @@ MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, 
 #: within about 2 x the centralized filter's on runs without attacks, README; the packets then carry up to a few
 #: hundred measurements).
 DEFAULT_HOPS_MAX = 8
-#: Which copy of a relayed measurement a node takes (:class:`Routes`): its tree parent's, or the first to arrive.
-ROUTINGS = ("tree", "flood")
 
 
 class Routes(NamedTuple):
