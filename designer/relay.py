@@ -594,7 +594,8 @@ def node_classes(moments: list[NodeMoments], free: bool = False) -> list[tuple[n
     return out
 
 
-def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True):
+def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True,
+                     routes: Routes | None = None):
     """The relay design's stationary certificate at the point ``x`` (input ``u``), every node's Jacobians there:
     each node's recursion ``Φ ← relay_update(F Φ Fᵀ + Q)`` from the prior covariance until every node's trace
     changes by less than :data:`STATIONARY_TOL` (relative), then, for the fixed point's gains ``W_i``, the
@@ -604,11 +605,18 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     the inequality bounds every later covariance of the node once one lies below it.  The bound is the expected
     covariance of the linearised error: exact for a linear model; the linearisation remainders are not in it.
 
+    ``routes``: the design's :func:`relay_routes` when the caller has them (default: built here).
+
     Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
     from .gain_rules import gain_rule
     from .scheduled import StationaryCertificate
 
-    routes = relay_routes(network, design.rounds, gain_rule(design.mode).routing)
+    routing = gain_rule(design.mode).routing
+    if routes is None:
+        routes = relay_routes(network, design.rounds, routing)
+    elif (routes.hops, routes.routing, routes.n_nodes) != (design.rounds, routing, network.n_nodes):
+        raise InputError(f"routes must be the design's: {design.rounds} hops, routing {routing!r}, "
+                         f"{network.n_nodes} nodes; got {routes.hops}, {routes.routing!r}, {routes.n_nodes}")
     x = np.asarray(x, dtype=float)
     n = model.n_x
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)

@@ -306,13 +306,14 @@ def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = 
     hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
     rows = []
     for L in hops:
+        routes = relay_routes(net, L, routing)  # once per L: its values per step and its certificate
         if record is not None and L == design.rounds:  # the certificate's own fixed point
             rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
         else:
-            cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False)
+            cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False, routes=routes)
             rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
         rows.append({"rounds": L, "messages_per_step": net.messages_per_step(L),
-                     "values_per_step": relay_routes(net, L, routing).values_per_step(), "expected_rmse": rmse,
+                     "values_per_step": routes.values_per_step(), "expected_rmse": rmse,
                      "designed": L == design.rounds})
     return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
             "(designer.relay.relay_stationary), every state component"}
