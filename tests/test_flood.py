@@ -7,9 +7,10 @@ receives, from any neighbour, against independent references.
 * the Monte Carlo moments (:func:`designer.relay.flood_moments`) equal the same draws' moments computed here with
   each copy's set of falsified channels walked explicitly (Python sets), and on a graph that is a tree (one path
   per pair) they agree with the tree's closed form within the Monte Carlo's error;
-* the filter: the batch equals a node-by-node, run-by-run loop with the flood written here (DoS, FDI with non-zero
-  ξ, a bearing and a two-dimensional sensor); on a linear model its expected covariance is the mean squared error of
-  a Monte Carlo of the generative model, and that check rejects a flood filter designed with the tree's moments;
+* the filter: the batch equals the node-by-node, run-by-run loop of test_relay with the flood written here (DoS,
+  FDI with non-zero ξ, a bearing and a two-dimensional sensor); on a linear model its expected covariance is the mean
+  squared error of a Monte Carlo of the generative model, and that check rejects a flood filter designed with the
+  tree's moments;
 * the gain rule ``flood``: its filter behind the rule registry, its stationary certificate where the filter's
   covariance settles, ``cfdesign design --mode flood`` of a user's model file.
 """
@@ -19,21 +20,19 @@ import json
 
 import numpy as np
 import pytest
-import scipy.linalg
 
 import filters.relay as relay_filter
 from designer.design import DesignOptions, make_design
 from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import flood_moments, node_moments, relay_moments, relay_routes, relay_stationary, relay_update
+from designer.relay import flood_moments, node_moments, relay_routes, relay_stationary
 from designer.validation import InputError
-from filters.consensus import wrapped_residual
-from filters.consensus_batch import EdgeAttacks, run_consensus_batch
+from filters.consensus_batch import run_consensus_batch
 from filters.relay import run_relay_batch
 from studies.cli import main
 from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
-                        simulate_linear, varied_network)
+                        reference_relay, simulate_linear, varied_network)
 
 GRID = [(a * 3 + b, a * 3 + b + 1) for a in range(3) for b in range(2)] + \
        [(a * 3 + b, (a + 1) * 3 + b) for a in range(2) for b in range(3)] + [(0, 4), (4, 8), (2, 4)]
@@ -174,52 +173,22 @@ def test_on_a_tree_graph_flooding_is_the_tree_and_its_moments_its_closed_form():
 
 
 # --------------------------------------------------------------------------- the filter
-def reference_flood_filter(model: Model, net: SensorNetwork, z, hops: int, att: EdgeAttacks, signal):
-    """The flood filter written node by node and run by run with the flood of reference_flood; its moments those of
-    designer.relay.relay_moments (tested above): (x_post, P_post)."""
-    rt = relay_routes(net, hops, "flood")
+def flood_copies(model: Model, net: SensorNetwork, rt, zk, dos, fdi, xi, xp, k: int) -> dict:
+    """test_relay.tree_copies for flooding: the values that arrived, each source's copies spread by reference_flood,
+    a falsified channel adding H_s(x̂⁻ of its sender) ξ to what it carries."""
     chan = channel_index(net)
-    n = net.n_nodes
-    runs, steps = z.shape[:2]
-    nx = model.n_x
-    M, mu = signal.moment(nx), signal.mean(nx)
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
-    root = [np.linalg.inv(scipy.linalg.sqrtm(model.measurement_cov(s)).real) for s in range(model.n_sensors)]
-    moms = relay_moments(rt, net, model.sensor_dims)
-    xs = np.zeros((runs, steps + 1, n, nx))
-    Ps = np.zeros((runs, steps + 1, n, nx, nx))
-    for r in range(runs):
-        x = np.tile(model.prior.mean, (n, 1))
-        P = np.tile(model.prior.cov, (n, 1, 1))
-        xs[r, 0], Ps[r, 0] = x, P
-        for k in range(steps):
-            xp = np.array([model.f(x[i], k) for i in range(n)])
-            Pp = np.array([model.F(x[i], k) @ P[i] @ model.F(x[i], k).T + model.process_cov for i in range(n)])
-            up = ~att.dos[r, k]
-            values = {}  # (source, node) -> the value of the copy the node took
-            for s in range(n):
-                got = reference_flood(net, hops, up, s)
-                values[(s, s)] = z[r, k, offsets[s]:offsets[s + 1]].copy()
-                for d in range(1, hops + 1):
-                    for i, (rd, j) in got.items():
-                        if rd == d:
-                            c = chan[(j, i)]
-                            v = values[(s, j)]
-                            values[(s, i)] = v + model.H(s, xp[j], k + 1) @ att.xi[r, k, c] if att.fdi[r, k, c] \
-                                else v
-            for i in range(n):
-                rows, info = [], np.zeros((hops + 1, nx))
-                ball = [(i, 0)] + [(int(rt.source[p]), int(rt.depth[p])) for p in np.flatnonzero(rt.node == i)]
-                for s, depth in ball:
-                    Hw = root[s] @ model.H(s, xp[i], k + 1)
-                    rows.append(Hw)
-                    if (s, i) in values:
-                        info[depth] += Hw.T @ root[s] @ wrapped_residual(model, s, values[(s, i)], xp[i], k + 1)
-                W, Pn = relay_update(0.5 * (Pp[i] + Pp[i].T), np.concatenate(rows), moms[i], M, mu)
-                x[i] = xp[i] + W @ info.reshape(-1)
-                P[i] = Pn
-            xs[r, k + 1], Ps[r, k + 1] = x, P
-    return xs, Ps
+    values = {}
+    for s in range(net.n_nodes):
+        got = reference_flood(net, rt.hops, ~dos, s)
+        values[(s, s)] = zk[offsets[s]:offsets[s + 1]].copy()
+        for d in range(1, rt.hops + 1):
+            for i, (rd, j) in got.items():
+                if rd == d:
+                    c = chan[(j, i)]
+                    v = values[(s, j)]
+                    values[(s, i)] = v + model.H(s, xp[j], k + 1) @ xi[c] if fdi[c] else v
+    return values
 
 
 def test_the_flood_filter_equals_the_node_by_node_reference():
@@ -230,7 +199,7 @@ def test_the_flood_filter_equals_the_node_by_node_reference():
     z = np.stack([model.h_all(model.prior.mean) + rng.normal(0, 0.2, (steps, model.n_z)) for _ in range(runs)])
     att = edge_attacks(net, runs, steps, model.n_x, seed=6)
     res = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL, routing="flood")
-    xs, Ps = reference_flood_filter(model, net, z, 3, att, SIGNAL)
+    xs, Ps = reference_relay(model, net, z, 3, att, SIGNAL, "flood", flood_copies)
     assert res.violations == [[], [], []]
     assert np.allclose(res.x_post, xs, rtol=0, atol=1e-10)
     assert np.allclose(res.P_post, Ps, rtol=0, atol=1e-10)
@@ -285,6 +254,8 @@ def test_the_rules_filter_is_the_flood_filter_and_its_certificate_where_it_settl
     # a linear model: the expected covariance recursion depends on neither the measurements nor the draws
     settled = run_relay_batch(model, net, np.zeros((1, 300, model.n_z)), 2, signal=SIGNAL, routing="flood")
     assert np.allclose(settled.P_post[0, -1], cert.Phi, rtol=1e-7, atol=1e-10)
+    with pytest.raises(InputError, match="routes must be the design's"):
+        relay_stationary(model, net, design, x=np.zeros(model.n_x), routes=relay_routes(net, 2))
     tree = relay_stationary(model, net, design._replace(mode="relay"), x=np.zeros(model.n_x))
     assert np.trace(cert.Phi, axis1=-2, axis2=-1).mean() < np.trace(tree.Phi, axis1=-2, axis2=-1).mean()
 

@@ -25,7 +25,7 @@ from designer.attacks import FDISignal
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian
-from designer.relay import node_moments, relay_routes, relay_update
+from designer.relay import node_moments, relay_moments, relay_routes, relay_update
 from designer.validation import InputError
 from filters.attacks import attack_pattern, channel_draws
 from filters.consensus import wrapped_residual
@@ -202,43 +202,55 @@ def test_without_attacks_each_node_is_the_kalman_filter_of_its_ball(hops):
                                                                            * hops)
 
 
-def reference_relay(model: Model, net: SensorNetwork, z, hops: int, att: EdgeAttacks, signal: FDISignal):
-    """The relay filter written node by node and run by run, routes walked by their parents: (x_post, P_post)."""
-    rt = relay_routes(net, hops)
+def tree_copies(model: Model, net: SensorNetwork, rt, zk, dos, fdi, xi, xp, k: int) -> dict:
+    """The values that arrived at step k (one run: ``zk`` its measurement, ``dos``, ``fdi``, ``xi`` its channels'
+    draws, ``xp`` the nodes' predictions), {(sensor, node): value}, each pair's route walked back by its parents."""
+    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    values = {(s, s): zk[offsets[s]:offsets[s + 1]].copy() for s in range(net.n_nodes)}
+    for p in range(rt.n_pairs):
+        s = int(rt.source[p])
+        zs, arrived, q = zk[offsets[s]:offsets[s + 1]].copy(), True, p
+        while q >= 0:  # walk the route back to the source
+            c = rt.channel[q]
+            arrived &= not dos[c]
+            if fdi[c]:
+                zs = zs + model.H(s, xp[rt.sender[q]], k + 1) @ xi[c]
+            q = rt.parent[q]
+        if arrived:
+            values[(s, int(rt.node[p]))] = zs
+    return values
+
+
+def reference_relay(model: Model, net: SensorNetwork, z, hops: int, att: EdgeAttacks, signal: FDISignal,
+                    routing: str = "tree", copies=tree_copies):
+    """The relay filter written node by node and run by run: each step the values that arrived (``copies``, with
+    tree_copies' parameters), then each node's update with designer.relay.relay_update and its moments
+    (designer.relay.relay_moments): (x_post, P_post)."""
+    rt = relay_routes(net, hops, routing)
+    n = net.n_nodes
     runs, steps = z.shape[:2]
     nx = model.n_x
     M, mu = signal.moment(nx), signal.mean(nx)
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     root = [np.linalg.inv(scipy.linalg.sqrtm(model.measurement_cov(s)).real) for s in range(model.n_sensors)]
-    moms = [node_moments(rt, net, model.sensor_dims, i) for i in range(N)]
-    xs = np.zeros((runs, steps + 1, N, nx))
-    Ps = np.zeros((runs, steps + 1, N, nx, nx))
+    moms = relay_moments(rt, net, model.sensor_dims)
+    xs = np.zeros((runs, steps + 1, n, nx))
+    Ps = np.zeros((runs, steps + 1, n, nx, nx))
     for r in range(runs):
-        x = np.tile(model.prior.mean, (N, 1))
-        P = np.tile(model.prior.cov, (N, 1, 1))
+        x = np.tile(model.prior.mean, (n, 1))
+        P = np.tile(model.prior.cov, (n, 1, 1))
         xs[r, 0], Ps[r, 0] = x, P
         for k in range(steps):
-            xp = np.array([model.f(x[i], k) for i in range(N)])
-            Pp = np.array([model.F(x[i], k) @ P[i] @ model.F(x[i], k).T + model.process_cov for i in range(N)])
-            for i in range(N):
+            xp = np.array([model.f(x[i], k) for i in range(n)])
+            Pp = np.array([model.F(x[i], k) @ P[i] @ model.F(x[i], k).T + model.process_cov for i in range(n)])
+            values = copies(model, net, rt, z[r, k], att.dos[r, k], att.fdi[r, k], att.xi[r, k], xp, k)
+            for i in range(n):
                 rows, info = [], np.zeros((hops + 1, nx))  # the information of each hop depth (0: its own)
-                sensors = [(i, None)] + [(int(rt.source[p]), p) for p in np.flatnonzero(rt.node == i)]
-                for s, p in sensors:
-                    zs = z[r, k, offsets[s]:offsets[s + 1]].copy()
-                    arrived = True
-                    q = p
-                    while q is not None and q >= 0:  # walk the route back to the source
-                        c = rt.channel[q]
-                        if att.dos[r, k, c]:
-                            arrived = False
-                        if att.fdi[r, k, c]:
-                            zs = zs + model.H(s, xp[rt.sender[q]], k + 1) @ att.xi[r, k, c]
-                        q = rt.parent[q]
+                ball = [(i, 0)] + [(int(rt.source[p]), int(rt.depth[p])) for p in np.flatnonzero(rt.node == i)]
+                for s, depth in ball:
                     Hw = root[s] @ model.H(s, xp[i], k + 1)
                     rows.append(Hw)
-                    if arrived:
-                        info[0 if p is None else rt.depth[p]] += Hw.T @ root[s] @ wrapped_residual(
-                            model, s, zs, xp[i], k + 1)
+                    if (s, i) in values:
+                        info[depth] += Hw.T @ root[s] @ wrapped_residual(model, s, values[(s, i)], xp[i], k + 1)
                 W, Pn = relay_update(0.5 * (Pp[i] + Pp[i].T), np.concatenate(rows), moms[i], M, mu)
                 x[i] = xp[i] + W @ info.reshape(-1)  # one gain block per depth
                 P[i] = Pn
