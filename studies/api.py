@@ -355,8 +355,9 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security, channel=channel)
-    if backend is None:
-        backend = make_backend(workers, dask, dask_security)
+    if backend is None:  # none of them given: the study's default backend (Study.default_backend)
+        if any(v is not None for v in (workers, dask, dask_security)):
+            backend = make_backend(workers, dask, dask_security)
     elif workers is not None or dask is not None or dask_security is not None:
         raise InputError("give either backend or workers/dask, not both")
     opts = _options(options, dict(mode=mode, dos=dos, fdi=fdi, delta=delta, amplitude=amplitude))

@@ -335,11 +335,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                          "only; run the study in it (without --workers or --dask)")
     # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
     # stay NaN and the summary says why)
-    designs = [{} for _ in scs]
-    for e in entries:
-        for j, s in enumerate(scs):
-            if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
-                designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
+    designs = _designs(scs, options, tuned_in_sweeps)
     cannot = _cannot_start(scs, options, designs)
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
@@ -395,6 +391,25 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                     verdict[a, j, f] = VERDICTS.index(v)
     return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "delivered": delivered,
             "estimate": est, "truth": truth}
+
+
+def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool) -> list[dict]:
+    """Per setting of ``scs``: the design of every gain rule its filters need, by rule (the tuned design at the
+    main setting only unless ``tuned_in_sweeps``)."""
+    designs: list[dict] = [{} for _ in scs]
+    for e in FILTER_REGISTRY:
+        for j, s in enumerate(scs):
+            if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
+                designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
+    return designs
+
+
+def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_in_sweeps: bool) -> None:
+    """The plan's step in the parent process: every setting's designs once, so that the offline tables they keep
+    (:func:`studies.consensus_design.with_tables`, remembered per process) are computed once and inherited by the
+    forked workers instead of once in each."""
+    base = ref.build()
+    _designs([base.with_attacks(dos=d, fdi=f) for d, f in settings], options, tuned_in_sweeps)
 
 
 def _verdict_counts(codes: np.ndarray) -> dict[str, int]:
@@ -474,7 +489,8 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
               "options": so.design.as_dict(), "filters": list(FILTER_REGISTRY.names())}
-    return Plan(task, f"comparison-{_slug(sc.name)}", config)
+    return Plan(task, f"comparison-{_slug(sc.name)}", config,
+                before=functools.partial(_design_first, ref, settings, so.design, bool(so["tuned_in_sweeps"])))
 
 
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
@@ -773,6 +789,7 @@ STUDY = Study(
              "divergence_spread": DIVERGENCE_SPREAD},
     uses_design=True,
     many_scenarios=True,
+    every_core=True,
     accepts=_accepts,
     combine=_combine,
     check=_check,

@@ -174,6 +174,10 @@ class Study:
         Further checks of the study's own options, before any computation.
     min_runs : int
         Fewest runs the study's statistics need.
+    every_core : bool
+        With no backend given, its chunks run in one forked worker process per usable core
+        (:func:`designer.cores.usable_cores`; :func:`default_backend`), not in the calling process alone: for
+        a study whose default size keeps a core busy for minutes.  The numbers do not depend on it.
     """
 
     name: str
@@ -193,6 +197,15 @@ class Study:
     combine: Callable[[dict], dict] | None = None
     check: Callable[[StudyOptions], None] | None = None
     min_runs: int = 2
+    every_core: bool = False
+
+    def default_backend(self) -> Backend:
+        """Where the chunks run when the caller gives no backend: this process, or for a study with
+        ``every_core`` one worker process per usable core (this process when it may use one core only)."""
+        from designer.cores import usable_cores
+
+        cores = usable_cores()
+        return Backend("processes", workers=cores) if self.every_core and cores > 1 else Backend()
 
     def default_runs(self, scenario: str) -> int:
         if isinstance(self.runs, Mapping):
@@ -370,7 +383,7 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
         raise InputError(f"option --{given.replace('_', '-')} does not apply to study {name!r}")
     seed = check_int("seed", seed, 0)
     chunk = check_int("chunk_size", study.chunk_size if chunk_size is None else chunk_size, 1)
-    backend = backend or Backend()
+    backend = backend or study.default_backend()
     if not isinstance(backend, Backend):
         raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
     if runs is not None:

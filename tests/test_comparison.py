@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
+from designer.cores import usable_cores
 from designer.model import Model, Sensor
 from designer.noise import Gaussian
 from designer.simulate import simulate
@@ -313,11 +314,14 @@ def test_without_attacks_the_centralized_filters_agree(tmp_path):
 def test_same_numbers_with_every_backend(tmp_path):
     distributed = pytest.importorskip("distributed")
     kw = {**SMALL, "runs": 2, "particles": 40, "scenarios": ("indoor-robot", "target-range-bearing")}
-    a = run_comparison(out=tmp_path / "a", **kw)
+    a = run_comparison(out=tmp_path / "a", backend=Backend(), **kw)
     b = run_comparison(out=tmp_path / "b", backend=Backend("processes", workers=2), **kw)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
         c = run_comparison(out=tmp_path / "c", backend=make_backend(dask=cl.scheduler_address), **kw)
-    assert _numbers(a) == _numbers(b) == _numbers(c)
+    d = run_comparison(out=None, **kw)  # no backend given: the study's default, a worker per usable core
+    assert _numbers(a) == _numbers(b) == _numbers(c) == _numbers(d)
+    assert d["runner"]["indoor-robot"]["backend"] == ("processes" if usable_cores() > 1 else "batched")
+    assert a["runner"]["indoor-robot"]["backend"] == "batched"
     assert len(a["filters"]) == 2 * len(FILTERS) and "indoor-robot: " + LOCAL in a["filters"]
     rc, rb = c["runner"]["target-range-bearing"], b["runner"]["indoor-robot"]
     assert rc["backend"] == "dask" and rb["workers"] == 2 and rb["chunks_computed"] == 2
