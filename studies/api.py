@@ -47,7 +47,7 @@ from designer.validation import InputError, check_bool, check_int, check_path, c
 from . import memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
 
-__all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report",
+__all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter", "FilterRun",
            "DesignOptions"]
 
 
@@ -95,7 +95,11 @@ class Simulation:
 
     ``x`` (K+1, n_x) true states, ``z`` (K, n_z) stacked measurements (``z[k]`` measures
     ``x[k+1]``), ``y`` (K, sensors, max n_z_i) per sensor (NaN-padded), ``inputs``,
-    ``modes`` (switching models, else None).
+    ``modes`` (switching models, else None); for a scenario with a sensor network, ``attacks`` (the
+    channels' realised DoS/FDI, :class:`filters.attacks.AttackPattern`) and ``received`` (what the
+    uplinks delivered to a fusion centre, :func:`studies.recorded.realised_attacks`); ``run``: the study
+    run it reproduces (None: the seed's own run).  The file is a log for ``cfdesign filter``
+    (:mod:`studies.recorded`).
     """
 
     scenario: Scenario
@@ -105,26 +109,37 @@ class Simulation:
     y: np.ndarray
     inputs: np.ndarray
     modes: np.ndarray | None
+    attacks: Any = None
+    received: np.ndarray | None = None
+    run: int | None = None
 
     def save(self, path) -> Path:
-        """Write the ``.npz`` file (arrays above plus sensor and state names, scenario, seed, parameters)."""
+        """Write the ``.npz`` file: the arrays above, the log's arrays (:func:`studies.recorded.log_arrays`:
+        ``channel_dos``, ``channel_fdi``, ``channel_xi``, ``uplink``), sensor and state names, scenario, seed,
+        run and parameters."""
+        from .recorded import log_arrays
+
         path = check_output_file("out", path, ".npz")
         sc = self.scenario
-        arrays = dict(x=self.x, y=self.y, z=self.z, inputs=self.inputs,
+        arrays = dict(log_arrays(sc.model, self.z, self.inputs, self.attacks, self.received), x=self.x, y=self.y,
                       sensor_names=np.array([s.name for s in sc.model.sensors]),
                       state_names=np.array(sc.model.state_names), scenario=np.array(sc.name),
                       seed=np.array(self.seed), params=np.array(json.dumps(dict(sc.params))))
+        if self.run is not None:
+            arrays["run"] = np.array(self.run)
         if self.modes is not None:
             arrays["modes"] = self.modes
         return write_npz(path, **arrays)
 
 
 @one_blas_thread()
-def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Path | None = None,
-             network: SensorNetwork | None = None, attacks: AttackSpec | None = None, x0=None,
-             inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
+def simulate(scenario, *, steps: int | None = None, seed: int = 0, run: int | None = None,
+             out: str | Path | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+             x0=None, inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
              assignments: Sequence[str] = ()) -> Simulation:
-    """Simulate a scenario (truth and measurements) from ``numpy.random.default_rng(SeedSequence(seed))``.
+    """Simulate a scenario: truth and measurements from ``numpy.random.default_rng(SeedSequence(seed))``, and on a
+    sensor network the channels' and uplinks' attacks from ``SeedSequence(seed).spawn(2)[1]`` (the stream of
+    ``design``'s channel attacks).
 
     Parameters
     ----------
@@ -133,6 +148,11 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Pa
         Horizon (default: the scenario's).
     seed : int
         The run's seed; the same seed gives the same file bit for bit.
+    run : int, optional
+        Simulate run ``run`` of a study with seed ``seed`` instead: truth, measurements and attacks as
+        ``study comparison --seed SEED`` draws that run (:func:`studies.comparison.realise`, from
+        ``SeedSequence(seed, spawn_key=(run,)).spawn(3)``), so that ``filter`` on the file gives that run's numbers
+        (its network's scenarios only).
     out : path, optional
         Write the ``.npz`` file there (see :meth:`Simulation.save`).
     overrides, assignments
@@ -145,17 +165,38 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, out: str | Pa
     seed = check_int("seed", seed, 0)
     if steps is not None:
         steps = check_int("steps", steps, 1)
+    if run is not None:
+        run = check_int("run", run, 0)
     _check_arguments(out=out, network=network, attacks=attacks, inputs=inputs, overrides=overrides,
                      assignments=assignments)
     if out is not None:
         check_output_file("out", out, ".npz")
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
-    memory.check(memory.simulate_need(sc, sc.steps if steps is None else steps))
-    traj = sc.simulate(np.random.default_rng(np.random.SeedSequence(seed)), steps)
+    if run is not None and sc.network is None:
+        raise InputError(f"run applies to a scenario with a sensor network (the comparison's runs); {sc.name!r} "
+                         "has none")
+    K = sc.steps if steps is None else steps
+    memory.check(memory.simulate_need(sc, K))
+    from filters.attacks import channel_draws
+
+    from .recorded import realised_attacks
+    from .runner import run_seed
+
+    if run is None:
+        traj = sc.simulate(np.random.default_rng(np.random.SeedSequence(seed)), steps)
+        channels = np.random.SeedSequence(seed).spawn(2)[1]
+    else:  # the comparison's run: studies.comparison.realise
+        truth, channels, _ = run_seed(seed, run).spawn(3)
+        traj = sc.simulate(np.random.default_rng(truth), K)
     if not (np.all(np.isfinite(traj.x)) and np.all(np.isfinite(traj.z))):
         raise InputError("the simulated states or measurements are not finite; check X0, the prior and the model "
                          "(parameter x0 or the model's f and h)")
-    sim = Simulation(sc, seed, traj.x, traj.z, traj.per_sensor(sc.model), traj.inputs, traj.modes)
+    pattern = received = None
+    if sc.network is not None:
+        u, s = channel_draws(K, sc.network.n_nodes, np.random.default_rng(channels))
+        pattern, received = realised_attacks(sc, u, s, traj.x, traj.z)
+    sim = Simulation(sc, seed, traj.x, traj.z, traj.per_sensor(sc.model), traj.inputs, traj.modes, pattern,
+                     received, run)
     if out is not None:
         sim.save(out)
     return sim
@@ -390,3 +431,152 @@ def report(directory: str | Path) -> tuple[Path, Path]:
     with writing(d, name="directory", replaces=()), replaced_outputs(d, keep_others=True) as stage:
         write_report(d, into=stage)
     return d / "report.html", d / "report.md"
+
+
+@dataclass(frozen=True, eq=False)
+class FilterRun:
+    """A filter of the comparison run on a recorded log (what ``cfdesign filter`` computes).
+
+    ``name``: the filter's name in the comparison; ``runtime``: what it needs at run time (``local``,
+    ``scheduled``, ``global`` (an oracle), ``centralized``); ``x_hat`` (K + 1, nodes, n_x): every node's estimate
+    (one node, the fusion centre, for a centralized filter), ``x_hat[0]`` the prior mean; ``cov`` (K + 1, nodes,
+    n_x, n_x): the bound ``Phi`` the filter certifies (``cov_kind == 'bound'``) or the covariance it believes
+    (``'covariance'``), trusted where ``valid``; ``violations``: the design conditions broken (node, step,
+    condition) and ``'diverged'``; ``verdict``: a designed filter's verdict of its bound on this log (``certified``,
+    ``vacuous``, ``not steady``, ``infeasible``; None for the others); ``messages`` (K,): transmissions per step;
+    ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain rule and options of the design it ran with.
+    """
+
+    scenario: Scenario
+    name: str
+    runtime: str
+    x_hat: np.ndarray
+    cov: np.ndarray
+    cov_kind: str
+    valid: np.ndarray
+    violations: list
+    verdict: str | None
+    messages: np.ndarray
+    truth: np.ndarray | None
+    log: str
+    design: dict | None
+
+    @property
+    def diverged(self) -> dict | None:
+        """Its ``'diverged'`` violation (``node``, ``step``, ``reason``) or None."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+    def errors(self) -> np.ndarray | None:
+        """(K + 1, nodes, n_x) the truth minus each node's estimate (None: the log holds no truth)."""
+        return None if self.truth is None else self.truth[:, None] - self.x_hat
+
+    def rmse(self) -> float | None:
+        """RMSE of the position (or of the whole state for a model without declared position components) over
+        steps 1..K and the nodes, as the comparison scores a run (None without truth)."""
+        e = self.errors()
+        if e is None:
+            return None
+        m = self.scenario.model
+        idx = list(m.position_index) or list(range(m.n_x))
+        return float(np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean()))
+
+    def save(self, directory) -> Path:
+        """Write ``estimates.npz`` (``x_hat``, ``Phi`` or ``P``, ``valid``, ``messages``, ``x`` when known),
+        ``estimates.csv`` (step, node, the estimate's components) and ``report.md`` into ``directory``."""
+        from .recorded import filter_report
+
+        with replaced_outputs(directory) as stage:
+            filter_report(self, stage)
+        return Path(directory)
+
+
+@one_blas_thread()
+def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | None = None,
+           seed: int | None = None, particles: int | None = None, iterations: int = 1,
+           out: str | Path | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+           design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
+           overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> FilterRun:
+    """Run a filter of ``study comparison`` on the recorded log ``data`` (:mod:`studies.recorded`).
+
+    Parameters
+    ----------
+    scenario : str, path, Scenario or designer.Model
+        The model the log was recorded on (it needs a sensor network).
+    data : path
+        The log: an ``.npz`` as ``simulate`` writes it (``z``, ``inputs``, the channels' ``channel_dos``,
+        ``channel_fdi``, ``channel_xi``, the uplinks' ``uplink``, optionally the truth ``x``).
+    filter : str, optional
+        A filter of :data:`studies.comparison.FILTER_REGISTRY`: its name or short name (``kcf``, ``hcmci``,
+        ``scheduled``, ``tuned``, ... :func:`studies.recorded.filter_keys`).  Default: the designed filter of
+        ``schedule``'s gain rule.
+    schedule : path, optional
+        A design directory written by ``design``: a designed filter runs with its gain rule and options
+        (otherwise with the scenario's design defaults, as in the comparison).
+    seed : int, optional
+        The particle filters' study seed (default: the log's ``seed``, else 0); with the log's ``run`` (else 0)
+        they draw from :func:`studies.recorded.particle_seed`, as in that run of ``study comparison``.
+    particles, iterations
+        The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1).
+    out : path, optional
+        Write ``estimates.npz``, ``estimates.csv`` and ``report.md`` there.
+
+    Returns
+    -------
+    FilterRun
+    """
+    from filters.consensus import HARD_CONDITIONS
+
+    from .comparison import FILTER_REGISTRY, STUDY
+    from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+    from .recorded import design_options_of, find_filter, read_log, run_filter
+
+    check_path("data", data)
+    check_type("filter", filter, str, "a filter's name (e.g. kcf, scheduled)", optional=True)
+    check_path("schedule", schedule, optional=True)
+    if seed is not None:
+        seed = check_int("seed", seed, 0)
+    particles = check_int("particles", STUDY.particles if particles is None else particles, 2)
+    iterations = check_int("iterations", iterations, 1)
+    _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
+                     overrides=overrides, assignments=assignments)
+    if filter is None and schedule is None:
+        raise InputError("give the filter to run (filter, e.g. kcf or scheduled) or a design directory (schedule)")
+    sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
+    if sc.network is None:
+        raise InputError(f"scenario {sc.name!r} has no sensor network: the filters of the comparison need one (a "
+                         "model file defines NETWORK)")
+    options, design_meta = DesignOptions(), None
+    if schedule is not None:
+        mode, options, meta = design_options_of(schedule)
+        if meta.get("scenario") != sc.name:
+            raise InputError(f"schedule {str(schedule)!r} was designed for scenario {meta.get('scenario')!r}, not "
+                             f"{sc.name!r}")
+        entry = find_filter(FILTER_REGISTRY, mode if filter is None else filter)
+        if not entry.designed or entry.mode != mode:
+            raise InputError(f"filter {entry.name!r} does not run the design of schedule {str(schedule)!r} (gain "
+                             f"rule {mode!r}): give filter {mode!r} or leave it out")
+        design_meta = {"schedule": str(schedule), "gain_rule": mode, "options": options.as_dict(),
+                       "certified": meta.get("certified"), "verdict": meta.get("verdict")}
+    else:
+        entry = find_filter(FILTER_REGISTRY, filter)
+    log = read_log(data, sc)
+    seed = (log.seed or 0) if seed is None else seed
+    design = None
+    if entry.mode is not None:
+        design = consensus_design(sc, as_mode(options, entry.mode), steps=log.steps)
+        why = check_first_step(sc, design, entry.name) if entry.start_check else None
+        if why is not None:  # as the comparison reports it: not run
+            raise InputError(f"filter {entry.name!r} cannot start on {sc.name!r}: {why}")
+        design_meta = design_meta or {"gain_rule": entry.mode, "options": as_mode(options, entry.mode).as_dict()}
+    with writing(out):
+        res = run_filter(sc, log, entry, design=design, seed=seed, run=log.run or 0, particles=particles,
+                         iterations=iterations)
+        verdict = None
+        if entry.designed:
+            ok = not any(v["condition"] in HARD_CONDITIONS for v in res.violations[0])
+            verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0]
+        run = FilterRun(sc, entry.name, res.runtime, res.x[0], res.cov[0], res.cov_kind, res.valid[0],
+                        res.violations[0], verdict, res.messages[0], log.x, log.source, design_meta)
+        if out is not None:
+            run.save(out)
+    return run

@@ -159,14 +159,54 @@ def scenarios_cmd(as_json: bool) -> None:
 @click.argument("scenario")
 @click.option("--steps", type=int, default=None, help="number of time steps (default: the scenario's)")
 @click.option("--seed", type=int, default=0, show_default=True, help="random seed")
-@click.option("--out", required=True, help="output .npz file")
+@click.option("--run", type=int, default=None,
+              help="simulate run RUN of a study with seed SEED instead (truth, measurements and attacks as study "
+                   "comparison --seed SEED draws it), >= 0")
+@click.option("--out", required=True, help="output .npz file (a log for cfdesign filter)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def simulate_cmd(scenario: str, steps: int | None, seed: int, out: str, assignments) -> None:
-    """Simulate SCENARIO (a built-in name or a MODEL.py file) and write true states and measurements."""
+def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, out: str, assignments) -> None:
+    """Simulate SCENARIO (a built-in name or a MODEL.py file) and write true states, measurements and, on a sensor
+    network, the channels' and uplinks' attacks."""
     from . import api
 
-    sim = api.simulate(scenario, steps=steps, seed=seed, out=out, assignments=assignments)
-    click.echo(f"wrote {out}: x {sim.x.shape}, z {sim.z.shape}")
+    sim = api.simulate(scenario, steps=steps, seed=seed, run=run, out=out, assignments=assignments)
+    click.echo(f"wrote {out}: x {sim.x.shape}, z {sim.z.shape}"
+               + ("" if sim.attacks is None else f", channels {sim.attacks.dos.shape} ({int(sim.attacks.dos.sum())} "
+                  f"packets lost, {int(sim.attacks.fdi.sum())} falsified)"))
+
+
+@cli.command("filter")
+@click.argument("scenario")
+@click.option("--data", required=True, metavar="LOG.npz",
+              help="the recorded log: an .npz as cfdesign simulate writes it (z, inputs, channel_dos, channel_fdi, "
+                   "channel_xi, uplink, optionally the truth x)")
+@click.option("--filter", "name", default=None, metavar="NAME",
+              help="a filter of study comparison, by name or short name (kcf, hcmci, local-ekf-at-every-node-no-"
+                   "network, scheduled, tuned, relay, flood, ...) [default: the design of --schedule]")
+@click.option("--schedule", default=None, metavar="DIR",
+              help="a design directory written by cfdesign design: the designed filter runs with its gain rule and "
+                   "options [default: the scenario's design defaults]")
+@click.option("--seed", type=int, default=None,
+              help="study seed of the particle filters' streams [default: the log's seed, else 0]")
+@click.option("--particles", type=int, default=None, help="particles of the particle filters, >= 2 [default: 500]")
+@click.option("--iterations", type=int, default=1, show_default=True,
+              help="consensus rounds per step of HCMCI, >= 1")
+@click.option("--out", required=True, help="output directory (estimates.npz, estimates.csv, report.md)")
+@click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
+def filter_cmd(scenario, data, name, schedule, seed, particles, iterations, out, assignments) -> None:
+    """Run a filter of study comparison on a recorded LOG of SCENARIO (a built-in name or a MODEL.py file)."""
+    from . import api
+
+    res = api.filter(scenario, data, filter=name, schedule=schedule, seed=seed, particles=particles,
+                     iterations=iterations, out=out, assignments=assignments)
+    K1, nodes, _ = res.x_hat.shape
+    rmse = res.rmse()
+    click.echo(f"wrote {out}/estimates.npz, estimates.csv and report.md: {res.name}, {K1 - 1} steps, {nodes} "
+               f"estimate{'s' if nodes > 1 else ''}, runtime {res.runtime}"
+               + ("" if rmse is None else f", RMSE {rmse:.4g} against the log's truth")
+               + ("" if res.verdict is None else f", bound {res.verdict}"))
+    if res.diverged is not None:
+        raise ComputationError(f"filter {res.name!r} diverged at step {res.diverged['step']} (estimates written)")
 
 
 @cli.command("design")

@@ -56,7 +56,7 @@ import numpy as np
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.gain_rules import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
-from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
+from filters.attacks import channel_draws
 from filters.consensus import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
@@ -65,6 +65,7 @@ from .consensus_design import as_mode, bound_verdicts, check_first_step, consens
 from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
                               particle_filters)
 from .pipeline import Plan, Study, StudyOptions, StudyText
+from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .scenarios import Scenario, reference
@@ -288,8 +289,7 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
     channel draws that every setting turns into its attacks (common random numbers) and its particle filters' seed
     from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states."""
     sc = scs[0]
-    m, K, n = sc.model, sc.steps, sc.network.n_nodes
-    signal = sc.resolved_attacks.signal
+    K, n = sc.steps, sc.network.n_nodes
     trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
     for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
         ts, cs, fs = seq.spawn(3)
@@ -298,10 +298,9 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
             truth[a] = traj.x
         u, s = channel_draws(K, n, np.random.default_rng(cs))
         for j, scj in enumerate(scs):
-            att_j = scj.resolved_attacks
-            atts[j].append(attack_pattern(scj.network, u, s, m.n_x, signal))
-            ys[j].append(receive(m, traj.x, traj.z, uplink_attacks(u, s, m.n_x, dos_prob=att_j.uplink_dos,
-                                                                   fdi_prob=att_j.uplink_fdi, signal=signal)))
+            pattern, received = realised_attacks(scj, u, s, traj.x, traj.z)
+            atts[j].append(pattern)
+            ys[j].append(received)
         trajs.append(traj)
         fss.append(fs)
     return Batch(tuple(scs), np.stack([t.z for t in trajs]),

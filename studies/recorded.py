@@ -1,0 +1,355 @@
+"""Recorded data: a log of one run of a sensor network, and any filter of the comparison run on it.
+
+A **log** (schema ``cfdesign.log/1``) is what ``cfdesign simulate`` writes (an ``.npz``), or what a testbed
+recorded in the same form.  Its arrays, ``K`` steps, ``N`` nodes (one per sensor), ``n_z`` stacked measurement
+components:
+
+* ``z`` (K, n_z): each sensor's measurement, ``z[k]`` measuring the state at time ``k + 1`` (NaN: missing);
+* ``inputs`` (K, n_u): the known inputs (needed when the model has inputs; absent or empty otherwise);
+* ``channel_dos``, ``channel_fdi`` (K, N, N), 0/1: entry ``[k, i, j]`` says that node ``i``'s packet from its
+  neighbour ``j`` at time ``k + 1`` was lost (denial of service) or falsified; ``channel_xi`` (K, N, N, n_x): the
+  signal injected into a falsified packet (the packet its sender would send if the state were displaced by ``ξ``,
+  as in the studies); absent: every packet arrived unaltered;
+* ``uplink`` (K, n_z): what each sensor's uplink delivered to a fusion centre (NaN where the packet was lost;
+  the falsified value where it was falsified); absent: ``z``, every uplink delivered;
+* ``x`` (K + 1, n_x), optional: the true states, when the log knows them (a simulated run);
+* ``seed``, ``run``, optional: the study seed and run the log reproduces (``simulate --run``), which also seed the
+  particle filters (:func:`particle_seed`).
+
+:func:`read_log` reads and checks a log against a scenario (every problem an :class:`InputError` naming the file
+and the array, the step and the node where it lies); :func:`run_filter` runs a filter of a
+:class:`studies.filter_registry.FilterRegistry` on it, as the comparison runs that filter on a run of its own.
+"""
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from designer.design import DesignOptions
+from designer.validation import InputError
+from filters.attacks import AttackPattern, attack_pattern, receive, uplink_attacks
+from filters.result import FilterResult
+
+from .filter_registry import Batch, FilterEntry, FilterRegistry
+from .scenarios import Scenario
+
+__all__ = ["LOG_SCHEMA", "Log", "read_log", "log_arrays", "realised_attacks", "particle_seed", "find_filter",
+           "filter_keys", "run_filter"]
+
+LOG_SCHEMA = "cfdesign.log/1"
+
+
+@dataclass(frozen=True, eq=False)
+class Log:
+    """One recorded run (see the module docstring): ``z``, ``inputs`` (or None), ``attacks`` (the channels' record,
+    None: every packet arrived), ``uplink`` (K, n_z), ``x`` (or None), ``seed`` and ``run`` (or None) and the
+    ``source`` it was read from."""
+
+    z: np.ndarray
+    inputs: np.ndarray | None
+    attacks: AttackPattern | None
+    uplink: np.ndarray
+    x: np.ndarray | None = None
+    seed: int | None = None
+    run: int | None = None
+    source: str = "<memory>"
+
+    @property
+    def steps(self) -> int:
+        return int(self.z.shape[0])
+
+
+def realised_attacks(sc: Scenario, u: np.ndarray, s: np.ndarray, x: np.ndarray, z: np.ndarray
+                     ) -> tuple[AttackPattern, np.ndarray]:
+    """The attacks that the channel draws ``u``, ``s`` (:func:`filters.attacks.channel_draws`) make on ``sc``'s
+    channels and uplinks: the channels' :class:`AttackPattern` and what the uplinks delivered to a fusion centre
+    from the truth ``x`` and the clean measurements ``z`` (:func:`filters.attacks.receive`: ``(K, n_z + N)``,
+    values then each sensor's availability)."""
+    m, att = sc.model, sc.resolved_attacks
+    pattern = attack_pattern(sc.network, u, s, m.n_x, att.signal)
+    up = uplink_attacks(u, s, m.n_x, dos_prob=att.uplink_dos, fdi_prob=att.uplink_fdi, signal=att.signal)
+    return pattern, receive(m, x, z, up)
+
+
+def log_arrays(model, z, inputs, attacks: AttackPattern | None, received: np.ndarray | None) -> dict:
+    """The arrays of a log (the module docstring's names) from a run's measurements, inputs, channel attacks and
+    the uplinks' deliveries as :func:`realised_attacks` gives them (NaN where an uplink was lost)."""
+    out = {"schema": np.array(LOG_SCHEMA), "z": np.asarray(z, float)}
+    if inputs is not None:
+        out["inputs"] = np.asarray(inputs, float)
+    if attacks is not None:
+        out.update(channel_dos=attacks.dos.astype(np.uint8), channel_fdi=attacks.fdi.astype(np.uint8),
+                   channel_xi=np.asarray(attacks.xi, float))
+    if received is not None:
+        values, avail = received[:, :model.n_z], received[:, model.n_z:] > 0.5
+        lost = np.repeat(~avail, model.sensor_dims, axis=1)
+        out["uplink"] = np.where(lost, np.nan, values)
+    return out
+
+
+def _fail(source: str, text: str) -> InputError:
+    return InputError(f"log {source}: {text}")
+
+
+def _array(data: dict, key: str, source: str, shape: tuple, *, optional: bool = False, nan: bool = False):
+    """``data[key]`` as a float array of ``shape`` (None for a free axis), finite (NaN allowed with ``nan``)."""
+    if key not in data:
+        if optional:
+            return None
+        raise _fail(source, f"array {key!r} is missing (a log holds {', '.join(LOG_KEYS)})")
+    a = np.asarray(data[key])
+    if a.dtype.kind not in "biuf":
+        raise _fail(source, f"array {key!r} must be numbers, got dtype {a.dtype}")
+    a = a.astype(float)
+    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)):
+        want = " x ".join("any" if w is None else str(w) for w in shape)
+        raise _fail(source, f"array {key!r} must have shape {want}, got {' x '.join(map(str, a.shape)) or 'scalar'}")
+    bad = ~np.isfinite(a) & (np.isinf(a) if nan else True)
+    if np.any(bad):
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise _fail(source, f"array {key!r} holds {a[where]} at index {list(where)}"
+                            + (" (only NaN, a missing value, is allowed there)" if nan else " (values must be finite)"))
+    return a
+
+
+LOG_KEYS = ("z", "inputs", "channel_dos", "channel_fdi", "channel_xi", "uplink", "x", "seed", "run")
+
+
+def _flags(data: dict, key: str, source: str, shape: tuple, links: np.ndarray) -> np.ndarray | None:
+    a = _array(data, key, source, shape, optional=True)
+    if a is None:
+        return None
+    if np.any((a != 0) & (a != 1)):
+        where = tuple(int(i) for i in np.argwhere((a != 0) & (a != 1))[0])
+        raise _fail(source, f"array {key!r} must hold 0 or 1, got {a[where]} at index {list(where)}")
+    off = (a == 1) & ~links[None]
+    if np.any(off):
+        k, i, j = (int(v) for v in np.argwhere(off)[0])
+        raise _fail(source, f"array {key!r}[{k}, {i}, {j}] = 1 marks a packet from node {j} to node {i} at step "
+                            f"{k + 1}, but the network has no link {j} -> {i}")
+    return a == 1
+
+
+def _integer(data: dict, key: str, source: str) -> int | None:
+    if key not in data:
+        return None
+    a = np.asarray(data[key])
+    if a.shape != () or a.dtype.kind not in "iu" or int(a) < 0:
+        raise _fail(source, f"{key!r} must be a non-negative integer, got {a!r}")
+    return int(a)
+
+
+def read_log(path, sc: Scenario) -> Log:
+    """The log at ``path`` (an ``.npz``), checked against the scenario ``sc`` (its model and network): shapes,
+    values, flags only on the network's links, falsified packets with their signal.  Every problem is an
+    :class:`InputError` naming the file, the array and where."""
+    p = Path(path)
+    source = str(p)
+    if not p.is_file():
+        raise _fail(source, "no such file")
+    if p.suffix.lower() != ".npz":
+        raise _fail(source, f"must be an .npz file (what cfdesign simulate writes), got suffix {p.suffix!r}")
+    if not zipfile.is_zipfile(p):
+        raise _fail(source, "is not an .npz archive (the file is damaged or not written by numpy.savez)")
+    try:
+        with np.load(p, allow_pickle=False) as d:
+            data = {k: d[k] for k in d.files}
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
+        raise _fail(source, f"cannot be read: {type(exc).__name__}: {exc}") from None
+    return check_log(data, sc, source)
+
+
+def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
+    """The log of the arrays ``data`` (the module docstring's names), checked against ``sc`` (see
+    :func:`read_log`)."""
+    m, net = sc.model, sc.network
+    if "schema" in data and str(np.asarray(data["schema"])) != LOG_SCHEMA:
+        raise _fail(source, f"has schema {str(np.asarray(data['schema']))!r}, expected {LOG_SCHEMA!r}")
+    z = _array(data, "z", source, (None, m.n_z), nan=True)
+    K = z.shape[0]
+    if K < 1:
+        raise _fail(source, "array 'z' has no step")
+    inputs = _array(data, "inputs", source, (K, None), optional=True)
+    if inputs is not None and inputs.shape[1] == 0:
+        inputs = None
+    if m.n_u and (inputs is None or inputs.shape[1] != m.n_u):
+        got = "none" if inputs is None else f"{inputs.shape[1]} per step"
+        raise _fail(source, f"array 'inputs' must give the model's {m.n_u} known inputs per step ({K} x {m.n_u}), "
+                            f"got {got}")
+    if not m.n_u and inputs is not None:
+        raise _fail(source, f"array 'inputs' gives {inputs.shape[1]} inputs per step, but the model takes none")
+    x = _array(data, "x", source, (K + 1, m.n_x), optional=True)
+    uplink = _array(data, "uplink", source, (K, m.n_z), optional=True, nan=True)
+    attacks = None
+    if net is not None:
+        N = net.n_nodes
+        links = np.asarray(net.adjacency, bool)
+        dos = _flags(data, "channel_dos", source, (K, N, N), links)
+        fdi = _flags(data, "channel_fdi", source, (K, N, N), links)
+        xi = _array(data, "channel_xi", source, (K, N, N, m.n_x), optional=True)
+        if dos is not None or fdi is not None:
+            dos = np.zeros((K, N, N), bool) if dos is None else dos
+            fdi = np.zeros((K, N, N), bool) if fdi is None else fdi
+            both = dos & fdi
+            if np.any(both):
+                k, i, j = (int(v) for v in np.argwhere(both)[0])
+                raise _fail(source, f"the packet from node {j} to node {i} at step {k + 1} is marked both lost "
+                                    "(channel_dos) and falsified (channel_fdi)")
+            if xi is None:
+                if np.any(fdi):
+                    raise _fail(source, "array 'channel_xi' is missing: it gives the signal injected into each "
+                                        "falsified packet (channel_fdi)")
+                xi = np.zeros((K, N, N, m.n_x))
+            attacks = AttackPattern(dos, fdi, np.where(fdi[..., None], xi, 0.0))
+    return Log(z, inputs, attacks, z if uplink is None else uplink, x, _integer(data, "seed", source),
+               _integer(data, "run", source), source)
+
+
+def particle_seed(seed: int, run: int) -> np.random.SeedSequence:
+    """The particle filters' seed of run ``run`` of a study with seed ``seed``: the third child of the run's
+    seed (:func:`studies.runner.run_seed`), as in the comparison (truth, channels, particle filters)."""
+    from .runner import run_seed
+
+    return run_seed(seed, run).spawn(3)[2]
+
+
+def filter_keys(registry: FilterRegistry) -> dict[str, str]:
+    """Short names of the registry's filters for a command line: a designed filter's gain rule (``scheduled``,
+    ``tuned``...), otherwise the name in lower case with every run of other characters than letters and digits one
+    ``-`` (``kcf``, ``hcmci``, ``centralized-ekf-trusts-every-packet``)."""
+    import re
+
+    keys = {}
+    for e in registry:
+        key = e.mode if e.designed else re.sub(r"[^a-z0-9]+", "-", e.name.lower()).strip("-")
+        keys.setdefault(key, e.name)
+    return keys
+
+
+def find_filter(registry: FilterRegistry, name: str) -> FilterEntry:
+    """The registry's filter called ``name``: its name, or its short name (:func:`filter_keys`)."""
+    if name in registry:
+        return registry[name]
+    keys = filter_keys(registry)
+    if name.lower() in keys:
+        return registry[keys[name.lower()]]
+    raise InputError(f"filter must be one of {', '.join(keys)} (or a filter's full name: "
+                     f"{'; '.join(registry.names())}), got {name!r}")
+
+
+def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed: int = 0, run: int = 0,
+               particles: int = 500, iterations: int = 1) -> FilterResult:
+    """``entry`` run on ``log`` as the comparison runs it on one of its runs at its main setting: ``design`` the
+    design of its gain rule (for an entry with a ``mode``; derived as the entry derives it), the particle filters
+    seeded by :func:`particle_seed` (``seed``, ``run``), ``particles`` of them, ``iterations`` consensus rounds per
+    step for the filters that take them (HCMCI)."""
+    m = sc.model
+    if entry.runtime != "centralized" and np.any(np.isnan(log.z)):  # the fusion centre reads the uplinks instead
+        k, c = (int(v) for v in np.argwhere(np.isnan(log.z))[0])
+        raise _fail(log.source, f"z[{k}, {c}] is missing (NaN): filter {entry.name!r} needs every node's own "
+                                "measurement at every step; the centralized filters (EKF, particle filters) "
+                                "skip a missing one")
+    lost = np.isnan(log.uplink)
+    avail = ~np.add.reduceat(lost, np.concatenate([[0], np.cumsum(m.sensor_dims)[:-1]]), axis=1).astype(bool)
+    received = np.concatenate([np.where(lost, 0.0, log.uplink), avail.astype(float)], axis=1)
+    N = sc.network.n_nodes
+    attacks = log.attacks or AttackPattern(np.zeros((log.steps, N, N), bool), np.zeros((log.steps, N, N), bool),
+                                           np.zeros((log.steps, N, N, m.n_x)))
+    batch = Batch((sc,), log.z[None], None if log.inputs is None else log.inputs[None], ((attacks,),),
+                  received=((received,),), particle_seeds=(particle_seed(seed, run),), particles=particles,
+                  iterations=iterations, run_ids=(run,))
+    return entry.run(batch, [0], None if entry.mode is None else entry.design_for(design, m))
+
+
+def design_options_of(schedule_dir) -> tuple[str, DesignOptions, dict]:
+    """The gain rule, the design options and the ``schedule.json`` of a design directory written by
+    ``cfdesign design``."""
+    p = Path(schedule_dir)
+    path = p / "schedule.json" if p.is_dir() else p
+    if not path.is_file():
+        raise InputError(f"schedule {str(p)!r} is not a design directory (no schedule.json): give the --out "
+                         "directory of cfdesign design")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"schedule {str(path)!r} is not valid JSON: {exc}") from None
+    opts = meta.get("options") if isinstance(meta, dict) else None
+    if not isinstance(opts, dict) or "mode" not in opts:
+        raise InputError(f"schedule {str(path)!r} records no design options (written by an older cfdesign "
+                         "design?): design again")
+    known = set(DesignOptions().as_dict())
+    return str(opts["mode"]), DesignOptions(**{k: v for k, v in opts.items() if k in known}), meta
+
+
+def filter_report(run, directory: Path) -> None:
+    """Write a :class:`studies.api.FilterRun` into ``directory``: ``estimates.npz``, ``estimates.csv``,
+    ``report.md`` and ``fig_estimates.png`` (each node's estimate over time with the truth when known, and the trace
+    of its bound or covariance)."""
+    from designer.fileio import atomic_write, write_npz
+
+    from .figures import plotting, save_figure
+
+    directory = Path(directory)
+    m = run.scenario.model
+    K1, nodes, n_x = run.x_hat.shape
+    key = "Phi" if run.cov_kind == "bound" else "P"
+    arrays = {"x_hat": run.x_hat, key: run.cov, "valid": run.valid, "messages": run.messages,
+              "state_names": np.array(m.state_names)}
+    if run.truth is not None:
+        arrays["x"] = run.truth
+    write_npz(directory / "estimates.npz", **arrays)
+    trace = np.where(run.valid, np.trace(run.cov, axis1=-2, axis2=-1), np.nan)
+
+    def csv(fh):
+        head = ["step", "node", *m.state_names, f"trace_{key}"]
+        fh.write((",".join(head) + "\n").encode())
+        for k in range(K1):
+            for i in range(nodes):
+                row = [str(k), str(i), *(repr(float(v)) for v in run.x_hat[k, i]), repr(float(trace[k, i]))]
+                fh.write((",".join(row) + "\n").encode())
+
+    atomic_write(directory / "estimates.csv", csv)
+    idx = list(m.position_index) or list(range(min(2, n_x)))
+    fig, axs = plotting().subplots(1, 2, figsize=(12, 4.5))
+    t = np.arange(K1)
+    for c in idx[:2]:
+        for i in range(nodes):
+            axs[0].plot(t, run.x_hat[:, i, c], lw=0.8, alpha=0.6)
+        if run.truth is not None:
+            axs[0].plot(t, run.truth[:, c], "k-", lw=2, label=f"truth {m.state_names[c]}")
+    axs[0].set(xlabel="time step k", ylabel="estimate", title=f"{run.name}: every node's estimate")
+    if run.truth is not None:
+        axs[0].legend(loc="best", fontsize=8)
+    for i in range(nodes):
+        axs[1].plot(t[1:], trace[1:, i], lw=0.8)
+    axs[1].set(xlabel="time step k", ylabel=f"tr {key}", yscale="log",
+               title="the bound each node certifies" if key == "Phi" else "the covariance each node believes")
+    save_figure(fig, directory / "fig_estimates.png")
+    rmse = run.rmse()
+    lines = [f"# {run.name} on {run.log}", "",
+             f"Scenario `{run.scenario.name}`, {K1 - 1} steps, {nodes} estimate{'s' if nodes > 1 else ''} "
+             f"({'a fusion centre' if nodes == 1 else 'one per node'}); what it needs at run time: `{run.runtime}`"
+             + (" (an oracle: a reference, not a filter to deploy)." if run.runtime == "global" else "."),
+             ""]
+    if run.design is not None:
+        lines += [f"Design: gain rule `{run.design['gain_rule']}`"
+                  + (f", from `{run.design['schedule']}` (verdict there: {run.design.get('verdict')})"
+                     if "schedule" in run.design else ", the scenario's design defaults") + ".", ""]
+    if run.verdict is not None:
+        lines += [f"Its bound on this log: **{run.verdict}** (designer.verdict: finite, steady and below the "
+                  "open-loop covariance to be certified).", ""]
+    d = run.diverged
+    if d is not None:
+        lines += [f"**Diverged** at step {d['step']} (node {d['node']}): {d.get('reason', '')}; the estimates after "
+                  "it are not numbers.", ""]
+    if rmse is not None:
+        lines += [f"RMSE against the log's truth (position, over steps 1..K and the nodes): {rmse:.4g}.", ""]
+    lines += [f"Messages per step: {float(np.mean(run.messages)):.4g}.", "",
+              "Files: `estimates.npz` (`x_hat` (K + 1, nodes, n_x), " + f"`{key}`, `valid`, `messages`"
+              + (", `x` the truth" if run.truth is not None else "") + "), `estimates.csv` (step, node, the "
+              f"estimate's components, tr {key}), `fig_estimates.png`.", "", "![estimates](fig_estimates.png)", ""]
+    atomic_write(directory / "report.md", lambda fh: fh.write("\n".join(lines).encode()))

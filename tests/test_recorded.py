@@ -1,0 +1,217 @@
+"""Filters on recorded logs (studies.recorded, studies.filter, cfdesign filter): a simulated run written as a log and
+filtered gives that run's numbers in the comparison; bad logs are refused naming the file, the array and where."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import studies
+from designer.validation import InputError
+from studies.cli import main
+from studies.comparison import FILTER_REGISTRY, FILTERS
+from studies.pipeline import run_study
+from studies.recorded import filter_keys, find_filter
+from studies.runner import Backend
+
+# A user's model file: a unicycle steered by a known turn rate, seven posts on a ring with two chords, bearings at the
+# odd posts and ranges at the even ones.
+USER_MODEL = '''"""Seven posts around a steered cart (a user's file): ranges and bearings, a known turn rate."""
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
+
+STEPS = 18
+POSTS = [(0.0, 0.0), (12.0, -2.0), (24.0, 0.0), (26.0, 14.0), (14.0, 22.0), (2.0, 18.0), (12.0, 9.0)]
+NETWORK = SensorNetwork.from_edges(7, [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (6, 1), (6, 4)])
+ATTACKS = AttackSpec(dos=0.25, fdi=0.1, signal=FDISignal(amplitude=0.4, components=(0, 1)))
+
+
+def inputs(steps):
+    return 0.08 * np.sin(0.3 * np.arange(steps))[:, None]
+
+
+def model():
+    x = ca.SX.sym("x", 4)
+    u = ca.SX.sym("u", 1)
+    sensors = []
+    for i, (a, b) in enumerate(POSTS):
+        if i % 2:
+            sensors.append(Sensor(f"post{i}", ca.atan2(x[1] - b, x[0] - a), Gaussian.zero_mean([[0.002]]),
+                                  angles=(0,)))
+        else:
+            sensors.append(Sensor(f"post{i}", ca.sqrt((x[0] - a) ** 2 + (x[1] - b) ** 2),
+                                  Gaussian.zero_mean([[0.3]])))
+    f = ca.vertcat(x[0] + x[3] * ca.cos(x[2]), x[1] + x[3] * ca.sin(x[2]), x[2] + u[0], x[3])
+    return Model("cart", x, f, sensors, Gaussian.zero_mean(np.diag([0.002, 0.002, 0.0005, 0.0005])),
+                 Gaussian([10.0, 8.0, 0.3, 0.6], np.diag([0.5, 0.5, 0.02, 0.01])), u=u, position_index=(0, 1))
+'''
+
+
+@pytest.fixture(scope="module")
+def cart(tmp_path_factory):
+    path = tmp_path_factory.mktemp("user") / "cart.py"
+    path.write_text(USER_MODEL)
+    return path
+
+
+@pytest.mark.parametrize("target", ["indoor-robot", "user"])
+def test_a_simulated_run_filtered_from_its_log_gives_the_comparisons_numbers(target, cart, tmp_path):
+    """simulate --run r writes run r of the comparison (seed s) as a log; every filter run on it by studies.filter
+    equals that run's estimates in the study, bit for bit (node 1's, as the study keeps them), the particle filters
+    included (their streams from the log's seed and run)."""
+    scenario = str(cart) if target == "user" else target
+    res = run_study("comparison", [scenario], runs=3, particles=40, seed=5, sweep_values=(), chunk_size=3,
+                    backend=Backend(), quiet=True)
+    (arrays,) = res.arrays.values()
+    log = tmp_path / "run2.npz"
+    sim = studies.simulate(scenario, seed=5, run=2, out=log)
+    assert np.array_equal(sim.x, arrays["truth"][2])
+    ran = 0
+    for f, name in enumerate(FILTERS):
+        expected = arrays["estimate"][2, f]
+        if np.isnan(expected).all():  # not run or diverged in the study: nothing to compare
+            continue
+        got = studies.filter(scenario, log, filter=name, particles=40)
+        assert np.array_equal(got.x_hat[:, 0], expected), name
+        ran += 1
+    assert ran >= 9
+    # the seed of the particle filters matters: another seed, other numbers
+    pf = FILTERS.index("centralized PF (attack-aware)")
+    other = studies.filter(scenario, log, filter="centralized-pf-attack-aware", particles=40, seed=6)
+    assert not np.array_equal(other.x_hat[:, 0], arrays["estimate"][2, pf])
+
+
+def test_a_log_without_channel_records_is_a_run_without_attacks(tmp_path):
+    """A log of measurements alone (every packet arrived): KCF on it equals KCF on the same run with its attack
+    records zeroed; the recorded attacks change the numbers."""
+    sim = studies.simulate("indoor-robot", seed=3, run=0, out=tmp_path / "full.npz")
+    with np.load(tmp_path / "full.npz") as d:
+        data = {k: d[k] for k in d.files}
+    bare = {k: data[k] for k in ("z", "inputs", "x")}
+    np.savez(tmp_path / "bare.npz", **bare)
+    quiet = dict(data, channel_dos=np.zeros_like(data["channel_dos"]), channel_fdi=np.zeros_like(data["channel_fdi"]),
+                 uplink=data["z"])
+    np.savez(tmp_path / "quiet.npz", **quiet)
+    a = studies.filter("indoor-robot", tmp_path / "bare.npz", filter="kcf")
+    b = studies.filter("indoor-robot", tmp_path / "quiet.npz", filter="kcf")
+    c = studies.filter("indoor-robot", tmp_path / "full.npz", filter="kcf")
+    assert np.array_equal(a.x_hat, b.x_hat) and not np.array_equal(a.x_hat, c.x_hat)
+    assert sim.attacks.dos.any() and sim.attacks.fdi.any()
+    # the centralized EKF skips the uplinks a log marks lost (NaN)
+    lossy = dict(bare, uplink=np.where(np.arange(data["z"].shape[1]) == 0, np.nan, data["z"]))
+    np.savez(tmp_path / "lossy.npz", **lossy)
+    e = studies.filter("indoor-robot", tmp_path / "lossy.npz", filter="centralized-ekf-trusts-every-packet")
+    full = studies.filter("indoor-robot", tmp_path / "bare.npz", filter="centralized-ekf-trusts-every-packet")
+    assert np.isfinite(e.x_hat).all() and not np.array_equal(e.x_hat, full.x_hat)
+
+
+def test_cli_filter_with_a_design_directory_writes_its_estimates(cart, tmp_path, capsys):
+    """cfdesign design, then cfdesign filter --schedule DIR on a simulated log of the user's model: the designed
+    filter runs with the design's options and equals studies.filter with the same gain rule; the files hold what
+    the result holds."""
+    log, des, out = tmp_path / "log.npz", tmp_path / "des", tmp_path / "est"
+    assert main(["simulate", str(cart), "--seed", "4", "--out", str(log)]) == 0
+    assert main(["design", str(cart), "--mode", "relay", "--rounds", "2", "--out", str(des)]) in (0, 1)
+    capsys.readouterr()
+    assert main(["filter", str(cart), "--data", str(log), "--schedule", str(des), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "relay EKF (relay design)" in said and "RMSE" in said
+    ref = studies.filter(str(cart), log, filter="relay", schedule=des)
+    with np.load(out / "estimates.npz") as d:
+        assert np.array_equal(d["x_hat"], ref.x_hat) and np.array_equal(d["Phi"], ref.cov)
+        assert np.array_equal(d["x"], ref.truth)
+    rows = (out / "estimates.csv").read_text().splitlines()
+    assert rows[0].startswith("step,node,") and len(rows) == 1 + ref.x_hat.shape[0] * ref.x_hat.shape[1]
+    last = rows[-1].split(",")
+    assert np.allclose([float(v) for v in last[2:-1]], ref.x_hat[-1, -1], rtol=0, atol=0)
+    assert "relay" in (out / "report.md").read_text() and (out / "fig_estimates.png").stat().st_size > 0
+    # the design's rounds are used: the default design (the diameter's rounds) gives other numbers
+    default = studies.filter(str(cart), log, filter="relay")
+    assert not np.array_equal(default.x_hat, ref.x_hat)
+    rec = json.loads((des / "schedule.json").read_text())
+    assert ref.design["options"]["rounds"] == rec["options"]["rounds"] == 2
+
+
+def test_filter_names_and_short_names():
+    keys = filter_keys(FILTER_REGISTRY)
+    assert keys["kcf"] == "KCF" and keys["scheduled"] == "consensus EKF (scheduled design)"
+    assert len(keys) == len(FILTER_REGISTRY)  # one short name per filter
+    for key, name in keys.items():
+        assert find_filter(FILTER_REGISTRY, key).name == name == find_filter(FILTER_REGISTRY, name).name
+    with pytest.raises(InputError, match="filter must be one of .*kcf.*got 'kfc'"):
+        find_filter(FILTER_REGISTRY, "kfc")
+
+
+def _log(tmp_path, name="bad.npz", **change):
+    with np.load(tmp_path / "good.npz") as d:
+        data = {k: d[k] for k in d.files}
+    data.update(change)
+    for k in [k for k, v in change.items() if v is None]:
+        data.pop(k)
+    path = tmp_path / name
+    np.savez(path, **data)
+    return path
+
+
+@pytest.mark.parametrize("case, message", [
+    ("no z", r"array 'z' is missing"),
+    ("z wrong width", r"array 'z' must have shape any x 16, got 30 x 7"),
+    ("z infinite", r"array 'z' holds inf at index \[3, 1\] \(only NaN, a missing value, is allowed there\)"),
+    ("flag on no link", r"array 'channel_dos'\[2, 0, 4\] = 1 marks a packet from node 4 to node 0 at step 3, but "
+                        r"the network has no link 4 -> 0"),
+    ("flag not 0/1", r"array 'channel_fdi' must hold 0 or 1, got 2.0 at index \[0, 0, 0\]"),
+    ("lost and falsified", r"the packet from node 1 to node 0 at step 1 is marked both lost"),
+    ("fdi without xi", r"array 'channel_xi' is missing"),
+    ("inputs missing", r"array 'inputs' must give the model's 2 known inputs per step \(30 x 2\), got none"),
+    ("truth short", r"array 'x' must have shape 31 x 3, got 30 x 3"),
+    ("missing measurement", r"z\[4, 2\] is missing \(NaN\): filter 'KCF' needs every node's own measurement"),
+    ("not npz", r"is not an .npz archive"),
+])
+def test_a_bad_log_is_refused_naming_the_file_and_where(case, message, tmp_path, capsys):
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.npz")
+    with np.load(tmp_path / "good.npz") as d:
+        z, dos, fdi, x = d["z"], d["channel_dos"], d["channel_fdi"], d["x"]
+    bad = {
+        "no z": lambda: _log(tmp_path, z=None),
+        "z wrong width": lambda: _log(tmp_path, z=z[:, :7]),
+        "z infinite": lambda: _log(tmp_path, z=np.where((np.arange(30)[:, None] == 3) & (np.arange(16) == 1), np.inf,
+                                                         z)),
+        "flag on no link": lambda: _log(tmp_path, channel_dos=_set(dos, (2, 0, 4), 1)),
+        "flag not 0/1": lambda: _log(tmp_path, channel_fdi=_set(fdi, (0, 0, 0), 2)),
+        "lost and falsified": lambda: _log(tmp_path, channel_dos=_set(dos, (0, 0, 1), 1),
+                                           channel_fdi=_set(fdi, (0, 0, 1), 1)),
+        "fdi without xi": lambda: _log(tmp_path, channel_xi=None, channel_fdi=_set(fdi, (0, 0, 1), 1)),
+        "inputs missing": lambda: _log(tmp_path, inputs=None),
+        "truth short": lambda: _log(tmp_path, x=x[:-1]),
+        "missing measurement": lambda: _log(tmp_path, z=_set(z, (4, 2), np.nan)),
+        "not npz": lambda: (tmp_path / "bad.npz").write_text("step,sensor\n") and tmp_path / "bad.npz",
+    }[case]()
+    with pytest.raises(InputError, match=message) as err:
+        studies.filter("indoor-robot", bad, filter="kcf")
+    assert str(err.value).startswith(f"log {bad}")
+    out = tmp_path / "out"
+    assert main(["filter", "indoor-robot", "--data", str(bad), "--filter", "kcf", "--out", str(out)]) == 2
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and str(bad) in said[0]
+    assert not (out / "estimates.npz").exists()
+
+
+def _set(a, where, value):
+    a = np.array(a, dtype=float if np.isnan(value) else a.dtype)
+    a[where] = value
+    return a
+
+
+def test_filter_options_are_checked_before_reading(tmp_path):
+    with pytest.raises(InputError, match="give the filter to run"):
+        studies.filter("indoor-robot", tmp_path / "none.npz")
+    with pytest.raises(InputError, match="particles must be an integer >= 2, got 1"):
+        studies.filter("indoor-robot", tmp_path / "none.npz", filter="kcf", particles=1)
+    with pytest.raises(InputError, match=r"log .*none.npz: no such file"):
+        studies.filter("indoor-robot", tmp_path / "none.npz", filter="kcf")
+    with pytest.raises(InputError, match="not a design directory"):
+        studies.filter("indoor-robot", tmp_path / "none.npz", schedule=tmp_path)
+    with pytest.raises(InputError, match="run applies to a scenario with a sensor network"):
+        studies.simulate("switching-2d", run=1)
