@@ -15,6 +15,7 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 ``feasibility(...)``        ``cfdesign feasibility``   -> :class:`~studies.feasibility_map.FeasibilityMap`
 ``study(...)``              ``cfdesign study``         -> :class:`~studies.pipeline.StudyResult`
 ``report(directory)``       ``cfdesign report``
+``filter(...)``             ``cfdesign filter``        -> :class:`FilterRun` (a filter of the comparison on a log)
 =========================  ==========================================================
 
 Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
@@ -47,8 +48,8 @@ from designer.validation import InputError, check_bool, check_int, check_path, c
 from . import memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
 
-__all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter", "FilterRun",
-           "DesignOptions"]
+__all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",
+           "FilterRun", "DesignOptions"]
 
 
 def list_scenarios() -> list[dict]:
@@ -117,10 +118,13 @@ class Simulation:
         """Write the ``.npz`` file: the arrays above, the log's arrays (:func:`studies.recorded.log_arrays`:
         ``channel_dos``, ``channel_fdi``, ``channel_xi``, ``uplink``), sensor and state names, scenario, seed,
         run and parameters."""
-        from .recorded import log_arrays
+        from .recorded import log_arrays, write_log_csv
 
-        path = check_output_file("out", path, ".npz")
+        path = check_output_file("out", path, _log_suffix(path))
         sc = self.scenario
+        if path.suffix == ".csv":
+            return write_log_csv(path, dict(log_arrays(sc.model, self.z, self.inputs, self.attacks, self.received),
+                                            x=self.x), sc.model, sc.network)
         arrays = dict(log_arrays(sc.model, self.z, self.inputs, self.attacks, self.received), x=self.x, y=self.y,
                       sensor_names=np.array([s.name for s in sc.model.sensors]),
                       state_names=np.array(sc.model.state_names), scenario=np.array(sc.name),
@@ -130,6 +134,11 @@ class Simulation:
         if self.modes is not None:
             arrays["modes"] = self.modes
         return write_npz(path, **arrays)
+
+
+def _log_suffix(path) -> str:
+    """The suffix a simulated run is written with: ``.csv`` (the log's CSV form) or ``.npz`` (any other)."""
+    return ".csv" if str(path).lower().endswith(".csv") else ".npz"
 
 
 @one_blas_thread()
@@ -154,7 +163,7 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, run: int | No
         ``SeedSequence(seed, spawn_key=(run,)).spawn(3)``), so that ``filter`` on the file gives that run's numbers
         (its network's scenarios only).
     out : path, optional
-        Write the ``.npz`` file there (see :meth:`Simulation.save`).
+        Write the ``.npz`` file there, or with a ``.csv`` suffix the log's CSV form (see :meth:`Simulation.save`).
     overrides, assignments
         Named scenario parameters (a mapping, or ``NAME=VALUE`` strings as ``--set``).
 
@@ -170,7 +179,7 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, run: int | No
     _check_arguments(out=out, network=network, attacks=attacks, inputs=inputs, overrides=overrides,
                      assignments=assignments)
     if out is not None:
-        check_output_file("out", out, ".npz")
+        check_output_file("out", out, _log_suffix(out))
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
     if run is not None and sc.network is None:
         raise InputError(f"run applies to a scenario with a sensor network (the comparison's runs); {sc.name!r} "
@@ -492,7 +501,7 @@ class FilterRun:
 
 @one_blas_thread()
 def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | None = None,
-           seed: int | None = None, particles: int | None = None, iterations: int = 1,
+           seed: int | None = None, run: int | None = None, particles: int | None = None, iterations: int = 1,
            out: str | Path | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> FilterRun:
@@ -512,9 +521,9 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     schedule : path, optional
         A design directory written by ``design``: a designed filter runs with its gain rule and options
         (otherwise with the scenario's design defaults, as in the comparison).
-    seed : int, optional
-        The particle filters' study seed (default: the log's ``seed``, else 0); with the log's ``run`` (else 0)
-        they draw from :func:`studies.recorded.particle_seed`, as in that run of ``study comparison``.
+    seed, run : int, optional
+        The particle filters' study seed and run (default: the log's ``seed`` and ``run``, else 0): they draw from
+        :func:`studies.recorded.particle_seed`, as in that run of ``study comparison``.
     particles, iterations
         The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1).
     out : path, optional
@@ -535,6 +544,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     check_path("schedule", schedule, optional=True)
     if seed is not None:
         seed = check_int("seed", seed, 0)
+    if run is not None:
+        run = check_int("run", run, 0)
     particles = check_int("particles", STUDY.particles if particles is None else particles, 2)
     iterations = check_int("iterations", iterations, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
@@ -561,6 +572,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         entry = find_filter(FILTER_REGISTRY, filter)
     log = read_log(data, sc)
     seed = (log.seed or 0) if seed is None else seed
+    run = (log.run or 0) if run is None else run
     design = None
     if entry.mode is not None:
         design = consensus_design(sc, as_mode(options, entry.mode), steps=log.steps)
@@ -569,14 +581,14 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
             raise InputError(f"filter {entry.name!r} cannot start on {sc.name!r}: {why}")
         design_meta = design_meta or {"gain_rule": entry.mode, "options": as_mode(options, entry.mode).as_dict()}
     with writing(out):
-        res = run_filter(sc, log, entry, design=design, seed=seed, run=log.run or 0, particles=particles,
+        res = run_filter(sc, log, entry, design=design, seed=seed, run=run, particles=particles,
                          iterations=iterations)
         verdict = None
         if entry.designed:
             ok = not any(v["condition"] in HARD_CONDITIONS for v in res.violations[0])
             verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0]
-        run = FilterRun(sc, entry.name, res.runtime, res.x[0], res.cov[0], res.cov_kind, res.valid[0],
-                        res.violations[0], verdict, res.messages[0], log.x, log.source, design_meta)
+        done = FilterRun(sc, entry.name, res.runtime, res.x[0], res.cov[0], res.cov_kind, res.valid[0],
+                         res.violations[0], verdict, res.messages[0], log.x, log.source, design_meta)
         if out is not None:
-            run.save(out)
-    return run
+            done.save(out)
+    return done

@@ -162,7 +162,7 @@ def scenarios_cmd(as_json: bool) -> None:
 @click.option("--run", type=int, default=None,
               help="simulate run RUN of a study with seed SEED instead (truth, measurements and attacks as study "
                    "comparison --seed SEED draws it), >= 0")
-@click.option("--out", required=True, help="output .npz file (a log for cfdesign filter)")
+@click.option("--out", required=True, help="output .npz file, or .csv for the CSV form (a log for cfdesign filter)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, out: str, assignments) -> None:
     """Simulate SCENARIO (a built-in name or a MODEL.py file) and write true states, measurements and, on a sensor
@@ -177,9 +177,9 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
 
 @cli.command("filter")
 @click.argument("scenario")
-@click.option("--data", required=True, metavar="LOG.npz",
+@click.option("--data", required=True, metavar="LOG.npz|LOG.csv",
               help="the recorded log: an .npz as cfdesign simulate writes it (z, inputs, channel_dos, channel_fdi, "
-                   "channel_xi, uplink, optionally the truth x)")
+                   "channel_xi, uplink, optionally the truth x), or its CSV form (one row per step and sensor)")
 @click.option("--filter", "name", default=None, metavar="NAME",
               help="a filter of study comparison, by name or short name (kcf, hcmci, local-ekf-at-every-node-no-"
                    "network, scheduled, tuned, relay, flood, ...) [default: the design of --schedule]")
@@ -188,16 +188,18 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
                    "options [default: the scenario's design defaults]")
 @click.option("--seed", type=int, default=None,
               help="study seed of the particle filters' streams [default: the log's seed, else 0]")
+@click.option("--run", type=int, default=None,
+              help="study run of the particle filters' streams [default: the log's run, else 0]")
 @click.option("--particles", type=int, default=None, help="particles of the particle filters, >= 2 [default: 500]")
 @click.option("--iterations", type=int, default=1, show_default=True,
               help="consensus rounds per step of HCMCI, >= 1")
 @click.option("--out", required=True, help="output directory (estimates.npz, estimates.csv, report.md)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def filter_cmd(scenario, data, name, schedule, seed, particles, iterations, out, assignments) -> None:
+def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations, out, assignments) -> None:
     """Run a filter of study comparison on a recorded LOG of SCENARIO (a built-in name or a MODEL.py file)."""
     from . import api
 
-    res = api.filter(scenario, data, filter=name, schedule=schedule, seed=seed, particles=particles,
+    res = api.filter(scenario, data, filter=name, schedule=schedule, seed=seed, run=run, particles=particles,
                      iterations=iterations, out=out, assignments=assignments)
     K1, nodes, _ = res.x_hat.shape
     rmse = res.rmse()

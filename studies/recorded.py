@@ -1,7 +1,8 @@
 """Recorded data: a log of one run of a sensor network, and any filter of the comparison run on it.
 
-A **log** (schema ``cfdesign.log/1``) is what ``cfdesign simulate`` writes (an ``.npz``), or what a testbed
-recorded in the same form.  Its arrays, ``K`` steps, ``N`` nodes (one per sensor), ``n_z`` stacked measurement
+A **log** (schema ``cfdesign.log/1``, ``studies/schemas/log.schema.json``) is what ``cfdesign simulate`` writes
+(an ``.npz``), or what a testbed recorded in the same form, or its CSV form (one row per step and sensor:
+:func:`read_log_csv`, ``log_csv.schema.json``).  Its arrays, ``K`` steps, ``N`` nodes (one per sensor), ``n_z`` stacked measurement
 components:
 
 * ``z`` (K, n_z): each sensor's measurement, ``z[k]`` measuring the state at time ``k + 1`` (NaN: missing);
@@ -37,8 +38,9 @@ from filters.result import FilterResult
 from .filter_registry import Batch, FilterEntry, FilterRegistry
 from .scenarios import Scenario
 
-__all__ = ["LOG_SCHEMA", "Log", "read_log", "log_arrays", "realised_attacks", "particle_seed", "find_filter",
-           "filter_keys", "run_filter"]
+__all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
+           "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "design_options_of",
+           "filter_report"]
 
 LOG_SCHEMA = "cfdesign.log/1"
 
@@ -144,15 +146,19 @@ def _integer(data: dict, key: str, source: str) -> int | None:
 
 
 def read_log(path, sc: Scenario) -> Log:
-    """The log at ``path`` (an ``.npz``), checked against the scenario ``sc`` (its model and network): shapes,
-    values, flags only on the network's links, falsified packets with their signal.  Every problem is an
+    """The log at ``path`` (an ``.npz``, or its CSV form: :func:`read_log_csv`), checked against the scenario
+    ``sc`` (its model and network): shapes, values, flags only on the network's links, falsified packets with their
+    signal.  Every problem is an
     :class:`InputError` naming the file, the array and where."""
     p = Path(path)
     source = str(p)
     if not p.is_file():
         raise _fail(source, "no such file")
+    if p.suffix.lower() == ".csv":
+        return read_log_csv(p, sc)
     if p.suffix.lower() != ".npz":
-        raise _fail(source, f"must be an .npz file (what cfdesign simulate writes), got suffix {p.suffix!r}")
+        raise _fail(source, f"must be an .npz or a .csv file (what cfdesign simulate writes), got suffix "
+                            f"{p.suffix!r}")
     if not zipfile.is_zipfile(p):
         raise _fail(source, "is not an .npz archive (the file is damaged or not written by numpy.savez)")
     try:
@@ -353,3 +359,260 @@ def filter_report(run, directory: Path) -> None:
               + (", `x` the truth" if run.truth is not None else "") + "), `estimates.csv` (step, node, the "
               f"estimate's components, tr {key}), `fig_estimates.png`.", "", "![estimates](fig_estimates.png)", ""]
     atomic_write(directory / "report.md", lambda fh: fh.write("\n".join(lines).encode()))
+
+
+# --------------------------------------------------------------------------------------------------- the CSV form
+# One row per step and sensor (schema log_csv, studies/schemas/log_csv.schema.json):
+#   step      1..K: the row's measurement measures the state at time `step` (z[step - 1]); step 0 rows carry the
+#             initial true state alone (x1..)
+#   sensor    0..N-1, the sensor (= node) of the row
+#   z1..zM    the sensor's measurement components (M: the largest sensor dimension; empty beyond its own, and an
+#             empty cell within it: a missing measurement)
+#   uplink1..uplinkM   optional: what the sensor's uplink delivered to a fusion centre (empty: lost); without these
+#             columns every uplink delivered z
+#   from_J    optional, one per node J: the packet node J sent to this row's node at this step: 1 received, 0 lost,
+#             f:XI_1;...;XI_nx falsified with the injected signal XI; empty where J is not a neighbour
+#   u1..u_nu  the known inputs of the step (the same on every row of the step), when the model has inputs
+#   x1..x_nx  optional: the true state at time `step` (the same on every row of the step)
+# A (step, sensor) row that is absent: the sensor's measurement is missing and the packets to its node were lost.
+def _csv_columns(m, n_nodes: int, *, uplink: bool, channels: bool, truth: bool) -> list[str]:
+    M = max(m.sensor_dims)
+    cols = ["step", "sensor", *(f"z{c + 1}" for c in range(M))]
+    cols += [f"uplink{c + 1}" for c in range(M)] if uplink else []
+    cols += [f"from_{j}" for j in range(n_nodes)] if channels else []
+    cols += [f"u{c + 1}" for c in range(m.n_u)]
+    cols += [f"x{c + 1}" for c in range(m.n_x)] if truth else []
+    return cols
+
+
+def _num(v: float) -> str:
+    return "" if np.isnan(v) else repr(float(v))
+
+
+def write_log_csv(path, data: dict, model, network) -> Path:
+    """Write the log arrays ``data`` (:func:`log_arrays`, with ``x`` when known) as the CSV form, atomically
+    (``network`` None: a model without one, no channel columns)."""
+    from designer.fileio import atomic_write
+
+    m = model
+    z, K = np.asarray(data["z"], float), data["z"].shape[0]
+    N = m.n_sensors
+    dims = list(m.sensor_dims)
+    off = np.concatenate([[0], np.cumsum(dims)])
+    up, x = data.get("uplink"), data.get("x")
+    has_ch = "channel_dos" in data and network is not None
+    cols = _csv_columns(m, N, uplink=up is not None, channels=has_ch, truth=x is not None)
+    M = max(dims)
+    adj = np.zeros((N, N), bool) if network is None else np.asarray(network.adjacency, bool)
+    u = data.get("inputs")
+
+    def row_cells(k: int, i: int) -> list[str]:
+        a, b = off[i], off[i + 1]
+        cells = [str(k + 1), str(i), *(_num(v) for v in z[k, a:b]), *([""] * (M - dims[i]))]
+        if up is not None:
+            cells += [*(_num(v) for v in up[k, a:b]), *([""] * (M - dims[i]))]
+        if has_ch:
+            for j in range(N):
+                if not adj[i, j]:
+                    cells.append("")
+                elif data["channel_dos"][k, i, j]:
+                    cells.append("0")
+                elif data["channel_fdi"][k, i, j]:
+                    cells.append("f:" + ";".join(repr(float(v)) for v in data["channel_xi"][k, i, j]))
+                else:
+                    cells.append("1")
+        if m.n_u:
+            cells += [repr(float(v)) for v in u[k]]
+        if x is not None:
+            cells += [repr(float(v)) for v in x[k + 1]]
+        return cells
+
+    def write(fh):
+        fh.write((",".join(cols) + "\n").encode())
+        if x is not None:
+            first = ["0", ""] + [""] * (len(cols) - 2 - m.n_x) + [repr(float(v)) for v in x[0]]
+            fh.write((",".join(first) + "\n").encode())
+        for k in range(K):
+            for i in range(N):
+                fh.write((",".join(row_cells(k, i)) + "\n").encode())
+
+    return atomic_write(Path(path), write)
+
+
+def _csv_error(source: str, line: int, column: str | None, text: str) -> InputError:
+    return _fail(source, f"line {line}" + (f", column {column!r}" if column else "") + f": {text}")
+
+
+def read_log_csv(path, sc: Scenario) -> Log:
+    """The CSV form of a log (see the comment above :func:`write_log_csv`), checked against ``sc``: every problem
+    an :class:`InputError` naming the file, the line and the column."""
+    import csv
+
+    m, net = sc.model, sc.network
+    p = Path(path)
+    source = str(p)
+    N = net.n_nodes
+    dims = list(m.sensor_dims)
+    off = np.concatenate([[0], np.cumsum(dims)])
+    adj = np.asarray(net.adjacency, bool)
+    try:
+        fh = p.open(newline="", encoding="utf-8")
+    except OSError as exc:
+        raise _fail(source, f"cannot be read: {exc.strerror or exc}") from None
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise _fail(source, "is empty (a CSV log starts with its header row)") from None
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise _fail(source, f"is not a CSV file: {exc}") from None
+        header = [h.strip() for h in header]
+        M = max(dims)
+        known = set(_csv_columns(m, N, uplink=True, channels=True, truth=True))
+        for c in header:
+            if c not in known:
+                raise _csv_error(source, 1, c, "unknown column (a log's columns: step, sensor, z1..z"
+                                 f"{M}, uplink1..uplink{M}, from_0..from_{N - 1}"
+                                 + (f", u1..u{m.n_u}" if m.n_u else "") + f", x1..x{m.n_x})")
+        for c in ("step", "sensor", *(f"z{c + 1}" for c in range(M)), *(f"u{c + 1}" for c in range(m.n_u))):
+            if c not in header:
+                raise _csv_error(source, 1, None, f"column {c!r} is missing")
+        if len(set(header)) != len(header):
+            dup = next(c for c in header if header.count(c) > 1)
+            raise _csv_error(source, 1, dup, "appears twice in the header")
+        col = {c: header.index(c) for c in header}
+        has_up = "uplink1" in col
+        if has_up and any(f"uplink{c + 1}" not in col for c in range(M)):
+            raise _csv_error(source, 1, None, f"the uplink columns must be all of uplink1..uplink{M}, or none")
+        has_ch = any(c.startswith("from_") for c in col)
+        if has_ch and any(f"from_{j}" not in col for j in range(N)):
+            raise _csv_error(source, 1, None, f"the channel columns must be all of from_0..from_{N - 1}, or none")
+        has_x = "x1" in col
+        if has_x and any(f"x{c + 1}" not in col for c in range(m.n_x)):
+            raise _csv_error(source, 1, None, f"the truth columns must be all of x1..x{m.n_x}, or none")
+        rows: dict[tuple[int, int], dict] = {}
+        x0, per_step = None, {}
+        try:
+            for line, cells in enumerate(reader, start=2):
+                if not cells or all(not c.strip() for c in cells):
+                    continue
+                if len(cells) != len(header):
+                    raise _csv_error(source, line, None, f"{len(cells)} cells, the header has {len(header)}")
+
+                def number(name, cells=cells, line=line, empty_ok=True):
+                    t = cells[col[name]].strip()
+                    if t == "":
+                        if empty_ok:
+                            return np.nan
+                        raise _csv_error(source, line, name, "is empty")
+                    try:
+                        v = float(t)
+                    except ValueError:
+                        raise _csv_error(source, line, name, f"{t!r} is not a number") from None
+                    if not np.isfinite(v):
+                        raise _csv_error(source, line, name, f"{t!r} is not a finite number (leave the cell "
+                                                             "empty for a missing value)")
+                    return v
+
+                def integer(name, low, high, cells=cells, line=line):
+                    t = cells[col[name]].strip()
+                    if not t.isdigit() or not low <= int(t) <= high:
+                        raise _csv_error(source, line, name, f"{t!r} is not an integer in [{low}, {high}]")
+                    return int(t)
+
+                k = integer("step", 0, 10**9)
+                if k == 0:
+                    if not has_x:
+                        raise _csv_error(source, line, "step", "step 0 carries the initial true state (x1..), "
+                                                               "but the log has no truth columns")
+                    x0 = np.array([number(f"x{c + 1}", empty_ok=False) for c in range(m.n_x)])
+                    continue
+                i = integer("sensor", 0, N - 1)
+                if (k, i) in rows:
+                    raise _csv_error(source, line, "sensor", f"a second row for step {k} and sensor {i} "
+                                                             f"(first on line {rows[(k, i)]['line']})")
+                zi = [number(f"z{c + 1}") for c in range(M)]
+                if any(not np.isnan(v) for v in zi[dims[i]:]):
+                    c = next(c for c in range(dims[i], M) if not np.isnan(zi[c]))
+                    raise _csv_error(source, line, f"z{c + 1}", f"sensor {i} measures {dims[i]} component"
+                                     f"{'s' if dims[i] > 1 else ''}: the cell must be empty")
+                rec = {"line": line, "z": zi[:dims[i]]}
+                if has_up:
+                    rec["uplink"] = [number(f"uplink{c + 1}") for c in range(dims[i])]
+                if has_ch:
+                    flags = []
+                    for j in range(N):
+                        name = f"from_{j}"
+                        t = cells[col[name]].strip()
+                        if not adj[i, j]:
+                            if t:
+                                raise _csv_error(source, line, name, f"node {j} is not a neighbour of node {i}: "
+                                                                     "the cell must be empty")
+                            flags.append(None)
+                        elif t in ("0", "1"):
+                            flags.append(int(t))
+                        elif t.startswith("f:"):
+                            try:
+                                xi = [float(v) for v in t[2:].split(";")]
+                            except ValueError:
+                                xi = []
+                            if len(xi) != m.n_x or not np.all(np.isfinite(xi)):
+                                raise _csv_error(source, line, name, f"{t!r}: a falsified packet is f: and its "
+                                                                     f"injected signal, {m.n_x} finite numbers "
+                                                                     "separated by ;")
+                            flags.append(np.array(xi))
+                        else:
+                            raise _csv_error(source, line, name, f"{t!r} must be 1 (received), 0 (lost) or "
+                                                                 "f:XI_1;...;XI_nx (falsified)")
+                    rec["from"] = flags
+                for group, n in (("u", m.n_u), ("x", m.n_x if has_x else 0)):
+                    if n:
+                        vals = np.array([number(f"{group}{c + 1}", empty_ok=False) for c in range(n)])
+                        seen = per_step.setdefault((group, k), (vals, line))
+                        if not np.array_equal(seen[0], vals):
+                            what = "inputs" if group == "u" else "true state"
+                            raise _csv_error(source, line, f"{group}1", f"the {what} of step {k} differ from line "
+                                                                        f"{seen[1]}'s")
+                rows[(k, i)] = rec
+        except csv.Error as exc:
+            raise _fail(source, f"line {reader.line_num}: {exc}") from None
+    if not rows:
+        raise _fail(source, "holds no measurement row")
+    K = max(k for k, _ in rows)
+    z = np.full((K, m.n_z), np.nan)
+    uplink = np.full((K, m.n_z), np.nan) if has_up else None
+    dos = np.zeros((K, N, N), bool)
+    fdi = np.zeros((K, N, N), bool)
+    xi = np.zeros((K, N, N, m.n_x))
+    for (k, i), rec in rows.items():
+        a, b = off[i], off[i + 1]
+        z[k - 1, a:b] = rec["z"]
+        if has_up:
+            uplink[k - 1, a:b] = rec["uplink"]
+        for j, f in enumerate(rec.get("from", [])):
+            if isinstance(f, np.ndarray):
+                fdi[k - 1, i, j], xi[k - 1, i, j] = True, f
+            elif f == 0:
+                dos[k - 1, i, j] = True
+    for k in range(1, K + 1):  # an absent row: the sensor's measurement missing, the packets to its node lost
+        for i in range(N):
+            if (k, i) not in rows:
+                dos[k - 1, i] = adj[i]
+    data = {"z": z}
+    if has_ch or len(rows) < K * N:
+        data.update(channel_dos=dos, channel_fdi=fdi, channel_xi=xi)
+    if has_up:
+        data["uplink"] = uplink
+    if m.n_u:
+        missing = [k for k in range(1, K + 1) if ("u", k) not in per_step]
+        if missing:
+            raise _fail(source, f"step {missing[0]} has no row, so no inputs (u1..): every step needs one row")
+        data["inputs"] = np.stack([per_step[("u", k)][0] for k in range(1, K + 1)])
+    if has_x:
+        missing = [k for k in range(1, K + 1) if ("x", k) not in per_step]
+        if x0 is None or missing:
+            raise _fail(source, f"the truth columns need a step-0 row (the initial state) and one row per step; "
+                                f"{'step 0' if x0 is None else f'step {missing[0]}'} has none")
+        data["x"] = np.stack([x0] + [per_step[("x", k)][0] for k in range(1, K + 1)])
+    return check_log(data, sc, source)

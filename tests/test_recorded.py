@@ -215,3 +215,140 @@ def test_filter_options_are_checked_before_reading(tmp_path):
         studies.filter("indoor-robot", tmp_path / "none.npz", schedule=tmp_path)
     with pytest.raises(InputError, match="run applies to a scenario with a sensor network"):
         studies.simulate("switching-2d", run=1)
+
+
+# ------------------------------------------------------------------------------------------------------ CSV logs
+@pytest.mark.parametrize("target", ["indoor-robot", "user"])
+def test_the_csv_form_of_a_log_gives_the_same_numbers(target, cart, tmp_path):
+    """simulate --out LOG.csv writes the same run as LOG.npz; every filter on the CSV equals the filter on the NPZ
+    (the particle filters given the NPZ's seed and run, which a CSV does not carry); both follow their schemas."""
+    from studies import schemas
+
+    scenario = str(cart) if target == "user" else target
+    studies.simulate(scenario, seed=7, run=1, out=tmp_path / "log.npz")
+    studies.simulate(scenario, seed=7, run=1, out=tmp_path / "log.csv")
+    schemas.validate_log(tmp_path / "log.npz")
+    schemas.validate_log(tmp_path / "log.csv")
+    for name in FILTERS:
+        try:
+            a = studies.filter(scenario, tmp_path / "log.npz", filter=name, particles=30)
+        except InputError as exc:  # a paper design that cannot start on the user's model: both refuse it
+            with pytest.raises(InputError, match="cannot start"):
+                studies.filter(scenario, tmp_path / "log.csv", filter=name, particles=30)
+            assert "cannot start" in str(exc)
+            continue
+        b = studies.filter(scenario, tmp_path / "log.csv", filter=name, particles=30, seed=7, run=1)
+        assert np.array_equal(a.x_hat, b.x_hat, equal_nan=True), name
+        assert np.array_equal(a.truth, b.truth) and np.array_equal(a.cov, b.cov, equal_nan=True), name
+
+
+def test_an_absent_csv_row_is_a_missing_measurement_and_lost_packets(tmp_path):
+    """A (step, sensor) row left out of the CSV: the same log as the NPZ with that measurement NaN (the fusion
+    centre skips it) and every packet to that node at that step lost (KCF)."""
+    studies.simulate("indoor-robot", seed=2, out=tmp_path / "log.csv")
+    studies.simulate("indoor-robot", seed=2, out=tmp_path / "log.npz")
+    lines = (tmp_path / "log.csv").read_text().splitlines()
+    gone = next(i for i, line in enumerate(lines) if line.startswith("5,3,"))
+    (tmp_path / "cut.csv").write_text("\n".join(lines[:gone] + lines[gone + 1:]) + "\n")
+    with np.load(tmp_path / "log.npz") as d:
+        data = {k: d[k] for k in d.files}
+    data["z"][4, 6:8] = np.nan
+    data["uplink"][4, 6:8] = np.nan
+    data["channel_dos"][4, 3] = np.asarray(load_network_adjacency())[3]
+    data["channel_fdi"][4, 3] = 0
+    np.savez(tmp_path / "cut.npz", **data)
+    for name in ("centralized-ekf-trusts-every-packet", "centralized-pf-attack-aware"):
+        a = studies.filter("indoor-robot", tmp_path / "cut.csv", filter=name, seed=2)
+        b = studies.filter("indoor-robot", tmp_path / "cut.npz", filter=name, seed=2, run=0)
+        assert np.array_equal(a.x_hat, b.x_hat), name
+    with pytest.raises(InputError, match=r"z\[4, 6\] is missing"):
+        studies.filter("indoor-robot", tmp_path / "cut.csv", filter="kcf")
+
+
+def load_network_adjacency():
+    from studies.scenarios import load_scenario
+
+    return load_scenario("indoor-robot").network.adjacency
+
+
+@pytest.mark.parametrize("case, message", [
+    ("bad number", r"line 3, column 'z2': 'abc' is not a number"),
+    ("infinite", r"line 3, column 'z1': 'inf' is not a finite number"),
+    ("unknown column", r"line 1, column 'speed': unknown column"),
+    ("missing column", r"line 1: column 'z2' is missing"),
+    ("not a neighbour", r"line 3, column 'from_4': node 4 is not a neighbour of node 0: the cell must be empty"),
+    ("bad flag", r"line 3, column 'from_1': 'yes' must be 1 \(received\), 0 \(lost\) or f:XI_1;...;XI_nx"),
+    ("short signal", r"line 3, column 'from_1': 'f:0.1;0.2': a falsified packet is f: and its injected signal, 3 "
+                     r"finite numbers"),
+    ("duplicate row", r"line 4, column 'sensor': a second row for step 1 and sensor 0 \(first on line 3\)"),
+    ("inputs differ", r"line 4, column 'u1': the inputs of step 1 differ from line 3's"),
+    ("sensor out of range", r"line 3, column 'sensor': '8' is not an integer in \[0, 7\]"),
+    ("ragged", r"line 3: 5 cells, the header has 19"),
+])
+def test_a_bad_csv_log_is_refused_naming_the_line_and_column(case, message, tmp_path, capsys):
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.csv")
+    lines = (tmp_path / "good.csv").read_text().splitlines()
+    head = lines[0].split(",")
+
+    def cell(line: int, column: str, value: str) -> list[str]:
+        cells = lines[line - 1].split(",")
+        cells[head.index(column)] = value
+        return lines[:line - 1] + [",".join(cells)] + lines[line:]
+
+    changed = {
+        "bad number": lambda: cell(3, "z2", "abc"),
+        "infinite": lambda: cell(3, "z1", "inf"),
+        "unknown column": lambda: [lines[0] + ",speed"] + [line + "," for line in lines[1:]],
+        "missing column": lambda: [",".join(c for c in head if c != "z2")]
+        + [",".join(v for c, v in zip(head, line.split(",")) if c != "z2") for line in lines[1:]],
+        "not a neighbour": lambda: cell(3, "from_4", "1"),
+        "bad flag": lambda: cell(3, "from_1", "yes"),
+        "short signal": lambda: cell(3, "from_1", "f:0.1;0.2"),
+        "duplicate row": lambda: lines[:3] + [lines[2]] + lines[3:],
+        "inputs differ": lambda: cell(4, "u1", "0.07"),
+        "sensor out of range": lambda: cell(3, "sensor", "8"),
+        "ragged": lambda: lines[:2] + ["1,0,1,2,3"] + lines[3:],
+    }[case]()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(changed) + "\n")
+    with pytest.raises(InputError, match=message) as err:
+        studies.filter("indoor-robot", bad, filter="kcf")
+    assert str(err.value).startswith(f"log {bad}: line ")
+    assert main(["filter", "indoor-robot", "--data", str(bad), "--filter", "kcf", "--out", str(tmp_path / "o")]) == 2
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and str(bad) in said[0] and "line" in said[0]
+
+
+def test_the_log_schemas_reject_what_breaks_the_format(tmp_path):
+    from studies import schemas
+
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "log.npz")
+    good = schemas.log_json(tmp_path / "log.npz")
+    schemas.validate("log", good)
+    flag = json_copy(good)
+    flag["channel_dos"][0][0][1] = 2
+    with pytest.raises(InputError, match=r"\$\.channel_dos\[0\]\[0\]\[1\]"):
+        schemas.validate("log", flag)
+    both = json_copy(good)
+    both["channel_dos"][3][0][1], both["channel_fdi"][3][0][1] = 1, 1
+    with pytest.raises(InputError, match=r"\$\.channel_fdi\[3\]\[0\]\[1\]: a packet marked both lost"):
+        schemas.validate("log", both)
+    short = json_copy(good)
+    short["x"] = short["x"][:-1]
+    with pytest.raises(InputError, match=r"\$\.x: 30 entries along its first axis, expected 31"):
+        schemas.validate("log", short)
+    row = schemas.read_log_csv_rows(write_csv(tmp_path))[1]
+    schemas.validate("log_csv", row)
+    for change, where in (({"speed": 1.0}, r"\$: 'speed' does not match any of the regexes"),
+                          ({"from_1": "yes"}, r"\$\.from_1"), ({"step": -1}, r"\$\.step"), ({"z1": "abc"}, r"\$\.z1")):
+        with pytest.raises(InputError, match=where):
+            schemas.validate("log_csv", {**row, **change})
+
+
+def json_copy(obj):
+    return json.loads(json.dumps(obj))
+
+
+def write_csv(tmp_path):
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "log.csv")
+    return tmp_path / "log.csv"

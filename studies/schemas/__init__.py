@@ -8,6 +8,10 @@ name                  file                                validates
 ``feasibility``       ``feasibility.schema.json``         one row of ``feasibility.csv`` as
                                                           :func:`read_feasibility_csv` reads it
 ``feasibility_json``  ``feasibility_json.schema.json``    ``feasibility.json`` of a map (``cfdesign.feasibility/1``)
+``log``               ``log.schema.json``                 a recorded run's ``.npz`` (``cfdesign.log/1``) as
+                                                          :func:`log_json` reads it
+``log_csv``           ``log_csv.schema.json``             one row of a CSV log as :func:`read_log_csv_rows`
+                                                          reads it
 ====================  ==================================  ====================================================
 
 The files are the contract (other tools read them with any JSON Schema validator);
@@ -35,7 +39,8 @@ from typing import Any, Iterator
 
 from designer.validation import InputError
 
-__all__ = ["SCHEMAS", "FILES", "load", "validate", "read_feasibility_csv", "validate_output"]
+__all__ = ["SCHEMAS", "FILES", "load", "validate", "read_feasibility_csv", "validate_output", "log_json",
+           "read_log_csv_rows", "validate_log"]
 
 # schema name -> its file in this package
 SCHEMAS: dict[str, str] = {
@@ -43,6 +48,8 @@ SCHEMAS: dict[str, str] = {
     "schedule": "schedule.schema.json",
     "feasibility": "feasibility.schema.json",
     "feasibility_json": "feasibility_json.schema.json",
+    "log": "log.schema.json",
+    "log_csv": "log_csv.schema.json",
 }
 
 # output file name -> the schema it follows (feasibility.csv: each of its rows)
@@ -227,7 +234,36 @@ def _feasibility_json_shapes(obj: dict) -> Iterator[tuple[list, str]]:
         yield ["failed_points"], f"{failed} failed and {obj['feasible_points']} feasible points of {obj['points']}"
 
 
-_SHAPE_CHECKS = {"schedule": _schedule_shapes, "feasibility_json": _feasibility_json_shapes}
+def _log_shapes(obj: dict) -> Iterator[tuple[list, str]]:
+    K = len(obj["z"])
+    widths = {len(r) for r in obj["z"]}
+    if len(widths) > 1:
+        yield ["z"], f"rows of {sorted(widths)} components: every row must have n_z"
+    for key, rows in (("inputs", K), ("uplink", K), ("x", K + 1), ("channel_dos", K), ("channel_fdi", K),
+                      ("channel_xi", K)):
+        if key in obj and len(obj[key]) != rows:
+            yield [key], f"{len(obj[key])} entries along its first axis, expected {rows} (z has {K} steps)"
+            return
+    if "uplink" in obj and obj["z"] and obj["uplink"] and len(obj["uplink"][0]) != len(obj["z"][0]):
+        yield ["uplink"], f"{len(obj['uplink'][0])} components per step, z has {len(obj['z'][0])}"
+    n = None
+    for key in ("channel_dos", "channel_fdi", "channel_xi"):
+        for k, step in enumerate(obj.get(key, [])):
+            if n is None:
+                n = len(step)
+            if len(step) != n or any(len(row) != n for row in step):
+                yield [key, k], f"not N x N with N = {n} nodes"
+                return
+    if "channel_dos" in obj and "channel_fdi" in obj:
+        for k, (d, f) in enumerate(zip(obj["channel_dos"], obj["channel_fdi"])):
+            for i, (dr, fr) in enumerate(zip(d, f)):
+                for j, (a, b) in enumerate(zip(dr, fr)):
+                    if a and b:
+                        yield ["channel_fdi", k, i, j], "a packet marked both lost (channel_dos) and falsified"
+                        return
+
+
+_SHAPE_CHECKS = {"schedule": _schedule_shapes, "feasibility_json": _feasibility_json_shapes, "log": _log_shapes}
 
 
 # ------------------------------------------------------------------------------------------------ the files
@@ -256,6 +292,12 @@ def read_feasibility_csv(path) -> list[dict]:
     ``iterations`` ints, an empty cell None, ``binding`` stays text; a cell that is not a
     finite number is left as its text, so that validation names it.
     """
+    return _csv_rows(path, _cell)
+
+
+def _csv_rows(path, cell) -> list[dict]:
+    """The rows of the CSV file ``path`` as dicts, each cell converted by ``cell(column, text)``; a row with another
+    number of cells than the header is an error naming its line."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{str(path)!r} does not exist")
@@ -268,8 +310,53 @@ def read_feasibility_csv(path) -> list[dict]:
             if "\0extra" in row or "\0missing" in row.values():
                 raise InputError(f"{path.name} line {reader.line_num}: {len(reader.fieldnames)} columns in the "
                                  "header, another number in this row")
-            rows.append({k: _cell(k, v) for k, v in row.items()})
+            rows.append({k: cell(k, v) for k, v in row.items()})
     return rows
+
+
+def log_json(path) -> dict:
+    """A recorded run's ``.npz`` (schema ``log``) as a JSON object: each array as nested lists, NaN as null, a 0-d
+    array as its value (``schema`` a string, ``seed`` and ``run`` integers)."""
+    import numpy as np
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{str(path)!r} does not exist")
+    with np.load(path, allow_pickle=False) as d:
+        out = {}
+        for k in d.files:
+            a = d[k]
+            if a.dtype.kind in "fc":
+                out[k] = np.where(np.isnan(a), None, a.astype(object)).tolist()
+            else:
+                out[k] = a.tolist()
+    return out
+
+
+def _log_cell(column: str, text: str):
+    if text != "" and (column in ("step", "sensor") or column.startswith("from_")):
+        try:
+            return int(text)
+        except ValueError:
+            return text
+    return _cell(column, text)
+
+
+def read_log_csv_rows(path) -> list[dict]:
+    """The rows of a CSV log as dicts of typed values (see ``log_csv.schema.json``): ``step``, ``sensor`` and the
+    ``from_J`` flags 0/1 ints, the other numbers floats, an empty cell None, a falsified packet's ``f:...`` text."""
+    return _csv_rows(path, _log_cell)
+
+
+def validate_log(path) -> None:
+    """Validate a recorded run against its schema: an ``.npz`` as a whole (``log``), a ``.csv`` row by row
+    (``log_csv``; the message names the row and its line)."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        for i, row in enumerate(read_log_csv_rows(path)):
+            validate("log_csv", row, what=f"{path.name} row {i} (line {i + 2})")
+    else:
+        validate("log", log_json(path), what=path.name)
 
 
 def _read_json(path: Path):
