@@ -11,6 +11,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from studies.comparison import FILTERS
+
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 
@@ -53,10 +57,11 @@ def _files(d: Path) -> dict:
         return v
 
     out = {}
-    for name in ("ring.npz", "ring-design/schedule.npz"):
+    for name in ("ring.npz", "ring-design/schedule.npz", "ring-kcf/estimates.npz", "ring-tuned/estimates.npz"):
         with np.load(d / name) as z:
             out[name] = {k: (z[k].dtype.str, z[k].shape, z[k].tobytes()) for k in z.files}
-    out["ring-map/feasibility.csv"] = (d / "ring-map" / "feasibility.csv").read_text()
+    for name in ("ring-map/feasibility.csv", "ring-run3.csv", "ring-kcf/estimates.csv"):
+        out[name] = (d / name).read_text()
     for name in ("ring-design/schedule.json", "ring-map/feasibility.json", "ring-compare/results.json"):
         out[name] = strip(json.loads((d / name).read_text()))
     return out
@@ -92,6 +97,11 @@ def test_the_five_minute_section_runs_as_written_and_both_blocks_write_the_same_
     assert d.trace_bound.shape == (4, 400) and m.feasible.shape == (6, 6) and m.verdict.shape == (6, 6)
     assert d.certified  # the README says the 400-step design is certified (the shell block exits 0 on it)
     assert {"consensus", "local", "particle", "EKF"} == {f["family"] for f in c.filters.values()}
+    k, t = namespace["k"], namespace["t"]
+    assert k.x_hat.shape == (61, 4, 2) and t.name == "consensus EKF (tuned design)" and t.verdict is not None
+    # the log of run 3 filtered gives that run's KCF estimate in the study (node 1's, as the study keeps it)
+    est = c.arrays[next(iter(c.arrays))]["estimate"]
+    assert np.array_equal(k.x_hat[:, 0], est[3, FILTERS.index("KCF")])
     python_files = _files(tmp_path)
     assert python_files.keys() == shell_files.keys()
     for name in shell_files:
