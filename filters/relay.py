@@ -42,7 +42,7 @@ run alone is a batch of one (the same numbers, tested).
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -60,9 +60,10 @@ from .attacks import AttackPattern
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
                               result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
+from .node import register_node_filter
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
-__all__ = ["run_relay_batch", "run_relay_design"]
+__all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork", "predict", "ball_rows", "fuse"]
 
 
 class _Layout(NamedTuple):
@@ -85,17 +86,25 @@ class _Layout(NamedTuple):
     whiten: list  # per sensor dimension m > 1: (the rows of its slots (n_m, m), R^{-1/2} of their sensors (n_m, m, m))
 
 
-def _layout(model: Model, routes: Routes) -> _Layout:
+def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) -> _Layout:
+    """The layout of every node's ball rows, or of the nodes ``nodes`` alone (a node filter's: its rows only, its
+    nodes numbered 0.. in that order; the fields that route copies between nodes are then the network's
+    restricted to these rows and only a node's own fusion may use them)."""
     N, P = routes.n_nodes, routes.n_pairs
     dims = np.asarray(model.sensor_dims, dtype=int)
     slot_sensor = np.concatenate([np.arange(N), routes.source])
     slot_node = np.concatenate([np.arange(N), routes.node])
-    order = np.argsort(slot_node, kind="stable")  # node by node: own slot (index i < N) first, pairs in pair order
-    length = dims[slot_sensor]
-    first = np.empty(N + P, dtype=int)
+    if nodes is not None:  # the chosen nodes' slots only, their nodes renumbered; the other slots have no rows
+        local = np.full(N, -1)
+        local[np.asarray(nodes, dtype=int)] = np.arange(len(nodes))
+        slot_node = local[slot_node]
+    keep = slot_node >= 0
+    order = np.flatnonzero(keep)[np.argsort(slot_node[keep], kind="stable")]  # node by node: own slot first, pairs
+    length = np.where(keep, dims[slot_sensor], 0)
+    first = np.full(N + P, -1)
     first[order] = np.cumsum(length[order]) - length[order]
     T = int(length.sum())
-    start = np.append(first[:N], T)
+    start = np.append(first[:N] if nodes is None else first[np.asarray(nodes, dtype=int)], T)
     comp = np.arange(T) - np.repeat(first[order], length[order])
     row_slot = np.repeat(order, length[order])
     offsets = np.concatenate([[0], np.cumsum(dims)])
@@ -108,7 +117,9 @@ def _layout(model: Model, routes: Routes) -> _Layout:
         pairs = np.flatnonzero(routes.source == s)
         slots = np.concatenate([[s], N + pairs])
         pair_local[pairs] = np.arange(1, slots.size)
-        sensor_slots.append((slot_node[slots], first[slots][:, None] + np.arange(dims[s]), pairs))
+        held = slots[keep[slots]]  # the slots of s among the chosen nodes' (all of them for the network)
+        sensor_slots.append((slot_node[held], first[held][:, None] + np.arange(dims[s]),
+                             pairs if nodes is None else pairs[:0]))
     angle_rows = np.flatnonzero(np.array([c in model.sensors[s].angles
                                           for s, c in zip(slot_sensor[row_slot], comp)], dtype=bool)) \
         if any(sen.angles for sen in model.sensors) else np.zeros(0, dtype=int)
@@ -118,7 +129,7 @@ def _layout(model: Model, routes: Routes) -> _Layout:
     scale[scalar] = np.array([r[0, 0] for r in root])[slot_sensor[row_slot[scalar]]]
     whiten = []
     for m in sorted(set(dims.tolist()) - {1}):
-        slots = np.flatnonzero(length == m)
+        slots = np.flatnonzero(keep & (length == m))
         whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
     return _Layout(start, sensor_slots, pair_local, zcol, first, pair_rows, pair_of_row, comp[pair_rows], angle_rows,
                    None if np.all(scale == 1.0) else scale, whiten)
@@ -182,18 +193,12 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     sent = np.full((runs, steps), network.messages_per_step(hops))
     delivered = np.zeros((runs, steps), int)
     violations: list[list[dict]] = [[] for _ in range(runs)]
-    Q = model.process_cov
     act = np.arange(runs)
     for k in range(steps):
         if not act.size:
             break
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xk, Pk = x_post[act, k], P_post[act, k]
-        xp = model.f_expected(xk, k, uk)
-        F = model.F_expected(xk, k, uk)
-        with np.errstate(over="ignore", invalid="ignore"):  # a run beyond finite numbers stops just below
-            Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
-            Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        xp, Pp = predict(model, k, x_post[act, k], P_post[act, k], uk)
         x_pred[act, k], P_pred[act, k] = xp, Pp
         go = stop_diverged(violations, act, diverged_nodes(xp, Pp), k + 1, "prediction: " + DIVERGED_REASON,
                            nan_before=(x_pred, P_pred))
@@ -213,6 +218,17 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, hops, None)
 
 
+def predict(model: Model, k: int, x, P, u):
+    """Every node's prediction from its own estimate ``x`` (..., n_x) and covariance ``P``: ``(f(x), F P Fᵀ + Q)``
+    with ``F`` at the estimate (``u`` the step's known inputs, broadcast against ``x``)."""
+    xp = model.f_expected(x, k, u)
+    F = model.F_expected(x, k, u)
+    with np.errstate(over="ignore", invalid="ignore"):  # a run beyond finite numbers stops just below
+        Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+    return xp, Pp
+
+
 def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
     """The moments a node keeps: ``F1`` only when the signal has a second moment, ``F2`` only when it has a mean
     (:func:`designer.relay.relay_update` weighs them by ``M`` and ``μ μᵀ``: a zero weight makes them irrelevant; at
@@ -224,27 +240,46 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
 def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
     ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none)."""
-    a, n, nx = xp.shape
+    h, H = ball_rows(model, lay, k, xp)
+    values, arrived = _relayed(routes, lay, zk, H, dos, fdi, xi)
+    return fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived)
+
+
+def ball_rows(model: Model, lay: _Layout, k: int, xp):
+    """``(h (a, T), H (a, T, n_x))``: every row of the layout's balls, each node's at its own prediction ``xp``
+    (a, nodes, n_x) (what the node computes itself)."""
+    a, _, nx = xp.shape
     T = int(lay.start[-1])
-    Hw = np.empty((a, T, nx))
+    H_rows = np.empty((a, T, nx))
     h = np.empty((a, T))
+    for s, (nodes, rows, _) in enumerate(lay.sensor_slots):
+        if not nodes.size:
+            continue
+        at = xp[:, nodes]  # (a, n_s, nx): the predictions of the nodes that hold s's measurement
+        H_rows[:, rows] = model.H(s, at, k + 1)  # (a, n_s, m_s, nx)
+        h[:, rows] = model.h(s, at, k + 1)
+    return h, H_rows
+
+
+def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
+    """What the step's relaying delivers to every node's rows (the network's part, simulated): ``(values (a, T),
+    arrived (a, T))``, a row's value its sensor's measurement plus the displacement its copy took on falsified
+    channels (``H_s`` at the forwarding node's prediction, from ``H_rows``, times the channel's ``ξ``)."""
+    a, T = zk.shape[0], int(lay.start[-1])
     inj = np.zeros((a, T))
     rnd, parent, channel = routes.realise(np.ones((a, routes.incidence.shape[1]), dtype=bool)
                                           if dos is None else ~dos)
     for s, (nodes, rows, pairs) in enumerate(lay.sensor_slots):
-        at = xp[:, nodes]  # (a, n_s, nx): the predictions of the nodes that hold s's measurement
-        H = model.H(s, at, k + 1)  # (a, n_s, m_s, nx)
-        h[:, rows] = model.h(s, at, k + 1)
-        Hw[:, rows] = H  # whitened below
         if fdi is not None and pairs.size:
             chan = channel[:, pairs]  # the falsified copies of every run: H_s at the forwarding node's prediction,
             r, q = np.nonzero((chan >= 0) & np.take_along_axis(fdi, np.maximum(chan, 0), axis=1))  # times ξ
             if r.size:
                 par = parent[r, pairs[q]]
                 sender = np.where(par < 0, 0, lay.pair_local[np.maximum(par, 0)])
-                inj[r[:, None], rows[1 + q]] = (H[r, sender] @ xi[r, chan[r, q], :, None])[..., 0]
+                inj[r[:, None], rows[1 + q]] = (H_rows[r[:, None], rows[sender]] @ xi[r, chan[r, q], :, None])[..., 0]
     # the rounds in order (a pair after the pair it took its copy from): offsets per row, the parent's first
     offset = inj
+    n = routes.n_nodes
     rr = rnd[:, lay.pair_of_row]  # (a, R) each pair row's arrival round (0: lost)
     pp = parent[:, lay.pair_of_row]
     parent_row = np.where(pp >= 0, lay.slot_first[n + np.maximum(pp, 0)] + lay.comp_of_row, -1)
@@ -254,7 +289,15 @@ def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k:
             offset[run, lay.pair_rows[q]] += offset[run, parent_row[run, q]]
     arrived = np.ones((a, T), dtype=bool)
     arrived[:, lay.pair_rows] = rr > 0
-    res = zk[:, lay.zcol] + offset - h
+    return zk[:, lay.zcol] + offset, arrived
+
+
+def fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived):
+    """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
+    ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
+    :func:`designer.relay.relay_update` and :func:`designer.relay.relay_information`.  Returns ``(x, P)``."""
+    Hw = H_rows
+    res = values - h
     if lay.angle_rows.size:
         res[:, lay.angle_rows] = wrap_residuals(res[:, lay.angle_rows], range(lay.angle_rows.size))
     if lay.scale is not None:  # R^{-1/2} of the scalar sensors' rows
@@ -348,5 +391,134 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     return ConsensusBatchResult(**out)
 
 
+class RelayNode:
+    """The filter one node of a ``relay`` or ``flood`` design runs (gain rule ``local``), step by step.
+
+    Its state is its estimate ``x`` and its expected covariance ``P`` (the relay rule's bound; the linearisation
+    remainders are not in it).  It knows its model, its design's rounds, routing and the arrival and falsification
+    moments of its ball (:func:`designer.relay.node_moments`: the sensors whose measurements reach it within the
+    rounds, ``ball``, its own first), computed once here.  Each step (:meth:`step`)::
+
+        x⁻, P⁻ = f(x), F P Fᵀ + Q                      (its own Jacobian at its own estimate)
+        x, P   = the relay rule's update from its own measurement and the relayed ones that arrived
+
+    with ``received`` = ``{sensor: value}`` for the sensors of its ball (other than its own) whose measurement
+    reached it this step, each value as it arrived (falsified or not).  It needs nothing else: no neighbour's
+    estimate, no channel record.  The numbers are those of :func:`run_relay_batch` at this node (the same
+    functions on this node's rows; tested against the batch, bit for bit, through :class:`RelayNetwork`).
+    """
+
+    def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
+                 P0=None, routes: Routes | None = None, moments: Sequence[NodeMoments] | None = None):
+        design = validate_design(design, model, network)
+        rule = gain_rule(design.mode)
+        if not rule.relays:
+            raise InputError(f"RelayNode runs a gain rule that relays (relay, flood); got mode {design.mode!r}")
+        self.node = check_int("node", node, 0, network.n_nodes - 1)
+        self.model = model
+        routes = relay_routes(network, design.rounds, rule.routing) if routes is None else routes
+        self.ball = routes.ball(self.node)
+        self._lay = _layout(model, routes, [self.node])
+        M, mu = _check_signal(design.fdi_signal, network, model.n_x)
+        mom = (relay_moments(routes, network, model.sensor_dims) if moments is None else moments)[self.node]
+        self._classes = node_classes([_lean(mom, M, mu)])
+        self._M, self._mu = M, mu
+        _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
+        self.x, self.P = x0[0].copy(), P0[0].copy()
+        self.k = 0  # the steps taken: the next step measures the state at time k + 1
+
+    def step(self, z, received: Mapping[int, np.ndarray] | None = None, u=None) -> np.ndarray:
+        """One step: predict, then fuse ``z`` (its own measurement) and the relayed measurements ``received``.
+        Returns the new estimate (also ``self.x``; ``self.P`` its expected covariance)."""
+        m, i = self.model, self.node
+        z = np.asarray(z, dtype=float).reshape(-1)
+        if z.shape != (m.sensor_dims[i],):
+            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
+        received = dict(received or {})
+        extra = sorted(set(received) - set(self.ball[1:].tolist()))
+        if extra:
+            raise InputError(f"received holds sensor {extra[0]}, which is not in node {i}'s ball "
+                             f"{self.ball[1:].tolist()} (the sensors whose measurements reach it)")
+        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)  # as the batch takes them
+        xp, Pp = predict(m, self.k, self.x[None, None], self.P[None, None], u)
+        T = int(self._lay.start[-1])
+        values, arrived = np.zeros((1, T)), np.zeros((1, T), dtype=bool)
+        row = 0
+        for j, s in enumerate(self.ball):
+            width = m.sensor_dims[s]
+            v = z if j == 0 else received.get(int(s))
+            if v is not None:
+                v = np.asarray(v, dtype=float).reshape(-1)
+                if v.shape != (width,):
+                    raise InputError(f"received[{s}] must be sensor {s}'s measurement ({width} components), got "
+                                     f"{v.shape}")
+                values[0, row:row + width], arrived[0, row:row + width] = v, True
+            row += width
+        h, H = ball_rows(m, self._lay, self.k, xp)
+        x, P = fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
+        self.x, self.P = x[0, 0], P[0, 0]
+        self.k += 1
+        return self.x
+
+
+class RelayNetwork:
+    """Every node of a ``relay`` or ``flood`` design as a :class:`RelayNode`, driven over a run: each step the
+    relaying is simulated from the step's channel attacks (which copy of every measurement reaches which node, what
+    falsified channels add: :meth:`designer.relay.Routes.realise`, ``H_s`` at the forwarding node's prediction
+    times ``ξ``), and every node steps with what reached it."""
+
+    def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, *, x0=None, P0=None):
+        design = validate_design(design, model, network)
+        rule = gain_rule(design.mode)
+        self.model, self.network = model, network
+        self.routes = relay_routes(network, design.rounds, rule.routing)
+        moments = relay_moments(self.routes, network, model.sensor_dims)
+        self.nodes = [RelayNode(model, network, design, i, x0=x0, P0=P0, routes=self.routes, moments=moments)
+                      for i in range(network.n_nodes)]
+        self._lay = _layout(model, self.routes)
+
+    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
+        """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
+        (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order;
+        None: none).  Returns every node's estimate (N, n_x)."""
+        m = self.model
+        k = self.nodes[0].k
+        x = np.stack([nd.x for nd in self.nodes])[None]
+        P = np.stack([nd.P for nd in self.nodes])[None]
+        xp, _ = predict(m, k, x, P, np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0))
+        _, H = ball_rows(m, self._lay, k, xp)  # what the forwarding nodes compute: the falsifications' H
+        values, arrived = _relayed(self.routes, self._lay, np.asarray(z, dtype=float)[None], H,
+                                   None if dos is None else np.asarray(dos)[None],
+                                   None if fdi is None else np.asarray(fdi)[None],
+                                   None if xi is None else np.asarray(xi)[None])
+        dims = m.sensor_dims
+        for i, nd in enumerate(self.nodes):
+            row, got = int(self._lay.start[i]), {}
+            own = values[0, row:row + dims[i]]
+            row += dims[i]
+            for s in nd.ball[1:]:
+                if arrived[0, row]:
+                    got[int(s)] = values[0, row:row + dims[s]]
+                row += dims[s]
+            nd.step(own, got, u)
+        return np.stack([nd.x for nd in self.nodes])
+
+    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Every step of a run: ``z`` (K, n_z), ``attacks`` its channel attacks, ``inputs`` (K, n_u).  Returns
+        ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
+        z = np.asarray(z, dtype=float)
+        K = z.shape[0]
+        att = edge_attacks(self.network, None if attacks is None else [attacks], 1, K, self.model.n_x)
+        xs = [np.stack([nd.x for nd in self.nodes])]
+        Ps = [np.stack([nd.P for nd in self.nodes])]
+        for k in range(K):
+            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+            xs.append(self.step(z[k], *e, u=None if inputs is None else inputs[k]))
+            Ps.append(np.stack([nd.P for nd in self.nodes]))
+        return np.stack(xs), np.stack(Ps)
+
+
 register_filter("relay", run_relay_design)  # the filters of gain rules 'relay' and 'flood' (filters.consensus_batch)
 register_filter("flood", run_relay_design)
+register_node_filter("relay", RelayNode, RelayNetwork)  # and their node filters (filters.node)
+register_node_filter("flood", RelayNode, RelayNetwork)

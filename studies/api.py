@@ -16,6 +16,7 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 ``study(...)``              ``cfdesign study``         -> :class:`~studies.pipeline.StudyResult`
 ``report(directory)``       ``cfdesign report``
 ``filter(...)``             ``cfdesign filter``        -> :class:`FilterRun` (a filter of the comparison on a log)
+``node_filter(...)``        (Python only)              -> the filter one node runs, a step at a time
 =========================  ==========================================================
 
 Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
@@ -49,7 +50,7 @@ from . import memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",
-           "FilterRun", "DesignOptions"]
+           "FilterRun", "node_filter", "DesignOptions"]
 
 
 def list_scenarios() -> list[dict]:
@@ -558,10 +559,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
                          "model file defines NETWORK)")
     options, design_meta = DesignOptions(), None
     if schedule is not None:
-        mode, options, meta = design_options_of(schedule)
-        if meta.get("scenario") != sc.name:
-            raise InputError(f"schedule {str(schedule)!r} was designed for scenario {meta.get('scenario')!r}, not "
-                             f"{sc.name!r}")
+        mode, options, meta = design_options_of(schedule, sc.name)
         entry = find_filter(FILTER_REGISTRY, mode if filter is None else filter)
         if not entry.designed or entry.mode != mode:
             raise InputError(f"filter {entry.name!r} does not run the design of schedule {str(schedule)!r} (gain "
@@ -592,3 +590,49 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         if out is not None:
             done.save(out)
     return done
+
+
+@one_blas_thread()
+def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, node: int | None = None,
+                network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+                design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
+                overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()):
+    """The filter a sensor node runs for a design (:mod:`filters.node`), to drive one step at a time.
+
+    Parameters
+    ----------
+    scenario : str, path, Scenario or designer.Model
+        The model (with its sensor network).
+    schedule : path, optional
+        A design directory written by ``design``: its gain rule with its options.
+    mode : str, optional
+        A gain rule instead (with the scenario's design defaults), e.g. ``relay`` or ``flood``.
+    node : int, optional
+        The node (0..N-1): its node filter, with ``step(z, received, u)``.  Default: every node's, as a network
+        to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``).
+    """
+    from filters.node import node_filter as make_node, node_network
+
+    from .consensus_design import consensus_design
+    from .recorded import design_options_of
+
+    check_path("schedule", schedule, optional=True)
+    check_type("mode", mode, str, "a gain rule's name (e.g. relay, flood)", optional=True)
+    _check_arguments(network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
+                     overrides=overrides, assignments=assignments)
+    if (schedule is None) == (mode is None):
+        raise InputError("give a design directory (schedule) or a gain rule (mode), one of them")
+    sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
+    if sc.network is None:
+        raise InputError(f"scenario {sc.name!r} has no sensor network: a node filter needs one (a model file "
+                         "defines NETWORK)")
+    if node is not None:
+        node = check_int("node", node, 0, sc.network.n_nodes - 1)
+    if schedule is not None:
+        _, options, _ = design_options_of(schedule, sc.name)
+    else:
+        options = DesignOptions(mode=mode)
+    design = consensus_design(sc, options)
+    if node is None:
+        return node_network(sc.model, sc.network, design)
+    return make_node(sc.model, sc.network, design, node)

@@ -132,6 +132,12 @@ def test_cli_filter_with_a_design_directory_writes_its_estimates(cart, tmp_path,
     assert not np.array_equal(default.x_hat, ref.x_hat)
     rec = json.loads((des / "schedule.json").read_text())
     assert ref.design["options"]["rounds"] == rec["options"]["rounds"] == 2
+    with pytest.raises(InputError, match="was designed for scenario 'cart', not 'indoor-robot'"):
+        studies.filter("indoor-robot", log, schedule=des)
+    with pytest.raises(InputError, match="was designed for scenario 'cart', not 'indoor-robot'"):
+        studies.node_filter("indoor-robot", schedule=des)
+    node = studies.node_filter(str(cart), schedule=des, node=0)  # the design's rounds: its ball within 2 hops
+    assert len(node.ball) < 7 and node.ball[0] == 0
 
 
 def test_filter_names_and_short_names():
