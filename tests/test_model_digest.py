@@ -185,3 +185,14 @@ def test_every_built_in_rebuilt_from_its_reference_is_the_same_scenario(name, mo
     ref = reference(sc)
     monkeypatch.setattr(scenarios, "_BUILT", {})
     assert ref.build().digest == sc.digest
+
+
+def test_a_model_file_has_one_digest_whatever_path_names_it(tmp_path, monkeypatch):
+    """The same file, named by an absolute and by a relative path: the same content, the same digest (its known
+    inputs included: their error messages name the file, not the path)."""
+    from test_recorded import USER_MODEL  # noqa: E402 (tests/ is on the path: a user's model with inputs())
+
+    (tmp_path / "cart.py").write_text(USER_MODEL)
+    monkeypatch.chdir(tmp_path)
+    relative, absolute = load_scenario("cart.py"), load_scenario(str(tmp_path / "cart.py"))
+    assert relative.input_fn is not None and relative.digest == absolute.digest

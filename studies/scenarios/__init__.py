@@ -132,7 +132,7 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
         try:
             return Scenario(m.name, m, params, tuple(getattr(module, "ASSUMPTIONS", ())), steps,
                             x0=getattr(module, "X0", None), network=network,
-                            input_fn=_guarded(f"inputs() in {str(path)!r}", getattr(module, "inputs", None)),
+                            input_fn=_guarded(f"inputs() in {path.name!r}", getattr(module, "inputs", None)),
                             attacks=attacks, design=getattr(module, "DESIGN", None),
                             channel=getattr(module, "CHANNEL", None))
         except InputError as exc:
