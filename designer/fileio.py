@@ -63,7 +63,7 @@ STAGING_PREFIX = ".staging-"  # replaced_outputs' staging directories
 # the names cfdesign's commands give their outputs (study, design, feasibility, report)
 OUTPUT_PATTERNS = ("results.json", "table.md", "report.md", "report.html", "schedule.json", "schedule.npz",
                    "feasibility.csv", "feasibility.json", "feasibility.png", "fig_*.png", "estimates.npz",
-                   "estimates.csv")
+                   "estimates.csv", "cfd_*.c", "cfd_*.h", "Makefile", "replay.txt")
 REPORT_NAMES = ("report.md", "report.html")  # what every command that writes a directory writes
 _TEMPORARY = re.compile(r"\.(?P<of>.+)\.[a-z0-9_]{8}\.tmp")  # atomic_write's temporary files (mkstemp's 8 characters)
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)

@@ -481,6 +481,13 @@ class RelayNetwork:
         """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
         (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order;
         None: none).  Returns every node's estimate (N, n_x)."""
+        for nd, (own, got) in zip(self.nodes, self.deliver(z, dos, fdi, xi, u)):
+            nd.step(own, got, u)
+        return np.stack([nd.x for nd in self.nodes])
+
+    def deliver(self, z, dos=None, fdi=None, xi=None, u=None) -> list[tuple[np.ndarray, dict]]:
+        """What reaches every node at the next step (the arguments of :meth:`step`), without stepping: per node
+        ``(its own measurement, {sensor: the relayed measurement that arrived}``)."""
         m = self.model
         k = self.nodes[0].k
         x = np.stack([nd.x for nd in self.nodes])[None]
@@ -492,6 +499,7 @@ class RelayNetwork:
                                    None if fdi is None else np.asarray(fdi)[None],
                                    None if xi is None else np.asarray(xi)[None])
         dims = m.sensor_dims
+        out = []
         for i, nd in enumerate(self.nodes):
             row, got = int(self._lay.start[i]), {}
             own = values[0, row:row + dims[i]]
@@ -500,8 +508,8 @@ class RelayNetwork:
                 if arrived[0, row]:
                     got[int(s)] = values[0, row:row + dims[s]]
                 row += dims[s]
-            nd.step(own, got, u)
-        return np.stack([nd.x for nd in self.nodes])
+            out.append((own, got))
+        return out
 
     def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
         """Every step of a run: ``z`` (K, n_z), ``attacks`` its channel attacks, ``inputs`` (K, n_u).  Returns

@@ -7,8 +7,8 @@ The public functions of :mod:`studies.api` are re-exported here (imported on fir
 """
 from __future__ import annotations
 
-_API = ("list_scenarios", "simulate", "design", "feasibility", "study", "report", "filter", "node_filter", "Simulation",
-        "FilterRun")
+_API = ("list_scenarios", "simulate", "design", "feasibility", "study", "report", "filter", "node_filter", "export",
+        "Simulation", "FilterRun")
 __all__ = list(_API)
 
 

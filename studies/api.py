@@ -17,6 +17,7 @@ in-memory :class:`designer.Model` (then ``network=``, ``attacks=``, ``design_def
 ``report(directory)``       ``cfdesign report``
 ``filter(...)``             ``cfdesign filter``        -> :class:`FilterRun` (a filter of the comparison on a log)
 ``node_filter(...)``        (Python only)              -> the filter one node runs, a step at a time
+``export(...)``             ``cfdesign export``        -> the node filter's C sources (files written)
 =========================  ==========================================================
 
 Every result object has ``.save(directory)`` (``Simulation.save(file)``), which writes
@@ -50,7 +51,7 @@ from . import memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",
-           "FilterRun", "node_filter", "DesignOptions"]
+           "FilterRun", "node_filter", "export", "DesignOptions"]
 
 
 def list_scenarios() -> list[dict]:
@@ -636,3 +637,93 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     if node is None:
         return node_network(sc.model, sc.network, design)
     return make_node(sc.model, sc.network, design, node)
+
+
+@one_blas_thread()
+def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = None, data=None,
+           scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> list[Path]:
+    """Export a design's node filter as C99 sources (``cfdesign export``; :mod:`designer.export_c`).
+
+    Parameters
+    ----------
+    design_dir : path
+        A directory written by ``design`` for a gain rule with a node filter that runs online at the node
+        (``relay``, ``flood``).
+    target : {'c'}
+    out : path
+        The directory of the sources, ``Makefile``, test driver and ``replay.txt``.
+    nodes : sequence of int, optional
+        The nodes to export (default: every node).
+    data : path, optional
+        A log (:mod:`studies.recorded`) to replay in ``make test``; default: the design's simulated run
+        (``simulate`` with the design's seed).
+    scenario, overrides, assignments
+        The model, when the design directory's own (its ``source``: a model file's path, or a built-in's name with
+        the design's parameters) is not where it was; its content must be the design's (``model_digest``).
+
+    Returns the files written.
+    """
+    from designer.export_c import replay_text, write_relay_c
+    from designer.gain_rules import gain_rule
+    from designer.relay import relay_moments, relay_routes
+    from filters.consensus_batch import EdgeAttacks
+    from filters.node import node_network
+
+    from .consensus_design import consensus_design
+    from .recorded import design_options_of, read_log
+
+    check_path("design_dir", design_dir)
+    if target != "c":
+        raise InputError(f"target must be 'c' (C99 sources), got {target!r}")
+    check_path("out", out)
+    check_path("data", data, optional=True)
+    _check_arguments(out=out, overrides=overrides, assignments=assignments)
+    meta_path = Path(design_dir) / "schedule.json"
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"design_dir {str(design_dir)!r} is not a design directory (schedule.json: {exc})") from None
+    if scenario is None:
+        where = meta.get("source") or meta.get("scenario")
+        if not where:
+            raise InputError(f"design_dir {str(design_dir)!r} does not record its model: give scenario")
+        over = dict(meta.get("params") or {}) if meta.get("source") is None else {}
+        sc = _scenario(where, None, None, None, None, None, None, {**over, **(overrides or {})}, assignments)
+    else:
+        sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
+    if meta.get("model_digest") not in (None, sc.digest):
+        raise InputError(f"the model is not the one design_dir {str(design_dir)!r} was designed for (its content "
+                         "changed since: design again, or give the model it was designed for as scenario)")
+    mode, options, _ = design_options_of(design_dir, sc.name)
+    design = consensus_design(sc, options)
+    rule = gain_rule(mode)
+    if not rule.relays:
+        why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
+               "its node filter is not exported yet (exported: relay, flood)")
+        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why}")
+    N = sc.network.n_nodes
+    chosen = list(range(N)) if nodes is None else [check_int("nodes", i, 0, N - 1) for i in nodes]
+    if not chosen or len(set(chosen)) != len(chosen):
+        raise InputError(f"nodes must be distinct nodes of 0..{N - 1}, got {nodes!r}")
+    routes = relay_routes(sc.network, design.rounds, rule.routing)
+    moments = relay_moments(routes, sc.network, sc.model.sensor_dims)
+    if data is None:
+        sim = simulate(sc, seed=int(meta.get("seed") or 0))
+        z, attacks, u = sim.z, sim.attacks, sim.inputs
+    else:
+        log = read_log(data, sc)
+        if np.any(np.isnan(log.z)):
+            raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
+        z, attacks, u = log.z, log.attacks, (np.zeros((log.steps, 0)) if log.inputs is None else log.inputs)
+    net = node_network(sc.model, sc.network, design)
+    att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
+    steps = []
+    for k in range(z.shape[0]):
+        e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        given = net.deliver(z[k], *e, u=u[k])
+        net.step(z[k], *e, u=u[k])
+        steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
+    replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
+    with replaced_outputs(out) as stage:
+        written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen, replay=replay)
+    return [Path(out) / p.name for p in written]

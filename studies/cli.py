@@ -243,6 +243,27 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     click.echo(f"  {res.verdict_line()}")
 
 
+@cli.command("export")
+@click.argument("design_dir")
+@click.option("--target", type=click.Choice(["c"]), default="c", show_default=True, help="what to write: C99 sources")
+@click.option("--out", required=True, help="output directory (sources, Makefile, test driver, replay.txt)")
+@click.option("--node", "nodes", type=int, multiple=True,
+              help="a node to export (repeatable) [default: every node]")
+@click.option("--data", default=None, metavar="LOG.npz|LOG.csv",
+              help="a log to replay in make test [default: the design's simulated run]")
+@click.option("--scenario", default=None, metavar="SCENARIO|MODEL.py",
+              help="the model, when the design's own file has moved [default: the design's]")
+@click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
+def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> None:
+    """Export the node filter of the design in DESIGN_DIR as C99 sources with a Makefile and a test driver."""
+    from . import api
+
+    files = api.export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data, scenario=scenario,
+                       assignments=assignments)
+    click.echo(f"wrote {len(files)} files to {out}: {', '.join(p.name for p in files)}; build and check with "
+               f"make -C {out} test")
+
+
 @cli.command("feasibility")
 @click.argument("scenario")
 @click.option("--grid", "grids", multiple=True, required=True, metavar="NAME=START:STOP:COUNT",

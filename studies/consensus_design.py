@@ -566,6 +566,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
             "source": sc.source,
+            "model_digest": sc.digest,
             "invocation": invocation,
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),
             "versions": versions(),

@@ -23,7 +23,7 @@ import numpy as np
 from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
 
 STEPS = 18
-POSTS = [(0.0, 0.0), (12.0, -2.0), (24.0, 0.0), (26.0, 14.0), (14.0, 22.0), (2.0, 18.0), (12.0, 9.0)]
+POSTS = [(0.0, 0.0), (12.0, -2.0), (24.0, 0.0), (26.0, 8.6), (14.0, 22.0), (2.0, 18.0), (12.0, 9.0)]
 NETWORK = SensorNetwork.from_edges(7, [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (6, 1), (6, 4)])
 ATTACKS = AttackSpec(dos=0.25, fdi=0.1, signal=FDISignal(amplitude=0.4, components=(0, 1)))
 

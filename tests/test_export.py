@@ -1,0 +1,103 @@
+"""cfdesign export --target c: a design's node filter as C99 sources, compiled with the system's C compiler and
+replayed against the Python node filter (make test), on the indoor robot and on a user's model file."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+import studies
+from designer.validation import InputError
+from studies.cli import main
+from test_recorded import USER_MODEL  # noqa: E402 (tests/ is on the path: the user's cart with posts)
+
+CC = shutil.which("cc") or shutil.which("gcc")
+pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler")  # a fresh machine has gcc: CI always runs these
+
+
+def make_test(directory) -> subprocess.CompletedProcess:
+    """``make test`` in ``directory`` (or, without make, the Makefile's two commands with the C compiler)."""
+    if shutil.which("make"):
+        return subprocess.run(["make", "-s", "test"], cwd=directory, capture_output=True, text=True, timeout=300)
+    build = subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-o", "cfd_test", "cfd_test.c", "cfd_node.c",
+                            "cfd_model.c", "-lm"], cwd=directory, capture_output=True, text=True, timeout=300)
+    if build.returncode:
+        return build
+    return subprocess.run(["./cfd_test", "replay.txt"], cwd=directory, capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def cart(tmp_path_factory):
+    path = tmp_path_factory.mktemp("user") / "cart.py"
+    path.write_text(USER_MODEL)
+    return path
+
+
+def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, capsys):
+    """design --mode relay, export, make test: every node's estimate and bound over the design's simulated run (DoS
+    and FDI) within 1e-10 of the Python node filter's; the sources need libc and libm only and allocate nothing;
+    a replay whose expected numbers are moved by 1e-7 fails."""
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", "indoor-robot", "--mode", "relay", "--seed", "2", "--out", str(des)]) in (0, 1)
+    assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
+    assert "make -C" in capsys.readouterr().out
+    run = make_test(out)
+    assert run.returncode == 0, run.stdout + run.stderr
+    worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
+    assert worst <= 1e-10 and "8 nodes" in run.stdout
+    sources = {p.name: p.read_text() for p in out.glob("cfd_*.[ch]")}
+    includes = {m for text in sources.values() for m in re.findall(r"#include\s*[<\"]([^>\"]+)", text)}
+    assert includes <= {"math.h", "string.h", "stdio.h", "stdlib.h", "cfd_model.h", "cfd_node.h"}
+    assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
+    # the check has power: a replay moved by 1e-7 (relative) in one estimate is caught
+    lines = (out / "replay.txt").read_text().splitlines()
+    cells = lines[5].split()
+    n_x = 3
+    at = len(cells) - n_x * n_x - n_x  # the first component of the expected estimate
+    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
+    lines[5] = " ".join(cells)
+    (out / "replay.txt").write_text("\n".join(lines) + "\n")
+    bad = make_test(out)
+    assert bad.returncode != 0 and "1 above" in bad.stdout
+
+
+def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path):
+    """The user's cart (a known input, bearings wrapped at +-pi, ranges), its flood design exported for two nodes and
+    replayed on a CSV log of another run: make test agrees with the Python node filter; the exported node filter
+    is the one studies.node_filter gives (the replay's expected estimates are its)."""
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", str(cart), "--mode", "flood", "--out", str(des)]) in (0, 1)
+    log = tmp_path / "log.csv"
+    sim = studies.simulate(str(cart), seed=9, run=2, out=log)
+    files = studies.export(des, out=out, nodes=[3, 5], data=log)
+    assert {p.name for p in files} >= {"cfd_node.c", "cfd_node.h", "cfd_model.c", "Makefile", "replay.txt"}
+    run = make_test(out)
+    assert run.returncode == 0 and "2 nodes" in run.stdout, run.stdout + run.stderr
+    net = studies.node_filter(str(cart), schedule=des)
+    x, _ = net.run(sim.z, sim.attacks, sim.inputs)
+    last = (out / "replay.txt").read_text().splitlines()[-1].split()
+    assert np.array_equal([float(v) for v in last[-16 - 4:-16]], x[-1, 5])
+
+
+def test_what_cannot_be_exported_is_refused(cart, tmp_path):
+    des = tmp_path / "mse"
+    assert main(["design", str(cart), "--mode", "mse", "--steps", "4", "--out", str(des)]) in (0, 1)
+    with pytest.raises(InputError, match="gain rule 'mse' cannot be exported to C: an oracle"):
+        studies.export(des, out=tmp_path / "c")
+    assert main(["export", str(des), "--out", str(tmp_path / "c")]) == 2
+    with pytest.raises(InputError, match="target must be 'c'"):
+        studies.export(des, target="python", out=tmp_path / "c")
+    relay = tmp_path / "relay"
+    assert main(["design", str(cart), "--mode", "relay", "--steps", "4", "--out", str(relay)]) in (0, 1)
+    with pytest.raises(InputError, match=r"nodes must be an integer in 0..6, got 9"):
+        studies.export(relay, out=tmp_path / "c", nodes=[9])
+    cart.write_text(USER_MODEL.replace("0.002]]", "0.003]]"))  # the model edited since the design
+    try:
+        with pytest.raises(InputError, match="the model is not the one design_dir .* was designed for"):
+            studies.export(relay, out=tmp_path / "c")
+    finally:
+        cart.write_text(USER_MODEL)
+    assert not (tmp_path / "c" / "cfd_node.c").exists()
