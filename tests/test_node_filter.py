@@ -46,22 +46,14 @@ def test_node_filters_driven_over_a_run_give_the_studys_numbers(target, mode, ca
 
 
 def _delivered(net, k, sim):
-    """Step the network ``net`` once on step ``k`` of ``sim`` and return what each node was given: (z, received)."""
-    got = []
-    for nd in net.nodes:
-        original = nd.step
-
-        def spy(z, received=None, u=None, nd=nd, original=original):
-            got.append((np.array(z), {s: np.array(v) for s, v in (received or {}).items()}))
-            return original(z, received, u)
-
-        nd.step = spy
+    """What the network ``net`` delivers to each node at step ``k`` of ``sim``, (z, received) per node, then the
+    network steps."""
     from filters.consensus_batch import EdgeAttacks
 
     att = EdgeAttacks.from_patterns(net.network, [sim.attacks])
-    net.step(sim.z[k], att.dos[0, k], att.fdi[0, k], att.xi[0, k], u=sim.inputs[k])
-    for nd in net.nodes:
-        del nd.step
+    e = (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+    got = net.deliver(sim.z[k], *e, u=sim.inputs[k])
+    net.step(sim.z[k], *e, u=sim.inputs[k])
     return got
 
 

@@ -1,0 +1,165 @@
+"""One node filter step in C (``cfdesign export --target c``) against the Python node filter, its code size and the
+memory a node needs.
+
+A design of ``--scenario`` in ``--mode`` (a gain rule with a node filter: ``relay`` or ``flood``) is written and
+exported to C in a temporary directory; its ``replay.txt`` (the design's simulated run: every node's measurement and
+the relayed measurements that reached it at every step) is replayed ``--repeat`` times:
+
+* **C**: a driver compiled with ``cc -O2`` beside the exported sources calls ``cfd_step`` for every node and step,
+  the replay read into memory first (timed: the steps only, ``clock_gettime``), ``--repeat`` replays; the best of
+  three timings;
+* **Python**: :class:`filters.relay.RelayNode` steps every node on the same inputs (what
+  :meth:`filters.relay.RelayNetwork.deliver` gives, computed before the timing), in this process, BLAS on one
+  thread, one replay; the best of three.
+
+Printed: microseconds per node step in each and their ratio (issue 27 expects >= ``TARGET_RATIO`` = 50), the
+exported code's size (``size``: the text of ``cfd_node.o`` and ``cfd_model.o``), the static memory of the node
+filter (their data and bss: the design's tables and the step's work arrays, for every exported node) and a node's
+state (``sizeof(cfd_node)``).  ``--check`` exits 1 below the target ratio.
+
+Run: ``python benchmarks/bench_node_step.py [--scenario indoor-robot] [--mode relay] [--repeat 200] [--check]``
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+TARGET_RATIO = 50.0
+
+_BENCH_C = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include "cfd_node.h"
+
+int main(int argc, char **argv) {
+    FILE *fh = fopen(argv[1], "r");
+    int reps = atoi(argv[2]), steps, count, nu, k, j, b, r, total = 0, pos = 0;
+    static cfd_node nodes[CFD_NODES];
+    double *buf;
+    struct timespec t0, t1;
+    if (!fh || fscanf(fh, "%d %d %d", &steps, &count, &nu) != 3) return 2;
+    buf = malloc(sizeof(double) * (size_t)steps * CFD_NODES * (3 * CFD_ROWS_MAX + CFD_BALL_MAX + CFD_NU
+                                                                + CFD_NX + CFD_NX * CFD_NX));
+    for (k = 0; k < steps; ++k)
+        for (j = 0; j < CFD_NODES; ++j) {
+            const int *ball;
+            int nb = cfd_ball(cfd_exported_node(j), &ball), m = 0;
+            for (b = 0; b < nb; ++b) m += cfd_sensor_dim(ball[b]);
+            m += (nb - 1) + CFD_NU + CFD_NX + CFD_NX * CFD_NX;
+            for (b = 0; b < m; ++b)
+                if (fscanf(fh, "%lf", &buf[total + b]) != 1) return 2;
+            total += m;
+        }
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    for (r = 0; r < reps; ++r) {
+        pos = 0;
+        for (j = 0; j < CFD_NODES; ++j) cfd_init(&nodes[j], cfd_exported_node(j));
+        for (k = 0; k < steps; ++k)
+            for (j = 0; j < CFD_NODES; ++j) {
+                const int *ball;
+                int nb = cfd_ball(nodes[j].node, &ball), mo = cfd_sensor_dim(ball[0]), mr = 0;
+                unsigned char arrived[CFD_BALL_MAX];
+                for (b = 1; b < nb; ++b) mr += cfd_sensor_dim(ball[b]);
+                for (b = 0; b < nb - 1; ++b) arrived[b] = buf[pos + mo + b] != 0.0;
+                if (cfd_step(&nodes[j], buf + pos, arrived, buf + pos + mo + nb - 1, buf + pos + mo + nb - 1 + mr))
+                    return 1;
+                pos += mo + (nb - 1) + mr + CFD_NU + CFD_NX + CFD_NX * CFD_NX;
+            }
+    }
+    clock_gettime(CLOCK_MONOTONIC, &t1);
+    printf("%.9g %d\n", (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec), steps * CFD_NODES * reps);
+    printf("%d\n", (int)sizeof(cfd_node));
+    return 0;
+}
+"""
+
+
+def _size(objects: list[Path]) -> tuple[int, int]:
+    """(text, data + bss) bytes of the object files (``size``; without it, the files' sizes and 0)."""
+    tool = shutil.which("size")
+    if tool is None:
+        return sum(p.stat().st_size for p in objects), 0
+    out = subprocess.run([tool, *map(str, objects)], capture_output=True, text=True, check=True).stdout
+    text = data = 0
+    for line in out.splitlines()[1:]:
+        cols = line.split()
+        text, data = text + int(cols[0]), data + int(cols[1]) + int(cols[2])
+    return text, data
+
+
+def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
+    import studies
+
+    design, c = folder / "design", folder / "c"
+    studies.design(scenario, mode=mode, out=design)
+    studies.export(design, out=c)
+    cc = shutil.which("cc") or shutil.which("gcc")
+    (c / "bench.c").write_text(_BENCH_C)
+    for src in ("cfd_node.c", "cfd_model.c"):
+        subprocess.run([cc, "-std=c99", "-O2", "-c", src], cwd=c, check=True)
+    subprocess.run([cc, "-std=c99", "-O2", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,
+                   check=True)
+    c_us = []
+    for _ in range(3):  # the best of three: the machine is shared
+        run = subprocess.run(["./bench", "replay.txt", str(repeat)], cwd=c, capture_output=True, text=True,
+                             check=True)
+        timing, state = run.stdout.split("\n")[:2]
+        secs, calls = timing.split()
+        c_us.append(float(secs) / int(calls) * 1e6)
+    c_us = min(c_us)
+    text, data = _size([c / "cfd_node.o", c / "cfd_model.o"])
+    # Python: the same steps through the node filters (inputs prepared first)
+    sim = studies.simulate(scenario, seed=0)
+    from filters.consensus_batch import EdgeAttacks
+
+    net = studies.node_filter(scenario, schedule=design)
+    att = EdgeAttacks.from_patterns(net.network, [sim.attacks])
+    given = []
+    for k in range(sim.z.shape[0]):
+        e = (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        given.append(net.deliver(sim.z[k], *e, u=sim.inputs[k]))
+        net.step(sim.z[k], *e, u=sim.inputs[k])
+    py_secs = []
+    for _ in range(3):  # the best of three
+        fresh = studies.node_filter(scenario, schedule=design)  # built outside the timing, as the C nodes are
+        t0 = time.perf_counter()
+        for k, per_node in enumerate(given):
+            for nd, (own, got) in zip(fresh.nodes, per_node):
+                nd.step(own, got, sim.inputs[k])
+        py_secs.append(time.perf_counter() - t0)
+    py_us = min(py_secs) / (len(given) * len(net.nodes)) * 1e6
+    return {"scenario": scenario, "mode": mode, "nodes": len(net.nodes), "steps": len(given), "c_us": c_us,
+            "python_us": py_us, "ratio": py_us / c_us, "code_bytes": text, "static_bytes": data,
+            "state_bytes": int(state)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenario", default="indoor-robot")
+    ap.add_argument("--mode", default="relay", choices=("relay", "flood"))
+    ap.add_argument("--repeat", type=int, default=200, help="replays of the run per C timing")
+    ap.add_argument("--check", action="store_true")
+    a = ap.parse_args(argv)
+    from designer.cores import one_blas_thread
+
+    with tempfile.TemporaryDirectory() as tmp, one_blas_thread():
+        r = measure(a.scenario, a.mode, a.repeat, Path(tmp))
+    print(f"{r['scenario']} ({r['mode']}, {r['nodes']} nodes, {r['steps']} steps): one node step in C "
+          f"{r['c_us']:.2f} us, in Python {r['python_us']:.1f} us: {r['ratio']:.0f} x (target >= {TARGET_RATIO:g})")
+    print(f"exported code {r['code_bytes']} bytes of text; static memory {r['static_bytes']} bytes (the design's "
+          f"tables for {r['nodes']} nodes and the step's work); a node's state {r['state_bytes']} bytes")
+    if a.check and not r["ratio"] >= TARGET_RATIO:
+        print(f"FAIL: the C step is {r['ratio']:.1f} x the Python node filter's, below {TARGET_RATIO:g}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
