@@ -262,6 +262,12 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
                        assignments=assignments)
     click.echo(f"wrote {len(files)} files to {out}: {', '.join(p.name for p in files)}; build and check with "
                f"make -C {out} test")
+    from pathlib import Path
+
+    verdict = json.loads((Path(design_dir) / "schedule.json").read_text()).get("verdict")
+    if verdict != "certified":  # said plainly: the code runs the design, whose bound is not certified
+        click.echo(f"  the design's verdict is {verdict!r}, not certified: its bound is not a guarantee (see "
+                   f"{design_dir}/report.md)")
 
 
 @cli.command("feasibility")

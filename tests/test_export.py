@@ -2,6 +2,7 @@
 replayed against the Python node filter (make test), on the indoor robot and on a user's model file."""
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -43,7 +44,9 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     des, out = tmp_path / "design", tmp_path / "c"
     assert main(["design", "indoor-robot", "--mode", "relay", "--seed", "2", "--out", str(des)]) in (0, 1)
     assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
-    assert "make -C" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    verdict = json.loads((des / "schedule.json").read_text())["verdict"]
+    assert "make -C" in said and ("not certified" in said) == (verdict != "certified")
     run = make_test(out)
     assert run.returncode == 0, run.stdout + run.stderr
     worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
@@ -65,12 +68,15 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     assert bad.returncode != 0 and "1 above" in bad.stdout
 
 
-def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path):
+def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path, capsys):
     """The user's cart (a known input, bearings wrapped at +-pi, ranges), its flood design exported for two nodes and
     replayed on a CSV log of another run: make test agrees with the Python node filter; the exported node filter
     is the one studies.node_filter gives (the replay's expected estimates are its)."""
     des, out = tmp_path / "design", tmp_path / "c"
     assert main(["design", str(cart), "--mode", "flood", "--out", str(des)]) in (0, 1)
+    assert main(["export", str(des), "--out", str(tmp_path / "said")]) == 0
+    verdict = json.loads((des / "schedule.json").read_text())["verdict"]
+    assert ("not certified" in capsys.readouterr().out) == (verdict != "certified")
     log = tmp_path / "log.csv"
     sim = studies.simulate(str(cart), seed=9, run=2, out=log)
     files = studies.export(des, out=out, nodes=[3, 5], data=log)
