@@ -687,7 +687,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         where = meta.get("source") or meta.get("scenario")
         if not where:
             raise InputError(f"design_dir {str(design_dir)!r} does not record its model: give scenario")
-        over = dict(meta.get("params") or {}) if meta.get("source") is None else {}
+        over = dict(meta.get("params") or {})  # the parameters it was designed with (--set included)
         sc = _scenario(where, None, None, None, None, None, None, {**over, **(overrides or {})}, assignments)
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)

@@ -2,8 +2,8 @@
 
 A **log** (schema ``cfdesign.log/1``, ``studies/schemas/log.schema.json``) is what ``cfdesign simulate`` writes
 (an ``.npz``), or what a testbed recorded in the same form, or its CSV form (one row per step and sensor:
-:func:`read_log_csv`, ``log_csv.schema.json``).  Its arrays, ``K`` steps, ``N`` nodes (one per sensor), ``n_z`` stacked measurement
-components:
+:func:`read_log_csv`, ``log_csv.schema.json``).  Its arrays, ``K`` steps, ``N`` nodes (one per sensor), ``n_z``
+stacked measurement components:
 
 * ``z`` (K, n_z): each sensor's measurement, ``z[k]`` measuring the state at time ``k + 1`` (NaN: missing);
 * ``inputs`` (K, n_u): the known inputs (needed when the model has inputs; absent or empty otherwise);
