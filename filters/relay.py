@@ -63,7 +63,7 @@ from .distributed import DistributedBatchResult
 from .node import register_node_filter
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
-__all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork", "predict", "ball_rows", "fuse"]
+__all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
 
 class _Layout(NamedTuple):
@@ -198,7 +198,7 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         if not act.size:
             break
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xp, Pp = predict(model, k, x_post[act, k], P_post[act, k], uk)
+        xp, Pp = _predict(model, k, x_post[act, k], P_post[act, k], uk)
         x_pred[act, k], P_pred[act, k] = xp, Pp
         go = stop_diverged(violations, act, diverged_nodes(xp, Pp), k + 1, "prediction: " + DIVERGED_REASON,
                            nan_before=(x_pred, P_pred))
@@ -218,7 +218,7 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, hops, None)
 
 
-def predict(model: Model, k: int, x, P, u):
+def _predict(model: Model, k: int, x, P, u):
     """Every node's prediction from its own estimate ``x`` (..., n_x) and covariance ``P``: ``(f(x), F P Fᵀ + Q)``
     with ``F`` at the estimate (``u`` the step's known inputs, broadcast against ``x``)."""
     xp = model.f_expected(x, k, u)
@@ -240,12 +240,12 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
 def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
     ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none)."""
-    h, H = ball_rows(model, lay, k, xp)
+    h, H = _ball_rows(model, lay, k, xp)
     values, arrived = _relayed(routes, lay, zk, H, dos, fdi, xi)
-    return fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived)
+    return _fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived)
 
 
-def ball_rows(model: Model, lay: _Layout, k: int, xp):
+def _ball_rows(model: Model, lay: _Layout, k: int, xp):
     """``(h (a, T), H (a, T, n_x))``: every row of the layout's balls, each node's at its own prediction ``xp``
     (a, nodes, n_x) (what the node computes itself)."""
     a, _, nx = xp.shape
@@ -292,7 +292,7 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
     return zk[:, lay.zcol] + offset, arrived
 
 
-def fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived):
+def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
     :func:`designer.relay.relay_update` and :func:`designer.relay.relay_information`.  Returns ``(x, P)``."""
@@ -440,7 +440,7 @@ class RelayNode:
             raise InputError(f"received holds sensor {extra[0]}, which is not in node {i}'s ball "
                              f"{self.ball[1:].tolist()} (the sensors whose measurements reach it)")
         u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)  # as the batch takes them
-        xp, Pp = predict(m, self.k, self.x[None, None], self.P[None, None], u)
+        xp, Pp = _predict(m, self.k, self.x[None, None], self.P[None, None], u)
         T = int(self._lay.start[-1])
         values, arrived = np.zeros((1, T)), np.zeros((1, T), dtype=bool)
         row = 0
@@ -454,8 +454,8 @@ class RelayNode:
                                      f"{v.shape}")
                 values[0, row:row + width], arrived[0, row:row + width] = v, True
             row += width
-        h, H = ball_rows(m, self._lay, self.k, xp)
-        x, P = fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
+        h, H = _ball_rows(m, self._lay, self.k, xp)
+        x, P = _fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
         self.x, self.P = x[0, 0], P[0, 0]
         self.k += 1
         return self.x
@@ -492,8 +492,8 @@ class RelayNetwork:
         k = self.nodes[0].k
         x = np.stack([nd.x for nd in self.nodes])[None]
         P = np.stack([nd.P for nd in self.nodes])[None]
-        xp, _ = predict(m, k, x, P, np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0))
-        _, H = ball_rows(m, self._lay, k, xp)  # what the forwarding nodes compute: the falsifications' H
+        xp, _ = _predict(m, k, x, P, np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0))
+        _, H = _ball_rows(m, self._lay, k, xp)  # what the forwarding nodes compute: the falsifications' H
         values, arrived = _relayed(self.routes, self._lay, np.asarray(z, dtype=float)[None], H,
                                    None if dos is None else np.asarray(dos)[None],
                                    None if fdi is None else np.asarray(fdi)[None],
