@@ -560,7 +560,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
                          "model file defines NETWORK)")
     options, design_meta = DesignOptions(), None
     if schedule is not None:
-        mode, options, meta = design_options_of(schedule, sc.name)
+        mode, options, meta = design_options_of(schedule, sc)
         entry = find_filter(FILTER_REGISTRY, mode if filter is None else filter)
         if not entry.designed or entry.mode != mode:
             raise InputError(f"filter {entry.name!r} does not run the design of schedule {str(schedule)!r} (gain "
@@ -630,7 +630,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     if node is not None:
         node = check_int("node", node, 0, sc.network.n_nodes - 1)
     if schedule is not None:
-        _, options, _ = design_options_of(schedule, sc.name)
+        _, options, _ = design_options_of(schedule, sc)
     else:
         options = DesignOptions(mode=mode)
     design = consensus_design(sc, options)
@@ -691,10 +691,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         sc = _scenario(where, None, None, None, None, None, None, {**over, **(overrides or {})}, assignments)
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
-    if meta.get("model_digest") not in (None, sc.digest):
-        raise InputError(f"the model is not the one design_dir {str(design_dir)!r} was designed for (its content "
-                         "changed since: design again, or give the model it was designed for as scenario)")
-    mode, options, _ = design_options_of(design_dir, sc.name)
+    mode, options, _ = design_options_of(design_dir, sc)
     design = consensus_design(sc, options)
     rule = gain_rule(mode)
     if not rule.relays:

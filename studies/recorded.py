@@ -271,9 +271,10 @@ def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed:
     return entry.run(batch, [0], None if entry.mode is None else entry.design_for(design, m))
 
 
-def design_options_of(schedule_dir, scenario: str) -> tuple[str, DesignOptions, dict]:
+def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, dict]:
     """The gain rule, the design options and the ``schedule.json`` of a design directory written by
-    ``cfdesign design`` for the scenario named ``scenario`` (another scenario's is refused)."""
+    ``cfdesign design`` for the scenario ``sc``: a design of another scenario, or of this one's model as it was
+    before an edit (its recorded ``model_digest``), is refused."""
     p = Path(schedule_dir)
     path = p / "schedule.json" if p.is_dir() else p
     if not path.is_file():
@@ -287,9 +288,13 @@ def design_options_of(schedule_dir, scenario: str) -> tuple[str, DesignOptions, 
     if not isinstance(opts, dict) or "mode" not in opts:
         raise InputError(f"schedule {str(path)!r} records no design options (written by an older cfdesign "
                          "design?): design again")
-    if meta.get("scenario") != scenario:
+    if meta.get("scenario") != sc.name:
         raise InputError(f"schedule {str(p)!r} was designed for scenario {meta.get('scenario')!r}, not "
-                         f"{scenario!r}")
+                         f"{sc.name!r}")
+    if meta.get("model_digest") not in (None, sc.digest):
+        raise InputError(f"schedule {str(p)!r} was designed for another version of the model {sc.name!r} (its "
+                         "content or parameters changed since): design again, or give the model and parameters it "
+                         "was designed with")
     known = set(DesignOptions().as_dict())
     return str(opts["mode"]), DesignOptions(**{k: v for k, v in opts.items() if k in known}), meta
 

@@ -138,6 +138,14 @@ def test_cli_filter_with_a_design_directory_writes_its_estimates(cart, tmp_path,
         studies.node_filter("indoor-robot", schedule=des)
     node = studies.node_filter(str(cart), schedule=des, node=0)  # the design's rounds: its ball within 2 hops
     assert len(node.ball) < 7 and node.ball[0] == 0
+    cart.write_text(USER_MODEL.replace("[[0.3]]", "[[0.35]]"))  # the model file edited since the design
+    try:
+        for call in (lambda: studies.filter(str(cart), log, schedule=des),
+                     lambda: studies.node_filter(str(cart), schedule=des)):
+            with pytest.raises(InputError, match="designed for another version of the model 'cart'"):
+                call()
+    finally:
+        cart.write_text(USER_MODEL)
 
 
 def test_filter_names_and_short_names():
