@@ -237,14 +237,18 @@ def filter_keys(registry: FilterRegistry) -> dict[str, str]:
 
 
 def find_filter(registry: FilterRegistry, name: str) -> FilterEntry:
-    """The registry's filter called ``name``: its name, or its short name (:func:`filter_keys`)."""
+    """The registry's filter called ``name``: its name, its short name (:func:`filter_keys`) or the beginning of
+    exactly one short name (``local`` for ``local-ekf-at-every-node-no-network``)."""
     if name in registry:
         return registry[name]
     keys = filter_keys(registry)
-    if name.lower() in keys:
-        return registry[keys[name.lower()]]
+    key = name.lower()
+    begins = [k for k in keys if k.startswith(key)] if key else []
+    if key in keys or len(begins) == 1:
+        return registry[keys[key if key in keys else begins[0]]]
+    which = f"{name!r} begins {len(begins)} of them ({', '.join(begins)})" if begins else f"got {name!r}"
     raise InputError(f"filter must be one of {', '.join(keys)} (or a filter's full name: "
-                     f"{'; '.join(registry.names())}), got {name!r}")
+                     f"{'; '.join(registry.names())}); {which}")
 
 
 def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed: int = 0, run: int = 0,

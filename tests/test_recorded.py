@@ -156,6 +156,12 @@ def test_filter_names_and_short_names():
         assert find_filter(FILTER_REGISTRY, key).name == name == find_filter(FILTER_REGISTRY, name).name
     with pytest.raises(InputError, match="filter must be one of .*kcf.*got 'kfc'"):
         find_filter(FILTER_REGISTRY, "kfc")
+    # the beginning of exactly one short name will do; of two, it names them
+    assert find_filter(FILTER_REGISTRY, "local").name == "local EKF at every node (no network)"
+    assert find_filter(FILTER_REGISTRY, "centralized-e").name == "centralized EKF (trusts every packet)"
+    with pytest.raises(InputError, match=r"'centralized-pf' begins 2 of them \(centralized-pf-attack-aware, "
+                                         r"centralized-pf-trusts-every-packet\)"):
+        find_filter(FILTER_REGISTRY, "centralized-pf")
 
 
 def _log(tmp_path, name="bad.npz", **change):
