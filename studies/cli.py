@@ -181,8 +181,9 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
               help="the recorded log: an .npz as cfdesign simulate writes it (z, inputs, channel_dos, channel_fdi, "
                    "channel_xi, uplink, optionally the truth x), or its CSV form (one row per step and sensor)")
 @click.option("--filter", "name", default=None, metavar="NAME",
-              help="a filter of study comparison, by name or short name (kcf, hcmci, local-ekf-at-every-node-no-"
-                   "network, scheduled, tuned, relay, flood, ...) [default: the design of --schedule]")
+              help="a filter of study comparison, by name, short name (kcf, hcmci, local-ekf-at-every-node-no-"
+                   "network, scheduled, tuned, relay, flood, ...) or the beginning of one (local) [default: the "
+                   "design of --schedule]")
 @click.option("--schedule", default=None, metavar="DIR",
               help="a design directory written by cfdesign design: the designed filter runs with its gain rule and "
                    "options [default: the scenario's design defaults]")
@@ -255,7 +256,8 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
               help="the model, when the design's own file has moved [default: the design's]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> None:
-    """Export the node filter of the design in DESIGN_DIR as C99 sources with a Makefile and a test driver."""
+    """Export the node filter of the design in DESIGN_DIR (gain rule relay or flood) as C99 sources with a Makefile
+    and a test driver (make test: the C against the Python node filter)."""
     from . import api
 
     files = api.export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data, scenario=scenario,
