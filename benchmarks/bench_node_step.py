@@ -125,7 +125,8 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     for k in range(sim.z.shape[0]):
         e = (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         given.append(net.deliver(sim.z[k], *e, u=sim.inputs[k]))
-        net.step(sim.z[k], *e, u=sim.inputs[k])
+        for nd, (own, got) in zip(net.nodes, given[-1]):
+            nd.step(own, got, sim.inputs[k])
     py_secs = []
     for _ in range(3):  # the best of three
         fresh = studies.node_filter(scenario, schedule=design)  # built outside the timing, as the C nodes are

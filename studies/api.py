@@ -717,8 +717,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     steps = []
     for k in range(z.shape[0]):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-        given = net.deliver(z[k], *e, u=u[k])
-        net.step(z[k], *e, u=u[k])
+        given = net.deliver(z[k], *e, u=u[k])  # what reaches each node; each steps with it (RelayNetwork.step)
+        for nd, (own, got) in zip(net.nodes, given):
+            nd.step(own, got, u[k])
         steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
     replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
     with replaced_outputs(out) as stage:
