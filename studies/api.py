@@ -491,6 +491,23 @@ class FilterRun:
         idx = list(m.position_index) or list(range(m.n_x))
         return float(np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean()))
 
+    def per_node(self) -> dict[str, np.ndarray] | None:
+        """Each node's errors against the log's truth (None without truth): ``rmse`` (nodes,) of the position (or
+        the state) over steps 1..K, as :meth:`rmse` over one node; ``energy`` (nodes,) the mean over the steps
+        where its covariance is valid of ``‖e‖² / tr P`` (the whole state; a mean-square bound that holds gives
+        at most about 1 on average over runs; a believed covariance, its calibration)."""
+        e = self.errors()
+        if e is None:
+            return None
+        m = self.scenario.model
+        idx = list(m.position_index) or list(range(m.n_x))
+        rmse = np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean(axis=0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(self.valid[1:], (e[1:] ** 2).sum(-1) / np.trace(self.cov[1:], axis1=-2, axis2=-1),
+                             np.nan)
+            energy = np.nanmean(ratio, axis=0) if np.any(np.isfinite(ratio)) else np.full(ratio.shape[1], np.nan)
+        return {"rmse": rmse, "energy": energy}
+
     def save(self, directory) -> Path:
         """Write ``estimates.npz`` (``x_hat``, ``Phi`` or ``P``, ``valid``, ``messages``, ``x`` when known),
         ``estimates.csv`` (step, node, the estimate's components) and ``report.md`` into ``directory``."""

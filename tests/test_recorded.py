@@ -127,6 +127,14 @@ def test_cli_filter_with_a_design_directory_writes_its_estimates(cart, tmp_path,
     last = rows[-1].split(",")
     assert np.allclose([float(v) for v in last[2:-1]], ref.x_hat[-1, -1], rtol=0, atol=0)
     assert "relay" in (out / "report.md").read_text() and (out / "fig_estimates.png").stat().st_size > 0
+    # the report's per-node errors: their mean square is the overall one; each node's row is in the table
+    per = ref.per_node()
+    assert np.isclose(np.sqrt(np.mean(per["rmse"] ** 2)), ref.rmse(), rtol=1e-12)
+    e2 = ((ref.truth[1:, None] - ref.x_hat[1:]) ** 2).sum(-1) / np.trace(ref.cov[1:], axis1=-2, axis2=-1)
+    assert np.allclose(per["energy"], e2.mean(axis=0), rtol=1e-12)
+    text = (out / "report.md").read_text()
+    assert all(f"| {i} | {r:.4g} | {q:.3g} |" in text for i, (r, q) in enumerate(zip(per["rmse"], per["energy"])))
+    assert ("exceeds the bound on average" in text) == bool(np.any(per["energy"] > 1))
     # the design's rounds are used: the default design (the diameter's rounds) gives other numbers
     default = studies.filter(str(cart), log, filter="relay")
     assert not np.array_equal(default.x_hat, ref.x_hat)
