@@ -740,5 +740,6 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
     replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
     with replaced_outputs(out) as stage:
-        written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen, replay=replay)
+        written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen, replay=replay,
+                                verdict=str(meta.get("verdict")))
     return [Path(out) / p.name for p in written]

@@ -49,6 +49,7 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     said = capsys.readouterr().out
     verdict = json.loads((des / "schedule.json").read_text())["verdict"]
     assert "make -C" in said and ("not certified" in said) == (verdict != "certified")
+    assert f"The design's verdict: {verdict} " in (out / "cfd_node.h").read_text()
     run = make_test(out)
     assert run.returncode == 0, run.stdout + run.stderr
     worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
