@@ -323,8 +323,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     filters would, the two at the main setting alone and the sweep's rows together).  Every
     Generator comes from the run's own seed, so a run's numbers depend on it only.
     """
-    base = ref.build()
-    scs = [base.with_attacks(dos=d, fdi=f) for d, f in settings]
+    scs = _setting_scenarios(ref, settings)
     sc = scs[0]
     m, K = sc.model, sc.steps
     entries = list(FILTER_REGISTRY)
@@ -407,8 +406,13 @@ def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_
     """The plan's step in the parent process: every setting's designs once, so that the offline tables they keep
     (:func:`studies.consensus_design.with_tables`, remembered per process) are computed once and inherited by the
     forked workers instead of once in each."""
+    _designs(_setting_scenarios(ref, settings), options, tuned_in_sweeps)
+
+
+def _setting_scenarios(ref, settings: Sequence[tuple]) -> list[Scenario]:
+    """The scenario of every setting ``(dos, fdi)``, built from the reference ``ref`` (the main setting first)."""
     base = ref.build()
-    _designs([base.with_attacks(dos=d, fdi=f) for d, f in settings], options, tuned_in_sweeps)
+    return [base.with_attacks(dos=d, fdi=f) for d, f in settings]
 
 
 def _verdict_counts(codes: np.ndarray) -> dict[str, int]:

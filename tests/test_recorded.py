@@ -216,14 +216,20 @@ def test_a_bad_log_is_refused_naming_the_file_and_where(case, message, tmp_path,
         "missing measurement": lambda: _log(tmp_path, z=_set(z, (4, 2), np.nan)),
         "not npz": lambda: (tmp_path / "bad.npz").write_text("step,sensor\n") and tmp_path / "bad.npz",
     }[case]()
+    _refused(bad, message, f"log {bad}", tmp_path / "out", capsys)
+
+
+def _refused(bad, message: str, prefix: str, out, capsys) -> str:
+    """The log ``bad`` refused by studies.filter (the error begins ``prefix`` and matches ``message``) and by the
+    command line (exit 2, one line naming the file, nothing written in ``out``); returns that line."""
     with pytest.raises(InputError, match=message) as err:
         studies.filter("indoor-robot", bad, filter="kcf")
-    assert str(err.value).startswith(f"log {bad}")
-    out = tmp_path / "out"
+    assert str(err.value).startswith(prefix)
     assert main(["filter", "indoor-robot", "--data", str(bad), "--filter", "kcf", "--out", str(out)]) == 2
     said = capsys.readouterr().err.strip().splitlines()
     assert len(said) == 1 and str(bad) in said[0]
     assert not (out / "estimates.npz").exists()
+    return said[0]
 
 
 def _set(a, where, value):
@@ -339,12 +345,7 @@ def test_a_bad_csv_log_is_refused_naming_the_line_and_column(case, message, tmp_
     }[case]()
     bad = tmp_path / "bad.csv"
     bad.write_text("\n".join(changed) + "\n")
-    with pytest.raises(InputError, match=message) as err:
-        studies.filter("indoor-robot", bad, filter="kcf")
-    assert str(err.value).startswith(f"log {bad}: line ")
-    assert main(["filter", "indoor-robot", "--data", str(bad), "--filter", "kcf", "--out", str(tmp_path / "o")]) == 2
-    said = capsys.readouterr().err.strip().splitlines()
-    assert len(said) == 1 and str(bad) in said[0] and "line" in said[0]
+    assert "line" in _refused(bad, message, f"log {bad}: line ", tmp_path / "o", capsys)
 
 
 def test_the_log_schemas_reject_what_breaks_the_format(tmp_path):
