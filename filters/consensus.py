@@ -62,8 +62,8 @@ from designer.validation import InputError, check_covariance, check_finite
 from .attacks import AttackPattern
 from .rrp import wrap_angles
 
-__all__ = ["gate_channels", "channel_difference_covariance", "kept_fdi_moments", "GATE_COUNTS", "wrapped_residual",
-           "ConsensusResult", "run_consensus", "check_run_inputs", "HARD_CONDITIONS", "DIVERGED"]
+__all__ = ["gate_channels", "channel_packets", "channel_difference_covariance", "kept_fdi_moments", "GATE_COUNTS",
+           "wrapped_residual", "ConsensusResult", "run_consensus", "check_run_inputs", "HARD_CONDITIONS", "DIVERGED"]
 
 
 HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
@@ -84,6 +84,15 @@ def channel_difference_covariance(P, receiver: np.ndarray, sender: np.ndarray) -
     d = node_blocks(P)
     eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
     return difference_covariance(P, receiver, sender) + eps[..., None, None, None] * np.eye(d.shape[-1])
+
+
+def channel_packets(sent: np.ndarray, fdi: np.ndarray | None, xi: np.ndarray | None) -> np.ndarray:
+    """What channels carry: the senders' predictions ``sent`` (..., n), ``+ ξ`` where ``fdi`` (...) falsified them
+    (``xi`` (..., n); None: no attack).  Every filter forms a received packet this way first, then uses it, so that a
+    node filter handed the packet that arrived computes the batched filter's numbers."""
+    if fdi is None or xi is None:
+        return sent
+    return np.where(np.asarray(fdi, dtype=bool)[..., None], sent + xi, sent)
 
 
 def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
@@ -107,9 +116,8 @@ def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, 
     if alpha > 0:
         idx = np.nonzero(received)
         runs, e = idx[:-1], idx[-1]
-        d = x_pred[runs + (sender[e],)] - x_pred[runs + (receiver[e],)]
-        if xi is not None:
-            d = d + fdi[idx][:, None] * xi[idx]
+        sent = x_pred[runs + (sender[e],)]
+        d = (sent if xi is None else channel_packets(sent, fdi[idx], xi[idx])) - x_pred[runs + (receiver[e],)]
         S = cov_diff[idx]
         ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
         stat = np.zeros(e.size)

@@ -68,7 +68,7 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, gate_channels
+from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, channel_packets, gate_channels
 from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
 from .rrp import wrap_angles
 
@@ -77,7 +77,7 @@ _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothin
 __all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
            "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
-           "per_run"]
+           "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items"]
 
 
 # --------------------------------------------------------------------------- channels and their attacks
@@ -443,7 +443,9 @@ class _Group(NamedTuple):
     D: np.ndarray | None
 
 
-def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
+def node_groups(model: Model, design: ConsensusDesign, node: int | None = None) -> list[_Group]:
+    """The nodes grouped by sensor shape, each with its columns of the stacked measurement; ``node``: that node
+    alone, as one group over a block of one node whose measurement is its own sensor's."""
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     keys: dict = {}
     for i, dim in enumerate(model.sensor_dims):
@@ -451,8 +453,13 @@ def _groups(model: Model, design: ConsensusDesign) -> list[_Group]:
         keys.setdefault((dim, cover), []).append(i)
     out = []
     for (dim, cover), nodes in keys.items():
-        index = slice(None) if nodes == list(range(model.n_sensors)) else np.array(nodes)
-        out.append(_Group(np.array(nodes), index, dim, np.array([np.arange(offsets[i], offsets[i] + dim) for i in nodes]),
+        if node is not None:
+            if node not in nodes:
+                continue
+            nodes, offsets = [node], np.zeros_like(offsets)
+        index = slice(None) if nodes == list(range(model.n_sensors)) or node is not None else np.array(nodes)
+        columns = np.array([np.arange(offsets[i], offsets[i] + dim) for i in nodes])
+        out.append(_Group(np.array(nodes), index, dim, columns,
                           np.stack([model.measurement_cov(i) for i in nodes]), np.stack([design.V[i] for i in nodes]),
                           selection(cover, model.n_x) if cover else None))
     return out
@@ -485,17 +492,112 @@ def batch_inputs(model, z, inputs, x0, phi0, cov_name: str = "phi0"):
     return z, u, np.broadcast_to(x0, (runs, model.n_x)), np.broadcast_to(phi0, (runs, model.n_x, model.n_x))
 
 
-def _first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign) -> InputError:
-    """The InputError raised at the first step of run ``r`` in paper mode (σ or β beyond (28)/(29))."""
+def first_step_error(r: int, v28, v29, phi0, phi_pred0, design: ConsensusDesign, nodes=None) -> InputError:
+    """The InputError raised at the first step of run ``r`` in paper mode (σ or β beyond (28)/(29)); ``nodes``: the
+    ids of the block's nodes (default: the network's, in order)."""
     if v28[r].any():
         lam = float(np.linalg.eigvalsh(phi0[r])[-1])
         return InputError(
             f"sigma must satisfy (28) at the first step: sigma < 1/((1+epsilon) lambda_max(Phi_0|0)) = "
             f"{1.0 / ((1.0 + design.epsilon) * lam):.6g}, got {design.sigma!r}")
-    i = int(np.flatnonzero(v29[r])[0])
-    lam = float(np.linalg.eigvalsh(phi_pred0[r, i])[-1])
+    j = int(np.flatnonzero(v29[r])[0])
+    lam = float(np.linalg.eigvalsh(phi_pred0[r, j])[-1])
     return InputError(f"beta must satisfy (29) at the first step: beta < 1/lambda_max(Phi_1|0) = {1.0 / lam:.6g} "
-                      f"at node {i}, got {design.beta!r}")
+                      f"at node {j if nodes is None else int(nodes[j])}, got {design.beta!r}")
+
+
+def predict_nodes(model: Model, design: ConsensusDesign, predict_rule, k: int, xk, Pk, prop, uk, d_max: int):
+    """The prediction (3), (26), (28) of stacked nodes ``(a, n)`` (runs × nodes of a batch, or one node alone: the
+    same numbers): ``xk``, ``Pk`` their posteriors, ``prop`` which are still on Theorem 1's recursion, ``uk`` the
+    inputs.  Returns ``(x̂⁻, Φ⁻, margin (28), σ, which Φ⁻ are bounds, Theorem 2's margin, which reached the bound
+    limit)``; a node off the recursion or failing (28) takes the fallback ``F Φ Fᵀ + Q``."""
+    F = model.F_expected(xk, k, uk)
+    xp = model.f_expected(xk, k, uk)
+    a, n, nx = xk.shape
+    limit = prop & ~(np.trace(Pk, axis1=-2, axis2=-1) < BOUND_LIMIT)
+    bound = prop & ~limit
+    margin28 = np.where(limit, -np.inf, np.nan)
+    sigma = np.full((a, n), np.nan)
+    pvalid = np.zeros((a, n), dtype=bool)
+    Pp = np.empty((a, n, nx, nx))
+    th2k = np.full((a, n), np.nan)
+    if bound.any():
+        ub = uk if uk.ndim == 1 else _take(np.broadcast_to(uk, (a, n, uk.shape[-1])), bound)
+        Sk = spectrum(_take(Pk, bound))  # one eigh for (28), (26) and Theorem 2
+        U, D = prediction_scaling(model, _take(xk, bound), Sk.phi, k, ub, design.linearization, design.radius,
+                                  design.U)
+        choice = predict_rule(Sk, _take(F, bound), U, model.process_cov, D, design)
+        _put(margin28, bound, choice.margin28)
+        good = choice.margin28 > 0
+        _put(pvalid, bound, good)
+        _put(Pp, pvalid, _take(choice.phi_pred, good))
+        _put(sigma, pvalid, _take(choice.sigma, good))
+        if good.any():
+            _put(th2k, pvalid, theorem2_margin(Sk if good.all() else Sk.take(good), _take(choice.sigma, good),
+                                               d_max))
+    fb = ~pvalid
+    if fb.any():  # the fallback: sigma = 0, U = 0, the EKF's F Phi F^T + Q
+        Pp[fb] = prediction_recursion(Pk[fb], F[fb], np.zeros((nx, nx)), model.process_cov, 0.0, design.epsilon)
+    return xp, Pp, margin28, sigma, pvalid, th2k, limit
+
+
+def update_nodes(model: Model, design: ConsensusDesign, groups, update_rule, k: int, xp, Pp, pvalid, s, innovation,
+                 neigh, zk, degrees, nz: int, extra=None):
+    """The update (7), (27), (29) of stacked nodes ``(a, n)``, per group of nodes of one sensor shape (``groups``:
+    :class:`_Group`, their ``index`` into the n nodes, ``nodes`` their ids in the network): ``xp``, ``Pp`` the
+    predictions, ``pvalid`` which are bounds, ``s`` how many packets each kept, ``innovation`` ``Σ_j (x̃_j - x̂⁻_i)``
+    over them, ``neigh`` the neighbour terms of (27), ``zk`` (a, Σ dims of the groups' columns) the measurements.
+    ``extra(group)`` gives a group's further items (a replayed schedule, the tuned rule's).  Returns
+    ``(x, Φ, K, C, margin (29), β, which updates held (29), which nodes diverged, {(run, node): why}, [(nodes,
+    weights, which held)] of the tuned rule)``."""
+    a, n, nx = xp.shape
+    xn = np.empty((a, n, nx))
+    Pn = np.empty((a, n, nx, nx))
+    Kn = np.zeros((a, n, nx, nz))
+    Cn = np.empty((a, n, nx, nx))
+    margin29 = np.full((a, n), np.nan)
+    beta = np.full((a, n), np.nan)
+    uvalid = np.zeros((a, n), dtype=bool)
+    failed = np.zeros((a, n), dtype=bool)
+    reasons: dict = {}  # (run, node) -> why its update failed
+    weights = []
+    rule, radius = design.linearization, design.radius
+    for grp in groups:
+        ns, at_g, g, dim = grp.nodes, grp.index, grp.nodes.size, grp.dim
+        xg, Pg = xp[:, at_g], Pp[:, at_g]
+        H = np.stack([model.H(int(i), xg[:, j], k + 1) for j, i in enumerate(ns)], axis=1)  # (a, g, dim, nx)
+        hz = np.stack([model.h(int(i), xg[:, j], k + 1) for j, i in enumerate(ns)], axis=1)
+        res = zk[:, grp.columns] - hz
+        for j, i in enumerate(ns):
+            res[:, j] = wrap_residuals(res[:, j], model.sensors[i].angles)
+        vin = pvalid[:, at_g]
+        V = np.array(np.broadcast_to(grp.V, (a, g, dim, dim)))
+        if rule != "fixed":
+            for j, i in enumerate(ns):
+                sel = vin[:, j]
+                if sel.any():
+                    V[sel, j] = update_scaling(model, int(i), xg[sel, j], Pg[sel, j], k + 1, rule, radius,
+                                               grp.V[j])[0]
+        flat = dict(P=Pg, H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
+                    d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
+        if extra is not None:
+            flat.update(extra(grp))
+        flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
+        *out, gW, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
+        gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
+        if gW is not None:
+            weights.append((ns, gW.reshape(a, g, -1), gok))
+        x_g = xg + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
+        fine = ~diverged_nodes(x_g, gP)
+        for j, why in breakdowns.items():
+            reasons[j // g, int(ns[j % g])] = why
+        for r, j in zip(*np.nonzero(~fine)):
+            reasons.setdefault((r, int(ns[j])), DIVERGED_REASON)
+        failed[:, at_g] = ~fine
+        xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
+        Kn[:, at_g, :, :dim] = gK
+        margin29[:, at_g], beta[:, at_g], uvalid[:, at_g] = gm29, gbeta, gok
+    return xn, Pn, Kn, Cn, margin29, beta, uvalid, failed, reasons, weights
 
 
 def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
@@ -558,10 +660,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     fixed = gain_rule(design.mode).fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
     degrees = network.degrees
     d_max = network.d_max
-    Q = model.process_cov
     eye = np.eye(nx)
-    rule, radius = design.linearization, design.radius
-    groups = _groups(model, design)
+    groups = node_groups(model, design)
     # Weights of the neighbour terms in (27), per channel: 3 (1 - phibar_ij); and 3 delta^2 sum_j gammabar_ij;
     # per run (1 item when every run has the same network)
     w_phi = per_run(lambda net: 3.0 * (1.0 - net.dos_prob[ex.receiver, ex.sender]), network, nets)
@@ -599,35 +699,11 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         at = slice(None) if a == runs else act  # index of the runs going on (a view while none has stopped)
         xk, Pk, prop = x_post[at, k], phi_post[at, k], proper[at]
         uk = u[k] if u.ndim == 2 else u[at, k][:, None, :]
-        # ---- prediction (3), (26), (28)
-        F = model.F_expected(xk, k, uk)
-        xp = model.f_expected(xk, k, uk)
-        limit = prop & ~(np.trace(Pk, axis1=-2, axis2=-1) < BOUND_LIMIT)
-        bound = prop & ~limit
-        margin28 = np.where(limit, -np.inf, np.nan)
-        sigma = np.full((a, n), np.nan)
-        pvalid = np.zeros((a, n), dtype=bool)
-        Pp = np.empty((a, n, nx, nx))
-        th2k = np.full((a, n), np.nan)
-        if bound.any():
-            ub = uk if uk.ndim == 1 else _take(np.broadcast_to(uk, (a, n, uk.shape[-1])), bound)
-            Sk = spectrum(_take(Pk, bound))  # one eigh for (28), (26) and Theorem 2
-            U, D = prediction_scaling(model, _take(xk, bound), Sk.phi, k, ub, rule, radius, design.U)
-            choice = predict_rule(Sk, _take(F, bound), U, Q, D, design)
-            _put(margin28, bound, choice.margin28)
-            good = choice.margin28 > 0
-            _put(pvalid, bound, good)
-            _put(Pp, pvalid, _take(choice.phi_pred, good))
-            _put(sigma, pvalid, _take(choice.sigma, good))
-            if good.any():
-                _put(th2k, pvalid, theorem2_margin(Sk if good.all() else Sk.take(good), _take(choice.sigma, good),
-                                                   d_max))
-        fb = ~pvalid
-        if fb.any():  # the fallback: sigma = 0, U = 0, the EKF's F Phi F^T + Q
-            Pp[fb] = prediction_recursion(Pk[fb], F[fb], np.zeros((nx, nx)), Q, 0.0, design.epsilon)
+        xp, Pp, margin28, sigma, pvalid, th2k, limit = predict_nodes(model, design, predict_rule, k, xk, Pk, prop, uk,
+                                                                     d_max)
         v28 = prop & ~pvalid
         pred_ok = pvalid & valid[at, k]
-        # ---- the gate (design.gate > 0: x̂_j - x̂_i against 2 (Φ_i + Φ_j) >= its covariance) and the exchange
+        # ---- the gate (design.gate > 0: x̃_j - x̂_i against 2 (Φ_i + Φ_j) >= its covariance) and the exchange
         if attacks is None:
             received, fdi, xi = np.ones((a, ex.receiver.size), dtype=bool), None, None
         else:
@@ -635,61 +711,24 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         cov_diff = 2.0 * (Pp[:, ex.receiver] + Pp[:, ex.sender]) if design.gate else None
         recv, counts[at, k] = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
         s = ex.sum(recv.astype(float))
-        innovation = ex.sum(recv[..., None] * xp[:, ex.sender]) - s[..., None] * xp
-        if attacks is not None:
-            innovation = innovation + ex.sum((recv & fdi)[..., None] * xi)
+        innovation = ex.sum(recv[..., None] * channel_packets(xp[:, ex.sender], fdi, xi)) - s[..., None] * xp
         each = slice(None) if nets is None else at  # the runs' channel statistics
         neigh = ex.sum(w_phi[each][:, :, None, None] * Pp[:, ex.sender]) + w_xi[each][..., None, None] * eye
-        # ---- update (7), (27), (29), per group of nodes
-        xn = np.empty((a, n, nx))
-        Pn = np.empty((a, n, nx, nx))
-        Kn = np.zeros((a, n, nx, nz))
-        Cn = np.empty((a, n, nx, nx))
-        margin29 = np.full((a, n), np.nan)
-        beta = np.full((a, n), np.nan)
-        uvalid = np.zeros((a, n), dtype=bool)
-        failed = np.zeros((a, n), dtype=bool)
-        reasons: dict = {}  # (run, node) -> why its update failed
-        zk = z[at, k]
-        for grp in groups:
-            ns, at_g, g, dim = grp.nodes, grp.index, grp.nodes.size, grp.dim
-            H = np.stack([model.H(int(i), xp[:, i], k + 1) for i in ns], axis=1)  # (a, g, dim, nx)
-            hz = np.stack([model.h(int(i), xp[:, i], k + 1) for i in ns], axis=1)
-            res = zk[:, grp.columns] - hz
-            for j, i in enumerate(ns):
-                res[:, j] = wrap_residuals(res[:, j], model.sensors[i].angles)
-            vin = pvalid[:, at_g]
-            V = np.array(np.broadcast_to(grp.V, (a, g, dim, dim)))
-            if rule != "fixed":
-                for j, i in enumerate(ns):
-                    sel = vin[:, j]
-                    if sel.any():
-                        V[sel, j] = update_scaling(model, int(i), xp[sel, i], Pp[sel, i], k + 1, rule, radius,
-                                                   grp.V[j])[0]
-            flat = dict(P=Pp[:, at_g], H=H, s=s[:, at_g], V=V, R=np.broadcast_to(grp.R, (a, g, dim, dim)),
-                        d=np.broadcast_to(degrees[ns], (a, g)), nt=neigh[:, at_g])
+
+        def extra(grp):  # a group's items beyond the update's own: a replayed schedule's gains, the tuned weights'
+            ns = grp.nodes
             if replay:
-                flat.update(Kr=np.broadcast_to(gains[0][k, ns, :, :dim], (a, g, nx, dim)),
-                            Cr=np.broadcast_to(gains[1][k, ns], (a, g, nx, nx)))
+                return dict(Kr=np.broadcast_to(gains[0][k, ns, :, :grp.dim], (a, ns.size, nx, grp.dim)),
+                            Cr=np.broadcast_to(gains[1][k, ns], (a, ns.size, nx, nx)))
             if tuned:
-                flat.update(_tuned_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design))
-            flat = {key: v.reshape((a * g,) + v.shape[2:]) for key, v in flat.items()}
-            *out, gW, breakdowns = _update_items(flat, vin.reshape(-1), update_rule, grp.D, design)
-            gm29, gbeta, gok, gK, gC, gP = (v.reshape((a, g) + v.shape[1:]) for v in out)
-            if tuned:
-                gW = gW.reshape(a, g, -1)
-                rr, jj = np.nonzero(gok)
-                W[act[rr], ns[jj]] = gW[rr, jj]
-            x_g = xp[:, at_g] + (gK @ res[..., None])[..., 0] + (gC @ innovation[:, at_g][..., None])[..., 0]
-            fine = ~diverged_nodes(x_g, gP)
-            for j, why in breakdowns.items():
-                reasons[j // g, int(ns[j % g])] = why
-            for r, j in zip(*np.nonzero(~fine)):
-                reasons.setdefault((r, int(ns[j])), DIVERGED_REASON)
-            failed[:, at_g] = ~fine
-            xn[:, at_g], Pn[:, at_g], Cn[:, at_g] = x_g, gP, gC
-            Kn[:, at_g, :, :dim] = gK
-            margin29[:, at_g], beta[:, at_g], uvalid[:, at_g] = gm29, gbeta, gok
+                return tuned_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design)
+            return {}
+
+        xn, Pn, Kn, Cn, margin29, beta, uvalid, failed, reasons, tuned_weights = update_nodes(
+            model, design, groups, update_rule, k, xp, Pp, pvalid, s, innovation, neigh, z[at, k], degrees, nz, extra)
+        for ns, gW, gok in tuned_weights:
+            rr, jj = np.nonzero(gok)
+            W[act[rr], ns[jj]] = gW[rr, jj]
         v29 = pvalid & ~uvalid
         # ---- divergence: a run stops at its first failing node (in node order)
         first = np.where(failed.any(axis=1), failed.argmax(axis=1), n)
@@ -700,7 +739,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             raising = np.flatnonzero(v28.any(axis=1) | v29.any(axis=1))
             if raising.size:
                 r = int(raising[0])
-                raise _first_step_error(r, v28, v29, phi0[at], Pp, design)
+                raise first_step_error(r, v28, v29, phi0[at], Pp, design)
         nb_bad = ex.sum((~pred_ok)[:, ex.sender].astype(float)) > 0
         x_pred[at, k], phi_pred[at, k], m28[at, k], sig[at, k], th2[at, k] = xp, Pp, margin28, sigma, th2k
         x_post[at, k + 1], phi_post[at, k + 1], K[at, k], C[at, k] = xn, Pn, Kn, Cn
@@ -744,7 +783,7 @@ def _channel_slots(ex: _Exchange, d_max: int) -> np.ndarray:
     return np.where(j[None] < deg[:, None], first[:, None] + j[None], -1)
 
 
-def _tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
+def tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
     """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a; ``q_chan`` (a or 1, E) the
     channels' probabilities that a received packet is falsified): the groups of the weighted
     (27) from the received neighbours' Φ_pred (:func:`designer.tuning.neighbour_group_stack`), which are present,
