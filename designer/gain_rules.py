@@ -241,7 +241,9 @@ def gain_rule(name, param: str = "mode") -> GainRule:
     return rule
 
 
-_LOCAL_NEEDS = ("its own measurement, the packets it received and their senders' predictions and bounds Φ_j")
+_LOCAL_NEEDS = ("its own measurement, the neighbours' predictions that arrived (as they arrived) and every "
+                "neighbour's bound Φ_j each step, also when its prediction was lost ((27) weighs each bound by its "
+                "channel's arrival probability: a reliable channel for the bounds is assumed)")
 register(GainRule(
     "paper", "local",
     needs=_LOCAL_NEEDS + "; its gains are computed online at the node (C = τ Φ and the gain (30)).",

@@ -8,22 +8,27 @@ every node of a network over a recorded or simulated run: it simulates the excha
 channel attacks and steps every node with what reached it; its numbers are the batched filter's, bit for bit.
 
 A gain rule's node filter is registered here by the module of its filter (:func:`register_node_filter`); today
-``relay`` and ``flood`` (:class:`filters.relay.RelayNode`, :class:`filters.relay.RelayNetwork`).  Asking for the node
-filter of another rule raises :class:`designer.validation.InputError` saying why.
+``relay`` and ``flood`` (:class:`filters.relay.RelayNode`, :class:`filters.relay.RelayNetwork`: one ``step(z,
+received, u)`` with the relayed measurements) and ``paper`` and ``tuned`` (:class:`filters.consensus_node.ConsensusNode`,
+:class:`filters.consensus_node.ConsensusNetwork`: two phases, ``predict(u)`` gives the packet the node sends,
+``update(z, received, bounds)`` takes what arrived).  Asking for the node filter of another rule raises
+:class:`designer.validation.InputError` saying why.
 """
 from __future__ import annotations
 
 import importlib
 from typing import Any
 
+import numpy as np
+
 from designer.design import ConsensusDesign
 from designer.gain_rules import gain_rule
 from designer.validation import InputError, check_int
 
-__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network"]
+__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network"]
 
 _NODE_FILTERS: dict[str, tuple[type, type]] = {}
-_MODULES = ("filters.relay",)  # the modules that register the built-in rules' node filters (late: they import this)
+_MODULES = ("filters.relay", "filters.consensus_node")  # the modules that register the built-in rules' node filters (late: they import this)
 
 
 def register_node_filter(rule: str, node: type, network: type) -> None:
@@ -65,3 +70,21 @@ def node_network(model, network, design: ConsensusDesign, **kw: Any):
     """Every node of ``network`` as the node filters of ``design``, to drive over a run (``run``) or a step at a
     time (``step``)."""
     return _classes(design)[1](model, network, design, **kw)
+
+
+def run_network(net, z, attacks=None, inputs=None):
+    """Every step of a run through a node network ``net`` (its ``nodes`` with ``x`` and ``P``, its ``step(z, dos, fdi,
+    xi, u)``): ``z`` (K, n_z), ``attacks`` the run's :class:`filters.attacks.AttackPattern`, ``inputs`` (K, n_u).
+    Returns ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
+    from .consensus_batch import edge_attacks
+
+    z = np.asarray(z, dtype=float)
+    K = z.shape[0]
+    att = edge_attacks(net.network, None if attacks is None else [attacks], 1, K, net.model.n_x)
+    xs = [np.stack([nd.x for nd in net.nodes])]
+    Ps = [np.stack([nd.P for nd in net.nodes])]
+    for k in range(K):
+        e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        xs.append(net.step(z[k], *e, u=None if inputs is None else inputs[k]))
+        Ps.append(np.stack([nd.P for nd in net.nodes]))
+    return np.stack(xs), np.stack(Ps)

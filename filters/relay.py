@@ -60,7 +60,7 @@ from .attacks import AttackPattern
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
                               result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
-from .node import register_node_filter
+from .node import register_node_filter, run_network
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
@@ -514,16 +514,7 @@ class RelayNetwork:
     def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
         """Every step of a run: ``z`` (K, n_z), ``attacks`` its channel attacks, ``inputs`` (K, n_u).  Returns
         ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
-        z = np.asarray(z, dtype=float)
-        K = z.shape[0]
-        att = edge_attacks(self.network, None if attacks is None else [attacks], 1, K, self.model.n_x)
-        xs = [np.stack([nd.x for nd in self.nodes])]
-        Ps = [np.stack([nd.P for nd in self.nodes])]
-        for k in range(K):
-            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-            xs.append(self.step(z[k], *e, u=None if inputs is None else inputs[k]))
-            Ps.append(np.stack([nd.P for nd in self.nodes]))
-        return np.stack(xs), np.stack(Ps)
+        return run_network(self, z, attacks, inputs)
 
 
 register_filter("relay", run_relay_design)  # the filters of gain rules 'relay' and 'flood' (filters.consensus_batch)
