@@ -299,8 +299,11 @@ def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, d
         raise InputError(f"schedule {str(p)!r} was designed for another version of the model {sc.name!r} (its "
                          "content or parameters changed since): design again, or give the model and parameters it "
                          "was designed with")
+    mode = opts["mode"] or meta.get("mode")  # the options as given (None: the default), the rule as designed
+    if not isinstance(mode, str):
+        raise InputError(f"schedule {str(path)!r} records no gain rule (mode): design again")
     known = set(DesignOptions().as_dict())
-    return str(opts["mode"]), DesignOptions(**{k: v for k, v in opts.items() if k in known}), meta
+    return mode, DesignOptions(**{**{k: v for k, v in opts.items() if k in known}, "mode": mode}), meta
 
 
 def filter_report(run, directory: Path) -> None:
