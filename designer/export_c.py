@@ -1,22 +1,30 @@
 """C99 sources of a node's filter: ``cfdesign export DESIGN_DIR --target c``.
 
-For a design whose gain rule relays (``relay``, ``flood``: run time ``local``, the gains computed online by the
-node), :func:`write_relay_c` writes into a directory:
+Two node filters are exported, both with gains the node computes online (run time ``local``):
+
+* a design whose gain rule relays (``relay``, ``flood``): :func:`write_relay_c`, the node filter of
+  :class:`filters.relay.RelayNode` (one ``cfd_step`` with the relayed measurements that arrived: the relay rule's
+  update, :func:`designer.relay.relay_update`, its pseudo-inverse by a symmetric eigen-decomposition, and the bound's
+  recursion, the node's expected covariance), each node's ball and arrival and falsification moments as data;
+* a ``paper`` design (the consensus EKF of the seed paper, ``linearization='fixed'``): :func:`write_consensus_c`, the
+  two-phase node of :class:`filters.consensus_node.ConsensusNode` (``cfd_predict`` gives the packet the node sends,
+  its prediction and bound (26) while (28) holds; ``cfd_update`` takes its measurement, the estimates that arrived
+  and every neighbour's bound: the gate, the gain (30) with ``C = τ Φ⁻`` and the bound (27) while (29) holds, the
+  fallback after), the design's σ, β, τ, ε, U, V_i, δ and the channels' probabilities as data.
+
+Into a directory each writes:
 
 * ``cfd_model.c``, ``cfd_model.h`` — the model's ``f``, ``F = ∂f/∂x`` and every sensor's ``h_s``, ``H_s`` through
   CasADi's code generator (dense outputs; no allocation);
-* ``cfd_node.h``, ``cfd_node.c`` — the node filter of :class:`filters.relay.RelayNode` in C: the API
-  ``cfd_init``, ``cfd_step``, ``cfd_estimate``, ``cfd_bound``, ``cfd_ball``, each node's design data (its ball,
-  the arrival and falsification moments of its rows, their hop depths), the relay rule's update
-  (:func:`designer.relay.relay_update`: the pseudo-inverse by a symmetric eigen-decomposition, Householder
-  tridiagonalisation and implicit QR steps) and the
-  bound's recursion (the node's expected covariance); static memory only, libc and libm only;
-* ``cfd_test.c``, ``replay.txt`` — a test driver replaying a run through every node and comparing each step's
-  estimate and bound with what the Python node filter computed on the same run (written in ``replay.txt``);
+* ``cfd_node.h``, ``cfd_node.c`` — the node filter, its documented API (``cfd_init``, the step, ``cfd_estimate``,
+  ``cfd_bound``, ...) and the design's data; static memory only, libc and libm only;
+* ``cfd_test.c``, ``replay.txt`` — a test driver replaying a run through every exported node and comparing each
+  step's numbers with what the Python node filter computed on the same run (written in ``replay.txt``:
+  :func:`replay_text`, :func:`consensus_replay_text`);
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
-  every estimate and bound agrees within 1e-10 of the largest magnitude of its vector or matrix.
+  every number agrees within 1e-10 of the largest magnitude of its vector or matrix.
 
-The sources depend on the design only through their data: the same generator serves every relay design.
+The sources depend on the design only through their data: one generator serves every design of a rule.
 """
 from __future__ import annotations
 
@@ -28,7 +36,7 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["write_relay_c", "REPLAY_TOLERANCE"]
+__all__ = ["write_relay_c", "replay_text", "write_consensus_c", "consensus_replay_text", "REPLAY_TOLERANCE"]
 
 REPLAY_TOLERANCE = 1e-10  # make test: |C - Python| <= this times the largest magnitude of the vector or matrix
 
@@ -75,23 +83,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     if not np.any(network.fdi_prob > 0):
         M, mu = np.zeros((n, n)), np.zeros(n)
     G = routes.hops + 1
-    fns = _functions(model)
-    cg = ca.CodeGenerator("cfd_model.c", {"with_header": True})
-    for fn in fns:
-        cg.add(fn)
-    cg.generate(str(out) + "/")
-    sz_arg = max(fn.sz_arg() for fn in fns)
-    sz_res = max(fn.sz_res() for fn in fns)
-    sz_iw = max(fn.sz_iw() for fn in fns)
-    sz_w = max(fn.sz_w() for fn in fns)
-    dims = np.asarray(model.sensor_dims, dtype=int)
+    sizes, dims, layout = _model_code(model, out)
     rinv = [sqrtm_psd(model.measurement_cov(s), inverse=True) for s in range(model.n_sensors)]
     rinv_start = np.concatenate([[0], np.cumsum(dims ** 2)])
-    angle = np.zeros(int(dims.sum()), dtype=int)
-    zoff = np.concatenate([[0], np.cumsum(dims)])
-    for s, sen in enumerate(model.sensors):
-        for c in sen.angles:
-            angle[zoff[s] + c] = 1
     nodes = [int(i) for i in nodes]
     ball_start, ball, row_start, row_group, p, rr_start, A, F1, F2 = [0], [], [0], [], [], [0], [], [], []
     for i in nodes:
@@ -118,18 +112,48 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         _array("cfd_ball_sensor", ball, "int"), _array("cfd_row_start", row_start, "int"),
         _array("cfd_row_group", row_group, "int"), _array("cfd_p", p), _array("cfd_rr_start", rr_start, "int"),
         _array("cfd_A", A), _array("cfd_F1", F1), _array("cfd_F2", F2),
-        _array("cfd_dim", dims, "int"), _array("cfd_zoff", zoff, "int"), _array("cfd_angle", angle, "int"),
-        _array("cfd_rinv_start", rinv_start, "int"),
+        layout, _array("cfd_rinv_start", rinv_start, "int"),
         _array("cfd_rinv", np.concatenate([r.reshape(-1) for r in rinv])),
         _array("cfd_Q", model.process_cov), _array("cfd_M", M), _array("cfd_mu", mu),
         _array("cfd_x0", model.prior.mean), _array("cfd_P0", model.prior.cov),
     ])
-    hs = ", ".join(f"cfd_h{s}" for s in range(model.n_sensors))
-    Hs = ", ".join(f"cfd_H{s}" for s in range(model.n_sensors))
-    source = _SOURCE.format(data=data, hs=hs, Hs=Hs, sz_arg=max(sz_arg, 1), sz_res=max(sz_res, 1),
-                            sz_iw=max(sz_iw, 1), sz_w=max(sz_w, 1), G=G, gn=gn, nzmax=nz_max,
+    source = _SOURCE.format(common=_common(model, sizes), data=data, G=G, gn=gn, nzmax=nz_max,
                             use_f1=int(bool(np.any(M))), use_f2=int(bool(np.any(mu))))
-    files = {"cfd_node.h": header, "cfd_node.c": source, "cfd_test.c": _DRIVER, "Makefile": _MAKEFILE}
+    return _write(out, header, source, _DRIVER_HEAD + _DRIVER, replay)
+
+
+def _model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
+    """Generate ``cfd_model.c``/``.h`` in ``out``; returns the work sizes of the model's functions, the sensors'
+    dimensions and the C arrays of their layout (``cfd_dim``, ``cfd_zoff`` each sensor's first component in the
+    stacked measurement, ``cfd_angle`` its angular components)."""
+    fns = _functions(model)
+    cg = ca.CodeGenerator("cfd_model.c", {"with_header": True})
+    for fn in fns:
+        cg.add(fn)
+    cg.generate(str(out) + "/")
+    sizes = {name: max(max(getattr(fn, name)() for fn in fns), 1) for name in ("sz_arg", "sz_res", "sz_iw", "sz_w")}
+    dims = np.asarray(model.sensor_dims, dtype=int)
+    zoff = np.concatenate([[0], np.cumsum(dims)])
+    angle = np.zeros(int(dims.sum()), dtype=int)
+    for s, sen in enumerate(model.sensors):
+        for c in sen.angles:
+            angle[zoff[s] + c] = 1
+    return sizes, dims, _array("cfd_dim", dims, "int") + _array("cfd_zoff", zoff, "int") + _array("cfd_angle", angle,
+                                                                                                   "int")
+
+
+def _common(model, sizes: dict) -> str:
+    """The C both node filters share: the model's function tables and work arrays, the accessors, the symmetric
+    eigen-decomposition and the model's calls."""
+    text = _COMMON.replace("@HS@", ", ".join(f"cfd_h{s}" for s in range(model.n_sensors)))
+    text = text.replace("@HHS@", ", ".join(f"cfd_H{s}" for s in range(model.n_sensors)))
+    for name, value in sizes.items():
+        text = text.replace(f"@{name}@", str(value))
+    return text
+
+
+def _write(out: Path, header: str, source: str, driver: str, replay: str | None) -> list[Path]:
+    files = {"cfd_node.h": header, "cfd_node.c": source, "cfd_test.c": driver, "Makefile": _MAKEFILE}
     if replay is not None:
         files["replay.txt"] = replay
     written = [out / "cfd_model.c", out / "cfd_model.h"]
@@ -229,17 +253,10 @@ _SOURCE = r"""/* cfd_node.c: the relay rule's node filter (see cfd_node.h), gene
 #define USE_F2 {use_f2}
 #define RTOL 1e-12
 #define PI_ 3.14159265358979323846
+#define EIG_MAX GN
 
 {data}
-typedef int (*cfd_fun)(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_real *w, int mem);
-static const cfd_fun cfd_h_fun[CFD_SENSORS] = {{{hs}}};
-static const cfd_fun cfd_H_fun[CFD_SENSORS] = {{{Hs}}};
-
-static const casadi_real *arg_[{sz_arg}];
-static casadi_real *res_[{sz_res}];
-static casadi_int iw_[{sz_iw}];
-static casadi_real w_[{sz_w}];
-
+{common}
 /* the step's work (static: one node steps at a time) */
 static double xp_[CFD_NX], F_[CFD_NX * CFD_NX], Pp_[CFD_NX * CFD_NX], T_[CFD_NX * CFD_NX];
 static double Hw_[CFD_ROWS_MAX * CFD_NX], res0_[CFD_ROWS_MAX], hv_[NZMAX], Hv_[NZMAX * CFD_NX];
@@ -249,12 +266,6 @@ static double Sg_[CFD_NX * GN], Q_[GN * GN], V_[GN * GN], lam_[GN], Qp_[GN * GN]
 static double W_[CFD_NX * GN], y_[GN], Pn_[CFD_NX * CFD_NX];
 static int act_[GN];
 
-static int slot_of(int node) {{
-    int j;
-    for (j = 0; j < CFD_NODES; ++j)
-        if (cfd_node_id[j] == node) return j;
-    return -1;
-}}
 
 int cfd_init(cfd_node *s, int node) {{
     int slot = slot_of(node);
@@ -267,118 +278,13 @@ int cfd_init(cfd_node *s, int node) {{
     return 0;
 }}
 
-const double *cfd_estimate(const cfd_node *s) {{ return s->x; }}
-const double *cfd_bound(const cfd_node *s) {{ return s->P; }}
 
-int cfd_exported_node(int j) {{ return (j >= 0 && j < CFD_NODES) ? cfd_node_id[j] : -1; }}
-int cfd_sensor_dim(int sensor) {{ return (sensor >= 0 && sensor < CFD_SENSORS) ? cfd_dim[sensor] : -1; }}
 
 int cfd_ball(int node, const int **sensors) {{
     int slot = slot_of(node);
     if (slot < 0) return -1;
     *sensors = cfd_ball_sensor + cfd_ball_start[slot];
     return cfd_ball_start[slot + 1] - cfd_ball_start[slot];
-}}
-
-/* symmetric eigen-decomposition of the m x m matrix A (destroyed, left diagonal): lam, V (the eigenvectors in its
- * columns).  Householder reflections reduce A to a tridiagonal matrix, then implicit QR steps with Wilkinson's
- * shift (Givens rotations, applied to rows and columns k, k + 1 of the whole matrix) diagonalise each unreduced
- * block; a subdiagonal entry negligible beside its two diagonal neighbours is set to zero.  O(m^3). */
-static int eigsym(int m, double *A, double *lam, double *V) {{
-    static double v[GN], pv[GN], w[GN];
-    int i, j, k, p, q, lo, hi, it = 0;
-    for (i = 0; i < m; ++i)
-        for (j = 0; j < m; ++j) V[i * m + j] = (i == j) ? 1.0 : 0.0;
-    for (k = 0; k + 2 < m; ++k) {{ /* zero column k below its subdiagonal */
-        double below = 0.0, norm, alpha, vtv = 0.0, beta, K = 0.0;
-        for (i = k + 2; i < m; ++i) below += A[i * m + k] * A[i * m + k];
-        if (below == 0.0) continue;
-        norm = sqrt(below + A[(k + 1) * m + k] * A[(k + 1) * m + k]);
-        alpha = A[(k + 1) * m + k] > 0.0 ? -norm : norm;
-        for (i = 0; i < m; ++i) v[i] = i <= k ? 0.0 : A[i * m + k];
-        v[k + 1] -= alpha;
-        for (i = k + 1; i < m; ++i) vtv += v[i] * v[i];
-        beta = 2.0 / vtv;
-        for (i = k; i < m; ++i) {{ /* p = beta A v (rows above k are reduced already: zero there) */
-            double t = 0.0;
-            for (j = k + 1; j < m; ++j) t += A[i * m + j] * v[j];
-            pv[i] = beta * t;
-        }}
-        for (i = k + 1; i < m; ++i) K += pv[i] * v[i];
-        K *= 0.5 * beta;
-        for (i = k; i < m; ++i) w[i] = pv[i] - K * v[i];
-        for (i = k; i < m; ++i) /* A <- H A H = A - v w^T - w v^T, on the trailing block */
-            for (j = k; j < m; ++j) A[i * m + j] -= v[i] * w[j] + w[i] * v[j];
-        for (i = 0; i < m; ++i) {{ /* V <- V H */
-            double t = 0.0;
-            for (j = k + 1; j < m; ++j) t += V[i * m + j] * v[j];
-            t *= beta;
-            for (j = k + 1; j < m; ++j) V[i * m + j] -= t * v[j];
-        }}
-        for (i = k + 2; i < m; ++i) A[i * m + k] = A[k * m + i] = 0.0;
-    }}
-    q = m - 1;
-    while (q > 0) {{
-        double a, b, c2, dd, mu, x, z;
-        for (i = 0; i < q; ++i) {{
-            double e = fabs(A[(i + 1) * m + i]);
-            if (e <= DBL_EPSILON * (fabs(A[i * m + i]) + fabs(A[(i + 1) * m + i + 1])) || e < DBL_MIN)
-                A[(i + 1) * m + i] = A[i * m + i + 1] = 0.0;
-        }}
-        if (A[q * m + q - 1] == 0.0) {{
-            --q;
-            continue;
-        }}
-        if (++it > 60 * m) return -1;
-        p = q - 1;
-        while (p > 0 && A[p * m + p - 1] != 0.0) --p;
-        a = A[(q - 1) * m + q - 1];
-        b = A[q * m + q - 1];
-        c2 = A[q * m + q];
-        dd = 0.5 * (a - c2);
-        mu = c2 - b * b / (dd + (dd >= 0.0 ? 1.0 : -1.0) * sqrt(dd * dd + b * b));
-        x = A[p * m + p] - mu;
-        z = A[(p + 1) * m + p];
-        for (k = p; k < q; ++k) {{
-            double r, c, s;
-            if (k > p) {{
-                x = A[k * m + k - 1];
-                z = A[(k + 1) * m + k - 1];
-            }}
-            r = sqrt(x * x + z * z);
-            if (r == 0.0) continue;
-            c = x / r;
-            s = z / r;
-            lo = k > p ? k - 1 : p;
-            hi = k + 2 < q ? k + 2 : q;
-            for (j = lo; j <= hi; ++j) {{ /* rows k, k + 1 (nonzero in columns k - 1 .. k + 2 only) */
-                double tk = A[k * m + j], tl = A[(k + 1) * m + j];
-                A[k * m + j] = c * tk + s * tl;
-                A[(k + 1) * m + j] = -s * tk + c * tl;
-            }}
-            for (i = lo; i <= hi; ++i) {{ /* columns k, k + 1 */
-                double tk = A[i * m + k], tl = A[i * m + k + 1];
-                A[i * m + k] = c * tk + s * tl;
-                A[i * m + k + 1] = -s * tk + c * tl;
-            }}
-            for (i = 0; i < m; ++i) {{ /* V's columns k, k + 1 */
-                double vk = V[i * m + k], vl = V[i * m + k + 1];
-                V[i * m + k] = c * vk + s * vl;
-                V[i * m + k + 1] = -s * vk + c * vl;
-            }}
-            if (k > p) A[(k + 1) * m + k - 1] = A[(k - 1) * m + k + 1] = 0.0; /* the bulge chased */
-        }}
-    }}
-    for (i = 0; i < m; ++i) lam[i] = A[i * m + i];
-    return 0;
-}}
-
-static int call(cfd_fun fn, const double *x, double k, const double *u, double *out) {{
-    arg_[0] = x;
-    arg_[1] = &k;
-    arg_[2] = u;
-    res_[0] = out;
-    return fn(arg_, res_, iw_, w_, 0);
 }}
 
 int cfd_step(cfd_node *s, const double *z, const unsigned char *arrived, const double *received, const double *u) {{
@@ -548,7 +454,7 @@ int cfd_step(cfd_node *s, const double *z, const unsigned char *arrived, const d
 }}
 """
 
-_DRIVER = r"""/* cfd_test.c: replay a run through every exported node and compare with the Python node filter. */
+_DRIVER_HEAD = r"""/* cfd_test.c: replay a run through every exported node and compare with the Python node filter. */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -564,38 +470,70 @@ static int read_numbers(FILE *fh, double *v, int count) {
     return 0;
 }
 
-static double largest(const double *v, int count) {
-    double m = 0.0;
+/* the largest difference of got from want relative to want's largest magnitude; *bad counts those above TOL */
+static double compare(const double *got, const double *want, int count, int *bad) {
+    double m = 0.0, worst = 0.0;
     int i;
     for (i = 0; i < count; ++i)
-        if (fabs(v[i]) > m) m = fabs(v[i]);
-    return m;
+        if (fabs(want[i]) > m) m = fabs(want[i]);
+    for (i = 0; i < count; ++i) {
+        double d = fabs(got[i] - want[i]) / (m > 0 ? m : 1.0);
+        if (d > worst) worst = d;
+        if (!(d <= TOL)) *bad += 1;
+    }
+    return worst;
 }
 
+/* an estimate and its covariance against the Python node filter's: the worst difference so far, the count above */
+static void check(const double *x, const double *P, const double *x_want, const double *P_want, double *worst,
+                  int *bad) {
+    double t = compare(x, x_want, CFD_NX, bad);
+    if (t > *worst) *worst = t;
+    t = compare(P, P_want, CFD_NX * CFD_NX, bad);
+    if (t > *worst) *worst = t;
+}
+
+static int finish(FILE *fh, int steps, double worst, int bad) {
+    fclose(fh);
+    printf("%d steps x %d nodes: largest difference from the Python node filter %.3g (relative), %d above %g\n",
+           steps, CFD_NODES, worst, bad, TOL);
+    return bad ? 1 : 0;
+}
+
+/* open the replay named on the command line, check it is one of these nodes, start every node at the prior */
+static FILE *start(int argc, char **argv, cfd_node *nodes, int *steps) {
+    FILE *fh;
+    int count, nu, j;
+    if (argc != 2) {
+        fprintf(stderr, "usage: %s replay.txt\n", argv[0]);
+        return NULL;
+    }
+    fh = fopen(argv[1], "r");
+    if (!fh || fscanf(fh, "%d %d %d", steps, &count, &nu) != 3 || count != CFD_NODES || nu != CFD_NU) {
+        fprintf(stderr, "%s: not a replay of these %d nodes\n", argv[1], CFD_NODES);
+        return NULL;
+    }
+    for (j = 0; j < CFD_NODES; ++j)
+        if (cfd_init(&nodes[j], cfd_exported_node(j))) return NULL;
+    return fh;
+}
+"""
+
+_DRIVER = r"""
 int main(int argc, char **argv) {
     static cfd_node nodes[CFD_NODES];
     static double z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
     static double x[CFD_NX], P[CFD_NX * CFD_NX];
     static unsigned char arrived[CFD_BALL_MAX];
     FILE *fh;
-    int steps, count, nu, k, j, i, bad = 0;
+    int steps, k, j, i, bad = 0;
     double worst = 0.0;
-    if (argc != 2) {
-        fprintf(stderr, "usage: %s replay.txt\n", argv[0]);
-        return 2;
-    }
-    fh = fopen(argv[1], "r");
-    if (!fh || fscanf(fh, "%d %d %d", &steps, &count, &nu) != 3 || count != CFD_NODES || nu != CFD_NU) {
-        fprintf(stderr, "%s: not a replay of these %d nodes\n", argv[1], CFD_NODES);
-        return 2;
-    }
-    for (j = 0; j < CFD_NODES; ++j)
-        if (cfd_init(&nodes[j], cfd_exported_node(j))) return 2;
+    fh = start(argc, argv, nodes, &steps);
+    if (!fh) return 2;
     for (k = 0; k < steps; ++k) {
         for (j = 0; j < CFD_NODES; ++j) {
             const int *ball;
             int nb = cfd_ball(nodes[j].node, &ball), m_own = cfd_sensor_dim(ball[0]), m_rec = 0, b, e;
-            double scale_x, scale_P;
             for (b = 1; b < nb; ++b) m_rec += cfd_sensor_dim(ball[b]);
             if (read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1) || read_numbers(fh, rec, m_rec)
                     || read_numbers(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
@@ -609,24 +547,10 @@ int main(int argc, char **argv) {
                 fprintf(stderr, "step %d, node %d: cfd_step returned %d\n", k + 1, nodes[j].node, e);
                 return 1;
             }
-            scale_x = largest(x, CFD_NX);
-            scale_P = largest(P, CFD_NX * CFD_NX);
-            for (i = 0; i < CFD_NX; ++i) {
-                double d = fabs(nodes[j].x[i] - x[i]) / (scale_x > 0 ? scale_x : 1.0);
-                if (d > worst) worst = d;
-                if (d > TOL) bad += 1;
-            }
-            for (i = 0; i < CFD_NX * CFD_NX; ++i) {
-                double d = fabs(nodes[j].P[i] - P[i]) / (scale_P > 0 ? scale_P : 1.0);
-                if (d > worst) worst = d;
-                if (d > TOL) bad += 1;
-            }
+            check(nodes[j].x, nodes[j].P, x, P, &worst, &bad);
         }
     }
-    fclose(fh);
-    printf("%d steps x %d nodes: largest difference from the Python node filter %.3g (relative), %d above %g\n",
-           steps, CFD_NODES, worst, bad, TOL);
-    return bad ? 1 : 0;
+    return finish(fh, steps, worst, bad);
 }
 """
 
@@ -655,4 +579,617 @@ clean:
 \trm -f cfd_node.o cfd_model.o libcfd_node.a cfd_test
 
 .PHONY: all test clean
+"""
+
+_COMMON = r"""typedef int (*cfd_fun)(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_real *w,
+                       int mem);
+static const cfd_fun cfd_h_fun[CFD_SENSORS] = {@HS@};
+static const cfd_fun cfd_H_fun[CFD_SENSORS] = {@HHS@};
+
+static const casadi_real *arg_[@sz_arg@];
+static casadi_real *res_[@sz_res@];
+static casadi_int iw_[@sz_iw@];
+static casadi_real w_[@sz_w@];
+
+static int slot_of(int node) {
+    int j;
+    for (j = 0; j < CFD_NODES; ++j)
+        if (cfd_node_id[j] == node) return j;
+    return -1;
+}
+
+const double *cfd_estimate(const cfd_node *s) { return s->x; }
+const double *cfd_bound(const cfd_node *s) { return s->P; }
+int cfd_exported_node(int j) { return (j >= 0 && j < CFD_NODES) ? cfd_node_id[j] : -1; }
+int cfd_sensor_dim(int sensor) { return (sensor >= 0 && sensor < CFD_SENSORS) ? cfd_dim[sensor] : -1; }
+
+/* symmetric eigen-decomposition of the m x m matrix A (destroyed, left diagonal): lam, V (the eigenvectors in its
+ * columns).  Householder reflections reduce A to a tridiagonal matrix, then implicit QR steps with Wilkinson's
+ * shift (Givens rotations, applied to rows and columns k, k + 1 of the whole matrix) diagonalise each unreduced
+ * block; a subdiagonal entry negligible beside its two diagonal neighbours is set to zero.  O(m^3). */
+static int eigsym(int m, double *A, double *lam, double *V) {
+    static double v[EIG_MAX], pv[EIG_MAX], w[EIG_MAX];
+    int i, j, k, p, q, lo, hi, it = 0;
+    for (i = 0; i < m; ++i)
+        for (j = 0; j < m; ++j) V[i * m + j] = (i == j) ? 1.0 : 0.0;
+    for (k = 0; k + 2 < m; ++k) { /* zero column k below its subdiagonal */
+        double below = 0.0, norm, alpha, vtv = 0.0, beta, K = 0.0;
+        for (i = k + 2; i < m; ++i) below += A[i * m + k] * A[i * m + k];
+        if (below == 0.0) continue;
+        norm = sqrt(below + A[(k + 1) * m + k] * A[(k + 1) * m + k]);
+        alpha = A[(k + 1) * m + k] > 0.0 ? -norm : norm;
+        for (i = 0; i < m; ++i) v[i] = i <= k ? 0.0 : A[i * m + k];
+        v[k + 1] -= alpha;
+        for (i = k + 1; i < m; ++i) vtv += v[i] * v[i];
+        beta = 2.0 / vtv;
+        for (i = k; i < m; ++i) { /* p = beta A v (rows above k are reduced already: zero there) */
+            double t = 0.0;
+            for (j = k + 1; j < m; ++j) t += A[i * m + j] * v[j];
+            pv[i] = beta * t;
+        }
+        for (i = k + 1; i < m; ++i) K += pv[i] * v[i];
+        K *= 0.5 * beta;
+        for (i = k; i < m; ++i) w[i] = pv[i] - K * v[i];
+        for (i = k; i < m; ++i) /* A <- H A H = A - v w^T - w v^T, on the trailing block */
+            for (j = k; j < m; ++j) A[i * m + j] -= v[i] * w[j] + w[i] * v[j];
+        for (i = 0; i < m; ++i) { /* V <- V H */
+            double t = 0.0;
+            for (j = k + 1; j < m; ++j) t += V[i * m + j] * v[j];
+            t *= beta;
+            for (j = k + 1; j < m; ++j) V[i * m + j] -= t * v[j];
+        }
+        for (i = k + 2; i < m; ++i) A[i * m + k] = A[k * m + i] = 0.0;
+    }
+    q = m - 1;
+    while (q > 0) {
+        double a, b, c2, dd, mu, x, z;
+        for (i = 0; i < q; ++i) {
+            double e = fabs(A[(i + 1) * m + i]);
+            if (e <= DBL_EPSILON * (fabs(A[i * m + i]) + fabs(A[(i + 1) * m + i + 1])) || e < DBL_MIN)
+                A[(i + 1) * m + i] = A[i * m + i + 1] = 0.0;
+        }
+        if (A[q * m + q - 1] == 0.0) {
+            --q;
+            continue;
+        }
+        if (++it > 60 * m) return -1;
+        p = q - 1;
+        while (p > 0 && A[p * m + p - 1] != 0.0) --p;
+        a = A[(q - 1) * m + q - 1];
+        b = A[q * m + q - 1];
+        c2 = A[q * m + q];
+        dd = 0.5 * (a - c2);
+        mu = c2 - b * b / (dd + (dd >= 0.0 ? 1.0 : -1.0) * sqrt(dd * dd + b * b));
+        x = A[p * m + p] - mu;
+        z = A[(p + 1) * m + p];
+        for (k = p; k < q; ++k) {
+            double r, c, s;
+            if (k > p) {
+                x = A[k * m + k - 1];
+                z = A[(k + 1) * m + k - 1];
+            }
+            r = sqrt(x * x + z * z);
+            if (r == 0.0) continue;
+            c = x / r;
+            s = z / r;
+            lo = k > p ? k - 1 : p;
+            hi = k + 2 < q ? k + 2 : q;
+            for (j = lo; j <= hi; ++j) { /* rows k, k + 1 (nonzero in columns k - 1 .. k + 2 only) */
+                double tk = A[k * m + j], tl = A[(k + 1) * m + j];
+                A[k * m + j] = c * tk + s * tl;
+                A[(k + 1) * m + j] = -s * tk + c * tl;
+            }
+            for (i = lo; i <= hi; ++i) { /* columns k, k + 1 */
+                double tk = A[i * m + k], tl = A[i * m + k + 1];
+                A[i * m + k] = c * tk + s * tl;
+                A[i * m + k + 1] = -s * tk + c * tl;
+            }
+            for (i = 0; i < m; ++i) { /* V's columns k, k + 1 */
+                double vk = V[i * m + k], vl = V[i * m + k + 1];
+                V[i * m + k] = c * vk + s * vl;
+                V[i * m + k + 1] = -s * vk + c * vl;
+            }
+            if (k > p) A[(k + 1) * m + k - 1] = A[(k - 1) * m + k + 1] = 0.0; /* the bulge chased */
+        }
+    }
+    for (i = 0; i < m; ++i) lam[i] = A[i * m + i];
+    return 0;
+}
+
+static int call(cfd_fun fn, const double *x, double k, const double *u, double *out) {
+    arg_[0] = x;
+    arg_[1] = &k;
+    arg_[2] = u;
+    res_[0] = out;
+    return fn(arg_, res_, iw_, w_, 0);
+}
+"""
+
+
+# --------------------------------------------------------------------------- the consensus rule (paper)
+def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
+                      verdict: str = "unknown") -> list[Path]:
+    """Write the C sources of the node filter of the ``paper`` consensus design ``design``
+    (:class:`filters.consensus_node.ConsensusNode`: ``cfd_predict`` gives the packet a node sends, ``cfd_update``
+    takes what arrived) for the nodes ``nodes`` into ``out``; ``replay``: the text of ``replay.txt``
+    (:func:`consensus_replay_text`); ``verdict``: the design's, stated in the header.  Returns the files written.
+
+    The rule's σ, β, τ, ε, U, V_i and δ are the design's numbers; its linearisation must be ``fixed`` (the Hessian
+    scalings of ``hessian`` and ``structured`` are not exported) and its rule ``paper`` (``tuned`` solves a convex
+    problem online at every step: not exported)."""
+    from scipy.special import chdtri
+
+    from .bounds import BOUND_LIMIT
+    from .gain_rules import gain_rule
+
+    if design.mode != "paper":
+        raise InputError(f"mode must be 'paper' for the consensus node's C export, got {design.mode!r}")
+    if design.linearization != "fixed":
+        raise InputError(f"linearization must be 'fixed' for the C export (the {design.linearization!r} scalings "
+                         "come from the model's Hessians at every step, which the export does not generate)")
+    out = Path(out)
+    n = model.n_x
+    sizes, dims, layout = _model_code(model, out)
+    sigma, beta, eps = float(design.sigma), float(design.beta), float(design.epsilon)
+    U = np.asarray(design.U, dtype=float)
+    UU = U @ U.T / (eps * sigma) if np.any(U) else np.zeros((n, n))
+    w_xi = 3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1)
+    nodes = [int(i) for i in nodes]
+    nb_start, nb, wphi, mat_start, R, VV = [0], [], [], [0], [], []
+    for i in nodes:
+        senders = np.flatnonzero(network.adjacency[i])
+        nb += senders.tolist()
+        wphi += (3.0 * (1.0 - network.dos_prob[i, senders])).tolist()
+        nb_start.append(len(nb))
+        Vi = np.asarray(design.V[i], dtype=float)
+        R += model.measurement_cov(i).reshape(-1).tolist()
+        VV += (Vi @ Vi.T / beta if np.any(Vi) else np.zeros_like(Vi)).reshape(-1).tolist()
+        mat_start.append(len(R))
+    d_max = max(nb_start[j + 1] - nb_start[j] for j in range(len(nodes)))
+    header = _CONSENSUS_HEADER.format(n=n, nu=model.n_u, nz=int(dims.sum()), sensors=model.n_sensors,
+                                      nodes=len(nodes), d_max=max(d_max, 1), node_list=", ".join(map(str, nodes)),
+                                      verdict=verdict, sigma=sigma, beta=beta, tau=design.tau, gate=design.gate)
+    data = "".join([
+        _array("cfd_node_id", nodes, "int"), _array("cfd_nb_start", nb_start, "int"), _array("cfd_nb", nb, "int"),
+        _array("cfd_wphi", wphi), _array("cfd_wxi", w_xi[nodes]),
+        _array("cfd_deg", network.degrees[nodes], "int"), _array("cfd_mat_start", mat_start, "int"),
+        _array("cfd_R", R), _array("cfd_VV", VV), _array("cfd_UU", UU), layout,
+        _array("cfd_Q", model.process_cov), _array("cfd_x0", model.prior.mean), _array("cfd_P0", model.prior.cov),
+    ])
+    source = _CONSENSUS_SOURCE.format(
+        common=_common(model, sizes), data=data, nzmax=int(dims.max()), sigma=repr(sigma), beta=repr(beta),
+        tau=repr(float(design.tau)), eps=repr(eps), fixed=int(gain_rule(design.mode).fixed_multipliers),
+        gate=repr(float(design.gate)), chi2=repr(float(chdtri(n, design.gate))) if design.gate else "0.0",
+        bound_limit=repr(float(BOUND_LIMIT)), rcond=repr(1e-13), diverged=repr(1e12))
+    return _write(out, header, source, _DRIVER_HEAD + _CONSENSUS_DRIVER, replay)
+
+
+def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, steps: list) -> str:
+    """``replay.txt`` of a consensus design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the
+    step's inputs, the node's measurement, one arrived flag per in-neighbour (``senders`` order), the estimates that
+    arrived (zeros where not), every in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the
+    Python node filter's packet (prediction, its covariance, its flag) and its estimate and covariance after the
+    update.  ``steps``: per step, ``(u, [(z, received {j: x̃}, bounds {j: Packet}, packet, x, P) per node])``."""
+    lines = [f"{len(steps)} {len(nodes)} {n_u}"]
+    for u, per_node in steps:
+        for j, (z, got, bounds, packet, x, P) in enumerate(per_node):
+            vals = list(np.asarray(u, float).reshape(-1)) + list(np.asarray(z, float).reshape(-1))
+            vals += [1.0 if s in got else 0.0 for s in senders[j]]
+            n = np.asarray(x).size
+            for s in senders[j]:
+                vals += list(np.asarray(got[s], float).reshape(-1)) if s in got else [0.0] * n
+            for s in senders[j]:
+                vals += list(np.asarray(bounds[s].P, float).reshape(-1)) + [float(bool(bounds[s].ok))]
+            vals += list(np.asarray(packet.x, float)) + list(np.asarray(packet.P, float).reshape(-1))
+            vals += [float(bool(packet.ok))] + list(np.asarray(x, float)) + list(np.asarray(P, float).reshape(-1))
+            lines.append(" ".join(repr(float(v)) for v in vals))
+    return "\n".join(lines) + "\n"
+
+
+_CONSENSUS_HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule paper: the seed paper's consensus EKF), C99.
+ *
+ * Generated by cfdesign export; the design's data are in cfd_node.c, the model's functions in cfd_model.c.
+ * The design's verdict: {verdict} (a certified bound is finite, steady and informative; see its report).
+ * Nodes exported: {node_list} (node k of this file is cfd_node_id[k] of the network; cfd_init takes the
+ * network's number).  Static memory only; link with -lm.  sigma = {sigma}, beta = {beta}, tau = {tau}, gate = {gate}.
+ *
+ * A step has two phases.  cfd_predict: the node's prediction x- = f(x) and its bound Phi- by (26) while (28)
+ * holds (the EKF's F P F^T + Q otherwise): the packet the node sends to its out-neighbours.  cfd_update: its
+ * own measurement, the packets of its in-neighbours that arrived (the estimates they carried, falsified or not),
+ * and every in-neighbour's bound, arrived or not (the bound (27) weighs each by its channel's arrival
+ * probability: the rule assumes a node learns its neighbours' bounds every step); the gain (30) with C = tau Phi-
+ * while (29) holds, the fallback gains (sigma = beta = 0) for good once (28) or (29) has failed.
+ */
+#ifndef CFD_NODE_H
+#define CFD_NODE_H
+
+#define CFD_NX {n}            /* states */
+#define CFD_NU {nu}            /* known inputs per step */
+#define CFD_NZ {nz}            /* the sensors' stacked measurement components */
+#define CFD_SENSORS {sensors}       /* sensors (= nodes of the network) */
+#define CFD_NODES {nodes}         /* nodes exported */
+#define CFD_DEG_MAX {d_max}       /* most in-neighbours of an exported node */
+
+typedef struct {{
+    double x[CFD_NX];          /* the sender's prediction */
+    double P[CFD_NX * CFD_NX]; /* its covariance, row by row */
+    int ok;                    /* 1 when P is a bound */
+}} cfd_packet;
+
+typedef struct {{
+    int node;                  /* the network's node number */
+    int slot;                  /* its place among the exported nodes */
+    long k;                    /* steps taken: the next step measures the state at time k + 1 */
+    double x[CFD_NX];          /* the estimate */
+    double P[CFD_NX * CFD_NX]; /* its covariance, row by row: a bound while valid */
+    int proper;                /* still on Theorem 1's recursion */
+    int valid;                 /* P is a bound */
+    int predicted;             /* between cfd_predict and cfd_update */
+    cfd_packet sent;           /* the packet of the current step */
+}} cfd_node;
+
+/* Start node `node` at the prior (returns 0, or -1 for a node not exported). */
+int cfd_init(cfd_node *s, int node);
+
+/* The prediction phase: fills *packet with what the node sends (returns 0; -2 when the model could not be
+ * evaluated; -4 when the node has predicted already). */
+int cfd_predict(cfd_node *s, const double *u, cfd_packet *packet);
+
+/* The update phase.  z: the node's own measurement.  arrived: one flag per in-neighbour (cfd_neighbours order),
+ * 1 when its packet arrived.  received: the estimates those packets carried, CFD_NX each, in that order (any
+ * values where not arrived).  bounds: every in-neighbour's packet as it was sent (its P and ok are used).
+ * Returns 0; -2: the estimate left finite numbers or 1e12 (the run must stop; the state holds what was
+ * computed); -3: sigma or beta violates (28) or (29) at the first step (the state is left unchanged); -4: not
+ * predicted. */
+int cfd_update(cfd_node *s, const double *z, const unsigned char *arrived, const double *received,
+               const cfd_packet *bounds);
+
+/* The estimate (CFD_NX) and its covariance (CFD_NX x CFD_NX, row by row; a bound while cfd_valid). */
+const double *cfd_estimate(const cfd_node *s);
+const double *cfd_bound(const cfd_node *s);
+int cfd_valid(const cfd_node *s);
+
+/* The in-neighbours of node `node` (returns their number, or -1; *senders points at them). */
+int cfd_neighbours(int node, const int **senders);
+
+/* The network's number of the j-th exported node (-1 beyond CFD_NODES); a sensor's measurement components. */
+int cfd_exported_node(int j);
+int cfd_sensor_dim(int sensor);
+
+#endif
+"""
+
+_CONSENSUS_SOURCE = r"""/* cfd_node.c: the paper rule's consensus node filter (see cfd_node.h), by cfdesign export. */
+#include <float.h>
+#include <math.h>
+#include <string.h>
+
+#include "cfd_model.h"
+#include "cfd_node.h"
+
+#define NZMAX {nzmax}
+#define EIG_MAX CFD_NX
+#define SIGMA {sigma}
+#define BETA {beta}
+#define TAU {tau}
+#define EPS {eps}
+#define FIXED {fixed}
+#define GATE {gate}
+#define CHI2 {chi2}
+#define BOUND_LIMIT {bound_limit}
+#define RCOND {rcond}
+#define DIVERGED {diverged}
+#define PI_ 3.14159265358979323846
+
+{data}
+{common}
+/* the step's work (static: one node steps at a time) */
+#define NN (CFD_NX * CFD_NX)
+static double F_[NN], A_[NN], V_[NN], lam_[CFD_NX], M_[NN], T_[NN], C_[NN], N_[NN], B_[NN], Pn_[NN];
+static double H_[NZMAX * CFD_NX], hv_[NZMAX], res_v[NZMAX], HM_[NZMAX * CFD_NX], S_[NZMAX * NZMAX];
+static double X_[NZMAX * CFD_NX], K_[CFD_NX * NZMAX], KM_[CFD_NX * NZMAX], innov_[CFD_NX], xn_[CFD_NX];
+
+int cfd_init(cfd_node *s, int node) {{
+    int slot = slot_of(node);
+    if (slot < 0) return -1;
+    memset(s, 0, sizeof *s);
+    s->node = node;
+    s->slot = slot;
+    s->proper = 1;
+    s->valid = 1;
+    memcpy(s->x, cfd_x0, sizeof s->x);
+    memcpy(s->P, cfd_P0, sizeof s->P);
+    return 0;
+}}
+
+int cfd_valid(const cfd_node *s) {{ return s->valid; }}
+
+int cfd_neighbours(int node, const int **senders) {{
+    int slot = slot_of(node);
+    if (slot < 0) return -1;
+    *senders = cfd_nb + cfd_nb_start[slot];
+    return cfd_nb_start[slot + 1] - cfd_nb_start[slot];
+}}
+
+/* out = a b (r x m times m x c), out = a b^T (r x m times c x m), out = (a + a^T) / 2 (n x n) */
+static void mul(const double *a, const double *b, double *out, int r, int m, int c) {{
+    int i, j, l;
+    for (i = 0; i < r; ++i)
+        for (j = 0; j < c; ++j) {{
+            double t = 0.0;
+            for (l = 0; l < m; ++l) t += a[i * m + l] * b[l * c + j];
+            out[i * c + j] = t;
+        }}
+}}
+
+static void mul_t(const double *a, const double *b, double *out, int r, int m, int c) {{
+    int i, j, l;
+    for (i = 0; i < r; ++i)
+        for (j = 0; j < c; ++j) {{
+            double t = 0.0;
+            for (l = 0; l < m; ++l) t += a[i * m + l] * b[j * m + l];
+            out[i * c + j] = t;
+        }}
+}}
+
+static void sym(double *a, int n) {{
+    int i, j;
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < i; ++j) a[i * n + j] = a[j * n + i] = 0.5 * (a[i * n + j] + a[j * n + i]);
+}}
+
+static int finite_all(const double *a, int count) {{
+    int i;
+    for (i = 0; i < count; ++i)
+        if (!isfinite(a[i])) return 0;
+    return 1;
+}}
+
+/* the spectrum of the symmetric P (n x n): V_, lam_; returns 1 / lambda_max, or -inf when P is not finite or not
+ * numerically positive definite (lambda_min <= RCOND lambda_max) */
+static double spectrum(const double *P) {{
+    double lo, hi;
+    int i;
+    if (!finite_all(P, NN)) return -INFINITY;
+    memcpy(A_, P, sizeof A_);
+    if (eigsym(CFD_NX, A_, lam_, V_)) return -INFINITY;
+    lo = hi = lam_[0];
+    for (i = 1; i < CFD_NX; ++i) {{
+        if (lam_[i] < lo) lo = lam_[i];
+        if (lam_[i] > hi) hi = lam_[i];
+    }}
+    return lo > RCOND * hi ? 1.0 / hi : -INFINITY;
+}}
+
+/* M = (P^-1 - c I)^-1 = V diag(lam / (1 - c lam)) V^T from the spectrum (c = 0: P itself) */
+static void shifted(const double *P, double c) {{
+    int i, j, a;
+    if (c == 0.0) {{
+        memcpy(M_, P, sizeof M_);
+        return;
+    }}
+    for (i = 0; i < CFD_NX; ++i)
+        for (j = 0; j < CFD_NX; ++j) {{
+            double t = 0.0;
+            for (a = 0; a < CFD_NX; ++a) t += V_[i * CFD_NX + a] * (lam_[a] / (1.0 - c * lam_[a])) * V_[j * CFD_NX + a];
+            M_[i * CFD_NX + j] = t;
+        }}
+    sym(M_, CFD_NX);
+}}
+
+/* solve S X = B (m x m, m x c) by Gaussian elimination with partial pivoting; S and B are destroyed */
+static int solve(double *S, double *B, int m, int c) {{
+    int i, j, l, p;
+    for (l = 0; l < m; ++l) {{
+        p = l;
+        for (i = l + 1; i < m; ++i)
+            if (fabs(S[i * m + l]) > fabs(S[p * m + l])) p = i;
+        if (S[p * m + l] == 0.0) return -1;
+        if (p != l) {{
+            for (j = 0; j < m; ++j) {{ double t = S[l * m + j]; S[l * m + j] = S[p * m + j]; S[p * m + j] = t; }}
+            for (j = 0; j < c; ++j) {{ double t = B[l * c + j]; B[l * c + j] = B[p * c + j]; B[p * c + j] = t; }}
+        }}
+        for (i = l + 1; i < m; ++i) {{
+            double f = S[i * m + l] / S[l * m + l];
+            for (j = l; j < m; ++j) S[i * m + j] -= f * S[l * m + j];
+            for (j = 0; j < c; ++j) B[i * c + j] -= f * B[l * c + j];
+        }}
+    }}
+    for (i = m - 1; i >= 0; --i)
+        for (j = 0; j < c; ++j) {{
+            double t = B[i * c + j];
+            for (l = i + 1; l < m; ++l) t -= S[i * m + l] * B[l * c + j];
+            B[i * c + j] = t / S[i * m + i];
+        }}
+    return 0;
+}}
+
+int cfd_predict(cfd_node *s, const double *u, cfd_packet *packet) {{
+    const int n = CFD_NX;
+    double tr = 0.0;
+    int i, pvalid = 0;
+    if (s->predicted) return -4;
+    if (call(cfd_f, s->x, (double)s->k, u, s->sent.x) || call(cfd_F, s->x, (double)s->k, u, F_)) return -2;
+    memcpy(B_, s->P, sizeof B_);
+    sym(B_, n);
+    for (i = 0; i < n; ++i) tr += s->P[i * n + i];
+    if (s->proper && tr < BOUND_LIMIT) {{
+        const double c = (1.0 + EPS) * SIGMA;
+        if (spectrum(B_) - c > 0.0) {{ /* (28); Phi- = F (Phi^-1 - c I)^-1 F^T + U U^T / (eps sigma) + Q */
+            shifted(B_, c);
+            mul(F_, M_, T_, n, n, n);
+            mul_t(T_, F_, Pn_, n, n, n);
+            for (i = 0; i < NN; ++i) Pn_[i] = Pn_[i] + cfd_UU[i] + cfd_Q[i];
+            pvalid = 1;
+        }}
+    }}
+    if (!pvalid) {{ /* the fallback: F P F^T + Q */
+        mul(F_, B_, T_, n, n, n);
+        mul_t(T_, F_, Pn_, n, n, n);
+        for (i = 0; i < NN; ++i) Pn_[i] = Pn_[i] + cfd_Q[i];
+    }}
+    sym(Pn_, n);
+    memcpy(s->sent.P, Pn_, sizeof Pn_);
+    s->sent.ok = pvalid;
+    s->predicted = 1;
+    *packet = s->sent;
+    packet->ok = pvalid && s->valid;
+    return 0;
+}}
+
+int cfd_update(cfd_node *s, const double *z, const unsigned char *arrived, const double *received,
+               const cfd_packet *bounds) {{
+    const int n = CFD_NX, slot = s->slot, i_node = s->node, m = cfd_dim[i_node];
+    const int e0 = cfd_nb_start[slot], d = cfd_nb_start[slot + 1] - e0, ms = cfd_mat_start[slot];
+    const double k1 = (double)(s->k + 1), w = 1.0 + 2.0 * cfd_deg[slot];
+    const double *xp = s->sent.x, *Pp = s->sent.P;
+    const int pvalid = s->sent.ok;
+    double count = 0.0, big = 0.0;
+    int e, i, j, c, uvalid = 0, nb_ok = 1, v28, v29, bad;
+    if (!s->predicted) return -4;
+    /* the packets kept (the gate: (x~_j - x-_i)^T (2 (Phi_i + Phi_j))^+ (x~_j - x-_i) <= chi2), their sum */
+    memset(innov_, 0, sizeof innov_);
+    memset(N_, 0, sizeof N_);
+    for (e = 0; e < d; ++e) {{
+        const double *xj = received + e * n;
+        int keep = arrived[e] != 0;
+        if (keep && GATE > 0.0) {{
+            double stat = 0.0, dv[CFD_NX], hi = 0.0;
+            for (i = 0; i < NN; ++i) A_[i] = 2.0 * (Pp[i] + bounds[e].P[i]);
+            for (i = 0; i < n; ++i) dv[i] = xj[i] - xp[i];
+            if (finite_all(A_, NN) && finite_all(dv, n) && !eigsym(n, A_, lam_, V_)) {{
+                for (i = 0; i < n; ++i) if (fabs(lam_[i]) > hi) hi = fabs(lam_[i]);
+                for (i = 0; i < n; ++i) {{
+                    double t = 0.0;
+                    if (!(fabs(lam_[i]) > 1e-15 * hi)) continue;
+                    for (j = 0; j < n; ++j) t += V_[j * n + i] * dv[j];
+                    stat += t * t / lam_[i];
+                }}
+            }}
+            keep = stat <= CHI2;
+        }}
+        if (keep) {{
+            count += 1.0;
+            for (i = 0; i < n; ++i) innov_[i] += xj[i];
+        }}
+        for (i = 0; i < NN; ++i) N_[i] += cfd_wphi[e0 + e] * bounds[e].P[i];
+        if (!bounds[e].ok) nb_ok = 0;
+    }}
+    for (i = 0; i < n; ++i) innov_[i] -= count * xp[i];
+    for (i = 0; i < n; ++i) N_[i * n + i] += cfd_wxi[slot];
+    /* the residual at the prediction, angles wrapped */
+    if (call(cfd_h_fun[i_node], xp, k1, 0, hv_) || call(cfd_H_fun[i_node], xp, k1, 0, H_)) return -2;
+    for (c = 0; c < m; ++c) {{
+        res_v[c] = z[c] - hv_[c];
+        if (cfd_angle[cfd_zoff[i_node] + c] && fabs(res_v[c]) > PI_) {{
+            double t = fmod(PI_ - res_v[c], 2.0 * PI_);
+            if (t < 0.0) t += 2.0 * PI_;
+            res_v[c] = PI_ - t;
+        }}
+    }}
+    if (pvalid && spectrum(Pp) - BETA > 0.0) {{ /* (29): the gain (30), the bound (27) */
+        shifted(Pp, BETA);
+        uvalid = 1;
+    }} else {{ /* the fallback: beta = 0, V = 0, the inflations (1 + 2 d) and 3 set to 1 */
+        memcpy(M_, Pp, sizeof M_);
+        for (i = 0; i < NN; ++i) N_[i] /= 3.0;
+    }}
+    for (i = 0; i < NN; ++i) C_[i] = TAU * Pp[i];
+    /* K = (I - s C) (S^-1 H M)^T, S = H M H^T + V V^T / beta + R / w */
+    mul(H_, M_, HM_, m, n, n);
+    mul_t(HM_, H_, S_, m, n, m);
+    for (i = 0; i < m; ++i)
+        for (j = 0; j < m; ++j)
+            S_[i * m + j] += uvalid ? cfd_VV[ms + i * m + j] + cfd_R[ms + i * m + j] / w : cfd_R[ms + i * m + j];
+    sym(S_, m);
+    memcpy(X_, HM_, sizeof(double) * (size_t)(m * n));
+    if (solve(S_, X_, m, n)) return -2;
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < n; ++j) T_[i * n + j] = (i == j ? 1.0 : 0.0) - count * C_[i * n + j];
+    mul_t(T_, X_, K_, n, n, m);
+    /* Phi+ = w A M A^T + C N C^T + K (w V V^T / beta + R) K^T, A = I - s C - K H (w = 1, no V in the fallback) */
+    mul(K_, H_, A_, n, m, n);
+    for (i = 0; i < NN; ++i) A_[i] = T_[i] - A_[i];
+    mul(A_, M_, B_, n, n, n);
+    mul_t(B_, A_, Pn_, n, n, n);
+    mul(C_, N_, B_, n, n, n);
+    mul_t(B_, C_, T_, n, n, n);
+    for (i = 0; i < m; ++i)
+        for (j = 0; j < m; ++j)
+            S_[i * m + j] = uvalid ? w * cfd_VV[ms + i * m + j] + cfd_R[ms + i * m + j] : cfd_R[ms + i * m + j];
+    mul(K_, S_, KM_, n, m, m);
+    mul_t(KM_, K_, B_, n, m, n);
+    for (i = 0; i < NN; ++i) Pn_[i] = (uvalid ? w : 1.0) * Pn_[i] + T_[i] + B_[i];
+    sym(Pn_, n);
+    /* x+ = x- + K res + C innovation */
+    for (i = 0; i < n; ++i) {{
+        double t = 0.0, u = 0.0;
+        for (c = 0; c < m; ++c) t += K_[i * m + c] * res_v[c];
+        for (j = 0; j < n; ++j) u += C_[i * n + j] * innov_[j];
+        xn_[i] = xp[i] + t + u;
+        if (fabs(xn_[i]) > big) big = fabs(xn_[i]);
+    }}
+    v28 = s->proper && !pvalid;
+    v29 = pvalid && !uvalid;
+    if (s->k == 0 && FIXED && (v28 || v29)) {{
+        s->predicted = 0;
+        return -3;
+    }}
+    bad = !(finite_all(xn_, n) && finite_all(Pn_, NN) && big < DIVERGED);
+    s->valid = uvalid && pvalid && s->valid && nb_ok;
+    s->proper = s->proper && !v28 && !v29;
+    memcpy(s->x, xn_, sizeof xn_);
+    memcpy(s->P, Pn_, sizeof Pn_);
+    s->k += 1;
+    s->predicted = 0;
+    return bad ? -2 : 0;
+}}
+"""
+
+_CONSENSUS_DRIVER = r"""
+int main(int argc, char **argv) {
+    static cfd_node nodes[CFD_NODES];
+    static cfd_packet bounds[CFD_DEG_MAX], mine;
+    static double u[CFD_NU + 1], z[CFD_NZ], flags[CFD_DEG_MAX], rec[CFD_DEG_MAX * CFD_NX], ok[1];
+    static double px[CFD_NX], pP[CFD_NX * CFD_NX], pok[1], x[CFD_NX], P[CFD_NX * CFD_NX];
+    static unsigned char arrived[CFD_DEG_MAX];
+    FILE *fh;
+    int steps, k, j, b, bad = 0;
+    double worst = 0.0;
+    fh = start(argc, argv, nodes, &steps);
+    if (!fh) return 2;
+    for (k = 0; k < steps; ++k) {
+        for (j = 0; j < CFD_NODES; ++j) {
+            const int *senders;
+            int d = cfd_neighbours(nodes[j].node, &senders), m = cfd_sensor_dim(nodes[j].node), e;
+            int short_read = read_numbers(fh, u, CFD_NU) || read_numbers(fh, z, m) || read_numbers(fh, flags, d)
+                             || read_numbers(fh, rec, d * CFD_NX);
+            for (b = 0; b < d && !short_read; ++b) {
+                short_read = read_numbers(fh, bounds[b].P, CFD_NX * CFD_NX) || read_numbers(fh, ok, 1);
+                bounds[b].ok = ok[0] != 0.0;
+            }
+            if (short_read || read_numbers(fh, px, CFD_NX) || read_numbers(fh, pP, CFD_NX * CFD_NX)
+                    || read_numbers(fh, pok, 1) || read_numbers(fh, x, CFD_NX)
+                    || read_numbers(fh, P, CFD_NX * CFD_NX)) {
+                fprintf(stderr, "%s: short at step %d, node %d\n", argv[1], k + 1, nodes[j].node);
+                return 2;
+            }
+            for (b = 0; b < d; ++b) arrived[b] = flags[b] != 0.0;
+            e = cfd_predict(&nodes[j], CFD_NU ? u : NULL, &mine);
+            if (e) {
+                fprintf(stderr, "step %d, node %d: cfd_predict returned %d\n", k + 1, nodes[j].node, e);
+                return 1;
+            }
+            if ((mine.ok != 0) != (pok[0] != 0.0)) bad += 1;
+            check(mine.x, mine.P, px, pP, &worst, &bad);
+            e = cfd_update(&nodes[j], z, arrived, rec, bounds);
+            if (e) {
+                fprintf(stderr, "step %d, node %d: cfd_update returned %d\n", k + 1, nodes[j].node, e);
+                return 1;
+            }
+            check(nodes[j].x, nodes[j].P, x, P, &worst, &bad);
+        }
+    }
+    return finish(fh, steps, worst, bad);
+}
 """

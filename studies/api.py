@@ -34,6 +34,7 @@ memory available).
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -664,8 +665,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Parameters
     ----------
     design_dir : path
-        A directory written by ``design`` for a gain rule with a node filter that runs online at the node
-        (``relay``, ``flood``).
+        A directory written by ``design`` for a gain rule whose node filter computes its gains online at the node:
+        ``paper`` (with ``linearization='fixed'``, the two-phase consensus node of
+        :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood`` (:class:`filters.relay.RelayNode`).
     target : {'c'}
     out : path
         The directory of the sources, ``Makefile``, test driver and ``replay.txt``.
@@ -680,7 +682,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
 
     Returns the files written.
     """
-    from designer.export_c import replay_text, write_relay_c
+    from designer.export_c import consensus_replay_text, replay_text, write_consensus_c, write_relay_c
     from designer.gain_rules import gain_rule
     from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks
@@ -711,16 +713,20 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     mode, options, _ = design_options_of(design_dir, sc)
     design = consensus_design(sc, options)
     rule = gain_rule(mode)
-    if not rule.relays:
-        why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
-               "its node filter is not exported yet (exported: relay, flood)")
-        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why}")
+    if not rule.relays and mode != "paper":
+        why = {"global": "an oracle: its gains need the network's joint state",
+               "scheduled": "its node filter (a table lookup) is not built yet"}.get(
+            rule.runtime, "its node solves a convex problem online at every step, which the export does not generate "
+                          "(its node filter runs in Python: studies.node_filter)")
+        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, relay, flood)")
+    if mode == "paper" and design.linearization != "fixed":
+        raise InputError(f"linearization must be 'fixed' to export a paper design to C (the {design.linearization!r} "
+                         "scalings come from the model's Hessians at every step, which the export does not generate)"
+                         )
     N = sc.network.n_nodes
     chosen = list(range(N)) if nodes is None else [check_int("nodes", i, 0, N - 1) for i in nodes]
     if not chosen or len(set(chosen)) != len(chosen):
         raise InputError(f"nodes must be distinct nodes of 0..{N - 1}, got {nodes!r}")
-    routes = relay_routes(sc.network, design.rounds, rule.routing)
-    moments = relay_moments(routes, sc.network, sc.model.sensor_dims)
     if data is None:
         sim = simulate(sc, seed=int(meta.get("seed") or 0))
         z, attacks, u = sim.z, sim.attacks, sim.inputs
@@ -731,15 +737,38 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         z, attacks, u = log.z, log.attacks, (np.zeros((log.steps, 0)) if log.inputs is None else log.inputs)
     net = node_network(sc.model, sc.network, design)
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
+    verdict = str(meta.get("verdict"))
+    if rule.relays:
+        steps = []
+        for k in range(z.shape[0]):
+            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+            given = net.deliver(z[k], *e, u=u[k])  # what reaches each node; each steps with it (RelayNetwork.step)
+            for nd, (own, got) in zip(net.nodes, given):
+                nd.step(own, got, u[k])
+            steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
+        replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
+        routes = relay_routes(sc.network, design.rounds, rule.routing)
+        moments = relay_moments(routes, sc.network, sc.model.sensor_dims)
+        with replaced_outputs(out) as stage:
+            written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen,
+                                    replay=replay, verdict=verdict)
+        return [Path(out) / p.name for p in written]
     steps = []
+    offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
     for k in range(z.shape[0]):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-        given = net.deliver(z[k], *e, u=u[k])  # what reaches each node; each steps with it (RelayNetwork.step)
-        for nd, (own, got) in zip(net.nodes, given):
-            nd.step(own, got, u[k])
-        steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
-    replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
+        sent = [nd.predict(u[k]) for nd in net.nodes]
+        given = net.deliver(sent, *e)  # what reaches each node; each updates with it (ConsensusNetwork.step)
+        for i, (nd, (got, bounds)) in enumerate(zip(net.nodes, given)):
+            nd.update(z[k, offsets[i]:offsets[i + 1]], got, bounds)
+        if any(nd.diverged for nd in net.nodes):
+            warnings.warn(f"the paper filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
+                          "steps before", RuntimeWarning, stacklevel=2)
+            break
+        steps.append((u[k], [(z[k, offsets[i]:offsets[i + 1]], given[i][0], given[i][1], sent[i], net.nodes[i].x,
+                              net.nodes[i].P) for i in chosen]))
+    replay = consensus_replay_text(chosen, [net.nodes[i].senders.tolist() for i in chosen], sc.model.n_u, steps)
     with replaced_outputs(out) as stage:
-        written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen, replay=replay,
-                                verdict=str(meta.get("verdict")))
+        written = write_consensus_c(sc.model, sc.network, design, stage, nodes=chosen, replay=replay,
+                                    verdict=verdict)
     return [Path(out) / p.name for p in written]

@@ -256,12 +256,16 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
               help="the model, when the design's own file has moved [default: the design's]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> None:
-    """Export the node filter of the design in DESIGN_DIR (gain rule relay or flood) as C99 sources with a Makefile
-    and a test driver (make test: the C against the Python node filter)."""
+    """Export the node filter of the design in DESIGN_DIR (gain rule paper, relay or flood) as C99 sources with a
+    Makefile and a test driver (make test: the C against the Python node filter)."""
+    import warnings
+
     from . import api
 
-    files = api.export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data, scenario=scenario,
-                       assignments=assignments)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always", RuntimeWarning)
+        files = api.export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data,
+                           scenario=scenario, assignments=assignments)
     click.echo(f"wrote {len(files)} files to {out}: {', '.join(p.name for p in files)}; build and check with "
                f"make -C {out} test")
     from pathlib import Path
@@ -270,6 +274,8 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
     if verdict != "certified":  # said plainly: the code runs the design, whose bound is not certified
         click.echo(f"  the design's verdict is {verdict!r}, not certified: its bound is not a guarantee (see "
                    f"{design_dir}/report.md)")
+    for w in said:
+        click.echo(f"  {w.message}")
 
 
 @cli.command("feasibility")

@@ -92,6 +92,68 @@ def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path, capsys
     assert np.array_equal([float(v) for v in last[-16 - 4:-16]], x[-1, 5])
 
 
+@pytest.mark.parametrize("gate", [0.0, 0.05])
+def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp_path, capsys):
+    """design without --mode (the paper rule), export, make test: at every step every node's packet (prediction, its
+    covariance, whether it is a bound) and its estimate and covariance after the update within 1e-10 of the Python
+    consensus node's, over the design's simulated run (DoS and FDI; with the χ² gate, which rejects packets on this
+    run); a replay whose expected prediction is moved by 1e-7 fails."""
+    from designer.design import DesignOptions
+    from filters.consensus_batch import run_consensus_batch
+    from studies.consensus_design import consensus_design
+    from studies.scenarios import load_scenario
+
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", "indoor-robot", "--out", str(des)] + (["--gate", str(gate)] if gate else [])) in (0, 1)
+    assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
+    meta = json.loads((des / "schedule.json").read_text())
+    assert meta["mode"] == "paper" and meta["options"]["mode"] is None
+    assert ("not certified" in capsys.readouterr().out) == (meta["verdict"] != "certified")
+    header = (out / "cfd_node.h").read_text()
+    assert "gain rule paper" in header and f"gate = {gate}" in header
+    if gate:  # the gate has work to do on the replayed run
+        sc = load_scenario("indoor-robot")
+        sim = studies.simulate(sc, seed=int(meta["seed"]))
+        ref = run_consensus_batch(sc.model, sc.network, sim.z[None], consensus_design(sc, DesignOptions(gate=gate)),
+                                  inputs=sim.inputs, attacks=[sim.attacks])
+        assert ref.gate_counts[..., 1].sum() > 0
+    run = make_test(out)
+    assert run.returncode == 0, run.stdout + run.stderr
+    worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
+    assert worst <= 1e-10 and "30 steps x 8 nodes" in run.stdout
+    sources = {p.name: p.read_text() for p in out.glob("cfd_*.[ch]")}
+    assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
+    lines = (out / "replay.txt").read_text().splitlines()
+    cells = lines[9].split()
+    n_x = 3
+    at = len(cells) - 2 * (n_x * n_x + n_x) - 1  # the first component of the expected prediction
+    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
+    lines[9] = " ".join(cells)
+    (out / "replay.txt").write_text("\n".join(lines) + "\n")
+    bad = make_test(out)
+    assert bad.returncode != 0 and "1 above" in bad.stdout
+
+
+def test_a_users_paper_design_in_c_replays_a_recorded_log(cart, tmp_path):
+    """The user's cart designed with the paper rule (its own σ, β, U, V: the defaults break (29) at once), exported
+    for two nodes and replayed on a CSV log: make test agrees (the run goes through (28)/(29) failures into the
+    fallback, bearings wrapped); the replay's expected estimates are the node network's, and cfdesign filter with the
+    design directory (recorded without a mode) gives them too."""
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", str(cart), "--sigma", "0.1", "--beta", "0.05", "--u-scale", "0.001", "--v-scale",
+                 "0.001", "--out", str(des)]) in (0, 1)
+    log = tmp_path / "log.csv"
+    sim = studies.simulate(str(cart), seed=9, run=2, out=log)
+    studies.export(des, out=out, nodes=[1, 6], data=log)
+    run = make_test(out)
+    assert run.returncode == 0 and "18 steps x 2 nodes" in run.stdout, run.stdout + run.stderr
+    x, _ = studies.node_filter(str(cart), schedule=des).run(sim.z, sim.attacks, sim.inputs)
+    assert np.isfinite(x).all()
+    last = (out / "replay.txt").read_text().splitlines()[-1].split()
+    assert np.array_equal([float(v) for v in last[-16 - 4:-16]], x[-1, 6])
+    assert np.array_equal(studies.filter(str(cart), log, schedule=des).x_hat, x)
+
+
 def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     des = tmp_path / "mse"
     assert main(["design", str(cart), "--mode", "mse", "--steps", "4", "--out", str(des)]) in (0, 1)
@@ -100,6 +162,16 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     assert main(["export", str(des), "--out", str(tmp_path / "c")]) == 2
     with pytest.raises(InputError, match="target must be 'c'"):
         studies.export(des, target="python", out=tmp_path / "c")
+    tuned = tmp_path / "tuned"
+    assert main(["design", str(cart), "--mode", "tuned", "--steps", "4", "--out", str(tuned)]) in (0, 1)
+    with pytest.raises(InputError, match="gain rule 'tuned' cannot be exported to C: its node solves a convex "
+                                         "problem online"):
+        studies.export(tuned, out=tmp_path / "c")
+    hess = tmp_path / "hessian"
+    assert main(["design", str(cart), "--linearization", "hessian", "--steps", "4", "--sigma", "0.1", "--beta",
+                 "0.005", "--out", str(hess)]) in (0, 1)
+    with pytest.raises(InputError, match="linearization must be 'fixed' to export a paper design"):
+        studies.export(hess, out=tmp_path / "c")
     relay = tmp_path / "relay"
     assert main(["design", str(cart), "--mode", "relay", "--steps", "4", "--out", str(relay)]) in (0, 1)
     with pytest.raises(InputError, match=r"nodes must be an integer in 0..6, got 9"):
