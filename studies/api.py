@@ -657,6 +657,9 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     return make_node(sc.model, sc.network, design, node)
 
 
+_REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its rounding stays within 1e-10
+
+
 @one_blas_thread()
 def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = None, data=None,
            scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> list[Path]:
@@ -764,6 +767,13 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         if any(nd.diverged for nd in net.nodes):
             warnings.warn(f"the paper filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
                           "steps before", RuntimeWarning, stacklevel=2)
+            break
+        cond = max(float(np.linalg.cond(P)) for i in chosen for P in (sent[i].P, net.nodes[i].P))
+        if not cond <= _REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
+            warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
+                          f"(condition number {cond:.3g} > {_REPLAY_COND:g}): replay.txt holds the {k} steps before "
+                          "(beyond, the rounding of any two correct implementations differs by more than make test's "
+                          "1e-10)", RuntimeWarning, stacklevel=2)
             break
         steps.append((u[k], [(z[k, offsets[i]:offsets[i + 1]], given[i][0], given[i][1], sent[i], net.nodes[i].x,
                               net.nodes[i].P) for i in chosen]))

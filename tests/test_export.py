@@ -154,6 +154,30 @@ def test_a_users_paper_design_in_c_replays_a_recorded_log(cart, tmp_path):
     assert np.array_equal(studies.filter(str(cart), log, schedule=des).x_hat, x)
 
 
+def test_a_diverging_paper_design_replays_the_steps_before_its_covariance_is_ill_conditioned(tmp_path, capsys,
+                                                                                            monkeypatch):
+    """The README's ring with the paper rule's defaults leaves (28) at step 4 and its fallback's bound explodes
+    (condition numbers 3e6 at step 4, 1e15 by step 7, where it diverges): export says so and replays the steps
+    before, which make test passes; replaying one step more is what the 1e-10 check cannot pass."""
+    import pathlib
+
+    model = tmp_path / "ring.py"
+    model.write_text((pathlib.Path(__file__).parents[1] / "examples" / "ring_model.py").read_text())
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", str(model), "--seed", "1", "--out", str(des)]) == 1
+    assert main(["export", str(des), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "ill-conditioned at step 4 of the replayed run" in said and "replay.txt holds the 3 steps before" in said
+    run = make_test(out)
+    assert run.returncode == 0 and "3 steps x 4 nodes" in run.stdout, run.stdout + run.stderr
+    import studies.api
+
+    monkeypatch.setattr(studies.api, "_REPLAY_COND", np.inf)  # every step before the divergence
+    assert main(["export", str(des), "--out", str(out)]) == 0
+    run = make_test(out)
+    assert run.returncode != 0 and "6 steps x 4 nodes" in run.stdout and "0 above" not in run.stdout
+
+
 def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     des = tmp_path / "mse"
     assert main(["design", str(cart), "--mode", "mse", "--steps", "4", "--out", str(des)]) in (0, 1)
