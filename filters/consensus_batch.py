@@ -77,7 +77,7 @@ _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothin
 __all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
            "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
-           "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items"]
+           "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
 
 # --------------------------------------------------------------------------- channels and their attacks
@@ -134,7 +134,7 @@ class EdgeAttacks(NamedTuple):
         return AttackPattern(dos, fdi, xi)
 
 
-class _Exchange:
+class Exchange:
     """Sums over each node's incoming channels, for stacks ``(runs, E, ...)`` of per-channel values."""
 
     def __init__(self, network: SensorNetwork):
@@ -149,6 +149,14 @@ class _Exchange:
         if self.starts.size:
             out[:, self.has] = np.add.reduceat(values, self.starts, axis=1)
         return out
+
+    @staticmethod
+    def node_sum(values: np.ndarray) -> np.ndarray:
+        """One node's sum over its incoming channels ``(a, d, ...)`` -> ``(a, ...)``, added as :meth:`sum` adds
+        every node's (a node filter's numbers are the batch's bit for bit)."""
+        if values.shape[1] == 0:
+            return np.zeros(values.shape[:1] + values.shape[2:])
+        return np.add.reduceat(values, [0], axis=1)[:, 0]
 
 
 def edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int) -> EdgeAttacks | None:
@@ -645,7 +653,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
-    ex = _Exchange(network)
+    ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     filt = None if gains is not None else rule_filter(design.mode)
     if filt is not None and not isinstance(filt, NodeRule):
@@ -775,7 +783,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                                 None, counts)
 
 
-def _channel_slots(ex: _Exchange, d_max: int) -> np.ndarray:
+def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:
     """``(N, d_max)``: node i's incoming channels in sender order, -1 beyond."""
     deg = np.bincount(ex.receiver, minlength=ex.n)
     first = np.cumsum(deg) - deg

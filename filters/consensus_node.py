@@ -37,7 +37,7 @@ from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
 from .consensus import channel_packets, gate_channels
-from .consensus_batch import (NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
+from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
                               rule_filter, tuned_items, update_nodes)
 from .node import register_node_filter, run_network
 
@@ -132,23 +132,18 @@ class ConsensusNode:
         for e, j in enumerate(senders):
             if j in received:
                 packets[0, e] = np.asarray(received[j], dtype=float).reshape(nx)
-        Pn = np.stack([np.asarray(bounds[j].P, dtype=float) for j in senders]).reshape(1, d, nx, nx)
+        Pn = np.zeros((1, d, nx, nx))
+        for e, j in enumerate(senders):
+            Pn[0, e] = np.asarray(bounds[j].P, dtype=float).reshape(nx, nx)
         nb_ok = all(bool(bounds[j].ok) for j in senders)
         keep = arrived
         if design.gate and d:
             own = np.zeros(d, dtype=int)
             keep, _ = gate_channels(np.concatenate([xp[0], packets[0]])[None], own, np.arange(1, d + 1), arrived,
                                     None, None, 2.0 * (Pp[:, [0] * d] + Pn), design.gate)
-        first = [0] if d else []
-        s = np.zeros((1, 1))
-        innovation = np.zeros((1, 1, nx))
-        neigh = np.zeros((1, 1, nx, nx))
-        if d:  # the sums over the incoming channels, as the batch adds them (filters.consensus_batch._Exchange)
-            s[:, 0] = np.add.reduceat(keep.astype(float), first, axis=1)
-            innovation[:, 0] = np.add.reduceat(keep[..., None] * channel_packets(packets, None, None), first, axis=1)
-            neigh[:, 0] = np.add.reduceat(self._w_phi[None, :, None, None] * Pn, first, axis=1)
-        innovation = innovation - s[..., None] * xp
-        neigh = neigh + self._w_xi * np.eye(nx)
+        s = Exchange.node_sum(keep.astype(float))[:, None]  # the sums over its incoming channels, as the batch's
+        innovation = Exchange.node_sum(keep[..., None] * packets)[:, None] - s[..., None] * xp
+        neigh = Exchange.node_sum(self._w_phi[None, :, None, None] * Pn)[:, None] + self._w_xi * np.eye(nx)
 
         def extra(grp):
             if not self._rule.weighted:
