@@ -88,11 +88,12 @@ from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
 from .consensus import DIVERGED, check_run_inputs
-from .consensus_batch import batch_inputs, wrap_residuals
+from .consensus_batch import Exchange, batch_inputs, wrap_residuals
 from .result import FilterResult
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
-           "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES"]
+           "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
+           "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork"]
 
 OMEGA_CHOICES = ("size", "consistent")
 FALSIFY_CHOICES = ("packet", "estimate")
@@ -200,24 +201,40 @@ def _hcmci_rounds(iterations, omega: str) -> int:
     return L
 
 
-def _kcf_update(eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
-    """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
-    of all nodes; ``recv`` (N, N) the packets that arrived, ``fdi``, ``xi`` the falsified ones and their
-    signal (None: no attack).  Stacks with leading axes (e.g. runs) are updated item by item."""
-    J = (recv | np.eye(recv.shape[-1], dtype=bool)).astype(float)  # J_i: the node and the neighbours heard
-    S = np.einsum("...ij,...jab->...iab", J, U)
+def kcf_packets(u, U, x, fdi, xi, packet: bool = True):
+    """What KCF's channels carry: the senders' measurement information ``u`` (..., n) (with ``U`` (..., n, n)) and
+    predictions ``x`` (..., n), where ``fdi`` (...) falsified them (``xi`` (..., n); None: no attack) ``x + ξ`` and,
+    with ``packet``, ``u + U ξ`` (the measurement read as ``h(x + ξ)``, linearised).  Every KCF forms a received
+    packet this way first, then sums, so that a node handed the packet that arrived computes the batch's numbers."""
+    if fdi is None or xi is None:
+        return u, x
+    f = np.asarray(fdi, dtype=bool)[..., None]
+    u_t = np.where(f, u + np.einsum("...ab,...b->...a", U, xi), u) if packet else u
+    return u_t, np.where(f, x + xi, x)
+
+
+def _kcf_combine(eps: float, xp, Pp, S, y, diff):
+    """KCF's update from the sums over ``J_i``: ``S`` of ``U_j``, ``y`` of ``u_j`` and ``diff`` of ``x̃_j - x̄_i``."""
     M = _spd_inverse(_spd_inverse(Pp) + S)
     gamma = eps / (1.0 + np.linalg.norm(M, axis=(-2, -1)))
-    # Σ_j (x̃_j - x̄_i) over the received packets, x̃_j = x̄_j + ξ_ij where falsified
-    diff = recv.astype(float) @ xp - recv.sum(axis=-1)[..., None] * xp
-    y = J @ u
-    if fdi is not None:
-        fdi = (recv & fdi).astype(float)
-        diff = diff + np.einsum("...ij,...ija->...ia", fdi, xi)
-        if packet:  # u_j + U_j ξ_ij: z_j read as h_j(x + ξ), linearised
-            y = y + np.einsum("...ij,...jab,...ijb->...ia", fdi, U, xi)
     innov = y - np.einsum("...iab,...ib->...ia", S, xp) + gamma[..., None] * diff
-    return xp + np.einsum("...iab,...ib->...ia", M, innov), M, None
+    return xp + np.einsum("...iab,...ib->...ia", M, innov), M
+
+
+def _kcf_update(ex: Exchange, eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
+    """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
+    of all nodes (stacks over runs); ``recv`` (runs, N, N) the packets that arrived, ``fdi``, ``xi`` the falsified
+    ones and their signal (None: no attack).  The packets are formed per channel (:func:`kcf_packets`) and summed
+    over each node's incoming channels (``ex``, :class:`filters.consensus_batch.Exchange`)."""
+    rcv, snd = ex.receiver, ex.sender
+    r = recv[..., rcv, snd].astype(float)  # (runs, E)
+    u_t, x_t = kcf_packets(u[:, snd], U[:, snd], xp[:, snd], None if fdi is None else fdi[..., rcv, snd],
+                           None if xi is None else xi[..., rcv, snd, :], packet)
+    S = U + ex.sum(r[..., None, None] * U[:, snd])  # J_i: the node and the neighbours heard
+    y = u + ex.sum(r[..., None] * u_t)
+    diff = ex.sum(r[..., None] * x_t) - ex.sum(r)[..., None] * xp
+    x, M = _kcf_combine(eps, xp, Pp, S, y, diff)
+    return x, M, None
 
 
 def _hcmci_update(network: SensorNetwork, L: int, omega: str, packet: bool, xp, Pp, dO, dq, recv, fdi=None,
@@ -358,6 +375,15 @@ def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.where(ok.all(-1), ok.shape[-1], np.argmin(ok, axis=-1))
 
 
+def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
+    """Sensor ``i``'s information ``(U, u)`` = ``(Hᵀ R⁻¹ H, Hᵀ R⁻¹ (z - h(x̄) + H x̄))`` at the predictions
+    ``x_pred`` (a, n_x) for its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped)."""
+    H = model.H(i, x_pred, k + 1)
+    RiH = R_inv @ H
+    res = wrap_residuals(z - model.h(i, x_pred, k + 1), model.sensors[i].angles)
+    return np.swapaxes(H, -1, -2) @ RiH, (np.swapaxes(RiH, -1, -2) @ (res + (H @ x_pred[..., None])[..., 0])[..., None])[..., 0]
+
+
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int
                   ) -> DistributedBatchResult:
     """The loop both filters share, over many runs at once: every step, predict at every node of the runs still
@@ -403,12 +429,8 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
             U, u = np.empty(xg.shape + (nx,)), np.empty(xg.shape)
             zk = inp.z[act[go], k]
             for i in range(n):
-                H = model.H(i, xg[:, i], k + 1)
-                RiH = inp.R_inv[i] @ H
-                U[:, i] = np.swapaxes(H, -1, -2) @ RiH
-                res = wrap_residuals(zk[:, offsets[i]:offsets[i + 1]] - model.h(i, xg[:, i], k + 1),
-                                     model.sensors[i].angles)
-                u[:, i] = (np.swapaxes(RiH, -1, -2) @ (res + (H @ xg[:, i, :, None])[..., 0])[..., None])[..., 0]
+                U[:, i], u[:, i] = measurement_information(model, i, xg[:, i], zk[:, offsets[i]:offsets[i + 1]],
+                                                           inp.R_inv[i], k)
             try:
                 x, P, om = update(k, act[go], xg, Pg, U, u, rg)
             except np.linalg.LinAlgError:
@@ -456,9 +478,11 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
     eps = _kcf_epsilon(network, epsilon)
     packet = falsify == "packet"
 
+    ex = Exchange(network)
+
     def update(k, act, xp, Pp, U, u, recv):
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
-        return _kcf_update(eps, packet, xp, Pp, U, u, recv, *at)
+        return _kcf_update(ex, eps, packet, xp, Pp, U, u, recv, *at)
 
     return _filter_batch(model, network, inp, update, 1)._replace(omega=None)
 
@@ -477,3 +501,138 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
         return _hcmci_update(network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
     return _filter_batch(model, network, inp, update, L)
+
+
+# --------------------------------------------------------------------------- KCF's node filter
+class KCFPacket(NamedTuple):
+    """What a KCF node sends each step: its measurement information ``u`` (n_x,), ``U`` (n_x, n_x) and its
+    prediction ``x`` (n_x,)."""
+
+    u: np.ndarray
+    U: np.ndarray
+    x: np.ndarray
+
+
+class KCFNode:
+    """The Kalman consensus filter one node runs (:func:`run_kcf_batch` at node ``node``), in two phases:
+    ``packet = node.predict(z, u)`` (its prediction ``f(x̂)``, ``F P Fᵀ + Q`` and its measurement's information at
+    the prediction: what it sends), then ``node.update(received)`` with ``{neighbour: KCFPacket}`` for the packets
+    that arrived, as they arrived.  Driven over a run through :class:`KCFNetwork`, the batch's numbers bit for bit
+    (the same functions on its incoming channels)."""
+
+    def __init__(self, model: Model, network: SensorNetwork, node: int, *, x0=None, P0=None,
+                 epsilon: float | None = None, falsify: str = "packet"):
+        _check_network(model, network)
+        _check_falsify(falsify)
+        i = self.node = check_int("node", node, 0, network.n_nodes - 1)
+        self.model, self.packet = model, falsify == "packet"
+        self.eps = _kcf_epsilon(network, epsilon)
+        self.senders = np.flatnonzero(network.adjacency[i])
+        self._R_inv = _spd_inverse(model.measurement_cov(i))
+        _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
+        self.x, self.P = x0[0].copy(), P0[0].copy()
+        self.k, self.diverged, self._pred = 0, False, None
+
+    def predict(self, z, u=None) -> KCFPacket:
+        """The prediction phase with the node's measurement ``z``: the packet it sends."""
+        m, i = self.model, self.node
+        if self._pred is not None:
+            raise InputError(f"node {i} has predicted step {self.k} already: update it first")
+        z = np.asarray(z, dtype=float).reshape(-1)
+        if z.shape != (m.sensor_dims[i],):
+            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
+        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        xk = self.x[None, None]
+        xp, F = m.f_expected(xk, self.k, u), m.F_expected(xk, self.k, u)
+        Pp = F @ self.P[None, None] @ np.swapaxes(F, -1, -2) + m.process_cov
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
+        self._pred = (xp, Pp, U[:, None], v[:, None])
+        return KCFPacket(v[0], U[0], xp[0, 0])
+
+    def update(self, received: dict | None = None) -> np.ndarray:
+        """The update phase: ``received`` ``{neighbour: KCFPacket}`` as they arrived.  Returns the estimate (also
+        ``self.x``; ``self.P`` its covariance ``M``)."""
+        i = self.node
+        if self._pred is None:
+            raise InputError(f"node {i} must predict step {self.k} before its update")
+        received = dict(received or {})
+        extra = sorted(set(received) - set(self.senders.tolist()))
+        if extra:
+            raise InputError(f"received holds node {extra[0]}, which is not an in-neighbour of node {i} "
+                             f"{self.senders.tolist()}")
+        xp, Pp, U, v = self._pred
+        nx, d = self.model.n_x, self.senders.size
+        r = np.array([[j in received for j in self.senders.tolist()]], dtype=float)
+        pU, pu, px = np.zeros((1, d, nx, nx)), np.zeros((1, d, nx)), np.zeros((1, d, nx))
+        for e, j in enumerate(self.senders.tolist()):
+            if j in received:
+                p = received[j]
+                pU[0, e], pu[0, e], px[0, e] = (np.asarray(v, dtype=float).reshape(w.shape[2:])
+                                                for v, w in zip((p.U, p.u, p.x), (pU, pu, px)))
+        # the sums over its incoming channels as the batch adds them (a lost packet an exact zero there)
+        S = U + Exchange.node_sum(r[..., None, None] * pU)[:, None]
+        y = v + Exchange.node_sum(r[..., None] * pu)[:, None]
+        diff = Exchange.node_sum(r[..., None] * px)[:, None] - Exchange.node_sum(r)[:, None, None] * xp
+        try:
+            x, M = _kcf_combine(self.eps, xp, Pp, S, y, diff)
+        except np.linalg.LinAlgError:
+            x, M = np.full_like(xp, np.nan), np.full_like(Pp, np.nan)
+        if _failures(xp, Pp)[0] < 1 or _failures(x, M)[0] < 1:
+            self.diverged = True
+        self.x, self.P = x[0, 0], 0.5 * (M[0, 0] + M[0, 0].T)
+        self.k += 1
+        self._pred = None
+        return self.x
+
+
+class KCFNetwork:
+    """Every node of the network as a :class:`KCFNode`, driven over a run: each step every node predicts with its
+    measurement, the packets cross the channels (DoS drops them; FDI: :func:`kcf_packets`), every node updates
+    with what reached it.  Once a node diverges the run stops (NaN from then on), as the batch stops it."""
+
+    def __init__(self, model: Model, network: SensorNetwork, *, x0=None, P0=None, epsilon: float | None = None,
+                 falsify: str = "packet"):
+        self.model, self.network = model, network
+        self.nodes = [KCFNode(model, network, i, x0=x0, P0=P0, epsilon=epsilon, falsify=falsify)
+                      for i in range(network.n_nodes)]
+        self.stopped = False
+
+    def deliver(self, packets, dos=None, fdi=None, xi=None) -> list[dict]:
+        """What the nodes' ``packets`` deliver to every node over the step's channels (``dos``, ``fdi`` (E,), ``xi``
+        (E, n_x) in :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour: KCFPacket}``."""
+        out, e = [], 0
+        for nd in self.nodes:
+            got = {}
+            for j in nd.senders.tolist():
+                if dos is None or not dos[e]:
+                    p = packets[j]
+                    u_t, x_t = kcf_packets(p.u, p.U, p.x, None if fdi is None else fdi[e],
+                                           None if xi is None else xi[e], nd.packet)
+                    got[j] = KCFPacket(u_t, p.U, x_t)
+                e += 1
+            out.append(got)
+        return out
+
+    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
+        """One step of every node (``z`` (n_z,) every sensor's measurement); returns the estimates (N, n_x)."""
+        if not self.stopped:
+            offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
+            z = np.asarray(z, dtype=float)
+            packets = [nd.predict(z[offsets[i]:offsets[i + 1]], u) for i, nd in enumerate(self.nodes)]
+            for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi)):
+                nd.update(got)
+            if any(nd.diverged for nd in self.nodes):
+                self.stopped = True
+                for nd in self.nodes:
+                    nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
+        else:
+            for nd in self.nodes:
+                nd.k += 1
+        return np.stack([nd.x for nd in self.nodes])
+
+    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Every step of a run (see :func:`filters.node.run_network`)."""
+        from .node import run_network
+
+        return run_network(self, z, attacks, inputs)
