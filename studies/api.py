@@ -612,8 +612,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
 
 
 @one_blas_thread()
-def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, node: int | None = None,
-                network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, filter: str | None = None,
+                node: int | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()):
     """The filter a sensor node runs for a design (:mod:`filters.node`), to drive one step at a time.
@@ -625,28 +625,46 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     schedule : path, optional
         A design directory written by ``design``: its gain rule with its options.
     mode : str, optional
-        A gain rule instead (with the scenario's design defaults), e.g. ``relay`` or ``flood``.
+        A gain rule instead (with the scenario's design defaults), e.g. ``paper``, ``relay`` or ``flood``.
+    filter : str, optional
+        Or a filter of the comparison by its name or short name (:func:`studies.recorded.filter_keys`): ``kcf``
+        (:class:`filters.distributed.KCFNode`), the local EKFs (``local``: every node alone, the paper design
+        reduced to the EKF on a network without links), or a designed consensus filter (as ``mode``).
     node : int, optional
-        The node (0..N-1): its node filter, with ``step(z, received, u)``.  Default: every node's, as a network
-        to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``).
+        The node (0..N-1): its node filter (``step(z, received, u)`` for relay and flood; ``predict``, then
+        ``update`` for the consensus rules and KCF).  Default: every node's, as a network to drive over a run
+        (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``).
     """
-    from filters.node import node_filter as make_node, node_network
+    from filters.node import node_filter as make_node, node_network, node_rules
 
+    from .comparison import FILTER_REGISTRY
     from .consensus_design import consensus_design
-    from .recorded import design_options_of
+    from .recorded import design_options_of, find_filter
 
     check_path("schedule", schedule, optional=True)
     check_type("mode", mode, str, "a gain rule's name (e.g. relay, flood)", optional=True)
     _check_arguments(network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
-    if (schedule is None) == (mode is None):
-        raise InputError("give a design directory (schedule) or a gain rule (mode), one of them")
+    check_type("filter", filter, str, "a filter's name (e.g. kcf, local)", optional=True)
+    if sum(v is not None for v in (schedule, mode, filter)) != 1:
+        raise InputError("give a design directory (schedule), a gain rule (mode) or a filter's name (filter), one of "
+                         "them")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network: a node filter needs one (a model file "
                          "defines NETWORK)")
     if node is not None:
         node = check_int("node", node, 0, sc.network.n_nodes - 1)
+    if filter is not None:
+        entry = find_filter(FILTER_REGISTRY, filter)
+        if entry.node_filters is None:
+            having = [e.name for e in FILTER_REGISTRY if e.node_filters is not None
+                      and not (e.designed and e.mode not in node_rules())]
+            raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
+        design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
+                                                                  sc.model)
+        net = entry.node_filters(sc.model, sc.network, design)
+        return net if node is None else net.nodes[node]
     if schedule is not None:
         _, options, _ = design_options_of(schedule, sc)
     else:

@@ -27,8 +27,9 @@ from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.distributed import run_hcmci_batch, run_kcf_batch
+from filters.distributed import KCFNetwork, run_hcmci_batch, run_kcf_batch
 from filters.ekf import run_ekf_batch
+from filters.node import node_network
 from filters.particle import run_sir
 from filters.result import FilterResult
 from filters.uplink import fdi_covariances, split_received, uplink_loglik
@@ -112,7 +113,8 @@ class FilterEntry(NamedTuple):
     run (:func:`studies.consensus_design.check_first_step`); ``attacked``: False for a filter that uses no
     channel (the same numbers at every setting: run once, at the main one); ``counts_delivered``: the study
     reports the packets it received; ``rounds``: it runs ``iterations`` consensus rounds per step;
-    ``particles``: it needs the study's particles.
+    ``particles``: it needs the study's particles; ``node_filters(model, network, design)``: its node filters,
+    every node of the network to drive a step at a time (:mod:`filters.node`; None: it has none).
     """
 
     name: str
@@ -129,6 +131,7 @@ class FilterEntry(NamedTuple):
     rounds: bool = False
     particles: bool = False
     derive: Callable | None = None
+    node_filters: Callable | None = None
 
     def design_for(self, design: ConsensusDesign, model) -> ConsensusDesign:
         """The design it runs with, from the design of its gain rule ``mode`` (``derive(design, model)``: e.g. the
@@ -230,7 +233,7 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
 
     return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,
-                       start_check=start_check)
+                       start_check=start_check, node_filters=node_network)
 
 
 def local_ekfs(name: str, description: str) -> FilterEntry:
@@ -244,8 +247,12 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
                                   inputs=batch.input_rows(js))
         return res.to_result(alone, "local", cov_kind="covariance")
 
+    def nodes(model, network: SensorNetwork, design: ConsensusDesign):
+        n = network.n_nodes
+        return node_network(model, SensorNetwork(n, np.zeros((n, n), int), require_connected=False), design)
+
     return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode="paper", attacked=False,
-                       derive=lambda design, model: local_ekf_design(design))
+                       derive=lambda design, model: local_ekf_design(design), node_filters=nodes)
 
 
 def _distributed(batched: Callable, **kw) -> Callable:
@@ -263,7 +270,8 @@ def kcf(name: str, description: str) -> FilterEntry:
     """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`) on the attacked channels
     (the realised attacks only: the channels' probabilities are not its to know)."""
     return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch), _links,
-                       counts_delivered=True)
+                       counts_delivered=True,
+                       node_filters=lambda model, network, design: KCFNetwork(model, network))
 
 
 def hcmci(name: str, description: str) -> FilterEntry:

@@ -178,3 +178,56 @@ def test_a_consensus_node_checks_its_phases_and_packets(cart):
     with pytest.raises(InputError, match=r"beta must satisfy \(29\) at the first step: beta < 1/lambda_max"
                                          r"\(Phi_1\|0\) = 0.00612902 at node 1, got 0.1"):  # the batch's words
         node.update([0.3], {0: packet.x}, {j: packet for j in (0, 2, 6)})
+
+
+@pytest.mark.parametrize("target, name", [("indoor-robot", "kcf"), ("indoor-robot", "local"), ("user", "kcf"),
+                                          ("user", "local")])
+def test_baselines_node_filters_by_name_give_the_studys_numbers(target, name, cart, tmp_path):
+    """KCF (two phases: predict with the node's measurement -> its packet, update with the packets that arrived) and
+    the local EKFs (every node alone) by the comparison's short names: over run 1 of the comparison (seed 4), the
+    study's numbers bit for bit (cfdesign filter on the log); one KCF node fed by hand what arrived is that node."""
+    from filters.consensus_batch import EdgeAttacks
+
+    scenario = str(cart) if target == "user" else target
+    sim = studies.simulate(scenario, seed=4, run=1, out=tmp_path / "log.npz")
+    ref = studies.filter(scenario, tmp_path / "log.npz", filter=name)
+    net = studies.node_filter(scenario, filter=name)
+    x, P = net.run(sim.z, sim.attacks, sim.inputs)
+    assert np.isfinite(ref.x_hat).all() and np.array_equal(x, ref.x_hat) and np.array_equal(P, ref.cov)
+    if name != "kcf":
+        assert all(nd.senders.size == 0 for nd in net.nodes)  # alone: nothing to receive
+        return
+    i = 2
+    one, again = studies.node_filter(scenario, filter="kcf", node=i), studies.node_filter(scenario, filter="kcf")
+    att = EdgeAttacks.from_patterns(again.network, [sim.attacks])
+    offsets = np.concatenate([[0], np.cumsum(again.model.sensor_dims)])
+    for k in range(sim.z.shape[0]):
+        sent = [nd.predict(sim.z[k, offsets[j]:offsets[j + 1]], sim.inputs[k]) for j, nd in enumerate(again.nodes)]
+        mine = one.predict(sim.z[k, offsets[i]:offsets[i + 1]], sim.inputs[k])
+        assert all(np.array_equal(a, b) for a, b in zip(mine, sent[i]))
+        got = {}
+        for edge in np.flatnonzero(att.receiver == i):  # by hand: u + U ξ and x + ξ where falsified
+            j, p = int(att.sender[edge]), sent[int(att.sender[edge])]
+            if not att.dos[0, k, edge]:
+                xi = att.xi[0, k, edge]
+                got[j] = (p._replace(u=p.u + p.U @ xi, x=p.x + xi) if att.fdi[0, k, edge] else p)
+        delivered = again.deliver(sent, att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        assert sorted(got) == sorted(delivered[i])
+        assert all(np.allclose(a, b, rtol=1e-12, atol=0) for j in got for a, b in zip(got[j], delivered[i][j]))
+        one.update(delivered[i])
+        for nd, given in zip(again.nodes, delivered):
+            nd.update(given)
+        assert np.array_equal(one.x, x[k + 1, i]) and np.array_equal(one.P, P[k + 1, i])
+
+
+def test_a_filter_without_node_filter_is_refused_by_name(cart):
+    with pytest.raises(InputError, match=r"filter 'HCMCI' has no node filter \(filters with one: .*KCF"):
+        studies.node_filter(str(cart), filter="hcmci")
+    with pytest.raises(InputError, match="give a design directory .schedule., a gain rule .mode. or a filter's name"):
+        studies.node_filter(str(cart), filter="kcf", mode="paper")
+    node = studies.node_filter(str(cart), filter="kcf", node=1)
+    with pytest.raises(InputError, match="node 1 must predict step 0 before its update"):
+        node.update({})
+    node.predict([0.3], [0.0])
+    with pytest.raises(InputError, match=r"received holds node 4, which is not an in-neighbour of node 1 \[0, 2, 6\]"):
+        node.update({4: None})
