@@ -11,7 +11,9 @@ A gain rule's node filter is registered here by the module of its filter (:func:
 ``relay`` and ``flood`` (:class:`filters.relay.RelayNode`, :class:`filters.relay.RelayNetwork`: one ``step(z,
 received, u)`` with the relayed measurements) and ``paper`` and ``tuned`` (:class:`filters.consensus_node.ConsensusNode`,
 :class:`filters.consensus_node.ConsensusNetwork`: two phases, ``predict(u)`` gives the packet the node sends,
-``update(z, received, bounds)`` takes what arrived).  Asking for the node filter of another rule raises
+``update(z, received, bounds)`` takes what arrived) and ``scheduled`` (:class:`filters.scheduled.ScheduledNode`,
+:class:`filters.scheduled.ScheduledNetwork`: ``predict(z, u)``, ``update(received)``, then ``round(received)`` for its
+exchange rounds 2..L).  Asking for the node filter of another rule (``mse``: an oracle) raises
 :class:`designer.validation.InputError` saying why.
 """
 from __future__ import annotations
@@ -28,7 +30,7 @@ from designer.validation import InputError, check_int
 __all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network"]
 
 _NODE_FILTERS: dict[str, tuple[type, type]] = {}
-_MODULES = ("filters.relay", "filters.consensus_node")  # the modules that register the built-in rules' node filters (late: they import this)
+_MODULES = ("filters.relay", "filters.consensus_node", "filters.scheduled")  # the modules that register the built-in rules' node filters (late: they import this)
 
 
 def register_node_filter(rule: str, node: type, network: type) -> None:

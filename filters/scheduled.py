@@ -19,11 +19,15 @@ were the state displaced by ξ, as for KCF and HCMCI in :mod:`filters.distribute
 
 The bound each node carries is the design's certificate (``ScheduledTables.Phi``: the same for every run,
 since the design does not depend on the run); ``predicted_mse`` is the trace of each node's own ``P_ii``.
-One run is a batch of one: :func:`run_scheduled_batch` is the only implementation.
+One run is a batch of one: :func:`run_scheduled_batch` is the only implementation.  Its step is three functions of a
+block of nodes (:func:`scheduled_prediction`, :func:`scheduled_update`, :func:`scheduled_round`), each received packet
+formed first (:func:`filters.consensus.channel_packets`) and the slots' terms added slot by slot, so that one node
+alone computes the batch's numbers: :class:`ScheduledNode`, the node filter (``predict``, ``update``, then
+``round`` for rounds 2..L), and :class:`ScheduledNetwork`, every node over a run.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -31,14 +35,17 @@ from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
-from designer.validation import InputError
+from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
+from .node import register_node_filter, run_network
 from .result import diverged_nodes, stop_diverged
+from .consensus import channel_packets
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
                               result_arrays, run_networks, wrap_residuals)
 
-__all__ = ["run_scheduled_batch"]
+__all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
+           "ScheduledNode", "ScheduledNetwork"]
 
 
 
@@ -68,8 +75,6 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
-    Q = model.process_cov
-    R = [model.measurement_cov(i) for i in range(n)]
     M = np.zeros((nx, nx)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
     mu = np.zeros(nx) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
@@ -91,82 +96,44 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     out["predicted_mse"][:, 0] = np.trace(P, axis1=-2, axis2=-1)
     rcv, snd = ch.receiver, ch.sender
     chan, mask = ch.slots  # (N, d): each node's incoming channels in its slots
-    d = chan.shape[1]
-    slot = ch.slot
-    p_slot, q_slot = ch.at_slots(ch.p), ch.at_slots(ch.q)
-    R_pad = pad_measurements([np.zeros((m_i, nx)) for m_i in model.sensor_dims], R, nz)[1]  # (N, nz, nz)
     act = np.arange(runs)
+    nodes = np.arange(n)
     for k in range(steps):
         if not act.size:
             break
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xk, Pk = x[act], P[act]
-        F = model.F_expected(xk, k, uk)
-        xp = model.f_expected(xk, k, uk)
-        Pp = F @ Pk @ np.swapaxes(F, -1, -2) + Q
-        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
-        root = sqrtm_psd(Pp)
         a = act.size
-        choice = tables.choose(k, xp)  # (a, N): each node's tables, from its own prediction (None: no bank)
-        Gam_f, Sig_f = _factors(tables.candidates(k), choice, ch, a, n)
+        xp, Pp, choice = scheduled_prediction(model, tables, k, x[act], P[act], uk)
         if attacks is None:
             arrived, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
         else:
             arrived, fdi, xi = ~attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
         out["gate_counts"][act, k, 0] = arrived.sum(-1)
         out["gate_counts"][act, k, 3] = out["gate_counts"][act, k, 4] = (arrived & fdi).sum(-1)
-        diff = xp[:, snd] - xp[:, rcv]  # (a, E, nx): x̂⁻_j - x̂⁻_i on every channel
-        if xi is not None:
-            diff = diff + np.where(fdi[..., None], xi, 0.0)
-        diff = np.where(arrived[..., None], diff, 0.0)
-        zk = z[act, k]
-        # every node's own measurement, padded to nz components (a padded component gets a zero gain)
-        H_own, res_own = np.zeros((a, n, nz, nx)), np.zeros((a, n, nz))
-        for i in range(n):
-            m_i = model.sensor_dims[i]
-            H_own[:, i, :m_i] = model.H(i, xp[:, i], k + 1)
-            res_own[:, i, :m_i] = wrap_residuals(zk[:, cols[i]] - model.h(i, xp[:, i], k + 1),
-                                                 model.sensors[i].angles)
-        G = colour(root, Gam_f)  # (a, N, d, nx, nx)
-        S = colour(root, Sig_f)  # (a, N, d, d, nx, nx)
-        Hn = Rn = res_n = None
-        if tables.exchange:  # the neighbours' measurements, at each receiver's own prediction
-            Hn, res_n = np.zeros((a, n, d, nz, nx)), np.zeros((a, n, d, nz))
-            for j in range(n):  # sensor j at the predictions of the nodes that receive it
-                out_j = np.flatnonzero(snd == j)
-                if not out_j.size:
-                    continue
-                m_j = model.sensor_dims[j]
-                at = xp[:, rcv[out_j]]  # (a, r, nx)
-                Hn[:, rcv[out_j], slot[out_j], :m_j] = model.H(j, at, k + 1)
-                r_j = zk[:, None, cols[j]] - model.h(j, at, k + 1)
-                if xi is not None:  # a falsified packet's measurement: as if the state were displaced by ξ, with
-                    # H_j at the sender's prediction
-                    shift = np.einsum("lab,leb->lea", model.H(j, xp[:, j], k + 1), xi[:, out_j])
-                    r_j = r_j + np.where(fdi[:, out_j, None], shift, 0.0)
-                r_j = wrap_residuals(r_j, model.sensors[j].angles)
-                res_n[:, rcv[out_j], slot[out_j], :m_j] = np.where(arrived[:, out_j, None], r_j, 0.0)
-            Rn = R_pad[ch.at_slots(snd, 0)]
-        K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, p_slot, q_slot, M, mu, Hn, Rn, tables.robustness)
         got = np.where(mask, arrived[:, chan], False)  # (a, N, d): the slots whose packet arrived
-        diff_slot = np.where(got[..., None], diff[:, chan], 0.0)  # (a, N, d, nx)
-        xn = xp + (K @ res_own[..., None])[..., 0] + np.einsum("lidab,lidb->lia", C, diff_slot)
-        if K_n is not None:
-            xn += np.einsum("lidab,lidb->lia", K_n, res_n)
+        # what every channel carries (a falsified packet: x̂⁻_j + ξ, and z_j + H_j(x̂⁻_j) ξ), laid out by slot
+        sent_x = channel_packets(xp[:, snd], fdi, xi)[:, chan]  # (a, N, d, nx)
+        sent_z = None
+        if tables.exchange:
+            zk = z[act, k]
+            sent_z = np.zeros((a, rcv.size, nz))
+            for j in range(n):
+                out_j = np.flatnonzero(snd == j)
+                if out_j.size:
+                    shift = None if xi is None else np.einsum("lab,leb->lea", model.H(j, xp[:, j], k + 1),
+                                                              xi[:, out_j])
+                    sent_z[:, out_j, :model.sensor_dims[j]] = channel_packets(
+                        np.broadcast_to(zk[:, None, cols[j]], (a, out_j.size, model.sensor_dims[j])),
+                        None if xi is None else fdi[:, out_j], shift)
+            sent_z = sent_z[:, chan]
+        xn, Pn, K, C, kappa = scheduled_update(model, tables, design, k, nodes, xp, Pp, choice, z[act, k], got,
+                                               sent_x, sent_z, M, mu)
         out["K"][act, k] = K
         out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij (first round)
         out["gain_condition"][act, k] = kappa
         for rnd in range(2, tables.rounds + 1):  # rounds 2..L: the senders' current estimates, the same packets
-            Gam_f, Sig_f = _factors(tables.candidates(k, rnd), choice, ch, a, n)
-            root = sqrtm_psd(Pn)
-            G, S = colour(root, Gam_f), colour(root, Sig_f)
-            _, _, C, Pn, kappa = link_gains(Pn, np.zeros_like(H_own), R_pad, G, S, p_slot, q_slot, M, mu,
-                                            margin=tables.robustness)
-            diff = xn[:, snd] - xn[:, rcv]
-            if xi is not None:
-                diff = diff + np.where(fdi[..., None], xi, 0.0)
-            diff_slot = np.where(got[..., None], diff[:, chan], 0.0)
-            xn = xn + np.einsum("lidab,lidb->lia", C, diff_slot)
+            sent_x = channel_packets(xn[:, snd], fdi, xi)[:, chan]
+            xn, Pn, kappa = scheduled_round(model, tables, rnd, k, nodes, xn, Pn, choice, got, sent_x, M, mu)
             out["gain_condition"][act, k] = np.maximum(out["gain_condition"][act, k], kappa)
         x[act], P[act] = xn, Pn
         out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
@@ -179,18 +146,307 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     return ConsensusBatchResult(**out)
 
 
-def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | None, ch, a: int, N: int):
-    """Each node's whitened factors of its slots, ``(Gamma (a, N, d, n, n), Sigma (a, N, d, d, n, n))``, from the
-    candidates' tables (:meth:`designer.scheduled.ScheduledTables.candidates`) and each node's ``choice`` (a, N)
-    (None: the first candidate's, the step's own, for every node)."""
+def scheduled_prediction(model: Model, tables, k: int, x, P, u):
+    """The prediction of stacked nodes ``(a, n)`` (a batch's runs × nodes, or one node alone: the same numbers):
+    ``x̂⁻ = f(x̂)``, ``P⁻ = F P Fᵀ + Q`` at each node's own estimate, and each node's choice of tables (None without
+    a bank)."""
+    F = model.F_expected(x, k, u)
+    xp = model.f_expected(x, k, u)
+    Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+    Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+    return xp, Pp, tables.choose(k, xp)
+
+
+def scheduled_update(model: Model, tables, design: ConsensusDesign, k: int, nodes, xp, Pp, choice, z, got, sent_x,
+                     sent_z, M, mu):
+    """The first exchange round of the stacked nodes ``nodes`` (their ids; ``xp``, ``Pp`` (a, g, ...) their
+    predictions, ``choice`` their tables): ``z`` (a, n_z) the measurements (each node reads its own), ``got`` (a, g,
+    d) which slots' packets arrived, ``sent_x`` (a, g, d, n_x) the predictions they carried and ``sent_z`` (a, g, d,
+    mz) the measurements (exchange; None without).  Returns ``(x, P, K, C (a, g, d, n, n), condition)``."""
+    ch = tables.channels
+    a, g, nx = xp.shape
+    dims = model.sensor_dims
+    nz = max(dims)
+    offsets = np.concatenate([[0], np.cumsum(dims)])
+    chan, mask = ch.slots
+    R_all = _padded_R(model, nz)  # (N, nz, nz)
+    R_pad = R_all[nodes]
+    root = sqrtm_psd(Pp)
+    Gam_f, Sig_f = _factors(tables.candidates(k), choice, ch, a, nodes)
+    G = colour(root, Gam_f)  # (a, g, d, nx, nx)
+    S = colour(root, Sig_f)  # (a, g, d, d, nx, nx)
+    H_own, res_own = np.zeros((a, g, nz, nx)), np.zeros((a, g, nz))
+    for t, i in enumerate(nodes.tolist()):  # each node's own measurement, padded to nz (a padded component: no gain)
+        H_own[:, t, :dims[i]] = model.H(i, xp[:, t], k + 1)
+        res_own[:, t, :dims[i]] = wrap_residuals(z[:, offsets[i]:offsets[i + 1]] - model.h(i, xp[:, t], k + 1),
+                                                 model.sensors[i].angles)
+    Hn = Rn = res_n = None
+    d = chan.shape[1]
+    if tables.exchange:  # the neighbours' measurements, at each receiver's own prediction
+        Hn, res_n = np.zeros((a, g, d, nz, nx)), np.zeros((a, g, d, nz))
+        senders = ch.sender[chan[nodes]]  # (g, d)
+        for t, i in enumerate(nodes.tolist()):
+            for e in np.flatnonzero(mask[i]).tolist():
+                j = int(senders[t, e])
+                Hn[:, t, e, :dims[j]] = model.H(j, xp[:, t], k + 1)
+                r_j = wrap_residuals(sent_z[:, t, e, :dims[j]] - model.h(j, xp[:, t], k + 1), model.sensors[j].angles)
+                res_n[:, t, e, :dims[j]] = np.where(got[:, t, e, None], r_j, 0.0)
+        Rn = R_all[ch.at_slots(ch.sender, 0)[nodes]]  # (g, d, nz, nz); an empty slot: sensor 0's (no gain there)
+    K, K_n, C, Pn, kappa = link_gains(Pp, H_own, R_pad, G, S, ch.at_slots(ch.p)[nodes], ch.at_slots(ch.q)[nodes],
+                                      M, mu, Hn, Rn, tables.robustness)
+    diff_slot = np.where(got[..., None], sent_x - xp[:, :, None], 0.0)  # (a, g, d, nx)
+    xn = xp + (K @ res_own[..., None])[..., 0] + _slot_sum(C, diff_slot)
+    if K_n is not None:
+        xn += _slot_sum(K_n, res_n)
+    return xn, Pn, K, C, kappa
+
+
+def _slot_sum(gains: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``Σ_slots gain @ value`` over the slots (axis -3 of ``gains`` (a, g, d, n, m), -2 of ``values`` (a, g, d, m)),
+    added slot by slot in order: the same bits for a node alone and in a batch (an einsum's order of additions
+    depends on the shapes)."""
+    terms = (gains @ values[..., None])[..., 0]
+    out = np.zeros(terms.shape[:2] + terms.shape[3:])
+    for e in range(terms.shape[2]):
+        out = out + terms[:, :, e]
+    return out
+
+
+def scheduled_round(model: Model, tables, rnd: int, k: int, nodes, x, P, choice, got, sent_x, M, mu):
+    """Exchange round ``rnd`` (2..L) of the stacked nodes ``nodes``: the estimates ``x`` and covariances ``P`` after
+    the previous round, ``sent_x`` (a, g, d, n_x) the neighbours' current estimates on the slots ``got`` whose
+    packets arrived.  Returns ``(x, P, condition)``."""
+    ch = tables.channels
+    a, g, nx = x.shape
+    Gam_f, Sig_f = _factors(tables.candidates(k, rnd), choice, ch, a, nodes)
+    root = sqrtm_psd(P)
+    G, S = colour(root, Gam_f), colour(root, Sig_f)
+    nz = max(model.sensor_dims)  # no measurement in these rounds: zero rows (no gain), as in the first's padding
+    _, _, C, Pn, kappa = link_gains(P, np.zeros((a, g, nz, nx)), _padded_R(model, nz)[nodes], G, S,
+                                    ch.at_slots(ch.p)[nodes], ch.at_slots(ch.q)[nodes], M, mu,
+                                    margin=tables.robustness)
+    diff_slot = np.where(got[..., None], sent_x - x[:, :, None], 0.0)
+    return x + _slot_sum(C, diff_slot), Pn, kappa
+
+
+def _padded_R(model: Model, nz: int) -> np.ndarray:
+    """Every sensor's noise covariance padded to ``nz`` components (identity padding): (N, nz, nz)."""
+    nx = model.n_x
+    R = [model.measurement_cov(i) for i in range(model.n_sensors)]
+    return pad_measurements([np.zeros((m, nx)) for m in model.sensor_dims], R, nz)[1]
+
+
+def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | None, ch, a: int, nodes):
+    """The whitened factors of the slots of ``nodes`` (their ids), ``(Gamma (a, g, d, n, n), Sigma (a, g, d, d, n,
+    n))``, from the candidates' tables (:meth:`designer.scheduled.ScheduledTables.candidates`) and each node's
+    ``choice`` (a, g) (None: the first candidate's, the step's own, for every node)."""
     Gam, Sig = candidates
     d = ch.d_max
-    slots = ch.at_slots(np.moveaxis(Gam, 0, 1))  # (N, d, B + 1, n, n)
+    slots = ch.at_slots(np.moveaxis(Gam, 0, 1))[nodes]  # (g, d, B + 1, n, n)
     if choice is None:
         return (np.broadcast_to(slots[:, :, 0], (a,) + slots[:, :, 0].shape),
-                np.broadcast_to(Sig[0, :, :d, :d], (a,) + Sig[0, :, :d, :d].shape))
-    nodes = np.arange(N)[None, :]
-    return slots[nodes, :, choice], Sig[choice, nodes][:, :, :d, :d]
+                np.broadcast_to(Sig[0, nodes, :d, :d], (a,) + Sig[0, nodes, :d, :d].shape))
+    at = np.arange(len(nodes))[None, :]
+    return slots[at, :, choice], Sig[choice, np.asarray(nodes)[None, :]][:, :, :d, :d]
 
 
 register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)
+
+
+# --------------------------------------------------------------------------- the node filter
+class ScheduledPacket(NamedTuple):
+    """What a scheduled node sends in a step's first round: its prediction ``x`` and, when the design exchanges
+    measurements, its measurement ``z`` (else None)."""
+
+    x: np.ndarray
+    z: np.ndarray | None
+
+
+class ScheduledNode:
+    """The filter node ``node`` of a ``scheduled`` design runs, with the design's tables (the whitened covariance
+    factors of its links per step, :class:`designer.scheduled.ScheduledTables`), in phases:
+
+    * ``packet = node.predict(z, u)``: its prediction ``f(x̂)``, ``F P Fᵀ + Q`` (its own covariance) and its choice of
+      tables (a bank's nearest point): the packet it sends (with its measurement when the design exchanges them);
+    * ``node.update(received)``: the first round, ``{neighbour: ScheduledPacket}`` as they arrived (falsified or not);
+    * rounds 2..L (``node.rounds``), ``node.round(received)``: ``{neighbour: x̃_j}`` the neighbours' current estimates
+      on the same channels (the packets of a step arrive or not in every round alike).
+
+    ``x``, ``P`` its estimate and own covariance; ``bound`` the design's certificate Φ at its step (the same at every
+    run: NaN where the design certifies nothing).  Driven over a run through :class:`ScheduledNetwork`, the batch's
+    numbers bit for bit (the same functions on this node's slots)."""
+
+    def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
+                 P0=None):
+        design = validate_design(design, model, network)
+        if design.mode != "scheduled" or design.tables is None:
+            raise InputError(f"ScheduledNode runs mode 'scheduled' with its tables; got mode {design.mode!r}")
+        i = self.node = check_int("node", node, 0, network.n_nodes - 1)
+        self.model, self.design, self.tables = model, design, design.tables
+        ch = self.tables.channels
+        chan, mask = ch.slots
+        self.senders = ch.sender[chan[i][mask[i]]]  # its in-neighbours, slot by slot
+        self.rounds = self.tables.rounds
+        nx = model.n_x
+        self._M = np.zeros((nx, nx)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
+        self._mu = np.zeros(nx) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
+        self._nodes = np.array([i])
+        _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
+        self.x, self.P = x0[0].copy(), P0[0].copy()
+        self.k, self.diverged = 0, False
+        self._phase, self._step = "predict", None
+
+    @property
+    def bound(self) -> np.ndarray:
+        """The design's certificate Φ at this node's step (NaN where it claims none: beyond the horizon, not valid)."""
+        T = self.tables.steps
+        if self.k > T or not self.tables.valid[self.k]:
+            return np.full_like(self.P, np.nan)
+        return self.tables.Phi[self.k, self.node]
+
+    def _expect(self, phase: str) -> None:
+        if self._phase != phase:
+            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not its {phase}")
+
+    def predict(self, z, u=None) -> ScheduledPacket:
+        """The prediction phase with the node's measurement ``z``: the packet it sends."""
+        self._expect("predict")
+        m, i = self.model, self.node
+        z = np.asarray(z, dtype=float).reshape(-1)
+        if z.shape != (m.sensor_dims[i],):
+            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
+        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        xp, Pp, choice = scheduled_prediction(m, self.tables, self.k, self.x[None, None], self.P[None, None], u)
+        self._step = (z, xp, Pp, choice)
+        self._phase = "update"
+        return ScheduledPacket(xp[0, 0], z.copy() if self.tables.exchange else None)
+
+    def _arrived(self, received, what: str):
+        received = dict(received or {})
+        extra = sorted(set(received) - set(self.senders.tolist()))
+        if extra:
+            raise InputError(f"{what} holds node {extra[0]}, which is not an in-neighbour of node {self.node} "
+                             f"{self.senders.tolist()}")
+        d = self.tables.channels.d_max
+        got = np.zeros((1, 1, d), dtype=bool)
+        got[0, 0, :self.senders.size] = [j in received for j in self.senders.tolist()]
+        return received, got
+
+    def update(self, received=None) -> np.ndarray:
+        """The first round: ``received`` ``{neighbour: ScheduledPacket}`` as they arrived.  Returns the estimate."""
+        self._expect("update")
+        m, i, nx = self.model, self.node, self.model.n_x
+        received, got = self._arrived(received, "received")
+        z, xp, Pp, choice = self._step
+        d, nz = got.shape[-1], max(m.sensor_dims)
+        sent_x, sent_z = np.zeros((1, 1, d, nx)), np.zeros((1, 1, d, nz))
+        for e, j in enumerate(self.senders.tolist()):
+            if j in received:
+                sent_x[0, 0, e] = np.asarray(received[j].x, dtype=float).reshape(nx)
+                if self.tables.exchange:
+                    sent_z[0, 0, e, :m.sensor_dims[j]] = np.asarray(received[j].z, dtype=float).reshape(-1)
+        zk = np.zeros((1, m.n_z))
+        offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
+        zk[0, offsets[i]:offsets[i + 1]] = z
+        xn, Pn, *_ = scheduled_update(m, self.tables, self.design, self.k, self._nodes, xp, Pp, choice, zk, got,
+                                      sent_x, sent_z if self.tables.exchange else None, self._M, self._mu)
+        self._step = (choice, got, xn, Pn)
+        self._next(2)
+        return self.x
+
+    def round(self, received=None) -> np.ndarray:
+        """Exchange round r (2..``rounds``): ``{neighbour: x̃_j}`` the neighbours' current estimates that arrived
+        (on the channels whose first-round packet arrived).  Returns the estimate."""
+        if not self._phase.startswith("round"):
+            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not an exchange round")
+        r = int(self._phase.split()[1])
+        received, got = self._arrived(received, "received")
+        choice, first, xn, Pn = self._step
+        if not np.array_equal(got, first):
+            raise InputError(f"round {r} of node {self.node} must receive from the neighbours whose first packet "
+                             f"arrived ({self.senders[first[0, 0, :self.senders.size]].tolist()})")
+        nx = self.model.n_x
+        sent_x = np.zeros((1, 1, got.shape[-1], nx))
+        for e, j in enumerate(self.senders.tolist()):
+            if j in received:
+                sent_x[0, 0, e] = np.asarray(received[j], dtype=float).reshape(nx)
+        xn, Pn, _ = scheduled_round(self.model, self.tables, r, self.k, self._nodes, xn, Pn, choice, got, sent_x,
+                                    self._M, self._mu)
+        self._step = (choice, got, xn, Pn)
+        self._next(r + 1)
+        return self.x
+
+    def _next(self, r: int) -> None:
+        choice, got, xn, Pn = self._step
+        self.x, self.P = xn[0, 0], Pn[0, 0]
+        if r <= self.rounds:
+            self._phase = f"round {r}"
+            return
+        self.diverged = bool(diverged_nodes(xn, Pn)[0, 0])
+        self.k += 1
+        self._phase, self._step = "predict", None
+
+
+class ScheduledNetwork:
+    """Every node of a ``scheduled`` design as a :class:`ScheduledNode`, driven over a run: each step every node
+    predicts, the packets cross the channels (DoS drops them; FDI: ``x̂⁻_j + ξ`` and ``z_j + H_j(x̂⁻_j) ξ``), every
+    node updates, then rounds 2..L exchange the current estimates on the same channels."""
+
+    def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, *, x0=None, P0=None):
+        design = validate_design(design, model, network)
+        self.model, self.network = model, network
+        self.nodes = [ScheduledNode(model, network, design, i, x0=x0, P0=P0) for i in range(network.n_nodes)]
+        self.stopped = False
+
+    def deliver(self, sent, dos=None, fdi=None, xi=None) -> list[dict]:
+        """What ``sent`` (per node: a :class:`ScheduledPacket` of the first round, or its current estimate in a later
+        round) delivers to every node over the step's channels (``dos``, ``fdi`` (E,), ``xi`` (E, n_x) in
+        :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour: what arrived}``."""
+        m, out, e = self.model, [], 0
+        k1 = self.nodes[0].k + 1
+        for nd in self.nodes:
+            got = {}
+            for j in nd.senders.tolist():  # the network's channels in receiver-major, sender order
+                if dos is None or not dos[e]:
+                    f, x = None if fdi is None else fdi[e], None if xi is None else xi[e]
+                    p = sent[j]
+                    if isinstance(p, ScheduledPacket):
+                        z = p.z
+                        if z is not None and x is not None:
+                            shift = np.einsum("lab,leb->lea", m.H(j, p.x[None], k1), x[None, None])[0, 0]
+                            z = channel_packets(z, f, shift)
+                        got[j] = ScheduledPacket(channel_packets(p.x, f, x), z)
+                    else:
+                        got[j] = channel_packets(p, f, x)
+                e += 1
+            out.append(got)
+        return out
+
+    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
+        """One step of every node (``z`` (n_z,) every sensor's measurement): every round; returns the estimates."""
+        if self.stopped:
+            for nd in self.nodes:
+                nd.k += 1
+            return np.stack([nd.x for nd in self.nodes])
+        offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
+        z = np.asarray(z, dtype=float)
+        sent = [nd.predict(z[offsets[i]:offsets[i + 1]], u) for i, nd in enumerate(self.nodes)]
+        for nd, got in zip(self.nodes, self.deliver(sent, dos, fdi, xi)):
+            nd.update(got)
+        for _ in range(2, self.nodes[0].rounds + 1):
+            current = [nd.x for nd in self.nodes]
+            for nd, got in zip(self.nodes, self.deliver(current, dos, fdi, xi)):
+                nd.round(got)
+        if any(nd.diverged for nd in self.nodes):  # the batch stops the run at its first diverging node
+            self.stopped = True
+            for nd in self.nodes:
+                nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
+        return np.stack([nd.x for nd in self.nodes])
+
+    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Every step of a run (see :func:`filters.node.run_network`): the estimates and the nodes' own
+        covariances."""
+        return run_network(self, z, attacks, inputs)
+
+
+register_node_filter("scheduled", ScheduledNode, ScheduledNetwork)

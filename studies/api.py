@@ -736,7 +736,8 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     rule = gain_rule(mode)
     if not rule.relays and mode != "paper":
         why = {"global": "an oracle: its gains need the network's joint state",
-               "scheduled": "its node filter (a table lookup) is not built yet"}.get(
+               "scheduled": "its node filter runs in Python (studies.node_filter); the C of its tables and of the "
+                            "link gains' solve is not generated yet"}.get(
             rule.runtime, "its node solves a convex problem online at every step, which the export does not generate "
                           "(its node filter runs in Python: studies.node_filter)")
         raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, relay, flood)")

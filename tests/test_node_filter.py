@@ -105,9 +105,10 @@ def test_what_a_node_filter_cannot_take_is_refused(cart):
         near.step([0.3], {4: [1.0]}, u=[0.0])
     with pytest.raises(InputError, match="an oracle"):
         studies.node_filter(str(cart), mode="mse", node=0)
-    with pytest.raises(InputError, match=r"gain rule 'scheduled' has no node filter yet \(node filters: relay, "
-                                         r"flood, paper, tuned\)"):
-        studies.node_filter(str(cart), mode="scheduled")
+    from designer.gain_rules import GAIN_RULES
+    from filters.node import node_rules
+
+    assert set(node_rules()) == {r.name for r in GAIN_RULES.values() if r.deployable}  # every rule a node can run
     with pytest.raises(InputError, match="give a design directory"):
         studies.node_filter(str(cart))
     with pytest.raises(InputError, match=r"node must be an integer in 0..6, got 7"):
@@ -231,3 +232,65 @@ def test_a_filter_without_node_filter_is_refused_by_name(cart):
     node.predict([0.3], [0.0])
     with pytest.raises(InputError, match=r"received holds node 4, which is not an in-neighbour of node 1 \[0, 2, 6\]"):
         node.update({4: None})
+
+
+@pytest.mark.parametrize("target, options", [("indoor-robot", {}), ("indoor-robot", {"rounds": 3,
+                                                                                   "exchange": "predictions"}),
+                                             ("user", {"rounds": 2, "bank": 2})])
+def test_scheduled_node_filters_driven_over_a_run_give_the_studys_numbers(target, options, cart):
+    """The scheduled design's nodes (its tables; the neighbours' measurements exchanged or not, 1-3 exchange rounds,
+    a bank of operating points): every node predicting, the packets crossing the channels (DoS; FDI on estimates
+    and, with exchange, on measurements through H_j at the sender's prediction), first round and rounds 2..L: the
+    batched filter's estimates and own covariances bit for bit; one node fed by hand what arrived is that node."""
+    from designer.design import DesignOptions
+    from filters.consensus_batch import EdgeAttacks, run_consensus_batch
+    from filters.node import node_filter, node_network
+    from studies.consensus_design import consensus_design
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario(str(cart) if target == "user" else target)
+    sim = studies.simulate(sc, seed=4, run=1)
+    design = consensus_design(sc, DesignOptions(mode="scheduled", **options))
+    ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs, attacks=[sim.attacks])
+    net = node_network(sc.model, sc.network, design)
+    x, P = net.run(sim.z, sim.attacks, sim.inputs)
+    assert np.isfinite(ref.x_post).all() and np.array_equal(x, ref.x_post[0])
+    assert np.array_equal(np.trace(P, axis1=-2, axis2=-1), ref.predicted_mse[0])
+    i, m = 4, sc.model
+    one, again = node_filter(m, sc.network, design, i), node_network(m, sc.network, design)
+    assert one.rounds == options.get("rounds", 1)
+    att = EdgeAttacks.from_patterns(sc.network, [sim.attacks])
+    offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
+    for k in range(sim.z.shape[0]):
+        e = (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        sent = [nd.predict(sim.z[k, offsets[j]:offsets[j + 1]], sim.inputs[k]) for j, nd in enumerate(again.nodes)]
+        one.predict(sim.z[k, offsets[i]:offsets[i + 1]], sim.inputs[k])
+        delivered = again.deliver(sent, *e)
+        for edge in np.flatnonzero(att.receiver == i):  # by hand: what arrived, as it arrived
+            j = int(att.sender[edge])
+            assert (j in delivered[i]) == (not att.dos[0, k, edge])
+            if j in delivered[i] and att.fdi[0, k, edge]:
+                assert np.allclose(delivered[i][j].x, sent[j].x + att.xi[0, k, edge], rtol=1e-13, atol=0)
+        one.update(delivered[i])
+        for nd, got in zip(again.nodes, delivered):
+            nd.update(got)
+        for _ in range(2, one.rounds + 1):
+            delivered = again.deliver([nd.x for nd in again.nodes], *e)
+            one.round(delivered[i])
+            for nd, got in zip(again.nodes, delivered):
+                nd.round(got)
+        assert np.array_equal(one.x, x[k + 1, i]) and np.array_equal(one.P, P[k + 1, i])
+        assert np.array_equal(one.bound, ref.phi_post[0, k + 1, i], equal_nan=True)
+
+
+def test_a_scheduled_node_keeps_its_phases(cart):
+    node = studies.node_filter(str(cart), mode="scheduled", node=1)
+    with pytest.raises(InputError, match="node 1 is at its predict of step 0, not its update"):
+        node.update({})
+    with pytest.raises(InputError, match="not an exchange round"):
+        node.round({})
+    packet = node.predict([0.3], [0.0])
+    with pytest.raises(InputError, match=r"received holds node 4, which is not an in-neighbour of node 1 \[0, 2, 6\]"):
+        node.update({4: packet})
+    node.update({0: packet})
+    assert node.k == 1 and np.isfinite(node.x).all()
