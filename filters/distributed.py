@@ -381,7 +381,8 @@ def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
     H = model.H(i, x_pred, k + 1)
     RiH = R_inv @ H
     res = wrap_residuals(z - model.h(i, x_pred, k + 1), model.sensors[i].angles)
-    return np.swapaxes(H, -1, -2) @ RiH, (np.swapaxes(RiH, -1, -2) @ (res + (H @ x_pred[..., None])[..., 0])[..., None])[..., 0]
+    u = (np.swapaxes(RiH, -1, -2) @ (res + (H @ x_pred[..., None])[..., 0])[..., None])[..., 0]
+    return np.swapaxes(H, -1, -2) @ RiH, u
 
 
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int

@@ -703,7 +703,8 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
 
     Returns the files written.
     """
-    from designer.export_c import consensus_replay_text, replay_text, write_consensus_c, write_relay_c
+    from designer.export_c import (consensus_replay_text, replay_text, scheduled_replay_text, write_consensus_c,
+                                   write_relay_c, write_scheduled_c)
     from designer.gain_rules import gain_rule
     from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks
@@ -734,13 +735,12 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     mode, options, _ = design_options_of(design_dir, sc)
     design = consensus_design(sc, options)
     rule = gain_rule(mode)
-    if not rule.relays and mode != "paper":
-        why = {"global": "an oracle: its gains need the network's joint state",
-               "scheduled": "its node filter runs in Python (studies.node_filter); the C of its tables and of the "
-                            "link gains' solve is not generated yet"}.get(
-            rule.runtime, "its node solves a convex problem online at every step, which the export does not generate "
-                          "(its node filter runs in Python: studies.node_filter)")
-        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, relay, flood)")
+    if not rule.relays and mode not in ("paper", "scheduled"):
+        why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
+               "its node solves a convex problem online at every step, which the export does not generate (its node "
+               "filter runs in Python: studies.node_filter)")
+        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, scheduled, relay, "
+                         "flood)")
     if mode == "paper" and design.linearization != "fixed":
         raise InputError(f"linearization must be 'fixed' to export a paper design to C (the {design.linearization!r} "
                          "scalings come from the model's Hessians at every step, which the export does not generate)"
@@ -777,6 +777,30 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         return [Path(out) / p.name for p in written]
     steps = []
     offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
+    if mode == "scheduled":
+        for k in range(z.shape[0]):
+            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+            sent = [nd.predict(z[k, offsets[i]:offsets[i + 1]], u[k]) for i, nd in enumerate(net.nodes)]
+            first = net.deliver(sent, *e)  # what reaches each node; each updates with it (ScheduledNetwork.step)
+            for nd, got in zip(net.nodes, first):
+                nd.update(got)
+            later = []
+            for _ in range(2, design.tables.rounds + 1):
+                later.append(net.deliver([nd.x for nd in net.nodes], *e))
+                for nd, got in zip(net.nodes, later[-1]):
+                    nd.round(got)
+            if any(nd.diverged for nd in net.nodes):
+                warnings.warn(f"the scheduled filter diverged at step {k + 1} of the replayed run: replay.txt holds "
+                              f"the {k} steps before", RuntimeWarning, stacklevel=2)
+                break
+            steps.append((u[k], [(z[k, offsets[i]:offsets[i + 1]], first[i], [r[i] for r in later], net.nodes[i].x,
+                                  net.nodes[i].P) for i in chosen]))
+        replay = scheduled_replay_text(chosen, [net.nodes[i].senders.tolist() for i in chosen], sc.model.n_u,
+                                       max(sc.model.sensor_dims), design.tables.exchange, steps)
+        with replaced_outputs(out) as stage:
+            written = write_scheduled_c(sc.model, sc.network, design, stage, nodes=chosen, replay=replay,
+                                        verdict=verdict)
+        return [Path(out) / p.name for p in written]
     for k in range(z.shape[0]):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         sent = [nd.predict(u[k]) for nd in net.nodes]

@@ -178,6 +178,57 @@ def test_a_diverging_paper_design_replays_the_steps_before_its_covariance_is_ill
     assert run.returncode != 0 and "6 steps x 4 nodes" in run.stdout and "0 above" not in run.stdout
 
 
+@pytest.mark.parametrize("target, options", [("indoor-robot", []),
+                                             ("indoor-robot", ["--rounds", "3", "--exchange", "predictions"]),
+                                             ("user", ["--rounds", "2", "--bank", "2"])])
+def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options, cart, tmp_path):
+    """design --mode scheduled (the neighbours' measurements exchanged or not, 1-3 exchange rounds, a bank of
+    operating points whose tables the run does pick, a falsification with a mean), export, make test: every node's
+    estimate and own covariance after every step within 1e-10 of the Python scheduled node's (the tables looked up,
+    the link gains solved online in C), on the design's run or a user's CSV log; a replay moved by 1e-7 fails."""
+    from filters.consensus_batch import run_consensus_batch
+    from studies.consensus_design import consensus_design
+    from studies.recorded import design_options_of
+    from studies.scenarios import load_scenario
+
+    scenario = target
+    if target == "user":  # the user's cart with a constant falsification (a nonzero mean: its terms in the gains)
+        scenario = str(tmp_path / "cart_bias.py")
+        biased = USER_MODEL.replace("components=(0, 1))", "components=(0, 1), law='constant')")
+        assert biased != USER_MODEL
+        (tmp_path / "cart_bias.py").write_text(biased)
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", scenario, "--mode", "scheduled", "--out", str(des)] + options) in (0, 1)
+    data = None
+    if target == "user":
+        data = tmp_path / "log.csv"
+        studies.simulate(scenario, seed=9, run=2, out=data)
+    files = studies.export(des, out=out, data=data)
+    header = (out / "cfd_node.h").read_text()
+    assert "gain rule scheduled" in header and {p.name for p in files} >= {"cfd_node.c", "replay.txt"}
+    run = make_test(out)
+    assert run.returncode == 0, run.stdout + run.stderr
+    worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
+    assert worst <= 1e-10
+    if "--bank" in options:  # the run picks bank tables (the test would not cover them otherwise)
+        sc = load_scenario(scenario)
+        design = consensus_design(sc, design_options_of(des, sc)[1])
+        sim = studies.simulate(sc, seed=int(json.loads((des / "schedule.json").read_text())["seed"]))
+        ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs,
+                                  attacks=[sim.attacks])
+        picks = [design.tables.choose(k, ref.x_pred[0, k]) for k in range(ref.x_pred.shape[1])]
+        assert np.concatenate(picks).max() > 0
+    lines = (out / "replay.txt").read_text().splitlines()
+    cells = lines[7].split()
+    n_x = 3 if target == "indoor-robot" else 4
+    at = len(cells) - n_x * n_x - n_x  # the first component of the expected estimate
+    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
+    lines[7] = " ".join(cells)
+    (out / "replay.txt").write_text("\n".join(lines) + "\n")
+    bad = make_test(out)
+    assert bad.returncode != 0 and "1 above" in bad.stdout
+
+
 def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     des = tmp_path / "mse"
     assert main(["design", str(cart), "--mode", "mse", "--steps", "4", "--out", str(des)]) in (0, 1)
@@ -189,7 +240,7 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     tuned = tmp_path / "tuned"
     assert main(["design", str(cart), "--mode", "tuned", "--steps", "4", "--out", str(tuned)]) in (0, 1)
     with pytest.raises(InputError, match="gain rule 'tuned' cannot be exported to C: its node solves a convex "
-                                         "problem online"):
+                                         "problem online.*exported: paper, scheduled, relay, flood"):
         studies.export(tuned, out=tmp_path / "c")
     hess = tmp_path / "hessian"
     assert main(["design", str(cart), "--linearization", "hessian", "--steps", "4", "--sigma", "0.1", "--beta",
