@@ -1655,18 +1655,9 @@ static int link_gains(const double *P, const double *H, const double *R, const d
             }}
             Pn_[i * n + j] = P[i * n + j] - ze - ez;
         }}
-    for (i = 0; i < n; ++i)
-        for (c = 0; c < w; ++c) {{
-            double t = 0.0;
-            for (l = 0; l < w; ++l) t += Z_[i * w + l] * yy_[l * w + c];
-            A_w[i * w + c] = t;
-        }}
-    for (i = 0; i < n; ++i)
-        for (j = 0; j < n; ++j) {{
-            double t = 0.0;
-            for (c = 0; c < w; ++c) t += A_w[i * w + c] * Z_[j * w + c];
-            Pn_[i * n + j] += t;
-        }}
+    mul(Z_, yy_, A_w, n, w, w);
+    mul_t(A_w, Z_, T1_, n, w, n);
+    for (i = 0; i < NN; ++i) Pn_[i] += T1_[i];
     sym(Pn_, n);
     return 0;
 }}

@@ -30,6 +30,18 @@ def make_test(directory) -> subprocess.CompletedProcess:
     return subprocess.run(["./cfd_test", "replay.txt"], cwd=directory, capture_output=True, text=True, timeout=300)
 
 
+def moved_replay_fails(out, line: int, at) -> None:
+    """The check has power: ``replay.txt``'s number ``at`` (an index into line ``line``'s cells) moved by 1e-7
+    (relative) makes ``make test`` fail, counting one number above the tolerance."""
+    lines = (out / "replay.txt").read_text().splitlines()
+    cells = lines[line].split()
+    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
+    lines[line] = " ".join(cells)
+    (out / "replay.txt").write_text("\n".join(lines) + "\n")
+    bad = make_test(out)
+    assert bad.returncode != 0 and "1 above" in bad.stdout
+
+
 @pytest.fixture(scope="module")
 def cart(tmp_path_factory):
     path = tmp_path_factory.mktemp("user") / "cart.py"
@@ -59,16 +71,8 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     libc_libm = {"float.h", "math.h", "string.h", "stdio.h", "stdlib.h"}
     assert includes <= libc_libm | {"cfd_model.h", "cfd_node.h"}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
-    # the check has power: a replay moved by 1e-7 (relative) in one estimate is caught
-    lines = (out / "replay.txt").read_text().splitlines()
-    cells = lines[5].split()
     n_x = 3
-    at = len(cells) - n_x * n_x - n_x  # the first component of the expected estimate
-    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
-    lines[5] = " ".join(cells)
-    (out / "replay.txt").write_text("\n".join(lines) + "\n")
-    bad = make_test(out)
-    assert bad.returncode != 0 and "1 above" in bad.stdout
+    moved_replay_fails(out, 5, -n_x * n_x - n_x)  # the first component of an expected estimate
 
 
 def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path, capsys):
@@ -123,15 +127,8 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     assert worst <= 1e-10 and "30 steps x 8 nodes" in run.stdout
     sources = {p.name: p.read_text() for p in out.glob("cfd_*.[ch]")}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
-    lines = (out / "replay.txt").read_text().splitlines()
-    cells = lines[9].split()
     n_x = 3
-    at = len(cells) - 2 * (n_x * n_x + n_x) - 1  # the first component of the expected prediction
-    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
-    lines[9] = " ".join(cells)
-    (out / "replay.txt").write_text("\n".join(lines) + "\n")
-    bad = make_test(out)
-    assert bad.returncode != 0 and "1 above" in bad.stdout
+    moved_replay_fails(out, 9, -2 * (n_x * n_x + n_x) - 1)  # the first component of an expected prediction
 
 
 def test_a_users_paper_design_in_c_replays_a_recorded_log(cart, tmp_path):
@@ -218,15 +215,8 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
                                   attacks=[sim.attacks])
         picks = [design.tables.choose(k, ref.x_pred[0, k]) for k in range(ref.x_pred.shape[1])]
         assert np.concatenate(picks).max() > 0
-    lines = (out / "replay.txt").read_text().splitlines()
-    cells = lines[7].split()
     n_x = 3 if target == "indoor-robot" else 4
-    at = len(cells) - n_x * n_x - n_x  # the first component of the expected estimate
-    cells[at] = repr(float(cells[at]) * (1 + 1e-7) + 1e-9)
-    lines[7] = " ".join(cells)
-    (out / "replay.txt").write_text("\n".join(lines) + "\n")
-    bad = make_test(out)
-    assert bad.returncode != 0 and "1 above" in bad.stdout
+    moved_replay_fails(out, 7, -n_x * n_x - n_x)  # the first component of an expected estimate
 
 
 def test_what_cannot_be_exported_is_refused(cart, tmp_path):
