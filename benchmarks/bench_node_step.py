@@ -1,25 +1,25 @@
 """One node filter step in C (``cfdesign export --target c``) against the Python node filter, its code size and the
 memory a node needs.
 
-A design of ``--scenario`` in ``--mode`` (an exported gain rule: ``relay``, ``flood`` or ``paper``) is written and
-exported to C in a temporary directory; its ``replay.txt`` (the design's simulated run: every node's measurement and
-what reached it at every step: the relayed measurements, or the neighbours' estimates and bounds) is replayed
-``--repeat`` times:
+A design of ``--scenario`` in each ``--mode`` (an exported gain rule: ``relay``, ``flood``, ``paper`` or
+``scheduled``) is written and exported to C in a temporary directory; its ``replay.txt`` (the design's simulated run:
+every node's measurement and what reached it at every step: the relayed measurements, or the neighbours' packets) is
+replayed ``--repeat`` times:
 
 * **C**: a driver compiled with ``cc -O2`` beside the exported sources calls ``cfd_step`` (paper: ``cfd_predict``
-  then ``cfd_update``) for every node and step, the replay read into memory first (timed: the steps only,
-  ``clock_gettime``), ``--repeat`` replays; the best of three timings;
-* **Python**: the node filters (:class:`filters.relay.RelayNode`, :class:`filters.consensus_node.ConsensusNode`)
-  step every node on the same inputs (what the network's ``deliver`` gives, computed before the timing), in this
+  then ``cfd_update``; scheduled: and ``cfd_round`` for its rounds 2..L) for every node and step, the replay read
+  into memory first (timed: the steps only, ``clock_gettime``), ``--repeat`` replays; the best of three timings;
+* **Python**: the node filters (:class:`filters.relay.RelayNode`, :class:`filters.consensus_node.ConsensusNode`,
+  :class:`filters.scheduled.ScheduledNode`) step every node on the same inputs (what the network's ``deliver`` gives, computed before the timing), in this
   process, BLAS on one thread, one replay; the best of three.
 
 Printed: microseconds per node step in each and their ratio (issue 27 expects >= ``TARGET_RATIO`` = 50), the
-exported code's size (``size``: the text of ``cfd_node.o`` and ``cfd_model.o``), the static memory of the node
-filter (their data and bss: the design's tables and the step's work arrays, for every exported node) and a node's
-state (``sizeof(cfd_node)``).  ``--check`` exits 1 below the target ratio.
+exported code's size (``size``: the text of ``cfd_node.o`` and ``cfd_model.o``, a scheduled design's constant tables
+included), the static memory of the node filter (their data and bss: the design's tables and the step's work arrays,
+for every exported node) and a node's state (``sizeof(cfd_node)``).  ``--check`` exits 1 below the target ratio.
 
 Run: ``python benchmarks/bench_node_step.py [--scenario indoor-robot] [--mode relay ...] [--repeat 200] [--check]``
-(CI: ``--mode relay paper``).
+(CI: ``--mode relay paper scheduled``).
 """
 from __future__ import annotations
 
@@ -151,6 +151,70 @@ int main(int argc, char **argv) {
 """
 
 
+_BENCH_SCHEDULED_C = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include "cfd_node.h"
+
+int main(int argc, char **argv) {
+    FILE *fh = fopen(argv[1], "r");
+    int reps = atoi(argv[2]), steps, count, nu, k, j, b, c, r, rr;
+    static cfd_node nodes[CFD_NODES];
+    cfd_packet *got, mine;
+    double *u, *z, *later, skip;
+    unsigned char *arrived;
+    struct timespec t0, t1;
+    if (!fh || fscanf(fh, "%d %d %d", &steps, &count, &nu) != 3) return 2;
+    u = malloc(sizeof(double) * (size_t)steps * CFD_NODES * (CFD_NU + 1));
+    z = malloc(sizeof(double) * (size_t)steps * CFD_NODES * (CFD_NZ + 1));
+    got = malloc(sizeof(cfd_packet) * (size_t)steps * CFD_NODES * CFD_DEG_MAX);
+    arrived = malloc((size_t)steps * CFD_NODES * CFD_DEG_MAX);
+    later = malloc(sizeof(double) * (size_t)steps * CFD_NODES * CFD_ROUNDS * CFD_DEG_MAX * CFD_NX);
+    for (k = 0; k < steps; ++k)
+        for (j = 0; j < CFD_NODES; ++j) {
+            const int *senders;
+            const int at = k * CFD_NODES + j, node = cfd_exported_node(j);
+            int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node);
+            double v;
+            for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return 2;
+            for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return 2;
+            for (b = 0; b < d; ++b) {
+                if (fscanf(fh, "%lf", &v) != 1) return 2;
+                arrived[at * CFD_DEG_MAX + b] = v != 0.0;
+            }
+            for (b = 0; b < d; ++b)
+                for (c = 0; c < CFD_NX; ++c) if (fscanf(fh, "%lf", &got[at * CFD_DEG_MAX + b].x[c]) != 1) return 2;
+            for (b = 0; b < d && CFD_EXCHANGE; ++b)
+                for (c = 0; c < CFD_NZMAX; ++c) if (fscanf(fh, "%lf", &got[at * CFD_DEG_MAX + b].z[c]) != 1) return 2;
+            for (r = 2; r <= CFD_ROUNDS; ++r)
+                for (c = 0; c < d * CFD_NX; ++c)
+                    if (fscanf(fh, "%lf", &later[((size_t)at * CFD_ROUNDS + r) * CFD_DEG_MAX * CFD_NX + c]) != 1)
+                        return 2;
+            for (c = 0; c < CFD_NX + CFD_NX * CFD_NX; ++c) if (fscanf(fh, "%lf", &skip) != 1) return 2;
+        }
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    for (rr = 0; rr < reps; ++rr) {
+        for (j = 0; j < CFD_NODES; ++j) cfd_init(&nodes[j], cfd_exported_node(j));
+        for (k = 0; k < steps; ++k)
+            for (j = 0; j < CFD_NODES; ++j) {
+                const int at = k * CFD_NODES + j;
+                if (cfd_predict(&nodes[j], z + at * (CFD_NZ + 1), CFD_NU ? u + at * (CFD_NU + 1) : NULL, &mine)
+                        || cfd_update(&nodes[j], arrived + at * CFD_DEG_MAX, got + at * CFD_DEG_MAX))
+                    return 1;
+                for (r = 2; r <= CFD_ROUNDS; ++r)
+                    if (cfd_round(&nodes[j], later + ((size_t)at * CFD_ROUNDS + r) * CFD_DEG_MAX * CFD_NX)) return 1;
+            }
+    }
+    clock_gettime(CLOCK_MONOTONIC, &t1);
+    printf("%.9g %d\n", (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec), steps * CFD_NODES * reps);
+    printf("%d\n", (int)sizeof(cfd_node));
+    return 0;
+}
+"""
+
+
 def _size(objects: list[Path]) -> tuple[int, int]:
     """(text, data + bss) bytes of the object files (``size``; without it, the files' sizes and 0)."""
     tool = shutil.which("size")
@@ -171,7 +235,7 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     studies.design(scenario, mode=mode, out=design)
     studies.export(design, out=c)
     cc = shutil.which("cc") or shutil.which("gcc")
-    (c / "bench.c").write_text(_BENCH_PAPER_C if mode == "paper" else _BENCH_C)
+    (c / "bench.c").write_text({"paper": _BENCH_PAPER_C, "scheduled": _BENCH_SCHEDULED_C}.get(mode, _BENCH_C))
     for src in ("cfd_node.c", "cfd_model.c"):
         subprocess.run([cc, "-std=c99", "-O2", "-c", src], cwd=c, check=True)
     subprocess.run([cc, "-std=c99", "-O2", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,
@@ -202,6 +266,16 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
             given.append([(sim.z[k, offsets[i]:offsets[i + 1]], *g) for i, g in enumerate(net.deliver(sent, *e))])
             for nd, args in zip(net.nodes, given[-1]):
                 nd.update(*args)
+        elif mode == "scheduled":  # per node: its measurement, the first round's packets, each later round's
+            sent = [nd.predict(sim.z[k, offsets[i]:offsets[i + 1]], sim.inputs[k]) for i, nd in enumerate(net.nodes)]
+            rounds = [net.deliver(sent, *e)]
+            for nd, got in zip(net.nodes, rounds[0]):
+                nd.update(got)
+            for _ in range(2, net.nodes[0].rounds + 1):
+                rounds.append(net.deliver([nd.x for nd in net.nodes], *e))
+                for nd, got in zip(net.nodes, rounds[-1]):
+                    nd.round(got)
+            given.append([(sim.z[k, offsets[i]:offsets[i + 1]], [r[i] for r in rounds]) for i in range(len(sent))])
         else:
             given.append(net.deliver(sim.z[k], *e, u=sim.inputs[k]))
             for nd, (own, got) in zip(net.nodes, given[-1]):
@@ -215,6 +289,11 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
                 if mode == "paper":
                     nd.predict(sim.inputs[k])
                     nd.update(*args)
+                elif mode == "scheduled":
+                    nd.predict(args[0], sim.inputs[k])
+                    nd.update(args[1][0])
+                    for got in args[1][1:]:
+                        nd.round(got)
                 else:
                     nd.step(*args, sim.inputs[k])
         py_secs.append(time.perf_counter() - t0)
@@ -227,7 +306,7 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenario", default="indoor-robot")
-    ap.add_argument("--mode", nargs="+", default=["relay"], choices=("relay", "flood", "paper"))
+    ap.add_argument("--mode", nargs="+", default=["relay"], choices=("relay", "flood", "paper", "scheduled"))
     ap.add_argument("--repeat", type=int, default=200, help="replays of the run per C timing")
     ap.add_argument("--check", action="store_true")
     a = ap.parse_args(argv)

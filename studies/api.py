@@ -686,9 +686,10 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Parameters
     ----------
     design_dir : path
-        A directory written by ``design`` for a gain rule whose node filter computes its gains online at the node:
-        ``paper`` (with ``linearization='fixed'``, the two-phase consensus node of
-        :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood`` (:class:`filters.relay.RelayNode`).
+        A directory written by ``design`` for a gain rule a node runs: ``paper`` (with ``linearization='fixed'``,
+        the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood``
+        (:class:`filters.relay.RelayNode`) or ``scheduled`` (:class:`filters.scheduled.ScheduledNode`, its tables
+        exported with it).
     target : {'c'}
     out : path
         The directory of the sources, ``Makefile``, test driver and ``replay.txt``.

@@ -256,8 +256,8 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
               help="the model, when the design's own file has moved [default: the design's]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> None:
-    """Export the node filter of the design in DESIGN_DIR (gain rule paper, relay or flood) as C99 sources with a
-    Makefile and a test driver (make test: the C against the Python node filter)."""
+    """Export the node filter of the design in DESIGN_DIR (gain rule paper, scheduled, relay or flood) as C99 sources
+    with a Makefile and a test driver (make test: the C against the Python node filter)."""
     import warnings
 
     from . import api
