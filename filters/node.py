@@ -30,7 +30,8 @@ from designer.validation import InputError, check_int
 __all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network"]
 
 _NODE_FILTERS: dict[str, tuple[type, type]] = {}
-_MODULES = ("filters.relay", "filters.consensus_node", "filters.scheduled")  # the modules that register the built-in rules' node filters (late: they import this)
+# the modules that register the built-in rules' node filters (imported late: they import this one)
+_MODULES = ("filters.relay", "filters.consensus_node", "filters.scheduled")
 
 
 def register_node_filter(rule: str, node: type, network: type) -> None:

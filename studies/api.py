@@ -625,15 +625,16 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     schedule : path, optional
         A design directory written by ``design``: its gain rule with its options.
     mode : str, optional
-        A gain rule instead (with the scenario's design defaults), e.g. ``paper``, ``relay`` or ``flood``.
+        A gain rule instead (with the scenario's design defaults), e.g. ``paper``, ``scheduled``, ``relay``.
     filter : str, optional
         Or a filter of the comparison by its name or short name (:func:`studies.recorded.filter_keys`): ``kcf``
         (:class:`filters.distributed.KCFNode`), the local EKFs (``local``: every node alone, the paper design
         reduced to the EKF on a network without links), or a designed consensus filter (as ``mode``).
     node : int, optional
         The node (0..N-1): its node filter (``step(z, received, u)`` for relay and flood; ``predict``, then
-        ``update`` for the consensus rules and KCF).  Default: every node's, as a network to drive over a run
-        (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``).
+        ``update`` for paper, tuned and KCF; ``predict``, ``update``, then ``round`` per further exchange round for
+        scheduled).  Default: every node's, as a network to drive over a run (``run(z, attacks, inputs)`` or
+        ``step(z, dos, fdi, xi, u)``; ``deliver`` says what reaches each node).
     """
     from filters.node import node_filter as make_node, node_network, node_rules
 
