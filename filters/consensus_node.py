@@ -35,11 +35,10 @@ from designer.model import Model
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
-from .attacks import AttackPattern
 from .consensus import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
                               rule_filter, tuned_items, update_nodes)
-from .node import register_node_filter, run_network
+from .node import NodeNetwork, register_node_filter
 
 __all__ = ["Packet", "ConsensusNode", "ConsensusNetwork"]
 
@@ -170,7 +169,7 @@ class ConsensusNode:
         return self.x
 
 
-class ConsensusNetwork:
+class ConsensusNetwork(NodeNetwork):
     """Every node of a ``paper`` or ``tuned`` design as a :class:`ConsensusNode`, driven over a run: each step every
     node predicts, the packets cross the channels (the step's DoS drops, FDI adds ``ξ``), every node updates with what
     reached it and every neighbour's bound."""
@@ -179,47 +178,19 @@ class ConsensusNetwork:
         design = validate_design(design, model, network)
         self.model, self.network = model, network
         self.nodes = [ConsensusNode(model, network, design, i, x0=x0, P0=P0) for i in range(network.n_nodes)]
-        self.stopped = False
 
-    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
-        """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
-        (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks`
-        order; None: none).  Returns every node's estimate (N, n_x); NaN once a node has diverged."""
-        m = self.model
-        if self.stopped:
-            for nd in self.nodes:
-                nd.k += 1
-            return np.stack([nd.x for nd in self.nodes])
+    def _exchange(self, z, dos, fdi, xi, u) -> None:
         packets = [nd.predict(u) for nd in self.nodes]
-        offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
-        z = np.asarray(z, dtype=float)
-        for i, (nd, (got, bounds)) in enumerate(zip(self.nodes, self.deliver(packets, dos, fdi, xi))):
-            nd.update(z[offsets[i]:offsets[i + 1]], got, bounds)
-        if any(nd.diverged for nd in self.nodes):  # the batch stops the run at its first diverging node: NaN on
-            self.stopped = True
-            for nd in self.nodes:
-                nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
-        return np.stack([nd.x for nd in self.nodes])
+        for nd, z_i, (got, bounds) in zip(self.nodes, z, self.deliver(packets, dos, fdi, xi)):
+            nd.update(z_i, got, bounds)
 
     def deliver(self, packets, dos=None, fdi=None, xi=None) -> list[tuple[dict, dict]]:
         """What the nodes' ``packets`` (one :class:`Packet` per node, as :meth:`ConsensusNode.predict` returned them)
         deliver to every node over the step's channels: per node ``({neighbour: x̃_j that arrived}, {neighbour: its
         packet})``, the arguments of :meth:`ConsensusNode.update`."""
-        out, e = [], 0
-        for nd in self.nodes:
-            got = {}
-            for j in nd.senders.tolist():
-                if dos is None or not dos[e]:
-                    got[j] = channel_packets(packets[j].x, None if fdi is None else fdi[e],
-                                             None if xi is None else xi[e])
-                e += 1
-            out.append((got, {j: packets[j] for j in nd.senders.tolist()}))
-        return out
+        got = self.carry(packets, dos, fdi, xi, lambda nd, j, p, f, x: channel_packets(p.x, f, x))
+        return [(g, {j: packets[j] for j in nd.senders.tolist()}) for nd, g in zip(self.nodes, got)]
 
-    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
-        """Every step of a run: ``z`` (K, n_z), ``attacks`` its channel attacks, ``inputs`` (K, n_u).  Returns
-        ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
-        return run_network(self, z, attacks, inputs)
 
 
 register_node_filter("paper", ConsensusNode, ConsensusNetwork)

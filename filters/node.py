@@ -7,14 +7,19 @@ what a researcher drives with a testbed's data, and what ``cfdesign export`` tur
 every node of a network over a recorded or simulated run: it simulates the exchange of each step from the run's
 channel attacks and steps every node with what reached it; its numbers are the batched filter's, bit for bit.
 
-A gain rule's node filter is registered here by the module of its filter (:func:`register_node_filter`); today
-``relay`` and ``flood`` (:class:`filters.relay.RelayNode`, :class:`filters.relay.RelayNetwork`: one ``step(z,
-received, u)`` with the relayed measurements) and ``paper`` and ``tuned`` (:class:`filters.consensus_node.ConsensusNode`,
-:class:`filters.consensus_node.ConsensusNetwork`: two phases, ``predict(u)`` gives the packet the node sends,
-``update(z, received, bounds)`` takes what arrived) and ``scheduled`` (:class:`filters.scheduled.ScheduledNode`,
-:class:`filters.scheduled.ScheduledNetwork`: ``predict(z, u)``, ``update(received)``, then ``round(received)`` for its
-exchange rounds 2..L).  Asking for the node filter of another rule (``mse``: an oracle) raises
-:class:`designer.validation.InputError` saying why.
+A gain rule's node filter is registered here by the module of its filter (:func:`register_node_filter`):
+
+* ``relay``, ``flood`` (:class:`filters.relay.RelayNode`, :class:`filters.relay.RelayNetwork`): one ``step(z,
+  received, u)`` with the relayed measurements;
+* ``paper``, ``tuned`` (:class:`filters.consensus_node.ConsensusNode`, ``ConsensusNetwork``): two phases,
+  ``predict(u)`` gives the packet the node sends, ``update(z, received, bounds)`` takes what arrived;
+* ``scheduled`` (:class:`filters.scheduled.ScheduledNode`, ``ScheduledNetwork``): ``predict(z, u)``,
+  ``update(received)``, then ``round(received)`` for its exchange rounds 2..L.
+
+Asking for the node filter of another rule (``mse``: an oracle) raises :class:`designer.validation.InputError` saying
+why.  The baselines KCF and HCMCI have node filters too (:class:`filters.distributed.KCFNode`,
+:class:`filters.distributed.HCMCINode`), by name through :func:`studies.node_filter`.  :class:`NodeNetwork` is what
+the networks that exchange packets share: the step, the delivery over the attacked channels, the stop at a divergence.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ from designer.design import ConsensusDesign
 from designer.gain_rules import gain_rule
 from designer.validation import InputError, check_int
 
-__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network"]
+__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network", "NodeNetwork"]
 
 _NODE_FILTERS: dict[str, tuple[type, type]] = {}
 # the modules that register the built-in rules' node filters (imported late: they import this one)
@@ -91,3 +96,49 @@ def run_network(net, z, attacks=None, inputs=None):
         xs.append(net.step(z[k], *e, u=None if inputs is None else inputs[k]))
         Ps.append(np.stack([nd.P for nd in net.nodes]))
     return np.stack(xs), np.stack(Ps)
+
+
+class NodeNetwork:
+    """Every node's filter of a network driven a step at a time (the consensus, scheduled, KCF and HCMCI networks):
+    a subclass holds ``model``, ``network``, ``nodes`` (each with ``x``, ``P``, ``k``, ``diverged``) and exchanges one
+    step in ``_exchange(z, dos, fdi, xi, u)`` (``z`` each node's own measurement).  When a node diverges the run stops,
+    as the batched filters stop it: NaN from then on."""
+
+    stopped = False
+
+    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
+        """One step of every node: ``z`` (n_z,) every sensor's measurement, ``dos``, ``fdi`` (E,) and ``xi`` (E, n_x)
+        the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order; None:
+        none).  Returns every node's estimate (N, n_x)."""
+        if self.stopped:
+            for nd in self.nodes:
+                nd.k += 1
+        else:
+            offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
+            z = np.asarray(z, dtype=float)
+            self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi, xi, u)
+            if any(nd.diverged for nd in self.nodes):
+                self.stopped = True
+                for nd in self.nodes:
+                    nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
+        return np.stack([nd.x for nd in self.nodes])
+
+    def run(self, z, attacks=None, inputs=None):
+        """Every step of a run (:func:`run_network`): ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))``."""
+        return run_network(self, z, attacks, inputs)
+
+    def carry(self, sent, dos, fdi, xi, falsified) -> list[dict]:
+        """What ``sent`` (one packet per node) delivers over the step's channels, node by node (receiver-major, each
+        node's in-neighbours ``senders`` in order, as :class:`filters.consensus_batch.EdgeAttacks`): ``{sender: the
+        packet as it arrived}``, a packet lost to ``dos`` left out, ``falsified(receiver, sender, packet, fdi, xi)``
+        what channel ``e`` makes of it (``fdi[e]``, ``xi[e]``; None without attacks)."""
+        out, e = [], 0
+        for nd in self.nodes:
+            got = {}
+            for j in nd.senders.tolist():
+                if dos is None or not dos[e]:
+                    got[j] = falsified(nd, j, sent[j], None if fdi is None else fdi[e],
+                                       None if xi is None else xi[e])
+                e += 1
+            out.append(got)
+        return out

@@ -38,7 +38,7 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .node import register_node_filter, run_network
+from .node import NodeNetwork, register_node_filter
 from .result import diverged_nodes, stop_diverged
 from .consensus import channel_packets
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
@@ -387,7 +387,7 @@ class ScheduledNode:
         self._phase, self._step = "predict", None
 
 
-class ScheduledNetwork:
+class ScheduledNetwork(NodeNetwork):
     """Every node of a ``scheduled`` design as a :class:`ScheduledNode`, driven over a run: each step every node
     predicts, the packets cross the channels (DoS drops them; FDI: ``x̂⁻_j + ξ`` and ``z_j + H_j(x̂⁻_j) ξ``), every
     node updates, then rounds 2..L exchange the current estimates on the same channels."""
@@ -396,57 +396,31 @@ class ScheduledNetwork:
         design = validate_design(design, model, network)
         self.model, self.network = model, network
         self.nodes = [ScheduledNode(model, network, design, i, x0=x0, P0=P0) for i in range(network.n_nodes)]
-        self.stopped = False
 
     def deliver(self, sent, dos=None, fdi=None, xi=None) -> list[dict]:
         """What ``sent`` (per node: a :class:`ScheduledPacket` of the first round, or its current estimate in a later
         round) delivers to every node over the step's channels (``dos``, ``fdi`` (E,), ``xi`` (E, n_x) in
         :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour: what arrived}``."""
-        m, out, e = self.model, [], 0
-        k1 = self.nodes[0].k + 1
-        for nd in self.nodes:
-            got = {}
-            for j in nd.senders.tolist():  # the network's channels in receiver-major, sender order
-                if dos is None or not dos[e]:
-                    f, x = None if fdi is None else fdi[e], None if xi is None else xi[e]
-                    p = sent[j]
-                    if isinstance(p, ScheduledPacket):
-                        z = p.z
-                        if z is not None and x is not None:
-                            shift = np.einsum("lab,leb->lea", m.H(j, p.x[None], k1), x[None, None])[0, 0]
-                            z = channel_packets(z, f, shift)
-                        got[j] = ScheduledPacket(channel_packets(p.x, f, x), z)
-                    else:
-                        got[j] = channel_packets(p, f, x)
-                e += 1
-            out.append(got)
-        return out
+        m, k1 = self.model, self.nodes[0].k + 1
 
-    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
-        """One step of every node (``z`` (n_z,) every sensor's measurement): every round; returns the estimates."""
-        if self.stopped:
-            for nd in self.nodes:
-                nd.k += 1
-            return np.stack([nd.x for nd in self.nodes])
-        offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
-        z = np.asarray(z, dtype=float)
-        sent = [nd.predict(z[offsets[i]:offsets[i + 1]], u) for i, nd in enumerate(self.nodes)]
+        def falsified(nd, j, p, f, x):
+            if not isinstance(p, ScheduledPacket):
+                return channel_packets(p, f, x)
+            z = p.z
+            if z is not None and x is not None:  # the measurement as if the state were displaced by ξ
+                shift = np.einsum("lab,leb->lea", m.H(j, p.x[None], k1), x[None, None])[0, 0]
+                z = channel_packets(z, f, shift)
+            return ScheduledPacket(channel_packets(p.x, f, x), z)
+
+        return self.carry(sent, dos, fdi, xi, falsified)
+
+    def _exchange(self, z, dos, fdi, xi, u) -> None:
+        sent = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
         for nd, got in zip(self.nodes, self.deliver(sent, dos, fdi, xi)):
             nd.update(got)
         for _ in range(2, self.nodes[0].rounds + 1):
-            current = [nd.x for nd in self.nodes]
-            for nd, got in zip(self.nodes, self.deliver(current, dos, fdi, xi)):
+            for nd, got in zip(self.nodes, self.deliver([nd.x for nd in self.nodes], dos, fdi, xi)):
                 nd.round(got)
-        if any(nd.diverged for nd in self.nodes):  # the batch stops the run at its first diverging node
-            self.stopped = True
-            for nd in self.nodes:
-                nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
-        return np.stack([nd.x for nd in self.nodes])
-
-    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
-        """Every step of a run (see :func:`filters.node.run_network`): the estimates and the nodes' own
-        covariances."""
-        return run_network(self, z, attacks, inputs)
 
 
 register_node_filter("scheduled", ScheduledNode, ScheduledNetwork)
