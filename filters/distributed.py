@@ -73,7 +73,11 @@ Assumptions where the papers are silent (attacks are not part of either paper):
 **One implementation.**  Each filter is one loop batched over runs (:func:`run_kcf_batch`,
 :func:`run_hcmci_batch`: every step one stack over the runs and nodes, a run that diverges stops alone);
 :func:`run_kcf` and :func:`run_hcmci` are a batch of one run of them (a run alone and the same run in a
-batch are the same numbers).  The node-by-node loop they replaced is the tests' independent reference
+batch are the same numbers).  Every received packet is formed first (:func:`kcf_packets`, :func:`hcmci_packets`)
+and summed over each node's incoming channels (:class:`filters.consensus_batch.Exchange`), so that one node handed
+the packets that arrived computes the batch's numbers bit for bit: the node filters :class:`KCFNode` (``predict``
+with its measurement, then ``update``) and :class:`HCMCINode` (``predict``, then ``round`` per consensus round;
+``omega='size'``), driven over a run by :class:`KCFNetwork`, :class:`HCMCINetwork`.  The node-by-node loop they replaced is the tests' independent reference
 (``tests/distributed_reference.py``).
 """
 from __future__ import annotations
@@ -89,11 +93,13 @@ from designer.validation import InputError, check_finite, check_int
 from .attacks import AttackPattern
 from .consensus import DIVERGED, check_run_inputs
 from .consensus_batch import Exchange, batch_inputs, wrap_residuals
+from .node import NodeNetwork
 from .result import FilterResult
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
-           "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork"]
+           "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
+           "HCMCIPacket", "HCMCINode", "HCMCINetwork"]
 
 OMEGA_CHOICES = ("size", "consistent")
 FALSIFY_CHOICES = ("packet", "estimate")
@@ -237,29 +243,62 @@ def _kcf_update(ex: Exchange, eps: float, packet: bool, xp, Pp, U, u, recv, fdi=
     return x, M, None
 
 
-def _hcmci_update(network: SensorNetwork, L: int, omega: str, packet: bool, xp, Pp, dO, dq, recv, fdi=None,
-                  xi=None):
-    """HCMCI's ``L`` consensus rounds and combination at every node (arguments as :func:`_kcf_update`, with the
-    measurement information ``(δΩ, δq)``); returns the posteriors and ``ω``."""
-    n = network.n_nodes
-    W = metropolis_weights(network, network.adjacency & ~recv)
-    # π_ij ξ_ij on the falsified channels j -> i: node i averages q_j + Ω_j ξ_ij instead of q_j (and, with
-    # falsify='packet', δq_j + δΩ_j ξ_ij instead of δq_j)
-    inject = None if fdi is None else (W * (recv & fdi))[..., None] * xi
+def hcmci_packets(O, q, dO, dq, fdi, xi, packet: bool = True):
+    """What HCMCI's channels carry in a round: the senders' information pairs ``(Ω, q)`` and ``(δΩ, δq)``; where
+    ``fdi`` falsified them (``xi``; None: no attack) ``q + Ω ξ`` and, with ``packet``, ``δq + δΩ ξ`` (the estimate and
+    the measurement read as if the state were displaced by ξ).  The matrices are never falsified."""
+    if fdi is None or xi is None:
+        return q, dq
+    f = np.asarray(fdi, dtype=bool)[..., None]
+    q_t = np.where(f, q + np.einsum("...ab,...b->...a", O, xi), q)
+    return q_t, (np.where(f, dq + np.einsum("...ab,...b->...a", dO, xi), dq) if packet else dq)
+
+
+def hcmci_weights(network: SensorNetwork, receiver, sender, arrived):
+    """The Metropolis weights ``π_ij = 1 / (1 + max(d_i, d_j))`` of the channels ``sender -> receiver`` whose packet
+    ``arrived`` (..., E) (0 where lost: its weight goes to the node itself)."""
+    d = network.degrees
+    return np.where(arrived, 1.0 / (1.0 + np.maximum(d[receiver], d[sender])), 0.0)
+
+
+def _information(Pp, xp):
+    """``Ω = P⁻¹``, ``q = Ω x`` of predictions (stacks)."""
     O = _spd_inverse(Pp)
-    q = np.einsum("...iab,...ib->...ia", O, xp)
+    return O, (O @ xp[..., None])[..., 0]
+
+
+def _hcmci_combine(n: int, O, q, dO, dq):
+    """HCMCI's posterior from the consensus rounds' information (``ω = N``)."""
+    P = _spd_inverse(O + float(n) * dO)
+    return (P @ (q + float(n) * dq)[..., None])[..., 0], P
+
+
+def _hcmci_update(ex: Exchange, network: SensorNetwork, L: int, omega: str, packet: bool, xp, Pp, dO, dq, recv,
+                  fdi=None, xi=None):
+    """HCMCI's ``L`` consensus rounds and combination at every node (arguments as :func:`_kcf_update`, with the
+    measurement information ``(δΩ, δq)``); returns the posteriors and ``ω``.  Each round every channel's packet is
+    formed first (:func:`hcmci_packets`) and summed over each node's incoming channels, the node's own share first."""
+    n = network.n_nodes
+    rcv, snd = ex.receiver, ex.sender
+    arrived = recv[..., rcv, snd]
+    w = hcmci_weights(network, rcv, snd, arrived)  # (runs, E)
+    w_self = 1.0 - ex.sum(w)  # (runs, N): a lost link's weight stays with the node
+    f = None if fdi is None else fdi[..., rcv, snd] & arrived
+    xe = None if xi is None else xi[..., rcv, snd, :]
+    O, q = _information(Pp, xp)
     for _ in range(L):
-        q_new, dq_new = W @ q, W @ dq
-        if inject is not None:
-            q_new += np.einsum("...ijb,...jab->...ia", inject, O)
-            if packet:
-                dq_new += np.einsum("...ijb,...jab->...ia", inject, dO)
-        q, dq = q_new, dq_new
-        O = np.einsum("...ij,...jab->...iab", W, O)
-        dO = np.einsum("...ij,...jab->...iab", W, dO)
-    om = np.full(W.shape[:-1], float(n)) if omega == "size" else 1.0 / np.linalg.matrix_power(W, L).max(axis=-1)
+        q_t, dq_t = hcmci_packets(O[:, snd], q[:, snd], dO[:, snd], dq[:, snd], f, xe, packet)
+        q, dq = (w_self[..., None] * q + ex.sum(w[..., None] * q_t),
+                 w_self[..., None] * dq + ex.sum(w[..., None] * dq_t))
+        O, dO = (w_self[..., None, None] * O + ex.sum(w[..., None, None] * O[:, snd]),
+                 w_self[..., None, None] * dO + ex.sum(w[..., None, None] * dO[:, snd]))
+    if omega == "size":
+        x, P = _hcmci_combine(n, O, q, dO, dq)
+        return x, P, np.full(xp.shape[:-1], float(n))
+    W = metropolis_weights(network, network.adjacency & ~recv)
+    om = 1.0 / np.linalg.matrix_power(W, L).max(axis=-1)
     P = _spd_inverse(O + om[..., None, None] * dO)
-    return np.einsum("...iab,...ib->...ia", P, q + om[..., None] * dq), P, om
+    return (P @ (q + om[..., None] * dq)[..., None])[..., 0], P, om
 
 
 def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None, attacks: AttackPattern | None = None,
@@ -375,6 +414,13 @@ def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.where(ok.all(-1), ok.shape[-1], np.argmin(ok, axis=-1))
 
 
+def _predict(model: Model, x, P, k: int, u):
+    """The EKF prediction of stacked nodes ``(a, g)`` at their own estimates: ``f(x)``, ``F P Fᵀ + Q``."""
+    xp, F = model.f_expected(x, k, u), model.F_expected(x, k, u)
+    Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+    return xp, 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+
+
 def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
     """Sensor ``i``'s information ``(U, u)`` = ``(Hᵀ R⁻¹ H, Hᵀ R⁻¹ (z - h(x̄) + H x̄))`` at the predictions
     ``x_pred`` (a, n_x) for its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped)."""
@@ -414,11 +460,7 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
         recv = np.broadcast_to(adj, (act.size, n, n)) if inp.attacks is None else adj & ~inp.attacks.dos[at, k]
         delivered[at, k] = recv.sum(axis=(1, 2)) * rounds
         uk = inp.u[k] if inp.u.ndim == 2 else inp.u[at, k][:, None, :]
-        xk = x_post[at, k]
-        xp = model.f_expected(xk, k, uk)
-        F = model.F_expected(xk, k, uk)
-        Pp = F @ P_post[at, k] @ np.swapaxes(F, -1, -2) + model.process_cov
-        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        xp, Pp = _predict(model, x_post[at, k], P_post[at, k], k, uk)
         x_pred[at, k], P_pred[at, k] = xp, Pp
         node = _failures(xp, Pp)
         reason = {r: "prediction: " + beyond for r in np.flatnonzero(node < n)}
@@ -497,9 +539,11 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
     L = _hcmci_rounds(iterations, omega)
     packet = falsify == "packet"
 
+    ex = Exchange(network)
+
     def update(k, act, xp, Pp, dO, dq, recv):
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
-        return _hcmci_update(network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
+        return _hcmci_update(ex, network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
     return _filter_batch(model, network, inp, update, L)
 
@@ -514,7 +558,40 @@ class KCFPacket(NamedTuple):
     x: np.ndarray
 
 
-class KCFNode:
+class _InformationNode:
+    """What the information-form baselines' node filters share (:class:`KCFNode`, :class:`HCMCINode`): the node, its
+    in-neighbours, its sensor's information, its state, and the prediction with its measurement."""
+
+    def __init__(self, model: Model, network: SensorNetwork, node: int, x0, P0, falsify: str):
+        _check_network(model, network)
+        _check_falsify(falsify)
+        i = self.node = check_int("node", node, 0, network.n_nodes - 1)
+        self.model, self.network, self.packet = model, network, falsify == "packet"
+        self.senders = np.flatnonzero(network.adjacency[i])
+        self._R_inv = _spd_inverse(model.measurement_cov(i))
+        _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
+        self.x, self.P = x0[0].copy(), P0[0].copy()
+        self.k, self.diverged = 0, False
+
+    def _predicted(self, z, u):
+        """``(x̂⁻, P⁻, U, u)`` (stacks of one) of the next step with the node's measurement ``z``."""
+        m, i = self.model, self.node
+        z = np.asarray(z, dtype=float).reshape(-1)
+        if z.shape != (m.sensor_dims[i],):
+            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
+        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        xp, Pp = _predict(m, self.x[None, None], self.P[None, None], self.k, u)
+        U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
+        return xp, Pp, U, v
+
+    def _check_senders(self, received: dict) -> None:
+        extra = sorted(set(received) - set(self.senders.tolist()))
+        if extra:
+            raise InputError(f"received holds node {extra[0]}, which is not an in-neighbour of node {self.node} "
+                             f"{self.senders.tolist()}")
+
+
+class KCFNode(_InformationNode):
     """The Kalman consensus filter one node runs (:func:`run_kcf_batch` at node ``node``), in two phases:
     ``packet = node.predict(z, u)`` (its prediction ``f(x̂)``, ``F P Fᵀ + Q`` and its measurement's information at
     the prediction: what it sends), then ``node.update(received)`` with ``{neighbour: KCFPacket}`` for the packets
@@ -523,31 +600,15 @@ class KCFNode:
 
     def __init__(self, model: Model, network: SensorNetwork, node: int, *, x0=None, P0=None,
                  epsilon: float | None = None, falsify: str = "packet"):
-        _check_network(model, network)
-        _check_falsify(falsify)
-        i = self.node = check_int("node", node, 0, network.n_nodes - 1)
-        self.model, self.packet = model, falsify == "packet"
+        super().__init__(model, network, node, x0, P0, falsify)
         self.eps = _kcf_epsilon(network, epsilon)
-        self.senders = np.flatnonzero(network.adjacency[i])
-        self._R_inv = _spd_inverse(model.measurement_cov(i))
-        _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
-        self.x, self.P = x0[0].copy(), P0[0].copy()
-        self.k, self.diverged, self._pred = 0, False, None
+        self._pred = None
 
     def predict(self, z, u=None) -> KCFPacket:
         """The prediction phase with the node's measurement ``z``: the packet it sends."""
-        m, i = self.model, self.node
         if self._pred is not None:
-            raise InputError(f"node {i} has predicted step {self.k} already: update it first")
-        z = np.asarray(z, dtype=float).reshape(-1)
-        if z.shape != (m.sensor_dims[i],):
-            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
-        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
-        xk = self.x[None, None]
-        xp, F = m.f_expected(xk, self.k, u), m.F_expected(xk, self.k, u)
-        Pp = F @ self.P[None, None] @ np.swapaxes(F, -1, -2) + m.process_cov
-        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
-        U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
+            raise InputError(f"node {self.node} has predicted step {self.k} already: update it first")
+        xp, Pp, U, v = self._predicted(z, u)
         self._pred = (xp, Pp, U[:, None], v[:, None])
         return KCFPacket(v[0], U[0], xp[0, 0])
 
@@ -558,10 +619,7 @@ class KCFNode:
         if self._pred is None:
             raise InputError(f"node {i} must predict step {self.k} before its update")
         received = dict(received or {})
-        extra = sorted(set(received) - set(self.senders.tolist()))
-        if extra:
-            raise InputError(f"received holds node {extra[0]}, which is not an in-neighbour of node {i} "
-                             f"{self.senders.tolist()}")
+        self._check_senders(received)
         xp, Pp, U, v = self._pred
         nx, d = self.model.n_x, self.senders.size
         r = np.array([[j in received for j in self.senders.tolist()]], dtype=float)
@@ -587,7 +645,7 @@ class KCFNode:
         return self.x
 
 
-class KCFNetwork:
+class KCFNetwork(NodeNetwork):
     """Every node of the network as a :class:`KCFNode`, driven over a run: each step every node predicts with its
     measurement, the packets cross the channels (DoS drops them; FDI: :func:`kcf_packets`), every node updates
     with what reached it.  Once a node diverges the run stops (NaN from then on), as the batch stops it."""
@@ -597,43 +655,132 @@ class KCFNetwork:
         self.model, self.network = model, network
         self.nodes = [KCFNode(model, network, i, x0=x0, P0=P0, epsilon=epsilon, falsify=falsify)
                       for i in range(network.n_nodes)]
-        self.stopped = False
 
     def deliver(self, packets, dos=None, fdi=None, xi=None) -> list[dict]:
         """What the nodes' ``packets`` deliver to every node over the step's channels (``dos``, ``fdi`` (E,), ``xi``
         (E, n_x) in :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour: KCFPacket}``."""
-        out, e = [], 0
-        for nd in self.nodes:
-            got = {}
-            for j in nd.senders.tolist():
-                if dos is None or not dos[e]:
-                    p = packets[j]
-                    u_t, x_t = kcf_packets(p.u, p.U, p.x, None if fdi is None else fdi[e],
-                                           None if xi is None else xi[e], nd.packet)
-                    got[j] = KCFPacket(u_t, p.U, x_t)
-                e += 1
-            out.append(got)
-        return out
+        def falsified(nd, j, p, f, x):
+            u_t, x_t = kcf_packets(p.u, p.U, p.x, f, x, nd.packet)
+            return KCFPacket(u_t, p.U, x_t)
 
-    def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
-        """One step of every node (``z`` (n_z,) every sensor's measurement); returns the estimates (N, n_x)."""
-        if not self.stopped:
-            offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
-            z = np.asarray(z, dtype=float)
-            packets = [nd.predict(z[offsets[i]:offsets[i + 1]], u) for i, nd in enumerate(self.nodes)]
-            for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi)):
-                nd.update(got)
-            if any(nd.diverged for nd in self.nodes):
-                self.stopped = True
-                for nd in self.nodes:
-                    nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
+        return self.carry(packets, dos, fdi, xi, falsified)
+
+    def _exchange(self, z, dos, fdi, xi, u) -> None:
+        packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi)):
+            nd.update(got)
+
+
+# --------------------------------------------------------------------------- HCMCI's node filter
+class HCMCIPacket(NamedTuple):
+    """What an HCMCI node sends in a consensus round: its information pairs ``(O, q)`` (the prior's) and ``(dO, dq)``
+    (the measurements')."""
+
+    O: np.ndarray
+    q: np.ndarray
+    dO: np.ndarray
+    dq: np.ndarray
+
+
+class HCMCINode(_InformationNode):
+    """HCMCI at one node (:func:`run_hcmci_batch` at node ``node``, ``omega='size'``), in ``L`` consensus rounds a step:
+    ``packet = node.predict(z, u)`` (its prediction's information and its measurement's: what it sends in the first
+    round), then ``packet = node.round(received)`` ``L`` times with ``{neighbour: HCMCIPacket}`` as they arrived (the
+    same neighbours every round: a step's channels are attacked once), each returning what it sends next; after the
+    ``L``-th the node combines (``x``, ``P``).  Driven over a run through :class:`HCMCINetwork`, the batch's numbers
+    bit for bit."""
+
+    def __init__(self, model: Model, network: SensorNetwork, node: int, *, iterations: int = 1, omega: str = "size",
+                 x0=None, P0=None, falsify: str = "packet"):
+        self.rounds = _hcmci_rounds(iterations, omega)
+        if omega != "size":
+            raise InputError("omega must be 'size' for a node filter ('consistent' needs each node's row of the "
+                             "product of the rounds' weight matrices: consensus on N-vectors, not built)")
+        super().__init__(model, network, node, x0, P0, falsify)
+        self._state, self._round, self._heard = None, 0, None
+
+    def predict(self, z, u=None) -> HCMCIPacket:
+        """The prediction with the node's measurement ``z``: the packet of the first round."""
+        if self._state is not None:
+            raise InputError(f"node {self.node} has predicted step {self.k} already: run its rounds first")
+        xp, Pp, dO, dq = self._predicted(z, u)
+        if _failures(xp, Pp)[0] < 1:
+            self.diverged = True
+            O, q = np.full_like(Pp, np.nan), np.full_like(xp, np.nan)
         else:
-            for nd in self.nodes:
-                nd.k += 1
-        return np.stack([nd.x for nd in self.nodes])
+            try:
+                O, q = _information(Pp, xp)
+            except np.linalg.LinAlgError:
+                self.diverged = True
+                O, q = np.full_like(Pp, np.nan), np.full_like(xp, np.nan)
+        self._state, self._round, self._heard = (O, q, dO[:, None], dq[:, None]), 1, None
+        return HCMCIPacket(O[0, 0], q[0, 0], dO[0], dq[0])
 
-    def run(self, z, attacks: AttackPattern | None = None, inputs=None) -> tuple[np.ndarray, np.ndarray]:
-        """Every step of a run (see :func:`filters.node.run_network`)."""
-        from .node import run_network
+    def round(self, received=None) -> HCMCIPacket | None:
+        """A consensus round with ``{neighbour: HCMCIPacket}`` as they arrived: what the node sends in the next round,
+        or None after the last (then ``x``, ``P`` are the step's posterior)."""
+        i, nx = self.node, self.model.n_x
+        if self._state is None:
+            raise InputError(f"node {i} must predict step {self.k} before its rounds")
+        received = dict(received or {})
+        self._check_senders(received)
+        heard = tuple(j in received for j in self.senders.tolist())
+        if self._heard is not None and heard != self._heard:
+            raise InputError(f"round {self._round} of node {i} must hear the neighbours of its first round (a step's "
+                             "channels are attacked once)")
+        self._heard = heard
+        d = self.senders.size
+        w = hcmci_weights(self.network, np.full(d, i), self.senders, np.array(heard, dtype=bool))[None]  # (1, d)
+        w_self = 1.0 - Exchange.node_sum(w)  # (1,)
+        pO, pq, pdO, pdq = (np.zeros((1, d, nx, nx)), np.zeros((1, d, nx)), np.zeros((1, d, nx, nx)),
+                            np.zeros((1, d, nx)))
+        for e, j in enumerate(self.senders.tolist()):
+            if j in received:
+                p = received[j]
+                pO[0, e], pq[0, e], pdO[0, e], pdq[0, e] = p.O, p.q, p.dO, p.dq
+        O, q, dO, dq = self._state
+        q, dq = (w_self[:, None, None] * q + Exchange.node_sum(w[..., None] * pq)[:, None],
+                 w_self[:, None, None] * dq + Exchange.node_sum(w[..., None] * pdq)[:, None])
+        O, dO = (w_self[:, None, None, None] * O + Exchange.node_sum(w[..., None, None] * pO)[:, None],
+                 w_self[:, None, None, None] * dO + Exchange.node_sum(w[..., None, None] * pdO)[:, None])
+        self._state = (O, q, dO, dq)
+        if self._round < self.rounds:
+            self._round += 1
+            return HCMCIPacket(O[0, 0], q[0, 0], dO[0, 0], dq[0, 0])
+        try:
+            x, P = _hcmci_combine(self.network.n_nodes, O, q, dO, dq)
+        except np.linalg.LinAlgError:
+            x, P = np.full_like(q, np.nan), np.full_like(O, np.nan)
+        if self.diverged or _failures(x, P)[0] < 1:
+            self.diverged = True
+        self.x, self.P = x[0, 0], 0.5 * (P[0, 0] + P[0, 0].T)
+        self.k += 1
+        self._state = None
+        return None
 
-        return run_network(self, z, attacks, inputs)
+
+class HCMCINetwork(NodeNetwork):
+    """Every node as an :class:`HCMCINode`, driven over a run: each step every node predicts, then ``L`` rounds in
+    which the packets cross the channels (DoS drops them, the same channels every round; FDI: :func:`hcmci_packets`)
+    and every node combines what reached it.  Once a node diverges the run stops (NaN from then on)."""
+
+    def __init__(self, model: Model, network: SensorNetwork, *, iterations: int = 1, x0=None, P0=None,
+                 falsify: str = "packet"):
+        self.model, self.network = model, network
+        self.nodes = [HCMCINode(model, network, i, iterations=iterations, x0=x0, P0=P0, falsify=falsify)
+                      for i in range(network.n_nodes)]
+
+    def deliver(self, packets, dos=None, fdi=None, xi=None) -> list[dict]:
+        """What the nodes' ``packets`` (one :class:`HCMCIPacket` each) deliver over the step's channels (``dos``,
+        ``fdi`` (E,), ``xi`` (E, n_x) in :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour:
+        HCMCIPacket}``."""
+        def falsified(nd, j, p, f, x):
+            q_t, dq_t = hcmci_packets(p.O, p.q, p.dO, p.dq, f, x, nd.packet)
+            return HCMCIPacket(p.O, q_t, p.dO, dq_t)
+
+        return self.carry(packets, dos, fdi, xi, falsified)
+
+    def _exchange(self, z, dos, fdi, xi, u) -> None:
+        packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        for _ in range(self.nodes[0].rounds):
+            packets = [nd.round(got) for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi))]

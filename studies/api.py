@@ -613,8 +613,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
 
 @one_blas_thread()
 def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, filter: str | None = None,
-                node: int | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
-                design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
+                node: int | None = None, iterations: int = 1, network: SensorNetwork | None = None,
+                attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()):
     """The filter a sensor node runs for a design (:mod:`filters.node`), to drive one step at a time.
 
@@ -628,13 +628,15 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         A gain rule instead (with the scenario's design defaults), e.g. ``paper``, ``scheduled``, ``relay``.
     filter : str, optional
         Or a filter of the comparison by its name or short name (:func:`studies.recorded.filter_keys`): ``kcf``
-        (:class:`filters.distributed.KCFNode`), the local EKFs (``local``: every node alone, the paper design
-        reduced to the EKF on a network without links), or a designed consensus filter (as ``mode``).
+        (:class:`filters.distributed.KCFNode`), ``hcmci`` (:class:`filters.distributed.HCMCINode`, ``iterations``
+        consensus rounds a step), the local EKFs (``local``: every node alone, the paper design reduced to the EKF on
+        a network without links), or a designed consensus filter (as ``mode``).
     node : int, optional
         The node (0..N-1): its node filter (``step(z, received, u)`` for relay and flood; ``predict``, then
         ``update`` for paper, tuned and KCF; ``predict``, ``update``, then ``round`` per further exchange round for
-        scheduled).  Default: every node's, as a network to drive over a run (``run(z, attacks, inputs)`` or
-        ``step(z, dos, fdi, xi, u)``; ``deliver`` says what reaches each node).
+        scheduled; ``predict``, then ``round`` per consensus round for HCMCI).  Default: every node's, as a network
+        to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``; ``deliver`` says what
+        reaches each node).
     """
     from filters.node import node_filter as make_node, node_network, node_rules
 
@@ -664,7 +666,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
                                                                   sc.model)
-        net = entry.node_filters(sc.model, sc.network, design)
+        net = entry.node_filters(sc.model, sc.network, design, check_int("iterations", iterations, 1))
         return net if node is None else net.nodes[node]
     if schedule is not None:
         _, options, _ = design_options_of(schedule, sc)

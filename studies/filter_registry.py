@@ -27,7 +27,7 @@ from designer.gain_rules import FILTER_RUNTIMES, gain_rule
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.distributed import KCFNetwork, run_hcmci_batch, run_kcf_batch
+from filters.distributed import HCMCINetwork, KCFNetwork, run_hcmci_batch, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.node import node_network
 from filters.particle import run_sir
@@ -113,8 +113,8 @@ class FilterEntry(NamedTuple):
     run (:func:`studies.consensus_design.check_first_step`); ``attacked``: False for a filter that uses no
     channel (the same numbers at every setting: run once, at the main one); ``counts_delivered``: the study
     reports the packets it received; ``rounds``: it runs ``iterations`` consensus rounds per step;
-    ``particles``: it needs the study's particles; ``node_filters(model, network, design)``: its node filters,
-    every node of the network to drive a step at a time (:mod:`filters.node`; None: it has none).
+    ``particles``: it needs the study's particles; ``node_filters(model, network, design, iterations)``: its node
+    filters, every node of the network to drive a step at a time (:mod:`filters.node`; None: it has none).
     """
 
     name: str
@@ -233,7 +233,8 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
 
     return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,
-                       start_check=start_check, node_filters=node_network)
+                       start_check=start_check,
+                       node_filters=lambda model, network, design, iterations: node_network(model, network, design))
 
 
 def local_ekfs(name: str, description: str) -> FilterEntry:
@@ -247,7 +248,7 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
                                   inputs=batch.input_rows(js))
         return res.to_result(alone, "local", cov_kind="covariance")
 
-    def nodes(model, network: SensorNetwork, design: ConsensusDesign):
+    def nodes(model, network: SensorNetwork, design: ConsensusDesign, iterations: int):
         n = network.n_nodes
         return node_network(model, SensorNetwork(n, np.zeros((n, n), int), require_connected=False), design)
 
@@ -271,14 +272,16 @@ def kcf(name: str, description: str) -> FilterEntry:
     (the realised attacks only: the channels' probabilities are not its to know)."""
     return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch), _links,
                        counts_delivered=True,
-                       node_filters=lambda model, network, design: KCFNetwork(model, network))
+                       node_filters=lambda model, network, design, iterations: KCFNetwork(model, network))
 
 
 def hcmci(name: str, description: str) -> FilterEntry:
     """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`) with ``batch.iterations`` rounds
     per step on the attacked channels; ``2 |E| L`` messages per step."""
     return FilterEntry(name, "consensus", "local", description, _distributed(run_hcmci_batch, rounds=True),
-                       _links_per_round, counts_delivered=True, rounds=True)
+                       _links_per_round, counts_delivered=True, rounds=True,
+                       node_filters=lambda model, network, design, iterations: HCMCINetwork(model, network,
+                                                                                           iterations=iterations))
 
 
 def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:

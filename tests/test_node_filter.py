@@ -181,20 +181,25 @@ def test_a_consensus_node_checks_its_phases_and_packets(cart):
         node.update([0.3], {0: packet.x}, {j: packet for j in (0, 2, 6)})
 
 
-@pytest.mark.parametrize("target, name", [("indoor-robot", "kcf"), ("indoor-robot", "local"), ("user", "kcf"),
-                                          ("user", "local")])
-def test_baselines_node_filters_by_name_give_the_studys_numbers(target, name, cart, tmp_path):
-    """KCF (two phases: predict with the node's measurement -> its packet, update with the packets that arrived) and
-    the local EKFs (every node alone) by the comparison's short names: over run 1 of the comparison (seed 4), the
-    study's numbers bit for bit (cfdesign filter on the log); one KCF node fed by hand what arrived is that node."""
+@pytest.mark.parametrize("target, name, rounds", [("indoor-robot", "kcf", 1), ("indoor-robot", "local", 1),
+                                                  ("indoor-robot", "hcmci", 3), ("user", "kcf", 1),
+                                                  ("user", "local", 1), ("user", "hcmci", 2)])
+def test_baselines_node_filters_by_name_give_the_studys_numbers(target, name, rounds, cart, tmp_path):
+    """KCF (two phases: predict with the node's measurement -> its packet, update with the packets that arrived),
+    HCMCI (predict, then its L consensus rounds, each with what arrived) and the local EKFs (every node alone) by the
+    comparison's short names: over run 1 of the comparison (seed 4), the study's numbers bit for bit (cfdesign
+    filter on the log, HCMCI with L rounds); one KCF node fed by hand what arrived is that node."""
     from filters.consensus_batch import EdgeAttacks
 
     scenario = str(cart) if target == "user" else target
     sim = studies.simulate(scenario, seed=4, run=1, out=tmp_path / "log.npz")
-    ref = studies.filter(scenario, tmp_path / "log.npz", filter=name)
-    net = studies.node_filter(scenario, filter=name)
+    ref = studies.filter(scenario, tmp_path / "log.npz", filter=name, iterations=rounds)
+    net = studies.node_filter(scenario, filter=name, iterations=rounds)
     x, P = net.run(sim.z, sim.attacks, sim.inputs)
     assert np.isfinite(ref.x_hat).all() and np.array_equal(x, ref.x_hat) and np.array_equal(P, ref.cov)
+    if name == "hcmci":
+        assert all(nd.rounds == rounds for nd in net.nodes)
+        return
     if name != "kcf":
         assert all(nd.senders.size == 0 for nd in net.nodes)  # alone: nothing to receive
         return
@@ -222,8 +227,9 @@ def test_baselines_node_filters_by_name_give_the_studys_numbers(target, name, ca
 
 
 def test_a_filter_without_node_filter_is_refused_by_name(cart):
-    with pytest.raises(InputError, match=r"filter 'HCMCI' has no node filter \(filters with one: .*KCF"):
-        studies.node_filter(str(cart), filter="hcmci")
+    with pytest.raises(InputError, match=r"filter 'centralized EKF \(trusts every packet\)' has no node filter "
+                                         r"\(filters with one: .*KCF, .*HCMCI"):
+        studies.node_filter(str(cart), filter="centralized-ekf")
     with pytest.raises(InputError, match="give a design directory .schedule., a gain rule .mode. or a filter's name"):
         studies.node_filter(str(cart), filter="kcf", mode="paper")
     node = studies.node_filter(str(cart), filter="kcf", node=1)
@@ -232,6 +238,14 @@ def test_a_filter_without_node_filter_is_refused_by_name(cart):
     node.predict([0.3], [0.0])
     with pytest.raises(InputError, match=r"received holds node 4, which is not an in-neighbour of node 1 \[0, 2, 6\]"):
         node.update({4: None})
+    hc = studies.node_filter(str(cart), filter="hcmci", iterations=2, node=1)
+    with pytest.raises(InputError, match="node 1 must predict step 0 before its rounds"):
+        hc.round({})
+    first = hc.predict([0.3], [0.0])
+    second = hc.round({0: first})
+    with pytest.raises(InputError, match="round 2 of node 1 must hear the neighbours of its first round"):
+        hc.round({0: second, 2: second})
+    assert hc.round({0: second}) is None and hc.k == 1
 
 
 @pytest.mark.parametrize("target, options", [("indoor-robot", {}), ("indoor-robot", {"rounds": 3,
