@@ -10,8 +10,8 @@ replayed ``--repeat`` times:
   then ``cfd_update``; scheduled: and ``cfd_round`` for its rounds 2..L) for every node and step, the replay read
   into memory first (timed: the steps only, ``clock_gettime``), ``--repeat`` replays; the best of three timings;
 * **Python**: the node filters (:class:`filters.relay.RelayNode`, :class:`filters.consensus_node.ConsensusNode`,
-  :class:`filters.scheduled.ScheduledNode`) step every node on the same inputs (what the network's ``deliver`` gives, computed before the timing), in this
-  process, BLAS on one thread, one replay; the best of three.
+  :class:`filters.scheduled.ScheduledNode`) step every node on the same inputs (what the network's step delivered,
+  computed before the timing), in this process, BLAS on one thread, one replay; the best of three.
 
 Printed: microseconds per node step in each and their ratio (issue 27 expects >= ``TARGET_RATIO`` = 50), the
 exported code's size (``size``: the text of ``cfd_node.o`` and ``cfd_model.o``, a scheduled design's constant tables
@@ -257,29 +257,18 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
 
     net = studies.node_filter(scenario, schedule=design)
     att = EdgeAttacks.from_patterns(net.network, [sim.attacks])
-    given = []
+    given = []  # per step and node what the node is fed: computed by the network's step (its last exchange)
     offsets = np.concatenate([[0], np.cumsum(net.model.sensor_dims)])
     for k in range(steps):
-        e = (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
+        net.step(sim.z[k], att.dos[0, k], att.fdi[0, k], att.xi[0, k], u=sim.inputs[k])
+        _, rounds = net.last
+        z_of = [sim.z[k, offsets[i]:offsets[i + 1]] for i in range(len(net.nodes))]
         if mode == "paper":
-            sent = [nd.predict(sim.inputs[k]) for nd in net.nodes]
-            given.append([(sim.z[k, offsets[i]:offsets[i + 1]], *g) for i, g in enumerate(net.deliver(sent, *e))])
-            for nd, args in zip(net.nodes, given[-1]):
-                nd.update(*args)
-        elif mode == "scheduled":  # per node: its measurement, the first round's packets, each later round's
-            sent = [nd.predict(sim.z[k, offsets[i]:offsets[i + 1]], sim.inputs[k]) for i, nd in enumerate(net.nodes)]
-            rounds = [net.deliver(sent, *e)]
-            for nd, got in zip(net.nodes, rounds[0]):
-                nd.update(got)
-            for _ in range(2, net.nodes[0].rounds + 1):
-                rounds.append(net.deliver([nd.x for nd in net.nodes], *e))
-                for nd, got in zip(net.nodes, rounds[-1]):
-                    nd.round(got)
-            given.append([(sim.z[k, offsets[i]:offsets[i + 1]], [r[i] for r in rounds]) for i in range(len(sent))])
+            given.append([(z_of[i], *rounds[0][i]) for i in range(len(z_of))])
+        elif mode == "scheduled":
+            given.append([(z_of[i], [r[i] for r in rounds]) for i in range(len(z_of))])
         else:
-            given.append(net.deliver(sim.z[k], *e, u=sim.inputs[k]))
-            for nd, (own, got) in zip(net.nodes, given[-1]):
-                nd.step(own, got, sim.inputs[k])
+            given.append(rounds[0])
     py_secs = []
     for _ in range(3):  # the best of three
         fresh = studies.node_filter(scenario, schedule=design)  # built outside the timing, as the C nodes are

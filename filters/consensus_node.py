@@ -179,10 +179,12 @@ class ConsensusNetwork(NodeNetwork):
         self.model, self.network = model, network
         self.nodes = [ConsensusNode(model, network, design, i, x0=x0, P0=P0) for i in range(network.n_nodes)]
 
-    def _exchange(self, z, dos, fdi, xi, u) -> None:
+    def _exchange(self, z, dos, fdi, xi, u):
         packets = [nd.predict(u) for nd in self.nodes]
-        for nd, z_i, (got, bounds) in zip(self.nodes, z, self.deliver(packets, dos, fdi, xi)):
+        delivered = self.deliver(packets, dos, fdi, xi)
+        for nd, z_i, (got, bounds) in zip(self.nodes, z, delivered):
             nd.update(z_i, got, bounds)
+        return packets, [delivered]
 
     def deliver(self, packets, dos=None, fdi=None, xi=None) -> list[tuple[dict, dict]]:
         """What the nodes' ``packets`` (one :class:`Packet` per node, as :meth:`ConsensusNode.predict` returned them)

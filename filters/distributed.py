@@ -77,8 +77,8 @@ batch are the same numbers).  Every received packet is formed first (:func:`kcf_
 and summed over each node's incoming channels (:class:`filters.consensus_batch.Exchange`), so that one node handed
 the packets that arrived computes the batch's numbers bit for bit: the node filters :class:`KCFNode` (``predict``
 with its measurement, then ``update``) and :class:`HCMCINode` (``predict``, then ``round`` per consensus round;
-``omega='size'``), driven over a run by :class:`KCFNetwork`, :class:`HCMCINetwork`.  The node-by-node loop they replaced is the tests' independent reference
-(``tests/distributed_reference.py``).
+``omega='size'``), driven over a run by :class:`KCFNetwork`, :class:`HCMCINetwork`.  The node-by-node loop they
+replaced is the tests' independent reference (``tests/distributed_reference.py``).
 """
 from __future__ import annotations
 
@@ -665,10 +665,12 @@ class KCFNetwork(NodeNetwork):
 
         return self.carry(packets, dos, fdi, xi, falsified)
 
-    def _exchange(self, z, dos, fdi, xi, u) -> None:
+    def _exchange(self, z, dos, fdi, xi, u):
         packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
-        for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi)):
+        delivered = self.deliver(packets, dos, fdi, xi)
+        for nd, got in zip(self.nodes, delivered):
             nd.update(got)
+        return packets, [delivered]
 
 
 # --------------------------------------------------------------------------- HCMCI's node filter
@@ -780,7 +782,10 @@ class HCMCINetwork(NodeNetwork):
 
         return self.carry(packets, dos, fdi, xi, falsified)
 
-    def _exchange(self, z, dos, fdi, xi, u) -> None:
-        packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+    def _exchange(self, z, dos, fdi, xi, u):
+        first = packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        rounds = []
         for _ in range(self.nodes[0].rounds):
-            packets = [nd.round(got) for nd, got in zip(self.nodes, self.deliver(packets, dos, fdi, xi))]
+            rounds.append(self.deliver(packets, dos, fdi, xi))
+            packets = [nd.round(got) for nd, got in zip(self.nodes, rounds[-1])]
+        return first, rounds

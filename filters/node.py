@@ -101,10 +101,13 @@ def run_network(net, z, attacks=None, inputs=None):
 class NodeNetwork:
     """Every node's filter of a network driven a step at a time (the consensus, scheduled, KCF and HCMCI networks):
     a subclass holds ``model``, ``network``, ``nodes`` (each with ``x``, ``P``, ``k``, ``diverged``) and exchanges one
-    step in ``_exchange(z, dos, fdi, xi, u)`` (``z`` each node's own measurement).  When a node diverges the run stops,
-    as the batched filters stop it: NaN from then on."""
+    step in ``_exchange(z, dos, fdi, xi, u)`` (``z`` each node's own measurement), which returns what was sent and
+    delivered: ``last`` after a step, ``(sent, deliveries)``, the packets each node sent first and, per exchange
+    round, what reached each node (its ``deliver``'s output; what a replay of the step feeds each node).  When a node
+    diverges the run stops, as the batched filters stop it: NaN from then on."""
 
     stopped = False
+    last = None
 
     def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
         """One step of every node: ``z`` (n_z,) every sensor's measurement, ``dos``, ``fdi`` (E,) and ``xi`` (E, n_x)
@@ -116,7 +119,8 @@ class NodeNetwork:
         else:
             offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
             z = np.asarray(z, dtype=float)
-            self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi, xi, u)
+            self.last = self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi,
+                                       xi, u)
             if any(nd.diverged for nd in self.nodes):
                 self.stopped = True
                 for nd in self.nodes:

@@ -481,8 +481,10 @@ class RelayNetwork:
         """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
         (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order;
         None: none).  Returns every node's estimate (N, n_x)."""
-        for nd, (own, got) in zip(self.nodes, self.deliver(z, dos, fdi, xi, u)):
+        delivered = self.deliver(z, dos, fdi, xi, u)
+        for nd, (own, got) in zip(self.nodes, delivered):
             nd.step(own, got, u)
+        self.last = (None, [delivered])  # as filters.node.NodeNetwork.last: what reached each node
         return np.stack([nd.x for nd in self.nodes])
 
     def deliver(self, z, dos=None, fdi=None, xi=None, u=None) -> list[tuple[np.ndarray, dict]]:

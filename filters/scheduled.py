@@ -414,13 +414,16 @@ class ScheduledNetwork(NodeNetwork):
 
         return self.carry(sent, dos, fdi, xi, falsified)
 
-    def _exchange(self, z, dos, fdi, xi, u) -> None:
+    def _exchange(self, z, dos, fdi, xi, u):
         sent = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
-        for nd, got in zip(self.nodes, self.deliver(sent, dos, fdi, xi)):
+        rounds = [self.deliver(sent, dos, fdi, xi)]
+        for nd, got in zip(self.nodes, rounds[0]):
             nd.update(got)
         for _ in range(2, self.nodes[0].rounds + 1):
-            for nd, got in zip(self.nodes, self.deliver([nd.x for nd in self.nodes], dos, fdi, xi)):
+            rounds.append(self.deliver([nd.x for nd in self.nodes], dos, fdi, xi))
+            for nd, got in zip(self.nodes, rounds[-1]):
                 nd.round(got)
+        return sent, rounds
 
 
 register_node_filter("scheduled", ScheduledNode, ScheduledNetwork)

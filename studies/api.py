@@ -614,8 +614,9 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
 @one_blas_thread()
 def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, filter: str | None = None,
                 node: int | None = None, iterations: int = 1, network: SensorNetwork | None = None,
-                attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
-                overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()):
+                attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
+                inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
+                assignments: Sequence[str] = ()):
     """The filter a sensor node runs for a design (:mod:`filters.node`), to drive one step at a time.
 
     Parameters
@@ -763,69 +764,49 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         z, attacks, u = log.z, log.attacks, (np.zeros((log.steps, 0)) if log.inputs is None else log.inputs)
     net = node_network(sc.model, sc.network, design)
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
-    verdict = str(meta.get("verdict"))
-    if rule.relays:
-        steps = []
-        for k in range(z.shape[0]):
-            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-            given = net.deliver(z[k], *e, u=u[k])  # what reaches each node; each steps with it (RelayNetwork.step)
-            for nd, (own, got) in zip(net.nodes, given):
-                nd.step(own, got, u[k])
-            steps.append((u[k], [(given[i][0], given[i][1], net.nodes[i].x, net.nodes[i].P) for i in chosen]))
-        replay = replay_text(chosen, [net.nodes[i].ball for i in chosen], sc.model.sensor_dims, steps, sc.model.n_u)
-        routes = relay_routes(sc.network, design.rounds, rule.routing)
-        moments = relay_moments(routes, sc.network, sc.model.sensor_dims)
-        with replaced_outputs(out) as stage:
-            written = write_relay_c(sc.model, sc.network, design, routes, moments, stage, nodes=chosen,
-                                    replay=replay, verdict=verdict)
-        return [Path(out) / p.name for p in written]
-    steps = []
     offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
-    if mode == "scheduled":
-        for k in range(z.shape[0]):
-            e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-            sent = [nd.predict(z[k, offsets[i]:offsets[i + 1]], u[k]) for i, nd in enumerate(net.nodes)]
-            first = net.deliver(sent, *e)  # what reaches each node; each updates with it (ScheduledNetwork.step)
-            for nd, got in zip(net.nodes, first):
-                nd.update(got)
-            later = []
-            for _ in range(2, design.tables.rounds + 1):
-                later.append(net.deliver([nd.x for nd in net.nodes], *e))
-                for nd, got in zip(net.nodes, later[-1]):
-                    nd.round(got)
-            if any(nd.diverged for nd in net.nodes):
-                warnings.warn(f"the scheduled filter diverged at step {k + 1} of the replayed run: replay.txt holds "
-                              f"the {k} steps before", RuntimeWarning, stacklevel=2)
-                break
-            steps.append((u[k], [(z[k, offsets[i]:offsets[i + 1]], first[i], [r[i] for r in later], net.nodes[i].x,
-                                  net.nodes[i].P) for i in chosen]))
-        replay = scheduled_replay_text(chosen, [net.nodes[i].senders.tolist() for i in chosen], sc.model.n_u,
-                                       max(sc.model.sensor_dims), design.tables.exchange, steps)
-        with replaced_outputs(out) as stage:
-            written = write_scheduled_c(sc.model, sc.network, design, stage, nodes=chosen, replay=replay,
-                                        verdict=verdict)
-        return [Path(out) / p.name for p in written]
+    steps = []
     for k in range(z.shape[0]):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
-        sent = [nd.predict(u[k]) for nd in net.nodes]
-        given = net.deliver(sent, *e)  # what reaches each node; each updates with it (ConsensusNetwork.step)
-        for i, (nd, (got, bounds)) in enumerate(zip(net.nodes, given)):
-            nd.update(z[k, offsets[i]:offsets[i + 1]], got, bounds)
-        if any(nd.diverged for nd in net.nodes):
-            warnings.warn(f"the paper filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
+        net.step(z[k], *e, u=u[k])
+        if getattr(net, "stopped", False):
+            warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
                           "steps before", RuntimeWarning, stacklevel=2)
             break
-        cond = max(float(np.linalg.cond(P)) for i in chosen for P in (sent[i].P, net.nodes[i].P))
-        if not cond <= _REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
-            warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
-                          f"(condition number {cond:.3g} > {_REPLAY_COND:g}): replay.txt holds the {k} steps before "
-                          "(beyond, the rounding of any two correct implementations differs by more than make test's "
-                          "1e-10)", RuntimeWarning, stacklevel=2)
-            break
-        steps.append((u[k], [(z[k, offsets[i]:offsets[i + 1]], given[i][0], given[i][1], sent[i], net.nodes[i].x,
-                              net.nodes[i].P) for i in chosen]))
-    replay = consensus_replay_text(chosen, [net.nodes[i].senders.tolist() for i in chosen], sc.model.n_u, steps)
+        sent, rounds = net.last  # what each node sent and, round by round, what reached it
+        if mode == "paper":
+            cond = max(float(np.linalg.cond(P)) for i in chosen for P in (sent[i].P, net.nodes[i].P))
+            if not cond <= _REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
+                warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
+                              f"(condition number {cond:.3g} > {_REPLAY_COND:g}): replay.txt holds the {k} steps "
+                              "before (beyond, the rounding of any two correct implementations differs by more than "
+                              "make test's 1e-10)", RuntimeWarning, stacklevel=2)
+                break
+        done = [(net.nodes[i].x, net.nodes[i].P) for i in chosen]
+        z_of = [z[k, offsets[i]:offsets[i + 1]] for i in chosen]
+        if rule.relays:
+            steps.append((u[k], [(*rounds[0][i], *xP) for i, xP in zip(chosen, done)]))
+        elif mode == "paper":
+            steps.append((u[k], [(z_i, *rounds[0][i], sent[i], *xP) for i, z_i, xP in zip(chosen, z_of, done)]))
+        else:
+            steps.append((u[k], [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], *xP)
+                                 for i, z_i, xP in zip(chosen, z_of, done)]))
+    verdict = str(meta.get("verdict"))
     with replaced_outputs(out) as stage:
-        written = write_consensus_c(sc.model, sc.network, design, stage, nodes=chosen, replay=replay,
-                                    verdict=verdict)
+        if rule.relays:
+            routes = relay_routes(sc.network, design.rounds, rule.routing)
+            written = write_relay_c(sc.model, sc.network, design, routes,
+                                    relay_moments(routes, sc.network, sc.model.sensor_dims), stage, nodes=chosen,
+                                    replay=replay_text(chosen, [net.nodes[i].ball for i in chosen],
+                                                       sc.model.sensor_dims, steps, sc.model.n_u), verdict=verdict)
+        elif mode == "paper":
+            written = write_consensus_c(sc.model, sc.network, design, stage, nodes=chosen, verdict=verdict,
+                                        replay=consensus_replay_text(chosen, [net.nodes[i].senders.tolist()
+                                                                              for i in chosen], sc.model.n_u, steps))
+        else:
+            written = write_scheduled_c(sc.model, sc.network, design, stage, nodes=chosen, verdict=verdict,
+                                        replay=scheduled_replay_text(chosen, [net.nodes[i].senders.tolist()
+                                                                              for i in chosen], sc.model.n_u,
+                                                                     max(sc.model.sensor_dims),
+                                                                     design.tables.exchange, steps))
     return [Path(out) / p.name for p in written]
