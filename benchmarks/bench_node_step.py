@@ -35,12 +35,22 @@ import numpy as np
 
 TARGET_RATIO = 50.0
 
-_BENCH_C = r"""
+_BENCH_HEAD = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>
 #include <time.h>
 #include "cfd_node.h"
+
+/* what the benchmark reads: the seconds the timed steps took, how many node steps, and a node's state's size */
+static int report(const struct timespec *t0, const struct timespec *t1, int calls) {
+    printf("%.9g %d\n", (t1->tv_sec - t0->tv_sec) + 1e-9 * (t1->tv_nsec - t0->tv_nsec), calls);
+    printf("%d\n", (int)sizeof(cfd_node));
+    return 0;
+}
+"""
+
+_BENCH_C = r"""
 
 int main(int argc, char **argv) {
     FILE *fh = fopen(argv[1], "r");
@@ -78,19 +88,29 @@ int main(int argc, char **argv) {
             }
     }
     clock_gettime(CLOCK_MONOTONIC, &t1);
-    printf("%.9g %d\n", (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec), steps * CFD_NODES * reps);
-    printf("%d\n", (int)sizeof(cfd_node));
-    return 0;
+    return report(&t0, &t1, steps * CFD_NODES * reps);
 }
 """
 
 
+_BENCH_EXCHANGE = r"""
+/* a record's beginning for a node that exchanges packets: the step's inputs, its measurement, one arrived flag per
+ * in-neighbour, into the slots of record `at`; returns its number of in-neighbours, -1 for a short replay */
+static int read_node_step(FILE *fh, int at, int node, double *u, double *z, unsigned char *arrived) {
+    const int *senders;
+    int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node), b, c;
+    double v;
+    for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return -1;
+    for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return -1;
+    for (b = 0; b < d; ++b) {
+        if (fscanf(fh, "%lf", &v) != 1) return -1;
+        arrived[at * CFD_DEG_MAX + b] = v != 0.0;
+    }
+    return d;
+}
+"""
+
 _BENCH_PAPER_C = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
-#include "cfd_node.h"
 
 #define NN (CFD_NX * CFD_NX)
 
@@ -111,16 +131,10 @@ int main(int argc, char **argv) {
     bounds = malloc(sizeof(cfd_packet) * (size_t)steps * CFD_NODES * CFD_DEG_MAX);
     for (k = 0; k < steps; ++k)
         for (j = 0; j < CFD_NODES; ++j) {
-            const int *senders;
-            const int at = k * CFD_NODES + j, node = cfd_exported_node(j);
-            int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node);
+            const int at = k * CFD_NODES + j;
+            int d = read_node_step(fh, at, cfd_exported_node(j), u, z, arrived);
             double v;
-            for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return 2;
-            for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return 2;
-            for (b = 0; b < d; ++b) {
-                if (fscanf(fh, "%lf", &v) != 1) return 2;
-                arrived[at * CFD_DEG_MAX + b] = v != 0.0;
-            }
+            if (d < 0) return 2;
             for (c = 0; c < d * CFD_NX; ++c)
                 if (fscanf(fh, "%lf", &rec[at * CFD_DEG_MAX * CFD_NX + c]) != 1) return 2;
             for (b = 0; b < d; ++b) {
@@ -144,19 +158,12 @@ int main(int argc, char **argv) {
             }
     }
     clock_gettime(CLOCK_MONOTONIC, &t1);
-    printf("%.9g %d\n", (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec), steps * CFD_NODES * reps);
-    printf("%d\n", (int)sizeof(cfd_node));
-    return 0;
+    return report(&t0, &t1, steps * CFD_NODES * reps);
 }
 """
 
 
 _BENCH_SCHEDULED_C = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
-#include "cfd_node.h"
 
 int main(int argc, char **argv) {
     FILE *fh = fopen(argv[1], "r");
@@ -174,16 +181,9 @@ int main(int argc, char **argv) {
     later = malloc(sizeof(double) * (size_t)steps * CFD_NODES * CFD_ROUNDS * CFD_DEG_MAX * CFD_NX);
     for (k = 0; k < steps; ++k)
         for (j = 0; j < CFD_NODES; ++j) {
-            const int *senders;
-            const int at = k * CFD_NODES + j, node = cfd_exported_node(j);
-            int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node);
-            double v;
-            for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return 2;
-            for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return 2;
-            for (b = 0; b < d; ++b) {
-                if (fscanf(fh, "%lf", &v) != 1) return 2;
-                arrived[at * CFD_DEG_MAX + b] = v != 0.0;
-            }
+            const int at = k * CFD_NODES + j;
+            int d = read_node_step(fh, at, cfd_exported_node(j), u, z, arrived);
+            if (d < 0) return 2;
             for (b = 0; b < d; ++b)
                 for (c = 0; c < CFD_NX; ++c) if (fscanf(fh, "%lf", &got[at * CFD_DEG_MAX + b].x[c]) != 1) return 2;
             for (b = 0; b < d && CFD_EXCHANGE; ++b)
@@ -208,9 +208,7 @@ int main(int argc, char **argv) {
             }
     }
     clock_gettime(CLOCK_MONOTONIC, &t1);
-    printf("%.9g %d\n", (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec), steps * CFD_NODES * reps);
-    printf("%d\n", (int)sizeof(cfd_node));
-    return 0;
+    return report(&t0, &t1, steps * CFD_NODES * reps);
 }
 """
 
@@ -235,7 +233,8 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     studies.design(scenario, mode=mode, out=design)
     studies.export(design, out=c)
     cc = shutil.which("cc") or shutil.which("gcc")
-    (c / "bench.c").write_text({"paper": _BENCH_PAPER_C, "scheduled": _BENCH_SCHEDULED_C}.get(mode, _BENCH_C))
+    driver = {"paper": _BENCH_EXCHANGE + _BENCH_PAPER_C, "scheduled": _BENCH_EXCHANGE + _BENCH_SCHEDULED_C}
+    (c / "bench.c").write_text(_BENCH_HEAD + driver.get(mode, _BENCH_C))
     for src in ("cfd_node.c", "cfd_model.c"):
         subprocess.run([cc, "-std=c99", "-O2", "-c", src], cwd=c, check=True)
     subprocess.run([cc, "-std=c99", "-O2", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,

@@ -516,6 +516,12 @@ static int finish(FILE *fh, int steps, double worst, int bad) {
     return bad ? 1 : 0;
 }
 
+/* a replay that ends before its header's steps and nodes: exit 2 */
+static int short_replay(const char *name, int k, int node) {
+    fprintf(stderr, "%s: short at step %d, node %d\n", name, k + 1, node);
+    return 2;
+}
+
 /* open the replay named on the command line, check it is one of these nodes, start every node at the prior */
 static FILE *start(int argc, char **argv, cfd_node *nodes, int *steps) {
     FILE *fh;
@@ -554,8 +560,7 @@ int main(int argc, char **argv) {
             if (read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1) || read_numbers(fh, rec, m_rec)
                     || read_numbers(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
                     || read_numbers(fh, P, CFD_NX * CFD_NX)) {
-                fprintf(stderr, "%s: short at step %d, node %d\n", argv[1], k + 1, nodes[j].node);
-                return 2;
+                return short_replay(argv[1], k, nodes[j].node);
             }
             for (b = 0; b < nb - 1; ++b) arrived[b] = flags[b] != 0.0;
             e = cfd_step(&nodes[j], z, arrived, rec, CFD_NU ? u : NULL);
@@ -1129,8 +1134,7 @@ int main(int argc, char **argv) {
             if (short_read || read_numbers(fh, px, CFD_NX) || read_numbers(fh, pP, CFD_NX * CFD_NX)
                     || read_numbers(fh, pok, 1) || read_numbers(fh, x, CFD_NX)
                     || read_numbers(fh, P, CFD_NX * CFD_NX)) {
-                fprintf(stderr, "%s: short at step %d, node %d\n", argv[1], k + 1, nodes[j].node);
-                return 2;
+                return short_replay(argv[1], k, nodes[j].node);
             }
             for (b = 0; b < d; ++b) arrived[b] = flags[b] != 0.0;
             e = cfd_predict(&nodes[j], CFD_NU ? u : NULL, &mine);
@@ -1823,8 +1827,7 @@ int main(int argc, char **argv) {
                 if (!short_read) e = cfd_round(&nodes[j], rec);
             }
             if (short_read || read_numbers(fh, x, CFD_NX) || read_numbers(fh, P, CFD_NX * CFD_NX)) {
-                fprintf(stderr, "%s: short at step %d, node %d\n", argv[1], k + 1, nodes[j].node);
-                return 2;
+                return short_replay(argv[1], k, nodes[j].node);
             }
             if (e) {
                 fprintf(stderr, "step %d, node %d: the node filter returned %d\n", k + 1, nodes[j].node, e);
