@@ -38,7 +38,7 @@ from designer.validation import InputError, check_int
 from .consensus import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
                               rule_filter, tuned_items, update_nodes)
-from .node import NodeNetwork, register_node_filter
+from .node import NodeInputs, NodeNetwork, register_node_filter
 
 __all__ = ["Packet", "ConsensusNode", "ConsensusNetwork"]
 
@@ -92,9 +92,10 @@ class ConsensusNode:
         """The prediction phase of the next step: returns the packet this node sends (its prediction, its
         covariance and whether that is a bound)."""
         if self._pred is not None:
-            raise InputError(f"node {self.node} has predicted step {self.k} already: update it first")
+            raise InputError(f"node {self.node} has predicted step {self.k} already: call update(z, received, "
+                             "bounds) next")
         m = self.model
-        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        u = NodeInputs.of(self).inputs(u, m.n_u)
         prop = np.array([[self.proper]])
         xp, Pp, m28, sigma, pvalid, th2, limit = predict_nodes(m, self.design, self._rule.predict, self.k,
                                                                self.x[None, None], self.P[None, None], prop, u,
@@ -107,34 +108,29 @@ class ConsensusNode:
         arrived, ``bounds`` ``{neighbour: Packet}`` every in-neighbour's packet as sent (its ``P`` and ``ok``).
         Returns the new estimate (also ``self.x``; ``self.P`` its covariance, a bound while ``self.valid``)."""
         if self._pred is None:
-            raise InputError(f"node {self.node} must predict step {self.k} before its update")
+            raise InputError(f"node {self.node} must predict step {self.k} before its update: call predict(u) first")
         m, i, design = self.model, self.node, self.design
         xp, Pp, pvalid, prop = self._pred
-        dim = m.sensor_dims[i]
-        z = np.asarray(z, dtype=float).reshape(-1)
-        if z.shape != (dim,):
-            raise InputError(f"z must be node {i}'s measurement ({dim} components), got {z.shape}")
-        received = dict(received or {})
+        dim, nx = m.sensor_dims[i], m.n_x
+        chk = NodeInputs.of(self)
+        z = chk.array("z", z, (dim,))
         senders = self.senders.tolist()
-        for name, given in (("received", received), ("bounds", bounds)):
-            extra = sorted(set(given) - set(senders))
-            if extra:
-                raise InputError(f"{name} holds node {extra[0]}, which is not an in-neighbour of node {i} "
-                                 f"{senders}")
+        received = chk.received("received", received, senders, f"an in-neighbour of node {i}")
+        bounds = chk.received("bounds", bounds, senders, f"an in-neighbour of node {i}")
         missing = [j for j in senders if j not in bounds]
         if missing:
-            raise InputError(f"bounds must hold every in-neighbour's packet (node {i}: {senders}), missing "
-                             f"{missing[0]}")
-        d, nx = len(senders), m.n_x
+            raise chk.refuse("bounds", f"must hold every in-neighbour's packet (node {i}: {senders}), missing "
+                                       f"{missing[0]}")
+        d = len(senders)
         arrived = np.array([[j in received for j in senders]], dtype=bool)
         packets = np.zeros((1, d, nx))
+        Pn = np.zeros((1, d, nx, nx))
+        nb_ok = True
         for e, j in enumerate(senders):
             if j in received:
-                packets[0, e] = np.asarray(received[j], dtype=float).reshape(nx)
-        Pn = np.zeros((1, d, nx, nx))
-        for e, j in enumerate(senders):
-            Pn[0, e] = np.asarray(bounds[j].P, dtype=float).reshape(nx, nx)
-        nb_ok = all(bool(bounds[j].ok) for j in senders)
+                packets[0, e] = chk.array(f"received[{j}]", received[j], (nx,))
+            Pn[0, e], = chk.packet(f"bounds[{j}]", bounds[j], (("P", (nx, nx)),), Packet)
+            nb_ok = chk.flag(f"bounds[{j}].ok", bounds[j].ok) and nb_ok
         keep = arrived
         if design.gate and d:
             own = np.zeros(d, dtype=int)
@@ -181,6 +177,8 @@ class ConsensusNetwork(NodeNetwork):
 
     def _exchange(self, z, dos, fdi, xi, u):
         packets = [nd.predict(u) for nd in self.nodes]
+        if not self.sent_finite(packets):
+            return packets, []
         delivered = self.deliver(packets, dos, fdi, xi)
         for nd, z_i, (got, bounds) in zip(self.nodes, z, delivered):
             nd.update(z_i, got, bounds)

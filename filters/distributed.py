@@ -93,7 +93,7 @@ from designer.validation import InputError, check_finite, check_int
 from .attacks import AttackPattern
 from .consensus import DIVERGED, check_run_inputs
 from .consensus_batch import Exchange, batch_inputs, wrap_residuals
-from .node import NodeNetwork
+from .node import NodeInputs, NodeNetwork
 from .result import FilterResult
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
@@ -576,19 +576,22 @@ class _InformationNode:
     def _predicted(self, z, u):
         """``(x̂⁻, P⁻, U, u)`` (stacks of one) of the next step with the node's measurement ``z``."""
         m, i = self.model, self.node
-        z = np.asarray(z, dtype=float).reshape(-1)
-        if z.shape != (m.sensor_dims[i],):
-            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
-        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        chk = NodeInputs.of(self)
+        z = chk.array("z", z, (m.sensor_dims[i],))
+        u = chk.inputs(u, m.n_u)
         xp, Pp = _predict(m, self.x[None, None], self.P[None, None], self.k, u)
         U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
         return xp, Pp, U, v
 
-    def _check_senders(self, received: dict) -> None:
-        extra = sorted(set(received) - set(self.senders.tolist()))
-        if extra:
-            raise InputError(f"received holds node {extra[0]}, which is not an in-neighbour of node {self.node} "
-                             f"{self.senders.tolist()}")
+    def _packets(self, received, kind: type, fields: tuple) -> tuple[np.ndarray, list]:
+        """``received`` ``{neighbour: packet}`` checked (:class:`filters.node.NodeInputs`: its keys in-neighbours,
+        each packet a ``kind`` with ``fields`` ``((field, shape), ...)``): ``(arrived (d,) bool, [per channel its
+        arrays, or None where nothing arrived])``."""
+        chk = NodeInputs.of(self)
+        senders = self.senders.tolist()
+        received = chk.received("received", received, senders, f"an in-neighbour of node {self.node}")
+        got = [chk.packet(f"received[{j}]", received[j], fields, kind) if j in received else None for j in senders]
+        return np.array([g is not None for g in got], dtype=bool), got
 
 
 class KCFNode(_InformationNode):
@@ -607,7 +610,7 @@ class KCFNode(_InformationNode):
     def predict(self, z, u=None) -> KCFPacket:
         """The prediction phase with the node's measurement ``z``: the packet it sends."""
         if self._pred is not None:
-            raise InputError(f"node {self.node} has predicted step {self.k} already: update it first")
+            raise InputError(f"node {self.node} has predicted step {self.k} already: call update(received) next")
         xp, Pp, U, v = self._predicted(z, u)
         self._pred = (xp, Pp, U[:, None], v[:, None])
         return KCFPacket(v[0], U[0], xp[0, 0])
@@ -617,18 +620,15 @@ class KCFNode(_InformationNode):
         ``self.x``; ``self.P`` its covariance ``M``)."""
         i = self.node
         if self._pred is None:
-            raise InputError(f"node {i} must predict step {self.k} before its update")
-        received = dict(received or {})
-        self._check_senders(received)
-        xp, Pp, U, v = self._pred
+            raise InputError(f"node {i} must predict step {self.k} before its update: call predict(z, u) first")
         nx, d = self.model.n_x, self.senders.size
-        r = np.array([[j in received for j in self.senders.tolist()]], dtype=float)
+        arrived, got = self._packets(received, KCFPacket, (("U", (nx, nx)), ("u", (nx,)), ("x", (nx,))))
+        xp, Pp, U, v = self._pred
+        r = arrived[None].astype(float)
         pU, pu, px = np.zeros((1, d, nx, nx)), np.zeros((1, d, nx)), np.zeros((1, d, nx))
-        for e, j in enumerate(self.senders.tolist()):
-            if j in received:
-                p = received[j]
-                pU[0, e], pu[0, e], px[0, e] = (np.asarray(v, dtype=float).reshape(w.shape[2:])
-                                                for v, w in zip((p.U, p.u, p.x), (pU, pu, px)))
+        for e, p in enumerate(got):
+            if p is not None:
+                pU[0, e], pu[0, e], px[0, e] = p
         # the sums over its incoming channels as the batch adds them (a lost packet an exact zero there)
         S = U + Exchange.node_sum(r[..., None, None] * pU)[:, None]
         y = v + Exchange.node_sum(r[..., None] * pu)[:, None]
@@ -667,6 +667,8 @@ class KCFNetwork(NodeNetwork):
 
     def _exchange(self, z, dos, fdi, xi, u):
         packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        if not self.sent_finite(packets):
+            return packets, []
         delivered = self.deliver(packets, dos, fdi, xi)
         for nd, got in zip(self.nodes, delivered):
             nd.update(got)
@@ -704,7 +706,8 @@ class HCMCINode(_InformationNode):
     def predict(self, z, u=None) -> HCMCIPacket:
         """The prediction with the node's measurement ``z``: the packet of the first round."""
         if self._state is not None:
-            raise InputError(f"node {self.node} has predicted step {self.k} already: run its rounds first")
+            raise InputError(f"node {self.node} has predicted step {self.k} already: call round(received) next (round "
+                             f"{self._round} of {self.rounds})")
         xp, Pp, dO, dq = self._predicted(z, u)
         if _failures(xp, Pp)[0] < 1:
             self.diverged = True
@@ -723,23 +726,22 @@ class HCMCINode(_InformationNode):
         or None after the last (then ``x``, ``P`` are the step's posterior)."""
         i, nx = self.node, self.model.n_x
         if self._state is None:
-            raise InputError(f"node {i} must predict step {self.k} before its rounds")
-        received = dict(received or {})
-        self._check_senders(received)
-        heard = tuple(j in received for j in self.senders.tolist())
+            raise InputError(f"node {i} must predict step {self.k} before its rounds: call predict(z, u) first")
+        arrived, got = self._packets(received, HCMCIPacket, (("O", (nx, nx)), ("q", (nx,)), ("dO", (nx, nx)),
+                                                             ("dq", (nx,))))
+        heard = tuple(arrived.tolist())
         if self._heard is not None and heard != self._heard:
-            raise InputError(f"round {self._round} of node {i} must hear the neighbours of its first round (a step's "
-                             "channels are attacked once)")
+            raise InputError(f"round {self._round} of node {i} at step {self.k} must hear the neighbours of its first "
+                             "round (a step's channels are attacked once)")
         self._heard = heard
         d = self.senders.size
-        w = hcmci_weights(self.network, np.full(d, i), self.senders, np.array(heard, dtype=bool))[None]  # (1, d)
+        w = hcmci_weights(self.network, np.full(d, i), self.senders, arrived)[None]  # (1, d)
         w_self = 1.0 - Exchange.node_sum(w)  # (1,)
         pO, pq, pdO, pdq = (np.zeros((1, d, nx, nx)), np.zeros((1, d, nx)), np.zeros((1, d, nx, nx)),
                             np.zeros((1, d, nx)))
-        for e, j in enumerate(self.senders.tolist()):
-            if j in received:
-                p = received[j]
-                pO[0, e], pq[0, e], pdO[0, e], pdq[0, e] = p.O, p.q, p.dO, p.dq
+        for e, p in enumerate(got):
+            if p is not None:
+                pO[0, e], pq[0, e], pdO[0, e], pdq[0, e] = p
         O, q, dO, dq = self._state
         q, dq = (w_self[:, None, None] * q + Exchange.node_sum(w[..., None] * pq)[:, None],
                  w_self[:, None, None] * dq + Exchange.node_sum(w[..., None] * pdq)[:, None])
@@ -786,6 +788,8 @@ class HCMCINetwork(NodeNetwork):
         first = packets = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
         rounds = []
         for _ in range(self.nodes[0].rounds):
+            if not self.sent_finite(packets):
+                return first, rounds
             rounds.append(self.deliver(packets, dos, fdi, xi))
             packets = [nd.round(got) for nd, got in zip(self.nodes, rounds[-1])]
         return first, rounds

@@ -20,11 +20,19 @@ Asking for the node filter of another rule (``mse``: an oracle) raises :class:`d
 why.  The baselines KCF and HCMCI have node filters too (:class:`filters.distributed.KCFNode`,
 :class:`filters.distributed.HCMCINode`), by name through :func:`studies.node_filter`.  :class:`NodeNetwork` is what
 the networks that exchange packets share: the step, the delivery over the attacked channels, the stop at a divergence.
+
+Every public method of a node filter and of a network checks what it is given before it computes (:class:`NodeInputs`,
+one place for all of them): finite numbers of the right shape (a measurement of the node's sensor, the model's
+inputs, each packet's arrays), the keys of ``received`` among the node's in-neighbours (or its ball's sensors), flags
+that are flags, and the phases' order; a refusal is an :class:`designer.validation.InputError` naming the argument,
+the node and the step (``z of node 3 at step 7 must be 2 finite numbers, got [nan, 1.0]``) and leaves the node as
+it was (its state, its step, its phase), so that the next call gives what it would have given without the refused
+one.
 """
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -32,7 +40,8 @@ from designer.design import ConsensusDesign
 from designer.gain_rules import gain_rule
 from designer.validation import InputError, check_int
 
-__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network", "NodeNetwork"]
+__all__ = ["register_node_filter", "node_rules", "node_filter", "node_network", "run_network", "NodeNetwork",
+           "NodeInputs", "check_step"]
 
 _NODE_FILTERS: dict[str, tuple[type, type]] = {}
 # the modules that register the built-in rules' node filters (imported late: they import this one)
@@ -80,14 +89,135 @@ def node_network(model, network, design: ConsensusDesign, **kw: Any):
     return _classes(design)[1](model, network, design, **kw)
 
 
+def _shown(value) -> str:
+    """``value`` as a refusal shows it: its numbers when few, else its shape or its type."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nesting
+        arr = None
+    if arr is None or arr.dtype.kind not in "biuf":
+        text = repr(value)
+        return f"{type(value).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+    if arr.size > 8:
+        return f"an array of shape {arr.shape}"
+    return repr(arr.tolist())
+
+
+def _numbers(shape: tuple) -> str:
+    if len(shape) == 1:
+        return f"{shape[0]} finite number{'s' if shape[0] != 1 else ''}"
+    return "a " + "x".join(map(str, shape)) + " array of finite numbers"
+
+
+class NodeInputs:
+    """What a node filter (or a network of them) is given, checked: every method names the argument and says where
+    (``where``: ``'of node 3 at step 7'``) in the :class:`designer.validation.InputError` it raises, and returns the
+    value as the filter uses it.  Cheap: a conversion and one ``isfinite`` per array."""
+
+    __slots__ = ("where",)
+
+    def __init__(self, where: str):
+        self.where = where
+
+    @classmethod
+    def of(cls, node) -> "NodeInputs":
+        """The checks of a node filter ``node`` (its ``node`` and ``k``) at its current step."""
+        return cls(f"of node {node.node} at step {node.k}")
+
+    def refuse(self, name: str, what: str) -> InputError:
+        """The error for argument ``name``: ``'{name} {where} {what}'``."""
+        return InputError(f"{name} {self.where} {what}")
+
+    def array(self, name: str, value, shape: tuple) -> np.ndarray:
+        """``value`` as a float array of ``shape``, every number finite (a single number for shape ``(1,)``);
+        booleans, text, None and NaN or infinity are refused."""
+        try:
+            arr = np.asarray(value)
+            ok = arr.dtype.kind in "iuf"
+        except (TypeError, ValueError):
+            ok = False
+        if ok:
+            if arr.shape != shape and not (arr.ndim == 0 and shape == (1,)):
+                ok = False
+            else:
+                arr = arr.astype(float, copy=False).reshape(shape)
+                ok = bool(np.isfinite(arr).all())
+        if not ok:
+            raise self.refuse(name, f"must be {_numbers(shape)}, got {_shown(value)}")
+        return arr
+
+    def inputs(self, u, n_u: int) -> np.ndarray:
+        """The model's known inputs ``u`` (n_u,): None or empty when the model has none."""
+        if n_u == 0:
+            if u is not None and np.size(u) != 0:
+                raise self.refuse("u", f"must be None or empty (the model has no known inputs), got {_shown(u)}")
+            return np.zeros(0)
+        if u is None:
+            raise self.refuse("u", f"must be the model's {n_u} known input{'s' if n_u != 1 else ''}, got None")
+        return self.array("u", u, (n_u,))
+
+    def flags(self, name: str, value, n: int) -> np.ndarray | None:
+        """``n`` flags (booleans, or 0 and 1) as a boolean array; None stays None (no attack)."""
+        if value is None:
+            return None
+        try:
+            arr = np.asarray(value)
+            ok = arr.shape == (n,) and (arr.dtype.kind == "b" or (arr.dtype.kind in "iuf" and bool(
+                np.isin(arr, (0, 1)).all())))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise self.refuse(name, f"must be {n} flags (True/False, one per channel), got {_shown(value)}")
+        return arr.astype(bool, copy=False)
+
+    def flag(self, name: str, value) -> bool:
+        """One flag: a boolean (Python's or NumPy's)."""
+        if not isinstance(value, (bool, np.bool_)):
+            raise self.refuse(name, f"must be True or False, got {_shown(value)}")
+        return bool(value)
+
+    def received(self, name: str, received, known, of: str, noun: str = "node") -> dict:
+        """``received`` as a dict (None: empty), its keys among ``known`` (the node's in-neighbours, or the sensors of
+        its ball; ``of`` says which, e.g. ``'an in-neighbour of node 1'``, ``noun`` what a key names)."""
+        if received is None:
+            return {}
+        if not isinstance(received, Mapping):
+            raise self.refuse(name, f"must be a dict {{{noun}: what arrived}}, got {_shown(received)}")
+        known = list(known)
+        for j in received:
+            if isinstance(j, (bool, np.bool_)) or not isinstance(j, (int, np.integer)) or j not in known:
+                raise self.refuse(name, f"holds {noun} {j!r}, which is not {of} {known}")
+        return received
+
+    def packet(self, name: str, packet, fields: tuple, kind: type) -> tuple:
+        """The arrays of a packet ``packet`` (a ``kind`` or any object with its fields): ``fields`` ``((field, shape),
+        ...)``, each checked as :meth:`array` (``name.field``)."""
+        out = []
+        for field, shape in fields:
+            if not hasattr(packet, field):
+                raise self.refuse(name, f"must be a {kind.__name__} (with {', '.join(f for f, _ in fields)}), got "
+                                        f"{_shown(packet)}")
+            out.append(self.array(f"{name}.{field}", getattr(packet, field), shape))
+        return tuple(out)
+
+
 def run_network(net, z, attacks=None, inputs=None):
     """Every step of a run through a node network ``net`` (its ``nodes`` with ``x`` and ``P``, its ``step(z, dos, fdi,
     xi, u)``): ``z`` (K, n_z), ``attacks`` the run's :class:`filters.attacks.AttackPattern`, ``inputs`` (K, n_u).
     Returns ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
     from .consensus_batch import edge_attacks
 
+    k0 = net.nodes[0].k
+    if np.ndim(z) != 2:
+        raise NodeInputs(f"of the run from step {k0}").refuse("z", f"must be (steps, {net.model.n_z}): one row of "
+                                                                   f"measurements per step, got {_shown(z)}")
+    K = len(z)
+    if inputs is not None and np.ndim(inputs) != 2:
+        raise NodeInputs(f"of the run from step {k0}").refuse("inputs", f"must be ({K}, {net.model.n_u}): one row "
+                                                                        f"per step, got {_shown(inputs)}")
+    for k in range(K):  # every step's measurement and inputs before the first step: a refused run changes nothing
+        check_step(net, z[k], None, None, None, None if inputs is None else inputs[k], k0 + k)
     z = np.asarray(z, dtype=float)
-    K = z.shape[0]
     att = edge_attacks(net.network, None if attacks is None else [attacks], 1, K, net.model.n_x)
     xs = [np.stack([nd.x for nd in net.nodes])]
     Ps = [np.stack([nd.P for nd in net.nodes])]
@@ -96,6 +226,17 @@ def run_network(net, z, attacks=None, inputs=None):
         xs.append(net.step(z[k], *e, u=None if inputs is None else inputs[k]))
         Ps.append(np.stack([nd.P for nd in net.nodes]))
     return np.stack(xs), np.stack(Ps)
+
+
+def check_step(net, z, dos, fdi, xi, u, k: int | None = None) -> tuple:
+    """A network's step's arguments checked (:class:`NodeInputs`, ``'of the network at step k'``): ``z`` (n_z,),
+    ``dos``, ``fdi`` (E,) flags and ``xi`` (E, n_x) over the network's E channels, or None, and ``u`` (n_u,).
+    Returns them as the step uses them."""
+    m = net.model
+    chk = NodeInputs(f"of the network at step {net.nodes[0].k if k is None else k}")
+    E = int(np.count_nonzero(net.network.adjacency))
+    return (chk.array("z", z, (m.n_z,)), chk.flags("dos", dos, E), chk.flags("fdi", fdi, E),
+            None if xi is None else chk.array("xi", xi, (E, m.n_x)), chk.inputs(u, m.n_u))
 
 
 class NodeNetwork:
@@ -113,12 +254,12 @@ class NodeNetwork:
         """One step of every node: ``z`` (n_z,) every sensor's measurement, ``dos``, ``fdi`` (E,) and ``xi`` (E, n_x)
         the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order; None:
         none).  Returns every node's estimate (N, n_x)."""
+        z, dos, fdi, xi, u = check_step(self, z, dos, fdi, xi, u)
         if self.stopped:
             for nd in self.nodes:
                 nd.k += 1
         else:
             offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
-            z = np.asarray(z, dtype=float)
             self.last = self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi,
                                        xi, u)
             if any(nd.diverged for nd in self.nodes):
@@ -130,6 +271,20 @@ class NodeNetwork:
     def run(self, z, attacks=None, inputs=None):
         """Every step of a run (:func:`run_network`): ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))``."""
         return run_network(self, z, attacks, inputs)
+
+    def sent_finite(self, sent) -> bool:
+        """Whether every number in ``sent`` (what each node sends in a round: a packet or an array) is finite.  A node
+        whose packet is not has diverged (its neighbours would refuse the packet): it is marked so and every node takes
+        the step, so that the network stops there (NaN from then on), as the batched filter stops the run."""
+        bad = [nd for nd, p in zip(self.nodes, sent)
+               if not all(np.isfinite(a).all() for a in ((p,) if isinstance(p, np.ndarray) else p)
+                          if a is not None and not isinstance(a, (bool, np.bool_)))]
+        for nd in bad:
+            nd.diverged = True
+        if bad:
+            for nd in self.nodes:
+                nd.k += 1
+        return not bad
 
     def carry(self, sent, dos, fdi, xi, falsified) -> list[dict]:
         """What ``sent`` (one packet per node) delivers over the step's channels, node by node (receiver-major, each

@@ -60,7 +60,7 @@ from .attacks import AttackPattern
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
                               result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
-from .node import register_node_filter, run_network
+from .node import NodeInputs, check_step, register_node_filter, run_network
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
@@ -431,16 +431,11 @@ class RelayNode:
         """One step: predict, then fuse ``z`` (its own measurement) and the relayed measurements ``received``.
         Returns the new estimate (also ``self.x``; ``self.P`` its expected covariance)."""
         m, i = self.model, self.node
-        z = np.asarray(z, dtype=float).reshape(-1)
-        if z.shape != (m.sensor_dims[i],):
-            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
-        received = dict(received or {})
-        extra = sorted(set(received) - set(self.ball[1:].tolist()))
-        if extra:
-            raise InputError(f"received holds sensor {extra[0]}, which is not in node {i}'s ball "
-                             f"{self.ball[1:].tolist()} (the sensors whose measurements reach it)")
-        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)  # as the batch takes them
-        xp, Pp = _predict(m, self.k, self.x[None, None], self.P[None, None], u)
+        chk = NodeInputs.of(self)
+        z = chk.array("z", z, (m.sensor_dims[i],))
+        received = chk.received("received", received, self.ball[1:].tolist(), f"in node {i}'s ball (the other "
+                                "sensors whose measurements reach it)", "sensor")
+        u = chk.inputs(u, m.n_u)
         T = int(self._lay.start[-1])
         values, arrived = np.zeros((1, T)), np.zeros((1, T), dtype=bool)
         row = 0
@@ -448,12 +443,11 @@ class RelayNode:
             width = m.sensor_dims[s]
             v = z if j == 0 else received.get(int(s))
             if v is not None:
-                v = np.asarray(v, dtype=float).reshape(-1)
-                if v.shape != (width,):
-                    raise InputError(f"received[{s}] must be sensor {s}'s measurement ({width} components), got "
-                                     f"{v.shape}")
+                if j:
+                    v = chk.array(f"received[{s}]", v, (width,))
                 values[0, row:row + width], arrived[0, row:row + width] = v, True
             row += width
+        xp, Pp = _predict(m, self.k, self.x[None, None], self.P[None, None], u)
         h, H = _ball_rows(m, self._lay, self.k, xp)
         x, P = _fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
         self.x, self.P = x[0, 0], P[0, 0]
@@ -465,7 +459,11 @@ class RelayNetwork:
     """Every node of a ``relay`` or ``flood`` design as a :class:`RelayNode`, driven over a run: each step the
     relaying is simulated from the step's channel attacks (which copy of every measurement reaches which node, what
     falsified channels add: :meth:`designer.relay.Routes.realise`, ``H_s`` at the forwarding node's prediction
-    times ``ξ``), and every node steps with what reached it."""
+    times ``ξ``), and every node steps with what reached it.  When a node diverges the run stops, as the batch stops
+    it: NaN from then on."""
+
+    stopped = False
+    last = None
 
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, *, x0=None, P0=None):
         design = validate_design(design, model, network)
@@ -481,15 +479,29 @@ class RelayNetwork:
         """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
         (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order;
         None: none).  Returns every node's estimate (N, n_x)."""
-        delivered = self.deliver(z, dos, fdi, xi, u)
-        for nd, (own, got) in zip(self.nodes, delivered):
-            nd.step(own, got, u)
-        self.last = (None, [delivered])  # as filters.node.NodeNetwork.last: what reached each node
+        z, dos, fdi, xi, u = check_step(self, z, dos, fdi, xi, u)
+        if not self.stopped:
+            delivered = self.deliver(z, dos, fdi, xi, u)
+            # a measurement relayed through a diverged node's prediction is not finite: the run stops there
+            self.stopped = not all(np.isfinite(v).all() for _, got in delivered for v in got.values())
+        if self.stopped:
+            for nd in self.nodes:
+                nd.k += 1
+        else:
+            for nd, (own, got) in zip(self.nodes, delivered):
+                nd.step(own, got, u)
+            self.last = (None, [delivered])  # as filters.node.NodeNetwork.last: what reached each node
+            self.stopped = bool(diverged_nodes(np.stack([nd.x for nd in self.nodes]),
+                                               np.stack([nd.P for nd in self.nodes])).any())
+        if self.stopped:  # as the batch stops a run at a node's divergence: NaN from then on
+            for nd in self.nodes:
+                nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
         return np.stack([nd.x for nd in self.nodes])
 
     def deliver(self, z, dos=None, fdi=None, xi=None, u=None) -> list[tuple[np.ndarray, dict]]:
         """What reaches every node at the next step (the arguments of :meth:`step`), without stepping: per node
         ``(its own measurement, {sensor: the relayed measurement that arrived}``)."""
+        z, dos, fdi, xi, u = check_step(self, z, dos, fdi, xi, u)
         m = self.model
         k = self.nodes[0].k
         x = np.stack([nd.x for nd in self.nodes])[None]

@@ -38,7 +38,7 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .node import NodeNetwork, register_node_filter
+from .node import NodeInputs, NodeNetwork, register_node_filter
 from .result import diverged_nodes, stop_diverged
 from .consensus import channel_packets
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
@@ -304,47 +304,54 @@ class ScheduledNode:
             return np.full_like(self.P, np.nan)
         return self.tables.Phi[self.k, self.node]
 
+    _CALLS = {"predict": "predict(z, u)", "update": "update(received)"}
+
     def _expect(self, phase: str) -> None:
         if self._phase != phase:
-            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not its {phase}")
+            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not its {phase}: call "
+                             f"{self._CALLS.get(self._phase, 'round(received)')} next")
 
     def predict(self, z, u=None) -> ScheduledPacket:
         """The prediction phase with the node's measurement ``z``: the packet it sends."""
         self._expect("predict")
         m, i = self.model, self.node
-        z = np.asarray(z, dtype=float).reshape(-1)
-        if z.shape != (m.sensor_dims[i],):
-            raise InputError(f"z must be node {i}'s measurement ({m.sensor_dims[i]} components), got {z.shape}")
-        u = np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0)
+        chk = NodeInputs.of(self)
+        z = chk.array("z", z, (m.sensor_dims[i],))
+        u = chk.inputs(u, m.n_u)
         xp, Pp, choice = scheduled_prediction(m, self.tables, self.k, self.x[None, None], self.P[None, None], u)
         self._step = (z, xp, Pp, choice)
         self._phase = "update"
         return ScheduledPacket(xp[0, 0], z.copy() if self.tables.exchange else None)
 
-    def _arrived(self, received, what: str):
-        received = dict(received or {})
-        extra = sorted(set(received) - set(self.senders.tolist()))
-        if extra:
-            raise InputError(f"{what} holds node {extra[0]}, which is not an in-neighbour of node {self.node} "
-                             f"{self.senders.tolist()}")
-        d = self.tables.channels.d_max
+    def _arrived(self, received, fields):
+        """``received`` checked (its keys in-neighbours, each packet's ``fields`` as :meth:`NodeInputs.packet`, or
+        with ``fields`` None an estimate): ``(got (1, 1, d_max), sent_x (1, 1, d_max, n_x), sent_z)`` (``sent_z``
+        the measurements per channel with ``fields``' ``z``)."""
+        chk = NodeInputs.of(self)
+        senders = self.senders.tolist()
+        received = chk.received("received", received, senders, f"an in-neighbour of node {self.node}")
+        m, d = self.model, self.tables.channels.d_max
         got = np.zeros((1, 1, d), dtype=bool)
-        got[0, 0, :self.senders.size] = [j in received for j in self.senders.tolist()]
-        return received, got
+        sent_x, sent_z = np.zeros((1, 1, d, m.n_x)), np.zeros((1, 1, d, max(m.sensor_dims)))
+        for e, j in enumerate(senders):
+            if j in received:
+                got[0, 0, e] = True
+                if fields is None:
+                    sent_x[0, 0, e] = chk.array(f"received[{j}]", received[j], (m.n_x,))
+                else:
+                    got_j = chk.packet(f"received[{j}]", received[j], fields(j), ScheduledPacket)
+                    sent_x[0, 0, e] = got_j[0]
+                    if len(got_j) > 1:
+                        sent_z[0, 0, e, :m.sensor_dims[j]] = got_j[1]
+        return got, sent_x, sent_z
 
     def update(self, received=None) -> np.ndarray:
         """The first round: ``received`` ``{neighbour: ScheduledPacket}`` as they arrived.  Returns the estimate."""
         self._expect("update")
         m, i, nx = self.model, self.node, self.model.n_x
-        received, got = self._arrived(received, "received")
+        got, sent_x, sent_z = self._arrived(received, lambda j: (("x", (nx,)),) + (
+            (("z", (m.sensor_dims[j],)),) if self.tables.exchange else ()))
         z, xp, Pp, choice = self._step
-        d, nz = got.shape[-1], max(m.sensor_dims)
-        sent_x, sent_z = np.zeros((1, 1, d, nx)), np.zeros((1, 1, d, nz))
-        for e, j in enumerate(self.senders.tolist()):
-            if j in received:
-                sent_x[0, 0, e] = np.asarray(received[j].x, dtype=float).reshape(nx)
-                if self.tables.exchange:
-                    sent_z[0, 0, e, :m.sensor_dims[j]] = np.asarray(received[j].z, dtype=float).reshape(-1)
         zk = np.zeros((1, m.n_z))
         offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
         zk[0, offsets[i]:offsets[i + 1]] = z
@@ -358,18 +365,14 @@ class ScheduledNode:
         """Exchange round r (2..``rounds``): ``{neighbour: x̃_j}`` the neighbours' current estimates that arrived
         (on the channels whose first-round packet arrived).  Returns the estimate."""
         if not self._phase.startswith("round"):
-            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not an exchange round")
+            raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not an exchange round: "
+                             f"call {self._CALLS[self._phase]} next")
         r = int(self._phase.split()[1])
-        received, got = self._arrived(received, "received")
+        got, sent_x, _ = self._arrived(received, None)
         choice, first, xn, Pn = self._step
         if not np.array_equal(got, first):
-            raise InputError(f"round {r} of node {self.node} must receive from the neighbours whose first packet "
-                             f"arrived ({self.senders[first[0, 0, :self.senders.size]].tolist()})")
-        nx = self.model.n_x
-        sent_x = np.zeros((1, 1, got.shape[-1], nx))
-        for e, j in enumerate(self.senders.tolist()):
-            if j in received:
-                sent_x[0, 0, e] = np.asarray(received[j], dtype=float).reshape(nx)
+            raise InputError(f"round {r} of node {self.node} at step {self.k} must receive from the neighbours whose "
+                             f"first packet arrived ({self.senders[first[0, 0, :self.senders.size]].tolist()})")
         xn, Pn, _ = scheduled_round(self.model, self.tables, r, self.k, self._nodes, xn, Pn, choice, got, sent_x,
                                     self._M, self._mu)
         self._step = (choice, got, xn, Pn)
@@ -416,10 +419,14 @@ class ScheduledNetwork(NodeNetwork):
 
     def _exchange(self, z, dos, fdi, xi, u):
         sent = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        if not self.sent_finite(sent):
+            return sent, []
         rounds = [self.deliver(sent, dos, fdi, xi)]
         for nd, got in zip(self.nodes, rounds[0]):
             nd.update(got)
         for _ in range(2, self.nodes[0].rounds + 1):
+            if not self.sent_finite([nd.x for nd in self.nodes]):
+                return sent, rounds
             rounds.append(self.deliver([nd.x for nd in self.nodes], dos, fdi, xi))
             for nd, got in zip(self.nodes, rounds[-1]):
                 nd.round(got)
