@@ -64,8 +64,9 @@ def check_simulated(model: Model, xs: np.ndarray, zs: np.ndarray) -> None:
     reals, naming the first step where the model's ``f`` or a sensor's ``h`` is not finite, the sensor and, for
     several runs simulated together, the run (its index in the batch)."""
     batch = xs.shape[:-2]
-    X = xs.reshape(-1, *xs.shape[-2:])
-    Z = zs.reshape(-1, *zs.shape[-2:])
+    runs = int(np.prod(batch))  # not -1: no measurement yet (a state that left the reals at the first step) is empty
+    X = xs.reshape(runs, *xs.shape[-2:])
+    Z = zs.reshape(runs, *zs.shape[-2:])
     bad_x = ~np.isfinite(X).all(axis=-1)  # (runs, K + 1)
     bad_z = ~np.isfinite(Z)  # (runs, K, n_z); z[k - 1] measures x[k]
     never = X.shape[1] + 1

@@ -51,7 +51,7 @@ import numpy as np
 
 __all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GATE_CLAUSE",
            "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
-           "open_loop_reference"]
+           "open_loop_reference", "json_number"]
 
 VERDICTS = ("certified", "vacuous", "not steady", "infeasible")
 GROWTH_TOLERANCE = 0.05  # relative growth of the window median a steady bound may show
@@ -81,8 +81,8 @@ VERDICT_ASSUMPTIONS = (
 GATE_CLAUSE = "with the chi-square gate the bound is a model validated by Monte Carlo only, not a proof"
 
 
-def _num(v) -> float | None:
-    """A JSON number: None where not finite."""
+def json_number(v) -> float | None:
+    """A JSON number: None where not finite (JSON has no NaN nor infinity; what every record writes for them)."""
     if v is None:
         return None
     v = float(v)
@@ -144,7 +144,7 @@ def _ratios(values, ref) -> list | None:
     if ref is None or not float(ref) > 0:
         return None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return [_num(v / float(ref)) for v in values]
+        return [json_number(v / float(ref)) for v in values]
 
 
 def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = None,
@@ -200,17 +200,17 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
     detail: dict[str, Any] = {
         "horizon": None if fixed_point is not None else T,
         "fixed_point": fixed_point is not None,
-        "final_trace": [_num(v) for v in final],
-        "open_loop_trace": _num(ol_final),
+        "final_trace": [json_number(v) for v in final],
+        "open_loop_trace": json_number(ol_final),
         "open_loop": open_loop_how or "the prior covariance propagated by P <- F P F^T + Q, no measurement",
-        "centralized": _num(centralized),
-        "local": [_num(v) for v in local],
-        "ratio_open_loop": [_num(v) for v in ratio[:, -1]],
+        "centralized": json_number(centralized),
+        "local": [json_number(v) for v in local],
+        "ratio_open_loop": [json_number(v) for v in ratio[:, -1]],
         "ratio_centralized": _ratios(final, centralized),
         "ratio_local": [(_ratios([f], r) or [None])[0] for f, r in zip(final, local)],
         "judged_steps": None if fixed_point is not None else [first + 1, T],
-        "max_ratio_open_loop": [_num(v) if np.isfinite(v) or v == np.inf else None for v in worst_ratio],
-        "growth": None if growth is None else [_num(g) for g in growth],
+        "max_ratio_open_loop": [json_number(v) if np.isfinite(v) or v == np.inf else None for v in worst_ratio],
+        "growth": None if growth is None else [json_number(g) for g in growth],
         "window": W,
         "tolerance": GROWTH_TOLERANCE,
         "open_loop_exceeded": exceeded if fixed_point is None else None,

@@ -28,8 +28,8 @@ from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.scheduled import table_arrays
 from designer.validation import InputError, check_int
-from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, open_loop_reference,
-                              open_loop_traces, verdict)
+from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, json_number,
+                              open_loop_reference, open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
@@ -252,7 +252,8 @@ def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int, others: d
     at = min(int(steps), TRADEOFF_STEPS)
     others = other_rounds(sc, design, steps) if others is None else others
     own = np.trace(design.tables.P_post[at], axis1=-2, axis2=-1)
-    rmse = {**others, design.rounds: float(np.sqrt(own.mean()))}
+    with np.errstate(over="ignore", invalid="ignore"):  # a covariance that overflowed: no expected RMSE (null)
+        rmse = {**others, design.rounds: json_number(np.sqrt(own.mean()))}
     rows = [{"rounds": L, "messages_per_step": sc.network.messages_per_step(L), "expected_rmse": rmse[L],
              "designed": L == design.rounds} for L in sorted(rmse)]
     return {"step": at, "rows": rows, "note": None if small else (
@@ -274,7 +275,8 @@ def other_rounds(sc: Scenario, design: ConsensusDesign, steps: int) -> dict[int,
     for L in sorted(set(TRADEOFF_ROUNDS) - {design.rounds}):
         tab = design_scheduled(sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0,
                                inputs=sc.inputs(at), exchange=design.exchange == "measurements", stationary=False)
-        out[L] = float(np.sqrt(np.trace(tab.P_post[at], axis1=-2, axis2=-1).mean()))
+        with np.errstate(over="ignore", invalid="ignore"):
+            out[L] = json_number(np.sqrt(np.trace(tab.P_post[at], axis1=-2, axis2=-1).mean()))
     return out
 
 
