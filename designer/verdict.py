@@ -227,6 +227,8 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
                 where, ol_words = "at the fixed point", "the stationary open-loop covariance's trace"
             else:
                 where, ol_words = f"at step {j + 1}", "the open-loop covariance's trace at that step"
+            if not np.isfinite(f) and fixed_point is None:  # where it stopped being finite (an overflow)
+                where = f"from step {int(np.argmax(np.isinf(trace[worst]))) + 1} on (it overflowed)"
             words = (f"node {worst}'s tr Φ is not finite {where}" if not np.isfinite(f) else
                      f"node {worst}'s tr Φ {f:.4g} {where} is {f / ol[j]:.3g} x {ol_words}, {ol[j]:.4g}")
             more = f" ({vac.size} of {N} nodes)" if vac.size > 1 else ""
