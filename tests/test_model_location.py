@@ -88,7 +88,10 @@ def test_a_model_file_in_the_repository_root(tmp_path, example):
 _HELPED = EXAMPLES["spec"].replace(
     "from studies.scenarios import Param, Scenario, ScenarioSpec",
     "from studies.scenarios import Param, Scenario, ScenarioSpec\nimport my_helpers\nfrom helpers.geometry import EDGES"
-).replace("[(0, 1), (1, 2)]", "EDGES").replace("steps=30", "steps=my_helpers.STEPS")
+).replace("[(0, 1), (1, 2)]", "EDGES").replace("steps=30", "steps=my_helpers.STEPS").replace(
+    "def build(p: dict) -> Scenario:\n",
+    "def build(p: dict) -> Scenario:\n    from helpers.edges import RING  # when the scenario is built\n").replace(
+    '("scalar: an example",)', '("scalar: an example", f"{len(RING)} edges")')
 
 
 def _write_helped(folder: Path, steps: int) -> Path:
@@ -104,12 +107,13 @@ def _write_helped(folder: Path, steps: int) -> Path:
 
 def test_sibling_modules_are_imported_privately_and_read_again_after_an_edit(tmp_path, monkeypatch):
     assert "import my_helpers" in _HELPED and "steps=my_helpers.STEPS" in _HELPED and "EDGES)" in _HELPED
+    assert "    from helpers.edges import RING" in _HELPED and "len(RING)" in _HELPED
     path = _write_helped(tmp_path, 7)
     assert [str(f.relative_to(tmp_path)) for f in source_files(path)] == [
         "helped.py", "helpers/__init__.py", "helpers/edges.py", "helpers/geometry.py", "my_helpers.py"]
     sc = load_scenario(str(path))
     _uses_the_installed_classes(sc)
-    assert sc.steps == 7 and len(sc.network.edges) == 3
+    assert sc.steps == 7 and len(sc.network.edges) == 3 and "3 edges" in sc.assumptions
     assert not {"my_helpers", "helpers", "helpers.geometry"} & set(sys.modules)  # never under their plain names
     assert [m for m in sys.modules if m.endswith(".my_helpers")] == [
         m for m in sys.modules if m.startswith("cfdesign_user_") and m.endswith(".my_helpers")]

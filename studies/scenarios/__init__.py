@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import builtins
 import functools
-import importlib.abc
 import importlib.machinery
 import importlib.util
 import pickle
@@ -92,7 +91,7 @@ class _SiblingLoader(importlib.machinery.SourceFileLoader):
         super().exec_module(module)
 
 
-class _SiblingFinder(importlib.abc.MetaPathFinder):
+class _SiblingFinder:
     """Finds the modules of a model file's private package in the file's directory, loaded by
     :class:`_SiblingLoader` (on ``sys.meta_path`` from the first model file on)."""
 
@@ -113,23 +112,21 @@ class _SiblingFinder(importlib.abc.MetaPathFinder):
 
 
 _FINDER = _SiblingFinder()
-_PACKAGE_OF: dict[Path, str] = {}  # a model file's directory -> its private package at the last load
 
 
 def _private_package(path: Path) -> _SiblingImport:
     """A fresh private package for the siblings of the model file ``path`` (none of its modules imported yet).
 
     Named by the content of the file and its siblings (:func:`designer.digest.source_files_digest`), so its
-    functions are named the same wherever the files lie, in every process; never a name a package has.
+    functions are named the same wherever the files lie, in every process; never a name a package has.  An
+    earlier load's package stays (its functions may still import from it); one of the same name is replaced.
     """
     from designer.digest import source_files_digest
 
     folder = path.resolve().parent
     package = f"cfdesign_user_{source_files_digest(path)[:16]}"
-    for old in {package, _PACKAGE_OF.get(folder, package)}:  # an edited sibling is read again
-        _SiblingFinder.packages.pop(old, None)
-        for name in [n for n in sys.modules if n == old or n.startswith(old + ".")]:
-            del sys.modules[name]
+    for name in [n for n in sys.modules if n == package or n.startswith(package + ".")]:
+        del sys.modules[name]
     importer = _SiblingImport(package, folder)
     module = types.ModuleType(package, f"the sibling modules of the model file {str(path)!r}")
     module.__path__ = [str(folder)]
@@ -137,7 +134,6 @@ def _private_package(path: Path) -> _SiblingImport:
     module.__spec__.submodule_search_locations = module.__path__
     sys.modules[package] = module
     _SiblingFinder.packages[package] = importer
-    _PACKAGE_OF[folder] = package
     if _FINDER not in sys.meta_path:
         sys.meta_path.insert(0, _FINDER)
     importlib.invalidate_caches()  # a sibling written since the last look at the directory is seen
