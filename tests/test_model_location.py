@@ -18,6 +18,7 @@ import pytest
 import designer
 import studies.scenarios as scenarios
 from designer.digest import is_local_module, source_files
+from designer.validation import InputError
 from studies.scenarios import load_scenario, reference
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,6 +124,10 @@ def test_sibling_modules_are_imported_privately_and_read_again_after_an_edit(tmp
     monkeypatch.setattr(scenarios, "_BUILT", {})  # another process: rebuilt from the files
     assert reference(edited).build().digest == edited.digest
     assert not (tmp_path / "__pycache__").exists() and not (tmp_path / "helpers" / "__pycache__").exists()
+    (tmp_path / "helpers" / "geometry.py").write_text("from .edges import RINGS as EDGES\n")
+    with pytest.raises(InputError, match=r"cannot import name 'RINGS' from 'helpers\.edges'") as err:
+        load_scenario(str(path))
+    assert "cfdesign_user" not in str(err.value)  # the sibling by the name the file gives it
 
 
 def test_a_sibling_named_like_a_standard_or_installed_module_does_not_shadow_it(tmp_path):

@@ -6,6 +6,7 @@ import functools
 import importlib.machinery
 import importlib.util
 import pickle
+import re
 import sys
 import types
 from dataclasses import dataclass, replace
@@ -150,7 +151,8 @@ def _user_call(what: str, fn, *args):
     except SystemExit as exc:  # sys.exit() in a model file would end cfdesign with nothing written
         raise InputError(f"{what} called sys.exit({exc.code!r}); a model file must not exit") from None
     except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
-        raise InputError(f"{what} failed: {type(exc).__name__}: {exc}") from exc
+        plain = re.sub(r"\bcfdesign_user_[0-9a-f]{16}\.", "", str(exc))  # a sibling by the name the file uses
+        raise InputError(f"{what} failed: {type(exc).__name__}: {plain}") from exc
 
 
 def _guarded(what: str, fn):
