@@ -25,17 +25,19 @@ from __future__ import annotations
 import ast
 import dataclasses
 import enum
+import functools
 import hashlib
 import math
 import pickle
 import struct
+import sys
 from pathlib import Path
 from types import CodeType, FunctionType, MethodType
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-__all__ = ["content_digest", "source_files", "source_files_digest"]
+__all__ = ["CFDESIGN_PACKAGES", "content_digest", "is_local_module", "source_files", "source_files_digest"]
 
 
 class _Encoder:
@@ -199,15 +201,71 @@ def content_digest(*objects: Any) -> str:
     return e.h.hexdigest()
 
 
+# cfdesign's own top-level packages (pyproject.toml's packages): never a model file's sibling, installed or not
+CFDESIGN_PACKAGES = frozenset({"designer", "filters", "studies"})
+
+
+@functools.cache
+def _distribution_packages() -> frozenset[str]:
+    """Top-level names of the installed distributions (an editable install's too, wherever its sources lie)."""
+    import importlib.metadata
+
+    return frozenset(importlib.metadata.packages_distributions())
+
+
+def _found_elsewhere(name: str, folder: Path) -> bool:
+    """Whether the import system finds a top-level module ``name`` outside ``folder`` (that folder left off
+    ``sys.path``): installed, on the path, or given by an import hook such as an editable install's."""
+    path = []
+    for p in sys.path:
+        try:
+            if Path(p or ".").resolve() != folder:
+                path.append(p)
+        except (OSError, RuntimeError, ValueError):
+            path.append(p)
+    for finder in sys.meta_path:
+        if getattr(finder, "cfdesign_user_modules", False):  # the model loader's own finder
+            continue
+        try:
+            spec = finder.find_spec(name, path)
+        except Exception:  # noqa: BLE001 - a third-party hook that cannot answer for this name
+            continue
+        # a namespace package's portion is no module of its own (an installed one is a distribution's)
+        if spec is not None and spec.origin and (not spec.has_location
+                                                 or not Path(spec.origin).resolve().is_relative_to(folder)):
+            return True
+    return False
+
+
+def is_local_module(name: str, folder) -> bool:
+    """Whether ``import name`` (a top-level name) in a model file in ``folder`` means the file's own sibling.
+
+    It does when ``folder`` holds ``name.py`` or a package ``name/`` and no module of that name exists
+    outside it: not a built-in or standard-library module, not one of cfdesign's own packages, not a
+    module the import system finds elsewhere, not a top-level package of an installed distribution.  So a
+    model file in the repository's root imports the installed ``designer``, and a ``json.py`` beside a
+    model never stands for the standard library.  The model loader (:mod:`studies.scenarios`) imports the
+    siblings under a private name; :func:`source_files` counts the same ones.
+    """
+    folder = Path(folder).resolve()
+    if not name.isidentifier() or not ((folder / f"{name}.py").is_file() or (folder / name).is_dir()):
+        return False
+    if name in sys.builtin_module_names or name in sys.stdlib_module_names or name in CFDESIGN_PACKAGES:
+        return False
+    return not _found_elsewhere(name, folder) and name not in _distribution_packages()
+
+
 def source_files(path) -> list[Path]:
     """A Python file and the modules it imports from its own directory (recursively), in a fixed order.
 
-    Found statically (``import name`` / ``from name import ...`` / relative imports whose module is
-    ``<dir>/name.py`` or a package ``<dir>/name/``), so the list does not depend on what happens to be
-    imported in this process.
+    Found statically, so the list does not depend on what happens to be imported in this process:
+    ``import name`` and ``from name import ...`` where ``name`` is a sibling (:func:`is_local_module`)
+    whose module is ``<dir>/name.py`` or a package ``<dir>/name/``, and relative imports (``from .name
+    import ...``, ``from . import name``) from the importing file's package.
     """
     first = Path(path).resolve()
     root = first.parent
+    local: dict[str, bool] = {}
     seen: dict[Path, None] = {}
     todo = [first]
     while todo:
@@ -220,17 +278,24 @@ def source_files(path) -> list[Path]:
         except (SyntaxError, ValueError, OSError):
             continue
         for node in ast.walk(tree):
-            names: Iterable[str] = ()
+            base, found, relative = root, [], False  # a package directory and the modules' paths in it
             if isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
+                found = [a.name.split(".") for a in node.names]
             elif isinstance(node, ast.ImportFrom):
-                base = node.module or ""
-                names = [base] if base else []
-                names += [f"{base}.{a.name}" if base else a.name for a in node.names]
-            for name in names:
-                parts = name.split(".")
+                parts = node.module.split(".") if node.module else []
+                found = ([parts] if parts else []) + [parts + [a.name] for a in node.names]
+                relative = node.level > 0
+                if relative:  # from the importing file's package, never above the model's directory
+                    base = f.parent
+                    for _ in range(node.level - 1):
+                        base = base.parent
+                    if not base.is_relative_to(root):
+                        continue
+            for parts in found:
+                if not relative and not local.setdefault(parts[0], is_local_module(parts[0], root)):
+                    continue
                 for k in range(1, len(parts) + 1):  # importing a.b runs a/__init__.py and a/b.py
-                    cand = root.joinpath(*parts[:k])
+                    cand = base.joinpath(*parts[:k])
                     for target in (cand.with_suffix(".py"), cand / "__init__.py"):
                         if target.is_file():
                             todo.append(target.resolve())

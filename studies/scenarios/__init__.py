@@ -1,11 +1,14 @@
 """Built-in scenarios, user model files and in-memory models: everything a command can run on."""
 from __future__ import annotations
 
-import contextlib
+import builtins
 import functools
+import importlib.machinery
 import importlib.util
 import pickle
+import re
 import sys
+import types
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -46,25 +49,96 @@ MODEL_FILE_NAMES = {
 }
 
 
-@contextlib.contextmanager
-def _user_directory(path: Path):
-    """A model file's own directory first on ``sys.path`` (as ``python MODEL.py`` has it), so that the file may
-    import its helper modules; those are imported afresh at every load (an edited helper is never taken from
-    ``sys.modules``: the model is what its files say now, as :attr:`Scenario.digest` records)."""
-    from designer.digest import source_files
+_IMPORT = builtins.__import__
 
-    local = {str(f) for f in source_files(path)}
-    for name, mod in list(sys.modules.items()):
-        f = getattr(mod, "__file__", None)
-        if f and str(Path(f).resolve()) in local:
-            del sys.modules[name]
-    folder = str(path.resolve().parent)
-    sys.path.insert(0, folder)
-    try:
-        yield
-    finally:
-        with contextlib.suppress(ValueError):
-            sys.path.remove(folder)
+
+class _SiblingImport:
+    """``__import__`` for the code of a model file and of its siblings: a top-level name that is the file's
+    own sibling (:func:`designer.digest.is_local_module`) is taken from the file's private package
+    (``cfdesign_user_<digest>.name``), every other import is Python's own."""
+
+    def __init__(self, package: str, folder: Path):
+        self.package, self.folder = package, folder
+        self.local: dict[str, bool] = {}
+
+    def is_local(self, name: str) -> bool:
+        from designer.digest import is_local_module
+
+        if name not in self.local:
+            self.local[name] = is_local_module(name, self.folder)
+        return self.local[name]
+
+    def __call__(self, name, globals=None, locals=None, fromlist=(), level=0):
+        top = name.partition(".")[0]
+        if level or not self.is_local(top):
+            return _IMPORT(name, globals, locals, fromlist, level)
+        module = _IMPORT(f"{self.package}.{name}", globals, locals, fromlist, 0)
+        return module if fromlist else sys.modules[f"{self.package}.{top}"]
+
+
+class _SiblingLoader(importlib.machinery.SourceFileLoader):
+    """Runs a model file or a sibling module with :class:`_SiblingImport` as its ``__import__``, compiled from
+    its bytes as they are now (no bytecode cache read or written beside the user's files)."""
+
+    def __init__(self, fullname: str, path: str, importer: _SiblingImport):
+        super().__init__(fullname, path)
+        self.importer = importer
+
+    def get_code(self, fullname):
+        return self.source_to_code(self.get_data(self.path), self.path)
+
+    def exec_module(self, module):
+        module.__builtins__ = dict(vars(builtins), __import__=self.importer)
+        super().exec_module(module)
+
+
+class _SiblingFinder:
+    """Finds the modules of a model file's private package in the file's directory, loaded by
+    :class:`_SiblingLoader` (on ``sys.meta_path`` from the first model file on)."""
+
+    cfdesign_user_modules = True  # designer.digest leaves this finder out when it looks for installed modules
+    packages: dict[str, _SiblingImport] = {}  # private package name -> the import of its files
+
+    def find_spec(self, fullname, path=None, target=None):
+        package, dot, _ = fullname.partition(".")
+        importer = self.packages.get(package)
+        if importer is None or not dot:
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
+        if spec is None or not isinstance(spec.loader, importlib.machinery.SourceFileLoader):
+            return spec  # a namespace package (a directory without __init__.py) or a compiled module
+        return importlib.util.spec_from_file_location(
+            fullname, spec.origin, loader=_SiblingLoader(fullname, spec.origin, importer),
+            submodule_search_locations=spec.submodule_search_locations)
+
+
+_FINDER = _SiblingFinder()
+
+
+def _private_package(path: Path) -> _SiblingImport:
+    """A fresh private package for the siblings of the model file ``path`` (none of its modules imported yet).
+
+    Named by the content of the file and its siblings (:func:`designer.digest.source_files_digest`), so its
+    functions are named the same wherever the files lie, in every process; never a name a package has.  An
+    earlier load's package stays (its functions may still import from it); one of the same name is replaced.
+    """
+    from designer.digest import source_files_digest
+
+    folder = path.resolve().parent
+    package = f"cfdesign_user_{source_files_digest(path)[:16]}"
+    for name in [n for n in sys.modules if n == package or n.startswith(package + ".")]:
+        del sys.modules[name]
+    importer = _SiblingImport(package, folder)
+    module = types.ModuleType(package, f"the sibling modules of the model file {str(path)!r}")
+    module.__path__ = [str(folder)]
+    module.__spec__ = importlib.machinery.ModuleSpec(package, None, is_package=True)
+    module.__spec__.submodule_search_locations = module.__path__
+    sys.modules[package] = module
+    _SiblingFinder.packages[package] = importer
+    if _FINDER not in sys.meta_path:
+        sys.meta_path.insert(0, _FINDER)
+    importlib.invalidate_caches()  # a sibling written since the last look at the directory is seen
+    return importer
 
 
 def _user_call(what: str, fn, *args):
@@ -77,7 +151,8 @@ def _user_call(what: str, fn, *args):
     except SystemExit as exc:  # sys.exit() in a model file would end cfdesign with nothing written
         raise InputError(f"{what} called sys.exit({exc.code!r}); a model file must not exit") from None
     except Exception as exc:  # noqa: BLE001 - a user's code: one line, exit 2
-        raise InputError(f"{what} failed: {type(exc).__name__}: {exc}") from exc
+        plain = re.sub(r"\bcfdesign_user_[0-9a-f]{16}\.", "", str(exc))  # a sibling by the name the file uses
+        raise InputError(f"{what} failed: {type(exc).__name__}: {plain}") from exc
 
 
 def _guarded(what: str, fn):
@@ -88,10 +163,11 @@ def _guarded(what: str, fn):
 def _load_module(path: Path):
     if not path.is_file():
         raise InputError(f"model file {str(path)!r} does not exist")
-    spec = importlib.util.spec_from_file_location(f"cfdesign_user_{path.stem}", path)
+    importer = _private_package(path)
+    name = f"{importer.package}.{path.stem.replace('.', '_')}"  # in the package: its relative imports work
+    spec = importlib.util.spec_from_file_location(name, path, loader=_SiblingLoader(name, str(path), importer))
     module = importlib.util.module_from_spec(spec)
-    # a network's node count is checked against the sensors first; the file's own directory first on sys.path
-    with connectivity_checked_later(), _user_directory(path):
+    with connectivity_checked_later():  # a network's node count is checked against the sensors first
         _user_call(f"model file {str(path)!r}", spec.loader.exec_module, module)
     return module
 
