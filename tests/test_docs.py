@@ -172,3 +172,29 @@ def test_equation_numbers_say_whose_they_are():
                  "*Distributed consensus filter design for a class of nonlinear systems under complex\ncooperative "
                  "attacks*, Control and Decision 2024"):
         assert name in gain_rules, name
+
+
+def test_the_command_reference_names_every_command_and_option():
+    """Every command of the click group (subcommands included) and every option it takes appear in commands.md."""
+    import click
+
+    from studies.cli import cli
+
+    said = (ROOT / "docs" / "commands.md").read_text()
+
+    def walk(cmd: click.Command, path: tuple[str, ...]):
+        yield path, cmd
+        if isinstance(cmd, click.Group):
+            for name, sub in cmd.commands.items():
+                yield from walk(sub, path + (name,))
+
+    seen = 0
+    for path, cmd in walk(cli, ()):
+        if path:
+            assert f"cfdesign {' '.join(path)}" in said, f"commands.md does not name `cfdesign {' '.join(path)}`"
+        for param in cmd.params:
+            for opt in getattr(param, "opts", []):
+                if opt.startswith("--") and opt != "--help":
+                    assert opt in said, f"commands.md does not name {opt} of {' '.join(path) or 'cfdesign'}"
+                    seen += 1
+    assert seen > 30
