@@ -44,7 +44,7 @@ import numpy as np
 from designer.attacks import AttackSpec
 from designer.cores import one_blas_thread
 from designer.design import DesignOptions
-from designer.fileio import check_output_file, replaced_outputs, write_npz, writing
+from designer.fileio import check_apart, check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
@@ -78,6 +78,33 @@ def _check_arguments(*, out=None, network=None, attacks=None, design_defaults=No
     check_path("dask_security", dask_security, optional=True)
     check_type("channel", channel, CHANNEL_TYPES, "one of " + ", ".join(t.__name__ for t in CHANNEL_TYPES),
                optional=True)
+
+
+_WHAT = {"data": "the log", "schedule": "the design directory", "design_dir": "the design directory",
+         "dask_security": "the TLS options file"}  # what each input path is, in check_apart's messages
+
+
+def _model_inputs(scenario) -> list[tuple]:
+    """The files a model given as ``scenario`` is read from (a model file, a Scenario built from one, or a sequence of
+    them; none for a built-in or in-memory model): the file and the modules of its directory that it imports
+    (:func:`designer.digest.source_files`), as :func:`designer.fileio.check_apart` takes its inputs."""
+    from designer.digest import source_files
+
+    found = []
+    for s in scenario if isinstance(scenario, (list, tuple)) else [scenario]:
+        path = getattr(s, "source", s)
+        if isinstance(path, (str, Path)) and str(path).endswith(".py") and Path(path).is_file():
+            first = Path(path).resolve()
+            found += [("scenario", "the model file", path),
+                      ("scenario", "a module imported by the model file", [f for f in source_files(path)
+                                                                            if f != first])]
+    return found
+
+
+def _apart(out, scenario=None, *, kind: str = "directory", **inputs) -> None:
+    """Refuse ``out`` equal to, inside or containing an input (the model's files, and each of ``inputs`` by its
+    parameter's name), before anything is computed or written (:func:`designer.fileio.check_apart`)."""
+    check_apart("out", out, [*_model_inputs(scenario), *((k, _WHAT[k], v) for k, v in inputs.items())], kind=kind)
 
 
 def _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments) -> Scenario:
@@ -124,6 +151,7 @@ class Simulation:
         from .recorded import log_arrays, write_log_csv
 
         path = check_output_file("out", path, _log_suffix(path))
+        _apart(path, self.scenario, kind="file")
         sc = self.scenario
         if path.suffix == ".csv":
             return write_log_csv(path, dict(log_arrays(sc.model, self.z, self.inputs, self.attacks, self.received),
@@ -183,6 +211,7 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, run: int | No
                      assignments=assignments)
     if out is not None:
         check_output_file("out", out, _log_suffix(out))
+        _apart(out, scenario, kind="file")
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
     if run is not None and sc.network is None:
         raise InputError(f"run applies to a scenario with a sensor network (the comparison's runs); {sc.name!r} "
@@ -272,6 +301,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         steps = check_int("steps", steps, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
+    _apart(out, scenario)
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
@@ -340,6 +370,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security)
+    _apart(out, scenario, dask_security=dask_security)
     check_type("backend", backend, Backend, "a studies.runner.Backend", optional=True)
     if gate:
         raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
@@ -408,6 +439,7 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security, channel=channel)
+    _apart(out, scenario, dask_security=dask_security, schedule=study_options.get("schedule"))
     if backend is None:  # none of them given: the study's default backend (Study.default_backend)
         if any(v is not None for v in (workers, dask, dask_security)):
             backend = make_backend(workers, dask, dask_security)
@@ -514,6 +546,8 @@ class FilterRun:
         ``estimates.csv`` (step, node, the estimate's components) and ``report.md`` into ``directory``."""
         from .recorded import filter_report
 
+        _apart(directory, self.scenario, data=None if self.log.startswith("<") else self.log,
+               schedule=(self.design or {}).get("schedule"))
         with replaced_outputs(directory) as stage:
             filter_report(self, stage)
         return Path(directory)
@@ -570,6 +604,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     iterations = check_int("iterations", iterations, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
+    _apart(out, scenario, data=data, schedule=schedule)
     if filter is None and schedule is None:
         raise InputError("give the filter to run (filter, e.g. kcf or scheduled) or a design directory (schedule)")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
@@ -724,6 +759,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     check_path("out", out)
     check_path("data", data, optional=True)
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
+    _apart(out, scenario, design_dir=design_dir, data=data)
     meta_path = Path(design_dir) / "schedule.json"
     try:
         meta = json.loads(meta_path.read_text())
