@@ -107,6 +107,23 @@ def _apart(out, scenario=None, *, kind: str = "directory", **inputs) -> None:
     check_apart("out", out, [*_model_inputs(scenario), *((k, _WHAT[k], v) for k, v in inputs.items())], kind=kind)
 
 
+def _applies(filter, designed: str, **given) -> None:
+    """Refuse an option of :func:`filter` or :func:`node_filter` that the filter named ``filter`` (None: the designed
+    filter of the parameters ``designed`` names) does not use, naming the option and the filters it applies to:
+    ``particles``, ``seed`` and ``run`` the particle filters', ``iterations`` HCMCI's consensus rounds
+    (:class:`studies.filter_registry.FilterEntry`'s ``particles`` and ``rounds``)."""
+    from .comparison import FILTER_REGISTRY
+    from .recorded import find_filter
+
+    entry = None if filter is None else find_filter(FILTER_REGISTRY, filter)
+    uses = {"particles": "particles", "seed": "particles", "run": "particles", "iterations": "rounds"}
+    for option, value in given.items():
+        if value is not None and not (entry is not None and getattr(entry, uses[option])):
+            having = ", ".join(repr(e.name) for e in FILTER_REGISTRY if getattr(e, uses[option]))
+            chosen = f"the designed filter of {designed}" if entry is None else f"filter {entry.name!r}"
+            raise InputError(f"{option} does not apply to {chosen}: it applies to {having} only")
+
+
 def _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments) -> Scenario:
     return scenario_of(scenario, network=network, attacks=attacks, design=design_defaults, steps=steps, x0=x0,
                        inputs=inputs, overrides=overrides, assignments=assignments)
@@ -555,8 +572,9 @@ class FilterRun:
 
 @one_blas_thread()
 def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | None = None,
-           seed: int | None = None, run: int | None = None, particles: int | None = None, iterations: int = 1,
-           out: str | Path | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+           seed: int | None = None, run: int | None = None, particles: int | None = None,
+           iterations: int | None = None, out: str | Path | None = None, network: SensorNetwork | None = None,
+           attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> FilterRun:
     """Run a filter of ``study comparison`` on the recorded log ``data`` (:mod:`studies.recorded`).
@@ -579,7 +597,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         The particle filters' study seed and run (default: the log's ``seed`` and ``run``, else 0): they draw from
         :func:`studies.recorded.particle_seed`, as in that run of ``study comparison``.
     particles, iterations
-        The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1).
+        The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1); given
+        for another filter, each is refused (as ``seed`` and ``run``).
     out : path, optional
         Write ``estimates.npz``, ``estimates.csv`` and ``report.md`` there.
 
@@ -596,12 +615,14 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     check_path("data", data)
     check_type("filter", filter, str, "a filter's name (e.g. kcf, scheduled)", optional=True)
     check_path("schedule", schedule, optional=True)
+    if filter is not None or schedule is not None:  # options the chosen filter does not use are refused
+        _applies(filter, "schedule", particles=particles, seed=seed, run=run, iterations=iterations)
     if seed is not None:
         seed = check_int("seed", seed, 0)
     if run is not None:
         run = check_int("run", run, 0)
     particles = check_int("particles", STUDY.particles if particles is None else particles, 2)
-    iterations = check_int("iterations", iterations, 1)
+    iterations = check_int("iterations", 1 if iterations is None else iterations, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
     _apart(out, scenario, data=data, schedule=schedule)
@@ -648,7 +669,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
 
 @one_blas_thread()
 def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, filter: str | None = None,
-                node: int | None = None, iterations: int = 1, network: SensorNetwork | None = None,
+                node: int | None = None, iterations: int | None = None, network: SensorNetwork | None = None,
                 attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
                 inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
                 assignments: Sequence[str] = ()):
@@ -688,6 +709,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     if sum(v is not None for v in (schedule, mode, filter)) != 1:
         raise InputError("give a design directory (schedule), a gain rule (mode) or a filter's name (filter), one of "
                          "them")
+    _applies(filter, "schedule or mode", iterations=iterations)  # HCMCI's only
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network: a node filter needs one (a model file "
@@ -702,7 +724,8 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
                                                                   sc.model)
-        net = entry.node_filters(sc.model, sc.network, design, check_int("iterations", iterations, 1))
+        rounds = check_int("iterations", 1 if iterations is None else iterations, 1)
+        net = entry.node_filters(sc.model, sc.network, design, rounds)
         return net if node is None else net.nodes[node]
     if schedule is not None:
         _, options, _ = design_options_of(schedule, sc)

@@ -188,12 +188,13 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
               help="a design directory written by cfdesign design: the designed filter runs with its gain rule and "
                    "options [default: the scenario's design defaults]")
 @click.option("--seed", type=int, default=None,
-              help="study seed of the particle filters' streams [default: the log's seed, else 0]")
+              help="study seed of the particle filters' streams (particle filters only) [default: the log's seed, "
+                   "else 0]")
 @click.option("--run", type=int, default=None,
-              help="study run of the particle filters' streams [default: the log's run, else 0]")
+              help="study run of the particle filters' streams (particle filters only) [default: the log's run, "
+                   "else 0]")
 @click.option("--particles", type=int, default=None, help="particles of the particle filters, >= 2 [default: 500]")
-@click.option("--iterations", type=int, default=1, show_default=True,
-              help="consensus rounds per step of HCMCI, >= 1")
+@click.option("--iterations", type=int, default=None, help="consensus rounds per step of HCMCI, >= 1 [default: 1]")
 @click.option("--out", required=True, help="output directory (estimates.npz, estimates.csv, report.md)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations, out, assignments) -> None:

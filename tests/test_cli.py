@@ -465,3 +465,37 @@ def test_every_study_refuses_a_single_run_before_computing(tmp_path):
         with pytest.raises(InputError, match=r"runs must be an integer in 2\.\."):
             studies.study(name, runs=1, out=tmp_path / name)
         assert get_study(name).min_runs >= 2 and not (tmp_path / name).exists()
+
+
+@pytest.fixture(scope="module")
+def robot_log(tmp_path_factory):
+    log = tmp_path_factory.mktemp("log") / "log.npz"
+    assert main(["simulate", "indoor-robot", "--steps", "3", "--out", str(log)]) == 0
+    return log
+
+
+@pytest.mark.parametrize("args, option, filters", [
+    (["--filter", "kcf", "--particles", "500"], "particles", "'centralized PF (attack-aware)'"),
+    (["--filter", "kcf", "--seed", "3"], "seed", "'centralized PF (trusts every packet)'"),
+    (["--filter", "hcmci", "--run", "1"], "run", "'centralized PF (attack-aware)'"),
+    (["--filter", "centralized-pf-attack-aware", "--iterations", "2"], "iterations", "'HCMCI' only"),
+    (["--filter", "local", "--iterations", "1"], "iterations", "'HCMCI' only"),  # given, even at its default
+])
+def test_filter_refuses_an_option_its_filter_does_not_use(robot_log, tmp_path, capsys, args, option, filters):
+    """An unused option is an error (exit 2, one line naming the option and the filters it applies to), nothing
+    written; as the API's filter and node_filter."""
+    out = tmp_path / "f"
+    assert main(["filter", "indoor-robot", "--data", str(robot_log), *args, "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"cfdesign: error: {option} does not apply to filter "), lines
+    assert filters in lines[0] and not out.exists()
+
+
+def test_node_filter_refuses_iterations_for_a_filter_without_rounds():
+    import studies
+
+    with pytest.raises(InputError, match="iterations does not apply to filter 'KCF': it applies to 'HCMCI' only"):
+        studies.node_filter("indoor-robot", filter="kcf", iterations=2)
+    with pytest.raises(InputError, match="iterations does not apply to the designed filter of schedule or mode"):
+        studies.node_filter("indoor-robot", mode="relay", iterations=1)
+    assert len(studies.node_filter("indoor-robot", filter="hcmci", iterations=2).nodes) == 8
