@@ -97,7 +97,7 @@ _MODEL = TANK_MODEL  # a user's model file (tests/conftest.py)
         (["simulate", "{model}", "--out", "{tmp}/dir.npz"], "existing directory"),
         (["simulate", "{model}", "--set", "x0=[1,2]", "--out", "{tmp}/a.npz"], "takes no --set parameters"),
         (["simulate", "indoor-robot", "--set", "x0=[1e308,0,0]", "--out", "{tmp}/a.npz"], "not finite"),
-        (["design", "{model}", "--out", "{model}"], "existing file"),
+        (["design", "{model}", "--out", "{model}"], "is the model file given as scenario"),
         (["design", "{model}", "--u-scale", "-0.01", "--out", "{tmp}/d"], "--u-scale"),
         (["study", "comparison", "{model}", "--runs", "10000000000", "--out", "{tmp}/c"], "runs must be an integer in"),
         (["study", "comparison", "{model}", "--runs", "inf", "--out", "{tmp}/c"], "--runs"),
