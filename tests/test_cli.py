@@ -467,6 +467,37 @@ def test_every_study_refuses_a_single_run_before_computing(tmp_path):
         assert get_study(name).min_runs >= 2 and not (tmp_path / name).exists()
 
 
+def test_debug_is_accepted_anywhere_on_the_line(tmp_path, capsys):
+    """--debug before, inside or after a command's options: the traceback, then the same one line; a --debug that is
+    an option's value or follows -- is that value or an argument (one line, no traceback)."""
+    args = ["simulate", "indoor-robot", "--set", "process_var=-1", "--out", str(tmp_path / "x.npz")]
+    for where in (0, 1, 2, 4, len(args)):
+        assert main([*args[:where], "--debug", *args[where:]]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" in err and err.strip().splitlines()[-1].startswith("cfdesign: error: "), err
+        assert "process_var" in err.strip().splitlines()[-1]
+    for argv, needle in ((["simulate", "indoor-robot", "--set", "--debug", "--out", str(tmp_path / "x.npz")], "--set"),
+                         (["simulate", "indoor-robot", "--out", str(tmp_path / "x.npz"), "--", "--debug"], "--debug")):
+        assert main(argv) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0] and "Traceback" not in lines[0], lines
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_every_command_documents_debug(capsys):
+    from studies.cli import cli
+
+    def paths(group, prefix):
+        for name, command in group.commands.items():
+            yield [*prefix, name]
+            if hasattr(command, "commands"):
+                yield from paths(command, [*prefix, name])
+
+    for path in [[], *paths(cli, [])]:
+        assert main([*path, "--help"]) == 0
+        assert "--debug" in capsys.readouterr().out, path
+
+
 @pytest.fixture(scope="module")
 def robot_log(tmp_path_factory):
     log = tmp_path_factory.mktemp("log") / "log.npz"
