@@ -27,7 +27,9 @@ command line does: the same numbers in a script, a notebook and the shell.
 
 Before anything is built or computed, every function checks the types of its arguments
 (an :class:`~designer.validation.InputError` naming the parameter: a string for ``steps``,
-a number for ``out``, ``"yes"`` for ``force``...) and then the memory the command will need
+a number for ``out``, ``"yes"`` for ``force``...), that no output path is, lies inside or
+contains one of its inputs (a design directory, a log, a model file and the modules it imports:
+:func:`designer.fileio.check_apart`), and then the memory the command will need
 (:mod:`studies.memory`: refused, with the figure and what to reduce, when it exceeds the
 memory available).
 """
