@@ -18,6 +18,8 @@
   beside the new ones.  Only files cfdesign listed as its outputs are ever removed or replaced.
 * :func:`check_json_finite` names the first non-finite number of a results document, so a
   NaN is refused before anything is written.
+* :func:`check_apart` refuses an output path equal to, inside or containing one of the command's
+  inputs (a design directory, a log, a model file and its modules), before anything is written.
 
 **cfdesign's own files in an output directory** are the lock, the list of outputs
 (``OUTPUTS_NAME``), the chunk store (``CHUNKS_DIR`` and everything under it), staging
@@ -52,9 +54,9 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
-           "check_output_file", "check_path", "writing", "replaced_outputs", "check_json_finite", "own_dir",
-           "open_own", "refuse_link", "temporary_of", "LOCK_NAME", "OUTPUTS_NAME", "CHUNKS_DIR", "STAGING_PREFIX",
-           "OUTPUT_PATTERNS", "REPORT_NAMES"]
+           "check_output_file", "check_path", "check_apart", "writing", "replaced_outputs", "check_json_finite",
+           "own_dir", "open_own", "refuse_link", "temporary_of", "LOCK_NAME", "OUTPUTS_NAME", "CHUNKS_DIR",
+           "STAGING_PREFIX", "OUTPUT_PATTERNS", "REPORT_NAMES"]
 
 LOCK_NAME = ".cfdesign.lock"
 OUTPUTS_NAME = ".cfdesign-outputs.json"  # the files the last command wrote into an output directory
@@ -83,6 +85,51 @@ def check_path(name: str, value) -> Path:
     if not text.strip():
         raise InputError(f"{name} is empty ({text!r}): give a path (an unset shell variable?)")
     return Path(text)
+
+
+def _identity(path) -> tuple[int, int] | None:
+    """The (device, inode) of an existing ``path`` (links followed), else None."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def check_apart(name: str, out, inputs, *, kind: str = "directory") -> None:
+    """Refuse the output path ``out`` (the parameter ``name``, an output ``kind``) when it is, lies inside or
+    contains an input.
+
+    ``inputs``: ``(parameter, what, paths)`` triples, e.g. ``("schedule", "the design directory", "d")``;
+    ``paths`` one path or an iterable of them (each then named in the message), None for none.  Paths are
+    compared as the filesystem resolves them: the device and inode of each existing path and of each
+    directory above it, symbolic links and ``..`` followed, relative paths from the current directory,
+    letter case as the filesystem has it.  An input that does not exist is not compared (it is refused
+    where it is read).  Raises InputError naming both parameters, before anything is written.
+    """
+    if out is None:
+        return
+    out_path = Path(os.path.realpath(check_path(name, out)))
+    above = {_identity(p) for p in out_path.parents} - {None}  # the directories out would be inside
+    out_id = _identity(out_path)
+    for parameter, what, paths in inputs:
+        single = paths is None or isinstance(paths, (str, bytes, os.PathLike))
+        for given in ([] if paths is None else [paths] if single else paths):
+            path = Path(os.path.realpath(os.fspath(given)))
+            ident = _identity(path)
+            if ident is None:
+                continue
+            if ident == out_id:
+                problem = "is"
+            elif ident in above and path.is_dir():
+                problem = "is inside"
+            elif out_id is not None and any(_identity(p) == out_id for p in path.parents):
+                problem = "contains"
+            else:
+                continue
+            shown = "" if problem == "is" and single else f" ({os.fsdecode(os.fspath(given))!r})"
+            raise InputError(f"{name} {os.fsdecode(os.fspath(out))!r} {problem} {what} given as {parameter}{shown}: "
+                             f"choose another output {kind} (nothing was written)")
 
 
 def _link(path) -> InputError:

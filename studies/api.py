@@ -27,7 +27,9 @@ command line does: the same numbers in a script, a notebook and the shell.
 
 Before anything is built or computed, every function checks the types of its arguments
 (an :class:`~designer.validation.InputError` naming the parameter: a string for ``steps``,
-a number for ``out``, ``"yes"`` for ``force``...) and then the memory the command will need
+a number for ``out``, ``"yes"`` for ``force``...), that no output path is, lies inside or
+contains one of its inputs (a design directory, a log, a model file and the modules it imports:
+:func:`designer.fileio.check_apart`), and then the memory the command will need
 (:mod:`studies.memory`: refused, with the figure and what to reduce, when it exceeds the
 memory available).
 """
@@ -44,7 +46,7 @@ import numpy as np
 from designer.attacks import AttackSpec
 from designer.cores import one_blas_thread
 from designer.design import DesignOptions
-from designer.fileio import check_output_file, replaced_outputs, write_npz, writing
+from designer.fileio import check_apart, check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
@@ -78,6 +80,50 @@ def _check_arguments(*, out=None, network=None, attacks=None, design_defaults=No
     check_path("dask_security", dask_security, optional=True)
     check_type("channel", channel, CHANNEL_TYPES, "one of " + ", ".join(t.__name__ for t in CHANNEL_TYPES),
                optional=True)
+
+
+_WHAT = {"data": "the log", "schedule": "the design directory", "design_dir": "the design directory",
+         "dask_security": "the TLS options file"}  # what each input path is, in check_apart's messages
+
+
+def _model_inputs(scenario) -> list[tuple]:
+    """The files a model given as ``scenario`` is read from (a model file, a Scenario built from one, or a sequence of
+    them; none for a built-in or in-memory model): the file and the modules of its directory that it imports
+    (:func:`designer.digest.source_files`), as :func:`designer.fileio.check_apart` takes its inputs."""
+    from designer.digest import source_files
+
+    found = []
+    for s in scenario if isinstance(scenario, (list, tuple)) else [scenario]:
+        path = getattr(s, "source", s)
+        if isinstance(path, (str, Path)) and str(path).endswith(".py") and Path(path).is_file():
+            first = Path(path).resolve()
+            found += [("scenario", "the model file", path),
+                      ("scenario", "a module imported by the model file", [f for f in source_files(path)
+                                                                            if f != first])]
+    return found
+
+
+def _apart(out, scenario=None, *, kind: str = "directory", **inputs) -> None:
+    """Refuse ``out`` equal to, inside or containing an input (the model's files, and each of ``inputs`` by its
+    parameter's name), before anything is computed or written (:func:`designer.fileio.check_apart`)."""
+    check_apart("out", out, [*_model_inputs(scenario), *((k, _WHAT[k], v) for k, v in inputs.items())], kind=kind)
+
+
+def _applies(filter, designed: str, **given) -> None:
+    """Refuse an option of :func:`filter` or :func:`node_filter` that the filter named ``filter`` (None: the designed
+    filter of the parameters ``designed`` names) does not use, naming the option and the filters it applies to:
+    ``particles``, ``seed`` and ``run`` the particle filters', ``iterations`` HCMCI's consensus rounds
+    (:class:`studies.filter_registry.FilterEntry`'s ``particles`` and ``rounds``)."""
+    from .comparison import FILTER_REGISTRY
+    from .recorded import find_filter
+
+    entry = None if filter is None else find_filter(FILTER_REGISTRY, filter)
+    uses = {"particles": "particles", "seed": "particles", "run": "particles", "iterations": "rounds"}
+    for option, value in given.items():
+        if value is not None and not (entry is not None and getattr(entry, uses[option])):
+            having = ", ".join(repr(e.name) for e in FILTER_REGISTRY if getattr(e, uses[option]))
+            chosen = f"the designed filter of {designed}" if entry is None else f"filter {entry.name!r}"
+            raise InputError(f"{option} does not apply to {chosen}: it applies to {having} only")
 
 
 def _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments) -> Scenario:
@@ -124,6 +170,7 @@ class Simulation:
         from .recorded import log_arrays, write_log_csv
 
         path = check_output_file("out", path, _log_suffix(path))
+        _apart(path, self.scenario, kind="file")
         sc = self.scenario
         if path.suffix == ".csv":
             return write_log_csv(path, dict(log_arrays(sc.model, self.z, self.inputs, self.attacks, self.received),
@@ -183,6 +230,7 @@ def simulate(scenario, *, steps: int | None = None, seed: int = 0, run: int | No
                      assignments=assignments)
     if out is not None:
         check_output_file("out", out, _log_suffix(out))
+        _apart(out, scenario, kind="file")
     sc = _scenario(scenario, network, attacks, None, None, x0, inputs, overrides, assignments)
     if run is not None and sc.network is None:
         raise InputError(f"run applies to a scenario with a sensor network (the comparison's runs); {sc.name!r} "
@@ -272,6 +320,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         steps = check_int("steps", steps, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
+    _apart(out, scenario)
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
@@ -340,6 +389,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security)
+    _apart(out, scenario, dask_security=dask_security)
     check_type("backend", backend, Backend, "a studies.runner.Backend", optional=True)
     if gate:
         raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
@@ -408,6 +458,7 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security, channel=channel)
+    _apart(out, scenario, dask_security=dask_security, schedule=study_options.get("schedule"))
     if backend is None:  # none of them given: the study's default backend (Study.default_backend)
         if any(v is not None for v in (workers, dask, dask_security)):
             backend = make_backend(workers, dask, dask_security)
@@ -514,6 +565,8 @@ class FilterRun:
         ``estimates.csv`` (step, node, the estimate's components) and ``report.md`` into ``directory``."""
         from .recorded import filter_report
 
+        _apart(directory, self.scenario, data=None if self.log.startswith("<") else self.log,
+               schedule=(self.design or {}).get("schedule"))
         with replaced_outputs(directory) as stage:
             filter_report(self, stage)
         return Path(directory)
@@ -521,8 +574,9 @@ class FilterRun:
 
 @one_blas_thread()
 def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | None = None,
-           seed: int | None = None, run: int | None = None, particles: int | None = None, iterations: int = 1,
-           out: str | Path | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
+           seed: int | None = None, run: int | None = None, particles: int | None = None,
+           iterations: int | None = None, out: str | Path | None = None, network: SensorNetwork | None = None,
+           attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> FilterRun:
     """Run a filter of ``study comparison`` on the recorded log ``data`` (:mod:`studies.recorded`).
@@ -545,7 +599,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         The particle filters' study seed and run (default: the log's ``seed`` and ``run``, else 0): they draw from
         :func:`studies.recorded.particle_seed`, as in that run of ``study comparison``.
     particles, iterations
-        The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1).
+        The particle filters' particles (default 500) and HCMCI's consensus rounds per step (default 1); given
+        for another filter, each is refused (as ``seed`` and ``run``).
     out : path, optional
         Write ``estimates.npz``, ``estimates.csv`` and ``report.md`` there.
 
@@ -562,14 +617,17 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     check_path("data", data)
     check_type("filter", filter, str, "a filter's name (e.g. kcf, scheduled)", optional=True)
     check_path("schedule", schedule, optional=True)
+    if filter is not None or schedule is not None:  # options the chosen filter does not use are refused
+        _applies(filter, "schedule", particles=particles, seed=seed, run=run, iterations=iterations)
     if seed is not None:
         seed = check_int("seed", seed, 0)
     if run is not None:
         run = check_int("run", run, 0)
     particles = check_int("particles", STUDY.particles if particles is None else particles, 2)
-    iterations = check_int("iterations", iterations, 1)
+    iterations = check_int("iterations", 1 if iterations is None else iterations, 1)
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments)
+    _apart(out, scenario, data=data, schedule=schedule)
     if filter is None and schedule is None:
         raise InputError("give the filter to run (filter, e.g. kcf or scheduled) or a design directory (schedule)")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
@@ -613,7 +671,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
 
 @one_blas_thread()
 def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | None = None, filter: str | None = None,
-                node: int | None = None, iterations: int = 1, network: SensorNetwork | None = None,
+                node: int | None = None, iterations: int | None = None, network: SensorNetwork | None = None,
                 attacks: AttackSpec | None = None, design_defaults: DesignOptions | None = None, x0=None,
                 inputs: Callable | None = None, overrides: Mapping[str, Any] | None = None,
                 assignments: Sequence[str] = ()):
@@ -653,6 +711,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     if sum(v is not None for v in (schedule, mode, filter)) != 1:
         raise InputError("give a design directory (schedule), a gain rule (mode) or a filter's name (filter), one of "
                          "them")
+    _applies(filter, "schedule or mode", iterations=iterations)  # HCMCI's only
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network: a node filter needs one (a model file "
@@ -667,7 +726,8 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
                                                                   sc.model)
-        net = entry.node_filters(sc.model, sc.network, design, check_int("iterations", iterations, 1))
+        rounds = check_int("iterations", 1 if iterations is None else iterations, 1)
+        net = entry.node_filters(sc.model, sc.network, design, rounds)
         return net if node is None else net.nodes[node]
     if schedule is not None:
         _, options, _ = design_options_of(schedule, sc)
@@ -724,6 +784,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     check_path("out", out)
     check_path("data", data, optional=True)
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
+    _apart(out, scenario, design_dir=design_dir, data=data)
     meta_path = Path(design_dir) / "schedule.json"
     try:
         meta = json.loads(meta_path.read_text())

@@ -23,13 +23,18 @@ _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's o
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
 
 
+_DEBUG_HELP = "show tracebacks on errors (accepted anywhere on the line)"
+
+
+def _debug(ctx: click.Context, param, value: bool) -> None:
+    """``--debug`` given to the group or to a command: tracebacks on errors (read by :func:`main`)."""
+    if value:
+        ctx.ensure_object(dict)["debug"] = True
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--debug", is_flag=True, help="show tracebacks on errors")
-@click.pass_context
-def cli(ctx: click.Context, debug: bool) -> None:
+def cli() -> None:
     """cfdesign: design and compare attack-resilient consensus and particle filters."""
-    ctx.ensure_object(dict)
-    ctx.obj["debug"] = debug
 
 
 def _design_options(f):
@@ -188,12 +193,13 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
               help="a design directory written by cfdesign design: the designed filter runs with its gain rule and "
                    "options [default: the scenario's design defaults]")
 @click.option("--seed", type=int, default=None,
-              help="study seed of the particle filters' streams [default: the log's seed, else 0]")
+              help="study seed of the particle filters' streams (particle filters only) [default: the log's seed, "
+                   "else 0]")
 @click.option("--run", type=int, default=None,
-              help="study run of the particle filters' streams [default: the log's run, else 0]")
+              help="study run of the particle filters' streams (particle filters only) [default: the log's run, "
+                   "else 0]")
 @click.option("--particles", type=int, default=None, help="particles of the particle filters, >= 2 [default: 500]")
-@click.option("--iterations", type=int, default=1, show_default=True,
-              help="consensus rounds per step of HCMCI, >= 1")
+@click.option("--iterations", type=int, default=None, help="consensus rounds per step of HCMCI, >= 1 [default: 1]")
 @click.option("--out", required=True, help="output directory (estimates.npz, estimates.csv, report.md)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations, out, assignments) -> None:
@@ -416,14 +422,27 @@ def cache_clear_cmd() -> None:
         click.echo(f"nothing to remove in {cache_dir()}")
 
 
+def _with_debug(command: click.Command) -> None:
+    """Give ``command`` and every command under it the ``--debug`` flag, so that it is accepted before and after a
+    command's name; click parses it, so a ``--debug`` that is an option's value (``--set --debug``) or an argument
+    after ``--`` stays what it is."""
+    command.params.append(click.Option(["--debug"], is_flag=True, expose_value=False, callback=_debug,
+                                       help=_DEBUG_HELP))
+    for sub in getattr(command, "commands", {}).values():
+        _with_debug(sub)
+
+
+_with_debug(cli)
+
+
 def main(argv=None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    debug = "--debug" in argv
+    obj = {}  # the commands' context object: --debug, anywhere on the line, sets obj["debug"]
     with warnings.catch_warnings():  # restored on return (main is also called in-process, by the tests)
         warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
         warnings.showwarning = _one_line_warnings(warnings.showwarning)
-        return _main(argv, debug)
+        return _main(argv, obj)
 
 
 def _one_line_warnings(show):
@@ -441,7 +460,7 @@ def _one_line_warnings(show):
     return showwarning
 
 
-def _main(argv: list, debug: bool) -> int:
+def _main(argv: list, obj: dict) -> int:
     from .launch import Interrupts
 
     try:
@@ -449,7 +468,7 @@ def _main(argv: list, debug: bool) -> int:
         # on stderr before ours, and the model layer is imported inside the commands (a Ctrl-C there is start-up)
         with Interrupts() as interrupts:
             try:
-                with cli.make_context("cfdesign", argv) as ctx:
+                with cli.make_context("cfdesign", argv, obj=obj) as ctx:
                     cli.invoke(ctx)
             finally:  # a Ctrl-C that a library swallowed ends the command as interrupted, whatever it did next
                 interrupts.check()
@@ -462,17 +481,17 @@ def _main(argv: list, debug: bool) -> int:
         click.echo("cfdesign: interrupted", err=True)
         return 130
     except InputError as exc:
-        if debug:
+        if obj.get("debug"):
             traceback.print_exc()
         click.echo(f"cfdesign: error: {exc}", err=True)
         return 2
     except ComputationError as exc:
-        if debug:
+        if obj.get("debug"):
             traceback.print_exc()
         click.echo(f"cfdesign: failed: {exc}", err=True)
         return 1
     except OSError as exc:  # a path that cannot be made or used is bad input (2); a full disk is a failure (1)
-        if debug:
+        if obj.get("debug"):
             traceback.print_exc()
         where = f" {exc.filename!r}" if exc.filename else ""
         bad_path = exc.errno in (errno.ENOENT, errno.EACCES, errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.EROFS,
@@ -481,7 +500,7 @@ def _main(argv: list, debug: bool) -> int:
                    f"{exc.strerror or exc}", err=True)
         return 2 if bad_path else 1
     except Exception as exc:  # noqa: BLE001 - the CLI contract is one line, no traceback
-        if debug:
+        if obj.get("debug"):
             traceback.print_exc()
         msg = str(exc).splitlines()[0] if str(exc) else ""
         click.echo(f"cfdesign: internal error: {type(exc).__name__}: {msg} (rerun with --debug)", err=True)

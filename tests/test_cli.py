@@ -97,7 +97,7 @@ _MODEL = TANK_MODEL  # a user's model file (tests/conftest.py)
         (["simulate", "{model}", "--out", "{tmp}/dir.npz"], "existing directory"),
         (["simulate", "{model}", "--set", "x0=[1,2]", "--out", "{tmp}/a.npz"], "takes no --set parameters"),
         (["simulate", "indoor-robot", "--set", "x0=[1e308,0,0]", "--out", "{tmp}/a.npz"], "not finite"),
-        (["design", "{model}", "--out", "{model}"], "existing file"),
+        (["design", "{model}", "--out", "{model}"], "is the model file given as scenario"),
         (["design", "{model}", "--u-scale", "-0.01", "--out", "{tmp}/d"], "--u-scale"),
         (["study", "comparison", "{model}", "--runs", "10000000000", "--out", "{tmp}/c"], "runs must be an integer in"),
         (["study", "comparison", "{model}", "--runs", "inf", "--out", "{tmp}/c"], "--runs"),
@@ -465,3 +465,68 @@ def test_every_study_refuses_a_single_run_before_computing(tmp_path):
         with pytest.raises(InputError, match=r"runs must be an integer in 2\.\."):
             studies.study(name, runs=1, out=tmp_path / name)
         assert get_study(name).min_runs >= 2 and not (tmp_path / name).exists()
+
+
+def test_debug_is_accepted_anywhere_on_the_line(tmp_path, capsys):
+    """--debug before, inside or after a command's options: the traceback, then the same one line; a --debug that is
+    an option's value or follows -- is that value or an argument (one line, no traceback)."""
+    args = ["simulate", "indoor-robot", "--set", "process_var=-1", "--out", str(tmp_path / "x.npz")]
+    for where in (0, 1, 2, 4, len(args)):
+        assert main([*args[:where], "--debug", *args[where:]]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" in err and err.strip().splitlines()[-1].startswith("cfdesign: error: "), err
+        assert "process_var" in err.strip().splitlines()[-1]
+    for argv, needle in ((["simulate", "indoor-robot", "--set", "--debug", "--out", str(tmp_path / "x.npz")], "--set"),
+                         (["simulate", "indoor-robot", "--out", str(tmp_path / "x.npz"), "--", "--debug"], "--debug")):
+        assert main(argv) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0] and "Traceback" not in lines[0], lines
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_every_command_documents_debug(capsys):
+    from studies.cli import cli
+
+    def paths(group, prefix):
+        for name, command in group.commands.items():
+            yield [*prefix, name]
+            if hasattr(command, "commands"):
+                yield from paths(command, [*prefix, name])
+
+    for path in [[], *paths(cli, [])]:
+        assert main([*path, "--help"]) == 0
+        assert "--debug" in capsys.readouterr().out, path
+
+
+@pytest.fixture(scope="module")
+def robot_log(tmp_path_factory):
+    log = tmp_path_factory.mktemp("log") / "log.npz"
+    assert main(["simulate", "indoor-robot", "--steps", "3", "--out", str(log)]) == 0
+    return log
+
+
+@pytest.mark.parametrize("args, option, filters", [
+    (["--filter", "kcf", "--particles", "500"], "particles", "'centralized PF (attack-aware)'"),
+    (["--filter", "kcf", "--seed", "3"], "seed", "'centralized PF (trusts every packet)'"),
+    (["--filter", "hcmci", "--run", "1"], "run", "'centralized PF (attack-aware)'"),
+    (["--filter", "centralized-pf-attack-aware", "--iterations", "2"], "iterations", "'HCMCI' only"),
+    (["--filter", "local", "--iterations", "1"], "iterations", "'HCMCI' only"),  # given, even at its default
+])
+def test_filter_refuses_an_option_its_filter_does_not_use(robot_log, tmp_path, capsys, args, option, filters):
+    """An unused option is an error (exit 2, one line naming the option and the filters it applies to), nothing
+    written; as the API's filter and node_filter."""
+    out = tmp_path / "f"
+    assert main(["filter", "indoor-robot", "--data", str(robot_log), *args, "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"cfdesign: error: {option} does not apply to filter "), lines
+    assert filters in lines[0] and not out.exists()
+
+
+def test_node_filter_refuses_iterations_for_a_filter_without_rounds():
+    import studies
+
+    with pytest.raises(InputError, match="iterations does not apply to filter 'KCF': it applies to 'HCMCI' only"):
+        studies.node_filter("indoor-robot", filter="kcf", iterations=2)
+    with pytest.raises(InputError, match="iterations does not apply to the designed filter of schedule or mode"):
+        studies.node_filter("indoor-robot", mode="relay", iterations=1)
+    assert len(studies.node_filter("indoor-robot", filter="hcmci", iterations=2).nodes) == 8
