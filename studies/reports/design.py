@@ -239,9 +239,10 @@ def _tightest(s: _Schedule) -> list[tuple[int, str, int, float, int, int, int]]:
 
 
 # Why a failed Theorem 2 condition never contradicts a design's verdict: the two theorems make different claims.
-THEOREM2_KIND = ("the verdict judges Theorem 1's bound Φ over the horizon (finite, informative, steady), while Theorem 2 "
-                 "makes a different claim (the error bounded in mean square for all time) with a condition that is "
-                 "sufficient, not necessary, so where it fails Theorem 2 claims nothing and the verdict stands")
+THEOREM2_KIND = ("the verdict judges Theorem 1's bound Φ (finite, informative, steady: over a run's horizon, or at a "
+                 "map's fixed point), while Theorem 2 makes a different claim (the error bounded in mean square for "
+                 "all time) with a condition that is sufficient, not necessary, so where it fails Theorem 2 claims "
+                 "nothing and the verdict stands")
 
 
 def theorem2_words(where: str, verdict: str | None = None) -> str:

@@ -16,7 +16,8 @@ from designer.validation import InputError
 
 from .render import heading_anchors
 
-__all__ = ["is_num", "fmt_num", "fmt_dur", "DURATION", "MEASURED", "is_time_key", "ci_pair", "with_ci", "metric_value", "compact",
+__all__ = ["is_num", "fmt_num", "fmt_dur", "DURATION", "MEASURED", "is_time_key", "ci_pair", "with_ci",
+           "metric_value", "compact",
            "flat_numbers", "md_escape", "md_cell", "md_table", "demote", "generic", "document", "figure_lines",
            "scenario_spec", "params_table", "network_lines", "assumption_section", "matrix_text", "recorded_elsewhere",
            "code_span", "rerun_lines",
