@@ -981,8 +981,8 @@ def _details_section(results: Mapping) -> list[str]:
 
 def _timing_section(results: Mapping) -> list[str]:
     filters = _filters(results)
-    out = ["## Timings", "", f"Measurements, {MEASURED}: they vary from one run of the same command to the next, and "
-           "no other section depends on them.", ""]
+    out = ["## Timings", "", f"Wall-clock times, {MEASURED}: they vary from one run of the same command to the next, "
+           "and no other section depends on them.", ""]
     wall = results.get("wall_time_s")
     if is_num(wall):
         out += [f"The whole study took {fmt_dur(wall)} of wall-clock time (figures not included).", ""]
