@@ -1,9 +1,10 @@
 """The feasibility report: a parameter-feasibility map (``feasibility.csv`` + ``feasibility.json``) in plain words.
 
 What was mapped (the grid, the design options, the operating point), how many grid
-points are feasible and what binds, the grid itself (for one or two grid parameters a
-matrix: the steady-state trace bound of the feasible points, the binding condition of
-the infeasible ones), the heat map ``feasibility.png``, and how this notion of
+points have each verdict (certified, not steady, vacuous, infeasible) and what binds, the
+grid itself (for one or two grid parameters a matrix: the steady-state trace bound of the
+certified points, the verdict and binding condition of the others), the map
+``feasibility.png`` (the same categories apart), and how this notion of
 feasibility differs from the one of ``cfdesign design`` (:data:`TWO_NOTIONS`, the
 words of the docstring of the module that computes the map), then the attacks, the
 network, the assumptions and the runner.
@@ -11,6 +12,10 @@ network, the assumptions and the runner.
 ``feasibility.csv`` is enough: without ``feasibility.json`` the grid is read from the
 CSV's columns (those before ``feasible``) and the sections that need the JSON are
 left out.
+
+Every sentence, count and table is derived from one classification of each grid point
+(:func:`studies.feasibility_map.map_category`: its ``verdict``), the one the map draws, so
+the summary's "Certified at n of N" and "Where the design is certified" cannot disagree.
 """
 from __future__ import annotations
 

@@ -1,8 +1,9 @@
 """The study report: what a study (``results.json`` of schema ``cfdesign.study/1``) compares and found.
 
 It opens with a one-screen **summary** (:func:`summary_blocks`): the filters ranked by the
-study's accuracy metric with their 95 % intervals, time per step and messages, whether each
-can be told apart from the best, the trade-off figure (``fig_tradeoff.png``, drawn from the
+study's accuracy metric with their 95 % intervals, time per step (measured on this machine:
+shown, never ranked; :data:`studies.reports.text.DURATION` is what a measured time looks like)
+and messages, whether each can be told apart from the best, the trade-off figure (``fig_tradeoff.png``, drawn from the
 same blocks by :func:`studies.figures.tradeoff_figure`) and the pick in one sentence, never
 stronger than the intervals allow (overlapping intervals: the data cannot tell the filters
 apart).  Then, for a reader who has not read the papers: the pick metric by metric, what
@@ -13,6 +14,8 @@ figures (captioned by the study), every assumption, the software and the command
 computes the same numbers again (from the recorded ``invocation``).  Raw fields the report
 does not explain stay in ``results.json`` (the report names them).  A multi-scenario study
 is summarised and ranked per scenario: errors in different units are never ranked together.
+Cost is ranked by the messages counted; no sentence depends on a measured time, so the same
+command writes the same report, its measured durations aside.
 
 Every key of the results file is optional except that the file must be a JSON
 object: a section whose data are missing is left out.
