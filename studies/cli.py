@@ -242,7 +242,9 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
         click.echo(f"  ... and {len(hard) - 20} more (see schedule.json)")
     n_th2 = len(sch.violations) - len(hard)
     if n_th2:
-        click.echo(f"  Theorem 2 (mean-square boundedness) not certified at {n_th2} (node, step) pairs")
+        from .reports.design import theorem2_words
+
+        click.echo(f"  {theorem2_words(f'{n_th2} (node, step) pairs', res.verdict)}")
     if hard:
         raise ComputationError(f"infeasible design: {res.reason()} (schedule written, marked feasible: false)")
     if not res.certified:

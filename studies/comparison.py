@@ -68,6 +68,7 @@ from .pipeline import Plan, Study, StudyOptions, StudyText
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
+from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise"]
@@ -658,7 +659,7 @@ def table_markdown(results: dict) -> str:
                     "diverged in every run" if f[key] is None else
                     f"{f[key]:.4g} [{f[f'{key}_ci95'][0]:.3g}, {f[f'{key}_ci95'][1]:.3g}]",
                     "median": f[f"{key}_median_run"],
-                    "ms": None if f["time_per_step_s"] is None else 1e3 * f["time_per_step_s"],
+                    "time": None if f["time_per_step_s"] is None else fmt_dur(f["time_per_step_s"]),
                     "msgs": f["messages_per_step"], "div": f["diverged_runs"],
                     "feas": f.get("feasible_runs")} for n, f in b["filters"].items()}
         probs = ("as declared per channel (see the attacks section)" if at["dos_prob"] is None else
@@ -669,7 +670,7 @@ def table_markdown(results: dict) -> str:
                  f"xi = {amp} {at['law']}(s) on {', '.join(at['components'])} (bound delta = {at['delta']:.4g}). "
                  f"Error over {', '.join(b['error']['components'])}.\n\n")
         text += markdown_table(rows, [("family", "family"), ("rmse", f"{what} RMSE [95 % CI]"),
-                                      ("median", "median run RMSE"), ("ms", "time/step ms"),
+                                      ("median", "median run RMSE"), ("time", f"time/step ({MEASURED})"),
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
                                       ("feas", "runs with design conditions met"), ("runtime", "run time")],
                                "filter")
@@ -678,8 +679,8 @@ def table_markdown(results: dict) -> str:
             text += (f"\nMost accurate of the filters the nodes can run: {rec['most_accurate']}"
                      + (f" (not significantly better than {', '.join(rec['not_significantly_worse'])})"
                         if rec["not_significantly_worse"] else " (95 % interval disjoint from every other one's)")
-                     + f"; cheapest per step: {rec['cheapest']}; fewest messages: "
-                     f"{', '.join(rec['fewest_messages'])}.\n")
+                     + f"; fewest messages per step: {', '.join(rec['fewest_messages'])} (cost is ranked by the "
+                     "messages counted, not by the measured times).\n")
         ref = rec.get("best_reference")
         if ref is not None:
             f = b["filters"][ref]

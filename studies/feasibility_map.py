@@ -28,9 +28,10 @@ every point (not a grid value) are the user's input: an InputError before any po
 the function ``cfdesign design`` judges its bound with): ``certified`` where the iteration reached a fixed point
 whose tr Φ is below the stationary open-loop covariance's trace at every node (the discrete Lyapunov solution at the
 operating point, or, where ``F`` is not Schur stable, the open-loop covariance at the scenario's horizon),
-``vacuous`` where some node's fixed point is at or above it, ``not steady`` where (28)-(29) held at every iterate but
-no fixed point was reached ("no convergence", "unbounded"), ``infeasible`` where (28), (29) failed, the iteration
-diverged, or the point has no design (``dos + fdi > 1``, a failed point).  ``feasible`` keeps its meaning (a
+``vacuous`` where some node's fixed point is at or above it or where the bound grew without limit ("unbounded"),
+``not steady`` where (28)-(29) held at every iterate but no fixed point was reached ("no convergence") while the
+last bound stayed below the open loop, ``infeasible`` where (28), (29) failed, the iteration diverged, or the point
+has no design (``dos + fdi > 1``, a failed point).  ``feasible`` keeps its meaning (a
 bounded fixed point exists); ``feasibility.json`` counts the verdicts (``verdicts``) and records the open-loop
 reference (``open_loop``).
 
@@ -73,7 +74,8 @@ from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
 __all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
-           "OUTPUTS", "FAILED", "point_verdict", "stationary_open_loop"]
+           "OUTPUTS", "FAILED", "point_verdict", "stationary_open_loop", "MAP_CATEGORIES", "MAP_COLOURS", "MAP_WORDS",
+           "map_category", "map_figure"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
 
@@ -223,14 +225,18 @@ def point_verdict(r, open_loop: float, nodes: int) -> str:
     """The verdict (:func:`designer.verdict.verdict`) on the stationary bound of one grid point's iteration ``r``
     (a :class:`designer.feasibility.SteadyState`) against the stationary open-loop trace ``open_loop``.
 
-    A fixed point is steady; an iteration that stopped without one ("no convergence", "unbounded": the conditions
-    held at every iterate) is not steady; (28), (29) or a diverged iteration is infeasible.
+    A fixed point is steady: certified or vacuous.  An iteration that stopped without one while the conditions held
+    at every iterate is judged by its last bound, as the verdict judges any bound that is not steady: "unbounded"
+    (the trace grew past the iteration's limit: no finite bound) is vacuous; "no convergence" is vacuous when the
+    last iterate's mean tr Φ over the nodes is at or above the open loop (so some node's is), else not steady.
+    (28), (29) or a diverged iteration is infeasible.
     """
     if r.feasible:
         trace = np.trace(r.phi, axis1=1, axis2=2)[:, None]
         return verdict(trace, open_loop, feasible=True, fixed_point=True).verdict
     if r.binding in _NOT_STEADY:
-        return verdict(np.full((nodes, 1), np.nan), open_loop, feasible=True, fixed_point=False).verdict
+        last = np.inf if r.binding == "unbounded" or not np.isfinite(r.trace_bound) else r.trace_bound
+        return verdict(np.full((nodes, 1), last), open_loop, feasible=True, fixed_point=False).verdict
     return verdict(np.full((nodes, 1), np.nan), open_loop, feasible=False).verdict
 
 
@@ -510,42 +516,88 @@ def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:
     atomic_write(path, lambda fh: fh.write(buf.getvalue().encode()))
 
 
-def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> None:
-    from .figures import plotting, save_figure
-    from matplotlib.colors import LogNorm
+#: The map's categories of a grid point, each drawn apart (:func:`map_figure`): the verdicts of
+#: :data:`designer.verdict.VERDICTS` in the order a reader asks for them, and their colours.
+MAP_CATEGORIES = ("certified", "not steady", "vacuous", "infeasible")
+MAP_COLOURS = {"certified": "#1a9850", "not steady": "#fdae61", "vacuous": "#8073ac", "infeasible": "#d73027"}
+MAP_WORDS = {"certified": "certified (finite, informative, a fixed point)",
+             "not steady": "not steady (below the open loop, no fixed point)",
+             "vacuous": "vacuous (at or above the open loop, or unbounded)",
+             "infeasible": "infeasible ((28)/(29) fail, diverged or no design)"}
+
+
+def map_category(row) -> str:
+    """The category of a grid point's row (:data:`MAP_CATEGORIES`): its ``verdict``; a row without one (a map
+    written before the verdicts) is ``infeasible`` when not feasible, else ``None`` (not judged)."""
+    v = row.get("verdict")
+    if v in MAP_CATEGORIES:
+        return v
+    return None if row.get("feasible") else "infeasible"
+
+
+def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
+    """The map's figure: for two grid parameters, the category of every point (:data:`MAP_CATEGORIES`, each
+    colour in the legend with its count; the QuadMesh's data are the indices of the categories, gid
+    ``"categories"``) beside the steady-state trace bound where a fixed point exists (log scale); for one, the trace
+    bound against the parameter with a marker per point in its category's colour (one labelled line per
+    category, gid ``"category:<name>"``; a point without a bound sits on the lowest bound's level).  Points that
+    failed (not mapped) are framed in grey."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
+    from matplotlib.patches import Patch
+
+    from .figures import plotting
 
     plt = plotting()
-    tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows])
+    cats = [map_category(r) for r in rows]
+    code = np.array([MAP_CATEGORIES.index(c) if c is not None else np.nan for c in cats])
+    tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows], dtype=float)
     failed = np.array([str(r["binding"]).startswith(FAILED) for r in rows])
-    fig, ax = plt.subplots(figsize=(7, 5))
+    counts = {c: cats.count(c) for c in MAP_CATEGORIES}
+    label = {c: f"{MAP_WORDS[c]}: {counts[c]}" for c in MAP_CATEGORIES}
+    title = f"{scenario}: the {mode} consensus design at the operating point"
     if len(parsed) == 1:
         (name, vals), = parsed
-        ax.semilogy(vals, tb, "o-")
-        level = np.full(len(rows), np.nanmin(tb) if np.any(np.isfinite(tb)) else 1.0)
-        bad = np.isnan(tb) & ~failed
-        ax.plot(vals[bad], level[bad], "rx", label="infeasible")
+        fig, ax = plt.subplots(figsize=(8.5, 4.8))
+        level = np.nanmin(tb) if np.any(np.isfinite(tb)) else 1.0
+        ax.semilogy(vals, tb, "-", color="0.6", lw=1)
+        y = np.where(np.isfinite(tb), tb, level)
+        for i, c in enumerate(MAP_CATEGORIES):
+            at = code == i
+            (line,) = ax.semilogy(vals[at], y[at], "o" if c != "infeasible" else "X", ls="none", ms=7,
+                                  color=MAP_COLOURS[c], label=label[c])
+            line.set_gid(f"category:{c}")
         if failed.any():
-            ax.plot(vals[failed], level[failed], "s", color="grey", mfc="none", label="failed (not mapped)")
-        ax.set_xlabel(name)
-        ax.set_ylabel("steady-state tr Φ (mean over nodes)")
-        ax.legend()
+            ax.plot(vals[failed], y[failed], "s", color="grey", mfc="none", ms=11, label="failed (not mapped)")
+        ax.set(xlabel=name, title=title, ylabel="steady-state tr Φ (mean over nodes)"
+               + ("\n(points without a bound: on the lowest level)" if np.isnan(tb).any() else ""))
+        ax.legend(fontsize=8, loc="best")
     else:
         (n1, v1), (n2, v2) = parsed
-        grid = tb.reshape(len(v1), len(v2))
-        finite = grid[np.isfinite(grid)]
-        norm = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None
-        mesh = ax.pcolormesh(v2, v1, np.ma.masked_invalid(grid), norm=norm, shading="nearest", cmap="viridis")
-        fail = failed.reshape(grid.shape)
-        ii, jj = np.nonzero(~np.isfinite(grid) & ~fail)
-        ax.plot(v2[jj], v1[ii], "x", color="crimson", ms=7, label="infeasible")
-        fi, fj = np.nonzero(fail)
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5))
+        shape = (len(v1), len(v2))
+        cmap = ListedColormap([MAP_COLOURS[c] for c in MAP_CATEGORIES])
+        norm = BoundaryNorm(np.arange(len(MAP_CATEGORIES) + 1) - 0.5, len(MAP_CATEGORIES))
+        mesh = ax.pcolormesh(v2, v1, np.ma.masked_invalid(code.reshape(shape)), cmap=cmap, norm=norm,
+                             shading="nearest", edgecolors="white", linewidth=0.5)
+        mesh.set_gid("categories")
+        handles = [Patch(facecolor=MAP_COLOURS[c], label=label[c]) for c in MAP_CATEGORIES]
+        fi, fj = np.nonzero(failed.reshape(shape))
         if fi.size:
-            ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=7, label="failed (not mapped)")
-            ii = np.concatenate([ii, fi])
-        fig.colorbar(mesh, ax=ax, label="steady-state tr Φ (mean over nodes)")
-        ax.set_xlabel(n2)
-        ax.set_ylabel(n1)
-        if ii.size:
-            ax.legend(loc="upper right", fontsize=8)
-    ax.set_title(f"{scenario}: feasibility of the {mode} consensus design at the operating point", fontsize=10)
-    save_figure(fig, path)
+            (fail,) = ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=9, label="failed (not mapped)")
+            handles.append(fail)
+        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+        ax.set(xlabel=n2, ylabel=n1, title="the verdict at each grid point")
+        grid = tb.reshape(shape)
+        finite = grid[np.isfinite(grid)]
+        norm2 = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None
+        mesh2 = ax2.pcolormesh(v2, v1, np.ma.masked_invalid(grid), norm=norm2, shading="nearest", cmap="viridis")
+        fig.colorbar(mesh2, ax=ax2, label="steady-state tr Φ (mean over nodes)")
+        ax2.set(xlabel=n2, ylabel=n1, title="the bound where a fixed point exists (blank: none)")
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> None:
+    from .figures import save_figure
+
+    save_figure(map_figure(rows, parsed, scenario, mode), path)

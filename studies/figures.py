@@ -424,9 +424,9 @@ def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
                         color=colours[name], mfc="white" if ref else colours[name],
                         label=name + (f" ({', '.join(notes)})" if notes else ""))
         ylabel = f"{b.label} with its 95 % interval" + (" (log scale)" if log else "")
-        ax.set(xscale="log", yscale="log" if log else "linear", xlabel="time per step (ms, log scale)",
+        ax.set(xscale="log", yscale="log" if log else "linear", xlabel="time per step (ms, measured, log scale)",
                ylabel="\n".join(textwrap.wrap(ylabel, 48)),
-               title=f"{b.title}: accuracy against cost" if b.title else "accuracy against cost")
+               title=f"{b.title}: accuracy against measured time" if b.title else "accuracy against measured time")
         _plain_log_ticks(ax.xaxis)
         if log:
             _plain_log_ticks(ax.yaxis)

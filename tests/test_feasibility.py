@@ -273,3 +273,103 @@ def test_a_scaling_whose_square_overflows_is_not_feasible():
         rows = map_points(sc, DesignOptions(mode="tuned"), points, batched=batched)
         assert [r["feasible"] for r in rows] == [1, 0, 0], rows
         assert rows[2]["binding"] == "(28)" and np.isnan(rows[2]["trace_bound"])
+
+
+# A scalar model whose map has certified, vacuous and infeasible points (the bound crosses the open loop with tau).
+SCALAR = '''
+import casadi as ca
+
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+from studies.scenarios import Param, Scenario, ScenarioSpec
+
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+
+
+def build(p: dict) -> Scenario:
+    x = ca.SX.sym("x", 1)
+    sensors = [Sensor(f"s{i}", x, Gaussian.zero_mean([[0.07]])) for i in range(3)]
+    m = Model("scalar", x, 0.9 * x, sensors, Gaussian.zero_mean([[0.01]]), Gaussian([0.0], [[1.0]]))
+    return Scenario("scalar", m, p, ("scalar: an example",), steps=25, network=NETWORK,
+                    attacks=AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(0.2)))
+
+
+SPEC = ScenarioSpec("scalar", "A scalar random walk watched by three sensors", "user", "an example", (), build)
+'''
+
+
+def _cells(md: str, section: str) -> list[list[str]]:
+    text = md.split(f"\n## {section}\n", 1)[1].split("\n## ", 1)[0]
+    return [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in text.splitlines() if ln.startswith("| ")]
+
+
+def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
+    """Every sentence of the report and the map's categories are derived from the table's verdicts: the counts,
+    where the design is certified (never "everywhere" when a point is not), the ranked points, each cell of the grid
+    and each cell of the map, and the map's legend with its counts."""
+    from studies.feasibility_map import MAP_CATEGORIES, map_figure
+
+    (tmp_path / "scalar.py").write_text(SCALAR)
+    out = tmp_path / "f"
+    fmap = feasibility(str(tmp_path / "scalar.py"), ["tau=0:1:5", "dos=0:0.6:4"], mode="paper", out=out,
+                       quiet=True)
+    with open(out / "feasibility.csv") as fh:
+        table = list(csv.DictReader(fh))
+    verdict = {(float(t["tau"]), float(t["dos"])): t["verdict"] for t in table}
+    counts = {c: sum(v == c for v in verdict.values()) for c in MAP_CATEGORIES}
+    n, n_cert = len(table), counts["certified"]
+    assert 0 < n_cert < n and counts["vacuous"] and counts["infeasible"]  # the case the report got wrong
+    md = (out / "report.md").read_text()
+    summary = md.split("\n## Summary\n", 1)[1].split("\n## ", 1)[0]
+    assert f"**Certified at {n_cert} of {n} grid points.**" in summary
+    where = next(ln for ln in summary.splitlines() if ln.startswith("**Where the design is certified:**"))
+    assert f"at {n_cert} of {n} points" in where and "everywhere" not in where and "nowhere" not in where
+    for c in MAP_CATEGORIES[1:]:
+        assert (f"{counts[c]} {c} (" in where) == (counts[c] > 0), c
+    ranked = [r for r in _cells(md, "Summary") if r[0].isdigit()]
+    certified = sorted((float(t["trace_bound"]), (float(t["tau"]), float(t["dos"]))) for t in table
+                       if t["verdict"] == "certified")
+    assert len(ranked) == n_cert and [r[1] for r in ranked] == [f"tau = {p[0]:g}, dos = {p[1]:g}"
+                                                              for _, p in certified]
+    counted = {r[0].split(" (")[0]: int(r[1]) for r in _cells(md, "How much is certified") if r[1].isdigit()}
+    assert counted == counts
+    grid = _cells(md, "The grid")
+    (_, taus), (_, doses) = fmap.grids
+    for row in grid[1:]:
+        for dos, cell in zip(doses, row[1:]):
+            v = verdict[(float(row[0]), float(dos))]
+            shown = ("infeasible" if cell.startswith("✗") else "vacuous" if cell.startswith("vacuous") else
+                     "not steady" if cell.startswith("not steady") else "certified")
+            assert shown == v, (row[0], dos, cell)
+    # the map: one cell per point in its category, every category in the legend with its count
+    fig = map_figure(fmap.rows, fmap.grids, "scalar", "paper")
+    ax = fig.axes[0]
+    (mesh,) = [c for c in ax.collections if c.get_gid() == "categories"]
+    codes = np.asarray(mesh.get_array()).reshape(len(taus), len(doses))
+    for i, tau in enumerate(taus):
+        for j, dos in enumerate(doses):
+            assert MAP_CATEGORIES[int(codes[i, j])] == verdict[(float(tau), float(dos))]
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    for c in MAP_CATEGORIES:
+        assert sum(t.startswith(c) and t.endswith(f": {counts[c]}") for t in legend) == 1, (c, legend)
+
+
+def test_a_one_parameter_map_draws_each_category_apart():
+    """A 1-D map: one labelled set of markers per category, holding exactly that category's points (a point
+    without a bound on the lowest bound's level); an unbounded iteration is vacuous, a stalled one below the open
+    loop not steady."""
+    from designer.feasibility import SteadyState
+    from studies.feasibility_map import MAP_CATEGORIES, map_figure, point_verdict
+
+    assert point_verdict(SteadyState(False, np.nan, "unbounded", 9, False, None), 1.0, 2) == "vacuous"
+    assert point_verdict(SteadyState(False, 0.5, "no convergence", 400, False, None), 1.0, 2) == "not steady"
+    assert point_verdict(SteadyState(False, 2.0, "no convergence", 400, False, None), 1.0, 2) == "vacuous"
+    kinds = ["certified", "certified", "not steady", "vacuous", "vacuous", "infeasible"]
+    rows = [{"feasible": int(k in ("certified", "vacuous") and i != 4), "trace_bound": 0.1 * (i + 1),
+             "binding": "(28)" if k == "infeasible" else "unbounded" if i == 4 else "none", "theorem2": 1,
+             "iterations": 10, "verdict": k} for i, k in enumerate(kinds)]
+    values = np.linspace(0.0, 0.5, len(rows))
+    ax = map_figure(rows, [("dos", values)], "toy", "paper").axes[0]
+    for c in MAP_CATEGORIES:
+        (line,) = [ln for ln in ax.get_lines() if ln.get_gid() == f"category:{c}"]
+        assert list(line.get_xdata()) == [v for v, k in zip(values, kinds) if k == c], c
+        assert line.get_label().startswith(c) and line.get_label().endswith(f": {kinds.count(c)}")

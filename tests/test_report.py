@@ -194,8 +194,7 @@ def test_pick_section_follows_the_numbers(study_dir):
         for i in range(2):
             best = min(f, key=lambda n: f[n]["rmse_state"][i])
             assert f"**Most accurate (RMSE of x{i + 1}):** {best}," in pick
-    cheapest = min(f, key=lambda n: f[n]["time_per_step_s"])
-    assert f"**Cheapest per step:** {cheapest}," in pick
+    assert "**Time per step:** measured on this machine" in pick and "cheapest" not in pick.lower()
 
 
 def _results(**extra) -> dict:
@@ -241,9 +240,9 @@ def test_comparison_results_are_rendered_generically(tmp_path):
     pick = md.split("## Which filter to pick", 1)[1].split("\n## ", 1)[0]
     assert "**Most accurate (position RMSE):** fast, 1 [0.9, 1.1]" in pick
     assert "overlaps that of close" in pick and "not significant" in pick  # [0.9, 1.1] meets [0.95, 1.2]
-    assert "far" not in pick.split("Cheapest")[0]  # [2.5, 3.5] is apart: not named as a tie
-    assert "**Cheapest per step:** fast, 10 µs" in pick
+    assert "far" not in pick.split("Fewest")[0]  # [2.5, 3.5] is apart: not named as a tie
     assert "**Fewest communications:** fast, far (8 messages)" in pick
+    assert "10 µs" not in pick and "so no filter is ranked or picked by it" in pick  # a time ranks nothing
     assert "Monte Carlo confidence intervals" in md and "± half-width" in md
     assert "12.5 s" in md  # the study's wall time, with a unit
 
@@ -476,7 +475,7 @@ def test_a_multi_scenario_comparison_is_ranked_per_scenario(tmp_path):
     robot, target = pick.split("### indoor-robot", 1)[1].split("### target-range-bearing", 1)
     assert "**Most accurate (position RMSE):** fast, 1 [0.9, 1.1]" in robot
     assert "**Most accurate (position RMSE):** ok, 50 [45, 55]" in target
-    assert "**Cheapest per step:** ok" in target and "cheap-but-diverged" not in target.split("Caution")[0]
+    assert "(4)." in target.split("**Communications:**")[1] and "cheap-but-diverged" not in target.split("Caution")[0]
     scen = md.split("## Scenarios and parameters", 1)[1].split("\n## ", 1)[0]
     assert "`glint_prob`" in scen.split("### target-range-bearing", 1)[1]
     assert "`meas_var`" in scen.split("### indoor-robot", 1)[1].split("### target-range-bearing", 1)[0]
@@ -699,9 +698,9 @@ def test_design_report_without_the_arrays(designs, tmp_path):
 def test_feasibility_report_counts_and_grid(maps):
     d, fmap = maps["two"]
     md = (d / "report.md").read_text()
-    n_ok = int(fmap.feasible.sum())
+    n_cert = int(fmap.certified.sum())
     assert md.startswith(f"# Feasibility report: {fmap.scenario.name}")
-    assert f"**{n_ok} of {len(fmap.rows)} grid points are feasible.**" in md
+    assert f"**{n_cert} of {len(fmap.rows)} grid points are certified.**" in md
     grid = _section(md, "The grid")
     (n1, v1), (n2, v2) = fmap.grids
     assert f"| {n1} \\\\ {n2} | " + " | ".join(f"{b:.4g}" for b in v2) + " |" in grid
@@ -710,10 +709,15 @@ def test_feasibility_report_counts_and_grid(maps):
         cells = [c.strip() for c in row.strip("|").split("|")][1:]
         for b, cell in zip(v2, cells):
             r = next(x for x in fmap.rows if x[n1] == a and x[n2] == b)
-            if r["feasible"]:
-                assert cell == f"{r['trace_bound']:.3g}" + ("" if r["theorem2"] else " †")
-            else:
+            dagger = "" if r["theorem2"] or not r["feasible"] else " †"
+            if r["verdict"] == "certified":
+                assert cell == f"{r['trace_bound']:.3g}" + dagger
+            elif r["verdict"] == "vacuous" and r["feasible"]:
+                assert cell == f"vacuous {r['trace_bound']:.3g}" + dagger
+            elif r["verdict"] == "infeasible":
                 assert cell == f"✗ {r['binding']}"
+            else:
+                assert cell.startswith(r["verdict"]) and r["binding"] in cell
     html_raw = (d / "report.html").read_text()
     page = _check_self_contained(html_raw)
     assert page.tags.count("table") >= 1
@@ -731,10 +735,11 @@ def test_feasibility_report_one_parameter(maps):
     for r in fmap.rows:
         cells = [c.strip() for c in next(x for x in grid.splitlines()
                                          if x.startswith(f"| {r[name]:.4g} | ")).strip("|").split("|")]
-        assert cells[1] == ("yes" if r["feasible"] else "no")
-        assert cells[2] == (f"{r['trace_bound']:.4g}" if r["feasible"] else "—") and cells[3] == r["binding"]
-    why = _section(md, "How much is feasible")
-    assert f"**{int(fmap.feasible.sum())} of {len(values)} grid points are feasible.**" in why
+        assert cells[1] == r["verdict"] and cells[2] == ("yes" if r["feasible"] else "no")
+        assert cells[3] == (f"{r['trace_bound']:.4g}" if r["feasible"] else "—") and cells[4] == r["binding"]
+    why = _section(md, "How much is certified")
+    assert f"**{int(fmap.certified.sum())} of {len(values)} grid points are certified.**" in why
+    assert f"- {int(fmap.feasible.sum())} of {len(values)} points are feasible: " in why
 
 
 def test_feasibility_report_explains_the_two_notions_in_the_module_words(maps):
@@ -785,7 +790,7 @@ def test_feasibility_report_from_the_csv_alone(maps, tmp_path):
     (tmp_path / "feasibility.csv").write_bytes((src / "feasibility.csv").read_bytes())
     write_report(tmp_path)
     md = (tmp_path / "report.md").read_text()
-    assert f"**{int(fmap.feasible.sum())} of {len(fmap.rows)} grid points are feasible.**" in md
+    assert f"**{int(fmap.certified.sum())} of {len(fmap.rows)} grid points are certified.**" in md
     assert "| sigma \\\\ beta |" in md and "feasibility.png" not in md
     _check_self_contained((tmp_path / "report.html").read_text())
 
@@ -908,7 +913,7 @@ def test_the_pick_is_never_stronger_than_the_intervals():
     r = _results()  # fast [0.9, 1.1] and close [0.95, 1.2] overlap; far [2.5, 3.5] is apart
     pick = _pick(r)
     assert "the data cannot tell fast and close apart on position RMSE" in pick and "far" not in pick
-    assert "among them fast costs least per step" in pick
+    assert "costs" not in pick and "among them fast sends the fewest messages (8)" in pick
     r["filters"]["close"].update(rmse_position=1.2, rmse_position_ci95=[1.15, 1.3])
     pick = _pick(r)
     assert pick.startswith("**Which to pick:** fast: the lowest position RMSE (1 [0.9, 1.1]), its 95 % interval "
@@ -1064,9 +1069,9 @@ def test_design_and_map_reports_open_with_a_summary(designs, maps):
                     f"recursion step k → k + 1 ({k} per node, {n * k} node-steps)") in md
     for d, fmap in maps.values():
         summary = _summary((d / "report.md").read_text())
-        assert "**Where the design works:**" in summary
-        ok = sorted(r["trace_bound"] for r in fmap.rows if r["feasible"])
+        assert "**Where the design is certified:**" in summary
+        ok = sorted(r["trace_bound"] for r in fmap.rows if r["verdict"] == "certified")
         rows = [x for x in summary.splitlines() if re.match(r"\| \d+ \| ", x)]
-        assert rows and f"{ok[0]:.4g}" in rows[0]
+        assert len(rows) == min(len(ok), 6) and (not ok or f"{ok[0]:.4g}" in rows[0])
         if len(fmap.grids) <= 2:
             assert "](feasibility.png)" in summary

@@ -137,7 +137,7 @@ def _renders_cleanly(driver, path: Path, min_images: int, min_tables: int) -> No
 
 # What the summary of each kind of report holds: its figure and the first words of its one-sentence conclusion.
 SUMMARY = {"study": ("fig_tradeoff.png", "Which to pick"), "design": ("fig_trace_bound.png", "Use this schedule?"),
-           "feasibility": ("feasibility.png", "Where the design works:")}
+           "feasibility": ("feasibility.png", "Where the design is")}
 
 
 def summary_problems(driver, path: Path, kind: str) -> list[str]:
@@ -185,7 +185,7 @@ def test_design_and_feasibility_reports_render_cleanly(browser, design_and_map):
     assert "Infeasible." in browser.execute_script("return document.body.innerText;")
     assert summary_problems(browser, design, "design") == []
     _renders_cleanly(browser, fmap, 1, 1)  # the heat map; the grid
-    assert "grid points are feasible." in browser.execute_script("return document.body.innerText;")
+    assert "grid points are certified." in browser.execute_script("return document.body.innerText;")
     assert summary_problems(browser, fmap, "feasibility") == []
 
 

@@ -1,9 +1,10 @@
 """The feasibility report: a parameter-feasibility map (``feasibility.csv`` + ``feasibility.json``) in plain words.
 
 What was mapped (the grid, the design options, the operating point), how many grid
-points are feasible and what binds, the grid itself (for one or two grid parameters a
-matrix: the steady-state trace bound of the feasible points, the binding condition of
-the infeasible ones), the heat map ``feasibility.png``, and how this notion of
+points have each verdict (certified, not steady, vacuous, infeasible) and what binds, the
+grid itself (for one or two grid parameters a matrix: the steady-state trace bound of the
+certified points, the verdict and binding condition of the others), the map
+``feasibility.png`` (the same categories apart), and how this notion of
 feasibility differs from the one of ``cfdesign design`` (:data:`TWO_NOTIONS`, the
 words of the docstring of the module that computes the map), then the attacks, the
 network, the assumptions and the runner.
@@ -11,6 +12,10 @@ network, the assumptions and the runner.
 ``feasibility.csv`` is enough: without ``feasibility.json`` the grid is read from the
 CSV's columns (those before ``feasible``) and the sections that need the JSON are
 left out.
+
+Every sentence, count and table is derived from one classification of each grid point
+(:func:`studies.feasibility_map.map_category`: its ``verdict``), the one the map draws, so
+the summary's "Certified at n of N" and "Where the design is certified" cannot disagree.
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ from typing import Any, Mapping, Sequence
 from designer.validation import InputError
 
 from .design import attack_lines, scenario_lines, software_lines
-from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
+from .text import (MEASURED, assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
                    md_escape, md_table, network_lines, observability_section, read_record, recorded_elsewhere,
                    rerun_lines)
 
@@ -108,12 +113,59 @@ def _grids(names: Sequence[str], rows: Sequence[Mapping], meta: Mapping) -> list
 # Sections.
 
 
+def _category(row: Mapping) -> str | None:
+    """The one classification of a grid point every sentence, table and the map are derived from
+    (:func:`studies.feasibility_map.map_category`: its verdict; None for a feasible point of a map written without
+    verdicts)."""
+    from ..feasibility_map import map_category
+
+    return map_category(row)
+
+
+def _judged(rows: Sequence[Mapping]) -> bool:
+    """Whether the map recorded a verdict at every point (a map written before the verdicts has none)."""
+    return all(_category(r) is not None for r in rows)
+
+
+def _good(rows: Sequence[Mapping]) -> tuple[list[Mapping], str]:
+    """The points the design works at, lowest bound first, and the word for them: the certified ones, or, for a map
+    written without verdicts, the feasible ones."""
+    word = "certified" if _judged(rows) else "feasible"
+    good = [r for r in rows if (_category(r) == "certified" if word == "certified" else r["feasible"])
+            and math.isfinite(r["trace_bound"])]
+    return sorted(good, key=lambda r: r["trace_bound"]), word
+
+
+def _others(rows: Sequence[Mapping], word: str) -> tuple[int, str]:
+    """How many points are not ``word`` (certified, or feasible), and what they are, with their reasons."""
+    from ..feasibility_map import MAP_CATEGORIES
+
+    if word == "feasible":
+        bad = [r for r in rows if not r["feasible"]]
+        why = Counter(r["binding"] or "not recorded" for r in bad)
+        return len(bad), f"infeasible ({', '.join(f'{md_escape(b)} at {c}' for b, c in why.most_common())})"
+    parts = []
+    for cat in MAP_CATEGORIES[1:]:
+        these = [r for r in rows if _category(r) == cat]
+        if these:
+            why = Counter(r["binding"] or "not recorded" for r in these)
+            parts.append(f"{len(these)} {cat} (binding: "
+                         + ", ".join(f"{md_escape(b)} at {c}" for b, c in why.most_common()) + ")")
+    return sum(_category(r) != "certified" for r in rows), "; ".join(parts)
+
+
 def _cell(row: Mapping | None) -> str:
     if row is None:
         return "—"
-    if row["feasible"]:
-        text = fmt_num(row["trace_bound"], 3)
-        return text + (" †" if row["theorem2"] is False else "")
+    cat = _category(row)
+    dagger = " †" if row["feasible"] and row["theorem2"] is False else ""
+    if cat in ("certified", None):
+        return fmt_num(row["trace_bound"], 3) + dagger
+    if cat == "vacuous":
+        bound = fmt_num(row["trace_bound"], 3) if row["feasible"] else md_cell(row["binding"] or "no bound")
+        return f"vacuous {bound}{dagger}"
+    if cat == "not steady":
+        return "not steady: " + md_cell(row["binding"] or "no fixed point")
     return "✗ " + md_cell(row["binding"] or "infeasible")
 
 
@@ -143,49 +195,59 @@ def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
 
 
 def _result_section(rows: Sequence[Mapping]) -> list[str]:
-    from ..feasibility_map import FAILED
+    from ..feasibility_map import FAILED, MAP_CATEGORIES, MAP_WORDS
+    from .design import theorem2_words
 
     n = len(rows)
-    ok = [r for r in rows if r["feasible"]]
+    feasible = [r for r in rows if r["feasible"]]
     failed = [r for r in rows if r["binding"].startswith(FAILED)]
-    out = ["## How much is feasible", "", f"**{len(ok)} of {n} grid points are feasible"
-           + (f"; {len(failed)} failed (not mapped).**" if failed else ".**"), ""]
-    if ok:
-        finite = [r for r in ok if math.isfinite(r["trace_bound"])]
-        if finite:
-            lo = min(finite, key=lambda r: r["trace_bound"])
-            hi = max(finite, key=lambda r: r["trace_bound"])
-            spread = (f"is {fmt_num(lo['trace_bound'])}" if lo is hi else
-                      f"ranges from {fmt_num(lo['trace_bound'])} to {fmt_num(hi['trace_bound'])}")
-            out += [f"- the steady-state trace bound (mean over nodes of tr Φ) of the feasible points {spread}"]
-        binding = Counter(r["binding"] or "not recorded" for r in ok)
-        out.append("- the condition with the least relative slack at the fixed point: "
+    good, word = _good(rows)
+    out = ["## How much is certified", ""]
+    if _judged(rows):
+        counts = Counter(_category(r) for r in rows)
+        out += [f"**{counts['certified']} of {n} grid points are certified.** Each point has one verdict, the one "
+                "its cell of the grid below and its colour in the map show:", "",
+                *md_table(["verdict", "points"], [[md_escape(MAP_WORDS[c]), str(counts[c])] for c in MAP_CATEGORIES],
+                          ["l", "r"]),
+                f"- {len(feasible)} of {n} points are feasible: (28)-(29) hold and the iteration reached a fixed "
+                "point; a feasible point is certified only where its bound is also below the open-loop covariance"]
+    else:
+        out += [f"**{len(feasible)} of {n} grid points are feasible; this map recorded no verdicts** (a map written "
+                "before them: compute it again to have each point judged).", ""]
+    if good:
+        lo, hi = good[0], good[-1]
+        spread = (f"is {fmt_num(lo['trace_bound'])}" if lo is hi else
+                  f"ranges from {fmt_num(lo['trace_bound'])} to {fmt_num(hi['trace_bound'])}")
+        out.append(f"- the steady-state trace bound (mean over nodes of tr Φ) of the {word} points {spread}")
+        binding = Counter(r["binding"] or "not recorded" for r in good)
+        out.append(f"- the condition with the least relative slack at the fixed point of the {word} points: "
                    + ", ".join(f"{md_escape(b)} at {c}" for b, c in binding.most_common()))
-        th2 = [r for r in ok if r["theorem2"] is False]
-        if th2:
-            out.append(f"- Theorem 2's sufficient condition for mean-square boundedness of the error fails at the "
-                       f"fixed point of {len(th2)} of them (marked † below): the bound exists there, but Theorem 2 "
-                       "does not certify that the error stays bounded")
-        elif all(r["theorem2"] is True for r in ok):
-            out.append("- Theorem 2's sufficient condition for mean-square boundedness of the error holds at the "
-                       "fixed point of every feasible point")
+    th2 = [r for r in feasible if r["theorem2"] is False]
+    if th2:
+        out.append("- " + md_escape(theorem2_words(f"the fixed point of {len(th2)} of the {len(feasible)} feasible "
+                                                   "points (marked † below)")))
+    elif feasible and all(r["theorem2"] is True for r in feasible):
+        out.append("- Theorem 2's sufficient condition for mean-square boundedness of the error holds at the "
+                   "fixed point of every feasible point")
     bad = [r for r in rows if not r["feasible"] and not r["binding"].startswith(FAILED)]
     if bad:
         why = Counter(r["binding"] or "not recorded" for r in bad)
-        out.append("- why the infeasible points fail: " + ", ".join(f"{md_escape(b)} at {c}"
-                                                                   for b, c in why.most_common()))
+        out.append("- why the points without a fixed point have none: "
+                   + ", ".join(f"{md_escape(b)} at {c}" for b, c in why.most_common()))
     if failed:
         why = Counter(r["binding"][len(FAILED):] for r in failed)
         out.append(f"- **{len(failed)} of {n} grid points failed**: their design or fixed-point iteration raised, so "
-                   "they are neither feasible nor shown infeasible (the other points are mapped): "
+                   "they are infeasible, not mapped (the other points are mapped): "
                    + "; ".join(f"{md_escape(b)} at {c}" for b, c in why.most_common()))
     return out + [""]
 
 
 def _legend() -> str:
-    return ("A number is the steady-state trace bound (mean over nodes of tr Φ) of a feasible point, † where Theorem "
-            "2's condition fails at its fixed point; ✗ marks an infeasible point with the condition that failed "
-            "((28), (29)) or why (\"unbounded\": the trace grows without bound; \"no convergence\").")
+    return ("A number is the steady-state trace bound (mean over nodes of tr Φ) of a certified point; \"vacuous\" "
+            "marks a point whose bound (given where a fixed point exists) is at or above the open-loop covariance or "
+            "unbounded; \"not steady\" one whose iteration reached no fixed point below it; ✗ an infeasible point "
+            "with the condition that failed ((28), (29)) or why; † a feasible point where Theorem 2's condition fails "
+            "at its fixed point (no contradiction: see above).")
 
 
 def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
@@ -201,11 +263,13 @@ def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
     out += [_legend(), ""]
     shown = rows[:_ROW_LIMIT]
     body = [[md_cell(fmt_num(r[n])) for n in names]
-            + ["yes" if r["feasible"] else "no", fmt_num(r["trace_bound"], 4) if r["feasible"] else "—",
+            + [md_cell(_category(r) or "not judged"), "yes" if r["feasible"] else "no",
+               fmt_num(r["trace_bound"], 4) if r["feasible"] else "—",
                md_cell(r["binding"]), _THEOREM2[r["theorem2"]] if r["feasible"] else "—", md_cell(r["iterations"])]
             for r in shown]
-    out += md_table([md_cell(n) for n in names] + ["feasible", "trace bound", "binding", "Theorem 2", "iterations"],
-                    body, ["r"] * len(names) + ["l", "r", "l", "l", "r"])
+    out += md_table([md_cell(n) for n in names] + ["verdict", "feasible", "trace bound", "binding", "Theorem 2",
+                                                   "iterations"],
+                    body, ["r"] * len(names) + ["l", "l", "r", "l", "l", "r"])
     if len(rows) > len(shown):
         out += [f"The first {len(shown)} of {len(rows)} points; feasibility.csv has them all.", ""]
     return out
@@ -216,52 +280,45 @@ def _point(names: Sequence[str], row: Mapping) -> str:
 
 
 def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[str], meta: Mapping) -> list[str]:
-    ok = sorted((r for r in rows if r["feasible"] and math.isfinite(r["trace_bound"])),
-                key=lambda r: r["trace_bound"])
-    bad = [r for r in rows if not r["feasible"]]
+    good, word = _good(rows)
     mode = (meta.get("options") or {}).get("mode") if isinstance(meta.get("options"), Mapping) else None
-    out = ["## Summary", "", *_verdict_lines(rows, meta),
-           f"{len(ok)} of {len(rows)} grid points admit a bounded steady-state bound ({md_escape(mode or 'paper')} "
-           "design, at the operating point; a deterministic fixed point, so no Monte Carlo intervals). The "
-           "feasible points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first"
-           + (f" (the {min(5, len(ok))} lowest and the highest):" if len(ok) > 6 else ":"), ""]
-    shown = ok[:5] + (ok[-1:] if len(ok) > 6 else ok[5:6])
-    rank = {id(r): i for i, r in enumerate(ok, 1)}
-    out += md_table(["rank", "grid point", "trace bound", "least slack"],
-                    [[f"{rank[id(r)]}", md_cell(_point(names, r)), fmt_num(r["trace_bound"], 4),
-                      md_cell(r["binding"] or "—")] for r in shown], ["r", "l", "r", "l"])
+    out = ["## Summary", "", *_verdict_lines(rows, meta)]
+    if good:
+        out += [f"The {word} points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first "
+                f"({md_escape(mode or 'paper')} design, at the operating point; a deterministic fixed point, so no "
+                "Monte Carlo intervals)" + (f" (the {min(5, len(good))} lowest and the highest):" if len(good) > 6
+                                            else ":"), ""]
+        shown = good[:5] + (good[-1:] if len(good) > 6 else good[5:6])
+        rank = {id(r): i for i, r in enumerate(good, 1)}
+        out += md_table(["rank", "grid point", "trace bound", "least slack"],
+                        [[f"{rank[id(r)]}", md_cell(_point(names, r)), fmt_num(r["trace_bound"], 4),
+                          md_cell(r["binding"] or "—")] for r in shown], ["r", "l", "r", "l"])
     if "feasibility.png" in figures:
         out += figure_lines(1, "feasibility.png", _HEAT_MAP)
-    lead = "**Where the design works:** "
-    why = ", ".join(f"{md_escape(b)} at {c}" for b, c in Counter(r["binding"] or "not recorded"
-                                                               for r in bad).most_common())
-    if not ok:
-        line = lead + f"nowhere on this grid: every point fails ({why})."
+    lead = f"**Where the design is {word}:** "
+    n_other, other = _others(rows, word)
+    if not good:
+        line = lead + f"nowhere on this grid ({other})."
     else:
-        span = (f"lowest at {md_escape(_point(names, ok[0]))} ({fmt_num(ok[0]['trace_bound'])})" if len(ok) == 1 else
-                f"from {fmt_num(ok[0]['trace_bound'])} at {md_escape(_point(names, ok[0]))} to "
-                f"{fmt_num(ok[-1]['trace_bound'])} at {md_escape(_point(names, ok[-1]))}")
-        line = lead + (f"everywhere on this grid, with a bound {span}" if not bad else
-                       f"at {len(ok)} of {len(rows)} points, with a bound {span}; the other {len(bad)} fail ({why}); "
-                       "the grid below shows where")
+        span = (f"at {md_escape(_point(names, good[0]))} ({fmt_num(good[0]['trace_bound'])})" if len(good) == 1 else
+                f"from {fmt_num(good[0]['trace_bound'])} at {md_escape(_point(names, good[0]))} to "
+                f"{fmt_num(good[-1]['trace_bound'])} at {md_escape(_point(names, good[-1]))}")
+        line = lead + (f"everywhere on this grid, with a bound {span}" if not n_other else
+                       f"at {len(good)} of {len(rows)} points, with a bound {span}; elsewhere {other}; the grid "
+                       "below shows where")
         line += "; a point's transient along a run is `cfdesign design`'s question (see the two notions below)."
     return out + [line, ""]
 
 
-_VERDICT_WORDS = {"certified": "certified (a fixed point below the open-loop covariance at every node)",
-                  "vacuous": "vacuous (a fixed point at or above the open-loop covariance at some node)",
-                  "not steady": "not steady (no fixed point reached)",
-                  "infeasible": "infeasible ((28)/(29) fail, the iteration diverged, or no design)"}
-
-
 def _verdict_lines(rows: Sequence[Mapping], meta: Mapping) -> list[str]:
     """The report's first line: how many points have each verdict (none for a map written without them)."""
-    verdicts = [r.get("verdict") for r in rows]
-    if not any(verdicts):
+    from ..feasibility_map import MAP_CATEGORIES, MAP_WORDS
+
+    if not _judged(rows):
         return []
-    counts = Counter(verdicts)
+    counts = Counter(_category(r) for r in rows)
     n_cert = counts.get("certified", 0)
-    parts = [f"{counts[v]} {_VERDICT_WORDS.get(v, md_escape(v))}" for v in _VERDICT_WORDS if counts.get(v)]
+    parts = [f"{counts[v]} {md_escape(MAP_WORDS[v])}" for v in MAP_CATEGORIES if counts.get(v)]
     ol = meta.get("open_loop") if isinstance(meta.get("open_loop"), Mapping) else {}
     ref = (f" The open-loop reference: tr = {fmt_num(ol['trace'])}, {md_escape(ol.get('how'))}."
            if is_num(ol.get("trace")) else "")
@@ -270,7 +327,9 @@ def _verdict_lines(rows: Sequence[Mapping], meta: Mapping) -> list[str]:
     return [f"{lead} Verdicts of the stationary bound: " + ", ".join(parts) + "." + ref, ""]
 
 
-_HEAT_MAP = "The steady-state trace bound over the grid (log scale); crosses mark the infeasible points."
+_HEAT_MAP = ("The verdict at each grid point in the colours of the legend (certified, not steady, vacuous, "
+             "infeasible, with their counts, as in the first line), and the steady-state trace bound (mean over nodes "
+             "of tr Φ, log scale) where a fixed point exists; grey squares frame the points that failed.")
 
 
 def _notions_section() -> list[str]:
@@ -290,8 +349,10 @@ def _runner_section(meta: Mapping) -> list[str]:
         return []
     return ["## How it was computed", "",
             "The grid points go through the Monte Carlo runner in chunks (a point plays the part of a run), stored "
-            "under `.chunks` so that an interrupted map resumes; the map does not depend on where the chunks ran.",
-            "", *generic(runner)]
+            "under `.chunks` so that an interrupted map resumes; the map does not depend on where the chunks ran. "
+            "Where they ran (the backend, the worker processes, the chunks computed and reused, the wall time "
+            f"{MEASURED}) differs from one run of the same command to the next: it is recorded in feasibility.json "
+            "(`runner`), not here.", ""]
 
 
 def _files_section(meta: Mapping, grids, figures: Sequence[str]) -> list[str]:
@@ -317,7 +378,8 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
     grids = _grids(names, rows, meta)
     head = [f"# Feasibility report: {md_escape(scenario)}", "",
-            "Where the consensus design admits a bounded steady-state bound, over a grid of parameters "
+            "Where the consensus design's stationary bound is certified, not steady, vacuous or infeasible, over a "
+            "grid of parameters "
             f"({' x '.join(f'{len(v)} {md_escape(n)}' for n, v in grids)} = {len(rows)} points), as computed by "
             "`cfdesign feasibility`.", ""]
     attacks = attack_lines(meta.get("attacks"))

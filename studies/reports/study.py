@@ -1,8 +1,9 @@
 """The study report: what a study (``results.json`` of schema ``cfdesign.study/1``) compares and found.
 
 It opens with a one-screen **summary** (:func:`summary_blocks`): the filters ranked by the
-study's accuracy metric with their 95 % intervals, time per step and messages, whether each
-can be told apart from the best, the trade-off figure (``fig_tradeoff.png``, drawn from the
+study's accuracy metric with their 95 % intervals, time per step (measured on this machine:
+shown, never ranked; :data:`studies.reports.text.DURATION` is what a measured time looks like)
+and messages, whether each can be told apart from the best, the trade-off figure (``fig_tradeoff.png``, drawn from the
 same blocks by :func:`studies.figures.tradeoff_figure`) and the pick in one sentence, never
 stronger than the intervals allow (overlapping intervals: the data cannot tell the filters
 apart).  Then, for a reader who has not read the papers: the pick metric by metric, what
@@ -13,6 +14,8 @@ figures (captioned by the study), every assumption, the software and the command
 computes the same numbers again (from the recorded ``invocation``).  Raw fields the report
 does not explain stay in ``results.json`` (the report names them).  A multi-scenario study
 is summarised and ranked per scenario: errors in different units are never ranked together.
+Cost is ranked by the messages counted; no sentence depends on a measured time, so the same
+command writes the same report, its measured durations aside.
 
 Every key of the results file is optional except that the file must be a JSON
 object: a section whose data are missing is left out.
@@ -32,9 +35,9 @@ from designer.validation import InputError
 
 from ..pipeline import StudyText, study_text
 from .design import attack_lines
-from .text import (assumption_section, ci_pair, compact, demote, document, figure_lines, fmt_dur, fmt_num, generic,
-                   is_num, is_time_key, md_cell, md_escape, md_table, metric_value, params_table, read_record,
-                   recorded_elsewhere, rerun_lines, scenario_spec, with_ci)
+from .text import (MEASURED, assumption_section, ci_pair, compact, demote, document, figure_lines, fmt_dur, fmt_num,
+                   generic, is_num, is_time_key, md_cell, md_escape, md_table, metric_value, params_table,
+                   read_record, recorded_elsewhere, rerun_lines, scenario_spec, with_ci)
 
 __all__ = ["render_markdown", "study_report", "GLOSSARY", "SummaryBlock", "summary_blocks", "bound_verdict",
            "figure_caption", "FEW_RUNS"]
@@ -56,10 +59,11 @@ GLOSSARY: dict[str, tuple[str, str]] = {
     "rmse_state_median_run": ("RMSE per state, median run", "the median over runs of each run's RMSE"),
     "node_spread": ("node spread", "mean distance of the nodes' estimates from their average (consensus "
                                    "reached when small)"),
-    "time_per_step_s": ("time per step", "wall-clock time per time step and run on this machine (how it is "
-                                         "measured is among the assumptions)"),
-    "time_per_step_single_run_s": ("time per step, one run", "the same, timed on a single run"),
-    "wall_time_s": ("wall time", "total wall-clock time"),
+    "time_per_step_s": ("time per step (measured)", "wall-clock time per time step and run, measured on this "
+                                                    "machine (how is among the assumptions); it varies from one run "
+                                                    "of the same command to the next, so it ranks nothing"),
+    "time_per_step_single_run_s": ("time per step, one run (measured)", "the same, timed on a single run"),
+    "wall_time_s": ("wall time (measured)", "total wall-clock time, measured on this machine"),
     "messages_per_step": ("messages per step", "messages sent over the network per time step (a message lost to "
                                                "DoS still counts)"),
     "communications": ("communications", "messages sent over the network, as the study counts them (see the "
@@ -349,7 +353,8 @@ def _ranked_table(b: SummaryBlock) -> list[str]:
             msg = _messages(b.filters[n])
             row.append(fmt_num(msg[0]) if msg is not None else "—")
         rows[ref].append(row + [_notes(n, b) or "—"])
-    header = ["rank", "filter", md_cell(f"{b.label} [95 % interval]"), "against the best", "time per step"]
+    header = ["rank", "filter", md_cell(f"{b.label} [95 % interval]"), "against the best",
+              f"time per step ({MEASURED})"]
     align = ["r", "l", "r", "l", "r"]
     if has_msgs:
         header.append("messages per step" if per_step else "messages")
@@ -410,30 +415,23 @@ def _pick(b: SummaryBlock) -> str:
     few = is_num(runs) and runs < FEW_RUNS
     if tied:
         group = [best] + tied
-        timed = [n for n in group if is_num(times[n]) and times[n] > 0]
         line = (lead + f"the data cannot tell {_names(group)} apart on {label} (their 95 % intervals overlap that of "
                 f"{md_escape(best)}, the lowest, {with_ci(v, ci)})")
-        cheap = min(timed, key=lambda n: times[n]) if timed else None
-        if cheap is not None:
-            line += f"; among them {md_escape(cheap)} costs least per step ({fmt_dur(times[cheap])})"
         msgs = {n: _messages(b.filters[n]) for n in group}
-        counts = {n: m[0] for n, m in msgs.items() if m is not None}
-        if len(set(counts.values())) > 1:
-            low = min(counts.values())
-            fewest = [n for n, c in counts.items() if c == low]
-            if fewest == [cheap]:
-                line += f" and sends the fewest messages ({fmt_num(low)})"
-            else:
-                line += (f"{' and' if cheap is not None else '; among them'} {_names(fewest)} "
-                         f"{'sends' if len(fewest) == 1 else 'send'} the fewest messages ({fmt_num(low)})")
+        counts = {n: m for n, m in msgs.items() if m is not None}
+        if len({c[0] for c in counts.values()}) > 1:  # cost ranked by the messages counted, never by a measured time
+            low = min(c[0] for c in counts.values())
+            fewest = [n for n, c in counts.items() if c[0] == low]
+            line += (f"; among them {_names(fewest)} {'sends' if len(fewest) == 1 else 'send'} the fewest messages"
+                     f"{' per step' if counts[fewest[0]][1] else ''} ({fmt_num(low)})")
         return line + (f"; more than {fmt_num(runs)} runs would narrow the intervals." if few else ".")
     line = lead + f"{md_escape(best)}: the lowest {label} ({with_ci(v, ci)}), its 95 % interval apart from every " \
                   "other filter's"
+    msg = _messages(b.filters[best])
+    if msg is not None:
+        line += f"; it sends {fmt_num(msg[0])} messages{' per step' if msg[1] else ''}"
     if is_num(times[best]):
-        line += f"; it costs {fmt_dur(times[best])} per step"
-        msg = _messages(b.filters[best])
-        if msg is not None:
-            line += f" and sends {fmt_num(msg[0])} messages{' per step' if msg[1] else ''}"
+        line += f" ({fmt_dur(times[best])} per step, {MEASURED})"
     return line + (f" (from only {fmt_num(runs)} runs, whose intervals are rough)." if few else ".")
 
 
@@ -462,8 +460,9 @@ def _summary_section(results: Mapping, text: StudyText | None, figures: Sequence
             out += [f"### {md_escape(b.title)}", ""]
         out += _ranked_table(b)
     if TRADEOFF in figures:
-        caption = ("Accuracy (the ranking metric, with its 95 % interval) against the time per step, one colour per "
-                   "filter as in every figure of this report")
+        caption = ("Accuracy (the ranking metric, with its 95 % interval) against the time per step (measured on the "
+                   "machine that ran the study: a measurement, not a ranking), one colour per filter as in every "
+                   "figure of this report")
         if any(b.counts_messages for b in blocks):
             caption += "; the legend gives each filter's messages"
         if any(b.references for b in blocks):
@@ -563,29 +562,25 @@ def _pick_section(results: Mapping, text: StudyText | None) -> list[str]:
     usable = {n: m for n, m in cand.items()
               if not (is_num(m.get("diverged_fraction")) and m["diverged_fraction"] >= 1)
               and not any(k in m and m[k] is None for k in ("rmse_position", "rmse"))}
-    times = {n: float(m["time_per_step_s"]) for n, m in usable.items()
-             if is_num(m.get("time_per_step_s")) and m["time_per_step_s"] > 0}
-    if times:
-        cheap = min(times, key=times.get)
-        line = f"**Cheapest per step:** {md_escape(cheap)}, {fmt_dur(times[cheap])} per time step"
-        if first_best is not None and first_best != cheap and first_best in times:
-            ratio = times[first_best] / times[cheap]
-            line += f" ({fmt_num(ratio, 3)} times less than the most accurate, {md_escape(first_best)})"
-        elif first_best == cheap:
-            line += " — also the most accurate"
-        line += ". Times are for this machine and engine; their ratios travel better than their values."
-        items.append(line)
-    comms = {n: m["communications"] for n, m in usable.items() if is_num(m.get("communications"))}
+    # cost is ranked by the messages counted (deterministic), never by a measured time
+    msgs = {n: _messages(m) for n, m in usable.items()}
+    comms = {n: m[0] for n, m in msgs.items() if m is not None}
     if comms:
+        per_step = any(m[1] for m in msgs.values() if m is not None)
+        what, unit = ("messages per step", " per step") if per_step else ("communications", "")
         low = min(comms.values())
         fewest = [n for n, c in comms.items() if c == low]
         if len(set(comms.values())) == 1:
-            items.append(f"**Communications:** every filter sends the same number of messages ({fmt_num(low)}).")
+            items.append(f"**{what.capitalize()}:** every filter sends the same number of messages{unit} "
+                         f"({fmt_num(low)}).")
         else:
-            line = f"**Fewest communications:** {', '.join(md_escape(n) for n in fewest)} ({fmt_num(low)} messages"
+            line = f"**Fewest {what}:** {', '.join(md_escape(n) for n in fewest)} ({fmt_num(low)} messages{unit}"
             if first_best is not None and first_best in comms and first_best not in fewest:
                 line += f"; the most accurate, {md_escape(first_best)}, sends {fmt_num(comms[first_best])}"
             items.append(line + ").")
+    if any(is_num(m.get("time_per_step_s")) for m in usable.values()):
+        items.append(f"**Time per step:** {MEASURED} and listed under Timings; it varies from one run of the same "
+                     "command to the next, so no filter is ranked or picked by it.")
     det = results.get("detection")
     if isinstance(det, dict):
         attacked = {n: d for n, d in det.items()
@@ -644,11 +639,15 @@ def _filters_section(results: Mapping, text: StudyText | None) -> list[str]:
     return out + [""]
 
 
+# how the computation was spread over this machine (the Timings section's): the numbers do not depend on it
+_WHERE_IT_RAN = (("threads", "threads per worker"), ("workers", "worker processes"))
+
+
 def _run_facts(results: Mapping) -> list[str]:
     facts = []
     for key, label in (("scenario", "scenario"), ("runs", "Monte Carlo runs"), ("particles", "particles"),
                        ("steps", "time steps per run"), ("seed", "seed"), ("mode", "design mode"),
-                       ("engine", "engine"), ("threads", "threads per worker"), ("workers", "worker processes")):
+                       ("engine", "engine")):
         v = results.get(key)
         if v is not None and not isinstance(v, (dict, list)):
             facts.append(f"- {label}: {md_escape(fmt_num(v))}")
@@ -985,10 +984,15 @@ def _details_section(results: Mapping) -> list[str]:
 
 def _timing_section(results: Mapping) -> list[str]:
     filters = _filters(results)
-    out = ["## Timings", ""]
+    out = ["## Timings", "", f"Wall-clock times, {MEASURED}: they vary from one run of the same command to the next, "
+           "and no other section depends on them.", ""]
     wall = results.get("wall_time_s")
     if is_num(wall):
         out += [f"The whole study took {fmt_dur(wall)} of wall-clock time (figures not included).", ""]
+    facts = [f"{label}: {md_escape(fmt_num(results[key]))}" for key, label in _WHERE_IT_RAN
+             if is_num(results.get(key))]
+    if facts:
+        out += ["Where it ran (this machine's, not the numbers'): " + ", ".join(facts) + ".", ""]
     keys = []
     for m in filters.values():
         keys += [k for k, v in m.items() if is_time_key(k) and is_num(v) and k not in keys]
@@ -1004,7 +1008,7 @@ def _timing_section(results: Mapping) -> list[str]:
             else:
                 out.append(f"- {md_escape(k)}: {fmt_dur(v)}")
         out.append("")
-    return out if len(out) > 2 else []
+    return out if len(out) > 4 else []
 
 
 def _figures_section(figures: Sequence[str], text: StudyText | None) -> list[str]:

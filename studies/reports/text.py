@@ -16,7 +16,8 @@ from designer.validation import InputError
 
 from .render import heading_anchors
 
-__all__ = ["is_num", "fmt_num", "fmt_dur", "is_time_key", "ci_pair", "with_ci", "metric_value", "compact",
+__all__ = ["is_num", "fmt_num", "fmt_dur", "DURATION", "MEASURED", "is_time_key", "ci_pair", "with_ci",
+           "metric_value", "compact",
            "flat_numbers", "md_escape", "md_cell", "md_table", "demote", "generic", "document", "figure_lines",
            "scenario_spec", "params_table", "network_lines", "assumption_section", "matrix_text", "recorded_elsewhere",
            "code_span", "rerun_lines",
@@ -52,8 +53,16 @@ def fmt_num(v, sig: int = 4) -> str:
     return str(v)
 
 
+# What every measured duration of a report looks like (:func:`fmt_dur`'s output): the one part of a report that two
+# runs of the same command may write differently; masking its matches leaves text that must be identical.
+DURATION = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[+-]?\d+)? (?:µs|ms|s|min|h)(?!\w)")
+
+# The words that label a measurement (a time of this machine, never a ranking; no sentence depends on it).
+MEASURED = "measured on this machine"
+
+
 def fmt_dur(s) -> str:
-    """A duration in seconds with a unit a reader can take in."""
+    """A duration in seconds with a unit a reader can take in (a finite one matches :data:`DURATION`)."""
     if not is_num(s) or not math.isfinite(s):
         return fmt_num(s)
     a = abs(s)
