@@ -190,10 +190,10 @@ def _model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
 
 # CasADi's functions keep its calling convention, whose work and memory arguments a function may not use, and its
 # code generator has no option to mark them: -Wextra's unused-parameter warning is off in that file only
-_MODEL_PRELUDE = """/* cfd_model.c (cfdesign export): the model's functions, by CasADi's code generator.  They keep CasADi's
- * calling convention (arg, res, iw, w, mem), whose work and memory arguments a function may not use, and the
- * generator has no option to mark them: GCC's and Clang's warning about unused parameters is off in this file
- * only (every other warning of -std=c99 -Wall -Wextra -pedantic stays on). */
+_MODEL_PRELUDE = """/* cfd_model.c (cfdesign export): the model's functions, by CasADi's code generator.  They keep
+ * CasADi's calling convention (arg, res, iw, w, mem), whose work and memory arguments a function may not use,
+ * and the generator has no option to mark them: GCC's and Clang's warning about unused parameters is off in
+ * this file only (every other warning of -std=c99 -Wall -Wextra -pedantic stays on). */
 #if defined(__GNUC__)
 #pragma GCC diagnostic ignored "-Wunused-parameter"
 #endif

@@ -850,7 +850,7 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
     s = _Schedule(meta, arrays)
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "design"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else ""
-    label = f"{scenario}, {mode} design".replace("$", r"\$")  # no mathtext from a name
+    label = f"{scenario[:80]}, {mode[:40]} design".replace("$", r"\$")  # no mathtext from a name; a title's size
     from ..figures import figure_batch
 
     figures = []
