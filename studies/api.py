@@ -695,9 +695,9 @@ def _recorded_source(design_dir, meta: dict) -> str:
     if where in SCENARIOS:
         return where
     given = "give the model with --scenario (scenario=) after checking it is the design's"
-    if not (where or "").endswith(".py"):
-        raise InputError(f"design_dir {str(design_dir)!r} does not record a built-in scenario or a model file: "
-                         f"{given}")
+    if not (where or "").endswith(".py") or not Path(where).is_absolute():  # design records a file's full path
+        raise InputError(f"design_dir {str(design_dir)!r} does not record a built-in scenario or a model file's "
+                         f"full path: {given}")
     shown = repr(where) if len(where) <= 200 else repr(where[:200]) + " ..."
     recorded = meta.get("source_digest")
     if recorded is None:
@@ -760,8 +760,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
     _, meta = read_design_record(design_dir, "design_dir")  # data only: nothing it names is imported here
     if scenario is None:
+        where = _recorded_source(design_dir, meta)
         try:
-            sc = _scenario(_recorded_source(design_dir, meta), None, None, None, None, None, None,
+            sc = _scenario(where, None, None, None, None, None, None,
                            {**(meta.get("params") or {}), **(overrides or {})}, assignments)  # as designed
         except InputError as exc:  # its recorded parameters quoted, at most a few hundred characters of them
             raise InputError(clip_message(str(exc))) from None

@@ -275,13 +275,17 @@ def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed:
     return entry.run(batch, [0], None if entry.mode is None else entry.design_for(design, m))
 
 
-_RECORD_MESSAGE_MAX = 300  # characters of a message quoting a design directory's content
+_RECORD_MESSAGE_MAX = 600  # characters of a message quoting a design directory's content
 _SEED_MAX = 2**63 - 1
 
 
 def clip_message(text: str) -> str:
-    """A message quoting a file's content (a design directory's), at most :data:`_RECORD_MESSAGE_MAX` characters."""
-    return text if len(text) <= _RECORD_MESSAGE_MAX else text[:_RECORD_MESSAGE_MAX - 4] + " ..."
+    """A message quoting a file's content (a design directory's), at most :data:`_RECORD_MESSAGE_MAX` characters:
+    a longer one keeps its start and its end (where the advice is), `` ... `` between."""
+    if len(text) <= _RECORD_MESSAGE_MAX:
+        return text
+    tail = _RECORD_MESSAGE_MAX // 3
+    return text[:_RECORD_MESSAGE_MAX - tail - 5] + " ... " + text[-tail:]
 
 
 def _refuse_constant(token: str):
