@@ -49,8 +49,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["VERDICTS", "known_verdict", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GATE_CLAUSE",
-           "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
+__all__ = ["VERDICTS", "known_verdict", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS",
+           "GATE_CLAUSE", "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
            "open_loop_reference"]
 
 VERDICTS = ("certified", "vacuous", "not steady", "infeasible")

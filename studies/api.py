@@ -737,8 +737,13 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         A log (:mod:`studies.recorded`) to replay in ``make test``; default: the design's simulated run
         (``simulate`` with the design's seed).
     scenario, overrides, assignments
-        The model, when the design directory's own (its ``source``: a model file's path, or a built-in's name with
-        the design's parameters) is not where it was; its content must be the design's (``model_digest``).
+        The model.  Default: the design directory's own (its ``source``), built with the design's parameters, when
+        it is a built-in's name or a model file whose bytes still have the design's ``source_digest`` (checked
+        before the file is imported: a design directory from elsewhere may name any file); otherwise the model must
+        be given, and its content must be the design's (``model_digest``).
+
+    The design directory is read as data (:func:`studies.recorded.read_design_record`): no text of it reaches the
+    C sources (the verdict is stated as a word of :data:`designer.verdict.VERDICTS`, else ``unknown``).
 
     Returns the files written.
     """
