@@ -379,6 +379,8 @@ def filter_report(run, directory: Path) -> None:
     of its bound or covariance)."""
     from designer.fileio import atomic_write, write_npz
 
+    from designer.verdict import known_verdict
+
     from .figures import plotting, save_figure
 
     directory = Path(directory)
@@ -425,7 +427,7 @@ def filter_report(run, directory: Path) -> None:
              ""]
     if run.design is not None:
         lines += [f"Design: gain rule `{run.design['gain_rule']}`"
-                  + (f", from `{run.design['schedule']}` (verdict there: {run.design.get('verdict')})"
+                  + (f", from `{run.design['schedule']}` (verdict there: {known_verdict(run.design.get('verdict'))})"
                      if "schedule" in run.design else ", the scenario's design defaults") + ".", ""]
     if run.verdict is not None:
         lines += [f"Its bound's verdict over this log's horizon: **{run.verdict}** (designer.verdict: finite, "

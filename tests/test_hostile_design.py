@@ -142,10 +142,11 @@ def test_c_text_never_ends_a_comment_or_a_string():
 
 
 @pytest.mark.parametrize("kind", list(payloads("m")))
-def test_hostile_text_in_every_field_never_becomes_code(kind, relay, tmp_path, capsys):
+def test_hostile_text_in_every_field_never_becomes_code(kind, relay, tiny, log, tmp_path, capsys):
     """Each payload in every string of schedule.json but the identifiers: export succeeds, states the verdict as
     'unknown', echoes none of the text; the sources build and pass make test with -std=c99 -Wall -Wextra -pedantic
-    -Werror; the constructor's marker is never created, anywhere."""
+    -Werror; the constructor's marker is never created, anywhere; filter --schedule's report names the verdict as
+    'unknown'."""
     marker = tmp_path / "PWNED"
     text = payloads(marker)[kind]
     des = plant(relay, tmp_path / "design", lambda meta: [p for p in strings(meta) if p[0] not in IDENTIFIERS],
@@ -161,6 +162,10 @@ def test_hostile_text_in_every_field_never_becomes_code(kind, relay, tmp_path, c
     run = build_strict(out)
     assert run.returncode == 0, run.stdout + run.stderr
     assert not marker.exists()
+    # the designed filter on a log: its report names the design's verdict as a word of the vocabulary only
+    assert main(["filter", str(tiny), "--data", str(log), "--schedule", str(des), "--out", str(tmp_path / "f")]) == 0
+    report = (tmp_path / "f" / "report.md").read_text()
+    assert "(verdict there: unknown)" in report and "touch" not in report
 
 
 @pytest.mark.parametrize("field", IDENTIFIERS)
