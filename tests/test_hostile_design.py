@@ -193,10 +193,11 @@ def test_hostile_identifiers_are_refused_or_harmless(field, relay, tmp_path, cap
     assert not marker.exists()
 
 
-def test_export_imports_no_model_file_it_cannot_verify(relay, tiny, tmp_path, capsys):
+def test_export_imports_no_model_file_it_cannot_verify(relay, tiny, log, tmp_path, capsys):
     """source naming a planted Python file (which would create a marker when imported): without a recorded
     source_digest, with the design's own digest, by a relative path, or the design's file edited since: exit 2
-    with one line asking for --scenario, nothing imported or written; the model given with --scenario exports."""
+    with one line asking for --scenario, nothing imported or written; the model given with --scenario exports;
+    filter --schedule and node_filter never import it."""
     marker = tmp_path / "IMPORTED"
     evil = tmp_path / "evil.py"
     evil.write_text(f"import pathlib\npathlib.Path({str(marker)!r}).touch()\n" + tiny.read_text())
@@ -221,6 +222,10 @@ def test_export_imports_no_model_file_it_cannot_verify(relay, tiny, tmp_path, ca
     out = tmp_path / "given"
     assert main(["export", str(tmp_path / "no_digest"), "--scenario", str(tiny), "--out", str(out)]) == 0
     assert (out / "cfd_node.c").is_file() and not marker.exists()
+    # filter --schedule and node_filter take the model from the user and read the design as data only
+    des = tmp_path / "the_design's_digest"
+    assert main(["filter", str(tiny), "--data", str(log), "--schedule", str(des), "--out", str(tmp_path / "f")]) == 0
+    assert studies.node_filter(str(tiny), schedule=des, node=0) is not None and not marker.exists()
 
 
 MALFORMED = {"a list": "[1, 2]", "a string": '"schedule"', "null": "null", "not JSON": "{", "not UTF-8": b"\xff\xfe{",
