@@ -30,7 +30,12 @@ Into a directory each writes:
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
   every number agrees within 1e-10 of the largest magnitude of its vector or matrix.
 
-The sources depend on the design only through their data: one generator serves every design of a rule.
+The sources depend on the design only through their data: one generator serves every design of a rule.  No text
+of a design directory (a file from elsewhere) reaches them: the design's verdict is stated as a word of
+:data:`designer.verdict.VERDICTS` (``unknown`` for any other text), every other number and word comes from the
+design's numbers or a fixed vocabulary, and the user's model's names (its name, its states') go through
+:func:`c_text`, which no comment or string end, line splice or directive survives.  ``cfd_model.c`` is CasADi's;
+every file compiles without a warning under ``-std=c99 -Wall -Wextra -pedantic`` (the Makefile's ``CFLAGS``).
 """
 from __future__ import annotations
 

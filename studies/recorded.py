@@ -356,8 +356,8 @@ def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, d
         raise InputError(f"schedule {str(path)!r} records no design options (written by an older cfdesign "
                          "design?): design again")
     if meta["scenario"] != sc.name:
-        raise InputError(clip_message(f"schedule {str(p)!r} was designed for scenario {meta['scenario']!r}, not "
-                                  f"{sc.name!r}"))
+        raise InputError(clip_message(f"schedule {str(p)!r} was designed for scenario {meta['scenario']!r}, "
+                                      f"not {sc.name!r}"))
     if meta.get("model_digest") not in (None, sc.digest):
         raise InputError(f"schedule {str(p)!r} was designed for another version of the model {sc.name!r} (its "
                          "content or parameters changed since): design again, or give the model and parameters it "
@@ -378,7 +378,6 @@ def filter_report(run, directory: Path) -> None:
     ``report.md`` and ``fig_estimates.png`` (each node's estimate over time with the truth when known, and the trace
     of its bound or covariance)."""
     from designer.fileio import atomic_write, write_npz
-
     from designer.verdict import known_verdict
 
     from .figures import plotting, save_figure
