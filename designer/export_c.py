@@ -30,7 +30,12 @@ Into a directory each writes:
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
   every number agrees within 1e-10 of the largest magnitude of its vector or matrix.
 
-The sources depend on the design only through their data: one generator serves every design of a rule.
+The sources depend on the design only through their data: one generator serves every design of a rule.  No text
+of a design directory (a file from elsewhere) reaches them: the design's verdict is stated as a word of
+:data:`designer.verdict.VERDICTS` (``unknown`` for any other text), every other number and word comes from the
+design's numbers or a fixed vocabulary, and the user's model's names (its name, its states') go through
+:func:`c_text`, which no comment or string end, line splice or directive survives.  ``cfd_model.c`` is CasADi's;
+every file compiles without a warning under ``-std=c99 -Wall -Wextra -pedantic`` (the Makefile's ``CFLAGS``).
 """
 from __future__ import annotations
 
@@ -42,10 +47,35 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["write_relay_c", "replay_text", "write_consensus_c", "consensus_replay_text", "write_scheduled_c",
+__all__ = ["c_text", "write_relay_c", "replay_text", "write_consensus_c", "consensus_replay_text", "write_scheduled_c",
            "scheduled_replay_text", "REPLAY_TOLERANCE"]
 
 REPLAY_TOLERANCE = 1e-10  # make test: |C - Python| <= this times the largest magnitude of the vector or matrix
+C_TEXT_MAX = 120  # characters of a text c_text keeps (longer: cut, ending in "...")
+# what c_text keeps: printable ASCII but for the characters of a comment's or string's end or a line splice
+# ("*" of "*/" and "/*", the backslash, the double quote) and "?" (the trigraph ??/ is a backslash)
+_C_TEXT_KEPT = frozenset(chr(c) for c in range(0x20, 0x7F)) - set('*\\"?')
+
+
+def c_text(text, limit: int = C_TEXT_MAX) -> str:
+    """``text`` (a name from the user's model: its name, its states') as it may stand inside a C comment or string
+    literal of the generated sources: printable ASCII only, each other character (a newline, a carriage return,
+    NUL, a non-ASCII letter) and each of ``*``, ``\\``, ``"`` and ``?`` replaced by ``_``, so no byte sequence of
+    it ends the comment or the string (``*/``, ``"``), splices a line (a backslash, the trigraph ``??/``) or
+    starts a line (a preprocessor directive); at most ``limit`` characters (a longer text is cut, ending in
+    ``...``)."""
+    text = "".join(c if c in _C_TEXT_KEPT else "_" for c in str(text))
+    return text if len(text) <= limit else text[:max(limit - 3, 0)] + "..."
+
+
+def _described(model, nodes: Sequence[int], verdict) -> dict:
+    """What every header states beside the design's numbers: the exported nodes, the design's verdict as a word
+    of :data:`designer.verdict.VERDICTS` (else ``unknown``: never a file's text), the model's name and its
+    states' names (the order of ``x``) through :func:`c_text`."""
+    from .verdict import known_verdict
+
+    return {"node_list": ", ".join(str(int(i)) for i in nodes), "verdict": known_verdict(verdict),
+            "model": c_text(model.name), "states": c_text(", ".join(map(str, model.state_names)), 4 * C_TEXT_MAX)}
 
 
 def _functions(model) -> list[ca.Function]:
@@ -89,8 +119,12 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     :func:`designer.relay.relay_routes` and :func:`designer.relay.relay_moments`) for the nodes ``nodes`` into
     ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
     (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
+    from .gain_rules import gain_rule
     from .scheduled import sqrtm_psd
 
+    rule = gain_rule(design.mode)
+    if not rule.relays:
+        raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")
     out = Path(out)
     n, nz_max = model.n_x, max(model.sensor_dims)
     signal = design.fdi_signal
@@ -120,9 +154,8 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     ball_max = max(ball_start[j + 1] - ball_start[j] for j in range(len(nodes)))
     gn = G * n
     header = _HEADER.format(n=n, nu=model.n_u, nz=int(dims.sum()), sensors=model.n_sensors, nodes=len(nodes),
-                            ball_max=ball_max, rows_max=r_max, rounds=routes.hops, mode=design.mode,
-                            node_list=", ".join(map(str, nodes)), received_max=r_max - 1 if r_max > 1 else 1,
-                            verdict=verdict)
+                            ball_max=ball_max, rows_max=r_max, rounds=int(routes.hops), mode=rule.name,
+                            received_max=r_max - 1 if r_max > 1 else 1, **_described(model, nodes, verdict))
     data = "".join([
         _array("cfd_node_id", nodes, "int"), _array("cfd_ball_start", ball_start, "int"),
         _array("cfd_ball_sensor", ball, "int"), _array("cfd_row_start", row_start, "int"),
@@ -147,6 +180,8 @@ def _model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
     for fn in fns:
         cg.add(fn)
     cg.generate(str(out) + "/")
+    code = out / "cfd_model.c"
+    code.write_text(_MODEL_PRELUDE + code.read_text())
     sizes = {name: max(max(getattr(fn, name)() for fn in fns), 1) for name in ("sz_arg", "sz_res", "sz_iw", "sz_w")}
     dims = np.asarray(model.sensor_dims, dtype=int)
     zoff = np.concatenate([[0], np.cumsum(dims)])
@@ -156,6 +191,18 @@ def _model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
             angle[zoff[s] + c] = 1
     return sizes, dims, _array("cfd_dim", dims, "int") + _array("cfd_zoff", zoff, "int") + _array("cfd_angle", angle,
                                                                                                    "int")
+
+
+# CasADi's functions keep its calling convention, whose work and memory arguments a function may not use, and its
+# code generator has no option to mark them: -Wextra's unused-parameter warning is off in that file only
+_MODEL_PRELUDE = """/* cfd_model.c (cfdesign export): the model's functions, by CasADi's code generator.  They keep
+ * CasADi's calling convention (arg, res, iw, w, mem), whose work and memory arguments a function may not use,
+ * and the generator has no option to mark them: GCC's and Clang's warning about unused parameters is off in
+ * this file only (every other warning of -std=c99 -Wall -Wextra -pedantic stays on). */
+#if defined(__GNUC__)
+#pragma GCC diagnostic ignored "-Wunused-parameter"
+#endif
+"""
 
 
 def _common(model, sizes: dict) -> str:
@@ -204,6 +251,7 @@ _HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule {mod
  *
  * Generated by cfdesign export; the design's data are in cfd_node.c, the model's functions in cfd_model.c.
  * The design's verdict: {verdict} (a certified bound is finite, steady and informative; see its report).
+ * The model: {model}; its states, in the order of x: {states}.
  * Nodes exported: {node_list} (node k of this file is cfd_node_id[k] of the network; cfd_init takes the
  * network's number).  Static memory only; link with -lm.
  *
@@ -548,7 +596,7 @@ int main(int argc, char **argv) {
     static double x[CFD_NX], P[CFD_NX * CFD_NX];
     static unsigned char arrived[CFD_BALL_MAX];
     FILE *fh;
-    int steps, k, j, i, bad = 0;
+    int steps, k, j, bad = 0;
     double worst = 0.0;
     fh = start(argc, argv, nodes, &steps);
     if (!fh) return 2;
@@ -579,7 +627,7 @@ _MAKEFILE = """# Generated by cfdesign export.  `make` builds the node filter li
 # `make test` replays replay.txt through every node and compares with the Python node filter
 # (exit 0 when they agree within 1e-10).
 CC ?= cc
-CFLAGS ?= -std=c99 -O2 -Wall
+CFLAGS ?= -std=c99 -O2 -Wall -Wextra -pedantic
 LDLIBS = -lm
 
 all: libcfd_node.a cfd_test
@@ -768,8 +816,9 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
         mat_start.append(len(R))
     d_max = max(nb_start[j + 1] - nb_start[j] for j in range(len(nodes)))
     header = _CONSENSUS_HEADER.format(n=n, nu=model.n_u, nz=int(dims.sum()), sensors=model.n_sensors,
-                                      nodes=len(nodes), d_max=max(d_max, 1), node_list=", ".join(map(str, nodes)),
-                                      verdict=verdict, sigma=sigma, beta=beta, tau=design.tau, gate=design.gate)
+                                      nodes=len(nodes), d_max=max(d_max, 1), sigma=sigma, beta=beta,
+                                      tau=float(design.tau), gate=float(design.gate),
+                                      **_described(model, nodes, verdict))
     data = "".join([
         _array("cfd_node_id", nodes, "int"), _array("cfd_nb_start", nb_start, "int"), _array("cfd_nb", nb, "int"),
         _array("cfd_wphi", wphi), _array("cfd_wxi", w_xi[nodes]),
@@ -808,11 +857,12 @@ def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
     return "\n".join(lines) + "\n"
 
 
-_CONSENSUS_HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule paper: the seed paper's consensus EKF),
- * C99.
+_CONSENSUS_HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule paper: the seed paper's
+ * consensus EKF), C99.
  *
  * Generated by cfdesign export; the design's data are in cfd_node.c, the model's functions in cfd_model.c.
  * The design's verdict: {verdict} (a certified bound is finite, steady and informative; see its report).
+ * The model: {model}; its states, in the order of x: {states}.
  * Nodes exported: {node_list} (node k of this file is cfd_node_id[k] of the network; cfd_init takes the
  * network's number).  Static memory only; link with -lm.  sigma = {sigma}, beta = {beta}, tau = {tau}, gate = {gate}.
  *
@@ -1275,9 +1325,10 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
     mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
     nominal = tables.nominal[np.minimum(np.arange(T + 1) + 1, T)]  # the step's own candidate point, k = 0..T
     header = _SCHEDULED_HEADER.format(n=n, nu=model.n_u, nz=int(dims.sum()), sensors=model.n_sensors,
-                                      nodes=len(nodes), d_max=max(d_max, 1), node_list=", ".join(map(str, nodes)),
-                                      verdict=verdict, rounds=L, steps=T, nzmax=nz, exch=int(bool(tables.exchange)),
-                                      exchange="exchanged" if tables.exchange else "not exchanged")
+                                      nodes=len(nodes), d_max=max(d_max, 1), rounds=L, steps=int(T), nzmax=nz,
+                                      exch=int(bool(tables.exchange)),
+                                      exchange="exchanged" if tables.exchange else "not exchanged",
+                                      **_described(model, nodes, verdict))
     data = "".join([
         _array("cfd_node_id", nodes, "int"), _array("cfd_nb_start", nb_start, "int"), _array("cfd_nb", nb, "int"),
         _array("cfd_p", p), _array("cfd_q", q), _array("cfd_tab_start", tab_start, "int"),
@@ -1321,14 +1372,15 @@ def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
     return "\n".join(lines) + "\n"
 
 
-_SCHEDULED_HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule scheduled: per-link gains from tables
- * designed offline), C99.
+_SCHEDULED_HEADER = """/* cfd_node.h: the node filter of a cfdesign design (gain rule scheduled: per-link gains
+ * from tables designed offline), C99.
  *
  * Generated by cfdesign export; the design's data (each exported node's tables) are in cfd_node.c, the model's
  * functions in cfd_model.c.  The design's verdict: {verdict} (a certified bound is finite, steady and informative;
  * see its report).  Nodes exported: {node_list} (node k of this file is cfd_node_id[k] of the network; cfd_init
  * takes the network's number).  Static memory only; link with -lm.  {rounds} exchange round(s) a step; the
  * neighbours' measurements {exchange}; tables for {steps} steps, the stationary ones beyond.
+ * The model: {model}; its states, in the order of x: {states}.
  *
  * A step: cfd_predict with the node's own measurement (its prediction f(x), its own covariance F P F^T + Q, its
  * choice of tables: the packet it sends, with its measurement when they are exchanged); cfd_update with which

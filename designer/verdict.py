@@ -49,8 +49,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["VERDICTS", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS", "GATE_CLAUSE",
-           "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
+__all__ = ["VERDICTS", "known_verdict", "GROWTH_TOLERANCE", "WINDOW_FRACTION", "MIN_WINDOW", "VERDICT_ASSUMPTIONS",
+           "GATE_CLAUSE", "Verdict", "verdict", "describe", "count_verdicts", "steadiness_window", "open_loop_traces",
            "open_loop_reference", "json_number"]
 
 VERDICTS = ("certified", "vacuous", "not steady", "infeasible")
@@ -119,6 +119,12 @@ class Verdict:
     @property
     def certified(self) -> bool:
         return self.verdict == "certified"
+
+
+def known_verdict(value) -> str:
+    """``value`` when it is one of :data:`VERDICTS`, else ``"unknown"``: a verdict read from a file (a design
+    directory's ``schedule.json``) as a word of this vocabulary, never as the file's text."""
+    return value if isinstance(value, str) and value in VERDICTS else "unknown"
 
 
 def steadiness_window(horizon: int) -> int:

@@ -742,6 +742,40 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
 _REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its rounding stays within 1e-10
 
 
+def _recorded_source(design_dir, meta: dict) -> str:
+    """The model a design directory records (its ``schedule.json`` ``meta``, read by
+    :func:`studies.recorded.read_design_record`), to be built without the user naming it: a built-in scenario's
+    name (:data:`studies.scenarios.SCENARIOS`), or a model file whose bytes and local imports' bytes
+    (:func:`designer.digest.source_files_digest`, read, never imported) are the ``source_digest`` recorded at
+    design time.  Anything else is refused before anything is imported: the user gives the model (``scenario``)
+    after checking it."""
+    from designer.digest import source_files_digest
+
+    where = meta.get("source") or meta.get("scenario")
+    if where in SCENARIOS:
+        return where
+    given = "give the model with --scenario (scenario=) after checking it is the design's"
+    if not (where or "").endswith(".py") or not Path(where).is_absolute():  # design records a file's full path
+        raise InputError(f"design_dir {str(design_dir)!r} does not record a built-in scenario or a model file's "
+                         f"full path: {given}")
+    shown = repr(where) if len(where) <= 200 else repr(where[:200]) + " ..."
+    recorded = meta.get("source_digest")
+    if recorded is None:
+        raise InputError(f"design_dir {str(design_dir)!r} names the model file {shown} but records no digest of "
+                         f"its content (source_digest), so it cannot be checked before it is imported: {given}")
+    try:
+        found = source_files_digest(where) if Path(where).is_file() else None
+    except (OSError, ValueError):
+        found = None
+    if found is None:
+        raise InputError(f"design_dir {str(design_dir)!r} names the model file {shown}, which cannot be read: "
+                         f"{given}")
+    if found != recorded:
+        raise InputError(f"design_dir {str(design_dir)!r} names the model file {shown}, whose content is not the "
+                         f"design's (its digest differs from source_digest): {given}")
+    return where
+
+
 @one_blas_thread()
 def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = None, data=None,
            scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> list[Path]:
@@ -763,8 +797,13 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         A log (:mod:`studies.recorded`) to replay in ``make test``; default: the design's simulated run
         (``simulate`` with the design's seed).
     scenario, overrides, assignments
-        The model, when the design directory's own (its ``source``: a model file's path, or a built-in's name with
-        the design's parameters) is not where it was; its content must be the design's (``model_digest``).
+        The model.  Default: the design directory's own (its ``source``), built with the design's parameters, when
+        it is a built-in's name or a model file whose bytes still have the design's ``source_digest`` (checked
+        before the file is imported: a design directory from elsewhere may name any file); otherwise the model must
+        be given, and its content must be the design's (``model_digest``).
+
+    The design directory is read as data (:func:`studies.recorded.read_design_record`): no text of it reaches the
+    C sources (the verdict is stated as a word of :data:`designer.verdict.VERDICTS`, else ``unknown``).
 
     Returns the files written.
     """
@@ -776,7 +815,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from filters.node import node_network
 
     from .consensus_design import consensus_design
-    from .recorded import design_options_of, read_log
+    from .recorded import clip_message, design_options_of, read_design_record, read_log
 
     check_path("design_dir", design_dir)
     if target != "c":
@@ -785,17 +824,15 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     check_path("data", data, optional=True)
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
     _apart(out, scenario, design_dir=design_dir, data=data)
-    meta_path = Path(design_dir) / "schedule.json"
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"design_dir {str(design_dir)!r} is not a design directory (schedule.json: {exc})") from None
+    _, meta = read_design_record(design_dir, "design_dir")  # data only: nothing it names is imported here
     if scenario is None:
-        where = meta.get("source") or meta.get("scenario")
-        if not where:
-            raise InputError(f"design_dir {str(design_dir)!r} does not record its model: give scenario")
-        over = dict(meta.get("params") or {})  # the parameters it was designed with (--set included)
-        sc = _scenario(where, None, None, None, None, None, None, {**over, **(overrides or {})}, assignments)
+        where = _recorded_source(design_dir, meta)
+        _apart(out, where)  # the design's own model file, once it is known to be the design's
+        try:
+            sc = _scenario(where, None, None, None, None, None, None,
+                           {**(meta.get("params") or {}), **(overrides or {})}, assignments)  # as designed
+        except InputError as exc:  # its recorded parameters quoted, at most a few hundred characters of them
+            raise InputError(clip_message(str(exc))) from None
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
     mode, options, _ = design_options_of(design_dir, sc)
@@ -816,7 +853,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     if not chosen or len(set(chosen)) != len(chosen):
         raise InputError(f"nodes must be distinct nodes of 0..{N - 1}, got {nodes!r}")
     if data is None:
-        sim = simulate(sc, seed=int(meta.get("seed") or 0))
+        sim = simulate(sc, seed=meta.get("seed") or 0)
         z, attacks, u = sim.z, sim.attacks, sim.inputs
     else:
         log = read_log(data, sc)
@@ -852,7 +889,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         else:
             steps.append((u[k], [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], *xP)
                                  for i, z_i, xP in zip(chosen, z_of, done)]))
-    verdict = str(meta.get("verdict"))
+    verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     with replaced_outputs(out) as stage:
         if rule.relays:
             routes = relay_routes(sc.network, design.rounds, rule.routing)

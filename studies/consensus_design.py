@@ -568,6 +568,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "attacks": att.describe(m.state_names),
             "params": dict(sc.params),
             "source": sc.source,
+            # a model file's bytes (and its local imports') as it was run: export checks a file against it before
+            # importing it (a design directory from elsewhere names a file that may not be this one)
+            "source_digest": sc.source_digest,
             "model_digest": sc.digest,
             "invocation": invocation,
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),

@@ -39,8 +39,8 @@ from .filter_registry import Batch, FilterEntry, FilterRegistry
 from .scenarios import Scenario
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
-           "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "design_options_of",
-           "filter_report"]
+           "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
+           "read_design_record", "design_options_of", "filter_report"]
 
 LOG_SCHEMA = "cfdesign.log/1"
 
@@ -275,26 +275,89 @@ def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed:
     return entry.run(batch, [0], None if entry.mode is None else entry.design_for(design, m))
 
 
-def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, dict]:
-    """The gain rule, the design options and the ``schedule.json`` of a design directory written by
-    ``cfdesign design`` for the scenario ``sc``: a design of another scenario, or of this one's model as it was
-    before an edit (its recorded ``model_digest``), is refused."""
+_RECORD_MESSAGE_MAX = 600  # characters of a message quoting a design directory's content
+_SEED_MAX = 2**63 - 1
+
+
+def clip_message(text: str) -> str:
+    """A message quoting a file's content (a design directory's), at most :data:`_RECORD_MESSAGE_MAX` characters:
+    a longer one keeps its start and its end (where the advice is), `` ... `` between."""
+    if len(text) <= _RECORD_MESSAGE_MAX:
+        return text
+    tail = _RECORD_MESSAGE_MAX // 3
+    return text[:_RECORD_MESSAGE_MAX - tail - 5] + " ... " + text[-tail:]
+
+
+def _refuse_constant(token: str):
+    raise ValueError(f"{token} is not a JSON number (cfdesign writes finite numbers only)")
+
+
+def _finite_float(token: str) -> float:
+    v = float(token)
+    if not np.isfinite(v):
+        raise ValueError(f"the number {clip_message(token)} is beyond a double's range")
+    return v
+
+
+def read_design_record(schedule_dir, name: str = "schedule") -> tuple[Path, dict]:
+    """The path and the content of the ``schedule.json`` of a design directory written by ``cfdesign design``
+    (``schedule_dir``: the directory or the file; ``name``: the parameter, for the messages), read as data from
+    elsewhere: JSON only (nothing is imported or run), an object whose fields a command uses have their types
+    (``scenario`` a string; ``source``, ``source_digest`` (64 hex digits), ``model_digest``, ``mode``,
+    ``verdict`` strings or null; ``options`` and ``params`` objects; ``seed`` an integer in 0..2**63 - 1 or
+    null), no NaN, no infinity, no number beyond a double's range; else :class:`InputError`, one line naming the
+    file and the field (never quoting more than a few hundred characters of it)."""
     p = Path(schedule_dir)
     path = p / "schedule.json" if p.is_dir() else p
     if not path.is_file():
-        raise InputError(f"schedule {str(p)!r} is not a design directory (no schedule.json): give the --out "
+        raise InputError(f"{name} {str(p)!r} is not a design directory (no schedule.json): give the --out "
                          "directory of cfdesign design")
     try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"schedule {str(path)!r} is not valid JSON: {exc}") from None
-    opts = meta.get("options") if isinstance(meta, dict) else None
+        meta = json.loads(path.read_bytes().decode("utf-8"), parse_constant=_refuse_constant,
+                          parse_float=_finite_float)
+    except (ValueError, RecursionError, OSError) as exc:  # JSONDecodeError, UnicodeDecodeError are ValueErrors
+        what = "nested too deeply" if isinstance(exc, RecursionError) else clip_message(str(exc))
+        raise InputError(f"{name} {str(path)!r} is not valid JSON: {what}") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{name} {str(path)!r} must hold a JSON object (a design's record), got "
+                         f"{type(meta).__name__}")
+
+    def refuse(field, what):
+        raise InputError(f"{name} {str(path)!r}: {field} must be {what}, got {type(meta.get(field)).__name__}")
+
+    if not isinstance(meta.get("scenario"), str):
+        refuse("scenario", "a string (the scenario's name)")
+    for field in ("source", "model_digest", "mode", "verdict"):
+        if not isinstance(meta.get(field), (str, type(None))):
+            refuse(field, "a string or null")
+    digest = meta.get("source_digest")
+    if digest is not None and not (isinstance(digest, str) and len(digest) == 64
+                                   and all(c in "0123456789abcdef" for c in digest)):
+        refuse("source_digest", "64 hexadecimal digits (a SHA-256) or null")
+    for field in ("options", "params"):
+        if not isinstance(meta.get(field, {}), (dict, type(None))):
+            refuse(field, "an object or null")
+    seed = meta.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _SEED_MAX):
+        raise InputError(f"{name} {str(path)!r}: seed must be an integer in 0..{_SEED_MAX} or null, got "
+                         + (clip_message(repr(seed)) if isinstance(seed, (int, float)) else type(seed).__name__))
+    return path, meta
+
+
+def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, dict]:
+    """The gain rule, the design options and the ``schedule.json`` of a design directory written by
+    ``cfdesign design`` for the scenario ``sc``: a design of another scenario, or of this one's model as it was
+    before an edit (its recorded ``model_digest``), is refused.  The file is read as data
+    (:func:`read_design_record`): nothing it names is imported."""
+    p = Path(schedule_dir)
+    path, meta = read_design_record(schedule_dir)
+    opts = meta.get("options")
     if not isinstance(opts, dict) or "mode" not in opts:
         raise InputError(f"schedule {str(path)!r} records no design options (written by an older cfdesign "
                          "design?): design again")
-    if meta.get("scenario") != sc.name:
-        raise InputError(f"schedule {str(p)!r} was designed for scenario {meta.get('scenario')!r}, not "
-                         f"{sc.name!r}")
+    if meta["scenario"] != sc.name:
+        raise InputError(clip_message(f"schedule {str(p)!r} was designed for scenario {meta['scenario']!r}, "
+                                      f"not {sc.name!r}"))
     if meta.get("model_digest") not in (None, sc.digest):
         raise InputError(f"schedule {str(p)!r} was designed for another version of the model {sc.name!r} (its "
                          "content or parameters changed since): design again, or give the model and parameters it "
@@ -303,7 +366,11 @@ def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, d
     if not isinstance(mode, str):
         raise InputError(f"schedule {str(path)!r} records no gain rule (mode): design again")
     known = set(DesignOptions().as_dict())
-    return mode, DesignOptions(**{**{k: v for k, v in opts.items() if k in known}, "mode": mode}), meta
+    try:
+        options = DesignOptions(**{**{str(k): v for k, v in opts.items() if k in known}, "mode": mode})
+    except InputError as exc:
+        raise InputError(clip_message(f"schedule {str(path)!r}: its design options: {exc}")) from None
+    return mode, options, meta
 
 
 def filter_report(run, directory: Path) -> None:
@@ -311,6 +378,7 @@ def filter_report(run, directory: Path) -> None:
     ``report.md`` and ``fig_estimates.png`` (each node's estimate over time with the truth when known, and the trace
     of its bound or covariance)."""
     from designer.fileio import atomic_write, write_npz
+    from designer.verdict import known_verdict
 
     from .figures import plotting, save_figure
 
@@ -358,7 +426,7 @@ def filter_report(run, directory: Path) -> None:
              ""]
     if run.design is not None:
         lines += [f"Design: gain rule `{run.design['gain_rule']}`"
-                  + (f", from `{run.design['schedule']}` (verdict there: {run.design.get('verdict')})"
+                  + (f", from `{run.design['schedule']}` (verdict there: {known_verdict(run.design.get('verdict'))})"
                      if "schedule" in run.design else ", the scenario's design defaults") + ".", ""]
     if run.verdict is not None:
         lines += [f"Its bound's verdict over this log's horizon: **{run.verdict}** (designer.verdict: finite, "

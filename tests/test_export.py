@@ -242,9 +242,11 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     with pytest.raises(InputError, match=r"nodes must be an integer in 0..6, got 9"):
         studies.export(relay, out=tmp_path / "c", nodes=[9])
     cart.write_text(USER_MODEL.replace("0.002]]", "0.003]]"))  # the model edited since the design
-    try:
-        with pytest.raises(InputError, match="was designed for another version of the model .cart."):
+    try:  # refused before it is imported (its bytes), and given by the user (its content)
+        with pytest.raises(InputError, match="names the model file .*cart.py., whose content is not the design's"):
             studies.export(relay, out=tmp_path / "c")
+        with pytest.raises(InputError, match="was designed for another version of the model .cart."):
+            studies.export(relay, out=tmp_path / "c", scenario=str(cart))
     finally:
         cart.write_text(USER_MODEL)
     assert not (tmp_path / "c" / "cfd_node.c").exists()

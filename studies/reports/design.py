@@ -42,8 +42,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "steps", "epsilon", "feasible", "violations", "sigma",
           "beta", "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed",
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
-          "attacks", "params", "assumptions", "source", "model_digest", "observability", "kalman_references",
-          "predicted_mse", "gate",
+          "attacks", "params", "assumptions", "source", "source_digest", "model_digest", "observability",
+          "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
           "bank_record", "remainder_structure"}
@@ -867,7 +867,7 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
     s = _Schedule(meta, arrays)
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "design"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else ""
-    label = f"{scenario}, {mode} design".replace("$", r"\$")  # no mathtext from a name
+    label = f"{scenario[:80]}, {mode[:40]} design".replace("$", r"\$")  # no mathtext from a name; a title's size
     from ..figures import figure_batch
 
     figures = []

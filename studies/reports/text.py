@@ -394,8 +394,9 @@ def read_json(d: Path, name: str) -> Any:
     """``d/name`` parsed, or an InputError naming the directory."""
     try:
         return json.loads((d / name).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"directory {str(d)!r}: {name} cannot be read: {exc}") from None
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: not JSON, not UTF-8, an integer too long
+        why = "its JSON is nested too deeply" if isinstance(exc, RecursionError) else exc
+        raise InputError(f"directory {str(d)!r}: {name} cannot be read: {why}") from None
 
 
 def read_record(d: Path, name: str, schema: str, whose: str, required: bool = True) -> dict:
