@@ -373,3 +373,24 @@ def test_a_one_parameter_map_draws_each_category_apart():
         (line,) = [ln for ln in ax.get_lines() if ln.get_gid() == f"category:{c}"]
         assert list(line.get_xdata()) == [v for v, k in zip(values, kinds) if k == c], c
         assert line.get_label().startswith(c) and line.get_label().endswith(f": {kinds.count(c)}")
+
+
+def test_the_summary_counts_alike_reasons_together_and_keeps_equation_labels(tmp_path):
+    """Binding reasons that differ only in their numbers (a growth factor, an iteration) are one kind of reason in
+    the summary's sentence, counted together, while the conditions' labels (28), (29) stay apart: on a map of a
+    random walk where no point settles, the sentence has one reason for all its points, not one per point."""
+    (tmp_path / "walk.py").write_text(SCALAR.replace("0.9 * x", "1.02 * x").replace("[[0.07]]", "[[7e3]]"))
+    out = tmp_path / "f"
+    feasibility(str(tmp_path / "walk.py"), ["dos=0:0.6:4"], mode="scheduled", out=out, quiet=True)
+    with open(out / "feasibility.csv") as fh:
+        table = list(csv.DictReader(fh))
+    md = (out / "report.md").read_text()
+    where = next(ln for ln in md.splitlines() if ln.startswith("**Where the design is certified:**"))
+    kinds = {b for t in table for b in [t["binding"]]}
+    assert len(kinds) > 1  # the points' reasons differ (in their numbers): the case the sentence listed one by one
+    for t in table:
+        assert t["binding"] not in where
+    n = {c: sum(t["verdict"] == c for t in table) for c in {t["verdict"] for t in table}}
+    for c, count in n.items():
+        assert f"{count} {c} (binding: " in where
+    assert where.count(" at ") <= 3 * len(n) + 1

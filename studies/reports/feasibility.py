@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from collections import Counter
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -136,21 +137,33 @@ def _good(rows: Sequence[Mapping]) -> tuple[list[Mapping], str]:
     return sorted(good, key=lambda r: r["trace_bound"]), word
 
 
+# a number in a binding reason, or an equation's label such as (28), which is kept
+_NUMBER = re.compile(r"\(\d+\)|(?<![\w.])[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?![\w.])")
+
+
+def _reasons(these: Sequence[Mapping]) -> str:
+    """The binding reasons of ``these`` points, alike reasons counted together: their numbers (the growth, the
+    iteration, a margin) differ from point to point and are shown as ``…``; the three most common, then how many
+    other kinds."""
+    why = Counter(_NUMBER.sub(lambda m: m[0] if m[0].startswith("(") else "…", r["binding"] or "not recorded")
+                  for r in these)
+    top = [f"{md_escape(b)} at {c}" for b, c in why.most_common(3)]
+    rest = len(why) - len(top)
+    return ", ".join(top) + (f", and {rest} other reason{'s' if rest > 1 else ''} (the grid below)" if rest else "")
+
+
 def _others(rows: Sequence[Mapping], word: str) -> tuple[int, str]:
     """How many points are not ``word`` (certified, or feasible), and what they are, with their reasons."""
     from ..feasibility_map import MAP_CATEGORIES
 
     if word == "feasible":
         bad = [r for r in rows if not r["feasible"]]
-        why = Counter(r["binding"] or "not recorded" for r in bad)
-        return len(bad), f"infeasible ({', '.join(f'{md_escape(b)} at {c}' for b, c in why.most_common())})"
+        return len(bad), f"infeasible ({_reasons(bad)})"
     parts = []
     for cat in MAP_CATEGORIES[1:]:
         these = [r for r in rows if _category(r) == cat]
         if these:
-            why = Counter(r["binding"] or "not recorded" for r in these)
-            parts.append(f"{len(these)} {cat} (binding: "
-                         + ", ".join(f"{md_escape(b)} at {c}" for b, c in why.most_common()) + ")")
+            parts.append(f"{len(these)} {cat} (binding: {_reasons(these)})")
     return sum(_category(r) != "certified" for r in rows), "; ".join(parts)
 
 
