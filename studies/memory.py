@@ -14,6 +14,10 @@ work.  One estimate per command and study, all here:
                              (with its designs' Hessians) per worker
 :func:`study_need`           every study (:data:`STUDY_NEEDS`): the designs' Hessians, one
                              chunk of runs per worker, and every run's stored results
+:func:`filter_need`          ``filter``: the log's arrays (:func:`log_part`, from the sizes an
+                             ``.npz`` declares or a CSV's largest step), the design of the
+                             filter's gain rule, then its run (the particles of a particle filter)
+:func:`node_filter_need`     ``node_filter``: the design, then every node's matrices
 ==========================  ===========================================================
 
 **What is counted.**  The arrays whose size grows with the parameters, their shapes read off
@@ -42,7 +46,8 @@ from designer.gain_rules import gain_rule
 from designer.validation import InputError
 
 __all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
-           "feasibility_need", "study_need", "STUDY_NEEDS"]
+           "feasibility_need", "study_need", "STUDY_NEEDS", "log_values", "log_part", "log_need", "filter_need",
+           "node_filter_need"]
 
 _D = 8  # bytes of a double
 # Copies and sizes measured at the peak (benchmarks/bench_memory.py):
@@ -55,8 +60,10 @@ _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
 _JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
+_LOG_COPIES = 2.0  # a log's arrays as read, and their float copies as checked (studies.recorded.check_log)
 
 _STEPS = "fewer steps"
+_SHORTER_LOG = "a shorter log (fewer steps)"
 _SCALINGS = "the scalings u_scale and v_scale (--u-scale, --v-scale; the default 'prior' ones evaluate every Hessian)"
 
 
@@ -240,6 +247,75 @@ def design_need(sc, options, steps: int) -> Need:
     run.append(Part("the schedule's JSON and report", 6 * n * steps * _JSON_VALUE, f"{steps} steps x {n} nodes",
                     reduce))
     return _need("design", [_prior_hessians(m, options)], run)
+
+
+def _with(log: Part, phases) -> list[list[Part]]:
+    """Every phase of ``phases`` with the log ``log`` held beside it."""
+    return [[log, *(p for p in ph if p is not None)] for ph in phases]
+
+
+def log_values(model, n_nodes: int) -> int:
+    """Numbers per step of a log of ``model`` on ``n_nodes`` nodes holding every array (studies.recorded): ``z`` and
+    ``uplink``, the channels' two flags and signal, the inputs and the truth."""
+    return 2 * model.n_z + n_nodes * n_nodes * (2 + model.n_x) + model.n_u + model.n_x
+
+
+def log_part(source: str, steps: int, values: int, stored: int = 0) -> Part:
+    """The log ``source`` of ``steps`` steps holding ``values`` numbers, read as doubles, beside ``stored`` bytes as
+    they were read (the arrays of an ``.npz`` in their own dtypes)."""
+    return Part(f"the arrays of log {source}", stored + _LOG_COPIES * values * _D, f"{steps} steps, {values} numbers",
+                _SHORTER_LOG)
+
+
+def log_need(log: Part) -> Need:
+    """Reading a log alone (:func:`log_part`), where no command's need is given."""
+    return _need("reading the log", [log])
+
+
+def _consensus_design(sc, options, steps: int) -> list[list[Part]]:
+    """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
+    ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
+    the tables along ``steps`` steps, a consensus filter's run."""
+    from .consensus_design import effective
+
+    sc, opts = effective(sc, options)
+    phases = [[_prior_hessians(sc.model, opts)]]
+    if gain_rule(opts.mode).offline_tables:
+        phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
+                                 "the design's offline tables", f"{_STEPS} (steps = {steps})"))
+    return phases
+
+
+def filter_need(sc, steps: int, log: Part, *, options=None, centralized: bool = False,
+                particles: int | None = None) -> Need:
+    """``filter`` on a log of ``steps`` steps (its arrays ``log``, held throughout): the design of ``options``'s
+    gain rule (None: a filter without a design), then the filter's run: a consensus filter's per-step results at
+    every node (with ``centralized``, one estimate), or with ``particles`` a particle filter's particles."""
+    from .consensus_design import effective
+
+    m, n_x = sc.model, sc.model.n_x
+    if centralized or particles is not None:
+        run = [Part("the filter's estimates and covariances", _RESULT_COPIES * (steps + 1) * (n_x + n_x**2 + 3) * _D,
+                    f"{steps + 1} steps x {n_x} x {n_x} states", _SHORTER_LOG)]
+        if particles is not None:
+            run.append(_particles(m, 1, particles, "the particle filter"))
+    else:
+        opts = None if options is None else effective(sc, options)[1]
+        run = _consensus(m, sc.network, 1, steps, None if opts is None else opts.mode,
+                         None if opts is None else opts.linearization, "the filter", _SHORTER_LOG)
+    design = [] if options is None else _consensus_design(sc, options, steps)
+    return _need("filter", *_with(log, [*design, run]))
+
+
+def node_filter_need(sc, options=None) -> Need:
+    """``node_filter``: the design of ``options``'s gain rule over the scenario's horizon (None: a filter without a
+    design), then every node's matrices (its filter and its neighbours' packets)."""
+    m, net = sc.model, sc.network
+    n, n_x = net.n_nodes, m.n_x
+    nodes = Part("every node's matrices", n * (n + _STEP_MATRICES) * (n_x * n_x + n_x) * _D,
+                 f"{n} nodes x {n} packets x {n_x} x {n_x} states", "a smaller network")
+    design = [] if options is None else _consensus_design(sc, options, sc.steps)
+    return _need("node_filter", *design, [nodes])
 
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:
