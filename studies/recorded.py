@@ -182,7 +182,10 @@ def read_log(path, sc: Scenario, need: Callable[[int, Part], Need] | None = None
             log = memory.log_part(source, steps, sum(math.prod(s) for s in shapes.values()),
                                   sum(info.file_size for info, _ in members.values()))
             memory.check(memory.log_need(log) if need is None else need(steps, log))
-            data = {k: np.lib.format.read_array(zf.open(info), allow_pickle=False) for k, (info, _) in members.items()}
+            data = {}
+            for key, (info, _) in members.items():
+                with zf.open(info) as fh:
+                    data[key] = np.lib.format.read_array(fh, allow_pickle=False)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line

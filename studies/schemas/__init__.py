@@ -286,7 +286,7 @@ def _cell(column: str, text: str):
         return text
     if column in _INTEGER_COLUMNS and re.fullmatch(r"[+-]?[0-9]{1,18}", text):
         return int(text)
-    value = decimal(text)
+    value = decimal(text.strip())
     return value if value is not None and math.isfinite(value) else text  # not a number: text, the schema refuses
 
 
@@ -339,6 +339,7 @@ def log_json(path) -> dict:
 
 
 def _log_cell(column: str, text: str):
+    text = text.strip()  # as studies.recorded.read_log_csv reads a cell
     if text != "" and (column in ("step", "sensor") or column.startswith("from_")):
         return int(text) if re.fullmatch(r"[0-9]{1,18}", text) else text
     return _cell(column, text)
