@@ -588,9 +588,9 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     else:
         entry = find_filter(FILTER_REGISTRY, filter)
     designed = None if entry.mode is None else as_mode(options, entry.mode)
-    log = read_log(data, sc, lambda steps, arrays: memory.filter_need(
-        sc, steps, arrays, options=designed, centralized=entry.runtime == "centralized",
-        particles=particles if entry.particles else None))  # checked before the log's arrays are read
+    log = read_log(data, sc, lambda size: memory.filter_need(
+        sc, size, options=designed, centralized=entry.runtime == "centralized",
+        particles=particles if entry.particles else None))  # checked before the log's arrays are made
     seed = (log.seed or 0) if seed is None else seed
     run = (log.run or 0) if run is None else run
     design = None

@@ -39,7 +39,7 @@ from filters.result import FilterResult
 
 from . import memory
 from .filter_registry import Batch, FilterEntry, FilterRegistry
-from .memory import Need, Part
+from .memory import LogSize, Need
 from .scenarios import Scenario
 from .schemas import decimal
 
@@ -154,14 +154,14 @@ def _integer(data: dict, key: str, source: str) -> int | None:
     return int(a)
 
 
-def read_log(path, sc: Scenario, need: Callable[[int, Part], Need] | None = None) -> Log:
+def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) -> Log:
     """The log at ``path`` (an ``.npz``, or its CSV form: :func:`read_log_csv`), checked against the scenario
     ``sc`` (its model and network): shapes, dtypes, values, flags only on the network's links, falsified packets
     with their signal.  Every problem is an :class:`InputError` naming the file, the array and where.
 
-    Before any array is read, the memory it needs is checked (:func:`studies.memory.check`): ``need(steps, log)``,
-    the need of the command that reads it given the log's steps and its arrays (:func:`studies.memory.log_part`:
-    the sizes an ``.npz``'s directory and headers declare, or a CSV's largest step), or the log's arrays alone."""
+    Before any array is made, the memory is checked (:func:`studies.memory.check`): ``need(size)``, the need of the
+    command that reads the log given its :class:`studies.memory.LogSize` (from the sizes an ``.npz``'s directory
+    and headers declare, or a CSV's largest step), or without ``need`` the log's reading alone."""
     p = Path(path)
     source = str(p)
     if not p.is_file():
@@ -179,9 +179,9 @@ def read_log(path, sc: Scenario, need: Callable[[int, Part], Need] | None = None
             shapes = {k: shape for k, (_, shape) in members.items()}
             z = shapes.get("z", ())
             steps = z[0] if z else 0
-            log = memory.log_part(source, steps, sum(math.prod(s) for s in shapes.values()),
-                                  sum(info.file_size for info, _ in members.values()))
-            memory.check(memory.log_need(log) if need is None else need(steps, log))
+            log = memory.LogSize(source, steps, sum(math.prod(s) for s in shapes.values()),
+                                 sum(info.file_size for info, _ in members.values()))
+            memory.check(memory.log_need(log) if need is None else need(log))
             data = {}
             for key, (info, _) in members.items():
                 with zf.open(info) as fh:
@@ -533,7 +533,7 @@ def _csv_error(source: str, line: int, column: str | None, text: str) -> InputEr
     return _fail(source, f"line {line}" + (f", column {column!r}" if column else "") + f": {text}")
 
 
-def read_log_csv(path, sc: Scenario, need: Callable[[int, Part], Need] | None = None) -> Log:
+def read_log_csv(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) -> Log:
     """The CSV form of a log (see the comment above :func:`write_log_csv`), checked against ``sc``: every problem
     an :class:`InputError` naming the file, the line and the column.  A UTF-8 BOM and CRLF line ends are read; a
     number is decimal only (:func:`studies.schemas.decimal`).  The memory its arrays need (``K`` steps, the
@@ -671,8 +671,8 @@ def read_log_csv(path, sc: Scenario, need: Callable[[int, Part], Need] | None = 
     if not rows:
         raise _fail(source, "holds no measurement row")
     K = max(k for k, _ in rows)
-    log = memory.log_part(source, K, K * memory.log_values(m, N) + m.n_x)
-    memory.check(memory.log_need(log) if need is None else need(K, log))
+    log = memory.LogSize(source, K, K * memory.log_values(m, N) + m.n_x)
+    memory.check(memory.log_need(log) if need is None else need(log))
     z = np.full((K, m.n_z), np.nan)
     uplink = np.full((K, m.n_z), np.nan) if has_up else None
     dos = np.zeros((K, N, N), bool)
