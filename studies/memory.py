@@ -58,7 +58,7 @@ _HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.mode
 _JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
-_CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same for the comparison's centralized PFs (each uplink's hypotheses)
+_CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
 _JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
 _JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
 _LOG_COPIES = 2.0  # a CSV log's arrays as parsed, and their float copies as checked (studies.recorded.check_log)
@@ -284,7 +284,7 @@ def log_need(log: LogSize) -> Need:
     return _need("reading the log", [log.reading()])
 
 
-def _consensus_design(sc, options, steps: int) -> list[list[Part]]:
+def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
     """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
     ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
     the tables along ``steps`` steps, a consensus filter's run."""
@@ -294,7 +294,7 @@ def _consensus_design(sc, options, steps: int) -> list[list[Part]]:
     phases = [[_prior_hessians(sc.model, opts)]]
     if gain_rule(opts.mode).offline_tables:
         phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
-                                 "the design's offline tables", f"{_STEPS} (steps = {steps})"))
+                                 "the design's offline tables", reduce))
     return phases
 
 
@@ -314,7 +314,7 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
         opts = None if options is None else effective(sc, options)[1]
         run = _consensus(m, sc.network, 1, steps, None if opts is None else opts.mode,
                          None if opts is None else opts.linearization, "the filter", _SHORTER_LOG)
-    design = [] if options is None else _consensus_design(sc, options, steps)
+    design = [] if options is None else _consensus_design(sc, options, steps, _SHORTER_LOG)
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
     return _need("filter", [log.reading()], *([log.held(), *(p for p in ph if p is not None)] for ph in [*design, run]))
@@ -327,7 +327,8 @@ def node_filter_need(sc, options=None) -> Need:
     n, n_x = net.n_nodes, m.n_x
     nodes = Part("every node's matrices", n * (n + _STEP_MATRICES) * (n_x * n_x + n_x) * _D,
                  f"{n} nodes x {n} packets x {n_x} x {n_x} states", "a smaller network")
-    design = [] if options is None else _consensus_design(sc, options, sc.steps)
+    design = [] if options is None else _consensus_design(sc, options, sc.steps, f"{_STEPS} (a model file's STEPS; "
+                                                                              f"steps = {sc.steps})")
     return _need("node_filter", *design, [nodes])
 
 

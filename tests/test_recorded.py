@@ -515,7 +515,7 @@ def test_node_filter_estimates_its_design_before_computing(tank_model, monkeypat
     monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
     huge = tank_model(steps=10**10, name="huge.py")
     with pytest.raises(InputError, match=r"^node_filter would need about .*the design's offline tables.*"
-                                         r"steps = 10000000000"):
+                                         r"to fit, use fewer steps \(a model file's STEPS; steps = 10000000000\)"):
         studies.node_filter(str(huge), mode="scheduled")
     assert studies.node_filter(str(huge), mode="paper", node=0) is not None
 
