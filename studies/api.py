@@ -645,12 +645,15 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
                        "certified": meta.get("certified"), "verdict": meta.get("verdict")}
     else:
         entry = find_filter(FILTER_REGISTRY, filter)
-    log = read_log(data, sc)
+    designed = None if entry.mode is None else as_mode(options, entry.mode)
+    log = read_log(data, sc, lambda size: memory.filter_need(
+        sc, size, options=designed, centralized=entry.runtime == "centralized",
+        particles=particles if entry.particles else None))  # checked before the log's arrays are made
     seed = (log.seed or 0) if seed is None else seed
     run = (log.run or 0) if run is None else run
     design = None
     if entry.mode is not None:
-        design = consensus_design(sc, as_mode(options, entry.mode), steps=log.steps)
+        design = consensus_design(sc, designed, steps=log.steps)
         why = check_first_step(sc, design, entry.name) if entry.start_check else None
         if why is not None:  # as the comparison reports it: not run
             raise InputError(f"filter {entry.name!r} cannot start on {sc.name!r}: {why}")
@@ -724,6 +727,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
             having = [e.name for e in FILTER_REGISTRY if e.node_filters is not None
                       and not (e.designed and e.mode not in node_rules())]
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
+        memory.check(memory.node_filter_need(sc, None if entry.mode is None else DesignOptions(mode=entry.mode)))
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
                                                                   sc.model)
         rounds = check_int("iterations", 1 if iterations is None else iterations, 1)
@@ -733,6 +737,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         _, options, _ = design_options_of(schedule, sc)
     else:
         options = DesignOptions(mode=mode)
+    memory.check(memory.node_filter_need(sc, options))
     design = consensus_design(sc, options)
     if node is None:
         return node_network(sc.model, sc.network, design)

@@ -14,6 +14,10 @@ work.  One estimate per command and study, all here:
                              (with its designs' Hessians) per worker
 :func:`study_need`           every study (:data:`STUDY_NEEDS`): the designs' Hessians, one
                              chunk of runs per worker, and every run's stored results
+:func:`filter_need`          ``filter``: the log's arrays (:class:`LogSize`, from the sizes an
+                             ``.npz`` declares or a CSV's largest step), the design of the
+                             filter's gain rule, then its run (the particles of a particle filter)
+:func:`node_filter_need`     ``node_filter``: the design, then every node's matrices
 ==========================  ===========================================================
 
 **What is counted.**  The arrays whose size grows with the parameters, their shapes read off
@@ -35,14 +39,15 @@ instance, are allocated but partly never touched).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
 from designer.gain_rules import gain_rule
 from designer.validation import InputError
 
 __all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
-           "feasibility_need", "study_need", "STUDY_NEEDS"]
+           "feasibility_need", "study_need", "STUDY_NEEDS", "log_values", "LogSize", "log_need", "filter_need",
+           "node_filter_need"]
 
 _D = 8  # bytes of a double
 # Copies and sizes measured at the peak (benchmarks/bench_memory.py):
@@ -53,10 +58,13 @@ _HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.mode
 _JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
+_CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
 _JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
 _JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
+_LOG_COPIES = 2.0  # a CSV log's arrays as parsed, and their float copies as checked (studies.recorded.check_log)
 
 _STEPS = "fewer steps"
+_SHORTER_LOG = "a shorter log (fewer steps)"
 _SCALINGS = "the scalings u_scale and v_scale (--u-scale, --v-scale; the default 'prior' ones evaluate every Hessian)"
 
 
@@ -197,8 +205,8 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
     return [p for p in parts if p is not None]
 
 
-def _particles(model, rows: int, particles: int, what: str) -> Part:
-    a, b, c = _PARTICLE_DOUBLES
+def _particles(model, rows: int, particles: int, what: str, doubles: tuple = _PARTICLE_DOUBLES) -> Part:
+    a, b, c = doubles
     return Part(f"{what}: the particles", rows * particles * (a * model.n_x + b * model.n_z + c) * _D,
                 f"{rows} runs x {particles} particles x {model.n_x} states", "fewer particles (--particles)")
 
@@ -240,6 +248,88 @@ def design_need(sc, options, steps: int) -> Need:
     run.append(Part("the schedule's JSON and report", 6 * n * steps * _JSON_VALUE, f"{steps} steps x {n} nodes",
                     reduce))
     return _need("design", [_prior_hessians(m, options)], run)
+
+
+def log_values(model, n_nodes: int) -> int:
+    """Numbers per step of a log of ``model`` on ``n_nodes`` nodes holding every array (studies.recorded): ``z`` and
+    ``uplink``, the channels' two flags and signal, the inputs and the truth."""
+    return 2 * model.n_z + n_nodes * n_nodes * (2 + model.n_x) + model.n_u + model.n_x
+
+
+@dataclass(frozen=True)
+class LogSize:
+    """A log's size known before its arrays are made (studies.recorded.read_log): its ``source``, its ``steps``, the
+    ``values`` it holds and, for an ``.npz``, the bytes ``stored`` of its arrays (their decompressed sizes)."""
+
+    source: str
+    steps: int
+    values: int
+    stored: int = 0
+
+    def reading(self) -> Part:
+        """While it is read: an ``.npz``'s arrays as stored and their float copies, or a CSV's arrays as parsed and
+        their float copies (studies.recorded.check_log)."""
+        return Part(f"reading the arrays of log {self.source}",
+                    self.stored + (1 if self.stored else _LOG_COPIES) * self.values * _D,
+                    f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
+
+    def held(self) -> Part:
+        """Once read: one float copy of its arrays."""
+        return Part(f"the arrays of log {self.source}", self.values * _D, f"{self.steps} steps, {self.values} numbers",
+                    _SHORTER_LOG)
+
+
+def log_need(log: LogSize) -> Need:
+    """Reading a log alone, where no command's need is given."""
+    return _need("reading the log", [log.reading()])
+
+
+def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
+    """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
+    ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
+    the tables along ``steps`` steps, a consensus filter's run."""
+    from .consensus_design import effective
+
+    sc, opts = effective(sc, options)
+    phases = [[_prior_hessians(sc.model, opts)]]
+    if gain_rule(opts.mode).offline_tables:
+        phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
+                                 "the design's offline tables", reduce))
+    return phases
+
+
+def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, particles: int | None = None) -> Need:
+    """``filter`` on the log of size ``log``: reading it; then, beside it, the design of ``options``'s gain rule
+    (None: a filter without a design) and the filter's run: a consensus filter's per-step results at every node
+    (with ``centralized``, one estimate), or with ``particles`` a particle filter's particles."""
+    from .consensus_design import effective
+
+    m, n_x, steps = sc.model, sc.model.n_x, log.steps
+    if centralized or particles is not None:
+        run = [Part("the filter's estimates and covariances", _RESULT_COPIES * (steps + 1) * (n_x + n_x**2 + 3) * _D,
+                    f"{steps + 1} steps x {n_x} x {n_x} states", _SHORTER_LOG)]
+        if particles is not None:
+            run.append(_particles(m, 1, particles, "the particle filter", _CENTRALIZED_PF_DOUBLES))
+    else:
+        opts = None if options is None else effective(sc, options)[1]
+        run = _consensus(m, sc.network, 1, steps, None if opts is None else opts.mode,
+                         None if opts is None else opts.linearization, "the filter", _SHORTER_LOG)
+    design = [] if options is None else _consensus_design(sc, options, steps, _SHORTER_LOG)
+    if len(design) > 1:  # the offline tables are held through the run
+        run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
+    return _need("filter", [log.reading()], *([log.held(), *(p for p in ph if p is not None)] for ph in [*design, run]))
+
+
+def node_filter_need(sc, options=None) -> Need:
+    """``node_filter``: the design of ``options``'s gain rule over the scenario's horizon (None: a filter without a
+    design), then every node's matrices (its filter and its neighbours' packets)."""
+    m, net = sc.model, sc.network
+    n, n_x = net.n_nodes, m.n_x
+    nodes = Part("every node's matrices", n * (n + _STEP_MATRICES) * (n_x * n_x + n_x) * _D,
+                 f"{n} nodes x {n} packets x {n_x} x {n_x} states", "a smaller network")
+    design = [] if options is None else _consensus_design(sc, options, sc.steps, f"{_STEPS} (a model file's STEPS; "
+                                                                              f"steps = {sc.steps})")
+    return _need("node_filter", *design, [nodes])
 
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:
@@ -292,7 +382,7 @@ def _comparison(sc, so) -> tuple[list, list, list]:
                 f"{R} runs x {S} settings x {K} steps x {n} x {n} channels", "fewer runs per chunk")
     reduce = f"{_STEPS} (a model file's STEPS)"
     designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in ("paper", "mse")]
-    sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters"),
+    sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters", _CENTRALIZED_PF_DOUBLES),
            Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
                 f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)]
     filters = max((*designs, sir), key=lambda ps: sum(p.nbytes for p in ps))

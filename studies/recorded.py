@@ -24,9 +24,11 @@ and the array, the step and the node where it lies); :func:`run_filter` runs a f
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -35,8 +37,11 @@ from designer.validation import InputError
 from filters.attacks import AttackPattern, attack_pattern, receive, uplink_attacks
 from filters.result import FilterResult
 
+from . import memory
 from .filter_registry import Batch, FilterEntry, FilterRegistry
+from .memory import LogSize, Need
 from .scenarios import Scenario
+from .schemas import decimal
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
            "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
@@ -97,15 +102,19 @@ def _fail(source: str, text: str) -> InputError:
     return InputError(f"log {source}: {text}")
 
 
-def _array(data: dict, key: str, source: str, shape: tuple, *, optional: bool = False, nan: bool = False):
-    """``data[key]`` as a float array of ``shape`` (None for a free axis), finite (NaN allowed with ``nan``)."""
+def _array(data: dict, key: str, source: str, shape: tuple, *, optional: bool = False, nan: bool = False,
+           flags: bool = False):
+    """``data[key]`` as a float array of ``shape`` (None for a free axis), finite (NaN allowed with ``nan``): of an
+    integer or floating-point dtype (``flags``: booleans too, as 0 and 1)."""
     if key not in data:
         if optional:
             return None
         raise _fail(source, f"array {key!r} is missing (a log holds {', '.join(LOG_KEYS)})")
     a = np.asarray(data[key])
-    if a.dtype.kind not in "biuf":
-        raise _fail(source, f"array {key!r} must be numbers, got dtype {a.dtype}")
+    if a.dtype.kind not in ("biuf" if flags else "iuf"):
+        raise _fail(source, f"array {key!r} must hold numbers (an integer or floating-point dtype"
+                            + (", or booleans" if flags else "") + f"), got dtype {a.dtype}"
+                            + (" (booleans are not measurements)" if a.dtype.kind == "b" else ""))
     a = a.astype(float)
     if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)):
         want = " x ".join("any" if w is None else str(w) for w in shape)
@@ -122,7 +131,7 @@ LOG_KEYS = ("z", "inputs", "channel_dos", "channel_fdi", "channel_xi", "uplink",
 
 
 def _flags(data: dict, key: str, source: str, shape: tuple, links: np.ndarray) -> np.ndarray | None:
-    a = _array(data, key, source, shape, optional=True)
+    a = _array(data, key, source, shape, optional=True, flags=True)
     if a is None:
         return None
     if np.any((a != 0) & (a != 1)):
@@ -145,36 +154,86 @@ def _integer(data: dict, key: str, source: str) -> int | None:
     return int(a)
 
 
-def read_log(path, sc: Scenario) -> Log:
+def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) -> Log:
     """The log at ``path`` (an ``.npz``, or its CSV form: :func:`read_log_csv`), checked against the scenario
-    ``sc`` (its model and network): shapes, values, flags only on the network's links, falsified packets with their
-    signal.  Every problem is an
-    :class:`InputError` naming the file, the array and where."""
+    ``sc`` (its model and network): shapes, dtypes, values, flags only on the network's links, falsified packets
+    with their signal.  Every problem is an :class:`InputError` naming the file, the array and where.
+
+    Before any array is made, the memory is checked (:func:`studies.memory.check`): ``need(size)``, the need of the
+    command that reads the log given its :class:`studies.memory.LogSize` (from the sizes an ``.npz``'s directory
+    and headers declare, or a CSV's largest step), or without ``need`` the log's reading alone."""
     p = Path(path)
     source = str(p)
     if not p.is_file():
         raise _fail(source, "no such file")
     if p.suffix.lower() == ".csv":
-        return read_log_csv(p, sc)
+        return read_log_csv(p, sc, need)
     if p.suffix.lower() != ".npz":
         raise _fail(source, f"must be an .npz or a .csv file (what cfdesign simulate writes), got suffix "
                             f"{p.suffix!r}")
     if not zipfile.is_zipfile(p):
         raise _fail(source, "is not an .npz archive (the file is damaged or not written by numpy.savez)")
     try:
-        with np.load(p, allow_pickle=False) as d:
-            data = {k: d[k] for k in d.files}
+        with zipfile.ZipFile(p) as zf:
+            members = _npz_members(zf, source)
+            shapes = {k: shape for k, (_, shape) in members.items()}
+            z = shapes.get("z", ())
+            steps = z[0] if z else 0
+            log = memory.LogSize(source, steps, sum(math.prod(s) for s in shapes.values()),
+                                 sum(info.file_size for info, _ in members.values()))
+            memory.check(memory.log_need(log) if need is None else need(log))
+            data = {}
+            for key, (info, _) in members.items():
+                with zf.open(info) as fh:
+                    data[key] = np.lib.format.read_array(fh, allow_pickle=False)
+    except InputError:
+        raise
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
         raise _fail(source, f"cannot be read: {type(exc).__name__}: {exc}") from None
     return check_log(data, sc, source)
+
+
+def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.ZipInfo, tuple[int, ...]]]:
+    """The members of an ``.npz`` that a log reads (``schema`` and :data:`LOG_KEYS`; others are ignored, unread):
+    each with the shape its ``.npy`` header declares, read from the zip directory and the headers alone.  A header
+    that does not parse, an array of objects or records, or a shape that disagrees with the member's size (a
+    damaged or forged file) is refused naming the array."""
+    out = {}
+    for key in ("schema", *LOG_KEYS):
+        try:
+            info = zf.getinfo(f"{key}.npy")
+        except KeyError:
+            continue
+        try:
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(fh)
+                header = fh.tell()
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise _fail(source, f"array {key!r} has no readable .npy header: {exc}") from None
+        if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
+            raise _fail(source, f"array {key!r} has dtype {dtype}: a log's arrays hold numbers (or the schema's "
+                                "text), not objects or records")
+        if header + math.prod(shape) * dtype.itemsize != info.file_size:
+            raise _fail(source, f"array {key!r} declares shape {' x '.join(map(str, shape)) or 'scalar'} of "
+                                f"{dtype} ({math.prod(shape) * dtype.itemsize} bytes), but the archive holds "
+                                f"{info.file_size - header} bytes for it: the file is damaged")
+        out[key] = (info, tuple(int(n) for n in shape))
+    return out
 
 
 def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
     """The log of the arrays ``data`` (the module docstring's names), checked against ``sc`` (see
     :func:`read_log`)."""
     m, net = sc.model, sc.network
-    if "schema" in data and str(np.asarray(data["schema"])) != LOG_SCHEMA:
-        raise _fail(source, f"has schema {str(np.asarray(data['schema']))!r}, expected {LOG_SCHEMA!r}")
+    if "schema" in data:
+        schema = np.asarray(data["schema"])
+        if schema.shape != () or schema.dtype.kind != "U" or str(schema) != LOG_SCHEMA:
+            shown = repr(str(schema)[:80]) if schema.shape == () and schema.dtype.kind == "U" else \
+                f"an array of {schema.dtype}"
+            raise _fail(source, f"has schema {shown}, expected {LOG_SCHEMA!r}")
     z = _array(data, "z", source, (None, m.n_z), nan=True)
     K = z.shape[0]
     if K < 1:
@@ -542,9 +601,11 @@ def _csv_error(source: str, line: int, column: str | None, text: str) -> InputEr
     return _fail(source, f"line {line}" + (f", column {column!r}" if column else "") + f": {text}")
 
 
-def read_log_csv(path, sc: Scenario) -> Log:
+def read_log_csv(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) -> Log:
     """The CSV form of a log (see the comment above :func:`write_log_csv`), checked against ``sc``: every problem
-    an :class:`InputError` naming the file, the line and the column."""
+    an :class:`InputError` naming the file, the line and the column.  A UTF-8 BOM and CRLF line ends are read; a
+    number is decimal only (:func:`studies.schemas.decimal`).  The memory its arrays need (``K`` steps, the
+    largest step) is checked as :func:`read_log` does, before they are made."""
     import csv
 
     m, net = sc.model, sc.network
@@ -555,7 +616,7 @@ def read_log_csv(path, sc: Scenario) -> Log:
     off = np.concatenate([[0], np.cumsum(dims)])
     adj = np.asarray(net.adjacency, bool)
     try:
-        fh = p.open(newline="", encoding="utf-8")
+        fh = p.open(newline="", encoding="utf-8-sig")  # skips a UTF-8 BOM (as spreadsheets write)
     except OSError as exc:
         raise _fail(source, f"cannot be read: {exc.strerror or exc}") from None
     with fh:
@@ -605,10 +666,12 @@ def read_log_csv(path, sc: Scenario) -> Log:
                         if empty_ok:
                             return np.nan
                         raise _csv_error(source, line, name, "is empty")
-                    try:
-                        v = float(t)
-                    except ValueError:
-                        raise _csv_error(source, line, name, f"{t!r} is not a number") from None
+                    v = decimal(t)
+                    if v is None and t.lower().lstrip("+-") in ("nan", "inf", "infinity"):
+                        v = np.nan
+                    elif v is None:
+                        raise _csv_error(source, line, name, f"{t!r} is not a number (a decimal number: digits "
+                                                             "with an optional sign, point and exponent)")
                     if not np.isfinite(v):
                         raise _csv_error(source, line, name, f"{t!r} is not a finite number (leave the cell "
                                                              "empty for a missing value)")
@@ -616,7 +679,7 @@ def read_log_csv(path, sc: Scenario) -> Log:
 
                 def integer(name, low, high, cells=cells, line=line):
                     t = cells[col[name]].strip()
-                    if not t.isdigit() or not low <= int(t) <= high:
+                    if not (t.isascii() and t.isdigit() and len(t) <= 12) or not low <= int(t) <= high:
                         raise _csv_error(source, line, name, f"{t!r} is not an integer in [{low}, {high}]")
                     return int(t)
 
@@ -652,11 +715,8 @@ def read_log_csv(path, sc: Scenario) -> Log:
                         elif t in ("0", "1"):
                             flags.append(int(t))
                         elif t.startswith("f:"):
-                            try:
-                                xi = [float(v) for v in t[2:].split(";")]
-                            except ValueError:
-                                xi = []
-                            if len(xi) != m.n_x or not np.all(np.isfinite(xi)):
+                            xi = [decimal(v.strip()) for v in t[2:].split(";")]
+                            if len(xi) != m.n_x or None in xi or not np.all(np.isfinite(xi)):
                                 raise _csv_error(source, line, name, f"{t!r}: a falsified packet is f: and its "
                                                                      f"injected signal, {m.n_x} finite numbers "
                                                                      "separated by ;")
@@ -679,6 +739,8 @@ def read_log_csv(path, sc: Scenario) -> Log:
     if not rows:
         raise _fail(source, "holds no measurement row")
     K = max(k for k, _ in rows)
+    log = memory.LogSize(source, K, K * memory.log_values(m, N) + m.n_x)
+    memory.check(memory.log_need(log) if need is None else need(log))
     z = np.full((K, m.n_z), np.nan)
     uplink = np.full((K, m.n_z), np.nan) if has_up else None
     dos = np.zeros((K, N, N), bool)

@@ -130,3 +130,20 @@ def test_workers_multiply_the_chunks(tank_model):
     four = memory.feasibility_need(sc, DesignOptions(), 10_000, 1, 32, Backend("processes", workers=4))
     rows = next(p for p in one.peak if p.what == "the grid's rows").nbytes
     assert np.isclose(four.nbytes - rows, 4 * (one.nbytes - rows))
+
+
+@pytest.mark.parametrize("name, steps, particles", [("kcf", 1500, None), ("centralized-pf-attack-aware", 30, 50_000)])
+def test_the_filters_estimate_follows_the_allocated_peak(name, steps, particles, tmp_path, monkeypatch):
+    """filter on a recorded log: its estimate (the log's arrays and the run, or the particles) within a small factor of
+    what NumPy and Python allocate (tracemalloc)."""
+    import studies
+
+    for k in (30, steps):
+        studies.simulate("indoor-robot", steps=k, seed=1, out=tmp_path / f"log{k}.npz")
+    studies.filter("indoor-robot", tmp_path / "log30.npz", filter=name, particles=20)  # compiled, outside the measure
+    needs, check = [], memory.check
+    monkeypatch.setattr(memory, "check", lambda need, available=None: (needs.append(need), check(need, available)))
+    peak = _traced_peak(lambda: studies.filter("indoor-robot", tmp_path / f"log{steps}.npz", filter=name,
+                                               particles=particles))
+    (need,) = needs
+    assert need.command == "filter" and peak > 4e6 and 0.5 < need.nbytes / peak < 2.5, (need.nbytes, peak)

@@ -9,6 +9,7 @@ import pytest
 
 import studies
 from designer.validation import InputError
+from studies import memory
 from studies.cli import main
 from studies.comparison import FILTER_REGISTRY, FILTERS
 from studies.pipeline import run_study
@@ -201,6 +202,11 @@ def _log(tmp_path, name="bad.npz", **change):
     ("truth short", r"array 'x' must have shape 31 x 3, got 30 x 3"),
     ("missing measurement", r"z\[4, 2\] is missing \(NaN\): filter 'KCF' needs every node's own measurement"),
     ("not npz", r"is not an .npz archive"),
+    ("bool z", r"array 'z' must hold numbers \(an integer or floating-point dtype\), got dtype bool \(booleans are "
+               r"not measurements\)"),
+    ("object z", r"array 'z' has dtype object: a log's arrays hold numbers"),
+    ("header lies", r"array 'z' declares shape 30000000 x 16 of float64 \(3840000000 bytes\), but the archive holds "
+                    r"3840 bytes for it: the file is damaged"),
 ])
 def test_a_bad_log_is_refused_naming_the_file_and_where(case, message, tmp_path, capsys):
     studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.npz")
@@ -220,6 +226,9 @@ def test_a_bad_log_is_refused_naming_the_file_and_where(case, message, tmp_path,
         "truth short": lambda: _log(tmp_path, x=x[:-1]),
         "missing measurement": lambda: _log(tmp_path, z=_set(z, (4, 2), np.nan)),
         "not npz": lambda: (tmp_path / "bad.npz").write_text("step,sensor\n") and tmp_path / "bad.npz",
+        "bool z": lambda: _log(tmp_path, z=z > 300),
+        "object z": lambda: _object_z(tmp_path, z),
+        "header lies": lambda: _forged(tmp_path, 30_000_000, honest=True),
     }[case]()
     _refused(bad, message, f"log {bad}", tmp_path / "out", capsys)
 
@@ -235,6 +244,42 @@ def _refused(bad, message: str, prefix: str, out, capsys) -> str:
     assert len(said) == 1 and str(bad) in said[0]
     assert not (out / "estimates.npz").exists()
     return said[0]
+
+
+def _object_z(tmp_path, z):
+    with np.load(tmp_path / "good.npz") as d:
+        data = {k: d[k] for k in d.files}
+    data["z"] = z.astype(object)
+    np.savez(tmp_path / "bad.npz", **data)  # savez pickles an object array; reading must not
+    return tmp_path / "bad.npz"
+
+
+def _forged(tmp_path, steps: int, *, honest: bool):
+    """good.npz with its z.npy replaced by a header declaring ``steps`` x 16 doubles and 3840 zero bytes of data; with
+    ``honest`` False the zip directory also claims the declared size (what a deflated run of zeros, a zip bomb,
+    declares: 3.84 GB for a few MB stored), with ``honest`` the size of what it holds."""
+    import io
+    import struct
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (steps, 16)})
+    path = tmp_path / "bad.npz"
+    with zipfile.ZipFile(tmp_path / "good.npz") as good, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name in good.namelist():
+            zf.writestr(name, head.getvalue() + bytes(3840) if name == "z.npy" else good.read(name))
+    if not honest:
+        raw = bytearray(path.read_bytes())
+        claimed = struct.pack("<I", len(head.getvalue()) + steps * 16 * 8)
+        with zipfile.ZipFile(path) as zf:
+            local = zf.getinfo("z.npy").header_offset
+        raw[local + 22:local + 26] = claimed  # the local header's uncompressed size
+        at = raw.index(b"PK\x01\x02")  # z.npy's record in the central directory
+        while raw[at + 46:at + 51] != b"z.npy":
+            at = raw.index(b"PK\x01\x02", at + 4)
+        raw[at + 24:at + 28] = claimed
+        path.write_bytes(bytes(raw))
+    return path
 
 
 def _set(a, where, value):
@@ -323,6 +368,11 @@ def load_network_adjacency():
     ("inputs differ", r"line 4, column 'u1': the inputs of step 1 differ from line 3's"),
     ("sensor out of range", r"line 3, column 'sensor': '8' is not an integer in \[0, 7\]"),
     ("ragged", r"line 3: 5 cells, the header has 19"),
+    ("underscore", r"line 3, column 'z1': '1_0' is not a number \(a decimal number: digits with an optional sign"),
+    ("other digits", r"line 3, column 'z2': '\u0661\u0662' is not a number"),
+    ("nan", r"line 3, column 'z1': 'nan' is not a finite number \(leave the cell empty for a missing value\)"),
+    ("superscript sensor", r"line 3, column 'sensor': '\xb2' is not an integer in \[0, 7\]"),
+    ("signal underscore", r"line 3, column 'from_1': 'f:1_0;0;0': a falsified packet is f: and its injected signal"),
 ])
 def test_a_bad_csv_log_is_refused_naming_the_line_and_column(case, message, tmp_path, capsys):
     studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.csv")
@@ -347,9 +397,14 @@ def test_a_bad_csv_log_is_refused_naming_the_line_and_column(case, message, tmp_
         "inputs differ": lambda: cell(4, "u1", "0.07"),
         "sensor out of range": lambda: cell(3, "sensor", "8"),
         "ragged": lambda: lines[:2] + ["1,0,1,2,3"] + lines[3:],
+        "underscore": lambda: cell(3, "z1", "1_0"),
+        "other digits": lambda: cell(3, "z2", "\u0661\u0662"),  # Arabic-Indic 12: Python's float() reads it
+        "nan": lambda: cell(3, "z1", "nan"),
+        "superscript sensor": lambda: cell(3, "sensor", "\xb2"),  # a digit to str.isdigit, not to int()
+        "signal underscore": lambda: cell(3, "from_1", "f:1_0;0;0"),
     }[case]()
     bad = tmp_path / "bad.csv"
-    bad.write_text("\n".join(changed) + "\n")
+    bad.write_text("\n".join(changed) + "\n", encoding="utf-8")
     assert "line" in _refused(bad, message, f"log {bad}: line ", tmp_path / "o", capsys)
 
 
@@ -377,6 +432,97 @@ def test_the_log_schemas_reject_what_breaks_the_format(tmp_path):
                           ({"from_1": "yes"}, r"\$\.from_1"), ({"step": -1}, r"\$\.step"), ({"z1": "abc"}, r"\$\.z1")):
         with pytest.raises(InputError, match=where):
             schemas.validate("log_csv", {**row, **change})
+    lines = (tmp_path / "log.csv").read_text().splitlines()  # a number only in decimal notation, as the reader
+    head = lines[0].split(",")
+    for text in ("1_0", "\u0661\u0662", "nan"):
+        cells = lines[2].split(",")
+        cells[head.index("z1")] = text
+        (tmp_path / "odd.csv").write_text("\n".join([*lines[:2], ",".join(cells), *lines[3:]]) + "\n", encoding="utf-8")
+        with pytest.raises(InputError, match=r"odd.csv row 1 \(line 3\).*\$\.z1"):
+            schemas.validate_log(tmp_path / "odd.csv")
+
+
+# ------------------------------------------------------------------ what spreadsheets write, and sizes beyond memory
+def test_a_bom_and_crlf_csv_log_gives_the_clean_logs_numbers_bit_for_bit(tmp_path):
+    """A CSV log as a spreadsheet program saves it (a UTF-8 BOM before the header, CRLF line ends) is the same log:
+    every filter's estimates and covariances equal those on the clean file, bit for bit; the schema reads it too."""
+    from studies import schemas
+
+    clean = write_csv(tmp_path)
+    text = clean.read_text(encoding="utf-8")
+    ref = {name: studies.filter("indoor-robot", clean, filter=name) for name in ("kcf", "centralized-ekf")}
+    for variant, content in {"bom": "\ufeff" + text, "crlf": text.replace("\n", "\r\n"),
+                             "bom-crlf": "\ufeff" + text.replace("\n", "\r\n")}.items():
+        path = tmp_path / f"{variant}.csv"
+        path.write_bytes(content.encode("utf-8"))
+        schemas.validate_log(path)
+        for name, a in ref.items():
+            b = studies.filter("indoor-robot", path, filter=name)
+            assert np.array_equal(a.x_hat, b.x_hat) and np.array_equal(a.cov, b.cov, equal_nan=True), (variant, name)
+
+
+def test_boolean_channel_flags_are_read_as_0_and_1(tmp_path):
+    """The channel flags may be booleans (the schema allows false and true beside 0 and 1): the same log."""
+    from studies import schemas
+
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.npz")
+    with np.load(tmp_path / "good.npz") as d:
+        dos, fdi = d["channel_dos"], d["channel_fdi"]
+    flags = _log(tmp_path, "flags.npz", channel_dos=dos.astype(bool), channel_fdi=fdi.astype(bool))
+    schemas.validate_log(flags)
+    a, b = (studies.filter("indoor-robot", p, filter="kcf") for p in (tmp_path / "good.npz", flags))
+    assert np.array_equal(a.x_hat, b.x_hat) and np.array_equal(a.cov, b.cov)
+
+
+GiB = 2**30
+
+
+@pytest.mark.parametrize("case, needles", [
+    ("zip bomb", ["the arrays of log", "30000000 steps"]),
+    ("step 10^9", ["the arrays of log", "1000000000 steps", "to fit, use a shorter log (fewer steps)"]),
+])
+def test_a_log_beyond_memory_is_refused_before_it_is_read(case, needles, tmp_path, monkeypatch, capsys):
+    """An .npz whose directory and header declare 3.84 GB for z (a zip bomb: a few kB stored), a CSV row at step
+    10^9: refused with the estimate and the memory available, before an array is made."""
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.npz")
+    if case == "zip bomb":
+        bad = _forged(tmp_path, 30_000_000, honest=False)
+        assert bad.stat().st_size < 10**5
+    else:
+        lines = write_csv(tmp_path).read_text().splitlines()
+        assert lines[2].startswith("1,0,")
+        bad = tmp_path / "bad.csv"
+        bad.write_text("\n".join(lines[:2] + ["1000000000" + lines[2][1:]] + lines[3:]) + "\n")
+    said = _refused(bad, "would need about", "filter would need about", tmp_path / "out", capsys)
+    assert "more than the 8 GiB available" in said and all(n in said for n in needles), said
+
+
+def test_particles_beyond_memory_are_refused_before_filtering(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
+    log = tmp_path / "log.npz"
+    studies.simulate("indoor-robot", seed=1, out=log)
+    with pytest.raises(InputError, match=r"^filter would need about .* more than the 8 GiB available: the particle "
+                                         r"filter: the particles \(1 runs x 100000000000 particles x 3 states\).*"
+                                         r"to fit, use fewer particles \(--particles\)$"):
+        studies.filter("indoor-robot", log, filter="centralized-pf-attack-aware", particles=10**11)
+    out = tmp_path / "out"
+    assert main(["filter", "indoor-robot", "--data", str(log), "--filter", "centralized-pf-attack-aware",
+                 "--particles", str(10**11), "--out", str(out)]) == 2
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and said[0].startswith("cfdesign: error: filter would need about") and not out.exists()
+    assert studies.filter("indoor-robot", log, filter="centralized-pf-attack-aware", particles=20).x_hat.shape[0] == 31
+
+
+def test_node_filter_estimates_its_design_before_computing(tank_model, monkeypatch):
+    """A scheduled node filter designs its tables over the model's horizon: refused when they cannot fit; a rule
+    without tables holds nothing that grows with the steps."""
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
+    huge = tank_model(steps=10**10, name="huge.py")
+    with pytest.raises(InputError, match=r"^node_filter would need about .*the design's offline tables.*"
+                                         r"to fit, use fewer steps \(a model file's STEPS; steps = 10000000000\)"):
+        studies.node_filter(str(huge), mode="scheduled")
+    assert studies.node_filter(str(huge), mode="paper", node=0) is not None
 
 
 def json_copy(obj):

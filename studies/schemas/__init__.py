@@ -39,8 +39,8 @@ from typing import Any, Iterator
 
 from designer.validation import InputError
 
-__all__ = ["SCHEMAS", "FILES", "load", "validate", "read_feasibility_csv", "validate_output", "log_json",
-           "read_log_csv_rows", "validate_log"]
+__all__ = ["SCHEMAS", "FILES", "DECIMAL", "decimal", "load", "validate", "read_feasibility_csv", "validate_output",
+           "log_json", "read_log_csv_rows", "validate_log"]
 
 # schema name -> its file in this package
 SCHEMAS: dict[str, str] = {
@@ -59,6 +59,17 @@ FILES: dict[str, str] = {
     "feasibility.csv": "feasibility",
     "feasibility.json": "feasibility_json",
 }
+
+# A number in a CSV file the commands read (a log, feasibility.csv): decimal notation only, digits with one optional
+# sign, point and exponent; not Python's float() grammar (no "_", hex, inner whitespace, nan or inf).
+DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def decimal(text: str) -> float | None:
+    """``text`` (without surrounding whitespace) as a float when it is a decimal number (:data:`DECIMAL`: ``1``,
+    ``-0.5``, ``.5``, ``2.``, ``1e-3``), else None (``1_0``, ``0x1p3``, ``1 0``, ``nan``, ``inf``)."""
+    return float(text) if DECIMAL.fullmatch(text) else None
+
 
 _INTEGER_COLUMNS = ("feasible", "theorem2", "iterations")
 _TEXT_COLUMNS = ("binding", "verdict")
@@ -273,16 +284,10 @@ def _cell(column: str, text: str):
         return None
     if column in _TEXT_COLUMNS:
         return text
-    if column in _INTEGER_COLUMNS:
-        try:
-            return int(text)
-        except ValueError:
-            pass
-    try:
-        value = float(text)
-    except ValueError:
-        return text
-    return value if math.isfinite(value) else text  # NaN or inf: left as text for the schema to reject
+    if column in _INTEGER_COLUMNS and re.fullmatch(r"[+-]?[0-9]{1,18}", text):
+        return int(text)
+    value = decimal(text.strip())
+    return value if value is not None and math.isfinite(value) else text  # not a number: text, the schema refuses
 
 
 def read_feasibility_csv(path) -> list[dict]:
@@ -301,7 +306,7 @@ def _csv_rows(path, cell) -> list[dict]:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{str(path)!r} does not exist")
-    with path.open(newline="", encoding="utf-8") as fh:
+    with path.open(newline="", encoding="utf-8-sig") as fh:  # skips a UTF-8 BOM (as spreadsheets write)
         reader = csv.DictReader(fh, restkey="\0extra", restval="\0missing")
         if not reader.fieldnames:
             raise InputError(f"{path.name} has no header row")
@@ -334,11 +339,9 @@ def log_json(path) -> dict:
 
 
 def _log_cell(column: str, text: str):
+    text = text.strip()  # as studies.recorded.read_log_csv reads a cell
     if text != "" and (column in ("step", "sensor") or column.startswith("from_")):
-        try:
-            return int(text)
-        except ValueError:
-            return text
+        return int(text) if re.fullmatch(r"[0-9]{1,18}", text) else text
     return _cell(column, text)
 
 
