@@ -532,3 +532,16 @@ def json_copy(obj):
 def write_csv(tmp_path):
     studies.simulate("indoor-robot", seed=1, out=tmp_path / "log.csv")
     return tmp_path / "log.csv"
+
+
+def test_validating_a_zip_bomb_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    """schemas.validate_log (the log as JSON) checks the memory from the sizes the archive's directory declares
+    before it reads an array: the forged .npz that claims 3.84 GB for z is refused, not inflated."""
+    from studies import schemas
+
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 * GiB)
+    studies.simulate("indoor-robot", seed=1, out=tmp_path / "good.npz")
+    schemas.validate_log(tmp_path / "good.npz")  # a log that fits is validated as before
+    bad = _forged(tmp_path, 30_000_000, honest=False)
+    with pytest.raises(InputError, match="validating a log would need about .* more than the 8 GiB available"):
+        schemas.validate_log(bad)

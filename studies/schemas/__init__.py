@@ -322,11 +322,22 @@ def _csv_rows(path, cell) -> list[dict]:
 def log_json(path) -> dict:
     """A recorded run's ``.npz`` (schema ``log``) as a JSON object: each array as nested lists, NaN as null, a 0-d
     array as its value (``schema`` a string, ``seed`` and ``run`` integers)."""
+    import zipfile
+
     import numpy as np
+
+    from .. import memory
 
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{str(path)!r} does not exist")
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"{str(path)!r} is not an .npz archive")
+    with zipfile.ZipFile(path) as zf:  # the arrays' decompressed sizes, from the directory, before any is read
+        stored = sum(info.file_size for info in zf.infolist())
+    # each number becomes a Python object in a list: about 32 bytes (a float object and its pointer) per 8 stored
+    memory.check(memory.Need("validating a log", ((memory.Part(f"log {path} as JSON", 5.0 * stored,
+                                                              f"{stored} bytes of arrays", "a shorter log"),),)))
     with np.load(path, allow_pickle=False) as d:
         out = {}
         for k in d.files:
