@@ -771,8 +771,10 @@ def _recorded_source(design_dir, meta: dict) -> str:
                 "design on this account")
     try:
         if not sealed(meta, meta.get("source_seal")):
-            why = "its seal does not verify" if meta.get("source_seal") is not None else "it has no seal"
-            raise InputError(f"{unsealed} ({why}; or its record changed since): {given}")
+            why = ("its seal does not verify with this account's key: sealed on another account, or its record "
+                   "edited since" if meta.get("source_seal") is not None else
+                   "it has no seal: written elsewhere or by an older cfdesign")
+            raise InputError(f"{unsealed} ({why}): {given}")
     except KeyUnavailable as exc:
         raise InputError(f"{unsealed} as far as can be checked: {exc}; {given}") from None
     try:

@@ -21,7 +21,7 @@ from designer.digest import source_files_digest
 from designer.export_c import c_text
 from designer.jitcache import ENV
 from designer.validation import CfdesignWarning, InputError
-from studies import provenance
+from studies import provenance, schemas
 from studies.cli import main
 
 CC = shutil.which("gcc") or shutil.which("cc")
@@ -257,6 +257,7 @@ def test_a_design_made_here_is_sealed_and_exports(relay, tmp_path):
     fields = {k: meta.get(k) for k in ("source", "source_digest", "model_digest", "scenario", "params")}
     text = b"cfdesign.design-seal/1\0" + json.dumps(fields, sort_keys=True, separators=(",", ":")).encode()
     assert len(key) == 32 and meta["source_seal"] == hmac.new(key, text, hashlib.sha256).hexdigest()
+    assert schemas.validate_output(relay / "schedule.json") == [relay / "schedule.json"]
     assert main(["export", str(relay), "--out", str(tmp_path / "c")]) == 0
     assert (tmp_path / "c" / "cfd_node.c").is_file()
 
