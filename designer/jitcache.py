@@ -15,6 +15,7 @@ Windows (:func:`cache_dir`).  Layout::
 
     <cache>/kernels/<label>-<key>.py      generated kernel modules (readable Python)
     <cache>/numba/<source dir>/*.nbi|nbc  numba's compiled code, one index per function
+    <cache>/keys/design.key               this account's design key (studies.provenance): not a cache, never removed
 
 A generated module's ``<key>`` hashes its whole text, whose header names the code
 version (a hash of the generator's source files) and numba's and Python's versions: a

@@ -750,16 +750,20 @@ _REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its
 def _recorded_source(design_dir, meta: dict) -> str:
     """The model a design directory records (its ``schedule.json`` ``meta``, read by
     :func:`studies.recorded.read_design_record`), to be built without the user naming it: a built-in scenario's
-    name (:data:`studies.scenarios.SCENARIOS`), or a model file whose bytes and local imports' bytes
-    (:func:`designer.digest.source_files_digest`, read, never imported) are the ``source_digest`` recorded at
-    design time.  Anything else is refused before anything is imported: the user gives the model (``scenario``)
+    name (:data:`studies.scenarios.SCENARIOS`), or a model file when the design directory was written by
+    ``cfdesign design`` on this account (its ``source_seal`` verifies under this account's key:
+    :func:`studies.provenance.sealed`) and the file's bytes and its local imports' bytes
+    (:func:`designer.digest.source_files_digest`, read, never imported) are still the ``source_digest`` recorded
+    at design time.  Anything else is refused before anything is imported: the user gives the model (``scenario``)
     after checking it."""
     from designer.digest import source_files_digest
+
+    from .provenance import KeyUnavailable, sealed
 
     where = meta.get("source") or meta.get("scenario")
     if where in SCENARIOS:
         return where
-    given = "give the model with --scenario (scenario=) after checking it is the design's"
+    given = "give the model with --scenario MODEL.py (scenario=) after checking it is the design's"
     if not (where or "").endswith(".py") or not Path(where).is_absolute():  # design records a file's full path
         raise InputError(f"design_dir {str(design_dir)!r} does not record a built-in scenario or a model file's "
                          f"full path: {given}")
@@ -768,6 +772,16 @@ def _recorded_source(design_dir, meta: dict) -> str:
     if recorded is None:
         raise InputError(f"design_dir {str(design_dir)!r} names the model file {shown} but records no digest of "
                          f"its content (source_digest), so it cannot be checked before it is imported: {given}")
+    unsealed = (f"design_dir {str(design_dir)!r} names the model file {shown} but was not written by cfdesign "
+                "design on this account")
+    try:
+        if not sealed(meta, meta.get("source_seal")):
+            why = ("its seal does not verify with this account's key: sealed on another account, or its record "
+                   "edited since" if meta.get("source_seal") is not None else
+                   "it has no seal: written elsewhere or by an older cfdesign")
+            raise InputError(f"{unsealed} ({why}): {given}")
+    except KeyUnavailable as exc:
+        raise InputError(f"{unsealed} as far as can be checked: {exc}; {given}") from None
     try:
         found = source_files_digest(where) if Path(where).is_file() else None
     except (OSError, ValueError):
@@ -777,7 +791,7 @@ def _recorded_source(design_dir, meta: dict) -> str:
                          f"{given}")
     if found != recorded:
         raise InputError(f"design_dir {str(design_dir)!r} names the model file {shown}, whose content is not the "
-                         f"design's (its digest differs from source_digest): {given}")
+                         f"design's (it changed since: its digest differs from source_digest): {given}")
     return where
 
 
@@ -803,9 +817,10 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         (``simulate`` with the design's seed).
     scenario, overrides, assignments
         The model.  Default: the design directory's own (its ``source``), built with the design's parameters, when
-        it is a built-in's name or a model file whose bytes still have the design's ``source_digest`` (checked
-        before the file is imported: a design directory from elsewhere may name any file); otherwise the model must
-        be given, and its content must be the design's (``model_digest``).
+        it is a built-in's name, or a model file when the directory was written by ``design`` on this account (its
+        ``source_seal``: :mod:`studies.provenance`) and the file's bytes still have the design's ``source_digest``
+        (both checked before the file is imported: a design directory from elsewhere may name any file and its
+        digest); otherwise the model must be given, and its content must be the design's (``model_digest``).
 
     The design directory is read as data (:func:`studies.recorded.read_design_record`): no text of it reaches the
     C sources (the verdict is stated as a word of :data:`designer.verdict.VERDICTS`, else ``unknown``).

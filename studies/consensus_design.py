@@ -34,6 +34,7 @@ from filters.attacks import simulate_attacks
 from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
 
 from .invocation import design_invocation
+from .provenance import design_seal
 from .results import versions
 from .runner import Background
 from .scenarios import Scenario
@@ -577,4 +578,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "versions": versions(),
         },
     )
+    # a model file's record sealed under this account's key (studies.provenance): export imports the file only
+    # when the seal verifies, so a directory from elsewhere naming a file and its digest is not enough
+    schedule.meta["source_seal"] = design_seal({"scenario": schedule.scenario, **schedule.meta})
     return Design(sc, opts, des, res, schedule, traj.x, seed)

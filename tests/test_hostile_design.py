@@ -4,15 +4,24 @@ one line and exit 2, as ``filter --schedule``, ``node_filter`` and ``report`` do
 a warning under ``-std=c99 -Wall -Wextra -pedantic`` for every exported rule."""
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
+import os
+import secrets
 import shutil
+import stat
 import subprocess
+import threading
 
 import pytest
 
 import studies
+from designer.digest import source_files_digest
 from designer.export_c import c_text
-from designer.validation import InputError
+from designer.jitcache import ENV
+from designer.validation import CfdesignWarning, InputError
+from studies import provenance, schemas
 from studies.cli import main
 
 CC = shutil.which("gcc") or shutil.which("cc")
@@ -38,7 +47,7 @@ def model():
 '''
 # the fields export reads as identifiers (which model, which rule, which parameters): planted there, a payload must
 # be refused (exit 2) or be harmless; every other string of schedule.json is text and export must still succeed
-IDENTIFIERS = ("scenario", "source", "source_digest", "model_digest", "options", "params")
+IDENTIFIERS = ("scenario", "source", "source_digest", "source_seal", "model_digest", "options", "params")
 
 
 def payloads(marker) -> dict[str, str]:
@@ -226,6 +235,165 @@ def test_export_imports_no_model_file_it_cannot_verify(relay, tiny, log, tmp_pat
     des = tmp_path / "the_design's_digest"
     assert main(["filter", str(tiny), "--data", str(log), "--schedule", str(des), "--out", str(tmp_path / "f")]) == 0
     assert studies.node_filter(str(tiny), schedule=des, node=0) is not None and not marker.exists()
+
+
+REMOVED = object()  # a field taken out of a record
+
+
+def forged(relay, into, change: dict) -> None:
+    """A copy of design directory ``relay`` in ``into`` whose ``schedule.json`` has the fields ``change`` (REMOVED:
+    the field taken out)."""
+    shutil.copytree(relay, into)
+    meta = {**json.loads((relay / "schedule.json").read_text()), **change}
+    (into / "schedule.json").write_text(json.dumps({k: v for k, v in meta.items() if v is not REMOVED}))
+
+
+def test_a_design_made_here_is_sealed_and_exports(relay, tmp_path):
+    """design writes source_seal, this account's HMAC of the fields that decide the model (recomputed here from
+    the key file, independently of studies.provenance), and export builds the design's own file without
+    --scenario."""
+    meta = json.loads((relay / "schedule.json").read_text())
+    key = provenance.key_path().read_bytes()
+    fields = {k: meta.get(k) for k in ("source", "source_digest", "model_digest", "scenario", "params")}
+    text = b"cfdesign.design-seal/1\0" + json.dumps(fields, sort_keys=True, separators=(",", ":")).encode()
+    assert len(key) == 32 and meta["source_seal"] == hmac.new(key, text, hashlib.sha256).hexdigest()
+    assert schemas.validate_output(relay / "schedule.json") == [relay / "schedule.json"]
+    assert main(["export", str(relay), "--out", str(tmp_path / "c")]) == 0
+    assert (tmp_path / "c" / "cfd_node.c").is_file()
+
+
+def test_a_forged_record_of_a_planted_file_is_refused(relay, tiny, tmp_path, monkeypatch, capsys):
+    """source naming a planted Python file (which would create a marker when imported) with that file's own
+    source_digest, and no seal, a null one, one not of hex digits, the design's seal (of another record), or a seal
+    of the forged record under another account's key; and a sealed record whose parameters or model digest were
+    edited: exit 2 with one line saying the directory was not written on this account and asking for --scenario;
+    nothing imported, nothing written."""
+    marker = tmp_path / "IMPORTED"
+    evil = tmp_path / "evil.py"
+    evil.write_text(f"import pathlib\npathlib.Path({str(marker)!r}).touch()\n" + tiny.read_text())
+    original = json.loads((relay / "schedule.json").read_text())
+    record = {**original, "source": str(evil), "source_digest": source_files_digest(evil)}
+    home = os.environ[ENV]
+    monkeypatch.setenv(ENV, str(tmp_path / "elsewhere"))  # the colleague's account, its own key
+    theirs = provenance.seal(record)
+    monkeypatch.setenv(ENV, home)
+    cases = {"no seal": {"source_seal": REMOVED}, "null seal": {"source_seal": None},
+             "not hex": {"source_seal": "*/" * 32}, "the design's seal": {},
+             "another account's seal": {"source_seal": theirs}}
+    for name, change in cases.items():
+        des = tmp_path / name.replace(" ", "_").replace("'", "")
+        forged(relay, des, {**record, **change})
+        out = tmp_path / f"c_{des.name}"
+        assert main(["export", str(des), "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err
+        one_line_error(err)
+        assert "not written by cfdesign design on this account" in err and "--scenario" in err, name
+        assert not out.exists() and not marker.exists(), name
+    for name, change in {"params": {"params": {"x": 1.0}}, "model_digest": {"model_digest": "0" * 64}}.items():
+        des = tmp_path / f"edited_{name}"
+        forged(relay, des, change)
+        assert main(["export", str(des), "--out", str(tmp_path / "c")]) == 2, name
+        err = capsys.readouterr().err
+        one_line_error(err)
+        assert "its seal does not verify" in err and not (tmp_path / "c").exists(), name
+
+
+def test_a_design_sealed_under_another_key_needs_the_model_given(relay, tiny, tmp_path, monkeypatch, capsys):
+    """The design, exported from another account (another CFDESIGN_CACHE_DIR, with a key of its own or none yet):
+    exit 2 naming the reason, nothing written; with --scenario it exports."""
+    monkeypatch.setenv(ENV, str(tmp_path / "other"))
+    out = tmp_path / "c"
+    assert main(["export", str(relay), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    one_line_error(err)
+    assert "no design key yet" in err and "--scenario" in err and not out.exists()
+    assert not (tmp_path / "other").exists()  # verifying makes no key: a new key verifies nothing
+    provenance.seal({"source": "x.py"})  # that account's own key
+    assert main(["export", str(relay), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    one_line_error(err)
+    assert "its seal does not verify" in err and not out.exists()
+    assert main(["export", str(relay), "--scenario", str(tiny), "--out", str(out)]) == 0
+    assert (out / "cfd_node.c").is_file()
+
+
+def test_an_unusable_key_is_named_and_never_fails_a_design(relay, tmp_path, monkeypatch, capsys):
+    """A cache directory that cannot hold the key (a read-only home: here its parent is a file): sealing warns and
+    seals nothing, export's refusal names the key and why; a built-in's record is not sealed and the key is not
+    touched; a damaged or shared key is named, never overwritten."""
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    monkeypatch.setenv(ENV, str(blocked / "cache"))
+    with pytest.warns(CfdesignWarning, match="not sealed as this account's: the design key .* cannot be created"):
+        assert provenance.design_seal({"source": str(tmp_path / "m.py"), "source_digest": "0" * 64}) is None
+    assert main(["export", str(relay), "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    one_line_error(err)
+    assert "design key" in err and "cannot be read" in err and "--scenario" in err
+    monkeypatch.setenv(ENV, str(tmp_path / "fresh"))
+    assert provenance.design_seal({"source": "switching-2d", "source_digest": None}) is None
+    assert not (tmp_path / "fresh").exists()
+    key = provenance.key_path()
+    key.parent.mkdir(parents=True)
+    key.write_bytes(b"short")
+    key.chmod(0o600)
+    with pytest.raises(provenance.KeyUnavailable, match="damaged"):
+        provenance.seal({"source": "x.py"})
+    key.write_bytes(bytes(32))
+    key.chmod(0o644)
+    with pytest.raises(provenance.KeyUnavailable, match="readable or writable by other accounts"):
+        provenance.seal({"source": "x.py"})
+    assert key.read_bytes() == bytes(32)
+
+
+def test_the_key_is_private_kept_by_cache_clear_and_never_overwritten(tmp_path, monkeypatch, capsys):
+    """The key made on first use is 32 bytes, mode 0600 in a 0700 directory; cache clear removes the kernels and
+    keeps it; a key already there (another process's) is used, not replaced; eight threads making it at once end
+    with one key and one seal."""
+    monkeypatch.setenv(ENV, str(tmp_path / "cache"))
+    record = {"source": "/m.py", "source_digest": "1" * 64, "params": {"a": [1.5, 2]}}
+    s = provenance.seal(record)
+    key = provenance.key_path()
+    assert key == tmp_path / "cache" / "keys" / "design.key" and len(key.read_bytes()) == 32
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600 and stat.S_IMODE(key.parent.stat().st_mode) == 0o700
+    assert provenance.sealed(record, s) and not provenance.sealed({**record, "params": {"a": [1.5, 3]}}, s)
+    (tmp_path / "cache" / "CACHEDIR.TAG").write_text("Signature: 8a477f597d28d172789f06886806bc55\n")
+    (tmp_path / "cache" / "kernels").mkdir()
+    (tmp_path / "cache" / "kernels" / "k.py").write_text("")
+    before = key.read_bytes()
+    assert main(["cache", "clear"]) == 0
+    assert not (tmp_path / "cache" / "kernels").exists() and key.read_bytes() == before
+    assert provenance.sealed(record, s)
+    # a key made first by another process: read back, never overwritten
+    monkeypatch.setenv(ENV, str(tmp_path / "other"))
+    theirs = secrets.token_bytes(32)
+    provenance.key_path().parent.mkdir(parents=True)
+    provenance.key_path().write_bytes(theirs)
+    provenance.key_path().chmod(0o600)
+    expected = hmac.new(theirs, b"cfdesign.design-seal/1\0" + json.dumps(
+        {k: record.get(k) for k in provenance.SEALED}, sort_keys=True, separators=(",", ":")).encode(),
+        hashlib.sha256).hexdigest()
+    assert provenance.seal(record) == expected
+    with monkeypatch.context() as m:  # made by the other process after this one looked: the creation path
+        m.setattr(os.path, "lexists", lambda path: False)
+        assert provenance.seal(record) == expected
+    assert provenance.key_path().read_bytes() == theirs and os.listdir(provenance.key_path().parent) == ["design.key"]
+    # made at once by eight threads
+    monkeypatch.setenv(ENV, str(tmp_path / "race"))
+    start = threading.Barrier(8)
+    seals = []
+
+    def make():
+        start.wait()
+        seals.append(provenance.seal(record))
+
+    threads = [threading.Thread(target=make) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(seals) == 8 and len(set(seals)) == 1
+    assert provenance.sealed(record, seals[0]) and os.listdir(tmp_path / "race" / "keys") == ["design.key"]
 
 
 MALFORMED = {"a list": "[1, 2]", "a string": '"schedule"', "null": "null", "not JSON": "{", "not UTF-8": b"\xff\xfe{",

@@ -42,7 +42,7 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "steps", "epsilon", "feasible", "violations", "sigma",
           "beta", "trace_bound", "linearization", "tau", "delta", "U", "V", "radius", "sigma_fixed", "beta_fixed",
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
-          "attacks", "params", "assumptions", "source", "source_digest", "model_digest", "observability",
+          "attacks", "params", "assumptions", "source", "source_digest", "source_seal", "model_digest", "observability",
           "kalman_references", "predicted_mse", "gate",
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
