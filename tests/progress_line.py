@@ -7,10 +7,10 @@ it, the process that runs the tests.  A test is done when its call phase is repo
 pass (skipped or an error); a test is failed when any of its phases failed.
 
 The line goes to the terminal the session started on (a copy of its standard output taken before any test runs, so
-that a test's output capture never swallows it), beginning on a fresh line and ending with the partial line of dots
-padded back to its width (when pytest continues it), so pytest's own columns stay aligned.  The timer stops when the tests end, before pytest's
-summary: the summary line stays the last line.  ``--progress-interval 0`` or ``CFDESIGN_TEST_PROGRESS=0`` turns it off;
-``CFDESIGN_TEST_PROGRESS=SECONDS`` sets the interval (the option wins).
+that a test's output capture never swallows it), beginning on a fresh line; when pytest continues its partial line
+of dots, the fresh line is first padded back to that width, so pytest's own columns stay aligned.  The timer stops
+when the tests end, before pytest's summary: the summary line stays the last line.  ``--progress-interval 0`` or
+``CFDESIGN_TEST_PROGRESS=0`` turns it off; ``CFDESIGN_TEST_PROGRESS=SECONDS`` sets the interval (the option wins).
 
 Loaded by ``tests/conftest.py``; any other run loads it with ``-p progress_line`` (``tests/`` on the path).
 """
