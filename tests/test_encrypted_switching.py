@@ -27,6 +27,7 @@ def study(tmp_path_factory):
     return out, encrypted(out=out, runs=16, particles=200, seed=0)
 
 
+@pytest.mark.slow
 def test_ppf_beats_both_baselines_on_both_states(study):
     """The paper's claim (Figs. 5-6): PPF has the lowest RMSE_1 and RMSE_2."""
     _, res = study
@@ -133,6 +134,7 @@ def _same_numbers(a: dict, b: dict) -> bool:
     return strip(a) == strip(b)
 
 
+@pytest.mark.slow
 def test_runner_backends_give_the_same_numbers_and_resume(tmp_path):
     distributed = pytest.importorskip("distributed")
     from studies.runner import Backend, make_backend
@@ -175,6 +177,7 @@ USER_MODEL = """
 """
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_an_encrypted_channel_runs_the_study(tmp_path):
     path = tmp_path / "user_switching.py"
     path.write_text(textwrap.dedent(USER_MODEL))

@@ -22,6 +22,7 @@ def study(tmp_path_factory):
     return out, run_study("fdi-four-tank", out=out, runs=8, particles=100, seed=3)
 
 
+@pytest.mark.slow
 def test_thresholds_are_the_papers(study):
     _, res = study
     th = res["thresholds"]["low"]
@@ -108,6 +109,7 @@ def test_results_table_and_figures_on_disk(study):
         assert (out / f"{fig}.png").stat().st_size > 10_000, fig
 
 
+@pytest.mark.slow
 def test_numbers_do_not_depend_on_the_threads():
     import json
 
@@ -165,6 +167,7 @@ USER_MODEL = """
 """
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_a_bias_fdi_channel_runs_the_study(tmp_path):
     path = tmp_path / "user_plant.py"
     path.write_text(textwrap.dedent(USER_MODEL))

@@ -101,6 +101,7 @@ def test_two_processes_compiling_the_same_kernel_at_once_both_succeed(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))  # no temporary file left behind
 
 
+@pytest.mark.slow
 def test_cache_clear_removes_the_kernels(tmp_path):
     _run(KERNEL.format(c=1.0), tmp_path)
     assert (tmp_path / "kernels").is_dir() and (tmp_path / "numba").is_dir()
@@ -155,6 +156,7 @@ def test_a_changed_model_gets_its_own_kernels_and_a_reader_finds_them():
     assert all(p.parent == cache_dir() / "kernels" for p in a.values())
 
 
+@pytest.mark.slow
 def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     """End to end: the generic driver and the model's kernels, loaded by a second process.
 
@@ -199,6 +201,7 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     assert registries == str(not jitcache._LIGHT_LOAD)
 
 
+@pytest.mark.slow
 def test_processes_compiling_different_signatures_of_one_function_at_once_leave_a_correct_cache(tmp_path):
     """numba would number the data files in arrival order; ours are named by signature (designer.jitcache)."""
     code = textwrap.dedent("""
