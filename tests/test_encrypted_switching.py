@@ -44,6 +44,7 @@ def test_ppf_beats_both_baselines_on_both_states(study):
     assert all(v < 0.5 for v in f["PPF"]["rmse_state_median_run"])
 
 
+@pytest.mark.slow
 def test_results_table_and_figures(study):
     out, res = study
     on_disk = json.loads((out / "results.json").read_text())

@@ -230,6 +230,7 @@ def test_rmse_matches_peer_bootstrap_filter(case, what):
     assert abs(diff) < N_SIGMA * se, (case["name"], what, ours.mean(), peer.mean(), diff, se)
 
 
+@pytest.mark.slow
 def test_no_run_level_shift_against_the_peer(case):
     """Wilcoxon signed-rank test on the paired position RMSEs.
 

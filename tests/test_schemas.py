@@ -227,6 +227,9 @@ def test_read_feasibility_csv_types_the_cells(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- every study
+SMALL = {"comparison": ["sweep_values=[0.2]"]}  # one sweep value: the sweeps' schema, not the five values' runs
+
+
 @pytest.fixture(scope="module")
 def study_dir(tmp_path_factory):
     """Run a study of the pipeline once at a tiny size (cached per module) and return its output directory."""
@@ -237,7 +240,7 @@ def study_dir(tmp_path_factory):
             st = get_study(name)
             out = tmp_path_factory.mktemp(name)
             api.study(name, runs=max(2, st.min_runs), particles=None if st.particles is None else PARTICLES,
-                      out=out)
+                      out=out, assignments=SMALL.get(name, ()))
             done[name] = out
         return done[name]
 
