@@ -8,6 +8,9 @@ pytest-xdist (``-n 2``) the worker processes share the directory their controlle
 (they inherit its environment), so a kernel compiles once per session; the controller,
 which ends after its workers, removes it.  Set at import, before any test module imports
 the kernels.
+
+The run prints a progress line (``progress_line``: tests done, failures, time) every 20 seconds;
+``--progress-interval 0`` or ``CFDESIGN_TEST_PROGRESS=0`` turns it off.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import shutil
 import tempfile
 
 import pytest
+from progress_line import pytest_addoption, pytest_configure  # noqa: F401  (the progress line's hooks)
 
 _SHARED = "CFDESIGN_TEST_SESSION_CACHE"  # the controller's directory, seen by its xdist workers
 _OWN = None

@@ -39,6 +39,7 @@ def test_the_api_is_reexported_by_studies():
     assert getattr(studies, "design").__module__ == "studies.api"
 
 
+@pytest.mark.slow
 def test_design_and_feasibility_give_the_cli_numbers(model_file, tmp_path):
     d = studies.design(model_file, mode="tuned", seed=3, out=tmp_path / "api")
     r = cli("design", model_file, "--mode", "tuned", "--seed", "3", "--out", tmp_path / "cli")
@@ -64,6 +65,7 @@ def test_design_and_feasibility_give_the_cli_numbers(model_file, tmp_path):
     assert fm.feasible.shape == (3, 2) and fm.options.u_scale == 0.01
 
 
+@pytest.mark.slow
 def test_comparison_on_a_user_model_gives_the_cli_numbers(model_file, tmp_path):
     res = studies.study("comparison", model_file, runs=2, particles=40, seed=1, out=tmp_path / "api")
     r = cli("study", "comparison", model_file, "--runs", 2, "--particles", 40, "--seed", 1, "--quiet",
@@ -86,6 +88,7 @@ def test_comparison_on_a_user_model_gives_the_cli_numbers(model_file, tmp_path):
         assert word in html
 
 
+@pytest.mark.slow
 def test_bad_model_files_exit_2_with_one_line(tmp_path):
     bad_fdi = tmp_path / "bad_fdi.py"
     bad_fdi.write_text(MODEL.replace("signal=FDISignal(amplitude=0.3, components=(0,)))", ")"))

@@ -255,6 +255,7 @@ def _numbers(res: dict) -> dict:
     return res
 
 
+@pytest.mark.slow
 def test_consensus_rows_equal_the_consensus_robot_study(tmp_path):
     """Same seeds, same attack draws: the comparison's consensus EKFs reproduce consensus-robot's numbers."""
     cr = run_consensus_robot(out=None, runs=3, seed=2, mode="tuned", quiet=True)
@@ -311,6 +312,7 @@ def test_without_attacks_the_centralized_filters_agree(tmp_path):
     assert abs(a["rmse_position"] - b["rmse_position"]) < 0.25 * b["rmse_position"]
 
 
+@pytest.mark.slow
 def test_same_numbers_with_every_backend(tmp_path):
     distributed = pytest.importorskip("distributed")
     kw = {**SMALL, "runs": 2, "particles": 40, "scenarios": ("indoor-robot", "target-range-bearing")}
@@ -329,6 +331,7 @@ def test_same_numbers_with_every_backend(tmp_path):
     assert _numbers(on_disk) == _numbers(a)
 
 
+@pytest.mark.slow
 def test_the_attack_aware_pf_beats_the_trusting_filters_under_heavy_fdi():
     res = run_comparison(out=None, runs=6, particles=200, seed=3, quiet=True, sweep_values=(0.4,), chunk_size=6,
                          scenarios=("indoor-robot",))
@@ -345,6 +348,7 @@ SIGINT_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_sigint_then_resume_equals_an_uninterrupted_study(tmp_path):
     script = tmp_path / "run.py"
     script.write_text(SIGINT_SCRIPT)

@@ -134,6 +134,7 @@ def test_bound_check_on_a_known_covariance():
     assert bound_check(err, loose, valid)["pairs_checked"] == steps * nodes - 1
 
 
+@pytest.mark.slow
 def test_consensus_robot_study_writes_results_and_figures(tmp_path):
     out = tmp_path / "study"
     r = run_cli("study", "consensus-robot", "--runs", "40", "--seed", "1", "--quiet", "--out", str(out))
@@ -172,6 +173,7 @@ def test_consensus_robot_study_writes_results_and_figures(tmp_path):
         assert res2["filters"][name]["rmse_position_curve"] == res["filters"][name]["rmse_position_curve"]
 
 
+@pytest.mark.slow
 def test_study_replays_a_schedule_without_claiming_a_bound(tmp_path):
     # exit 1: the indoor robot's tuned design is feasible but not certified (its bound ends above the open-loop
     # covariance, verdict vacuous); the schedule is written all the same, and replaying it is what is tested here

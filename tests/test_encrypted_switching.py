@@ -27,6 +27,7 @@ def study(tmp_path_factory):
     return out, encrypted(out=out, runs=16, particles=200, seed=0)
 
 
+@pytest.mark.slow
 def test_ppf_beats_both_baselines_on_both_states(study):
     """The paper's claim (Figs. 5-6): PPF has the lowest RMSE_1 and RMSE_2."""
     _, res = study
@@ -43,6 +44,7 @@ def test_ppf_beats_both_baselines_on_both_states(study):
     assert all(v < 0.5 for v in f["PPF"]["rmse_state_median_run"])
 
 
+@pytest.mark.slow
 def test_results_table_and_figures(study):
     out, res = study
     on_disk = json.loads((out / "results.json").read_text())
@@ -133,6 +135,7 @@ def _same_numbers(a: dict, b: dict) -> bool:
     return strip(a) == strip(b)
 
 
+@pytest.mark.slow
 def test_runner_backends_give_the_same_numbers_and_resume(tmp_path):
     distributed = pytest.importorskip("distributed")
     from studies.runner import Backend, make_backend
@@ -175,6 +178,7 @@ USER_MODEL = """
 """
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_an_encrypted_channel_runs_the_study(tmp_path):
     path = tmp_path / "user_switching.py"
     path.write_text(textwrap.dedent(USER_MODEL))

@@ -49,6 +49,7 @@ def cart(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, capsys):
     """design --mode relay, export, make test: every node's estimate and bound over the design's simulated run (DoS
     and FDI) within 1e-10 of the Python node filter's; the sources need libc and libm only and allocate nothing;
@@ -75,6 +76,7 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     moved_replay_fails(out, 5, -n_x * n_x - n_x)  # the first component of an expected estimate
 
 
+@pytest.mark.slow
 def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path, capsys):
     """The user's cart (a known input, bearings wrapped at +-pi, ranges), its flood design exported for two nodes and
     replayed on a CSV log of another run: make test agrees with the Python node filter; the exported node filter
@@ -178,6 +180,7 @@ def test_a_diverging_paper_design_replays_the_steps_before_its_covariance_is_ill
 @pytest.mark.parametrize("target, options", [("indoor-robot", []),
                                              ("indoor-robot", ["--rounds", "3", "--exchange", "predictions"]),
                                              ("user", ["--rounds", "2", "--bank", "2"])])
+@pytest.mark.slow
 def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options, cart, tmp_path):
     """design --mode scheduled (the neighbours' measurements exchanged or not, 1-3 exchange rounds, a bank of
     operating points whose tables the run does pick, a falsification with a mean), export, make test: every node's
@@ -219,6 +222,7 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
     moved_replay_fails(out, 7, -n_x * n_x - n_x)  # the first component of an expected estimate
 
 
+@pytest.mark.slow
 def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     des = tmp_path / "mse"
     assert main(["design", str(cart), "--mode", "mse", "--steps", "4", "--out", str(des)]) in (0, 1)

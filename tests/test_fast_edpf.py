@@ -80,6 +80,7 @@ def test_one_fused_run_reproduces_run_sir(sw, name):
         assert np.sqrt(((res.mean[0, 1:] - sw["x"][1:]) ** 2).mean()) < 1.0
 
 
+@pytest.mark.slow
 def test_every_step_resampled_and_other_switching_and_mixture_models():
     """Modes with Gaussian process noise (3 modes, correlated noise), and modes with a 3-component mixture
     entering through a noise gain (non-zero means, a zero-weight component); asymmetric truncation, per-sensor

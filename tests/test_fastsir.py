@@ -217,6 +217,7 @@ def test_branch_free_systematic_resampling_matches_the_inverse_cdf(M):
             assert np.all(W[a][u < 1.0] > 0)  # u0 = 1 - 2^-53 rounds the last u_m to 1: the last particle
 
 
+@pytest.mark.slow
 def test_many_packets_fold_the_likelihood_factor(rb):
     """Hundreds of packets at one step: the product of the log-sum-exp factors is folded into the log part."""
     m, R, P = rb["m"], 1, 700  # 3^700 overflows a double: folded every 628 packets
@@ -259,6 +260,7 @@ def test_packet_likelihood_equals_the_rrp_likelihoods(rb):
     np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_bearing_residuals_are_wrapped(rb):
     """Targets behind the sensors' line see bearings near ±π: a residual across the cut is small."""
     m = rb["m"]
@@ -288,6 +290,7 @@ def _custom_model(noise):
     GaussianMixture.from_arrays([0.5, 0.3, 0.2], [[0, 0], [1.0, 0.01], [-2.0, 0.0]],
                                 [np.diag([1.0, 1e-3]), [[9.0, 0.1], [0.1, 0.01]], np.diag([25.0, 0.05])]),
 ])
+@pytest.mark.slow
 def test_packet_likelihood_with_full_covariances_and_means(noise):
     m = _custom_model(noise)
     R = 2

@@ -22,6 +22,7 @@ def study(tmp_path_factory):
     return out, run_study("fdi-four-tank", out=out, runs=8, particles=100, seed=3)
 
 
+@pytest.mark.slow
 def test_thresholds_are_the_papers(study):
     _, res = study
     th = res["thresholds"]["low"]
@@ -31,6 +32,7 @@ def test_thresholds_are_the_papers(study):
     assert res["thresholds"]["high"]["eta_recomputed_here"] == pytest.approx((1 - 1e-4 / 2.6e-3) * 0.28, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_modified_pf_detects_every_attack_above_the_minimum_without_false_alarm_at_low_noise(study):
     _, res = study
     for name in (PROPOSED, SAMPLED):
@@ -41,6 +43,7 @@ def test_modified_pf_detects_every_attack_above_the_minimum_without_false_alarm_
     assert res["detection"][NOATT]["false_alarms"] == 0
 
 
+@pytest.mark.slow
 def test_false_alarms_appear_at_the_high_noise(study):
     _, res = study
     low, high = (res["table3"][c] for c in TABLE3_COLUMNS[:2])
@@ -50,6 +53,7 @@ def test_false_alarms_appear_at_the_high_noise(study):
     assert high["rmse"] > low["rmse"]
 
 
+@pytest.mark.slow
 def test_noisy_attack_estimate_degrades_estimation_not_detection(study):
     _, res = study
     low, noisy = res["table3"][TABLE3_COLUMNS[0]], res["table3"][TABLE3_COLUMNS[2]]
@@ -57,6 +61,7 @@ def test_noisy_attack_estimate_degrades_estimation_not_detection(study):
     assert noisy["detection"] == low["detection"]  # the estimate does not enter the detection mode
 
 
+@pytest.mark.slow
 def test_normal_pf_misses_small_and_large_attacks_the_proposed_none(study):
     """Fig. 9 / Fig. 10 with gamma-bar = 1; the large ones are missed through underflow of linear weights."""
     _, res = study
@@ -72,6 +77,7 @@ def test_normal_pf_misses_small_and_large_attacks_the_proposed_none(study):
     assert log[(0.28, 0.5)]["missed"] >= 1  # but the small ones are still missed
 
 
+@pytest.mark.slow
 def test_table4_ordering_and_common_particles(study):
     _, res = study
     f = {n: v["rmse"] for n, v in res["filters"].items()}
@@ -84,12 +90,14 @@ def test_table4_ordering_and_common_particles(study):
         assert len(v["rmse_curve"]) == len(v["rmse_truth_curve"]) == res["steps"] == 200
 
 
+@pytest.mark.slow
 def test_plant_noise_sensitivity_is_what_the_assumption_says(study):
     _, res = study
     assert res["sensitivity"]["plant_noise_low_R"]["detection"]["false_alarms"] > 0
     assert any("deterministic" in a for a in res["assumptions"])
 
 
+@pytest.mark.slow
 def test_results_table_and_figures_on_disk(study):
     out, res = study
     on_disk = json.loads((out / "results.json").read_text())
@@ -108,6 +116,7 @@ def test_results_table_and_figures_on_disk(study):
         assert (out / f"{fig}.png").stat().st_size > 10_000, fig
 
 
+@pytest.mark.slow
 def test_numbers_do_not_depend_on_the_threads():
     import json
 
@@ -165,6 +174,7 @@ USER_MODEL = """
 """
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_a_bias_fdi_channel_runs_the_study(tmp_path):
     path = tmp_path / "user_plant.py"
     path.write_text(textwrap.dedent(USER_MODEL))

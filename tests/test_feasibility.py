@@ -39,6 +39,7 @@ def _robot_linearisation():
     return sc, m, F, H, R, consensus_design(sc, mode="tuned")  # one V for every camera: d.V[0]
 
 
+@pytest.mark.slow
 def test_accelerated_and_plain_iterations_reach_the_same_fixed_point():
     sc, m, F, H, R, d = _robot_linearisation()
     kw = dict(epsilon=d.epsilon, delta=d.delta, U=d.U, V=d.V, phi0=m.prior.cov)
@@ -91,6 +92,7 @@ def _same_rows(rows1, rows2) -> bool:
         for r1, r2 in zip(rows1, rows2))
 
 
+@pytest.mark.slow
 def test_map_files_and_workers_agree(tmp_path, monkeypatch):
     rows1 = feasibility_map("indoor-robot", ["dos=0:0.3:3", "fdi=0:0.2:2"], out=tmp_path / "a", quiet=True)
     monkeypatch.setattr("studies.feasibility_map.CHUNK_SIZE", 2)  # three chunks: the workers compute them
@@ -118,6 +120,7 @@ def test_bad_grids(spec, needle):
         parse_grid(spec)
 
 
+@pytest.mark.slow
 def test_cli_feasibility(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     r = subprocess.run([sys.executable, "-m", "studies", "feasibility", "indoor-robot", "--grid", "fdi=0:0.2:2",
@@ -130,6 +133,7 @@ def test_cli_feasibility(tmp_path):
     assert r.returncode == 2 and "tau" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_map_on_dask_and_resumed_from_its_chunks(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
     from studies.runner import CHUNKS_DIR
@@ -151,6 +155,7 @@ def test_map_on_dask_and_resumed_from_its_chunks(tmp_path, monkeypatch):
         feasibility_map("indoor-robot", grids, out=tmp_path, quiet=True, mode="paper")
 
 
+@pytest.mark.slow
 def test_optimal_weights_steady_state_is_a_fixed_point_and_below_the_paper_factors_here():
     """weights='optimal': accelerated and plain iterations reach one fixed point of the weighted recursion,
     and one more weighted step (converged weights) leaves it where it is."""

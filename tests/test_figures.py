@@ -220,6 +220,7 @@ def test_forking_a_drawer_leaves_this_processs_garbage_collection_as_it_was(monk
     ("consensus-robot", dict(runs=3)),
     ("comparison", dict(runs=2, particles=60, assignments=["sweep_values=[0.2]"])),
 ])
+@pytest.mark.slow
 def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, monkeypatch, name, kw):
     """The helper runs a study's figure code on the scenarios as they were before the computation: a figure that
     read state the computation leaves on a scenario would differ from the one drawn here afterwards."""

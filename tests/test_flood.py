@@ -213,6 +213,7 @@ def tree_moments(routes, net, dims, rng=None):
     return [node_moments(tree, net, dims, i) for i in range(routes.n_nodes)]
 
 
+@pytest.mark.slow
 def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(monkeypatch):
     model = linear_model()
     ring = SensorNetwork.from_edges(N, [(i, (i + 1) % N) for i in range(N)] + [(0, 3)], dos_prob=0.45, fdi_prob=0.2)

@@ -239,6 +239,7 @@ def test_the_design_summary_and_the_api_name_the_gain_rule(designs, tmp_path, ca
     assert designs["tuned"][1].gain_rule.runtime == "local" and "oracle" not in designs["tuned"][1].verdict_line()
 
 
+@pytest.mark.slow
 def test_consensus_robot_records_each_filters_run_time_and_never_picks_a_reference(tmp_path):
     """The mse design (a global oracle) and the fusion centre are references; a replayed schedule is applied by
     the step alone (scheduled), whatever rule made it; the pick is a filter the nodes can run."""

@@ -57,6 +57,7 @@ def test_a_second_process_loads_the_kernel_instead_of_compiling(tmp_path):
     assert path.parent == tmp_path / "kernels" and "def g(x):" in path.read_text()
 
 
+@pytest.mark.slow
 def test_a_changed_kernel_is_a_new_cache_entry(tmp_path):
     a = _run(KERNEL.format(c=1.0), tmp_path).split()
     b = _run(KERNEL.format(c=2.0), tmp_path).split()
@@ -64,6 +65,7 @@ def test_a_changed_kernel_is_a_new_cache_entry(tmp_path):
     assert len(list((tmp_path / "kernels").glob("*.py"))) == 2
 
 
+@pytest.mark.slow
 def test_a_changed_generator_version_recompiles(tmp_path):
     a = _run(KERNEL.format(c=1.0), tmp_path).split()
     # the code version of the translation's own files is part of every generated module's text
@@ -86,6 +88,7 @@ def test_cached_njit_is_valid_for_its_stamp_only(tmp_path, monkeypatch):
     assert compiled("two") == (0, 1)  # another stamp: numba's index of the function is not used
 
 
+@pytest.mark.slow
 def test_two_processes_compiling_the_same_kernel_at_once_both_succeed(tmp_path):
     env = {**os.environ, "CFDESIGN_CACHE_DIR": str(tmp_path)}
     procs = [subprocess.Popen([sys.executable, "-c", KERNEL.format(c=3.0)], cwd=ROOT, env=env, text=True,
@@ -101,6 +104,7 @@ def test_two_processes_compiling_the_same_kernel_at_once_both_succeed(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))  # no temporary file left behind
 
 
+@pytest.mark.slow
 def test_cache_clear_removes_the_kernels(tmp_path):
     _run(KERNEL.format(c=1.0), tmp_path)
     assert (tmp_path / "kernels").is_dir() and (tmp_path / "numba").is_dir()
@@ -140,6 +144,7 @@ def _scalar_model(gain: float) -> Model:
                  Gaussian([0.0], [[1.0]]))
 
 
+@pytest.mark.slow
 def test_a_changed_model_gets_its_own_kernels_and_a_reader_finds_them():
     runs = []
     for gain in (0.9, 0.8, 0.9):
@@ -155,6 +160,7 @@ def test_a_changed_model_gets_its_own_kernels_and_a_reader_finds_them():
     assert all(p.parent == cache_dir() / "kernels" for p in a.values())
 
 
+@pytest.mark.slow
 def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     """End to end: the generic driver and the model's kernels, loaded by a second process.
 
@@ -199,6 +205,7 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
     assert registries == str(not jitcache._LIGHT_LOAD)
 
 
+@pytest.mark.slow
 def test_processes_compiling_different_signatures_of_one_function_at_once_leave_a_correct_cache(tmp_path):
     """numba would number the data files in arrival order; ours are named by signature (designer.jitcache)."""
     code = textwrap.dedent("""

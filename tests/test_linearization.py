@@ -58,6 +58,7 @@ def test_linear_model_has_zero_scaling():
     assert v == 0.0
 
 
+@pytest.mark.slow
 def test_hessian_design_is_feasible_on_the_default_horizon_and_reports_its_divergence_on_a_long_one():
     """The Hessian remainders grow with the ellipsoid of Φ: a feedback that over 100 steps drives the bound
     beyond any meaning (the tuned nodes then run alone, C = 0, so FDI no longer matters to it)."""
@@ -107,6 +108,7 @@ def test_structured_remainders_factor_through_the_cover(seed):
         assert (np.linalg.norm(rh, axis=1) / np.linalg.norm(e[:, list(cov_h)], axis=1)).max() <= v * (1 + 1e-9)
 
 
+@pytest.mark.slow
 def test_structured_design_is_tighter_than_the_unstructured_one():
     from studies.api import design
 

@@ -77,6 +77,7 @@ def test_what_cannot_fit_is_refused_before_computing(tmp_path, monkeypatch, caps
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == before
 
 
+@pytest.mark.slow
 def test_the_300_state_model_is_refused_with_its_figure_and_fits_with_given_scalings(tmp_path, monkeypatch, capsys):
     """The issue's case: the 'prior' scalings' Hessians of a 300-state model, (601 points, 300 components, 300 x
     300) twice over (the components and their stack), 242 GiB; with the scalings given the design needs little."""
@@ -102,6 +103,7 @@ def _traced_peak(fn) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.slow
 def test_the_estimates_follow_the_allocated_peak(tmp_path):
     """Within a small factor of what NumPy and Python really allocate (tracemalloc): the Hessians of the prior
     scalings, and a design's run (the estimate also counts the schedule written, here not)."""

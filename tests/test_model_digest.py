@@ -130,6 +130,7 @@ def test_a_rebuilt_reference_must_be_the_planned_model(tmp_path, monkeypatch):
         ref.build()
 
 
+@pytest.mark.slow
 def test_an_edited_model_file_never_reuses_the_old_runs(tmp_path, capsys):
     """The issue's case: run, change a coefficient of f, run the same command: the old runs are refused (exit 2,
     the model named as what changed), and with --force the new model's numbers replace them."""
@@ -160,6 +161,7 @@ def _numbers(path: Path):
     return json.loads(path.read_text())["filters"] if path.suffix == ".json" else path.read_text()
 
 
+@pytest.mark.slow
 def test_an_in_memory_model_with_other_numbers_is_refused_through_the_api(tmp_path):
     net = SensorNetwork.from_edges(2, [(0, 1)])
     kw = dict(runs=2, out=tmp_path / "c", network=net, attacks=AttackSpec(dos=0.1), quiet=True)

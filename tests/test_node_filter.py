@@ -23,6 +23,7 @@ def cart(tmp_path_factory):
 
 @pytest.mark.parametrize("target, mode", [("indoor-robot", "relay"), ("indoor-robot", "flood"),
                                           ("user", "flood"), ("user", "relay")])
+@pytest.mark.slow
 def test_node_filters_driven_over_a_run_give_the_studys_numbers(target, mode, cart, tmp_path):
     """Run 1 of the comparison (seed 4) as a log: every node's filter stepped with what reached it gives the estimates
     and bounds of cfdesign filter (the study's batched filter), bit for bit, under DoS and FDI (the robot with
@@ -87,6 +88,7 @@ def test_a_node_that_receives_every_measurement_is_the_centralized_kalman_filter
         assert np.allclose(node.x, kf.x, rtol=1e-9, atol=1e-12) and np.allclose(node.P, kf.P, rtol=1e-9, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_what_a_node_filter_cannot_take_is_refused(cart):
     node = studies.node_filter(str(cart), mode="flood", node=1)
     with pytest.raises(InputError, match=r"z of node 1 at step 0 must be 1 finite number, got \[1.0, 2.0\]"):
@@ -116,9 +118,10 @@ def test_what_a_node_filter_cannot_take_is_refused(cart):
         studies.node_filter(str(cart), mode="relay", node=7)
 
 
-@pytest.mark.parametrize("target, mode, gate", [("indoor-robot", "paper", 0.0), ("indoor-robot", "tuned", 0.0),
+@pytest.mark.parametrize("target, mode, gate", [("indoor-robot", "paper", 0.0),
+                                                pytest.param("indoor-robot", "tuned", 0.0, marks=pytest.mark.slow),
                                                 ("indoor-robot", "paper", 0.05), ("user", "paper", 0.0),
-                                                ("user", "tuned", 0.05)])
+                                                pytest.param("user", "tuned", 0.05, marks=pytest.mark.slow)])
 def test_consensus_node_filters_driven_over_a_run_give_the_studys_numbers(target, mode, gate, cart, tmp_path):
     """The two-phase consensus nodes (paper, tuned, with and without the χ² gate), every node predicting, the packets
     crossing the channels (DoS, FDI) and every node updating with what reached it: the batched filter's estimates and

@@ -51,6 +51,7 @@ def _row(text: str, name: str) -> list[str]:
     return [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
 
 
+@pytest.mark.slow
 def test_comparison_reports_the_paper_design_infeasible_and_runs_the_others(tmp_path, capsys):
     model = _write(tmp_path, "growing", GROWING)
     reason = _design_error(model)
@@ -126,6 +127,7 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
 
 
+@pytest.mark.slow
 def test_the_other_filters_do_not_depend_on_whether_the_paper_design_runs(tmp_path):
     """Per-run arrays of every other filter: the same, bit for bit, when the paper design cannot start (not run) and
     when σ, β small enough let it run (the common random numbers do not depend on it)."""
@@ -162,6 +164,7 @@ def test_the_other_filters_do_not_depend_on_whether_the_paper_design_runs(tmp_pa
         assert _same(blocked[k], runs[k]), k
 
 
+@pytest.mark.slow
 def test_no_filters_interval_depends_on_another_filters_runs(tmp_path):
     """Each filter bootstraps its 95 % intervals from its own stream: the others' intervals, at every setting, are
     the same whether the paper design kept every run, lost some to divergence or was not run at all."""

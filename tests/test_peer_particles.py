@@ -221,6 +221,7 @@ def test_peer_model_is_the_scenario_model():
 
 
 @pytest.mark.parametrize("what", ["position", "velocity"])
+@pytest.mark.slow
 def test_rmse_matches_peer_bootstrap_filter(case, what):
     """Paired over runs on the same data: |mean RMSE_ours - mean RMSE_peer| < 4 SE of the difference."""
     m = case["sc"].model
@@ -229,6 +230,7 @@ def test_rmse_matches_peer_bootstrap_filter(case, what):
     assert abs(diff) < N_SIGMA * se, (case["name"], what, ours.mean(), peer.mean(), diff, se)
 
 
+@pytest.mark.slow
 def test_no_run_level_shift_against_the_peer(case):
     """Wilcoxon signed-rank test on the paired position RMSEs.
 
@@ -242,6 +244,7 @@ def test_no_run_level_shift_against_the_peer(case):
     assert p > WILCOXON_LEVEL, (case["name"], p)
 
 
+@pytest.mark.slow
 def test_log_likelihood_matches_peer(case):
     """Log marginal likelihood estimates log p(z_1:k) of the same short series agree within Monte Carlo error.
 
@@ -289,6 +292,7 @@ def test_negative_control_unwrapped_bearings_are_detected():
     assert stats.wilcoxon(ours, peer).pvalue < WILCOXON_LEVEL
 
 
+@pytest.mark.slow
 def test_alignment_on_a_linear_gaussian_model():
     """On a linear-Gaussian CV model our filter and the peer's both follow the peer's exact Kalman filter
     with the prior pushed one step, and not the one read without the shift."""

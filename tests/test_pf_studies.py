@@ -27,6 +27,7 @@ def rrp(tmp_path_factory):
                           engine=ENGINE)
 
 
+@pytest.mark.slow
 def test_rrp_deception_reproduces_the_claims_of_seed_000(rrp):
     _, res = rrp
     f = res["filters"]
@@ -61,6 +62,7 @@ def test_rrp_deception_writes_results_table_and_figures(rrp):
     assert any("linear double precision" in a for a in on_disk["assumptions"])
 
 
+@pytest.mark.slow
 def test_binary_multi_attack_reproduces_the_claims_of_seed_002(tmp_path):
     res = run_study("binary-multi-attack", out=tmp_path, runs=16, particles=300, seed=2, sweep=(0.1, 0.4),
                     table2_particles=(60, 600), engine=ENGINE)
@@ -136,6 +138,7 @@ def test_threads_auto_uses_the_cores_the_runner_leaves():
     assert r["threads"] == cores  # the default is 'auto', resolved in results.json
 
 
+@pytest.mark.slow
 def test_pf_study_cli_is_reproducible(tmp_path):
     args = ["study", "rrp-deception", "--runs", "3", "--particles", "80", "--seed", "5", "--quiet",
             "--engine", ENGINE]
@@ -167,6 +170,7 @@ def test_velocity_reference_is_the_steady_state_kalman_filter(q, T, r):
     assert cv_velocity_at_position_rmse(q, T, p) == pytest.approx(v, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_velocity_reference_where_scipys_riccati_solver_gave_up():
     """q = 0.01, RMSE_p 0.5: SciPy's solve_discrete_are raised for one of the noise levels the search tries
     (its QZ reordering failed); the doubling solver gives the fixed point of the covariance recursion there."""
@@ -201,6 +205,7 @@ def test_study_cli_rejects_what_a_study_does_not_support(tmp_path, capsys, study
     assert len(err) == 1 and needle in err[0]
 
 
+@pytest.mark.slow
 def test_seed_001_and_004_studies_run_from_the_cli(tmp_path, capsys):
     assert main(["study", "encrypted-switching", "--runs", "2", "--particles", "50", "--quiet",
                  "--out", str(tmp_path / "es")]) == 0
@@ -275,6 +280,7 @@ def _curve(truth, mean, idx):
     return np.sqrt((e**2).sum(-1).mean(axis=0))
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_a_round_robin_channel_runs_rrp_deception(tmp_path):
     path = tmp_path / "user_target.py"
     path.write_text(textwrap.dedent(RRP_MODEL))
@@ -298,6 +304,7 @@ def test_a_user_model_file_with_a_round_robin_channel_runs_rrp_deception(tmp_pat
         assert (tmp_path / "o" / f"{fig}.png").stat().st_size > 10_000, fig
 
 
+@pytest.mark.slow
 def test_a_user_model_file_with_a_binary_channel_runs_binary_multi_attack(tmp_path):
     path = tmp_path / "user_binary.py"
     path.write_text(textwrap.dedent(BINARY_MODEL))

@@ -16,6 +16,8 @@ from studies.pipeline import run_study
 from studies.rrp_deception import LINEAR
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 
+pytestmark = pytest.mark.slow  # a slow end-to-end file: every test runs a study, or fresh processes
+
 # rrp: the linear-weights row runs the NumPy engine (one Generator per chunk), the others the fused one
 STUDIES = {
     "rrp-deception": (functools.partial(run_study, "rrp-deception"),

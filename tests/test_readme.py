@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from studies.comparison import FILTERS
 
@@ -69,6 +70,7 @@ def _files(d: Path) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_the_five_minute_section_runs_as_written_and_both_blocks_write_the_same_numbers(tmp_path, monkeypatch):
     """The model file, then the shell block as a reader runs it (the set-up's virtual environment activated, as
     the README says, in a shell where cfdesign is not on the PATH before), then the design script in the same

@@ -63,6 +63,7 @@ def cart(tmp_path_factory):
 
 
 @pytest.mark.parametrize("target", ["indoor-robot", "user"])
+@pytest.mark.slow
 def test_a_simulated_run_filtered_from_its_log_gives_the_comparisons_numbers(target, cart, tmp_path):
     """simulate --run r writes run r of the comparison (seed s) as a log; every filter run on it by studies.filter
     equals that run's estimates in the study, bit for bit (node 1's, as the study keeps them), the particle filters
@@ -113,6 +114,7 @@ def test_a_log_without_channel_records_is_a_run_without_attacks(tmp_path):
     assert np.isfinite(e.x_hat).all() and not np.array_equal(e.x_hat, full.x_hat)
 
 
+@pytest.mark.slow
 def test_cli_filter_with_a_design_directory_writes_its_estimates(cart, tmp_path, capsys):
     """cfdesign design, then cfdesign filter --schedule DIR on a simulated log of the user's model: the designed
     filter runs with the design's options and equals studies.filter with the same gain rule; the files hold what
@@ -303,6 +305,7 @@ def test_filter_options_are_checked_before_reading(tmp_path):
 
 # ------------------------------------------------------------------------------------------------------ CSV logs
 @pytest.mark.parametrize("target", ["indoor-robot", "user"])
+@pytest.mark.slow
 def test_the_csv_form_of_a_log_gives_the_same_numbers(target, cart, tmp_path):
     """simulate --out LOG.csv writes the same run as LOG.npz; every filter on the CSV equals the filter on the NPZ
     (the particle filters given the NPZ's seed and run, which a CSV does not carry); both follow their schemas."""

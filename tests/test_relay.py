@@ -94,6 +94,7 @@ def test_routes_are_prefix_consistent_shortest_paths_covering_the_balls(hops):
     assert np.array_equal(rt.ball_sizes(), (dist <= hops).sum(axis=1))
 
 
+@pytest.mark.slow
 def test_arrival_moments_match_a_monte_carlo_of_the_channels():
     net = varied_network()
     rt = relay_routes(net, 3)
@@ -297,6 +298,7 @@ def mse_over_bound(model, net, hops, runs, steps, seed):
     return ratio.mean(0), ratio.std(0, ddof=1) / np.sqrt(runs)
 
 
+@pytest.mark.slow
 def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(monkeypatch):
     model = linear_model()
     line = SensorNetwork.from_edges(N, [(i, i + 1) for i in range(N - 1)], dos_prob=0.4, fdi_prob=0.2)

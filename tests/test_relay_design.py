@@ -51,6 +51,7 @@ def test_the_rules_filter_is_the_relay_filter_on_each_runs_network():
 
 
 @pytest.mark.parametrize("hops", [1, 2])
+@pytest.mark.slow
 def test_stationary_certificate_is_where_the_filters_covariance_settles(hops):
     model = linear_model()  # node 3's sensor is two-dimensional: balls of 4 rows hold 3 or 4 sensors at one hop
     net = varied_network()
@@ -99,6 +100,7 @@ def model():
 '''
 
 
+@pytest.mark.slow
 def test_relay_design_of_a_users_model_file(tmp_path, capsys):
     path = tmp_path / "grid12.py"
     path.write_text(USER_MODEL)
@@ -154,6 +156,7 @@ def test_without_fdi_on_the_network_no_signal_is_needed():
 
 
 @pytest.mark.parametrize("mode", ["relay", "flood"])
+@pytest.mark.slow
 def test_feasibility_map_of_a_relay_mode_is_the_designs_stationary_certificate(tmp_path, mode):
     """Map and design agree on the same options: each grid point's verdict and trace are those `design` records
     (the map computes no design run: the stationary certificate at the point's channel probabilities)."""

@@ -118,6 +118,7 @@ def study_dir(request, studies) -> Path:
     return studies(request.param)
 
 
+@pytest.mark.slow
 def test_study_writes_both_reports(study_dir):
     results = json.loads((study_dir / "results.json").read_text())
     md = (study_dir / "report.md").read_text()
@@ -541,6 +542,7 @@ def _check_self_contained(raw: str) -> _Page:
     return page
 
 
+@pytest.mark.slow
 def test_design_report_verdict(design_dir):
     d, res = design_dir
     sched = json.loads((d / "schedule.json").read_text())
@@ -651,6 +653,7 @@ def test_design_report_explains_the_bound_and_lists_the_design(design_dir):
         assert norm(a) in page
 
 
+@pytest.mark.slow
 def test_design_report_escapes_texts_from_the_schedule(designs, tmp_path):
     src, _ = designs["feasible"]
     d = tmp_path / "evil"
@@ -676,6 +679,7 @@ def test_design_report_escapes_texts_from_the_schedule(designs, tmp_path):
     assert len(page.images) == 2 and not [t for t in page.tags if t == "b"]
 
 
+@pytest.mark.slow
 def test_design_report_is_deterministic(designs):
     d, _ = designs["infeasible"]
     before = {n: (d / n).read_bytes() for n in ("report.html", "report.md", "fig_trace_bound.png", "fig_margins.png")}
@@ -695,6 +699,7 @@ def test_design_report_without_the_arrays(designs, tmp_path):
     _check_self_contained((tmp_path / "report.html").read_text())
 
 
+@pytest.mark.slow
 def test_feasibility_report_counts_and_grid(maps):
     d, fmap = maps["two"]
     md = (d / "report.md").read_text()
@@ -795,6 +800,7 @@ def test_feasibility_report_from_the_csv_alone(maps, tmp_path):
     _check_self_contained((tmp_path / "report.html").read_text())
 
 
+@pytest.mark.slow
 def test_design_report_survives_divergence_and_odd_values(designs, tmp_path):
     src, _ = designs["infeasible"]
     base = json.loads((src / "schedule.json").read_text())
@@ -854,6 +860,7 @@ def _lead_number(cell: str) -> float:
 
 
 @pytest.mark.parametrize("which", ["encrypted-switching", "consensus-robot", "comparison"])
+@pytest.mark.slow
 def test_a_study_report_opens_with_the_ranking_the_figure_and_the_pick(which, studies, comparison_dir):
     d = comparison_dir if which == "comparison" else studies(which)
     results = json.loads((d / "results.json").read_text())

@@ -99,6 +99,7 @@ def user(tmp_path, monkeypatch):
     return home
 
 
+@pytest.mark.slow
 def test_a_study_line_has_the_model_file_and_every_option_and_computes_the_same_numbers(user, tmp_path,
                                                                                        monkeypatch):
     first = ["study", "comparison", "scalar.py", "--runs", "2", "--particles", "20", "--seed", "5",
@@ -120,6 +121,7 @@ def test_a_study_line_has_the_model_file_and_every_option_and_computes_the_same_
     _same(a, b)
 
 
+@pytest.mark.slow
 def test_a_particle_study_line_keeps_the_engine_and_a_builtin_parameter(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["study", "rrp-deception", "--runs", "2", "--particles", "30", "--engine", "numpy", "--set",
@@ -133,6 +135,7 @@ def test_a_particle_study_line_keeps_the_engine_and_a_builtin_parameter(tmp_path
           json.loads((tmp_path / "b" / "results.json").read_text()))
 
 
+@pytest.mark.slow
 def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypatch):
     assert main(["design", "scalar.py", "--beta", "0.05", "--sigma", "0.05", "--steps", "12", "--seed", "3",
                  "--set", "noise=0.1", "--out", "d"]) in (0, 1)
@@ -159,6 +162,7 @@ def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypat
     _same(*(json.loads((p / "feasibility.json").read_text()) for p in (user / "f", elsewhere / "f")))
 
 
+@pytest.mark.slow
 def test_a_replayed_schedule_is_part_of_the_line(user, tmp_path, monkeypatch):
     assert main(["design", "scalar.py", "--sigma", "0.05", "--beta", "0.05", "--out", "sched"]) in (0, 1)
     assert main(["study", "consensus-robot", "scalar.py", "--runs", "2", "--schedule", "sched", "--set", "dos=0.2",
@@ -172,6 +176,7 @@ def test_a_replayed_schedule_is_part_of_the_line(user, tmp_path, monkeypatch):
           json.loads((tmp_path / "b" / "results.json").read_text()))
 
 
+@pytest.mark.slow
 def test_the_api_records_the_line_the_command_line_records(user):
     import studies
 

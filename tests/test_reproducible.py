@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # a slow end-to-end file: every test runs a study, or fresh processes
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # What may differ between two runs of one command: the time taken, and the options that say how it was spread

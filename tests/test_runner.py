@@ -74,6 +74,7 @@ def test_batched_matches_the_independent_reference(chunk):
     assert len(res.computed) == len(chunk_ranges(23, chunk)) and not res.reused
 
 
+@pytest.mark.slow
 def test_same_bits_batched_processes_and_dask():
     distributed = pytest.importorskip("distributed")
     kw = dict(runs=17, seed=3, chunk_size=4)
@@ -219,6 +220,7 @@ SIGINT_SCRIPT = textwrap.dedent("""
 
 
 @pytest.mark.parametrize("kind", ["batched", "processes"])
+@pytest.mark.slow
 def test_sigint_then_resume_equals_an_uninterrupted_run(tmp_path, kind):
     script = tmp_path / "run.py"
     script.write_text(SIGINT_SCRIPT.format(tests=str(ROOT / "tests")))

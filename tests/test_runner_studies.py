@@ -19,6 +19,8 @@ from studies.pipeline import run_study
 from studies.runner import CHUNKS_DIR, Backend, make_backend
 from studies.scenarios import load_scenario
 
+pytestmark = pytest.mark.slow  # a slow end-to-end file: every test runs a study, or fresh processes
+
 TIMINGS = ("time_per_step_s", "wall_time_s", "time_per_step_single_run_s")
 
 

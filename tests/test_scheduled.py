@@ -29,6 +29,7 @@ def _scheduled(sc, exchange=True, **kw):
 
 
 @pytest.mark.parametrize("exchange", [True, False])
+@pytest.mark.slow
 def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange):
     """DoS and FDI on every channel: the design's expected P_ii is each node's mean-square error over the
     realisations of the noises and the attacks (the design never saw these runs)."""
@@ -197,6 +198,7 @@ def test_bad_options_for_the_scheduled_mode_are_refused():
         consensus_design(sc, mode="tuned", robustness=1.0)
 
 
+@pytest.mark.slow
 def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_modes(tmp_path, tank_model):
     from designer.schedule import load_schedule
     from studies.cli import main
@@ -222,6 +224,7 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     assert not (tmp_path / "replay").exists()
 
 
+@pytest.mark.slow
 def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and_the_lmi_minimum():
     """U = V = 0, a zero-mean signal: the bound's recursion is the expected covariance's, so its fixed point is the
     steady expected covariance (the long design's last P), and the LMI's smallest trace is that fixed point's (a
@@ -239,6 +242,7 @@ def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and
     assert abs(cert.lmi["relative_residual"]) < 1e-6
 
 
+@pytest.mark.slow
 def test_stationary_certificate_says_when_the_bound_grows():
     """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
     import casadi as ca
@@ -257,6 +261,7 @@ def test_stationary_certificate_says_when_the_bound_grows():
     assert not cert.converged and "grows" in cert.reason and cert.Phi is None
 
 
+@pytest.mark.slow
 def test_feasibility_map_of_mode_scheduled_is_the_designs_stationary_certificate(tmp_path):
     """Map and design agree on the same options: a grid point's verdict and trace are those `design` records."""
     import json
@@ -292,6 +297,7 @@ def model():
 '''
 
 
+@pytest.mark.slow
 def test_the_robustness_margin_bounds_how_far_a_node_leans_on_its_neighbours(tmp_path):
     """With margin δ the gains minimise tr P⁺ + δ Σ_j p_j tr(C_j P⁻ C_jᵀ), and C = 0 is a choice whose value is at
     most tr P⁻: so δ Σ_j p_j tr(C_j P⁻ C_jᵀ) <= tr P⁻ at every node and step.  The MMSE gains of a range grid
@@ -319,6 +325,7 @@ def test_the_robustness_margin_bounds_how_far_a_node_leans_on_its_neighbours(tmp
     assert (ROBUSTNESS * lean(mmse)).max() > 2.0
 
 
+@pytest.mark.slow
 def test_more_exchange_rounds_are_the_monte_carlo_mse_without_attacks_and_cost_their_messages(tmp_path):
     """L = 3 exchange rounds per step on a linear ring without attacks (where the rounds' packets are all there, so
     the design's expectation is exact): the expected P_ii is each node's mean-square error; more rounds lower it;
@@ -345,6 +352,7 @@ def test_more_exchange_rounds_are_the_monte_carlo_mse_without_attacks_and_cost_t
     assert any("one exchange round" in v.get("reason", "") for v in des.tables.violations)
 
 
+@pytest.mark.slow
 def test_the_studies_count_every_exchange_round_of_the_scheduled_filter(tmp_path, tank_model):
     import json
 
@@ -363,6 +371,7 @@ def test_the_studies_count_every_exchange_round_of_the_scheduled_filter(tmp_path
     assert "--rounds" in res["invocation"]["argv"] and "--bank" in res["invocation"]["argv"]
 
 
+@pytest.mark.slow
 def test_the_rounds_tradeoff_compares_designs_at_one_step_and_more_rounds_cost_more_messages():
     """The trade-off's L rows are designs of their own over its first steps; the designed L's row is read from the
     full design (the first steps of a design do not depend on its horizon, checked here against a short design);
@@ -392,6 +401,7 @@ def test_bad_bank_options_are_refused():
         consensus_design(sc, mode="tuned", bank=1)
 
 
+@pytest.mark.slow
 def test_a_linear_model_has_no_bank_and_the_same_filter():
     """Every bank point of a linear model has the nominal's Jacobians, hence its tables: none is kept, and the
     filter is the one without a bank, bit for bit."""
@@ -406,6 +416,7 @@ def test_a_linear_model_has_no_bank_and_the_same_filter():
     np.testing.assert_array_equal(a.x_post, b.x_post)
 
 
+@pytest.mark.slow
 def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction(tmp_path):
     """A range grid (nonlinear): the bank's points lie on the lattice x̄_K + 1.5 Σ o_a σ_a v_a over the open-loop
     covariance's principal axes; ``choose`` is the nearest candidate in the metric (a brute-force reference); a
@@ -455,6 +466,7 @@ def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction
     assert np.abs(plain.x_post[0, 1] - with_bank.x_post[0, 1]).max() > 1e-6  # the bank's tables differ
 
 
+@pytest.mark.slow
 def test_the_tables_beyond_the_horizon_computed_beside_the_run_are_the_designs(tmp_path, monkeypatch):
     """``cfdesign design`` runs its seeded run on the horizon's tables while the stationary ones are computed in a
     second process (``with_horizon_tables``): the horizon's tables are at once those of a design without

@@ -124,6 +124,7 @@ def _build(src: Path, lib: Path) -> None:
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.slow
 def test_the_built_package_ships_the_schemas(tmp_path):
     """setuptools' build (what goes into a wheel) holds the JSON files, importable through importlib.resources."""
     src = tmp_path / "src"
@@ -168,6 +169,7 @@ def designs(tmp_path_factory):
 
 
 @pytest.mark.parametrize("which", ["feasible", "infeasible", "diverged"])
+@pytest.mark.slow
 def test_design_writes_a_valid_schedule(designs, which):
     out = designs[which]
     assert schemas.validate_output(out) == [out / "schedule.json"]
@@ -188,6 +190,7 @@ def maps(tmp_path_factory):
 
 
 @pytest.mark.parametrize("which", ["1d", "2d"])
+@pytest.mark.slow
 def test_feasibility_writes_valid_rows_and_json(maps, which):
     out = maps[which]
     assert schemas.validate_output(out) == [out / "feasibility.csv", out / "feasibility.json"]
@@ -224,6 +227,9 @@ def test_read_feasibility_csv_types_the_cells(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- every study
+SMALL = {"comparison": ["sweep_values=[0.2]"]}  # one sweep value: the sweeps' schema, not the five values' runs
+
+
 @pytest.fixture(scope="module")
 def study_dir(tmp_path_factory):
     """Run a study of the pipeline once at a tiny size (cached per module) and return its output directory."""
@@ -234,7 +240,7 @@ def study_dir(tmp_path_factory):
             st = get_study(name)
             out = tmp_path_factory.mktemp(name)
             api.study(name, runs=max(2, st.min_runs), particles=None if st.particles is None else PARTICLES,
-                      out=out)
+                      out=out, assignments=SMALL.get(name, ()))
             done[name] = out
         return done[name]
 
@@ -242,6 +248,7 @@ def study_dir(tmp_path_factory):
 
 
 @pytest.mark.parametrize("name", list(STUDIES))
+@pytest.mark.slow
 def test_every_study_writes_valid_results(study_dir, name):
     out = study_dir(name)
     assert schemas.validate_output(out / "results.json") == [out / "results.json"]
@@ -251,6 +258,7 @@ def test_every_study_writes_valid_results(study_dir, name):
     assert res["particles"] == (None if st.particles is None else PARTICLES)
 
 
+@pytest.mark.slow
 def test_comparison_on_a_user_model_file(tmp_path):
     model = tmp_path / "oscillator.py"
     model.write_text(MODEL)

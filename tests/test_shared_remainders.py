@@ -87,6 +87,7 @@ def test_the_shared_prediction_bound_holds_and_has_power(layout, tight, monkeypa
         assert np.linalg.eigvalsh(wrong - truth).min() < 0
 
 
+@pytest.mark.slow
 def test_the_stationary_lmi_states_the_recursions_remainders():
     # with measurement exchange (1 + d_i) remainder blocks act on node i's error in (27): the LMI's minimum is the
     # recursion's fixed point (the LMI with one block, D = I, certified a bound 6 % below it on this case)

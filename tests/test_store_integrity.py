@@ -148,6 +148,7 @@ def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
         assert json.loads((tmp_path / "out" / LOCK_NAME).read_text())["pid"] == os.getpid()
 
 
+@pytest.mark.slow
 def test_force_never_deletes_under_a_running_writer(tmp_path):
     out = tmp_path / "study"
     monte_carlo(toy_task, store=out, config={}, **KW)
@@ -332,6 +333,7 @@ def model() -> Model:
 '''
 
 
+@pytest.mark.slow
 def test_a_filter_that_leaves_the_reals_fails_the_study_by_name_and_keeps_the_last_results(tmp_path):
     """A study whose particle filter produces NaN states: exit 1, one line naming the filter, the run and the
     step; the output directory keeps the previous complete results (nothing of the failed run)."""
@@ -532,6 +534,7 @@ def test_a_full_disk_while_writing_a_chunk_is_one_line_naming_it(tmp_path, monke
     assert not [p for p in left if p.endswith(".tmp") or p.endswith(".npz")], left  # nothing half-written
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_writing_the_outputs_names_the_file_and_keeps_the_last_ones(tmp_path, monkeypatch, capfd):
     from studies.cli import main
     import designer.fileio as fileio
@@ -561,6 +564,7 @@ def test_a_full_disk_while_appending_to_the_log_names_it(tmp_path, monkeypatch):
     assert (tmp_path / "log.jsonl").read_bytes() == b""
 
 
+@pytest.mark.slow
 def test_report_takes_the_one_writer_lock(tmp_path, capfd):
     from studies import api
     from studies.cli import main

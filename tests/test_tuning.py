@@ -127,6 +127,7 @@ def test_without_linearisation_error_tuning_gives_the_ekf_choices():
     assert upd.beta == 0.0
 
 
+@pytest.mark.slow
 def test_tuned_design_of_the_robot_is_feasible_where_the_paper_is_not(tmp_path):
     from studies.cli import main
     from studies.api import design

@@ -230,6 +230,7 @@ def _open_loop(F, Q, P0, steps):
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_a_feasible_design_with_a_vacuous_bound_says_so_and_exits_1(tmp_path, capsys):
     """The mse design of a constant-velocity target seen by range and bearing sensors: (28)-(29) hold (feasible, exit
     0 before verdicts existed), but its bound rises above the open-loop covariance: vacuous, exit 1, and the message
@@ -255,6 +256,7 @@ def test_a_feasible_design_with_a_vacuous_bound_says_so_and_exits_1(tmp_path, ca
     assert "**Not certified: the bound is vacuous.**" in (out / "report.md").read_text().split("## Summary", 1)[1]
 
 
+@pytest.mark.slow
 def test_a_certified_design_reports_its_ratios_against_the_references(tmp_path):
     import studies
     from designer.observability import kalman_references
@@ -276,6 +278,7 @@ def test_a_certified_design_reports_its_ratios_against_the_references(tmp_path):
     assert summary.startswith("**Certified.** The bound is finite, steady")
 
 
+@pytest.mark.slow
 def test_a_design_too_short_to_show_steadiness_exits_1(tmp_path, capsys):
     path = _write(tmp_path, "small.py", SMALL)
     assert main(["design", str(path), "--mode", "tuned", "--steps", "3", "--out", str(tmp_path / "d")]) == 1
@@ -283,6 +286,7 @@ def test_a_design_too_short_to_show_steadiness_exits_1(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------- cfdesign feasibility
+@pytest.mark.slow
 def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_open_loop(tmp_path):
     """v_scale from 0 to 1: certified fixed points, one above the open loop (vacuous), one whose bound grows without
     limit (unbounded: vacuous); each verdict recomputed here from the point's fixed point per node."""
@@ -328,6 +332,7 @@ def _check_counts(f: dict, runs: int, feasible_runs: int) -> None:
     assert v["certified"] + v["vacuous"] + v["not steady"] == feasible_runs and v["infeasible"] == runs - feasible_runs
 
 
+@pytest.mark.slow
 def test_the_studies_record_each_designed_filters_runs_by_verdict(tmp_path):
     from studies.comparison import FILTER_REGISTRY, PAPER_DESIGN
 
