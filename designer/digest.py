@@ -33,7 +33,7 @@ import struct
 import sys
 from pathlib import Path
 from types import CodeType, FunctionType, MethodType
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 

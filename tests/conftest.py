@@ -36,6 +36,20 @@ def pytest_sessionfinish(session, exitstatus):
         shutil.rmtree(_OWN, ignore_errors=True)
 
 
+def file_tree(root) -> dict:
+    """Every entry under ``root`` (links not followed): path -> the file's bytes, the link's target, or a dir; two
+    trees compare equal when nothing under ``root`` was written, removed or changed."""
+    from pathlib import Path
+
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            out[str(p.relative_to(root))] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
+                                             else p.read_bytes())
+    return out
+
+
 TANK_MODEL = '''
 import casadi as ca
 import numpy as np

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TANK_MODEL
+from conftest import TANK_MODEL, file_tree
 
 from designer.validation import InputError
 from studies.cli import main
@@ -182,17 +182,6 @@ def test_study_help_lists_every_registered_study():
 
 
 # ------------------------------------------------------ the output directory: empty, links, the user's files
-def _tree(root: Path) -> dict:
-    """Every entry under ``root`` (links not followed): path -> the file's bytes, the link's target, or a dir."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            out[str(p.relative_to(root))] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
-                                             else p.read_bytes())
-    return out
-
-
 _OUT_COMMANDS = {
     "simulate": ["simulate", "indoor-robot", "--steps", "2"],
     "design": ["design", "indoor-robot", "--steps", "2"],
@@ -208,13 +197,13 @@ def test_an_empty_out_is_refused_and_the_current_directory_untouched(tmp_path, m
     (tmp_path / "report.html").write_text("the user's report")
     (tmp_path / "results.json").write_text("{}")
     monkeypatch.chdir(tmp_path)
-    before = _tree(tmp_path)
+    before = file_tree(tmp_path)
     args = ["report", out] if command == "report" else [*_OUT_COMMANDS[command], "--out", out]
     assert main(args) == 2
     lines = capfd.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in lines[0], lines
     assert ("out" if command != "report" else "directory") in lines[0] and "empty" in lines[0], lines[0]
-    assert _tree(tmp_path) == before
+    assert file_tree(tmp_path) == before
 
 
 @pytest.mark.parametrize("command", list(_OUT_COMMANDS))
@@ -223,7 +212,7 @@ def test_an_empty_out_is_refused_by_the_api(tmp_path, monkeypatch, command):
 
     (tmp_path / "report.html").write_text("the user's report")
     monkeypatch.chdir(tmp_path)
-    before = _tree(tmp_path)
+    before = file_tree(tmp_path)
     call = {"simulate": lambda: studies.simulate("indoor-robot", steps=2, out=""),
             "design": lambda: studies.design("indoor-robot", steps=2, out=""),
             "feasibility": lambda: studies.feasibility("indoor-robot", "dos=0:0.2:2", out=""),
@@ -232,7 +221,7 @@ def test_an_empty_out_is_refused_by_the_api(tmp_path, monkeypatch, command):
         call()
     with pytest.raises(InputError, match="directory.*empty"):
         studies.report("")
-    assert _tree(tmp_path) == before
+    assert file_tree(tmp_path) == before
 
 
 @pytest.mark.parametrize(
@@ -270,13 +259,13 @@ def test_a_planted_link_is_refused_naming_it_before_any_computation(tmp_path, ca
     link.parent.mkdir(parents=True, exist_ok=True)
     is_dir = planted in (".chunks", ".chunks/consensus-robot")
     link.symlink_to(victim / "sub" if is_dir else victim / "notes.txt")
-    before = _tree(victim)
+    before = file_tree(victim)
     args = [*_OUT_COMMANDS[command], "--out", str(out)] + (["--force"] if force else [])
     assert main(args) == 2
     lines = capfd.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in lines[0], lines
     assert repr(str(link)) in lines[0] and "symbolic link" in lines[0], lines[0]
-    assert _tree(victim) == before
+    assert file_tree(victim) == before
 
 
 @pytest.mark.parametrize("via", ["cli", "api"])
@@ -288,7 +277,7 @@ def test_a_design_never_replaces_a_file_the_user_wrote(tmp_path, capfd, via):
     out.mkdir()
     (out / "schedule.json").write_text("the user's own schedule")
     (out / "notes.txt").write_text("the user's notes")
-    before = _tree(out)
+    before = file_tree(out)
     if via == "cli":
         assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 2
         line = capfd.readouterr().err.strip()
@@ -297,7 +286,7 @@ def test_a_design_never_replaces_a_file_the_user_wrote(tmp_path, capfd, via):
             studies.design("indoor-robot", steps=2, out=out)
         line = str(exc.value)
     assert repr(str(out / "schedule.json")) in line and "not written by cfdesign" in line, line
-    assert {k: v for k, v in _tree(out).items() if not k.startswith(".cfdesign")} == before
+    assert {k: v for k, v in file_tree(out).items() if not k.startswith(".cfdesign")} == before
     # a design directory is cfdesign's: it is replaced by the next design, from either (exit 1: a 2-step design is
     # written but never certified, too short to show a steady bound)
     other = tmp_path / "d"

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import os
 import shutil
-from pathlib import Path
 
 import pytest
-from conftest import TANK_MODEL
+from conftest import TANK_MODEL, file_tree
 
 import studies
 from designer.validation import InputError
@@ -17,17 +16,6 @@ from studies.cli import main
 # the tank model reading its measurement noise from a package of its own directory (parts/noise.py)
 MODEL = TANK_MODEL.replace("import numpy as np\n", "import numpy as np\nfrom parts.noise import VARIANCE\n", 1)
 MODEL = MODEL.replace("Gaussian.zero_mean([[0.05]])", "Gaussian.zero_mean([[VARIANCE]])")
-
-
-def _tree(root: Path) -> dict:
-    """Every entry under ``root`` (links not followed): path -> the file's bytes, the link's target, or a dir."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            out[str(p.relative_to(root))] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
-                                             else p.read_bytes())
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -96,24 +84,24 @@ CASES = {
 def test_an_out_that_overlaps_an_input_is_refused_and_nothing_changes(work, capsys, case):
     """Exit 2, one line naming out and the input's parameter; every file byte for byte as it was, none added."""
     args, needle = CASES[case]
-    before = _tree(work)
+    before = file_tree(work)
     assert main(args) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("cfdesign: error: "), lines
     assert needle in lines[0] and lines[0].endswith("(nothing was written)"), lines[0]
-    assert _tree(work) == before
+    assert file_tree(work) == before
 
 
 def test_an_out_beside_the_inputs_is_written(work, capsys):
     """The check refuses only overlaps: the same filter into a directory of its own runs, inputs unchanged."""
-    before = _tree(work)
+    before = file_tree(work)
     assert main([*FILTER, "--schedule", "design", "--out", "estimates"]) in (0, 1), capsys.readouterr().err
     assert (work / "estimates" / "estimates.npz").is_file()
-    assert {k: v for k, v in _tree(work).items() if not k.startswith("estimates")} == before
+    assert {k: v for k, v in file_tree(work).items() if not k.startswith("estimates")} == before
 
 
 def test_the_api_and_the_results_save_refuse_an_overlapping_out(work):
-    before = _tree(work)
+    before = file_tree(work)
     with pytest.raises(InputError, match="out 'design' is the design directory given as schedule"):
         studies.filter("model/tank.py", "logs/log.npz", schedule="design", out="design")
     with pytest.raises(InputError, match="is inside the design directory given as design_dir"):
@@ -126,4 +114,4 @@ def test_the_api_and_the_results_save_refuse_an_overlapping_out(work):
         run.save("design")
     with pytest.raises(InputError, match="contains the log given as data"):
         run.save("logs")
-    assert _tree(work) == before
+    assert file_tree(work) == before
