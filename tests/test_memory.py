@@ -142,7 +142,8 @@ def test_the_filters_estimate_follows_the_allocated_peak(name, steps, particles,
 
     for k in (30, steps):
         studies.simulate("indoor-robot", steps=k, seed=1, out=tmp_path / f"log{k}.npz")
-    studies.filter("indoor-robot", tmp_path / "log30.npz", filter=name, particles=20)  # compiled, outside the measure
+    studies.filter("indoor-robot", tmp_path / "log30.npz", filter=name,  # compiled, outside the measure
+                   particles=None if particles is None else 20)
     needs, check = [], memory.check
     monkeypatch.setattr(memory, "check", lambda need, available=None: (needs.append(need), check(need, available)))
     peak = _traced_peak(lambda: studies.filter("indoor-robot", tmp_path / f"log{steps}.npz", filter=name,

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _spec_example() -> str:
     """The documentation's SPEC model file (the README's, or the docs' page it moved to)."""
     for page in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
-        for block in re.findall(r"```python\n(.*?)```", page.read_text() if page.is_file() else "", flags=re.S):
+        for block in re.findall(r"```python[^\n]*\n(.*?)```", page.read_text() if page.is_file() else "", flags=re.S):
             if "SPEC = ScenarioSpec(" in block and "def build" in block:
                 return block
     raise AssertionError("no SPEC model file example in README.md or docs/")

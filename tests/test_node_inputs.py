@@ -19,7 +19,8 @@ def sim():
 
 def _make(kind: str):
     if kind in ("kcf", "hcmci"):
-        return lambda node=None: studies.node_filter(SCENARIO, filter=kind, iterations=2, node=node)
+        return lambda node=None: studies.node_filter(SCENARIO, filter=kind, node=node,
+                                                     iterations=2 if kind == "hcmci" else None)
     return lambda node=None: studies.node_filter(SCENARIO, mode=kind, node=node)
 
 
