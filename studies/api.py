@@ -856,7 +856,6 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
     mode, options, _ = design_options_of(design_dir, sc)
-    design = consensus_design(sc, options)
     rule = gain_rule(mode)
     if not rule.relays and mode not in ("paper", "scheduled"):
         why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
@@ -864,21 +863,25 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
                "filter runs in Python: studies.node_filter)")
         raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, scheduled, relay, "
                          "flood)")
-    if mode == "paper" and design.linearization != "fixed":
-        raise InputError(f"linearization must be 'fixed' to export a paper design to C (the {design.linearization!r} "
-                         "scalings come from the model's Hessians at every step, which the export does not generate)"
-                         )
     N = sc.network.n_nodes
     chosen = list(range(N)) if nodes is None else [check_int("nodes", i, 0, N - 1) for i in nodes]
     if not chosen or len(set(chosen)) != len(chosen):
         raise InputError(f"nodes must be distinct nodes of 0..{N - 1}, got {nodes!r}")
+    if data is None:  # the memory, before the design is computed (with a log: before its arrays are made)
+        memory.check(memory.export_need(sc, options, sc.steps))
+    else:
+        log = read_log(data, sc, lambda size: memory.export_need(sc, options, sc.steps, size))
+        if np.any(np.isnan(log.z)):
+            raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
+    design = consensus_design(sc, options)
+    if mode == "paper" and design.linearization != "fixed":
+        raise InputError(f"linearization must be 'fixed' to export a paper design to C (the {design.linearization!r} "
+                         "scalings come from the model's Hessians at every step, which the export does not generate)"
+                         )
     if data is None:
         sim = simulate(sc, seed=meta.get("seed") or 0)
         z, attacks, u = sim.z, sim.attacks, sim.inputs
     else:
-        log = read_log(data, sc)
-        if np.any(np.isnan(log.z)):
-            raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
         z, attacks, u = log.z, log.attacks, (np.zeros((log.steps, 0)) if log.inputs is None else log.inputs)
     net = node_network(sc.model, sc.network, design)
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])

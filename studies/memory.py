@@ -47,7 +47,7 @@ from designer.validation import InputError
 
 __all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
            "feasibility_need", "study_need", "STUDY_NEEDS", "log_values", "LogSize", "log_need", "filter_need",
-           "node_filter_need"]
+           "node_filter_need", "export_need"]
 
 _D = 8  # bytes of a double
 # Copies and sizes measured at the peak (benchmarks/bench_memory.py):
@@ -56,6 +56,8 @@ _STEP_MATRICES = 40  # (n_x, n_x) matrices per node and run alive within one ste
 _FIXED_POINT_MATRICES = 20  # the same per node and grid point in an iteration of the steady-state recursion
 _HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.model.Model.f_hessian)
 _JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
+_TEXT = 30  # bytes per number written as C or replay text (its repr and separator, a string object a piece)
+_ARRAY_OBJECT = 112  # bytes of a small NumPy array's object beside its data (a replayed step's record)
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
@@ -330,6 +332,29 @@ def node_filter_need(sc, options=None) -> Need:
     design = [] if options is None else _consensus_design(sc, options, sc.steps, f"{_STEPS} (a model file's STEPS; "
                                                                               f"steps = {sc.steps})")
     return _need("node_filter", *design, [nodes])
+
+
+def export_need(sc, options, steps: int, log: LogSize | None = None) -> Need:
+    """``export``: the design of ``options`` along ``steps`` steps (with its offline tables, for a rule that has
+    them); then, beside the tables, the replayed run (simulated over ``steps``, or the log ``log`` read and held),
+    every node's matrices as the node network steps, and the text of ``replay.txt`` and of the sources' data (every
+    number written out, the tables' included, built in memory before the files are written)."""
+    m, n_x = sc.model, sc.model.n_x
+    n = sc.network.n_nodes
+    K = steps if log is None else log.steps
+    reduce = f"{_STEPS} (steps = {steps})"
+    design = _consensus_design(sc, options, steps, reduce)
+    tables = design[-1][0] if len(design) > 1 else None
+    run = [log.held()] if log is not None else list(simulate_need(sc, K).peak)
+    replayed = K * n * ((n + 2) * (n_x * n_x + n_x) + m.n_z)  # each node's packets, state and measurement a step
+    sizes = f"{K} steps x {n} nodes x {n} packets x {n_x} x {n_x} states"
+    record = Part("the replayed steps' record", replayed * _D + K * n * (n + 4) * _ARRAY_OBJECT, sizes,
+                  f"{reduce} or fewer nodes (--node)")
+    numbers = replayed + (tables.nbytes / _D if tables is not None else 0)
+    text = Part("replay.txt and the sources' data as text (its pieces, then joined)", 2 * _TEXT * numbers,
+                sizes + (" and the tables" if tables is not None else ""), f"{reduce} or fewer nodes (--node)")
+    nodes = node_filter_need(sc).peak
+    return _need("export", *design, [*([tables] if tables is not None else []), *run, *nodes, record, text])
 
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:

@@ -150,3 +150,43 @@ def test_the_filters_estimate_follows_the_allocated_peak(name, steps, particles,
                                                particles=particles))
     (need,) = needs
     assert need.command == "filter" and peak > 4e6 and 0.5 < need.nbytes / peak < 2.5, (need.nbytes, peak)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["flood", "scheduled", "paper"])
+def test_the_exports_estimate_follows_the_allocated_peak(mode, tmp_path):
+    """export: the design, the replayed run, its record and the text of replay.txt and the sources' data (the
+    scheduled tables' too) within a small factor of what NumPy and Python allocate (tracemalloc), on a model whose
+    long horizon makes the replay dominate."""
+    import warnings
+
+    import studies
+    from conftest import TANK_MODEL
+    from studies.recorded import design_options_of
+
+    path = tmp_path / "tank.py"
+    path.write_text(TANK_MODEL.replace("STEPS = 20", "STEPS = 1000"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            studies.design(str(path), mode=mode, out=tmp_path / "d")
+        except Exception:  # noqa: BLE001 - a design that is not certified is written all the same
+            pass
+        sc = scenario_of(str(path))
+        _, options, _ = design_options_of(tmp_path / "d", sc)
+        need = memory.export_need(sc, options, sc.steps)
+        peak = _traced_peak(lambda: studies.export(tmp_path / "d", out=tmp_path / "c"))
+    assert need.command == "export" and peak > 4e6 and 0.5 < need.nbytes / peak < 2.5, (need.nbytes, peak)
+
+
+def test_an_export_beyond_memory_is_refused_before_it_is_computed(tmp_path, monkeypatch, capsys):
+    """export checks its memory before the design is computed or a file written: refused with the estimate, exit 2,
+    nothing written."""
+    import studies
+
+    studies.design("indoor-robot", mode="flood", out=tmp_path / "d")
+    monkeypatch.setattr(memory, "available_memory", lambda: 1e5)
+    assert main(["export", str(tmp_path / "d"), "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "export would need about" in err and "replay.txt" in err, err
+    assert not (tmp_path / "c").exists()
