@@ -6,8 +6,9 @@ A design of ``--scenario`` in each ``--mode`` (an exported gain rule: ``relay``,
 every node's measurement and what reached it at every step: the relayed measurements, or the neighbours' packets) is
 replayed ``--repeat`` times:
 
-* **C**: a driver compiled with ``cc -O2`` beside the exported sources calls ``cfd_step`` (paper: ``cfd_predict``
-  then ``cfd_update``; scheduled: and ``cfd_round`` for its rounds 2..L) for every node and step, the replay read
+* **C**: a driver compiled with ``cc -O3`` (the generated Makefile's optimisation) beside the exported sources calls
+  ``cfd_step`` (paper: ``cfd_predict`` then ``cfd_update``; scheduled: and ``cfd_round`` for its rounds 2..L) for
+  every node and step, the replay read
   into memory first (timed: the steps only, ``clock_gettime``), ``--repeat`` replays; the best of three timings;
 * **Python**: the node filters (:class:`filters.relay.RelayNode`, :class:`filters.consensus_node.ConsensusNode`,
   :class:`filters.scheduled.ScheduledNode`) step every node on the same inputs (what the network's step delivered,
@@ -236,8 +237,8 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     driver = {"paper": _BENCH_EXCHANGE + _BENCH_PAPER_C, "scheduled": _BENCH_EXCHANGE + _BENCH_SCHEDULED_C}
     (c / "bench.c").write_text(_BENCH_HEAD + driver.get(mode, _BENCH_C))
     for src in ("cfd_node.c", "cfd_model.c"):
-        subprocess.run([cc, "-std=c99", "-O2", "-c", src], cwd=c, check=True)
-    subprocess.run([cc, "-std=c99", "-O2", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,
+        subprocess.run([cc, "-std=c99", "-O3", "-c", src], cwd=c, check=True)
+    subprocess.run([cc, "-std=c99", "-O3", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,
                    check=True)
     c_us = []
     for _ in range(3):  # the best of three: the machine is shared
