@@ -316,3 +316,25 @@ def test_a_scheduled_node_keeps_its_phases(cart):
         node.update({4: packet})
     node.update({0: packet})
     assert node.k == 1 and np.isfinite(node.x).all()
+
+
+@pytest.mark.parametrize("mode", ["relay", "flood"])
+def test_a_relay_network_stops_where_the_batch_stops_its_run(mode, tmp_path):
+    """A measurement beyond any finite estimate (1e300 at step 6) makes the batched relay filter stop the run (NaN
+    from there on); the node network stops there too (``stopped``) and gives the batch's numbers bit for bit, NaN
+    included, instead of feeding its neighbours packets they would refuse."""
+    sim = studies.simulate("indoor-robot", seed=4, run=1, out=tmp_path / "log.npz")
+    with np.load(tmp_path / "log.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    for key in ("z", "uplink"):
+        if key in arrays:
+            arrays[key] = arrays[key].copy()
+            arrays[key][5, 0] = 1e300
+    np.savez(tmp_path / "bad.npz", **arrays)
+    ref = studies.filter("indoor-robot", tmp_path / "bad.npz", filter=mode)
+    finite = np.isfinite(ref.x_hat).all(axis=(1, 2))
+    assert 0 < finite.sum() < finite.size  # the batch stopped the run
+    net = studies.node_filter("indoor-robot", mode=mode)
+    x, P = net.run(arrays["z"], sim.attacks, sim.inputs)
+    assert net.stopped
+    assert np.array_equal(x, ref.x_hat, equal_nan=True) and np.array_equal(P, ref.cov, equal_nan=True)
