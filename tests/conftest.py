@@ -50,6 +50,30 @@ def file_tree(root) -> dict:
     return out
 
 
+def scalar_spec_model(*, gain: float = 0.9, noise: float = 0.05, steps: int = 12) -> str:
+    """A model file defining ``SPEC``: a scalar state ``x+ = gain x`` watched by three sensors of variance ``noise``
+    on a line network, DoS 0.1 and FDI 0.05 on every channel, ``steps`` steps."""
+    return f'''
+import casadi as ca
+
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+from studies.scenarios import Param, Scenario, ScenarioSpec
+
+NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
+
+
+def build(p: dict) -> Scenario:
+    x = ca.SX.sym("x", 1)
+    sensors = [Sensor(f"s{{i}}", x, Gaussian.zero_mean([[{noise!r}]])) for i in range(3)]
+    m = Model("scalar", x, {gain!r} * x, sensors, Gaussian.zero_mean([[0.01]]), Gaussian([0.0], [[1.0]]))
+    return Scenario("scalar", m, p, ("scalar: an example",), steps={steps}, network=NETWORK,
+                    attacks=AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(0.2)))
+
+
+SPEC = ScenarioSpec("scalar", "A scalar random walk watched by three sensors", "user", "an example", (), build)
+'''
+
+
 TANK_MODEL = '''
 import casadi as ca
 import numpy as np

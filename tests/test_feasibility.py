@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import scalar_spec_model
 
 from designer.feasibility import steady_state
 from designer.network import SensorNetwork
@@ -281,25 +282,7 @@ def test_a_scaling_whose_square_overflows_is_not_feasible():
 
 
 # A scalar model whose map has certified, vacuous and infeasible points (the bound crosses the open loop with tau).
-SCALAR = '''
-import casadi as ca
-
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-from studies.scenarios import Param, Scenario, ScenarioSpec
-
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-
-
-def build(p: dict) -> Scenario:
-    x = ca.SX.sym("x", 1)
-    sensors = [Sensor(f"s{i}", x, Gaussian.zero_mean([[0.07]])) for i in range(3)]
-    m = Model("scalar", x, 0.9 * x, sensors, Gaussian.zero_mean([[0.01]]), Gaussian([0.0], [[1.0]]))
-    return Scenario("scalar", m, p, ("scalar: an example",), steps=25, network=NETWORK,
-                    attacks=AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(0.2)))
-
-
-SPEC = ScenarioSpec("scalar", "A scalar random walk watched by three sensors", "user", "an example", (), build)
-'''
+SCALAR = scalar_spec_model(noise=0.07, steps=25)
 
 
 def _cells(md: str, section: str) -> list[list[str]]:
@@ -384,7 +367,7 @@ def test_the_summary_counts_alike_reasons_together_and_keeps_equation_labels(tmp
     """Binding reasons that differ only in their numbers (a growth factor, an iteration) are one kind of reason in
     the summary's sentence, counted together, while the conditions' labels (28), (29) stay apart: on a map of a
     random walk where no point settles, the sentence has one reason for all its points, not one per point."""
-    (tmp_path / "walk.py").write_text(SCALAR.replace("0.9 * x", "1.02 * x").replace("[[0.07]]", "[[7e3]]"))
+    (tmp_path / "walk.py").write_text(scalar_spec_model(gain=1.02, noise=7e3, steps=25))
     out = tmp_path / "f"
     feasibility(str(tmp_path / "walk.py"), ["dos=0:0.6:4"], mode="scheduled", out=out, quiet=True)
     with open(out / "feasibility.csv") as fh:

@@ -11,29 +11,12 @@ import json
 import time
 
 import numpy as np
+from conftest import scalar_spec_model
 
 from studies.cli import main
 from studies.reports.text import DURATION, MEASURED
 
-SCALAR = '''
-import casadi as ca
-
-from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-from studies.scenarios import Param, Scenario, ScenarioSpec
-
-NETWORK = SensorNetwork.from_edges(3, [(0, 1), (1, 2)])
-
-
-def build(p: dict) -> Scenario:
-    x = ca.SX.sym("x", 1)
-    sensors = [Sensor(f"s{i}", x, Gaussian.zero_mean([[0.05]])) for i in range(3)]
-    m = Model("scalar", x, 0.9 * x, sensors, Gaussian.zero_mean([[0.01]]), Gaussian([0.0], [[1.0]]))
-    return Scenario("scalar", m, p, ("scalar: an example",), steps=12, network=NETWORK,
-                    attacks=AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(0.2)))
-
-
-SPEC = ScenarioSpec("scalar", "A scalar random walk watched by three sensors", "user", "an example", (), build)
-'''
+SCALAR = scalar_spec_model()
 
 
 def _fake_clock(seed: int):
