@@ -51,7 +51,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
 from . import memory
-from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, scenario_of
+from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, model_inputs, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",
            "FilterRun", "node_filter", "export", "DesignOptions"]
@@ -86,27 +86,10 @@ _WHAT = {"data": "the log", "schedule": "the design directory", "design_dir": "t
          "dask_security": "the TLS options file"}  # what each input path is, in check_apart's messages
 
 
-def _model_inputs(scenario) -> list[tuple]:
-    """The files a model given as ``scenario`` is read from (a model file, a Scenario built from one, or a sequence of
-    them; none for a built-in or in-memory model): the file and the modules of its directory that it imports
-    (:func:`designer.digest.source_files`), as :func:`designer.fileio.check_apart` takes its inputs."""
-    from designer.digest import source_files
-
-    found = []
-    for s in scenario if isinstance(scenario, (list, tuple)) else [scenario]:
-        path = getattr(s, "source", s)
-        if isinstance(path, (str, Path)) and str(path).endswith(".py") and Path(path).is_file():
-            first = Path(path).resolve()
-            found += [("scenario", "the model file", path),
-                      ("scenario", "a module imported by the model file", [f for f in source_files(path)
-                                                                            if f != first])]
-    return found
-
-
 def _apart(out, scenario=None, *, kind: str = "directory", **inputs) -> None:
     """Refuse ``out`` equal to, inside or containing an input (the model's files, and each of ``inputs`` by its
     parameter's name), before anything is computed or written (:func:`designer.fileio.check_apart`)."""
-    check_apart("out", out, [*_model_inputs(scenario), *((k, _WHAT[k], v) for k, v in inputs.items())], kind=kind)
+    check_apart("out", out, [*model_inputs(scenario), *((k, _WHAT[k], v) for k, v in inputs.items())], kind=kind)
 
 
 def _applies(filter, designed: str, **given) -> None:

@@ -409,9 +409,13 @@ class FeasibilityMap:
 
     def save(self, directory) -> Path:
         """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``
-        (replacing the directory's last outputs as a whole, :func:`designer.fileio.replaced_outputs`)."""
-        from designer.fileio import replaced_outputs
+        (replacing the directory's last outputs as a whole, :func:`designer.fileio.replaced_outputs`; refused when it
+        is, lies inside or contains the model's files: :func:`designer.fileio.check_apart`)."""
+        from designer.fileio import check_apart, replaced_outputs
 
+        from .scenarios import model_inputs
+
+        check_apart("directory", directory, model_inputs(self.scenario))
         with replaced_outputs(directory) as stage:
             self._write(stage)
         return Path(directory)

@@ -258,10 +258,16 @@ class StudyResult:
         """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``.
 
         ``helper``: a :class:`studies.figures.FigureHelper` started for this study, which draws the figures
-        (this process draws them if it cannot).
+        (this process draws them if it cannot).  Refused when ``directory`` is, lies inside or contains a model
+        file of the study's scenarios (:func:`designer.fileio.check_apart`).
         """
+        from designer.fileio import check_apart
+
         from .figures import figure_batch, study_figures
         from .results import write_outputs
+        from .scenarios import model_inputs
+
+        check_apart("directory", directory, model_inputs(list(self.scenarios.values())))
 
         def draw(stage: Path) -> None:
             study_figures(self.study, stage, self.results, self.scenarios, self.arrays)

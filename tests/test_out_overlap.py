@@ -115,3 +115,20 @@ def test_the_api_and_the_results_save_refuse_an_overlapping_out(work):
     with pytest.raises(InputError, match="contains the log given as data"):
         run.save("logs")
     assert file_tree(work) == before
+
+
+def test_a_design_map_or_study_saved_over_its_model_is_refused(work):
+    """Design.save, FeasibilityMap.save and StudyResult.save refuse a directory that is, lies inside or contains the
+    model file or a module it imports, as the commands do; a directory apart is written."""
+    before = file_tree(work)
+    d = studies.design("model/tank.py", steps=4)
+    m = studies.feasibility("model/tank.py", ["dos=0:0.2:2"], quiet=True)
+    s = studies.study("consensus-robot", "model/tank.py", runs=2, quiet=True)
+    for result in (d, m, s):
+        with pytest.raises(InputError, match="contains the model file given as scenario"):
+            result.save(".")
+        with pytest.raises(InputError, match="contains a module imported by the model file"):
+            result.save("model/parts")
+    assert file_tree(work) == before
+    d.save(work.parent / "apart")
+    assert (work.parent / "apart" / "schedule.json").is_file()

@@ -24,7 +24,7 @@ from . import four_tank, indoor_robot, switching_2d, target_binary_energy, targe
 from .base import CHANNEL_TYPES, Param, Scenario, ScenarioSpec, parse_assignments
 
 __all__ = ["SCENARIOS", "Param", "Scenario", "ScenarioSpec", "get_spec", "load_scenario", "parse_assignments",
-           "scenario_of", "MODEL_FILE_NAMES", "ScenarioRef", "reference", "CHANNEL_TYPES"]
+           "scenario_of", "MODEL_FILE_NAMES", "ScenarioRef", "reference", "CHANNEL_TYPES", "model_inputs"]
 
 SCENARIOS: dict[str, ScenarioSpec] = {
     m.SPEC.name: m.SPEC
@@ -360,3 +360,20 @@ def scenario_of(target, *, network: SensorNetwork | None = None, attacks: Attack
             given["input_fn"] = given.pop("inputs")
         sc = replace(sc, **given, source=None)  # no longer what its source builds: keep it in memory
     return sc
+
+
+def model_inputs(scenario) -> list[tuple]:
+    """The files a model given as ``scenario`` is read from (a model file, a Scenario built from one, or a sequence of
+    them; none for a built-in or in-memory model): the file and the modules of its directory that it imports
+    (:func:`designer.digest.source_files`), as :func:`designer.fileio.check_apart` takes its inputs."""
+    from designer.digest import source_files
+
+    found = []
+    for s in scenario if isinstance(scenario, (list, tuple)) else [scenario]:
+        path = getattr(s, "source", s)
+        if isinstance(path, (str, Path)) and str(path).endswith(".py") and Path(path).is_file():
+            first = Path(path).resolve()
+            found += [("scenario", "the model file", path),
+                      ("scenario", "a module imported by the model file", [f for f in source_files(path)
+                                                                            if f != first])]
+    return found
