@@ -827,7 +827,8 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     check_path("data", data, optional=True)
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
     _apart(out, scenario, design_dir=design_dir, data=data)
-    _, meta = read_design_record(design_dir, "design_dir")  # data only: nothing it names is imported here
+    record = read_design_record(design_dir, "design_dir")  # data only: nothing it names is imported here
+    meta = record[1]
     if scenario is None:
         where = _recorded_source(design_dir, meta)
         _apart(out, where)  # the design's own model file, once it is known to be the design's
@@ -838,7 +839,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
             raise InputError(clip_message(str(exc))) from None
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
-    mode, options, _ = design_options_of(design_dir, sc)
+    mode, options, _ = design_options_of(design_dir, sc, record)
     rule = gain_rule(mode)
     if not rule.relays and mode not in ("paper", "scheduled"):
         why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else

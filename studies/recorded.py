@@ -403,13 +403,14 @@ def read_design_record(schedule_dir, name: str = "schedule") -> tuple[Path, dict
     return path, meta
 
 
-def design_options_of(schedule_dir, sc: Scenario) -> tuple[str, DesignOptions, dict]:
+def design_options_of(schedule_dir, sc: Scenario, record: tuple[Path, dict] | None = None
+                      ) -> tuple[str, DesignOptions, dict]:
     """The gain rule, the design options and the ``schedule.json`` of a design directory written by
     ``cfdesign design`` for the scenario ``sc``: a design of another scenario, or of this one's model as it was
     before an edit (its recorded ``model_digest``), is refused.  The file is read as data
-    (:func:`read_design_record`): nothing it names is imported."""
+    (:func:`read_design_record`, or ``record``, what it returned already): nothing it names is imported."""
     p = Path(schedule_dir)
-    path, meta = read_design_record(schedule_dir)
+    path, meta = read_design_record(schedule_dir) if record is None else record
     opts = meta.get("options")
     if not isinstance(opts, dict) or "mode" not in opts:
         raise InputError(f"schedule {str(path)!r} records no design options (written by an older cfdesign "
