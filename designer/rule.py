@@ -72,7 +72,7 @@ DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; 
 ROUTINGS = ("tree", "flood")
 _SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
           "observes", "global": "an oracle, not deployable", "centralized": "a fusion centre, not a node's filter"}
-RULE_NAME = re.compile(r"[a-z][a-z0-9_-]*")  # a rule's name: its package's, its --mode
+RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Python identifier), its --mode
 
 
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first is its default
@@ -127,7 +127,7 @@ class GainRule:
     Metadata
     --------
     name : str
-        The mode's name (``--mode NAME``): lower-case letters, digits, ``-`` and ``_``.
+        The mode's name (``--mode NAME``) and its package's: lower-case letters, digits and ``_``.
     runtime : {'local', 'scheduled', 'global'}
         Its run-time class (:data:`RUNTIMES`).
     needs : str
@@ -175,8 +175,8 @@ class GainRule:
         """Check the class's metadata (:class:`InputError` naming the attribute and what it must be)."""
         name = getattr(cls, "name", None)
         if not isinstance(name, str) or not RULE_NAME.fullmatch(name):
-            raise InputError(f"gain rule name must be lower-case letters, digits, '-' or '_' (starting with a letter), "
-                             f"got {name!r}")
+            raise InputError(f"gain rule name must be lower-case letters, digits or '_', starting with a letter (the "
+                             f"name of its package rules/<name>/), got {name!r}")
         if getattr(cls, "runtime", None) not in RUNTIMES:
             raise InputError(f"runtime of gain rule {name!r} must be {_listing(RUNTIMES)}, "
                              f"got {getattr(cls, 'runtime', None)!r}")
@@ -188,6 +188,9 @@ class GainRule:
                 raise InputError(f"{field} of gain rule {name!r} must be True or False, got {getattr(cls, field)!r}")
         if cls.routing not in ROUTINGS:
             raise InputError(f"routing of gain rule {name!r} must be {_listing(ROUTINGS)}, got {cls.routing!r}")
+
+    def __setattr__(self, key, value):
+        raise AttributeError(f"gain rule {self.name!r} is fixed: its metadata are its class's")
 
     def __eq__(self, other) -> bool:
         return type(other) is type(self) and other.name == self.name
@@ -323,6 +326,15 @@ class GainRule:
         or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
         :class:`filters.consensus_batch.ConsensusBatchResult`."""
         raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
+
+    @property
+    def has_node_filter(self) -> bool:
+        """Whether a node can run this rule's designs on its own (:meth:`node_filter` gives its classes)."""
+        try:
+            self.node_filter()
+        except InputError:
+            return False
+        return True
 
     def node_filter(self) -> tuple[type, type]:
         """The filter one node runs for this rule's designs, and the network of them: ``(node, network)`` classes,

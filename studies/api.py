@@ -683,7 +683,8 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``; ``deliver`` says what
         reaches each node).
     """
-    from filters.node import node_filter as make_node, node_network, node_rules
+    import rules
+    from filters.node import node_filter as make_node, node_network
 
     from .comparison import FILTER_REGISTRY
     from .consensus_design import consensus_design
@@ -708,7 +709,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         entry = find_filter(FILTER_REGISTRY, filter)
         if entry.node_filters is None:
             having = [e.name for e in FILTER_REGISTRY if e.node_filters is not None
-                      and not (e.designed and e.mode not in node_rules())]
+                      and not (e.designed and not rules.get(e.mode).has_node_filter)]
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
         memory.check(memory.node_filter_need(sc, None if entry.mode is None else DesignOptions(mode=entry.mode)))
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -47,8 +47,6 @@ __all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
     without offline tables the scheduled design's exchange, robustness and bank, and the rounds unless it relays)."""
-    from dataclasses import replace
-
     opts = options or DesignOptions()
     rule = rules.get(mode)
     if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
@@ -78,8 +76,8 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
         rule.check_options(options)  # what the user gave, before the defaults: a value the rule does not take
     opts = base.merged(options)
     # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
-    # exchange) give way to the rule's own; the rule's mode is named
-    opts = as_mode(opts, rule.name)
+    # exchange) give way to the rule's own; the mode stays as given (None: the default rule), as the record keeps it
+    opts = replace(as_mode(opts, rule.name), mode=opts.mode)
     rule.check_options(opts)
     sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
     return sc.with_attacks(**opts.attack_overrides()), opts
@@ -100,7 +98,7 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode), delta=att.delta, options=opts, x0=x0, u0=u0,
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
     return with_tables(sc, des, steps)
 
@@ -514,7 +512,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode), delta=att.delta, options=opts, x0=x0, u0=u0,
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
     m, net, rule = sc.model, sc.network, des.rule
     with contextlib.ExitStack() as stack:

@@ -210,7 +210,7 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     att = sc_p.resolved_attacks
     try:
         with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
-            return sc_p, make_design(sc_p.model, sc_p.network, rule=rules.get(opts.mode), delta=att.delta, options=opts,
+            return sc_p, make_design(sc_p.model, sc_p.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts,
                                      x0=x0, u0=u0,
                                      signal=att.signal)
     except _POINT_ERRORS as exc:
