@@ -68,13 +68,13 @@ from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_w
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, channel_packets, gate_channels
-from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
+from .channels import GATE_COUNTS, channel_packets, gate_channels
+from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes, stop_diverged
 from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
            "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
@@ -203,6 +203,47 @@ def per_run(value_of, network: SensorNetwork, nets: list | None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the result
+class ConsensusResult(NamedTuple):
+    """A run of the consensus filter over all nodes (:func:`filters.consensus.run_consensus`; a row of
+    :class:`ConsensusBatchResult`, :meth:`ConsensusBatchResult.run`).
+
+    Φ entries whose ``valid`` flag is False come from the fallback recursion and
+    are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
+    condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
+    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``; ``'diverged'``
+    (with a ``reason``) when a node's estimate or covariance left finite numbers: the run
+    stops there and every array is NaN from that step on.
+    """
+
+    x_post: np.ndarray  # (steps+1, N, n_x)
+    x_pred: np.ndarray  # (steps, N, n_x)
+    phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
+    phi_pred: np.ndarray  # (steps, N, n_x, n_x)
+    K: np.ndarray  # (steps, N, n_x, max n_z_i): node i's gain in K[..., :n_z_i], zero beyond
+    C: np.ndarray  # (steps, N, n_x, n_x)
+    valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
+    margin28: np.ndarray  # (steps, N)
+    margin29: np.ndarray  # (steps, N)
+    theorem2: np.ndarray  # (steps+1, N)
+    violations: list
+    sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
+    beta: np.ndarray  # (steps, N) β used in (27)
+    predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
+    gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
+    # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
+    # (designer.mse.mse_gains); NaN where none was solved
+    gain_condition: np.ndarray | None = None
+
+    @property
+    def feasible(self) -> bool:
+        return not any(v["condition"] in HARD_CONDITIONS for v in self.violations)
+
+    @property
+    def diverged(self) -> dict | None:
+        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
@@ -218,7 +259,7 @@ def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
 
 
 class ConsensusBatchResult(NamedTuple):
-    """Many runs of the consensus filter: the fields of :class:`filters.consensus.ConsensusResult`
+    """Many runs of the consensus filter: the fields of :class:`ConsensusResult`
     with a leading runs axis, and ``violations`` one list per run."""
 
     x_post: np.ndarray  # (runs, steps+1, N, n_x)
@@ -243,7 +284,7 @@ class ConsensusBatchResult(NamedTuple):
         return self.x_post.shape[0]
 
     def run(self, r: int) -> ConsensusResult:
-        """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
+        """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
                   for f in ConsensusResult._fields if f not in optional]

@@ -68,7 +68,7 @@ Assumptions where the papers are silent (attacks are not part of either paper):
   DoS does not stop the sender), ``delivered_per_step`` those that arrived.
 * **Divergence**: a node whose estimate or covariance leaves finite numbers, whose estimate
   exceeds ``1e12``, or whose information matrix loses positive definiteness stops the run: a
-  ``'diverged'`` violation (as :class:`filters.consensus.ConsensusResult`) and NaN from that step on.
+  ``'diverged'`` violation (as :class:`filters.consensus_batch.ConsensusResult`) and NaN from that step on.
 
 **One implementation.**  Each filter is one loop batched over runs (:func:`run_kcf_batch`,
 :func:`run_hcmci_batch`: every step one stack over the runs and nodes, a run that diverges stops alone);
@@ -91,10 +91,10 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import DIVERGED, check_run_inputs
+from .consensus import check_run_inputs
 from .consensus_batch import Exchange, batch_inputs, wrap_residuals
 from .node import NodeInputs, NodeNetwork
-from .result import FilterResult
+from .result import DIVERGED, FilterResult
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",

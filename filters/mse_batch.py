@@ -7,8 +7,8 @@ nodes (:mod:`designer.mse`).  Here every quantity of a step is a stack over the 
 the joint covariance ``(runs, N, N, n, n)`` and its certificate go through the functions of
 :mod:`designer.mse` with a leading runs axis, the gains are solved per node over all runs at once
 (the kept packets as masks), and the χ² gate on neighbour packets works on the network's directed
-channels of every run (:func:`filters.consensus.gate_channels`,
-:func:`~filters.consensus.channel_difference_covariance`, :func:`~filters.consensus.kept_fdi_moments`: the
+channels of every run (:func:`filters.channels.gate_channels`,
+:func:`~filters.channels.channel_difference_covariance`, :func:`~filters.channels.kept_fdi_moments`: the
 gate's one home).
 
 Run ``r`` of the result equals the per-node loop of the tests' reference (``tests/consensus_reference.py``)
@@ -54,7 +54,7 @@ from designer.tuning import lam_max
 from designer.validation import InputError
 
 from .attacks import AttackPattern
-from .consensus import channel_difference_covariance, gate_channels, kept_fdi_moments
+from .channels import channel_difference_covariance, gate_channels, kept_fdi_moments
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
                               register_filter, result_arrays, run_networks, wrap_residuals)
 from .result import diverged_nodes, stop_diverged

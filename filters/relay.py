@@ -28,7 +28,7 @@ forwarding node's prediction, as the scheduled filter falsifies a measurement).
 
 **Messages**: ``2 |E| hops`` packets per step (one per directed channel and round, a packet lost to DoS counted);
 delivered: the channels not lost to DoS times ``hops``.  **Divergence**: as the other batched filters, a run whose
-prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.consensus.DIVERGED` at a node
+prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.result.DIVERGED` at a node
 stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.result.stop_diverged`); the other runs
 go on.
 

@@ -21,7 +21,7 @@ The bound each node carries is the design's certificate (``ScheduledTables.Phi``
 since the design does not depend on the run); ``predicted_mse`` is the trace of each node's own ``P_ii``.
 One run is a batch of one: :func:`run_scheduled_batch` is the only implementation.  Its step is three functions of a
 block of nodes (:func:`scheduled_prediction`, :func:`scheduled_update`, :func:`scheduled_round`), each received packet
-formed first (:func:`filters.consensus.channel_packets`) and the slots' terms added slot by slot, so that one node
+formed first (:func:`filters.channels.channel_packets`) and the slots' terms added slot by slot, so that one node
 alone computes the batch's numbers: :class:`ScheduledNode`, the node filter (``predict``, ``update``, then
 ``round`` for rounds 2..L), and :class:`ScheduledNetwork`, every node over a run.
 """
@@ -38,9 +38,9 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
+from .channels import channel_packets
 from .node import NodeInputs, NodeNetwork, register_node_filter
 from .result import diverged_nodes, stop_diverged
-from .consensus import channel_packets
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
                               result_arrays, run_networks, wrap_residuals)
 
