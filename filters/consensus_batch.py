@@ -9,7 +9,11 @@ and its neighbours' non-bound predictions), the violations node by node in step 
 linearisation scalings of ``design.linearization``, wrapped angular residuals, sensors of
 mixed dimensions (gains zero-padded), the bound-trace limit, and divergence: a run whose
 estimate or covariance leaves finite numbers stops there (its arrays NaN from that step on,
-a ``'diverged'`` violation) while the other runs go on.
+a ``'diverged'`` violation) while the other runs go on.  Its step runs on the consensus family's one time loop,
+:func:`filters.engine.run_batch`, which owns the steps, the records, the runs going on and that stop; this module
+holds the result types of a run and of a batch (:class:`ConsensusResult`, :class:`ConsensusBatchResult`) and what
+the modes' steps share (the channels' attacks and sums, the inputs checked, the prediction and update of stacked
+nodes).
 
 Every quantity of a step is a stack over (runs, nodes):
 
@@ -75,8 +79,8 @@ from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
-           "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters",
+           "register_filter", "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
