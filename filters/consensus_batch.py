@@ -77,10 +77,11 @@ from .engine import Step, run_batch
 from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes
 from .rrp import wrap_angles
 
-_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+# the reason of a (28) violation where a bound's trace reached the limit (every mode that certifies a bound)
+LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters",
-           "register_filter", "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
+           "LIMIT_REASON", "register_filter", "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
@@ -790,7 +791,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             if t2 < 0:
                 vs.append({"node": i, "step": k, "condition": "theorem2", "margin": t2})
             if c28:
-                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": _LIMIT_REASON}
+                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": LIMIT_REASON}
                                                                                      if lim else {})})
         rr, ii = np.nonzero(v29)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):

@@ -56,8 +56,8 @@ from designer.validation import InputError
 
 from .attacks import AttackPattern
 from .channels import channel_difference_covariance, gate_channels, kept_fdi_moments
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
-                              register_filter, result_arrays, run_networks, wrap_residuals)
+from .consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+                              per_run, register_filter, result_arrays, run_networks, wrap_residuals)
 from .engine import Step, run_batch
 from .result import diverged_nodes
 
@@ -66,7 +66,6 @@ __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
 MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
 JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
-_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 
 # --------------------------------------------------------------------------- the filter
@@ -189,7 +188,7 @@ class _Runs:
         tr = np.trace(node_blocks(Bj), axis1=-2, axis2=-1)
         for r in np.flatnonzero(self.proper & ~(tr.max(axis=-1) < BOUND_LIMIT)):
             self.proper[r] = False
-            self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, _LIMIT_REASON)
+            self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, LIMIT_REASON)
         Bp = None
         done = np.zeros(a, dtype=bool)
         sel = np.flatnonzero(self.proper)
