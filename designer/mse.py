@@ -431,7 +431,7 @@ ILL_CONDITIONED = 1e6
 def conditioning(gain_condition: np.ndarray | None) -> dict:
     """``schedule.json``'s ``conditioning``: each node's largest gain condition number over the steps and where.
 
-    ``gain_condition`` (steps, N) of :attr:`filters.consensus.ConsensusResult.gain_condition` (mode mse), or None
+    ``gain_condition`` (steps, N) of :attr:`filters.consensus_batch.ConsensusResult.gain_condition` (mode mse), or None
     (the paper and tuned modes solve each node's own system, whose noise covariance keeps it regular, and record
     none).  ``ill_conditioned`` lists the nodes beyond :data:`ILL_CONDITIONED`.
     """

@@ -9,7 +9,11 @@ and its neighbours' non-bound predictions), the violations node by node in step 
 linearisation scalings of ``design.linearization``, wrapped angular residuals, sensors of
 mixed dimensions (gains zero-padded), the bound-trace limit, and divergence: a run whose
 estimate or covariance leaves finite numbers stops there (its arrays NaN from that step on,
-a ``'diverged'`` violation) while the other runs go on.
+a ``'diverged'`` violation) while the other runs go on.  Its step runs on the consensus family's one time loop,
+:func:`filters.engine.run_batch`, which owns the steps, the records, the runs going on and that stop; this module
+holds the result types of a run and of a batch (:class:`ConsensusResult`, :class:`ConsensusBatchResult`) and what
+the modes' steps share (the channels' attacks and sums, the inputs checked, the prediction and update of stacked
+nodes).
 
 Every quantity of a step is a stack over (runs, nodes):
 
@@ -56,14 +60,16 @@ from designer.tuning import neighbour_group_stack, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, channel_packets, gate_channels
-from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
+from .channels import GATE_COUNTS, channel_packets, gate_channels
+from .engine import Step, run_batch
+from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes
 from .rrp import wrap_angles
 
-_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+# the reason of a (28) violation where a bound's trace reached the limit (every mode that certifies a bound)
+LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice", "UpdateChoice",
-           "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice",
+           "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
@@ -191,6 +197,47 @@ def per_run(value_of, network: SensorNetwork, nets: list | None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the result
+class ConsensusResult(NamedTuple):
+    """A run of the consensus filter over all nodes (:func:`filters.consensus.run_consensus`; a row of
+    :class:`ConsensusBatchResult`, :meth:`ConsensusBatchResult.run`).
+
+    Φ entries whose ``valid`` flag is False come from the fallback recursion and
+    are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
+    condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
+    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``; ``'diverged'``
+    (with a ``reason``) when a node's estimate or covariance left finite numbers: the run
+    stops there and every array is NaN from that step on.
+    """
+
+    x_post: np.ndarray  # (steps+1, N, n_x)
+    x_pred: np.ndarray  # (steps, N, n_x)
+    phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
+    phi_pred: np.ndarray  # (steps, N, n_x, n_x)
+    K: np.ndarray  # (steps, N, n_x, max n_z_i): node i's gain in K[..., :n_z_i], zero beyond
+    C: np.ndarray  # (steps, N, n_x, n_x)
+    valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
+    margin28: np.ndarray  # (steps, N)
+    margin29: np.ndarray  # (steps, N)
+    theorem2: np.ndarray  # (steps+1, N)
+    violations: list
+    sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
+    beta: np.ndarray  # (steps, N) β used in (27)
+    predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
+    gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
+    # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
+    # (designer.mse.mse_gains); NaN where none was solved
+    gain_condition: np.ndarray | None = None
+
+    @property
+    def feasible(self) -> bool:
+        return not any(v["condition"] in HARD_CONDITIONS for v in self.violations)
+
+    @property
+    def diverged(self) -> dict | None:
+        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
@@ -206,7 +253,7 @@ def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
 
 
 class ConsensusBatchResult(NamedTuple):
-    """Many runs of the consensus filter: the fields of :class:`filters.consensus.ConsensusResult`
+    """Many runs of the consensus filter: the fields of :class:`ConsensusResult`
     with a leading runs axis, and ``violations`` one list per run."""
 
     x_post: np.ndarray  # (runs, steps+1, N, n_x)
@@ -231,7 +278,7 @@ class ConsensusBatchResult(NamedTuple):
         return self.x_post.shape[0]
 
     def run(self, r: int) -> ConsensusResult:
-        """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
+        """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
                   for f in ConsensusResult._fields if f not in optional]
@@ -581,32 +628,18 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
 
-    x_post = np.full((runs, steps + 1, n, nx), np.nan)
-    x_pred = np.full((runs, steps, n, nx), np.nan)
-    phi_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
-    phi_pred = np.full((runs, steps, n, nx, nx), np.nan)
-    K = np.full((runs, steps, n, nx, nz), np.nan)
-    C = np.full((runs, steps, n, nx, nx), np.nan)
-    valid = np.zeros((runs, steps + 1, n), dtype=bool)
+    out = result_arrays(runs, steps, n, nx, nz)
+    del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
+    violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)
-    m28 = np.full((runs, steps, n), np.nan)
-    m29 = np.full((runs, steps, n), np.nan)
-    th2 = np.full((runs, steps + 1, n), np.nan)
-    sig = np.full((runs, steps, n), np.nan)
-    bet = np.full((runs, steps, n), np.nan)
-    violations: list[list[dict]] = [[] for _ in range(runs)]
-    counts = np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64)
-    x_post[:, 0] = x0[:, None]
-    phi_post[:, 0] = phi0[:, None]
-    valid[:, 0] = not replay
-    act = np.arange(runs)  # the runs still going (not diverged)
+    out["x_post"][:, 0] = x0[:, None]
+    out["phi_post"][:, 0] = phi0[:, None]
+    out["valid"][:, 0] = not replay
+    valid = out["valid"]
 
-    for k in range(steps):
+    def step(k, act, at):
         a = act.size
-        if a == 0:
-            break
-        at = slice(None) if a == runs else act  # index of the runs going on (a view while none has stopped)
-        xk, Pk, prop = x_post[at, k], phi_post[at, k], proper[at]
+        xk, Pk, prop = out["x_post"][at, k], out["phi_post"][at, k], proper[at]
         uk = u[k] if u.ndim == 2 else u[at, k][:, None, :]
         xp, Pp, margin28, sigma, pvalid, th2k, limit = predict_nodes(model, design, predict_rule, k, xk, Pk, prop, uk,
                                                                      d_max)
@@ -618,7 +651,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         else:
             received, fdi, xi = ~attacks.dos[at, k], attacks.fdi[at, k], attacks.xi[at, k]
         cov_diff = 2.0 * (Pp[:, ex.receiver] + Pp[:, ex.sender]) if design.gate else None
-        recv, counts[at, k] = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
+        recv, counts = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
         s = ex.sum(recv.astype(float))
         innovation = ex.sum(recv[..., None] * channel_packets(xp[:, ex.sender], fdi, xi)) - s[..., None] * xp
         each = slice(None) if nets is None else at  # the runs' channel statistics
@@ -650,12 +683,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 r = int(raising[0])
                 raise first_step_error(r, v28, v29, phi0[at], Pp, design)
         nb_bad = ex.sum((~pred_ok)[:, ex.sender].astype(float)) > 0
-        x_pred[at, k], phi_pred[at, k], m28[at, k], sig[at, k], th2[at, k] = xp, Pp, margin28, sigma, th2k
-        x_post[at, k + 1], phi_post[at, k + 1], K[at, k], C[at, k] = xn, Pn, Kn, Cn
-        m29[at, k], bet[at, k] = margin29, beta
-        valid[at, k + 1] = uvalid & pred_ok & ~nb_bad
         proper[at] = prop & ~v28 & ~v29
-        # ---- violations: theorem2 and (28) node by node, then (29), then divergence
+        # ---- violations: theorem2 and (28) node by node, then (29) (the loop adds divergence)
         rr, ii = np.nonzero((th2k < 0) | v28)
         for r, i, t2, c28, mg, lim in zip(act[rr].tolist(), ii.tolist(), th2k[rr, ii].tolist(), v28[rr, ii].tolist(),
                                           margin28[rr, ii].tolist(), limit[rr, ii].tolist()):
@@ -663,25 +692,29 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             if t2 < 0:
                 vs.append({"node": i, "step": k, "condition": "theorem2", "margin": t2})
             if c28:
-                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": _LIMIT_REASON}
+                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": LIMIT_REASON}
                                                                                      if lim else {})})
         rr, ii = np.nonzero(v29)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):
             violations[r].append({"node": i, "step": k + 1, "condition": "(29)", "margin": mg})
-        act = act[stop_diverged(violations, act, failed, k + 1, lambda r, node: reasons[r, node],
-                                nan_from=(x_post, phi_post), nan_before=(K, C), invalid_from=(valid,))]
+        return Step(dict(x_pred=xp, phi_pred=Pp, margin28=margin28, sigma=sigma, theorem2=th2k, K=Kn, C=Cn,
+                         margin29=margin29, beta=beta, gate_counts=counts),
+                    dict(x_post=xn, phi_post=Pn, valid=uvalid & pred_ok & ~nb_bad), failed,
+                    lambda r, node: reasons[r, node])
+
+    act = run_batch(step, out, violations, steps, nan_from=("x_post", "phi_post"), nan_before=("K", "C"),
+                    invalid_from=("valid",))
     # Phi_{K|K} against the last sigma each node used
     at = slice(None) if act.size == runs else act
     last = valid[at, steps]
     if last.any():
         th = np.full(last.shape, np.nan)
-        th[last] = theorem2_margin(phi_post[at, steps][last], sig[at, steps - 1][last], d_max)
-        th2[at, steps] = th
+        th[last] = theorem2_margin(out["phi_post"][at, steps][last], out["sigma"][at, steps - 1][last], d_max)
+        out["theorem2"][at, steps] = th
         rr, ii = np.nonzero(th < 0)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
-    return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                                None, counts)
+    return ConsensusBatchResult(**out)
 
 
 def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:

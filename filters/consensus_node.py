@@ -19,8 +19,8 @@ same functions, :func:`filters.consensus_batch.predict_nodes` and :func:`~filter
 a block of one node; tested through :class:`ConsensusNetwork`).
 
 :class:`ConsensusNetwork` drives every node over a run: each step every node predicts, the packets cross the
-channels (DoS drops them, FDI adds ``ξ``: :func:`filters.consensus.channel_packets`), and every node updates with
-what reached it.  When one node's estimate leaves finite numbers (or :data:`filters.consensus.DIVERGED`), the
+channels (DoS drops them, FDI adds ``ξ``: :func:`filters.channels.channel_packets`), and every node updates with
+what reached it.  When one node's estimate leaves finite numbers (or :data:`filters.result.DIVERGED`), the
 batched filter stops the whole run; so does the network (NaN from then on).
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ from designer.model import Model
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
-from .consensus import channel_packets, gate_channels
+from .channels import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
                               tuned_items, update_nodes)
 from .node import NodeInputs, NodeNetwork

@@ -28,8 +28,8 @@ forwarding node's prediction, as the scheduled filter falsifies a measurement).
 
 **Messages**: ``2 |E| hops`` packets per step (one per directed channel and round, a packet lost to DoS counted);
 delivered: the channels not lost to DoS times ``hops``.  **Divergence**: as the other batched filters, a run whose
-prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.consensus.DIVERGED` at a node
-stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.result.stop_diverged`); the other runs
+prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.result.DIVERGED` at a node
+stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.engine.run_batch`); the other runs
 go on.
 
 **How it is computed.**  The node moments are computed once (:func:`designer.relay.node_moments`, every node).
@@ -59,8 +59,9 @@ from .attacks import AttackPattern
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
+from .engine import Step, estimate_arrays, run_batch
 from .node import NodeInputs, check_step, run_network
-from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
+from .result import DIVERGED_REASON, diverged_nodes
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -184,37 +185,32 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     lay = _layout(model, routes)
     classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
                            free=True)
-    x_post = np.full((runs, steps + 1, n, nx), np.nan)
-    P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
-    x_pred = np.full((runs, steps, n, nx), np.nan)
-    P_pred = np.full((runs, steps, n, nx, nx), np.nan)
-    x_post[:, 0], P_post[:, 0] = x0[:, None], P0[:, None]
-    sent = np.full((runs, steps), network.messages_per_step(hops))
-    delivered = np.zeros((runs, steps), int)
+    out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops))
     violations: list[list[dict]] = [[] for _ in range(runs)]
-    act = np.arange(runs)
-    for k in range(steps):
-        if not act.size:
-            break
+
+    def step(k, act, at):
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xp, Pp = _predict(model, k, x_post[act, k], P_post[act, k], uk)
-        x_pred[act, k], P_pred[act, k] = xp, Pp
-        go = stop_diverged(violations, act, diverged_nodes(xp, Pp), k + 1, "prediction: " + DIVERGED_REASON,
-                           nan_before=(x_pred, P_pred))
-        act, xp, Pp = act[go], xp[go], Pp[go]
-        if not act.size:
-            break
-        if attacks is None:
-            dos = fdi = xi = None
-            delivered[act, k] = network.messages_per_step(hops)
-        else:
-            dos, fdi, xi = attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
-            delivered[act, k] = (~dos).sum(axis=-1) * hops
-        x, P = _update(model, routes, lay, classes, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
-        x_post[act, k + 1], P_post[act, k + 1] = x, P
-        act = act[stop_diverged(violations, act, diverged_nodes(x, P), k + 1, nan_from=(x_post, P_post),
-                                nan_before=(x_pred, P_pred))]
-    return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, hops, None)
+        xp, Pp = _predict(model, k, out["x_post"][act, k], out["P_post"][act, k], uk)
+        bad = diverged_nodes(xp, Pp)  # a prediction beyond finite numbers stops its run before the update
+        go = ~bad.any(axis=-1)
+        x, P = np.full(xp.shape, np.nan), np.full(Pp.shape, np.nan)
+        delivered = np.zeros(act.size, int)
+        if go.any():
+            g = act[go]
+            if attacks is None:
+                dos = fdi = xi = None
+                delivered[go] = network.messages_per_step(hops)
+            else:
+                dos, fdi, xi = attacks.dos[g, k], attacks.fdi[g, k], attacks.xi[g, k]
+                delivered[go] = (~dos).sum(axis=-1) * hops
+            x[go], P[go] = _update(model, routes, lay, classes, M, mu, k, z[g, k], xp[go], Pp[go], dos, fdi, xi)
+            bad[go] = diverged_nodes(x[go], P[go])
+        return Step(dict(x_pred=xp, P_pred=Pp, delivered=delivered), dict(x_post=x, P_post=P), bad,
+                    lambda j, node: DIVERGED_REASON if go[j] else "prediction: " + DIVERGED_REASON)
+
+    run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
+    return DistributedBatchResult(out["x_post"], out["P_post"], out["x_pred"], out["P_pred"], out["sent"],
+                                  out["delivered"], violations, hops, None)
 
 
 def _predict(model: Model, k: int, x, P, u):

@@ -591,7 +591,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     -------
     FilterRun
     """
-    from filters.consensus import HARD_CONDITIONS
+    from filters.result import HARD_CONDITIONS
 
     from .comparison import FILTER_REGISTRY, STUDY
     from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design

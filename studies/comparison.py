@@ -57,7 +57,7 @@ from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
-from filters.consensus import HARD_CONDITIONS
+from filters.result import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 

@@ -32,7 +32,9 @@ from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, json_number,
                               open_loop_reference, open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
-from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
+from filters.consensus import run_consensus
+from filters.consensus_batch import ConsensusResult
+from filters.result import HARD_CONDITIONS
 
 from .invocation import design_invocation
 from .provenance import design_seal

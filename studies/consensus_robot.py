@@ -46,7 +46,7 @@ import rules
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
-from filters.consensus import GATE_COUNTS
+from filters.channels import GATE_COUNTS
 
 from .comparison import HCMCI_ITERATIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
@@ -299,7 +299,7 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
 
 
 def exchange_counts(counts: np.ndarray) -> dict:
-    """Totals of :data:`filters.consensus.GATE_COUNTS` over runs, with the gate's three rates."""
+    """Totals of :data:`filters.channels.GATE_COUNTS` over runs, with the gate's three rates."""
     tot = dict(zip(GATE_COUNTS, (int(x) for x in counts.sum(axis=0))))
     clean = tot["received"] - tot["fdi_received"]
     return {**tot,

@@ -187,7 +187,7 @@ def test_certificates_bound_the_monte_carlo_error_of_a_nonlinear_network(mode, l
 def test_gate_rejects_a_clean_packet_with_its_stated_probability():
     """Clean differences drawn from the covariance the gate is given are dropped at rate α (binomial tolerance);
     a large injected signal is dropped; the counts add up."""
-    from filters.consensus import GATE_COUNTS, gate_channels
+    from filters.channels import GATE_COUNTS, gate_channels
 
     rng = np.random.default_rng(0)
     receiver, sender = np.array([0, 1]), np.array([1, 0])  # the two channels 1 -> 0 and 0 -> 1
