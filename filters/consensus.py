@@ -41,7 +41,7 @@ neighbour's non-bound ``Φ_{j,k+1|k}`` in (27): ``valid`` tracks both.
 
 **One implementation.**  :func:`run_consensus` is a batch of one run of
 :func:`filters.consensus_batch.run_consensus_batch` (which dispatches mode mse to
-:mod:`filters.mse_batch` and mode scheduled to :mod:`filters.scheduled`): a run alone and the same run
+:mod:`rules.mse.filter` and mode scheduled to :mod:`rules.scheduled.filter`): a run alone and the same run
 in a batch are the same numbers, and the result of a run (:class:`filters.consensus_batch.ConsensusResult`) is
 a row of the batch's.  This module holds the run alone: its inputs checked (:func:`check_run_inputs`) and the
 wrapped residual of one sensor (:func:`wrapped_residual`).  What every form shares lives below it: the χ² gate

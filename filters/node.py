@@ -1,7 +1,7 @@
 """Node filters: the filter one sensor node runs, one step at a time, with only what the node has.
 
-The studies run a design's filter at every node of a network over many runs at once (:mod:`filters.relay`,
-:mod:`filters.scheduled`, ...).  A *node filter* is the same computation for one node, fed one step at a time with
+The studies run a design's filter at every node of a network over many runs at once (:mod:`rules.relay.filter`,
+:mod:`rules.scheduled.filter`, ...).  A *node filter* is the same computation for one node, fed one step at a time with
 what the node itself observes: its own measurement and the packets that reached it, with what they carried.  It is
 what a researcher drives with a testbed's data, and what ``cfdesign export`` turns into C.  A *node network* drives
 every node of a network over a recorded or simulated run: it simulates the exchange of each step from the run's
@@ -9,12 +9,12 @@ channel attacks and steps every node with what reached it; its numbers are the b
 
 A design's node filter is its gain rule's (``design.rule.node_filter()``, :mod:`rules`), e.g.
 
-* one ``step(z, received, u)`` with the relayed measurements (:class:`filters.relay.RelayNode`,
-  :class:`filters.relay.RelayNetwork`);
+* one ``step(z, received, u)`` with the relayed measurements (:class:`rules.relay.filter.RelayNode`,
+  :class:`rules.relay.filter.RelayNetwork`);
 * two phases, ``predict(u)`` gives the packet the node sends, ``update(z, received, bounds)`` takes what arrived
   (:class:`filters.consensus_node.ConsensusNode`, ``ConsensusNetwork``);
 * ``predict(z, u)``, ``update(received)``, then ``round(received)`` for its exchange rounds 2..L
-  (:class:`filters.scheduled.ScheduledNode`, ``ScheduledNetwork``).
+  (:class:`rules.scheduled.filter.ScheduledNode`, ``ScheduledNetwork``).
 
 Asking for the node filter of a rule that has none (an oracle) raises :class:`designer.validation.InputError` saying
 why.  The baselines KCF and HCMCI have node filters too (:class:`filters.distributed.KCFNode`,

@@ -789,7 +789,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     design_dir : path
         A directory written by ``design`` for a gain rule a node runs: ``paper`` (with ``linearization='fixed'``,
         the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood``
-        (:class:`filters.relay.RelayNode`) or ``scheduled`` (:class:`filters.scheduled.ScheduledNode`, its tables
+        (:class:`rules.relay.filter.RelayNode`) or ``scheduled`` (:class:`rules.scheduled.filter.ScheduledNode`, its tables
         exported with it).
     target : {'c'}
     out : path

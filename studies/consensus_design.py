@@ -337,7 +337,7 @@ _SCHEDULED_RECORD = {
                   "along a run; K, C and the estimates are those of the nodes applying them on the seeded simulated "
                   "run (SeedSequence(seed).spawn(2)), C the sum of the gains of the links whose packets arrived",
     "replay": "every node applies the tables on any run with its own estimate, covariance and Jacobians and the "
-              "packets that arrived (filters.scheduled); the bound is the expected one over the attacks along the "
+              "packets that arrived (rules.scheduled.filter); the bound is the expected one over the attacks along the "
               "nominal linearisation with the remainders U, V_i, validated on fresh runs by study consensus-robot",
     "robustness_note": "the link gains are chosen with the margin robustness = delta (schedule.json robustness): "
                   "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "

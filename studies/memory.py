@@ -61,8 +61,8 @@ _ARRAY_OBJECT = 112  # bytes of a small NumPy array's object beside its data (a 
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
-_JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
-_JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
+_JOINT_COPIES = 24  # rules.mse.filter.JOINT_COPIES
+_JOINT_BUDGET = 2**28  # rules.mse.filter.MEMORY_BUDGET
 _LOG_COPIES = 2.0  # a CSV log's arrays as parsed, and their float copies as checked (studies.recorded.check_log)
 
 _STEPS = "fewer steps"

@@ -1,7 +1,7 @@
 """The consensus EKF of seed 003 as a straightforward per-run, per-node loop: the tests' reference.
 
 This is the per-run filter that ``filters.consensus.run_consensus`` was before the batched filter
-(``filters.consensus_batch``, ``filters.mse_batch``) became the only implementation: node by node
+(``filters.consensus_batch``, ``rules.mse.filter``) became the only implementation: node by node
 and step by step, (3), (7), the bound recursion (26)-(27) and the gain (30) per node, the χ² gate
 and the exchange on the dense adjacency, the tuned weights warm-started by neighbour, mode mse
 with its joint covariance and certificate as lists of per-node gains, and the replay of a fixed

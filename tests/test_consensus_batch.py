@@ -147,7 +147,7 @@ def test_robot_tuned_design_matches_per_run(robot, rule):
 @pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="tuned", gate=0.05),
                                     dict(mode="mse", gate=0.05)])
 def test_other_modes_and_gates_match_per_run(robot, change):
-    """Mode mse (filters.mse_batch) and gated designs (the χ² gate on the stacked channels) give the reference's
+    """Mode mse (rules.mse.filter) and gated designs (the χ² gate on the stacked channels) give the reference's
     numbers, predicted_mse and gate_counts (attacks given as EdgeAttacks; per-run x0)."""
     sc, net, traj, atts = robot
     steps = 3
@@ -428,7 +428,7 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
     np.testing.assert_array_equal(same.x_post, one.x_post)
     np.testing.assert_array_equal(same.phi_post, one.phi_post)
     if des.mode == "mse":  # in sub-batches of one run each, every run keeps its own network
-        import filters.mse_batch as mse_batch
+        import rules.mse.filter as mse_batch
 
         monkeypatch.setattr(mse_batch, "MEMORY_BUDGET", 1)
         apart = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)

@@ -21,7 +21,7 @@ import json
 import numpy as np
 import pytest
 
-import filters.relay as relay_filter
+import rules.relay.filter as relay_filter
 import rules
 from designer.design import DesignOptions, make_design
 from designer.model import Model
@@ -29,7 +29,7 @@ from designer.network import SensorNetwork
 from designer.relay import flood_moments, node_moments, relay_routes, relay_stationary
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 from studies.cli import main
 from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
                         reference_relay, simulate_linear, varied_network)

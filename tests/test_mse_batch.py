@@ -1,4 +1,4 @@
-"""Mode 'mse' batched over Monte Carlo runs (filters.mse_batch) against the per-run path, and the stacked
+"""Mode 'mse' batched over Monte Carlo runs (rules.mse.filter) against the per-run path, and the stacked
 functions of designer.mse against the same functions item by item.
 
 The reference is the per-run, per-node loop of tests/consensus_reference.py in mode 'mse' (what
@@ -20,7 +20,7 @@ import pytest
 from scipy.linalg import block_diag
 from scipy.optimize import minimize_scalar
 
-import filters.mse_batch as mse_batch
+import rules.mse.filter as mse_batch
 import rules
 from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
 from designer.attacks import FDISignal
@@ -37,7 +37,7 @@ from designer.mse import (
 from designer.validation import InputError
 from filters.attacks import simulate_attacks
 from filters.consensus_batch import EdgeAttacks
-from filters.mse_batch import run_mse_batch
+from rules.mse.filter import run_mse_batch
 from studies.consensus_design import consensus_design
 
 from test_consensus_batch import SITES, assert_same_as_per_run, chain_model, mixed_model, per_run  # tests/ on the path

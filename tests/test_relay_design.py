@@ -2,7 +2,7 @@
 (designer.relay.relay_stationary) and its design from a user's model file, against independent references.
 
 * the rule's filter (``rules.get('relay').batch_filter()``, reached by ``run_consensus_batch``) is the
-  relay filter of :func:`filters.relay.run_relay_batch` run by itself on each run's network (runs on networks of
+  relay filter of :func:`rules.relay.filter.run_relay_batch` run by itself on each run's network (runs on networks of
   different channel probabilities included) with the design's hops and FDI signal;
 * the stationary certificate's fixed point is where the relay filter's own covariance recursion ends on a linear
   model (a second implementation: the certificate stacks the nodes by ball size, the filter runs every node), with
@@ -23,7 +23,7 @@ from designer.attacks import FDISignal
 from designer.design import DesignOptions, make_design
 from designer.relay import relay_stationary
 from filters.consensus_batch import run_consensus_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 from studies.cli import main
 from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
                         simulate_linear, varied_network)

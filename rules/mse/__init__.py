@@ -16,7 +16,7 @@ class MSE(GainRule):
     joint_covariance = True
 
     def batch_filter(self):
-        from filters.mse_batch import run_mse_batch
+        from .filter import run_mse_batch
 
         return run_mse_batch
 

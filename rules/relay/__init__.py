@@ -18,12 +18,12 @@ class Relay(GainRule):
     relays = True
 
     def batch_filter(self):
-        from filters.relay import run_relay_design
+        from .filter import run_relay_design
 
         return run_relay_design
 
     def node_filter(self):
-        from filters.relay import RelayNetwork, RelayNode
+        from .filter import RelayNetwork, RelayNode
 
         return RelayNode, RelayNetwork
 

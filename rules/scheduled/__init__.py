@@ -18,12 +18,12 @@ class Scheduled(GainRule):
     offline_tables = True
 
     def batch_filter(self):
-        from filters.scheduled import run_scheduled_batch
+        from .filter import run_scheduled_batch
 
         return run_scheduled_batch
 
     def node_filter(self):
-        from filters.scheduled import ScheduledNetwork, ScheduledNode
+        from .filter import ScheduledNetwork, ScheduledNode
 
         return ScheduledNode, ScheduledNetwork
 

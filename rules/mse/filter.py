@@ -54,12 +54,12 @@ from designer.network import SensorNetwork
 from designer.tuning import lam_max
 from designer.validation import InputError
 
-from .attacks import AttackPattern
-from .channels import channel_difference_covariance, gate_channels, kept_fdi_moments
-from .consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.attacks import AttackPattern
+from filters.channels import channel_difference_covariance, gate_channels, kept_fdi_moments
+from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               per_run, result_arrays, run_networks, wrap_residuals)
-from .engine import Step, run_batch
-from .result import diverged_nodes
+from filters.engine import Step, run_batch
+from filters.result import diverged_nodes
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 

@@ -37,13 +37,13 @@ from designer.network import SensorNetwork
 from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
-from .attacks import AttackPattern
-from .channels import channel_packets
-from .node import NodeInputs, NodeNetwork
-from .result import diverged_nodes
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.attacks import AttackPattern
+from filters.channels import channel_packets
+from filters.node import NodeInputs, NodeNetwork
+from filters.result import diverged_nodes
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from .engine import Step, run_batch
+from filters.engine import Step, run_batch
 
 __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
            "ScheduledNode", "ScheduledNetwork"]

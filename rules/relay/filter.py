@@ -55,13 +55,13 @@ from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_i
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
-from .attacks import AttackPattern
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.attacks import AttackPattern
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from .distributed import DistributedBatchResult
-from .engine import Step, estimate_arrays, run_batch
-from .node import NodeInputs, check_step, run_network
-from .result import DIVERGED_REASON, diverged_nodes
+from filters.distributed import DistributedBatchResult
+from filters.engine import Step, estimate_arrays, run_batch
+from filters.node import NodeInputs, check_step, run_network
+from filters.result import DIVERGED_REASON, diverged_nodes
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -319,7 +319,7 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
     return x, P
 
 
-#: The most numbers of one r x r temporary of a class's update per run (filters.relay._update): one call per node
+#: The most numbers of one r x r temporary of a class's update per run (rules.relay.filter._update): one call per node
 #: costs Python overhead at every step (a single run at 512 nodes: most of the design's time), a whole class at once
 #: temporaries beyond the caches (5 runs at 512 nodes: slower than one call per node).  An assumption, chosen on the
 #: 512-node grid (8 nodes of 150 rows per call).
