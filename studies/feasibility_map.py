@@ -287,7 +287,8 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
         des = [d for _, d in items]
         return steady_state_batch(F, H, m.process_cov, R, [s.network for s, _ in items],
                                   epsilon=[d.epsilon for d in des], delta=[d.delta for d in des],
-                                  U=[d.U for d in des], V=[d.V for d in des], mode=des[0].mode,
+                                  U=[d.U for d in des], V=[d.V for d in des],
+                                  fixed_multipliers=des[0].rule.fixed_multipliers,
                                   sigma=[d.sigma for d in des], beta=[d.beta for d in des],
                                   tau=[d.tau for d in des], **kw)
 
@@ -297,8 +298,8 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
             if batched:
                 return _row(batch([item])[0], ol, N)
             return _row(steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U,
-                                     V=d.V, mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span,
-                                     **kw), ol, N)
+                                     V=d.V, fixed_multipliers=d.rule.fixed_multipliers, sigma=d.sigma, beta=d.beta,
+                                     tau=d.tau, fdi_span=d.fdi_span, **kw), ol, N)
         except _POINT_ERRORS as exc:
             return _failed(exc)
 

@@ -311,7 +311,7 @@ def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_o
         sc, opts = effective(scenario_of(str(path)), DesignOptions(mode="tuned", v_scale=float(r["v_scale"])))
         des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=0.0, options=opts, x0=np.zeros(2))
         st = steady_state(0.9 * np.eye(2), H, 0.1 * np.eye(2), R, sc.network, epsilon=des.epsilon, delta=0.0, U=des.U,
-                          V=des.V, mode="tuned", phi0=0.2 * np.eye(2))
+                          V=des.V, phi0=0.2 * np.eye(2))
         if st.feasible:
             top = max(np.trace(p) for p in st.phi)
             assert r["verdict"] == ("vacuous" if top >= ol else "certified"), r
