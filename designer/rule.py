@@ -311,14 +311,8 @@ class GainRule:
 
     def rounds(self, network, rounds: int | None = None) -> int:
         """The exchange rounds per step of this rule's design on ``network``: ``rounds`` when given, else the rule's
-        default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
-        if rounds is not None:
-            return int(rounds)
-        if not self.relays:
-            return 1
-        from .relay import default_hops  # late: scipy's graph routines, not needed to list or load a scenario
-
-        return default_hops(network)
+        default (1 here; a rule that relays: its hops)."""
+        return 1 if rounds is None else int(rounds)
 
     def batch_filter(self):
         """Its filter over a batch of Monte Carlo runs: a :class:`filters.consensus_batch.NodeRule` (a prediction and

@@ -17,6 +17,15 @@ class Relay(GainRule):
                "ball with one gain minimising the expected covariance over the attacks")
     relays = True
 
+    def rounds(self, network, rounds: int | None = None) -> int:
+        """The hops L of its design on ``network``: ``rounds`` when given, else :func:`designer.relay.default_hops`
+        (the network's diameter, at most 8)."""
+        if rounds is not None:
+            return int(rounds)
+        from designer.relay import default_hops  # late: scipy's graph routines, not needed to list the rules
+
+        return default_hops(network)
+
     def batch_filter(self):
         from .filter import run_relay_design
 
