@@ -61,9 +61,8 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["c_text", "template", "C_TEMPLATES", "described", "c_array", "model_code", "common_code", "linalg_code",
-           "write_node",
-           "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX"]
+__all__ = ["c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code", "common_code",
+           "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX"]
 
 C_TEMPLATES = files(__package__) / "c"  # the C files: frame/ and one folder per node kind
 _FRAME = C_TEMPLATES / "frame"
