@@ -35,10 +35,10 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     from scipy.special import chdtri
 
     from .bounds import BOUND_LIMIT
-    from .gain_rules import gain_rule
 
-    if design.mode != "paper":
-        raise InputError(f"mode must be 'paper' for the consensus node's C export, got {design.mode!r}")
+    if not design.rule.fixed_multipliers:
+        raise InputError(f"mode must be a rule of fixed multipliers (paper) for the consensus node's C export, got "
+                         f"{design.mode!r}")
     if design.linearization != "fixed":
         raise InputError(f"linearization must be 'fixed' for the C export (the {design.linearization!r} scalings "
                          "come from the model's Hessians at every step, which the export does not generate)")
@@ -74,7 +74,7 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     source = template(
         _C / "cfd_node.c.in", COMMON=common_code(model, sizes), LINALG=linalg_code(), DATA=data,
         NZMAX=int(dims.max()), SIGMA=repr(sigma), BETA=repr(beta),
-        TAU=repr(float(design.tau)), EPS=repr(eps), FIXED=int(gain_rule(design.mode).fixed_multipliers),
+        TAU=repr(float(design.tau)), EPS=repr(eps), FIXED=int(design.rule.fixed_multipliers),
         GATE=repr(float(design.gate)), CHI2=repr(float(chdtri(n, design.gate))) if design.gate else "0.0",
         BOUND_LIMIT=repr(float(BOUND_LIMIT)), RCOND=repr(1e-13), DIVERGED=repr(1e12))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)

@@ -27,10 +27,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     :func:`designer.relay.relay_routes` and :func:`designer.relay.relay_moments`) for the nodes ``nodes`` into
     ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
     (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
-    from .gain_rules import gain_rule
     from .scheduled import sqrtm_psd
 
-    rule = gain_rule(design.mode)
+    rule = design.rule
     if not rule.relays:
         raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")
     out = Path(out)

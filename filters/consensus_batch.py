@@ -23,48 +23,36 @@ Every quantity of a step is a stack over (runs, nodes):
   channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
-The filter of each gain rule is registered under its name (:func:`register_filter`,
-:func:`rule_filters`).  The rules a node applies on its own over Theorem 1's recursion are a
-:class:`NodeRule`, a pair of batched functions over stacked items: ``'paper'`` (σ, β fixed,
-``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
-(σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
-weighted (27) by :func:`designer.tuning.tune_weighted_batch`, over the groups own error / each
-received neighbour / the falsified packets, with one group slot per incoming channel; each
-(run, node) carries its weights per slot from one tuned update to the next and warm-starts from
-them, :func:`designer.tuning.warm_start_weights`).  A fixed gain schedule (``gains=``, e.g. a
-design's, replayed on other runs) takes the place of the rule: every node on the fallback
-recursion with the given gains, nothing certified.  Mode ``'mse'`` runs batched in
-:func:`filters.mse_batch.run_mse_batch`, mode ``'scheduled'`` in
-:func:`filters.scheduled.run_scheduled_batch`.  The straightforward per-node loop this batch was
+The filter of a design is its gain rule's (``design.rule.batch_filter()``, :mod:`rules`): a
+:class:`NodeRule`, a pair of batched functions over stacked items (a prediction and an update each node
+applies on its own over Theorem 1's recursion; ``weighted``: the weighted (27), with one group slot per
+incoming channel, each (run, node) carrying its weights per slot from one update to the next and
+warm-starting from them, :func:`designer.tuning.warm_start_weights`), run by this module's loop; or a
+function with :func:`run_consensus_batch`'s parameters, which this function hands the design to.  A fixed
+gain schedule (``gains=``, e.g. a design's, replayed on other runs) takes the place of the rule: every node
+on the fallback recursion with the given gains, nothing certified.  The straightforward per-node loop this batch was
 written from is kept as the tests' reference (``tests/consensus_reference.py``).
 """
 from __future__ import annotations
 
-from importlib import import_module
-from types import MappingProxyType
-from typing import Callable, Mapping, NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from designer.bounds import (
     BOUND_LIMIT,
-    condition28_margin,
-    condition29_margin,
     optimal_gain_from,
-    prediction_bound,
     prediction_recursion,
-    Spectrum,
     shifted_inverse,
     spectrum,
     theorem2_margin,
     update_bound_from,
 )
 from designer.design import ConsensusDesign, validate_design
-from designer.gain_rules import gain_rule
 from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_weighted_batch, warm_start_weights
+from designer.tuning import neighbour_group_stack, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
@@ -74,8 +62,8 @@ from .rrp import wrap_angles
 
 _LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
-           "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice", "UpdateChoice",
+           "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
@@ -265,7 +253,7 @@ class ConsensusBatchResult(NamedTuple):
         ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
         the EKF's own covariance), the violations, one message per directed link of ``network`` per step
         and exchange round (``2 |E| rounds``, lost ones included) and the packets received (``gate_counts``' first
-        column), ``runtime`` the gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
+        column), ``runtime`` the gain rule's (:attr:`designer.rule.GainRule.runtime`)."""
         runs, steps = self.x_pred.shape[:2]
         return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
                             constant_messages(runs, steps, network.messages_per_step(rounds)), runtime,
@@ -293,46 +281,6 @@ class UpdateChoice(NamedTuple):
     weights: np.ndarray | None = None  # (m, L) mode tuned: the weights of (27)'s groups (NaN: group absent)
 
 
-def _paper_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
-    pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
-    return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
-
-
-def _paper_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
-    """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
-    m, n = phi_pred.phi.shape[:2]
-    H, s, V, R, d, neighbour_terms = (it[key] for key in ("H", "s", "V", "R", "d", "nt"))
-    margin = condition29_margin(phi_pred, design.beta, D)
-    ok = margin > 0
-    if not ok.all():  # the rule on the items inside (29); NaN for the others (they take the fallback)
-        out = UpdateChoice(margin, np.full(m, design.beta), np.full((m, n, H.shape[-2]), np.nan),
-                           np.full((m, n, n), np.nan), np.full((m, n, n), np.nan))
-        if ok.any():
-            inner = _paper_update(phi_pred.take(ok), {key: v[ok] for key, v in it.items()}, D, design)
-            out.K[ok], out.C[ok], out.phi_post[ok] = inner.K, inner.C, inner.phi_post
-        return out
-    C = design.tau * phi_pred.phi
-    M = shifted_inverse(phi_pred, design.beta, D)
-    K = optimal_gain_from(M, H, C, s, design.beta, V, R, d)
-    phi = update_bound_from(M, H, K, C, s, design.beta, V, R, d, neighbour_terms)
-    return UpdateChoice(margin, np.full(m, design.beta), K, C, phi)
-
-
-def _tuned_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
-    """The σ of (26) that makes its trace smallest (:func:`designer.tuning.tune_prediction_batch`), then (28)."""
-    ch = tune_prediction_batch(phi_post, F, U, Q, design.epsilon, D=D)
-    margin = condition28_margin(phi_post, ch.sigma, design.epsilon, D)
-    return PredictionChoice(np.where((margin > 0)[:, None, None], ch.phi_pred, np.nan), margin, ch.sigma)
-
-
-def _tuned_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
-    """(β, C, K) and the weights of the weighted (27) (:func:`designer.tuning.tune_weighted_batch`, warm-started
-    from each node's previous weights), then (29) at that β."""
-    ch = tune_weighted_batch(phi_pred, it["H"], it["s"], it["V"], it["R"], it["groups"], it["present"], D=D,
-                             weights=it["w0"])
-    return UpdateChoice(condition29_margin(phi_pred, ch.beta, D), ch.beta, ch.K, ch.C, ch.phi_post, ch.weights)
-
-
 class NodeRule(NamedTuple):
     """A gain rule that each node applies on its own over the bound recursion of Theorem 1, run by
     :func:`run_consensus_batch`'s loop: its prediction and update, both batched over stacked items (an update
@@ -342,52 +290,6 @@ class NodeRule(NamedTuple):
     predict: Callable[..., PredictionChoice]
     update: Callable[..., UpdateChoice]
     weighted: bool = False  # the weighted (27): each node's weights per incoming channel, carried between steps
-
-
-# gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
-# function with run_consensus_batch's parameters (without gains); see register_filter
-_FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
-# they register the filters of the other built-in rules
-_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled", "filters.relay")
-
-
-def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
-    """Register ``run`` as the filter of the gain rule named ``rule`` (registered in :mod:`designer.gain_rules`):
-    a :class:`NodeRule`, or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
-    :class:`ConsensusBatchResult`.  A rule has one filter; returns ``run``."""
-    gain_rule(rule, "rule")
-    if rule in _FILTERS:
-        raise InputError(f"gain rule {rule!r} has a filter already")
-    _FILTERS[rule] = run
-    return run
-
-
-def unregister_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
-    """Remove the filter of the gain rule named ``rule`` and return it."""
-    if rule not in _FILTERS:
-        raise InputError(f"no filter is registered for gain rule {rule!r}")
-    return _FILTERS.pop(rule)
-
-
-def rule_filters() -> Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"]:
-    """Every registered filter by gain rule name (read-only), the built-in rules' included."""
-    for module in _FILTER_MODULES:  # late: they build on this module
-        import_module(module)
-    return MappingProxyType(_FILTERS)
-
-
-def rule_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
-    """The filter registered for the gain rule named ``rule`` (InputError when none is)."""
-    if rule not in _FILTERS:
-        rule_filters()
-    if rule not in _FILTERS:
-        raise InputError(f"no filter applies gain rule {rule!r} (filters.consensus_batch.register_filter registers "
-                         "one)")
-    return _FILTERS[rule]
-
-
-register_filter("paper", NodeRule(_paper_prediction, _paper_update))
-register_filter("tuned", NodeRule(_tuned_prediction, _tuned_update, weighted=True))
 
 
 def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float, K=None, C=None):
@@ -623,9 +525,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any gain rule with a filter (:func:`rule_filters`), with or without a gate: 'mse' runs in
-        :func:`filters.mse_batch.run_mse_batch`, 'scheduled' in :func:`filters.scheduled.run_scheduled_batch`,
-        'paper' and 'tuned' (:class:`NodeRule`) here.
+        Any gain rule with a filter (``design.rule.batch_filter()``), with or without a gate: a
+        :class:`NodeRule` runs here, a function is handed the design.
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
     attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
@@ -655,7 +556,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     design = validate_design(design, model, network)
     ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    filt = None if gains is not None else rule_filter(design.mode)
+    filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
                     phi0=phi0)
@@ -665,7 +566,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     if replay:
         gains = _replay_gains(gains, steps, n, nx, nz)
     predict_rule, update_rule = (None, None) if replay else filt[:2]
-    fixed = gain_rule(design.mode).fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
+    fixed = design.rule.fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
     degrees = network.degrees
     d_max = network.d_max
     eye = np.eye(nx)

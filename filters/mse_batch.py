@@ -56,7 +56,7 @@ from designer.validation import InputError
 from .attacks import AttackPattern
 from .consensus import channel_difference_covariance, gate_channels, kept_fdi_moments
 from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
-                              register_filter, result_arrays, run_networks, wrap_residuals)
+                              result_arrays, run_networks, wrap_residuals)
 from .result import diverged_nodes, stop_diverged
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
@@ -95,8 +95,8 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
-    if design.mode != "mse":
-        raise InputError(f"run_mse_batch runs mode 'mse', got {design.mode!r} "
+    if not design.rule.joint_covariance:
+        raise InputError(f"run_mse_batch runs a gain rule of the joint covariance (mse), got mode {design.mode!r} "
                          "(filters.consensus_batch runs the others)")
     q = per_run(lambda net: net.falsified_prob, network, nets)  # (1 or runs, N, N)
     n, nx = network.n_nodes, model.n_x
@@ -311,4 +311,3 @@ class _Runs:
         self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]
 
 
-register_filter("mse", run_mse_batch)

@@ -48,7 +48,6 @@ import numpy as np
 
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, validate_design
-from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments,
@@ -57,10 +56,10 @@ from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from .distributed import DistributedBatchResult
-from .node import NodeInputs, check_step, register_node_filter, run_network
+from .node import NodeInputs, check_step, run_network
 from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
@@ -351,7 +350,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                      phi0=None) -> ConsensusBatchResult:
-    """The filter of a gain rule that relays (``design.mode``, ``'relay'`` or ``'flood'``; :mod:`designer.gain_rules`):
+    """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
 
@@ -366,7 +365,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     runs, steps = z.shape[:2]
     first, nets = run_networks(network, runs)
     design = validate_design(design, model, first)
-    rule = gain_rule(design.mode)
+    rule = design.rule
     if not rule.relays:
         raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
     attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
@@ -411,7 +410,7 @@ class RelayNode:
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
                  P0=None, routes: Routes | None = None, moments: Sequence[NodeMoments] | None = None):
         design = validate_design(design, model, network)
-        rule = gain_rule(design.mode)
+        rule = design.rule
         if not rule.relays:
             raise InputError(f"RelayNode runs a gain rule that relays (relay, flood); got mode {design.mode!r}")
         self.node = check_int("node", node, 0, network.n_nodes - 1)
@@ -467,7 +466,7 @@ class RelayNetwork:
 
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, *, x0=None, P0=None):
         design = validate_design(design, model, network)
-        rule = gain_rule(design.mode)
+        rule = design.rule
         self.model, self.network = model, network
         self.routes = relay_routes(network, design.rounds, rule.routing)
         moments = relay_moments(self.routes, network, model.sensor_dims)
@@ -531,7 +530,3 @@ class RelayNetwork:
         return run_network(self, z, attacks, inputs)
 
 
-register_filter("relay", run_relay_design)  # the filters of gain rules 'relay' and 'flood' (filters.consensus_batch)
-register_filter("flood", run_relay_design)
-register_node_filter("relay", RelayNode, RelayNetwork)  # and their node filters (filters.node)
-register_node_filter("flood", RelayNode, RelayNetwork)

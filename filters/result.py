@@ -29,7 +29,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from designer.gain_rules import FILTER_RUNTIMES
+from designer.rule import FILTER_RUNTIMES
 from designer.validation import InputError
 
 from .consensus import DIVERGED
@@ -51,7 +51,7 @@ class FilterResult(NamedTuple):
     of ``{node, step, condition, margin[, reason]}`` (design conditions of the consensus filters, and
     ``'diverged'`` where the run stopped).  ``messages`` (runs, steps): transmissions attempted per
     step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
-    ``runtime``: what the filter needs at run time (:data:`designer.gain_rules.FILTER_RUNTIMES`).
+    ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
     alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.
     """

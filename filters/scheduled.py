@@ -38,10 +38,10 @@ from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from .attacks import AttackPattern
-from .node import NodeInputs, NodeNetwork, register_node_filter
+from .node import NodeInputs, NodeNetwork
 from .result import diverged_nodes, stop_diverged
 from .consensus import channel_packets
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 
 __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
@@ -65,7 +65,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     network, _ = run_networks(network, runs)
     design = validate_design(design, model, network)
     tables = design.tables
-    if design.mode != "scheduled" or tables is None:
+    if not design.rule.offline_tables or tables is None:
         raise InputError("run_scheduled_batch runs mode 'scheduled' with its tables (designer.scheduled."
                          "design_scheduled); got mode " + repr(design.mode))
     ch = tables.channels
@@ -250,7 +250,6 @@ def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | Non
     return slots[at, :, choice], Sig[choice, np.asarray(nodes)[None, :]][:, :, :d, :d]
 
 
-register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)
 
 
 # --------------------------------------------------------------------------- the node filter
@@ -279,8 +278,8 @@ class ScheduledNode:
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
                  P0=None):
         design = validate_design(design, model, network)
-        if design.mode != "scheduled" or design.tables is None:
-            raise InputError(f"ScheduledNode runs mode 'scheduled' with its tables; got mode {design.mode!r}")
+        if not design.rule.offline_tables or design.tables is None:
+            raise InputError(f"ScheduledNode runs a rule of offline tables with its tables; got mode {design.mode!r}")
         i = self.node = check_int("node", node, 0, network.n_nodes - 1)
         self.model, self.design, self.tables = model, design, design.tables
         ch = self.tables.channels
@@ -433,4 +432,3 @@ class ScheduledNetwork(NodeNetwork):
         return sent, rounds
 
 
-register_node_filter("scheduled", ScheduledNode, ScheduledNetwork)

@@ -263,7 +263,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : str, a gain rule of :data:`designer.gain_rules.GAIN_RULES`
+    mode : str, the name of a gain rule (:mod:`rules`)
         The paper's fixed choices or the convex tuning layer (both ``local``: computed online at
         each node), the mean-square-error gains (``global``: an oracle needing the network's
         joint state, a reference of what the structure can reach, not a design to deploy), or the
@@ -286,7 +286,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     Returns
     -------
     Design
-        ``.gain_rule`` (:class:`designer.gain_rules.GainRule`: its ``runtime``, what a node ``needs``
+        ``.gain_rule`` (:class:`designer.rule.GainRule`: its ``runtime``, what a node ``needs``
         to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``,
         ``.verdict`` (``certified``, ``vacuous``, ``not steady`` or ``infeasible``:
         :mod:`designer.verdict`), ``.verdict_detail`` (the numbers behind it), ``.verdict_line()``,
@@ -813,7 +813,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from designer.export_c_consensus import consensus_replay_text, write_consensus_c
     from designer.export_c_relay import replay_text, write_relay_c
     from designer.export_c_scheduled import scheduled_replay_text, write_scheduled_c
-    from designer.gain_rules import gain_rule
+    import rules
     from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
@@ -841,7 +841,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
     mode, options, _ = design_options_of(design_dir, sc, record)
-    rule = gain_rule(mode)
+    rule = rules.get(mode)
     if not rule.relays and mode not in ("paper", "scheduled"):
         why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
                "its node solves a convex problem online at every step, which the export does not generate (its node "

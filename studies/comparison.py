@@ -54,7 +54,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
-from designer.gain_rules import DEPLOYABLE, runtime_label
+from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
 from filters.consensus import HARD_CONDITIONS
@@ -118,7 +118,7 @@ _DESCRIPTION = {
            "network size N (the centralized EKF as L grows, without attacks)",
 }
 # The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register).
-# Each records what it needs at run time (designer.gain_rules.FILTER_RUNTIMES): a designed filter its gain rule's
+# Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
 # (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
 # centre). Oracles and centralized filters are references: ranked apart, never the pick.
 FILTER_REGISTRY = FilterRegistry([

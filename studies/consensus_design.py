@@ -21,8 +21,9 @@ from typing import Callable
 
 import numpy as np
 
+import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
-from designer.gain_rules import GainRule, gain_rule
+from designer.rule import GainRule
 from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
@@ -49,7 +50,7 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     from dataclasses import replace
 
     opts = options or DesignOptions()
-    rule = gain_rule(mode)
+    rule = rules.get(mode)
     if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
         opts = replace(opts, exchange=None, robustness=None, bank=None)
     if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
@@ -72,7 +73,14 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
     if any(v is not None for v in base.attack_overrides().values()):
         raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
                          "attacks in ATTACKS")
+    rule = rules.get((options.mode if options is not None else None) or base.mode or rules.DEFAULT)
+    if options is not None:
+        rule.check_options(options)  # what the user gave, before the defaults: a value the rule does not take
     opts = base.merged(options)
+    # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
+    # exchange) give way to the rule's own; the rule's mode is named
+    opts = as_mode(opts, rule.name)
+    rule.check_options(opts)
     sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
     return sc.with_attacks(**opts.attack_overrides()), opts
 
@@ -92,7 +100,8 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode), delta=att.delta, options=opts, x0=x0, u0=u0,
+                      signal=att.signal)
     return with_tables(sc, des, steps)
 
 
@@ -100,8 +109,8 @@ def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None)
     """``design`` with the offline tables of mode ``'scheduled'`` for ``steps`` steps of ``sc`` (default its
     horizon): designed along the nominal trajectory from the operating point with the scenario's known inputs,
     from the prior covariance (:func:`designer.scheduled.design_scheduled`).  A design of a rule without
-    ``offline_tables`` (:mod:`designer.gain_rules`) is returned as it is."""
-    if not gain_rule(design.mode).offline_tables:
+    ``offline_tables`` (:mod:`designer.rule`) is returned as it is."""
+    if not design.rule.offline_tables:
         return design
     from designer.scheduled import design_scheduled
 
@@ -122,7 +131,7 @@ def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack
     (:class:`studies.runner.Background`, entered on ``stack``).  The same tables as :func:`with_tables`; a design
     with a bank of operating points (its nodes use the bank within the horizon too), of a rule without offline
     tables, or whose tables this process has, is complete at once."""
-    if not gain_rule(design.mode).offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
+    if not design.rule.offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
         done = with_tables(sc, design, steps)
         return done, lambda: done
     from designer.scheduled import design_scheduled, stationary_tables
@@ -170,7 +179,7 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
     the paper design's own σ, β or τ, the user asked for that design: the reason is raised instead as
     an :class:`InputError` prefixed with the filter's ``name``.
     """
-    if not gain_rule(design.mode).fixed_multipliers:
+    if not design.rule.fixed_multipliers:
         return None
     m = sc.model
     u = sc.inputs(1)
@@ -206,7 +215,7 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
 
     x0, u0 = sc.operating_point
     m = sc.model
-    relays = gain_rule(design.mode).relays
+    relays = design.rule.relays
     cert = relay_stationary(m, sc.network, design, x=x0, u=u0) if relays else stationary_certificate(
         m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
     open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
@@ -285,7 +294,7 @@ def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[
     """What a design of a rule with offline tables records beside them and does not compute from them: its
     stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`); for a
     rule that relays, its stationary certificate and its trade-off (:func:`relay_tradeoff`)."""
-    if gain_rule(design.mode).relays:
+    if design.rule.relays:
         record = stationary_record(sc, design)
         return record, relay_tradeoff(sc, design, record)
     return stationary_record(sc, design), other_rounds(sc, design, steps)
@@ -305,7 +314,7 @@ def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = 
 
     x0, u0 = sc.operating_point
     net = sc.network
-    routing = gain_rule(design.mode).routing
+    routing = design.rule.routing
     hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
     rows = []
     for L in hops:
@@ -468,10 +477,10 @@ class Design:
 
     @property
     def gain_rule(self) -> GainRule:
-        """The design's gain rule (:mod:`designer.gain_rules`): its run-time class (``local``, ``scheduled`` or
+        """The design's gain rule (:mod:`designer.rule`): its run-time class (``local``, ``scheduled`` or
         ``global``), what a node needs to apply it, and whether it is ``deployable`` (a ``global`` rule is an
         oracle: a reference of what the structure can reach, not a design to deploy)."""
-        return gain_rule(self.design.mode)
+        return self.design.rule
 
     def verdict_line(self) -> str:
         """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it;
@@ -505,8 +514,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
-    m, net, rule = sc.model, sc.network, gain_rule(des.mode)
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode), delta=att.delta, options=opts, x0=x0, u0=u0,
+                      signal=att.signal)
+    m, net, rule = sc.model, sc.network, des.rule
     with contextlib.ExitStack() as stack:
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
@@ -526,7 +536,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     ver = design_verdict(m, x0, u0, trace, res.violations, refs)
     schedule = GainSchedule(
         scenario=sc.name,
-        mode=des.mode,
+        rule=des.rule,
         epsilon=des.epsilon,
         sigma=res.sigma.T.copy(),
         beta=res.beta.T.copy(),

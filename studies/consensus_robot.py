@@ -42,7 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.gain_rules import gain_rule
+import rules
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -387,12 +387,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
 def _load_replay(schedule, sc) -> tuple:
     """``(mode, K, C)`` of the schedule written by ``cfdesign design`` in ``schedule``, checked against ``sc``."""
     m, net = sc.model, sc.network
-    sch = load_schedule(schedule)
-    if not gain_rule(sch.mode).seeded_design:  # its K and C are one run's; the design is the tables, applied online
+    sch = load_schedule(schedule, rules.get)
+    if not sch.rule.seeded_design:  # its K and C are one run's; the design is the tables, applied online
         raise InputError(f"schedule {str(schedule)!r} is a scheduled design: its nodes apply their tables online "
                          "with their own estimates, not fixed gains; run it with --mode scheduled (the same design "
                          "options) instead of replaying its K and C")
-    if gain_rule(sch.mode).relays:  # its gains weigh each node's relayed measurements, computed online
+    if sch.rule.relays:  # its gains weigh each node's relayed measurements, computed online
         raise InputError(f"schedule {str(schedule)!r} is a relay design: its nodes compute their gains online from "
                          f"the measurements relayed to them, not fixed gains; run it with --mode {sch.mode} (the same "
                          "--rounds) instead of replaying it")

@@ -59,8 +59,8 @@ from typing import Sequence
 
 import numpy as np
 
+import rules
 from designer.design import DesignOptions, make_design
-from designer.gain_rules import gain_rule, names_with
 from designer.feasibility import steady_state, steady_state_batch
 from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
@@ -210,7 +210,8 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     att = sc_p.resolved_attacks
     try:
         with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
-            return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+            return sc_p, make_design(sc_p.model, sc_p.network, rule=rules.get(opts.mode), delta=att.delta, options=opts,
+                                     x0=x0, u0=u0,
                                      signal=att.signal)
     except _POINT_ERRORS as exc:
         if strict:
@@ -277,7 +278,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
-    if gain_rule(options.mode or "paper").stationary_certificate:  # the design's own at each point
+    if rules.get(options.mode or rules.DEFAULT).stationary_certificate:  # the design's own at each point
         res = iter([_scheduled_row(*item) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
@@ -425,7 +426,7 @@ class FeasibilityMap:
 
         _write_csv(out / "feasibility.csv", self.rows, self.names)
         if len(self.grids) <= 2:
-            _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or "paper")
+            _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or rules.DEFAULT)
         from designer.design import DESIGN_ASSUMPTIONS
         from designer.observability import kalman_references, observability
 
@@ -469,15 +470,15 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if len(set(names)) != len(names):
         raise InputError("each --grid parameter may be given once")
     sc_eff, opts = effective(sc, options)
-    mode = opts.mode or "paper"
-    rule = gain_rule(mode)
+    mode = opts.mode or rules.DEFAULT
+    rule = rules.get(mode)
     if not rule.mappable:
         raise InputError(f"mode {mode!r} is not mapped yet: its gains come from the joint error covariance of a run "
-                         f"(use cfdesign design or a study); feasibility maps mode {names_with('mappable')}")
+                         f"(use cfdesign design or a study); feasibility maps every other mode")
     bad = [n for n in names if n in _PAPER_ONLY and not rule.fixed_multipliers]
     if bad:
-        raise InputError(f"--grid {bad[0]} applies to mode {names_with('fixed_multipliers')} only (the {mode} design "
-                         "chooses it itself)")
+        raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (the {mode} design chooses it "
+                         "itself)")
     d_max = max(sc_eff.network.d_max, 1)
     for n, start, stop, count in specs:
         top = float(max(start, stop) if count > 1 else start)

@@ -42,7 +42,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
-from designer.gain_rules import gain_rule
+import rules
 from designer.validation import InputError
 
 __all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
@@ -199,7 +199,7 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
              Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
                   f"{rows} runs x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
              _step_hessians(model, rows * n, linearization, "a smaller model")]
-    if mode is not None and gain_rule(mode).joint_covariance:
+    if mode is not None and rules.get(mode).joint_covariance:
         per_run = _JOINT_COPIES * _D * (n * n_x) ** 2
         parts.append(Part(f"{what}: the joint error covariance of all nodes (mode mse)",
                           min(rows * per_run, max(_JOINT_BUDGET, per_run)),
@@ -294,7 +294,7 @@ def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
 
     sc, opts = effective(sc, options)
     phases = [[_prior_hessians(sc.model, opts)]]
-    if gain_rule(opts.mode).offline_tables:
+    if rules.get(opts.mode or rules.DEFAULT).offline_tables:
         phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
                                  "the design's offline tables", reduce))
     return phases
