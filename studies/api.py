@@ -811,8 +811,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
 
     Returns the files written.
     """
-    from designer.export_c import (consensus_replay_text, replay_text, scheduled_replay_text, write_consensus_c,
-                                   write_relay_c, write_scheduled_c)
+    from designer.export_c_consensus import consensus_replay_text, write_consensus_c
+    from designer.export_c_relay import replay_text, write_relay_c
+    from designer.export_c_scheduled import scheduled_replay_text, write_scheduled_c
     import rules
     from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks

@@ -1,0 +1,44 @@
+int main(int argc, char **argv) {
+    static cfd_node nodes[CFD_NODES];
+    static cfd_packet bounds[CFD_DEG_MAX], mine;
+    static double u[CFD_NU + 1], z[CFD_NZ], flags[CFD_DEG_MAX], rec[CFD_DEG_MAX * CFD_NX], ok[1];
+    static double px[CFD_NX], pP[CFD_NX * CFD_NX], pok[1], x[CFD_NX], P[CFD_NX * CFD_NX];
+    static unsigned char arrived[CFD_DEG_MAX];
+    FILE *fh;
+    int steps, k, j, b, bad = 0;
+    double worst = 0.0;
+    fh = start(argc, argv, nodes, &steps);
+    if (!fh) return 2;
+    for (k = 0; k < steps; ++k) {
+        for (j = 0; j < CFD_NODES; ++j) {
+            const int *senders;
+            int d = cfd_neighbours(nodes[j].node, &senders), m = cfd_sensor_dim(nodes[j].node), e;
+            int short_read = read_numbers(fh, u, CFD_NU) || read_numbers(fh, z, m) || read_numbers(fh, flags, d)
+                             || read_numbers(fh, rec, d * CFD_NX);
+            for (b = 0; b < d && !short_read; ++b) {
+                short_read = read_numbers(fh, bounds[b].P, CFD_NX * CFD_NX) || read_numbers(fh, ok, 1);
+                bounds[b].ok = ok[0] != 0.0;
+            }
+            if (short_read || read_numbers(fh, px, CFD_NX) || read_numbers(fh, pP, CFD_NX * CFD_NX)
+                    || read_numbers(fh, pok, 1) || read_numbers(fh, x, CFD_NX)
+                    || read_numbers(fh, P, CFD_NX * CFD_NX)) {
+                return short_replay(argv[1], k, nodes[j].node);
+            }
+            for (b = 0; b < d; ++b) arrived[b] = flags[b] != 0.0;
+            e = cfd_predict(&nodes[j], CFD_NU ? u : NULL, &mine);
+            if (e) {
+                fprintf(stderr, "step %d, node %d: cfd_predict returned %d\n", k + 1, nodes[j].node, e);
+                return 1;
+            }
+            if ((mine.ok != 0) != (pok[0] != 0.0)) bad += 1;
+            check(mine.x, mine.P, px, pP, &worst, &bad);
+            e = cfd_update(&nodes[j], z, arrived, rec, bounds);
+            if (e) {
+                fprintf(stderr, "step %d, node %d: cfd_update returned %d\n", k + 1, nodes[j].node, e);
+                return 1;
+            }
+            check(nodes[j].x, nodes[j].P, x, P, &worst, &bad);
+        }
+    }
+    return finish(fh, steps, worst, bad);
+}

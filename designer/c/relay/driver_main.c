@@ -1,0 +1,31 @@
+int main(int argc, char **argv) {
+    static cfd_node nodes[CFD_NODES];
+    static double z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
+    static double x[CFD_NX], P[CFD_NX * CFD_NX];
+    static unsigned char arrived[CFD_BALL_MAX];
+    FILE *fh;
+    int steps, k, j, bad = 0;
+    double worst = 0.0;
+    fh = start(argc, argv, nodes, &steps);
+    if (!fh) return 2;
+    for (k = 0; k < steps; ++k) {
+        for (j = 0; j < CFD_NODES; ++j) {
+            const int *ball;
+            int nb = cfd_ball(nodes[j].node, &ball), m_own = cfd_sensor_dim(ball[0]), m_rec = 0, b, e;
+            for (b = 1; b < nb; ++b) m_rec += cfd_sensor_dim(ball[b]);
+            if (read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1) || read_numbers(fh, rec, m_rec)
+                    || read_numbers(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
+                    || read_numbers(fh, P, CFD_NX * CFD_NX)) {
+                return short_replay(argv[1], k, nodes[j].node);
+            }
+            for (b = 0; b < nb - 1; ++b) arrived[b] = flags[b] != 0.0;
+            e = cfd_step(&nodes[j], z, arrived, rec, CFD_NU ? u : NULL);
+            if (e) {
+                fprintf(stderr, "step %d, node %d: cfd_step returned %d\n", k + 1, nodes[j].node, e);
+                return 1;
+            }
+            check(nodes[j].x, nodes[j].P, x, P, &worst, &bad);
+        }
+    }
+    return finish(fh, steps, worst, bad);
+}

@@ -1,0 +1,99 @@
+"""The relay node's C export: the home of :func:`write_relay_c` (the node filter of a design whose gain rule relays,
+``relay`` or ``flood``: :class:`filters.relay.RelayNode` in C99) and of its replay, :func:`replay_text`.
+
+The node's C is in the package's ``c/relay/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled by
+:func:`designer.export_c.template`; the frame (the model's code, the common C, the replay driver's head, the
+Makefile) is :mod:`designer.export_c`'s.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .export_c import (C_TEMPLATES, c_array, common_code, described, model_code, replay_file, template,
+                       write_node)
+from .validation import InputError
+
+__all__ = ["write_relay_c", "replay_text"]
+
+_C = C_TEMPLATES / "relay"
+
+
+def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, *, nodes: Sequence[int],
+                  replay: str | None = None, verdict: str = "unknown") -> list[Path]:
+    """Write the C sources of the node filter of the relay design ``design`` (``routes``, ``moments``: its
+    :func:`designer.relay.relay_routes` and :func:`designer.relay.relay_moments`) for the nodes ``nodes`` into
+    ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
+    (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
+    from .scheduled import sqrtm_psd
+
+    rule = design.rule
+    if not rule.relays:
+        raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")
+    out = Path(out)
+    n, nz_max = model.n_x, max(model.sensor_dims)
+    signal = design.fdi_signal
+    M = np.zeros((n, n)) if signal is None else signal.moment(n)
+    mu = np.zeros(n) if signal is None else signal.mean(n)
+    if not np.any(network.fdi_prob > 0):
+        M, mu = np.zeros((n, n)), np.zeros(n)
+    G = routes.hops + 1
+    sizes, dims, layout = model_code(model, out)
+    rinv = [sqrtm_psd(model.measurement_cov(s), inverse=True) for s in range(model.n_sensors)]
+    rinv_start = np.concatenate([[0], np.cumsum(dims ** 2)])
+    nodes = [int(i) for i in nodes]
+    ball_start, ball, row_start, row_group, p, rr_start, A, F1, F2 = [0], [], [0], [], [], [0], [], [], []
+    for i in nodes:
+        mom = moments[i]
+        ball += mom.sensors.tolist()
+        ball_start.append(len(ball))
+        r = mom.rows.size
+        row_group += mom.groups.argmax(-1).tolist()
+        p += mom.p.tolist()
+        row_start.append(row_start[-1] + r)
+        A += mom.A.reshape(-1).tolist()
+        F1 += (mom.F1 if np.any(M) else np.zeros((r, r))).reshape(-1).tolist()
+        F2 += (mom.F2 if np.any(mu) else np.zeros((r, r))).reshape(-1).tolist()
+        rr_start.append(len(A))
+    r_max = max(row_start[j + 1] - row_start[j] for j in range(len(nodes)))
+    ball_max = max(ball_start[j + 1] - ball_start[j] for j in range(len(nodes)))
+    gn = G * n
+    header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
+                      NODES=len(nodes), BALL_MAX=ball_max, ROWS_MAX=r_max, ROUNDS=int(routes.hops), MODE=rule.name,
+                      **described(model, nodes, verdict))
+    data = "".join([
+        c_array("cfd_node_id", nodes, "int"), c_array("cfd_ball_start", ball_start, "int"),
+        c_array("cfd_ball_sensor", ball, "int"), c_array("cfd_row_start", row_start, "int"),
+        c_array("cfd_row_group", row_group, "int"), c_array("cfd_p", p), c_array("cfd_rr_start", rr_start, "int"),
+        c_array("cfd_A", A), c_array("cfd_F1", F1), c_array("cfd_F2", F2),
+        layout, c_array("cfd_rinv_start", rinv_start, "int"),
+        c_array("cfd_rinv", np.concatenate([r.reshape(-1) for r in rinv])),
+        c_array("cfd_Q", model.process_cov), c_array("cfd_M", M), c_array("cfd_mu", mu),
+        c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
+    ])
+    source = template(_C / "cfd_node.c.in", COMMON=common_code(model, sizes), DATA=data, G=G, GN=gn, NZMAX=nz_max,
+                      USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))))
+    return write_node(out, header, source, template(_C / "driver_main.c"), replay)
+
+
+def replay_text(nodes: Sequence[int], balls: Sequence[Sequence[int]], dims: Sequence[int], steps: list,
+                n_u: int) -> str:
+    """``replay.txt``: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the node's measurement,
+    one arrived flag per sensor of its ball after its own, the received measurements (zeros where not arrived), the
+    step's inputs, the Python node filter's estimate and bound (row by row); numbers as Python's ``repr`` (exact).
+    ``steps``: per step, ``(u, [(z_own, received {sensor: value}, x, P) per node])``."""
+    def rows():
+        for u, per_node in steps:
+            for j, (own, got, x, P) in enumerate(per_node):
+                vals = list(np.asarray(own, float))
+                flags, rec = [], []
+                for s in balls[j][1:]:
+                    v = got.get(int(s))
+                    flags.append(0 if v is None else 1)
+                    rec += [0.0] * dims[s] if v is None else list(np.asarray(v, float))
+                yield vals + flags + rec + list(np.asarray(u, float).reshape(-1)) + list(np.asarray(x).reshape(-1)) \
+                    + list(np.asarray(P).reshape(-1))
+
+    return replay_file(len(steps), len(nodes), n_u, rows())

@@ -1,0 +1,124 @@
+"""The scheduled node's C export: the home of :func:`write_scheduled_c` (the node filter of a ``scheduled`` design:
+:class:`filters.scheduled.ScheduledNode` in C99, its tables as data, the per-link gains solved online) and of its
+replay, :func:`scheduled_replay_text`.
+
+The node's C is in the package's ``c/scheduled/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled
+by :func:`designer.export_c.template`; the frame (the model's code, the common C and the linear algebra, the replay
+driver's head, the Makefile) is :mod:`designer.export_c`'s.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .export_c import (C_TEMPLATES, c_array, common_code, described, linalg_code, model_code, replay_file,
+                       template, write_node)
+from .validation import InputError
+
+__all__ = ["write_scheduled_c", "scheduled_replay_text"]
+
+_C = C_TEMPLATES / "scheduled"
+
+
+def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
+                      verdict: str = "unknown") -> list[Path]:
+    """Write the C sources of the node filter of the ``scheduled`` design ``design``
+    (:class:`filters.scheduled.ScheduledNode`: ``cfd_predict`` with the node's measurement gives the packet it
+    sends, ``cfd_update`` the first round with what arrived, ``cfd_round`` the exchange rounds 2..L) for the nodes
+    ``nodes`` into ``out``: each exported node's tables (the whitened factors of its links per step and round, the
+    stationary ones beyond the horizon, the bank's), its certificate per step, and the per-link gains'
+    solve (:func:`designer.scheduled.link_gains`, :func:`designer.mse.solve_gains`) online.  ``replay``: the text of
+    ``replay.txt`` (:func:`scheduled_replay_text`).  Returns the files written."""
+    from .mse import GAIN_RCOND
+
+    tables = design.tables
+    if design.mode != "scheduled" or tables is None:
+        raise InputError(f"mode must be 'scheduled' with its tables for this export, got {design.mode!r}")
+    out = Path(out)
+    n = model.n_x
+    sizes, dims, layout = model_code(model, out)
+    nz = int(dims.max())
+    ch = tables.channels
+    chan, mask = ch.slots
+    L = int(tables.rounds)
+    T = tables.steps
+    B = len(tables.bank_points) if tables.has_bank else 0
+    nodes = [int(i) for i in nodes]
+    R_pad = np.stack([np.pad(model.measurement_cov(i), ((0, nz - dims[i]), (0, nz - dims[i])))
+                      + np.diag(np.r_[np.zeros(dims[i]), np.ones(nz - dims[i])]) for i in range(model.n_sensors)])
+    nb_start, nb, p, q, tab_start = [0], [], [], [], [0]
+    gam, sig = [], []  # per node: [step (T, then inf) and per bank point][round][slot...]
+    for i in nodes:
+        sl = chan[i][mask[i]]
+        d = sl.size
+        nb += ch.sender[sl].tolist()
+        p += ch.p[sl].tolist()
+        q += ch.q[sl].tolist()
+        nb_start.append(len(nb))
+        for k in range(T + 1):  # the step's own tables, k = T: beyond the horizon
+            for r in range(1, L + 1):
+                G, S = tables.tables(k) if r == 1 else tables.round_tables(k, r)
+                gam.append(G[sl].reshape(-1))
+                sig.append(S[i, :d, :d].reshape(-1))
+        for b in range(B):
+            for r in range(1, L + 1):
+                G = tables.bank_Gamma[b] if r == 1 else tables.bank_round_Gamma[b, r - 2]
+                S = tables.bank_Sigma[b] if r == 1 else tables.bank_round_Sigma[b, r - 2]
+                gam.append(G[sl].reshape(-1))
+                sig.append(S[i, :d, :d].reshape(-1))
+        tab_start.append(len(gam))
+    d_max = max(nb_start[j + 1] - nb_start[j] for j in range(len(nodes)))
+    gam_off = np.concatenate([[0], np.cumsum([g.size for g in gam])])
+    sig_off = np.concatenate([[0], np.cumsum([g.size for g in sig])])
+    cert = np.where(tables.valid[:, None, None, None], tables.Phi, np.nan)[:, nodes]  # (T + 1, nodes, n, n)
+    M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
+    mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
+    nominal = tables.nominal[np.minimum(np.arange(T + 1) + 1, T)]  # the step's own candidate point, k = 0..T
+    header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
+                      NODES=len(nodes), D_MAX=max(d_max, 1), ROUNDS=L, STEPS=int(T), NZMAX=nz,
+                      EXCH=int(bool(tables.exchange)), EXCHANGE="exchanged" if tables.exchange else "not exchanged",
+                      **described(model, nodes, verdict))
+    data = "".join([
+        c_array("cfd_node_id", nodes, "int"), c_array("cfd_nb_start", nb_start, "int"), c_array("cfd_nb", nb, "int"),
+        c_array("cfd_p", p), c_array("cfd_q", q), c_array("cfd_tab_start", tab_start, "int"),
+        c_array("cfd_gam_off", gam_off, "int"), c_array("cfd_sig_off", sig_off, "int"),
+        c_array("cfd_gam", np.concatenate(gam) if gam else []), c_array("cfd_sig", np.concatenate(sig) if sig else []),
+        c_array("cfd_cert", cert), c_array("cfd_Rpad", R_pad), c_array("cfd_M", M), c_array("cfd_mu", mu),
+        c_array("cfd_nominal", nominal), c_array("cfd_bank_points", tables.bank_points if B else []),
+        c_array("cfd_bank_metric", tables.bank_metric if B else []), layout,
+        c_array("cfd_Q", model.process_cov), c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
+    ])
+    source = template(
+        _C / "cfd_node.c.in", COMMON=common_code(model, sizes), LINALG=linalg_code(), DATA=data, NZMAX=nz,
+        EXCH=int(bool(tables.exchange)), T=T, B=B, A=0 if not B else int(tables.bank_metric.shape[0]),
+        MARGIN=repr(float(tables.robustness)), GAIN_RCOND=repr(float(GAIN_RCOND)), DIVERGED=repr(1e12))
+    return write_node(out, header, source, template(_C / "driver_main.c"), replay)
+
+
+def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, nz: int,
+                          exchange: bool, steps: list) -> str:
+    """``replay.txt`` of a scheduled design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the
+    step's inputs, the node's measurement, one arrived flag per in-neighbour, the predictions that arrived (zeros
+    where not), with exchange the measurements that arrived (``nz`` each, zero-padded), for rounds 2..L the
+    estimates that arrived, then the Python node filter's estimate and own covariance after the step.  ``steps``:
+    per step, ``(u, [(z, received {j: ScheduledPacket}, [{j: x̃} per round 2..L], x, P) per node])``."""
+    def rows():
+        for u, per_node in steps:
+            for j, (z, got, later, x, P) in enumerate(per_node):
+                n = np.asarray(x).size
+                vals = list(np.asarray(u, float).reshape(-1)) + list(np.asarray(z, float).reshape(-1))
+                vals += [1.0 if s in got else 0.0 for s in senders[j]]
+                for s in senders[j]:
+                    vals += list(np.asarray(got[s].x, float)) if s in got else [0.0] * n
+                for s in senders[j] if exchange else ():
+                    zz = np.asarray(got[s].z, float).reshape(-1) if s in got else np.zeros(0)
+                    vals += list(zz) + [0.0] * (nz - zz.size)
+                for rnd in later:
+                    for s in senders[j]:
+                        vals += list(np.asarray(rnd[s], float)) if s in rnd else [0.0] * n
+                vals += list(np.asarray(x, float)) + list(np.asarray(P, float).reshape(-1))
+                yield vals
+
+    return replay_file(len(steps), len(nodes), n_u, rows())
