@@ -50,7 +50,7 @@ from designer.fileio import check_apart, check_output_file, replaced_outputs, wr
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
-from . import memory
+import studies.memory as memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, model_inputs, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",

@@ -38,8 +38,9 @@ from .provenance import design_seal
 from .results import versions
 from .runner import Background
 from .scenarios import Scenario
+from .scenarios.base import effective
 
-__all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
+__all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
            "check_first_step", "design_verdict", "bound_verdicts"]
 
 
@@ -59,24 +60,6 @@ def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     return replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
-def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
-    """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
-
-    The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
-    every value ``options`` sets replaces them.
-    """
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
-                         "(a model file defines NETWORK)")
-    base = sc.design or DesignOptions()
-    if any(v is not None for v in base.attack_overrides().values()):
-        raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
-                         "attacks in ATTACKS")
-    opts = base.merged(options)
-    sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
-    return sc.with_attacks(**opts.attack_overrides()), opts
-
-
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
                      **kw) -> ConsensusDesign:
     """The consensus design of ``sc`` for ``options`` (or keyword options), merged with the scenario's defaults.
@@ -85,7 +68,7 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     :func:`with_tables`).
 
     Attack overrides in the options are applied to the scenario first (its FDI bound
-    becomes the design's δ); use :func:`effective` to get that scenario too.
+    becomes the design's δ); use :func:`studies.scenarios.base.effective` to get that scenario too.
     """
     if kw:
         options = (options or DesignOptions()).merged(DesignOptions(**kw))

@@ -67,11 +67,12 @@ from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_reference, verdict
 
-from . import memory
-from .consensus_design import effective, stationary_record
+import studies.memory as memory
+from .consensus_design import stationary_record
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
+from .scenarios.base import effective
 
 __all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
            "OUTPUTS", "FAILED", "point_verdict", "stationary_open_loop", "MAP_CATEGORIES", "MAP_COLOURS", "MAP_WORDS",

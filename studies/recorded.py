@@ -37,7 +37,7 @@ from designer.validation import InputError
 from filters.attacks import AttackPattern, attack_pattern, receive, uplink_attacks
 from filters.result import FilterResult
 
-from . import memory
+import studies.memory as memory
 from .filter_registry import Batch, FilterEntry, FilterRegistry
 from .memory import LogSize, Need
 from .scenarios import Scenario
