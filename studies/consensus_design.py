@@ -464,18 +464,12 @@ class Design:
                 + (f"; {GATE_CLAUSE}" if self.design.gate else ""))
 
     def save(self, directory) -> Path:
-        """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``
-        (refused when it is, lies inside or contains the model's files: :func:`designer.fileio.check_apart`)."""
-        from designer.fileio import check_apart, replaced_outputs
+        """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into
+        ``directory`` (:func:`studies.outputs.save_design`; refused when it is, lies inside or contains the model's
+        files: :func:`designer.fileio.check_apart`)."""
+        from .outputs import save_design
 
-        from .reports import write_report
-        from .scenarios import model_inputs
-
-        check_apart("directory", directory, model_inputs(self.scenario))
-        with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
-            self.schedule.write(stage)
-            write_report(stage)
-        return Path(directory)
+        return save_design(self, directory)
 
 
 def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,

@@ -63,10 +63,11 @@ from filters.particle import run_sir, transition_proposal
 
 from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
 from .progress import progress
-from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
+from .pipeline import Plan, Study, StudyOptions, naming_filter
 from .figures import curves_figure, filter_colours
 from .results import _curve_mean_ci, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up", "filter_names",
            "FILTERS", "MEAN_DYNAMICS", "PAPER", "CHUNK_SIZE"]
