@@ -15,9 +15,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["SCHEMA", "versions", "error_metrics", "bootstrap_rmse_ci", "markdown_table", "BOOTSTRAP",
-           "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD",
-           "divergence_limit", "first_divergence",
+__all__ = ["SCHEMA", "versions", "error_metrics", "curve_mean_ci", "bootstrap_rmse_ci", "markdown_table",
+           "BOOTSTRAP", "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD", "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
@@ -40,7 +39,7 @@ def versions() -> dict:
     return out
 
 
-def _curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
+def curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
     """Mean over steps of sqrt(mean over runs of e2) and its bootstrap 95 % interval; e2 is (runs, K).
 
     ``BOOTSTRAP`` resamples of the runs; each resample's mean over runs is the product of
@@ -77,8 +76,8 @@ def error_metrics(err: np.ndarray, position: Sequence[int], velocity: Sequence[i
     """
     e2p = (err[..., list(position)] ** 2).sum(-1)
     e2v = (err[..., list(velocity)] ** 2).sum(-1)
-    p, p_ci = _curve_mean_ci(e2p, rng)
-    v, v_ci = _curve_mean_ci(e2v, rng)
+    p, p_ci = curve_mean_ci(e2p, rng)
+    v, v_ci = curve_mean_ci(e2v, rng)
     return {
         "rmse_position": p,
         "rmse_position_ci95": p_ci,
