@@ -31,7 +31,7 @@ Two modes (``--modes``):
   paths of 2.6-4.7 ms and 1.0-1.5 ms); the absolute cost is printed beside the 60 µs target, not
   checked (the machines are shared).
 
-Mode ``mse`` (the gains of the joint error covariance, :mod:`filters.mse_batch`) runs on the robot
+Mode ``mse`` (the gains of the joint error covariance, :mod:`rules.mse.filter`) runs on the robot
 (``--mse-sizes``; its cost per node-step grows with N, as its joint covariance: 200 µs at 64 nodes).
 
 The attack realisations of the batch cycle over ``DISTINCT_ATTACKS`` draws (drawing a dense

@@ -10,8 +10,8 @@ replayed ``--repeat`` times:
   ``cfd_step`` (paper: ``cfd_predict`` then ``cfd_update``; scheduled: and ``cfd_round`` for its rounds 2..L) for
   every node and step, the replay read
   into memory first (timed: the steps only, ``clock_gettime``), ``--repeat`` replays; the best of three timings;
-* **Python**: the node filters (:class:`filters.relay.RelayNode`, :class:`filters.consensus_node.ConsensusNode`,
-  :class:`filters.scheduled.ScheduledNode`) step every node on the same inputs (what the network's step delivered,
+* **Python**: the node filters (:class:`rules.relay.filter.RelayNode`, :class:`filters.consensus_node.ConsensusNode`,
+  :class:`rules.scheduled.filter.ScheduledNode`) step every node on the same inputs (what the network's step delivered,
   computed before the timing), in this process, BLAS on one thread, one replay; the best of three.
 
 Printed: microseconds per node step in each and their ratio (issue 27 expects >= ``TARGET_RATIO`` = 50), the

@@ -1,11 +1,11 @@
-"""The relay filter (:mod:`filters.relay`) on the grids of ``bench_design_scale.py``: its seconds and its error.
+"""The relay filter (:mod:`rules.relay.filter`) on the grids of ``bench_design_scale.py``: its seconds and its error.
 
 For each grid size (range sensors on a king's-move grid, a CV target, DoS 0.1 and FDI 0.05 on every channel and
 uplink: :func:`bench_design_scale.grid_scenario`), each routing (``tree``: the copy of a fixed shortest-path tree
 parent, gain rule ``relay``; ``flood``: the first copy from any neighbour, gain rule ``flood``, its moments by Monte
 Carlo) and each number of relay hops L, in this one process with BLAS
 on one thread: ``--runs`` fresh runs of ``--steps`` steps (:func:`bench_design_scale.draw_runs`, the channels as
-EdgeAttacks) filtered by :func:`filters.relay.run_relay_batch` in one batch, every node, with the scenario's FDI
+EdgeAttacks) filtered by :func:`rules.relay.filter.run_relay_batch` in one batch, every node, with the scenario's FDI
 signal; printed:
 
 * **seconds**: wall and CPU seconds of the whole call (routes, node moments and the loop; the model's build and
@@ -38,7 +38,7 @@ from bench_design_scale import ERROR_TARGET, GRIDS, draw_runs, grid_scenario, po
 from designer.cores import one_blas_thread
 from designer.relay import ROUTINGS
 from filters.ekf import run_ekf_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 
 # --check: 5 runs of 100 steps on the 512-node grid, flooding, L = 8, within 3 minutes (measured 156 s; the tree
 # relay about 120 s; 37 s with the single gain of stop 33, 12 % less accurate there)

@@ -27,11 +27,11 @@ into a design for a model, its network and its attack bound.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, NamedTuple
 
 import numpy as np
 
-from .gain_rules import GAIN_RULES, gain_rule, names_with
+from .rule import BANK_MAX, EXCHANGES, ROBUSTNESS_MAX, ROUNDS_MAX, RULE_NAME, GainRule
 from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
@@ -40,32 +40,11 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
     from .model import Model
 
 __all__ = [
-    "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS", "MODES",
-    "EXCHANGES", "RELAY", "design_rounds",
-    "LINEARIZATIONS", "make_design", "chooses_multipliers", "resolve_scaling", "parse_scale", "describe_design",
-    "whitened_scaling",
+    "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS",
+    "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design", "whitened_scaling",
 ]
 
-MODES = tuple(GAIN_RULES)  # the gain rules' names (designer.gain_rules: what each needs at run time)
 LINEARIZATIONS = ("fixed", "hessian", "structured")
-EXCHANGES = ("measurements", "predictions")  # what a packet carries (mode scheduled): the first is its default
-RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (designer.gain_rules.GainRule.relays)
-#: The default robustness margin δ of the scheduled design's link gains (:func:`designer.scheduled.link_gains`;
-#: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
-#: between neighbours' errors to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning
-#: 1e7-1e8 on a range grid): where the state leaves the nominal geometry, those cancellations fail and the network
-#: diverges (a 32-node range grid, 1150 m after 100 steps; 20 of 20 runs of a 28-node coordinated-turn model).  δ = 1
-#: (each link's difference taken to carry an extra independent error as large as the node's own) removed every
-#: divergence we measured and cost at most 5 % of accuracy on the nominal trajectories (README, "Robustness"): an
-#: assumption of this design, chosen by those measurements, not by a theorem.
-ROBUSTNESS = 1.0
-#: The largest margin accepted (beyond it the links are all but ignored: a node alone is the local EKF).
-ROBUSTNESS_MAX = 100.0
-#: The most exchange rounds per step a design takes.
-ROUNDS_MAX = 64
-#: The most axes of the scheduled design's bank of operating points (3^A - 1 points: 26 at A = 3).
-BANK_MAX = 3
-
 # The published choices of seed 003 and, marked, the values it leaves out.
 PAPER_DEFAULTS = {
     "sigma": 0.1,
@@ -115,7 +94,7 @@ class ConsensusDesign(NamedTuple):
     U: np.ndarray
     V: Any  # tuple of (n_z_i, n_z_i) arrays, one per sensor (a single matrix is broadcast by validate_design)
     delta: float
-    mode: str = "paper"  # 'paper': fixed sigma, beta, C = tau Φ, K by (30); 'tuned': designer.tuning per node and step
+    rule: GainRule  # the gain rule (designer.rule; its package rules/<name>/): how the gains are chosen
     linearization: str = "fixed"  # 'fixed': the given U, V; 'hessian': U, V from the model's Hessians per node/step;
     # 'structured': as 'hessian' but with the remainder written U Ω D e, D selecting the variables the model is
     # nonlinear in (the tighter variant: the multipliers act only along those directions)
@@ -136,6 +115,11 @@ class ConsensusDesign(NamedTuple):
     # with it: the sensors' remainders at one common error as one (designer.linearization.remainder_gram), over the
     # sensors' components padded to the largest sensor's dimension (N mz, N mz)
     remainder_gram: np.ndarray | None = None
+
+    @property
+    def mode(self) -> str:
+        """The gain rule's name (``--mode``), as records and messages show it."""
+        return self.rule.name
 
 
 def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwork) -> ConsensusDesign:
@@ -158,30 +142,10 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {design.linearization!r}")
     if not np.isfinite(design.radius) or design.radius <= 0:
         raise InputError(f"radius must be > 0, got {design.radius!r}")
-    rule = gain_rule(design.mode)  # a registered gain rule, else InputError naming them
-    tabled = names_with("offline_tables")  # the rules whose design chooses the exchange, rounds and robustness
-    if rule.relays and design.gate:
-        raise InputError(f"mode {design.mode!r} does not take a gate (gate must be 0): its gain counts every falsified "
-                         "measurement that arrives, from the falsification's statistics")
-    if rule.relays and design.exchange != RELAY:
-        raise InputError(f"exchange must be {RELAY!r} in mode {design.mode!r} (it relays the measurements), got "
-                         f"{design.exchange!r}")
-    if not rule.relays and (design.exchange not in EXCHANGES
-                            or (design.exchange == "measurements" and not rule.offline_tables)):
-        raise InputError(f"exchange must be 'predictions', or 'measurements' in mode {tabled}, got "
-                         f"{design.exchange!r} in mode {design.mode!r}")
-    rob = float(design.robustness)
-    if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and not rule.offline_tables):
-        raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in mode {tabled} (0 in the other "
-                         f"modes), got {design.robustness!r} in mode {design.mode!r}")
-    if isinstance(design.rounds, bool) or not isinstance(design.rounds, (int, np.integer)) or not (
-            1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and not rule.takes_rounds):
-        raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in mode {names_with('takes_rounds')} (1 in "
-                         f"the other modes), got {design.rounds!r} in mode {design.mode!r}")
-    if isinstance(design.bank, bool) or not isinstance(design.bank, (int, np.integer)) or not (
-            0 <= design.bank <= BANK_MAX) or (design.bank and not rule.offline_tables):
-        raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in mode {tabled} (0 in the other "
-                         f"modes), got {design.bank!r} in mode {design.mode!r}")
+    if not isinstance(design.rule, GainRule):
+        raise InputError(f"rule must be a gain rule (rules.get(name)), got {design.rule!r}")
+    rule = design.rule
+    rule.check_design(design)
     if network.n_nodes != model.n_sensors:
         raise InputError(f"the network has {network.n_nodes} nodes but the model has {model.n_sensors} sensors "
                          "(one node per sensor)")
@@ -223,7 +187,7 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
     W = design.remainder_structure
     if W is not None:
         W = check_finite("remainder_structure", W)
-        if W.shape != (model.n_x, model.n_x) or not gain_rule(design.mode).offline_tables:
+        if W.shape != (model.n_x, model.n_x) or not rule.offline_tables:
             raise InputError(f"remainder_structure must be a ({model.n_x}, {model.n_x}) matrix of a rule with offline "
                              f"tables (mode 'scheduled'), got shape {W.shape} in mode {design.mode!r}")
     G = design.remainder_gram
@@ -360,7 +324,7 @@ class DesignOptions:
 
     Parameters
     ----------
-    mode : str, a name of :data:`designer.gain_rules.GAIN_RULES`
+    mode : str, the name of a gain rule (:mod:`rules`; resolved by the command, :func:`rules.get`)
         ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer
         minimises the bound (both ``local``: computed online at each node); ``mse``: gains minimising the
         predicted mean-square error (:mod:`designer.mse`), certified by the σ, β that make the bound
@@ -433,31 +397,17 @@ class DesignOptions:
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
     def __post_init__(self):
-        rule = None if self.mode is None else gain_rule(self.mode)  # a registered gain rule, else InputError
-        tables = rule is None or rule.offline_tables  # the design chooses the exchange, rounds and robustness
+        if self.mode is not None and not (isinstance(self.mode, str) and RULE_NAME.fullmatch(self.mode)):
+            raise InputError(f"mode must be the name of a gain rule (cfdesign design --help lists them), got "
+                             f"{self.mode!r}")
         if self.exchange is not None and self.exchange not in EXCHANGES:
             raise InputError(f"exchange must be one of {', '.join(map(repr, EXCHANGES))}, got {self.exchange!r}")
-        if self.exchange is not None and rule is not None and rule.relays:
-            raise InputError(f"exchange is chosen by mode {names_with('offline_tables')}; mode {self.mode!r} relays "
-                             "the measurements (its exchange is 'relay'): do not give --exchange")
-        if self.exchange == "measurements" and not tables:
-            raise InputError(f"exchange 'measurements' is a design of mode {names_with('offline_tables')}; mode "
-                             f"{self.mode!r} exchanges predictions")
         if self.rounds is not None and (isinstance(self.rounds, bool) or not isinstance(self.rounds, (int, np.integer))
                                         or not 1 <= self.rounds <= ROUNDS_MAX):
             raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}], got {self.rounds!r}")
-        if self.rounds is not None and self.rounds > 1 and not (rule is None or rule.takes_rounds):
-            raise InputError(f"rounds > 1 is a design of mode {names_with('takes_rounds')}; mode {self.mode!r} "
-                             "exchanges once per step")
         if self.bank is not None and (isinstance(self.bank, bool) or not isinstance(self.bank, (int, np.integer))
                                       or not 0 <= self.bank <= BANK_MAX):
             raise InputError(f"bank must be an integer in [0, {BANK_MAX}], got {self.bank!r}")
-        if self.bank and not tables:
-            raise InputError(f"bank is the operating points of mode {names_with('offline_tables')}'s tables; mode "
-                             f"{self.mode!r} has none")
-        if self.robustness is not None and not tables:
-            raise InputError(f"robustness is a margin of mode {names_with('offline_tables')}'s link gains; mode "
-                             f"{self.mode!r} has none")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
         for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate",
@@ -477,10 +427,6 @@ class DesignOptions:
             v = getattr(self, name)
             if v is not None and v >= 1:
                 raise InputError(f"{name} must be a probability in [0, 1), got {v!r}")
-        if chooses_multipliers(self.mode):
-            for name in ("sigma", "beta", "tau"):
-                if getattr(self, name) is not None:
-                    raise InputError(f"{name} is chosen by the design in mode {self.mode!r}; do not give --{name}")
 
     def merged(self, over: "DesignOptions | None") -> "DesignOptions":
         """These options with every value that ``over`` sets replacing this one's."""
@@ -492,12 +438,7 @@ class DesignOptions:
             rest = self.v_scale.get("*", "prior") if isinstance(self.v_scale, Mapping) else self.v_scale
             given["v_scale"] = {**(self.v_scale if isinstance(self.v_scale, Mapping) else {}), "*": rest,
                                 **given["v_scale"]}
-        if chooses_multipliers(given.get("mode")) and not chooses_multipliers(self.mode):
-            # the defaults' paper-mode multipliers do not carry over to a design that chooses its own
-            base = replace(self, sigma=None, beta=None, tau=None)
-        else:
-            base = self
-        return replace(base, **given)
+        return replace(self, **given)
 
     def attack_overrides(self) -> dict:
         return {k: getattr(self, k) for k in self.ATTACK_FIELDS}
@@ -516,27 +457,12 @@ class DesignOptions:
         return {f.name: plain(getattr(self, f.name)) for f in fields(self)}
 
 
-def chooses_multipliers(mode: str | None) -> bool:
-    """Whether the gain rule ``mode`` chooses σ, β and τ itself (not the paper's fixed multipliers; None: the default
-    mode, paper)."""
-    return mode is not None and not gain_rule(mode).fixed_multipliers
+def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: float, options: DesignOptions, x0,
+                P0=None, u0=None, signal=None) -> ConsensusDesign:
+    """The :class:`ConsensusDesign` of gain rule ``rule`` and ``options`` for ``model`` on ``network`` (validated).
 
-
-def design_rounds(mode: str, network: SensorNetwork, rounds: int | None = None) -> int:
-    """The exchange rounds per step of a design of gain rule ``mode`` on ``network``: ``rounds`` when given, else the
-    rule's default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
-    if rounds is not None:
-        return int(rounds)
-    if not gain_rule(mode).relays:
-        return 1
-    from .relay import default_hops  # late: scipy's graph routines, not needed to list or load a scenario
-
-    return default_hops(network)
-
-
-def make_design(model: Model, network: SensorNetwork, *, delta: float, options: DesignOptions, x0, P0=None,
-                u0=None, signal=None) -> ConsensusDesign:
-    """The :class:`ConsensusDesign` of ``options`` for ``model`` on ``network`` (validated).
+    ``rule`` is the options' mode resolved (:func:`rules.get`; ``options.mode`` is its name or None) and ``options``
+    hold only what it takes (:meth:`designer.rule.GainRule.check_options`).
 
     ``delta`` is the FDI bound of the resolved attack specification and ``signal`` its
     :class:`designer.attacks.FDISignal`: its ``E[ξ ξᵀ]`` (the mse design's statistics) and the
@@ -546,16 +472,16 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
     """
     from .tuning import tuned_epsilon
 
-    mode = options.mode or "paper"
+    if not isinstance(rule, GainRule) or options.mode not in (None, rule.name):
+        raise InputError(f"rule must be the gain rule of options.mode {options.mode!r} (rules.get), got {rule!r}")
     d_max = max(network.d_max, 1)
     epsilon = options.epsilon
     if epsilon is None:
-        epsilon = tuned_epsilon(d_max) if chooses_multipliers(mode) else \
-            PAPER_DEFAULTS["epsilon_fraction"] / d_max
+        epsilon = PAPER_DEFAULTS["epsilon_fraction"] / d_max if rule.fixed_multipliers else tuned_epsilon(d_max)
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     P0 = model.prior.cov if P0 is None else P0
     structure = gram = None
-    if gain_rule(mode).offline_tables and (options.linearization or "fixed") == "fixed" and all(
+    if rule.offline_tables and (options.linearization or "fixed") == "fixed" and all(
             isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale)):
         U, V, structure, gram = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
     else:
@@ -568,7 +494,7 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         U=U,
         V=V,
         delta=float(delta),
-        mode=mode,
+        rule=rule,
         linearization=options.linearization or "fixed",
         radius=radius,
         fdi_moment=None if signal is None else signal.moment(model.n_x),
@@ -576,12 +502,8 @@ def make_design(model: Model, network: SensorNetwork, *, delta: float, options: 
         fdi_mean=None if signal is None else signal.mean(model.n_x),
         gate=0.0 if options.gate is None else float(options.gate),
         fdi_signal=signal,
-        exchange=RELAY if gain_rule(mode).relays else options.exchange or (
-            EXCHANGES[0] if gain_rule(mode).offline_tables else "predictions"),
-        robustness=0.0 if not gain_rule(mode).offline_tables else ROBUSTNESS if options.robustness is None
-        else float(options.robustness),
-        rounds=design_rounds(mode, network, options.rounds),
-        bank=0 if options.bank is None or not gain_rule(mode).offline_tables else int(options.bank),
+        rounds=rule.rounds(network, options.rounds),
+        **rule.design_fields(options),
         remainder_structure=structure,
         remainder_gram=gram,
     )

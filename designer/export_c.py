@@ -119,10 +119,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     :func:`designer.relay.relay_routes` and :func:`designer.relay.relay_moments`) for the nodes ``nodes`` into
     ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
     (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
-    from .gain_rules import gain_rule
     from .scheduled import sqrtm_psd
 
-    rule = gain_rule(design.mode)
+    rule = design.rule
     if not rule.relays:
         raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")
     out = Path(out)
@@ -799,10 +798,10 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     from scipy.special import chdtri
 
     from .bounds import BOUND_LIMIT
-    from .gain_rules import gain_rule
 
-    if design.mode != "paper":
-        raise InputError(f"mode must be 'paper' for the consensus node's C export, got {design.mode!r}")
+    if not design.rule.fixed_multipliers:
+        raise InputError(f"mode must be a rule of fixed multipliers (paper) for the consensus node's C export, got "
+                         f"{design.mode!r}")
     if design.linearization != "fixed":
         raise InputError(f"linearization must be 'fixed' for the C export (the {design.linearization!r} scalings "
                          "come from the model's Hessians at every step, which the export does not generate)")
@@ -839,7 +838,7 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     source = _CONSENSUS_SOURCE.format(
         common=_common(model, sizes), linalg=_LINALG, data=data, nzmax=int(dims.max()), sigma=repr(sigma),
         beta=repr(beta),
-        tau=repr(float(design.tau)), eps=repr(eps), fixed=int(gain_rule(design.mode).fixed_multipliers),
+        tau=repr(float(design.tau)), eps=repr(eps), fixed=int(design.rule.fixed_multipliers),
         gate=repr(float(design.gate)), chi2=repr(float(chdtri(n, design.gate))) if design.gate else "0.0",
         bound_limit=repr(float(BOUND_LIMIT)), rcond=repr(1e-13), diverged=repr(1e12))
     return _write(out, header, source, _DRIVER_HEAD + _CONSENSUS_DRIVER, replay)

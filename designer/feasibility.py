@@ -104,13 +104,14 @@ class SteadyState(NamedTuple):
 
 def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Sequence[np.ndarray],
                  network: SensorNetwork, *, epsilon: float, delta: float, U: np.ndarray, V,
-                 mode: str = "tuned", sigma: float = 0.1, beta: float = 0.1, tau: float = 0.01,
+                 fixed_multipliers: bool = False, sigma: float = 0.1, beta: float = 0.1, tau: float = 0.01,
                  phi0: np.ndarray | None = None, tol: float = 1e-8, max_iter: int = 400,
                  accelerate: bool = True, scaling: Callable | None = None, fdi_span=None,
                  weights: str = "paper") -> SteadyState:
     """Iterate the stationary bound recursion to its fixed point (see the module docstring).
 
-    Mode ``'tuned'``: ``weights='paper'`` iterates the tuned (27) with the paper's factors
+    ``fixed_multipliers``: σ, β, τ as given (the rules of fixed multipliers: ``C = τ Φ_pred`` and the gain (30));
+    else the design chooses them per node (:mod:`designer.tuning`).  Then ``weights='paper'`` iterates the tuned (27) with the paper's factors
     (1 + 2 d_i) and 3 (:func:`designer.tuning.tune_update`); ``weights='optimal'`` the weighted
     (27) of the run-time tuned filter (:func:`designer.tuning.tune_weighted`, one block step per
     iteration, the weights part of the iterate), with one group per neighbour (its ``Φ_pred``
@@ -135,18 +136,18 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
     accel = _Anderson(memory=5)
     slack28 = np.zeros(n_nodes)
     slack29 = np.zeros(n_nodes)
-    # Mode tuned: the weights of (27) are part of the iterate (one block step of tune_weighted per
+    # Multipliers chosen: the weights of (27) are part of the iterate (one block step of tune_weighted per
     # iteration), so that the accelerated map is a function of its state alone.
     if weights not in ("paper", "optimal"):
         raise InputError(f"weights must be 'paper' or 'optimal', got {weights!r}")
-    optimal = mode == "tuned" and weights == "optimal"
+    optimal = not fixed_multipliers and weights == "optimal"
     node_weights = [None] * n_nodes
     for it in range(1, max_iter + 1):
         pred = np.empty_like(phi)
         for i in range(n_nodes):
             Ui, Df = (U, None) if scaling is None else scaling(i, phi[i], None)[0]
             pred_scale[i] = Df
-            if mode == "tuned":
+            if not fixed_multipliers:
                 ch = tune_prediction(phi[i], F, Ui, Q, epsilon, D=Df)
                 sig[i], pred[i] = ch.sigma, ch.phi_pred
             else:
@@ -161,10 +162,10 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
         new_weights = [None] * n_nodes
         for i in range(n_nodes):
             Vi, Dh = (Vs[i], None) if scaling is None else scaling(i, phi[i], pred[i])[1]
-            if mode == "tuned" and not optimal:
+            if not fixed_multipliers and not optimal:
                 ch = tune_update(pred[i], H[i], s[i], Vi, R[i], int(deg[i]), neigh[i], D=Dh)
                 b, new[i] = ch.beta, ch.phi_post
-            elif mode == "tuned":
+            elif not fixed_multipliers:
                 nb = list(network.neighbours[i])
                 groups = neighbour_groups(pred[nb], network.fdi_prob[i, nb], delta, 1.0 - network.dos_prob[i, nb],
                                           span=fdi_span)
@@ -192,7 +193,7 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
             return SteadyState(False, np.nan, "unbounded", it, False, None)
         if change < tol:
             th2 = all(theorem2_margin(new[i], sig[i], network.d_max) >= 0 for i in range(n_nodes))
-            return _converged(new, th2, slack28, slack29, mode, it)
+            return _converged(new, th2, slack28, slack29, fixed_multipliers, it)
         if not optimal:
             phi = accel.step(phi, new) if accelerate else new
             continue
@@ -240,11 +241,11 @@ def _scale(phi: np.ndarray, Q: np.ndarray) -> float:
     return max(float(np.trace(phi, axis1=1, axis2=2).max()), float(np.trace(Q)))
 
 
-def _converged(phi, theorem2: bool, slack28, slack29, mode: str, it: int) -> SteadyState:
+def _converged(phi, theorem2: bool, slack28, slack29, fixed_multipliers: bool, it: int) -> SteadyState:
     """The answer at a fixed point ``phi`` (N, n, n): the binding condition from the relative slacks."""
     binding = "(28)" if slack28.min() <= slack29.min() else "(29)"
     if min(slack28.min(), slack29.min()) > MARGIN * (1 + 1e-6):
-        binding = "none (interior optimum)" if mode == "tuned" else binding
+        binding = binding if fixed_multipliers else "none (interior optimum)"
     return SteadyState(True, float(np.trace(phi, axis1=1, axis2=2).mean()), binding, it, bool(theorem2), phi)
 
 
@@ -253,10 +254,10 @@ def _unconverged(phi, max_iter: int) -> SteadyState:
 
 
 def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Sequence[np.ndarray],
-                       networks: Sequence[SensorNetwork], *, epsilon, delta, U, V, mode: str = "tuned", sigma=0.1,
+                       networks: Sequence[SensorNetwork], *, epsilon, delta, U, V, fixed_multipliers: bool = False, sigma=0.1,
                        beta=0.1, tau=0.01, phi0: np.ndarray | None = None, tol: float = 1e-8, max_iter: int = 400,
                        accelerate: bool = True, scaling: Callable | None = None) -> list[SteadyState]:
-    """:func:`steady_state` (with the paper's weights in mode ``'tuned'``) at many points at once: one answer per
+    """:func:`steady_state` (with the paper's weights where the multipliers are chosen) at many points at once: one answer per
     point, each the one :func:`steady_state` gives for that point alone.
 
     Point ``p`` has the network ``networks[p]`` (its attack probabilities; every network has the same nodes),
@@ -269,11 +270,9 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
     takes alone.  ``scaling(i, phi_post, phi_pred)`` as in :func:`steady_state`, called with node ``i``'s
     matrices at every point still iterating, stacked ``(m, n, n)``; it returns stacks (or one matrix) of U, V.
     """
-    if mode not in ("paper", "tuned"):
-        raise InputError(f"mode must be 'paper' or 'tuned', got {mode!r}")
     if not len(networks):
         return []
-    pts = _Points(F, H, Q, R, networks, epsilon, delta, U, V, mode, sigma, beta, tau, scaling)
+    pts = _Points(F, H, Q, R, networks, epsilon, delta, U, V, fixed_multipliers, sigma, beta, tau, scaling)
     P, N, nx = len(networks), pts.N, pts.nx
     phi = np.array(np.broadcast_to(_start(phi0, N, nx), (P, N, nx, nx)))
     scale = _scale(phi[0], Q)
@@ -303,7 +302,7 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
                 out[p] = SteadyState(False, np.nan, why, it, False, None)
             elif change[k] < tol:
                 th2 = np.all(theorem2_margin(new[k], sig[k], networks[p].d_max) >= 0)
-                out[p] = _converged(new[k].copy(), th2, slack28[k], slack29[k], mode, it)
+                out[p] = _converged(new[k].copy(), th2, slack28[k], slack29[k], fixed_multipliers, it)
             else:
                 phi[p] = accel[p].step(ph[k], new[k]) if accelerate else new[k]
                 going[k] = True
@@ -316,7 +315,7 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
 class _Points:
     """What :func:`steady_state_batch` holds per point, and one step of the recursion at many points."""
 
-    def __init__(self, F, H, Q, R, networks, epsilon, delta, U, V, mode, sigma, beta, tau, scaling):
+    def __init__(self, F, H, Q, R, networks, epsilon, delta, U, V, fixed_multipliers, sigma, beta, tau, scaling):
         P = len(networks)
         self.N, self.nx = networks[0].n_nodes, F.shape[0]
         if any(net.n_nodes != self.N for net in networks):
@@ -327,7 +326,7 @@ class _Points:
         def per_point(x):
             return np.array(np.broadcast_to(np.asarray(x, dtype=float), (P,)))
 
-        self.F, self.H, self.Q, self.R, self.mode, self.scaling = F, H, Q, R, mode, scaling
+        self.F, self.H, self.Q, self.R, self.fixed, self.scaling = F, H, Q, R, fixed_multipliers, scaling
         self.eps, delta, self.sigma, self.beta, self.tau = (per_point(x) for x in (epsilon, delta, sigma, beta, tau))
         self.U = np.broadcast_to(np.asarray(U, dtype=float), (P, self.nx, self.nx))
         self.V = [np.stack([np.asarray(_per_sensor(v, self.N)[i], dtype=float) for v in V])  # (P, nz_i, nz_i)
@@ -345,7 +344,7 @@ class _Points:
     def iterate(self, live, phi, it, out):
         """Φ -> (26) -> (27) at every node of the points ``live``, stacked.
 
-        Points whose prediction fails (28) (paper mode) are decided here (``out``) and leave ``live``; returns
+        Points whose prediction fails (28) (fixed multipliers) are decided here (``out``) and leave ``live``; returns
         the points left and, for them, ``(Φ, Φ', σ, ε, D_f, slack28, slack29, failed (29))`` (None when no point
         is left).
         """
@@ -359,7 +358,7 @@ class _Points:
             for i in range(N):
                 U[:, i], Df = self.scaling(i, ph[:, i], None)[0]
         eps = np.repeat(self.eps[live], N)
-        if self.mode == "tuned":
+        if not self.fixed:
             ch = tune_prediction_batch(ph.reshape(-1, nx, nx), self.F, U.reshape(-1, nx, nx), self.Q, eps, D=Df)
             sig, pred = ch.sigma, ch.phi_pred
         else:  # the paper's sigma, where (28) holds at every node
@@ -388,7 +387,7 @@ class _Points:
 
     def _update(self, live, ph, pred, neigh, nodes):
         """(27) at ``nodes`` (sensors of one dimension) of the points ``live``: β, λ_max(Φ_pred), Φ' per item and
-        the points where (29) fails (paper mode)."""
+        the points where (29) fails (fixed multipliers)."""
         L, k, nx = live.size, len(nodes), self.nx
         pg = pred[:, nodes].reshape(L * k, nx, nx)
         if self.scaling is None:
@@ -403,7 +402,7 @@ class _Points:
         s, d = self.s[live][:, nodes].ravel(), self.deg[live][:, nodes].ravel()
         Nb = neigh[:, nodes].reshape(L * k, nx, nx)
         lam = lam_max(pg, Dh).reshape(L, k)
-        if self.mode == "tuned":
+        if not self.fixed:
             ch = tune_update_batch(pg, H, s, V, R, d, Nb, D=Dh)
             return ch.beta.reshape(L, k), lam, ch.phi_post.reshape(L, k, nx, nx), np.zeros(L, dtype=bool)
         beta = np.repeat(self.beta[live], k)

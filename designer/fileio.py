@@ -434,16 +434,20 @@ _FINGERPRINT: str | None = None
 
 
 def code_fingerprint() -> str:
-    """SHA-256 of the package's source files (``designer``, ``filters``, ``studies``), computed once per process."""
+    """SHA-256 of the package's source files (``designer``, ``filters``, ``rules``, ``studies``, and the folders of
+    further rule packages that ``CFDESIGN_RULE_PATH`` names), computed once per process."""
     global _FINGERPRINT
     if _FINGERPRINT is None:
         import hashlib  # here: the command line's start-up (cfdesign scenarios) has no use for it
 
         root = Path(__file__).resolve().parent.parent
         h = hashlib.sha256()
-        for pkg in ("designer", "filters", "studies"):
+        for pkg in ("designer", "filters", "rules", "studies"):
             for f in sorted((root / pkg).rglob("*.py")):
                 h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
+        for folder in filter(None, os.environ.get("CFDESIGN_RULE_PATH", "").split(os.pathsep)):
+            for f in sorted(Path(folder).resolve().rglob("*.py")):  # a rule kept outside this repository (rules)
+                h.update(str(f).encode() + b"\0" + f.read_bytes() + b"\0")
         _FINGERPRINT = h.hexdigest()
     return _FINGERPRINT
 

@@ -77,7 +77,7 @@ predicted covariance.
 
 **Stacks.**  Every function also takes a stack of runs: joint arrays (..., N, N, n, n), per-node
 arrays with the same leading axes, and the packets each node kept as a mask (..., N, N) instead of
-index lists (:mod:`filters.mse_batch` runs many Monte Carlo runs so).  One run is a stack of none:
+index lists (:mod:`rules.mse.filter` runs many Monte Carlo runs so).  One run is a stack of none:
 the per-run filter and the batched one take the same steps, so they agree to rounding.  The
 multipliers σ and β are the roots of the trace's increasing slope (:func:`joint_multiplier`), one
 eigendecomposition per matrix serving the margin, the search and the bound.
@@ -431,7 +431,7 @@ ILL_CONDITIONED = 1e6
 def conditioning(gain_condition: np.ndarray | None) -> dict:
     """``schedule.json``'s ``conditioning``: each node's largest gain condition number over the steps and where.
 
-    ``gain_condition`` (steps, N) of :attr:`filters.consensus.ConsensusResult.gain_condition` (mode mse), or None
+    ``gain_condition`` (steps, N) of :attr:`filters.consensus_batch.ConsensusResult.gain_condition` (mode mse), or None
     (the paper and tuned modes solve each node's own system, whose noise covariance keeps it regular, and record
     none).  ``ill_conditioned`` lists the nodes beyond :data:`ILL_CONDITIONED`.
     """

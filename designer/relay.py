@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
-from .gain_rules import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
+from .rule import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
 from .network import SensorNetwork
 from .validation import InputError, check_int
 
@@ -608,10 +608,9 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     ``routes``: the design's :func:`relay_routes` when the caller has them (default: built here).
 
     Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
-    from .gain_rules import gain_rule
     from .scheduled import StationaryCertificate
 
-    routing = gain_rule(design.mode).routing
+    routing = design.rule.routing
     if routes is None:
         routes = relay_routes(network, design.rounds, routing)
     elif (routes.hops, routes.routing, routes.n_nodes) != (design.rounds, routing, network.n_nodes):

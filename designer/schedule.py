@@ -4,7 +4,7 @@ Schema ``cfdesign.schedule/1`` (see ``shared/DESIGN.md``): ``schedule.json`` hol
 ``schema, scenario, mode, gain_rule, nodes, steps, epsilon, feasible, violations, sigma, beta,
 trace_bound`` (nodes x steps; entry k is tr Φ_{k+1|k+1}, ``null`` where Φ is not a
 bound), where ``gain_rule`` is the mode's run-time record ``{name, runtime, needs,
-deployable}`` (:mod:`designer.gain_rules`; a file written before it existed loads without
+deployable}`` (:mod:`designer.rule`; a file written before it existed loads without
 it), and ``schedule.npz`` holds ``K`` (nodes, steps, n_x, n_z; with sensors of
 different dimensions ``n_z = max n_z_i`` and node i's gain in its first ``n_z_i``
 columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1,
@@ -19,12 +19,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from .fileio import write_json, write_npz
-from .gain_rules import GainRule, gain_rule
+from .rule import GainRule
 from .validation import InputError
 
 __all__ = ["SCHEMA", "GainSchedule", "load_schedule"]
@@ -42,7 +42,7 @@ class GainSchedule:
     """A designed (or replayable) gain schedule with its bound and feasibility record."""
 
     scenario: str
-    mode: str
+    rule: GainRule  # the design's gain rule (what a node needs at run time to apply the schedule)
     epsilon: float
     sigma: np.ndarray  # (nodes, steps)
     beta: np.ndarray  # (nodes, steps)
@@ -57,9 +57,9 @@ class GainSchedule:
     tables: dict[str, np.ndarray] | None = None  # mode 'scheduled': what the nodes carry (schedule.npz's table_*)
 
     @property
-    def gain_rule(self) -> GainRule:
-        """The mode's gain rule: what a node needs at run time to apply the schedule (:mod:`designer.gain_rules`)."""
-        return gain_rule(self.mode)
+    def mode(self) -> str:
+        """The gain rule's name (``--mode``)."""
+        return self.rule.name
 
     @property
     def nodes(self) -> int:
@@ -83,8 +83,8 @@ class GainSchedule:
             "schema": SCHEMA,
             "scenario": self.scenario,
             "mode": self.mode,
-            "gain_rule": self.gain_rule.describe(),
-            "runtime_information": self.gain_rule.describe(),  # the contract's name for it (shared/DESIGN.md)
+            "gain_rule": self.rule.describe(),
+            "runtime_information": self.rule.describe(),  # the contract's name for it (shared/DESIGN.md)
             "nodes": self.nodes,
             "steps": self.steps,
             "epsilon": self.epsilon,
@@ -112,8 +112,9 @@ class GainSchedule:
         return out_dir
 
 
-def load_schedule(path) -> GainSchedule:
-    """Load a schedule written by :meth:`GainSchedule.write` (a directory or its ``schedule.json``)."""
+def load_schedule(path, rule_of: Callable[[str, str], GainRule]) -> GainSchedule:
+    """Load a schedule written by :meth:`GainSchedule.write` (a directory or its ``schedule.json``); ``rule_of(name,
+    param)`` resolves its mode to the gain rule (:func:`rules.get`), or raises InputError naming ``param``."""
     path = Path(path)
     if path.is_dir():
         path = path / "schedule.json"
@@ -143,7 +144,7 @@ def load_schedule(path) -> GainSchedule:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line, exit 2
         raise InputError(f"schedule arrays {str(npz_path)!r} cannot be read: {type(exc).__name__}: {exc}") from None
-    rule = gain_rule(meta.get("mode"), f"mode of schedule {str(path)!r}")
+    rule = rule_of(meta.get("mode"), f"mode of schedule {str(path)!r}")
     record = meta.get("gain_rule")  # absent from a file written before the gain rules declared their run time
     if record is not None and (not isinstance(record, dict) or record.get("name") != rule.name
                                or record.get("runtime") != rule.runtime):
@@ -155,7 +156,7 @@ def load_schedule(path) -> GainSchedule:
     violations = [{**v, "margin": -np.inf if v["margin"] is None else v["margin"]} for v in meta["violations"]]
     for v in violations:
         v.pop("note", None)
-    return GainSchedule(meta["scenario"], meta["mode"], float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
+    return GainSchedule(meta["scenario"], rule, float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
                         arrays["K"], arrays["C"], arrays["Phi"], arrays["valid"].astype(bool), violations,
                         {k: v for k, v in meta.items() if k not in known}, arrays.get("margin28"),
                         arrays.get("margin29"), {k[6:]: v for k, v in arrays.items() if k.startswith("table_")} or None)

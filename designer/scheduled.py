@@ -600,7 +600,7 @@ class ScheduledTables(NamedTuple):
     n) the nominal ``P̄_ii``; ``K`` (steps, N, n, max m), ``C`` (steps, E, n, n) the nominal gains; ``P_post`` (steps + 1,
     N, n, n) the expected covariance; ``Phi`` (steps + 1, N, n, n) the certificate (NaN where not a bound), ``valid``
     (steps + 1,), ``sigma``, ``beta``, ``margin28``, ``margin29`` (steps,), ``theorem2`` (steps + 1, N);
-    ``violations`` as :class:`filters.consensus.ConsensusResult`'s; ``stationary``: whether the last step's tables
+    ``violations`` as :class:`filters.consensus_batch.ConsensusResult`'s; ``stationary``: whether the last step's tables
     are a fixed point of the recursion at the last nominal point (and after how many extra steps).
     """
 

@@ -41,122 +41,27 @@ neighbour's non-bound ``Φ_{j,k+1|k}`` in (27): ``valid`` tracks both.
 
 **One implementation.**  :func:`run_consensus` is a batch of one run of
 :func:`filters.consensus_batch.run_consensus_batch` (which dispatches mode mse to
-:mod:`filters.mse_batch` and mode scheduled to :mod:`filters.scheduled`): a run alone and the same run
-in a batch are the same numbers.  This module holds what every form shares: the result type of a run
-(:class:`ConsensusResult`), the χ² gate on stacked channels (:func:`gate_channels`, with
-:func:`channel_difference_covariance` and :func:`kept_fdi_moments`), the wrapped residual and the
-constants :data:`HARD_CONDITIONS`, :data:`DIVERGED` and :data:`GATE_COUNTS`.
+:mod:`rules.mse.filter` and mode scheduled to :mod:`rules.scheduled.filter`): a run alone and the same run
+in a batch are the same numbers, and the result of a run (:class:`filters.consensus_batch.ConsensusResult`) is
+a row of the batch's.  This module holds the run alone: its inputs checked (:func:`check_run_inputs`) and the
+wrapped residual of one sensor (:func:`wrapped_residual`).  What every form shares lives below it: the χ² gate
+on stacked channels in :mod:`filters.channels`, the constants :data:`filters.result.HARD_CONDITIONS` and
+:data:`filters.result.DIVERGED` with the divergence bookkeeping in :mod:`filters.result`.
 """
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import numpy as np
 
 from designer.design import ConsensusDesign
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.mse import difference_covariance, node_blocks
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
+from .consensus_batch import ConsensusResult, run_consensus_batch
 from .rrp import wrap_angles
 
-__all__ = ["gate_channels", "channel_packets", "channel_difference_covariance", "kept_fdi_moments", "GATE_COUNTS",
-           "wrapped_residual", "ConsensusResult", "run_consensus", "check_run_inputs", "HARD_CONDITIONS", "DIVERGED"]
-
-
-HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # any of these makes a design infeasible
-DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate (every filter)
-
-
-GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_passed")
-
-
-def channel_difference_covariance(P, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
-    """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
-
-    ``P`` a :class:`designer.mse.JointCovariance` (the differences without cancellation,
-    :func:`designer.mse.difference_covariance`) or absolute joint blocks (..., N, N, n, n); returns
-    (..., E, n, n), regularised by ``1e-12`` of the mean trace of each run's nodes (two nodes with one
-    estimate have a zero difference).
-    """
-    d = node_blocks(P)
-    eps = 1e-12 * np.maximum(np.trace(d, axis1=-2, axis2=-1).mean(axis=-1), 1e-300)
-    return difference_covariance(P, receiver, sender) + eps[..., None, None, None] * np.eye(d.shape[-1])
-
-
-def channel_packets(sent: np.ndarray, fdi: np.ndarray | None, xi: np.ndarray | None) -> np.ndarray:
-    """What channels carry: the senders' predictions ``sent`` (..., n), ``+ ξ`` where ``fdi`` (...) falsified them
-    (``xi`` (..., n); None: no attack).  Every filter forms a received packet this way first, then uses it, so that a
-    node filter handed the packet that arrived computes the batched filter's numbers."""
-    if fdi is None or xi is None:
-        return sent
-    return np.where(np.asarray(fdi, dtype=bool)[..., None], sent + xi, sent)
-
-
-def gate_channels(x_pred: np.ndarray, receiver: np.ndarray, sender: np.ndarray, received: np.ndarray,
-                  fdi: np.ndarray | None, xi: np.ndarray | None, cov_diff: np.ndarray | None, alpha: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The χ² gate on stacked directed channels (of one run or of a batch of runs).
-
-    Channel ``e`` carries ``x̂_j (+ ξ_e)`` from ``j = sender[e]`` to ``i = receiver[e]``; ``x_pred``
-    (..., N, n) the predictions, ``received`` (..., E) the packets that arrived, ``fdi`` (..., E)
-    the falsified ones and ``xi`` (..., E, n) their signal (None: no attack), ``cov_diff``
-    (..., E, n, n) the covariance of ``x̂_j - x̂_i`` when nobody lies (None will do at ``α = 0``).
-    A received packet is kept when ``dᵀ Σ⁺ d <= χ²_n(1 - α)`` (``d = x̂_j (+ ξ) - x̂_i``; a
-    covariance or difference beyond floats cannot judge: kept).  Returns the mask of kept packets
-    (..., E) and the counts (..., 5) of :data:`GATE_COUNTS`.
-    """
-    from scipy.special import chdtri
-
-    received = np.asarray(received, dtype=bool)
-    fdi = np.zeros_like(received) if fdi is None else np.asarray(fdi, dtype=bool)
-    keep = received.copy()
-    if alpha > 0:
-        idx = np.nonzero(received)
-        runs, e = idx[:-1], idx[-1]
-        sent = x_pred[runs + (sender[e],)]
-        d = (sent if xi is None else channel_packets(sent, fdi[idx], xi[idx])) - x_pred[runs + (receiver[e],)]
-        S = cov_diff[idx]
-        ok = np.all(np.isfinite(S), axis=(1, 2)) & np.all(np.isfinite(d), axis=1)
-        stat = np.zeros(e.size)
-        if ok.any():
-            stat[ok] = np.einsum("ea,ea->e", d[ok], (np.linalg.pinv(S[ok], hermitian=True) @ d[ok][..., None])[..., 0])
-        keep[idx] = stat <= chdtri(x_pred.shape[-1], alpha)
-    rejected = received & ~keep
-    counts = np.stack([received.sum(-1), rejected.sum(-1), (rejected & ~fdi).sum(-1), (received & fdi).sum(-1),
-                       (keep & fdi).sum(-1)], axis=-1)
-    return keep, counts
-
-
-def kept_fdi_moments(design: ConsensusDesign, keep: np.ndarray, q: np.ndarray, cov_diff: np.ndarray,
-                     receiver: np.ndarray, n_nodes: int) -> np.ndarray:
-    """``S_i = Σ_{j kept} P(FDI | kept) E[ξ ξᵀ | FDI, kept]`` (..., N, n, n): what the falsified packets that pass
-    the gate add, on stacked channels.
-
-    For a kept packet ``P(FDI, kept) = q P(pass | FDI)`` and ``P(kept) = q P(pass | FDI) + (1 - q)(1 - α)``,
-    with ``P(pass | FDI)`` and ``E[g² 1{pass}]`` from :meth:`designer.attacks.FDISignal.passing` against the
-    clean difference's covariance (the clean part taken as independent of the signal).  ``keep`` (..., E) the
-    kept packets, ``q`` (E,) each channel's probability that a received packet is falsified (or (..., E): per
-    run), ``cov_diff`` (..., E, n, n) the clean difference's covariance the gate tests against, ``receiver``
-    (E,) each channel's receiving node.
-    """
-    from scipy.special import chdtri
-
-    nx = cov_diff.shape[-1]
-    a = design.fdi_signal.amplitudes(nx)
-    out = np.zeros(keep.shape[:-1] + (n_nodes, nx, nx))
-    idx = np.nonzero(keep)
-    if idx[-1].size and np.any(a):
-        c = np.einsum("a,eab,b->e", a, np.linalg.pinv(cov_diff[idx], hermitian=True), a)
-        p_pass, g2_pass = design.fdi_signal.passing(c, chdtri(nx, design.gate), nx)
-        qe = np.broadcast_to(q, keep.shape)[idx]
-        weight = qe * g2_pass / np.maximum(qe * p_pass + (1.0 - qe) * (1.0 - design.gate), 1e-300)
-        # one packet after the other, in channel order (the per-run sum's order)
-        np.add.at(out, idx[:-1] + (receiver[idx[-1]],), weight[:, None, None] * np.outer(a, a))
-    return out
-
+__all__ = ["wrapped_residual", "run_consensus", "check_run_inputs"]
 
 
 def wrapped_residual(model: Model, i: int, z_i, x_pred, k1: int) -> np.ndarray:
@@ -192,47 +97,6 @@ def check_run_inputs(model: Model, z, inputs, x0, cov0, cov_name: str = "P0"):
     return z, u, x0, check_covariance(cov_name, model.prior.cov if cov0 is None else cov0, model.n_x)
 
 
-class ConsensusResult(NamedTuple):
-    """A run of the consensus filter over all nodes.
-
-    Φ entries whose ``valid`` flag is False come from the fallback recursion and
-    are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
-    condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
-    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``; ``'diverged'``
-    (with a ``reason``) when a node's estimate or covariance left finite numbers: the run
-    stops there and every array is NaN from that step on.
-    """
-
-    x_post: np.ndarray  # (steps+1, N, n_x)
-    x_pred: np.ndarray  # (steps, N, n_x)
-    phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
-    phi_pred: np.ndarray  # (steps, N, n_x, n_x)
-    K: np.ndarray  # (steps, N, n_x, max n_z_i): node i's gain in K[..., :n_z_i], zero beyond
-    C: np.ndarray  # (steps, N, n_x, n_x)
-    valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
-    margin28: np.ndarray  # (steps, N)
-    margin29: np.ndarray  # (steps, N)
-    theorem2: np.ndarray  # (steps+1, N)
-    violations: list
-    sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
-    beta: np.ndarray  # (steps, N) β used in (27)
-    predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
-    gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
-    # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
-    # (designer.mse.mse_gains); NaN where none was solved
-    gain_condition: np.ndarray | None = None
-
-    @property
-    def feasible(self) -> bool:
-        return not any(v["condition"] in HARD_CONDITIONS for v in self.violations)
-
-    @property
-    def diverged(self) -> dict | None:
-        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
-        return next((v for v in self.violations if v["condition"] == "diverged"), None)
-
-
-
 def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: AttackPattern | None = None, x0=None, phi0=None,
                   gains: tuple[np.ndarray, np.ndarray] | None = None) -> ConsensusResult:
@@ -256,8 +120,6 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     Sensors may differ in measurement dimension; the gains are then returned in one array
     of ``max n_z_i`` columns, zero beyond each node's own.
     """
-    from .consensus_batch import run_consensus_batch  # late: it builds on this module
-
     z, u, x0, phi0 = check_run_inputs(model, z, inputs, x0, phi0, "phi0")
     if attacks is not None and not isinstance(attacks, AttackPattern):
         raise InputError(f"attacks must be a filters.attacks.AttackPattern, got {type(attacks).__name__}")

@@ -9,7 +9,11 @@ and its neighbours' non-bound predictions), the violations node by node in step 
 linearisation scalings of ``design.linearization``, wrapped angular residuals, sensors of
 mixed dimensions (gains zero-padded), the bound-trace limit, and divergence: a run whose
 estimate or covariance leaves finite numbers stops there (its arrays NaN from that step on,
-a ``'diverged'`` violation) while the other runs go on.
+a ``'diverged'`` violation) while the other runs go on.  Its step runs on the consensus family's one time loop,
+:func:`filters.engine.run_batch`, which owns the steps, the records, the runs going on and that stop; this module
+holds the result types of a run and of a batch (:class:`ConsensusResult`, :class:`ConsensusBatchResult`) and what
+the modes' steps share (the channels' attacks and sums, the inputs checked, the prediction and update of stacked
+nodes).
 
 Every quantity of a step is a stack over (runs, nodes):
 
@@ -23,59 +27,49 @@ Every quantity of a step is a stack over (runs, nodes):
   channels (:class:`EdgeAttacks` holds the realised attacks on them), linear in the number
   of edges, so 512-node networks over hundreds of runs fit in memory.
 
-The filter of each gain rule is registered under its name (:func:`register_filter`,
-:func:`rule_filters`).  The rules a node applies on its own over Theorem 1's recursion are a
-:class:`NodeRule`, a pair of batched functions over stacked items: ``'paper'`` (σ, β fixed,
-``C = τ Φ_pred``, the gain (30)) and ``'tuned'``
-(σ of (26) by :func:`designer.tuning.tune_prediction_batch`; β, C, K and the weights of the
-weighted (27) by :func:`designer.tuning.tune_weighted_batch`, over the groups own error / each
-received neighbour / the falsified packets, with one group slot per incoming channel; each
-(run, node) carries its weights per slot from one tuned update to the next and warm-starts from
-them, :func:`designer.tuning.warm_start_weights`).  A fixed gain schedule (``gains=``, e.g. a
-design's, replayed on other runs) takes the place of the rule: every node on the fallback
-recursion with the given gains, nothing certified.  Mode ``'mse'`` runs batched in
-:func:`filters.mse_batch.run_mse_batch`, mode ``'scheduled'`` in
-:func:`filters.scheduled.run_scheduled_batch`.  The straightforward per-node loop this batch was
+The filter of a design is its gain rule's (``design.rule.batch_filter()``, :mod:`rules`): a
+:class:`NodeRule`, a pair of batched functions over stacked items (a prediction and an update each node
+applies on its own over Theorem 1's recursion; ``weighted``: the weighted (27), with one group slot per
+incoming channel, each (run, node) carrying its weights per slot from one update to the next and
+warm-starting from them, :func:`designer.tuning.warm_start_weights`), run by this module's loop; or a
+function with :func:`run_consensus_batch`'s parameters, which this function hands the design to.  A fixed
+gain schedule (``gains=``, e.g. a design's, replayed on other runs) takes the place of the rule: every node
+on the fallback recursion with the given gains, nothing certified.  The straightforward per-node loop this batch was
 written from is kept as the tests' reference (``tests/consensus_reference.py``).
 """
 from __future__ import annotations
 
-from importlib import import_module
-from types import MappingProxyType
-from typing import Callable, Mapping, NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from designer.bounds import (
     BOUND_LIMIT,
-    condition28_margin,
-    condition29_margin,
     optimal_gain_from,
-    prediction_bound,
     prediction_recursion,
-    Spectrum,
     shifted_inverse,
     spectrum,
     theorem2_margin,
     update_bound_from,
 )
 from designer.design import ConsensusDesign, validate_design
-from designer.gain_rules import gain_rule
 from designer.linearization import hessian_cover, prediction_scaling, selection, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.tuning import neighbour_group_stack, tune_prediction_batch, tune_weighted_batch, warm_start_weights
+from designer.tuning import neighbour_group_stack, warm_start_weights
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus import GATE_COUNTS, HARD_CONDITIONS, ConsensusResult, channel_packets, gate_channels
-from .result import DIVERGED_REASON, FilterResult, constant_messages, diverged_nodes, stop_diverged
+from .channels import GATE_COUNTS, channel_packets, gate_channels
+from .engine import Step, run_batch
+from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes
 from .rrp import wrap_angles
 
-_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
+# the reason of a (28) violation where a bound's trace reached the limit (every mode that certifies a bound)
+LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "rule_filters", "register_filter",
-           "unregister_filter", "rule_filter", "wrap_residuals", "run_networks",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice",
+           "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
 
@@ -203,6 +197,47 @@ def per_run(value_of, network: SensorNetwork, nets: list | None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the result
+class ConsensusResult(NamedTuple):
+    """A run of the consensus filter over all nodes (:func:`filters.consensus.run_consensus`; a row of
+    :class:`ConsensusBatchResult`, :meth:`ConsensusBatchResult.run`).
+
+    Φ entries whose ``valid`` flag is False come from the fallback recursion and
+    are *not* bounds.  ``violations`` lists ``{node, step, condition, margin}``:
+    condition ``'(28)'`` is checked on ``Φ_{k|k}`` (reported at step k),
+    ``'(29)'`` on ``Φ_{k+1|k}`` (step k+1), ``'theorem2'`` on ``Φ_{k|k}``; ``'diverged'``
+    (with a ``reason``) when a node's estimate or covariance left finite numbers: the run
+    stops there and every array is NaN from that step on.
+    """
+
+    x_post: np.ndarray  # (steps+1, N, n_x)
+    x_pred: np.ndarray  # (steps, N, n_x)
+    phi_post: np.ndarray  # (steps+1, N, n_x, n_x)
+    phi_pred: np.ndarray  # (steps, N, n_x, n_x)
+    K: np.ndarray  # (steps, N, n_x, max n_z_i): node i's gain in K[..., :n_z_i], zero beyond
+    C: np.ndarray  # (steps, N, n_x, n_x)
+    valid: np.ndarray  # (steps+1, N) bool: phi_post[k, i] is a bound
+    margin28: np.ndarray  # (steps, N)
+    margin29: np.ndarray  # (steps, N)
+    theorem2: np.ndarray  # (steps+1, N)
+    violations: list
+    sigma: np.ndarray  # (steps, N) σ used in (26) at each node and step (NaN on the fallback)
+    beta: np.ndarray  # (steps, N) β used in (27)
+    predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
+    gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
+    # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
+    # (designer.mse.mse_gains); NaN where none was solved
+    gain_condition: np.ndarray | None = None
+
+    @property
+    def feasible(self) -> bool:
+        return not any(v["condition"] in HARD_CONDITIONS for v in self.violations)
+
+    @property
+    def diverged(self) -> dict | None:
+        """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
+        return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
@@ -218,7 +253,7 @@ def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
 
 
 class ConsensusBatchResult(NamedTuple):
-    """Many runs of the consensus filter: the fields of :class:`filters.consensus.ConsensusResult`
+    """Many runs of the consensus filter: the fields of :class:`ConsensusResult`
     with a leading runs axis, and ``violations`` one list per run."""
 
     x_post: np.ndarray  # (runs, steps+1, N, n_x)
@@ -243,7 +278,7 @@ class ConsensusBatchResult(NamedTuple):
         return self.x_post.shape[0]
 
     def run(self, r: int) -> ConsensusResult:
-        """Run ``r`` as the :class:`~filters.consensus.ConsensusResult` of :func:`run_consensus`."""
+        """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
                   for f in ConsensusResult._fields if f not in optional]
@@ -265,7 +300,7 @@ class ConsensusBatchResult(NamedTuple):
         ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
         the EKF's own covariance), the violations, one message per directed link of ``network`` per step
         and exchange round (``2 |E| rounds``, lost ones included) and the packets received (``gate_counts``' first
-        column), ``runtime`` the gain rule's (:attr:`designer.gain_rules.GainRule.runtime`)."""
+        column), ``runtime`` the gain rule's (:attr:`designer.rule.GainRule.runtime`)."""
         runs, steps = self.x_pred.shape[:2]
         return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
                             constant_messages(runs, steps, network.messages_per_step(rounds)), runtime,
@@ -293,46 +328,6 @@ class UpdateChoice(NamedTuple):
     weights: np.ndarray | None = None  # (m, L) mode tuned: the weights of (27)'s groups (NaN: group absent)
 
 
-def _paper_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
-    pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
-    return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
-
-
-def _paper_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
-    """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
-    m, n = phi_pred.phi.shape[:2]
-    H, s, V, R, d, neighbour_terms = (it[key] for key in ("H", "s", "V", "R", "d", "nt"))
-    margin = condition29_margin(phi_pred, design.beta, D)
-    ok = margin > 0
-    if not ok.all():  # the rule on the items inside (29); NaN for the others (they take the fallback)
-        out = UpdateChoice(margin, np.full(m, design.beta), np.full((m, n, H.shape[-2]), np.nan),
-                           np.full((m, n, n), np.nan), np.full((m, n, n), np.nan))
-        if ok.any():
-            inner = _paper_update(phi_pred.take(ok), {key: v[ok] for key, v in it.items()}, D, design)
-            out.K[ok], out.C[ok], out.phi_post[ok] = inner.K, inner.C, inner.phi_post
-        return out
-    C = design.tau * phi_pred.phi
-    M = shifted_inverse(phi_pred, design.beta, D)
-    K = optimal_gain_from(M, H, C, s, design.beta, V, R, d)
-    phi = update_bound_from(M, H, K, C, s, design.beta, V, R, d, neighbour_terms)
-    return UpdateChoice(margin, np.full(m, design.beta), K, C, phi)
-
-
-def _tuned_prediction(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
-    """The σ of (26) that makes its trace smallest (:func:`designer.tuning.tune_prediction_batch`), then (28)."""
-    ch = tune_prediction_batch(phi_post, F, U, Q, design.epsilon, D=D)
-    margin = condition28_margin(phi_post, ch.sigma, design.epsilon, D)
-    return PredictionChoice(np.where((margin > 0)[:, None, None], ch.phi_pred, np.nan), margin, ch.sigma)
-
-
-def _tuned_update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateChoice:
-    """(β, C, K) and the weights of the weighted (27) (:func:`designer.tuning.tune_weighted_batch`, warm-started
-    from each node's previous weights), then (29) at that β."""
-    ch = tune_weighted_batch(phi_pred, it["H"], it["s"], it["V"], it["R"], it["groups"], it["present"], D=D,
-                             weights=it["w0"])
-    return UpdateChoice(condition29_margin(phi_pred, ch.beta, D), ch.beta, ch.K, ch.C, ch.phi_post, ch.weights)
-
-
 class NodeRule(NamedTuple):
     """A gain rule that each node applies on its own over the bound recursion of Theorem 1, run by
     :func:`run_consensus_batch`'s loop: its prediction and update, both batched over stacked items (an update
@@ -342,52 +337,6 @@ class NodeRule(NamedTuple):
     predict: Callable[..., PredictionChoice]
     update: Callable[..., UpdateChoice]
     weighted: bool = False  # the weighted (27): each node's weights per incoming channel, carried between steps
-
-
-# gain rule name (designer.gain_rules) -> its filter over a batch of runs: a NodeRule run by this module's loop, or a
-# function with run_consensus_batch's parameters (without gains); see register_filter
-_FILTERS: dict[str, "NodeRule | Callable[..., ConsensusBatchResult]"] = {}
-# they register the filters of the other built-in rules
-_FILTER_MODULES = ("filters.mse_batch", "filters.scheduled", "filters.relay")
-
-
-def register_filter(rule: str, run: "NodeRule | Callable[..., ConsensusBatchResult]"):
-    """Register ``run`` as the filter of the gain rule named ``rule`` (registered in :mod:`designer.gain_rules`):
-    a :class:`NodeRule`, or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
-    :class:`ConsensusBatchResult`.  A rule has one filter; returns ``run``."""
-    gain_rule(rule, "rule")
-    if rule in _FILTERS:
-        raise InputError(f"gain rule {rule!r} has a filter already")
-    _FILTERS[rule] = run
-    return run
-
-
-def unregister_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
-    """Remove the filter of the gain rule named ``rule`` and return it."""
-    if rule not in _FILTERS:
-        raise InputError(f"no filter is registered for gain rule {rule!r}")
-    return _FILTERS.pop(rule)
-
-
-def rule_filters() -> Mapping[str, "NodeRule | Callable[..., ConsensusBatchResult]"]:
-    """Every registered filter by gain rule name (read-only), the built-in rules' included."""
-    for module in _FILTER_MODULES:  # late: they build on this module
-        import_module(module)
-    return MappingProxyType(_FILTERS)
-
-
-def rule_filter(rule: str) -> "NodeRule | Callable[..., ConsensusBatchResult]":
-    """The filter registered for the gain rule named ``rule`` (InputError when none is)."""
-    if rule not in _FILTERS:
-        rule_filters()
-    if rule not in _FILTERS:
-        raise InputError(f"no filter applies gain rule {rule!r} (filters.consensus_batch.register_filter registers "
-                         "one)")
-    return _FILTERS[rule]
-
-
-register_filter("paper", NodeRule(_paper_prediction, _paper_update))
-register_filter("tuned", NodeRule(_tuned_prediction, _tuned_update, weighted=True))
 
 
 def _fallback_update(phi_pred, H, s, R, neighbour_terms, tau: float, K=None, C=None):
@@ -623,9 +572,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     z : ndarray, shape (runs, steps, n_z)
         Stacked measurements of every run; ``z[r, k]`` measures ``x_{k+1}`` of run ``r``.
     design : ConsensusDesign
-        Any gain rule with a filter (:func:`rule_filters`), with or without a gate: 'mse' runs in
-        :func:`filters.mse_batch.run_mse_batch`, 'scheduled' in :func:`filters.scheduled.run_scheduled_batch`,
-        'paper' and 'tuned' (:class:`NodeRule`) here.
+        Any gain rule with a filter (``design.rule.batch_filter()``), with or without a gate: a
+        :class:`NodeRule` runs here, a function is handed the design.
     inputs : ndarray, shape (steps, n_u) or (runs, steps, n_u), optional
         Known inputs, shared by every run or one sequence per run.
     attacks : EdgeAttacks or sequence of AttackPattern (one per run), optional
@@ -655,7 +603,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     design = validate_design(design, model, network)
     ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    filt = None if gains is not None else rule_filter(design.mode)
+    filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
                     phi0=phi0)
@@ -665,7 +613,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     if replay:
         gains = _replay_gains(gains, steps, n, nx, nz)
     predict_rule, update_rule = (None, None) if replay else filt[:2]
-    fixed = gain_rule(design.mode).fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
+    fixed = design.rule.fixed_multipliers  # the user's σ, β: wrong for the model if (28)/(29) fail at once
     degrees = network.degrees
     d_max = network.d_max
     eye = np.eye(nx)
@@ -680,32 +628,18 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
 
-    x_post = np.full((runs, steps + 1, n, nx), np.nan)
-    x_pred = np.full((runs, steps, n, nx), np.nan)
-    phi_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
-    phi_pred = np.full((runs, steps, n, nx, nx), np.nan)
-    K = np.full((runs, steps, n, nx, nz), np.nan)
-    C = np.full((runs, steps, n, nx, nx), np.nan)
-    valid = np.zeros((runs, steps + 1, n), dtype=bool)
+    out = result_arrays(runs, steps, n, nx, nz)
+    del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
+    violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)
-    m28 = np.full((runs, steps, n), np.nan)
-    m29 = np.full((runs, steps, n), np.nan)
-    th2 = np.full((runs, steps + 1, n), np.nan)
-    sig = np.full((runs, steps, n), np.nan)
-    bet = np.full((runs, steps, n), np.nan)
-    violations: list[list[dict]] = [[] for _ in range(runs)]
-    counts = np.zeros((runs, steps, len(GATE_COUNTS)), dtype=np.int64)
-    x_post[:, 0] = x0[:, None]
-    phi_post[:, 0] = phi0[:, None]
-    valid[:, 0] = not replay
-    act = np.arange(runs)  # the runs still going (not diverged)
+    out["x_post"][:, 0] = x0[:, None]
+    out["phi_post"][:, 0] = phi0[:, None]
+    out["valid"][:, 0] = not replay
+    valid = out["valid"]
 
-    for k in range(steps):
+    def step(k, act, at):
         a = act.size
-        if a == 0:
-            break
-        at = slice(None) if a == runs else act  # index of the runs going on (a view while none has stopped)
-        xk, Pk, prop = x_post[at, k], phi_post[at, k], proper[at]
+        xk, Pk, prop = out["x_post"][at, k], out["phi_post"][at, k], proper[at]
         uk = u[k] if u.ndim == 2 else u[at, k][:, None, :]
         xp, Pp, margin28, sigma, pvalid, th2k, limit = predict_nodes(model, design, predict_rule, k, xk, Pk, prop, uk,
                                                                      d_max)
@@ -717,7 +651,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         else:
             received, fdi, xi = ~attacks.dos[at, k], attacks.fdi[at, k], attacks.xi[at, k]
         cov_diff = 2.0 * (Pp[:, ex.receiver] + Pp[:, ex.sender]) if design.gate else None
-        recv, counts[at, k] = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
+        recv, counts = gate_channels(xp, ex.receiver, ex.sender, received, fdi, xi, cov_diff, design.gate)
         s = ex.sum(recv.astype(float))
         innovation = ex.sum(recv[..., None] * channel_packets(xp[:, ex.sender], fdi, xi)) - s[..., None] * xp
         each = slice(None) if nets is None else at  # the runs' channel statistics
@@ -749,12 +683,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                 r = int(raising[0])
                 raise first_step_error(r, v28, v29, phi0[at], Pp, design)
         nb_bad = ex.sum((~pred_ok)[:, ex.sender].astype(float)) > 0
-        x_pred[at, k], phi_pred[at, k], m28[at, k], sig[at, k], th2[at, k] = xp, Pp, margin28, sigma, th2k
-        x_post[at, k + 1], phi_post[at, k + 1], K[at, k], C[at, k] = xn, Pn, Kn, Cn
-        m29[at, k], bet[at, k] = margin29, beta
-        valid[at, k + 1] = uvalid & pred_ok & ~nb_bad
         proper[at] = prop & ~v28 & ~v29
-        # ---- violations: theorem2 and (28) node by node, then (29), then divergence
+        # ---- violations: theorem2 and (28) node by node, then (29) (the loop adds divergence)
         rr, ii = np.nonzero((th2k < 0) | v28)
         for r, i, t2, c28, mg, lim in zip(act[rr].tolist(), ii.tolist(), th2k[rr, ii].tolist(), v28[rr, ii].tolist(),
                                           margin28[rr, ii].tolist(), limit[rr, ii].tolist()):
@@ -762,25 +692,29 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             if t2 < 0:
                 vs.append({"node": i, "step": k, "condition": "theorem2", "margin": t2})
             if c28:
-                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": _LIMIT_REASON}
+                vs.append({"node": i, "step": k, "condition": "(28)", "margin": mg, **({"reason": LIMIT_REASON}
                                                                                      if lim else {})})
         rr, ii = np.nonzero(v29)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), margin29[rr, ii].tolist()):
             violations[r].append({"node": i, "step": k + 1, "condition": "(29)", "margin": mg})
-        act = act[stop_diverged(violations, act, failed, k + 1, lambda r, node: reasons[r, node],
-                                nan_from=(x_post, phi_post), nan_before=(K, C), invalid_from=(valid,))]
+        return Step(dict(x_pred=xp, phi_pred=Pp, margin28=margin28, sigma=sigma, theorem2=th2k, K=Kn, C=Cn,
+                         margin29=margin29, beta=beta, gate_counts=counts),
+                    dict(x_post=xn, phi_post=Pn, valid=uvalid & pred_ok & ~nb_bad), failed,
+                    lambda r, node: reasons[r, node])
+
+    act = run_batch(step, out, violations, steps, nan_from=("x_post", "phi_post"), nan_before=("K", "C"),
+                    invalid_from=("valid",))
     # Phi_{K|K} against the last sigma each node used
     at = slice(None) if act.size == runs else act
     last = valid[at, steps]
     if last.any():
         th = np.full(last.shape, np.nan)
-        th[last] = theorem2_margin(phi_post[at, steps][last], sig[at, steps - 1][last], d_max)
-        th2[at, steps] = th
+        th[last] = theorem2_margin(out["phi_post"][at, steps][last], out["sigma"][at, steps - 1][last], d_max)
+        out["theorem2"][at, steps] = th
         rr, ii = np.nonzero(th < 0)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
-    return ConsensusBatchResult(x_post, x_pred, phi_post, phi_pred, K, C, valid, m28, m29, th2, violations, sig, bet,
-                                None, counts)
+    return ConsensusBatchResult(**out)
 
 
 def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:

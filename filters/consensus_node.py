@@ -19,8 +19,8 @@ same functions, :func:`filters.consensus_batch.predict_nodes` and :func:`~filter
 a block of one node; tested through :class:`ConsensusNetwork`).
 
 :class:`ConsensusNetwork` drives every node over a run: each step every node predicts, the packets cross the
-channels (DoS drops them, FDI adds ``ξ``: :func:`filters.consensus.channel_packets`), and every node updates with
-what reached it.  When one node's estimate leaves finite numbers (or :data:`filters.consensus.DIVERGED`), the
+channels (DoS drops them, FDI adds ``ξ``: :func:`filters.channels.channel_packets`), and every node updates with
+what reached it.  When one node's estimate leaves finite numbers (or :data:`filters.result.DIVERGED`), the
 batched filter stops the whole run; so does the network (NaN from then on).
 """
 from __future__ import annotations
@@ -30,15 +30,14 @@ from typing import Mapping, NamedTuple
 import numpy as np
 
 from designer.design import ConsensusDesign, validate_design
-from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_int
 
-from .consensus import channel_packets, gate_channels
+from .channels import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
-                              rule_filter, tuned_items, update_nodes)
-from .node import NodeInputs, NodeNetwork, register_node_filter
+                              tuned_items, update_nodes)
+from .node import NodeInputs, NodeNetwork
 
 __all__ = ["Packet", "ConsensusNode", "ConsensusNetwork"]
 
@@ -64,7 +63,7 @@ class ConsensusNode:
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
                  P0=None):
         design = validate_design(design, model, network)
-        rule = rule_filter(design.mode)
+        rule = design.rule.batch_filter()
         if not isinstance(rule, NodeRule):
             raise InputError(f"ConsensusNode runs a gain rule each node applies on its own over Theorem 1 (paper, "
                              f"tuned); got mode {design.mode!r}")
@@ -76,7 +75,7 @@ class ConsensusNode:
         self._w_phi = 3.0 * (1.0 - network.dos_prob[i, self.senders])  # (27)'s weight of each neighbour's bound
         self._w_xi = (3.0 * design.delta**2 * (network.fdi_prob * network.adjacency).sum(axis=1))[i]
         self._group = node_groups(model, design, i)
-        self._fixed = gain_rule(design.mode).fixed_multipliers
+        self._fixed = design.rule.fixed_multipliers
         if rule.weighted:
             d = self.senders.size
             self._slots = np.where(np.arange(self.d_max) < d, np.arange(self.d_max), -1)[None]
@@ -193,5 +192,3 @@ class ConsensusNetwork(NodeNetwork):
 
 
 
-register_node_filter("paper", ConsensusNode, ConsensusNetwork)
-register_node_filter("tuned", ConsensusNode, ConsensusNetwork)

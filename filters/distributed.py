@@ -68,7 +68,7 @@ Assumptions where the papers are silent (attacks are not part of either paper):
   DoS does not stop the sender), ``delivered_per_step`` those that arrived.
 * **Divergence**: a node whose estimate or covariance leaves finite numbers, whose estimate
   exceeds ``1e12``, or whose information matrix loses positive definiteness stops the run: a
-  ``'diverged'`` violation (as :class:`filters.consensus.ConsensusResult`) and NaN from that step on.
+  ``'diverged'`` violation (as :class:`filters.consensus_batch.ConsensusResult`) and NaN from that step on.
 
 **One implementation.**  Each filter is one loop batched over runs (:func:`run_kcf_batch`,
 :func:`run_hcmci_batch`: every step one stack over the runs and nodes, a run that diverges stops alone);
@@ -91,10 +91,11 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
-from .consensus import DIVERGED, check_run_inputs
+from .consensus import check_run_inputs
 from .consensus_batch import Exchange, batch_inputs, wrap_residuals
+from .engine import Step, estimate_arrays, run_batch
 from .node import NodeInputs, NodeNetwork
-from .result import FilterResult
+from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
@@ -433,38 +434,27 @@ def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
 
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int
                   ) -> DistributedBatchResult:
-    """The loop both filters share, over many runs at once: every step, predict at every node of the runs still
-    going, compute every node's measurement information, ``update`` them, and stop a run at its first divergence
-    (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes stacks over the
-    runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it raises
-    ``LinAlgError``, the runs are updated one at a time to find those that break down."""
+    """The step both filters share, run by :func:`filters.engine.run_batch` over many runs at once: every step,
+    predict at every node of the runs still going, compute every node's measurement information, ``update`` them;
+    a run stops at its first divergence (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes
+    stacks over the runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it
+    raises ``LinAlgError``, the runs are updated one at a time to find those that break down."""
     n, nx = network.n_nodes, model.n_x
     runs, steps = inp.z.shape[:2]
     adj = network.adjacency
-    x_post = np.full((runs, steps + 1, n, nx), np.nan)
-    P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
-    x_pred = np.full((runs, steps, n, nx), np.nan)
-    P_pred = np.full((runs, steps, n, nx, nx), np.nan)
-    omega = np.full((runs, steps, n), np.nan)
-    x_post[:, 0], P_post[:, 0] = inp.x0[:, None], inp.P0[:, None]
-    sent = np.full((runs, steps), network.messages_per_step(rounds))
-    delivered = np.zeros((runs, steps), int)
+    out = estimate_arrays(runs, steps, n, nx, inp.x0, inp.P0, network.messages_per_step(rounds))
+    out["omega"] = np.full((runs, steps, n), np.nan)
     violations: list[list[dict]] = [[] for _ in range(runs)]
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
-    beyond = f"estimate or covariance beyond {DIVERGED:g} or not finite"
-    act = np.arange(runs)
-    for k in range(steps):
-        if not act.size:
-            break
-        at = slice(None) if act.size == runs else act
+
+    def step(k, act, at):
         recv = np.broadcast_to(adj, (act.size, n, n)) if inp.attacks is None else adj & ~inp.attacks.dos[at, k]
-        delivered[at, k] = recv.sum(axis=(1, 2)) * rounds
         uk = inp.u[k] if inp.u.ndim == 2 else inp.u[at, k][:, None, :]
-        xp, Pp = _predict(model, x_post[at, k], P_post[at, k], k, uk)
-        x_pred[at, k], P_pred[at, k] = xp, Pp
-        node = _failures(xp, Pp)
-        reason = {r: "prediction: " + beyond for r in np.flatnonzero(node < n)}
-        go = np.flatnonzero(node == n)
+        xp, Pp = _predict(model, out["x_post"][at, k], out["P_post"][at, k], k, uk)
+        bad = diverged_nodes(xp, Pp)
+        reason = {r: "prediction: " + DIVERGED_REASON for r in np.flatnonzero(bad.any(axis=-1))}
+        x_new, P_new, om_new = np.full(xp.shape, np.nan), np.full(Pp.shape, np.nan), np.full(xp.shape[:-1], np.nan)
+        go = np.flatnonzero(~bad.any(axis=-1))
         if go.size:
             every = go.size == act.size
             xg, Pg, rg = (v if every else v[go] for v in (xp, Pp, recv))
@@ -483,28 +473,28 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
                         xj, Pj, oj = update(k, act[go[j:j + 1]], xg[j:j + 1], Pg[j:j + 1], U[j:j + 1], u[j:j + 1],
                                             rg[j:j + 1])
                     except np.linalg.LinAlgError as exc:
-                        node[go[j]] = _not_positive_definite(Pg[j])
+                        bad[go[j], _not_positive_definite(Pg[j])] = True
                         reason[go[j]] = f"numerical breakdown: {exc}"
                     else:
                         x[j], P[j] = xj[0], Pj[0]
                         if oj is not None:
                             om[j] = oj[0]
-            bad = _failures(x, P)
-            for j in np.flatnonzero(bad < n):
+            failed = diverged_nodes(x, P)
+            for j in np.flatnonzero(failed.any(axis=-1)):
                 if go[j] not in reason:
-                    node[go[j]], reason[go[j]] = bad[j], beyond
+                    bad[go[j]], reason[go[j]] = failed[j], DIVERGED_REASON
             fine = np.array([g not in reason for g in go], dtype=bool)
-            rows = act[go[fine]]
-            x_post[rows, k + 1], P_post[rows, k + 1] = x[fine], 0.5 * (P[fine] + np.swapaxes(P[fine], -1, -2))
+            rows = go[fine]
+            x_new[rows], P_new[rows] = x[fine], 0.5 * (P[fine] + np.swapaxes(P[fine], -1, -2))
             if om is not None:
-                omega[rows, k] = om[fine]
-        for r in sorted(reason):
-            # Stop run r here: everything from step k+1 on stays NaN and is flagged, nothing is carried on.
-            violations[act[r]].append({"node": int(node[r]), "step": k + 1, "condition": "diverged",
-                                       "margin": -np.inf, "reason": reason[r]})
-            x_pred[act[r], k:] = P_pred[act[r], k:] = np.nan
-        act = np.delete(act, sorted(reason))
-    return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, rounds, omega)
+                om_new[rows] = om[fine]
+        return Step(dict(x_pred=xp, P_pred=Pp, delivered=recv.sum(axis=(1, 2)) * rounds, omega=om_new),
+                    dict(x_post=x_new, P_post=P_new), bad, lambda r, node: reason[r])
+
+    # a run that stops: everything from step k+1 on NaN and flagged, nothing carried on
+    run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
+    return DistributedBatchResult(out["x_post"], out["P_post"], out["x_pred"], out["P_pred"], out["sent"],
+                                  out["delivered"], violations, rounds, out["omega"])
 
 
 def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,

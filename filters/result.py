@@ -20,7 +20,8 @@ for a fusion centre, none for isolated nodes.
 A run that stopped (``diverged``) carries a ``'diverged'`` violation ``{node, step, condition,
 margin, reason}`` and its arrays are NaN from that step on: :func:`stop_diverged` is that bookkeeping
 for the batched filters (the consensus EKF of every mode), :func:`diverged_nodes` the test they
-share.  The centralized filters report a run as diverged at the
+share, :data:`DIVERGED` the estimate beyond which a run stops (every filter) and :data:`HARD_CONDITIONS` the
+violations that make a design infeasible.  The centralized filters report a run as diverged at the
 first step whose estimate is not finite (:func:`nonfinite_violations`).
 """
 from __future__ import annotations
@@ -29,13 +30,14 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from designer.gain_rules import FILTER_RUNTIMES
+from designer.rule import FILTER_RUNTIMES
 from designer.validation import InputError
 
-from .consensus import DIVERGED
-
 __all__ = ["FilterResult", "COV_KINDS", "nonfinite_violations", "constant_messages", "centralized_result",
-           "diverged_nodes", "stop_diverged", "DIVERGED_REASON"]
+           "diverged_nodes", "stop_diverged", "DIVERGED", "DIVERGED_REASON", "HARD_CONDITIONS"]
+
+DIVERGED = 1e12  # an estimate this large has left any physical meaning: stop, do not propagate (every filter)
+HARD_CONDITIONS = ("(28)", "(29)", "diverged")  # violations of these conditions make a design infeasible
 
 COV_KINDS = ("bound", "covariance")  # what ``FilterResult.cov`` is: a designed bound Φ, or the filter's own P
 DIVERGED_REASON = f"estimate or covariance beyond {DIVERGED:g} or not finite"
@@ -51,7 +53,7 @@ class FilterResult(NamedTuple):
     of ``{node, step, condition, margin[, reason]}`` (design conditions of the consensus filters, and
     ``'diverged'`` where the run stopped).  ``messages`` (runs, steps): transmissions attempted per
     step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
-    ``runtime``: what the filter needs at run time (:data:`designer.gain_rules.FILTER_RUNTIMES`).
+    ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
     alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.
     """
@@ -151,7 +153,7 @@ def centralized_result(x: np.ndarray, cov: np.ndarray, uplinks: int, detail: Any
 
 def diverged_nodes(x: np.ndarray, P: np.ndarray) -> np.ndarray:
     """``(..., N)`` True where a node's estimate ``x`` (..., N, n_x) or covariance ``P`` (..., N, n_x, n_x) left
-    finite numbers or an estimate reached :data:`filters.consensus.DIVERGED` (the run must stop there)."""
+    finite numbers or an estimate reached :data:`DIVERGED` (the run must stop there)."""
     return ~(np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-2, -1)) & (np.abs(x).max(axis=-1) < DIVERGED))
 
 

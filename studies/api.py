@@ -263,7 +263,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : str, a gain rule of :data:`designer.gain_rules.GAIN_RULES`
+    mode : str, the name of a gain rule (:mod:`rules`)
         The paper's fixed choices or the convex tuning layer (both ``local``: computed online at
         each node), the mean-square-error gains (``global``: an oracle needing the network's
         joint state, a reference of what the structure can reach, not a design to deploy), or the
@@ -286,7 +286,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     Returns
     -------
     Design
-        ``.gain_rule`` (:class:`designer.gain_rules.GainRule`: its ``runtime``, what a node ``needs``
+        ``.gain_rule`` (:class:`designer.rule.GainRule`: its ``runtime``, what a node ``needs``
         to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``,
         ``.verdict`` (``certified``, ``vacuous``, ``not steady`` or ``infeasible``:
         :mod:`designer.verdict`), ``.verdict_detail`` (the numbers behind it), ``.verdict_line()``,
@@ -591,10 +591,11 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     -------
     FilterRun
     """
-    from filters.consensus import HARD_CONDITIONS
+    from filters.result import HARD_CONDITIONS
 
     from .comparison import FILTER_REGISTRY, STUDY
-    from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+    from .consensus_design import bound_verdicts, check_first_step, consensus_design
+    from .design_options import as_mode
     from .recorded import design_options_of, find_filter, read_log, run_filter
 
     check_path("data", data)
@@ -683,7 +684,8 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``; ``deliver`` says what
         reaches each node).
     """
-    from filters.node import node_filter as make_node, node_network, node_rules
+    import rules
+    from filters.node import node_filter as make_node, node_network
 
     from .comparison import FILTER_REGISTRY
     from .consensus_design import consensus_design
@@ -708,7 +710,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
         entry = find_filter(FILTER_REGISTRY, filter)
         if entry.node_filters is None:
             having = [e.name for e in FILTER_REGISTRY if e.node_filters is not None
-                      and not (e.designed and e.mode not in node_rules())]
+                      and not (e.designed and not rules.get(e.mode).has_node_filter)]
             raise InputError(f"filter {entry.name!r} has no node filter (filters with one: {', '.join(having)})")
         memory.check(memory.node_filter_need(sc, None if entry.mode is None else DesignOptions(mode=entry.mode)))
         design = None if entry.mode is None else entry.design_for(consensus_design(sc, DesignOptions(mode=entry.mode)),
@@ -788,7 +790,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     design_dir : path
         A directory written by ``design`` for a gain rule a node runs: ``paper`` (with ``linearization='fixed'``,
         the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood``
-        (:class:`filters.relay.RelayNode`) or ``scheduled`` (:class:`filters.scheduled.ScheduledNode`, its tables
+        (:class:`rules.relay.filter.RelayNode`) or ``scheduled`` (:class:`rules.scheduled.filter.ScheduledNode`, its tables
         exported with it).
     target : {'c'}
     out : path
@@ -812,7 +814,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     """
     from designer.export_c import (consensus_replay_text, replay_text, scheduled_replay_text, write_consensus_c,
                                    write_relay_c, write_scheduled_c)
-    from designer.gain_rules import gain_rule
+    import rules
     from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
@@ -840,7 +842,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     else:
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
     mode, options, _ = design_options_of(design_dir, sc, record)
-    rule = gain_rule(mode)
+    rule = rules.get(mode)
     if not rule.relays and mode not in ("paper", "scheduled"):
         why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
                "its node solves a convex problem online at every step, which the export does not generate (its node "

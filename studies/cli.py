@@ -15,9 +15,9 @@ import warnings
 
 import click
 
-from designer.gain_rules import GAIN_RULES, runtime_label
+import rules
+from designer.rule import EXCHANGES, ROBUSTNESS
 from designer.validation import CfdesignWarning, ComputationError, InputError
-from designer.design import EXCHANGES, ROBUSTNESS
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
              "hcmci_iterations=3 (repeatable); see 'cfdesign scenarios'")
@@ -40,9 +40,8 @@ def cli() -> None:
 def _design_options(f):
     """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
     opts = [
-        click.option("--mode", type=click.Choice(list(GAIN_RULES)), default=None,
-                     help="; ".join(f"{r.name}: {r.summary} [{runtime_label(r.runtime)}]" for r in GAIN_RULES.values())
-                     + " [default: paper]"),
+        click.option("--mode", type=click.Choice(list(rules.names())), default=None,
+                     help="; ".join(r.help for r in rules.all_rules().values()) + f" [default: {rules.DEFAULT}]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
         click.option("--beta", type=float, default=None, help="beta of (27), paper mode [default: 0.1]"),

@@ -54,14 +54,15 @@ from typing import Sequence
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
-from designer.gain_rules import DEPLOYABLE, runtime_label
+from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
-from filters.consensus import HARD_CONDITIONS
+from filters.result import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
-from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .design_options import as_mode
 from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
                               particle_filters)
 from .pipeline import Plan, Study, StudyOptions
@@ -119,7 +120,7 @@ _DESCRIPTION = {
            "network size N (the centralized EKF as L grows, without attacks)",
 }
 # The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register).
-# Each records what it needs at run time (designer.gain_rules.FILTER_RUNTIMES): a designed filter its gain rule's
+# Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
 # (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
 # centre). Oracles and centralized filters are references: ranked apart, never the pick.
 FILTER_REGISTRY = FilterRegistry([

@@ -21,8 +21,9 @@ from typing import Callable
 
 import numpy as np
 
+import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
-from designer.gain_rules import GainRule, gain_rule
+from designer.rule import GainRule
 from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
@@ -31,33 +32,19 @@ from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, json_number,
                               open_loop_reference, open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
-from filters.consensus import HARD_CONDITIONS, ConsensusResult, run_consensus
+from filters.consensus import run_consensus
+from filters.consensus_batch import ConsensusResult
+from filters.result import HARD_CONDITIONS
 
+from .design_options import effective
 from .invocation import design_invocation
 from .provenance import design_seal
 from .results import versions
 from .runner import Background
 from .scenarios import Scenario
-from .scenarios.base import effective
 
-__all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
+__all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
            "check_first_step", "design_verdict", "bound_verdicts"]
-
-
-def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
-    """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
-    without offline tables the scheduled design's exchange, robustness and bank, and the rounds unless it relays)."""
-    from dataclasses import replace
-
-    opts = options or DesignOptions()
-    rule = gain_rule(mode)
-    if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
-        opts = replace(opts, exchange=None, robustness=None, bank=None)
-    if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
-        opts = replace(opts, rounds=None)
-    if rule.fixed_multipliers:
-        return replace(opts, mode=mode)
-    return replace(opts, mode=mode, sigma=None, beta=None, tau=None)
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
@@ -68,14 +55,15 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     :func:`with_tables`).
 
     Attack overrides in the options are applied to the scenario first (its FDI bound
-    becomes the design's δ); use :func:`studies.scenarios.base.effective` to get that scenario too.
+    becomes the design's δ); use :func:`studies.design_options.effective` to get that scenario too.
     """
     if kw:
         options = (options or DesignOptions()).merged(DesignOptions(**kw))
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
+                      signal=att.signal)
     return with_tables(sc, des, steps)
 
 
@@ -83,8 +71,8 @@ def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None)
     """``design`` with the offline tables of mode ``'scheduled'`` for ``steps`` steps of ``sc`` (default its
     horizon): designed along the nominal trajectory from the operating point with the scenario's known inputs,
     from the prior covariance (:func:`designer.scheduled.design_scheduled`).  A design of a rule without
-    ``offline_tables`` (:mod:`designer.gain_rules`) is returned as it is."""
-    if not gain_rule(design.mode).offline_tables:
+    ``offline_tables`` (:mod:`designer.rule`) is returned as it is."""
+    if not design.rule.offline_tables:
         return design
     from designer.scheduled import design_scheduled
 
@@ -105,7 +93,7 @@ def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack
     (:class:`studies.runner.Background`, entered on ``stack``).  The same tables as :func:`with_tables`; a design
     with a bank of operating points (its nodes use the bank within the horizon too), of a rule without offline
     tables, or whose tables this process has, is complete at once."""
-    if not gain_rule(design.mode).offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
+    if not design.rule.offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
         done = with_tables(sc, design, steps)
         return done, lambda: done
     from designer.scheduled import design_scheduled, stationary_tables
@@ -153,7 +141,7 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
     the paper design's own σ, β or τ, the user asked for that design: the reason is raised instead as
     an :class:`InputError` prefixed with the filter's ``name``.
     """
-    if not gain_rule(design.mode).fixed_multipliers:
+    if not design.rule.fixed_multipliers:
         return None
     m = sc.model
     u = sc.inputs(1)
@@ -189,7 +177,7 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
 
     x0, u0 = sc.operating_point
     m = sc.model
-    relays = gain_rule(design.mode).relays
+    relays = design.rule.relays
     cert = relay_stationary(m, sc.network, design, x=x0, u=u0) if relays else stationary_certificate(
         m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
     open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
@@ -268,7 +256,7 @@ def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[
     """What a design of a rule with offline tables records beside them and does not compute from them: its
     stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`); for a
     rule that relays, its stationary certificate and its trade-off (:func:`relay_tradeoff`)."""
-    if gain_rule(design.mode).relays:
+    if design.rule.relays:
         record = stationary_record(sc, design)
         return record, relay_tradeoff(sc, design, record)
     return stationary_record(sc, design), other_rounds(sc, design, steps)
@@ -288,7 +276,7 @@ def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = 
 
     x0, u0 = sc.operating_point
     net = sc.network
-    routing = gain_rule(design.mode).routing
+    routing = design.rule.routing
     hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
     rows = []
     for L in hops:
@@ -311,7 +299,7 @@ _SCHEDULED_RECORD = {
                   "along a run; K, C and the estimates are those of the nodes applying them on the seeded simulated "
                   "run (SeedSequence(seed).spawn(2)), C the sum of the gains of the links whose packets arrived",
     "replay": "every node applies the tables on any run with its own estimate, covariance and Jacobians and the "
-              "packets that arrived (filters.scheduled); the bound is the expected one over the attacks along the "
+              "packets that arrived (rules.scheduled.filter); the bound is the expected one over the attacks along the "
               "nominal linearisation with the remainders U, V_i, validated on fresh runs by study consensus-robot",
     "robustness_note": "the link gains are chosen with the margin robustness = delta (schedule.json robustness): "
                   "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "
@@ -451,10 +439,10 @@ class Design:
 
     @property
     def gain_rule(self) -> GainRule:
-        """The design's gain rule (:mod:`designer.gain_rules`): its run-time class (``local``, ``scheduled`` or
+        """The design's gain rule (:mod:`designer.rule`): its run-time class (``local``, ``scheduled`` or
         ``global``), what a node needs to apply it, and whether it is ``deployable`` (a ``global`` rule is an
         oracle: a reference of what the structure can reach, not a design to deploy)."""
-        return gain_rule(self.design.mode)
+        return self.design.rule
 
     def verdict_line(self) -> str:
         """The verdict in one sentence: what it is and, when not certified, which condition or node prevents it;
@@ -482,8 +470,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, delta=att.delta, options=opts, x0=x0, u0=u0, signal=att.signal)
-    m, net, rule = sc.model, sc.network, gain_rule(des.mode)
+    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
+                      signal=att.signal)
+    m, net, rule = sc.model, sc.network, des.rule
     with contextlib.ExitStack() as stack:
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
@@ -503,7 +492,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     ver = design_verdict(m, x0, u0, trace, res.violations, refs)
     schedule = GainSchedule(
         scenario=sc.name,
-        mode=des.mode,
+        rule=des.rule,
         epsilon=des.epsilon,
         sigma=res.sigma.T.copy(),
         beta=res.beta.T.copy(),

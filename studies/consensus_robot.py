@@ -42,16 +42,17 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.gain_rules import gain_rule
+import rules
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
-from filters.consensus import GATE_COUNTS
+from filters.channels import GATE_COUNTS
 
 from .comparison import HCMCI_ITERATIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
 
-from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
@@ -300,7 +301,7 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
 
 
 def exchange_counts(counts: np.ndarray) -> dict:
-    """Totals of :data:`filters.consensus.GATE_COUNTS` over runs, with the gate's three rates."""
+    """Totals of :data:`filters.channels.GATE_COUNTS` over runs, with the gate's three rates."""
     tot = dict(zip(GATE_COUNTS, (int(x) for x in counts.sum(axis=0))))
     clean = tot["received"] - tot["fdi_received"]
     return {**tot,
@@ -388,12 +389,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
 def _load_replay(schedule, sc) -> tuple:
     """``(mode, K, C)`` of the schedule written by ``cfdesign design`` in ``schedule``, checked against ``sc``."""
     m, net = sc.model, sc.network
-    sch = load_schedule(schedule)
-    if not gain_rule(sch.mode).seeded_design:  # its K and C are one run's; the design is the tables, applied online
+    sch = load_schedule(schedule, rules.get)
+    if not sch.rule.seeded_design:  # its K and C are one run's; the design is the tables, applied online
         raise InputError(f"schedule {str(schedule)!r} is a scheduled design: its nodes apply their tables online "
                          "with their own estimates, not fixed gains; run it with --mode scheduled (the same design "
                          "options) instead of replaying its K and C")
-    if gain_rule(sch.mode).relays:  # its gains weigh each node's relayed measurements, computed online
+    if sch.rule.relays:  # its gains weigh each node's relayed measurements, computed online
         raise InputError(f"schedule {str(schedule)!r} is a relay design: its nodes compute their gains online from "
                          f"the measurements relayed to them, not fixed gains; run it with --mode {sch.mode} (the same "
                          "--rounds) instead of replaying it")

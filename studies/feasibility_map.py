@@ -57,8 +57,8 @@ from typing import Sequence
 
 import numpy as np
 
+import rules
 from designer.design import DesignOptions, make_design
-from designer.gain_rules import gain_rule, names_with
 from designer.feasibility import steady_state, steady_state_batch
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
@@ -66,11 +66,11 @@ from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_refe
 
 import studies.memory as memory
 from .consensus_design import stationary_record
+from .design_options import effective
 from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
-from .scenarios.base import effective
 
 __all__ = ["parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE", "point_verdict",
            "stationary_open_loop"]
@@ -194,7 +194,8 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     att = sc_p.resolved_attacks
     try:
         with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
-            return sc_p, make_design(sc_p.model, sc_p.network, delta=att.delta, options=opts, x0=x0, u0=u0,
+            return sc_p, make_design(sc_p.model, sc_p.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts,
+                                     x0=x0, u0=u0,
                                      signal=att.signal)
     except _POINT_ERRORS as exc:
         if strict:
@@ -261,7 +262,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
-    if gain_rule(options.mode or "paper").stationary_certificate:  # the design's own at each point
+    if rules.get(options.mode or rules.DEFAULT).stationary_certificate:  # the design's own at each point
         res = iter([_scheduled_row(*item) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
@@ -270,7 +271,8 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
         des = [d for _, d in items]
         return steady_state_batch(F, H, m.process_cov, R, [s.network for s, _ in items],
                                   epsilon=[d.epsilon for d in des], delta=[d.delta for d in des],
-                                  U=[d.U for d in des], V=[d.V for d in des], mode=des[0].mode,
+                                  U=[d.U for d in des], V=[d.V for d in des],
+                                  fixed_multipliers=des[0].rule.fixed_multipliers,
                                   sigma=[d.sigma for d in des], beta=[d.beta for d in des],
                                   tau=[d.tau for d in des], **kw)
 
@@ -280,8 +282,8 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
             if batched:
                 return _row(batch([item])[0], ol, N)
             return _row(steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U,
-                                     V=d.V, mode=d.mode, sigma=d.sigma, beta=d.beta, tau=d.tau, fdi_span=d.fdi_span,
-                                     **kw), ol, N)
+                                     V=d.V, fixed_multipliers=d.rule.fixed_multipliers, sigma=d.sigma, beta=d.beta,
+                                     tau=d.tau, fdi_span=d.fdi_span, **kw), ol, N)
         except _POINT_ERRORS as exc:
             return _failed(exc)
 
@@ -444,15 +446,15 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if len(set(names)) != len(names):
         raise InputError("each --grid parameter may be given once")
     sc_eff, opts = effective(sc, options)
-    mode = opts.mode or "paper"
-    rule = gain_rule(mode)
+    mode = opts.mode or rules.DEFAULT
+    rule = rules.get(mode)
     if not rule.mappable:
         raise InputError(f"mode {mode!r} is not mapped yet: its gains come from the joint error covariance of a run "
-                         f"(use cfdesign design or a study); feasibility maps mode {names_with('mappable')}")
+                         f"(use cfdesign design or a study); feasibility maps every other mode")
     bad = [n for n in names if n in _PAPER_ONLY and not rule.fixed_multipliers]
     if bad:
-        raise InputError(f"--grid {bad[0]} applies to mode {names_with('fixed_multipliers')} only (the {mode} design "
-                         "chooses it itself)")
+        raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (the {mode} design chooses it "
+                         "itself)")
     d_max = max(sc_eff.network.d_max, 1)
     for n, start, stop, count in specs:
         top = float(max(start, stop) if count > 1 else start)

@@ -3,7 +3,7 @@
 
 An entry (:class:`FilterEntry`) names the filter as the report labels it (the key of ``results.json``'s
 ``filters``: a contract), its family, what it needs at run time (``runtime``, of
-:data:`designer.gain_rules.FILTER_RUNTIMES`; a designed consensus filter takes its gain rule's), a
+:data:`designer.rule.FILTER_RUNTIMES`; a designed consensus filter takes its gain rule's), a
 description, what it needs from the study (a design of a gain rule, particles) and ``run(batch, settings,
 design)``, which runs it on every run of a :class:`Batch` at the given settings at once.  A study iterates
 over a :class:`FilterRegistry`: a new filter is one entry (``registry.register(entry)``), nothing else.
@@ -22,8 +22,9 @@ from typing import Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from designer.design import ConsensusDesign, design_rounds
-from designer.gain_rules import FILTER_RUNTIMES, gain_rule
+import rules
+from designer.design import ConsensusDesign
+from designer.rule import FILTER_RUNTIMES
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
@@ -143,9 +144,9 @@ class FilterEntry(NamedTuple):
         ``iterations`` (HCMCI), or for a designed filter its design's exchange rounds (``rounds`` of the study's
         design ``options``, :class:`designer.design.DesignOptions`, as its gain rule takes them)."""
         if self.designed and options is not None:
-            from .consensus_design import as_mode
+            from .design_options import as_mode
 
-            return int(self.messages(network, design_rounds(self.mode, network, as_mode(options, self.mode).rounds)))
+            return int(self.messages(network, rules.get(self.mode).rounds(network, as_mode(options, self.mode).rounds)))
         return int(self.messages(network, iterations))
 
     def nodes(self, network: SensorNetwork) -> int:
@@ -162,7 +163,7 @@ class FilterEntry(NamedTuple):
         if (self.designed or self.start_check) and self.mode is None:
             raise InputError(f"filter {self.name!r}: a designed filter needs the gain rule (mode) of its design")
         if self.mode is not None:
-            gain_rule(self.mode)
+            rules.get(self.mode)
         return self
 
 
@@ -206,7 +207,7 @@ class FilterRegistry:
 def local_ekf_design(design):
     """The consensus design reduced to the EKF: σ = β = τ = 0, U = V = 0 (used with an isolated network)."""
     return design._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(design.U),
-                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, mode="paper",
+                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, rule=rules.get("paper"),
                            linearization="fixed")
 
 
@@ -229,9 +230,9 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         res = run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
                                   attacks=batch.attack_rows(js), inputs=batch.input_rows(js))
-        return res.to_result(batch.network, gain_rule(mode).runtime, rounds=design.rounds)
+        return res.to_result(batch.network, design.rule.runtime, rounds=design.rounds)
 
-    return FilterEntry(name, "consensus", gain_rule(mode).runtime, description, run,
+    return FilterEntry(name, "consensus", rules.get(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,
                        start_check=start_check,
                        node_filters=lambda model, network, design, iterations: node_network(model, network, design))

@@ -42,7 +42,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
-from designer.gain_rules import gain_rule
+import rules
 from designer.validation import InputError
 
 __all__ = ["Part", "Need", "available_memory", "check", "format_bytes", "simulate_need", "design_need",
@@ -61,8 +61,8 @@ _ARRAY_OBJECT = 112  # bytes of a small NumPy array's object beside its data (a 
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
-_JOINT_COPIES = 24  # filters.mse_batch.JOINT_COPIES
-_JOINT_BUDGET = 2**28  # filters.mse_batch.MEMORY_BUDGET
+_JOINT_COPIES = 24  # rules.mse.filter.JOINT_COPIES
+_JOINT_BUDGET = 2**28  # rules.mse.filter.MEMORY_BUDGET
 _LOG_COPIES = 2.0  # a CSV log's arrays as parsed, and their float copies as checked (studies.recorded.check_log)
 
 _STEPS = "fewer steps"
@@ -199,7 +199,7 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
              Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
                   f"{rows} runs x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
              _step_hessians(model, rows * n, linearization, "a smaller model")]
-    if mode is not None and gain_rule(mode).joint_covariance:
+    if mode is not None and rules.get(mode).joint_covariance:
         per_run = _JOINT_COPIES * _D * (n * n_x) ** 2
         parts.append(Part(f"{what}: the joint error covariance of all nodes (mode mse)",
                           min(rows * per_run, max(_JOINT_BUDGET, per_run)),
@@ -241,7 +241,7 @@ def simulate_need(sc, steps: int) -> Need:
 def design_need(sc, options, steps: int) -> Need:
     """``design`` of ``sc`` with ``options`` (merged with its DESIGN defaults): the Hessians of the 'prior'
     scalings; then one run of every node's filter and the schedule it writes."""
-    from .scenarios.base import effective
+    from .design_options import effective
 
     sc, options = effective(sc, options)
     m, n = sc.model, sc.network.n_nodes
@@ -290,11 +290,11 @@ def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
     """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
     ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
     the tables along ``steps`` steps, a consensus filter's run."""
-    from .scenarios.base import effective
+    from .design_options import effective
 
     sc, opts = effective(sc, options)
     phases = [[_prior_hessians(sc.model, opts)]]
-    if gain_rule(opts.mode).offline_tables:
+    if rules.get(opts.mode or rules.DEFAULT).offline_tables:
         phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
                                  "the design's offline tables", reduce))
     return phases
@@ -304,7 +304,7 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     """``filter`` on the log of size ``log``: reading it; then, beside it, the design of ``options``'s gain rule
     (None: a filter without a design) and the filter's run: a consensus filter's per-step results at every node
     (with ``centralized``, one estimate), or with ``particles`` a particle filter's particles."""
-    from .scenarios.base import effective
+    from .design_options import effective
 
     m, n_x, steps = sc.model, sc.model.n_x, log.steps
     if centralized or particles is not None:
@@ -359,7 +359,7 @@ def export_need(sc, options, steps: int, log: LogSize | None = None) -> Need:
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:
     """``feasibility``: every grid point's row; one chunk of points per worker, and each point's design."""
-    from .scenarios.base import effective
+    from .design_options import effective
 
     sc, opts = effective(sc, options)
     m, n, n_x = sc.model, sc.network.n_nodes, sc.model.n_x
@@ -388,7 +388,7 @@ def _listed(v) -> list:
 
 def _designed(sc, so):
     """The scenario and the design options its consensus designs use (its DESIGN defaults merged)."""
-    from .scenarios.base import effective
+    from .design_options import effective
 
     return effective(sc, so.design)
 

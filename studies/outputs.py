@@ -19,6 +19,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+import rules
 from designer.fileio import (atomic_write, check_apart, check_json_finite, replaced_outputs, write_json,
                              write_npz)
 
@@ -133,7 +134,7 @@ def save_map(fmap, directory) -> Path:
     with replaced_outputs(directory) as stage:
         _write_map_csv(stage / "feasibility.csv", fmap.rows, fmap.names)
         if len(fmap.grids) <= 2:
-            save_figure(map_figure(fmap.rows, fmap.grids, fmap.scenario.name, fmap.options.mode or "paper"),
+            save_figure(map_figure(fmap.rows, fmap.grids, fmap.scenario.name, fmap.options.mode or rules.DEFAULT),
                         stage / "feasibility.png")
         write_json(stage / "feasibility.json", fmap.record())
         write_report(stage)

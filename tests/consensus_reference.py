@@ -1,7 +1,7 @@
 """The consensus EKF of seed 003 as a straightforward per-run, per-node loop: the tests' reference.
 
 This is the per-run filter that ``filters.consensus.run_consensus`` was before the batched filter
-(``filters.consensus_batch``, ``filters.mse_batch``) became the only implementation: node by node
+(``filters.consensus_batch``, ``rules.mse.filter``) became the only implementation: node by node
 and step by step, (3), (7), the bound recursion (26)-(27) and the gain (30) per node, the χ² gate
 and the exchange on the dense adjacency, the tuned weights warm-started by neighbour, mode mse
 with its joint covariance and certificate as lists of per-node gains, and the replay of a fixed
@@ -10,7 +10,7 @@ gain schedule.  The production batch is compared against it (``tests/test_consen
 must agree run by run, so an error of indexing, masking or bookkeeping in the batch shows.
 
 It shares with production the mathematical building blocks it calls (``designer.bounds``,
-``designer.tuning``, ``designer.mse``, the gate's statistic ``filters.consensus.gate_channels``),
+``designer.tuning``, ``designer.mse``, the gate's statistic ``filters.channels.gate_channels``),
 which are tested against the equations on their own, and the result type.
 """
 from __future__ import annotations
@@ -39,8 +39,10 @@ from designer.mse import (as_difference, certificate_predict, certificate_update
 from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted, warm_start_weights
 from designer.validation import InputError
 from filters.attacks import AttackPattern
-from filters.consensus import (DIVERGED, GATE_COUNTS, ConsensusResult, channel_difference_covariance,
-                               check_run_inputs, gate_channels, kept_fdi_moments, wrapped_residual)
+from filters.channels import GATE_COUNTS, channel_difference_covariance, gate_channels, kept_fdi_moments
+from filters.consensus import check_run_inputs, wrapped_residual
+from filters.consensus_batch import ConsensusResult
+from filters.result import DIVERGED
 
 __all__ = ["reference_consensus", "gate", "exchange"]
 

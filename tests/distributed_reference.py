@@ -19,7 +19,8 @@ import numpy as np
 from designer.model import Model
 from designer.network import SensorNetwork
 from filters.attacks import AttackPattern
-from filters.consensus import DIVERGED, check_run_inputs, wrapped_residual
+from filters.consensus import check_run_inputs, wrapped_residual
+from filters.result import DIVERGED
 from filters.distributed import DistributedResult
 
 __all__ = ["reference_kcf", "reference_hcmci", "spd_inverse"]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-import filters.mse_batch as fc  # the mse design's filter (a batch of one run)
+import rules.mse.filter as fc  # the mse design's filter (a batch of one run)
 from designer import AttackSpec, DesignOptions, FDISignal, Gaussian, Model, SensorNetwork, Sensor
 from designer.mse import JointCovariance, conditioning, joint_predict, joint_update, mse_gains
 from studies.consensus_design import run_design

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
+import rules
 from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
 from designer.bounds import (
     condition28_margin,
@@ -50,7 +51,7 @@ def isolated():
 def ekf_design(n_x, n_z):
     """sigma = beta = 0, U = V = 0: the consensus filter of an isolated node is the EKF."""
     return ConsensusDesign(epsilon=0.5, sigma=0.0, beta=0.0, tau=0.3, U=np.zeros((n_x, n_x)),
-                           V=np.zeros((n_z, n_z)), delta=0.0)
+                           V=np.zeros((n_z, n_z)), delta=0.0, rule=rules.get("paper"))
 
 
 def assert_spd(a, what=""):
@@ -481,7 +482,7 @@ def test_exchange_uses_fdi_indicator(robot):
 # ----------------------------------------------------------------------------- 7. indoor robot, paper-like design
 def paper_design():
     return ConsensusDesign(epsilon=1 / 6, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(3), V=0.1 * np.eye(2),
-                           delta=1.5 * np.sqrt(2))
+                           delta=1.5 * np.sqrt(2), rule=rules.get("paper"))
 
 
 @pytest.fixture(scope="module")
@@ -717,7 +718,7 @@ def chain_run():
     traj = simulate(model, steps, np.random.default_rng(41))
     att = simulate_attacks(net, steps, 2, np.random.default_rng(42), signal=FDISignal(0.1, (0,)))
     des = ConsensusDesign(epsilon=0.25, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(2), V=0.01 * np.eye(2),
-                          delta=0.1)
+                          delta=0.1, rule=rules.get("paper"))
     res = run_consensus(model, net, traj.z, des, attacks=att)
     return model, net, traj, att, des, res
 
@@ -840,7 +841,7 @@ def test_replayed_schedule_reproduces_estimates(robot):
     traj = robot.simulate(np.random.default_rng(1), steps)
     att = simulate_attacks(net, steps, 3, np.random.default_rng(2), signal=FDISignal(1.5, (0, 1)))
     des = ConsensusDesign(epsilon=1 / 6, sigma=1e-3, beta=1e-3, tau=0.01, U=np.zeros((3, 3)), V=np.zeros((2, 2)),
-                          delta=1.5 * np.sqrt(2))
+                          delta=1.5 * np.sqrt(2), rule=rules.get("paper"))
     first = run_consensus(robot.model, net, traj.z, des, inputs=traj.inputs, attacks=att)
     assert first.feasible
     assert not any(v["condition"] in ("(28)", "(29)") for v in first.violations)

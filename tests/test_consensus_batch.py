@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+import rules
 from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, DesignOptions, make_design
@@ -68,9 +69,9 @@ def robot():
     return sc, net, traj, atts
 
 
-def robot_design(**kw):
+def robot_design(mode: str = "paper", **kw):
     return ConsensusDesign(epsilon=1 / 6, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(3), V=0.1 * np.eye(2),
-                           delta=1.5 * np.sqrt(2), **kw)
+                           delta=1.5 * np.sqrt(2), rule=rules.get(mode), **kw)
 
 
 def per_run(model, net, z, des, inputs, atts, x0=None, phi0=None):
@@ -146,7 +147,7 @@ def test_robot_tuned_design_matches_per_run(robot, rule):
 @pytest.mark.parametrize("change", [dict(mode="mse"), dict(gate=0.05), dict(mode="tuned", gate=0.05),
                                     dict(mode="mse", gate=0.05)])
 def test_other_modes_and_gates_match_per_run(robot, change):
-    """Mode mse (filters.mse_batch) and gated designs (the χ² gate on the stacked channels) give the reference's
+    """Mode mse (rules.mse.filter) and gated designs (the χ² gate on the stacked channels) give the reference's
     numbers, predicted_mse and gate_counts (attacks given as EdgeAttacks; per-run x0)."""
     sc, net, traj, atts = robot
     steps = 3
@@ -253,7 +254,7 @@ def test_mixed_sensor_dimensions_and_wrapped_bearings(rule):
     assert np.any(np.abs(np.diff(bearing3, axis=1)) > np.pi, axis=1).all(), "sensor 3's bearing must cross ±π"
     atts = [simulate_attacks(net, steps, 4, np.random.default_rng(50 + r), signal=FDISignal(2.0, (0, 2)))
             for r in range(runs)]
-    des = make_design(model, net, delta=2.0 * np.sqrt(2.0), options=DesignOptions(linearization=rule),
+    des = make_design(model, net, rule=rules.get("paper"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(linearization=rule),
                       x0=model.prior.mean)
     batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
     refs = per_run(model, net, traj.z, des, None, atts)
@@ -272,7 +273,7 @@ def test_mixed_sensor_dimensions_tuned():
     traj = simulate(model, steps, np.random.default_rng(6), batch=runs)
     atts = [simulate_attacks(net, steps, 4, np.random.default_rng(60 + r), signal=FDISignal(2.0, (0, 2)))
             for r in range(runs)]
-    des = make_design(model, net, delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="tuned"), x0=model.prior.mean,
+    des = make_design(model, net, rule=rules.get("tuned"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="tuned"), x0=model.prior.mean,
                       signal=FDISignal(2.0, (0, 2)))
     batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
     assert_same_as_per_run(batch, per_run(model, net, traj.z, des, None, atts))
@@ -294,7 +295,7 @@ def chain_model(R0=1e4):
                   Gaussian(np.zeros(2), 0.01 * np.eye(2)))
     net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.2, fdi_prob=0.2)
     des = ConsensusDesign(epsilon=0.25, sigma=0.1, beta=0.1, tau=0.01, U=0.01 * np.eye(2), V=0.01 * np.eye(2),
-                          delta=0.1)
+                          delta=0.1, rule=rules.get("paper"))
     return model, net, des
 
 
@@ -321,7 +322,7 @@ def test_linear_chain_neighbour_rule_and_a_diverging_run():
 def test_linear_chain_tuned_with_a_diverging_run():
     """Mode tuned on the chain: run 2 diverges at step 10 and stops there, the others go on."""
     model, net, des = chain_model()
-    des = des._replace(mode="tuned")
+    des = des._replace(rule=rules.get("tuned"))
     runs, steps = 3, 12
     traj = simulate(model, steps, np.random.default_rng(41), batch=runs)
     z = traj.z.copy()
@@ -346,9 +347,9 @@ def test_bound_trace_limit_then_overflow(mode):
                   Gaussian(np.zeros(2), np.eye(2)))
     net = SensorNetwork.from_edges(2, [(0, 1)])
     des = ConsensusDesign(epsilon=0.5, sigma=0.0, beta=0.0, tau=0.01, U=np.zeros((2, 2)), V=np.zeros((1, 1)),
-                          delta=0.0)
+                          delta=0.0, rule=rules.get("paper"))
     if mode == "tuned":  # the tuned searches at every node until the limit (σ > 0 and β > 0: U, V nonzero)
-        des = des._replace(mode="tuned", U=0.01 * np.eye(2), V=0.1 * np.eye(1), delta=0.1)
+        des = des._replace(rule=rules.get("tuned"), U=0.01 * np.eye(2), V=0.1 * np.eye(1), delta=0.1)
     z = np.random.default_rng(0).standard_normal((2, 60, 2))
     batch = run_consensus_batch(model, net, z, des)
     assert_same_as_per_run(batch, per_run(model, net, z, des, None, None))
@@ -360,7 +361,7 @@ def test_numerical_breakdown_in_one_run(monkeypatch):
     """A LinAlgError in one item of a stacked solve is found item by item: only that run stops."""
     model, net, _ = chain_model(R0=1.0)
     des = ConsensusDesign(epsilon=0.25, sigma=0.0, beta=0.0, tau=0.01, U=np.zeros((2, 2)), V=np.zeros((2, 2)),
-                          delta=0.0)
+                          delta=0.0, rule=rules.get("paper"))
     runs, steps = 3, 6
     z = simulate(model, steps, np.random.default_rng(1), batch=runs).z
     phi0 = np.stack([0.01 * np.eye(2), 1e7 * np.eye(2), 0.01 * np.eye(2)])  # run 1: a huge Φ_0|0
@@ -427,7 +428,7 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
     np.testing.assert_array_equal(same.x_post, one.x_post)
     np.testing.assert_array_equal(same.phi_post, one.phi_post)
     if des.mode == "mse":  # in sub-batches of one run each, every run keeps its own network
-        import filters.mse_batch as mse_batch
+        import rules.mse.filter as mse_batch
 
         monkeypatch.setattr(mse_batch, "MEMORY_BUDGET", 1)
         apart = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import rules
 from designer.schedule import SCHEMA, load_schedule
 from studies.cli import main
 from studies.consensus_robot import MIN_RUNS_FOR_CHECK, bound_check
@@ -56,7 +57,7 @@ def test_feasible_design_on_a_small_linear_model_exits_0_and_reloads(tmp_path):
     out = tmp_path / "lin"
     code = main(["design", LINEAR, "--sigma", "0.01", "--beta", "0.01", "--seed", "2", "--out", str(out)])
     assert code == 0
-    sch = load_schedule(out)
+    sch = load_schedule(out, rules.get)
     assert sch.feasible and sch.nodes == 3 and sch.steps == 40
     assert np.all(np.isfinite(sch.Phi)) and sch.valid.all()
     raw = json.loads((out / "schedule.json").read_text())
@@ -74,7 +75,7 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
 
     res = design(LINEAR, sigma=0.01, beta=0.01, seed=5, out=tmp_path)
     assert not np.any(res.design.U) and not any(np.any(v) for v in res.design.V)  # linear: prior scalings are 0
-    sch = load_schedule(tmp_path)
+    sch = load_schedule(tmp_path, rules.get)
     sc = res.scenario
     traj_ss, att_ss = np.random.SeedSequence(5).spawn(2)
     traj = sc.simulate(np.random.default_rng(traj_ss), sch.steps)
@@ -213,8 +214,8 @@ def test_a_damaged_schedule_npz_is_named_as_such(tmp_path):
     out = tmp_path / "d"
     r = run_cli("design", "indoor-robot", "--mode", "paper", "--steps", "3", "--seed", "3", "--out", str(out))
     assert r.returncode in (0, 1), r.stderr
-    load_schedule(out)  # intact: loads
+    load_schedule(out, rules.get)  # intact: loads
     (out / "schedule.npz").write_bytes(b"garbage, not a zip archive")
     with pytest.raises(InputError, match="schedule.npz' are not an .npz archive") as err:
-        load_schedule(out)
+        load_schedule(out, rules.get)
     assert "pickle" not in str(err.value)

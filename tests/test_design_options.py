@@ -92,13 +92,20 @@ def test_linear_model_gets_zero_prior_scalings():
 
 
 def test_options_merge_and_refuse():
+    import rules
+    from studies.api import design
+    from studies.design_options import as_mode
+
     base = DesignOptions(u_scale=0.01, v_scale=0.1, sigma=0.2)
-    assert base.merged(DesignOptions(mode="tuned")).sigma is None  # paper multipliers do not carry over
+    assert as_mode(base.merged(DesignOptions(mode="tuned")), "tuned").sigma is None  # paper multipliers: not carried
+    assert as_mode(base, "paper").sigma == 0.2
     assert base.merged(DesignOptions(v_scale={"s1": 0.5})).v_scale == {"*": 0.1, "s1": 0.5}
     with pytest.raises(InputError, match="sigma is chosen by the design in mode 'tuned'"):
-        DesignOptions(mode="tuned", sigma=0.1)
+        rules.get("tuned").check_options(DesignOptions(mode="tuned", sigma=0.1))
     with pytest.raises(InputError, match="tau is chosen by the design in mode 'mse'"):
-        DesignOptions(mode="mse", tau=0.1)
+        rules.get("mse").check_options(DesignOptions(mode="mse", tau=0.1))
+    with pytest.raises(InputError, match="sigma is chosen by the design in mode 'tuned'"):  # the API checks it
+        design(MIXED, mode="tuned", sigma=0.1)
     with pytest.raises(InputError, match="dos must be a probability"):
         DesignOptions(dos=1.0)
 

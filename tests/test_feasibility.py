@@ -166,7 +166,7 @@ def test_optimal_weights_steady_state_is_a_fixed_point_and_below_the_paper_facto
     H = [np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]]), np.array([[1.0, 1.0]])]
     Q, R = 0.01 * np.eye(2), [np.array([[0.05]])] * 3
     net = SensorNetwork.from_edges(3, [(0, 1), (1, 2)], dos_prob=0.1, fdi_prob=0.1)
-    kw = dict(epsilon=0.4, delta=0.5, U=0.01 * np.eye(2), V=0.01 * np.eye(1), mode="tuned", tol=1e-10,
+    kw = dict(epsilon=0.4, delta=0.5, U=0.01 * np.eye(2), V=0.01 * np.eye(1), tol=1e-10,
               max_iter=3000)
     fast = steady_state(A, H, Q, R, net, weights="optimal", **kw)
     plain = steady_state(A, H, Q, R, net, weights="optimal", accelerate=False, **kw)

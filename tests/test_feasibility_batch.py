@@ -108,7 +108,7 @@ def test_batch_is_steady_state_point_by_point(mode, accelerate, max_iter):
     """Every field, the fixed point included, with per-point ε, δ, U, V, σ, β, τ and probabilities; no
     convergence within a few iterations too."""
     A, H, Q, R, nets, st = _network_points()
-    kw = dict(mode=mode, accelerate=accelerate, max_iter=max_iter, phi0=0.5 * np.eye(2))
+    kw = dict(fixed_multipliers=mode == "paper", accelerate=accelerate, max_iter=max_iter, phi0=0.5 * np.eye(2))
     V = [[s["v"] * np.eye(1), 2 * s["v"] * np.eye(1), s["v"] * np.eye(1)] for s in st]
     batch = steady_state_batch(A, H, Q, R, nets, epsilon=[s["epsilon"] for s in st], delta=[s["delta"] for s in st],
                                U=[s["u"] * np.eye(2) for s in st], V=V, sigma=[s["sigma"] for s in st],
@@ -130,8 +130,6 @@ def test_batch_is_steady_state_point_by_point(mode, accelerate, max_iter):
 def test_batch_refuses_what_it_does_not_iterate():
     A, H, Q, R, nets, st = _network_points()
     kw = dict(epsilon=0.3, delta=0.0, U=np.zeros((2, 2)), V=[np.zeros((1, 1))] * len(nets))
-    with pytest.raises(InputError, match="mode"):
-        steady_state_batch(A, H, Q, R, nets, mode="mse", **kw)
     with pytest.raises(InputError, match="one entry per point"):
         steady_state_batch(A, H, Q, R, nets, **{**kw, "V": [np.zeros((1, 1))]})
     with pytest.raises(InputError, match="same nodes"):

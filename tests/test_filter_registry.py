@@ -25,7 +25,8 @@ from filters.ekf import run_ekf, run_ekf_batch
 from filters.result import FilterResult, nonfinite_violations
 from filters.uplink import split_received
 from studies.comparison import FILTER_REGISTRY, LOCAL, realise
-from studies.consensus_design import as_mode, consensus_design
+from studies.consensus_design import consensus_design
+from studies.design_options import as_mode
 from studies.filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_consensus_ekf, hcmci, kcf,
                                      local_ekfs, replayed_schedule)
 from studies.pipeline import run_study
@@ -195,7 +196,7 @@ def test_a_diverged_run_stops_alone_at_its_first_failing_node():
     K = rng.normal(size=(runs, steps, n, nx))
     valid = np.ones((runs, steps + 1, n), bool)
     x[1, 3, 2, 0] = np.nan  # run 1: node 2 fails at step 3 ...
-    x[1, 3, 1, 1] = 2e12  # ... and node 1 (beyond filters.consensus.DIVERGED): it stops at node 1
+    x[1, 3, 1, 1] = 2e12  # ... and node 1 (beyond filters.result.DIVERGED): it stops at node 1
     P[3, 3, 0, 0, 0] = np.inf  # run 3: node 0
     active = np.array([0, 1, 3])  # run 2 stopped earlier
     bad = diverged_nodes(x[active, 3], P[active, 3])

@@ -21,15 +21,15 @@ import json
 import numpy as np
 import pytest
 
-import filters.relay as relay_filter
+import rules.relay.filter as relay_filter
+import rules
 from designer.design import DesignOptions, make_design
-from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.relay import flood_moments, node_moments, relay_routes, relay_stationary
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 from studies.cli import main
 from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
                         reference_relay, simulate_linear, varied_network)
@@ -235,12 +235,12 @@ def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(m
 
 # --------------------------------------------------------------------------- the gain rule
 def flood_design(model, net, hops):
-    return make_design(model, net, delta=0.0, options=DesignOptions(mode="flood", rounds=hops),
+    return make_design(model, net, rule=rules.get("flood"), delta=0.0, options=DesignOptions(mode="flood", rounds=hops),
                        x0=model.prior.mean, signal=SIGNAL)
 
 
 def test_the_rules_filter_is_the_flood_filter_and_its_certificate_where_it_settles():
-    assert gain_rule("flood").relays and gain_rule("flood").routing == "flood" and gain_rule("flood").deployable
+    assert rules.get("flood").relays and rules.get("flood").routing == "flood" and rules.get("flood").deployable
     model = linear_model()
     net = varied_network()
     design = flood_design(model, net, 2)
@@ -257,7 +257,7 @@ def test_the_rules_filter_is_the_flood_filter_and_its_certificate_where_it_settl
     assert np.allclose(settled.P_post[0, -1], cert.Phi, rtol=1e-7, atol=1e-10)
     with pytest.raises(InputError, match="routes must be the design's"):
         relay_stationary(model, net, design, x=np.zeros(model.n_x), routes=relay_routes(net, 2))
-    tree = relay_stationary(model, net, design._replace(mode="relay"), x=np.zeros(model.n_x))
+    tree = relay_stationary(model, net, design._replace(rule=rules.get("relay")), x=np.zeros(model.n_x))
     assert np.trace(cert.Phi, axis1=-2, axis2=-1).mean() < np.trace(tree.Phi, axis1=-2, axis2=-1).mean()
 
 

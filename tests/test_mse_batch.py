@@ -1,4 +1,4 @@
-"""Mode 'mse' batched over Monte Carlo runs (filters.mse_batch) against the per-run path, and the stacked
+"""Mode 'mse' batched over Monte Carlo runs (rules.mse.filter) against the per-run path, and the stacked
 functions of designer.mse against the same functions item by item.
 
 The reference is the per-run, per-node loop of tests/consensus_reference.py in mode 'mse' (what
@@ -20,7 +20,8 @@ import pytest
 from scipy.linalg import block_diag
 from scipy.optimize import minimize_scalar
 
-import filters.mse_batch as mse_batch
+import rules.mse.filter as mse_batch
+import rules
 from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, DesignOptions, make_design
@@ -36,7 +37,7 @@ from designer.mse import (
 from designer.validation import InputError
 from filters.attacks import simulate_attacks
 from filters.consensus_batch import EdgeAttacks
-from filters.mse_batch import run_mse_batch
+from rules.mse.filter import run_mse_batch
 from studies.consensus_design import consensus_design
 
 from test_consensus_batch import SITES, assert_same_as_per_run, chain_model, mixed_model, per_run  # tests/ on the path
@@ -232,7 +233,7 @@ def test_mixed_sensor_dimensions_bearings_and_a_gate_match_per_run():
     assert np.any(np.abs(np.diff(bearing3, axis=1)) > np.pi, axis=1).all(), "sensor 3's bearing must cross ±π"
     signal = FDISignal(2.0, (0, 2))
     atts = [simulate_attacks(net, steps, 4, np.random.default_rng(60 + r), signal=signal) for r in range(runs)]
-    des = make_design(model, net, delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="mse", gate=0.1),
+    des = make_design(model, net, rule=rules.get("mse"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="mse", gate=0.1),
                       x0=model.prior.mean, signal=signal)
     batch = run_mse_batch(model, net, traj.z, des, attacks=atts)
     assert_mse_batch_is_per_run(batch, per_run(model, net, traj.z, des, None, atts))
@@ -245,7 +246,7 @@ def test_a_diverging_run_stops_alone_and_sub_batches_change_nothing(monkeypatch)
     """A linear chain (a nearly blind node) in mode mse; run 2 takes a huge measurement at step 10 and leaves
     finite numbers: it stops there, the others go on; the same runs in sub-batches of two give the same result."""
     model, net, des = chain_model()
-    des = des._replace(mode="mse")
+    des = des._replace(rule=rules.get("mse"))
     runs, steps = 5, 12
     z = simulate(model, steps, np.random.default_rng(41), batch=runs).z
     z[2, 9, 2:4] = 1e14
@@ -274,7 +275,7 @@ def test_bound_trace_limit_ends_the_certificate_then_overflow():
     model = Model("unstable", x, growth, sensors,
                   Gaussian.zero_mean(1e-3 * np.eye(2)), Gaussian(np.zeros(2), np.eye(2)))
     net = SensorNetwork.from_edges(nodes, [(0, 1), (1, 2)])
-    des = ConsensusDesign(0.4, 0.0, 0.0, 0.01, np.zeros((2, 2)), np.zeros((1, 1)), 0.0, mode="mse")
+    des = ConsensusDesign(0.4, 0.0, 0.0, 0.01, np.zeros((2, 2)), np.zeros((1, 1)), 0.0, rules.get("mse"))
     z = np.random.default_rng(0).standard_normal((2, 60, nodes))
     batch = run_mse_batch(model, net, z, des)
     assert_mse_batch_is_per_run(batch, per_run(model, net, z, des, None, None))
@@ -286,7 +287,7 @@ def test_bound_trace_limit_ends_the_certificate_then_overflow():
 
 def test_refusals(robot, monkeypatch):
     sc, net, traj, atts = robot
-    with pytest.raises(InputError, match="mode 'mse'"):
+    with pytest.raises(InputError, match="runs a gain rule of the joint covariance"):
         run_mse_batch(sc.model, net, traj.z, consensus_design(sc, mode="tuned"), inputs=traj.inputs)
     with pytest.raises(InputError, match="one AttackPattern per run"):
         run_mse_batch(sc.model, net, traj.z, consensus_design(sc, mode="mse"), inputs=traj.inputs, attacks=atts[:2])

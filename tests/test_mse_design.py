@@ -12,7 +12,7 @@ from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
 from filters.ekf import run_ekf
-from filters.mse_batch import run_mse_batch
+from rules.mse.filter import run_mse_batch
 from studies.filter_registry import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.scenarios import scenario_of
@@ -47,7 +47,7 @@ def _one_run(sc, design, seed, key=()):
 
 def _runs(sc, design, runs, seed):
     """Runs 0..runs-1 of ``seed``: the truths (runs, steps+1, n_x) and the filter on all of them at once (mode mse:
-    filters.mse_batch, tested against the per-run reference in tests/test_mse_batch.py; else run_consensus_batch)."""
+    rules.mse.filter, tested against the per-run reference in tests/test_mse_batch.py; else run_consensus_batch)."""
     draws = [_draw(sc, seed, (r,)) for r in range(runs)]
     engine = run_mse_batch if design.mode == "mse" else run_consensus_batch
     res = engine(sc.model, sc.network, np.stack([t.z for t, _ in draws]), design, attacks=[a for _, a in draws])
@@ -187,7 +187,7 @@ def test_certificates_bound_the_monte_carlo_error_of_a_nonlinear_network(mode, l
 def test_gate_rejects_a_clean_packet_with_its_stated_probability():
     """Clean differences drawn from the covariance the gate is given are dropped at rate α (binomial tolerance);
     a large injected signal is dropped; the counts add up."""
-    from filters.consensus import GATE_COUNTS, gate_channels
+    from filters.channels import GATE_COUNTS, gate_channels
 
     rng = np.random.default_rng(0)
     receiver, sender = np.array([0, 1]), np.array([1, 0])  # the two channels 1 -> 0 and 0 -> 1

@@ -108,10 +108,14 @@ def test_what_a_node_filter_cannot_take_is_refused(cart):
         near.step([0.3], {4: [1.0]}, u=[0.0])
     with pytest.raises(InputError, match="an oracle"):
         studies.node_filter(str(cart), mode="mse", node=0)
-    from designer.gain_rules import GAIN_RULES
-    from filters.node import node_rules
+    import rules
 
-    assert set(node_rules()) == {r.name for r in GAIN_RULES.values() if r.deployable}  # every rule a node can run
+    for rule in rules.all_rules().values():  # every rule a node can run has a node filter and its network
+        if rule.deployable:
+            assert all(isinstance(c, type) for c in rule.node_filter())
+        else:
+            with pytest.raises(InputError, match="an oracle"):
+                rule.node_filter()
     with pytest.raises(InputError, match="give a design directory"):
         studies.node_filter(str(cart))
     with pytest.raises(InputError, match=r"node must be an integer in 0..6, got 7"):

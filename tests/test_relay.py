@@ -1,4 +1,4 @@
-"""The relay filter (filters.relay) and its routes and moments (designer.relay), against independent references.
+"""The relay filter (rules.relay.filter) and its routes and moments (designer.relay), against independent references.
 
 * routes: every route a shortest path (scipy), prefix-consistent, the balls exactly the nodes within ``hops``; the
   arrival probabilities and moments ``(p, A, F1, F2)`` against a Monte Carlo of the channels' draws
@@ -20,7 +20,7 @@ import pytest
 import scipy.linalg
 from scipy.sparse.csgraph import shortest_path
 
-import filters.relay as relay_filter
+import rules.relay.filter as relay_filter
 from designer.attacks import FDISignal
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
@@ -31,7 +31,7 @@ from filters.attacks import attack_pattern, channel_draws
 from filters.consensus import wrapped_residual
 from filters.consensus_batch import EdgeAttacks
 from filters.ekf import run_ekf_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 
 EDGES = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (1, 4), (0, 2)]
 N = 6

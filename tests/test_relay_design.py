@@ -1,8 +1,8 @@
-"""The gain rule ``relay`` (designer.gain_rules): its filter behind the rule registry, its stationary certificate
+"""The gain rule ``relay`` (rules/relay): its filter behind the rule registry, its stationary certificate
 (designer.relay.relay_stationary) and its design from a user's model file, against independent references.
 
-* the rule's filter (``filters.consensus_batch.rule_filter('relay')``, reached by ``run_consensus_batch``) is the
-  relay filter of :func:`filters.relay.run_relay_batch` run by itself on each run's network (runs on networks of
+* the rule's filter (``rules.get('relay').batch_filter()``, reached by ``run_consensus_batch``) is the
+  relay filter of :func:`rules.relay.filter.run_relay_batch` run by itself on each run's network (runs on networks of
   different channel probabilities included) with the design's hops and FDI signal;
 * the stationary certificate's fixed point is where the relay filter's own covariance recursion ends on a linear
   model (a second implementation: the certificate stacks the nodes by ball size, the filter runs every node), with
@@ -18,18 +18,19 @@ import json
 import numpy as np
 import pytest
 
+import rules
 from designer.attacks import FDISignal
 from designer.design import DesignOptions, make_design
 from designer.relay import relay_stationary
 from filters.consensus_batch import run_consensus_batch
-from filters.relay import run_relay_batch
+from rules.relay.filter import run_relay_batch
 from studies.cli import main
 from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, network,  # tests/ on the path
                         simulate_linear, varied_network)
 
 
 def relay_design(model, net, hops, signal=SIGNAL):
-    return make_design(model, net, delta=0.0, options=DesignOptions(mode="relay", rounds=hops),
+    return make_design(model, net, rule=rules.get("relay"), delta=0.0, options=DesignOptions(mode="relay", rounds=hops),
                        x0=model.prior.mean, signal=signal)
 
 
@@ -194,9 +195,9 @@ def test_every_batched_filter_refuses_a_model_with_inputs_run_without_them():
                    Gaussian.zero_mean(np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)), u=u)
     net = network()
     z = np.zeros((2, 5, N))
-    paper = make_design(driven, net, delta=0.0, options=DesignOptions(mode="paper"), x0=driven.prior.mean,
+    paper = make_design(driven, net, rule=rules.get("paper"), delta=0.0, options=DesignOptions(mode="paper"), x0=driven.prior.mean,
                         u0=np.zeros(1))
-    relay = make_design(driven, net, delta=0.0, options=DesignOptions(mode="relay", rounds=2), x0=driven.prior.mean,
+    relay = make_design(driven, net, rule=rules.get("relay"), delta=0.0, options=DesignOptions(mode="relay", rounds=2), x0=driven.prior.mean,
                         u0=np.zeros(1))
     runs = [lambda **kw: run_kcf_batch(driven, net, z, **kw), lambda **kw: run_hcmci_batch(driven, net, z, **kw),
             lambda **kw: run_consensus_batch(driven, net, z, paper, **kw),

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from designer.design import ROBUSTNESS
+import rules
+from designer.rule import ROBUSTNESS
 from designer.scheduled import channels, design_scheduled, link_gains
 from designer.validation import InputError
 from filters.consensus import run_consensus
@@ -207,7 +208,7 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     out = tmp_path / "sched"
     rc = main(["design", str(path), "--mode", "scheduled", "--out", str(out)])
     assert rc in (0, 1)  # 1: written but not certified
-    sch = load_schedule(out)
+    sch = load_schedule(out, rules.get)
     assert sch.gain_rule.runtime == "scheduled" and sch.gain_rule.deployable
     assert sch.meta["exchange"] == "measurements"
     assert sch.meta["robustness"] == ROBUSTNESS  # the margin the nodes solve their gains with

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+import rules
 from designer.design import DesignOptions, make_design
 from designer.simulate import simulate, simulate_runs
 from filters.attacks import (attack_pattern, bias_attack, binary_sensor_channel, channel_draws, deception_attack,
@@ -83,7 +84,7 @@ def test_consensus_robot_paper_design_rmse():
     m, net = sc.model, sc.network
     x0, u0 = sc.operating_point
     opts = (sc.design or DesignOptions()).merged(DesignOptions(mode="paper"))
-    design = make_design(m, net, delta=sc.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
+    design = make_design(m, net, rule=rules.get("paper"), delta=sc.resolved_attacks.delta, options=opts, x0=x0, u0=u0)
     assert design.tau == 0.01
     pos = list(m.position_index)
     e2 = {"paper": [], "KCF": [], "HCMCI": []}  # KCF, HCMCI (filters.distributed, L = 1) on the same attacks

@@ -408,11 +408,10 @@ def _final_bound(s: _Schedule, i: int) -> str:
 
 def _fixed_multipliers(mode) -> bool:
     """Whether the schedule's gain rule keeps the user's σ, β, τ
-    (:attr:`designer.gain_rules.GainRule.fixed_multipliers`; False for a mode no longer registered)."""
-    from designer.gain_rules import GAIN_RULES
+    (:attr:`designer.rule.GainRule.fixed_multipliers`; False for a mode that is not a rule here)."""
+    import rules
 
-    rule = GAIN_RULES.get(mode) if isinstance(mode, str) else None
-    return rule is not None and rule.fixed_multipliers
+    return isinstance(mode, str) and mode in rules.names() and rules.get(mode).fixed_multipliers
 
 
 def _node_section(s: _Schedule) -> list[str]:
@@ -757,15 +756,16 @@ _VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound 
 
 def gain_rule_record(meta: Mapping) -> dict | None:
     """The design's gain rule ``{name, runtime, needs, deployable}``: ``schedule.json``'s ``gain_rule``, or for a file
-    written before it existed the registered rule of its mode (:mod:`designer.gain_rules`); None when neither says."""
-    from designer.gain_rules import GAIN_RULES, RUNTIMES
+    written before it existed the rule of its mode (:mod:`rules`); None when neither says."""
+    import rules
+    from designer.rule import RUNTIMES
 
     rec = meta.get("gain_rule")
     if (isinstance(rec, Mapping) and rec.get("runtime") in RUNTIMES and isinstance(rec.get("needs"), str)
             and isinstance(rec.get("deployable"), bool)):
         return dict(rec, name=str(rec.get("name", meta.get("mode"))))
-    rule = GAIN_RULES.get(meta.get("mode")) if isinstance(meta.get("mode"), str) else None
-    return None if rule is None else rule.describe()
+    mode = meta.get("mode")
+    return rules.get(mode).describe() if isinstance(mode, str) and mode in rules.names() else None
 
 
 def _runtime_lines(meta: Mapping) -> list[str]:
@@ -784,7 +784,7 @@ def _runtime_lines(meta: Mapping) -> list[str]:
 
 def _verdict_words(s: _Schedule) -> str | None:
     """The report's first line: the verdict of ``schedule.json`` in words (None for a schedule written without one)."""
-    from designer.gain_rules import caveat
+    from designer.rule import caveat
     from designer.verdict import GATE_CLAUSE, describe
 
     v, detail = s.meta.get("verdict"), s.meta.get("verdict_detail")

@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from designer.gain_rules import DEPLOYABLE, FILTER_RUNTIMES, runtime_label
+from designer.rule import DEPLOYABLE, FILTER_RUNTIMES, runtime_label
 from designer.validation import InputError
 
 from ..study_registry import StudyText, study_text

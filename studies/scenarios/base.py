@@ -18,7 +18,7 @@ from filters.encryption import EncryptedChannel
 if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
     from designer.model import Model
 
-__all__ = ["Param", "Scenario", "ScenarioSpec", "Outline", "parse_assignments", "effective", "CHANNEL_TYPES"]
+__all__ = ["Param", "Scenario", "ScenarioSpec", "Outline", "parse_assignments", "CHANNEL_TYPES"]
 
 # What a scenario's ``channel`` (a model file's ``CHANNEL``) may be: one law per particle-filter paper.
 CHANNEL_TYPES = (RoundRobinDeception, EncryptedChannel, BinarySensorChannel, BiasFDI)
@@ -392,21 +392,3 @@ def parse_assignments(spec: ScenarioSpec, assignments) -> dict:
         name, text = item.split("=", 1)
         out[name.strip()] = spec.param(name.strip()).parse(text)
     return out
-
-
-def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
-    """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
-
-    The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
-    every value ``options`` sets replaces them.
-    """
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
-                         "(a model file defines NETWORK)")
-    base = sc.design or DesignOptions()
-    if any(v is not None for v in base.attack_overrides().values()):
-        raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
-                         "attacks in ATTACKS")
-    opts = base.merged(options)
-    sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
-    return sc.with_attacks(**opts.attack_overrides()), opts

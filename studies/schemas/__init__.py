@@ -163,19 +163,19 @@ def _matrix_shape(value, rows: int, cols: int, path: list, label: str) -> Iterat
 
 
 def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
-    from designer.gain_rules import GAIN_RULES, choices
+    import rules
 
-    rule = GAIN_RULES.get(obj["mode"])
+    rule = rules.get(obj["mode"]) if obj["mode"] in rules.names() else None
     if rule is None:
-        yield ["mode"], f"{obj['mode']!r} is not a registered gain rule ({choices()})"
+        yield ["mode"], f"{obj['mode']!r} is not a gain rule ({rules.choices()})"
     record = obj.get("gain_rule")
     if rule is not None and record is not None:
         for key in ("name", "runtime", "deployable"):
             if record[key] != getattr(rule, key):
                 yield ["gain_rule", key], f"{record[key]!r}, but gain rule {rule.name!r} has {getattr(rule, key)!r}"
     mode = (obj.get("options") or {}).get("mode")
-    if isinstance(mode, str) and mode not in GAIN_RULES:
-        yield ["options", "mode"], f"{mode!r} is not a registered gain rule ({choices()})"
+    if isinstance(mode, str) and mode not in rules.names():
+        yield ["options", "mode"], f"{mode!r} is not a gain rule ({rules.choices()})"
     nodes, steps = obj["nodes"], obj["steps"]
     for key in ("sigma", "beta", "trace_bound"):
         yield from _matrix_shape(obj[key], nodes, steps, [key], f"{key} (nodes x steps)")

@@ -7,14 +7,15 @@ nodes (:mod:`designer.mse`).  Here every quantity of a step is a stack over the 
 the joint covariance ``(runs, N, N, n, n)`` and its certificate go through the functions of
 :mod:`designer.mse` with a leading runs axis, the gains are solved per node over all runs at once
 (the kept packets as masks), and the χ² gate on neighbour packets works on the network's directed
-channels of every run (:func:`filters.consensus.gate_channels`,
-:func:`~filters.consensus.channel_difference_covariance`, :func:`~filters.consensus.kept_fdi_moments`: the
+channels of every run (:func:`filters.channels.gate_channels`,
+:func:`~filters.channels.channel_difference_covariance`, :func:`~filters.channels.kept_fdi_moments`: the
 gate's one home).
 
 Run ``r`` of the result equals the per-node loop of the tests' reference (``tests/consensus_reference.py``)
 to rounding: estimates, bounds, gains, predicted MSE, σ, β, margins, the ``valid`` flags, the violations in
 the same order (the trace limit, (28), Theorem 2, (29) at the node where a joint condition
-binds), the gate's counts, and divergence, which stops only its run.  Without a gate the two
+binds), the gate's counts, and divergence, which stops only its run (its step runs on
+:func:`filters.engine.run_batch`, once per sub-batch).  Without a gate the two
 take the same floating-point steps (equal to the bit on the built-in scenarios).  With a
 gate and an FDI signal, what the kept falsified packets add (:func:`kept_fdi_moments`) comes from
 :meth:`designer.attacks.FDISignal.passing`, whose quadrature (a matrix-vector product) rounds
@@ -53,18 +54,18 @@ from designer.network import SensorNetwork
 from designer.tuning import lam_max
 from designer.validation import InputError
 
-from .attacks import AttackPattern
-from .consensus import channel_difference_covariance, gate_channels, kept_fdi_moments
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, per_run,
-                              register_filter, result_arrays, run_networks, wrap_residuals)
-from .result import diverged_nodes, stop_diverged
+from filters.attacks import AttackPattern
+from filters.channels import channel_difference_covariance, gate_channels, kept_fdi_moments
+from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+                              per_run, result_arrays, run_networks, wrap_residuals)
+from filters.engine import Step, run_batch
+from filters.result import diverged_nodes
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 
 MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
 MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
 JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
-_LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 
 # --------------------------------------------------------------------------- the filter
@@ -95,8 +96,8 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
-    if design.mode != "mse":
-        raise InputError(f"run_mse_batch runs mode 'mse', got {design.mode!r} "
+    if not design.rule.joint_covariance:
+        raise InputError(f"run_mse_batch runs a gain rule of the joint covariance (mse), got mode {design.mode!r} "
                          "(filters.consensus_batch runs the others)")
     q = per_run(lambda net: net.falsified_prob, network, nets)  # (1 or runs, N, N)
     n, nx = network.n_nodes, model.n_x
@@ -157,34 +158,37 @@ class _Runs:
             lists[r].append({"node": node, "step": step, "condition": "theorem2", "margin": m})
 
     def run(self) -> None:
+        """The steps (:meth:`step` on :func:`filters.engine.run_batch`), then Theorem 2 on ``Φ_{K|K}``."""
         steps = self.z.shape[1]
-        for k in range(steps):
-            if not self.act.size:
-                return
-            self.step(k)
-        o, act = self.out, self.act
+        o = self.out
+        self.act = act = run_batch(self.step, o, o["violations"], steps,
+                                   nan_from=("x_post", "phi_post", "predicted_mse"),
+                                   nan_before=("K", "C", "gain_condition"), invalid_from=("valid",),
+                                   stopped=self.stopped)
+        if not act.size:
+            return
         last = np.flatnonzero(self.proper)
         if last.size:
             th = theorem2_margin(o["phi_post"][act[last], steps], o["sigma"][act[last], steps - 1], self.network.d_max)
             o["theorem2"][act[last], steps] = th
             self.theorem2_violations(last, th, steps)
 
-    def step(self, k: int) -> None:
+    def step(self, k: int, runs: np.ndarray, act) -> Step:
+        """Step ``k`` of the ``runs`` going on (``act`` them as an index: a view while none stopped)."""
         model, design, o, n, nx = self.model, self.design, self.out, self.n, self.nx
-        a = self.act.size
-        act = slice(None) if a == self.z.shape[0] else self.act  # the runs going on (a view while none stopped)
+        self.act = runs
+        a = runs.size
         Q = model.process_cov
         xk = o["x_post"][act, k]
         uk = self.u[k] if self.u.ndim == 2 else self.u[act, k][:, None, :]
         F = model.F_expected(xk, k, uk)
         xp = model.f_expected(xk, k, uk)
-        o["x_pred"][act, k] = xp
         Bj, Pj = self.Bj, self.Pj
         # ---- the certificate's prediction (26), (28)
         tr = np.trace(node_blocks(Bj), axis1=-2, axis2=-1)
         for r in np.flatnonzero(self.proper & ~(tr.max(axis=-1) < BOUND_LIMIT)):
             self.proper[r] = False
-            self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, _LIMIT_REASON)
+            self.violation(r, _binding_node(Bj[r], None), k, "(28)", -np.inf, LIMIT_REASON)
         Bp = None
         done = np.zeros(a, dtype=bool)
         sel = np.flatnonzero(self.proper)
@@ -210,7 +214,6 @@ class _Runs:
             if Bp is None:
                 Bp = np.empty_like(Bj)
             Bp[~done] = joint_predict(Bj[~done], F[~done], Q)
-        o["phi_pred"][act, k] = node_blocks(Bp)
         # ---- the gate and the exchange, on the channels
         Pm = joint_predict(Pj, F, Q)
         rcv, snd = self.receiver, self.sender
@@ -220,7 +223,7 @@ class _Runs:
         else:
             received, fdi, xi = ~att.dos[act, k], att.fdi[act, k], att.xi[act, k]
         cov_diff = None if not design.gate else channel_difference_covariance(Pm, rcv, snd)
-        keep, o["gate_counts"][act, k] = gate_channels(xp, rcv, snd, received, fdi, xi, cov_diff, design.gate)
+        keep, counts = gate_channels(xp, rcv, snd, received, fdi, xi, cov_diff, design.gate)
         kept = np.zeros((a, n, n), dtype=bool)
         kept[:, rcv, snd] = keep
         s = kept.sum(axis=-1)
@@ -240,19 +243,17 @@ class _Runs:
         C = np.empty((a, n, nx, nx))
         zk = self.z[act, k]
         x_new = np.empty((a, n, nx))
+        K = np.zeros((a, n, nx, o["K"].shape[-1]))
+        condition = np.empty((a, n))
         for i in range(n):
             Hi = model.H(i, xp[:, i], k + 1)
             res = wrap_residuals(zk[:, self.columns[i]] - model.h(i, xp[:, i], k + 1), model.sensors[i].angles)
-            Ki, C[:, i], o["gain_condition"][act, k, i] = mse_gains(Pm, i, kept[:, i], Hi, self.R[i], S[:, i],
-                                                                     condition=True)
+            Ki, C[:, i], condition[:, i] = mse_gains(Pm, i, kept[:, i], Hi, self.R[i], S[:, i], condition=True)
             x_new[:, i] = xp[:, i] + (Ki @ res[..., None])[..., 0] + (C[:, i] @ innovation[:, i, :, None])[..., 0]
             H.append(Hi)
             Ks.append(Ki)
-            o["K"][act, k, i] = 0.0
-            o["K"][act, k, i, :, :Ki.shape[-1]] = Ki
-        o["x_post"][act, k + 1], o["C"][act, k] = x_new, C
+            K[:, i, :, :Ki.shape[-1]] = Ki
         self.Pj = joint_update(Pm, Ks, C, H, self.R, kept, S)
-        o["predicted_mse"][act, k + 1] = np.trace(node_blocks(self.Pj), axis1=-2, axis2=-1)
         # ---- the certificate's update (27), (29)
         Bn = None
         done = np.zeros(a, dtype=bool)
@@ -281,9 +282,10 @@ class _Runs:
                 Bn[~done] = joint_update(Bp[~done], [Ki[~done] for Ki in Ks], C[~done], [Hi[~done] for Hi in H],
                                          self.R, kept[~done], S[~done])
         self.Bj = Bn
-        o["phi_post"][act, k + 1] = node_blocks(Bn)
-        o["valid"][act, k + 1] = self.proper[:, None]
-        self.stop_diverged(k)
+        phi = node_blocks(Bn)
+        return Step(dict(x_pred=xp, phi_pred=node_blocks(Bp), gate_counts=counts, gain_condition=condition, K=K, C=C),
+                    dict(x_post=x_new, predicted_mse=np.trace(node_blocks(self.Pj), axis1=-2, axis2=-1), phi_post=phi,
+                         valid=self.proper[:, None]), diverged_nodes(x_new, phi))
 
     def certified(self, bound, sel: np.ndarray, like: np.ndarray, k: int, margin: str, multiplier: str):
         """A joint certificate of the runs ``sel``: its margin and multiplier recorded at every node, and the
@@ -299,16 +301,8 @@ class _Runs:
         out[sel[ok]] = bound.phi[ok]
         return out, ok
 
-    def stop_diverged(self, k: int) -> None:
-        """A run whose estimate or bound left finite numbers stops at its first such node."""
-        o, act = self.out, self.act
-        bad = diverged_nodes(o["x_post"][act, k + 1], o["phi_post"][act, k + 1])
-        if not bad.any():
-            return
-        alive = stop_diverged(o["violations"], act, bad, k + 1,
-                              nan_from=(o["x_post"], o["phi_post"], o["predicted_mse"]),
-                              nan_before=(o["K"], o["C"], o["gain_condition"]), invalid_from=(o["valid"],))
-        self.act, self.proper, self.Pj, self.Bj = act[alive], self.proper[alive], self.Pj.take(alive), self.Bj[alive]
+    def stopped(self, alive: np.ndarray) -> None:
+        """The runs that stopped (``alive`` False) leave the sub-batch's state."""
+        self.proper, self.Pj, self.Bj = self.proper[alive], self.Pj.take(alive), self.Bj[alive]
 
 
-register_filter("mse", run_mse_batch)

@@ -19,10 +19,10 @@ were the state displaced by ξ, as for KCF and HCMCI in :mod:`filters.distribute
 
 The bound each node carries is the design's certificate (``ScheduledTables.Phi``: the same for every run,
 since the design does not depend on the run); ``predicted_mse`` is the trace of each node's own ``P_ii``.
-One run is a batch of one: :func:`run_scheduled_batch` is the only implementation.  Its step is three functions of a
-block of nodes (:func:`scheduled_prediction`, :func:`scheduled_update`, :func:`scheduled_round`), each received packet
-formed first (:func:`filters.consensus.channel_packets`) and the slots' terms added slot by slot, so that one node
-alone computes the batch's numbers: :class:`ScheduledNode`, the node filter (``predict``, ``update``, then
+One run is a batch of one: :func:`run_scheduled_batch` (on :func:`filters.engine.run_batch`) is the only
+implementation.  Its step is three functions of a block of nodes (:func:`scheduled_prediction`,
+:func:`scheduled_update`, :func:`scheduled_round`), each received packet formed first
+(:func:`filters.channels.channel_packets`) and the slots' terms added slot by slot, so that one node alone computes the batch's numbers: :class:`ScheduledNode`, the node filter (``predict``, ``update``, then
 ``round`` for rounds 2..L), and :class:`ScheduledNetwork`, every node over a run.
 """
 from __future__ import annotations
@@ -37,12 +37,13 @@ from designer.network import SensorNetwork
 from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
-from .attacks import AttackPattern
-from .node import NodeInputs, NodeNetwork, register_node_filter
-from .result import diverged_nodes, stop_diverged
-from .consensus import channel_packets
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+from filters.attacks import AttackPattern
+from filters.channels import channel_packets
+from filters.node import NodeInputs, NodeNetwork
+from filters.result import diverged_nodes
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
+from filters.engine import Step, run_batch
 
 __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
            "ScheduledNode", "ScheduledNetwork"]
@@ -65,7 +66,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     network, _ = run_networks(network, runs)
     design = validate_design(design, model, network)
     tables = design.tables
-    if design.mode != "scheduled" or tables is None:
+    if not design.rule.offline_tables or tables is None:
         raise InputError("run_scheduled_batch runs mode 'scheduled' with its tables (designer.scheduled."
                          "design_scheduled); got mode " + repr(design.mode))
     ch = tables.channels
@@ -96,11 +97,9 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     out["predicted_mse"][:, 0] = np.trace(P, axis1=-2, axis2=-1)
     rcv, snd = ch.receiver, ch.sender
     chan, mask = ch.slots  # (N, d): each node's incoming channels in its slots
-    act = np.arange(runs)
     nodes = np.arange(n)
-    for k in range(steps):
-        if not act.size:
-            break
+
+    def step(k, act, at):
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
         a = act.size
         xp, Pp, choice = scheduled_prediction(model, tables, k, x[act], P[act], uk)
@@ -108,8 +107,9 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             arrived, fdi, xi = np.ones((a, rcv.size), dtype=bool), np.zeros((a, rcv.size), dtype=bool), None
         else:
             arrived, fdi, xi = ~attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
-        out["gate_counts"][act, k, 0] = arrived.sum(-1)
-        out["gate_counts"][act, k, 3] = out["gate_counts"][act, k, 4] = (arrived & fdi).sum(-1)
+        counts = np.zeros((a, out["gate_counts"].shape[-1]), dtype=np.int64)  # no gate: received and falsified
+        counts[:, 0] = arrived.sum(-1)
+        counts[:, 3] = counts[:, 4] = (arrived & fdi).sum(-1)
         got = np.where(mask, arrived[:, chan], False)  # (a, N, d): the slots whose packet arrived
         # what every channel carries (a falsified packet: x̂⁻_j + ξ, and z_j + H_j(x̂⁻_j) ξ), laid out by slot
         sent_x = channel_packets(xp[:, snd], fdi, xi)[:, chan]  # (a, N, d, nx)
@@ -128,19 +128,18 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
             sent_z = sent_z[:, chan]
         xn, Pn, K, C, kappa = scheduled_update(model, tables, design, k, nodes, xp, Pp, choice, z[act, k], got,
                                                sent_x, sent_z, M, mu)
-        out["K"][act, k] = K
-        out["C"][act, k] = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij (first round)
-        out["gain_condition"][act, k] = kappa
+        C = np.einsum("lid,lidab->liab", got.astype(float), C)  # Σ_{arrived} C_ij (first round)
+        condition = kappa
         for rnd in range(2, tables.rounds + 1):  # rounds 2..L: the senders' current estimates, the same packets
             sent_x = channel_packets(xn[:, snd], fdi, xi)[:, chan]
             xn, Pn, kappa = scheduled_round(model, tables, rnd, k, nodes, xn, Pn, choice, got, sent_x, M, mu)
-            out["gain_condition"][act, k] = np.maximum(out["gain_condition"][act, k], kappa)
+            condition = np.maximum(condition, kappa)
         x[act], P[act] = xn, Pn
-        out["x_pred"][act, k], out["x_post"][act, k + 1] = xp, xn
-        out["predicted_mse"][act, k + 1] = np.trace(Pn, axis1=-2, axis2=-1)
-        act = act[stop_diverged(out["violations"], act, diverged_nodes(xn, Pn), k + 1,
-                                nan_from=(out["x_post"], out["phi_post"], out["predicted_mse"]),
-                                invalid_from=(out["valid"],))]
+        return Step(dict(gate_counts=counts, K=K, C=C, gain_condition=condition, x_pred=xp),
+                    dict(x_post=xn, predicted_mse=np.trace(Pn, axis1=-2, axis2=-1)), diverged_nodes(xn, Pn))
+
+    run_batch(step, out, out["violations"], steps, nan_from=("x_post", "phi_post", "predicted_mse"),
+              invalid_from=("valid",))
     if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
         out["valid"][:, T + 1:] = False
     return ConsensusBatchResult(**out)
@@ -250,7 +249,6 @@ def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | Non
     return slots[at, :, choice], Sig[choice, np.asarray(nodes)[None, :]][:, :, :d, :d]
 
 
-register_filter("scheduled", run_scheduled_batch)  # the filter of gain rule 'scheduled' (filters.consensus_batch)
 
 
 # --------------------------------------------------------------------------- the node filter
@@ -279,8 +277,8 @@ class ScheduledNode:
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
                  P0=None):
         design = validate_design(design, model, network)
-        if design.mode != "scheduled" or design.tables is None:
-            raise InputError(f"ScheduledNode runs mode 'scheduled' with its tables; got mode {design.mode!r}")
+        if not design.rule.offline_tables or design.tables is None:
+            raise InputError(f"ScheduledNode runs a rule of offline tables with its tables; got mode {design.mode!r}")
         i = self.node = check_int("node", node, 0, network.n_nodes - 1)
         self.model, self.design, self.tables = model, design, design.tables
         ch = self.tables.channels
@@ -433,4 +431,3 @@ class ScheduledNetwork(NodeNetwork):
         return sent, rounds
 
 
-register_node_filter("scheduled", ScheduledNode, ScheduledNetwork)

@@ -28,8 +28,8 @@ forwarding node's prediction, as the scheduled filter falsifies a measurement).
 
 **Messages**: ``2 |E| hops`` packets per step (one per directed channel and round, a packet lost to DoS counted);
 delivered: the channels not lost to DoS times ``hops``.  **Divergence**: as the other batched filters, a run whose
-prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.consensus.DIVERGED` at a node
-stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.result.stop_diverged`); the other runs
+prediction, estimate or covariance leaves finite numbers or exceeds :data:`filters.result.DIVERGED` at a node
+stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.engine.run_batch`); the other runs
 go on.
 
 **How it is computed.**  The node moments are computed once (:func:`designer.relay.node_moments`, every node).
@@ -48,7 +48,6 @@ import numpy as np
 
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, validate_design
-from designer.gain_rules import gain_rule
 from designer.model import Model
 from designer.network import SensorNetwork
 from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments,
@@ -56,12 +55,13 @@ from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_i
 from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
-from .attacks import AttackPattern
-from .consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks, register_filter,
+from filters.attacks import AttackPattern
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from .distributed import DistributedBatchResult
-from .node import NodeInputs, check_step, register_node_filter, run_network
-from .result import DIVERGED_REASON, diverged_nodes, stop_diverged
+from filters.distributed import DistributedBatchResult
+from filters.engine import Step, estimate_arrays, run_batch
+from filters.node import NodeInputs, check_step, run_network
+from filters.result import DIVERGED_REASON, diverged_nodes
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -185,37 +185,32 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     lay = _layout(model, routes)
     classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
                            free=True)
-    x_post = np.full((runs, steps + 1, n, nx), np.nan)
-    P_post = np.full((runs, steps + 1, n, nx, nx), np.nan)
-    x_pred = np.full((runs, steps, n, nx), np.nan)
-    P_pred = np.full((runs, steps, n, nx, nx), np.nan)
-    x_post[:, 0], P_post[:, 0] = x0[:, None], P0[:, None]
-    sent = np.full((runs, steps), network.messages_per_step(hops))
-    delivered = np.zeros((runs, steps), int)
+    out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops))
     violations: list[list[dict]] = [[] for _ in range(runs)]
-    act = np.arange(runs)
-    for k in range(steps):
-        if not act.size:
-            break
+
+    def step(k, act, at):
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xp, Pp = _predict(model, k, x_post[act, k], P_post[act, k], uk)
-        x_pred[act, k], P_pred[act, k] = xp, Pp
-        go = stop_diverged(violations, act, diverged_nodes(xp, Pp), k + 1, "prediction: " + DIVERGED_REASON,
-                           nan_before=(x_pred, P_pred))
-        act, xp, Pp = act[go], xp[go], Pp[go]
-        if not act.size:
-            break
-        if attacks is None:
-            dos = fdi = xi = None
-            delivered[act, k] = network.messages_per_step(hops)
-        else:
-            dos, fdi, xi = attacks.dos[act, k], attacks.fdi[act, k], attacks.xi[act, k]
-            delivered[act, k] = (~dos).sum(axis=-1) * hops
-        x, P = _update(model, routes, lay, classes, M, mu, k, z[act, k], xp, Pp, dos, fdi, xi)
-        x_post[act, k + 1], P_post[act, k + 1] = x, P
-        act = act[stop_diverged(violations, act, diverged_nodes(x, P), k + 1, nan_from=(x_post, P_post),
-                                nan_before=(x_pred, P_pred))]
-    return DistributedBatchResult(x_post, P_post, x_pred, P_pred, sent, delivered, violations, hops, None)
+        xp, Pp = _predict(model, k, out["x_post"][act, k], out["P_post"][act, k], uk)
+        bad = diverged_nodes(xp, Pp)  # a prediction beyond finite numbers stops its run before the update
+        go = ~bad.any(axis=-1)
+        x, P = np.full(xp.shape, np.nan), np.full(Pp.shape, np.nan)
+        delivered = np.zeros(act.size, int)
+        if go.any():
+            g = act[go]
+            if attacks is None:
+                dos = fdi = xi = None
+                delivered[go] = network.messages_per_step(hops)
+            else:
+                dos, fdi, xi = attacks.dos[g, k], attacks.fdi[g, k], attacks.xi[g, k]
+                delivered[go] = (~dos).sum(axis=-1) * hops
+            x[go], P[go] = _update(model, routes, lay, classes, M, mu, k, z[g, k], xp[go], Pp[go], dos, fdi, xi)
+            bad[go] = diverged_nodes(x[go], P[go])
+        return Step(dict(x_pred=xp, P_pred=Pp, delivered=delivered), dict(x_post=x, P_post=P), bad,
+                    lambda j, node: DIVERGED_REASON if go[j] else "prediction: " + DIVERGED_REASON)
+
+    run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
+    return DistributedBatchResult(out["x_post"], out["P_post"], out["x_pred"], out["P_pred"], out["sent"],
+                                  out["delivered"], violations, hops, None)
 
 
 def _predict(model: Model, k: int, x, P, u):
@@ -324,7 +319,7 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
     return x, P
 
 
-#: The most numbers of one r x r temporary of a class's update per run (filters.relay._update): one call per node
+#: The most numbers of one r x r temporary of a class's update per run (rules.relay.filter._update): one call per node
 #: costs Python overhead at every step (a single run at 512 nodes: most of the design's time), a whole class at once
 #: temporaries beyond the caches (5 runs at 512 nodes: slower than one call per node).  An assumption, chosen on the
 #: 512-node grid (8 nodes of 150 rows per call).
@@ -351,7 +346,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                      phi0=None) -> ConsensusBatchResult:
-    """The filter of a gain rule that relays (``design.mode``, ``'relay'`` or ``'flood'``; :mod:`designer.gain_rules`):
+    """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
 
@@ -366,7 +361,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     runs, steps = z.shape[:2]
     first, nets = run_networks(network, runs)
     design = validate_design(design, model, first)
-    rule = gain_rule(design.mode)
+    rule = design.rule
     if not rule.relays:
         raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
     attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
@@ -411,7 +406,7 @@ class RelayNode:
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
                  P0=None, routes: Routes | None = None, moments: Sequence[NodeMoments] | None = None):
         design = validate_design(design, model, network)
-        rule = gain_rule(design.mode)
+        rule = design.rule
         if not rule.relays:
             raise InputError(f"RelayNode runs a gain rule that relays (relay, flood); got mode {design.mode!r}")
         self.node = check_int("node", node, 0, network.n_nodes - 1)
@@ -467,7 +462,7 @@ class RelayNetwork:
 
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, *, x0=None, P0=None):
         design = validate_design(design, model, network)
-        rule = gain_rule(design.mode)
+        rule = design.rule
         self.model, self.network = model, network
         self.routes = relay_routes(network, design.rounds, rule.routing)
         moments = relay_moments(self.routes, network, model.sensor_dims)
@@ -531,7 +526,3 @@ class RelayNetwork:
         return run_network(self, z, attacks, inputs)
 
 
-register_filter("relay", run_relay_design)  # the filters of gain rules 'relay' and 'flood' (filters.consensus_batch)
-register_filter("flood", run_relay_design)
-register_node_filter("relay", RelayNode, RelayNetwork)  # and their node filters (filters.node)
-register_node_filter("flood", RelayNode, RelayNetwork)

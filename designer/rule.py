@@ -1,0 +1,347 @@
+"""The gain rule's interface: :class:`GainRule`, the base class of every design mode, and the run-time classes.
+
+A gain rule (``cfdesign design --mode NAME``) is one package ``rules/<name>/`` (:mod:`rules`, the registry that
+finds them); its object, a subclass of :class:`GainRule`, declares what a node needs at run time to apply its gains
+and answers the code's questions about the rule through its hooks.  This module names no rule: the designer and the
+filters take a rule object (``ConsensusDesign.rule``), which the command resolves once from its name
+(:func:`rules.get`).
+
+Every rule belongs to one run-time class of :data:`RUNTIMES`:
+
+* ``local`` — the node computes its gains online from what it has: its own measurement,
+  the packets it received and their senders' messages;
+* ``scheduled`` — gains designed offline and applied with what the node itself observes or
+  computes (the step, which neighbour packets arrived, its own estimate);
+* ``global`` — the gains need the joint state of the network (e.g. the joint error covariance
+  of all nodes and every link's realised packet losses), i.e. a central computer.  Such a rule is
+  an **oracle**: a reference of what the structure can reach, not a design to deploy
+  (``deployable`` is False).
+
+:data:`FILTER_RUNTIMES` adds ``centralized`` for the filters of a fusion centre, which no node runs.
+
+A rule's metadata (class attributes, checked when the class is defined)
+------------------------------------------------------------------------
+``name``, ``runtime``, ``needs`` (one plain sentence: what a node needs at run time), ``summary`` (one line: how it
+chooses the gains, the command line's help), and its capabilities: ``fixed_multipliers`` (the user gives σ, β and
+τ and the rule keeps them: they may break (28)/(29) at the first step), ``offline_tables`` (its design is a set of
+tables computed offline and applied online: it chooses what the nodes exchange, the exchange rounds, a robustness
+margin and a bank of operating points, and has a stationary certificate), ``joint_covariance`` (its filter carries
+the joint error covariance of all nodes: (N n)² numbers per run, not mapped by the feasibility map), ``relays`` (its
+packets relay the measurements over L exchange rounds per step, :mod:`designer.relay`) and ``routing`` (which copy
+of a relayed measurement a node takes, :data:`ROUTINGS`).
+
+Its hooks (methods; the base class's answer follows from the capabilities)
+--------------------------------------------------------------------------
+:meth:`GainRule.check_options` (the options the rule takes), :meth:`GainRule.check_design` (a design's fields),
+:meth:`GainRule.design_fields` (the exchange, robustness and bank of its design), :meth:`GainRule.rounds` (the
+exchange rounds per step), :meth:`GainRule.batch_filter` (its filter over a batch of Monte Carlo runs) and
+:meth:`GainRule.node_filter` (the filter one node runs, and the network of them).
+"""
+from __future__ import annotations
+
+import re
+from types import MappingProxyType
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+from .validation import InputError
+
+__all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "ROUTINGS", "runtime_label", "caveat",
+           "RULE_NAME", "EXCHANGES", "RELAY", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
+
+# The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
+RUNTIMES: Mapping[str, str] = MappingProxyType({
+    "local": "the node computes its gains online from its own measurement, the packets it received and their "
+             "senders' messages (predictions and bounds); nothing else is needed at run time.",
+    "scheduled": "gains designed offline and applied with what the node itself observes or computes: the step, "
+                 "which neighbour packets arrived, its own estimate.",
+    "global": "the gains need the joint state of the network (every node's errors and every link's realised "
+              "packet losses), i.e. a central computer: an oracle, a reference of what the structure can reach, "
+              "not a design to deploy.",
+})
+# What a study's filter runs on: the gain rules' classes, and a fusion centre (a filter no node can run alone).
+FILTER_RUNTIMES: Mapping[str, str] = MappingProxyType({
+    **RUNTIMES,
+    "centralized": "a fusion centre receives every sensor's measurement over its uplink: not a filter a node can run "
+                   "alone, a reference of what centralisation reaches.",
+})
+DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; the others are references
+#: Which copy of a relayed measurement a node of a rule that relays takes (designer.relay.Routes): its shortest-path
+#: tree parent's, or the first to arrive from any neighbour.
+ROUTINGS = ("tree", "flood")
+_SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
+          "observes", "global": "an oracle, not deployable", "centralized": "a fusion centre, not a node's filter"}
+RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Python identifier), its --mode
+
+
+EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first is its default
+RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (GainRule.relays)
+#: The default robustness margin δ of a tabled design's link gains (:func:`designer.scheduled.link_gains`;
+#: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
+#: between neighbours' errors to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning
+#: 1e7-1e8 on a range grid): where the state leaves the nominal geometry, those cancellations fail and the network
+#: diverges (a 32-node range grid, 1150 m after 100 steps; 20 of 20 runs of a 28-node coordinated-turn model).  δ = 1
+#: (each link's difference taken to carry an extra independent error as large as the node's own) removed every
+#: divergence we measured and cost at most 5 % of accuracy on the nominal trajectories (README, "Robustness"): an
+#: assumption of this design, chosen by those measurements, not by a theorem.
+ROBUSTNESS = 1.0
+#: The largest margin accepted (beyond it the links are all but ignored: a node alone is the local EKF).
+ROBUSTNESS_MAX = 100.0
+#: The most exchange rounds per step a design takes.
+ROUNDS_MAX = 64
+#: The most axes of a tabled design's bank of operating points (3^A - 1 points: 26 at A = 3).
+BANK_MAX = 3
+
+
+def runtime_label(runtime: str) -> str:
+    """``"global: an oracle, not deployable"``: a run-time class of :data:`FILTER_RUNTIMES` with its short phrase."""
+    if runtime not in FILTER_RUNTIMES:
+        raise InputError(f"runtime must be {_listing(FILTER_RUNTIMES)}, got {runtime!r}")
+    return f"{runtime}: {_SHORT[runtime]}"
+
+
+def _listing(names) -> str:
+    """``'a', 'b' or 'c'``."""
+    quoted = [repr(n) for n in names]
+    return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + " or " + quoted[-1]
+
+
+def caveat(record: Mapping) -> str | None:
+    """The clause a verdict adds for a rule that is not deployable, from its record (:meth:`GainRule.describe`,
+    ``schedule.json``'s ``gain_rule``); None for a deployable rule."""
+    if record.get("deployable", True):
+        return None
+    return (f"mode {record.get('name')} is a {record.get('runtime')} oracle, a reference of what the structure can "
+            f"reach, not a deployable design: its gains need {str(record.get('needs', '')).rstrip('.')}")
+
+
+class GainRule:
+    """A gain rule: a design mode, what a node needs at run time to apply its gains, and its hooks.
+
+    A rule is a subclass that sets the metadata below as class attributes (checked when the class is defined) and
+    overrides the hooks it answers differently from the base class; its package ``rules/<name>/`` exposes one
+    instance as ``RULE`` (:mod:`rules`).  Rules compare equal by class and name, so a design carrying one pickles
+    to another process and back.
+
+    Metadata
+    --------
+    name : str
+        The mode's name (``--mode NAME``) and its package's: lower-case letters, digits and ``_``.
+    runtime : {'local', 'scheduled', 'global'}
+        Its run-time class (:data:`RUNTIMES`).
+    needs : str
+        One plain sentence: what a node needs at run time to apply the rule.
+    summary : str
+        One line: how the rule chooses the gains (the command line's help).
+    fixed_multipliers : bool
+        The user gives σ, β and τ (``--sigma``, ``--beta``, ``--tau``) and the rule keeps them: they may break
+        (28)/(29) at the first step, where the design cannot start.  Otherwise the rule chooses them (and ε defaults
+        to :func:`designer.tuning.tuned_epsilon`).
+    offline_tables : bool
+        Its design is a set of tables computed offline (:mod:`designer.scheduled`) and applied online by the
+        nodes: it chooses what they exchange (``--exchange``), the exchange rounds (``--rounds``), a robustness
+        margin (``--robustness``) and a bank of operating points (``--bank``), and has a stationary certificate; its
+        gains along one run are not the design (they cannot be replayed).  Otherwise the design is a seeded run of
+        the filter.
+    joint_covariance : bool
+        The filter carries the joint error covariance of all nodes ((N n)² numbers per run); the feasibility map does
+        not map it (its gains come from that covariance along a run).
+    relays : bool
+        Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that arrived
+        (:mod:`designer.relay`); its design has a stationary certificate.
+    routing : {'tree', 'flood'}
+        For a rule that relays: which copy of a relayed measurement a node takes (:data:`ROUTINGS`): its
+        shortest-path tree parent's, or the first to arrive from any neighbour.
+    """
+
+    name: ClassVar[str]
+    runtime: ClassVar[str]
+    needs: ClassVar[str]
+    summary: ClassVar[str]
+    fixed_multipliers: ClassVar[bool] = False
+    offline_tables: ClassVar[bool] = False
+    joint_covariance: ClassVar[bool] = False
+    relays: ClassVar[bool] = False
+    routing: ClassVar[str] = "tree"
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if "name" in cls.__dict__:  # a concrete rule (an intermediate base may leave its name to subclasses)
+            cls.check_metadata()
+
+    @classmethod
+    def check_metadata(cls) -> None:
+        """Check the class's metadata (:class:`InputError` naming the attribute and what it must be)."""
+        name = getattr(cls, "name", None)
+        if not isinstance(name, str) or not RULE_NAME.fullmatch(name):
+            raise InputError(f"gain rule name must be lower-case letters, digits or '_', starting with a letter (the "
+                             f"name of its package rules/<name>/), got {name!r}")
+        if getattr(cls, "runtime", None) not in RUNTIMES:
+            raise InputError(f"runtime of gain rule {name!r} must be {_listing(RUNTIMES)}, "
+                             f"got {getattr(cls, 'runtime', None)!r}")
+        for field in ("needs", "summary"):
+            if not isinstance(getattr(cls, field, None), str) or not getattr(cls, field).strip():
+                raise InputError(f"{field} of gain rule {name!r} must be a non-empty sentence")
+        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays"):
+            if not isinstance(getattr(cls, field), bool):
+                raise InputError(f"{field} of gain rule {name!r} must be True or False, got {getattr(cls, field)!r}")
+        if cls.routing not in ROUTINGS:
+            raise InputError(f"routing of gain rule {name!r} must be {_listing(ROUTINGS)}, got {cls.routing!r}")
+
+    def __setattr__(self, key, value):
+        raise AttributeError(f"gain rule {self.name!r} is fixed: its metadata are its class's")
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and other.name == self.name
+
+    def __hash__(self) -> int:
+        return hash((type(self).__qualname__, self.name))
+
+    def __repr__(self) -> str:
+        return f"<gain rule {self.name!r}>"
+
+    # ------------------------------------------------------------------------------------------ what it is
+    @property
+    def seeded_design(self) -> bool:
+        """Its design is the filter run along a seeded simulated run (its gains there are the schedule)."""
+        return not self.offline_tables
+
+    @property
+    def takes_rounds(self) -> bool:
+        """Its design takes exchange rounds per step (``--rounds``): a rule of offline tables or one that relays."""
+        return self.offline_tables or self.relays
+
+    @property
+    def stationary_certificate(self) -> bool:
+        """Its design has a stationary certificate at the operating point (what the feasibility map maps for it):
+        a rule of offline tables or one that relays."""
+        return self.offline_tables or self.relays
+
+    @property
+    def mappable(self) -> bool:
+        """The feasibility map maps it (not a rule whose gains come from the joint covariance of a run)."""
+        return not self.joint_covariance
+
+    @property
+    def deployable(self) -> bool:
+        """Whether a user can run the rule on the nodes (its run time is not ``global``)."""
+        return self.runtime in DEPLOYABLE
+
+    @property
+    def label(self) -> str:
+        """``"mse (global: an oracle, not deployable)"``: the name with its run-time class in words."""
+        return f"{self.name} ({runtime_label(self.runtime)})"
+
+    @property
+    def help(self) -> str:
+        """The command line's line for the rule: ``"name: summary [runtime: in words]"``."""
+        return f"{self.name}: {self.summary} [{runtime_label(self.runtime)}]"
+
+    @property
+    def caveat(self) -> str | None:
+        """For a rule that is not deployable, the clause a verdict adds (None for a deployable rule)."""
+        return caveat(self.describe())
+
+    def describe(self) -> dict:
+        """``schedule.json``'s ``gain_rule``: ``{name, runtime, needs, deployable}``."""
+        return {"name": self.name, "runtime": self.runtime, "needs": self.needs, "deployable": self.deployable}
+
+    # ------------------------------------------------------------------------------------------ hooks
+    def check_options(self, options) -> None:
+        """Refuse what ``options`` (a :class:`designer.design.DesignOptions`) sets that this rule does not take
+        (:class:`InputError` naming the option); the options' own ranges are checked when they are made."""
+        mode = repr(self.name)
+        if options.exchange is not None and self.relays:
+            raise InputError(f"exchange is chosen by a rule of offline tables; mode {mode} relays the measurements "
+                             "(its exchange is 'relay'): do not give --exchange")
+        if options.exchange == "measurements" and not self.offline_tables:
+            raise InputError(f"exchange 'measurements' is a design of a rule of offline tables; mode {mode} "
+                             "exchanges predictions")
+        if options.rounds is not None and options.rounds > 1 and not self.takes_rounds:
+            raise InputError(f"rounds > 1 is a design of a rule of offline tables or one that relays; mode {mode} "
+                             "exchanges once per step")
+        if options.bank and not self.offline_tables:
+            raise InputError(f"bank is the operating points of a rule of offline tables; mode {mode} has none")
+        if options.robustness is not None and not self.offline_tables:
+            raise InputError(f"robustness is a margin of the link gains of a rule of offline tables; mode {mode} "
+                             "has none")
+        if not self.fixed_multipliers:
+            for name in ("sigma", "beta", "tau"):
+                if getattr(options, name) is not None:
+                    raise InputError(f"{name} is chosen by the design in mode {mode}; do not give --{name}")
+
+    def check_design(self, design) -> None:
+        """Refuse a :class:`designer.design.ConsensusDesign` whose rule-dependent fields this rule does not take
+        (:class:`InputError` naming the field and its range)."""
+        mode = repr(self.name)
+        if self.relays and design.gate:
+            raise InputError(f"mode {mode} does not take a gate (gate must be 0): its gain counts every falsified "
+                             "measurement that arrives, from the falsification's statistics")
+        if self.relays and design.exchange != RELAY:
+            raise InputError(f"exchange must be {RELAY!r} in mode {mode} (it relays the measurements), got "
+                             f"{design.exchange!r}")
+        if not self.relays and (design.exchange not in EXCHANGES
+                                or (design.exchange == "measurements" and not self.offline_tables)):
+            raise InputError(f"exchange must be 'predictions', or 'measurements' in a rule of offline tables, got "
+                             f"{design.exchange!r} in mode {mode}")
+        rob = float(design.robustness)
+        if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and not self.offline_tables):
+            raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in a rule of offline tables (0 in "
+                             f"the others), got {design.robustness!r} in mode {mode}")
+        if isinstance(design.rounds, bool) or not isinstance(design.rounds, (int, np.integer)) or not (
+                1 <= design.rounds <= ROUNDS_MAX) or (design.rounds > 1 and not self.takes_rounds):
+            raise InputError(f"rounds must be an integer in [1, {ROUNDS_MAX}] in a rule of offline tables or one "
+                             f"that relays (1 in the others), got {design.rounds!r} in mode {mode}")
+        if isinstance(design.bank, bool) or not isinstance(design.bank, (int, np.integer)) or not (
+                0 <= design.bank <= BANK_MAX) or (design.bank and not self.offline_tables):
+            raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in a rule of offline tables (0 in the "
+                             f"others), got {design.bank!r} in mode {mode}")
+
+    def design_fields(self, options) -> dict[str, Any]:
+        """The fields of a :class:`designer.design.ConsensusDesign` that follow from this rule and ``options``:
+        what a packet carries (``exchange``), the links' margin (``robustness``) and the bank's axes (``bank``)."""
+        if self.relays:
+            return {"exchange": RELAY, "robustness": 0.0, "bank": 0}
+        if not self.offline_tables:
+            return {"exchange": options.exchange or "predictions", "robustness": 0.0, "bank": 0}
+        return {"exchange": options.exchange or EXCHANGES[0],
+                "robustness": ROBUSTNESS if options.robustness is None else float(options.robustness),
+                "bank": 0 if options.bank is None else int(options.bank)}
+
+    def rounds(self, network, rounds: int | None = None) -> int:
+        """The exchange rounds per step of this rule's design on ``network``: ``rounds`` when given, else the rule's
+        default (a rule that relays: :func:`designer.relay.default_hops`, the diameter up to 8; else 1)."""
+        if rounds is not None:
+            return int(rounds)
+        if not self.relays:
+            return 1
+        from .relay import default_hops  # late: scipy's graph routines, not needed to list or load a scenario
+
+        return default_hops(network)
+
+    def batch_filter(self):
+        """Its filter over a batch of Monte Carlo runs: a :class:`filters.consensus_batch.NodeRule` (a prediction and
+        an update each node applies on its own, run by :func:`filters.consensus_batch.run_consensus_batch`'s loop)
+        or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
+        :class:`filters.consensus_batch.ConsensusBatchResult`."""
+        raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
+
+    @property
+    def has_node_filter(self) -> bool:
+        """Whether a node can run this rule's designs on its own (:meth:`node_filter` gives its classes)."""
+        try:
+            self.node_filter()
+        except InputError:
+            return False
+        return True
+
+    def node_filter(self) -> tuple[type, type]:
+        """The filter one node runs for this rule's designs, and the network of them: ``(node, network)`` classes,
+        ``node(model, network, design, i, *, x0, P0)`` with ``step(z, received, u)`` and ``network(model, network,
+        design, *, x0, P0)`` with ``step`` and ``run`` (:mod:`filters.node`)."""
+        if not self.deployable:
+            raise InputError(f"gain rule {self.name!r} has no node filter: it is an oracle, its gains need the joint "
+                             "state of the network, which no node has (a reference, not a design to deploy)")
+        raise InputError(f"gain rule {self.name!r} has no node filter yet; its filter runs in the studies and in "
+                         "cfdesign filter")

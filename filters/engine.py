@@ -1,0 +1,86 @@
+"""One batched time loop for the consensus-family filters: the home of the loop over steps, its records and the stop.
+
+A batched filter is a step function run over time (the shape of dynamax's filters, a step scanned over the
+steps): :func:`run_batch` owns what every family's loop shares, each family (the consensus EKF of every mode,
+the relay rule, KCF and HCMCI) supplies its step, the part that differs: prediction, exchange and update of the
+runs still going.  The loop
+
+* runs the steps in order over the runs still going (``act``, indices into the batch; ``at`` the same runs as an
+  index, a whole-axis slice while none has stopped so that the step reads views, not copies);
+* writes what the step returns into the result arrays: :attr:`Step.now` at ``[run, k]`` (predictions, gains,
+  margins, packet counts), :attr:`Step.after` at ``[run, k + 1]`` (posteriors);
+* stops a run whose estimate or covariance left finite numbers (:attr:`Step.bad`, e.g.
+  :func:`filters.result.diverged_nodes`) at its first such node: a ``'diverged'`` violation and NaN from that
+  step on (:func:`filters.result.stop_diverged`), while the other runs go on; the family's own state of the
+  stopped runs goes with them (``stopped``);
+* returns the runs that went on to the end (a family's last records, e.g. Theorem 2 on ``Φ_{K|K}``).
+
+A run alone is a batch of one, and a run's numbers do not depend on the other runs of its batch: the loop adds no
+arithmetic of its own.  :func:`estimate_arrays` allocates the records of the filters that carry an estimate and a
+covariance per node (the relay rule, KCF, HCMCI) with their messages count; the consensus EKF's are
+:func:`filters.consensus_batch.result_arrays`.
+"""
+from __future__ import annotations
+
+from typing import Callable, Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+from .result import DIVERGED_REASON, stop_diverged
+
+__all__ = ["Step", "run_batch", "estimate_arrays"]
+
+
+class Step(NamedTuple):
+    """What a family's step returns for the ``a`` runs going on at step ``k``."""
+
+    now: Mapping[str, np.ndarray]  # record name -> (a, ...) values at [run, k]
+    after: Mapping[str, np.ndarray]  # record name -> (a, ...) values at [run, k + 1]
+    bad: np.ndarray  # (a, N) which nodes of the runs left finite numbers at k + 1 (the run stops at the first)
+    reason: str | Callable[[int, int], str] = DIVERGED_REASON  # or reason(j, node) for position j of the runs
+
+
+def run_batch(step: Callable[[int, np.ndarray, slice | np.ndarray], Step], records: Mapping[str, np.ndarray],
+              violations: list, steps: int, *, nan_from: Sequence[str] = (), nan_before: Sequence[str] = (),
+              invalid_from: Sequence[str] = (), stopped: Callable[[np.ndarray], None] | None = None) -> np.ndarray:
+    """Run ``step(k, act, at)`` over ``steps`` steps of the ``len(violations)`` runs of a batch; returns the runs
+    still going at the end.
+
+    ``records`` the result arrays by name (runs first, then steps), written where the step's :class:`Step` says;
+    ``violations`` one list per run (the step appends its conditions' violations, the loop a ``'diverged'`` one
+    after them).  A run that stops at step ``k + 1`` gets NaN in the records ``nan_from`` from ``k + 1`` on
+    (posteriors), in ``nan_before`` at ``k`` (what its last update used: gains, predictions) and False in
+    ``invalid_from`` from ``k + 1`` on; ``stopped(going)`` (the (a,) mask of the runs that go on) lets the family
+    drop its own state of the others.
+    """
+    runs = len(violations)
+    act = np.arange(runs)
+    pick = (lambda names: tuple(records[name] for name in names))  # noqa: E731
+    for k in range(steps):
+        if not act.size:
+            break
+        at = slice(None) if act.size == runs else act
+        out = step(k, act, at)
+        for name, value in out.now.items():
+            records[name][at, k] = value
+        for name, value in out.after.items():
+            records[name][at, k + 1] = value
+        going = stop_diverged(violations, act, out.bad, k + 1, out.reason, nan_from=pick(nan_from),
+                              nan_before=pick(nan_before), invalid_from=pick(invalid_from))
+        if not going.all():
+            if stopped is not None:
+                stopped(going)
+            act = act[going]
+    return act
+
+
+def estimate_arrays(runs: int, steps: int, n: int, nx: int, x0: np.ndarray, P0: np.ndarray, per_step: int) -> dict:
+    """The records of a filter whose nodes carry an estimate and a covariance: ``x_post``, ``P_post`` (runs, steps
+    + 1, n, ...) from every node's ``x0`` (runs, nx), ``P0`` (runs, nx, nx), ``x_pred``, ``P_pred`` (runs, steps,
+    n, ...) NaN, and the messages: ``sent`` (runs, steps) ``per_step`` transmissions at every step (attempted,
+    lost ones included), ``delivered`` (runs, steps) zero until the steps count them."""
+    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), P_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
+               x_pred=np.full((runs, steps, n, nx), np.nan), P_pred=np.full((runs, steps, n, nx, nx), np.nan),
+               sent=np.full((runs, steps), per_step), delivered=np.zeros((runs, steps), int))
+    out["x_post"][:, 0], out["P_post"][:, 0] = x0[:, None], P0[:, None]
+    return out

@@ -1,0 +1,31 @@
+"""Gain rule ``relay``: every measurement relayed over L hops along shortest-path routes; each node fuses its ball."""
+from __future__ import annotations
+
+from designer.rule import GainRule
+
+__all__ = ["RULE", "Relay"]
+
+
+class Relay(GainRule):
+    name = "relay"
+    runtime = "local"
+    needs = ("its own measurement, the measurements relayed to it over L hops that arrived (their values and "
+             "sensors), its own estimate (the Jacobians of its ball's sensors there) and covariance, and its ball's "
+             "arrival and falsification moments, computed offline from the network and the DoS and FDI "
+             "probabilities (designer.relay); its gain is computed online at the node.")
+    summary = ("every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
+               "ball with one gain minimising the expected covariance over the attacks")
+    relays = True
+
+    def batch_filter(self):
+        from .filter import run_relay_design
+
+        return run_relay_design
+
+    def node_filter(self):
+        from .filter import RelayNetwork, RelayNode
+
+        return RelayNode, RelayNetwork
+
+
+RULE = Relay()
