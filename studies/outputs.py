@@ -3,11 +3,12 @@
 feasibility map's (``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports) and a filter run's
 (``estimates.npz``, ``estimates.csv``, ``fig_estimates.png`` and ``report.md``).
 
-The computation never imports this module: it returns result objects (:class:`studies.pipeline.StudyResult`,
+The computation returns result objects (:class:`studies.pipeline.StudyResult`,
 :class:`studies.consensus_design.Design`, :class:`studies.feasibility_map.FeasibilityMap`,
-:class:`studies.api.FilterRun`) whose ``save`` hands them to the function here, imported on first use.  This module
-imports the figures (:mod:`studies.figures`) and the reports (:mod:`studies.reports`), which import no computation
-back: what it writes it takes from the result object it is given.
+:class:`studies.api.FilterRun`); their ``save`` hands them to the function here, imported there on first use (as
+is the figure helper a study starts before it computes, :func:`figure_helper`).  This module imports the figures (:mod:`studies.figures`) and
+the reports (:mod:`studies.reports`), and no computation: what it writes it takes from the result object it is given
+(``FeasibilityMap.record`` is the content of ``feasibility.json``), so no import circle passes through it.
 """
 from __future__ import annotations
 

@@ -128,6 +128,14 @@ def test_the_studies_face_is_imported_by_none_of_its_modules(graph):
     assert users == [], {m: graph[m]["studies"] for m in users}
 
 
+def test_figures_import_no_report_and_the_writing_no_computation(graph):
+    """Reports may import figures, never the reverse; :mod:`studies.outputs`, which writes every result directory,
+    imports none of the modules whose result objects it writes (they import it, inside their ``save``)."""
+    assert not [m for m in graph["studies.figures"] if m.startswith("studies.reports")]
+    writers_users = sorted(m for m, targets in graph.items() if "studies.outputs" in targets)
+    assert writers_users and not [m for m in graph["studies.outputs"] if m in writers_users]
+
+
 def test_the_circle_finder_sees_a_circle_through_a_lazy_import(tmp_path):
     """The checks above can fail: a circle closed by an import inside a function, a relative ``from . import``, and
     a package face are found; a chain without a way back is not a circle."""
