@@ -50,7 +50,7 @@ from designer.fileio import check_apart, check_output_file, replaced_outputs, wr
 from designer.network import SensorNetwork
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
-from . import memory
+import studies.memory as memory
 from .scenarios import CHANNEL_TYPES, SCENARIOS, Scenario, model_inputs, scenario_of
 
 __all__ = ["list_scenarios", "simulate", "Simulation", "design", "feasibility", "study", "report", "filter",
@@ -407,7 +407,7 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     Parameters
     ----------
     name : str
-        A study of :data:`studies.pipeline.STUDIES` (``comparison``, ``consensus-robot``,
+        A study of :data:`studies.study_registry.STUDIES` (``comparison``, ``consensus-robot``,
         ``rrp-deception``, ...).
     scenario : str, path, Scenario, designer.Model or a sequence of them, optional
         What to run on (default: the study's own scenarios).
@@ -437,7 +437,7 @@ def study(name: str, scenario=None, *, out: str | Path | None = None, runs: int 
     from .pipeline import run_study
     from .runner import make_backend
 
-    check_type("name", name, str, "the name of a study (studies.pipeline.STUDIES)")
+    check_type("name", name, str, "the name of a study (studies.study_registry.STUDIES)")
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
                      dask_security=dask_security, channel=channel)
@@ -546,7 +546,7 @@ class FilterRun:
     def save(self, directory) -> Path:
         """Write ``estimates.npz`` (``x_hat``, ``Phi`` or ``P``, ``valid``, ``messages``, ``x`` when known),
         ``estimates.csv`` (step, node, the estimate's components) and ``report.md`` into ``directory``."""
-        from .recorded import filter_report
+        from .outputs import filter_report
 
         _apart(directory, self.scenario, data=None if self.log.startswith("<") else self.log,
                schedule=(self.design or {}).get("schedule"))
@@ -594,7 +594,8 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     from filters.result import HARD_CONDITIONS
 
     from .comparison import FILTER_REGISTRY, STUDY
-    from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+    from .consensus_design import bound_verdicts, check_first_step, consensus_design
+    from .design_options import as_mode
     from .recorded import design_options_of, find_filter, read_log, run_filter
 
     check_path("data", data)

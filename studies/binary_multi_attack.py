@@ -48,12 +48,13 @@ from filters.attacks import binary_sensor_channel
 
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_binary, run_configurations,
                     score_configurations, study_threads)
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .rrp_deception import plane_view
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE"]
 

@@ -145,9 +145,9 @@ def _options(kw: dict) -> dict:
 @click.option("--json", "as_json", is_flag=True, help="machine-readable output with every parameter")
 def scenarios_cmd(as_json: bool) -> None:
     """List the built-in scenarios."""
-    from . import api  # here, not at the top: the model layer loads only for a command that runs
+    from .api import list_scenarios  # here, not at the top: the model layer loads only for a command that runs
 
-    info = api.list_scenarios()
+    info = list_scenarios()
     if as_json:
         click.echo(json.dumps(info, indent=2))
         return
@@ -171,9 +171,9 @@ def scenarios_cmd(as_json: bool) -> None:
 def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, out: str, assignments) -> None:
     """Simulate SCENARIO (a built-in name or a MODEL.py file) and write true states, measurements and, on a sensor
     network, the channels' and uplinks' attacks."""
-    from . import api
+    from .api import simulate
 
-    sim = api.simulate(scenario, steps=steps, seed=seed, run=run, out=out, assignments=assignments)
+    sim = simulate(scenario, steps=steps, seed=seed, run=run, out=out, assignments=assignments)
     click.echo(f"wrote {out}: x {sim.x.shape}, z {sim.z.shape}"
                + ("" if sim.attacks is None else f", channels {sim.attacks.dos.shape} ({int(sim.attacks.dos.sum())} "
                   f"packets lost, {int(sim.attacks.fdi.sum())} falsified)"))
@@ -203,9 +203,9 @@ def simulate_cmd(scenario: str, steps: int | None, seed: int, run: int | None, o
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations, out, assignments) -> None:
     """Run a filter of study comparison on a recorded LOG of SCENARIO (a built-in name or a MODEL.py file)."""
-    from . import api
+    from .api import filter as filter_log
 
-    res = api.filter(scenario, data, filter=name, schedule=schedule, seed=seed, run=run, particles=particles,
+    res = filter_log(scenario, data, filter=name, schedule=schedule, seed=seed, run=run, particles=particles,
                      iterations=iterations, out=out, assignments=assignments)
     K1, nodes, _ = res.x_hat.shape
     rmse = res.rmse()
@@ -226,9 +226,9 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     """Design the consensus filter of SCENARIO (a built-in name or a MODEL.py file) and write its gain schedule."""
-    from . import api
+    from .api import design
 
-    res = api.design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
+    res = design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
                f"gain rule: {res.gain_rule.label}, epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, "
@@ -267,12 +267,12 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
     with a Makefile and a test driver (make test: the C against the Python node filter)."""
     import warnings
 
-    from . import api
+    from .api import export
 
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always", RuntimeWarning)
-        files = api.export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data,
-                           scenario=scenario, assignments=assignments)
+        files = export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data,
+                       scenario=scenario, assignments=assignments)
     click.echo(f"wrote {len(files)} files to {out}: {', '.join(p.name for p in files)}; build and check with "
                f"make -C {out} test")
     from designer.verdict import known_verdict
@@ -298,11 +298,11 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, quiet, assignments, **kw) -> None:
     """Map where the consensus design of SCENARIO admits a bounded steady-state bound."""
-    from . import api
+    from .api import feasibility
 
-    fmap = api.feasibility(scenario, grids, out=out, workers=workers, dask=dask, dask_security=dask_security,
-                           force=force, quiet=quiet,
-                           assignments=assignments, **_options(kw))
+    fmap = feasibility(scenario, grids, out=out, workers=workers, dask=dask, dask_security=dask_security,
+                       force=force, quiet=quiet,
+                       assignments=assignments, **_options(kw))
     n_ok = sum(r["feasible"] for r in fmap.rows)
     failed = f", {len(fmap.failures)} failed (see the report)" if fmap.failures else ""
     counts = ", ".join(f"{c} {v}" for v, c in fmap.verdict_counts.items() if c)
@@ -338,11 +338,11 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
     """
     from designer.design import DesignOptions
 
-    from . import api
+    from .api import study as run_study
 
     extra = {k: v for k, v in (("engine", engine), ("schedule", schedule)) if v is not None}
     chosen = list(targets) + list(scenarios)
-    res = api.study(study, chosen or None, out=out, runs=runs, particles=particles, seed=seed, workers=workers,
+    res = run_study(study, chosen or None, out=out, runs=runs, particles=particles, seed=seed, workers=workers,
                     dask=dask, dask_security=dask_security, force=force, quiet=quiet,
                     options=DesignOptions(**_options(kw)),
                     assignments=assignments, **extra)
@@ -403,9 +403,9 @@ def _summary(f: dict) -> str:
 @click.argument("directory")
 def report_cmd(directory: str) -> None:
     """Write DIRECTORY/report.html (self-contained) and report.md from a study's, design's or feasibility map's files."""
-    from . import api
+    from .api import report
 
-    html, md = api.report(directory)
+    html, md = report(directory)
     click.echo(f"wrote {html} and {md}")
 
 
@@ -465,7 +465,7 @@ def _one_line_warnings(show):
 
 
 def _main(argv: list, obj: dict) -> int:
-    from .launch import Interrupts
+    from .interrupts import Interrupts
 
     try:
         # make_context and invoke rather than cli.main: click.main answers a KeyboardInterrupt with an empty line
@@ -510,13 +510,3 @@ def _main(argv: list, obj: dict) -> int:
         click.echo(f"cfdesign: internal error: {type(exc).__name__}: {msg} (rerun with --debug)", err=True)
         return 1
     return 0
-
-
-def run() -> None:
-    from .launch import run as launch
-
-    launch()
-
-
-if __name__ == "__main__":
-    run()

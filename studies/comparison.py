@@ -61,15 +61,17 @@ from filters.result import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
-from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .design_options import as_mode
 from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
                               particle_filters)
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise"]
 

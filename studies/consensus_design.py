@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -36,53 +36,15 @@ from filters.consensus import run_consensus
 from filters.consensus_batch import ConsensusResult
 from filters.result import HARD_CONDITIONS
 
+from .design_options import effective
 from .invocation import design_invocation
 from .provenance import design_seal
 from .results import versions
 from .runner import Background
 from .scenarios import Scenario
 
-__all__ = ["Design", "effective", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS", "as_mode",
+__all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
            "check_first_step", "design_verdict", "bound_verdicts"]
-
-
-def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
-    """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
-    without offline tables the scheduled design's exchange, robustness and bank, and the rounds unless it relays)."""
-    opts = options or DesignOptions()
-    rule = rules.get(mode)
-    if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
-        opts = replace(opts, exchange=None, robustness=None, bank=None)
-    if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
-        opts = replace(opts, rounds=None)
-    if rule.fixed_multipliers:
-        return replace(opts, mode=mode)
-    return replace(opts, mode=mode, sigma=None, beta=None, tau=None)
-
-
-def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
-    """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
-
-    The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
-    every value ``options`` sets replaces them.
-    """
-    if sc.network is None:
-        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
-                         "(a model file defines NETWORK)")
-    base = sc.design or DesignOptions()
-    if any(v is not None for v in base.attack_overrides().values()):
-        raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
-                         "attacks in ATTACKS")
-    rule = rules.get((options.mode if options is not None else None) or base.mode or rules.DEFAULT)
-    if options is not None:
-        rule.check_options(options)  # what the user gave, before the defaults: a value the rule does not take
-    opts = base.merged(options)
-    # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
-    # exchange) give way to the rule's own; the mode stays as given (None: the default rule), as the record keeps it
-    opts = replace(as_mode(opts, rule.name), mode=opts.mode)
-    rule.check_options(opts)
-    sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
-    return sc.with_attacks(**opts.attack_overrides()), opts
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
@@ -93,7 +55,7 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     :func:`with_tables`).
 
     Attack overrides in the options are applied to the scenario first (its FDI bound
-    becomes the design's δ); use :func:`effective` to get that scenario too.
+    becomes the design's δ); use :func:`studies.design_options.effective` to get that scenario too.
     """
     if kw:
         options = (options or DesignOptions()).merged(DesignOptions(**kw))
@@ -490,18 +452,12 @@ class Design:
                 + (f"; {GATE_CLAUSE}" if self.design.gate else ""))
 
     def save(self, directory) -> Path:
-        """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into ``directory``
-        (refused when it is, lies inside or contains the model's files: :func:`designer.fileio.check_apart`)."""
-        from designer.fileio import check_apart, replaced_outputs
+        """Write ``schedule.json``, ``schedule.npz``, the report's figures and ``report.html`` / ``report.md`` into
+        ``directory`` (:func:`studies.outputs.save_design`; refused when it is, lies inside or contains the model's
+        files: :func:`designer.fileio.check_apart`)."""
+        from .outputs import save_design
 
-        from .reports import write_report
-        from .scenarios import model_inputs
-
-        check_apart("directory", directory, model_inputs(self.scenario))
-        with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
-            self.schedule.write(stage)
-            write_report(stage)
-        return Path(directory)
+        return save_design(self, directory)
 
 
 def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,

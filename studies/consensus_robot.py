@@ -51,14 +51,16 @@ from filters.channels import GATE_COUNTS
 from .comparison import HCMCI_ITERATIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
 
-from .consensus_design import as_mode, bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, replayed_schedule)
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "bound_check", "per_run_check", "Z_EXCESS", "MIN_RUNS_FOR_CHECK", "MAX_FRACTION_EXCEEDING",
            "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE"]

@@ -63,10 +63,11 @@ from filters.particle import run_sir, transition_proposal
 
 from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
 from .progress import progress
-from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
+from .pipeline import Plan, Study, StudyOptions, naming_filter
 from .figures import curves_figure, filter_colours
-from .results import _curve_mean_ci, markdown_table
+from .results import curve_mean_ci, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up", "filter_names",
            "FILTERS", "MEAN_DYNAMICS", "PAPER", "CHUNK_SIZE"]
@@ -320,7 +321,7 @@ def concatenate_runs(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.
 def _state_metrics(err: np.ndarray, rng: np.random.Generator) -> dict:
     """Per-state time-averaged RMSE with its bootstrap interval, the RMSE_i(t) curves, the median run's RMSE."""
     e2 = err**2
-    per = [_curve_mean_ci(e2[..., i], rng) for i in range(err.shape[-1])]
+    per = [curve_mean_ci(e2[..., i], rng) for i in range(err.shape[-1])]
     return {
         "rmse_state": [v for v, _ in per],
         "rmse_state_ci95": [ci for _, ci in per],

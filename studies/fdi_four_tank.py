@@ -60,10 +60,11 @@ from filters.fdi import (attack_threshold, deception_mixture_loglik, detection_c
                          normal_detector, residual_threshold, run_sis, uniform_loglik)
 
 from .pfrun import THREADS_AUTO, check_threads, study_threads
-from .pipeline import Plan, Study, StudyOptions, StudyText, naming_filter
+from .pipeline import Plan, Study, StudyOptions, naming_filter
 from .figures import curves_figure, filter_colours, legend_beside, save_figure
 from .results import error_metrics, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "PAPER_TABLE3", "PAPER_TABLE4", "TABLE3_COLUMNS", "CHUNK_SIZE"]
 

@@ -47,9 +47,7 @@ steady state).
 """
 from __future__ import annotations
 
-import csv
 import functools
-import io
 import itertools
 import math
 from dataclasses import dataclass
@@ -62,37 +60,24 @@ import numpy as np
 import rules
 from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
-from designer.fileio import atomic_write
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_reference, verdict
 
-from . import memory
-from .consensus_design import effective, stationary_record
+import studies.memory as memory
+from .consensus_design import stationary_record
+from .design_options import effective
+from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["GRID_PARAMETERS", "parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE",
-           "OUTPUTS", "FAILED", "point_verdict", "stationary_open_loop", "MAP_CATEGORIES", "MAP_COLOURS", "MAP_WORDS",
-           "map_category", "map_figure"]
+__all__ = ["parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE", "point_verdict",
+           "stationary_open_loop"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
 
-GRID_PARAMETERS = {
-    "dos": "DoS probability on every channel, in [0, 1)",
-    "fdi": "FDI probability on every channel, in [0, 1)",
-    "delta": "bound on the injected signal, >= 0",
-    "amplitude": "amplitude of the injected signal per attacked component, >= 0",
-    "tau": "consensus gain C = tau Phi_pred (paper mode), >= 0",
-    "sigma": "sigma of (26) (paper mode), >= 0",
-    "beta": "beta of (27) (paper mode), >= 0",
-    "epsilon": "epsilon in (0, 1/d_max)",
-    "u_scale": "U = u I, >= 0",
-    "v_scale": "V_i = v I at every sensor, >= 0",
-}
 _PAPER_ONLY = ("tau", "sigma", "beta")
-OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations", "verdict")
 
 
 def _grid_spec(spec: str) -> tuple[str, Fraction, Fraction, int]:
@@ -179,7 +164,6 @@ def _scaling(model, des, x0, u0, xp):
 
 _NO_ATTACK_MODEL = {"feasible": 0, "trace_bound": float("nan"), "binding": "dos + fdi > 1", "theorem2": 0,
                     "iterations": 0, "verdict": "infeasible"}
-FAILED = "failed: "  # the start of the binding of a point whose design or iteration raised
 _POINT_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, ComputationError)  # ValueError: InputError too
 _REASON_CHARS = 200
 
@@ -411,30 +395,24 @@ class FeasibilityMap:
 
     def save(self, directory) -> Path:
         """Write ``feasibility.csv``, ``feasibility.json``, ``feasibility.png`` and the reports into ``directory``
-        (replacing the directory's last outputs as a whole, :func:`designer.fileio.replaced_outputs`; refused when it
-        is, lies inside or contains the model's files: :func:`designer.fileio.check_apart`)."""
-        from designer.fileio import check_apart, replaced_outputs
+        (:func:`studies.outputs.save_map`: replacing the directory's last outputs as a whole,
+        :func:`designer.fileio.replaced_outputs`; refused when it is, lies inside or contains the model's files:
+        :func:`designer.fileio.check_apart`)."""
+        from .outputs import save_map
 
-        from .scenarios import model_inputs
+        return save_map(self, directory)
 
-        check_apart("directory", directory, model_inputs(self.scenario))
-        with replaced_outputs(directory) as stage:
-            self._write(stage)
-        return Path(directory)
-
-    def _write(self, out: Path) -> None:
-        from designer.fileio import write_json
-
-        _write_csv(out / "feasibility.csv", self.rows, self.names)
-        if len(self.grids) <= 2:
-            _figure(out / "feasibility.png", self.rows, self.grids, self.scenario.name, self.options.mode or rules.DEFAULT)
+    def record(self) -> dict:
+        """The content of ``feasibility.json`` (schema ``cfdesign.feasibility/1``): the grids, the options, the counts
+        of feasible and failed points and of each verdict, the open-loop reference, the operating point, the network,
+        the attacks, observability, the Kalman references, the assumptions, the runner and the software versions."""
         from designer.design import DESIGN_ASSUMPTIONS
         from designer.observability import kalman_references, observability
 
         from .results import versions
 
         sc = self.scenario
-        write_json(out / "feasibility.json", {
+        return {
             "schema": "cfdesign.feasibility/1", "scenario": sc.name, "source": sc.source,
             "state_names": list(sc.model.state_names),
             "grids": [{"name": n, "values": v.tolist()} for n, v in self.grids],
@@ -449,10 +427,7 @@ class FeasibilityMap:
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),
             "runner": self.runner,
             "invocation": self.invocation, "versions": versions(),
-        })
-        from .reports import write_report
-
-        write_report(out)
+        }
 
 
 def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions | None = None, *,
@@ -512,98 +487,3 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options))
 
 
-def _write_csv(path: Path, rows: list[dict], names: list[str]) -> None:
-    buf = io.StringIO()
-    cols = names + list(OUTPUTS)
-    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: ("" if isinstance(r[k], float) and np.isnan(r[k]) else r[k]) for k in cols})
-    atomic_write(path, lambda fh: fh.write(buf.getvalue().encode()))
-
-
-#: The map's categories of a grid point, each drawn apart (:func:`map_figure`): the verdicts of
-#: :data:`designer.verdict.VERDICTS` in the order a reader asks for them, and their colours.
-MAP_CATEGORIES = ("certified", "not steady", "vacuous", "infeasible")
-MAP_COLOURS = {"certified": "#1a9850", "not steady": "#fdae61", "vacuous": "#8073ac", "infeasible": "#d73027"}
-MAP_WORDS = {"certified": "certified (finite, informative, a fixed point)",
-             "not steady": "not steady (below the open loop, no fixed point)",
-             "vacuous": "vacuous (at or above the open loop, or unbounded)",
-             "infeasible": "infeasible ((28)/(29) fail, diverged or no design)"}
-
-
-def map_category(row) -> str:
-    """The category of a grid point's row (:data:`MAP_CATEGORIES`): its ``verdict``; a row without one (a map
-    written before the verdicts) is ``infeasible`` when not feasible, else ``None`` (not judged)."""
-    v = row.get("verdict")
-    if v in MAP_CATEGORIES:
-        return v
-    return None if row.get("feasible") else "infeasible"
-
-
-def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
-    """The map's figure: for two grid parameters, the category of every point (:data:`MAP_CATEGORIES`, each
-    colour in the legend with its count; the QuadMesh's data are the indices of the categories, gid
-    ``"categories"``) beside the steady-state trace bound where a fixed point exists (log scale); for one, the trace
-    bound against the parameter with a marker per point in its category's colour (one labelled line per
-    category, gid ``"category:<name>"``; a point without a bound sits on the lowest bound's level).  Points that
-    failed (not mapped) are framed in grey."""
-    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
-    from matplotlib.patches import Patch
-
-    from .figures import plotting
-
-    plt = plotting()
-    cats = [map_category(r) for r in rows]
-    code = np.array([MAP_CATEGORIES.index(c) if c is not None else np.nan for c in cats])
-    tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows], dtype=float)
-    failed = np.array([str(r["binding"]).startswith(FAILED) for r in rows])
-    counts = {c: cats.count(c) for c in MAP_CATEGORIES}
-    label = {c: f"{MAP_WORDS[c]}: {counts[c]}" for c in MAP_CATEGORIES}
-    title = f"{scenario}: the {mode} consensus design at the operating point"
-    if len(parsed) == 1:
-        (name, vals), = parsed
-        fig, ax = plt.subplots(figsize=(8.5, 4.8))
-        level = np.nanmin(tb) if np.any(np.isfinite(tb)) else 1.0
-        ax.semilogy(vals, tb, "-", color="0.6", lw=1)
-        y = np.where(np.isfinite(tb), tb, level)
-        for i, c in enumerate(MAP_CATEGORIES):
-            at = code == i
-            (line,) = ax.semilogy(vals[at], y[at], "o" if c != "infeasible" else "X", ls="none", ms=7,
-                                  color=MAP_COLOURS[c], label=label[c])
-            line.set_gid(f"category:{c}")
-        if failed.any():
-            ax.plot(vals[failed], y[failed], "s", color="grey", mfc="none", ms=11, label="failed (not mapped)")
-        ax.set(xlabel=name, title=title, ylabel="steady-state tr Φ (mean over nodes)"
-               + ("\n(points without a bound: on the lowest level)" if np.isnan(tb).any() else ""))
-        ax.legend(fontsize=8, loc="best")
-    else:
-        (n1, v1), (n2, v2) = parsed
-        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5))
-        shape = (len(v1), len(v2))
-        cmap = ListedColormap([MAP_COLOURS[c] for c in MAP_CATEGORIES])
-        norm = BoundaryNorm(np.arange(len(MAP_CATEGORIES) + 1) - 0.5, len(MAP_CATEGORIES))
-        mesh = ax.pcolormesh(v2, v1, np.ma.masked_invalid(code.reshape(shape)), cmap=cmap, norm=norm,
-                             shading="nearest", edgecolors="white", linewidth=0.5)
-        mesh.set_gid("categories")
-        handles = [Patch(facecolor=MAP_COLOURS[c], label=label[c]) for c in MAP_CATEGORIES]
-        fi, fj = np.nonzero(failed.reshape(shape))
-        if fi.size:
-            (fail,) = ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=9, label="failed (not mapped)")
-            handles.append(fail)
-        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
-        ax.set(xlabel=n2, ylabel=n1, title="the verdict at each grid point")
-        grid = tb.reshape(shape)
-        finite = grid[np.isfinite(grid)]
-        norm2 = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None
-        mesh2 = ax2.pcolormesh(v2, v1, np.ma.masked_invalid(grid), norm=norm2, shading="nearest", cmap="viridis")
-        fig.colorbar(mesh2, ax=ax2, label="steady-state tr Φ (mean over nodes)")
-        ax2.set(xlabel=n2, ylabel=n1, title="the bound where a fixed point exists (blank: none)")
-        fig.suptitle(title, fontsize=10)
-    return fig
-
-
-def _figure(path: Path, rows: list[dict], parsed, scenario: str, mode: str) -> None:
-    from .figures import save_figure
-
-    save_figure(map_figure(rows, parsed, scenario, mode), path)

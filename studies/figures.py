@@ -7,7 +7,7 @@ Python code (the GIL: threads do not help), plus a quarter of a second to import
 matplotlib, the largest fixed part of a small study.  So:
 
 * :func:`png_tight` draws a figure once where ``savefig(bbox_inches="tight")`` draws it twice;
-* inside :func:`figure_batch` (every study's outputs, :func:`studies.results.write_outputs`),
+* inside :func:`figure_batch` (every study's outputs, :func:`studies.outputs.write_outputs`),
   :func:`save_figure` only records, and :func:`draw_figures` draws the batch over the
   usable cores: children forked from the process draw figures in turn, taking the next
   from a shared queue (a pipe of indices), while the process draws too;
@@ -38,9 +38,11 @@ import numpy as np
 
 from designer.fileio import atomic_write
 
+from .feasibility_terms import FAILED, MAP_CATEGORIES, MAP_COLOURS, MAP_WORDS, map_category
+
 __all__ = ["FIGURE_DPI", "plotting", "save_figure", "png_tight", "figure_batch", "draw_figures", "FigureHelper",
            "PALETTE", "filter_colours", "legend_beside", "trajectory_figure", "curves_figure", "tradeoff_figure",
-           "TRADEOFF", "study_figures"]
+           "TRADEOFF", "map_figure"]
 
 FIGURE_DPI = 110
 # One colour per filter in every figure of a study (:func:`filter_colours`): matplotlib's tab10 without its grey
@@ -396,13 +398,12 @@ def curves_figure(path: Path, curves: Mapping[str, Sequence[float]], ylabel: str
     save_figure(fig, path)
 
 
-def tradeoff_figure(path: Path, results: Mapping, text=None) -> None:
+def tradeoff_figure(path: Path, blocks: Sequence) -> None:
     """The summary figure of a study's report: each filter's accuracy (the report's ranking metric, with its 95 %
-    interval) against its time per step, its messages in the legend; one panel per scenario.  Nothing is drawn
-    when no filter has both numbers."""
-    from .reports.study import summary_blocks
-
-    panels = [b for b in summary_blocks(results, text) if b.drawable]
+    interval) against its time per step, its messages in the legend; one panel per scenario (``blocks``: the
+    summary's blocks, :func:`studies.reports.study.summary_blocks`).  Nothing is drawn when no filter has both
+    numbers."""
+    panels = [b for b in blocks if b.drawable]
     if not panels:
         return
     fig, axes = plotting().subplots(1, len(panels), figsize=(5.2 * len(panels) + 3.2, 4.6), squeeze=False)
@@ -450,7 +451,62 @@ def _plain_log_ticks(axis) -> None:
     axis.set_minor_formatter(NullFormatter())
 
 
-def study_figures(study, out: Path, results: dict, scenarios: Mapping, arrays: Mapping) -> None:
-    """Every figure of a study: the report summary's :func:`tradeoff_figure`, then the study's own."""
-    tradeoff_figure(Path(out) / TRADEOFF, results, study.text)
-    study.figures(Path(out), results, scenarios, arrays)
+def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
+    """The map's figure: for two grid parameters, the category of every point
+    (:data:`studies.feasibility_terms.MAP_CATEGORIES`, each colour in the legend with its count; the QuadMesh's data
+    are the indices of the categories, gid ``"categories"``) beside the steady-state trace bound where a fixed point
+    exists (log scale); for one, the trace bound against the parameter with a marker per point in its category's
+    colour (one labelled line per category, gid ``"category:<name>"``; a point without a bound sits on the lowest
+    bound's level).  Points that failed (not mapped) are framed in grey."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
+    from matplotlib.patches import Patch
+
+
+    plt = plotting()
+    cats = [map_category(r) for r in rows]
+    code = np.array([MAP_CATEGORIES.index(c) if c is not None else np.nan for c in cats])
+    tb = np.array([r["trace_bound"] if r["feasible"] else np.nan for r in rows], dtype=float)
+    failed = np.array([str(r["binding"]).startswith(FAILED) for r in rows])
+    counts = {c: cats.count(c) for c in MAP_CATEGORIES}
+    label = {c: f"{MAP_WORDS[c]}: {counts[c]}" for c in MAP_CATEGORIES}
+    title = f"{scenario}: the {mode} consensus design at the operating point"
+    if len(parsed) == 1:
+        (name, vals), = parsed
+        fig, ax = plt.subplots(figsize=(8.5, 4.8))
+        level = np.nanmin(tb) if np.any(np.isfinite(tb)) else 1.0
+        ax.semilogy(vals, tb, "-", color="0.6", lw=1)
+        y = np.where(np.isfinite(tb), tb, level)
+        for i, c in enumerate(MAP_CATEGORIES):
+            at = code == i
+            (line,) = ax.semilogy(vals[at], y[at], "o" if c != "infeasible" else "X", ls="none", ms=7,
+                                  color=MAP_COLOURS[c], label=label[c])
+            line.set_gid(f"category:{c}")
+        if failed.any():
+            ax.plot(vals[failed], y[failed], "s", color="grey", mfc="none", ms=11, label="failed (not mapped)")
+        ax.set(xlabel=name, title=title, ylabel="steady-state tr Φ (mean over nodes)"
+               + ("\n(points without a bound: on the lowest level)" if np.isnan(tb).any() else ""))
+        ax.legend(fontsize=8, loc="best")
+    else:
+        (n1, v1), (n2, v2) = parsed
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5))
+        shape = (len(v1), len(v2))
+        cmap = ListedColormap([MAP_COLOURS[c] for c in MAP_CATEGORIES])
+        norm = BoundaryNorm(np.arange(len(MAP_CATEGORIES) + 1) - 0.5, len(MAP_CATEGORIES))
+        mesh = ax.pcolormesh(v2, v1, np.ma.masked_invalid(code.reshape(shape)), cmap=cmap, norm=norm,
+                             shading="nearest", edgecolors="white", linewidth=0.5)
+        mesh.set_gid("categories")
+        handles = [Patch(facecolor=MAP_COLOURS[c], label=label[c]) for c in MAP_CATEGORIES]
+        fi, fj = np.nonzero(failed.reshape(shape))
+        if fi.size:
+            (fail,) = ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=9, label="failed (not mapped)")
+            handles.append(fail)
+        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+        ax.set(xlabel=n2, ylabel=n1, title="the verdict at each grid point")
+        grid = tb.reshape(shape)
+        finite = grid[np.isfinite(grid)]
+        norm2 = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None
+        mesh2 = ax2.pcolormesh(v2, v1, np.ma.masked_invalid(grid), norm=norm2, shading="nearest", cmap="viridis")
+        fig.colorbar(mesh2, ax=ax2, label="steady-state tr Φ (mean over nodes)")
+        ax2.set(xlabel=n2, ylabel=n1, title="the bound where a fixed point exists (blank: none)")
+        fig.suptitle(title, fontsize=10)
+    return fig

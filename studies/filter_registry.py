@@ -144,7 +144,7 @@ class FilterEntry(NamedTuple):
         ``iterations`` (HCMCI), or for a designed filter its design's exchange rounds (``rounds`` of the study's
         design ``options``, :class:`designer.design.DesignOptions`, as its gain rule takes them)."""
         if self.designed and options is not None:
-            from .consensus_design import as_mode
+            from .design_options import as_mode
 
             return int(self.messages(network, rules.get(self.mode).rounds(network, as_mode(options, self.mode).rounds)))
         return int(self.messages(network, iterations))

@@ -241,7 +241,7 @@ def simulate_need(sc, steps: int) -> Need:
 def design_need(sc, options, steps: int) -> Need:
     """``design`` of ``sc`` with ``options`` (merged with its DESIGN defaults): the Hessians of the 'prior'
     scalings; then one run of every node's filter and the schedule it writes."""
-    from .consensus_design import effective
+    from .design_options import effective
 
     sc, options = effective(sc, options)
     m, n = sc.model, sc.network.n_nodes
@@ -290,7 +290,7 @@ def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
     """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
     ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
     the tables along ``steps`` steps, a consensus filter's run."""
-    from .consensus_design import effective
+    from .design_options import effective
 
     sc, opts = effective(sc, options)
     phases = [[_prior_hessians(sc.model, opts)]]
@@ -304,7 +304,7 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     """``filter`` on the log of size ``log``: reading it; then, beside it, the design of ``options``'s gain rule
     (None: a filter without a design) and the filter's run: a consensus filter's per-step results at every node
     (with ``centralized``, one estimate), or with ``particles`` a particle filter's particles."""
-    from .consensus_design import effective
+    from .design_options import effective
 
     m, n_x, steps = sc.model, sc.model.n_x, log.steps
     if centralized or particles is not None:
@@ -359,7 +359,7 @@ def export_need(sc, options, steps: int, log: LogSize | None = None) -> Need:
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:
     """``feasibility``: every grid point's row; one chunk of points per worker, and each point's design."""
-    from .consensus_design import effective
+    from .design_options import effective
 
     sc, opts = effective(sc, options)
     m, n, n_x = sc.model, sc.network.n_nodes, sc.model.n_x
@@ -388,7 +388,7 @@ def _listed(v) -> list:
 
 def _designed(sc, so):
     """The scenario and the design options its consensus designs use (its DESIGN defaults merged)."""
-    from .consensus_design import effective
+    from .design_options import effective
 
     return effective(sc, so.design)
 

@@ -1,8 +1,8 @@
 """One study pipeline: every study is a configuration of it.
 
 A study is a :class:`Study` in its own module (``studies/<name>.py`` defines ``STUDY``),
-registered by name in :data:`STUDIES`.  The configuration says what the study is about
-(:class:`StudyText`, the report's words), which scenarios it runs on by default and
+registered by name in :data:`studies.study_registry.STUDIES`.  The configuration says what the study is about
+(:class:`studies.study_registry.StudyText`, the report's words), which scenarios it runs on by default and
 which it accepts, its default sizes and its own options, and four functions:
 
 * ``plan(scenario, options) -> Plan`` — the Monte Carlo task of one scenario (a
@@ -22,16 +22,14 @@ cannot run on with the reason, runs each scenario's task through :mod:`studies.r
 (in this process, local processes or Dask; resumable from ``out``), stamps the results
 header (``cfdesign.study/1``) and returns a :class:`StudyResult` whose ``save`` writes
 ``results.json``, ``table.md``, the figures and the reports.  A new study is one module
-with a ``STUDY`` and one line in :data:`STUDIES`.
+with a ``STUDY`` and one line in :data:`studies.study_registry.STUDIES`.
 """
 from __future__ import annotations
 
 import contextlib
-import importlib
 import json
 import time
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -43,23 +41,12 @@ from designer.validation import ComputationError, InputError, NonFiniteError, ch
 
 from .invocation import study_invocation
 from .runner import Backend, MonteCarloResult, monte_carlo
+from .study_registry import StudyText, get_study
 
-__all__ = ["StudyText", "Plan", "Study", "StudyOptions", "StudyResult", "STUDIES", "get_study", "run_study",
-           "study_text", "naming_filter"]
+__all__ = ["Plan", "Study", "StudyOptions", "StudyResult", "run_study", "naming_filter"]
 
 MAX_RUNS = 1_000_000  # beyond this the per-run results alone outgrow a machine's memory
 MAX_PARTICLES = 10_000_000  # per filter; a particle filter's state is (particles x n_x) doubles several times over
-
-# study name -> the module that defines its STUDY (imported on first use)
-STUDIES: dict[str, str] = {
-    "rrp-deception": "studies.rrp_deception",
-    "encrypted-switching": "studies.encrypted_switching",
-    "binary-multi-attack": "studies.binary_multi_attack",
-    "consensus-robot": "studies.consensus_robot",
-    "fdi-four-tank": "studies.fdi_four_tank",
-    "comparison": "studies.comparison",
-}
-
 
 @contextlib.contextmanager
 def naming_filter(name: str | Sequence[str], runs: Sequence[int] | None = None):
@@ -73,44 +60,6 @@ def naming_filter(name: str | Sequence[str], runs: Sequence[int] | None = None):
         label = name if isinstance(name, str) else name[exc.row]
         where = "" if runs is None else f"run {int(runs[exc.row])}, "
         raise ComputationError(f"filter {label!r} failed at {where}step {exc.step}: {exc}") from exc
-
-
-@dataclass(frozen=True)
-class StudyText:
-    """The plain-language description of one study, for its report.
-
-    Parameters
-    ----------
-    title : str
-        One line: what is estimated, under what.
-    summary : str
-        What the study compares and the question it answers (Markdown text).
-    filters : mapping of str to str
-        A one-line description of each filter the study runs.
-    attacks : str
-        The attacks (or channel faults) the filters face.
-    attack_params : tuple of str
-        Scenario parameters that set the attacks (shown with their values).
-    accuracy : tuple of (metric, label)
-        Accuracy metrics of ``results["filters"]`` in order of importance (lower is better).
-    references : tuple of str
-        Filters that are benchmarks, not options (e.g. they see attack-free data): shown
-        everywhere but left out of "which filter to pick".
-    figures : mapping of str to str
-        Caption of each figure file.
-    paper : str
-        The source paper.
-    """
-
-    title: str
-    summary: str
-    filters: Mapping[str, str] = field(default_factory=dict)
-    attacks: str = ""
-    attack_params: tuple[str, ...] = ()
-    accuracy: tuple[tuple[str, str], ...] = ()
-    references: tuple[str, ...] = ()
-    figures: Mapping[str, str] = field(default_factory=dict)
-    paper: str = ""
 
 
 @dataclass(frozen=True)
@@ -213,20 +162,6 @@ class Study:
         return int(self.runs)
 
 
-def get_study(name: str) -> Study:
-    """The configuration of study ``name``."""
-    if name not in STUDIES:
-        raise InputError(f"unknown study {name!r}; studies: {', '.join(STUDIES)}")
-    return importlib.import_module(STUDIES[name]).STUDY
-
-
-def study_text(name) -> StudyText | None:
-    """The report texts of study ``name`` (None for an unknown name)."""
-    if not isinstance(name, str) or name not in STUDIES:
-        return None
-    return get_study(name).text
-
-
 @dataclass(frozen=True, eq=False)
 class StudyResult:
     """What a study computed (what ``cfdesign study`` writes).
@@ -255,36 +190,16 @@ class StudyResult:
         return self.results[key]
 
     def save(self, directory, helper=None) -> Path:
-        """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``.
+        """Write the figures, ``table.md``, ``results.json`` and ``report.html`` / ``report.md`` into ``directory``
+        (:func:`studies.outputs.save_study`).
 
         ``helper``: a :class:`studies.figures.FigureHelper` started for this study, which draws the figures
         (this process draws them if it cannot).  Refused when ``directory`` is, lies inside or contains a model
         file of the study's scenarios (:func:`designer.fileio.check_apart`).
         """
-        from designer.fileio import check_apart
+        from .outputs import save_study
 
-        from .figures import figure_batch, study_figures
-        from .results import write_outputs
-        from .scenarios import model_inputs
-
-        check_apart("directory", directory, model_inputs(list(self.scenarios.values())))
-
-        def draw(stage: Path) -> None:
-            study_figures(self.study, stage, self.results, self.scenarios, self.arrays)
-
-        def figures(stage: Path):
-            if helper is None or not helper.send(stage, self.results, self.arrays):
-                return draw(stage)
-
-            def wait() -> None:  # the helper draws while the caller writes its other files
-                if not helper.wait():
-                    with figure_batch():
-                        draw(stage)
-            return wait
-
-        out = Path(directory)
-        write_outputs(out, self.results, figures, self.study.table)
-        return out
+        return save_study(self, directory, helper)
 
 
 def _study_assignments(study: Study, assignments) -> tuple[list, dict]:
@@ -413,9 +328,9 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
                              "file")
     helper = None
     if out is not None:  # draws the figures, and imports matplotlib while the study computes
-        from .figures import FigureHelper
+        from .outputs import figure_helper
 
-        helper = FigureHelper.start(partial(_draw, study, {sc.name: sc for sc in scenarios}))
+        helper = figure_helper(study, {sc.name: sc for sc in scenarios})
     try:
         return _compute(study, name, scenarios, out=out, runs=runs, particles=particles, seed=seed, chunk=chunk,
                         backend=backend, design=design, extra=extra, force=force, quiet=quiet, t_start=t_start,
@@ -423,12 +338,6 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
     finally:
         if helper is not None:
             helper.close()
-
-
-def _draw(study: Study, built: Mapping, out: Path, results: dict, arrays: Mapping) -> None:
-    from .figures import study_figures
-
-    study_figures(study, out, results, built, arrays)
 
 
 def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, chunk, backend, design, extra,

@@ -37,7 +37,7 @@ from designer.validation import InputError
 from filters.attacks import AttackPattern, attack_pattern, receive, uplink_attacks
 from filters.result import FilterResult
 
-from . import memory
+import studies.memory as memory
 from .filter_registry import Batch, FilterEntry, FilterRegistry
 from .memory import LogSize, Need
 from .scenarios import Scenario
@@ -45,7 +45,7 @@ from .schemas import decimal
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
            "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
-           "read_design_record", "design_options_of", "filter_report"]
+           "read_design_record", "design_options_of"]
 
 LOG_SCHEMA = "cfdesign.log/1"
 
@@ -431,93 +431,6 @@ def design_options_of(schedule_dir, sc: Scenario, record: tuple[Path, dict] | No
     except InputError as exc:
         raise InputError(clip_message(f"schedule {str(path)!r}: its design options: {exc}")) from None
     return mode, options, meta
-
-
-def filter_report(run, directory: Path) -> None:
-    """Write a :class:`studies.api.FilterRun` into ``directory``: ``estimates.npz``, ``estimates.csv``,
-    ``report.md`` and ``fig_estimates.png`` (each node's estimate over time with the truth when known, and the trace
-    of its bound or covariance)."""
-    from designer.fileio import atomic_write, write_npz
-    from designer.verdict import known_verdict
-
-    from .figures import plotting, save_figure
-
-    directory = Path(directory)
-    m = run.scenario.model
-    K1, nodes, n_x = run.x_hat.shape
-    key = "Phi" if run.cov_kind == "bound" else "P"
-    arrays = {"x_hat": run.x_hat, key: run.cov, "valid": run.valid, "messages": run.messages,
-              "state_names": np.array(m.state_names)}
-    if run.truth is not None:
-        arrays["x"] = run.truth
-    write_npz(directory / "estimates.npz", **arrays)
-    trace = np.where(run.valid, np.trace(run.cov, axis1=-2, axis2=-1), np.nan)
-
-    def csv(fh):
-        head = ["step", "node", *m.state_names, f"trace_{key}"]
-        fh.write((",".join(head) + "\n").encode())
-        for k in range(K1):
-            for i in range(nodes):
-                row = [str(k), str(i), *(repr(float(v)) for v in run.x_hat[k, i]), repr(float(trace[k, i]))]
-                fh.write((",".join(row) + "\n").encode())
-
-    atomic_write(directory / "estimates.csv", csv)
-    idx = list(m.position_index) or list(range(min(2, n_x)))
-    fig, axs = plotting().subplots(1, 2, figsize=(12, 4.5))
-    t = np.arange(K1)
-    for c in idx[:2]:
-        for i in range(nodes):
-            axs[0].plot(t, run.x_hat[:, i, c], lw=0.8, alpha=0.6)
-        if run.truth is not None:
-            axs[0].plot(t, run.truth[:, c], "k-", lw=2, label=f"truth {m.state_names[c]}")
-    axs[0].set(xlabel="time step k", ylabel="estimate", title=f"{run.name}: every node's estimate")
-    if run.truth is not None:
-        axs[0].legend(loc="best", fontsize=8)
-    for i in range(nodes):
-        axs[1].plot(t[1:], trace[1:, i], lw=0.8)
-    axs[1].set(xlabel="time step k", ylabel=f"tr {key}", yscale="log",
-               title="the bound each node certifies" if key == "Phi" else "the covariance each node believes")
-    save_figure(fig, directory / "fig_estimates.png")
-    rmse = run.rmse()
-    lines = [f"# {run.name} on {run.log}", "",
-             f"Scenario `{run.scenario.name}`, {K1 - 1} steps, {nodes} estimate{'s' if nodes > 1 else ''} "
-             f"({'a fusion centre' if nodes == 1 else 'one per node'}); what it needs at run time: `{run.runtime}`"
-             + (" (an oracle: a reference, not a filter to deploy)." if run.runtime == "global" else "."),
-             ""]
-    if run.design is not None:
-        lines += [f"Design: gain rule `{run.design['gain_rule']}`"
-                  + (f", from `{run.design['schedule']}` (verdict there: {known_verdict(run.design.get('verdict'))})"
-                     if "schedule" in run.design else ", the scenario's design defaults") + ".", ""]
-    if run.verdict is not None:
-        lines += [f"Its bound's verdict over this log's horizon: **{run.verdict}** (designer.verdict: finite, "
-                  "steady and below the open-loop covariance to be certified; properties of the bound itself, not a "
-                  "check of it against this log's errors, which the table below compares).", ""]
-    d = run.diverged
-    if d is not None:
-        lines += [f"**Diverged** at step {d['step']} (node {d['node']}): {d.get('reason', '')}; the estimates after "
-                  "it are not numbers.", ""]
-    if rmse is not None:
-        lines += [f"RMSE against the log's truth (position, over steps 1..K and the nodes): {rmse:.4g}.", ""]
-        per = run.per_node()
-        what = "bound" if key == "Phi" else "believed covariance"
-        lines += [f"Per node: its RMSE and the mean over the steps of its squared error over the trace of its {what} "
-                  f"(`error² / tr {key}`; for a mean-square bound about 1 or less on average over runs, one run "
-                  "scatters), with its final trace.", "",
-                  f"| node | RMSE | error² / tr {key} | final tr {key} |", "|---|---|---|---|"]
-        final = np.where(run.valid[-1], trace[-1], np.nan)
-        for i in range(nodes):
-            lines.append(f"| {i} | {per['rmse'][i]:.4g} | {per['energy'][i]:.3g} | {final[i]:.4g} |")
-        lines.append("")
-        above = int(np.sum(per["energy"] > 1.0))
-        if above and key == "Phi":  # said plainly: a verdict is not a check on this run
-            lines += [f"On this log the squared error exceeds the bound on average at {above} of {nodes} nodes. The "
-                      "bound is a mean over runs (and its linearisation remainders are not in it): one run cannot "
-                      "refute it, nor confirm it; `study consensus-robot` checks it on many runs.", ""]
-    lines += [f"Messages per step: {float(np.mean(run.messages)):.4g}.", "",
-              "Files: `estimates.npz` (`x_hat` (K + 1, nodes, n_x), " + f"`{key}`, `valid`, `messages`"
-              + (", `x` the truth" if run.truth is not None else "") + "), `estimates.csv` (step, node, the "
-              f"estimate's components, tr {key}), `fig_estimates.png`.", "", "![estimates](fig_estimates.png)", ""]
-    atomic_write(directory / "report.md", lambda fh: fh.write("\n".join(lines).encode()))
 
 
 # --------------------------------------------------------------------------------------------------- the CSV form

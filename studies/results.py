@@ -1,5 +1,5 @@
-"""Shared pieces of every study's results: error metrics, Monte Carlo intervals, tables, versions (figures:
-:mod:`studies.figures`).
+"""Shared pieces of every study's results: error metrics, Monte Carlo intervals, tables, versions (their files:
+:mod:`studies.outputs`; figures: :mod:`studies.figures`).
 
 Metrics follow the particle-filter papers (seeds 000 and 002):
 ``RMSE_{p,k} = sqrt(mean over runs of |p_k - p̂_k|²)`` per step ``k = 1..K`` (the
@@ -11,16 +11,12 @@ from __future__ import annotations
 
 import platform
 import sys
-from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
-from designer.fileio import atomic_write, check_json_finite, replaced_outputs, write_json
-
-__all__ = ["SCHEMA", "versions", "error_metrics", "bootstrap_rmse_ci", "markdown_table", "BOOTSTRAP",
-           "rmse_with_ci", "write_outputs", "study_header", "DIVERGENCE_SPREAD",
-           "divergence_limit", "first_divergence",
+__all__ = ["SCHEMA", "versions", "error_metrics", "curve_mean_ci", "bootstrap_rmse_ci", "markdown_table",
+           "BOOTSTRAP", "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD", "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse"]
 
 SCHEMA = "cfdesign.study/1"
@@ -43,7 +39,7 @@ def versions() -> dict:
     return out
 
 
-def _curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
+def curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list[float]]:
     """Mean over steps of sqrt(mean over runs of e2) and its bootstrap 95 % interval; e2 is (runs, K).
 
     ``BOOTSTRAP`` resamples of the runs; each resample's mean over runs is the product of
@@ -80,8 +76,8 @@ def error_metrics(err: np.ndarray, position: Sequence[int], velocity: Sequence[i
     """
     e2p = (err[..., list(position)] ** 2).sum(-1)
     e2v = (err[..., list(velocity)] ** 2).sum(-1)
-    p, p_ci = _curve_mean_ci(e2p, rng)
-    v, v_ci = _curve_mean_ci(e2v, rng)
+    p, p_ci = curve_mean_ci(e2p, rng)
+    v, v_ci = curve_mean_ci(e2v, rng)
     return {
         "rmse_position": p,
         "rmse_position_ci95": p_ci,
@@ -140,34 +136,6 @@ def first_divergence(err: np.ndarray, limit: float) -> tuple[int, int] | None:
         return None
     k, i = map(int, np.argwhere(bad.reshape(norm.shape[0], -1))[0])
     return k, i
-
-
-def write_outputs(out, results: dict, figures: Callable[[Path], Callable[[], None] | None],
-                  table: Callable[[dict], str]) -> Path:
-    """Write the figures, ``table.md``, ``results.json`` and the reports into ``out`` (each atomically).
-
-    ``figures(directory)`` writes the figures, or has another process draw them and returns
-    a function that waits until they are written: ``table.md`` and ``results.json`` are
-    written meanwhile.  The reports (``report.md`` and the self-contained ``report.html``,
-    see :func:`studies.reports.write_report`) are written last, from the files just written.
-    The results are checked for non-finite numbers first, and everything is written into a
-    staging directory that then replaces the directory's last outputs as a whole
-    (:func:`designer.fileio.replaced_outputs`).
-    """
-    check_json_finite(results, "results.json")
-    text = table(results)
-    from .figures import figure_batch
-    from .reports import write_report  # late: report reads the files this module writes
-
-    with replaced_outputs(out) as stage:
-        with figure_batch():
-            pending = figures(stage)
-        atomic_write(stage / "table.md", lambda fh: fh.write(text.encode()))
-        write_json(stage / "results.json", results)
-        if callable(pending):
-            pending()
-        write_report(stage)
-    return Path(out)
 
 
 def study_header(study: str, scenario: str, *, runs: int, particles: int | None, steps: int, seed: int,

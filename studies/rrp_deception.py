@@ -49,11 +49,12 @@ from filters.rrp import wrap_angles
 
 from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_configurations, run_packets,
                     score_configurations, study_threads)
-from .pipeline import Plan, Study, StudyOptions, StudyText
+from .pipeline import Plan, Study, StudyOptions
 from .figures import curves_figure, filter_colours, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
 from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
+from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE", "LINEAR"]
 

@@ -79,7 +79,7 @@ from designer.fileio import (CHUNKS_DIR, append_line, atomic_write, code_fingerp
                              refuse_link, temporary_of, write_json, writing)
 from designer.validation import ComputationError, InputError, check_int
 
-from .launch import Interrupts
+from .interrupts import Interrupts
 from .memory import available_memory
 from .progress import counter, progress
 

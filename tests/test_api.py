@@ -109,7 +109,8 @@ def test_bad_model_files_exit_2_with_one_line(tmp_path):
 
 def test_set_reaches_a_studys_own_options_and_the_scenarios_parameters():
     """``--set NAME=VALUE``: a study option (read as JSON) is peeled off, the rest goes to the scenarios."""
-    from studies.pipeline import _study_assignments, get_study
+    from studies.pipeline import _study_assignments
+    from studies.study_registry import get_study
 
     rest, own = _study_assignments(get_study("comparison"), ["hcmci_iterations=3", "tuned_in_sweeps=true",
                                                              "steps=12", "sweep_values=[0, 0.2]"])

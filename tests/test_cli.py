@@ -172,7 +172,7 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
 
 
 def test_study_help_lists_every_registered_study():
-    from studies.pipeline import STUDIES
+    from studies.study_registry import STUDIES
 
     r = run_cli("study", "--help")
     assert r.returncode == 0
@@ -448,7 +448,7 @@ def test_every_study_refuses_a_single_run_before_computing(tmp_path):
     """One run has no interval: every study needs two (fdi-four-tank accepted one and called a lead significant)."""
     import studies
     from designer.validation import InputError
-    from studies.pipeline import STUDIES, get_study
+    from studies.study_registry import STUDIES, get_study
 
     for name in STUDIES:
         with pytest.raises(InputError, match=r"runs must be an integer in 2\.\."):

@@ -94,7 +94,7 @@ def test_linear_model_gets_zero_prior_scalings():
 def test_options_merge_and_refuse():
     import rules
     from studies.api import design
-    from studies.consensus_design import as_mode
+    from studies.design_options import as_mode
 
     base = DesignOptions(u_scale=0.01, v_scale=0.1, sigma=0.2)
     assert as_mode(base.merged(DesignOptions(mode="tuned")), "tuned").sigma is None  # paper multipliers: not carried

@@ -294,7 +294,8 @@ def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
     """Every sentence of the report and the map's categories are derived from the table's verdicts: the counts,
     where the design is certified (never "everywhere" when a point is not), the ranked points, each cell of the grid
     and each cell of the map, and the map's legend with its counts."""
-    from studies.feasibility_map import MAP_CATEGORIES, map_figure
+    from studies.feasibility_terms import MAP_CATEGORIES
+    from studies.figures import map_figure
 
     (tmp_path / "scalar.py").write_text(SCALAR)
     out = tmp_path / "f"
@@ -346,7 +347,9 @@ def test_a_one_parameter_map_draws_each_category_apart():
     without a bound on the lowest bound's level); an unbounded iteration is vacuous, a stalled one below the open
     loop not steady."""
     from designer.feasibility import SteadyState
-    from studies.feasibility_map import MAP_CATEGORIES, map_figure, point_verdict
+    from studies.feasibility_map import point_verdict
+    from studies.feasibility_terms import MAP_CATEGORIES
+    from studies.figures import map_figure
 
     assert point_verdict(SteadyState(False, np.nan, "unbounded", 9, False, None), 1.0, 2) == "vacuous"
     assert point_verdict(SteadyState(False, 0.5, "no convergence", 400, False, None), 1.0, 2) == "not steady"

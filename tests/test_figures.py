@@ -160,7 +160,7 @@ def test_a_failing_or_unused_helper_is_reaped(tmp_path):
 
 
 def test_the_other_files_are_written_while_the_helper_draws_and_the_report_after_it(tmp_path):
-    from studies.results import write_outputs
+    from studies.outputs import write_outputs
 
     seen = {}
 
@@ -225,6 +225,7 @@ def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, m
     """The helper runs a study's figure code on the scenarios as they were before the computation: a figure that
     read state the computation leaves on a scenario would differ from the one drawn here afterwards."""
     import studies
+    from studies.outputs import study_figures
 
     answers = []
     real = F.FigureHelper.wait
@@ -242,7 +243,7 @@ def test_every_studys_helper_draws_its_figures_as_this_process_would(tmp_path, m
     for p in pngs:
         assert (tmp_path / "helper" / p).read_bytes() == (tmp_path / "here" / p).read_bytes(), p
     # one colour per filter: every figure of the study draws each filter in the colour of the shared mapping
-    figs = _drawn(lambda: F.study_figures(r.study, tmp_path / "here", r.results, r.scenarios, r.arrays))
+    figs = _drawn(lambda: study_figures(r.study, tmp_path / "here", r.results, r.scenarios, r.arrays))
     assert sorted(path.name for _, path in figs) == pngs and "fig_tradeoff.png" in pngs
     blocks = r.results.get("by_scenario") or {"": r.results}
     colours = {n: c for b in blocks.values() for n, c in F.filter_colours(b["filters"]).items()}

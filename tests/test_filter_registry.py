@@ -25,7 +25,8 @@ from filters.ekf import run_ekf, run_ekf_batch
 from filters.result import FilterResult, nonfinite_violations
 from filters.uplink import split_received
 from studies.comparison import FILTER_REGISTRY, LOCAL, realise
-from studies.consensus_design import as_mode, consensus_design
+from studies.consensus_design import consensus_design
+from studies.design_options import as_mode
 from studies.filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_consensus_ekf, hcmci, kcf,
                                      local_ekfs, replayed_schedule)
 from studies.pipeline import run_study

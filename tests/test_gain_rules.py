@@ -149,7 +149,8 @@ def test_a_rule_added_as_one_package_is_designed_run_and_checked_as_its_capabili
     steps in a rule that chooses its multipliers drop the σ and never refuse the first step."""
     from filters.consensus import run_consensus
     from filters.consensus_batch import run_consensus_batch
-    from studies.consensus_design import as_mode, check_first_step, consensus_design
+    from studies.consensus_design import check_first_step, consensus_design
+    from studies.design_options import as_mode
     from studies.scenarios import load_scenario
 
     assert rules.names() == BUILT_IN + ("fixed_copy", "tuned_copy")

@@ -2,7 +2,7 @@
 
 Study reports: two real studies run at a tiny size (the particle-filter study
 ``encrypted-switching``, which writes its report through the pipeline's
-:func:`studies.results.write_outputs`, and ``consensus-robot``, which records no
+:func:`studies.outputs.write_outputs`, and ``consensus-robot``, which records no
 intervals); the other cases use small hand-written results files.  Design and
 feasibility reports: real outputs of :func:`studies.api.design` and
 :func:`studies.api.feasibility` on the small linear model of
@@ -25,8 +25,8 @@ import pytest
 from designer.validation import InputError
 from studies import api
 from studies.reports import markdown_to_html, render_markdown, write_report
-from studies.pipeline import study_text
 from studies.reports.text import md_escape
+from studies.study_registry import study_text
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 PNG_1x1 = base64.b64decode(

@@ -1,7 +1,7 @@
 """Every writer validated against the JSON Schemas shipped in the package (studies/schemas).
 
 The commands run at tiny sizes: ``cfdesign design`` (a feasible and an infeasible design),
-``cfdesign feasibility`` (a 1-D and a 2-D grid), every study of ``studies.pipeline.STUDIES``
+``cfdesign feasibility`` (a 1-D and a 2-D grid), every study of ``studies.study_registry.STUDIES``
 through ``studies.api.study`` and the comparison on a user's model file; each file they write
 (results.json, schedule.json, feasibility.csv row by row, feasibility.json) is validated.
 Negative controls show that the schemas reject what breaks the contract and name the path.
@@ -23,7 +23,7 @@ import pytest
 from designer.validation import InputError
 from studies import api, schemas
 from studies.cli import main
-from studies.pipeline import STUDIES, get_study
+from studies.study_registry import STUDIES, get_study
 from test_api import MODEL  # the user's model of the API tests (a damped oscillator on a ring of four sensors)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,7 +96,7 @@ def test_contract_keys_are_required():
         "trace_bound", "certified", "verdict", "verdict_detail"}
     assert set(schemas.load("feasibility")["required"]) == {"feasible", "trace_bound", "binding", "theorem2",
                                                             "iterations", "verdict"}
-    from studies.feasibility_map import GRID_PARAMETERS, OUTPUTS
+    from studies.feasibility_terms import GRID_PARAMETERS, OUTPUTS
 
     row = schemas.load("feasibility")["properties"]
     assert set(row) == set(GRID_PARAMETERS) | set(OUTPUTS)

@@ -182,7 +182,7 @@ def test_a_ctrl_c_that_a_library_swallows_still_ends_the_command_as_interrupted(
 def test_a_swallowed_ctrl_c_is_seen_by_every_enclosing_watch():
     """The command's watch encloses a study's Monte Carlo runner's: a Ctrl-C swallowed inside is seen by both (the
     runner discards its chunk, the command ends as interrupted), and each restores what it found."""
-    from studies.launch import Interrupts
+    from studies.interrupts import Interrupts
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signal handlers are set from the main thread")

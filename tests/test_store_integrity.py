@@ -299,7 +299,7 @@ def test_outputs_replace_the_last_ones_as_a_whole(tmp_path):
 
 
 def test_a_nan_in_the_results_is_refused_before_anything_is_written(tmp_path):
-    from studies.results import write_outputs
+    from studies.outputs import write_outputs
 
     out = tmp_path / "out"
     write_outputs(out, {"filters": {"a": {"rmse": 1.0}}}, lambda d: (d / "fig.png").write_bytes(b"png"),
@@ -456,7 +456,7 @@ def test_a_stale_staging_directory_is_removed_when_the_lock_is_taken(tmp_path):
 @pytest.mark.parametrize("planted", [".cfdesign-outputs.json", "results.json", "report.html", "fig_a.png",
                                      ".staging-x", "table.md"])
 def test_a_link_planted_among_the_outputs_is_refused_and_its_target_untouched(tmp_path, planted):
-    from studies.results import write_outputs
+    from studies.outputs import write_outputs
 
     out, victim = tmp_path / "out", _victim(tmp_path)
     results = {"filters": {"a": {"rmse": 1.0}}}
@@ -474,7 +474,7 @@ def test_a_link_planted_among_the_outputs_is_refused_and_its_target_untouched(tm
 
 def test_a_file_the_user_wrote_is_never_replaced_by_an_output(tmp_path):
     """One rule for every command, from the CLI and the API alike: an output replaces only what cfdesign wrote."""
-    from studies.results import write_outputs
+    from studies.outputs import write_outputs
 
     out = tmp_path / "out"
     out.mkdir()

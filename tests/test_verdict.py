@@ -293,7 +293,7 @@ def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_o
     limit (unbounded: vacuous); each verdict recomputed here from the point's fixed point per node."""
     from designer.design import DesignOptions, make_design
     from designer.feasibility import steady_state
-    from studies.consensus_design import effective
+    from studies.design_options import effective
     from studies.scenarios import scenario_of
 
     path = _write(tmp_path, "small.py", SMALL)

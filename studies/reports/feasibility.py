@@ -14,7 +14,7 @@ CSV's columns (those before ``feasible``) and the sections that need the JSON ar
 left out.
 
 Every sentence, count and table is derived from one classification of each grid point
-(:func:`studies.feasibility_map.map_category`: its ``verdict``), the one the map draws, so
+(:func:`studies.feasibility_terms.map_category`: its ``verdict``), the one the map draws, so
 the summary's "Certified at n of N" and "Where the design is certified" cannot disagree.
 """
 from __future__ import annotations
@@ -29,6 +29,7 @@ from typing import Any, Mapping, Sequence
 
 from designer.validation import InputError
 
+from ..feasibility_terms import FAILED, GRID_PARAMETERS, MAP_CATEGORIES, MAP_WORDS, map_category
 from .design import attack_lines, scenario_lines, software_lines
 from .text import (MEASURED, assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, md_cell,
                    md_escape, md_table, network_lines, observability_section, read_record, recorded_elsewhere,
@@ -52,9 +53,7 @@ _ROW_LIMIT = 400  # a longer map is listed up to here (the CSV has every point)
 
 
 def _grid_docs() -> Mapping[str, str]:
-    """What each grid parameter is (the map module's GRID_PARAMETERS)."""
-    from ..feasibility_map import GRID_PARAMETERS
-
+    """What each grid parameter is (:data:`studies.feasibility_terms.GRID_PARAMETERS`)."""
     return GRID_PARAMETERS
 
 
@@ -116,10 +115,8 @@ def _grids(names: Sequence[str], rows: Sequence[Mapping], meta: Mapping) -> list
 
 def _category(row: Mapping) -> str | None:
     """The one classification of a grid point every sentence, table and the map are derived from
-    (:func:`studies.feasibility_map.map_category`: its verdict; None for a feasible point of a map written without
+    (:func:`studies.feasibility_terms.map_category`: its verdict; None for a feasible point of a map written without
     verdicts)."""
-    from ..feasibility_map import map_category
-
     return map_category(row)
 
 
@@ -154,8 +151,6 @@ def _reasons(these: Sequence[Mapping]) -> str:
 
 def _others(rows: Sequence[Mapping], word: str) -> tuple[int, str]:
     """How many points are not ``word`` (certified, or feasible), and what they are, with their reasons."""
-    from ..feasibility_map import MAP_CATEGORIES
-
     if word == "feasible":
         bad = [r for r in rows if not r["feasible"]]
         return len(bad), f"infeasible ({_reasons(bad)})"
@@ -208,7 +203,6 @@ def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
 
 
 def _result_section(rows: Sequence[Mapping]) -> list[str]:
-    from ..feasibility_map import FAILED, MAP_CATEGORIES, MAP_WORDS
     from .design import theorem2_words
 
     n = len(rows)
@@ -325,8 +319,6 @@ def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[st
 
 def _verdict_lines(rows: Sequence[Mapping], meta: Mapping) -> list[str]:
     """The report's first line: how many points have each verdict (none for a map written without them)."""
-    from ..feasibility_map import MAP_CATEGORIES, MAP_WORDS
-
     if not _judged(rows):
         return []
     counts = Counter(_category(r) for r in rows)

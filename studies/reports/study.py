@@ -7,7 +7,7 @@ and messages, whether each can be told apart from the best, the trade-off figure
 same blocks by :func:`studies.figures.tradeoff_figure`) and the pick in one sentence, never
 stronger than the intervals allow (overlapping intervals: the data cannot tell the filters
 apart).  Then, for a reader who has not read the papers: the pick metric by metric, what
-the study compares and why (the study's own words, :func:`studies.pipeline.study_text`),
+the study compares and why (the study's own words, :func:`studies.study_registry.study_text`),
 the scenario and its parameters, the attacks, our tables beside the paper's published
 numbers, Monte Carlo intervals, sweeps, detection, the bound check and what diverged, the
 figures (captioned by the study), every assumption, the software and the command line that
@@ -33,7 +33,7 @@ from typing import Any, Mapping, Sequence
 from designer.rule import DEPLOYABLE, FILTER_RUNTIMES, runtime_label
 from designer.validation import InputError
 
-from ..pipeline import StudyText, study_text
+from ..study_registry import StudyText, study_text
 from .design import attack_lines
 from .text import (MEASURED, assumption_section, ci_pair, compact, demote, document, figure_lines, fmt_dur, fmt_num,
                    generic, is_num, is_time_key, md_cell, md_escape, md_table, metric_value, params_table,

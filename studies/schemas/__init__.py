@@ -326,7 +326,7 @@ def log_json(path) -> dict:
 
     import numpy as np
 
-    from .. import memory
+    import studies.memory as memory
 
     path = Path(path)
     if not path.is_file():

@@ -1,0 +1,56 @@
+"""The design options a command designs with: the home of :func:`effective` (a scenario's design defaults merged with
+the options given, its attacks overridden by theirs) and :func:`as_mode` (options fitted to one gain rule).
+
+The design (:mod:`studies.consensus_design`), the feasibility map and the memory estimates (:mod:`studies.memory`)
+all start from them.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import rules
+from designer.design import DesignOptions
+from designer.validation import InputError
+
+from .scenarios.base import Scenario
+
+__all__ = ["effective", "as_mode"]
+
+
+def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:
+    """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
+
+    The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
+    every value ``options`` sets replaces them.
+    """
+    if sc.network is None:
+        raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
+                         "(a model file defines NETWORK)")
+    base = sc.design or DesignOptions()
+    if any(v is not None for v in base.attack_overrides().values()):
+        raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
+                         "attacks in ATTACKS")
+    rule = rules.get((options.mode if options is not None else None) or base.mode or rules.DEFAULT)
+    if options is not None:
+        rule.check_options(options)  # what the user gave, before the defaults: a value the rule does not take
+    opts = base.merged(options)
+    # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
+    # exchange) give way to the rule's own; the mode stays as given (None: the default rule), as the record keeps it
+    opts = replace(as_mode(opts, rule.name), mode=opts.mode)
+    rule.check_options(opts)
+    sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
+    return sc.with_attacks(**opts.attack_overrides()), opts
+
+
+def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
+    """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
+    without offline tables the scheduled design's exchange, robustness and bank, and the rounds unless it relays)."""
+    opts = options or DesignOptions()
+    rule = rules.get(mode)
+    if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
+        opts = replace(opts, exchange=None, robustness=None, bank=None)
+    if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
+        opts = replace(opts, rounds=None)
+    if rule.fixed_multipliers:
+        return replace(opts, mode=mode)
+    return replace(opts, mode=mode, sigma=None, beta=None, tau=None)

@@ -1,0 +1,43 @@
+"""The feasibility map's words: the home of what its computation (:mod:`studies.feasibility_map`), its files
+(:mod:`studies.outputs`), its figure (:func:`studies.figures.map_figure`) and its report
+(:mod:`studies.reports.feasibility`) all name: the grid parameters, the columns of ``feasibility.csv``, the mark of a
+point that failed, and the categories of a point with their colours and words.
+"""
+from __future__ import annotations
+
+__all__ = ["GRID_PARAMETERS", "OUTPUTS", "FAILED", "MAP_CATEGORIES", "MAP_COLOURS", "MAP_WORDS", "map_category"]
+
+#: The parameters a grid may vary, with what each is.
+GRID_PARAMETERS = {
+    "dos": "DoS probability on every channel, in [0, 1)",
+    "fdi": "FDI probability on every channel, in [0, 1)",
+    "delta": "bound on the injected signal, >= 0",
+    "amplitude": "amplitude of the injected signal per attacked component, >= 0",
+    "tau": "consensus gain C = tau Phi_pred (paper mode), >= 0",
+    "sigma": "sigma of (26) (paper mode), >= 0",
+    "beta": "beta of (27) (paper mode), >= 0",
+    "epsilon": "epsilon in (0, 1/d_max)",
+    "u_scale": "U = u I, >= 0",
+    "v_scale": "V_i = v I at every sensor, >= 0",
+}
+#: The columns of ``feasibility.csv`` after the grid's parameters: what each point is mapped to.
+OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations", "verdict")
+FAILED = "failed: "  # the start of the binding of a point whose design or iteration raised
+
+#: The map's categories of a grid point, each drawn apart (:func:`studies.figures.map_figure`): the verdicts of
+#: :data:`designer.verdict.VERDICTS` in the order a reader asks for them, and their colours.
+MAP_CATEGORIES = ("certified", "not steady", "vacuous", "infeasible")
+MAP_COLOURS = {"certified": "#1a9850", "not steady": "#fdae61", "vacuous": "#8073ac", "infeasible": "#d73027"}
+MAP_WORDS = {"certified": "certified (finite, informative, a fixed point)",
+             "not steady": "not steady (below the open loop, no fixed point)",
+             "vacuous": "vacuous (at or above the open loop, or unbounded)",
+             "infeasible": "infeasible ((28)/(29) fail, diverged or no design)"}
+
+
+def map_category(row) -> str:
+    """The category of a grid point's row (:data:`MAP_CATEGORIES`): its ``verdict``; a row without one (a map
+    written before the verdicts) is ``infeasible`` when not feasible, else ``None`` (not judged)."""
+    v = row.get("verdict")
+    if v in MAP_CATEGORIES:
+        return v
+    return None if row.get("feasible") else "infeasible"
