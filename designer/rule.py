@@ -239,6 +239,16 @@ class GainRule:
         return f"{self.name}: {self.summary} [{runtime_label(self.runtime)}]"
 
     @property
+    def study_label(self) -> str:
+        """Its filter's name in a study that compares filters (``study comparison``)."""
+        return f"consensus EKF ({self.name} design)"
+
+    @property
+    def study_description(self) -> str:
+        """One line on its filter in a study that compares filters."""
+        return f"{'distributed' if self.deployable else 'an oracle'}: {self.summary}"
+
+    @property
     def caveat(self) -> str | None:
         """For a rule that is not deployable, the clause a verdict adds (None for a deployable rule)."""
         return caveat(self.describe())

@@ -53,6 +53,7 @@ from typing import Sequence
 
 import numpy as np
 
+import rules
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
@@ -123,7 +124,7 @@ _DESCRIPTION = {
 # Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
 # (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
 # centre). Oracles and centralized filters are references: ranked apart, never the pick.
-FILTER_REGISTRY = FilterRegistry([
+_BUILT_IN = [
     designed_consensus(TUNED, "tuned", _DESCRIPTION[TUNED]),
     designed_consensus(PAPER_DESIGN, "paper", _DESCRIPTION[PAPER_DESIGN], start_check=True),
     *particle_filters((PF_AWARE, _DESCRIPTION[PF_AWARE]), (PF_PLAIN, _DESCRIPTION[PF_PLAIN])),
@@ -135,7 +136,11 @@ FILTER_REGISTRY = FilterRegistry([
     designed_consensus(SCHEDULED, "scheduled", _DESCRIPTION[SCHEDULED]),
     designed_consensus(RELAY, "relay", _DESCRIPTION[RELAY]),
     designed_consensus(FLOOD, "flood", _DESCRIPTION[FLOOD]),
-])
+]
+# and every other gain rule (a rule package added to rules/ or on CFDESIGN_RULE_PATH): its design's filter, after
+FILTER_REGISTRY = FilterRegistry(_BUILT_IN + [
+    designed_consensus(rule.study_label, rule.name, rule.study_description, start_check=rule.fixed_multipliers)
+    for rule in rules.all_rules().values() if rule.name not in {e.mode for e in _BUILT_IN if e.designed}])
 FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one joins FILTER_REGISTRY, not this tuple)
 # every filter bootstraps its intervals from a stream of its own, numbered in this order first, then the registry's
 _STREAM_ORDER = (LOCAL, MSE, KCF, HCMCI)

@@ -41,8 +41,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
 import rules
+from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks

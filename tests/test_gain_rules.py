@@ -181,6 +181,7 @@ def test_a_rule_added_as_one_package_is_designed_run_and_checked_as_its_capabili
     assert consensus_design(sc, as_mode(None, "tuned_copy")).epsilon != paper.epsilon  # ε of a rule that tunes
 
 
+@pytest.mark.slow
 def test_a_rule_kept_outside_the_repository_runs_through_the_commands(extra_rules, tmp_path):
     """``CFDESIGN_RULE_PATH`` names the folder for every cfdesign process: the rule is a --mode of the command
     line, designs, writes its report and is driven as node filters, its numbers the paper's."""
@@ -200,6 +201,25 @@ def test_a_rule_kept_outside_the_repository_runs_through_the_commands(extra_rule
     assert mine["mode"] == "fixed_copy" and mine["gain_rule"]["name"] == "fixed_copy"
     assert mine["trace_bound"] == paper["trace_bound"] and mine["verdict"] == paper["verdict"]
     assert "Gain rule fixed_copy, run time local" in (tmp_path / "fixed_copy" / "report.md").read_text()
+    # a recorded run filtered by its design, and the comparison with its filter beside the paper's
+    assert cfdesign("simulate", LINEAR, "--steps", "5", "--seed", "4", "--out", "run.npz").returncode == 0
+    ran = cfdesign("filter", LINEAR, "--data", "run.npz", "--schedule", "fixed_copy", "--out", "filtered")
+    assert ran.returncode == 0, ran.stderr
+    ref = cfdesign("filter", LINEAR, "--data", "run.npz", "--schedule", "paper", "--out", "filtered-paper")
+    assert ref.returncode == 0, ref.stderr
+    with np.load(tmp_path / "filtered" / "estimates.npz") as a, np.load(tmp_path / "filtered-paper" / "estimates.npz") as b:
+        numeric = [k for k in a.files if a[k].dtype.kind in "fiub"]
+        assert sorted(a.files) == sorted(b.files) and "x_hat" in numeric
+        assert all(np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f") for k in numeric)
+    study = cfdesign("study", "comparison", LINEAR, "--runs", "2", "--particles", "20", "--quiet",
+                     "--out", "compare")
+    assert study.returncode == 0, study.stderr
+    res = json.loads((tmp_path / "compare" / "results.json").read_text())
+    rows = {name.split(": ", 1)[-1]: f for name, f in res["filters"].items()}
+    mine, paper = rows["consensus EKF (fixed_copy design)"], rows["consensus EKF (paper design)"]
+    assert mine["runtime"] == "local" and mine["rmse"] == paper["rmse"] and np.isfinite(mine["rmse"]).all()
+    assert "consensus EKF (fixed\\_copy design)" in (tmp_path / "compare" / "report.md").read_text() or \
+        "consensus EKF (fixed_copy design)" in (tmp_path / "compare" / "report.md").read_text()
     # in this process (the fixture added the folder): the node filters of its design are the paper's, bit for bit
     nodes = api.node_filter(LINEAR, schedule=str(tmp_path / "fixed_copy"))
     ref = api.node_filter(LINEAR, schedule=str(tmp_path / "paper"))
