@@ -331,6 +331,16 @@ class GainRule:
         :class:`filters.consensus_batch.ConsensusBatchResult`."""
         raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
 
+    def report_settings(self, meta: Mapping, fmt) -> list[str]:
+        """The design report's paragraphs on how this rule chose the gains (markdown lines, under "Design
+        settings"), from ``schedule.json``'s record ``meta`` (a file from elsewhere: read it as data); ``fmt`` is
+        the report's formatting (``fmt.fmt_num(v)``, ``fmt.md_escape(text)``: :mod:`studies.reports.text`)."""
+        return []
+
+    def report_margins(self, meta: Mapping) -> list[str]:
+        """The design report's sentence on what the margins of (28)-(29) mean for this rule (markdown lines)."""
+        return []
+
     @property
     def has_node_filter(self) -> bool:
         """Whether a node can run this rule's designs on its own (:meth:`node_filter` gives its classes)."""

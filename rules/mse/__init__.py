@@ -15,6 +15,18 @@ class MSE(GainRule):
                "by the bound of the stacked error of all nodes")
     joint_covariance = True
 
+    def report_settings(self, meta, fmt):
+        return ["MSE mode: K and C minimise every node's predicted mean-square error, from the joint linearised error "
+                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the certificate "
+                "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
+                "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
+                "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]
+
+    def report_margins(self, meta):
+        return ["In mse mode one σ and one β for the whole network are chosen at every step to make the bound of "
+                "the stacked error of all nodes smallest for the gains the mean-square-error design chose, keeping "
+                "(28)-(29) with a small relative margin: the margins are the network's, shown at every node.", ""]
+
     def batch_filter(self):
         from .filter import run_mse_batch
 

@@ -18,6 +18,14 @@ class Paper(GainRule):
     summary = "the published choices (sigma = beta = 0.1, C = tau Phi)"
     fixed_multipliers = True
 
+    def report_settings(self, meta, fmt):
+        return ["Paper mode, as in the paper: σ and β fixed at every node and step (the published 0.1 unless given), "
+                "the consensus gain C = τ Φ_{k+1|k} and K by (30).", ""]
+
+    def report_margins(self, meta):
+        return ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
+                "ends.", ""]
+
     def batch_filter(self):
         from .filter import STEPS
 

@@ -17,6 +17,11 @@ class Scheduled(GainRule):
                "each node with its own Jacobians and covariance")
     offline_tables = True
 
+    def report_settings(self, meta, fmt):
+        from .report import settings
+
+        return settings(meta, fmt)
+
     def batch_filter(self):
         from .filter import run_scheduled_batch
 

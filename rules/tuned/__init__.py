@@ -14,6 +14,16 @@ class Tuned(GainRule):
     needs = LOCAL_NEEDS + "; its σ, β and gains come from a small convex problem it solves online at every step."
     summary = "gains minimising the bound (convex tuning, optimised weights)"
 
+    def report_settings(self, meta, fmt):
+        return ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
+                "trace of the bounds while keeping (28)-(29)), with the update bound (27)'s factors (1 + 2 d_i) and 3 "
+                "replaced by weights optimised with them (the node's own error, each received neighbour's and the "
+                "falsified packets, `designer.tuning.tune_weighted`).", ""]
+
+    def report_margins(self, meta):
+        return ["In tuned mode σ and β are chosen at every node and step to keep (28)-(29) with a small relative "
+                "margin (see `designer.tuning`): the margins show how much room the tuning left.", ""]
+
     def batch_filter(self):
         from .filter import STEPS
 

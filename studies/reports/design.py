@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 
+from . import text
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
                    recorded_elsewhere, rerun_lines, scenario_spec)
@@ -355,17 +356,8 @@ def _binding_section(s: _Schedule, tight) -> list[str]:
         lead = "(29)" if n29 > n28 else "(28)"
         out += [f"Over all nodes, {lead} is the tighter condition at {fmt_num(100 * max(n28, n29) / tot, 3)} % of "
                 f"the {tot} checked node-steps ((28) at {n28}, (29) at {n29}).", ""]
-    mode = s.meta.get("mode")
-    if mode == "tuned":
-        out += ["In tuned mode σ and β are chosen at every node and step to keep (28)-(29) with a small relative "
-                "margin (see `designer.tuning`): the margins show how much room the tuning left.", ""]
-    elif mode == "paper":
-        out += ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
-                "ends.", ""]
-    elif mode == "mse":
-        out += ["In mse mode one σ and one β for the whole network are chosen at every step to make the bound of "
-                "the stacked error of all nodes smallest for the gains the mean-square-error design chose, keeping "
-                "(28)-(29) with a small relative margin: the margins are the network's, shown at every node.", ""]
+    rule = _rule_of(s.meta.get("mode"))
+    out += rule.report_margins(s.meta) if rule is not None else []
     return out
 
 
@@ -406,12 +398,18 @@ def _final_bound(s: _Schedule, i: int) -> str:
     return f"none (last {fmt_num(float(row[ok[-1]]))} at step {int(ok[-1])})"
 
 
-def _fixed_multipliers(mode) -> bool:
-    """Whether the schedule's gain rule keeps the user's σ, β, τ
-    (:attr:`designer.rule.GainRule.fixed_multipliers`; False for a mode that is not a rule here)."""
+def _rule_of(mode):
+    """The schedule's gain rule (:mod:`rules`), None for a mode that is not a rule here (the record is data)."""
     import rules
 
-    return isinstance(mode, str) and mode in rules.names() and rules.get(mode).fixed_multipliers
+    return rules.get(mode) if isinstance(mode, str) and mode in rules.names() else None
+
+
+def _fixed_multipliers(mode) -> bool:
+    """Whether the schedule's gain rule keeps the user's σ, β, τ (:attr:`designer.rule.GainRule.fixed_multipliers`;
+    False for a mode that is not a rule here)."""
+    rule = _rule_of(mode)
+    return rule is not None and rule.fixed_multipliers
 
 
 def _node_section(s: _Schedule) -> list[str]:
@@ -486,71 +484,8 @@ def _settings_section(s: _Schedule) -> list[str]:
     meta = s.meta
     mode = meta.get("mode")
     out = ["## Design settings", ""]
-    if mode == "paper":
-        out += ["Paper mode, as in the paper: σ and β fixed at every node and step (the published 0.1 unless given), "
-                "the consensus gain C = τ Φ_{k+1|k} and K by (30).", ""]
-    elif mode == "tuned":
-        out += ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
-                "trace of the bounds while keeping (28)-(29)), with the update bound (27)'s factors (1 + 2 d_i) and 3 "
-                "replaced by weights optimised with them (the node's own error, each received neighbour's and the "
-                "falsified packets, `designer.tuning.tune_weighted`).", ""]
-    elif mode == "mse":
-        out += ["MSE mode: K and C minimise every node's predicted mean-square error, from the joint linearised error "
-                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the certificate "
-                "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
-                "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
-                "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]
-    elif mode == "scheduled":
-        st = meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {}
-        carry = ("its prediction and its measurement" if meta.get("exchange") == "measurements" else
-                 "its prediction alone, as in (7)")
-        out += ["Scheduled mode: the per-link gains are designed offline for the channels' DoS and FDI probabilities "
-                "from the expected joint error covariance of all nodes along the nominal trajectory "
-                "(`designer.scheduled`); every node applies them on any run with its own estimate, covariance and "
-                f"Jacobians and the packets that arrived; a packet carries the sender's {carry}. The tables beyond "
-                "the horizon are the recursion continued at the last nominal point"
-                + (f", stationary after {st.get('extra_steps')} more steps." if st.get("converged") else
-                   ", which did not settle within the steps tried: beyond the horizon the gains are the last ones "
-                   "computed.")
-                + " The bound is the expected one over the attacks, for the nominal gains and linearisation with the "
-                "remainders U, V_i: study consensus-robot validates it on runs the design never saw.", ""]
-        sc_ = meta.get("stationary_certificate") if isinstance(meta.get("stationary_certificate"), dict) else None
-        if sc_:
-            lmi = sc_.get("lmi") if isinstance(sc_.get("lmi"), dict) else {}
-            if sc_.get("converged"):
-                tr = sc_.get("trace") or []
-                what = (f"reaches a fixed point after {sc_.get('iterations')} iterations (largest node trace "
-                        f"{fmt_num(max(tr)) if tr else '—'})")
-                if lmi.get("trace") is not None:
-                    what += (f"; the LMI (cvxpy + Clarabel, σ and β of the fixed point) gives a total trace of "
-                             f"{fmt_num(lmi['trace'])}, its own recursion step exceeding it by "
-                             f"{fmt_num(lmi.get('relative_residual'))} of its largest eigenvalue")
-                elif lmi.get("status"):
-                    what += f"; the LMI was {md_escape(str(lmi.get('status')))} ({md_escape(str(lmi.get('reason')))})"
-            else:
-                what = f"does not: {md_escape(str(sc_.get('reason')))}"
-            out += [f"**Stationary certificate** (verdict: {md_escape(str(sc_.get('verdict')))}): the bound's recursion "
-                    "at the operating point with the stationary gains " + what + ".", ""]
-        out += [f"Robustness margin δ = {fmt_num(meta.get('robustness'))}: each link's gains are chosen as if the "
-                "neighbour's difference carried an extra independent error δ P_ii (a node never leans on its "
-                "neighbours by more than tr P⁻ / δ).", ""]
-        bank = meta.get("bank_record") if isinstance(meta.get("bank_record"), dict) else None
-        if bank:
-            out += [f"**Bank of operating points** ({bank.get('axes')} axes, spread {fmt_num(bank.get('spread'))} "
-                    f"open-loop standard deviations): stationary tables at {bank.get('points')} points off the "
-                    f"nominal trajectory ({bank.get('skipped')} left out: the same Jacobians as the nominal's); "
-                    "each node uses, at every step, the tables of the point nearest its own prediction. They are "
-                    "not covered by the certificate.", ""]
-        trade = meta.get("rounds_tradeoff") if isinstance(meta.get("rounds_tradeoff"), dict) else None
-        if trade and trade.get("rows"):
-            out += [f"**Accuracy and messages** ({meta.get('rounds')} exchange round(s) per step designed; the "
-                    f"expected RMSE of the nodes at step {trade.get('step', meta.get('steps'))}, from the design's "
-                    "expected covariance; for L > 1 the rounds' packet losses are taken as fresh draws and no "
-                    "certificate is computed):", "",
-                    "| rounds L | messages per step | expected RMSE |", "|---:|---:|---:|"]
-            out += [f"| {r['rounds']}{' (designed)' if r.get('designed') else ''} | {r['messages_per_step']} | "
-                    f"{fmt_num(r['expected_rmse'])} |" for r in trade["rows"]]
-            out += [""] + ([md_escape(str(trade["note"])), ""] if trade.get("note") else [])
+    rule = _rule_of(mode)
+    out += rule.report_settings(meta, text) if rule is not None else []
     if is_num(meta.get("gate")) and not meta.get("gate"):
         out += ["No χ² gate on the neighbour packets: every received packet is used.", ""]
     if meta.get("gate"):
