@@ -341,6 +341,12 @@ class GainRule:
         """The design report's sentence on what the margins of (28)-(29) mean for this rule (markdown lines)."""
         return []
 
+    def memory_parts(self, n_nodes: int, n_x: int, rows: int) -> list[tuple[str, float, str, str]]:
+        """What its filter holds beyond the consensus filter's arrays when it runs ``rows`` runs at once on
+        ``n_nodes`` nodes of ``n_x`` states: ``(what, bytes, sizes in words, how to need less)`` per part (the memory
+        estimate every command checks before computing, :mod:`studies.memory`)."""
+        return []
+
     @property
     def has_node_filter(self) -> bool:
         """Whether a node can run this rule's designs on its own (:meth:`node_filter` gives its classes)."""

@@ -61,8 +61,6 @@ _ARRAY_OBJECT = 112  # bytes of a small NumPy array's object beside its data (a 
 _POINT_BYTES = 3000  # a feasibility grid point: its dict, its row, the runner's arrays, the CSV and the report
 _PARTICLE_DOUBLES = (5, 1, 4)  # doubles per particle and run: per state, per measurement component, fixed
 _CENTRALIZED_PF_DOUBLES = (5, 5, 4)  # the same, the comparison's centralized PFs (filter, 16 measurement components)
-_JOINT_COPIES = 24  # rules.mse.filter.JOINT_COPIES
-_JOINT_BUDGET = 2**28  # rules.mse.filter.MEMORY_BUDGET
 _LOG_COPIES = 2.0  # a CSV log's arrays as parsed, and their float copies as checked (studies.recorded.check_log)
 
 _STEPS = "fewer steps"
@@ -199,11 +197,9 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
              Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
                   f"{rows} runs x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
              _step_hessians(model, rows * n, linearization, "a smaller model")]
-    if mode is not None and rules.get(mode).joint_covariance:
-        per_run = _JOINT_COPIES * _D * (n * n_x) ** 2
-        parts.append(Part(f"{what}: the joint error covariance of all nodes (mode mse)",
-                          min(rows * per_run, max(_JOINT_BUDGET, per_run)),
-                          f"{_JOINT_COPIES} x ({n} nodes x {n_x} states)^2 per run", "another mode"))
+    if mode is not None:  # what its gain rule's filter holds besides
+        parts += [Part(f"{what}: {part}", nbytes, sizes, less)
+                  for part, nbytes, sizes, less in rules.get(mode).memory_parts(n, n_x, rows)]
     return [p for p in parts if p is not None]
 
 
@@ -406,7 +402,7 @@ def _comparison(sc, so) -> tuple[list, list, list]:
                 rows * K * (n * n * (n_x * _D + 2) + 2 * n_z * _D) + R * K * (n_x + n_z) * _D,
                 f"{R} runs x {S} settings x {K} steps x {n} x {n} channels", "fewer runs per chunk")
     reduce = f"{_STEPS} (a model file's STEPS)"
-    designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in ("paper", "mse")]
+    designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in rules.names()]
     sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters", _CENTRALIZED_PF_DOUBLES),
            Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
                 f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)]

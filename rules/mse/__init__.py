@@ -3,7 +3,10 @@ from __future__ import annotations
 
 from designer.rule import GainRule
 
-__all__ = ["RULE", "MSE"]
+__all__ = ["RULE", "MSE", "MEMORY_BUDGET", "JOINT_COPIES"]
+
+MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices its filter holds at once by one sub-batch of runs
+JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
 
 
 class MSE(GainRule):
@@ -26,6 +29,11 @@ class MSE(GainRule):
         return ["In mse mode one σ and one β for the whole network are chosen at every step to make the bound of "
                 "the stacked error of all nodes smallest for the gains the mean-square-error design chose, keeping "
                 "(28)-(29) with a small relative margin: the margins are the network's, shown at every node.", ""]
+
+    def memory_parts(self, n_nodes, n_x, rows):
+        per_run = JOINT_COPIES * 8 * (n_nodes * n_x) ** 2  # doubles
+        return [("the joint error covariance of all nodes (mode mse)", min(rows * per_run, max(MEMORY_BUDGET, per_run)),
+                 f"{JOINT_COPIES} x ({n_nodes} nodes x {n_x} states)^2 per run", "another mode")]
 
     def batch_filter(self):
         from .filter import run_mse_batch

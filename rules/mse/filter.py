@@ -61,11 +61,11 @@ from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAtt
 from filters.engine import Step, run_batch
 from filters.result import diverged_nodes
 
+from . import JOINT_COPIES, MEMORY_BUDGET  # the rule's own, which the memory estimate reads too
+
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 
 MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alone exceed MEMORY_BUDGET
-MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices held at once by one sub-batch of runs
-JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
 
 
 # --------------------------------------------------------------------------- the filter
