@@ -27,10 +27,13 @@ from pathlib import Path
 from designer.rule import RULE_NAME, GainRule
 from designer.validation import InputError
 
-__all__ = ["DEFAULT", "ENV_PATH", "names", "get", "all_rules", "choices", "add_path", "remove_path", "paths"]
+__all__ = ["DEFAULT", "PUBLISHED", "ENV_PATH", "names", "get", "all_rules", "choices", "add_path", "remove_path", "paths"]
 
 #: The rule a design takes when none is named (``--mode`` left out).
 DEFAULT = "paper"
+#: The seed paper's own rule (seed 003): the design its reproduction (``study consensus-robot``) compares against, and
+#: the consensus filter that with σ = β = τ = 0 and no neighbours is the EKF (the studies' local and centralized EKFs).
+PUBLISHED = "paper"
 #: The environment variable naming folders of further rule packages (``os.pathsep``-separated).
 ENV_PATH = "CFDESIGN_RULE_PATH"
 _ORDER = ("paper", "tuned", "mse", "scheduled", "relay", "flood")  # the built-in rules, as the help lists them

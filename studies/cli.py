@@ -307,7 +307,7 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
     failed = f", {len(fmap.failures)} failed (see the report)" if fmap.failures else ""
     counts = ", ".join(f"{c} {v}" for v, c in fmap.verdict_counts.items() if c)
     click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible{failed} "
-               f"({fmap.options.mode or 'paper'} design); verdicts: {counts}")
+               f"({fmap.options.mode or rules.DEFAULT} design); verdicts: {counts}")
 
 
 @cli.command("study")

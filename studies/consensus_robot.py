@@ -260,11 +260,12 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     if tuned is not None:
         name = f"consensus-EKF ({tuned.mode})"
         out[name] = _Variant(designed_consensus(name, tuned.mode, text.get(name, name)), tuned)
-    name = f"consensus-EKF (paper, tau={paper.tau:g})"
-    out[name] = _Variant(designed_consensus(name, "paper", text.get(name, name), start_check=True), paper)
+    name = f"consensus-EKF ({paper.mode}, tau={paper.tau:g})"
+    out[name] = _Variant(designed_consensus(name, paper.mode, text.get(name, name), start_check=True), paper)
     if tuned is None:
-        name = "consensus-EKF (paper, tau=0, no consensus)"
-        out[name] = _Variant(designed_consensus(name, "paper", text[name], start_check=True), paper._replace(tau=0.0))
+        name = f"consensus-EKF ({paper.mode}, tau=0, no consensus)"
+        out[name] = _Variant(designed_consensus(name, paper.mode, text[name], start_check=True),
+                             paper._replace(tau=0.0))
     # the literature's distributed filters: same network, same channel attacks, no design
     out[KCF] = _Variant(kcf(KCF, text[KCF]))
     out[HCMCI] = _Variant(hcmci(HCMCI, text[HCMCI]))
@@ -286,8 +287,8 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
     schedule, replayed without re-solving, or None.
     """
     sc = ref.build()
-    paper = consensus_design(sc, as_mode(options, "paper"))
-    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != "paper" else None)
+    paper = consensus_design(sc, as_mode(options, rules.PUBLISHED))
+    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != rules.PUBLISHED else None)
     for name, v in variants.items():  # a paper design that cannot start is not run (the others are, on the same runs)
         if v.entry.start_check:
             variants[name] = v._replace(infeasible=check_first_step(sc, v.design, name))
@@ -414,7 +415,7 @@ def _accepts(sc: Scenario) -> str | None:
 
 
 def _mode(so: StudyOptions) -> str:
-    return so.design.mode or "paper"
+    return so.design.mode or rules.DEFAULT
 
 
 def _iterations(so: StudyOptions) -> int:

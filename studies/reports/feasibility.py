@@ -27,6 +27,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import rules
 from designer.validation import InputError
 
 from ..feasibility_terms import FAILED, GRID_PARAMETERS, MAP_CATEGORIES, MAP_WORDS, map_category
@@ -180,7 +181,7 @@ def _cell(row: Mapping | None) -> str:
 def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
     docs = _grid_docs()
     options = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
-    mode = options.get("mode") or "paper"
+    mode = options.get("mode") or rules.DEFAULT
     out = ["## What was mapped", "",
            f"At every grid point the steady-state bound recursion (26)-(27) of the {md_escape(mode)} consensus "
            f"design of **{md_escape(scenario)}** is iterated at the scenario's operating point to a fixed point, "
@@ -292,7 +293,7 @@ def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[st
     out = ["## Summary", "", *_verdict_lines(rows, meta)]
     if good:
         out += [f"The {word} points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first "
-                f"({md_escape(mode or 'paper')} design, at the operating point; a deterministic fixed point, so no "
+                f"({md_escape(mode or rules.DEFAULT)} design, at the operating point; a deterministic fixed point, so no "
                 "Monte Carlo intervals)" + (f" (the {min(5, len(good))} lowest and the highest):" if len(good) > 6
                                             else ":"), ""]
         shown = good[:5] + (good[-1:] if len(good) > 6 else good[5:6])
