@@ -331,6 +331,40 @@ class GainRule:
         :class:`filters.consensus_batch.ConsensusBatchResult`."""
         raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
 
+    def record_notes(self) -> dict[str, str]:
+        """``schedule.json``'s words on where the design's gains and bound come from (``trajectory``, ``replay``,
+        ...): here, a seeded run of the filter."""
+        return {"trajectory": "seeded simulated run of the scenario: truth and measurements from "
+                              "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds "
+                              "along each node's own estimates and the realised DoS pattern",
+                "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
+                          "the bound holds for the linearisation points and DoS pattern it was computed along"}
+
+    def tables(self, model, network, design, steps: int, *, x0, inputs, stationary: bool = True):
+        """Its offline tables for ``steps`` steps along the nominal trajectory from ``x0`` with the known ``inputs``
+        (a rule of ``offline_tables``); ``stationary``: with the tables beyond the horizon."""
+        raise InputError(f"gain rule {self.name!r} has no offline tables")
+
+    def stationary_tables(self, model, network, design, horizon, *, inputs) -> dict:
+        """The tables beyond the horizon of ``horizon`` (its tables over the horizon, computed without them)."""
+        raise InputError(f"gain rule {self.name!r} has no offline tables")
+
+    def stationary(self, model, network, design, *, x, u):
+        """Its design's stationary certificate at the operating point ``x`` (input ``u``) and where it is computed,
+        in words: ``(certificate, where)``, the certificate a :class:`designer.scheduled.StationaryCertificate`;
+        None for a rule without one (``stationary_certificate`` False)."""
+        return None
+
+    def tradeoff_parts(self, model, network, design, steps: int, *, x, u, inputs_of, record):
+        """What its accuracy-messages trade-off needs besides the design's own run, computed beside that run
+        (``inputs_of(k)``: the known inputs of ``k`` steps; ``record``: its stationary record); None: it has none."""
+        return None
+
+    def tradeoff(self, network, n_x: int, design, steps: int, parts) -> dict | None:
+        """``schedule.json``'s ``rounds_tradeoff`` from the design (with its tables) and :meth:`tradeoff_parts`'s
+        result; None: no trade-off."""
+        return None
+
     def report_settings(self, meta: Mapping, fmt) -> list[str]:
         """The design report's paragraphs on how this rule chose the gains (markdown lines, under "Design
         settings"), from ``schedule.json``'s record ``meta`` (a file from elsewhere: read it as data); ``fmt`` is

@@ -29,7 +29,7 @@ from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from designer.scheduled import table_arrays
 from designer.validation import InputError, check_int
-from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, json_number,
+from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe,
                               open_loop_reference, open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
@@ -68,20 +68,17 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
 
 
 def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None) -> ConsensusDesign:
-    """``design`` with the offline tables of mode ``'scheduled'`` for ``steps`` steps of ``sc`` (default its
-    horizon): designed along the nominal trajectory from the operating point with the scenario's known inputs,
-    from the prior covariance (:func:`designer.scheduled.design_scheduled`).  A design of a rule without
-    ``offline_tables`` (:mod:`designer.rule`) is returned as it is."""
+    """``design`` with its rule's offline tables for ``steps`` steps of ``sc`` (default its horizon): designed
+    along the nominal trajectory from the operating point with the scenario's known inputs, from the prior
+    covariance (:meth:`designer.rule.GainRule.tables`).  A design of a rule without ``offline_tables`` is returned
+    as it is."""
     if not design.rule.offline_tables:
         return design
-    from designer.scheduled import design_scheduled
-
     steps = sc.steps if steps is None else int(steps)
     key = _tables_key(sc, design, steps)
     if key not in _TABLES:  # a deterministic function of the scenario's content and the design: computed once
         x0, _ = sc.operating_point
-        _remember(key, design_scheduled(sc.model, sc.network, design, steps, x0=x0, inputs=sc.inputs(steps),
-                                        exchange=design.exchange == "measurements"))
+        _remember(key, design.rule.tables(sc.model, sc.network, design, steps, x0=x0, inputs=sc.inputs(steps)))
     return design._replace(tables=_TABLES[key])
 
 
@@ -89,20 +86,18 @@ def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack
                         ) -> tuple[ConsensusDesign, Callable[[], ConsensusDesign]]:
     """:func:`with_tables` in two parts: ``design`` with the tables of the horizon (all that a run over the horizon
     uses) and a function that returns it with the complete tables, the part beyond the horizon (the stationary
-    tables, :func:`designer.scheduled.stationary_tables`) computed meanwhile beside this process
+    tables, :meth:`designer.rule.GainRule.stationary_tables`) computed meanwhile beside this process
     (:class:`studies.runner.Background`, entered on ``stack``).  The same tables as :func:`with_tables`; a design
     with a bank of operating points (its nodes use the bank within the horizon too), of a rule without offline
     tables, or whose tables this process has, is complete at once."""
     if not design.rule.offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
         done = with_tables(sc, design, steps)
         return done, lambda: done
-    from designer.scheduled import design_scheduled, stationary_tables
-
     x0, _ = sc.operating_point
     inputs = sc.inputs(steps)
-    horizon = design_scheduled(sc.model, sc.network, design, steps, x0=x0, inputs=inputs,
-                               exchange=design.exchange == "measurements", stationary=False)
-    late = stack.enter_context(Background(stationary_tables, sc.model, sc.network, design, horizon, inputs=inputs))
+    horizon = design.rule.tables(sc.model, sc.network, design, steps, x0=x0, inputs=inputs, stationary=False)
+    late = stack.enter_context(Background(design.rule.stationary_tables, sc.model, sc.network, design, horizon,
+                                          inputs=inputs))
 
     def complete() -> ConsensusDesign:
         tables = horizon._replace(**late.result(), horizon_state=None)
@@ -168,18 +163,13 @@ LMI_TOLERANCE = 1e-6
 
 
 def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
-    """The scheduled design's stationary certificate at the operating point (:func:`designer.scheduled.
-    stationary_certificate`) with its verdict: ``certified`` when the bound's recursion with the stationary gains
-    reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
-    stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
-    from designer.relay import relay_stationary
-    from designer.scheduled import stationary_certificate
-
+    """The design's stationary certificate at the operating point (its rule's,
+    :meth:`designer.rule.GainRule.stationary`) with its verdict: ``certified`` when the bound's recursion with the
+    stationary gains reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it
+    lies below the stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
     x0, u0 = sc.operating_point
     m = sc.model
-    relays = design.rule.relays
-    cert = relay_stationary(m, sc.network, design, x=x0, u=u0) if relays else stationary_certificate(
-        m, sc.network, design, x=x0, u=u0, exchange=design.exchange == "measurements")
+    cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0)
     open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
     lmi = cert.lmi
     confirmed = lmi is None or lmi.get("trace") is None and lmi.get("status") == "not solved" or (
@@ -192,133 +182,17 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     # a recursion that holds the conditions but does not settle is not steady; one that breaks them is infeasible
     v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
                 infeasible_reason=cert.reason if broken else None, open_loop_how=how)
-    return {**cert.describe(), "verdict": v.verdict, "lmi_tolerance": LMI_TOLERANCE,
-            "where": _RELAY_WHERE if relays else "at the operating point with the stationary gains of the tables' "
-                     "recursion there; the LMI (cvxpy + Clarabel) for the fixed point's sigma and beta"}
+    return {**cert.describe(), "verdict": v.verdict, "lmi_tolerance": LMI_TOLERANCE, "where": where}
 
 
-_RELAY_WHERE = ("at the operating point, every sensor's Jacobian there: each node's expected covariance recursion "
-                "(designer.relay.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
-                "expected update with the fixed point's gain held; the expected covariance of the linearised error "
-                "(exact for a linear model, the linearisation remainders not in it)")
-
-
-#: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
-TRADEOFF_ROUNDS = (1, 2, 4)
-#: The step at which the trade-off compares them (at most; the horizon when shorter).
-TRADEOFF_STEPS = 20
-
-
-def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int, others: dict | None = None) -> dict:
-    """The accuracy-messages trade-off of the scheduled design: for L in :data:`TRADEOFF_ROUNDS` and the design's
-    own rounds, the messages per step (``2 |E| L``) and the expected RMSE of the nodes at step
-    ``min(steps, TRADEOFF_STEPS)`` (square root of the mean over nodes of tr P_ii, the design's expected
-    covariance; for L > 1 its rounds' packet losses taken as fresh draws).  The other L are designed over those
-    steps only, without stationary tables (the first steps of a design do not depend on its horizon), and only
-    where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows; ``others``: their
-    expected RMSE as :func:`other_rounds` gives it (computed here when None)."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM
-
-    N, n = sc.network.n_nodes, sc.model.n_x
-    small = N * n <= CERTIFICATE_MAX_DIM
-    at = min(int(steps), TRADEOFF_STEPS)
-    others = other_rounds(sc, design, steps) if others is None else others
-    own = np.trace(design.tables.P_post[at], axis1=-2, axis2=-1)
-    with np.errstate(over="ignore", invalid="ignore"):  # a covariance that overflowed: no expected RMSE (null)
-        rmse = {**others, design.rounds: json_number(np.sqrt(own.mean()))}
-    rows = [{"rounds": L, "messages_per_step": sc.network.messages_per_step(L), "expected_rmse": rmse[L],
-             "designed": L == design.rounds} for L in sorted(rmse)]
-    return {"step": at, "rows": rows, "note": None if small else (
-        f"the other L are not designed here (N n = {N * n} > {CERTIFICATE_MAX_DIM}): design with --rounds L to "
-        "compare")}
-
-
-def other_rounds(sc: Scenario, design: ConsensusDesign, steps: int) -> dict[int, float]:
-    """The expected RMSE at step ``min(steps, TRADEOFF_STEPS)`` of the scheduled designs with the other exchange
-    rounds of :data:`TRADEOFF_ROUNDS` (:func:`rounds_tradeoff`), by L; none where the stacked error has more than
-    :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
-
-    if sc.network.n_nodes * sc.model.n_x > CERTIFICATE_MAX_DIM:
-        return {}
-    at = min(int(steps), TRADEOFF_STEPS)
-    x0, _ = sc.operating_point
-    out = {}
-    for L in sorted(set(TRADEOFF_ROUNDS) - {design.rounds}):
-        tab = design_scheduled(sc.model, sc.network, design._replace(rounds=L, tables=None), at, x0=x0,
-                               inputs=sc.inputs(at), exchange=design.exchange == "measurements", stationary=False)
-        with np.errstate(over="ignore", invalid="ignore"):
-            out[L] = json_number(np.sqrt(np.trace(tab.P_post[at], axis1=-2, axis2=-1).mean()))
-    return out
-
-
-def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, dict]:
-    """What a design of a rule with offline tables records beside them and does not compute from them: its
-    stationary certificate (:func:`stationary_record`) and the other exchange rounds (:func:`other_rounds`); for a
-    rule that relays, its stationary certificate and its trade-off (:func:`relay_tradeoff`)."""
-    if design.rule.relays:
-        record = stationary_record(sc, design)
-        return record, relay_tradeoff(sc, design, record)
-    return stationary_record(sc, design), other_rounds(sc, design, steps)
-
-
-#: The relay hops whose stationary accuracy a relay design reports beside its own.
-RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
-
-
-def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = None) -> dict:
-    """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
-    diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
-    measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
-    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
-    without its LMI); the design's own hops from its stationary ``record`` (:func:`stationary_record`) when given."""
-    from designer.relay import diameter, relay_routes, relay_stationary
-
+def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, object]:
+    """What a design of a rule with a stationary certificate records beside its run and does not compute from it:
+    the certificate (:func:`stationary_record`) and what its trade-off needs (:meth:`designer.rule.GainRule.
+    tradeoff_parts`: the other exchange rounds or hops)."""
     x0, u0 = sc.operating_point
-    net = sc.network
-    routing = design.rule.routing
-    hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(net)} | {design.rounds})
-    rows = []
-    for L in hops:
-        routes = relay_routes(net, L, routing)  # once per L: its values per step and its certificate
-        if record is not None and L == design.rounds:  # the certificate's own fixed point
-            rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
-        else:
-            cert = relay_stationary(sc.model, net, design._replace(rounds=L), x=x0, u=u0, lmi=False, routes=routes)
-            rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
-        rows.append({"rounds": L, "messages_per_step": net.messages_per_step(L),
-                     "values_per_step": routes.values_per_step(), "expected_rmse": rmse,
-                     "designed": L == design.rounds})
-    return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
-            "(designer.relay.relay_stationary), every state component"}
-
-
-_SCHEDULED_RECORD = {
-    "trajectory": "the tables (schedule.npz table_*) and the bound are designed offline along the nominal trajectory "
-                  "(the operating point with the known inputs, no noise) for the DoS and FDI probabilities, not "
-                  "along a run; K, C and the estimates are those of the nodes applying them on the seeded simulated "
-                  "run (SeedSequence(seed).spawn(2)), C the sum of the gains of the links whose packets arrived",
-    "replay": "every node applies the tables on any run with its own estimate, covariance and Jacobians and the "
-              "packets that arrived (rules.scheduled.filter); the bound is the expected one over the attacks along the "
-              "nominal linearisation with the remainders U, V_i, validated on fresh runs by study consensus-robot",
-    "robustness_note": "the link gains are chosen with the margin robustness = delta (schedule.json robustness): "
-                  "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "
-                  "nodes do not lean on the tables' correlations where the state leaves the nominal geometry; the "
-                  "expected covariance and the bound are those of the gains so chosen (an assumption chosen by "
-                  "measurement, designer.design.ROBUSTNESS)",
-}
-
-
-_RELAY_RECORD = {
-    "trajectory": "seeded simulated run of the scenario: truth and measurements from SeedSequence(seed).spawn(2)[0], "
-                  "channel attacks from spawn(2)[1]; each node's gain and bound (its expected covariance over the "
-                  "attacks, designer.relay.relay_update) along its own estimates and the realised arrivals",
-    "replay": "the gains are not a schedule to replay: every node computes its gain and its bound online on any run, "
-              "from its own estimate and covariance, the measurements relayed to it that arrived, and its ball's "
-              "arrival and falsification moments (designer.relay); the bound is the expected covariance of the "
-              "linearised error (exact for a linear model, the linearisation remainders not in it), validated on "
-              "fresh runs by study consensus-robot and study comparison",
-}
+    record = stationary_record(sc, design)
+    return record, design.rule.tradeoff_parts(sc.model, sc.network, design, steps, x=x0, u=u0, inputs_of=sc.inputs,
+                                              record=record)
 
 
 def _infeasible_reason(violations: list[dict]) -> str | None:
@@ -512,17 +386,11 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "sensors": [{"name": s.name, "dim": s.dim} for s in m.sensors],
             "state_names": list(m.state_names),
             "seed": seed,
-            **(_SCHEDULED_RECORD if rule.offline_tables else _RELAY_RECORD if rule.relays else {
-                "trajectory": "seeded simulated run of the scenario: truth and measurements from "
-                              "SeedSequence(seed).spawn(2)[0], channel attacks from spawn(2)[1]; gains and bounds "
-                              "along each node's own estimates and the realised DoS pattern",
-                "replay": "a filter replaying this schedule on another run keeps the gains but not the guarantee: "
-                          "the bound holds for the linearisation points and DoS pattern it was computed along"}),
+            **rule.record_notes(),
             "stationary": None if des.tables is None else des.tables.stationary,
             "bank_record": None if des.tables is None else des.tables.bank_record,
             "stationary_certificate": stationary,
-            "rounds_tradeoff": rounds_tradeoff(sc, des, steps, others) if des.tables is not None else
-            others if rule.relays else None,
+            "rounds_tradeoff": rule.tradeoff(net, m.n_x, des, steps, others) if extras is not None else None,
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,

@@ -209,7 +209,7 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     rc = main(["design", str(path), "--mode", "scheduled", "--out", str(out)])
     assert rc in (0, 1)  # 1: written but not certified
     sch = load_schedule(out, rules.get)
-    assert sch.gain_rule.runtime == "scheduled" and sch.gain_rule.deployable
+    assert sch.rule.runtime == "scheduled" and sch.rule.deployable
     assert sch.meta["exchange"] == "measurements"
     assert sch.meta["robustness"] == ROBUSTNESS  # the margin the nodes solve their gains with
     import json
@@ -377,11 +377,12 @@ def test_the_rounds_tradeoff_compares_designs_at_one_step_and_more_rounds_cost_m
     """The trade-off's L rows are designs of their own over its first steps; the designed L's row is read from the
     full design (the first steps of a design do not depend on its horizon, checked here against a short design);
     on a linear ring more rounds never raise the expected error and cost 2 |E| L messages per step."""
-    from studies.consensus_design import TRADEOFF_STEPS, rounds_tradeoff
+    from rules.scheduled.study import TRADEOFF_STEPS, other_rounds, rounds_tradeoff
 
     sc = linear_ring(n_nodes=5, fdi=0.1, dos=0.2, steps=30)
     des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0)
-    trade = rounds_tradeoff(sc, des, sc.steps)
+    others = other_rounds(sc.model, sc.network, des, sc.steps, x0=sc.model.prior.mean, inputs=sc.inputs(TRADEOFF_STEPS))
+    trade = rounds_tradeoff(sc.network, sc.model.n_x, des, sc.steps, others)
     assert trade["step"] == TRADEOFF_STEPS < sc.steps
     rows = {r["rounds"]: r for r in trade["rows"]}
     assert sorted(rows) == [1, 2, 4] and rows[1]["designed"]

@@ -26,6 +26,24 @@ class Relay(GainRule):
 
         return default_hops(network)
 
+    def record_notes(self):
+        from .study import RECORD_NOTES
+
+        return dict(RECORD_NOTES)
+
+    def stationary(self, model, network, design, *, x, u):
+        from .study import WHERE, stationary
+
+        return stationary(model, network, design, x=x, u=u), WHERE
+
+    def tradeoff_parts(self, model, network, design, steps, *, x, u, inputs_of, record):
+        from .study import relay_tradeoff
+
+        return relay_tradeoff(model, network, design, x=x, u=u, record=record)
+
+    def tradeoff(self, network, n_x, design, steps, parts):
+        return parts
+
     def batch_filter(self):
         from .filter import run_relay_design
 

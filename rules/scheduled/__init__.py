@@ -17,6 +17,37 @@ class Scheduled(GainRule):
                "each node with its own Jacobians and covariance")
     offline_tables = True
 
+    def record_notes(self):
+        from .study import RECORD_NOTES
+
+        return dict(RECORD_NOTES)
+
+    def tables(self, model, network, design, steps, *, x0, inputs, stationary=True):
+        from designer.scheduled import design_scheduled
+
+        return design_scheduled(model, network, design, steps, x0=x0, inputs=inputs,
+                                exchange=design.exchange == "measurements", stationary=stationary)
+
+    def stationary_tables(self, model, network, design, horizon, *, inputs):
+        from designer.scheduled import stationary_tables
+
+        return stationary_tables(model, network, design, horizon, inputs=inputs)
+
+    def stationary(self, model, network, design, *, x, u):
+        from .study import WHERE, stationary
+
+        return stationary(model, network, design, x=x, u=u), WHERE
+
+    def tradeoff_parts(self, model, network, design, steps, *, x, u, inputs_of, record):
+        from .study import TRADEOFF_STEPS, other_rounds
+
+        return other_rounds(model, network, design, steps, x0=x, inputs=inputs_of(min(int(steps), TRADEOFF_STEPS)))
+
+    def tradeoff(self, network, n_x, design, steps, parts):
+        from .study import rounds_tradeoff
+
+        return None if design.tables is None else rounds_tradeoff(network, n_x, design, steps, parts)
+
     def report_settings(self, meta, fmt):
         from .report import settings
 

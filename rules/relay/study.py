@@ -1,0 +1,60 @@
+"""What a relay (or flood) design records beside its run (its hooks of :class:`designer.rule.GainRule`): its
+stationary certificate at the operating point and the trade-off of hops against accuracy."""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["RECORD_NOTES", "RELAY_TRADEOFF_HOPS", "WHERE", "stationary", "relay_tradeoff"]
+
+#: The relay hops whose stationary accuracy a relay design reports beside its own.
+RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
+#: Where the stationary certificate is computed, in words (schedule.json's stationary_certificate.where).
+WHERE = ("at the operating point, every sensor's Jacobian there: each node's expected covariance recursion "
+         "(designer.relay.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
+         "expected update with the fixed point's gain held; the expected covariance of the linearised error "
+         "(exact for a linear model, the linearisation remainders not in it)")
+
+#: schedule.json's words on where the gains and the bound come from (GainRule.record_notes).
+RECORD_NOTES = {
+    "trajectory": "seeded simulated run of the scenario: truth and measurements from SeedSequence(seed).spawn(2)[0], "
+                  "channel attacks from spawn(2)[1]; each node's gain and bound (its expected covariance over the "
+                  "attacks, designer.relay.relay_update) along its own estimates and the realised arrivals",
+    "replay": "the gains are not a schedule to replay: every node computes its gain and its bound online on any run, "
+              "from its own estimate and covariance, the measurements relayed to it that arrived, and its ball's "
+              "arrival and falsification moments (designer.relay); the bound is the expected covariance of the "
+              "linearised error (exact for a linear model, the linearisation remainders not in it), validated on "
+              "fresh runs by study consensus-robot and study comparison",
+}
+
+
+def stationary(model, network, design, *, x, u):
+    """The stationary certificate at the operating point ``x`` (input ``u``): :func:`designer.relay.relay_stationary`."""
+    from designer.relay import relay_stationary
+
+    return relay_stationary(model, network, design, x=x, u=u)
+
+
+def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) -> dict:
+    """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
+    diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
+    measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
+    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
+    without its LMI); the design's own hops from its stationary ``record`` (``schedule.json``'s
+    ``stationary_certificate``) when given."""
+    from designer.relay import diameter, relay_routes, relay_stationary
+
+    routing = design.rule.routing
+    hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(network)} | {design.rounds})
+    rows = []
+    for L in hops:
+        routes = relay_routes(network, L, routing)  # once per L: its values per step and its certificate
+        if record is not None and L == design.rounds:  # the certificate's own fixed point
+            rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
+        else:
+            cert = relay_stationary(model, network, design._replace(rounds=L), x=x, u=u, lmi=False, routes=routes)
+            rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
+        rows.append({"rounds": L, "messages_per_step": network.messages_per_step(L),
+                     "values_per_step": routes.values_per_step(), "expected_rmse": rmse,
+                     "designed": L == design.rounds})
+    return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
+            "(designer.relay.relay_stationary), every state component"}
