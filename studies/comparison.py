@@ -64,8 +64,8 @@ from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
 from .consensus_design import bound_verdicts, check_first_step, consensus_design
 from .design_options import as_mode
-from .filter_registry import (Batch, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf, local_ekfs,
-                              particle_filters)
+from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf,
+                              local_ekfs, particle_filters)
 from .pipeline import Plan, Study, StudyOptions
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
@@ -87,31 +87,11 @@ FLOOD = "relay EKF (flood design)"
 KCF, HCMCI = "KCF", "HCMCI"
 HCMCI_ITERATIONS = 1  # default L: the same 2|E| messages per step as the consensus EKF and KCF
 _DESCRIPTION = {
-    TUNED: "distributed: each node runs the consensus EKF with sigma, beta and gains tuned by convex "
-           "optimisation (Clarabel) at every step; exchanges estimates with its neighbours",
-    PAPER_DESIGN: "distributed: the consensus EKF with the paper's fixed choices (sigma = beta = 0.1, "
-                  "C = 0.01 Phi)",
     PF_AWARE: "centralized bootstrap particle filter; its likelihood models lost packets and falsified ones "
               "(mixture with the falsification's moment-matched density)",
     PF_PLAIN: "centralized bootstrap particle filter; skips lost packets, trusts every received one",
     EKF_PLAIN: "centralized EKF; skips lost packets, trusts every received one (ignores attacks)",
     LOCAL: "every node alone: an EKF on its own sensor, no communication (nothing to attack)",
-    MSE: "distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node "
-         "(joint error covariance with the channels' DoS/FDI statistics), certified by the bound of the stacked "
-         "error of all nodes for them; a global oracle (its gains need the network's joint state): a reference, "
-         "not a filter to deploy",
-    SCHEDULED: "distributed: the consensus EKF whose per-link gains are designed offline for the channels' DoS/FDI "
-               "statistics (expected joint error covariance along the nominal trajectory) and applied at each node "
-               "with its own Jacobians and covariance; packets carry the sender's prediction and measurement",
-    RELAY: "distributed: every measurement relayed over L hops (the design's rounds, default the network's diameter "
-           "up to 8) along fixed shortest-path routes; each node fuses the measurements of its L-hop ball that arrived "
-           "with one gain minimising its expected covariance over the channels' DoS/FDI statistics (no consensus on "
-           "estimates); 2|E| L packets per step",
-    FLOOD: "distributed: every measurement flooded over L hops (the design's rounds, default the network's diameter "
-           "up to 8): each node forwards the first copy it receives, from any neighbour, so that a measurement "
-           "arrives when any path of the step's surviving channels is short enough; each node fuses its L-hop ball "
-           "that arrived with one gain minimising its expected covariance over the channels' DoS/FDI statistics "
-           "(moments by Monte Carlo); 2|E| L packets per step",
     KCF: "distributed, from the literature: Olfati-Saber's Kalman consensus filter (IEEE CDC 2007; CDC 2009, "
          "Algorithm 1), extended form: each node fuses its own and its neighbours' measurement information and adds "
          "a consensus term on their predictions with gain eps M_i / (1 + ||M_i||_F), eps = 0.5/d_max",
@@ -120,27 +100,34 @@ _DESCRIPTION = {
            "step on the prior and measurement information (covariance intersection), measurements scaled by the "
            "network size N (the centralized EKF as L grows, without attacks)",
 }
-# The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register).
-# Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
+# The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register),
+# a new gain rule's design filter joins by itself (its study_label and study_description). Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
 # (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
 # centre). Oracles and centralized filters are references: ranked apart, never the pick.
-_BUILT_IN = [
-    designed_consensus(TUNED, "tuned", _DESCRIPTION[TUNED]),
-    designed_consensus(PAPER_DESIGN, "paper", _DESCRIPTION[PAPER_DESIGN], start_check=True),
+_RULES = {rule.study_label: rule for rule in rules.all_rules().values()}  # every gain rule's filter, by its label
+
+
+def _designed(label: str) -> list[FilterEntry]:
+    """The filter of the gain rule whose comparison label is ``label`` (none when no rule has it)."""
+    rule = _RULES.pop(label, None)
+    return [] if rule is None else [designed_consensus(label, rule.name, rule.study_description,
+                                                       start_check=rule.fixed_multipliers)]
+
+
+FILTER_REGISTRY = FilterRegistry([
+    *_designed(TUNED),
+    *_designed(PAPER_DESIGN),
     *particle_filters((PF_AWARE, _DESCRIPTION[PF_AWARE]), (PF_PLAIN, _DESCRIPTION[PF_PLAIN])),
     centralized_ekf(EKF_PLAIN, _DESCRIPTION[EKF_PLAIN]),
     local_ekfs(LOCAL, _DESCRIPTION[LOCAL]),
-    designed_consensus(MSE, "mse", _DESCRIPTION[MSE]),
+    *_designed(MSE),
     kcf(KCF, _DESCRIPTION[KCF]),
     hcmci(HCMCI, _DESCRIPTION[HCMCI]),
-    designed_consensus(SCHEDULED, "scheduled", _DESCRIPTION[SCHEDULED]),
-    designed_consensus(RELAY, "relay", _DESCRIPTION[RELAY]),
-    designed_consensus(FLOOD, "flood", _DESCRIPTION[FLOOD]),
-]
-# and every other gain rule (a rule package added to rules/ or on CFDESIGN_RULE_PATH): its design's filter, after
-FILTER_REGISTRY = FilterRegistry(_BUILT_IN + [
-    designed_consensus(rule.study_label, rule.name, rule.study_description, start_check=rule.fixed_multipliers)
-    for rule in rules.all_rules().values() if rule.name not in {e.mode for e in _BUILT_IN if e.designed}])
+    *_designed(SCHEDULED),
+    *_designed(RELAY),
+    *_designed(FLOOD),
+    *(entry for label in list(_RULES) for entry in _designed(label)),  # every other rule's (a package added), after
+])
 FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one joins FILTER_REGISTRY, not this tuple)
 # every filter bootstraps its intervals from a stream of its own, numbered in this order first, then the registry's
 _STREAM_ORDER = (LOCAL, MSE, KCF, HCMCI)

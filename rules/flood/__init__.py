@@ -18,4 +18,14 @@ class Flood(Relay):
     routing = "flood"
 
 
+    @property
+    def study_description(self):
+        """Its filter's line in ``study comparison``."""
+        return ("distributed: every measurement flooded over L hops (the design's rounds, default the network's "
+                'diameter up to 8): each node forwards the first copy it receives, from any neighbour, so that a '
+                "measurement arrives when any path of the step's surviving channels is short enough; each node fuses "
+                "its L-hop ball that arrived with one gain minimising its expected covariance over the channels' "
+                'DoS/FDI statistics (moments by Monte Carlo); 2|E| L packets per step')
+
+
 RULE = Flood()

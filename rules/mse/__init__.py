@@ -30,6 +30,14 @@ class MSE(GainRule):
                 "the stacked error of all nodes smallest for the gains the mean-square-error design chose, keeping "
                 "(28)-(29) with a small relative margin: the margins are the network's, shown at every node.", ""]
 
+    @property
+    def study_description(self):
+        """Its filter's line in ``study comparison``."""
+        return ('distributed: the consensus EKF whose gains minimise the predicted mean-square error of every node '
+                "(joint error covariance with the channels' DoS/FDI statistics), certified by the bound of the "
+                "stacked error of all nodes for them; a global oracle (its gains need the network's joint state): a "
+                'reference, not a filter to deploy')
+
     def memory_parts(self, n_nodes, n_x, rows):
         per_run = JOINT_COPIES * 8 * (n_nodes * n_x) ** 2  # doubles
         return [("the joint error covariance of all nodes (mode mse)", min(rows * per_run, max(MEMORY_BUDGET, per_run)),

@@ -1,4 +1,4 @@
-"""Gain rule ``paper``: the seed paper's design — σ, β and τ fixed by the user, ``C = τ Φ_pred`` and the gain (30)."""
+"""Gain rule ``paper``: the seed paper's design — σ, β and τ fixed by the user, ``C = τ Φ_pred``, the gain (30)."""
 from __future__ import annotations
 
 from designer.rule import GainRule
@@ -23,8 +23,13 @@ class Paper(GainRule):
                 "the consensus gain C = τ Φ_{k+1|k} and K by (30).", ""]
 
     def report_margins(self, meta):
-        return ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's bound "
-                "ends.", ""]
+        return ["In paper mode σ and β are fixed, so a margin falls as Φ grows; where one reaches 0 the node's "
+                "bound ends.", ""]
+
+    @property
+    def study_description(self):
+        """Its filter's line in ``study comparison``."""
+        return ("distributed: the consensus EKF with the paper's fixed choices (sigma = beta = 0.1, C = 0.01 Phi)")
 
     def batch_filter(self):
         from .filter import STEPS

@@ -44,6 +44,18 @@ class Relay(GainRule):
     def tradeoff(self, network, n_x, design, steps, parts):
         return parts
 
+    @property
+    def study_label(self):
+        return f"relay EKF ({self.name} design)"
+
+    @property
+    def study_description(self):
+        """Its filter's line in ``study comparison``."""
+        return ("distributed: every measurement relayed over L hops (the design's rounds, default the network's "
+                'diameter up to 8) along fixed shortest-path routes; each node fuses the measurements of its L-hop '
+                "ball that arrived with one gain minimising its expected covariance over the channels' DoS/FDI "
+                'statistics (no consensus on estimates); 2|E| L packets per step')
+
     def batch_filter(self):
         from .filter import run_relay_design
 

@@ -24,6 +24,12 @@ class Tuned(GainRule):
         return ["In tuned mode σ and β are chosen at every node and step to keep (28)-(29) with a small relative "
                 "margin (see `designer.tuning`): the margins show how much room the tuning left.", ""]
 
+    @property
+    def study_description(self):
+        """Its filter's line in ``study comparison``."""
+        return ('distributed: each node runs the consensus EKF with sigma, beta and gains tuned by convex '
+                'optimisation (Clarabel) at every step; exchanges estimates with its neighbours')
+
     def batch_filter(self):
         from .filter import STEPS
 
