@@ -75,7 +75,7 @@ _SHORT = {"local": "computed online at each node", "scheduled": "designed offlin
 RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Python identifier), its --mode
 
 
-EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first is its default
+EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first its default
 RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (GainRule.relays)
 #: The default robustness margin δ of a tabled design's link gains (:func:`designer.scheduled.link_gains`;
 #: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations

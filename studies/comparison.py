@@ -101,7 +101,8 @@ _DESCRIPTION = {
            "network size N (the centralized EKF as L grows, without attacks)",
 }
 # The filters compared, in the order of the arrays and tables: a new filter is one entry (FILTER_REGISTRY.register),
-# a new gain rule's design filter joins by itself (its study_label and study_description). Each records what it needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
+# a new gain rule's design filter joins by itself (its study_label and study_description). Each records what it
+# needs at run time (designer.rule.FILTER_RUNTIMES): a designed filter its gain rule's
 # (mse: global, an oracle); KCF, HCMCI and the local EKFs local; the centralized filters centralized (a fusion
 # centre). Oracles and centralized filters are references: ranked apart, never the pick.
 _RULES = {rule.study_label: rule for rule in rules.all_rules().values()}  # every gain rule's filter, by its label

@@ -21,7 +21,6 @@ from typing import Callable
 
 import numpy as np
 
-import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
 from designer.rule import GainRule
 from designer.mse import conditioning
@@ -36,7 +35,7 @@ from filters.consensus import run_consensus
 from filters.consensus_batch import ConsensusResult
 from filters.result import HARD_CONDITIONS
 
-from .design_options import effective
+from .design_options import effective, rule_of
 from .invocation import design_invocation
 from .provenance import design_seal
 from .results import versions
@@ -62,7 +61,7 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
+    des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
     return with_tables(sc, des, steps)
 
@@ -344,7 +343,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts, x0=x0, u0=u0,
+    des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
     m, net, rule = sc.model, sc.network, des.rule
     with contextlib.ExitStack() as stack:

@@ -14,7 +14,12 @@ from designer.validation import InputError
 
 from .scenarios.base import Scenario
 
-__all__ = ["effective", "as_mode"]
+__all__ = ["effective", "as_mode", "rule_of"]
+
+
+def rule_of(options: DesignOptions | None):
+    """The gain rule of ``options`` (:func:`rules.get` of its mode; :data:`rules.DEFAULT` when it names none)."""
+    return rules.get((options.mode if options is not None else None) or rules.DEFAULT)
 
 
 def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions]:

@@ -66,7 +66,7 @@ from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_refe
 
 import studies.memory as memory
 from .consensus_design import stationary_record
-from .design_options import effective
+from .design_options import effective, rule_of
 from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
 from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
@@ -194,9 +194,8 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     att = sc_p.resolved_attacks
     try:
         with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
-            return sc_p, make_design(sc_p.model, sc_p.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=att.delta, options=opts,
-                                     x0=x0, u0=u0,
-                                     signal=att.signal)
+            return sc_p, make_design(sc_p.model, sc_p.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0,
+                                     u0=u0, signal=att.signal)
     except _POINT_ERRORS as exc:
         if strict:
             raise
@@ -262,7 +261,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     N = sc.network.n_nodes
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
-    if rules.get(options.mode or rules.DEFAULT).stationary_certificate:  # the design's own at each point
+    if rule_of(options).stationary_certificate:  # the design's own at each point
         res = iter([_scheduled_row(*item) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)

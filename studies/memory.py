@@ -286,11 +286,11 @@ def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
     """The phases of a consensus design (studies.consensus_design.consensus_design) of ``options`` merged with
     ``sc``'s defaults: the Hessians of the 'prior' scalings; then, for a rule with offline tables (``scheduled``),
     the tables along ``steps`` steps, a consensus filter's run."""
-    from .design_options import effective
+    from .design_options import effective, rule_of
 
     sc, opts = effective(sc, options)
     phases = [[_prior_hessians(sc.model, opts)]]
-    if rules.get(opts.mode or rules.DEFAULT).offline_tables:
+    if rule_of(opts).offline_tables:
         phases.append(_consensus(sc.model, sc.network, 1, steps, opts.mode, opts.linearization,
                                  "the design's offline tables", reduce))
     return phases

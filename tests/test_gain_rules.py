@@ -207,7 +207,8 @@ def test_a_rule_kept_outside_the_repository_runs_through_the_commands(extra_rule
     assert ran.returncode == 0, ran.stderr
     ref = cfdesign("filter", LINEAR, "--data", "run.npz", "--schedule", "paper", "--out", "filtered-paper")
     assert ref.returncode == 0, ref.stderr
-    with np.load(tmp_path / "filtered" / "estimates.npz") as a, np.load(tmp_path / "filtered-paper" / "estimates.npz") as b:
+    with np.load(tmp_path / "filtered" / "estimates.npz") as a, \
+            np.load(tmp_path / "filtered-paper" / "estimates.npz") as b:
         numeric = [k for k in a.files if a[k].dtype.kind in "fiub"]
         assert sorted(a.files) == sorted(b.files) and "x_hat" in numeric
         assert all(np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f") for k in numeric)

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_discrete_lyapunov
 
-import rules
 from designer.verdict import (GROWTH_TOLERANCE, MIN_WINDOW, VERDICTS, count_verdicts, describe, open_loop_reference,
                               open_loop_traces, steadiness_window, verdict)
 from studies.cli import main
@@ -293,7 +292,7 @@ def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_o
     limit (unbounded: vacuous); each verdict recomputed here from the point's fixed point per node."""
     from designer.design import DesignOptions, make_design
     from designer.feasibility import steady_state
-    from studies.design_options import effective
+    from studies.design_options import effective, rule_of
     from studies.scenarios import scenario_of
 
     path = _write(tmp_path, "small.py", SMALL)
@@ -309,7 +308,8 @@ def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_o
     H, R = [np.eye(2)] * 3, [0.05 * np.eye(2)] * 3
     for r in rows:
         sc, opts = effective(scenario_of(str(path)), DesignOptions(mode="tuned", v_scale=float(r["v_scale"])))
-        des = make_design(sc.model, sc.network, rule=rules.get(opts.mode or rules.DEFAULT), delta=0.0, options=opts, x0=np.zeros(2))
+        des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=0.0, options=opts,
+                          x0=np.zeros(2))
         st = steady_state(0.9 * np.eye(2), H, 0.1 * np.eye(2), R, sc.network, epsilon=des.epsilon, delta=0.0, U=des.U,
                           V=des.V, phi0=0.2 * np.eye(2))
         if st.feasible:

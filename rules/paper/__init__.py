@@ -1,4 +1,4 @@
-"""Gain rule ``paper``: the seed paper's design — σ, β and τ fixed by the user, ``C = τ Φ_pred``, the gain (30)."""
+"""Gain rule ``paper``: the seed paper's design — σ, β and τ fixed by the user, ``C = τ Φ_pred``, gain (30)."""
 from __future__ import annotations
 
 from designer.rule import GainRule

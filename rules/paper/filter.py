@@ -1,5 +1,6 @@
 """The paper rule's steps over Theorem 1's recursion, batched over stacked (run, node) items: σ and β fixed by the
-user, ``C = τ Φ_pred``, the gain (30) and the bound (27) (run by :func:`filters.consensus_batch.run_consensus_batch`)."""
+user, ``C = τ Φ_pred``, the gain (30) and the bound (27) (run by
+:func:`filters.consensus_batch.run_consensus_batch`)."""
 from __future__ import annotations
 
 import numpy as np

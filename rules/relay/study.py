@@ -28,7 +28,8 @@ RECORD_NOTES = {
 
 
 def stationary(model, network, design, *, x, u):
-    """The stationary certificate at the operating point ``x`` (input ``u``): :func:`designer.relay.relay_stationary`."""
+    """The stationary certificate at the operating point ``x`` (input ``u``):
+    :func:`designer.relay.relay_stationary`."""
     from designer.relay import relay_stationary
 
     return relay_stationary(model, network, design, x=x, u=u)

@@ -36,11 +36,12 @@ def settings(meta: Mapping, fmt) -> list[str]:
                          f"{fmt.fmt_num(lmi['trace'])}, its own recursion step exceeding it by "
                          f"{fmt.fmt_num(lmi.get('relative_residual'))} of its largest eigenvalue")
             elif lmi.get("status"):
-                what += f"; the LMI was {fmt.md_escape(str(lmi.get('status')))} ({fmt.md_escape(str(lmi.get('reason')))})"
+                what += (f"; the LMI was {fmt.md_escape(str(lmi.get('status')))} "
+                         f"({fmt.md_escape(str(lmi.get('reason')))})")
         else:
             what = f"does not: {fmt.md_escape(str(sc_.get('reason')))}"
-        out += [f"**Stationary certificate** (verdict: {fmt.md_escape(str(sc_.get('verdict')))}): the bound's recursion "
-                "at the operating point with the stationary gains " + what + ".", ""]
+        out += [f"**Stationary certificate** (verdict: {fmt.md_escape(str(sc_.get('verdict')))}): the bound's "
+                "recursion at the operating point with the stationary gains " + what + ".", ""]
     out += [f"Robustness margin δ = {fmt.fmt_num(meta.get('robustness'))}: each link's gains are chosen as if the "
             "neighbour's difference carried an extra independent error δ P_ii (a node never leans on its "
             "neighbours by more than tr P⁻ / δ).", ""]

@@ -6,7 +6,8 @@ import numpy as np
 
 from designer.verdict import json_number
 
-__all__ = ["RECORD_NOTES", "TRADEOFF_ROUNDS", "TRADEOFF_STEPS", "WHERE", "stationary", "other_rounds", "rounds_tradeoff"]
+__all__ = ["RECORD_NOTES", "TRADEOFF_ROUNDS", "TRADEOFF_STEPS", "WHERE", "stationary", "other_rounds",
+           "rounds_tradeoff"]
 
 #: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
 TRADEOFF_ROUNDS = (1, 2, 4)
