@@ -294,19 +294,6 @@ class ConsensusBatchResult(NamedTuple):
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
 
-    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound", rounds: int = 1
-                  ) -> FilterResult:
-        """These runs as a :class:`filters.result.FilterResult`: ``x_post``, Φ (``phi_post``, a bound where
-        ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
-        the EKF's own covariance), the violations, one message per directed link of ``network`` per step
-        and exchange round (``2 |E| rounds``, lost ones included) and the packets received (``gate_counts``' first
-        column), ``runtime`` the gain rule's (:attr:`designer.rule.GainRule.runtime`)."""
-        runs, steps = self.x_pred.shape[:2]
-        return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
-                            constant_messages(runs, steps, network.messages_per_step(rounds)), runtime,
-                            delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
-                            detail=self).check()
-
 
 # --------------------------------------------------------------------------- gains and bounds per mode
 class PredictionChoice(NamedTuple):
@@ -560,7 +547,8 @@ def update_nodes(model: Model, design: ConsensusDesign, groups, update_rule, k: 
 def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                        phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None) -> ConsensusBatchResult:
+                        phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None, runtime: str | None = None,
+                        cov_kind: str = "bound", messages: int | None = None) -> FilterResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -584,12 +572,23 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         Replay a fixed gain schedule in every run instead of computing the gains (any mode): ``K`` (steps', N,
         n_x, n_z') with node ``i``'s gain in its first ``n_z_i`` columns, ``C`` (steps', N, n_x, n_x), steps' >=
         steps.  Every node then runs the fallback recursion (no bound claimed, ``valid`` False throughout).
+    runtime : str, optional
+        What the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`): by default the gain rule's
+        (:attr:`designer.rule.GainRule.runtime`), ``'scheduled'`` for a replayed gain schedule.
+    cov_kind : {'bound', 'covariance'}
+        What Φ is: the design's bound (default), or the filter's own covariance (the design reduced to the EKF,
+        σ = β = 0 and U = V = 0).
+    messages : int, optional
+        Transmissions per step (default: one per directed link of the network and exchange round, ``2 |E| rounds``
+        with the design's rounds, one round for a replay; lost ones included).
 
     Returns
     -------
-    ConsensusBatchResult
-        One entry per run (:meth:`ConsensusBatchResult.run` gives run ``r`` as a ``ConsensusResult``; a run
-        alone, :func:`filters.consensus.run_consensus`, is a batch of one).
+    FilterResult
+        ``x_post``, Φ (``phi_post``, trusted where ``valid``), the violations, ``messages`` per step and the
+        packets received (``gate_counts``' first column); ``detail`` the :class:`ConsensusBatchResult` of the runs
+        (:meth:`ConsensusBatchResult.run` gives run ``r`` as a ``ConsensusResult``; a run alone,
+        :func:`filters.consensus.run_consensus`, is a batch of one).
 
     Raises
     ------
@@ -601,6 +600,21 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
+    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains)
+    replay = gains is not None
+    if messages is None:
+        messages = network.messages_per_step(1 if replay else design.rounds)
+    if runtime is None:
+        runtime = "scheduled" if replay else design.rule.runtime
+    return FilterResult(res.x_post, res.phi_post, cov_kind, res.valid, res.violations,
+                        constant_messages(runs, steps, messages), runtime,
+                        delivered=None if res.gate_counts is None else res.gate_counts[..., 0], detail=res).check()
+
+
+def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
+                    inputs, attacks, gains) -> ConsensusBatchResult:
+    """The runs of :func:`run_consensus_batch` (its inputs checked), as the family's arrays."""
+    runs, steps = z.shape[:2]
     ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     filt = None if gains is not None else design.rule.batch_filter()

@@ -58,10 +58,10 @@ from designer.validation import InputError, check_int
 from filters.attacks import AttackPattern
 from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from filters.distributed import DistributedBatchResult
+from filters.distributed import DistributedBatchResult, distributed_result
 from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
-from filters.result import DIVERGED_REASON, diverged_nodes
+from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -151,7 +151,7 @@ def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, 
 
 def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                    signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
+                    signal: FDISignal | None = None, routing: str = "tree") -> FilterResult:
     """The relay filter (module docstring) at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -169,9 +169,18 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         its tree parent's (default) or the first to arrive from any neighbour (:meth:`designer.relay.Routes.realise`;
         the moments then by Monte Carlo, :func:`designer.relay.flood_moments`).
 
-    Returns a :class:`filters.distributed.DistributedBatchResult` (``iterations`` = ``hops``; ``P_post`` each node's
-    expected posterior covariance of the relay rule).
+    Returns :func:`filters.distributed.distributed_result` of the runs: ``cov`` each node's expected posterior
+    covariance of the relay rule, ``detail`` a :class:`filters.distributed.DistributedBatchResult` (``iterations`` =
+    ``hops``).
     """
+    return distributed_result(_relay_runs(model, network, z, hops, inputs=inputs, attacks=attacks, x0=x0, P0=P0,
+                                          signal=signal, routing=routing))
+
+
+def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
+                attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
+                signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
+    """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays."""
     if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
         raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
                          f"{getattr(network, 'n_nodes', type(network).__name__)}")
@@ -373,8 +382,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         idx = np.array([r for r, k in enumerate(keys) if k == key])
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
-        res = run_relay_batch(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
-                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
+        res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
+                          attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
         out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
         out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
         out["gate_counts"][idx, :, 0] = res.delivered_per_step
