@@ -353,11 +353,10 @@ def particle_filters(aware: tuple[str, str], plain: tuple[str, str]) -> tuple[Fi
         q_rows = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs] * R)
         with naming_filter([names[c] for _ in range(R * S) for c in range(2)],
                            [batch.run_ids[a] for a in range(R) for _ in range(2 * S)]):
-            res = run_sir(m, np.stack([batch.received[j][a] for a in range(R) for j in range(S) for _ in range(2)]),
+            out = run_sir(m, np.stack([batch.received[j][a] for a in range(R) for j in range(S) for _ in range(2)]),
                           streams, blocks=blocks, particles=batch.particles,
                           inputs=None if batch.inputs is None else np.repeat(batch.inputs, 2 * S, axis=0),
                           loglik=uplink_loglik(m, fdi_prob=q_rows, fdi_covs=covs))
-        out = res.to_result(m.n_sensors)
         return out._replace(seconds=np.full(out.runs, (time.perf_counter() - t0) / (2 * S * R)))
 
     def entry(c: int, name: str, description: str) -> FilterEntry:
