@@ -8,10 +8,13 @@ description, what it needs from the study (a design of a gain rule, particles) a
 design)``, which runs it on every run of a :class:`Batch` at the given settings at once.  A study iterates
 over a :class:`FilterRegistry`: a new filter is one entry (``registry.register(entry)``), nothing else.
 
-The entries of the project's filter families are made by the factories below:
-:func:`designed_consensus` (the consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node
-alone), :func:`kcf` and :func:`hcmci` (the literature's distributed filters), :func:`centralized_ekf` and
-:func:`particle_filters` (a fusion centre receiving every uplink).  The registry lives in ``studies`` (not in
+Every filter returns its :class:`filters.result.FilterResult` itself (its family's arrays in ``detail``), so an
+entry's ``run`` is a call of its filter on the batch's rows and nothing else: no conversion happens here.  The
+entries of the project's filter families are made by the factories below: :func:`designed_consensus` (the
+consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone), :func:`replayed_schedule` (a
+gain schedule replayed), :func:`kcf` and :func:`hcmci` (the literature's distributed filters),
+:func:`centralized_consensus_ekf`, :func:`centralized_ekf` and :func:`particle_filters` (a fusion centre receiving
+every uplink).  The registry lives in ``studies`` (not in
 ``filters``) because a designed entry needs a design made by :mod:`studies.consensus_design`.
 """
 from __future__ import annotations

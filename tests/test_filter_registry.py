@@ -136,6 +136,36 @@ def test_the_filters_results_keep_each_familys_numbers(tank):
     assert np.allclose(one.x, eb.x[0], rtol=0, atol=1e-9, equal_nan=True)
 
 
+def test_every_batched_filter_returns_a_checked_filter_result_with_what_its_parameters_say(tank):
+    from filters.particle import SIRResult, run_sir
+    from rules.relay.filter import run_relay_batch
+
+    batch = _batch(tank, settings=((0.2, 0.1),))
+    m, net = tank.model, tank.network
+    paper = consensus_design(tank)._replace(sigma=0.01, beta=0.01)
+    links = 2 * len(net.edges)
+    K = np.zeros((tank.steps, net.n_nodes, m.n_x, 1))
+    C = np.zeros((tank.steps, net.n_nodes, m.n_x, m.n_x))
+    replay = run_consensus_batch(m, net, batch.z, paper, gains=(K, C))
+    assert replay.runtime == "scheduled" and replay.cov_kind == "bound" and (replay.messages == links).all()
+    assert not replay.valid.any() and np.array_equal(replay.detail.K, K[None].repeat(RUNS, 0))
+    centre = run_consensus_batch(m, net, batch.z, paper, runtime="centralized", cov_kind="covariance", messages=3)
+    assert centre.runtime == "centralized" and centre.cov_kind == "covariance" and (centre.messages == 3).all()
+    assert np.array_equal(centre.x, run_consensus_batch(m, net, batch.z, paper).x, equal_nan=True)
+    relay = run_relay_batch(m, net, batch.z, 2, signal=tank.resolved_attacks.signal)
+    assert relay.runtime == "local" and relay.cov_kind == "covariance" and (relay.messages == 2 * links).all()
+    assert relay.detail.iterations == 2 and relay.x is relay.detail.x_post
+    values, avail = split_received(m, np.stack(batch.received[0]))
+    pf = run_sir(m, np.where(np.repeat(avail, m.sensor_dims, axis=-1), values, 0.0), np.random.default_rng(0),
+                 particles=20, uplinks=5)
+    assert isinstance(pf.detail, SIRResult) and pf.nodes == 1 and pf.runtime == "centralized"
+    assert np.array_equal(pf.x[:, :, 0], pf.detail.mean) and np.array_equal(pf.cov[:, :, 0], pf.detail.cov)
+    assert (pf.messages == 5).all() and (run_sir(m, np.zeros((1, 2, m.n_z)), np.random.default_rng(0),
+                                                  particles=5).messages == m.n_sensors).all()
+    for res in (replay, centre, relay, pf):
+        assert isinstance(res, FilterResult) and res.check() is res
+
+
 def test_a_run_is_diverged_at_its_first_non_finite_estimate():
     x = np.zeros((3, 8, 2))
     x[1, 5, 1] = np.nan
