@@ -25,8 +25,8 @@ __all__ = ["EKFResult", "run_ekf", "run_ekf_batch"]
 class EKFResult(NamedTuple):
     """The EKF's own arrays: a run of :func:`run_ekf`, or the ``detail`` of :func:`run_ekf_batch`'s result."""
 
-    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean; (runs, K + 1, n_x) from run_ekf_batch
-    P: np.ndarray  # (K + 1, n_x, n_x); (runs, K + 1, n_x, n_x) from run_ekf_batch
+    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean; (runs, K + 1, n_x) as run_ekf_batch's detail
+    P: np.ndarray  # (K + 1, n_x, n_x); (runs, K + 1, n_x, n_x) as its detail
 
 
 
