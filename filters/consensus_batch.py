@@ -68,7 +68,8 @@ from .rrp import wrap_angles
 # the reason of a (28) violation where a bound's trace reached the limit (every mode that certifies a bound)
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "consensus_result",
+           "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
@@ -601,14 +602,27 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
     res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains)
-    replay = gains is not None
+    return consensus_result(res, network, design, runtime=runtime, cov_kind=cov_kind, messages=messages,
+                            replay=gains is not None)
+
+
+def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, design: ConsensusDesign, *,
+                     runtime: str | None = None, cov_kind: str = "bound", messages: int | None = None,
+                     replay: bool = False) -> FilterResult:
+    """The :class:`filters.result.FilterResult` a consensus-family filter returns (:func:`run_consensus_batch`, a
+    gain rule's own batch filter): ``x_post``, Φ (``phi_post``, trusted where ``valid``), the violations,
+    ``messages`` per step (default: ``2 |E| rounds`` on ``network`` with the design's rounds, one for a ``replay``)
+    and the packets received (``gate_counts``' first column); ``runtime`` by default the gain rule's
+    (``'scheduled'`` for a replay); ``detail`` the runs' :class:`ConsensusBatchResult`."""
+    runs, steps = detail.x_pred.shape[:2]
     if messages is None:
         messages = network.messages_per_step(1 if replay else design.rounds)
     if runtime is None:
         runtime = "scheduled" if replay else design.rule.runtime
-    return FilterResult(res.x_post, res.phi_post, cov_kind, res.valid, res.violations,
+    return FilterResult(detail.x_post, detail.phi_post, cov_kind, detail.valid, detail.violations,
                         constant_messages(runs, steps, messages), runtime,
-                        delivered=None if res.gate_counts is None else res.gate_counts[..., 0], detail=res).check()
+                        delivered=None if detail.gate_counts is None else detail.gate_counts[..., 0],
+                        detail=detail).check()
 
 
 def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
@@ -620,7 +634,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
     filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
-                    phi0=phi0)
+                    phi0=phi0).detail
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
     replay = gains is not None

@@ -51,7 +51,7 @@ def _runs(sc, design, runs, seed):
     draws = [_draw(sc, seed, (r,)) for r in range(runs)]
     z, attacks = np.stack([t.z for t, _ in draws]), [a for _, a in draws]
     if design.mode == "mse":
-        res = run_mse_batch(sc.model, sc.network, z, design, attacks=attacks)
+        res = run_mse_batch(sc.model, sc.network, z, design, attacks=attacks).detail
     else:
         res = run_consensus_batch(sc.model, sc.network, z, design, attacks=attacks).detail
     return np.stack([t.x for t, _ in draws]), res

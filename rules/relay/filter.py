@@ -56,7 +56,7 @@ from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
-from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from filters.distributed import DistributedBatchResult, distributed_result
 from filters.engine import Step, estimate_arrays, run_batch
@@ -354,7 +354,7 @@ def _node_update(Pp, Hw, mom, M, mu):
 def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                     phi0=None) -> ConsensusBatchResult:
+                     phi0=None) -> FilterResult:
     """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
@@ -364,7 +364,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     is each node's expected posterior covariance of the relay rule (its bound, ``valid`` where finite; the
     linearisation remainders are not in it), ``predicted_mse`` its trace, ``C`` zero (no consensus on estimates),
     ``K`` NaN (a node's gain weighs its whole ball, not one measurement of its own: none is recorded) and the first
-    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops).
+    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops): the ``detail`` of
+    the :func:`filters.consensus_batch.consensus_result` it returns.
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -392,7 +393,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     out["C"][:] = 0.0
     out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
-    return ConsensusBatchResult(**out)
+    return consensus_result(ConsensusBatchResult(**out), first, design)
 
 
 class RelayNode:
