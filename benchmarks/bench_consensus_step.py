@@ -109,7 +109,7 @@ def measure(sc, label, runs: int, steps: int, repeats: int, batch_repeats: int, 
     out = {}
 
     def batched():
-        out["result"] = run_consensus_batch(sc.model, sc.network, traj.z, des, inputs=traj.inputs, attacks=att)
+        out["result"] = run_consensus_batch(sc.model, sc.network, traj.z, des, inputs=traj.inputs, attacks=att).detail
 
     t_batch = best_time(batched, batch_repeats)
     ref = run_consensus(sc.model, sc.network, traj.z[0], des, inputs=traj.inputs, attacks=first)

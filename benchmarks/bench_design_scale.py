@@ -213,15 +213,15 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
     truth, z, edges, vals, avail = draw_runs(sc, runs, seed)
     m, net = sc.model, sc.network
     t = time.perf_counter()
-    res = run_consensus_batch(m, net, z, des, attacks=edges)
+    res = run_consensus_batch(m, net, z, des, attacks=edges).detail
     filter_s = time.perf_counter() - t
     finite = bool(np.isfinite(res.x_post).all())
     sched, sched_div = position_rmse(sc, truth, res.x_post)
     pos = list(sc.model.position_index)
     expected = float(np.sqrt(np.trace(tab.P_post[1:, :, pos][..., pos], axis1=-2, axis2=-1).mean()))
     engine_div = sum(d is not None for d in res.diverged)
-    cekf, cekf_div = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).x[:, :, None])
-    clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).x[:, :, None])
+    cekf, cekf_div = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).detail.x[:, :, None])
+    clean, clean_div = position_rmse(sc, truth, run_ekf_batch(m, z).detail.x[:, :, None])
     row = {"nodes": nodes, "grid": "x".join(map(str, GRIDS[nodes])), "edges": int(net.adjacency.sum()) // 2,
            "d_max": int(net.d_max), "exchange": des.exchange, "rounds": des.rounds, "bank": des.bank,
            "bank_points": 0 if tab.bank_record is None else tab.bank_record["points"],
@@ -238,11 +238,11 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     if local:
         isolated = SensorNetwork(nodes, np.zeros((nodes, nodes), int), require_connected=False)
-        res = run_consensus_batch(m, isolated, z, local_ekf_design(consensus_design(sc)))
+        res = run_consensus_batch(m, isolated, z, local_ekf_design(consensus_design(sc))).detail
         row["rmse_local"], row["diverged"]["local"] = position_rmse(sc, truth, res.x_post)
         row["ratio_local"] = row["rmse_local"] / cekf
     for L in hcmci:  # the literature's rounds on the clean runs, against the clean centralized EKF
-        res = run_hcmci_batch(m, net, z, iterations=L, omega="consistent")
+        res = run_hcmci_batch(m, net, z, iterations=L, omega="consistent").detail
         e, div = position_rmse(sc, truth, res.x_post)
         row.setdefault("hcmci", []).append({"rounds": L, "rmse_clean_runs": e, "ratio_clean": e / clean,
                                             "diverged": div})

@@ -62,11 +62,11 @@ def measure(name: str, runs: int, per_run: int, repeats: int) -> list[dict]:
     ui = (lambda r: None) if u is None else (lambda r: u[r])  # noqa: E731
     filters = {
         "KCF": (lambda r: run_kcf(m, net, z[r], inputs=ui(r), attacks=pats[r]).x_post,
-                lambda: run_kcf_batch(m, net, z, inputs=u, attacks=pats).x_post),
+                lambda: run_kcf_batch(m, net, z, inputs=u, attacks=pats).detail.x_post),
         "HCMCI": (lambda r: run_hcmci(m, net, z[r], inputs=ui(r), attacks=pats[r]).x_post,
-                  lambda: run_hcmci_batch(m, net, z, inputs=u, attacks=pats).x_post),
+                  lambda: run_hcmci_batch(m, net, z, inputs=u, attacks=pats).detail.x_post),
         "centralized EKF": (lambda r: run_ekf(m, vals[r], available=avail[r], inputs=ui(r)).x,
-                            lambda: run_ekf_batch(m, vals, available=avail, inputs=u).x),
+                            lambda: run_ekf_batch(m, vals, available=avail, inputs=u).detail.x),
     }
     rows = []
     for label, (one, batch) in filters.items():

@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     zeta, _ = attack_threshold(N, ch.prob)
     u = sc.inputs(K)
     filters = {
-        "plain bootstrap (run_sir, no attack handling)": lambda g: run_sir(m, att.y, g, particles=N, inputs=u),
+        "plain bootstrap (run_sir, no attack handling)": lambda g: run_sir(m, att.y, g, particles=N, inputs=u).detail,
         "normal PF (under attack)": lambda g: run_sis(m, att.y, [g], particles=N, inputs=u,
                                                       detector=normal_detector(m, eta), zeta=zeta),
         "proposed (modified PF)": lambda g: run_sis(m, att.y, [g], particles=N, inputs=u,

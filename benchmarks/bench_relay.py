@@ -49,12 +49,12 @@ def measure(folder: Path, nodes: int, routings, hops_list, runs: int, steps: int
     sc = grid_scenario(folder, nodes, steps)
     truth, z, edges, vals, avail = draw_runs(sc, runs, seed)
     m, net = sc.model, sc.network
-    cekf, _ = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).x[:, :, None])
+    cekf, _ = position_rmse(sc, truth, run_ekf_batch(m, vals, available=avail).detail.x[:, :, None])
     pos = list(m.position_index)
     rows = []
     for routing, hops in [(r, h) for r in routings for h in hops_list]:
         t, c = time.perf_counter(), time.process_time()
-        res = run_relay_batch(m, net, z, hops, attacks=edges, signal=sc.resolved_attacks.signal, routing=routing)
+        res = run_relay_batch(m, net, z, hops, attacks=edges, signal=sc.resolved_attacks.signal, routing=routing).detail
         wall, cpu = time.perf_counter() - t, time.process_time() - c
         rmse, div = position_rmse(sc, truth, res.x_post)
         err2 = ((truth[:, 1:, None, pos] - res.x_post[:, 1:][..., pos]) ** 2).sum(-1)

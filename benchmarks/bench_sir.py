@@ -127,7 +127,7 @@ def table1_numpy(sc, d: dict, particles: int) -> tuple[float, dict]:
     }
     out, t0 = {}, time.perf_counter()
     for i, (name, (z, ll)) in enumerate(filters.items()):
-        res = run_sir(m, z, np.random.default_rng(i), particles=particles, runs=R, loglik=ll)
+        res = run_sir(m, z, np.random.default_rng(i), particles=particles, runs=R, loglik=ll).detail
         out[name] = dict(rmse_p=rmse(res.mean, d["x"], m.position_index))
     return time.perf_counter() - t0, out
 

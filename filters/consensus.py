@@ -124,4 +124,4 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     if attacks is not None and not isinstance(attacks, AttackPattern):
         raise InputError(f"attacks must be a filters.attacks.AttackPattern, got {type(attacks).__name__}")
     return run_consensus_batch(model, network, z[None], design, inputs=u, x0=x0, phi0=phi0,
-                               attacks=None if attacks is None else [attacks], gains=gains).run(0)
+                               attacks=None if attacks is None else [attacks], gains=gains).detail.run(0)

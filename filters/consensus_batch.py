@@ -68,7 +68,8 @@ from .rrp import wrap_angles
 # the reason of a (28) violation where a bound's trace reached the limit (every mode that certifies a bound)
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
-__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "NodeRule", "PredictionChoice",
+__all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "consensus_result",
+           "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
@@ -293,19 +294,6 @@ class ConsensusBatchResult(NamedTuple):
     def diverged(self) -> list:
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
-
-    def to_result(self, network: SensorNetwork, runtime: str, cov_kind: str = "bound", rounds: int = 1
-                  ) -> FilterResult:
-        """These runs as a :class:`filters.result.FilterResult`: ``x_post``, Φ (``phi_post``, a bound where
-        ``valid``; ``cov_kind="covariance"`` for the design reduced to the EKF, σ = β = 0 and U = V = 0, whose Φ is
-        the EKF's own covariance), the violations, one message per directed link of ``network`` per step
-        and exchange round (``2 |E| rounds``, lost ones included) and the packets received (``gate_counts``' first
-        column), ``runtime`` the gain rule's (:attr:`designer.rule.GainRule.runtime`)."""
-        runs, steps = self.x_pred.shape[:2]
-        return FilterResult(self.x_post, self.phi_post, cov_kind, self.valid, self.violations,
-                            constant_messages(runs, steps, network.messages_per_step(rounds)), runtime,
-                            delivered=None if self.gate_counts is None else self.gate_counts[..., 0],
-                            detail=self).check()
 
 
 # --------------------------------------------------------------------------- gains and bounds per mode
@@ -560,7 +548,8 @@ def update_nodes(model: Model, design: ConsensusDesign, groups, update_rule, k: 
 def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                        phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None) -> ConsensusBatchResult:
+                        phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None, runtime: str | None = None,
+                        cov_kind: str = "bound", messages: int | None = None) -> FilterResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -584,12 +573,23 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         Replay a fixed gain schedule in every run instead of computing the gains (any mode): ``K`` (steps', N,
         n_x, n_z') with node ``i``'s gain in its first ``n_z_i`` columns, ``C`` (steps', N, n_x, n_x), steps' >=
         steps.  Every node then runs the fallback recursion (no bound claimed, ``valid`` False throughout).
+    runtime : str, optional
+        What the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`): by default the gain rule's
+        (:attr:`designer.rule.GainRule.runtime`), ``'scheduled'`` for a replayed gain schedule.
+    cov_kind : {'bound', 'covariance'}
+        What Φ is: the design's bound (default), or the filter's own covariance (the design reduced to the EKF,
+        σ = β = 0 and U = V = 0).
+    messages : int, optional
+        Transmissions per step (default: one per directed link of the network and exchange round, ``2 |E| rounds``
+        with the design's rounds, one round for a replay; lost ones included).
 
     Returns
     -------
-    ConsensusBatchResult
-        One entry per run (:meth:`ConsensusBatchResult.run` gives run ``r`` as a ``ConsensusResult``; a run
-        alone, :func:`filters.consensus.run_consensus`, is a batch of one).
+    FilterResult
+        ``x_post``, Φ (``phi_post``, trusted where ``valid``), the violations, ``messages`` per step and the
+        packets received (``gate_counts``' first column); ``detail`` the :class:`ConsensusBatchResult` of the runs
+        (:meth:`ConsensusBatchResult.run` gives run ``r`` as a ``ConsensusResult``; a run alone,
+        :func:`filters.consensus.run_consensus`, is a batch of one).
 
     Raises
     ------
@@ -601,12 +601,40 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
+    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains)
+    return consensus_result(res, network, design, runtime=runtime, cov_kind=cov_kind, messages=messages,
+                            replay=gains is not None)
+
+
+def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, design: ConsensusDesign, *,
+                     runtime: str | None = None, cov_kind: str = "bound", messages: int | None = None,
+                     replay: bool = False) -> FilterResult:
+    """The :class:`filters.result.FilterResult` a consensus-family filter returns (:func:`run_consensus_batch`, a
+    gain rule's own batch filter): ``x_post``, Φ (``phi_post``, trusted where ``valid``), the violations,
+    ``messages`` per step (default: ``2 |E| rounds`` on ``network`` with the design's rounds, one for a ``replay``)
+    and the packets received (``gate_counts``' first column); ``runtime`` by default the gain rule's
+    (``'scheduled'`` for a replay); ``detail`` the runs' :class:`ConsensusBatchResult`."""
+    runs, steps = detail.x_pred.shape[:2]
+    if messages is None:
+        messages = network.messages_per_step(1 if replay else design.rounds)
+    if runtime is None:
+        runtime = "scheduled" if replay else design.rule.runtime
+    return FilterResult(detail.x_post, detail.phi_post, cov_kind, detail.valid, detail.violations,
+                        constant_messages(runs, steps, messages), runtime,
+                        delivered=None if detail.gate_counts is None else detail.gate_counts[..., 0],
+                        detail=detail).check()
+
+
+def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
+                    inputs, attacks, gains) -> ConsensusBatchResult:
+    """The runs of :func:`run_consensus_batch` (its inputs checked), as the family's arrays."""
+    runs, steps = z.shape[:2]
     ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
-                    phi0=phi0)
+                    phi0=phi0).detail
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
     replay = gains is not None

@@ -97,7 +97,7 @@ from .engine import Step, estimate_arrays, run_batch
 from .node import NodeInputs, NodeNetwork
 from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
-__all__ = ["DistributedResult", "DistributedBatchResult", "run_kcf", "run_hcmci", "run_kcf_batch",
+__all__ = ["DistributedResult", "DistributedBatchResult", "distributed_result", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
            "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
            "HCMCIPacket", "HCMCINode", "HCMCINetwork"]
@@ -324,7 +324,7 @@ def run_kcf(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
     """
     z, u, x0, P0 = _check_run(model, network, z, inputs, attacks, x0, P0, falsify)
     return run_kcf_batch(model, network, z[None], inputs=u, attacks=None if attacks is None else [attacks], x0=x0,
-                         P0=P0, epsilon=epsilon, falsify=falsify).run(0)
+                         P0=P0, epsilon=epsilon, falsify=falsify).detail.run(0)
 
 
 def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1, omega: str = "size",
@@ -345,7 +345,7 @@ def run_hcmci(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations
     """
     z, u, x0, P0 = _check_run(model, network, z, inputs, attacks, x0, P0, falsify)
     return run_hcmci_batch(model, network, z[None], iterations=iterations, omega=omega, inputs=u,
-                           attacks=None if attacks is None else [attacks], x0=x0, P0=P0, falsify=falsify).run(0)
+                           attacks=None if attacks is None else [attacks], x0=x0, P0=P0, falsify=falsify).detail.run(0)
 
 
 # --------------------------------------------------------------------------- many runs at once
@@ -374,13 +374,16 @@ class DistributedBatchResult(NamedTuple):
         """Per run, its ``'diverged'`` violation or None."""
         return [next((v for v in vs if v["condition"] == "diverged"), None) for vs in self.violations]
 
-    def to_result(self) -> FilterResult:
-        """These runs as a :class:`filters.result.FilterResult`: each node's estimate and its own covariance P
-        (``cov_kind="covariance"``, not a bound; ``valid`` where finite), the packets sent per step (every round
-        counted, ``2 |E| L``) and delivered, runtime ``local`` (a node needs only its neighbours' packets)."""
-        return FilterResult(self.x_post, self.P_post, "covariance", np.isfinite(self.P_post).all(axis=(-2, -1)),
-                            self.violations, np.asarray(self.messages_per_step, dtype=np.int64), "local",
-                            delivered=np.asarray(self.delivered_per_step, dtype=np.int64), detail=self).check()
+
+
+def distributed_result(detail: DistributedBatchResult) -> FilterResult:
+    """The :class:`filters.result.FilterResult` a distributed filter returns (KCF, HCMCI, the relay filter): each
+    node's estimate and its own covariance P (``cov_kind="covariance"``, not a bound; ``valid`` where finite), the
+    packets sent per step (every round counted, ``2 |E| L``) and delivered, runtime ``local`` (a node needs only its
+    neighbours' packets), ``detail`` the runs' :class:`DistributedBatchResult`."""
+    return FilterResult(detail.x_post, detail.P_post, "covariance", np.isfinite(detail.P_post).all(axis=(-2, -1)),
+                        detail.violations, np.asarray(detail.messages_per_step, dtype=np.int64), "local",
+                        delivered=np.asarray(detail.delivered_per_step, dtype=np.int64), detail=detail).check()
 
 
 class _BatchInputs(NamedTuple):
@@ -499,13 +502,13 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
 
 def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
                   attacks: Sequence[AttackPattern] | None = None, x0=None, P0=None, epsilon: float | None = None,
-                  falsify: str = "packet") -> DistributedBatchResult:
+                  falsify: str = "packet") -> FilterResult:
     """:func:`run_kcf` on many runs at once: ``z`` (runs, steps, n_z), ``attacks`` one AttackPattern per run.
 
     ``inputs`` (steps, n_u) shared or (runs, steps, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
     (runs, n_x, n_x); the other parameters as :func:`run_kcf`.  Every step is one stack over the runs and
     nodes; run ``r`` of the result is :func:`run_kcf` on run ``r`` (a batch of one: the same numbers, the same
-    violations; a run that diverges stops alone).
+    violations; a run that diverges stops alone).  Returns :func:`distributed_result` of the runs.
     """
     inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
     eps = _kcf_epsilon(network, epsilon)
@@ -517,14 +520,15 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
         return _kcf_update(ex, eps, packet, xp, Pp, U, u, recv, *at)
 
-    return _filter_batch(model, network, inp, update, 1)._replace(omega=None)
+    return distributed_result(_filter_batch(model, network, inp, update, 1)._replace(omega=None))
 
 
 def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1,
                     omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | None = None, x0=None,
-                    P0=None, falsify: str = "packet") -> DistributedBatchResult:
+                    P0=None, falsify: str = "packet") -> FilterResult:
     """:func:`run_hcmci` on many runs at once (the parameters of :func:`run_kcf_batch` and :func:`run_hcmci`);
-    run ``r`` of the result is :func:`run_hcmci` on run ``r`` (a batch of one)."""
+    run ``r`` of the result's ``detail`` is :func:`run_hcmci` on run ``r`` (a batch of one); returns
+    :func:`distributed_result` of the runs."""
     inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
     L = _hcmci_rounds(iterations, omega)
     packet = falsify == "packet"
@@ -535,7 +539,7 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
         return _hcmci_update(ex, network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
-    return _filter_batch(model, network, inp, update, L)
+    return distributed_result(_filter_batch(model, network, inp, update, L))
 
 
 # --------------------------------------------------------------------------- KCF's node filter

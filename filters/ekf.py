@@ -23,14 +23,11 @@ __all__ = ["EKFResult", "run_ekf", "run_ekf_batch"]
 
 
 class EKFResult(NamedTuple):
-    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean; (runs, K + 1, n_x) from run_ekf_batch
-    P: np.ndarray  # (K + 1, n_x, n_x); (runs, K + 1, n_x, n_x) from run_ekf_batch
+    """The EKF's own arrays: a run of :func:`run_ekf`, or the ``detail`` of :func:`run_ekf_batch`'s result."""
 
-    def to_result(self, uplinks: int) -> FilterResult:
-        """These runs (a run of :func:`run_ekf` is a batch of one) as a :class:`filters.result.FilterResult` of the
-        fusion centre (:func:`filters.result.centralized_result`): ``uplinks`` messages per step, one per sensor."""
-        one = self.x.ndim == 2
-        return centralized_result(self.x[None] if one else self.x, self.P[None] if one else self.P, uplinks, self)
+    x: np.ndarray  # (K + 1, n_x) posterior means, x[0] the prior mean; (runs, K + 1, n_x) as run_ekf_batch's detail
+    P: np.ndarray  # (K + 1, n_x, n_x); (runs, K + 1, n_x, n_x) as its detail
+
 
 
 def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,
@@ -80,12 +77,14 @@ def run_ekf(model: Model, z: np.ndarray, *, available: np.ndarray | None = None,
 
 
 def run_ekf_batch(model: Model, z: np.ndarray, *, available: np.ndarray | None = None, inputs=None, x0=None,
-                  P0=None, angles=None) -> EKFResult:
+                  P0=None, angles=None, uplinks: int | None = None) -> FilterResult:
     """:func:`run_ekf` on many runs at once: ``z`` (runs, K, n_z), ``available`` (runs, K, N) bool.
 
     ``inputs`` (K, n_u) shared or (runs, K, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
-    (runs, n_x, n_x).  Returns the :class:`EKFResult` fields with a leading runs axis; run ``r`` equals
-    ``run_ekf`` on run ``r`` to rounding.  Every step updates all runs with every sensor's rows, those of a
+    (runs, n_x, n_x).  Returns the fusion centre's :class:`filters.result.FilterResult`
+    (:func:`filters.result.centralized_result`: ``uplinks`` messages per step, default one per sensor), its
+    ``detail`` the :class:`EKFResult` fields with a leading runs axis; run ``r`` equals ``run_ekf`` on run ``r``
+    to rounding.  Every step updates all runs with every sensor's rows, those of a
     lost packet zeroed (H and the residual): its block of the innovation covariance is then R_i alone, its
     gain columns exactly zero, and the other rows' numbers those of the received sensors alone.  A run whose
     innovation covariance leaves finite numbers or positive definiteness is handed to :func:`run_ekf` (which
@@ -151,4 +150,4 @@ def run_ekf_batch(model: Model, z: np.ndarray, *, available: np.ndarray | None =
                       x0=None if x0 is None else np.broadcast_to(x0, (runs, model.n_x))[a],
                       P0=None if P0 is None else np.broadcast_to(P0, (runs, model.n_x, model.n_x))[a], angles=angles)
         xs[a], Ps[a] = ref.x, ref.P
-    return EKFResult(xs, Ps)
+    return centralized_result(xs, Ps, model.n_sensors if uplinks is None else uplinks, EKFResult(xs, Ps))

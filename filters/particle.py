@@ -131,6 +131,8 @@ def additive_noise_loglik(model: Model) -> Callable:
 
 
 class SIRResult(NamedTuple):
+    """The particle filter's own arrays: the ``detail`` of :func:`run_sir`'s result."""
+
     mean: np.ndarray  # (runs, K + 1, n_x) weighted means (k = 0: the prior sample)
     cov: np.ndarray  # (runs, K + 1, n_x, n_x)
     ess: np.ndarray  # (runs, K) effective sample size after weighting
@@ -138,12 +140,6 @@ class SIRResult(NamedTuple):
     resampled: np.ndarray  # (runs, K) bool
     collapsed: np.ndarray  # (runs, K) bool: every weight vanished; predicted particles kept, uniform weights
     skipped: np.ndarray  # (runs, K) bool: measurement missing (NaN) and skipped on request
-
-    def to_result(self, uplinks: int) -> FilterResult:
-        """These runs as a :class:`filters.result.FilterResult` of the fusion centre
-        (:func:`filters.result.centralized_result`: the weighted mean and covariance, ``uplinks`` messages per step,
-        one per sensor)."""
-        return centralized_result(self.mean, self.cov, uplinks, self)
 
 
 # log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
@@ -187,7 +183,8 @@ def run_sir(
     linear_weights: bool = False,
     missing: str = "reject",
     blocks=None,
-) -> SIRResult:
+    uplinks: int | None = None,
+) -> FilterResult:
     """Run a SIR particle filter on every run's measurements at once.
 
     Parameters
@@ -211,6 +208,14 @@ def run_sir(
         precision becomes zero (see the module notes).  Default: log domain.
     missing : {"reject", "skip"}
         NaN in ``z``: raise (default) or skip that run's measurement at that step.
+    uplinks : int, optional
+        Messages per step the fusion centre receives (default: one per sensor of ``model``).
+
+    Returns
+    -------
+    FilterResult
+        The fusion centre's (:func:`filters.result.centralized_result`: the weighted means and covariances,
+        ``uplinks`` messages per step), ``detail`` the :class:`SIRResult` of the runs.
     """
     check_int("particles", particles, 1)
     if not (0.0 < ess_threshold <= 1.0):
@@ -293,4 +298,5 @@ def run_sir(
             new[need] = 0.0
             lw = LogWeights(new)
             did[:, k] = need
-    return SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy())
+    return centralized_result(mean, cov, model.n_sensors if uplinks is None else uplinks,
+                              SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy()))

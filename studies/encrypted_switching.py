@@ -217,7 +217,7 @@ def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, 
         ll = interval_loglik(model, codec) if kind == "interval" else raw_loglik(model)
         prop, lik = _Timed(transition_proposal(model)), _Timed(ll)
         res = run_sir(model, y, np.random.default_rng(filter_ss[0]), particles=M, runs=y.shape[0], loglik=lik,
-                      proposal=prop, resampler="systematic", ess_threshold=ESS_THRESHOLD)
+                      proposal=prop, resampler="systematic", ess_threshold=ESS_THRESHOLD).detail
         return res.mean, res.collapsed, res.resampled, (prop.seconds, lik.seconds)
     from filters.fused import sir_edpf
 

@@ -8,10 +8,13 @@ description, what it needs from the study (a design of a gain rule, particles) a
 design)``, which runs it on every run of a :class:`Batch` at the given settings at once.  A study iterates
 over a :class:`FilterRegistry`: a new filter is one entry (``registry.register(entry)``), nothing else.
 
-The entries of the project's filter families are made by the factories below:
-:func:`designed_consensus` (the consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node
-alone), :func:`kcf` and :func:`hcmci` (the literature's distributed filters), :func:`centralized_ekf` and
-:func:`particle_filters` (a fusion centre receiving every uplink).  The registry lives in ``studies`` (not in
+Every filter returns its :class:`filters.result.FilterResult` itself (its family's arrays in ``detail``), so an
+entry's ``run`` is a call of its filter on the batch's rows and nothing else: no conversion happens here.  The
+entries of the project's filter families are made by the factories below: :func:`designed_consensus` (the
+consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone), :func:`replayed_schedule` (a
+gain schedule replayed), :func:`kcf` and :func:`hcmci` (the literature's distributed filters),
+:func:`centralized_consensus_ekf`, :func:`centralized_ekf` and :func:`particle_filters` (a fusion centre receiving
+every uplink).  The registry lives in ``studies`` (not in
 ``filters``) because a designed entry needs a design made by :mod:`studies.consensus_design`.
 """
 from __future__ import annotations
@@ -228,9 +231,8 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
     channels (each row with its setting's network: the channels' probabilities its design and gains use)."""
 
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
-        res = run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
-                                  attacks=batch.attack_rows(js), inputs=batch.input_rows(js))
-        return res.to_result(batch.network, design.rule.runtime, rounds=design.rounds)
+        return run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
+                                   attacks=batch.attack_rows(js), inputs=batch.input_rows(js))
 
     return FilterEntry(name, "consensus", rules.get(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,
@@ -245,9 +247,8 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         n = batch.network.n_nodes
         alone = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-        res = run_consensus_batch(batch.model, alone, batch.z_rows(js), design, attacks=None,
-                                  inputs=batch.input_rows(js))
-        return res.to_result(alone, "local", cov_kind="covariance")
+        return run_consensus_batch(batch.model, alone, batch.z_rows(js), design, attacks=None,
+                                   inputs=batch.input_rows(js), runtime="local", cov_kind="covariance")
 
     def nodes(model, network: SensorNetwork, design: ConsensusDesign, iterations: int):
         n = network.n_nodes
@@ -257,30 +258,28 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
                        derive=lambda design, model: local_ekf_design(design), node_filters=nodes)
 
 
-def _distributed(batched: Callable, **kw) -> Callable:
-    """``run`` of a filter of :mod:`filters.distributed`: every row at once (``batched``)."""
-
-    def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
-        z, u, att = batch.z_rows(js), batch.input_rows(js), batch.attack_rows(js)
-        L = {"iterations": batch.iterations} if kw.get("rounds") else {}
-        return batched(batch.model, batch.network, z, inputs=u, attacks=att, **L).to_result()
-
-    return run
-
-
 def kcf(name: str, description: str) -> FilterEntry:
     """Olfati-Saber's Kalman consensus filter (:func:`filters.distributed.run_kcf_batch`) on the attacked channels
     (the realised attacks only: the channels' probabilities are not its to know)."""
-    return FilterEntry(name, "consensus", "local", description, _distributed(run_kcf_batch), _links,
-                       counts_delivered=True,
+
+    def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
+        return run_kcf_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
+                             attacks=batch.attack_rows(js))
+
+    return FilterEntry(name, "consensus", "local", description, run, _links, counts_delivered=True,
                        node_filters=lambda model, network, design, iterations: KCFNetwork(model, network))
 
 
 def hcmci(name: str, description: str) -> FilterEntry:
     """Battistelli et al.'s HCMCI (:func:`filters.distributed.run_hcmci_batch`) with ``batch.iterations`` rounds
     per step on the attacked channels; ``2 |E| L`` messages per step."""
-    return FilterEntry(name, "consensus", "local", description, _distributed(run_hcmci_batch, rounds=True),
-                       _links_per_round, counts_delivered=True, rounds=True,
+
+    def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
+        return run_hcmci_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
+                               attacks=batch.attack_rows(js), iterations=batch.iterations)
+
+    return FilterEntry(name, "consensus", "local", description, run, _links_per_round, counts_delivered=True,
+                       rounds=True,
                        node_filters=lambda model, network, design, iterations: HCMCINetwork(model, network,
                                                                                            iterations=iterations))
 
@@ -293,10 +292,9 @@ def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
 
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         centre = SensorNetwork(1, np.zeros((1, 1), int))
-        res = run_consensus_batch(batch.model.with_stacked_sensors(), centre, batch.z_rows(js), design, attacks=None,
-                                  inputs=batch.input_rows(js))
-        out = res.to_result(centre, "centralized", cov_kind="covariance")
-        return out._replace(messages=np.full_like(out.messages, batch.model.n_sensors))
+        return run_consensus_batch(batch.model.with_stacked_sensors(), centre, batch.z_rows(js), design,
+                                   attacks=None, inputs=batch.input_rows(js), runtime="centralized",
+                                   cov_kind="covariance", messages=batch.model.n_sensors)
 
     def derive(design: ConsensusDesign, model) -> ConsensusDesign:
         n_z = model.with_stacked_sensors().n_z
@@ -312,9 +310,8 @@ def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:
     with the paper design's τ): runtime ``scheduled``, no bound it can claim (not ``designed``)."""
 
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
-        res = run_consensus_batch(batch.model, batch.network, batch.z_rows(js), design, inputs=batch.input_rows(js),
-                                  attacks=batch.attack_rows(js), gains=gains)
-        return res.to_result(batch.network, "scheduled")
+        return run_consensus_batch(batch.model, batch.network, batch.z_rows(js), design, inputs=batch.input_rows(js),
+                                   attacks=batch.attack_rows(js), gains=gains)
 
     return FilterEntry(name, "consensus", "scheduled", description, run, _links, mode="paper")
 
@@ -325,7 +322,7 @@ def centralized_ekf(name: str, description: str) -> FilterEntry:
     def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
         m = batch.model
         values, avail = split_received(m, np.stack([batch.received[j][a] for j in js for a in range(batch.runs)]))
-        return run_ekf_batch(m, values, available=avail, inputs=batch.input_rows(js)).to_result(m.n_sensors)
+        return run_ekf_batch(m, values, available=avail, inputs=batch.input_rows(js))
 
     return FilterEntry(name, "EKF", "centralized", description, run, _uplinks)
 
@@ -359,11 +356,10 @@ def particle_filters(aware: tuple[str, str], plain: tuple[str, str]) -> tuple[Fi
         q_rows = np.array([np.broadcast_to(q, (n,)) if per_sensor else q for q in qs] * R)
         with naming_filter([names[c] for _ in range(R * S) for c in range(2)],
                            [batch.run_ids[a] for a in range(R) for _ in range(2 * S)]):
-            res = run_sir(m, np.stack([batch.received[j][a] for a in range(R) for j in range(S) for _ in range(2)]),
+            out = run_sir(m, np.stack([batch.received[j][a] for a in range(R) for j in range(S) for _ in range(2)]),
                           streams, blocks=blocks, particles=batch.particles,
                           inputs=None if batch.inputs is None else np.repeat(batch.inputs, 2 * S, axis=0),
                           loglik=uplink_loglik(m, fdi_prob=q_rows, fdi_covs=covs))
-        out = res.to_result(m.n_sensors)
         return out._replace(seconds=np.full(out.runs, (time.perf_counter() - t0) / (2 * S * R)))
 
     def entry(c: int, name: str, description: str) -> FilterEntry:

@@ -226,7 +226,7 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
             return None
         ll = packet_loglik(model, sensors, attack_prob=attack_prob, signal=signal, angles=angles)
         res = run_sir(model, y.reshape(R, K, P * ny), rngs[0], particles=particles, runs=R, loglik=ll,
-                      linear_weights=linear_weights)
+                      linear_weights=linear_weights).detail
         return res.mean, res.collapsed
     if linear_weights:
         raise InputError("linear_weights needs engine='numpy' (the fused kernels keep log weights only)")
@@ -259,7 +259,7 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
     if engine == "numpy":
         if warm_up:
             return None
-        res = run_sir(model, y, rngs[0], particles=particles, runs=y.shape[0], loglik=binary_loglik(model, **kw))
+        res = run_sir(model, y, rngs[0], particles=particles, runs=y.shape[0], loglik=binary_loglik(model, **kw)).detail
         return res.mean, res.collapsed
     from filters import fused
 

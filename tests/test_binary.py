@@ -48,7 +48,8 @@ def test_paper_ordering_sec_pf():
     clean = binary_sensor_channel(tr.z, dos_prob=0.0, deception_prob=0.0, flip_prob=0.0, rng=rng, **kw).y
 
     def rmse_p(y, **probs):
-        res = run_sir(m, y, np.random.default_rng(2), particles=300, runs=runs, loglik=binary_loglik(m, **probs, **kw))
+        res = run_sir(m, y, np.random.default_rng(2), particles=300, runs=runs,
+                      loglik=binary_loglik(m, **probs, **kw)).detail
         e = res.mean[:, 1:] - tr.x[:, 1:]
         return np.sqrt((e[..., [0, 2]] ** 2).sum(-1).mean())
 

@@ -189,7 +189,7 @@ def test_the_batched_ekf_is_the_ekf_run_by_run(name):
     for kw, per_run in (({"inputs": u}, lambda r: {"inputs": None if u is None else u[r]}),
                         ({"inputs": None if u is None else u[0], "x0": x0, "P0": P0},
                          lambda r: {"inputs": None if u is None else u[0], "x0": x0[r], "P0": P0[r]})):
-        got = run_ekf_batch(m, z, available=avail, **kw)
+        got = run_ekf_batch(m, z, available=avail, **kw).detail
         for r in range(5):
             ref = run_ekf(m, z[r], available=avail[r], **per_run(r))
             np.testing.assert_allclose(got.x[r], ref.x, rtol=1e-9, atol=1e-12 * np.abs(ref.x).max())
@@ -207,7 +207,7 @@ def test_the_batched_ekf_hands_a_breaking_run_to_run_ekf():
         run_ekf(model, z[1], P0=P0[1])
     with pytest.raises(type(alone.value), match=str(alone.value)):
         run_ekf_batch(model, z, P0=P0)
-    got = run_ekf_batch(model, z[[0, 2]], P0=P0[[0, 2]])
+    got = run_ekf_batch(model, z[[0, 2]], P0=P0[[0, 2]]).detail
     for j, r in enumerate((0, 2)):
         np.testing.assert_allclose(got.x[j], run_ekf(model, z[r], P0=P0[r]).x, rtol=1e-9, atol=1e-14)
     with pytest.raises(InputError, match="available must have shape"):

@@ -87,7 +87,7 @@ def test_robot_paper_design_matches_per_run(robot):
     """The paper's σ = β = 0.1 on the robot: (28), (29) and Theorem 2 fail at nodes along the runs."""
     sc, net, traj, atts = robot
     des = robot_design()
-    batch = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts)
+    batch = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts).detail
     refs = per_run(sc.model, net, traj.z, des, traj.inputs, atts)
     assert_same_as_per_run(batch, refs)
     conds = {v["condition"] for vs in batch.violations for v in vs}
@@ -98,7 +98,7 @@ def test_robot_paper_design_matches_per_run(robot):
     for r in range(ROBOT_RUNS):
         for f in ("dos", "fdi", "xi"):
             np.testing.assert_array_equal(getattr(ea.pattern(r, net.n_nodes), f), getattr(atts[r], f))
-    again = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=ea)
+    again = run_consensus_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=ea).detail
     np.testing.assert_array_equal(again.x_post, batch.x_post)
 
 
@@ -112,7 +112,7 @@ def test_robot_linearisation_rules_with_inputs_and_priors_per_run(robot, rule):
     phi0 = sc.model.prior.cov[None] * rng.uniform(0.5, 1.5, (ROBOT_RUNS, 1, 1))
     z = np.stack([sc.simulate(np.random.default_rng(20 + r), ROBOT_STEPS).z for r in range(ROBOT_RUNS)])
     des = robot_design(linearization=rule)
-    batch = run_consensus_batch(sc.model, net, z, des, inputs=inputs, attacks=atts, x0=x0, phi0=phi0)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=inputs, attacks=atts, x0=x0, phi0=phi0).detail
     assert_same_as_per_run(batch, per_run(sc.model, net, z, des, inputs, atts, x0, phi0))
 
 
@@ -135,7 +135,7 @@ def test_robot_tuned_design_matches_per_run(robot, rule):
     steps = 4
     z = traj.z[:2, :steps]
     des = robot_design(mode="tuned", linearization=rule)
-    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts[:2])
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts[:2]).detail
     refs = per_run(sc.model, net, z, des, traj.inputs[:steps], atts[:2])
     assert_same_as_per_run(batch, refs)
     assert batch.valid.all() and np.isfinite(batch.beta).all() and (batch.beta > 0).all()
@@ -155,7 +155,7 @@ def test_other_modes_and_gates_match_per_run(robot, change):
     x0 = sc.model.prior.mean + 0.05 * np.random.default_rng(4).standard_normal((2, 3))
     des = robot_design(**change)
     batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps],
-                                attacks=EdgeAttacks.from_patterns(net, atts[:2]), x0=x0)
+                                attacks=EdgeAttacks.from_patterns(net, atts[:2]), x0=x0).detail
     refs = per_run(sc.model, net, z, des, traj.inputs[:steps], atts, x0=x0)
     assert_same_as_per_run(batch, refs)
     for r, ref in enumerate(refs):
@@ -179,7 +179,7 @@ def test_replayed_gain_schedule_matches_per_run(robot, change):
     first = reference_consensus(sc.model, net, traj.z[0], robot_design(), inputs=traj.inputs, attacks=atts[0])
     gains = (first.K, 0.7 * first.C)  # one schedule of ROBOT_STEPS steps, longer than the runs
     des = robot_design(**change)
-    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=gains)
+    batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=gains).detail
     refs = [reference_consensus(sc.model, net, z[r], des, inputs=traj.inputs[:steps], attacks=atts[r], gains=gains)
             for r in range(ROBOT_RUNS)]
     assert_same_as_per_run(batch, refs)
@@ -207,7 +207,7 @@ def test_a_run_alone_is_its_row_of_the_batch(robot):
     for change, g in ((dict(gate=0.05), None), (dict(mode="tuned"), None), (dict(mode="mse", gate=0.05), None),
                       (dict(), gains)):
         des = robot_design(**change)
-        batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=g)
+        batch = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts, gains=g).detail
         for r in range(ROBOT_RUNS):
             alone = run_consensus(sc.model, net, z[r], des, inputs=traj.inputs[:steps], attacks=atts[r], gains=g)
             for name in ARRAYS + ("valid", "gate_counts"):
@@ -256,7 +256,7 @@ def test_mixed_sensor_dimensions_and_wrapped_bearings(rule):
             for r in range(runs)]
     des = make_design(model, net, rule=rules.get("paper"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(linearization=rule),
                       x0=model.prior.mean)
-    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
+    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts).detail
     refs = per_run(model, net, traj.z, des, None, atts)
     assert_same_as_per_run(batch, refs)
     assert batch.K.shape == (runs, steps, 5, 4, 2) and np.all(batch.K[..., 1:, :, 1] == 0.0)
@@ -275,7 +275,7 @@ def test_mixed_sensor_dimensions_tuned():
             for r in range(runs)]
     des = make_design(model, net, rule=rules.get("tuned"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="tuned"), x0=model.prior.mean,
                       signal=FDISignal(2.0, (0, 2)))
-    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts)
+    batch = run_consensus_batch(model, net, traj.z, des, attacks=atts).detail
     assert_same_as_per_run(batch, per_run(model, net, traj.z, des, None, atts))
     assert batch.K.shape == (runs, steps, 5, 4, 2) and np.all(batch.K[..., 1:, :, 1] == 0.0)
     assert batch.valid.all()
@@ -307,7 +307,7 @@ def test_linear_chain_neighbour_rule_and_a_diverging_run():
     z[2, 9, 2:4] = 1e14  # run 2: node 1 takes a huge measurement at step 10 and leaves finite numbers
     atts = [simulate_attacks(net, steps, 2, np.random.default_rng(42 + r), signal=FDISignal(0.1, (0,)))
             for r in range(runs)]
-    batch = run_consensus_batch(model, net, z, des, attacks=atts)
+    batch = run_consensus_batch(model, net, z, des, attacks=atts).detail
     refs = per_run(model, net, z, des, None, atts)
     assert_same_as_per_run(batch, refs)
     div = batch.diverged
@@ -329,7 +329,7 @@ def test_linear_chain_tuned_with_a_diverging_run():
     z[2, 9, 2:4] = 1e14
     atts = [simulate_attacks(net, steps, 2, np.random.default_rng(42 + r), signal=FDISignal(0.1, (0,)))
             for r in range(runs)]
-    batch = run_consensus_batch(model, net, z, des, attacks=atts)
+    batch = run_consensus_batch(model, net, z, des, attacks=atts).detail
     assert_same_as_per_run(batch, per_run(model, net, z, des, None, atts))
     assert [d is not None for d in batch.diverged] == [False, False, True]
     assert batch.diverged[2]["step"] == 10 and np.isfinite(batch.x_post[[0, 1]]).all()
@@ -351,7 +351,7 @@ def test_bound_trace_limit_then_overflow(mode):
     if mode == "tuned":  # the tuned searches at every node until the limit (σ > 0 and β > 0: U, V nonzero)
         des = des._replace(rule=rules.get("tuned"), U=0.01 * np.eye(2), V=0.1 * np.eye(1), delta=0.1)
     z = np.random.default_rng(0).standard_normal((2, 60, 2))
-    batch = run_consensus_batch(model, net, z, des)
+    batch = run_consensus_batch(model, net, z, des).detail
     assert_same_as_per_run(batch, per_run(model, net, z, des, None, None))
     reasons = [v.get("reason", "") for v in batch.violations[0]]
     assert any("1e+100" in r for r in reasons) and batch.diverged[0] is not None
@@ -373,7 +373,7 @@ def test_numerical_breakdown_in_one_run(monkeypatch):
         return solve(a, b)
 
     monkeypatch.setattr(np.linalg, "solve", fragile_solve)
-    batch = run_consensus_batch(model, net, z, des, phi0=phi0)
+    batch = run_consensus_batch(model, net, z, des, phi0=phi0).detail
     refs = per_run(model, net, z, des, None, None, phi0=phi0)
     assert_same_as_per_run(batch, refs)
     assert [d is not None for d in batch.diverged] == [False, True, False]
@@ -388,8 +388,8 @@ def test_per_run_inputs_without_columns_are_no_inputs(mode):
     sc = load_scenario("target-range-bearing")
     traj = sc.simulate(np.random.default_rng(3), 5, batch=2)
     des = consensus_design(sc, DesignOptions(mode=mode))
-    a = run_consensus_batch(sc.model, sc.network, traj.z, des, inputs=np.zeros((2, 5, 0)))
-    b = run_consensus_batch(sc.model, sc.network, traj.z, des)
+    a = run_consensus_batch(sc.model, sc.network, traj.z, des, inputs=np.zeros((2, 5, 0))).detail
+    b = run_consensus_batch(sc.model, sc.network, traj.z, des).detail
     np.testing.assert_array_equal(a.x_post, b.x_post)
     np.testing.assert_array_equal(a.phi_post, b.phi_post)
 
@@ -407,7 +407,7 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
     sig = FDISignal(1.5, (0, 1))  # the attacks' signal: the mse gains use its moments and the falsified share q
     des = robot_design(**change)._replace(fdi_moment=sig.moment(3), fdi_mean=sig.mean(3), fdi_span=sig.span(3),
                                           fdi_signal=sig)
-    batch = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)
+    batch = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts).detail
     refs = [reference_consensus(sc.model, nets[r], z[r], des, inputs=traj.inputs[:steps], attacks=atts[r])
             for r in range(len(nets))]
     assert_same_as_per_run(batch, refs)
@@ -423,15 +423,15 @@ def test_one_network_per_run_is_each_runs_own_filter(robot, change, monkeypatch)
                    for f in ("x_post", "phi_post", "K", "C"))
 
     assert gap(other) > 1e3 * gap(batch.run(0)) and gap(other) > 0
-    same = run_consensus_batch(sc.model, [net] * 3, z, des, inputs=traj.inputs[:steps], attacks=atts)
-    one = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts)
+    same = run_consensus_batch(sc.model, [net] * 3, z, des, inputs=traj.inputs[:steps], attacks=atts).detail
+    one = run_consensus_batch(sc.model, net, z, des, inputs=traj.inputs[:steps], attacks=atts).detail
     np.testing.assert_array_equal(same.x_post, one.x_post)
     np.testing.assert_array_equal(same.phi_post, one.phi_post)
     if des.mode == "mse":  # in sub-batches of one run each, every run keeps its own network
         import rules.mse.filter as mse_batch
 
         monkeypatch.setattr(mse_batch, "MEMORY_BUDGET", 1)
-        apart = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts)
+        apart = run_consensus_batch(sc.model, nets, z, des, inputs=traj.inputs[:steps], attacks=atts).detail
         np.testing.assert_array_equal(apart.x_post, batch.x_post)
         np.testing.assert_array_equal(apart.phi_post, batch.phi_post)
 

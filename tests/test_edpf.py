@@ -162,10 +162,11 @@ def test_raw_likelihood_collapses_and_the_filter_keeps_going(sc):
     pinned = Model("pinned", m.x, m.f_expr, m.sensors, G.zero_mean(1e-12 * np.eye(2)), G(x, 1e-12 * np.eye(2)),
                    mode=m.mode, mode_probs=[0.0, 1.0])  # particles stay near x
     stay = lambda xp, k, zk, rng: (xp, 0.0)  # noqa: E731 - keep the particles where they are
-    res = run_sir(pinned, z, np.random.default_rng(0), particles=20, runs=1, loglik=raw_loglik(pinned), proposal=stay)
+    res = run_sir(pinned, z, np.random.default_rng(0), particles=20, runs=1, loglik=raw_loglik(pinned),
+                  proposal=stay).detail
     assert res.collapsed.all() and np.isfinite(res.mean).all()
     res13 = run_sir(pinned, z, np.random.default_rng(0), particles=20, runs=1,
-                    loglik=interval_loglik(pinned, sc.channel.codec), proposal=stay)
+                    loglik=interval_loglik(pinned, sc.channel.codec), proposal=stay).detail
     assert not res13.collapsed.any()  # (13) keeps them
 
 

@@ -121,7 +121,7 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
         sc = load_scenario("indoor-robot")
         sim = studies.simulate(sc, seed=int(meta["seed"]))
         ref = run_consensus_batch(sc.model, sc.network, sim.z[None], consensus_design(sc, DesignOptions(gate=gate)),
-                                  inputs=sim.inputs, attacks=[sim.attacks])
+                                  inputs=sim.inputs, attacks=[sim.attacks]).detail
         assert ref.gate_counts[..., 1].sum() > 0
     run = make_test(out)
     assert run.returncode == 0, run.stdout + run.stderr
@@ -215,7 +215,7 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
         design = consensus_design(sc, design_options_of(des, sc)[1])
         sim = studies.simulate(sc, seed=int(json.loads((des / "schedule.json").read_text())["seed"]))
         ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs,
-                                  attacks=[sim.attacks])
+                                  attacks=[sim.attacks]).detail
         picks = [design.tables.choose(k, ref.x_pred[0, k]) for k in range(ref.x_pred.shape[1])]
         assert np.concatenate(picks).max() > 0
     n_x = 3 if target == "indoor-robot" else 4

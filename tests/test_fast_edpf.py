@@ -56,7 +56,7 @@ def _filters(sw):
 def _both(model, ll, kw, y, seed, M=150, ess=0.5):
     """(run_sir result, fused result) with the same Generator and the same initial particles."""
     ref = run_sir(model, y, np.random.default_rng(seed), particles=M, runs=1, loglik=ll, resampler="systematic",
-                  ess_threshold=ess)
+                  ess_threshold=ess).detail
     g = np.random.default_rng(seed)
     x0 = model.prior.sample(g, (1, M))  # run_sir's first draws
     return ref, sir_edpf(model, x0, [g], y, ess_threshold=ess, **kw)

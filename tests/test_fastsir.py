@@ -344,7 +344,7 @@ def test_one_run_reproduces_run_sir_round_robin(rb, scheme, thr):
             kw, ll = dict(attack=att, log_clean=lc), rrp_loglik(m, rb["sched"], attack_prob=ETA, signal=rb["box"],
                                                                angles=[1])
         ref = run_sir(m, y, np.random.default_rng(100 + r), particles=M, runs=1, loglik=ll, resampler=scheme,
-                      ess_threshold=thr)
+                      ess_threshold=thr).detail
         g = np.random.default_rng(100 + r)
         x0 = m.prior.sample(g, (1, M))  # run_sir's first draw
         ours = sir_packets(m, x0, [g], rb["sched"], y, angles=[1], resampler=scheme, ess_threshold=thr,
@@ -361,7 +361,7 @@ def test_one_run_reproduces_run_sir_all_sensors(rb, bit_generator):
     y = rb["all_att"][2:3]
     lc, att = deception_terms(y, ETA, rb["box"])
     ref = run_sir(m, y.reshape(1, K, 8), np.random.Generator(bit_generator(5)), particles=M, runs=1,
-                  loglik=all_sensors_loglik(m, attack_prob=ETA, signal=rb["box"], angles=[1]))
+                  loglik=all_sensors_loglik(m, attack_prob=ETA, signal=rb["box"], angles=[1])).detail
     g = np.random.Generator(bit_generator(5))
     ours = sir_packets(m, m.prior.sample(g, (1, M)), [g], np.tile(np.arange(4), (K, 1)), y, attack=att,
                        log_clean=lc, angles=[1])
@@ -374,7 +374,7 @@ def test_one_run_reproduces_run_sir_binary(binary, scheme):
     m, M = binary["m"], 300
     y = binary["y"][1:2]
     ref = run_sir(m, y, np.random.default_rng(8), particles=M, runs=1, resampler=scheme, ess_threshold=0.7,
-                  loglik=binary_loglik(m, **binary["probs"], **binary["kw"]))
+                  loglik=binary_loglik(m, **binary["probs"], **binary["kw"])).detail
     g = np.random.default_rng(8)
     A, B = binary_coefficients(y, **binary["probs"], **binary["kw"])
     ours = sir_binary(m, m.prior.sample(g, (1, M)), [g], A, B, threshold=binary["kw"]["threshold"],

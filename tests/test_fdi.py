@@ -174,7 +174,7 @@ def test_sis_without_detector_is_run_sir_that_never_resamples():
     m = _identity_model(r=0.05, q=0.01)
     z = np.random.default_rng(7).standard_normal((3, 15, 2))
     a = run_sis(m, z, np.random.default_rng(8), particles=40)
-    b = run_sir(m, z, np.random.default_rng(8), particles=40, ess_threshold=1e-6)  # ESS >= 1 > 4e-5: never
+    b = run_sir(m, z, np.random.default_rng(8), particles=40, ess_threshold=1e-6).detail  # ESS >= 1 > 4e-5: never
     assert not b.resampled.any()
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(a.ess, b.ess, rtol=1e-10)

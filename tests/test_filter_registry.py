@@ -96,14 +96,15 @@ def test_the_consensus_robots_entries_return_filter_results_of_their_shapes(tank
         _check_shapes(res, e, tank, RUNS, batch.iterations)
 
 
-def test_the_adapters_keep_each_familys_numbers(tank):
+def test_the_filters_results_keep_each_familys_numbers(tank):
     batch = _batch(tank, settings=((0.2, 0.1),))
     m, net = tank.model, tank.network
     design = consensus_design(tank, as_mode(None, "tuned"))
-    cb = run_consensus_batch(m, net, batch.z, design, attacks=list(batch.attacks[0]))
-    res = cb.to_result(net, "local")
-    assert res.x is cb.x_post and res.cov is cb.phi_post and res.valid is cb.valid and res.detail is cb
+    res = run_consensus_batch(m, net, batch.z, design, attacks=list(batch.attacks[0]))
+    cb = res.detail
+    assert res.x is cb.x_post and res.cov is cb.phi_post and res.valid is cb.valid
     assert res.violations is cb.violations and res.diverged == cb.diverged
+    assert res.cov_kind == "bound" and res.runtime == design.rule.runtime == "local"
     assert (res.delivered == cb.gate_counts[..., 0]).all() and (res.messages == 2 * len(net.edges)).all()
     # a run alone (a batch of one) is exactly its row of the batch: nothing leaks between the runs of a batch
     for r in range(RUNS):
@@ -111,9 +112,9 @@ def test_the_adapters_keep_each_familys_numbers(tank):
         for f in ("x_post", "phi_post", "K", "C", "valid", "sigma", "beta", "gate_counts"):
             assert np.array_equal(getattr(got, f), getattr(ref, f), equal_nan=True), f
         assert got.violations == ref.violations
-    kb = run_kcf_batch(m, net, batch.z, attacks=list(batch.attacks[0]))
-    kr = kb.to_result()
-    assert kr.x is kb.x_post and kr.cov is kb.P_post and kr.cov_kind == "covariance"
+    kr = run_kcf_batch(m, net, batch.z, attacks=list(batch.attacks[0]))
+    kb = kr.detail
+    assert kr.runtime == "local" and kr.x is kb.x_post and kr.cov is kb.P_post and kr.cov_kind == "covariance"
     assert (kr.messages == kb.messages_per_step).all() and (kr.delivered == kb.delivered_per_step).all()
     # the registry's KCF and HCMCI entries: row r is run_kcf / run_hcmci on run r alone (a batch of one)
     u = batch.input_rows([0])
@@ -126,12 +127,43 @@ def test_the_adapters_keep_each_familys_numbers(tank):
             for f in ("x_post", "P_post", "messages_per_step", "delivered_per_step"):
                 assert np.array_equal(getattr(res.detail.run(r), f), getattr(ref, f), equal_nan=True), f
     values, avail = split_received(m, np.stack(batch.received[0]))
-    eb = run_ekf_batch(m, values, available=avail)
-    er = eb.to_result(m.n_sensors)
+    er = run_ekf_batch(m, values, available=avail)
+    eb = er.detail
     assert np.array_equal(er.x[:, :, 0], eb.x) and np.array_equal(er.cov[:, :, 0], eb.P)
     assert er.nodes == 1 and er.runtime == "centralized" and (er.messages == m.n_sensors).all()
-    one = run_ekf(m, values[0], available=avail[0]).to_result(m.n_sensors)  # a run is a batch of one
-    assert one.x.shape == (1, tank.steps + 1, 1, m.n_x)
+    assert (run_ekf_batch(m, values, available=avail, uplinks=7).messages == 7).all()
+    one = run_ekf(m, values[0], available=avail[0])  # a run is a batch of one, to rounding
+    assert np.allclose(one.x, eb.x[0], rtol=0, atol=1e-9, equal_nan=True)
+
+
+def test_every_batched_filter_returns_a_checked_filter_result_with_what_its_parameters_say(tank):
+    from filters.particle import SIRResult, run_sir
+    from rules.relay.filter import run_relay_batch
+
+    batch = _batch(tank, settings=((0.2, 0.1),))
+    m, net = tank.model, tank.network
+    paper = consensus_design(tank)._replace(sigma=0.01, beta=0.01)
+    links = 2 * len(net.edges)
+    K = np.zeros((tank.steps, net.n_nodes, m.n_x, 1))
+    C = np.zeros((tank.steps, net.n_nodes, m.n_x, m.n_x))
+    replay = run_consensus_batch(m, net, batch.z, paper, gains=(K, C))
+    assert replay.runtime == "scheduled" and replay.cov_kind == "bound" and (replay.messages == links).all()
+    assert not replay.valid.any() and np.array_equal(replay.detail.K, K[None].repeat(RUNS, 0))
+    centre = run_consensus_batch(m, net, batch.z, paper, runtime="centralized", cov_kind="covariance", messages=3)
+    assert centre.runtime == "centralized" and centre.cov_kind == "covariance" and (centre.messages == 3).all()
+    assert np.array_equal(centre.x, run_consensus_batch(m, net, batch.z, paper).x, equal_nan=True)
+    relay = run_relay_batch(m, net, batch.z, 2, signal=tank.resolved_attacks.signal)
+    assert relay.runtime == "local" and relay.cov_kind == "covariance" and (relay.messages == 2 * links).all()
+    assert relay.detail.iterations == 2 and relay.x is relay.detail.x_post
+    values, avail = split_received(m, np.stack(batch.received[0]))
+    pf = run_sir(m, np.where(np.repeat(avail, m.sensor_dims, axis=-1), values, 0.0), np.random.default_rng(0),
+                 particles=20, uplinks=5)
+    assert isinstance(pf.detail, SIRResult) and pf.nodes == 1 and pf.runtime == "centralized"
+    assert np.array_equal(pf.x[:, :, 0], pf.detail.mean) and np.array_equal(pf.cov[:, :, 0], pf.detail.cov)
+    assert (pf.messages == 5).all() and (run_sir(m, np.zeros((1, 2, m.n_z)), np.random.default_rng(0),
+                                                  particles=5).messages == m.n_sensors).all()
+    for res in (replay, centre, relay, pf):
+        assert isinstance(res, FilterResult) and res.check() is res
 
 
 def test_a_run_is_diverged_at_its_first_non_finite_estimate():

@@ -198,12 +198,12 @@ def test_the_flood_filter_equals_the_node_by_node_reference():
     rng = np.random.default_rng(3)
     z = np.stack([model.h_all(model.prior.mean) + rng.normal(0, 0.2, (steps, model.n_z)) for _ in range(runs)])
     att = edge_attacks(net, runs, steps, model.n_x, seed=6)
-    res = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL, routing="flood")
+    res = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL, routing="flood").detail
     xs, Ps = reference_relay(model, net, z, 3, att, SIGNAL, "flood", flood_copies)
     assert res.violations == [[], [], []]
     assert np.allclose(res.x_post, xs, rtol=0, atol=1e-10)
     assert np.allclose(res.P_post, Ps, rtol=0, atol=1e-10)
-    tree = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL)
+    tree = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL).detail
     assert not np.allclose(tree.x_post, res.x_post)  # the copies taken differ from the tree's
 
 
@@ -221,7 +221,7 @@ def test_the_expected_covariance_matches_a_monte_carlo_and_the_check_has_power(m
     def mse_over_bound(runs=2000, steps=15, seed=31):
         truth, z = simulate_linear(model, runs, steps, seed)
         att = edge_attacks(ring, runs, steps, model.n_x, seed=seed + 1)
-        res = run_relay_batch(model, ring, z, 3, attacks=att, signal=SIGNAL, routing="flood")
+        res = run_relay_batch(model, ring, z, 3, attacks=att, signal=SIGNAL, routing="flood").detail
         e2 = ((res.x_post[:, 1:] - truth[:, 1:, None]) ** 2).sum(-1).sum(1)  # (runs, N)
         ratio = e2 / np.trace(res.P_post[:, 1:], axis1=-2, axis2=-1).sum(1)
         return ratio.mean(0), ratio.std(0, ddof=1) / np.sqrt(runs)
@@ -247,13 +247,13 @@ def test_the_rules_filter_is_the_flood_filter_and_its_certificate_where_it_settl
     assert design.exchange == "relay" and design.rounds == 2
     _, z = simulate_linear(model, 2, 30, seed=4)
     att = edge_attacks(net, 2, 30, model.n_x, seed=9)
-    got = run_consensus_batch(model, net, z, design, attacks=att)
-    ref = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL, routing="flood")
+    got = run_consensus_batch(model, net, z, design, attacks=att).detail
+    ref = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL, routing="flood").detail
     assert np.array_equal(got.x_post, ref.x_post) and np.array_equal(got.phi_post, ref.P_post)
     cert = relay_stationary(model, net, design, x=np.zeros(model.n_x))
     assert cert.converged and cert.lmi["status"] == "optimal"
     # a linear model: the expected covariance recursion depends on neither the measurements nor the draws
-    settled = run_relay_batch(model, net, np.zeros((1, 300, model.n_z)), 2, signal=SIGNAL, routing="flood")
+    settled = run_relay_batch(model, net, np.zeros((1, 300, model.n_z)), 2, signal=SIGNAL, routing="flood").detail
     assert np.allclose(settled.P_post[0, -1], cert.Phi, rtol=1e-7, atol=1e-10)
     with pytest.raises(InputError, match="routes must be the design's"):
         relay_stationary(model, net, design, x=np.zeros(model.n_x), routes=relay_routes(net, 2))

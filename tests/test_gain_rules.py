@@ -163,8 +163,8 @@ def test_a_rule_added_as_one_package_is_designed_run_and_checked_as_its_capabili
     copy, paper = (consensus_design(sc, as_mode(None, m)) for m in ("fixed_copy", "paper"))
     assert copy.rule is mine and copy.epsilon == paper.epsilon and copy.sigma == paper.sigma
     traj = sc.simulate(np.random.default_rng(1), 4, batch=2)
-    a = run_consensus_batch(sc.model, sc.network, traj.z, copy, inputs=traj.inputs)
-    b = run_consensus_batch(sc.model, sc.network, traj.z, paper, inputs=traj.inputs)
+    a = run_consensus_batch(sc.model, sc.network, traj.z, copy, inputs=traj.inputs).detail
+    b = run_consensus_batch(sc.model, sc.network, traj.z, paper, inputs=traj.inputs).detail
     np.testing.assert_array_equal(a.x_post, b.x_post)
     np.testing.assert_array_equal(a.phi_post, b.phi_post)
     assert a.violations == b.violations

@@ -202,7 +202,7 @@ def robot(robot_25_steps):
 def test_robot_under_dos_and_fdi_matches_per_run(robot, gate):
     sc, net, traj, atts = robot
     des = consensus_design(sc, mode="mse", gate=gate)
-    batch = run_mse_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts)
+    batch = run_mse_batch(sc.model, net, traj.z, des, inputs=traj.inputs, attacks=atts).detail
     assert_mse_batch_is_per_run(batch, per_run(sc.model, net, traj.z, des, traj.inputs, atts))
     counts = batch.gate_counts
     assert counts[..., 3].sum() > 0, "falsified packets must arrive"
@@ -219,7 +219,7 @@ def test_robot_hessian_rule_per_run_inputs_priors_and_edge_attacks(robot):
     phi0 = sc.model.prior.cov[None] * rng.uniform(0.5, 1.5, (runs, 1, 1))
     des = consensus_design(sc, mode="mse", linearization="hessian")
     batch = run_mse_batch(sc.model, net, traj.z, des, inputs=inputs, attacks=EdgeAttacks.from_patterns(net, atts),
-                          x0=x0, phi0=phi0)
+                          x0=x0, phi0=phi0).detail
     assert_mse_batch_is_per_run(batch, per_run(sc.model, net, traj.z, des, inputs, atts, x0, phi0))
 
 
@@ -235,7 +235,7 @@ def test_mixed_sensor_dimensions_bearings_and_a_gate_match_per_run():
     atts = [simulate_attacks(net, steps, 4, np.random.default_rng(60 + r), signal=signal) for r in range(runs)]
     des = make_design(model, net, rule=rules.get("mse"), delta=2.0 * np.sqrt(2.0), options=DesignOptions(mode="mse", gate=0.1),
                       x0=model.prior.mean, signal=signal)
-    batch = run_mse_batch(model, net, traj.z, des, attacks=atts)
+    batch = run_mse_batch(model, net, traj.z, des, attacks=atts).detail
     assert_mse_batch_is_per_run(batch, per_run(model, net, traj.z, des, None, atts))
     assert batch.K.shape == (runs, steps, 5, 4, 2) and np.all(batch.K[:, :, 1:, :, 1] == 0.0)
     assert batch.gate_counts[..., 1].sum() > 0 and not any(batch.diverged)
@@ -252,12 +252,12 @@ def test_a_diverging_run_stops_alone_and_sub_batches_change_nothing(monkeypatch)
     z[2, 9, 2:4] = 1e14
     atts = [simulate_attacks(net, steps, 2, np.random.default_rng(42 + r), signal=FDISignal(0.1, (0,)))
             for r in range(runs)]
-    batch = run_mse_batch(model, net, z, des, attacks=atts)
+    batch = run_mse_batch(model, net, z, des, attacks=atts).detail
     assert_mse_batch_is_per_run(batch, per_run(model, net, z, des, None, atts))
     assert [d is not None for d in batch.diverged] == [False, False, True, False, False]
     assert batch.diverged[2]["step"] == 10 and np.isnan(batch.predicted_mse[2, 10:]).all()
     monkeypatch.setattr(mse_batch, "MEMORY_BUDGET", 2 * mse_batch.JOINT_COPIES * 8 * (3 * 2) ** 2)
-    again = run_mse_batch(model, net, z, des, attacks=atts)
+    again = run_mse_batch(model, net, z, des, attacks=atts).detail
     for name in ("x_post", "phi_post", "K", "C", "predicted_mse", "sigma", "beta", "gate_counts"):
         np.testing.assert_array_equal(getattr(again, name), getattr(batch, name), err_msg=name)
     assert again.violations == batch.violations
@@ -277,7 +277,7 @@ def test_bound_trace_limit_ends_the_certificate_then_overflow():
     net = SensorNetwork.from_edges(nodes, [(0, 1), (1, 2)])
     des = ConsensusDesign(0.4, 0.0, 0.0, 0.01, np.zeros((2, 2)), np.zeros((1, 1)), 0.0, rules.get("mse"))
     z = np.random.default_rng(0).standard_normal((2, 60, nodes))
-    batch = run_mse_batch(model, net, z, des)
+    batch = run_mse_batch(model, net, z, des).detail
     assert_mse_batch_is_per_run(batch, per_run(model, net, z, des, None, None))
     limit = [v for v in batch.violations[0] if v["condition"] == "(28)"]
     assert len(limit) == 1 and "1e+100" in limit[0]["reason"] and batch.diverged[0] is not None

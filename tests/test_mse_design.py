@@ -49,8 +49,11 @@ def _runs(sc, design, runs, seed):
     """Runs 0..runs-1 of ``seed``: the truths (runs, steps+1, n_x) and the filter on all of them at once (mode mse:
     rules.mse.filter, tested against the per-run reference in tests/test_mse_batch.py; else run_consensus_batch)."""
     draws = [_draw(sc, seed, (r,)) for r in range(runs)]
-    engine = run_mse_batch if design.mode == "mse" else run_consensus_batch
-    res = engine(sc.model, sc.network, np.stack([t.z for t, _ in draws]), design, attacks=[a for _, a in draws])
+    z, attacks = np.stack([t.z for t, _ in draws]), [a for _, a in draws]
+    if design.mode == "mse":
+        res = run_mse_batch(sc.model, sc.network, z, design, attacks=attacks).detail
+    else:
+        res = run_consensus_batch(sc.model, sc.network, z, design, attacks=attacks).detail
     return np.stack([t.x for t, _ in draws]), res
 
 

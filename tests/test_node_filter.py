@@ -141,7 +141,8 @@ def test_consensus_node_filters_driven_over_a_run_give_the_studys_numbers(target
     assert sim.attacks.dos.any() and sim.attacks.fdi.any()
     small = dict(sigma=0.004, beta=0.0002) if target == "user" and mode == "paper" else {}  # (28), (29) at step 0
     design = consensus_design(sc, DesignOptions(mode=mode, gate=gate, **small))
-    ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs, attacks=[sim.attacks])
+    ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs,
+                              attacks=[sim.attacks]).detail
     x, P = node_network(sc.model, sc.network, design).run(sim.z, sim.attacks, sim.inputs)
     finite = int(np.isfinite(ref.x_post[0]).all(axis=(1, 2)).sum())  # both rules diverge on the cart (paper at
     assert finite == x.shape[0] if target != "user" else 3 <= finite < x.shape[0]  # once): the network stops as well
@@ -276,7 +277,8 @@ def test_scheduled_node_filters_driven_over_a_run_give_the_studys_numbers(target
     sc = load_scenario(str(cart) if target == "user" else target)
     sim = studies.simulate(sc, seed=4, run=1)
     design = consensus_design(sc, DesignOptions(mode="scheduled", **options))
-    ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs, attacks=[sim.attacks])
+    ref = run_consensus_batch(sc.model, sc.network, sim.z[None], design, inputs=sim.inputs,
+                              attacks=[sim.attacks]).detail
     net = node_network(sc.model, sc.network, design)
     x, P = net.run(sim.z, sim.attacks, sim.inputs)
     assert np.isfinite(ref.x_post).all() and np.array_equal(x, ref.x_post[0])

@@ -99,7 +99,7 @@ def test_sir_matches_the_kalman_filter_on_a_linear_model(scheme, thr):
                               model.prior.cov, traj.z)
     runs = 16
     res = run_sir(model, traj.z, np.random.default_rng(6), particles=3000, runs=runs, resampler=scheme,
-                  ess_threshold=thr)
+                  ess_threshold=thr).detail
     diff = res.mean[:, 1:] - means_kf[None]  # (runs, K, 2)
     avg = diff.mean(0)
     se = diff.std(0, ddof=1) / np.sqrt(runs)
@@ -114,8 +114,8 @@ def test_sir_matches_the_kalman_filter_on_a_linear_model(scheme, thr):
 def test_sir_is_reproducible_and_runs_are_independent():
     model, _, _ = _linear_model()
     traj = simulate(model, 10, np.random.default_rng(5))
-    a = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3)
-    b = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3)
+    a = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3).detail
+    b = run_sir(model, traj.z, np.random.default_rng(9), particles=200, runs=3).detail
     assert np.array_equal(a.mean, b.mean) and np.array_equal(a.loglik, b.loglik)
     assert not np.allclose(a.mean[0], a.mean[1])
 
@@ -124,13 +124,13 @@ def test_collapse_is_recorded_and_the_filter_recovers():
     """A measurement no particle can explain leaves finite weights, keeps the prediction and is recorded."""
     model, A, Hm = _linear_model()
     traj = simulate(model, 12, np.random.default_rng(5))
-    base = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2)
+    base = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2).detail
 
     def loglik(x, k1, z):  # zero density at step 5 (k1 = 6), the model's Gaussian otherwise
         ll = model.sensors[0].noise.logpdf(z[..., None, :] - model.h(0, x, k1))
         return np.full_like(ll, -np.inf) if k1 == 6 else ll
 
-    res = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2, loglik=loglik)
+    res = run_sir(model, traj.z, np.random.default_rng(1), particles=500, runs=2, loglik=loglik).detail
     assert res.collapsed[:, 5].all() and res.collapsed.sum() == 2
     assert np.all(np.isfinite(res.mean)) and np.all(np.isfinite(res.cov))
     assert np.all(res.loglik == -np.inf)  # p(z_6 | z_1:5) = 0 under this likelihood
@@ -149,13 +149,13 @@ def test_linear_weights_underflow_where_log_weights_do_not():
     traj = simulate(model, 10, np.random.default_rng(5))
     z = traj.z.copy()
     z[4] += 60 * np.sqrt(0.3)  # log-likelihood about -1800 for every particle: exp() == 0 in double precision
-    log = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3)
-    lin = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True)
+    log = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3).detail
+    lin = run_sir(model, z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True).detail
     assert not log.collapsed.any()
     assert lin.collapsed[:, 4].all() and lin.collapsed.sum() == 3
     # without the outlier the two are the same filter, bit for bit
-    a = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3)
-    b = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True)
+    a = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3).detail
+    b = run_sir(model, traj.z, np.random.default_rng(2), particles=300, runs=3, linear_weights=True).detail
     np.testing.assert_array_equal(a.mean, b.mean)
 
 
@@ -168,7 +168,7 @@ def test_nan_measurements_are_rejected_or_skipped_explicitly():
         run_sir(model, z, np.random.default_rng(0), particles=50)
     with pytest.raises(InputError, match="missing must be"):
         run_sir(model, traj.z, np.random.default_rng(0), particles=50, missing="ignore")
-    res = run_sir(model, z, np.random.default_rng(0), particles=2000, missing="skip")
+    res = run_sir(model, z, np.random.default_rng(0), particles=2000, missing="skip").detail
     assert res.skipped[0, 3] and res.skipped.sum() == 1 and not res.collapsed.any()
     assert np.all(np.isfinite(res.mean)) and np.isfinite(res.loglik).all()
     # a skipped step is a prediction: the weights stay uniform (ESS = M) and the mean follows A

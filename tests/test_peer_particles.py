@@ -180,7 +180,7 @@ def _run_case(name: str, seed: int) -> dict:
         z = y.reshape(RUNS, STEPS, -1)
         loglik = all_sensors_loglik(m, angles=[1])
         loglik_nowrap = all_sensors_loglik(m)
-    ours = run_sir(m, z, np.random.default_rng(seed + 1000), particles=PARTICLES, runs=RUNS, loglik=loglik)
+    ours = run_sir(m, z, np.random.default_rng(seed + 1000), particles=PARTICLES, runs=RUNS, loglik=loglik).detail
     peer = _peer_model(sc.params, schedule)
     peer_mean, _ = _run_peer(peer, z, PARTICLES, seed=seed + 2000)
     return dict(name=name, sc=sc, truth=tr.x[:, 1:], z=z, loglik=loglik, loglik_nowrap=loglik_nowrap,
@@ -253,7 +253,7 @@ def test_log_likelihood_matches_peer(case):
     """
     m, k = case["sc"].model, LOGLIK_STEPS
     z = np.ascontiguousarray(case["z"][:, :k])
-    ours = run_sir(m, z, np.random.default_rng(21), particles=PARTICLES, runs=RUNS, loglik=case["loglik"]).loglik
+    ours = run_sir(m, z, np.random.default_rng(21), particles=PARTICLES, runs=RUNS, loglik=case["loglik"]).detail.loglik
     _, peer = _run_peer(case["peer_model"], z, PARTICLES, seed=22)
     diff, se = _paired(ours, peer)
     assert abs(diff) < N_SIGMA * se, (case["name"], ours.mean(), peer.mean(), diff, se)
@@ -264,11 +264,11 @@ def _faulty_filter(fault: str, case: dict):
     m, ll = case["sc"].model, case["loglik"]
     if fault == "glint-5x-wide":  # likelihood tempered by 1/25: about a measurement noise 5x too wide
         return run_sir(m, case["z"], np.random.default_rng(8), particles=PARTICLES, runs=RUNS,
-                       loglik=lambda x, k1, z: ll(x, k1, z) / 25.0)
+                       loglik=lambda x, k1, z: ll(x, k1, z) / 25.0).detail
     assert fault == "process-noise-x10"
     m10 = load_scenario("target-range-bearing", {"accel_std": case["sc"].params["accel_std"] * np.sqrt(10.0)}).model
     return run_sir(m10, case["z"], np.random.default_rng(8), particles=PARTICLES, runs=RUNS,
-                   loglik=all_sensors_loglik(m10, angles=[1]))
+                   loglik=all_sensors_loglik(m10, angles=[1])).detail
 
 
 @pytest.mark.parametrize("fault", ["glint-5x-wide", "process-noise-x10"])
@@ -287,7 +287,7 @@ def test_negative_control_unwrapped_bearings_are_detected():
     test flags it (the mean test alone does not: the few huge differences also inflate its SE)."""
     case = _case("all-sensors-wrapping")
     bad = run_sir(case["sc"].model, case["z"], np.random.default_rng(9), particles=PARTICLES, runs=RUNS,
-                  loglik=case["loglik_nowrap"])
+                  loglik=case["loglik_nowrap"]).detail
     ours, peer = _rmse_pair(case, list(case["sc"].model.position_index), bad.mean[:, 1:])
     assert stats.wilcoxon(ours, peer).pvalue < WILCOXON_LEVEL
 
@@ -306,7 +306,7 @@ def test_alignment_on_a_linear_gaussian_model():
     model = Model("cv-linear", x, ca.mtimes(ca.DM(F), x), [Sensor("p", ca.mtimes(ca.DM(G), x), Gaussian.zero_mean(Rm))],
                   Gaussian.zero_mean(Q), Gaussian(m0, P0))
     tr = simulate(model, K, np.random.default_rng(3), batch=runs)
-    ours = run_sir(model, tr.z, np.random.default_rng(4), particles=M, runs=runs)
+    ours = run_sir(model, tr.z, np.random.default_rng(4), particles=M, runs=runs).detail
     mu1, cov1 = _pushed_prior(F, Q, m0, P0)  # the same shift as PeerRangeBearing.PX0
     pushed = kalman.MVLinearGauss(F=F, G=G, covX=Q, covY=Rm, mu0=mu1, cov0=cov1)
     unshifted = kalman.MVLinearGauss(F=F, G=G, covX=Q, covY=Rm, mu0=m0, cov0=P0)

@@ -190,12 +190,12 @@ def test_without_attacks_each_node_is_the_kalman_filter_of_its_ball(hops):
     model = linear_model()
     net = network()
     _, z = simulate_linear(model, 3, 12, seed=1)
-    res = run_relay_batch(model, net, z, hops)
+    res = run_relay_batch(model, net, z, hops).detail
     rt = relay_routes(net, hops)
     for i in range(N):
         mask = np.zeros((3, 12, N), dtype=bool)
         mask[:, :, rt.ball(i)] = True
-        ekf = run_ekf_batch(model, z, available=mask)
+        ekf = run_ekf_batch(model, z, available=mask).detail
         assert np.allclose(res.x_post[:, :, i], ekf.x, rtol=0, atol=1e-10)
         assert np.allclose(res.P_post[:, :, i], ekf.P, rtol=0, atol=1e-10)
     assert res.iterations == hops and res.violations == [[], [], []]
@@ -267,7 +267,7 @@ def test_with_attacks_equals_the_node_by_node_reference():
     z = np.stack([model.h_all(model.prior.mean) + rng.normal(0, 0.2, (steps, model.n_z)) for _ in range(runs)])
     att = edge_attacks(net, runs, steps, model.n_x, seed=5)
     assert att.dos.any() and att.fdi.any() and np.abs(att.xi).max() > 0.1
-    res = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL)
+    res = run_relay_batch(model, net, z, 3, attacks=att, signal=SIGNAL).detail
     xs, Ps = reference_relay(model, net, z, 3, att, SIGNAL)
     assert res.violations == [[], [], []]
     assert np.allclose(res.x_post, xs, rtol=0, atol=1e-10)
@@ -291,7 +291,7 @@ def mse_over_bound(model, net, hops, runs, steps, seed):
     """Per node: the mean over runs of (Σ_k |e_k|²) / (Σ_k tr P_k) and its standard error."""
     truth, z = simulate_linear(model, runs, steps, seed)
     att = edge_attacks(net, runs, steps, model.n_x, seed=seed + 1)
-    res = run_relay_batch(model, net, z, hops, attacks=att, signal=SIGNAL)
+    res = run_relay_batch(model, net, z, hops, attacks=att, signal=SIGNAL).detail
     e2 = ((res.x_post[:, 1:] - truth[:, 1:, None]) ** 2).sum(-1).sum(1)  # (runs, N)
     tr = np.trace(res.P_post[:, 1:], axis1=-2, axis2=-1).sum(1)
     ratio = e2 / tr
@@ -348,9 +348,9 @@ def test_a_batch_of_one_is_that_row_of_the_batch():
     rng = np.random.default_rng(4)
     z = np.stack([model.h_all(model.prior.mean) + rng.normal(0, 0.3, (6, model.n_z)) for _ in range(4)])
     att = edge_attacks(net, 4, 6, model.n_x, seed=9)
-    full = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL)
+    full = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL).detail
     one = att._replace(dos=att.dos[2:3], fdi=att.fdi[2:3], xi=att.xi[2:3])
-    alone = run_relay_batch(model, net, z[2:3], 2, attacks=one, signal=SIGNAL)
+    alone = run_relay_batch(model, net, z[2:3], 2, attacks=one, signal=SIGNAL).detail
     for name in ("x_post", "P_post", "x_pred", "P_pred", "messages_per_step", "delivered_per_step"):
         assert np.array_equal(getattr(alone, name)[0], getattr(full, name)[2], equal_nan=True), name
 
@@ -360,13 +360,14 @@ def test_a_diverging_run_stops_alone():
     net = network()
     _, z = simulate_linear(model, 3, 6, seed=2)
     z[1, 3] = 1e15  # one run's measurements beyond any finite estimate
-    res = run_relay_batch(model, net, z, 2)
+    out = run_relay_batch(model, net, z, 2)
+    res = out.detail
     assert res.violations[0] == res.violations[2] == []
     (v,) = res.violations[1]
     assert v["condition"] == "diverged" and v["step"] == 4
     assert np.isnan(res.x_post[1, 4:]).all() and np.isfinite(res.x_post[1, :4]).all()
     assert np.isfinite(res.x_post[[0, 2]]).all()
-    assert res.to_result().diverged_step.tolist() == [-1, 4, -1]
+    assert out.diverged_step.tolist() == [-1, 4, -1]
 
 
 def test_a_prediction_beyond_finite_numbers_stops_its_run_before_the_update():
@@ -374,7 +375,7 @@ def test_a_prediction_beyond_finite_numbers_stops_its_run_before_the_update():
     model = Model("blows up", x, ca.vertcat(0.9 * x[0], ca.exp(x[1]) - 1.0),
                   [Sensor(f"s{i}", x[0], Gaussian.zero_mean([[1.0]])) for i in range(N)],
                   Gaussian.zero_mean(0.01 * np.eye(2)), Gaussian([0.0, 0.0], np.eye(2)))
-    res = run_relay_batch(model, network(), np.zeros((2, 4, N)), 2, x0=np.array([[0.0, 800.0], [0.0, 0.0]]))
+    res = run_relay_batch(model, network(), np.zeros((2, 4, N)), 2, x0=np.array([[0.0, 800.0], [0.0, 0.0]])).detail
     (v,) = res.violations[0]
     assert v["step"] == 1 and v["reason"].startswith("prediction") and np.isnan(res.x_post[0, 1:]).all()
     assert res.violations[1] == [] and np.isfinite(res.x_post[1]).all()

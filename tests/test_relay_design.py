@@ -41,10 +41,10 @@ def test_the_rules_filter_is_the_relay_filter_on_each_runs_network():
     z = np.abs(rng.normal(5.0, 1.0, (3, 6, model.n_z)))  # any measurements: the filters must agree on them
     att = edge_attacks(nets[0], 3, 6, model.n_x, seed=5)
     design = relay_design(model, nets[0], 2)
-    res = run_consensus_batch(model, nets, z, design, attacks=att)
+    res = run_consensus_batch(model, nets, z, design, attacks=att).detail
     for r in range(3):
         one = att._replace(dos=att.dos[r:r + 1], fdi=att.fdi[r:r + 1], xi=att.xi[r:r + 1])
-        ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL)
+        ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL).detail
         assert np.array_equal(res.x_post[r], ref.x_post[0]) and np.array_equal(res.phi_post[r], ref.P_post[0])
         assert np.array_equal(res.gate_counts[r, :, 0], ref.delivered_per_step[0])
     assert res.valid.all() and np.all(res.C == 0.0)
@@ -61,7 +61,7 @@ def test_stationary_certificate_is_where_the_filters_covariance_settles(hops):
     assert cert.converged and cert.reason is None
     steps = 300
     z = np.zeros((1, steps, model.n_z))  # a linear model: the covariance does not depend on the measurements
-    res = run_relay_batch(model, net, z, hops, signal=SIGNAL)
+    res = run_relay_batch(model, net, z, hops, signal=SIGNAL).detail
     assert np.allclose(res.P_post[0, -1], cert.Phi, rtol=1e-7, atol=1e-10)
     assert cert.lmi["status"] == "optimal" and cert.lmi["relative_residual"] < 1e-6
     assert cert.lmi["trace"] == pytest.approx(np.trace(cert.Phi, axis1=-2, axis2=-1).sum(), rel=1e-6)
@@ -152,7 +152,7 @@ def test_without_fdi_on_the_network_no_signal_is_needed():
     net = network(0.2, 0.0)
     design = relay_design(model, net, 2, signal=None)
     _, z = simulate_linear(model, 2, 5, seed=2)
-    res = run_consensus_batch(model, net, z, design)
+    res = run_consensus_batch(model, net, z, design).detail
     assert res.valid.all() and np.isfinite(res.x_post).all() and res.x_post.shape == (2, 6, N, 2)
 
 

@@ -61,7 +61,7 @@ def test_paper_ordering_of_the_rrp_filters():
     att_all = deception_attack(y, 0.2, sig, rng).y.reshape(runs, K, 8)
 
     def rmse_p(z, ll):
-        res = run_sir(m, z, np.random.default_rng(4), particles=M, runs=runs, loglik=ll)
+        res = run_sir(m, z, np.random.default_rng(4), particles=M, runs=runs, loglik=ll).detail
         e = res.mean[:, 1:] - tr.x[:, 1:]
         return np.sqrt((e[..., [0, 2]] ** 2).sum(-1).mean())
 

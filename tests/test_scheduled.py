@@ -39,7 +39,7 @@ def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange
     runs = 1500
     draws = [_draw(sc, 11, (r,)) for r in range(runs)]
     res = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), des,
-                              attacks=[a for _, a in draws])
+                              attacks=[a for _, a in draws]).detail
     err = np.stack([t.x for t, _ in draws])[:, :, None, :] - res.x_post
     e2 = (err**2).sum(-1)
     emp, se = e2.mean(0), e2.std(0, ddof=1) / np.sqrt(runs)
@@ -163,7 +163,7 @@ def test_one_run_is_a_batch_of_one_and_the_online_rule_is_the_offline_design_on_
     des = _scheduled(sc)
     draws = [_draw(sc, 2, (r,)) for r in range(3)]
     batch = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), des,
-                                attacks=[a for _, a in draws])
+                                attacks=[a for _, a in draws]).detail
     one = run_consensus(sc.model, sc.network, draws[1][0].z, des, attacks=draws[1][1])
     np.testing.assert_allclose(one.x_post, batch.x_post[1], rtol=1e-12, atol=1e-14)  # stacks of other sizes: to
     np.testing.assert_array_equal(one.phi_post, batch.phi_post[1])  # rounding; the design's bound: exactly
@@ -338,7 +338,7 @@ def test_more_exchange_rounds_are_the_monte_carlo_mse_without_attacks_and_cost_t
     runs = 1500
     draws = [_draw(sc, 12, (r,)) for r in range(runs)]
     z = np.stack([t.z for t, _ in draws])
-    res = run_consensus_batch(sc.model, sc.network, z, des)
+    res = run_consensus_batch(sc.model, sc.network, z, des).detail
     e2 = ((np.stack([t.x for t, _ in draws])[:, :, None, :] - res.x_post) ** 2).sum(-1)
     emp, se = e2.mean(0), e2.std(0, ddof=1) / np.sqrt(runs)
     pred = np.trace(des.tables.P_post, axis1=-2, axis2=-1)
@@ -413,8 +413,8 @@ def test_a_linear_model_has_no_bank_and_the_same_filter():
     assert not banked.tables.has_bank and rec["points"] == 0 and rec["skipped"] == 8
     draws = [_draw(sc, 2, (r,)) for r in range(2)]
     z, att = np.stack([t.z for t, _ in draws]), [a for _, a in draws]
-    a = run_consensus_batch(sc.model, sc.network, z, plain, attacks=att)
-    b = run_consensus_batch(sc.model, sc.network, z, banked, attacks=att)
+    a = run_consensus_batch(sc.model, sc.network, z, plain, attacks=att).detail
+    b = run_consensus_batch(sc.model, sc.network, z, banked, attacks=att).detail
     np.testing.assert_array_equal(a.x_post, b.x_post)
 
 
@@ -459,12 +459,12 @@ def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction
     tr, att = _draw(sc, 1, (5,))
     z = tr.z[:1][None]
     with_bank = run_consensus_batch(sc.model, sc.network, z, des, x0=x0, attacks=[att._replace(
-        **{f: getattr(att, f)[:1] for f in att._fields})])
+        **{f: getattr(att, f)[:1] for f in att._fields})]).detail
     reference = run_consensus_batch(sc.model, sc.network, z, des._replace(tables=swapped), x0=x0,
-                                    attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})])
+                                    attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})]).detail
     np.testing.assert_array_equal(with_bank.x_post, reference.x_post)
     plain = run_consensus_batch(sc.model, sc.network, z, des._replace(tables=tab._replace(bank_points=None)),
-                                x0=x0, attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})])
+                                x0=x0, attacks=[att._replace(**{f: getattr(att, f)[:1] for f in att._fields})]).detail
     assert np.abs(plain.x_post[0, 1] - with_bank.x_post[0, 1]).max() > 1e-6  # the bank's tables differ
 
 

@@ -52,11 +52,11 @@ def test_robot_runs_with_their_own_inputs_and_streams(threshold):
     blocks = [1, 2, 1]
     seeds = np.random.SeedSequence(5).spawn(3)
     kw = dict(particles=60, ess_threshold=threshold)
-    batch = run_sir(m, z, [np.random.default_rng(s) for s in seeds], blocks=blocks, inputs=u, **kw)
+    batch = run_sir(m, z, [np.random.default_rng(s) for s in seeds], blocks=blocks, inputs=u, **kw).detail
     alone, start = [], 0
     for seq, b in zip(seeds, blocks):
         rows = slice(start, start + b)
-        alone.append(run_sir(m, z[rows], np.random.default_rng(seq), inputs=u[rows.start], **kw))
+        alone.append(run_sir(m, z[rows], np.random.default_rng(seq), inputs=u[rows.start], **kw).detail)
         start += b
     assert_blocks_are_separate_calls(batch, alone)
     if threshold < 1:
@@ -73,14 +73,15 @@ def test_uplink_likelihood_per_row_and_default_blocks():
     q = np.array([0.0, 0.2, 0.4])
     covs = [np.eye(2)] * m.n_sensors
     gens = lambda: [np.random.default_rng(s) for s in (7, 8, 9)]  # noqa: E731
-    batch = run_sir(m, np.stack([y] * 3), gens(), particles=50, loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs))
-    alone = [run_sir(m, y[None], g, particles=50, loglik=uplink_loglik(m, fdi_prob=qi, fdi_covs=covs))
+    batch = run_sir(m, np.stack([y] * 3), gens(), particles=50,
+                    loglik=uplink_loglik(m, fdi_prob=q, fdi_covs=covs)).detail
+    alone = [run_sir(m, y[None], g, particles=50, loglik=uplink_loglik(m, fdi_prob=qi, fdi_covs=covs)).detail
              for g, qi in zip(gens(), q)]
     assert_blocks_are_separate_calls(batch, alone)
     sw = switching_model()
     zs = np.random.default_rng(0).normal(size=(2, 12, 1))
-    batch = run_sir(sw, zs, [np.random.default_rng(1), np.random.default_rng(2)], particles=40)
-    alone = [run_sir(sw, zs[r:r + 1], np.random.default_rng(1 + r), particles=40) for r in range(2)]
+    batch = run_sir(sw, zs, [np.random.default_rng(1), np.random.default_rng(2)], particles=40).detail
+    alone = [run_sir(sw, zs[r:r + 1], np.random.default_rng(1 + r), particles=40).detail for r in range(2)]
     assert_blocks_are_separate_calls(batch, alone)
 
 
@@ -101,10 +102,10 @@ def test_a_custom_proposal_is_called_per_block():
 
     z = np.random.default_rng(3).normal(size=(3, 6, 1))
     batch = run_sir(m, z, [np.random.default_rng(4), np.random.default_rng(5)], blocks=[2, 1], particles=30,
-                    proposal=proposal)
+                    proposal=proposal).detail
     assert seen == [2, 1] * 6
-    alone = [run_sir(m, z[:2], np.random.default_rng(4), particles=30, proposal=proposal),
-             run_sir(m, z[2:], np.random.default_rng(5), particles=30, proposal=proposal)]
+    alone = [run_sir(m, z[:2], np.random.default_rng(4), particles=30, proposal=proposal).detail,
+             run_sir(m, z[2:], np.random.default_rng(5), particles=30, proposal=proposal).detail]
     assert_blocks_are_separate_calls(batch, alone)
 
 

@@ -143,7 +143,7 @@ def test_comparison_centralized_filters_rmse():
         pf_ss = fs.spawn(3)
         for key, c, prob in (("aware", 0, q), ("plain", 1, 0.0)):
             out = run_sir(m, y[None], rng(pf_ss[c]), particles=M, runs=1, inputs=traj.inputs,
-                          loglik=uplink_loglik(m, fdi_prob=prob, fdi_covs=covs))
+                          loglik=uplink_loglik(m, fdi_prob=prob, fdi_covs=covs)).detail
             e2[key].append(((traj.x[1:, pos] - out.mean[0][1:, pos]) ** 2).sum(-1))
         values, avail = split_received(m, y)
         xs = run_ekf(m, values, available=avail, inputs=traj.inputs).x
@@ -186,7 +186,7 @@ def test_rrp_deception_table1_rmse():
         data = {"RRP-PF-DA": deception_attack(y_rr, eta, ch.deception, rng(s_rr)).y, "RRP-SPF-NM": y_rr}
         streams = s_filters.spawn(4)
         for name, c in (("RRP-PF-DA", 0), ("RRP-SPF-NM", 2)):
-            out = run_sir(m, data[name][None], rng(streams[c]), particles=M, runs=1, loglik=ll[name])
+            out = run_sir(m, data[name][None], rng(streams[c]), particles=M, runs=1, loglik=ll[name]).detail
             e2[name].append(((tr.x[1:, pos] - out.mean[0][1:, pos]) ** 2).sum(-1))
     for name in e2:
         np.testing.assert_allclose(res["filters"][name]["rmse_position"], curve_average(np.array(e2[name])),
@@ -221,7 +221,7 @@ def test_binary_multi_attack_rmse():
         streams = s_filters.spawn(3)
         for name, c in (("Sec-PF", 0), ("Sta-PF", 2)):
             y = binary_sensor_channel(tr.z, **probs[name], **law, rng=rng(s_channel)).y
-            out = run_sir(m, y[None], rng(streams[c]), particles=M, runs=1, loglik=ll[name])
+            out = run_sir(m, y[None], rng(streams[c]), particles=M, runs=1, loglik=ll[name]).detail
             e2[name].append(((tr.x[1:, pos] - out.mean[0][1:, pos]) ** 2).sum(-1))
     for name in e2:
         np.testing.assert_allclose(res["filters"][name]["rmse_position"], curve_average(np.array(e2[name])),
@@ -253,7 +253,7 @@ def test_encrypted_switching_ppf_rmse_state():
         tx = transmit(tr.z[0], ch.codec, rng(s_channel), bit_error_prob=ch.bit_error_prob,
                       dropout_prob=ch.dropout_prob)
         out = run_sir(m, received(tx)[None], rng(s_filter), particles=M, runs=1, loglik=ll,
-                      resampler="systematic", ess_threshold=0.5)
+                      resampler="systematic", ess_threshold=0.5).detail
         err.append(tr.x[0, 1:] - out.mean[0, 1:])
     err = np.array(err)  # (runs, T, n_x)
     ours = [curve_average(err[..., i] ** 2) for i in range(m.n_x)]

@@ -56,10 +56,10 @@ from designer.validation import InputError
 
 from filters.attacks import AttackPattern
 from filters.channels import channel_difference_covariance, gate_channels, kept_fdi_moments
-from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
-                              per_run, result_arrays, run_networks, wrap_residuals)
+from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result,
+                              edge_attacks, per_run, result_arrays, run_networks, wrap_residuals)
 from filters.engine import Step, run_batch
-from filters.result import diverged_nodes
+from filters.result import FilterResult, diverged_nodes
 
 from . import JOINT_COPIES, MEMORY_BUDGET  # the rule's own, which the memory estimate reads too
 
@@ -72,7 +72,7 @@ MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alo
 @one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                  phi0=None) -> ConsensusBatchResult:
+                  phi0=None) -> FilterResult:
     """Run the consensus filter in mode ``'mse'`` at every node over many runs of measurements ``z``.
 
     The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (one network or one per
@@ -82,8 +82,9 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
 
     Returns
     -------
-    ConsensusBatchResult
-        With ``predicted_mse`` (runs, steps+1, N) and ``gate_counts`` (runs, steps, 5).
+    FilterResult
+        :func:`filters.consensus_batch.consensus_result` of the runs: ``detail`` a ``ConsensusBatchResult`` with
+        ``predicted_mse`` (runs, steps+1, N) and ``gate_counts`` (runs, steps, 5).
 
     Raises
     ------
@@ -117,7 +118,7 @@ def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork]
                                                        attacks.fdi[sl], attacks.xi[sl])
         _Runs(model, network, design, part, z[sl], u if u.ndim == 2 else u[sl], att, phi0[sl],
               q if nets is None else q[sl]).run()
-    return ConsensusBatchResult(**out)
+    return consensus_result(ConsensusBatchResult(**out), network, design)
 
 
 def _binding_node(phi_blocks: np.ndarray, D) -> int:

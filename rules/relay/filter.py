@@ -56,12 +56,12 @@ from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
-from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from filters.distributed import DistributedBatchResult
+from filters.distributed import DistributedBatchResult, distributed_result
 from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
-from filters.result import DIVERGED_REASON, diverged_nodes
+from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -151,7 +151,7 @@ def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, 
 
 def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                    signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
+                    signal: FDISignal | None = None, routing: str = "tree") -> FilterResult:
     """The relay filter (module docstring) at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -169,9 +169,18 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
         its tree parent's (default) or the first to arrive from any neighbour (:meth:`designer.relay.Routes.realise`;
         the moments then by Monte Carlo, :func:`designer.relay.flood_moments`).
 
-    Returns a :class:`filters.distributed.DistributedBatchResult` (``iterations`` = ``hops``; ``P_post`` each node's
-    expected posterior covariance of the relay rule).
+    Returns :func:`filters.distributed.distributed_result` of the runs: ``cov`` each node's expected posterior
+    covariance of the relay rule, ``detail`` a :class:`filters.distributed.DistributedBatchResult` (``iterations`` =
+    ``hops``).
     """
+    return distributed_result(_relay_runs(model, network, z, hops, inputs=inputs, attacks=attacks, x0=x0, P0=P0,
+                                          signal=signal, routing=routing))
+
+
+def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
+                attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
+                signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
+    """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays."""
     if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
         raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
                          f"{getattr(network, 'n_nodes', type(network).__name__)}")
@@ -345,7 +354,7 @@ def _node_update(Pp, Hw, mom, M, mu):
 def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                     phi0=None) -> ConsensusBatchResult:
+                     phi0=None) -> FilterResult:
     """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
@@ -355,7 +364,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     is each node's expected posterior covariance of the relay rule (its bound, ``valid`` where finite; the
     linearisation remainders are not in it), ``predicted_mse`` its trace, ``C`` zero (no consensus on estimates),
     ``K`` NaN (a node's gain weighs its whole ball, not one measurement of its own: none is recorded) and the first
-    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops).
+    column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops): the ``detail`` of
+    the :func:`filters.consensus_batch.consensus_result` it returns.
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -373,8 +383,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         idx = np.array([r for r, k in enumerate(keys) if k == key])
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
-        res = run_relay_batch(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
-                              attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
+        res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
+                          attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
         out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
         out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
         out["gate_counts"][idx, :, 0] = res.delivered_per_step
@@ -383,7 +393,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     out["C"][:] = 0.0
     out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
-    return ConsensusBatchResult(**out)
+    return consensus_result(ConsensusBatchResult(**out), first, design)
 
 
 class RelayNode:

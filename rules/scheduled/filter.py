@@ -40,8 +40,8 @@ from designer.validation import InputError, check_int
 from filters.attacks import AttackPattern
 from filters.channels import channel_packets
 from filters.node import NodeInputs, NodeNetwork
-from filters.result import diverged_nodes
-from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
+from filters.result import FilterResult, diverged_nodes
+from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from filters.engine import Step, run_batch
 
@@ -53,13 +53,14 @@ __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "s
 def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                        phi0=None) -> ConsensusBatchResult:
+                        phi0=None) -> FilterResult:
     """Run the scheduled consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     The parameters are those of :func:`filters.consensus_batch.run_consensus_batch`; ``design`` is in mode
     ``'scheduled'`` with its tables (``design.tables``, :func:`designer.scheduled.design_scheduled`).  The runs'
     networks may differ only in what the tables were not designed for: the filter applies the tables it was
-    given (a design for other channel statistics is the user's choice).
+    given (a design for other channel statistics is the user's choice).  Returns
+    :func:`filters.consensus_batch.consensus_result` of the runs (``detail`` a ``ConsensusBatchResult``).
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -142,7 +143,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
               invalid_from=("valid",))
     if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
         out["valid"][:, T + 1:] = False
-    return ConsensusBatchResult(**out)
+    return consensus_result(ConsensusBatchResult(**out), network, design)
 
 
 def scheduled_prediction(model: Model, tables, k: int, x, P, u):
