@@ -3,10 +3,9 @@ from __future__ import annotations
 
 from designer.rule import GainRule
 
-__all__ = ["RULE", "MSE", "MEMORY_BUDGET", "JOINT_COPIES"]
+from .memory import JOINT_COPIES, MEMORY_BUDGET
 
-MEMORY_BUDGET = 2**28  # bytes of joint (N n x N n) matrices its filter holds at once by one sub-batch of runs
-JOINT_COPIES = 24  # joint matrices alive at once per run (covariance, certificate, predictions, T, eigenvectors, ...)
+__all__ = ["RULE", "MSE"]
 
 
 class MSE(GainRule):

@@ -61,7 +61,7 @@ from filters.consensus_batch import (LIMIT_REASON, ConsensusBatchResult, EdgeAtt
 from filters.engine import Step, run_batch
 from filters.result import FilterResult, diverged_nodes
 
-from . import JOINT_COPIES, MEMORY_BUDGET  # the rule's own, which the memory estimate reads too
+from .memory import JOINT_COPIES, MEMORY_BUDGET  # the rule's own, which the memory estimate reads too
 
 __all__ = ["run_mse_batch", "MAX_JOINT_DIM", "MEMORY_BUDGET"]
 

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 
-from . import text
+import studies.reports.text as text  # the formatting a rule's report words use
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
                    recorded_elsewhere, rerun_lines, scenario_spec)
