@@ -210,7 +210,7 @@ class FilterRegistry:
 def local_ekf_design(design):
     """The consensus design reduced to the EKF: σ = β = τ = 0, U = V = 0 (used with an isolated network)."""
     return design._replace(sigma=0.0, beta=0.0, tau=0.0, U=np.zeros_like(design.U),
-                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, rule=rules.get("paper"),
+                           V=tuple(np.zeros_like(v) for v in design.V), epsilon=0.5, rule=rules.get(rules.PUBLISHED),
                            linearization="fixed")
 
 
@@ -254,7 +254,7 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
         n = network.n_nodes
         return node_network(model, SensorNetwork(n, np.zeros((n, n), int), require_connected=False), design)
 
-    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode="paper", attacked=False,
+    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode=rules.PUBLISHED, attacked=False,
                        derive=lambda design, model: local_ekf_design(design), node_filters=nodes)
 
 
@@ -300,8 +300,8 @@ def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
         n_z = model.with_stacked_sensors().n_z
         return local_ekf_design(design)._replace(V=(np.zeros((n_z, n_z)),))
 
-    return FilterEntry(name, "centralized", "centralized", description, run, _uplinks, mode="paper", attacked=False,
-                       derive=derive)
+    return FilterEntry(name, "centralized", "centralized", description, run, _uplinks, mode=rules.PUBLISHED,
+                       attacked=False, derive=derive)
 
 
 def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:
@@ -313,7 +313,7 @@ def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:
         return run_consensus_batch(batch.model, batch.network, batch.z_rows(js), design, inputs=batch.input_rows(js),
                                    attacks=batch.attack_rows(js), gains=gains)
 
-    return FilterEntry(name, "consensus", "scheduled", description, run, _links, mode="paper")
+    return FilterEntry(name, "consensus", "scheduled", description, run, _links, mode=rules.PUBLISHED)
 
 
 def centralized_ekf(name: str, description: str) -> FilterEntry:
