@@ -328,7 +328,8 @@ class GainRule:
         """Its filter over a batch of Monte Carlo runs: a :class:`filters.consensus_batch.NodeRule` (a prediction and
         an update each node applies on its own, run by :func:`filters.consensus_batch.run_consensus_batch`'s loop)
         or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
-        :class:`filters.consensus_batch.ConsensusBatchResult`."""
+        :class:`filters.result.FilterResult` (``detail``: its :class:`filters.consensus_batch.ConsensusBatchResult`,
+        :func:`filters.consensus_batch.consensus_result`)."""
         raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
 
     def record_notes(self) -> dict[str, str]:
