@@ -27,7 +27,7 @@ from designer.rule import GainRule
 from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
-from designer.scheduled import table_arrays
+from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe, json_number,
                               open_loop_reference, open_loop_traces, verdict)
@@ -74,7 +74,7 @@ def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None)
     ``offline_tables`` (:mod:`designer.rule`) is returned as it is."""
     if not design.rule.offline_tables:
         return design
-    from designer.scheduled import design_scheduled
+    from rules.scheduled.design import design_scheduled
 
     steps = sc.steps if steps is None else int(steps)
     key = _tables_key(sc, design, steps)
@@ -96,7 +96,7 @@ def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack
     if not design.rule.offline_tables or design.bank or _tables_key(sc, design, steps) in _TABLES:
         done = with_tables(sc, design, steps)
         return done, lambda: done
-    from designer.scheduled import design_scheduled, stationary_tables
+    from rules.scheduled.design import design_scheduled, stationary_tables
 
     x0, _ = sc.operating_point
     inputs = sc.inputs(steps)
@@ -172,8 +172,8 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     stationary_certificate`) with its verdict: ``certified`` when the bound's recursion with the stationary gains
     reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
     stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
-    from designer.relay import relay_stationary
-    from designer.scheduled import stationary_certificate
+    from rules.relay.design import relay_stationary
+    from rules.scheduled.design import stationary_certificate
 
     x0, u0 = sc.operating_point
     m = sc.model
@@ -217,7 +217,7 @@ def rounds_tradeoff(sc: Scenario, design: ConsensusDesign, steps: int, others: d
     steps only, without stationary tables (the first steps of a design do not depend on its horizon), and only
     where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows; ``others``: their
     expected RMSE as :func:`other_rounds` gives it (computed here when None)."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM
+    from rules.scheduled.design import CERTIFICATE_MAX_DIM
 
     N, n = sc.network.n_nodes, sc.model.n_x
     small = N * n <= CERTIFICATE_MAX_DIM
@@ -237,7 +237,7 @@ def other_rounds(sc: Scenario, design: ConsensusDesign, steps: int) -> dict[int,
     """The expected RMSE at step ``min(steps, TRADEOFF_STEPS)`` of the scheduled designs with the other exchange
     rounds of :data:`TRADEOFF_ROUNDS` (:func:`rounds_tradeoff`), by L; none where the stacked error has more than
     :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
+    from rules.scheduled.design import CERTIFICATE_MAX_DIM, design_scheduled
 
     if sc.network.n_nodes * sc.model.n_x > CERTIFICATE_MAX_DIM:
         return {}
@@ -272,7 +272,7 @@ def relay_tradeoff(sc: Scenario, design: ConsensusDesign, record: dict | None = 
     measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
     operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
     without its LMI); the design's own hops from its stationary ``record`` (:func:`stationary_record`) when given."""
-    from designer.relay import diameter, relay_routes, relay_stationary
+    from rules.relay.design import diameter, relay_routes, relay_stationary
 
     x0, u0 = sc.operating_point
     net = sc.network

@@ -18,11 +18,11 @@ class Relay(GainRule):
     relays = True
 
     def rounds(self, network, rounds: int | None = None) -> int:
-        """The hops L of its design on ``network``: ``rounds`` when given, else :func:`designer.relay.default_hops`
+        """The hops L of its design on ``network``: ``rounds`` when given, else :func:`rules.relay.design.default_hops`
         (the network's diameter, at most 8)."""
         if rounds is not None:
             return int(rounds)
-        from designer.relay import default_hops  # late: scipy's graph routines, not needed to list the rules
+        from .design import default_hops  # late: scipy's graph routines, not needed to list the rules
 
         return default_hops(network)
 
@@ -35,6 +35,11 @@ class Relay(GainRule):
         from .filter import RelayNetwork, RelayNode
 
         return RelayNode, RelayNetwork
+
+    def c_export(self):
+        from .export_c import RelayExport
+
+        return RelayExport()
 
 
 RULE = Relay()

@@ -47,12 +47,10 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 from designer.attacks import FDISignal
+from designer.bounds import sqrtm_psd
 from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments,
-                           relay_routes, relay_update)
-from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
@@ -62,6 +60,9 @@ from filters.distributed import DistributedBatchResult
 from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, diverged_nodes
+
+from .design import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments, relay_routes,
+                     relay_update)
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 

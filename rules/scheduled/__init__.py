@@ -27,5 +27,10 @@ class Scheduled(GainRule):
 
         return ScheduledNode, ScheduledNetwork
 
+    def c_export(self):
+        from .export_c import ScheduledExport
+
+        return ScheduledExport()
+
 
 RULE = Scheduled()

@@ -31,10 +31,10 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from designer.bounds import sqrtm_psd
 from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
@@ -44,6 +44,8 @@ from filters.result import diverged_nodes
 from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from filters.engine import Step, run_batch
+
+from .design import colour, link_gains, pad_measurements
 
 __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
            "ScheduledNode", "ScheduledNetwork"]

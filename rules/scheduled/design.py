@@ -108,15 +108,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .bounds import BOUND_LIMIT, eigh, symmetrize, theorem2_margin
-from .mse import JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier, joint_predict, \
-    joint_prior, shared_search, shared_structure, solve_gains
-from .tuning import MARGIN
-from .validation import InputError
+from designer.bounds import BOUND_LIMIT, eigh, sqrtm_psd, symmetrize, theorem2_margin
+from designer.mse import (JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier,
+                          joint_predict, joint_prior, shared_search, shared_structure, solve_gains)
+from designer.stationary import StationaryCertificate
+from designer.tuning import MARGIN
+from designer.validation import InputError
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
-           "design_scheduled", "stationary_tables", "sqrtm_psd", "colour", "pad_measurements", "STATIONARY_TOL",
-           "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "StationaryCertificate", "stationary_certificate",
+           "design_scheduled", "stationary_tables", "colour", "pad_measurements", "STATIONARY_TOL",
+           "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "stationary_certificate",
            "LMI_MAX_DIM", "BANK_SPREAD"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
@@ -183,21 +184,6 @@ def channels(network) -> Channels:
     for idx in of_node:
         slot[idx] = np.arange(idx.size)
     return Channels(receiver, sender, p, q, slot, of_node)
-
-
-def sqrtm_psd(P: np.ndarray, inverse: bool = False) -> np.ndarray:
-    """The symmetric square root ``P^{1/2}`` of positive semidefinite matrices (..., n, n), or the
-    pseudo-inverse root ``P^{-1/2}`` (directions below ``1e-14`` of the largest eigenvalue taken as 0).
-    Unique and continuous in ``P``: nearby covariances give nearby roots (a Cholesky or eigenvector
-    factor could turn within a repeated eigenvalue's space)."""
-    lam, V = eigh(symmetrize(P))
-    top = np.maximum(lam[..., -1:], 0.0)
-    keep = lam > 1e-14 * top
-    if inverse:
-        s = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
-    else:
-        s = np.sqrt(np.maximum(lam, 0.0))
-    return symmetrize((V * s[..., None, :]) @ _t(V))
 
 
 def colour(root: np.ndarray, factors: np.ndarray) -> np.ndarray:
@@ -1019,34 +1005,6 @@ STATIONARY_GROWTH = 1e8
 STATIONARY_CERT_TOL = 1e-9
 #: The largest N n for which the stationary LMI is solved (cvxpy + Clarabel; three N n x N n variables).
 LMI_MAX_DIM = 160
-
-
-class StationaryCertificate(NamedTuple):
-    """The scheduled design's bound at the fixed point of its recursion at one linearisation point.
-
-    ``converged``: the recursion of the bound with the stationary gains reached a fixed point ``Phi`` (N, n, n
-    per node) within ``iterations``; ``sigma``, ``beta`` its multipliers; ``reason`` why not otherwise.
-    ``lmi``: the convex check (cvxpy + Clarabel) for those σ, β: ``status``, ``trace`` (the smallest total
-    trace of a Φ̄ satisfying the stationary inequality, whose node blocks bound every later Φ once a Φ lies
-    below it), ``max_residual`` (the largest violation of the inequality by the solver's Φ̄, checked
-    independently), or ``None`` where it was not solved (N n above :data:`LMI_MAX_DIM`, or no fixed point).
-    """
-
-    converged: bool
-    Phi: np.ndarray | None
-    sigma: float
-    beta: float
-    iterations: int
-    reason: str | None
-    lmi: dict | None
-
-    def describe(self) -> dict:
-        tr = None if self.Phi is None else [float(v) for v in np.trace(self.Phi, axis1=-2, axis2=-1)]
-        def num(v):
-            return float(v) if np.isfinite(v) else None
-
-        return {"converged": self.converged, "trace": tr, "sigma": num(self.sigma), "beta": num(self.beta),
-                "iterations": self.iterations, "reason": self.reason, "lmi": self.lmi}
 
 
 def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exchange: bool = True,
