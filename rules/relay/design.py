@@ -154,7 +154,7 @@ class Routes(NamedTuple):
         """
         if self.routing != "tree":
             raise InputError(f"arrival_moments: the moments of routing {self.routing!r} have no closed form; use "
-                             "designer.relay.relay_moments (flood_moments, by Monte Carlo of the channels)")
+                             "rules.relay.design.relay_moments (flood_moments, by Monte Carlo of the channels)")
         rows = np.flatnonzero(self.node == i)
         B = self.incidence[rows]
         logup = _log_up(network)
