@@ -173,7 +173,7 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
     stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
     from rules.relay.design import relay_stationary
-    from rules.scheduled.design import stationary_certificate
+    from rules.scheduled.certificate import stationary_certificate
 
     x0, u0 = sc.operating_point
     m = sc.model

@@ -230,7 +230,7 @@ def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and
     """U = V = 0, a zero-mean signal: the bound's recursion is the expected covariance's, so its fixed point is the
     steady expected covariance (the long design's last P), and the LMI's smallest trace is that fixed point's (a
     monotone affine map: its least solution of Φ ⪰ g(Φ) is the fixed point), confirmed by an independent NumPy step."""
-    from rules.scheduled.design import stationary_certificate
+    from rules.scheduled.certificate import stationary_certificate
 
     sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3, steps=300)
     des = _scheduled(sc)
@@ -248,7 +248,7 @@ def test_stationary_certificate_says_when_the_bound_grows():
     """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
     import casadi as ca
     from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
-    from rules.scheduled.design import stationary_certificate
+    from rules.scheduled.certificate import stationary_certificate
     from studies.scenarios import scenario_of
 
     x = ca.SX.sym("x", 2)
