@@ -10,7 +10,7 @@ the position components.  Each grid is a model file written to a temporary direc
 
 For every size, in this one process:
 
-* **design**: ``consensus_design(sc, mode="scheduled")`` (:mod:`designer.scheduled`: the offline tables over
+* **design**: ``consensus_design(sc, mode="scheduled")`` (:mod:`rules.scheduled.design`: the offline tables over
   ``--steps`` steps, default 100, then the stationary tables beyond them), wall and CPU seconds, BLAS and
   LAPACK on one thread (:class:`designer.cores.one_blas_thread`; the design's own thread pool may still use
   a second core for stacks of small eigendecompositions, which the CPU seconds show).  Not timed: building
@@ -40,7 +40,7 @@ an error within ``ERROR_TARGET`` = 3 x the centralized EKF's.
 * the design's seconds per node and designed step at 128 nodes exceed ``GROWTH_TOLERANCE`` = 3.5 times those
   at 32 (a ratio measured in the same run, so that a shared machine's load cancels).  Measured 2.2-2.8 on a
   shared 2-core machine: at 128 nodes the stacked certificate (N n = 512 rows, at most
-  ``designer.scheduled.CERTIFICATE_MAX_DIM``) is computed with dense eigendecompositions, cubic in N, and takes
+  ``rules.scheduled.design.CERTIFICATE_MAX_DIM``) is computed with dense eigendecompositions, cubic in N, and takes
   about 60 % of the design; the rest grows about linearly (from 128 to 512 nodes, where the certificate is
   skipped, the ratio was 1.0).  A design whose time grew like N² or faster between 32 and 128 nodes (ratio
   >= 4) fails;

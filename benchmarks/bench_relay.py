@@ -36,7 +36,7 @@ import numpy as np
 
 from bench_design_scale import ERROR_TARGET, GRIDS, draw_runs, grid_scenario, position_rmse  # the sibling script
 from designer.cores import one_blas_thread
-from designer.relay import ROUTINGS
+from rules.relay.design import ROUTINGS
 from filters.ekf import run_ekf_batch
 from rules.relay.filter import run_relay_batch
 

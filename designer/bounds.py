@@ -41,7 +41,7 @@ from .validation import InputError
 __all__ = [
     "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
     "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
-    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh", "eigvalsh", "BOUND_LIMIT",
+    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh", "eigvalsh", "sqrtm_psd", "BOUND_LIMIT",
 ]
 
 #: A bound whose trace reaches this certifies nothing, and the prediction bound (26) overflows beyond it: every
@@ -113,6 +113,21 @@ def eigh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def eigvalsh(a: np.ndarray) -> np.ndarray:
     """``numpy.linalg.eigvalsh(a)`` (the eigenvalues alone: less than half of :func:`eigh`'s work), split alike."""
     return _split(np.linalg.eigvalsh, a, vectors=False)
+
+
+def sqrtm_psd(P: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """The symmetric square root ``P^{1/2}`` of positive semidefinite matrices (..., n, n), or the
+    pseudo-inverse root ``P^{-1/2}`` (directions below ``1e-14`` of the largest eigenvalue taken as 0).
+    Unique and continuous in ``P``: nearby covariances give nearby roots (a Cholesky or eigenvector
+    factor could turn within a repeated eigenvalue's space)."""
+    lam, V = eigh(symmetrize(P))
+    top = np.maximum(lam[..., -1:], 0.0)
+    keep = lam > 1e-14 * top
+    if inverse:
+        s = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+    else:
+        s = np.sqrt(np.maximum(lam, 0.0))
+    return symmetrize((V * s[..., None, :]) @ _t(V))
 
 
 def _split(fn, a: np.ndarray, vectors: bool):

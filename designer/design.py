@@ -104,11 +104,11 @@ class ConsensusDesign(NamedTuple):
     gate: float = 0.0  # false-rejection probability of the χ² gate on neighbour packets (0: no gate)
     fdi_signal: Any = None  # 'mse' with a gate: the designer.attacks.FDISignal (what of it passes the gate)
     fdi_span: np.ndarray | None = None  # tuned/mse: projector onto the components ξ can reach (None: all, ξξᵀ <= δ² I)
-    tables: Any = None  # 'scheduled': the offline tables (designer.scheduled.ScheduledTables)
+    tables: Any = None  # 'scheduled': the offline tables (rules.scheduled.design.ScheduledTables)
     exchange: str = "predictions"  # what a packet carries: 'predictions' (7), or 'measurements' too (mode scheduled)
-    robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (designer.scheduled.link_gains)
+    robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (rules.scheduled.design.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); relaying: hops
-    bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (designer.scheduled; 0: none)
+    bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (rules.scheduled.design; 0: none)
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
     remainder_structure: np.ndarray | None = None
@@ -365,12 +365,12 @@ class DesignOptions:
         than one the design computes no certificate (its expected covariance treats the rounds' packet
         losses as fresh draws; the simulations hold one per step): check it with ``study consensus-robot``.
         Modes ``relay`` and ``flood``: the hops L over which every measurement is relayed per step, one packet per
-        channel and round (default :func:`designer.relay.default_hops`: the network's diameter, at most 8).
+        channel and round (default :func:`rules.relay.design.default_hops`: the network's diameter, at most 8).
     bank : int in [0, 3]
         Mode ``scheduled``: the axes A of its bank of operating points (default 0: none).  Besides the tables
         along the nominal trajectory the design computes stationary tables at ``3^A - 1`` points off it, on a
         lattice over the A principal axes of the open-loop covariance at the horizon, and each node uses, at
-        every step, the tables of the point nearest its own prediction (:mod:`designer.scheduled`, "Bank of
+        every step, the tables of the point nearest its own prediction (:mod:`rules.scheduled.design`, "Bank of
         operating points"): for a state that may leave the region of the nominal geometry (a target leaving
         the sensor field).  Not covered by the certificate, which is the nominal design's.
     """

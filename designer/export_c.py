@@ -1,26 +1,17 @@
 """C99 sources of a node's filter (``cfdesign export DESIGN_DIR --target c``): the home of the frame every node kind
-shares, and of the C templates' loader.
+shares, of the C templates' loader, and of :class:`NodeExport`, the interface of a gain rule's C export.
 
-Three node filters are exported, each by its own module: gains the node computes online (run time ``local``) or
-looks up in tables designed offline (``scheduled``):
-
-* a design whose gain rule relays (``relay``, ``flood``): :func:`designer.export_c_relay.write_relay_c`, the node
-  filter of :class:`filters.relay.RelayNode` (one ``cfd_step`` with the relayed measurements that arrived: the
-  relay rule's update, :func:`designer.relay.relay_update`, its pseudo-inverse by a symmetric eigen-decomposition,
-  and the bound's recursion, the node's expected covariance), each node's ball and arrival and falsification
-  moments as data;
-* a ``paper`` design (the consensus EKF of the seed paper, ``linearization='fixed'``):
-  :func:`designer.export_c_consensus.write_consensus_c`, the two-phase node of
-  :class:`filters.consensus_node.ConsensusNode` (``cfd_predict`` gives the packet the node sends, its prediction
-  and bound (26) while (28) holds; ``cfd_update`` takes its measurement, the estimates that arrived and every
-  neighbour's bound: the gate, the gain (30) with ``C = τ Φ⁻`` and the bound (27) while (29) holds, the fallback
-  after), the design's σ, β, τ, ε, U, V_i, δ and the channels' probabilities as data;
-* a ``scheduled`` design: :func:`designer.export_c_scheduled.write_scheduled_c`, the node of
-  :class:`filters.scheduled.ScheduledNode` (``cfd_predict`` with its measurement, ``cfd_update`` the first round,
-  ``cfd_round`` rounds 2..L), each exported node's tables as data (the whitened factors of its links per step and
-  round, the stationary ones, the bank's and its points, the certificate per step), looked up by the step and the
-  node's own prediction; the per-link gains (:func:`designer.scheduled.link_gains`) solved online as
-  :func:`designer.mse.solve_gains` solves them.
+A rule whose node filter is exported answers :meth:`designer.rule.GainRule.c_export` with its :class:`NodeExport`,
+which lives in the rule's package (``rules/<name>/export_c.py``, its C in ``rules/<name>/c/``): the relay rule's
+(``relay``, and ``flood``, which builds on it: the node filter of :class:`rules.relay.filter.RelayNode`, one
+``cfd_step`` with the relayed measurements that arrived, each node's ball and arrival and falsification moments as
+data), the paper rule's (the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`,
+``linearization='fixed'``: ``cfd_predict`` gives the packet the node sends, ``cfd_update`` takes what arrived; the
+design's σ, β, τ, ε, U, V_i, δ and the channels' probabilities as data) and the scheduled rule's (the node of
+:class:`rules.scheduled.filter.ScheduledNode`, ``cfd_predict``, ``cfd_update``, ``cfd_round``; each exported node's
+tables as data, the per-link gains solved online as :func:`designer.mse.solve_gains` solves them).
+:func:`studies.api.export` runs the node network over the replayed run, asks the export for each step's replay
+record (:meth:`NodeExport.replay_step`) and has it write the files (:meth:`NodeExport.write`).
 
 Into a directory each writes:
 
@@ -30,16 +21,16 @@ Into a directory each writes:
   ``cfd_bound``, ...) and the design's data; static memory only, libc and libm only;
 * ``cfd_test.c``, ``replay.txt`` — a test driver replaying a run through every exported node and comparing each
   step's numbers with what the Python node filter computed on the same run (written in ``replay.txt``: each
-  kind's ``replay_text``, through :func:`replay_file`);
+  kind's replay text, through :func:`replay_file`);
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
   every number agrees within 1e-10 of the largest magnitude of its vector or matrix.
 
-The C is in files shipped with the package (:data:`C_TEMPLATES`, read by :func:`template`): ``frame/`` holds what
+The C is in files shipped as package data, read by :func:`template`: ``frame/`` (in :data:`C_TEMPLATES`) holds what
 every node kind shares (the prelude of CasADi's file, the model's function tables, accessors and symmetric
-eigen-decomposition, the linear algebra, the replay driver's head, the Makefile), and one folder per node kind
-(``relay``, ``consensus``, ``scheduled``) its ``cfd_node.h.in``, ``cfd_node.c.in`` and ``driver_main.c`` (the
-driver's ``main``).  A placeholder is ``@NAME@`` (capitals, digits, underscores), which C text does not contain;
-:func:`template` refuses a placeholder without a value and a value without a placeholder.
+eigen-decomposition, the linear algebra, the replay driver's head, the Makefile), and each exporting rule's package
+its node's ``c/cfd_node.h.in``, ``c/cfd_node.c.in`` and ``c/driver_main.c`` (the driver's ``main``).  A
+placeholder is ``@NAME@`` (capitals, digits, underscores), which C text does not contain; :func:`template` refuses
+a placeholder without a value and a value without a placeholder.
 
 The sources depend on the design only through their data: one generator serves every design of a rule.  No text
 of a design directory (a file from elsewhere) reaches them: the design's verdict is stated as a word of
@@ -54,17 +45,17 @@ import re
 from importlib.resources import files
 from importlib.resources.abc import Traversable
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import casadi as ca
 import numpy as np
 
 from .validation import InputError
 
-__all__ = ["c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code", "common_code",
-           "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX"]
+__all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code",
+           "common_code", "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX"]
 
-C_TEMPLATES = files(__package__) / "c"  # the C files: frame/ and one folder per node kind
+C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
 PLACEHOLDER = re.compile(r"@([A-Z][A-Z0-9_]*)@")  # a template's placeholder: @NAME@
 
@@ -215,3 +206,31 @@ def replay_file(steps: int, nodes: int, n_u: int, rows: Iterable[Sequence]) -> s
     kind's order), each number as Python's ``repr`` (exact)."""
     lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in vals) for vals in rows]
     return "\n".join(lines) + "\n"
+
+
+class NodeExport:
+    """A gain rule's C export of its node filter (:meth:`designer.rule.GainRule.c_export`): what
+    :func:`studies.api.export` asks of it, in order.
+
+    :meth:`check` refuses a design the export cannot write; then, at each step of the replayed run, after the node
+    network's step (:func:`filters.node.node_network`), :meth:`replay_step` gives the step's replay record (or
+    None to stop the replay there); :meth:`write` writes the sources, the Makefile, the driver and ``replay.txt``
+    from those records.  A subclass overrides :meth:`replay_step` and :meth:`write`.
+    """
+
+    def check(self, design) -> None:
+        """Refuse (:class:`InputError` naming what) a design of the rule that this export cannot write; the base
+        class takes every design."""
+
+    def replay_step(self, net, k: int, u: np.ndarray, z: Sequence[np.ndarray], nodes: Sequence[int]) -> Any:
+        """The replay record of step ``k`` (0-based) from the node network ``net`` after its step: ``u`` the step's
+        inputs, ``z`` each exported node's own measurement (in ``nodes`` order).  None stops the replay before this
+        step, after a warning saying why (``replay.txt`` then holds the ``k`` steps before)."""
+        raise NotImplementedError(f"{type(self).__name__}.replay_step")
+
+    def write(self, model, network, design, net, steps: list, out: Path, *, nodes: Sequence[int],
+              verdict=None) -> list[Path]:
+        """Write the export of ``design`` for the nodes ``nodes`` into ``out`` (the node network ``net`` after the
+        replayed run, ``steps`` the records of :meth:`replay_step`; ``verdict``: the design's, stated as a word of
+        :data:`designer.verdict.VERDICTS`); returns the files written."""
+        raise NotImplementedError(f"{type(self).__name__}.write")

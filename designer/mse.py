@@ -102,14 +102,14 @@ one remainder for all nodes in the common direction and one per node in the diff
 differences.  With a multiplier ``σ`` on ``Ω_0`` and ``t σ`` on the ``Ω_i`` (the lemma for a block-diagonal
 ``Ω`` with one multiplier per block is the unstructured one for ``U Λ^{-1/2}``, ``Λ^{1/2} D``), (26) keeps its
 form with ``DᵀD = 1 1ᵀ/N² ⊗ I + t Π`` and ``U Uᵀ = 1 1ᵀ ⊗ U Uᵀ + (4/t) I ⊗ U Uᵀ``; the measurement remainders
-of (27) likewise (:func:`designer.scheduled.expected_certificate_update`: a sensor's remainder is one function
+of (27) likewise (:func:`rules.scheduled.design.expected_certificate_update`: a sensor's remainder is one function
 wherever it is evaluated, at its node and at the nodes that receive its measurement).  ``t`` is chosen so
 that the common and the deviation blocks of ``D Φ Dᵀ`` have the same largest eigenvalue
 (:func:`shared_structure`; any ``t > 0`` gives a bound).  It needs one ``U`` for every node.  The independent
 blocks give a bound too, so each step keeps the one of smaller trace: the shared model is never looser.  It
 removes the N-fold common-mode factor, not the relative inflation of the differences (``2 U`` on them, the
 lemma's square-root balance): where the consensus contracts the differences by less than that per step, the
-bound still grows (measured, :mod:`designer.scheduled`).
+bound still grows (measured, :mod:`rules.scheduled.design`).
 """
 from __future__ import annotations
 

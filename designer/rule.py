@@ -27,15 +27,16 @@ chooses the gains, the command line's help), and its capabilities: ``fixed_multi
 tables computed offline and applied online: it chooses what the nodes exchange, the exchange rounds, a robustness
 margin and a bank of operating points, and has a stationary certificate), ``joint_covariance`` (its filter carries
 the joint error covariance of all nodes: (N n)² numbers per run, not mapped by the feasibility map), ``relays`` (its
-packets relay the measurements over L exchange rounds per step, :mod:`designer.relay`) and ``routing`` (which copy
+packets relay the measurements over L exchange rounds per step, :mod:`rules.relay.design`) and ``routing`` (which copy
 of a relayed measurement a node takes, :data:`ROUTINGS`).
 
 Its hooks (methods; the base class's answer follows from the capabilities)
 --------------------------------------------------------------------------
 :meth:`GainRule.check_options` (the options the rule takes), :meth:`GainRule.check_design` (a design's fields),
 :meth:`GainRule.design_fields` (the exchange, robustness and bank of its design), :meth:`GainRule.rounds` (the
-exchange rounds per step), :meth:`GainRule.batch_filter` (its filter over a batch of Monte Carlo runs) and
-:meth:`GainRule.node_filter` (the filter one node runs, and the network of them).
+exchange rounds per step), :meth:`GainRule.batch_filter` (its filter over a batch of Monte Carlo runs),
+:meth:`GainRule.node_filter` (the filter one node runs, and the network of them) and :meth:`GainRule.c_export` (its
+node filter's C export, a :class:`designer.export_c.NodeExport`).
 """
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ FILTER_RUNTIMES: Mapping[str, str] = MappingProxyType({
                    "alone, a reference of what centralisation reaches.",
 })
 DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; the others are references
-#: Which copy of a relayed measurement a node of a rule that relays takes (designer.relay.Routes): its shortest-path
+#: Which copy of a relayed measurement a node of a rule that relays takes (rules.relay.design.Routes): its shortest-path
 #: tree parent's, or the first to arrive from any neighbour.
 ROUTINGS = ("tree", "flood")
 _SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
@@ -77,7 +78,7 @@ RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Py
 
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first its default
 RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (GainRule.relays)
-#: The default robustness margin δ of a tabled design's link gains (:func:`designer.scheduled.link_gains`;
+#: The default robustness margin δ of a tabled design's link gains (:func:`rules.scheduled.design.link_gains`;
 #: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
 #: between neighbours' errors to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning
 #: 1e7-1e8 on a range grid): where the state leaves the nominal geometry, those cancellations fail and the network
@@ -139,7 +140,7 @@ class GainRule:
         (28)/(29) at the first step, where the design cannot start.  Otherwise the rule chooses them (and ε defaults
         to :func:`designer.tuning.tuned_epsilon`).
     offline_tables : bool
-        Its design is a set of tables computed offline (:mod:`designer.scheduled`) and applied online by the
+        Its design is a set of tables computed offline (:mod:`rules.scheduled.design`) and applied online by the
         nodes: it chooses what they exchange (``--exchange``), the exchange rounds (``--rounds``), a robustness
         margin (``--robustness``) and a bank of operating points (``--bank``), and has a stationary certificate; its
         gains along one run are not the design (they cannot be replayed).  Otherwise the design is a seeded run of
@@ -149,7 +150,7 @@ class GainRule:
         not map it (its gains come from that covariance along a run).
     relays : bool
         Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that arrived
-        (:mod:`designer.relay`); its design has a stationary certificate.
+        (:mod:`rules.relay.design`); its design has a stationary certificate.
     routing : {'tree', 'flood'}
         For a rule that relays: which copy of a relayed measurement a node takes (:data:`ROUTINGS`): its
         shortest-path tree parent's, or the first to arrive from any neighbour.
@@ -352,7 +353,7 @@ class GainRule:
 
     def stationary(self, model, network, design, *, x, u):
         """Its design's stationary certificate at the operating point ``x`` (input ``u``) and where it is computed,
-        in words: ``(certificate, where)``, the certificate a :class:`designer.scheduled.StationaryCertificate`;
+        in words: ``(certificate, where)``, the certificate a :class:`designer.stationary.StationaryCertificate`;
         None for a rule without one (``stationary_certificate`` False)."""
         return None
 
@@ -400,3 +401,19 @@ class GainRule:
                              "state of the network, which no node has (a reference, not a design to deploy)")
         raise InputError(f"gain rule {self.name!r} has no node filter yet; its filter runs in the studies and in "
                          "cfdesign filter")
+
+    @property
+    def exports_c(self) -> bool:
+        """Whether its node filter is exported as C (:meth:`c_export` gives its export)."""
+        try:
+            self.c_export()
+        except InputError:
+            return False
+        return True
+
+    def c_export(self):
+        """Its node filter's C export (``cfdesign export``): a :class:`designer.export_c.NodeExport`, imported when
+        asked; :class:`InputError` saying why the rule has none (``gain rule NAME cannot be exported to C: why``)."""
+        why = ("an oracle: its gains need the network's joint state" if not self.deployable else
+               "its node filter has no C export (its GainRule.c_export gives one)")
+        raise InputError(f"gain rule {self.name!r} cannot be exported to C: {why}")

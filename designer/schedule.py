@@ -11,7 +11,7 @@ columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1
 n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` and
 ``beta`` (nodes, steps) and the condition margins ``margin28`` and ``margin29``
 (nodes, steps; NaN where not checked); a ``scheduled`` design adds the tables its nodes carry,
-``table_<name>`` (:func:`designer.scheduled.table_arrays`).  The JSON Schema is
+``table_<name>`` (:func:`rules.scheduled.design.table_arrays`).  The JSON Schema is
 ``studies/schemas/schedule.schema.json``.
 """
 from __future__ import annotations

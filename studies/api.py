@@ -268,7 +268,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         each node), the mean-square-error gains (``global``: an oracle needing the network's
         joint state, a reference of what the structure can reach, not a design to deploy), or the
         gains designed offline for the attack statistics that every node applies with what it knows
-        (``scheduled``, :mod:`designer.scheduled`) (default: paper).
+        (``scheduled``, :mod:`rules.scheduled.design`) (default: paper).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
@@ -729,9 +729,6 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     return make_node(sc.model, sc.network, design, node)
 
 
-_REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its rounding stays within 1e-10
-
-
 def _recorded_source(design_dir, meta: dict) -> str:
     """The model a design directory records (its ``schedule.json`` ``meta``, read by
     :func:`studies.recorded.read_design_record`), to be built without the user naming it: a built-in scenario's
@@ -783,15 +780,16 @@ def _recorded_source(design_dir, meta: dict) -> str:
 @one_blas_thread()
 def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = None, data=None,
            scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> list[Path]:
-    """Export a design's node filter as C99 sources (``cfdesign export``; :mod:`designer.export_c`).
+    """Export a design's node filter as C99 sources (``cfdesign export``; :mod:`designer.export_c`, the rule's
+    export: :meth:`designer.rule.GainRule.c_export`).
 
     Parameters
     ----------
     design_dir : path
-        A directory written by ``design`` for a gain rule a node runs: ``paper`` (with ``linearization='fixed'``,
-        the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`), ``relay``, ``flood``
-        (:class:`rules.relay.filter.RelayNode`) or ``scheduled`` (:class:`rules.scheduled.filter.ScheduledNode`, its tables
-        exported with it).
+        A directory written by ``design`` for a gain rule whose node filter is exported: ``paper`` (with
+        ``linearization='fixed'``, the two-phase consensus node of :class:`filters.consensus_node.ConsensusNode`),
+        ``relay``, ``flood`` (:class:`rules.relay.filter.RelayNode`) or ``scheduled``
+        (:class:`rules.scheduled.filter.ScheduledNode`, its tables exported with it).
     target : {'c'}
     out : path
         The directory of the sources, ``Makefile``, test driver and ``replay.txt``.
@@ -812,11 +810,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
 
     Returns the files written.
     """
-    from designer.export_c_consensus import consensus_replay_text, write_consensus_c
-    from designer.export_c_relay import replay_text, write_relay_c
-    from designer.export_c_scheduled import scheduled_replay_text, write_scheduled_c
     import rules
-    from designer.relay import relay_moments, relay_routes
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -844,12 +838,11 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         sc = _scenario(scenario, None, None, None, None, None, None, overrides, assignments)
     mode, options, _ = design_options_of(design_dir, sc, record)
     rule = rules.get(mode)
-    if not rule.relays and mode not in ("paper", "scheduled"):
-        why = ("an oracle: its gains need the network's joint state" if rule.runtime == "global" else
-               "its node solves a convex problem online at every step, which the export does not generate (its node "
-               "filter runs in Python: studies.node_filter)")
-        raise InputError(f"gain rule {mode!r} cannot be exported to C: {why} (exported: paper, scheduled, relay, "
-                         "flood)")
+    try:
+        exporter = rule.c_export()
+    except InputError as exc:  # why, and the rules that export
+        exported = ", ".join(name for name, other in rules.all_rules().items() if other.exports_c)
+        raise InputError(f"{exc} (exported: {exported})") from None
     N = sc.network.n_nodes
     chosen = list(range(N)) if nodes is None else [check_int("nodes", i, 0, N - 1) for i in nodes]
     if not chosen or len(set(chosen)) != len(chosen):
@@ -861,10 +854,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         if np.any(np.isnan(log.z)):
             raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
     design = consensus_design(sc, options)
-    if mode == "paper" and design.linearization != "fixed":
-        raise InputError(f"linearization must be 'fixed' to export a paper design to C (the {design.linearization!r} "
-                         "scalings come from the model's Hessians at every step, which the export does not generate)"
-                         )
+    exporter.check(design)
     if data is None:
         sim = simulate(sc, seed=meta.get("seed") or 0)
         z, attacks, u = sim.z, sim.attacks, sim.inputs
@@ -881,40 +871,11 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
             warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
                           "steps before", RuntimeWarning, stacklevel=2)
             break
-        sent, rounds = net.last  # what each node sent and, round by round, what reached it
-        if mode == "paper":
-            cond = max(float(np.linalg.cond(P)) for i in chosen for P in (sent[i].P, net.nodes[i].P))
-            if not cond <= _REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
-                warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
-                              f"(condition number {cond:.3g} > {_REPLAY_COND:g}): replay.txt holds the {k} steps "
-                              "before (beyond, the rounding of any two correct implementations differs by more than "
-                              "make test's 1e-10)", RuntimeWarning, stacklevel=2)
-                break
-        done = [(net.nodes[i].x, net.nodes[i].P) for i in chosen]
-        z_of = [z[k, offsets[i]:offsets[i + 1]] for i in chosen]
-        if rule.relays:
-            steps.append((u[k], [(*rounds[0][i], *xP) for i, xP in zip(chosen, done)]))
-        elif mode == "paper":
-            steps.append((u[k], [(z_i, *rounds[0][i], sent[i], *xP) for i, z_i, xP in zip(chosen, z_of, done)]))
-        else:
-            steps.append((u[k], [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], *xP)
-                                 for i, z_i, xP in zip(chosen, z_of, done)]))
+        step = exporter.replay_step(net, k, u[k], [z[k, offsets[i]:offsets[i + 1]] for i in chosen], chosen)
+        if step is None:  # the export stopped the replay here (it warned why)
+            break
+        steps.append(step)
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     with replaced_outputs(out) as stage:
-        if rule.relays:
-            routes = relay_routes(sc.network, design.rounds, rule.routing)
-            written = write_relay_c(sc.model, sc.network, design, routes,
-                                    relay_moments(routes, sc.network, sc.model.sensor_dims), stage, nodes=chosen,
-                                    replay=replay_text(chosen, [net.nodes[i].ball for i in chosen],
-                                                       sc.model.sensor_dims, steps, sc.model.n_u), verdict=verdict)
-        elif mode == "paper":
-            written = write_consensus_c(sc.model, sc.network, design, stage, nodes=chosen, verdict=verdict,
-                                        replay=consensus_replay_text(chosen, [net.nodes[i].senders.tolist()
-                                                                              for i in chosen], sc.model.n_u, steps))
-        else:
-            written = write_scheduled_c(sc.model, sc.network, design, stage, nodes=chosen, verdict=verdict,
-                                        replay=scheduled_replay_text(chosen, [net.nodes[i].senders.tolist()
-                                                                              for i in chosen], sc.model.n_u,
-                                                                     max(sc.model.sensor_dims),
-                                                                     design.tables.exchange, steps))
+        written = exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen, verdict=verdict)
     return [Path(out) / p.name for p in written]

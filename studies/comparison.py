@@ -189,7 +189,7 @@ ASSUMPTIONS = (
     "received packet); its certificate is the bound (26)-(27) of the stacked error of all nodes for those gains "
     "(one sigma and one beta for the network, the cross-covariances propagated).",
     "comparison: the scheduled design's tables are designed offline for each setting's DoS/FDI probabilities along "
-    "the nominal trajectory (designer.scheduled), never along the runs it is scored on; its packets carry the "
+    "the nominal trajectory (rules.scheduled.design), never along the runs it is scored on; its packets carry the "
     "sender's measurement beside its prediction (the same messages per step as the other consensus filters and "
     "KCF; set --exchange predictions for the paper's packets).",
     "comparison: a paper design whose fixed sigma or beta breaks (28) or (29) at the first step (the same in every "

@@ -26,7 +26,7 @@ from designer.rule import GainRule
 from designer.mse import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
-from designer.scheduled import table_arrays
+from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe,
                               open_loop_reference, open_loop_traces, verdict)

@@ -136,6 +136,39 @@ def test_figures_import_no_report_and_the_writing_no_computation(graph):
     assert writers_users and not [m for m in graph["studies.outputs"] if m in writers_users]
 
 
+#: The layers, lowest first: a module imports its own layer's and the lower ones' only.
+LAYERS = ("designer", "filters", "rules", "studies")
+#: The rules that build on another rule's package (flood on relay's class, tuned on the paper's needs text).
+BUILDS_ON = {("flood", "relay"), ("tuned", "paper")}
+
+
+def upward_and_across(graph) -> list[str]:
+    """Every import of a higher layer (:data:`LAYERS`) and every import of one rule's package by another's that is
+    not in :data:`BUILDS_ON`, as ``a -> b (lines ...)``."""
+    found = []
+    for a, targets in graph.items():
+        for b, lines in targets.items():
+            pa, pb = a.split(".")[0], b.split(".")[0]
+            ra, rb = a.split(".")[1:2], b.split(".")[1:2]
+            if LAYERS.index(pb) > LAYERS.index(pa) or (
+                    pa == pb == "rules" and ra and rb and ra != rb and (ra[0], rb[0]) not in BUILDS_ON):
+                found.append(f"{a} -> {b} (lines {lines})")
+    return found
+
+
+def test_the_layers_import_downwards_and_a_rule_only_what_it_builds_on(graph, tmp_path):
+    """designer imports no filters, rules or studies; filters no rules or studies; rules no studies; a rule's package
+    imports another rule's only where it builds on it.  The check finds both kinds of import."""
+    assert upward_and_across(graph) == []
+    for package in ("designer", "rules", "rules/relay", "rules/mse"):
+        (tmp_path / package).mkdir(parents=True)
+        (tmp_path / package / "__init__.py").write_text("")
+    (tmp_path / "designer" / "a.py").write_text("def f():\n    from rules.relay import x\n")
+    (tmp_path / "rules" / "mse" / "b.py").write_text("from ..relay import x\n")
+    assert upward_and_across(import_graph(tmp_path, ("designer", "rules"))) == [
+        "designer.a -> rules.relay (lines [2])", "rules.mse.b -> rules.relay (lines [1])"]
+
+
 def test_the_circle_finder_sees_a_circle_through_a_lazy_import(tmp_path):
     """The checks above can fail: a circle closed by an import inside a function, a relative ``from . import``, and
     a package face are found; a chain without a way back is not a circle."""

@@ -169,9 +169,9 @@ def test_a_diverging_paper_design_replays_the_steps_before_its_covariance_is_ill
     assert "ill-conditioned at step 4 of the replayed run" in said and "replay.txt holds the 3 steps before" in said
     run = make_test(out)
     assert run.returncode == 0 and "3 steps x 4 nodes" in run.stdout, run.stdout + run.stderr
-    import studies.api
+    import rules.paper.export_c
 
-    monkeypatch.setattr(studies.api, "_REPLAY_COND", np.inf)  # every step before the divergence
+    monkeypatch.setattr(rules.paper.export_c, "REPLAY_COND", np.inf)  # every step before the divergence
     assert main(["export", str(des), "--out", str(out)]) == 0
     run = make_test(out)
     assert run.returncode != 0 and "6 steps x 4 nodes" in run.stdout and "0 above" not in run.stdout

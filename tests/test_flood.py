@@ -1,10 +1,10 @@
 """Flooding (``routing='flood'``, gain rule ``flood``): every node forwards the first copy of each measurement it
 receives, from any neighbour, against independent references.
 
-* the copies a node takes (:meth:`designer.relay.Routes.realise`) equal a plain breadth-first flood written here,
+* the copies a node takes (:meth:`rules.relay.design.Routes.realise`) equal a plain breadth-first flood written here,
   round by round, over random channel outages; flooding never loses a measurement the tree delivers and never
   delivers one sooner than its hop distance;
-* the Monte Carlo moments (:func:`designer.relay.flood_moments`) equal the same draws' moments computed here with
+* the Monte Carlo moments (:func:`rules.relay.design.flood_moments`) equal the same draws' moments computed here with
   each copy's set of falsified channels walked explicitly (Python sets), and on a graph that is a tree (one path
   per pair) they agree with the tree's closed form within the Monte Carlo's error;
 * the filter: the batch equals the node-by-node, run-by-run loop of test_relay with the flood written here (DoS,
@@ -26,7 +26,7 @@ import rules
 from designer.design import DesignOptions, make_design
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import flood_moments, node_moments, relay_routes, relay_stationary
+from rules.relay.design import flood_moments, node_moments, relay_routes, relay_stationary
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
 from rules.relay.filter import run_relay_batch

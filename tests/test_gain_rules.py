@@ -100,6 +100,36 @@ def test_the_built_in_rules_and_their_run_time():
     assert rules.get("flood") != rules.get("relay") and rules.get("flood").routing == "flood"
 
 
+def test_a_rule_gives_its_c_export_or_says_why_it_has_none():
+    """GainRule.c_export: the rules whose node filter is exported give their NodeExport (flood the relay rule's, which
+    it builds on); the others an InputError saying why (an oracle; the tuned rule's convex problem online; a rule
+    without one)."""
+    from designer.export_c import NodeExport
+    from rules.relay.export_c import RelayExport
+
+    exporting = [name for name, rule in rules.all_rules().items() if rule.exports_c]
+    assert exporting == ["paper", "scheduled", "relay", "flood"]
+    assert all(isinstance(rules.get(name).c_export(), NodeExport) for name in exporting)
+    assert type(rules.get("flood").c_export()) is type(rules.get("relay").c_export()) is RelayExport
+    with pytest.raises(InputError, match="^gain rule 'mse' cannot be exported to C: an oracle: its gains need the "
+                                         "network's joint state$"):
+        rules.get("mse").c_export()
+    with pytest.raises(InputError, match="^gain rule 'tuned' cannot be exported to C: its node solves a convex "
+                                         "problem online at every step"):
+        rules.get("tuned").c_export()
+
+    class Plain(GainRule):
+        name = "plain"
+        runtime = "local"
+        needs = "its own measurement."
+        summary = "a rule without a C export"
+
+    assert not Plain().exports_c
+    with pytest.raises(InputError, match="^gain rule 'plain' cannot be exported to C: its node filter has no C "
+                                         "export"):
+        Plain().c_export()
+
+
 def test_the_registry_finds_the_rules_without_importing_them():
     """Listing the rules imports none of them (the command line's start-up); asking for one imports it alone."""
     code = ("import sys, rules; n = rules.names(); before = sorted(m for m in sys.modules if m.startswith('rules.'));"

@@ -1,4 +1,5 @@
-"""The relay filter (rules.relay.filter) and its routes and moments (designer.relay), against independent references.
+"""The relay filter (rules.relay.filter) and its routes and moments (rules.relay.design), against independent
+references.
 
 * routes: every route a shortest path (scipy), prefix-consistent, the balls exactly the nodes within ``hops``; the
   arrival probabilities and moments ``(p, A, F1, F2)`` against a Monte Carlo of the channels' draws
@@ -25,7 +26,7 @@ from designer.attacks import FDISignal
 from designer.model import Model, Sensor
 from designer.network import SensorNetwork
 from designer.noise import Gaussian
-from designer.relay import node_moments, relay_moments, relay_routes, relay_update
+from rules.relay.design import node_moments, relay_moments, relay_routes, relay_update
 from designer.validation import InputError
 from filters.attacks import attack_pattern, channel_draws
 from filters.consensus import wrapped_residual
@@ -225,8 +226,8 @@ def tree_copies(model: Model, net: SensorNetwork, rt, zk, dos, fdi, xi, xp, k: i
 def reference_relay(model: Model, net: SensorNetwork, z, hops: int, att: EdgeAttacks, signal: FDISignal,
                     routing: str = "tree", copies=tree_copies):
     """The relay filter written node by node and run by run: each step the values that arrived (``copies``, with
-    tree_copies' parameters), then each node's update with designer.relay.relay_update and its moments
-    (designer.relay.relay_moments): (x_post, P_post)."""
+    tree_copies' parameters), then each node's update with rules.relay.design.relay_update and its moments
+    (rules.relay.design.relay_moments): (x_post, P_post)."""
     rt = relay_routes(net, hops, routing)
     n = net.n_nodes
     runs, steps = z.shape[:2]

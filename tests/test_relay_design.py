@@ -1,5 +1,5 @@
 """The gain rule ``relay`` (rules/relay): its filter behind the rule registry, its stationary certificate
-(designer.relay.relay_stationary) and its design from a user's model file, against independent references.
+(rules.relay.design.relay_stationary) and its design from a user's model file, against independent references.
 
 * the rule's filter (``rules.get('relay').batch_filter()``, reached by ``run_consensus_batch``) is the
   relay filter of :func:`rules.relay.filter.run_relay_batch` run by itself on each run's network (runs on networks of
@@ -21,7 +21,7 @@ import pytest
 import rules
 from designer.attacks import FDISignal
 from designer.design import DesignOptions, make_design
-from designer.relay import relay_stationary
+from rules.relay.design import relay_stationary
 from filters.consensus_batch import run_consensus_batch
 from rules.relay.filter import run_relay_batch
 from studies.cli import main

@@ -15,7 +15,7 @@ from scipy.optimize import minimize
 
 import rules
 from designer.rule import ROBUSTNESS
-from designer.scheduled import channels, design_scheduled, link_gains
+from rules.scheduled.design import channels, design_scheduled, link_gains
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
@@ -230,7 +230,7 @@ def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and
     """U = V = 0, a zero-mean signal: the bound's recursion is the expected covariance's, so its fixed point is the
     steady expected covariance (the long design's last P), and the LMI's smallest trace is that fixed point's (a
     monotone affine map: its least solution of Φ ⪰ g(Φ) is the fixed point), confirmed by an independent NumPy step."""
-    from designer.scheduled import stationary_certificate
+    from rules.scheduled.certificate import stationary_certificate
 
     sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3, steps=300)
     des = _scheduled(sc)
@@ -248,7 +248,7 @@ def test_stationary_certificate_says_when_the_bound_grows():
     """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
     import casadi as ca
     from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
-    from designer.scheduled import stationary_certificate
+    from rules.scheduled.certificate import stationary_certificate
     from studies.scenarios import scenario_of
 
     x = ca.SX.sym("x", 2)
@@ -424,7 +424,7 @@ def test_each_node_uses_the_tables_of_the_operating_point_nearest_its_prediction
     covariance's principal axes; ``choose`` is the nearest candidate in the metric (a brute-force reference); a
     node whose prediction sits on a bank point updates with that point's tables: the same numbers as a filter
     whose step tables are that point's."""
-    from designer.scheduled import BANK_SPREAD
+    from rules.scheduled.design import BANK_SPREAD
     from studies.scenarios import load_scenario
 
     path = tmp_path / "grid.py"
@@ -476,7 +476,7 @@ def test_the_tables_beyond_the_horizon_computed_beside_the_run_are_the_designs(t
     nonlinear range grid (whose stationary recursion does not start where it ends)."""
     import contextlib
 
-    from designer.scheduled import ScheduledTables, stationary_tables
+    from rules.scheduled.design import ScheduledTables, stationary_tables
     from studies.consensus_design import with_horizon_tables
     from studies.scenarios import load_scenario
 

@@ -11,7 +11,7 @@ class Flood(Relay):
     needs = ("its own measurement, the first copy of every measurement flooded to it within L hops that arrived (its "
              "value and sensor), its own estimate (the Jacobians of its ball's sensors there) and covariance, and "
              "its ball's arrival and falsification moments, computed offline by Monte Carlo of the network's DoS "
-             "and FDI (designer.relay.flood_moments); its gain is computed online at the node.")
+             "and FDI (rules.relay.design.flood_moments); its gain is computed online at the node.")
     summary = ("every measurement flooded over L hops (each node forwards the first copy it receives, from any "
                "neighbour); each node fuses its L-hop ball with one gain minimising the expected covariance over the "
                "attacks")

@@ -41,5 +41,10 @@ class Paper(GainRule):
 
         return ConsensusNode, ConsensusNetwork
 
+    def c_export(self):
+        from .export_c import PaperExport
+
+        return PaperExport()
+
 
 RULE = Paper()

@@ -12,17 +12,17 @@ class Relay(GainRule):
     needs = ("its own measurement, the measurements relayed to it over L hops that arrived (their values and "
              "sensors), its own estimate (the Jacobians of its ball's sensors there) and covariance, and its ball's "
              "arrival and falsification moments, computed offline from the network and the DoS and FDI "
-             "probabilities (designer.relay); its gain is computed online at the node.")
+             "probabilities (rules.relay.design); its gain is computed online at the node.")
     summary = ("every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
                "ball with one gain minimising the expected covariance over the attacks")
     relays = True
 
     def rounds(self, network, rounds: int | None = None) -> int:
-        """The hops L of its design on ``network``: ``rounds`` when given, else :func:`designer.relay.default_hops`
+        """The hops L of its design on ``network``: ``rounds`` when given, else :func:`rules.relay.design.default_hops`
         (the network's diameter, at most 8)."""
         if rounds is not None:
             return int(rounds)
-        from designer.relay import default_hops  # late: scipy's graph routines, not needed to list the rules
+        from .design import default_hops  # late: scipy's graph routines, not needed to list the rules
 
         return default_hops(network)
 
@@ -65,6 +65,11 @@ class Relay(GainRule):
         from .filter import RelayNetwork, RelayNode
 
         return RelayNode, RelayNetwork
+
+    def c_export(self):
+        from .export_c import RelayExport
+
+        return RelayExport()
 
 
 RULE = Relay()

@@ -1,26 +1,26 @@
 """The relay filter: every node fuses the measurements of its L-hop ball in one update per step, batched over runs.
 
 Each step every sensor's measurement is relayed over ``hops`` exchange rounds along its source's breadth-first tree
-(``routing='tree'``, :func:`designer.relay.relay_routes`) or flooded, each node forwarding the first copy it gets
+(``routing='tree'``, :func:`rules.relay.design.relay_routes`) or flooded, each node forwarding the first copy it gets
 from any neighbour (``routing='flood'``), so that node ``i`` holds the step's measurements of every sensor within
-``hops`` hops (its ball, :meth:`designer.relay.Routes.ball`) that arrived.  Node ``i`` at step ``k``::
+``hops`` hops (its ball, :meth:`rules.relay.design.Routes.ball`) that arrived.  Node ``i`` at step ``k``::
 
     x̂⁻_i = f(x̂_i),   P⁻_i = F P_i Fᵀ + Q                              (F at its own estimate)
-    W, P_i⁺ = designer.relay.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain block per hop
+    W, P_i⁺ = rules.relay.design.relay_update(P⁻_i, Hw, moments_i, M, μ)    (the relay rule: one gain block per hop
                                                                         depth for whichever measurements arrive,
                                                                         designed for their expected arrivals and
                                                                         falsifications)
     x̂_i⁺ = x̂⁻_i + Σ_g W_g Σ_{a of depth g, arrived} H_aᵀ R_a⁻¹ (z̃_a - h_a(x̂⁻_i))
 
 with ``Hw`` the whitened rows ``R_a^{-1/2} H_a(x̂⁻_i)`` of every sensor of its ball (its own first, then in the
-order of :func:`designer.relay.node_moments`), ``H_a`` and ``h_a`` at the node's own prediction, angular residual
+order of :func:`rules.relay.design.node_moments`), ``H_a`` and ``h_a`` at the node's own prediction, angular residual
 components wrapped (:func:`filters.consensus_batch.wrap_residuals`), and ``M = E[ξ ξᵀ]``, ``μ = E[ξ]`` of the
 falsification's signal (:class:`designer.attacks.FDISignal`).  The node's own measurement always arrives and is
 never falsified.
 
 **Attacks** (:class:`filters.consensus_batch.EdgeAttacks`, one draw per channel and step for all rounds): pair ``p``
-(sensor ``s``'s measurement at node ``i``, :class:`designer.relay.Routes`) arrives when the copy the routing takes
-arrives (:meth:`designer.relay.Routes.realise`: along a tree, iff its channel is not lost to DoS and its parent pair
+(sensor ``s``'s measurement at node ``i``, :class:`rules.relay.design.Routes`) arrives when the copy the routing takes
+arrives (:meth:`rules.relay.design.Routes.realise`: along a tree, iff its channel is not lost to DoS and its parent pair
 arrived; flooding, the first copy from any neighbour); it carries ``z_s + o_p`` with
 ``o_p = o_parent + fdi[k, channel_p] H_s(x̂⁻_sender) ξ[k, channel_p]``, parent, channel and sender those of the copy
 taken (a falsified channel displaces what it forwards as if the state were displaced by its ``ξ``, ``H_s`` at the
@@ -32,12 +32,12 @@ prediction, estimate or covariance leaves finite numbers or exceeds :data:`filte
 stops there (NaN from that step, one ``'diverged'`` violation, :func:`filters.engine.run_batch`); the other runs
 go on.
 
-**How it is computed.**  The node moments are computed once (:func:`designer.relay.node_moments`, every node).
+**How it is computed.**  The node moments are computed once (:func:`rules.relay.design.node_moments`, every node).
 Each step, every sensor's ``h_s`` and ``H_s`` are evaluated once, at the predictions of every node of its ball
 (the receivers and, among them, the forwarding nodes) over all runs; the values are kept in one flat array of
 measurement rows laid out node by node (each node's rows contiguous, in its moments' order), so that the
 arrivals and offsets are a pass over the rounds and each node's update takes a slice.  The nodes of one shape
-(:func:`designer.relay.node_classes`) update in one :func:`designer.relay.relay_update` over them and the runs.  A
+(:func:`rules.relay.design.node_classes`) update in one :func:`rules.relay.design.relay_update` over them and the runs.  A
 run alone is a batch of one (the same numbers, tested).
 """
 from __future__ import annotations
@@ -47,12 +47,10 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 from designer.attacks import FDISignal
+from designer.bounds import sqrtm_psd
 from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.relay import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments,
-                           relay_routes, relay_update)
-from designer.scheduled import sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
@@ -63,6 +61,9 @@ from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
+from .design import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments, relay_routes,
+                     relay_update)
+
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
 
@@ -71,7 +72,7 @@ class _Layout(NamedTuple):
 
     A *slot* is one sensor's measurement at one node: slots ``0..N-1`` the nodes' own, slot ``N + p`` pair ``p``.
     Rows are laid out node by node (each node's own slot, then its pairs in pair order: the order of
-    :func:`designer.relay.node_moments`), a slot of sensor ``s`` taking ``m_s`` consecutive rows."""
+    :func:`rules.relay.design.node_moments`), a slot of sensor ``s`` taking ``m_s`` consecutive rows."""
 
     start: np.ndarray  # (N + 1,) each node's first row (and the total number of rows)
     sensor_slots: list  # per sensor s: (its slots' nodes (n_s,), their rows (n_s, m_s), its pairs (pairs_s,))
@@ -159,15 +160,15 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     model, network : the model (sensor ``i`` at node ``i``) and the communication graph with its channels' DoS and
         FDI probabilities (the relay rule's moments are computed from them).
     z : ndarray (runs, steps, n_z); ``z[:, k]`` measures ``x_{k+1}``.
-    hops : int in 1..``designer.relay.MAX_HOPS``: relay hops (exchange rounds) per step.
+    hops : int in 1..``rules.relay.design.MAX_HOPS``: relay hops (exchange rounds) per step.
     inputs : (steps, n_u) shared or (runs, steps, n_u), optional.
     attacks : :class:`filters.consensus_batch.EdgeAttacks` (runs, steps, channels), optional (none when omitted).
     x0, P0 : every node's initial estimate and covariance, (n_x,) / (n_x, n_x) or one per run (default the prior's).
     signal : :class:`designer.attacks.FDISignal`, the falsification the relay rule designs for (its ``E[ξ ξᵀ]`` and
         ``E[ξ]``); required when the network's channels carry FDI.
-    routing : {'tree', 'flood'} (:data:`designer.relay.ROUTINGS`): which copy of a relayed measurement a node takes,
-        its tree parent's (default) or the first to arrive from any neighbour (:meth:`designer.relay.Routes.realise`;
-        the moments then by Monte Carlo, :func:`designer.relay.flood_moments`).
+    routing : {'tree', 'flood'} (:data:`rules.relay.design.ROUTINGS`): which copy of a relayed measurement a node takes,
+        its tree parent's (default) or the first to arrive from any neighbour (:meth:`rules.relay.design.Routes.realise`;
+        the moments then by Monte Carlo, :func:`rules.relay.design.flood_moments`).
 
     Returns :func:`filters.distributed.distributed_result` of the runs: ``cov`` each node's expected posterior
     covariance of the relay rule, ``detail`` a :class:`filters.distributed.DistributedBatchResult` (``iterations`` =
@@ -235,7 +236,7 @@ def _predict(model: Model, k: int, x, P, u):
 
 def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
     """The moments a node keeps: ``F1`` only when the signal has a second moment, ``F2`` only when it has a mean
-    (:func:`designer.relay.relay_update` weighs them by ``M`` and ``μ μᵀ``: a zero weight makes them irrelevant; at
+    (:func:`rules.relay.design.relay_update` weighs them by ``M`` and ``μ μᵀ``: a zero weight makes them irrelevant; at
     512 nodes and 8 hops each is ~150 MB)."""
     zero = np.broadcast_to(0.0, mom.A.shape)
     return mom._replace(F1=mom.F1 if np.any(M) else zero, F2=mom.F2 if np.any(mu) else zero)
@@ -299,7 +300,7 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
 def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
-    :func:`designer.relay.relay_update` and :func:`designer.relay.relay_information`.  Returns ``(x, P)``."""
+    :func:`rules.relay.design.relay_update` and :func:`rules.relay.design.relay_information`.  Returns ``(x, P)``."""
     Hw = H_rows
     res = values - h
     if lay.angle_rows.size:
@@ -313,7 +314,7 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
     res = np.where(arrived, res, 0.0)
     x = np.empty_like(xp)
     P = np.empty_like(Pp)
-    for members, stacked in classes:  # the nodes of one shape together (designer.relay.node_classes), in chunks
+    for members, stacked in classes:  # the nodes of one shape together (rules.relay.design.node_classes), in chunks
         r = stacked.groups.shape[0]  # whose r x r temporaries stay within CLASS_CHUNK numbers per run (chunks
         size = max(1, CLASS_CHUNK // (r * r))  # independent of the runs: a run alone gets the numbers of a batch)
         for c in range(0, members.size, size):
@@ -336,7 +337,7 @@ CLASS_CHUNK = 200_000
 
 
 def _node_update(Pp, Hw, mom, M, mu):
-    """:func:`designer.relay.relay_update` over the runs; a run where it breaks down (LinAlgError) gets NaN (and stops
+    """:func:`rules.relay.design.relay_update` over the runs; a run where it breaks down (LinAlgError) gets NaN (and stops
     as diverged), the others their update."""
     try:
         return relay_update(Pp, Hw, mom, M, mu)
@@ -401,7 +402,7 @@ class RelayNode:
 
     Its state is its estimate ``x`` and its expected covariance ``P`` (the relay rule's bound; the linearisation
     remainders are not in it).  It knows its model, its design's rounds, routing and the arrival and falsification
-    moments of its ball (:func:`designer.relay.node_moments`: the sensors whose measurements reach it within the
+    moments of its ball (:func:`rules.relay.design.node_moments`: the sensors whose measurements reach it within the
     rounds, ``ball``, its own first), computed once here.  Each step (:meth:`step`)::
 
         x⁻, P⁻ = f(x), F P Fᵀ + Q                      (its own Jacobian at its own estimate)
@@ -463,7 +464,7 @@ class RelayNode:
 class RelayNetwork:
     """Every node of a ``relay`` or ``flood`` design as a :class:`RelayNode`, driven over a run: each step the
     relaying is simulated from the step's channel attacks (which copy of every measurement reaches which node, what
-    falsified channels add: :meth:`designer.relay.Routes.realise`, ``H_s`` at the forwarding node's prediction
+    falsified channels add: :meth:`rules.relay.design.Routes.realise`, ``H_s`` at the forwarding node's prediction
     times ``ξ``), and every node steps with what reached it.  When a node diverges the run stops, as the batch stops
     it: NaN from then on."""
 

@@ -10,7 +10,7 @@ __all__ = ["RECORD_NOTES", "RELAY_TRADEOFF_HOPS", "WHERE", "stationary", "relay_
 RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
 #: Where the stationary certificate is computed, in words (schedule.json's stationary_certificate.where).
 WHERE = ("at the operating point, every sensor's Jacobian there: each node's expected covariance recursion "
-         "(designer.relay.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
+         "(rules.relay.design.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
          "expected update with the fixed point's gain held; the expected covariance of the linearised error "
          "(exact for a linear model, the linearisation remainders not in it)")
 
@@ -18,10 +18,10 @@ WHERE = ("at the operating point, every sensor's Jacobian there: each node's exp
 RECORD_NOTES = {
     "trajectory": "seeded simulated run of the scenario: truth and measurements from SeedSequence(seed).spawn(2)[0], "
                   "channel attacks from spawn(2)[1]; each node's gain and bound (its expected covariance over the "
-                  "attacks, designer.relay.relay_update) along its own estimates and the realised arrivals",
+                  "attacks, rules.relay.design.relay_update) along its own estimates and the realised arrivals",
     "replay": "the gains are not a schedule to replay: every node computes its gain and its bound online on any run, "
               "from its own estimate and covariance, the measurements relayed to it that arrived, and its ball's "
-              "arrival and falsification moments (designer.relay); the bound is the expected covariance of the "
+              "arrival and falsification moments (rules.relay.design); the bound is the expected covariance of the "
               "linearised error (exact for a linear model, the linearisation remainders not in it), validated on "
               "fresh runs by study consensus-robot and study comparison",
 }
@@ -29,8 +29,8 @@ RECORD_NOTES = {
 
 def stationary(model, network, design, *, x, u):
     """The stationary certificate at the operating point ``x`` (input ``u``):
-    :func:`designer.relay.relay_stationary`."""
-    from designer.relay import relay_stationary
+    :func:`rules.relay.design.relay_stationary`."""
+    from .design import relay_stationary
 
     return relay_stationary(model, network, design, x=x, u=u)
 
@@ -39,10 +39,10 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
     """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
     diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
     measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
-    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`designer.relay.relay_stationary`
+    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`rules.relay.design.relay_stationary`
     without its LMI); the design's own hops from its stationary ``record`` (``schedule.json``'s
     ``stationary_certificate``) when given."""
-    from designer.relay import diameter, relay_routes, relay_stationary
+    from .design import diameter, relay_routes, relay_stationary
 
     routing = design.rule.routing
     hops = sorted({L for L in RELAY_TRADEOFF_HOPS if L <= diameter(network)} | {design.rounds})
@@ -58,4 +58,4 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
                      "values_per_step": routes.values_per_step(), "expected_rmse": rmse,
                      "designed": L == design.rounds})
     return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
-            "(designer.relay.relay_stationary), every state component"}
+            "(rules.relay.design.relay_stationary), every state component"}

@@ -11,7 +11,7 @@ class Scheduled(GainRule):
     runtime = "scheduled"
     needs = ("the step, its own estimate (its Jacobians F, H_i there and its own covariance), its measurement, which "
              "neighbour packets arrived and what they carried (their predictions, and their measurements with "
-             "--exchange measurements), and the tables designed offline (designer.scheduled): the whitened "
+             "--exchange measurements), and the tables designed offline (rules.scheduled.design): the whitened "
              "covariance factors of its links per step.")
     summary = ("per-link gains designed offline for the attack statistics (expected joint covariance), applied at "
                "each node with its own Jacobians and covariance")
@@ -23,13 +23,13 @@ class Scheduled(GainRule):
         return dict(RECORD_NOTES)
 
     def tables(self, model, network, design, steps, *, x0, inputs, stationary=True):
-        from designer.scheduled import design_scheduled
+        from .design import design_scheduled
 
         return design_scheduled(model, network, design, steps, x0=x0, inputs=inputs,
                                 exchange=design.exchange == "measurements", stationary=stationary)
 
     def stationary_tables(self, model, network, design, horizon, *, inputs):
-        from designer.scheduled import stationary_tables
+        from .design import stationary_tables
 
         return stationary_tables(model, network, design, horizon, inputs=inputs)
 
@@ -69,6 +69,11 @@ class Scheduled(GainRule):
         from .filter import ScheduledNetwork, ScheduledNode
 
         return ScheduledNode, ScheduledNetwork
+
+    def c_export(self):
+        from .export_c import ScheduledExport
+
+        return ScheduledExport()
 
 
 RULE = Scheduled()

@@ -1,4 +1,4 @@
-"""The consensus EKF of mode ``scheduled`` (:mod:`designer.scheduled`) at every node, batched over Monte Carlo runs.
+"""The consensus EKF of mode ``scheduled`` (:mod:`rules.scheduled.design`) at every node, batched over Monte Carlo runs.
 
 Node ``i`` at step ``k`` uses only what it has: its estimate ``x̂_i`` (its prediction and the Jacobians
 ``F``, ``H_i`` there), its own covariance ``P_ii`` (propagated by itself), its measurement, which of its
@@ -7,7 +7,7 @@ covariance factors of its links; beyond the designed horizon the stationary ones
 
     x̂⁻_i = f(x̂_i),   P⁻ = F P_ii Fᵀ + Q
     G = P⁻^{1/2} Γ_ij P⁻^{1/2},  S = P⁻^{1/2} Σ̃_jl P⁻^{1/2}          (colour the tables)
-    K_i, C_ij, P_ii⁺ = designer.scheduled.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ, margin=δ)
+    K_i, C_ij, P_ii⁺ = rules.scheduled.design.link_gains(P⁻, H_i(x̂⁻_i), R_i, G, S, p, q, M, μ, margin=δ)
     x̂⁺_i = x̂⁻_i + K_i (z_i - h_i(x̂⁻_i)) + Σ_{j arrived} [K_ij (z̃_j - h_j(x̂⁻_i)) + C_ij (x̃⁻_j - x̂⁻_i)]
 
 and, with L > 1 exchange rounds (``tables.rounds``), rounds 2..L on the same arrived packets of the step: each
@@ -31,10 +31,10 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from designer.bounds import sqrtm_psd
 from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.scheduled import colour, link_gains, pad_measurements, sqrtm_psd
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
@@ -44,6 +44,8 @@ from filters.result import FilterResult, diverged_nodes
 from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from filters.engine import Step, run_batch
+
+from .design import colour, link_gains, pad_measurements
 
 __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "scheduled_round", "ScheduledPacket",
            "ScheduledNode", "ScheduledNetwork"]
@@ -57,7 +59,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     """Run the scheduled consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     The parameters are those of :func:`filters.consensus_batch.run_consensus_batch`; ``design`` is in mode
-    ``'scheduled'`` with its tables (``design.tables``, :func:`designer.scheduled.design_scheduled`).  The runs'
+    ``'scheduled'`` with its tables (``design.tables``, :func:`rules.scheduled.design.design_scheduled`).  The runs'
     networks may differ only in what the tables were not designed for: the filter applies the tables it was
     given (a design for other channel statistics is the user's choice).  Returns
     :func:`filters.consensus_batch.consensus_result` of the runs (``detail`` a ``ConsensusBatchResult``).
@@ -68,7 +70,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     design = validate_design(design, model, network)
     tables = design.tables
     if not design.rule.offline_tables or tables is None:
-        raise InputError("run_scheduled_batch runs mode 'scheduled' with its tables (designer.scheduled."
+        raise InputError("run_scheduled_batch runs mode 'scheduled' with its tables (rules.scheduled.design."
                          "design_scheduled); got mode " + repr(design.mode))
     ch = tables.channels
     if not (np.array_equal(ch.receiver, np.nonzero(network.adjacency)[0])
@@ -238,7 +240,7 @@ def _padded_R(model: Model, nz: int) -> np.ndarray:
 
 def _factors(candidates: tuple[np.ndarray, np.ndarray], choice: np.ndarray | None, ch, a: int, nodes):
     """The whitened factors of the slots of ``nodes`` (their ids), ``(Gamma (a, g, d, n, n), Sigma (a, g, d, d, n,
-    n))``, from the candidates' tables (:meth:`designer.scheduled.ScheduledTables.candidates`) and each node's
+    n))``, from the candidates' tables (:meth:`rules.scheduled.design.ScheduledTables.candidates`) and each node's
     ``choice`` (a, g) (None: the first candidate's, the step's own, for every node)."""
     Gam, Sig = candidates
     d = ch.d_max
@@ -263,7 +265,7 @@ class ScheduledPacket(NamedTuple):
 
 class ScheduledNode:
     """The filter node ``node`` of a ``scheduled`` design runs, with the design's tables (the whitened covariance
-    factors of its links per step, :class:`designer.scheduled.ScheduledTables`), in phases:
+    factors of its links per step, :class:`rules.scheduled.design.ScheduledTables`), in phases:
 
     * ``packet = node.predict(z, u)``: its prediction ``f(x̂)``, ``F P Fᵀ + Q`` (its own covariance) and its choice of
       tables (a bank's nearest point): the packet it sends (with its measurement when the design exchanges them);

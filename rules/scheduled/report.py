@@ -16,7 +16,7 @@ def settings(meta: Mapping, fmt) -> list[str]:
              "its prediction alone, as in (7)")
     out += ["Scheduled mode: the per-link gains are designed offline for the channels' DoS and FDI probabilities "
             "from the expected joint error covariance of all nodes along the nominal trajectory "
-            "(`designer.scheduled`); every node applies them on any run with its own estimate, covariance and "
+            "(`rules.scheduled.design`); every node applies them on any run with its own estimate, covariance and "
             f"Jacobians and the packets that arrived; a packet carries the sender's {carry}. The tables beyond "
             "the horizon are the recursion continued at the last nominal point"
             + (f", stationary after {st.get('extra_steps')} more steps." if st.get("converged") else

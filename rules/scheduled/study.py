@@ -36,8 +36,8 @@ RECORD_NOTES = {
 
 def stationary(model, network, design, *, x, u):
     """The stationary certificate at the operating point ``x`` (input ``u``):
-    :func:`designer.scheduled.stationary_certificate` with the design's exchange."""
-    from designer.scheduled import stationary_certificate
+    :func:`rules.scheduled.certificate.stationary_certificate` with the design's exchange."""
+    from .certificate import stationary_certificate
 
     return stationary_certificate(model, network, design, x=x, u=u, exchange=design.exchange == "measurements")
 
@@ -45,8 +45,8 @@ def stationary(model, network, design, *, x, u):
 def other_rounds(model, network, design, steps: int, *, x0, inputs) -> dict[int, float]:
     """The expected RMSE at step ``min(steps, TRADEOFF_STEPS)`` of the scheduled designs with the other exchange
     rounds of :data:`TRADEOFF_ROUNDS` (:func:`rounds_tradeoff`), by L; none where the stacked error has more than
-    :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows.  ``inputs``: the known inputs of those steps."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM, design_scheduled
+    :data:`rules.scheduled.design.CERTIFICATE_MAX_DIM` rows.  ``inputs``: the known inputs of those steps."""
+    from .design import CERTIFICATE_MAX_DIM, design_scheduled
 
     if network.n_nodes * model.n_x > CERTIFICATE_MAX_DIM:
         return {}
@@ -66,9 +66,9 @@ def rounds_tradeoff(network, n_x: int, design, steps: int, others: dict) -> dict
     ``min(steps, TRADEOFF_STEPS)`` (square root of the mean over nodes of tr P_ii, the design's expected
     covariance; for L > 1 its rounds' packet losses taken as fresh draws).  The other L are designed over those
     steps only, without stationary tables (the first steps of a design do not depend on its horizon), and only
-    where the stacked error has at most :data:`designer.scheduled.CERTIFICATE_MAX_DIM` rows; ``others``: their
+    where the stacked error has at most :data:`rules.scheduled.design.CERTIFICATE_MAX_DIM` rows; ``others``: their
     expected RMSE as :func:`other_rounds` gives it."""
-    from designer.scheduled import CERTIFICATE_MAX_DIM
+    from .design import CERTIFICATE_MAX_DIM
 
     N = network.n_nodes
     small = N * n_x <= CERTIFICATE_MAX_DIM

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from designer.rule import GainRule
+from designer.validation import InputError
 
 from ..paper import LOCAL_NEEDS
 
@@ -39,6 +40,11 @@ class Tuned(GainRule):
         from filters.consensus_node import ConsensusNetwork, ConsensusNode
 
         return ConsensusNode, ConsensusNetwork
+
+    def c_export(self):
+        raise InputError(f"gain rule {self.name!r} cannot be exported to C: its node solves a convex problem online "
+                         "at every step, which the export does not generate (its node filter runs in Python: "
+                         "studies.node_filter)")
 
 
 RULE = Tuned()

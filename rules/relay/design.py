@@ -37,9 +37,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
-from .rule import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
-from .network import SensorNetwork
-from .validation import InputError, check_int
+from designer.bounds import sqrtm_psd
+from designer.network import SensorNetwork
+from designer.rule import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
+from designer.stationary import StationaryCertificate
+from designer.validation import InputError, check_int
 
 __all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
            "pair_sum", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
@@ -152,7 +154,7 @@ class Routes(NamedTuple):
         """
         if self.routing != "tree":
             raise InputError(f"arrival_moments: the moments of routing {self.routing!r} have no closed form; use "
-                             "designer.relay.relay_moments (flood_moments, by Monte Carlo of the channels)")
+                             "rules.relay.design.relay_moments (flood_moments, by Monte Carlo of the channels)")
         rows = np.flatnonzero(self.node == i)
         B = self.incidence[rows]
         logup = _log_up(network)
@@ -554,8 +556,6 @@ def relay_information(Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.n
 def whitened_rows(model, x: np.ndarray, k: int) -> np.ndarray:
     """(..., n_z, n) every sensor's whitened Jacobian rows ``R_s^{-1/2} H_s(x)`` at the points ``x`` (..., n), in
     the model's measurement order (``model.sensor_dims``)."""
-    from .scheduled import sqrtm_psd  # late: the scheduled design's modules, not needed for the routes
-
     x = np.asarray(x, dtype=float)
     return np.concatenate([sqrtm_psd(model.measurement_cov(s), inverse=True) @ np.asarray(model.H(s, x, k), dtype=float)
                            for s in range(model.n_sensors)], axis=-2)
@@ -607,8 +607,7 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
 
     ``routes``: the design's :func:`relay_routes` when the caller has them (default: built here).
 
-    Returns a :class:`designer.scheduled.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
-    from .scheduled import StationaryCertificate
+    Returns a :class:`designer.stationary.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
 
     routing = design.rule.routing
     if routes is None:

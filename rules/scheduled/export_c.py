@@ -1,37 +1,56 @@
-"""The scheduled node's C export: the home of :func:`write_scheduled_c` (the node filter of a ``scheduled`` design:
-:class:`filters.scheduled.ScheduledNode` in C99, its tables as data, the per-link gains solved online) and of its
-replay, :func:`scheduled_replay_text`.
+"""The scheduled node's C export: the home of :class:`ScheduledExport` (the scheduled rule's
+:meth:`designer.rule.GainRule.c_export`), :func:`write_scheduled_c` (the node filter of a ``scheduled`` design:
+:class:`rules.scheduled.filter.ScheduledNode` in C99, its tables as data, the per-link gains solved online) and of
+its replay, :func:`scheduled_replay_text`.
 
-The node's C is in the package's ``c/scheduled/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled
-by :func:`designer.export_c.template`; the frame (the model's code, the common C and the linear algebra, the replay
+The node's C is in this package's ``c/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled by
+:func:`designer.export_c.template`; the frame (the model's code, the common C and the linear algebra, the replay
 driver's head, the Makefile) is :mod:`designer.export_c`'s.
 """
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from .export_c import (C_TEMPLATES, c_array, common_code, described, linalg_code, model_code, replay_file,
-                       template, write_node)
-from .validation import InputError
+from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
+                               template, write_node)
+from designer.validation import InputError
 
-__all__ = ["write_scheduled_c", "scheduled_replay_text"]
+__all__ = ["ScheduledExport", "write_scheduled_c", "scheduled_replay_text"]
 
-_C = C_TEMPLATES / "scheduled"
+_C = files(__package__) / "c"
+
+
+class ScheduledExport(NodeExport):
+    """The C export of the scheduled rule's node: a step's replay record is the inputs and, per exported node, its
+    measurement, the packets that reached it in the first round, the estimates of rounds 2..L, and its estimate and
+    own covariance after the step (:func:`scheduled_replay_text`)."""
+
+    def replay_step(self, net, k, u, z, nodes):
+        _, rounds = net.last  # what each node sent and, round by round, what reached it
+        return u, [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], net.nodes[i].x, net.nodes[i].P)
+                   for i, z_i in zip(nodes, z)]
+
+    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+        return write_scheduled_c(model, network, design, out, nodes=nodes, verdict=verdict,
+                                 replay=scheduled_replay_text(nodes, [net.nodes[i].senders.tolist() for i in nodes],
+                                                              model.n_u, max(model.sensor_dims),
+                                                              design.tables.exchange, steps))
 
 
 def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
                       verdict: str = "unknown") -> list[Path]:
     """Write the C sources of the node filter of the ``scheduled`` design ``design``
-    (:class:`filters.scheduled.ScheduledNode`: ``cfd_predict`` with the node's measurement gives the packet it
+    (:class:`rules.scheduled.filter.ScheduledNode`: ``cfd_predict`` with the node's measurement gives the packet it
     sends, ``cfd_update`` the first round with what arrived, ``cfd_round`` the exchange rounds 2..L) for the nodes
     ``nodes`` into ``out``: each exported node's tables (the whitened factors of its links per step and round, the
     stationary ones beyond the horizon, the bank's), its certificate per step, and the per-link gains'
-    solve (:func:`designer.scheduled.link_gains`, :func:`designer.mse.solve_gains`) online.  ``replay``: the text of
+    solve (:func:`rules.scheduled.design.link_gains`, :func:`designer.mse.solve_gains`) online.  ``replay``: the text of
     ``replay.txt`` (:func:`scheduled_replay_text`).  Returns the files written."""
-    from .mse import GAIN_RCOND
+    from designer.mse import GAIN_RCOND
 
     tables = design.tables
     if design.mode != "scheduled" or tables is None:

@@ -1,34 +1,52 @@
-"""The relay node's C export: the home of :func:`write_relay_c` (the node filter of a design whose gain rule relays,
-``relay`` or ``flood``: :class:`filters.relay.RelayNode` in C99) and of its replay, :func:`replay_text`.
+"""The relay node's C export: the home of :class:`RelayExport` (the relay rule's
+:meth:`designer.rule.GainRule.c_export`, the ``flood`` rule's too), :func:`write_relay_c` (the node filter of a design
+whose gain rule relays: :class:`rules.relay.filter.RelayNode` in C99) and of its replay, :func:`replay_text`.
 
-The node's C is in the package's ``c/relay/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled by
+The node's C is in this package's ``c/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled by
 :func:`designer.export_c.template`; the frame (the model's code, the common C, the replay driver's head, the
 Makefile) is :mod:`designer.export_c`'s.
 """
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from .export_c import (C_TEMPLATES, c_array, common_code, described, model_code, replay_file, template,
-                       write_node)
-from .validation import InputError
+from designer.bounds import sqrtm_psd
+from designer.export_c import (NodeExport, c_array, common_code, described, model_code, replay_file, template,
+                               write_node)
+from designer.validation import InputError
 
-__all__ = ["write_relay_c", "replay_text"]
+from .design import relay_moments, relay_routes
 
-_C = C_TEMPLATES / "relay"
+__all__ = ["RelayExport", "write_relay_c", "replay_text"]
+
+_C = files(__package__) / "c"
+
+
+class RelayExport(NodeExport):
+    """The C export of a relaying rule's node filter: a step's replay record is the inputs and, per exported node,
+    what reached it and its estimate and bound after the step (:func:`replay_text`)."""
+
+    def replay_step(self, net, k, u, z, nodes):
+        _, rounds = net.last  # what each node sent and, round by round, what reached it
+        return u, [(*rounds[0][i], net.nodes[i].x, net.nodes[i].P) for i in nodes]
+
+    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+        routes = relay_routes(network, design.rounds, design.rule.routing)
+        return write_relay_c(model, network, design, routes, relay_moments(routes, network, model.sensor_dims), out,
+                             nodes=nodes, replay=replay_text(nodes, [net.nodes[i].ball for i in nodes],
+                                                             model.sensor_dims, steps, model.n_u), verdict=verdict)
 
 
 def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, *, nodes: Sequence[int],
                   replay: str | None = None, verdict: str = "unknown") -> list[Path]:
     """Write the C sources of the node filter of the relay design ``design`` (``routes``, ``moments``: its
-    :func:`designer.relay.relay_routes` and :func:`designer.relay.relay_moments`) for the nodes ``nodes`` into
+    :func:`rules.relay.design.relay_routes` and :func:`rules.relay.design.relay_moments`) for the nodes ``nodes`` into
     ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
     (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
-    from .scheduled import sqrtm_psd
-
     rule = design.rule
     if not rule.relays:
         raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")

@@ -1,25 +1,58 @@
-"""The consensus node's C export: the home of :func:`write_consensus_c` (the node filter of a ``paper`` design:
-:class:`filters.consensus_node.ConsensusNode` in C99, two phases a step) and of its replay,
-:func:`consensus_replay_text`.
+"""The consensus node's C export: the home of :class:`PaperExport` (the paper rule's
+:meth:`designer.rule.GainRule.c_export`, with its ill-conditioning stop :data:`REPLAY_COND`), :func:`write_consensus_c`
+(the node filter of a ``paper`` design: :class:`filters.consensus_node.ConsensusNode` in C99, two phases a step) and
+of its replay, :func:`consensus_replay_text`.
 
-The node's C is in the package's ``c/consensus/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled
-by :func:`designer.export_c.template`; the frame (the model's code, the common C and the linear algebra, the replay
+The node's C is in this package's ``c/`` (``cfd_node.h.in``, ``cfd_node.c.in``, ``driver_main.c``), filled by
+:func:`designer.export_c.template`; the frame (the model's code, the common C and the linear algebra, the replay
 driver's head, the Makefile) is :mod:`designer.export_c`'s.
 """
 from __future__ import annotations
 
+import warnings
+from importlib.resources import files
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from .export_c import (C_TEMPLATES, c_array, common_code, described, linalg_code, model_code, replay_file,
-                       template, write_node)
-from .validation import InputError
+from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
+                               template, write_node)
+from designer.validation import InputError
 
-__all__ = ["write_consensus_c", "consensus_replay_text"]
+__all__ = ["PaperExport", "REPLAY_COND", "write_consensus_c", "consensus_replay_text"]
 
-_C = C_TEMPLATES / "consensus"
+_C = files(__package__) / "c"
+REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its rounding stays within 1e-10
+
+
+class PaperExport(NodeExport):
+    """The C export of the paper rule's two-phase consensus node: a design of the ``fixed`` linearization only; a
+    step's replay record is the inputs and, per exported node, its measurement, what reached it, the packet it sent
+    and its estimate and covariance after the update (:func:`consensus_replay_text`), while every replayed
+    covariance's condition number stays within :data:`REPLAY_COND`."""
+
+    def check(self, design) -> None:
+        if design.linearization != "fixed":
+            raise InputError(f"linearization must be 'fixed' to export a paper design to C (the "
+                             f"{design.linearization!r} scalings come from the model's Hessians at every step, which "
+                             "the export does not generate)")
+
+    def replay_step(self, net, k, u, z, nodes):
+        sent, rounds = net.last  # what each node sent and, round by round, what reached it
+        cond = max(float(np.linalg.cond(P)) for i in nodes for P in (sent[i].P, net.nodes[i].P))
+        if not cond <= REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
+            warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
+                          f"(condition number {cond:.3g} > {REPLAY_COND:g}): replay.txt holds the {k} steps "
+                          "before (beyond, the rounding of any two correct implementations differs by more than "
+                          "make test's 1e-10)", RuntimeWarning, stacklevel=3)
+            return None
+        return u, [(z_i, *rounds[0][i], sent[i], net.nodes[i].x, net.nodes[i].P) for i, z_i in zip(nodes, z)]
+
+    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+        return write_consensus_c(model, network, design, out, nodes=nodes, verdict=verdict,
+                                 replay=consensus_replay_text(nodes, [net.nodes[i].senders.tolist() for i in nodes],
+                                                              model.n_u, steps))
 
 
 def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
@@ -34,7 +67,7 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     problem online at every step: not exported)."""
     from scipy.special import chdtri
 
-    from .bounds import BOUND_LIMIT
+    from designer.bounds import BOUND_LIMIT
 
     if not design.rule.fixed_multipliers:
         raise InputError(f"mode must be a rule of fixed multipliers (paper) for the consensus node's C export, got "

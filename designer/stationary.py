@@ -1,0 +1,42 @@
+"""The stationary certificate's result type: the home of :class:`StationaryCertificate`, a design's bound at the
+fixed point of its recursion at one linearisation point (the operating point).
+
+A rule with a stationary certificate (:attr:`designer.rule.GainRule.stationary_certificate`: a rule of offline
+tables, or one that relays) computes it in its own package (``rules/<name>/``) and returns this type; the design's
+record (``schedule.json``'s ``stationary``) and the feasibility map read it alike, whichever rule computed it.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["StationaryCertificate"]
+
+
+class StationaryCertificate(NamedTuple):
+    """A design's bound at the fixed point of its recursion at one linearisation point.
+
+    ``converged``: the recursion of the bound with the stationary gains reached a fixed point ``Phi`` (N, n, n
+    per node) within ``iterations``; ``sigma``, ``beta`` its multipliers (NaN for a rule that has none);
+    ``reason`` why not otherwise.  ``lmi``: the convex check (cvxpy + Clarabel) of the stationary inequality:
+    ``status``, ``trace`` (the smallest total trace of a Φ̄ satisfying it, whose node blocks bound every later Φ
+    once a Φ lies below it), ``max_residual`` (the largest violation of the inequality by the solver's Φ̄, checked
+    independently), or ``None`` where it was not solved (the problem too large, or no fixed point).
+    """
+
+    converged: bool
+    Phi: np.ndarray | None
+    sigma: float
+    beta: float
+    iterations: int
+    reason: str | None
+    lmi: dict | None
+
+    def describe(self) -> dict:
+        tr = None if self.Phi is None else [float(v) for v in np.trace(self.Phi, axis1=-2, axis2=-1)]
+        def num(v):
+            return float(v) if np.isfinite(v) else None
+
+        return {"converged": self.converged, "trace": tr, "sigma": num(self.sigma), "beta": num(self.beta),
+                "iterations": self.iterations, "reason": self.reason, "lmi": self.lmi}
