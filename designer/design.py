@@ -80,7 +80,7 @@ class ConsensusDesign(NamedTuple):
     ``u I`` and ``v I`` derived from the CasADi Hessians over the ellipsoid of
     Φ (:mod:`designer.linearization`); the given U, V then only fix the shapes.  In
     ``'mse'`` mode the gains minimise the predicted mean-square error of every node
-    (:mod:`designer.mse`, with ``fdi_moment`` = E[ξ ξᵀ] and ``fdi_mean`` = E[ξ] of the
+    (:mod:`designer.joint`, with ``fdi_moment`` = E[ξ ξᵀ] and ``fdi_mean`` = E[ξ] of the
     injected signal) and one σ and one β certify them (the smallest bound (26)-(27) of the
     stacked error of all nodes for those gains).  ``fdi_span`` (the projector onto the
     components the signal reaches) shapes the falsified packets' term of the tuned and mse
@@ -327,7 +327,7 @@ class DesignOptions:
     mode : str, the name of a gain rule (:mod:`rules`; resolved by the command, :func:`rules.get`)
         ``paper``: σ, β fixed, ``C = τ Φ_pred``, the gain (30); ``tuned``: the convex tuning layer
         minimises the bound (both ``local``: computed online at each node); ``mse``: gains minimising the
-        predicted mean-square error (:mod:`designer.mse`), certified by the σ, β that make the bound
+        predicted mean-square error (:mod:`designer.joint`), certified by the σ, β that make the bound
         smallest for them (``global``: an oracle needing the network's joint state, not deployable).
     epsilon : float in (0, 1/d_max)
     sigma, beta : float >= 0

@@ -9,7 +9,7 @@ data), the paper rule's (the two-phase consensus node of :class:`filters.consens
 ``linearization='fixed'``: ``cfd_predict`` gives the packet the node sends, ``cfd_update`` takes what arrived; the
 design's σ, β, τ, ε, U, V_i, δ and the channels' probabilities as data) and the scheduled rule's (the node of
 :class:`rules.scheduled.filter.ScheduledNode`, ``cfd_predict``, ``cfd_update``, ``cfd_round``; each exported node's
-tables as data, the per-link gains solved online as :func:`designer.mse.solve_gains` solves them).
+tables as data, the per-link gains solved online as :func:`designer.joint.solve_gains` solves them).
 :func:`studies.api.export` runs the node network over the replayed run, asks the export for each step's replay
 record (:meth:`NodeExport.replay_step`) and has it write the files (:meth:`NodeExport.write`).
 

@@ -164,7 +164,7 @@ def whitened_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: flo
     A function that is nonlinear only in components of small variance (a turn rate times a velocity) gets a
     scale that small, where :func:`component_scales` multiplies its Hessian by the longest axis (a position's).
     The same ``L̃`` bounds the Jacobian's change, ``|∇r_j(a) - ∇r_j(b)|``: ``|r_j(a) - r_j(b)| <= 2 u_j / sqrt(m)
-    |W (a - b)|`` on the ellipsoid (:mod:`designer.mse`, **Shared remainders**)."""
+    |W (a - b)|`` on the ellipsoid (:mod:`designer.joint`, **Shared remainders**)."""
     cov = symmetrize(np.asarray(cov, dtype=float))
     root = _root(cov, 0.5)  # the inverse of whitening(cov)
     Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)

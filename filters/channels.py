@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from designer.design import ConsensusDesign
-from designer.mse import difference_covariance, node_blocks
+from designer.joint import difference_covariance, node_blocks
 
 __all__ = ["GATE_COUNTS", "channel_difference_covariance", "channel_packets", "gate_channels", "kept_fdi_moments"]
 
@@ -23,8 +23,8 @@ GATE_COUNTS = ("received", "rejected", "clean_rejected", "fdi_received", "fdi_pa
 def channel_difference_covariance(P, receiver: np.ndarray, sender: np.ndarray) -> np.ndarray:
     """``Cov(e_j - e_i) = P_ii - P_ij - P_ji + P_jj`` on the channels ``j = sender[e] -> i = receiver[e]``.
 
-    ``P`` a :class:`designer.mse.JointCovariance` (the differences without cancellation,
-    :func:`designer.mse.difference_covariance`) or absolute joint blocks (..., N, N, n, n); returns
+    ``P`` a :class:`designer.joint.JointCovariance` (the differences without cancellation,
+    :func:`designer.joint.difference_covariance`) or absolute joint blocks (..., N, N, n, n); returns
     (..., E, n, n), regularised by ``1e-12`` of the mean trace of each run's nodes (two nodes with one
     estimate have a zero difference).
     """

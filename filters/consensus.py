@@ -17,7 +17,7 @@ factors (1 + 2 d_i) and 3 replaced by optimised weights over the node's own erro
 received neighbour's error and the falsified packets (``'tuned'``,
 :func:`designer.tuning.tune_weighted_batch`); or the gains that make every node's predicted
 mean-square error smallest, from the joint error covariance of all nodes, certified by the
-bound of the stacked error of all nodes for those gains (``'mse'``, :mod:`designer.mse`;
+bound of the stacked error of all nodes for those gains (``'mse'``, :mod:`designer.joint`;
 one σ and one β for the network; :attr:`ConsensusResult.predicted_mse` holds the prediction).
 
 **The gate** (``design.gate = α > 0``, :func:`gate_channels`): a node tests every received packet by

@@ -226,7 +226,7 @@ class ConsensusResult(NamedTuple):
     predicted_mse: np.ndarray | None = None  # (steps+1, N) mode 'mse': tr P_ii of the joint error covariance
     gate_counts: np.ndarray | None = None  # (steps, 5) packets per step: GATE_COUNTS (received, rejected, ...)
     # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
-    # (designer.mse.mse_gains); NaN where none was solved
+    # (designer.joint.mse_gains); NaN where none was solved
     gain_condition: np.ndarray | None = None
 
     @property

@@ -184,7 +184,7 @@ ASSUMPTIONS = (
     "--set tuned_in_sweeps=false); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
     "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
     "covariance, designer.verdict).",
-    "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.mse:"
+    "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.joint:"
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
     "received packet); its certificate is the bound (26)-(27) of the stacked error of all nodes for those gains "
     "(one sigma and one beta for the network, the cross-covariances propagated).",

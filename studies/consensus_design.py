@@ -23,7 +23,7 @@ import numpy as np
 
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
 from designer.rule import GainRule
-from designer.mse import conditioning
+from designer.joint import conditioning
 from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays

@@ -10,7 +10,7 @@ gain schedule.  The production batch is compared against it (``tests/test_consen
 must agree run by run, so an error of indexing, masking or bookkeeping in the batch shows.
 
 It shares with production the mathematical building blocks it calls (``designer.bounds``,
-``designer.tuning``, ``designer.mse``, the gate's statistic ``filters.channels.gate_channels``),
+``designer.tuning``, ``designer.joint``, the gate's statistic ``filters.channels.gate_channels``),
 which are tested against the equations on their own, and the result type.
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
 from designer.network import SensorNetwork
-from designer.mse import (as_difference, certificate_predict, certificate_update, joint_predict, joint_prior,
+from designer.joint import (as_difference, certificate_predict, certificate_update, joint_predict, joint_prior,
                           joint_update, mse_gains)
 from designer.tuning import lam_max, neighbour_groups, tune_prediction_batch, tune_weighted, warm_start_weights
 from designer.validation import InputError
@@ -350,7 +350,7 @@ def _binding_node(phi_blocks: np.ndarray, D) -> int:
 @one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def _run_mse(model: Model, network: SensorNetwork, z, u, design: ConsensusDesign, attacks, x0, phi0
              ) -> ConsensusResult:
-    """Mode mse: the gains of :func:`designer.mse.mse_gains` and the joint certificate of :mod:`designer.mse`.
+    """Mode mse: the gains of :func:`designer.joint.mse_gains` and the joint certificate of :mod:`designer.joint`.
 
     One σ and one β certify the stacked error of all nodes, so (28)-(29) are conditions on
     the network: a violation is recorded at the node where it binds and ends every node's

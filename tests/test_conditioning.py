@@ -14,7 +14,7 @@ import numpy as np
 
 import rules.mse.filter as fc  # the mse design's filter (a batch of one run)
 from designer import AttackSpec, DesignOptions, FDISignal, Gaussian, Model, SensorNetwork, Sensor
-from designer.mse import JointCovariance, conditioning, joint_predict, joint_update, mse_gains
+from designer.joint import JointCovariance, conditioning, joint_predict, joint_update, mse_gains
 from studies.consensus_design import run_design
 from studies.reports.design import render_design
 from studies.scenarios import scenario_of
@@ -110,7 +110,7 @@ def test_solved_gains_are_the_minimum_norm_solution_of_every_item():
     ``scale``, the directions below ``GAIN_RCOND`` of the largest dropped, and ``λmax / λmin`` over the kept ones.
     The stack mixes items with zero-padded components (in varied places), rank-deficient ones (a direction to
     drop), items without packets (the measurement block alone) and a non-finite one."""
-    from designer.mse import GAIN_RCOND, solve_gains
+    from designer.joint import GAIN_RCOND, solve_gains
 
     rng = np.random.default_rng(3)
     k, n, m, w = 9, 3, 2, 11

@@ -1,5 +1,5 @@
 """Mode 'mse' batched over Monte Carlo runs (rules.mse.filter) against the per-run path, and the stacked
-functions of designer.mse against the same functions item by item.
+functions of designer.joint against the same functions item by item.
 
 The reference is the per-run, per-node loop of tests/consensus_reference.py in mode 'mse' (what
 run_consensus was before it became a batch of one; the production filter is tested against the joint
@@ -25,7 +25,7 @@ import rules
 from designer import Gaussian, Model, Sensor, SensorNetwork, simulate
 from designer.attacks import FDISignal
 from designer.design import ConsensusDesign, DesignOptions, make_design
-from designer.mse import (
+from designer.joint import (
     certificate_predict,
     certificate_update,
     joint_multiplier,

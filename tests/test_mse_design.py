@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
-from designer.mse import joint_predict, joint_prior, joint_update, mse_gains
+from designer.joint import joint_predict, joint_prior, joint_update, mse_gains
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch

@@ -1,4 +1,4 @@
-"""The certificate's shared remainders (designer.mse, **Shared remainders**): every node linearises one f, so its
+"""The certificate's shared remainders (designer.joint, **Shared remainders**): every node linearises one f, so its
 remainder is one function φ of the node's error; the deviations' remainder is 2 U times the deviations."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-import designer.mse as mse
+import designer.joint as mse
 from designer.linearization import component_scales
 
 

@@ -19,7 +19,7 @@ class MSE(GainRule):
 
     def report_settings(self, meta, fmt):
         return ["MSE mode: K and C minimise every node's predicted mean-square error, from the joint linearised error "
-                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.mse`); the certificate "
+                "covariance of all nodes with the channels' DoS and FDI statistics (`designer.joint`); the certificate "
                 "is the bound (26)-(27) written for the stacked error of all nodes with those gains (it propagates "
                 "the cross-covariances between nodes instead of bounding them; one σ and one β for the network, "
                 "chosen to make it smallest). The gains serve accuracy and the bound certifies them.", ""]

@@ -3,9 +3,9 @@
 :func:`filters.consensus_batch.run_consensus_batch` (and so :func:`filters.consensus.run_consensus`, a
 batch of one) dispatches ``design.mode == 'mse'`` here: every node's gains are the linear-MMSE ones
 from the joint error covariance of all nodes, and one σ and one β certify the stacked error of all
-nodes (:mod:`designer.mse`).  Here every quantity of a step is a stack over the runs still going:
+nodes (:mod:`designer.joint`).  Here every quantity of a step is a stack over the runs still going:
 the joint covariance ``(runs, N, N, n, n)`` and its certificate go through the functions of
-:mod:`designer.mse` with a leading runs axis, the gains are solved per node over all runs at once
+:mod:`designer.joint` with a leading runs axis, the gains are solved per node over all runs at once
 (the kept packets as masks), and the χ² gate on neighbour packets works on the network's directed
 channels of every run (:func:`filters.channels.gate_channels`,
 :func:`~filters.channels.channel_difference_covariance`, :func:`~filters.channels.kept_fdi_moments`: the
@@ -40,7 +40,7 @@ from designer.bounds import BOUND_LIMIT, theorem2_margin
 from designer.design import ConsensusDesign, validate_design
 from designer.linearization import prediction_scaling, update_scaling
 from designer.model import Model
-from designer.mse import (
+from designer.joint import (
     as_difference,
     certificate_predict,
     certificate_update,

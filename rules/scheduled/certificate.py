@@ -2,7 +2,7 @@
 point of the tables' recursion at one linearisation point (the operating point), and of its LMI.
 
 The tables' recursion is run at that point until the gains stop changing (:func:`rules.scheduled.design.
-stationary_gains`), then the bound's recursion (26) + expected (27) (:func:`designer.mse.certificate_predict`,
+stationary_gains`), then the bound's recursion (26) + expected (27) (:func:`designer.joint.certificate_predict`,
 :func:`rules.scheduled.design.expected_certificate_update`) with those time-invariant gains until it reaches a fixed
 point Φ̄, and the stationary inequality is checked as an LMI for that fixed point's σ, β (cvxpy + Clarabel), the
 solver's Φ̄ checked again in NumPy.  The result is a :class:`designer.stationary.StationaryCertificate`.
@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 
 from designer.bounds import BOUND_LIMIT, symmetrize
-from designer.mse import as_difference, certificate_predict, joint_prior
+from designer.joint import as_difference, certificate_predict, joint_prior
 from designer.stationary import StationaryCertificate
 
 from .design import (Channels, diag_blocks, expected_certificate_update, falsification_moment, measurement_noise,

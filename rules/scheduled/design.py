@@ -25,7 +25,7 @@ choice: in this model a node never does worse than alone.  Then ``e⁺ = T(ρ) e
 ρ are independent of ``e⁻``, ``E[T P Tᵀ] = T̄ P T̄ᵀ + blockdiag_i Σ_j p_ij (1 - p_ij) C_ij Cov(Δ_ij) C_ijᵀ``
 with the mean transition ``T̄_ii = I - K_i H_i - Σ_j p_ij C_ij``, ``T̄_ij = p_ij C_ij``: the expected joint
 covariance follows a deterministic recursion (:func:`expected_update`, in the difference form of
-:mod:`designer.mse`, so that nodes whose errors agree give exact zeros).
+:mod:`designer.joint`, so that nodes whose errors agree give exact zeros).
 
 **Measurement exchange** (``exchange=True``, the default of ``--exchange measurements``): a packet also
 carries the sender's measurement ``z_j``, and node i adds ``ρ_ij K_ij (z_j - h_j(x̂⁻_i))`` (a falsified packet's
@@ -76,15 +76,15 @@ prediction in the coordinates ``v_aᵀ(x̂⁻_i - x)/σ_a``: the step's own (at 
 point's (:meth:`ScheduledTables.choose`).  It needs only its prediction and the bank (points, axes, tables).  The bank's
 tables are not covered by the certificate, which is the nominal design's.
 
-**The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.mse`) in
-expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.mse.certificate_predict`, with
+**The certificate** is the bound (26)-(27) of the stacked error of all nodes (:mod:`designer.joint`) in
+expectation over the attacks: (26) for the common nominal ``F`` (:func:`designer.joint.certificate_predict`, with
 the remainder term ``((1+ε)σ)⁻¹ U Uᵀ`` of the paper's lemma, the first inequality of its (31), not the ``(εσ)⁻¹``
 that (26) loosens it to for Theorem 2: the loose term inflates the bound by ``2 |U| sqrt((1+ε)/ε)`` per step,
 which on the indoor robot (``U = 0.01 I``) outgrew the consensus's contraction)
 and (27) with ``E_ρ[T X Tᵀ]`` for ``X = (Φ⁻^-1 - β I)^-1``, one β for the network minimising the trace
 (:func:`expected_certificate_update`).  It bounds ``E[e eᵀ]`` for the offline gains along the nominal
 linearisation with the remainders ``U``, ``V_i``; for a linear model with ``U = V = 0`` and a zero-mean
-signal it is the expected covariance itself.  The remainders are modelled as shared (:mod:`designer.mse`,
+signal it is the expected covariance itself.  The remainders are modelled as shared (:mod:`designer.joint`,
 **Shared remainders**): every node's ``f`` remainder is one function of its error, and so are the sensors'
 remainders at one error (with the prior scalings: one joint matrix, :func:`designer.linearization.remainder_gram`,
 where opposite curvatures cancel); each step keeps that bound or the one of independent blocks, whichever has the
@@ -109,7 +109,7 @@ from typing import NamedTuple
 import numpy as np
 
 from designer.bounds import BOUND_LIMIT, eigh, sqrtm_psd, symmetrize, theorem2_margin
-from designer.mse import (JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier,
+from designer.joint import (JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier,
                           joint_predict, joint_prior, shared_search, shared_structure, solve_gains)
 from designer.tuning import MARGIN
 from designer.validation import InputError
@@ -401,7 +401,7 @@ def _dos_variance(rule: _Rule, ch: Channels, own: np.ndarray, diff: np.ndarray, 
 
 
 def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray) -> JointCovariance:
-    """The expected joint error covariance after the update, in difference form (:mod:`designer.mse`).
+    """The expected joint error covariance after the update, in difference form (:mod:`designer.joint`).
 
     With ``T̄`` (:func:`transition_matrix`, every row summing to ``A_i = I - K_i H_i - Σ_j p_ij K_ij H_j``),
     ``c_i = Σ_j T̄_ij P_jj``, ``Y = T̄ G T̄ᵀ`` (``G`` the difference blocks) and the additive terms ``N``
@@ -516,11 +516,11 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
     (with measurement exchange; node i's own and each received measurement's remainder act on ``e_i``: ``1 + d_i``
     blocks of ``Ω``, so ``DᵀD = blockdiag((1 + d_i) I)``).  The margin of (29) is ``1/λmax(D Φ⁻ Dᵀ) - β``.
 
-    ``shared`` (:mod:`designer.mse`, **Shared remainders**): sensor ``s``'s remainder at node ``l``'s error is
+    ``shared`` (:mod:`designer.joint`, **Shared remainders**): sensor ``s``'s remainder at node ``l``'s error is
     ``ψ_s(ē) + (ψ_s(e_l) - ψ_s(ē)) = V_s Θ_s ē + 2 V_s Θ_sl δ_l``: the common parts of the N sensors act on ``ē``
     (``N`` blocks: ``D_cᵀ D_c = 1 1ᵀ/N ⊗ I``, moment ``E[Ȳ Ȳᵀ]`` of :func:`_remainder_moments`, correlated over the
     nodes that use one sensor), the deviations on each node's ``δ_l`` (``1 + d_l`` blocks, twice the scaling:
-    ``4 KVV_l``) with the multiplier ``t β`` (:func:`designer.mse.shared_structure`).
+    ``4 KVV_l``) with the multiplier ``t β`` (:func:`designer.joint.shared_structure`).
 
     ``W`` (n, n): the remainders act on ``W e`` (``V_i Θ W e``, :attr:`designer.design.ConsensusDesign.
     remainder_structure`); None: on ``e``.  ``gram`` (with ``shared``): the sensors' remainders as one function

@@ -48,9 +48,9 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
     sends, ``cfd_update`` the first round with what arrived, ``cfd_round`` the exchange rounds 2..L) for the nodes
     ``nodes`` into ``out``: each exported node's tables (the whitened factors of its links per step and round, the
     stationary ones beyond the horizon, the bank's), its certificate per step, and the per-link gains'
-    solve (:func:`rules.scheduled.design.link_gains`, :func:`designer.mse.solve_gains`) online.  ``replay``: the text of
+    solve (:func:`rules.scheduled.design.link_gains`, :func:`designer.joint.solve_gains`) online.  ``replay``: the text of
     ``replay.txt`` (:func:`scheduled_replay_text`).  Returns the files written."""
-    from designer.mse import GAIN_RCOND
+    from designer.joint import GAIN_RCOND
 
     tables = design.tables
     if design.mode != "scheduled" or tables is None:

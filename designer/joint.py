@@ -1,8 +1,9 @@
-"""The mean-square-error design of the consensus filter: the joint error covariance and its optimal gains.
+"""The joint error covariance of all nodes and the gains that minimise each node's mean-square error.
 
 Theorem 1's bound (26)-(27) holds for *any* gains ``K_i``, ``C_i`` as long as (28)-(29)
-hold; the gain (30) only makes the bound smallest.  ``mode='mse'`` chooses the gains for
-what the filter really does instead: at every step it propagates the linearised error
+hold; the gain (30) only makes the bound smallest.  A rule of the joint covariance (``rules/mse``) chooses the
+gains for what the filter really does instead, and the scheduled rule's tables (``rules/scheduled``) are built on
+the same joint recursion: at every step it propagates the linearised error
 covariance of **all nodes jointly**, cross-covariances included, and gives each node the
 gains that minimise its own mean-square error; the bound of the stacked error of all nodes
 is then evaluated for those gains as the certificate (see **The certificate** below).
