@@ -27,8 +27,7 @@ chooses the gains, the command line's help), and its capabilities: ``fixed_multi
 tables computed offline and applied online: it chooses what the nodes exchange, the exchange rounds, a robustness
 margin and a bank of operating points, and has a stationary certificate), ``joint_covariance`` (its filter carries
 the joint error covariance of all nodes: (N n)² numbers per run, not mapped by the feasibility map), ``relays`` (its
-packets relay the measurements over L exchange rounds per step, :mod:`rules.relay.design`) and ``routing`` (which copy
-of a relayed measurement a node takes, :data:`ROUTINGS`).
+packets relay the measurements over L exchange rounds per step, :mod:`rules.relay.design`).
 
 Its hooks (methods; the base class's answer follows from the capabilities)
 --------------------------------------------------------------------------
@@ -48,8 +47,8 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "ROUTINGS", "runtime_label", "caveat",
-           "RULE_NAME", "EXCHANGES", "RELAY", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
+__all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "runtime_label", "caveat",
+           "RULE_NAME", "EXCHANGES", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
 
 # The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
 RUNTIMES: Mapping[str, str] = MappingProxyType({
@@ -68,16 +67,12 @@ FILTER_RUNTIMES: Mapping[str, str] = MappingProxyType({
                    "alone, a reference of what centralisation reaches.",
 })
 DEPLOYABLE = ("local", "scheduled")  # the classes a user can run on the nodes; the others are references
-#: Which copy of a relayed measurement a node of a rule that relays takes (rules.relay.design.Routes): its shortest-path
-#: tree parent's, or the first to arrive from any neighbour.
-ROUTINGS = ("tree", "flood")
 _SHORT = {"local": "computed online at each node", "scheduled": "designed offline, applied with what the node "
           "observes", "global": "an oracle, not deployable", "centralized": "a fusion centre, not a node's filter"}
 RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Python identifier), its --mode
 
 
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first its default
-RELAY = "relay"  # the exchange of a rule that relays the measurements over L hops (GainRule.relays)
 #: The default robustness margin δ of a tabled design's link gains (:func:`rules.scheduled.design.link_gains`;
 #: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
 #: between neighbours' errors to the last digit (per-link gains of norm 20-90 that cancel between links, conditioning
@@ -151,9 +146,6 @@ class GainRule:
     relays : bool
         Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that arrived
         (:mod:`rules.relay.design`); its design has a stationary certificate.
-    routing : {'tree', 'flood'}
-        For a rule that relays: which copy of a relayed measurement a node takes (:data:`ROUTINGS`): its
-        shortest-path tree parent's, or the first to arrive from any neighbour.
     """
 
     name: ClassVar[str]
@@ -164,7 +156,6 @@ class GainRule:
     offline_tables: ClassVar[bool] = False
     joint_covariance: ClassVar[bool] = False
     relays: ClassVar[bool] = False
-    routing: ClassVar[str] = "tree"
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -187,8 +178,6 @@ class GainRule:
         for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays"):
             if not isinstance(getattr(cls, field), bool):
                 raise InputError(f"{field} of gain rule {name!r} must be True or False, got {getattr(cls, field)!r}")
-        if cls.routing not in ROUTINGS:
-            raise InputError(f"routing of gain rule {name!r} must be {_listing(ROUTINGS)}, got {cls.routing!r}")
 
     def __setattr__(self, key, value):
         raise AttributeError(f"gain rule {self.name!r} is fixed: its metadata are its class's")
@@ -263,9 +252,6 @@ class GainRule:
         """Refuse what ``options`` (a :class:`designer.design.DesignOptions`) sets that this rule does not take
         (:class:`InputError` naming the option); the options' own ranges are checked when they are made."""
         mode = repr(self.name)
-        if options.exchange is not None and self.relays:
-            raise InputError(f"exchange is chosen by a rule of offline tables; mode {mode} relays the measurements "
-                             "(its exchange is 'relay'): do not give --exchange")
         if options.exchange == "measurements" and not self.offline_tables:
             raise InputError(f"exchange 'measurements' is a design of a rule of offline tables; mode {mode} "
                              "exchanges predictions")
@@ -286,16 +272,7 @@ class GainRule:
         """Refuse a :class:`designer.design.ConsensusDesign` whose rule-dependent fields this rule does not take
         (:class:`InputError` naming the field and its range)."""
         mode = repr(self.name)
-        if self.relays and design.gate:
-            raise InputError(f"mode {mode} does not take a gate (gate must be 0): its gain counts every falsified "
-                             "measurement that arrives, from the falsification's statistics")
-        if self.relays and design.exchange != RELAY:
-            raise InputError(f"exchange must be {RELAY!r} in mode {mode} (it relays the measurements), got "
-                             f"{design.exchange!r}")
-        if not self.relays and (design.exchange not in EXCHANGES
-                                or (design.exchange == "measurements" and not self.offline_tables)):
-            raise InputError(f"exchange must be 'predictions', or 'measurements' in a rule of offline tables, got "
-                             f"{design.exchange!r} in mode {mode}")
+        self.check_exchange(design)
         rob = float(design.robustness)
         if not (0.0 <= rob <= ROBUSTNESS_MAX) or (rob and not self.offline_tables):
             raise InputError(f"robustness must lie in [0, {ROBUSTNESS_MAX:g}] in a rule of offline tables (0 in "
@@ -309,11 +286,16 @@ class GainRule:
             raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in a rule of offline tables (0 in the "
                              f"others), got {design.bank!r} in mode {mode}")
 
+    def check_exchange(self, design) -> None:
+        """Refuse a design whose packets carry what this rule does not exchange (``exchange``, ``gate``): its
+        neighbours' predictions, and with offline tables their measurements too (:data:`EXCHANGES`)."""
+        if design.exchange not in EXCHANGES or (design.exchange == "measurements" and not self.offline_tables):
+            raise InputError(f"exchange must be 'predictions', or 'measurements' in a rule of offline tables, got "
+                             f"{design.exchange!r} in mode {self.name!r}")
+
     def design_fields(self, options) -> dict[str, Any]:
         """The fields of a :class:`designer.design.ConsensusDesign` that follow from this rule and ``options``:
         what a packet carries (``exchange``), the links' margin (``robustness``) and the bank's axes (``bank``)."""
-        if self.relays:
-            return {"exchange": RELAY, "robustness": 0.0, "bank": 0}
         if not self.offline_tables:
             return {"exchange": options.exchange or "predictions", "robustness": 0.0, "bank": 0}
         return {"exchange": options.exchange or EXCHANGES[0],

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from designer.rule import GainRule
+from designer.validation import InputError
 
 __all__ = ["RULE", "Relay"]
 
@@ -16,6 +17,28 @@ class Relay(GainRule):
     summary = ("every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
                "ball with one gain minimising the expected covariance over the attacks")
     relays = True
+    routing = "tree"  # which copy of a relayed measurement a node takes (design.ROUTINGS): its tree parent's
+
+    def check_options(self, options):
+        if options.exchange is not None:
+            raise InputError(f"exchange is chosen by a rule of offline tables; mode {self.name!r} relays the "
+                             "measurements (its exchange is 'relay'): do not give --exchange")
+        super().check_options(options)
+
+    def check_exchange(self, design):
+        from .design import RELAY
+
+        if design.gate:
+            raise InputError(f"mode {self.name!r} does not take a gate (gate must be 0): its gain counts every "
+                             "falsified measurement that arrives, from the falsification's statistics")
+        if design.exchange != RELAY:
+            raise InputError(f"exchange must be {RELAY!r} in mode {self.name!r} (it relays the measurements), got "
+                             f"{design.exchange!r}")
+
+    def design_fields(self, options):
+        from .design import RELAY
+
+        return {"exchange": RELAY, "robustness": 0.0, "bank": 0}
 
     def rounds(self, network, rounds: int | None = None) -> int:
         """The hops L of its design on ``network``: ``rounds`` when given, else :func:`rules.relay.design.default_hops`

@@ -39,11 +39,16 @@ from scipy.sparse.csgraph import shortest_path
 
 from designer.bounds import sqrtm_psd
 from designer.network import SensorNetwork
-from designer.rule import ROUTINGS  # which copy a node takes (:class:`Routes`): its tree parent's or the first
 from designer.stationary import StationaryCertificate
 from designer.validation import InputError, check_int
 
-__all__ = ["Routes", "relay_routes", "ROUTINGS", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
+#: Which copy of a relayed measurement a node takes (:class:`Routes`): its shortest-path tree parent's, or the first
+#: to arrive from any neighbour (the flood rule's).
+ROUTINGS = ("tree", "flood")
+#: What a packet of a rule that relays carries (``ConsensusDesign.exchange``): the measurements relayed.
+RELAY = "relay"
+
+__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
            "pair_sum", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
 
