@@ -72,7 +72,7 @@ __all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consen
            "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
-           "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "tuned_items", "Exchange"]
+           "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "weighted_items", "Exchange"]
 
 
 # --------------------------------------------------------------------------- channels and their attacks
@@ -650,11 +650,11 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
     # per run (1 item when every run has the same network)
     w_phi = per_run(lambda net: 3.0 * (1.0 - net.dos_prob[ex.receiver, ex.sender]), network, nets)
     w_xi = per_run(lambda net: 3.0 * design.delta**2 * (net.fdi_prob * net.adjacency).sum(axis=1), network, nets)
-    tuned = not replay and filt.weighted
-    if tuned:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
+    weighted = not replay and filt.weighted
+    if weighted:  # the weighted (27): one group slot per incoming channel (padded to d_max), then the FDI group
         slots = _channel_slots(ex, d_max)
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
-        W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last tuned update, by slot
+        W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last weighted update, by slot
 
     out = result_arrays(runs, steps, n, nx, nz)
     del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
@@ -685,13 +685,13 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         each = slice(None) if nets is None else at  # the runs' channel statistics
         neigh = ex.sum(w_phi[each][:, :, None, None] * Pp[:, ex.sender]) + w_xi[each][..., None, None] * eye
 
-        def extra(grp):  # a group's items beyond the update's own: a replayed schedule's gains, the tuned weights'
+        def extra(grp):  # a group's items beyond the update's own: a replayed schedule's gains, the weighted weights'
             ns = grp.nodes
             if replay:
                 return dict(Kr=np.broadcast_to(gains[0][k, ns, :, :grp.dim], (a, ns.size, nx, grp.dim)),
                             Cr=np.broadcast_to(gains[1][k, ns], (a, ns.size, nx, nx)))
-            if tuned:
-                return tuned_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design)
+            if weighted:
+                return weighted_items(slots[ns], recv, Pp, ex.sender, q_chan[each], W[act[:, None], ns], design)
             return {}
 
         xn, Pn, Kn, Cn, margin29, beta, uvalid, failed, reasons, tuned_weights = update_nodes(
@@ -753,7 +753,7 @@ def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:
     return np.where(j[None] < deg[:, None], first[:, None] + j[None], -1)
 
 
-def tuned_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
+def weighted_items(slots, recv, Pp, sender, q_chan, previous, design: ConsensusDesign) -> dict:
     """The tuned rule's items for nodes with channel ``slots`` (g, d_max), all runs (a; ``q_chan`` (a or 1, E) the
     channels' probabilities that a received packet is falsified): the groups of the weighted
     (27) from the received neighbours' Φ_pred (:func:`designer.tuning.neighbour_group_stack`), which are present,

@@ -36,7 +36,7 @@ from designer.validation import InputError, check_int
 
 from .channels import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
-                              tuned_items, update_nodes)
+                              weighted_items, update_nodes)
 from .node import NodeInputs, NodeNetwork
 
 __all__ = ["Packet", "ConsensusNode", "ConsensusNetwork"]
@@ -142,7 +142,7 @@ class ConsensusNode:
         def extra(grp):
             if not self._rule.weighted:
                 return {}
-            return tuned_items(self._slots, keep, Pn, np.arange(d), self._q, self.weights[None, None], design)
+            return weighted_items(self._slots, keep, Pn, np.arange(d), self._q, self.weights[None, None], design)
 
         xn, P, K, C, m29, beta, uvalid, failed, reasons, weights = update_nodes(
             m, design, self._group, self._rule.update, self.k, xp, Pp, np.array([[pvalid]]), s, innovation, neigh,
