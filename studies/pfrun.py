@@ -242,7 +242,7 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
         return None
     res = fused.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
                             log_clean=log_clean, angles=angles, threads=threads)
-    return res.mean, res.collapsed
+    return res.detail.mean, res.detail.collapsed
 
 
 def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator], *, particles: int,
@@ -271,4 +271,4 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
         return None
     res = fused.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
                              threads=threads)
-    return res.mean, res.collapsed
+    return res.detail.mean, res.detail.collapsed
