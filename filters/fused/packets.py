@@ -97,8 +97,8 @@ def sir_packets(
     Returns
     -------
     FilterResult
-        The fusion centre's runs (:func:`filters.result.centralized_result`; ``cov`` None unless
-        ``covariance``), ``detail`` the :class:`filters.fused.FastSIRResult` (means, covariances, ESS,
+        The fusion centre's runs (:func:`filters.result.centralized_result`: ``P`` messages per step, its
+        packets; ``cov`` None unless ``covariance``), ``detail`` the :class:`filters.fused.FastSIRResult` (means, covariances, ESS,
         log marginal likelihood, the steps resampled and collapsed).
     """
     model = check_model(model)
@@ -110,7 +110,7 @@ def sir_packets(
     lik, ne = packet_lik(model, wrap_set(angles, model), bool(np.any(att > -np.inf)))
     kernels = (propagation(model), 0, lik, sens.shape[1], ne, weights(model))
     return run_all(DATA, kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr,
-                   covariance, threads, model.n_sensors)
+                   covariance, threads, sens.shape[1])
 
 
 def packets_loglik(model: Model, x, k1: int, sensors, y, *, attack=None, log_clean: float = 0.0,
