@@ -100,7 +100,7 @@ def table1_fast(sc, d: dict, particles: int, workers: int) -> dict:
         t = time.perf_counter()
         gens = spawn_generators(seed, R)
         x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-        res = fused.sir_packets(m, x0, gens, sens, y, angles=angles, threads=workers, **kw)
+        res = fused.sir_packets(m, x0, gens, sens, y, angles=angles, threads=workers, **kw).detail
         out[name] = dict(rmse_p=rmse(res.mean, d["x"], m.position_index),
                          rmse_v=rmse(res.mean, d["x"], m.velocity_index),
                          time_s=time.perf_counter() - t, collapses=int(res.collapsed.sum()))
@@ -206,7 +206,7 @@ def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> t
     gens = spawn_generators(7, R)
     t = time.perf_counter()
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
-    res = fused.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers)
+    res = fused.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers).detail
     return time.perf_counter() - t, rmse(res.mean, d["x"], m.position_index)
 
 

@@ -18,7 +18,14 @@ Every batched filter returns it; what is its family's alone is the one field ``d
   :func:`filters.particle.run_sir` — one estimate, so ``nodes = 1`` (the fusion centre,
   :func:`centralized_result`), ``cov`` the filter's covariance (the particles' weighted one); ``detail`` a
   :class:`filters.ekf.EKFResult` (x, P) or a :class:`filters.particle.SIRResult` (ESS, log-likelihood, the
-  steps resampled, collapsed or skipped).
+  steps resampled, collapsed or skipped);
+* the fused particle filters, :func:`filters.fused.sir_packets`, :func:`~filters.fused.sir_binary` and
+  :func:`~filters.fused.sir_edpf` — a fusion centre as well, but ``cov`` is None unless they were asked for it
+  (``covariance=True``: the kernels compute no covariance by default, and none is made up); ``valid`` then says
+  where the estimate is finite; ``detail`` a :class:`filters.fused.FastSIRResult` (their own arrays).
+
+``cov`` is None only where a family computes no covariance: a consumer that needs one (a bound's verdict, a
+trace, the energy ratio) checks for it; :attr:`FilterResult.trace` is then None.
 
 A filter takes what its result must say and its family cannot know itself (e.g. the runtime of a consensus
 filter run for the local or centralized EKF, the uplinks of a fusion centre) as parameters.
@@ -60,7 +67,8 @@ class FilterResult(NamedTuple):
     ``x`` (runs, steps + 1, nodes, n_x): every node's estimate, ``x[:, 0]`` the initial one (a
     centralized filter has one node: the fusion centre).  ``cov`` (runs, steps + 1, nodes, n_x, n_x):
     the covariance the filter believes (``cov_kind == "covariance"``) or the bound it certifies
-    (``"bound"``), trusted where ``valid`` (runs, steps + 1, nodes).  ``violations``: per run, the list
+    (``"bound"``), trusted where ``valid`` (runs, steps + 1, nodes); None for a filter run without one (the
+    fused particle filters by default; ``valid`` then marks the finite estimates).  ``violations``: per run, the list
     of ``{node, step, condition, margin[, reason]}`` (design conditions of the consensus filters, and
     ``'diverged'`` where the run stopped).  ``messages`` (runs, steps): transmissions attempted per
     step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
@@ -70,7 +78,7 @@ class FilterResult(NamedTuple):
     """
 
     x: np.ndarray
-    cov: np.ndarray
+    cov: np.ndarray | None
     cov_kind: str
     valid: np.ndarray
     violations: list
@@ -85,7 +93,7 @@ class FilterResult(NamedTuple):
         if self.x.ndim != 4:
             raise InputError(f"x must have shape (runs, steps + 1, nodes, n_x), got {self.x.shape}")
         runs, k1, nodes, nx = self.x.shape
-        if self.cov.shape != (runs, k1, nodes, nx, nx):
+        if self.cov is not None and self.cov.shape != (runs, k1, nodes, nx, nx):
             raise InputError(f"cov must have shape {(runs, k1, nodes, nx, nx)}, got {self.cov.shape}")
         if self.cov_kind not in COV_KINDS:
             raise InputError(f"cov_kind must be one of {', '.join(COV_KINDS)}, got {self.cov_kind!r}")
@@ -114,9 +122,10 @@ class FilterResult(NamedTuple):
         return self.x.shape[2]
 
     @property
-    def trace(self) -> np.ndarray:
-        """(runs, steps + 1, nodes): tr of ``cov`` (the bound's or the covariance's, as ``cov_kind`` says)."""
-        return np.trace(self.cov, axis1=-2, axis2=-1)
+    def trace(self) -> np.ndarray | None:
+        """(runs, steps + 1, nodes): tr of ``cov`` (the bound's or the covariance's, as ``cov_kind`` says); None
+        without ``cov``."""
+        return None if self.cov is None else np.trace(self.cov, axis1=-2, axis2=-1)
 
     @property
     def diverged(self) -> list:
@@ -132,7 +141,7 @@ class FilterResult(NamedTuple):
         """The runs ``r`` (an index, indices or a slice) as a result of their own."""
         idx = np.atleast_1d(np.arange(self.runs)[r])
         pick = (lambda a: None if a is None else a[idx])  # noqa: E731
-        return self._replace(x=self.x[idx], cov=self.cov[idx], valid=self.valid[idx],
+        return self._replace(x=self.x[idx], cov=pick(self.cov), valid=self.valid[idx],
                              violations=[self.violations[i] for i in idx], messages=self.messages[idx],
                              delivered=pick(self.delivered), seconds=pick(self.seconds))
 
@@ -152,12 +161,14 @@ def nonfinite_violations(x: np.ndarray) -> list:
 
 
 
-def centralized_result(x: np.ndarray, cov: np.ndarray, uplinks: int, detail: Any = None) -> FilterResult:
-    """A fusion centre's runs, ``x`` (runs, steps + 1, n_x) and its covariance ``cov`` (runs, steps + 1, n_x, n_x),
-    as a :class:`FilterResult` of one node: ``uplinks`` messages per step (one per sensor), diverged at the first
-    step whose estimate is not finite, runtime ``centralized``."""
+def centralized_result(x: np.ndarray, cov: np.ndarray | None, uplinks: int, detail: Any = None) -> FilterResult:
+    """A fusion centre's runs, ``x`` (runs, steps + 1, n_x) and its covariance ``cov`` (runs, steps + 1, n_x, n_x)
+    or None (a filter run without one), as a :class:`FilterResult` of one node: ``uplinks`` messages per step (one
+    per sensor), valid where the covariance (without one: the estimate) is finite, diverged at the first step whose
+    estimate is not finite, runtime ``centralized``."""
     runs, k1 = x.shape[:2]
-    return FilterResult(x[:, :, None], cov[:, :, None], "covariance", np.isfinite(cov).all(axis=(-2, -1))[:, :, None],
+    valid = np.isfinite(x).all(axis=-1) if cov is None else np.isfinite(cov).all(axis=(-2, -1))
+    return FilterResult(x[:, :, None], None if cov is None else cov[:, :, None], "covariance", valid[:, :, None],
                         nonfinite_violations(x), constant_messages(runs, k1 - 1, uplinks), "centralized",
                         detail=detail).check()
 

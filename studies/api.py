@@ -487,17 +487,18 @@ class FilterRun:
     ``scheduled``, ``global`` (an oracle), ``centralized``); ``x_hat`` (K + 1, nodes, n_x): every node's estimate
     (one node, the fusion centre, for a centralized filter), ``x_hat[0]`` the prior mean; ``cov`` (K + 1, nodes,
     n_x, n_x): the bound ``Phi`` the filter certifies (``cov_kind == 'bound'``) or the covariance it believes
-    (``'covariance'``), trusted where ``valid``; ``violations``: the design conditions broken (node, step,
-    condition) and ``'diverged'``; ``verdict``: a designed filter's verdict of its bound on this log (``certified``,
-    ``vacuous``, ``not steady``, ``infeasible``; None for the others); ``messages`` (K,): transmissions per step;
-    ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain rule and options of the design it ran with.
+    (``'covariance'``), trusted where ``valid``, None for a filter that computes none; ``violations``: the design
+    conditions broken (node, step, condition) and ``'diverged'``; ``verdict``: a designed filter's verdict of its
+    bound on this log (``certified``, ``vacuous``, ``not steady``, ``infeasible``; None for the others);
+    ``messages`` (K,): transmissions per step; ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain
+    rule and options of the design it ran with.
     """
 
     scenario: Scenario
     name: str
     runtime: str
     x_hat: np.ndarray
-    cov: np.ndarray
+    cov: np.ndarray | None
     cov_kind: str
     valid: np.ndarray
     violations: list
@@ -537,9 +538,9 @@ class FilterRun:
         m = self.scenario.model
         idx = list(m.position_index) or list(range(m.n_x))
         rmse = np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean(axis=0))
+        trace = np.nan if self.cov is None else np.trace(self.cov[1:], axis1=-2, axis2=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.where(self.valid[1:], (e[1:] ** 2).sum(-1) / np.trace(self.cov[1:], axis1=-2, axis2=-1),
-                             np.nan)
+            ratio = np.where(self.valid[1:], (e[1:] ** 2).sum(-1) / trace, np.nan)
             energy = np.nanmean(ratio, axis=0) if np.any(np.isfinite(ratio)) else np.full(ratio.shape[1], np.nan)
         return {"rmse": rmse, "energy": energy}
 
@@ -649,8 +650,9 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         if entry.designed:
             ok = not any(v["condition"] in HARD_CONDITIONS for v in res.violations[0])
             verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0]
-        done = FilterRun(sc, entry.name, res.runtime, res.x[0], res.cov[0], res.cov_kind, res.valid[0],
-                         res.violations[0], verdict, res.messages[0], log.x, log.source, design_meta)
+        done = FilterRun(sc, entry.name, res.runtime, res.x[0], None if res.cov is None else res.cov[0],
+                         res.cov_kind, res.valid[0], res.violations[0], verdict, res.messages[0], log.x, log.source,
+                         design_meta)
         if out is not None:
             done.save(out)
     return done

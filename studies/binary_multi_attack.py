@@ -46,8 +46,9 @@ from designer.attacks import BinarySensorChannel
 from designer.validation import InputError, check_int
 from filters.attacks import binary_sensor_channel
 
-from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_binary, run_configurations,
-                    score_configurations, study_threads)
+from .filter_registry import FilterRegistry
+from .pfrun import (THREADS_AUTO, Chunk, check_study_options, particle_entry, results_block, run_binary,
+                    run_registry, score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
@@ -56,7 +57,7 @@ from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE"]
+__all__ = ["STUDY", "FILTERS", "PAPER_TABLE2", "SWEEP", "TABLE2_PARTICLES", "CHUNK_SIZE", "registry"]
 
 SCENARIO = "target-binary-energy"
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
@@ -155,20 +156,39 @@ def _compile(ref: ScenarioRef, seed: int, engine: str, filters: Sequence[_Filter
     _warm_up(sc, data0, filters, engine)
 
 
+def _run(f: _Filter, sc, engine: str, threads: int, chunk: Chunk, js, design):
+    """Configuration ``f``'s filter on the chunk's runs (a registry entry's ``run``): its FilterResult."""
+    return run_binary(sc.model, chunk.data[f.data_probs], chunk.rngs(f.stream), particles=f.particles, engine=engine,
+                      threads=threads, channel=_with(sc.channel, f.filter_probs))
+
+
+def _describe(f: _Filter) -> str:
+    def probs(p: tuple) -> str:
+        return ", ".join(f"{k} {v:g}" for k, v in zip(SWEEP_PARAMS, p))
+
+    return (f"bootstrap particle filter, M = {f.particles}, on the binary signals of a channel with "
+            f"{probs(f.data_probs)}; its likelihood assuming {probs(f.filter_probs)}")
+
+
+def registry(sc, filters: Sequence[_Filter], *, engine: str, threads: int) -> FilterRegistry:
+    """The study's filters on scenario ``sc``, one entry per configuration of ``filters`` (in their order)."""
+    return FilterRegistry(particle_entry(f.name, _describe(f), functools.partial(_run, f, sc, engine, threads),
+                                         sc.model.n_sensors) for f in filters)
+
+
 def _runs(run_ids, seeds, *, ref: ScenarioRef, engine: str, threads: int, filters: Sequence[_Filter],
           n_streams: int) -> dict:
     """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
 
-    Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
+    The filters are the entries of :func:`registry`, built here from the configurations ``filters`` (what the
+    task sends to a worker).  Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
     ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
     wall time for that filter, compilation excluded).
     """
     sc = ref.build()  # once per process: the fused kernels are cached per Model object
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, engine)
-    return run_configurations(truth, filters, streams, lambda f, rngs: run_binary(
-        sc.model, data[f.data_probs], rngs, particles=f.particles, engine=engine, threads=threads,
-        channel=_with(sc.channel, f.filter_probs)), run_ids)
+    return run_registry(Chunk(truth, streams, data, run_ids), registry(sc, filters, engine=engine, threads=threads))
 
 
 def _configurations(default: tuple, sweep: Sequence[float], table2_particles: Sequence[int],

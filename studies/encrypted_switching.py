@@ -224,7 +224,7 @@ def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, 
     gens = [np.random.default_rng(fs) for fs in filter_ss]
     x0 = np.stack([model.prior.sample(g, M) for g in gens])  # the first draws of each run's stream, as run_sir
     res = sir_edpf(model, x0, gens, y, likelihood=kind, codec=codec if kind == "interval" else None,
-                   resampler="systematic", ess_threshold=ESS_THRESHOLD, threads=config.threads)
+                   resampler="systematic", ess_threshold=ESS_THRESHOLD, threads=config.threads).detail
     return res.mean, res.collapsed, res.resampled, None
 
 

@@ -166,12 +166,13 @@ def filter_report(run, directory: Path) -> None:
     m = run.scenario.model
     K1, nodes, n_x = run.x_hat.shape
     key = "Phi" if run.cov_kind == "bound" else "P"
-    arrays = {"x_hat": run.x_hat, key: run.cov, "valid": run.valid, "messages": run.messages,
-              "state_names": np.array(m.state_names)}
+    arrays = {"x_hat": run.x_hat, **({} if run.cov is None else {key: run.cov}), "valid": run.valid,
+              "messages": run.messages, "state_names": np.array(m.state_names)}
     if run.truth is not None:
         arrays["x"] = run.truth
     write_npz(directory / "estimates.npz", **arrays)
-    trace = np.where(run.valid, np.trace(run.cov, axis1=-2, axis2=-1), np.nan)
+    trace = np.full(run.valid.shape, np.nan) if run.cov is None else \
+        np.where(run.valid, np.trace(run.cov, axis1=-2, axis2=-1), np.nan)  # no covariance: no trace
 
     def csv(fh):
         head = ["step", "node", *m.state_names, f"trace_{key}"]

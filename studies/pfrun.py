@@ -12,11 +12,11 @@
   one chunk of the Monte Carlo runner (``chunk_size`` consecutive runs, the first
   run's stream).
 
-Both return ``(mean, collapsed)``: weighted means (runs, K + 1, n_x) and the
-(runs, K) collapse flags.  ``warm_up=True`` only compiles the fast engine's kernels
-(a few seconds per model at its first run on a machine, then loaded from the on-disk
-cache) on a one-step problem and returns None, so that timings measure filtering, not
-compilation.
+Both return the fusion centre's :class:`filters.result.FilterResult`: the weighted means
+(runs, K + 1, n_x) as its estimate, the (runs, K) collapse flags in ``detail.collapsed``.
+``warm_up=True`` only compiles the fast engine's kernels (a few seconds per model at its
+first run on a machine, then loaded from the on-disk cache) on a one-step problem and
+returns None, so that timings measure filtering, not compilation.
 
 The studies run these inside a :mod:`studies.runner` task, one chunk of runs at a
 time; ``threads`` is the number of threads of the fused engine within a chunk (worker
@@ -26,14 +26,21 @@ tasks rebuild their scenario from a :class:`studies.scenarios.ScenarioRef` (buil
 process and reference): a worker process forked after the parent compiled
 (``Backend("processes")``) reuses the parent's kernels, and any other worker loads them
 from the disk cache once per model, not once per chunk.
+
+A study's filters are the entries of a :class:`studies.filter_registry.FilterRegistry`, as the comparison's
+(:func:`particle_entry`: a fusion centre's particle filter whose ``run(chunk, js, design)`` returns its
+:class:`filters.result.FilterResult` on a :class:`Chunk`); the task sends the study's picklable configurations
+to the worker, which builds the registry from them (an entry holds the scenario's model, which does not pickle:
+CasADi), and :func:`run_registry` runs every entry on the chunk.
 :func:`score` turns a filter's concatenated runs into its metrics
 (:func:`studies.results.error_metrics`, time, collapses); :func:`check_study_options`
 checks the options the particle-filter studies share.
 """
 from __future__ import annotations
 
+import functools
 import time
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -44,12 +51,15 @@ from designer.noise import Noise
 from designer.validation import InputError, check_int
 from filters.binary import binary_coefficients, binary_loglik
 from filters.particle import run_sir
+from filters.result import FilterResult
 from filters.rrp import deception_terms, packet_loglik
 
+from .filter_registry import FilterEntry, FilterRegistry
 from .pipeline import naming_filter
 from .results import error_metrics
 
-__all__ = ["ENGINES", "run_packets", "run_binary", "run_configurations", "score", "score_configurations",
+__all__ = ["ENGINES", "run_packets", "run_binary", "score", "score_configurations",
+           "Chunk", "particle_entry", "run_registry",
            "results_block", "THREADS_AUTO", "check_threads", "study_threads", "check_engine", "check_study_options",
            "position_velocity"]
 
@@ -124,28 +134,57 @@ def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: n
     return met
 
 
-def run_configurations(truth: np.ndarray, filters: Sequence, streams: Sequence, run: Callable,
-                       run_ids: Sequence[int] | None = None) -> dict:
-    """The task's arrays of a seed 000 / 002 study: every filter configuration on a chunk's runs.
+class Chunk(NamedTuple):
+    """A particle study's input on a chunk of Monte Carlo runs: what its registry's entries run on (as the
+    comparison's run on a :class:`studies.filter_registry.Batch`).
 
-    ``truth`` (R, K + 1, n_x); configuration ``f`` (with a ``stream`` index) filters with
-    the Generators of its stream of every run (``streams[r][f.stream]``):
-    ``run(f, rngs) -> (mean (R, K + 1, n_x), collapsed (R, K))``.  Returns ``truth`` and,
-    along a filter axis in ``filters``' order, ``mean``, ``collapsed`` and ``seconds``
-    (each run's share of the filter's wall time).  A filter whose numbers leave finite ones fails the
-    chunk naming the filter, the study's run (``run_ids``: the chunk's runs) and the step.
+    ``truth`` (R, K + 1, n_x); ``streams[r][c]``: run ``r``'s SeedSequence of the ``c``-th configuration's
+    stream; ``data``: the received data, keyed as the study keys it; ``run_ids``: the chunk's runs in the study.
     """
+
+    truth: np.ndarray
+    streams: Sequence
+    data: Mapping
+    run_ids: Sequence[int] | None = None
+
+    def rngs(self, stream: int) -> list[np.random.Generator]:
+        """Each run's Generator of stream ``stream`` (fresh at every call)."""
+        return [np.random.default_rng(s[stream]) for s in self.streams]
+
+
+def _per_step(n: int, network, iterations: int) -> int:
+    return n
+
+
+def particle_entry(name: str, description: str, run: Callable, messages: int) -> FilterEntry:
+    """A particle study's filter as a registry entry: a fusion centre's particle filter (family ``particle``,
+    runtime ``centralized``), ``run(chunk, js, design)`` its :class:`filters.result.FilterResult` on the runs of a
+    :class:`Chunk` (one setting: ``js`` and ``design`` unused), ``messages`` the packets it receives per step.
+    The studies build it in the worker from their configurations (``run`` a ``functools.partial`` of a
+    module-level function), as the worker builds the scenario."""
+    return FilterEntry(name, "particle", "centralized", description, run, functools.partial(_per_step, int(messages)),
+                       particles=True)
+
+
+def run_registry(chunk: Chunk, registry: FilterRegistry) -> dict:
+    """The task's arrays of a seed 000 / 002 study: every entry of ``registry`` on the chunk's runs.
+
+    Returns ``truth`` and, along a filter axis in the registry's order, ``mean`` (the fusion centre's estimate),
+    ``collapsed`` (``detail.collapsed``) and ``seconds`` (each run's share of the filter's wall time).  A filter
+    whose numbers leave finite ones fails the chunk naming the filter, the study's run and the step.
+    """
+    truth = chunk.truth
     R, K1, n_x = truth.shape
-    F = len(filters)
+    F = len(registry)
     mean = np.empty((R, F, K1, n_x))
     collapsed = np.empty((R, F, K1 - 1), dtype=bool)
     seconds = np.empty((R, F))
-    for j, f in enumerate(filters):
-        rngs = [np.random.default_rng(s[f.stream]) for s in streams]
+    for j, entry in enumerate(registry):
         t0 = time.perf_counter()
-        with naming_filter(f.name, run_ids):
-            mean[:, j], collapsed[:, j] = run(f, rngs)
+        with naming_filter(entry.name, chunk.run_ids):
+            res = entry.run(chunk, (0,), None)
         seconds[:, j] = (time.perf_counter() - t0) / R
+        mean[:, j], collapsed[:, j] = res.x[:, :, 0], res.detail.collapsed
     return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
 
 
@@ -214,8 +253,10 @@ def _prior_particles(model: Model, rngs: Sequence[np.random.Generator], particle
 
 def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence[np.random.Generator], *,
                 particles: int, attack_prob: float = 0.0, signal: Noise | None = None, angles: Sequence[int] = (),
-                engine: str = "fast", threads: int = 1, linear_weights: bool = False, warm_up: bool = False):
-    """Filters of seed 000: ``y`` (runs, K, P, n_y) received packets, packet p at step k from ``sensors[k, p]``.
+                engine: str = "fast", threads: int = 1, linear_weights: bool = False,
+                warm_up: bool = False) -> FilterResult | None:
+    """Filters of seed 000: ``y`` (runs, K, P, n_y) received packets, packet p at step k from ``sensors[k, p]``;
+    the fusion centre's :class:`filters.result.FilterResult` (``P`` messages per step), None with ``warm_up``.
 
     ``linear_weights`` (emulated linear-domain weights) exists only in the NumPy engine.
     """
@@ -225,9 +266,8 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
         if warm_up:
             return None
         ll = packet_loglik(model, sensors, attack_prob=attack_prob, signal=signal, angles=angles)
-        res = run_sir(model, y.reshape(R, K, P * ny), rngs[0], particles=particles, runs=R, loglik=ll,
-                      linear_weights=linear_weights).detail
-        return res.mean, res.collapsed
+        return run_sir(model, y.reshape(R, K, P * ny), rngs[0], particles=particles, runs=R, loglik=ll,
+                       linear_weights=linear_weights, uplinks=P)
     if linear_weights:
         raise InputError("linear_weights needs engine='numpy' (the fused kernels keep log weights only)")
     from filters import fused
@@ -240,14 +280,15 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
         fused.sir_packets(model, model.prior.sample(g, (1, 2)), [g], sensors[k:k + 1], y[:1, k:k + 1],
                           attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
-    res = fused.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
-                            log_clean=log_clean, angles=angles, threads=threads)
-    return res.mean, res.collapsed
+    return fused.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
+                             log_clean=log_clean, angles=angles, threads=threads)
 
 
 def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator], *, particles: int,
-               channel: BinarySensorChannel, engine: str = "fast", threads: int = 1, warm_up: bool = False):
-    """Filters of seed 002: ``y`` (runs, K, S) received binary-channel signals.
+               channel: BinarySensorChannel, engine: str = "fast", threads: int = 1,
+               warm_up: bool = False) -> FilterResult | None:
+    """Filters of seed 002: ``y`` (runs, K, S) received binary-channel signals; the fusion centre's
+    :class:`filters.result.FilterResult` (``S`` messages per step), None with ``warm_up``.
 
     ``channel`` is the channel the filter's likelihood assumes (its attack probabilities
     may differ from those that produced ``y``).
@@ -259,8 +300,7 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
     if engine == "numpy":
         if warm_up:
             return None
-        res = run_sir(model, y, rngs[0], particles=particles, runs=y.shape[0], loglik=binary_loglik(model, **kw)).detail
-        return res.mean, res.collapsed
+        return run_sir(model, y, rngs[0], particles=particles, runs=y.shape[0], loglik=binary_loglik(model, **kw))
     from filters import fused
 
     A, B = binary_coefficients(y, **kw)
@@ -269,6 +309,5 @@ def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator],
         g = np.random.default_rng(0)
         fused.sir_binary(model, model.prior.sample(g, (1, 2)), [g], A[:1, :1], B[:1, :1], threshold=threshold)
         return None
-    res = fused.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
-                             threads=threads)
-    return res.mean, res.collapsed
+    return fused.sir_binary(model, _prior_particles(model, rngs, particles), rngs, A, B, threshold=threshold,
+                            threads=threads)

@@ -47,8 +47,9 @@ from designer.validation import InputError
 from filters.attacks import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
 
-from .pfrun import (THREADS_AUTO, check_study_options, results_block, run_configurations, run_packets,
-                    score_configurations, study_threads)
+from .filter_registry import FilterRegistry
+from .pfrun import (THREADS_AUTO, Chunk, check_study_options, particle_entry, results_block, run_packets,
+                    run_registry, score_configurations, study_threads)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import curves_figure, filter_colours, trajectory_figure
 from .results import cv_velocity_at_position_rmse, markdown_table, rmse_with_ci
@@ -56,7 +57,7 @@ from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE", "LINEAR"]
+__all__ = ["STUDY", "FILTERS", "PAPER_TABLE1", "ETA_SWEEP", "CHUNK_SIZE", "LINEAR", "registry"]
 
 SCENARIO = "target-range-bearing"
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (part of the study, not of the backend)
@@ -171,22 +172,42 @@ def _compile(ref: ScenarioRef, seed: int, particles: int, engine: str, filters: 
     _warm_up(sc, data0, filters, particles, engine)
 
 
+def _run(f: _Filter, model, st: dict, particles: int, engine: str, threads: int, chunk: Chunk, js, design):
+    """Configuration ``f``'s filter on the chunk's runs (a registry entry's ``run``): its FilterResult."""
+    return run_packets(model, chunk.data[f.packets, f.data_prob], st["sensors"][f.packets], chunk.rngs(f.stream),
+                       particles=particles, attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"],
+                       engine="numpy" if f.linear else engine, threads=threads, linear_weights=f.linear)
+
+
+def _describe(f: _Filter) -> str:
+    what = "the Round-Robin packet" if f.packets == "rr" else "every sensor's packet"
+    data = "attack-free" if f.data_prob is None else f"deceived with probability {f.data_prob:g}"
+    return (f"bootstrap particle filter on {what} ({data}), its likelihood assuming deception probability "
+            f"{f.filter_prob:g}" + (", weights in linear double precision" if f.linear else ""))
+
+
+def registry(sc, filters: Sequence[_Filter], *, particles: int, engine: str, threads: int) -> FilterRegistry:
+    """The study's filters on scenario ``sc``, one entry per configuration of ``filters`` (in their order)."""
+    st = _setup(sc)
+    return FilterRegistry(particle_entry(f.name, _describe(f), functools.partial(_run, f, sc.model, st, particles,
+                                                                                 engine, threads),
+                                         1 if f.packets == "rr" else sc.model.n_sensors) for f in filters)
+
+
 def _runs(run_ids, seeds, *, ref: ScenarioRef, particles: int, engine: str, threads: int,
           filters: Sequence[_Filter], n_streams: int) -> dict:
     """Task of the runner: simulate the runs ``run_ids`` from their seeds and run every filter on them.
 
-    Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
+    The filters are the entries of :func:`registry`, built here from the configurations ``filters`` (what the
+    task sends to a worker).  Returns per run: ``truth`` (K + 1, n_x), and per filter (in ``filters``' order)
     ``mean`` (K + 1, n_x), ``collapsed`` (K,) and ``seconds`` (its share of the chunk's
     wall time for that filter, compilation excluded).
     """
     sc = ref.build()  # once per process: the fused kernels are cached per Model object
-    st = _setup(sc)
     truth, data, streams = _data(sc, seeds, filters, n_streams)
     _warm_up(sc, data, filters, particles, engine)
-    return run_configurations(truth, filters, streams, lambda f, rngs: run_packets(
-        sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], rngs, particles=particles,
-        attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine="numpy" if f.linear else engine,
-        threads=threads, linear_weights=f.linear), run_ids)
+    return run_registry(Chunk(truth, streams, data, run_ids),
+                        registry(sc, filters, particles=particles, engine=engine, threads=threads))
 
 
 def _configurations(eta: float, sweep: Sequence[float], linear_weights_row: bool) -> tuple[list, dict, list]:

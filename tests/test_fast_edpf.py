@@ -59,7 +59,7 @@ def _both(model, ll, kw, y, seed, M=150, ess=0.5):
                   ess_threshold=ess).detail
     g = np.random.default_rng(seed)
     x0 = model.prior.sample(g, (1, M))  # run_sir's first draws
-    return ref, sir_edpf(model, x0, [g], y, ess_threshold=ess, **kw)
+    return ref, sir_edpf(model, x0, [g], y, ess_threshold=ess, **kw).detail
 
 
 def _assert_same(ref, res):
@@ -153,7 +153,7 @@ def test_a_runs_result_depends_only_on_its_generator(sw):
     def go(idx, workers):
         gens = [np.random.default_rng(100 + r) for r in idx]
         x0 = np.stack([m.prior.sample(g, M) for g in gens])
-        return sir_edpf(m, x0, gens, ys[idx], codec=codec, ess_threshold=0.5, threads=workers)
+        return sir_edpf(m, x0, gens, ys[idx], codec=codec, ess_threshold=0.5, threads=workers).detail
 
     full = go(list(range(R)), 1)
     for idx, w in (([3], 1), ([1, 3, 4], 2), (list(range(R)), 2)):

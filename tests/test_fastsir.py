@@ -26,6 +26,7 @@ from filters.fused.primitives import exp_nonpos, wrap_angle
 from filters.fused.resampling import cumsum_to_one, inverse_cdf, systematic
 from filters.particle import run_sir
 from filters.resampling import SCHEMES
+from filters.result import FilterResult
 from filters.rrp import all_sensors_loglik, deception_terms, rrp_loglik, wrap_angles
 from studies.scenarios import SCENARIOS, load_scenario
 
@@ -348,7 +349,7 @@ def test_one_run_reproduces_run_sir_round_robin(rb, scheme, thr):
         g = np.random.default_rng(100 + r)
         x0 = m.prior.sample(g, (1, M))  # run_sir's first draw
         ours = sir_packets(m, x0, [g], rb["sched"], y, angles=[1], resampler=scheme, ess_threshold=thr,
-                           covariance=True, **kw)
+                           covariance=True, **kw).detail
         _same_as_run_sir(ours, ref, covariance=True)
         if thr < 1.0:
             assert not ours.resampled.all()
@@ -364,7 +365,7 @@ def test_one_run_reproduces_run_sir_all_sensors(rb, bit_generator):
                   loglik=all_sensors_loglik(m, attack_prob=ETA, signal=rb["box"], angles=[1])).detail
     g = np.random.Generator(bit_generator(5))
     ours = sir_packets(m, m.prior.sample(g, (1, M)), [g], np.tile(np.arange(4), (K, 1)), y, attack=att,
-                       log_clean=lc, angles=[1])
+                       log_clean=lc, angles=[1]).detail
     _same_as_run_sir(ours, ref)
     assert ours.cov is None
 
@@ -378,7 +379,7 @@ def test_one_run_reproduces_run_sir_binary(binary, scheme):
     g = np.random.default_rng(8)
     A, B = binary_coefficients(y, **binary["probs"], **binary["kw"])
     ours = sir_binary(m, m.prior.sample(g, (1, M)), [g], A, B, threshold=binary["kw"]["threshold"],
-                      resampler=scheme, ess_threshold=0.7)
+                      resampler=scheme, ess_threshold=0.7).detail
     _same_as_run_sir(ours, ref)
 
 
@@ -404,7 +405,7 @@ def test_matches_the_kalman_filter_on_a_linear_model():
     gens = spawn_generators(6, runs)
     x0 = np.stack([model.prior.sample(g, M) for g in gens])
     y = np.broadcast_to(traj.z[None, :, None, :], (runs, K, 1, 1))
-    res = sir_packets(model, x0, gens, np.zeros((K, 1), int), y, threads=2)
+    res = sir_packets(model, x0, gens, np.zeros((K, 1), int), y, threads=2).detail
     diff = res.mean[:, 1:] - np.array(means_kf)[None]
     se = diff.std(0, ddof=1) / np.sqrt(runs)
     assert np.all(np.abs(diff.mean(0)) < 5 * se + 5e-3)
@@ -419,7 +420,7 @@ def _runs(rb, seed, threads, R=None):
     x0 = np.stack([m.prior.sample(g, 200) for g in gens])
     lc, att = deception_terms(rb["rr_att"][:R], ETA, rb["box"])
     return sir_packets(m, x0, gens, rb["sched"], rb["rr_att"][:R], attack=att, log_clean=lc, angles=[1],
-                       threads=threads)
+                       threads=threads).detail
 
 
 def test_results_do_not_depend_on_threads_and_are_seeded(rb):
@@ -435,7 +436,7 @@ def test_results_do_not_depend_on_threads_and_are_seeded(rb):
     g = spawn_generators(3, rb["R"])[2]
     x0 = m.prior.sample(g, (1, 200))
     lc, att = deception_terms(rb["rr_att"][2:3], ETA, rb["box"])
-    alone = sir_packets(m, x0, [g], rb["sched"], rb["rr_att"][2:3], attack=att, log_clean=lc, angles=[1])
+    alone = sir_packets(m, x0, [g], rb["sched"], rb["rr_att"][2:3], attack=att, log_clean=lc, angles=[1]).detail
     assert np.array_equal(alone.mean[0], a.mean[2]) and alone.loglik[0] == a.loglik[2]
 
 
@@ -446,7 +447,7 @@ def test_collapse_is_recorded_and_weights_stay_finite(rb, binary):
     y[:, [5, 6, 20]] = 1e200  # finite, but every squared residual overflows: log p = -inf
     gens = spawn_generators(1, R)
     x0 = np.stack([m.prior.sample(g, 300) for g in gens])
-    res = sir_packets(m, x0, gens, rb["sched"], y, angles=[1], covariance=True)
+    res = sir_packets(m, x0, gens, rb["sched"], y, angles=[1], covariance=True).detail
     bad = np.zeros(K, bool)
     bad[[5, 6, 20]] = True
     assert np.array_equal(res.collapsed, np.broadcast_to(bad, (R, K)))
@@ -461,10 +462,32 @@ def test_collapse_is_recorded_and_weights_stay_finite(rb, binary):
     A, B = binary_coefficients(binary["y"][:1], **binary["probs"], **binary["kw"])
     A[:, 3], B[:, 3] = 0.0, 0.0
     g = np.random.default_rng(0)
-    rb2 = sir_binary(mb, mb.prior.sample(g, (1, 200)), [g], A, B, threshold=binary["kw"]["threshold"])
+    rb2 = sir_binary(mb, mb.prior.sample(g, (1, 200)), [g], A, B, threshold=binary["kw"]["threshold"]).detail
     assert rb2.collapsed[0].tolist() == [k == 3 for k in range(binary["K"])]
     assert np.all(np.isfinite(rb2.mean))
 
+
+
+def test_fused_filters_return_the_one_result_type(rb):
+    """sir_packets returns the fusion centre's FilterResult as run_sir does: the means as its one node's estimate
+    (the same array), ``cov`` None unless asked for (then the detail's covariances), its packets as messages."""
+    m, R, K = rb["m"], 2, rb["K"]
+    y = rb["ys"][:R]
+    for covariance in (False, True):
+        gens = spawn_generators(3, R)
+        x0 = np.stack([m.prior.sample(g, 100) for g in gens])
+        res = sir_packets(m, x0, gens, rb["sched"], y, angles=[1], covariance=covariance)
+        assert isinstance(res, FilterResult) and res.check() is res
+        assert (res.runs, res.steps, res.nodes, res.runtime) == (R, K, 1, "centralized")
+        assert np.shares_memory(res.x, res.detail.mean) and np.array_equal(res.x[:, :, 0], res.detail.mean)
+        assert res.valid.all() and res.violations == [[], []]
+        assert (res.messages == 1).all()  # Round-Robin: one packet a step
+        if covariance:
+            assert np.array_equal(res.cov[:, :, 0], res.detail.cov) and res.trace.shape == (R, K + 1, 1)
+        else:
+            assert res.cov is None and res.detail.cov is None and res.trace is None
+        one = res.row(1)
+        assert np.array_equal(one.x[0], res.x[1]) and (one.cov is None) == (not covariance)
 
 def test_nan_likelihood_counts_as_zero_weight():
     """A measurement function undefined (NaN) for some particles gives them zero weight, not NaN estimates."""
@@ -473,7 +496,7 @@ def test_nan_likelihood_counts_as_zero_weight():
               Gaussian.zero_mean([[1e-4]]), Gaussian([1.0], [[1.0]]))
     g = np.random.default_rng(0)
     x0 = m.prior.sample(g, (1, 400))  # about 16 % negative: sqrt is NaN there
-    res = sir_packets(m, x0, [g], np.zeros((3, 1), int), np.ones((1, 3, 1, 1)), ess_threshold=0.5)
+    res = sir_packets(m, x0, [g], np.zeros((3, 1), int), np.ones((1, 3, 1, 1)), ess_threshold=0.5).detail
     assert np.all(np.isfinite(res.mean)) and np.all(res.mean[0, 1:] > 0.5) and not res.collapsed.any()
 
 

@@ -150,7 +150,7 @@ def test_a_changed_model_gets_its_own_kernels_and_a_reader_finds_them():
     for gain in (0.9, 0.8, 0.9):
         m = _scalar_model(gain)
         g = np.random.default_rng(1)
-        res = sir_packets(m, m.prior.sample(g, (1, 50)), [g], np.zeros(5, dtype=int), np.full((1, 5, 1), 0.2))
+        res = sir_packets(m, m.prior.sample(g, (1, 50)), [g], np.zeros(5, dtype=int), np.full((1, 5, 1), 0.2)).detail
         runs.append((kernel_paths(m), res.mean))
     (a, mean_a), (b, mean_b), (c, mean_c) = runs
     assert set(a) == set(b) == {"prop", "weigh", "('lik', ('packet', (), False))"}
@@ -188,7 +188,7 @@ def test_a_fresh_process_runs_a_fused_filter_from_the_cache():
                   [Sensor("s", ca.atan2(x[1], x[0] + 3.0), Gaussian.zero_mean([[0.01]]))],
                   Gaussian.zero_mean(1e-3 * np.eye(2)), Gaussian([1.0, 0.0], 0.1 * np.eye(2)))
         g = np.random.default_rng(3)
-        res = sir_packets(m, m.prior.sample(g, (1, 64)), [g], np.zeros(8, dtype=int), np.full((1, 8, 1), 0.1))
+        res = sir_packets(m, m.prior.sample(g, (1, 64)), [g], np.zeros(8, dtype=int), np.full((1, 8, 1), 0.1)).detail
         print(repr(float(res.mean.sum())))
         print(" ".join(compiled))
         import sys

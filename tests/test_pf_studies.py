@@ -347,3 +347,45 @@ def test_a_channel_that_does_not_fit_the_model_is_an_error_of_the_model_file(tmp
     assert main(["study", "rrp-deception", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "RoundRobinDeception deception must be 2-dimensional" in err[0]
+
+
+def _packets_filter(model, sensors, attack_prob, stream, chunk, js, design):
+    """A registry entry's run: the fused packet filter on the chunk's runs."""
+    from studies.pfrun import run_packets
+
+    return run_packets(model, chunk.data["y"], sensors, chunk.rngs(stream), particles=40, attack_prob=attack_prob,
+                       signal=None if attack_prob == 0 else chunk.data["box"], angles=[1])
+
+
+def test_particle_study_filters_are_registry_entries():
+    """The particle studies' filters are FilterEntry of a FilterRegistry, as the comparison's (particle family,
+    at a fusion centre), and run_registry gathers each entry's FilterResult bit for bit: the estimate, the
+    collapses and a time per run."""
+    import functools
+
+    from designer.noise import spawn_generators
+    from filters.attacks import round_robin_schedule
+    from studies.filter_registry import FilterRegistry
+    from studies.pfrun import Chunk, particle_entry, run_packets, run_registry
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("target-range-bearing")
+    m, K, R = sc.model, 6, 2
+    gens = spawn_generators(5, R)
+    trs = [sc.simulate(g, K) for g in gens]
+    sens = round_robin_schedule(K, m.n_sensors, 1)[:, None]
+    y = np.stack([tr.per_sensor(m)[np.arange(K), sens[:, 0]][:, None, :] for tr in trs])
+    streams = [np.random.SeedSequence(7, spawn_key=(r,)).spawn(2) for r in range(R)]
+    chunk = Chunk(np.stack([tr.x for tr in trs]), streams, {"y": y, "box": sc.channel.deception}, run_ids=(0, 1))
+    reg = FilterRegistry(particle_entry(f"pf {c}", "a bootstrap filter", functools.partial(
+        _packets_filter, m, sens, p, c), 1) for c, p in enumerate((0.0, 0.2)))
+    assert reg.names() == ("pf 0", "pf 1")
+    assert [(e.family, e.runtime, e.particles, e.messages(None, 1)) for e in reg] == [("particle", "centralized",
+                                                                                      True, 1)] * 2
+    out = run_registry(chunk, reg)
+    assert out["mean"].shape == (R, 2, K + 1, m.n_x) and out["seconds"].shape == (R, 2)
+    for c, p in enumerate((0.0, 0.2)):
+        alone = run_packets(m, y, sens, chunk.rngs(c), particles=40, attack_prob=p,
+                            signal=None if p == 0 else sc.channel.deception, angles=[1])
+        assert np.array_equal(out["mean"][:, c], alone.x[:, :, 0])
+        assert np.array_equal(out["collapsed"][:, c], alone.detail.collapsed)

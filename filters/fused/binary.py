@@ -21,10 +21,11 @@ from numba.core import types
 from designer.jit import fma, scalar_statements
 from designer.model import Model
 from designer.validation import InputError
+from filters.result import FilterResult
 
 from .cache import njit
 from .codegen import compile_kernel, components, const, model_kernels, propagation, split_powers, weights
-from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
+from .driver import F2, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
 from .primitives import LN2_HI, LN2_LO, vfrexp, vlog_dd, vndtr, vpow_rows
 
@@ -47,7 +48,7 @@ def sir_binary(
     ess_threshold: float = 1.0,
     covariance: bool = False,
     threads: int = 1,
-) -> FastSIRResult:
+) -> FilterResult:
     """Bootstrap filter with the affine-in-CDF likelihood of binary sensors, many runs, fused kernels.
 
     The log-likelihood of step ``k`` is ``Σ_s log(A[r, k, s] + B[r, k, s] F_ν(T − h_s(x)))``
@@ -72,7 +73,7 @@ def sir_binary(
     AA, BB, T = binary_data(model, R, A, B, threshold)
     kernels = (propagation(model), 0, binary_lik(model), 0, 0, weights(model))
     return run_all(DATA, kernels, lambda r: (AA[r], BB[r], T), x0, gens, AA.shape[1], scheme, thr, covariance,
-                   threads)
+                   threads, model.n_sensors)
 
 
 def binary_affine_loglik(model: Model, x, k1: int, A, B, *, threshold: float) -> np.ndarray:

@@ -43,6 +43,7 @@ from designer.model import Model
 from designer.validation import InputError, check_int
 from filters.particle import check_finite_means
 from filters.resampling import SCHEMES, scheme_code
+from filters.result import FilterResult, centralized_result
 
 from .cache import njit
 from .primitives import exp_nonpos, neginf_unless_finite
@@ -59,7 +60,8 @@ BLOCK = 128
 
 
 class FastSIRResult(NamedTuple):
-    """Per-run outputs of the fused filters (``R`` runs, ``K`` steps)."""
+    """Per-run outputs of the fused filters (``R`` runs, ``K`` steps): the ``detail`` of their
+    :class:`filters.result.FilterResult` (whose ``x[:, :, 0]`` is ``mean``, ``cov[:, :, 0]`` is ``cov``)."""
 
     mean: np.ndarray  # (R, K + 1, n_x) weighted means (k = 0: the initial particles)
     cov: np.ndarray | None  # (R, K + 1, n_x, n_x) when covariance=True
@@ -359,11 +361,14 @@ def spread(one, R: int, threads: int) -> None:
             f.result()  # re-raise any exception from a worker
 
 
-def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads) -> FastSIRResult:
+def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads,
+            uplinks: int) -> FilterResult:
     """Every run of a family with data type ``data_type``, spread over ``threads`` threads.
 
     ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`, ``data_of_run(r)`` run
-    ``r``'s data, ``scheme`` the resampling scheme's code.
+    ``r``'s data, ``scheme`` the resampling scheme's code.  Returns the fusion centre's
+    :class:`filters.result.FilterResult` (:func:`filters.result.centralized_result`: ``uplinks``
+    messages per step; ``cov`` None unless ``covariance``), ``detail`` the :class:`FastSIRResult`.
     """
     run, scheme = drivers(data_type), resampler(scheme)
     R, M, n_x = x0.shape
@@ -379,8 +384,9 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
                                                     mean[r], cov[r], ess[r], resampled[r], collapsed[r]))
 
     spread(one, R, threads)
-    return FastSIRResult(check_finite_means(mean, "fused particle filter"), cov if covariance else None, ess, loglik,
-                         resampled, collapsed)
+    cov = cov if covariance else None
+    return centralized_result(check_finite_means(mean, "fused particle filter"), cov, uplinks,
+                              FastSIRResult(mean, cov, ess, loglik, resampled, collapsed))
 
 
 # ============================================================================ input checks

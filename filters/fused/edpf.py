@@ -50,9 +50,10 @@ from designer.validation import InputError
 
 from filters.edpf import sensor_bounds
 from filters.encryption import Codec
+from filters.result import FilterResult
 
 from .codegen import compile_kernel, model_kernels, propagation_predrawn, weights
-from .driver import F2, FastSIRResult, check_generators, check_model, check_options, check_particles, drivers, \
+from .driver import F2, check_generators, check_model, check_options, check_particles, drivers, \
     lik_type, run_all
 
 __all__ = ["LIKELIHOODS", "sir_edpf", "edpf_loglik"]
@@ -183,7 +184,7 @@ def sir_edpf(
     ess_threshold: float = 1.0,
     covariance: bool = False,
     threads: int = 1,
-) -> FastSIRResult:
+) -> FilterResult:
     """Bootstrap filter of seed 001 on decrypted measurements, many runs, fused numba kernels.
 
     Parameters
@@ -209,9 +210,10 @@ def sir_edpf(
 
     Returns
     -------
-    FastSIRResult
-        ``collapsed[r, k]``: every weight of run ``r`` vanished at step ``k`` (predicted
-        particles kept, uniform weights, no resampling; ``loglik[r] = -inf``).
+    FilterResult
+        As :func:`filters.fused.sir_packets` returns it; in its ``detail``, ``collapsed[r, k]``: every weight
+        of run ``r`` vanished at step ``k`` (predicted particles kept, uniform weights, no resampling;
+        ``loglik[r] = -inf``).
     """
     model = _checked_model(model)
     bound = _bound(model, likelihood, codec)
@@ -222,7 +224,8 @@ def sir_edpf(
     Z, A = _edpf_data(model, R, y)
     prop, nd = propagation_predrawn(model)
     kernels = (prop, nd, _lik(model, bound), 0, 0, weights(model))
-    return run_all(DATA, kernels, lambda r: (Z[r], A[r]), x0, gens, Z.shape[1], scheme, thr, covariance, threads)
+    return run_all(DATA, kernels, lambda r: (Z[r], A[r]), x0, gens, Z.shape[1], scheme, thr, covariance, threads,
+                   model.n_sensors)
 
 
 def edpf_loglik(model: Model, x, k1: int, y, *, likelihood: str = "interval", codec: Codec | None = None) -> np.ndarray:

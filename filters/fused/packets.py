@@ -31,11 +31,12 @@ from numba.core import types
 from designer.jit import scalar_statements
 from designer.model import Model
 from designer.validation import InputError
+from filters.result import FilterResult
 from filters.rrp import angle_sets
 
 from .codegen import component_lines, components, compile_kernel, max_others_lines, model_kernels, propagation, \
     shared_bodies, weights
-from .driver import BLOCK, F2, F3, I2, FastSIRResult, check_generators, check_model, check_options, check_particles, \
+from .driver import BLOCK, F2, F3, I2, check_generators, check_model, check_options, check_particles, \
     drivers, lik_type, run_all
 
 __all__ = ["sir_packets", "packets_loglik"]
@@ -59,7 +60,7 @@ def sir_packets(
     ess_threshold: float = 1.0,
     covariance: bool = False,
     threads: int = 1,
-) -> FastSIRResult:
+) -> FilterResult:
     """Bootstrap filter on packets of sensor measurements, many runs, fused numba kernels.
 
     Parameters
@@ -95,7 +96,10 @@ def sir_packets(
 
     Returns
     -------
-    FastSIRResult
+    FilterResult
+        The fusion centre's runs (:func:`filters.result.centralized_result`: ``P`` messages per step, its
+        packets; ``cov`` None unless ``covariance``), ``detail`` the :class:`filters.fused.FastSIRResult` (means, covariances, ESS,
+        log marginal likelihood, the steps resampled and collapsed).
     """
     model = check_model(model)
     x0 = check_particles(x0, model.n_x)
@@ -106,7 +110,7 @@ def sir_packets(
     lik, ne = packet_lik(model, wrap_set(angles, model), bool(np.any(att > -np.inf)))
     kernels = (propagation(model), 0, lik, sens.shape[1], ne, weights(model))
     return run_all(DATA, kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr,
-                   covariance, threads)
+                   covariance, threads, sens.shape[1])
 
 
 def packets_loglik(model: Model, x, k1: int, sensors, y, *, attack=None, log_clean: float = 0.0,
