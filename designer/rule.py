@@ -27,15 +27,21 @@ chooses the gains, the command line's help), and its capabilities: ``fixed_multi
 tables computed offline and applied online: it chooses what the nodes exchange, the exchange rounds, a robustness
 margin and a bank of operating points, and has a stationary certificate), ``joint_covariance`` (its filter carries
 the joint error covariance of all nodes: (N n)² numbers per run, not mapped by the feasibility map), ``relays`` (its
-packets relay the measurements over L exchange rounds per step, :mod:`rules.relay.design`).
+packets relay the measurements over L exchange rounds per step).
 
 Its hooks (methods; the base class's answer follows from the capabilities)
 --------------------------------------------------------------------------
-:meth:`GainRule.check_options` (the options the rule takes), :meth:`GainRule.check_design` (a design's fields),
-:meth:`GainRule.design_fields` (the exchange, robustness and bank of its design), :meth:`GainRule.rounds` (the
-exchange rounds per step), :meth:`GainRule.batch_filter` (its filter over a batch of Monte Carlo runs),
-:meth:`GainRule.node_filter` (the filter one node runs, and the network of them) and :meth:`GainRule.c_export` (its
-node filter's C export, a :class:`designer.export_c.NodeExport`).
+Options: :meth:`GainRule.check_options`, :meth:`GainRule.check_design`, :meth:`GainRule.check_exchange`,
+:meth:`GainRule.design_fields`, :meth:`GainRule.rounds`.  Design: :meth:`GainRule.tables` and
+:meth:`GainRule.stationary_tables` (a rule of offline tables), :meth:`GainRule.stationary` (its stationary
+certificate), :meth:`GainRule.tradeoff_parts` and :meth:`GainRule.tradeoff` (its accuracy-messages trade-off),
+:meth:`GainRule.record_notes` (``schedule.json``'s words on where its gains come from).  Filters:
+:meth:`GainRule.batch_filter` (over a batch of Monte Carlo runs), :meth:`GainRule.node_filter` (the filter one node
+runs, and the network of them).  Words and costs: :attr:`GainRule.help` (the command line's),
+:meth:`GainRule.report_settings` and :meth:`GainRule.report_margins` (the design report's),
+:attr:`GainRule.study_label` and :attr:`GainRule.study_description` (``study comparison``'s),
+:meth:`GainRule.memory_parts` (the memory estimate's).  Export: :meth:`GainRule.c_export` (its node filter's C
+export, a :class:`designer.export_c.NodeExport`).
 """
 from __future__ import annotations
 
