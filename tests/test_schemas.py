@@ -129,7 +129,7 @@ def test_the_built_package_ships_the_schemas(tmp_path):
     """setuptools' build (what goes into a wheel) holds the JSON files, importable through importlib.resources."""
     src = tmp_path / "src"
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc", ".chunks")
-    for d in ("designer", "filters", "studies"):
+    for d in ("designer", "filters", "rules", "studies"):
         shutil.copytree(ROOT / d, src / d, ignore=ignore)
     for f in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / f, src / f)
@@ -145,10 +145,11 @@ def test_the_built_package_ships_the_schemas(tmp_path):
     assert Path(where).resolve().is_relative_to(lib.resolve())  # the built copy, not the source tree
     assert json.loads(titles) == {n: schemas.load(n)["title"] for n in schemas.SCHEMAS}
     assert first == "schema"
-    # negative control: without the package-data table the build has no JSON files
+    # negative control: without the schemas' line of the package-data table the build has no JSON files
     text = (src / "pyproject.toml").read_text()
     table = '[tool.setuptools.package-data]\n"studies.schemas" = ["*.json"]\n'
     assert table in text
+    table = table.split("\n", 1)[1]  # the line alone: the table goes on for the C files
     (src / "pyproject.toml").write_text(text.replace(table, ""))
     _build(src, tmp_path / "bare")
     assert (tmp_path / "bare" / "studies" / "schemas" / "__init__.py").is_file()
