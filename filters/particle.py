@@ -25,6 +25,7 @@ transition density).  A log-likelihood is ``loglik(x, k1, z_k) -> (runs, M)``.
 """
 from __future__ import annotations
 
+import time
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -131,7 +132,7 @@ def additive_noise_loglik(model: Model) -> Callable:
 
 
 class SIRResult(NamedTuple):
-    """The particle filter's own arrays: the ``detail`` of :func:`run_sir`'s result."""
+    """The particle filter's own arrays, and where its time went: the ``detail`` of :func:`run_sir`'s result."""
 
     mean: np.ndarray  # (runs, K + 1, n_x) weighted means (k = 0: the prior sample)
     cov: np.ndarray  # (runs, K + 1, n_x, n_x)
@@ -140,6 +141,8 @@ class SIRResult(NamedTuple):
     resampled: np.ndarray  # (runs, K) bool
     collapsed: np.ndarray  # (runs, K) bool: every weight vanished; predicted particles kept, uniform weights
     skipped: np.ndarray  # (runs, K) bool: measurement missing (NaN) and skipped on request
+    proposal_seconds: float  # wall time in the proposal's calls, all runs together (where the time goes)
+    loglik_seconds: float  # wall time in the log-likelihood's calls, all runs together
 
 
 # log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
@@ -215,7 +218,8 @@ def run_sir(
     -------
     FilterResult
         The fusion centre's (:func:`filters.result.centralized_result`: the weighted means and covariances,
-        ``uplinks`` messages per step), ``detail`` the :class:`SIRResult` of the runs.
+        ``uplinks`` messages per step), ``detail`` the :class:`SIRResult` of the runs (with the seconds spent
+        in the proposal and in the likelihood: where the time goes).
     """
     check_int("particles", particles, 1)
     if not (0.0 < ess_threshold <= 1.0):
@@ -256,10 +260,13 @@ def run_sir(
     did = np.zeros((R, K), dtype=bool)
     collapsed = np.zeros((R, K), dtype=bool)
     total = np.zeros(R)
+    spent = [0.0, 0.0]  # seconds in the proposal, in the likelihood
     mean[:, 0], cov[:, 0] = _moments(x, lw.W)
     for k in range(K):
         zk = np.where(nan_rows[:, k, None], 0.0, z[:, k])  # skipped rows get a placeholder, then no weight
+        t = time.perf_counter()
         moved = [p(x[sl], k, zk[sl], g) for p, g, sl in zip(props, gens, spans)]
+        spent[0] += time.perf_counter() - t
         x = moved[0][0] if len(moved) == 1 else np.concatenate([mv[0] for mv in moved])
         corr = moved[0][1] if len(moved) == 1 or all(np.ndim(mv[1]) == 0 and mv[1] == 0 for mv in moved) else \
             np.concatenate([np.broadcast_to(mv[1], (sl.stop - sl.start, M)) for mv, sl in zip(moved, spans)])
@@ -268,7 +275,10 @@ def run_sir(
             r = int(np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))[0])
             raise NonFiniteError(f"particle filter: run {r} has particle states that are not finite at step {k + 1}",
                                  r, k + 1)
-        ll = np.where(nan_rows[:, k, None], 0.0, loglik(x, k + 1, zk))
+        t = time.perf_counter()
+        ll = loglik(x, k + 1, zk)
+        spent[1] += time.perf_counter() - t
+        ll = np.where(nan_rows[:, k, None], 0.0, ll)
         if np.isposinf(ll).any():
             r = int(np.flatnonzero(np.isposinf(ll).any(axis=-1))[0])
             raise NonFiniteError(f"particle filter: run {r} has a log-likelihood of +inf (a density evaluated at a "
@@ -299,4 +309,4 @@ def run_sir(
             lw = LogWeights(new)
             did[:, k] = need
     return centralized_result(mean, cov, model.n_sensors if uplinks is None else uplinks,
-                              SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy()))
+                              SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy(), *spent))

@@ -120,6 +120,35 @@ def test_sir_is_reproducible_and_runs_are_independent():
     assert not np.allclose(a.mean[0], a.mean[1])
 
 
+def test_sir_reports_the_seconds_in_its_proposal_and_in_its_likelihood():
+    """detail.proposal_seconds / loglik_seconds: the wall time in each callable, within the filter's call; a
+    callable that sleeps shows in its own field (the encrypted-switching study's time split)."""
+    import time
+
+    from filters.particle import additive_noise_loglik, transition_proposal
+
+    model, _, _ = _linear_model()
+    traj = simulate(model, 5, np.random.default_rng(5))
+
+    def slow(fn, pause):
+        def call(*args):
+            time.sleep(pause)
+            return fn(*args)
+        return call
+
+    for p_pause, l_pause in ((0.0, 0.01), (0.01, 0.0)):
+        t = time.perf_counter()
+        res = run_sir(model, traj.z, np.random.default_rng(9), particles=50, runs=2,
+                      proposal=slow(transition_proposal(model), p_pause),
+                      loglik=slow(additive_noise_loglik(model), l_pause))
+        wall = time.perf_counter() - t
+        d = res.detail
+        assert d.proposal_seconds >= 5 * p_pause and d.loglik_seconds >= 5 * l_pause
+        assert 0 < d.proposal_seconds + d.loglik_seconds < wall
+        plain = run_sir(model, traj.z, np.random.default_rng(9), particles=50, runs=2).detail
+        assert np.array_equal(d.mean, plain.mean)  # measured, not changed
+
+
 def test_collapse_is_recorded_and_the_filter_recovers():
     """A measurement no particle can explain leaves finite weights, keeps the prediction and is recorded."""
     model, A, Hm = _linear_model()
