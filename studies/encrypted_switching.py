@@ -29,7 +29,11 @@ for a chunk of runs given their SeedSequences and a :class:`RunConfig`, and retu
 a mapping of arrays whose first axis is the run (``functools.partial(compute_runs,
 config=config)`` is the task of the Monte Carlo runner); chunks are joined with
 :func:`concatenate_runs` and :func:`summarize` computes the metrics, tables and
-figures' data from the joined arrays.  ``STUDY`` is the study's
+figures' data from the joined arrays.  The filters are the entries of a
+:class:`studies.filter_registry.FilterRegistry` (:func:`registry`, built in the worker
+from the picklable :class:`RunConfig`), run on the chunk by :func:`studies.pfrun.run_registry`
+as the other particle studies' are; the NumPy engine's time split is the one
+:func:`filters.particle.run_sir` measures (its ``detail``).  ``STUDY`` is the study's
 :class:`studies.pipeline.Study`.
 
 Randomness: run ``r`` uses ``SeedSequence(seed).spawn(runs)[r].spawn(3)`` =
@@ -59,18 +63,19 @@ from designer.simulate import simulate_runs
 from designer.validation import InputError, check_int
 from filters.edpf import fixed_mode_model, interval_loglik, mean_dynamics_model, raw_loglik, received
 from filters.encryption import CRC4_ITU, Codec, EncryptedChannel
-from filters.particle import run_sir, transition_proposal
+from filters.particle import SIRResult, run_sir
+from filters.result import FilterResult
 
-from .pfrun import THREADS_AUTO, check_engine, check_threads, study_threads
-from .progress import progress
-from .pipeline import Plan, Study, StudyOptions, naming_filter
+from .filter_registry import FilterRegistry
+from .pfrun import THREADS_AUTO, Chunk, check_engine, check_threads, particle_entry, run_registry, study_threads
+from .pipeline import Plan, Study, StudyOptions
 from .figures import curves_figure, filter_colours
 from .results import curve_mean_ci, markdown_table
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "RunConfig", "compute_runs", "concatenate_runs", "summarize", "warm_up", "filter_names",
-           "FILTERS", "MEAN_DYNAMICS", "PAPER", "CHUNK_SIZE"]
+           "registry", "FILTERS", "MEAN_DYNAMICS", "PAPER", "CHUNK_SIZE"]
 
 SCENARIO = "switching-2d"
 FILTERS = ("PPF", "PF-RSN", "PF-SR-DE")
@@ -113,19 +118,6 @@ ASSUMPTIONS = (
 OTHER_MODEL = ("encrypted-switching (a model other than switching-2d): PF-RSN keeps mode 1 of the model's switching "
                "always; PF-RSN (mean dynamics) averages the modes' transitions with their probabilities; every "
                "filter starts from the model's prior.")
-
-
-class _Timed:
-    """A callable that accumulates the wall time spent in it."""
-
-    def __init__(self, fn):
-        self.fn, self.seconds = fn, 0.0
-
-    def __call__(self, *args):
-        t = time.perf_counter()
-        out = self.fn(*args)
-        self.seconds += time.perf_counter() - t
-        return out
 
 
 # ============================================================================ per-run work
@@ -207,25 +199,40 @@ def _check_config(config: RunConfig) -> RunConfig:
     return config
 
 
-def _run_filter(model, kind: str, codec: Codec, y: np.ndarray, filter_ss: list, config: RunConfig):
-    """``(mean, collapsed, resampled, split)`` of one filter on the chunk's received data ``y`` (n, T, 2 N).
-
-    ``split``: the seconds in the proposal and in the likelihood (NumPy engine), None (fast engine).
-    """
-    M = config.particles
-    if config.engine == "numpy":
+def _run(model, kind: str, codec: Codec, config: RunConfig, chunk: Chunk, js, design) -> FilterResult:
+    """One filter on the chunk's received data ``chunk.data["received"]`` (n, T, 2 N) (a registry entry's
+    ``run``): its :class:`filters.result.FilterResult`, every run's filter stream started afresh."""
+    y, M = chunk.data["received"], config.particles
+    if config.engine == "numpy":  # one Generator for the batch: the chunk's first run's filter stream
         ll = interval_loglik(model, codec) if kind == "interval" else raw_loglik(model)
-        prop, lik = _Timed(transition_proposal(model)), _Timed(ll)
-        res = run_sir(model, y, np.random.default_rng(filter_ss[0]), particles=M, runs=y.shape[0], loglik=lik,
-                      proposal=prop, resampler="systematic", ess_threshold=ESS_THRESHOLD).detail
-        return res.mean, res.collapsed, res.resampled, (prop.seconds, lik.seconds)
+        return run_sir(model, y, np.random.default_rng(chunk.streams[0][0]), particles=M, runs=y.shape[0],
+                       loglik=ll, resampler="systematic", ess_threshold=ESS_THRESHOLD)
     from filters.fused import sir_edpf
 
-    gens = [np.random.default_rng(fs) for fs in filter_ss]
+    gens = chunk.rngs(0)
     x0 = np.stack([model.prior.sample(g, M) for g in gens])  # the first draws of each run's stream, as run_sir
-    res = sir_edpf(model, x0, gens, y, likelihood=kind, codec=codec if kind == "interval" else None,
-                   resampler="systematic", ess_threshold=ESS_THRESHOLD, threads=config.threads).detail
-    return res.mean, res.collapsed, res.resampled, None
+    return sir_edpf(model, x0, gens, y, likelihood=kind, codec=codec if kind == "interval" else None,
+                    resampler="systematic", ess_threshold=ESS_THRESHOLD, threads=config.threads)
+
+
+def registry(config: RunConfig) -> FilterRegistry:
+    """The study's filters of ``config`` (in the order of :func:`filter_names`), one particle entry each: a fusion
+    centre receiving every sensor's packet, on the models built once per process (:func:`_setup`)."""
+    setup = _setup(config)
+    codec, n_sensors = setup.channel.codec, setup.scenario.model.n_sensors
+    return FilterRegistry(particle_entry(name, what, functools.partial(_run, model, kind, codec, config), n_sensors)
+                          for name, (model, kind, what) in _filters(config).items())
+
+
+def _breakdown(res: FilterResult) -> np.ndarray:
+    """(runs, 3): each run's share of the seconds in the proposal, in the likelihood and in the rest of the
+    filter's call (the NumPy engine's split, measured by :func:`filters.particle.run_sir`); NaN on the fast
+    engine, which fuses them."""
+    d = res.detail
+    if not isinstance(d, SIRResult):
+        return np.full((res.runs, 3), np.nan)
+    split = np.array([d.proposal_seconds, d.loglik_seconds]) / res.runs
+    return np.column_stack([np.broadcast_to(split, (res.runs, 2)), res.seconds - split.sum()])
 
 
 def warm_up(config: RunConfig) -> None:
@@ -289,24 +296,14 @@ def compute_runs(run_ids: Sequence[int], seeds: Sequence[np.random.SeedSequence]
     tx = channel.transmit_runs(tr.z, [np.random.default_rng(st[1]) for st in streams])
     y = received(tx)
     t2 = time.perf_counter()
-    configs = _filters(config)
-    F = len(configs)
-    out = {"run": run_ids, "truth": tr.x, **{k: getattr(tx, k) for k in CHANNEL},
-           "mean": np.empty((n, F, K + 1, sc.model.n_x)), "collapsed": np.empty((n, F, K), dtype=bool),
-           "resampled": np.empty((n, F, K), dtype=bool), "seconds": np.empty((n, F)),
-           "seconds_data": np.full(n, (t1 - t0) / n), "seconds_channel": np.full(n, (t2 - t1) / n),
-           "breakdown": np.full((n, F, 3), np.nan)}
-    filter_ss = [st[2] for st in streams]
-    for j, (name, (model, kind, _)) in enumerate(progress(configs.items(), F, quiet, "encrypted-switching filters")):
-        t = time.perf_counter()
-        with naming_filter(name, run_ids):
-            out["mean"][:, j], out["collapsed"][:, j], out["resampled"][:, j], split = _run_filter(
-                model, kind, channel.codec, y, filter_ss, config)
-        wall = time.perf_counter() - t
-        out["seconds"][:, j] = wall / n
-        if split is not None:  # proposal, likelihood, the rest
-            out["breakdown"][:, j] = np.array([split[0], split[1], wall - split[0] - split[1]]) / n
-    return out
+    chunk = Chunk(tr.x, [(st[2],) for st in streams], {"received": y}, run_ids)  # every filter: stream 0
+    a = run_registry(chunk, registry(config), extra={"resampled": lambda res: res.detail.resampled,
+                                                     "breakdown": _breakdown},
+                     label=None if quiet else "encrypted-switching filters")
+    return {"run": run_ids, "truth": tr.x, **{k: getattr(tx, k) for k in CHANNEL},
+            "mean": a["mean"], "collapsed": a["collapsed"], "resampled": a["resampled"], "seconds": a["seconds"],
+            "seconds_data": np.full(n, (t1 - t0) / n), "seconds_channel": np.full(n, (t2 - t1) / n),
+            "breakdown": a["breakdown"]}
 
 
 def concatenate_runs(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -339,7 +336,8 @@ def summarize(arrays: Mapping[str, np.ndarray], config: RunConfig, *, metrics_rn
     runs, K = truth.shape[0], truth.shape[1] - 1
     filters: dict[str, dict] = {}
     means = {}
-    for j, (name, (_, _, what)) in enumerate(_filters(config).items()):
+    for j, entry in enumerate(registry(config)):
+        name, what = entry.name, entry.description
         means[name] = a["mean"][:, j]
         col = a["collapsed"][:, j]
         wall = float(a["seconds"][:, j].sum())

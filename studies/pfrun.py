@@ -56,6 +56,7 @@ from filters.rrp import deception_terms, packet_loglik
 
 from .filter_registry import FilterEntry, FilterRegistry
 from .pipeline import naming_filter
+from .progress import progress
 from .results import error_metrics
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "score", "score_configurations",
@@ -166,12 +167,17 @@ def particle_entry(name: str, description: str, run: Callable, messages: int) ->
                        particles=True)
 
 
-def run_registry(chunk: Chunk, registry: FilterRegistry) -> dict:
-    """The task's arrays of a seed 000 / 002 study: every entry of ``registry`` on the chunk's runs.
+def run_registry(chunk: Chunk, registry: FilterRegistry, *,
+                 extra: Mapping[str, Callable[[FilterResult], np.ndarray]] | None = None,
+                 label: str | None = None) -> dict:
+    """The task's arrays of a particle study: every entry of ``registry`` on the chunk's runs.
 
     Returns ``truth`` and, along a filter axis in the registry's order, ``mean`` (the fusion centre's estimate),
-    ``collapsed`` (``detail.collapsed``) and ``seconds`` (each run's share of the filter's wall time).  A filter
-    whose numbers leave finite ones fails the chunk naming the filter, the study's run and the step.
+    ``collapsed`` (``detail.collapsed``), ``seconds`` (each run's share of the filter's wall time) and, for every
+    ``name: fn`` of ``extra``, ``fn(result)`` (runs, ...) of each filter's result (whose ``seconds`` is then that
+    share), e.g. its family's arrays of ``detail``.  ``label``: a progress bar over the filters (shown on a
+    terminal).  A filter whose numbers leave finite ones fails the chunk naming the filter, the study's run and
+    the step.
     """
     truth = chunk.truth
     R, K1, n_x = truth.shape
@@ -179,13 +185,19 @@ def run_registry(chunk: Chunk, registry: FilterRegistry) -> dict:
     mean = np.empty((R, F, K1, n_x))
     collapsed = np.empty((R, F, K1 - 1), dtype=bool)
     seconds = np.empty((R, F))
-    for j, entry in enumerate(registry):
+    extra = dict(extra or {})
+    more: dict[str, list] = {name: [] for name in extra}
+    for j, entry in enumerate(progress(registry, F, label is None, label or "")):
         t0 = time.perf_counter()
         with naming_filter(entry.name, chunk.run_ids):
             res = entry.run(chunk, (0,), None)
         seconds[:, j] = (time.perf_counter() - t0) / R
         mean[:, j], collapsed[:, j] = res.x[:, :, 0], res.detail.collapsed
-    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds}
+        res = res._replace(seconds=seconds[:, j].copy())
+        for name, fn in extra.items():
+            more[name].append(fn(res))
+    return {"truth": truth, "mean": mean, "collapsed": collapsed, "seconds": seconds,
+            **{name: np.stack(arrays, axis=1) for name, arrays in more.items()}}
 
 
 def score_configurations(arrays, filters: Sequence, reused: Mapping[str, str], names: Sequence[str], model: Model,

@@ -188,6 +188,33 @@ def test_study_runs_do_not_depend_on_chunks_runs_or_threads():
         compute_runs([0, 1], seqs[:1], cfg1)
 
 
+def test_the_study_filters_are_registry_entries_on_the_chunk():
+    """encrypted-switching's filters are the particle entries of its registry (a fusion centre receiving every
+    sensor's packet), in filter_names' order; compute_runs' arrays are those entries' results on the chunk (NumPy
+    engine: one Generator from the chunk's first run's filter stream), and the time split run_sir measured
+    (proposal, likelihood, the rest of the call) adds up to each filter's time."""
+    from studies.encrypted_switching import registry
+    from studies.pfrun import Chunk
+
+    sc = load_scenario("switching-2d", assignments=("steps=12", "dropout_prob=0.1"))
+    cfg = RunConfig(particles=30, scenario=reference(sc), engine="numpy")
+    reg = registry(cfg)
+    assert reg.names() == filter_names(cfg) == (*FILTERS, MEAN_DYNAMICS)
+    assert {(e.family, e.runtime, e.particles, e.messages(None, 1)) for e in reg} == {
+        ("particle", "centralized", True, sc.model.n_sensors)}
+    seqs = np.random.SeedSequence(3).spawn(3)
+    out = compute_runs(range(3), seqs, cfg)
+    streams = [_streams(ss) for ss in seqs]
+    y = received(sc.channel.transmit_runs(out["z"], [np.random.default_rng(st[1]) for st in streams]))
+    chunk = Chunk(out["truth"], [(st[2],) for st in streams], {"received": y}, range(3))
+    for j, entry in enumerate(reg):
+        res = entry.run(chunk, (0,), None)
+        assert np.array_equal(res.x[:, :, 0], out["mean"][:, j]), entry.name
+        assert np.array_equal(res.detail.resampled, out["resampled"][:, j]), entry.name
+    assert (out["breakdown"] > 0).all()
+    np.testing.assert_allclose(out["breakdown"].sum(axis=-1), out["seconds"], rtol=1e-9)
+
+
 # ----------------------------------------------------------------------------- batched data
 def test_simulate_runs_equals_a_per_run_recursion_with_the_documented_draws():
     sc = load_scenario("switching-2d")

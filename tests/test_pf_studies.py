@@ -360,7 +360,7 @@ def _packets_filter(model, sensors, attack_prob, stream, chunk, js, design):
 def test_particle_study_filters_are_registry_entries():
     """The particle studies' filters are FilterEntry of a FilterRegistry, as the comparison's (particle family,
     at a fusion centre), and run_registry gathers each entry's FilterResult bit for bit: the estimate, the
-    collapses and a time per run."""
+    collapses, a time per run and the arrays a study asks of each result (``extra``)."""
     import functools
 
     from designer.noise import spawn_generators
@@ -382,10 +382,12 @@ def test_particle_study_filters_are_registry_entries():
     assert reg.names() == ("pf 0", "pf 1")
     assert [(e.family, e.runtime, e.particles, e.messages(None, 1)) for e in reg] == [("particle", "centralized",
                                                                                       True, 1)] * 2
-    out = run_registry(chunk, reg)
+    out = run_registry(chunk, reg, extra={"ess": lambda res: res.detail.ess, "share": lambda res: res.seconds})
     assert out["mean"].shape == (R, 2, K + 1, m.n_x) and out["seconds"].shape == (R, 2)
+    assert np.array_equal(out["share"], out["seconds"])  # each result carries its runs' share of the time
     for c, p in enumerate((0.0, 0.2)):
         alone = run_packets(m, y, sens, chunk.rngs(c), particles=40, attack_prob=p,
                             signal=None if p == 0 else sc.channel.deception, angles=[1])
         assert np.array_equal(out["mean"][:, c], alone.x[:, :, 0])
         assert np.array_equal(out["collapsed"][:, c], alone.detail.collapsed)
+        assert np.array_equal(out["ess"][:, c], alone.detail.ess)
