@@ -27,7 +27,7 @@ from pathlib import Path
 from designer.rule import RULE_NAME, GainRule
 from designer.validation import InputError
 
-__all__ = ["DEFAULT", "PUBLISHED", "ENV_PATH", "names", "get", "all_rules", "choices", "add_path", "remove_path", "paths"]
+__all__ = ["DEFAULT", "PUBLISHED", "ENV_PATH", "names", "get", "find", "all_rules", "choices", "add_path", "remove_path", "paths"]
 
 #: The rule a design takes when none is named (``--mode`` left out).
 DEFAULT = "paper"
@@ -97,6 +97,11 @@ def get(name, param: str = "mode") -> GainRule:
         raise InputError(f"rule package {module.__name__!r} must define RULE, a GainRule named {name!r}, got "
                          f"{rule!r}")
     return rule
+
+
+def find(name) -> GainRule | None:
+    """The rule called ``name``, or None when no rule package has that name (a name read from a file, as data)."""
+    return get(name) if isinstance(name, str) and name in names() else None
 
 
 def all_rules() -> dict[str, GainRule]:

@@ -35,10 +35,10 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
     if any(v is not None for v in base.attack_overrides().values()):
         raise InputError(f"scenario {sc.name!r}: DESIGN must not set dos, fdi, delta or amplitude; declare the "
                          "attacks in ATTACKS")
-    rule = rules.get((options.mode if options is not None else None) or base.mode or rules.DEFAULT)
+    opts = base.merged(options)
+    rule = rule_of(opts)  # the mode given, else the model's default one, else the package's
     if options is not None:
         rule.check_options(options)  # what the user gave, before the defaults: a value the rule does not take
-    opts = base.merged(options)
     # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
     # exchange) give way to the rule's own; the mode stays as given (None: the default rule), as the record keeps it
     opts = replace(as_mode(opts, rule.name), mode=opts.mode)

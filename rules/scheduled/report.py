@@ -12,8 +12,8 @@ def settings(meta: Mapping, fmt) -> list[str]:
     exchange rounds against accuracy."""
     out: list[str] = []
     st = meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {}
-    carry = ("its prediction and its measurement" if meta.get("exchange") == "measurements" else
-             "its prediction alone, as in (7)")
+    carry = ("prediction and its measurement" if meta.get("exchange") == "measurements" else
+             "prediction alone, as in (7)")
     out += ["Scheduled mode: the per-link gains are designed offline for the channels' DoS and FDI probabilities "
             "from the expected joint error covariance of all nodes along the nominal trajectory "
             "(`rules.scheduled.design`); every node applies them on any run with its own estimate, covariance and "

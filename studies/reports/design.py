@@ -402,7 +402,7 @@ def _rule_of(mode):
     """The schedule's gain rule (:mod:`rules`), None for a mode that is not a rule here (the record is data)."""
     import rules
 
-    return rules.get(mode) if isinstance(mode, str) and mode in rules.names() else None
+    return rules.find(mode)
 
 
 def _fixed_multipliers(mode) -> bool:
@@ -692,15 +692,14 @@ _VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound 
 def gain_rule_record(meta: Mapping) -> dict | None:
     """The design's gain rule ``{name, runtime, needs, deployable}``: ``schedule.json``'s ``gain_rule``, or for a file
     written before it existed the rule of its mode (:mod:`rules`); None when neither says."""
-    import rules
     from designer.rule import RUNTIMES
 
     rec = meta.get("gain_rule")
     if (isinstance(rec, Mapping) and rec.get("runtime") in RUNTIMES and isinstance(rec.get("needs"), str)
             and isinstance(rec.get("deployable"), bool)):
         return dict(rec, name=str(rec.get("name", meta.get("mode"))))
-    mode = meta.get("mode")
-    return rules.get(mode).describe() if isinstance(mode, str) and mode in rules.names() else None
+    rule = _rule_of(meta.get("mode"))
+    return None if rule is None else rule.describe()
 
 
 def _runtime_lines(meta: Mapping) -> list[str]:

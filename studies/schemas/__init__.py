@@ -165,7 +165,7 @@ def _matrix_shape(value, rows: int, cols: int, path: list, label: str) -> Iterat
 def _schedule_shapes(obj: dict) -> Iterator[tuple[list, str]]:
     import rules
 
-    rule = rules.get(obj["mode"]) if obj["mode"] in rules.names() else None
+    rule = rules.find(obj["mode"])
     if rule is None:
         yield ["mode"], f"{obj['mode']!r} is not a gain rule ({rules.choices()})"
     record = obj.get("gain_rule")
