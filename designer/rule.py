@@ -40,8 +40,9 @@ certificate), :meth:`GainRule.tradeoff_parts` and :meth:`GainRule.tradeoff` (its
 runs, and the network of them).  Words and costs: :attr:`GainRule.help` (the command line's),
 :meth:`GainRule.report_settings` and :meth:`GainRule.report_margins` (the design report's),
 :attr:`GainRule.study_label` and :attr:`GainRule.study_description` (``study comparison``'s),
-:meth:`GainRule.memory_parts` (the memory estimate's).  Export: :meth:`GainRule.c_export` (its node filter's C
-export, a :class:`designer.export_c.NodeExport`).
+:meth:`GainRule.memory_parts` (the memory estimate's), :meth:`GainRule.payload` (the numbers its packets carry per
+step).  Automatic design: :meth:`GainRule.candidates` (the designs ``--mode auto`` tries).  Export:
+:meth:`GainRule.c_export` (its node filter's C export, a :class:`designer.export_c.NodeExport`).
 """
 from __future__ import annotations
 
@@ -312,6 +313,28 @@ class GainRule:
         """The exchange rounds per step of this rule's design on ``network``: ``rounds`` when given, else the rule's
         default (1 here; a rule that relays: its hops)."""
         return 1 if rounds is None else int(rounds)
+
+    def candidates(self, network) -> list[dict[str, Any]]:
+        """The designs of this rule an automatic design (``--mode auto``, :mod:`studies.auto`) tries on ``network``:
+        one dict of :class:`designer.design.DesignOptions` fields per design (e.g. ``{"rounds": 2}``; ``{}`` the rule
+        with its defaults).  Here, a deployable rule's one design; an oracle (``global``) none, since it is no design
+        to deploy."""
+        return [{}] if self.deployable else []
+
+    def payload(self, model, network, design) -> int:
+        """The numbers its nodes send over the network per step with ``design`` (every packet attempted, as the
+        messages are counted: a packet lost to DoS was sent).  Here, the consensus filter of (7): one packet per
+        directed channel and round carrying the sender's prediction (n numbers) and, for a rule that does not
+        design its gains offline, its predicted bound Φ_{j,k+1|k} (its n (n + 1) / 2 distinct entries: (27) uses the
+        neighbours'); with offline tables and ``exchange='measurements'``, the first round carries the sender's
+        measurement too."""
+        n, rounds = int(model.n_x), int(design.rounds)
+        adj = np.asarray(network.adjacency, dtype=bool)
+        per_packet = n if self.offline_tables else n + n * (n + 1) // 2
+        total = int(adj.sum()) * per_packet * rounds
+        if self.offline_tables and design.exchange == "measurements":
+            total += int(adj.sum(axis=0) @ np.asarray(model.sensor_dims))  # sender j's z_j on each of its channels
+        return total
 
     def batch_filter(self):
         """Its filter over a batch of Monte Carlo runs: a :class:`filters.consensus_batch.NodeRule` (a prediction and

@@ -98,7 +98,7 @@ from .node import NodeInputs, NodeNetwork
 from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "distributed_result", "run_kcf", "run_hcmci", "run_kcf_batch",
-           "run_hcmci_batch", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
+           "run_hcmci_batch", "kcf_payload", "hcmci_payload", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
            "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
            "HCMCIPacket", "HCMCINode", "HCMCINetwork"]
 
@@ -127,6 +127,18 @@ class DistributedResult(NamedTuple):
     def diverged(self) -> dict | None:
         """The ``'diverged'`` violation when the run stopped early (its arrays are NaN from that step)."""
         return next((v for v in self.violations if v["condition"] == "diverged"), None)
+
+
+def kcf_payload(n_x: int, network) -> int:
+    """The numbers KCF sends per step: one packet per directed channel carrying ``u_j`` (n), the distinct entries of
+    ``U_j`` (n (n + 1) / 2) and the prediction ``x̄_j`` (n)."""
+    return int(np.asarray(network.adjacency, dtype=bool).sum()) * (2 * n_x + n_x * (n_x + 1) // 2)
+
+
+def hcmci_payload(n_x: int, network, iterations: int) -> int:
+    """The numbers HCMCI sends per step: one packet per directed channel and consensus round carrying ``q``, ``δq``
+    (n each) and the distinct entries of ``Ω``, ``δΩ`` (n (n + 1) / 2 each)."""
+    return int(np.asarray(network.adjacency, dtype=bool).sum()) * int(iterations) * (2 * n_x + n_x * (n_x + 1))
 
 
 def metropolis_weights(network: SensorNetwork, lost: np.ndarray | None = None) -> np.ndarray:

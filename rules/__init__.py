@@ -27,9 +27,11 @@ from pathlib import Path
 from designer.rule import RULE_NAME, GainRule
 from designer.validation import InputError
 
-__all__ = ["DEFAULT", "PUBLISHED", "ENV_PATH", "names", "get", "find", "all_rules", "choices", "add_path", "remove_path", "paths"]
+__all__ = ["DEFAULT", "PUBLISHED", "RESERVED", "ENV_PATH", "names", "get", "find", "all_rules", "choices", "add_path",
+           "remove_path", "paths"]
 
-#: The rule a design takes when none is named (``--mode`` left out).
+#: The rule a command that runs one rule's design takes when none is named (``--mode`` left out of ``feasibility``
+#: and ``study``); ``cfdesign design`` without ``--mode`` runs the automatic design instead (:mod:`studies.auto`).
 DEFAULT = "paper"
 #: The seed paper's own rule (seed 003): the design its reproduction (``study consensus-robot``) compares against, and
 #: the consensus filter that with σ = β = τ = 0 and no neighbours is the EKF (the studies' local and centralized EKFs).
@@ -73,9 +75,15 @@ def remove_path(folder) -> None:
             del sys.modules[key]
 
 
+#: Names of ``--mode`` that are not gain rules (a package of that name is not a rule): ``auto``, the automatic design
+#: that chooses among the rules (:mod:`studies.auto`).
+RESERVED = ("auto",)
+
+
 def names() -> tuple[str, ...]:
     """The rules' names, found without importing them: the built-in rules in their order, then the others by name."""
-    found = {m.name for m in pkgutil.iter_modules(__path__) if m.ispkg and not m.name.startswith("_")}
+    found = {m.name for m in pkgutil.iter_modules(__path__) if m.ispkg and not m.name.startswith("_")
+             and m.name not in RESERVED}
     return tuple(n for n in _ORDER if n in found) + tuple(sorted(found - set(_ORDER)))
 
 

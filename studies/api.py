@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -252,7 +252,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
            linearization: str | None = None, radius: float | None = None, gate: float | None = None,
            exchange: str | None = None, robustness: float | None = None, rounds: int | None = None,
-           bank: int | None = None,
+           bank: int | None = None, budget: int | str | None = None, budget_bytes: int | None = None,
+           validate: int | None = None, auto_seconds: float | None = None,
            options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
            overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -263,12 +264,20 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     ----------
     scenario : str, path, Scenario or designer.Model
         What to design for; it needs a sensor network (a model file's ``NETWORK``).
-    mode : str, the name of a gain rule (:mod:`rules`)
-        The paper's fixed choices or the convex tuning layer (both ``local``: computed online at
-        each node), the mean-square-error gains (``global``: an oracle needing the network's
-        joint state, a reference of what the structure can reach, not a design to deploy), or the
-        gains designed offline for the attack statistics that every node applies with what it knows
-        (``scheduled``, :mod:`rules.scheduled.design`) (default: paper).
+    mode : str, ``'auto'`` or the name of a gain rule (:mod:`rules`)
+        ``'auto'`` (the default, unless the model's ``DESIGN`` names a rule): every deployable rule's candidate
+        designs, and the pick (:mod:`studies.auto`): the certified one inside the budget with the smallest predicted
+        error.  A rule's name designs that rule: e.g. ``relay`` and ``flood`` (every measurement relayed over L hops,
+        computed online at each node), ``scheduled`` (gains designed offline for the attack statistics), ``paper``
+        and ``tuned`` (the consensus paper's fixed choices and the convex tuning of its conditions), ``mse`` (an
+        oracle needing the network's joint state: a reference, not a design to deploy).
+    budget, budget_bytes, auto_seconds
+        Mode ``auto``: the most messages per step over the network (a whole number, or ``'kcf'``: no more than KCF
+        sends), the most bytes per step, and the seconds the candidates may take (default
+        :data:`studies.auto.AUTO_SECONDS`).
+    validate : int, optional
+        Mode ``auto``: fresh Monte Carlo runs of the pick beside KCF, HCMCI, the local and the centralized EKF
+        (default :data:`studies.auto.VALIDATE_RUNS`; 0: none).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
@@ -285,7 +294,9 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
 
     Returns
     -------
-    Design
+    Design or studies.auto.AutoDesign
+        Mode ``auto``: an :class:`studies.auto.AutoDesign` (``.candidates``, ``.pick`` (a Design or None),
+        ``.outcome``, ``.message``, ``.certified``, ``.validation``, ``.save(directory)``).  Otherwise a Design:
         ``.gain_rule`` (:class:`designer.rule.GainRule`: its ``runtime``, what a node ``needs``
         to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``,
         ``.verdict`` (``certified``, ``vacuous``, ``not steady`` or ``infeasible``:
@@ -309,9 +320,28 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
                                   robustness=robustness, rounds=rounds, bank=bank))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
-    memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
+    from .auto import AUTO
+
+    auto = (opts.mode or (sc.design.mode if sc.design is not None else None) or AUTO) == AUTO
+    if not auto:
+        given = [k for k, v in (("budget", budget), ("budget_bytes", budget_bytes), ("validate", validate),
+                                ("auto_seconds", auto_seconds)) if v is not None]
+        if given:
+            raise InputError(f"{', '.join(given)} {'is an option' if len(given) == 1 else 'are options'} of mode "
+                             f"'auto' (the automatic design), not of mode {opts.mode or sc.design.mode!r}")
+        memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
+    else:
+        from .auto import check_auto
+
+        check_auto(sc, budget, budget_bytes, validate, auto_seconds)
     with writing(out):  # the one-writer lock, taken before any computation
-        res = run_design(sc, opts, steps=steps, seed=seed)
+        if auto:
+            from .auto import run_auto
+
+            res = run_auto(sc, replace(opts, mode=None), steps=steps, seed=seed, budget=budget,
+                           budget_bytes=budget_bytes, validate=validate, seconds=auto_seconds)
+        else:
+            res = run_design(sc, opts, steps=steps, seed=seed)
         if out is not None:
             res.save(out)
     return res

@@ -8,6 +8,7 @@ script and the command line give the same numbers.  Errors: one line on stderr; 
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import sys
 import traceback
@@ -37,11 +38,15 @@ def cli() -> None:
     """cfdesign: design and compare attack-resilient consensus and particle filters."""
 
 
-def _design_options(f):
-    """The design options every design command shares (``design``, ``feasibility``, ``study``)."""
+def _design_options(f, *, auto: bool = False):
+    """The design options every design command shares (``design``, ``feasibility``, ``study``); ``auto``: the
+    command's default mode is the automatic design (``design``)."""
+    rule_help = "; ".join(r.help for r in rules.all_rules().values())
     opts = [
-        click.option("--mode", type=click.Choice(list(rules.names())), default=None,
-                     help="; ".join(r.help for r in rules.all_rules().values()) + f" [default: {rules.DEFAULT}]"),
+        click.option("--mode", type=click.Choice((["auto"] if auto else []) + list(rules.names())), default=None,
+                     help=("auto: every deployable rule's candidate designs, and the certified one inside --budget "
+                           "with the smallest predicted error; " + rule_help + " [default: auto]") if auto else
+                     rule_help + f" [default: {rules.DEFAULT}]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
         click.option("--beta", type=float, default=None, help="beta of (27), paper mode [default: 0.1]"),
@@ -219,16 +224,32 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
 
 @cli.command("design")
 @click.argument("scenario")
-@_design_options
+@functools.partial(_design_options, auto=True)
+@click.option("--budget", default=None, metavar="MSGS|kcf",
+              help="mode auto: the most messages per step over the network, a whole number >= 1, or kcf (no more "
+                   "than KCF sends: one per directed channel) [default: no cap]")
+@click.option("--budget-bytes", "budget_bytes", type=int, default=None, metavar="B",
+              help="mode auto: the most bytes per step over the network (8 per number a packet carries), >= 1 "
+                   "[default: no cap]")
+@click.option("--validate", type=int, default=None, metavar="R",
+              help="mode auto: fresh Monte Carlo runs of the pick beside KCF, HCMCI, the local and the centralized "
+                   "EKF, >= 0 [default: 20]")
+@click.option("--auto-seconds", "auto_seconds", type=float, default=None, metavar="S",
+              help="mode auto: seconds the candidate designs may take; one not done by then is listed as not "
+                   "computed, > 0 [default: 45]")
 @click.option("--steps", type=int, default=None, help="time steps (default: the scenario's)")
 @click.option("--seed", type=int, default=0, show_default=True, help="seed of the simulated run")
-@click.option("--out", required=True, help="output directory (schedule.json, schedule.npz, report)")
+@click.option("--out", required=True, help="output directory (schedule.json, schedule.npz, report; mode auto: "
+                                           "candidates.json, validation.json)")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
-    """Design the consensus filter of SCENARIO (a built-in name or a MODEL.py file) and write its gain schedule."""
+    """Design the consensus filter of SCENARIO (a built-in name or a MODEL.py file) and write its gain schedule:
+    by default the automatic design (every deployable rule's candidates, the best certified one picked)."""
     from .api import design
 
     res = design(scenario, steps=steps, seed=seed, out=out, assignments=assignments, **_options(kw))
+    if hasattr(res, "candidates"):
+        return _auto_lines(res, out)
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
                f"gain rule: {res.gain_rule.label}, epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, "
@@ -248,6 +269,30 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
         raise ComputationError(f"infeasible design: {res.reason()} (schedule written, marked feasible: false)")
     if not res.certified:
         raise ComputationError(f"design {res.verdict_line()} (schedule written, marked certified: false)")
+    click.echo(f"  {res.verdict_line()}")
+
+
+def _auto_lines(res, out: str) -> None:
+    """What ``cfdesign design --mode auto`` prints: the candidates, the pick, the validation; exit 1 without an
+    eligible pick (:class:`studies.auto.AutoDesign`)."""
+    click.echo(f"wrote {out}/candidates.json" + (", schedule.json, schedule.npz" if res.pick is not None else "")
+               + (", validation.json" if res.validation is not None else "") + f" and report.html: "
+               f"{len(res.candidates)} candidates in {res.seconds:.1f} s")
+    for i, c in enumerate(res.candidates):
+        what = (f"{c.verdict}" + (f", predicted tr Φ {c.predicted:.4g}" if c.predicted is not None else "")
+                if c.status == "designed" else f"{c.status}: {(c.reason or '')[:100]}")
+        flags = "".join([" [pick]" if i == res.pick_index else "", "" if c.in_budget else " [over budget]",
+                         " [no better than local EKFs]" if c.better_than_local is False else ""])
+        click.echo(f"  {c.label:44s} {c.messages:5d} msgs {c.bytes:8d} B/step  {what}{flags}")
+    if res.validation is not None:
+        for name, f in res.validation["filters"].items():
+            rmse = f.get("rmse")
+            if isinstance(rmse, (int, float)):
+                click.echo(f"  validation, {res.validation['runs']} fresh runs: {f['filter']}: RMSE {rmse:.4g}"
+                           + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
+    if not res.certified:
+        raise ComputationError(res.message + (" (the best design inside the budget is written, not certified)"
+                                              if res.pick is not None else ""))
     click.echo(f"  {res.verdict_line()}")
 
 

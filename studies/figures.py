@@ -42,7 +42,7 @@ from .feasibility_terms import FAILED, MAP_CATEGORIES, MAP_COLOURS, MAP_WORDS, m
 
 __all__ = ["FIGURE_DPI", "plotting", "save_figure", "png_tight", "figure_batch", "draw_figures", "FigureHelper",
            "PALETTE", "filter_colours", "legend_beside", "trajectory_figure", "curves_figure", "tradeoff_figure",
-           "TRADEOFF", "map_figure"]
+           "TRADEOFF", "map_figure", "candidates_figure"]
 
 FIGURE_DPI = 110
 # One colour per filter in every figure of a study (:func:`filter_colours`): matplotlib's tab10 without its grey
@@ -435,6 +435,63 @@ def tradeoff_figure(path: Path, blocks: Sequence) -> None:
     notes = (["messages"] if counted else []) + (["hollow: a reference, never the pick"] if refs else [])
     legend_beside(axes[0, -1], title="filter" + (f" ({'; '.join(notes)})" if notes else ""), title_fontsize=7)
     save_figure(fig, path)
+
+
+def candidates_figure(path: Path, candidates: Sequence[Mapping], references: Mapping, measured: Mapping,
+                      pick: int | None, title: str) -> bool:
+    """An automatic design's figure (:mod:`studies.auto`): each designed candidate's predicted error (node-average
+    tr Φ at the horizon) against its bytes per step (filled: certified; hollow: not), the frontier of the certified
+    ones (the least error for at most that many bytes), the pick ringed; the centralized and the local EKFs'
+    steady-state tr P at their cost, and, after a validation, the measured mean squared errors (``measured``: name ->
+    (bytes per step, mean ‖e‖²), squares) of the pick, KCF, HCMCI and the EKFs.  Nothing is drawn (False) when no
+    candidate has a predicted error."""
+    pts = [(i, c) for i, c in enumerate(candidates) if isinstance(c.get("predicted_trace"), (int, float))
+           and c["predicted_trace"] > 0 and isinstance(c.get("bytes_per_step"), (int, float))]
+    if not pts:
+        return False
+    fig, ax = plotting().subplots(1, 1, figsize=(9.6, 5.0))
+    rules_ = sorted({str(c.get("rule")) for _, c in pts})
+    colours = filter_colours(rules_)
+    for r in rules_:
+        mine = [(i, c) for i, c in pts if str(c.get("rule")) == r]
+        for certified in (True, False):
+            sel = [c for _, c in mine if bool(c.get("certified")) is certified]
+            if sel:
+                ax.scatter([max(c["bytes_per_step"], 1) for c in sel], [c["predicted_trace"] for c in sel], s=36,
+                           color=colours[r], facecolors=colours[r] if certified else "white", zorder=3,
+                           label=f"{r}{'' if certified else ' (not certified)'}")
+    cert = sorted((max(c["bytes_per_step"], 1), c["predicted_trace"]) for _, c in pts if c.get("certified"))
+    front, best = [], math.inf
+    for b, v in cert:
+        if v < best:
+            best = v
+            front.append((b, v))
+    if front:
+        ax.step([b for b, _ in front], [v for _, v in front], where="post", color="0.3", lw=1, zorder=2,
+                label="frontier of the certified candidates")
+    if pick is not None and 0 <= pick < len(candidates):
+        c = candidates[pick]
+        if isinstance(c.get("predicted_trace"), (int, float)):
+            ax.scatter([max(c["bytes_per_step"], 1)], [c["predicted_trace"]], s=180, facecolors="none",
+                       edgecolors="k", linewidths=1.5, zorder=4, label=f"the pick: {c.get('label')}")
+    for name, key, marker in (("centralized EKF", "centralized", "D"), ("local EKFs", "local_mean", "v")):
+        v, cost = references.get(key), (references.get("costs") or {}).get(name) or {}
+        if isinstance(v, (int, float)) and math.isfinite(v) and v > 0:
+            ax.scatter([max(cost.get("bytes_per_step") or 0, 1)], [v], marker=marker, s=50, color="0.5", zorder=3,
+                       label=f"{name}: steady-state tr P (predicted)")
+    for name, (b, v) in measured.items():
+        if isinstance(v, (int, float)) and v > 0 and math.isfinite(v):
+            ax.scatter([max(b or 0, 1)], [v], marker="s", s=40, facecolors="none", edgecolors="C3", zorder=3)
+            ax.annotate(name, (max(b or 0, 1), v), fontsize=7, xytext=(4, 3), textcoords="offset points")
+    if measured:
+        ax.scatter([], [], marker="s", facecolors="none", edgecolors="C3", label="measured on the fresh runs: mean "
+                                                                                "squared error")
+    ax.set(xscale="log", yscale="log", xlabel="bytes per step over the network (log scale; 0 drawn at 1)",
+           ylabel="node-average tr Φ at the horizon (log scale)", title=title)
+    ax.grid(True, which="both", alpha=0.3)
+    legend_beside(ax, title="candidates and references", title_fontsize=7)
+    save_figure(fig, path)
+    return True
 
 
 def _plain_log_ticks(axis) -> None:

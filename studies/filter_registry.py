@@ -31,7 +31,7 @@ from designer.rule import FILTER_RUNTIMES
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import run_consensus_batch
-from filters.distributed import HCMCINetwork, KCFNetwork, run_hcmci_batch, run_kcf_batch
+from filters.distributed import HCMCINetwork, KCFNetwork, hcmci_payload, kcf_payload, run_hcmci_batch, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.node import node_network
 from filters.particle import run_sir
@@ -118,7 +118,9 @@ class FilterEntry(NamedTuple):
     channel (the same numbers at every setting: run once, at the main one); ``counts_delivered``: the study
     reports the packets it received; ``rounds``: it runs ``iterations`` consensus rounds per step;
     ``particles``: it needs the study's particles; ``node_filters(model, network, design, iterations)``: its node
-    filters, every node of the network to drive a step at a time (:mod:`filters.node`; None: it has none).
+    filters, every node of the network to drive a step at a time (:mod:`filters.node`; None: it has none);
+    ``payload(model, network, iterations)``: the numbers it sends per step (what its messages carry; None: not
+    counted here: a designed filter's is its gain rule's, :meth:`designer.rule.GainRule.payload`).
     """
 
     name: str
@@ -136,6 +138,7 @@ class FilterEntry(NamedTuple):
     particles: bool = False
     derive: Callable | None = None
     node_filters: Callable | None = None
+    payload: Callable | None = None  # (model, network, iterations) -> numbers sent per step (None: not counted)
 
     def design_for(self, design: ConsensusDesign, model) -> ConsensusDesign:
         """The design it runs with, from the design of its gain rule ``mode`` (``derive(design, model)``: e.g. the
@@ -255,7 +258,8 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
         return node_network(model, SensorNetwork(n, np.zeros((n, n), int), require_connected=False), design)
 
     return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode=rules.PUBLISHED, attacked=False,
-                       derive=lambda design, model: local_ekf_design(design), node_filters=nodes)
+                       derive=lambda design, model: local_ekf_design(design), node_filters=nodes,
+                       payload=lambda model, network, iterations: 0)
 
 
 def kcf(name: str, description: str) -> FilterEntry:
@@ -267,7 +271,8 @@ def kcf(name: str, description: str) -> FilterEntry:
                              attacks=batch.attack_rows(js))
 
     return FilterEntry(name, "consensus", "local", description, run, _links, counts_delivered=True,
-                       node_filters=lambda model, network, design, iterations: KCFNetwork(model, network))
+                       node_filters=lambda model, network, design, iterations: KCFNetwork(model, network),
+                       payload=lambda model, network, iterations: kcf_payload(model.n_x, network))
 
 
 def hcmci(name: str, description: str) -> FilterEntry:
@@ -281,7 +286,8 @@ def hcmci(name: str, description: str) -> FilterEntry:
     return FilterEntry(name, "consensus", "local", description, run, _links_per_round, counts_delivered=True,
                        rounds=True,
                        node_filters=lambda model, network, design, iterations: HCMCINetwork(model, network,
-                                                                                           iterations=iterations))
+                                                                                           iterations=iterations),
+                       payload=lambda model, network, iterations: hcmci_payload(model.n_x, network, iterations))
 
 
 def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
@@ -301,7 +307,8 @@ def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
         return local_ekf_design(design)._replace(V=(np.zeros((n_z, n_z)),))
 
     return FilterEntry(name, "centralized", "centralized", description, run, _uplinks, mode=rules.PUBLISHED,
-                       attacked=False, derive=derive)
+                       attacked=False, derive=derive,
+                       payload=lambda model, network, iterations: int(sum(model.sensor_dims)))
 
 
 def replayed_schedule(name: str, description: str, gains: tuple) -> FilterEntry:

@@ -30,7 +30,7 @@ from .reports import write_report
 from .reports.study import summary_blocks
 from .scenarios import model_inputs
 
-__all__ = ["write_outputs", "study_figures", "figure_helper", "save_study", "save_design", "save_map",
+__all__ = ["write_outputs", "study_figures", "figure_helper", "save_study", "save_design", "save_auto", "save_map",
            "filter_report"]
 
 
@@ -118,6 +118,22 @@ def save_design(design, directory) -> Path:
     check_apart("directory", directory, model_inputs(design.scenario))
     with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
         design.schedule.write(stage)
+        write_report(stage)
+    return Path(directory)
+
+
+def save_auto(auto, directory) -> Path:
+    """Write a :class:`studies.auto.AutoDesign` into ``directory``: its pick's files as :func:`save_design` writes them
+    (none when no candidate was designed), ``candidates.json``, ``validation.json`` (after a validation) and the
+    report, whose automatic-design section draws ``fig_candidates.png`` (:meth:`studies.auto.AutoDesign.save`;
+    refused when the directory is, lies inside or contains the model's files)."""
+    check_apart("directory", directory, model_inputs(auto.scenario))
+    with replaced_outputs(directory) as stage:
+        if auto.pick is not None:
+            auto.pick.schedule.write(stage)
+        write_json(stage / "candidates.json", auto.record())
+        if auto.validation is not None:
+            write_json(stage / "validation.json", auto.validation)
         write_report(stage)
     return Path(directory)
 

@@ -70,7 +70,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 import multiprocessing
 import numpy as np
@@ -83,8 +83,8 @@ from .interrupts import Interrupts
 from .memory import available_memory
 from .progress import counter, progress
 
-__all__ = ["Backend", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo", "MonteCarloResult", "RunFailed",
-           "CHUNKS_DIR"]
+__all__ = ["Backend", "Timed", "run_forked", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo",
+           "MonteCarloResult", "RunFailed", "CHUNKS_DIR"]
 
 _MANIFEST_SCHEMA = "cfdesign.chunks/2"
 _META = "__cfdesign_chunk__"  # the entry of a chunk file that says what it is
@@ -487,6 +487,103 @@ class Background:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+
+
+class Timed(NamedTuple):
+    """One call of :func:`run_forked`: ``status`` ``'done'`` (``value`` is its result), ``'failed'`` (``value`` is
+    the exception's text) or ``'timeout'`` (it did not end before the deadline: ``value`` is None); ``seconds`` its
+    wall time (up to the deadline)."""
+
+    status: str
+    value: Any
+    seconds: float
+
+
+def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
+               deadline: float | None = None) -> list[Timed]:
+    """Each of ``calls`` (functions of no argument) computed in a forked child, at most ``workers`` at once (default:
+    :func:`designer.cores.usable_cores`), in their order; a call still running at ``deadline`` (a
+    ``time.monotonic()`` instant) is killed, and one not started by then is not started (both ``'timeout'``).
+
+    For independent computations of one command that may be too slow to wait for (the candidates of an automatic
+    design, :mod:`studies.auto`).  Each child sends its result back pickled through a pipe (read as it arrives, so
+    a large result never blocks it); a child that raised, died or sent what does not unpickle is ``'failed'``.  With
+    one usable core or where the platform does not fork, the calls run here one after the other (a call started
+    before the deadline runs to its end).  The numbers do not depend on where they were computed.
+    """
+    import select
+
+    from designer.cores import usable_cores
+
+    workers = usable_cores() if workers is None else max(1, int(workers))
+    out: list[Timed | None] = [None] * len(calls)
+    if workers < 2 or not sys.platform.startswith("linux"):
+        for j, call in enumerate(calls):
+            t0 = time.monotonic()
+            if deadline is not None and t0 >= deadline:
+                out[j] = Timed("timeout", None, 0.0)
+                continue
+            try:
+                out[j] = Timed("done", call(), time.monotonic() - t0)
+            except (InputError, ComputationError, ArithmeticError, ValueError, MemoryError) as exc:
+                out[j] = Timed("failed", f"{type(exc).__name__}: {exc}", time.monotonic() - t0)
+        return out  # type: ignore[return-value]
+    parent, pending, running = os.getpid(), list(range(len(calls))), {}  # fd -> (j, pid, chunks, start)
+    try:
+        while pending or running:
+            now = time.monotonic()
+            while pending and len(running) < workers:
+                j = pending.pop(0)
+                if deadline is not None and now >= deadline:
+                    out[j] = Timed("timeout", None, 0.0)
+                    continue
+                r, w = os.pipe()
+                pid = fork_worker(parent)
+                if pid == 0:  # pragma: no cover - the child
+                    try:
+                        os.close(r)
+                        try:
+                            payload = pickle.dumps(("done", calls[j]()))
+                        except BaseException as exc:  # noqa: BLE001 - reported to the parent as the call's failure
+                            payload = pickle.dumps(("failed", f"{type(exc).__name__}: {exc}"))
+                        with os.fdopen(w, "wb") as fh:
+                            fh.write(payload)
+                    finally:
+                        os._exit(0)
+                os.close(w)
+                running[r] = (j, pid, [], now)
+            if not running:
+                continue
+            wait_s = None if deadline is None else max(0.0, deadline - time.monotonic())
+            ready, _, _ = select.select(list(running), [], [], wait_s)
+            if not ready and deadline is not None and time.monotonic() >= deadline:
+                for fd, (j, pid, _, start) in list(running.items()):
+                    os.kill(pid, signal.SIGKILL)
+                    os.waitpid(pid, 0)
+                    os.close(fd)
+                    out[j] = Timed("timeout", None, time.monotonic() - start)
+                    del running[fd]
+                continue
+            for fd in ready:
+                j, pid, chunks, start = running[fd]
+                data = os.read(fd, 1 << 20)
+                if data:
+                    chunks.append(data)
+                    continue
+                os.close(fd)
+                os.waitpid(pid, 0)
+                del running[fd]
+                try:
+                    status, value = pickle.loads(b"".join(chunks))
+                except Exception:  # noqa: BLE001 - the child died before sending a result
+                    status, value = "failed", "the process computing it ended without a result"
+                out[j] = Timed(status, value, time.monotonic() - start)
+    finally:
+        for fd, (j, pid, _, _) in running.items():  # an exception or Ctrl-C here: no child lives on
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            os.close(fd)
+    return out  # type: ignore[return-value]
 
 
 def worker_init(parent: int) -> None:

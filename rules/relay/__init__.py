@@ -49,6 +49,16 @@ class Relay(GainRule):
 
         return default_hops(network)
 
+    def candidates(self, network):
+        """Every hop count from 1 to its default (the network's diameter, at most 8): more hops, more of the network
+        in each node's ball, more numbers relayed."""
+        return [{"rounds": L} for L in range(1, self.rounds(network) + 1)]
+
+    def payload(self, model, network, design):
+        from .design import relay_payload
+
+        return relay_payload(network, model.sensor_dims, design.rounds, self.routing)
+
     def record_notes(self):
         from .study import RECORD_NOTES
 

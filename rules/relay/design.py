@@ -48,7 +48,7 @@ ROUTINGS = ("tree", "flood")
 #: What a packet of a rule that relays carries (``ConsensusDesign.exchange``): the measurements relayed.
 RELAY = "relay"
 
-__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
+__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "relay_payload",
            "pair_sum", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
 
@@ -271,6 +271,20 @@ def default_hops(network: SensorNetwork) -> int:
     """The hops of a relay design that gives none: the network's diameter, at most :data:`DEFAULT_HOPS_MAX` (1 for
     a network without edges)."""
     return max(1, min(diameter(network), DEFAULT_HOPS_MAX))
+
+
+def relay_payload(network: SensorNetwork, sensor_dims, hops: int, routing: str = "tree") -> int:
+    """The numbers relayed per step over ``hops`` rounds: each relayed measurement carries its values and its
+    sensor's index (one number).  ``'tree'``: every sensor ``s``'s measurement crosses one channel into each node
+    within ``hops`` hops of ``s`` (its route's last channel), once; ``'flood'``: every node forwards each
+    measurement it holds after fewer than ``hops`` rounds (its own included) to all its neighbours."""
+    hops = check_int("hops", hops, 1, MAX_HOPS)
+    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)  # (s, i)
+    size = np.asarray(sensor_dims, dtype=int) + 1
+    if routing == "tree":
+        return int(((dist >= 1) & (dist <= hops)).sum(axis=1) @ size)
+    degree = np.asarray(network.adjacency, dtype=bool).sum(axis=1)
+    return int(size @ (dist <= hops - 1) @ degree)
 
 
 def relay_routes(network: SensorNetwork, hops: int, routing: str = "tree") -> Routes:

@@ -17,6 +17,10 @@ class Scheduled(GainRule):
                "each node with its own Jacobians and covariance")
     offline_tables = True
 
+    def candidates(self, network):
+        """One exchange round per step (the rounds it certifies), with and without the senders' measurements."""
+        return [{"exchange": e, "rounds": 1} for e in ("measurements", "predictions")]
+
     def record_notes(self):
         from .study import RECORD_NOTES
 

@@ -89,6 +89,10 @@ def write_report(directory, into=None) -> tuple[Path, Path]:
         make = partial(design_report, into=out)
     elif (d / "feasibility.csv").is_file():
         from .feasibility import feasibility_report as make
+    elif (d / "candidates.json").is_file():
+        from .auto import auto_report
+
+        make = partial(auto_report, into=out)
     else:
         wanted = "; ".join(f"{name} ({what})" for name, what in KINDS)
         raise InputError(f"directory {str(d)!r} has no results.json, schedule.json or feasibility.csv: nothing to "

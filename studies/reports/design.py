@@ -24,6 +24,7 @@ import numpy as np
 
 
 import studies.reports.text as text  # the formatting a rule's report words use
+from .auto import auto_section
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
                    recorded_elsewhere, rerun_lines, scenario_spec)
@@ -769,8 +770,9 @@ def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
 
 
 def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | None = None,
-                  figures: list[str] = (), note: str | None = None) -> str:
-    """The design report as Markdown from ``schedule.json`` (``meta``) and ``schedule.npz`` (``arrays``)."""
+                  figures: list[str] = (), note: str | None = None, extra: list[str] | None = None) -> str:
+    """The design report as Markdown from ``schedule.json`` (``meta``) and ``schedule.npz`` (``arrays``); ``extra``:
+    the automatic design's sections (:func:`studies.reports.auto.auto_section`), after the verdict."""
     s = _Schedule(meta, arrays)
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else "unknown"
@@ -780,7 +782,7 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
             "numbered from 0, as in `schedule.json`.", "", *_runtime_lines(meta)]
     tight = _tightest(s) if s.m28 is not None and s.m29 is not None else []
     return document(head, [
-        _verdict_section(s, tight), _conditioning_section(meta), _binding_section(s, tight),
+        _verdict_section(s, tight), extra or [], _conditioning_section(meta), _binding_section(s, tight),
         _figure_section(list(figures)),
         _node_section(s), _meaning_section(s), _settings_section(s), _linearisation_section(meta),
         _attack_section(meta), _network_section(meta), observability_section(meta), _scenario_section(meta),
@@ -812,5 +814,10 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
         if s.m28 is not None and s.m29 is not None and s.m28.size:
             _margin_figure(into / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
             figures.append("fig_margins.png")
+        auto = auto_section(d, into) if (d / "candidates.json").is_file() else None
+    if auto is not None:
+        figures += auto[1]
     images = {name: (into / name).read_bytes() for name in figures}
-    return render_design(meta, arrays, figures, note), images, f"cfdesign design report: {scenario}"
+    md = render_design(meta, arrays, [f for f in figures if auto is None or f not in auto[1]], note,
+                       extra=None if auto is None else auto[0])
+    return md, images, f"cfdesign design report: {scenario}"

@@ -12,6 +12,10 @@ name                  file                                validates
                                                           :func:`log_json` reads it
 ``log_csv``           ``log_csv.schema.json``             one row of a CSV log as :func:`read_log_csv_rows`
                                                           reads it
+``candidates``        ``candidates.schema.json``          ``candidates.json`` of an automatic design
+                                                          (``cfdesign.candidates/1``)
+``validation``        ``validation.schema.json``          ``validation.json`` of an automatic design's
+                                                          validation (``cfdesign.validation/1``)
 ====================  ==================================  ====================================================
 
 The files are the contract (other tools read them with any JSON Schema validator);
@@ -50,6 +54,8 @@ SCHEMAS: dict[str, str] = {
     "feasibility_json": "feasibility_json.schema.json",
     "log": "log.schema.json",
     "log_csv": "log_csv.schema.json",
+    "candidates": "candidates.schema.json",
+    "validation": "validation.schema.json",
 }
 
 # output file name -> the schema it follows (feasibility.csv: each of its rows)
@@ -58,6 +64,8 @@ FILES: dict[str, str] = {
     "schedule.json": "schedule",
     "feasibility.csv": "feasibility",
     "feasibility.json": "feasibility_json",
+    "candidates.json": "candidates",
+    "validation.json": "validation",
 }
 
 # A number in a CSV file the commands read (a log, feasibility.csv): decimal notation only, digits with one optional

@@ -1,0 +1,210 @@
+"""The automatic design (``cfdesign design`` without ``--mode``, :mod:`studies.auto`): its pick, its budget, its
+costs, its processes and its files.
+
+The pick's rule is checked on made-up candidates (the order of the criteria, the tie, the budget, the nodes-alone
+test); the costs against independent counts (the relay tree's routes, a flood simulated round by round); the
+end-to-end design against a design of the picked rule made on its own (the same numbers) and the schemas.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import time
+
+import numpy as np
+import pytest
+
+import rules
+from designer import SensorNetwork
+from designer.validation import InputError
+from studies.auto import TIE, Candidate, message_budget, predicted_error
+from studies.runner import run_forked
+
+
+def _cand(rule="relay", predicted=1.0, certified=True, messages=10, nbytes=100, in_budget=True, better=True,
+          status="designed", **kw) -> Candidate:
+    return Candidate(rule=rule, options=kw, rounds=kw.get("rounds", 1), exchange="relay", messages=messages,
+                     bytes=nbytes, status=status, verdict="certified" if certified else "vacuous",
+                     certified=certified, predicted=predicted, in_budget=in_budget, better_than_local=better)
+
+
+def _choose(cands, cap=None, cap_bytes=None):
+    from studies import auto
+
+    return auto._choose(cands, cap, cap_bytes)  # noqa: SLF001 - the module's own rule, tested on made-up rows
+
+
+def test_the_pick_is_the_eligible_candidate_with_the_smallest_predicted_error():
+    cands = [_cand(predicted=2.0, rounds=1), _cand(predicted=0.5, certified=False, rounds=2),
+             _cand(predicted=1.0, rounds=3), _cand(predicted=0.7, in_budget=False, rounds=4),
+             _cand(predicted=0.6, better=False, rounds=5), _cand(predicted=0.8, rounds=6)]
+    i, outcome, message = _choose(cands)
+    assert (i, outcome) == (5, "picked")
+    assert "rounds=6" in message
+
+
+def test_a_tie_within_the_tolerance_goes_to_the_fewest_bytes_and_beyond_it_does_not():
+    near = 1.0 * (1 + TIE / 2)
+    i, _, _ = _choose([_cand(predicted=1.0, nbytes=500), _cand(predicted=near, nbytes=100)])
+    assert i == 1
+    far = 1.0 * (1 + 2 * TIE)
+    i, _, _ = _choose([_cand(predicted=1.0, nbytes=500), _cand(predicted=far, nbytes=100)])
+    assert i == 0
+
+
+def test_no_certified_candidate_in_the_budget_names_the_cheapest_certified_one_outside_it():
+    cands = [_cand(predicted=1.0, certified=False, messages=10, rounds=1),
+             _cand(predicted=0.5, in_budget=False, messages=40, rounds=4),
+             _cand(predicted=0.6, in_budget=False, messages=20, rounds=2)]
+    i, outcome, message = _choose(cands, cap=10)
+    assert outcome == "none in budget"
+    assert i == 0  # the best design inside the budget is written, its verdict its own
+    assert "rounds=2" in message and "10 messages" in message
+
+
+def test_certified_but_no_better_than_the_nodes_alone_is_never_picked():
+    i, outcome, _ = _choose([_cand(predicted=1.0, better=False)])
+    assert outcome == "none better than local"
+    i, outcome, _ = _choose([_cand(status="cannot start", predicted=None)])
+    assert (i, outcome) == (None, "nothing designed")
+
+
+def test_the_message_budget_reads_kcf_and_whole_numbers_and_refuses_the_rest():
+    net = SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3)])
+    assert message_budget("kcf", net) == 6 == net.messages_per_step()
+    assert message_budget("12", net) == 12 and message_budget(None, net) is None
+    for bad in ("0", "-3", "many", "1.5"):
+        with pytest.raises(InputError, match="budget"):
+            message_budget(bad, net)
+
+
+def test_predicted_error_is_the_node_average_over_the_last_window():
+    tr = np.vstack([np.arange(1.0, 13.0), 2 * np.arange(1.0, 13.0)])  # K = 12: W = 3
+    assert predicted_error(tr) == pytest.approx(np.mean([10, 11, 12, 20, 22, 24]))
+    tr[0, -1] = np.nan
+    assert predicted_error(tr) is None
+
+
+def _grid(rows, cols) -> SensorNetwork:
+    edges = [(r * cols + c, r * cols + c + 1) for r in range(rows) for c in range(cols - 1)]
+    edges += [(r * cols + c, (r + 1) * cols + c) for r in range(rows - 1) for c in range(cols)]
+    return SensorNetwork.from_edges(rows * cols, edges)
+
+
+@pytest.mark.parametrize("hops", [1, 2, 3, 5])
+def test_relay_payload_counts_every_route_pair_once(hops):
+    from rules.relay.design import relay_payload, relay_routes
+
+    net = _grid(3, 4)
+    dims = np.array([1, 2, 1, 3, 1, 1, 2, 1, 1, 1, 2, 1])
+    routes = relay_routes(net, hops, "tree")
+    expected = int(sum(dims[s] + 1 for s in routes.source))  # one transmission per (source, receiver) pair
+    assert relay_payload(net, dims, hops, "tree") == expected
+
+
+@pytest.mark.parametrize("hops", [1, 2, 4])
+def test_flood_payload_matches_a_flood_simulated_round_by_round(hops):
+    from rules.relay.design import relay_payload
+
+    net = _grid(3, 3)
+    adj = np.asarray(net.adjacency, dtype=bool)
+    dims = np.arange(1, 10)
+    held = {i: {i} for i in range(9)}  # what each node holds, by source
+    fresh = {i: {i} for i in range(9)}  # what it first received in the last round (its own in round 1)
+    sent = 0
+    for _ in range(hops):
+        arriving = {i: set() for i in range(9)}
+        for j in range(9):
+            for i in np.flatnonzero(adj[j]):
+                sent += sum(dims[s] + 1 for s in fresh[j])
+                arriving[int(i)] |= fresh[j]
+        fresh = {i: arriving[i] - held[i] for i in range(9)}
+        for i in range(9):
+            held[i] |= fresh[i]
+    assert relay_payload(net, dims, hops, "flood") == sent
+
+
+def test_every_deployable_rule_offers_candidates_and_an_oracle_none():
+    net = _grid(2, 3)
+    for name, rule in rules.all_rules().items():
+        cands = rule.candidates(net)
+        assert bool(cands) == rule.deployable, name
+    hops = rules.get("relay").rounds(net)
+    assert [c["rounds"] for c in rules.get("relay").candidates(net)] == list(range(1, hops + 1))
+
+
+def _sleep_then(x, seconds):
+    time.sleep(seconds)
+    return np.full(200_000, x)  # more than a pipe's buffer: read as it arrives
+
+
+def _fail():
+    raise ValueError("refused")
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_run_forked_returns_in_order_reports_failures_and_kills_at_the_deadline(workers):
+    calls = [functools.partial(_sleep_then, 1.0, 0.0), _fail, functools.partial(_sleep_then, 2.0, 30.0),
+             functools.partial(_sleep_then, 3.0, 0.0)]
+    t0 = time.monotonic()
+    if workers == 1:  # one after the other here: a call started before the deadline runs to its end
+        calls[2] = functools.partial(_sleep_then, 2.0, 0.0)
+    out = run_forked(calls, workers=workers, deadline=t0 + 3.0)
+    assert time.monotonic() - t0 < 20
+    assert [o.status for o in out] == ["done", "failed", "timeout" if workers == 2 else "done", "done"]
+    assert out[0].value[0] == 1.0 and out[3].value[-1] == 3.0 and out[0].value.size == 200_000
+    assert "ValueError: refused" in out[1].value
+
+
+def test_run_forked_past_the_deadline_starts_nothing():
+    out = run_forked([functools.partial(_sleep_then, 1.0, 0.0)], workers=2, deadline=time.monotonic() - 1)
+    assert out[0].status == "timeout"
+
+
+RING = "examples/ring_model.py"
+
+
+@pytest.mark.slow
+def test_auto_design_picks_a_certified_candidate_the_same_as_its_rule_designed_alone(tmp_path):
+    from studies import schemas
+    from studies.api import design
+
+    auto = design(RING, seed=1, steps=40, validate=4, out=tmp_path / "auto")
+    assert auto.certified and auto.outcome == "picked"
+    c = auto.candidates[auto.pick_index]
+    assert c.certified and c.in_budget
+    eligible = [x for x in auto.candidates if x.eligible]
+    assert c.predicted <= min(x.predicted for x in eligible) * (1 + TIE)
+    assert {x.rule for x in auto.candidates} == {n for n, r in rules.all_rules().items() if r.deployable}
+    alone = design(RING, mode=c.rule, seed=1, steps=40, **c.options)
+    assert np.array_equal(alone.trace_bound, auto.pick.trace_bound, equal_nan=True)
+    assert alone.verdict == auto.verdict
+    files = {p.name for p in schemas.validate_output(tmp_path / "auto")}
+    assert {"schedule.json", "candidates.json", "validation.json"} <= files
+    val = json.loads((tmp_path / "auto" / "validation.json").read_text())
+    assert val["runs"] == 4 and {"pick", "KCF", "HCMCI"} <= set(val["filters"])
+    report = (tmp_path / "auto" / "report.md").read_text()
+    assert "## Automatic design" in report and "## Validation" in report
+
+
+@pytest.mark.slow
+def test_auto_design_with_the_kcf_budget_sends_no_more_than_kcf(tmp_path):
+    from studies.api import design
+    from studies.scenarios import scenario_of
+
+    auto = design(RING, seed=1, steps=40, validate=0, budget="kcf")
+    kcf = scenario_of(RING).network.messages_per_step()
+    assert auto.budget["messages_per_step"] == kcf
+    assert all(x.in_budget == (x.messages <= kcf) for x in auto.candidates)
+    if auto.pick is not None:
+        assert auto.candidates[auto.pick_index].messages <= kcf
+
+
+def test_auto_options_are_refused_with_a_rule_before_any_computation(tmp_path):
+    from studies.api import design
+
+    with pytest.raises(InputError, match="budget"):
+        design(RING, mode="relay", budget=10, out=tmp_path / "d")
+    assert not (tmp_path / "d").exists()
+    with pytest.raises(InputError, match="budget"):
+        design(RING, budget="none", out=tmp_path / "e")
