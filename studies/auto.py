@@ -231,6 +231,22 @@ def _fields(options: DesignOptions, cand: dict) -> DesignOptions:
     return replace(options, **given)
 
 
+def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
+    """What ``design --mode NAME`` checks before computing (the options, the model at its operating point, the
+    memory a design needs): InputError naming the problem."""
+    from designer.design import make_design
+
+    from . import memory
+    from .design_options import rule_of
+
+    sc_c, opts = effective(sc, options)
+    x0, u0 = sc_c.operating_point
+    att = sc_c.resolved_attacks
+    make_design(sc_c.model, sc_c.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
+                signal=att.signal)
+    memory.check(memory.design_need(sc, options, steps))
+
+
 def _summary(design: Design) -> dict:
     """What the parent keeps of a candidate's design (its arrays stay in its process)."""
     meta = design.schedule.meta
@@ -241,7 +257,7 @@ def _summary(design: Design) -> dict:
 
 
 def _design_summary(sc: Scenario, options: DesignOptions, steps: int, seed: int) -> dict:
-    return _summary(run_design(sc, options, steps=steps, seed=seed))
+    return _summary(run_design(sc, options, steps=steps, seed=seed, screen=True))
 
 
 def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None, seed: int = 0,
@@ -251,9 +267,6 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     from designer.observability import kalman_references
 
     t0 = time.monotonic()
-    import os
-    if os.environ.get("CFDESIGN_AUTO_GUARD"):
-        raise RuntimeError("AUTO_GUARD_HIT")
     options = options or DesignOptions()
     seed = check_int("seed", seed, 0)
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
@@ -269,17 +282,27 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     plans = []
     for name, rule in rules.all_rules().items():
         for cand in rule.candidates(net):
+            opts = _fields(as_mode(base, name), cand)
             try:
-                opts = _fields(as_mode(base, name), cand)
-                effective(sc, opts)  # refused options or a model the rule does not take: cannot start
+                _check_candidate(sc, opts, steps)
             except InputError as exc:
-                plans.append((name, rule, cand, None, str(exc)))
-                continue
+                try:  # refused only with what the user gave: the user's input is bad, for every rule alike
+                    _check_candidate(sc, DesignOptions(mode=name, **cand), steps)
+                except InputError:
+                    plans.append((name, rule, cand, None, str(exc)))  # this rule cannot start on this model
+                    continue
+                raise
             plans.append((name, rule, cand, opts, None))
+    if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
+        raise InputError(next(p[4] for p in plans)) if plans else InputError(
+            "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
     plans.sort(key=lambda p: (p[1].offline_tables, p[0], sorted(p[2].items())))  # the cheap ones first
     todo = [j for j, p in enumerate(plans) if p[3] is not None]
     done = run_forked([lambda o=plans[j][3]: _design_summary(sc, o, steps, seed) for j in todo], workers=workers,
                       deadline=t0 + seconds)
+    refused = [d.value for d in done if d.status == "failed" and d.value.startswith("InputError: ")]
+    if len(refused) == len(done):  # every candidate refused the model's run (say h not finite at some step)
+        raise InputError(refused[0].split(": ", 1)[1])
     results = dict(zip(todo, done))
 
     candidates = []

@@ -334,8 +334,11 @@ class Design:
 
 
 def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
-               seed: int = 0) -> Design:
-    """Design the consensus filter of ``sc`` along a seeded simulated run (see the module docstring)."""
+               seed: int = 0, screen: bool = False) -> Design:
+    """Design the consensus filter of ``sc`` along a seeded simulated run (see the module docstring).
+
+    ``screen``: the run and its verdict only, as an automatic design screens its candidates (:mod:`studies.auto`):
+    no stationary certificate, no trade-off and no tables beyond the horizon (the same run, bounds and verdict)."""
     seed = check_int("seed", seed, 0)
     invocation = design_invocation(sc, options, steps=None if steps is None else check_int("steps", steps, 1),
                                    seed=seed)
@@ -350,8 +353,13 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
         # run: computed beside them, in a second process where there is a second core (the same numbers)
         extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) \
-            if rule.stationary_certificate else None
-        des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
+            if rule.stationary_certificate and not screen else None
+        if screen and rule.offline_tables:
+            des = des._replace(tables=rule.tables(m, net, des, steps, x0=x0, inputs=sc.inputs(steps),
+                                                  stationary=False))
+            complete = lambda: des  # noqa: E731 - the horizon's tables are all a screened run uses
+        else:
+            des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
         attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
