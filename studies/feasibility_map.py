@@ -213,8 +213,8 @@ def point_verdict(r, open_loop: float, nodes: int) -> str:
     A fixed point is bounded: certified or vacuous.  An iteration that stopped without one while the conditions held
     at every iterate is judged by its last bound (not bounded): "unbounded" (the trace grew past the iteration's
     limit: no finite bound) is vacuous; "no convergence" is vacuous when the last iterate's mean tr Φ over the nodes
-    is at or above the open loop (so some node's is), else certified (not bounded: the map's
-    "certified, not bounded").  (28), (29) or a diverged iteration is infeasible.
+    is at or above the open loop (so some node's is), else certified (not bounded: the map's category
+    "not bounded").  (28), (29) or a diverged iteration is infeasible.
     """
     if r.feasible:
         trace = np.trace(r.phi, axis1=1, axis2=2)[:, None]

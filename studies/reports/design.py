@@ -45,7 +45,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "source_digest", "source_seal", "model_digest", "observability",
           "kalman_references", "predicted_mse", "gate",
-          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
+          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "bounded", "growing",
+          "bounded_reason", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
           "bank_record", "remainder_structure"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
@@ -737,8 +738,10 @@ def _lead(meta: Mapping) -> str:
     lead = _VERDICT_LEAD[v]
     if v not in ("certified", "vacuous") or not isinstance(meta.get("bounded"), bool):
         return lead
+    if v == "vacuous":
+        return lead + ("; bounded" if meta["bounded"] else "; not bounded")
     if meta["bounded"]:
-        return lead + (" and bounded" if v == "certified" else "; bounded")
+        return lead + " and bounded"
     return lead + (", still growing at the horizon" if meta.get("growing") is True else "") + "; not bounded"
 
 

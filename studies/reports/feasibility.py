@@ -174,7 +174,7 @@ def _cell(row: Mapping | None) -> str:
     if cat == "vacuous":
         bound = fmt_num(row["trace_bound"], 3) if row["feasible"] else md_cell(row["binding"] or "no bound")
         return f"vacuous {bound}{dagger}"
-    if cat == "certified, not bounded":
+    if cat == "not bounded":
         return "not bounded: " + md_cell(row["binding"] or "no fixed point")
     if cat == "not computed":
         return "not computed: " + md_cell(row["binding"] or "the stationary certificate")
@@ -256,7 +256,7 @@ def _result_section(rows: Sequence[Mapping]) -> list[str]:
 def _legend() -> str:
     return ("A number is the steady-state trace bound (mean over nodes of tr Φ) of a certified point; \"vacuous\" "
             "marks a point whose bound (given where a fixed point exists) is at or above the open-loop covariance or "
-            "unbounded; \"not bounded\" a point certified below it whose iteration reached no fixed point; \"not "
+            "unbounded; \"not bounded\" a point below it (certified) whose iteration reached no fixed point; \"not "
             "computed\" one whose stationary certificate the rule did not compute; ✗ an infeasible point "
             "with the condition that failed ((28), (29)) or why; † a feasible point where Theorem 2's condition fails "
             "at its fixed point (no contradiction: see above).")
