@@ -381,9 +381,14 @@ class FeasibilityMap:
 
     @property
     def certified(self) -> np.ndarray:
-        """Whether each point's stationary bound is certified (finite, below the open loop; bounded where it is also
-        feasible: a fixed point)."""
-        return self.verdict == "certified"
+        """Whether each point is certified and bounded (the map's category ``certified``: a fixed point, finite and
+        below the stationary open loop at every node), shaped like the grid."""
+        return (self.verdict == "certified") & self.bounded
+
+    @property
+    def bounded(self) -> np.ndarray:
+        """Whether each point's stationary recursion reached a fixed point (``feasible``: the claim ``bounded``)."""
+        return np.array([bool(r["feasible"]) for r in self.rows]).reshape(self.shape)
 
     @property
     def verdict_counts(self) -> dict[str, int]:
