@@ -76,9 +76,9 @@ VERDICT_ASSUMPTIONS = (
     "open-loop covariance at the same step (the prior covariance propagated by P <- F P F^T + Q with F the "
     "linearisation at the operating point, no measurement); else it is vacuous. A certificate that was not "
     "computed is 'not computed' with the reason, never infeasible.",
-    f"verdict: 'bounded' is a separate claim (Theorem 2's kind): the bound is steady, i.e. at every node the median "
-    f"tr Phi over the last W = max({MIN_WINDOW}, ceil({WINDOW_FRACTION:g} K)) steps of the K-step horizon exceeds "
-    f"the median over the W steps before by at most {GROWTH_TOLERANCE:.0%} (a horizon shorter than "
+    f"verdict: 'bounded' is a separate claim (the bound settles): the bound is steady, i.e. at every node the "
+    f"median tr Phi over the last W = max({MIN_WINDOW}, ceil({WINDOW_FRACTION:g} K)) steps of the K-step horizon "
+    f"exceeds the median over the W steps before by at most {GROWTH_TOLERANCE:.0%} (a horizon shorter than "
     f"{2 * MIN_WINDOW} steps cannot show it), or it is a converged fixed point of the stationary recursion. A "
     "certified bound whose median still rises by more than that is reported 'certified, still growing at the "
     "horizon': a certificate over the horizon, not bounded.",

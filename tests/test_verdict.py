@@ -412,7 +412,8 @@ def test_the_studies_record_each_designed_filters_runs_by_verdict(tmp_path):
                     assert 0 <= row[f]["certified_runs"] <= row[f]["feasible_runs"]
         assert all("verdicts" not in res["filters"][f] for f in res["filters"] if f not in DESIGNED)
     # sigma = 0.1 breaks (28) on the wide prior at the first step: not run, infeasible in every run
-    assert res["filters"][PAPER_DESIGN]["verdicts"] == {"certified": 0, "vacuous": 0, "infeasible": 2, "not computed": 0}
+    assert res["filters"][PAPER_DESIGN]["verdicts"] == {"certified": 0, "vacuous": 0, "infeasible": 2,
+                                                         "not computed": 0}
     assert res["filters"][PAPER_DESIGN]["bounded_runs"] == 0
     assert main(["study", "consensus-robot", str(path), "--runs", "2", "--mode", "tuned", "--quiet",
                  "--out", str(tmp_path / "r")]) == 0

@@ -268,7 +268,9 @@ _BOUNDED_BY = {"steady": "steady: at every node its median over the last window 
 
 
 def _bounded_lines(s: _Schedule) -> list[str]:
-    """The separate claim ``bounded`` (Theorem 2's kind) and the ``growing`` qualifier in words; none for a file
+    """The separate claim ``bounded`` (Theorem 2's kind of claim: steady, or a stationary fixed point; the paragraph
+    does not name Theorem 2, whose sufficient condition the report discusses apart) and the ``growing`` qualifier in
+    words; none for a file
     written before them, or where the bound is not certified nor vacuous."""
     b = s.meta.get("bounded")
     if not isinstance(b, bool) or s.meta.get("verdict") not in ("certified", "vacuous"):
@@ -277,11 +279,11 @@ def _bounded_lines(s: _Schedule) -> list[str]:
     by = detail.get("bounded_by")
     if b:
         how = _BOUNDED_BY.get(by, _BOUNDED_BY["steady"])
-        line = f"**Bounded** (Theorem 2's kind of claim, separate from the certificate): {how}."
+        line = f"**Bounded** (a claim apart from the certificate, which is Theorem 1's bound at every step): {how}."
         if s.meta.get("growing") is True:
             line += " Along the run the bound still grows at the horizon; that qualifies the certificate only."
     else:
-        line = ("**Not bounded** (Theorem 2's kind of claim, separate from the certificate): "
+        line = ("**Not bounded** (a claim apart from the certificate, which is Theorem 1's bound at every step): "
                 f"{md_escape(str(s.meta.get('bounded_reason') or 'no reason recorded'))}."
                 + (" The certificate holds over the horizon: still growing at the horizon is a qualifier, not a "
                    "failure." if s.meta.get("verdict") == "certified" else ""))
