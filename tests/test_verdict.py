@@ -341,6 +341,48 @@ def test_a_design_too_short_to_show_steadiness_is_certified_not_bounded_and_exit
     assert sched["certified"] is True and sched["bounded"] is False and "too short" in sched["bounded_reason"]
 
 
+def test_a_scheduled_certificate_beyond_its_size_is_not_computed_never_infeasible(tmp_path, monkeypatch, capsys):
+    """The scheduled certificate is computed up to CERTIFICATE_MAX_DIM rows of the stacked error: beyond, the design
+    is feasible (nothing failed), its verdict 'not computed' with the reason, its stationary record too, and the
+    command exits 1 saying so; the limit lowered here below the small model's N n = 6 rows (the negative control: at
+    the real limit the same design is computed)."""
+    import rules.scheduled.certificate as certificate
+    import rules.scheduled.design as scheduled
+    import studies
+
+    path = _write(tmp_path, "small.py", SMALL)
+    computed = studies.design(path, mode="scheduled", steps=8)
+    assert computed.verdict != "not computed" and computed.schedule.meta["stationary_certificate"]["verdict"] != (
+        "not computed")
+    for module in (scheduled, certificate):
+        monkeypatch.setattr(module, "CERTIFICATE_MAX_DIM", 5)
+    res = studies.design(path, mode="scheduled", steps=9)  # another horizon: not the tables this process keeps
+    assert res.feasible and not res.hard_violations and res.verdict == "not computed" and not res.certified
+    assert not res.bounded and "6 rows" in res.verdict_detail["reason"]
+    stationary = res.schedule.meta["stationary_certificate"]
+    assert stationary["verdict"] == "not computed" and "6 rows" in stationary["reason"]
+    assert main(["design", str(path), "--mode", "scheduled", "--steps", "9", "--out", str(tmp_path / "d")]) == 1
+    err = capsys.readouterr().err
+    assert "not certified (not computed)" in err and "infeasible" not in err
+    sched = json.loads((tmp_path / "d" / "schedule.json").read_text())
+    assert sched["feasible"] is True and sched["verdict"] == "not computed"
+    assert [v["condition"] for v in sched["violations"] if v["step"] == 0] == ["not computed"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["relay", "scheduled"])
+def test_the_robots_relay_and_scheduled_designs_are_certified(mode):
+    """The indoor robot's deployable designs are certified (informative at every step of the 30); the relay bound is
+    steady (bounded), the scheduled one still grows at the horizon and is bounded by its stationary certificate."""
+    import studies
+
+    d = studies.design("indoor-robot", mode=mode, seed=1)
+    assert d.certified and d.verdict == "certified" and d.bounded
+    assert d.growing is (mode == "scheduled")
+    assert d.verdict_detail["bounded_by"] == ("steady" if mode == "relay" else "stationary certificate")
+    assert d.schedule.meta["stationary_certificate"]["verdict"] == "certified"
+
+
 # ------------------------------------------------------------------------------------------- cfdesign feasibility
 @pytest.mark.slow
 def test_the_map_verdict_column_judges_each_fixed_point_against_the_stationary_open_loop(tmp_path):
