@@ -214,9 +214,10 @@ def _boundedness(growth: np.ndarray | None, W, T: int, fixed_point: bool | None)
         return True, False, None
     worst = int(grow[np.argmax(growth[grow])])
     more = f"{grow.size} of {growth.size} nodes; " if grow.size > 1 else ""
-    return False, True, (f"node {worst}'s median tr Φ over the last {W} of {T} steps is {growth[worst]:.1%} above "
-                         f"that over the {W} steps before ({more}a steady bound grows by at most "
-                         f"{GROWTH_TOLERANCE:.0%})")
+    g = growth[worst]
+    above = f"{g:.1%} above" if g < 10 else f"{g + 1:.3g} x"  # a percentage of 20 digits says less than a factor
+    return False, True, (f"node {worst}'s median tr Φ over the last {W} of {T} steps is {above} that over the {W} "
+                         f"steps before ({more}a steady bound grows by at most {GROWTH_TOLERANCE:.0%})")
 
 
 def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = None,
