@@ -742,9 +742,8 @@ def _lead(meta: Mapping) -> str:
         return lead
     if v == "vacuous":
         return lead + ("; bounded" if meta["bounded"] else "; not bounded")
-    if meta["bounded"]:
-        return lead + " and bounded"
-    return lead + (", still growing at the horizon" if meta.get("growing") is True else "") + "; not bounded"
+    growing = ", still growing at the horizon" if meta.get("growing") is True else ""
+    return lead + (f"{growing}{',' if growing else ''} and bounded" if meta["bounded"] else f"{growing}; not bounded")
 
 
 def gain_rule_record(meta: Mapping) -> dict | None:
