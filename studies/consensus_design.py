@@ -14,9 +14,8 @@ then be recomputed online, which is what the studies do).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -280,7 +279,7 @@ def _with_stationary(ver: Verdict, stationary: dict | None) -> Verdict:
     if ver.verdict in ("infeasible", NOT_COMPUTED) or ver.bounded or not fixed:
         return ver
     detail = {**ver.detail, "bounded": True, "bounded_reason": None, "bounded_by": "stationary certificate"}
-    return dataclasses.replace(ver, bounded=True, bounded_reason=None, detail=detail)
+    return replace(ver, bounded=True, bounded_reason=None, detail=detail)
 
 
 @dataclass(frozen=True, eq=False)
