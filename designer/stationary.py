@@ -11,6 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .verdict import NOT_COMPUTED
+
 __all__ = ["StationaryCertificate"]
 
 
@@ -19,10 +21,12 @@ class StationaryCertificate(NamedTuple):
 
     ``converged``: the recursion of the bound with the stationary gains reached a fixed point ``Phi`` (N, n, n
     per node) within ``iterations``; ``sigma``, ``beta`` its multipliers (NaN for a rule that has none);
-    ``reason`` why not otherwise.  ``lmi``: the convex check (cvxpy + Clarabel) of the stationary inequality:
-    ``status``, ``trace`` (the smallest total trace of a Φ̄ satisfying it, whose node blocks bound every later Φ
-    once a Φ lies below it), ``max_residual`` (the largest violation of the inequality by the solver's Φ̄, checked
-    independently), or ``None`` where it was not solved (the problem too large, or no fixed point).
+    ``reason`` why not otherwise (starting with ``"not computed: "`` where it was not computed at all:
+    :data:`designer.verdict.NOT_COMPUTED`).  ``lmi``:
+    the convex check (cvxpy + Clarabel) of the stationary inequality: ``status``, ``trace`` (the smallest total
+    trace of a Φ̄ satisfying it, whose node blocks bound every later Φ once a Φ lies below it), ``max_residual``
+    (the largest violation of the inequality by the solver's Φ̄, checked independently), or ``None`` where it was
+    not solved (the problem too large, or no fixed point).
     """
 
     converged: bool
@@ -32,6 +36,12 @@ class StationaryCertificate(NamedTuple):
     iterations: int
     reason: str | None
     lmi: dict | None
+
+    @property
+    def not_computed(self) -> bool:
+        """Whether the rule did not compute the certificate (its reason starts with ``"not computed: "``): its verdict
+        is ``not computed``, never ``infeasible``."""
+        return self.reason is not None and self.reason.startswith(f"{NOT_COMPUTED}: ")
 
     def describe(self) -> dict:
         tr = None if self.Phi is None else [float(v) for v in np.trace(self.Phi, axis1=-2, axis2=-1)]

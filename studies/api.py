@@ -298,8 +298,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         Mode ``auto``: an :class:`studies.auto.AutoDesign` (``.candidates``, ``.pick`` (a Design or None),
         ``.outcome``, ``.message``, ``.certified``, ``.validation``, ``.save(directory)``).  Otherwise a Design:
         ``.gain_rule`` (:class:`designer.rule.GainRule`: its ``runtime``, what a node ``needs``
-        to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``,
-        ``.verdict`` (``certified``, ``vacuous``, ``not steady`` or ``infeasible``:
+        to apply it, ``deployable``), ``.feasible``, ``.violations``, ``.reason()``, ``.certified``, ``.bounded``,
+        ``.growing``, ``.verdict`` (``certified``, ``vacuous``, ``infeasible`` or ``not computed``:
         :mod:`designer.verdict`), ``.verdict_detail`` (the numbers behind it), ``.verdict_line()``,
         ``.trace_bound`` (nodes, steps), the
         ``.schedule`` (gains ``K``, ``C``, bounds ``Phi``, ``sigma``, ``beta``), the full
@@ -519,7 +519,7 @@ class FilterRun:
     n_x, n_x): the bound ``Phi`` the filter certifies (``cov_kind == 'bound'``) or the covariance it believes
     (``'covariance'``), trusted where ``valid``, None for a filter that computes none; ``violations``: the design
     conditions broken (node, step, condition) and ``'diverged'``; ``verdict``: a designed filter's verdict of its
-    bound on this log (``certified``, ``vacuous``, ``not steady``, ``infeasible``; None for the others);
+    bound on this log (``certified``, ``vacuous``, ``infeasible``, ``not computed``; None for the others);
     ``messages`` (K,): transmissions per step; ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain
     rule and options of the design it ran with.
     """
@@ -679,7 +679,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         verdict = None
         if entry.designed:
             ok = not any(v["condition"] in HARD_CONDITIONS for v in res.violations[0])
-            verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0]
+            verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0].verdict
         done = FilterRun(sc, entry.name, res.runtime, res.x[0], None if res.cov is None else res.cov[0],
                          res.cov_kind, res.valid[0], res.violations[0], verdict, res.messages[0], log.x, log.source,
                          design_meta)

@@ -253,21 +253,22 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
     sch = res.schedule
     click.echo(f"wrote {out}/schedule.json, schedule.npz and report.html: {sch.nodes} nodes, {sch.steps} steps, "
                f"gain rule: {res.gain_rule.label}, epsilon {sch.epsilon:.4g}, feasible {str(sch.feasible).lower()}, "
-               f"verdict {res.verdict}")
+               f"verdict {res.verdict}" + (", still growing at the horizon" if res.certified and res.growing else "")
+               + (f", bounded {str(res.bounded).lower()}" if res.verdict in ("certified", "vacuous") else ""))
     hard = res.hard_violations
     for v in hard[:20]:
         click.echo(f"  violation: node {v['node']} step {v['step']} condition {v['condition']} "
                    + (v["reason"] if "reason" in v else f"margin {v['margin']:.4g}"))
     if len(hard) > 20:
         click.echo(f"  ... and {len(hard) - 20} more (see schedule.json)")
-    n_th2 = len(sch.violations) - len(hard)
+    n_th2 = sum(v["condition"] == "theorem2" for v in sch.violations)
     if n_th2:
         from .reports.design import theorem2_words
 
         click.echo(f"  {theorem2_words(f'{n_th2} (node, step) pairs', res.verdict)}")
     if hard:
         raise ComputationError(f"infeasible design: {res.reason()} (schedule written, marked feasible: false)")
-    if not res.certified:
+    if not res.certified:  # certified, growing or not, exits 0; anything else 1
         raise ComputationError(f"design {res.verdict_line()} (schedule written, marked certified: false)")
     click.echo(f"  {res.verdict_line()}")
 
@@ -435,12 +436,15 @@ def _summary(f: dict) -> str:
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
         parts.append(f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, exceeded at "
                      f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else "")
-                     + (f" but vacuous (the errors reach {bc['run_test']['ratio_mean']:.2g} of it on average)"
-                        if bc.get("informative") is False else ""))
+                     + (f", informative in {bc['informative']}/{bc['runs']} runs" if bc.get("informative") is not None
+                        else "")
+                     + (f", filled to {bc['fill']:.2g} over steps {bc['fill_steps'][0]}..{bc['fill_steps'][1]}"
+                        if bc.get("fill") is not None and bc.get("fill_steps") else ""))
     if isinstance(f.get("feasibility"), dict):
         parts.append(f"feasible runs {f['feasibility']['runs_feasible']}/{f['feasibility']['runs']}")
     if isinstance(f.get("verdicts"), dict):
-        parts.append(f"certified runs {f['verdicts']['certified']}/{sum(f['verdicts'].values())}")
+        parts.append(f"certified runs {f['verdicts']['certified']}/{sum(f['verdicts'].values())}"
+                     + (f", bounded runs {f['bounded_runs']}" if f.get("bounded_runs") is not None else ""))
     return ", ".join(parts)
 
 

@@ -337,6 +337,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
     verdict = np.full((R, S, F), np.nan)  # index into designer.verdict.VERDICTS of each run's bound
+    bounded = np.full((R, S, F), np.nan)  # 1 where that bound is bounded (designer.verdict.Verdict.bounded)
     delivered = np.full((R, S, F), np.nan)  # packets delivered per step (KCF, HCMCI), mean over the steps
     est = np.full((R, F, K + 1, m.n_x), np.nan)
     truth = np.empty((R, K + 1, m.n_x))
@@ -382,9 +383,9 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             if e.designed:
                 for (j, a), v in zip(rows, bound_verdicts(sc, res.cov, res.valid,
                                                           [feasible[a, j, f] == 1 for j, a in rows])):
-                    verdict[a, j, f] = VERDICTS.index(v)
-    return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "delivered": delivered,
-            "estimate": est, "truth": truth}
+                    verdict[a, j, f], bounded[a, j, f] = VERDICTS.index(v.verdict), float(v.bounded)
+    return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "bounded": bounded,
+            "delivered": delivered, "estimate": est, "truth": truth}
 
 
 def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool) -> list[dict]:
@@ -527,6 +528,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             met["feasible_runs"] = int(np.nansum(A["feasible"][:, 0, f]))
             met["verdicts"] = (_verdict_counts(A["verdict"][:, 0, f]) if reason is None else
                                count_verdicts(["infeasible"] * R))  # cannot start: infeasible in every run
+            met["bounded_runs"] = int(np.nansum(A["bounded"][:, 0, f])) if reason is None else 0
         if e.counts_delivered:
             met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
         if e.rounds:

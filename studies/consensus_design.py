@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -28,7 +28,7 @@ from designer.observability import kalman_references, observability
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
-from designer.verdict import (GATE_CLAUSE, VERDICT_ASSUMPTIONS, Verdict, describe,
+from designer.verdict import (GATE_CLAUSE, NOT_COMPUTED, VERDICT_ASSUMPTIONS, Verdict, describe,
                               open_loop_reference, open_loop_traces, verdict)
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
@@ -43,7 +43,7 @@ from .runner import Background
 from .scenarios import Scenario
 
 __all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
-           "check_first_step", "design_verdict", "bound_verdicts"]
+           "check_first_step", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop"]
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
@@ -163,9 +163,13 @@ LMI_TOLERANCE = 1e-6
 
 def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     """The design's stationary certificate at the operating point (its rule's,
-    :meth:`designer.rule.GainRule.stationary`) with its verdict: ``certified`` when the bound's recursion with the
-    stationary gains reaches a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it
-    lies below the stationary open loop (:func:`designer.verdict.verdict` with ``fixed_point``)."""
+    :meth:`designer.rule.GainRule.stationary`) with its verdict and boundedness (:func:`designer.verdict.verdict`
+    with ``fixed_point``): ``certified`` and ``bounded`` when the bound's recursion with the stationary gains reaches
+    a fixed point, the LMI (where solved) confirms it within :data:`LMI_TOLERANCE`, and it lies below the
+    stationary open loop; ``vacuous`` and not bounded when the recursion holds the conditions but reaches no fixed
+    point; ``infeasible`` when it breaks (28)/(29) or the LMI does not confirm the fixed point; ``not computed``
+    (with the reason) when the rule did not compute it
+    (:attr:`designer.stationary.StationaryCertificate.not_computed`)."""
     x0, u0 = sc.operating_point
     m = sc.model
     cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0)
@@ -175,13 +179,17 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
         lmi.get("relative_residual") is not None and lmi["relative_residual"] <= LMI_TOLERANCE)
     N = sc.network.n_nodes
     trace = (np.trace(cert.Phi, axis1=-2, axis2=-1)[:, None] if cert.converged else np.full((N, 1), np.nan))
-    broken = not cert.converged and cert.reason is not None and cert.reason.startswith(("(28)", "(29)"))
+    skipped = cert.not_computed
+    broken = not skipped and not cert.converged and cert.reason is not None and cert.reason.startswith(
+        ("(28)", "(29)"))
     if cert.converged and not confirmed:
         broken, cert = True, cert._replace(reason="the stationary LMI does not confirm the fixed point")
-    # a recursion that holds the conditions but does not settle is not steady; one that breaks them is infeasible
+    # a recursion that holds the conditions but does not settle is not bounded; one that breaks them is infeasible
     v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
-                infeasible_reason=cert.reason if broken else None, open_loop_how=how)
-    return {**cert.describe(), "verdict": v.verdict, "lmi_tolerance": LMI_TOLERANCE, "where": where}
+                infeasible_reason=cert.reason if broken else None, open_loop_how=how,
+                not_computed=cert.reason if skipped else None)
+    return {**cert.describe(), "verdict": v.verdict, "bounded": v.bounded, "growing": v.growing,
+            "bounded_reason": v.bounded_reason, "lmi_tolerance": LMI_TOLERANCE, "where": where}
 
 
 def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, object]:
@@ -213,33 +221,65 @@ def _open_loop(model, x0, u0, steps: int) -> tuple[np.ndarray, str]:
                 "at the operating point, no measurement")
 
 
+def scenario_open_loop(sc: Scenario, steps: int) -> np.ndarray:
+    """The open-loop covariance's trace of ``sc`` at steps 1..``steps``: what a bound along a run of ``sc`` is
+    judged informative against (:func:`designer.verdict.informative`), by the design and by the studies alike."""
+    return _open_loop(sc.model, *sc.operating_point, steps)[0]
+
+
+def _not_computed(violations: list[dict]) -> str | None:
+    """The reason the certificate was not computed (a violations record of condition ``not computed``), or None."""
+    return next((v.get("reason") or NOT_COMPUTED for v in violations if v["condition"] == NOT_COMPUTED), None)
+
+
 def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], references: dict) -> Verdict:
     """The verdict (:func:`designer.verdict.verdict`) on a bound computed along a run of ``model``.
 
     ``trace``: tr Φ_{k|k} per node for k = 1..K (NaN where Φ is not a bound); the open-loop covariance is
     the prior covariance propagated through the linearisation at the operating point (``x0``, ``u0``, where
-    ``references`` were computed) with the process noise over the same K steps.
+    ``references`` were computed) with the process noise over the same K steps.  A certificate the rule did not
+    compute (a violations record of condition ``not computed``) is ``not computed``, with its reason.
     """
     ol, how = _open_loop(model, x0, u0, trace.shape[1])
     feasible = not any(v["condition"] in HARD_CONDITIONS for v in violations)
     return verdict(trace, ol, feasible=feasible, centralized=references["centralized"], local=references["local"],
-                   infeasible_reason=_infeasible_reason(violations), open_loop_how=how)
+                   infeasible_reason=_infeasible_reason(violations), open_loop_how=how,
+                   not_computed=_not_computed(violations))
 
 
-def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasible) -> list[str]:
+def bound_traces(phi: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """tr Φ per run, node and step, (runs, nodes, steps), NaN where Φ is not a bound: what
+    :func:`designer.verdict.verdict` and :func:`designer.verdict.informative` judge.  ``phi`` (runs, steps, nodes,
+    n_x, n_x) and ``valid`` (runs, steps, nodes) of a consensus filter run along each run."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.where(valid, np.trace(phi, axis1=-2, axis2=-1), np.nan).swapaxes(1, 2)
+
+
+def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasible) -> list[Verdict]:
     """The verdict of each run's bound, as ``cfdesign design`` judges its own (:func:`design_verdict`).
 
     ``phi_post`` (runs, K + 1, nodes, n_x, n_x) and ``valid`` (runs, K + 1, nodes) of a consensus filter run along
     each run; ``feasible`` (runs,) whether (28)-(29) held throughout and the run did not diverge (a run that
-    diverged or broke a condition is ``infeasible``, whatever its arrays hold).
+    diverged or broke a condition is ``infeasible``, whatever its arrays hold).  A feasible run whose Φ is a bound
+    at no step 1..K carries no certificate: ``not computed``.
     """
     feasible = np.asarray(feasible, dtype=bool)
-    if not feasible.any():
-        return ["infeasible"] * len(feasible)
-    ol, _ = _open_loop(sc.model, *sc.operating_point, phi_post.shape[1] - 1)
-    with np.errstate(invalid="ignore", over="ignore"):
-        tr = np.where(valid, np.trace(phi_post, axis1=-2, axis2=-1), np.nan)[:, 1:].swapaxes(1, 2)
-    return [verdict(t, ol, feasible=bool(f)).verdict for t, f in zip(tr, feasible)]
+    ol = scenario_open_loop(sc, phi_post.shape[1] - 1)
+    tr = bound_traces(phi_post[:, 1:], valid[:, 1:])
+    none = "Φ is a bound at no step of the run (no certificate was computed for it)"
+    return [verdict(t, ol, feasible=bool(f), not_computed=none if f and np.isnan(t).all() else None)
+            for t, f in zip(tr, feasible)]
+
+
+def _with_stationary(ver: Verdict, stationary: dict | None) -> Verdict:
+    """``ver`` with the design's boundedness: bounded when the run's bound is steady or the stationary certificate
+    (:func:`stationary_record`) is a confirmed fixed point below the stationary open loop (certified and bounded);
+    the detail records which (``bounded_by``)."""
+    fixed = stationary is not None and stationary.get("verdict") == "certified" and bool(stationary.get("bounded"))
+    if ver.verdict in ("infeasible", NOT_COMPUTED) or ver.bounded or not fixed:
+        return ver
+    detail = {**ver.detail, "bounded": True, "bounded_reason": None, "bounded_by": "stationary certificate"}
+    return replace(ver, bounded=True, bounded_reason=None, detail=detail)
 
 
 @dataclass(frozen=True, eq=False)
@@ -292,13 +332,26 @@ class Design:
 
     @property
     def verdict(self) -> str:
-        """``certified``, ``vacuous``, ``not steady`` or ``infeasible`` (:mod:`designer.verdict`)."""
+        """``certified``, ``vacuous``, ``infeasible`` or ``not computed`` (:mod:`designer.verdict`)."""
         return self.schedule.meta["verdict"]
 
     @property
     def certified(self) -> bool:
-        """Feasible, with a finite, steady and informative bound (``verdict == 'certified'``)."""
+        """Feasible, with a bound finite and informative at every step of the horizon (``verdict ==
+        'certified'``): Theorem 1's kind of claim."""
         return bool(self.schedule.meta["certified"])
+
+    @property
+    def bounded(self) -> bool:
+        """Theorem 2's kind of claim: the bound along the run is steady, or the design's stationary certificate
+        (a fixed point with its LMI confirmed, below the stationary open loop: ``stationary_certificate``) holds
+        (``schedule.json``'s ``bounded``; ``bounded_reason`` says why not)."""
+        return bool(self.schedule.meta["bounded"])
+
+    @property
+    def growing(self) -> bool:
+        """The bound still rises at the horizon at some node (a qualifier of the certificate, not a failure)."""
+        return bool(self.schedule.meta["growing"])
 
     @property
     def verdict_detail(self) -> dict:
@@ -370,7 +423,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     refs = kalman_references(m, x0, u0)
     with np.errstate(invalid="ignore", over="ignore"):
         trace = np.trace(Phi[:, 1:], axis1=-2, axis2=-1)
-    ver = design_verdict(m, x0, u0, trace, res.violations, refs)
+    ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs), stationary)
     schedule = GainSchedule(
         scenario=sc.name,
         rule=des.rule,
@@ -401,6 +454,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "boundedness_certified": not any(v["condition"] == "theorem2" for v in res.violations),
             "certified": ver.certified,
             "verdict": ver.verdict,
+            "bounded": ver.bounded,
+            "growing": ver.growing,
+            "bounded_reason": ver.bounded_reason,
             "verdict_detail": ver.detail,
             # mode 'mse': the trace of each node's predicted error covariance (nodes x steps + 1), the accuracy the
             # gains were chosen for (the bound is the certificate)

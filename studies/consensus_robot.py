@@ -49,9 +49,9 @@ from filters.attacks import simulate_attacks
 from filters.channels import GATE_COUNTS
 
 from .comparison import HCMCI_ITERATIONS
-from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts
+from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, informative, settled_steps
 
-from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_traces, bound_verdicts, check_first_step, consensus_design, scenario_open_loop
 from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, replayed_schedule)
@@ -70,21 +70,24 @@ MIN_RUNS_FOR_CHECK = 30  # a (node, step) is checked when Φ is a bound in at le
 MAX_FRACTION_EXCEEDING = 0.05  # more checked (node, step) pairs in excess than this: the bound is violated
 MARKOV_LEVELS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)  # the run test's levels c
 BOUND_TEST_ALPHA = 0.01  # the run test's level: a bound that holds is called violated at most this often
-INFORMATIVE_RATIO = 0.3  # a bound that holds is informative when the runs' errors reach this share of it on average
 WINSOR_QUANTILE = 0.9  # the average's tolerance is the spread of the runs' ratios clipped at this quantile
 PAPER_NODES = (2, 5)  # the paper's Figs. 2-3 show the channels of nodes 2 and 5 (1-based)
 CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (the unit stored and sent to a worker)
 REASON_BYTES = 200  # a diverged run's reason, stored as this many UTF-8 bytes (longer ones are cut)
 
 
-def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
-    """Is Φ an upper bound of the error covariance?  Three checks and a verdict.
+def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None = None) -> dict:
+    """Is Φ an upper bound of the error covariance?  Three checks and a verdict; then what the bound is worth, in
+    the design's words: how many runs' bounds are informative, and how tightly the runs fill it.
 
     Parameters
     ----------
-    err : (runs, steps, nodes, n_x) estimation errors ``x - x_hat``.
+    err : (runs, steps, nodes, n_x) estimation errors ``x - x_hat`` at steps 1..K.
     phi : (runs, steps, nodes, n_x, n_x) the bounds of each run.
     valid : (runs, steps, nodes) where ``phi`` is a bound.
+    open_loop : (steps,), optional
+        The scenario's open-loop covariance's trace at the same steps
+        (:func:`studies.consensus_design.scenario_open_loop`): ``informative`` is counted against it.
 
     **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
     least ``MIN_RUNS_FOR_CHECK`` valid runs, the direction ``v`` of largest eigenvalue of
@@ -110,6 +113,12 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
     ``verdict``: ``violated`` when any check finds the bound exceeded (the per-pair one at more
     than ``MAX_FRACTION_EXCEEDING`` of the checked pairs), ``holds`` when none does, ``not
     checked`` when Φ is a bound nowhere; ``verdict_reason`` says why in words.
+
+    **What the bound is worth** (not whether it holds): ``informative``, how many runs' bounds are informative at
+    every step (:func:`designer.verdict.informative`, the test ``cfdesign design`` certifies with: below the
+    open loop at every node and step; None without ``open_loop``), and ``fill``, the tightness: the mean over the
+    runs of each run's error energy over its bound's trace over the steps after the prior's transient
+    (``fill_steps``: :func:`designer.verdict.settled_steps`, the window of the design's growth test).
     """
     runs, steps, nodes, nx = err.shape
     checked = exceed = 0
@@ -158,9 +167,6 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
         verdict = "holds"
         why = (f"no check finds an excess: the error energy of the {rt['runs']} runs is {rt['ratio_mean']:.3g} times "
                f"their bound's on average (largest run {rt['ratio_max']:.3g})"
-               + ("" if rt["ratio_mean"] >= INFORMATIVE_RATIO else
-                  f", so the bound is vacuous for these runs (an informative one is reached to at least "
-                  f"{INFORMATIVE_RATIO:g} of it)")
                + (f"; {exceed} of {checked} checked (node, step) pairs exceed it beyond {Z_EXCESS:g} standard "
                   "errors" if checked else f"; no (node, step) pair has the {MIN_RUNS_FOR_CHECK} runs of the "
                   "per-pair test"))
@@ -182,9 +188,23 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
         "run_test": rt,
         "verdict": verdict,
         "verdict_reason": why,
-        # holds: whether the runs' errors reach INFORMATIVE_RATIO of the bound on average (else it says nothing)
-        "informative": bool(rt["ratio_mean"] >= INFORMATIVE_RATIO) if verdict == "holds" else None,
+        **_worth(err, phi, valid, open_loop),
     }
+
+
+def _worth(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None) -> dict:
+    """:func:`bound_check`'s ``informative`` (runs whose bound is informative at every step), ``fill`` and
+    ``fill_steps`` (the runs' error energy over their bound's trace after the prior's transient)."""
+    steps = err.shape[1]
+    tr = bound_traces(phi, valid)
+    count = None if open_loop is None else int(sum(informative(t, open_loop).all() for t in tr))
+    window = settled_steps(steps)
+    sel = valid[:, window].astype(bool)
+    energy = np.where(sel, np.einsum("rkia,rkia->rki", err[:, window], err[:, window]), 0.0).sum(axis=(1, 2))
+    bound = np.nansum(tr[:, :, window], axis=(1, 2))
+    has = bound > 0
+    return {"informative": count, "fill": float(np.mean(energy[has] / bound[has])) if has.any() else None,
+            "fill_steps": [window.start + 1, steps]}
 
 
 def per_run_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
@@ -464,12 +484,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         # each run's bound judged as cfdesign design judges its own (a diverged run, or a design that cannot start,
         # is infeasible)
         feasible = ~div & (A[f"v{j}_first_violation"] < 0) & (v.infeasible is None)
-        verdicts = count_verdicts(bound_verdicts(sc, st["phi"], st["valid"], feasible)) if e.designed else None
+        judged = bound_verdicts(sc, st["phi"], st["valid"], feasible) if e.designed else None
+        verdicts = None if judged is None else count_verdicts(v.verdict for v in judged)
+        bounded_runs = None if judged is None else sum(v.bounded for v in judged)
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
         if v.infeasible is not None:  # not run
             filters[name] = {"family": e.family, "runtime": e.runtime, "infeasible": v.infeasible,
                              "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
-                             "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": None,
+                             "bound_check": None, "feasibility": None, "verdicts": verdicts,
+                             "bounded_runs": bounded_runs, "diverged_runs": None,
                              "diverged_fraction": None, "time_per_step_s": None,
                              "communications": e.messages_per_step(net, L, so.design),
                              "design": describe_design(v.design)}
@@ -478,7 +501,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         if not ok.any():  # every run diverged: no error statistics exist
             filters[name] = {"family": e.family, "runtime": e.runtime, "rmse_position": None,
                              "rmse_position_ci95": None, "rmse_position_median_run": None,
-                             "bound_check": None, "feasibility": None, "verdicts": verdicts, "diverged_runs": failed,
+                             "bound_check": None, "feasibility": None, "verdicts": verdicts,
+                             "bounded_runs": bounded_runs, "diverged_runs": failed,
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
             continue
         err = st["err"][ok][:, 1:]  # steps 1..K
@@ -503,8 +527,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
             "communications": e.messages_per_step(net, L, so.design),
-            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:])
-            if e.designed else None,
+            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
+                                       scenario_open_loop(sc, steps)) if e.designed else None,
             "feasibility": {
                 "runs_feasible": int((first < 0).sum()),
                 "runs": n_ok,
@@ -513,6 +537,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                 "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
             } if e.designed else None,
             "verdicts": verdicts,
+            "bounded_runs": bounded_runs,
             "diverged_runs": failed,
             "diverged_fraction": len(failed) / runs,
             "design": describe_design(v.design) if e.mode is not None else None,

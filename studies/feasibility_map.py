@@ -25,15 +25,16 @@ the other points are mapped as they would be without it (:attr:`FeasibilityMap.f
 every point (not a grid value) are the user's input: an InputError before any point.
 
 **The verdict of a point** (the ``verdict`` column; :func:`designer.verdict.verdict` on the stationary bound,
-the function ``cfdesign design`` judges its bound with): ``certified`` where the iteration reached a fixed point
-whose tr Φ is below the stationary open-loop covariance's trace at every node (the discrete Lyapunov solution at the
-operating point, or, where ``F`` is not Schur stable, the open-loop covariance at the scenario's horizon),
-``vacuous`` where some node's fixed point is at or above it or where the bound grew without limit ("unbounded"),
-``not steady`` where (28)-(29) held at every iterate but no fixed point was reached ("no convergence") while the
-last bound stayed below the open loop, ``infeasible`` where (28), (29) failed, the iteration diverged, or the point
-has no design (``dos + fdi > 1``, a failed point).  ``feasible`` keeps its meaning (a
-bounded fixed point exists); ``feasibility.json`` counts the verdicts (``verdicts``) and records the open-loop
-reference (``open_loop``).
+the function ``cfdesign design`` judges its bound with): ``certified`` where the stationary bound's tr Φ is below the
+stationary open-loop covariance's trace at every node (the discrete Lyapunov solution at the operating point, or,
+where ``F`` is not Schur stable, the open-loop covariance at the scenario's horizon): at a fixed point (certified
+and bounded), or, where (28)-(29) held at every iterate but no fixed point was reached ("no convergence"), at the
+last iterate (certified, not bounded); ``vacuous`` where some node's bound is at or above it, where the bound grew
+without limit ("unbounded") or where there is none; ``infeasible`` where (28), (29) failed, the iteration diverged,
+or the point has no design (``dos + fdi > 1``, a failed point); ``not computed`` where the rule did not compute its
+stationary certificate (the scheduled one beyond its size).  ``feasible`` keeps its meaning (a bounded fixed point
+exists) and is the point's ``bounded`` claim; ``feasibility.json`` counts the verdicts (``verdicts``) and records
+the open-loop reference (``open_loop``).
 
 **Two notions of feasibility.**  ``design`` checks (28)-(29) *along one simulated run*:
 the nodes' own estimates, the realised DoS pattern (``s_i`` = packets actually
@@ -202,23 +203,23 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
         return _failed(exc)
 
 
-_NOT_STEADY = ("no convergence", "unbounded")  # (28)-(29) held at every iterate, but no fixed point was reached
+_NO_FIXED_POINT = ("no convergence", "unbounded")  # (28)-(29) held at every iterate, but no fixed point was reached
 
 
 def point_verdict(r, open_loop: float, nodes: int) -> str:
     """The verdict (:func:`designer.verdict.verdict`) on the stationary bound of one grid point's iteration ``r``
     (a :class:`designer.feasibility.SteadyState`) against the stationary open-loop trace ``open_loop``.
 
-    A fixed point is steady: certified or vacuous.  An iteration that stopped without one while the conditions held
-    at every iterate is judged by its last bound, as the verdict judges any bound that is not steady: "unbounded"
-    (the trace grew past the iteration's limit: no finite bound) is vacuous; "no convergence" is vacuous when the
-    last iterate's mean tr Φ over the nodes is at or above the open loop (so some node's is), else not steady.
-    (28), (29) or a diverged iteration is infeasible.
+    A fixed point is bounded: certified or vacuous.  An iteration that stopped without one while the conditions held
+    at every iterate is judged by its last bound (not bounded): "unbounded" (the trace grew past the iteration's
+    limit: no finite bound) is vacuous; "no convergence" is vacuous when the last iterate's mean tr Φ over the nodes
+    is at or above the open loop (so some node's is), else certified (not bounded: the map's category
+    "not bounded").  (28), (29) or a diverged iteration is infeasible.
     """
     if r.feasible:
         trace = np.trace(r.phi, axis1=1, axis2=2)[:, None]
         return verdict(trace, open_loop, feasible=True, fixed_point=True).verdict
-    if r.binding in _NOT_STEADY:
+    if r.binding in _NO_FIXED_POINT:
         last = np.inf if r.binding == "unbounded" or not np.isfinite(r.trace_bound) else r.trace_bound
         return verdict(np.full((nodes, 1), last), open_loop, feasible=True, fixed_point=False).verdict
     return verdict(np.full((nodes, 1), np.nan), open_loop, feasible=False).verdict
@@ -307,7 +308,7 @@ def _scheduled_row(sc: Scenario, design) -> dict:
     except _POINT_ERRORS as exc:
         return _failed(exc)
     tr = rec["trace"]
-    return {"feasible": int(rec["verdict"] != "infeasible" and rec["converged"]),
+    return {"feasible": int(rec["verdict"] not in ("infeasible", "not computed") and rec["converged"]),
             "trace_bound": float(np.mean(tr)) if tr else float("nan"),
             "binding": rec["reason"] or "none (a fixed point)", "theorem2": 0, "iterations": rec["iterations"],
             "verdict": rec["verdict"]}
@@ -374,13 +375,20 @@ class FeasibilityMap:
 
     @property
     def verdict(self) -> np.ndarray:
-        """The verdict per point (``certified``, ``vacuous``, ``not steady``, ``infeasible``), shaped like the grid."""
+        """The verdict per point (``certified``, ``vacuous``, ``infeasible``, ``not computed``), shaped like the grid;
+        a point is bounded where it is feasible (a fixed point)."""
         return np.array([r["verdict"] for r in self.rows], dtype=object).reshape(self.shape)
 
     @property
     def certified(self) -> np.ndarray:
-        """Whether each point's stationary bound is certified (finite, a fixed point, below the open loop)."""
-        return self.verdict == "certified"
+        """Whether each point is certified and bounded (the map's category ``certified``: a fixed point, finite and
+        below the stationary open loop at every node), shaped like the grid."""
+        return (self.verdict == "certified") & self.bounded
+
+    @property
+    def bounded(self) -> np.ndarray:
+        """Whether each point's stationary recursion reached a fixed point (``feasible``: the claim ``bounded``)."""
+        return np.array([bool(r["feasible"]) for r in self.rows]).reshape(self.shape)
 
     @property
     def verdict_counts(self) -> dict[str, int]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
+from designer.verdict import settled_steps, verdict
 from studies.consensus_robot import BOUND_TEST_ALPHA, MIN_RUNS_FOR_CHECK, bound_check, per_run_check
 
 P = np.array([[2.0, 0.3], [0.3, 1.0]])
@@ -55,10 +56,12 @@ def test_a_loose_or_exact_bound_holds_and_a_tight_one_is_violated():
     assert loose["verdict"] == "holds" and loose["run_test"]["ratio_mean"] == pytest.approx(0.5, rel=0.1)
     assert exact["verdict"] == "holds"
     assert tight["verdict"] == "violated" and tight["run_test"]["mean_exceeds"] and tight["fraction_exceeding"] > 0.05
-    assert loose["informative"] and exact["informative"] and tight["informative"] is None
-    # a bound a million times the error holds and says so, but is called vacuous, not informative
+    # whether it holds, not what it is worth: no open loop given, no informative count; the fill is the run ratio
+    # over the design's settled steps (here every step alike)
+    assert loose["informative"] is None and loose["fill"] == pytest.approx(0.5, rel=0.15)
+    assert loose["fill_steps"] == [settled_steps(10).start + 1, 10]
     huge = _check(err, 1e6)
-    assert huge["verdict"] == "holds" and huge["informative"] is False and "vacuous" in huge["verdict_reason"]
+    assert huge["verdict"] == "holds" and "vacuous" not in huge["verdict_reason"] and huge["fill"] < 1e-5
     none = bound_check(err, np.broadcast_to(P, err.shape + (2,)), np.zeros(err.shape[:3], bool))
     assert none["verdict"] == "not checked" and none["fraction_exceeding"] is None
 
@@ -83,3 +86,36 @@ def test_a_valid_bound_is_rarely_called_violated(law):
     assert violated <= binom.ppf(0.999, reps, 0.05)
     if law == "gaussian":
         assert violated <= binom.ppf(0.999, reps, 0.01)
+
+
+def test_the_bound_check_and_the_design_give_one_bound_the_same_informative_answer():
+    """The same bound arrays judged by the design's verdict and by the study's bound check (and its per-run
+    verdicts): one informative, one above the open loop at step 1 only (the prior's transient), both holding."""
+    from types import SimpleNamespace
+
+    from studies.consensus_design import bound_traces
+
+    rng = np.random.default_rng(9)
+    runs, steps, nodes = 4, 12, 3
+    err = _errors(rng, runs, np.full(runs, 0.5), steps=steps, nodes=nodes)
+    open_loop = np.full(steps, 3.5)  # tr P = 3: below the open loop at every step
+    phi = np.array(np.broadcast_to(P, (runs, steps, nodes, 2, 2)))
+    valid = np.ones((runs, steps, nodes), bool)
+    transient = phi.copy()
+    transient[:, 0, 1] *= 1.5  # node 1 at step 1: tr 4.5, above the open loop there only
+    for arr, want in ((phi, True), (transient, False)):
+        design = [verdict(t, open_loop, feasible=True) for t in bound_traces(arr, valid)]
+        bc = bound_check(err, arr, valid, open_loop)
+        assert bc["verdict"] == "holds"
+        assert bc["informative"] == sum(v.certified for v in design) == (runs if want else 0)
+        assert all(v.verdict == ("certified" if want else "vacuous") for v in design)
+    # and through bound_verdicts, with a scenario's open loop: a stand-in with the same numbers
+    import studies.consensus_design as cd
+
+    sc = SimpleNamespace()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cd, "scenario_open_loop", lambda _sc, k: open_loop[:k])
+        for arr, want in ((phi, "certified"), (transient, "vacuous")):
+            full = np.concatenate([arr[:, :1], arr], axis=1)  # with step 0 (the prior), as a filter returns it
+            got = cd.bound_verdicts(sc, full, np.ones(full.shape[:3], bool), np.ones(runs, bool))
+            assert [v.verdict for v in got] == [want] * runs

@@ -287,8 +287,8 @@ def test_a_design_never_replaces_a_file_the_user_wrote(tmp_path, capfd, via):
         line = str(exc.value)
     assert repr(str(out / "schedule.json")) in line and "not written by cfdesign" in line, line
     assert {k: v for k, v in file_tree(out).items() if not k.startswith(".cfdesign")} == before
-    # a design directory is cfdesign's: it is replaced by the next design, from either (exit 1: a 2-step design is
-    # written but never certified, too short to show a steady bound)
+    # a design directory is cfdesign's: it is replaced by the next design, from either (exit 1: the 2-step paper design
+    # is written but not certified, its bound above the open loop)
     other = tmp_path / "d"
     assert main(["design", "indoor-robot", "--steps", "2", "--out", str(other)]) == 1
     studies.design("indoor-robot", steps=3, out=other)

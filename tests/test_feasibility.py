@@ -303,7 +303,9 @@ def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
                        quiet=True)
     with open(out / "feasibility.csv") as fh:
         table = list(csv.DictReader(fh))
-    verdict = {(float(t["tau"]), float(t["dos"])): t["verdict"] for t in table}
+    # the map's category: the verdict, a certified point without a fixed point (feasible 0) "not bounded"
+    verdict = {(float(t["tau"]), float(t["dos"])): "not bounded" if t["verdict"] == "certified" and t["feasible"] == "0"
+               else t["verdict"] for t in table}
     counts = {c: sum(v == c for v in verdict.values()) for c in MAP_CATEGORIES}
     n, n_cert = len(table), counts["certified"]
     assert 0 < n_cert < n and counts["vacuous"] and counts["infeasible"]  # the case the report got wrong
@@ -316,7 +318,7 @@ def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
         assert (f"{counts[c]} {c} (" in where) == (counts[c] > 0), c
     ranked = [r for r in _cells(md, "Summary") if r[0].isdigit()]
     certified = sorted((float(t["trace_bound"]), (float(t["tau"]), float(t["dos"]))) for t in table
-                       if t["verdict"] == "certified")
+                       if verdict[(float(t["tau"]), float(t["dos"]))] == "certified")
     assert len(ranked) == n_cert and [r[1] for r in ranked] == [f"tau = {p[0]:g}, dos = {p[1]:g}"
                                                               for _, p in certified]
     counted = {r[0].split(" (")[0]: int(r[1]) for r in _cells(md, "How much is certified") if r[1].isdigit()}
@@ -327,7 +329,7 @@ def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
         for dos, cell in zip(doses, row[1:]):
             v = verdict[(float(row[0]), float(dos))]
             shown = ("infeasible" if cell.startswith("✗") else "vacuous" if cell.startswith("vacuous") else
-                     "not steady" if cell.startswith("not steady") else "certified")
+                     "not bounded" if cell.startswith("not bounded") else "certified")
             assert shown == v, (row[0], dos, cell)
     # the map: one cell per point in its category, every category in the legend with its count
     fig = map_figure(fmap.rows, fmap.grids, "scalar", "paper")
@@ -345,19 +347,19 @@ def test_the_report_and_the_map_say_what_the_table_says(tmp_path):
 def test_a_one_parameter_map_draws_each_category_apart():
     """A 1-D map: one labelled set of markers per category, holding exactly that category's points (a point
     without a bound on the lowest bound's level); an unbounded iteration is vacuous, a stalled one below the open
-    loop not steady."""
+    loop certified but not bounded (the category "not bounded"), one not computed apart."""
     from designer.feasibility import SteadyState
     from studies.feasibility_map import point_verdict
     from studies.feasibility_terms import MAP_CATEGORIES
     from studies.figures import map_figure
 
     assert point_verdict(SteadyState(False, np.nan, "unbounded", 9, False, None), 1.0, 2) == "vacuous"
-    assert point_verdict(SteadyState(False, 0.5, "no convergence", 400, False, None), 1.0, 2) == "not steady"
+    assert point_verdict(SteadyState(False, 0.5, "no convergence", 400, False, None), 1.0, 2) == "certified"
     assert point_verdict(SteadyState(False, 2.0, "no convergence", 400, False, None), 1.0, 2) == "vacuous"
-    kinds = ["certified", "certified", "not steady", "vacuous", "vacuous", "infeasible"]
+    kinds = ["certified", "certified", "not bounded", "vacuous", "vacuous", "infeasible", "not computed"]
     rows = [{"feasible": int(k in ("certified", "vacuous") and i != 4), "trace_bound": 0.1 * (i + 1),
              "binding": "(28)" if k == "infeasible" else "unbounded" if i == 4 else "none", "theorem2": 1,
-             "iterations": 10, "verdict": k} for i, k in enumerate(kinds)]
+             "iterations": 10, "verdict": "certified" if k == "not bounded" else k} for i, k in enumerate(kinds)]
     values = np.linspace(0.0, 0.5, len(rows))
     ax = map_figure(rows, [("dos", values)], "toy", "paper").axes[0]
     for c in MAP_CATEGORIES:

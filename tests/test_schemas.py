@@ -93,7 +93,7 @@ def test_contract_keys_are_required():
         "versions", "filters"}
     assert set(schemas.load("schedule")["required"]) == {
         "schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
-        "trace_bound", "certified", "verdict", "verdict_detail"}
+        "trace_bound", "certified", "verdict", "verdict_detail", "bounded", "growing", "bounded_reason"}
     assert set(schemas.load("feasibility")["required"]) == {"feasible", "trace_bound", "binding", "theorem2",
                                                             "iterations", "verdict"}
     from studies.feasibility_terms import GRID_PARAMETERS, OUTPUTS
@@ -205,7 +205,7 @@ def test_feasibility_writes_valid_rows_and_json(maps, which):
     if which == "2d":  # dos + fdi > 1: infeasible, the empty cell read as null
         assert any(r["feasible"] == 0 and r["trace_bound"] is None and r["verdict"] == "infeasible" for r in rows)
     assert meta["verdicts"] == {v: sum(r["verdict"] == v for r in rows)
-                                for v in ("certified", "vacuous", "not steady", "infeasible")}
+                                for v in ("certified", "vacuous", "infeasible", "not computed")}
 
 
 def test_read_feasibility_csv_types_the_cells(tmp_path):
@@ -339,7 +339,7 @@ def test_schedule_with_a_trace_bound_of_the_wrong_shape_is_rejected(designs, tmp
     ragged = _rewrite(good, tmp_path / "schedule.json", lambda s: s["sigma"][3].pop())
     with _raises_at(r"\$\.sigma\[3\]: row 3 of sigma \(nodes x steps\) has 9 entries, expected 10"):
         schemas.validate_output(ragged)
-    liar = _rewrite(good, tmp_path / "schedule.json", lambda s: s.update(feasible=True, verdict="not steady"))
+    liar = _rewrite(good, tmp_path / "schedule.json", lambda s: s.update(feasible=True, verdict="vacuous"))
     with _raises_at(r"\$\.violations\[\d+\]\.condition: '\(2[89]\)' should not be valid"):
         schemas.validate_output(liar)
 
@@ -354,6 +354,9 @@ def test_a_schedule_whose_verdict_contradicts_itself_is_rejected(designs, tmp_pa
         (lambda s: s.update(verdict="vacuous"), r"\$\.verdict: 'certified' was expected"),
         (lambda s: s.update(verdict="infeasible", certified=False), r"\$\.verdict: 'infeasible' should not be valid"),
         (lambda s: s.update(verdict="unsure"), r"\$\.verdict: 'unsure' is not one of"),
+        (lambda s: s.update(verdict="not steady"), r"\$\.verdict: 'not steady' is not one of"),
+        (lambda s: s.update(bounded=not s["bounded"]), r"\$\.verdict_detail\.bounded: .* but the file's bounded is"),
+        (lambda s: s.pop("growing"), r"\$: 'growing' is a required property"),
         (lambda s: s["verdict_detail"]["final_trace"].pop(), r"\$\.verdict_detail\.final_trace: 2 entries for a "
                                                              r"network of 3 nodes"),
         (lambda s: s["verdict_detail"].update(verdict="vacuous"), r"\$\.verdict_detail\.verdict: 'vacuous' but the "
@@ -410,8 +413,10 @@ def test_feasibility_row_with_feasible_2_is_rejected(maps, tmp_path):
         schemas.validate("feasibility", {**row, "gamma": 0.5})
     with _raises_at(r"\$\.trace_bound: None is not of type 'number'"):  # a feasible point has a bound
         schemas.validate("feasibility", {**row, "feasible": 1, "trace_bound": None})
-    with _raises_at(r"\$\.verdict: 'not steady' is not one of \['certified', 'vacuous'\]"):  # a fixed point
-        schemas.validate("feasibility", {**row, "feasible": 1, "verdict": "not steady"})
+    with _raises_at(r"\$\.verdict: 'not computed' is not one of \['certified', 'vacuous'\]"):  # a fixed point
+        schemas.validate("feasibility", {**row, "feasible": 1, "verdict": "not computed"})
+    with _raises_at(r"\$\.verdict: 'not steady' is not one of"):  # the earlier version's word is not written
+        schemas.validate("feasibility", {**row, "verdict": "not steady"})
     meta = maps["2d"] / "feasibility.json"
     wrong = _rewrite(meta, tmp_path / "feasibility.json", lambda m: m.update(points=m["points"] + 1))
     with _raises_at(r"feasibility.json .*: \$\.points: 7 points, but the grids have 6"):

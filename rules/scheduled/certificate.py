@@ -16,9 +16,10 @@ import numpy as np
 from designer.bounds import BOUND_LIMIT, symmetrize
 from designer.joint import as_difference, certificate_predict, joint_prior
 from designer.stationary import StationaryCertificate
+from designer.verdict import NOT_COMPUTED
 
-from .design import (Channels, diag_blocks, expected_certificate_update, falsification_moment, measurement_noise,
-                     prepare, stationary_gains, to_dense, transition_matrix, update_structure)
+from .design import (CERTIFICATE_MAX_DIM, Channels, diag_blocks, expected_certificate_update, falsification_moment,
+                     measurement_noise, prepare, stationary_gains, to_dense, transition_matrix, update_structure)
 
 __all__ = ["stationary_certificate", "STATIONARY_CERT_MAX", "STATIONARY_GROWTH", "STATIONARY_CERT_TOL",
            "LMI_MAX_DIM"]
@@ -50,12 +51,16 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     satisfies the inequality bounds every later bound once one lies below it.
     """
     st, U, V, Vn, phi0 = prepare(model, network, design, exchange, phi0)
+    N, n = network.n_nodes, model.n_x
+    if N * n > CERTIFICATE_MAX_DIM:  # as the design's certificate over the horizon (design_scheduled)
+        return StationaryCertificate(False, None, np.nan, np.nan, 0,
+                                     f"{NOT_COMPUTED}: the certificate of the stacked error (N n = {N * n} rows, at "
+                                     f"most {CERTIFICATE_MAX_DIM}) is not computed", None)
     if st.rounds > 1:
         return StationaryCertificate(False, None, np.nan, np.nan, 0,
-                                     f"(28)-(29) not checked: the certificate covers one exchange round per step "
+                                     f"{NOT_COMPUTED}: the certificate covers one exchange round per step "
                                      f"({st.rounds} rounds designed)", None)
     ch = st.ch
-    N, n = network.n_nodes, model.n_x
     x = np.asarray(x, dtype=float)
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)
     Fs = np.broadcast_to(F, (N, n, n))

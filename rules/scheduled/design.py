@@ -113,6 +113,7 @@ from designer.joint import (JointBound, JointCovariance, as_difference, certific
                           joint_predict, joint_prior, shared_search, shared_structure, solve_gains)
 from designer.tuning import MARGIN
 from designer.validation import InputError
+from designer.verdict import NOT_COMPUTED
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "stationary_tables", "colour", "pad_measurements", "STATIONARY_TOL",
@@ -840,12 +841,13 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     Wn = None if design.remainder_structure is None else [design.remainder_structure] * N  # (26)'s D per node
     out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
     proper = N * n <= CERTIFICATE_MAX_DIM and st.rounds == 1
+    # a certificate not computed is no violation of (28)-(29): the verdict says "not computed", with the reason
     if N * n > CERTIFICATE_MAX_DIM:
-        violations.append({"node": 0, "step": 0, "condition": "(28)", "margin": -np.inf,
+        violations.append({"node": 0, "step": 0, "condition": NOT_COMPUTED, "margin": np.nan,
                            "reason": f"the certificate of the stacked error (N n = {N * n} rows, at most "
                                      f"{CERTIFICATE_MAX_DIM}) is not computed: the design has no bound"})
     elif st.rounds > 1:
-        violations.append({"node": 0, "step": 0, "condition": "(28)", "margin": -np.inf,
+        violations.append({"node": 0, "step": 0, "condition": NOT_COMPUTED, "margin": np.nan,
                            "reason": f"the certificate covers one exchange round per step; with {st.rounds} rounds "
                                      "it is not computed: the design has no bound (its expected covariance is "
                                      "checked by Monte Carlo)"})

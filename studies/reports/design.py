@@ -46,7 +46,8 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "options", "sensors", "state_names", "seed", "trajectory", "replay", "boundedness_certified", "network",
           "attacks", "params", "assumptions", "source", "source_digest", "source_seal", "model_digest", "observability",
           "kalman_references", "predicted_mse", "gate",
-          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "exchange", "stationary",
+          "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "bounded", "growing",
+          "bounded_reason", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
           "bank_record", "remainder_structure"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
@@ -241,10 +242,10 @@ def _tightest(s: _Schedule) -> list[tuple[int, str, int, float, int, int, int]]:
 
 
 # Why a failed Theorem 2 condition never contradicts a design's verdict: the two theorems make different claims.
-THEOREM2_KIND = ("the verdict judges Theorem 1's bound Φ (finite, informative, steady: over a run's horizon, or at a "
-                 "map's fixed point), while Theorem 2 makes a different claim (the error bounded in mean square for "
-                 "all time) with a condition that is sufficient, not necessary, so where it fails Theorem 2 claims "
-                 "nothing and the verdict stands")
+THEOREM2_KIND = ("the verdict judges Theorem 1's bound Φ (finite and informative at every step of a run's horizon, "
+                 "or at a map's fixed point) and 'bounded' whether that bound is steady or a stationary fixed point, "
+                 "while Theorem 2's condition (the error bounded in mean square for all time) is sufficient, not "
+                 "necessary, so where it fails Theorem 2 claims nothing and the verdict stands")
 
 
 def theorem2_words(where: str, verdict: str | None = None) -> str:
@@ -254,9 +255,50 @@ def theorem2_words(where: str, verdict: str | None = None) -> str:
             f"this does not contradict the verdict{f' ({verdict})' if verdict else ''}: {THEOREM2_KIND}")
 
 
+def _not_computed_reason(s: _Schedule) -> str:
+    """Why the certificate was not computed: the reason of the violations record of condition ``not computed``."""
+    rec = next((v for v in s.violations if v.get("condition") == "not computed"), {})
+    return str(rec.get("reason") or (s.meta.get("verdict_detail") or {}).get("reason") or "no reason recorded")
+
+
+_BOUNDED_BY = {"steady": "steady: at every node its median over the last window is within the tolerance of the "
+                         "window before",
+               "fixed point": "a fixed point of the stationary recursion",
+               "stationary certificate": "its stationary certificate is a fixed point with its LMI confirmed, below "
+                                         "the stationary open loop"}
+
+
+def _bounded_lines(s: _Schedule) -> list[str]:
+    """The separate claim ``bounded`` (Theorem 2's kind of claim: steady, or a stationary fixed point; the paragraph
+    does not name Theorem 2, whose sufficient condition the report discusses apart) and the ``growing`` qualifier in
+    words; none for a file
+    written before them, or where the bound is not certified nor vacuous."""
+    b = s.meta.get("bounded")
+    if not isinstance(b, bool) or s.meta.get("verdict") not in ("certified", "vacuous"):
+        return []
+    detail = s.meta.get("verdict_detail") if isinstance(s.meta.get("verdict_detail"), Mapping) else {}
+    by = detail.get("bounded_by")
+    if b:
+        how = _BOUNDED_BY.get(by, _BOUNDED_BY["steady"])
+        line = f"**Bounded** (a claim apart from the certificate, which is Theorem 1's bound at every step): {how}."
+        if s.meta.get("growing") is True:
+            line += " Along the run the bound still grows at the horizon; that qualifies the certificate only."
+    else:
+        line = ("**Not bounded** (a claim apart from the certificate, which is Theorem 1's bound at every step): "
+                f"{md_escape(str(s.meta.get('bounded_reason') or 'no reason recorded'))}."
+                + (" The certificate holds over the horizon: still growing at the horizon is a qualifier, not a "
+                   "failure." if s.meta.get("verdict") == "certified" else ""))
+    return [line, ""]
+
+
 def _verdict_section(s: _Schedule, tight) -> list[str]:
     out = ["## Verdict", ""]
     size = f"{s.nodes} nodes, {s.steps} steps"
+    if s.meta.get("verdict") == "not computed":
+        out += [f"**Not computed.** The certificate was not computed ({md_escape(_not_computed_reason(s))}): "
+                f"conditions (28)-(29) were not checked along the run ({size}), so the design claims no bound Φ. "
+                "It is not infeasible: nothing failed.", ""]
+        return out
     if s.feasible:
         line = (f"**Feasible.** Conditions (28) and (29) held at every node and every step of the run ({size}) and "
                 "no node diverged: every node's Φ is a bound along the whole run.")
@@ -266,7 +308,7 @@ def _verdict_section(s: _Schedule, tight) -> list[str]:
         if s.meta.get("certified") is False:
             line += (f" Feasible is not certified: the bound itself is {md_escape(s.meta.get('verdict'))} (the "
                      "summary's first line says why).")
-        out += [line, ""]
+        out += [line, "", *_bounded_lines(s)]
     else:
         first = s.first_hard()
         nodes = sorted({v.get("node") for v in s.hard if is_num(v.get("node"))})
@@ -687,7 +729,22 @@ def _summary_table(s: _Schedule, tight) -> list[str]:
 
 
 _VERDICT_LEAD = {"certified": "Certified", "vacuous": "Not certified: the bound is vacuous",
-                 "not steady": "Not certified: the bound is not steady", "infeasible": "Not certified: infeasible"}
+                 "infeasible": "Not certified: infeasible",
+                 "not computed": "Not certified: the certificate was not computed",
+                 "not steady": "Not certified: the bound is not steady"}  # the last: a file of an earlier version
+
+
+def _lead(meta: Mapping) -> str:
+    """The first line's lead: the verdict (:data:`_VERDICT_LEAD`) and, for a certified or vacuous bound of a file
+    that records it, the separate claim ``bounded`` and the ``growing`` qualifier."""
+    v = meta.get("verdict")
+    lead = _VERDICT_LEAD[v]
+    if v not in ("certified", "vacuous") or not isinstance(meta.get("bounded"), bool):
+        return lead
+    if v == "vacuous":
+        return lead + ("; bounded" if meta["bounded"] else "; not bounded")
+    growing = ", still growing at the horizon" if meta.get("growing") is True else ""
+    return lead + (f"{growing}{',' if growing else ''} and bounded" if meta["bounded"] else f"{growing}; not bounded")
 
 
 def gain_rule_record(meta: Mapping) -> dict | None:
@@ -733,11 +790,15 @@ def _verdict_words(s: _Schedule) -> str | None:
     rule = gain_rule_record(s.meta)
     oracle = f"; {caveat(rule)}" if rule is not None and caveat(rule) else ""
     oracle += f"; {GATE_CLAUSE}" if s.meta.get("gate") else ""
-    return f"**{_VERDICT_LEAD[v]}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
+    return f"**{_lead(s.meta)}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
 
 
 def _summary_sentence(s: _Schedule, tight) -> str:
     lead = "**Use this schedule?** "
+    if s.meta.get("verdict") == "not computed":
+        return (lead + "Not as a certified design: its certificate was not computed ("
+                f"{md_escape(_not_computed_reason(s))}), so it claims no bound; it is not infeasible, and a study "
+                "(`cfdesign study consensus-robot`) measures what it delivers.")
     if s.feasible and s.meta.get("certified") is False:
         return (lead + f"Not as a certified design: (28)-(29) held at every node and step, but the bound is "
                 f"{md_escape(s.meta.get('verdict'))}, so it does not show what the filter delivers (see the first "
@@ -752,6 +813,10 @@ def _summary_sentence(s: _Schedule, tight) -> str:
     if tight:
         i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
         line += f"; the node closest to failing is {i} ({cond} at step {step}, margin {fmt_num(m)})"
+    if s.meta.get("growing") is True:
+        line += ("; the bound still grows at the horizon: it is certified over these steps, "
+                 + ("and bounded by the design's stationary certificate" if s.meta.get("bounded") is True else
+                    "not beyond them (not bounded)"))
     if s.theorem2:
         line += ("; Theorem 2's condition failed at some node-steps, which does not contradict this: it would claim "
                  "more (the error bounded for all time), and the verdict rests on Theorem 1's bound (see the verdict)")

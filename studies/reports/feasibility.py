@@ -1,7 +1,8 @@
 """The feasibility report: a parameter-feasibility map (``feasibility.csv`` + ``feasibility.json``) in plain words.
 
 What was mapped (the grid, the design options, the operating point), how many grid
-points have each verdict (certified, not steady, vacuous, infeasible) and what binds, the
+points have each verdict (certified and bounded, certified but not bounded, vacuous, infeasible, not computed)
+and what binds, the
 grid itself (for one or two grid parameters a matrix: the steady-state trace bound of the
 certified points, the verdict and binding condition of the others), the map
 ``feasibility.png`` (the same categories apart), and how this notion of
@@ -173,8 +174,10 @@ def _cell(row: Mapping | None) -> str:
     if cat == "vacuous":
         bound = fmt_num(row["trace_bound"], 3) if row["feasible"] else md_cell(row["binding"] or "no bound")
         return f"vacuous {bound}{dagger}"
-    if cat == "not steady":
-        return "not steady: " + md_cell(row["binding"] or "no fixed point")
+    if cat == "not bounded":
+        return "not bounded: " + md_cell(row["binding"] or "no fixed point")
+    if cat == "not computed":
+        return "not computed: " + md_cell(row["binding"] or "the stationary certificate")
     return "✗ " + md_cell(row["binding"] or "infeasible")
 
 
@@ -253,7 +256,8 @@ def _result_section(rows: Sequence[Mapping]) -> list[str]:
 def _legend() -> str:
     return ("A number is the steady-state trace bound (mean over nodes of tr Φ) of a certified point; \"vacuous\" "
             "marks a point whose bound (given where a fixed point exists) is at or above the open-loop covariance or "
-            "unbounded; \"not steady\" one whose iteration reached no fixed point below it; ✗ an infeasible point "
+            "unbounded; \"not bounded\" a point below it (certified) whose iteration reached no fixed point; \"not "
+            "computed\" one whose stationary certificate the rule did not compute; ✗ an infeasible point "
             "with the condition that failed ((28), (29)) or why; † a feasible point where Theorem 2's condition fails "
             "at its fixed point (no contradiction: see above).")
 
@@ -333,9 +337,10 @@ def _verdict_lines(rows: Sequence[Mapping], meta: Mapping) -> list[str]:
     return [f"{lead} Verdicts of the stationary bound: " + ", ".join(parts) + "." + ref, ""]
 
 
-_HEAT_MAP = ("The verdict at each grid point in the colours of the legend (certified, not steady, vacuous, "
-             "infeasible, with their counts, as in the first line), and the steady-state trace bound (mean over nodes "
-             "of tr Φ, log scale) where a fixed point exists; grey squares frame the points that failed.")
+_HEAT_MAP = ("The verdict at each grid point in the colours of the legend (certified and bounded, certified but "
+             "not bounded, vacuous, infeasible, not computed, with their counts, as in the first line), and the "
+             "steady-state trace bound (mean over nodes of tr Φ, log scale) where a fixed point exists; grey squares "
+             "frame the points that failed.")
 
 
 def _notions_section() -> list[str]:
@@ -384,8 +389,8 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
     grids = _grids(names, rows, meta)
     head = [f"# Feasibility report: {md_escape(scenario)}", "",
-            "Where the consensus design's stationary bound is certified, not steady, vacuous or infeasible, over a "
-            "grid of parameters "
+            "Where the consensus design's stationary bound is certified and bounded, certified but not bounded, "
+            "vacuous, infeasible or not computed, over a grid of parameters "
             f"({' x '.join(f'{len(v)} {md_escape(n)}' for n, v in grids)} = {len(rows)} points), as computed by "
             "`cfdesign feasibility`.", ""]
     attacks = attack_lines(meta.get("attacks"))
