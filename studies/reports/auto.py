@@ -133,6 +133,13 @@ def validation_lines(val: Mapping[str, Any]) -> list[str]:
                       md_cell(bc.get("verdict_reason", "")) if bc else ""])
     out += md_table(["filter", "RMSE", "mean squared error", "diverged runs", "bound check", "why"], table,
                     ["l", "r", "r", "r", "l", "l"])
+    ratios = val.get("pick_rmse_ratio") if isinstance(val.get("pick_rmse_ratio"), Mapping) else {}
+    said = [f"{fmt_num(r, 3)} x {md_escape(n)}'s" for n, r in ratios.items() if _num(r) is not None]
+    if said:
+        out += [f"The design's RMSE on these runs is {', '.join(said)}.", ""]
+    worse = [md_escape(n) for n, r in ratios.items() if _num(r) is not None and r > 1 and "local" in str(n)]
+    if worse:
+        out += [f"**On these runs the design is no better than the nodes alone** ({', '.join(worse)}).", ""]
     return out
 
 

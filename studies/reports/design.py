@@ -845,6 +845,11 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
             f"A gain schedule of the distributed consensus filter ({md_escape(mode)} mode) for {s.nodes} nodes over "
             f"{s.steps} steps, computed by `cfdesign design` along one seeded simulated run. Nodes and steps are "
             "numbered from 0, as in `schedule.json`.", "", *_runtime_lines(meta)]
+    if extra and extra[0] == "## Automatic design":
+        head += ["", "**Picked by the automatic design** (`cfdesign design` without `--mode`): "
+                 "[Automatic design](#automatic-design) lists every candidate, its cost, predicted error and verdict"
+                 + ("; [Validation](#validation) gives its errors on fresh runs." if "## Validation" in extra else
+                    ".")]
     tight = _tightest(s) if s.m28 is not None and s.m29 is not None else []
     return document(head, [
         _verdict_section(s, tight), extra or [], _conditioning_section(meta), _binding_section(s, tight),
