@@ -276,8 +276,9 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
         sends), the most bytes per step, and the seconds the candidates may take (default
         :data:`studies.auto.AUTO_SECONDS`).
     validate : int, optional
-        Mode ``auto``: fresh Monte Carlo runs of the pick beside KCF, HCMCI, the local and the centralized EKF
-        (default :data:`studies.auto.VALIDATE_RUNS`; 0: none).
+        Fresh Monte Carlo runs of the design (mode ``auto``: of its pick) beside KCF, HCMCI, the local and the
+        centralized EKF, ``.validation`` and ``validation.json`` (default: :data:`studies.auto.VALIDATE_RUNS` in mode
+        ``auto``, 0 with a rule).
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
@@ -324,12 +325,13 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
 
     auto = (opts.mode or (sc.design.mode if sc.design is not None else None) or AUTO) == AUTO
     if not auto:
-        given = [k for k, v in (("budget", budget), ("budget_bytes", budget_bytes), ("validate", validate),
+        given = [k for k, v in (("budget", budget), ("budget_bytes", budget_bytes),
                                 ("auto_seconds", auto_seconds)) if v is not None]
         if given:
             raise InputError(f"{', '.join(given)} {'is an option' if len(given) == 1 else 'are options'} of mode "
                              f"'auto' (the automatic design), not of mode {opts.mode or sc.design.mode!r}")
         memory.check(memory.design_need(sc, opts, sc.steps if steps is None else steps))
+        validate = 0 if validate is None else check_int("validate", validate, 0)
     else:
         from .auto import check_auto
 
@@ -342,6 +344,10 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
                            budget_bytes=budget_bytes, validate=validate, seconds=auto_seconds)
         else:
             res = run_design(sc, opts, steps=steps, seed=seed)
+            if validate:
+                from .auto import validation
+
+                res = replace(res, validation=validation(res, validate, seed))
         if out is not None:
             res.save(out)
     return res

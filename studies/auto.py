@@ -43,7 +43,7 @@ from designer.design import DesignOptions
 from designer.validation import ComputationError, InputError, check_int
 from designer.verdict import json_number, steadiness_window
 
-from .consensus_design import Design, run_design
+from .consensus_design import Design, check_first_step, run_design
 from .design_options import as_mode, effective
 from .runner import run_forked
 from .scenarios import Scenario
@@ -242,9 +242,14 @@ def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     sc_c, opts = effective(sc, options)
     x0, u0 = sc_c.operating_point
     att = sc_c.resolved_attacks
-    make_design(sc_c.model, sc_c.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
-                signal=att.signal)
+    rule = rule_of(opts)
+    des = make_design(sc_c.model, sc_c.network, rule=rule, delta=att.delta, options=opts, x0=x0, u0=u0,
+                      signal=att.signal)
     memory.check(memory.design_need(sc, options, steps))
+    if rule.fixed_multipliers:  # σ, β kept as given: they may break (28)/(29) at the first step
+        reason = check_first_step(sc_c, des, f"mode {rule.name!r}", options)
+        if reason is not None:
+            raise InputError(reason)
 
 
 def _summary(design: Design) -> dict:
@@ -343,7 +348,15 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     if pick_index is not None:
         chosen = candidates[pick_index]
         opts = _fields(as_mode(base, chosen.rule), chosen.options)
-        pick = run_design(sc, opts, steps=steps, seed=seed)
+        # the pick in full: its stationary certificate where its run's bound is not steady (it may make it bounded)
+        # and its tables beyond the horizon (its export needs them); a steady pick of a rule without tables is
+        # its screened run (the certificate would repeat what its steady run shows, at a cost that grows with
+        # the network: an LMI over every node)
+        lean = not rules.get(chosen.rule).offline_tables and chosen.bounded is True
+        pick = run_design(sc, opts, steps=steps, seed=seed, screen=lean)
+        if lean:
+            message += (f"; its stationary certificate was not computed (its run's bound is steady: bounded); "
+                        f"--mode {chosen.rule} with the same options computes it")
         again = _summary(pick)
         if again["verdict"] != chosen.verdict or again["predicted"] != chosen.predicted:
             raise ComputationError(f"the pick {chosen.label} designed again here gives verdict {again['verdict']} and "

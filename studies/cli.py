@@ -232,8 +232,8 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
               help="mode auto: the most bytes per step over the network (8 per number a packet carries), >= 1 "
                    "[default: no cap]")
 @click.option("--validate", type=int, default=None, metavar="R",
-              help="mode auto: fresh Monte Carlo runs of the pick beside KCF, HCMCI, the local and the centralized "
-                   "EKF, >= 0 [default: 20]")
+              help="fresh Monte Carlo runs of the design (mode auto: of its pick) beside KCF, HCMCI, the local and "
+                   "the centralized EKF, written to validation.json, >= 0 [default: 20 in mode auto, else 0]")
 @click.option("--auto-seconds", "auto_seconds", type=float, default=None, metavar="S",
               help="mode auto: seconds the candidate designs may take; one not done by then is listed as not "
                    "computed, > 0 [default: 45]")
@@ -266,11 +266,21 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
         from .reports.design import theorem2_words
 
         click.echo(f"  {theorem2_words(f'{n_th2} (node, step) pairs', res.verdict)}")
+    _validation_lines(res.validation)
     if hard:
         raise ComputationError(f"infeasible design: {res.reason()} (schedule written, marked feasible: false)")
     if not res.certified:  # certified, growing or not, exits 0; anything else 1
         raise ComputationError(f"design {res.verdict_line()} (schedule written, marked certified: false)")
     click.echo(f"  {res.verdict_line()}")
+
+
+def _validation_lines(validation) -> None:
+    """A design's validation on fresh runs (``validation.json``): each filter's RMSE, its diverged runs."""
+    for f in (validation or {}).get("filters", {}).values():
+        rmse = f.get("rmse")
+        if isinstance(rmse, (int, float)):
+            click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: RMSE {rmse:.4g}"
+                       + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
 
 
 def _auto_lines(res, out: str) -> None:
@@ -285,12 +295,7 @@ def _auto_lines(res, out: str) -> None:
         flags = "".join([" [pick]" if i == res.pick_index else "", "" if c.in_budget else " [over budget]",
                          " [no better than local EKFs]" if c.better_than_local is False else ""])
         click.echo(f"  {c.label:44s} {c.messages:5d} msgs {c.bytes:8d} B/step  {what}{flags}")
-    if res.validation is not None:
-        for name, f in res.validation["filters"].items():
-            rmse = f.get("rmse")
-            if isinstance(rmse, (int, float)):
-                click.echo(f"  validation, {res.validation['runs']} fresh runs: {f['filter']}: RMSE {rmse:.4g}"
-                           + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
+    _validation_lines(res.validation)
     if not res.certified:
         raise ComputationError(res.message + (" (the best design inside the budget is written, not certified)"
                                               if res.pick is not None else ""))

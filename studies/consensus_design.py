@@ -310,6 +310,7 @@ class Design:
     schedule: GainSchedule
     truth: np.ndarray
     seed: int
+    validation: dict | None = None  # the design on fresh Monte Carlo runs (studies.auto.validation; --validate R)
 
     @property
     def feasible(self) -> bool:

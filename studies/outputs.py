@@ -118,6 +118,8 @@ def save_design(design, directory) -> Path:
     check_apart("directory", directory, model_inputs(design.scenario))
     with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
         design.schedule.write(stage)
+        if design.validation is not None:
+            write_json(stage / "validation.json", design.validation)
         write_report(stage)
     return Path(directory)
 

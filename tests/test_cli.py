@@ -214,7 +214,7 @@ def test_an_empty_out_is_refused_by_the_api(tmp_path, monkeypatch, command):
     monkeypatch.chdir(tmp_path)
     before = file_tree(tmp_path)
     call = {"simulate": lambda: studies.simulate("indoor-robot", steps=2, out=""),
-            "design": lambda: studies.design("indoor-robot", steps=2, out=""),
+            "design": lambda: studies.design("indoor-robot", mode="paper", steps=2, out=""),
             "feasibility": lambda: studies.feasibility("indoor-robot", "dos=0:0.2:2", out=""),
             "study": lambda: studies.study("consensus-robot", runs=2, out="", assignments=["steps=3"])}[command]
     with pytest.raises(InputError, match="out.*empty"):
@@ -279,19 +279,19 @@ def test_a_design_never_replaces_a_file_the_user_wrote(tmp_path, capfd, via):
     (out / "notes.txt").write_text("the user's notes")
     before = file_tree(out)
     if via == "cli":
-        assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 2
+        assert main(["design", "indoor-robot", "--mode", "paper", "--steps", "2", "--out", str(out)]) == 2
         line = capfd.readouterr().err.strip()
     else:
         with pytest.raises(InputError) as exc:
-            studies.design("indoor-robot", steps=2, out=out)
+            studies.design("indoor-robot", mode="paper", steps=2, out=out)
         line = str(exc.value)
     assert repr(str(out / "schedule.json")) in line and "not written by cfdesign" in line, line
     assert {k: v for k, v in file_tree(out).items() if not k.startswith(".cfdesign")} == before
     # a design directory is cfdesign's: it is replaced by the next design, from either (exit 1: the 2-step paper design
     # is written but not certified, its bound above the open loop)
     other = tmp_path / "d"
-    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(other)]) == 1
-    studies.design("indoor-robot", steps=3, out=other)
+    assert main(["design", "indoor-robot", "--mode", "paper", "--steps", "2", "--out", str(other)]) == 1
+    studies.design("indoor-robot", mode="paper", steps=3, out=other)
     assert len(json.loads((other / "schedule.json").read_text())["trace_bound"][0]) == 3
 
 

@@ -55,7 +55,8 @@ def test_paper_design_of_the_robot_reports_violations_and_exits_1(tmp_path):
 
 def test_feasible_design_on_a_small_linear_model_exits_0_and_reloads(tmp_path):
     out = tmp_path / "lin"
-    code = main(["design", LINEAR, "--sigma", "0.01", "--beta", "0.01", "--seed", "2", "--out", str(out)])
+    code = main(["design", LINEAR, "--mode", "paper", "--sigma", "0.01", "--beta", "0.01", "--seed", "2", "--out",
+                 str(out)])
     assert code == 0
     sch = load_schedule(out, rules.get)
     assert sch.feasible and sch.nodes == 3 and sch.steps == 40
@@ -73,7 +74,7 @@ def test_schedule_replay_reproduces_the_design_run(tmp_path):
     from filters.consensus import run_consensus
     from studies.api import design
 
-    res = design(LINEAR, sigma=0.01, beta=0.01, seed=5, out=tmp_path)
+    res = design(LINEAR, mode="paper", sigma=0.01, beta=0.01, seed=5, out=tmp_path)
     assert not np.any(res.design.U) and not any(np.any(v) for v in res.design.V)  # linear: prior scalings are 0
     sch = load_schedule(tmp_path, rules.get)
     sc = res.scenario

@@ -110,7 +110,8 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     from studies.scenarios import load_scenario
 
     des, out = tmp_path / "design", tmp_path / "c"
-    assert main(["design", "indoor-robot", "--out", str(des)] + (["--gate", str(gate)] if gate else [])) in (0, 1)
+    gated = ["--gate", str(gate)] if gate else []
+    assert main(["design", "indoor-robot", "--mode", "paper", "--out", str(des)] + gated) in (0, 1)
     assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
     meta = json.loads((des / "schedule.json").read_text())
     assert meta["mode"] == "paper" and meta["options"]["mode"] is None
@@ -139,7 +140,8 @@ def test_a_users_paper_design_in_c_replays_a_recorded_log(cart, tmp_path):
     fallback, bearings wrapped); the replay's expected estimates are the node network's, and cfdesign filter with the
     design directory (recorded without a mode) gives them too."""
     des, out = tmp_path / "design", tmp_path / "c"
-    assert main(["design", str(cart), "--sigma", "0.1", "--beta", "0.05", "--u-scale", "0.001", "--v-scale",
+    assert main(["design", str(cart), "--mode", "paper", "--sigma", "0.1", "--beta", "0.05", "--u-scale", "0.001",
+                 "--v-scale",
                  "0.001", "--out", str(des)]) in (0, 1)
     log = tmp_path / "log.csv"
     sim = studies.simulate(str(cart), seed=9, run=2, out=log)
@@ -237,7 +239,8 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
                                          "problem online.*exported: paper, scheduled, relay, flood"):
         studies.export(tuned, out=tmp_path / "c")
     hess = tmp_path / "hessian"
-    assert main(["design", str(cart), "--linearization", "hessian", "--steps", "4", "--sigma", "0.1", "--beta",
+    assert main(["design", str(cart), "--mode", "paper", "--linearization", "hessian", "--steps", "4", "--sigma",
+                 "0.1", "--beta",
                  "0.005", "--out", str(hess)]) in (0, 1)
     with pytest.raises(InputError, match="linearization must be 'fixed' to export a paper design"):
         studies.export(hess, out=tmp_path / "c")

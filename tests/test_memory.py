@@ -118,8 +118,8 @@ def test_the_estimates_follow_the_allocated_peak(tmp_path):
     est = memory.design_need(sc, DesignOptions(), 1).phases[0][0].nbytes
     assert peak > 40e6 and 0.7 < est / peak < 1.5, (est, peak)
 
-    design(sc, steps=3, u_scale=0.0, v_scale=0.0)
-    peak = _traced_peak(lambda: design(sc, steps=60, u_scale=0.0, v_scale=0.0))
+    design(sc, mode="paper", steps=3, u_scale=0.0, v_scale=0.0)
+    peak = _traced_peak(lambda: design(sc, mode="paper", steps=60, u_scale=0.0, v_scale=0.0))
     est = memory.design_need(sc, DesignOptions(u_scale=0.0, v_scale=0.0), 60).nbytes
     assert peak > 8e6 and 0.5 < est / peak < 2.5, (est, peak)
 

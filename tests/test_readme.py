@@ -50,22 +50,23 @@ def _files(d: Path) -> dict:
     import numpy as np
 
     def strip(v):
-        if isinstance(v, dict):
+        if isinstance(v, dict):  # cheapest: by the timings; seconds: an automatic design's candidates'
             return {k: strip(x) for k, x in v.items()
-                    if "time" not in k and k not in ("runner", "versions", "cheapest")}  # cheapest: by the timings
+                    if "time" not in k and "seconds" not in k and k not in ("runner", "versions", "cheapest")}
         if isinstance(v, list):
             return [strip(x) for x in v]
         return v
 
     out = {}
-    for name in ("ring.npz", "ring-design/schedule.npz", "ring-kcf/estimates.npz", "ring-tuned/estimates.npz",
+    for name in ("ring.npz", "ring-design/schedule.npz", "ring-kcf/estimates.npz", "ring-pick/estimates.npz",
                  "ring-relay/schedule.npz"):
         with np.load(d / name) as z:
             out[name] = {k: (z[k].dtype.str, z[k].shape, z[k].tobytes()) for k in z.files}
     for name in ("ring-map/feasibility.csv", "ring-run3.csv", "ring-kcf/estimates.csv", "ring-c/replay.txt",
                  "ring-c/cfd_node.c"):
         out[name] = (d / name).read_text()
-    for name in ("ring-design/schedule.json", "ring-map/feasibility.json", "ring-compare/results.json"):
+    for name in ("ring-design/schedule.json", "ring-design/candidates.json", "ring-design/validation.json",
+                 "ring-map/feasibility.json", "ring-compare/results.json"):
         out[name] = strip(json.loads((d / name).read_text()))
     return out
 
@@ -98,12 +99,13 @@ def test_the_five_minute_section_runs_as_written_and_both_blocks_write_the_same_
     namespace: dict = {}
     exec(compile(script, "README script", "exec"), namespace)
     d, m, c = namespace["d"], namespace["m"], namespace["c"]
-    assert d.trace_bound.shape == (4, 400) and m.feasible.shape == (6, 6) and m.verdict.shape == (6, 6)
-    assert d.certified  # the README says the 400-step design is certified (the shell block exits 0 on it)
+    assert d.pick.trace_bound.shape == (4, 60) and m.feasible.shape == (6, 6) and m.verdict.shape == (6, 6)
+    assert d.certified  # the automatic design's pick is certified (the shell block exits 0 on it)
+    assert d.validation is not None and d.validation["runs"] == 20
     assert {"consensus", "local", "particle", "EKF"} == {f["family"] for f in c.filters.values()}
     k, t, node = namespace["k"], namespace["t"], namespace["node"]
     assert node.ball[0] == 0 and node.k == 1 and np.isfinite(node.x).all()
-    assert k.x_hat.shape == (61, 4, 2) and t.name == "consensus EKF (tuned design)" and t.verdict is not None
+    assert k.x_hat.shape == (61, 4, 2) and t.name == d.gain_rule.study_label and t.verdict is not None
     # the log of run 3 filtered gives that run's KCF estimate in the study (node 1's, as the study keeps it)
     est = c.arrays[next(iter(c.arrays))]["estimate"]
     assert np.array_equal(k.x_hat[:, 0], est[3, FILTERS.index("KCF")])

@@ -85,7 +85,7 @@ def test_theorem_2_is_never_printed_beside_a_verdict_without_why_both_hold(tmp_p
     verdict (Theorem 1's bound over the horizon against Theorem 2's boundedness for all time)."""
     (tmp_path / "scalar.py").write_text(SCALAR)
     out = tmp_path / "d"
-    assert main(["design", str(tmp_path / "scalar.py"), "--steps", "16", "--out", str(out)]) == 0
+    assert main(["design", str(tmp_path / "scalar.py"), "--mode", "paper", "--steps", "16", "--out", str(out)]) == 0
     meta = json.loads((out / "schedule.json").read_text())
     assert meta["verdict"] == "certified"
     assert any(v["condition"] == "theorem2" for v in meta["violations"])  # the case the wording is for

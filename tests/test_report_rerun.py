@@ -137,7 +137,8 @@ def test_a_particle_study_line_keeps_the_engine_and_a_builtin_parameter(tmp_path
 
 @pytest.mark.slow
 def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypatch):
-    assert main(["design", "scalar.py", "--beta", "0.05", "--sigma", "0.05", "--steps", "12", "--seed", "3",
+    assert main(["design", "scalar.py", "--mode", "paper", "--beta", "0.05", "--sigma", "0.05", "--steps", "12",
+                 "--seed", "3",
                  "--set", "noise=0.1", "--out", "d"]) in (0, 1)
     assert main(["feasibility", "scalar.py", "--grid", "dos=0:0.5:6", "--u-scale", "0", "--set", "gain=0.7",
                  "--quiet", "--out", "f"]) == 0
@@ -164,7 +165,8 @@ def test_design_and_map_lines_compute_the_same_numbers(user, tmp_path, monkeypat
 
 @pytest.mark.slow
 def test_a_replayed_schedule_is_part_of_the_line(user, tmp_path, monkeypatch):
-    assert main(["design", "scalar.py", "--sigma", "0.05", "--beta", "0.05", "--out", "sched"]) in (0, 1)
+    assert main(["design", "scalar.py", "--mode", "paper", "--sigma", "0.05", "--beta", "0.05", "--out",
+                 "sched"]) in (0, 1)
     assert main(["study", "consensus-robot", "scalar.py", "--runs", "2", "--schedule", "sched", "--set", "dos=0.2",
                  "--quiet", "--out", "a"]) == 0
     argv = _line(user / "a" / "report.md")
@@ -180,9 +182,10 @@ def test_a_replayed_schedule_is_part_of_the_line(user, tmp_path, monkeypatch):
 def test_the_api_records_the_line_the_command_line_records(user):
     import studies
 
-    d = studies.design("scalar.py", beta=0.05, sigma=0.05, steps=12, seed=3, overrides={"noise": 0.1},
+    d = studies.design("scalar.py", mode="paper", beta=0.05, sigma=0.05, steps=12, seed=3, overrides={"noise": 0.1},
                        out="api-d")
-    assert main(["design", "scalar.py", "--beta", "0.05", "--sigma", "0.05", "--steps", "12", "--seed", "3",
+    assert main(["design", "scalar.py", "--mode", "paper", "--beta", "0.05", "--sigma", "0.05", "--steps", "12",
+                 "--seed", "3",
                  "--set", "noise=0.1", "--out", "cli-d"]) in (0, 1)
     api = json.loads((user / "api-d" / "schedule.json").read_text())["invocation"]
     cli = json.loads((user / "cli-d" / "schedule.json").read_text())["invocation"]

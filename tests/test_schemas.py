@@ -162,10 +162,12 @@ def designs(tmp_path_factory):
     """``cfdesign design``: the linear model's feasible design, the indoor robot's infeasible paper design and the
     range-bearing target's paper design, where a node diverges (a violation with a reason and a null margin)."""
     out = {w: tmp_path_factory.mktemp(f"design-{w}") for w in ("feasible", "infeasible", "diverged")}
-    assert main(["design", LINEAR, "--sigma", "0.01", "--beta", "0.01", "--u-scale", "0", "--v-scale", "0",
-                 "--seed", "2", "--steps", "12", "--out", str(out["feasible"])]) == 0
-    assert main(["design", "indoor-robot", "--seed", "1", "--steps", "10", "--out", str(out["infeasible"])]) == 1
-    assert main(["design", "target-range-bearing", "--seed", "0", "--steps", "12", "--out", str(out["diverged"])]) == 1
+    assert main(["design", LINEAR, "--mode", "paper", "--sigma", "0.01", "--beta", "0.01", "--u-scale", "0",
+                 "--v-scale", "0", "--seed", "2", "--steps", "12", "--out", str(out["feasible"])]) == 0
+    assert main(["design", "indoor-robot", "--mode", "paper", "--seed", "1", "--steps", "10", "--out",
+                 str(out["infeasible"])]) == 1
+    assert main(["design", "target-range-bearing", "--mode", "paper", "--seed", "0", "--steps", "12", "--out",
+                 str(out["diverged"])]) == 1
     return out
 
 

@@ -541,12 +541,12 @@ def test_a_full_disk_while_writing_the_outputs_names_the_file_and_keeps_the_last
 
     out = tmp_path / "out"
     # exit 1: written, but a 2-step design is never certified (too short to show a steady bound)
-    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 1
+    assert main(["design", "indoor-robot", "--mode", "paper", "--steps", "2", "--out", str(out)]) == 1
     assert (out / "schedule.json").is_file()
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME}
     capfd.readouterr()
     monkeypatch.setattr(fileio.os, "fsync", _enospc)
-    code = main(["design", "indoor-robot", "--steps", "3", "--out", str(out)])
+    code = main(["design", "indoor-robot", "--mode", "paper", "--steps", "3", "--out", str(out)])
     line = _one_line(capfd.readouterr().err)
     assert code == 1 and "No space left on device" in line
     assert re.search(re.escape(str(out)) + r"/(schedule\.npz|schedule\.json|fig_\w+\.png|report\.\w+)'", line), line
@@ -570,7 +570,8 @@ def test_report_takes_the_one_writer_lock(tmp_path, capfd):
     from studies.cli import main
 
     out = tmp_path / "out"
-    assert main(["design", "indoor-robot", "--steps", "2", "--out", str(out)]) == 1  # written, not certified
+    assert main(["design", "indoor-robot", "--mode", "paper", "--steps", "2", "--out",
+                 str(out)]) == 1  # written, not certified
     capfd.readouterr()
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK_NAME}
     holder = _hold(out)

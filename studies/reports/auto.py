@@ -11,7 +11,7 @@ from typing import Any, Mapping
 
 from .text import document, fmt_num, md_cell, md_escape, md_table, read_record
 
-__all__ = ["auto_section", "auto_report", "CANDIDATES_FIGURE"]
+__all__ = ["auto_section", "validation_section", "validation_lines", "auto_report", "CANDIDATES_FIGURE"]
 
 CANDIDATES_FIGURE = "fig_candidates.png"
 
@@ -111,11 +111,17 @@ def auto_section(d: Path, into: Path) -> tuple[list[str], list[str]]:
     return out, figures
 
 
+def validation_section(d: Path) -> list[str]:
+    """The "Validation" section of a design directory with ``validation.json`` and no candidates (``--validate R``
+    with a named rule)."""
+    return validation_lines(read_record(d, "validation.json", "cfdesign.validation/1", "a validation's"))
+
+
 def validation_lines(val: Mapping[str, Any]) -> list[str]:
     """The "Validation" section: the pick and the references on the fresh runs."""
     rows = _validation_rows(val)
     out = ["## Validation", "",
-           f"The pick on {fmt_num(val.get('runs'))} fresh Monte Carlo runs ({md_escape(val.get('seeds'))}), beside "
+           f"The design on {fmt_num(val.get('runs'))} fresh Monte Carlo runs ({md_escape(val.get('seeds'))}), beside "
            "KCF, HCMCI, the local and the centralized EKF on the same runs and channel attacks.", ""]
     table = []
     for name, f in rows.items():

@@ -24,7 +24,7 @@ import numpy as np
 
 
 import studies.reports.text as text  # the formatting a rule's report words use
-from .auto import auto_section
+from .auto import auto_section, validation_section
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
                    recorded_elsewhere, rerun_lines, scenario_spec)
@@ -879,7 +879,8 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
         if s.m28 is not None and s.m29 is not None and s.m28.size:
             _margin_figure(into / "fig_margins.png", s, f"{label}: margins of (28) and (29) per node")
             figures.append("fig_margins.png")
-        auto = auto_section(d, into) if (d / "candidates.json").is_file() else None
+        auto = auto_section(d, into) if (d / "candidates.json").is_file() else \
+            (validation_section(d), []) if (d / "validation.json").is_file() else None
     if auto is not None:
         figures += auto[1]
     images = {name: (into / name).read_bytes() for name in figures}
