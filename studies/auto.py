@@ -236,7 +236,7 @@ def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     memory a design needs): InputError naming the problem."""
     from designer.design import make_design
 
-    from . import memory
+    from .memory import check, design_need
     from .design_options import rule_of
 
     sc_c, opts = effective(sc, options)
@@ -245,7 +245,7 @@ def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     rule = rule_of(opts)
     des = make_design(sc_c.model, sc_c.network, rule=rule, delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
-    memory.check(memory.design_need(sc, options, steps))
+    check(design_need(sc, options, steps))
     if rule.fixed_multipliers:  # σ, β kept as given: they may break (28)/(29) at the first step
         reason = check_first_step(sc_c, des, f"mode {rule.name!r}", options)
         if reason is not None:

@@ -114,7 +114,7 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     assert main(["design", "indoor-robot", "--mode", "paper", "--out", str(des)] + gated) in (0, 1)
     assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
     meta = json.loads((des / "schedule.json").read_text())
-    assert meta["mode"] == "paper" and meta["options"]["mode"] is None
+    assert meta["mode"] == "paper" and meta["options"]["mode"] == "paper"
     assert ("not certified" in capsys.readouterr().out) == (meta["verdict"] != "certified")
     header = (out / "cfd_node.h").read_text()
     assert "gain rule paper" in header and f"gate = {gate}" in header
@@ -165,7 +165,7 @@ def test_a_diverging_paper_design_replays_the_steps_before_its_covariance_is_ill
     model = tmp_path / "ring.py"
     model.write_text((pathlib.Path(__file__).parents[1] / "examples" / "ring_model.py").read_text())
     des, out = tmp_path / "design", tmp_path / "c"
-    assert main(["design", str(model), "--seed", "1", "--out", str(des)]) == 1
+    assert main(["design", str(model), "--mode", "paper", "--seed", "1", "--out", str(des)]) == 1
     assert main(["export", str(des), "--out", str(out)]) == 0
     said = capsys.readouterr().out
     assert "ill-conditioned at step 4 of the replayed run" in said and "replay.txt holds the 3 steps before" in said

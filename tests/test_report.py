@@ -494,8 +494,8 @@ HARD = ("(28)", "(29)", "diverged")
 def designs(tmp_path_factory):
     """The linear model's feasible design and the indoor robot's infeasible paper design, written with reports."""
     lin, robot = tmp_path_factory.mktemp("lin-design"), tmp_path_factory.mktemp("robot-paper")
-    a = api.design(LINEAR, seed=2, out=lin, **SMALL)
-    b = api.design("indoor-robot", seed=1, out=robot)
+    a = api.design(LINEAR, mode="paper", seed=2, out=lin, **SMALL)
+    b = api.design("indoor-robot", mode="paper", seed=1, out=robot)
     assert a.feasible and not b.feasible  # the premise of the tests below
     return {"feasible": (lin, a), "infeasible": (robot, b)}
 

@@ -116,7 +116,7 @@ def reports(tmp_path_factory):
 @pytest.fixture(scope="module")
 def design_and_map(tmp_path_factory):
     design = tmp_path_factory.mktemp("design")
-    api.design("indoor-robot", seed=1, out=design)  # paper mode: infeasible, the report says why
+    api.design("indoor-robot", mode="paper", seed=1, out=design)  # infeasible, the report says why
     fmap = tmp_path_factory.mktemp("map")
     api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], u_scale=0, v_scale=0, out=fmap)
     return [design / "report.html", fmap / "report.html"]
