@@ -22,7 +22,15 @@ import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["usable_cores", "thread_pool", "one_blas_thread"]
+__all__ = ["usable_cores", "thread_pool", "one_blas_thread", "SOLVER_SETTINGS"]
+
+#: Clarabel's settings for every convex problem cfdesign solves (``problem.solve(solver=cp.CLARABEL,
+#: **SOLVER_SETTINGS)``): one thread.  Clarabel's sparse factorisation (faer) otherwise runs on a rayon thread pool
+#: created at the process's first solve; a process forked after it (a design's certificate computed beside its run,
+#: :class:`studies.runner.Background`, an automatic design's candidates, a study's workers) inherits the pool's
+#: bookkeeping without its threads and waits for them for ever at its own first solve.  One thread also keeps the
+#: factorisation's summation order, hence every digit, the same on every machine.
+SOLVER_SETTINGS = {"max_threads": 1}
 
 _POOL: ThreadPoolExecutor | None = None
 

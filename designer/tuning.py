@@ -61,6 +61,7 @@ import numba
 import numpy as np
 
 from .bounds import Spectrum, prediction_recursion, shifted_inverse, spectrum, symmetrize
+from .cores import SOLVER_SETTINGS
 from .validation import ComputationError
 
 __all__ = [
@@ -916,7 +917,7 @@ def _solve(problem, what: str) -> None:
     import cvxpy as cp
 
     try:
-        problem.solve(solver=cp.CLARABEL)
+        problem.solve(solver=cp.CLARABEL, **SOLVER_SETTINGS)
     except cp.SolverError as exc:
         raise ComputationError(f"{what}: solver failed ({exc})") from None
     if problem.status == cp.OPTIMAL_INACCURATE:

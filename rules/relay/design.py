@@ -38,6 +38,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 from designer.bounds import sqrtm_psd
+from designer.cores import SOLVER_SETTINGS
 from designer.network import SensorNetwork
 from designer.stationary import StationaryCertificate
 from designer.validation import InputError, check_int
@@ -707,7 +708,7 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11, **SOLVER_SETTINGS)
     except cp.error.SolverError as exc:
         return {"status": "solver error", "reason": str(exc), "trace": None, "max_residual": None}
     if prob.status not in ("optimal", "optimal_inaccurate") or any(p.value is None for p in P):

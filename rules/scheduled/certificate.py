@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 
 from designer.bounds import BOUND_LIMIT, symmetrize
+from designer.cores import SOLVER_SETTINGS
 from designer.joint import as_difference, certificate_predict, joint_prior
 from designer.stationary import StationaryCertificate
 from designer.verdict import NOT_COMPUTED
@@ -157,7 +158,7 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     try:
         with warnings.catch_warnings():  # "may be inaccurate": the NumPy residual below is what is trusted
             warnings.simplefilter("ignore", UserWarning)
-            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11, **SOLVER_SETTINGS)
     except cp.error.SolverError as exc:
         return {"status": "solver error", "reason": str(exc), "trace": None, "max_residual": None}
     if P.value is None or prob.status not in ("optimal", "optimal_inaccurate"):
