@@ -239,13 +239,13 @@ def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     from .memory import check, design_need
     from .design_options import rule_of
 
+    check(design_need(sc, options, steps))  # first: the design of the scalings may be what does not fit
     sc_c, opts = effective(sc, options)
     x0, u0 = sc_c.operating_point
     att = sc_c.resolved_attacks
     rule = rule_of(opts)
     des = make_design(sc_c.model, sc_c.network, rule=rule, delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
-    check(design_need(sc, options, steps))
     if rule.fixed_multipliers:  # σ, β kept as given: they may break (28)/(29) at the first step
         reason = check_first_step(sc_c, des, f"mode {rule.name!r}", options)
         if reason is not None:
