@@ -277,7 +277,7 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     cap, budget_bytes, validate, seconds = check_auto(sc, budget, budget_bytes, validate, seconds)
     base = replace(options, mode=None)
-    sc_eff, _ = effective(sc, replace(base, mode=rules.PUBLISHED))
+    sc_eff = sc.with_attacks(**base.attack_overrides())  # what every candidate designs for (effective's scenario)
     net, model = sc_eff.network, sc_eff.model
     x0, u0 = sc_eff.operating_point
     refs = kalman_references(model, x0, u0)
@@ -286,8 +286,13 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     # the candidates: every deployable rule's, with what the user gave kept
     plans = []
     for name, rule in rules.all_rules().items():
-        for cand in rule.candidates(net):
-            opts = _fields(as_mode(base, name), cand)
+        seen = set()
+        for offered in rule.candidates(net):
+            opts = _fields(as_mode(base, name), offered)
+            cand = {k: getattr(opts, k) for k in offered}  # what it designs: a value the user gave wins
+            if tuple(sorted(cand.items())) in seen:
+                continue  # the user's value made it another candidate's twin
+            seen.add(tuple(sorted(cand.items())))
             try:
                 _check_candidate(sc, opts, steps)
             except InputError as exc:
@@ -314,9 +319,9 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     for j, (name, rule, cand, opts, refused) in enumerate(plans):
         L = rule.rounds(net, opts.rounds if opts is not None else cand.get("rounds"))
         msgs = int(net.messages_per_step(L))
-        row = dict(rule=name, options=dict(cand), rounds=L, exchange=cand.get("exchange") or (
-            "relay" if rule.relays else "measurements" if rule.offline_tables else "predictions"),
-            messages=msgs, bytes=0, in_budget=cap is None or msgs <= cap)
+        row = dict(rule=name, options=dict(cand), rounds=L,
+                   exchange=rule.design_fields(opts if opts is not None else DesignOptions(**cand))["exchange"],
+                   messages=msgs, bytes=0, in_budget=cap is None or msgs <= cap)
         if refused is not None:
             candidates.append(Candidate(**row, status="cannot start", reason=refused))
             continue

@@ -208,3 +208,18 @@ def test_auto_options_are_refused_with_a_rule_before_any_computation(tmp_path):
     assert not (tmp_path / "d").exists()
     with pytest.raises(InputError, match="budget"):
         design(RING, budget="none", out=tmp_path / "e")
+
+
+@pytest.mark.slow
+def test_a_value_the_user_gives_is_every_candidates_and_twins_are_tried_once():
+    from studies.api import design
+
+    auto = design(RING, seed=1, steps=20, validate=0, rounds=1, exchange="predictions")
+    labels = [c.label for c in auto.candidates]
+    assert len(labels) == len(set(labels))
+    for c in auto.candidates:
+        if c.rule in ("relay", "flood", "scheduled"):
+            assert c.options.get("rounds") == 1 and c.rounds == 1, c.label
+        if c.rule == "scheduled":
+            assert c.options["exchange"] == "predictions" == c.exchange
+    assert sum(c.rule == "scheduled" for c in auto.candidates) == 1
