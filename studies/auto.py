@@ -433,10 +433,16 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     nodes), ``rmse_state``, ``rmse_position`` where the model has a position, ``diverged_runs`` (how many), the
     messages per step; for the pick its ``bound_check`` and verdict counts; ``ratios``: the pick's RMSE over each
     reference's."""
+    from designer.cores import usable_cores
+
     from .pipeline import run_study
+    from .runner import Backend
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
-    res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=True)
+    cores = usable_cores()  # the runs' chunks on every core (the same numbers on every backend)
+    backend = Backend("processes", workers=cores) if cores > 1 else Backend()
+    res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=True,
+                    backend=backend)
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
     rows = {}
