@@ -43,8 +43,8 @@ from designer.design import DesignOptions
 from designer.validation import ComputationError, InputError, check_int
 from designer.verdict import json_number, steadiness_window
 
-from .consensus_design import Design, check_first_step, run_design
-from .design_options import as_mode, effective
+from .consensus_design import Design, check_first_step, effective_design, run_design
+from .design_options import as_mode
 from .runner import run_forked
 from .scenarios import Scenario
 
@@ -234,18 +234,11 @@ def _fields(options: DesignOptions, cand: dict) -> DesignOptions:
 def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     """What ``design --mode NAME`` checks before computing (the options, the model at its operating point, the
     memory a design needs): InputError naming the problem."""
-    from designer.design import make_design
-
     from .memory import check, design_need
-    from .design_options import rule_of
 
     check(design_need(sc, options, steps))  # first: the design of the scalings may be what does not fit
-    sc_c, opts = effective(sc, options)
-    x0, u0 = sc_c.operating_point
-    att = sc_c.resolved_attacks
-    rule = rule_of(opts)
-    des = make_design(sc_c.model, sc_c.network, rule=rule, delta=att.delta, options=opts, x0=x0, u0=u0,
-                      signal=att.signal)
+    sc_c, _, des = effective_design(sc, options)
+    rule = des.rule
     if rule.fixed_multipliers:  # σ, β kept as given: they may break (28)/(29) at the first step
         reason = check_first_step(sc_c, des, f"mode {rule.name!r}", options)
         if reason is not None:
@@ -290,9 +283,10 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
         for offered in rule.candidates(net):
             opts = _fields(as_mode(base, name), offered)
             cand = {k: getattr(opts, k) for k in offered}  # what it designs: a value the user gave wins
-            if tuple(sorted(cand.items())) in seen:
+            key = tuple(sorted(cand.items()))
+            if key in seen:
                 continue  # the user's value made it another candidate's twin
-            seen.add(tuple(sorted(cand.items())))
+            seen.add(key)
             try:
                 _check_candidate(sc, opts, steps)
             except InputError as exc:
@@ -310,9 +304,9 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     todo = [j for j, p in enumerate(plans) if p[3] is not None]
     done = run_forked([lambda o=plans[j][3]: _design_summary(sc, o, steps, seed) for j in todo], workers=workers,
                       deadline=t0 + seconds)
-    refused = [d.value for d in done if d.status == "failed" and d.value.startswith("InputError: ")]
-    if len(refused) == len(done):  # every candidate refused the model's run (say h not finite at some step)
-        raise InputError(refused[0].split(": ", 1)[1])
+    run_refused = [d.value for d in done if d.status == "failed" and d.value.startswith("InputError: ")]
+    if len(run_refused) == len(done):  # every candidate refused the model's run (say h not finite at some step)
+        raise InputError(run_refused[0].split(": ", 1)[1])
     results = dict(zip(todo, done))
 
     candidates = []

@@ -42,7 +42,7 @@ from .results import versions
 from .runner import Background
 from .scenarios import Scenario
 
-__all__ = ["Design", "consensus_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
+__all__ = ["Design", "consensus_design", "effective_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
            "check_first_step", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop"]
 
 
@@ -58,12 +58,20 @@ def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, step
     """
     if kw:
         options = (options or DesignOptions()).merged(DesignOptions(**kw))
+    sc, _, des = effective_design(sc, options)
+    return with_tables(sc, des, steps)
+
+
+def effective_design(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, DesignOptions, ConsensusDesign]:
+    """The scenario with the options' attacks, the effective options (:func:`studies.design_options.effective`) and
+    the design they make at the scenario's operating point, without offline tables (:func:`with_tables` adds
+    them): what every design command starts from, checked (InputError naming the problem) before any run."""
     sc, opts = effective(sc, options)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
     des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
                       signal=att.signal)
-    return with_tables(sc, des, steps)
+    return sc, opts, des
 
 
 def with_tables(sc: Scenario, design: ConsensusDesign, steps: int | None = None) -> ConsensusDesign:
@@ -396,12 +404,10 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     seed = check_int("seed", seed, 0)
     invocation = design_invocation(sc, options, steps=None if steps is None else check_int("steps", steps, 1),
                                    seed=seed)
-    sc, opts = effective(sc, options)
+    sc, opts, des = effective_design(sc, options)
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
-    des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
-                      signal=att.signal)
     m, net, rule = sc.model, sc.network, des.rule
     with contextlib.ExitStack() as stack:
         # the stationary certificate and the other exchange rounds do not depend on the tables nor on the seeded
