@@ -52,13 +52,14 @@ CASES = {
     "design 40 states x 8 nodes x 200 steps": (
         ["design", "{chain40_8_200}", "--steps", "3", "--u-scale", "0", "--v-scale", "0", "--out", "{out}/w"],
         ["design", "{chain40_8_200}", "--u-scale", "0", "--v-scale", "0", "--out", "{out}/d"]),
-    "feasibility 5000 points": (["feasibility", "{ring}", "--grid", "dos=0:0.5:3", "--out", "{out}/w", "--quiet"],
-                                ["feasibility", "{ring}", "--grid", "dos=0:0.5:100", "--grid", "fdi=0:0.4:50",
+    "feasibility 5000 points": (["feasibility", "{ring}", "--mode", "paper", "--grid", "dos=0:0.5:3", "--out", "{out}/w",
+                                 "--quiet"],
+                                ["feasibility", "{ring}", "--mode", "paper", "--grid", "dos=0:0.5:100", "--grid", "fdi=0:0.4:50",
                                  "--out", "{out}/f", "--quiet"]),
     "feasibility 30 states x 64 points": (
-        ["feasibility", "{chain30_4_20}", "--grid", "dos=0:0.5:2", "--u-scale", "0", "--v-scale", "0", "--out",
+        ["feasibility", "{chain30_4_20}", "--mode", "paper", "--grid", "dos=0:0.5:2", "--u-scale", "0", "--v-scale", "0", "--out",
          "{out}/w", "--quiet"],
-        ["feasibility", "{chain30_4_20}", "--grid", "dos=0:0.5:64", "--u-scale", "0", "--v-scale", "0", "--out",
+        ["feasibility", "{chain30_4_20}", "--mode", "paper", "--grid", "dos=0:0.5:64", "--u-scale", "0", "--v-scale", "0", "--out",
          "{out}/f", "--quiet"]),
     "comparison 16 states x 4 nodes": (
         ["study", "comparison", "{chain16_4_30}", "--runs", "2", "--particles", "20", "--out", "{out}/w", "--quiet",

@@ -362,10 +362,12 @@ class GainRule:
         """The tables beyond the horizon of ``horizon`` (its tables over the horizon, computed without them)."""
         raise InputError(f"gain rule {self.name!r} has no offline tables")
 
-    def stationary(self, model, network, design, *, x, u):
+    def stationary(self, model, network, design, *, x, u, lmi: bool = True):
         """Its design's stationary certificate at the operating point ``x`` (input ``u``) and where it is computed,
         in words: ``(certificate, where)``, the certificate a :class:`designer.stationary.StationaryCertificate`;
-        None for a rule without one (``stationary_certificate`` False)."""
+        None for a rule without one (``stationary_certificate`` False).  ``lmi`` False: the fixed point without
+        the LMI that confirms it (its ``lmi`` None: a screening, what the automatic map ranks candidates by before
+        it confirms the best)."""
         return None
 
     def tradeoff_parts(self, model, network, design, steps: int, *, x, u, inputs_of, record):

@@ -360,7 +360,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
                 radius: float | None = None, gate: float | None = None, exchange: str | None = None,
                 robustness: float | None = None, rounds: int | None = None, bank: int | None = None,
-                options: DesignOptions | None = None,
+                options: DesignOptions | None = None, budget=None, budget_bytes: int | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -376,7 +376,15 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         beta, epsilon, u_scale, v_scale); the grid's value replaces the option of that name.
         The values are the exact numbers meant (``dos=0:0.6:7``: 0, 0.1, ..., 0.6; see
         :mod:`studies.feasibility_map`).
-    mode, epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
+    mode : str, ``'auto'`` or the name of a gain rule (:mod:`rules`)
+        ``'auto'`` (the default, unless the model's ``DESIGN`` names a rule): at every grid point, the best
+        candidate of every deployable rule the map maps (:func:`studies.feasibility_map.auto_rows`: certified,
+        bounded and below the local EKFs, the smallest stationary bound, ties to the fewest bytes), each row naming
+        its pick (``rule``); a rule's name maps that rule.
+    budget, budget_bytes
+        Mode ``auto``: the most messages per step over the network (a whole number, or ``'kcf'``) and bytes per step;
+        the candidates outside are listed, not mapped.
+    epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
     robustness, rounds, bank, options
         The same design options as :func:`design`, with the same defaults.
     workers, dask, dask_security, backend
@@ -423,7 +431,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         raise InputError("give either backend or workers/dask, not both")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)
     with writing(out):  # the one-writer lock, taken before any computation
-        fmap = run_feasibility(sc, grid, opts, backend=backend, store=out, force=force, quiet=quiet)
+        fmap = run_feasibility(sc, grid, opts, backend=backend, store=out, force=force, quiet=quiet, budget=budget,
+                               budget_bytes=budget_bytes)
         if out is not None:
             fmap.save(out)
     return fmap

@@ -49,7 +49,7 @@ from .runner import run_forked
 from .scenarios import Scenario
 
 __all__ = ["AUTO", "AUTO_SECONDS", "TIE", "BYTES_PER_NUMBER", "VALIDATE_RUNS", "AUTO_ASSUMPTIONS", "Candidate",
-           "AutoDesign", "run_auto", "check_auto", "message_budget", "predicted_error", "references", "reference_costs",
+           "AutoDesign", "run_auto", "check_auto", "offered", "label", "best", "message_budget", "predicted_error", "references", "reference_costs",
            "validation"]
 
 AUTO = "auto"  # the --mode of the automatic design (not a gain rule: it chooses among them)
@@ -147,8 +147,7 @@ class Candidate:
 
     @property
     def label(self) -> str:
-        extra = [f"{k}={v}" for k, v in self.options.items()]
-        return self.rule + (f" ({', '.join(extra)})" if extra else "")
+        return label(self.rule, self.options)
 
     @property
     def eligible(self) -> bool:
@@ -225,6 +224,43 @@ class AutoDesign:
         return save_auto(self, directory)
 
 
+def offered(base: DesignOptions, network, *, where=None) -> list[tuple]:
+    """Every deployable rule's candidate designs on ``network`` (:meth:`designer.rule.GainRule.candidates`), with what
+    the user gave in ``base`` kept: ``(name, rule, candidate, options)`` per design, ``candidate`` the fields that set
+    it apart with the values it designs (a value the user gave wins: a candidate it makes another's twin is tried
+    once).  ``where``: only the rules for which ``where(rule)`` holds (the map: the rules it maps)."""
+    out = []
+    for name, rule in rules.all_rules().items():
+        if where is not None and not where(rule):
+            continue
+        seen = set()
+        for offer in rule.candidates(network):
+            opts = _fields(as_mode(base, name), offer)
+            cand = {k: getattr(opts, k) for k in offer}
+            key = tuple(sorted(cand.items()))
+            if key not in seen:
+                seen.add(key)
+                out.append((name, rule, cand, opts))
+    return out
+
+
+def label(rule: str, options: dict) -> str:
+    """A candidate's name: its rule and the options that set it apart (``"flood (rounds=3)"``)."""
+    extra = [f"{k}={v}" for k, v in options.items()]
+    return rule + (f" ({', '.join(extra)})" if extra else "")
+
+
+def best(entries) -> int | None:
+    """The pick among eligible ``(key, predicted, bytes, messages)`` entries: the smallest predicted error, predicted
+    errors within :data:`TIE` of it a tie won by the fewest bytes, then the fewest messages; its key (None: none)."""
+    entries = list(entries)
+    if not entries:
+        return None
+    low = min(e[1] for e in entries)
+    tied = [e for e in entries if e[1] <= low * (1.0 + TIE)]
+    return min(tied, key=lambda e: (e[2], e[3], e[1]))[0]
+
+
 def _fields(options: DesignOptions, cand: dict) -> DesignOptions:
     """The user's options with a candidate's values where the user set none (a value the user gave is kept)."""
     given = {k: v for k, v in cand.items() if getattr(options, k) is None}
@@ -278,25 +314,17 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
 
     # the candidates: every deployable rule's, with what the user gave kept
     plans = []
-    for name, rule in rules.all_rules().items():
-        seen = set()
-        for offered in rule.candidates(net):
-            opts = _fields(as_mode(base, name), offered)
-            cand = {k: getattr(opts, k) for k in offered}  # what it designs: a value the user gave wins
-            key = tuple(sorted(cand.items()))
-            if key in seen:
-                continue  # the user's value made it another candidate's twin
-            seen.add(key)
-            try:
-                _check_candidate(sc, opts, steps)
-            except InputError as exc:
-                try:  # refused only with what the user gave: the user's input is bad, for every rule alike
-                    _check_candidate(sc, DesignOptions(mode=name, **cand), steps)
-                except InputError:
-                    plans.append((name, rule, cand, None, str(exc)))  # this rule cannot start on this model
-                    continue
-                raise
-            plans.append((name, rule, cand, opts, None))
+    for name, rule, cand, opts in offered(base, net):
+        try:
+            _check_candidate(sc, opts, steps)
+        except InputError as exc:
+            try:  # refused only with what the user gave: the user's input is bad, for every rule alike
+                _check_candidate(sc, DesignOptions(mode=name, **cand), steps)
+            except InputError:
+                plans.append((name, rule, cand, None, str(exc)))  # this rule cannot start on this model
+                continue
+            raise
+        plans.append((name, rule, cand, opts, None))
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
         raise InputError(next(p[4] for p in plans)) if plans else InputError(
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
@@ -392,9 +420,7 @@ def _choose(candidates: list[Candidate], cap, cap_bytes) -> tuple[int | None, st
         return None, "nothing designed", "no candidate could be designed (see candidates.json for each reason)"
     eligible = [i for i in designed if candidates[i].eligible and candidates[i].predicted is not None]
     if eligible:
-        best = min(candidates[i].predicted for i in eligible)
-        tied = [i for i in eligible if candidates[i].predicted <= best * (1.0 + TIE)]
-        i = min(tied, key=lambda j: (candidates[j].bytes, candidates[j].messages, candidates[j].predicted))
+        i = best((j, candidates[j].predicted, candidates[j].bytes, candidates[j].messages) for j in eligible)
         c = candidates[i]
         return i, "picked", (f"picked {c.label}: certified, predicted node-average tr Φ {c.predicted:.4g}"
                              + (f" ({c.ratio_centralized:.3g} x the centralized EKF's)" if c.ratio_centralized else "")

@@ -45,7 +45,8 @@ def _design_options(f, *, auto: bool = False):
     opts = [
         click.option("--mode", type=click.Choice((["auto"] if auto else []) + list(rules.names())), default=None,
                      help=("auto: every deployable rule's candidate designs, and the certified one inside --budget "
-                           "with the smallest predicted error; " + rule_help + " [default: auto]") if auto else
+                           "with the smallest predicted error (feasibility: at each grid point, the smallest "
+                           "stationary bound); " + rule_help + " [default: auto]") if auto else
                      rule_help + f" [default: {rules.DEFAULT}]"),
         click.option("--epsilon", type=float, default=None, help="epsilon in (0, 1/d_max) [default: 0.5/d_max]"),
         click.option("--sigma", type=float, default=None, help="sigma of (26), paper mode [default: 0.1]"),
@@ -222,15 +223,20 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
         raise ComputationError(f"filter {res.name!r} diverged at step {res.diverged['step']} (estimates written)")
 
 
+def _budget_options(f):
+    """The automatic design's budget (``design``, ``feasibility``)."""
+    f = click.option("--budget-bytes", "budget_bytes", type=int, default=None, metavar="B",
+                     help="mode auto: the most bytes per step over the network (8 per number a packet carries), >= 1 "
+                          "[default: no cap]")(f)
+    return click.option("--budget", default=None, metavar="MSGS|kcf",
+                        help="mode auto: the most messages per step over the network, a whole number >= 1, or kcf "
+                             "(no more than KCF sends: one per directed channel) [default: no cap]")(f)
+
+
 @cli.command("design")
 @click.argument("scenario")
 @functools.partial(_design_options, auto=True)
-@click.option("--budget", default=None, metavar="MSGS|kcf",
-              help="mode auto: the most messages per step over the network, a whole number >= 1, or kcf (no more "
-                   "than KCF sends: one per directed channel) [default: no cap]")
-@click.option("--budget-bytes", "budget_bytes", type=int, default=None, metavar="B",
-              help="mode auto: the most bytes per step over the network (8 per number a packet carries), >= 1 "
-                   "[default: no cap]")
+@_budget_options
 @click.option("--validate", type=int, default=None, metavar="R",
               help="fresh Monte Carlo runs of the design (mode auto: of its pick) beside KCF, HCMCI, the local and "
                    "the centralized EKF, written to validation.json, >= 0 [default: 20 in mode auto, else 0]")
@@ -344,11 +350,13 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
 @click.option("--grid", "grids", multiple=True, required=True, metavar="NAME=START:STOP:COUNT",
               help="grid over dos, fdi, delta, amplitude, tau, sigma, beta, epsilon, u_scale or v_scale (repeatable)")
 @click.option("--out", required=True, help="output directory (feasibility.csv, feasibility.png, report)")
-@_design_options
+@functools.partial(_design_options, auto=True)
+@_budget_options
 @_runner_options
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, quiet, assignments, **kw) -> None:
-    """Map where the consensus design of SCENARIO admits a bounded steady-state bound."""
+    """Map where the consensus design of SCENARIO admits a bounded steady-state bound: by default the automatic map
+    (at each grid point, the best certified candidate of every rule the map maps)."""
     from .api import feasibility
 
     fmap = feasibility(scenario, grids, out=out, workers=workers, dask=dask, dask_security=dask_security,
@@ -358,7 +366,11 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
     failed = f", {len(fmap.failures)} failed (see the report)" if fmap.failures else ""
     counts = ", ".join(f"{c} {v}" for v, c in fmap.verdict_counts.items() if c)
     click.echo(f"wrote {out}/feasibility.csv and report.html: {n_ok} of {len(fmap.rows)} grid points feasible{failed} "
-               f"({fmap.options.mode or rules.DEFAULT} design); verdicts: {counts}")
+               f"({fmap.mode} design); verdicts: {counts}")
+    if fmap.auto is not None:
+        won = [f"{c['label']} {c['picked_points']}" for c in fmap.auto["candidates"] if c["picked_points"]]
+        click.echo(f"  picked: {', '.join(won) or 'none'}; {sum(r['better_than_local'] == 0 for r in fmap.rows)} "
+                   "points no better than the nodes' local EKFs")
 
 
 @cli.command("study")

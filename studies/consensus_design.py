@@ -169,7 +169,7 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
 LMI_TOLERANCE = 1e-6
 
 
-def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
+def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True) -> dict:
     """The design's stationary certificate at the operating point (its rule's,
     :meth:`designer.rule.GainRule.stationary`) with its verdict and boundedness (:func:`designer.verdict.verdict`
     with ``fixed_point``): ``certified`` and ``bounded`` when the bound's recursion with the stationary gains reaches
@@ -177,10 +177,11 @@ def stationary_record(sc: Scenario, design: ConsensusDesign) -> dict:
     stationary open loop; ``vacuous`` and not bounded when the recursion holds the conditions but reaches no fixed
     point; ``infeasible`` when it breaks (28)/(29) or the LMI does not confirm the fixed point; ``not computed``
     (with the reason) when the rule did not compute it
-    (:attr:`designer.stationary.StationaryCertificate.not_computed`)."""
+    (:attr:`designer.stationary.StationaryCertificate.not_computed`).  ``lmi`` False: the fixed point without the
+    LMI that confirms it (a screening: its verdict is what the LMI would confirm or refuse)."""
     x0, u0 = sc.operating_point
     m = sc.model
-    cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0)
+    cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0, lmi=lmi)
     open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
     lmi = cert.lmi
     confirmed = lmi is None or lmi.get("trace") is None and lmi.get("status") == "not solved" or (

@@ -48,10 +48,11 @@ steady state).
 """
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fractions import Fraction
 from pathlib import Path
 from typing import Sequence
@@ -62,10 +63,11 @@ import rules
 from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
 from designer.linearization import prediction_scaling, update_scaling
-from designer.validation import ComputationError, InputError, check_strings
-from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, open_loop_reference, verdict
+from designer.validation import ComputationError, InputError, check_int, check_strings
+from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, json_number, open_loop_reference, verdict
 
 import studies.memory as memory
+from .auto import AUTO, BYTES_PER_NUMBER, best, label, message_budget, offered, references
 from .consensus_design import stationary_record
 from .design_options import effective, rule_of
 from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
@@ -73,10 +75,11 @@ from .invocation import feasibility_invocation
 from .runner import Backend, monte_carlo
 from .scenarios import Scenario, ScenarioRef, reference
 
-__all__ = ["parse_grid", "FeasibilityMap", "run_feasibility", "map_points", "CHUNK_SIZE", "point_verdict",
-           "stationary_open_loop"]
+__all__ = ["parse_grid", "FeasibilityMap", "MapCandidate", "run_feasibility", "map_points", "auto_rows", "CHUNK_SIZE",
+           "AUTO_CHUNK_SIZE", "point_verdict", "stationary_open_loop"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
+AUTO_CHUNK_SIZE = 2  # grid points per chunk of an automatic map (each point maps every candidate: spread them out)
 
 _PAPER_ONLY = ("tau", "sigma", "beta")
 
@@ -244,11 +247,14 @@ def stationary_open_loop(sc: Scenario) -> tuple[float, str]:
     return open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
 
 
-def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, batched: bool = True) -> list[dict]:
+def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, batched: bool = True,
+               lmi: bool = True) -> list[dict]:
     """The rows (``OUTPUTS``) of the grid ``points`` (dicts of grid values) of ``sc``'s map for ``options``.
 
     ``batched``: every point's fixed-point iteration at once (:func:`designer.feasibility.steady_state_batch`);
     False: point by point (:func:`designer.feasibility.steady_state`), the same numbers, much more slowly.
+    ``lmi`` False: a rule with a stationary certificate maps its fixed point without the LMI that confirms it (the
+    automatic map's screening, :func:`auto_rows`).
 
     A point whose design cannot be built or whose iteration raises (an overflow, an eigenvalue problem that does
     not converge at an extreme value) is not feasible and has no bound; its ``binding`` is ``"failed: "`` and the
@@ -263,7 +269,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
     if rule_of(options).stationary_certificate:  # the design's own at each point
-        res = iter([_scheduled_row(*item) for item in ok])
+        res = iter([_scheduled_row(*item, lmi=lmi) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
 
@@ -299,12 +305,12 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     return [d if isinstance(d, dict) else next(res) for d in designed]
 
 
-def _scheduled_row(sc: Scenario, design) -> dict:
+def _scheduled_row(sc: Scenario, design, *, lmi: bool = True) -> dict:
     """A grid point of a rule with a stationary certificate (scheduled, relay): the stationary certificate that
     ``cfdesign design`` records for the same options (:func:`studies.consensus_design.stationary_record`), so that
     map and design agree by construction."""
     try:
-        rec = stationary_record(sc, design)
+        rec = stationary_record(sc, design, lmi=lmi)
     except _POINT_ERRORS as exc:
         return _failed(exc)
     tr = rec["trace"]
@@ -324,10 +330,131 @@ def _linearisation(sc: Scenario):
     return F, H, R, xp
 
 
-def _points(run_ids, seeds, *, ref: ScenarioRef, options: DesignOptions, points: Sequence[dict]) -> dict:
-    """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used), batched."""
-    rows = map_points(ref.build(), options, [points[int(i)] for i in run_ids])
+def _points(run_ids, seeds, *, ref: ScenarioRef, options: DesignOptions, points: Sequence[dict], local,
+            candidates=None) -> dict:
+    """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used), batched; ``candidates``: an
+    automatic map's (:func:`auto_rows`)."""
+    sc, mine = ref.build(), [points[int(i)] for i in run_ids]
+    if candidates is not None:
+        rows = auto_rows(sc, candidates, mine, local)
+    else:
+        name = effective(sc, options)[1].mode or rules.DEFAULT
+        rows = [{**r, "rule": name, "better_than_local": int(_better(r, local))} for r in map_points(sc, options, mine)]
     return {k: np.array([r[k] for r in rows]) for k in OUTPUTS}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The automatic map: at every point, the best certified candidate of the rules it maps.
+
+
+@dataclass(frozen=True)
+class MapCandidate:
+    """One candidate design of an automatic map (``feasibility.json``'s ``candidates``): a rule and the options that
+    set it apart (:func:`studies.auto.offered`), its messages and bytes per step (they do not depend on the grid's
+    parameters), and whether it was mapped (``status`` ``'mapped'``, ``'cannot start'`` or ``'outside the budget'``,
+    with the reason)."""
+
+    rule: str
+    options: dict
+    design_options: DesignOptions
+    messages: int
+    bytes: int
+    status: str
+    reason: str | None = None
+
+    @property
+    def label(self) -> str:
+        return label(self.rule, self.options)
+
+    def record(self, picked: int) -> dict:
+        return {"rule": self.rule, "label": self.label, "options": dict(self.options),
+                "messages_per_step": self.messages, "bytes_per_step": self.bytes, "status": self.status,
+                "reason": self.reason, "picked_points": picked}
+
+
+def _better(row: dict, local) -> bool:
+    """Whether a row's bound is below the nodes' local EKFs (node-average steady-state tr P; None or inf: any finite
+    bound is), the test ``design --mode auto`` applies to its candidates."""
+    tb = row["trace_bound"]
+    return bool(np.isfinite(tb) and (local is None or tb < local))
+
+
+def _eligible(row: dict, local) -> bool:
+    """A point's candidate that may be picked: certified and bounded (a fixed point), and better than the nodes
+    alone."""
+    return row["verdict"] == "certified" and bool(row["feasible"]) and _better(row, local)
+
+
+def auto_rows(sc: Scenario, candidates: Sequence[MapCandidate], points: Sequence[dict], local) -> list[dict]:
+    """The automatic map's rows of ``points``: every mapped candidate's row (:func:`map_points`, the rules with a
+    stationary certificate screened without their LMI), and at each point the pick as ``design --mode auto`` picks:
+    among the eligible candidates (certified, bounded, below the local EKFs' ``local``) the smallest steady-state
+    bound, within 1 % the fewest bytes then messages (:func:`studies.auto.best`).  A pick of a rule with a
+    stationary certificate is mapped again with its LMI; when the LMI does not confirm it, the next is tried.  With
+    no eligible candidate, the best of the others (certified first, then bounded, then the smallest bound) is the
+    point's row, its verdict its own.  Each row names its candidate (``rule``) and says whether it is below the
+    local EKFs (``better_than_local``)."""
+    mapped = [c for c in candidates if c.status == "mapped"]
+    screened = [map_points(sc, c.design_options, points, lmi=False) for c in mapped]
+    out = []
+    for p, point in enumerate(points):
+        rows = [s[p] for s in screened]
+        confirmed = set()
+        while True:
+            j = best((k, rows[k]["trace_bound"], c.bytes, c.messages) for k, c in enumerate(mapped)
+                     if _eligible(rows[k], local))
+            if j is None:
+                j = min(range(len(mapped)), key=lambda k: (
+                    rows[k]["verdict"] != "certified", not rows[k]["feasible"],
+                    rows[k]["trace_bound"] if np.isfinite(rows[k]["trace_bound"]) else np.inf,
+                    mapped[k].bytes, mapped[k].messages))
+            if j in confirmed or not rules.get(mapped[j].rule).stationary_certificate or \
+                    rows[j]["verdict"] != "certified":
+                break
+            rows[j] = map_points(sc, mapped[j].design_options, [point])[0]  # with its LMI
+            confirmed.add(j)
+        out.append({**rows[j], "rule": mapped[j].label, "better_than_local": int(_better(rows[j], local))})
+    return out
+
+
+def _auto_candidates(sc: Scenario, options: DesignOptions, cap, cap_bytes, need) -> list[MapCandidate]:
+    """The automatic map's candidates (:func:`studies.auto.offered`, the rules it maps), each checked as ``design``
+    checks a candidate before computing: its memory (``need(options)``) and its design at the options without a grid
+    value; a candidate refused only with what the user gave is the user's input (InputError), one refused with the
+    rule's defaults too cannot start on this model; one outside the budget is listed, not mapped."""
+    sc_eff = sc.with_attacks(**options.attack_overrides())
+    model, net = sc_eff.model, sc_eff.network
+    out = []
+    for name, rule, cand, opts in offered(options, net, where=lambda r: r.mappable):
+        msgs = int(net.messages_per_step(rule.rounds(net, opts.rounds)))
+        row = dict(rule=name, options=dict(cand), design_options=opts, messages=msgs, bytes=0)
+        try:
+            memory.check(need(opts))
+            designed = _design_at(sc, opts, {}, strict=True)
+        except InputError as exc:
+            try:
+                memory.check(need(DesignOptions(mode=name, **cand)))
+                _design_at(sc, DesignOptions(mode=name, **cand), {}, strict=True)
+            except InputError:
+                out.append(MapCandidate(**row, status="cannot start", reason=str(exc)))
+                continue
+            raise
+        if isinstance(designed, dict):  # dos + fdi > 1 without a grid value: every candidate alike
+            raise InputError("dos + fdi must be at most 1 (DoS and FDI never occur together)")
+        nbytes = BYTES_PER_NUMBER * int(rule.payload(model, net, designed[1]))
+        row["bytes"] = nbytes
+        if (cap is not None and msgs > cap) or (cap_bytes is not None and nbytes > cap_bytes):
+            out.append(MapCandidate(**row, status="outside the budget",
+                                    reason=f"{msgs} messages and {nbytes} bytes per step"))
+            continue
+        out.append(MapCandidate(**row, status="mapped"))
+    if not any(c.status == "mapped" for c in out):
+        refused = [c for c in out if c.status == "cannot start"]
+        if refused and len(refused) == len(out):
+            raise InputError(refused[0].reason)
+        raise InputError("no candidate of the rules the map maps fits the budget (--budget, --budget-bytes): "
+                         + "; ".join(f"{c.label}: {c.reason}" for c in out))
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -344,7 +471,12 @@ class FeasibilityMap:
         Per point: the grid values, ``feasible`` (0/1), ``trace_bound`` (mean over nodes of the
         steady-state tr Φ, NaN when infeasible), ``binding`` (``"failed: <reason>"`` where the point's
         design or iteration raised: :attr:`failures`), ``theorem2``, ``iterations``, ``verdict`` (the
-        stationary bound's verdict, :func:`point_verdict`).
+        stationary bound's verdict, :func:`point_verdict`), ``rule`` (the design mapped: the rule, or in an
+        automatic map the point's pick), ``better_than_local`` (0/1: its bound below the local EKFs').
+    references : dict
+        ``centralized`` and ``local_mean``: the centralized and the nodes' local steady-state tr P.
+    auto : dict or None
+        An automatic map's ``candidates`` (:meth:`MapCandidate.record`, with the points each won) and ``budget``.
     runner : dict
         What the Monte Carlo runner computed and reused.
     """
@@ -355,6 +487,13 @@ class FeasibilityMap:
     rows: list
     runner: dict
     invocation: dict | None = None
+    references: dict | None = None  # the centralized and the local EKFs' steady-state tr P (node average)
+    auto: dict | None = None  # an automatic map's candidates and budget
+
+    @property
+    def mode(self) -> str:
+        """``'auto'`` or the rule mapped."""
+        return self.options.mode or rules.DEFAULT
 
     @property
     def names(self) -> list[str]:
@@ -384,6 +523,12 @@ class FeasibilityMap:
         """Whether each point is certified and bounded (the map's category ``certified``: a fixed point, finite and
         below the stationary open loop at every node), shaped like the grid."""
         return (self.verdict == "certified") & self.bounded
+
+    @property
+    def rule(self) -> np.ndarray:
+        """The design mapped at each point (in an automatic map, the point's pick: ``"flood (rounds=3)"``), shaped
+        like the grid."""
+        return np.array([r["rule"] for r in self.rows], dtype=object).reshape(self.shape)
 
     @property
     def bounded(self) -> np.ndarray:
@@ -432,15 +577,22 @@ class FeasibilityMap:
             "observability": observability(sc.model, *sc.operating_point),
             "kalman_references": kalman_references(sc.model, *sc.operating_point),
             "assumptions": list(sc.assumptions) + list(DESIGN_ASSUMPTIONS) + list(VERDICT_ASSUMPTIONS),
-            "runner": self.runner,
+            "runner": self.runner, "references": self.references,
+            **({} if self.auto is None else self.auto),
             "invocation": self.invocation, "versions": versions(),
         }
 
 
 def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions | None = None, *,
                     backend: Backend | None = None, store=None, force: bool = False,
-                    quiet: bool = False) -> FeasibilityMap:
-    """Compute the feasibility map of ``sc`` over ``grids`` (``NAME=START:STOP:COUNT`` strings)."""
+                    quiet: bool = False, budget=None, budget_bytes: int | None = None) -> FeasibilityMap:
+    """Compute the feasibility map of ``sc`` over ``grids`` (``NAME=START:STOP:COUNT`` strings).
+
+    Mode ``auto`` (the default, unless the model's ``DESIGN`` names a rule): at every point the best eligible
+    candidate of the rules the map maps (:func:`auto_rows`), inside ``budget`` (messages per step, or ``"kcf"``) and
+    ``budget_bytes`` (bytes per step) as ``design --mode auto`` counts them."""
+    from designer.observability import kalman_references
+
     if isinstance(grids, str):
         grids = [grids]
     if not isinstance(grids, (list, tuple)):
@@ -452,16 +604,35 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     names = [n for n, *_ in specs]
     if len(set(names)) != len(names):
         raise InputError("each --grid parameter may be given once")
-    sc_eff, opts = effective(sc, options)
-    mode = opts.mode or rules.DEFAULT
-    rule = rules.get(mode)
-    if not rule.mappable:
-        raise InputError(f"mode {mode!r} is not mapped yet: its gains come from the joint error covariance of a run "
-                         f"(use cfdesign design or a study); feasibility maps every other mode")
-    bad = [n for n in names if n in _PAPER_ONLY and not rule.fixed_multipliers]
-    if bad:
-        raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (the {mode} design chooses it "
-                         "itself)")
+    options = options or DesignOptions()
+    auto = (options.mode or (sc.design.mode if sc.design is not None else None) or AUTO) == AUTO
+    if not auto and (budget is not None or budget_bytes is not None):
+        raise InputError("budget and budget_bytes are options of mode 'auto' (the automatic map), not of mode "
+                         f"{options.mode or sc.design.mode!r}")
+    if auto:
+        base = replace(options, mode=None)
+        if sc.network is None:
+            raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
+                             "(a model file defines NETWORK)")
+        sc_eff, opts = sc.with_attacks(**base.attack_overrides()), replace(base, mode=AUTO)
+        bad = [n for n in names if n in _PAPER_ONLY]
+        if bad:
+            raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (mode auto chooses among "
+                             "rules; give --mode paper to map it)")
+        cap = message_budget(budget, sc.network)
+        if budget_bytes is not None:
+            budget_bytes = check_int("budget_bytes", budget_bytes, 1)
+    else:
+        sc_eff, opts = effective(sc, options)
+        mode = opts.mode or rules.DEFAULT
+        rule = rules.get(mode)
+        if not rule.mappable:
+            raise InputError(f"mode {mode!r} is not mapped yet: its gains come from the joint error covariance of a "
+                             "run (use cfdesign design or a study); feasibility maps every other mode")
+        bad = [n for n in names if n in _PAPER_ONLY and not rule.fixed_multipliers]
+        if bad:
+            raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (the {mode} design "
+                             "chooses it itself)")
     d_max = max(sc_eff.network.d_max, 1)
     for n, start, stop, count in specs:
         top = float(max(start, stop) if count > 1 else start)
@@ -469,9 +640,21 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
             raise InputError(f"--grid epsilon must lie in (0, 1/d_max) = (0, {1.0 / d_max:.6g}), got up to {top:g}")
     if backend is not None and backend.kind == "dask" and sc.source is None:
         raise InputError("an in-memory model cannot be sent to a Dask cluster; write it to a model file")
-    memory.check(memory.feasibility_need(sc, options or DesignOptions(), math.prod(c for *_, c in specs), len(specs),
-                                         CHUNK_SIZE, backend))
-    _design_at(sc, options or DesignOptions(), {}, strict=True)  # the options' own errors: bad input, before any point
+    n_points = math.prod(c for *_, c in specs)
+    chunk = AUTO_CHUNK_SIZE if auto else CHUNK_SIZE
+
+    def need(o):
+        return memory.feasibility_need(sc, o, n_points, len(specs), chunk, backend)
+
+    candidates = None
+    if auto:
+        candidates = _auto_candidates(sc, base, cap, budget_bytes, need)
+    else:
+        memory.check(need(options))
+        _design_at(sc, options, {}, strict=True)  # the options' own errors: bad input, before any point
+    x0, u0 = sc_eff.operating_point
+    refs = kalman_references(sc_eff.model, x0, u0)
+    c_ref, l_ref = references(refs)
     parsed = [(n, _grid_values(start, stop, count)) for n, start, stop, count in specs]
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
     ref = reference(sc)
@@ -481,16 +664,28 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         from designer.tuning import load_kernels
 
         load_kernels()  # once, before the workers are forked, rather than in every worker
-    task = functools.partial(_points, ref=ref, options=options or DesignOptions(), points=points)
+    task = functools.partial(_points, ref=ref, options=opts if auto else options, points=points, local=l_ref,
+                             candidates=candidates)
     config = {"study": "feasibility", "scenario": sc.name, "model": ref.digest,
-              "grids": [[n, v.tolist()] for n, v in parsed], "options": (options or DesignOptions()).as_dict(),
+              "grids": [[n, v.tolist()] for n, v in parsed], "options": opts.as_dict() if auto else options.as_dict(),
               "params": dict(ref.params), "attacks": sc.attacks.describe()}
-    mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=CHUNK_SIZE, backend=backend, store=store,
+    if auto:
+        config["candidates"] = [[c.label, c.status] for c in candidates]
+    mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=chunk, backend=backend, store=store,
                      label="feasibility", config=config, force=force, quiet=quiet)
     a = mc.arrays
     rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
              "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),
-             "iterations": int(a["iterations"][i]), "verdict": str(a["verdict"][i])} for i, p in enumerate(points)]
-    return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options))
-
-
+             "iterations": int(a["iterations"][i]), "verdict": str(a["verdict"][i]), "rule": str(a["rule"][i]),
+             "better_than_local": int(a["better_than_local"][i])} for i, p in enumerate(points)]
+    auto_record = None
+    if auto:
+        picked = collections.Counter(r["rule"] for r in rows)
+        auto_record = {"candidates": [c.record(picked.get(c.label, 0) if c.status == "mapped" else 0)
+                                      for c in candidates],
+                       "budget": {"messages_per_step": cap, "given": None if budget is None else str(budget),
+                                  "bytes_per_step": budget_bytes,
+                                  "kcf_messages_per_step": int(sc_eff.network.messages_per_step())}}
+    return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options),
+                          references={"centralized": json_number(c_ref), "local_mean": json_number(l_ref)},
+                          auto=auto_record)

@@ -22,8 +22,10 @@ GRID_PARAMETERS = {
     "u_scale": "U = u I, >= 0",
     "v_scale": "V_i = v I at every sensor, >= 0",
 }
-#: The columns of ``feasibility.csv`` after the grid's parameters: what each point is mapped to.
-OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations", "verdict")
+#: The columns of ``feasibility.csv`` after the grid's parameters: what each point is mapped to (``rule``: the design
+#: mapped there, the rule or, in an automatic map, the point's pick; ``better_than_local``: 1 where its bound is below
+#: the nodes' local EKFs).
+OUTPUTS = ("feasible", "trace_bound", "binding", "theorem2", "iterations", "verdict", "rule", "better_than_local")
 FAILED = "failed: "  # the start of the binding of a point whose design or iteration raised
 
 #: The map's categories of a grid point, each drawn apart (:func:`studies.figures.map_figure`): the verdicts of

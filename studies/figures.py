@@ -508,13 +508,21 @@ def _plain_log_ticks(axis) -> None:
     axis.set_minor_formatter(NullFormatter())
 
 
+def _short_rule(label) -> str:
+    """A pick's label shortened for a map's cell: ``"flood (rounds=3)"`` -> ``"flood 3"``."""
+    import re
+
+    return re.sub(r"[(),]|\w+=", "", str(label or "")).replace("  ", " ").strip()
+
+
 def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
     """The map's figure: for two grid parameters, the category of every point
     (:data:`studies.feasibility_terms.MAP_CATEGORIES`, each colour in the legend with its count; the QuadMesh's data
     are the indices of the categories, gid ``"categories"``) beside the steady-state trace bound where a fixed point
     exists (log scale); for one, the trace bound against the parameter with a marker per point in its category's
     colour (one labelled line per category, gid ``"category:<name>"``; a point without a bound sits on the lowest
-    bound's level).  Points that failed (not mapped) are framed in grey."""
+    bound's level).  Points that failed (not mapped) are framed in grey.  ``mode`` ``'auto'``: each point is labelled
+    with its pick (gid ``"pick"``)."""
     from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
     from matplotlib.patches import Patch
 
@@ -526,7 +534,8 @@ def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
     failed = np.array([str(r["binding"]).startswith(FAILED) for r in rows])
     counts = {c: cats.count(c) for c in MAP_CATEGORIES}
     label = {c: f"{MAP_WORDS[c]}: {counts[c]}" for c in MAP_CATEGORIES}
-    title = f"{scenario}: the {mode} consensus design at the operating point"
+    title = (f"{scenario}: the best certified design at each point (auto), at the operating point" if mode == "auto"
+             else f"{scenario}: the {mode} consensus design at the operating point")
     if len(parsed) == 1:
         (name, vals), = parsed
         fig, ax = plt.subplots(figsize=(8.5, 4.8))
@@ -540,6 +549,11 @@ def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
             line.set_gid(f"category:{c}")
         if failed.any():
             ax.plot(vals[failed], y[failed], "s", color="grey", mfc="none", ms=11, label="failed (not mapped)")
+        if mode == "auto":  # the pick at each point
+            for x, yy, r in zip(vals, y, rows):
+                ax.annotate(_short_rule(r.get("rule")), (x, yy), textcoords="offset points", xytext=(0, 8),
+                            fontsize=6, rotation=60, ha="left", va="bottom", gid="pick")
+            ax.margins(y=0.15)
         ax.set(xlabel=name, title=title, ylabel="steady-state tr Φ (mean over nodes)"
                + ("\n(points without a bound: on the lowest level)" if np.isnan(tb).any() else ""))
         ax.legend(fontsize=8, loc="best")
@@ -558,7 +572,12 @@ def map_figure(rows: list[dict], parsed, scenario: str, mode: str):
             (fail,) = ax.plot(v2[fj], v1[fi], "s", color="grey", mfc="none", ms=9, label="failed (not mapped)")
             handles.append(fail)
         ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
-        ax.set(xlabel=n2, ylabel=n1, title="the verdict at each grid point")
+        if mode == "auto":  # the pick at each point
+            for k, r in enumerate(rows):
+                i, j = divmod(k, len(v2))
+                ax.text(v2[j], v1[i], _short_rule(r.get("rule")), ha="center", va="center", fontsize=6, gid="pick")
+        ax.set(xlabel=n2, ylabel=n1, title="the verdict at each grid point"
+               + (" (and the design picked there)" if mode == "auto" else ""))
         grid = tb.reshape(shape)
         finite = grid[np.isfinite(grid)]
         norm2 = LogNorm(finite.min(), finite.max()) if finite.size and finite.min() > 0 else None

@@ -20,7 +20,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-import rules
 from designer.fileio import (atomic_write, check_apart, check_json_finite, replaced_outputs, write_json,
                              write_npz)
 
@@ -153,7 +152,7 @@ def save_map(fmap, directory) -> Path:
     with replaced_outputs(directory) as stage:
         _write_map_csv(stage / "feasibility.csv", fmap.rows, fmap.names)
         if len(fmap.grids) <= 2:
-            save_figure(map_figure(fmap.rows, fmap.grids, fmap.scenario.name, fmap.options.mode or rules.DEFAULT),
+            save_figure(map_figure(fmap.rows, fmap.grids, fmap.scenario.name, fmap.mode),
                         stage / "feasibility.png")
         write_json(stage / "feasibility.json", fmap.record())
         write_report(stage)

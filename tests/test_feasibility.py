@@ -104,7 +104,8 @@ def test_map_files_and_workers_agree(tmp_path, monkeypatch):
     with open(tmp_path / "a" / "feasibility.csv") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == 6 and set(table[0]) == {"dos", "fdi", "feasible", "trace_bound", "binding", "theorem2",
-                                                 "iterations", "verdict"}
+                                                 "iterations", "verdict", "rule", "better_than_local"}
+    assert {t["rule"] for t in table} == {"tuned"}
     assert [float(t["dos"]) for t in table] == [0.0, 0.0, 0.15, 0.15, 0.3, 0.3]
     assert (tmp_path / "a" / "feasibility.png").stat().st_size > 10_000
     # The feasible origin has the smallest bound of the map.

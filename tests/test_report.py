@@ -509,8 +509,8 @@ def design_dir(request, designs) -> tuple[Path, object]:
 def maps(tmp_path_factory):
     """Feasibility maps of the linear model: 4 x 4 over (sigma, beta), part feasible, and 1-D over sigma."""
     two, one = tmp_path_factory.mktemp("map2"), tmp_path_factory.mktemp("map1")
-    m2 = api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], u_scale=0, v_scale=0, out=two)
-    m1 = api.feasibility(LINEAR, ["sigma=0:20:6"], u_scale=0, v_scale=0, out=one)
+    m2 = api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], mode="paper", u_scale=0, v_scale=0, out=two)
+    m1 = api.feasibility(LINEAR, ["sigma=0:20:6"], mode="paper", u_scale=0, v_scale=0, out=one)
     assert 0 < m2.feasible.sum() < m2.feasible.size and 0 < m1.feasible.sum() < m1.feasible.size
     return {"two": (two, m2), "one": (one, m1)}
 

@@ -118,7 +118,7 @@ def design_and_map(tmp_path_factory):
     design = tmp_path_factory.mktemp("design")
     api.design("indoor-robot", mode="paper", seed=1, out=design)  # infeasible, the report says why
     fmap = tmp_path_factory.mktemp("map")
-    api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], u_scale=0, v_scale=0, out=fmap)
+    api.feasibility(LINEAR, ["sigma=0:12:4", "beta=0:12:4"], mode="paper", u_scale=0, v_scale=0, out=fmap)
     return [design / "report.html", fmap / "report.html"]
 
 

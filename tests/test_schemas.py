@@ -95,7 +95,7 @@ def test_contract_keys_are_required():
         "schema", "scenario", "mode", "nodes", "steps", "epsilon", "feasible", "violations", "sigma", "beta",
         "trace_bound", "certified", "verdict", "verdict_detail", "bounded", "growing", "bounded_reason"}
     assert set(schemas.load("feasibility")["required"]) == {"feasible", "trace_bound", "binding", "theorem2",
-                                                            "iterations", "verdict"}
+                                                            "iterations", "verdict", "rule", "better_than_local"}
     from studies.feasibility_terms import GRID_PARAMETERS, OUTPUTS
 
     row = schemas.load("feasibility")["properties"]
@@ -212,12 +212,12 @@ def test_feasibility_writes_valid_rows_and_json(maps, which):
 
 def test_read_feasibility_csv_types_the_cells(tmp_path):
     p = tmp_path / "feasibility.csv"
-    p.write_text("dos,tau,feasible,trace_bound,binding,theorem2,iterations,verdict\n"
-                 "0.1,0.01,1,2.5,(28),1,7,certified\n0.9,0.01,0,,diverged,0,3,infeasible\n"
-                 "0.5,nan,0,,(29),0,4,infeasible\n")
+    p.write_text("dos,tau,feasible,trace_bound,binding,theorem2,iterations,verdict,rule,better_than_local\n"
+                 "0.1,0.01,1,2.5,(28),1,7,certified,paper,1\n0.9,0.01,0,,diverged,0,3,infeasible,paper,0\n"
+                 "0.5,nan,0,,(29),0,4,infeasible,paper,0\n")
     rows = schemas.read_feasibility_csv(p)
     assert rows[0] == {"dos": 0.1, "tau": 0.01, "feasible": 1, "trace_bound": 2.5, "binding": "(28)", "theorem2": 1,
-                       "iterations": 7, "verdict": "certified"}
+                       "iterations": 7, "verdict": "certified", "rule": "paper", "better_than_local": 1}
     assert rows[1]["trace_bound"] is None and rows[2]["tau"] == "nan"
     with _raises_at(r"feasibility.csv row 2 \(line 4\) does not follow .*: \$\.tau: 'nan' is not of type 'number'"):
         schemas.validate_output(p)

@@ -64,10 +64,10 @@ class Relay(GainRule):
 
         return dict(RECORD_NOTES)
 
-    def stationary(self, model, network, design, *, x, u):
+    def stationary(self, model, network, design, *, x, u, lmi=True):
         from .study import WHERE, stationary
 
-        return stationary(model, network, design, x=x, u=u), WHERE
+        return stationary(model, network, design, x=x, u=u, lmi=lmi), WHERE
 
     def tradeoff_parts(self, model, network, design, steps, *, x, u, inputs_of, record):
         from .study import relay_tradeoff

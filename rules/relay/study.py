@@ -27,12 +27,12 @@ RECORD_NOTES = {
 }
 
 
-def stationary(model, network, design, *, x, u):
+def stationary(model, network, design, *, x, u, lmi: bool = True):
     """The stationary certificate at the operating point ``x`` (input ``u``):
-    :func:`rules.relay.design.relay_stationary`."""
+    :func:`rules.relay.design.relay_stationary` (``lmi`` False: without its LMI)."""
     from .design import relay_stationary
 
-    return relay_stationary(model, network, design, x=x, u=u)
+    return relay_stationary(model, network, design, x=x, u=u, lmi=lmi)
 
 
 def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) -> dict:

@@ -37,10 +37,10 @@ class Scheduled(GainRule):
 
         return stationary_tables(model, network, design, horizon, inputs=inputs)
 
-    def stationary(self, model, network, design, *, x, u):
+    def stationary(self, model, network, design, *, x, u, lmi=True):
         from .study import WHERE, stationary
 
-        return stationary(model, network, design, x=x, u=u), WHERE
+        return stationary(model, network, design, x=x, u=u, lmi=lmi), WHERE
 
     def tradeoff_parts(self, model, network, design, steps, *, x, u, inputs_of, record):
         from .study import TRADEOFF_STEPS, other_rounds

@@ -34,12 +34,14 @@ RECORD_NOTES = {
 }
 
 
-def stationary(model, network, design, *, x, u):
+def stationary(model, network, design, *, x, u, lmi: bool = True):
     """The stationary certificate at the operating point ``x`` (input ``u``):
-    :func:`rules.scheduled.certificate.stationary_certificate` with the design's exchange."""
+    :func:`rules.scheduled.certificate.stationary_certificate` with the design's exchange (``lmi`` False: without
+    its LMI)."""
     from .certificate import stationary_certificate
 
-    return stationary_certificate(model, network, design, x=x, u=u, exchange=design.exchange == "measurements")
+    return stationary_certificate(model, network, design, x=x, u=u, exchange=design.exchange == "measurements",
+                                  lmi=lmi)
 
 
 def other_rounds(model, network, design, steps: int, *, x0, inputs) -> dict[int, float]:

@@ -91,6 +91,9 @@ def _read_csv(d: Path) -> tuple[list[str], list[dict]]:
         row["theorem2"] = None if th2 == "" else th2 in ("1", "True", "true")
         row["iterations"] = raw.get("iterations") or ""
         row["verdict"] = (raw.get("verdict") or "").strip() or None  # None: a map written before the verdicts
+        row["rule"] = (raw.get("rule") or "").strip() or None  # None: a map written before the picks
+        btl = (raw.get("better_than_local") or "").strip()
+        row["better_than_local"] = None if btl == "" else btl in ("1", "True", "true")
         rows.append(row)
     return names, rows
 
@@ -181,15 +184,31 @@ def _cell(row: Mapping | None) -> str:
     return "✗ " + md_cell(row["binding"] or "infeasible")
 
 
+def _mode(meta: Mapping) -> str:
+    options = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
+    return str(options.get("mode") or rules.DEFAULT)
+
+
 def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
     docs = _grid_docs()
     options = meta.get("options") if isinstance(meta.get("options"), Mapping) else {}
-    mode = options.get("mode") or rules.DEFAULT
-    out = ["## What was mapped", "",
-           f"At every grid point the steady-state bound recursion (26)-(27) of the {md_escape(mode)} consensus "
-           f"design of **{md_escape(scenario)}** is iterated at the scenario's operating point to a fixed point, "
-           "with the design `cfdesign design` would build from the same options; the grid's values replace the "
-           "options of the same name.", "", "The grid:", ""]
+    mode = _mode(meta)
+    if mode == "auto":
+        what = (f"At every grid point every candidate design of **{md_escape(scenario)}** that the map maps (each "
+                "deployable rule's, as `cfdesign design` tries them: relay and flood at L = 1 .. L_max hops, "
+                "scheduled with and without the senders' measurements, tuned, paper) has its stationary bound "
+                "iterated at the scenario's operating point to a fixed point, and the point shows its **pick**, "
+                "the candidate `cfdesign design --mode auto` would pick by the same rule: certified and bounded, "
+                "below the nodes' local EKFs, the smallest bound (within 1 %, the fewest bytes per step); a pick "
+                "with a stationary LMI has it solved (the others are screened without it), and where no candidate "
+                "is eligible the point shows the best of the others, its verdict its own. The grid's values "
+                "replace the options of the same name.")
+    else:
+        what = (f"At every grid point the steady-state bound recursion (26)-(27) of the {md_escape(mode)} consensus "
+                f"design of **{md_escape(scenario)}** is iterated at the scenario's operating point to a fixed point, "
+                "with the design `cfdesign design` would build from the same options; the grid's values replace "
+                "the options of the same name.")
+    out = ["## What was mapped", "", what, "", "The grid:", ""]
     for name, values in grids:
         shown = ", ".join(fmt_num(v) for v in values[:12]) + (", …" if len(values) > 12 else "")
         doc = docs.get(name)
@@ -199,11 +218,33 @@ def _mapped_section(scenario: str, grids, meta: Mapping) -> list[str]:
     given = {k: v for k, v in options.items() if v is not None}
     if given:
         out += ["The design options at every point (besides the grid's):", "", *generic(given)]
+    out += _candidates_lines(meta)
     op = meta.get("operating_point")
     if isinstance(op, Mapping) and op:
         out += ["The operating point (the linearisation of the stationary recursion):", ""]
         out += [f"- {md_escape(k)} = {md_escape('none' if v is None else compact(v))}" for k, v in op.items()] + [""]
     return out
+
+
+def _candidates_lines(meta: Mapping) -> list[str]:
+    """An automatic map's candidates: messages and bytes per step, status, and the points each won."""
+    cands = meta.get("candidates")
+    if not isinstance(cands, list) or not cands:
+        return []
+    budget = meta.get("budget") if isinstance(meta.get("budget"), Mapping) else {}
+    caps = [f"{budget[k]} {w}" for k, w in (("messages_per_step", "messages"), ("bytes_per_step", "bytes"))
+            if is_num(budget.get(k))]
+    refs = meta.get("references") if isinstance(meta.get("references"), Mapping) else {}
+    ref = [f"{w} {fmt_num(refs[k])}" for k, w in (("centralized", "the centralized EKF's"),
+                                                  ("local_mean", "the local EKFs' (node average)"))
+           if is_num(refs.get(k))]
+    body = [[md_cell(c.get("label")), str(c.get("messages_per_step")), str(c.get("bytes_per_step")),
+             md_cell(c.get("status") if not c.get("reason") else f"{c.get('status')}: {c.get('reason')}"),
+             str(c.get("picked_points"))] for c in cands if isinstance(c, Mapping)]
+    return (["The candidates (" + (f"budget: {', '.join(caps)} per step" if caps else "no budget") + "):", "",
+             *md_table(["candidate", "messages / step", "bytes / step", "status", "picked at"], body,
+                       ["l", "r", "r", "l", "r"])]
+            + ([f"The references (steady-state tr P at the operating point): {'; '.join(ref)}.", ""] if ref else []))
 
 
 def _result_section(rows: Sequence[Mapping]) -> list[str]:
@@ -233,6 +274,10 @@ def _result_section(rows: Sequence[Mapping]) -> list[str]:
         binding = Counter(r["binding"] or "not recorded" for r in good)
         out.append(f"- the condition with the least relative slack at the fixed point of the {word} points: "
                    + ", ".join(f"{md_escape(b)} at {c}" for b, c in binding.most_common()))
+    worse = [r for r in rows if _category(r) == "certified" and r.get("better_than_local") is False]
+    if worse:
+        out.append(f"- **{len(worse)} of the certified points are no better than the nodes running alone**: their "
+                   "bound is not below the local EKFs' steady-state tr P (feasibility.json's references)")
     th2 = [r for r in feasible if r["theorem2"] is False]
     if th2:
         out.append("- " + md_escape(theorem2_words(f"the fixed point of {len(th2)} of the {len(feasible)} feasible "
@@ -262,14 +307,20 @@ def _legend() -> str:
             "at its fixed point (no contradiction: see above).")
 
 
-def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
+def _picked(row: Mapping | None, auto: bool) -> str:
+    """A 2-D grid's cell, with the pick of an automatic map."""
+    cell = _cell(row)
+    return cell if row is None or not auto or not row.get("rule") else f"{cell} ({md_cell(row['rule'])})"
+
+
+def _grid_section(grids, rows: Sequence[Mapping], auto: bool = False) -> list[str]:
     out = ["## The grid", ""]
     if len(grids) == 2:
         (n1, v1), (n2, v2) = grids
         at = {(r[n1], r[n2]): r for r in rows}
         out += [_legend() + f" Rows: `{md_escape(n1)}`, columns: `{md_escape(n2)}`.", ""]
         header = [md_cell(f"{n1} \\ {n2}")] + [md_cell(fmt_num(b)) for b in v2]
-        body = [[md_cell(fmt_num(a))] + [_cell(at.get((a, b))) for b in v2] for a in v1]
+        body = [[md_cell(fmt_num(a))] + [_picked(at.get((a, b)), auto) for b in v2] for a in v1]
         return out + md_table(header, body)
     names = [n for n, _ in grids]
     out += [_legend(), ""]
@@ -278,10 +329,12 @@ def _grid_section(grids, rows: Sequence[Mapping]) -> list[str]:
             + [md_cell(_category(r) or "not judged"), "yes" if r["feasible"] else "no",
                fmt_num(r["trace_bound"], 4) if r["feasible"] else "—",
                md_cell(r["binding"]), _THEOREM2[r["theorem2"]] if r["feasible"] else "—", md_cell(r["iterations"])]
+            + ([md_cell(r.get("rule") or "—"), {True: "yes", False: "no", None: "—"}[r.get("better_than_local")]]
+               if auto else [])
             for r in shown]
     out += md_table([md_cell(n) for n in names] + ["verdict", "feasible", "trace bound", "binding", "Theorem 2",
-                                                   "iterations"],
-                    body, ["r"] * len(names) + ["l", "l", "r", "l", "l", "r"])
+                                                   "iterations"] + (["pick", "below local"] if auto else []),
+                    body, ["r"] * len(names) + ["l", "l", "r", "l", "l", "r"] + (["l", "l"] if auto else []))
     if len(rows) > len(shown):
         out += [f"The first {len(shown)} of {len(rows)} points; feasibility.csv has them all.", ""]
     return out
@@ -293,18 +346,21 @@ def _point(names: Sequence[str], row: Mapping) -> str:
 
 def _summary(names: Sequence[str], rows: Sequence[Mapping], figures: Sequence[str], meta: Mapping) -> list[str]:
     good, word = _good(rows)
-    mode = (meta.get("options") or {}).get("mode") if isinstance(meta.get("options"), Mapping) else None
+    mode = _mode(meta)
     out = ["## Summary", "", *_verdict_lines(rows, meta)]
     if good:
         out += [f"The {word} points ranked by the steady-state trace bound (mean over nodes of tr Φ), lowest first "
-                f"({md_escape(mode or rules.DEFAULT)} design, at the operating point; a deterministic fixed point, so no "
+                f"({'the pick at each point' if mode == 'auto' else md_escape(mode) + ' design'}, at the operating "
+                "point; a deterministic fixed point, so no "
                 "Monte Carlo intervals)" + (f" (the {min(5, len(good))} lowest and the highest):" if len(good) > 6
                                             else ":"), ""]
         shown = good[:5] + (good[-1:] if len(good) > 6 else good[5:6])
         rank = {id(r): i for i, r in enumerate(good, 1)}
-        out += md_table(["rank", "grid point", "trace bound", "least slack"],
+        auto = mode == "auto"
+        out += md_table(["rank", "grid point", "trace bound", "least slack"] + (["pick"] if auto else []),
                         [[f"{rank[id(r)]}", md_cell(_point(names, r)), fmt_num(r["trace_bound"], 4),
-                          md_cell(r["binding"] or "—")] for r in shown], ["r", "l", "r", "l"])
+                          md_cell(r["binding"] or "—")] + ([md_cell(r.get("rule") or "—")] if auto else [])
+                         for r in shown], ["r", "l", "r", "l"] + (["l"] if auto else []))
     if "feasibility.png" in figures:
         out += figure_lines(1, "feasibility.png", _HEAT_MAP)
     lead = f"**Where the design is {word}:** "
@@ -397,7 +453,8 @@ def render_feasibility(names: Sequence[str], rows: Sequence[Mapping], meta: Mapp
     network = network_lines(meta.get("network"))
     scen = scenario_lines(meta.get("scenario"), None) if "scenario" in meta else []
     return document(head, [
-        _mapped_section(scenario, grids, meta), _result_section(rows), _grid_section(grids, rows),
+        _mapped_section(scenario, grids, meta), _result_section(rows),
+        _grid_section(grids, rows, _mode(meta) == "auto"),
         _notions_section(),
         ["## Attacks", "", "The attack specification of the scenario with the options applied; a grid parameter "
          "(`dos`, `fdi`, `delta`, `amplitude`) replaces its value at every point:", "", *attacks] if attacks else [],

@@ -79,8 +79,8 @@ def decimal(text: str) -> float | None:
     return float(text) if DECIMAL.fullmatch(text) else None
 
 
-_INTEGER_COLUMNS = ("feasible", "theorem2", "iterations")
-_TEXT_COLUMNS = ("binding", "verdict")
+_INTEGER_COLUMNS = ("feasible", "theorem2", "iterations", "better_than_local")
+_TEXT_COLUMNS = ("binding", "verdict", "rule")
 _MAX_MESSAGE = 240  # characters of a validator message (they quote the offending value)
 
 
@@ -251,6 +251,9 @@ def _feasibility_json_shapes(obj: dict) -> Iterator[tuple[list, str]]:
     if counts["certified"] + counts["vacuous"] < obj["feasible_points"]:
         yield ["verdicts"], (f"{counts['certified']} certified and {counts['vacuous']} vacuous points, but "
                              f"{obj['feasible_points']} feasible ones (a fixed point is one or the other)")
+    picked = [c["picked_points"] for c in obj.get("candidates") or []]
+    if picked and sum(picked) != obj["points"]:
+        yield ["candidates"], f"{sum(picked)} points picked for {obj['points']} points"
     failed = obj.get("failed_points", 0)
     if isinstance(failed, int) and obj["feasible_points"] + failed > obj["points"]:
         yield ["failed_points"], f"{failed} failed and {obj['feasible_points']} feasible points of {obj['points']}"
