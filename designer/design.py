@@ -58,7 +58,9 @@ DESIGN_ASSUMPTIONS = (
     "(--u-scale / --v-scale prior; override with a number, a diagonal or a matrix).",
     "consensus design: mode scheduled with the prior scalings measures the remainders in the prior's units: "
     "U Omega W e and V_i Theta W e with W = P0^(-1/2), U and V_i from the Hessians whitened by P0 over the same "
-    "ellipsoid (remainder_structure in schedule.json).",
+    "ellipsoid (remainder_structure in schedule.json); at each step they are taken times sqrt(min(1, max_i "
+    "lambda_max(W P_i W'))), P_i the nodes' expected covariance of the step (the errors assumed within 3 sigma of "
+    "it), and its gains count the sensor's remainder at that reach as measurement noise.",
     "consensus design: the paper gives no epsilon; default epsilon = 0.5 / d_max, the middle of (0, 1/d_max).",
     "consensus design: Phi_0|0 is the prior covariance and every node starts at the prior mean.",
     "consensus design: neighbours' Phi_{j,k+1|k} used in (27) are exchanged with the predictions and are not "

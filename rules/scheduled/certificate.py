@@ -15,12 +15,13 @@ import numpy as np
 
 from designer.bounds import BOUND_LIMIT, symmetrize
 from designer.cores import SOLVER_SETTINGS
-from designer.joint import as_difference, certificate_predict, joint_prior
+from designer.joint import as_difference, certificate_predict, joint_predict, joint_prior
 from designer.stationary import StationaryCertificate
 from designer.verdict import NOT_COMPUTED
 
 from .design import (CERTIFICATE_MAX_DIM, Channels, diag_blocks, expected_certificate_update, falsification_moment,
-                     measurement_noise, prepare, stationary_gains, to_dense, transition_matrix, update_structure)
+                     measurement_noise, prepare, remainder_reach, scaled_remainders, stationary_gains, to_dense,
+                     transition_matrix, update_structure)
 
 __all__ = ["stationary_certificate", "STATIONARY_CERT_MAX", "STATIONARY_GROWTH", "STATIONARY_CERT_TOL",
            "LMI_MAX_DIM"]
@@ -66,7 +67,12 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     F = np.asarray(model.F_expected(x, 0, u), dtype=float)
     Fs = np.broadcast_to(F, (N, n, n))
     # the time-invariant gains: the expected covariance's recursion at x until the tables stop changing
-    _, rule, _, _, _, _, _ = stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
+    Pm, rule, _, _, _, _, _ = stationary_gains(st, as_difference(joint_prior(phi0, N)), Fs, x, 1, None)
+    # the remainders at the stationary error's reach (rules.scheduled.design.remainder_reach), after the update and
+    # after the prediction
+    Us = remainder_reach(Pm.P, design.remainder_structure) * U
+    Vs, Vns, _ = scaled_remainders(remainder_reach(joint_predict(Pm, Fs, st.Q).P, design.remainder_structure), V,
+                                   Vn, None)
     # the bound's recursion with those gains (the independent remainder blocks: those the LMI states)
     W = design.remainder_structure
     Wn = None if W is None else [W] * N
@@ -75,11 +81,11 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     prev = np.inf
     sigma = beta = np.nan
     for it in range(1, STATIONARY_CERT_MAX + 1):
-        jb = certificate_predict(Phi, Fs, U, st.Q, design.epsilon, Wn, tight=True)
+        jb = certificate_predict(Phi, Fs, Us, st.Q, design.epsilon, Wn, tight=True)
         if not (jb.margin > 0 and np.isfinite(jb.phi).all()):
             return StationaryCertificate(False, None, float(jb.multiplier), np.nan, it,
                                          f"(28) fails at iteration {it} (margin {float(jb.margin):.3g})", None)
-        ju = expected_certificate_update(jb.phi, rule, ch, V, Vn, st.M, st.mu, W=W)
+        ju = expected_certificate_update(jb.phi, rule, ch, Vs, Vns, st.M, st.mu, W=W)
         if not (ju.margin > 0 and np.isfinite(ju.phi).all()):
             return StationaryCertificate(False, None, float(jb.multiplier), float(ju.multiplier), it,
                                          f"(29) fails at iteration {it} (margin {float(ju.margin):.3g})", None)
@@ -94,7 +100,8 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
         if abs(prev - tr) <= STATIONARY_CERT_TOL * tr:
             out = StationaryCertificate(True, Phi[idx, idx].copy(), sigma, beta, it, None, None)
             if lmi:
-                out = out._replace(lmi=_stationary_lmi(Phi, rule, ch, F, U, V, Vn, st, design.epsilon, sigma, beta, W))
+                out = out._replace(lmi=_stationary_lmi(Phi, rule, ch, F, Us, Vs, Vns, st, design.epsilon, sigma, beta,
+                                                       W))
             return out
         prev = tr
     return StationaryCertificate(False, None, sigma, beta, STATIONARY_CERT_MAX,
