@@ -87,7 +87,7 @@ def _tutorial(tmp_path: Path) -> None:
     schedule = json.loads((tmp_path / "ring-design" / "schedule.json").read_text())
     assert schedule["certified"] is True and schedule["verdict"] == "certified"
     rows = (tmp_path / "ring-map" / "feasibility.csv").read_text().splitlines()
-    assert len(rows) == 1 + 4 and "verdict" in rows[0]
+    assert len(rows) == 1 + 4 and "verdict" in rows[0] and "rule" in rows[0]
     for d in ("ring-kcf", "ring-designed"):
         with np.load(tmp_path / d / "estimates.npz") as z:
             assert z["x_hat"].shape == (31, 4, 2) and np.isfinite(z["x_hat"]).all()
