@@ -32,7 +32,7 @@ and bounded), or, where (28)-(29) held at every iterate but no fixed point was r
 last iterate (certified, not bounded); ``vacuous`` where some node's bound is at or above it, where the bound grew
 without limit ("unbounded") or where there is none; ``infeasible`` where (28), (29) failed, the iteration diverged,
 or the point has no design (``dos + fdi > 1``, a failed point); ``not computed`` where the rule did not compute its
-stationary certificate (the scheduled one beyond its size).  ``feasible`` keeps its meaning (a bounded fixed point
+stationary certificate (the scheduled one with rounds > 1).  ``feasible`` keeps its meaning (a bounded fixed point
 exists) and is the point's ``bounded`` claim; ``feasibility.json`` counts the verdicts (``verdicts``) and records
 the open-loop reference (``open_loop``).
 

@@ -136,6 +136,14 @@ def filter_energy(sc, design, runs: Runs) -> Energy:
     return energy_of(*errors(sc, design, runs))
 
 
+def fresh_tables(sc, design):
+    """The scheduled design's tables computed here with the modules as they are now (not through the cache of tables
+    the design commands keep)."""
+    x0, _ = sc.operating_point
+    return design.rule.tables(sc.model, sc.network, design._replace(tables=None), sc.steps, x0=x0,
+                              inputs=sc.inputs(sc.steps))
+
+
 def design_of(sc, name: str):
     """The rule's design of ``sc`` with its default options, without remainder scalings (a linear model has none)."""
     return consensus_design(sc, mode=name, u_scale=0, v_scale=0)
@@ -191,16 +199,10 @@ def test_the_scheduled_recursion_with_its_falsification_term_halved_fails(heavy_
     expected covariance and the certificate add) bound the runs of their own gains too low: the test sees it."""
     sc, runs = heavy_fdi
     design = design_of(sc, "scheduled")
-    x0, _ = sc.operating_point
-
-    def tables():  # computed here, not through the design's cache of tables
-        return design.rule.tables(sc.model, sc.network, design._replace(tables=None), sc.steps, x0=x0,
-                                  inputs=sc.inputs(sc.steps))
-
-    whole = tables()
+    whole = fresh_tables(sc, design)
     term = scheduled_design.falsification_moment
     monkeypatch.setattr(scheduled_design, "falsification_moment", lambda *a, **kw: 0.5 * term(*a, **kw))
-    halved = design._replace(tables=tables())
+    halved = design._replace(tables=fresh_tables(sc, design))
     assert np.trace(halved.tables.Phi[1:], axis1=-2, axis2=-1).sum() < \
         np.trace(whole.Phi[1:], axis1=-2, axis2=-1).sum()  # the patch took effect
     energy = filter_energy(sc, halved, runs)
@@ -238,3 +240,47 @@ def test_a_stationary_certificate_holds_where_the_runs_settle_and_five_percent_l
     assert energy.t(1.0 - SHORTFALL) > Z_LEVEL, (name, energy.fill, energy.t(1.0 - SHORTFALL))
     print(f"{name} stationary: fill {energy.fill:.4f}, t(1) {energy.t(1.0):.2f}, "
           f"t(0.95) {energy.t(1.0 - SHORTFALL):.2f}")
+
+
+def _nodewise(monkeypatch):
+    """The node-wise scheduled certificate (rules.scheduled.nodewise) on the small ring: the joint certificate's size
+    lowered below its N n = 8 rows."""
+    import rules.scheduled.certificate as certificate
+
+    for module in (scheduled_design, certificate):
+        monkeypatch.setattr(module, "CERTIFICATE_MAX_DIM", 1)
+
+
+def test_the_node_wise_scheduled_certificate_holds_and_the_test_has_the_power_to_see_five_percent(heavy_fdi,
+                                                                                                    monkeypatch):
+    """Each node's own bound, from its own and its neighbours' (no cross terms): conservative by construction, so it
+    holds and a bound 5 % below the runs' own level fails; it lies above the joint certificate, which is exact here."""
+    sc, runs = heavy_fdi
+    design = design_of(sc, "scheduled")
+    joint = fresh_tables(sc, design)
+    _nodewise(monkeypatch)
+    node = design._replace(tables=fresh_tables(sc, design))
+    assert node.tables.valid.all() and not node.tables.violations
+    tr = np.trace(node.tables.Phi[1:], axis1=-2, axis2=-1)
+    assert (tr >= np.trace(joint.Phi[1:], axis1=-2, axis2=-1) * (1 - 1e-9)).all()
+    energy = filter_energy(sc, node, runs)
+    assert energy.t(1.0) <= Z_LEVEL, (energy.fill, energy.t(1.0))
+    assert energy.power >= Z_LEVEL + Z_POWER, (energy.fill, energy.power)
+    print(f"scheduled node-wise: fill {energy.fill:.4f}, t(1) {energy.t(1.0):.2f}, power {energy.power:.2f}")
+
+
+@pytest.mark.slow
+def test_the_node_wise_stationary_certificate_holds_where_the_runs_settle(settled, monkeypatch):
+    """The node-wise fixed point (confirmed with its weights frozen) against the runs' errors over the last ``WINDOW``
+    steps: it holds, and the test has the power to see a bound 5 % below the runs' level."""
+    sc, runs = settled
+    design = design_of(sc, "scheduled")
+    e2, _ = errors(sc, design, runs)
+    _nodewise(monkeypatch)
+    cert, where = design.rule.stationary(sc.model, sc.network, design, x=np.zeros(sc.model.n_x), u=None)
+    assert cert.converged and "node-wise" in where, cert.reason
+    bound = WINDOW * np.trace(cert.Phi, axis1=-2, axis2=-1).sum()
+    energy = Energy(e2[:, SETTLED + 1:].sum((1, 2)), np.full(runs.x.shape[0], bound))
+    assert energy.t(1.0) <= Z_LEVEL, (energy.fill, energy.t(1.0))
+    assert energy.power >= Z_LEVEL + Z_POWER, (energy.fill, energy.power)
+    print(f"scheduled node-wise stationary: fill {energy.fill:.4f}, t(1) {energy.t(1.0):.2f}")

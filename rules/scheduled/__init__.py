@@ -38,9 +38,9 @@ class Scheduled(GainRule):
         return stationary_tables(model, network, design, horizon, inputs=inputs)
 
     def stationary(self, model, network, design, *, x, u, lmi=True):
-        from .study import WHERE, stationary
+        from .study import stationary, where
 
-        return stationary(model, network, design, x=x, u=u, lmi=lmi), WHERE
+        return stationary(model, network, design, x=x, u=u, lmi=lmi), where(model, network)
 
     def tradeoff_parts(self, model, network, design, steps, *, x, u, inputs_of, record):
         from .study import TRADEOFF_STEPS, other_rounds

@@ -19,6 +19,7 @@ from designer.joint import as_difference, certificate_predict, joint_predict, jo
 from designer.stationary import StationaryCertificate
 from designer.verdict import NOT_COMPUTED
 
+from .nodewise import nodewise_predict, nodewise_stationary, nodewise_update
 from .design import (CERTIFICATE_MAX_DIM, Channels, diag_blocks, expected_certificate_update, falsification_moment,
                      measurement_noise, prepare, remainder_reach, scaled_remainders, stationary_gains, to_dense,
                      transition_matrix, update_structure)
@@ -54,10 +55,6 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     """
     st, U, V, Vn, phi0 = prepare(model, network, design, exchange, phi0)
     N, n = network.n_nodes, model.n_x
-    if N * n > CERTIFICATE_MAX_DIM:  # as the design's certificate over the horizon (design_scheduled)
-        return StationaryCertificate(False, None, np.nan, np.nan, 0,
-                                     f"{NOT_COMPUTED}: the certificate of the stacked error (N n = {N * n} rows, at "
-                                     f"most {CERTIFICATE_MAX_DIM}) is not computed", None)
     if st.rounds > 1:
         return StationaryCertificate(False, None, np.nan, np.nan, 0,
                                      f"{NOT_COMPUTED}: the certificate covers one exchange round per step "
@@ -75,6 +72,8 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
                                    Vn, None)
     # the bound's recursion with those gains (the independent remainder blocks: those the LMI states)
     W = design.remainder_structure
+    if N * n > CERTIFICATE_MAX_DIM:  # as the design's certificate over the horizon: each node's own bound
+        return _nodewise(phi0, F, Us, Vs, Vns, rule, ch, st, W, N, n)
     Wn = None if W is None else [W] * N
     Phi = joint_prior(phi0, N)
     idx = np.arange(N)
@@ -106,6 +105,21 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
         prev = tr
     return StationaryCertificate(False, None, sigma, beta, STATIONARY_CERT_MAX,
                                  f"the bound did not settle in {STATIONARY_CERT_MAX} iterations", None)
+
+
+def _nodewise(phi0, F, Us, Vs, Vns, rule, ch, st, W, N: int, n: int) -> StationaryCertificate:
+    """The node-wise stationary certificate (:func:`rules.scheduled.nodewise.nodewise_stationary`): each node's bound
+    iterated with the stationary gains to a fixed point, confirmed with its weights frozen (no LMI: no multipliers)."""
+
+    def step(phi, weights=None):
+        pb = nodewise_predict(phi, F, Us, st.Q, W, None if weights is None else weights[0])
+        ub = nodewise_update(pb.phi, rule, ch, Vs, Vns, st.M, st.mu, W, None if weights is None else weights[1])
+        return ub.phi, (pb.weights[0], ub.weights[0])
+
+    start = np.broadcast_to(np.asarray(phi0, dtype=float), (N, n, n))
+    converged, phi, it, reason = nodewise_stationary(start, step, max_iterations=STATIONARY_CERT_MAX,
+                                                     growth=STATIONARY_GROWTH)
+    return StationaryCertificate(converged, phi, np.nan, np.nan, it, reason, None)
 
 
 def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps: float, sigma: float,

@@ -120,6 +120,8 @@ from designer.tuning import MARGIN
 from designer.validation import InputError
 from designer.verdict import NOT_COMPUTED
 
+from .nodewise import nodewise_predict, nodewise_update
+
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "stationary_tables", "colour", "pad_measurements", "STATIONARY_TOL",
            "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "BANK_SPREAD",
@@ -904,12 +906,11 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     Wn = None if design.remainder_structure is None else [design.remainder_structure] * N  # (26)'s D per node
     out["P_post"][0], out["Phi"][0], out["valid"][0] = Pm.P, Phi[idx, idx], True
     proper = N * n <= CERTIFICATE_MAX_DIM and st.rounds == 1
+    # beyond the joint certificate's size, each node's own bound (rules.scheduled.nodewise)
+    nodewise = N * n > CERTIFICATE_MAX_DIM and st.rounds == 1
+    Phi_n = np.broadcast_to(np.asarray(phi0, dtype=float), (N, n, n)).copy()
     # a certificate not computed is no violation of (28)-(29): the verdict says "not computed", with the reason
-    if N * n > CERTIFICATE_MAX_DIM:
-        violations.append({"node": 0, "step": 0, "condition": NOT_COMPUTED, "margin": np.nan,
-                           "reason": f"the certificate of the stacked error (N n = {N * n} rows, at most "
-                                     f"{CERTIFICATE_MAX_DIM}) is not computed: the design has no bound"})
-    elif st.rounds > 1:
+    if st.rounds > 1:
         violations.append({"node": 0, "step": 0, "condition": NOT_COMPUTED, "margin": np.nan,
                            "reason": f"the certificate covers one exchange round per step; with {st.rounds} rounds "
                                      "it is not computed: the design has no bound (its expected covariance is "
@@ -962,6 +963,18 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
             else:
                 proper = False
                 violations.append({"node": worst(Phi), "step": k, "condition": "(28)", "margin": float(jb.margin)})
+        elif nodewise:  # each node's bound from its own and its neighbours' (no multipliers: no (28)-(29) to break)
+            pb = nodewise_predict(Phi_n, F, reach * U, st.Q, design.remainder_structure)
+            Vk, Vnk, _ = scaled_remainders(remainder_reach(Pm.P, design.remainder_structure), V, Vn, None)
+            ub = nodewise_update(pb.phi, rule, ch, Vk, Vnk, st.M, st.mu, design.remainder_structure)
+            tr = np.trace(ub.phi, axis1=-2, axis2=-1)
+            if np.isfinite(ub.phi).all() and tr.max() < BOUND_LIMIT:
+                Phi_n = ub.phi
+                out["Phi"][k + 1], out["valid"][k + 1] = Phi_n, True
+            else:
+                nodewise = False
+                violations.append({"node": int(np.nanargmax(np.where(np.isfinite(tr), tr, np.inf))), "step": k + 1,
+                                   "condition": "(29)", "margin": -np.inf, "reason": LIMIT_REASON})
         Pm = expected_update(Pm, rule, ch, st.M, st.mu)
         Pm, out["round_Gamma"][k], out["round_Sigma"][k] = _more_rounds(st, Pm, x, k + 1)
         out["P_post"][k + 1] = Pm.P

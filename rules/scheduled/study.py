@@ -6,8 +6,8 @@ import numpy as np
 
 from designer.verdict import json_number
 
-__all__ = ["RECORD_NOTES", "TRADEOFF_ROUNDS", "TRADEOFF_STEPS", "WHERE", "stationary", "other_rounds",
-           "rounds_tradeoff"]
+__all__ = ["RECORD_NOTES", "TRADEOFF_ROUNDS", "TRADEOFF_STEPS", "WHERE", "WHERE_NODEWISE", "where", "stationary",
+           "other_rounds", "rounds_tradeoff"]
 
 #: The exchange rounds per step whose accuracy the scheduled design reports beside its own.
 TRADEOFF_ROUNDS = (1, 2, 4)
@@ -17,6 +17,24 @@ TRADEOFF_STEPS = 20
 WHERE = ("at the operating point with the stationary gains of the tables' recursion there; the LMI (cvxpy + "
          "Clarabel) for the fixed point's sigma and beta")
 
+#: The same beyond the joint certificate's size (rules.scheduled.nodewise).
+WHERE_NODEWISE = ("at the operating point with the stationary gains of the tables' recursion there; the node-wise "
+                  "certificate, each node's own "
+                  "bound from its own and its neighbours' bounds (rules.scheduled.nodewise: no cross terms between "
+                  "the nodes' errors, looser than the joint bound), its fixed point confirmed with its weights frozen "
+                  "(no LMI: no multipliers); the stacked error has N n = {rows} rows, the joint certificate at most "
+                  "{most}")
+
+
+def where(model, network) -> str:
+    """Where the stationary certificate of a design of ``model`` on ``network`` is computed, in words: the joint
+    certificate's :data:`WHERE`, or beyond its size the node-wise one's."""
+    from .design import CERTIFICATE_MAX_DIM
+
+    rows = network.n_nodes * model.n_x
+    return WHERE if rows <= CERTIFICATE_MAX_DIM else WHERE_NODEWISE.format(rows=rows, most=CERTIFICATE_MAX_DIM)
+
+
 #: schedule.json's words on where the gains and the bound come from (GainRule.record_notes).
 RECORD_NOTES = {
     "trajectory": "the tables (schedule.npz table_*) and the bound are designed offline along the nominal trajectory "
@@ -25,7 +43,9 @@ RECORD_NOTES = {
                   "run (SeedSequence(seed).spawn(2)), C the sum of the gains of the links whose packets arrived",
     "replay": "every node applies the tables on any run with its own estimate, covariance and Jacobians and the "
               "packets that arrived (rules.scheduled.filter); the bound is the expected one over the attacks along the "
-              "nominal linearisation with the remainders U, V_i, validated on fresh runs by study consensus-robot",
+              "nominal linearisation with the remainders U, V_i (the stacked error's, or beyond "
+              "rules.scheduled.design.CERTIFICATE_MAX_DIM rows each node's own: rules.scheduled.nodewise), validated "
+              "on fresh runs by study consensus-robot",
     "robustness_note": "the link gains are chosen with the margin robustness = delta (schedule.json robustness): "
                   "each neighbour's difference taken to carry an extra independent error delta P_ii, so that the "
                   "nodes do not lean on the tables' correlations where the state leaves the nominal geometry; the "
