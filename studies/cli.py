@@ -389,9 +389,12 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
 @click.option("--engine", type=click.Choice(["fast", "numpy"]), default=None,
               help="particle-filter studies: fused numba kernels or the NumPy reference [default: fast]")
 @click.option("--schedule", default=None, help="consensus-robot: replay the gains of this design directory")
+@click.option("--filters", "filters", default=None, metavar="NAME,...",
+              help="comparison: run only these filters (names as cfdesign filter --filter takes them, e.g. "
+                   "kcf,hcmci,relay,centralized-ekf) [default: every filter]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, dask, dask_security, force, quiet,
-              engine, schedule, assignments, **kw) -> None:
+              engine, schedule, filters, assignments, **kw) -> None:
     """Run the Monte Carlo study STUDY (on its scenarios or on SCENARIO / MODEL.py) and write its results.
 
     STUDY is one of: comparison (every filter family on the same runs and attacks; any model with a
@@ -403,7 +406,7 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
 
     from .api import study as run_study
 
-    extra = {k: v for k, v in (("engine", engine), ("schedule", schedule)) if v is not None}
+    extra = {k: v for k, v in (("engine", engine), ("schedule", schedule), ("filters", filters)) if v is not None}
     chosen = list(targets) + list(scenarios)
     res = run_study(study, chosen or None, out=out, runs=runs, particles=particles, seed=seed, workers=workers,
                     dask=dask, dask_security=dask_security, force=force, quiet=quiet,

@@ -74,7 +74,8 @@ from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise"]
+__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise",
+           "chosen_filters"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -322,15 +323,15 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     scs = _setting_scenarios(ref, settings)
     sc = scs[0]
     m, K = sc.model, sc.steps
-    entries = list(FILTER_REGISTRY)
-    if filters is not None and tuple(filters) != FILTER_REGISTRY.names():
+    if filters is not None and any(f not in FILTER_REGISTRY for f in filters):
         raise InputError(f"the comparison was planned with the filters {list(filters)} but this process registers "
                          f"{list(FILTER_REGISTRY.names())}: a filter registered in a script is known to that process "
                          "only; run the study in it (without --workers or --dask)")
+    entries = _entries(filters)
     # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
     # stay NaN and the summary says why)
-    designs = _designs(scs, options, tuned_in_sweeps)
-    cannot = _cannot_start(scs, options, designs)
+    designs = _designs(scs, options, tuned_in_sweeps, entries)
+    cannot = _cannot_start(scs, options, designs, entries)
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
     err2 = np.full((R, S, F, K), np.nan)
@@ -388,22 +389,47 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             "delivered": delivered, "estimate": est, "truth": truth}
 
 
-def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool) -> list[dict]:
-    """Per setting of ``scs``: the design of every gain rule its filters need, by rule (the tuned design at the
-    main setting only unless ``tuned_in_sweeps``)."""
+def _entries(filters: Sequence[str] | None) -> list:
+    """The registry's entries the study runs, in the registry's order: ``filters`` (names) or every one (None)."""
+    return [e for e in FILTER_REGISTRY if filters is None or e.name in filters]
+
+
+def chosen_filters(value) -> tuple[str, ...] | None:
+    """The study option ``filters`` checked: None (every filter), or the registry's names of the filters given (a
+    comma-separated string or a list of names, each a filter's name, short name or the start of exactly one short
+    name: :func:`studies.recorded.find_filter`), in the registry's order."""
+    from .recorded import find_filter
+
+    if value is None:
+        return None
+    if isinstance(value, str):
+        value = [v for v in value.split(",")]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise InputError(f"filters must be filter names, comma-separated or a list, got {value!r}")
+    names = [v.strip() for v in value if v.strip()]
+    if not names:
+        raise InputError("filters must name at least one filter (leave it out to run every filter)")
+    picked = {find_filter(FILTER_REGISTRY, v).name for v in names}
+    return tuple(n for n in FILTER_REGISTRY.names() if n in picked)
+
+
+def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool, entries=None) -> list[dict]:
+    """Per setting of ``scs``: the design of every gain rule its filters need (``entries``, default every one), by
+    rule (the tuned design at the main setting only unless ``tuned_in_sweeps``)."""
     designs: list[dict] = [{} for _ in scs]
-    for e in FILTER_REGISTRY:
+    for e in (FILTER_REGISTRY if entries is None else entries):
         for j, s in enumerate(scs):
             if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
                 designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
     return designs
 
 
-def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_in_sweeps: bool) -> None:
+def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_in_sweeps: bool,
+                  filters: Sequence[str] | None = None) -> None:
     """The plan's step in the parent process: every setting's designs once, so that the offline tables they keep
     (:func:`studies.consensus_design.with_tables`, remembered per process) are computed once and inherited by the
     forked workers instead of once in each."""
-    _designs(_setting_scenarios(ref, settings), options, tuned_in_sweeps)
+    _designs(_setting_scenarios(ref, settings), options, tuned_in_sweeps, _entries(filters))
 
 
 def _setting_scenarios(ref, settings: Sequence[tuple]) -> list[Scenario]:
@@ -417,15 +443,15 @@ def _verdict_counts(codes: np.ndarray) -> dict[str, int]:
     return count_verdicts(VERDICTS[int(c)] for c in codes[~np.isnan(codes)])
 
 
-def _cannot_start(scs: Sequence[Scenario], options: DesignOptions, designs: list[dict] | None = None
-                  ) -> list[dict]:
+def _cannot_start(scs: Sequence[Scenario], options: DesignOptions, designs: list[dict] | None = None,
+                  entries=None) -> list[dict]:
     """Per setting: ``{name: why}`` for every filter whose design cannot start there (:func:`check_first_step`; None:
-    it can), for the entries that declare ``start_check`` (``designs``: the settings' designs by gain rule, made
-    when not given)."""
+    it can), for the entries (default every one) that declare ``start_check`` (``designs``: the settings' designs by
+    gain rule, made when not given)."""
     out = []
     for j, s in enumerate(scs):
         row = {}
-        for e in FILTER_REGISTRY:
+        for e in (FILTER_REGISTRY if entries is None else entries):
             if e.start_check:
                 design = (designs[j][e.mode] if designs is not None and e.mode in designs[j]
                           else consensus_design(s, as_mode(options, e.mode)))
@@ -469,13 +495,15 @@ def _check(so: StudyOptions) -> None:
     for v in np.atleast_1d(so["sweep_values"]):
         check_probability("sweep_values", v)
     check_int("hcmci_iterations", so["hcmci_iterations"], 1)
+    chosen_filters(so["filters"])
 
 
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     settings = _settings(sc, values)
+    filters = chosen_filters(so["filters"])
     # a paper design that cannot start is reported as infeasible; one whose sigma, beta or tau was given is refused
-    for e in FILTER_REGISTRY:
+    for e in _entries(filters):
         if e.start_check:
             check_first_step(sc, consensus_design(sc, as_mode(so.design, e.mode)), e.name, so.design)
     ref = reference(sc)
@@ -483,14 +511,16 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
                              hcmci_iterations=int(so["hcmci_iterations"]),
                              divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item(),
-                             filters=FILTER_REGISTRY.names())
+                             filters=FILTER_REGISTRY.names() if filters is None else filters)
     config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
               "attacks": sc.attacks.describe(), "settings": settings,
               "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
-              "options": so.design.as_dict(), "filters": list(FILTER_REGISTRY.names())}
+              "options": so.design.as_dict(),
+              "filters": list(FILTER_REGISTRY.names() if filters is None else filters)}
     return Plan(task, f"comparison-{_slug(sc.name)}", config,
-                before=functools.partial(_design_first, ref, settings, so.design, bool(so["tuned_in_sweeps"])))
+                before=functools.partial(_design_first, ref, settings, so.design, bool(so["tuned_in_sweeps"]),
+                                         filters))
 
 
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
@@ -500,14 +530,14 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     main = _uniform(sc)
     settings = _settings(sc, values)
     # per setting: why a filter's design cannot start there (None: it ran), as _runs decided
-    cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design)
-    entries = list(FILTER_REGISTRY)
+    entries = _entries(chosen_filters(so["filters"]))
+    cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design, entries=entries)
     R = int(A["err2"].shape[0])
     key = "rmse_position" if sc.model.position_index else "rmse"
     # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
     # (on how many of its runs diverged, or on whether it ran at all)
-    order = ([n for n in _STREAM_ORDER if n in FILTER_REGISTRY]
-             + [e.name for e in entries if e.name not in _STREAM_ORDER])
+    order = ([n for n in _STREAM_ORDER if n in FILTER_REGISTRY]  # the registry's: a subset changes no filter's stream
+             + [e.name for e in FILTER_REGISTRY if e.name not in _STREAM_ORDER])
     own = {name: np.random.default_rng(np.random.SeedSequence(so.seed, spawn_key=(2**31, c)))
            for c, name in enumerate(order, start=1)}
     L = int(so["hcmci_iterations"])
@@ -734,11 +764,12 @@ def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
                    title=f"{sc_name}: degradation with the {label.split(' (')[0]}")
         legend_beside(axs[1])
         save_figure(fig, out / f"fig_sweeps_{slug}.png")
-        _trajectory(out / f"fig_trajectory_{slug}.png", sc, A, sc_name, colours)
+        _trajectory(out / f"fig_trajectory_{slug}.png", sc, A, sc_name, colours, list(b["filters"]))
 
 
-def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) -> None:
-    """Run 1's truth and estimates: in the plane of the position, or per state component over time."""
+def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict, names: list) -> None:
+    """Run 1's truth and estimates (``names``: the filters run, in the order of the arrays): in the plane of the
+    position, or per state component over time."""
     plt = plotting()
     m = sc.model
     tr = A["truth"][0]
@@ -750,7 +781,7 @@ def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) 
             sens = np.array(sens)
             ax.plot(sens[:, 0], sens[:, 1], "ks", ms=5, label="sensors")
         ax.plot(tr[:, i], tr[:, j], "k-", lw=2, label="truth")
-        for f, entry in enumerate(FILTER_REGISTRY):
+        for f, entry in enumerate(FILTER_REGISTRY[n] for n in names):
             e, n = A["estimate"][0, f], entry.name
             if np.all(np.isfinite(e)):
                 ax.plot(e[:, i], e[:, j], lw=1, color=colours[n],
@@ -764,7 +795,7 @@ def _trajectory(path: Path, sc: Scenario, A: dict, sc_name: str, colours: dict) 
         t = np.arange(tr.shape[0])
         for ax, c in zip(axs[:, 0], comps):
             ax.plot(t, tr[:, c], "k-", lw=2, label="truth")
-            for f, n in enumerate(FILTER_REGISTRY.names()):
+            for f, n in enumerate(names):
                 e = A["estimate"][0, f]
                 if np.all(np.isfinite(e)):
                     ax.plot(t, e[:, c], lw=1, color=colours[n], label=n)
@@ -787,7 +818,7 @@ STUDY = Study(
     table=table_markdown,
     figures=_figures,
     options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": True, "hcmci_iterations": HCMCI_ITERATIONS,
-             "divergence_spread": DIVERGENCE_SPREAD},
+             "divergence_spread": DIVERGENCE_SPREAD, "filters": None},
     uses_design=True,
     many_scenarios=True,
     every_core=True,

@@ -418,3 +418,36 @@ def test_target_scenario_tracks_with_wrapped_bearings():
     y1 = y0.copy()
     y1[0, 1] += 2 * np.pi
     np.testing.assert_allclose(ll(x, 5, y0), ll(x, 5, y1), rtol=1e-12)
+
+
+# --- a subset of the filters ---------------------------------------------------------------------------------------
+
+def test_a_subset_of_the_filters_gives_each_the_numbers_it_has_in_the_full_comparison(tmp_path):
+    """``filters``: only the filters named run (their designs alone are made), each with the numbers, intervals and
+    verdicts it has in the full comparison of the same runs; the others are absent from every file."""
+    from studies import schemas
+
+    kw = dict(scenarios=["examples/ring_model.py"], runs=4, particles=20, seed=3, sweep_values=[0.2], quiet=True)
+    full = run_comparison(**kw)["filters"]
+    sub = run_comparison(filters="relay, kcf,centralized-ekf", out=tmp_path / "s", **kw)
+    picked = ["relay EKF (relay design)", "KCF", "centralized EKF (trusts every packet)"]
+    assert sorted(sub["filters"]) == sorted(picked)
+    for name in picked:
+        a, b = full[name], sub["filters"][name]
+        for key in ("rmse", "rmse_ci95", "rmse_median_run", "messages_per_step", "verdicts"):
+            assert a.get(key) == b.get(key), (name, key, a.get(key), b.get(key))
+    schemas.validate_output(tmp_path / "s")
+    text = (tmp_path / "s" / "table.md").read_text()
+    assert "| KCF" in text and "| HCMCI" not in text and "| centralized PF" not in text  # the rows, not the title
+
+
+def test_filters_names_are_checked_before_any_run(tmp_path, capsys):
+    with pytest.raises(InputError, match="filter must be one of"):
+        run_comparison(scenarios=["examples/ring_model.py"], runs=2, filters="kcf,nonesuch")
+    with pytest.raises(InputError, match="at least one filter"):
+        run_comparison(scenarios=["examples/ring_model.py"], runs=2, filters=" , ")
+    assert main(["study", "comparison", "examples/ring_model.py", "--runs", "2", "--filters", "nonesuch",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "filter must be one of" in capsys.readouterr().err and not (tmp_path / "x" / "results.json").exists()
+    assert main(["study", "consensus-robot", "--runs", "2", "--filters", "kcf", "--out", str(tmp_path / "y")]) == 2
+    assert "does not apply to study 'consensus-robot'" in capsys.readouterr().err
