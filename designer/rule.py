@@ -358,6 +358,13 @@ class GainRule:
         (a rule of ``offline_tables``); ``stationary``: with the tables beyond the horizon."""
         raise InputError(f"gain rule {self.name!r} has no offline tables")
 
+    def recorded_tables(self, model, network, design, arrays: Mapping, meta: Mapping):
+        """Its offline tables as a design directory recorded them (``schedule.npz``'s arrays ``arrays`` and
+        ``schedule.json``'s record ``meta``, read as data), checked against ``model``, ``network`` and ``design``
+        (InputError naming what does not fit), for a filter, a node filter or an export to use instead of designing
+        them again (a rule of ``offline_tables``)."""
+        raise InputError(f"gain rule {self.name!r} has no offline tables")
+
     def stationary_tables(self, model, network, design, horizon, *, inputs) -> dict:
         """The tables beyond the horizon of ``horizon`` (its tables over the horizon, computed without them)."""
         raise InputError(f"gain rule {self.name!r} has no offline tables")

@@ -642,7 +642,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     from .comparison import FILTER_REGISTRY, STUDY
     from .consensus_design import bound_verdicts, check_first_step, consensus_design
     from .design_options import as_mode
-    from .recorded import design_options_of, find_filter, read_log, run_filter
+    from .recorded import design_options_of, find_filter, read_log, recorded_design, run_filter
 
     check_path("data", data)
     check_type("filter", filter, str, "a filter's name (e.g. kcf, scheduled)", optional=True)
@@ -682,8 +682,9 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
     seed = (log.seed or 0) if seed is None else seed
     run = (log.run or 0) if run is None else run
     design = None
-    if entry.mode is not None:
-        design = consensus_design(sc, designed, steps=log.steps)
+    if entry.mode is not None:  # a design directory's own tables where it has them (not designed again)
+        design = (consensus_design(sc, designed, steps=log.steps) if schedule is None else
+                  recorded_design(schedule, sc, designed, steps=log.steps))
         why = check_first_step(sc, design, entry.name) if entry.start_check else None
         if why is not None:  # as the comparison reports it: not run
             raise InputError(f"filter {entry.name!r} cannot start on {sc.name!r}: {why}")
@@ -736,7 +737,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
 
     from .comparison import FILTER_REGISTRY
     from .consensus_design import consensus_design
-    from .recorded import design_options_of, find_filter
+    from .recorded import design_options_of, find_filter, recorded_design
 
     check_path("schedule", schedule, optional=True)
     check_type("mode", mode, str, "a gain rule's name (e.g. relay, flood)", optional=True)
@@ -770,7 +771,7 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     else:
         options = DesignOptions(mode=mode)
     memory.check(memory.node_filter_need(sc, options))
-    design = consensus_design(sc, options)
+    design = consensus_design(sc, options) if schedule is None else recorded_design(schedule, sc, options)
     if node is None:
         return node_network(sc.model, sc.network, design)
     return make_node(sc.model, sc.network, design, node)
@@ -861,8 +862,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
-    from .consensus_design import consensus_design
-    from .recorded import clip_message, design_options_of, read_design_record, read_log
+    from .recorded import clip_message, design_options_of, read_design_record, read_log, recorded_design
 
     check_path("design_dir", design_dir)
     if target != "c":
@@ -900,7 +900,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         log = read_log(data, sc, lambda size: memory.export_need(sc, options, sc.steps, size))
         if np.any(np.isnan(log.z)):
             raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
-    design = consensus_design(sc, options)
+    design = recorded_design(design_dir, sc, options)  # its recorded tables, not designed again
     exporter.check(design)
     if data is None:
         sim = simulate(sc, seed=meta.get("seed") or 0)

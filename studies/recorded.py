@@ -45,7 +45,7 @@ from .schemas import decimal
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
            "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
-           "read_design_record", "design_options_of"]
+           "read_design_record", "design_options_of", "recorded_design"]
 
 LOG_SCHEMA = "cfdesign.log/1"
 
@@ -431,6 +431,33 @@ def design_options_of(schedule_dir, sc: Scenario, record: tuple[Path, dict] | No
     except InputError as exc:
         raise InputError(clip_message(f"schedule {str(path)!r}: its design options: {exc}")) from None
     return mode, options, meta
+
+
+def recorded_design(schedule_dir, sc: Scenario, options: DesignOptions, *, steps: int | None = None):
+    """The design a design directory recorded, for ``sc`` and its ``options`` (:func:`design_options_of`): the
+    design the options make, with its rule's offline tables read from ``schedule.npz``
+    (:meth:`designer.rule.GainRule.recorded_tables`, checked against the model, the network and the design) instead
+    of designed again, unless the run is longer (``steps``) than the recorded horizon, whose tables and certificate
+    must cover its steps: then they are designed for it (:func:`studies.consensus_design.consensus_design`).  A rule
+    without tables: its design (nothing to read)."""
+    import rules
+    from designer.schedule import load_schedule
+
+    from .consensus_design import consensus_design, effective_design
+
+    sc_e, _, design = effective_design(sc, options)
+    if not design.rule.offline_tables:
+        return design
+    path = Path(schedule_dir)
+    meta = read_design_record(schedule_dir)[1]
+    horizon = meta.get("steps")
+    if steps is not None and (not isinstance(horizon, int) or steps > horizon):
+        return consensus_design(sc, options, steps=steps)
+    sched = load_schedule(path, lambda name, param: rules.get(name))
+    arrays = {"Phi": sched.Phi, "valid": sched.valid, "sigma": sched.sigma, "beta": sched.beta,
+              **({} if sched.margin28 is None else {"margin28": sched.margin28, "margin29": sched.margin29}),
+              **{f"table_{k}": v for k, v in (sched.tables or {}).items()}}
+    return design._replace(tables=design.rule.recorded_tables(sc_e.model, sc_e.network, design, arrays, meta))
 
 
 # --------------------------------------------------------------------------------------------------- the CSV form

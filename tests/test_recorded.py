@@ -548,3 +548,40 @@ def test_validating_a_zip_bomb_is_refused_before_it_is_read(tmp_path, monkeypatc
     bad = _forged(tmp_path, 30_000_000, honest=False)
     with pytest.raises(InputError, match="validating a log would need about .* more than the 8 GiB available"):
         schemas.validate_log(bad)
+
+
+def test_a_scheduled_design_directory_is_filtered_with_its_recorded_tables_not_designed_again(tmp_path, monkeypatch):
+    """filter, node_filter and export of a scheduled design read its tables from schedule.npz: the same numbers as
+    the tables designed again (the first steps of a design do not depend on its horizon), without calling the
+    rule's design of tables; a log longer than the recorded horizon gets tables designed for it; a schedule.npz whose
+    tables do not fit the model is refused naming the array."""
+    import rules.scheduled.design as scheduled
+    import studies
+
+    from pathlib import Path
+
+    ring = str(Path(__file__).resolve().parents[1] / "examples" / "ring_model.py")
+    des = tmp_path / "d"
+    studies.design(ring, mode="scheduled", steps=25, seed=1, out=des)
+    log = tmp_path / "log.npz"
+    studies.simulate(ring, steps=20, seed=4, out=log)
+    again = studies.filter(ring, log, filter="scheduled")  # the tables designed again for the log's 20 steps
+    calls = []
+    real = scheduled.design_scheduled
+    monkeypatch.setattr(scheduled, "design_scheduled", lambda *a, **kw: calls.append(1) or real(*a, **kw))
+    read = studies.filter(ring, log, schedule=des)
+    assert not calls  # read, not designed
+    np.testing.assert_array_equal(read.x_hat, again.x_hat)
+    np.testing.assert_array_equal(read.cov, again.cov)
+    net = studies.node_filter(ring, schedule=des)
+    assert not calls and net.nodes[0].tables.steps == 25
+    longer = tmp_path / "long.npz"
+    studies.simulate(ring, steps=40, seed=4, out=longer)
+    studies.filter(ring, longer, schedule=des)
+    assert calls  # beyond the recorded horizon: designed for the log
+    with np.load(des / "schedule.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["table_Gamma"] = arrays["table_Gamma"][:, :-1]
+    np.savez(des / "schedule.npz", **arrays)
+    with pytest.raises(InputError, match="table_Gamma has shape"):
+        studies.filter(ring, log, schedule=des)

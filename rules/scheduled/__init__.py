@@ -32,6 +32,11 @@ class Scheduled(GainRule):
         return design_scheduled(model, network, design, steps, x0=x0, inputs=inputs,
                                 exchange=design.exchange == "measurements", stationary=stationary)
 
+    def recorded_tables(self, model, network, design, arrays, meta):
+        from .design import recorded_tables
+
+        return recorded_tables(model, network, design, arrays, meta)
+
     def stationary_tables(self, model, network, design, horizon, *, inputs):
         from .design import stationary_tables
 

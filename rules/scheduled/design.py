@@ -127,7 +127,8 @@ __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_ce
            "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "BANK_SPREAD",
            # what the stationary certificate (rules.scheduled.certificate) shares with the design
            "prepare", "stationary_gains", "measurement_noise", "falsification_moment", "transition_matrix",
-           "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise"]
+           "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise",
+           "recorded_tables"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
@@ -1076,6 +1077,91 @@ def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
         if tables.rounds > 1:
             out.update(bank_round_Gamma=tables.bank_round_Gamma, bank_round_Sigma=tables.bank_round_Sigma)
     return out
+
+
+def recorded_tables(model, network, design, arrays, meta) -> ScheduledTables:
+    """The tables a design directory recorded (``schedule.npz``'s ``table_*``, its certificate ``Phi``, ``valid``,
+    ``sigma``, ``beta``, margins; ``schedule.json``'s violations, ``stationary``, ``exchange``, ``robustness``,
+    ``rounds``, ``bank_record``), checked against ``model``, ``network`` (with the design's attack probabilities)
+    and ``design``: every array of the shape the channels, nodes and states give and finite (the certificate may
+    be NaN where it is no bound), the channels and their probabilities those of ``network``, the exchange and rounds
+    the design's.  The inverse of :func:`table_arrays` and of the schedule's certificate arrays: a filter, a node
+    filter or an export of the design uses them instead of designing them again."""
+    ch = channels(network)
+    N, n, E = network.n_nodes, model.n_x, ch.receiver.size
+    d, mz = ch.d_max, max(model.sensor_dims)
+
+    def bad(what):
+        raise InputError(f"schedule.npz: {what}; the design directory was not written for this model, network and "
+                         "options (design again)")
+
+    def get(name, shape, *, finite=True):
+        key = f"table_{name}"
+        if key not in arrays:
+            bad(f"{key} is missing")
+        a = np.asarray(arrays[key])
+        if a.dtype.kind not in "fi" or a.shape != tuple(shape):
+            bad(f"{key} has shape {a.shape} ({a.dtype}), expected {tuple(shape)}")
+        a = a.astype(float)
+        if finite and not np.isfinite(a).all():
+            bad(f"{key} is not finite")
+        return a
+
+    rounds = meta.get("rounds", 1)
+    exchange = meta.get("exchange")
+    if rounds != design.rounds or exchange != design.exchange:
+        bad(f"rounds {rounds!r} and exchange {exchange!r} recorded, the design's are {design.rounds} and "
+            f"{design.exchange!r}")
+    steps = np.asarray(arrays.get("table_Gamma", np.zeros((0,)))).shape[0]
+    for name in ("receiver", "sender"):
+        if not np.array_equal(np.asarray(arrays.get(f"table_{name}")), getattr(ch, name)):
+            bad(f"table_{name}: other channels than the network's")
+    for name in ("p", "q"):
+        if not np.array_equal(get(name, (E,)), getattr(ch, name)):
+            bad(f"table_{name}: other channel probabilities than the design's")
+    L1 = rounds - 1
+    K = get("K", (steps, N, n, mz))
+    Phi = np.asarray(arrays["Phi"], dtype=float)
+    valid = np.asarray(arrays["valid"], dtype=bool)
+    if Phi.shape != (N, steps + 1, n, n) or valid.shape != (N, steps + 1) or not (valid == valid[:1]).all():
+        bad(f"Phi {Phi.shape} and valid {valid.shape} are not the certificate of {N} nodes over {steps} steps")
+    per_step = {}
+    for name in ("sigma", "beta", "margin28", "margin29"):
+        a = np.asarray(arrays.get(name, np.full((N, steps), np.nan)), dtype=float)
+        if a.shape != (N, steps):
+            bad(f"{name} has shape {a.shape}, expected {(N, steps)}")
+        per_step[name] = a[0]
+    violations = [{**v, "margin": -np.inf if v.get("margin") is None else float(v["margin"])}
+                  for v in meta.get("violations") or [] if isinstance(v, dict)]
+    for v in violations:
+        v.pop("note", None)
+    bank = {}
+    if "table_bank_points" in arrays:
+        B = np.asarray(arrays["table_bank_points"]).shape[0]
+        A = np.asarray(arrays.get("table_bank_metric", np.zeros((0, n)))).shape[0]
+        bank = dict(bank_points=get("bank_points", (B, n)), bank_metric=get("bank_metric", (A, n)),
+                    bank_Gamma=get("bank_Gamma", (B, E, n, n)), bank_Sigma=get("bank_Sigma", (B, N, d, d, n, n)),
+                    bank_record=meta.get("bank_record") if isinstance(meta.get("bank_record"), dict) else None)
+        if rounds > 1:
+            bank.update(bank_round_Gamma=get("bank_round_Gamma", (B, L1, E, n, n)),
+                        bank_round_Sigma=get("bank_round_Sigma", (B, L1, N, d, d, n, n)))
+    return ScheduledTables(
+        channels=ch, Gamma=get("Gamma", (steps, E, n, n)), Sigma=get("Sigma", (steps, N, d, d, n, n)),
+        P_pred=get("P_pred", (steps, N, n, n)), K=K, C=get("C", (steps, E, n, n)),
+        P_post=get("P_post", (steps + 1, N, n, n)), Phi=np.swapaxes(Phi, 0, 1).copy(), valid=valid[0].copy(),
+        sigma=per_step["sigma"], beta=per_step["beta"], margin28=per_step["margin28"],
+        margin29=per_step["margin29"], theorem2=np.full((steps + 1, N), np.nan), violations=violations,
+        stationary=meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {},
+        nominal=get("nominal", (steps + 1, n)), Gamma_inf=get("Gamma_inf", (E, n, n)),
+        Sigma_inf=get("Sigma_inf", (N, d, d, n, n)), exchange=exchange == "measurements",
+        robustness=float(design.robustness), rounds=int(rounds),
+        round_Gamma=get("round_Gamma", (steps, L1, E, n, n)) if rounds > 1 else np.zeros((steps, 0, E, n, n)),
+        round_Sigma=(get("round_Sigma", (steps, L1, N, d, d, n, n)) if rounds > 1
+                     else np.zeros((steps, 0, N, d, d, n, n))),
+        round_Gamma_inf=get("round_Gamma_inf", (L1, E, n, n)) if rounds > 1 else np.zeros((0, E, n, n)),
+        round_Sigma_inf=(get("round_Sigma_inf", (L1, N, d, d, n, n)) if rounds > 1
+                         else np.zeros((0, N, d, d, n, n))),
+        Kn=get("Kn", (steps, E, n, mz)) if exchange == "measurements" else None, **bank)
 
 
 def diag_blocks(B: np.ndarray, N: int) -> np.ndarray:
