@@ -45,6 +45,7 @@ from designer.verdict import json_number, steadiness_window
 
 from .consensus_design import Design, check_first_step, effective_design, run_design
 from .design_options import as_mode
+from .progress import counter
 from .runner import run_forked
 from .scenarios import Scenario
 
@@ -330,8 +331,12 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
     plans.sort(key=lambda p: (p[1].offline_tables, p[0], sorted(p[2].items())))  # the cheap ones first
     todo = [j for j, p in enumerate(plans) if p[3] is not None]
-    done = run_forked([lambda o=plans[j][3]: _design_summary(sc, o, steps, seed) for j in todo], workers=workers,
-                      deadline=t0 + seconds)
+    bar = counter(len(todo), False, "automatic design: candidates")  # a terminal's progress bar
+    try:
+        done = run_forked([lambda o=plans[j][3]: _design_summary(sc, o, steps, seed) for j in todo],
+                          workers=workers, deadline=t0 + seconds, on_done=lambda j, timed: bar.update())
+    finally:
+        bar.close()
     run_refused = [d.value for d in done if d.status == "failed" and d.value.startswith("InputError: ")]
     if len(run_refused) == len(done):  # every candidate refused the model's run (say h not finite at some step)
         raise InputError(run_refused[0].split(": ", 1)[1])
@@ -461,8 +466,8 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     opts = replace(pick.options, mode=pick.gain_rule.name)
     cores = usable_cores()  # the runs' chunks on every core (the same numbers on every backend)
     backend = Backend("processes", workers=cores) if cores > 1 else Backend()
-    res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=True,
-                    backend=backend)
+    res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=False,
+                    backend=backend)  # the runner's progress bar on a terminal
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
     rows = {}

@@ -500,7 +500,7 @@ class Timed(NamedTuple):
 
 
 def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
-               deadline: float | None = None) -> list[Timed]:
+               deadline: float | None = None, on_done: Callable[[int, "Timed"], None] | None = None) -> list[Timed]:
     """Each of ``calls`` (functions of no argument) computed in a forked child, at most ``workers`` at once (default:
     :func:`designer.cores.usable_cores`), in their order; a call still running at ``deadline`` (a
     ``time.monotonic()`` instant) is killed, and one not started by then is not started (both ``'timeout'``).
@@ -509,7 +509,8 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
     design, :mod:`studies.auto`).  Each child sends its result back pickled through a pipe (read as it arrives, so
     a large result never blocks it); a child that raised, died or sent what does not unpickle is ``'failed'``.  With
     one usable core or where the platform does not fork, the calls run here one after the other (a call started
-    before the deadline runs to its end).  The numbers do not depend on where they were computed.
+    before the deadline runs to its end).  The numbers do not depend on where they were computed.  ``on_done(j,
+    timed)`` is called as each call ends (a progress bar's tick), in the order they end.
     """
     import select
 
@@ -527,6 +528,8 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                 out[j] = Timed("done", call(), time.monotonic() - t0)
             except (InputError, ComputationError, ArithmeticError, ValueError, MemoryError) as exc:
                 out[j] = Timed("failed", f"{type(exc).__name__}: {exc}", time.monotonic() - t0)
+            if on_done is not None:
+                on_done(j, out[j])
         return out  # type: ignore[return-value]
     parent, pending, running = os.getpid(), list(range(len(calls))), {}  # fd -> (j, pid, chunks, start)
     try:
@@ -563,6 +566,8 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                     os.close(fd)
                     out[j] = Timed("timeout", None, time.monotonic() - start)
                     del running[fd]
+                    if on_done is not None:
+                        on_done(j, out[j])
                 continue
             for fd in ready:
                 j, pid, chunks, start = running[fd]
@@ -578,6 +583,8 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                 except Exception:  # noqa: BLE001 - the child died before sending a result
                     status, value = "failed", "the process computing it ended without a result"
                 out[j] = Timed(status, value, time.monotonic() - start)
+                if on_done is not None:
+                    on_done(j, out[j])
     finally:
         for fd, (j, pid, _, _) in running.items():  # an exception or Ctrl-C here: no child lives on
             os.kill(pid, signal.SIGKILL)

@@ -149,9 +149,11 @@ def test_run_forked_returns_in_order_reports_failures_and_kills_at_the_deadline(
     t0 = time.monotonic()
     if workers == 1:  # one after the other here: a call started before the deadline runs to its end
         calls[2] = functools.partial(_sleep_then, 2.0, 0.0)
-    out = run_forked(calls, workers=workers, deadline=t0 + 3.0)
+    ended = []
+    out = run_forked(calls, workers=workers, deadline=t0 + 3.0, on_done=lambda j, timed: ended.append((j, timed)))
     assert time.monotonic() - t0 < 20
     assert [o.status for o in out] == ["done", "failed", "timeout" if workers == 2 else "done", "done"]
+    assert sorted(j for j, _ in ended) == [0, 1, 2, 3] and all(timed is out[j] for j, timed in ended)  # each once
     assert out[0].value[0] == 1.0 and out[3].value[-1] == 3.0 and out[0].value.size == 200_000
     assert "ValueError: refused" in out[1].value
 
