@@ -488,6 +488,12 @@ def _accepts(sc: Scenario) -> str | None:
     return None
 
 
+def _uses(so: StudyOptions) -> tuple[tuple[str, ...], bool]:
+    """What the chosen filters need (``Study.uses``): the gain rules designed, and whether a particle filter runs."""
+    entries = _entries(chosen_filters(so["filters"]))
+    return tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None)), any(e.particles for e in entries)
+
+
 def _check(so: StudyOptions) -> None:
     if so.design.mode is not None:
         raise InputError("option --mode does not apply to study 'comparison' (it runs the paper and the tuned "
@@ -825,4 +831,5 @@ STUDY = Study(
     accepts=_accepts,
     combine=_combine,
     check=_check,
+    uses=_uses,
 )

@@ -389,7 +389,7 @@ def _designed(sc, so):
     return effective(sc, so.design)
 
 
-def _comparison(sc, so) -> tuple[list, list, list]:
+def _comparison(sc, so, uses=None) -> tuple[list, list, list]:
     sc, opts = _designed(sc, so)
     m, net = sc.model, sc.network
     n_x, n_z = m.n_x, m.n_z
@@ -402,11 +402,12 @@ def _comparison(sc, so) -> tuple[list, list, list]:
                 rows * K * (n * n * (n_x * _D + 2) + 2 * n_z * _D) + R * K * (n_x + n_z) * _D,
                 f"{R} runs x {S} settings x {K} steps x {n} x {n} channels", "fewer runs per chunk")
     reduce = f"{_STEPS} (a model file's STEPS)"
-    designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in rules.names()]
+    modes, particles = (rules.names(), True) if uses is None else uses  # the filters --filters leaves
+    designs = [_consensus(m, net, rows, K, mode, lin, f"the {mode} design", reduce) for mode in modes]
     sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters", _CENTRALIZED_PF_DOUBLES),
            Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
-                f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)]
-    filters = max((*designs, sir), key=lambda ps: sum(p.nbytes for p in ps))
+                f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)] if particles else []
+    filters = max((*designs, sir), key=lambda ps: sum(p.nbytes for p in ps)) if designs or sir else []
     per_run = (S * 9 * K + 10 * (K + 1) * n_x) * _D
     return ([_prior_hessians(m, opts)], [data, *filters],
             [_results(so.runs, per_run, "errors and estimates", f"{S} settings x {K} steps")])
@@ -450,14 +451,15 @@ STUDY_NEEDS: dict[str, Callable[[Any, Any], tuple[list, list, list]]] = {
 }
 
 
-def study_need(name: str, sc, so) -> Need:
+def study_need(name: str, sc, so, uses=None) -> Need:
     """Study ``name`` on ``sc`` with the checked options ``so`` (:class:`studies.pipeline.StudyOptions`): the
     designs built in the plan (their Hessians), then one chunk of runs in each worker beside every run's stored
     results.  A study without an entry in :data:`STUDY_NEEDS` needs nothing here (the runner checks its stored
-    results after the first chunk)."""
+    results after the first chunk).  ``uses``: what the study's filters need (its ``Study.uses``: the gain rules
+    designed and whether particle filters run; None: all of them)."""
     if name not in STUDY_NEEDS:
         return _need(f"study {name}")
-    plan, chunk, results = STUDY_NEEDS[name](sc, so)
+    plan, chunk, results = STUDY_NEEDS[name](sc, so, **({} if uses is None else {"uses": uses}))
     workers = _workers(so.backend, math.ceil(so.runs / so.chunk_size))  # each builds the designs, then its chunk
     return _need(f"study {name} on {sc.name!r}", [*_per_worker(plan, workers), *results],
                  [*_per_worker(chunk, workers), *results])

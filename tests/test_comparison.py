@@ -451,3 +451,23 @@ def test_filters_names_are_checked_before_any_run(tmp_path, capsys):
     assert "filter must be one of" in capsys.readouterr().err and not (tmp_path / "x" / "results.json").exists()
     assert main(["study", "consensus-robot", "--runs", "2", "--filters", "kcf", "--out", str(tmp_path / "y")]) == 2
     assert "does not apply to study 'consensus-robot'" in capsys.readouterr().err
+
+
+def test_the_memory_estimate_counts_only_the_filters_chosen():
+    """``filters`` leaving out the particle filters and the designs leaves their memory out of the estimate made
+    before any computation (a large state's particles no longer refuse a comparison that does not run them)."""
+    from designer.design import DesignOptions
+    from studies import memory
+    from studies.comparison import STUDY
+    from studies.pipeline import StudyOptions
+
+    sc = load_scenario("indoor-robot")
+
+    def need(filters):
+        so = StudyOptions(10, 5000, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": filters})
+        return memory.study_need("comparison", sc, so, STUDY.uses(so)).nbytes
+
+    every, some = need(None), need("kcf,hcmci")
+    assert some < every
+    assert STUDY.uses(StudyOptions(10, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": "kcf"})) \
+        == ((), False)
