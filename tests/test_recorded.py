@@ -585,3 +585,23 @@ def test_a_scheduled_design_directory_is_filtered_with_its_recorded_tables_not_d
     np.savez(des / "schedule.npz", **arrays)
     with pytest.raises(InputError, match="table_Gamma has shape"):
         studies.filter(ring, log, schedule=des)
+
+
+def test_recorded_tables_of_another_kind_are_refused_naming_the_array(tmp_path):
+    """A schedule.npz whose certificate arrays are text, or whose tables are for other channel probabilities, is
+    refused before any filtering (InputError naming what), never a traceback."""
+    from pathlib import Path
+
+    ring = str(Path(__file__).resolve().parents[1] / "examples" / "ring_model.py")
+    des = tmp_path / "d"
+    studies.design(ring, mode="scheduled", steps=12, seed=1, out=des)
+    log = tmp_path / "log.npz"
+    studies.simulate(ring, steps=10, seed=4, out=log)
+    with np.load(des / "schedule.npz") as z:
+        good = {k: z[k] for k in z.files}
+    np.savez(des / "schedule.npz", **{**good, "sigma": np.full(good["sigma"].shape, "x")})
+    with pytest.raises(InputError, match="must be numbers"):
+        studies.filter(ring, log, schedule=des)
+    np.savez(des / "schedule.npz", **{**good, "table_p": good["table_p"] * 0.5})
+    with pytest.raises(InputError, match="other channel probabilities"):
+        studies.filter(ring, log, schedule=des)

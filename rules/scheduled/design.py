@@ -1121,13 +1121,18 @@ def recorded_tables(model, network, design, arrays, meta) -> ScheduledTables:
             bad(f"table_{name}: other channel probabilities than the design's")
     L1 = rounds - 1
     K = get("K", (steps, N, n, mz))
+    if any(np.asarray(arrays[k]).dtype.kind not in "bfi" for k in ("Phi", "valid", "sigma", "beta")):
+        bad("Phi, valid, sigma and beta must be numbers")
     Phi = np.asarray(arrays["Phi"], dtype=float)
     valid = np.asarray(arrays["valid"], dtype=bool)
     if Phi.shape != (N, steps + 1, n, n) or valid.shape != (N, steps + 1) or not (valid == valid[:1]).all():
         bad(f"Phi {Phi.shape} and valid {valid.shape} are not the certificate of {N} nodes over {steps} steps")
     per_step = {}
     for name in ("sigma", "beta", "margin28", "margin29"):
-        a = np.asarray(arrays.get(name, np.full((N, steps), np.nan)), dtype=float)
+        a = np.asarray(arrays.get(name, np.full((N, steps), np.nan)))
+        if a.dtype.kind not in "fi":
+            bad(f"{name} must be numbers")
+        a = a.astype(float)
         if a.shape != (N, steps):
             bad(f"{name} has shape {a.shape}, expected {(N, steps)}")
         per_step[name] = a[0]
