@@ -21,8 +21,8 @@ from designer.verdict import NOT_COMPUTED
 
 from .nodewise import nodewise_predict, nodewise_stationary, nodewise_update
 from .design import (CERTIFICATE_MAX_DIM, Channels, diag_blocks, expected_certificate_update, falsification_moment,
-                     measurement_noise, prepare, remainder_reach, scaled_remainders, stationary_gains, to_dense,
-                     transition_matrix, update_structure)
+                     falsification_parts, measurement_noise, prepare, remainder_reach, scaled_remainders,
+                     stationary_gains, to_dense, transition_matrix, update_structure)
 
 __all__ = ["stationary_certificate", "STATIONARY_CERT_MAX", "STATIONARY_GROWTH", "STATIONARY_CERT_TOL",
            "LMI_MAX_DIM"]
@@ -111,9 +111,11 @@ def _nodewise(phi0, F, Us, Vs, Vns, rule, ch, st, W, N: int, n: int) -> Stationa
     """The node-wise stationary certificate (:func:`rules.scheduled.nodewise.nodewise_stationary`): each node's bound
     iterated with the stationary gains to a fixed point, confirmed with its weights frozen (no LMI: no multipliers)."""
 
+    fdi = falsification_parts(rule, ch, st.M, st.mu, N)  # the stationary gains': the same at every iteration
+
     def step(phi, weights=None):
         pb = nodewise_predict(phi, F, Us, st.Q, W, None if weights is None else weights[0])
-        ub = nodewise_update(pb.phi, rule, ch, Vs, Vns, st.M, st.mu, W, None if weights is None else weights[1])
+        ub = nodewise_update(pb.phi, rule, ch, Vs, Vns, fdi, W, None if weights is None else weights[1])
         return ub.phi, (pb.weights[0], ub.weights[0])
 
     start = np.broadcast_to(np.asarray(phi0, dtype=float), (N, n, n))

@@ -128,7 +128,7 @@ __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_ce
            # what the stationary certificate (rules.scheduled.certificate) shares with the design
            "prepare", "stationary_gains", "measurement_noise", "falsification_moment", "transition_matrix",
            "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise",
-           "recorded_tables"]
+           "recorded_tables", "falsification_parts"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
@@ -377,18 +377,29 @@ def measurement_noise(rule: _Rule, ch: Channels, N: int) -> np.ndarray:
     return out
 
 
-def falsification_moment(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
-    """The falsifications' second moment ``E[b bᵀ]`` (N, N, n, n), ``b_i = Σ_j ρ γ W_ij ξ`` (links independent)."""
+def falsification_parts(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The falsifications ``b_i = Σ_j ρ γ W_ij ξ`` (links independent) in two parts: each node's own variance
+    (N, n, n), ``Σ_j pq W_ij (M - pq μ μᵀ) W_ijᵀ``, and each node's mean (N, n), ``c_i = Σ_j pq W_ij μ``, so that
+    ``E[b_i b_kᵀ] = δ_ik own_i + c_i c_kᵀ`` (:func:`falsification_moment`; the node-wise certificate takes the
+    diagonal)."""
     n = rule.A.shape[-1]
-    out = np.zeros((N, N, n, n))
+    own, c = np.zeros((N, n, n)), np.zeros((N, n))
     if ch.receiver.size and (np.any(M) or np.any(mu)):
         pq = ch.p * ch.q
         W = rule.W
-        own = pq[:, None, None] * (W @ (M - pq[:, None, None] * np.outer(mu, mu)) @ _t(W))
-        np.add.at(out, (ch.receiver, ch.receiver), own)
-        c = np.zeros((N, n))
+        np.add.at(own, ch.receiver, pq[:, None, None] * (W @ (M - pq[:, None, None] * np.outer(mu, mu)) @ _t(W)))
         np.add.at(c, ch.receiver, pq[:, None] * (W @ mu))
-        out += c[:, None, :, None] * c[None, :, None, :]
+    return own, c
+
+
+def falsification_moment(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
+    """The falsifications' second moment ``E[b bᵀ]`` (N, N, n, n), ``b_i = Σ_j ρ γ W_ij ξ`` (links independent:
+    :func:`falsification_parts`)."""
+    own, c = falsification_parts(rule, ch, M, mu, N)
+    out = c[:, None, :, None] * c[None, :, None, :]
+    idx = np.arange(N)
+    out[idx, idx] += own
     return out
 
 
@@ -967,7 +978,8 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         elif nodewise:  # each node's bound from its own and its neighbours' (no multipliers: no (28)-(29) to break)
             pb = nodewise_predict(Phi_n, F, reach * U, st.Q, design.remainder_structure)
             Vk, Vnk, _ = scaled_remainders(remainder_reach(Pm.P, design.remainder_structure), V, Vn, None)
-            ub = nodewise_update(pb.phi, rule, ch, Vk, Vnk, st.M, st.mu, design.remainder_structure)
+            ub = nodewise_update(pb.phi, rule, ch, Vk, Vnk, falsification_parts(rule, ch, st.M, st.mu, N),
+                                 design.remainder_structure)
             tr = np.trace(ub.phi, axis1=-2, axis2=-1)
             if np.isfinite(ub.phi).all() and tr.max() < BOUND_LIMIT:
                 Phi_n = ub.phi

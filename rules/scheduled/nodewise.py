@@ -82,12 +82,13 @@ def nodewise_predict(phi: np.ndarray, F: np.ndarray, U: np.ndarray, Q: np.ndarra
     return NodeBound(symmetrize(out + np.asarray(Q, dtype=float)), (w,))
 
 
-def nodewise_update(phi: np.ndarray, rule, ch, V: np.ndarray, Vn: np.ndarray | None, M: np.ndarray, mu: np.ndarray,
+def nodewise_update(phi: np.ndarray, rule, ch, V: np.ndarray, Vn: np.ndarray | None, fdi: tuple,
                     W: np.ndarray | None, weights=None) -> NodeBound:
     """The update's bound per node from the predicted bounds ``phi`` (N, n, n) (module docstring): ``rule`` the
     step's gains (:class:`rules.scheduled.design._Rule` fields ``A``, ``C``, ``W``, ``K``, ``R``, ``Kn``, ``Rn``),
     ``ch`` the channels, ``V`` (N, mz, mz) and ``Vn`` (E, mz, mz) the measurement remainders' scalings at the step's
-    reach, ``M``, ``mu`` the FDI signal's moments, ``W`` the remainders' structure."""
+    reach, ``fdi`` the falsifications' own variance and mean per node (:func:`rules.scheduled.design.
+    falsification_parts`), ``W`` the remainders' structure."""
     phi = np.asarray(phi, dtype=float)
     N, n = phi.shape[0], phi.shape[-1]
     i, j = ch.receiver, ch.sender
@@ -116,14 +117,9 @@ def nodewise_update(phi: np.ndarray, rule, ch, V: np.ndarray, Vn: np.ndarray | N
     noise = K @ np.asarray(rule.R, dtype=float) @ _t(K)
     if E and rule.Kn is not None:
         np.add.at(noise, i, p[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn)))
-    fdi = np.zeros((N, n, n))
-    if E and (np.any(M) or np.any(mu)):
-        pq = p * ch.q
-        np.add.at(fdi, i, pq[:, None, None] * (rule.W @ (M - pq[:, None, None] * np.outer(mu, mu)) @ _t(rule.W)))
-        c = np.zeros((N, n))
-        np.add.at(c, i, pq[:, None] * (rule.W @ mu))
-        fdi += c[:, :, None] * c[:, None, :]
-    if np.any(mu) and E:  # a biased signal: (a + b)(a + b)ᵀ <= a aᵀ/(1 - π) + b bᵀ/π, per node
+    own_fdi, c = fdi  # the diagonal of the joint certificate's moment
+    fdi = own_fdi + c[:, :, None] * c[:, None, :]
+    if np.any(c):  # a biased falsification: (a + b)(a + b)ᵀ <= a aᵀ/(1 - π) + b bᵀ/π, per node
         ta, tb = np.sqrt(_tr(lin)), np.sqrt(_tr(fdi))
         pi = np.where(ta + tb > 0, tb / np.where(ta + tb > 0, ta + tb, 1.0), 0.5)
         lin = lin / (1.0 - pi)[:, None, None]
