@@ -50,7 +50,7 @@ from .runner import run_forked
 from .scenarios import Scenario
 
 __all__ = ["AUTO", "AUTO_SECONDS", "TIE", "BYTES_PER_NUMBER", "VALIDATE_RUNS", "AUTO_ASSUMPTIONS", "Candidate",
-           "AutoDesign", "run_auto", "check_auto", "offered", "label", "best", "message_budget", "predicted_error", "references", "reference_costs",
+           "AutoDesign", "run_auto", "check_auto", "offered", "refusal", "label", "best", "message_budget", "predicted_error", "references", "reference_costs",
            "validation"]
 
 AUTO = "auto"  # the --mode of the automatic design (not a gain rule: it chooses among them)
@@ -245,6 +245,22 @@ def offered(base: DesignOptions, network, *, where=None) -> list[tuple]:
     return out
 
 
+def refusal(check, name: str, cand: dict, opts: DesignOptions) -> str | None:
+    """Why candidate ``cand`` of rule ``name`` (its options ``opts``, the user's included) cannot start, by
+    ``check(options)`` (raising InputError when refused); None when it can.  A candidate refused only with what the
+    user gave (its rule's defaults pass) is the user's input at fault, for every rule alike: that InputError is
+    raised."""
+    try:
+        check(opts)
+        return None
+    except InputError as exc:
+        try:
+            check(DesignOptions(mode=name, **cand))
+        except InputError:
+            return str(exc)  # this rule cannot start on this model
+        raise
+
+
 def label(rule: str, options: dict) -> str:
     """A candidate's name: its rule and the options that set it apart (``"flood (rounds=3)"``)."""
     extra = [f"{k}={v}" for k, v in options.items()]
@@ -316,16 +332,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     # the candidates: every deployable rule's, with what the user gave kept
     plans = []
     for name, rule, cand, opts in offered(base, net):
-        try:
-            _check_candidate(sc, opts, steps)
-        except InputError as exc:
-            try:  # refused only with what the user gave: the user's input is bad, for every rule alike
-                _check_candidate(sc, DesignOptions(mode=name, **cand), steps)
-            except InputError:
-                plans.append((name, rule, cand, None, str(exc)))  # this rule cannot start on this model
-                continue
-            raise
-        plans.append((name, rule, cand, opts, None))
+        reason = refusal(lambda o: _check_candidate(sc, o, steps), name, cand, opts)
+        plans.append((name, rule, cand, None if reason else opts, reason))
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
         raise InputError(next(p[4] for p in plans)) if plans else InputError(
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")

@@ -67,7 +67,7 @@ from designer.validation import ComputationError, InputError, check_int, check_s
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, json_number, open_loop_reference, verdict
 
 import studies.memory as memory
-from .auto import AUTO, BYTES_PER_NUMBER, best, label, message_budget, offered, references
+from .auto import AUTO, BYTES_PER_NUMBER, best, label, message_budget, offered, references, refusal
 from .consensus_design import stationary_record
 from .design_options import effective, rule_of
 from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
@@ -428,17 +428,17 @@ def _auto_candidates(sc: Scenario, options: DesignOptions, cap, cap_bytes, need)
     for name, rule, cand, opts in offered(options, net, where=lambda r: r.mappable):
         msgs = int(net.messages_per_step(rule.rounds(net, opts.rounds)))
         row = dict(rule=name, options=dict(cand), design_options=opts, messages=msgs, bytes=0)
-        try:
-            memory.check(need(opts))
-            designed = _design_at(sc, opts, {}, strict=True)
-        except InputError as exc:
-            try:
-                memory.check(need(DesignOptions(mode=name, **cand)))
-                _design_at(sc, DesignOptions(mode=name, **cand), {}, strict=True)
-            except InputError:
-                out.append(MapCandidate(**row, status="cannot start", reason=str(exc)))
-                continue
-            raise
+        made = []  # the design of the candidate's own options: the first check's, when it passes
+
+        def check(o):
+            memory.check(need(o))
+            made.append(_design_at(sc, o, {}, strict=True))
+
+        reason = refusal(check, name, cand, opts)
+        if reason is not None:
+            out.append(MapCandidate(**row, status="cannot start", reason=reason))
+            continue
+        designed = made[0]
         if isinstance(designed, dict):  # dos + fdi > 1 without a grid value: every candidate alike
             raise InputError("dos + fdi must be at most 1 (DoS and FDI never occur together)")
         nbytes = BYTES_PER_NUMBER * int(rule.payload(model, net, designed[1]))
