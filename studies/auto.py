@@ -50,7 +50,7 @@ from .runner import run_forked
 from .scenarios import Scenario
 
 __all__ = ["AUTO", "AUTO_SECONDS", "TIE", "BYTES_PER_NUMBER", "VALIDATE_RUNS", "AUTO_ASSUMPTIONS", "Candidate",
-           "AutoDesign", "run_auto", "check_auto", "offered", "refusal", "label", "best", "message_budget", "predicted_error", "references", "reference_costs",
+           "AutoDesign", "run_auto", "check_auto", "offered", "refusal", "label", "best", "below_local", "budget_record", "message_budget", "predicted_error", "references", "reference_costs",
            "validation"]
 
 AUTO = "auto"  # the --mode of the automatic design (not a gain rule: it chooses among them)
@@ -102,6 +102,19 @@ def check_auto(sc: Scenario, budget=None, budget_bytes=None, validate=None, seco
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (0 < seconds < math.inf):
         raise InputError(f"auto_seconds must be a positive number of seconds, got {seconds!r}")
     return cap, budget_bytes, validate, float(seconds)
+
+
+def below_local(value, local) -> bool:
+    """Whether a predicted error or bound ``value`` is below the nodes' local EKFs' ``local`` (node-average steady-state
+    tr P; None or inf: any finite value is): a design better than the nodes running alone."""
+    return value is not None and math.isfinite(value) and (local is None or value < local)
+
+
+def budget_record(network, cap, budget, budget_bytes) -> dict:
+    """``candidates.json``'s and ``feasibility.json``'s ``budget``: the caps (None: none), ``--budget`` as given and
+    what KCF sends per step."""
+    return {"messages_per_step": cap, "given": None if budget is None else str(budget), "bytes_per_step": budget_bytes,
+            "kcf_messages_per_step": int(network.messages_per_step())}
 
 
 def predicted_error(trace: np.ndarray) -> float | None:
@@ -381,7 +394,7 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
             reason=s["reason"], predicted=pred, seconds=out.seconds,
             ratio_centralized=None if pred is None or not c_ref else pred / c_ref,
             ratio_local=None if pred is None or not l_ref or not math.isfinite(l_ref) else pred / l_ref,
-            better_than_local=None if pred is None else bool(l_ref is None or pred < l_ref)))
+            better_than_local=None if pred is None else below_local(pred, l_ref)))
 
     pick_index, outcome, message = _choose(candidates, cap, budget_bytes)
     pick = None
@@ -402,11 +415,10 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
             raise ComputationError(f"the pick {chosen.label} designed again here gives verdict {again['verdict']} and "
                                    f"predicted tr Phi {again['predicted']}, its candidate {chosen.verdict} and "
                                    f"{chosen.predicted}: the design is not reproducible")
-    budget_record = {"messages_per_step": cap, "given": None if budget is None else str(budget),
-                     "bytes_per_step": budget_bytes, "kcf_messages_per_step": int(net.messages_per_step())}
+    budget_rec = budget_record(net, cap, budget, budget_bytes)
     ref_record = {"centralized": c_ref, "local_mean": l_ref, "where": refs.get("where"),
                   "costs": reference_costs(model, net)}
-    auto = AutoDesign(sc_eff, options, candidates, pick, pick_index, outcome, message, budget_record, ref_record,
+    auto = AutoDesign(sc_eff, options, candidates, pick, pick_index, outcome, message, budget_rec, ref_record,
                       seed, steps, time.monotonic() - t0)
     if validate and pick is not None:
         auto = replace(auto, validation=validation(pick, validate, seed))

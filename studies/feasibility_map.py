@@ -63,11 +63,12 @@ import rules
 from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
 from designer.linearization import prediction_scaling, update_scaling
-from designer.validation import ComputationError, InputError, check_int, check_strings
+from designer.validation import ComputationError, InputError, check_strings
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, json_number, open_loop_reference, verdict
 
 import studies.memory as memory
-from .auto import AUTO, BYTES_PER_NUMBER, best, label, message_budget, offered, references, refusal
+from .auto import (AUTO, BYTES_PER_NUMBER, below_local, best, budget_record, check_auto, label, offered, references,
+                   refusal)
 from .consensus_design import stationary_record
 from .design_options import effective, rule_of
 from .feasibility_terms import FAILED, GRID_PARAMETERS, OUTPUTS
@@ -373,10 +374,9 @@ class MapCandidate:
 
 
 def _better(row: dict, local) -> bool:
-    """Whether a row's bound is below the nodes' local EKFs (node-average steady-state tr P; None or inf: any finite
-    bound is), the test ``design --mode auto`` applies to its candidates."""
-    tb = row["trace_bound"]
-    return bool(np.isfinite(tb) and (local is None or tb < local))
+    """Whether a row's bound is below the nodes' local EKFs (:func:`studies.auto.below_local`, the test ``design
+    --mode auto`` applies to its candidates)."""
+    return below_local(float(row["trace_bound"]), local)
 
 
 def _eligible(row: dict, local) -> bool:
@@ -611,17 +611,12 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
                          f"{options.mode or sc.design.mode!r}")
     if auto:
         base = replace(options, mode=None)
-        if sc.network is None:
-            raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
-                             "(a model file defines NETWORK)")
+        cap, budget_bytes, _, _ = check_auto(sc, budget, budget_bytes)  # the network, the budget
         sc_eff, opts = sc.with_attacks(**base.attack_overrides()), replace(base, mode=AUTO)
         bad = [n for n in names if n in _PAPER_ONLY]
         if bad:
             raise InputError(f"--grid {bad[0]} applies to a mode of fixed multipliers only (mode auto chooses among "
                              "rules; give --mode paper to map it)")
-        cap = message_budget(budget, sc.network)
-        if budget_bytes is not None:
-            budget_bytes = check_int("budget_bytes", budget_bytes, 1)
     else:
         sc_eff, opts = effective(sc, options)
         mode = opts.mode or rules.DEFAULT
@@ -683,9 +678,7 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         picked = collections.Counter(r["rule"] for r in rows)
         auto_record = {"candidates": [c.record(picked.get(c.label, 0) if c.status == "mapped" else 0)
                                       for c in candidates],
-                       "budget": {"messages_per_step": cap, "given": None if budget is None else str(budget),
-                                  "bytes_per_step": budget_bytes,
-                                  "kcf_messages_per_step": int(sc_eff.network.messages_per_step())}}
+                       "budget": budget_record(sc_eff.network, cap, budget, budget_bytes)}
     return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options),
                           references={"centralized": json_number(c_ref), "local_mean": json_number(l_ref)},
                           auto=auto_record)
