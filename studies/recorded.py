@@ -448,15 +448,13 @@ def recorded_design(schedule_dir, sc: Scenario, options: DesignOptions, *, steps
     sc_e, _, design = effective_design(sc, options)
     if not design.rule.offline_tables:
         return design
-    path = Path(schedule_dir)
-    meta = read_design_record(schedule_dir)[1]
-    horizon = meta.get("steps")
-    if steps is not None and (not isinstance(horizon, int) or steps > horizon):
+    sched = load_schedule(Path(schedule_dir), lambda name, param: rules.get(name))  # the arrays read safely, once
+    if steps is not None and steps > sched.steps:
         return consensus_design(sc, options, steps=steps)
-    sched = load_schedule(path, lambda name, param: rules.get(name))
     arrays = {"Phi": sched.Phi, "valid": sched.valid, "sigma": sched.sigma, "beta": sched.beta,
               **({} if sched.margin28 is None else {"margin28": sched.margin28, "margin29": sched.margin29}),
               **{f"table_{k}": v for k, v in (sched.tables or {}).items()}}
+    meta = {**sched.meta, "violations": sched.violations}
     return design._replace(tables=design.rule.recorded_tables(sc_e.model, sc_e.network, design, arrays, meta))
 
 
