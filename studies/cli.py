@@ -391,7 +391,7 @@ def feasibility_cmd(scenario, grids, out, workers, dask, dask_security, force, q
 @click.option("--schedule", default=None, help="consensus-robot: replay the gains of this design directory")
 @click.option("--filters", "filters", default=None, metavar="NAME,...",
               help="comparison: run only these filters (names as cfdesign filter --filter takes them, e.g. "
-                   "kcf,hcmci,relay,centralized-ekf) [default: every filter]")
+                   "kcf,hcmci,local,centralized-ekf) [default: every filter]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
 def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, dask, dask_security, force, quiet,
               engine, schedule, filters, assignments, **kw) -> None:
