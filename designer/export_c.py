@@ -21,9 +21,14 @@ Into a directory each writes:
   ``cfd_bound``, ...) and the design's data; static memory only, libc and libm only;
 * ``cfd_test.c``, ``replay.txt`` — a test driver replaying a run through every exported node and comparing each
   step's numbers with what the Python node filter computed on the same run (written in ``replay.txt``: each
-  kind's replay text, through :func:`replay_file`);
+  kind's replay text, through :func:`replay_file`).  Each step starts from the Python node's state after the step
+  before (re-synchronised), so one step of C is compared with one step of Python from the same input, which two
+  correct implementations agree on to rounding even on a chaotic or ill-conditioned recursion; each entry is
+  compared on its own scale (``x[i]`` on max(|x[i]|, sqrt(P[i][i])), ``P[i][j]`` on max(|P[i][j]|,
+  sqrt(P[i][i] P[j][j]))), a failure names the step, the node, the quantity and both values; a free-running
+  twin of each node (never re-synchronised) reports its drift as information;
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
-  every number agrees within 1e-10 of the largest magnitude of its vector or matrix.
+  every entry agrees within :data:`REPLAY_TOLERANCE` of its scale.
 
 The C is in files shipped as package data, read by :func:`template`: ``frame/`` (in :data:`C_TEMPLATES`) holds what
 every node kind shares (the prelude of CasADi's file, the model's function tables, accessors and symmetric
@@ -53,13 +58,23 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code",
-           "common_code", "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX"]
+           "common_code", "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX",
+           "perturbed_twin", "replay_tolerances", "state_difference", "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS",
+           "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP"]
 
 C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
 PLACEHOLDER = re.compile(r"@([A-Z][A-Z0-9_]*)@")  # a template's placeholder: @NAME@
 
-REPLAY_TOLERANCE = 1e-10  # make test: |C - Python| <= this times the largest magnitude of the vector or matrix
+#: make test: |C - Python| <= this times the entry's own scale, each step from the Python node's state (the frame's
+#: driver_head.c says which scale)
+REPLAY_TOLERANCE = 1e-12
+#: a step whose own rounding sensitivity is larger (see :func:`replay_tolerances`) is checked at this many times it;
+#: a step that would need more than REPLAY_TOLERANCE_CAP ends the replay (beyond, no check tells code from rounding)
+SENSITIVITY_SAFETY = 100.0
+REPLAY_TOLERANCE_CAP = 1e-6
+SENSITIVITY_TRIALS = 2  # perturbed twins of the node network a step (Kenney and Laub's small-sample estimate)
+SENSITIVITY_SEED = 20261205  # their perturbations' stream: an export is the same file bit for bit every time
 C_TEXT_MAX = 120  # characters of a text c_text keeps (longer: cut, ending in "...")
 # what c_text keeps: printable ASCII but for the characters of a comment's or string's end or a line splice
 # ("*" of "*/" and "/*", the backslash, the double quote) and "?" (the trigraph ??/ is a backslash)
@@ -189,9 +204,10 @@ def write_node(out: Path, header: str, source: str, main: str, replay: str | Non
     """Write a node kind's ``cfd_node.h``, ``cfd_node.c``, its replay driver ``cfd_test.c`` (the frame's
     ``driver_head.c``, a blank line, the kind's ``main``), the frame's ``Makefile`` and, given, ``replay.txt``
     beside the model's files (:func:`model_code`) in ``out``; returns every file of the export."""
-    driver = template(_FRAME / "driver_head.c") + "\n" + main
+    driver = template(_FRAME / "driver_head.c", TOL=repr(REPLAY_TOLERANCE), TOL_CAP=repr(REPLAY_TOLERANCE_CAP)) \
+        + "\n" + main
     texts = {"cfd_node.h": header, "cfd_node.c": source, "cfd_test.c": driver,
-             "Makefile": template(_FRAME / "Makefile")}
+             "Makefile": template(_FRAME / "Makefile", TOL=repr(REPLAY_TOLERANCE))}
     if replay is not None:
         texts["replay.txt"] = replay
     written = [out / "cfd_model.c", out / "cfd_model.h"]
@@ -201,11 +217,77 @@ def write_node(out: Path, header: str, source: str, main: str, replay: str | Non
     return written
 
 
-def replay_file(steps: int, nodes: int, n_u: int, rows: Iterable[Sequence]) -> str:
+def replay_file(steps: int, nodes: int, n_u: int, rows: Iterable[Sequence], tolerances) -> str:
     """The text of ``replay.txt``: ``steps nodes n_u``, then one line per row of numbers (a step's node, in the
-    kind's order), each number as Python's ``repr`` (exact)."""
-    lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in vals) for vals in rows]
+    kind's order), each starting with the row's tolerance (``tolerances``, steps x nodes: :func:`replay_tolerances`),
+    each number as Python's ``repr`` (exact)."""
+    tol = np.asarray(tolerances, float).reshape(-1)
+    lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in (t, *vals)) for t, vals in zip(tol, rows)]
+    if len(lines) != steps * nodes + 1 or tol.size != steps * nodes:
+        raise ValueError(f"replay_file: {len(lines) - 1} rows and {tol.size} tolerances for {steps} steps x {nodes} "
+                         "nodes")
     return "\n".join(lines) + "\n"
+
+
+def _configuration(net) -> dict:
+    """deepcopy's memo sharing what a node network only reads (its model, network, design, tables, rules: every
+    attribute of it and of its nodes that is an object rather than an array, a number, a text or a container), so a
+    twin of it copies its state alone."""
+    plain = (np.ndarray, np.generic, list, tuple, dict, set, int, float, complex, bool, str, bytes, type(None))
+    memo = {}
+    for owner in (net, *net.nodes):
+        for value in vars(owner).values():
+            if not isinstance(value, plain):
+                memo[id(value)] = value
+    return memo
+
+
+def perturbed_twin(net, rng: np.random.Generator):
+    """A copy of the node network ``net`` (its configuration shared: :func:`_configuration`) whose every node's
+    estimate and covariance are moved by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the
+    double's machine epsilon, ``g`` standard normal; the covariance's perturbation symmetric)."""
+    import copy
+
+    twin = copy.deepcopy(net, _configuration(net))
+    eps = np.finfo(float).eps
+    for node in twin.nodes:
+        x, P = np.asarray(node.x, float), np.asarray(node.P, float)
+        G = rng.standard_normal(P.shape)
+        node.x = x * (1.0 + eps * rng.standard_normal(x.shape))
+        node.P = P * (1.0 + eps * 0.5 * (G + G.T))
+    return twin
+
+
+def state_difference(x, P, x_ref, P_ref) -> float:
+    """The largest difference of an estimate and covariance from the reference's, each entry on its own scale as
+    ``make test`` scales it (``x[i]`` on max(|x[i]|, sqrt(P[i][i])), ``P[i][j]`` on max(|P[i][j]|,
+    sqrt(P[i][i] P[j][j])), the reference's values); infinite where a scale is 0 or a number not finite."""
+    x, P, x_ref, P_ref = (np.asarray(a, float) for a in (x, P, x_ref, P_ref))
+    s = np.sqrt(np.abs(np.diag(P_ref)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dx = np.where(x == x_ref, 0.0, np.abs(x - x_ref) / np.maximum(np.abs(x_ref), s))
+        dP = np.where(P == P_ref, 0.0, np.abs(P - P_ref) / np.maximum(np.abs(P_ref), np.outer(s, s)))
+    d = np.concatenate([dx.reshape(-1), dP.reshape(-1)])
+    return float(np.inf) if not np.all(np.isfinite(d)) else float(d.max(initial=0.0))
+
+
+def replay_tolerances(net, twins: Sequence, nodes: Sequence[int]) -> np.ndarray:
+    """Each exported node's tolerance in ``make test`` at the step just taken by ``net`` and its perturbed twins
+    (:func:`perturbed_twin`, made before the step and stepped with it): :data:`REPLAY_TOLERANCE`, or where the step
+    itself moves one-ulp perturbations of its input further, :data:`SENSITIVITY_SAFETY` times the largest such
+    movement (:func:`state_difference`).  A tolerance above :data:`REPLAY_TOLERANCE_CAP` is a step too
+    ill-conditioned to check: the export's replay stops before it.
+
+    Each step of ``make test`` starts from Python's state, read exactly, so what the C may differ by is its own
+    rounding inside the step, carried to the output as the step's condition carries a perturbation of its input:
+    where a step amplifies one-ulp changes of its input to 1e-10 (a radar's angles from a wide prior), no correct
+    implementation agrees within 1e-12, and a check at 1e-12 would fail correct code."""
+    out = np.full(len(nodes), REPLAY_TOLERANCE)
+    for j, i in enumerate(nodes):
+        ref = net.nodes[i]
+        moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in twins), default=0.0)
+        out[j] = max(REPLAY_TOLERANCE, SENSITIVITY_SAFETY * moved)
+    return out
 
 
 class NodeExport:
@@ -213,8 +295,8 @@ class NodeExport:
     :func:`studies.api.export` asks of it, in order.
 
     :meth:`check` refuses a design the export cannot write; then, at each step of the replayed run, after the node
-    network's step (:func:`filters.node.node_network`), :meth:`replay_step` gives the step's replay record (or
-    None to stop the replay there); :meth:`write` writes the sources, the Makefile, the driver and ``replay.txt``
+    network's step (:func:`filters.node.node_network`), :meth:`replay_step` gives the step's replay record (the
+    replay stops before a step too ill-conditioned to check: :func:`replay_tolerances`); :meth:`write` writes the sources, the Makefile, the driver and ``replay.txt``
     from those records.  A subclass overrides :meth:`replay_step` and :meth:`write`.
     """
 
@@ -224,13 +306,14 @@ class NodeExport:
 
     def replay_step(self, net, k: int, u: np.ndarray, z: Sequence[np.ndarray], nodes: Sequence[int]) -> Any:
         """The replay record of step ``k`` (0-based) from the node network ``net`` after its step: ``u`` the step's
-        inputs, ``z`` each exported node's own measurement (in ``nodes`` order).  None stops the replay before this
-        step, after a warning saying why (``replay.txt`` then holds the ``k`` steps before)."""
+        inputs, ``z`` each exported node's own measurement (in ``nodes`` order)."""
         raise NotImplementedError(f"{type(self).__name__}.replay_step")
 
-    def write(self, model, network, design, net, steps: list, out: Path, *, nodes: Sequence[int],
+    def write(self, model, network, design, net, steps: list, out: Path, *, nodes: Sequence[int], tolerances,
               verdict=None) -> list[Path]:
         """Write the export of ``design`` for the nodes ``nodes`` into ``out`` (the node network ``net`` after the
-        replayed run, ``steps`` the records of :meth:`replay_step`; ``verdict``: the design's, stated as a word of
-        :data:`designer.verdict.VERDICTS`); returns the files written."""
+        replayed run, ``steps`` the records of :meth:`replay_step`, ``tolerances`` each step's and node's tolerance
+        in ``make test``, steps x nodes: :func:`replay_tolerances`, written through :func:`replay_file`;
+        ``verdict``: the design's, stated as a word of :data:`designer.verdict.VERDICTS`); returns the files
+        written."""
         raise NotImplementedError(f"{type(self).__name__}.write")

@@ -1,5 +1,5 @@
 """The consensus node's C export: the home of :class:`PaperExport` (the paper rule's
-:meth:`designer.rule.GainRule.c_export`, with its ill-conditioning stop :data:`REPLAY_COND`), :func:`write_consensus_c`
+:meth:`designer.rule.GainRule.c_export`), :func:`write_consensus_c`
 (the node filter of a ``paper`` design: :class:`filters.consensus_node.ConsensusNode` in C99, two phases a step) and
 of its replay, :func:`consensus_replay_text`.
 
@@ -9,7 +9,6 @@ driver's head, the Makefile) is :mod:`designer.export_c`'s.
 """
 from __future__ import annotations
 
-import warnings
 from importlib.resources import files
 from pathlib import Path
 from typing import Sequence
@@ -20,17 +19,15 @@ from designer.export_c import (NodeExport, c_array, common_code, described, lina
                                template, write_node)
 from designer.validation import InputError
 
-__all__ = ["PaperExport", "REPLAY_COND", "write_consensus_c", "consensus_replay_text"]
+__all__ = ["PaperExport", "write_consensus_c", "consensus_replay_text"]
 
 _C = files(__package__) / "c"
-REPLAY_COND = 1e6  # the largest condition number of a replayed covariance: its rounding stays within 1e-10
 
 
 class PaperExport(NodeExport):
     """The C export of the paper rule's two-phase consensus node: a design of the ``fixed`` linearization only; a
     step's replay record is the inputs and, per exported node, its measurement, what reached it, the packet it sent
-    and its estimate and covariance after the update (:func:`consensus_replay_text`), while every replayed
-    covariance's condition number stays within :data:`REPLAY_COND`."""
+    and its estimate and covariance after the update (:func:`consensus_replay_text`)."""
 
     def check(self, design) -> None:
         if design.linearization != "fixed":
@@ -40,19 +37,12 @@ class PaperExport(NodeExport):
 
     def replay_step(self, net, k, u, z, nodes):
         sent, rounds = net.last  # what each node sent and, round by round, what reached it
-        cond = max(float(np.linalg.cond(P)) for i in nodes for P in (sent[i].P, net.nodes[i].P))
-        if not cond <= REPLAY_COND:  # beyond, two correct implementations differ by more than make test allows
-            warnings.warn(f"the paper filter's covariance is ill-conditioned at step {k + 1} of the replayed run "
-                          f"(condition number {cond:.3g} > {REPLAY_COND:g}): replay.txt holds the {k} steps "
-                          "before (beyond, the rounding of any two correct implementations differs by more than "
-                          "make test's 1e-10)", RuntimeWarning, stacklevel=3)
-            return None
         return u, [(z_i, *rounds[0][i], sent[i], net.nodes[i].x, net.nodes[i].P) for i, z_i in zip(nodes, z)]
 
-    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+    def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
         return write_consensus_c(model, network, design, out, nodes=nodes, verdict=verdict,
                                  replay=consensus_replay_text(nodes, [net.nodes[i].senders.tolist() for i in nodes],
-                                                              model.n_u, steps))
+                                                              model.n_u, steps, tolerances))
 
 
 def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
@@ -113,12 +103,14 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
 
-def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, steps: list) -> str:
-    """``replay.txt`` of a consensus design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the
-    step's inputs, the node's measurement, one arrived flag per in-neighbour (``senders`` order), the estimates that
-    arrived (zeros where not), every in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the
-    Python node filter's packet (prediction, its covariance, its flag) and its estimate and covariance after the
-    update.  ``steps``: per step, ``(u, [(z, received {j: x̃}, bounds {j: Packet}, packet, x, P) per node])``."""
+def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, steps: list,
+                          tolerances) -> str:
+    """``replay.txt`` of a consensus design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
+    tolerance (``tolerances``: :func:`designer.export_c.replay_tolerances`), the step's inputs, the node's
+    measurement, one arrived flag per in-neighbour (``senders`` order), the estimates that arrived (zeros where
+    not), every in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the Python node filter's
+    packet (prediction, its covariance, its flag) and its estimate and covariance after the update. ``steps``: per
+    step, ``(u, [(z, received {j: x̃}, bounds {j: Packet}, packet, x, P) per node])``."""
     def rows():
         for u, per_node in steps:
             for j, (z, got, bounds, packet, x, P) in enumerate(per_node):
@@ -133,4 +125,4 @@ def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
                 vals += [float(bool(packet.ok))] + list(np.asarray(x, float)) + list(np.asarray(P, float).reshape(-1))
                 yield vals
 
-    return replay_file(len(steps), len(nodes), n_u, rows())
+    return replay_file(len(steps), len(nodes), n_u, rows(), tolerances)

@@ -34,11 +34,12 @@ class RelayExport(NodeExport):
         _, rounds = net.last  # what each node sent and, round by round, what reached it
         return u, [(*rounds[0][i], net.nodes[i].x, net.nodes[i].P) for i in nodes]
 
-    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+    def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
         routes = relay_routes(network, design.rounds, design.rule.routing)
         return write_relay_c(model, network, design, routes, relay_moments(routes, network, model.sensor_dims), out,
                              nodes=nodes, replay=replay_text(nodes, [net.nodes[i].ball for i in nodes],
-                                                             model.sensor_dims, steps, model.n_u), verdict=verdict)
+                                                             model.sensor_dims, steps, model.n_u, tolerances),
+                             verdict=verdict)
 
 
 def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, *, nodes: Sequence[int],
@@ -97,8 +98,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
 
 
 def replay_text(nodes: Sequence[int], balls: Sequence[Sequence[int]], dims: Sequence[int], steps: list,
-                n_u: int) -> str:
-    """``replay.txt``: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the node's measurement,
+                n_u: int, tolerances) -> str:
+    """``replay.txt``: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its tolerance
+    (``tolerances``: :func:`designer.export_c.replay_tolerances`), the node's measurement,
     one arrived flag per sensor of its ball after its own, the received measurements (zeros where not arrived), the
     step's inputs, the Python node filter's estimate and bound (row by row); numbers as Python's ``repr`` (exact).
     ``steps``: per step, ``(u, [(z_own, received {sensor: value}, x, P) per node])``."""
@@ -114,4 +116,4 @@ def replay_text(nodes: Sequence[int], balls: Sequence[Sequence[int]], dims: Sequ
                 yield vals + flags + rec + list(np.asarray(u, float).reshape(-1)) + list(np.asarray(x).reshape(-1)) \
                     + list(np.asarray(P).reshape(-1))
 
-    return replay_file(len(steps), len(nodes), n_u, rows())
+    return replay_file(len(steps), len(nodes), n_u, rows(), tolerances)

@@ -34,11 +34,11 @@ class ScheduledExport(NodeExport):
         return u, [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], net.nodes[i].x, net.nodes[i].P)
                    for i, z_i in zip(nodes, z)]
 
-    def write(self, model, network, design, net, steps, out, *, nodes, verdict=None):
+    def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
         return write_scheduled_c(model, network, design, out, nodes=nodes, verdict=verdict,
                                  replay=scheduled_replay_text(nodes, [net.nodes[i].senders.tolist() for i in nodes],
                                                               model.n_u, max(model.sensor_dims),
-                                                              design.tables.exchange, steps))
+                                                              design.tables.exchange, steps, tolerances))
 
 
 def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int], replay: str | None = None,
@@ -117,12 +117,13 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
 
 
 def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, nz: int,
-                          exchange: bool, steps: list) -> str:
-    """``replay.txt`` of a scheduled design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) the
-    step's inputs, the node's measurement, one arrived flag per in-neighbour, the predictions that arrived (zeros
-    where not), with exchange the measurements that arrived (``nz`` each, zero-padded), for rounds 2..L the
-    estimates that arrived, then the Python node filter's estimate and own covariance after the step.  ``steps``:
-    per step, ``(u, [(z, received {j: ScheduledPacket}, [{j: x̃} per round 2..L], x, P) per node])``."""
+                          exchange: bool, steps: list, tolerances) -> str:
+    """``replay.txt`` of a scheduled design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
+    tolerance (``tolerances``: :func:`designer.export_c.replay_tolerances`), the step's inputs, the node's
+    measurement, one arrived flag per in-neighbour, the predictions that arrived (zeros where not), with exchange
+    the measurements that arrived (``nz`` each, zero-padded), for rounds 2..L the estimates that arrived, then the
+    Python node filter's estimate and own covariance after the step. ``steps``: per step, ``(u, [(z, received {j:
+    ScheduledPacket}, [{j: x̃} per round 2..L], x, P) per node])``."""
     def rows():
         for u, per_node in steps:
             for j, (z, got, later, x, P) in enumerate(per_node):
@@ -140,4 +141,4 @@ def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
                 vals += list(np.asarray(x, float)) + list(np.asarray(P, float).reshape(-1))
                 yield vals
 
-    return replay_file(len(steps), len(nodes), n_u, rows())
+    return replay_file(len(steps), len(nodes), n_u, rows(), tolerances)

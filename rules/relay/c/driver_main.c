@@ -1,19 +1,20 @@
 int main(int argc, char **argv) {
-    static cfd_node nodes[CFD_NODES];
+    static cfd_node nodes[CFD_NODES], free_nodes[CFD_NODES];
     static double z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
     static double x[CFD_NX], P[CFD_NX * CFD_NX];
     static unsigned char arrived[CFD_BALL_MAX];
+    cfd_tally t = {0, 0, 0.0, 0.0, 0.0, 0, 0.0};
     FILE *fh;
-    int steps, k, j, bad = 0;
-    double worst = 0.0;
-    fh = start(argc, argv, nodes, &steps);
+    int steps, k, j;
+    fh = start(argc, argv, nodes, free_nodes, &steps);
     if (!fh) return 2;
     for (k = 0; k < steps; ++k) {
         for (j = 0; j < CFD_NODES; ++j) {
             const int *ball;
             int nb = cfd_ball(nodes[j].node, &ball), m_own = cfd_sensor_dim(ball[0]), m_rec = 0, b, e;
             for (b = 1; b < nb; ++b) m_rec += cfd_sensor_dim(ball[b]);
-            if (read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1) || read_numbers(fh, rec, m_rec)
+            if (row(fh, &t, k, nodes[j].node) || read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1)
+                    || read_numbers(fh, rec, m_rec)
                     || read_numbers(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
                     || read_numbers(fh, P, CFD_NX * CFD_NX)) {
                 return short_replay(argv[1], k, nodes[j].node);
@@ -24,8 +25,11 @@ int main(int argc, char **argv) {
                 fprintf(stderr, "step %d, node %d: cfd_step returned %d\n", k + 1, nodes[j].node, e);
                 return 1;
             }
-            check(nodes[j].x, nodes[j].P, x, P, &worst, &bad);
+            check(&t, 1, "x", "P", nodes[j].x, nodes[j].P, x, P);
+            resync(nodes[j].x, nodes[j].P, x, P);
+            if (!cfd_step(&free_nodes[j], z, arrived, rec, CFD_NU ? u : NULL))
+                check(&t, 0, "x", "P", free_nodes[j].x, free_nodes[j].P, x, P);
         }
     }
-    return finish(fh, steps, worst, bad);
+    return finish(fh, steps, &t);
 }
