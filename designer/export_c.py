@@ -58,7 +58,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code",
-           "common_code", "linalg_code", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX",
+           "common_code", "work_code", "linalg_code", "PREFIX", "check_prefix", "prefixed", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX",
            "perturbed_twin", "replay_tolerances", "state_difference", "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS",
            "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP"]
 
@@ -75,6 +75,9 @@ SENSITIVITY_SAFETY = 100.0
 REPLAY_TOLERANCE_CAP = 1e-6
 SENSITIVITY_TRIALS = 2  # perturbed twins of the node network a step (Kenney and Laub's small-sample estimate)
 SENSITIVITY_SEED = 20261205  # their perturbations' stream: an export is the same file bit for bit every time
+PREFIX = "cfd"  # the generated sources' names: functions, types and files cfd_..., macros CFD_...
+_PREFIX_SHAPE = re.compile(r"[a-z][a-z0-9]{0,15}")
+_PREFIX_TAKEN = ("casadi",)  # CasADi's own names in cfd_model.c
 C_TEXT_MAX = 120  # characters of a text c_text keeps (longer: cut, ending in "...")
 # what c_text keeps: printable ASCII but for the characters of a comment's or string's end or a line splice
 # ("*" of "*/" and "/*", the backslash, the double quote) and "?" (the trigraph ??/ is a backslash)
@@ -185,13 +188,20 @@ def model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
                                                                                                       angle, "int")
 
 
-def common_code(model, sizes: dict) -> str:
+def common_code(model) -> str:
     """The C every node filter shares (``frame/common.c.in``, the value of a source's ``COMMON``): the model's
-    function tables and work arrays (``sizes``: :func:`model_code`'s), the accessors, the symmetric
-    eigen-decomposition and the model's calls."""
+    function tables, the accessors, the symmetric eigen-decomposition and the model's calls (their work memory the
+    node's: :func:`work_code`)."""
     return template(_FRAME / "common.c.in", HS=", ".join(f"cfd_h{s}" for s in range(model.n_sensors)),
-                    HHS=", ".join(f"cfd_H{s}" for s in range(model.n_sensors)),
-                    **{name.upper(): value for name, value in sizes.items()})
+                    HHS=", ".join(f"cfd_H{s}" for s in range(model.n_sensors)))
+
+
+def work_code(sizes: dict, eig_max: str) -> str:
+    """The declaration of ``cfd_model_work`` (``frame/work.h.in``, a header's ``WORK``): the work memory of the
+    model's calls (``sizes``: :func:`model_code`'s) and of the eigen-decomposition of matrices up to ``eig_max``
+    rows (a constant expression of the kind's header, e.g. ``CFD_NX``), which each node kind's work struct holds, so
+    that no node keeps mutable static data."""
+    return template(_FRAME / "work.h.in", EIG_MAX=eig_max, **{name.upper(): value for name, value in sizes.items()})
 
 
 def linalg_code() -> str:
@@ -287,6 +297,39 @@ def replay_tolerances(net, twins: Sequence, nodes: Sequence[int]) -> np.ndarray:
         ref = net.nodes[i]
         moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in twins), default=0.0)
         out[j] = max(REPLAY_TOLERANCE, SENSITIVITY_SAFETY * moved)
+    return out
+
+
+def check_prefix(prefix: str) -> str:
+    """``prefix`` as :func:`prefixed` takes it: a lower-case C identifier of 1-16 letters and digits, starting with a
+    letter, not one of CasADi's (:class:`InputError` naming it otherwise)."""
+    if not isinstance(prefix, str) or not _PREFIX_SHAPE.fullmatch(prefix) or prefix in _PREFIX_TAKEN:
+        raise InputError(f"prefix must be 1 to 16 lower-case letters and digits starting with a letter (the C names "
+                         f"become PREFIX_..., the macros PREFIX_... in capitals), not {', '.join(_PREFIX_TAKEN)}; got "
+                         f"{prefix!r}")
+    return prefix
+
+
+def prefixed(files: Sequence[Path], prefix: str) -> list[Path]:
+    """The export's ``files`` renamed to ``prefix`` (checked: :func:`check_prefix`): every name ``cfd_...`` of their
+    text (functions, types, the model's functions, the library ``libcfd_node.a``, the files themselves) becomes
+    ``prefix_...`` and every ``CFD_...`` (macros, the header guard, ``CFD_REAL``) ``PREFIX_...``, so that exports of
+    two designs link into one program.  CasADi's own names (``casadi_...``) stay.  Returns the files as renamed."""
+    prefix = check_prefix(prefix)
+    if prefix == PREFIX:
+        return list(files)
+    lower = re.compile(r"\b(lib)?" + PREFIX + "_")
+    upper = re.compile(r"\b" + PREFIX.upper() + "_")
+    out = []
+    for path in files:
+        path = Path(path)
+        text = path.read_text()
+        text = upper.sub(prefix.upper() + "_", lower.sub(lambda m: (m.group(1) or "") + prefix + "_", text))
+        target = path.with_name(lower.sub(lambda m: (m.group(1) or "") + prefix + "_", path.name))
+        target.write_text(text)
+        if target != path:
+            path.unlink()
+        out.append(target)
     return out
 
 

@@ -827,7 +827,8 @@ def _recorded_source(design_dir, meta: dict) -> str:
 
 @one_blas_thread()
 def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = None, data=None,
-           scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = ()) -> list[Path]:
+           scenario=None, overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
+           prefix: str = "cfd") -> list[Path]:
     """Export a design's node filter as C99 sources (``cfdesign export``; :mod:`designer.export_c`, the rule's
     export: :meth:`designer.rule.GainRule.c_export`).
 
@@ -852,6 +853,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         ``source_seal``: :mod:`studies.provenance`) and the file's bytes still have the design's ``source_digest``
         (both checked before the file is imported: a design directory from elsewhere may name any file and its
         digest); otherwise the model must be given, and its content must be the design's (``model_digest``).
+    prefix : str
+        The sources' names (:func:`designer.export_c.prefixed`): functions, types and files ``prefix_...``, macros
+        ``PREFIX_...`` (default ``cfd``), so that the exports of two designs link into one program.
 
     The design directory is read as data (:func:`studies.recorded.read_design_record`): no text of it reaches the
     C sources (the verdict is stated as a word of :data:`designer.verdict.VERDICTS`, else ``unknown``).
@@ -860,7 +864,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     """
     import rules
     from designer.export_c import (REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY, SENSITIVITY_SEED, SENSITIVITY_TRIALS,
-                                   perturbed_twin, replay_tolerances)
+                                   check_prefix, perturbed_twin, prefixed, replay_tolerances)
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -871,6 +875,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         raise InputError(f"target must be 'c' (C99 sources), got {target!r}")
     check_path("out", out)
     check_path("data", data, optional=True)
+    check_prefix(prefix)
     _check_arguments(out=out, overrides=overrides, assignments=assignments)
     _apart(out, scenario, design_dir=design_dir, data=data)
     record = read_design_record(design_dir, "design_dir")  # data only: nothing it names is imported here
@@ -939,6 +944,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         tolerances.append(tol)
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     with replaced_outputs(out) as stage:
-        written = exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
-                                  tolerances=np.reshape(tolerances, (len(steps), len(chosen))), verdict=verdict)
+        written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
+                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen))),
+                                          verdict=verdict), prefix)
     return [Path(out) / p.name for p in written]

@@ -319,7 +319,10 @@ def _auto_lines(res, out: str) -> None:
 @click.option("--scenario", default=None, metavar="SCENARIO|MODEL.py",
               help="the model, when the design's own file has moved [default: the design's]")
 @click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE", help=_SET_HELP)
-def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> None:
+@click.option("--prefix", default="cfd", show_default=True, metavar="NAME",
+              help="the C names: functions, types and files NAME_..., macros in capitals (two exports link into one "
+                   "program under two prefixes)")
+def export_cmd(design_dir, target, out, nodes, data, scenario, assignments, prefix) -> None:
     """Export the node filter of the design in DESIGN_DIR (gain rule paper, scheduled, relay or flood) as C99 sources
     with a Makefile and a test driver (make test: the C against the Python node filter)."""
     import warnings
@@ -329,7 +332,7 @@ def export_cmd(design_dir, target, out, nodes, data, scenario, assignments) -> N
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always", RuntimeWarning)
         files = export(design_dir, target=target, out=out, nodes=list(nodes) or None, data=data,
-                       scenario=scenario, assignments=assignments)
+                       scenario=scenario, assignments=assignments, prefix=prefix)
     click.echo(f"wrote {len(files)} files to {out}: {', '.join(p.name for p in files)}; build and check with "
                f"make -C {out} test")
     from designer.verdict import known_verdict

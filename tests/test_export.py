@@ -30,6 +30,23 @@ def make_test(directory) -> subprocess.CompletedProcess:
     return subprocess.run(["./cfd_test", "replay.txt"], cwd=directory, capture_output=True, text=True, timeout=300)
 
 
+def mutable_static_data(directory) -> list[str]:
+    """The symbols of ``cfd_node.c`` and ``cfd_model.c``, compiled in ``directory``, that live in writable static
+    memory (the ``.data`` and ``.bss`` sections, static locals included), by ``nm``: none, when every node's work is
+    in its own struct and nodes may step side by side."""
+    if shutil.which("nm") is None:
+        pytest.skip("no nm")
+    objects = []
+    for name in ("cfd_node", "cfd_model"):
+        subprocess.run([CC, "-std=c99", "-O2", "-c", f"{name}.c", "-o", f"{name}.static.o"], cwd=directory, check=True,
+                       capture_output=True, timeout=300)
+        objects.append(f"{name}.static.o")
+    table = subprocess.run(["nm", "--format=sysv", *objects], cwd=directory, check=True, capture_output=True,
+                           text=True).stdout
+    return [line.split("|")[0].strip() for line in table.splitlines()
+            if line.count("|") >= 6 and line.split("|")[-1].strip() in (".data", ".bss")]
+
+
 def moved_replay_fails(out, line: int, at, what: str, nodes) -> None:
     """The check has power: ``replay.txt``'s number ``at`` (an index into line ``line``'s cells, the first component
     ``what`` of an expected estimate or prediction) moved by 1e-7 (relative) makes ``make test`` fail, naming the
@@ -79,6 +96,7 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     libc_libm = {"float.h", "math.h", "string.h", "stdio.h", "stdlib.h"}
     assert includes <= libc_libm | {"cfd_model.h", "cfd_node.h"}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
+    assert mutable_static_data(out) == []
     n_x = 3
     moved_replay_fails(out, 5, -n_x * n_x - n_x, "x", range(8))  # the first component of an expected estimate
 
@@ -137,6 +155,7 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     assert worst <= 1e-10 and "30 steps x 8 nodes" in run.stdout
     sources = {p.name: p.read_text() for p in out.glob("cfd_*.[ch]")}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
+    assert mutable_static_data(out) == []
     n_x = 3
     moved_replay_fails(out, 9, -2 * (n_x * n_x + n_x) - 1, "x_pred", range(8))  # an expected prediction's first
 
@@ -241,6 +260,7 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
                                   attacks=[sim.attacks]).detail
         picks = [design.tables.choose(k, ref.x_pred[0, k]) for k in range(ref.x_pred.shape[1])]
         assert np.concatenate(picks).max() > 0
+    assert mutable_static_data(out) == []
     n_x = 3 if target == "indoor-robot" else 4
     moved_replay_fails(out, 7, -n_x * n_x - n_x, "x", range(8 if target == "indoor-robot" else 7))  # the first component of an expected estimate
 
@@ -269,6 +289,10 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     assert main(["design", str(cart), "--mode", "relay", "--steps", "4", "--out", str(relay)]) in (0, 1)
     with pytest.raises(InputError, match=r"nodes must be an integer in 0..6, got 9"):
         studies.export(relay, out=tmp_path / "c", nodes=[9])
+    for bad in ("Robo", "9lives", "casadi", "a_b", "x" * 17, ""):
+        with pytest.raises(InputError, match="prefix must be 1 to 16 lower-case letters and digits"):
+            studies.export(relay, out=tmp_path / "c", prefix=bad)
+    assert main(["export", str(relay), "--out", str(tmp_path / "c"), "--prefix", "Robo"]) == 2
     cart.write_text(USER_MODEL.replace("0.002]]", "0.003]]"))  # the model edited since the design
     try:  # refused before it is imported (its bytes), and given by the user (its content)
         with pytest.raises(InputError, match="names the model file .*cart.py., whose content is not the design's"):
@@ -278,3 +302,64 @@ def test_what_cannot_be_exported_is_refused(cart, tmp_path):
     finally:
         cart.write_text(USER_MODEL)
     assert not (tmp_path / "c" / "cfd_node.c").exists()
+
+
+@pytest.mark.slow
+def test_two_designs_link_into_one_program_under_two_prefixes(tmp_path):
+    """The robot's relay design exported with --prefix rly and its scheduled design with --prefix sch: every global
+    symbol of each library carries its prefix (CasADi's aside), each passes its own make test, and one program
+    includes both headers, links both libraries and steps node 0 of each from its prior, side by side (its own
+    measurement, nothing received), to the Python node filter's estimates within 1e-12."""
+    if shutil.which("make") is None or shutil.which("nm") is None:
+        pytest.skip("no make or nm")
+    out = {}
+    for mode, prefix in (("relay", "rly"), ("scheduled", "sch")):
+        des = tmp_path / mode
+        assert main(["design", "indoor-robot", "--mode", mode, "--seed", "2", "--out", str(des)]) in (0, 1)
+        out[prefix] = tmp_path / prefix
+        assert main(["export", str(des), "--out", str(out[prefix]), "--prefix", prefix]) == 0
+        assert {p.name for p in out[prefix].iterdir()} >= {f"{prefix}_node.c", f"{prefix}_node.h", f"{prefix}_model.c",
+                                                           f"{prefix}_test.c"}
+        run = make_test(out[prefix])
+        assert run.returncode == 0, run.stdout + run.stderr
+        table = subprocess.run(["nm", "--format=posix", f"lib{prefix}_node.a"], cwd=out[prefix], check=True,
+                               capture_output=True, text=True).stdout
+        globals_ = [f.split()[0] for f in table.splitlines() if len(f.split()) > 1 and f.split()[1] in "TDBR"]
+        assert globals_ and all(g.startswith(prefix + "_") or g.startswith("casadi_") for g in globals_), globals_
+    z = {"rly": [0.3, 0.1], "sch": [-0.2, 0.05]}  # node 0's camera reading
+    u = [0.1, 0.02]  # the robot's known inputs
+    relay = studies.node_filter("indoor-robot", schedule=tmp_path / "relay", node=0)
+    scheduled = studies.node_filter("indoor-robot", schedule=tmp_path / "scheduled", node=0)
+    scheduled.predict(z["sch"], u)
+    want = np.concatenate([relay.step(z["rly"], {}, u), scheduled.update({})])
+    program = tmp_path / "both.c"
+    program.write_text(r"""#include <math.h>
+#include <stdio.h>
+#include "rly_node.h"
+#include "sch_node.h"
+/* node 0 of each design, one step each, side by side: its own measurement and nothing received */
+int main(void) {
+    static rly_node a;
+    static sch_node b;
+    static sch_packet mine, got[SCH_DEG_MAX];
+    static unsigned char none[RLY_BALL_MAX > SCH_DEG_MAX ? RLY_BALL_MAX : SCH_DEG_MAX];
+    static double rec[RLY_ROWS_MAX];
+    const double z_a[] = {%s}, z_b[] = {%s}, u[] = {%s};
+    int i;
+    if (rly_init(&a, 0) || sch_init(&b, 0)) return 2;
+    if (rly_step(&a, z_a, none, rec, u) || sch_predict(&b, z_b, u, &mine) || sch_update(&b, none, got))
+        return 3;
+    for (i = 0; i < RLY_NX; ++i) printf("%%.17g ", rly_estimate(&a)[i]);
+    for (i = 0; i < SCH_NX; ++i) printf("%%.17g ", sch_estimate(&b)[i]);
+    printf("\n");
+    return 0;
+}
+""" % tuple(", ".join(map(repr, v)) for v in (z["rly"], z["sch"], u)))
+    build = subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-pedantic", f"-I{out['rly']}", f"-I{out['sch']}",
+                            "-o", "both", "both.c", str(out["rly"] / "librly_node.a"),
+                            str(out["sch"] / "libsch_node.a"), "-lm"], cwd=tmp_path, capture_output=True, text=True)
+    assert build.returncode == 0 and "warning" not in build.stderr, build.stderr
+    ran = subprocess.run(["./both"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert ran.returncode == 0, ran.stderr
+    x = np.array([float(v) for v in ran.stdout.split()])
+    assert x.shape == want.shape and np.allclose(x, want, rtol=1e-12, atol=1e-12 * np.abs(want).max()), (x, want)

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
-                               template, write_node)
+                               template, work_code, write_node)
 from designer.validation import InputError
 
 __all__ = ["PaperExport", "write_consensus_c", "consensus_replay_text"]
@@ -86,7 +86,8 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
     d_max = max(nb_start[j + 1] - nb_start[j] for j in range(len(nodes)))
     header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), D_MAX=max(d_max, 1), SIGMA=sigma, BETA=beta, TAU=float(design.tau),
-                      GATE=float(design.gate), **described(model, nodes, verdict))
+                      GATE=float(design.gate), NZMAX=int(dims.max()), WORK=work_code(sizes, "CFD_NX"),
+                      **described(model, nodes, verdict))
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_nb_start", nb_start, "int"), c_array("cfd_nb", nb, "int"),
         c_array("cfd_wphi", wphi), c_array("cfd_wxi", w_xi[nodes]),
@@ -95,8 +96,8 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
         c_array("cfd_Q", model.process_cov), c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
     source = template(
-        _C / "cfd_node.c.in", COMMON=common_code(model, sizes), LINALG=linalg_code(), DATA=data,
-        NZMAX=int(dims.max()), SIGMA=repr(sigma), BETA=repr(beta),
+        _C / "cfd_node.c.in", COMMON=common_code(model), LINALG=linalg_code(), DATA=data, SIGMA=repr(sigma),
+        BETA=repr(beta),
         TAU=repr(float(design.tau)), EPS=repr(eps), FIXED=int(design.rule.fixed_multipliers),
         GATE=repr(float(design.gate)), CHI2=repr(float(chdtri(n, design.gate))) if design.gate else "0.0",
         BOUND_LIMIT=repr(float(BOUND_LIMIT)), RCOND=repr(1e-13), DIVERGED=repr(1e12))

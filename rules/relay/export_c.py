@@ -16,7 +16,7 @@ import numpy as np
 
 from designer.bounds import sqrtm_psd
 from designer.export_c import (NodeExport, c_array, common_code, described, model_code, replay_file, template,
-                               write_node)
+                               work_code, write_node)
 from designer.validation import InputError
 
 from .design import relay_moments, relay_routes
@@ -81,7 +81,7 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     gn = G * n
     header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), BALL_MAX=ball_max, ROWS_MAX=r_max, ROUNDS=int(routes.hops), MODE=rule.name,
-                      **described(model, nodes, verdict))
+                      NZMAX=nz_max, GN=gn, WORK=work_code(sizes, "CFD_GN"), **described(model, nodes, verdict))
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_ball_start", ball_start, "int"),
         c_array("cfd_ball_sensor", ball, "int"), c_array("cfd_row_start", row_start, "int"),
@@ -92,7 +92,7 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         c_array("cfd_Q", model.process_cov), c_array("cfd_M", M), c_array("cfd_mu", mu),
         c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
-    source = template(_C / "cfd_node.c.in", COMMON=common_code(model, sizes), DATA=data, G=G, GN=gn, NZMAX=nz_max,
+    source = template(_C / "cfd_node.c.in", COMMON=common_code(model), DATA=data, G=G,
                       USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
-                               template, write_node)
+                               template, work_code, write_node)
 from designer.validation import InputError
 
 __all__ = ["ScheduledExport", "write_scheduled_c", "scheduled_replay_text"]
@@ -97,6 +97,7 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
     nominal = tables.nominal[np.minimum(np.arange(T + 1) + 1, T)]  # the step's own candidate point, k = 0..T
     header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), D_MAX=max(d_max, 1), ROUNDS=L, STEPS=int(T), NZMAX=nz,
+                      WORK=work_code(sizes, "CFD_WMAX"),
                       EXCH=int(bool(tables.exchange)), EXCHANGE="exchanged" if tables.exchange else "not exchanged",
                       **described(model, nodes, verdict))
     data = "".join([
@@ -110,8 +111,7 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
         c_array("cfd_Q", model.process_cov), c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
     source = template(
-        _C / "cfd_node.c.in", COMMON=common_code(model, sizes), LINALG=linalg_code(), DATA=data, NZMAX=nz,
-        EXCH=int(bool(tables.exchange)), T=T, B=B, A=0 if not B else int(tables.bank_metric.shape[0]),
+        _C / "cfd_node.c.in", COMMON=common_code(model), LINALG=linalg_code(), DATA=data, T=T, B=B, A=0 if not B else int(tables.bank_metric.shape[0]),
         MARGIN=repr(float(tables.robustness)), GAIN_RCOND=repr(float(GAIN_RCOND)), DIVERGED=repr(1e12))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
