@@ -18,7 +18,10 @@ Into a directory each writes:
 * ``cfd_model.c``, ``cfd_model.h`` — the model's ``f``, ``F = ∂f/∂x`` and every sensor's ``h_s``, ``H_s`` through
   CasADi's code generator (dense outputs; no allocation): :func:`model_code`;
 * ``cfd_node.h``, ``cfd_node.c`` — the node filter, its documented API (``cfd_init``, the step, ``cfd_estimate``,
-  ``cfd_bound``, ...) and the design's data; static memory only, libc and libm only;
+  ``cfd_bound``, ...) and the design's data; no mutable static data (a node's struct holds its state and its work
+  memory: ``frame/work.h.in`` and each kind's ``cfd_work``), libc and libm only; the node's numbers are
+  ``CFD_REAL`` (``double``, or ``float`` when every file is built with ``-DCFD_REAL=float``; the replay driver then
+  checks at float's precision);
 * ``cfd_test.c``, ``replay.txt`` — a test driver replaying a run through every exported node and comparing each
   step's numbers with what the Python node filter computed on the same run (written in ``replay.txt``: each
   kind's replay text, through :func:`replay_file`).  Each step starts from the Python node's state after the step
@@ -152,11 +155,11 @@ def _c_double(v: float) -> str:
     return repr(v)
 
 
-def c_array(name: str, values, ctype: str = "double") -> str:
-    """A ``static const`` C array ``name`` of ``values`` (flattened row by row; one zero when empty): doubles
-    exactly (:func:`_c_double`), ``int`` as integers."""
+def c_array(name: str, values, ctype: str = "CFD_REAL") -> str:
+    """A ``static const`` C array ``name`` of ``values`` (flattened row by row; one zero when empty): ``CFD_REAL``
+    numbers as exact doubles (:func:`_c_double`; a float build rounds them), ``int`` as integers."""
     flat = np.asarray(values).reshape(-1)
-    if ctype == "double":
+    if ctype == "CFD_REAL":
         body = ", ".join(_c_double(float(v)) for v in flat) or "0.0"
     else:
         body = ", ".join(str(int(v)) for v in flat) or "0"

@@ -65,7 +65,8 @@ STAGING_PREFIX = ".staging-"  # replaced_outputs' staging directories
 # the names cfdesign's commands give their outputs (study, design, feasibility, report)
 OUTPUT_PATTERNS = ("results.json", "table.md", "report.md", "report.html", "schedule.json", "schedule.npz",
                    "feasibility.csv", "feasibility.json", "feasibility.png", "fig_*.png", "estimates.npz",
-                   "estimates.csv", "cfd_*.c", "cfd_*.h", "Makefile", "replay.txt")
+                   "estimates.csv", "*_node.c", "*_node.h", "*_model.c", "*_model.h", "*_test.c", "Makefile",
+                   "replay.txt")  # the C export's files are PREFIX_... (cfd_ by default: export --prefix)
 REPORT_NAMES = ("report.md", "report.html")  # what every command that writes a directory writes
 _TEMPORARY = re.compile(r"\.(?P<of>.+)\.[a-z0-9_]{8}\.tmp")  # atomic_write's temporary files (mkstemp's 8 characters)
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)

@@ -30,6 +30,17 @@ def make_test(directory) -> subprocess.CompletedProcess:
     return subprocess.run(["./cfd_test", "replay.txt"], cwd=directory, capture_output=True, text=True, timeout=300)
 
 
+def float_test(directory) -> subprocess.CompletedProcess:
+    """The export built with ``-DCFD_REAL=float`` (every file, under the Makefile's warnings) and its replay run: the
+    node in float, checked at float's tolerance (the driver scales it by FLT_EPSILON / DBL_EPSILON)."""
+    build = subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic", "-DCFD_REAL=float", "-o",
+                            "cfd_test_float", "cfd_test.c", "cfd_node.c", "cfd_model.c", "-lm"], cwd=directory,
+                           capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0 and "warning" not in build.stderr, build.stderr
+    return subprocess.run(["./cfd_test_float", "replay.txt"], cwd=directory, capture_output=True, text=True,
+                          timeout=300)
+
+
 def mutable_static_data(directory) -> list[str]:
     """The symbols of ``cfd_node.c`` and ``cfd_model.c``, compiled in ``directory``, that live in writable static
     memory (the ``.data`` and ``.bss`` sections, static locals included), by ``nm``: none, when every node's work is
@@ -97,6 +108,10 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     assert includes <= libc_libm | {"cfd_model.h", "cfd_node.h"}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
     assert mutable_static_data(out) == []
+    single = float_test(out)
+    scaled = float(re.search(r"above the tolerance \((\S+);", single.stdout).group(1))
+    assert single.returncode == 0 and scaled == pytest.approx(1e-12 * np.finfo(np.float32).eps / np.finfo(float).eps,
+                                                              rel=1e-5), single.stdout
     n_x = 3
     moved_replay_fails(out, 5, -n_x * n_x - n_x, "x", range(8))  # the first component of an expected estimate
 
@@ -156,6 +171,8 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     sources = {p.name: p.read_text() for p in out.glob("cfd_*.[ch]")}
     assert not any(re.search(r"\b(malloc|calloc|realloc|free)\s*\(", t) for t in sources.values())
     assert mutable_static_data(out) == []
+    single = float_test(out)
+    assert single.returncode == 0, single.stdout
     n_x = 3
     moved_replay_fails(out, 9, -2 * (n_x * n_x + n_x) - 1, "x_pred", range(8))  # an expected prediction's first
 
@@ -261,6 +278,8 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
         picks = [design.tables.choose(k, ref.x_pred[0, k]) for k in range(ref.x_pred.shape[1])]
         assert np.concatenate(picks).max() > 0
     assert mutable_static_data(out) == []
+    single = float_test(out)
+    assert single.returncode == 0, single.stdout
     n_x = 3 if target == "indoor-robot" else 4
     moved_replay_fails(out, 7, -n_x * n_x - n_x, "x", range(8 if target == "indoor-robot" else 7))  # the first component of an expected estimate
 

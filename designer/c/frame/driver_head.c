@@ -10,6 +10,7 @@
  * multiple of that sensitivity, at most TOL_CAP.  A difference above the tolerance fails, naming the step, the
  * node, the quantity and both values.  A second set of nodes runs on its own, never re-synchronised, on the
  * same inputs; how far it drifts is reported as information. */
+#include <float.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -19,11 +20,24 @@
 #define TOL @TOL@
 #define TOL_CAP @TOL_CAP@
 #define REPORTED 10 /* failures printed in full; the rest are counted */
+/* the tolerances are a double node's: a float node (-DCFD_REAL=float) is checked as much looser as its rounding */
+#define PRECISION ((double)(sizeof(CFD_REAL) < sizeof(double) ? FLT_EPSILON / DBL_EPSILON : 1.0))
 
 static int read_numbers(FILE *fh, double *v, int count) {
     int i;
     for (i = 0; i < count; ++i)
         if (fscanf(fh, "%lf", &v[i]) != 1) return -1;
+    return 0;
+}
+
+/* numbers the node takes (its inputs, what reached it), as CFD_REAL */
+static int read_reals(FILE *fh, CFD_REAL *v, int count) {
+    int i;
+    double t;
+    for (i = 0; i < count; ++i) {
+        if (fscanf(fh, "%lf", &t) != 1) return -1;
+        v[i] = (CFD_REAL)t;
+    }
     return 0;
 }
 
@@ -43,8 +57,8 @@ static int row(FILE *fh, cfd_tally *t, int k, int node) {
     if (read_numbers(fh, &tol, 1) || !(tol >= TOL && tol <= TOL_CAP)) return -1;
     t->step = k + 1;
     t->node = node;
-    t->tol = tol;
-    if (tol > t->worst_tol) t->worst_tol = tol;
+    t->tol = tol * PRECISION;
+    if (t->tol > t->worst_tol) t->worst_tol = t->tol;
     return 0;
 }
 
@@ -82,8 +96,8 @@ static void entry(cfd_tally *t, int counted, const char *what, int i, int j, dou
 
 /* an estimate (or prediction) and its covariance against the Python node filter's, entry by entry, named x_name and
  * P_name in a failure ("x"/"P" the estimate, "x_pred"/"P_pred" a prediction); counted 0: the free-running nodes */
-static void check(cfd_tally *t, int counted, const char *x_name, const char *P_name, const double *x,
-                  const double *P, const double *xw, const double *Pw) {
+static void check(cfd_tally *t, int counted, const char *x_name, const char *P_name, const CFD_REAL *x,
+                  const CFD_REAL *P, const double *xw, const double *Pw) {
     int i, j;
     for (i = 0; i < CFD_NX; ++i) entry(t, counted, x_name, i, -1, x[i], xw[i], scale_of(xw, Pw, i, -1));
     for (i = 0; i < CFD_NX; ++i)
@@ -92,17 +106,17 @@ static void check(cfd_tally *t, int counted, const char *x_name, const char *P_n
 }
 
 /* set a node's estimate and covariance to Python's after the step: the next step starts from the same input */
-static void resync(double *x, double *P, const double *xw, const double *Pw) {
+static void resync(CFD_REAL *x, CFD_REAL *P, const double *xw, const double *Pw) {
     int i;
-    for (i = 0; i < CFD_NX; ++i) x[i] = xw[i];
-    for (i = 0; i < CFD_NX * CFD_NX; ++i) P[i] = Pw[i];
+    for (i = 0; i < CFD_NX; ++i) x[i] = (CFD_REAL)xw[i];
+    for (i = 0; i < CFD_NX * CFD_NX; ++i) P[i] = (CFD_REAL)Pw[i];
 }
 
 static int finish(FILE *fh, int steps, const cfd_tally *t) {
     fclose(fh);
     printf("%d steps x %d nodes, each step from the Python node's state: largest difference from the Python node "
            "filter %.3g (of each entry's scale), %d above the tolerance (%g; at most %.3g where a step is "
-           "ill-conditioned)\n", steps, CFD_NODES, t->worst, t->bad, TOL, t->worst_tol);
+           "ill-conditioned)\n", steps, CFD_NODES, t->worst, t->bad, TOL * PRECISION, t->worst_tol);
     printf("information: the nodes left to run on their own, never re-synchronised, differ from Python by at most "
            "%.3g of each entry's scale over the %d steps\n", t->free_worst, steps);
     return t->bad ? 1 : 0;

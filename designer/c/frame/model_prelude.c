@@ -5,3 +5,7 @@
 #if defined(__GNUC__)
 #pragma GCC diagnostic ignored "-Wunused-parameter"
 #endif
+#ifndef CFD_REAL
+#define CFD_REAL double
+#endif
+#define casadi_real CFD_REAL /* the node's numbers (cfd_node.h) */

@@ -9,7 +9,8 @@ static void flag(cfd_tally *t, const char *what, int got, double want) {
 int main(int argc, char **argv) {
     static cfd_node nodes[CFD_NODES], free_nodes[CFD_NODES];
     static cfd_packet bounds[CFD_DEG_MAX], mine;
-    static double u[CFD_NU + 1], z[CFD_NZ], flags[CFD_DEG_MAX], rec[CFD_DEG_MAX * CFD_NX], ok[1];
+    static CFD_REAL u[CFD_NU + 1], z[CFD_NZ], flags[CFD_DEG_MAX], rec[CFD_DEG_MAX * CFD_NX];
+    static double ok[1];
     static double px[CFD_NX], pP[CFD_NX * CFD_NX], pok[1], x[CFD_NX], P[CFD_NX * CFD_NX];
     static unsigned char arrived[CFD_DEG_MAX];
     cfd_tally t = {0, 0, 0.0, 0.0, 0.0, 0, 0.0};
@@ -21,11 +22,10 @@ int main(int argc, char **argv) {
         for (j = 0; j < CFD_NODES; ++j) {
             const int *senders;
             int d = cfd_neighbours(nodes[j].node, &senders), m = cfd_sensor_dim(nodes[j].node), e;
-            int short_read = row(fh, &t, k, nodes[j].node) || read_numbers(fh, u, CFD_NU) || read_numbers(fh, z, m)
-                             || read_numbers(fh, flags, d)
-                             || read_numbers(fh, rec, d * CFD_NX);
+            int short_read = row(fh, &t, k, nodes[j].node) || read_reals(fh, u, CFD_NU) || read_reals(fh, z, m)
+                             || read_reals(fh, flags, d) || read_reals(fh, rec, d * CFD_NX);
             for (b = 0; b < d && !short_read; ++b) {
-                short_read = read_numbers(fh, bounds[b].P, CFD_NX * CFD_NX) || read_numbers(fh, ok, 1);
+                short_read = read_reals(fh, bounds[b].P, CFD_NX * CFD_NX) || read_numbers(fh, ok, 1);
                 bounds[b].ok = ok[0] != 0.0;
             }
             if (short_read || read_numbers(fh, px, CFD_NX) || read_numbers(fh, pP, CFD_NX * CFD_NX)

@@ -1,6 +1,6 @@
 int main(int argc, char **argv) {
     static cfd_node nodes[CFD_NODES], free_nodes[CFD_NODES];
-    static double z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
+    static CFD_REAL z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
     static double x[CFD_NX], P[CFD_NX * CFD_NX];
     static unsigned char arrived[CFD_BALL_MAX];
     cfd_tally t = {0, 0, 0.0, 0.0, 0.0, 0, 0.0};
@@ -13,9 +13,8 @@ int main(int argc, char **argv) {
             const int *ball;
             int nb = cfd_ball(nodes[j].node, &ball), m_own = cfd_sensor_dim(ball[0]), m_rec = 0, b, e;
             for (b = 1; b < nb; ++b) m_rec += cfd_sensor_dim(ball[b]);
-            if (row(fh, &t, k, nodes[j].node) || read_numbers(fh, z, m_own) || read_numbers(fh, flags, nb - 1)
-                    || read_numbers(fh, rec, m_rec)
-                    || read_numbers(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
+            if (row(fh, &t, k, nodes[j].node) || read_reals(fh, z, m_own) || read_reals(fh, flags, nb - 1)
+                    || read_reals(fh, rec, m_rec) || read_reals(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
                     || read_numbers(fh, P, CFD_NX * CFD_NX)) {
                 return short_replay(argv[1], k, nodes[j].node);
             }
