@@ -382,3 +382,56 @@ int main(void) {
     assert ran.returncode == 0, ran.stderr
     x = np.array([float(v) for v in ran.stdout.split()])
     assert x.shape == want.shape and np.allclose(x, want, rtol=1e-12, atol=1e-12 * np.abs(want).max()), (x, want)
+
+
+def test_the_certified_inverse_holds_where_the_eigenvalues_say_it_may(tmp_path):
+    """spd_inverse (the C nodes' fast path beside the eigen-decomposition): on symmetric matrices of condition
+    numbers 1 to 1e16, indefinite and singular ones, it certifies only matrices whose every eigenvalue exceeds rcond
+    times the largest (numpy's eigvalsh), then gives numpy's inverse within the conditioning's rounding; and it
+    certifies the well-conditioned ones (it has power)."""
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", "indoor-robot", "--mode", "relay", "--steps", "4", "--out", str(des)]) in (0, 1)
+    studies.export(des, out=out)
+    (out / "harness.c").write_text(r"""#include <stdio.h>
+#include "cfd_node.c"
+int main(void) {
+    static double A[64 * 64], Ainv[64 * 64], L[64 * 64];
+    double rcond;
+    int m, i;
+    while (scanf("%d %lf", &m, &rcond) == 2) {
+        for (i = 0; i < m * m; ++i) if (scanf("%lf", &A[i]) != 1) return 2;
+        if (spd_inverse(m, A, Ainv, L, rcond)) { printf("no\n"); continue; }
+        printf("yes");
+        for (i = 0; i < m * m; ++i) printf(" %.17g", Ainv[i]);
+        printf("\n");
+    }
+    return 0;
+}
+""")
+    build = subprocess.run([CC, "-std=c99", "-O2", "-o", "harness", "harness.c", "cfd_model.c", "-lm"], cwd=out,
+                           capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr
+    rng = np.random.default_rng(41)
+    cases = []
+    for _ in range(300):
+        m = int(rng.integers(1, 16))
+        Q, _ = np.linalg.qr(rng.standard_normal((m, m)))
+        lam = 10.0 ** rng.uniform(-16 * rng.uniform(), 0, m) * rng.choice([1, 1, 1, 1, -1, 0], m)
+        A = (Q * lam) @ Q.T
+        cases.append((m, float(10.0 ** rng.uniform(-14, -2)), 0.5 * (A + A.T)))
+    text = "".join(f"{m} {rc!r} " + " ".join(repr(float(v)) for v in A.reshape(-1)) + "\n" for m, rc, A in cases)
+    ran = subprocess.run(["./harness"], cwd=out, input=text, capture_output=True, text=True, timeout=60)
+    assert ran.returncode == 0
+    certified = 0
+    for (m, rc, A), line in zip(cases, ran.stdout.splitlines()):
+        lam = np.linalg.eigvalsh(A)
+        if line == "no":
+            continue
+        certified += 1
+        assert lam.min() > rc * lam.max() > 0, (m, rc, lam)
+        inv = np.array([float(v) for v in line.split()[1:]]).reshape(m, m)
+        cond = lam.max() / lam.min()
+        assert np.allclose(inv, np.linalg.inv(A), rtol=0, atol=1e3 * cond * np.finfo(float).eps / lam.min())
+    wellcond = sum(1 for m, rc, A in cases if (lambda w: w.min() > 0 and w.max() / w.min() * m * m < 0.5 / rc)(
+        np.linalg.eigvalsh(A)))
+    assert certified >= wellcond > 20
