@@ -868,6 +868,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
+    from .progress import progress
     from .recorded import clip_message, design_options_of, read_design_record, read_log, recorded_design
 
     check_path("design_dir", design_dir)
@@ -919,7 +920,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
     steps, tolerances = [], []
     rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity
-    for k in range(z.shape[0]):
+    for k in progress(range(z.shape[0]), z.shape[0], False, "export: replaying the run"):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         twins = [perturbed_twin(net, rng) for _ in range(SENSITIVITY_TRIALS)]
         net.step(z[k], *e, u=u[k])

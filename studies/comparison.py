@@ -75,7 +75,7 @@ from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise",
-           "chosen_filters"]
+           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -135,6 +135,7 @@ FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one join
 _STREAM_ORDER = (LOCAL, MSE, KCF, HCMCI)
 SWEEP_VALUES = (0.0, 0.1, 0.2, 0.3, 0.4)
 CHUNK_SIZE = 10
+JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
 SCENARIOS = ("indoor-robot", "target-range-bearing")
 DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50, None: 50}
 
@@ -389,6 +390,29 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             "delivered": delivered, "estimate": est, "truth": truth}
 
 
+def left_out(sc: Scenario) -> dict[str, str]:
+    """The filters the comparison leaves out of its default set on ``sc`` (no ``--filters``), each with why: a gain
+    rule's filter that carries the joint error covariance of all nodes (an oracle, a reference: its cost a step
+    grows as (N n)³) once N n exceeds :data:`JOINT_ROWS_DEFAULT` rows.  Named in ``--filters``, it runs."""
+    rows = int(sc.network.n_nodes) * int(sc.model.n_x)
+    if rows <= JOINT_ROWS_DEFAULT:
+        return {}
+    return {e.name: f"it carries the joint error covariance of all nodes, N n = {rows} rows (more than "
+                    f"{JOINT_ROWS_DEFAULT}), at a cost that grows as (N n)^3 a step and run; name it in --filters to "
+                    "run it"
+            for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
+
+
+def _chosen(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...] | None, dict[str, str]]:
+    """The filters the study runs on ``sc`` (None: every one) and those its default set leaves out, with why: the
+    names ``--filters`` gives (:func:`chosen_filters`; nothing left out), else every filter but :func:`left_out`."""
+    given = chosen_filters(so["filters"])
+    out = {} if given is not None else left_out(sc)
+    if not out:
+        return given, {}
+    return tuple(n for n in FILTER_REGISTRY.names() if n not in out), out
+
+
 def _entries(filters: Sequence[str] | None) -> list:
     """The registry's entries the study runs, in the registry's order: ``filters`` (names) or every one (None)."""
     return [e for e in FILTER_REGISTRY if filters is None or e.name in filters]
@@ -488,9 +512,10 @@ def _accepts(sc: Scenario) -> str | None:
     return None
 
 
-def _uses(so: StudyOptions) -> tuple[tuple[str, ...], bool]:
-    """What the chosen filters need (``Study.uses``): the gain rules designed, and whether a particle filter runs."""
-    entries = _entries(chosen_filters(so["filters"]))
+def _uses(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...], bool]:
+    """What the chosen filters need on ``sc`` (``Study.uses``): the gain rules designed, and whether a particle filter
+    runs."""
+    entries = _entries(_chosen(sc, so)[0])
     return tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None)), any(e.particles for e in entries)
 
 
@@ -507,7 +532,7 @@ def _check(so: StudyOptions) -> None:
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     settings = _settings(sc, values)
-    filters = chosen_filters(so["filters"])
+    filters = _chosen(sc, so)[0]
     # a paper design that cannot start is reported as infeasible; one whose sigma, beta or tau was given is refused
     for e in _entries(filters):
         if e.start_check:
@@ -536,7 +561,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     main = _uniform(sc)
     settings = _settings(sc, values)
     # per setting: why a filter's design cannot start there (None: it ran), as _runs decided
-    entries = _entries(chosen_filters(so["filters"]))
+    chosen, out = _chosen(sc, so)
+    entries = _entries(chosen)
     cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design, entries=entries)
     R = int(A["err2"].shape[0])
     key = "rmse_position" if sc.model.position_index else "rmse"
@@ -607,7 +633,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                     "components": [sc.model.state_names[c] for c in sig.components], "law": sig.law,
                     "delta": att.delta, "declared": att.describe(sc.model.state_names), "sweep_values": values},
         "recommendation": _recommend(filters, key), "params": dict(sc.params), "runner": mc.describe(),
-        "assumptions": list(sc.assumptions),
+        "left_out": dict(out),
+        "assumptions": list(sc.assumptions) + [f"comparison: left out of the default filters on {sc.name}: {name} "
+                                               f"({why})" for name, why in out.items()],
     }
 
 
@@ -631,6 +659,7 @@ def _combine(blocks: dict) -> dict:
         "sweeps": sweeps,
         "paper": {"source": None, "numbers": None,
                   "note": "no paper compares these filter families; seed 003 gives the consensus filter alone"},
+        "left_out": {label(sc_name, n): why for sc_name, b in blocks.items() for n, why in b["left_out"].items()},
         "by_scenario": {k: {kk: vv for kk, vv in b.items() if kk != "assumptions"} for k, b in blocks.items()},
         "recommendation": {sc: b["recommendation"] for sc, b in blocks.items()},
         "params": {sc: b["params"] for sc, b in blocks.items()},

@@ -121,8 +121,8 @@ class Study:
         Merge the per-scenario blocks (default: the single block).
     check : callable ``(options) -> None``, optional
         Further checks of the study's own options, before any computation.
-    uses : callable ``(options) -> (gain rules, particles)``, optional
-        What the study's filters need for these options, for its memory estimate (:func:`studies.memory.study_need`):
+    uses : callable ``(scenario, options) -> (gain rules, particles)``, optional
+        What the study's filters need on the scenario for these options, for its memory estimate (:func:`studies.memory.study_need`):
         the gain rules whose designs it makes and whether it runs particle filters (default: every rule, and the
         particle filters when the study has them).
     min_runs : int
@@ -149,7 +149,7 @@ class Study:
     accepts: Callable[[Any], str | None] = lambda sc: None
     combine: Callable[[dict], dict] | None = None
     check: Callable[[StudyOptions], None] | None = None
-    uses: Callable[[StudyOptions], tuple] | None = None
+    uses: Callable[[Any, StudyOptions], tuple] | None = None
     min_runs: int = 2
     every_core: bool = False
 
@@ -358,7 +358,7 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
     for sc, so in chosen:  # every scenario's options and memory before the first computes
         if study.check is not None:
             study.check(so)
-        check(study_need(name, sc, so, None if study.uses is None else study.uses(so)))
+        check(study_need(name, sc, so, None if study.uses is None else study.uses(sc, so)))
     for sc, so in chosen:
         plan = study.plan(sc, so)
         if plan.before is not None and backend.kind != "dask":

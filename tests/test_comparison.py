@@ -465,9 +465,70 @@ def test_the_memory_estimate_counts_only_the_filters_chosen():
 
     def need(filters):
         so = StudyOptions(10, 5000, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": filters})
-        return memory.study_need("comparison", sc, so, STUDY.uses(so)).nbytes
+        return memory.study_need("comparison", sc, so, STUDY.uses(sc, so)).nbytes
 
     every, some = need(None), need("kcf,hcmci")
     assert some < every
-    assert STUDY.uses(StudyOptions(10, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": "kcf"})) \
-        == ((), False)
+    kcf_only = StudyOptions(10, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": "kcf"})
+    assert STUDY.uses(sc, kcf_only) == ((), False)
+
+
+FIELD15 = '''"""A 15-cell rod (15 temperatures), one thermometer a cell, nodes on a chain: N n = 225 rows."""
+import casadi as ca
+import numpy as np
+
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+
+N = 15
+STEPS = 6
+NETWORK = SensorNetwork.from_edges(N, [(i, i + 1) for i in range(N - 1)])
+ATTACKS = AttackSpec(dos=0.1, fdi={(3, 4): 0.1}, signal=FDISignal(amplitude=0.1, components=(3,)))
+
+
+def model() -> Model:
+    x = ca.SX.sym("x", N)
+    f = ca.vertcat(*[x[i] + 0.2 * ((x[i - 1] if i else x[i]) - 2 * x[i] + (x[i + 1] if i < N - 1 else x[i]))
+                     for i in range(N)])
+    sensors = [Sensor(f"cell{i}", x[i], Gaussian.zero_mean([[0.01]])) for i in range(N)]
+    return Model("rod15", x, f, sensors, process_noise=Gaussian.zero_mean(1e-3 * np.eye(N)),
+                 prior=Gaussian(np.zeros(N), 0.1 * np.eye(N)))
+'''
+
+
+def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_at_size(tmp_path):
+    """On a 15-node, 15-state rod (N n = 225 > JOINT_ROWS_DEFAULT) the default comparison leaves out exactly the
+    filters of the gain rules that carry all nodes' joint covariance, says why in results.json (left_out) and in its
+    assumptions, and does not count their designs in its memory estimate; named in --filters, such a filter runs.
+    On the robot (N n = 24) nothing is left out."""
+    import rules
+    from designer.design import DesignOptions
+    from studies import memory
+    from studies.comparison import FILTER_REGISTRY, JOINT_ROWS_DEFAULT, STUDY, left_out
+    from studies.pipeline import StudyOptions
+
+    path = tmp_path / "rod15.py"
+    path.write_text(FIELD15)
+    sc = load_scenario(str(path))
+    assert sc.network.n_nodes * sc.model.n_x > JOINT_ROWS_DEFAULT
+    joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
+    assert joint and set(left_out(sc)) == joint and all("N n = 225 rows" in why for why in left_out(sc).values())
+    assert left_out(load_scenario("indoor-robot")) == {}
+
+    def options(filters):
+        return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": filters})
+
+    modes, _ = STUDY.uses(sc, options(None))
+    assert not any(rules.get(m).joint_covariance for m in modes)
+    named = ",".join(FILTER_REGISTRY.names())
+    assert set(STUDY.uses(sc, options(named))[0]) > set(modes)
+    assert (memory.study_need("comparison", sc, options(None), STUDY.uses(sc, options(None))).nbytes
+            < memory.study_need("comparison", sc, options(named), STUDY.uses(sc, options(named))).nbytes)
+    kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.1], quiet=True)
+    named_run = run_comparison(filters="kcf", **kw)  # named: nothing is left out
+    assert named_run["left_out"] == {}
+    res = run_comparison(out=tmp_path / "d", **kw)
+    assert set(res["left_out"]) == joint and not set(res["filters"]) & joint
+    assert any("left out of the default filters" in a for a in res["assumptions"])
+    from studies import schemas
+
+    schemas.validate_output(tmp_path / "d")
