@@ -49,6 +49,7 @@ every file compiles without a warning under ``-std=c99 -Wall -Wextra -pedantic``
 """
 from __future__ import annotations
 
+import copy
 import re
 from importlib.resources import files
 from importlib.resources.abc import Traversable
@@ -61,9 +62,9 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code",
-           "common_code", "work_code", "linalg_code", "PREFIX", "check_prefix", "prefixed", "write_node", "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX",
-           "perturbed_twin", "replay_tolerances", "state_difference", "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS",
-           "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP"]
+           "common_code", "work_code", "linalg_code", "PREFIX", "check_prefix", "prefixed", "write_node",
+           "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX", "perturbed_twin", "replay_tolerances", "state_difference",
+           "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS", "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP"]
 
 C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
@@ -259,8 +260,6 @@ def perturbed_twin(net, rng: np.random.Generator):
     """A copy of the node network ``net`` (its configuration shared: :func:`_configuration`) whose every node's
     estimate and covariance are moved by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the
     double's machine epsilon, ``g`` standard normal; the covariance's perturbation symmetric)."""
-    import copy
-
     twin = copy.deepcopy(net, _configuration(net))
     eps = np.finfo(float).eps
     for node in twin.nodes:
@@ -342,8 +341,9 @@ class NodeExport:
 
     :meth:`check` refuses a design the export cannot write; then, at each step of the replayed run, after the node
     network's step (:func:`filters.node.node_network`), :meth:`replay_step` gives the step's replay record (the
-    replay stops before a step too ill-conditioned to check: :func:`replay_tolerances`); :meth:`write` writes the sources, the Makefile, the driver and ``replay.txt``
-    from those records.  A subclass overrides :meth:`replay_step` and :meth:`write`.
+    replay stops before a step too ill-conditioned to check: :func:`replay_tolerances`); :meth:`write` writes the
+    sources, the Makefile, the driver and ``replay.txt`` from those records. A subclass overrides
+    :meth:`replay_step` and :meth:`write`.
     """
 
     def check(self, design) -> None:

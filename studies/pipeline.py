@@ -122,9 +122,9 @@ class Study:
     check : callable ``(options) -> None``, optional
         Further checks of the study's own options, before any computation.
     uses : callable ``(scenario, options) -> (gain rules, particles)``, optional
-        What the study's filters need on the scenario for these options, for its memory estimate (:func:`studies.memory.study_need`):
-        the gain rules whose designs it makes and whether it runs particle filters (default: every rule, and the
-        particle filters when the study has them).
+        What the study's filters need on the scenario for these options, for its memory estimate
+        (:func:`studies.memory.study_need`): the gain rules whose designs it makes and whether it runs particle
+        filters (default: every rule, and the particle filters when the study has them).
     min_runs : int
         Fewest runs the study's statistics need.
     every_core : bool

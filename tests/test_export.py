@@ -281,7 +281,8 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
     single = float_test(out)
     assert single.returncode == 0, single.stdout
     n_x = 3 if target == "indoor-robot" else 4
-    moved_replay_fails(out, 7, -n_x * n_x - n_x, "x", range(8 if target == "indoor-robot" else 7))  # the first component of an expected estimate
+    # the first component of an expected estimate
+    moved_replay_fails(out, 7, -n_x * n_x - n_x, "x", range(8 if target == "indoor-robot" else 7))
 
 
 @pytest.mark.slow

@@ -111,7 +111,8 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
         c_array("cfd_Q", model.process_cov), c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
     source = template(
-        _C / "cfd_node.c.in", COMMON=common_code(model), LINALG=linalg_code(), DATA=data, T=T, B=B, A=0 if not B else int(tables.bank_metric.shape[0]),
+        _C / "cfd_node.c.in", COMMON=common_code(model), LINALG=linalg_code(), DATA=data, T=T, B=B,
+        A=0 if not B else int(tables.bank_metric.shape[0]),
         MARGIN=repr(float(tables.robustness)), GAIN_RCOND=repr(float(GAIN_RCOND)), DIVERGED=repr(1e12))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
