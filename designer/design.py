@@ -42,6 +42,7 @@ if TYPE_CHECKING:  # CasADi is imported where a model is built, not here
 __all__ = [
     "ConsensusDesign", "validate_design", "DesignOptions", "PAPER_DEFAULTS", "DESIGN_ASSUMPTIONS",
     "LINEARIZATIONS", "make_design", "resolve_scaling", "parse_scale", "describe_design", "whitened_scaling",
+    "whitened",
 ]
 
 LINEARIZATIONS = ("fixed", "hessian", "structured")
@@ -260,14 +261,14 @@ def resolve_scaling(model: Model, u_scale, v_scale, *, x0, P0, u0=None, radius: 
         nonlocal prior_u, prior_v
         if prior_u is None:
             x0a, P = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
-            if model.n_modes:
-                fh = lambda pts: np.concatenate([model.f_hessian(pts, 0, u0, m) for m in range(model.n_modes)],  # noqa
-                                                axis=1)
-            else:
-                fh = lambda pts: model.f_hessian(pts, 0, u0)  # noqa: E731
+            # each component's Hessian on its structural support (model.hessian_blocks): on a field or a grid a few
+            # numbers per component where the dense Hessians are n_x² (gigabytes at a hundred states)
+            f_at = model.hessian_blocks()[1]
+            fh = lambda pts: [b for m in range(max(model.n_modes, 1))  # noqa: E731 - every mode's, mode by mode
+                              for b in f_at(pts, 0, u0, m if model.n_modes else None)]
             comps = component_scales(fh, x0a, P, radius)
             prior_u = comps[: model.n_x] if not model.n_modes else comps.reshape(model.n_modes, model.n_x).max(0)
-            prior_v = [component_scales(lambda pts, i=i: model.h_hessian(i, pts, 1), x0a, P, radius)
+            prior_v = [component_scales(lambda pts, i=i: model.hessian_blocks(i)[1](pts, 1), x0a, P, radius)
                        for i in range(model.n_sensors)]
         return prior_u, prior_v
 
@@ -292,6 +293,14 @@ def resolve_scaling(model: Model, u_scale, v_scale, *, x0, P0, u0=None, radius: 
         diag = hessians()[1][i] if isinstance(e, str) else np.zeros(s.dim)
         Vs.append(_one_scale(f"v_scale of sensor {s.name!r}", e, s.dim, diag))
     return U, tuple(Vs)
+
+
+def whitened(rule: GainRule, options: "DesignOptions") -> bool:
+    """Whether a design of ``rule`` with ``options`` takes the scalings in the prior's own units
+    (:func:`whitened_scaling`: a rule with offline tables, linearization 'fixed', both scalings 'prior'), whose
+    whitened Hessians are dense (n_x² numbers per component), rather than :func:`resolve_scaling`'s."""
+    return rule.offline_tables and (options.linearization or "fixed") == "fixed" and all(
+        isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale))
 
 
 def whitened_scaling(model: Model, *, x0, P0, u0=None, radius: float = DEFAULT_RADIUS
@@ -483,8 +492,7 @@ def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: 
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     P0 = model.prior.cov if P0 is None else P0
     structure = gram = None
-    if rule.offline_tables and (options.linearization or "fixed") == "fixed" and all(
-            isinstance(s, str) and s == "prior" or s is None for s in (options.u_scale, options.v_scale)):
+    if whitened(rule, options):
         U, V, structure, gram = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
     else:
         U, V = resolve_scaling(model, options.u_scale, options.v_scale, x0=x0, P0=P0, u0=u0, radius=radius)

@@ -25,6 +25,7 @@ runs and nodes at once) and then returns one scale per item.
 """
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -86,11 +87,30 @@ def component_scales(hessian_at, center: np.ndarray, cov: np.ndarray, radius: fl
     ``||U⁻¹ r|| <= ||e||`` (the zero components have ``r_j = 0``), i.e. ``r = U Ω e`` with
     ``Ω = U⁻¹ r eᵀ / ||e||²`` and ``||Ω|| <= 1``.  Each ``u_j`` is in the unit of its own
     component (per metre of error, per radian, ...), which a single ``u I`` cannot be.
+
+    ``hessian_at(points)`` returns the Hessians at the points (P, n): an array (P, components, n, n) (e.g.
+    ``model.f_hessian``), or one block (P, s_j, s_j) per component, its Hessian on its structural support (e.g.
+    ``model.hessian_blocks()``: the same norms, empty for a component linear in the state).
     """
-    Hs = hessian_at(ellipsoid_points(center, cov, radius))  # (P, comps, n, n)
-    L = np.linalg.norm(Hs, ord=2, axis=(-2, -1)).max(axis=0)  # (comps,)
+    center, cov = np.asarray(center, dtype=float), np.asarray(cov, dtype=float)
+    points, lam_max = _ellipsoid(center.tobytes(), center.shape, cov.tobytes(), cov.shape, float(radius))
+    Hs = hessian_at(points)
+    blocks = [Hs[:, j] for j in range(Hs.shape[1])] if isinstance(Hs, np.ndarray) else Hs
+    L = np.array([np.linalg.norm(b, ord=2, axis=(-2, -1)).max() if b.shape[-1] else 0.0 for b in blocks])
     m = int(np.count_nonzero(L > 0))
-    return 0.5 * L * radius * np.sqrt(_lam_max(cov)) * np.sqrt(max(m, 1))
+    return 0.5 * L * radius * np.sqrt(lam_max) * np.sqrt(max(m, 1))
+
+
+@functools.lru_cache(maxsize=4)
+def _ellipsoid(center: bytes, center_shape: tuple, cov: bytes, cov_shape: tuple, radius: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`component_scales`'s points and largest eigenvalue, once per prior (a design asks once per sensor: at a
+    hundred states, an eigendecomposition each)."""
+    c = np.frombuffer(center, dtype=float).reshape(center_shape)
+    P = np.frombuffer(cov, dtype=float).reshape(cov_shape)
+    points = ellipsoid_points(c, P, radius)
+    points.flags.writeable = False
+    return points, _lam_max(P)
 
 
 # ------------------------------------------------------------------ structured variant

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -328,6 +328,7 @@ class Model:
         self._np_H = [to_numpy(fn) for fn in self.casadi_H]
         self._np_h_hess = [to_numpy(fn) for fn in self.casadi_h_hess]
         self._np_h_all = to_numpy(self.casadi_h_all)
+        self._blocks: dict = {}  # hessian_blocks, built on first use
         self._dims = tuple(s.dim for s in self.sensors)  # asked per node and step by the filters: computed once
         self._offsets = np.concatenate([[0], np.cumsum(self._dims)])
 
@@ -455,6 +456,37 @@ class Model:
         with np.errstate(all="ignore"):
             parts = self._np_h_hess[self._sensor(i)](self._state(x), self._k(k))
         return np.stack([self._matrix(p, self.n_x) for p in parts], axis=-3)
+
+    def hessian_blocks(self, sensor: int | None = None) -> tuple[tuple[np.ndarray, ...], Callable]:
+        """The Hessians of ``f``'s components (``sensor`` None) or of sensor ``sensor``'s, each on its structural
+        support: ``(supports, at)``, ``supports[j]`` the state indices of component ``j``'s structural nonzeros
+        (its Hessian is zero outside ``supports[j] x supports[j]``; empty for a component linear in the state) and
+        ``at(x, k=0, u=None, mode=None)`` the list of blocks ``(..., |S_j|, |S_j|)``.  On a field or a grid each
+        component involves a few states: blocks of a few numbers where :meth:`f_hessian` fills ``n_x²`` per
+        component.  Built on first use and kept."""
+        key = "f" if sensor is None else self._sensor(sensor)
+        if key not in self._blocks:
+            fun = self.casadi_f_hess if sensor is None else self.casadi_h_hess[key]
+            ins = [self.x, self.k, self.u, self.mode][:fun.n_in()]
+            outs = fun(*ins)
+            outs = outs if isinstance(outs, (list, tuple)) else [outs]
+            supports = []
+            for o in outs:
+                rows, cols = o.sparsity().get_triplet()
+                supports.append(np.unique(np.asarray(rows + cols, dtype=int)))
+            blocks = [o[list(S), list(S)] if S.size else ca.SX(0, 0) for o, S in zip(outs, supports)]
+            np_fun = to_numpy(_function(f"{fun.name()}_blocks", ins, [fun.name_in(i) for i in range(len(ins))],
+                                        blocks, [f"b{j}" for j in range(len(blocks))]))
+
+            def at(x, k=0, u=None, mode=None, np_fun=np_fun, sizes=tuple(S.size for S in supports), n=len(ins)):
+                args = (self._state(x), self._k(k)) + ((self._u(u), self._mode(mode)) if n > 2 else ())
+                with np.errstate(all="ignore"):
+                    parts = np_fun(*args)
+                lead = np.shape(args[0])[:-1]
+                return [np.reshape(p, lead + (m, m)) for p, m in zip(parts, sizes)]
+
+            self._blocks[key] = (tuple(supports), at)
+        return self._blocks[key]
 
     def h_all(self, x, k=0) -> np.ndarray:
         """All sensors' measurement functions stacked, shape ``(..., n_z)``."""

@@ -397,10 +397,11 @@ class GainRule:
         """The design report's sentence on what the margins of (28)-(29) mean for this rule (markdown lines)."""
         return []
 
-    def memory_parts(self, n_nodes: int, n_x: int, rows: int) -> list[tuple[str, float, str, str]]:
-        """What its filter holds beyond the consensus filter's arrays when it runs ``rows`` runs at once on
-        ``n_nodes`` nodes of ``n_x`` states: ``(what, bytes, sizes in words, how to need less)`` per part (the memory
-        estimate every command checks before computing, :mod:`studies.memory`)."""
+    def memory_parts(self, network, n_x: int, rows: int, steps: int) -> list[tuple[str, float, str, str]]:
+        """What its filter (and its design's offline tables, for a rule that has them) holds beyond the consensus
+        filter's arrays when it runs ``rows`` runs of ``steps`` steps at once on ``network`` (a
+        :class:`designer.network.SensorNetwork`) of ``n_x`` states: ``(what, bytes, sizes in words, how to need
+        less)`` per part (the memory estimate every command checks before computing, :mod:`studies.memory`)."""
         return []
 
     @property

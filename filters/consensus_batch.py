@@ -239,13 +239,17 @@ class ConsensusResult(NamedTuple):
         return next((v for v in self.violations if v["condition"] == "diverged"), None)
 
 
-def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int) -> dict:
+def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, **given: np.ndarray) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
-    runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones."""
-    return dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), x_pred=np.full((runs, steps, n, nx), np.nan),
-                phi_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
-                phi_pred=np.full((runs, steps, n, nx, nx), np.nan), K=np.full((runs, steps, n, nx, nz), np.nan),
-                C=np.full((runs, steps, n, nx, nx), np.nan), valid=np.zeros((runs, steps + 1, n), dtype=bool),
+    runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones; the fields in
+    ``given`` are taken as they are, not allocated (at a hundred states each covariance field is a gigabyte)."""
+    def full(name, shape):
+        return given[name] if name in given else np.full(shape, np.nan)
+
+    return dict(x_post=full("x_post", (runs, steps + 1, n, nx)), x_pred=full("x_pred", (runs, steps, n, nx)),
+                phi_post=full("phi_post", (runs, steps + 1, n, nx, nx)),
+                phi_pred=full("phi_pred", (runs, steps, n, nx, nx)), K=full("K", (runs, steps, n, nx, nz)),
+                C=full("C", (runs, steps, n, nx, nx)), valid=np.zeros((runs, steps + 1, n), dtype=bool),
                 margin28=np.full((runs, steps, n), np.nan), margin29=np.full((runs, steps, n), np.nan),
                 theorem2=np.full((runs, steps + 1, n), np.nan), violations=[[] for _ in range(runs)],
                 sigma=np.full((runs, steps, n), np.nan), beta=np.full((runs, steps, n), np.nan),

@@ -26,6 +26,8 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from designer.progress import line
+
 from .result import DIVERGED_REASON, stop_diverged
 
 __all__ = ["Step", "run_batch", "estimate_arrays"]
@@ -59,6 +61,7 @@ def run_batch(step: Callable[[int, np.ndarray, slice | np.ndarray], Step], recor
     for k in range(steps):
         if not act.size:
             break
+        line(f"step {k}/{steps}")
         at = slice(None) if act.size == runs else act
         out = step(k, act, at)
         for name, value in out.now.items():

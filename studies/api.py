@@ -868,7 +868,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
-    from .progress import progress
+    from designer.progress import progress
     from .recorded import clip_message, design_options_of, read_design_record, read_log, recorded_design
 
     check_path("design_dir", design_dir)

@@ -40,12 +40,12 @@ import numpy as np
 
 import rules
 from designer.design import DesignOptions
+from designer.progress import counter
 from designer.validation import ComputationError, InputError, check_int
 from designer.verdict import json_number, steadiness_window
 
 from .consensus_design import Design, check_first_step, effective_design, run_design
 from .design_options import as_mode
-from .progress import counter
 from .runner import run_forked
 from .scenarios import Scenario
 

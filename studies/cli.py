@@ -100,6 +100,14 @@ def _design_options(f, *, auto: bool = False):
     return f
 
 
+def _quiet(ctx, param, value):
+    if value:
+        from designer.progress import hush
+
+        hush()
+    return value
+
+
 def _runner_options(f):
     opts = [
         click.option("--workers", type=int, default=None,
@@ -113,7 +121,8 @@ def _runner_options(f):
                           "tls_client_key, require_encryption (address tls://host:port)"),
         click.option("--force", is_flag=True, help="recompute what is stored in OUT (otherwise an interrupted run "
                                                     "resumes from it)"),
-        click.option("--quiet", is_flag=True, help="no progress bar"),
+        click.option("--quiet", is_flag=True, callback=_quiet, expose_value=True,
+                     help="no progress bar or progress lines"),
     ]
     for o in reversed(opts):
         f = o(f)
@@ -518,7 +527,10 @@ def main(argv=None) -> int:
     with warnings.catch_warnings():  # restored on return (main is also called in-process, by the tests)
         warnings.simplefilter("ignore", RuntimeWarning)  # overflow and the like: results are checked for finiteness
         warnings.showwarning = _one_line_warnings(warnings.showwarning)
-        return _main(argv, obj)
+        from designer.progress import showing
+
+        with showing():  # a progress line on stderr every few seconds of a long command (designer.progress)
+            return _main(argv, obj)
 
 
 def _one_line_warnings(show):

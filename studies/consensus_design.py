@@ -25,6 +25,7 @@ from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, 
 from designer.rule import GainRule
 from designer.joint import conditioning
 from designer.observability import kalman_references, observability
+from designer.progress import phase
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
@@ -415,18 +416,22 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         # run: computed beside them, in a second process where there is a second core (the same numbers)
         extras = stack.enter_context(Background(_offline_extras, sc, des, steps)) \
             if rule.stationary_certificate and not screen else None
-        if screen and rule.offline_tables:
-            des = des._replace(tables=rule.tables(m, net, des, steps, x0=x0, inputs=sc.inputs(steps),
-                                                  stationary=False))
-            complete = lambda: des  # noqa: E731 - the horizon's tables are all a screened run uses
-        else:
-            des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
+        with phase("gain tables"):
+            if screen and rule.offline_tables:
+                des = des._replace(tables=rule.tables(m, net, des, steps, x0=x0, inputs=sc.inputs(steps),
+                                                      stationary=False))
+                complete = lambda: des  # noqa: E731 - the horizon's tables are all a screened run uses
+            else:
+                des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
         attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
-        res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
-        des = complete()
-        stationary, others = extras.result() if extras is not None else (None, None)
+        with phase("seeded run"):
+            res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
+        with phase("tables beyond the horizon"):
+            des = complete()
+        with phase("stationary certificate"):
+            stationary, others = extras.result() if extras is not None else (None, None)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     refs = kalman_references(m, x0, u0)
     with np.errstate(invalid="ignore", over="ignore"):

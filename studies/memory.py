@@ -55,6 +55,7 @@ _RESULT_COPIES = 1.5  # a filter's per-step results, and the outputs made of the
 _STEP_MATRICES = 40  # (n_x, n_x) matrices per node and run alive within one step of a consensus filter
 _FIXED_POINT_MATRICES = 20  # the same per node and grid point in an iteration of the steady-state recursion
 _HESSIAN_COPIES = 2.0  # the components' Hessians and their stack (designer.model.Model.f_hessian)
+_WHITENED_COPIES = 3.0  # the same, and their whitened products cov^1/2 H cov^1/2 (designer.design.whitened_scaling)
 _JSON_VALUE = 60  # bytes per number written to JSON (a float in a list, its text, the report reading it again)
 _TEXT = 30  # bytes per number written as C or replay text (its repr and separator, a string object a piece)
 _ARRAY_OBJECT = 112  # bytes of a small NumPy array's object beside its data (a replayed step's record)
@@ -164,12 +165,23 @@ def _uses_prior(options) -> bool:
 
 
 def _prior_hessians(model, options) -> Part | None:
-    """The Hessians of ``f`` and of each sensor's ``h`` at the prior's ellipsoid points, one function at a time."""
+    """The Hessians of ``f`` and of each sensor's ``h`` at the prior's ellipsoid points, one function at a time, each
+    component's on its structural support (designer.model.Model.hessian_blocks)."""
     if not _uses_prior(options):
         return None
-    n_x, comps, P = model.n_x, _components(model), _points(model.n_x)
-    return Part("the Hessians of the 'prior' scalings U and V_i", _HESSIAN_COPIES * P * comps * n_x**2 * _D,
-                f"{P} points x {comps} components x {n_x} x {n_x} states", _SCALINGS)
+    from designer.design import whitened
+
+    from .design_options import rule_of
+
+    n_x, P = model.n_x, _points(model.n_x)
+    if options.mode != "auto" and whitened(rule_of(options), options):  # in the prior's units: dense, n_x² each
+        comps = _components(model)
+        return Part("the Hessians of the 'prior' scalings U and V_i", _WHITENED_COPIES * P * comps * n_x**2 * _D,
+                    f"{P} points x {comps} components x {n_x} x {n_x} states", _SCALINGS)
+    entries = [max(model.n_modes, 1) * sum(S.size ** 2 for S in model.hessian_blocks()[0]),
+               *(sum(S.size ** 2 for S in model.hessian_blocks(i)[0]) for i in range(model.n_sensors))]
+    return Part("the Hessians of the 'prior' scalings U and V_i", _HESSIAN_COPIES * P * max(entries) * _D,
+                f"{P} points x {max(entries)} entries of a function's Hessians on their supports", _SCALINGS)
 
 
 def _step_hessians(model, centres: int, linearization: str | None, reduce: str) -> Part | None:
@@ -199,7 +211,7 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
              _step_hessians(model, rows * n, linearization, "a smaller model")]
     if mode is not None:  # what its gain rule's filter holds besides
         parts += [Part(f"{what}: {part}", nbytes, sizes, less)
-                  for part, nbytes, sizes, less in rules.get(mode).memory_parts(n, n_x, rows)]
+                  for part, nbytes, sizes, less in rules.get(mode).memory_parts(network, n_x, rows, steps)]
     return [p for p in parts if p is not None]
 
 

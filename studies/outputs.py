@@ -22,6 +22,7 @@ import numpy as np
 
 from designer.fileio import (atomic_write, check_apart, check_json_finite, replaced_outputs, write_json,
                              write_npz)
+from designer.progress import phase
 
 from .feasibility_terms import OUTPUTS
 from .figures import TRADEOFF, FigureHelper, figure_batch, map_figure, plotting, save_figure, tradeoff_figure
@@ -116,10 +117,12 @@ def save_design(design, directory) -> Path:
     when it is, lies inside or contains the model's files: :func:`designer.fileio.check_apart`)."""
     check_apart("directory", directory, model_inputs(design.scenario))
     with replaced_outputs(directory) as stage:  # the directory's last outputs replaced as a whole
-        design.schedule.write(stage)
+        with phase("writing the schedule"):
+            design.schedule.write(stage)
         if design.validation is not None:
             write_json(stage / "validation.json", design.validation)
-        write_report(stage)
+        with phase("writing the report"):
+            write_report(stage)
     return Path(directory)
 
 
@@ -131,11 +134,13 @@ def save_auto(auto, directory) -> Path:
     check_apart("directory", directory, model_inputs(auto.scenario))
     with replaced_outputs(directory) as stage:
         if auto.pick is not None:
-            auto.pick.schedule.write(stage)
+            with phase("writing the schedule"):
+                auto.pick.schedule.write(stage)
         write_json(stage / "candidates.json", auto.record())
         if auto.validation is not None:
             write_json(stage / "validation.json", auto.validation)
-        write_report(stage)
+        with phase("writing the report"):
+            write_report(stage)
     return Path(directory)
 
 

@@ -48,6 +48,7 @@ from designer.attacks import BinarySensorChannel
 from designer.cores import usable_cores
 from designer.model import Model
 from designer.noise import Noise
+from designer.progress import progress
 from designer.validation import InputError, check_int
 from filters.binary import binary_coefficients, binary_loglik
 from filters.particle import run_sir
@@ -56,7 +57,6 @@ from filters.rrp import deception_terms, packet_loglik
 
 from .filter_registry import FilterEntry, FilterRegistry
 from .pipeline import naming_filter
-from .progress import progress
 from .results import error_metrics
 
 __all__ = ["ENGINES", "run_packets", "run_binary", "score", "score_configurations",

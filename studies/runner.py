@@ -61,6 +61,7 @@ import json
 import os
 import pickle
 import re
+import select
 import signal
 import sys
 import threading
@@ -77,11 +78,11 @@ import numpy as np
 
 from designer.fileio import (CHUNKS_DIR, append_line, atomic_write, code_fingerprint, open_own, own_dir,
                              refuse_link, temporary_of, write_json, writing)
+from designer.progress import counter, line, progress
 from designer.validation import ComputationError, InputError, check_int
 
 from .interrupts import Interrupts
 from .memory import available_memory
-from .progress import counter, progress
 
 __all__ = ["Backend", "Timed", "run_forked", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo",
            "MonteCarloResult", "RunFailed", "CHUNKS_DIR"]
@@ -465,6 +466,8 @@ class Background:
             return self._fn(*self._args, **self._kwargs)
         fd, self._fd = self._fd, None  # closed by the reader whatever happens (a Ctrl-C while reading)
         with os.fdopen(fd, "rb") as fh:
+            while not select.select([fh], [], [], 1.0)[0]:  # the child still computing: a progress line when due
+                line()
             payload = fh.read()
         os.waitpid(self._pid, 0)
         self._pid = None

@@ -6,7 +6,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from designer.design import DesignOptions, resolve_scaling
+from designer.design import DesignOptions, resolve_scaling, whitened_scaling
 from designer.validation import InputError
 from studies import memory
 from studies.cli import main
@@ -80,15 +80,19 @@ def test_what_cannot_fit_is_refused_before_computing(tmp_path, monkeypatch, caps
 @pytest.mark.slow
 def test_the_300_state_model_is_refused_with_its_figure_and_fits_with_given_scalings(tmp_path, monkeypatch, capsys):
     """The issue's case: the 'prior' scalings' Hessians of a 300-state model, (601 points, 300 components, 300 x
-    300) twice over (the components and their stack), 242 GiB; with the scalings given the design needs little."""
+    300) three times over (the components, their stack and their whitened products: the scheduled design's), 363 GiB;
+    with the scalings given the design needs little."""
     path = tmp_path / "big.py"
     path.write_text(CHAIN.format(nx=300, nodes=10))
     monkeypatch.setattr(memory, "available_memory", lambda: 20 * GiB)
-    assert main(["design", str(path), "--out", str(tmp_path / "d")]) == 2
+    assert main(["design", str(path), "--mode", "scheduled", "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err
-    assert "design would need about 242 GiB" in err and "601 points x 300 components x 300 x 300" in err
+    assert "design would need about 363 GiB" in err and "601 points x 300 components x 300 x 300" in err
     assert "u_scale" in err and "--u-scale" in err and not (tmp_path / "d").exists()
     sc = scenario_of(path)
+    # the other rules take each component's Hessian on its support (one state here): the scalings need kB
+    relay = memory.design_need(sc, DesignOptions(mode="relay"), 50)
+    assert relay.phases[0][0].nbytes < 2**23 and "601 points x 300 entries" in relay.phases[0][0].sizes
     given = memory.design_need(sc, DesignOptions(u_scale=0.0, v_scale=0.0), 50)
     assert given.nbytes < 4 * GiB  # 10 nodes x 50 steps of 300 x 300 bounds and gains (2.4 GiB): not refused
     memory.check(given)  # (the 20 GiB above)
@@ -113,10 +117,15 @@ def test_the_estimates_follow_the_allocated_peak(tmp_path):
     path.write_text(CHAIN.format(nx=36, nodes=4))
     sc = scenario_of(path)
     m = sc.model
+    # the scheduled design's scalings in the prior's units: every component's whitened Hessian, dense
+    peak = _traced_peak(lambda: whitened_scaling(m, x0=m.prior.mean, P0=m.prior.cov))
+    est = memory.design_need(sc, DesignOptions(mode="scheduled"), 1).phases[0][0].nbytes
+    assert peak > 40e6 and 0.7 < est / peak < 1.5, (est, peak)
+    # the other rules': each component's Hessian on its structural support (here one state each), a few kB
     resolve_scaling(m, None, None, x0=m.prior.mean, P0=m.prior.cov)  # compiled once, outside the measure
     peak = _traced_peak(lambda: resolve_scaling(m, None, None, x0=m.prior.mean, P0=m.prior.cov))
-    est = memory.design_need(sc, DesignOptions(), 1).phases[0][0].nbytes
-    assert peak > 40e6 and 0.7 < est / peak < 1.5, (est, peak)
+    est = memory.design_need(sc, DesignOptions(mode="relay"), 1).phases[0][0].nbytes
+    assert peak < 1e6 and 0.5 < est / peak < 2, (est, peak)
 
     design(sc, mode="paper", steps=3, u_scale=0.0, v_scale=0.0)
     peak = _traced_peak(lambda: design(sc, mode="paper", steps=60, u_scale=0.0, v_scale=0.0))

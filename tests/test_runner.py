@@ -324,7 +324,7 @@ def test_background_failure_is_the_exception_of_a_call_here_and_an_abandoned_chi
 
 
 def test_a_ctrl_c_while_waiting_for_the_background_is_the_ctrl_c(monkeypatch):
-    """A Ctrl-C while this process reads the child's result: the block ends with the KeyboardInterrupt (not an
+    """A Ctrl-C while this process waits for or reads the child's result: the block ends with the KeyboardInterrupt (not an
     error of closing what the reader closed), and the child is killed and reaped."""
     from studies import runner
 
@@ -339,6 +339,9 @@ def test_a_ctrl_c_while_waiting_for_the_background_is_the_ctrl_c(monkeypatch):
 
         def __exit__(self, *exc):
             return False
+
+        def fileno(self):  # a Ctrl-C while waiting for the child (Background.result's progress lines)
+            raise KeyboardInterrupt
 
         def read(self):
             raise KeyboardInterrupt

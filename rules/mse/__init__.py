@@ -37,7 +37,8 @@ class MSE(GainRule):
                 "stacked error of all nodes for them; a global oracle (its gains need the network's joint state): a "
                 'reference, not a filter to deploy')
 
-    def memory_parts(self, n_nodes, n_x, rows):
+    def memory_parts(self, network, n_x, rows, steps):
+        n_nodes = network.n_nodes
         per_run = JOINT_COPIES * 8 * (n_nodes * n_x) ** 2  # doubles
         return [("the joint error covariance of all nodes (mode mse)", min(rows * per_run, max(MEMORY_BUDGET, per_run)),
                  f"{JOINT_COPIES} x ({n_nodes} nodes x {n_x} states)^2 per run", "another mode")]

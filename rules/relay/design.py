@@ -506,7 +506,11 @@ def update_moments(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarr
     the row weights of the noises' and falsifications' part of ``E[y yᵀ]``, ``Ĥᵀ K0 Ĥ``:
     ``K0 = diag(p) + F1 ∘ (Hw M Hwᵀ) + F2 ∘ (Hw μμᵀ Hwᵀ)``."""
     Hg = grouped(Hw, mom.groups)
-    Sg = np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hg)
+    return Hg, np.swapaxes(Hw, -1, -2) @ (mom.p[..., :, None] * Hg), _row_weights(Hw, mom, M, mu)
+
+
+def _row_weights(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """:func:`update_moments`'s ``K0`` (..., r, r)."""
     K0 = np.zeros(Hw.shape[:-1] + Hw.shape[-2:-1])
     idx = np.arange(Hw.shape[-2])
     K0[..., idx, idx] = mom.p
@@ -515,7 +519,7 @@ def update_moments(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarr
         K0 = K0 + mom.F1 * (Hw @ M @ Ht)
     if np.any(mu) and np.any(mom.F2):
         K0 = K0 + mom.F2 * (Hw @ np.outer(mu, mu) @ Ht)
-    return Hg, Sg, K0
+    return K0
 
 
 def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.ndarray) -> np.ndarray:
@@ -547,19 +551,21 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     ball's measurements (its gain applied to ``Σ_g y_g``).  For a linear model ``P⁺`` is the expected covariance
     of the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
-    Q = _rows_to_groups(K0 + mom.A * (Hw @ P_pred @ np.swapaxes(Hw, -1, -2)), Hw, Hg, mom.groups)
     # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
-    # zero rows and columns of Q and zero columns of C: left out of the pseudo-inverse (the same W, a smaller eigh)
+    # zero rows and columns of Q and zero columns of C: left out from the start (the same W; on a field or a grid,
+    # where a depth's sensors see a few of the states, products and an eigh a few times smaller than G n)
+    Hg = grouped(Hw, mom.groups)
     act = np.flatnonzero(np.any(Hg != 0.0, axis=tuple(range(Hg.ndim - 1))))
-    Q = Q[..., act[:, None], act]
+    Ha = Hg[..., act]
+    Ht = np.swapaxes(Hw, -1, -2)
+    Q = np.swapaxes(Ha, -1, -2) @ ((_row_weights(Hw, mom, M, mu) + mom.A * (Hw @ P_pred @ Ht)) @ Ha)
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
     lam, V = np.linalg.eigh(Q)
     keep = lam > rtol * lam[..., -1:]
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     Qp = (V * inv[..., None, :]) @ np.swapaxes(V, -1, -2)
-    C = P_pred @ Sg[..., act]
-    W = np.zeros(Sg.shape[:-2] + (P_pred.shape[-1], Sg.shape[-1]))
+    C = P_pred @ (Ht @ (mom.p[..., :, None] * Ha))
+    W = np.zeros(Hg.shape[:-2] + (P_pred.shape[-1], Hg.shape[-1]))
     W[..., act] = C @ Qp
     P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
     return W, 0.5 * (P + np.swapaxes(P, -1, -2))

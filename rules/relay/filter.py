@@ -377,21 +377,25 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         raise InputError(f"run_relay_design runs a gain rule that relays; got mode {design.mode!r}")
     attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
     n, nx = first.n_nodes, model.n_x
-    out = result_arrays(runs, steps, n, nx, max(model.sensor_dims))
     nets = nets or [first] * runs
     keys = [(net.dos_prob.tobytes(), net.fdi_prob.tobytes()) for net in nets]
-    for key in dict.fromkeys(keys):  # each group of runs with the same channel probabilities, in order
-        idx = np.array([r for r, k in enumerate(keys) if k == key])
+    groups = [np.array([r for r, k in enumerate(keys) if k == key]) for key in dict.fromkeys(keys)]
+    out = None
+    for idx in groups:  # each group of runs with the same channel probabilities, in order
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
         res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
                           attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
-        out["x_post"][idx], out["x_pred"][idx] = res.x_post, res.x_pred
-        out["phi_post"][idx], out["phi_pred"][idx] = res.P_post, res.P_pred
+        own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post, phi_pred=res.P_pred)
+        if out is None:  # C zero: no consensus on estimates (np.zeros: pages the system gives only when written)
+            out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), C=np.zeros((runs, steps, n, nx, nx)),
+                                **(own if len(groups) == 1 else {}))  # one group: its arrays, not a copy of them
+        if len(groups) > 1:
+            for name, value in own.items():
+                out[name][idx] = value
         out["gate_counts"][idx, :, 0] = res.delivered_per_step
         for r, vs in zip(idx, res.violations):
             out["violations"][r] = vs
-    out["C"][:] = 0.0
     out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
     return consensus_result(ConsensusBatchResult(**out), first, design)

@@ -52,6 +52,11 @@ class Scheduled(GainRule):
 
         return other_rounds(model, network, design, steps, x0=x, inputs=inputs_of(min(int(steps), TRADEOFF_STEPS)))
 
+    def memory_parts(self, network, n_x, rows, steps):
+        from .design import table_memory
+
+        return table_memory(network, n_x, steps)
+
     def tradeoff(self, network, n_x, design, steps, parts):
         from .study import rounds_tradeoff
 

@@ -116,6 +116,7 @@ import numpy as np
 from designer.bounds import BOUND_LIMIT, eigh, sqrtm_psd, symmetrize, theorem2_margin
 from designer.joint import (JointBound, JointCovariance, as_difference, certificate_predict, joint_multiplier,
                           joint_predict, joint_prior, shared_search, shared_structure, solve_gains)
+from designer.progress import line
 from designer.tuning import MARGIN
 from designer.validation import InputError
 from designer.verdict import NOT_COMPUTED
@@ -124,7 +125,7 @@ from .nodewise import nodewise_predict, nodewise_update
 
 __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_certificate_update", "ScheduledTables",
            "design_scheduled", "stationary_tables", "colour", "pad_measurements", "STATIONARY_TOL",
-           "STATIONARY_MAX", "table_arrays", "CERTIFICATE_MAX_DIM", "BANK_SPREAD",
+           "STATIONARY_MAX", "table_arrays", "table_memory", "JOINT_COPIES", "CERTIFICATE_MAX_DIM", "BANK_SPREAD",
            # what the stationary certificate (rules.scheduled.certificate) shares with the design
            "prepare", "stationary_gains", "measurement_noise", "falsification_moment", "transition_matrix",
            "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise",
@@ -940,6 +941,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
 
     P_open = np.asarray(phi0, dtype=float)  # the open-loop covariance along the nominal (the bank's axes)
     for k in range(steps):
+        line(f"step {k}/{steps}")
         F = np.asarray(model.F_expected(x, k, u_at(k)), dtype=float)
         x = np.asarray(model.f_expected(x, k, u_at(k)), dtype=float)
         nominal[k + 1] = x
@@ -1064,6 +1066,25 @@ def _bank(st: _Setting, Pm: JointCovariance, P_open: np.ndarray, x: np.ndarray, 
     return {"bank_points": np.stack(points), "bank_metric": vec / sig[:, None], "bank_Gamma": np.stack(G),
             "bank_Sigma": np.stack(S), "bank_round_Gamma": np.stack(rG), "bank_round_Sigma": np.stack(rS),
             "bank_record": record}
+
+
+#: Joint (N n x N n) matrices the design holds at once along its tables (the expected joint covariance, its prediction,
+#: the certificate's bound and their difference forms), measured: about 11 GB at IEEE 118 (N n = 13,806) before the
+#: tables were allocated.
+JOINT_COPIES = 8
+
+
+def table_memory(network, n_x: int, steps: int) -> list[tuple[str, float, str, str]]:
+    """The memory estimate's parts of a design's offline tables over ``steps`` steps on ``network`` (its
+    :meth:`designer.rule.GainRule.memory_parts`): every step's per-node slot tables ``Sigma`` (N, d, d, n, n), per-link
+    ``Gamma`` and ``C`` (E, n, n) and per-node covariances, and the joint covariance the tables are designed along."""
+    N, d, E = network.n_nodes, network.d_max, int(network.adjacency.sum())
+    per_step = (N * d * d + 2 * E + 4 * N) * n_x * n_x * 8
+    return [("the offline tables of every step", steps * per_step,
+             f"{steps} steps x ({N} nodes x {d} x {d} slots + {E} links) x {n_x} x {n_x} states",
+             "fewer steps (--steps)"),
+            ("the joint error covariance of all nodes the tables follow", JOINT_COPIES * (N * n_x) ** 2 * 8,
+             f"{JOINT_COPIES} x ({N} nodes x {n_x} states)^2", "another mode (relay, flood) or a smaller model")]
 
 
 def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:

@@ -1,0 +1,134 @@
+"""Progress of long work: the code says where it is, the command line shows it.
+
+Code that may run long marks where it is: :func:`phase` (a named stage, nested phases read left to right) and
+:func:`progress` / :func:`counter` (the items of a stage).  What is shown:
+
+* a bar (``tqdm``) over a stage's items where stderr is a terminal and the caller is not ``quiet``;
+* otherwise, once the command line has installed its sink (:func:`showing`; every ``cfdesign`` command but those
+  run with ``--quiet``), a line on stderr, ``cfdesign: <phase> > <phase>: <k>/<n> (<s> s)``, the first
+  :data:`FIRST_S` seconds after the command started and then at most every :data:`EVERY_S` seconds, so that a
+  command that runs longer than a few seconds says what it is doing in a log or a pipe too.
+
+Only the process that installed the sink writes lines (a worker process forked from it stays silent: its parent
+reports the chunks).  Called from a library (no sink), nothing is written.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from typing import Iterable, Iterator
+
+__all__ = ["FIRST_S", "EVERY_S", "showing", "hush", "phase", "progress", "counter", "line"]
+
+#: Seconds after the command's start before its first progress line.
+FIRST_S = 5.0
+#: Seconds at least between two progress lines.
+EVERY_S = 10.0
+
+
+class _Sink:
+    def __init__(self, stream, start: float):
+        self.stream, self.start, self.pid, self.last = stream, start, os.getpid(), None
+        self.phases: list[str] = []
+
+    def due(self, now: float) -> bool:
+        if os.getpid() != self.pid:
+            return False
+        return now - self.start >= FIRST_S if self.last is None else now - self.last >= EVERY_S
+
+    def write(self, now: float, where: str) -> None:
+        self.last = now
+        label = " > ".join(self.phases)
+        text = f"{label}: {where}" if label and where else label or where
+        print(f"cfdesign: {text} ({now - self.start:.0f} s)", file=self.stream, flush=True)
+
+
+_SINK: _Sink | None = None
+
+
+@contextlib.contextmanager
+def showing(stream=None) -> Iterator[None]:
+    """Write progress lines on ``stream`` (stderr) while the block runs (the command line, around a command)."""
+    global _SINK
+    before, _SINK = _SINK, _Sink(stream if stream is not None else sys.stderr, time.perf_counter())
+    try:
+        yield
+    finally:
+        _SINK = before
+
+
+def hush() -> None:
+    """No progress lines for the rest of the command (``--quiet``)."""
+    global _SINK
+    _SINK = None
+
+
+def line(where: str = "") -> None:
+    """Say where the work is, if a line is due (``where``: e.g. ``step 12/60``)."""
+    sink = _SINK
+    if sink is not None:
+        now = time.perf_counter()
+        if sink.due(now):
+            sink.write(now, where)
+
+
+@contextlib.contextmanager
+def phase(name: str) -> Iterator[None]:
+    """A named stage of the work: the lines written inside it name it (nested stages, outermost first)."""
+    sink = _SINK
+    if sink is None:
+        yield
+        return
+    sink.phases.append(name)
+    try:
+        line()
+        yield
+    finally:
+        sink.phases.pop()
+
+
+def _bar(quiet: bool) -> bool:
+    return not quiet and sys.stderr.isatty()
+
+
+def progress(iterable: Iterable, total: int, quiet: bool = False, desc: str = "") -> Iterable:
+    """``iterable`` with its progress shown: a bar of ``total`` items on a terminal, else progress lines (unless
+    ``quiet``)."""
+    if _bar(quiet):
+        from tqdm import tqdm
+
+        return tqdm(iterable, total=total, desc=desc, leave=False)
+    if quiet or _SINK is None:
+        return iterable
+    return _lines(iterable, total, desc)
+
+
+def _lines(iterable: Iterable, total: int, desc: str) -> Iterator:
+    prefix = f"{desc} " if desc else ""
+    for k, item in enumerate(iterable):
+        line(f"{prefix}{k}/{total}")
+        yield item
+
+
+class _Lines:
+    def __init__(self, total: int, desc: str, quiet: bool):
+        self.k, self.total, self.prefix, self.quiet = 0, total, f"{desc} " if desc else "", quiet
+
+    def update(self, n: int = 1) -> None:
+        self.k += n
+        if not self.quiet:
+            line(f"{self.prefix}{self.k}/{self.total}")
+
+    def close(self) -> None:
+        pass
+
+
+def counter(total: int, quiet: bool = False, desc: str = ""):
+    """A progress advanced by hand (``update()``, then ``close()``), for work that finishes out of order."""
+    if _bar(quiet):
+        from tqdm import tqdm
+
+        return tqdm(total=total, desc=desc, leave=False)
+    return _Lines(total, desc, quiet)

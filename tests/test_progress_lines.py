@@ -1,0 +1,61 @@
+"""Progress lines (designer.progress): a long command says what it is doing on stderr, in a pipe too; --quiet, a
+library call and a forked worker say nothing."""
+from __future__ import annotations
+
+import os
+import re
+
+import pytest
+
+from designer import progress
+from studies.cli import main
+
+LINE = re.compile(r"^cfdesign: (.+) \((\d+) s\)$")
+
+
+def _lines(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if LINE.match(ln)]
+
+
+@pytest.fixture
+def eager(monkeypatch):
+    """A line whenever one is asked for (the command's first after 0 s, then none skipped)."""
+    monkeypatch.setattr(progress, "FIRST_S", 0.0)
+    monkeypatch.setattr(progress, "EVERY_S", 0.0)
+
+
+def test_a_design_names_its_phase_and_step_on_stderr(tmp_path, capsys, eager):
+    assert main(["design", "examples/ring_model.py", "--mode", "scheduled", "--steps", "6",
+                 "--out", str(tmp_path / "d")]) in (0, 1)
+    err = capsys.readouterr().err
+    lines = _lines(err)
+    assert any(ln.startswith("cfdesign: gain tables: step ") for ln in lines), err
+    steps = [ln for ln in lines if ln.startswith("cfdesign: seeded run: step ")]
+    assert [ln.split("step ")[1].split(" ")[0] for ln in steps] == [f"{k}/6" for k in range(6)]
+    assert any(ln.startswith("cfdesign: writing the schedule") for ln in lines)
+    assert any(ln.startswith("cfdesign: writing the report") for ln in lines)
+    seconds = [int(LINE.match(ln).group(2)) for ln in lines]
+    assert seconds == sorted(seconds)
+
+
+def test_lines_are_at_most_every_few_seconds_and_none_in_the_first(monkeypatch, capsys):
+    clock = iter([100.0, 101.0, 104.9, 105.0, 110.0, 114.0, 115.5])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    with progress.showing():  # started at 100
+        for k in range(6):  # asked at 101, 104.9, 105 (first), 110 (too soon), 114 (too soon), 115.5 (10.5 s later)
+            progress.line(f"step {k}/6")
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["cfdesign: step 2/6 (5 s)", "cfdesign: step 5/6 (16 s)"]
+
+
+def test_quiet_library_and_forked_worker_write_nothing(tmp_path, capsys, eager, monkeypatch):
+    assert main(["feasibility", "examples/ring_model.py", "--grid", "dos=0:0.2:2", "--quiet",
+                 "--out", str(tmp_path / "f")]) == 0
+    assert _lines(capsys.readouterr().err) == []
+    progress.line("step 1/2")  # a library call: no sink installed
+    assert capsys.readouterr().err == ""
+    with progress.showing():
+        pid = os.getpid()
+        monkeypatch.setattr(progress.os, "getpid", lambda: pid + 1)  # as in a process forked from this one
+        progress.line("step 1/2")
+    assert capsys.readouterr().err == ""
