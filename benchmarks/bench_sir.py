@@ -14,14 +14,25 @@ Measured (best of ``--repeats``, the peer best of two; JIT compilation excluded 
       the Round-Robin filter with 2 workers (the all-sensors ratio is reported too);
 (iii) one filter step at 10^6 particles (RRP-PF-DA; PF-DA reported) — target <= 0.3 s;
 (iv)  memory at two runs x particles sizes: bytes per run-particle must not grow;
-(v)   the NumPy engine (:func:`filters.particle.run_sir`) on the Table 1 workload.
+(v)   the NumPy engine (:func:`filters.particle.run_sir`) on the Table 1 workload;
+(vi)  the ``rrp-deception`` study end to end, per filter run, against ``particles``: the
+      study as a user runs it (:func:`studies.api.study`, in this process, kernels compiled
+      before; every row of Table 1 with the linear-domain-weights row, and the η̄ sweep:
+      ``F`` filter configurations x ``--runs`` runs; simulation, channel, filters,
+      metrics) on 2 threads, against the peer running each configuration's filter (its
+      likelihood: standard or attack-aware (14), Round-Robin or all sensors; log-domain
+      weights, the peer has no linear-domain variant) on ``--peer-runs`` of the runs, its
+      time per run times the study's runs — target ratio >= 20 (the wall time of the
+      whole study against the peer's for the same filter runs); the linear row's time per
+      step must stay within ``TARGET_LINEAR_RATIO`` of its log-domain twin (RRP-SPF-DA).
 
 It also prints where the time of one run goes (noise draws, f, h + likelihood,
 weights + resampling).  ``--check`` exits 1 when a target is missed (the peer's
 ratio only when ``particles`` is importable).  ``--json FILE`` writes the figures.
 The machine may be shared: the load average is printed beside the figures.
 
-Run: ``python benchmarks/bench_sir.py [--runs 50] [--particles 500] [--steps 120] [--check]``
+Run: ``python benchmarks/bench_sir.py [--runs 50] [--particles 500] [--steps 120] [--check] [--only-study]``
+(``--only-study``: (vi) alone, about a minute.)
 """
 from __future__ import annotations
 
@@ -52,6 +63,8 @@ TARGET_TABLE1_S = 1.0
 TARGET_PEER_RATIO = 20.0
 TARGET_STEP_S = 0.3
 TARGET_MEMORY_GROWTH = 1.25  # bytes per run-particle, large size over small size
+TARGET_STUDY_RATIO = 20.0  # (vi): the peer's time for the study's filter runs over the study's wall time
+TARGET_LINEAR_RATIO = 1.5  # (vi): the linear-domain row's time per step over RRP-SPF-DA's (its log-domain twin)
 ETA = 0.2  # deception probability of Table 1
 
 
@@ -133,8 +146,14 @@ def table1_numpy(sc, d: dict, particles: int) -> tuple[float, dict]:
 
 
 # ------------------------------------------------------------------ the peer: particles 0.3
-def peer_filter(sc, d: dict, particles: int, variant: str):
-    """Time and RMSE_p of ``particles``' bootstrap filter on every run (attacks off); None if not importable."""
+def peer_filter(sc, d: dict, particles: int, variant: str, aware: bool = False, runs: int | None = None):
+    """Time and RMSE_p of ``particles``' bootstrap filter on the first ``runs`` runs (default: every run); None
+    if not importable.
+
+    ``aware=False``: the standard likelihood on the clean packets (attacks off); ``aware=True``: the
+    attack-aware likelihood (14) on the deceived packets, ``logaddexp(log(1 - eta) + log p(y | x), log eta +
+    log p_xi(y))`` per packet, as RRP-PF-DA and PF-DA weigh them.
+    """
     try:
         import particles as peer
         from particles import distributions as dists
@@ -144,6 +163,7 @@ def peer_filter(sc, d: dict, particles: int, variant: str):
         return None, f"{type(exc).__name__}: {exc}"
     m = sc.model
     R, K = d["ys"].shape[:2]
+    R = R if runs is None else min(R, runs)
     T = sc.params["period"]
     F = np.array([[1, T, 0, 0], [0, 1, 0, 0], [0, 0, 1, T], [0, 0, 0, 1.0]])
     Q = m.process_cov
@@ -151,24 +171,28 @@ def peer_filter(sc, d: dict, particles: int, variant: str):
     comps = [(np.log(w), g._chol_inv, 2 * np.log(2 * np.pi) + g._logdet)
              for w, g in zip(m.sensors[0].noise.weights, m.sensors[0].noise.components)]
     if variant == "round-robin":
-        data, sensors = d["ys"], d["sched"][:, None]
+        data, sensors = d["rr_att" if aware else "ys"], d["sched"][:, None]
     else:
-        data, sensors = d["y"], np.tile(np.arange(m.n_sensors), (K, 1))
+        data, sensors = d["all_att" if aware else "y"], np.tile(np.arange(m.n_sensors), (K, 1))
+    data = data.reshape(data.shape[0], K, -1, 2)  # (R, K, P, 2)
+    lc, attack = deception_terms(data, ETA, sc.channel.deception) if aware else (0.0, None)  # attack (R, K, P)
+    now = {"run": 0}  # the run being filtered (the likelihood reads its attack terms)
 
     class Glint(dists.ProbDist):
         """Range-bearing glint likelihood of the listed sensors' packets, vectorised over particles."""
 
-        def __init__(self, x, sens):
-            self.x, self.sens = x, sens
+        def __init__(self, x, sens, t):
+            self.x, self.sens, self.t = x, sens, t
 
         def logpdf(self, yv):
             total = 0.0
-            for s, ys in zip(self.sens, np.reshape(yv, (-1, 2))):
+            for p, (s, ys) in enumerate(zip(self.sens, np.reshape(yv, (-1, 2)))):
                 dx, dy = self.x[:, 0] - pos[s, 0], self.x[:, 2] - pos[s, 1]
                 r = np.stack([ys[0] - np.sqrt(dx * dx + dy * dy), ys[1] - np.arctan2(dy, dx)], axis=-1)
                 r[:, 1] = np.pi - np.mod(np.pi - r[:, 1], 2 * np.pi)
                 t = [lw - 0.5 * (c + np.sum((r @ L.T) ** 2, axis=-1)) for lw, L, c in comps]
-                total = total + np.logaddexp(t[0], t[1])
+                ll = np.logaddexp(t[0], t[1])
+                total = total + (ll if attack is None else np.logaddexp(lc + ll, attack[now["run"], self.t, p]))
             return total
 
     m0, P0 = m.prior.mean, m.prior.cov
@@ -182,18 +206,19 @@ def peer_filter(sc, d: dict, particles: int, variant: str):
             return dists.MvNormal(loc=xp @ F.T, cov=Q)
 
         def PY(self, t, xp, x):
-            return Glint(x, sensors[t])
+            return Glint(x, sensors[t], t)
 
     means = np.empty((R, K + 1, m.n_x))
     t0 = time.perf_counter()
     for r in range(R):
+        now["run"] = r
         np.random.seed(1000 + r)  # particles draws from NumPy's global state
         pf = peer.SMC(fk=ssms.Bootstrap(ssm=CVRangeBearing(), data=list(data[r].reshape(K, -1))), N=particles,
                       resampling="systematic", ESSrmin=1.0, collect=[Moments()])
         pf.run()
         means[r, 1:] = [mo["mean"] for mo in pf.summaries.moments]
     wall = time.perf_counter() - t0
-    return (wall, rmse(means, d["x"], m.position_index)), None
+    return (wall, rmse(means[:R], d["x"][:R], m.position_index)), None
 
 
 def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> tuple[float, float]:
@@ -208,6 +233,124 @@ def ours_bootstrap(sc, d: dict, particles: int, variant: str, workers: int) -> t
     x0 = np.stack([m.prior.sample(g, particles) for g in gens])
     res = fused.sir_packets(m, x0, gens, sens, y, angles=sc.model.angle_components, threads=workers).detail
     return time.perf_counter() - t, rmse(res.mean, d["x"], m.position_index)
+
+
+# ------------------------------------------------------------------ (vi) the study end to end, per filter run
+def study_configurations(results: dict, sc) -> list[tuple[str, str, bool]]:
+    """``(name, variant, aware)`` of every filter configuration an ``rrp-deception`` study computed: Table 1's rows
+    (the linear-domain row included) and the sweep's points other than the default η̄ (which reuses RRP-PF-DA's
+    runs); ``variant`` 'round-robin' or 'all-sensors' by the packets per step, ``aware`` by the likelihood."""
+    steps = results["steps"]
+    out = [(name, "round-robin" if f["communications"] == steps else "all-sensors", f["attack_prob_assumed"] > 0)
+           for name, f in results["filters"].items()]
+    for v in results["sweeps"].get("deception_prob", {}):
+        if float(v) != sc.channel.deception_prob:
+            out.append((f"sweep eta={v}", "round-robin", float(v) > 0))
+    return out
+
+
+def study_end_to_end(sc, runs: int, steps: int, particles: int, seed: int, repeats: int) -> dict:
+    """The ``rrp-deception`` study as :func:`studies.api.study` runs it (default options: every row, the sweep),
+    2 fused threads, kernels compiled before: the best wall time of ``repeats`` (and its CPU time), its
+    configurations and its results (time per step of each row)."""
+    from studies.api import study
+
+    kw = dict(particles=particles, seed=seed, quiet=True, threads=2)
+    if steps != sc.steps:
+        kw["overrides"] = {"steps": steps}
+    study("rrp-deception", runs=2, **kw)  # every kernel variant compiled (or loaded) outside the timed calls
+    best = None
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.process_time()
+        res = study("rrp-deception", runs=runs, **kw).results
+        w, c = time.perf_counter() - w, time.process_time() - c
+        if best is None or w < best[0]:
+            best = (w, c, res)
+    wall, cpu, res = best
+    configs = study_configurations(res, sc)
+    rows = {name: f["time_per_step_s"] for name, f in res["filters"].items()}
+    return {"wall_s": wall, "cpu_s": cpu, "configurations": configs, "filter_runs": len(configs) * runs,
+            "time_per_step_s": rows, "collapsed_steps": {n: f["collapsed_steps"] for n, f in res["filters"].items()}}
+
+
+def peer_per_run(sc, d: dict, particles: int, kinds, runs: int, repeats: int) -> tuple[dict | None, str | None]:
+    """The peer's wall and CPU seconds per run of each ``(variant, aware)`` filter kind (best of ``repeats``, on
+    the first ``runs`` runs of ``d``), or None and why (not importable)."""
+    out = {}
+    p, why = peer_filter(sc, d, 10, "round-robin", runs=1)  # the imports outside the timed calls
+    if p is None:
+        return None, why
+    for variant, aware in kinds:
+        best = None
+        for _ in range(repeats):
+            c = time.process_time()
+            p, why = peer_filter(sc, d, particles, variant, aware=aware, runs=runs)
+            if p is None:
+                return None, why
+            c = time.process_time() - c
+            if best is None or p[0] < best[0]:
+                best = (p[0], c)
+        n = min(runs, d["ys"].shape[0])
+        out[variant, aware] = {"wall_s": best[0] / n, "cpu_s": best[1] / n}
+    return out, None
+
+
+def study_against_peer(sc, R: int, K: int, M: int, seed: int, repeats: int, peer_runs: int) -> dict:
+    """(vi): the study's wall time against the peer's for the same filter runs (its time per run of each
+    configuration's kind times the runs); per configuration, ours per run (time per step x K) beside the peer's."""
+    ours = study_end_to_end(sc, R, K, M, seed, repeats)
+    d = simulate_data(sc, min(R, peer_runs), K, seed)
+    kinds = sorted({(v, a) for _, v, a in ours["configurations"]})
+    peer, why = peer_per_run(sc, d, M, kinds, peer_runs, min(2, repeats))
+    out = {"ours": ours, "peer_runs": min(R, peer_runs)}
+    if peer is None:
+        out["skipped"] = why
+        return out
+    out["peer_per_run"] = {f"{v}{', attack-aware' if a else ''}": p for (v, a), p in peer.items()}
+    peer_wall = R * sum(peer[v, a]["wall_s"] for _, v, a in ours["configurations"])
+    peer_cpu = R * sum(peer[v, a]["cpu_s"] for _, v, a in ours["configurations"])
+    out.update(peer_wall_s=peer_wall, peer_cpu_s=peer_cpu, ratio=peer_wall / ours["wall_s"],
+               ratio_cpu=peer_cpu / ours["cpu_s"],
+               rows={name: {"ours_ms_per_run": ours["time_per_step_s"][name] * K * 1e3,
+                            "peer_ms_per_run": peer[v, a]["wall_s"] * 1e3,
+                            "ratio": peer[v, a]["wall_s"] / (ours["time_per_step_s"][name] * K)}
+                     for name, v, a in ours["configurations"] if name in ours["time_per_step_s"]})
+    return out
+
+
+def report_study(v: dict, R: int, K: int, M: int) -> None:
+    o = v["ours"]
+    F = len(o["configurations"])
+    print(f"(vi)  rrp-deception study end to end ({F} filter configurations x {R} runs x {K} steps x {M} particles, "
+          f"2 threads): {o['wall_s']:.3f} s wall (cpu {o['cpu_s']:.3f} s) = "
+          f"{o['wall_s'] / o['filter_runs'] * 1e3:.2f} ms per filter run")
+    if "skipped" in v:
+        print(f"      particles package not importable, peer skipped: {v['skipped']}")
+    else:
+        print(f"      particles, the same {o['filter_runs']} filter runs (per run from {v['peer_runs']} runs): "
+              f"{v['peer_wall_s']:.2f} s wall (cpu {v['peer_cpu_s']:.2f} s): ratio {v['ratio']:.1f}x wall, "
+              f"{v['ratio_cpu']:.1f}x cpu   target >= {TARGET_STUDY_RATIO}x (wall)")
+        for name, r in v["rows"].items():
+            print(f"      {name:36s} ours {r['ours_ms_per_run']:6.2f} ms/run, particles {r['peer_ms_per_run']:6.1f} "
+                  f"ms/run: {r['ratio']:5.1f}x")
+    from studies.rrp_deception import LINEAR
+    tps = o["time_per_step_s"]
+    if LINEAR in tps:
+        print(f"      linear-domain row {tps[LINEAR] * 1e3:.4f} ms/step ({o['collapsed_steps'][LINEAR]} collapsed "
+              f"steps) against RRP-SPF-DA {tps['RRP-SPF-DA'] * 1e3:.4f}: "
+              f"{tps[LINEAR] / tps['RRP-SPF-DA']:.2f}x   target <= {TARGET_LINEAR_RATIO}x")
+
+
+def study_failures(v: dict) -> list[str]:
+    from studies.rrp_deception import LINEAR
+    out = []
+    if "ratio" in v and v["ratio"] < TARGET_STUDY_RATIO:
+        out.append(f"rrp-deception study end to end {v['ratio']:.1f}x the particles package < {TARGET_STUDY_RATIO}x")
+    tps = v["ours"]["time_per_step_s"]
+    if LINEAR in tps and tps[LINEAR] > TARGET_LINEAR_RATIO * tps["RRP-SPF-DA"]:
+        out.append(f"linear-domain row {tps[LINEAR] * 1e3:.4f} ms/step > {TARGET_LINEAR_RATIO} x RRP-SPF-DA's "
+                   f"{tps['RRP-SPF-DA'] * 1e3:.4f}")
+    return out
 
 
 # ------------------------------------------------------------------ one step at many particles
@@ -307,7 +450,7 @@ def profile(sc, d: dict, particles: int, repeats: int) -> dict:
             "prop": lambda: props(prop, x, xn, K, open_stream(np.random.default_rng(1))),
             "lik": lambda: liks(lik, x, K, data, P, ne, b, w),
             "full": lambda: run(prop, 0, lik, P, ne, weigh, data, x, open_stream(np.random.default_rng(1)),
-                                systematic, 1.0, False,
+                                systematic, 1.0, False, False,
                                 mean, cov, ess, *flags),
         }
         for fn in parts.values():
@@ -363,12 +506,28 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
     ap.add_argument("--json", help="write the measurements to this file")
+    ap.add_argument("--peer-runs", type=int, default=10, help="(vi): runs the peer filters per configuration kind")
+    ap.add_argument("--only-study", action="store_true", help="(vi) alone: the study end to end against the peer")
     args = ap.parse_args(argv)
     R, K, M = args.runs, args.steps, args.particles
     sc = load_scenario("target-range-bearing")
     load0 = os.getloadavg()[0]
     t_all = time.perf_counter()
     out: dict = {"runs": R, "steps": K, "particles": M, "cpus": os.cpu_count(), "numba": numba.__version__}
+    if args.only_study:
+        v = out["study"] = study_against_peer(sc, R, K, M, args.seed, args.repeats, args.peer_runs)
+        out["load_average"] = [load0, os.getloadavg()[0]]
+        print(f"rrp-deception end to end against particles ({out['cpus']} CPUs, load average {load0:.2f} -> "
+              f"{out['load_average'][1]:.2f}; shared machines are noisy)")
+        report_study(v, R, K, M)
+        print(f"benchmark wall time {time.perf_counter() - t_all:.1f} s")
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(out, fh, indent=2)
+        failures = study_failures(v)
+        for f in failures if args.check else ():
+            print(f"FAIL: {f}", file=sys.stderr)
+        return 1 if args.check and failures else 0
 
     out["compile_s"] = compile_all(sc)
 
@@ -396,6 +555,9 @@ def main(argv=None) -> int:
         peer[variant] = {"peer_s": p[0], "peer_rmse_p": p[1], "ours_s_workers1": o1[0], "ours_s_workers2": o2[0],
                          "ours_rmse_p": o2[1], "ratio_workers1": p[0] / o1[0], "ratio_workers2": p[0] / o2[0]}
     out["peer"] = peer
+
+    # (vi) the rrp-deception study end to end, per filter run, against the peer
+    out["study"] = study_against_peer(sc, R, K, M, args.seed, args.repeats, args.peer_runs)
 
     # (iii) one step at 10^6 particles
     out["one_step"] = {"particles": args.big,
@@ -432,6 +594,7 @@ def main(argv=None) -> int:
                   f"ratio {p['ratio_workers1']:.1f}x / {p['ratio_workers2']:.1f}x; RMSE_p peer {p['peer_rmse_p']:.3f} "
                   f"ours {p['ours_rmse_p']:.3f}" + (f"   target >= {TARGET_PEER_RATIO}x (2 workers)"
                                                     if variant == "round-robin" else "   (reported)"))
+    report_study(out["study"], R, K, M)
     o = out["one_step"]
     print(f"(iii) one step at {o['particles']:,} particles: RRP-PF-DA {o['RRP-PF-DA_s']:.3f} s, "
           f"PF-DA {o['PF-DA_s']:.3f} s   target <= {TARGET_STEP_S} s (RRP-PF-DA)")
@@ -457,6 +620,7 @@ def main(argv=None) -> int:
     small, large = out["memory"]
     if large["bytes_per_run_particle"] > TARGET_MEMORY_GROWTH * small["bytes_per_run_particle"]:
         failures.append("memory grows faster than runs x particles")
+    failures += study_failures(out["study"])
     if args.check and failures:
         for f in failures:
             print(f"FAIL: {f}", file=sys.stderr)

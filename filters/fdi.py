@@ -59,7 +59,7 @@ from designer.model import Model
 from designer.noise import Gaussian
 from designer.validation import InputError, check_covariance, check_finite, check_int, check_probability, check_rng
 
-from .particle import LogWeights, additive_noise_loglik, check_finite_means
+from .particle import LOG_TINY, LogWeights, additive_noise_loglik, check_finite_means
 
 __all__ = [
     "measurement_matrix", "measurement_cov", "detection_gain",
@@ -67,9 +67,6 @@ __all__ = [
     "corrected_proposal", "normal_detector", "modified_detector", "deception_mixture_loglik", "uniform_loglik",
     "SISResult", "run_sis", "check_gamma_hat", "DetectionCounts", "detection_counts",
 ]
-
-# log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
-_LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))
 
 
 # --------------------------------------------------------------------------- gains and thresholds
@@ -415,7 +412,7 @@ def run_sis(model: Model, z, rng, *, particles: int, inputs=None, loglik: Callab
         prev = lw.log_norm
         new = LogWeights.of(lw.lw + loglik(x, k + 1, zk)).lw  # Step 3: estimation mode (59)
         if linear_weights:
-            new = np.where(new - prev[:, None] < _LOG_TINY, -np.inf, new)
+            new = np.where(new - prev[:, None] < LOG_TINY, -np.inf, new)
         dead = np.isneginf(new).all(axis=-1)
         if np.any(dead):
             collapsed[dead, k] = True

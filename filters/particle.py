@@ -10,14 +10,16 @@ and resample (every step, or when ESS < ``ess_threshold * M``).
 Numerics.  When every particle's likelihood of a run vanishes (all log weights
 -inf, e.g. a measurement outside the support of every particle's density), the
 weights stay finite: the run keeps its predicted particles with uniform weights
+(resampled as any step, by the ESS rule: every step with ``ess_threshold`` 1, never below it)
 and the step is recorded in ``SIRResult.collapsed``.  ``linear_weights=True``
 emulates a filter that keeps weights in linear double precision (as the
 published MATLAB-style implementations do): a weight ``W_{k-1} p(z | x)`` below
 the smallest positive double becomes exactly zero, so a measurement that is far
 from every particle collapses the run instead of being absorbed by the log-domain
-normalisation.  Measurements with NaN are rejected unless ``missing="skip"``,
-which treats a run's whole measurement at that step as missing (prediction only,
-recorded in ``SIRResult.skipped``).
+normalisation (the fused kernels, :func:`filters.fused.sir_packets`, apply the same
+rule).  Measurements with NaN are rejected unless ``missing="skip"``, which treats a
+run's whole measurement at that step as missing (prediction only, recorded in
+``SIRResult.skipped``).
 
 A proposal is a callable ``proposal(x_prev, k, z_k, rng) -> (x, log_correction)``
 with ``log_correction = log p(x | x_prev) - log q(x | x_prev, z_k)`` (zero for the
@@ -36,7 +38,8 @@ from designer.validation import InputError, NonFiniteError, check_int, check_rng
 from .resampling import get_resampler
 from .result import FilterResult, centralized_result
 
-__all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir", "check_finite_means"]
+__all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir", "check_finite_means",
+           "LOG_TINY"]
 
 
 def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
@@ -145,8 +148,8 @@ class SIRResult(NamedTuple):
     loglik_seconds: float  # wall time in the log-likelihood's calls, all runs together
 
 
-# log of the smallest positive (subnormal) double: exp(x) == 0.0 below it
-_LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))
+#: log of the smallest positive (subnormal) double: ``exp(x) == 0.0`` below it (the cut of ``linear_weights``)
+LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))
 
 
 def _moments(x: np.ndarray, W: np.ndarray):
@@ -285,7 +288,7 @@ def run_sir(
                                  f"singularity) at step {k + 1}", r, k + 1)
         new = LogWeights.of(lw.lw + ll + corr).lw
         if linear_weights:
-            new = np.where(new - prev_log_norm[:, None] < _LOG_TINY, -np.inf, new)
+            new = np.where(new - prev_log_norm[:, None] < LOG_TINY, -np.inf, new)
         dead = np.isneginf(new).all(axis=-1)
         if np.any(dead):
             collapsed[dead, k] = True

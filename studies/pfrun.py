@@ -117,7 +117,8 @@ def position_velocity(model: Model) -> tuple[list[int], list[int]]:
 
 def score(truth: np.ndarray, mean: np.ndarray, collapsed: np.ndarray, seconds: np.ndarray,
           position: Sequence[int], velocity: Sequence[int], rng: np.random.Generator) -> dict:
-    """The metrics of one filter from the runner's per-run arrays: :func:`studies.results.error_metrics`, time, collapses.
+    """The metrics of one filter from the runner's per-run arrays: :func:`studies.results.error_metrics`, time,
+    collapses.
 
     ``truth`` and ``mean`` (runs, K + 1, n_x), ``collapsed`` (runs, K), ``seconds`` (runs,):
     each run's share of its chunk's wall time for this filter.  ``wall_time_s`` is their
@@ -270,7 +271,8 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
     """Filters of seed 000: ``y`` (runs, K, P, n_y) received packets, packet p at step k from ``sensors[k, p]``;
     the fusion centre's :class:`filters.result.FilterResult` (``P`` messages per step), None with ``warm_up``.
 
-    ``linear_weights`` (emulated linear-domain weights) exists only in the NumPy engine.
+    ``linear_weights``: emulated linear-domain weights, in either engine (the same rule:
+    :func:`filters.particle.run_sir`, :func:`filters.fused.sir_packets`).
     """
     check_engine(engine)
     R, K, P, ny = y.shape
@@ -280,8 +282,6 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
         ll = packet_loglik(model, sensors, attack_prob=attack_prob, signal=signal, angles=angles)
         return run_sir(model, y.reshape(R, K, P * ny), rngs[0], particles=particles, runs=R, loglik=ll,
                        linear_weights=linear_weights, uplinks=P)
-    if linear_weights:
-        raise InputError("linear_weights needs engine='numpy' (the fused kernels keep log weights only)")
     from filters import fused
 
     log_clean, attack = deception_terms(y, attack_prob, signal)
@@ -293,7 +293,7 @@ def run_packets(model: Model, y: np.ndarray, sensors: np.ndarray, rngs: Sequence
                           attack=attack[:1, k:k + 1], log_clean=log_clean, angles=angles)
         return None
     return fused.sir_packets(model, _prior_particles(model, rngs, particles), rngs, sensors, y, attack=attack,
-                             log_clean=log_clean, angles=angles, threads=threads)
+                             log_clean=log_clean, angles=angles, threads=threads, linear_weights=linear_weights)
 
 
 def run_binary(model: Model, y: np.ndarray, rngs: Sequence[np.random.Generator], *, particles: int,

@@ -18,7 +18,10 @@ given for ``target-range-bearing`` only.
 Randomness: run ``r`` uses ``SeedSequence(seed, spawn_key=(r,)).spawn(4)`` (=
 ``SeedSequence(seed).spawn(runs)[r].spawn(4)``) = (truth, Round-Robin attacks,
 all-sensor attacks, filters); the filters' stream is spawned once more per filter
-configuration.  The attack draws are shared by every η̄ of the sweep (``eta = u <
+configuration.  The truth stream gives the run's initial state, then its K process
+noises, then each sensor's K measurement noises
+(:func:`designer.simulate.simulate_runs`: a chunk's runs are propagated together, each
+from its own draws).  The attack draws are shared by every η̄ of the sweep (``eta = u <
 η̄`` with the same ``u`` and ``ξ``), so the packets attacked at 0.2 are also
 attacked at 0.4 and 0.6.
 
@@ -26,9 +29,9 @@ A :class:`studies.pipeline.Study` (``STUDY``): the runs are computed by
 :mod:`studies.runner` in chunks of ``chunk_size`` runs (:func:`_runs` is the task:
 it simulates the chunk's data and runs every filter configuration, sweep included,
 on it); metrics, tables and figures come from the concatenated per-run arrays.  With
-the fast engine (one Generator per run) the numbers do not depend on the backend,
-the chunk size or the number of threads; the NumPy engine (the linear-weights row)
-draws one Generator per chunk.  With ``out`` the chunks are stored there and an
+the fast engine (one Generator per run; every row, the linear-weights row included)
+the numbers do not depend on the backend, the chunk size or the number of threads;
+the NumPy engine draws one Generator per chunk.  With ``out`` the chunks are stored there and an
 interrupted study resumes.  Its options: ``engine`` (``"fast"`` or ``"numpy"``, see
 :mod:`studies.pfrun`), ``threads`` (of the fused engine within a chunk; no effect on
 the numbers), ``sweep`` (η̄ values in [0, 1), empty to skip) and
@@ -43,6 +46,7 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 from designer.attacks import RoundRobinDeception
+from designer.simulate import simulate_runs
 from designer.validation import InputError
 from filters.attacks import deception_attack, round_robin_schedule
 from filters.rrp import wrap_angles
@@ -96,9 +100,9 @@ ASSUMPTIONS = (
     "emulates weights kept in linear double precision (a weight below the smallest double becomes 0; a run whose "
     "weights all vanish keeps its predicted particles with uniform weights), to show how much the RRP-SPF-DA "
     "figure depends on that choice.",
-    "rrp-deception: the runs are computed in chunks of chunk_size runs (default 10); the fast engine draws from "
-    "one Generator per run, so its numbers do not depend on the chunks, threads or backend; the NumPy engine "
-    "(the linear-weights row, and every filter with engine='numpy') draws the particles of a whole chunk from one "
+    "rrp-deception: the runs are computed in chunks of chunk_size runs (default 10); the fast engine (every row, "
+    "the linear-weights row included) draws from one Generator per run, so its numbers do not depend on the "
+    "chunks, threads or backend; with engine='numpy' every filter draws the particles of a whole chunk from one "
     "Generator (the filter stream of the chunk's first run), so its numbers depend on chunk_size.",
 )
 
@@ -111,7 +115,7 @@ class _Filter(NamedTuple):
     packets: str  # "rr" (the Round-Robin packet of each step) or "all" (every sensor's, PF-DA)
     data_prob: float | None  # deception probability of the packets it receives (None: attack-free)
     filter_prob: float  # the deception probability its likelihood assumes
-    linear: bool  # linear-domain weights (NumPy engine)
+    linear: bool  # linear-domain weights (emulated, in either engine)
 
 
 def _is_paper(sc: Scenario) -> bool:
@@ -132,34 +136,32 @@ def _setup(sc) -> dict:
 
 
 def _data(sc, seeds: Sequence[np.random.SeedSequence], filters: Sequence[_Filter], n_streams: int):
-    """Truth, the packets each filter receives (keyed by ``(packets, data_prob)``) and the filter streams."""
+    """Truth, the packets each filter receives (keyed by ``(packets, data_prob)``) and the filter streams.
+
+    The runs are simulated together (:func:`designer.simulate.simulate_runs`: each run draws its initial state
+    and noises from its own truth stream, all of them before the propagation), the attacks run by run.
+    """
     m, K, st = sc.model, sc.steps, _setup(sc)
     R, N, ny = len(seeds), m.n_sensors, m.sensor_dims[0]
-    truth = np.empty((R, K + 1, m.n_x))
     keys = list(dict.fromkeys((f.packets, f.data_prob) for f in filters))
     data = {key: np.empty((R, K, 1 if key[0] == "rr" else N, ny)) for key in keys}
-    streams = []
-    for a, seq in enumerate(seeds):
-        s_truth, s_rr, s_all, s_filters = seq.spawn(4)
-        tr = sc.simulate(np.random.default_rng(s_truth), K)
-        truth[a] = tr.x
-        y_all = wrap_angles(tr.per_sensor(m), st["angles"])
-        y_rr = y_all[np.arange(K), st["sched"]][:, None, :]  # (K, 1, ny): the scheduled packet
-        for packets, prob in keys:
-            y, ss = (y_rr, s_rr) if packets == "rr" else (y_all, s_all)
-            data[packets, prob][a] = y if prob is None else _attacked(y, prob, st["box"], ss)
-        streams.append(s_filters.spawn(n_streams))
-    return truth, data, streams
+    split = [seq.spawn(4) for seq in seeds]  # (truth, Round-Robin attacks, all-sensor attacks, filters) per run
+    tr = simulate_runs(m, K, [np.random.default_rng(s[0]) for s in split], x0=sc.x0, inputs=sc.inputs(K))
+    y_all = wrap_angles(tr.per_sensor(m), st["angles"])  # (R, K, N, ny)
+    y_rr = y_all[:, np.arange(K), st["sched"]][:, :, None, :]  # (R, K, 1, ny): the scheduled packet
+    for packets, prob in keys:
+        y, which = (y_rr, 1) if packets == "rr" else (y_all, 2)
+        data[packets, prob][:] = y if prob is None else \
+            [_attacked(y[a], prob, st["box"], s[which]) for a, s in enumerate(split)]
+    return tr.x, data, [s[3].spawn(n_streams) for s in split]
 
 
 def _warm_up(sc, data: Mapping, filters: Sequence[_Filter], particles: int, engine: str) -> None:
     """Compile every fused-kernel variant the filters use (once compiled: one tiny call per filter)."""
     st = _setup(sc)
     for f in filters:
-        if not f.linear:
-            run_packets(sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], [], particles=particles,
-                        attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine=engine,
-                        warm_up=True)
+        run_packets(sc.model, data[f.packets, f.data_prob], st["sensors"][f.packets], [], particles=particles,
+                    attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"], engine=engine, warm_up=True)
 
 
 def _compile(ref: ScenarioRef, seed: int, particles: int, engine: str, filters: Sequence[_Filter],
@@ -176,7 +178,7 @@ def _run(f: _Filter, model, st: dict, particles: int, engine: str, threads: int,
     """Configuration ``f``'s filter on the chunk's runs (a registry entry's ``run``): its FilterResult."""
     return run_packets(model, chunk.data[f.packets, f.data_prob], st["sensors"][f.packets], chunk.rngs(f.stream),
                        particles=particles, attack_prob=f.filter_prob, signal=st["box"], angles=st["angles"],
-                       engine="numpy" if f.linear else engine, threads=threads, linear_weights=f.linear)
+                       engine=engine, threads=threads, linear_weights=f.linear)
 
 
 def _describe(f: _Filter) -> str:
@@ -277,6 +279,18 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     return Plan(task, "rrp-deception", config, before=before)
 
 
+@functools.lru_cache(maxsize=8)
+def _kalman_values(accel_var: float, period: float) -> tuple:
+    return tuple((n, cv_velocity_at_position_rmse(accel_var, period, v["rmse_position"]))
+                 for n, v in PAPER_TABLE1.items())
+
+
+def _kalman_reference(accel_var: float, period: float) -> dict:
+    """The Kalman velocity reference of each published RMSE_p (a tenth of a second of bisections: computed once
+    per process and parameters, a fresh dict at every call)."""
+    return dict(_kalman_values(accel_var, period))
+
+
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     m, K, engine = sc.model, sc.steps, so["engine"]
     filters, reused, names = _configs_of(sc, so)
@@ -284,7 +298,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     computed = score_configurations(
         mc.arrays, filters, reused, names, m, so.seed,
         lambda f: {"communications": int(K * (1 if f.packets == "rr" else m.n_sensors)),
-                   "engine": "numpy" if f.linear else engine, "attack_prob_assumed": f.filter_prob})
+                   "engine": engine, "attack_prob_assumed": f.filter_prob})
     filters_out = {k: computed[k] for k in (*FILTERS, *([LINEAR] if linear_weights_row else []))}
     if linear_weights_row:
         filters_out[LINEAR]["note"] = "not in the paper: RRP-SPF-DA with weights emulated in linear double precision"
@@ -295,9 +309,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     if _is_paper(sc):  # the Kalman reference is the paper's scenario's (its accel_std and period)
         paper = {
             "source": "seed 000, Table 1", "filters": PAPER_TABLE1,
-            "kalman_velocity_at_paper_rmse_position": {
-                n: cv_velocity_at_position_rmse(sc.params["accel_std"] ** 2, sc.params["period"], v["rmse_position"])
-                for n, v in PAPER_TABLE1.items()},
+            "kalman_velocity_at_paper_rmse_position": _kalman_reference(float(sc.params["accel_std"]) ** 2,
+                                                                        float(sc.params["period"])),
             "runs": 50, "particles": 500, "deception_prob": 0.2,
             "note": "Figs. 3-6 are curves without printed numbers; the paper states RMSE grows with eta-bar."}
     return results_block("rrp-deception", sc, so, mc, ASSUMPTIONS, filters_out, sweeps, paper)

@@ -441,7 +441,8 @@ def test_results_do_not_depend_on_threads_and_are_seeded(rb):
 
 
 def test_collapse_is_recorded_and_weights_stay_finite(rb, binary):
-    """Every particle's likelihood is -inf at chosen steps: uniform weights, no resampling, the filter goes on."""
+    """Every particle's likelihood is -inf at chosen steps: uniform weights, resampled as run_sir resamples them (its
+    rule: every step here), the filter goes on; one run reproduces run_sir through the collapses."""
     m, R, K = rb["m"], 2, rb["K"]
     y = rb["ys"][:R].copy()
     y[:, [5, 6, 20]] = 1e200  # finite, but every squared residual overflows: log p = -inf
@@ -452,8 +453,16 @@ def test_collapse_is_recorded_and_weights_stay_finite(rb, binary):
     bad[[5, 6, 20]] = True
     assert np.array_equal(res.collapsed, np.broadcast_to(bad, (R, K)))
     assert np.all(np.isfinite(res.mean)) and np.all(np.isfinite(res.cov)) and np.all(np.isfinite(res.ess))
-    assert np.all(res.ess[:, bad] == 300) and not res.resampled[:, bad].any()
+    assert np.all(res.ess[:, bad] == 300) and res.resampled.all()
     assert np.all(res.loglik == -np.inf)
+    g = spawn_generators(1, R)[1]  # run 1 again with the NumPy engine: the same draws through the collapses
+    ref = run_sir(m, y[1:2], g, particles=300, runs=1, loglik=rrp_loglik(m, rb["sched"], angles=[1])).detail
+    assert np.array_equal(ref.collapsed[0], bad) and np.array_equal(ref.resampled, res.resampled[1:2])
+    np.testing.assert_allclose(res.mean[1], ref.mean[0], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.ess[1], ref.ess[0], rtol=1e-9)
+    # below an ESS threshold (< 1) a collapsed step is not resampled (its ESS is M), in either engine
+    half = sir_packets(m, x0, spawn_generators(1, R), rb["sched"], y, angles=[1], ess_threshold=0.5).detail
+    assert np.array_equal(half.collapsed, res.collapsed) and not half.resampled[:, bad].any()
     # and it keeps tracking: after the collapses the estimate is as good as before them
     e = np.linalg.norm((res.mean[:, 1:] - rb["x"][:R, 1:])[..., [0, 2]], axis=-1)
     assert np.all(e[:, 22:] < 10.0)

@@ -158,39 +158,50 @@ def test_comparison_centralized_filters_rmse():
 
 # ----------------------------------------------------------------------------- rrp-deception (seed 000)
 def test_rrp_deception_table1_rmse():
-    """rrp-deception (fast engine), sweep and linear row off: RRP-PF-DA's and RRP-SPF-NM's rmse_position.
+    """rrp-deception (fast engine), sweep off: RRP-PF-DA's, RRP-SPF-NM's and the linear-domain row's rmse_position
+    and collapses.
 
     Run r: ``SeedSequence(seed, spawn_key=(r,)).spawn(4)`` = (truth, Round-Robin attacks,
-    all-sensor attacks, filters); filter configuration c draws from ``spawn(4)[3].spawn(n)[c]``
-    (RRP-PF-DA is c = 0, RRP-SPF-NM c = 2).  The scheduled sensor's packet, bearings wrapped;
+    all-sensor attacks, filters); the truth by ``simulate_runs`` (its per-run draws first); filter configuration
+    c draws from ``spawn(4)[3].spawn(n)[c]`` (RRP-PF-DA is c = 0, RRP-SPF-NM c = 2, the linear row c = 4 of
+    n = 5).  The scheduled sensor's packet, bearings wrapped;
     RRP-PF-DA filters the deceived packets with the attack-aware likelihood (14), RRP-SPF-NM
-    the clean ones with the standard likelihood.  The metric is error_metrics' average RMSE.
+    the clean ones with the standard likelihood, the linear row the deceived ones with the standard likelihood
+    and linear-domain weights (``run_sir(linear_weights=True)``, the reference).  The metric is error_metrics'
+    average RMSE.
     """
     seed, runs, steps, M = 3, 3, 25, 60
     res = run_study("rrp-deception", runs=runs, particles=M, seed=seed, quiet=True, sweep=(),
-                    linear_weights_row=False, overrides={"steps": steps}).results
+                    overrides={"steps": steps}).results
     assert res["engine"] == "fast"
     sc = load_scenario("target-range-bearing", {"steps": steps})
     m, ch = sc.model, sc.channel
     angles = sorted({j for _, j in m.angle_components})
     sched = round_robin_schedule(steps, m.n_sensors, ch.start)
     eta = ch.deception_prob
+    lin = "RRP-SPF-DA (linear-domain weights)"
     ll = {"RRP-PF-DA": rrp_loglik(m, sched, attack_prob=eta, signal=ch.deception, angles=angles),
           "RRP-SPF-NM": rrp_loglik(m, sched, attack_prob=0.0, angles=angles)}
+    ll[lin] = ll["RRP-SPF-NM"]
     pos = list(m.position_index)
-    e2 = {"RRP-PF-DA": [], "RRP-SPF-NM": []}
+    e2 = {"RRP-PF-DA": [], "RRP-SPF-NM": [], lin: []}
+    collapsed = 0
     for r in range(runs):
         s_truth, s_rr, _s_all, s_filters = run_ss(seed, r).spawn(4)
-        tr = simulate_scenario(sc, s_truth, steps)
-        y_rr = wrap_angles(tr.per_sensor(m), angles)[np.arange(steps), sched]  # (K, n_y): the scheduled packets
-        data = {"RRP-PF-DA": deception_attack(y_rr, eta, ch.deception, rng(s_rr)).y, "RRP-SPF-NM": y_rr}
-        streams = s_filters.spawn(4)
-        for name, c in (("RRP-PF-DA", 0), ("RRP-SPF-NM", 2)):
-            out = run_sir(m, data[name][None], rng(streams[c]), particles=M, runs=1, loglik=ll[name]).detail
-            e2[name].append(((tr.x[1:, pos] - out.mean[0][1:, pos]) ** 2).sum(-1))
+        tr = simulate_runs(m, steps, [rng(s_truth)], x0=sc.x0, inputs=sc.inputs(steps))
+        y_rr = wrap_angles(tr.per_sensor(m)[0], angles)[np.arange(steps), sched]  # (K, n_y): the scheduled packets
+        attacked = deception_attack(y_rr, eta, ch.deception, rng(s_rr)).y
+        data = {"RRP-PF-DA": attacked, "RRP-SPF-NM": y_rr, lin: attacked}
+        streams = s_filters.spawn(5)
+        for name, c in (("RRP-PF-DA", 0), ("RRP-SPF-NM", 2), (lin, 4)):
+            out = run_sir(m, data[name][None], rng(streams[c]), particles=M, runs=1, loglik=ll[name],
+                          linear_weights=name == lin).detail
+            e2[name].append(((tr.x[0][1:, pos] - out.mean[0][1:, pos]) ** 2).sum(-1))
+            collapsed += int(out.collapsed.sum()) if name == lin else 0
     for name in e2:
         np.testing.assert_allclose(res["filters"][name]["rmse_position"], curve_average(np.array(e2[name])),
                                    rtol=FUSED_VS_NUMPY, err_msg=name)
+    assert res["filters"][lin]["engine"] == "fast" and res["filters"][lin]["collapsed_steps"] == collapsed > 0
 
 
 # ----------------------------------------------------------------------------- binary-multi-attack (seed 002)

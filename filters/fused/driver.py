@@ -15,11 +15,20 @@ Weights: the kernels never take a ``log`` per particle: a step's log-likelihood 
 ``s >= 1``), and only a step that does not resample needs the log weights themselves.
 A particle whose log-likelihood is not finite (NaN from an undefined measurement
 function, ±inf) gets zero weight.  When *every* particle's weight vanishes at a step (a
-**collapse**), the filter keeps the predicted particles with uniform weights, does not
-resample at that step, records the event in ``collapsed`` and — since the estimate of
-``p(z_k | z_1:k-1)`` is then zero — sets the run's log marginal likelihood to ``-inf``.
-A weight below ``exp(-708)`` times the step's largest one counts as zero (it changes no
-sum; libm would give a subnormal).
+**collapse**), the filter keeps the predicted particles with uniform weights, records the
+event in ``collapsed`` and — since the estimate of ``p(z_k | z_1:k-1)`` is then zero —
+sets the run's log marginal likelihood to ``-inf``; it resamples those uniform weights
+when the step's rule asks (``ess_threshold`` 1: every step; below 1 never, the ESS being
+``M``), as :func:`filters.particle.run_sir` does, so both engines draw the same numbers
+through a collapse.  A weight below ``exp(-708)`` times the step's largest one counts as
+zero (it changes no sum; libm would give a subnormal).
+
+``linear_weights``: the NumPy engine's emulation of weights kept in linear double precision
+(:func:`filters.particle.run_sir`): a particle whose normalised weight ``W_{k-1} p(z_k | x)``
+underflows the smallest positive double (its log weight below the previous step's log
+normaliser plus :data:`filters.particle.LOG_TINY`) gets zero weight, so a measurement far
+from every particle collapses the run.  One comparison per particle (a ``log`` only for
+those near the cut); the log-domain filter is the same code with the cut at ``-inf``.
 
 Randomness: **one** :class:`numpy.random.Generator` **per run**, drawn from in a fixed
 order (per step: the propagation's draws, then the resampler's uniforms), through its
@@ -41,7 +50,7 @@ from numba.core import types
 
 from designer.model import Model
 from designer.validation import InputError, check_int
-from filters.particle import check_finite_means
+from filters.particle import LOG_TINY, check_finite_means
 from filters.resampling import SCHEMES, scheme_code
 from filters.result import FilterResult, centralized_result
 
@@ -173,7 +182,7 @@ def _largest(v):
 
 
 @njit()
-def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
+def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, floor, b, s, ex, buf):
     """Propagate every particle and weigh it with step ``t``'s data, block by block; returns the largest ``b``.
 
     ``prop(X, anc, XN, m0, n, k, rng, buf)`` (generated per model) writes ``f(X[anc[m]], k)
@@ -183,7 +192,8 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
     :func:`propagation_predrawn`) does so into ``buf`` at its first block; the
     new log weight ``lw[m] + log p(y_t | XN[m])`` is left as ``b[m] + log s[m]`` (see
     :func:`likelihood_block`): ``s`` is a linear factor >= 1, no ``log`` is taken
-    here, and a NaN or infinite one becomes ``b = -inf``, ``s = 0`` (zero weight).
+    here, and a NaN or infinite one becomes ``b = -inf``, ``s = 0`` (zero weight), as does one whose log weight
+    ``b + log s`` lies below ``floor`` (linear-domain weights; ``-inf`` otherwise: no particle is below it).
     Blocks of ``BLOCK`` particles keep the scratch ``ex`` small; separate loops keep
     few values live across the generator and libm calls (which clobber every
     floating-point register) and let the branch-free ones vectorise.
@@ -204,16 +214,20 @@ def _step(prop, lik, P, ne, X, anc, XN, t, rng, data, lw, fresh, b, s, ex, buf):
             if not (v > -math.inf and v < math.inf and sb[i] == sb[i]):  # NaN (e.g. h undefined) or infinite
                 sb[i] = 0.0  # zero weight
                 bb[i] = -math.inf
+            elif v < floor and v + math.log(sb[i]) < floor:  # its linear-domain weight underflows (s >= 1)
+                sb[i] = 0.0
+                bb[i] = -math.inf
         best = max(best, _largest(bb))
     return best
 
 
-def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_cov, mean, cov, ess, resampled,
+def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, lin, do_cov, mean, cov, ess, resampled,
              collapsed):
     """One Monte Carlo run of the bootstrap filter; returns its log marginal likelihood.
 
     ``nd``: random numbers per particle that ``prop`` draws ahead of each step into
-    its scratch (0 for a propagation that draws as it goes).
+    its scratch (0 for a propagation that draws as it goes).  ``lin``: linear-domain
+    weights (see the module notes).
 
     Each step: :func:`_step` (propagation, and the new log weights as ``b + log s``);
     ``weigh(x, b, s, best, W, mean)`` (generated per model) sets ``W = exp(b - best) s``
@@ -244,10 +258,13 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_
     for k in range(K):
         mk = mean[k + 1]
         ck = cov[k + 1] if do_cov else cov[0]
-        best = _step(prop, lik, P, ne, x, anc, xn, k, rng, data, lw, fresh, b, s, ex, buf)
+        # linear-domain weights: W_{k-1} p(z_k | x) = exp(lw + ll - prev) is 0.0 below exp(LOG_TINY)
+        floor = prev + LOG_TINY if lin else -math.inf
+        best = _step(prop, lik, P, ne, x, anc, xn, k, rng, data, lw, fresh, floor, b, s, ex, buf)
         x, xn = xn, x
         if best == -math.inf:
-            # Collapse: every weight vanished.  Keep the predicted particles, uniformly weighted.
+            # Collapse: every weight vanished.  Keep the predicted particles, uniformly weighted (W = 1), and
+            # resample them if the step's rule asks (ESS = M), as run_sir does: the same draws
             collapsed[k] = True
             total = -math.inf
             ess[k] = Mf
@@ -255,6 +272,9 @@ def _sir_run(prop, nd, lik, P, ne, weigh, data, x0, rng, resampler, ess_thr, do_
             for m in range(M):
                 lw[m] = 0.0
                 anc[m] = m
+            if ess_thr >= 1.0 or Mf < ess_thr * Mf - 1e-9:
+                resampler(W, 1.0 / Mf, rng, anc, cdf, u)
+                resampled[k] = True
             fresh = True
             prev = lnM
             continue
@@ -330,8 +350,8 @@ def drivers(data, which: int = 0):
     if key not in _DRIVERS:
         lik, i8, f8 = lik_type(data), types.int64, types.float64
         if which == 0:
-            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, STREAM, SCHEME_T, f8, types.boolean, F2, F3, F1, B1,
-                     B1)
+            bo = types.boolean
+            sig = f8(PROP_T, i8, lik, i8, i8, WEIGH_T, data, F2, STREAM, SCHEME_T, f8, bo, bo, F2, F3, F1, B1, B1)
             _DRIVERS[key] = _entry(_sir_run, sig)
         else:
             _DRIVERS[key] = _entry(loglik_rows, types.void(lik, i8, i8, F2, f8, data, F1))
@@ -362,15 +382,17 @@ def spread(one, R: int, threads: int) -> None:
 
 
 def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads,
-            uplinks: int) -> FilterResult:
+            uplinks: int, linear_weights: bool = False) -> FilterResult:
     """Every run of a family with data type ``data_type``, spread over ``threads`` threads.
 
     ``kernels = (prop, nd, lik, P, ne, weigh)`` of :func:`_sir_run`, ``data_of_run(r)`` run
-    ``r``'s data, ``scheme`` the resampling scheme's code.  Returns the fusion centre's
+    ``r``'s data, ``scheme`` the resampling scheme's code, ``linear_weights`` the emulation of
+    linear-domain weights (see the module notes).  Returns the fusion centre's
     :class:`filters.result.FilterResult` (:func:`filters.result.centralized_result`: ``uplinks``
     messages per step; ``cov`` None unless ``covariance``), ``detail`` the :class:`FastSIRResult`.
     """
     run, scheme = drivers(data_type), resampler(scheme)
+    lin = bool(linear_weights)
     R, M, n_x = x0.shape
     mean = np.empty((R, K + 1, n_x))
     cov = np.empty((R, K + 1, n_x, n_x)) if covariance else np.zeros((R, 1, 0, 0))
@@ -380,8 +402,8 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
     loglik = np.empty(R)
 
     def one(r: int) -> None:
-        loglik[r] = drawing(gens[r], lambda st: run(*kernels, data_of_run(r), x0[r], st, scheme, thr, covariance,
-                                                    mean[r], cov[r], ess[r], resampled[r], collapsed[r]))
+        loglik[r] = drawing(gens[r], lambda st: run(*kernels, data_of_run(r), x0[r], st, scheme, thr, lin,
+                                                    covariance, mean[r], cov[r], ess[r], resampled[r], collapsed[r]))
 
     spread(one, R, threads)
     cov = cov if covariance else None

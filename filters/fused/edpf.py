@@ -22,8 +22,8 @@ handling) and two generated, per-model pieces:
     where it does not cancel);
   - ``likelihood="raw"`` (PF-SR-DE): ``Σ_s α_s log p_ζ(z̃_s − h_s)``, ``−inf`` outside
     the truncation — so every particle of a run may get zero weight: the run then
-    keeps its predicted particles with uniform weights, does not resample and
-    records a collapse (as ``run_sir``).
+    keeps its predicted particles with uniform weights, resamples them only if its
+    ESS rule asks (``ess_threshold`` 1) and records a collapse (as ``run_sir``).
 
 A sensor with ``α_s = 0`` contributes the factor 1 (Remark 2).  With the same
 generator and the same initial particles, a one-run call reproduces ``run_sir(...,
@@ -212,8 +212,8 @@ def sir_edpf(
     -------
     FilterResult
         As :func:`filters.fused.sir_packets` returns it; in its ``detail``, ``collapsed[r, k]``: every weight
-        of run ``r`` vanished at step ``k`` (predicted particles kept, uniform weights, no resampling;
-        ``loglik[r] = -inf``).
+        of run ``r`` vanished at step ``k`` (predicted particles kept, uniform weights, resampled only with
+        ``ess_threshold`` 1; ``loglik[r] = -inf``).
     """
     model = _checked_model(model)
     bound = _bound(model, likelihood, codec)

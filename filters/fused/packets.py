@@ -60,6 +60,7 @@ def sir_packets(
     ess_threshold: float = 1.0,
     covariance: bool = False,
     threads: int = 1,
+    linear_weights: bool = False,
 ) -> FilterResult:
     """Bootstrap filter on packets of sensor measurements, many runs, fused numba kernels.
 
@@ -93,24 +94,30 @@ def sir_packets(
         Also return the weighted covariance at every step.
     threads : int
         Threads the runs are spread over (the results do not depend on it).
+    linear_weights : bool
+        Emulate linear-domain weights as :func:`filters.particle.run_sir` does: a normalised
+        weight that underflows double precision becomes zero, and a step where every weight
+        does is a collapse (:mod:`filters.fused.driver`).  Default: log domain.
 
     Returns
     -------
     FilterResult
         The fusion centre's runs (:func:`filters.result.centralized_result`: ``P`` messages per step, its
-        packets; ``cov`` None unless ``covariance``), ``detail`` the :class:`filters.fused.FastSIRResult` (means, covariances, ESS,
-        log marginal likelihood, the steps resampled and collapsed).
+        packets; ``cov`` None unless ``covariance``), ``detail`` the :class:`filters.fused.FastSIRResult`
+        (means, covariances, ESS, log marginal likelihood, the steps resampled and collapsed).
     """
     model = check_model(model)
     x0 = check_particles(x0, model.n_x)
     R = x0.shape[0]
     gens = check_generators(rngs, R)
     scheme, thr, threads, covariance = check_options(resampler, ess_threshold, threads, covariance)
+    if not isinstance(linear_weights, (bool, np.bool_)):
+        raise InputError(f"linear_weights must be True or False, got {linear_weights!r}")
     sens, yy, att, lc = packet_data(model, R, sensors, y, attack, log_clean)
     lik, ne = packet_lik(model, wrap_set(angles, model), bool(np.any(att > -np.inf)))
     kernels = (propagation(model), 0, lik, sens.shape[1], ne, weights(model))
     return run_all(DATA, kernels, lambda r: (sens, yy[r], att[r], lc), x0, gens, sens.shape[0], scheme, thr,
-                   covariance, threads, sens.shape[1])
+                   covariance, threads, sens.shape[1], linear_weights=bool(linear_weights))
 
 
 def packets_loglik(model: Model, x, k1: int, sensors, y, *, attack=None, log_clean: float = 0.0,

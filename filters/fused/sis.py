@@ -45,7 +45,7 @@ from designer.simulate import check_inputs
 from designer.validation import InputError, check_finite, check_int, check_probability
 from filters.fdi import (SISResult, check_gamma_hat, deception_mixture_loglik, detection_gain, measurement_cov,
                          measurement_matrix)
-from filters.particle import check_finite_means
+from filters.particle import LOG_TINY, check_finite_means
 
 from .cache import njit
 from .codegen import component_lines, components, compile_kernel, model_kernels, noise_terms
@@ -57,7 +57,6 @@ __all__ = ["DETECTORS", "LIKELIHOODS", "SISParticles", "sis_particles", "sis_fdi
 #: The detectors by name (None: no detector) and the likelihoods, as the kernel's codes.
 DETECTORS = {None: 0, "normal": 1, "modified": 2, "sampled": 3}
 LIKELIHOODS = {"additive": 0, "mixture": 1, "uniform": 2}
-_LOG_TINY = float(np.log(np.nextafter(0.0, 1.0)))  # as filters.fdi: exp(x) == 0.0 below it
 _NO_DRAWS = open_stream(np.random.default_rng(0))  # the aux stream of a filter that draws none (a placeholder)
 
 PROP_T = types.FunctionType(types.void(F2, F2, F2, types.float64, STREAM, F1))
@@ -283,7 +282,7 @@ def _sis_weigh(lik, X, FX, aux, Z, GH, use_gh, G, Kd, Lq, eta, zeta, det, lin, k
         for m in range(M):
             v = lw[m] + ll[m]
             v = v if v == v else -np.inf
-            if lin and v - prev < _LOG_TINY:
+            if lin and v - prev < LOG_TINY:
                 v = -np.inf
             lw[m] = v
             dead = dead and v == -np.inf
