@@ -46,6 +46,7 @@ import stat
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -219,8 +220,22 @@ def write_json(path, data: Any) -> Path:
     return atomic_write(path, lambda fh: fh.write(text.encode() + b"\n"))
 
 
+#: zlib's level for ``.npz`` files: the fastest.  Doubles hardly compress (a design's bounds at a hundred states: 1.6
+#: GB to 469 MB at the default level 6, 20 s; level 1 writes them 3-4 times faster); runs of zeros (a rule without
+#: consensus gains) compress as well at either.
+NPZ_LEVEL = 1
+
+
 def write_npz(path, **arrays) -> Path:
-    return atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
+    """Write ``arrays`` as a compressed ``.npz`` (what ``np.savez_compressed`` writes, at zlib level
+    :data:`NPZ_LEVEL`; ``np.load`` reads it) atomically."""
+    def write(fh):
+        with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=NPZ_LEVEL) as zf:
+            for name, value in arrays.items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+
+    return atomic_write(path, write)
 
 
 def check_output_file(name: str, path, suffix: str) -> Path:

@@ -55,6 +55,7 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
+from designer.progress import phase
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
@@ -74,7 +75,7 @@ from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "HCMCI_ITERATIONS", "realise",
+__all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "CHUNK_ROWS", "CHUNKS_LARGE", "chunk_size", "HCMCI_ITERATIONS", "realise",
            "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
@@ -135,6 +136,18 @@ FILTERS = FILTER_REGISTRY.names()  # the built-in filters (a registered one join
 _STREAM_ORDER = (LOCAL, MSE, KCF, HCMCI)
 SWEEP_VALUES = (0.0, 0.1, 0.2, 0.3, 0.4)
 CHUNK_SIZE = 10
+#: Above this many rows N n a run costs more than batching saves: the runs are cut into CHUNKS_LARGE chunks instead
+#: (a chunk per core on 2 and 4 cores; the numbers do not depend on the cut), e.g. IEEE 14's 14 nodes x 13 states.
+CHUNK_ROWS = 100
+CHUNKS_LARGE = 4
+
+
+def chunk_size(sc, runs: int) -> int:
+    """Runs per stored chunk: :data:`CHUNK_SIZE`, or a quarter of the runs for a model of more than
+    :data:`CHUNK_ROWS` rows N n (a property of the model and the runs, never of the machine)."""
+    if sc.network is not None and sc.network.n_nodes * sc.model.n_x > CHUNK_ROWS:
+        return max(1, min(CHUNK_SIZE, -(-int(runs) // CHUNKS_LARGE)))
+    return CHUNK_SIZE
 JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
 SCENARIOS = ("indoor-robot", "target-range-bearing")
 DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50, None: 50}
@@ -367,7 +380,8 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
                             lambda j: designs[j][e.mode])
         for js in groups:
             t0 = time.perf_counter()
-            res = e.run(batch, js, None if e.mode is None else e.design_for(designs[js[0]][e.mode], m))
+            with phase(e.name):
+                res = e.run(batch, js, None if e.mode is None else e.design_for(designs[js[0]][e.mode], m))
             per_row = (np.full(res.runs, (time.perf_counter() - t0) / res.runs) if res.seconds is None
                        else res.seconds)
             rows = [(j, a) for j in js for a in range(R)]
@@ -444,7 +458,8 @@ def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: b
     for e in (FILTER_REGISTRY if entries is None else entries):
         for j, s in enumerate(scs):
             if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
-                designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
+                with phase(f"design {e.mode}, setting {j + 1}/{len(scs)}"):
+                    designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
     return designs
 
 
@@ -847,7 +862,7 @@ STUDY = Study(
     scenarios=SCENARIOS,
     runs=DEFAULT_RUNS,
     particles=500,
-    chunk_size=CHUNK_SIZE,
+    chunk_size=chunk_size,
     plan=_plan,
     summarise=_summarise,
     table=table_markdown,

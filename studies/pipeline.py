@@ -107,8 +107,9 @@ class Study:
         Default Monte Carlo runs (a mapping: per default scenario, with key ``None`` for others).
     particles : int or None
         Default particles of its particle filters (None: it has none; ``particles`` is an error).
-    chunk_size : int
-        Runs per stored chunk (part of the study: never derived from the backend).
+    chunk_size : int or callable ``(scenario, runs) -> int``
+        Runs per stored chunk, or the study's rule for it from the scenario's size and the runs (part of the study
+        and of the model: never derived from the backend).
     options : mapping
         The study's own options and their defaults (e.g. ``engine``, ``schedule``).
     uses_design : bool
@@ -138,7 +139,7 @@ class Study:
     scenarios: tuple[str, ...]
     runs: int | Mapping[str | None, int]
     particles: int | None
-    chunk_size: int
+    chunk_size: int | Callable[[Any, int], int]
     plan: Callable[[Any, StudyOptions], Plan]
     summarise: Callable[[Any, MonteCarloResult, StudyOptions], dict]
     table: Callable[[dict], str]
@@ -308,7 +309,7 @@ def _run_study(name: str, targets, *, out, runs, particles, seed, backend, force
         given = next(k for k, v in design.as_dict().items() if v is not None)
         raise InputError(f"option --{given.replace('_', '-')} does not apply to study {name!r}")
     seed = check_int("seed", seed, 0)
-    chunk = check_int("chunk_size", study.chunk_size if chunk_size is None else chunk_size, 1)
+    chunk = None if chunk_size is None else check_int("chunk_size", chunk_size, 1)
     backend = backend or study.default_backend()
     if not isinstance(backend, Backend):
         raise InputError(f"backend must be a studies.runner.Backend, got {type(backend).__name__}")
@@ -352,9 +353,14 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
     from .memory import check, study_need
 
     blocks, arrays, built = {}, {}, {}
-    chosen = [(sc, StudyOptions(runs if runs is not None else study.default_runs(sc.source or sc.name),
-                                particles if particles is not None else study.particles, seed, chunk, backend, design,
-                                extra)) for sc in scenarios]
+    def options_of(sc):
+        r = runs if runs is not None else study.default_runs(sc.source or sc.name)
+        size = chunk if chunk is not None else study.chunk_size(sc, r) if callable(study.chunk_size) \
+            else study.chunk_size
+        return StudyOptions(r, particles if particles is not None else study.particles, seed,
+                            check_int("chunk_size", size, 1), backend, design, extra)
+
+    chosen = [(sc, options_of(sc)) for sc in scenarios]
     for sc, so in chosen:  # every scenario's options and memory before the first computes
         if study.check is not None:
             study.check(so)
@@ -364,7 +370,7 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
         if plan.before is not None and backend.kind != "dask":
             plan.before()
         # the stored runs are those of this model's content (Scenario.digest), wherever its file lies
-        mc = monte_carlo(plan.task, runs=plan.runs or so.runs, seed=seed, chunk_size=chunk, backend=backend,
+        mc = monte_carlo(plan.task, runs=plan.runs or so.runs, seed=seed, chunk_size=so.chunk_size, backend=backend,
                          store=out, label=plan.label, config={**plan.config, "model": sc.digest}, force=force,
                          quiet=quiet)
         blocks[sc.name] = study.summarise(sc, mc, so)

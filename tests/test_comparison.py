@@ -532,3 +532,26 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     from studies import schemas
 
     schemas.validate_output(tmp_path / "d")
+
+
+def test_a_large_model_is_cut_into_smaller_chunks_with_the_same_numbers(tmp_path):
+    """studies.comparison.chunk_size: above CHUNK_ROWS rows N n the runs are cut into CHUNKS_LARGE chunks (so a
+    default --runs 10 keeps two or four cores busy), below it CHUNK_SIZE; the numbers are those of one chunk."""
+    from studies.comparison import CHUNK_ROWS, CHUNK_SIZE, CHUNKS_LARGE, chunk_size
+
+    path = tmp_path / "rod15.py"
+    path.write_text(FIELD15)
+    sc = load_scenario(str(path))
+    assert sc.network.n_nodes * sc.model.n_x > CHUNK_ROWS
+    assert [chunk_size(sc, r) for r in (1, 4, 10, 40, 100)] == [1, 1, 3, 10, CHUNK_SIZE]
+    robot = load_scenario("indoor-robot")
+    assert robot.network.n_nodes * robot.model.n_x <= CHUNK_ROWS and chunk_size(robot, 10) == CHUNK_SIZE
+    kw = dict(scenarios=[str(path)], runs=CHUNKS_LARGE, particles=20, sweep_values=[0.2],
+              filters="KCF,relay EKF (relay design),local EKF at every node (no network)")
+    cut = run_study("comparison", kw.pop("scenarios"), quiet=True, **kw)
+    whole = run_study("comparison", [str(path)], quiet=True, chunk_size=CHUNKS_LARGE, **kw)
+    a, b = next(iter(cut.arrays.values())), next(iter(whole.arrays.values()))
+    assert set(a) == set(b)
+    for name in a:
+        if name != "seconds":
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)

@@ -181,7 +181,7 @@ def test_no_filters_interval_depends_on_another_filters_runs(tmp_path):
     arrays = next(iter(res.arrays.values()))
     p = FILTERS.index(PAPER_DESIGN)
     assert not res.filters[PAPER_DESIGN].get("infeasible") and np.isfinite(arrays["err2"][:, 0, p]).all()
-    so = StudyOptions(4, 30, 0, COMPARISON.chunk_size, Backend(), DesignOptions(),
+    so = StudyOptions(4, 30, 0, COMPARISON.chunk_size(sc, 4), Backend(), DesignOptions(),
                       {**COMPARISON.options, "sweep_values": [0.3], "tuned_in_sweeps": False})
     lost = {k: v.copy() for k, v in arrays.items()}
     lost["err2"][[1, 3], :, p] = np.nan  # two of the paper design's runs diverged
