@@ -297,6 +297,50 @@ def _fields(options: DesignOptions, cand: dict) -> DesignOptions:
     return replace(options, **given)
 
 
+def _validation_backend():
+    """Where the validation's chunks run: every usable core (the same numbers on every backend)."""
+    from designer.cores import usable_cores
+
+    from .runner import Backend
+
+    cores = usable_cores()
+    return Backend("processes", workers=cores) if cores > 1 else Backend()
+
+
+def _check_validation(sc: Scenario, options: DesignOptions, runs: int) -> None:
+    """The memory of ``runs`` validation runs (the consensus-robot study's, of a relay pick: every deployable rule's
+    filter holds the same per-node arrays), checked before any candidate is designed: InputError naming
+    ``--validate`` and the most runs that fit."""
+    from .memory import check, study_need
+    from .pipeline import StudyOptions
+    from .study_registry import get_study
+
+    study = get_study("consensus-robot")
+
+    def need(r):
+        chunk = study.chunk_size(sc, r) if callable(study.chunk_size) else study.chunk_size
+        so = StudyOptions(r, study.particles, 0, chunk, _validation_backend(), replace(options, mode="relay"),
+                          dict(study.options))
+        return study_need("consensus-robot", sc, so, None if study.uses is None else study.uses(sc, so))
+
+    try:
+        check(need(runs))
+    except InputError as exc:
+        fits = next((r for r in range(runs - 1, 0, -1) if _fits(need(r))), 0)
+        why = str(exc).split("; to fit, use")[0]  # the study's advice names options the design does not take
+        raise InputError(f"--validate {runs}: the validation's {why}; --validate {fits} fits") from None
+
+
+def _fits(need) -> bool:
+    from .memory import check
+
+    try:
+        check(need)
+    except InputError:
+        return False
+    return True
+
+
 def _check_candidate(sc: Scenario, options: DesignOptions, steps: int) -> None:
     """What ``design --mode NAME`` checks before computing (the options, the model at its operating point, the
     memory a design needs): InputError naming the problem."""
@@ -336,6 +380,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     cap, budget_bytes, validate, seconds = check_auto(sc, budget, budget_bytes, validate, seconds)
     base = replace(options, mode=None)
+    if validate:  # before the candidates: a validation that cannot fit is refused now, not after them
+        _check_validation(sc, base, validate)
     sc_eff = sc.with_attacks(**base.attack_overrides())  # what every candidate designs for (effective's scenario)
     net, model = sc_eff.network, sc_eff.model
     x0, u0 = sc_eff.operating_point
@@ -478,16 +524,11 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     nodes), ``rmse_state``, ``rmse_position`` where the model has a position, ``diverged_runs`` (how many), the
     messages per step; for the pick its ``bound_check`` and verdict counts; ``ratios``: the pick's RMSE over each
     reference's."""
-    from designer.cores import usable_cores
-
     from .pipeline import run_study
-    from .runner import Backend
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
-    cores = usable_cores()  # the runs' chunks on every core (the same numbers on every backend)
-    backend = Backend("processes", workers=cores) if cores > 1 else Backend()
     res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=False,
-                    backend=backend)  # the runner's progress bar on a terminal
+                    backend=_validation_backend())  # the runner's progress bar on a terminal
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
     rows = {}

@@ -16,6 +16,7 @@ import pytest
 
 import rules
 from designer import SensorNetwork
+from designer.design import DesignOptions
 from designer.validation import InputError
 from studies.auto import TIE, Candidate, message_budget, predicted_error
 from studies.runner import run_forked
@@ -210,6 +211,31 @@ def test_auto_options_are_refused_with_a_rule_before_any_computation(tmp_path):
     assert not (tmp_path / "d").exists()
     with pytest.raises(InputError, match="budget"):
         design(RING, budget="none", out=tmp_path / "e")
+
+
+def test_a_validation_that_cannot_fit_is_refused_before_any_candidate(tmp_path, monkeypatch):
+    """The validation's memory (its consensus-robot runs) is checked before the candidates are designed: refused
+    with the most runs that fit, nothing computed nor written."""
+    from studies import auto, memory
+    from studies.api import design
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario(RING)
+    need, limit = {}, float("inf")
+
+    def check(n, available=None):  # the validation of more than 6 runs does not fit; everything else does
+        if n.command.startswith("study consensus-robot"):
+            need[n.command] = n.nbytes
+            if n.nbytes > limit:
+                raise InputError(f"{n.command} would need too much")
+
+    monkeypatch.setattr(memory, "check", check)
+    auto._check_validation(sc, DesignOptions(), 6)
+    limit = max(need.values())
+    monkeypatch.setattr(auto, "run_forked", lambda *a, **k: pytest.fail("a candidate was designed"))
+    with pytest.raises(InputError, match=r"^--validate 20: the validation's .*; --validate 6 fits$"):
+        design(RING, validate=20, out=tmp_path / "d")
+    assert not (tmp_path / "d").exists()
 
 
 @pytest.mark.slow

@@ -71,6 +71,22 @@ def test_stationary_certificate_is_where_the_filters_covariance_settles(hops):
     assert np.trace(clean.Phi, axis1=-2, axis2=-1).sum() < np.trace(cert.Phi, axis1=-2, axis2=-1).sum()
 
 
+def test_an_lmi_too_large_to_hold_is_not_solved_and_says_why(monkeypatch):
+    """The relay LMI writes each node's update as an n² x n² matrix (8.6 GB on a 64-cell field): above
+    LMI_MAX_ENTRIES numbers it is not solved, the reason names the sizes, and the fixed point is kept."""
+    import rules.relay.design as relay
+
+    model, net = linear_model(), varied_network()
+    design = relay_design(model, net, 1)
+    whole = relay_stationary(model, net, design, x=np.zeros(model.n_x))
+    assert whole.lmi["status"] == "optimal"
+    monkeypatch.setattr(relay, "LMI_MAX_ENTRIES", net.n_nodes * model.n_x**4 - 1)
+    capped = relay_stationary(model, net, design, x=np.zeros(model.n_x))
+    assert capped.converged and np.array_equal(capped.Phi, whole.Phi)
+    assert capped.lmi["status"] == "not solved" and capped.lmi["trace"] is None
+    assert f"N n⁴ = {net.n_nodes} x {model.n_x}⁴" in capped.lmi["reason"]
+
+
 USER_MODEL = '''
 import casadi as ca
 import numpy as np

@@ -49,8 +49,9 @@ ROUTINGS = ("tree", "flood")
 #: What a packet of a rule that relays carries (``ConsensusDesign.exchange``): the measurements relayed.
 RELAY = "relay"
 
-__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter", "relay_payload",
-           "pair_sum", "relay_stationary", "whitened_rows", "NodeMoments", "node_moments", "relay_update", "grouped",
+__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
+           "relay_payload", "pair_sum", "relay_stationary", "LMI_MAX_ENTRIES", "whitened_rows", "NodeMoments",
+           "node_moments", "relay_update", "grouped",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
@@ -593,6 +594,10 @@ def _ball_rows(mom: NodeMoments, offsets: np.ndarray) -> np.ndarray:
     return np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in mom.sensors])
 
 
+#: The most numbers the relay LMI's maps may hold (each node's expected update written as an n² x n² matrix, and one
+#: node's image of the n² basis matrices through its ball's r rows): 2^24 doubles, 128 MB.  Above it the LMI is not
+#: solved and says why (a 64-cell field: 1.1e9, 8.6 GB); the recursion's fixed point is still computed.
+LMI_MAX_ENTRIES = 2**24
 #: The relative change of every node's trace below which the stationary recursion has reached its fixed point.
 STATIONARY_TOL = 1e-9
 #: The most iterations of the stationary recursion.
@@ -690,6 +695,11 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
     import cvxpy as cp
 
     N, n = Phi.shape[0], Phi.shape[-1]
+    rows = max(len(_ball_rows(mom, offsets)) for mom in moments)
+    size = max(N * n**4, n**2 * rows**2)  # the maps of every node; one node's image of the basis through pair_sum
+    if size > LMI_MAX_ENTRIES:
+        return {"status": "not solved", "reason": f"its maps hold {size:.3g} numbers (N n⁴ = {N} x {n}⁴, n² r² = "
+                f"{n}² x {rows}²) > {LMI_MAX_ENTRIES:.3g}", "trace": None, "max_residual": None}
     basis = np.eye(n * n).reshape(n * n, n, n)
     maps, consts = [], []
     for i, mom in enumerate(moments):
