@@ -308,9 +308,9 @@ def _validation_backend():
 
 
 def _check_validation(sc: Scenario, options: DesignOptions, runs: int) -> None:
-    """The memory of ``runs`` validation runs (the consensus-robot study's, of a relay pick: every deployable rule's
-    filter holds the same per-node arrays), checked before any candidate is designed: InputError naming
-    ``--validate`` and the most runs that fit."""
+    """The memory of ``runs`` validation runs (the consensus-robot study's, of the candidate of ``options``: every
+    deployable rule's filter holds the same per-node arrays), checked before any candidate is designed: InputError
+    naming ``--validate`` and the most runs that fit."""
     from .memory import check, study_need
     from .pipeline import StudyOptions
     from .study_registry import get_study
@@ -319,8 +319,7 @@ def _check_validation(sc: Scenario, options: DesignOptions, runs: int) -> None:
 
     def need(r):
         chunk = study.chunk_size(sc, r) if callable(study.chunk_size) else study.chunk_size
-        so = StudyOptions(r, study.particles, 0, chunk, _validation_backend(), replace(options, mode="relay"),
-                          dict(study.options))
+        so = StudyOptions(r, study.particles, 0, chunk, _validation_backend(), options, dict(study.options))
         return study_need("consensus-robot", sc, so, None if study.uses is None else study.uses(sc, so))
 
     try:
@@ -380,8 +379,6 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
     cap, budget_bytes, validate, seconds = check_auto(sc, budget, budget_bytes, validate, seconds)
     base = replace(options, mode=None)
-    if validate:  # before the candidates: a validation that cannot fit is refused now, not after them
-        _check_validation(sc, base, validate)
     sc_eff = sc.with_attacks(**base.attack_overrides())  # what every candidate designs for (effective's scenario)
     net, model = sc_eff.network, sc_eff.model
     x0, u0 = sc_eff.operating_point
@@ -396,6 +393,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
         raise InputError(next(p[4] for p in plans)) if plans else InputError(
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
+    if validate:  # before the candidates are designed: a validation that cannot fit is refused now, not after
+        _check_validation(sc, next(p[3] for p in plans if p[3] is not None), validate)
     plans.sort(key=lambda p: (p[1].offline_tables, p[0], sorted(p[2].items())))  # the cheap ones first
     todo = [j for j, p in enumerate(plans) if p[3] is not None]
     bar = counter(len(todo), False, "automatic design: candidates")  # a terminal's progress bar

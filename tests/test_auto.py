@@ -230,7 +230,7 @@ def test_a_validation_that_cannot_fit_is_refused_before_any_candidate(tmp_path, 
                 raise InputError(f"{n.command} would need too much")
 
     monkeypatch.setattr(memory, "check", check)
-    auto._check_validation(sc, DesignOptions(), 6)
+    auto._check_validation(sc, DesignOptions(mode="relay"), 6)
     limit = max(need.values())
     monkeypatch.setattr(auto, "run_forked", lambda *a, **k: pytest.fail("a candidate was designed"))
     with pytest.raises(InputError, match=r"^--validate 20: the validation's .*; --validate 6 fits$"):

@@ -161,11 +161,11 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
     assert main(["simulate", "indoor-robot", "--steps", "3", "--out", str(target)]) == 0
     before = target.read_bytes()
 
-    def boom(fh, **arrays):
+    def boom(fh, array, **kw):
         fh.write(b"partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(io.np, "savez_compressed", boom)
+    monkeypatch.setattr(io.np.lib.format, "write_array", boom)
     assert main(["simulate", "indoor-robot", "--steps", "4", "--out", str(target)]) == 1
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.npz"]
