@@ -749,7 +749,11 @@ def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
         left = set(futures)
         bar = counter(len(pending), quiet, desc)
         while left:
-            finished, left = wait(left, return_when=FIRST_COMPLETED)
+            finished, left = wait(left, timeout=1.0, return_when=FIRST_COMPLETED)
+            if not finished:  # the chunks still computing: a progress line when due (not with --quiet)
+                if not quiet:
+                    line(f"{desc} {len(pending) - len(left)}/{len(pending)}".strip())
+                continue
             for f in sorted(finished, key=lambda f: futures[f]):
                 c = futures[f]
                 try:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import re
+import time
 
+import numpy as np
 import pytest
 
 from designer import progress
@@ -59,3 +61,25 @@ def test_quiet_library_and_forked_worker_write_nothing(tmp_path, capsys, eager, 
         monkeypatch.setattr(progress.os, "getpid", lambda: pid + 1)  # as in a process forked from this one
         progress.line("step 1/2")
     assert capsys.readouterr().err == ""
+
+
+def _slow_task(run_ids, seeds):
+    time.sleep(1.5)
+    return {"x": np.asarray(run_ids, dtype=float)}
+
+
+def test_the_parent_says_where_its_worker_processes_are_while_they_compute(capsys, eager, monkeypatch):
+    """Chunks computed by forked workers: the parent's line while none has finished yet, and none with quiet."""
+    from studies.runner import Backend, monte_carlo
+
+    monkeypatch.setattr("designer.cores.usable_cores", lambda: 2)
+    with progress.showing():
+        out = monte_carlo(_slow_task, runs=2, seed=0, chunk_size=1, backend=Backend("processes", workers=2),
+                          label="slow")
+    assert out.arrays["x"].tolist() == [0.0, 1.0]
+    lines = _lines(capsys.readouterr().err)
+    assert any(re.match(r"^cfdesign: .*\b0/2 \(\d+ s\)$", ln) for ln in lines), lines
+    with progress.showing():
+        monte_carlo(_slow_task, runs=2, seed=0, chunk_size=1, backend=Backend("processes", workers=2), label="slow",
+                    quiet=True)
+    assert _lines(capsys.readouterr().err) == []
