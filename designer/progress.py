@@ -41,8 +41,14 @@ class _Sink:
     def write(self, now: float, where: str) -> None:
         self.last = now
         label = " > ".join(self.phases)
-        text = f"{label}: {where}" if label and where else label or where
-        print(f"cfdesign: {text} ({now - self.start:.0f} s)", file=self.stream, flush=True)
+        text = f"cfdesign: {label}: {where}" if label and where else f"cfdesign: {label or where}"
+        text += f" ({now - self.start:.0f} s)"
+        if self.stream.isatty():  # above a bar a runner may be drawing on the terminal, not through it
+            from tqdm import tqdm
+
+            tqdm.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
 
 
 _SINK: _Sink | None = None
