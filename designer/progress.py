@@ -71,13 +71,14 @@ def hush() -> None:
     _SINK = None
 
 
-def line(where: str = "") -> None:
-    """Say where the work is, if a line is due (``where``: e.g. ``step 12/60``)."""
+def line(what: str = "", k: int | None = None, total: int | None = None) -> None:
+    """Say where the work is, if a line is due: ``what`` (e.g. ``step``), then ``k/total`` when given (formatted only
+    when a line is written: this is called at every step of a filter's loop)."""
     sink = _SINK
     if sink is not None:
         now = time.perf_counter()
         if sink.due(now):
-            sink.write(now, where)
+            sink.write(now, what if k is None else f"{what} {k}/{total}".strip())
 
 
 @contextlib.contextmanager
@@ -112,20 +113,19 @@ def progress(iterable: Iterable, total: int, quiet: bool = False, desc: str = ""
 
 
 def _lines(iterable: Iterable, total: int, desc: str) -> Iterator:
-    prefix = f"{desc} " if desc else ""
     for k, item in enumerate(iterable):
-        line(f"{prefix}{k}/{total}")
+        line(desc, k, total)
         yield item
 
 
 class _Lines:
     def __init__(self, total: int, desc: str, quiet: bool):
-        self.k, self.total, self.prefix, self.quiet = 0, total, f"{desc} " if desc else "", quiet
+        self.k, self.total, self.desc, self.quiet = 0, total, desc, quiet
 
     def update(self, n: int = 1) -> None:
         self.k += n
         if not self.quiet:
-            line(f"{self.prefix}{self.k}/{self.total}")
+            line(self.desc, self.k, self.total)
 
     def close(self) -> None:
         pass

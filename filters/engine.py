@@ -61,7 +61,7 @@ def run_batch(step: Callable[[int, np.ndarray, slice | np.ndarray], Step], recor
     for k in range(steps):
         if not act.size:
             break
-        line(f"step {k}/{steps}")
+        line("step", k, steps)
         at = slice(None) if act.size == runs else act
         out = step(k, act, at)
         for name, value in out.now.items():

@@ -752,7 +752,7 @@ def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
             finished, left = wait(left, timeout=1.0, return_when=FIRST_COMPLETED)
             if not finished:  # the chunks still computing: a progress line when due (not with --quiet)
                 if not quiet:
-                    line(f"{desc} {len(pending) - len(left)}/{len(pending)}".strip())
+                    line(desc, len(pending) - len(left), len(pending))
                 continue
             for f in sorted(finished, key=lambda f: futures[f]):
                 c = futures[f]

@@ -941,7 +941,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
 
     P_open = np.asarray(phi0, dtype=float)  # the open-loop covariance along the nominal (the bank's axes)
     for k in range(steps):
-        line(f"step {k}/{steps}")
+        line("step", k, steps)
         F = np.asarray(model.F_expected(x, k, u_at(k)), dtype=float)
         x = np.asarray(model.f_expected(x, k, u_at(k)), dtype=float)
         nominal[k + 1] = x
