@@ -441,3 +441,54 @@ int main(void) {
     wellcond = sum(1 for m, rc, A in cases if (lambda w: w.min() > 0 and w.max() / w.min() * m * m < 0.5 / rc)(
         np.linalg.eigvalsh(A)))
     assert certified >= wellcond > 20
+
+
+TWINS = '''"""Two states on a star of five nodes: nodes 1 and 2 measure x0 alike (one direction, twice, one hop from node 0),
+node 3 measures x0 + x1 a million times more precisely than the others, node 4 x1."""
+import casadi as ca
+import numpy as np
+
+from designer import AttackSpec, Gaussian, Model, SensorNetwork, Sensor
+
+STEPS = 20
+NETWORK = SensorNetwork.from_edges(5, [(0, 1), (0, 2), (0, 3), (3, 4)])
+ATTACKS = AttackSpec(dos=0.2)
+
+
+def model() -> Model:
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(0.95 * x[0] + 0.1 * x[1], 0.9 * x[1])
+    g = lambda v: Gaussian.zero_mean([[v]])
+    sensors = [Sensor("a0", x[0] - x[1], g(1.0)), Sensor("a1", x[0], g(1.0)), Sensor("a2", 2.0 * x[0], g(4.0)),
+               Sensor("fine", x[0] + x[1], g(1e-12)), Sensor("a4", x[1], g(1.0))]
+    return Model("twins", x, f, sensors, process_noise=Gaussian.zero_mean(0.01 * np.eye(2)),
+                 prior=Gaussian(np.zeros(2), np.eye(2)))
+'''
+
+
+@pytest.mark.skipif(shutil.which("gcov") is None, reason="no gcov")
+def test_the_relay_nodes_reduction_agrees_where_rows_repeat_and_where_its_fast_inverse_gives_way(tmp_path):
+    """The C relay node reduces each hop group's rows to an orthonormal basis of their span before inverting (not
+    numpy's pseudo-inverse of the whole G n x G n Q, as rules.relay.design.relay_update computes it): on a model
+    where two sensors of one hop depth measure one direction (a row the reduction drops) and one sensor is 1e6 x
+    more precise (its Q' beyond the certified Cholesky inverse, so the eigen-decomposition decides), the replay
+    agrees with the Python node filter, and coverage (gcov) shows that both branches ran."""
+    model = tmp_path / "twins.py"
+    model.write_text(TWINS)
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", str(model), "--mode", "relay", "--out", str(des)]) in (0, 1)
+    studies.export(des, out=out)
+    build = subprocess.run([CC, "-std=c99", "-O0", "--coverage", "-o", "cov", "cfd_test.c", "cfd_node.c",
+                            "cfd_model.c", "-lm"], cwd=out, capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stderr
+    run = subprocess.run(["./cov", "replay.txt"], cwd=out, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and "0 above the tolerance" in run.stdout, run.stdout
+    subprocess.run(["gcov", "cov-cfd_node.c"], cwd=out, capture_output=True, text=True, timeout=300, check=True)
+    counts = {}
+    for line in (out / "cfd_node.c.gcov").read_text().splitlines():
+        count, _, code = (part.strip() for part in line.split(":", 2))
+        for key in ("if (nr > GS_TOL", "kg_[nk++] = g", "eigsym(&wk->m, nk"):
+            if key in code:
+                counts[key] = int(count.rstrip("*"))
+    assert counts["if (nr > GS_TOL"] > counts["kg_[nk++] = g"] > 0  # rows dropped, directions kept
+    assert counts["eigsym(&wk->m, nk"] > 0

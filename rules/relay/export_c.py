@@ -78,10 +78,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         rr_start.append(len(A))
     r_max = max(row_start[j + 1] - row_start[j] for j in range(len(nodes)))
     ball_max = max(ball_start[j + 1] - ball_start[j] for j in range(len(nodes)))
-    gn = G * n
     header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), BALL_MAX=ball_max, ROWS_MAX=r_max, ROUNDS=int(routes.hops), MODE=rule.name,
-                      NZMAX=nz_max, GN=gn, WORK=work_code(sizes, "CFD_GN"), **described(model, nodes, verdict))
+                      NZMAX=nz_max, GROUPS=G, KMAX=min(r_max, G * n), WORK=work_code(sizes, "CFD_KMAX"), **described(model, nodes, verdict))
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_ball_start", ball_start, "int"),
         c_array("cfd_ball_sensor", ball, "int"), c_array("cfd_row_start", row_start, "int"),
@@ -92,7 +91,7 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         c_array("cfd_Q", model.process_cov), c_array("cfd_M", M), c_array("cfd_mu", mu),
         c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
-    source = template(_C / "cfd_node.c.in", COMMON=common_code(model), DATA=data, G=G,
+    source = template(_C / "cfd_node.c.in", COMMON=common_code(model), DATA=data,
                       USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
