@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
-__all__ = ["observability", "kalman_references"]
+__all__ = ["observability", "kalman_references", "centralized_posterior"]
 
 
 def _obsv(F: np.ndarray, H: np.ndarray) -> np.ndarray:
@@ -76,8 +76,8 @@ def _detectable(F: np.ndarray, H: np.ndarray) -> bool:
     return True
 
 
-def _posterior_trace(F, H, Q, R) -> float | None:
-    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R); None when it does not exist.
+def _posterior(F, H, Q, R) -> np.ndarray | None:
+    """``P⁺`` of the steady-state Kalman filter of (F, H, Q, R); None when it does not exist.
 
     ``P`` the predicted covariance: the stabilising solution of ``P = F P Fᵀ - F P Hᵀ (H P Hᵀ + R)⁻¹ H P Fᵀ + Q``
     (python-control's ``dlqe(F, I, H, Q, R)`` solves the same equation by the same SciPy call)."""
@@ -93,7 +93,23 @@ def _posterior_trace(F, H, Q, R) -> float | None:
     S = H @ P @ H.T + R
     post = P - P @ H.T @ np.linalg.solve(S, H @ P)
     tr = float(np.trace(post))
-    return tr if np.isfinite(tr) and tr >= 0 else None
+    return post if np.isfinite(tr) and tr >= 0 else None
+
+
+def _posterior_trace(F, H, Q, R) -> float | None:
+    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R) (:func:`_posterior`); None when it does not
+    exist."""
+    post = _posterior(F, H, Q, R)
+    return None if post is None else float(np.trace(post))
+
+
+def centralized_posterior(model, x0, u0=None) -> np.ndarray | None:
+    """The centralized steady-state Kalman filter's posterior covariance at the operating point (every sensor's
+    measurement, the linearisation there); None when none exists.  Its trace is :func:`kalman_references`'s
+    ``centralized``."""
+    F, H = _linearisation(model, x0, u0)
+    return _posterior(F, np.vstack(H), model.process_cov,
+                      block_diag(*[model.measurement_cov(i) for i in range(model.n_sensors)]))
 
 
 def kalman_references(model, x0, u0=None) -> dict:

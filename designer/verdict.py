@@ -375,6 +375,11 @@ def describe(detail: Mapping) -> str:
             (top("ratio_local"), "a node's own local one, at most")) if r is not None]
         text += (f"; {'at the fixed point' if fixed else f'at step {K}'} the largest tr Φ is {final:.4g}"
                  + (f" ({', '.join(refs)})" if refs else ""))
+        region = detail.get("region")
+        ratios = [r for r in ((region or {}).get("ratio_centralized") or []) if r is not None]
+        if ratios:
+            text += (f"; on each node's region, tr Φ is {float(np.median(ratios)):.3g} x the centralized "
+                     f"steady-state tr P on the same states at the median node, {max(ratios):.3g} x at most")
     return text
 
 

@@ -442,12 +442,12 @@ def _summary(f: dict) -> str:
     if f.get("infeasible"):
         return f"infeasible, not run: {f['infeasible']}"
     parts = []
-    for key in ("rmse_position", "rmse"):
+    for key, label in (("rmse_region", "RMSE_region"), ("rmse_position", "RMSE_p"), ("rmse", "RMSE")):
         if key in f:
             if f[key] is None:
                 parts.append("every run diverged")
             else:
-                parts.append(f"{'RMSE_p' if key == 'rmse_position' else 'RMSE'} {f[key]:.4g}")
+                parts.append(f"{label} {f[key]:.4g}")
                 if f.get(f"{key}_median_run") is not None:
                     parts[-1] += f" (median run {f[f'{key}_median_run']:.4g})"
             break

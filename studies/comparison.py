@@ -56,6 +56,7 @@ import numpy as np
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.progress import phase
+from designer.regions import describe_regions, region_mask
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
@@ -243,7 +244,9 @@ TEXT = StudyText(
         "probability with the other fixed, on the same random draws."),
     attack_params=("dos_prob", "fdi_prob", "attack_amplitude"),
     accuracy=(("rmse_position", "position RMSE"), ("rmse_position_median_run", "median-run position RMSE"),
-              ("rmse", "state RMSE"), ("rmse_median_run", "median-run state RMSE")),
+              ("rmse", "state RMSE"), ("rmse_median_run", "median-run state RMSE"),
+              ("rmse_region", "region RMSE (each node on its region)"),
+              ("rmse_region_median_run", "median-run region RMSE")),
     figures={
         "fig_rmse_*.png": "The error of every filter at each time step on scenario {}, over the runs at the main "
                           "attack setting (log scale).",
@@ -253,6 +256,10 @@ TEXT = StudyText(
                                 "networked filters); a filter that diverged in that run is left out.",
     },
 )
+
+
+#: What a comparison's error metric measures, in words (the state's, without a word here).
+_ERROR_WORDS = {"rmse_position": "position", "rmse_region": "region"}
 
 
 def _slug(name: str) -> str:
@@ -348,6 +355,8 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     cannot = _cannot_start(scs, options, designs, entries)
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
+    # with regions each node is scored on its region's states (a centralized filter's one estimate on each node's)
+    scored = region_mask(sc.regions, m.n_x) if sc.regions is not None else None
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
@@ -363,8 +372,9 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
         if ok and first_divergence(truth[a][:, None] - xs, limit) is not None:
             ok = False  # finite, but off the problem's scale: diverged
         if ok:
-            e = truth[a, 1:, None][..., idx] - xs[1:][..., idx]  # (K, nodes, components)
-            err2[a, j, f] = (e**2).sum(-1).mean(axis=1)
+            e2 = (truth[a, 1:, None] - xs[1:]) ** 2  # (K, nodes or 1, n)
+            e2 = e2[..., idx] if scored is None else np.where(scored, e2, 0.0)
+            err2[a, j, f] = e2.sum(-1).mean(axis=1)
             if j == 0:
                 est[a, f] = xs[:, 0]
 
@@ -580,7 +590,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     entries = _entries(chosen)
     cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design, entries=entries)
     R = int(A["err2"].shape[0])
-    key = "rmse_position" if sc.model.position_index else "rmse"
+    key = "rmse_region" if sc.regions is not None else "rmse_position" if sc.model.position_index else "rmse"
     # every filter bootstraps its intervals from a stream of its own, so that no filter's interval depends on another
     # (on how many of its runs diverged, or on whether it ran at all)
     order = ([n for n in _STREAM_ORDER if n in FILTER_REGISTRY]  # the registry's: a subset changes no filter's stream
@@ -642,7 +652,10 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         "scenario": sc.name, "runs": R, "steps": int(K), "nodes": int(net.n_nodes),
         "links": [list(e) for e in net.edges], "filters": filters, "sweeps": sweeps,
         "error": {"metric": key, "components": [sc.model.state_names[c] for c in
-                                                (sc.model.position_index or range(sc.model.n_x))]},
+                                                (sc.model.position_index or range(sc.model.n_x))]}
+        if sc.regions is None else
+        {"metric": key, "components": list(sc.model.state_names),
+         "regions": describe_regions(sc.regions, sc.model.state_names)},
         "attacks": {"dos_prob": None if main is None else main[0], "fdi_prob": None if main is None else main[1],
                     "amplitude": sig.amplitude[0] if len(set(sig.amplitude)) == 1 else list(sig.amplitude),
                     "components": [sc.model.state_names[c] for c in sig.components], "law": sig.law,
@@ -730,7 +743,7 @@ def table_markdown(results: dict) -> str:
             "every filter faces one realisation of the same attack law per run.\n")
     for sc_name, b in results["by_scenario"].items():
         at, key = b["attacks"], b["error"]["metric"]
-        what = "position" if key == "rmse_position" else "state"
+        what = _ERROR_WORDS.get(key, "state")
         rows = {n: {"family": f["family"], "runtime": runtime_label(f["runtime"]),
                     "rmse": f"infeasible, not run: {f['infeasible']}" if f.get("infeasible") else
                     "diverged in every run" if f[key] is None else
@@ -745,7 +758,10 @@ def table_markdown(results: dict) -> str:
         text += (f"\n## {sc_name}: accuracy, cost and communication\n\n{b['runs']} runs, K = {b['steps']} steps, "
                  f"{b['nodes']} sensor nodes, links {b['links']}. Attacks on every channel: {probs}, injected "
                  f"xi = {amp} {at['law']}(s) on {', '.join(at['components'])} (bound delta = {at['delta']:.4g}). "
-                 f"Error over {', '.join(b['error']['components'])}.\n\n")
+                 + (f"Error over {', '.join(b['error']['components'])}.\n\n" if "regions" not in b["error"] else
+                    "Each node's error over its own region's states (REGIONS; a centralized filter's one estimate "
+                    "on each node's region): " + "; ".join(f"node {i}: {', '.join(r)}" for i, r in
+                                                         enumerate(b["error"]["regions"])) + ".\n\n"))
         text += markdown_table(rows, [("family", "family"), ("rmse", f"{what} RMSE [95 % CI]"),
                                       ("median", "median run RMSE"), ("time", f"time/step ({MEASURED})"),
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
@@ -792,7 +808,7 @@ def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
         A, sc = arrays[sc_name], built[sc_name]
         key, slug = b["error"]["metric"], _slug(sc_name)
         colours = filter_colours(b["filters"])
-        what = "position" if key == "rmse_position" else "state"
+        what = _ERROR_WORDS.get(key, "state")
         curves_figure(out / f"fig_rmse_{slug}.png",
                       {n: f[f"{key}_curve"] for n, f in b["filters"].items() if f[f"{key}_curve"] is not None},
                       f"{what} RMSE", f"{sc_name}: {what} RMSE over time at the main attack setting", log=True,

@@ -24,7 +24,8 @@ import numpy as np
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
 from designer.rule import GainRule
 from designer.joint import conditioning
-from designer.observability import kalman_references, observability
+from designer.observability import centralized_posterior, kalman_references, observability
+from designer.regions import region_detail
 from designer.progress import phase
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays
@@ -437,6 +438,9 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     with np.errstate(invalid="ignore", over="ignore"):
         trace = np.trace(Phi[:, 1:], axis1=-2, axis2=-1)
     ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs), stationary)
+    if sc.regions is not None:  # each node's final bound on its region, beside the verdict on the whole state
+        ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, centralized_posterior(m, x0, u0),
+                                             m.state_names)
     schedule = GainSchedule(
         scenario=sc.name,
         rule=des.rule,

@@ -45,6 +45,9 @@ MODEL_FILE_NAMES = {
                "designer.attacks.BinarySensorChannel (binary-multi-attack) or designer.attacks.BiasFDI "
                "(fdi-four-tank)",
     "DESIGN": "a designer.DesignOptions with the model's design defaults (e.g. u_scale, v_scale)",
+    "REGIONS": "the states each node is responsible for: one list of state indices or names per node, or 'sensed' "
+               "(each node's region: the states its own sensor's measurement depends on); the studies then score "
+               "each node on its region (rmse_region) and a design states its bound there (designer.regions)",
     "ASSUMPTIONS": "a list of strings carried into every result",
 }
 
@@ -210,7 +213,7 @@ def _spec_from_file(path: Path) -> ScenarioSpec:
                             x0=getattr(module, "X0", None), network=network,
                             input_fn=_guarded(f"inputs() in {path.name!r}", getattr(module, "inputs", None)),
                             attacks=attacks, design=getattr(module, "DESIGN", None),
-                            channel=getattr(module, "CHANNEL", None))
+                            channel=getattr(module, "CHANNEL", None), regions=getattr(module, "REGIONS", None))
         except InputError as exc:
             raise InputError(f"model file {str(path)!r}: {exc}") from exc
 

@@ -11,6 +11,7 @@ from designer.attacks import (MISSING_BOUND, AttackSpec, BiasFDI, BinarySensorCh
                               RoundRobinDeception)
 from designer.design import DesignOptions
 from designer.network import SensorNetwork
+from designer.regions import resolve_regions
 from designer.simulate import Trajectory, check_inputs, simulate
 from designer.validation import InputError, as_vector
 from filters.encryption import EncryptedChannel
@@ -192,6 +193,10 @@ class Scenario:
         000-002 and 004 (:class:`designer.attacks.RoundRobinDeception`,
         :class:`filters.encryption.EncryptedChannel`, :class:`designer.attacks.BinarySensorChannel`,
         :class:`designer.attacks.BiasFDI`); checked against the model.
+    regions : tuple of int arrays or None
+        The states each node is responsible for (:mod:`designer.regions`; a model file's ``REGIONS``: one list of
+        state indices or names per node, or ``"sensed"``), one sorted index array per node once built; the studies
+        then score each node on its region and a design states its bound there.
     """
 
     name: str
@@ -206,6 +211,7 @@ class Scenario:
     attacks: AttackSpec | None = None
     design: DesignOptions | None = None
     source: str | None = None  # the built-in name or model file it was loaded from (None: built in memory)
+    regions: Any = None  # a model file's REGIONS (designer.regions): resolved to one index array per node
     source_digest: str | None = field(default=None, repr=False)  # a model file's bytes when it was loaded
 
     def __post_init__(self):
@@ -224,6 +230,8 @@ class Scenario:
         if net is None:
             if self.attacks is not None:
                 raise InputError(f"scenario {self.name!r} declares attacks but no NETWORK")
+            if self.regions is not None:
+                raise InputError(f"scenario {self.name!r} declares REGIONS but no NETWORK (a region is a node's)")
             object.__setattr__(self, "_resolution", None)
             return
         if not isinstance(net, SensorNetwork):
@@ -242,6 +250,8 @@ class Scenario:
         object.__setattr__(self, "_resolution", resolved)
         if self.design is not None and not isinstance(self.design, DesignOptions):
             raise InputError(f"DESIGN must be a designer.DesignOptions, got {type(self.design).__name__}")
+        if self.regions is not None:
+            object.__setattr__(self, "regions", resolve_regions(self.regions, self.model, net.n_nodes))
 
     _resolution: ResolvedAttacks | None = field(init=False, default=None, repr=False)
 
