@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
-__all__ = ["observability", "kalman_references", "centralized_posterior"]
+__all__ = ["observability", "kalman_references"]
 
 
 def _obsv(F: np.ndarray, H: np.ndarray) -> np.ndarray:
@@ -96,29 +96,25 @@ def _posterior(F, H, Q, R) -> np.ndarray | None:
     return post if np.isfinite(tr) and tr >= 0 else None
 
 
-def _posterior_trace(F, H, Q, R) -> float | None:
-    """``tr P⁺`` of the steady-state Kalman filter of (F, H, Q, R) (:func:`_posterior`); None when it does not
-    exist."""
-    post = _posterior(F, H, Q, R)
-    return None if post is None else float(np.trace(post))
+def kalman_references(model, x0, u0=None, regions=None) -> dict:
+    """Steady-state posterior ``tr P`` of the centralized and of each local Kalman filter at the operating point.
 
-
-def centralized_posterior(model, x0, u0=None) -> np.ndarray | None:
-    """The centralized steady-state Kalman filter's posterior covariance at the operating point (every sensor's
-    measurement, the linearisation there); None when none exists.  Its trace is :func:`kalman_references`'s
-    ``centralized``."""
-    F, H = _linearisation(model, x0, u0)
-    return _posterior(F, np.vstack(H), model.process_cov,
-                      block_diag(*[model.measurement_cov(i) for i in range(model.n_sensors)]))
-
-
-def kalman_references(model, x0, u0=None) -> dict:
-    """Steady-state posterior ``tr P`` of the centralized and of each local Kalman filter at the operating point."""
+    ``regions`` (:mod:`designer.regions`, one index array per node): also ``"regions"``, per node the centralized and
+    the node's own local posterior traced over its region only (None where no steady state exists)."""
     F, H = _linearisation(model, x0, u0)
     Q = model.process_cov
     R = [model.measurement_cov(i) for i in range(model.n_sensors)]
-    return {"centralized": _posterior_trace(F, np.vstack(H), Q, block_diag(*R)),
-            "local": [_posterior_trace(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)],
-            "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the "
-                     "linearisation at the operating point; "
-                     "trace of the posterior error covariance; None: no steady state (pair not detectable)"}
+    central = _posterior(F, np.vstack(H), Q, block_diag(*R))
+    local = [_posterior(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)]
+
+    def tr(P, idx=slice(None)):
+        return None if P is None else float(np.trace(P[idx, idx] if isinstance(idx, slice) else P[np.ix_(idx, idx)]))
+
+    out = {"centralized": tr(central), "local": [tr(P) for P in local],
+           "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the "
+                    "linearisation at the operating point; "
+                    "trace of the posterior error covariance; None: no steady state (pair not detectable)"}
+    if regions is not None:
+        out["regions"] = {"centralized": [tr(central, r) for r in regions],
+                          "local": [tr(P, r) for P, r in zip(local, regions)]}
+    return out

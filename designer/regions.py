@@ -106,20 +106,18 @@ def describe_regions(regions: Sequence[np.ndarray], state_names: Sequence[str]) 
     return [[state_names[j] for j in r] for r in regions]
 
 
-def region_detail(phi_final: np.ndarray, regions: Sequence[np.ndarray], centralized: np.ndarray | None,
+def region_detail(phi_final: np.ndarray, regions: Sequence[np.ndarray], centralized: Sequence[float | None] | None,
                   state_names: Sequence[str]) -> dict:
     """A design's bound on each node's region (a verdict detail's ``region``): ``phi_final`` (nodes, n, n) the final
-    bound per node, ``centralized`` (n, n) the centralized steady-state posterior covariance at the operating point
-    (None where none exists).  Per node: its region's states, the final tr Φ over them, the centralized tr P over
-    the same states and their ratio (None where not finite or no reference).  A statement beside the verdict, which
-    still judges the whole state."""
+    bound per node, ``centralized`` per node the centralized steady-state posterior traced over its region
+    (:func:`designer.observability.kalman_references`' ``regions``; None where none exists).  Per node: its region's
+    states, the final tr Φ over them, the centralized tr P over the same states and their ratio (None where not
+    finite or no reference).  A statement beside the verdict, which still judges the whole state."""
     from .verdict import json_number
 
     final = region_traces(phi_final, regions)
-    ref = None if centralized is None else region_traces(np.asarray(centralized)[None], regions)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = None if ref is None else final / ref
+    ref = [None] * len(regions) if centralized is None else list(centralized)
     return {"states": describe_regions(regions, state_names),
             "final_trace": [json_number(v) for v in final],
-            "centralized": None if ref is None else [json_number(v) for v in ref],
-            "ratio_centralized": None if ratio is None else [json_number(v) for v in ratio]}
+            "centralized": [json_number(v) for v in ref],
+            "ratio_centralized": [None if r is None or not r else json_number(f / r) for f, r in zip(final, ref)]}

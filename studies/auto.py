@@ -131,10 +131,16 @@ def predicted_error(trace: np.ndarray) -> float | None:
 
 def references(refs: dict) -> tuple[float | None, float | None]:
     """The centralized steady-state tr P and the local EKFs' node-average one (inf when some node alone has no steady
-    state: then any finite bound beats the nodes alone), from :func:`designer.observability.kalman_references`."""
-    local = refs.get("local") or []
+    state: then any finite bound beats the nodes alone), from :func:`designer.observability.kalman_references`; with
+    regions (its ``regions``) both over each node's region, node-averaged (None when some node has no centralized
+    reference)."""
+    regional = refs.get("regions")
+    local = (regional or refs).get("local") or []
     loc = float(np.mean([np.inf if v is None else v for v in local])) if local else None
-    return refs.get("centralized"), loc
+    if regional is None:
+        return refs.get("centralized"), loc
+    central = regional["centralized"]
+    return (None if not central or None in central else float(np.mean(central))), loc
 
 
 @dataclass(frozen=True)
@@ -152,7 +158,7 @@ class Candidate:
     certified: bool = False
     bounded: bool | None = None
     reason: str | None = None  # the verdict in words, or why it was not designed
-    predicted: float | None = None  # node-average tr Φ at the horizon (predicted_error)
+    predicted: float | None = None  # node-average tr Φ at the horizon (predicted_error), over regions with regions
     ratio_centralized: float | None = None
     ratio_local: float | None = None
     seconds: float = 0.0
@@ -358,7 +364,7 @@ def _summary(design: Design) -> dict:
     """What the parent keeps of a candidate's design (its arrays stay in its process)."""
     meta = design.schedule.meta
     return {"verdict": design.verdict, "certified": design.certified, "bounded": meta.get("bounded"),
-            "reason": design.verdict_line(), "predicted": predicted_error(design.trace_bound),
+            "reason": design.verdict_line(), "predicted": predicted_error(design.region_trace_bound),
             "rounds": int(design.design.rounds), "exchange": str(design.design.exchange),
             "payload": int(design.gain_rule.payload(design.scenario.model, design.scenario.network, design.design))}
 
@@ -382,7 +388,7 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     sc_eff = sc.with_attacks(**base.attack_overrides())  # what every candidate designs for (effective's scenario)
     net, model = sc_eff.network, sc_eff.model
     x0, u0 = sc_eff.operating_point
-    refs = kalman_references(model, x0, u0)
+    refs = kalman_references(model, x0, u0, sc_eff.regions)
     c_ref, l_ref = references(refs)
 
     # the candidates: every deployable rule's, with what the user gave kept
@@ -441,7 +447,7 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
             ratio_local=None if pred is None or not l_ref or not math.isfinite(l_ref) else pred / l_ref,
             better_than_local=None if pred is None else below_local(pred, l_ref)))
 
-    pick_index, outcome, message = _choose(candidates, cap, budget_bytes)
+    pick_index, outcome, message = _choose(candidates, cap, budget_bytes, regions=sc_eff.regions is not None)
     pick = None
     if pick_index is not None:
         chosen = candidates[pick_index]
@@ -483,8 +489,9 @@ def reference_costs(model, network) -> dict:
     return out
 
 
-def _choose(candidates: list[Candidate], cap, cap_bytes) -> tuple[int | None, str, str]:
-    """The pick's index, the outcome and the message (module docstring)."""
+def _choose(candidates: list[Candidate], cap, cap_bytes, regions: bool = False) -> tuple[int | None, str, str]:
+    """The pick's index, the outcome and the message (module docstring); ``regions``: the predictions are over each
+    node's region (:mod:`designer.regions`)."""
     designed = [i for i, c in enumerate(candidates) if c.status == "designed"]
     if not designed:
         return None, "nothing designed", "no candidate could be designed (see candidates.json for each reason)"
@@ -492,8 +499,10 @@ def _choose(candidates: list[Candidate], cap, cap_bytes) -> tuple[int | None, st
     if eligible:
         i = best((j, candidates[j].predicted, candidates[j].bytes, candidates[j].messages) for j in eligible)
         c = candidates[i]
-        return i, "picked", (f"picked {c.label}: certified, predicted node-average tr Φ {c.predicted:.4g}"
-                             + (f" ({c.ratio_centralized:.3g} x the centralized EKF's)" if c.ratio_centralized else "")
+        return i, "picked", (f"picked {c.label}: certified, predicted node-average tr Φ "
+                             + ("over each node's region " if regions else "") + f"{c.predicted:.4g}"
+                             + (f" ({c.ratio_centralized:.3g} x the centralized EKF's"
+                                + (" on the same states)" if regions else ")") if c.ratio_centralized else "")
                              + f", {c.messages} messages and {c.bytes} bytes per step"
                              + f", of {len(candidates)} candidates ({len(eligible)} eligible)")
     in_budget = [i for i in designed if candidates[i].in_budget]

@@ -24,8 +24,8 @@ import numpy as np
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design, make_design
 from designer.rule import GainRule
 from designer.joint import conditioning
-from designer.observability import centralized_posterior, kalman_references, observability
-from designer.regions import region_detail
+from designer.observability import kalman_references, observability
+from designer.regions import region_detail, region_traces
 from designer.progress import phase
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays
@@ -343,6 +343,15 @@ class Design:
         return np.array([[np.nan if v is None else v for v in row] for row in self.schedule.trace_bound()])
 
     @property
+    def region_trace_bound(self) -> np.ndarray:
+        """tr Φ_{k+1|k+1} over each node's region (:mod:`designer.regions`), (nodes, steps); NaN where Φ is not a
+        bound; the whole state's (:attr:`trace_bound`) without regions."""
+        if self.scenario.regions is None:
+            return self.trace_bound
+        with np.errstate(invalid="ignore"):
+            return region_traces(np.swapaxes(self.schedule.Phi[:, 1:], 0, 1), self.scenario.regions).T
+
+    @property
     def verdict(self) -> str:
         """``certified``, ``vacuous``, ``infeasible`` or ``not computed`` (:mod:`designer.verdict`)."""
         return self.schedule.meta["verdict"]
@@ -434,13 +443,12 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         with phase("stationary certificate"):
             stationary, others = extras.result() if extras is not None else (None, None)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
-    refs = kalman_references(m, x0, u0)
+    refs = kalman_references(m, x0, u0, sc.regions)
     with np.errstate(invalid="ignore", over="ignore"):
         trace = np.trace(Phi[:, 1:], axis1=-2, axis2=-1)
     ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs), stationary)
     if sc.regions is not None:  # each node's final bound on its region, beside the verdict on the whole state
-        ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, centralized_posterior(m, x0, u0),
-                                             m.state_names)
+        ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, refs["regions"]["centralized"], m.state_names)
     schedule = GainSchedule(
         scenario=sc.name,
         rule=des.rule,

@@ -150,3 +150,34 @@ def test_a_design_states_each_nodes_bound_on_its_region_beside_the_verdict(tmp_p
             ratios = np.array(region["ratio_centralized"])
             assert np.all(ratios > 0) and np.allclose(ratios, np.array(want) / np.array(region["centralized"]))
             assert "on each node's region, tr Φ is" in describe(detail)
+
+
+def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp_path):
+    """With REGIONS the automatic design predicts each candidate's node-average tr Φ over the regions and puts it
+    against the centralized steady state over the same states: whole-state regions give the numbers of the design
+    without regions; one state per node gives each candidate's own design's region traces (an independent
+    recomputation from that rule's design) and smaller predictions."""
+    from studies.auto import predicted_error
+
+    found = {}
+    for name, regions in (("none", "None"), ("all", "[list(range(5))] * 5"), ("own", "[[i] for i in range(5)]")):
+        folder = tmp_path / name
+        folder.mkdir()
+        auto = studies.design(str(chain(folder, regions)), mode="auto", validate=0, budget=40)
+        found[name] = (auto, {c.label: c for c in auto.candidates if c.predicted is not None})
+    none, every, own = (found[k][1] for k in ("none", "all", "own"))
+    assert none.keys() == every.keys() == own.keys() and none
+    for label in none:
+        assert every[label].predicted == pytest.approx(none[label].predicted, rel=1e-12)
+        assert every[label].ratio_centralized == pytest.approx(none[label].ratio_centralized, rel=1e-12)
+        assert own[label].predicted < none[label].predicted
+    auto = found["own"][0]
+    refs = auto.references
+    sc = load_scenario(str(tmp_path / "own" / "chain.py"))
+    relay = own["relay (rounds=1)"]
+    des = studies.design(sc, mode="relay", rounds=1)
+    traces = np.array([[np.trace(des.schedule.Phi[i, k][np.ix_(r, r)]) for k in range(1, des.schedule.Phi.shape[1])]
+                       for i, r in enumerate(sc.regions)])
+    assert relay.predicted == pytest.approx(predicted_error(traces), rel=1e-12)
+    assert relay.ratio_centralized == pytest.approx(relay.predicted / refs["centralized"], rel=1e-12)
+    assert "over each node's region" in auto.message
