@@ -64,7 +64,7 @@ from filters.result import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
 
-from .consensus_design import bound_verdicts, check_first_step, consensus_design
+from .consensus_design import bound_verdicts, check_first_step, consensus_design, prefetch_tables
 from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, particle_filters)
@@ -461,15 +461,23 @@ def chosen_filters(value) -> tuple[str, ...] | None:
     return tuple(n for n in FILTER_REGISTRY.names() if n in picked)
 
 
-def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool, entries=None) -> list[dict]:
-    """Per setting of ``scs``: the design of every gain rule its filters need (``entries``, default every one), by
-    rule (the tuned design at the main setting only unless ``tuned_in_sweeps``)."""
-    designs: list[dict] = [{} for _ in scs]
+def _needed(scs: Sequence[Scenario], tuned_in_sweeps: bool, entries=None) -> list[tuple[int, str]]:
+    """``(setting, gain rule)`` of every design the filters (``entries``, default every one) need at the settings of
+    ``scs``, once each (the tuned design at the main setting only unless ``tuned_in_sweeps``)."""
+    out: dict = {}
     for e in (FILTER_REGISTRY if entries is None else entries):
-        for j, s in enumerate(scs):
-            if e.mode is not None and e.mode not in designs[j] and (j == 0 or tuned_in_sweeps or e.name != TUNED):
-                with phase(f"design {e.mode}, setting {j + 1}/{len(scs)}"):
-                    designs[j][e.mode] = consensus_design(s, as_mode(options, e.mode))
+        for j in range(len(scs)):
+            if e.mode is not None and (j == 0 or tuned_in_sweeps or e.name != TUNED):
+                out.setdefault((j, e.mode), None)
+    return list(out)
+
+
+def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool, entries=None) -> list[dict]:
+    """Per setting of ``scs``: the design of every gain rule its filters need (:func:`_needed`), by rule."""
+    designs: list[dict] = [{} for _ in scs]
+    for j, mode in _needed(scs, tuned_in_sweeps, entries):
+        with phase(f"design {mode}, setting {j + 1}/{len(scs)}"):
+            designs[j][mode] = consensus_design(scs[j], as_mode(options, mode))
     return designs
 
 
@@ -477,8 +485,11 @@ def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_
                   filters: Sequence[str] | None = None) -> None:
     """The plan's step in the parent process: every setting's designs once, so that the offline tables they keep
     (:func:`studies.consensus_design.with_tables`, remembered per process) are computed once and inherited by the
-    forked workers instead of once in each."""
-    _designs(_setting_scenarios(ref, settings), options, tuned_in_sweeps, _entries(filters))
+    forked workers instead of once in each; the tables of the settings side by side on the usable cores
+    (:func:`studies.consensus_design.prefetch_tables`: a sweep's scheduled designs, one per setting)."""
+    scs, entries = _setting_scenarios(ref, settings), _entries(filters)
+    prefetch_tables([(scs[j], as_mode(options, mode)) for j, mode in _needed(scs, tuned_in_sweeps, entries)])
+    _designs(scs, options, tuned_in_sweeps, entries)
 
 
 def _setting_scenarios(ref, settings: Sequence[tuple]) -> list[Scenario]:

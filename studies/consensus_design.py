@@ -17,7 +17,7 @@ import contextlib
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -41,11 +41,11 @@ from .design_options import effective, rule_of
 from .invocation import design_invocation
 from .provenance import design_seal
 from .results import versions
-from .runner import Background
+from .runner import Background, run_forked
 from .scenarios import Scenario
 
 __all__ = ["Design", "consensus_design", "effective_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
-           "check_first_step", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop"]
+           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop"]
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
@@ -114,6 +114,35 @@ def with_horizon_tables(sc: Scenario, design: ConsensusDesign, steps: int, stack
         return design._replace(tables=tables)
 
     return design._replace(tables=horizon), complete
+
+
+def prefetch_tables(items: Sequence[tuple[Scenario, DesignOptions]], steps: int | None = None,
+                    workers: int | None = None) -> None:
+    """The offline tables that :func:`consensus_design` of each ``(scenario, options)`` will need and this process does
+    not have yet, computed side by side in forked children (:func:`studies.runner.run_forked`, at most ``workers``)
+    and kept here, so that those designs then find them.  The same numbers as one after the other (a deterministic
+    function of the scenario and the design); an item that cannot start, or a child that fails, is left to the design
+    itself, which raises as it would have.  With fewer than two to compute it does nothing."""
+    todo, keys = [], set()
+    for sc, options in items:
+        try:
+            sc_eff, _, des = effective_design(sc, options)
+        except InputError:
+            continue
+        n = sc_eff.steps if steps is None else int(steps)
+        key = _tables_key(sc_eff, des, n) if des.rule.offline_tables else None
+        if key is not None and key not in _TABLES and key not in keys:
+            keys.add(key)
+            todo.append((key, sc_eff, des, n))
+    if len(todo) < 2:
+        return
+    calls = [lambda sc=sc, des=des, n=n: des.rule.tables(sc.model, sc.network, des, n, x0=sc.operating_point[0],
+                                                         inputs=sc.inputs(n)) for _, sc, des, n in todo]
+    with phase(f"offline tables of {len(todo)} designs"):
+        done = run_forked(calls, workers=workers)
+    for (key, *_), result in zip(todo, done):
+        if result.status == "done":
+            _remember(key, result.value)
 
 
 def _tables_key(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple:

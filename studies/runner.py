@@ -502,6 +502,10 @@ class Timed(NamedTuple):
     seconds: float
 
 
+#: How often (seconds) :func:`run_forked` looks up from waiting for its children (to write a progress line).
+_POLL_S = 1.0
+
+
 def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                deadline: float | None = None, on_done: Callable[[int, "Timed"], None] | None = None) -> list[Timed]:
     """Each of ``calls`` (functions of no argument) computed in a forked child, at most ``workers`` at once (default:
@@ -560,8 +564,9 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                 running[r] = (j, pid, [], now)
             if not running:
                 continue
-            wait_s = None if deadline is None else max(0.0, deadline - time.monotonic())
+            wait_s = _POLL_S if deadline is None else min(_POLL_S, max(0.0, deadline - time.monotonic()))
             ready, _, _ = select.select(list(running), [], [], wait_s)
+            line("done", sum(o is not None for o in out), len(calls))  # a progress line, when one is due
             if not ready and deadline is not None and time.monotonic() >= deadline:
                 for fd, (j, pid, _, start) in list(running.items()):
                     os.kill(pid, signal.SIGKILL)

@@ -181,3 +181,4 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
     assert relay.predicted == pytest.approx(predicted_error(traces), rel=1e-12)
     assert relay.ratio_centralized == pytest.approx(relay.predicted / refs["centralized"], rel=1e-12)
     assert "over each node's region" in auto.message
+
