@@ -8,7 +8,7 @@ gets ``SeedSequence(s, spawn_key=(r,))`` — the same as
 ``SeedSequence(s).spawn(n)[r]`` for any ``n > r`` — so a run's random numbers do
 not depend on the number of runs, of chunks or of workers.
 
-The runs are cut into **chunks** of ``chunk_size`` consecutive runs; the cut
+The runs are cut into **chunks** of at most ``chunk_size`` consecutive runs (as equal as whole runs allow); the cut
 depends only on ``runs`` and ``chunk_size`` (a property of the study, never of
 the backend), so a task that is deterministic given its inputs gives the same
 bits with every backend:
@@ -200,10 +200,14 @@ def run_seed(seed: int, run: int) -> np.random.SeedSequence:
 
 
 def chunk_ranges(runs: int, chunk_size: int) -> list[tuple[int, int]]:
-    """``[(start, stop), ...]`` covering ``0..runs`` in pieces of ``chunk_size`` (the last may be shorter)."""
+    """``[(start, stop), ...]`` covering ``0..runs`` in ``ceil(runs / chunk_size)`` pieces of at most ``chunk_size``,
+    as equal as whole runs allow (their sizes differ by at most one, the larger first: 10 runs in pieces of 3 are
+    3, 3, 2, 2, not 3, 3, 3, 1, so that two workers finish together)."""
     runs = check_int("runs", runs, 1)
     chunk_size = check_int("chunk_size", chunk_size, 1)
-    return [(s, min(s + chunk_size, runs)) for s in range(0, runs, chunk_size)]
+    count = -(-runs // chunk_size)
+    cuts = [c * (runs // count) + min(c, runs % count) for c in range(count + 1)]
+    return list(zip(cuts[:-1], cuts[1:]))
 
 
 def _check_output(out, start: int, stop: int) -> dict:

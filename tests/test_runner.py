@@ -60,8 +60,15 @@ def test_run_seed_is_the_spawned_child():
 
 
 def test_chunk_ranges_cover_runs_once():
-    assert chunk_ranges(23, 10) == [(0, 10), (10, 20), (20, 23)]
+    assert chunk_ranges(23, 10) == [(0, 8), (8, 16), (16, 23)]  # as equal as whole runs allow, none above 10
+    assert chunk_ranges(10, 3) == [(0, 3), (3, 6), (6, 8), (8, 10)]  # two workers: 5 runs each
     assert chunk_ranges(5, 10) == [(0, 5)]
+    for runs in range(1, 40):
+        for size in range(1, 12):
+            got = chunk_ranges(runs, size)
+            sizes = [b - a for a, b in got]
+            assert got[0][0] == 0 and got[-1][1] == runs and all(got[i][1] == got[i + 1][0] for i in range(len(got) - 1))
+            assert len(got) == -(-runs // size) and max(sizes) <= size and max(sizes) - min(sizes) <= 1
     with pytest.raises(InputError, match="chunk_size"):
         chunk_ranges(5, 0)
 
