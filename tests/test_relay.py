@@ -408,3 +408,45 @@ def test_bad_inputs_raise_input_errors_naming_the_parameter():
         run_relay_batch(driven, network(), np.zeros((2, 5, N)), 2, inputs=np.zeros((5, 2)))
     with pytest.raises(InputError, match="z must"):
         run_relay_batch(model, net, z[..., :3], 2, attacks=att, signal=SIGNAL)
+
+
+def test_the_gain_is_the_pseudo_inverse_formula_where_depths_are_rank_deficient():
+    """relay_update (its active columns, its eigen-decomposition's cut) gives W = C Q⁺ and P⁺ = P - W Cᵀ with numpy's
+    pseudo-inverse of the whole G n x G n Q (C and Q of update_moments' definitions written out here), over a batch
+    with depths of fewer rows than states, a row repeated within a depth, a zero row and a row 1e4 x the others: the
+    reference the C node's reduction to each depth's row basis is replayed against."""
+    from rules.relay.design import grouped
+
+    model = bearing_model()
+    net = varied_network()
+    rt = relay_routes(net, 3)
+    signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
+    M, mu = signal.moment(4), signal.mean(4)
+    rng = np.random.default_rng(5)
+    checked = 0
+    for i in range(N):
+        mom = node_moments(rt, net, model.sensor_dims, i)
+        r = mom.rows.size
+        Hw = rng.normal(size=(3, r, 4))
+        g = mom.groups.argmax(-1)
+        same = [a for a in range(1, r) if g[a] == g[a - 1]]
+        if same:
+            Hw[:, same[0]] = 2.0 * Hw[:, same[0] - 1]  # a repeated direction within a depth
+        Hw[1, r - 1] = 0.0  # a row that sees nothing at this point
+        Hw[2, 0] *= 1e4
+        A = rng.normal(size=(3, 4, 4))
+        P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+        W, Pn = relay_update(P, Hw, mom, M, mu)
+        for b in range(3):
+            Hg = grouped(Hw[b], mom.groups)
+            K = np.diag(mom.p) + mom.F1 * (Hw[b] @ M @ Hw[b].T) + mom.F2 * (Hw[b] @ np.outer(mu, mu) @ Hw[b].T) \
+                + mom.A * (Hw[b] @ P[b] @ Hw[b].T)
+            Q = Hg.T @ K @ Hg
+            C = P[b] @ Hw[b].T @ (mom.p[:, None] * Hg)
+            Wr = C @ np.linalg.pinv(0.5 * (Q + Q.T), rcond=1e-12, hermitian=True)
+            scale = np.abs(Wr).max()
+            assert np.allclose(W[b], Wr, rtol=0, atol=1e-7 * scale), (i, b, np.abs(W[b] - Wr).max() / scale)
+            Pr = P[b] - Wr @ C.T
+            assert np.allclose(Pn[b], 0.5 * (Pr + Pr.T), rtol=0, atol=1e-9 * np.abs(P[b]).max())
+            checked += 1
+    assert checked == 3 * N
