@@ -406,7 +406,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     bar = counter(len(todo), False, "automatic design: candidates")  # a terminal's progress bar
     try:
         done = run_forked([lambda o=plans[j][3]: _design_summary(sc, o, steps, seed) for j in todo],
-                          workers=workers, deadline=t0 + seconds, on_done=lambda j, timed: bar.update())
+                          workers=workers, deadline=t0 + seconds, on_done=lambda j, timed: bar.update(),
+                          desc="automatic design: candidates designed")
     finally:
         bar.close()
     run_refused = [d.value for d in done if d.status == "failed" and d.value.startswith("InputError: ")]

@@ -138,8 +138,7 @@ def prefetch_tables(items: Sequence[tuple[Scenario, DesignOptions]], steps: int 
         return
     calls = [lambda sc=sc, des=des, n=n: des.rule.tables(sc.model, sc.network, des, n, x0=sc.operating_point[0],
                                                          inputs=sc.inputs(n)) for _, sc, des, n in todo]
-    with phase(f"offline tables of {len(todo)} designs"):
-        done = run_forked(calls, workers=workers)
+    done = run_forked(calls, workers=workers, desc="offline tables of the designs computed")
     for (key, *_), result in zip(todo, done):
         if result.status == "done":
             _remember(key, result.value)

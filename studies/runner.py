@@ -511,7 +511,8 @@ _POLL_S = 1.0
 
 
 def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
-               deadline: float | None = None, on_done: Callable[[int, "Timed"], None] | None = None) -> list[Timed]:
+               deadline: float | None = None, on_done: Callable[[int, "Timed"], None] | None = None,
+               desc: str = "computed") -> list[Timed]:
     """Each of ``calls`` (functions of no argument) computed in a forked child, at most ``workers`` at once (default:
     :func:`designer.cores.usable_cores`), in their order; a call still running at ``deadline`` (a
     ``time.monotonic()`` instant) is killed, and one not started by then is not started (both ``'timeout'``).
@@ -521,7 +522,8 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
     a large result never blocks it); a child that raised, died or sent what does not unpickle is ``'failed'``.  With
     one usable core or where the platform does not fork, the calls run here one after the other (a call started
     before the deadline runs to its end).  The numbers do not depend on where they were computed.  ``on_done(j,
-    timed)`` is called as each call ends (a progress bar's tick), in the order they end.
+    timed)`` is called as each call ends (a progress bar's tick), in the order they end.  While it waits it writes a
+    progress line when one is due (:func:`designer.progress.line`): ``desc`` and how many calls ended.
     """
     import select
 
@@ -570,7 +572,7 @@ def run_forked(calls: list[Callable[[], Any]], *, workers: int | None = None,
                 continue
             wait_s = _POLL_S if deadline is None else min(_POLL_S, max(0.0, deadline - time.monotonic()))
             ready, _, _ = select.select(list(running), [], [], wait_s)
-            line("done", sum(o is not None for o in out), len(calls))  # a progress line, when one is due
+            line(desc, sum(o is not None for o in out), len(calls))  # a progress line, when one is due
             if not ready and deadline is not None and time.monotonic() >= deadline:
                 for fd, (j, pid, _, start) in list(running.items()):
                     os.kill(pid, signal.SIGKILL)

@@ -182,3 +182,16 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
     assert relay.ratio_centralized == pytest.approx(relay.predicted / refs["centralized"], rel=1e-12)
     assert "over each node's region" in auto.message
 
+
+
+def test_a_relay_node_whose_ball_holds_no_sensor_of_some_dimension_runs_as_the_network_filter(tmp_path):
+    """The chain's node 0 relays over one hop: its ball (sensors 0 and 1) holds no two-row sensor, which sensor 2 is.
+    Its node filter (studies.node_filter, what export replays) runs, and every node's estimate is the batched
+    filter's on the same log (studies.filter with the schedule)."""
+    path = chain(tmp_path, "None")
+    des, log = tmp_path / "design", tmp_path / "log.npz"
+    studies.design(str(path), mode="relay", rounds=1, out=des)
+    sim = studies.simulate(str(path), seed=4, out=log)
+    x, _ = studies.node_filter(str(path), schedule=des).run(sim.z, sim.attacks, sim.inputs)
+    batch = studies.filter(str(path), log, schedule=des)
+    assert x.shape == batch.x_hat.shape and np.allclose(x, batch.x_hat, rtol=1e-10, atol=1e-12)

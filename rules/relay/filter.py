@@ -131,7 +131,8 @@ def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) ->
     whiten = []
     for m in sorted(set(dims.tolist()) - {1}):
         slots = np.flatnonzero(keep & (length == m))
-        whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
+        if slots.size:  # a node's ball may hold no sensor of this dimension
+            whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
     return _Layout(start, sensor_slots, pair_local, zcol, first, pair_rows, pair_of_row, comp[pair_rows], angle_rows,
                    None if np.all(scale == 1.0) else scale, whiten)
 
