@@ -304,8 +304,9 @@ def _auto_lines(res, out: str) -> None:
     click.echo(f"wrote {out}/candidates.json" + (", schedule.json, schedule.npz" if res.pick is not None else "")
                + (", validation.json" if res.validation is not None else "") + f" and report.html: "
                f"{len(res.candidates)} candidates in {res.seconds:.1f} s")
+    over = " over the regions" if res.scenario.regions is not None else ""
     for i, c in enumerate(res.candidates):
-        what = (f"{c.verdict}" + (f", predicted tr Φ {c.predicted:.4g}" if c.predicted is not None else "")
+        what = (f"{c.verdict}" + (f", predicted tr Φ{over} {c.predicted:.4g}" if c.predicted is not None else "")
                 if c.status == "designed" else f"{c.status}: {(c.reason or '')[:100]}")
         flags = "".join([" [pick]" if i == res.pick_index else "", "" if c.in_budget else " [over budget]",
                          " [no better than local EKFs]" if c.better_than_local is False else ""])
