@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
+from .regions import region_traces
+
 __all__ = ["observability", "kalman_references"]
 
 
@@ -107,14 +109,16 @@ def kalman_references(model, x0, u0=None, regions=None) -> dict:
     central = _posterior(F, np.vstack(H), Q, block_diag(*R))
     local = [_posterior(F, Hi, Q, Ri) for Hi, Ri in zip(H, R)]
 
-    def tr(P, idx=slice(None)):
-        return None if P is None else float(np.trace(P[idx, idx] if isinstance(idx, slice) else P[np.ix_(idx, idx)]))
+    def tr(P, regions=None):
+        if P is None:
+            return None
+        return float(np.trace(P)) if regions is None else [float(v) for v in region_traces(P[None], regions)]
 
     out = {"centralized": tr(central), "local": [tr(P) for P in local],
            "where": "steady-state Kalman filters (the Riccati equation python-control dlqe solves) of the "
                     "linearisation at the operating point; "
                     "trace of the posterior error covariance; None: no steady state (pair not detectable)"}
     if regions is not None:
-        out["regions"] = {"centralized": [tr(central, r) for r in regions],
-                          "local": [tr(P, r) for P, r in zip(local, regions)]}
+        out["regions"] = {"centralized": tr(central, regions) or [None] * len(regions),
+                          "local": [None if P is None else tr(P, [r])[0] for P, r in zip(local, regions)]}
     return out

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from typing import Sequence
 
-import casadi as ca
 import numpy as np
 
 from .validation import InputError
@@ -33,6 +32,8 @@ SENSED = "sensed"
 def sensed_regions(model) -> tuple[np.ndarray, ...]:
     """Each sensor's structural support in the state: the indices of the states its measurement function ``h_s``
     depends on (the columns of its Jacobian's structural nonzeros), in increasing order."""
+    import casadi as ca  # late: a scenario without regions (and a listing of scenarios) builds no CasADi expression
+
     out = []
     for s in model.sensors:
         jac = ca.jacobian(ca.vec(s.h), model.x)
@@ -61,10 +62,12 @@ def resolve_regions(value, model, n_nodes: int, what: str = "REGIONS") -> tuple[
         if len(items) != n_nodes:
             raise InputError(f"{what} must have one entry per node ({n_nodes}), got {len(items)}")
         names = {name: j for j, name in enumerate(model.state_names)}
+        sensed = sensed_regions(model) if any(isinstance(e, str) and e == SENSED and e not in names
+                                              for e in items) else None
         regions = []
         for i, entry in enumerate(items):
-            if isinstance(entry, str) and entry == SENSED and entry not in names:  # this node's sensed states
-                entry = sensed_regions(model)[i].tolist()
+            if sensed is not None and isinstance(entry, str) and entry == SENSED:  # this node's sensed states
+                entry = sensed[i].tolist()
             if isinstance(entry, (str, int, np.integer)):
                 entry = [entry]
             idx = []
@@ -80,9 +83,8 @@ def resolve_regions(value, model, n_nodes: int, what: str = "REGIONS") -> tuple[
         regions = tuple(regions)
     for i, r in enumerate(regions):
         if r.size == 0:
-            raise InputError(f"{what}[{i}] is empty: every node's region must hold at least one state"
-                             + (" (node {i}'s sensor depends on no state)".format(i=i) if isinstance(value, str)
-                                else ""))
+            raise InputError(f"{what}[{i}] is empty: every node's region must hold at least one state (a sensed "
+                             "region is empty when the node's sensor depends on no state)")
     return regions
 
 
