@@ -532,7 +532,8 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     Per filter: ``rmse`` (over every state component, the root of ``mse``, the mean ‖e‖² over the runs, steps and
     nodes), ``rmse_state``, ``rmse_position`` where the model has a position, ``diverged_runs`` (how many), the
     messages per step; for the pick its ``bound_check`` and verdict counts; ``ratios``: the pick's RMSE over each
-    reference's."""
+    reference's.  With regions (:mod:`designer.regions`) each row also has ``rmse_region`` (each node on its own
+    region's states), and the ratios are of it."""
     from .pipeline import run_study
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
@@ -550,11 +551,14 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
                "diverged_runs": len(f.get("diverged_runs") or []), "messages_per_step": f.get("communications")}
         if f.get("rmse_position") is not None:
             row["rmse_position"] = f["rmse_position"]
+        if f.get("rmse_region") is not None:  # the model declares regions: each node on its own states
+            row["rmse_region"] = f["rmse_region"]
         if name == mine:
             row.update(bound_check=f.get("bound_check"), verdicts=f.get("verdicts"))
         rows["pick" if name == mine else name] = row
-    ratios = {n: json_number(rows["pick"]["rmse"] / r["rmse"]) for n, r in rows.items()
-              if n != "pick" and rows.get("pick", {}).get("rmse") is not None and r["rmse"]}
+    key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by
+    ratios = {n: json_number(rows["pick"][key] / r[key]) for n, r in rows.items()
+              if n != "pick" and rows.get("pick", {}).get(key) is not None and r.get(key)}
     return {"schema": "cfdesign.validation/1", "runs": runs, "seed": seed,
             "seeds": f"SeedSequence({seed}).spawn({runs})[r].spawn(2) = (truth and measurements, channel attacks) of "
                      f"run r; the design's run is SeedSequence({seed}).spawn(2), a different stream",

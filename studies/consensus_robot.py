@@ -43,6 +43,7 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
+from designer.regions import region_mask
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -463,6 +464,15 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     return Plan(task, "consensus-robot", config)
 
 
+def _region_metrics(err: np.ndarray, regions) -> dict:
+    """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
+    region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
+    ``study comparison`` scores it, and ``rmse_region_median_run``."""
+    per_run = np.where(region_mask(regions, err.shape[-1]), err**2, 0.0).sum(-1).mean(axis=(1, 2))
+    return {"rmse_region": float(np.sqrt(per_run.mean())),
+            "rmse_region_median_run": float(np.median(np.sqrt(per_run)))}
+
+
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
@@ -544,6 +554,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             **({"exchange": exchange_counts(A[f"v{j}_gate"][ok])}
                if e.mode is not None and e.attacked and net.adjacency.any() else {}),
             **({"consensus_iterations": L} if e.rounds else {}),
+            **(_region_metrics(err, sc.regions) if sc.regions is not None else {}),
         }
     return {
         "scenario": sc.name,

@@ -195,3 +195,21 @@ def test_a_relay_node_whose_ball_holds_no_sensor_of_some_dimension_runs_as_the_n
     x, _ = studies.node_filter(str(path), schedule=des).run(sim.z, sim.attacks, sim.inputs)
     batch = studies.filter(str(path), log, schedule=des)
     assert x.shape == batch.x_hat.shape and np.allclose(x, batch.x_hat, rtol=1e-10, atol=1e-12)
+
+
+
+def test_the_automatic_designs_validation_scores_the_pick_on_the_regions(tmp_path):
+    """With REGIONS, validation.json's rows carry rmse_region and pick_rmse_ratio is of it: whole-state regions give
+    each row's whole-state rmse, one state per node a smaller error for every filter."""
+    every, own = tmp_path / "every", tmp_path / "own"
+    every.mkdir()
+    own.mkdir()
+    auto = studies.design(str(chain(every, "[list(range(5))] * 5")), mode="auto", validate=3, budget=40)
+    rows = auto.validation["filters"]
+    for name, row in rows.items():
+        if row["rmse"] is not None:
+            assert row["rmse_region"] == pytest.approx(row["rmse"], rel=1e-10), name
+    for name, ratio in auto.validation["pick_rmse_ratio"].items():
+        assert ratio == pytest.approx(rows["pick"]["rmse_region"] / rows[name]["rmse_region"], rel=1e-12)
+    mine = studies.design(str(chain(own, "[[i] for i in range(5)]")), mode="auto", validate=3, budget=40)
+    assert all(r["rmse_region"] < r["rmse"] for r in mine.validation["filters"].values() if r["rmse"] is not None)
