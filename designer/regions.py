@@ -22,8 +22,8 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["SENSED", "sensed_regions", "resolve_regions", "region_mask", "region_traces", "describe_regions",
-           "region_detail"]
+__all__ = ["SENSED", "sensed_regions", "resolve_regions", "region_mask", "region_traces", "region_error2",
+           "describe_regions", "region_detail"]
 
 #: ``REGIONS = "sensed"``: each node's region is the states its own sensor's measurement depends on.
 SENSED = "sensed"
@@ -101,6 +101,12 @@ def region_traces(P: np.ndarray, regions: Sequence[np.ndarray]) -> np.ndarray:
     filter's one matrix as (..., 1, n, n): broadcast to every node), gives (..., nodes)."""
     P = np.asarray(P, dtype=float)
     return np.where(region_mask(regions, P.shape[-1]), np.diagonal(P, axis1=-2, axis2=-1), 0.0).sum(-1)
+
+
+def region_error2(err: np.ndarray, regions: Sequence[np.ndarray]) -> np.ndarray:
+    """Each node's squared error summed over its region: ``err`` (..., nodes, n), a centralized filter's one error as
+    (..., 1, n) (broadcast to every node), gives (..., nodes): what the studies average into ``rmse_region``."""
+    return np.where(region_mask(regions, err.shape[-1]), err**2, 0.0).sum(-1)
 
 
 def describe_regions(regions: Sequence[np.ndarray], state_names: Sequence[str]) -> list[list[str]]:

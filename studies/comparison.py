@@ -56,7 +56,7 @@ import numpy as np
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.progress import phase
-from designer.regions import describe_regions, region_mask
+from designer.regions import describe_regions, region_error2
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
@@ -356,7 +356,6 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
     # with regions each node is scored on its region's states (a centralized filter's one estimate on each node's)
-    scored = region_mask(sc.regions, m.n_x) if sc.regions is not None else None
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
@@ -372,9 +371,9 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
         if ok and first_divergence(truth[a][:, None] - xs, limit) is not None:
             ok = False  # finite, but off the problem's scale: diverged
         if ok:
-            e2 = (truth[a, 1:, None] - xs[1:]) ** 2  # (K, nodes or 1, n)
-            e2 = e2[..., idx] if scored is None else np.where(scored, e2, 0.0)
-            err2[a, j, f] = e2.sum(-1).mean(axis=1)
+            e = truth[a, 1:, None] - xs[1:]  # (K, nodes or 1, n)
+            e2 = (e[..., idx] ** 2).sum(-1) if sc.regions is None else region_error2(e, sc.regions)
+            err2[a, j, f] = e2.mean(axis=1)
             if j == 0:
                 est[a, f] = xs[:, 0]
 

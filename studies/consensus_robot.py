@@ -43,7 +43,7 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.regions import region_mask
+from designer.regions import region_error2
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -468,7 +468,7 @@ def _region_metrics(err: np.ndarray, regions) -> dict:
     """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
     region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
     ``study comparison`` scores it, and ``rmse_region_median_run``."""
-    per_run = np.where(region_mask(regions, err.shape[-1]), err**2, 0.0).sum(-1).mean(axis=(1, 2))
+    per_run = region_error2(err, regions).mean(axis=(1, 2))
     return {"rmse_region": float(np.sqrt(per_run.mean())),
             "rmse_region_median_run": float(np.median(np.sqrt(per_run)))}
 
