@@ -355,7 +355,6 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     cannot = _cannot_start(scs, options, designs, entries)
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
-    # with regions each node is scored on its region's states (a centralized filter's one estimate on each node's)
     err2 = np.full((R, S, F, K), np.nan)
     secs = np.full((R, S, F), np.nan)
     feasible = np.full((R, S, F), np.nan)
@@ -372,6 +371,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             ok = False  # finite, but off the problem's scale: diverged
         if ok:
             e = truth[a, 1:, None] - xs[1:]  # (K, nodes or 1, n)
+            # with regions each node on its region's states (a centralized filter's one estimate on each node's)
             e2 = (e[..., idx] ** 2).sum(-1) if sc.regions is None else region_error2(e, sc.regions)
             err2[a, j, f] = e2.mean(axis=1)
             if j == 0:
