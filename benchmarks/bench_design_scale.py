@@ -702,6 +702,15 @@ def _size(text: str) -> tuple[int, int]:
     return int(m[1]), int(m[2])
 
 
+def finish(rows: list, args, checker) -> int:
+    """The end of either run: the rows written to ``--json`` when given; with ``--check`` the exit code of
+    ``checker(rows)`` (1 when a target is missed), else 0."""
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(rows, fh, indent=2)
+    return (0 if checker(rows) else 1) if args.check else 0
+
+
 def models_main(args, ap) -> int:
     if args.timeout <= 0 or args.max_gb <= 0:
         ap.error("--timeout and --max-gb must be > 0")
@@ -719,12 +728,7 @@ def models_main(args, ap) -> int:
                 if not (args.check and (label, mode) in CHECK_SKIP)]
         rows = measure_models(plan, options, args.timeout, args.max_gb)
     print_models(rows, options)
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(rows, fh, indent=2)
-    if args.check:
-        return 0 if check_models(rows) else 1
-    return 0
+    return finish(rows, args, check_models)
 
 
 def main(argv=None) -> int:
@@ -799,12 +803,7 @@ def main(argv=None) -> int:
                                 args.bank, tuple(args.hcmci)))
             print(f"  {nodes} nodes measured: design {rows[-1]['design_s']:.1f} s", flush=True)
     print_table(rows)
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(rows, fh, indent=2)
-    if args.check:
-        return 0 if check(rows) else 1
-    return 0
+    return finish(rows, args, check)
 
 
 if __name__ == "__main__":
