@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple
 
 import numpy as np
 
-from .rule import BANK_MAX, EXCHANGES, ROBUSTNESS_MAX, ROUNDS_MAX, RULE_NAME, GainRule
+from .rule import BANK_MAX, CARRIES, EXCHANGES, ROBUSTNESS_MAX, ROUNDS_MAX, RULE_NAME, GainRule
 from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
@@ -46,6 +46,7 @@ __all__ = [
 ]
 
 LINEARIZATIONS = ("fixed", "hessian", "structured")
+
 # The published choices of seed 003 and, marked, the values it leaves out.
 PAPER_DEFAULTS = {
     "sigma": 0.1,
@@ -118,6 +119,10 @@ class ConsensusDesign(NamedTuple):
     # with it: the sensors' remainders at one common error as one (designer.linearization.remainder_gram), over the
     # sensors' components padded to the largest sensor's dimension (N mz, N mz)
     remainder_gram: np.ndarray | None = None
+    # a rule whose nodes may carry their regions (GainRule.regional): one sorted index array per node, the region each
+    # node answers for; the node then carries that region and what its measurements and dynamics need
+    # (designer.regions.carried_states).  None: every node carries the whole state
+    carried_regions: Any = None
 
     @property
     def mode(self) -> str:
@@ -200,8 +205,23 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         if G.shape != (size, size) or W is None:
             raise InputError(f"remainder_gram must be a ({size}, {size}) matrix beside a remainder_structure, got "
                              f"shape {G.shape}")
+    regions = design.carried_regions
+    if regions is not None:
+        if not rule.regional:
+            raise InputError(f"carried_regions: mode {design.mode!r} carries the whole state at every node (a node "
+                             "carries only its region in a rule that fuses its ball's measurements without consensus "
+                             "on estimates: relay, flood)")
+        try:
+            regions = tuple(np.asarray(r, dtype=int).reshape(-1) for r in regions)
+        except (TypeError, ValueError):
+            raise InputError("carried_regions must hold one sequence of state indices per node") from None
+        if len(regions) != network.n_nodes or any(r.size == 0 or r.min() < 0 or r.max() >= model.n_x
+                                                  for r in regions):
+            raise InputError(f"carried_regions must hold one non-empty sequence of state indices 0..{model.n_x - 1} "
+                             f"per node ({network.n_nodes})")
+        regions = tuple(np.unique(r) for r in regions)
     return design._replace(epsilon=eps, U=U, V=tuple(Vs), fdi_moment=M, fdi_span=P, fdi_mean=mu,
-                           remainder_structure=W, remainder_gram=G)
+                           remainder_structure=W, remainder_gram=G, carried_regions=regions)
 
 
 # ------------------------------------------------------------------------------------------- scalings
@@ -384,6 +404,11 @@ class DesignOptions:
         every step, the tables of the point nearest its own prediction (:mod:`rules.scheduled.design`, "Bank of
         operating points"): for a state that may leave the region of the nominal geometry (a target leaving
         the sensor field).  Not covered by the certificate, which is the nominal design's.
+    carry : {'whole', 'region'}
+        Modes ``relay`` and ``flood`` on a model that declares ``REGIONS``: ``region``, each node carries only the
+        states its region, its ball's measurements and their dynamics need (:mod:`designer.regions`); its numbers
+        on them are those of the whole-state design, and its bound and verdict are on its region (default
+        ``whole``: every node carries the whole state).
     """
 
     mode: str | None = None
@@ -404,6 +429,7 @@ class DesignOptions:
     robustness: float | None = None
     rounds: int | None = None
     bank: int | None = None
+    carry: str | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
 
@@ -421,6 +447,8 @@ class DesignOptions:
             raise InputError(f"bank must be an integer in [0, {BANK_MAX}], got {self.bank!r}")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
+        if self.carry is not None and self.carry not in CARRIES:
+            raise InputError(f"carry must be one of {', '.join(map(repr, CARRIES))}, got {self.carry!r}")
         for name in ("epsilon", "sigma", "beta", "tau", "radius", "dos", "fdi", "delta", "amplitude", "gate",
                      "robustness"):
             v = getattr(self, name)
@@ -469,7 +497,7 @@ class DesignOptions:
 
 
 def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: float, options: DesignOptions, x0,
-                P0=None, u0=None, signal=None) -> ConsensusDesign:
+                P0=None, u0=None, signal=None, regions=None) -> ConsensusDesign:
     """The :class:`ConsensusDesign` of gain rule ``rule`` and ``options`` for ``model`` on ``network`` (validated).
 
     ``rule`` is the options' mode resolved (:func:`rules.get`; ``options.mode`` is its name or None) and ``options``
@@ -479,7 +507,8 @@ def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: 
     :class:`designer.attacks.FDISignal`: its ``E[ξ ξᵀ]`` (the mse design's statistics) and the
     components it reaches (the certificate's FDI term ``δ² Π``; all components without a
     signal); ``x0`` (and ``u0``) the operating point of the ``'prior'`` scalings, ``P0`` the
-    prior covariance there.
+    prior covariance there; ``regions`` the states each node answers for (:mod:`designer.regions`), which the
+    nodes carry alone with ``options.carry == 'region'``.
     """
     from .tuning import tuned_epsilon
 
@@ -491,6 +520,8 @@ def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: 
         epsilon = PAPER_DEFAULTS["epsilon_fraction"] / d_max if rule.fixed_multipliers else tuned_epsilon(d_max)
     radius = DEFAULT_RADIUS if options.radius is None else float(options.radius)
     P0 = model.prior.cov if P0 is None else P0
+    if options.carry == "region" and regions is None:
+        raise InputError("carry 'region' needs each node's region: the model file's REGIONS (docs/model-files.md)")
     structure = gram = None
     if whitened(rule, options):
         U, V, structure, gram = whitened_scaling(model, x0=x0, P0=P0, u0=u0, radius=radius)
@@ -516,6 +547,7 @@ def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: 
         **rule.design_fields(options),
         remainder_structure=structure,
         remainder_gram=gram,
+        carried_regions=regions if options.carry == "region" else None,
     )
     return validate_design(des, model, network)
 
@@ -529,5 +561,6 @@ def describe_design(des: ConsensusDesign) -> dict:
             "U": np.asarray(des.U).tolist(),
             "V": [np.asarray(v).tolist() for v in (des.V if isinstance(des.V, (tuple, list)) else (des.V,))],
             "remainder_structure": None if des.remainder_structure is None else
-            np.asarray(des.remainder_structure).tolist()}
+            np.asarray(des.remainder_structure).tolist(),
+            "carry": "whole" if des.carried_regions is None else "region"}
 

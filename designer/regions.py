@@ -10,9 +10,16 @@ angle and its neighbours').
 With regions the studies score each node on its region's states (``rmse_region``: per node the squared error summed
 over its region, averaged over the nodes), the centralized filters' single estimate on each node's region alike (the
 centralized EKF restricted to the same states is the reference), and a design states each node's final bound on its
-region against the centralized steady state on the same states.  Nodes still carry the whole state: a node filter
-that carries its region and its neighbours' boundary states only (Khan and Moura's overlapping subsystems) is not
-built yet.
+region against the centralized steady state on the same states.
+
+**Carrying the region** (:func:`carried_states`).  A node of a rule that fuses its ball's measurements without
+consensus on estimates (``relay``, ``flood``) may carry only the states that its region and its ball's measurements
+need: the closure of its region and of its ball's sensors' structural supports under the dynamics' structural
+dependence (a carried state's next value may depend only on carried states).  Its filter on them is then exactly its
+whole-state filter restricted to them: with ``F`` and every ``H`` of its ball zero outside the carried block, the
+block's prediction and update never read the rest.  Where the dynamics couple every state (a heat field), the
+closure is the whole state and nothing is saved; boundary states taken from the neighbours (Khan and Moura's
+overlapping subsystems) are not built.
 """
 from __future__ import annotations
 
@@ -23,7 +30,8 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["SENSED", "sensed_regions", "resolve_regions", "region_mask", "region_traces", "region_error2",
-           "describe_regions", "region_detail"]
+           "describe_regions", "region_detail", "dynamics_support", "carried_states", "carried_index",
+           "carried_positions", "Carried"]
 
 #: ``REGIONS = "sensed"``: each node's region is the states its own sensor's measurement depends on.
 SENSED = "sensed"
@@ -40,6 +48,119 @@ def sensed_regions(model) -> tuple[np.ndarray, ...]:
         _, cols = jac.sparsity().get_triplet()
         out.append(np.unique(np.asarray(cols, dtype=int)))
     return tuple(out)
+
+
+def dynamics_support(model) -> np.ndarray:
+    """(n_x, n_x) booleans: ``dep[j, l]`` whether ``f_j`` depends structurally on state ``l`` (the structural nonzeros
+    of CasADi's Jacobian of the dynamics, every mode and input included)."""
+    import casadi as ca
+
+    rows, cols = ca.jacobian(model.f_expr, model.x).sparsity().get_triplet()
+    dep = np.zeros((model.n_x, model.n_x), dtype=bool)
+    dep[np.asarray(rows, dtype=int), np.asarray(cols, dtype=int)] = True
+    return dep
+
+
+def carried_states(model, regions: Sequence[np.ndarray], balls: Sequence[Sequence[int]]) -> tuple[np.ndarray, ...]:
+    """The states each node carries (module docstring, "Carrying the region"): per node the smallest set holding its
+    region, the structural support of every sensor of its ball (``balls[i]``, the sensors whose measurements it
+    fuses) and every state the dynamics of a held state depend on, in increasing order."""
+    dep = dynamics_support(model)
+    support = sensed_regions(model)
+    out = []
+    for region, ball in zip(regions, balls):
+        held = np.zeros(model.n_x, dtype=bool)
+        held[np.asarray(region, dtype=int)] = True
+        for s in ball:
+            held[support[int(s)]] = True
+        while True:  # add what the held states' dynamics read until nothing new is read
+            more = held | dep[held].any(axis=0)
+            if more.sum() == held.sum():
+                break
+            held = more
+        out.append(np.flatnonzero(held))
+    return tuple(out)
+
+
+def carried_index(carried: Sequence[np.ndarray]) -> np.ndarray:
+    """(nodes, m) the carried states of every node in one array, ``m`` the most any node carries, a node's
+    unused places ``-1`` (the layout of the arrays of a filter whose nodes carry their regions)."""
+    m = max(len(c) for c in carried)
+    index = np.full((len(carried), m), -1, dtype=int)
+    for i, c in enumerate(carried):
+        index[i, :len(c)] = c
+    return index
+
+
+def carried_positions(index: np.ndarray, regions: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """Each node's region as positions in its carried states (``index``, :func:`carried_index`); an InputError when
+    a region is not carried."""
+    out = []
+    for i, (row, region) in enumerate(zip(index, regions)):
+        where = {int(j): p for p, j in enumerate(row) if j >= 0}
+        if any(int(j) not in where for j in region):
+            raise InputError(f"node {i}'s region is not among the states it carries")
+        out.append(np.array([where[int(j)] for j in region], dtype=int))
+    return tuple(out)
+
+
+class Carried:
+    """The carried states of every node (:func:`carried_index`'s ``index`` (nodes, m), ``-1`` where a node carries
+    fewer than ``m``) and the moves between the whole state's coordinates and each node's own, the first
+    ``count[i]`` places of its ``m``: a place a node does not use holds zero (in a vector, and in a matrix's row and
+    column), so that traces, products and the relay rule's update run on the padded arrays unchanged."""
+
+    def __init__(self, index: np.ndarray, n_x: int):
+        self.index = np.asarray(index, dtype=int)
+        self.n_x = int(n_x)
+        self.used = self.index >= 0  # (nodes, m)
+        self.safe = np.where(self.used, self.index, 0)  # a place not used reads state 0 (then zeroed)
+        self.nodes, self.m = self.index.shape
+        self._pairs = self.used[:, :, None] & self.used[:, None, :]
+
+    @classmethod
+    def of(cls, carried: Sequence[np.ndarray], n_x: int) -> "Carried":
+        return cls(carried_index(carried), n_x)
+
+    @property
+    def whole(self) -> bool:
+        """Every node carries every state, in order."""
+        return self.m == self.n_x and bool(np.all(self.index == np.arange(self.n_x)))
+
+    def vector(self, x: np.ndarray) -> np.ndarray:
+        """(..., nodes, m) each node's carried states of ``x`` (..., nodes, n_x), or (nodes, m) of one ``x`` (n_x,)
+        shared by the nodes."""
+        x = np.asarray(x, dtype=float)
+        if x.ndim == 1:
+            x = np.broadcast_to(x, (self.nodes, self.n_x))
+        return np.where(self.used, np.take_along_axis(x, np.broadcast_to(self.safe, x.shape[:-1] + (self.m,)),
+                                                      axis=-1), 0.0)
+
+    def matrix(self, A: np.ndarray) -> np.ndarray:
+        """(..., nodes, m, m) each node's carried block of ``A`` (..., nodes, n_x, n_x), or (nodes, m, m) of one
+        ``A`` (n_x, n_x) shared by the nodes."""
+        A = np.asarray(A, dtype=float)
+        if A.ndim == 2:
+            out = A[..., self.safe[:, :, None], self.safe[:, None, :]]
+        else:
+            out = A[..., np.arange(self.nodes)[:, None, None], self.safe[:, :, None], self.safe[:, None, :]]
+        return np.where(self._pairs, out, 0.0)
+
+    def columns(self, H: np.ndarray, node_of_row: np.ndarray) -> np.ndarray:
+        """(..., T, m) rows ``H`` (..., T, n_x), row ``t`` belonging to node ``node_of_row[t]``, in that node's
+        carried coordinates."""
+        idx = self.safe[node_of_row]  # (T, m)
+        out = np.take_along_axis(H, np.broadcast_to(idx, H.shape[:-1] + (self.m,)), axis=-1)
+        return np.where(self.used[node_of_row], out, 0.0)
+
+    def full(self, x: np.ndarray, fill) -> np.ndarray:
+        """(..., nodes, n_x) each node's carried values ``x`` (..., nodes, m) in the whole state's coordinates, the
+        states it does not carry ``fill`` (a number, or (n_x,) one per state)."""
+        x = np.asarray(x, dtype=float)
+        out = np.empty(x.shape[:-1] + (self.n_x + 1,))
+        out[..., :self.n_x] = fill
+        np.put_along_axis(out, np.broadcast_to(np.where(self.used, self.index, self.n_x), x.shape), x, axis=-1)
+        return out[..., :self.n_x]
 
 
 def resolve_regions(value, model, n_nodes: int, what: str = "REGIONS") -> tuple[np.ndarray, ...]:
@@ -115,15 +236,17 @@ def describe_regions(regions: Sequence[np.ndarray], state_names: Sequence[str]) 
 
 
 def region_detail(phi_final: np.ndarray, regions: Sequence[np.ndarray], centralized: Sequence[float | None] | None,
-                  state_names: Sequence[str]) -> dict:
+                  state_names: Sequence[str], positions: Sequence[np.ndarray] | None = None) -> dict:
     """A design's bound on each node's region (a verdict detail's ``region``): ``phi_final`` (nodes, n, n) the final
     bound per node, ``centralized`` per node the centralized steady-state posterior traced over its region
     (:func:`designer.observability.kalman_references`' ``regions``; None where none exists).  Per node: its region's
     states, the final tr Φ over them, the centralized tr P over the same states and their ratio (None where not
-    finite or no reference).  A statement beside the verdict, which still judges the whole state."""
+    finite or no reference).  ``positions``: where each region sits in ``phi_final``'s coordinates when the nodes
+    carry their regions (:func:`carried_positions`; default the regions themselves, ``phi_final`` in the whole
+    state's)."""
     from .verdict import json_number
 
-    final = region_traces(phi_final, regions)
+    final = region_traces(phi_final, regions if positions is None else positions)
     ref = [None] * len(regions) if centralized is None else list(centralized)
     return {"states": describe_regions(regions, state_names),
             "final_trace": [json_number(v) for v in final],

@@ -27,7 +27,8 @@ chooses the gains, the command line's help), and its capabilities: ``fixed_multi
 tables computed offline and applied online: it chooses what the nodes exchange, the exchange rounds, a robustness
 margin and a bank of operating points, and has a stationary certificate), ``joint_covariance`` (its filter carries
 the joint error covariance of all nodes: (N n)² numbers per run, not mapped by the feasibility map), ``relays`` (its
-packets relay the measurements over L exchange rounds per step).
+packets relay the measurements over L exchange rounds per step), ``regional`` (its nodes may carry their regions
+alone, :mod:`designer.regions`).
 
 Its hooks (methods; the base class's answer follows from the capabilities)
 --------------------------------------------------------------------------
@@ -55,7 +56,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "runtime_label", "caveat",
-           "RULE_NAME", "EXCHANGES", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
+           "RULE_NAME", "CARRIES", "EXCHANGES", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
 
 # The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
 RUNTIMES: Mapping[str, str] = MappingProxyType({
@@ -79,6 +80,9 @@ _SHORT = {"local": "computed online at each node", "scheduled": "designed offlin
 RULE_NAME = re.compile(r"[a-z][a-z0-9_]*")  # a rule's name: its package's (a Python identifier), its --mode
 
 
+#: What a node carries (``--carry``): the whole state, or its region and what its measurements need (a rule whose
+#: nodes may: GainRule.regional).
+CARRIES = ("whole", "region")
 EXCHANGES = ("measurements", "predictions")  # what a packet carries (a rule of offline tables): the first its default
 #: The default robustness margin δ of a tabled design's link gains (:func:`rules.scheduled.design.link_gains`;
 #: ``--robustness``).  With δ = 0 the gains are the MMSE ones for the tables, and they exploit the tables' correlations
@@ -153,6 +157,10 @@ class GainRule:
     relays : bool
         Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that arrived
         (:mod:`rules.relay.design`); its design has a stationary certificate.
+    regional : bool
+        Its nodes may carry only their regions' states (``--carry region``, ``ConsensusDesign.carried_regions``,
+        :mod:`designer.regions`): it fuses measurements without consensus on estimates, so a node's filter on the
+        states its region, its measurements and their dynamics need is its whole-state filter on them.
     """
 
     name: ClassVar[str]
@@ -163,6 +171,7 @@ class GainRule:
     offline_tables: ClassVar[bool] = False
     joint_covariance: ClassVar[bool] = False
     relays: ClassVar[bool] = False
+    regional: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -182,7 +191,7 @@ class GainRule:
         for field in ("needs", "summary"):
             if not isinstance(getattr(cls, field, None), str) or not getattr(cls, field).strip():
                 raise InputError(f"{field} of gain rule {name!r} must be a non-empty sentence")
-        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays"):
+        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays", "regional"):
             if not isinstance(getattr(cls, field), bool):
                 raise InputError(f"{field} of gain rule {name!r} must be True or False, got {getattr(cls, field)!r}")
 
@@ -270,6 +279,10 @@ class GainRule:
         if options.robustness is not None and not self.offline_tables:
             raise InputError(f"robustness is a margin of the link gains of a rule of offline tables; mode {mode} "
                              "has none")
+        if options.carry == "region" and not self.regional:
+            raise InputError(f"carry 'region': mode {mode} carries the whole state at every node (a node carries its "
+                             "region alone in a rule that fuses its ball's measurements without consensus on "
+                             "estimates: relay, flood)")
         if not self.fixed_multipliers:
             for name in ("sigma", "beta", "tau"):
                 if getattr(options, name) is not None:

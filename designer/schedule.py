@@ -10,7 +10,11 @@ different dimensions ``n_z = max n_z_i`` and node i's gain in its first ``n_z_i`
 columns, zero beyond), ``C`` (nodes, steps, n_x, n_x), ``Phi`` (nodes, steps + 1,
 n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` and
 ``beta`` (nodes, steps) and the condition margins ``margin28`` and ``margin29``
-(nodes, steps; NaN where not checked); a ``scheduled`` design adds the tables its nodes carry,
+(nodes, steps; NaN where not checked).  A design whose nodes carry their regions (``--carry region``,
+:mod:`designer.regions`) adds ``carried`` (nodes, m), each node's carried states (-1: a place not used), and
+``region_mask`` (nodes, n_x), each node's region; ``K``, ``C`` and ``Phi`` are then in the carried coordinates
+(``m`` wide, zero at the unused places) and ``trace_bound`` is tr Φ over each node's region, what its verdict judges.
+A ``scheduled`` design adds the tables its nodes carry,
 ``table_<name>`` (:func:`rules.scheduled.design.table_arrays`).  The JSON Schema is
 ``studies/schemas/schedule.schema.json``.
 """
@@ -55,6 +59,8 @@ class GainSchedule:
     margin28: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k|k) - (1+ε)σ, NaN where not checked
     margin29: np.ndarray | None = None  # (nodes, steps) 1/λmax(Φ_k+1|k) - β
     tables: dict[str, np.ndarray] | None = None  # mode 'scheduled': what the nodes carry (schedule.npz's table_*)
+    carried: np.ndarray | None = None  # (nodes, m) each node's carried states (-1: unused); None: the whole state
+    region_mask: np.ndarray | None = None  # (nodes, n_x) each node's region, beside ``carried``
 
     @property
     def mode(self) -> str:
@@ -73,8 +79,19 @@ class GainSchedule:
     def feasible(self) -> bool:
         return not any(v["condition"] in ("(28)", "(29)", "diverged") for v in self.violations)
 
+    def judged_traces(self) -> np.ndarray:
+        """(nodes, steps) tr Φ_{k|k}, k = 1..steps, over what a node's verdict judges: its region when the nodes
+        carry their regions, else the whole state (NaN where Φ is not a finite number)."""
+        with np.errstate(invalid="ignore"):
+            if self.carried is None:
+                return np.trace(self.Phi[:, 1:], axis1=-2, axis2=-1)
+            from .regions import carried_positions, region_traces
+
+            pos = carried_positions(self.carried, [np.flatnonzero(r) for r in self.region_mask])
+            return region_traces(np.swapaxes(self.Phi[:, 1:], 0, 1), pos).T
+
     def trace_bound(self) -> list[list[float | None]]:
-        tr = np.trace(self.Phi[:, 1:], axis1=-2, axis2=-1)
+        tr = self.judged_traces()
         return [[_finite_or_none(t) if ok else None for t, ok in zip(row, vrow)]
                 for row, vrow in zip(tr, self.valid[:, 1:])]
 
@@ -106,8 +123,9 @@ class GainSchedule:
         out_dir = Path(out_dir)
         margins = {} if self.margin28 is None else {"margin28": self.margin28, "margin29": self.margin29}
         tables = {f"table_{k}": v for k, v in (self.tables or {}).items()}
+        carried = {} if self.carried is None else {"carried": self.carried, "region_mask": self.region_mask}
         write_npz(out_dir / "schedule.npz", K=self.K, C=self.C, Phi=self.Phi, valid=self.valid,
-                  sigma=self.sigma, beta=self.beta, **margins, **tables)
+                  sigma=self.sigma, beta=self.beta, **margins, **tables, **carried)
         write_json(out_dir / "schedule.json", self.to_json())
         return out_dir
 
@@ -159,4 +177,19 @@ def load_schedule(path, rule_of: Callable[[str, str], GainRule]) -> GainSchedule
     return GainSchedule(meta["scenario"], rule, float(meta["epsilon"]), arrays["sigma"], arrays["beta"],
                         arrays["K"], arrays["C"], arrays["Phi"], arrays["valid"].astype(bool), violations,
                         {k: v for k, v in meta.items() if k not in known}, arrays.get("margin28"),
-                        arrays.get("margin29"), {k[6:]: v for k, v in arrays.items() if k.startswith("table_")} or None)
+                        arrays.get("margin29"), {k[6:]: v for k, v in arrays.items() if k.startswith("table_")} or None,
+                        *_carried(arrays, npz_path))
+
+
+def _carried(arrays: dict, npz_path) -> tuple:
+    """``(carried, region_mask)`` of a schedule's arrays (None, None: its nodes carry the whole state), checked."""
+    if "carried" not in arrays:
+        return None, None
+    carried, mask = arrays["carried"], arrays.get("region_mask")
+    N, n = arrays["valid"].shape[0], None if mask is None else mask.shape[-1]
+    m = arrays["Phi"].shape[-1]
+    if (mask is None or carried.shape != (N, m) or mask.shape[0] != N or not np.issubdtype(carried.dtype, np.integer)
+            or carried.min() < -1 or carried.max() >= n):
+        raise InputError(f"schedule arrays {str(npz_path)!r}: carried must be ({N}, {m}) state indices (-1: unused) "
+                         f"beside region_mask (nodes, n_x)")
+    return carried, mask.astype(bool)

@@ -26,7 +26,9 @@ class StationaryCertificate(NamedTuple):
     the convex check (cvxpy + Clarabel) of the stationary inequality: ``status``, ``trace`` (the smallest total
     trace of a Φ̄ satisfying it, whose node blocks bound every later Φ once a Φ lies below it), ``max_residual``
     (the largest violation of the inequality by the solver's Φ̄, checked independently), or ``None`` where it was
-    not solved (the problem too large, or no fixed point).
+    not solved (the problem too large, or no fixed point).  ``carried`` (N, m) and ``positions``: when the nodes
+    carry their regions (:mod:`designer.regions`), ``Phi`` is in their carried coordinates and ``positions[i]``
+    are node i's region's places there; its ``trace`` (:meth:`describe`) is then over each node's region.
     """
 
     converged: bool
@@ -36,6 +38,18 @@ class StationaryCertificate(NamedTuple):
     iterations: int
     reason: str | None
     lmi: dict | None
+    carried: np.ndarray | None = None
+    positions: tuple | None = None
+
+    def traces(self) -> np.ndarray | None:
+        """(N,) each node's tr Φ at the fixed point, over its region when the nodes carry their regions."""
+        if self.Phi is None:
+            return None
+        if self.positions is None:
+            return np.trace(self.Phi, axis1=-2, axis2=-1)
+        from .regions import region_traces
+
+        return region_traces(self.Phi, self.positions)
 
     @property
     def not_computed(self) -> bool:
@@ -44,7 +58,7 @@ class StationaryCertificate(NamedTuple):
         return self.reason is not None and self.reason.startswith(f"{NOT_COMPUTED}: ")
 
     def describe(self) -> dict:
-        tr = None if self.Phi is None else [float(v) for v in np.trace(self.Phi, axis1=-2, axis2=-1)]
+        tr = None if self.Phi is None else [float(v) for v in self.traces()]
         def num(v):
             return float(v) if np.isfinite(v) else None
 

@@ -170,12 +170,14 @@ def settled_steps(horizon: int) -> slice:
 
 def informative(trace, open_loop) -> np.ndarray:
     """Per node: whether the bound ``trace`` (nodes, T: tr Φ per node and step) is informative at every step, i.e.
-    finite and below ``open_loop`` (the open-loop covariance's trace at the same steps, (T,), or one number for
-    every step) at each of them.  A step where the bound is not finite (inf, or NaN: no bound claimed) is not
+    finite and below ``open_loop`` (the open-loop covariance's trace at the same steps, (T,), one number for
+    every step, or (nodes, T) one row per node: each node's own states, when the nodes are judged on their regions)
+    at each of them.  A step where the bound is not finite (inf, or NaN: no bound claimed) is not
     informative; an open loop that overflowed (inf) makes any finite bound informative there.  The one test of
     "informative" of :func:`verdict` and of the studies' bound check."""
     trace = np.atleast_2d(np.asarray(trace, dtype=float))
-    ol = np.broadcast_to(np.asarray(open_loop, dtype=float), trace.shape[-1:])
+    ol = np.asarray(open_loop, dtype=float)
+    ol = np.broadcast_to(ol, trace.shape if ol.ndim == 2 else trace.shape[-1:])
     with np.errstate(invalid="ignore"):
         return np.all(np.isfinite(trace) & (trace < ol), axis=-1)
 
@@ -194,7 +196,10 @@ def _growth(trace: np.ndarray) -> tuple[np.ndarray | None, int]:
 
 
 def _ratios(values, ref) -> list | None:
-    """``values / ref`` as JSON numbers (None where not finite); None when there is no reference."""
+    """``values / ref`` as JSON numbers (None where not finite); None when there is no reference.  ``ref`` one
+    number, or one per value (None where that value has none)."""
+    if ref is not None and np.ndim(ref) == 1:
+        return [None if r is None or not float(r) > 0 else json_number(v / float(r)) for v, r in zip(values, ref)]
     if ref is None or not float(ref) > 0:
         return None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -231,13 +236,15 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
     trace : array (nodes, T)
         tr Φ per node and step: a design's ``tr Φ_{k|k}`` for k = 1..K (T = K), or, with
         ``fixed_point``, one column: the stationary bound.
-    open_loop : float or array (T,)
+    open_loop : float, array (T,) or (nodes, T)
         The open-loop covariance's trace at the same steps (:func:`open_loop_traces`), or the
-        stationary reference (:func:`open_loop_reference`); one number applies to every step.
+        stationary reference (:func:`open_loop_reference`); one number applies to every step; one row per node
+        when each node is judged on its own states (its region, :mod:`designer.regions`).
     feasible : bool
         Whether (28)-(29) held everywhere and no node diverged.
     centralized, local
-        The centralized and per-node local steady-state tr P (None where none exists): reported as ratios.
+        The centralized (one number, or one per node on its own states) and per-node local steady-state tr P (None
+        where none exists): reported as ratios.
     fixed_point : bool or None
         None: ``trace`` is a trajectory, bounded by the window test.  True: it is the converged
         fixed point of the stationary recursion (bounded).  False: the stationary iteration did
@@ -258,8 +265,9 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
     """
     trace = np.atleast_2d(np.asarray(trace, dtype=float))
     N, T = trace.shape
-    ol = np.array(np.broadcast_to(np.asarray(open_loop, dtype=float), (T,)))
-    final, ol_final = trace[:, -1], float(ol[-1])
+    per_node = np.ndim(open_loop) == 2
+    ol = np.array(np.broadcast_to(np.asarray(open_loop, dtype=float), (N, T) if per_node else (T,)))
+    final, ol_final = trace[:, -1], ol[..., -1]
     if fixed_point is None:
         growth, W = _growth(trace)
         settled = settled_steps(T)
@@ -276,9 +284,10 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
         "horizon": None if fixed_point is not None else T,
         "fixed_point": fixed_point is not None,
         "final_trace": [json_number(v) for v in final],
-        "open_loop_trace": json_number(ol_final),
+        "open_loop_trace": [json_number(v) for v in ol_final] if per_node else json_number(ol_final),
         "open_loop": open_loop_how or "the prior covariance propagated by P <- F P F^T + Q, no measurement",
-        "centralized": json_number(centralized),
+        "centralized": ([json_number(v) for v in centralized] if np.ndim(centralized) == 1
+                        else json_number(centralized)),
         "local": [json_number(v) for v in local],
         "ratio_open_loop": [json_number(v) for v in ratio[:, -1]],
         "ratio_centralized": _ratios(final, centralized),
@@ -317,7 +326,8 @@ def verdict(trace, open_loop, *, feasible: bool, centralized: float | None = Non
                     where = f"from step {int(np.argmax(np.isinf(trace[worst]))) + 1} on (it overflowed)"
                 words = f"node {worst}'s tr Φ is not finite {where}"
             else:
-                words = f"node {worst}'s tr Φ {f:.4g} {where} is {f / ol[j]:.3g} x {ol_words}, {ol[j]:.4g}"
+                o = float(ol[worst, j] if per_node else ol[j])
+                words = f"node {worst}'s tr Φ {f:.4g} {where} is {f / o:.3g} x {ol_words}, {o:.4g}"
             more = f" ({vac.size} of {N} nodes)" if vac.size > 1 else ""
             out = Verdict("vacuous", f"{words}{more}", [int(i) for i in vac])
         else:
@@ -375,31 +385,37 @@ def describe(detail: Mapping) -> str:
             (top("ratio_local"), "a node's own local one, at most")) if r is not None]
         text += (f"; {'at the fixed point' if fixed else f'at step {K}'} the largest tr Φ is {final:.4g}"
                  + (f" ({', '.join(refs)})" if refs else ""))
+        if detail.get("judged") == "region":
+            text += (" (each node judged on its region, which it carries with the states its measurements need: "
+                     "the open loop and the references on the same states)")
         region = detail.get("region")
         ratios = [r for r in ((region or {}).get("ratio_centralized") or []) if r is not None]
-        if ratios:
+        if ratios and detail.get("judged") != "region":
             text += (f"; on each node's region, tr Φ is {float(np.median(ratios)):.3g} x the centralized "
                      f"steady-state tr P on the same states at the median node, {max(ratios):.3g} x at most")
     return text
 
 
-def open_loop_traces(F: np.ndarray, Q: np.ndarray, P0: np.ndarray, steps: int) -> np.ndarray:
-    """``tr P_k`` for k = 1..steps of ``P_{k+1} = F P_k Fᵀ + Q``, ``P_0 = P0`` (inf once it overflows)."""
+def open_loop_traces(F: np.ndarray, Q: np.ndarray, P0: np.ndarray, steps: int, regions=None) -> np.ndarray:
+    """``tr P_k`` for k = 1..steps of ``P_{k+1} = F P_k Fᵀ + Q``, ``P_0 = P0`` (inf once it overflows); with
+    ``regions`` (one index array per node) (nodes, steps), ``P_k`` traced over each node's region."""
     F, Q, P = (np.asarray(a, dtype=float) for a in (F, Q, P0))
-    out = np.empty(steps)
+    out = np.empty(steps if regions is None else (len(regions), steps))
     with np.errstate(over="ignore", invalid="ignore"):
         for k in range(steps):
             P = F @ P @ F.T + Q
-            t = float(np.trace(P))
-            if not math.isfinite(t):
-                out[k:] = np.inf
+            d = np.diagonal(P)
+            t = float(np.trace(P)) if regions is None else np.array([d[r].sum() for r in regions])
+            if not np.all(np.isfinite(t)):
+                out[..., k:] = np.inf
                 break
-            out[k] = t
+            out[..., k] = t
     return out
 
 
-def open_loop_reference(F: np.ndarray, Q: np.ndarray, P0: np.ndarray, horizon: int) -> tuple[float, str]:
-    """The stationary open-loop covariance's trace and how it was obtained.
+def open_loop_reference(F: np.ndarray, Q: np.ndarray, P0: np.ndarray, horizon: int, regions=None) -> tuple:
+    """The stationary open-loop covariance's trace and how it was obtained (with ``regions``, one index array per
+    node, one trace per node over its region).
 
     Schur-stable ``F`` (spectral radius < 1 - 1e-9): the solution of ``P = F P Fᵀ + Q``
     (``scipy.linalg.solve_discrete_lyapunov``).  Otherwise no stationary covariance exists and
@@ -410,9 +426,11 @@ def open_loop_reference(F: np.ndarray, Q: np.ndarray, P0: np.ndarray, horizon: i
     F, Q = np.asarray(F, dtype=float), np.asarray(Q, dtype=float)
     rho = float(np.max(np.abs(np.linalg.eigvals(F)))) if F.size else 0.0
     if rho < STABLE:
-        P = solve_discrete_lyapunov(F, Q)
-        return float(np.trace(P)), (f"stationary open-loop covariance (discrete Lyapunov equation; F Schur stable, "
-                                    f"spectral radius {rho:.4g})")
-    tr = open_loop_traces(F, Q, P0, horizon)[-1]
-    return float(tr), (f"open-loop covariance at the horizon of {horizon} steps from the prior (F not Schur stable, "
-                       f"spectral radius {rho:.4g}: no stationary covariance)")
+        d = np.diagonal(solve_discrete_lyapunov(F, Q))
+        tr = float(d.sum()) if regions is None else [float(d[r].sum()) for r in regions]
+        return tr, (f"stationary open-loop covariance (discrete Lyapunov equation; F Schur stable, "
+                    f"spectral radius {rho:.4g})")
+    tr = open_loop_traces(F, Q, P0, horizon, regions)[..., -1]
+    return (float(tr) if regions is None else [float(v) for v in tr]), (
+        f"open-loop covariance at the horizon of {horizon} steps from the prior (F not Schur stable, "
+        f"spectral radius {rho:.4g}: no stationary covariance)")

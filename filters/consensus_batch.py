@@ -228,6 +228,7 @@ class ConsensusResult(NamedTuple):
     # (steps, N) mode 'mse': the condition number of the system each node's gains were solved from
     # (designer.joint.mse_gains); NaN where none was solved
     gain_condition: np.ndarray | None = None
+    carried: np.ndarray | None = None  # (N, m) as ConsensusBatchResult's: the nodes' carried states (None: whole)
 
     @property
     def feasible(self) -> bool:
@@ -277,6 +278,9 @@ class ConsensusBatchResult(NamedTuple):
     predicted_mse: np.ndarray | None = None  # (runs, steps+1, N), mode 'mse'
     gate_counts: np.ndarray | None = None  # (runs, steps, 5) GATE_COUNTS
     gain_condition: np.ndarray | None = None  # (runs, steps, N), mode 'mse'
+    # (N, m) each node's carried states (-1: unused) when the nodes carry their regions (designer.regions): phi_post,
+    # phi_pred, K and C are then in those coordinates (m wide), x_post and x_pred NaN where a node does not carry
+    carried: np.ndarray | None = None
 
     @property
     def runs(self) -> int:
@@ -286,8 +290,9 @@ class ConsensusBatchResult(NamedTuple):
         """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
-                  for f in ConsensusResult._fields if f not in optional]
-        return ConsensusResult(*fields, *(None if getattr(self, f) is None else getattr(self, f)[r] for f in optional))
+                  for f in ConsensusResult._fields if f not in optional + ("carried",)]
+        return ConsensusResult(*fields, *(None if getattr(self, f) is None else getattr(self, f)[r] for f in optional),
+                               self.carried)
 
     @property
     def feasible(self) -> np.ndarray:
@@ -626,7 +631,7 @@ def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, desig
     return FilterResult(detail.x_post, detail.phi_post, cov_kind, detail.valid, detail.violations,
                         constant_messages(runs, steps, messages), runtime,
                         delivered=None if detail.gate_counts is None else detail.gate_counts[..., 0],
-                        detail=detail).check()
+                        detail=detail, carried=detail.carried).check()
 
 
 def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,

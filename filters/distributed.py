@@ -374,6 +374,9 @@ class DistributedBatchResult(NamedTuple):
     violations: list
     iterations: int
     omega: np.ndarray | None = None  # (runs, steps, N) HCMCI's ω_i (None for KCF)
+    # (N, m) each node's carried states (-1: unused) when the nodes carry their regions (the relay filter with
+    # regions): P_post and P_pred are then in those coordinates, x_post and x_pred NaN where not carried
+    carried: np.ndarray | None = None
 
     def run(self, r: int) -> DistributedResult:
         """Run ``r`` as the :class:`DistributedResult` of :func:`run_kcf` / :func:`run_hcmci`."""
@@ -395,7 +398,8 @@ def distributed_result(detail: DistributedBatchResult) -> FilterResult:
     neighbours' packets), ``detail`` the runs' :class:`DistributedBatchResult`."""
     return FilterResult(detail.x_post, detail.P_post, "covariance", np.isfinite(detail.P_post).all(axis=(-2, -1)),
                         detail.violations, np.asarray(detail.messages_per_step, dtype=np.int64), "local",
-                        delivered=np.asarray(detail.delivered_per_step, dtype=np.int64), detail=detail).check()
+                        delivered=np.asarray(detail.delivered_per_step, dtype=np.int64), detail=detail,
+                        carried=detail.carried).check()
 
 
 class _BatchInputs(NamedTuple):

@@ -166,9 +166,10 @@ class NodeInputs:
 
 
 def run_network(net, z, attacks=None, inputs=None):
-    """Every step of a run through a node network ``net`` (its ``nodes`` with ``x`` and ``P``, its ``step(z, dos, fdi,
-    xi, u)``): ``z`` (K, n_z), ``attacks`` the run's :class:`filters.attacks.AttackPattern`, ``inputs`` (K, n_u).
-    Returns ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on."""
+    """Every step of a run through a node network ``net`` (its ``nodes`` with ``P``, its ``estimates()`` and its
+    ``step(z, dos, fdi, xi, u)``): ``z`` (K, n_z), ``attacks`` the run's :class:`filters.attacks.AttackPattern`,
+    ``inputs`` (K, n_u).  Returns ``(x (K + 1, N, n_x), P (K + 1, N, n_x, n_x))`` from the nodes' current state on
+    (``P`` in each node's own coordinates: m x m when the nodes carry their regions)."""
     from .consensus_batch import edge_attacks
 
     k0 = net.nodes[0].k
@@ -183,7 +184,7 @@ def run_network(net, z, attacks=None, inputs=None):
         check_step(net, z[k], None, None, None, None if inputs is None else inputs[k], k0 + k)
     z = np.asarray(z, dtype=float)
     att = edge_attacks(net.network, None if attacks is None else [attacks], 1, K, net.model.n_x)
-    xs = [np.stack([nd.x for nd in net.nodes])]
+    xs = [net.estimates()]
     Ps = [np.stack([nd.P for nd in net.nodes])]
     for k in range(K):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
@@ -230,6 +231,10 @@ class NodeNetwork:
                 self.stopped = True
                 for nd in self.nodes:
                     nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
+        return self.estimates()
+
+    def estimates(self) -> np.ndarray:
+        """Every node's current estimate (N, n_x)."""
         return np.stack([nd.x for nd in self.nodes])
 
     def run(self, z, attacks=None, inputs=None):

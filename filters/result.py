@@ -74,7 +74,10 @@ class FilterResult(NamedTuple):
     step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
     ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
-    alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.
+    alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``carried`` (nodes, m): when
+    each node carries only some states (:mod:`designer.regions`, the relay rules with regions), their indices
+    (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in the
+    unused places) and ``x`` NaN at the states a node does not carry.
     """
 
     x: np.ndarray
@@ -87,14 +90,21 @@ class FilterResult(NamedTuple):
     delivered: np.ndarray | None = None
     detail: Any = None
     seconds: np.ndarray | None = None
+    carried: np.ndarray | None = None
 
     def check(self) -> "FilterResult":
         """This result, its shapes and kinds checked (``InputError`` naming the field)."""
         if self.x.ndim != 4:
             raise InputError(f"x must have shape (runs, steps + 1, nodes, n_x), got {self.x.shape}")
         runs, k1, nodes, nx = self.x.shape
-        if self.cov is not None and self.cov.shape != (runs, k1, nodes, nx, nx):
-            raise InputError(f"cov must have shape {(runs, k1, nodes, nx, nx)}, got {self.cov.shape}")
+        m = nx
+        if self.carried is not None:
+            if self.carried.ndim != 2 or self.carried.shape[0] != nodes or not np.all(self.carried < nx):
+                raise InputError(f"carried must have shape ({nodes}, m) with state indices below {nx} (-1: unused), "
+                                 f"got {self.carried.shape}")
+            m = self.carried.shape[1]
+        if self.cov is not None and self.cov.shape != (runs, k1, nodes, m, m):
+            raise InputError(f"cov must have shape {(runs, k1, nodes, m, m)}, got {self.cov.shape}")
         if self.cov_kind not in COV_KINDS:
             raise InputError(f"cov_kind must be one of {', '.join(COV_KINDS)}, got {self.cov_kind!r}")
         if self.valid.shape != (runs, k1, nodes):

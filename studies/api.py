@@ -252,7 +252,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
            linearization: str | None = None, radius: float | None = None, gate: float | None = None,
            exchange: str | None = None, robustness: float | None = None, rounds: int | None = None,
-           bank: int | None = None, budget: int | str | None = None, budget_bytes: int | None = None,
+           bank: int | None = None, carry: str | None = None, budget: int | str | None = None,
+           budget_bytes: int | None = None,
            validate: int | None = None, auto_seconds: float | None = None,
            options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
            design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
@@ -282,7 +283,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
-    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds, bank
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds, bank, carry
         Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
         default, then the package's.
     dos, fdi, delta, amplitude
@@ -319,7 +320,7 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
-                                  robustness=robustness, rounds=rounds, bank=bank))
+                                  robustness=robustness, rounds=rounds, bank=bank, carry=carry))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
     from .auto import AUTO
 
@@ -360,7 +361,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
                 radius: float | None = None, gate: float | None = None, exchange: str | None = None,
                 robustness: float | None = None, rounds: int | None = None, bank: int | None = None,
-                options: DesignOptions | None = None, budget=None, budget_bytes: int | None = None,
+                carry: str | None = None, options: DesignOptions | None = None, budget=None, budget_bytes: int | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -385,8 +386,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         Mode ``auto``: the most messages per step over the network (a whole number, or ``'kcf'``) and bytes per step;
         the candidates outside are listed, not mapped.
     epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
-    robustness, rounds, bank, options
-        The same design options as :func:`design`, with the same defaults.
+    robustness, rounds, bank, carry, options
+        The same design options as :func:`design`, with the same defaults (``carry`` whole only).
     workers, dask, dask_security, backend
         Where the chunks of grid points run (the map does not depend on it); ``dask_security``: a
         JSON file of TLS options for the Dask scheduler (:func:`studies.runner.load_security`).
@@ -421,6 +422,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     if gate:
         raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
                          "with no packets to test (use it with design or study)")
+    if carry == "region" or (options is not None and options.carry == "region"):
+        raise InputError("carry 'region' does not apply to feasibility: the map judges each node's whole state (use "
+                         "it with design)")
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, exchange=exchange,

@@ -17,7 +17,7 @@ import warnings
 import click
 
 import rules
-from designer.rule import EXCHANGES, ROBUSTNESS
+from designer.rule import CARRIES, EXCHANGES, ROBUSTNESS
 from designer.validation import CfdesignWarning, ComputationError, InputError
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
@@ -90,6 +90,10 @@ def _design_options(f, *, auto: bool = False):
                           "3^A - 1 points off the nominal trajectory (along the open-loop covariance's A principal "
                           "axes), each node using those nearest its own prediction, for a state that may leave the "
                           "nominal geometry; not covered by the certificate [default: 0, none]"),
+        click.option("--carry", type=click.Choice(list(CARRIES)), default=None,
+                     help="modes relay and flood on a model with REGIONS: 'region', each node carries only the "
+                          "states its region, its ball's measurements and their dynamics need (the same numbers "
+                          "on them; bound and verdict on its region) [default: whole]"),
         click.option("--gate", type=float, default=None,
                      help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
                           "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "

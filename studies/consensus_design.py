@@ -25,7 +25,7 @@ from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, 
 from designer.rule import GainRule
 from designer.joint import conditioning
 from designer.observability import kalman_references, observability
-from designer.regions import region_detail, region_traces
+from designer.regions import carried_positions, region_detail, region_mask, region_traces
 from designer.progress import phase
 from designer.schedule import GainSchedule
 from rules.scheduled.design import table_arrays
@@ -72,7 +72,7 @@ def effective_design(sc: Scenario, options: DesignOptions | None) -> tuple[Scena
     x0, u0 = sc.operating_point
     att = sc.resolved_attacks
     des = make_design(sc.model, sc.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0, u0=u0,
-                      signal=att.signal)
+                      signal=att.signal, regions=sc.regions)
     return sc, opts, des
 
 
@@ -212,18 +212,21 @@ def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True
     x0, u0 = sc.operating_point
     m = sc.model
     cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0, lmi=lmi)
-    open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps)
+    open_loop, how = open_loop_reference(m.F_expected(x0, 0, u0), m.process_cov, m.prior.cov, sc.steps,
+                                         design.carried_regions)  # on each node's region when it carries its own
     lmi = cert.lmi
     confirmed = lmi is None or lmi.get("trace") is None and lmi.get("status") == "not solved" or (
         lmi.get("relative_residual") is not None and lmi["relative_residual"] <= LMI_TOLERANCE)
     N = sc.network.n_nodes
-    trace = (np.trace(cert.Phi, axis1=-2, axis2=-1)[:, None] if cert.converged else np.full((N, 1), np.nan))
+    trace = cert.traces()[:, None] if cert.converged else np.full((N, 1), np.nan)
     skipped = cert.not_computed
     broken = not skipped and not cert.converged and cert.reason is not None and cert.reason.startswith(
         ("(28)", "(29)"))
     if cert.converged and not confirmed:
         broken, cert = True, cert._replace(reason="the stationary LMI does not confirm the fixed point")
     # a recursion that holds the conditions but does not settle is not bounded; one that breaks them is infeasible
+    if design.carried_regions is not None:
+        open_loop = np.asarray(open_loop)[:, None]  # one reference per node: its region's
     v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
                 infeasible_reason=cert.reason if broken else None, open_loop_how=how,
                 not_computed=cert.reason if skipped else None)
@@ -252,12 +255,13 @@ def _infeasible_reason(violations: list[dict]) -> str | None:
             f"{first['step']}, condition {first['condition']}, {detail}")
 
 
-def _open_loop(model, x0, u0, steps: int) -> tuple[np.ndarray, str]:
+def _open_loop(model, x0, u0, steps: int, regions=None) -> tuple[np.ndarray, str]:
     """The open-loop covariance's trace at steps 1..``steps`` (the prior covariance propagated through the
-    linearisation at the operating point with the process noise, no measurement) and how it was computed."""
-    ol = open_loop_traces(model.F_expected(x0, 0, u0), model.process_cov, model.prior.cov, steps)
+    linearisation at the operating point with the process noise, no measurement) and how it was computed; with
+    ``regions`` (nodes, steps), traced over each node's region."""
+    ol = open_loop_traces(model.F_expected(x0, 0, u0), model.process_cov, model.prior.cov, steps, regions)
     return ol, (f"the prior covariance propagated by P <- F P F^T + Q over the {steps} steps, F the linearisation "
-                "at the operating point, no measurement")
+                "at the operating point, no measurement" + ("; traced over each node's region" if regions else ""))
 
 
 def scenario_open_loop(sc: Scenario, steps: int) -> np.ndarray:
@@ -271,19 +275,25 @@ def _not_computed(violations: list[dict]) -> str | None:
     return next((v.get("reason") or NOT_COMPUTED for v in violations if v["condition"] == NOT_COMPUTED), None)
 
 
-def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], references: dict) -> Verdict:
+def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], references: dict,
+                   regions=None) -> Verdict:
     """The verdict (:func:`designer.verdict.verdict`) on a bound computed along a run of ``model``.
 
     ``trace``: tr Φ_{k|k} per node for k = 1..K (NaN where Φ is not a bound); the open-loop covariance is
     the prior covariance propagated through the linearisation at the operating point (``x0``, ``u0``, where
     ``references`` were computed) with the process noise over the same K steps.  A certificate the rule did not
-    compute (a violations record of condition ``not computed``) is ``not computed``, with its reason.
+    compute (a violations record of condition ``not computed``) is ``not computed``, with its reason.  With
+    ``regions`` (the nodes carry their regions), ``trace`` is over each node's region and so are the open loop and
+    the references it is judged against (``references['regions']``).
     """
-    ol, how = _open_loop(model, x0, u0, trace.shape[1])
+    ol, how = _open_loop(model, x0, u0, trace.shape[1], regions)
+    refs = references if regions is None else references["regions"]
     feasible = not any(v["condition"] in HARD_CONDITIONS for v in violations)
-    return verdict(trace, ol, feasible=feasible, centralized=references["centralized"], local=references["local"],
-                   infeasible_reason=_infeasible_reason(violations), open_loop_how=how,
-                   not_computed=_not_computed(violations))
+    ver = verdict(trace, ol, feasible=feasible, centralized=refs["centralized"], local=refs["local"],
+                  infeasible_reason=_infeasible_reason(violations), open_loop_how=how,
+                  not_computed=_not_computed(violations))
+    ver.detail["judged"] = "whole state" if regions is None else "region"
+    return ver
 
 
 def bound_traces(phi: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -374,7 +384,7 @@ class Design:
     def region_trace_bound(self) -> np.ndarray:
         """tr Φ_{k+1|k+1} over each node's region (:mod:`designer.regions`), (nodes, steps); NaN where Φ is not a
         bound; the whole state's (:attr:`trace_bound`) without regions."""
-        if self.scenario.regions is None:
+        if self.scenario.regions is None or self.schedule.carried is not None:  # the latter judged on its regions
             return self.trace_bound
         with np.errstate(invalid="ignore"):
             return region_traces(np.swapaxes(self.schedule.Phi[:, 1:], 0, 1), self.scenario.regions).T
@@ -472,11 +482,15 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             stationary, others = extras.result() if extras is not None else (None, None)
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     refs = kalman_references(m, x0, u0, sc.regions)
+    carried = des.carried_regions  # the nodes carry their regions: Φ in their carried coordinates, judged there
+    pos = None if carried is None else carried_positions(res.carried, carried)
     with np.errstate(invalid="ignore", over="ignore"):
-        trace = np.trace(Phi[:, 1:], axis1=-2, axis2=-1)
-    ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs), stationary)
-    if sc.regions is not None:  # each node's final bound on its region, beside the verdict on the whole state
-        ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, refs["regions"]["centralized"], m.state_names)
+        trace = (np.trace(Phi[:, 1:], axis1=-2, axis2=-1) if carried is None
+                 else region_traces(np.swapaxes(Phi[:, 1:], 0, 1), pos).T)
+    ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs, carried), stationary)
+    if sc.regions is not None:  # each node's final bound on its region (beside the verdict on the whole state)
+        ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, refs["regions"]["centralized"], m.state_names,
+                                             pos)
     schedule = GainSchedule(
         scenario=sc.name,
         rule=des.rule,
@@ -491,6 +505,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         margin28=res.margin28.T.copy(),
         margin29=res.margin29.T.copy(),
         tables=None if des.tables is None else table_arrays(des.tables),
+        carried=res.carried,
+        region_mask=None if carried is None else region_mask(carried, m.n_x),
         meta={
             **{k: v for k, v in describe_design(des).items() if k not in ("mode", "epsilon", "sigma", "beta")},
             "sigma_fixed": des.sigma if rule.fixed_multipliers else None,
@@ -498,6 +514,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "options": opts.as_dict(),
             "sensors": [{"name": s.name, "dim": s.dim} for s in m.sensors],
             "state_names": list(m.state_names),
+            "carried": None if carried is None else [[m.state_names[j] for j in row if j >= 0] for row in res.carried],
             "seed": seed,
             **rule.record_notes(),
             "stationary": None if des.tables is None else des.tables.stationary,

@@ -17,6 +17,7 @@ class Relay(GainRule):
     summary = ("every measurement relayed over L hops along fixed shortest-path routes; each node fuses its L-hop "
                "ball with one gain minimising the expected covariance over the attacks")
     relays = True
+    regional = True  # a node fuses its ball without consensus on estimates: it may carry its region alone
     routing = "tree"  # which copy of a relayed measurement a node takes (design.ROUTINGS): its tree parent's
 
     def check_options(self, options):

@@ -40,6 +40,7 @@ from scipy.sparse.csgraph import shortest_path
 from designer.bounds import sqrtm_psd
 from designer.cores import SOLVER_SETTINGS
 from designer.network import SensorNetwork
+from designer.regions import Carried, carried_positions, carried_states
 from designer.stationary import StationaryCertificate
 from designer.validation import InputError, check_int
 
@@ -51,7 +52,7 @@ RELAY = "relay"
 
 __all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
            "relay_payload", "pair_sum", "relay_stationary", "LMI_MAX_ENTRIES", "whitened_rows", "NodeMoments",
-           "node_moments", "relay_update", "grouped",
+           "node_moments", "relay_update", "grouped", "relay_carried",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
@@ -519,7 +520,7 @@ def _row_weights(Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray
     if np.any(mom.F1) and np.any(M):
         K0 = K0 + mom.F1 * (Hw @ M @ Ht)
     if np.any(mu) and np.any(mom.F2):
-        K0 = K0 + mom.F2 * (Hw @ np.outer(mu, mu) @ Ht)
+        K0 = K0 + mom.F2 * (Hw @ (mu[..., :, None] * mu[..., None, :]) @ Ht)  # μ one, or one per node
     return K0
 
 
@@ -625,6 +626,15 @@ def node_classes(moments: list[NodeMoments], free: bool = False) -> list[tuple[n
     return out
 
 
+def relay_carried(model, routes: Routes, regions) -> Carried:
+    """The states every node of ``routes`` carries with ``regions`` (:func:`designer.regions.carried_states`: its
+    region, its ball's sensors' supports, closed under the dynamics)."""
+    if len(regions) != routes.n_nodes:
+        raise InputError(f"regions must hold one entry per node ({routes.n_nodes}), got {len(regions)}")
+    carried = carried_states(model, regions, [routes.ball(i) for i in range(routes.n_nodes)])
+    return Carried.of(carried, model.n_x)
+
+
 def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: bool = True,
                      routes: Routes | None = None):
     """The relay design's stationary certificate at the point ``x`` (input ``u``), every node's Jacobians there:
@@ -636,9 +646,12 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     the inequality bounds every later covariance of the node once one lies below it.  The bound is the expected
     covariance of the linearised error: exact for a linear model; the linearisation remainders are not in it.
 
-    ``routes``: the design's :func:`relay_routes` when the caller has them (default: built here).
+    ``routes``: the design's :func:`relay_routes` when the caller has them (default: built here).  A design whose
+    nodes carry their regions (``design.carried_regions``) runs each node's recursion and LMI in its carried
+    coordinates (:func:`relay_carried`), as its filter does.
 
-    Returns a :class:`designer.stationary.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none)."""
+    Returns a :class:`designer.stationary.StationaryCertificate` (``sigma``, ``beta`` NaN: the rule has none; with
+    carried regions ``Phi`` in the carried coordinates, ``carried`` and ``positions`` where each region sits)."""
 
     routing = design.rule.routing
     if routes is None:
@@ -656,16 +669,29 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     moments = relay_moments(routes, network, model.sensor_dims)
     N = network.n_nodes
+    P0 = np.asarray(model.prior.cov, dtype=float)
+    carry = None if design.carried_regions is None else relay_carried(model, routes, design.carried_regions)
+    if carry is not None:  # every node's own: (N, m, m), (N, m)
+        n = carry.m
+        F, Q, M, mu, P0 = carry.matrix(F), carry.matrix(Q), carry.matrix(M), carry.vector(mu), carry.matrix(P0)
     Phi = np.empty((N, n, n))
     W = np.empty((N, n, moments[0].groups.shape[-1] * n))  # each node's gain, one n x n block per hop depth
+    Hws = [None] * N  # each node's whitened ball rows, in its coordinates
     iterations = 0
     for nodes, mom in node_classes(moments):
         rows = np.stack([_ball_rows(moments[i], offsets) for i in nodes])
         Hw = Hall[rows]  # (g, r, n)
-        P = np.broadcast_to(np.asarray(model.prior.cov, dtype=float), (nodes.size, n, n))
+        if carry is not None:
+            Hw = np.where(carry.used[nodes][:, None, :], np.take_along_axis(Hw, carry.safe[nodes][:, None, :], -1),
+                          0.0)
+        for i, h in zip(nodes, Hw):
+            Hws[i] = h
+        Fn, Qn, Mn, mun = (F, Q, M, mu) if carry is None else (F[nodes], Q[nodes], M[nodes], mu[nodes])
+        Ft = np.swapaxes(Fn, -1, -2)
+        P = np.broadcast_to(P0, (nodes.size, n, n)) if carry is None else P0[nodes]
         prev = np.trace(P, axis1=-2, axis2=-1)
         for it in range(1, STATIONARY_MAX + 1):
-            Wg, P = relay_update(F @ P @ F.T + Q, Hw, mom, M, mu)
+            Wg, P = relay_update(Fn @ P @ Ft + Qn, Hw, mom, Mn, mun)
             tr = np.trace(P, axis1=-2, axis2=-1)
             if not np.all(np.isfinite(tr)) or np.any(tr > _BOUND_LIMIT):
                 return StationaryCertificate(False, None, np.nan, np.nan, it,
@@ -680,31 +706,36 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
                                          None)
         iterations = max(iterations, it)
         Phi[nodes], W[nodes] = P, Wg
-    out = StationaryCertificate(True, Phi, np.nan, np.nan, iterations, None, None)
+    out = StationaryCertificate(True, Phi, np.nan, np.nan, iterations, None, None,
+                                None if carry is None else carry.index,
+                                None if carry is None else carried_positions(carry.index, design.carried_regions))
     if lmi:
-        out = out._replace(lmi=_relay_lmi(Phi, W, F, Q, Hall, moments, offsets, M, mu))
+        out = out._replace(lmi=_relay_lmi(Phi, W, F, Q, Hws, moments, M, mu))
     return out
 
 
-def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, mu) -> dict:
+def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hws, moments, M, mu) -> dict:
     """Minimise Σ_i tr Φ_i subject to ``Φ_i ⪰ T_i(F Φ_i Fᵀ + Q)`` for the fixed gains ``W_i`` (n x G n; one n x n
     unknown per node; ``T_i`` written as an n² x n² matrix from its action on a basis), then the solution checked in
-    NumPy."""
+    NumPy.  ``Hws`` each node's whitened ball rows; ``F``, ``Q``, ``M``, ``mu`` shared, or one per node (its carried
+    coordinates)."""
     import warnings
 
     import cvxpy as cp
 
     N, n = Phi.shape[0], Phi.shape[-1]
-    rows = max(len(_ball_rows(mom, offsets)) for mom in moments)
+    rows = max(h.shape[0] for h in Hws)
     size = max(N * n**4, n**2 * rows**2)  # the maps of every node; one node's image of the basis through pair_sum
     if size > LMI_MAX_ENTRIES:
         return {"status": "not solved", "reason": f"its maps hold {size:.3g} numbers (N n⁴ = {N} x {n}⁴, n² r² = "
                 f"{n}² x {rows}²) > {LMI_MAX_ENTRIES:.3g}", "trace": None, "max_residual": None}
     basis = np.eye(n * n).reshape(n * n, n, n)
     maps, consts = [], []
+    own = F.ndim == 3  # one per node
     for i, mom in enumerate(moments):
-        Hw = Hall[_ball_rows(mom, offsets)]
-        Hg, Sg, K0 = update_moments(Hw, mom, M, mu)
+        Hw = Hws[i]
+        Fi, Qi = (F[i], Q[i]) if own else (F, Q)
+        Hg, Sg, K0 = update_moments(Hw, mom, M[i] if own else M, mu[i] if own else mu)
         Q0 = _rows_to_groups(K0, Hw, Hg, mom.groups)
         Wi = W[i]
 
@@ -712,9 +743,9 @@ def _relay_lmi(Phi: np.ndarray, W: np.ndarray, F, Q, Hall, moments, offsets, M, 
             C = X @ Sg
             return X - Wi @ np.swapaxes(C, -1, -2) - C @ Wi.T + Wi @ pair_sum(Hw, mom.A, X, Hg, mom.groups) @ Wi.T
 
-        col = lin(F @ basis @ F.T)  # (n², n, n): the image of each basis matrix
+        col = lin(Fi @ basis @ Fi.T)  # (n², n, n): the image of each basis matrix
         maps.append(col.reshape(n * n, n * n).T)  # vec (row-major) of T_i(F E F^T), one column per basis E
-        consts.append(lin(Q) + Wi @ Q0 @ Wi.T)
+        consts.append(lin(Qi) + Wi @ Q0 @ Wi.T)
     P = [cp.Variable((n, n), symmetric=True) for _ in range(N)]
     cons = []
     for i in range(N):

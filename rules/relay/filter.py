@@ -51,6 +51,7 @@ from designer.bounds import sqrtm_psd
 from designer.design import ConsensusDesign, validate_design
 from designer.model import Model
 from designer.network import SensorNetwork
+from designer.regions import Carried
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
@@ -61,8 +62,8 @@ from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
-from .design import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_information, relay_moments, relay_routes,
-                     relay_update)
+from .design import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_carried, relay_information, relay_moments,
+                     relay_routes, relay_update)
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -85,6 +86,7 @@ class _Layout(NamedTuple):
     angle_rows: np.ndarray  # rows of angular components (wrapped)
     scale: np.ndarray | None  # (T,) R^{-1/2} of the rows of scalar sensors (1 elsewhere; None: all 1)
     whiten: list  # per sensor dimension m > 1: (the rows of its slots (n_m, m), R^{-1/2} of their sensors (n_m, m, m))
+    node_of_row: np.ndarray  # (T,) the node (numbered as ``start``) whose ball each row belongs to
 
 
 def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) -> _Layout:
@@ -134,7 +136,7 @@ def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) ->
         if slots.size:  # a node's ball may hold no sensor of this dimension
             whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
     return _Layout(start, sensor_slots, pair_local, zcol, first, pair_rows, pair_of_row, comp[pair_rows], angle_rows,
-                   None if np.all(scale == 1.0) else scale, whiten)
+                   None if np.all(scale == 1.0) else scale, whiten, np.repeat(np.arange(start.size - 1), np.diff(start)))
 
 
 def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +155,7 @@ def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, 
 
 def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                     attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                    signal: FDISignal | None = None, routing: str = "tree") -> FilterResult:
+                    signal: FDISignal | None = None, routing: str = "tree", regions=None) -> FilterResult:
     """The relay filter (module docstring) at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -170,18 +172,23 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     routing : {'tree', 'flood'} (:data:`rules.relay.design.ROUTINGS`): which copy of a relayed measurement a node takes,
         its tree parent's (default) or the first to arrive from any neighbour (:meth:`rules.relay.design.Routes.realise`;
         the moments then by Monte Carlo, :func:`rules.relay.design.flood_moments`).
+    regions : one sequence of state indices per node, optional: each node then carries only the states its region
+        and its ball need (:func:`designer.regions.carried_states`), and its numbers on them are those of the
+        whole-state filter (the dynamics and its ball's measurements never read the others).
 
     Returns :func:`filters.distributed.distributed_result` of the runs: ``cov`` each node's expected posterior
     covariance of the relay rule, ``detail`` a :class:`filters.distributed.DistributedBatchResult` (``iterations`` =
-    ``hops``).
+    ``hops``).  With ``regions``, ``carried`` (nodes, m) holds each node's carried states (``-1``: a place it does
+    not use), ``cov`` is in those coordinates (nodes, m, m; zero in the unused places) and ``x`` is NaN at the states a
+    node does not carry.
     """
     return distributed_result(_relay_runs(model, network, z, hops, inputs=inputs, attacks=attacks, x0=x0, P0=P0,
-                                          signal=signal, routing=routing))
+                                          signal=signal, routing=routing, regions=regions))
 
 
 def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                 attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                signal: FDISignal | None = None, routing: str = "tree") -> DistributedBatchResult:
+                signal: FDISignal | None = None, routing: str = "tree", regions=None) -> DistributedBatchResult:
     """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays."""
     if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
         raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
@@ -194,14 +201,25 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
     n, nx = network.n_nodes, model.n_x
     routes = relay_routes(network, hops, routing)
     lay = _layout(model, routes)
+    carry = None if regions is None else relay_carried(model, routes, regions)
+    if carry is not None:  # each node's moments of the signal on its own states
+        M, mu = carry.matrix(M), carry.vector(mu)
     classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
                            free=True)
-    out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops))
+    if carry is None:
+        out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops))
+    else:
+        m = carry.m
+        out = estimate_arrays(runs, steps, n, m, np.zeros((runs, m)), np.zeros((runs, m, m)),
+                              network.messages_per_step(hops))
+        out["x_post"][:, 0] = carry.vector(np.broadcast_to(x0[:, None], (runs, n, nx)))
+        out["P_post"][:, 0] = carry.matrix(np.broadcast_to(P0[:, None], (runs, n, nx, nx)))
     violations: list[list[dict]] = [[] for _ in range(runs)]
 
     def step(k, act, at):
         uk = u[k] if u.ndim == 2 else u[act, k][:, None, :]
-        xp, Pp = _predict(model, k, out["x_post"][act, k], out["P_post"][act, k], uk)
+        xp, Pp, xf = _predict(model, k, out["x_post"][act, k], out["P_post"][act, k], uk, carry,
+                              None if carry is None else x0[act][:, None, :])
         bad = diverged_nodes(xp, Pp)  # a prediction beyond finite numbers stops its run before the update
         go = ~bad.any(axis=-1)
         x, P = np.full(xp.shape, np.nan), np.full(Pp.shape, np.nan)
@@ -214,25 +232,36 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
             else:
                 dos, fdi, xi = attacks.dos[g, k], attacks.fdi[g, k], attacks.xi[g, k]
                 delivered[go] = (~dos).sum(axis=-1) * hops
-            x[go], P[go] = _update(model, routes, lay, classes, M, mu, k, z[g, k], xp[go], Pp[go], dos, fdi, xi)
+            x[go], P[go] = _update(model, routes, lay, classes, M, mu, k, z[g, k], xp[go], Pp[go], dos, fdi, xi,
+                                   carry, xf[go])
             bad[go] = diverged_nodes(x[go], P[go])
         return Step(dict(x_pred=xp, P_pred=Pp, delivered=delivered), dict(x_post=x, P_post=P), bad,
                     lambda j, node: DIVERGED_REASON if go[j] else "prediction: " + DIVERGED_REASON)
 
     run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
-    return DistributedBatchResult(out["x_post"], out["P_post"], out["x_pred"], out["P_pred"], out["sent"],
-                                  out["delivered"], violations, hops, None)
+    xs = {f: out[f] if carry is None else carry.full(out[f], np.nan) for f in ("x_post", "x_pred")}
+    return DistributedBatchResult(xs["x_post"], out["P_post"], xs["x_pred"], out["P_pred"], out["sent"],
+                                  out["delivered"], violations, hops, None,
+                                  None if carry is None else carry.index)
 
 
-def _predict(model: Model, k: int, x, P, u):
-    """Every node's prediction from its own estimate ``x`` (..., n_x) and covariance ``P``: ``(f(x), F P Fᵀ + Q)``
-    with ``F`` at the estimate (``u`` the step's known inputs, broadcast against ``x``)."""
-    xp = model.f_expected(x, k, u)
-    F = model.F_expected(x, k, u)
+def _predict(model: Model, k: int, x, P, u, carry: Carried | None = None, fill=None):
+    """Every node's prediction from its own estimate ``x`` (..., nodes, n_x) and covariance ``P``:
+    ``(f(x), F P Fᵀ + Q, f(x))`` with ``F`` at the estimate (``u`` the step's known inputs, broadcast against ``x``).
+    With ``carry`` ``x`` and ``P`` are in each node's carried coordinates (:class:`designer.regions.Carried`), the
+    prediction too, and the third value is the prediction in the whole state's (the states a node does not carry
+    at ``fill``, which its carried states' dynamics never read): where its ball's measurement functions are
+    evaluated."""
+    xf = x if carry is None else carry.full(x, fill)
+    xp = model.f_expected(xf, k, u)
+    F = model.F_expected(xf, k, u)
+    Q = model.process_cov
+    if carry is not None:
+        xp, F, Q = carry.vector(xp), carry.matrix(F), carry.matrix(Q)
     with np.errstate(over="ignore", invalid="ignore"):  # a run beyond finite numbers stops just below
-        Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+        Pp = F @ P @ np.swapaxes(F, -1, -2) + Q
         Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
-    return xp, Pp
+    return xp, Pp, (xp if carry is None else carry.full(xp, fill))
 
 
 def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
@@ -243,11 +272,15 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
     return mom._replace(F1=mom.F1 if np.any(M) else zero, F2=mom.F2 if np.any(mu) else zero)
 
 
-def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi):
+def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi,
+            carry: Carried | None = None, xf=None):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
-    ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none)."""
-    h, H = _ball_rows(model, lay, k, xp)
+    ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none).  With
+    ``carry``, ``xp`` and ``Pp`` are in the nodes' carried coordinates and ``xf`` is ``xp`` in the whole state's."""
+    h, H = _ball_rows(model, lay, k, xp if carry is None else xf)
     values, arrived = _relayed(routes, lay, zk, H, dos, fdi, xi)
+    if carry is not None:
+        H = carry.columns(H, lay.node_of_row)
     return _fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived)
 
 
@@ -324,7 +357,8 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
                                       if f != "groups"})
             rows = lay.start[nodes][:, None] + np.arange(r)  # (g, r): each node's rows
             Hc = Hw[:, rows]  # (a, g, r, nx)
-            W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M, mu)
+            W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M if M.ndim == 2 else M[nodes],
+                                          mu if mu.ndim == 1 else mu[nodes])
             y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
             x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
     return x, P
@@ -367,7 +401,9 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     linearisation remainders are not in it), ``predicted_mse`` its trace, ``C`` zero (no consensus on estimates),
     ``K`` NaN (a node's gain weighs its whole ball, not one measurement of its own: none is recorded) and the first
     column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops): the ``detail`` of
-    the :func:`filters.consensus_batch.consensus_result` it returns.
+    the :func:`filters.consensus_batch.consensus_result` it returns.  A design whose nodes carry their regions
+    (``design.carried_regions``) gives ``carried`` and Φ, K and C in the carried coordinates
+    (:func:`run_relay_batch`'s ``regions``).
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -386,11 +422,17 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
         res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
-                          attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing)
+                          attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing,
+                          regions=design.carried_regions)
         own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post, phi_pred=res.P_pred)
         if out is None:  # C zero: no consensus on estimates (np.zeros: pages the system gives only when written)
-            out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), C=np.zeros((runs, steps, n, nx, nx)),
-                                **(own if len(groups) == 1 else {}))  # one group: its arrays, not a copy of them
+            m = res.P_post.shape[-1]  # the carried states' (the whole state's without regions)
+            given = {} if res.carried is None else {"phi_post": np.full((runs, steps + 1, n, m, m), np.nan),
+                                                    "phi_pred": np.full((runs, steps, n, m, m), np.nan)}
+            given.update(own if len(groups) == 1 else {})  # one group: its arrays, not a copy of them
+            out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), C=np.zeros((runs, steps, n, m, m)),
+                                K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan), **given)
+            carried = res.carried
         if len(groups) > 1:
             for name, value in own.items():
                 out[name][idx] = value
@@ -399,7 +441,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
             out["violations"][r] = vs
     out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
-    return consensus_result(ConsensusBatchResult(**out), first, design)
+    return consensus_result(ConsensusBatchResult(**out, carried=carried), first, design)
 
 
 class RelayNode:
@@ -417,10 +459,15 @@ class RelayNode:
     reached it this step, each value as it arrived (falsified or not).  It needs nothing else: no neighbour's
     estimate, no channel record.  The numbers are those of :func:`run_relay_batch` at this node (the same
     functions on this node's rows; tested against the batch, bit for bit, through :class:`RelayNetwork`).
+
+    A design whose nodes carry their regions (``design.carried_regions``, :mod:`designer.regions`) gives the node
+    the states ``states`` only: ``x`` and ``P`` are in those coordinates (the batch's width ``m``, zero at a place
+    ``states`` marks ``-1``).
     """
 
     def __init__(self, model: Model, network: SensorNetwork, design: ConsensusDesign, node: int, *, x0=None,
-                 P0=None, routes: Routes | None = None, moments: Sequence[NodeMoments] | None = None):
+                 P0=None, routes: Routes | None = None, moments: Sequence[NodeMoments] | None = None,
+                 carry: Carried | None = None):
         design = validate_design(design, model, network)
         rule = design.rule
         if not rule.relays:
@@ -431,11 +478,23 @@ class RelayNode:
         self.ball = routes.ball(self.node)
         self._lay = _layout(model, routes, [self.node])
         M, mu = _check_signal(design.fdi_signal, network, model.n_x)
+        if design.carried_regions is not None:  # its own row of the network's carried states
+            carry = relay_carried(model, routes, design.carried_regions) if carry is None else carry
+            self._carry = Carried(carry.index[[self.node]], model.n_x)
+            M, mu = self._carry.matrix(M), self._carry.vector(mu)
+        else:
+            self._carry = None
+        #: the states it carries, in the order of ``x`` (``-1``: a place not used, where ``x`` and ``P`` hold 0)
+        self.states = np.arange(model.n_x) if self._carry is None else self._carry.index[0]
         mom = (relay_moments(routes, network, model.sensor_dims) if moments is None else moments)[self.node]
         self._classes = node_classes([_lean(mom, M, mu)])
         self._M, self._mu = M, mu
         _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
-        self.x, self.P = x0[0].copy(), P0[0].copy()
+        self._fill = x0[0].copy()  # the states it does not carry, where its carried states' dynamics never look
+        if self._carry is None:
+            self.x, self.P = x0[0].copy(), P0[0].copy()
+        else:
+            self.x, self.P = self._carry.vector(x0[0])[0], self._carry.matrix(P0[0])[0]
         self.k = 0  # the steps taken: the next step measures the state at time k + 1
 
     def step(self, z, received: Mapping[int, np.ndarray] | None = None, u=None) -> np.ndarray:
@@ -458,8 +517,10 @@ class RelayNode:
                     v = chk.array(f"received[{s}]", v, (width,))
                 values[0, row:row + width], arrived[0, row:row + width] = v, True
             row += width
-        xp, Pp = _predict(m, self.k, self.x[None, None], self.P[None, None], u)
-        h, H = _ball_rows(m, self._lay, self.k, xp)
+        xp, Pp, xf = _predict(m, self.k, self.x[None, None], self.P[None, None], u, self._carry, self._fill)
+        h, H = _ball_rows(m, self._lay, self.k, xf)
+        if self._carry is not None:
+            H = self._carry.columns(H, self._lay.node_of_row)
         x, P = _fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
         self.x, self.P = x[0, 0], P[0, 0]
         self.k += 1
@@ -482,14 +543,16 @@ class RelayNetwork:
         self.model, self.network = model, network
         self.routes = relay_routes(network, design.rounds, rule.routing)
         moments = relay_moments(self.routes, network, model.sensor_dims)
-        self.nodes = [RelayNode(model, network, design, i, x0=x0, P0=P0, routes=self.routes, moments=moments)
-                      for i in range(network.n_nodes)]
+        self.carry = None if design.carried_regions is None else relay_carried(model, self.routes,
+                                                                                design.carried_regions)
+        self.nodes = [RelayNode(model, network, design, i, x0=x0, P0=P0, routes=self.routes, moments=moments,
+                                carry=self.carry) for i in range(network.n_nodes)]
         self._lay = _layout(model, self.routes)
 
     def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
         """One step of every node: ``z`` (n_z,) the sensors' measurements, ``dos``, ``fdi`` (E,) and ``xi``
         (E, n_x) the step's attacks on the network's channels (:class:`filters.consensus_batch.EdgeAttacks` order;
-        None: none).  Returns every node's estimate (N, n_x)."""
+        None: none).  Returns every node's estimate (N, n_x) (:meth:`estimates`)."""
         z, dos, fdi, xi, u = check_step(self, z, dos, fdi, xi, u)
         if not self.stopped:
             delivered = self.deliver(z, dos, fdi, xi, u)
@@ -507,7 +570,13 @@ class RelayNetwork:
         if self.stopped:  # as the batch stops a run at a node's divergence: NaN from then on
             for nd in self.nodes:
                 nd.x, nd.P = np.full_like(nd.x, np.nan), np.full_like(nd.P, np.nan)
-        return np.stack([nd.x for nd in self.nodes])
+        return self.estimates()
+
+    def estimates(self) -> np.ndarray:
+        """Every node's current estimate (N, n_x); NaN at the states a node does not carry (when the nodes carry
+        their regions), as the batched filter reports them."""
+        x = np.stack([nd.x for nd in self.nodes])
+        return x if self.carry is None else self.carry.full(x, np.nan)
 
     def deliver(self, z, dos=None, fdi=None, xi=None, u=None) -> list[tuple[np.ndarray, dict]]:
         """What reaches every node at the next step (the arguments of :meth:`step`), without stepping: per node
@@ -517,7 +586,9 @@ class RelayNetwork:
         k = self.nodes[0].k
         x = np.stack([nd.x for nd in self.nodes])[None]
         P = np.stack([nd.P for nd in self.nodes])[None]
-        xp, _ = _predict(m, k, x, P, np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0))
+        fill = None if self.carry is None else np.stack([nd._fill for nd in self.nodes])[None]
+        _, _, xp = _predict(m, k, x, P, np.asarray(u, dtype=float).reshape(m.n_u) if m.n_u else np.zeros(0),
+                            self.carry, fill)
         _, H = _ball_rows(m, self._lay, k, xp)  # what the forwarding nodes compute: the falsifications' H
         values, arrived = _relayed(self.routes, self._lay, np.asarray(z, dtype=float)[None], H,
                                    None if dos is None else np.asarray(dos)[None],

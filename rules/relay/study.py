@@ -39,8 +39,8 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
     """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
     diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
     measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
-    operating point (square root of the mean over nodes of tr Φ̄_i, :func:`rules.relay.design.relay_stationary`
-    without its LMI); the design's own hops from its stationary ``record`` (``schedule.json``'s
+    operating point (square root of the mean over nodes of tr Φ̄_i, over each node's region when the nodes carry
+    their regions: :func:`rules.relay.design.relay_stationary` without its LMI); the design's own hops from its stationary ``record`` (``schedule.json``'s
     ``stationary_certificate``) when given."""
     from .design import diameter, relay_routes, relay_stationary
 
@@ -53,9 +53,10 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
             rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
         else:
             cert = relay_stationary(model, network, design._replace(rounds=L), x=x, u=u, lmi=False, routes=routes)
-            rmse = float(np.sqrt(np.trace(cert.Phi, axis1=-2, axis2=-1).mean())) if cert.converged else None
+            rmse = float(np.sqrt(cert.traces().mean())) if cert.converged else None
         rows.append({"rounds": L, "messages_per_step": network.messages_per_step(L),
                      "values_per_step": routes.values_per_step(), "expected_rmse": rmse,
                      "designed": L == design.rounds})
     return {"step": "stationary", "rows": rows, "note": "relay: the stationary expected RMSE at the operating point "
-            "(rules.relay.design.relay_stationary), every state component"}
+            "(rules.relay.design.relay_stationary), " + ("every state component" if design.carried_regions is None
+                                                           else "each node's region (the nodes carry their regions)")}

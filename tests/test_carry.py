@@ -1,0 +1,236 @@
+"""Nodes that carry their regions (``--carry region``, designer.regions.carried_states): the relay rules' nodes carry
+their region and the states their ball's measurements and the dynamics of those need, and are the whole-state
+filter on them.
+
+* the carried sets against finite differences: no state left out moves a carried state's dynamics or a ball
+  sensor's measurement, and every carried state beyond the region and the supports is read by a carried state's
+  dynamics;
+* the relay filter carrying regions (tree and flood routing, DoS and FDI on the channels, a bearing and a
+  two-dimensional sensor, dynamics coupling some states) against the same filter carrying the whole state (a second
+  run of the existing implementation): the same estimates and covariance blocks on the carried states;
+* the node filters carrying regions replay the batched filter bit for bit;
+* the stationary certificate carrying regions is the whole-state one's fixed point restricted to the carried states;
+* a design from a model file: its regional verdict's numbers are the whole-state design's numbers on the regions,
+  schedule.npz holds the carried coordinates and reads back; bad uses exit 2 naming --carry.
+"""
+from __future__ import annotations
+
+import json
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import rules
+from designer.attacks import FDISignal
+from designer.design import DesignOptions, make_design
+from designer.model import Model, Sensor
+from designer.network import SensorNetwork
+from designer.noise import Gaussian
+from designer.regions import Carried, carried_states, dynamics_support, sensed_regions
+from designer.schedule import load_schedule
+from designer.verdict import verdict
+from filters.attacks import simulate_attacks
+from filters.consensus_batch import run_consensus_batch
+from filters.node import node_network
+from rules.relay.design import relay_carried, relay_routes, relay_stationary
+from rules.relay.filter import run_relay_batch
+from studies.cli import main
+
+N = 8
+EDGES = [(i, (i + 1) % N) for i in range(N)] + [(0, 4)]
+SIGNAL = FDISignal(amplitude=0.05)
+
+
+def coupled_model(stable: bool = False) -> Model:
+    """Eight angles on a ring: the even ones drift with their next neighbour (f_i reads x_{i+1}), the others walk;
+    node i measures the flow sin(x_i - x_{i+1}), node 3 also a bearing to (x3, x4 + 3), node 6 its own angle (the
+    absolute reference)."""
+    x = ca.SX.sym("x", N)
+    a = 0.95 if stable else 1.0
+    f = ca.vertcat(*[a * x[i] + (0.05 * ca.sin(x[(i + 1) % N]) if i % 2 == 0 else 0.0) for i in range(N)])
+    sensors = []
+    for i in range(N):
+        h = [5.0 * ca.sin(x[i] - x[(i + 1) % N])]
+        var = [0.02 ** 2]
+        if i == 3:
+            h.append(ca.atan2(x[4] + 3.0, x[3] + 1.0))
+            var.append(0.01 ** 2)
+        if i == 6:
+            h.append(x[6])
+            var.append(0.01 ** 2)
+        sensors.append(Sensor(f"s{i}", ca.vertcat(*h), Gaussian.zero_mean(np.diag(var)),
+                              angles=(1,) if i == 3 else ()))
+    return Model("ring", x, f, sensors, process_noise=Gaussian.zero_mean(1e-4 * np.eye(N)),
+                 prior=Gaussian(np.linspace(0.1, -0.1, N), 0.05 ** 2 * np.eye(N)))
+
+
+def network(dos=0.15, fdi=0.1) -> SensorNetwork:
+    return SensorNetwork.from_edges(N, EDGES, dos_prob=dos, fdi_prob=fdi)
+
+
+REGIONS = [np.array([i]) for i in range(N)]
+
+
+def test_the_carried_states_leave_out_only_what_neither_the_dynamics_nor_the_ball_reads():
+    model = coupled_model()
+    routes = relay_routes(network(), 1)
+    balls = [routes.ball(i) for i in range(N)]
+    carried = carried_states(model, REGIONS, balls)
+    rng = np.random.default_rng(2)
+    dep = dynamics_support(model)
+    support = sensed_regions(model)
+    for i, c in enumerate(carried):
+        assert set(REGIONS[i]) <= set(c)
+        out = np.setdiff1d(np.arange(N), c)
+        for _ in range(3):
+            x = rng.normal(0.0, 0.3, N)
+            y = x.copy()
+            y[out] += rng.normal(0.0, 0.5, out.size)
+            assert np.allclose(model.f_expected(x, 0, np.zeros(0))[c], model.f_expected(y, 0, np.zeros(0))[c],
+                               rtol=0, atol=1e-14)
+            for s in balls[i]:
+                assert np.allclose(model.h(int(s), x, 1), model.h(int(s), y, 1), rtol=0, atol=1e-14)
+        # every state carried beyond the region and the supports is read by a carried state's dynamics
+        needed = set(REGIONS[i]).union(*[set(support[int(s)]) for s in balls[i]])
+        for j in set(c) - needed:
+            x = rng.normal(0.0, 0.3, N)
+            y = x.copy()
+            y[j] += 0.5
+            assert np.any(np.abs(model.f_expected(x, 0, np.zeros(0))[c] - model.f_expected(y, 0, np.zeros(0))[c])
+                          > 1e-6)
+        assert not dep[np.ix_(c, out)].any()
+    # node 0 measures x0 - x1, x7 - x0 (its ball at one hop: nodes 7, 1, 4) ... and x0's dynamics read x1: the
+    # walks of the odd states read nothing else, so a node in the middle of the ring leaves some states out
+    assert any(len(c) < N for c in carried)
+
+
+@pytest.mark.parametrize("routing", ["tree", "flood"])
+def test_carrying_the_regions_gives_the_whole_state_filter_on_the_carried_states(routing):
+    model, net = coupled_model(), network()
+    runs, steps = 3, 15
+    rng = np.random.default_rng(7)
+    z = rng.normal(0.0, 0.05, (runs, steps, model.n_z))  # any measurements: the two must agree on them
+    att = [simulate_attacks(net, steps, N, np.random.default_rng(10 + r), SIGNAL) for r in range(runs)]
+    whole = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL, routing=routing)
+    part = run_relay_batch(model, net, z, 2, attacks=att, signal=SIGNAL, routing=routing, regions=REGIONS)
+    carry = Carried(part.carried, N)
+    assert part.cov.shape == (runs, steps + 1, N, carry.m, carry.m) and (carry.used.sum(1) < N).any()
+    held = np.zeros((N, N), dtype=bool)
+    for i, row in enumerate(part.carried):
+        held[i, row[row >= 0]] = True
+    assert np.isnan(part.x[..., ~held]).all() and np.isfinite(part.x[..., held]).all()
+    scale = np.abs(whole.x).max()
+    assert np.allclose(part.x[..., held], whole.x[..., held], rtol=0, atol=1e-10 * scale)
+    block = carry.matrix(whole.cov)
+    assert np.allclose(part.cov, block, rtol=1e-9, atol=1e-12 * np.abs(block).max())
+    assert np.all(part.cov[..., ~carry.used, :] == 0.0)  # the unused places hold zero
+    # and the whole state is not what a node carries: its covariance there differs from its carried block's
+    assert not np.allclose(np.trace(whole.cov, axis1=-2, axis2=-1), np.trace(part.cov, axis1=-2, axis2=-1))
+
+
+def relay_design(model, net, hops, regions=REGIONS, mode="relay"):
+    return make_design(model, net, rule=rules.get(mode), delta=0.0,
+                       options=DesignOptions(mode=mode, rounds=hops, carry="region" if regions else None),
+                       x0=model.prior.mean, signal=SIGNAL, regions=regions)
+
+
+@pytest.mark.parametrize("mode", ["relay", "flood"])
+def test_the_node_filters_carrying_regions_replay_the_batch_bit_for_bit(mode):
+    model, net = coupled_model(), network()
+    steps = 10
+    rng = np.random.default_rng(3)
+    z = rng.normal(0.0, 0.05, (1, steps, model.n_z))
+    att = simulate_attacks(net, steps, N, np.random.default_rng(4), SIGNAL)
+    design = relay_design(model, net, 2, mode=mode)
+    batch = run_consensus_batch(model, net, z, design, attacks=[att])
+    nodes = node_network(model, net, design)
+    x, P = nodes.run(z[0], att)
+    assert np.array_equal(x, batch.x[0], equal_nan=True)
+    assert np.array_equal(P, batch.cov[0])
+    assert all(np.array_equal(nd.states, row) for nd, row in zip(nodes.nodes, batch.carried))
+
+
+def test_the_stationary_certificate_carrying_regions_is_the_whole_ones_on_the_carried_states():
+    model, net = coupled_model(stable=True), network()
+    whole = relay_stationary(model, net, relay_design(model, net, 2, regions=None), x=model.prior.mean)
+    part = relay_stationary(model, net, relay_design(model, net, 2), x=model.prior.mean)
+    assert whole.converged and part.converged
+    carry = relay_carried(model, relay_routes(net, 2), REGIONS)
+    assert np.array_equal(part.carried, carry.index)
+    assert np.allclose(part.Phi, carry.matrix(whole.Phi), rtol=1e-6, atol=1e-12)
+    assert np.allclose(part.traces(), [whole.Phi[i, i, i] for i in range(N)], rtol=1e-6)
+    for cert in (whole, part):  # the LMI confirms each fixed point
+        assert cert.lmi["relative_residual"] <= 1e-6
+
+
+MODEL_FILE = '''"""A ring of eight angles (tests/test_carry.py's coupled model) as a model file."""
+import sys
+sys.path.insert(0, {tests!r})
+from designer import AttackSpec, FDISignal, SensorNetwork
+from test_carry import EDGES, N, coupled_model
+
+NETWORK = SensorNetwork.from_edges(N, EDGES)
+ATTACKS = AttackSpec(dos=0.15, fdi=0.1, signal=FDISignal(amplitude=0.05))
+STEPS = 20
+{regions}
+
+
+def model():
+    return coupled_model(stable=True)
+'''
+
+
+def model_file(tmp_path, regions="REGIONS = [[i] for i in range(N)]"):
+    import os
+
+    path = tmp_path / "ring.py"
+    path.write_text(MODEL_FILE.format(tests=os.path.dirname(__file__), regions=regions))
+    return path
+
+
+@pytest.mark.slow
+def test_a_design_carrying_regions_is_judged_on_them_with_the_whole_designs_numbers(tmp_path):
+    path = model_file(tmp_path)
+    a, b = tmp_path / "whole", tmp_path / "region"
+    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--out", str(a)]) == 0
+    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--carry", "region", "--out", str(b)]) == 0
+    ja, jb = (json.loads((d / "schedule.json").read_text()) for d in (a, b))
+    ra, rb = ja["verdict_detail"]["region"], jb["verdict_detail"]["region"]
+    assert np.allclose(rb["final_trace"], ra["final_trace"], rtol=1e-9)
+    assert jb["verdict_detail"]["judged"] == "region" and ja["verdict_detail"]["judged"] == "whole state"
+    assert np.allclose(jb["verdict_detail"]["final_trace"], ra["final_trace"], rtol=1e-9)
+    assert np.allclose(jb["verdict_detail"]["ratio_centralized"], ra["ratio_centralized"], rtol=1e-9)
+    # the trace bound is over each node's region, and reads back from schedule.npz
+    sched = load_schedule(b, lambda name, param: rules.get(name))
+    m = sched.carried.shape[1]
+    assert sched.Phi.shape == (N, 21, m, m) and (sched.carried < 0).any()
+    assert np.allclose(np.array(jb["trace_bound"], dtype=float), sched.judged_traces(), rtol=1e-12)
+    with np.load(a / "schedule.npz") as whole:
+        Phi = whole["Phi"]
+    assert np.allclose(sched.judged_traces(), [Phi[i, 1:, i, i] for i in range(N)], rtol=1e-9)
+    assert all(jb["state_names"][i] in jb["carried"][i] for i in range(N)) and jb["carry"] == "region"
+    # the stationary certificates: the regional one on each node's region
+    sb = jb["stationary_certificate"]
+    assert sb["verdict"] == "certified" and sb["bounded"]
+    assert sb["trace"] is not None and len(sb["trace"]) == N
+
+
+def test_carry_region_needs_regions_and_a_rule_that_may_and_exits_2(tmp_path, capsys):
+    bare = model_file(tmp_path, regions="")
+    assert main(["design", str(bare), "--mode", "relay", "--carry", "region", "--out", str(tmp_path / "a")]) == 2
+    assert "carry" in capsys.readouterr().err
+    path = model_file(tmp_path)
+    assert main(["design", str(path), "--mode", "tuned", "--carry", "region", "--out", str(tmp_path / "b")]) == 2
+    assert "carry" in capsys.readouterr().err
+    assert main(["design", str(path), "--mode", "relay", "--carry", "half", "--out", str(tmp_path / "c")]) == 2
+    assert not any((tmp_path / d).exists() for d in "abc")
+
+
+def test_a_verdict_judged_per_node_uses_each_nodes_own_open_loop():
+    trace = np.array([[0.5, 0.5], [0.5, 0.5]])
+    shared = verdict(trace, [1.0, 1.0], feasible=True)
+    assert shared.verdict == "certified"
+    own = verdict(trace, np.array([[1.0, 1.0], [1.0, 0.4]]), feasible=True, centralized=[0.25, None])
+    assert own.verdict == "vacuous" and own.nodes == [1]
+    assert own.detail["ratio_centralized"] == [2.0, None] and own.detail["open_loop_trace"] == [1.0, 0.4]
