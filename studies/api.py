@@ -48,6 +48,7 @@ from designer.cores import one_blas_thread
 from designer.design import DesignOptions
 from designer.fileio import check_apart, check_output_file, replaced_outputs, write_npz, writing
 from designer.network import SensorNetwork
+from designer.regions import Carried, region_error2
 from designer.validation import InputError, check_bool, check_int, check_path, check_strings, check_type
 
 import studies.memory as memory
@@ -540,7 +541,9 @@ class FilterRun:
     conditions broken (node, step, condition) and ``'diverged'``; ``verdict``: a designed filter's verdict of its
     bound on this log (``certified``, ``vacuous``, ``infeasible``, ``not computed``; None for the others);
     ``messages`` (K,): transmissions per step; ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain
-    rule and options of the design it ran with.
+    rule and options of the design it ran with; ``carried`` (nodes, m): when the nodes carry their regions
+    (``--carry region``), each node's carried states (``cov`` in their coordinates, ``x_hat`` NaN elsewhere), and
+    the RMSE is then over each node's region.
     """
 
     scenario: Scenario
@@ -556,6 +559,8 @@ class FilterRun:
     truth: np.ndarray | None
     log: str
     design: dict | None
+    carried: np.ndarray | None = None
+    regions: tuple | None = None  # with carried: each node's region (the states it answers for)
 
     @property
     def diverged(self) -> dict | None:
@@ -572,6 +577,8 @@ class FilterRun:
         e = self.errors()
         if e is None:
             return None
+        if self.carried is not None:  # a node estimates its carried states only: scored on its region
+            return float(np.sqrt(region_error2(e[1:], self.regions).mean()))
         m = self.scenario.model
         idx = list(m.position_index) or list(range(m.n_x))
         return float(np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean()))
@@ -586,7 +593,11 @@ class FilterRun:
             return None
         m = self.scenario.model
         idx = list(m.position_index) or list(range(m.n_x))
-        rmse = np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean(axis=0))
+        if self.carried is not None:  # on each node's region; the energy on its carried states, as its bound
+            rmse = np.sqrt(region_error2(e[1:], self.regions).mean(axis=0))
+            e = Carried(self.carried, m.n_x).vector(e)
+        else:
+            rmse = np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean(axis=0))
         trace = np.nan if self.cov is None else np.trace(self.cov[1:], axis1=-2, axis2=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = np.where(self.valid[1:], (e[1:] ** 2).sum(-1) / trace, np.nan)
@@ -699,10 +710,10 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
         verdict = None
         if entry.designed:
             ok = not any(v["condition"] in HARD_CONDITIONS for v in res.violations[0])
-            verdict = bound_verdicts(sc, res.cov, res.valid, [ok])[0].verdict
+            verdict = bound_verdicts(sc, res.cov, res.valid, [ok], design, res.carried)[0].verdict
         done = FilterRun(sc, entry.name, res.runtime, res.x[0], None if res.cov is None else res.cov[0],
                          res.cov_kind, res.valid[0], res.violations[0], verdict, res.messages[0], log.x, log.source,
-                         design_meta)
+                         design_meta, res.carried, None if res.carried is None else design.carried_regions)
         if out is not None:
             done.save(out)
     return done

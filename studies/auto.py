@@ -17,6 +17,11 @@ numbers), the candidates computed side by side on the usable cores (:func:`studi
    predicted errors within :data:`TIE` of the smallest are a tie, and a tie goes to the fewest bytes per step, then
    the fewest messages.
 
+With ``REGIONS`` (:mod:`designer.regions`) every candidate is ranked on the regions, and the candidates of a rule
+whose nodes may carry their regions alone (relay, flood) carry them (``carry=region``, unless the user gave
+``--carry``): the same numbers on the regions, a node's work and memory on its carried states only, and a verdict
+and certificate on the regions, where the whole state's far end would make them vacuous or unbounded.
+
 The pick is designed again in this process (the candidates' designs stay in their processes: their arrays are large)
 and its verdict checked against its candidate's: the same numbers, or the command fails.  With no eligible
 candidate the command says why, names the cheapest certified candidate outside the budget, writes the best design
@@ -394,6 +399,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     # the candidates: every deployable rule's, with what the user gave kept
     plans = []
     for name, rule, cand, opts in offered(base, net):
+        if sc_eff.regions is not None and rule.regional and opts.carry is None:  # carry the regions where it may
+            opts, cand = replace(opts, carry="region"), {**cand, "carry": "region"}
         reason = refusal(lambda o: _check_candidate(sc, o, steps), name, cand, opts)
         plans.append((name, rule, cand, None if reason else opts, reason))
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem

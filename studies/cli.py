@@ -230,7 +230,8 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
     rmse = res.rmse()
     click.echo(f"wrote {out}/estimates.npz, estimates.csv and report.md: {res.name}, {K1 - 1} steps, {nodes} "
                f"estimate{'s' if nodes > 1 else ''}, runtime {res.runtime}"
-               + ("" if rmse is None else f", RMSE {rmse:.4g} against the log's truth")
+               + ("" if rmse is None else f", RMSE {rmse:.4g} against the log's truth"
+                  + (" on each node's region" if res.carried is not None else ""))
                + ("" if res.verdict is None else f", bound {res.verdict}"))
     if res.diverged is not None:
         raise ComputationError(f"filter {res.name!r} diverged at step {res.diverged['step']} (estimates written)")
@@ -294,11 +295,13 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
 
 
 def _validation_lines(validation) -> None:
-    """A design's validation on fresh runs (``validation.json``): each filter's RMSE, its diverged runs."""
+    """A design's validation on fresh runs (``validation.json``): each filter's RMSE (on the regions, where the
+    model declares them, first: what the pick was ranked by), its diverged runs."""
     for f in (validation or {}).get("filters", {}).values():
-        rmse = f.get("rmse")
-        if isinstance(rmse, (int, float)):
-            click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: RMSE {rmse:.4g}"
+        parts = [f"{words} {f[key]:.4g}" for key, words in (("rmse_region", "RMSE on the regions"), ("rmse", "RMSE"))
+                 if isinstance(f.get(key), (int, float))]
+        if parts:
+            click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
 
 

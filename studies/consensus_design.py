@@ -45,7 +45,8 @@ from .runner import Background, run_forked
 from .scenarios import Scenario
 
 __all__ = ["Design", "consensus_design", "effective_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
-           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop"]
+           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop",
+           "judged_positions"]
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,
@@ -264,10 +265,11 @@ def _open_loop(model, x0, u0, steps: int, regions=None) -> tuple[np.ndarray, str
                 "at the operating point, no measurement" + ("; traced over each node's region" if regions else ""))
 
 
-def scenario_open_loop(sc: Scenario, steps: int) -> np.ndarray:
+def scenario_open_loop(sc: Scenario, steps: int, regions=None) -> np.ndarray:
     """The open-loop covariance's trace of ``sc`` at steps 1..``steps``: what a bound along a run of ``sc`` is
-    judged informative against (:func:`designer.verdict.informative`), by the design and by the studies alike."""
-    return _open_loop(sc.model, *sc.operating_point, steps)[0]
+    judged informative against (:func:`designer.verdict.informative`), by the design and by the studies alike;
+    with ``regions`` (nodes carrying their regions) (nodes, steps), over each node's region."""
+    return _open_loop(sc.model, *sc.operating_point, steps, regions)[0]
 
 
 def _not_computed(violations: list[dict]) -> str | None:
@@ -296,25 +298,37 @@ def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], ref
     return ver
 
 
-def bound_traces(phi: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def bound_traces(phi: np.ndarray, valid: np.ndarray, positions=None) -> np.ndarray:
     """tr Φ per run, node and step, (runs, nodes, steps), NaN where Φ is not a bound: what
     :func:`designer.verdict.verdict` and :func:`designer.verdict.informative` judge.  ``phi`` (runs, steps, nodes,
-    n_x, n_x) and ``valid`` (runs, steps, nodes) of a consensus filter run along each run."""
+    n_x, n_x) and ``valid`` (runs, steps, nodes) of a consensus filter run along each run; ``positions``: when the
+    nodes carry their regions, where each region sits in ``phi``'s coordinates (:func:`judged_positions`), the
+    trace then over each node's region."""
     with np.errstate(invalid="ignore", over="ignore"):
-        return np.where(valid, np.trace(phi, axis1=-2, axis2=-1), np.nan).swapaxes(1, 2)
+        tr = np.trace(phi, axis1=-2, axis2=-1) if positions is None else region_traces(phi, positions)
+        return np.where(valid, tr, np.nan).swapaxes(1, 2)
 
 
-def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasible) -> list[Verdict]:
+def judged_positions(carried, design: ConsensusDesign):
+    """Where each node's region sits in the coordinates of a result's ``carried`` states (None: the nodes carry the
+    whole state, judged on it): what the studies judge a design's bound on, as the design judges its own."""
+    return None if carried is None else carried_positions(carried, design.carried_regions)
+
+
+def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasible,
+                   design: ConsensusDesign | None = None, carried=None) -> list[Verdict]:
     """The verdict of each run's bound, as ``cfdesign design`` judges its own (:func:`design_verdict`).
 
     ``phi_post`` (runs, K + 1, nodes, n_x, n_x) and ``valid`` (runs, K + 1, nodes) of a consensus filter run along
     each run; ``feasible`` (runs,) whether (28)-(29) held throughout and the run did not diverge (a run that
     diverged or broke a condition is ``infeasible``, whatever its arrays hold).  A feasible run whose Φ is a bound
-    at no step 1..K carries no certificate: ``not computed``.
+    at no step 1..K carries no certificate: ``not computed``.  With ``carried`` (the result's, its nodes carrying
+    ``design``'s regions) each node is judged on its region against the open loop on the same states.
     """
     feasible = np.asarray(feasible, dtype=bool)
-    ol = scenario_open_loop(sc, phi_post.shape[1] - 1)
-    tr = bound_traces(phi_post[:, 1:], valid[:, 1:])
+    positions = judged_positions(carried, design) if carried is not None else None
+    ol = scenario_open_loop(sc, phi_post.shape[1] - 1, None if positions is None else design.carried_regions)
+    tr = bound_traces(phi_post[:, 1:], valid[:, 1:], positions)
     none = "Φ is a bound at no step of the run (no certificate was computed for it)"
     return [verdict(t, ol, feasible=bool(f), not_computed=none if f and np.isnan(t).all() else None)
             for t, f in zip(tr, feasible)]
@@ -483,10 +497,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
     Phi = np.where(res.valid[..., None, None], res.phi_post, np.nan).swapaxes(0, 1)
     refs = kalman_references(m, x0, u0, sc.regions)
     carried = des.carried_regions  # the nodes carry their regions: Φ in their carried coordinates, judged there
-    pos = None if carried is None else carried_positions(res.carried, carried)
-    with np.errstate(invalid="ignore", over="ignore"):
-        trace = (np.trace(Phi[:, 1:], axis1=-2, axis2=-1) if carried is None
-                 else region_traces(np.swapaxes(Phi[:, 1:], 0, 1), pos).T)
+    pos = judged_positions(res.carried, des)
+    trace = bound_traces(np.swapaxes(Phi[:, 1:], 0, 1)[None], res.valid[None, 1:], pos)[0]
     ver = _with_stationary(design_verdict(m, x0, u0, trace, res.violations, refs, carried), stationary)
     if sc.regions is not None:  # each node's final bound on its region (beside the verdict on the whole state)
         ver.detail["region"] = region_detail(Phi[:, -1], sc.regions, refs["regions"]["centralized"], m.state_names,

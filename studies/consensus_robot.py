@@ -43,7 +43,7 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.regions import region_error2
+from designer.regions import Carried, region_error2, region_mask
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -52,7 +52,8 @@ from filters.channels import GATE_COUNTS
 from .comparison import HCMCI_ITERATIONS
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, informative, settled_steps
 
-from .consensus_design import bound_traces, bound_verdicts, check_first_step, consensus_design, scenario_open_loop
+from .consensus_design import (bound_traces, bound_verdicts, check_first_step, consensus_design, judged_positions,
+                               scenario_open_loop)
 from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, replayed_schedule)
@@ -77,7 +78,8 @@ CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (the unit stored and
 REASON_BYTES = 200  # a diverged run's reason, stored as this many UTF-8 bytes (longer ones are cut)
 
 
-def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None = None) -> dict:
+def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None = None,
+                positions=None) -> dict:
     """Is Φ an upper bound of the error covariance?  Three checks and a verdict; then what the bound is worth, in
     the design's words: how many runs' bounds are informative, and how tightly the runs fill it.
 
@@ -88,7 +90,12 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
     valid : (runs, steps, nodes) where ``phi`` is a bound.
     open_loop : (steps,), optional
         The scenario's open-loop covariance's trace at the same steps
-        (:func:`studies.consensus_design.scenario_open_loop`): ``informative`` is counted against it.
+        (:func:`studies.consensus_design.scenario_open_loop`): ``informative`` is counted against it; (nodes, steps)
+        with ``positions``.
+    positions : optional
+        Nodes carrying their regions (``err`` and ``phi`` in their carried coordinates): where each node's region
+        sits there (:func:`studies.consensus_design.judged_positions`); what the bound is worth (``informative``,
+        ``fill``) is then judged on each node's region, as the design judges it.
 
     **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
     least ``MIN_RUNS_FOR_CHECK`` valid runs, the direction ``v`` of largest eigenvalue of
@@ -189,15 +196,18 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
         "run_test": rt,
         "verdict": verdict,
         "verdict_reason": why,
-        **_worth(err, phi, valid, open_loop),
+        **_worth(err, phi, valid, open_loop, positions),
     }
 
 
-def _worth(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None) -> dict:
+def _worth(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None, positions=None) -> dict:
     """:func:`bound_check`'s ``informative`` (runs whose bound is informative at every step), ``fill`` and
-    ``fill_steps`` (the runs' error energy over their bound's trace after the prior's transient)."""
+    ``fill_steps`` (the runs' error energy over their bound's trace after the prior's transient); on each node's
+    region with ``positions``."""
     steps = err.shape[1]
-    tr = bound_traces(phi, valid)
+    tr = bound_traces(phi, valid, positions)
+    if positions is not None:  # the error energy on the same states as the bound's trace
+        err = np.where(region_mask(positions, err.shape[-1]), err, 0.0)
     count = None if open_loop is None else int(sum(informative(t, open_loop).all() for t in tr))
     window = settled_steps(steps)
     sel = valid[:, window].astype(bool)
@@ -348,7 +358,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`)
     ``v{j}_err`` (R, K + 1, nodes, n_x) = x - x_hat (NaN in a diverged run), ``v{j}_valid``
     (R, K + 1, nodes) where Φ is a bound, ``v{j}_phi`` (R, K + 1, nodes, n_x, n_x) for the
-    variants checked against Φ, ``v{j}_seconds`` (R,) the variant's wall time,
+    variants checked against Φ (with ``v{j}_carried`` (R, nodes, m), nodes carrying their regions: ``v{j}_phi`` in
+    their carried coordinates, m x m, and ``v{j}_err`` NaN where a node does not carry), ``v{j}_seconds`` (R,) the variant's wall time,
     ``v{j}_first_violation`` (R,) the first step of a (28)/(29) violation (-1: none), and
     ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
@@ -387,8 +398,17 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         t = time.perf_counter()
         res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once (its wall time shared by them)
         out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R if res.seconds is None else res.seconds
+        n = v.entry.nodes(net)
+        held = np.ones((n, nx), dtype=bool)
+        if res.carried is not None:  # its nodes carry their regions: Φ in their carried coordinates
+            out[f"v{j}_carried"] = np.broadcast_to(res.carried, (R,) + res.carried.shape).copy()
+            out[f"v{j}_phi"] = np.zeros((R, steps + 1, n) + res.cov.shape[-2:])
+            held[:] = False
+            for i, row in enumerate(res.carried):
+                held[i, row[row >= 0]] = True
         for a, dv in enumerate(res.diverged):
-            far = None if dv is not None else first_divergence(trajs[a].x[:, None, :] - res.x[a], limit)
+            far = None if dv is not None else first_divergence(
+                np.where(held, trajs[a].x[:, None, :] - res.x[a], 0.0), limit)  # over what each node carries
             if far is not None:  # finite, but off the problem's scale
                 dv = {"node": far[1], "step": far[0],
                       "reason": f"the error left {divergence_spread:g} prior spreads ({limit:.3g}) at step {far[0]}"}
@@ -464,6 +484,37 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     return Plan(task, "consensus-robot", config)
 
 
+def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts, bounded_runs, so,
+                     L, feasibility) -> dict:
+    """A variant whose nodes carry their regions (``--carry region``): a node has no estimate of the states it does
+    not carry, so the whole-state metrics are null (``rmse_state`` absent) and the variant is scored on the regions
+    (``rmse_region``, per node too); its bound is checked in the carried coordinates and judged on the regions
+    (:func:`bound_check` with ``positions``)."""
+    steps, net = sc.steps, sc.network
+    nx = sc.model.n_x
+    per_node = region_error2(err, sc.regions if sc.regions is not None else v.design.carried_regions)
+    return {
+        "family": e.family, "runtime": e.runtime, "carried": True,
+        "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
+        "rmse_position_curve": None,
+        "nodes": [{"node": i, "rmse_position": None, "rmse_region": float(np.sqrt(per_node[:, :, i].mean()))}
+                  for i in range(err.shape[2])],
+        "node_spread": None,
+        "time_per_step_s": time_per_step,
+        "communications": e.messages_per_step(net, L, so.design),
+        "bound_check": bound_check(Carried(carried, nx).vector(err), st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
+                                   scenario_open_loop(sc, steps, v.design.carried_regions),
+                                   judged_positions(carried, v.design)),
+        "feasibility": feasibility,
+        "verdicts": verdicts,
+        "bounded_runs": bounded_runs,
+        "diverged_runs": failed,
+        "diverged_fraction": len(failed) / runs,
+        "design": describe_design(v.design),
+        **_region_metrics(err, sc.regions if sc.regions is not None else v.design.carried_regions),
+    }
+
+
 def _region_metrics(err: np.ndarray, regions) -> dict:
     """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
     region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
@@ -491,10 +542,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                    "step": int(A[f"v{j}_diverged_step"][r]), "error": _decode(A[f"v{j}_diverged_reason"][r])}
                   for r in np.flatnonzero(div)]
         st = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
+        carried = A[f"v{j}_carried"][0] if f"v{j}_carried" in A else None  # its nodes carry their regions
         # each run's bound judged as cfdesign design judges its own (a diverged run, or a design that cannot start,
         # is infeasible)
         feasible = ~div & (A[f"v{j}_first_violation"] < 0) & (v.infeasible is None)
-        judged = bound_verdicts(sc, st["phi"], st["valid"], feasible) if e.designed else None
+        judged = bound_verdicts(sc, st["phi"], st["valid"], feasible, v.design, carried) if e.designed else None
         verdicts = None if judged is None else count_verdicts(v.verdict for v in judged)
         bounded_runs = None if judged is None else sum(v.bounded for v in judged)
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
@@ -507,7 +559,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                              "communications": e.messages_per_step(net, L, so.design),
                              "design": describe_design(v.design)}
             continue
-        ok = ~np.isnan(st["err"][:, 1, 0, 0])
+        ok = ~np.isnan(st["err"][:, 1, 0, 0]) if carried is None else ~div
         if not ok.any():  # every run diverged: no error statistics exist
             filters[name] = {"family": e.family, "runtime": e.runtime, "rmse_position": None,
                              "rmse_position_ci95": None, "rmse_position_median_run": None,
@@ -516,12 +568,23 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                              "diverged_fraction": 1.0, "time_per_step_s": time_per_step}
             continue
         err = st["err"][ok][:, 1:]  # steps 1..K
-        e2 = err[..., pos] ** 2
-        node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
-        spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
         first = A[f"v{j}_first_violation"][ok]
         fv = [int(x) for x in first if x >= 0]
         n_ok = int(ok.sum())
+        feasibility = {
+            "runs_feasible": int((first < 0).sum()),
+            "runs": n_ok,
+            "first_violation_step_median": float(np.median(fv)) if fv else None,
+            "first_violation_step_min": int(min(fv)) if fv else None,
+            "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
+        } if e.designed else None
+        if carried is not None:
+            filters[name] = _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts,
+                                             bounded_runs, so, L, feasibility)
+            continue
+        e2 = err[..., pos] ** 2
+        node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
+        spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
         boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         filters[name] = {
@@ -539,13 +602,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "communications": e.messages_per_step(net, L, so.design),
             "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
                                        scenario_open_loop(sc, steps)) if e.designed else None,
-            "feasibility": {
-                "runs_feasible": int((first < 0).sum()),
-                "runs": n_ok,
-                "first_violation_step_median": float(np.median(fv)) if fv else None,
-                "first_violation_step_min": int(min(fv)) if fv else None,
-                "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
-            } if e.designed else None,
+            "feasibility": feasibility,
             "verdicts": verdicts,
             "bounded_runs": bounded_runs,
             "diverged_runs": failed,
@@ -616,7 +673,9 @@ def _study_figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
     store, est0 = {}, {}
     for j, name in enumerate(filters):
         st = store[name] = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
-        if not np.isnan(st["err"][0, 1, 0, 0]):
+        if f"v{j}_carried" in A:  # nodes carrying their regions: the errors in their carried coordinates, as Φ
+            st["err"] = Carried(A[f"v{j}_carried"][0], m.n_x).vector(st["err"])
+        elif not np.isnan(st["err"][0, 1, 0, 0]):
             est0[name] = truth[0][:, None, :] - st["err"][0]  # run 0's estimates x_post
     _figures(out, sc, truth[0], est0, attacks0, filters, store)
 

@@ -240,7 +240,8 @@ def filter_report(run, directory: Path) -> None:
         lines += [f"**Diverged** at step {d['step']} (node {d['node']}): {d.get('reason', '')}; the estimates after "
                   "it are not numbers.", ""]
     if rmse is not None:
-        lines += [f"RMSE against the log's truth (position, over steps 1..K and the nodes): {rmse:.4g}.", ""]
+        over = "each node on its region, which it carries" if run.carried is not None else "position"
+        lines += [f"RMSE against the log's truth ({over}, over steps 1..K and the nodes): {rmse:.4g}.", ""]
         per = run.per_node()
         what = "bound" if key == "Phi" else "believed covariance"
         lines += [f"Per node: its RMSE and the mean over the steps of its squared error over the trace of its {what} "

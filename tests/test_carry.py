@@ -234,3 +234,24 @@ def test_a_verdict_judged_per_node_uses_each_nodes_own_open_loop():
     own = verdict(trace, np.array([[1.0, 1.0], [1.0, 0.4]]), feasible=True, centralized=[0.25, None])
     assert own.verdict == "vacuous" and own.nodes == [1]
     assert own.detail["ratio_centralized"] == [2.0, None] and own.detail["open_loop_trace"] == [1.0, 0.4]
+
+
+@pytest.mark.slow
+def test_a_study_of_nodes_carrying_regions_scores_them_as_the_whole_state_design_on_the_regions(tmp_path):
+    """study consensus-robot with --carry region: the same runs give the same errors on the regions as the
+    whole-state design (rmse_region, per node too); the whole-state metrics are null (a node has no estimate of what
+    it does not carry) and the bound is checked in the carried coordinates, judged on the regions."""
+    path = model_file(tmp_path)
+    out = {}
+    for name, extra in (("whole", []), ("region", ["--carry", "region"])):
+        assert main(["study", "consensus-robot", str(path), "--mode", "relay", "--rounds", "2", "--runs", "6",
+                     "--quiet", "--out", str(tmp_path / name)] + extra) == 0
+        res = json.loads((tmp_path / name / "results.json").read_text())["filters"]
+        out[name] = next(f for k, f in res.items() if k.startswith("consensus-EKF"))
+    whole, part = out["whole"], out["region"]
+    assert part["rmse_region"] == pytest.approx(whole["rmse_region"], rel=1e-9)
+    per_node = np.array([n["rmse_region"] for n in part["nodes"]])  # the nodes' own: their mean square is the whole
+    assert np.mean(per_node ** 2) == pytest.approx(part["rmse_region"] ** 2, rel=1e-9)
+    assert part["rmse_position"] is None and "rmse_state" not in part and whole["rmse_position"] is not None
+    assert part["verdicts"]["certified"] == 6 and part["bound_check"]["verdict"] == "holds"
+    assert part["bound_check"]["informative"] == 6

@@ -156,7 +156,8 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
     """With REGIONS the automatic design predicts each candidate's node-average tr Φ over the regions and puts it
     against the centralized steady state over the same states: whole-state regions give the numbers of the design
     without regions; one state per node gives each candidate's own design's region traces (an independent
-    recomputation from that rule's design) and smaller predictions."""
+    recomputation from that rule's whole-state design) and smaller predictions.  With regions the relay and flood
+    candidates carry them (their labels say ``carry=region``)."""
     from studies.auto import predicted_error
 
     found = {}
@@ -164,7 +165,10 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
         folder = tmp_path / name
         folder.mkdir()
         auto = studies.design(str(chain(folder, regions)), mode="auto", validate=0, budget=40)
-        found[name] = (auto, {c.label: c for c in auto.candidates if c.predicted is not None})
+        carry = [c.label for c in auto.candidates if "carry=region" in c.label]
+        assert bool(carry) == (regions != "None") and all(c.startswith(("relay", "flood")) for c in carry)
+        found[name] = (auto, {c.label.replace(", carry=region", ""): c for c in auto.candidates
+                              if c.predicted is not None})
     none, every, own = (found[k][1] for k in ("none", "all", "own"))
     assert none.keys() == every.keys() == own.keys() and none
     for label in none:

@@ -30,6 +30,11 @@ class RelayExport(NodeExport):
     """The C export of a relaying rule's node filter: a step's replay record is the inputs and, per exported node,
     what reached it and its estimate and bound after the step (:func:`replay_text`)."""
 
+    def check(self, design) -> None:
+        if design.carried_regions is not None:
+            raise InputError("carry 'region': the C export of a node that carries its region alone is not built yet "
+                             "(its Python node filter is: studies.node_filter); export a design of --carry whole")
+
     def replay_step(self, net, k, u, z, nodes):
         _, rounds = net.last  # what each node sent and, round by round, what reached it
         return u, [(*rounds[0][i], net.nodes[i].x, net.nodes[i].P) for i in nodes]

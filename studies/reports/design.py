@@ -24,6 +24,8 @@ import numpy as np
 
 
 import studies.reports.text as text  # the formatting a rule's report words use
+from designer.regions import carried_positions, region_traces
+
 from .auto import auto_section, validation_section
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
                    md_cell, md_escape, md_table, network_lines, observability_section, params_table, read_record,
@@ -49,7 +51,7 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "bounded", "growing",
           "bounded_reason", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
-          "bank_record", "remainder_structure"}
+          "bank_record", "remainder_structure", "carry", "carried"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
@@ -87,9 +89,13 @@ class _Schedule:
         tb = _float_array(meta.get("trace_bound")) if isinstance(meta.get("trace_bound"), list) else None
         phi, valid = self.arrays.get("Phi"), self.arrays.get("valid")
         self.trace = None  # (nodes, steps + 1): tr Φ_{k|k}, NaN where not a bound
+        carried, mask = self.arrays.get("carried"), self.arrays.get("region_mask")
         if phi is not None and valid is not None and phi.ndim == 4 and valid.shape == phi.shape[:2]:
             with np.errstate(invalid="ignore"):
                 tr = np.trace(phi, axis1=-2, axis2=-1)
+                if carried is not None and mask is not None:  # the nodes carry their regions: judged on them
+                    tr = region_traces(np.swapaxes(phi, 0, 1), carried_positions(
+                        carried, [np.flatnonzero(r) for r in mask])).T
             self.trace = np.where(valid.astype(bool), tr, np.nan)
         elif tb is not None:
             self.trace = np.concatenate([np.full((tb.shape[0], 1), np.nan), tb], axis=1)
@@ -509,6 +515,11 @@ def _meaning_section(s: _Schedule) -> list[str]:
            "Φ_{i,k|k} is Theorem 1's upper bound on the covariance of node i's estimation error at step k, so tr Φ "
            "bounds the node's mean-square error E‖x_k − x̂_{i,k}‖². It is a bound while (28) and (29) hold at the "
            "node and its neighbours; after a violation the schedule stores none (NaN).", ""]
+    if isinstance(meta.get("carried"), list):
+        out += ["Each node carries only its region and the states its ball's measurements and their dynamics need "
+                "(`--carry region`; `carried` in `schedule.json`): its Φ is over those states, the same numbers as "
+                "the whole-state design's there, and every trace in this report (the verdict, the figures, the "
+                "tables) is over its region, against the open loop and the references on the same states.", ""]
     traj = meta.get("trajectory")
     out.append("It holds along the simulated run it was computed on"
                + (f": {md_escape(traj)}." if isinstance(traj, str) and traj else
