@@ -87,6 +87,9 @@ the node-average tr Phi at the horizon; beside the 64-cell field's and the 118-b
 (``TARGET_S`` = 120 s and ``TARGET_GB`` = 4 GB on 2 cores).  A design past ``--timeout`` (300 s) or ``--max-gb``
 (8 GB) is stopped, its process group killed, and reported so.
 
+``--carry region`` gives the relay, flood and automatic designs ``carry='region'`` (each node carrying its region
+and what its ball's measurements and their dynamics need; the grids declare each bus's angle its node's region).
+
 ``--models field grid14 --check`` (CI: the fields 2 x 4 and 4 x 4 and the 14-bus grid, relay and scheduled, but the
 2 x 4 field's scheduled design, whose stationary LMI runs away in memory; about a minute on 2 cores) exits 1 when a
 design does not finish, its estimates or bound at the horizon are not finite, its processes hold more than
@@ -552,6 +555,8 @@ def design_child(model: str, mode: str, out: str, options: dict) -> int:
     size = {"nodes": sc.network.n_nodes, "states": sc.model.n_x, "edges": int(sc.network.adjacency.sum()) // 2,
             "d_max": int(sc.network.d_max), "steps": options.get("steps", sc.steps)}
     print(SIZE + json.dumps(size), flush=True)
+    if mode not in ("relay", "flood", "auto"):  # --carry: the modes whose nodes may carry their regions
+        options = {k: v for k, v in options.items() if k != "carry"}
     try:
         res = studies.design(sc, mode=mode, **options)
     except Exception as exc:  # reported as the row's error: a design that fails is a result here
@@ -718,8 +723,8 @@ def models_main(args, ap) -> int:
         ap.error("--validate must be >= 0")
     if args.steps is not None and args.steps < 1:
         ap.error("--steps must be >= 1")
-    options = {"seed": args.seed, **{k: v for k, v in (("steps", args.steps), ("validate", args.validate))
-                                     if v is not None}}
+    options = {"seed": args.seed, **{k: v for k, v in (("steps", args.steps), ("validate", args.validate),
+                                                       ("carry", args.carry)) if v is not None}}
     fields = args.field_sizes or list(CHECK_FIELDS if args.check else FIELD_SIZES)
     modes = args.modes or list(CHECK_MODES if args.check else DESIGN_MODES)
     with tempfile.TemporaryDirectory() as tmp:
@@ -767,6 +772,8 @@ def main(argv=None) -> int:
                     "seconds")
     ap.add_argument("--max-gb", type=float, default=DESIGN_MAX_GB, help="--models: stop a design whose processes hold "
                     "more memory than this")
+    ap.add_argument("--carry", choices=["whole", "region"], default=None,
+                    help="--models: the relay, flood and automatic designs' --carry (the models declare REGIONS)")
     ap.add_argument("--validate", type=int, default=None, metavar="R", help="--models: the designs' fresh validation "
                     "runs (studies.design's validate; default its own: 20 in mode auto, 0 with a rule)")
     ap.add_argument("--pandapower-python", metavar="PY", help="--models grid30 grid118: a Python that imports "

@@ -210,7 +210,7 @@ def validate_design(design: ConsensusDesign, model: Model, network: SensorNetwor
         if not rule.regional:
             raise InputError(f"carried_regions: mode {design.mode!r} carries the whole state at every node (a node "
                              "carries only its region in a rule that fuses its ball's measurements without consensus "
-                             "on estimates: relay, flood)")
+                             "on estimates)")
         try:
             regions = tuple(np.asarray(r, dtype=int).reshape(-1) for r in regions)
         except (TypeError, ValueError):
@@ -405,7 +405,8 @@ class DesignOptions:
         operating points"): for a state that may leave the region of the nominal geometry (a target leaving
         the sensor field).  Not covered by the certificate, which is the nominal design's.
     carry : {'whole', 'region'}
-        Modes ``relay`` and ``flood`` on a model that declares ``REGIONS``: ``region``, each node carries only the
+        A rule whose nodes may carry their regions (:attr:`designer.rule.GainRule.regional`: the ones that relay) on
+        a model that declares ``REGIONS``: ``region``, each node carries only the
         states its region, its ball's measurements and their dynamics need (:mod:`designer.regions`); its numbers
         on them are those of the whole-state design, and its bound and verdict are on its region (default
         ``whole``: every node carries the whole state).

@@ -13,12 +13,12 @@ centralized EKF restricted to the same states is the reference), and a design st
 region against the centralized steady state on the same states.
 
 **Carrying the region** (:func:`carried_states`).  A node of a rule that fuses its ball's measurements without
-consensus on estimates (``relay``, ``flood``) may carry only the states that its region and its ball's measurements
-need: the closure of its region and of its ball's sensors' structural supports under the dynamics' structural
-dependence (a carried state's next value may depend only on carried states).  Its filter on them is then exactly its
-whole-state filter restricted to them: with ``F`` and every ``H`` of its ball zero outside the carried block, the
-block's prediction and update never read the rest.  Where the dynamics couple every state (a heat field), the
-closure is the whole state and nothing is saved; boundary states taken from the neighbours (Khan and Moura's
+consensus on estimates (one that relays, :attr:`designer.rule.GainRule.regional`) may carry only the states that its
+region and its ball's measurements need: the closure of its region and of its ball's sensors' structural supports under
+the dynamics' structural dependence (a carried state's next value may depend only on carried states).  Its filter on
+them is then exactly its whole-state filter restricted to them: with ``F`` and every ``H`` of its ball zero outside the
+carried block, the block's prediction and update never read the rest.  Where the dynamics couple every state (a heat
+field), the closure is the whole state and nothing is saved; boundary states taken from the neighbours (Khan and Moura's
 overlapping subsystems) are not built.
 """
 from __future__ import annotations
@@ -108,7 +108,7 @@ class Carried:
     """The carried states of every node (:func:`carried_index`'s ``index`` (nodes, m), ``-1`` where a node carries
     fewer than ``m``) and the moves between the whole state's coordinates and each node's own, the first
     ``count[i]`` places of its ``m``: a place a node does not use holds zero (in a vector, and in a matrix's row and
-    column), so that traces, products and the relay rule's update run on the padded arrays unchanged."""
+    column), so that traces, products and a rule's update run on the padded arrays unchanged."""
 
     def __init__(self, index: np.ndarray, n_x: int):
         self.index = np.asarray(index, dtype=int)
@@ -121,6 +121,13 @@ class Carried:
     @classmethod
     def of(cls, carried: Sequence[np.ndarray], n_x: int) -> "Carried":
         return cls(carried_index(carried), n_x)
+
+    @property
+    def held(self) -> np.ndarray:
+        """(nodes, n_x) booleans: ``held[i, j]`` whether node ``i`` carries state ``j``."""
+        mask = np.zeros((self.nodes, self.n_x + 1), dtype=bool)
+        np.put_along_axis(mask, np.where(self.used, self.index, self.n_x), True, axis=1)
+        return mask[:, :self.n_x]
 
     @property
     def whole(self) -> bool:

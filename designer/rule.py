@@ -282,7 +282,7 @@ class GainRule:
         if options.carry == "region" and not self.regional:
             raise InputError(f"carry 'region': mode {mode} carries the whole state at every node (a node carries its "
                              "region alone in a rule that fuses its ball's measurements without consensus on "
-                             "estimates: relay, flood)")
+                             "estimates: one that relays)")
         if not self.fixed_multipliers:
             for name in ("sigma", "beta", "tau"):
                 if getattr(options, name) is not None:

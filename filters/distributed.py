@@ -374,8 +374,8 @@ class DistributedBatchResult(NamedTuple):
     violations: list
     iterations: int
     omega: np.ndarray | None = None  # (runs, steps, N) HCMCI's ω_i (None for KCF)
-    # (N, m) each node's carried states (-1: unused) when the nodes carry their regions (the relay filter with
-    # regions): P_post and P_pred are then in those coordinates, x_post and x_pred NaN where not carried
+    # (N, m) each node's carried states (-1: unused) when the nodes carry their regions (designer.regions): P_post
+    # and P_pred are then in those coordinates, x_post and x_pred NaN where not carried
     carried: np.ndarray | None = None
 
     def run(self, r: int) -> DistributedResult:

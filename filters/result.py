@@ -75,7 +75,7 @@ class FilterResult(NamedTuple):
     ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
     alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``carried`` (nodes, m): when
-    each node carries only some states (:mod:`designer.regions`, the relay rules with regions), their indices
+    each node carries only some states (:mod:`designer.regions`, a regional rule's design), their indices
     (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in the
     unused places) and ``x`` NaN at the states a node does not carry.
     """

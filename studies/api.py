@@ -280,7 +280,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     validate : int, optional
         Fresh Monte Carlo runs of the design (mode ``auto``: of its pick) beside KCF, HCMCI, the local and the
         centralized EKF, ``.validation`` and ``validation.json`` (default: :data:`studies.auto.VALIDATE_RUNS` in mode
-        ``auto``, 0 with a rule).
+        ``auto``, as many as fit in memory when fewer do, as its message says; 0 with a rule).  Runs given that do
+        not fit are refused before any candidate is designed.
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
@@ -362,7 +363,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
                 radius: float | None = None, gate: float | None = None, exchange: str | None = None,
                 robustness: float | None = None, rounds: int | None = None, bank: int | None = None,
-                carry: str | None = None, options: DesignOptions | None = None, budget=None, budget_bytes: int | None = None,
+                carry: str | None = None, options: DesignOptions | None = None, budget=None,
+                budget_bytes: int | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
                 design_defaults: DesignOptions | None = None, x0=None, inputs: Callable | None = None,
                 overrides: Mapping[str, Any] | None = None, assignments: Sequence[str] = (),
@@ -388,7 +390,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         the candidates outside are listed, not mapped.
     epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
     robustness, rounds, bank, carry, options
-        The same design options as :func:`design`, with the same defaults (``carry`` whole only).
+        The same design options as :func:`design`, with the same defaults (``carry`` whole only: the map judges
+        each node's whole state).
     workers, dask, dask_security, backend
         Where the chunks of grid points run (the map does not depend on it); ``dask_security``: a
         JSON file of TLS options for the Dask scheduler (:func:`studies.runner.load_security`).
@@ -430,6 +433,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, exchange=exchange,
                                   robustness=robustness, rounds=rounds, bank=bank))
+    opts = replace(opts, carry="whole")  # the map judges each node's whole state, with or without REGIONS
     if backend is None:
         backend = make_backend(workers, dask, dask_security)
     elif workers is not None or dask is not None or dask_security is not None:

@@ -17,10 +17,11 @@ numbers), the candidates computed side by side on the usable cores (:func:`studi
    predicted errors within :data:`TIE` of the smallest are a tie, and a tie goes to the fewest bytes per step, then
    the fewest messages.
 
-With ``REGIONS`` (:mod:`designer.regions`) every candidate is ranked on the regions, and the candidates of a rule
-whose nodes may carry their regions alone (relay, flood) carry them (``carry=region``, unless the user gave
-``--carry``): the same numbers on the regions, a node's work and memory on its carried states only, and a verdict
-and certificate on the regions, where the whole state's far end would make them vacuous or unbounded.
+With ``REGIONS`` (:mod:`designer.regions`) every candidate is ranked on the regions, and the candidates of a rule whose
+nodes may carry their regions alone (:attr:`designer.rule.GainRule.regional`) carry them, as every design of such a
+rule does on such a model (:func:`studies.design_options.effective`; ``--carry whole`` keeps the whole state): the
+same numbers on the regions, a node's work and memory on its carried states only, and a verdict and certificate on
+the regions, where the whole state's far end would make them vacuous or unbounded.
 
 The pick is designed again in this process (the candidates' designs stay in their processes: their arrays are large)
 and its verdict checked against its candidate's: the same numbers, or the command fails.  With no eligible
@@ -318,10 +319,11 @@ def _validation_backend():
     return Backend("processes", workers=cores) if cores > 1 else Backend()
 
 
-def _check_validation(sc: Scenario, options: DesignOptions, runs: int) -> None:
+def _check_validation(sc: Scenario, options: DesignOptions, runs: int, given: bool = True) -> tuple[int, str | None]:
     """The memory of ``runs`` validation runs (the consensus-robot study's, of the candidate of ``options``: every
     deployable rule's filter holds the same per-node arrays), checked before any candidate is designed: InputError
-    naming ``--validate`` and the most runs that fit."""
+    naming ``--validate`` and the most runs that fit when the user ``given`` them; for the default runs, the most that
+    fit instead, and why (``(runs, None)`` when they fit)."""
     from .memory import check, study_need
     from .pipeline import StudyOptions
     from .study_registry import get_study
@@ -338,7 +340,12 @@ def _check_validation(sc: Scenario, options: DesignOptions, runs: int) -> None:
     except InputError as exc:
         fits = next((r for r in range(runs - 1, 0, -1) if _fits(need(r))), 0)
         why = str(exc).split("; to fit, use")[0]  # the study's advice names options the design does not take
-        raise InputError(f"--validate {runs}: the validation's {why}; --validate {fits} fits") from None
+        if given:
+            raise InputError(f"--validate {runs}: the validation's {why}; --validate {fits} fits") from None
+        size = why.split(": ")[0]  # the study on the model would need about X of memory, more than Y available
+        return fits, (f"validated on {fits} fresh runs, not the default {runs}, which would not fit ({size})" if fits
+                      else f"not validated: one fresh run would not fit ({size})")
+    return runs, None
 
 
 def _fits(need) -> bool:
@@ -388,6 +395,7 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     options = options or DesignOptions()
     seed = check_int("seed", seed, 0)
     steps = check_int("steps", sc.steps if steps is None else steps, 1)
+    given = validate is not None  # the user's runs are refused when they cannot fit; the default ones are cut
     cap, budget_bytes, validate, seconds = check_auto(sc, budget, budget_bytes, validate, seconds)
     base = replace(options, mode=None)
     sc_eff = sc.with_attacks(**base.attack_overrides())  # what every candidate designs for (effective's scenario)
@@ -399,16 +407,19 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     # the candidates: every deployable rule's, with what the user gave kept
     plans = []
     for name, rule, cand, opts in offered(base, net):
-        if sc_eff.regions is not None and rule.regional and opts.carry is None:  # carry the regions where it may
-            opts, cand = replace(opts, carry="region"), {**cand, "carry": "region"}
         reason = refusal(lambda o: _check_candidate(sc, o, steps), name, cand, opts)
         plans.append((name, rule, cand, None if reason else opts, reason))
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
         raise InputError(next(p[4] for p in plans)) if plans else InputError(
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
+    cut = None
     if validate:  # before the candidates are designed: a validation that cannot fit is refused now, not after
-        _check_validation(sc, next(p[3] for p in plans if p[3] is not None), validate)
-    plans.sort(key=lambda p: (p[1].offline_tables, p[0], sorted(p[2].items())))  # the cheap ones first
+        validate, cut = _check_validation(sc, next(p[3] for p in plans if p[3] is not None), validate, given)
+    # the cheap ones first: the rules that relay by their hops (each hop's designs side by side), then the others'
+    # single exchange, the rules of offline tables last; within the time the candidates are given, every rule gets
+    # its cheapest designs before any gets its dearest
+    plans.sort(key=lambda p: (p[1].offline_tables, not p[1].relays, p[2].get("rounds") or 1, p[0],
+                              sorted(p[2].items())))
     todo = [j for j, p in enumerate(plans) if p[3] is not None]
     bar = counter(len(todo), False, "automatic design: candidates")  # a terminal's progress bar
     try:
@@ -474,6 +485,8 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
             raise ComputationError(f"the pick {chosen.label} designed again here gives verdict {again['verdict']} and "
                                    f"predicted tr Phi {again['predicted']}, its candidate {chosen.verdict} and "
                                    f"{chosen.predicted}: the design is not reproducible")
+    if cut is not None:
+        message += f"; {cut}"
     budget_rec = budget_record(net, cap, budget, budget_bytes)
     ref_record = {"centralized": c_ref, "local_mean": l_ref, "where": refs.get("where"),
                   "costs": reference_costs(model, net)}

@@ -56,7 +56,7 @@ import numpy as np
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, DesignOptions
 from designer.progress import phase
-from designer.regions import describe_regions, region_error2
+from designer.regions import Carried, describe_regions, region_error2
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
@@ -366,9 +366,9 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
 
     limit = divergence_limit(m.prior.cov, divergence_spread)
 
-    def score(a, j, f, xs, ok):
-        if ok and first_divergence(truth[a][:, None] - xs, limit) is not None:
-            ok = False  # finite, but off the problem's scale: diverged
+    def score(a, j, f, xs, ok, held=True):
+        if ok and first_divergence(np.where(held, truth[a][:, None] - xs, 0.0), limit) is not None:
+            ok = False  # finite, but off the problem's scale (on what each node carries): diverged
         if ok:
             e = truth[a, 1:, None] - xs[1:]  # (K, nodes or 1, n)
             # with regions each node on its region's states (a centralized filter's one estimate on each node's)
@@ -394,20 +394,23 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
             per_row = (np.full(res.runs, (time.perf_counter() - t0) / res.runs) if res.seconds is None
                        else res.seconds)
             rows = [(j, a) for j in js for a in range(R)]
+            held = True if res.carried is None else Carried(res.carried, m.n_x).held  # nodes carrying their regions
             for row, ((j, a), dv) in enumerate(zip(rows, res.diverged)):
                 secs[a, j, f] = per_row[row]
                 if e.counts_delivered:
                     delivered[a, j, f] = res.delivered[row].mean()
                 for jj in (range(S) if not e.attacked else (j,)):
-                    score(a, jj, f, res.x[row], dv is None)
+                    score(a, jj, f, res.x[row], dv is None, held)
                 if e.designed:
                     feasible[a, j, f] = float(dv is None and not any(v["condition"] in HARD_CONDITIONS[:2]
                                                                        for v in res.violations[row]))
             if not e.attacked:
                 secs[:, :, f] = secs[:, :1, f]
             if e.designed:
+                design = e.design_for(designs[js[0]][e.mode], m)
                 for (j, a), v in zip(rows, bound_verdicts(sc, res.cov, res.valid,
-                                                          [feasible[a, j, f] == 1 for j, a in rows])):
+                                                          [feasible[a, j, f] == 1 for j, a in rows], design,
+                                                          res.carried)):
                     verdict[a, j, f], bounded[a, j, f] = VERDICTS.index(v.verdict), float(v.bounded)
     return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "bounded": bounded,
             "delivered": delivered, "estimate": est, "truth": truth}

@@ -45,8 +45,8 @@ from .runner import Background, run_forked
 from .scenarios import Scenario
 
 __all__ = ["Design", "consensus_design", "effective_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
-           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces", "scenario_open_loop",
-           "judged_positions"]
+           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces",
+           "scenario_open_loop", "judged_positions"]
 
 
 def consensus_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int | None = None,

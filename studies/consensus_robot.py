@@ -355,13 +355,12 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
           hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
-    Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`)
-    ``v{j}_err`` (R, K + 1, nodes, n_x) = x - x_hat (NaN in a diverged run), ``v{j}_valid``
-    (R, K + 1, nodes) where Φ is a bound, ``v{j}_phi`` (R, K + 1, nodes, n_x, n_x) for the
-    variants checked against Φ (with ``v{j}_carried`` (R, nodes, m), nodes carrying their regions: ``v{j}_phi`` in
-    their carried coordinates, m x m, and ``v{j}_err`` NaN where a node does not carry), ``v{j}_seconds`` (R,) the variant's wall time,
-    ``v{j}_first_violation`` (R,) the first step of a (28)/(29) violation (-1: none), and
-    ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
+    Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`) ``v{j}_err`` (R, K + 1,
+    nodes, n_x) = x - x_hat (NaN in a diverged run), ``v{j}_valid`` (R, K + 1, nodes) where Φ is a bound, ``v{j}_phi``
+    (R, K + 1, nodes, n_x, n_x) for the variants checked against Φ (with ``v{j}_carried`` (R, nodes, m), nodes carrying
+    their regions: ``v{j}_phi`` in their carried coordinates, m x m, and ``v{j}_err`` NaN where a node does not carry),
+    ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29) violation
+    (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
     """
     sc, paper, variants = _build(ref, mode, options, replay)
@@ -398,14 +397,11 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         t = time.perf_counter()
         res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once (its wall time shared by them)
         out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R if res.seconds is None else res.seconds
-        n = v.entry.nodes(net)
-        held = np.ones((n, nx), dtype=bool)
+        held = True  # every node carries every state
         if res.carried is not None:  # its nodes carry their regions: Φ in their carried coordinates
             out[f"v{j}_carried"] = np.broadcast_to(res.carried, (R,) + res.carried.shape).copy()
-            out[f"v{j}_phi"] = np.zeros((R, steps + 1, n) + res.cov.shape[-2:])
-            held[:] = False
-            for i, row in enumerate(res.carried):
-                held[i, row[row >= 0]] = True
+            out[f"v{j}_phi"] = np.zeros((R, steps + 1, v.entry.nodes(net)) + res.cov.shape[-2:])
+            held = Carried(res.carried, nx).held
         for a, dv in enumerate(res.diverged):
             far = None if dv is not None else first_divergence(
                 np.where(held, trajs[a].x[:, None, :] - res.x[a], 0.0), limit)  # over what each node carries

@@ -26,7 +26,8 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
     """The scenario with the options' attack overrides applied, and its design defaults merged with ``options``.
 
     The scenario's own defaults (``Scenario.design``, a model file's ``DESIGN``) come first;
-    every value ``options`` sets replaces them.
+    every value ``options`` sets replaces them.  On a model that declares ``REGIONS`` the nodes of a rule that may
+    carry their regions alone carry them (``carry='region'``) unless ``options`` says ``carry='whole'``.
     """
     if sc.network is None:
         raise InputError(f"scenario {sc.name!r} has no sensor network; the consensus design needs one "
@@ -42,6 +43,8 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
     # the defaults' values the rule does not take (a model's multipliers of the paper's design, a tabled design's
     # exchange) give way to the rule's own; the mode stays as given (None: the default rule), as the record keeps it
     opts = replace(as_mode(opts, rule.name), mode=opts.mode)
+    if opts.carry is None and rule.regional and sc.regions is not None:  # REGIONS: the nodes carry their regions
+        opts = replace(opts, carry="region")
     rule.check_options(opts)
     sc.model.check_finite_at(*sc.operating_point)  # every design linearises there: name a sensor that cannot be
     return sc.with_attacks(**opts.attack_overrides()), opts

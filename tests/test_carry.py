@@ -10,8 +10,10 @@ filter on them.
   run of the existing implementation): the same estimates and covariance blocks on the carried states;
 * the node filters carrying regions replay the batched filter bit for bit;
 * the stationary certificate carrying regions is the whole-state one's fixed point restricted to the carried states;
-* a design from a model file: its regional verdict's numbers are the whole-state design's numbers on the regions,
-  schedule.npz holds the carried coordinates and reads back; bad uses exit 2 naming --carry.
+* a design from a model file that declares REGIONS carries them by default: its regional verdict's numbers are the
+  whole-state design's (``--carry whole``) numbers on the regions, schedule.npz holds the carried coordinates and
+  reads back; bad uses exit 2 naming --carry;
+* the studies (consensus-robot, comparison) score nodes carrying their regions as the whole-state design on them.
 """
 from __future__ import annotations
 
@@ -193,8 +195,8 @@ def model_file(tmp_path, regions="REGIONS = [[i] for i in range(N)]"):
 def test_a_design_carrying_regions_is_judged_on_them_with_the_whole_designs_numbers(tmp_path):
     path = model_file(tmp_path)
     a, b = tmp_path / "whole", tmp_path / "region"
-    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--out", str(a)]) == 0
-    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--carry", "region", "--out", str(b)]) == 0
+    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--carry", "whole", "--out", str(a)]) == 0
+    assert main(["design", str(path), "--mode", "relay", "--rounds", "2", "--out", str(b)]) == 0  # REGIONS: carried
     ja, jb = (json.loads((d / "schedule.json").read_text()) for d in (a, b))
     ra, rb = ja["verdict_detail"]["region"], jb["verdict_detail"]["region"]
     assert np.allclose(rb["final_trace"], ra["final_trace"], rtol=1e-9)
@@ -238,12 +240,12 @@ def test_a_verdict_judged_per_node_uses_each_nodes_own_open_loop():
 
 @pytest.mark.slow
 def test_a_study_of_nodes_carrying_regions_scores_them_as_the_whole_state_design_on_the_regions(tmp_path):
-    """study consensus-robot with --carry region: the same runs give the same errors on the regions as the
+    """study consensus-robot carrying the regions (the default with REGIONS): the same runs give the same errors on the regions as the
     whole-state design (rmse_region, per node too); the whole-state metrics are null (a node has no estimate of what
     it does not carry) and the bound is checked in the carried coordinates, judged on the regions."""
     path = model_file(tmp_path)
     out = {}
-    for name, extra in (("whole", []), ("region", ["--carry", "region"])):
+    for name, extra in (("whole", ["--carry", "whole"]), ("region", [])):
         assert main(["study", "consensus-robot", str(path), "--mode", "relay", "--rounds", "2", "--runs", "6",
                      "--quiet", "--out", str(tmp_path / name)] + extra) == 0
         res = json.loads((tmp_path / name / "results.json").read_text())["filters"]
@@ -255,3 +257,19 @@ def test_a_study_of_nodes_carrying_regions_scores_them_as_the_whole_state_design
     assert part["rmse_position"] is None and "rmse_state" not in part and whole["rmse_position"] is not None
     assert part["verdicts"]["certified"] == 6 and part["bound_check"]["verdict"] == "holds"
     assert part["bound_check"]["informative"] == 6
+
+
+@pytest.mark.slow
+def test_a_comparison_with_carried_regions_scores_the_relay_nodes_as_carrying_the_whole_state(tmp_path):
+    """study comparison on a model with REGIONS: the relay and flood rows run carrying the regions and score the same
+    rmse_region as with --carry whole (the same runs); the other rows do not change."""
+    path = model_file(tmp_path)
+    got = {}
+    for name, extra in (("whole", ["--carry", "whole"]), ("region", [])):
+        assert main(["study", "comparison", str(path), "--runs", "3", "--quiet",
+                     "--filters", "relay,flood,kcf", "--out", str(tmp_path / name)] + extra) == 0
+        got[name] = json.loads((tmp_path / name / "results.json").read_text())
+    rows = {k: got[k]["settings"][0]["filters"] if "settings" in got[k] else got[k]["filters"] for k in got}
+    assert rows["whole"].keys() == rows["region"].keys() and len(rows["whole"]) == 3
+    for f in rows["whole"]:
+        assert rows["region"][f]["rmse_region"] == pytest.approx(rows["whole"][f]["rmse_region"], rel=1e-9), f

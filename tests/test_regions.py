@@ -130,11 +130,12 @@ def test_a_comparison_scores_each_node_on_its_region_and_whole_regions_give_the_
 
 def test_a_design_states_each_nodes_bound_on_its_region_beside_the_verdict(tmp_path):
     """verdict_detail.region: each node's final tr Φ over its region, from the schedule's own Φ, and the centralized
-    steady-state tr P over the same states; whole-state regions repeat the whole-state numbers."""
+    steady-state tr P over the same states; whole-state regions repeat the whole-state numbers (the nodes carrying the
+    whole state, --carry whole: the verdict on it, the regions beside it)."""
     for regions in ("[[i, (i + 1) % 5] for i in range(5)]", "[list(range(5))] * 5"):
         path = chain(tmp_path, regions)
         des = tmp_path / ("d" + str(len(regions)))
-        assert main(["design", str(path), "--mode", "relay", "--out", str(des)]) in (0, 1)
+        assert main(["design", str(path), "--mode", "relay", "--carry", "whole", "--out", str(des)]) in (0, 1)
         meta = json.loads((des / "schedule.json").read_text())
         detail, region = meta["verdict_detail"], meta["verdict_detail"]["region"]
         phi = np.load(des / "schedule.npz")["Phi"][:, -1]  # (nodes, n, n) at step K
@@ -157,7 +158,7 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
     against the centralized steady state over the same states: whole-state regions give the numbers of the design
     without regions; one state per node gives each candidate's own design's region traces (an independent
     recomputation from that rule's whole-state design) and smaller predictions.  With regions the relay and flood
-    candidates carry them (their labels say ``carry=region``)."""
+    candidates carry them."""
     from studies.auto import predicted_error
 
     found = {}
@@ -165,10 +166,9 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
         folder = tmp_path / name
         folder.mkdir()
         auto = studies.design(str(chain(folder, regions)), mode="auto", validate=0, budget=40)
-        carry = [c.label for c in auto.candidates if "carry=region" in c.label]
-        assert bool(carry) == (regions != "None") and all(c.startswith(("relay", "flood")) for c in carry)
-        found[name] = (auto, {c.label.replace(", carry=region", ""): c for c in auto.candidates
-                              if c.predicted is not None})
+        if auto.pick is not None and auto.pick.gain_rule.regional:  # with regions its nodes carry them
+            assert auto.pick.schedule.meta["carry"] == ("whole" if regions == "None" else "region")
+        found[name] = (auto, {c.label: c for c in auto.candidates if c.predicted is not None})
     none, every, own = (found[k][1] for k in ("none", "all", "own"))
     assert none.keys() == every.keys() == own.keys() and none
     for label in none:
@@ -179,7 +179,7 @@ def test_the_automatic_design_ranks_candidates_by_their_bound_on_the_regions(tmp
     refs = auto.references
     sc = load_scenario(str(tmp_path / "own" / "chain.py"))
     relay = own["relay (rounds=1)"]
-    des = studies.design(sc, mode="relay", rounds=1)
+    des = studies.design(sc, mode="relay", rounds=1, carry="whole")
     traces = np.array([[np.trace(des.schedule.Phi[i, k][np.ix_(r, r)]) for k in range(1, des.schedule.Phi.shape[1])]
                        for i, r in enumerate(sc.regions)])
     assert relay.predicted == pytest.approx(predicted_error(traces), rel=1e-12)

@@ -136,7 +136,8 @@ def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) ->
         if slots.size:  # a node's ball may hold no sensor of this dimension
             whiten.append((first[slots][:, None] + np.arange(m), np.stack([root[s] for s in slot_sensor[slots]])))
     return _Layout(start, sensor_slots, pair_local, zcol, first, pair_rows, pair_of_row, comp[pair_rows], angle_rows,
-                   None if np.all(scale == 1.0) else scale, whiten, np.repeat(np.arange(start.size - 1), np.diff(start)))
+                   None if np.all(scale == 1.0) else scale, whiten,
+                   np.repeat(np.arange(start.size - 1), np.diff(start)))
 
 
 def _check_signal(signal, network: SensorNetwork, nx: int) -> tuple[np.ndarray, np.ndarray]:

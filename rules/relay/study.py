@@ -53,11 +53,11 @@ def _recursion_cost(model, routes, design) -> float:
 def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) -> dict:
     """The accuracy-messages trade-off of a relay design: for L in :data:`RELAY_TRADEOFF_HOPS` (up to the network's
     diameter, beyond which nothing more arrives) and the design's own hops, the packets per step (``2 |E| L``), the
-    measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the
-    operating point (square root of the mean over nodes of tr Φ̄_i, over each node's region when the nodes carry
-    their regions: :func:`rules.relay.design.relay_stationary` without its LMI); the design's own hops from its stationary ``record`` (``schedule.json``'s
-    ``stationary_certificate``) when given.  A row costing more than :data:`TRADEOFF_COST_MAX` times the design's own
-    is not computed (its ``reason`` says so)."""
+    measurements forwarded per step over all channels, and the stationary expected RMSE of the nodes at the operating
+    point (square root of the mean over nodes of tr Φ̄_i, over each node's region when the nodes carry their regions:
+    :func:`rules.relay.design.relay_stationary` without its LMI); the design's own hops from its stationary ``record``
+    (``schedule.json``'s ``stationary_certificate``) when given.  A row costing more than :data:`TRADEOFF_COST_MAX`
+    times the design's own is not computed (its ``reason`` says so)."""
     from .design import diameter, relay_routes, relay_stationary
 
     routing = design.rule.routing
@@ -69,8 +69,9 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
         if cost[L] > TRADEOFF_COST_MAX * cost[design.rounds]:
             rows.append({"rounds": L, "messages_per_step": network.messages_per_step(L),
                          "values_per_step": routes[L].values_per_step(), "expected_rmse": None, "designed": False,
-                         "reason": f"not computed: its stationary recursion costs {cost[L] / cost[design.rounds]:.3g} x "
-                                   f"the design's own per iteration (more than {TRADEOFF_COST_MAX:g} x)"})
+                         "reason": f"not computed: its stationary recursion costs "
+                                   f"{cost[L] / cost[design.rounds]:.3g} x the design's own per iteration (more than "
+                                   f"{TRADEOFF_COST_MAX:g} x)"})
             continue
         if record is not None and L == design.rounds:  # the certificate's own fixed point
             rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
