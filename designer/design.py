@@ -408,8 +408,9 @@ class DesignOptions:
         A rule whose nodes may carry their regions (:attr:`designer.rule.GainRule.regional`: the ones that relay) on
         a model that declares ``REGIONS``: ``region``, each node carries only the
         states its region, its ball's measurements and their dynamics need (:mod:`designer.regions`); its numbers
-        on them are those of the whole-state design, and its bound and verdict are on its region (default
-        ``whole``: every node carries the whole state).
+        on them are those of the whole-state design, and its bound and verdict are on its region; ``whole``: every
+        node carries the whole state (default: ``region`` on a model with ``REGIONS``,
+        :func:`studies.design_options.effective`; ``whole`` otherwise).
     """
 
     mode: str | None = None

@@ -93,7 +93,8 @@ def _design_options(f, *, auto: bool = False):
         click.option("--carry", type=click.Choice(list(CARRIES)), default=None,
                      help="modes relay and flood on a model with REGIONS: 'region', each node carries only the "
                           "states its region, its ball's measurements and their dynamics need (the same numbers "
-                          "on them; bound and verdict on its region) [default: whole]"),
+                          "on them; bound and verdict on its region); 'whole', the whole state [default: region on "
+                          "a model with REGIONS, else whole]"),
         click.option("--gate", type=float, default=None,
                      help="chi-square gate on neighbour packets: its false-rejection probability for a clean "
                           "packet, [0, 1) (0: no gate; with a gate the bound is validated by Monte Carlo only) "

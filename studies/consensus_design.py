@@ -327,7 +327,8 @@ def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasib
     """
     feasible = np.asarray(feasible, dtype=bool)
     positions = judged_positions(carried, design) if carried is not None else None
-    ol = scenario_open_loop(sc, phi_post.shape[1] - 1, None if positions is None else design.carried_regions)
+    K = phi_post.shape[1] - 1
+    ol = scenario_open_loop(sc, K) if positions is None else scenario_open_loop(sc, K, design.carried_regions)
     tr = bound_traces(phi_post[:, 1:], valid[:, 1:], positions)
     none = "Φ is a bound at no step of the run (no certificate was computed for it)"
     return [verdict(t, ol, feasible=bool(f), not_computed=none if f and np.isnan(t).all() else None)

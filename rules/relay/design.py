@@ -681,9 +681,8 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     for nodes, mom in node_classes(moments):
         rows = np.stack([_ball_rows(moments[i], offsets) for i in nodes])
         Hw = Hall[rows]  # (g, r, n)
-        if carry is not None:
-            Hw = np.where(carry.used[nodes][:, None, :], np.take_along_axis(Hw, carry.safe[nodes][:, None, :], -1),
-                          0.0)
+        if carry is not None:  # each node's rows in its carried coordinates
+            Hw = carry.columns(Hw.reshape(-1, Hw.shape[-1]), np.repeat(nodes, Hw.shape[1])).reshape(Hw.shape[:2] + (n,))
         for i, h in zip(nodes, Hw):
             Hws[i] = h
         Fn, Qn, Mn, mun = (F, Q, M, mu) if carry is None else (F[nodes], Q[nodes], M[nodes], mu[nodes])
