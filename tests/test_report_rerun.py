@@ -222,9 +222,10 @@ def test_every_design_option_reaches_the_recorded_line_as_a_flag_the_commands_ta
                           linearization="hessian", radius=2.0, dos=0.1, fdi=0.1, delta=1.0, amplitude=1.0,
                           gate=0.01)
     scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5, rounds=2, bank=1)
-    given = {f.name for o in (paper, scheduled) for f in fields(o) if getattr(o, f.name) is not None}
-    assert given == {f.name for f in fields(DesignOptions)}  # the two sets together set every option
-    lines = [design_invocation(sc, o, steps=None, seed=0)["argv"] for o in (paper, scheduled)]
+    relay = DesignOptions(mode="relay", rounds=2, carry="whole")
+    given = {f.name for o in (paper, scheduled, relay) for f in fields(o) if getattr(o, f.name) is not None}
+    assert given == {f.name for f in fields(DesignOptions)}  # the three sets together set every option
+    lines = [design_invocation(sc, o, steps=None, seed=0)["argv"] for o in (paper, scheduled, relay)]
     flags = {a for line in lines for a in line if a.startswith("--")}
     for command in ("design", "study"):
         taken = {o for p in cli.commands[command].params for o in p.opts}
