@@ -273,3 +273,23 @@ def test_a_comparison_with_carried_regions_scores_the_relay_nodes_as_carrying_th
     assert rows["whole"].keys() == rows["region"].keys() and len(rows["whole"]) == 3
     for f in rows["whole"]:
         assert rows["region"][f]["rmse_region"] == pytest.approx(rows["whole"][f]["rmse_region"], rel=1e-9), f
+
+
+def test_the_trade_off_leaves_out_the_hop_counts_that_cost_more_than_the_designs_own(monkeypatch):
+    """rules.relay.study.relay_tradeoff: a row whose recursion costs more than TRADEOFF_COST_MAX x the design's own
+    (and the floor) is not computed and says why; the cheaper ones are, over each node's region when it carries it."""
+    import rules.relay.study as study
+
+    model, net = coupled_model(stable=True), network()
+    design = relay_design(model, net, 1)
+    monkeypatch.setattr(study, "TRADEOFF_COST_FLOOR", 0.0)
+    monkeypatch.setattr(study, "TRADEOFF_COST_MAX", 1.5)
+    rows = {r["rounds"]: r for r in study.relay_tradeoff(model, net, design, x=model.prior.mean, u=None)["rows"]}
+    routes = {L: relay_routes(net, L) for L in rows}
+    cost = {L: float((((L + 1) * relay_carried(model, routes[L], REGIONS).used.sum(1)) ** 3).sum()) for L in rows}
+    for L, r in rows.items():
+        skipped = cost[L] > 1.5 * cost[1]
+        assert (r["expected_rmse"] is None and "not computed" in r["reason"]) if skipped else "reason" not in r
+    assert any("reason" in r for r in rows.values()) and rows[1]["expected_rmse"] is not None
+    cert = relay_stationary(model, net, design, x=model.prior.mean, lmi=False)
+    assert rows[1]["expected_rmse"] == pytest.approx(float(np.sqrt(cert.traces().mean())), rel=1e-12)

@@ -9,10 +9,12 @@ __all__ = ["RECORD_NOTES", "RELAY_TRADEOFF_HOPS", "WHERE", "stationary", "relay_
 #: The relay hops whose stationary accuracy a relay design reports beside its own.
 RELAY_TRADEOFF_HOPS = (1, 2, 4, 8)
 #: A trade-off row whose stationary recursion costs more than this many times the design's own (per iteration, each
-#: node's stacked gain of (L + 1) blocks of its carried width: Σ_i ((L + 1) m_i)³) is not computed, with its reason:
-#: on a grid of 118 buses whose nodes carry their regions, 8 hops cost about 50 x the 3 hops of a design (minutes
-#: beside its 12 s).  An assumption, chosen: the design's own certificate is what a user waits for.
-TRADEOFF_COST_MAX = 8.0
+#: node's stacked gain of (L + 1) blocks of its carried width: Σ_i ((L + 1) m_i)³) and more than TRADEOFF_COST_FLOOR
+#: is not computed, with its reason: on a grid of 118 buses whose nodes carry their regions, 4 hops cost 4.7 x the 3
+#: hops of a design (30 s beside its own 12 s), 8 hops 185 x.  Assumptions, chosen: the design's own certificate is
+#: what a user waits for; below the floor (a network of tens of states) every row takes a second or two.
+TRADEOFF_COST_MAX = 4.0
+TRADEOFF_COST_FLOOR = 1e9
 #: Where the stationary certificate is computed, in words (schedule.json's stationary_certificate.where).
 WHERE = ("at the operating point, every sensor's Jacobian there: each node's expected covariance recursion "
          "(rules.relay.design.relay_update) until it settles, then the LMI (cvxpy + Clarabel) of each node's "
@@ -57,7 +59,7 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
     point (square root of the mean over nodes of tr Φ̄_i, over each node's region when the nodes carry their regions:
     :func:`rules.relay.design.relay_stationary` without its LMI); the design's own hops from its stationary ``record``
     (``schedule.json``'s ``stationary_certificate``) when given.  A row costing more than :data:`TRADEOFF_COST_MAX`
-    times the design's own is not computed (its ``reason`` says so)."""
+    times the design's own and more than :data:`TRADEOFF_COST_FLOOR` is not computed (its ``reason`` says so)."""
     from .design import diameter, relay_routes, relay_stationary
 
     routing = design.rule.routing
@@ -66,12 +68,12 @@ def relay_tradeoff(model, network, design, *, x, u, record: dict | None = None) 
     cost = {L: _recursion_cost(model, r, design) for L, r in routes.items()}
     rows = []
     for L in hops:
-        if cost[L] > TRADEOFF_COST_MAX * cost[design.rounds]:
+        if cost[L] > max(TRADEOFF_COST_MAX * cost[design.rounds], TRADEOFF_COST_FLOOR):
             rows.append({"rounds": L, "messages_per_step": network.messages_per_step(L),
                          "values_per_step": routes[L].values_per_step(), "expected_rmse": None, "designed": False,
                          "reason": f"not computed: its stationary recursion costs "
                                    f"{cost[L] / cost[design.rounds]:.3g} x the design's own per iteration (more than "
-                                   f"{TRADEOFF_COST_MAX:g} x)"})
+                                   f"{TRADEOFF_COST_MAX:g} x and {TRADEOFF_COST_FLOOR:.0e} operations)"})
             continue
         if record is not None and L == design.rounds:  # the certificate's own fixed point
             rmse = float(np.sqrt(np.mean(record["trace"]))) if record["converged"] else None
