@@ -486,9 +486,9 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
     not carry, so the whole-state metrics are null (``rmse_state`` absent) and the variant is scored on the regions
     (``rmse_region``, per node too); its bound is checked in the carried coordinates and judged on the regions
     (:func:`bound_check` with ``positions``)."""
-    steps, net = sc.steps, sc.network
-    nx = sc.model.n_x
-    per_node = region_error2(err, sc.regions if sc.regions is not None else v.design.carried_regions)
+    steps, net, nx = sc.steps, sc.network, sc.model.n_x
+    regions = v.design.carried_regions  # the scenario's (a design carries the regions its model declares)
+    per_node = region_error2(err, regions)
     return {
         "family": e.family, "runtime": e.runtime, "carried": True,
         "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
@@ -499,15 +499,14 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
         "time_per_step_s": time_per_step,
         "communications": e.messages_per_step(net, L, so.design),
         "bound_check": bound_check(Carried(carried, nx).vector(err), st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
-                                   scenario_open_loop(sc, steps, v.design.carried_regions),
-                                   judged_positions(carried, v.design)),
+                                   scenario_open_loop(sc, steps, regions), judged_positions(carried, v.design)),
         "feasibility": feasibility,
         "verdicts": verdicts,
         "bounded_runs": bounded_runs,
         "diverged_runs": failed,
         "diverged_fraction": len(failed) / runs,
         "design": describe_design(v.design),
-        **_region_metrics(err, sc.regions if sc.regions is not None else v.design.carried_regions),
+        **_region_metrics(err, regions),
     }
 
 
