@@ -240,9 +240,9 @@ def test_a_verdict_judged_per_node_uses_each_nodes_own_open_loop():
 
 @pytest.mark.slow
 def test_a_study_of_nodes_carrying_regions_scores_them_as_the_whole_state_design_on_the_regions(tmp_path):
-    """study consensus-robot carrying the regions (the default with REGIONS): the same runs give the same errors on the regions as the
-    whole-state design (rmse_region, per node too); the whole-state metrics are null (a node has no estimate of what
-    it does not carry) and the bound is checked in the carried coordinates, judged on the regions."""
+    """study consensus-robot carrying the regions (the default with REGIONS): the same runs give the same errors on the
+    regions as the whole-state design (rmse_region, per node too); the whole-state metrics are null (a node has no
+    estimate of what it does not carry) and the bound is checked in the carried coordinates, judged on the regions."""
     path = model_file(tmp_path)
     out = {}
     for name, extra in (("whole", ["--carry", "whole"]), ("region", [])):

@@ -11,8 +11,9 @@ The state: the voltage angles (radians) of the 13 other buses, a slow random wal
 flow of each of its branches, ``P_ij = sin(theta_i - theta_j) / x_ij`` (per unit, |V| = 1, resistances and taps
 neglected; noise 0.01 p.u.), and every third bus (3, 6, 9, 12) also its own angle (a PMU; noise 0.002 rad).  The
 network is the grid's branches; DoS 0.1 and FDI 0.05 on every channel, the injected signal 0.01 sin(s) rad on every
-angle.  Each node's region (``REGIONS``, docs/model-files.md) is its bus's angle.  ``benchmarks/bench_design_scale.py --models grid30 grid118`` writes the same model for the 30- and 118-bus
-cases (their data read from pandapower: the block above the line ``# The model``, replaced).
+angle.  Each node's region (``REGIONS``, docs/model-files.md) is its bus's angle.
+``benchmarks/bench_design_scale.py --models grid30 grid118`` writes the same model for the 30- and 118-bus cases (their
+data read from pandapower: the block above the line ``# The model``, replaced).
 """
 import casadi as ca
 import numpy as np
