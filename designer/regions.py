@@ -31,7 +31,7 @@ from .validation import InputError
 
 __all__ = ["SENSED", "sensed_regions", "resolve_regions", "region_mask", "region_traces", "region_error2",
            "describe_regions", "region_detail", "dynamics_support", "carried_states", "carried_index",
-           "carried_positions", "Carried"]
+           "carried_positions", "carried_region_traces", "Carried"]
 
 #: ``REGIONS = "sensed"``: each node's region is the states its own sensor's measurement depends on.
 SENSED = "sensed"
@@ -125,14 +125,7 @@ class Carried:
     @property
     def held(self) -> np.ndarray:
         """(nodes, n_x) booleans: ``held[i, j]`` whether node ``i`` carries state ``j``."""
-        mask = np.zeros((self.nodes, self.n_x + 1), dtype=bool)
-        np.put_along_axis(mask, np.where(self.used, self.index, self.n_x), True, axis=1)
-        return mask[:, :self.n_x]
-
-    @property
-    def whole(self) -> bool:
-        """Every node carries every state, in order."""
-        return self.m == self.n_x and bool(np.all(self.index == np.arange(self.n_x)))
+        return region_mask([row[row >= 0] for row in self.index], self.n_x)
 
     def vector(self, x: np.ndarray) -> np.ndarray:
         """(..., nodes, m) each node's carried states of ``x`` (..., nodes, n_x), or (nodes, m) of one ``x`` (n_x,)
@@ -168,6 +161,14 @@ class Carried:
         out[..., :self.n_x] = fill
         np.put_along_axis(out, np.broadcast_to(np.where(self.used, self.index, self.n_x), x.shape), x, axis=-1)
         return out[..., :self.n_x]
+
+
+def carried_region_traces(phi: np.ndarray, carried: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(nodes, steps) each node's tr over its region of ``phi`` (nodes, steps, m, m), a design's bounds in the carried
+    coordinates ``carried`` (nodes, m) with the regions ``mask`` (nodes, n_x): schedule.npz's ``Phi``, ``carried`` and
+    ``region_mask``, as its verdict judges them."""
+    pos = carried_positions(carried, [np.flatnonzero(r) for r in mask])
+    return region_traces(np.swapaxes(phi, 0, 1), pos).T
 
 
 def resolve_regions(value, model, n_nodes: int, what: str = "REGIONS") -> tuple[np.ndarray, ...]:

@@ -85,10 +85,9 @@ class GainSchedule:
         with np.errstate(invalid="ignore"):
             if self.carried is None:
                 return np.trace(self.Phi[:, 1:], axis1=-2, axis2=-1)
-            from .regions import carried_positions, region_traces
+            from .regions import carried_region_traces
 
-            pos = carried_positions(self.carried, [np.flatnonzero(r) for r in self.region_mask])
-            return region_traces(np.swapaxes(self.Phi[:, 1:], 0, 1), pos).T
+            return carried_region_traces(self.Phi[:, 1:], self.carried, self.region_mask)
 
     def trace_bound(self) -> list[list[float | None]]:
         tr = self.judged_traces()

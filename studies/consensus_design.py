@@ -326,7 +326,7 @@ def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasib
     ``design``'s regions) each node is judged on its region against the open loop on the same states.
     """
     feasible = np.asarray(feasible, dtype=bool)
-    positions = judged_positions(carried, design) if carried is not None else None
+    positions = judged_positions(carried, design)
     K = phi_post.shape[1] - 1
     ol = scenario_open_loop(sc, K) if positions is None else scenario_open_loop(sc, K, design.carried_regions)
     tr = bound_traces(phi_post[:, 1:], valid[:, 1:], positions)

@@ -216,6 +216,17 @@ def test_a_design_carrying_regions_is_judged_on_them_with_the_whole_designs_numb
     sb = jb["stationary_certificate"]
     assert sb["verdict"] == "certified" and sb["bounded"]
     assert sb["trace"] is not None and len(sb["trace"]) == N
+    # cfdesign report reads the directory again; one whose carried arrays do not agree with Φ (a file from
+    # elsewhere) is reported from schedule.json's trace_bound, not an internal error
+    import shutil
+
+    with np.load(b / "schedule.npz") as d:
+        arrays = dict(d)
+    for k, bad in enumerate(({"carried": arrays["carried"] + N}, {"region_mask": np.ones((2, 2), dtype=bool)})):
+        copy = tmp_path / f"copy{k}"
+        shutil.copytree(b, copy)
+        np.savez(copy / "schedule.npz", **{**arrays, **bad})
+        assert main(["report", str(copy)]) == 0 and (copy / "report.md").is_file()
 
 
 def test_carry_region_needs_regions_and_a_rule_that_may_and_exits_2(tmp_path, capsys):

@@ -24,7 +24,8 @@ import numpy as np
 
 
 import studies.reports.text as text  # the formatting a rule's report words use
-from designer.regions import carried_positions, region_traces
+from designer.regions import carried_region_traces
+from designer.validation import InputError
 
 from .auto import auto_section, validation_section
 from .text import (assumption_section, compact, document, figure_lines, fmt_num, generic, is_num, matrix_text,
@@ -90,12 +91,18 @@ class _Schedule:
         phi, valid = self.arrays.get("Phi"), self.arrays.get("valid")
         self.trace = None  # (nodes, steps + 1): tr Φ_{k|k}, NaN where not a bound
         carried, mask = self.arrays.get("carried"), self.arrays.get("region_mask")
-        if phi is not None and valid is not None and phi.ndim == 4 and valid.shape == phi.shape[:2]:
+        fits = phi is not None and valid is not None and phi.ndim == 4 and valid.shape == phi.shape[:2]
+        if fits and carried is not None:  # the nodes carry their regions, judged on them: arrays that agree only
+            fits = (mask is not None and carried.shape == (phi.shape[0], phi.shape[-1]) and mask.ndim == 2
+                    and mask.shape[0] == phi.shape[0] and np.all((carried >= -1) & (carried < mask.shape[1])))
+            try:
+                tr = carried_region_traces(phi, carried, mask.astype(bool)) if fits else None
+            except InputError:  # a region the file says its node does not carry
+                fits = False
+        elif fits:
             with np.errstate(invalid="ignore"):
                 tr = np.trace(phi, axis1=-2, axis2=-1)
-                if carried is not None and mask is not None:  # the nodes carry their regions: judged on them
-                    tr = region_traces(np.swapaxes(phi, 0, 1), carried_positions(
-                        carried, [np.flatnonzero(r) for r in mask])).T
+        if fits:
             self.trace = np.where(valid.astype(bool), tr, np.nan)
         elif tb is not None:
             self.trace = np.concatenate([np.full((tb.shape[0], 1), np.nan), tb], axis=1)
