@@ -297,10 +297,15 @@ def design_cmd(scenario, steps, seed, out, assignments, **kw) -> None:
 
 def _validation_lines(validation) -> None:
     """A design's validation on fresh runs (``validation.json``): each filter's RMSE (on the regions, where the
-    model declares them, first: what the pick was ranked by), its diverged runs."""
+    model declares them, first: what the pick was ranked by), its diverged runs, and whether the pick's bound held on
+    them (why not, when it did not: a certified design whose bound the fresh runs exceed must not read as sound)."""
     for f in (validation or {}).get("filters", {}).values():
         parts = [f"{words} {f[key]:.4g}" for key, words in (("rmse_region", "RMSE on the regions"), ("rmse", "RMSE"))
                  if isinstance(f.get(key), (int, float))]
+        check = f.get("bound_check") or {}  # the pick's: does its bound hold on the fresh runs?
+        if check.get("verdict") in ("holds", "violated"):
+            parts.append(f"its bound {check['verdict']} on these runs"
+                         + (f" ({check['verdict_reason']})" if check["verdict"] == "violated" else ""))
         if parts:
             click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))

@@ -304,3 +304,17 @@ def test_the_trade_off_leaves_out_the_hop_counts_that_cost_more_than_the_designs
     assert any("reason" in r for r in rows.values()) and rows[1]["expected_rmse"] is not None
     cert = relay_stationary(model, net, design, x=model.prior.mean, lmi=False)
     assert rows[1]["expected_rmse"] == pytest.approx(float(np.sqrt(cert.traces().mean())), rel=1e-12)
+
+
+@pytest.mark.slow
+def test_the_automatic_designs_validation_line_says_whether_the_picks_bound_held(tmp_path, capsys):
+    """The terminal says what validation.json's bound check found for the pick (held, or violated with why): a
+    certified pick whose bound the fresh runs exceed must not read as sound."""
+    path = model_file(tmp_path)
+    assert main(["design", str(path), "--validate", "3", "--out", str(tmp_path / "a")]) in (0, 1)
+    out = capsys.readouterr().out
+    check = json.loads((tmp_path / "a" / "validation.json").read_text())["filters"]["pick"]["bound_check"]
+    line = next(x for x in out.splitlines() if "fresh runs" in x and "its bound" in x)
+    assert f"its bound {check['verdict']} on these runs" in line
+    if check["verdict"] == "violated":
+        assert check["verdict_reason"] in line
