@@ -492,3 +492,49 @@ def test_the_relay_nodes_reduction_agrees_where_rows_repeat_and_where_its_fast_i
                 counts[key] = 0 if count.startswith("#") else int(count.rstrip("*"))
     assert counts["if (nr > GS_TOL"] > counts["kg_[nk++] = g"] > 0  # rows dropped, directions kept
     assert counts["eigsym(&wk->m, nk"] > 0
+
+
+@pytest.mark.slow
+def test_a_relay_design_whose_nodes_carry_their_regions_in_c_replays_the_python_node_filter(tmp_path):
+    """A model declaring REGIONS (tests/test_carry.py's ring: coupled dynamics, a bearing, FDI and DoS): its relay
+    design's nodes carry their regions, and so do its C nodes: CFD_NC below CFD_NX, each node's ``cfd_states`` the
+    design's carried states, and make test (double and float) agrees with the Python node filter in the carried
+    coordinates.  The check has power: the states of one node's data swapped, or an expected estimate moved by 1e-7,
+    fail it."""
+    from test_carry import model_file
+
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", str(model_file(tmp_path)), "--mode", "relay", "--rounds", "1", "--out", str(des)]) in (0, 1)
+    card = json.loads((des / "schedule.json").read_text())
+    assert card["carry"] == "region"
+    assert main(["export", str(des), "--out", str(out)]) == 0
+    header = (out / "cfd_node.h").read_text()
+    n_x, nc = (int(re.search(rf"#define CFD_{k} (\d+)", header).group(1)) for k in ("NX", "NC"))
+    carried = [[card["state_names"].index(s) for s in row] for row in card["carried"]]
+    assert nc == max(map(len, carried)) < n_x
+    run = make_test(out)
+    assert run.returncode == 0 and "8 nodes" in run.stdout, run.stdout + run.stderr
+    assert float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1)) <= 1e-10
+    assert float_test(out).returncode == 0
+    # cfd_states: each node's carried states, in the design's order
+    (out / "states.c").write_text('#include <stdio.h>\n#include "cfd_node.h"\nint main(void) {\n'
+                                  '    int i, j, c; const int *s;\n    for (i = 0; i < CFD_NODES; ++i) {\n'
+                                  '        c = cfd_states(cfd_exported_node(i), &s);\n'
+                                  '        for (j = 0; j < c; ++j) printf("%d ", s[j]);\n        printf("\\n");\n'
+                                  '    }\n    return cfd_states(99, &s) == -1 ? 0 : 1;\n}\n')
+    built = subprocess.run([CC, "-std=c99", "-o", "states", "states.c", "cfd_node.c", "cfd_model.c", "-lm"], cwd=out,
+                           capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr
+    said = subprocess.run(["./states"], cwd=out, capture_output=True, text=True, timeout=60)
+    assert said.returncode == 0 and [[int(v) for v in ln.split()] for ln in said.stdout.splitlines()] == carried
+    # power: a node whose carried states are read in another order gathers the wrong block, and make test fails
+    source = (out / "cfd_node.c").read_text()
+    table = re.search(r"cfd_state\[\d+\] = \{([^}]*)\}", source)
+    cells = table.group(1).split(", ")
+    first = len(carried[0])
+    cells[0], cells[first - 1] = cells[first - 1], cells[0]
+    (out / "cfd_node.c").write_text(source[:table.start(1)] + ", ".join(cells) + source[table.end(1):])
+    bad = make_test(out)
+    assert bad.returncode != 0 and re.search(r"^step \d+, node 0: (x|P)\[", bad.stdout, re.M), bad.stdout
+    (out / "cfd_node.c").write_text(source)
+    moved_replay_fails(out, 5, -nc * nc - nc, "x", range(8))

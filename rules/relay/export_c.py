@@ -28,31 +28,37 @@ _C = files(__package__) / "c"
 
 class RelayExport(NodeExport):
     """The C export of a relaying rule's node filter: a step's replay record is the inputs and, per exported node,
-    what reached it and its estimate and bound after the step (:func:`replay_text`)."""
-
-    def check(self, design) -> None:
-        if design.carried_regions is not None:
-            raise InputError("carry 'region': the C export of a node that carries its region alone is not built yet "
-                             "(its Python node filter is: studies.node_filter); export a design of --carry whole")
+    what reached it and its estimate and bound after the step (:func:`replay_text`), in the coordinates of the states
+    it carries (the first :func:`carried_width` places of :attr:`rules.relay.filter.RelayNode.states`)."""
 
     def replay_step(self, net, k, u, z, nodes):
         _, rounds = net.last  # what each node sent and, round by round, what reached it
-        return u, [(*rounds[0][i], net.nodes[i].x, net.nodes[i].P) for i in nodes]
+        w = carried_width([net.nodes[i] for i in nodes])
+        return u, [(*rounds[0][i], net.nodes[i].x[:w], net.nodes[i].P[:w, :w]) for i in nodes]
 
     def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
         routes = relay_routes(network, design.rounds, design.rule.routing)
         return write_relay_c(model, network, design, routes, relay_moments(routes, network, model.sensor_dims), out,
-                             nodes=nodes, replay=replay_text(nodes, [net.nodes[i].ball for i in nodes],
-                                                             model.sensor_dims, steps, model.n_u, tolerances),
+                             nodes=nodes, states=[net.nodes[i].states for i in nodes],
+                             replay=replay_text(nodes, [net.nodes[i].ball for i in nodes], model.sensor_dims, steps,
+                                                model.n_u, tolerances),
                              verdict=verdict)
 
 
+def carried_width(nodes: Sequence) -> int:
+    """``CFD_NC``: the most states one of the relay nodes ``nodes`` (:class:`rules.relay.filter.RelayNode`) carries
+    (its ``states`` that are not ``-1``; the model's state count when they carry the whole state)."""
+    return max(int(np.count_nonzero(nd.states >= 0)) for nd in nodes)
+
+
 def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, *, nodes: Sequence[int],
-                  replay: str | None = None, verdict: str = "unknown") -> list[Path]:
+                  states: Sequence[np.ndarray] | None = None, replay: str | None = None,
+                  verdict: str = "unknown") -> list[Path]:
     """Write the C sources of the node filter of the relay design ``design`` (``routes``, ``moments``: its
     :func:`rules.relay.design.relay_routes` and :func:`rules.relay.design.relay_moments`) for the nodes ``nodes`` into
-    ``out``; ``replay``: the text of ``replay.txt`` (see :func:`replay_text`); ``verdict``: the design's
-    (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
+    ``out``; ``states``: the states each of them carries (:attr:`rules.relay.filter.RelayNode.states`, ``-1`` at an
+    unused place; None: the whole state); ``replay``: the text of ``replay.txt`` (see :func:`replay_text`);
+    ``verdict``: the design's (:mod:`designer.verdict`), stated in the header.  Returns the files written."""
     rule = design.rule
     if not rule.relays:
         raise InputError(f"mode must be a relaying gain rule for the relay node's C export, got {rule.name!r}")
@@ -68,6 +74,11 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     rinv = [sqrtm_psd(model.measurement_cov(s), inverse=True) for s in range(model.n_sensors)]
     rinv_start = np.concatenate([[0], np.cumsum(dims ** 2)])
     nodes = [int(i) for i in nodes]
+    if states is None:
+        states = [np.arange(n)] * len(nodes)
+    states = [np.asarray(s, dtype=int)[np.asarray(s) >= 0] for s in states]
+    nc = max(s.size for s in states)
+    state_start = np.concatenate([[0], np.cumsum([s.size for s in states])])
     ball_start, ball, row_start, row_group, p, rr_start, A, F1, F2 = [0], [], [0], [], [], [0], [], [], []
     for i in nodes:
         mom = moments[i]
@@ -83,11 +94,13 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         rr_start.append(len(A))
     r_max = max(row_start[j + 1] - row_start[j] for j in range(len(nodes)))
     ball_max = max(ball_start[j + 1] - ball_start[j] for j in range(len(nodes)))
-    header = template(_C / "cfd_node.h.in", NX=n, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
+    header = template(_C / "cfd_node.h.in", NX=n, NC=nc, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), BALL_MAX=ball_max, ROWS_MAX=r_max, ROUNDS=int(routes.hops), MODE=rule.name,
-                      NZMAX=nz_max, GROUPS=G, KMAX=min(r_max, G * n), WORK=work_code(sizes, "CFD_KMAX"), **described(model, nodes, verdict))
+                      NZMAX=nz_max, GROUPS=G, KMAX=min(r_max, G * nc), WORK=work_code(sizes, "CFD_KMAX"),
+                      **described(model, nodes, verdict))
     data = "".join([
-        c_array("cfd_node_id", nodes, "int"), c_array("cfd_ball_start", ball_start, "int"),
+        c_array("cfd_node_id", nodes, "int"), c_array("cfd_state_start", state_start, "int"),
+        c_array("cfd_state", np.concatenate(states), "int"), c_array("cfd_ball_start", ball_start, "int"),
         c_array("cfd_ball_sensor", ball, "int"), c_array("cfd_row_start", row_start, "int"),
         c_array("cfd_row_group", row_group, "int"), c_array("cfd_p", p), c_array("cfd_rr_start", rr_start, "int"),
         c_array("cfd_A", A), c_array("cfd_F1", F1), c_array("cfd_F2", F2),
@@ -96,8 +109,9 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
         c_array("cfd_Q", model.process_cov), c_array("cfd_M", M), c_array("cfd_mu", mu),
         c_array("cfd_x0", model.prior.mean), c_array("cfd_P0", model.prior.cov),
     ])
+    whole = all(np.array_equal(s, np.arange(n)) for s in states)  # the C's sizes then fixed at compile time
     source = template(_C / "cfd_node.c.in", COMMON=common_code(model), DATA=data,
-                      USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))))
+                      USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))), WHOLE=int(whole))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
 

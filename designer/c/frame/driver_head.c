@@ -17,6 +17,10 @@
 
 #include "cfd_node.h"
 
+#ifndef CFD_NC
+#define CFD_NC CFD_NX /* a node's estimate's length: the states it carries (a kind whose nodes carry the whole state) */
+#endif
+
 #define TOL @TOL@
 #define TOL_CAP @TOL_CAP@
 #define REPORTED 10 /* failures printed in full; the rest are counted */
@@ -70,8 +74,8 @@ static double scaled_difference(double got, double want, double scale) {
 /* an entry's scale: the estimate's x[i] (j < 0) on max(|x[i]|, sqrt(P[i][i])), the covariance's P[i][j] on
  * max(|P[i][j]|, sqrt(P[i][i] P[j][j])), Python's values */
 static double scale_of(const double *xw, const double *Pw, int i, int j) {
-    double a = j < 0 ? fabs(xw[i]) : fabs(Pw[i * CFD_NX + j]);
-    double c = sqrt(fabs(Pw[i * CFD_NX + i] * Pw[(j < 0 ? i : j) * CFD_NX + (j < 0 ? i : j)]));
+    double a = j < 0 ? fabs(xw[i]) : fabs(Pw[i * CFD_NC + j]);
+    double c = sqrt(fabs(Pw[i * CFD_NC + i] * Pw[(j < 0 ? i : j) * CFD_NC + (j < 0 ? i : j)]));
     return a > c ? a : c;
 }
 
@@ -99,17 +103,17 @@ static void entry(cfd_tally *t, int counted, const char *what, int i, int j, dou
 static void check(cfd_tally *t, int counted, const char *x_name, const char *P_name, const CFD_REAL *x,
                   const CFD_REAL *P, const double *xw, const double *Pw) {
     int i, j;
-    for (i = 0; i < CFD_NX; ++i) entry(t, counted, x_name, i, -1, x[i], xw[i], scale_of(xw, Pw, i, -1));
-    for (i = 0; i < CFD_NX; ++i)
-        for (j = 0; j < CFD_NX; ++j)
-            entry(t, counted, P_name, i, j, P[i * CFD_NX + j], Pw[i * CFD_NX + j], scale_of(xw, Pw, i, j));
+    for (i = 0; i < CFD_NC; ++i) entry(t, counted, x_name, i, -1, x[i], xw[i], scale_of(xw, Pw, i, -1));
+    for (i = 0; i < CFD_NC; ++i)
+        for (j = 0; j < CFD_NC; ++j)
+            entry(t, counted, P_name, i, j, P[i * CFD_NC + j], Pw[i * CFD_NC + j], scale_of(xw, Pw, i, j));
 }
 
 /* set a node's estimate and covariance to Python's after the step: the next step starts from the same input */
 static void resync(CFD_REAL *x, CFD_REAL *P, const double *xw, const double *Pw) {
     int i;
-    for (i = 0; i < CFD_NX; ++i) x[i] = (CFD_REAL)xw[i];
-    for (i = 0; i < CFD_NX * CFD_NX; ++i) P[i] = (CFD_REAL)Pw[i];
+    for (i = 0; i < CFD_NC; ++i) x[i] = (CFD_REAL)xw[i];
+    for (i = 0; i < CFD_NC * CFD_NC; ++i) P[i] = (CFD_REAL)Pw[i];
 }
 
 static int finish(FILE *fh, int steps, const cfd_tally *t) {

@@ -1,7 +1,7 @@
 int main(int argc, char **argv) {
     static cfd_node nodes[CFD_NODES], free_nodes[CFD_NODES];
     static CFD_REAL z[CFD_ROWS_MAX], rec[CFD_ROWS_MAX], flags[CFD_BALL_MAX], u[CFD_NU + 1];
-    static double x[CFD_NX], P[CFD_NX * CFD_NX];
+    static double x[CFD_NC], P[CFD_NC * CFD_NC];
     static unsigned char arrived[CFD_BALL_MAX];
     cfd_tally t = {0, 0, 0.0, 0.0, 0.0, 0, 0.0};
     FILE *fh;
@@ -14,8 +14,8 @@ int main(int argc, char **argv) {
             int nb = cfd_ball(nodes[j].node, &ball), m_own = cfd_sensor_dim(ball[0]), m_rec = 0, b, e;
             for (b = 1; b < nb; ++b) m_rec += cfd_sensor_dim(ball[b]);
             if (row(fh, &t, k, nodes[j].node) || read_reals(fh, z, m_own) || read_reals(fh, flags, nb - 1)
-                    || read_reals(fh, rec, m_rec) || read_reals(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NX)
-                    || read_numbers(fh, P, CFD_NX * CFD_NX)) {
+                    || read_reals(fh, rec, m_rec) || read_reals(fh, u, CFD_NU) || read_numbers(fh, x, CFD_NC)
+                    || read_numbers(fh, P, CFD_NC * CFD_NC)) {
                 return short_replay(argv[1], k, nodes[j].node);
             }
             for (b = 0; b < nb - 1; ++b) arrived[b] = flags[b] != 0.0;
