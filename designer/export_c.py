@@ -350,6 +350,17 @@ class NodeExport:
         """Refuse (:class:`InputError` naming what) a design of the rule that this export cannot write; the base
         class takes every design."""
 
+    def replay_numbers(self, model, network, options, regions, nodes: Sequence[int]) -> tuple[int, int]:
+        """At most how many numbers the replay records of the exported ``nodes`` hold a step, and how many numbers
+        the sources' data add for them beyond the model's and the offline tables (which the estimate counts
+        itself), from the model, the network, the design's effective options and the regions its nodes carry
+        (None: the whole state) alone: the memory estimate's (:func:`studies.memory.export_need`), made before the
+        design is read.  The base class: each node a packet from every node, each an estimate and its covariance,
+        and two more (its state and prediction) besides its measurement, the most any node kind records; no
+        data."""
+        n, n_x = network.n_nodes, model.n_x
+        return len(nodes) * ((n + 2) * (n_x * n_x + n_x) + model.n_z), 0
+
     def replay_step(self, net, k: int, u: np.ndarray, z: Sequence[np.ndarray], nodes: Sequence[int]) -> Any:
         """The replay record of step ``k`` (0-based) from the node network ``net`` after its step: ``u`` the step's
         inputs, ``z`` each exported node's own measurement (in ``nodes`` order)."""

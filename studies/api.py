@@ -35,6 +35,7 @@ memory available).
 """
 from __future__ import annotations
 
+import functools
 import json
 import warnings
 from dataclasses import dataclass, replace
@@ -888,6 +889,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     from filters.node import node_network
 
     from designer.progress import progress
+    from .design_options import effective
     from .recorded import clip_message, design_options_of, read_design_record, read_log, recorded_design
 
     check_path("design_dir", design_dir)
@@ -921,10 +923,16 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     chosen = list(range(N)) if nodes is None else [check_int("nodes", i, 0, N - 1) for i in nodes]
     if not chosen or len(set(chosen)) != len(chosen):
         raise InputError(f"nodes must be distinct nodes of 0..{N - 1}, got {nodes!r}")
-    if data is None:  # the memory, before the design is computed (with a log: before its arrays are made)
-        memory.check(memory.export_need(sc, options, sc.steps))
+    # the memory, before the design is read (with a log: before its arrays are made), with what the rule's nodes record
+    used = effective(sc, options)[1]
+    record, numbers = exporter.replay_numbers(sc.model, sc.network, used,
+                                              sc.regions if used.carry == "region" else None, chosen)
+    need = functools.partial(memory.export_need, sc, options, sc.steps, record=record, data=numbers,
+                             nodes=len(chosen))
+    if data is None:
+        memory.check(need())
     else:
-        log = read_log(data, sc, lambda size: memory.export_need(sc, options, sc.steps, size))
+        log = read_log(data, sc, need)
         if np.any(np.isnan(log.z)):
             raise InputError(f"data {str(data)!r} has missing measurements: the node filter needs each node's own")
     design = recorded_design(design_dir, sc, options)  # its recorded tables, not designed again

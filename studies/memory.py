@@ -342,27 +342,34 @@ def node_filter_need(sc, options=None) -> Need:
     return _need("node_filter", *design, [nodes])
 
 
-def export_need(sc, options, steps: int, log: LogSize | None = None) -> Need:
+def export_need(sc, options, steps: int, log: LogSize | None = None, *, record: int | None = None, data: int = 0,
+                nodes: int | None = None) -> Need:
     """``export``: the design of ``options`` along ``steps`` steps (with its offline tables, for a rule that has
     them); then, beside the tables, the replayed run (simulated over ``steps``, or the log ``log`` read and held),
     every node's matrices as the node network steps, and the text of ``replay.txt`` and of the sources' data (every
-    number written out, the tables' included, built in memory before the files are written)."""
+    number written out, the tables' included, built in memory before the files are written).  ``record``: the
+    numbers the exported nodes' replay records hold a step and ``data`` the numbers their sources' data add (the
+    rule's :meth:`designer.export_c.NodeExport.replay_numbers`); None: ``nodes`` (default every node) each recording
+    a packet from every node."""
     m, n_x = sc.model, sc.model.n_x
     n = sc.network.n_nodes
+    exported = n if nodes is None else int(nodes)
     K = steps if log is None else log.steps
     reduce = f"{_STEPS} (steps = {steps})"
     design = _consensus_design(sc, options, steps, reduce)
     tables = design[-1][0] if len(design) > 1 else None
     run = [log.held()] if log is not None else list(simulate_need(sc, K).peak)
-    replayed = K * n * ((n + 2) * (n_x * n_x + n_x) + m.n_z)  # each node's packets, state and measurement a step
-    sizes = f"{K} steps x {n} nodes x {n} packets x {n_x} x {n_x} states"
-    record = Part("the replayed steps' record", replayed * _D + K * n * (n + 4) * _ARRAY_OBJECT, sizes,
-                  f"{reduce} or fewer nodes (--node)")
-    numbers = replayed + (tables.nbytes / _D if tables is not None else 0)
+    if record is None:
+        record = exported * ((n + 2) * (n_x * n_x + n_x) + m.n_z)  # each node's packets, state and measurement
+    replayed = K * record
+    sizes = f"{K} steps x {exported} nodes, {record / exported:.0f} numbers a node and step"
+    fewer = f"{reduce} or fewer nodes (--node)"
+    parts = Part("the replayed steps' record", replayed * _D + K * exported * (n + 4) * _ARRAY_OBJECT, sizes, fewer)
+    numbers = replayed + data + (tables.nbytes / _D if tables is not None else 0)
     text = Part("replay.txt and the sources' data as text (its pieces, then joined)", 2 * _TEXT * numbers,
-                sizes + (" and the tables" if tables is not None else ""), f"{reduce} or fewer nodes (--node)")
-    nodes = node_filter_need(sc).peak
-    return _need("export", *design, [*([tables] if tables is not None else []), *run, *nodes, record, text])
+                sizes + (" and the tables" if tables is not None else ""), fewer)
+    nodes_held = node_filter_need(sc).peak
+    return _need("export", *design, [*([tables] if tables is not None else []), *run, *nodes_held, parts, text])
 
 
 def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int, backend=None) -> Need:

@@ -538,3 +538,21 @@ def test_a_relay_design_whose_nodes_carry_their_regions_in_c_replays_the_python_
     assert bad.returncode != 0 and re.search(r"^step \d+, node 0: (x|P)\[", bad.stdout, re.M), bad.stdout
     (out / "cfd_node.c").write_text(source)
     moved_replay_fails(out, 5, -nc * nc - nc, "x", range(8))
+    # the memory estimate counts what these nodes record: replay.txt's numbers (less each row's tolerance), all of them
+    # for every node and for three, against the rule's replay_numbers over the steps (an upper bound, and close)
+    import rules
+    from studies.design_options import effective
+    from studies.recorded import design_options_of
+    from studies.scenarios import scenario_of
+
+    sc = scenario_of(str(tmp_path / "ring.py"))
+    mode, options, _ = design_options_of(des, sc)
+    used = effective(sc, options)[1]
+    assert used.carry == "region"
+    for nodes in (list(range(8)), [1, 4, 6]):
+        if len(nodes) < 8:
+            studies.export(des, out=tmp_path / "few", nodes=nodes)
+        rows = ((out if len(nodes) == 8 else tmp_path / "few") / "replay.txt").read_text().splitlines()[1:]
+        written = sum(len(r.split()) - 1 for r in rows)
+        record, _ = rules.get(mode).c_export().replay_numbers(sc.model, sc.network, used, sc.regions, nodes)
+        assert 0.7 * record * sc.steps <= written <= record * sc.steps, (written, record * sc.steps)

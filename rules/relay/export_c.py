@@ -19,7 +19,7 @@ from designer.export_c import (NodeExport, c_array, common_code, described, mode
                                work_code, write_node)
 from designer.validation import InputError
 
-from .design import relay_moments, relay_routes
+from .design import default_hops, relay_carried, relay_moments, relay_routes
 
 __all__ = ["RelayExport", "write_relay_c", "replay_text"]
 
@@ -30,6 +30,28 @@ class RelayExport(NodeExport):
     """The C export of a relaying rule's node filter: a step's replay record is the inputs and, per exported node,
     what reached it and its estimate and bound after the step (:func:`replay_text`), in the coordinates of the states
     it carries (the first :func:`carried_width` places of :attr:`rules.relay.filter.RelayNode.states`)."""
+
+    def __init__(self, routing: str = "tree"):
+        self.routing = routing  # the rule's (rules.relay.Relay.routing)
+
+    def replay_numbers(self, model, network, options, regions, nodes):
+        """Per exported node and step: its measurement, one flag and the measurement of each other sensor of its
+        ball, the inputs, its estimate and bound (``CFD_NC`` wide: the most an exported node carries), the
+        tolerance; its data: its ball's rows' moments (A, F1, F2: rows x rows each), the rows' layout and its
+        states."""
+        routes = relay_routes(network, options.rounds or default_hops(network), self.routing)
+        dims = np.asarray(model.sensor_dims)
+        nodes = [int(i) for i in nodes]
+        widths = (np.full(network.n_nodes, model.n_x) if regions is None else
+                  np.count_nonzero(relay_carried(model, routes, regions).index >= 0, axis=1))
+        w = int(widths[nodes].max())
+        record = data = 0
+        for i in nodes:
+            ball = routes.ball(i)
+            rows = int(dims[ball].sum())
+            record += rows + ball.size + model.n_u + w + w * w
+            data += 3 * rows * rows + 2 * rows + 2 * ball.size + int(widths[i])
+        return record, data
 
     def replay_step(self, net, k, u, z, nodes):
         _, rounds = net.last  # what each node sent and, round by round, what reached it

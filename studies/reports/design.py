@@ -152,6 +152,21 @@ def _order(v: Mapping):
 # Figures.
 
 
+#: The most nodes a figure names in a legend (two columns beside the axes); beyond, a legend taller than the figure
+#: would squeeze the axes to nothing: the figure says how many lines it draws instead.
+NODE_LEGEND_MAX = 20
+
+
+def _node_legend(ax, nodes: int, y: float) -> None:
+    """The legend of a figure's one line per node, beside the axes at height ``y`` (axes units), or past
+    :data:`NODE_LEGEND_MAX` nodes a note of how many lines there are."""
+    if nodes <= NODE_LEGEND_MAX:
+        ax.legend(fontsize=7, ncol=1 if nodes <= 10 else 2, loc="center left", bbox_to_anchor=(1.01, y))
+    else:
+        ax.text(0.99, 0.02, f"{nodes} nodes, one line each", fontsize=7, ha="right", va="bottom",
+                transform=ax.transAxes)
+
+
 def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
     from ..figures import plotting, save_figure
 
@@ -169,8 +184,7 @@ def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
             if first is not None and ok.size:
                 ax.plot(steps[ok[-1]], y[ok[-1]], "x", color=line.get_color(), ms=9, mew=2)
         ax.set_yscale("log")
-        ncol = 1 if tr.shape[0] <= 10 else 2
-        ax.legend(fontsize=7, ncol=ncol, loc="center left", bbox_to_anchor=(1.01, 0.5))
+        _node_legend(ax, tr.shape[0], 0.5)
     else:
         ax.text(0.5, 0.5, "no node has a bound at any step", ha="center", va="center", transform=ax.transAxes)
     ax.set_xlim(0, max(1, tr.shape[1] - 1))
@@ -207,7 +221,7 @@ def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
             ax.set_yscale("symlog", linthresh=thresh)
         ax.set_ylabel(f"margin of {name}")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=7, ncol=1 if s.nodes <= 10 else 2, loc="center left", bbox_to_anchor=(1.01, 0.0))
+    _node_legend(axes[0], s.nodes, 0.0)
     axes[1].set_xlabel("step ((28) at k, (29) at k + 1)")
     axes[0].set_title(title, fontsize=10)
     save_figure(fig, path)
