@@ -150,6 +150,9 @@ def chunk_size(sc, runs: int) -> int:
         return max(1, min(CHUNK_SIZE, -(-int(runs) // CHUNKS_LARGE)))
     return CHUNK_SIZE
 JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
+#: Above this many rows N n (and up to JOINT_ROWS_DEFAULT), the default comparison runs such an oracle at the main
+#: setting only, not at the sweeps' (on IEEE 14's 14 x 13 it was a fifth of the study, the sweeps nine tenths of it)
+JOINT_ROWS_SWEEPS = 100
 SCENARIOS = ("indoor-robot", "target-range-bearing")
 DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50, None: 50}
 
@@ -197,7 +200,8 @@ ASSUMPTIONS = (
     "overconfident), Metropolis weights 1/(1 + max(d_i, d_j)); L = hcmci_iterations (default 1: the same messages "
     "per step as the consensus EKF).",
     "comparison: every design runs at every setting (the tuned one is left out of the sweeps with the study option "
-    "--set tuned_in_sweeps=false); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
+    "--set tuned_in_sweeps=false; above JOINT_ROWS_SWEEPS = 100 rows N n the default set runs the mse oracle at the "
+    "main setting only, --set oracles_in_sweeps=true runs it at every setting); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
     "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
     "covariance, designer.verdict).",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.joint:"
@@ -327,11 +331,12 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
                  iterations=iterations, run_ids=tuple(run_ids))
 
 
-def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tuned_in_sweeps: bool,
+def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, main_only: Sequence[str] = (),
           options: DesignOptions, hcmci_iterations: int = HCMCI_ITERATIONS,
           divergence_spread: float = DIVERGENCE_SPREAD, filters: Sequence[str] | None = None) -> dict:
     """Task of the runner: every filter of :data:`FILTER_REGISTRY` at every setting on the runs ``run_ids``
-    (``filters``: the names the study planned, checked against this process's registry).
+    (``filters``: the names the study planned, checked against this process's registry; those in ``main_only`` at
+    the main setting only).
 
     Each filter runs every run of the chunk at every setting as one batch (the designed consensus
     filters: one per group of equal designs, a filter that uses no channel once), so that a step costs
@@ -351,7 +356,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, tun
     entries = _entries(filters)
     # per setting: each needed gain rule's design, and the filters that cannot start there (not run: their arrays
     # stay NaN and the summary says why)
-    designs = _designs(scs, options, tuned_in_sweeps, entries)
+    designs = _designs(scs, options, main_only, entries)
     cannot = _cannot_start(scs, options, designs, entries)
     S, F, R = len(settings), len(entries), len(run_ids)
     idx = list(m.position_index) or list(range(m.n_x))
@@ -429,6 +434,25 @@ def left_out(sc: Scenario) -> dict[str, str]:
             for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
 
 
+def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
+    """The filters the comparison runs at its main setting only, not at the sweeps' settings, each with why: the
+    tuned design with ``tuned_in_sweeps`` false; and, in the default set (no ``--filters``) unless the option
+    ``oracles_in_sweeps`` is true, a gain rule's filter that carries the joint error covariance of all nodes once N n
+    exceeds :data:`JOINT_ROWS_SWEEPS` rows (``oracles_in_sweeps`` false: at any size)."""
+    out = {} if so["tuned_in_sweeps"] else {TUNED: "the study option tuned_in_sweeps is false"}
+    given, left = _chosen(sc, so)
+    rows = int(sc.network.n_nodes) * int(sc.model.n_x)
+    wanted = so["oracles_in_sweeps"]
+    if wanted is True or (wanted is None and (given is not None or rows <= JOINT_ROWS_SWEEPS)):
+        return out
+    why = (f"it carries the joint error covariance of all nodes, N n = {rows} rows (more than {JOINT_ROWS_SWEEPS}), "
+           "at a cost that grows as (N n)^3 a step and run; --set oracles_in_sweeps=true runs it at every setting"
+           if wanted is None else "the study option oracles_in_sweeps is false")
+    out.update({e.name: why for e in _entries(given) if e.mode is not None and e.name not in left
+                and rules.get(e.mode).joint_covariance})
+    return out
+
+
 def _chosen(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...] | None, dict[str, str]]:
     """The filters the study runs on ``sc`` (None: every one) and those its default set leaves out, with why: the
     names ``--filters`` gives (:func:`chosen_filters`; nothing left out), else every filter but :func:`left_out`."""
@@ -463,35 +487,36 @@ def chosen_filters(value) -> tuple[str, ...] | None:
     return tuple(n for n in FILTER_REGISTRY.names() if n in picked)
 
 
-def _needed(scs: Sequence[Scenario], tuned_in_sweeps: bool, entries=None) -> list[tuple[int, str]]:
+def _needed(scs: Sequence[Scenario], main_only: Sequence[str] = (), entries=None) -> list[tuple[int, str]]:
     """``(setting, gain rule)`` of every design the filters (``entries``, default every one) need at the settings of
-    ``scs``, once each (the tuned design at the main setting only unless ``tuned_in_sweeps``)."""
+    ``scs``, once each (the filters named in ``main_only`` at the main setting only: :func:`sweeps_left_out`)."""
     out: dict = {}
     for e in (FILTER_REGISTRY if entries is None else entries):
         for j in range(len(scs)):
-            if e.mode is not None and (j == 0 or tuned_in_sweeps or e.name != TUNED):
+            if e.mode is not None and (j == 0 or e.name not in main_only):
                 out.setdefault((j, e.mode), None)
     return list(out)
 
 
-def _designs(scs: Sequence[Scenario], options: DesignOptions, tuned_in_sweeps: bool, entries=None) -> list[dict]:
+def _designs(scs: Sequence[Scenario], options: DesignOptions, main_only: Sequence[str] = (), entries=None
+             ) -> list[dict]:
     """Per setting of ``scs``: the design of every gain rule its filters need (:func:`_needed`), by rule."""
     designs: list[dict] = [{} for _ in scs]
-    for j, mode in _needed(scs, tuned_in_sweeps, entries):
+    for j, mode in _needed(scs, main_only, entries):
         with phase(f"design {mode}, setting {j + 1}/{len(scs)}"):
             designs[j][mode] = consensus_design(scs[j], as_mode(options, mode))
     return designs
 
 
-def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, tuned_in_sweeps: bool,
+def _design_first(ref, settings: Sequence[tuple], options: DesignOptions, main_only: Sequence[str] = (),
                   filters: Sequence[str] | None = None) -> None:
     """The plan's step in the parent process: every setting's designs once, so that the offline tables they keep
     (:func:`studies.consensus_design.with_tables`, remembered per process) are computed once and inherited by the
     forked workers instead of once in each; the tables of the settings side by side on the usable cores
     (:func:`studies.consensus_design.prefetch_tables`: a sweep's scheduled designs, one per setting)."""
     scs, entries = _setting_scenarios(ref, settings), _entries(filters)
-    prefetch_tables([(scs[j], as_mode(options, mode)) for j, mode in _needed(scs, tuned_in_sweeps, entries)])
-    _designs(scs, options, tuned_in_sweeps, entries)
+    prefetch_tables([(scs[j], as_mode(options, mode)) for j, mode in _needed(scs, main_only, entries)])
+    _designs(scs, options, main_only, entries)
 
 
 def _setting_scenarios(ref, settings: Sequence[tuple]) -> list[Scenario]:
@@ -564,6 +589,11 @@ def _check(so: StudyOptions) -> None:
     for v in np.atleast_1d(so["sweep_values"]):
         check_probability("sweep_values", v)
     check_int("hcmci_iterations", so["hcmci_iterations"], 1)
+    for name in ("tuned_in_sweeps", "oracles_in_sweeps"):
+        if not (isinstance(so[name], bool) or (name == "oracles_in_sweeps" and so[name] is None)):
+            raise InputError(f"{name} must be true or false"
+                             f"{' (or left out: by the network size N n)' if name == 'oracles_in_sweeps' else ''}, "
+                             f"got {so[name]!r}")
     chosen_filters(so["filters"])
 
 
@@ -576,20 +606,20 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
         if e.start_check:
             check_first_step(sc, consensus_design(sc, as_mode(so.design, e.mode)), e.name, so.design)
     ref = reference(sc)
-    task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles,
-                             tuned_in_sweeps=bool(so["tuned_in_sweeps"]), options=so.design,
+    main_only = tuple(sweeps_left_out(sc, so))
+    task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles, main_only=main_only,
+                             options=so.design,
                              hcmci_iterations=int(so["hcmci_iterations"]),
                              divergence_spread=check_positive("divergence_spread", so["divergence_spread"]).item(),
                              filters=FILTER_REGISTRY.names() if filters is None else filters)
     config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
               "attacks": sc.attacks.describe(), "settings": settings,
-              "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]),
+              "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]), "main_only": list(main_only),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
               "options": so.design.as_dict(),
               "filters": list(FILTER_REGISTRY.names() if filters is None else filters)}
     return Plan(task, f"comparison-{_slug(sc.name)}", config,
-                before=functools.partial(_design_first, ref, settings, so.design, bool(so["tuned_in_sweeps"]),
-                                         filters))
+                before=functools.partial(_design_first, ref, settings, so.design, main_only, filters))
 
 
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
@@ -674,9 +704,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                     "components": [sc.model.state_names[c] for c in sig.components], "law": sig.law,
                     "delta": att.delta, "declared": att.describe(sc.model.state_names), "sweep_values": values},
         "recommendation": _recommend(filters, key), "params": dict(sc.params), "runner": mc.describe(),
-        "left_out": dict(out),
+        "left_out": dict(out), "sweeps_left_out": sweeps_left_out(sc, so),
         "assumptions": list(sc.assumptions) + [f"comparison: left out of the default filters on {sc.name}: {name} "
-                                               f"({why})" for name, why in out.items()],
+                                               f"({why})" for name, why in out.items()]
+        + [f"comparison: run at the main setting only on {sc.name}, not in the sweeps: {name} ({why})"
+           for name, why in sweeps_left_out(sc, so).items()],
     }
 
 
@@ -701,6 +733,8 @@ def _combine(blocks: dict) -> dict:
         "paper": {"source": None, "numbers": None,
                   "note": "no paper compares these filter families; seed 003 gives the consensus filter alone"},
         "left_out": {label(sc_name, n): why for sc_name, b in blocks.items() for n, why in b["left_out"].items()},
+        "sweeps_left_out": {label(sc_name, n): why for sc_name, b in blocks.items()
+                            for n, why in b["sweeps_left_out"].items()},
         "by_scenario": {k: {kk: vv for kk, vv in b.items() if kk != "assumptions"} for k, b in blocks.items()},
         "recommendation": {sc: b["recommendation"] for sc, b in blocks.items()},
         "params": {sc: b["params"] for sc, b in blocks.items()},
@@ -896,8 +930,8 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": True, "hcmci_iterations": HCMCI_ITERATIONS,
-             "divergence_spread": DIVERGENCE_SPREAD, "filters": None},
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": True, "oracles_in_sweeps": None,
+             "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD, "filters": None},
     uses_design=True,
     many_scenarios=True,
     every_core=True,

@@ -534,6 +534,50 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     schemas.validate_output(tmp_path / "d")
 
 
+def test_an_oracle_runs_at_the_main_setting_only_above_joint_rows_sweeps(tmp_path):
+    """On an 11-cell rod (N n = 121: above JOINT_ROWS_SWEEPS, within JOINT_ROWS_DEFAULT) the default comparison
+    runs the filters carrying all nodes' joint covariance at its main setting only: their numbers there are those
+    of a comparison that runs them everywhere (oracles_in_sweeps=true), they have no sweep cell, results.json says
+    why (sweeps_left_out) and so do the assumptions; every other filter's numbers are the same in both.  Below
+    JOINT_ROWS_SWEEPS (the robot) and with --filters nothing is run at the main setting only; a value other than
+    true, false or none is refused."""
+    import rules
+    from designer.design import DesignOptions
+    from studies.comparison import FILTER_REGISTRY, JOINT_ROWS_DEFAULT, JOINT_ROWS_SWEEPS, STUDY, sweeps_left_out
+    from studies.pipeline import StudyOptions
+
+    path = tmp_path / "rod11.py"
+    path.write_text(FIELD15.replace("N = 15", "N = 11"))
+    sc = load_scenario(str(path))
+    assert JOINT_ROWS_SWEEPS < sc.network.n_nodes * sc.model.n_x <= JOINT_ROWS_DEFAULT
+    joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
+
+    def options(**own):
+        return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, **own})
+
+    assert set(sweeps_left_out(sc, options())) == joint
+    assert all("N n = 121 rows" in why for why in sweeps_left_out(sc, options()).values())
+    assert sweeps_left_out(sc, options(oracles_in_sweeps=True)) == {}
+    assert sweeps_left_out(sc, options(filters="mse,kcf")) == {}
+    assert sweeps_left_out(load_scenario("indoor-robot"), options()) == {}
+    assert set(sweeps_left_out(load_scenario("indoor-robot"), options(oracles_in_sweeps=False))) == joint
+    with pytest.raises(InputError, match="oracles_in_sweeps must be true or false"):
+        STUDY.check(options(oracles_in_sweeps="maybe"))
+    kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.0, 0.2], tuned_in_sweeps=True, quiet=True)
+    cut, full = run_comparison(**kw), run_comparison(oracles_in_sweeps=True, **kw)
+    assert set(cut["sweeps_left_out"]) == joint and full["sweeps_left_out"] == {}
+    assert any("run at the main setting only" in a for a in cut["assumptions"])
+
+    def numbers(filters):  # what a filter scored, not how long it took
+        return {n: {k: v for k, v in m.items() if k != "time_per_step_s"} for n, m in filters.items()}
+
+    assert numbers(cut["filters"]) == numbers(full["filters"])  # the main setting: every filter alike
+    for key in ("dos_prob", "fdi_prob"):
+        for value, row in full["sweeps"][key].items():
+            assert joint <= set(row) and not joint & set(cut["sweeps"][key][value])
+            assert cut["sweeps"][key][value] == {n: m for n, m in row.items() if n not in joint}
+
+
 def test_a_large_model_is_cut_into_smaller_chunks_with_the_same_numbers(tmp_path):
     """studies.comparison.chunk_size: above CHUNK_ROWS rows N n the runs are cut into CHUNKS_LARGE chunks (so a
     default --runs 10 keeps two or four cores busy), below it CHUNK_SIZE; the numbers are those of one chunk."""
