@@ -256,4 +256,4 @@ def test_a_process_without_the_planned_filters_refuses_the_task(tank):
     planned = FILTER_REGISTRY.names() + ("my filter",)
     with pytest.raises(InputError, match="registered in a script is known to that process only"):
         _runs([0], [np.random.SeedSequence(1)], ref=reference(tank), settings=[(0.1, 0.1)], particles=20,
-              tuned_in_sweeps=False, options=DesignOptions(), filters=planned)
+              options=DesignOptions(), filters=planned)

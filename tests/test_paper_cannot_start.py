@@ -142,7 +142,7 @@ def test_the_other_filters_do_not_depend_on_whether_the_paper_design_runs(tmp_pa
         return [run_seed(5, r) for r in ids]
 
     small = DesignOptions(sigma=0.01, beta=0.01)  # within (28)-(29) at the first step
-    kw = dict(ref=ref, settings=_settings(sc, [0.0, 0.3]), particles=30, tuned_in_sweeps=True)
+    kw = dict(ref=ref, settings=_settings(sc, [0.0, 0.3]), particles=30)  # every filter at every setting
     blocked = comparison_runs(ids, seeds(), options=DesignOptions(), **kw)
     runs = comparison_runs(ids, seeds(), options=small, **kw)
     p = FILTERS.index(PAPER_DESIGN)
