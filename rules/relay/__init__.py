@@ -103,7 +103,7 @@ class Relay(GainRule):
     def c_export(self):
         from .export_c import RelayExport
 
-        return RelayExport(self.routing)
+        return RelayExport(self)
 
 
 RULE = Relay()

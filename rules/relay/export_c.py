@@ -19,7 +19,7 @@ from designer.export_c import (NodeExport, c_array, common_code, described, mode
                                work_code, write_node)
 from designer.validation import InputError
 
-from .design import default_hops, relay_carried, relay_moments, relay_routes
+from .design import relay_carried, relay_moments, relay_routes
 
 __all__ = ["RelayExport", "write_relay_c", "replay_text"]
 
@@ -31,15 +31,15 @@ class RelayExport(NodeExport):
     what reached it and its estimate and bound after the step (:func:`replay_text`), in the coordinates of the states
     it carries (the first :func:`carried_width` places of :attr:`rules.relay.filter.RelayNode.states`)."""
 
-    def __init__(self, routing: str = "tree"):
-        self.routing = routing  # the rule's (rules.relay.Relay.routing)
+    def __init__(self, rule):
+        self.rule = rule  # the relaying gain rule exported (its default hops and its routing)
 
     def replay_numbers(self, model, network, options, regions, nodes):
         """Per exported node and step: its measurement, one flag and the measurement of each other sensor of its
         ball, the inputs, its estimate and bound (``CFD_NC`` wide: the most an exported node carries), the
         tolerance; its data: its ball's rows' moments (A, F1, F2: rows x rows each), the rows' layout and its
         states."""
-        routes = relay_routes(network, options.rounds or default_hops(network), self.routing)
+        routes = relay_routes(network, self.rule.rounds(network, options.rounds), self.rule.routing)
         dims = np.asarray(model.sensor_dims)
         nodes = [int(i) for i in nodes]
         widths = (np.full(network.n_nodes, model.n_x) if regions is None else
