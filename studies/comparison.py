@@ -201,8 +201,8 @@ ASSUMPTIONS = (
     "per step as the consensus EKF).",
     "comparison: every design runs at every setting (the tuned one is left out of the sweeps with the study option "
     "--set tuned_in_sweeps=false; above JOINT_ROWS_SWEEPS = 100 rows N n the default set runs the mse oracle at the "
-    "main setting only, --set oracles_in_sweeps=true runs it at every setting); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
-    "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
+    "main setting only, --set oracles_in_sweeps=true runs it at every setting); the sweep tables give each design's "
+    "feasible_runs (runs meeting (28)-(29) throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
     "covariance, designer.verdict).",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.joint:"
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
@@ -630,6 +630,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     settings = _settings(sc, values)
     # per setting: why a filter's design cannot start there (None: it ran), as _runs decided
     chosen, out = _chosen(sc, so)
+    main_only = sweeps_left_out(sc, so)
     entries = _entries(chosen)
     cannot = _cannot_start([sc.with_attacks(dos=d, fdi=f) for d, f in settings], so.design, entries=entries)
     R = int(A["err2"].shape[0])
@@ -704,11 +705,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                     "components": [sc.model.state_names[c] for c in sig.components], "law": sig.law,
                     "delta": att.delta, "declared": att.describe(sc.model.state_names), "sweep_values": values},
         "recommendation": _recommend(filters, key), "params": dict(sc.params), "runner": mc.describe(),
-        "left_out": dict(out), "sweeps_left_out": sweeps_left_out(sc, so),
+        "left_out": dict(out), "sweeps_left_out": main_only,
         "assumptions": list(sc.assumptions) + [f"comparison: left out of the default filters on {sc.name}: {name} "
                                                f"({why})" for name, why in out.items()]
         + [f"comparison: run at the main setting only on {sc.name}, not in the sweeps: {name} ({why})"
-           for name, why in sweeps_left_out(sc, so).items()],
+           for name, why in main_only.items()],
     }
 
 

@@ -26,9 +26,10 @@ check and the figures are computed afterwards from the concatenated arrays.
 Besides RMSEs per node and over time, the study checks whether Φ bounds
 anything (:func:`bound_check`): at every (node, step) where Φ is a bound in enough
 runs, it compares the empirical error second moment with the run-averaged Φ along
-the direction of largest excess (a one-sided test at the level of ``Z_EXCESS`` normal
-standard errors, Student's t with the runs' degrees of freedom), and, since a few runs with huge errors take that test's power,
-it tests each run's error energy against its bound's trace with Markov's inequality
+the direction of largest excess (a one-sided test at the level of ``Z_EXCESS``
+normal standard errors, Student's t with the runs' degrees of freedom), and, since a
+few runs with huge errors take that test's power, it tests each run's error energy
+against its bound's trace with Markov's inequality
 (distribution-free); either finding an excess makes the verdict ``violated``.
 """
 from __future__ import annotations
@@ -64,8 +65,8 @@ from .runner import run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "bound_check", "per_run_check", "excess_quantile", "Z_EXCESS", "MIN_RUNS_FOR_CHECK", "MAX_FRACTION_EXCEEDING",
-           "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE"]
+__all__ = ["STUDY", "bound_check", "per_run_check", "excess_quantile", "Z_EXCESS", "MIN_RUNS_FOR_CHECK",
+           "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE"]
 
 Z_EXCESS = 3.0  # an excess over Φ counts at the level of this many normal standard errors (one-sided 0.135%),
 #                 Student's t's quantile with the runs' degrees of freedom at that level (excess_quantile)
