@@ -157,6 +157,10 @@ class GainRule:
     relays : bool
         Its nodes relay every measurement over L hops per step (``--rounds L``) and fuse the L-hop ball that arrived
         (:mod:`rules.relay.design`); its design has a stationary certificate.
+    solves_online : bool
+        Its nodes solve an optimisation problem at every step (a convex tuning of their gains): of the filters a node
+        runs, the costliest a step; the comparison runs it at its main setting only on a large network
+        (:func:`studies.comparison.sweeps_left_out`).
     regional : bool
         Its nodes may carry only their regions' states (``--carry region``, ``ConsensusDesign.carried_regions``,
         :mod:`designer.regions`): it fuses measurements without consensus on estimates, so a node's filter on the
@@ -172,6 +176,7 @@ class GainRule:
     joint_covariance: ClassVar[bool] = False
     relays: ClassVar[bool] = False
     regional: ClassVar[bool] = False
+    solves_online: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -191,7 +196,8 @@ class GainRule:
         for field in ("needs", "summary"):
             if not isinstance(getattr(cls, field, None), str) or not getattr(cls, field).strip():
                 raise InputError(f"{field} of gain rule {name!r} must be a non-empty sentence")
-        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays", "regional"):
+        for field in ("fixed_multipliers", "offline_tables", "joint_covariance", "relays", "regional",
+                      "solves_online"):
             if not isinstance(getattr(cls, field), bool):
                 raise InputError(f"{field} of gain rule {name!r} must be True or False, got {getattr(cls, field)!r}")
 

@@ -77,7 +77,7 @@ from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "CHUNK_ROWS", "CHUNKS_LARGE", "chunk_size", "HCMCI_ITERATIONS", "realise",
-           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT"]
+           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT", "sweeps_left_out", "SWEEP_ROWS"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -150,9 +150,11 @@ def chunk_size(sc, runs: int) -> int:
         return max(1, min(CHUNK_SIZE, -(-int(runs) // CHUNKS_LARGE)))
     return CHUNK_SIZE
 JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
-#: Above this many rows N n (and up to JOINT_ROWS_DEFAULT), the default comparison runs such an oracle at the main
-#: setting only, not at the sweeps' (on IEEE 14's 14 x 13 it was a fifth of the study, the sweeps nine tenths of it)
-JOINT_ROWS_SWEEPS = 100
+#: Above this many rows N n the default comparison runs its costliest filters a step at the main setting only, not at
+#: the sweeps' settings: an oracle carrying the joint covariance (up to JOINT_ROWS_DEFAULT; on IEEE 14's 14 x 13 it
+#: was a fifth of the study, its sweeps nine tenths of that) and a design whose nodes solve a convex problem at every
+#: step (on a 20-pool canal, 20 x 20, half of the study)
+SWEEP_ROWS = 100
 SCENARIOS = ("indoor-robot", "target-range-bearing")
 DEFAULT_RUNS = {"indoor-robot": 100, "target-range-bearing": 50, None: 50}
 
@@ -199,10 +201,11 @@ ASSUMPTIONS = (
     "the centralized filter as L grows; for small L it counts a measurement more than once and its covariance is "
     "overconfident), Metropolis weights 1/(1 + max(d_i, d_j)); L = hcmci_iterations (default 1: the same messages "
     "per step as the consensus EKF).",
-    "comparison: every design runs at every setting (the tuned one is left out of the sweeps with the study option "
-    "--set tuned_in_sweeps=false; above JOINT_ROWS_SWEEPS = 100 rows N n the default set runs the mse oracle at the "
-    "main setting only, --set oracles_in_sweeps=true runs it at every setting); the sweep tables give each design's "
-    "feasible_runs (runs meeting (28)-(29) throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
+    "comparison: every design runs at every setting, but for the study options --set tuned_in_sweeps=false and "
+    "oracles_in_sweeps=false, which leave the tuned design and the mse oracle out of the sweeps, and, above "
+    "SWEEP_ROWS = 100 rows N n, the default set, which runs those two at the main setting only (the options set "
+    "true run them at every setting); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
+    "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
     "covariance, designer.verdict).",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.joint:"
     " the realised DoS pattern, FDI as noise of second moment E[g^2] a a^T with probability fdi/(1 - dos) per "
@@ -435,21 +438,25 @@ def left_out(sc: Scenario) -> dict[str, str]:
 
 
 def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
-    """The filters the comparison runs at its main setting only, not at the sweeps' settings, each with why: the
-    tuned design with ``tuned_in_sweeps`` false; and, in the default set (no ``--filters``) unless the option
-    ``oracles_in_sweeps`` is true, a gain rule's filter that carries the joint error covariance of all nodes once N n
-    exceeds :data:`JOINT_ROWS_SWEEPS` rows (``oracles_in_sweeps`` false: at any size)."""
-    out = {} if so["tuned_in_sweeps"] else {TUNED: "the study option tuned_in_sweeps is false"}
+    """The filters the comparison runs at its main setting only, not at the sweeps' settings, each with why: a gain
+    rule's filter that carries the joint error covariance of all nodes (an oracle) and one whose nodes solve a
+    convex problem at every step (the costliest a step of each kind, ``GainRule.joint_covariance`` and
+    ``GainRule.solves_online``), when their study option (``oracles_in_sweeps``, ``tuned_in_sweeps``) is false, or
+    is left out (None) and the default set (no ``--filters``) runs on more than :data:`SWEEP_ROWS` rows N n."""
     given, left = _chosen(sc, so)
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
-    wanted = so["oracles_in_sweeps"]
-    if wanted is True or (wanted is None and (given is not None or rows <= JOINT_ROWS_SWEEPS)):
-        return out
-    why = (f"it carries the joint error covariance of all nodes, N n = {rows} rows (more than {JOINT_ROWS_SWEEPS}), "
-           "at a cost that grows as (N n)^3 a step and run; --set oracles_in_sweeps=true runs it at every setting"
-           if wanted is None else "the study option oracles_in_sweeps is false")
-    out.update({e.name: why for e in _entries(given) if e.mode is not None and e.name not in left
-                and rules.get(e.mode).joint_covariance})
+    out = {}
+    for option, kind, cost in (("oracles_in_sweeps", "joint_covariance", "it carries the joint error covariance of "
+                                "all nodes, at a cost that grows as (N n)^3 a step and run"),
+                               ("tuned_in_sweeps", "solves_online", "each node solves a convex problem at every step "
+                                "and run, the costliest of the filters a node runs")):
+        wanted = so[option]
+        if wanted is True or (wanted is None and (given is not None or rows <= SWEEP_ROWS)):
+            continue
+        why = (f"{cost}; N n = {rows} rows, more than {SWEEP_ROWS}: --set {option}=true runs it at every setting"
+               if wanted is None else f"the study option {option} is false")
+        out.update({e.name: why for e in _entries(given) if e.mode is not None and e.name not in left
+                    and getattr(rules.get(e.mode), kind)})
     return out
 
 
@@ -590,10 +597,9 @@ def _check(so: StudyOptions) -> None:
         check_probability("sweep_values", v)
     check_int("hcmci_iterations", so["hcmci_iterations"], 1)
     for name in ("tuned_in_sweeps", "oracles_in_sweeps"):
-        if not (isinstance(so[name], bool) or (name == "oracles_in_sweeps" and so[name] is None)):
-            raise InputError(f"{name} must be true or false"
-                             f"{' (or left out: by the network size N n)' if name == 'oracles_in_sweeps' else ''}, "
-                             f"got {so[name]!r}")
+        if not (so[name] is None or isinstance(so[name], bool)):
+            raise InputError(f"{name} must be true or false (or left out: by the network's size N n), got "
+                             f"{so[name]!r}")
     chosen_filters(so["filters"])
 
 
@@ -614,7 +620,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
                              filters=FILTER_REGISTRY.names() if filters is None else filters)
     config = {"study": "comparison", "scenario": sc.name, "params": dict(ref.params),
               "attacks": sc.attacks.describe(), "settings": settings,
-              "particles": so.particles, "tuned_in_sweeps": bool(so["tuned_in_sweeps"]), "main_only": list(main_only),
+              "particles": so.particles, "main_only": list(main_only),
               "hcmci_iterations": int(so["hcmci_iterations"]), "divergence_spread": float(so["divergence_spread"]),
               "options": so.design.as_dict(),
               "filters": list(FILTER_REGISTRY.names() if filters is None else filters)}
@@ -931,7 +937,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": True, "oracles_in_sweeps": None,
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": None, "oracles_in_sweeps": None,
              "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD, "filters": None},
     uses_design=True,
     many_scenarios=True,

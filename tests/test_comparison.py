@@ -534,33 +534,37 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     schemas.validate_output(tmp_path / "d")
 
 
-def test_an_oracle_runs_at_the_main_setting_only_above_joint_rows_sweeps(tmp_path):
-    """On an 11-cell rod (N n = 121: above JOINT_ROWS_SWEEPS, within JOINT_ROWS_DEFAULT) the default comparison
-    runs the filters carrying all nodes' joint covariance at its main setting only: their numbers there are those
-    of a comparison that runs them everywhere (oracles_in_sweeps=true), they have no sweep cell, results.json says
-    why (sweeps_left_out) and so do the assumptions; every other filter's numbers are the same in both.  Below
-    JOINT_ROWS_SWEEPS (the robot) and with --filters nothing is run at the main setting only; a value other than
-    true, false or none is refused."""
+def test_the_costliest_filters_run_at_the_main_setting_only_above_sweep_rows(tmp_path):
+    """On an 11-cell rod (N n = 121: above SWEEP_ROWS, within JOINT_ROWS_DEFAULT) the default comparison runs the
+    filters carrying all nodes' joint covariance and those whose nodes solve a convex problem every step at its main
+    setting only: the oracles' numbers there are those of a comparison that runs them everywhere
+    (oracles_in_sweeps=true), they have no sweep cell, results.json says why (sweeps_left_out) and so do the
+    assumptions; every other filter's numbers are the same in both.  Below SWEEP_ROWS (the robot) and with --filters
+    nothing is run at the main setting only by size; a value other than true, false or none is refused."""
     import rules
     from designer.design import DesignOptions
-    from studies.comparison import FILTER_REGISTRY, JOINT_ROWS_DEFAULT, JOINT_ROWS_SWEEPS, STUDY, sweeps_left_out
+    from studies.comparison import FILTER_REGISTRY, JOINT_ROWS_DEFAULT, STUDY, SWEEP_ROWS, sweeps_left_out
     from studies.pipeline import StudyOptions
 
     path = tmp_path / "rod11.py"
     path.write_text(FIELD15.replace("N = 15", "N = 11"))
     sc = load_scenario(str(path))
-    assert JOINT_ROWS_SWEEPS < sc.network.n_nodes * sc.model.n_x <= JOINT_ROWS_DEFAULT
+    assert SWEEP_ROWS < sc.network.n_nodes * sc.model.n_x <= JOINT_ROWS_DEFAULT
     joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
+    online = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).solves_online}
+    assert joint and online and not joint & online
 
     def options(**own):
         return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, **own})
 
-    assert set(sweeps_left_out(sc, options())) == joint
+    assert set(sweeps_left_out(sc, options())) == joint | online
     assert all("N n = 121 rows" in why for why in sweeps_left_out(sc, options()).values())
-    assert sweeps_left_out(sc, options(oracles_in_sweeps=True)) == {}
-    assert sweeps_left_out(sc, options(filters="mse,kcf")) == {}
+    assert set(sweeps_left_out(sc, options(oracles_in_sweeps=True))) == online
+    assert set(sweeps_left_out(sc, options(tuned_in_sweeps=True))) == joint
+    assert sweeps_left_out(sc, options(filters="mse,tuned,kcf")) == {}
     assert sweeps_left_out(load_scenario("indoor-robot"), options()) == {}
     assert set(sweeps_left_out(load_scenario("indoor-robot"), options(oracles_in_sweeps=False))) == joint
+    assert set(sweeps_left_out(load_scenario("indoor-robot"), options(tuned_in_sweeps=False))) == online
     with pytest.raises(InputError, match="oracles_in_sweeps must be true or false"):
         STUDY.check(options(oracles_in_sweeps="maybe"))
     kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.0, 0.2], tuned_in_sweeps=True, quiet=True)

@@ -14,6 +14,7 @@ class Tuned(GainRule):
     runtime = "local"
     needs = LOCAL_NEEDS + "; its σ, β and gains come from a small convex problem it solves online at every step."
     summary = "gains minimising the bound (convex tuning, optimised weights)"
+    solves_online = True
 
     def report_settings(self, meta, fmt):
         return ["Tuned mode: the convex tuning layer chooses σ, β, C and K at every node and step (minimising the "
