@@ -443,7 +443,8 @@ def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
     convex problem at every step (the costliest a step of each kind, ``GainRule.joint_covariance`` and
     ``GainRule.solves_online``), when their study option (``oracles_in_sweeps``, ``tuned_in_sweeps``) is false, or
     is left out (None) and the default set (no ``--filters``) runs on more than :data:`SWEEP_ROWS` rows N n."""
-    given, left = _chosen(sc, so)
+    given, left = _chosen(sc, so)  # given: the filters run (the default set less what it left out, or --filters)
+    named = chosen_filters(so["filters"]) is not None
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
     out = {}
     for option, kind, cost in (("oracles_in_sweeps", "joint_covariance", "it carries the joint error covariance of "
@@ -451,7 +452,7 @@ def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
                                ("tuned_in_sweeps", "solves_online", "each node solves a convex problem at every step "
                                 "and run, the costliest of the filters a node runs")):
         wanted = so[option]
-        if wanted is True or (wanted is None and (given is not None or rows <= SWEEP_ROWS)):
+        if wanted is True or (wanted is None and (named or rows <= SWEEP_ROWS)):
             continue
         why = (f"{cost}; N n = {rows} rows, more than {SWEEP_ROWS}: --set {option}=true runs it at every setting"
                if wanted is None else f"the study option {option} is false")

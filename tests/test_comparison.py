@@ -565,6 +565,9 @@ def test_the_costliest_filters_run_at_the_main_setting_only_above_sweep_rows(tmp
     assert sweeps_left_out(load_scenario("indoor-robot"), options()) == {}
     assert set(sweeps_left_out(load_scenario("indoor-robot"), options(oracles_in_sweeps=False))) == joint
     assert set(sweeps_left_out(load_scenario("indoor-robot"), options(tuned_in_sweeps=False))) == online
+    big = tmp_path / "rod15.py"  # N n = 225: the oracle left out of the default set, the tuned design main-only
+    big.write_text(FIELD15)
+    assert set(sweeps_left_out(load_scenario(str(big)), options())) == online
     with pytest.raises(InputError, match="oracles_in_sweeps must be true or false"):
         STUDY.check(options(oracles_in_sweeps="maybe"))
     kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.0, 0.2], tuned_in_sweeps=True, quiet=True)
