@@ -491,6 +491,8 @@ def _summary(f: dict) -> str:
     if isinstance(f.get("verdicts"), dict):
         parts.append(f"certified runs {f['verdicts']['certified']}/{sum(f['verdicts'].values())}"
                      + (f", bounded runs {f['bounded_runs']}" if f.get("bounded_runs") is not None else ""))
+    if f.get("better_than_local") is False:
+        parts.append("no better than the nodes alone (its 95 % interval not below the local EKFs')")
     return ", ".join(parts)
 
 

@@ -672,6 +672,11 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         if e.rounds:
             met["consensus_iterations"] = L
         filters[name] = met
+    alone = filters.get(LOCAL, {}).get(f"{key}_ci95")
+    for name, met in filters.items():  # the nodes alone are the floor a network must beat (designer.verdict's word)
+        ci = met.get(f"{key}_ci95")
+        met["better_than_local"] = (None if alone is None or name == LOCAL or met["runtime"] not in DEPLOYABLE
+                                    or ci is None else bool(ci[1] < alone[0]))
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
         if main is None:
@@ -829,6 +834,10 @@ def table_markdown(results: dict) -> str:
                         if rec["not_significantly_worse"] else " (95 % interval disjoint from every other one's)")
                      + f"; fewest messages per step: {', '.join(rec['fewest_messages'])} (cost is ranked by the "
                      "messages counted, not by the measured times).\n")
+        alone = [n for n, f in b["filters"].items() if f.get("better_than_local") is False]
+        if alone:
+            text += (f"\nNo better than the nodes running alone on these runs (their 95 % interval not below the local "
+                     f"EKFs'): {', '.join(alone)}.\n")
         ref = rec.get("best_reference")
         if ref is not None:
             f = b["filters"][ref]

@@ -579,6 +579,19 @@ def test_the_costliest_filters_run_at_the_main_setting_only_above_sweep_rows(tmp
         return {n: {k: v for k, v in m.items() if k != "time_per_step_s"} for n, m in filters.items()}
 
     assert numbers(cut["filters"]) == numbers(full["filters"])  # the main setting: every filter alike
+    # better_than_local: a filter the nodes run whose interval lies entirely below the local EKFs' (the floor)
+    from designer.rule import DEPLOYABLE
+    from studies.comparison import LOCAL, table_markdown
+
+    alone = cut["filters"][LOCAL]["rmse_ci95"]
+    for name, f in cut["filters"].items():
+        want = (None if name == LOCAL or f["runtime"] not in DEPLOYABLE or f["rmse_ci95"] is None
+                else f["rmse_ci95"][1] < alone[0])
+        assert f["better_than_local"] == want, name
+    worse = [n for n, f in cut["filters"].items() if f["better_than_local"] is False]
+    said = table_markdown(cut)
+    assert ("No better than the nodes running alone on these runs" in said) == bool(worse)
+    assert all(n in said.split("No better than the nodes running alone")[1] for n in worse)
     for key in ("dos_prob", "fdi_prob"):
         for value, row in full["sweeps"][key].items():
             assert joint <= set(row) and not joint & set(cut["sweeps"][key][value])
