@@ -223,6 +223,7 @@ def _worth(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.nd
             "fill_steps": [window.start + 1, steps]}
 
 
+@functools.lru_cache(maxsize=None)  # once per run count: the per-pair test asks at every (node, step)
 def excess_quantile(n: int) -> float:
     """The standard errors an excess over Φ must pass, from ``n`` samples (runs): Student's t's quantile with
     ``n - 1`` degrees of freedom at the one-sided level of :data:`Z_EXCESS` normal standard errors (0.135%).  The
