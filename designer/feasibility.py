@@ -13,7 +13,7 @@ iteration and decide:
   meaningful values, the trace grows beyond ``1e4 x max(tr Φ_0, tr Q)``
   (``"unbounded"``), or no convergence within ``max_iter`` (``"no convergence"``).
 
-The iteration is Anderson-accelerated (safeguarded, see :class:`_Anderson`); the
+The iteration is Anderson-accelerated (safeguarded: :class:`designer.anderson.Anderson`); the
 plain iteration reaches the same fixed point (tested), only more slowly.  A map iterates
 all its points at once (:func:`steady_state_batch`: every node of every point in one stacked
 evaluation per iteration, each point with its own checks and acceleration), with the answers
@@ -30,6 +30,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from .anderson import Anderson
 from .bounds import (condition28_margin, condition29_margin, optimal_gain, prediction_bound, prediction_recursion,
                      theorem2_margin, update_bound)
 from .network import SensorNetwork
@@ -41,56 +42,6 @@ __all__ = ["SteadyState", "steady_state", "steady_state_batch"]
 
 _BLOWUP = 1e8
 _UNBOUNDED = 1e4  # a steady-state trace beyond 1e4 x max(tr Φ_0, tr Q) is reported as unbounded
-
-
-class _Anderson:
-    """Anderson acceleration (type II) of the fixed-point iteration Φ <- T(Φ), with a safeguard.
-
-    The candidate is used only when every node's matrix is symmetric positive
-    definite, else the point 1/2 or 1/4 of the way from T(Φ) to it, else the plain step
-    T(Φ) (and the memory is cleared); when the residual ``||T(Φ) - Φ||`` grew since the
-    last point, the memory is cleared and the plain step taken.  The conditions are always
-    checked on the points where the true map T is evaluated, and convergence is
-    declared only when T(Φ) = Φ to the tolerance, so the answer is a fixed point
-    of the recursion whatever the acceleration did.
-    """
-
-    def __init__(self, memory: int):
-        self.memory = memory
-        self.xs: list[np.ndarray] = []
-        self.gs: list[np.ndarray] = []
-        self.res = np.inf  # the residual ||T(Φ) - Φ|| at the last point taken
-
-    def step(self, x: np.ndarray, gx: np.ndarray, admissible: Callable[[np.ndarray], bool] | None = None
-             ) -> np.ndarray:
-        """The next point from ``x`` and ``T(x)``; ``admissible(point)`` (default: every matrix of ``point``
-        positive definite) decides whether an extrapolated point may be taken."""
-        if admissible is None:
-            def admissible(c):
-                return np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c)[:, 0] > 0)
-        res = float(np.linalg.norm(gx - x))
-        if self.xs and res > self.res:  # the last extrapolation made things worse: restart from the plain step
-            self.xs, self.gs, self.res = [], [], res
-            return gx
-        self.res = res
-        self.xs.append(x.ravel().copy())
-        self.gs.append(gx.ravel().copy())
-        self.xs, self.gs = self.xs[-self.memory - 1:], self.gs[-self.memory - 1:]
-        if len(self.xs) < 2:
-            return gx
-        F = np.array([g - xx for g, xx in zip(self.gs, self.xs)]).T  # residuals, one column per iterate
-        dF = np.diff(F, axis=1)
-        dG = np.diff(np.array(self.gs).T, axis=1)
-        gamma, *_ = np.linalg.lstsq(dF, F[:, -1], rcond=None)
-        cand = (self.gs[-1] - dG @ gamma).reshape(gx.shape)
-        if cand.ndim == 3:
-            cand = 0.5 * (cand + np.swapaxes(cand, -1, -2))
-        for t in (1.0, 0.5, 0.25):  # backtrack towards the plain step until the point is admissible
-            c = gx + t * (cand - gx)
-            if admissible(c):
-                return c
-        self.xs, self.gs = [], []
-        return gx
 
 
 class SteadyState(NamedTuple):
@@ -133,7 +84,7 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
     phi = _start(phi0, n_nodes, nx)
     sig = np.zeros(n_nodes)
     scale = _scale(phi, Q)
-    accel = _Anderson(memory=5)
+    accel = Anderson(1, memory=5)
     slack28 = np.zeros(n_nodes)
     slack29 = np.zeros(n_nodes)
     # Multipliers chosen: the weights of (27) are part of the iterate (one block step of tune_weighted per
@@ -195,7 +146,7 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
             th2 = all(theorem2_margin(new[i], sig[i], network.d_max) >= 0 for i in range(n_nodes))
             return _converged(new, th2, slack28, slack29, fixed_multipliers, it)
         if not optimal:
-            phi = accel.step(phi, new) if accelerate else new
+            phi = accel.step([0], phi[None], new[None])[0] if accelerate else new
             continue
         if not accelerate:
             phi, node_weights = new, new_weights
@@ -211,8 +162,9 @@ def steady_state(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R: Seque
             return (np.all(np.isfinite(v)) and np.all(np.linalg.eigvalsh(0.5 * (ph + np.swapaxes(ph, 1, 2)))[:, 0] > 0)
                     and all(np.all(w > 0) for w in ws))
 
-        nxt = accel.step(np.concatenate([phi.ravel()] + node_weights), np.concatenate([new.ravel()] + new_weights),
-                         admissible)
+        nxt = accel.step([0], np.concatenate([phi.ravel()] + node_weights)[None],
+                         np.concatenate([new.ravel()] + new_weights)[None],
+                         lambda c: np.array([admissible(v) for v in c]))[0]
         ph, ws = unpack(nxt)
         phi, node_weights = 0.5 * (ph + np.swapaxes(ph, 1, 2)), [w / w.sum() for w in ws]
     return _unconverged(phi, max_iter)
@@ -276,7 +228,7 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
     P, N, nx = len(networks), pts.N, pts.nx
     phi = np.array(np.broadcast_to(_start(phi0, N, nx), (P, N, nx, nx)))
     scale = _scale(phi[0], Q)
-    accel = [_Anderson(memory=5) for _ in range(P)]
+    accel = Anderson(P, memory=5)
     out: list[SteadyState | None] = [None] * P
     live = np.arange(P)
     for it in range(1, max_iter + 1):
@@ -304,7 +256,7 @@ def steady_state_batch(F: np.ndarray, H: Sequence[np.ndarray], Q: np.ndarray, R:
                 th2 = np.all(theorem2_margin(new[k], sig[k], networks[p].d_max) >= 0)
                 out[p] = _converged(new[k].copy(), th2, slack28[k], slack29[k], fixed_multipliers, it)
             else:
-                phi[p] = accel[p].step(ph[k], new[k]) if accelerate else new[k]
+                phi[p] = accel.step([p], ph[k][None], new[k][None])[0] if accelerate else new[k]
                 going[k] = True
         live = live[going]
     for p in live:

@@ -60,6 +60,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from .anderson import least_squares
 from .bounds import Spectrum, prediction_recursion, shifted_inverse, spectrum, symmetrize
 from .cores import SOLVER_SETTINGS
 from .validation import ComputationError
@@ -720,33 +721,16 @@ def weighted_bound(phi_pred, H, C, K, s, beta, V, R, groups, weights, D=None) ->
 
 
 def _anderson_coefficients(A: np.ndarray, b: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """The least-squares ``γ`` of ``A γ ≈ b`` per item (``A`` (m, L, c), ``b`` (m, L)) by the normal equations:
-    ``Aᵀ A`` and ``Aᵀ b`` added over the rows in order (zero rows, absent groups, change no number), then a
-    Cholesky that drops a column whose part independent of the earlier ones is within rounding of zero
-    (pivot <= ``(eps L)²`` times its squared norm, ``L`` the item's ``rows``): a zero column (history not yet
-    there) or a repeated one gets ``γ = 0``."""
+    """The least-squares ``γ`` of ``A γ ≈ b`` per item (``A`` (m, L, c), ``b`` (m, L);
+    :func:`designer.anderson.least_squares`), ``Aᵀ A`` and ``Aᵀ b`` added over the rows in order (zero rows,
+    absent groups, change no number), ``rows`` each item's rows."""
     m, L, c = A.shape
     gram = np.zeros((m, c, c))
     rhs = np.zeros((m, c))
     for l in range(L):
         gram = gram + A[:, l, :, None] * A[:, l, None, :]
         rhs = rhs + A[:, l] * b[:, l, None]
-    cut = (np.finfo(float).eps * np.maximum(rows, c)) ** 2
-    low = np.zeros((m, c, c))
-    inv = np.zeros((m, c))
-    for j in range(c):
-        d = gram[:, j, j] - np.sum(low[:, j, :j] ** 2, axis=-1)
-        keep = d > cut * gram[:, j, j]
-        inv[:, j] = np.where(keep, 1.0 / np.sqrt(np.where(keep, d, 1.0)), 0.0)
-        for i in range(j + 1, c):
-            low[:, i, j] = (gram[:, i, j] - np.sum(low[:, i, :j] * low[:, j, :j], axis=-1)) * inv[:, j]
-    y = np.zeros((m, c))
-    for j in range(c):
-        y[:, j] = (rhs[:, j] - np.sum(low[:, j, :j] * y[:, :j], axis=-1)) * inv[:, j]
-    out = np.zeros((m, c))
-    for j in reversed(range(c)):
-        out[:, j] = (y[:, j] - np.sum(low[:, j + 1:, j] * out[:, j + 1:], axis=-1)) * inv[:, j]
-    return out
+    return least_squares(gram, rhs, rows)
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
