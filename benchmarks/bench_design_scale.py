@@ -129,6 +129,7 @@ from pathlib import Path
 import numpy as np
 
 from designer.cores import one_blas_thread
+from designer.regions import Carried
 from designer.network import SensorNetwork
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
@@ -574,7 +575,10 @@ def design_child(model: str, mode: str, out: str, options: dict) -> int:
            "rss_children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}
     if pick is not None:
         tr = pick.trace_bound
-        row.update(finite=bool(np.isfinite(pick.result.x_post).all() and np.isfinite(tr[:, -1]).all()),
+        x = pick.result.x_post  # (steps + 1, nodes, n_x); NaN where a node carrying its region has no estimate
+        held = np.ones(x.shape[-2:], bool) if pick.result.carried is None else Carried(pick.result.carried,
+                                                                                       x.shape[-1]).held
+        row.update(finite=bool(np.isfinite(x[..., held]).all() and np.isfinite(tr[:, -1]).all()),
                    trace_final=float(np.nanmean(tr[:, -1])), rule=pick.gain_rule.name,
                    rounds=int(pick.design.rounds))
     if mode == "auto":

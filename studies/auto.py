@@ -52,6 +52,7 @@ from designer.verdict import json_number, steadiness_window
 
 from .consensus_design import Design, check_first_step, effective_design, run_design
 from .design_options import as_mode
+from .results import better_than
 from .runner import run_forked
 from .scenarios import Scenario
 
@@ -332,7 +333,8 @@ def _check_validation(sc: Scenario, options: DesignOptions, runs: int, given: bo
 
     def need(r):
         chunk = study.chunk_size(sc, r) if callable(study.chunk_size) else study.chunk_size
-        so = StudyOptions(r, study.particles, 0, chunk, _validation_backend(), options, dict(study.options))
+        so = StudyOptions(r, study.particles, 0, chunk, _validation_backend(), options,
+                          dict(study.options, **VALIDATION_OPTIONS))
         return study_need("consensus-robot", sc, so, None if study.uses is None else study.uses(sc, so))
 
     try:
@@ -545,20 +547,29 @@ def _choose(candidates: list[Candidate], cap, cap_bytes, regions: bool = False) 
     return fallback, "none certified", "no candidate is certified (see candidates.json for each verdict)"
 
 
+#: The consensus-robot study's options in a validation: the paper's design is not run beside the pick (it is no
+#: reference of the automatic design; on a 64-cell field its bounds held half the validation's memory).
+VALIDATION_OPTIONS = {"paper_reference": False}
+
+
 def validation(pick: Design, runs: int, seed: int) -> dict:
     """The pick on ``runs`` fresh Monte Carlo runs beside KCF, HCMCI, the local and the centralized EKF
     (``validation.json``, schema ``cfdesign.validation/1``): the ``consensus-robot`` study with the pick's options.
 
     Per filter: ``rmse`` (over every state component, the root of ``mse``, the mean ‖e‖² over the runs, steps and
     nodes), ``rmse_state``, ``rmse_position`` where the model has a position, ``diverged_runs`` (how many), the
-    messages per step; for the pick its ``bound_check`` and verdict counts; ``ratios``: the pick's RMSE over each
-    reference's.  With regions (:mod:`designer.regions`) each row also has ``rmse_region`` (each node on its own
-    region's states), and the ratios are of it."""
+    messages per step, ``rmse_ci95`` (the 95 % bootstrap interval over the runs); for the pick its ``bound_check``,
+    verdict counts and ``better_than_local`` (:func:`studies.results.better_than`: its interval below the local
+    EKFs'; None without intervals); ``ratios``: the pick's RMSE over each reference's.  With regions
+    (:mod:`designer.regions`) each row also has ``rmse_region`` (each node on its own region's states) and
+    ``rmse_region_ci95`` in place of ``rmse_ci95``, and the ratios and the comparison with the local EKFs are of
+    it."""
+    from .consensus_robot import baseline_names
     from .pipeline import run_study
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
     res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=False,
-                    backend=_validation_backend())  # the runner's progress bar on a terminal
+                    backend=_validation_backend(), **VALIDATION_OPTIONS)  # the runner's progress bar on a terminal
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
     rows = {}
@@ -573,12 +584,17 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
             row["rmse_position"] = f["rmse_position"]
         if f.get("rmse_region") is not None:  # the model declares regions: each node on its own states
             row["rmse_region"] = f["rmse_region"]
+        key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by
+        row[f"{key}_ci95"] = f.get(f"{key}_ci95")
         if name == mine:
             row.update(bound_check=f.get("bound_check"), verdicts=f.get("verdicts"))
         rows["pick" if name == mine else name] = row
-    key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by
+    key = "rmse_region" if pick.scenario.regions is not None else "rmse"
     ratios = {n: json_number(rows["pick"][key] / r[key]) for n, r in rows.items()
               if n != "pick" and rows.get("pick", {}).get(key) is not None and r.get(key)}
+    local = rows.get(baseline_names(pick.scenario)[0], {})
+    if "pick" in rows:  # the one definition of "better than the nodes alone" (studies.results.better_than)
+        rows["pick"]["better_than_local"] = better_than(rows["pick"].get(f"{key}_ci95"), local.get(f"{key}_ci95"))
     return {"schema": "cfdesign.validation/1", "runs": runs, "seed": seed,
             "seeds": f"SeedSequence({seed}).spawn({runs})[r].spawn(2) = (truth and measurements, channel attacks) of "
                      f"run r; the design's run is SeedSequence({seed}).spawn(2), a different stream",

@@ -306,6 +306,8 @@ def _validation_lines(validation) -> None:
         if check.get("verdict") in ("holds", "violated"):
             parts.append(f"its bound {check['verdict']} on these runs"
                          + (f" ({check['verdict_reason']})" if check["verdict"] == "violated" else ""))
+        if f.get("better_than_local") is False:  # the pick's, as study comparison says it of a filter
+            parts.append("no better than the nodes alone (its 95 % interval not below the local EKFs')")
         if parts:
             click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))

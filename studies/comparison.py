@@ -71,7 +71,7 @@ from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ek
 from .pipeline import Plan, Study, StudyOptions
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
-from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
+from .results import DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
 from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 from .study_registry import StudyText
@@ -675,8 +675,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     alone = filters.get(LOCAL, {}).get(f"{key}_ci95")
     for name, met in filters.items():  # the nodes alone are the floor a network must beat (designer.verdict's word)
         ci = met.get(f"{key}_ci95")
-        met["better_than_local"] = (None if alone is None or name == LOCAL or met["runtime"] not in DEPLOYABLE
-                                    or ci is None else bool(ci[1] < alone[0]))
+        met["better_than_local"] = (None if name == LOCAL or met["runtime"] not in DEPLOYABLE
+                                    else better_than(ci, alone))
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
         if main is None:

@@ -46,7 +46,7 @@ import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
 from designer.regions import Carried, region_error2, region_mask
 from designer.schedule import load_schedule
-from designer.validation import InputError, check_int, check_positive
+from designer.validation import InputError, check_bool, check_int, check_positive
 from filters.attacks import simulate_attacks
 from filters.channels import GATE_COUNTS
 
@@ -282,14 +282,15 @@ class _Variant(NamedTuple):
     infeasible: str | None = None
 
 
-def _names(sc: Scenario) -> tuple[str, str]:
+def baseline_names(sc: Scenario) -> tuple[str, str]:
     """The baselines' names: the paper's cameras on the robot, sensors elsewhere."""
     if sc.name == "indoor-robot":
         return "local EKF per camera", "centralized EKF (all cameras)"
     return "local EKF per node", "centralized EKF (all sensors)"
 
 
-def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict[str, _Variant]:
+def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None, paper_reference: bool = True
+              ) -> dict[str, _Variant]:
     # ``tuned``: the design compared with the paper's, of mode 'tuned' or 'mse' (None: the paper's without consensus)
     """The filters compared on the same runs (:mod:`studies.filter_registry` entries with their designs).
 
@@ -301,15 +302,16 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     (tested against FilterPy).  KCF and HCMCI run batched over the chunk's runs (``run_kcf_batch``,
     ``run_hcmci_batch``), as every filter here.
     """
-    local_name, central_name = _names(sc)
+    local_name, central_name = baseline_names(sc)
     text = TEXT.filters
     out = {}
     if tuned is not None:
         name = f"consensus-EKF ({tuned.mode})"
         out[name] = _Variant(designed_consensus(name, tuned.mode, text.get(name, name)), tuned)
     name = f"consensus-EKF ({paper.mode}, tau={paper.tau:g})"
-    out[name] = _Variant(designed_consensus(name, paper.mode, text.get(name, name), start_check=True), paper)
-    if tuned is None:
+    if tuned is None or paper_reference:  # the paper's design beside another rule's (study option paper_reference)
+        out[name] = _Variant(designed_consensus(name, paper.mode, text.get(name, name), start_check=True), paper)
+    if tuned is None and paper_reference:
         name = f"consensus-EKF ({paper.mode}, tau=0, no consensus)"
         out[name] = _Variant(designed_consensus(name, paper.mode, text[name], start_check=True),
                              paper._replace(tau=0.0))
@@ -327,15 +329,20 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None) -> dict
     return out
 
 
-def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None) -> tuple:
+def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None, paper_reference: bool = True
+           ) -> tuple:
     """The scenario, the paper design and the variants, from picklable arguments (in the parent and in a task).
+    ``paper_reference`` False: the study's design runs without its reference, the paper's design beside another
+    rule's or, when the mode is the paper's, its design without consensus (the paper's design still configures the
+    local and centralized EKFs).
 
     ``replay``: ``(mode, K (nodes, steps, n_x, n_z), C (nodes, steps, n_x, n_x))`` of a gain
     schedule, replayed without re-solving, or None.
     """
     sc = ref.build()
     paper = consensus_design(sc, as_mode(options, rules.PUBLISHED))
-    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != rules.PUBLISHED else None)
+    variants = _variants(sc, paper, consensus_design(sc, as_mode(options, mode)) if mode != rules.PUBLISHED else None,
+                         paper_reference)
     for name, v in variants.items():  # a paper design that cannot start is not run (the others are, on the same runs)
         if v.entry.start_check:
             variants[name] = v._replace(infeasible=check_first_step(sc, v.design, name))
@@ -368,7 +375,8 @@ def _decode(codes: np.ndarray) -> str:
 
 
 def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
-          hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD) -> dict:
+          hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD,
+          paper_reference: bool = True) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`) ``v{j}_err`` (R, K + 1,
@@ -379,7 +387,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
     """
-    sc, paper, variants = _build(ref, mode, options, replay)
+    sc, paper, variants = _build(ref, mode, options, replay, paper_reference)
     m, net = sc.model, sc.network
     steps, nx = sc.steps, m.n_x
     signal = sc.resolved_attacks.signal
@@ -475,17 +483,26 @@ def _iterations(so: StudyOptions) -> int:
     return check_int("hcmci_iterations", so["hcmci_iterations"], 1)
 
 
+def paper_reference(so: StudyOptions) -> bool:
+    """The study option ``paper_reference`` (checked): whether the study's design runs beside its reference, the
+    paper's design (or, in mode paper, the paper's design without consensus)."""
+    return check_bool("paper_reference", so["paper_reference"])
+
+
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     ref = reference(sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    built, paper, variants = _build(ref, _mode(so), options, replay)  # checks the designs before any run
+    built, paper, variants = _build(ref, _mode(so), options, replay, paper_reference(so))  # checks the designs
     # a paper design that cannot start is reported as infeasible (_build); one whose sigma, beta or tau was given is
     # refused
-    check_first_step(built, paper, next(n for n in variants if n.startswith("consensus-EKF (paper")), options)
+    run = next((n for n in variants if n.startswith("consensus-EKF (paper")), None)
+    if run is not None:
+        check_first_step(built, paper, run, options)
     spread = check_positive("divergence_spread", so["divergence_spread"]).item()
     task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
-                             hcmci_iterations=_iterations(so), divergence_spread=spread)
+                             hcmci_iterations=_iterations(so), divergence_spread=spread,
+                             paper_reference=paper_reference(so))
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
               "attacks": sc.attacks.describe(),
@@ -497,7 +514,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
 
 
 def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts, bounded_runs, so,
-                     L, feasibility) -> dict:
+                     L, feasibility, boot: np.random.Generator) -> dict:
     """A variant whose nodes carry their regions (``--carry region``): a node has no estimate of the states it does
     not carry, so the whole-state metrics are null (``rmse_state`` absent) and the variant is scored on the regions
     (``rmse_region``, per node too); its bound is checked in the carried coordinates and judged on the regions
@@ -522,16 +539,17 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
         "diverged_runs": failed,
         "diverged_fraction": len(failed) / runs,
         "design": describe_design(v.design),
-        **_region_metrics(err, regions),
+        **_region_metrics(err, regions, boot),
     }
 
 
-def _region_metrics(err: np.ndarray, regions) -> dict:
+def _region_metrics(err: np.ndarray, regions, boot: np.random.Generator) -> dict:
     """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
     region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
-    ``study comparison`` scores it, and ``rmse_region_median_run``."""
+    ``study comparison`` scores it, its 95 % bootstrap interval over the runs (``boot``) and
+    ``rmse_region_median_run``."""
     per_run = region_error2(err, regions).mean(axis=(1, 2))
-    return {"rmse_region": float(np.sqrt(per_run.mean())),
+    return {"rmse_region": float(np.sqrt(per_run.mean())), "rmse_region_ci95": bootstrap_rmse_ci(per_run, boot),
             "rmse_region_median_run": float(np.median(np.sqrt(per_run)))}
 
 
@@ -539,7 +557,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
     options = DesignOptions(**{**so.design.as_dict(), "mode": None})
-    sc, paper, variants = _build(reference(sc), _mode(so), options, replay)
+    sc, paper, variants = _build(reference(sc), _mode(so), options, replay, paper_reference(so))
     L = _iterations(so)
     m, net = sc.model, sc.network
     steps = sc.steps
@@ -589,15 +607,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "first_violation_step_min": int(min(fv)) if fv else None,
             "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
         } if e.designed else None
+        boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         if carried is not None:
             filters[name] = _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts,
-                                             bounded_runs, so, L, feasibility)
+                                             bounded_runs, so, L, feasibility, boot)
             continue
         e2 = err[..., pos] ** 2
         node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
         spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
-        boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         filters[name] = {
             "family": e.family, "runtime": e.runtime,
             "rmse_position": float(np.sqrt(e2.sum(-1).mean())),
@@ -605,6 +623,8 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             # robust to a few divergent runs: the median over runs of each run's RMSE
             "rmse_position_median_run": float(np.median(np.sqrt(per_run))),
             "rmse_state": [float(x) for x in np.sqrt((err**2).mean(axis=(0, 1, 2)))],
+            # the whole state's (the root of rmse_state's squares summed): its 95 % interval over the runs
+            "rmse_ci95": bootstrap_rmse_ci((err**2).sum(-1).mean(axis=(1, 2)), boot),
             "rmse_position_curve": [float(x) for x in np.sqrt(e2.sum(-1).mean(axis=(0, 2)))],
             "nodes": [{"node": i, "rmse_position": float(np.sqrt(e2[:, :, i].sum(-1).mean())),
                        "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
@@ -622,7 +642,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             **({"exchange": exchange_counts(A[f"v{j}_gate"][ok])}
                if e.mode is not None and e.attacked and net.adjacency.any() else {}),
             **({"consensus_iterations": L} if e.rounds else {}),
-            **(_region_metrics(err, sc.regions) if sc.regions is not None else {}),
+            **(_region_metrics(err, sc.regions, boot) if sc.regions is not None else {}),
         }
     return {
         "scenario": sc.name,
@@ -910,7 +930,8 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_study_figures,
-    options={"schedule": None, "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD},
+    options={"schedule": None, "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD,
+             "paper_reference": True},
     uses_design=True,
     accepts=_accepts,
 )

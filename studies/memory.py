@@ -437,7 +437,10 @@ def _consensus_robot(sc, so) -> tuple[list, list, list]:
     m, net = sc.model, sc.network
     n_x, n, K = m.n_x, net.n_nodes, sc.steps
     R = min(so.runs, so.chunk_size)
-    checked, variants = 2, 7  # the designs checked against their bound; every variant
+    # the designs checked against their bound and every variant; the study's design with its reference (the paper's
+    # design, or in mode paper the paper's without consensus) unless the study leaves it out (option paper_reference:
+    # an automatic design's validation)
+    checked, variants = (1, 6) if so.extra.get("paper_reference", True) is False else (2, 7)
     reduce = f"{_STEPS} (a model file's STEPS)"
     chunk = _consensus(m, net, R, K, opts.mode, opts.linearization, "a consensus filter", reduce)
     per_run = (K + 1) * n * (checked * n_x * n_x + variants * (n_x + 1)) * _D

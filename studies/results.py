@@ -57,6 +57,16 @@ def curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list
     return value, [float(lo), float(hi)]
 
 
+def better_than(ci, floor) -> bool | None:
+    """Whether a filter is better than a floor on the same runs (the nodes running alone, in ``study comparison``
+    and in an automatic design's validation): its 95 % interval ``ci`` ([lo, hi]) lies entirely below the floor's
+    ``floor``; None when either interval is missing.  The one definition of "better than the nodes alone" on
+    errors: a point estimate below the floor's is not evidence of it."""
+    if ci is None or floor is None or None in ci or None in floor:
+        return None
+    return bool(ci[1] < floor[0])
+
+
 def bootstrap_rmse_ci(per_run_mse: np.ndarray, rng: np.random.Generator) -> list[float]:
     """The 95 % percentile-bootstrap interval of ``sqrt(mean(per_run_mse))``: ``BOOTSTRAP`` resamples of the runs
     (each run's mean squared error), the root of each resample's mean."""

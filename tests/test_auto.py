@@ -251,3 +251,55 @@ def test_a_value_the_user_gives_is_every_candidates_and_twins_are_tried_once():
         if c.rule == "scheduled":
             assert c.options["exchange"] == "predictions" == c.exchange
     assert sum(c.rule == "scheduled" for c in auto.candidates) == 1
+
+
+def test_the_validation_says_no_better_than_the_nodes_alone_by_the_intervals_not_the_point_ratio():
+    """The validation's "no better than the nodes alone" is study comparison's (studies.results.better_than): the
+    pick's 95 % interval entirely below the local EKFs'.  A pick whose RMSE is below the local EKFs' (ratio 0.9)
+    but whose interval overlaps theirs is said to be no better, one whose interval lies below theirs is not: the
+    intervals decide, not the ratio of the point estimates (the report's former test, which passed the first)."""
+    from studies.reports.auto import validation_lines
+    from studies.results import better_than
+
+    assert better_than([1.0, 2.0], [2.5, 3.0]) is True
+    assert better_than([1.0, 2.6], [2.5, 3.0]) is False  # overlapping: no evidence
+    assert better_than(None, [2.5, 3.0]) is None and better_than([1.0, 2.0], None) is None
+
+    def val(pick_ci, flag):
+        return {"runs": 3, "seeds": "s", "pick_rmse_ratio": {"local EKF per node": 0.9},
+                "filters": {"pick": {"filter": "relay", "rmse": 0.9, "rmse_ci95": pick_ci, "better_than_local": flag},
+                            "local EKF per node": {"filter": "local EKF per node", "rmse": 1.0,
+                                                   "rmse_ci95": [0.8, 1.2]}}}
+
+    said = "\n".join(validation_lines(val([0.7, 1.1], better_than([0.7, 1.1], [0.8, 1.2]))))
+    assert "no better than the nodes alone" in said  # ratio 0.9 < 1, intervals overlap
+    said = "\n".join(validation_lines(val([0.5, 0.7], better_than([0.5, 0.7], [0.8, 1.2]))))
+    assert "no better than the nodes alone" not in said
+
+
+def test_the_validation_runs_no_paper_design_and_its_memory_counts_one_bound():
+    """The validation's consensus-robot runs leave the paper's design out (study option paper_reference: it is no
+    reference of the automatic design), and the memory estimate counts one design's bounds instead of two."""
+    from studies import auto
+    from studies.memory import study_need
+    from studies.pipeline import StudyOptions, run_study
+    from studies.runner import Backend
+    from studies.scenarios import load_scenario
+    from studies.study_registry import get_study
+
+    opts = DesignOptions(mode="relay")
+    kw = dict(runs=2, seed=0, options=opts, quiet=True)
+    lean = run_study("consensus-robot", [RING], **kw, **auto.VALIDATION_OPTIONS).results["filters"]
+    full = run_study("consensus-robot", [RING], **kw).results["filters"]
+    paper = [n for n in full if n.startswith("consensus-EKF (paper")]
+    assert paper and not any(n in lean for n in paper)
+    assert set(lean) == set(full) - set(paper)
+    for name in lean:  # the same runs: the others' numbers unchanged
+        assert lean[name]["rmse_state"] == full[name]["rmse_state"], name
+    sc, study = load_scenario(RING), get_study("consensus-robot")
+
+    def need(extra):
+        so = StudyOptions(20, None, 0, 20, Backend(), opts, dict(study.options, **extra))
+        return study_need("consensus-robot", sc, so).nbytes
+
+    assert need(auto.VALIDATION_OPTIONS) < need({})

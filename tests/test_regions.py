@@ -215,5 +215,14 @@ def test_the_automatic_designs_validation_scores_the_pick_on_the_regions(tmp_pat
             assert row["rmse_region"] == pytest.approx(row["rmse"], rel=1e-10), name
     for name, ratio in auto.validation["pick_rmse_ratio"].items():
         assert ratio == pytest.approx(rows["pick"]["rmse_region"] / rows[name]["rmse_region"], rel=1e-12)
+    # better than the nodes alone, in study comparison's one sense: the pick's interval entirely below the local EKFs'
+    from studies.consensus_robot import baseline_names
+    from studies.scenarios import load_scenario
+
+    local = rows[baseline_names(load_scenario(str(every / "chain.py")))[0]]
+    for row in (rows["pick"], local):
+        lo, hi = row["rmse_region_ci95"]
+        assert lo <= hi and "rmse_ci95" not in row
+    assert rows["pick"]["better_than_local"] is (rows["pick"]["rmse_region_ci95"][1] < local["rmse_region_ci95"][0])
     mine = studies.design(str(chain(own, "[[i] for i in range(5)]")), mode="auto", validate=3, budget=40)
     assert all(r["rmse_region"] < r["rmse"] for r in mine.validation["filters"].values() if r["rmse"] is not None)

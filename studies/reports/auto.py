@@ -137,9 +137,9 @@ def validation_lines(val: Mapping[str, Any]) -> list[str]:
     said = [f"{fmt_num(r, 3)} x {md_escape(n)}'s" for n, r in ratios.items() if _num(r) is not None]
     if said:
         out += [f"The design's RMSE on these runs is {', '.join(said)}.", ""]
-    worse = [md_escape(n) for n, r in ratios.items() if _num(r) is not None and r > 1 and "local" in str(n)]
-    if worse:
-        out += [f"**On these runs the design is no better than the nodes alone** ({', '.join(worse)}).", ""]
+    if rows.get("pick", {}).get("better_than_local") is False:  # studies.results.better_than: the one definition
+        out += ["**On these runs the design is no better than the nodes alone**: its RMSE's 95 % interval is not "
+                "entirely below the local EKFs'.", ""]
     return out
 
 
