@@ -28,7 +28,7 @@ from designer.noise import Noise
 from designer.validation import InputError, check_finite, check_int, check_probability, check_rng
 
 __all__ = [
-    "AttackPattern", "channel_draws", "attack_pattern", "simulate_attacks",
+    "AttackPattern", "channel_draws", "channel_attacks", "attack_pattern", "simulate_attacks",
     "UplinkAttacks", "uplink_attacks", "receive",
     "round_robin_schedule", "DeceptionOutcome", "deception_attack", "round_robin_received",
     "BinaryOutcome", "binary_sensor_channel",
@@ -59,13 +59,23 @@ def channel_draws(steps: int, n_nodes: int, rng: np.random.Generator) -> tuple[n
     return u, s
 
 
+def channel_attacks(u: np.ndarray, s: np.ndarray, dos_prob, fdi_prob, n_x: int, signal: FDISignal, on=True
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The consensus channels' attack law, channel by channel: ``(dos, fdi, ξ)`` of channels with draws ``u``, ``s``
+    (any shape) and probabilities ``dos_prob``, ``fdi_prob`` (broadcast against them), where ``on`` (a channel of
+    the network): DoS iff ``u < φ̄``, FDI iff ``φ̄ <= u < φ̄ + γ̄``, ``ξ = a g(s)`` where FDI
+    (:meth:`designer.attacks.FDISignal.inject`).  :func:`attack_pattern` applies it to every pair of nodes,
+    :meth:`filters.consensus_batch.EdgeAttacks.simulate` to the network's channels alone."""
+    dos = on & (u < dos_prob)
+    fdi = on & ~dos & (u < dos_prob + fdi_prob)
+    return dos, fdi, signal.inject(s, fdi, n_x)
+
+
 def attack_pattern(network: SensorNetwork, u: np.ndarray, s: np.ndarray, n_x: int, signal: FDISignal
                    ) -> AttackPattern:
     """Channel attacks from the draws of :func:`channel_draws` (see :func:`simulate_attacks`)."""
-    adj = network.adjacency[None]
-    dos = adj & (u < network.dos_prob[None])
-    fdi = adj & ~dos & (u < network.dos_prob[None] + network.fdi_prob[None])
-    return AttackPattern(dos, fdi, signal.inject(s, fdi, n_x))
+    return AttackPattern(*channel_attacks(u, s, network.dos_prob[None], network.fdi_prob[None], n_x, signal,
+                                          network.adjacency[None]))
 
 
 def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.random.Generator, signal: FDISignal

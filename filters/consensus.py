@@ -58,7 +58,7 @@ from designer.network import SensorNetwork
 from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern
-from .consensus_batch import ConsensusResult, run_consensus_batch
+from .consensus_batch import ConsensusResult, EdgeAttacks, run_consensus_batch
 from .rrp import wrap_angles
 
 __all__ = ["wrapped_residual", "run_consensus", "check_run_inputs"]
@@ -110,7 +110,7 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
         Stacked measurements; ``z[k]`` measures ``x_{k+1}``.
     design : ConsensusDesign
     inputs : ndarray, shape (steps, n_u), optional
-    attacks : AttackPattern, optional
+    attacks : AttackPattern or EdgeAttacks of one run, optional
         Realised channel attacks (none when omitted).
     x0, phi0 : initial estimate and ``Φ_{0|0}`` (default: the prior's mean and covariance).
     gains : (K, C) arrays of shape (steps, N, ...), optional
@@ -121,7 +121,9 @@ def run_consensus(model: Model, network: SensorNetwork, z: np.ndarray, design: C
     of ``max n_z_i`` columns, zero beyond each node's own.
     """
     z, u, x0, phi0 = check_run_inputs(model, z, inputs, x0, phi0, "phi0")
-    if attacks is not None and not isinstance(attacks, AttackPattern):
-        raise InputError(f"attacks must be a filters.attacks.AttackPattern, got {type(attacks).__name__}")
-    return run_consensus_batch(model, network, z[None], design, inputs=u, x0=x0, phi0=phi0,
-                               attacks=None if attacks is None else [attacks], gains=gains).detail.run(0)
+    if attacks is not None and not isinstance(attacks, (AttackPattern, EdgeAttacks)):
+        raise InputError(f"attacks must be a filters.attacks.AttackPattern or a filters.consensus_batch.EdgeAttacks "
+                         f"of one run, got {type(attacks).__name__}")
+    batch = [attacks] if isinstance(attacks, AttackPattern) else attacks  # None, or EdgeAttacks of one run
+    return run_consensus_batch(model, network, z[None], design, inputs=u, x0=x0, phi0=phi0, attacks=batch,
+                               gains=gains).detail.run(0)

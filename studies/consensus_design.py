@@ -32,9 +32,8 @@ from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, NOT_COMPUTED, VERDICT_ASSUMPTIONS, Verdict, describe,
                               open_loop_reference, open_loop_traces, verdict)
-from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
-from filters.consensus_batch import ConsensusResult
+from filters.consensus_batch import ConsensusResult, EdgeAttacks
 from filters.result import HARD_CONDITIONS
 
 from .design_options import effective, rule_of
@@ -488,7 +487,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
                 des, complete = with_horizon_tables(sc, des, steps, stack)  # the tables beyond the horizon meanwhile
         traj_ss, att_ss = np.random.SeedSequence(seed).spawn(2)
         traj = sc.simulate(np.random.default_rng(traj_ss), steps)
-        attacks = simulate_attacks(net, steps, m.n_x, np.random.default_rng(att_ss), att.signal)
+        attacks = EdgeAttacks.simulate(net, steps, m.n_x, [np.random.default_rng(att_ss)], att.signal)
         with phase("seeded run"):
             res = run_consensus(m, net, traj.z, des, inputs=traj.inputs, attacks=attacks)
         with phase("tables beyond the horizon"):

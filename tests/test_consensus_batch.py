@@ -443,3 +443,38 @@ def test_networks_per_run_are_checked(robot):
     ring = SensorNetwork.from_edges(8, [(i, (i + 1) % 8) for i in range(8)])
     with pytest.raises(InputError, match="share one graph"):
         run_consensus_batch(sc.model, [net, net, ring], traj.z, robot_design(), inputs=traj.inputs)
+
+
+def test_edge_attacks_simulated_on_the_channels_are_the_dense_patterns_channels():
+    """EdgeAttacks.simulate draws as simulate_attacks does and applies the same law (filters.attacks.channel_attacks)
+    to the network's channels alone: the same numbers, bit for bit, as EdgeAttacks.from_patterns of the dense patterns,
+    on a network with channel-by-channel probabilities and a signal with a mean."""
+    rng = np.random.default_rng(4)
+    adj = np.zeros((6, 6), bool)
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (0, 3)]:
+        adj[i, j] = adj[j, i] = True
+    dos = np.where(adj, rng.uniform(0.0, 0.3, (6, 6)), 0.0)
+    fdi = np.where(adj, rng.uniform(0.0, 0.3, (6, 6)), 0.0)
+    net = SensorNetwork(6, adj, dos_prob=dos, fdi_prob=fdi)
+    signal = FDISignal(amplitude=(0.5, 0.2), components=(0, 2), law="constant")
+    seeds = np.random.SeedSequence(9).spawn(3)
+    dense = EdgeAttacks.from_patterns(net, [simulate_attacks(net, 12, 4, np.random.default_rng(s), signal)
+                                            for s in seeds])
+    edge = EdgeAttacks.simulate(net, 12, 4, [np.random.default_rng(s) for s in seeds], signal)
+    for field in EdgeAttacks._fields:
+        assert np.array_equal(getattr(edge, field), getattr(dense, field)), field
+    assert edge.fdi.any() and edge.dos.any() and np.any(edge.xi != 0.0)
+    with pytest.raises(InputError, match="one Generator per run"):
+        EdgeAttacks.simulate(net, 12, 4, [], signal)
+
+
+
+def test_run_consensus_takes_one_runs_edge_attacks(robot):
+    sc, net, traj, atts = robot
+    des = robot_design()
+    u = traj.inputs if traj.inputs.ndim == 2 else traj.inputs[0]
+    dense = run_consensus(sc.model, net, traj.z[0], des, inputs=u, attacks=atts[0])
+    edge = run_consensus(sc.model, net, traj.z[0], des, inputs=u, attacks=EdgeAttacks.from_patterns(net, atts[:1]))
+    assert np.array_equal(dense.x_post, edge.x_post) and np.array_equal(dense.phi_post, edge.phi_post)
+    with pytest.raises(InputError, match="attacks must cover"):
+        run_consensus(sc.model, net, traj.z[0], des, inputs=u, attacks=EdgeAttacks.from_patterns(net, atts))
