@@ -450,3 +450,31 @@ def test_the_gain_is_the_pseudo_inverse_formula_where_depths_are_rank_deficient(
             assert np.allclose(Pn[b], 0.5 * (Pr + Pr.T), rtol=0, atol=1e-9 * np.abs(P[b]).max())
             checked += 1
     assert checked == 3 * N
+
+
+def test_stacked_nodes_with_their_own_depths_update_as_each_alone():
+    """relay_update over a stack whose items hold their depths at different rows (groups (k, r, G)): each item's
+    gain and covariance are those it gets alone, and relay_information's too."""
+    from rules.relay.design import relay_information
+
+    model = bearing_model()
+    net = varied_network()
+    rt = relay_routes(net, 2)
+    moms = [node_moments(rt, net, model.sensor_dims, i) for i in range(N)]
+    r = moms[0].rows.size
+    same = [m for m in moms if m.rows.size == r and not np.array_equal(m.groups, moms[0].groups)]
+    assert same, "the network must give two nodes of the same rows at different depths"
+    pair = [moms[0], same[0]]
+    stacked = moms[0]._replace(**{f: np.stack([getattr(m, f) for m in pair]) for f in moms[0]._fields})
+    rng = np.random.default_rng(2)
+    Hw = rng.normal(size=(2, r, 4))
+    A = rng.normal(size=(2, 4, 4))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+    res = rng.normal(size=(2, r))
+    M, mu = SIGNAL.moment(4), SIGNAL.mean(4)
+    W, Pn = relay_update(P, Hw, stacked, M, mu)
+    y = relay_information(Hw, stacked, res)
+    for b, mom in enumerate(pair):
+        Wb, Pb = relay_update(P[b], Hw[b], mom, M, mu)
+        assert np.allclose(W[b], Wb, rtol=1e-12, atol=1e-14) and np.allclose(Pn[b], Pb, rtol=1e-12, atol=1e-14)
+        assert np.allclose(y[b], relay_information(Hw[b], mom, res[b]), rtol=1e-12, atol=1e-14)

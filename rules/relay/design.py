@@ -564,8 +564,8 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     if groups.ndim > 2:  # depths at different rows for different items: one item at a time
         lead = Hw.shape[:-2]
         Pb, Hb = np.broadcast_to(P_pred, lead + P_pred.shape[-2:]), Hw
-        out = [relay_update(Pb[i], Hb[i], _take(mom, i), M if M.ndim == 2 else M[i], mu if mu.ndim == 1 else mu[i],
-                            rtol) for i in np.ndindex(lead)]
+        out = [relay_update(Pb[i], Hb[i], _take(mom, i)._replace(groups=groups[i]), M if M.ndim == 2 else M[i],
+                            mu if mu.ndim == 1 else mu[i], rtol) for i in np.ndindex(lead)]
         return (np.stack([w for w, _ in out]).reshape(lead + out[0][0].shape),
                 np.stack([p for _, p in out]).reshape(lead + out[0][1].shape))
     n, G = P_pred.shape[-1], groups.shape[-1]
@@ -681,8 +681,8 @@ def _stationary_point(P: np.ndarray, Hw, mom: NodeMoments, F, Q, M, mu, per_node
     ``Hw``, ``mom`` stacked; ``F``, ``Q``, ``M``, ``mu`` shared, or one per member when ``per_node``), each member
     Anderson-accelerated (:class:`designer.anderson.Anderson`, :data:`STATIONARY_MEMORY`) until its image ``T(Φ)``
     differs from ``Φ`` by less than :data:`STATIONARY_TOL` (relative) in trace and in Frobenius norm; a member
-    leaves the iteration when it has converged.  Returns ``(W, Φ, iterations)`` (Φ the images ``T(Φ)`` at the
-    last points and W their gains, and None), or ``(None, None, iterations, i)``: member ``i``'s trace beyond
+    leaves the iteration when it has converged.  Returns ``(W, Φ, iterations, None)`` (Φ the images ``T(Φ)`` at
+    the last points, W their gains), or ``(None, None, iterations, i)``: member ``i``'s trace beyond
     :data:`_BOUND_LIMIT` or not finite at a plain step (``i`` None: no fixed point in :data:`STATIONARY_MAX`
     iterations)."""
     k, n = P.shape[0], P.shape[-1]
