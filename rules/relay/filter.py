@@ -428,9 +428,11 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
         own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post, phi_pred=res.P_pred)
         if out is None:  # C zero: no consensus on estimates (np.zeros: pages the system gives only when written)
             m = res.P_post.shape[-1]  # the carried states' (the whole state's without regions)
-            given = {} if res.carried is None else {"phi_post": np.full((runs, steps + 1, n, m, m), np.nan),
-                                                    "phi_pred": np.full((runs, steps, n, m, m), np.nan)}
-            given.update(own if len(groups) == 1 else {})  # one group: its arrays, not a copy of them
+            if len(groups) == 1:  # one group: its arrays, not a copy of them
+                given = own
+            else:  # the groups' arrays gathered (carried ones m x m, not the whole state's)
+                given = {} if res.carried is None else {"phi_post": np.full((runs, steps + 1, n, m, m), np.nan),
+                                                        "phi_pred": np.full((runs, steps, n, m, m), np.nan)}
             out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), C=np.zeros((runs, steps, n, m, m)),
                                 K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan), **given)
             carried = res.carried
