@@ -687,6 +687,30 @@ def test_design_report_is_deterministic(designs):
     assert {n: (d / n).read_bytes() for n in before} == before
 
 
+def test_design_report_with_a_damaged_array_leaves_every_array_out_and_says_so(designs, tmp_path):
+    """schedule.npz opens but one member's data are damaged (the report reads each member when it needs it, not
+    all at once): the report says so and gives what schedule.json has, as for a lost file; the same file intact
+    gives the arrays' figures and the files line with every member's shape from its header."""
+    import zipfile
+
+    src, _ = designs["infeasible"]
+    (tmp_path / "schedule.json").write_bytes((src / "schedule.json").read_bytes())
+    with zipfile.ZipFile(src / "schedule.npz") as zin, zipfile.ZipFile(tmp_path / "schedule.npz", "w") as zout:
+        for name in zin.namelist():
+            data = zin.read(name)
+            zout.writestr(name, data[:-8] if name == "C.npy" else data)  # C's data cut short
+    write_report(tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    assert "schedule.npz cannot be read" in md and "**Infeasible.**" in md
+    assert "fig_margins.png" not in md and "- `schedule.npz`: " not in md
+    _check_self_contained((tmp_path / "report.html").read_text())
+    whole = (src / "report.md").read_text()
+    with np.load(src / "schedule.npz") as z:
+        shapes = {k: z[k].shape for k in z.files}
+    line = next(x for x in whole.splitlines() if x.startswith("- `schedule.npz`: "))
+    assert all(f"`{k}` {' x '.join(map(str, v))}" in line for k, v in shapes.items())
+
+
 def test_design_report_without_the_arrays(designs, tmp_path):
     """schedule.npz lost: the report says so and gives what schedule.json has (the bound from its trace_bound)."""
     src, _ = designs["infeasible"]

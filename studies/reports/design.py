@@ -17,6 +17,7 @@ is (28) on Φ_{k|k} (reported at step k), ``margin29[i, k]`` is (29) on Φ_{k+1|
 from __future__ import annotations
 
 import re
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -70,27 +71,80 @@ def _float_array(v, shape=None) -> np.ndarray | None:
     return a if a.ndim == 2 and (shape is None or a.shape == shape) else None
 
 
-def _load_arrays(d: Path) -> tuple[dict[str, np.ndarray] | None, str | None]:
+class _NpzArrays(Mapping):
+    """``schedule.npz``'s arrays, each read when asked for and not kept: :class:`_Schedule` reduces the large ones
+    (Φ to its traces, K and C to their norms) one at a time, so that the report never holds them together (3 x 0.8
+    GB on a 118-node grid, beside the design that wrote them)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        with np.load(path, allow_pickle=False) as z:
+            self.names = list(z.files)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self.names:
+            raise KeyError(name)
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                return np.asarray(z[name])
+        except Exception as exc:  # noqa: BLE001 - a damaged member: the report goes on without the arrays
+            raise _Unreadable(f"schedule.npz cannot be read ({type(exc).__name__}: {exc})") from exc
+
+    def __iter__(self):
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def shape(self, name: str) -> tuple:
+        """A member's shape from its header, without reading its data."""
+        try:
+            with zipfile.ZipFile(self.path) as zf, zf.open(f"{name}.npy") as fh:
+                version = np.lib.format.read_magic(fh)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0) else
+                        np.lib.format.read_array_header_2_0)
+                return tuple(read(fh)[0])
+        except Exception as exc:  # noqa: BLE001 - a damaged member: the report goes on without the arrays
+            raise _Unreadable(f"schedule.npz cannot be read ({type(exc).__name__}: {exc})") from exc
+
+
+class _Unreadable(Exception):
+    """A member of ``schedule.npz`` that cannot be read; its message is the report's note."""
+
+
+def _load_arrays(d: Path) -> tuple[Mapping[str, np.ndarray] | None, str | None]:
     path = d / "schedule.npz"
     if not path.is_file():
         return None, "schedule.npz is missing"
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: np.asarray(z[k]) for k in z.files}, None
+        return _NpzArrays(path), None
     except Exception as exc:  # noqa: BLE001 - a damaged file: the report says so and goes on with the JSON
         return None, f"schedule.npz cannot be read ({type(exc).__name__}: {exc})"
+
+
+def _schedule(meta: Mapping, arrays: Mapping | None, note: str | None) -> tuple["_Schedule", Mapping | None, str | None]:
+    """The report's :class:`_Schedule` of ``meta`` and ``arrays``; a member that cannot be read leaves every array
+    out, with the note that says so: ``(schedule, arrays, note)``."""
+    try:
+        return _Schedule(meta, arrays), arrays, note
+    except _Unreadable as exc:
+        return _Schedule(meta, None), None, str(exc)
 
 
 class _Schedule:
     """What the report needs of a schedule, from ``schedule.json`` and (if readable) ``schedule.npz``."""
 
     def __init__(self, meta: Mapping, arrays: Mapping[str, np.ndarray] | None):
+        # each array read once (a schedule.npz's when asked for, _NpzArrays), the large ones kept only as what the
+        # report shows of them: Φ's traces, K's and C's norms
         self.meta = meta
-        self.arrays = arrays or {}
+        arrays = arrays or {}
+        self.shapes = {k: (arrays.shape(k) if isinstance(arrays, _NpzArrays) else np.shape(arrays[k])) for k in arrays}
         tb = _float_array(meta.get("trace_bound")) if isinstance(meta.get("trace_bound"), list) else None
-        phi, valid = self.arrays.get("Phi"), self.arrays.get("valid")
+        phi, valid = arrays.get("Phi"), arrays.get("valid")
+        self.valid = valid
         self.trace = None  # (nodes, steps + 1): tr Φ_{k|k}, NaN where not a bound
-        carried, mask = self.arrays.get("carried"), self.arrays.get("region_mask")
+        carried, mask = arrays.get("carried"), arrays.get("region_mask")
         fits = phi is not None and valid is not None and phi.ndim == 4 and valid.shape == phi.shape[:2]
         if fits and carried is not None:  # the nodes carry their regions, judged on them: arrays that agree only
             fits = (mask is not None and carried.shape == (phi.shape[0], phi.shape[-1]) and mask.ndim == 2
@@ -106,6 +160,7 @@ class _Schedule:
             self.trace = np.where(valid.astype(bool), tr, np.nan)
         elif tb is not None:
             self.trace = np.concatenate([np.full((tb.shape[0], 1), np.nan), tb], axis=1)
+        del phi
         n = meta.get("nodes")
         self.nodes = int(n) if is_num(n) else (self.trace.shape[0] if self.trace is not None else 0)
         k = meta.get("steps")
@@ -113,14 +168,20 @@ class _Schedule:
         shape = (self.nodes, self.steps)
 
         def arr(name):
-            a = self.arrays.get(name)
+            a = arrays.get(name)
             if a is not None and a.shape == shape:
                 return a.astype(float)
             return _float_array(meta[name], shape) if name in meta and isinstance(meta[name], list) else None
 
         self.sigma, self.beta = arr("sigma"), arr("beta")
-        self.m28 = self.arrays.get("margin28") if _shaped(self.arrays.get("margin28"), shape) else None
-        self.m29 = self.arrays.get("margin29") if _shaped(self.arrays.get("margin29"), shape) else None
+        m28, m29 = arrays.get("margin28"), arrays.get("margin29")
+        self.m28 = m28 if _shaped(m28, shape) else None
+        self.m29 = m29 if _shaped(m29, shape) else None
+        self.gain_norms = {}  # per gain, each node's largest spectral norm over the steps (the per-node table)
+        for name in ("K", "C"):
+            a = arrays.get(name)
+            self.gain_norms[name] = [_max_norm(a, i) for i in range(self.nodes)]
+            del a
         v = meta.get("violations")
         self.violations = [x for x in v if isinstance(x, dict)] if isinstance(v, list) else []
         self.hard = [x for x in self.violations if x.get("condition") in HARD]
@@ -374,7 +435,7 @@ _THEOREM2_STEPS = ("Theorem 2's condition is checked on Φ_{{k|k}} at every step
 
 def _theorem2_checked(s: _Schedule) -> str:
     """" of N" where N is the number of node-steps at which Theorem 2 was checked (Φ_{k|k} a bound), when known."""
-    valid = s.arrays.get("valid")
+    valid = s.valid
     if valid is None or valid.shape != (s.nodes, s.steps + 1):
         return ""
     return f" of the {int(np.count_nonzero(valid))} checked"
@@ -501,7 +562,7 @@ def _node_section(s: _Schedule) -> list[str]:
             bet_text = _stats(bet) if bet is not None else "—"
         first = s.first_hard(i)
         rows.append([f"{i}", md_cell(s.sensor(i)), md_cell(fmt_num(eps)), md_cell(sig_text), md_cell(bet_text),
-                     _max_norm(s.arrays.get("K"), i), _max_norm(s.arrays.get("C"), i), md_cell(_final_bound(s, i)),
+                     s.gain_norms["K"][i], s.gain_norms["C"][i], md_cell(_final_bound(s, i)),
                      md_cell(_plain_violation(first)) if first else "none"])
     what = ("the paper's fixed σ and β (a node on its fallback uses 0)" if fixed else
             "σ and β as min / median / max over the steps where the node had a bound")
@@ -719,15 +780,15 @@ def software_lines(meta: Mapping) -> list[str]:
                                                                      for k, x in v.items()], ["l", "l"])]
 
 
-def _files_section(meta: Mapping, arrays: Mapping | None, note: str | None, figures: list[str]) -> list[str]:
+def _files_section(meta: Mapping, shapes: Mapping | None, note: str | None, figures: list[str]) -> list[str]:
     out = ["## Files and reproduction", ""]
     schema = meta.get("schema")
     out.append(f"- `schedule.json`: schema `{md_escape(schema)}`; feasibility, ε, σ, β, tr Φ per node and step, "
                "every violated condition with its node, step and margin" if isinstance(schema, str) else
                "- `schedule.json`")
-    if arrays:
-        out.append("- `schedule.npz`: " + ", ".join(f"`{k}` {md_escape(' x '.join(map(str, a.shape)))}"
-                                                    for k, a in arrays.items() if re.fullmatch(r"\w+", k)))
+    if shapes:
+        out.append("- `schedule.npz`: " + ", ".join(f"`{k}` {md_escape(' x '.join(map(str, shape)))}"
+                                                    for k, shape in shapes.items() if re.fullmatch(r"\w+", k)))
     if note:
         out.append(f"- {md_escape(note)}: the margins, the gains and the figures are left out")
     for name in figures:
@@ -870,7 +931,12 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
                   figures: list[str] = (), note: str | None = None, extra: list[str] | None = None) -> str:
     """The design report as Markdown from ``schedule.json`` (``meta``) and ``schedule.npz`` (``arrays``); ``extra``:
     the automatic design's sections (:func:`studies.reports.auto.auto_section`), after the verdict."""
-    s = _Schedule(meta, arrays)
+    s, arrays, note = _schedule(meta, arrays, note)
+    return _render(s, meta, figures, note, extra)
+
+
+def _render(s: "_Schedule", meta: Mapping[str, Any], figures, note: str | None, extra: list[str] | None) -> str:
+    """:func:`render_design` of the schedule ``s`` already read."""
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "unnamed scenario"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else "unknown"
     head = [f"# Design report: {md_escape(scenario)}", "",
@@ -890,7 +956,7 @@ def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | No
         _attack_section(meta), _network_section(meta), observability_section(meta), _scenario_section(meta),
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario or the "
                            "design had to decide:"),
-        _files_section(meta, arrays, note, list(figures))], _summary(s, tight, list(figures)))
+        _files_section(meta, s.shapes, note, list(figures))], _summary(s, tight, list(figures)))
 
 
 def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, bytes], str]:
@@ -901,8 +967,7 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
     """
     into = d if into is None else into
     meta = read_record(d, "schedule.json", "cfdesign.schedule/1", "a design's")
-    arrays, note = _load_arrays(d)
-    s = _Schedule(meta, arrays)
+    s, _, note = _schedule(meta, *_load_arrays(d))
     scenario = meta.get("scenario") if isinstance(meta.get("scenario"), str) else "design"
     mode = meta.get("mode") if isinstance(meta.get("mode"), str) else ""
     label = f"{scenario[:80]}, {mode[:40]} design".replace("$", r"\$")  # no mathtext from a name; a title's size
@@ -921,6 +986,6 @@ def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, byt
     if auto is not None:
         figures += auto[1]
     images = {name: (into / name).read_bytes() for name in figures}
-    md = render_design(meta, arrays, [f for f in figures if auto is None or f not in auto[1]], note,
-                       extra=None if auto is None else auto[0])
+    md = _render(s, meta, [f for f in figures if auto is None or f not in auto[1]], note,
+                 None if auto is None else auto[0])
     return md, images, f"cfdesign design report: {scenario}"
