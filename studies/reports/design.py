@@ -122,7 +122,8 @@ def _load_arrays(d: Path) -> tuple[Mapping[str, np.ndarray] | None, str | None]:
         return None, f"schedule.npz cannot be read ({type(exc).__name__}: {exc})"
 
 
-def _schedule(meta: Mapping, arrays: Mapping | None, note: str | None) -> tuple["_Schedule", Mapping | None, str | None]:
+def _schedule(meta: Mapping, arrays: Mapping | None, note: str | None
+              ) -> tuple["_Schedule", Mapping | None, str | None]:
     """The report's :class:`_Schedule` of ``meta`` and ``arrays``; a member that cannot be read leaves every array
     out, with the note that says so: ``(schedule, arrays, note)``."""
     try:
