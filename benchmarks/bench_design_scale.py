@@ -111,8 +111,8 @@ over the horizon not done), auto refused after 53 s (the validation's estimate, 
 1.3 GB, flood L = 4 picked).  The 2 x 4 field's scheduled design (N n = 64: its stationary LMI is solved) was stopped
 at 8 GB after 47 s.  2026-12-06 (the relay rule's stationary recursion Anderson-accelerated, its update without
 the dense grouped rows; load about 1.5): field 64 cells relay 32 s, 0.85 GB, flood 34 s, 1.5 GB; 118-bus grid (each
-bus's node carrying its region, the default 8 hops) relay 103 s, flood 108 s, both certified, 4.4-4.5 GB; auto of
-either stopped at 8 GB in its validation runs.
+bus's node carrying its region, the default 8 hops) relay 102 s, flood 104 s, both certified, 3.6 GB (4.4-4.5 GB
+before the report read schedule.npz one array at a time); auto of either stopped at 8 GB in its validation runs.
 
 Run: ``python benchmarks/bench_design_scale.py --models field grid14 [grid30 grid118 --pandapower-python PY]
 [--field-sizes 4x4 5x4 8x8] [--modes relay flood scheduled auto] [--seed 0] [--validate R] [--timeout 300]
