@@ -572,6 +572,7 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
                     backend=_validation_backend(), **VALIDATION_OPTIONS)  # the runner's progress bar on a terminal
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
+    key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by
     rows = {}
     for name, f in filters.items():
         if name.startswith("consensus-EKF") and name != mine:
@@ -584,12 +585,10 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
             row["rmse_position"] = f["rmse_position"]
         if f.get("rmse_region") is not None:  # the model declares regions: each node on its own states
             row["rmse_region"] = f["rmse_region"]
-        key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by
         row[f"{key}_ci95"] = f.get(f"{key}_ci95")
         if name == mine:
             row.update(bound_check=f.get("bound_check"), verdicts=f.get("verdicts"))
         rows["pick" if name == mine else name] = row
-    key = "rmse_region" if pick.scenario.regions is not None else "rmse"
     ratios = {n: json_number(rows["pick"][key] / r[key]) for n, r in rows.items()
               if n != "pick" and rows.get("pick", {}).get(key) is not None and r.get(key)}
     local = rows.get(baseline_names(pick.scenario)[0], {})
