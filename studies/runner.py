@@ -47,6 +47,13 @@ configuration, nor an edited or truncated file can enter the results.  The check
 corruption and mixing, not a forger who recomputes it.  The arrays returned always hold
 exactly one row per run (checked).
 
+**Gathered as they come.**  A chunk's per-run arrays are written into the rows of the runs' arrays as the chunk
+finishes (no chunk is kept, nothing is concatenated), so the parent holds the runs' results once.  An output named
+``SUMMED + name`` (one row per run, as every output) is kept only as its sum over the runs (``SUMMED + name`` of the
+result, without the run axis: what a study needs of an array too large to keep run by run, such as the bounds Φ):
+the rows are added one run after the other in run order, whatever order the chunks finish in, so the sum is the
+same bit for bit whatever the chunks, workers or backend (a chunk that comes early waits for those before it).
+
 **Failures are reported, not swallowed.**  When a chunk raises, the runner
 recomputes its runs one at a time to find the failing run and raises
 :class:`RunFailed` naming the run, its seed and spawn key and the original error;
@@ -84,10 +91,11 @@ from designer.validation import ComputationError, InputError, check_int
 from .interrupts import Interrupts
 from .memory import available_memory
 
-__all__ = ["Backend", "Timed", "run_forked", "make_backend", "load_security", "run_seed", "chunk_ranges", "monte_carlo",
-           "MonteCarloResult", "RunFailed", "CHUNKS_DIR"]
+__all__ = ["SUMMED", "Backend", "Timed", "run_forked", "make_backend", "load_security", "run_seed", "chunk_ranges",
+           "monte_carlo", "MonteCarloResult", "RunFailed", "CHUNKS_DIR"]
 
 _MANIFEST_SCHEMA = "cfdesign.chunks/2"
+SUMMED = "summed_"  # a task's output named SUMMED + name is kept as its sum over the runs, added in run order
 _META = "__cfdesign_chunk__"  # the entry of a chunk file that says what it is
 BACKENDS = ("batched", "processes", "dask")
 
@@ -217,6 +225,9 @@ def _check_output(out, start: int, stop: int) -> dict:
     arrays = {}
     for k, v in out.items():
         a = np.asarray(v)
+        if str(k).startswith(SUMMED) and not np.issubdtype(a.dtype, np.number):
+            raise ComputationError(f"task output {k!r} (kept as its sum over the runs) must be numeric, got dtype "
+                                   f"{a.dtype} for runs {start}..{stop - 1}")
         if a.ndim == 0 or a.shape[0] != stop - start or a.dtype == object:
             raise ComputationError(f"task output {k!r} must be a numeric array with one row per run "
                                    f"({stop - start}), got shape {a.shape} dtype {a.dtype}")
@@ -690,18 +701,19 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
         manifest = {"schema": _MANIFEST_SCHEMA, "label": label, "seed": seed, "chunk_size": chunk_size,
                     "config": _normalised(config or {}), "code": code_fingerprint()}
         st = _Store(Path(store), label, manifest, force)
-    done: dict[tuple[int, int], dict] = {}
+    done = _Gather(ranges, runs)
     reused, rejected = [], []
     if st is not None:
         for c in ranges:
             arrays, why = st.load(c)
             if arrays is not None:
-                done[c], _ = arrays, reused.append(c)
+                done.add(c, arrays, stored=True)
+                reused.append(c)
             elif why is not None:
                 rejected.append({"runs": [c[0], c[1]], "reason": why})
                 print(f"cfdesign: stored chunk {st.file(c)} (runs {c[0]}..{c[1] - 1}) not reused: {why}; "
                       "recomputing it", file=sys.stderr)
-    pending = [c for c in ranges if c not in done]
+    pending = [c for c in ranges if c not in reused]
     computed: list[tuple[int, int]] = []
 
     sized = []
@@ -712,7 +724,7 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
             sized.append(_check_memory(arrays, c, runs))
         if st is not None:
             st.save(c, arrays)
-        done[c] = arrays
+        done.add(c, arrays)
         computed.append(c)
 
     bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
@@ -726,23 +738,70 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
             _run_processes(task, pending, seed, backend.workers, finish, quiet, bar_desc)
         else:
             _run_dask(task, pending, seed, backend, finish, quiet, bar_desc)
-    keys = list(done[ranges[0]])
-    for c in ranges:
-        if sorted(done[c]) != sorted(keys):
-            raise ComputationError(f"chunk {c} has outputs {sorted(done[c])}, expected {sorted(keys)}"
-                                   + (f"; use {_FORCE} if the stored chunks are from an older version" if c in reused
+    return MonteCarloResult(done.result(), computed, reused, backend, chunk_size, time.perf_counter() - t0, rejected)
+
+
+class _Gather:
+    """The chunks' arrays gathered as they finish: per-run arrays written into their runs' rows, the rows of a
+    :data:`SUMMED` output added one run after the other in run order (a chunk that comes early waits for the chunks
+    before it)."""
+
+    def __init__(self, ranges: list[tuple[int, int]], runs: int):
+        self.ranges, self.runs = ranges, runs
+        self.keys: list[str] | None = None
+        self.rows: dict[str, np.ndarray] = {}
+        self.totals: dict[str, np.ndarray] = {}
+        self.waiting: dict[tuple[int, int], dict] = {}
+        self.filled = 0  # chunks added
+        self.summed = 0  # chunks (in run order) whose totals are added
+
+    def add(self, c: tuple[int, int], arrays: Mapping[str, np.ndarray], stored: bool = False) -> None:
+        keys = sorted(arrays)
+        if self.keys is None:
+            self.keys = keys
+            self.rows = {k: np.empty((self.runs,) + a.shape[1:], a.dtype) for k, a in arrays.items()
+                         if not k.startswith(SUMMED)}
+        elif keys != self.keys:
+            raise ComputationError(f"chunk {c} has outputs {keys}, expected {self.keys}"
+                                   + (f"; use {_FORCE} if the stored chunks are from an older version" if stored
                                       else ""))
-    arrays = {k: np.concatenate([done[c][k] for c in ranges], axis=0) for k in keys}
-    short = [k for k, a in arrays.items() if a.shape[0] != runs]
-    if short:
-        raise ComputationError(f"the runs' arrays hold {arrays[short[0]].shape[0]} rows of {short[0]!r} for {runs} "
-                               "runs")
-    return MonteCarloResult(arrays, computed, reused, backend, chunk_size, time.perf_counter() - t0, rejected)
+        for k, a in arrays.items():
+            if k.startswith(SUMMED):
+                if a.shape[0] != c[1] - c[0]:
+                    raise ComputationError(f"chunk {c}'s {k!r} has {a.shape[0]} rows for {c[1] - c[0]} runs")
+                continue
+            into = self.rows[k]
+            if a.shape[1:] != into.shape[1:]:
+                raise ComputationError(f"chunk {c}'s {k!r} has rows of shape {a.shape[1:]}, the chunks before "
+                                       f"{into.shape[1:]}")
+            if np.result_type(a.dtype, into.dtype) != into.dtype:  # as a concatenation would promote
+                self.rows[k] = into = into.astype(np.result_type(a.dtype, into.dtype))
+            into[c[0]:c[1]] = a
+        self.waiting[c] = {k: a for k, a in arrays.items() if k.startswith(SUMMED)}
+        self.filled += 1
+        while self.summed < len(self.ranges) and self.ranges[self.summed] in self.waiting:
+            for k, a in self.waiting.pop(self.ranges[self.summed]).items():
+                for row in a:  # one run after the other: the same bits whatever the chunks
+                    if k not in self.totals:
+                        self.totals[k] = np.array(row, dtype=np.result_type(row.dtype, np.float64), copy=True)
+                    elif self.totals[k].shape != row.shape:
+                        raise ComputationError(f"chunk {c}'s rows of {k!r} have shape {row.shape}, the runs before "
+                                               f"{self.totals[k].shape}")
+                    else:
+                        self.totals[k] += row
+            self.summed += 1
+
+    def result(self) -> dict[str, np.ndarray]:
+        if self.filled != len(self.ranges) or self.summed != len(self.ranges):
+            raise ComputationError(f"{self.filled} of {len(self.ranges)} chunks gathered")
+        return {**self.rows, **self.totals}
 
 
 def _check_memory(arrays: Mapping[str, np.ndarray], c: tuple[int, int], runs: int) -> bool:
     """After the first chunk: refuse (InputError) a study whose per-run results cannot fit in memory."""
-    need = sum(a.nbytes for a in arrays.values()) / (c[1] - c[0]) * runs * 2  # the chunks and their concatenation
+    rows = sum(a.nbytes for k, a in arrays.items() if not k.startswith(SUMMED))  # kept for every run
+    summed = sum(a.nbytes for k, a in arrays.items() if k.startswith(SUMMED))  # a chunk's, then their sum
+    need = rows / (c[1] - c[0]) * runs + summed * (1 + 1 / (c[1] - c[0]))
     have = available_memory()
     if have is not None and need > have:
         raise InputError(f"runs = {runs} would hold {need / 1e9:.3g} GB of per-run results, more than the "
@@ -766,7 +825,7 @@ def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
                     line(desc, len(pending) - len(left), len(pending))
                 continue
             for f in sorted(finished, key=lambda f: futures[f]):
-                c = futures[f]
+                c = futures.pop(f)  # the future holds its chunk's arrays: gathered, they go
                 try:
                     arrays = f.result()
                 except BrokenProcessPool as exc:
@@ -774,7 +833,9 @@ def _run_processes(task, pending, seed, workers, finish, quiet, desc) -> None:
                         f"a worker process died while computing runs {c[0]}..{c[1] - 1}; the chunks finished "
                         f"before are kept, rerun the same command to resume") from exc
                 finish(c, arrays)
+                del arrays
                 bar.update()
+            del finished
         bar.close()
     except BaseException:
         for f in futures:
@@ -804,7 +865,7 @@ def _run_dask(task, pending, seed, backend: Backend, finish, quiet, desc) -> Non
         with client.as_current():  # as_completed looks for the current client
             futures = {client.submit(_compute, task, c[0], c[1], seed, pure=False): c for c in pending}
             for f in progress(as_completed(list(futures)), len(futures), quiet, desc):
-                finish(futures[f], f.result())
+                finish(futures.pop(f), f.result())  # the future holds its chunk's arrays: gathered, they go
     except BaseException:
         client.cancel(list(futures))
         raise

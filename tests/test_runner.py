@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from designer.validation import ComputationError, InputError
-from studies.runner import (CHUNKS_DIR, Backend, RunFailed, chunk_ranges, make_backend, monte_carlo, run_seed)
+from studies.runner import (CHUNKS_DIR, SUMMED, Backend, RunFailed, chunk_ranges, make_backend, monte_carlo,
+                            run_seed)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -208,6 +209,40 @@ def test_killed_worker_is_reported_and_the_study_resumes(tmp_path):
     res = monte_carlo(task, runs=12, seed=4, chunk_size=3, store=tmp_path / "s", backend=Backend("processes", workers=2))
     assert (9, 12) in res.computed
     assert np.array_equal(res.arrays["x"], reference(12, 4))
+
+
+def totals_task(run_ids, seeds, *, slow_first=0.0):
+    """toy_task's rows, also kept as their sum; the first chunks wait, so the later ones finish first."""
+    if slow_first and run_ids[0] < 6:
+        time.sleep(slow_first)
+    out = toy_task(run_ids, seeds)
+    return {**out, f"{SUMMED}x": out["x"], f"{SUMMED}count": np.ones(len(run_ids), int)}
+
+
+@pytest.mark.parametrize("chunk", [3, 17])
+def test_summed_rows_are_added_in_run_order_whatever_the_chunks_and_the_order_they_finish_in(tmp_path, chunk):
+    """A SUMMED output is its rows added one run after the other (an independent reference: a loop over the runs'
+    rows), the same bits in one chunk or several, whether they finish in order (batched), out of order (two
+    workers, the first chunks slowed) or come back from the store; the per-run rows are as before."""
+    rows = reference(17, 3)
+    want = rows[0].copy()
+    for row in rows[1:]:
+        want += row
+    kw = dict(runs=17, seed=3, chunk_size=chunk)
+    got = [monte_carlo(totals_task, **kw).arrays,
+           monte_carlo(functools.partial(totals_task, slow_first=0.5), backend=Backend("processes", workers=2),
+                       **kw).arrays]
+    monte_carlo(totals_task, store=tmp_path, config={"x": 1}, **kw)
+    again = monte_carlo(totals_task, store=tmp_path, config={"x": 1}, **kw)
+    assert len(again.reused) == len(chunk_ranges(17, chunk)) and not again.computed
+    got.append(again.arrays)
+    for arrays in got:
+        assert np.array_equal(arrays[f"{SUMMED}x"], want) and arrays[f"{SUMMED}x"].shape == (42,)
+        assert arrays[f"{SUMMED}count"] == 17
+        assert np.array_equal(arrays["x"], rows) and np.array_equal(arrays["run"], np.arange(17))
+    with pytest.raises(ComputationError, match="numeric"):
+        monte_carlo(lambda ids, seeds: {"x": np.zeros(len(ids)), f"{SUMMED}t": np.array(["a"] * len(ids))}, runs=2,
+                    seed=0, chunk_size=1)
 
 
 def test_task_output_is_checked():
