@@ -44,7 +44,7 @@ from .runner import Background, run_forked
 from .scenarios import Scenario
 
 __all__ = ["Design", "consensus_design", "effective_design", "with_tables", "run_design", "DESIGN_ASSUMPTIONS",
-           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "bound_traces",
+           "check_first_step", "prefetch_tables", "design_verdict", "bound_verdicts", "trace_verdicts", "bound_traces",
            "scenario_open_loop", "judged_positions"]
 
 
@@ -324,11 +324,17 @@ def bound_verdicts(sc: Scenario, phi_post: np.ndarray, valid: np.ndarray, feasib
     at no step 1..K carries no certificate: ``not computed``.  With ``carried`` (the result's, its nodes carrying
     ``design``'s regions) each node is judged on its region against the open loop on the same states.
     """
+    return trace_verdicts(sc, bound_traces(phi_post[:, 1:], valid[:, 1:], judged_positions(carried, design)),
+                          feasible, design if carried is not None else None)
+
+
+def trace_verdicts(sc: Scenario, tr: np.ndarray, feasible, design: ConsensusDesign | None = None) -> list[Verdict]:
+    """:func:`bound_verdicts` from the runs' traces ``tr`` (runs, nodes, K) at steps 1..K
+    (:func:`bound_traces`: NaN where Φ is not a bound), judged on ``design``'s carried regions when it is given (its
+    nodes carry them), else on the whole state."""
     feasible = np.asarray(feasible, dtype=bool)
-    positions = judged_positions(carried, design)
-    K = phi_post.shape[1] - 1
-    ol = scenario_open_loop(sc, K) if positions is None else scenario_open_loop(sc, K, design.carried_regions)
-    tr = bound_traces(phi_post[:, 1:], valid[:, 1:], positions)
+    K = tr.shape[-1]
+    ol = scenario_open_loop(sc, K) if design is None else scenario_open_loop(sc, K, design.carried_regions)
     none = "Φ is a bound at no step of the run (no certificate was computed for it)"
     return [verdict(t, ol, feasible=bool(f), not_computed=none if f and np.isnan(t).all() else None)
             for t, f in zip(tr, feasible)]

@@ -21,12 +21,14 @@ The runs are computed by :mod:`studies.runner` in chunks of ``chunk_size`` runs
 arrays); a run's numbers depend only on ``seed`` and its index, so they are the
 same in this process, with local worker processes or on a Dask cluster, and an
 interrupted study resumes from the chunks stored in ``out``.  Metrics, the bound
-check and the figures are computed afterwards from the concatenated arrays.
+check and the figures are computed afterwards from the gathered arrays: a run keeps
+what the check needs of its bounds (:func:`bound_statistics`: its errors whitened by
+them and their traces), not the bounds, which are nodes x n_x x n_x numbers a step.
 
 Besides RMSEs per node and over time, the study checks whether Φ bounds
 anything (:func:`bound_check`): at every (node, step) where Φ is a bound in enough
-runs, it compares the empirical error second moment with the run-averaged Φ along
-the direction of largest excess (a one-sided test at the level of ``Z_EXCESS``
+runs, it compares the second moment of the errors whitened by each run's Φ with the
+identity along the direction of largest excess (a one-sided test at the level of ``Z_EXCESS``
 normal standard errors, Student's t with the runs' degrees of freedom), and, since a
 few runs with huge errors take that test's power, it tests each run's error energy
 against its bound's trace with Markov's inequality
@@ -37,6 +39,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
 
@@ -50,23 +53,25 @@ from designer.validation import InputError, check_bool, check_int, check_positiv
 from filters.attacks import simulate_attacks
 from filters.channels import GATE_COUNTS
 
-from .comparison import HCMCI_ITERATIONS
+from .comparison import HCMCI_ITERATIONS, chunk_size as balanced_chunk_size
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, informative, settled_steps
 
-from .consensus_design import (bound_traces, bound_verdicts, check_first_step, consensus_design, judged_positions,
-                               scenario_open_loop)
+from .consensus_design import (bound_traces, check_first_step, consensus_design, judged_positions, scenario_open_loop,
+                               trace_verdicts)
 from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
 from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
-from .runner import run_seed
+from .runner import SUMMED, run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
-__all__ = ["STUDY", "bound_check", "per_run_check", "excess_quantile", "Z_EXCESS", "MIN_RUNS_FOR_CHECK",
-           "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE"]
+__all__ = ["STUDY", "bound_check", "bound_statistics", "per_run_check", "excess_quantile", "Z_EXCESS",
+           "MIN_RUNS_FOR_CHECK",
+           "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE",
+           "CHUNK_BOUND_BYTES", "chunk_size"]
 
 Z_EXCESS = 3.0  # an excess over Φ counts at the level of this many normal standard errors (one-sided 0.135%),
 #                 Student's t's quantile with the runs' degrees of freedom at that level (excess_quantile)
@@ -76,11 +81,12 @@ MARKOV_LEVELS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)  
 BOUND_TEST_ALPHA = 0.01  # the run test's level: a bound that holds is called violated at most this often
 WINSOR_QUANTILE = 0.9  # the average's tolerance is the spread of the runs' ratios clipped at this quantile
 PAPER_NODES = (2, 5)  # the paper's Figs. 2-3 show the channels of nodes 2 and 5 (1-based)
-CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (the unit stored and sent to a worker)
+CHUNK_SIZE = 10  # runs per chunk of the Monte Carlo runner (the unit stored and sent to a worker), at most
+CHUNK_BOUND_BYTES = 2**28  # a chunk's bounds (the filter's Φ along its runs, n_x x n_x a node and step): at most this
 REASON_BYTES = 200  # a diverged run's reason, stored as this many UTF-8 bytes (longer ones are cut)
 
 
-def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None = None,
+def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray | None = None,
                 positions=None) -> dict:
     """Is Φ an upper bound of the error covariance?  Three checks and a verdict; then what the bound is worth, in
     the design's words: how many runs' bounds are informative, and how tightly the runs fill it.
@@ -88,7 +94,8 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
     Parameters
     ----------
     err : (runs, steps, nodes, n_x) estimation errors ``x - x_hat`` at steps 1..K.
-    phi : (runs, steps, nodes, n_x, n_x) the bounds of each run.
+    phi : (runs, steps, nodes, n_x, n_x) the bounds of each run, or what the checks need of them,
+        :func:`bound_statistics` of the same runs and steps (a study keeps those, not the bounds).
     valid : (runs, steps, nodes) where ``phi`` is a bound.
     open_loop : (steps,), optional
         The scenario's open-loop covariance's trace at the same steps
@@ -100,11 +107,13 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
         ``fill``) is then judged on each node's region, as the design judges it.
 
     **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
-    least ``MIN_RUNS_FOR_CHECK`` valid runs, the direction ``v`` of largest eigenvalue of
-    ``P̂ - Φ̄`` (both over the valid runs), the per-run differences ``d_r = (vᵀ e_r)² - vᵀ Φ_r v``,
-    and an excess when ``mean(d) > t * std(d) / sqrt(n)`` (``t``: :func:`excess_quantile`).  This test is sharp for
-    light-tailed errors, and powerless when a few runs have huge errors (their spread swamps
-    any mean).
+    least ``MIN_RUNS_FOR_CHECK`` valid runs, each run's error whitened by its own bound, ``w_r = L_r⁻¹ e_r`` with
+    ``Φ_r = L_r L_rᵀ`` (where Φ_r bounds the run's error covariance, ``E[w_r w_rᵀ] ≤ I``: each direction on its
+    own scale, a small variance as much as a large one), the direction ``u`` of largest eigenvalue of the runs' mean
+    ``w wᵀ``, the per-run excesses ``d_r = (uᵀ w_r)² - 1``, and an excess when ``mean(d) > t * std(d) / sqrt(n)``
+    (``t``: :func:`excess_quantile`).  This test is sharp for light-tailed errors, and powerless when a few runs have
+    huge errors (their spread swamps any mean).  ``max_excess`` is the largest eigenvalue of ``P̂ - Φ̄``, the
+    empirical second moment less the run-averaged bound (both over the valid runs), over the checked pairs.
 
     **Per run** (``run_test``): each run's error energy over its bound,
     ``ρ_r = Σ ‖e_{r,k,i}‖² / Σ tr Φ_{r,k,i}`` over the (node, step) pairs where Φ is a bound.
@@ -132,6 +141,7 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
     runs of each run's error energy over its bound's trace over the steps after the prior's transient
     (``fill_steps``: :func:`designer.verdict.settled_steps`, the window of the design's growth test).
     """
+    st = phi if isinstance(phi, Mapping) else bound_statistics(err, phi, valid, positions)
     runs, steps, nodes, nx = err.shape
     checked = exceed = 0
     max_excess = -np.inf
@@ -144,12 +154,12 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
             if n < MIN_RUNS_FOR_CHECK:
                 continue
             e = err[sel, k, i]
-            ph = phi[sel, k, i]
             P = e.T @ e / n
-            Phi_bar = ph.mean(axis=0)
-            lam, vecs = np.linalg.eigh(0.5 * (P - Phi_bar + (P - Phi_bar).T))
-            v = vecs[:, -1]
-            d = (e @ v) ** 2 - np.einsum("a,rab,b->r", v, ph, v)
+            Phi_bar = st["phi_sum"][k, i] / n
+            lam = np.linalg.eigvalsh(0.5 * (P - Phi_bar + (P - Phi_bar).T))
+            w = st["white"][sel, k, i]
+            u = np.linalg.eigh(w.T @ w / n)[1][:, -1]
+            d = (w @ u) ** 2 - 1.0
             se = d.std(ddof=1) / np.sqrt(n)
             checked += 1
             if d.mean() > excess_quantile(n) * se:
@@ -158,7 +168,7 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
             max_rel = max(max_rel, float(lam[-1] / np.trace(Phi_bar)))
             ratios.append(float(np.trace(P) / np.trace(Phi_bar)))
     fraction = exceed / checked if checked else None
-    rt = per_run_check(err, phi, valid)
+    rt = per_run_check(err, st["trace"], valid)
     if fraction is None and rt["runs"] == 0:
         verdict, why = "not checked", "Φ is a bound at no (node, step) of any run"
     elif rt["mean_exceeds"] or rt["rejected"] or (fraction is not None and fraction > MAX_FRACTION_EXCEEDING):
@@ -201,16 +211,67 @@ def bound_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: 
         "run_test": rt,
         "verdict": verdict,
         "verdict_reason": why,
-        **_worth(err, phi, valid, open_loop, positions),
+        **_worth(err, st["judged"], valid, open_loop, positions),
     }
 
 
-def _worth(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None, positions=None) -> dict:
+def bound_statistics(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, positions=None) -> dict[str, np.ndarray]:
+    """What :func:`bound_check` needs of the bounds ``phi`` (runs, steps, nodes, m, m) of the runs with errors ``err``
+    (runs, steps, nodes, m), valid where ``valid`` (runs, steps, nodes): a run's numbers of the size of its errors,
+    not of its bounds, and one sum of the bounds over the runs (a study keeps these, chunk by chunk).
+
+    ``trace`` (runs, steps, nodes): tr Φ where valid, else 0; ``judged``: the trace :func:`_worth` and the verdicts
+    judge (:func:`studies.consensus_design.bound_traces` over each node's region with ``positions``), (runs, steps,
+    nodes), NaN where not valid; ``white`` (runs, steps, nodes, m): each error whitened by its own bound, ``L⁻¹ e``
+    with ``Φ = L Lᵀ`` (a carried node's padding, a zero row and column of Φ, left out: 0 there), NaN where not
+    valid; ``phi_sum`` (steps, nodes, m, m): Φ summed over the runs where valid, one run after the other (as
+    :mod:`studies.runner` sums a study's runs' :data:`studies.runner.SUMMED` rows: the same bits)."""
+    R, K, N, m = err.shape
+    out = {"trace": np.zeros((R, K, N)), "judged": bound_traces(phi, valid, positions).swapaxes(1, 2),
+           "white": np.full((R, K, N, m), np.nan), "phi_sum": np.zeros((K, N, m, m))}
+    for k in range(K):  # a step at a time: no copy of the runs' bounds
+        ok = valid[:, k]
+        ph = phi[:, k][ok]  # (valid pairs, m, m)
+        if not ph.shape[0]:
+            continue
+        out["trace"][:, k][ok] = np.trace(ph, axis1=-2, axis2=-1)
+        out["white"][:, k][ok] = _whitened(err[:, k][ok], ph)
+    for r in range(R):
+        out["phi_sum"] += _masked(phi[r], valid[r])
+    return out
+
+
+def _masked(phi: np.ndarray, valid: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``phi`` (..., m, m) where ``valid`` (...), 0 elsewhere (a diverged run's Φ, or one past a violated condition,
+    adds nothing to the bounds' sum); in ``out`` (``phi`` itself: no copy of a chunk's bounds) when given."""
+    if out is None:
+        return np.where(valid[..., None, None], phi, 0.0)
+    np.copyto(out, 0.0, where=~valid[..., None, None])
+    return out
+
+
+def _whitened(e: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """``L⁻¹ e`` of each error ``e`` (p, m) and its bound ``phi`` (p, m, m) = L Lᵀ (Cholesky); padding (a zero row
+    and column of Φ, a zero error there) left out.  A bound that is not positive definite is whitened by its
+    eigenvectors, the eigenvalues floored at 1e-15 of the largest (a direction the bound leaves at zero then shows an
+    error there as a huge excess)."""
+    pad = np.diagonal(phi, axis1=-2, axis2=-1) == 0.0
+    A = phi + pad[..., :, None] * np.eye(phi.shape[-1])
+    try:
+        return np.linalg.solve(np.linalg.cholesky(A), e[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        lam, vec = np.linalg.eigh(0.5 * (A + np.swapaxes(A, -1, -2)))
+        lam = np.maximum(lam, 1e-15 * lam[..., -1:].clip(min=1e-300))
+        return np.einsum("pab,pa->pb", vec, e) / np.sqrt(lam)
+
+
+def _worth(err: np.ndarray, judged: np.ndarray, valid: np.ndarray, open_loop: np.ndarray | None,
+           positions=None) -> dict:
     """:func:`bound_check`'s ``informative`` (runs whose bound is informative at every step), ``fill`` and
     ``fill_steps`` (the runs' error energy over their bound's trace after the prior's transient); on each node's
-    region with ``positions``."""
+    region with ``positions`` (``judged``: :func:`bound_statistics`'s)."""
     steps = err.shape[1]
-    tr = bound_traces(phi, valid, positions)
+    tr = judged.swapaxes(1, 2)  # (runs, nodes, steps) as designer.verdict judges them
     if positions is not None:  # the error energy on the same states as the bound's trace
         err = np.where(region_mask(positions, err.shape[-1]), err, 0.0)
     count = None if open_loop is None else int(sum(informative(t, open_loop).all() for t in tr))
@@ -234,8 +295,9 @@ def excess_quantile(n: int) -> float:
     return float(t.ppf(norm.cdf(Z_EXCESS), n - 1))
 
 
-def per_run_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
-    """The per-run checks of :func:`bound_check` (its docstring says what they test).
+def per_run_check(err: np.ndarray, trace: np.ndarray, valid: np.ndarray) -> dict:
+    """The per-run checks of :func:`bound_check` (its docstring says what they test), from the errors ``err`` (runs,
+    steps, nodes, n_x) and their bounds' traces ``trace`` (runs, steps, nodes).
 
     Returns ``runs`` (runs with a bound somewhere), ``ratio_mean``, ``ratio_median``, ``ratio_max`` and
     ``fraction_above_1`` of the per-run ratios ``ρ_r``; ``tolerance`` and ``mean_exceeds`` (the average's
@@ -246,7 +308,7 @@ def per_run_check(err: np.ndarray, phi: np.ndarray, valid: np.ndarray) -> dict:
 
     sel = valid.astype(bool)
     energy = np.where(sel, np.einsum("rkia,rkia->rki", err, err), 0.0).sum(axis=(1, 2))
-    tr = np.where(sel, np.trace(np.where(sel[..., None, None], phi, 0.0), axis1=-2, axis2=-1), 0.0).sum(axis=(1, 2))
+    tr = np.where(sel, trace, 0.0).sum(axis=(1, 2))
     has = tr > 0
     rho = energy[has] / tr[has]
     n = int(rho.size)
@@ -380,11 +442,13 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`) ``v{j}_err`` (R, K + 1,
-    nodes, n_x) = x - x_hat (NaN in a diverged run), ``v{j}_valid`` (R, K + 1, nodes) where Φ is a bound, ``v{j}_phi``
-    (R, K + 1, nodes, n_x, n_x) for the variants checked against Φ (with ``v{j}_carried`` (R, nodes, m), nodes carrying
-    their regions: ``v{j}_phi`` in their carried coordinates, m x m, and ``v{j}_err`` NaN where a node does not carry),
-    ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29) violation
-    (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
+    nodes, n_x) = x - x_hat (NaN in a diverged run), ``v{j}_valid`` (R, K + 1, nodes) where Φ is a bound; for the
+    variants checked against Φ, what :func:`bound_check` needs of it, not Φ itself (nodes x m x m numbers a step):
+    :func:`bound_statistics`' ``v{j}_trace``, ``v{j}_judged`` and ``v{j}_white``, and ``SUMMED + v{j}_phi``, Φ where
+    it is a bound, of which the runner keeps the sum over the runs (with ``v{j}_carried`` (R, nodes, m), nodes
+    carrying their regions: in their carried coordinates, m wide, and ``v{j}_err`` NaN where a node does not carry);
+    ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29)
+    violation (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
     """
     sc, paper, variants = _build(ref, mode, options, replay, paper_reference)
@@ -401,8 +465,6 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                     f"v{j}_diverged": np.zeros(R, bool), f"v{j}_diverged_node": np.full(R, -1, np.int64),
                     f"v{j}_diverged_step": np.full(R, -1, np.int64),
                     f"v{j}_diverged_reason": np.zeros((R, REASON_BYTES), np.uint8)})
-        if v.entry.designed:
-            out[f"v{j}_phi"] = np.zeros((R, steps + 1, n, nx, nx))
         if v.entry.mode is not None:  # a consensus EKF: its exchange's packet counts
             out[f"v{j}_gate"] = np.zeros((R, len(GATE_COUNTS)), np.int64)
     limit = divergence_limit(m.prior.cov, divergence_spread)
@@ -424,7 +486,6 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         held = True  # every node carries every state
         if res.carried is not None:  # its nodes carry their regions: Φ in their carried coordinates
             out[f"v{j}_carried"] = np.broadcast_to(res.carried, (R,) + res.carried.shape).copy()
-            out[f"v{j}_phi"] = np.zeros((R, steps + 1, v.entry.nodes(net)) + res.cov.shape[-2:])
             held = Carried(res.carried, nx).held
         for a, dv in enumerate(res.diverged):
             far = None if dv is not None else first_divergence(
@@ -441,11 +502,27 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
             if v.entry.mode is not None:
                 out[f"v{j}_valid"][a] = res.valid[a]
                 out[f"v{j}_gate"][a] = res.detail.gate_counts[a].sum(axis=0)
-            if v.entry.designed:
-                out[f"v{j}_phi"][a] = res.cov[a]
             hard = [x["step"] for x in res.violations[a] if x["condition"] in ("(28)", "(29)")]
             out[f"v{j}_first_violation"][a] = min(hard) if hard else -1
+        if v.entry.designed:  # what the bound check needs of the runs' Φ, in the coordinates the nodes carry
+            err = out[f"v{j}_err"] if res.carried is None else Carried(res.carried, nx).vector(out[f"v{j}_err"])
+            stats = bound_statistics(err, res.cov, out[f"v{j}_valid"],
+                                     None if res.carried is None else judged_positions(res.carried, v.design))
+            phi = _masked(res.cov, out[f"v{j}_valid"], res.cov if res.cov.flags.writeable else None)
+            out.update({f"v{j}_trace": stats["trace"], f"v{j}_judged": stats["judged"], f"v{j}_white": stats["white"],
+                        f"{SUMMED}v{j}_phi": phi})  # the runner keeps their sum over the runs
+        del res
     return out
+
+
+def chunk_size(sc: Scenario, runs: int) -> int:
+    """Runs per chunk: the comparison's cut (:func:`studies.comparison.chunk_size`: a quarter of the runs on a large
+    model, so that the cores share them), and no more runs than keep a chunk's bounds Φ within
+    :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run), at least one.
+    A property of the model and the runs, never of the machine: the numbers do not depend on it (but the last bits
+    of ``max_excess``, whose sum of the bounds is added chunk by chunk)."""
+    one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * sc.model.n_x**2 * 8
+    return max(1, min(balanced_chunk_size(sc, runs), CHUNK_BOUND_BYTES // one))
 
 
 def _load_replay(schedule, sc) -> tuple:
@@ -531,7 +608,7 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
         "node_spread": None,
         "time_per_step_s": time_per_step,
         "communications": e.messages_per_step(net, L, so.design),
-        "bound_check": bound_check(Carried(carried, nx).vector(err), st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
+        "bound_check": bound_check(Carried(carried, nx).vector(err), _checked(st, ok), st["valid"][ok][:, 1:],
                                    scenario_open_loop(sc, steps, regions), judged_positions(carried, v.design)),
         "feasibility": feasibility,
         "verdicts": verdicts,
@@ -553,6 +630,31 @@ def _region_metrics(err: np.ndarray, regions, boot: np.random.Generator) -> dict
             "rmse_region_median_run": float(np.median(np.sqrt(per_run)))}
 
 
+def _stored(A: dict, j: int) -> dict:
+    """Variant ``j``'s arrays of the runs (:func:`_runs`): ``err``, ``valid`` and, for a variant checked against its
+    bound, :func:`bound_statistics`' (``trace``, ``judged``, ``white``; ``phi_sum`` over the runs)."""
+    st = {"err": A[f"v{j}_err"], "valid": A[f"v{j}_valid"]}
+    if f"v{j}_white" in A:
+        st.update(trace=A[f"v{j}_trace"], judged=A[f"v{j}_judged"], white=A[f"v{j}_white"],
+                  phi_sum=A[f"{SUMMED}v{j}_phi"])
+    return st
+
+
+def _checked(st: dict, ok: np.ndarray) -> dict:
+    """:func:`bound_statistics` of the runs ``ok`` at steps 1..K (``phi_sum`` needs no selection: a diverged run's Φ
+    is a bound nowhere, so it adds nothing)."""
+    return {"trace": st["trace"][ok][:, 1:], "judged": st["judged"][ok][:, 1:], "white": st["white"][ok][:, 1:],
+            "phi_sum": st["phi_sum"][1:]}
+
+
+def _judged_traces(st: dict, steps: int) -> np.ndarray:
+    """(runs, nodes, K) the traces the verdicts judge at steps 1..K, NaN where Φ is not a bound (none where the
+    variant could not start)."""
+    if "judged" not in st:
+        return np.full((st["valid"].shape[0], st["valid"].shape[2], steps), np.nan)
+    return st["judged"][:, 1:].swapaxes(1, 2)
+
+
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
@@ -570,12 +672,13 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         failed = [{"run": int(r), "seed": seed, "spawn_key": [int(r)], "node": int(A[f"v{j}_diverged_node"][r]),
                    "step": int(A[f"v{j}_diverged_step"][r]), "error": _decode(A[f"v{j}_diverged_reason"][r])}
                   for r in np.flatnonzero(div)]
-        st = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
+        st = _stored(A, j)
         carried = A[f"v{j}_carried"][0] if f"v{j}_carried" in A else None  # its nodes carry their regions
         # each run's bound judged as cfdesign design judges its own (a diverged run, or a design that cannot start,
         # is infeasible)
         feasible = ~div & (A[f"v{j}_first_violation"] < 0) & (v.infeasible is None)
-        judged = bound_verdicts(sc, st["phi"], st["valid"], feasible, v.design, carried) if e.designed else None
+        judged = None if not e.designed else trace_verdicts(
+            sc, _judged_traces(st, steps), feasible, v.design if carried is not None else None)
         verdicts = None if judged is None else count_verdicts(v.verdict for v in judged)
         bounded_runs = None if judged is None else sum(v.bounded for v in judged)
         time_per_step = float(A[f"v{j}_seconds"].sum()) / runs / steps
@@ -631,7 +734,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
             "communications": e.messages_per_step(net, L, so.design),
-            "bound_check": bound_check(err, st["phi"][ok][:, 1:], st["valid"][ok][:, 1:],
+            "bound_check": bound_check(err, _checked(st, ok), st["valid"][ok][:, 1:],
                                        scenario_open_loop(sc, steps)) if e.designed else None,
             "feasibility": feasibility,
             "verdicts": verdicts,
@@ -703,7 +806,7 @@ def _study_figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
     truth = A["truth"]
     store, est0 = {}, {}
     for j, name in enumerate(filters):
-        st = store[name] = {"err": A[f"v{j}_err"], "phi": A.get(f"v{j}_phi"), "valid": A[f"v{j}_valid"]}
+        st = store[name] = _stored(A, j)
         if f"v{j}_carried" in A:  # nodes carrying their regions: the errors in their carried coordinates, as Φ
             st["err"] = Carried(A[f"v{j}_carried"][0], m.n_x).vector(st["err"])
         elif not np.isnan(st["err"][0, 1, 0, 0]):
@@ -814,7 +917,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         return
     st = store[fname]
     ok = ~np.isnan(st["err"][:, 1, 0, 0])
-    err, phi, valid = st["err"][ok][:, 1:], st["phi"][ok][:, 1:], st["valid"][ok][:, 1:]
+    err, trace, valid = st["err"][ok][:, 1:], st["trace"][ok][:, 1:], st["valid"][ok][:, 1:]
     for i in range(net.n_nodes):
         trP, trPhi = [], []
         for k in range(steps):
@@ -825,7 +928,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
                 continue
             e = err[sel, k, i]
             trP.append(np.trace(e.T @ e) / sel.sum())
-            trPhi.append(np.trace(phi[sel, k, i].mean(0)))
+            trPhi.append(trace[sel, k, i].mean())
         line, = ax.semilogy(t, trPhi, "-", lw=1)
         ax.semilogy(t, trP, ":", color=line.get_color(), lw=1)
     ax.set_xlabel("time step k")
@@ -925,7 +1028,7 @@ STUDY = Study(
     scenarios=("indoor-robot",),
     runs=500,
     particles=None,
-    chunk_size=CHUNK_SIZE,
+    chunk_size=chunk_size,
     plan=_plan,
     summarise=_summarise,
     table=table_markdown,

@@ -392,8 +392,9 @@ def feasibility_need(sc, options, points: int, grid_parameters: int, chunk: int,
 
 # ------------------------------------------------------------------ the studies
 def _results(runs: int, per_run: float, what: str, sizes: str) -> Part:
-    """The per-run results of every run as the runner keeps them: the chunks and their concatenation."""
-    return Part(f"the stored results of every run: {what}", 2 * runs * per_run, f"{runs} runs x {sizes}",
+    """The per-run results of every run as the runner keeps them (each chunk's written into its runs' rows as it
+    comes: once)."""
+    return Part(f"the stored results of every run: {what}", runs * per_run, f"{runs} runs x {sizes}",
                 "fewer runs (--runs)")
 
 
@@ -443,11 +444,16 @@ def _consensus_robot(sc, so) -> tuple[list, list, list]:
     checked, variants = (1, 6) if so.extra.get("paper_reference", True) is False else (2, 7)
     reduce = f"{_STEPS} (a model file's STEPS)"
     chunk = _consensus(m, net, R, K, opts.mode, opts.linearization, "a consensus filter", reduce)
-    per_run = (K + 1) * n * (checked * n_x * n_x + variants * (n_x + 1)) * _D
-    sizes = f"{K + 1} steps x {n} nodes x {n_x} x {n_x} states"
+    # a run keeps, of each checked bound, its errors whitened by it and two traces (studies.consensus_robot.
+    # bound_statistics); the bounds' sum over the runs is one n_x x n_x per node and step, in a chunk and in the total
+    per_run = (K + 1) * n * (checked * (n_x + 2) + variants * (n_x + 1)) * _D
+    summed = checked * (K + 1) * n * n_x * n_x * _D
+    sizes = f"{K + 1} steps x {n} nodes x {n_x} states"
     return ([_prior_hessians(m, opts)],
-            [*chunk, Part("the chunk's results", R * per_run, f"{R} runs x {sizes}", reduce)],
-            [_results(so.runs, per_run, f"{checked} bounds and {variants} estimates per run", sizes)])
+            [*chunk, Part("the chunk's results", R * per_run + summed, f"{R} runs x {sizes}", reduce)],
+            [_results(so.runs, per_run, f"{checked} whitened errors and {variants} estimates per run", sizes),
+             Part("the bounds' sum over the runs", 2 * summed, f"{checked} x {K + 1} steps x {n} nodes x {n_x} x "
+                  f"{n_x}", reduce)])
 
 
 def _particle_study(sc, so) -> tuple[list, list, list]:
