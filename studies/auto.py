@@ -52,7 +52,6 @@ from designer.verdict import json_number, steadiness_window
 
 from .consensus_design import Design, check_first_step, effective_design, run_design
 from .design_options import as_mode
-from .results import better_than
 from .runner import run_forked
 from .scenarios import Scenario
 
@@ -559,12 +558,12 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     Per filter: ``rmse`` (over every state component, the root of ``mse``, the mean ‖e‖² over the runs, steps and
     nodes), ``rmse_state``, ``rmse_position`` where the model has a position, ``diverged_runs`` (how many), the
     messages per step, ``rmse_ci95`` (the 95 % bootstrap interval over the runs); for the pick its ``bound_check``,
-    verdict counts and ``better_than_local`` (:func:`studies.results.better_than`: its interval below the local
-    EKFs'; None without intervals); ``ratios``: the pick's RMSE over each reference's.  With regions
+    verdict counts and ``better_than_local`` (:func:`studies.results.better_than`: the 95 % paired interval of its RMSE
+    over the local EKFs' on the same runs, ``rmse_ratio_local_ci95``, entirely below 1; None when not judged);
+    ``ratios``: the pick's RMSE over each reference's.  With regions
     (:mod:`designer.regions`) each row also has ``rmse_region`` (each node on its own region's states) and
     ``rmse_region_ci95`` in place of ``rmse_ci95``, and the ratios and the comparison with the local EKFs are of
     it."""
-    from .consensus_robot import baseline_names
     from .pipeline import run_study
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
@@ -591,9 +590,10 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
         rows["pick" if name == mine else name] = row
     ratios = {n: json_number(rows["pick"][key] / r[key]) for n, r in rows.items()
               if n != "pick" and rows.get("pick", {}).get(key) is not None and r.get(key)}
-    local = rows.get(baseline_names(pick.scenario)[0], {})
-    if "pick" in rows:  # the one definition of "better than the nodes alone" (studies.results.better_than)
-        rows["pick"]["better_than_local"] = better_than(rows["pick"].get(f"{key}_ci95"), local.get(f"{key}_ci95"))
+    if "pick" in rows:  # the one definition of "better than the nodes alone" (studies.results.better_than), the study's
+        f = filters[mine]
+        rows["pick"].update(better_than_local=f.get("better_than_local"), rmse_ratio_local=f.get("rmse_ratio_local"),
+                            rmse_ratio_local_ci95=f.get("rmse_ratio_local_ci95"))
     return {"schema": "cfdesign.validation/1", "runs": runs, "seed": seed,
             "seeds": f"SeedSequence({seed}).spawn({runs})[r].spawn(2) = (truth and measurements, channel attacks) of "
                      f"run r; the design's run is SeedSequence({seed}).spawn(2), a different stream",

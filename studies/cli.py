@@ -307,7 +307,10 @@ def _validation_lines(validation) -> None:
             parts.append(f"its bound {check['verdict']} on these runs"
                          + (f" ({check['verdict_reason']})" if check["verdict"] == "violated" else ""))
         if f.get("better_than_local") is False:  # the pick's, as study comparison says it of a filter
-            parts.append("no better than the nodes alone (its 95 % interval not below the local EKFs')")
+            from .results import local_ratio_text
+
+            parts.append(f"no better than the nodes alone (its RMSE over theirs on the same runs "
+                         f"{local_ratio_text(f)}, the 95 % paired interval not entirely below 1)")
         if parts:
             click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
@@ -494,7 +497,10 @@ def _summary(f: dict) -> str:
         parts.append(f"certified runs {f['verdicts']['certified']}/{sum(f['verdicts'].values())}"
                      + (f", bounded runs {f['bounded_runs']}" if f.get("bounded_runs") is not None else ""))
     if f.get("better_than_local") is False:
-        parts.append("no better than the nodes alone (its 95 % interval not below the local EKFs')")
+        from .results import local_ratio_text
+
+        parts.append(f"no better than the nodes alone (its RMSE over theirs on the same runs {local_ratio_text(f)}, "
+                     "the 95 % paired interval not entirely below 1)")
     return ", ".join(parts)
 
 

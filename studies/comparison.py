@@ -71,7 +71,8 @@ from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ek
 from .pipeline import Plan, Study, StudyOptions
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
-from .results import DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence, markdown_table
+from .results import (DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence,
+                      local_ratio_text, markdown_table, per_run_mse)
 from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 from .study_registry import StudyText
@@ -672,11 +673,16 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         if e.rounds:
             met["consensus_iterations"] = L
         filters[name] = met
-    alone = filters.get(LOCAL, {}).get(f"{key}_ci95")
-    for name, met in filters.items():  # the nodes alone are the floor a network must beat (designer.verdict's word)
-        ci = met.get(f"{key}_ci95")
-        met["better_than_local"] = (None if name == LOCAL or met["runtime"] not in DEPLOYABLE
-                                    else better_than(ci, alone))
+    ran = {e.name: f for f, e in enumerate(entries) if cannot[0].get(e.name) is None}
+    for name, met in filters.items():  # the nodes alone are the floor a network must beat, on the same runs
+        if name == LOCAL or met["runtime"] not in DEPLOYABLE or name not in ran or LOCAL not in ran:
+            met.update(better_than_local=None, rmse_ratio_local=None, rmse_ratio_local_ci95=None)
+            continue
+        paired = better_than(per_run_mse(A["err2"][:, 0, ran[name]]), per_run_mse(A["err2"][:, 0, ran[LOCAL]]),
+                             np.random.default_rng(np.random.SeedSequence(
+                                 so.seed, spawn_key=(2**31 + 1, order.index(name) + 1))))  # a stream of its own
+        met.update(better_than_local=paired["better"], rmse_ratio_local=paired["ratio"],
+                   rmse_ratio_local_ci95=paired["ratio_ci95"])
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
         if main is None:
@@ -836,8 +842,9 @@ def table_markdown(results: dict) -> str:
                      "messages counted, not by the measured times).\n")
         alone = [n for n, f in b["filters"].items() if f.get("better_than_local") is False]
         if alone:
-            text += (f"\nNo better than the nodes running alone on these runs (their 95 % interval not below the local "
-                     f"EKFs'): {', '.join(alone)}.\n")
+            text += ("\nNo better than the nodes running alone on these runs (the 95 % paired interval of their RMSE "
+                     "over the local EKFs', on the same runs, not entirely below 1): " + ", ".join(
+                         f"{n} ({local_ratio_text(b['filters'][n])})" for n in alone) + ".\n")
         ref = rec.get("best_reference")
         if ref is not None:
             f = b["filters"][ref]

@@ -47,6 +47,7 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
+from designer.rule import DEPLOYABLE
 from designer.regions import Carried, region_error2, region_mask
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_bool, check_int, check_positive
@@ -63,7 +64,7 @@ from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, des
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
-from .results import DIVERGENCE_SPREAD, bootstrap_rmse_ci, divergence_limit, first_divergence
+from .results import DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence
 from .runner import SUMMED, run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
@@ -655,6 +656,20 @@ def _judged_traces(st: dict, steps: int) -> np.ndarray:
     return st["judged"][:, 1:].swapaxes(1, 2)
 
 
+def _compare_with_the_nodes_alone(filters: dict, mse: dict, local: str, seed: int) -> None:
+    """Each filter the nodes can run against the local EKFs on the same runs (:func:`studies.results.better_than`,
+    paired), on the regions with regions, else on the whole state: ``better_than_local``, ``rmse_ratio_local`` and
+    its ``rmse_ratio_local_ci95`` (None for the local EKFs, the references and a filter that did not run)."""
+    for j, (name, f) in enumerate(filters.items()):
+        if name == local or f.get("runtime") not in DEPLOYABLE or name not in mse or local not in mse:
+            f.update(better_than_local=None, rmse_ratio_local=None, rmse_ratio_local_ci95=None)
+            continue
+        paired = better_than(mse[name], mse[local],
+                             np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31 + 1, j))))
+        f.update(better_than_local=paired["better"], rmse_ratio_local=paired["ratio"],
+                 rmse_ratio_local_ci95=paired["ratio_ci95"])
+
+
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     runs, seed = so.runs, so.seed
     replay = None if so["schedule"] is None else _load_replay(so["schedule"], sc)
@@ -666,6 +681,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     A = mc.arrays
     pos = list(m.position_index) or list(range(m.n_x))
     filters = {}
+    mse = {}  # each filter's runs' mean squared error, NaN where a run diverged: what it is compared with the nodes by
     for j, (name, v) in enumerate(variants.items()):
         e = v.entry
         div = A[f"v{j}_diverged"]
@@ -693,6 +709,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             continue
         ok = ~np.isnan(st["err"][:, 1, 0, 0]) if carried is None else ~div
         if not ok.any():  # every run diverged: no error statistics exist
+            mse[name] = np.full(runs, np.nan)
             filters[name] = {"family": e.family, "runtime": e.runtime, "rmse_position": None,
                              "rmse_position_ci95": None, "rmse_position_median_run": None,
                              "bound_check": None, "feasibility": None, "verdicts": verdicts,
@@ -711,6 +728,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "fraction_pairs_bounded": float(st["valid"][ok][:, 1:].mean()),
         } if e.designed else None
         boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
+        mse[name] = np.full(runs, np.nan)
+        mse[name][ok] = (region_error2(err, sc.regions) if sc.regions is not None else
+                         (err**2).sum(-1)).mean(axis=(1, 2))
         if carried is not None:
             filters[name] = _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts,
                                              bounded_runs, so, L, feasibility, boot)
@@ -747,6 +767,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             **({"consensus_iterations": L} if e.rounds else {}),
             **(_region_metrics(err, sc.regions, boot) if sc.regions is not None else {}),
         }
+    _compare_with_the_nodes_alone(filters, mse, baseline_names(sc)[0], seed)
     return {
         "scenario": sc.name,
         "runs": int(runs),

@@ -17,7 +17,8 @@ import numpy as np
 
 __all__ = ["SCHEMA", "versions", "error_metrics", "curve_mean_ci", "bootstrap_rmse_ci", "markdown_table",
            "BOOTSTRAP", "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD", "divergence_limit", "first_divergence",
-           "cv_velocity_at_position_rmse"]
+           "cv_velocity_at_position_rmse", "better_than", "per_run_mse",
+           "local_ratio_text"]
 
 SCHEMA = "cfdesign.study/1"
 BOOTSTRAP = 1000  # bootstrap resamples of the runs for the intervals
@@ -57,14 +58,54 @@ def curve_mean_ci(e2: np.ndarray, rng: np.random.Generator) -> tuple[float, list
     return value, [float(lo), float(hi)]
 
 
-def better_than(ci, floor) -> bool | None:
-    """Whether a filter is better than a floor on the same runs (the nodes running alone, in ``study comparison``
-    and in an automatic design's validation): its 95 % interval ``ci`` ([lo, hi]) lies entirely below the floor's
-    ``floor``; None when either interval is missing.  The one definition of "better than the nodes alone" on
-    errors: a point estimate below the floor's is not evidence of it."""
-    if ci is None or floor is None or None in ci or None in floor:
-        return None
-    return bool(ci[1] < floor[0])
+def better_than(per_run, floor, rng: np.random.Generator) -> dict:
+    """Whether a filter is better than a floor on the same runs (the nodes running alone: ``study comparison``,
+    ``study consensus-robot`` and an automatic design's validation), paired: the runs' shared truth, noises and
+    attacks cancel in the ratio of the two RMSEs over the same resampled runs, so a filter that is better in every
+    run is called better even where the runs' spread makes the two intervals overlap.  The one definition of "better
+    than the nodes alone" on errors: a point estimate below the floor's is not evidence of it.
+
+    ``per_run``, ``floor``: (runs,) each run's mean squared error of the filter and of the floor (NaN: diverged).
+    Returns ``better`` (None: not judged), ``ratio`` (the filter's RMSE over the floor's over the runs where both
+    have one), ``ratio_ci95`` (its 95 % paired percentile bootstrap interval, ``BOOTSTRAP`` resamples of the runs
+    from ``rng``), ``runs`` (the runs compared) and ``reason`` in words.  Better: the interval lies entirely below 1.
+    A run where the filter diverged and the floor did not makes it not better whatever the others say; a run where
+    the floor diverged is left out (as in the floor's own RMSE); fewer than 2 runs: not judged."""
+    a, b = np.asarray(per_run, dtype=float), np.asarray(floor, dtype=float)
+    both = ~np.isnan(a) & ~np.isnan(b)
+    lost = int((np.isnan(a) & ~np.isnan(b)).sum())
+    out = {"better": None, "ratio": None, "ratio_ci95": None, "runs": int(both.sum()), "reason": ""}
+    if both.sum() >= 1 and b[both].mean() > 0:
+        out["ratio"] = float(np.sqrt(a[both].mean() / b[both].mean()))
+    if lost:
+        return {**out, "better": False, "reason": f"it diverged in {lost} run{'s' * (lost > 1)} where the nodes "
+                                                  "alone did not"}
+    if both.sum() < 2 or out["ratio"] is None:
+        n = int(both.sum())
+        return {**out, "reason": f"{n} run{'s' * (n != 1)} with both errors: not judged"}
+    a, b = a[both], b[both]
+    idx = rng.integers(0, len(a), size=(BOOTSTRAP, len(a)))
+    den = b[idx].mean(axis=1)
+    boot = np.sqrt(a[idx].mean(axis=1) / np.where(den > 0, den, np.nan))
+    lo, hi = np.nanpercentile(boot, [2.5, 97.5])
+    better = bool(hi < 1.0)
+    return {**out, "better": better, "ratio_ci95": [float(lo), float(hi)],
+            "reason": f"its RMSE is {out['ratio']:.3g} times the nodes alone's on the same {len(a)} runs (95 % paired "
+                      f"interval [{lo:.3g}, {hi:.3g}]{', entirely below 1' if better else ', not entirely below 1'})"}
+
+
+def local_ratio_text(f: dict) -> str:
+    """A filter's RMSE over the local EKFs' (``rmse_ratio_local``) with its paired interval, in words: a results row
+    of ``study comparison`` or ``study consensus-robot``, or an automatic design's validation's pick row."""
+    ci = f.get("rmse_ratio_local_ci95")
+    if f.get("rmse_ratio_local") is None:
+        return "it diverged where the nodes alone did not" if f.get("better_than_local") is False else "no ratio"
+    return f"{f['rmse_ratio_local']:.3g} x" + ("" if ci is None else f" [{ci[0]:.3g}, {ci[1]:.3g}]")
+
+
+def per_run_mse(err2: np.ndarray) -> np.ndarray:
+    """(runs,) each run's mean of ``err2`` (runs, ...) over its other axes, NaN where any is (a diverged run)."""
+    return np.asarray(err2, dtype=float).reshape(len(err2), -1).mean(axis=1)
 
 
 def bootstrap_rmse_ci(per_run_mse: np.ndarray, rng: np.random.Generator) -> list[float]:

@@ -253,27 +253,55 @@ def test_a_value_the_user_gives_is_every_candidates_and_twins_are_tried_once():
     assert sum(c.rule == "scheduled" for c in auto.candidates) == 1
 
 
-def test_the_validation_says_no_better_than_the_nodes_alone_by_the_intervals_not_the_point_ratio():
-    """The validation's "no better than the nodes alone" is study comparison's (studies.results.better_than): the
-    pick's 95 % interval entirely below the local EKFs'.  A pick whose RMSE is below the local EKFs' (ratio 0.9)
-    but whose interval overlaps theirs is said to be no better, one whose interval lies below theirs is not: the
-    intervals decide, not the ratio of the point estimates (the report's former test, which passed the first)."""
+def test_better_than_the_nodes_alone_is_paired_over_the_same_runs():
+    """studies.results.better_than: the runs' shared truth and attacks cancel in the paired ratio.  A filter whose
+    error is 0.9 of the local EKFs' in every run, the runs' scales spread over two decades, is better (its ratio
+    0.9 exactly, interval [0.9, 0.9]), though the two unpaired intervals overlap widely (the former test: no
+    evidence); one whose ratio varies around 1 is not; a run lost where the nodes alone kept it makes it not better;
+    the interval is the percentile bootstrap of the ratio (a second computation from the same draws)."""
+    from studies.results import BOOTSTRAP, better_than, bootstrap_rmse_ci
+
+    rng = np.random.default_rng(40)
+    local = 10 ** rng.uniform(-1, 1, 20)  # each run's mean squared error
+    mine = 0.81 * local  # RMSE 0.9 of theirs in every run
+    got = better_than(mine, local, np.random.default_rng(1))
+    assert got["better"] is True and got["ratio"] == pytest.approx(0.9) and got["runs"] == 20
+    assert got["ratio_ci95"] == pytest.approx([0.9, 0.9])
+    a = bootstrap_rmse_ci(mine, np.random.default_rng(2))
+    b = bootstrap_rmse_ci(local, np.random.default_rng(3))
+    assert a[1] > b[0]  # unpaired: the intervals overlap
+    noisy = local * rng.lognormal(0.0, 0.3, 20)
+    got = better_than(noisy, local, np.random.default_rng(4))
+    idx = np.random.default_rng(4).integers(0, 20, size=(BOOTSTRAP, 20))
+    want = np.percentile(np.sqrt(noisy[idx].mean(1) / local[idx].mean(1)), [2.5, 97.5])
+    assert got["ratio_ci95"] == pytest.approx(list(want)) and got["better"] is bool(want[1] < 1)
+    assert got["ratio_ci95"][0] < 1 < got["ratio_ci95"][1] and got["better"] is False
+    lost = mine.copy()
+    lost[3] = np.nan  # diverged where the nodes alone did not
+    got = better_than(lost, local, np.random.default_rng(5))
+    assert got["better"] is False and "diverged in 1 run" in got["reason"]
+    theirs = local.copy()
+    theirs[3] = np.nan  # the nodes alone diverged there: that run is left out
+    assert better_than(lost, theirs, np.random.default_rng(5))["runs"] == 19
+    assert better_than(mine[:1], local[:1], np.random.default_rng(6))["better"] is None
+
+
+def test_the_validation_says_no_better_than_the_nodes_alone_with_the_paired_ratio():
+    """The validation's lines and report say "no better than the nodes alone" with the pick's paired ratio and
+    interval, from the study's better_than_local (the one definition), not from the point ratio."""
     from studies.reports.auto import validation_lines
-    from studies.results import better_than
 
-    assert better_than([1.0, 2.0], [2.5, 3.0]) is True
-    assert better_than([1.0, 2.6], [2.5, 3.0]) is False  # overlapping: no evidence
-    assert better_than(None, [2.5, 3.0]) is None and better_than([1.0, 2.0], None) is None
-
-    def val(pick_ci, flag):
+    def val(ratio_ci, flag):
         return {"runs": 3, "seeds": "s", "pick_rmse_ratio": {"local EKF per node": 0.9},
-                "filters": {"pick": {"filter": "relay", "rmse": 0.9, "rmse_ci95": pick_ci, "better_than_local": flag},
+                "filters": {"pick": {"filter": "relay", "rmse": 0.9, "rmse_ci95": [0.7, 1.1],
+                                     "better_than_local": flag, "rmse_ratio_local": 0.9,
+                                     "rmse_ratio_local_ci95": ratio_ci},
                             "local EKF per node": {"filter": "local EKF per node", "rmse": 1.0,
                                                    "rmse_ci95": [0.8, 1.2]}}}
 
-    said = "\n".join(validation_lines(val([0.7, 1.1], better_than([0.7, 1.1], [0.8, 1.2]))))
-    assert "no better than the nodes alone" in said  # ratio 0.9 < 1, intervals overlap
-    said = "\n".join(validation_lines(val([0.5, 0.7], better_than([0.5, 0.7], [0.8, 1.2]))))
+    said = "\n".join(validation_lines(val([0.7, 1.1], False)))
+    assert "no better than the nodes alone" in said and "0.9 x [0.7, 1.1]" in said  # ratio 0.9 < 1, yet no evidence
+    said = "\n".join(validation_lines(val([0.8, 0.95], True)))
     assert "no better than the nodes alone" not in said
 
 

@@ -579,15 +579,20 @@ def test_the_costliest_filters_run_at_the_main_setting_only_above_sweep_rows(tmp
         return {n: {k: v for k, v in m.items() if k != "time_per_step_s"} for n, m in filters.items()}
 
     assert numbers(cut["filters"]) == numbers(full["filters"])  # the main setting: every filter alike
-    # better_than_local: a filter the nodes run whose interval lies entirely below the local EKFs' (the floor)
+    # better_than_local: a filter the nodes run whose RMSE over the local EKFs' (the floor), on the same runs, has a
+    # paired interval entirely below 1
     from designer.rule import DEPLOYABLE
     from studies.comparison import LOCAL, table_markdown
 
-    alone = cut["filters"][LOCAL]["rmse_ci95"]
+    alone = cut["filters"][LOCAL]
     for name, f in cut["filters"].items():
-        want = (None if name == LOCAL or f["runtime"] not in DEPLOYABLE or f["rmse_ci95"] is None
-                else f["rmse_ci95"][1] < alone[0])
-        assert f["better_than_local"] == want, name
+        if name == LOCAL or f["runtime"] not in DEPLOYABLE or f["rmse_ci95"] is None:
+            assert f["better_than_local"] is None and f["rmse_ratio_local"] is None, name
+            continue
+        lo, hi = f["rmse_ratio_local_ci95"]
+        assert lo <= f["rmse_ratio_local"] <= hi and f["better_than_local"] is (hi < 1), name
+        if not f["diverged_runs"] and not alone["diverged_runs"]:  # the same runs: the ratio of the two RMSEs
+            assert f["rmse_ratio_local"] == pytest.approx(f["rmse"] / alone["rmse"], rel=1e-12), name
     worse = [n for n, f in cut["filters"].items() if f["better_than_local"] is False]
     said = table_markdown(cut)
     assert ("No better than the nodes running alone on these runs" in said) == bool(worse)

@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..results import local_ratio_text
 from .text import document, fmt_num, md_cell, md_escape, md_table, read_record
 
 __all__ = ["auto_section", "validation_section", "validation_lines", "auto_report", "CANDIDATES_FIGURE"]
@@ -138,8 +139,9 @@ def validation_lines(val: Mapping[str, Any]) -> list[str]:
     if said:
         out += [f"The design's RMSE on these runs is {', '.join(said)}.", ""]
     if rows.get("pick", {}).get("better_than_local") is False:  # studies.results.better_than: the one definition
-        out += ["**On these runs the design is no better than the nodes alone**: its RMSE's 95 % interval is not "
-                "entirely below the local EKFs'.", ""]
+        out += ["**On these runs the design is no better than the nodes alone**: its RMSE over the local EKFs' on "
+                f"the same runs is {local_ratio_text(rows['pick'])}, the 95 % paired interval not entirely below 1.",
+                ""]
     return out
 
 
