@@ -306,11 +306,12 @@ def _validation_lines(validation) -> None:
         if check.get("verdict") in ("holds", "violated"):
             parts.append(f"its bound {check['verdict']} on these runs"
                          + (f" ({check['verdict_reason']})" if check["verdict"] == "violated" else ""))
-        if f.get("better_than_local") is False:  # the pick's, as study comparison says it of a filter
+        if f.get("better_than_local") is not None:  # the pick's, as study comparison says it of a filter
             from .results import local_ratio_text
 
-            parts.append(f"no better than the nodes alone (its RMSE over theirs on the same runs "
-                         f"{local_ratio_text(f)}, the 95 % paired interval not entirely below 1)")
+            parts.append(("better" if f["better_than_local"] else "no better") + " than the nodes alone (its RMSE "
+                         f"over theirs on the same runs {local_ratio_text(f)}, the 95 % paired interval "
+                         + ("entirely" if f["better_than_local"] else "not entirely") + " below 1)")
         if parts:
             click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))

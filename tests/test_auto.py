@@ -7,7 +7,9 @@ end-to-end design against a design of the picked rule made on its own (the same 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import json
 import time
 
@@ -303,6 +305,14 @@ def test_the_validation_says_no_better_than_the_nodes_alone_with_the_paired_rati
     assert "no better than the nodes alone" in said and "0.9 x [0.7, 1.1]" in said  # ratio 0.9 < 1, yet no evidence
     said = "\n".join(validation_lines(val([0.8, 0.95], True)))
     assert "no better than the nodes alone" not in said
+    from studies.cli import _validation_lines  # the command line's lines: the same words, with the ratio
+
+    for ci, flag, words in (([0.7, 1.1], False, "no better than"), ([0.8, 0.95], True, "better than")):
+        with contextlib.redirect_stdout(io.StringIO()) as out:
+            _validation_lines(val(ci, flag))
+        line = next(x for x in out.getvalue().splitlines() if ": relay:" in x)
+        assert f"{words} the nodes alone (its RMSE over theirs on the same runs 0.9 x [{ci[0]:g}, {ci[1]:g}]" in line
+        assert line.count("better than") == 1
 
 
 def test_the_validation_runs_no_paper_design_and_its_memory_counts_one_bound():
