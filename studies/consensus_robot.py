@@ -47,8 +47,8 @@ import numpy as np
 
 import rules
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
-from designer.rule import DEPLOYABLE
 from designer.regions import Carried, region_error2, region_mask
+from designer.rule import DEPLOYABLE
 from designer.schedule import load_schedule
 from designer.validation import InputError, check_bool, check_int, check_positive
 from filters.attacks import simulate_attacks
@@ -520,8 +520,8 @@ def chunk_size(sc: Scenario, runs: int) -> int:
     """Runs per chunk: the comparison's cut (:func:`studies.comparison.chunk_size`: a quarter of the runs on a large
     model, so that the cores share them), and no more runs than keep a chunk's bounds Φ within
     :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run), at least one.
-    A property of the model and the runs, never of the machine: the numbers do not depend on it (but the last bits
-    of ``max_excess``, whose sum of the bounds is added chunk by chunk)."""
+    A property of the model and the runs, never of the machine: the numbers do not depend on it (the bounds' sum
+    too is added run after run, :data:`studies.runner.SUMMED`)."""
     one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * sc.model.n_x**2 * 8
     return max(1, min(balanced_chunk_size(sc, runs), CHUNK_BOUND_BYTES // one))
 

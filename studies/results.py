@@ -98,8 +98,10 @@ def local_ratio_text(f: dict) -> str:
     """A filter's RMSE over the local EKFs' (``rmse_ratio_local``) with its paired interval, in words: a results row
     of ``study comparison`` or ``study consensus-robot``, or an automatic design's validation's pick row."""
     ci = f.get("rmse_ratio_local_ci95")
+    if ci is None and f.get("better_than_local") is False:  # judged without an interval: a run lost
+        return "not compared: it diverged in a run where the nodes alone did not"
     if f.get("rmse_ratio_local") is None:
-        return "it diverged where the nodes alone did not" if f.get("better_than_local") is False else "no ratio"
+        return "no ratio"
     return f"{f['rmse_ratio_local']:.3g} x" + ("" if ci is None else f" [{ci[0]:.3g}, {ci[1]:.3g}]")
 
 

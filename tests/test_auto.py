@@ -281,7 +281,12 @@ def test_better_than_the_nodes_alone_is_paired_over_the_same_runs():
     lost = mine.copy()
     lost[3] = np.nan  # diverged where the nodes alone did not
     got = better_than(lost, local, np.random.default_rng(5))
-    assert got["better"] is False and "diverged in 1 run" in got["reason"]
+    assert got["better"] is False and "diverged in 1 run" in got["reason"] and got["ratio_ci95"] is None
+    from studies.results import local_ratio_text
+
+    said = local_ratio_text({"better_than_local": False, "rmse_ratio_local": got["ratio"],
+                             "rmse_ratio_local_ci95": None})
+    assert "diverged" in said and "x" not in said.split("diverged")[0]  # not a ratio that would read as the reason
     theirs = local.copy()
     theirs[3] = np.nan  # the nodes alone diverged there: that run is left out
     assert better_than(lost, theirs, np.random.default_rng(5))["runs"] == 19
