@@ -71,8 +71,8 @@ from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ek
 from .pipeline import Plan, Study, StudyOptions
 from .recorded import realised_attacks
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
-from .results import (DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence,
-                      local_ratio_text, markdown_table, per_run_mse)
+from .results import (DIVERGENCE_SPREAD, bootstrap_rmse_ci, compared_with_local, divergence_limit,
+                      first_divergence, local_ratio_text, markdown_table, per_run_mse)
 from .reports.text import MEASURED, fmt_dur
 from .scenarios import Scenario, reference
 from .study_registry import StudyText
@@ -676,13 +676,12 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
     ran = {e.name: f for f, e in enumerate(entries) if cannot[0].get(e.name) is None}
     for name, met in filters.items():  # the nodes alone are the floor a network must beat, on the same runs
         if name == LOCAL or met["runtime"] not in DEPLOYABLE or name not in ran or LOCAL not in ran:
-            met.update(better_than_local=None, rmse_ratio_local=None, rmse_ratio_local_ci95=None)
+            met.update(compared_with_local())
             continue
-        paired = better_than(per_run_mse(A["err2"][:, 0, ran[name]]), per_run_mse(A["err2"][:, 0, ran[LOCAL]]),
-                             np.random.default_rng(np.random.SeedSequence(
-                                 so.seed, spawn_key=(2**31 + 1, order.index(name) + 1))))  # a stream of its own
-        met.update(better_than_local=paired["better"], rmse_ratio_local=paired["ratio"],
-                   rmse_ratio_local_ci95=paired["ratio_ci95"])
+        met.update(compared_with_local(per_run_mse(A["err2"][:, 0, ran[name]]),
+                                       per_run_mse(A["err2"][:, 0, ran[LOCAL]]),
+                                       np.random.default_rng(np.random.SeedSequence(  # a stream of its own
+                                           so.seed, spawn_key=(2**31 + 1, order.index(name) + 1)))))
     sweeps: dict = {"dos_prob": {}, "fdi_prob": {}}
     for skey, axis in (("dos_prob", 0), ("fdi_prob", 1)):
         if main is None:

@@ -64,7 +64,8 @@ from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, des
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
-from .results import DIVERGENCE_SPREAD, better_than, bootstrap_rmse_ci, divergence_limit, first_divergence
+from .results import (DIVERGENCE_SPREAD, bootstrap_rmse_ci, compared_with_local, divergence_limit,
+                      first_divergence)
 from .runner import SUMMED, run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
@@ -662,12 +663,10 @@ def _compare_with_the_nodes_alone(filters: dict, mse: dict, local: str, seed: in
     its ``rmse_ratio_local_ci95`` (None for the local EKFs, the references and a filter that did not run)."""
     for j, (name, f) in enumerate(filters.items()):
         if name == local or f.get("runtime") not in DEPLOYABLE or name not in mse or local not in mse:
-            f.update(better_than_local=None, rmse_ratio_local=None, rmse_ratio_local_ci95=None)
+            f.update(compared_with_local())
             continue
-        paired = better_than(mse[name], mse[local],
-                             np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31 + 1, j))))
-        f.update(better_than_local=paired["better"], rmse_ratio_local=paired["ratio"],
-                 rmse_ratio_local_ci95=paired["ratio_ci95"])
+        f.update(compared_with_local(mse[name], mse[local],
+                                     np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31 + 1, j)))))
 
 
 def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:

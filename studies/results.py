@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["SCHEMA", "versions", "error_metrics", "curve_mean_ci", "bootstrap_rmse_ci", "markdown_table",
            "BOOTSTRAP", "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD", "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse", "better_than", "per_run_mse",
-           "local_ratio_text"]
+           "compared_with_local", "local_ratio_text"]
 
 SCHEMA = "cfdesign.study/1"
 BOOTSTRAP = 1000  # bootstrap resamples of the runs for the intervals
@@ -92,6 +92,17 @@ def better_than(per_run, floor, rng: np.random.Generator) -> dict:
     return {**out, "better": better, "ratio_ci95": [float(lo), float(hi)],
             "reason": f"its RMSE is {out['ratio']:.3g} times the nodes alone's on the same {len(a)} runs (95 % paired "
                       f"interval [{lo:.3g}, {hi:.3g}]{', entirely below 1' if better else ', not entirely below 1'})"}
+
+
+def compared_with_local(per_run=None, floor=None, rng: np.random.Generator | None = None) -> dict:
+    """A results row's comparison with the nodes alone (:func:`better_than`): ``better_than_local``,
+    ``rmse_ratio_local`` and ``rmse_ratio_local_ci95``; all None without both filters' runs (the local EKFs
+    themselves, a reference, a filter that did not run)."""
+    if per_run is None or floor is None:
+        return {"better_than_local": None, "rmse_ratio_local": None, "rmse_ratio_local_ci95": None}
+    paired = better_than(per_run, floor, rng)
+    return {"better_than_local": paired["better"], "rmse_ratio_local": paired["ratio"],
+            "rmse_ratio_local_ci95": paired["ratio_ci95"]}
 
 
 def local_ratio_text(f: dict) -> str:
