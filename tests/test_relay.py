@@ -415,8 +415,6 @@ def test_the_gain_is_the_pseudo_inverse_formula_where_depths_are_rank_deficient(
     pseudo-inverse of the whole G n x G n Q (C and Q of update_moments' definitions written out here), over a batch
     with depths of fewer rows than states, a row repeated within a depth, a zero row and a row 1e4 x the others: the
     reference the C node's reduction to each depth's row basis is replayed against."""
-    from rules.relay.design import grouped
-
     model = bearing_model()
     net = varied_network()
     rt = relay_routes(net, 3)
@@ -438,18 +436,58 @@ def test_the_gain_is_the_pseudo_inverse_formula_where_depths_are_rank_deficient(
         P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
         W, Pn = relay_update(P, Hw, mom, M, mu)
         for b in range(3):
-            Hg = grouped(Hw[b], mom.groups)
-            K = np.diag(mom.p) + mom.F1 * (Hw[b] @ M @ Hw[b].T) + mom.F2 * (Hw[b] @ np.outer(mu, mu) @ Hw[b].T) \
-                + mom.A * (Hw[b] @ P[b] @ Hw[b].T)
-            Q = Hg.T @ K @ Hg
-            C = P[b] @ Hw[b].T @ (mom.p[:, None] * Hg)
-            Wr = C @ np.linalg.pinv(0.5 * (Q + Q.T), rcond=1e-12, hermitian=True)
-            scale = np.abs(Wr).max()
-            assert np.allclose(W[b], Wr, rtol=0, atol=1e-7 * scale), (i, b, np.abs(W[b] - Wr).max() / scale)
-            Pr = P[b] - Wr @ C.T
-            assert np.allclose(Pn[b], 0.5 * (Pr + Pr.T), rtol=0, atol=1e-9 * np.abs(P[b]).max())
+            _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], mom, M, mu, (i, b))
             checked += 1
     assert checked == 3 * N
+
+
+def _assert_pseudo_inverse_formula(W, Pn, P, Hw, mom, M, mu, where):
+    """W = C Q⁺ and P⁺ = P - W Cᵀ with numpy's pseudo-inverse of the whole G n x G n Q, C and Q of update_moments'
+    definitions written out (one item)."""
+    from rules.relay.design import grouped
+
+    Hg = grouped(Hw, mom.groups)
+    K = np.diag(mom.p) + mom.F1 * (Hw @ M @ Hw.T) + mom.F2 * (Hw @ np.outer(mu, mu) @ Hw.T) + mom.A * (Hw @ P @ Hw.T)
+    Q = Hg.T @ K @ Hg
+    C = P @ Hw.T @ (mom.p[:, None] * Hg)
+    Wr = C @ np.linalg.pinv(0.5 * (Q + Q.T), rcond=1e-12, hermitian=True)
+    scale = np.abs(Wr).max()
+    assert np.allclose(W, Wr, rtol=0, atol=1e-7 * scale), (where, np.abs(W - Wr).max() / scale)
+    Pr = P - Wr @ C.T
+    assert np.allclose(Pn, 0.5 * (Pr + Pr.T), rtol=0, atol=1e-9 * np.abs(P).max())
+
+
+def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(monkeypatch):
+    """relay_update works in the ball's r rows (M = Lₛᵀ Ĥ Ĥᵀ Lₛ, r x r, the same nonzero eigenvalues as Q) where the
+    rows' weights S are positive definite, in Q's G n columns where they are not (a row that never arrives: p = 0);
+    both give the pseudo-inverse formula, and the rows' way is taken where it can be."""
+    import rules.relay.design as rd
+
+    model, net = bearing_model(), varied_network()
+    rt = relay_routes(net, 3)
+    signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
+    M, mu = signal.moment(4), signal.mean(4)
+    rng = np.random.default_rng(6)
+    taken = []
+    real = rd._row_space_update
+    monkeypatch.setattr(rd, "_row_space_update", lambda *a: taken.append(real(*a) is not None) or real(*a))
+    for i in range(N):
+        mom = node_moments(rt, net, model.sensor_dims, i)
+        r = mom.rows.size
+        if r < 2:
+            continue
+        keep = (np.arange(r) != r - 1) * (np.arange(r) != r - 1)[:, None]  # the last row never arrives
+        lost = mom._replace(p=np.where(np.arange(r) == r - 1, 0.0, mom.p), A=mom.A * keep, F1=mom.F1 * keep,
+                            F2=mom.F2 * keep)
+        for m, way in ((mom, True), (lost, False)):
+            Hw = rng.normal(size=(2, r, 4))
+            A = rng.normal(size=(2, 4, 4))
+            P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+            W, Pn = relay_update(P, Hw, m, M, mu)
+            assert taken[-1] is way, (i, way)
+            for b in range(2):
+                _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], m, M, mu, (i, way, b))
+    assert True in taken and False in taken
 
 
 def test_stacked_nodes_with_their_own_depths_update_as_each_alone():

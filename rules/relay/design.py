@@ -51,7 +51,8 @@ ROUTINGS = ("tree", "flood")
 #: What a packet of a rule that relays carries (``ConsensusDesign.exchange``): the measurements relayed.
 RELAY = "relay"
 
-__all__ = ["Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX", "default_hops", "diameter",
+__all__ = ["RTOL", "FLOAT_RTOL", "Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX",
+           "default_hops", "diameter",
            "relay_payload", "pair_sum", "relay_stationary", "LMI_MAX_ENTRIES", "whitened_rows", "NodeMoments",
            "node_moments", "relay_update", "grouped", "relay_carried",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes"]
@@ -531,8 +532,14 @@ def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.nd
     return np.swapaxes(Hg, -1, -2) @ _times_grouped(K, Hw, Hg, groups)
 
 
+#: the pseudo-inverse's cut in :func:`relay_update`: eigenvalues below this times the largest are left out (double's);
+#: a float C node's (``-DCFD_REAL=float``, rules.relay.export_c), which float cannot resolve below
+RTOL = 1e-12
+FLOAT_RTOL = 1e-5
+
+
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
-                 rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+                 rtol: float = RTOL) -> tuple[np.ndarray, np.ndarray]:
     """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(W, P_post)``, ``W``
     (..., n, G n) one n x n block per hop depth.
 
@@ -555,11 +562,13 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     ball's measurements (its gain applied to ``Σ_g y_g``).  For a linear model ``P⁺`` is the expected covariance
     of the node's error over the attacks; a node computes it itself (its own estimate's Jacobians, its design's
     moments)."""
-    # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
-    # zero rows and columns of Q and zero columns of C: left out from the start (the same W; on a field or a grid,
-    # where a depth's sensors see a few of the states, products and an eigh a few times smaller than G n); Ĥ is
-    # never formed: its depth g's block is the depth's rows Hw_g on their nonzero columns, so that each product with
-    # it takes that depth's rows alone
+    # Q = Ĥᵀ S Ĥ (G n x G n, S = E[(...)(...)ᵀ]'s row weights, r x r) has rank at most r, the ball's rows, far below
+    # G n on a field or a grid (a 64-cell field at 5 hops: 26-51 rows, 84-216 active columns).  With S = Lₛ Lₛᵀ
+    # positive definite (every row arrives with a positive probability: S ≥ diag(p)) and G = Lₛᵀ Ĥ, Q = GᵀG and
+    # M = G Gᵀ = Lₛᵀ (Ĥ Ĥᵀ) Lₛ (r x r) have the same nonzero eigenvalues, so that with the same cut
+    # C Q⁺ = X Lₛ⁻ᵀ M⁺ Lₛᵀ Ĥ = K_r Ĥ (C = X Ĥ, X = P⁻ Hwᵀ diag(p)) and P⁺ = P⁻ - K_r (Ĥ Ĥᵀ) Xᵀ: the eigendecomposition
+    # of M, r x r, in place of Q's (:func:`_row_space_update`).  Where S is not positive definite (a row that never
+    # arrives), Q's own (below).
     groups = mom.groups
     if groups.ndim > 2:  # depths at different rows for different items: one item at a time
         lead = Hw.shape[:-2]
@@ -569,6 +578,16 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
         return (np.stack([w for w, _ in out]).reshape(lead + out[0][0].shape),
                 np.stack([p for _, p in out]).reshape(lead + out[0][1].shape))
     n, G = P_pred.shape[-1], groups.shape[-1]
+    HP = Hw @ P_pred
+    S = _row_weights(Hw, mom, M, mu) + mom.A * (HP @ np.swapaxes(Hw, -1, -2))
+    fast = _row_space_update(P_pred, Hw, HP, 0.5 * (S + np.swapaxes(S, -1, -2)), mom, rtol)
+    if fast is not None:
+        return fast
+    # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
+    # zero rows and columns of Q and zero columns of C: left out from the start (the same W; on a field or a grid,
+    # where a depth's sensors see a few of the states, products and an eigh a few times smaller than G n); Ĥ is
+    # never formed: its depth g's block is the depth's rows Hw_g on their nonzero columns, so that each product with
+    # it takes that depth's rows alone
     blocks = []  # (rows, columns, Hw_g on them) of each depth with a nonzero column
     for g in range(G):
         rows = np.flatnonzero(groups[:, g])
@@ -580,8 +599,6 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     if not blocks:  # no measurement sees a state: no update
         return W, np.array(np.broadcast_to(0.5 * (P_pred + np.swapaxes(P_pred, -1, -2)), Hw.shape[:-2] + (n, n)))
     act = np.concatenate([c for c, _, _ in blocks])
-    HP = Hw @ P_pred
-    S = _row_weights(Hw, mom, M, mu) + mom.A * (HP @ np.swapaxes(Hw, -1, -2))
     SH = np.concatenate([S[..., :, rows] @ B for _, rows, B in blocks], axis=-1)  # S Ĥ on the active columns
     Q = np.concatenate([np.swapaxes(B, -1, -2) @ SH[..., rows, :] for _, rows, B in blocks], axis=-2)
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
@@ -593,6 +610,31 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
                         for _, rows, B in blocks], axis=-1)  # P⁻ Hwᵀ diag(p) Ĥ
     W[..., act] = C @ Qp
     P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
+    return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
+    """:func:`relay_update` in the ball's rows (its comment says why and how): ``(W, P⁺)``, or None where some item's
+    ``S`` is not positive definite (then Q's own eigendecomposition)."""
+    try:
+        Ls = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return None
+    n, G = P_pred.shape[-1], mom.groups.shape[-1]
+    same = mom.groups @ mom.groups.T  # (r, r) 1 where two rows are of the same hop depth
+    G0 = same * (Hw @ np.swapaxes(Hw, -1, -2))  # Ĥ Ĥᵀ
+    Mr = np.swapaxes(Ls, -1, -2) @ G0 @ Ls
+    lam, V = np.linalg.eigh(0.5 * (Mr + np.swapaxes(Mr, -1, -2)))
+    keep = lam > rtol * lam[..., -1:]
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    Y = np.linalg.solve(Ls, mom.p[..., :, None] * HP)  # Lₛ⁻¹ Xᵀ (r x n), Xᵀ = diag(p) Hw P⁻
+    Kr = np.swapaxes(((V * inv[..., None, :]) @ (np.swapaxes(V, -1, -2) @ Y)), -1, -2) @ np.swapaxes(Ls, -1, -2)
+    W = np.zeros(Hw.shape[:-2] + (n, G * n))
+    for g in range(G):  # W = K_r Ĥ: depth g's block from its rows alone
+        rows = np.flatnonzero(mom.groups[:, g])
+        if rows.size:
+            W[..., g * n:(g + 1) * n] = Kr[..., rows] @ Hw[..., rows, :]
+    P = P_pred - Kr @ (G0 @ (mom.p[..., :, None] * HP))
     return W, 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
