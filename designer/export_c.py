@@ -64,7 +64,8 @@ from .validation import InputError
 __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "described", "c_array", "model_code",
            "common_code", "work_code", "linalg_code", "PREFIX", "check_prefix", "prefixed", "write_node",
            "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX", "perturbed_twin", "replay_tolerances", "state_difference",
-           "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS", "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP"]
+           "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS", "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP", "FLOAT_EPSILON",
+           "FLOAT_SEED"]
 
 C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
@@ -79,6 +80,10 @@ SENSITIVITY_SAFETY = 100.0
 REPLAY_TOLERANCE_CAP = 1e-6
 SENSITIVITY_TRIALS = 2  # perturbed twins of the node network a step (Kenney and Laub's small-sample estimate)
 SENSITIVITY_SEED = 20261205  # their perturbations' stream: an export is the same file bit for bit every time
+#: a float node's rounding unit (``-DCFD_REAL=float``): its tolerances (:func:`replay_tolerances`) are those of twins
+#: perturbed at it (:meth:`NodeExport.float_twin`), with a stream of their own (the double's tolerances keep their bits)
+FLOAT_EPSILON = float(np.finfo(np.float32).eps)
+FLOAT_SEED = (SENSITIVITY_SEED, 32)
 PREFIX = "cfd"  # the generated sources' names: functions, types and files cfd_..., macros CFD_...
 _PREFIX_SHAPE = re.compile(r"[a-z][a-z0-9]{0,15}")
 _PREFIX_TAKEN = ("casadi",)  # CasADi's own names in cfd_model.c
@@ -233,12 +238,13 @@ def write_node(out: Path, header: str, source: str, main: str, replay: str | Non
 
 def replay_file(steps: int, nodes: int, n_u: int, rows: Iterable[Sequence], tolerances) -> str:
     """The text of ``replay.txt``: ``steps nodes n_u``, then one line per row of numbers (a step's node, in the
-    kind's order), each starting with the row's tolerance (``tolerances``, steps x nodes: :func:`replay_tolerances`),
-    each number as Python's ``repr`` (exact)."""
-    tol = np.asarray(tolerances, float).reshape(-1)
-    lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in (t, *vals)) for t, vals in zip(tol, rows)]
-    if len(lines) != steps * nodes + 1 or tol.size != steps * nodes:
-        raise ValueError(f"replay_file: {len(lines) - 1} rows and {tol.size} tolerances for {steps} steps x {nodes} "
+    kind's order), each starting with the row's two tolerances, a double node's and a float node's (``tolerances``,
+    steps x nodes x 2: :func:`replay_tolerances` at the double's and at float's rounding), each number as Python's
+    ``repr`` (exact)."""
+    tol = np.asarray(tolerances, float).reshape(-1, 2)
+    lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in (*t, *vals)) for t, vals in zip(tol, rows)]
+    if len(lines) != steps * nodes + 1 or len(tol) != steps * nodes:
+        raise ValueError(f"replay_file: {len(lines) - 1} rows and {len(tol)} tolerances for {steps} steps x {nodes} "
                          "nodes")
     return "\n".join(lines) + "\n"
 
@@ -256,12 +262,12 @@ def _configuration(net) -> dict:
     return memo
 
 
-def perturbed_twin(net, rng: np.random.Generator):
+def perturbed_twin(net, rng: np.random.Generator, eps: float = float(np.finfo(float).eps)):
     """A copy of the node network ``net`` (its configuration shared: :func:`_configuration`) whose every node's
     estimate and covariance are moved by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the
-    double's machine epsilon, ``g`` standard normal; the covariance's perturbation symmetric)."""
+    rounding unit, the double's machine epsilon unless given: :data:`FLOAT_EPSILON` for a float node; ``g`` standard
+    normal; the covariance's perturbation symmetric)."""
     twin = copy.deepcopy(net, _configuration(net))
-    eps = np.finfo(float).eps
     for node in twin.nodes:
         x, P = np.asarray(node.x, float), np.asarray(node.P, float)
         G = rng.standard_normal(P.shape)
@@ -283,22 +289,27 @@ def state_difference(x, P, x_ref, P_ref) -> float:
     return float(np.inf) if not np.all(np.isfinite(d)) else float(d.max(initial=0.0))
 
 
-def replay_tolerances(net, twins: Sequence, nodes: Sequence[int]) -> np.ndarray:
+def replay_tolerances(net, twins: Sequence, nodes: Sequence[int], floor: float = REPLAY_TOLERANCE) -> np.ndarray:
     """Each exported node's tolerance in ``make test`` at the step just taken by ``net`` and its perturbed twins
-    (:func:`perturbed_twin`, made before the step and stepped with it): :data:`REPLAY_TOLERANCE`, or where the step
-    itself moves one-ulp perturbations of its input further, :data:`SENSITIVITY_SAFETY` times the largest such
-    movement (:func:`state_difference`).  A tolerance above :data:`REPLAY_TOLERANCE_CAP` is a step too
-    ill-conditioned to check: the export's replay stops before it.
+    (:func:`perturbed_twin`, made before the step and stepped with it): ``floor`` (:data:`REPLAY_TOLERANCE`), or
+    where the step itself moves one-ulp perturbations of its input further, :data:`SENSITIVITY_SAFETY` times the
+    largest such movement (:func:`state_difference`).  A double node's tolerance above :data:`REPLAY_TOLERANCE_CAP`
+    is a step too ill-conditioned to check: the export's replay stops before it.
+
+    A float node's (twins perturbed at :data:`FLOAT_EPSILON`, ``floor`` the double's scaled to float's rounding) is
+    not the double's scaled: where a step drops an eigenvalue below what float resolves (a relay node's
+    pseudo-inverse keeps eigenvalues down to 1e-12 of the largest in double, 1e-5 in float), perturbations at
+    float's rounding move its output by an amount one-ulp perturbations of a double do not show.
 
     Each step of ``make test`` starts from Python's state, read exactly, so what the C may differ by is its own
     rounding inside the step, carried to the output as the step's condition carries a perturbation of its input:
     where a step amplifies one-ulp changes of its input to 1e-10 (a radar's angles from a wide prior), no correct
     implementation agrees within 1e-12, and a check at 1e-12 would fail correct code."""
-    out = np.full(len(nodes), REPLAY_TOLERANCE)
+    out = np.full(len(nodes), floor)
     for j, i in enumerate(nodes):
         ref = net.nodes[i]
         moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in twins), default=0.0)
-        out[j] = max(REPLAY_TOLERANCE, SENSITIVITY_SAFETY * moved)
+        out[j] = max(floor, SENSITIVITY_SAFETY * moved)
     return out
 
 
@@ -361,6 +372,13 @@ class NodeExport:
         n, n_x = network.n_nodes, model.n_x
         return len(nodes) * ((n + 2) * (n_x * n_x + n_x) + model.n_z), 0
 
+    def float_twin(self, net, rng: np.random.Generator):
+        """A twin of the node network ``net`` stepping as a float node would (``-DCFD_REAL=float``), before the step:
+        its float tolerance in ``make test`` is how far the step moves it (:func:`replay_tolerances`).  The base
+        class: :func:`perturbed_twin` at float's rounding, :data:`FLOAT_EPSILON`; a kind whose float node decides
+        differently (a rank cut at float's resolution) sets its twin's nodes to decide so too."""
+        return perturbed_twin(net, rng, FLOAT_EPSILON)
+
     def replay_step(self, net, k: int, u: np.ndarray, z: Sequence[np.ndarray], nodes: Sequence[int]) -> Any:
         """The replay record of step ``k`` (0-based) from the node network ``net`` after its step: ``u`` the step's
         inputs, ``z`` each exported node's own measurement (in ``nodes`` order)."""
@@ -369,8 +387,8 @@ class NodeExport:
     def write(self, model, network, design, net, steps: list, out: Path, *, nodes: Sequence[int], tolerances,
               verdict=None) -> list[Path]:
         """Write the export of ``design`` for the nodes ``nodes`` into ``out`` (the node network ``net`` after the
-        replayed run, ``steps`` the records of :meth:`replay_step`, ``tolerances`` each step's and node's tolerance
-        in ``make test``, steps x nodes: :func:`replay_tolerances`, written through :func:`replay_file`;
-        ``verdict``: the design's, stated as a word of :data:`designer.verdict.VERDICTS`); returns the files
-        written."""
+        replayed run, ``steps`` the records of :meth:`replay_step`, ``tolerances`` each step's and node's
+        tolerances in ``make test``, steps x nodes x 2 (a double node's, a float node's: :func:`replay_tolerances`),
+        written through :func:`replay_file`; ``verdict``: the design's, stated as a word of
+        :data:`designer.verdict.VERDICTS`); returns the files written."""
         raise NotImplementedError(f"{type(self).__name__}.write")

@@ -883,8 +883,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Returns the files written.
     """
     import rules
-    from designer.export_c import (REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY, SENSITIVITY_SEED, SENSITIVITY_TRIALS,
-                                   check_prefix, perturbed_twin, prefixed, replay_tolerances)
+    from designer.export_c import (FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY,
+                                   SENSITIVITY_SEED, SENSITIVITY_TRIALS, check_prefix, perturbed_twin, prefixed,
+                                   replay_tolerances)
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -946,10 +947,13 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
     offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
     steps, tolerances = [], []
-    rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity
+    rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
+    rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
+    to_float = FLOAT_EPSILON / np.finfo(float).eps
     for k in progress(range(z.shape[0]), z.shape[0], False, "export: replaying the run"):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         twins = [perturbed_twin(net, rng) for _ in range(SENSITIVITY_TRIALS)]
+        floats = [exporter.float_twin(net, rng_float) for _ in range(SENSITIVITY_TRIALS)]
         net.step(z[k], *e, u=u[k])
         if getattr(net, "stopped", False):
             warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
@@ -958,7 +962,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         step = exporter.replay_step(net, k, u[k], [z[k, offsets[i]:offsets[i + 1]] for i in chosen], chosen)
         with warnings.catch_warnings(), np.errstate(all="ignore"):  # a twin may break down where the run does not
             warnings.simplefilter("ignore")
-            for twin in twins:
+            for twin in twins + floats:
                 twin.step(z[k], *e, u=u[k])
         tol = replay_tolerances(net, twins, chosen)
         if not np.all(tol <= REPLAY_TOLERANCE_CAP):  # beyond, C and Python may differ by rounding alone
@@ -969,10 +973,10 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
                           f"holds the {k} steps before", RuntimeWarning, stacklevel=2)
             break
         steps.append(step)
-        tolerances.append(tol)
+        tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen))], -1))
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     with replaced_outputs(out) as stage:
         written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
-                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen))),
+                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen), 2)),
                                           verdict=verdict), prefix)
     return [Path(out) / p.name for p in written]

@@ -19,7 +19,7 @@ from designer.export_c import (NodeExport, c_array, common_code, described, mode
                                work_code, write_node)
 from designer.validation import InputError
 
-from .design import relay_carried, relay_moments, relay_routes
+from .design import FLOAT_RTOL, RTOL, relay_carried, relay_moments, relay_routes
 
 __all__ = ["RelayExport", "write_relay_c", "replay_text"]
 
@@ -37,7 +37,7 @@ class RelayExport(NodeExport):
     def replay_numbers(self, model, network, options, regions, nodes):
         """Per exported node and step: its measurement, one flag and the measurement of each other sensor of its
         ball, the inputs, its estimate and bound (``CFD_NC`` wide: the most an exported node carries), the
-        tolerance; its data: its ball's rows' moments (A, F1, F2: rows x rows each), the rows' layout and its
+        tolerances; its data: its ball's rows' moments (A, F1, F2: rows x rows each), the rows' layout and its
         states."""
         routes = relay_routes(network, self.rule.rounds(network, options.rounds), self.rule.routing)
         dims = np.asarray(model.sensor_dims)
@@ -52,6 +52,16 @@ class RelayExport(NodeExport):
             record += rows + ball.size + model.n_u + w + w * w
             data += 3 * rows * rows + 2 * rows + 2 * ball.size + int(widths[i])
         return record, data
+
+    def float_twin(self, net, rng):
+        """The base class's twin at float's rounding, its nodes' pseudo-inverses cut where the float node cuts them
+        (:data:`rules.relay.design.FLOAT_RTOL`: float does not resolve an eigenvalue below; the double keeps it
+        down to :data:`rules.relay.design.RTOL`), so that the float tolerance covers what the float node leaves
+        out."""
+        twin = super().float_twin(net, rng)
+        for node in twin.nodes:
+            node.rtol = FLOAT_RTOL
+        return twin
 
     def replay_step(self, net, k, u, z, nodes):
         _, rounds = net.last  # what each node sent and, round by round, what reached it
@@ -118,7 +128,7 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     ball_max = max(ball_start[j + 1] - ball_start[j] for j in range(len(nodes)))
     header = template(_C / "cfd_node.h.in", NX=n, NC=nc, NU=model.n_u, NZ=int(dims.sum()), SENSORS=model.n_sensors,
                       NODES=len(nodes), BALL_MAX=ball_max, ROWS_MAX=r_max, ROUNDS=int(routes.hops), MODE=rule.name,
-                      NZMAX=nz_max, GROUPS=G, KMAX=min(r_max, G * nc), WORK=work_code(sizes, "CFD_KMAX"),
+                      NZMAX=nz_max, GROUPS=G, KMAX=min(r_max, G * nc), WORK=work_code(sizes, "CFD_ROWS_MAX"),
                       **described(model, nodes, verdict))
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_state_start", state_start, "int"),
@@ -133,14 +143,15 @@ def write_relay_c(model, network, design, routes, moments: Sequence, out: Path, 
     ])
     whole = all(np.array_equal(s, np.arange(n)) for s in states)  # the C's sizes then fixed at compile time
     source = template(_C / "cfd_node.c.in", COMMON=common_code(model), DATA=data,
-                      USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))), WHOLE=int(whole))
+                      USE_F1=int(bool(np.any(M))), USE_F2=int(bool(np.any(mu))), WHOLE=int(whole),
+                      RTOL=repr(RTOL), FLOAT_RTOL=repr(FLOAT_RTOL))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
 
 
 def replay_text(nodes: Sequence[int], balls: Sequence[Sequence[int]], dims: Sequence[int], steps: list,
                 n_u: int, tolerances) -> str:
-    """``replay.txt``: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its tolerance
-    (``tolerances``: :func:`designer.export_c.replay_tolerances`), the node's measurement,
+    """``replay.txt``: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its tolerances
+    (``tolerances``: :func:`designer.export_c.replay_file`), the node's measurement,
     one arrived flag per sensor of its ball after its own, the received measurements (zeros where not arrived), the
     step's inputs, the Python node filter's estimate and bound (row by row); numbers as Python's ``repr`` (exact).
     ``steps``: per step, ``(u, [(z_own, received {sensor: value}, x, P) per node])``."""

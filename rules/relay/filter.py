@@ -62,8 +62,8 @@ from filters.engine import Step, estimate_arrays, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
-from .design import (MAX_HOPS, NodeMoments, Routes, node_classes, relay_carried, relay_information, relay_moments,
-                     relay_routes, relay_update)
+from .design import (MAX_HOPS, RTOL, NodeMoments, Routes, node_classes, relay_carried, relay_information,
+                     relay_moments, relay_routes, relay_update)
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -332,7 +332,7 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
     return zk[:, lay.zcol] + offset, arrived
 
 
-def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived):
+def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived, rtol: float = RTOL):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
     :func:`rules.relay.design.relay_update` and :func:`rules.relay.design.relay_information`.  Returns ``(x, P)``."""
@@ -359,7 +359,7 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
             rows = lay.start[nodes][:, None] + np.arange(r)  # (g, r): each node's rows
             Hc = Hw[:, rows]  # (a, g, r, nx)
             W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M if M.ndim == 2 else M[nodes],
-                                          mu if mu.ndim == 1 else mu[nodes])
+                                          mu if mu.ndim == 1 else mu[nodes], rtol)
             y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
             x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
     return x, P
@@ -372,17 +372,17 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
 CLASS_CHUNK = 200_000
 
 
-def _node_update(Pp, Hw, mom, M, mu):
+def _node_update(Pp, Hw, mom, M, mu, rtol: float = RTOL):
     """:func:`rules.relay.design.relay_update` over the runs; a run where it breaks down (LinAlgError) gets NaN (and stops
     as diverged), the others their update."""
     try:
-        return relay_update(Pp, Hw, mom, M, mu)
+        return relay_update(Pp, Hw, mom, M, mu, rtol)
     except np.linalg.LinAlgError:
         n, G = Pp.shape[-1], mom.groups.shape[-1]
         W, P = np.full(Pp.shape[:-1] + (G * n,), np.nan), np.full(Pp.shape, np.nan)
         for r in range(Pp.shape[0]):
             try:
-                W[r], P[r] = relay_update(Pp[r], Hw[r], mom, M, mu)
+                W[r], P[r] = relay_update(Pp[r], Hw[r], mom, M, mu, rtol)
             except np.linalg.LinAlgError:
                 pass
         return W, P
@@ -499,6 +499,9 @@ class RelayNode:
         else:
             self.x, self.P = self._carry.vector(x0[0])[0], self._carry.matrix(P0[0])[0]
         self.k = 0  # the steps taken: the next step measures the state at time k + 1
+        #: the pseudo-inverse's cut of its update (relay_update's rtol): a double's; an export's float twin sets a
+        #: float node's (rules.relay.design.FLOAT_RTOL)
+        self.rtol = RTOL
 
     def step(self, z, received: Mapping[int, np.ndarray] | None = None, u=None) -> np.ndarray:
         """One step: predict, then fuse ``z`` (its own measurement) and the relayed measurements ``received``.
@@ -524,7 +527,7 @@ class RelayNode:
         h, H = _ball_rows(m, self._lay, self.k, xf)
         if self._carry is not None:
             H = self._carry.columns(H, self._lay.node_of_row)
-        x, P = _fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived)
+        x, P = _fuse(self._lay, self._classes, self._M, self._mu, xp, Pp, h, H, values, arrived, self.rtol)
         self.x, self.P = x[0, 0], P[0, 0]
         self.k += 1
         return self.x

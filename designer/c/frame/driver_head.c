@@ -5,11 +5,12 @@
  * from the same input, which two correct implementations agree on to rounding even where the recursion is chaotic.
  * Each entry is compared on its own scale: an estimate's component x[i] on max(|x[i]|, sqrt(P[i][i])), a
  * covariance's entry P[i][j] on max(|P[i][j]|, sqrt(P[i][i] P[j][j])) (Python's values), so small variances and
- * cross terms are checked as closely as large ones.  Each row of the replay starts with its tolerance: TOL, or
- * where the step itself is ill-conditioned (Python measured how far it carries one-ulp changes of its input) a
- * multiple of that sensitivity, at most TOL_CAP.  A difference above the tolerance fails, naming the step, the
- * node, the quantity and both values.  A second set of nodes runs on its own, never re-synchronised, on the
- * same inputs; how far it drifts is reported as information. */
+ * cross terms are checked as closely as large ones.  Each row of the replay starts with its tolerances, a double
+ * node's and a float node's (-DCFD_REAL=float): TOL (TOL scaled to float's rounding), or where the step itself is
+ * ill-conditioned (Python measured how far it carries changes of its input by one unit of double's, of float's
+ * rounding, and a float node's rank decisions) a multiple of that sensitivity, a double's at most TOL_CAP.  A
+ * difference above the tolerance fails, naming the step, the node, the quantity and both values.  A second set of
+ * nodes runs on its own, never re-synchronised, on the same inputs; how far it drifts is reported as information. */
 #include <float.h>
 #include <math.h>
 #include <stdio.h>
@@ -24,8 +25,9 @@
 #define TOL @TOL@
 #define TOL_CAP @TOL_CAP@
 #define REPORTED 10 /* failures printed in full; the rest are counted */
-/* the tolerances are a double node's: a float node (-DCFD_REAL=float) is checked as much looser as its rounding */
-#define PRECISION ((double)(sizeof(CFD_REAL) < sizeof(double) ? FLT_EPSILON / DBL_EPSILON : 1.0))
+/* a float node (-DCFD_REAL=float): the rows' second tolerance, at least TOL as much looser as its rounding */
+#define FLOAT_NODE (sizeof(CFD_REAL) < sizeof(double))
+#define PRECISION ((double)(FLOAT_NODE ? FLT_EPSILON / DBL_EPSILON : 1.0))
 
 static int read_numbers(FILE *fh, double *v, int count) {
     int i;
@@ -55,13 +57,16 @@ typedef struct {
     double free_worst; /* the free-running nodes' largest difference (information) */
 } cfd_tally;
 
-/* start a row of the replay: its step, node and tolerance (0 or -1 for a replay that ended) */
+/* start a row of the replay: its step, node and tolerance, the double's or the float's (0 or -1 for a replay that
+ * ended) */
 static int row(FILE *fh, cfd_tally *t, int k, int node) {
-    double tol;
-    if (read_numbers(fh, &tol, 1) || !(tol >= TOL && tol <= TOL_CAP)) return -1;
+    double tol[2];
+    if (read_numbers(fh, tol, 2) || !(tol[0] >= TOL && tol[0] <= TOL_CAP) || !(tol[1] >= TOL * PRECISION)
+        || !(tol[1] < HUGE_VAL))
+        return -1;
     t->step = k + 1;
     t->node = node;
-    t->tol = tol * PRECISION;
+    t->tol = tol[FLOAT_NODE ? 1 : 0];
     if (t->tol > t->worst_tol) t->worst_tol = t->tol;
     return 0;
 }
