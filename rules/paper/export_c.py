@@ -107,7 +107,7 @@ def write_consensus_c(model, network, design, out: Path, *, nodes: Sequence[int]
 def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, steps: list,
                           tolerances) -> str:
     """``replay.txt`` of a consensus design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
-    tolerance (``tolerances``: :func:`designer.export_c.replay_tolerances`), the step's inputs, the node's
+    tolerances (``tolerances``: :func:`designer.export_c.replay_file`), the step's inputs, the node's
     measurement, one arrived flag per in-neighbour (``senders`` order), the estimates that arrived (zeros where
     not), every in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the Python node filter's
     packet (prediction, its covariance, its flag) and its estimate and covariance after the update. ``steps``: per

@@ -120,7 +120,7 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
 def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, nz: int,
                           exchange: bool, steps: list, tolerances) -> str:
     """``replay.txt`` of a scheduled design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
-    tolerance (``tolerances``: :func:`designer.export_c.replay_tolerances`), the step's inputs, the node's
+    tolerances (``tolerances``: :func:`designer.export_c.replay_file`), the step's inputs, the node's
     measurement, one arrived flag per in-neighbour, the predictions that arrived (zeros where not), with exchange
     the measurements that arrived (``nz`` each, zero-padded), for rounds 2..L the estimates that arrived, then the
     Python node filter's estimate and own covariance after the step. ``steps``: per step, ``(u, [(z, received {j:
