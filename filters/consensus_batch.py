@@ -62,7 +62,7 @@ from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern, channel_attacks, channel_draws
 from .channels import GATE_COUNTS, channel_packets, gate_channels
-from .engine import Step, run_batch
+from .engine import Latest, Step, history, run_batch
 from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes
 from .rrp import wrap_angles
 
@@ -70,6 +70,7 @@ from .rrp import wrap_angles
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "consensus_result",
+           "COVARIANCE_FIELDS",
            "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
@@ -261,12 +262,21 @@ class ConsensusResult(NamedTuple):
         return next((v for v in self.violations if v["condition"] == "diverged"), None)
 
 
-def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, **given: np.ndarray) -> dict:
+#: The fields of a :class:`ConsensusBatchResult` a run without its covariances' record keeps at their latest step
+#: only (:class:`filters.engine.Latest`; None in the result): the bounds, the predictions' and the gains.
+COVARIANCE_FIELDS = ("phi_post", "phi_pred", "K", "C")
+
+
+def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, *, latest: Sequence[str] = (),
+                  **given: np.ndarray) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones; the fields in
-    ``given`` are taken as they are, not allocated (at a hundred states each covariance field is a gigabyte)."""
+    ``given`` are taken as they are, not allocated (at a hundred states each covariance field is a gigabyte), those
+    in ``latest`` kept at their latest step only (:class:`filters.engine.Latest`)."""
     def full(name, shape):
-        return given[name] if name in given else np.full(shape, np.nan)
+        if name in given:
+            return given[name]
+        return Latest(shape[:1] + shape[2:]) if name in latest else np.full(shape, np.nan)
 
     return dict(x_post=full("x_post", (runs, steps + 1, n, nx)), x_pred=full("x_pred", (runs, steps, n, nx)),
                 phi_post=full("phi_post", (runs, steps + 1, n, nx, nx)),
@@ -281,7 +291,8 @@ def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, **given: np.n
 
 class ConsensusBatchResult(NamedTuple):
     """Many runs of the consensus filter: the fields of :class:`ConsensusResult`
-    with a leading runs axis, and ``violations`` one list per run."""
+    with a leading runs axis, and ``violations`` one list per run; :data:`COVARIANCE_FIELDS` None for runs without
+    their covariances' record."""
 
     x_post: np.ndarray  # (runs, steps+1, N, n_x)
     x_pred: np.ndarray  # (runs, steps, N, n_x)
@@ -310,7 +321,7 @@ class ConsensusBatchResult(NamedTuple):
     def run(self, r: int) -> ConsensusResult:
         """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
-        fields = [getattr(self, f)[r] if f != "violations" else self.violations[r]
+        fields = [self.violations[r] if f == "violations" else None if getattr(self, f) is None else getattr(self, f)[r]
                   for f in ConsensusResult._fields if f not in optional + ("carried",)]
         return ConsensusResult(*fields, *(None if getattr(self, f) is None else getattr(self, f)[r] for f in optional),
                                self.carried)
@@ -579,7 +590,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                         phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None, runtime: str | None = None,
-                        cov_kind: str = "bound", messages: int | None = None) -> FilterResult:
+                        cov_kind: str = "bound", messages: int | None = None, covariances: bool = True
+                        ) -> FilterResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -612,6 +624,10 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     messages : int, optional
         Transmissions per step (default: one per directed link of the network and exchange round, ``2 |E| rounds``
         with the design's rounds, one round for a replay; lost ones included).
+    covariances : bool
+        False: Φ, the predictions' Φ and the gains are kept at their latest step only (:data:`COVARIANCE_FIELDS`;
+        the result's ``cov`` None, the estimates' numbers the same), what a study that scores a reference filter's
+        estimates asks.  A gain rule with its own batch filter keeps them.
 
     Returns
     -------
@@ -631,7 +647,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
-    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains)
+    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains, covariances)
     return consensus_result(res, network, design, runtime=runtime, cov_kind=cov_kind, messages=messages,
                             replay=gains is not None)
 
@@ -656,7 +672,7 @@ def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, desig
 
 
 def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
-                    inputs, attacks, gains) -> ConsensusBatchResult:
+                    inputs, attacks, gains, covariances: bool = True) -> ConsensusBatchResult:
     """The runs of :func:`run_consensus_batch` (its inputs checked), as the family's arrays."""
     runs, steps = z.shape[:2]
     ex = Exchange(network)
@@ -686,7 +702,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last weighted update, by slot
 
-    out = result_arrays(runs, steps, n, nx, nz)
+    out = result_arrays(runs, steps, n, nx, nz, latest=() if covariances else COVARIANCE_FIELDS)
     del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
     violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)
@@ -772,7 +788,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         rr, ii = np.nonzero(th < 0)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
-    return ConsensusBatchResult(**out)
+    return ConsensusBatchResult(**{name: history(value) for name, value in out.items()})
 
 
 def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:

@@ -93,7 +93,7 @@ from designer.validation import InputError, check_finite, check_int
 from .attacks import AttackPattern
 from .consensus import check_run_inputs
 from .consensus_batch import Exchange, batch_inputs, wrap_residuals
-from .engine import Step, estimate_arrays, run_batch
+from .engine import Step, estimate_arrays, history, run_batch
 from .node import NodeInputs, NodeNetwork
 from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
@@ -366,9 +366,9 @@ class DistributedBatchResult(NamedTuple):
     (``violations`` one list per run); :meth:`run` gives run ``r`` as the per-run result."""
 
     x_post: np.ndarray  # (runs, steps+1, N, n_x)
-    P_post: np.ndarray  # (runs, steps+1, N, n_x, n_x)
+    P_post: np.ndarray | None  # (runs, steps+1, N, n_x, n_x); None: run without its covariances' record
     x_pred: np.ndarray  # (runs, steps, N, n_x)
-    P_pred: np.ndarray  # (runs, steps, N, n_x, n_x)
+    P_pred: np.ndarray | None  # (runs, steps, N, n_x, n_x); None: as P_post
     messages_per_step: np.ndarray  # (runs, steps) int
     delivered_per_step: np.ndarray  # (runs, steps) int
     violations: list
@@ -395,8 +395,11 @@ def distributed_result(detail: DistributedBatchResult) -> FilterResult:
     """The :class:`filters.result.FilterResult` a distributed filter returns (KCF, HCMCI, the relay filter): each
     node's estimate and its own covariance P (``cov_kind="covariance"``, not a bound; ``valid`` where finite), the
     packets sent per step (every round counted, ``2 |E| L``) and delivered, runtime ``local`` (a node needs only its
-    neighbours' packets), ``detail`` the runs' :class:`DistributedBatchResult`."""
-    return FilterResult(detail.x_post, detail.P_post, "covariance", np.isfinite(detail.P_post).all(axis=(-2, -1)),
+    neighbours' packets), ``detail`` the runs' :class:`DistributedBatchResult`; run without its covariances' record
+    (``P_post`` None), no ``cov`` and ``valid`` where the estimates are finite."""
+    valid = (np.isfinite(detail.x_post).all(axis=-1) if detail.P_post is None else
+             np.isfinite(detail.P_post).all(axis=(-2, -1)))
+    return FilterResult(detail.x_post, detail.P_post, "covariance", valid,
                         detail.violations, np.asarray(detail.messages_per_step, dtype=np.int64), "local",
                         delivered=np.asarray(detail.delivered_per_step, dtype=np.int64), detail=detail,
                         carried=detail.carried).check()
@@ -451,17 +454,19 @@ def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
     return np.swapaxes(H, -1, -2) @ RiH, u
 
 
-def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int
-                  ) -> DistributedBatchResult:
+def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int,
+                  covariances: bool = True) -> DistributedBatchResult:
     """The step both filters share, run by :func:`filters.engine.run_batch` over many runs at once: every step,
     predict at every node of the runs still going, compute every node's measurement information, ``update`` them;
     a run stops at its first divergence (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes
     stacks over the runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it
-    raises ``LinAlgError``, the runs are updated one at a time to find those that break down."""
+    raises ``LinAlgError``, the runs are updated one at a time to find those that break down.  Without
+    ``covariances`` the nodes' covariances are kept at their latest step only (:class:`filters.engine.Latest`)."""
     n, nx = network.n_nodes, model.n_x
     runs, steps = inp.z.shape[:2]
     adj = network.adjacency
-    out = estimate_arrays(runs, steps, n, nx, inp.x0, inp.P0, network.messages_per_step(rounds))
+    out = estimate_arrays(runs, steps, n, nx, inp.x0, inp.P0, network.messages_per_step(rounds),
+                          covariances=covariances)
     out["omega"] = np.full((runs, steps, n), np.nan)
     violations: list[list[dict]] = [[] for _ in range(runs)]
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
@@ -512,19 +517,21 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
 
     # a run that stops: everything from step k+1 on NaN and flagged, nothing carried on
     run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
-    return DistributedBatchResult(out["x_post"], out["P_post"], out["x_pred"], out["P_pred"], out["sent"],
-                                  out["delivered"], violations, rounds, out["omega"])
+    return DistributedBatchResult(out["x_post"], history(out["P_post"]), out["x_pred"], history(out["P_pred"]),
+                                  out["sent"], out["delivered"], violations, rounds, out["omega"])
 
 
 def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
                   attacks: Sequence[AttackPattern] | None = None, x0=None, P0=None, epsilon: float | None = None,
-                  falsify: str = "packet") -> FilterResult:
+                  falsify: str = "packet", covariances: bool = True) -> FilterResult:
     """:func:`run_kcf` on many runs at once: ``z`` (runs, steps, n_z), ``attacks`` one AttackPattern per run.
 
     ``inputs`` (steps, n_u) shared or (runs, steps, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
     (runs, n_x, n_x); the other parameters as :func:`run_kcf`.  Every step is one stack over the runs and
     nodes; run ``r`` of the result is :func:`run_kcf` on run ``r`` (a batch of one: the same numbers, the same
-    violations; a run that diverges stops alone).  Returns :func:`distributed_result` of the runs.
+    violations; a run that diverges stops alone).  Without ``covariances`` the result has none (``cov`` None: the
+    estimates' numbers are the same; what a study that scores the estimates alone asks).  Returns
+    :func:`distributed_result` of the runs.
     """
     inp = _check_batch(model, network, z, inputs, attacks, x0, P0, falsify)
     eps = _kcf_epsilon(network, epsilon)
@@ -536,12 +543,12 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
         return _kcf_update(ex, eps, packet, xp, Pp, U, u, recv, *at)
 
-    return distributed_result(_filter_batch(model, network, inp, update, 1)._replace(omega=None))
+    return distributed_result(_filter_batch(model, network, inp, update, 1, covariances)._replace(omega=None))
 
 
 def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1,
                     omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | None = None, x0=None,
-                    P0=None, falsify: str = "packet") -> FilterResult:
+                    P0=None, falsify: str = "packet", covariances: bool = True) -> FilterResult:
     """:func:`run_hcmci` on many runs at once (the parameters of :func:`run_kcf_batch` and :func:`run_hcmci`);
     run ``r`` of the result's ``detail`` is :func:`run_hcmci` on run ``r`` (a batch of one); returns
     :func:`distributed_result` of the runs."""
@@ -555,7 +562,7 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
         return _hcmci_update(ex, network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
-    return distributed_result(_filter_batch(model, network, inp, update, L))
+    return distributed_result(_filter_batch(model, network, inp, update, L, covariances))
 
 
 # --------------------------------------------------------------------------- KCF's node filter

@@ -19,6 +19,11 @@ A run alone is a batch of one, and a run's numbers do not depend on the other ru
 arithmetic of its own.  :func:`estimate_arrays` allocates the records of the filters that carry an estimate and a
 covariance per node (the relay rule, KCF, HCMCI) with their messages count; the consensus EKF's are
 :func:`filters.consensus_batch.result_arrays`.
+
+A record may be kept at its latest step only (:class:`Latest`): the filter's state, not its history.  A study that
+scores a reference filter's estimates needs none of its covariances, which at a hundred states and nodes are a
+gigabyte and more a run; the step reads and writes such a record as it does a full one, and the result has None
+in its place (:func:`history`).
 """
 from __future__ import annotations
 
@@ -30,7 +35,7 @@ from designer.progress import line
 
 from .result import DIVERGED_REASON, stop_diverged
 
-__all__ = ["Step", "run_batch", "estimate_arrays"]
+__all__ = ["Step", "run_batch", "estimate_arrays", "Latest", "history"]
 
 
 class Step(NamedTuple):
@@ -77,13 +82,39 @@ def run_batch(step: Callable[[int, np.ndarray, slice | np.ndarray], Step], recor
     return act
 
 
-def estimate_arrays(runs: int, steps: int, n: int, nx: int, x0: np.ndarray, P0: np.ndarray, per_step: int) -> dict:
+class Latest:
+    """A record of a batch kept at its latest step only: indexed as the full record is, ``a[runs, step]`` (runs
+    first, then the step, a single one), it holds each run's value at the step written last, whatever the step
+    named (a step reads a record at the step the step before wrote, never earlier).  ``a[run, step:] = NaN`` (a run
+    that stops) sets that run's value.  ``shape``: (runs, ...) without the steps' axis."""
+
+    def __init__(self, shape: tuple, fill=np.nan):
+        self.value = np.full(shape, fill)
+
+    def __getitem__(self, key):
+        return self.value[key[0]]
+
+    def __setitem__(self, key, value) -> None:
+        self.value[key[0]] = value
+
+
+def history(record) -> np.ndarray | None:
+    """A record as a result holds it: its array over the steps, or None for one kept at its latest step only
+    (:class:`Latest`)."""
+    return None if isinstance(record, Latest) else record
+
+
+def estimate_arrays(runs: int, steps: int, n: int, nx: int, x0: np.ndarray, P0: np.ndarray, per_step: int, *,
+                    covariances: bool = True) -> dict:
     """The records of a filter whose nodes carry an estimate and a covariance: ``x_post``, ``P_post`` (runs, steps
     + 1, n, ...) from every node's ``x0`` (runs, nx), ``P0`` (runs, nx, nx), ``x_pred``, ``P_pred`` (runs, steps,
     n, ...) NaN, and the messages: ``sent`` (runs, steps) ``per_step`` transmissions at every step (attempted,
-    lost ones included), ``delivered`` (runs, steps) zero until the steps count them."""
-    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), P_post=np.full((runs, steps + 1, n, nx, nx), np.nan),
-               x_pred=np.full((runs, steps, n, nx), np.nan), P_pred=np.full((runs, steps, n, nx, nx), np.nan),
+    lost ones included), ``delivered`` (runs, steps) zero until the steps count them.  Without ``covariances``,
+    ``P_post`` and ``P_pred`` are kept at their latest step only (:class:`Latest`)."""
+    cov = ((lambda shape: np.full(shape, np.nan)) if covariances else  # noqa: E731
+           (lambda shape: Latest(shape[:1] + shape[2:])))
+    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), P_post=cov((runs, steps + 1, n, nx, nx)),
+               x_pred=np.full((runs, steps, n, nx), np.nan), P_pred=cov((runs, steps, n, nx, nx)),
                sent=np.full((runs, steps), per_step), delivered=np.zeros((runs, steps), int))
     out["x_post"][:, 0], out["P_post"][:, 0] = x0[:, None], P0[:, None]
     return out

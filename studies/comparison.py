@@ -309,11 +309,12 @@ def _settings(sc: Scenario, values: Sequence[float]) -> list[tuple]:
 
 
 def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations: int, run_ids: Sequence[int],
-            truth: np.ndarray | None = None) -> Batch:
+            truth: np.ndarray | None = None, covariances: bool = True) -> Batch:
     """The comparison's realisations of the runs ``seeds`` at the settings ``scs`` (the main one first), as the
     :class:`studies.filter_registry.Batch` every filter runs on: run ``r`` draws its truth and measurements, the
     channel draws that every setting turns into its attacks (common random numbers) and its particle filters' seed
-    from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states."""
+    from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states;
+    ``covariances``: the batch's (:class:`studies.filter_registry.Batch`)."""
     sc = scs[0]
     K, n = sc.steps, sc.network.n_nodes
     trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
@@ -332,7 +333,7 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
     return Batch(tuple(scs), np.stack([t.z for t in trajs]),
                  None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), tuple(map(tuple, atts)),
                  received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
-                 iterations=iterations, run_ids=tuple(run_ids))
+                 iterations=iterations, run_ids=tuple(run_ids), covariances=covariances)
 
 
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, main_only: Sequence[str] = (),
@@ -386,7 +387,9 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
             if j == 0:
                 est[a, f] = xs[:, 0]
 
-    batch = realise(scs, seeds, particles=particles, iterations=hcmci_iterations, run_ids=run_ids, truth=truth)
+    # the filters that are not designed are scored on their estimates alone: no covariance over the steps
+    batch = realise(scs, seeds, particles=particles, iterations=hcmci_iterations, run_ids=run_ids, truth=truth,
+                    covariances=False)
 
     for f, e in enumerate(entries):
         if not e.attacked:  # uses no channel: the same numbers at every setting, run once

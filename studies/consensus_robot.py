@@ -478,7 +478,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         out["truth"][a] = trajs[a].x
     batch = Batch((sc,), np.stack([tr.z for tr in trajs]),
                   None if trajs[0].inputs is None else np.stack([tr.inputs for tr in trajs]), (tuple(atts),),
-                  iterations=hcmci_iterations, run_ids=tuple(run_ids), per_row_networks=False)
+                  iterations=hcmci_iterations, run_ids=tuple(run_ids), per_row_networks=False,
+                  covariances=False)  # the filters that are not designed are scored on their estimates alone
     for j, v in enumerate(variants.values()):
         if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
             continue

@@ -59,7 +59,10 @@ class Batch:
     (NaN where lost; None when the study has no uplinks).  ``particle_seeds[a]``: the SeedSequence of
     run ``a``'s particle filters; ``particles`` their number; ``iterations``: consensus rounds per step
     of the filters that take them (HCMCI's L); ``per_row_networks``: a designed filter gets one network per row
-(its setting's channel probabilities), or the main one for all rows (False).  A filter run on settings
+(its setting's channel probabilities), or the main one for all rows (False); ``covariances``: False where the study
+scores the estimates of the filters that are not designed and nothing else of them (KCF, HCMCI, the local and the
+centralized EKF then keep no covariance over the steps: ``cov`` None, the same estimates; a designed filter keeps
+its bounds).  A filter run on settings
 ``js`` returns rows in
     setting-major order, row ``i R + a`` for setting ``js[i]`` and run ``a``.  ``cache`` holds results
     that several entries share (the particle filters run as one batch).
@@ -75,6 +78,7 @@ class Batch:
     iterations: int = 1
     run_ids: tuple = ()
     per_row_networks: bool = True
+    covariances: bool = True
     cache: dict = field(default_factory=dict)
 
     @property
@@ -251,7 +255,8 @@ def local_ekfs(name: str, description: str) -> FilterEntry:
         n = batch.network.n_nodes
         alone = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
         return run_consensus_batch(batch.model, alone, batch.z_rows(js), design, attacks=None,
-                                   inputs=batch.input_rows(js), runtime="local", cov_kind="covariance")
+                                   inputs=batch.input_rows(js), runtime="local", cov_kind="covariance",
+                                   covariances=batch.covariances)
 
     def nodes(model, network: SensorNetwork, design: ConsensusDesign, iterations: int):
         n = network.n_nodes
@@ -268,7 +273,7 @@ def kcf(name: str, description: str) -> FilterEntry:
 
     def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
         return run_kcf_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
-                             attacks=batch.attack_rows(js))
+                             attacks=batch.attack_rows(js), covariances=batch.covariances)
 
     return FilterEntry(name, "consensus", "local", description, run, _links, counts_delivered=True,
                        node_filters=lambda model, network, design, iterations: KCFNetwork(model, network),
@@ -281,7 +286,8 @@ def hcmci(name: str, description: str) -> FilterEntry:
 
     def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
         return run_hcmci_batch(batch.model, batch.network, batch.z_rows(js), inputs=batch.input_rows(js),
-                               attacks=batch.attack_rows(js), iterations=batch.iterations)
+                               attacks=batch.attack_rows(js), iterations=batch.iterations,
+                               covariances=batch.covariances)
 
     return FilterEntry(name, "consensus", "local", description, run, _links_per_round, counts_delivered=True,
                        rounds=True,
@@ -300,7 +306,8 @@ def centralized_consensus_ekf(name: str, description: str) -> FilterEntry:
         centre = SensorNetwork(1, np.zeros((1, 1), int))
         return run_consensus_batch(batch.model.with_stacked_sensors(), centre, batch.z_rows(js), design,
                                    attacks=None, inputs=batch.input_rows(js), runtime="centralized",
-                                   cov_kind="covariance", messages=batch.model.n_sensors)
+                                   cov_kind="covariance", messages=batch.model.n_sensors,
+                                   covariances=batch.covariances)
 
     def derive(design: ConsensusDesign, model) -> ConsensusDesign:
         n_z = model.with_stacked_sensors().n_z

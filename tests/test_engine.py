@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from filters.engine import Step, estimate_arrays, run_batch
+from filters.engine import Latest, Step, estimate_arrays, history, run_batch
 from filters.result import DIVERGED_REASON, diverged_nodes
 
 Q, R = 0.1, 0.5
@@ -41,10 +41,11 @@ def reference(z, x0, P0):
     return x_post, P_post, gain, []
 
 
-def run_toy(z, x0, P0, seen=None):
+def run_toy(z, x0, P0, seen=None, covariances=True):
     """The toy filter on the engine over the runs of ``z`` (runs, steps, nodes)."""
     runs = z.shape[0]
-    out = estimate_arrays(runs, STEPS, NODES, 1, np.full((runs, 1), x0), np.full((runs, 1, 1), P0), 2)
+    out = estimate_arrays(runs, STEPS, NODES, 1, np.full((runs, 1), x0), np.full((runs, 1, 1), P0), 2,
+                          covariances=covariances)
     out["gain"] = np.full((runs, STEPS, NODES), np.nan)
     out["valid"] = np.zeros((runs, STEPS + 1, NODES), dtype=bool)
     out["valid"][:, 0] = True
@@ -110,6 +111,23 @@ def test_a_run_alone_is_a_batch_of_one(measurements):
         for name, a in alone.items():
             np.testing.assert_array_equal(a[0], full[name][r], err_msg=name)
         assert v[0] == violations[r]
+
+
+def test_covariances_kept_at_their_latest_step_give_the_same_estimates(measurements):
+    """Without covariances the records P_post and P_pred are kept at their latest step only (filters.engine.Latest):
+    the step reads and writes them as full records, and every other record (estimates, gains, violations, a run's
+    stop, validity) has the same bits; the result holds None in their place (history)."""
+    full, v_full, left_full = run_toy(measurements, 0.2, 1.0)
+    lean, v_lean, left_lean = run_toy(measurements, 0.2, 1.0, covariances=False)
+    assert isinstance(lean["P_post"], Latest) and history(lean["P_post"]) is None and history(lean["P_pred"]) is None
+    assert lean["P_post"].value.shape == (4, NODES, 1, 1)
+    np.testing.assert_array_equal(left_lean, left_full)
+    assert v_lean == v_full
+    for name in ("x_post", "gain", "valid", "delivered", "sent"):
+        np.testing.assert_array_equal(lean[name], full[name], err_msg=name)
+    # each run's latest: its last posterior, NaN for the runs that stopped
+    np.testing.assert_array_equal(lean["P_post"].value, full["P_post"][:, -1])
+    assert np.isnan(lean["P_post"].value[[1, 3]]).all() and np.isfinite(lean["P_post"].value[[0, 2]]).all()
 
 
 def test_a_batch_whose_every_run_stops_ends_there():

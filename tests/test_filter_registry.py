@@ -96,6 +96,30 @@ def test_the_consensus_robots_entries_return_filter_results_of_their_shapes(tank
         _check_shapes(res, e, tank, RUNS, batch.iterations)
 
 
+def test_the_reference_filters_without_covariances_give_the_same_estimates(tank):
+    """A batch without covariances (what the comparison and the consensus-robot study run the filters that are not
+    designed on: they are scored on their estimates): KCF, HCMCI, the local and the centralized EKF give the same
+    estimates, validity, violations and message counts, bit for bit, and no covariance (``cov`` None); a run that
+    diverges stops as it does with them (run 1's measurements at step 3 are 1e300: every filter stops there)."""
+    batch = _batch(tank, settings=((0.3, 0.2),), per_row_networks=False)
+    z = batch.z.copy()
+    z[1, 3] = 1e300
+    batch = dataclasses.replace(batch, z=z)
+    lean = dataclasses.replace(batch, covariances=False, cache={})
+    paper = consensus_design(tank)
+    for e in (centralized_consensus_ekf("centre", "c"), local_ekfs("alone", "a"), kcf("K", "k"), hcmci("H", "h")):
+        design = None if e.mode is None else e.design_for(paper, tank.model)
+        a, b = e.run(batch, [0], design), e.run(lean, [0], design)
+        assert a.cov is not None and b.cov is None, e.name
+        for name in ("x", "valid", "messages", "delivered"):
+            got, want = getattr(b, name), getattr(a, name)
+            assert (got is None) == (want is None) and (got is None or np.array_equal(got, want, equal_nan=True)), \
+                (e.name, name)
+        assert b.violations == a.violations, e.name
+        assert b.detail.x_pred.tobytes() == a.detail.x_pred.tobytes(), e.name
+        assert a.diverged[0] is None and a.diverged[1]["step"] <= 4 and b.diverged == a.diverged, e.name
+
+
 def test_the_filters_results_keep_each_familys_numbers(tank):
     batch = _batch(tank, settings=((0.2, 0.1),))
     m, net = tank.model, tank.network
