@@ -358,9 +358,11 @@ class GainRule:
     def batch_filter(self):
         """Its filter over a batch of Monte Carlo runs: a :class:`filters.consensus_batch.NodeRule` (a prediction and
         an update each node applies on its own, run by :func:`filters.consensus_batch.run_consensus_batch`'s loop)
-        or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0)`` returning a
+        or a function ``run(model, network, z, design, *, inputs, attacks, x0, phi0, predictions=True)`` returning a
         :class:`filters.result.FilterResult` (``detail``: its :class:`filters.consensus_batch.ConsensusBatchResult`,
-        :func:`filters.consensus_batch.consensus_result`)."""
+        :func:`filters.consensus_batch.consensus_result`); without ``predictions`` it may leave the predictions' Φ
+        and the gains out of the ``detail`` (None), never Φ, the estimates or their validity (a function that takes no
+        ``predictions`` keeps them)."""
         raise InputError(f"no filter applies gain rule {self.name!r} (its GainRule.batch_filter gives one)")
 
     def record_notes(self) -> dict[str, str]:

@@ -39,6 +39,7 @@ written from is kept as the tests' reference (``tests/consensus_reference.py``).
 """
 from __future__ import annotations
 
+import inspect
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -590,8 +591,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                         phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None, runtime: str | None = None,
-                        cov_kind: str = "bound", messages: int | None = None, covariances: bool = True
-                        ) -> FilterResult:
+                        cov_kind: str = "bound", messages: int | None = None, covariances: bool = True,
+                        predictions: bool = True) -> FilterResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -628,6 +629,10 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         False: Φ, the predictions' Φ and the gains are kept at their latest step only (:data:`COVARIANCE_FIELDS`;
         the result's ``cov`` None, the estimates' numbers the same), what a study that scores a reference filter's
         estimates asks.  A gain rule with its own batch filter keeps them.
+    predictions : bool
+        False: the predictions' Φ and the gains are kept at their latest step only (None in the ``detail``), Φ
+        over the steps kept: what a study that scores a designed filter's estimates and bounds asks (the rules'
+        own batch filters take it too, :meth:`designer.rule.GainRule.batch_filter`).
 
     Returns
     -------
@@ -647,7 +652,8 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     runs, steps = z.shape[:2]
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
-    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains, covariances)
+    res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains, covariances,
+                          predictions)
     return consensus_result(res, network, design, runtime=runtime, cov_kind=cov_kind, messages=messages,
                             replay=gains is not None)
 
@@ -672,15 +678,18 @@ def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, desig
 
 
 def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
-                    inputs, attacks, gains, covariances: bool = True) -> ConsensusBatchResult:
+                    inputs, attacks, gains, covariances: bool = True,
+                    predictions: bool = True) -> ConsensusBatchResult:
     """The runs of :func:`run_consensus_batch` (its inputs checked), as the family's arrays."""
     runs, steps = z.shape[:2]
     ex = Exchange(network)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
+        # a rule's own filter may take no `predictions` (one written before it, outside the repository): it keeps them
+        lean = {} if predictions or "predictions" not in inspect.signature(filt).parameters else {"predictions": False}
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
-                    phi0=phi0).detail
+                    phi0=phi0, **lean).detail
     n, nx = network.n_nodes, model.n_x
     nz = max(model.sensor_dims)
     replay = gains is not None
@@ -702,7 +711,8 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         q_chan = per_run(lambda net: net.falsified_prob[ex.receiver, ex.sender], network, nets)
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last weighted update, by slot
 
-    out = result_arrays(runs, steps, n, nx, nz, latest=() if covariances else COVARIANCE_FIELDS)
+    out = result_arrays(runs, steps, n, nx, nz, latest=(COVARIANCE_FIELDS if not covariances else
+                                                        () if predictions else ("phi_pred", "K", "C")))
     del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
     violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)

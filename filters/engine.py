@@ -105,16 +105,19 @@ def history(record) -> np.ndarray | None:
 
 
 def estimate_arrays(runs: int, steps: int, n: int, nx: int, x0: np.ndarray, P0: np.ndarray, per_step: int, *,
-                    covariances: bool = True) -> dict:
+                    covariances: bool = True, predictions: bool = True) -> dict:
     """The records of a filter whose nodes carry an estimate and a covariance: ``x_post``, ``P_post`` (runs, steps
     + 1, n, ...) from every node's ``x0`` (runs, nx), ``P0`` (runs, nx, nx), ``x_pred``, ``P_pred`` (runs, steps,
     n, ...) NaN, and the messages: ``sent`` (runs, steps) ``per_step`` transmissions at every step (attempted,
     lost ones included), ``delivered`` (runs, steps) zero until the steps count them.  Without ``covariances``,
-    ``P_post`` and ``P_pred`` are kept at their latest step only (:class:`Latest`)."""
-    cov = ((lambda shape: np.full(shape, np.nan)) if covariances else  # noqa: E731
-           (lambda shape: Latest(shape[:1] + shape[2:])))
-    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), P_post=cov((runs, steps + 1, n, nx, nx)),
-               x_pred=np.full((runs, steps, n, nx), np.nan), P_pred=cov((runs, steps, n, nx, nx)),
+    ``P_post`` and ``P_pred`` are kept at their latest step only (:class:`Latest`); without ``predictions``,
+    ``P_pred``."""
+    def cov(shape, keep: bool):
+        return np.full(shape, np.nan) if keep else Latest(shape[:1] + shape[2:])
+
+    out = dict(x_post=np.full((runs, steps + 1, n, nx), np.nan), P_post=cov((runs, steps + 1, n, nx, nx), covariances),
+               x_pred=np.full((runs, steps, n, nx), np.nan),
+               P_pred=cov((runs, steps, n, nx, nx), covariances and predictions),
                sent=np.full((runs, steps), per_step), delivered=np.zeros((runs, steps), int))
     out["x_post"][:, 0], out["P_post"][:, 0] = x0[:, None], P0[:, None]
     return out

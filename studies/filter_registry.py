@@ -61,8 +61,8 @@ class Batch:
     of the filters that take them (HCMCI's L); ``per_row_networks``: a designed filter gets one network per row
 (its setting's channel probabilities), or the main one for all rows (False); ``covariances``: False where the study
 scores the estimates of the filters that are not designed and nothing else of them (KCF, HCMCI, the local and the
-centralized EKF then keep no covariance over the steps: ``cov`` None, the same estimates; a designed filter keeps
-its bounds).  A filter run on settings
+centralized EKF then keep no covariance over the steps: ``cov`` None, the same estimates), and of a designed filter
+its estimates and bounds (it keeps Φ, not its predictions' Φ nor its gains).  A filter run on settings
 ``js`` returns rows in
     setting-major order, row ``i R + a`` for setting ``js[i]`` and run ``a``.  ``cache`` holds results
     that several entries share (the particle filters run as one batch).
@@ -239,7 +239,8 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
 
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         return run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
-                                   attacks=batch.attack_rows(js), inputs=batch.input_rows(js))
+                                   attacks=batch.attack_rows(js), inputs=batch.input_rows(js),
+                                   predictions=batch.covariances)
 
     return FilterEntry(name, "consensus", rules.get(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,

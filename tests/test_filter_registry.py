@@ -120,6 +120,30 @@ def test_the_reference_filters_without_covariances_give_the_same_estimates(tank)
         assert a.diverged[0] is None and a.diverged[1]["step"] <= 4 and b.diverged == a.diverged, e.name
 
 
+def test_the_designed_filters_without_their_predictions_records_give_the_same_estimates_and_bounds(tank):
+    """The same batch for the designed filters of the comparison (every gain rule it runs): the estimates, the bounds
+    Φ, their validity and the violations bit for bit; the predictions' Φ and the gains not recorded (None in the
+    detail) where the rule's filter leaves them out (mse keeps them: its filter runs the joint covariance)."""
+    batch = _batch(tank, settings=((0.1, 0.1),), per_row_networks=False)
+    lean = dataclasses.replace(batch, covariances=False, cache={})
+    dropped = []
+    for e in FILTER_REGISTRY:
+        if not e.designed:
+            continue
+        design = e.design_for(consensus_design(tank.with_attacks(dos=0.1, fdi=0.1), as_mode(None, e.mode)),
+                              tank.model)
+        if e.start_check:
+            design = design._replace(sigma=0.01, beta=0.01)
+        a, b = e.run(batch, [0], design), e.run(lean, [0], design)
+        for name in ("x", "cov", "valid"):
+            assert np.array_equal(getattr(b, name), getattr(a, name), equal_nan=True), (e.name, name)
+        assert b.violations == a.violations and a.detail.phi_pred is not None, e.name
+        if b.detail.phi_pred is None:
+            assert b.detail.K is None and b.detail.C is None, e.name
+            dropped.append(e.mode)
+    assert {"paper", "relay", "flood", "scheduled"} <= set(dropped), dropped
+
+
 def test_the_filters_results_keep_each_familys_numbers(tank):
     batch = _batch(tank, settings=((0.2, 0.1),))
     m, net = tank.model, tank.network

@@ -72,7 +72,7 @@ MAX_JOINT_DIM = 1024  # N n beyond this is refused: one run's joint matrices alo
 @one_blas_thread()  # its joint matrices are N n wide: the same bits in any process
 def run_mse_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, design: ConsensusDesign, *,
                   inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                  phi0=None) -> FilterResult:
+                  phi0=None, predictions: bool = True) -> FilterResult:
     """Run the consensus filter in mode ``'mse'`` at every node over many runs of measurements ``z``.
 
     The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (one network or one per

@@ -58,7 +58,7 @@ from filters.attacks import AttackPattern
 from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
 from filters.distributed import DistributedBatchResult, distributed_result
-from filters.engine import Step, estimate_arrays, run_batch
+from filters.engine import Step, estimate_arrays, history, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
@@ -189,8 +189,10 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
 
 def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
                 attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
-                signal: FDISignal | None = None, routing: str = "tree", regions=None) -> DistributedBatchResult:
-    """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays."""
+                signal: FDISignal | None = None, routing: str = "tree", regions=None,
+                predictions: bool = True) -> DistributedBatchResult:
+    """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays; without
+    ``predictions`` no record of the predictions' covariances (``P_pred`` None)."""
     if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
         raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
                          f"{getattr(network, 'n_nodes', type(network).__name__)}")
@@ -208,11 +210,11 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
     classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
                            free=True)
     if carry is None:
-        out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops))
+        out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops), predictions=predictions)
     else:
         m = carry.m
         out = estimate_arrays(runs, steps, n, m, np.zeros((runs, m)), np.zeros((runs, m, m)),
-                              network.messages_per_step(hops))
+                              network.messages_per_step(hops), predictions=predictions)
         out["x_post"][:, 0] = carry.vector(np.broadcast_to(x0[:, None], (runs, n, nx)))
         out["P_post"][:, 0] = carry.matrix(np.broadcast_to(P0[:, None], (runs, n, nx, nx)))
     violations: list[list[dict]] = [[] for _ in range(runs)]
@@ -241,7 +243,7 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
 
     run_batch(step, out, violations, steps, nan_from=("x_post", "P_post"), nan_before=("x_pred", "P_pred"))
     xs = {f: out[f] if carry is None else carry.full(out[f], np.nan) for f in ("x_post", "x_pred")}
-    return DistributedBatchResult(xs["x_post"], out["P_post"], xs["x_pred"], out["P_pred"], out["sent"],
+    return DistributedBatchResult(xs["x_post"], out["P_post"], xs["x_pred"], history(out["P_pred"]), out["sent"],
                                   out["delivered"], violations, hops, None,
                                   None if carry is None else carry.index)
 
@@ -391,7 +393,7 @@ def _node_update(Pp, Hw, mom, M, mu, rtol: float = RTOL):
 def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                     phi0=None) -> FilterResult:
+                     phi0=None, predictions: bool = True) -> FilterResult:
     """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
@@ -404,7 +406,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     column of ``gate_counts`` the packets delivered (channels not lost to DoS, times the hops): the ``detail`` of
     the :func:`filters.consensus_batch.consensus_result` it returns.  A design whose nodes carry their regions
     (``design.carried_regions``) gives ``carried`` and Φ, K and C in the carried coordinates
-    (:func:`run_relay_batch`'s ``regions``).
+    (:func:`run_relay_batch`'s ``regions``).  Without ``predictions`` the detail has no ``phi_pred``, ``K`` nor
+    ``C`` (None: :meth:`designer.rule.GainRule.batch_filter`).
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -424,8 +427,10 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
                                                              xi=attacks.xi[idx])
         res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
                           attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing,
-                          regions=design.carried_regions)
-        own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post, phi_pred=res.P_pred)
+                          regions=design.carried_regions, predictions=predictions)
+        own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post)
+        if predictions:
+            own["phi_pred"] = res.P_pred
         if out is None:  # C zero: no consensus on estimates (np.zeros: pages the system gives only when written)
             m = res.P_post.shape[-1]  # the carried states' (the whole state's without regions)
             if len(groups) == 1:  # one group: its arrays, not a copy of them
@@ -433,8 +438,11 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
             else:  # the groups' arrays gathered (carried ones m x m, not the whole state's)
                 given = {} if res.carried is None else {"phi_post": np.full((runs, steps + 1, n, m, m), np.nan),
                                                         "phi_pred": np.full((runs, steps, n, m, m), np.nan)}
-            out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), C=np.zeros((runs, steps, n, m, m)),
-                                K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan), **given)
+                given = {name: value for name, value in given.items() if name in own}
+            gains = {} if not predictions else dict(C=np.zeros((runs, steps, n, m, m)),
+                                                    K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan))
+            out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), **gains, **given,
+                                latest=() if predictions else ("phi_pred", "K", "C"))
             carried = res.carried
         if len(groups) > 1:
             for name, value in own.items():
@@ -444,7 +452,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
             out["violations"][r] = vs
     out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
-    return consensus_result(ConsensusBatchResult(**out, carried=carried), first, design)
+    return consensus_result(ConsensusBatchResult(**{name: history(value) for name, value in out.items()},
+                                                 carried=carried), first, design)
 
 
 class RelayNode:

@@ -43,7 +43,7 @@ from filters.node import NodeInputs, NodeNetwork
 from filters.result import FilterResult, diverged_nodes
 from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
                               result_arrays, run_networks, wrap_residuals)
-from filters.engine import Step, run_batch
+from filters.engine import Step, history, run_batch
 
 from .design import colour, link_gains, pad_measurements
 
@@ -55,10 +55,11 @@ __all__ = ["run_scheduled_batch", "scheduled_prediction", "scheduled_update", "s
 def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                         design: ConsensusDesign, *, inputs=None,
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                        phi0=None) -> FilterResult:
+                        phi0=None, predictions: bool = True) -> FilterResult:
     """Run the scheduled consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
-    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch`; ``design`` is in mode
+    The parameters are those of :func:`filters.consensus_batch.run_consensus_batch` (``predictions``: without, no
+    record of the gains K and C nor of ``phi_pred``, which this filter does not compute); ``design`` is in mode
     ``'scheduled'`` with its tables (``design.tables``, :func:`rules.scheduled.design.design_scheduled`).  The runs'
     networks may differ only in what the tables were not designed for: the filter applies the tables it was
     given (a design for other channel statistics is the user's choice).  Returns
@@ -84,7 +85,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     cols = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
     T = tables.steps
-    out = result_arrays(runs, steps, n, nx, nz)
+    out = result_arrays(runs, steps, n, nx, nz, latest=() if predictions else ("phi_pred", "K", "C"))
     # the certificate: the design's, the same in every run, up to its horizon
     H_ = min(steps, T)
     out["phi_post"][:, : H_ + 1] = tables.Phi[None, : H_ + 1]
@@ -145,7 +146,8 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
               invalid_from=("valid",))
     if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
         out["valid"][:, T + 1:] = False
-    return consensus_result(ConsensusBatchResult(**out), network, design)
+    return consensus_result(ConsensusBatchResult(**{name: history(value) for name, value in out.items()}), network,
+                            design)
 
 
 def scheduled_prediction(model: Model, tables, k: int, x, P, u):
