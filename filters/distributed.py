@@ -92,7 +92,7 @@ from designer.validation import InputError, check_finite, check_int
 
 from .attacks import AttackPattern
 from .consensus import check_run_inputs
-from .consensus_batch import Exchange, batch_inputs, wrap_residuals
+from .consensus_batch import EdgeAttacks, Exchange, batch_inputs, edge_attacks, wrap_residuals
 from .engine import Step, estimate_arrays, history, run_batch
 from .node import NodeInputs, NodeNetwork
 from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
@@ -242,13 +242,12 @@ def _kcf_combine(eps: float, xp, Pp, S, y, diff):
 
 def _kcf_update(ex: Exchange, eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
     """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
-    of all nodes (stacks over runs); ``recv`` (runs, N, N) the packets that arrived, ``fdi``, ``xi`` the falsified
-    ones and their signal (None: no attack).  The packets are formed per channel (:func:`kcf_packets`) and summed
+    of all nodes (stacks over runs); ``recv`` (runs, N, N) the packets that arrived, ``fdi`` (runs, E), ``xi``
+    (runs, E, n) the falsified ones and their signal on the channels (``ex``'s order; None: no attack).  The packets are formed per channel (:func:`kcf_packets`) and summed
     over each node's incoming channels (``ex``, :class:`filters.consensus_batch.Exchange`)."""
     rcv, snd = ex.receiver, ex.sender
     r = recv[..., rcv, snd].astype(float)  # (runs, E)
-    u_t, x_t = kcf_packets(u[:, snd], U[:, snd], xp[:, snd], None if fdi is None else fdi[..., rcv, snd],
-                           None if xi is None else xi[..., rcv, snd, :], packet)
+    u_t, x_t = kcf_packets(u[:, snd], U[:, snd], xp[:, snd], fdi, xi, packet)
     S = U + ex.sum(r[..., None, None] * U[:, snd])  # J_i: the node and the neighbours heard
     y = u + ex.sum(r[..., None] * u_t)
     diff = ex.sum(r[..., None] * x_t) - ex.sum(r)[..., None] * xp
@@ -296,8 +295,8 @@ def _hcmci_update(ex: Exchange, network: SensorNetwork, L: int, omega: str, pack
     arrived = recv[..., rcv, snd]
     w = hcmci_weights(network, rcv, snd, arrived)  # (runs, E)
     w_self = 1.0 - ex.sum(w)  # (runs, N): a lost link's weight stays with the node
-    f = None if fdi is None else fdi[..., rcv, snd] & arrived
-    xe = None if xi is None else xi[..., rcv, snd, :]
+    f = None if fdi is None else fdi & arrived
+    xe = xi
     O, q = _information(Pp, xp)
     for _ in range(L):
         q_t, dq_t = hcmci_packets(O[:, snd], q[:, snd], dO[:, snd], dq[:, snd], f, xe, packet)
@@ -410,7 +409,7 @@ class _BatchInputs(NamedTuple):
     u: np.ndarray  # (steps, n_u) shared or (runs, steps, n_u)
     x0: np.ndarray  # (runs, n_x)
     P0: np.ndarray  # (runs, n_x, n_x)
-    attacks: AttackPattern | None  # stacked: dos, fdi (runs, steps, N, N), xi (runs, steps, N, N, n_x)
+    attacks: EdgeAttacks | None  # on the network's channels: dos, fdi (runs, steps, E), xi (runs, steps, E, n_x)
     R_inv: list
 
 
@@ -419,13 +418,14 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
     _check_falsify(falsify)
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps, n = z.shape[0], z.shape[1], network.n_nodes
-    if attacks is not None:
+    if attacks is not None and not isinstance(attacks, EdgeAttacks):
         want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
         if len(attacks) != runs or not all(isinstance(a, AttackPattern) and [np.shape(f) for f in a] == want
                                            for a in attacks):
             raise InputError(f"attacks must hold one AttackPattern per run ({runs}), each with dos, fdi of shape "
                              f"{want[0]} and xi of shape {want[2]}")
-        attacks = AttackPattern(*(np.stack([getattr(a, f) for a in attacks]) for f in AttackPattern._fields))
+    # on the channels alone (a dense pattern holds N² x n_x numbers a step: 0.8 GB a run on a 118-node grid)
+    attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     return _BatchInputs(z, u, x0, P0, attacks, [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)])
 
 
@@ -472,7 +472,11 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
 
     def step(k, act, at):
-        recv = np.broadcast_to(adj, (act.size, n, n)) if inp.attacks is None else adj & ~inp.attacks.dos[at, k]
+        if inp.attacks is None:
+            recv = np.broadcast_to(adj, (act.size, n, n))
+        else:
+            recv = np.zeros((act.size, n, n), dtype=bool)
+            recv[:, inp.attacks.receiver, inp.attacks.sender] = ~inp.attacks.dos[at, k]
         uk = inp.u[k] if inp.u.ndim == 2 else inp.u[at, k][:, None, :]
         xp, Pp = _predict(model, out["x_post"][at, k], out["P_post"][at, k], k, uk)
         bad = diverged_nodes(xp, Pp)
@@ -522,9 +526,10 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
 
 
 def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs=None,
-                  attacks: Sequence[AttackPattern] | None = None, x0=None, P0=None, epsilon: float | None = None,
-                  falsify: str = "packet", covariances: bool = True) -> FilterResult:
-    """:func:`run_kcf` on many runs at once: ``z`` (runs, steps, n_z), ``attacks`` one AttackPattern per run.
+                  attacks: Sequence[AttackPattern] | EdgeAttacks | None = None, x0=None, P0=None,
+                  epsilon: float | None = None, falsify: str = "packet", covariances: bool = True) -> FilterResult:
+    """:func:`run_kcf` on many runs at once: ``z`` (runs, steps, n_z), ``attacks`` one AttackPattern per run (or
+    :class:`filters.consensus_batch.EdgeAttacks` of the runs: the channels' alone).
 
     ``inputs`` (steps, n_u) shared or (runs, steps, n_u); ``x0`` (n_x,) or (runs, n_x), ``P0`` (n_x, n_x) or
     (runs, n_x, n_x); the other parameters as :func:`run_kcf`.  Every step is one stack over the runs and
@@ -547,8 +552,8 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
 
 
 def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1,
-                    omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | None = None, x0=None,
-                    P0=None, falsify: str = "packet", covariances: bool = True) -> FilterResult:
+                    omega: str = "size", inputs=None, attacks: Sequence[AttackPattern] | EdgeAttacks | None = None,
+                    x0=None, P0=None, falsify: str = "packet", covariances: bool = True) -> FilterResult:
     """:func:`run_hcmci` on many runs at once (the parameters of :func:`run_kcf_batch` and :func:`run_hcmci`);
     run ``r`` of the result's ``detail`` is :func:`run_hcmci` on run ``r`` (a batch of one); returns
     :func:`distributed_result` of the runs."""

@@ -53,6 +53,7 @@ from designer.schedule import load_schedule
 from designer.validation import InputError, check_bool, check_int, check_positive
 from filters.attacks import simulate_attacks
 from filters.channels import GATE_COUNTS
+from filters.consensus_batch import EdgeAttacks
 
 from .comparison import HCMCI_ITERATIONS, chunk_size as balanced_chunk_size
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, informative, settled_steps
@@ -470,14 +471,16 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
         if v.entry.mode is not None:  # a consensus EKF: its exchange's packet counts
             out[f"v{j}_gate"] = np.zeros((R, len(GATE_COUNTS)), np.int64)
     limit = divergence_limit(m.prior.cov, divergence_spread)
-    trajs, atts = [], []
+    trajs, att_rngs = [], []
     for a, seq in enumerate(seeds):  # the realisations first: every variant then faces the same ones
         traj_ss, att_ss = seq.spawn(2)
         trajs.append(sc.simulate(np.random.default_rng(traj_ss), steps))
-        atts.append(simulate_attacks(net, steps, nx, np.random.default_rng(att_ss), signal))
+        att_rngs.append(np.random.default_rng(att_ss))
         out["truth"][a] = trajs[a].x
+    # the channels' attacks (filters.attacks.simulate_attacks' numbers), on the channels alone
+    atts = EdgeAttacks.simulate(net, steps, nx, att_rngs, signal)
     batch = Batch((sc,), np.stack([tr.z for tr in trajs]),
-                  None if trajs[0].inputs is None else np.stack([tr.inputs for tr in trajs]), (tuple(atts),),
+                  None if trajs[0].inputs is None else np.stack([tr.inputs for tr in trajs]), (atts,),
                   iterations=hcmci_iterations, run_ids=tuple(run_ids), per_row_networks=False,
                   covariances=False)  # the filters that are not designed are scored on their estimates alone
     for j, v in enumerate(variants.values()):

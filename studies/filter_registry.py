@@ -30,7 +30,7 @@ from designer.design import ConsensusDesign
 from designer.rule import FILTER_RUNTIMES
 from designer.network import SensorNetwork
 from designer.validation import InputError
-from filters.consensus_batch import run_consensus_batch
+from filters.consensus_batch import EdgeAttacks, run_consensus_batch
 from filters.distributed import HCMCINetwork, KCFNetwork, hcmci_payload, kcf_payload, run_hcmci_batch, run_kcf_batch
 from filters.ekf import run_ekf_batch
 from filters.node import node_network
@@ -54,7 +54,9 @@ class Batch:
     ``scenarios``: one per setting (the same model and graph; the channels' and uplinks' probabilities
     of that setting), the main setting first.  ``z`` (runs, K, n_z) and ``inputs`` (runs, K, n_u) or
     None: each run's measurements and known inputs (the same at every setting).  ``attacks[j][a]``:
-    run ``a``'s realised channel attacks at setting ``j`` (:class:`filters.attacks.AttackPattern`);
+    run ``a``'s realised channel attacks at setting ``j`` (:class:`filters.attacks.AttackPattern`), or
+    ``attacks[j]`` the runs' :class:`filters.consensus_batch.EdgeAttacks` (on the channels alone: a dense pattern is
+    0.8 GB a run on a 118-node grid);
     ``received[j][a]`` (K, n_z): what run ``a``'s uplinks delivered to a fusion centre at setting ``j``
     (NaN where lost; None when the study has no uplinks).  ``particle_seeds[a]``: the SeedSequence of
     run ``a``'s particle filters; ``particles`` their number; ``iterations``: consensus rounds per step
@@ -99,7 +101,13 @@ its estimates and bounds (it keeps Φ, not its predictions' Φ nor its gains).  
     def input_rows(self, js: Sequence[int]) -> np.ndarray | None:
         return None if self.inputs is None else np.concatenate([self.inputs] * len(js))
 
-    def attack_rows(self, js: Sequence[int]) -> list:
+    def attack_rows(self, js: Sequence[int]) -> list | EdgeAttacks:
+        """The rows' attacks: one AttackPattern per row, or where ``attacks[j]`` is the runs'
+        :class:`filters.consensus_batch.EdgeAttacks` (on the channels alone) theirs, setting after setting."""
+        if isinstance(self.attacks[js[0]], EdgeAttacks):
+            parts = [self.attacks[j] for j in js]
+            return parts[0] if len(parts) == 1 else parts[0]._replace(
+                **{f: np.concatenate([getattr(p, f) for p in parts]) for f in ("dos", "fdi", "xi")})
         return [self.attacks[j][a] for j in js for a in range(self.runs)]
 
     def network_rows(self, js: Sequence[int]) -> SensorNetwork | list[SensorNetwork]:
