@@ -243,8 +243,9 @@ def _kcf_combine(eps: float, xp, Pp, S, y, diff):
 def _kcf_update(ex: Exchange, eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
     """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
     of all nodes (stacks over runs); ``recv`` (runs, N, N) the packets that arrived, ``fdi`` (runs, E), ``xi``
-    (runs, E, n) the falsified ones and their signal on the channels (``ex``'s order; None: no attack).  The packets are formed per channel (:func:`kcf_packets`) and summed
-    over each node's incoming channels (``ex``, :class:`filters.consensus_batch.Exchange`)."""
+    (runs, E, n) the falsified ones and their signal on the channels (``ex``'s order; None: no attack).  The packets
+    are formed per channel (:func:`kcf_packets`) and summed over each node's incoming channels (``ex``,
+    :class:`filters.consensus_batch.Exchange`)."""
     rcv, snd = ex.receiver, ex.sender
     r = recv[..., rcv, snd].astype(float)  # (runs, E)
     u_t, x_t = kcf_packets(u[:, snd], U[:, snd], xp[:, snd], fdi, xi, packet)
@@ -296,10 +297,9 @@ def _hcmci_update(ex: Exchange, network: SensorNetwork, L: int, omega: str, pack
     w = hcmci_weights(network, rcv, snd, arrived)  # (runs, E)
     w_self = 1.0 - ex.sum(w)  # (runs, N): a lost link's weight stays with the node
     f = None if fdi is None else fdi & arrived
-    xe = xi
     O, q = _information(Pp, xp)
     for _ in range(L):
-        q_t, dq_t = hcmci_packets(O[:, snd], q[:, snd], dO[:, snd], dq[:, snd], f, xe, packet)
+        q_t, dq_t = hcmci_packets(O[:, snd], q[:, snd], dO[:, snd], dq[:, snd], f, xi, packet)
         q, dq = (w_self[..., None] * q + ex.sum(w[..., None] * q_t),
                  w_self[..., None] * dq + ex.sum(w[..., None] * dq_t))
         O, dO = (w_self[..., None, None] * O + ex.sum(w[..., None, None] * O[:, snd]),

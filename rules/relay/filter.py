@@ -337,7 +337,8 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
 def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived, rtol: float = RTOL):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
-    :func:`rules.relay.design.relay_update` and :func:`rules.relay.design.relay_information`.  Returns ``(x, P)``."""
+    :func:`rules.relay.design.relay_update` (its pseudo-inverse cut at ``rtol``) and
+    :func:`rules.relay.design.relay_information`.  Returns ``(x, P)``."""
     Hw = H_rows
     res = values - h
     if lay.angle_rows.size:
