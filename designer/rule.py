@@ -379,6 +379,11 @@ class GainRule:
         (a rule of ``offline_tables``); ``stationary``: with the tables beyond the horizon."""
         raise InputError(f"gain rule {self.name!r} has no offline tables")
 
+    def table_arrays(self, tables) -> dict:
+        """Its offline tables (:meth:`tables`' result, a design's ``tables``) as the arrays ``schedule.npz`` records
+        (``table_<name>``), which :meth:`recorded_tables` reads back (a rule of ``offline_tables``)."""
+        raise InputError(f"gain rule {self.name!r} has no offline tables")
+
     def recorded_tables(self, model, network, design, arrays: Mapping, meta: Mapping):
         """Its offline tables as a design directory recorded them (``schedule.npz``'s arrays ``arrays`` and
         ``schedule.json``'s record ``meta``, read as data), checked against ``model``, ``network`` and ``design``

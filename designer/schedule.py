@@ -15,7 +15,7 @@ n_x, n_x; NaN where Φ is not a bound), ``valid`` (nodes, steps + 1), ``sigma`` 
 ``region_mask`` (nodes, n_x), each node's region; ``K``, ``C`` and ``Phi`` are then in the carried coordinates
 (``m`` wide, zero at the unused places) and ``trace_bound`` is tr Φ over each node's region, what its verdict judges.
 A ``scheduled`` design adds the tables its nodes carry,
-``table_<name>`` (:func:`rules.scheduled.design.table_arrays`).  The JSON Schema is
+``table_<name>`` (:meth:`designer.rule.GainRule.table_arrays`).  The JSON Schema is
 ``studies/schemas/schedule.schema.json``.
 """
 from __future__ import annotations

@@ -28,7 +28,6 @@ from designer.observability import kalman_references, observability
 from designer.regions import carried_positions, region_detail, region_mask, region_traces
 from designer.progress import phase
 from designer.schedule import GainSchedule
-from rules.scheduled.design import table_arrays
 from designer.validation import InputError, check_int
 from designer.verdict import (GATE_CLAUSE, NOT_COMPUTED, VERDICT_ASSUMPTIONS, Verdict, describe,
                               open_loop_reference, open_loop_traces, verdict)
@@ -522,7 +521,7 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
         violations=res.violations,
         margin28=res.margin28.T.copy(),
         margin29=res.margin29.T.copy(),
-        tables=None if des.tables is None else table_arrays(des.tables),
+        tables=None if des.tables is None else des.rule.table_arrays(des.tables),
         carried=res.carried,
         region_mask=None if carried is None else region_mask(carried, m.n_x),
         meta={

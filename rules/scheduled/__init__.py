@@ -32,6 +32,11 @@ class Scheduled(GainRule):
         return design_scheduled(model, network, design, steps, x0=x0, inputs=inputs,
                                 exchange=design.exchange == "measurements", stationary=stationary)
 
+    def table_arrays(self, tables):
+        from .design import table_arrays
+
+        return table_arrays(tables)
+
     def recorded_tables(self, model, network, design, arrays, meta):
         from .design import recorded_tables
 
