@@ -180,7 +180,8 @@ int main(int argc, char **argv) {
             int nb = cfd_ball(cfd_exported_node(j), &ball), m = 0;
             for (b = 0; b < nb; ++b) m += cfd_sensor_dim(ball[b]);
             m += (nb - 1) + CFD_NU + CFD_NX + CFD_NX * CFD_NX;
-            if (fscanf(fh, "%lf", &buf[total]) != 1) return 2; /* the row's tolerance in make test: not an input */
+            /* the row's two tolerances in make test (a double node's, a float node's): not inputs */
+            if (fscanf(fh, "%lf %lf", &buf[total], &buf[total]) != 2) return 2;
             for (b = 0; b < m; ++b)
                 if (fscanf(fh, "%lf", &buf[total + b]) != 1) return 2;
             total += m;
@@ -217,14 +218,14 @@ int main(int argc, char **argv) {
 
 
 _BENCH_EXCHANGE = r"""
-/* a record's beginning for a node that exchanges packets: its tolerance in make test (skipped), the step's inputs,
+/* a record's beginning for a node that exchanges packets: its two tolerances in make test (skipped), the step's inputs,
  * its measurement, one arrived flag per in-neighbour, into the slots of record `at`; returns its number of
  * in-neighbours, -1 for a short replay */
 static int read_node_step(FILE *fh, int at, int node, double *u, double *z, unsigned char *arrived) {
     const int *senders;
     int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node), b, c;
     double v;
-    if (fscanf(fh, "%lf", &v) != 1) return -1;
+    if (fscanf(fh, "%lf %lf", &v, &v) != 2) return -1;
     for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return -1;
     for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return -1;
     for (b = 0; b < d; ++b) {

@@ -459,8 +459,9 @@ def _assert_pseudo_inverse_formula(W, Pn, P, Hw, mom, M, mu, where):
 
 def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(monkeypatch):
     """relay_update works in the ball's r rows (M = Lₛᵀ Ĥ Ĥᵀ Lₛ, r x r, the same nonzero eigenvalues as Q) where the
-    rows' weights S are positive definite, in Q's G n columns where they are not (a row that never arrives: p = 0);
-    both give the pseudo-inverse formula, and the rows' way is taken where it can be."""
+    rows are fewer than Q's G n columns and their weights S are positive definite, in Q's columns where they are
+    not (a row that never arrives: p = 0) or where the rows are as many (a small state, many rows): each gives the
+    pseudo-inverse formula, and the rows' way is taken exactly where it can be and pays."""
     import rules.relay.design as rd
 
     model, net = bearing_model(), varied_network()
@@ -468,7 +469,7 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
     signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
     M, mu = signal.moment(4), signal.mean(4)
     rng = np.random.default_rng(6)
-    taken = []
+    taken, seen = [], set()
     real = rd._row_space_update
     monkeypatch.setattr(rd, "_row_space_update", lambda *a: taken.append(real(*a) is not None) or real(*a))
     for i in range(N):
@@ -479,15 +480,30 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
         keep = (np.arange(r) != r - 1) * (np.arange(r) != r - 1)[:, None]  # the last row never arrives
         lost = mom._replace(p=np.where(np.arange(r) == r - 1, 0.0, mom.p), A=mom.A * keep, F1=mom.F1 * keep,
                             F2=mom.F2 * keep)
+        fewer = r < mom.groups.shape[-1] * 4  # than Q's G n columns
         for m, way in ((mom, True), (lost, False)):
             Hw = rng.normal(size=(2, r, 4))
             A = rng.normal(size=(2, 4, 4))
             P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+            taken.clear()
             W, Pn = relay_update(P, Hw, m, M, mu)
-            assert taken[-1] is way, (i, way)
+            assert taken == ([way] if fewer else []), (i, way, r)
+            seen.add(way if fewer else "columns")
             for b in range(2):
                 _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], m, M, mu, (i, way, b))
-    assert True in taken and False in taken
+        if fewer:  # its rows repeated (the same arrivals) until they are as many as Q's columns: Q's own way
+            times = -(-mom.groups.shape[-1] * 4 // r)
+            many = mom._replace(rows=np.tile(mom.rows, times), groups=np.tile(mom.groups, (times, 1)),
+                                p=np.tile(mom.p, times), A=np.tile(mom.A, (times, times)),
+                                F1=np.tile(mom.F1, (times, times)), F2=np.tile(mom.F2, (times, times)))
+            Hw = rng.normal(size=(2, r * times, 4))
+            taken.clear()
+            W, Pn = relay_update(P, Hw, many, M, mu)
+            assert taken == [], (i, r * times)
+            seen.add("columns")
+            for b in range(2):
+                _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], many, M, mu, (i, "many", b))
+    assert {True, False, "columns"} <= seen, seen
 
 
 def test_stacked_nodes_with_their_own_depths_update_as_each_alone():

@@ -567,8 +567,10 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     # positive definite (every row arrives with a positive probability: S ≥ diag(p)) and G = Lₛᵀ Ĥ, Q = GᵀG and
     # M = G Gᵀ = Lₛᵀ (Ĥ Ĥᵀ) Lₛ (r x r) have the same nonzero eigenvalues, so that with the same cut
     # C Q⁺ = X Lₛ⁻ᵀ M⁺ Lₛᵀ Ĥ = K_r Ĥ (C = X Ĥ, X = P⁻ Hwᵀ diag(p)) and P⁺ = P⁻ - K_r (Ĥ Ĥᵀ) Xᵀ: the eigendecomposition
-    # of M, r x r, in place of Q's (:func:`_row_space_update`).  Where S is not positive definite (a row that never
-    # arrives), Q's own (below).
+    # of M, r x r, in place of Q's (:func:`_row_space_update`), where the rows are fewer than Q's G n columns (with
+    # as many rows, M is singular and its work the larger: the robot's 16 rows against 15 columns) and S is positive
+    # definite (else a row never arrives); otherwise Q's own (below).  The C node decides alike
+    # (rules/relay/c/cfd_node.c.in: 5 x slower on the robot in the rows).
     groups = mom.groups
     if groups.ndim > 2:  # depths at different rows for different items: one item at a time
         lead = Hw.shape[:-2]
@@ -580,7 +582,8 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
     n, G = P_pred.shape[-1], groups.shape[-1]
     HP = Hw @ P_pred
     S = _row_weights(Hw, mom, M, mu) + mom.A * (HP @ np.swapaxes(Hw, -1, -2))
-    fast = _row_space_update(P_pred, Hw, HP, 0.5 * (S + np.swapaxes(S, -1, -2)), mom, rtol)
+    fast = None if Hw.shape[-2] >= G * n else _row_space_update(P_pred, Hw, HP, 0.5 * (S + np.swapaxes(S, -1, -2)),
+                                                                   mom, rtol)
     if fast is not None:
         return fast
     # the columns of Ĥ that are zero throughout (an empty depth, a state component no sensor of a depth sees) are
