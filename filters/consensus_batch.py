@@ -71,7 +71,7 @@ from .rrp import wrap_angles
 LIMIT_REASON = f"the bound's trace reached {BOUND_LIMIT:g}: it certifies nothing and (26) overflows"
 
 __all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consensus_batch", "consensus_result",
-           "COVARIANCE_FIELDS",
+           "COVARIANCE_FIELDS", "PREDICTION_FIELDS",
            "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
            "batch_inputs", "result_arrays",
@@ -266,6 +266,8 @@ class ConsensusResult(NamedTuple):
 #: The fields of a :class:`ConsensusBatchResult` a run without its covariances' record keeps at their latest step
 #: only (:class:`filters.engine.Latest`; None in the result): the bounds, the predictions' and the gains.
 COVARIANCE_FIELDS = ("phi_post", "phi_pred", "K", "C")
+#: Those a run without its predictions' record keeps so (``predictions=False``: Φ itself over the steps kept).
+PREDICTION_FIELDS = ("phi_pred", "K", "C")
 
 
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, *, latest: Sequence[str] = (),
@@ -712,7 +714,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last weighted update, by slot
 
     out = result_arrays(runs, steps, n, nx, nz, latest=(COVARIANCE_FIELDS if not covariances else
-                                                        () if predictions else ("phi_pred", "K", "C")))
+                                                        () if predictions else PREDICTION_FIELDS))
     del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
     violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)

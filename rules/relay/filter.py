@@ -55,8 +55,8 @@ from designer.regions import Carried
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
-from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
-                              result_arrays, run_networks, wrap_residuals)
+from filters.consensus_batch import (PREDICTION_FIELDS, ConsensusBatchResult, EdgeAttacks, batch_inputs,
+                              consensus_result, edge_attacks, result_arrays, run_networks, wrap_residuals)
 from filters.distributed import DistributedBatchResult, distributed_result
 from filters.engine import Step, estimate_arrays, history, run_batch
 from filters.node import NodeInputs, check_step, run_network
@@ -443,7 +443,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
             gains = {} if not predictions else dict(C=np.zeros((runs, steps, n, m, m)),
                                                     K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan))
             out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), **gains, **given,
-                                latest=() if predictions else ("phi_pred", "K", "C"))
+                                latest=() if predictions else PREDICTION_FIELDS)
             carried = res.carried
         if len(groups) > 1:
             for name, value in own.items():

@@ -41,8 +41,8 @@ from filters.attacks import AttackPattern
 from filters.channels import channel_packets
 from filters.node import NodeInputs, NodeNetwork
 from filters.result import FilterResult, diverged_nodes
-from filters.consensus_batch import (ConsensusBatchResult, EdgeAttacks, batch_inputs, consensus_result, edge_attacks,
-                              result_arrays, run_networks, wrap_residuals)
+from filters.consensus_batch import (PREDICTION_FIELDS, ConsensusBatchResult, EdgeAttacks, batch_inputs,
+                              consensus_result, edge_attacks, result_arrays, run_networks, wrap_residuals)
 from filters.engine import Step, history, run_batch
 
 from .design import colour, link_gains, pad_measurements
@@ -85,7 +85,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
     cols = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
     T = tables.steps
-    out = result_arrays(runs, steps, n, nx, nz, latest=() if predictions else ("phi_pred", "K", "C"))
+    out = result_arrays(runs, steps, n, nx, nz, latest=() if predictions else PREDICTION_FIELDS)
     # the certificate: the design's, the same in every run, up to its horizon
     H_ = min(steps, T)
     out["phi_post"][:, : H_ + 1] = tables.Phi[None, : H_ + 1]
