@@ -56,6 +56,15 @@ _BENCH_HEAD = r"""
 
 #define EKF_ROWS 512 /* most measurement rows of the baseline */
 
+/* a replay row's tolerances in make test (designer.export_c.REPLAY_TOLERANCES): not inputs; 0, or -1 at its end */
+static int skip_tolerances(FILE *fh) {
+    double v;
+    int i;
+    for (i = 0; i < TOLERANCES; ++i)
+        if (fscanf(fh, "%lf", &v) != 1) return -1;
+    return 0;
+}
+
 /* The baseline: one plain EKF step of CFD_NX states with r measurement rows, as a textbook writes it: the prediction
  * x = F x, P = F P F^T + Q, then S = H P H^T + R, its Cholesky factor, K^T = S^-1 H P, x += K (z - H x),
  * P -= K H P, symmetrised.  F, Q, H, R are fixed data (the model's functions are not evaluated: their cost is the
@@ -180,8 +189,7 @@ int main(int argc, char **argv) {
             int nb = cfd_ball(cfd_exported_node(j), &ball), m = 0;
             for (b = 0; b < nb; ++b) m += cfd_sensor_dim(ball[b]);
             m += (nb - 1) + CFD_NU + CFD_NX + CFD_NX * CFD_NX;
-            /* the row's two tolerances in make test (a double node's, a float node's): not inputs */
-            if (fscanf(fh, "%lf %lf", &buf[total], &buf[total]) != 2) return 2;
+            if (skip_tolerances(fh)) return 2;
             for (b = 0; b < m; ++b)
                 if (fscanf(fh, "%lf", &buf[total + b]) != 1) return 2;
             total += m;
@@ -218,14 +226,14 @@ int main(int argc, char **argv) {
 
 
 _BENCH_EXCHANGE = r"""
-/* a record's beginning for a node that exchanges packets: its two tolerances in make test (skipped), the step's inputs,
+/* a record's beginning for a node that exchanges packets: its tolerances in make test (skipped), the step's inputs,
  * its measurement, one arrived flag per in-neighbour, into the slots of record `at`; returns its number of
  * in-neighbours, -1 for a short replay */
 static int read_node_step(FILE *fh, int at, int node, double *u, double *z, unsigned char *arrived) {
     const int *senders;
     int d = cfd_neighbours(node, &senders), m = cfd_sensor_dim(node), b, c;
     double v;
-    if (fscanf(fh, "%lf %lf", &v, &v) != 2) return -1;
+    if (skip_tolerances(fh)) return -1;
     for (c = 0; c < CFD_NU; ++c) if (fscanf(fh, "%lf", &u[at * (CFD_NU + 1) + c]) != 1) return -1;
     for (c = 0; c < m; ++c) if (fscanf(fh, "%lf", &z[at * (CFD_NZ + 1) + c]) != 1) return -1;
     for (b = 0; b < d; ++b) {
@@ -366,13 +374,14 @@ def _size(objects: list[Path]) -> tuple[int, int]:
 
 def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     import studies
+    from designer.export_c import REPLAY_TOLERANCES
 
     design, c = folder / "design", folder / "c"
     studies.design(scenario, mode=mode, out=design)
     studies.export(design, out=c)
     cc = shutil.which("cc") or shutil.which("gcc")
     driver = {"paper": _BENCH_EXCHANGE + _BENCH_PAPER_C, "scheduled": _BENCH_EXCHANGE + _BENCH_SCHEDULED_C}
-    (c / "bench.c").write_text(_BENCH_HEAD + driver.get(mode, _BENCH_C))
+    (c / "bench.c").write_text(f"#define TOLERANCES {REPLAY_TOLERANCES}\n" + _BENCH_HEAD + driver.get(mode, _BENCH_C))
     for src in ("cfd_node.c", "cfd_model.c"):
         subprocess.run([cc, "-std=c99", "-O3", "-c", src], cwd=c, check=True)
     subprocess.run([cc, "-std=c99", "-O3", "-o", "bench", "bench.c", "cfd_node.o", "cfd_model.o", "-lm"], cwd=c,

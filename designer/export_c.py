@@ -28,8 +28,10 @@ Into a directory each writes:
   before (re-synchronised), so one step of C is compared with one step of Python from the same input, which two
   correct implementations agree on to rounding even on a chaotic or ill-conditioned recursion; each entry is
   compared on its own scale (``x[i]`` on max(|x[i]|, sqrt(P[i][i])), ``P[i][j]`` on max(|P[i][j]|,
-  sqrt(P[i][i] P[j][j]))), a failure names the step, the node, the quantity and both values; a free-running
-  twin of each node (never re-synchronised) reports its drift as information;
+  sqrt(P[i][i] P[j][j]))), a failure names the step, the node, the quantity and both values; and a second
+  set of nodes runs as a network from the prior (never re-synchronised, each node taking its neighbours' own C
+  packets where the log says they arrived as sent: :func:`arrival_flag`), checked against the Python node network
+  at the rounding drift of a perturbed copy of it (:func:`network_tolerances`);
 * ``Makefile`` — ``make`` builds the driver and ``libcfd_node.a``; ``make test`` runs the replay and exits 0 when
   every entry agrees within :data:`REPLAY_TOLERANCE` of its scale.
 
@@ -65,7 +67,8 @@ __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "de
            "common_code", "work_code", "linalg_code", "PREFIX", "check_prefix", "prefixed", "write_node",
            "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX", "perturbed_twin", "replay_tolerances", "state_difference",
            "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS", "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP", "FLOAT_EPSILON",
-           "FLOAT_SEED"]
+           "FLOAT_SEED", "arrival_flag", "perturb", "network_tolerances", "NETWORK_TOLERANCE_CAP", "REPLAY_TOLERANCES",
+           "DRIFT_SEED", "DRIFT_TRIALS"]
 
 C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
@@ -78,12 +81,18 @@ REPLAY_TOLERANCE = 1e-12
 #: a step that would need more than REPLAY_TOLERANCE_CAP ends the replay (beyond, no check tells code from rounding)
 SENSITIVITY_SAFETY = 100.0
 REPLAY_TOLERANCE_CAP = 1e-6
+#: a network run (the C nodes exchanging their own packets, never re-synchronised) is checked while its tolerance
+#: (:func:`network_tolerances`: the rounding drift of perturbed Python networks) is at most this; beyond, information
+NETWORK_TOLERANCE_CAP = 1e-2
+REPLAY_TOLERANCES = 4  # the tolerances starting each row of replay.txt (:func:`replay_file`)
 SENSITIVITY_TRIALS = 2  # perturbed twins of the node network a step (Kenney and Laub's small-sample estimate)
 SENSITIVITY_SEED = 20261205  # their perturbations' stream: an export is the same file bit for bit every time
 #: a float node's rounding unit (``-DCFD_REAL=float``): its tolerances (:func:`replay_tolerances`) are those of twins
 #: perturbed at it (:meth:`NodeExport.float_twin`), with a stream of their own (the double's tolerances keep their bits)
 FLOAT_EPSILON = float(np.finfo(np.float32).eps)
 FLOAT_SEED = (SENSITIVITY_SEED, 32)
+DRIFT_SEED = (SENSITIVITY_SEED, 1)  # the network run's drifting copies' stream (:func:`network_tolerances`)
+DRIFT_TRIALS = 1  # its drifting copies, a double's and a float's (each costs a step of the network at every step)
 PREFIX = "cfd"  # the generated sources' names: functions, types and files cfd_..., macros CFD_...
 _PREFIX_SHAPE = re.compile(r"[a-z][a-z0-9]{0,15}")
 _PREFIX_TAKEN = ("casadi",)  # CasADi's own names in cfd_model.c
@@ -223,7 +232,8 @@ def write_node(out: Path, header: str, source: str, main: str, replay: str | Non
     """Write a node kind's ``cfd_node.h``, ``cfd_node.c``, its replay driver ``cfd_test.c`` (the frame's
     ``driver_head.c``, a blank line, the kind's ``main``), the frame's ``Makefile`` and, given, ``replay.txt``
     beside the model's files (:func:`model_code`) in ``out``; returns every file of the export."""
-    driver = template(_FRAME / "driver_head.c", TOL=repr(REPLAY_TOLERANCE), TOL_CAP=repr(REPLAY_TOLERANCE_CAP)) \
+    driver = template(_FRAME / "driver_head.c", TOL=repr(REPLAY_TOLERANCE), TOL_CAP=repr(REPLAY_TOLERANCE_CAP),
+                      NET_CAP=repr(NETWORK_TOLERANCE_CAP), TOLERANCES=REPLAY_TOLERANCES) \
         + "\n" + main
     texts = {"cfd_node.h": header, "cfd_node.c": source, "cfd_test.c": driver,
              "Makefile": template(_FRAME / "Makefile", TOL=repr(REPLAY_TOLERANCE))}
@@ -236,12 +246,20 @@ def write_node(out: Path, header: str, source: str, main: str, replay: str | Non
     return written
 
 
+def arrival_flag(sender: int, received, falsified) -> float:
+    """A packet's arrival flag in ``replay.txt``: 0 lost (``sender`` not in ``received``), 1 arrived as it was sent, 2
+    arrived falsified (``sender`` in ``falsified``).  The C network of ``make test`` feeds a node its neighbour's own
+    C packet where the flag is 1 and the log's falsified packet where it is 2."""
+    return 0.0 if sender not in received else 2.0 if sender in falsified else 1.0
+
+
 def replay_file(steps: int, nodes: int, n_u: int, rows: Iterable[Sequence], tolerances) -> str:
     """The text of ``replay.txt``: ``steps nodes n_u``, then one line per row of numbers (a step's node, in the
-    kind's order), each starting with the row's two tolerances, a double node's and a float node's (``tolerances``,
-    steps x nodes x 2: :func:`replay_tolerances` at the double's and at float's rounding), each number as Python's
-    ``repr`` (exact)."""
-    tol = np.asarray(tolerances, float).reshape(-1, 2)
+    kind's order), each starting with the row's :data:`REPLAY_TOLERANCES` tolerances (``tolerances``, steps x nodes x
+    4): the step's from Python's state, a double node's and a float node's (:func:`replay_tolerances` at the double's
+    and at float's rounding), then the network run's, a double's and a float's (:func:`network_tolerances`; ``inf``
+    where its check has ended); each number as Python's ``repr`` (exact)."""
+    tol = np.asarray(tolerances, float).reshape(-1, REPLAY_TOLERANCES)
     lines = [f"{steps} {nodes} {n_u}"] + [" ".join(repr(float(v)) for v in (*t, *vals)) for t, vals in zip(tol, rows)]
     if len(lines) != steps * nodes + 1 or len(tol) != steps * nodes:
         raise ValueError(f"replay_file: {len(lines) - 1} rows and {len(tol)} tolerances for {steps} steps x {nodes} "
@@ -267,13 +285,19 @@ def perturbed_twin(net, rng: np.random.Generator, eps: float = float(np.finfo(fl
     estimate and covariance are moved by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the
     rounding unit, the double's machine epsilon unless given: :data:`FLOAT_EPSILON` for a float node; ``g`` standard
     normal; the covariance's perturbation symmetric)."""
-    twin = copy.deepcopy(net, _configuration(net))
-    for node in twin.nodes:
+    return perturb(copy.deepcopy(net, _configuration(net)), rng, eps)
+
+
+def perturb(net, rng: np.random.Generator, eps: float = float(np.finfo(float).eps)):
+    """The node network ``net`` itself, every node's estimate and covariance moved by about one unit in the last
+    place as :func:`perturbed_twin` moves its copy's (a network run's rounding at each step:
+    :func:`network_tolerances`)."""
+    for node in net.nodes:
         x, P = np.asarray(node.x, float), np.asarray(node.P, float)
         G = rng.standard_normal(P.shape)
         node.x = x * (1.0 + eps * rng.standard_normal(x.shape))
         node.P = P * (1.0 + eps * 0.5 * (G + G.T))
-    return twin
+    return net
 
 
 def state_difference(x, P, x_ref, P_ref) -> float:
@@ -311,6 +335,24 @@ def replay_tolerances(net, twins: Sequence, nodes: Sequence[int], floor: float =
         moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in twins), default=0.0)
         out[j] = max(floor, SENSITIVITY_SAFETY * moved)
     return out
+
+
+def network_tolerances(net, drifting: Sequence, nodes: Sequence[int], previous, floor: float = REPLAY_TOLERANCE
+                       ) -> np.ndarray:
+    """Each exported node's tolerance in ``make test``'s network run at the step just taken by ``net``: the C nodes
+    exchanging their own packets over the log's arrivals from the first step, never re-synchronised, against the
+    Python node network.  ``drifting``: copies of ``net`` made at the start and run beside it, each perturbed by
+    one unit in the last place before every step (:func:`perturb`), the network run's rounding; the tolerance is
+    ``floor``, or :data:`SENSITIVITY_SAFETY` times how far they have drifted (:func:`state_difference`), never
+    below ``previous`` (the step before's, None at the first step).  Where it exceeds :data:`NETWORK_TOLERANCE_CAP`
+    (a chaotic or ill-conditioned run carries rounding that far) it is ``inf``: the network run is information
+    from there on, the per-step check (:func:`replay_tolerances`) still holds."""
+    out = np.full(len(nodes), floor) if previous is None else np.array(previous, float)
+    for j, i in enumerate(nodes):
+        ref = net.nodes[i]
+        moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in drifting), default=0.0)
+        out[j] = max(out[j], SENSITIVITY_SAFETY * moved)
+    return np.where(out <= NETWORK_TOLERANCE_CAP, out, np.inf)
 
 
 def check_prefix(prefix: str) -> str:
@@ -367,10 +409,10 @@ class NodeExport:
         itself), from the model, the network, the design's effective options and the regions its nodes carry
         (None: the whole state) alone: the memory estimate's (:func:`studies.memory.export_need`), made before the
         design is read.  The base class: each node a packet from every node, each an estimate and its covariance,
-        and two more (its state and prediction) besides its measurement, the most any node kind records; no
-        data."""
+        and two more (its state and prediction) besides its measurement and its row's tolerances, the most any node
+        kind records; no data."""
         n, n_x = network.n_nodes, model.n_x
-        return len(nodes) * ((n + 2) * (n_x * n_x + n_x) + model.n_z), 0
+        return len(nodes) * ((n + 2) * (n_x * n_x + n_x) + model.n_z + REPLAY_TOLERANCES), 0
 
     def float_twin(self, net, rng: np.random.Generator):
         """A twin of the node network ``net`` stepping as a float node would (``-DCFD_REAL=float``), before the step:

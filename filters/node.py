@@ -214,6 +214,7 @@ class NodeNetwork:
 
     stopped = False
     last = None
+    attacks = (None, None)  # the last step's dos, fdi (E,) flags over the channels (None: none)
 
     def step(self, z, dos=None, fdi=None, xi=None, u=None) -> np.ndarray:
         """One step of every node: ``z`` (n_z,) every sensor's measurement, ``dos``, ``fdi`` (E,) and ``xi`` (E, n_x)
@@ -227,6 +228,7 @@ class NodeNetwork:
             offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
             self.last = self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi,
                                        xi, u)
+            self.attacks = (dos, fdi)
             if any(nd.diverged for nd in self.nodes):
                 self.stopped = True
                 for nd in self.nodes:
@@ -254,6 +256,20 @@ class NodeNetwork:
             for nd in self.nodes:
                 nd.k += 1
         return not bad
+
+    def falsified(self) -> list[frozenset]:
+        """Per node, the in-neighbours whose packets reached it falsified at the last step (every exchange round's:
+        a channel's attack holds for the step), in :meth:`carry`'s channel order."""
+        dos, fdi = self.attacks
+        out, e = [], 0
+        for nd in self.nodes:
+            hit = set()
+            for j in nd.senders.tolist():
+                if fdi is not None and fdi[e] and (dos is None or not dos[e]):
+                    hit.add(j)
+                e += 1
+            out.append(frozenset(hit))
+        return out
 
     def carry(self, sent, dos, fdi, xi, falsified) -> list[dict]:
         """What ``sent`` (one packet per node) delivers over the step's channels, node by node (receiver-major, each

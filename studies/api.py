@@ -883,9 +883,10 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Returns the files written.
     """
     import rules
-    from designer.export_c import (FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY,
-                                   SENSITIVITY_SEED, SENSITIVITY_TRIALS, check_prefix, perturbed_twin, prefixed,
-                                   replay_tolerances)
+    from designer.export_c import (DRIFT_SEED, DRIFT_TRIALS, FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE,
+                                   REPLAY_TOLERANCE_CAP, REPLAY_TOLERANCES, SENSITIVITY_SAFETY, SENSITIVITY_SEED,
+                                   SENSITIVITY_TRIALS, check_prefix, network_tolerances, perturb, perturbed_twin,
+                                   prefixed, replay_tolerances)
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -950,10 +951,19 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
     rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
     to_float = FLOAT_EPSILON / np.finfo(float).eps
+    # the network run's: copies run beside the network from the start, perturbed at every step (a double's, a float's)
+    rng_drift = np.random.default_rng(DRIFT_SEED)
+    drifting = [perturbed_twin(net, rng_drift, 0.0) for _ in range(DRIFT_TRIALS)]
+    drifting_float = [exporter.float_twin(net, rng_drift) for _ in range(DRIFT_TRIALS)]
+    network_tol = network_tol_float = None
     for k in progress(range(z.shape[0]), z.shape[0], False, "export: replaying the run"):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         twins = [perturbed_twin(net, rng) for _ in range(SENSITIVITY_TRIALS)]
         floats = [exporter.float_twin(net, rng_float) for _ in range(SENSITIVITY_TRIALS)]
+        for twin in drifting:
+            perturb(twin, rng_drift)
+        for twin in drifting_float:
+            perturb(twin, rng_drift, FLOAT_EPSILON)
         net.step(z[k], *e, u=u[k])
         if getattr(net, "stopped", False):
             warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
@@ -962,7 +972,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         step = exporter.replay_step(net, k, u[k], [z[k, offsets[i]:offsets[i + 1]] for i in chosen], chosen)
         with warnings.catch_warnings(), np.errstate(all="ignore"):  # a twin may break down where the run does not
             warnings.simplefilter("ignore")
-            for twin in twins + floats:
+            for twin in twins + floats + drifting + drifting_float:
                 twin.step(z[k], *e, u=u[k])
         tol = replay_tolerances(net, twins, chosen)
         if not np.all(tol <= REPLAY_TOLERANCE_CAP):  # beyond, C and Python may differ by rounding alone
@@ -972,11 +982,15 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
                           f"of their scale, beyond make test's check at {REPLAY_TOLERANCE_CAP:g}): replay.txt "
                           f"holds the {k} steps before", RuntimeWarning, stacklevel=2)
             break
+        network_tol = network_tolerances(net, drifting, chosen, network_tol)
+        network_tol_float = network_tolerances(net, drifting_float, chosen, np.maximum(
+            network_tol * to_float, REPLAY_TOLERANCE * to_float if network_tol_float is None else network_tol_float))
         steps.append(step)
-        tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen))], -1))
+        tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen)),
+                                    network_tol, network_tol_float], -1))
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     with replaced_outputs(out) as stage:
         written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
-                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen), 2)),
+                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES)),
                                           verdict=verdict), prefix)
     return [Path(out) / p.name for p in written]

@@ -77,6 +77,34 @@ def moved_replay_fails(out, line: int, at, what: str, nodes) -> None:
     assert int(re.search(r"(\d+) above the tolerance", bad.stdout).group(1)) >= 1
 
 
+def falsified_packet_taken_as_sent_fails_the_network_run(out, scenario, design_dir) -> None:
+    """The network run has power: the first falsified arrival of ``replay.txt`` (arrival flag 2) relabelled as sent
+    (1) makes the network run's C node take its neighbour's own C packet in its place, so ``make test`` fails,
+    naming the network run, that step and that node; each step from Python's state takes the log's packet either
+    way and still agrees.  The replay's rows: 4 tolerances, the inputs, the node's measurement, then its flags."""
+    from studies.scenarios import scenario_of
+
+    sc = scenario_of(scenario)
+    net = studies.node_filter(scenario, schedule=design_dir)
+    lines = (out / "replay.txt").read_text().splitlines()
+    n_nodes = int(lines[0].split()[1])
+    for at, line in enumerate(lines[1:], 1):
+        node, cells = (at - 1) % n_nodes, line.split()
+        first = 4 + sc.model.n_u + sc.model.sensor_dims[node]
+        flags = cells[first:first + net.nodes[node].senders.size]
+        if "2.0" in flags:
+            cells[first + flags.index("2.0")] = "1.0"
+            break
+    else:
+        raise AssertionError("no falsified arrival in the replay")
+    lines[at] = " ".join(cells)
+    (out / "replay.txt").write_text("\n".join(lines) + "\n")
+    bad = make_test(out)
+    step = (at - 1) // n_nodes + 1
+    assert bad.returncode != 0 and re.search(rf"^network run, step {step}, node {node}: ", bad.stdout, re.M), bad.stdout
+    assert re.search(r"^step \d+, node", bad.stdout, re.M) is None, bad.stdout
+
+
 @pytest.fixture(scope="module")
 def cart(tmp_path_factory):
     path = tmp_path_factory.mktemp("user") / "cart.py"
@@ -143,7 +171,8 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     """design without --mode (the paper rule), export, make test: at every step every node's packet (prediction, its
     covariance, whether it is a bound) and its estimate and covariance after the update within 1e-10 of the Python
     consensus node's, over the design's simulated run (DoS and FDI; with the χ² gate, which rejects packets on this
-    run); a replay whose expected prediction is moved by 1e-7 fails."""
+    run), and so are the nodes run as a network on their own packets; a replay whose expected prediction is moved
+    by 1e-7 fails, and so does the network run with a falsified packet taken as sent."""
     from designer.design import DesignOptions
     from filters.consensus_batch import run_consensus_batch
     from studies.consensus_design import consensus_design
@@ -173,6 +202,11 @@ def test_the_robots_default_design_in_c_replays_the_python_node_filter(gate, tmp
     assert mutable_static_data(out) == []
     single = float_test(out)
     assert single.returncode == 0, single.stdout
+    network = re.search(r"as a network .* the Python node network (\S+) .*, (\d+) above", run.stdout)
+    assert float(network.group(1)) <= 1e-10 and network.group(2) == "0", run.stdout
+    if not gate:
+        falsified_packet_taken_as_sent_fails_the_network_run(out, "indoor-robot", des)
+        return
     n_x = 3
     moved_replay_fails(out, 9, -2 * (n_x * n_x + n_x) - 1, "x_pred", range(8))  # an expected prediction's first
 
@@ -201,10 +235,12 @@ def test_a_users_paper_design_in_c_replays_a_recorded_log(cart, tmp_path):
 def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(tmp_path, capsys, monkeypatch):
     """The README's ring with the paper rule's defaults leaves (28) at step 4 and its fallback's bound explodes
     (condition numbers 3e6 at step 4, 1e15 by step 7, where it diverges).  Each step of make test starts from the
-    Python node's state, so every step before the divergence is replayed and agrees, although the nodes left to run
-    on their own drift beyond 1e-10 (which failed the check before it re-synchronised).  Its ill-conditioned steps are
-    checked at their measured sensitivity: at a flat 1e-12 they fail correct code.  A step too ill-conditioned for
-    the check (here: a cap lowered to 1e-9) ends the replay, and export says which."""
+    Python node's state, so every step before the divergence is replayed and agrees, although the nodes run as a
+    network drift beyond 1e-10 (which failed the check before it re-synchronised): the network run is checked at
+    the drift of a perturbed Python network, which grows step by step (in float it passes its cap: information
+    there); at a flat 1e-12 it fails correct code.  Its ill-conditioned steps are checked at their measured
+    sensitivity: at a flat 1e-12 they fail correct code.  A step too ill-conditioned for the check (here: a cap
+    lowered to 1e-9) ends the replay, and export says which."""
     import pathlib
 
     import designer.export_c
@@ -218,11 +254,22 @@ def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(
     assert "diverged at step 7 of the replayed run" in said and "replay.txt holds the 6 steps before" in said
     run = make_test(out)
     assert run.returncode == 0 and "6 steps x 4 nodes" in run.stdout, run.stdout + run.stderr
-    drift = float(re.search(r"differ from Python by at most (\S+)", run.stdout).group(1))
-    assert drift > 1e-10
+    network = re.search(r"as a network .* largest difference from the Python node network (\S+) .*, (\d+) above",
+                        run.stdout)
+    assert float(network.group(1)) > 1e-10 and network.group(2) == "0", run.stdout
     lines = (out / "replay.txt").read_text().splitlines()
     tol = np.array([float(line.split()[0]) for line in lines[1:]]).reshape(6, 4)
     assert tol.min() == designer.export_c.REPLAY_TOLERANCE and tol.max() > 1e-9
+    drift = np.array([float(line.split()[2]) for line in lines[1:]]).reshape(6, 4)  # the network run's
+    assert np.all(np.diff(drift, axis=0) >= 0) and drift[0].min() == designer.export_c.REPLAY_TOLERANCE
+    assert np.isfinite(drift).all() and drift.max() > 1e-4 and "information: at" not in run.stdout
+    single = float_test(out)  # in float the drift passes the cap: those node steps are information
+    assert single.returncode == 0 and re.search(r"information: at \d+ of its 24 node steps", single.stdout), single.stdout
+    (out / "replay.txt").write_text("\n".join(lines[:1] + [" ".join(line.split()[:2] + ["1e-12"] + line.split()[3:])
+                                                          for line in lines[1:]]) + "\n")
+    flat = make_test(out)
+    assert flat.returncode != 0 and re.search(r"^network run, step \d+, node \d+: ", flat.stdout, re.M), flat.stdout
+    assert re.search(r"^(?!network)step \d+, node", flat.stdout, re.M) is None  # the steps from Python's state agree
     (out / "replay.txt").write_text("\n".join(lines[:1] + [" ".join(["1e-12"] + line.split()[1:])
                                                           for line in lines[1:]]) + "\n")
     flat = make_test(out)
@@ -244,7 +291,9 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
     """design --mode scheduled (the neighbours' measurements exchanged or not, 1-3 exchange rounds, a bank of
     operating points whose tables the run does pick, a falsification with a mean), export, make test: every node's
     estimate and own covariance after every step within 1e-10 of the Python scheduled node's (the tables looked up,
-    the link gains solved online in C), on the design's run or a user's CSV log; a replay moved by 1e-7 fails."""
+    the link gains solved online in C), on the design's run or a user's CSV log, and so are the nodes run as a network
+    on their own packets, every round's; a replay moved by 1e-7 fails, and so does the network run with a falsified
+    packet taken as sent (with several rounds)."""
     from filters.consensus_batch import run_consensus_batch
     from studies.consensus_design import consensus_design
     from studies.recorded import design_options_of
@@ -286,6 +335,11 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
         last = (out / "replay.txt").read_text().splitlines()[-1].split()
         x_hat = studies.filter(scenario, data, schedule=des).x_hat
         assert np.array_equal([float(v) for v in last[-n_x * n_x - n_x:-n_x * n_x]], x_hat[-1, 6])
+    network = re.search(r"as a network .* the Python node network (\S+) .*, (\d+) above", run.stdout)
+    assert float(network.group(1)) <= 1e-10 and network.group(2) == "0", run.stdout
+    if options:  # exchanged measurements or a bank: the network run's own packets, every round's
+        falsified_packet_taken_as_sent_fails_the_network_run(out, scenario, des)
+        return
     # the first component of an expected estimate
     moved_replay_fails(out, 7, -n_x * n_x - n_x, "x", range(8 if target == "indoor-robot" else 7))
 

@@ -15,8 +15,8 @@ from typing import Sequence
 
 import numpy as np
 
-from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
-                               template, work_code, write_node)
+from designer.export_c import (NodeExport, arrival_flag, c_array, common_code, described, linalg_code, model_code,
+                               replay_file, template, work_code, write_node)
 from designer.validation import InputError
 
 __all__ = ["PaperExport", "write_consensus_c", "consensus_replay_text"]
@@ -37,7 +37,9 @@ class PaperExport(NodeExport):
 
     def replay_step(self, net, k, u, z, nodes):
         sent, rounds = net.last  # what each node sent and, round by round, what reached it
-        return u, [(z_i, *rounds[0][i], sent[i], net.nodes[i].x, net.nodes[i].P) for i, z_i in zip(nodes, z)]
+        hit = net.falsified()
+        return u, [(z_i, rounds[0][i][0], hit[i], rounds[0][i][1], sent[i], net.nodes[i].x, net.nodes[i].P)
+                   for i, z_i in zip(nodes, z)]
 
     def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
         return write_consensus_c(model, network, design, out, nodes=nodes, verdict=verdict,
@@ -108,15 +110,16 @@ def consensus_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
                           tolerances) -> str:
     """``replay.txt`` of a consensus design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
     tolerances (``tolerances``: :func:`designer.export_c.replay_file`), the step's inputs, the node's
-    measurement, one arrived flag per in-neighbour (``senders`` order), the estimates that arrived (zeros where
-    not), every in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the Python node filter's
-    packet (prediction, its covariance, its flag) and its estimate and covariance after the update. ``steps``: per
-    step, ``(u, [(z, received {j: x̃}, bounds {j: Packet}, packet, x, P) per node])``."""
+    measurement, one arrival flag per in-neighbour (``senders`` order; :func:`designer.export_c.arrival_flag`: 0
+    lost, 1 arrived as sent, 2 arrived falsified), the estimates that arrived (zeros where not), every
+    in-neighbour's packet (its bound row by row, then 1 if it is a bound), then the Python node filter's packet
+    (prediction, its covariance, its flag) and its estimate and covariance after the update. ``steps``: per step,
+    ``(u, [(z, received {j: x̃}, falsified {j}, bounds {j: Packet}, packet, x, P) per node])``."""
     def rows():
         for u, per_node in steps:
-            for j, (z, got, bounds, packet, x, P) in enumerate(per_node):
+            for j, (z, got, hit, bounds, packet, x, P) in enumerate(per_node):
                 vals = list(np.asarray(u, float).reshape(-1)) + list(np.asarray(z, float).reshape(-1))
-                vals += [1.0 if s in got else 0.0 for s in senders[j]]
+                vals += [arrival_flag(s, got, hit) for s in senders[j]]
                 n = np.asarray(x).size
                 for s in senders[j]:
                     vals += list(np.asarray(got[s], float).reshape(-1)) if s in got else [0.0] * n

@@ -15,8 +15,8 @@ from typing import Sequence
 import numpy as np
 
 from designer.bounds import sqrtm_psd
-from designer.export_c import (NodeExport, c_array, common_code, described, model_code, replay_file, template,
-                               work_code, write_node)
+from designer.export_c import (REPLAY_TOLERANCES, NodeExport, c_array, common_code, described, model_code,
+                               replay_file, template, work_code, write_node)
 from designer.validation import InputError
 
 from .design import FLOAT_RTOL, RTOL, relay_carried, relay_moments, relay_routes
@@ -49,7 +49,7 @@ class RelayExport(NodeExport):
         for i in nodes:
             ball = routes.ball(i)
             rows = int(dims[ball].sum())
-            record += rows + ball.size + model.n_u + w + w * w
+            record += rows + ball.size - 1 + REPLAY_TOLERANCES + model.n_u + w + w * w
             data += 3 * rows * rows + 2 * rows + 2 * ball.size + int(widths[i])
         return record, data
 

@@ -15,8 +15,8 @@ from typing import Sequence
 
 import numpy as np
 
-from designer.export_c import (NodeExport, c_array, common_code, described, linalg_code, model_code, replay_file,
-                               template, work_code, write_node)
+from designer.export_c import (NodeExport, arrival_flag, c_array, common_code, described, linalg_code, model_code,
+                               replay_file, template, work_code, write_node)
 from designer.validation import InputError
 
 __all__ = ["ScheduledExport", "write_scheduled_c", "scheduled_replay_text"]
@@ -31,7 +31,8 @@ class ScheduledExport(NodeExport):
 
     def replay_step(self, net, k, u, z, nodes):
         _, rounds = net.last  # what each node sent and, round by round, what reached it
-        return u, [(z_i, rounds[0][i], [r[i] for r in rounds[1:]], net.nodes[i].x, net.nodes[i].P)
+        hit = net.falsified()
+        return u, [(z_i, rounds[0][i], hit[i], [r[i] for r in rounds[1:]], net.nodes[i].x, net.nodes[i].P)
                    for i, z_i in zip(nodes, z)]
 
     def write(self, model, network, design, net, steps, out, *, nodes, tolerances, verdict=None):
@@ -121,16 +122,17 @@ def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]]
                           exchange: bool, steps: list, tolerances) -> str:
     """``replay.txt`` of a scheduled design: ``steps nodes n_u``, then per step and node (in ``nodes`` order) its
     tolerances (``tolerances``: :func:`designer.export_c.replay_file`), the step's inputs, the node's
-    measurement, one arrived flag per in-neighbour, the predictions that arrived (zeros where not), with exchange
-    the measurements that arrived (``nz`` each, zero-padded), for rounds 2..L the estimates that arrived, then the
-    Python node filter's estimate and own covariance after the step. ``steps``: per step, ``(u, [(z, received {j:
-    ScheduledPacket}, [{j: x̃} per round 2..L], x, P) per node])``."""
+    measurement, one arrival flag per in-neighbour (:func:`designer.export_c.arrival_flag`: 0 lost, 1 arrived as
+    sent, 2 arrived falsified), the predictions that arrived (zeros where not), with exchange the measurements that
+    arrived (``nz`` each, zero-padded), for rounds 2..L the estimates that arrived, then the Python node filter's
+    estimate and own covariance after the step. ``steps``: per step, ``(u, [(z, received {j: ScheduledPacket},
+    falsified {j}, [{j: x̃} per round 2..L], x, P) per node])``."""
     def rows():
         for u, per_node in steps:
-            for j, (z, got, later, x, P) in enumerate(per_node):
+            for j, (z, got, hit, later, x, P) in enumerate(per_node):
                 n = np.asarray(x).size
                 vals = list(np.asarray(u, float).reshape(-1)) + list(np.asarray(z, float).reshape(-1))
-                vals += [1.0 if s in got else 0.0 for s in senders[j]]
+                vals += [arrival_flag(s, got, hit) for s in senders[j]]
                 for s in senders[j]:
                     vals += list(np.asarray(got[s].x, float)) if s in got else [0.0] * n
                 for s in senders[j] if exchange else ():

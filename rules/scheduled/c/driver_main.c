@@ -1,49 +1,95 @@
-/* one step of a scheduled node from what the replay gives (its packets, then each later round's estimates): 0, a
- * node filter's error code, or 1 for a replay that ended */
-static int scheduled_step(cfd_node *s, FILE *fh, const CFD_REAL *z, const CFD_REAL *u, const unsigned char *arrived,
-                          const cfd_packet *got, CFD_REAL *rec, int d, int *short_read) {
-    static cfd_packet mine;
-    int r, e = cfd_predict(s, z, CFD_NU ? u : NULL, &mine);
-    if (!e) e = cfd_update(s, arrived, got);
-    for (r = 2; r <= CFD_ROUNDS && !e; ++r) {
-        if (fh && (*short_read = read_reals(fh, rec + (r - 2) * d * CFD_NX, d * CFD_NX))) return 1;
-        e = cfd_round(s, rec + (r - 2) * d * CFD_NX);
+/* one node's row of a step, as the replay gives it */
+typedef struct {
+    double tol[TOLERANCES];
+    CFD_REAL u[CFD_NU + 1], z[CFD_NZMAX];
+    unsigned char arrived[CFD_DEG_MAX], falsified[CFD_DEG_MAX];
+    cfd_packet got[CFD_DEG_MAX];                                /* the first round's packets that arrived */
+    CFD_REAL later[(CFD_ROUNDS > 1 ? CFD_ROUNDS - 1 : 1) * CFD_DEG_MAX * CFD_NX]; /* rounds 2..L's estimates */
+    double x[CFD_NX], P[CFD_NX * CFD_NX]; /* the Python node's estimate and own covariance after the step */
+} replay_row;
+
+/* read node `node`'s row into `r`: 0, or -1 for a replay that ended */
+static int read_row(FILE *fh, replay_row *r, int node) {
+    const int *senders;
+    CFD_REAL flags[CFD_DEG_MAX];
+    int d = cfd_neighbours(node, &senders), b;
+    if (read_tolerances(fh, r->tol) || read_reals(fh, r->u, CFD_NU) || read_reals(fh, r->z, cfd_sensor_dim(node))
+            || read_reals(fh, flags, d))
+        return -1;
+    for (b = 0; b < d; ++b) {
+        if (read_reals(fh, r->got[b].x, CFD_NX)) return -1;
+        r->arrived[b] = flags[b] != 0.0;
+        r->falsified[b] = flags[b] == 2.0;
     }
-    return e;
+    for (b = 0; b < d && CFD_EXCHANGE; ++b)
+        if (read_reals(fh, r->got[b].z, CFD_NZMAX)) return -1;
+    return read_reals(fh, r->later, (CFD_ROUNDS - 1) * d * CFD_NX) || read_numbers(fh, r->x, CFD_NX)
+           || read_numbers(fh, r->P, CFD_NX * CFD_NX) ? -1 : 0;
 }
 
 int main(int argc, char **argv) {
-    static cfd_node nodes[CFD_NODES], free_nodes[CFD_NODES];
-    static cfd_packet got[CFD_DEG_MAX];
-    static CFD_REAL u[CFD_NU + 1], z[CFD_NZ], flags[CFD_DEG_MAX], rec[(CFD_ROUNDS + 1) * CFD_DEG_MAX * CFD_NX];
-    static double x[CFD_NX], P[CFD_NX * CFD_NX];
-    static unsigned char arrived[CFD_DEG_MAX];
-    cfd_tally t = {0, 0, 0.0, 0.0, 0.0, 0, 0.0};
+    static cfd_node nodes[CFD_NODES], net[CFD_NODES];
+    static replay_row rows[CFD_NODES];
+    static cfd_packet sent[CFD_NODES], got[CFD_DEG_MAX], mine;
+    static CFD_REAL current[CFD_NODES * CFD_NX], rec[CFD_DEG_MAX * CFD_NX];
+    static cfd_tally t;
     FILE *fh;
-    int steps, k, j, b;
-    fh = start(argc, argv, nodes, free_nodes, &steps);
+    int steps, k, j, b, r, i;
+    fh = start(argc, argv, nodes, net, &steps);
     if (!fh) return 2;
     for (k = 0; k < steps; ++k) {
-        for (j = 0; j < CFD_NODES; ++j) {
+        for (j = 0; j < CFD_NODES; ++j)
+            if (read_row(fh, &rows[j], nodes[j].node)) return short_replay(argv[1], k, nodes[j].node);
+        for (j = 0; j < CFD_NODES; ++j) { /* each node's step from the Python node's state */
+            replay_row *w = &rows[j];
             const int *senders;
-            int d = cfd_neighbours(nodes[j].node, &senders), m = cfd_sensor_dim(nodes[j].node), e = 0;
-            int short_read = row(fh, &t, k, nodes[j].node) || read_reals(fh, u, CFD_NU) || read_reals(fh, z, m)
-                             || read_reals(fh, flags, d);
-            for (b = 0; b < d && !short_read; ++b) short_read = read_reals(fh, got[b].x, CFD_NX);
-            for (b = 0; b < d && !short_read && CFD_EXCHANGE; ++b) short_read = read_reals(fh, got[b].z, CFD_NZMAX);
-            for (b = 0; b < d; ++b) arrived[b] = flags[b] != 0.0;
-            if (!short_read) e = scheduled_step(&nodes[j], fh, z, u, arrived, got, rec, d, &short_read);
-            if (short_read || read_numbers(fh, x, CFD_NX) || read_numbers(fh, P, CFD_NX * CFD_NX)) {
-                return short_replay(argv[1], k, nodes[j].node);
-            }
+            int d = cfd_neighbours(nodes[j].node, &senders);
+            int e = cfd_predict(&nodes[j], w->z, CFD_NU ? w->u : NULL, &mine);
+            if (!e) e = cfd_update(&nodes[j], w->arrived, w->got);
+            for (r = 2; r <= CFD_ROUNDS && !e; ++r) e = cfd_round(&nodes[j], w->later + (r - 2) * d * CFD_NX);
             if (e) {
                 fprintf(stderr, "step %d, node %d: the node filter returned %d\n", k + 1, nodes[j].node, e);
                 return 1;
             }
-            check(&t, 1, "x", "P", nodes[j].x, nodes[j].P, x, P);
-            resync(nodes[j].x, nodes[j].P, x, P);
-            if (!scheduled_step(&free_nodes[j], NULL, z, u, arrived, got, rec, d, &short_read))
-                check(&t, 0, "x", "P", free_nodes[j].x, free_nodes[j].P, x, P);
+            at_row(&t, k, nodes[j].node, w->tol);
+            check(&t, 1, "x", "P", nodes[j].x, nodes[j].P, w->x, w->P);
+            resync(nodes[j].x, nodes[j].P, w->x, w->P);
+        }
+        /* the network run: every node's packet first, then the first round's updates, then each later round's from
+         * the estimates every node held after the round before */
+        for (j = 0; j < CFD_NODES && !t.net_stopped; ++j) {
+            int e = cfd_predict(&net[j], rows[j].z, CFD_NU ? rows[j].u : NULL, &sent[j]);
+            if (e) network_stops(&t, k, net[j].node, "cfd_predict", e);
+        }
+        for (j = 0; j < CFD_NODES && !t.net_stopped; ++j) {
+            const int *senders;
+            int d = cfd_neighbours(net[j].node, &senders), e;
+            for (b = 0; b < d; ++b) {
+                int s = slot_of(senders[b]);
+                got[b] = s >= 0 && rows[j].arrived[b] && !rows[j].falsified[b] ? sent[s] : rows[j].got[b];
+            }
+            e = cfd_update(&net[j], rows[j].arrived, got);
+            if (e) network_stops(&t, k, net[j].node, "cfd_update", e);
+        }
+        for (r = 2; r <= CFD_ROUNDS && !t.net_stopped; ++r) {
+            for (j = 0; j < CFD_NODES; ++j)
+                for (i = 0; i < CFD_NX; ++i) current[j * CFD_NX + i] = net[j].x[i];
+            for (j = 0; j < CFD_NODES && !t.net_stopped; ++j) {
+                const int *senders;
+                int d = cfd_neighbours(net[j].node, &senders), e;
+                for (b = 0; b < d; ++b) {
+                    int s = slot_of(senders[b]);
+                    const CFD_REAL *x = s >= 0 && rows[j].arrived[b] && !rows[j].falsified[b]
+                                        ? current + s * CFD_NX : rows[j].later + ((r - 2) * d + b) * CFD_NX;
+                    for (i = 0; i < CFD_NX; ++i) rec[b * CFD_NX + i] = x[i];
+                }
+                e = cfd_round(&net[j], rec);
+                if (e) network_stops(&t, k, net[j].node, "cfd_round", e);
+            }
+        }
+        for (j = 0; j < CFD_NODES && !t.net_stopped; ++j) {
+            at_row(&t, k, net[j].node, rows[j].tol);
+            check(&t, 0, "x", "P", net[j].x, net[j].P, rows[j].x, rows[j].P);
         }
     }
     return finish(fh, steps, &t);
