@@ -78,20 +78,46 @@ def _one(out, batch: tuple):
     return float(out) if batch == () else out
 
 
-class Spectrum(NamedTuple):
-    """A (stack of) symmetric Φ with its eigendecomposition, computed once by :func:`spectrum`.
+class Spectrum:
+    """A (stack of) symmetric Φ with its eigenvalues and, when asked, its eigenvectors, each computed once
+    (:func:`spectrum`), so that the margins (28)/(29), Theorem 2 and the shifted inverse of one Φ share them.
 
-    Every function here that takes a Φ also takes its Spectrum, so that the margins (28)/(29),
-    Theorem 2 and the shifted inverse of one Φ share one ``eigh`` (the batched filter does).
+    ``lam`` (..., n): the eigenvalues, ascending, NaN for a non-finite Φ: the eigen-decomposition's when it has been
+    computed, else :func:`eigvalsh`'s (less than half its work), computed on first use.  :meth:`eig` gives the
+    eigen-decomposition ``(λ, Q)`` (:func:`eigh`, computed on first use): what needs the eigenvectors takes the pair
+    from it (a shifted inverse, the tuned rule's search); a rule whose step will need them asks for them before the
+    margins (:func:`spectrum` with ``vectors``, or :meth:`eig` first), so that one ``eigh`` serves both.  Where no
+    step needs them (σ = β = 0: the local and centralized EKFs), a step costs one ``eigvalsh``.
     """
 
-    phi: np.ndarray  # (..., n, n), symmetrised
-    lam: np.ndarray  # (..., n) eigenvalues, ascending; NaN for a non-finite Φ
-    Q: np.ndarray  # (..., n, n) eigenvectors (columns); NaN for a non-finite Φ
+    __slots__ = ("phi", "_lam", "_eig")
+
+    def __init__(self, phi: np.ndarray, lam: np.ndarray | None = None, eig: tuple | None = None):
+        self.phi = phi  # (..., n, n), symmetrised
+        self._lam, self._eig = lam, eig
+
+    @property
+    def lam(self) -> np.ndarray:
+        if self._lam is None:
+            self._lam = self._eig[0] if self._eig is not None else _finite_only(eigvalsh, self.phi, False)
+        return self._lam
+
+    def eig(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(λ, Q)``: the eigenvalues (ascending) and eigenvectors (columns) of Φ, NaN for a non-finite Φ."""
+        if self._eig is None:
+            self._eig = _finite_only(eigh, self.phi, True)
+        return self._eig
+
+    @property
+    def Q(self) -> np.ndarray:
+        """The eigenvectors (columns) of :meth:`eig`."""
+        return self.eig()[1]
 
     def take(self, index) -> "Spectrum":
-        """The items ``index`` (a mask or indices over the leading axes) of a stack."""
-        return Spectrum(self.phi[index], self.lam[index], self.Q[index])
+        """The items ``index`` (a mask or indices over the leading axes) of a stack (what has been computed of
+        them)."""
+        return Spectrum(self.phi[index], None if self._lam is None else self._lam[index],
+                        None if self._eig is None else (self._eig[0][index], self._eig[1][index]))
 
 
 _THREADED_EIGH = 64  # matrices in a stack from which eigh is split over the cores
@@ -159,16 +185,28 @@ def _split(fn, a: np.ndarray, vectors: bool):
     return lam.reshape(a.shape[:-1]), Q.reshape(a.shape)
 
 
-def spectrum(phi) -> Spectrum:
-    """The :class:`Spectrum` of ``phi`` (..., n, n)."""
-    phi = symmetrize(np.asarray(phi, dtype=float))
+def spectrum(phi, vectors: bool = False) -> Spectrum:
+    """The :class:`Spectrum` of ``phi`` (..., n, n), symmetrised; with ``vectors`` its eigen-decomposition computed
+    now (its eigenvalues are then the decomposition's), else what is asked of it when it is asked."""
+    S = Spectrum(symmetrize(np.asarray(phi, dtype=float)))
+    if vectors:
+        S.eig()
+    return S
+
+
+def _finite_only(fn, phi: np.ndarray, vectors: bool):
+    """``fn`` (:func:`eigh` or :func:`eigvalsh`) of the finite matrices of a stack, NaN for the others."""
     if np.isfinite(phi).all():
-        return Spectrum(phi, *eigh(phi))
-    lam, Q = np.full(phi.shape[:-1], np.nan), np.full(phi.shape, np.nan)
+        return fn(phi)
+    lam = np.full(phi.shape[:-1], np.nan)
+    Q = np.full(phi.shape, np.nan) if vectors else None
     finite = np.isfinite(phi).all(axis=(-2, -1))
     if finite.any():
-        lam[finite], Q[finite] = eigh(phi[finite])
-    return Spectrum(phi, lam, Q)
+        if vectors:
+            lam[finite], Q[finite] = fn(phi[finite])
+        else:
+            lam[finite] = fn(phi[finite])
+    return (lam, Q) if vectors else lam
 
 
 def _matrix(phi) -> np.ndarray:
@@ -260,7 +298,7 @@ def shifted_inverse(phi: np.ndarray, c, D: np.ndarray | None = None) -> np.ndarr
 def _shifted(phi, c, D):
     """:func:`shifted_inverse` for ``c != 0`` (a number, or ``(m, 1)`` for a stack of m matrices)."""
     if D is None:
-        lam, Q = (phi.lam, phi.Q) if isinstance(phi, Spectrum) else np.linalg.eigh(symmetrize(phi))
+        lam, Q = phi.eig() if isinstance(phi, Spectrum) else np.linalg.eigh(symmetrize(phi))
         return symmetrize((Q * (lam / (1.0 - c * lam))[..., None, :]) @ _t(Q))
     phi = _matrix(phi)
     mu, Q = np.linalg.eigh(symmetrize(D @ phi @ _t(D)))

@@ -117,10 +117,21 @@ class PredictionBatch(NamedTuple):
     trace: np.ndarray  # (m,)
 
 
+def _spectrum_of(phi, D, one: bool = False) -> Spectrum:
+    """``phi`` (a stack; with ``one`` a matrix, made a stack of one) as its :class:`~designer.bounds.Spectrum` (a
+    Spectrum: itself), its eigen-decomposition computed now when ``D`` is None: :func:`_structure` needs its
+    eigenvectors, and the margins then take the same ``eigh``'s eigenvalues."""
+    S = phi if isinstance(phi, Spectrum) else spectrum(np.asarray(phi, dtype=float)[None] if one else phi)
+    if D is None:
+        S.eig()
+    return S
+
+
 def _structure(S: Spectrum, D) -> tuple[np.ndarray, np.ndarray]:
     """``μ`` (ascending) and ``G = Φ Dᵀ Q`` with ``D Φ Dᵀ = Q diag(μ) Qᵀ`` (``D = I``: Φ's own spectrum)."""
     if D is None:
-        return S.lam, S.phi @ S.Q
+        lam, Q = S.eig()
+        return lam, S.phi @ Q
     mu, Q = np.linalg.eigh(symmetrize(D @ S.phi @ np.swapaxes(D, -1, -2)))
     return mu, S.phi @ np.swapaxes(D, -1, -2) @ Q
 
@@ -136,7 +147,7 @@ def tune_prediction_batch(phi_post, F, U, Q, eps, margin: float = MARGIN, D=None
     root (:func:`increasing_root`, all items at once, with the fixed point ``σ = sqrt(a / p(σ))`` as the
     proposal) below (28)'s bound at margin ``margin``; σ = 0 where ``U = 0`` (the trace only grows with σ).
     """
-    S = phi_post if isinstance(phi_post, Spectrum) else spectrum(phi_post)
+    S = _spectrum_of(phi_post, D)
     m, n = S.phi.shape[:2]
     F = np.broadcast_to(np.asarray(F, dtype=float), (m, n, n))
     U = np.broadcast_to(np.asarray(U, dtype=float), (m, n, n))
@@ -170,7 +181,7 @@ def tune_prediction(phi_post, F, U, Q, eps: float, margin: float = MARGIN, D=Non
     ``D``: structure of the remainder ``U Ω D e`` (``None``: ``D = I``, the paper's form).  One item
     of :func:`tune_prediction_batch` (the batched filter's search, step for step).
     """
-    S = phi_post if isinstance(phi_post, Spectrum) else spectrum(np.asarray(phi_post, dtype=float)[None])
+    S = _spectrum_of(phi_post, D, one=True)
     out = tune_prediction_batch(S, np.asarray(F, dtype=float)[None], np.asarray(U, dtype=float)[None], Q, eps,
                                 margin, D)
     return PredictionChoice(float(out.sigma[0]), out.phi_pred[0], float(out.trace[0]))
@@ -402,7 +413,7 @@ def tune_update_batch(phi_pred, H, s, V, R, d, N, margin: float = MARGIN, D=None
     ``H`` (m, n_z, n), ``s`` and ``d`` (the node's degree d_i) (m,), ``V``, ``R`` (m, n_z, n_z), ``N`` (m, n, n),
     ``D`` None, (r, n) or (m, r, n).  Each item takes the steps it takes alone (its β search is an item of
     :func:`increasing_root`), so an item of a stack has the numbers of a batch of one."""
-    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(phi_pred)
+    S = _spectrum_of(phi_pred, D)
     m = S.phi.shape[0]
     H, V, R, N = (np.asarray(x, dtype=float) for x in (H, V, R, N))
     s, d = (np.broadcast_to(np.asarray(x, dtype=float), (m,)) for x in (s, d))
@@ -850,7 +861,7 @@ def tune_weighted_batch(phi_pred, H, s, V, R, groups, present=None, margin: floa
     present group NaN starts from equal weights).  Every sum over groups is added in order and an absent
     group is an exact zero in it, so each item takes the steps it takes alone (a batch of one).
     """
-    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(phi_pred)
+    S = _spectrum_of(phi_pred, D)
     m, n = S.phi.shape[:2]
     groups = np.asarray(groups, dtype=float).reshape(m, -1, n, n)
     G = groups.shape[1]
@@ -884,7 +895,7 @@ def tune_weighted(phi_pred, H, s: float, V, R, groups, margin: float = MARGIN, D
     matrix or the :class:`~designer.bounds.Spectrum` of a stack of it alone.  One item of
     :func:`tune_weighted_batch` (the batched filter's steps).
     """
-    S = phi_pred if isinstance(phi_pred, Spectrum) else spectrum(np.asarray(phi_pred, dtype=float)[None])
+    S = _spectrum_of(phi_pred, D, one=True)
     n = S.phi.shape[-1]
     groups = np.asarray(groups, dtype=float).reshape(1, -1, n, n)
     g = groups.shape[1]

@@ -15,6 +15,8 @@ __all__ = ["STEPS", "predict", "update"]
 
 def predict(phi_post: Spectrum, F, U, Q, D, design: ConsensusDesign) -> PredictionChoice:
     """The bound (26) at the design's σ, and (28)."""
+    if D is None and np.any(design.sigma):  # (26)'s shifted inverse takes Φ's eigenvectors: one eigh for it and (28)
+        phi_post.eig()
     pb = prediction_bound(phi_post, F, U, Q, design.sigma, design.epsilon, D)
     return PredictionChoice(pb.phi_pred, pb.margin28, np.full(pb.margin28.shape, design.sigma))
 
@@ -23,6 +25,8 @@ def update(phi_pred: Spectrum, it: dict, D, design: ConsensusDesign) -> UpdateCh
     """(29) at β; where it holds, ``C = τ Φ_pred``, the gain (30) and the bound (27)."""
     m, n = phi_pred.phi.shape[:2]
     H, s, V, R, d, neighbour_terms = (it[key] for key in ("H", "s", "V", "R", "d", "nt"))
+    if D is None and np.any(design.beta):  # M's shifted inverse takes Φ_pred's eigenvectors: one eigh for it and (29)
+        phi_pred.eig()
     margin = condition29_margin(phi_pred, design.beta, D)
     ok = margin > 0
     if not ok.all():  # the rule on the items inside (29); NaN for the others (they take the fallback)
