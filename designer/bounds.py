@@ -50,7 +50,9 @@ BOUND_LIMIT = 1e100
 
 
 def symmetrize(a: np.ndarray) -> np.ndarray:
-    return 0.5 * (a + np.swapaxes(a, -1, -2))
+    out = a + np.swapaxes(a, -1, -2)
+    out *= 0.5  # in place: one temporary fewer than 0.5 * (a + aᵀ), the same numbers
+    return out
 
 
 def _t(a: np.ndarray) -> np.ndarray:
@@ -317,6 +319,8 @@ def theorem2_margin(phi_post: np.ndarray, sigma, d_max: int):
 
 def _scaled_outer(m: np.ndarray, scale, name: str, mult: str) -> np.ndarray:
     """``m m^T / scale``, taken as 0 when ``m = 0`` (whatever ``scale``); per matrix for stacks."""
+    if not m.any():  # (the EKF's U = 0, V = 0: no product to form)
+        return np.zeros(m.shape[:-1] + m.shape[-2:-1])
     mm = m @ _t(m)
     if not mm.any():
         return mm
@@ -393,8 +397,10 @@ def update_bound_from(M, H, K, C, s_i, beta, V, R, d_i, neighbour_terms: np.ndar
     w = _per_matrix(1.0 + 2 * d_i)
     A = np.eye(n) - _per_matrix(s_i) * C - K @ H
     meas = w * _scaled_outer(V, beta, "V", "beta") + R
-    out = w * A @ M @ _t(A) + C @ neighbour_terms @ _t(C) + K @ meas @ _t(K)
-    return symmetrize(out)
+    out = w * A @ M @ _t(A)
+    if np.any(C):  # C = 0 (τ = 0: the EKF) weighs no neighbour
+        out = out + C @ neighbour_terms @ _t(C)
+    return symmetrize(out + K @ meas @ _t(K))
 
 
 def update_bound(phi_pred, H, K, C, s_i, beta, V, R, d_i, neighbour_terms: np.ndarray,

@@ -457,13 +457,21 @@ def relay_moments(routes: Routes, network: SensorNetwork, dims, rng: np.random.G
         balls = flood_moments(routes, network, rng)
     else:  # the design's own moments (FLOOD_SEED): its certificate, its run and its filter take the same, once
         key = (routes.hops, network.adjacency.tobytes(), network.dos_prob.tobytes(), network.fdi_prob.tobytes())
-        if _FLOOD_MEMO.get("key") != key:
-            _FLOOD_MEMO.clear()  # one network's at a time: at 512 nodes and 8 hops they take a few hundred MB
-            _FLOOD_MEMO.update(key=key, balls=flood_moments(routes, network))
-        balls = _FLOOD_MEMO["balls"]
+        balls = _FLOOD_MEMO.pop(key, None)
+        if balls is None:
+            balls = flood_moments(routes, network)
+        _FLOOD_MEMO[key] = balls  # the newest last
+        size = {k: sum(a.nbytes for ball in v for a in ball) for k, v in _FLOOD_MEMO.items()}
+        while len(_FLOOD_MEMO) > 1 and sum(size.values()) > FLOOD_MEMO_BYTES:
+            size.pop(oldest := next(iter(_FLOOD_MEMO)))
+            del _FLOOD_MEMO[oldest]
     return [node_moments(routes, network, dims, i, b) for i, b in enumerate(balls)]
 
 
+#: The flooding moments kept in a process (one network's always, the newest first; a study's sweep settings are
+#: networks of other channel probabilities, each chunk of runs asks for all of them): up to this many bytes.  At 512
+#: nodes and 8 hops one network's take a few hundred MB; on IEEE 14 at 1 hop 0.1 MB.
+FLOOD_MEMO_BYTES = 64 * 2**20
 _FLOOD_MEMO: dict = {}
 
 
