@@ -50,7 +50,7 @@ BOUND_LIMIT = 1e100
 
 
 def symmetrize(a: np.ndarray) -> np.ndarray:
-    out = a + np.swapaxes(a, -1, -2)
+    out = np.add(a, np.swapaxes(a, -1, -2), dtype=np.result_type(a, 0.5))
     out *= 0.5  # in place: one temporary fewer than 0.5 * (a + aᵀ), the same numbers
     return out
 

@@ -883,10 +883,10 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Returns the files written.
     """
     import rules
-    from designer.export_c import (DRIFT_SEED, DRIFT_TRIALS, FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE,
-                                   REPLAY_TOLERANCE_CAP, REPLAY_TOLERANCES, SENSITIVITY_SAFETY, SENSITIVITY_SEED,
-                                   SENSITIVITY_TRIALS, check_prefix, network_tolerances, perturb, perturbed_twin,
-                                   prefixed, replay_tolerances)
+    from designer.export_c import (DRIFT_SEED, DRIFT_TRIALS, FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE_CAP,
+                                   REPLAY_TOLERANCES, SENSITIVITY_SAFETY, SENSITIVITY_SEED, SENSITIVITY_TRIALS,
+                                   check_prefix, network_tolerances, perturb, perturbed_twin, prefixed,
+                                   replay_tolerances)
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -983,8 +983,9 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
                           f"holds the {k} steps before", RuntimeWarning, stacklevel=2)
             break
         network_tol = network_tolerances(net, drifting, chosen, network_tol)
-        network_tol_float = network_tolerances(net, drifting_float, chosen, np.maximum(
-            network_tol * to_float, REPLAY_TOLERANCE * to_float if network_tol_float is None else network_tol_float))
+        floor = network_tol * to_float  # a float node's at least the double's, scaled to its rounding
+        network_tol_float = network_tolerances(net, drifting_float, chosen, floor if network_tol_float is None
+                                               else np.maximum(floor, network_tol_float))
         steps.append(step)
         tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen)),
                                     network_tol, network_tol_float], -1))

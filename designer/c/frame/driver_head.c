@@ -124,11 +124,6 @@ static void entry(cfd_tally *t, int counted, const char *what, int i, int j, dou
     double d = scaled_difference(got, want, scale), tol = counted ? t->tol : t->net_tol;
     double *worst = counted ? &t->worst : tol < HUGE_VAL ? &t->net_worst : &t->net_info;
     if (d > *worst) *worst = d;
-    if (!counted && tol == HUGE_VAL) {
-        if (!t->net_info_from || t->step < t->net_info_from) t->net_info_from = t->step;
-        return;
-    }
-    if (!counted && tol > t->net_worst_tol) t->net_worst_tol = tol;
     if (d <= tol) return;
     if ((counted ? t->bad : t->net_bad) < REPORTED) {
         if (j < 0)
@@ -152,7 +147,12 @@ static void check(cfd_tally *t, int counted, const char *x_name, const char *P_n
     int i, j;
     if (!counted) {
         t->net_rows += 1;
-        t->net_info_rows += t->net_tol == HUGE_VAL;
+        if (t->net_tol == HUGE_VAL) {
+            t->net_info_rows += 1;
+            if (!t->net_info_from) t->net_info_from = t->step;
+        } else if (t->net_tol > t->net_worst_tol) {
+            t->net_worst_tol = t->net_tol;
+        }
     }
     for (i = 0; i < CFD_NC; ++i) entry(t, counted, x_name, i, -1, x[i], xw[i], scale_of(xw, Pw, i, -1));
     for (i = 0; i < CFD_NC; ++i)
