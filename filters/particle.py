@@ -39,7 +39,7 @@ from .resampling import get_resampler
 from .result import FilterResult, centralized_result
 
 __all__ = ["LogWeights", "transition_proposal", "additive_noise_loglik", "SIRResult", "run_sir", "check_finite_means",
-           "LOG_TINY"]
+           "LOG_TINY", "effective_size", "DEGENERATE_ESS", "degenerate"]
 
 
 def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
@@ -60,6 +60,25 @@ def check_finite_means(mean: np.ndarray, engine: str) -> np.ndarray:
 def effective_size(W: np.ndarray) -> np.ndarray:
     """The effective sample size ``1 / Σ W²`` of normalised weights (..., M)."""
     return 1.0 / np.sum(W * W, axis=-1)
+
+
+#: A particle filter whose typical effective sample size after weighting (the median over its runs of each run's
+#: median over the steps) is below this many particles is degenerate: every step's weight sits on a handful of
+#: particles and its estimate follows them, not the posterior (an assumption, chosen: the bootstrap filter with 500
+#: particles on IEEE 14's 13 angles keeps 1.1 of them, its RMSE 14 x the EKF's; on a range-bearing target's 4 states
+#: 320 of 500).  :func:`degenerate` says it.
+DEGENERATE_ESS = 10.0
+
+
+def degenerate(ess) -> tuple[float, bool] | None:
+    """``(typical effective sample size, whether it is below DEGENERATE_ESS)`` of a particle filter's ``ess`` (runs,
+    steps; NaN for a run not scored), or None when no run has one."""
+    ess = np.asarray(ess, dtype=float)
+    per_run = [np.median(e[np.isfinite(e)]) for e in ess.reshape(ess.shape[0], -1) if np.isfinite(e).any()]
+    if not per_run:
+        return None
+    typical = float(np.median(per_run))
+    return typical, typical < DEGENERATE_ESS
 
 
 class LogWeights(NamedTuple):
@@ -221,8 +240,9 @@ def run_sir(
     -------
     FilterResult
         The fusion centre's (:func:`filters.result.centralized_result`: the weighted means and covariances,
-        ``uplinks`` messages per step), ``detail`` the :class:`SIRResult` of the runs (with the seconds spent
-        in the proposal and in the likelihood: where the time goes).
+        ``uplinks`` messages per step, ``ess`` the effective sample size after each step's weighting), ``detail``
+        the :class:`SIRResult` of the runs (with the seconds spent in the proposal and in the likelihood: where
+        the time goes).
     """
     check_int("particles", particles, 1)
     if not (0.0 < ess_threshold <= 1.0):
@@ -312,4 +332,5 @@ def run_sir(
             lw = LogWeights(new)
             did[:, k] = need
     return centralized_result(mean, cov, model.n_sensors if uplinks is None else uplinks,
-                              SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy(), *spent))
+                              SIRResult(mean, cov, ess, total, did, collapsed, nan_rows.copy(), *spent)
+                              )._replace(ess=ess)

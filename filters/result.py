@@ -74,7 +74,9 @@ class FilterResult(NamedTuple):
     step; ``delivered`` (runs, steps): those that arrived, where the family counts them (else None).
     ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
-    alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``carried`` (nodes, m): when
+    alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``ess`` (runs, steps): a particle
+    filter's effective sample size after each step's weighting (None for a filter without weights).  ``carried``
+    (nodes, m): when
     each node carries only some states (:mod:`designer.regions`, a regional rule's design), their indices
     (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in the
     unused places) and ``x`` NaN at the states a node does not carry.
@@ -91,6 +93,7 @@ class FilterResult(NamedTuple):
     detail: Any = None
     seconds: np.ndarray | None = None
     carried: np.ndarray | None = None
+    ess: np.ndarray | None = None
 
     def check(self) -> "FilterResult":
         """This result, its shapes and kinds checked (``InputError`` naming the field)."""
@@ -111,7 +114,7 @@ class FilterResult(NamedTuple):
             raise InputError(f"valid must have shape {(runs, k1, nodes)}, got {self.valid.shape}")
         if len(self.violations) != runs:
             raise InputError(f"violations must hold one list per run ({runs}), got {len(self.violations)}")
-        for name in ("messages", "delivered"):
+        for name in ("messages", "delivered", "ess"):
             a = getattr(self, name)
             if a is not None and a.shape != (runs, k1 - 1):
                 raise InputError(f"{name} must have shape {(runs, k1 - 1)}, got {a.shape}")
@@ -153,7 +156,7 @@ class FilterResult(NamedTuple):
         pick = (lambda a: None if a is None else a[idx])  # noqa: E731
         return self._replace(x=self.x[idx], cov=pick(self.cov), valid=self.valid[idx],
                              violations=[self.violations[i] for i in idx], messages=self.messages[idx],
-                             delivered=pick(self.delivered), seconds=pick(self.seconds))
+                             delivered=pick(self.delivered), seconds=pick(self.seconds), ess=pick(self.ess))
 
 
 def constant_messages(runs: int, steps: int, per_step: int) -> np.ndarray:

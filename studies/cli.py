@@ -478,6 +478,10 @@ def _summary(f: dict) -> str:
         parts.append(f"RMSE_v {f['rmse_velocity']:.4g}")
     if f.get("rmse_truth") is not None:
         parts.append(f"{f['rmse_truth']:.4g} against the truth")
+    if f.get("degenerate"):
+        parts.append(f"degenerate: its weight on {f['weights_ess']:.3g} of {f['particles']} particles (typical "
+                     "effective sample size), so it does not track this state and its error is no measure of a "
+                     "particle filter's")
     if f.get("time_per_step_s") is not None:
         parts.append(f"{f['time_per_step_s'] * 1e3:.3g} ms/step")
     msgs = f.get("messages_per_step", f.get("communications"))

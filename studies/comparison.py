@@ -60,6 +60,7 @@ from designer.regions import Carried, describe_regions, region_error2
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
+from filters.particle import DEGENERATE_ESS, degenerate
 from filters.result import HARD_CONDITIONS
 
 from designer.verdict import VERDICT_ASSUMPTIONS, VERDICTS, count_verdicts
@@ -172,6 +173,10 @@ ASSUMPTIONS = (
     "that treats the attacked components as independent, not its exact density.",
     "comparison: particle filters resample systematically at every step and report the weighted mean; M = "
     "particles for both.",
+    f"comparison: a particle filter whose typical effective sample size after weighting (the median over runs of each "
+    f"run's median over the steps) is below {DEGENERATE_ESS:g} particles is reported as degenerate: its weight sits on "
+    "a handful of particles, its estimate follows them rather than the posterior, and its error is no measure of what "
+    "a particle filter could reach on the model (an assumption, chosen: filters.particle.DEGENERATE_ESS).",
     "comparison: consensus and local RMSE is over runs, steps 1..K and the nodes (each node's own estimate); "
     "centralized filters have one estimate. 95 % intervals are percentile bootstraps over runs. A run whose filter "
     "leaves finite numbers (or 1e12), or whose error leaves divergence_spread (default 100) times the prior's spread "
@@ -371,6 +376,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
     verdict = np.full((R, S, F), np.nan)  # index into designer.verdict.VERDICTS of each run's bound
     bounded = np.full((R, S, F), np.nan)  # 1 where that bound is bounded (designer.verdict.Verdict.bounded)
     delivered = np.full((R, S, F), np.nan)  # packets delivered per step (KCF, HCMCI), mean over the steps
+    ess = np.full((R, S, F), np.nan)  # a particle filter's effective sample size after weighting, median over steps
     est = np.full((R, F, K + 1, m.n_x), np.nan)
     truth = np.empty((R, K + 1, m.n_x))
 
@@ -411,6 +417,8 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
                 secs[a, j, f] = per_row[row]
                 if e.counts_delivered:
                     delivered[a, j, f] = res.delivered[row].mean()
+                if res.ess is not None:
+                    ess[a, j, f] = np.median(res.ess[row])
                 for jj in (range(S) if not e.attacked else (j,)):
                     score(a, jj, f, res.x[row], dv is None, held)
                 if e.designed:
@@ -425,7 +433,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
                                                           res.carried)):
                     verdict[a, j, f], bounded[a, j, f] = VERDICTS.index(v.verdict), float(v.bounded)
     return {"err2": err2, "seconds": secs, "feasible": feasible, "verdict": verdict, "bounded": bounded,
-            "delivered": delivered, "estimate": est, "truth": truth}
+            "delivered": delivered, "ess": ess, "estimate": est, "truth": truth}
 
 
 def left_out(sc: Scenario) -> dict[str, str]:
@@ -673,6 +681,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             met["bounded_runs"] = int(np.nansum(A["bounded"][:, 0, f])) if reason is None else 0
         if e.counts_delivered:
             met["delivered_per_step"] = float(np.nanmean(A["delivered"][:, 0, f]))
+        weights = degenerate(A["ess"][:, 0, f]) if reason is None else None
+        if weights is not None:  # a filter with weights: how many particles carry them
+            met["weights_ess"], met["degenerate"] = weights
         if e.rounds:
             met["consensus_iterations"] = L
         filters[name] = met
@@ -842,6 +853,13 @@ def table_markdown(results: dict) -> str:
                         if rec["not_significantly_worse"] else " (95 % interval disjoint from every other one's)")
                      + f"; fewest messages per step: {', '.join(rec['fewest_messages'])} (cost is ranked by the "
                      "messages counted, not by the measured times).\n")
+        stuck = {n: f for n, f in b["filters"].items() if f.get("degenerate")}
+        if stuck:
+            text += ("\nDegenerate particle filters (their weight on a handful of particles at every step: their "
+                     "estimates follow those particles, not the posterior, and their error is no measure of what a "
+                     "particle filter could reach here): " + ", ".join(
+                         f"{n} (typical effective sample size {f['weights_ess']:.3g} of {f['particles']})"
+                         for n, f in stuck.items()) + ".\n")
         alone = [n for n, f in b["filters"].items() if f.get("better_than_local") is False]
         if alone:
             text += ("\nNo better than the nodes running alone on these runs (the 95 % paired interval of their RMSE "

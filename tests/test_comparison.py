@@ -624,3 +624,59 @@ def test_a_large_model_is_cut_into_smaller_chunks_with_the_same_numbers(tmp_path
     for name in a:
         if name != "seconds":
             np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+SCALAR2 = '''"""One slow scalar seen by two noisy thermometers: a particle filter's weights stay spread."""
+import casadi as ca
+import numpy as np
+
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+
+STEPS = 8
+NETWORK = SensorNetwork.from_edges(2, [(0, 1)])
+ATTACKS = AttackSpec(dos=0.1, fdi=0.1, signal=FDISignal(amplitude=0.1))
+
+
+def model() -> Model:
+    x = ca.SX.sym("x", 1)
+    sensors = [Sensor(f"t{i}", x[0], Gaussian.zero_mean([[1.0]])) for i in range(2)]
+    return Model("scalar2", x, 0.95 * x, sensors, process_noise=Gaussian.zero_mean([[0.01]]),
+                 prior=Gaussian(np.zeros(1), [[0.1]]))
+'''
+
+
+def test_a_particle_filter_whose_weight_sits_on_a_few_particles_is_called_degenerate(tmp_path, capsys):
+    """The comparison reports each particle filter's typical effective sample size after weighting
+    (filters.particle.degenerate: the median over runs of each run's median over the steps, each step's ESS the run's
+    own 1 / Σ W²): on a 15-cell rod with precise thermometers 30 particles put their weight on fewer than
+    DEGENERATE_ESS of them (degenerate, and the table and the command line say so); on a scalar seen through noisy
+    thermometers they keep most of it (not degenerate).  Either way 1 <= ESS <= M."""
+    from filters.particle import DEGENERATE_ESS, degenerate, effective_size
+    from studies import schemas
+    from studies.cli import main
+
+    assert effective_size(np.full(30, 1 / 30)) == pytest.approx(30) and effective_size(np.eye(30)[3]) == 1.0
+    assert degenerate(np.array([[1.0, 2.0, 50.0], [3.0, np.nan, 4.0]])) == (2.75, True)  # medians 2 and 3.5
+    assert degenerate(np.full((2, 3), np.nan)) is None
+    pfs = ["centralized PF (attack-aware)", "centralized PF (trusts every packet)"]
+    rod, scalar = tmp_path / "rod15.py", tmp_path / "scalar2.py"
+    rod.write_text(FIELD15)
+    scalar.write_text(SCALAR2)
+    seen = {}
+    for path, out in ((rod, tmp_path / "rod"), (scalar, tmp_path / "scalar")):
+        res = run_comparison(scenarios=[str(path)], runs=3, particles=30, seed=2, sweep_values=[0.1], quiet=True,
+                             filters=",".join(pfs + ["local"]), out=out)
+        schemas.validate_output(out)
+        for name in pfs:
+            f = res["filters"][name]
+            assert 1.0 <= f["weights_ess"] <= 30 and f["degenerate"] == (f["weights_ess"] < DEGENERATE_ESS)
+        assert "weights_ess" not in res["filters"]["local EKF at every node (no network)"]
+        seen[path.stem] = [res["filters"][n]["degenerate"] for n in pfs]
+        text = (out / "table.md").read_text()
+        assert ("Degenerate particle filters" in text) == any(seen[path.stem])
+    assert seen == {"rod15": [True, True], "scalar2": [False, False]}
+    capsys.readouterr()
+    assert main(["study", "comparison", str(rod), "--runs", "2", "--particles", "30", "--filters",
+                 ",".join(pfs), "--set", "sweep_values=[0.1]", "--out", str(tmp_path / "cli")]) == 0
+    said = capsys.readouterr().out
+    assert said.count("degenerate: its weight on") == 2, said

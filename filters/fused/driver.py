@@ -408,7 +408,7 @@ def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covarianc
     spread(one, R, threads)
     cov = cov if covariance else None
     return centralized_result(check_finite_means(mean, "fused particle filter"), cov, uplinks,
-                              FastSIRResult(mean, cov, ess, loglik, resampled, collapsed))
+                              FastSIRResult(mean, cov, ess, loglik, resampled, collapsed))._replace(ess=ess)
 
 
 # ============================================================================ input checks
