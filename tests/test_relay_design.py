@@ -224,3 +224,33 @@ def test_every_batched_filter_refuses_a_model_with_inputs_run_without_them():
         with pytest.raises(InputError, match=r"inputs must have shape \(5, 1\)"):
             run(inputs=np.zeros((5, 2)))
         run(inputs=np.zeros((5, 1)))  # given: runs
+
+
+def test_the_pseudo_inverse_is_the_inverse_only_where_the_inverse_is_certified():
+    """rules.relay.design.pseudo_inverse against numpy's pinv (eigenvalues below rtol of the largest cut): a stack
+    of well-conditioned positive definite matrices (their inverse, certified); a rank-2 4 x 4 one B Bᵀ whose Cholesky
+    factor exists only by rounding (eigenvalues of 1e-15 and -1e-15: an LU inverse's trace is -5e16 there, and
+    counting that as certified made the relay filter diverge); one whose condition number passes 1 / rtol (two
+    eigenvalues cut).  Each equals pinv to rounding, alone and in a stack with a certified one (each item decided
+    alone)."""
+    from rules.relay.design import RTOL, pseudo_inverse
+
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((3, 4, 4))
+    good = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(4)
+    B = np.random.default_rng(25).standard_normal((4, 2))
+    low = B @ B.T
+    np.linalg.cholesky(low)  # exists, by rounding
+    assert np.trace(np.linalg.inv(low)) < 0
+    Q, _ = np.linalg.qr(rng.standard_normal((4, 4)))
+    wide = (Q * np.array([1.0, 0.5, 1e-14, 1e-15])) @ Q.T  # condition 1e15 > 1 / RTOL: two cut
+
+    def agrees(M):
+        got, ref = pseudo_inverse(M), np.linalg.pinv(M, rcond=RTOL, hermitian=True)
+        assert np.allclose(got, ref, rtol=0, atol=1e-9 * np.abs(ref).max()), (got, ref)
+        return got
+
+    assert np.allclose(agrees(good), np.linalg.inv(good), rtol=0, atol=1e-12 * np.abs(np.linalg.inv(good)).max())
+    assert np.linalg.matrix_rank(agrees(low)) == 2 and np.linalg.matrix_rank(agrees(wide)) == 2
+    for bad in (low, wide):
+        assert np.array_equal(agrees(np.stack([good[0], bad]))[1], pseudo_inverse(bad))
