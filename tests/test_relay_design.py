@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 import rules
-from designer.attacks import FDISignal
 from designer.design import DesignOptions, make_design
 from rules.relay.design import relay_stationary
 from filters.consensus_batch import run_consensus_batch
