@@ -76,10 +76,9 @@ class FilterResult(NamedTuple):
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
     alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``ess`` (runs, steps): a particle
     filter's effective sample size after each step's weighting (None for a filter without weights).  ``carried``
-    (nodes, m): when
-    each node carries only some states (:mod:`designer.regions`, a regional rule's design), their indices
-    (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in the
-    unused places) and ``x`` NaN at the states a node does not carry.
+    (nodes, m): when each node carries only some states (:mod:`designer.regions`, a regional rule's design), their
+    indices (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in
+    the unused places) and ``x`` NaN at the states a node does not carry.
     """
 
     x: np.ndarray
