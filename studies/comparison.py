@@ -717,6 +717,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
                     continue
                 mm = _metrics(A["err2"][:, j, f], own[name], key, curve=False)
                 row[name] = {k: mm[k] for k in (key, f"{key}_ci95", f"{key}_median_run", "diverged_runs")}
+                weights = degenerate(A["ess"][:, j, f])
+                if weights is not None:  # a filter with weights: how many particles carry them at this setting
+                    row[name]["weights_ess"], row[name]["degenerate"] = weights
                 if e.designed:  # runs whose design held (28)-(29) throughout: certified at this setting
                     row[name]["feasible_runs"] = int(np.nansum(A["feasible"][:, j, f]))
                     row[name]["certified_runs"] = _verdict_counts(A["verdict"][:, j, f])["certified"]
@@ -887,7 +890,7 @@ def _sweep_cell(m: dict | None, key: str) -> str | None:
         return "infeasible (not run)"
     if m[key] is None:
         return "diverged"
-    return f"{m[key]:.4g} ({m[f'{key}_median_run']:.3g})"
+    return f"{m[key]:.4g} ({m[f'{key}_median_run']:.3g})" + (", degenerate" if m.get("degenerate") else "")
 
 
 def _figures(out: Path, results: dict, built: dict, arrays: dict) -> None:

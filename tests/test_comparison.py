@@ -650,7 +650,8 @@ def test_a_particle_filter_whose_weight_sits_on_a_few_particles_is_called_degene
     (filters.particle.degenerate: the median over runs of each run's median over the steps, each step's ESS the run's
     own 1 / Σ W²): on a 15-cell rod with precise thermometers 30 particles put their weight on fewer than
     DEGENERATE_ESS of them (degenerate, and the table and the command line say so); on a scalar seen through noisy
-    thermometers they keep most of it (not degenerate).  Either way 1 <= ESS <= M."""
+    thermometers they keep most of it (not degenerate); so at every sweep setting, whose cells say it.  Either way
+    1 <= ESS <= M."""
     from filters.particle import DEGENERATE_ESS, degenerate, effective_size
     from studies import schemas
     from studies.cli import main
@@ -672,8 +673,12 @@ def test_a_particle_filter_whose_weight_sits_on_a_few_particles_is_called_degene
             assert 1.0 <= f["weights_ess"] <= 30 and f["degenerate"] == (f["weights_ess"] < DEGENERATE_ESS)
         assert "weights_ess" not in res["filters"]["local EKF at every node (no network)"]
         seen[path.stem] = [res["filters"][n]["degenerate"] for n in pfs]
+        cells = [row[n] for sweep in res["sweeps"].values() for row in sweep.values() for n in pfs if n in row]
+        assert cells and all(c["degenerate"] == (c["weights_ess"] < DEGENERATE_ESS) for c in cells)
+        assert {c["degenerate"] for c in cells} == {path.stem == "rod15"}  # at every setting too
         text = (out / "table.md").read_text()
         assert ("Degenerate particle filters" in text) == any(seen[path.stem])
+        assert (", degenerate" in text) == any(c["degenerate"] for c in cells)
     assert seen == {"rod15": [True, True], "scalar2": [False, False]}
     capsys.readouterr()
     assert main(["study", "comparison", str(rod), "--runs", "2", "--particles", "30", "--filters",
