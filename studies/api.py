@@ -990,8 +990,8 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen)),
                                     network_tol, network_tol_float], -1))
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
+    tolerances = np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES))
     with replaced_outputs(out) as stage:
         written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
-                                          tolerances=np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES)),
-                                          verdict=verdict), prefix)
+                                          tolerances=tolerances, verdict=verdict), prefix)
     return [Path(out) / p.name for p in written]

@@ -264,7 +264,8 @@ def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(
     assert np.all(np.diff(drift, axis=0) >= 0) and drift[0].min() == designer.export_c.REPLAY_TOLERANCE
     assert np.isfinite(drift).all() and drift.max() > 1e-4 and "information: at" not in run.stdout
     single = float_test(out)  # in float the drift passes the cap: those node steps are information
-    assert single.returncode == 0 and re.search(r"information: at \d+ of its 24 node steps", single.stdout), single.stdout
+    assert single.returncode == 0 and re.search(r"information: at \d+ of its 24 node steps", single.stdout), \
+        single.stdout
     (out / "replay.txt").write_text("\n".join(lines[:1] + [" ".join(line.split()[:2] + ["1e-12"] + line.split()[3:])
                                                           for line in lines[1:]]) + "\n")
     flat = make_test(out)

@@ -469,8 +469,9 @@ def relay_moments(routes: Routes, network: SensorNetwork, dims, rng: np.random.G
     return [node_moments(routes, network, dims, i, b) for i, b in enumerate(balls)]
 
 
-#: The flooding moments kept in a process (one network's always, the newest first; a study's sweep settings are
-#: networks of other channel probabilities, each chunk of runs asks for all of them): up to this many bytes.  At 512
+#: The flooding moments kept in a process (the latest network's always, the least recently asked let go first; a
+#: study's sweep settings are networks of other channel probabilities, each chunk of runs asks for all of them): up
+#: to this many bytes.  At 512
 #: nodes and 8 hops one network's take a few hundred MB; on IEEE 14 at 1 hop 0.1 MB.
 FLOOD_MEMO_BYTES = 64 * 2**20
 _FLOOD_MEMO: dict = {}
@@ -645,17 +646,18 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
 
 def pseudo_inverse(M: np.ndarray, rtol: float = RTOL) -> np.ndarray:
     """The pseudo-inverse of symmetric positive semidefinite matrices ``M`` (..., m, m) with the eigenvalues below
-    ``rtol`` times the largest left out, as the C node computes it: ``M⁻¹ = L⁻ᵀ L⁻¹`` where every eigenvalue is
-    certified above that without an eigen-decomposition (a Cholesky factor ``M = L Lᵀ`` exists and ``tr(M) |L⁻¹|² <
-    1 / rtol``, since ``λmax ≤ tr M`` and ``1 / λmin ≤ tr M⁻¹ = |L⁻¹|²``, positive by construction where an
-    inverse of an indefinite M could have a negative trace), else ``V diag(1 / λ) Vᵀ`` over the eigenvalues kept,
-    for the matrices not certified (every one where some has no Cholesky factor).  The inverse costs a few times less than the
-    eigen-decomposition (a flood node's over 8 hops on a 64-cell field: 60 % of its filter's time)."""
+    ``rtol`` times the largest left out, as the C node computes it: ``M⁻¹ = L⁻ᵀ L⁻¹`` where every eigenvalue
+    is certified above that without an eigen-decomposition (a Cholesky factor ``M = L Lᵀ`` exists and
+    ``tr(M) |L⁻¹|² < 1 / rtol``, since ``λmax ≤ tr M`` and ``1 / λmin ≤ tr M⁻¹ = |L⁻¹|²``, positive by construction
+    where an inverse of an indefinite M could have a negative trace), else ``V diag(1 / λ) Vᵀ`` over the
+    eigenvalues kept, for the matrices not certified (every one where some has no Cholesky factor).  The inverse
+    costs a few times less than the eigen-decomposition (a flood node's over 8 hops on a 64-cell field: 60 % of its
+    filter's time)."""
     M = 0.5 * (M + np.swapaxes(M, -1, -2))
     out = np.empty_like(M)
     todo = np.ones(M.shape[:-2], dtype=bool)  # the matrices not certified
     try:
-        Li = np.linalg.inv(np.linalg.cholesky(M))  # M = L Lᵀ, M⁻¹ = L⁻ᵀ L⁻¹, tr M⁻¹ = |L⁻¹|²: positive by construction
+        Li = np.linalg.inv(np.linalg.cholesky(M))  # M = L Lᵀ, M⁻¹ = L⁻ᵀ L⁻¹, tr M⁻¹ = |L⁻¹|² > 0
     except np.linalg.LinAlgError:
         pass
     else:

@@ -94,6 +94,16 @@ static void at_row(cfd_tally *t, int k, int node, const double *tol) {
     if (t->tol > t->worst_tol) t->worst_tol = t->tol;
 }
 
+/* a replay row's d arrival flags (designer.export_c.arrival_flag: 0 lost, 1 arrived as sent, 2 arrived falsified) as
+ * which arrived and, unless `falsified` is NULL, which of them were falsified */
+static void arrivals(const CFD_REAL *flags, int d, unsigned char *arrived, unsigned char *falsified) {
+    int b;
+    for (b = 0; b < d; ++b) {
+        arrived[b] = flags[b] != 0.0;
+        if (falsified) falsified[b] = flags[b] == 2.0;
+    }
+}
+
 #ifdef CFD_DEG_MAX /* nodes that exchange packets with their in-neighbours (a relay node takes measurements only) */
 /* the exported slot of the network's node `node`, -1 for a node not exported */
 static int slot_of(int node) {

@@ -28,9 +28,8 @@ static int read_row(FILE *fh, replay_row *r, int node) {
     for (b = 0; b < d; ++b) {
         if (read_reals(fh, r->bounds[b].P, CFD_NX * CFD_NX) || read_numbers(fh, ok, 1)) return -1;
         r->bounds[b].ok = ok[0] != 0.0;
-        r->arrived[b] = flags[b] != 0.0;
-        r->falsified[b] = flags[b] == 2.0;
     }
+    arrivals(flags, d, r->arrived, r->falsified);
     return read_numbers(fh, r->px, CFD_NX) || read_numbers(fh, r->pP, CFD_NX * CFD_NX) || read_numbers(fh, r->pok, 1)
            || read_numbers(fh, r->x, CFD_NX) || read_numbers(fh, r->P, CFD_NX * CFD_NX) ? -1 : 0;
 }

@@ -21,7 +21,7 @@ int main(int argc, char **argv) {
                 return short_replay(argv[1], k, nodes[j].node);
             }
             at_row(&t, k, nodes[j].node, tol);
-            for (b = 0; b < nb - 1; ++b) arrived[b] = flags[b] != 0.0;
+            arrivals(flags, nb - 1, arrived, NULL);
             e = cfd_step(&nodes[j], z, arrived, rec, CFD_NU ? u : NULL);
             if (e) {
                 fprintf(stderr, "step %d, node %d: cfd_step returned %d\n", k + 1, nodes[j].node, e);

@@ -16,11 +16,9 @@ static int read_row(FILE *fh, replay_row *r, int node) {
     if (read_tolerances(fh, r->tol) || read_reals(fh, r->u, CFD_NU) || read_reals(fh, r->z, cfd_sensor_dim(node))
             || read_reals(fh, flags, d))
         return -1;
-    for (b = 0; b < d; ++b) {
+    for (b = 0; b < d; ++b)
         if (read_reals(fh, r->got[b].x, CFD_NX)) return -1;
-        r->arrived[b] = flags[b] != 0.0;
-        r->falsified[b] = flags[b] == 2.0;
-    }
+    arrivals(flags, d, r->arrived, r->falsified);
     for (b = 0; b < d && CFD_EXCHANGE; ++b)
         if (read_reals(fh, r->got[b].z, CFD_NZMAX)) return -1;
     return read_reals(fh, r->later, (CFD_ROUNDS - 1) * d * CFD_NX) || read_numbers(fh, r->x, CFD_NX)
