@@ -28,26 +28,42 @@ from test_relay import (N, SIGNAL, bearing_model, edge_attacks, linear_model, ne
                         simulate_linear, varied_network)
 
 
-def relay_design(model, net, hops, signal=SIGNAL):
-    return make_design(model, net, rule=rules.get("relay"), delta=0.0, options=DesignOptions(mode="relay", rounds=hops),
+def relay_design(model, net, hops, signal=SIGNAL, mode="relay"):
+    return make_design(model, net, rule=rules.get(mode), delta=0.0, options=DesignOptions(mode=mode, rounds=hops),
                        x0=model.prior.mean, signal=signal)
 
 
-def test_the_rules_filter_is_the_relay_filter_on_each_runs_network():
+@pytest.mark.parametrize("mode", ["relay", "flood"])
+@pytest.mark.parametrize("stack", [True, False])
+def test_the_rules_filter_is_the_relay_filter_on_each_runs_network(mode, stack, monkeypatch):
+    """Runs on networks of other channel probabilities (a sweep's settings, one without FDI) update together, each
+    with its own setting's moments (``stack``), or one setting at a time where the stacked moments would pass
+    SETTINGS_STACK_BYTES: either way each run gets the numbers of the relay filter run alone on its network."""
+    import rules.relay.filter as relay_filter
+
+    if not stack:
+        monkeypatch.setattr(relay_filter, "SETTINGS_STACK_BYTES", 1)
     model = bearing_model()
-    nets = [network(0.1, 0.1), varied_network(), network(0.1, 0.1)]
+    nets = [network(0.1, 0.1), varied_network(), network(0.1, 0.1), network(0.3, 0.0)]
     rng = np.random.default_rng(3)
-    z = np.abs(rng.normal(5.0, 1.0, (3, 6, model.n_z)))  # any measurements: the filters must agree on them
-    att = edge_attacks(nets[0], 3, 6, model.n_x, seed=5)
-    design = relay_design(model, nets[0], 2)
+    runs = len(nets)
+    z = np.abs(rng.normal(5.0, 1.0, (runs, 6, model.n_z)))  # any measurements: the filters must agree on them
+    att = edge_attacks(nets[0], runs, 6, model.n_x, seed=5)
+    design = relay_design(model, nets[0], 2, mode=mode)
     res = run_consensus_batch(model, nets, z, design, attacks=att).detail
-    for r in range(3):
+    for r in range(runs):
         one = att._replace(dos=att.dos[r:r + 1], fdi=att.fdi[r:r + 1], xi=att.xi[r:r + 1])
-        ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL).detail
+        ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL,
+                              routing=design.rule.routing).detail
         assert np.array_equal(res.x_post[r], ref.x_post[0]) and np.array_equal(res.phi_post[r], ref.P_post[0])
         assert np.array_equal(res.gate_counts[r, :, 0], ref.delivered_per_step[0])
     assert res.valid.all() and np.all(res.C == 0.0)
     assert np.allclose(res.predicted_mse, np.trace(res.phi_post, axis1=-2, axis2=-1))
+    # the settings' moments differ: the run without FDI is not the first setting's numbers on its draws
+    twin = run_relay_batch(model, nets[0], z[3:], 2, attacks=att._replace(dos=att.dos[3:], fdi=att.fdi[3:],
+                                                                          xi=att.xi[3:]),
+                           signal=SIGNAL, routing=design.rule.routing).detail
+    assert not np.array_equal(twin.P_post[0], res.phi_post[3])
 
 
 @pytest.mark.parametrize("hops", [1, 2])

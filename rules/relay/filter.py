@@ -45,6 +45,8 @@ from __future__ import annotations
 from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import shortest_path
 
 from designer.attacks import FDISignal
 from designer.bounds import sqrtm_psd
@@ -162,7 +164,8 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
     Parameters
     ----------
     model, network : the model (sensor ``i`` at node ``i``) and the communication graph with its channels' DoS and
-        FDI probabilities (the relay rule's moments are computed from them).
+        FDI probabilities (the relay rule's moments are computed from them), or one network per run (one graph, e.g. a
+        sweep's settings: the runs update together, each with its own network's moments).
     z : ndarray (runs, steps, n_z); ``z[:, k]`` measures ``x_{k+1}``.
     hops : int in 1..``rules.relay.design.MAX_HOPS``: relay hops (exchange rounds) per step.
     inputs : (steps, n_u) shared or (runs, steps, n_u), optional.
@@ -187,28 +190,29 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
                                           signal=signal, routing=routing, regions=regions))
 
 
-def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, *, inputs=None,
-                attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
+def _relay_runs(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, hops: int, *,
+                inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
                 signal: FDISignal | None = None, routing: str = "tree", regions=None,
                 predictions: bool = True) -> DistributedBatchResult:
     """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays; without
-    ``predictions`` no record of the predictions' covariances (``P_pred`` None)."""
-    if not isinstance(network, SensorNetwork) or network.n_nodes != model.n_sensors:
-        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
-                         f"{getattr(network, 'n_nodes', type(network).__name__)}")
-    hops = check_int("hops", hops, 1, MAX_HOPS)
+    ``predictions`` no record of the predictions' covariances (``P_pred`` None).  ``network`` may be one network
+    per run (:func:`filters.consensus_batch.run_networks`: one graph, e.g. a sweep's settings): the runs then
+    update together, each with its own network's moments (:func:`_setting_classes`)."""
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps = z.shape[:2]
+    network, nets = run_networks(network, runs)
+    if network.n_nodes != model.n_sensors:
+        raise InputError(f"network must be a SensorNetwork with one node per sensor ({model.n_sensors}), got "
+                         f"{network.n_nodes}")
+    hops = check_int("hops", hops, 1, MAX_HOPS)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    M, mu = _check_signal(signal, network, model.n_x)
+    settings, which = _settings(nets or [network])
     n, nx = network.n_nodes, model.n_x
     routes = relay_routes(network, hops, routing)
     lay = _layout(model, routes)
     carry = None if regions is None else relay_carried(model, routes, regions)
-    if carry is not None:  # each node's moments of the signal on its own states
-        M, mu = carry.matrix(M), carry.vector(mu)
-    classes = node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, network, model.sensor_dims)],
-                           free=True)
+    classes, M, mu = _setting_classes(model, routes, settings, signal, carry)
+    which = None if len(settings) == 1 else which
     if carry is None:
         out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops), predictions=predictions)
     else:
@@ -236,7 +240,7 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
                 dos, fdi, xi = attacks.dos[g, k], attacks.fdi[g, k], attacks.xi[g, k]
                 delivered[go] = (~dos).sum(axis=-1) * hops
             x[go], P[go] = _update(model, routes, lay, classes, M, mu, k, z[g, k], xp[go], Pp[go], dos, fdi, xi,
-                                   carry, xf[go])
+                                   carry, xf[go], None if which is None else which[g])
             bad[go] = diverged_nodes(x[go], P[go])
         return Step(dict(x_pred=xp, P_pred=Pp, delivered=delivered), dict(x_post=x, P_post=P), bad,
                     lambda j, node: DIVERGED_REASON if go[j] else "prediction: " + DIVERGED_REASON)
@@ -246,6 +250,47 @@ def _relay_runs(model: Model, network: SensorNetwork, z: np.ndarray, hops: int, 
     return DistributedBatchResult(xs["x_post"], out["P_post"], xs["x_pred"], history(out["P_pred"]), out["sent"],
                                   out["delivered"], violations, hops, None,
                                   None if carry is None else carry.index)
+
+
+def _settings(nets: Sequence[SensorNetwork]) -> tuple[list[SensorNetwork], np.ndarray]:
+    """The distinct channel settings of the runs' networks (equal DoS and FDI probabilities), in order of first use,
+    and each run's index among them."""
+    keys = [(net.dos_prob.tobytes(), net.fdi_prob.tobytes()) for net in nets]
+    first = dict.fromkeys(keys)
+    index = {key: i for i, key in enumerate(first)}
+    distinct = [nets[keys.index(key)] for key in first]
+    return distinct, np.array([index[key] for key in keys], dtype=int)
+
+
+#: The moments of a node class that differ between channel settings (:func:`_setting_classes`); the others (its
+#: ball's sensors, rows and depths) are the routes' alone.
+_SETTING_FIELDS = ("p", "A", "F1", "F2")
+
+
+def _setting_classes(model: Model, routes: Routes, settings: Sequence[SensorNetwork], signal, carry):
+    """``(classes, M, μ)``: the node classes (:func:`rules.relay.design.node_classes`) of the channel settings
+    ``settings`` (one graph) and the signal's moments (in each node's carried coordinates with ``carry``).  With one
+    setting, its classes; with several, every class's :data:`_SETTING_FIELDS` stacked over the settings on a first
+    axis (the classes' members and shapes are the routes', the same for every setting), so that the runs of all
+    settings update in one call (a sweep's settings: one call a class and step in place of one per setting).  A
+    setting without falsification has zero ``F1`` and ``F2`` (its moments), which add exact zeros where the signal's
+    moments weigh them: its runs get the numbers they get alone (tested)."""
+    for net in settings:  # the signal is the design's, the same for every setting: each checked against it
+        M, mu = _check_signal(signal, net, model.n_x)
+    if carry is not None:  # each node's moments of the signal on its own states
+        M, mu = carry.matrix(M), carry.vector(mu)
+    per = [node_classes([_lean(mom, M, mu) for mom in relay_moments(routes, net, model.sensor_dims)], free=True)
+           for net in settings]
+    if len(per) == 1:
+        return per[0], M, mu
+    classes = []
+    for c, (nodes, mom) in enumerate(per[0]):
+        shape = mom.A.shape
+        stacked = {f: np.broadcast_to(0.0, (len(per),) + shape) if not any(np.any(getattr(p[c][1], f)) for p in per)
+                   else np.stack([np.broadcast_to(getattr(p[c][1], f), getattr(mom, f).shape) for p in per])
+                   for f in _SETTING_FIELDS}
+        classes.append((nodes, mom._replace(**stacked)))
+    return classes, M, mu
 
 
 def _predict(model: Model, k: int, x, P, u, carry: Carried | None = None, fill=None):
@@ -276,15 +321,16 @@ def _lean(mom: NodeMoments, M: np.ndarray, mu: np.ndarray) -> NodeMoments:
 
 
 def _update(model: Model, routes: Routes, lay: _Layout, classes: list, M, mu, k: int, zk, xp, Pp, dos, fdi, xi,
-            carry: Carried | None = None, xf=None):
+            carry: Carried | None = None, xf=None, which=None):
     """Every node's relay update at step ``k`` over the runs of the stacks ``zk`` (a, n_z), ``xp`` (a, N, n_x),
     ``Pp`` (a, N, n_x, n_x); ``dos``, ``fdi`` (a, E), ``xi`` (a, E, n_x) the step's attacks (None: none).  With
-    ``carry``, ``xp`` and ``Pp`` are in the nodes' carried coordinates and ``xf`` is ``xp`` in the whole state's."""
+    ``carry``, ``xp`` and ``Pp`` are in the nodes' carried coordinates and ``xf`` is ``xp`` in the whole state's;
+    ``which`` (a,) each run's channel setting where ``classes`` stack several (:func:`_setting_classes`)."""
     h, H = _ball_rows(model, lay, k, xp if carry is None else xf)
     values, arrived = _relayed(routes, lay, zk, H, dos, fdi, xi)
     if carry is not None:
         H = carry.columns(H, lay.node_of_row)
-    return _fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived)
+    return _fuse(lay, classes, M, mu, xp, Pp, h, H, values, arrived, which=which)
 
 
 def _ball_rows(model: Model, lay: _Layout, k: int, xp):
@@ -334,11 +380,12 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
     return zk[:, lay.zcol] + offset, arrived
 
 
-def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived, rtol: float = RTOL):
+def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived, rtol: float = RTOL, which=None):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
     :func:`rules.relay.design.relay_update` (its pseudo-inverse cut at ``rtol``) and
-    :func:`rules.relay.design.relay_information`.  Returns ``(x, P)``."""
+    :func:`rules.relay.design.relay_information`; ``which`` (a,) each run's setting where the classes stack several
+    (:func:`_setting_classes`).  Returns ``(x, P)``."""
     Hw = H_rows
     res = values - h
     if lay.angle_rows.size:
@@ -357,12 +404,13 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
         size = max(1, CLASS_CHUNK // (r * r))  # independent of the runs: a run alone gets the numbers of a batch)
         for c in range(0, members.size, size):
             nodes = members[c:c + size]
-            mom = stacked._replace(**{f: getattr(stacked, f)[c:c + size] for f in NodeMoments._fields
-                                      if f != "groups"})
+            mom = stacked._replace(**{f: getattr(stacked, f)[c:c + size] if which is None or f not in _SETTING_FIELDS
+                                      else getattr(stacked, f)[which, c:c + size]
+                                      for f in NodeMoments._fields if f != "groups"})
             rows = lay.start[nodes][:, None] + np.arange(r)  # (g, r): each node's rows
             Hc = Hw[:, rows]  # (a, g, r, nx)
             W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M if M.ndim == 2 else M[nodes],
-                                          mu if mu.ndim == 1 else mu[nodes], rtol)
+                                          mu if mu.ndim == 1 else mu[nodes], rtol, which is not None)
             y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
             x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
     return x, P
@@ -375,17 +423,19 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
 CLASS_CHUNK = 200_000
 
 
-def _node_update(Pp, Hw, mom, M, mu, rtol: float = RTOL):
+def _node_update(Pp, Hw, mom, M, mu, rtol: float = RTOL, per_run: bool = False):
     """:func:`rules.relay.design.relay_update` over the runs; a run where it breaks down (LinAlgError) gets NaN (and stops
-    as diverged), the others their update."""
+    as diverged), the others their update.  ``per_run``: ``mom``'s :data:`_SETTING_FIELDS` have a first axis over the
+    runs (their settings')."""
     try:
         return relay_update(Pp, Hw, mom, M, mu, rtol)
     except np.linalg.LinAlgError:
         n, G = Pp.shape[-1], mom.groups.shape[-1]
         W, P = np.full(Pp.shape[:-1] + (G * n,), np.nan), np.full(Pp.shape, np.nan)
         for r in range(Pp.shape[0]):
+            own = mom._replace(**{f: getattr(mom, f)[r] for f in _SETTING_FIELDS}) if per_run else mom
             try:
-                W[r], P[r] = relay_update(Pp[r], Hw[r], mom, M, mu, rtol)
+                W[r], P[r] = relay_update(Pp[r], Hw[r], own, M, mu, rtol)
             except np.linalg.LinAlgError:
                 pass
         return W, P
@@ -420,13 +470,15 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     attacks = edge_attacks(first, attacks, runs, steps, model.n_x)
     n, nx = first.n_nodes, model.n_x
     nets = nets or [first] * runs
-    keys = [(net.dos_prob.tobytes(), net.fdi_prob.tobytes()) for net in nets]
-    groups = [np.array([r for r, k in enumerate(keys) if k == key]) for key in dict.fromkeys(keys)]
+    settings, which = _settings(nets)
+    per = _moment_bytes(model, first, design.rounds)  # one setting's moments, at most
+    size = max(1, int(SETTINGS_STACK_BYTES // max(per, 1)))
+    groups = [np.flatnonzero((which >= b) & (which < b + size)) for b in range(0, len(settings), size)]
     out = None
-    for idx in groups:  # each group of runs with the same channel probabilities, in order
+    for idx in groups:  # the runs of a batch of channel settings (all of a sweep's but at scale), in order
         att = None if attacks is None else attacks._replace(dos=attacks.dos[idx], fdi=attacks.fdi[idx],
                                                              xi=attacks.xi[idx])
-        res = _relay_runs(model, nets[idx[0]], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
+        res = _relay_runs(model, [nets[r] for r in idx], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
                           attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing,
                           regions=design.carried_regions, predictions=predictions)
         own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post)
@@ -455,6 +507,20 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
     return consensus_result(ConsensusBatchResult(**{name: history(value) for name, value in out.items()},
                                                  carried=carried), first, design)
+
+
+#: The most bytes of node moments stacked over channel settings (:func:`_setting_classes`): the settings of a sweep
+#: update together in batches of as many settings as fit (every one of a sweep on a grid of a hundred nodes; one
+#: at a time on a 512-node grid at 8 hops, a few hundred MB each).  An assumption, chosen.
+SETTINGS_STACK_BYTES = 256 * 2**20
+
+
+def _moment_bytes(model: Model, network: SensorNetwork, hops: int) -> int:
+    """The bytes of one channel setting's node moments for ``hops`` (the r x r ``A``, ``F1`` and ``F2`` of every
+    node, r its ball's measurement rows): what :func:`_setting_classes` stacks."""
+    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)  # dist[s, i]
+    rows = ((dist <= hops) * np.asarray(model.sensor_dims, dtype=float)[:, None]).sum(axis=0)  # each node's ball
+    return int(3 * 8 * np.sum(rows ** 2))
 
 
 class RelayNode:
