@@ -207,10 +207,11 @@ ASSUMPTIONS = (
     "the centralized filter as L grows; for small L it counts a measurement more than once and its covariance is "
     "overconfident), Metropolis weights 1/(1 + max(d_i, d_j)); L = hcmci_iterations (default 1: the same messages "
     "per step as the consensus EKF).",
-    "comparison: every design runs at every setting, but for the study options --set tuned_in_sweeps=false and "
-    "oracles_in_sweeps=false, which leave the tuned design and the mse oracle out of the sweeps, and, above "
-    "SWEEP_ROWS = 100 rows N n, the default set, which runs those two at the main setting only (the options set "
-    "true run them at every setting); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
+    "comparison: every design runs at every setting, but for the study options --set tuned_in_sweeps=false, "
+    "oracles_in_sweeps=false and tables_in_sweeps=false, which leave the tuned design, the mse oracle and the "
+    "scheduled design (its tables designed offline per setting) out of the sweeps, and, above SWEEP_ROWS = 100 rows "
+    "N n, the default set, which runs those three at the main setting only (the options set true run them at every "
+    "setting); the sweep tables give each design's feasible_runs (runs meeting (28)-(29) "
     "throughout) and certified_runs (runs whose bound is certified: finite, steady and below the open-loop "
     "covariance, designer.verdict).",
     "comparison: the mse design's gains come from the joint linearised error covariance of all nodes (designer.joint:"
@@ -451,10 +452,12 @@ def left_out(sc: Scenario) -> dict[str, str]:
 
 def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
     """The filters the comparison runs at its main setting only, not at the sweeps' settings, each with why: a gain
-    rule's filter that carries the joint error covariance of all nodes (an oracle) and one whose nodes solve a
+    rule's filter that carries the joint error covariance of all nodes (an oracle), one whose nodes solve a
     convex problem at every step (the costliest a step of each kind, ``GainRule.joint_covariance`` and
-    ``GainRule.solves_online``), when their study option (``oracles_in_sweeps``, ``tuned_in_sweeps``) is false, or
-    is left out (None) and the default set (no ``--filters``) runs on more than :data:`SWEEP_ROWS` rows N n."""
+    ``GainRule.solves_online``) and one whose tables are designed offline for every setting (the costliest design,
+    ``GainRule.offline_tables``), when their study option (``oracles_in_sweeps``, ``tuned_in_sweeps``,
+    ``tables_in_sweeps``) is false, or is left out (None) and the default set (no ``--filters``) runs on more than
+    :data:`SWEEP_ROWS` rows N n."""
     given, left = _chosen(sc, so)  # given: the filters run (the default set less what it left out, or --filters)
     named = chosen_filters(so["filters"]) is not None
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
@@ -462,7 +465,10 @@ def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
     for option, kind, cost in (("oracles_in_sweeps", "joint_covariance", "it carries the joint error covariance of "
                                 "all nodes, at a cost that grows as (N n)^3 a step and run"),
                                ("tuned_in_sweeps", "solves_online", "each node solves a convex problem at every step "
-                                "and run, the costliest of the filters a node runs")):
+                                "and run, the costliest of the filters a node runs"),
+                               ("tables_in_sweeps", "offline_tables", "its tables are designed offline for each "
+                                "setting, with its certificate: a recursion of the joint error covariance of all nodes "
+                                "over the horizon, (N n)^3 a step, at every setting")):
         wanted = so[option]
         if wanted is True or (wanted is None and (named or rows <= SWEEP_ROWS)):
             continue
@@ -595,11 +601,13 @@ def _accepts(sc: Scenario) -> str | None:
     return None
 
 
-def _uses(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...], bool]:
-    """What the chosen filters need on ``sc`` (``Study.uses``): the gain rules designed, and whether a particle filter
-    runs."""
+def _uses(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...], bool, tuple[str, ...]]:
+    """What the chosen filters need on ``sc`` (``Study.uses``): the gain rules designed, whether a particle filter
+    runs, and the gain rules whose filters run at the main setting only (:func:`sweeps_left_out`)."""
     entries = _entries(_chosen(sc, so)[0])
-    return tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None)), any(e.particles for e in entries)
+    main_only = sweeps_left_out(sc, so)
+    return (tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None)), any(e.particles for e in entries),
+            tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None and e.name in main_only)))
 
 
 def _check(so: StudyOptions) -> None:
@@ -609,7 +617,7 @@ def _check(so: StudyOptions) -> None:
     for v in np.atleast_1d(so["sweep_values"]):
         check_probability("sweep_values", v)
     check_int("hcmci_iterations", so["hcmci_iterations"], 1)
-    for name in ("tuned_in_sweeps", "oracles_in_sweeps"):
+    for name in ("tuned_in_sweeps", "oracles_in_sweeps", "tables_in_sweeps"):
         if not (so[name] is None or isinstance(so[name], bool)):
             raise InputError(f"{name} must be true or false (or left out: by the network's size N n), got "
                              f"{so[name]!r}")
@@ -977,7 +985,7 @@ STUDY = Study(
     summarise=_summarise,
     table=table_markdown,
     figures=_figures,
-    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": None, "oracles_in_sweeps": None,
+    options={"sweep_values": SWEEP_VALUES, "tuned_in_sweeps": None, "oracles_in_sweeps": None, "tables_in_sweeps": None,
              "hcmci_iterations": HCMCI_ITERATIONS, "divergence_spread": DIVERGENCE_SPREAD, "filters": None},
     uses_design=True,
     many_scenarios=True,

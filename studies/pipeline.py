@@ -122,10 +122,11 @@ class Study:
         Merge the per-scenario blocks (default: the single block).
     check : callable ``(options) -> None``, optional
         Further checks of the study's own options, before any computation.
-    uses : callable ``(scenario, options) -> (gain rules, particles)``, optional
+    uses : callable ``(scenario, options) -> (gain rules, particles, gain rules at the main setting only)``, optional
         What the study's filters need on the scenario for these options, for its memory estimate
-        (:func:`studies.memory.study_need`): the gain rules whose designs it makes and whether it runs particle
-        filters (default: every rule, and the particle filters when the study has them).
+        (:func:`studies.memory.study_need`): the gain rules whose designs it makes, whether it runs particle
+        filters and the rules whose filters it runs at its main setting only, not at a sweep's settings (default:
+        every rule at every setting, and the particle filters when the study has them).
     min_runs : int
         Fewest runs the study's statistics need.
     every_core : bool

@@ -470,7 +470,7 @@ def test_the_memory_estimate_counts_only_the_filters_chosen():
     every, some = need(None), need("kcf,hcmci")
     assert some < every
     kcf_only = StudyOptions(10, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": "kcf"})
-    assert STUDY.uses(sc, kcf_only) == ((), False)
+    assert STUDY.uses(sc, kcf_only) == ((), False, ())
 
 
 FIELD15 = '''"""A 15-cell rod (15 temperatures), one thermometer a cell, nodes on a chain: N n = 225 rows."""
@@ -517,12 +517,23 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     def options(filters):
         return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": filters})
 
-    modes, _ = STUDY.uses(sc, options(None))
+    modes, _, main_only = STUDY.uses(sc, options(None))
     assert not any(rules.get(m).joint_covariance for m in modes)
+    # above SWEEP_ROWS the tuned and scheduled designs run at the main setting only: so says the estimate's input
+    assert set(main_only) == {m for m in modes if rules.get(m).solves_online or rules.get(m).offline_tables}
     named = ",".join(FILTER_REGISTRY.names())
-    assert set(STUDY.uses(sc, options(named))[0]) > set(modes)
+    assert set(STUDY.uses(sc, options(named))[0]) > set(modes) and STUDY.uses(sc, options(named))[2] == ()
     assert (memory.study_need("comparison", sc, options(None), STUDY.uses(sc, options(None))).nbytes
             < memory.study_need("comparison", sc, options(named), STUDY.uses(sc, options(named))).nbytes)
+    # a design run at the main setting only holds the chunk's runs of that setting alone, not of every setting
+    settings = 1 + 2 * len(STUDY.options["sweep_values"])
+    for mode in main_only:
+        key = f"the {mode} design: the bounds, gains and estimates of every node and step"
+        alone = {p.what: p.nbytes for p in memory.STUDY_NEEDS["comparison"](sc, options(None),
+                                                                          uses=((mode,), False, (mode,)))[1]}
+        swept = {p.what: p.nbytes for p in memory.STUDY_NEEDS["comparison"](sc, options(None),
+                                                                          uses=((mode,), False, ()))[1]}
+        assert alone[key] * settings == pytest.approx(swept[key]), mode
     kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.1], quiet=True)
     named_run = run_comparison(filters="kcf", **kw)  # named: nothing is left out
     assert named_run["left_out"] == {}
@@ -552,25 +563,30 @@ def test_the_costliest_filters_run_at_the_main_setting_only_above_sweep_rows(tmp
     assert SWEEP_ROWS < sc.network.n_nodes * sc.model.n_x <= JOINT_ROWS_DEFAULT
     joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
     online = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).solves_online}
-    assert joint and online and not joint & online
+    tables = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).offline_tables}
+    assert joint and online and tables and not (joint & online or joint & tables or online & tables)
 
     def options(**own):
         return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, **own})
 
-    assert set(sweeps_left_out(sc, options())) == joint | online
+    assert set(sweeps_left_out(sc, options())) == joint | online | tables
     assert all("N n = 121 rows" in why for why in sweeps_left_out(sc, options()).values())
-    assert set(sweeps_left_out(sc, options(oracles_in_sweeps=True))) == online
-    assert set(sweeps_left_out(sc, options(tuned_in_sweeps=True))) == joint
-    assert sweeps_left_out(sc, options(filters="mse,tuned,kcf")) == {}
+    assert set(sweeps_left_out(sc, options(oracles_in_sweeps=True))) == online | tables
+    assert set(sweeps_left_out(sc, options(tuned_in_sweeps=True))) == joint | tables
+    assert set(sweeps_left_out(sc, options(tables_in_sweeps=True))) == joint | online
+    assert sweeps_left_out(sc, options(filters="mse,tuned,kcf,scheduled")) == {}
     assert sweeps_left_out(load_scenario("indoor-robot"), options()) == {}
     assert set(sweeps_left_out(load_scenario("indoor-robot"), options(oracles_in_sweeps=False))) == joint
     assert set(sweeps_left_out(load_scenario("indoor-robot"), options(tuned_in_sweeps=False))) == online
-    big = tmp_path / "rod15.py"  # N n = 225: the oracle left out of the default set, the tuned design main-only
-    big.write_text(FIELD15)
-    assert set(sweeps_left_out(load_scenario(str(big)), options())) == online
-    with pytest.raises(InputError, match="oracles_in_sweeps must be true or false"):
-        STUDY.check(options(oracles_in_sweeps="maybe"))
-    kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.0, 0.2], tuned_in_sweeps=True, quiet=True)
+    assert set(sweeps_left_out(load_scenario("indoor-robot"), options(tables_in_sweeps=False))) == tables
+    big = tmp_path / "rod15.py"  # N n = 225: the oracle left out of the default set, the tuned and scheduled
+    big.write_text(FIELD15)  # designs main-only
+    assert set(sweeps_left_out(load_scenario(str(big)), options())) == online | tables
+    for name in ("oracles_in_sweeps", "tables_in_sweeps"):
+        with pytest.raises(InputError, match=f"{name} must be true or false"):
+            STUDY.check(options(**{name: "maybe"}))
+    kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.0, 0.2], tuned_in_sweeps=True,
+              tables_in_sweeps=True, quiet=True)
     cut, full = run_comparison(**kw), run_comparison(oracles_in_sweeps=True, **kw)
     assert set(cut["sweeps_left_out"]) == joint and full["sweeps_left_out"] == {}
     assert any("run at the main setting only" in a for a in cut["assumptions"])
