@@ -125,18 +125,26 @@ class EdgeAttacks(NamedTuple):
         """The attacks of :func:`filters.attacks.simulate_attacks` of one Generator per run (``rngs``), the same
         numbers as :meth:`from_patterns` of them, computed on the network's channels alone: a run's dense pattern
         holds N² x n_x numbers a step (0.8 GB over 60 steps of a 118-node grid), its channels 2|E| x n_x."""
+        rngs = list(rngs)
+        if not rngs:
+            raise InputError("rngs must hold one Generator per run, got none")
+        return cls.from_draws(network, [channel_draws(steps, network.n_nodes, rng) for rng in rngs], n_x, signal)
+
+    @classmethod
+    def from_draws(cls, network: SensorNetwork, draws: Sequence[tuple[np.ndarray, np.ndarray]], n_x: int,
+                   signal: FDISignal) -> "EdgeAttacks":
+        """The attacks that each run's channel draws ``(u, s)`` (:func:`filters.attacks.channel_draws`, (steps, N, N)
+        each) make on the channels of ``network``: the numbers of :func:`filters.attacks.attack_pattern` of them on
+        the channels alone (no dense N x N x n_x array a step)."""
         receiver, sender = _channels(network)
         dos, fdi, xi = [], [], []
-        for rng in rngs:
-            u, s = channel_draws(steps, network.n_nodes, rng)
+        for u, s in draws:
             d, f, x = channel_attacks(u[:, receiver, sender], s[:, receiver, sender],
                                       network.dos_prob[receiver, sender], network.fdi_prob[receiver, sender], n_x,
                                       signal)
             dos.append(d)
             fdi.append(f)
             xi.append(x)
-        if not dos:
-            raise InputError("rngs must hold one Generator per run, got none")
         return cls(receiver, sender, np.stack(dos), np.stack(fdi), np.stack(xi))
 
     def pattern(self, r: int, n_nodes: int) -> AttackPattern:

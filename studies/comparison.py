@@ -60,6 +60,7 @@ from designer.regions import Carried, describe_regions, region_error2
 from designer.rule import DEPLOYABLE, runtime_label
 from designer.validation import InputError, check_int, check_positive, check_probability
 from filters.attacks import channel_draws
+from filters.consensus_batch import EdgeAttacks
 from filters.particle import DEGENERATE_ESS, degenerate
 from filters.result import HARD_CONDITIONS
 
@@ -70,7 +71,7 @@ from .design_options import as_mode
 from .filter_registry import (Batch, FilterEntry, FilterRegistry, centralized_ekf, designed_consensus, hcmci, kcf,
                               local_ekfs, particle_filters)
 from .pipeline import Plan, Study, StudyOptions
-from .recorded import realised_attacks
+from .recorded import uplinks_received
 from .figures import curves_figure, filter_colours, legend_beside, plotting, save_figure
 from .results import (DIVERGENCE_SPREAD, bootstrap_rmse_ci, compared_with_local, divergence_limit,
                       first_divergence, local_ratio_text, markdown_table, per_run_mse)
@@ -79,7 +80,7 @@ from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "CHUNK_ROWS", "CHUNKS_LARGE", "chunk_size", "HCMCI_ITERATIONS", "realise",
-           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT", "sweeps_left_out", "SWEEP_ROWS"]
+           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT", "TABLES_ROWS_DEFAULT", "sweeps_left_out", "SWEEP_ROWS"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -152,6 +153,10 @@ def chunk_size(sc, runs: int) -> int:
         return max(1, min(CHUNK_SIZE, -(-int(runs) // CHUNKS_LARGE)))
     return CHUNK_SIZE
 JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
+#: Above this many rows N n the default comparison leaves out a design whose tables are designed offline along the
+#: joint error covariance of all nodes (the scheduled design: about 0.2 s a step on a 20-cell field's 400 rows, 7 s on
+#: a 64-cell field's 4096, a design a setting): an assumption, chosen (about a minute for a design of 60 steps).
+TABLES_ROWS_DEFAULT = 1000
 #: Above this many rows N n the default comparison runs its costliest filters a step at the main setting only, not at
 #: the sweeps' settings: an oracle carrying the joint covariance (up to JOINT_ROWS_DEFAULT; on IEEE 14's 14 x 13 it
 #: was a fifth of the study, its sweeps nine tenths of that) and a design whose nodes solve a convex problem at every
@@ -330,14 +335,15 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
         if truth is not None:
             truth[a] = traj.x
         u, s = channel_draws(K, n, np.random.default_rng(cs))
-        for j, scj in enumerate(scs):
-            pattern, received = realised_attacks(scj, u, s, traj.x, traj.z)
-            atts[j].append(pattern)
-            ys[j].append(received)
+        for j, scj in enumerate(scs):  # on the channels alone (a dense pattern: N² x n_x numbers a step and run)
+            atts[j].append(EdgeAttacks.from_draws(scj.network, [(u, s)], sc.model.n_x, scj.resolved_attacks.signal))
+            ys[j].append(uplinks_received(scj, u, s, traj.x, traj.z))
         trajs.append(traj)
         fss.append(fs)
+    edges = tuple(a[0]._replace(**{f: np.concatenate([getattr(e, f) for e in a]) for f in ("dos", "fdi", "xi")})
+                  for a in atts)  # each setting's runs
     return Batch(tuple(scs), np.stack([t.z for t in trajs]),
-                 None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), tuple(map(tuple, atts)),
+                 None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), edges,
                  received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
                  iterations=iterations, run_ids=tuple(run_ids), covariances=covariances)
 
@@ -440,14 +446,23 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
 def left_out(sc: Scenario) -> dict[str, str]:
     """The filters the comparison leaves out of its default set on ``sc`` (no ``--filters``), each with why: a gain
     rule's filter that carries the joint error covariance of all nodes (an oracle, a reference: its cost a step
-    grows as (N n)³) once N n exceeds :data:`JOINT_ROWS_DEFAULT` rows.  Named in ``--filters``, it runs."""
+    grows as (N n)³) once N n exceeds :data:`JOINT_ROWS_DEFAULT` rows, and one whose tables are designed offline
+    along the joint error covariance of all nodes (``GainRule.offline_tables``: its design's cost a step grows as
+    (N n)³ too) once N n exceeds :data:`TABLES_ROWS_DEFAULT`.  Named in ``--filters``, it runs."""
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
-    if rows <= JOINT_ROWS_DEFAULT:
-        return {}
-    return {e.name: f"it carries the joint error covariance of all nodes, N n = {rows} rows (more than "
-                    f"{JOINT_ROWS_DEFAULT}), at a cost that grows as (N n)^3 a step and run; name it in --filters to "
-                    "run it"
-            for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
+    out = {}
+    if rows > JOINT_ROWS_DEFAULT:
+        out.update({e.name: f"it carries the joint error covariance of all nodes, N n = {rows} rows (more than "
+                            f"{JOINT_ROWS_DEFAULT}), at a cost that grows as (N n)^3 a step and run; name it in "
+                            "--filters to run it"
+                    for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance})
+    if rows > TABLES_ROWS_DEFAULT:
+        out.update({e.name: f"its tables are designed offline along the joint error covariance of all nodes, N n = "
+                            f"{rows} rows (more than {TABLES_ROWS_DEFAULT}), at a cost that grows as (N n)^3 a step "
+                            "(on a 64-cell field, 4096 rows: about 7 s a step, 7 minutes for 60 steps); name it in "
+                            "--filters to run it"
+                    for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).offline_tables})
+    return out
 
 
 def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:

@@ -196,10 +196,11 @@ def _step_hessians(model, centres: int, linearization: str | None, reduce: str) 
 
 
 def _consensus(model, network, rows: int, steps: int, mode: str | None, linearization: str | None, what: str,
-               reduce: str, predictions: bool = True) -> list[Part]:
+               reduce: str, predictions: bool = True, dense: bool = True) -> list[Part]:
     """A consensus filter (or KCF, HCMCI) on ``rows`` runs at once: its per-step results, attacks and one step
     (``predictions``: with the record of every step's predicted covariance and gains, which a comparison does not
-    keep: ``filters.consensus_batch.run_consensus_batch``'s ``predictions``)."""
+    keep: ``filters.consensus_batch.run_consensus_batch``'s ``predictions``; ``dense``: the attacks given as dense
+    N x N patterns besides their channels', where a comparison gives its channels' alone)."""
     n_x, nz = model.n_x, max(model.sensor_dims)
     n = network.n_nodes
     channels = int(network.adjacency.sum())
@@ -207,8 +208,9 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
     per_row = (steps * n * per_step + (steps + 1) * n * (n_x * n_x + n_x + 3)) * _D
     parts = [Part(f"{what}: the bounds, gains and estimates of every node and step", _RESULT_COPIES * rows * per_row,
                   f"{rows} runs x {steps} steps x {n} nodes x {n_x} x {n_x} states", reduce),
-             Part(f"{what}: the channel attacks", rows * steps * (channels + n * n) * (n_x * _D + 2),
-                  f"{rows} runs x {steps} steps x {n} x {n} channels x {n_x} states", reduce),
+             Part(f"{what}: the channel attacks", rows * steps * (channels + dense * n * n) * (n_x * _D + 2),
+                  f"{rows} runs x {steps} steps x " + (f"{n} x {n}" if dense else f"{channels}")
+                  + f" channels x {n_x} states", reduce),
              Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
                   f"{rows} runs x {n} nodes x {n_x} x {n_x} states", "a smaller model"),
              _step_hessians(model, rows * n, linearization, "a smaller model")]
@@ -421,15 +423,16 @@ def _comparison(sc, so, uses=None) -> tuple[list, list, list]:
     S = 1 + 2 * len(_listed(so["sweep_values"]))  # settings: the main one and both sweeps (at most)
     rows = R * S
     lin = opts.linearization
+    channels = int(net.adjacency.sum())  # each setting's attacks on the channels alone, from draws of N x N a run
     data = Part("the chunk's runs, attacks and received measurements",
-                rows * K * (n * n * (n_x * _D + 2) + 2 * n_z * _D) + R * K * (n_x + n_z) * _D,
-                f"{R} runs x {S} settings x {K} steps x {n} x {n} channels", "fewer runs per chunk")
+                rows * K * (channels * (n_x * _D + 2) + 2 * n_z * _D) + R * K * (n_x + n_z + 2 * n * n) * _D,
+                f"{R} runs x {S} settings x {K} steps x {channels} channels", "fewer runs per chunk")
     reduce = f"{_STEPS} (a model file's STEPS)"
     modes, particles, main_only = (rules.names(), True, ()) if uses is None else uses  # the filters --filters leaves
     # each design's filter on the chunk's runs at every setting (at the main one alone: studies.comparison.
     # sweeps_left_out), without the record of its predictions (the comparison keeps the bounds and estimates)
     designs = [_consensus(m, net, R if mode in main_only else rows, K, mode, lin, f"the {mode} design", reduce,
-                          predictions=False) for mode in modes]
+                          predictions=False, dense=False) for mode in modes]
     sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters", _CENTRALIZED_PF_DOUBLES),
            Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
                 f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)] if particles else []

@@ -44,7 +44,7 @@ from .scenarios import Scenario
 from .schemas import decimal
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
-           "realised_attacks", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
+           "realised_attacks", "uplinks_received", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
            "read_design_record", "design_options_of", "recorded_design"]
 
 LOG_SCHEMA = "cfdesign.log/1"
@@ -76,10 +76,15 @@ def realised_attacks(sc: Scenario, u: np.ndarray, s: np.ndarray, x: np.ndarray, 
     channels and uplinks: the channels' :class:`AttackPattern` and what the uplinks delivered to a fusion centre
     from the truth ``x`` and the clean measurements ``z`` (:func:`filters.attacks.receive`: ``(K, n_z + N)``,
     values then each sensor's availability)."""
+    return attack_pattern(sc.network, u, s, sc.model.n_x, sc.resolved_attacks.signal), uplinks_received(sc, u, s, x, z)
+
+
+def uplinks_received(sc: Scenario, u: np.ndarray, s: np.ndarray, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """What the channel draws ``u``, ``s`` let ``sc``'s uplinks deliver to a fusion centre from the truth ``x`` and
+    the clean measurements ``z`` (:func:`realised_attacks`' second value)."""
     m, att = sc.model, sc.resolved_attacks
-    pattern = attack_pattern(sc.network, u, s, m.n_x, att.signal)
     up = uplink_attacks(u, s, m.n_x, dos_prob=att.uplink_dos, fdi_prob=att.uplink_fdi, signal=att.signal)
-    return pattern, receive(m, x, z, up)
+    return receive(m, x, z, up)
 
 
 def log_arrays(model, z, inputs, attacks: AttackPattern | None, received: np.ndarray | None) -> dict:

@@ -513,6 +513,17 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
     assert joint and set(left_out(sc)) == joint and all("N n = 225 rows" in why for why in left_out(sc).values())
     assert left_out(load_scenario("indoor-robot")) == {}
+    # above TABLES_ROWS_DEFAULT the design whose tables are designed offline along the joint covariance is left out too
+    from studies.comparison import TABLES_ROWS_DEFAULT
+
+    tables = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).offline_tables}
+    wide = tmp_path / "rod32.py"
+    wide.write_text(FIELD15.replace("N = 15", "N = 32"))
+    assert 32 * 32 > TABLES_ROWS_DEFAULT >= 31 * 31
+    assert tables and set(left_out(load_scenario(str(wide)))) == joint | tables
+    narrow = tmp_path / "rod31.py"
+    narrow.write_text(FIELD15.replace("N = 15", "N = 31"))
+    assert set(left_out(load_scenario(str(narrow)))) == joint
 
     def options(filters):
         return StudyOptions(2, 50, 0, 10, Backend(), DesignOptions(), {**STUDY.options, "filters": filters})

@@ -144,11 +144,34 @@ def test_the_designed_filters_without_their_predictions_records_give_the_same_es
     assert {"paper", "relay", "flood", "scheduled"} <= set(dropped), dropped
 
 
+def test_the_comparisons_channel_attacks_are_the_dense_patterns_on_the_channels(tank):
+    """realise holds each setting's attacks on the network's channels alone (EdgeAttacks.from_draws): run by run
+    and setting by setting the numbers of the dense AttackPattern that studies.recorded.realised_attacks makes of
+    the same draws (what `simulate --run` and a log hold), and the uplinks' deliveries are its too."""
+    from filters.attacks import channel_draws
+    from studies.recorded import realised_attacks
+
+    settings = ((0.1, 0.1), (0.3, 0.2), (0.0, 0.0))
+    batch = _batch(tank, settings=settings)
+    K, n = tank.steps, tank.network.n_nodes
+    for r in range(RUNS):
+        ts, cs, _ = np.random.SeedSequence(4, spawn_key=(r,)).spawn(3)
+        traj = tank.simulate(np.random.default_rng(ts), K)
+        u, s = channel_draws(K, n, np.random.default_rng(cs))
+        for j, (d, f) in enumerate(settings):
+            pattern, received = realised_attacks(tank.with_attacks(dos=d, fdi=f), u, s, traj.x, traj.z)
+            dense = batch.attacks[j].pattern(r, n)
+            for name in ("dos", "fdi", "xi"):
+                assert np.array_equal(getattr(dense, name), getattr(pattern, name)), (r, j, name)
+            assert np.array_equal(batch.received[j][r], received, equal_nan=True)
+    assert batch.attacks[1].dos.any() and batch.attacks[1].fdi.any() and not batch.attacks[2].dos.any()
+
+
 def test_the_filters_results_keep_each_familys_numbers(tank):
     batch = _batch(tank, settings=((0.2, 0.1),))
     m, net = tank.model, tank.network
     design = consensus_design(tank, as_mode(None, "tuned"))
-    res = run_consensus_batch(m, net, batch.z, design, attacks=list(batch.attacks[0]))
+    res = run_consensus_batch(m, net, batch.z, design, attacks=batch.attacks[0])
     cb = res.detail
     assert res.x is cb.x_post and res.cov is cb.phi_post and res.valid is cb.valid
     assert res.violations is cb.violations and res.diverged == cb.diverged
@@ -156,11 +179,12 @@ def test_the_filters_results_keep_each_familys_numbers(tank):
     assert (res.delivered == cb.gate_counts[..., 0]).all() and (res.messages == 2 * len(net.edges)).all()
     # a run alone (a batch of one) is exactly its row of the batch: nothing leaks between the runs of a batch
     for r in range(RUNS):
-        ref, got = run_consensus(m, net, batch.z[r], design, attacks=batch.attacks[0][r]), cb.run(r)
+        ref = run_consensus(m, net, batch.z[r], design, attacks=batch.attacks[0].pattern(r, net.n_nodes))
+        got = cb.run(r)
         for f in ("x_post", "phi_post", "K", "C", "valid", "sigma", "beta", "gate_counts"):
             assert np.array_equal(getattr(got, f), getattr(ref, f), equal_nan=True), f
         assert got.violations == ref.violations
-    kr = run_kcf_batch(m, net, batch.z, attacks=list(batch.attacks[0]))
+    kr = run_kcf_batch(m, net, batch.z, attacks=batch.attacks[0])
     kb = kr.detail
     assert kr.runtime == "local" and kr.x is kb.x_post and kr.cov is kb.P_post and kr.cov_kind == "covariance"
     assert (kr.messages == kb.messages_per_step).all() and (kr.delivered == kb.delivered_per_step).all()
@@ -170,7 +194,8 @@ def test_the_filters_results_keep_each_familys_numbers(tank):
     for entry, run, kw in ((kcf("K", "k"), run_kcf, {}), (hcmci("H", "h"), run_hcmci, {"iterations": 2})):
         res = entry.run(batch, [0], None)
         for r in range(RUNS):
-            ref = run(m, net, batch.z[r], inputs=None if u is None else u[r], attacks=batch.attacks[0][r], **kw)
+            ref = run(m, net, batch.z[r], inputs=None if u is None else u[r],
+                      attacks=batch.attacks[0].pattern(r, net.n_nodes), **kw)
             assert res.detail.iterations == ref.iterations
             for f in ("x_post", "P_post", "messages_per_step", "delivered_per_step"):
                 assert np.array_equal(getattr(res.detail.run(r), f), getattr(ref, f), equal_nan=True), f
