@@ -205,41 +205,47 @@ def _realise_loop(up, cand_parent, cand_channel, ends, rnd, parent, channel):  #
                     break
 
 
-def _falsified_loop(rnd, parent, channel, fals):  # pragma: no cover (compiled)
+def _falsified_loop(rnd, parent, channel, fals, node, local, offset, width, hops, f1):  # pragma: no cover (compiled)
     """:func:`flood_moments`' walk (compiled by :func:`_kernel`): for every copy that arrived, the falsified channels
-    of its path (its own and its parents' up to the source): ``(count (a, P), pair (F,), draw_channel (F,))``, the
-    second and third the entries (pair, draw * channels + channel) of every falsified channel of every path."""
+    of its path (its own and its parents' up to the source, at most ``hops``).  Returns ``count`` (a, P), how many;
+    adds to ``f1`` (flat, node ``i``'s block of ``width[i]`` x ``width[i]`` from ``offset[i]``, its pairs in the
+    order ``local``) how many falsified channels the paths of each two of node ``i``'s pairs share, over the draws:
+    ``Σ_draws |S_a ∩ S_b|``, sums of ones (exact: the same numbers in any order)."""
     a, P = rnd.shape
     E = fals.shape[1]
     count = np.zeros((a, P), dtype=np.float32)
-    total = 0
+    keys = np.empty(max(P * hops, 1), dtype=np.int64)  # (node, channel) of every falsified channel of every path
+    locs = np.empty(max(P * hops, 1), dtype=np.int64)  # its pair's place at that node
     for w in range(a):
+        k = 0
         for p in range(P):
             if rnd[w, p] == 0:
                 continue
             q = p
             c = 0
             while q >= 0:
-                if fals[w, channel[w, q]]:
+                ch = channel[w, q]
+                if fals[w, ch]:
                     c += 1
-                q = parent[w, q]
-            count[w, p] = c
-            total += c
-    pair = np.empty(total, dtype=np.int64)
-    col = np.empty(total, dtype=np.int64)
-    k = 0
-    for w in range(a):
-        for p in range(P):
-            if count[w, p] == 0:
-                continue
-            q = p
-            while q >= 0:
-                if fals[w, channel[w, q]]:
-                    pair[k] = p
-                    col[k] = w * E + channel[w, q]
+                    keys[k] = node[p] * E + ch
+                    locs[k] = local[p]
                     k += 1
                 q = parent[w, q]
-    return count, pair, col
+            count[w, p] = c
+        order = np.argsort(keys[:k])  # the paths through one falsified channel, node by node, together
+        s = 0
+        while s < k:
+            e = s + 1
+            while e < k and keys[order[e]] == keys[order[s]]:
+                e += 1
+            i = keys[order[s]] // E
+            base, wd = offset[i], width[i]
+            for x in range(s, e):
+                row = base + locs[order[x]] * wd
+                for y in range(s, e):
+                    f1[row + locs[order[y]]] += 1.0
+            s = e
+    return count
 
 
 _KERNELS: dict = {}
@@ -413,7 +419,13 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
     chunk = int(max(1, 4_000_000 // max(P * D, 1)))
     arrived = np.zeros((samples, P), dtype=bool)
     count = np.zeros((samples, P), dtype=np.float32)  # |S_a|: the falsified channels on the copy's path
-    ent_row, ent_col = [], []  # the entries (pair, draw * E + channel) of the falsified channels of each path
+    nodes = np.asarray(routes.node, dtype=np.int64)
+    width = np.bincount(nodes, minlength=N).astype(np.int64)  # each node's pairs (its ball less its own sensor)
+    offset = np.concatenate([[0], np.cumsum(width ** 2)]).astype(np.int64)
+    local = np.zeros(P, dtype=np.int64)  # each pair's place among its node's, in pair order
+    for i in range(N):
+        local[nodes == i] = np.arange(width[i])
+    shared = np.zeros(int(offset[-1]))  # Σ_draws |S_a ∩ S_b| of each two pairs of a node
     for start in range(0, samples, chunk):
         a = min(chunk, samples - start)
         u = rng.random((a, E))
@@ -421,19 +433,13 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
         fals = ~lost & (u < dos + fdi)
         rnd, parent, channel = routes.realise(~lost)
         arrived[start:start + a] = rnd > 0
-        c, q, col = _kernel(_falsified_loop)(rnd, parent, channel, np.ascontiguousarray(fals))
-        count[start:start + a] = c
-        ent_row.append(q)
-        ent_col.append(col + start * E)
-    S = sp.csr_matrix((np.ones(sum(x.size for x in ent_row)), (np.concatenate(ent_row) if ent_row else [],
-                                                                np.concatenate(ent_col) if ent_col else [])),
-                      shape=(P, samples * E))
+        count[start:start + a] = _kernel(_falsified_loop)(rnd, parent, channel, np.ascontiguousarray(fals), nodes,
+                                                          local, offset, width, int(routes.hops), shared)
     out = []
     for i in range(N):
         idx = np.flatnonzero(routes.node == i)
         G = arrived[:, idx].astype(float)  # (samples, m - 1)
         C = count[:, idx].astype(float)
-        X = S[idx]
         m = idx.size + 1
         p = np.ones(m)
         p[1:] = G.mean(axis=0)
@@ -441,7 +447,7 @@ def flood_moments(routes: Routes, network: SensorNetwork, rng: np.random.Generat
         A[1:, 1:] = G.T @ G / samples
         A[0, 1:] = A[1:, 0] = p[1:]
         F1 = np.zeros((m, m))
-        F1[1:, 1:] = (X @ X.T).toarray() / samples
+        F1[1:, 1:] = shared[offset[i]:offset[i + 1]].reshape(m - 1, m - 1) / samples
         F2 = np.zeros((m, m))
         F2[1:, 1:] = C.T @ C / samples - F1[1:, 1:]
         out.append((p, A, F1, F2))
