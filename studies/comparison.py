@@ -328,20 +328,20 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
     ``covariances``: the batch's (:class:`studies.filter_registry.Batch`)."""
     sc = scs[0]
     K, n = sc.steps, sc.network.n_nodes
-    trajs, atts, ys, fss = [], [[] for _ in scs], [[] for _ in scs], []
+    trajs, draws, ys, fss = [], [], [[] for _ in scs], []
     for a, seq in enumerate(seeds):  # the realisations first: every filter then faces the same ones
         ts, cs, fs = seq.spawn(3)
         traj = sc.simulate(np.random.default_rng(ts), K)
         if truth is not None:
             truth[a] = traj.x
         u, s = channel_draws(K, n, np.random.default_rng(cs))
-        for j, scj in enumerate(scs):  # on the channels alone (a dense pattern: N² x n_x numbers a step and run)
-            atts[j].append(EdgeAttacks.from_draws(scj.network, [(u, s)], sc.model.n_x, scj.resolved_attacks.signal))
+        for j, scj in enumerate(scs):
             ys[j].append(uplinks_received(scj, u, s, traj.x, traj.z))
+        draws.append((u, s))
         trajs.append(traj)
         fss.append(fs)
-    edges = tuple(a[0]._replace(**{f: np.concatenate([getattr(e, f) for e in a]) for f in ("dos", "fdi", "xi")})
-                  for a in atts)  # each setting's runs
+    # each setting's attacks of the runs on the channels alone (a dense pattern: N² x n_x numbers a step and run)
+    edges = tuple(EdgeAttacks.from_draws(scj.network, draws, sc.model.n_x, scj.resolved_attacks.signal) for scj in scs)
     return Batch(tuple(scs), np.stack([t.z for t in trajs]),
                  None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), edges,
                  received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,

@@ -44,8 +44,8 @@ from .scenarios import Scenario
 from .schemas import decimal
 
 __all__ = ["LOG_SCHEMA", "Log", "read_log", "read_log_csv", "write_log_csv", "check_log", "log_arrays",
-           "realised_attacks", "uplinks_received", "particle_seed", "find_filter", "filter_keys", "run_filter", "clip_message",
-           "read_design_record", "design_options_of", "recorded_design"]
+           "realised_attacks", "uplinks_received", "particle_seed", "find_filter", "filter_keys", "run_filter",
+           "clip_message", "read_design_record", "design_options_of", "recorded_design"]
 
 LOG_SCHEMA = "cfdesign.log/1"
 

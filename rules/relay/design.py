@@ -56,6 +56,7 @@ __all__ = ["RTOL", "FLOAT_RTOL", "Routes", "relay_routes", "ROUTINGS", "RELAY", 
            "relay_payload", "pair_sum", "relay_stationary", "LMI_MAX_ENTRIES", "whitened_rows", "NodeMoments",
            "node_moments", "relay_update", "grouped", "relay_carried",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes",
+           "hop_distances", "moment_bytes",
            "pseudo_inverse"]
 
 MAX_HOPS = 64  # the most relay hops (exchange rounds) per step a design takes, as designer.design.ROUNDS_MAX
@@ -273,9 +274,14 @@ def _log_up(network: SensorNetwork) -> np.ndarray:
         return np.log1p(-_channel_values(network, network.dos_prob))
 
 
+def hop_distances(network: SensorNetwork) -> np.ndarray:
+    """(N, N) the hops of the shortest path between every two nodes (``inf`` between components)."""
+    return shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)
+
+
 def diameter(network: SensorNetwork) -> int:
     """The network's diameter in hops (the longest shortest path; of the largest component when disconnected)."""
-    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)
+    dist = hop_distances(network)
     return int(dist[np.isfinite(dist)].max())
 
 
@@ -291,12 +297,19 @@ def relay_payload(network: SensorNetwork, sensor_dims, hops: int, routing: str =
     within ``hops`` hops of ``s`` (its route's last channel), once; ``'flood'``: every node forwards each
     measurement it holds after fewer than ``hops`` rounds (its own included) to all its neighbours."""
     hops = check_int("hops", hops, 1, MAX_HOPS)
-    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)  # (s, i)
+    dist = hop_distances(network)  # (s, i)
     size = np.asarray(sensor_dims, dtype=int) + 1
     if routing == "tree":
         return int(((dist >= 1) & (dist <= hops)).sum(axis=1) @ size)
     degree = np.asarray(network.adjacency, dtype=bool).sum(axis=1)
     return int(size @ (dist <= hops - 1) @ degree)
+
+
+def moment_bytes(network: SensorNetwork, sensor_dims, hops: int) -> int:
+    """The bytes of the node moments of one network over ``hops`` hops, at most: every node's r x r ``A``, ``F1`` and
+    ``F2`` (:class:`NodeMoments`), r the measurement rows of its ball (the sensors within ``hops`` hops)."""
+    rows = ((hop_distances(network) <= hops) * np.asarray(sensor_dims, dtype=float)[:, None]).sum(axis=0)
+    return int(3 * 8 * np.sum(rows ** 2))
 
 
 def relay_routes(network: SensorNetwork, hops: int, routing: str = "tree") -> Routes:
@@ -309,7 +322,7 @@ def relay_routes(network: SensorNetwork, hops: int, routing: str = "tree") -> Ro
         raise InputError(f"routing must be one of {', '.join(map(repr, ROUTINGS))}, got {routing!r}")
     N = network.n_nodes
     adj = network.adjacency
-    dist = shortest_path(sp.csr_matrix(adj.astype(float)), unweighted=True)  # dist[s, i]
+    dist = hop_distances(network)  # dist[s, i]
     channel_of = np.full((N, N), -1)
     receiver, sender = np.nonzero(adj)
     channel_of[receiver, sender] = np.arange(receiver.size)

@@ -45,8 +45,6 @@ from __future__ import annotations
 from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import shortest_path
 
 from designer.attacks import FDISignal
 from designer.bounds import sqrtm_psd
@@ -64,8 +62,8 @@ from filters.engine import Step, estimate_arrays, history, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
-from .design import (MAX_HOPS, RTOL, NodeMoments, Routes, node_classes, relay_carried, relay_information,
-                     relay_moments, relay_routes, relay_update)
+from .design import (MAX_HOPS, RTOL, NodeMoments, Routes, moment_bytes, node_classes, relay_carried,
+                     relay_information, relay_moments, relay_routes, relay_update)
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -471,7 +469,7 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     n, nx = first.n_nodes, model.n_x
     nets = nets or [first] * runs
     settings, which = _settings(nets)
-    per = _moment_bytes(model, first, design.rounds)  # one setting's moments, at most
+    per = moment_bytes(first, model.sensor_dims, design.rounds)  # one setting's moments, at most
     size = max(1, int(SETTINGS_STACK_BYTES // max(per, 1)))
     groups = [np.flatnonzero((which >= b) & (which < b + size)) for b in range(0, len(settings), size)]
     out = None
@@ -514,13 +512,6 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
 #: at a time on a 512-node grid at 8 hops, a few hundred MB each).  An assumption, chosen.
 SETTINGS_STACK_BYTES = 256 * 2**20
 
-
-def _moment_bytes(model: Model, network: SensorNetwork, hops: int) -> int:
-    """The bytes of one channel setting's node moments for ``hops`` (the r x r ``A``, ``F1`` and ``F2`` of every
-    node, r its ball's measurement rows): what :func:`_setting_classes` stacks."""
-    dist = shortest_path(sp.csr_matrix(network.adjacency.astype(float)), unweighted=True)  # dist[s, i]
-    rows = ((dist <= hops) * np.asarray(model.sensor_dims, dtype=float)[:, None]).sum(axis=0)  # each node's ball
-    return int(3 * 8 * np.sum(rows ** 2))
 
 
 class RelayNode:
