@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Mapping, NamedTuple
 
 import numpy as np
 
-from .rule import BANK_MAX, CARRIES, EXCHANGES, ROBUSTNESS_MAX, ROUNDS_MAX, RULE_NAME, GainRule
+from .rule import BANK_MAX, CARRIES, EXCHANGES, ROBUSTNESS_MAX, ROUNDS_MAX, RULE_NAME, TABLE_KINDS, GainRule
 from .linearization import DEFAULT_RADIUS, component_scales, remainder_gram, whitened_scales, whitening
 from .network import SensorNetwork
 from .validation import InputError, check_finite
@@ -113,6 +113,8 @@ class ConsensusDesign(NamedTuple):
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (rules.scheduled.design.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); relaying: hops
     bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (rules.scheduled.design; 0: none)
+    # 'scheduled': the tables' kind, 'per-step' or 'stationary' (rules.scheduled.design.table_kind); None: by their size
+    table_kind: str | None = None
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I
     remainder_structure: np.ndarray | None = None
@@ -404,6 +406,13 @@ class DesignOptions:
         every step, the tables of the point nearest its own prediction (:mod:`rules.scheduled.design`, "Bank of
         operating points"): for a state that may leave the region of the nominal geometry (a target leaving
         the sensor field).  Not covered by the certificate, which is the nominal design's.
+    table_kind : {'per-step', 'stationary'}
+        Mode ``scheduled``: ``per-step``, each step's own tables along the nominal trajectory; ``stationary``, at
+        every step the tables of the expected recursion's fixed point at the operating point (one set per node: its
+        C export is one step's size; its expected covariance and certificate are those of these tables).  Default:
+        per-step while the per-step tables hold at most
+        :data:`rules.scheduled.design.TABLES_PER_STEP_MAX` numbers, stationary beyond
+        (:func:`rules.scheduled.design.table_kind`).
     carry : {'whole', 'region'}
         A rule whose nodes may carry their regions (:attr:`designer.rule.GainRule.regional`: the ones that relay) on
         a model that declares ``REGIONS``: ``region``, each node carries only the
@@ -431,6 +440,7 @@ class DesignOptions:
     robustness: float | None = None
     rounds: int | None = None
     bank: int | None = None
+    table_kind: str | None = None
     carry: str | None = None
 
     ATTACK_FIELDS = ("dos", "fdi", "delta", "amplitude")
@@ -447,6 +457,8 @@ class DesignOptions:
         if self.bank is not None and (isinstance(self.bank, bool) or not isinstance(self.bank, (int, np.integer))
                                       or not 0 <= self.bank <= BANK_MAX):
             raise InputError(f"bank must be an integer in [0, {BANK_MAX}], got {self.bank!r}")
+        if self.table_kind is not None and self.table_kind not in TABLE_KINDS:
+            raise InputError(f"table_kind must be one of {', '.join(map(repr, TABLE_KINDS))}, got {self.table_kind!r}")
         if self.linearization is not None and self.linearization not in LINEARIZATIONS:
             raise InputError(f"linearization must be 'fixed', 'hessian' or 'structured', got {self.linearization!r}")
         if self.carry is not None and self.carry not in CARRIES:
@@ -557,7 +569,7 @@ def make_design(model: Model, network: SensorNetwork, *, rule: GainRule, delta: 
 def describe_design(des: ConsensusDesign) -> dict:
     """JSON-ready parameters of a design."""
     return {"mode": des.mode, "exchange": des.exchange, "robustness": des.robustness, "rounds": des.rounds,
-            "bank": des.bank,
+            "bank": des.bank, "table_kind": des.table_kind,
             "linearization": des.linearization, "epsilon": des.epsilon, "sigma": des.sigma,
             "beta": des.beta, "tau": des.tau, "delta": des.delta, "radius": des.radius, "gate": des.gate,
             "U": np.asarray(des.U).tolist(),

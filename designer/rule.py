@@ -56,7 +56,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["GainRule", "RUNTIMES", "FILTER_RUNTIMES", "DEPLOYABLE", "runtime_label", "caveat",
-           "RULE_NAME", "CARRIES", "EXCHANGES", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX"]
+           "RULE_NAME", "CARRIES", "EXCHANGES", "ROBUSTNESS", "ROBUSTNESS_MAX", "ROUNDS_MAX", "BANK_MAX", "TABLE_KINDS"]
 
 # The run-time classes of the gain rules: what a node needs to apply the gains, one sentence each.
 RUNTIMES: Mapping[str, str] = MappingProxyType({
@@ -99,6 +99,9 @@ ROBUSTNESS_MAX = 100.0
 ROUNDS_MAX = 64
 #: The most axes of a tabled design's bank of operating points (3^A - 1 points: 26 at A = 3).
 BANK_MAX = 3
+#: The kinds of a tabled design's tables (``--table-kind``): each step's own, or the stationary ones at every step
+#: (:func:`rules.scheduled.design.table_kind`; unset: chosen by their size).
+TABLE_KINDS = ("per-step", "stationary")
 
 
 def runtime_label(runtime: str) -> str:
@@ -282,6 +285,8 @@ class GainRule:
                              "exchanges once per step")
         if options.bank and not self.offline_tables:
             raise InputError(f"bank is the operating points of a rule of offline tables; mode {mode} has none")
+        if options.table_kind is not None and not self.offline_tables:
+            raise InputError(f"table_kind is the kind of a rule's offline tables; mode {mode} has none")
         if options.robustness is not None and not self.offline_tables:
             raise InputError(f"robustness is a margin of the link gains of a rule of offline tables; mode {mode} "
                              "has none")
@@ -311,6 +316,10 @@ class GainRule:
                 0 <= design.bank <= BANK_MAX) or (design.bank and not self.offline_tables):
             raise InputError(f"bank must be an integer in [0, {BANK_MAX}] in a rule of offline tables (0 in the "
                              f"others), got {design.bank!r} in mode {mode}")
+        if design.table_kind is not None and (design.table_kind not in TABLE_KINDS or not self.offline_tables):
+            raise InputError(f"table_kind must be one of {', '.join(map(repr, TABLE_KINDS))} in a rule of offline "
+                             f"tables (None: chosen by their size; None in the others), got {design.table_kind!r} "
+                             f"in mode {mode}")
 
     def check_exchange(self, design) -> None:
         """Refuse a design whose packets carry what this rule does not exchange (``exchange``, ``gate``): its
@@ -321,12 +330,13 @@ class GainRule:
 
     def design_fields(self, options) -> dict[str, Any]:
         """The fields of a :class:`designer.design.ConsensusDesign` that follow from this rule and ``options``:
-        what a packet carries (``exchange``), the links' margin (``robustness``) and the bank's axes (``bank``)."""
+        what a packet carries (``exchange``), the links' margin (``robustness``), the bank's axes (``bank``) and the
+        tables' kind (``table_kind``)."""
         if not self.offline_tables:
-            return {"exchange": options.exchange or "predictions", "robustness": 0.0, "bank": 0}
+            return {"exchange": options.exchange or "predictions", "robustness": 0.0, "bank": 0, "table_kind": None}
         return {"exchange": options.exchange or EXCHANGES[0],
                 "robustness": ROBUSTNESS if options.robustness is None else float(options.robustness),
-                "bank": 0 if options.bank is None else int(options.bank)}
+                "bank": 0 if options.bank is None else int(options.bank), "table_kind": options.table_kind}
 
     def rounds(self, network, rounds: int | None = None) -> int:
         """The exchange rounds per step of this rule's design on ``network``: ``rounds`` when given, else the rule's

@@ -254,7 +254,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
            delta: float | None = None, amplitude: float | None = None, u_scale=None, v_scale=None,
            linearization: str | None = None, radius: float | None = None, gate: float | None = None,
            exchange: str | None = None, robustness: float | None = None, rounds: int | None = None,
-           bank: int | None = None, carry: str | None = None, budget: int | str | None = None,
+           bank: int | None = None, table_kind: str | None = None, carry: str | None = None,
+           budget: int | str | None = None,
            budget_bytes: int | None = None,
            validate: int | None = None, auto_seconds: float | None = None,
            options: DesignOptions | None = None, network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
@@ -286,7 +287,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements
         from ``SeedSequence(seed).spawn(2)[0]``, channel attacks from ``[1]``).
-    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds, bank, carry
+    epsilon, sigma, beta, tau, u_scale, v_scale, linearization, radius, gate, exchange, robustness, rounds, bank,
+    table_kind, carry
         Design options (:class:`designer.DesignOptions`); ``None`` keeps the scenario's
         default, then the package's.
     dos, fdi, delta, amplitude
@@ -323,7 +325,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, gate=gate, exchange=exchange,
-                                  robustness=robustness, rounds=rounds, bank=bank, carry=carry))
+                                  robustness=robustness, rounds=rounds, bank=bank, table_kind=table_kind,
+                                  carry=carry))
     sc = _scenario(scenario, network, attacks, design_defaults, steps, x0, inputs, overrides, assignments)
     from .auto import AUTO
 
@@ -364,6 +367,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                 amplitude: float | None = None, u_scale=None, v_scale=None, linearization: str | None = None,
                 radius: float | None = None, gate: float | None = None, exchange: str | None = None,
                 robustness: float | None = None, rounds: int | None = None, bank: int | None = None,
+                table_kind: str | None = None,
                 carry: str | None = None, options: DesignOptions | None = None, budget=None,
                 budget_bytes: int | None = None,
                 network: SensorNetwork | None = None, attacks: AttackSpec | None = None,
@@ -390,7 +394,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         Mode ``auto``: the most messages per step over the network (a whole number, or ``'kcf'``) and bytes per step;
         the candidates outside are listed, not mapped.
     epsilon, sigma, beta, tau, dos, fdi, delta, amplitude, u_scale, v_scale, linearization, radius, exchange,
-    robustness, rounds, bank, carry, options
+    robustness, rounds, bank, table_kind, carry, options
         The same design options as :func:`design`, with the same defaults (``carry`` whole only: the map judges
         each node's whole state).
     workers, dask, dask_security, backend
@@ -433,7 +437,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, exchange=exchange,
-                                  robustness=robustness, rounds=rounds, bank=bank))
+                                  robustness=robustness, rounds=rounds, bank=bank,
+                                  table_kind=table_kind))
     opts = replace(opts, carry="whole")  # the map judges each node's whole state, with or without REGIONS
     if backend is None:
         backend = make_backend(workers, dask, dask_security)

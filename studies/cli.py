@@ -17,7 +17,7 @@ import warnings
 import click
 
 import rules
-from designer.rule import CARRIES, EXCHANGES, ROBUSTNESS
+from designer.rule import CARRIES, EXCHANGES, ROBUSTNESS, TABLE_KINDS
 from designer.validation import CfdesignWarning, ComputationError, InputError
 
 _SET_HELP = ("override a scenario parameter, or for 'study' one of the study's own options such as "
@@ -90,6 +90,12 @@ def _design_options(f, *, auto: bool = False):
                           "3^A - 1 points off the nominal trajectory (along the open-loop covariance's A principal "
                           "axes), each node using those nearest its own prediction, for a state that may leave the "
                           "nominal geometry; not covered by the certificate [default: 0, none]"),
+        click.option("--table-kind", type=click.Choice(list(TABLE_KINDS)), default=None,
+                     help="mode scheduled: 'per-step', each step's own tables; 'stationary', the tables of the "
+                          "expected recursion's fixed point at the operating point at every step (one set per node: "
+                          "a C export of one step's size; slower to settle from the prior) [default: per-step while "
+                          "the per-step tables hold at most rules.scheduled.design.TABLES_PER_STEP_MAX numbers, "
+                          "else stationary]"),
         click.option("--carry", type=click.Choice(list(CARRIES)), default=None,
                      help="modes relay and flood on a model with REGIONS: 'region', each node carries only the "
                           "states its region, its ball's measurements and their dynamics need (the same numbers "

@@ -535,6 +535,8 @@ def run_design(sc: Scenario, options: DesignOptions | None = None, *, steps: int
             "seed": seed,
             **rule.record_notes(),
             "stationary": None if des.tables is None else des.tables.stationary,
+            "tables_kind": None if des.tables is None else des.tables.kind,
+            "tables_own_steps": None if des.tables is None else des.tables.own_steps,
             "bank_record": None if des.tables is None else des.tables.bank_record,
             "stationary_certificate": stationary,
             "rounds_tradeoff": rule.tradeoff(net, m.n_x, des, steps, others) if extras is not None else None,

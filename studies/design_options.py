@@ -52,12 +52,12 @@ def effective(sc: Scenario, options: DesignOptions | None) -> tuple[Scenario, De
 
 def as_mode(options: DesignOptions | None, mode: str) -> DesignOptions:
     """``options`` for a design of ``mode`` (a rule that chooses its multipliers drops the paper-mode σ, β, τ; one
-    without offline tables the scheduled design's exchange, robustness and bank, the rounds unless it relays, what a
+    without offline tables the scheduled design's exchange, robustness, bank and tables' kind, the rounds unless it relays, what a
     node carries unless it may carry its region alone)."""
     opts = options or DesignOptions()
     rule = rules.get(mode)
     if not rule.offline_tables:  # the exchange, the links' margin and the bank: a design of tables'
-        opts = replace(opts, exchange=None, robustness=None, bank=None)
+        opts = replace(opts, exchange=None, robustness=None, bank=None, table_kind=None)
     if not rule.takes_rounds:  # the exchange rounds: a design of tables' or of a rule that relays
         opts = replace(opts, rounds=None)
     if not rule.regional:  # a node carrying its region alone: a rule without consensus on estimates

@@ -36,7 +36,7 @@ _DESIGN_FLAGS = {"mode": "--mode", "epsilon": "--epsilon", "sigma": "--sigma", "
                  "dos": "--dos", "fdi": "--fdi", "delta": "--delta", "amplitude": "--amplitude",
                  "u_scale": "--u-scale", "v_scale": "--v-scale", "linearization": "--linearization",
                  "radius": "--radius", "gate": "--gate", "exchange": "--exchange",
-                 "robustness": "--robustness", "rounds": "--rounds", "bank": "--bank",
+                 "robustness": "--robustness", "rounds": "--rounds", "bank": "--bank", "table_kind": "--table-kind",
                  "carry": "--carry"}
 _INTEGER_FLAGS = ("rounds", "bank")  # the design options the command line reads as integers
 _STUDY_FLAGS = {"engine": "--engine", "schedule": "--schedule"}

@@ -286,6 +286,7 @@ def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(
 
 @pytest.mark.parametrize("target, options", [("indoor-robot", []),
                                              ("indoor-robot", ["--rounds", "3", "--exchange", "predictions"]),
+                                             ("indoor-robot", ["--table-kind", "stationary"]),
                                              ("user", ["--rounds", "2", "--bank", "2"])])
 @pytest.mark.slow
 def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options, cart, tmp_path):
@@ -315,6 +316,19 @@ def test_a_scheduled_design_in_c_replays_the_python_node_filter(target, options,
     files = studies.export(des, out=out, data=data)
     header = (out / "cfd_node.h").read_text()
     assert "gain rule scheduled" in header and {p.name for p in files} >= {"cfd_node.c", "replay.txt"}
+    source = (out / "cfd_node.c").read_text()
+    tables = json.loads((des / "schedule.json").read_text())
+    d = np.bincount(np.asarray(np.load(des / "schedule.npz")["table_receiver"]), minlength=8)
+    one_set = int(np.sum(d)) * 9  # Γ: d_i blocks of n x n per node, once
+    written = int(re.search(r"cfd_gam\[(\d+)\]", source).group(1))
+    if "--table-kind" in options:  # one set of tables for every step and beyond: written once
+        assert tables["tables_kind"] == "stationary" and tables["tables_own_steps"] == 0
+        assert written == one_set
+        assert int(re.search(r"cfd_sig\[(\d+)\]", source).group(1)) == int(np.sum(d * (d + 1) // 2)) * 9
+    elif target == "indoor-robot" and options == []:  # each step's own, and beyond the horizon the stationary ones
+        # (the first step's are zeros at every node, its neighbours' errors the prior's: written once a size)
+        assert tables["tables_kind"] == "per-step"
+        assert one_set * tables["steps"] < written <= one_set * (tables["steps"] + 1)
     run = make_test(out)
     assert run.returncode == 0, run.stdout + run.stderr
     worst = float(re.search(r"largest difference from the Python node filter (\S+)", run.stdout).group(1))
@@ -432,6 +446,8 @@ int main(void) {
     for (i = 0; i < RLY_NX; ++i) printf("%%.17g ", rly_estimate(&a)[i]);
     for (i = 0; i < SCH_NX; ++i) printf("%%.17g ", sch_estimate(&b)[i]);
     printf("\n");
+    for (i = 0; i < SCH_NX; ++i) printf("%%.17g ", sch_certificate(&b) ? sch_certificate(&b)[i] : -1.0);
+    printf("\n");
     return 0;
 }
 """ % tuple(", ".join(map(repr, v)) for v in (z["rly"], z["sch"], u)))
@@ -441,8 +457,12 @@ int main(void) {
     assert build.returncode == 0 and "warning" not in build.stderr, build.stderr
     ran = subprocess.run(["./both"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert ran.returncode == 0, ran.stderr
-    x = np.array([float(v) for v in ran.stdout.split()])
+    lines = ran.stdout.splitlines()
+    x = np.array([float(v) for v in lines[0].split()])
     assert x.shape == want.shape and np.allclose(x, want, rtol=1e-12, atol=1e-12 * np.abs(want).max()), (x, want)
+    # the certificate's diagonal at the node's step: the bound of each state's expected squared error
+    bound = np.diag(scheduled.bound)
+    assert np.isfinite(bound).all() and np.array_equal([float(v) for v in lines[1].split()], bound)
 
 
 def test_the_certified_inverse_holds_where_the_eigenvalues_say_it_may(tmp_path):

@@ -221,7 +221,8 @@ def test_every_design_option_reaches_the_recorded_line_as_a_flag_the_commands_ta
     paper = DesignOptions(mode="paper", epsilon=0.1, sigma=0.2, beta=0.3, tau=0.01, u_scale=0.5, v_scale=0.5,
                           linearization="hessian", radius=2.0, dos=0.1, fdi=0.1, delta=1.0, amplitude=1.0,
                           gate=0.01)
-    scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5, rounds=2, bank=1)
+    scheduled = DesignOptions(mode="scheduled", exchange="predictions", robustness=0.5, rounds=2, bank=1,
+                              table_kind="stationary")
     relay = DesignOptions(mode="relay", rounds=2, carry="whole")
     given = {f.name for o in (paper, scheduled, relay) for f in fields(o) if getattr(o, f.name) is not None}
     assert given == {f.name for f in fields(DesignOptions)}  # the three sets together set every option

@@ -29,13 +29,16 @@ def _scheduled(sc, exchange=True, **kw):
     return des._replace(tables=tab)
 
 
-@pytest.mark.parametrize("exchange", [True, False])
+@pytest.mark.parametrize("exchange, kind", [(True, None), (False, None), (True, "stationary")])
 @pytest.mark.slow
-def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange):
+def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange, kind):
     """DoS and FDI on every channel: the design's expected P_ii is each node's mean-square error over the
-    realisations of the noises and the attacks (the design never saw these runs)."""
+    realisations of the noises and the attacks (the design never saw these runs); with the stationary tables at
+    every step too (gains no longer the MMSE ones for the joint covariance of the step: what the expectation is of
+    is what a node computes from the tables it holds)."""
     sc = linear_ring(n_nodes=5, fdi=0.2, dos=0.3, steps=10)
-    des = _scheduled(sc, exchange)
+    des = _scheduled(sc, exchange, table_kind=kind)
+    assert des.tables.kind == (kind or "per-step")
     runs = 1500
     draws = [_draw(sc, 11, (r,)) for r in range(runs)]
     res = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), des,
@@ -47,9 +50,11 @@ def test_expected_covariance_is_the_monte_carlo_mse_of_a_linear_network(exchange
     z = (emp[1:] - pred[1:]) / se[1:]
     assert np.abs(z).max() < 4.5, np.abs(z).max()  # 50 (step, node) cells
     assert abs(z.mean()) < 1.0
-    # the node's own online covariance is the design's, and the linear certificate (U = V = 0) is the covariance
-    np.testing.assert_allclose(res.predicted_mse[0], pred, rtol=1e-9)
+    # the linear certificate (U = V = 0) is the covariance; with each step's own tables the node's own online
+    # covariance is the design's (with the stationary ones it is what they say: test_the_later_steps_use_...)
     np.testing.assert_allclose(np.trace(des.tables.Phi, axis1=-2, axis2=-1), pred, rtol=1e-9)
+    if kind is None:
+        np.testing.assert_allclose(res.predicted_mse[0], pred, rtol=1e-9)
 
 
 def test_exchanging_measurements_helps_and_consensus_never_hurts():
@@ -171,6 +176,48 @@ def test_one_run_is_a_batch_of_one_and_the_online_rule_is_the_offline_design_on_
     np.testing.assert_allclose(batch.K[:, :, :, :, :1], np.broadcast_to(des.tables.K, batch.K.shape), atol=1e-10)
 
 
+def test_the_later_steps_use_the_stationary_tables_where_the_per_step_ones_would_not_fit(monkeypatch):
+    """Above the tables' budget the first steps that fit keep their own tables (those of the per-step design, bit
+    for bit) and every later step uses the stationary tables: the expected recursion's fixed point at the operating
+    point from the prior, which the per-step design reaches too (its tables beyond the horizon); both designs settle
+    to the same expected covariance, the per-step one no later."""
+    import rules.scheduled.design as tabled
+
+    sc = linear_ring(n_nodes=5, fdi=0.2, dos=0.3, steps=30)
+    per = _scheduled(sc).tables
+    one = tabled.table_numbers(sc.network, sc.model.n_x)
+    d = 2  # every node of the ring hears two neighbours: 2 factors Γ and 3 blocks Σ̃ (l >= j) of 2 x 2 each
+    assert one == sc.network.n_nodes * (d + d * (d + 1) // 2) * sc.model.n_x ** 2
+    assert per.kind == "per-step" and per.own_steps == 30
+    monkeypatch.setattr(tabled, "TABLES_PER_STEP_MAX", 5 * one)  # room for 4 steps beside the stationary ones
+    mixed_design = _scheduled(sc)
+    mixed = mixed_design.tables
+    assert mixed.own_steps == 4 and mixed.kind == "per-step, then stationary"
+    assert tabled.own_steps(sc.network, sc.model.n_x, 30, 1, "per-step") == 30
+    assert tabled.own_steps(sc.network, sc.model.n_x, 4, 1) == 4  # all fit
+    np.testing.assert_array_equal(mixed.Gamma[:4], per.Gamma[:4])
+    np.testing.assert_array_equal(mixed.Sigma[:4], per.Sigma[:4])
+    np.testing.assert_array_equal(mixed.P_post[:5], per.P_post[:5])
+    for k in range(4, 30):
+        np.testing.assert_array_equal(mixed.Gamma[k], mixed.Gamma_inf)
+        np.testing.assert_array_equal(mixed.Sigma[k], mixed.Sigma_inf)
+    assert not np.array_equal(mixed.Gamma[3], mixed.Gamma_inf)
+    np.testing.assert_allclose(mixed.Gamma_inf, per.Gamma_inf, atol=1e-5)
+    np.testing.assert_allclose(mixed.Sigma_inf, per.Sigma_inf, atol=1e-5)
+    tr_per, tr_mixed = (np.trace(t.P_post, axis1=-2, axis2=-1).mean(-1) for t in (per, mixed))
+    assert np.all(tr_per <= tr_mixed * (1 + 1e-9)) and tr_per[5] < tr_mixed[5]
+    np.testing.assert_allclose(tr_mixed[-1], tr_per[-1], rtol=1e-4)
+    # a node's own covariance is what the tables it holds say of its links: with the stationary ones it meets the
+    # expected covariance as the joint covariance settles (in the transient it is the tables' model, 7 % off here)
+    draws = [_draw(sc, 3, (r,)) for r in range(2)]
+    own = run_consensus_batch(sc.model, sc.network, np.stack([t.z for t, _ in draws]), mixed_design,
+                              attacks=[a for _, a in draws]).detail.predicted_mse
+    gap = np.abs(own / np.trace(mixed.P_post, axis1=-2, axis2=-1) - 1).max(axis=(0, 2))
+    assert gap[:5].max() < 1e-9 and gap[6] > 1e-3 and gap[-1] < 1e-2 * gap[6]
+    # Σ̃_lj is Σ̃_jlᵀ to the last digit (a node carries l >= j alone)
+    np.testing.assert_array_equal(per.Sigma, np.swapaxes(np.swapaxes(per.Sigma, 2, 3), -1, -2))
+
+
 def test_the_network_channels_and_their_probabilities():
     sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3)
     ch = channels(sc.network)
@@ -181,6 +228,11 @@ def test_the_network_channels_and_their_probabilities():
 
 def test_bad_options_for_the_scheduled_mode_are_refused():
     sc = linear_ring()
+    for bad in ("stationery", "", 1):
+        with pytest.raises(InputError, match="table_kind must be one of 'per-step', 'stationary'"):
+            consensus_design(sc, mode="scheduled", table_kind=bad)
+    with pytest.raises(InputError, match="table_kind is the kind of a rule's offline tables; mode 'relay' has none"):
+        consensus_design(sc, mode="relay", table_kind="stationary")
     with pytest.raises(InputError, match="gate"):
         consensus_design(sc, mode="scheduled", gate=0.01)
     with pytest.raises(InputError, match="linearization"):

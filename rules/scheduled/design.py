@@ -129,10 +129,18 @@ __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_ce
            # what the stationary certificate (rules.scheduled.certificate) shares with the design
            "prepare", "stationary_gains", "measurement_noise", "falsification_moment", "transition_matrix",
            "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise",
-           "recorded_tables", "falsification_parts"]
+           "recorded_tables", "falsification_parts", "own_steps", "table_numbers", "PER_STEP_KIND", "STATIONARY_KIND",
+           "TABLES_PER_STEP_MAX"]
 
 #: Relative change of the tables below which the design's last step counts as stationary.
 STATIONARY_TOL = 1e-6
+#: The tables' kinds (``--table-kind``, :func:`own_steps`): each step's own, or the stationary ones at every step.
+PER_STEP_KIND, STATIONARY_KIND = "per-step", "stationary"
+#: The most numbers of tables the nodes carry over the horizon by default (all nodes, as a C export writes them,
+#: about 24 bytes each: 6 MB).  Beyond, the first steps that fit keep their own tables and the others use the
+#: stationary ones (:func:`own_steps`).  An assumption, chosen for the C export's size: a 30-tank ring's 40 steps of
+#: per-step tables took 202 MB and 47 s to export.
+TABLES_PER_STEP_MAX = 2**18
 #: Extra steps at the last nominal point to look for the stationary tables.
 STATIONARY_MAX = 100
 #: The stacked certificate's largest size N n: beyond it its dense eigendecompositions cost more than the design
@@ -652,6 +660,18 @@ class ScheduledTables(NamedTuple):
     # a design made with stationary=False: where the recursion beyond the horizon starts (the expected joint
     # covariance's P and G and the open-loop covariance at the horizon), for :func:`stationary_tables`; else None
     horizon_state: tuple | None = None
+    # the leading steps that use their own tables (:func:`own_steps`); the later ones use the stationary tables at the
+    # operating point, Gamma_inf etc. (None: every step its own, and beyond the horizon the recursion continued at the
+    # last nominal point)
+    own_steps: int | None = None
+
+    @property
+    def kind(self) -> str:
+        """:data:`PER_STEP_KIND` when every step has its own tables, :data:`STATIONARY_KIND` when every step uses the
+        stationary ones, ``'per-step, then stationary'`` between."""
+        if self.own_steps is None or self.own_steps >= self.steps:
+            return PER_STEP_KIND
+        return STATIONARY_KIND if self.own_steps == 0 else f"{PER_STEP_KIND}, then {STATIONARY_KIND}"
 
     @property
     def steps(self) -> int:
@@ -728,12 +748,15 @@ class _Setting(NamedTuple):
     W: np.ndarray | None = None  # the prior scalings' remainder_structure P0^{-1/2}
 
 
-def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int, consensus_only: bool = False):
+def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int, consensus_only: bool = False,
+           fixed: tuple[np.ndarray, np.ndarray] | None = None):
     """Every node's nominal gains at the expected joint prediction ``Pm`` and nominal point ``x_pred`` (measuring
     step ``k1``), with its whitened tables: ``(rule, Gamma (E, n, n), Sigma (N, d, d, n, n))``.  All nodes at once,
     their links padded to ``d`` slots and their measurements to ``mz`` components (:func:`link_gains`).
     ``consensus_only``: an exchange round after the first (the packets carry the senders' current estimates, no
-    measurement: every measurement gain is zero)."""
+    measurement: every measurement gain is zero).  ``fixed``: the tables ``(Gamma, Sigma)`` the nodes use at this
+    step whatever ``Pm`` (stationary tables, :func:`own_steps`): the gains are those a node computes from them,
+    coloured by its predicted covariance (here the expected one, ``P_ii``), and the tables returned are these."""
     model, ch = st.model, st.ch
     N, n = Pm.P.shape[0], Pm.P.shape[-1]
     E = ch.receiver.size
@@ -745,20 +768,30 @@ def _gains(st: _Setting, Pm: JointCovariance, x_pred: np.ndarray, k1: int, conse
     chan, mask = ch.slots
     js = np.where(mask, ch.at_slots(ch.sender, 0), np.arange(N)[:, None])
     ii = np.arange(N)[:, None]
-    Gb = Pm.blocks()
-    m2 = (mask[:, :, None] & mask[:, None, :])[..., None, None]
-    G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n): E[e_i Δ_ijᵀ] of the slots
-    S = np.where(m2, Gb[ii, js][:, None] - Gb[js[:, :, None], js[:, None, :]] + Gb[js, ii][:, :, None], 0.0)
+    if fixed is None:
+        Gb = Pm.blocks()
+        m2 = (mask[:, :, None] & mask[:, None, :])[..., None, None]
+        G = np.where(mask[..., None, None], Gb[ii, js], 0.0)  # (N, d, n, n): E[e_i Δ_ijᵀ] of the slots
+        S = np.where(m2, Gb[ii, js][:, None] - Gb[js[:, :, None], js[:, None, :]] + Gb[js, ii][:, :, None], 0.0)
+    else:  # what a node does with the tables: colour them by its predicted covariance (rules.scheduled.filter)
+        root = sqrtm_psd(Pm.P)
+        G = np.where(mask[..., None, None], colour(root, fixed[0][np.where(mask, chan, 0)]), 0.0)
+        S = colour(root, fixed[1])
     p, q = ch.at_slots(ch.p), ch.at_slots(ch.q)
     Hn, Rn = (H[js], Rg[js]) if exchange else (None, None)
     K, K_n, Cs, _, _ = link_gains(Pm.P, H, Rg, G, S, p, q, st.M, st.mu, Hn, Rn, st.margin)
     A = np.eye(n) - K @ H
     C = np.zeros((E, n, n))
     C[chan[mask]] = Cs[mask]
-    root = sqrtm_psd(Pm.P, inverse=True)
-    Gam = np.zeros((E, n, n))
-    Gam[chan[mask]] = colour(root, G)[mask]
-    Sig = colour(root, S)
+    if fixed is None:
+        root = sqrtm_psd(Pm.P, inverse=True)
+        Gam = np.zeros((E, n, n))
+        Gam[chan[mask]] = colour(root, G)[mask]
+        Sig = colour(root, S)
+        # E[Δ_il Δ_ijᵀ] is E[Δ_ij Δ_ilᵀ]ᵀ: made so to the last digit, so a node may carry the blocks l >= j alone
+        Sig = 0.5 * (Sig + np.swapaxes(np.swapaxes(Sig, 1, 2), -1, -2))
+    else:
+        Gam, Sig = fixed
     if exchange:
         Kn = np.zeros((E, n, st.mz))
         Kn[chan[mask]] = K_n[mask]
@@ -846,18 +879,21 @@ def prepare(model, network, design, exchange: bool, phi0):
     return st, U, V, Vn, model.prior.cov if phi0 is None else np.asarray(phi0, dtype=float)
 
 
-def _more_rounds(st: _Setting, Pm: JointCovariance, x: np.ndarray, k1: int):
+def _more_rounds(st: _Setting, Pm: JointCovariance, x: np.ndarray, k1: int,
+                 fixed: tuple[np.ndarray, np.ndarray] | None = None):
     """Rounds 2..L of a step after the first round's update ``Pm``: each round's per-link gains from the expected
     joint covariance after the previous one (every node's packet now carries its current estimate), then its
-    expected update: ``(Pm, Gamma (L-1, E, n, n), Sigma (L-1, N, d, d, n, n))``.
+    expected update: ``(Pm, Gamma (L-1, E, n, n), Sigma (L-1, N, d, d, n, n))``.  ``fixed``: the rounds' tables
+    ``(round_Gamma, round_Sigma)`` the nodes use whatever ``Pm`` (:func:`_gains`).
 
     The expectation takes each round's arrivals and falsifications as fresh draws, independent of the errors;
     the simulated attacks hold one realisation for all the rounds of a step (as for HCMCI,
     :mod:`filters.distributed`), so for L > 1 the expected covariance is an approximation that the Monte Carlo
     checks, and the certificate is not computed."""
     Gs, Ss = [], []
-    for _ in range(st.rounds - 1):
-        rule, G, S = _gains(st, Pm, x, k1, consensus_only=True)
+    for r in range(st.rounds - 1):
+        rule, G, S = _gains(st, Pm, x, k1, consensus_only=True,
+                            fixed=None if fixed is None else (fixed[0][r], fixed[1][r]))
         Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
         Gs.append(G)
         Ss.append(S)
@@ -903,6 +939,19 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     ch, mz = st.ch, st.mz
     N, n = network.n_nodes, model.n_x
     E = ch.receiver.size
+    own = own_steps(network, n, steps, st.rounds, design.table_kind)
+    u = None if inputs is None else np.asarray(inputs, dtype=float)
+
+    def u_at(k):
+        return None if u is None else u[min(k, len(u) - 1)]
+
+    fixed = None
+    if own < steps:  # the tables of the later steps: the expected recursion's fixed point at the operating point
+        x_op = np.asarray(x0, dtype=float)
+        F_op = np.broadcast_to(np.asarray(model.F_expected(x_op, 0, u_at(0)), dtype=float), (N, n, n))
+        Pm_op, _, G_op, S_op, record_op, rG_op, rS_op = stationary_gains(st, as_difference(joint_prior(phi0, N)), F_op,
+                                                                         x_op, 1, None)
+        fixed = (G_op, S_op, rG_op, rS_op)
     out = dict(Gamma=np.zeros((steps, E, n, n)), Sigma=np.zeros((steps, N, st.d, st.d, n, n)),
                P_pred=np.zeros((steps, N, n, n)), K=np.zeros((steps, N, n, mz)), C=np.zeros((steps, E, n, n)),
                Kn=np.zeros((steps, E, n, mz)) if exchange else None,
@@ -931,10 +980,6 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     x = np.asarray(x0, dtype=float).copy()
     nominal = np.zeros((steps + 1, n))
     nominal[0] = x
-    u = None if inputs is None else np.asarray(inputs, dtype=float)
-
-    def u_at(k):
-        return None if u is None else u[min(k, len(u) - 1)]
 
     def worst(phi):
         return int(np.argmax(np.trace(phi[idx, idx], axis1=-2, axis2=-1)))
@@ -949,7 +994,8 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         Fs = np.broadcast_to(F, (N, n, n))
         reach = remainder_reach(Pm.P, design.remainder_structure)  # the error's reach at step k: its remainders
         Pm = joint_predict(Pm, Fs, st.Q)
-        rule, out["Gamma"][k], out["Sigma"][k] = _gains(st, Pm, x, k + 1)
+        held = k >= own  # the stationary tables from step `own` on
+        rule, out["Gamma"][k], out["Sigma"][k] = _gains(st, Pm, x, k + 1, fixed=fixed[:2] if held else None)
         out["P_pred"][k], out["C"][k] = Pm.P, rule.C
         for i in range(N):
             out["K"][k, i, :, : rule.K[i].shape[-1]] = rule.K[i]
@@ -991,15 +1037,22 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
                 violations.append({"node": int(np.nanargmax(np.where(np.isfinite(tr), tr, np.inf))), "step": k + 1,
                                    "condition": "(29)", "margin": -np.inf, "reason": LIMIT_REASON})
         Pm = expected_update(Pm, rule, ch, st.M, st.mu)
-        Pm, out["round_Gamma"][k], out["round_Sigma"][k] = _more_rounds(st, Pm, x, k + 1)
+        Pm, out["round_Gamma"][k], out["round_Sigma"][k] = _more_rounds(st, Pm, x, k + 1, fixed[2:] if held else None)
         out["P_post"][k + 1] = Pm.P
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
-    record = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
+    if fixed is None:
+        record = {"converged": False, "extra_steps": 0, "tolerance": STATIONARY_TOL, "sought": False}
+        beyond = dict(Gamma_inf=out["Gamma"][-1], Sigma_inf=out["Sigma"][-1], round_Gamma_inf=out["round_Gamma"][-1],
+                      round_Sigma_inf=out["round_Sigma"][-1])
+        start = (Pm.P, Pm.G, P_open)
+    else:  # the same tables beyond the horizon; the bank's recursions start from their fixed point
+        record = {**record_op, "where": f"at the operating point, from the prior: the tables from step {own} on"}
+        beyond = dict(Gamma_inf=G_op, Sigma_inf=S_op, round_Gamma_inf=rG_op, round_Sigma_inf=rS_op)
+        start = (Pm_op.P, Pm_op.G, P_open)
     tables = ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
-                             Gamma_inf=out["Gamma"][-1], Sigma_inf=out["Sigma"][-1], exchange=bool(exchange),
-                             robustness=st.margin, rounds=st.rounds, round_Gamma_inf=out["round_Gamma"][-1],
-                             round_Sigma_inf=out["round_Sigma"][-1], horizon_state=(Pm.P, Pm.G, P_open), **out)
+                             exchange=bool(exchange), robustness=st.margin, rounds=st.rounds, horizon_state=start,
+                             own_steps=own, **beyond, **out)
     if not stationary:
         return tables
     return tables._replace(**stationary_tables(model, network, design, tables, inputs=inputs), horizon_state=None)
@@ -1020,12 +1073,38 @@ def stationary_tables(model, network, design, tables: ScheduledTables, *, inputs
     P, G, P_open = tables.horizon_state
     x = tables.nominal[-1]
     u = None if inputs is None else np.asarray(inputs, dtype=float)[min(steps, len(inputs) - 1)]
+    if tables.kind != PER_STEP_KIND:  # the later steps' stationary tables serve beyond the horizon too
+        bank = _bank(st, JointCovariance(P, G), P_open, x, steps, u, int(design.bank)) if design.bank else {}
+        return {"Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "round_Gamma_inf": tables.round_Gamma_inf,
+                "round_Sigma_inf": tables.round_Sigma_inf, "stationary": tables.stationary, **bank}
     F = np.asarray(model.F_expected(x, steps, u), dtype=float)
     Pm_inf, _, last_G, last_S, record, rG_inf, rS_inf = stationary_gains(
         st, JointCovariance(P, G), np.broadcast_to(F, (N, n, n)), x, steps, (tables.Gamma[-1], tables.Sigma[-1]))
     bank = _bank(st, Pm_inf, P_open, x, steps, u, int(design.bank)) if design.bank else {}
     return {"Gamma_inf": last_G, "Sigma_inf": last_S, "round_Gamma_inf": rG_inf, "round_Sigma_inf": rS_inf,
             "stationary": record, **bank}
+
+
+def table_numbers(network, n_x: int, rounds: int = 1) -> int:
+    """The numbers of one step's tables over all nodes, as a node filter carries them: node i's ``d_i`` whitened
+    factors ``Γ`` and the ``d_i (d_i + 1) / 2`` blocks ``Σ̃_jl``, l >= j (``Σ̃_lj`` is ``Σ̃_jlᵀ``), ``n_x²`` each, per
+    exchange round."""
+    d = np.bincount(channels(network).receiver, minlength=network.n_nodes)
+    return int(rounds * np.sum(d + d * (d + 1) // 2) * n_x * n_x)
+
+
+def own_steps(network, n_x: int, steps: int, rounds: int = 1, kind: str | None = None) -> int:
+    """How many leading steps of a design over ``steps`` steps use their own tables; the later ones use the
+    stationary tables, the expected recursion's fixed point at the operating point from the prior (what the
+    stationary certificate certifies).  ``kind`` :data:`PER_STEP_KIND`: all; :data:`STATIONARY_KIND`: none; None
+    (the default): all while they hold at most :data:`TABLES_PER_STEP_MAX` numbers (:func:`table_numbers`), else as
+    many as fit beside the stationary ones."""
+    if kind == PER_STEP_KIND:
+        return int(steps)
+    if kind == STATIONARY_KIND:
+        return 0
+    one = table_numbers(network, n_x, rounds)
+    return int(steps) if steps * one <= TABLES_PER_STEP_MAX else int(min(steps, max(0, TABLES_PER_STEP_MAX // one - 1)))
 
 
 def _linearisation(model, x: np.ndarray, k: int, u) -> list[np.ndarray]:
@@ -1190,6 +1269,8 @@ def recorded_tables(model, network, design, arrays, meta) -> ScheduledTables:
         sigma=per_step["sigma"], beta=per_step["beta"], margin28=per_step["margin28"],
         margin29=per_step["margin29"], theorem2=np.full((steps + 1, N), np.nan), violations=violations,
         stationary=meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {},
+        own_steps=(int(meta["tables_own_steps"]) if isinstance(meta.get("tables_own_steps"), int)
+                   and 0 <= meta["tables_own_steps"] <= steps else None),
         nominal=get("nominal", (steps + 1, n)), Gamma_inf=get("Gamma_inf", (E, n, n)),
         Sigma_inf=get("Sigma_inf", (N, d, d, n, n)), exchange=exchange == "measurements",
         robustness=float(design.robustness), rounds=int(rounds),

@@ -9,6 +9,7 @@ driver's head, the Makefile) is :mod:`designer.export_c`'s.
 """
 from __future__ import annotations
 
+import hashlib
 from importlib.resources import files
 from pathlib import Path
 from typing import Sequence
@@ -69,7 +70,8 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
     R_pad = np.stack([np.pad(model.measurement_cov(i), ((0, nz - dims[i]), (0, nz - dims[i])))
                       + np.diag(np.r_[np.zeros(dims[i]), np.ones(nz - dims[i])]) for i in range(model.n_sensors)])
     nb_start, nb, p, q, tab_start = [0], [], [], [], [0]
-    gam, sig = [], []  # per node: [step (T, then inf) and per bank point][round][slot...]
+    gam, sig = _Entries(), _Entries()  # per node: [step (T, then inf) and per bank point][round] -> its slots' tables
+    upper = [np.triu_indices(d) for d in range(ch.d_max + 1)]  # Sigma's blocks (j, l), l >= j: (l, j) is (j, l)ᵀ
     for i in nodes:
         sl = chan[i][mask[i]]
         d = sl.size
@@ -80,19 +82,18 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
         for k in range(T + 1):  # the step's own tables, k = T: beyond the horizon
             for r in range(1, L + 1):
                 G, S = tables.tables(k) if r == 1 else tables.round_tables(k, r)
-                gam.append(G[sl].reshape(-1))
-                sig.append(S[i, :d, :d].reshape(-1))
+                gam.add(G[sl])
+                sig.add(S[i][upper[d]])
         for b in range(B):
             for r in range(1, L + 1):
                 G = tables.bank_Gamma[b] if r == 1 else tables.bank_round_Gamma[b, r - 2]
                 S = tables.bank_Sigma[b] if r == 1 else tables.bank_round_Sigma[b, r - 2]
-                gam.append(G[sl].reshape(-1))
-                sig.append(S[i, :d, :d].reshape(-1))
-        tab_start.append(len(gam))
+                gam.add(G[sl])
+                sig.add(S[i][upper[d]])
+        tab_start.append(len(gam.offsets))
     d_max = max(nb_start[j + 1] - nb_start[j] for j in range(len(nodes)))
-    gam_off = np.concatenate([[0], np.cumsum([g.size for g in gam])])
-    sig_off = np.concatenate([[0], np.cumsum([g.size for g in sig])])
-    cert = np.where(tables.valid[:, None, None, None], tables.Phi, np.nan)[:, nodes]  # (T + 1, nodes, n, n)
+    # the certificate's diagonal per step and exported node (T + 1, nodes, n): NaN where it is no bound
+    cert = np.where(tables.valid[:, None, None], np.diagonal(tables.Phi, axis1=-2, axis2=-1), np.nan)[:, nodes]
     M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
     mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
     nominal = tables.nominal[np.minimum(np.arange(T + 1) + 1, T)]  # the step's own candidate point, k = 0..T
@@ -104,8 +105,8 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_nb_start", nb_start, "int"), c_array("cfd_nb", nb, "int"),
         c_array("cfd_p", p), c_array("cfd_q", q), c_array("cfd_tab_start", tab_start, "int"),
-        c_array("cfd_gam_off", gam_off, "int"), c_array("cfd_sig_off", sig_off, "int"),
-        c_array("cfd_gam", np.concatenate(gam) if gam else []), c_array("cfd_sig", np.concatenate(sig) if sig else []),
+        c_array("cfd_gam_off", gam.offsets, "int"), c_array("cfd_sig_off", sig.offsets, "int"),
+        c_array("cfd_gam", gam.data()), c_array("cfd_sig", sig.data()),
         c_array("cfd_cert", cert), c_array("cfd_Rpad", R_pad), c_array("cfd_M", M), c_array("cfd_mu", mu),
         c_array("cfd_nominal", nominal), c_array("cfd_bank_points", tables.bank_points if B else []),
         c_array("cfd_bank_metric", tables.bank_metric if B else []), layout,
@@ -116,6 +117,29 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
         A=0 if not B else int(tables.bank_metric.shape[0]),
         MARGIN=repr(float(tables.robustness)), GAIN_RCOND=repr(float(GAIN_RCOND)), DIVERGED=repr(1e12))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
+
+
+class _Entries:
+    """The table entries of an export, each written once: an entry equal to one already written (the stationary
+    tables at every step, a step's tables beyond the horizon) takes that one's offset."""
+
+    def __init__(self):
+        self.offsets: list[int] = []
+        self._parts: list[np.ndarray] = []
+        self._size = 0
+        self._seen: dict[bytes, int] = {}
+
+    def add(self, a: np.ndarray) -> None:
+        a = np.ascontiguousarray(a, dtype=float).reshape(-1)
+        key = hashlib.sha256(a.tobytes()).digest()
+        if key not in self._seen:
+            self._seen[key] = self._size
+            self._parts.append(a)
+            self._size += a.size
+        self.offsets.append(self._seen[key])
+
+    def data(self) -> np.ndarray:
+        return np.concatenate(self._parts) if self._parts else np.zeros(0)
 
 
 def scheduled_replay_text(nodes: Sequence[int], senders: Sequence[Sequence[int]], n_u: int, nz: int,

@@ -316,15 +316,13 @@ class ScheduledNode:
 
     def predict(self, z, u=None) -> ScheduledPacket:
         """The prediction phase with the node's measurement ``z``: the packet it sends."""
+        return _predict_together([self], [z], u)[0]
+
+    def _predict_inputs(self, z, u) -> tuple:
+        """The prediction phase's checked inputs: ``(z, u)``."""
         self._expect("predict")
-        m, i = self.model, self.node
         chk = NodeInputs.of(self)
-        z = chk.array("z", z, (m.sensor_dims[i],))
-        u = chk.inputs(u, m.n_u)
-        xp, Pp, choice = scheduled_prediction(m, self.tables, self.k, self.x[None, None], self.P[None, None], u)
-        self._step = (z, xp, Pp, choice)
-        self._phase = "update"
-        return ScheduledPacket(xp[0, 0], z.copy() if self.tables.exchange else None)
+        return chk.array("z", z, (self.model.sensor_dims[self.node],)), chk.inputs(u, self.model.n_u)
 
     def _arrived(self, received, fields):
         """``received`` checked (its keys in-neighbours, each packet's ``fields`` as :meth:`NodeInputs.packet`, or
@@ -350,6 +348,12 @@ class ScheduledNode:
 
     def update(self, received=None) -> np.ndarray:
         """The first round: ``received`` ``{neighbour: ScheduledPacket}`` as they arrived.  Returns the estimate."""
+        _update_together([self], [received])
+        return self.x
+
+    def _update_inputs(self, received) -> tuple:
+        """The first round's inputs of :func:`scheduled_update` for this node (``received`` checked): ``(xp, Pp,
+        choice, z (1, n_z) with its own measurement in place, got, sent_x, sent_z)``."""
         self._expect("update")
         m, i, nx = self.model, self.node, self.model.n_x
         got, sent_x, sent_z = self._arrived(received, lambda j: (("x", (nx,)),) + (
@@ -358,15 +362,17 @@ class ScheduledNode:
         zk = np.zeros((1, m.n_z))
         offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
         zk[0, offsets[i]:offsets[i + 1]] = z
-        xn, Pn, *_ = scheduled_update(m, self.tables, self.design, self.k, self._nodes, xp, Pp, choice, zk, got,
-                                      sent_x, sent_z if self.tables.exchange else None, self._M, self._mu)
-        self._step = (choice, got, xn, Pn)
-        self._next(2)
-        return self.x
+        return xp, Pp, choice, zk, got, sent_x, sent_z
 
     def round(self, received=None) -> np.ndarray:
         """Exchange round r (2..``rounds``): ``{neighbour: x̃_j}`` the neighbours' current estimates that arrived
         (on the channels whose first-round packet arrived).  Returns the estimate."""
+        _round_together([self], [received])
+        return self.x
+
+    def _round_inputs(self, received) -> tuple:
+        """Exchange round r's inputs of :func:`scheduled_round` for this node (``received`` checked): ``(r, xn, Pn,
+        choice, got, sent_x)``."""
         if not self._phase.startswith("round"):
             raise InputError(f"node {self.node} is at its {self._phase} of step {self.k}, not an exchange round: "
                              f"call {self._CALLS[self._phase]} next")
@@ -376,11 +382,7 @@ class ScheduledNode:
         if not np.array_equal(got, first):
             raise InputError(f"round {r} of node {self.node} at step {self.k} must receive from the neighbours whose "
                              f"first packet arrived ({self.senders[first[0, 0, :self.senders.size]].tolist()})")
-        xn, Pn, _ = scheduled_round(self.model, self.tables, r, self.k, self._nodes, xn, Pn, choice, got, sent_x,
-                                    self._M, self._mu)
-        self._step = (choice, got, xn, Pn)
-        self._next(r + 1)
-        return self.x
+        return r, xn, Pn, choice, got, sent_x
 
     def _next(self, r: int) -> None:
         choice, got, xn, Pn = self._step
@@ -391,6 +393,57 @@ class ScheduledNode:
         self.diverged = bool(diverged_nodes(xn, Pn)[0, 0])
         self.k += 1
         self._phase, self._step = "predict", None
+
+
+def _joined(parts, axis: int = 1):
+    """The nodes' arrays side by side along ``axis`` (None where the nodes have none)."""
+    return None if parts[0] is None else np.concatenate(parts, axis=axis)
+
+
+def _predict_together(nodes: Sequence[ScheduledNode], z: Sequence, u) -> list[ScheduledPacket]:
+    """The prediction phase of ``nodes`` (one design, one step), each with its measurement, in one call of
+    :func:`scheduled_prediction` over them (each node's own numbers, bit for bit): the packets they send.  Every
+    node's input is checked before any node changes."""
+    checked = [nd._predict_inputs(z_i, u) for nd, z_i in zip(nodes, z)]
+    one = nodes[0]
+    x = np.stack([nd.x for nd in nodes])[None]
+    P = np.stack([nd.P for nd in nodes])[None]
+    xp, Pp, choice = scheduled_prediction(one.model, one.tables, one.k, x, P, checked[0][1])
+    sent = []
+    for t, (nd, (z_t, _)) in enumerate(zip(nodes, checked)):
+        nd._step = (z_t, xp[:, t:t + 1], Pp[:, t:t + 1], None if choice is None else choice[:, t:t + 1])
+        nd._phase = "update"
+        sent.append(ScheduledPacket(xp[0, t], z_t.copy() if one.tables.exchange else None))
+    return sent
+
+
+def _update_together(nodes: Sequence[ScheduledNode], received: Sequence) -> None:
+    """The first round of ``nodes`` (one design, one step), each with what reached it, in one call of
+    :func:`scheduled_update` over them: each node's numbers are the ones it computes alone, bit for bit (the
+    batched filter's functions act on each node's slots alone).  Every node's input is checked before any node
+    changes."""
+    parts = list(zip(*(nd._update_inputs(got) for nd, got in zip(nodes, received))))
+    one = nodes[0]
+    xp, Pp, choice, got, sent_x, sent_z = (_joined(parts[c]) for c in (0, 1, 2, 4, 5, 6))
+    z = np.sum(parts[3], axis=0)  # each node's row holds its own measurement alone, zeros elsewhere: exact
+    xn, Pn, *_ = scheduled_update(one.model, one.tables, one.design, one.k, np.array([nd.node for nd in nodes]), xp,
+                                  Pp, choice, z, got, sent_x, sent_z if one.tables.exchange else None, one._M, one._mu)
+    for t, nd in enumerate(nodes):
+        nd._step = (None if choice is None else choice[:, t:t + 1], got[:, t:t + 1], xn[:, t:t + 1], Pn[:, t:t + 1])
+        nd._next(2)
+
+
+def _round_together(nodes: Sequence[ScheduledNode], received: Sequence) -> None:
+    """Exchange round r (2..L) of ``nodes`` in one call of :func:`scheduled_round` (as :func:`_update_together`)."""
+    parts = list(zip(*(nd._round_inputs(got) for nd, got in zip(nodes, received))))
+    one = nodes[0]
+    r = parts[0][0]
+    xn, Pn, choice, got, sent_x = (_joined(parts[c]) for c in range(1, 6))
+    xn, Pn, _ = scheduled_round(one.model, one.tables, r, one.k, np.array([nd.node for nd in nodes]), xn, Pn, choice,
+                                got, sent_x, one._M, one._mu)
+    for t, nd in enumerate(nodes):
+        nd._step = (None if choice is None else choice[:, t:t + 1], got[:, t:t + 1], xn[:, t:t + 1], Pn[:, t:t + 1])
+        nd._next(r + 1)
 
 
 class ScheduledNetwork(NodeNetwork):
@@ -421,18 +474,16 @@ class ScheduledNetwork(NodeNetwork):
         return self.carry(sent, dos, fdi, xi, falsified)
 
     def _exchange(self, z, dos, fdi, xi, u):
-        sent = [nd.predict(z_i, u) for nd, z_i in zip(self.nodes, z)]
+        sent = _predict_together(self.nodes, z, u)  # every node's prediction in one batch: each node's own numbers
         if not self.sent_finite(sent):
             return sent, []
         rounds = [self.deliver(sent, dos, fdi, xi)]
-        for nd, got in zip(self.nodes, rounds[0]):
-            nd.update(got)
+        _update_together(self.nodes, rounds[0])  # every node's update in one batch: each node's own numbers
         for _ in range(2, self.nodes[0].rounds + 1):
             if not self.sent_finite([nd.x for nd in self.nodes]):
                 return sent, rounds
             rounds.append(self.deliver([nd.x for nd in self.nodes], dos, fdi, xi))
-            for nd, got in zip(self.nodes, rounds[-1]):
-                nd.round(got)
+            _round_together(self.nodes, rounds[-1])
         return sent, rounds
 
 

@@ -53,7 +53,7 @@ _KNOWN = {"schema", "scenario", "mode", "gain_rule", "runtime_information", "nod
           "versions", "invocation", "conditioning", "certified", "verdict", "verdict_detail", "bounded", "growing",
           "bounded_reason", "exchange", "stationary",
           "stationary_certificate", "robustness", "rounds", "rounds_tradeoff", "robustness_note", "bank",
-          "bank_record", "remainder_structure", "carry", "carried"}
+          "bank_record", "remainder_structure", "carry", "carried", "table_kind", "tables_kind", "tables_own_steps"}
 _CONDITION = {"(28)": "(28) asks 1/λmax(Φ_{k|k}) > (1+ε) σ, so that the prediction bound (26) exists",
               "(29)": "(29) asks 1/λmax(Φ_{k+1|k}) > β, so that the update bound (27) exists"}
 
