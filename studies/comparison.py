@@ -80,7 +80,8 @@ from .scenarios import Scenario, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "FILTERS", "FILTER_REGISTRY", "SWEEP_VALUES", "CHUNK_SIZE", "CHUNK_ROWS", "CHUNKS_LARGE", "chunk_size", "HCMCI_ITERATIONS", "realise",
-           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT", "TABLES_ROWS_DEFAULT", "sweeps_left_out", "SWEEP_ROWS"]
+           "chosen_filters", "left_out", "JOINT_ROWS_DEFAULT", "TABLES_ROWS_DEFAULT", "sweeps_left_out", "SWEEP_ROWS",
+           "particle_pilot", "PILOT_RUNS"]
 
 TUNED, PAPER_DESIGN = "consensus EKF (tuned design)", "consensus EKF (paper design)"
 PF_AWARE, PF_PLAIN, EKF_PLAIN = "centralized PF (attack-aware)", "centralized PF (trusts every packet)", \
@@ -157,6 +158,12 @@ JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle c
 #: joint error covariance of all nodes (the scheduled design: about 0.2 s a step on a 20-cell field's 400 rows, 7 s on
 #: a 64-cell field's 4096, a design a setting): an assumption, chosen (about a minute for a design of 60 steps).
 TABLES_ROWS_DEFAULT = 1000
+#: Runs of the particle filters' pilot (:func:`particle_pilot`): runs of their own at the main setting, seeded from
+#: the study's seed, before the study; a particle filter of the default set whose typical effective sample size there
+#: is below :data:`filters.particle.DEGENERATE_ESS` is left out of it (an assumption, chosen: two runs cost about one
+#: run of the study's particle filters; on IEEE 14 both filters carried 1.1-2.9 of 500 particles in every run of a
+#: 10-run comparison).
+PILOT_RUNS = 2
 #: Above this many rows N n the default comparison runs its costliest filters a step at the main setting only, not at
 #: the sweeps' settings: an oracle carrying the joint covariance (up to JOINT_ROWS_DEFAULT; on IEEE 14's 14 x 13 it
 #: was a fifth of the study, its sweeps nine tenths of that) and a design whose nodes solve a convex problem at every
@@ -181,7 +188,10 @@ ASSUMPTIONS = (
     f"comparison: a particle filter whose typical effective sample size after weighting (the median over runs of each "
     f"run's median over the steps) is below {DEGENERATE_ESS:g} particles is reported as degenerate: its weight sits on "
     "a handful of particles, its estimate follows them rather than the posterior, and its error is no measure of what "
-    "a particle filter could reach on the model (an assumption, chosen: filters.particle.DEGENERATE_ESS).",
+    "a particle filter could reach on the model (an assumption, chosen: filters.particle.DEGENERATE_ESS). Before the "
+    f"study each particle filter runs on a pilot of {PILOT_RUNS} runs of its own at the main setting (seeded from the "
+    "study's seed); one degenerate there is left out of the default set, with its pilot's effective sample size in "
+    "left_out (named in --filters it runs, and is reported degenerate where it is).",
     "comparison: consensus and local RMSE is over runs, steps 1..K and the nodes (each node's own estimate); "
     "centralized filters have one estimate. 95 % intervals are percentile bootstraps over runs. A run whose filter "
     "leaves finite numbers (or 1e12), or whose error leaves divergence_spread (default 100) times the prior's spread "
@@ -473,7 +483,8 @@ def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
     ``GainRule.offline_tables``), when their study option (``oracles_in_sweeps``, ``tuned_in_sweeps``,
     ``tables_in_sweeps``) is false, or is left out (None) and the default set (no ``--filters``) runs on more than
     :data:`SWEEP_ROWS` rows N n."""
-    given, left = _chosen(sc, so)  # given: the filters run (the default set less what it left out, or --filters)
+    # given: the filters run (the default set less what it left out, or --filters); no particle filter is a design's
+    given, left = _chosen(sc, so, pilot=False)
     named = chosen_filters(so["filters"]) is not None
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
     out = {}
@@ -494,14 +505,52 @@ def sweeps_left_out(sc: Scenario, so: StudyOptions) -> dict[str, str]:
     return out
 
 
-def _chosen(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...] | None, dict[str, str]]:
+def _chosen(sc: Scenario, so: StudyOptions, pilot: bool = True) -> tuple[tuple[str, ...] | None, dict[str, str]]:
     """The filters the study runs on ``sc`` (None: every one) and those its default set leaves out, with why: the
-    names ``--filters`` gives (:func:`chosen_filters`; nothing left out), else every filter but :func:`left_out`."""
+    names ``--filters`` gives (:func:`chosen_filters`; nothing left out), else every filter but :func:`left_out` and
+    the particle filters that are degenerate on their pilot runs (:func:`particle_pilot`; without ``pilot``, before
+    the study computes, as if none were: what the memory estimate counts)."""
     given = chosen_filters(so["filters"])
-    out = {} if given is not None else left_out(sc)
+    out = {}
+    if given is None:
+        out = left_out(sc)
+        pilot = particle_pilot(sc, so) if so.particles and pilot else {}
+        out.update({name: f"its weights were degenerate on its pilot's {PILOT_RUNS} runs at the main setting "
+                          f"(runs of their own): typical effective sample size {ess:.3g} of {so.particles} particles, "
+                          f"below {DEGENERATE_ESS:g}, so its estimate would follow a handful of particles and its "
+                          "error measure them, not what a particle filter can reach on this model (a bootstrap "
+                          "proposal's weights collapse as the measurements grow informative about many states); "
+                          "name it in --filters to run it, or give more --particles"
+                    for name, ess in pilot.items() if ess < DEGENERATE_ESS})
     if not out:
         return given, {}
     return tuple(n for n in FILTER_REGISTRY.names() if n not in out), out
+
+
+_PILOTS: dict = {}  # particle_pilot's results in this process, by scenario content, particles and seed
+
+
+def particle_pilot(sc: Scenario, so: StudyOptions) -> dict[str, float]:
+    """The typical effective sample size after weighting (:func:`filters.particle.degenerate`: the median over runs of
+    each run's median over the steps) of every particle filter of the registry on ``sc``'s main setting, over
+    :data:`PILOT_RUNS` runs of their own seeded from the study's seed (``SeedSequence(seed, spawn_key=(2**31 + 1,
+    r))``), at the study's particles: what :func:`_chosen` leaves a degenerate filter out of the default set by.
+    Computed once per process for a scenario's content, particles and seed."""
+    entries = [e for e in FILTER_REGISTRY if e.particles]
+    key = (sc.digest, int(so.particles), int(so.seed), tuple(e.name for e in entries))
+    if key not in _PILOTS:
+        out = {}
+        if entries:
+            main = _setting_scenarios(reference(sc), _settings(sc, []))[:1]
+            seeds = [np.random.SeedSequence(so.seed, spawn_key=(2**31 + 1, r)) for r in range(PILOT_RUNS)]
+            batch = realise(main, seeds, particles=int(so.particles), iterations=int(so["hcmci_iterations"]),
+                            run_ids=range(PILOT_RUNS), covariances=False)
+            for e in entries:
+                with phase(f"pilot of {e.name}"):
+                    res = e.run(batch, [0], None)
+                out[e.name] = degenerate(np.median(res.ess, axis=-1))[0]
+        _PILOTS[key] = out
+    return _PILOTS[key]
 
 
 def _entries(filters: Sequence[str] | None) -> list:
@@ -619,7 +668,7 @@ def _accepts(sc: Scenario) -> str | None:
 def _uses(sc: Scenario, so: StudyOptions) -> tuple[tuple[str, ...], bool, tuple[str, ...]]:
     """What the chosen filters need on ``sc`` (``Study.uses``): the gain rules designed, whether a particle filter
     runs, and the gain rules whose filters run at the main setting only (:func:`sweeps_left_out`)."""
-    entries = _entries(_chosen(sc, so)[0])
+    entries = _entries(_chosen(sc, so, pilot=False)[0])  # before the study computes: its particle filters counted
     main_only = sweeps_left_out(sc, so)
     return (tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None)), any(e.particles for e in entries),
             tuple(dict.fromkeys(e.mode for e in entries if e.mode is not None and e.name in main_only)))
@@ -642,11 +691,11 @@ def _check(so: StudyOptions) -> None:
 def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     values = [float(v) for v in np.atleast_1d(so["sweep_values"])]
     settings = _settings(sc, values)
-    filters = _chosen(sc, so)[0]
     # a paper design that cannot start is reported as infeasible; one whose sigma, beta or tau was given is refused
-    for e in _entries(filters):
+    for e in _entries(_chosen(sc, so, pilot=False)[0]):
         if e.start_check:
             check_first_step(sc, consensus_design(sc, as_mode(so.design, e.mode)), e.name, so.design)
+    filters = _chosen(sc, so)[0]  # then the particle filters' pilot
     ref = reference(sc)
     main_only = tuple(sweeps_left_out(sc, so))
     task = functools.partial(_runs, ref=ref, settings=settings, particles=so.particles, main_only=main_only,

@@ -549,7 +549,8 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     named_run = run_comparison(filters="kcf", **kw)  # named: nothing is left out
     assert named_run["left_out"] == {}
     res = run_comparison(out=tmp_path / "d", **kw)
-    assert set(res["left_out"]) == joint and not set(res["filters"]) & joint
+    pfs = {e.name for e in FILTER_REGISTRY if e.particles}  # 20 particles on 15 precise cells: degenerate in the pilot
+    assert set(res["left_out"]) == joint | pfs and not set(res["filters"]) & (joint | pfs)
     assert any("left out of the default filters" in a for a in res["assumptions"])
     from studies import schemas
 
@@ -712,3 +713,43 @@ def test_a_particle_filter_whose_weight_sits_on_a_few_particles_is_called_degene
                  ",".join(pfs), "--set", "sweep_values=[0.1]", "--out", str(tmp_path / "cli")]) == 0
     said = capsys.readouterr().out
     assert said.count("degenerate: its weight on") == 2, said
+
+
+def test_a_particle_filter_degenerate_on_its_pilot_runs_is_left_out_of_the_default_set(tmp_path):
+    """Before the study each particle filter runs on PILOT_RUNS runs of its own at the main setting: on the 15-cell
+    rod with precise thermometers 30 particles are degenerate there (typical ESS below DEGENERATE_ESS), so the default
+    comparison leaves both particle filters out and says why, with the pilot's ESS (results.json left_out); named in
+    --filters they run, and the study finds them degenerate too; on the scalar seen through noisy thermometers, and on
+    the robot at the default 500 particles, they stay.  The pilot is the runs it names: the study's batched particle
+    filter on those seeds, and it depends on the seed, not on the worker."""
+    from designer.design import DesignOptions
+    from filters.particle import DEGENERATE_ESS, degenerate
+    from studies.comparison import FILTER_REGISTRY, PILOT_RUNS, STUDY, _chosen, particle_pilot, realise
+    from studies.pipeline import StudyOptions
+
+    pfs = [e.name for e in FILTER_REGISTRY if e.particles]
+    rod, scalar = tmp_path / "rod15.py", tmp_path / "scalar2.py"
+    rod.write_text(FIELD15)
+    scalar.write_text(SCALAR2)
+
+    def options(particles, seed=2):
+        return StudyOptions(2, particles, seed, 10, Backend(), DesignOptions(), dict(STUDY.options))
+
+    sc = load_scenario(str(rod))
+    pilot = particle_pilot(sc, options(30))
+    assert set(pilot) == set(pfs) and all(1.0 <= v < DEGENERATE_ESS for v in pilot.values())
+    left = _chosen(sc, options(30))[1]
+    assert set(pfs) <= set(left) and all(f"of 30 particles, below {DEGENERATE_ESS:g}" in left[n] for n in pfs)
+    # the pilot is its runs: the study's particle filter on PILOT_RUNS runs seeded SeedSequence(seed, (2**31 + 1, r))
+    seeds = [np.random.SeedSequence(2, spawn_key=(2**31 + 1, r)) for r in range(PILOT_RUNS)]
+    batch = realise([sc], seeds, particles=30, iterations=1, run_ids=range(PILOT_RUNS), covariances=False)
+    res = FILTER_REGISTRY[pfs[0]].run(batch, [0], None)
+    assert pilot[pfs[0]] == degenerate(np.median(res.ess, axis=-1))[0]
+    assert particle_pilot(load_scenario(str(scalar)), options(30)).keys() == set(pfs)
+    assert not set(pfs) & set(_chosen(load_scenario(str(scalar)), options(30))[1])
+    robot = particle_pilot(load_scenario("indoor-robot"), options(500, 0))
+    assert all(v >= DEGENERATE_ESS for v in robot.values()), robot
+    assert _chosen(load_scenario("indoor-robot"), options(500, 0))[1] == {}
+    out = run_comparison(scenarios=[str(rod)], runs=2, particles=30, seed=2, sweep_values=[0.1], quiet=True,
+                         filters="local,kcf," + ",".join(pfs))  # named: they run, and are degenerate
+    assert out["left_out"] == {} and all(out["filters"][n]["degenerate"] for n in pfs)

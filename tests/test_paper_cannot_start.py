@@ -68,8 +68,10 @@ def test_comparison_reports_the_paper_design_infeasible_and_runs_the_others(tmp_
     assert all(paper[k] is None for k in ("rmse", "rmse_ci95", "rmse_curve", "rmse_median_run", "time_per_step_s",
                                           "diverged_runs"))
     assert paper["feasible_runs"] == 0
+    # 40 particles on this model: the particle filters are degenerate on their pilot runs, left out of the default set
+    assert all("pilot" in why for why in res["left_out"].values())
     for name in FILTERS:  # every other filter ran: a number, a curve, a time; none is called infeasible
-        if name != PAPER_DESIGN:
+        if name != PAPER_DESIGN and name not in res["left_out"]:
             f = res["filters"][name]
             assert "infeasible" not in f and math.isfinite(f["rmse"]) and len(f["rmse_curve"]) == res["steps"]
             assert f["time_per_step_s"] > 0
