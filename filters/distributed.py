@@ -85,6 +85,7 @@ from __future__ import annotations
 from typing import NamedTuple, Sequence
 
 import numpy as np
+from scipy.linalg import lapack
 
 from designer.model import Model
 from designer.network import SensorNetwork
@@ -184,11 +185,34 @@ def _check_falsify(falsify: str) -> None:
         raise InputError(f"falsify must be one of {', '.join(map(repr, FALSIFY_CHOICES))}, got {falsify!r}")
 
 
+#: From this many states on, :func:`_spd_inverse` inverts each matrix by LAPACK's Cholesky inverse (``potrf`` then
+#: ``potri``: n³ flops, a call per matrix) rather than NumPy's stacked Cholesky and triangular solve (5 n³, one call
+#: for the stack); measured, 128 matrices of 64 x 64: 12.5 against 22.6 ms, while at a few states the calls cost more
+#: than the flops.  A matrix's inverse depends on its size only, not on the stack it is in: a node filter's numbers
+#: are the batch's.
+SPD_LAPACK_MIN = 16
+
+
 def _spd_inverse(A: np.ndarray) -> np.ndarray:
     """Inverses of symmetric positive-definite matrices ``(..., n, n)`` by Cholesky (raises LinAlgError if not)."""
-    L = np.linalg.cholesky(0.5 * (A + np.swapaxes(A, -1, -2)))
-    Li = np.linalg.solve(L, np.broadcast_to(np.eye(A.shape[-1]), A.shape))
-    return np.swapaxes(Li, -1, -2) @ Li
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    n = A.shape[-1]
+    if n < SPD_LAPACK_MIN:
+        L = np.linalg.cholesky(A)
+        Li = np.linalg.solve(L, np.broadcast_to(np.eye(n), A.shape))
+        return np.swapaxes(Li, -1, -2) @ Li
+    flat = A.reshape(-1, n, n)
+    out = np.empty(flat.shape)
+    lower = np.tril_indices(n, -1)
+    for i, a in enumerate(flat):
+        c, info = lapack.dpotrf(a, lower=1, clean=0)
+        if info == 0:
+            c, info = lapack.dpotri(c, lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        c[lower[1], lower[0]] = c[lower]  # potri fills the lower triangle: mirrored
+        out[i] = c
+    return out.reshape(A.shape)
 
 
 def _not_positive_definite(*mats: np.ndarray) -> int:

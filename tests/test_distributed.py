@@ -440,6 +440,36 @@ def test_a_users_nonlinear_mixed_sensor_model_under_dos_and_fdi_matches_the_refe
                               lambda r: {"attacks": att[r]})
 
 
+@pytest.mark.parametrize("lapack_from", [1, 10**9])
+def test_the_spd_inverse_either_way_is_the_inverse_and_a_matrix_is_inverted_alike_alone_or_stacked(lapack_from,
+                                                                                                   monkeypatch):
+    """``_spd_inverse`` (LAPACK's Cholesky inverse a matrix at a time from SPD_LAPACK_MIN states, NumPy's stacked
+    Cholesky and triangular solve below): the inverse to rounding, exactly symmetric, each matrix's bits the same alone
+    as in a stack (a node filter's numbers are the batch's), and a matrix that is not positive definite raises
+    LinAlgError; and the information filters on it match the node-by-node reference."""
+    monkeypatch.setattr(distributed, "SPD_LAPACK_MIN", lapack_from)
+    rng = np.random.default_rng(3)
+    for n in (3, 20):
+        B = rng.standard_normal((2, 4, n, n))
+        A = B @ np.swapaxes(B, -1, -2) + n * np.eye(n)
+        X = distributed._spd_inverse(A)
+        assert np.abs(X @ A - np.eye(n)).max() < 1e-12 * n and np.array_equal(X, np.swapaxes(X, -1, -2))
+        assert np.array_equal(distributed._spd_inverse(A[1, 2]), X[1, 2])
+        bad = A[0, 0] - 2 * np.linalg.eigvalsh(A[0, 0])[-1] * np.outer(np.eye(n)[0], np.eye(n)[0])
+        with pytest.raises(np.linalg.LinAlgError):
+            distributed._spd_inverse(np.stack([A[0, 1], bad]))
+    m = mixed_user_model()
+    net = SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0), (0, 2)])
+    seqs = np.random.SeedSequence(26).spawn(3)
+    tr = simulate_runs(m, 8, [np.random.default_rng(s.spawn(1)[0]) for s in seqs])
+    attacked, signal = net.with_attacks(0.3, 0.3), FDISignal(0.5, components=(0, 1)).resolve(m.n_x)
+    att = [simulate_attacks(attacked, 8, m.n_x, np.random.default_rng(s.spawn(2)[1]), signal) for s in seqs]
+    for kind, kw in (("kcf", {}), ("hcmci", {"iterations": 2, "omega": "size"})):
+        run, batch, ref = FILTERS[kind]
+        refs = [ref(m, net, tr.z[r], attacks=att[r], **kw) for r in range(3)]
+        assert assert_batch_is_per_run(batch(m, net, tr.z, attacks=att, **kw), refs) < 1e-9
+
+
 def test_a_diverging_run_stops_alone_in_the_batch():
     """Runs that diverge in the update, in the prediction and by a numerical breakdown stop at their step with the
     reference's violation; the other runs go on."""
