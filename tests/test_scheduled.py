@@ -8,6 +8,7 @@ offline design itself (the online rule reproduces it where the linearisation doe
 from __future__ import annotations
 
 import itertools
+import json
 
 import numpy as np
 import pytest
@@ -275,6 +276,33 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     assert main(["study", "consensus-robot", str(path), "--runs", "2", "--schedule", str(out), "--out",
                  str(tmp_path / "replay")]) == 2
     assert not (tmp_path / "replay").exists()
+
+
+def test_a_design_directory_writes_the_steps_own_tables_once_and_reads_back_the_design(tmp_path, tank_model,
+                                                                                      monkeypatch):
+    """A design whose later steps use the stationary tables writes only its steps' own tables to schedule.npz (the
+    later ones are Gamma_inf's, not written again) and reads back, for a filter or an export, every table of the
+    design bit for bit, the later steps' included."""
+    import rules.scheduled.design as tabled
+    from studies.cli import main
+    from studies.consensus_design import consensus_design
+    from studies.recorded import design_options_of, recorded_design
+    from studies.scenarios import load_scenario
+
+    path = tank_model(steps=12)
+    sc = load_scenario(str(path))
+    one = tabled.table_numbers(sc.network, sc.model.n_x)
+    monkeypatch.setattr(tabled, "TABLES_PER_STEP_MAX", 4 * one)  # 3 steps' own tables beside the stationary ones
+    out = tmp_path / "sched"
+    assert main(["design", str(path), "--mode", "scheduled", "--out", str(out)]) in (0, 1)
+    record = json.loads((out / "schedule.json").read_text())
+    assert record["tables_kind"] == "per-step, then stationary" and record["tables_own_steps"] == 3
+    assert np.load(out / "schedule.npz")["table_Gamma"].shape[0] == 3
+    back = recorded_design(out, sc, design_options_of(out, sc)[1]).tables
+    fresh = consensus_design(sc, mode="scheduled", steps=12).tables
+    assert back.own_steps == fresh.own_steps == 3
+    for name in ("Gamma", "Sigma", "Gamma_inf", "Sigma_inf", "P_post", "K", "C"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(fresh, name), err_msg=name)
 
 
 @pytest.mark.slow

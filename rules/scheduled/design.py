@@ -1173,15 +1173,18 @@ def table_arrays(tables: ScheduledTables) -> dict[str, np.ndarray]:
     trajectory and the expected covariance (``P_pred``, ``P_post``); with L > 1 rounds, rounds 2..L's factors
     (``round_Gamma``, ``round_Sigma``, ``round_Gamma_inf``, ``round_Sigma_inf``); with a bank of operating points its
     points, metric and tables (``bank_points``, ``bank_metric``, ``bank_Gamma``, ``bank_Sigma``, and with L > 1
-    ``bank_round_Gamma``, ``bank_round_Sigma``)."""
+    ``bank_round_Gamma``, ``bank_round_Sigma``).  The steps that use the stationary tables (from
+    :attr:`ScheduledTables.own_steps` on) are not written again: ``Gamma`` etc. hold the steps' own tables alone.
+    """
     ch = tables.channels
-    out = {"receiver": ch.receiver, "sender": ch.sender, "p": ch.p, "q": ch.q, "Gamma": tables.Gamma,
-           "Sigma": tables.Sigma, "Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "K": tables.K,
+    own = tables.steps if tables.kind == PER_STEP_KIND else tables.own_steps
+    out = {"receiver": ch.receiver, "sender": ch.sender, "p": ch.p, "q": ch.q, "Gamma": tables.Gamma[:own],
+           "Sigma": tables.Sigma[:own], "Gamma_inf": tables.Gamma_inf, "Sigma_inf": tables.Sigma_inf, "K": tables.K,
            "C": tables.C, "nominal": tables.nominal, "P_pred": tables.P_pred, "P_post": tables.P_post}
     if tables.Kn is not None:
         out["Kn"] = tables.Kn
     if tables.rounds > 1:  # rounds 2..L's factors
-        out.update(round_Gamma=tables.round_Gamma, round_Sigma=tables.round_Sigma,
+        out.update(round_Gamma=tables.round_Gamma[:own], round_Sigma=tables.round_Sigma[:own],
                    round_Gamma_inf=tables.round_Gamma_inf, round_Sigma_inf=tables.round_Sigma_inf)
     if tables.has_bank:  # the bank of operating points
         out.update(bank_points=tables.bank_points, bank_metric=tables.bank_metric, bank_Gamma=tables.bank_Gamma,
@@ -1224,7 +1227,9 @@ def recorded_tables(model, network, design, arrays, meta) -> ScheduledTables:
     if rounds != design.rounds or exchange != design.exchange:
         bad(f"rounds {rounds!r} and exchange {exchange!r} recorded, the design's are {design.rounds} and "
             f"{design.exchange!r}")
-    steps = np.asarray(arrays.get("table_Gamma", np.zeros((0,)))).shape[0]
+    steps = np.asarray(arrays.get("table_nominal", np.zeros((1,)))).shape[0] - 1
+    own = meta.get("tables_own_steps")
+    own = int(own) if isinstance(own, int) and not isinstance(own, bool) and 0 <= own <= steps else steps
     for name in ("receiver", "sender"):
         if not np.array_equal(np.asarray(arrays.get(f"table_{name}")), getattr(ch, name)):
             bad(f"table_{name}: other channels than the network's")
@@ -1262,24 +1267,28 @@ def recorded_tables(model, network, design, arrays, meta) -> ScheduledTables:
         if rounds > 1:
             bank.update(bank_round_Gamma=get("bank_round_Gamma", (B, L1, E, n, n)),
                         bank_round_Sigma=get("bank_round_Sigma", (B, L1, N, d, d, n, n)))
+    G_inf, S_inf = get("Gamma_inf", (E, n, n)), get("Sigma_inf", (N, d, d, n, n))
+    rG_inf = get("round_Gamma_inf", (L1, E, n, n)) if rounds > 1 else np.zeros((0, E, n, n))
+    rS_inf = get("round_Sigma_inf", (L1, N, d, d, n, n)) if rounds > 1 else np.zeros((0, N, d, d, n, n))
+
+    def held(own_tables, stationary):  # the steps from `own` on: the stationary tables (not written again)
+        return np.concatenate([own_tables, np.broadcast_to(stationary, (steps - own,) + stationary.shape)])
+
     return ScheduledTables(
-        channels=ch, Gamma=get("Gamma", (steps, E, n, n)), Sigma=get("Sigma", (steps, N, d, d, n, n)),
+        channels=ch, Gamma=held(get("Gamma", (own, E, n, n)), G_inf),
+        Sigma=held(get("Sigma", (own, N, d, d, n, n)), S_inf),
         P_pred=get("P_pred", (steps, N, n, n)), K=K, C=get("C", (steps, E, n, n)),
         P_post=get("P_post", (steps + 1, N, n, n)), Phi=np.swapaxes(Phi, 0, 1).copy(), valid=valid[0].copy(),
         sigma=per_step["sigma"], beta=per_step["beta"], margin28=per_step["margin28"],
         margin29=per_step["margin29"], theorem2=np.full((steps + 1, N), np.nan), violations=violations,
         stationary=meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {},
-        own_steps=(int(meta["tables_own_steps"]) if isinstance(meta.get("tables_own_steps"), int)
-                   and 0 <= meta["tables_own_steps"] <= steps else None),
-        nominal=get("nominal", (steps + 1, n)), Gamma_inf=get("Gamma_inf", (E, n, n)),
-        Sigma_inf=get("Sigma_inf", (N, d, d, n, n)), exchange=exchange == "measurements",
-        robustness=float(design.robustness), rounds=int(rounds),
-        round_Gamma=get("round_Gamma", (steps, L1, E, n, n)) if rounds > 1 else np.zeros((steps, 0, E, n, n)),
-        round_Sigma=(get("round_Sigma", (steps, L1, N, d, d, n, n)) if rounds > 1
+        own_steps=own, nominal=get("nominal", (steps + 1, n)), Gamma_inf=G_inf, Sigma_inf=S_inf,
+        exchange=exchange == "measurements", robustness=float(design.robustness), rounds=int(rounds),
+        round_Gamma=(held(get("round_Gamma", (own, L1, E, n, n)), rG_inf) if rounds > 1
+                     else np.zeros((steps, 0, E, n, n))),
+        round_Sigma=(held(get("round_Sigma", (own, L1, N, d, d, n, n)), rS_inf) if rounds > 1
                      else np.zeros((steps, 0, N, d, d, n, n))),
-        round_Gamma_inf=get("round_Gamma_inf", (L1, E, n, n)) if rounds > 1 else np.zeros((0, E, n, n)),
-        round_Sigma_inf=(get("round_Sigma_inf", (L1, N, d, d, n, n)) if rounds > 1
-                         else np.zeros((0, N, d, d, n, n))),
+        round_Gamma_inf=rG_inf, round_Sigma_inf=rS_inf,
         Kn=get("Kn", (steps, E, n, mz)) if exchange == "measurements" else None, **bank)
 
 
