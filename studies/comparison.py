@@ -156,7 +156,9 @@ def chunk_size(sc, runs: int) -> int:
 JOINT_ROWS_DEFAULT = 200  # above, the default comparison leaves out an oracle carrying all nodes' joint covariance
 #: Above this many rows N n the default comparison leaves out a design whose tables are designed offline along the
 #: joint error covariance of all nodes (the scheduled design: about 0.2 s a step on a 20-cell field's 400 rows, 7 s on
-#: a 64-cell field's 4096, a design a setting): an assumption, chosen (about a minute for a design of 60 steps).
+#: a 64-cell field's 4096, a design a setting), and one whose nodes solve a convex problem at every step (the tuned
+#: design: 36 s a run on the 64-cell field, a fifth of its comparison): an assumption, chosen (about a minute for a
+#: design of 60 steps).
 TABLES_ROWS_DEFAULT = 1000
 #: Runs of the particle filters' pilot (:func:`particle_pilot`): runs of their own at the main setting, seeded from
 #: the study's seed, before the study; a particle filter of the default set whose typical effective sample size there
@@ -458,7 +460,8 @@ def left_out(sc: Scenario) -> dict[str, str]:
     rule's filter that carries the joint error covariance of all nodes (an oracle, a reference: its cost a step
     grows as (N n)³) once N n exceeds :data:`JOINT_ROWS_DEFAULT` rows, and one whose tables are designed offline
     along the joint error covariance of all nodes (``GainRule.offline_tables``: its design's cost a step grows as
-    (N n)³ too) once N n exceeds :data:`TABLES_ROWS_DEFAULT`.  Named in ``--filters``, it runs."""
+    (N n)³ too) or whose nodes solve a convex problem at every step (``GainRule.solves_online``) once N n exceeds
+    :data:`TABLES_ROWS_DEFAULT`.  Named in ``--filters``, it runs."""
     rows = int(sc.network.n_nodes) * int(sc.model.n_x)
     out = {}
     if rows > JOINT_ROWS_DEFAULT:
@@ -472,6 +475,10 @@ def left_out(sc: Scenario) -> dict[str, str]:
                             "(on a 64-cell field, 4096 rows: about 7 s a step, 7 minutes for 60 steps); name it in "
                             "--filters to run it"
                     for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).offline_tables})
+        out.update({e.name: f"its nodes solve a convex problem at every step and run, N n = {rows} rows (more than "
+                            f"{TABLES_ROWS_DEFAULT}; on a 64-cell field, 4096 rows: about 36 s a run at the main "
+                            "setting alone); name it in --filters to run it"
+                    for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).solves_online})
     return out
 
 

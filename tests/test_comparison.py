@@ -513,10 +513,11 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     joint = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).joint_covariance}
     assert joint and set(left_out(sc)) == joint and all("N n = 225 rows" in why for why in left_out(sc).values())
     assert left_out(load_scenario("indoor-robot")) == {}
-    # above TABLES_ROWS_DEFAULT the design whose tables are designed offline along the joint covariance is left out too
+    # above TABLES_ROWS_DEFAULT the designs of offline tables and of a convex problem a step are left out too
     from studies.comparison import TABLES_ROWS_DEFAULT
 
-    tables = {e.name for e in FILTER_REGISTRY if e.mode is not None and rules.get(e.mode).offline_tables}
+    tables = {e.name for e in FILTER_REGISTRY if e.mode is not None and (rules.get(e.mode).offline_tables
+                                                                          or rules.get(e.mode).solves_online)}
     wide = tmp_path / "rod32.py"
     wide.write_text(FIELD15.replace("N = 15", "N = 32"))
     assert 32 * 32 > TABLES_ROWS_DEFAULT >= 31 * 31
