@@ -928,6 +928,9 @@ def table_markdown(results: dict) -> str:
                                       ("msgs", "messages/step"), ("div", "diverged runs"),
                                       ("feas", "runs with design conditions met"), ("runtime", "run time")],
                                "filter")
+        if b.get("left_out"):
+            text += ("\nLeft out of the default filters (`--filters NAME` runs one): " + "; ".join(
+                f"{n}: {why}" for n, why in b["left_out"].items()) + ".\n")
         rec = b["recommendation"]
         if rec["most_accurate"] is not None:
             text += (f"\nMost accurate of the filters the nodes can run: {rec['most_accurate']}"

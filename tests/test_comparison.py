@@ -552,6 +552,8 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     res = run_comparison(out=tmp_path / "d", **kw)
     pfs = {e.name for e in FILTER_REGISTRY if e.particles}  # 20 particles on 15 precise cells: degenerate in the pilot
     assert set(res["left_out"]) == joint | pfs and not set(res["filters"]) & (joint | pfs)
+    said = (tmp_path / "d" / "table.md").read_text().split("Left out of the default filters")[1]
+    assert all(f"{n}: {res['left_out'][n]}" in said for n in joint | pfs)
     assert any("left out of the default filters" in a for a in res["assumptions"])
     from studies import schemas
 
