@@ -410,9 +410,9 @@ class DesignOptions:
         Mode ``scheduled``: ``per-step``, each step's own tables along the nominal trajectory; ``stationary``, at
         every step the tables of the expected recursion's fixed point at the operating point (one set per node: its
         C export is one step's size; its expected covariance and certificate are those of these tables).  Default:
-        per-step while the per-step tables hold at most
-        :data:`rules.scheduled.design.TABLES_PER_STEP_MAX` numbers, stationary beyond
-        (:func:`rules.scheduled.design.table_kind`).
+        per-step while the per-step tables hold at most :data:`rules.scheduled.design.TABLES_PER_STEP_MAX`
+        numbers; beyond, where the nominal trajectory keeps the operating point's linearisation, the first steps'
+        own tables as far as they fit and the stationary ones after (:func:`rules.scheduled.design.own_steps`).
     carry : {'whole', 'region'}
         A rule whose nodes may carry their regions (:attr:`designer.rule.GainRule.regional`: the ones that relay) on
         a model that declares ``REGIONS``: ``region``, each node carries only the

@@ -94,8 +94,9 @@ def _design_options(f, *, auto: bool = False):
                      help="mode scheduled: 'per-step', each step's own tables; 'stationary', the tables of the "
                           "expected recursion's fixed point at the operating point at every step (one set per node: "
                           "a C export of one step's size; slower to settle from the prior) [default: per-step while "
-                          "the per-step tables hold at most rules.scheduled.design.TABLES_PER_STEP_MAX numbers, "
-                          "else stationary]"),
+                          "the per-step tables hold at most rules.scheduled.design.TABLES_PER_STEP_MAX numbers; "
+                          "beyond, where the nominal keeps the operating point's linearisation, the first steps' "
+                          "own as far as they fit, then stationary]"),
         click.option("--carry", type=click.Choice(list(CARRIES)), default=None,
                      help="modes relay and flood on a model with REGIONS: 'region', each node carries only the "
                           "states its region, its ball's measurements and their dynamics need (the same numbers "

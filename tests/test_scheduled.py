@@ -278,6 +278,20 @@ def test_design_command_writes_the_node_tables_and_refuses_exchange_for_other_mo
     assert not (tmp_path / "replay").exists()
 
 
+def test_a_nominal_that_leaves_the_operating_points_geometry_keeps_each_steps_tables_by_default(monkeypatch):
+    """Above the tables' budget the later steps take the stationary tables of the operating point only where the
+    nominal trajectory keeps its linearisation (the robot's moves: each step keeps its own tables); told
+    ``table_kind='stationary'``, every step takes them all the same."""
+    import rules.scheduled.design as tabled
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    monkeypatch.setattr(tabled, "TABLES_PER_STEP_MAX", 2 * tabled.table_numbers(sc.network, sc.model.n_x))
+    assert tabled.own_steps(sc.network, sc.model.n_x, 6) == 1
+    assert consensus_design(sc, mode="scheduled", steps=6).tables.kind == "per-step"
+    assert consensus_design(sc, mode="scheduled", steps=6, table_kind="stationary").tables.kind == "stationary"
+
+
 def test_a_design_directory_writes_the_steps_own_tables_once_and_reads_back_the_design(tmp_path, tank_model,
                                                                                       monkeypatch):
     """A design whose later steps use the stationary tables writes only its steps' own tables to schedule.npz (the

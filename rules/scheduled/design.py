@@ -945,6 +945,9 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     def u_at(k):
         return None if u is None else u[min(k, len(u) - 1)]
 
+    if design.table_kind is None and own < steps and not _settled(model, x0, steps, u_at):
+        own = steps  # by default the stationary tables serve a nominal that stays at the operating point's geometry
+
     fixed = None
     if own < steps:  # the tables of the later steps: the expected recursion's fixed point at the operating point
         x_op = np.asarray(x0, dtype=float)
@@ -1098,7 +1101,8 @@ def own_steps(network, n_x: int, steps: int, rounds: int = 1, kind: str | None =
     stationary tables, the expected recursion's fixed point at the operating point from the prior (what the
     stationary certificate certifies).  ``kind`` :data:`PER_STEP_KIND`: all; :data:`STATIONARY_KIND`: none; None
     (the default): all while they hold at most :data:`TABLES_PER_STEP_MAX` numbers (:func:`table_numbers`), else as
-    many as fit beside the stationary ones."""
+    many as fit beside the stationary ones (which :func:`design_scheduled` takes only where the nominal trajectory
+    keeps the operating point's linearisation: :func:`_settled`)."""
     if kind == PER_STEP_KIND:
         return int(steps)
     if kind == STATIONARY_KIND:
@@ -1111,6 +1115,25 @@ def _linearisation(model, x: np.ndarray, k: int, u) -> list[np.ndarray]:
     """``F`` and every sensor's ``H`` at ``x`` (step ``k``): what the tables' geometry depends on."""
     return [np.asarray(model.F_expected(x, k, u), dtype=float)] + [
         np.asarray(model.H(i, x, k), dtype=float) for i in range(model.n_sensors)]
+
+
+def _same_linearisation(a: list[np.ndarray], b: list[np.ndarray]) -> bool:
+    """Whether two linearisations (:func:`_linearisation`) are the same to rounding (1e-9 relative)."""
+    return all(np.allclose(p, q, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(q).max(initial=0.0))) for p, q in zip(a, b))
+
+
+def _settled(model, x0, steps: int, u_at) -> bool:
+    """Whether the nominal trajectory from ``x0`` (inputs ``u_at(k)``) keeps the operating point's linearisation at
+    every step of the horizon (an equilibrium, or a model linear along it): where it does, the stationary tables at the
+    operating point are those the per-step recursion settles to along it; where it moves (a target crossing a sensor
+    field), they are another geometry's, and a design keeps each step's own tables unless told otherwise."""
+    x = np.asarray(x0, dtype=float)
+    ref = _linearisation(model, x, 1, u_at(0))
+    for k in range(steps):
+        x = np.asarray(model.f_expected(x, k, u_at(k)), dtype=float)
+        if not _same_linearisation(_linearisation(model, x, k + 1, u_at(k + 1)), ref):
+            return False
+    return True
 
 
 def _bank(st: _Setting, Pm: JointCovariance, P_open: np.ndarray, x: np.ndarray, k: int, u, axes: int) -> dict:
@@ -1129,8 +1152,7 @@ def _bank(st: _Setting, Pm: JointCovariance, P_open: np.ndarray, x: np.ndarray, 
             continue
         p = x + BANK_SPREAD * (np.asarray(o, dtype=float) * sig) @ vec
         lin = _linearisation(model, p, k, u)
-        if all(np.allclose(a, b, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(b).max(initial=0.0)))
-               for a, b in zip(lin, ref)):
+        if _same_linearisation(lin, ref):
             skipped += 1  # the same Jacobians as the nominal's: the same tables
             continue
         _, _, g, s_, rec, rg, rs = stationary_gains(st, Pm, np.broadcast_to(lin[0], (N, n, n)), p, k, None,

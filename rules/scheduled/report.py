@@ -24,7 +24,8 @@ def settings(meta: Mapping, fmt) -> list[str]:
                  f"The first {meta.get('tables_own_steps')} steps use their own tables, and the later ones")
                 + " the stationary tables"
                 + (" (chosen by the tables' size: per-step tables for every step would hold more than "
-                   f"{TABLES_PER_STEP_MAX} numbers)" if meta.get("table_kind") is None else " (`--table-kind stationary`)")
+                   f"{TABLES_PER_STEP_MAX} numbers, and the nominal keeps the operating point's linearisation)"
+                   if meta.get("table_kind") is None else " (`--table-kind stationary`)")
                 + ": the expected recursion's fixed point at the operating point, from the prior"
                 + (f", reached after {st.get('extra_steps')} steps." if st.get("converged") else
                    ", which did not settle within the steps tried: the last tables computed.")
