@@ -113,7 +113,7 @@ class ConsensusDesign(NamedTuple):
     robustness: float = 0.0  # 'scheduled': the margin δ of the link gains (rules.scheduled.design.link_gains)
     rounds: int = 1  # 'scheduled': exchange rounds per step (the first with the measurements); relaying: hops
     bank: int = 0  # 'scheduled': axes of the bank of operating points off the nominal (rules.scheduled.design; 0: none)
-    # 'scheduled': the tables' kind, 'per-step' or 'stationary' (rules.scheduled.design.table_kind); None: by their size
+    # 'scheduled': the tables' kind, 'per-step' or 'stationary' (rules.scheduled.design.own_steps); None: by their size
     table_kind: str | None = None
     # 'scheduled' with the 'prior' scalings: the remainders are U Ω W e and V_i Θ W e with this W (n_x x n_x), the
     # prior covariance's inverse root (designer.linearization.whitened_scales); None: W = I

@@ -100,7 +100,7 @@ ROUNDS_MAX = 64
 #: The most axes of a tabled design's bank of operating points (3^A - 1 points: 26 at A = 3).
 BANK_MAX = 3
 #: The kinds of a tabled design's tables (``--table-kind``): each step's own, or the stationary ones at every step
-#: (:func:`rules.scheduled.design.table_kind`; unset: chosen by their size).
+#: (:func:`rules.scheduled.design.own_steps`; unset: chosen by their size).
 TABLE_KINDS = ("per-step", "stationary")
 
 
