@@ -521,14 +521,14 @@ def _chosen(sc: Scenario, so: StudyOptions, pilot: bool = True) -> tuple[tuple[s
     out = {}
     if given is None:
         out = left_out(sc)
-        pilot = particle_pilot(sc, so) if so.particles and pilot else {}
+        typical = particle_pilot(sc, so) if so.particles and pilot else {}
         out.update({name: f"its weights were degenerate on its pilot's {PILOT_RUNS} runs at the main setting "
                           f"(runs of their own): typical effective sample size {ess:.3g} of {so.particles} particles, "
                           f"below {DEGENERATE_ESS:g}, so its estimate would follow a handful of particles and its "
                           "error measure them, not what a particle filter can reach on this model (a bootstrap "
                           "proposal's weights collapse as the measurements grow informative about many states); "
                           "name it in --filters to run it, or give more --particles"
-                    for name, ess in pilot.items() if ess < DEGENERATE_ESS})
+                    for name, ess in typical.items() if ess < DEGENERATE_ESS})
     if not out:
         return given, {}
     return tuple(n for n in FILTER_REGISTRY.names() if n not in out), out
@@ -541,8 +541,9 @@ def particle_pilot(sc: Scenario, so: StudyOptions) -> dict[str, float]:
     """The typical effective sample size after weighting (:func:`filters.particle.degenerate`: the median over runs of
     each run's median over the steps) of every particle filter of the registry on ``sc``'s main setting, over
     :data:`PILOT_RUNS` runs of their own seeded from the study's seed (``SeedSequence(seed, spawn_key=(2**31 + 1,
-    r))``), at the study's particles: what :func:`_chosen` leaves a degenerate filter out of the default set by.
-    Computed once per process for a scenario's content, particles and seed."""
+    r))``), at the study's particles: what :func:`_chosen` leaves a degenerate filter out of the default set by (NaN
+    where it diverged in every pilot run: no weights to judge, so it stays).  Computed once per process for a
+    scenario's content, particles and seed."""
     entries = [e for e in FILTER_REGISTRY if e.particles]
     key = (sc.digest, int(so.particles), int(so.seed), tuple(e.name for e in entries))
     if key not in _PILOTS:
@@ -555,7 +556,8 @@ def particle_pilot(sc: Scenario, so: StudyOptions) -> dict[str, float]:
             for e in entries:
                 with phase(f"pilot of {e.name}"):
                     res = e.run(batch, [0], None)
-                out[e.name] = degenerate(np.median(res.ess, axis=-1))[0]
+                weights = degenerate(np.median(res.ess, axis=-1))
+                out[e.name] = np.nan if weights is None else weights[0]
         _PILOTS[key] = out
     return _PILOTS[key]
 
