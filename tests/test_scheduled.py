@@ -311,6 +311,9 @@ def test_a_design_directory_writes_the_steps_own_tables_once_and_reads_back_the_
     assert main(["design", str(path), "--mode", "scheduled", "--out", str(out)]) in (0, 1)
     record = json.loads((out / "schedule.json").read_text())
     assert record["tables_kind"] == "per-step, then stationary" and record["tables_own_steps"] == 3
+    # the report says the budget the design was made under (recorded: read as data, not today's constant)
+    assert record["stationary"]["budget"] == 4 * one
+    assert f"would hold more than {4 * one} numbers" in (out / "report.md").read_text()
     assert np.load(out / "schedule.npz")["table_Gamma"].shape[0] == 3
     back = recorded_design(out, sc, design_options_of(out, sc)[1]).tables
     fresh = consensus_design(sc, mode="scheduled", steps=12).tables

@@ -1050,7 +1050,8 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
                       round_Sigma_inf=out["round_Sigma"][-1])
         start = (Pm.P, Pm.G, P_open)
     else:  # the same tables beyond the horizon; the bank's recursions start from their fixed point
-        record = {**record_op, "where": f"at the operating point, from the prior: the tables from step {own} on"}
+        record = {**record_op, "where": f"at the operating point, from the prior: the tables from step {own} on",
+                  "budget": TABLES_PER_STEP_MAX}  # the numbers of tables the default kind allowed (the report's)
         beyond = dict(Gamma_inf=G_op, Sigma_inf=S_op, round_Gamma_inf=rG_op, round_Sigma_inf=rS_op)
         start = (Pm_op.P, Pm_op.G, P_open)
     tables = ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,

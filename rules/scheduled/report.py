@@ -10,8 +10,6 @@ __all__ = ["settings"]
 def settings(meta: Mapping, fmt) -> list[str]:
     """How the tables were designed, the stationary certificate, the robustness margin, the bank, the trade-off of
     exchange rounds against accuracy."""
-    from .design import TABLES_PER_STEP_MAX
-
     out: list[str] = []
     st = meta.get("stationary") if isinstance(meta.get("stationary"), dict) else {}
     carry = ("prediction and its measurement" if meta.get("exchange") == "measurements" else
@@ -24,7 +22,8 @@ def settings(meta: Mapping, fmt) -> list[str]:
                  f"The first {meta.get('tables_own_steps')} steps use their own tables, and the later ones")
                 + " the stationary tables"
                 + (" (chosen by the tables' size: per-step tables for every step would hold more than "
-                   f"{TABLES_PER_STEP_MAX} numbers, and the nominal keeps the operating point's linearisation)"
+                   f"{st.get('budget', 'the budget of')} numbers, and the nominal keeps the operating point's "
+                   "linearisation)"
                    if meta.get("table_kind") is None else " (`--table-kind stationary`)")
                 + ": the expected recursion's fixed point at the operating point, from the prior"
                 + (f", reached after {st.get('extra_steps')} steps." if st.get("converged") else
