@@ -18,7 +18,13 @@ each neighbour: its measurement information ``u_i = H_iᵀ R_i⁻¹ (z_i - h_i(x
     P_i ← F M_i Fᵀ + Q,   x̄_i ← f(x̂_i)
 
 ``M_i`` is the filter's covariance (the consensus term's effect on it is ignored, as in
-the paper, which also ignores the cross-covariances between nodes).
+the paper, which also ignores the cross-covariances between nodes).  A packet carries ``U_j`` as its square-root
+factor ``L_j = R_j^{-1/2} H_j`` (``U_j = L_jᵀ L_j``: ``m_j n`` numbers in place of ``n (n + 1) / 2``, zero rows up to the
+model's largest sensor), and a node forms ``S_i = L_Jᵀ L_J`` from the rows ``L_J`` of ``J_i``, in place of a sum of
+``d_i`` dense ``U_j`` (on a 64-cell field, one row a sensor: 5 rows of 64 states).  ``M_i`` stays in information form
+(two Cholesky inverses): the covariance form ``P_i - P_i L_Jᵀ (I + L_J P_i L_Jᵀ)⁻¹ L_J P_i`` would cost less, but
+loses the digits of ``P_i``'s size over ``M_i``'s (measured: 7.8e-8 relative where a prediction is 1e8 times the
+posterior).
 
 **HCMCI** — G. Battistelli, L. Chisci, G. Mugnai, A. Farina, A. Graziano, "Consensus-based
 linear and nonlinear filtering", IEEE TAC 60(5), 2015 (the hybrid of consensus on
@@ -100,7 +106,7 @@ from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "distributed_result", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "kcf_payload", "hcmci_payload", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
-           "measurement_information", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
+           "measurement_information", "measurement_rows", "whitening", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
            "HCMCIPacket", "HCMCINode", "HCMCINetwork"]
 
 OMEGA_CHOICES = ("size", "consistent")
@@ -130,10 +136,15 @@ class DistributedResult(NamedTuple):
         return next((v for v in self.violations if v["condition"] == "diverged"), None)
 
 
-def kcf_payload(n_x: int, network) -> int:
-    """The numbers KCF sends per step: one packet per directed channel carrying ``u_j`` (n), the distinct entries of
-    ``U_j`` (n (n + 1) / 2) and the prediction ``x̄_j`` (n)."""
-    return int(np.asarray(network.adjacency, dtype=bool).sum()) * (2 * n_x + n_x * (n_x + 1) // 2)
+def kcf_payload(n_x: int, network, sensor_dims=None) -> int:
+    """The numbers KCF sends per step: one packet per directed channel carrying ``u_j`` (n), ``U_j`` as its factor
+    ``L_j`` (``m_j`` rows of n: ``sensor_dims[j]``; without them the distinct entries of ``U_j``, n (n + 1) / 2) and
+    the prediction ``x̄_j`` (n)."""
+    adj = np.asarray(network.adjacency, dtype=bool)
+    if sensor_dims is None:
+        return int(adj.sum()) * (2 * n_x + n_x * (n_x + 1) // 2)
+    out_degree = adj.sum(axis=0)  # adjacency[i, j]: the channel j -> i
+    return int(out_degree.sum()) * 2 * n_x + int(out_degree @ np.asarray(sensor_dims, dtype=int)) * n_x
 
 
 def hcmci_payload(n_x: int, network, iterations: int) -> int:
@@ -244,39 +255,67 @@ def _hcmci_rounds(iterations, omega: str) -> int:
     return L
 
 
-def kcf_packets(u, U, x, fdi, xi, packet: bool = True):
-    """What KCF's channels carry: the senders' measurement information ``u`` (..., n) (with ``U`` (..., n, n)) and
-    predictions ``x`` (..., n), where ``fdi`` (...) falsified them (``xi`` (..., n); None: no attack) ``x + ξ`` and,
-    with ``packet``, ``u + U ξ`` (the measurement read as ``h(x + ξ)``, linearised).  Every KCF forms a received
-    packet this way first, then sums, so that a node handed the packet that arrived computes the batch's numbers."""
+def kcf_packets(u, L, x, fdi, xi, packet: bool = True):
+    """What KCF's channels carry: the senders' measurement information ``u`` (..., n) (with ``U = Lᵀ L``, ``L``
+    (..., m, n)) and predictions ``x`` (..., n), where ``fdi`` (...) falsified them (``xi`` (..., n); None: no attack)
+    ``x + ξ`` and, with ``packet``, ``u + U ξ`` (the measurement read as ``h(x + ξ)``, linearised).  Every KCF forms a
+    received packet this way first, then sums, so that a node handed the packet that arrived computes the batch's
+    numbers."""
     if fdi is None or xi is None:
         return u, x
     f = np.asarray(fdi, dtype=bool)[..., None]
-    u_t = np.where(f, u + np.einsum("...ab,...b->...a", U, xi), u) if packet else u
+    u_t = np.where(f, u + _times_information(L, xi), u) if packet else u
     return u_t, np.where(f, x + xi, x)
 
 
-def _kcf_combine(eps: float, xp, Pp, S, y, diff):
-    """KCF's update from the sums over ``J_i``: ``S`` of ``U_j``, ``y`` of ``u_j`` and ``diff`` of ``x̃_j - x̄_i``."""
+def _times_information(L, v):
+    """``Lᵀ (L v)`` (..., n): the information ``U = Lᵀ L`` of the rows ``L`` (..., m, n) times ``v`` (..., n)."""
+    return (np.swapaxes(L, -1, -2) @ (L @ v[..., None]))[..., 0]
+
+
+def _kcf_combine(eps: float, xp, Pp, rows, y, diff):
+    """KCF's update from ``J_i``'s measurement rows ``rows`` (..., r, n) (``S_i = rowsᵀ rows``; a zero row adds
+    nothing) and the sums over ``J_i`` ``y`` of ``u_j`` and ``diff`` of ``x̃_j - x̄_i``."""
+    S = np.swapaxes(rows, -1, -2) @ rows
     M = _spd_inverse(_spd_inverse(Pp) + S)
     gamma = eps / (1.0 + np.linalg.norm(M, axis=(-2, -1)))
-    innov = y - np.einsum("...iab,...ib->...ia", S, xp) + gamma[..., None] * diff
-    return xp + np.einsum("...iab,...ib->...ia", M, innov), M
+    innov = y - (S @ xp[..., None])[..., 0] + gamma[..., None] * diff
+    return xp + (M @ innov[..., None])[..., 0], M
 
 
-def _kcf_update(ex: Exchange, eps: float, packet: bool, xp, Pp, U, u, recv, fdi=None, xi=None):
-    """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement information ``(U, u)``
-    of all nodes (stacks over runs); ``recv`` (runs, N, N) the packets that arrived, ``fdi`` (runs, E), ``xi``
-    (runs, E, n) the falsified ones and their signal on the channels (``ex``'s order; None: no attack).  The packets
-    are formed per channel (:func:`kcf_packets`) and summed over each node's incoming channels (``ex``,
-    :class:`filters.consensus_batch.Exchange`)."""
+class _Slots(NamedTuple):
+    """The nodes by in-degree ``d`` (``classes``: ``(d, nodes (g,), channels (g, d))``, each node's incoming channels
+    in the channels' order): KCF stacks a node's own measurement rows and its ``d`` channels' as one (1 + d) m x n
+    matrix, the nodes of one degree together."""
+
+    classes: list
+
+
+def _slots(ex: Exchange) -> _Slots:
+    deg = np.bincount(ex.receiver, minlength=ex.n)
+    first = np.cumsum(deg) - deg
+    return _Slots([(int(d), np.flatnonzero(deg == d), first[deg == d][:, None] + np.arange(d))
+                   for d in np.unique(deg)])
+
+
+def _kcf_update(ex: Exchange, slots: _Slots, eps: float, packet: bool, xp, Pp, L, u, recv, fdi=None, xi=None):
+    """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement rows and information
+    ``(L, u)`` of all nodes (stacks over runs; ``L`` (runs, N, m, n), ``m`` the model's largest sensor, zero rows
+    below a node's own); ``recv`` (runs, N, N) the packets that arrived, ``fdi`` (runs, E), ``xi`` (runs, E, n) the
+    falsified ones and their signal on the channels (``ex``'s order; None: no attack).  The packets are formed per
+    channel (:func:`kcf_packets`); their information is summed over each node's incoming channels (``ex``,
+    :class:`filters.consensus_batch.Exchange`) and their rows stacked after the node's own (a lost packet's zero)."""
     rcv, snd = ex.receiver, ex.sender
     r = recv[..., rcv, snd].astype(float)  # (runs, E)
-    u_t, x_t = kcf_packets(u[:, snd], U[:, snd], xp[:, snd], fdi, xi, packet)
-    S = U + ex.sum(r[..., None, None] * U[:, snd])  # J_i: the node and the neighbours heard
+    u_t, x_t = kcf_packets(u[:, snd], L[:, snd], xp[:, snd], fdi, xi, packet)
     y = u + ex.sum(r[..., None] * u_t)
     diff = ex.sum(r[..., None] * x_t) - ex.sum(r)[..., None] * xp
-    x, M = _kcf_combine(eps, xp, Pp, S, y, diff)
+    x, M = np.empty_like(xp), np.empty_like(Pp)
+    a, m, n = L.shape[0], L.shape[-2], L.shape[-1]
+    for d, nodes, chans in slots.classes:  # J_i's rows: the node's own, then each channel's (zero where lost)
+        heard = r[:, chans, None, None] * L[:, snd[chans]]  # (runs, g, d, m, n)
+        rows = np.concatenate([L[:, nodes, None], heard], axis=2).reshape(a, nodes.size, (1 + d) * m, n)
+        x[:, nodes], M[:, nodes] = _kcf_combine(eps, xp[:, nodes], Pp[:, nodes], rows, y[:, nodes], diff[:, nodes])
     return x, M, None
 
 
@@ -435,6 +474,7 @@ class _BatchInputs(NamedTuple):
     P0: np.ndarray  # (runs, n_x, n_x)
     attacks: EdgeAttacks | None  # on the network's channels: dos, fdi (runs, steps, E), xi (runs, steps, E, n_x)
     R_inv: list
+    R_root: list  # per sensor W with Wᵀ W = R⁻¹ (the inverse of R's Cholesky factor)
 
 
 def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0, falsify: str) -> _BatchInputs:
@@ -450,7 +490,14 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
                              f"{want[0]} and xi of shape {want[2]}")
     # on the channels alone (a dense pattern holds N² x n_x numbers a step: 0.8 GB a run on a 118-node grid)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
-    return _BatchInputs(z, u, x0, P0, attacks, [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)])
+    return _BatchInputs(z, u, x0, P0, attacks, [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)],
+                        [whitening(model.measurement_cov(i)) for i in range(model.n_sensors)])
+
+
+def whitening(R: np.ndarray) -> np.ndarray:
+    """``W`` with ``Wᵀ W = R⁻¹``: the inverse of ``R``'s lower Cholesky factor (``W R Wᵀ = I``)."""
+    R = np.asarray(R, dtype=float)
+    return np.linalg.solve(np.linalg.cholesky(0.5 * (R + R.T)), np.eye(R.shape[-1]))
 
 
 def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -468,6 +515,16 @@ def _predict(model: Model, x, P, k: int, u):
     return xp, 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
 
 
+def measurement_rows(model: Model, i: int, x_pred, z, W, k: int):
+    """Sensor ``i``'s information as rows: ``(L, u)`` = ``(W H, Lᵀ W (z - h(x̄) + H x̄))`` at the predictions ``x_pred``
+    (a, n_x) for its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped), ``W`` its
+    :func:`whitening` (``Lᵀ L = Hᵀ R⁻¹ H``, the ``U`` of :func:`measurement_information`)."""
+    H = model.H(i, x_pred, k + 1)
+    L = W @ H
+    res = wrap_residuals(z - model.h(i, x_pred, k + 1), model.sensors[i].angles)
+    return L, (np.swapaxes(L, -1, -2) @ (W @ (res + (H @ x_pred[..., None])[..., 0])[..., None]))[..., 0]
+
+
 def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
     """Sensor ``i``'s information ``(U, u)`` = ``(Hᵀ R⁻¹ H, Hᵀ R⁻¹ (z - h(x̄) + H x̄))`` at the predictions
     ``x_pred`` (a, n_x) for its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped)."""
@@ -479,11 +536,13 @@ def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
 
 
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int,
-                  covariances: bool = True) -> DistributedBatchResult:
+                  covariances: bool = True, as_rows: bool = False) -> DistributedBatchResult:
     """The step both filters share, run by :func:`filters.engine.run_batch` over many runs at once: every step,
     predict at every node of the runs still going, compute every node's measurement information, ``update`` them;
     a run stops at its first divergence (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes
-    stacks over the runs ``act`` (``recv`` (a, N, N)) and returns their posteriors and ``ω`` (or None); where it
+    stacks over the runs ``act`` (``recv`` (a, N, N); with ``as_rows`` the information's rows ``L`` (a, N, m, n_x) of
+    :func:`measurement_rows` in place of ``U``, zero below a sensor's own, ``m`` the largest sensor's) and returns
+    their posteriors and ``ω`` (or None); where it
     raises ``LinAlgError``, the runs are updated one at a time to find those that break down.  Without
     ``covariances`` the nodes' covariances are kept at their latest step only (:class:`filters.engine.Latest`)."""
     n, nx = network.n_nodes, model.n_x
@@ -511,11 +570,15 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
             every = go.size == act.size
             xg, Pg, rg = (v if every else v[go] for v in (xp, Pp, recv))
             # every node's measurement information, linearised at its own prediction (stacked over the runs)
-            U, u = np.empty(xg.shape + (nx,)), np.empty(xg.shape)
+            u = np.empty(xg.shape)
+            U = np.zeros(xg.shape[:-1] + (max(model.sensor_dims), nx)) if as_rows else np.empty(xg.shape + (nx,))
             zk = inp.z[act[go], k]
             for i in range(n):
-                U[:, i], u[:, i] = measurement_information(model, i, xg[:, i], zk[:, offsets[i]:offsets[i + 1]],
-                                                           inp.R_inv[i], k)
+                zi = zk[:, offsets[i]:offsets[i + 1]]
+                if as_rows:
+                    U[:, i, :zi.shape[-1]], u[:, i] = measurement_rows(model, i, xg[:, i], zi, inp.R_root[i], k)
+                else:
+                    U[:, i], u[:, i] = measurement_information(model, i, xg[:, i], zi, inp.R_inv[i], k)
             try:
                 x, P, om = update(k, act[go], xg, Pg, U, u, rg)
             except np.linalg.LinAlgError:
@@ -567,12 +630,14 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
     packet = falsify == "packet"
 
     ex = Exchange(network)
+    slots = _slots(ex)
 
-    def update(k, act, xp, Pp, U, u, recv):
+    def update(k, act, xp, Pp, L, u, recv):
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
-        return _kcf_update(ex, eps, packet, xp, Pp, U, u, recv, *at)
+        return _kcf_update(ex, slots, eps, packet, xp, Pp, L, u, recv, *at)
 
-    return distributed_result(_filter_batch(model, network, inp, update, 1, covariances)._replace(omega=None))
+    return distributed_result(_filter_batch(model, network, inp, update, 1, covariances, as_rows=True
+                                            )._replace(omega=None))
 
 
 def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iterations: int = 1,
@@ -596,11 +661,12 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
 
 # --------------------------------------------------------------------------- KCF's node filter
 class KCFPacket(NamedTuple):
-    """What a KCF node sends each step: its measurement information ``u`` (n_x,), ``U`` (n_x, n_x) and its
+    """What a KCF node sends each step: its measurement information ``u`` (n_x,), ``U`` as its rows ``L`` (m, n_x),
+    ``U = Lᵀ L`` (:func:`measurement_rows`; ``m`` the model's largest sensor, zero rows below the node's own) and its
     prediction ``x`` (n_x,)."""
 
     u: np.ndarray
-    U: np.ndarray
+    L: np.ndarray
     x: np.ndarray
 
 
@@ -615,19 +681,25 @@ class _InformationNode:
         self.model, self.network, self.packet = model, network, falsify == "packet"
         self.senders = np.flatnonzero(network.adjacency[i])
         self._R_inv = _spd_inverse(model.measurement_cov(i))
+        self._R_root = whitening(model.measurement_cov(i))
         _, _, x0, P0 = batch_inputs(model, np.zeros((1, 1, model.n_z)), np.zeros((1, model.n_u)), x0, P0, "P0")
         self.x, self.P = x0[0].copy(), P0[0].copy()
         self.k, self.diverged = 0, False
 
-    def _predicted(self, z, u):
-        """``(x̂⁻, P⁻, U, u)`` (stacks of one) of the next step with the node's measurement ``z``."""
+    def _predicted(self, z, u, rows: bool = False):
+        """``(x̂⁻, P⁻, U, u)`` (stacks of one) of the next step with the node's measurement ``z`` (with ``rows``
+        ``L`` (1, m, n_x) in place of ``U``, as the batch's)."""
         m, i = self.model, self.node
         chk = NodeInputs.of(self)
         z = chk.array("z", z, (m.sensor_dims[i],))
         u = chk.inputs(u, m.n_u)
         xp, Pp = _predict(m, self.x[None, None], self.P[None, None], self.k, u)
-        U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
-        return xp, Pp, U, v
+        if not rows:
+            U, v = measurement_information(m, i, xp[:, 0], z[None], self._R_inv, self.k)
+            return xp, Pp, U, v
+        L = np.zeros((1, max(m.sensor_dims), m.n_x))
+        L[:, :z.shape[-1]], v = measurement_rows(m, i, xp[:, 0], z[None], self._R_root, self.k)
+        return xp, Pp, L, v
 
     def _packets(self, received, kind: type, fields: tuple) -> tuple[np.ndarray, list]:
         """``received`` ``{neighbour: packet}`` checked (:class:`filters.node.NodeInputs`: its keys in-neighbours,
@@ -657,9 +729,9 @@ class KCFNode(_InformationNode):
         """The prediction phase with the node's measurement ``z``: the packet it sends."""
         if self._pred is not None:
             raise InputError(f"node {self.node} has predicted step {self.k} already: call update(received) next")
-        xp, Pp, U, v = self._predicted(z, u)
-        self._pred = (xp, Pp, U[:, None], v[:, None])
-        return KCFPacket(v[0], U[0], xp[0, 0])
+        xp, Pp, L, v = self._predicted(z, u, rows=True)
+        self._pred = (xp, Pp, L[:, None], v[:, None])
+        return KCFPacket(v[0], L[0], xp[0, 0])
 
     def update(self, received: dict | None = None) -> np.ndarray:
         """The update phase: ``received`` ``{neighbour: KCFPacket}`` as they arrived.  Returns the estimate (also
@@ -667,20 +739,22 @@ class KCFNode(_InformationNode):
         i = self.node
         if self._pred is None:
             raise InputError(f"node {i} must predict step {self.k} before its update: call predict(z, u) first")
-        nx, d = self.model.n_x, self.senders.size
-        arrived, got = self._packets(received, KCFPacket, (("U", (nx, nx)), ("u", (nx,)), ("x", (nx,))))
-        xp, Pp, U, v = self._pred
+        nx, d, m = self.model.n_x, self.senders.size, max(self.model.sensor_dims)
+        arrived, got = self._packets(received, KCFPacket, (("L", (m, nx)), ("u", (nx,)), ("x", (nx,))))
+        xp, Pp, L, v = self._pred
         r = arrived[None].astype(float)
-        pU, pu, px = np.zeros((1, d, nx, nx)), np.zeros((1, d, nx)), np.zeros((1, d, nx))
+        pu, px = np.zeros((1, d, nx)), np.zeros((1, d, nx))
+        rows = np.zeros((1, 1, 1 + d, m, nx))  # J_i's rows as the batch stacks them: its own, then each channel's
+        rows[0, 0, 0] = L[0, 0]
         for e, p in enumerate(got):
             if p is not None:
-                pU[0, e], pu[0, e], px[0, e] = p
+                pL, pu[0, e], px[0, e] = p  # in the order of the fields checked
+                rows[0, 0, 1 + e] = r[0, e] * pL
         # the sums over its incoming channels as the batch adds them (a lost packet an exact zero there)
-        S = U + Exchange.node_sum(r[..., None, None] * pU)[:, None]
         y = v + Exchange.node_sum(r[..., None] * pu)[:, None]
         diff = Exchange.node_sum(r[..., None] * px)[:, None] - Exchange.node_sum(r)[:, None, None] * xp
         try:
-            x, M = _kcf_combine(self.eps, xp, Pp, S, y, diff)
+            x, M = _kcf_combine(self.eps, xp, Pp, rows.reshape(1, 1, (1 + d) * m, nx), y, diff)
         except np.linalg.LinAlgError:
             x, M = np.full_like(xp, np.nan), np.full_like(Pp, np.nan)
         if _failures(xp, Pp)[0] < 1 or _failures(x, M)[0] < 1:
@@ -706,8 +780,8 @@ class KCFNetwork(NodeNetwork):
         """What the nodes' ``packets`` deliver to every node over the step's channels (``dos``, ``fdi`` (E,), ``xi``
         (E, n_x) in :class:`filters.consensus_batch.EdgeAttacks` order): per node ``{neighbour: KCFPacket}``."""
         def falsified(nd, j, p, f, x):
-            u_t, x_t = kcf_packets(p.u, p.U, p.x, f, x, nd.packet)
-            return KCFPacket(u_t, p.U, x_t)
+            u_t, x_t = kcf_packets(p.u, p.L, p.x, f, x, nd.packet)
+            return KCFPacket(u_t, p.L, x_t)
 
         return self.carry(packets, dos, fdi, xi, falsified)
 

@@ -286,7 +286,7 @@ def kcf(name: str, description: str) -> FilterEntry:
 
     return FilterEntry(name, "consensus", "local", description, run, _links, counts_delivered=True,
                        node_filters=lambda model, network, design, iterations: KCFNetwork(model, network),
-                       payload=lambda model, network, iterations: kcf_payload(model.n_x, network))
+                       payload=lambda model, network, iterations: kcf_payload(model.n_x, network, model.sensor_dims))
 
 
 def hcmci(name: str, description: str) -> FilterEntry:

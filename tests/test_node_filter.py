@@ -227,7 +227,7 @@ def test_baselines_node_filters_by_name_give_the_studys_numbers(target, name, ro
             j, p = int(att.sender[edge]), sent[int(att.sender[edge])]
             if not att.dos[0, k, edge]:
                 xi = att.xi[0, k, edge]
-                got[j] = (p._replace(u=p.u + p.U @ xi, x=p.x + xi) if att.fdi[0, k, edge] else p)
+                got[j] = (p._replace(u=p.u + p.L.T @ (p.L @ xi), x=p.x + xi) if att.fdi[0, k, edge] else p)
         delivered = again.deliver(sent, att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         assert sorted(got) == sorted(delivered[i])
         assert all(np.allclose(a, b, rtol=1e-12, atol=0) for j in got for a, b in zip(got[j], delivered[i][j]))

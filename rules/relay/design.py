@@ -54,7 +54,7 @@ RELAY = "relay"
 __all__ = ["RTOL", "FLOAT_RTOL", "Routes", "relay_routes", "ROUTINGS", "RELAY", "MAX_HOPS", "DEFAULT_HOPS_MAX",
            "default_hops", "diameter",
            "relay_payload", "pair_sum", "relay_stationary", "LMI_MAX_ENTRIES", "whitened_rows", "NodeMoments",
-           "node_moments", "relay_update", "grouped", "relay_carried",
+           "node_moments", "relay_update", "relay_gain", "RelayGain", "grouped", "relay_carried",
            "update_moments", "relay_information", "flood_moments", "relay_moments", "flood_samples", "node_classes",
            "hop_distances", "moment_bytes",
            "pseudo_inverse"]
@@ -567,10 +567,48 @@ RTOL = 1e-12
 FLOAT_RTOL = 1e-5
 
 
+class RelayGain(NamedTuple):
+    """The relay rule's gain at a node (:func:`relay_gain`), as it was computed: in the ball's rows, ``Kr`` (..., n, r)
+    and ``G0`` (..., r, r) the products of two rows of one hop depth (``W = K_r Ĥ``, so that ``W y = K_r G0 res``:
+    the n x G n matrix ``W`` is never formed), or ``W`` (..., n, G n) itself (``Kr``, ``G0`` None)."""
+
+    Kr: np.ndarray | None
+    G0: np.ndarray | None
+    W: np.ndarray | None
+
+    def correction(self, Hw: np.ndarray, mom: NodeMoments, res: np.ndarray) -> np.ndarray:
+        """``W y`` (..., n) for the whitened residuals ``res`` (..., r) (zero where a measurement did not arrive),
+        ``y`` their groups' information (:func:`relay_information`): in the rows ``K_r (G0 res)``, as the C node
+        computes it (``(Ĥ y)_a = Σ_b G0_ab res_b``, ``b`` the rows of ``a``'s depth)."""
+        if self.W is None:
+            return (self.Kr @ (self.G0 @ res[..., None]))[..., 0]
+        return (self.W @ relay_information(Hw, mom, res)[..., None])[..., 0]
+
+    def matrix(self, Hw: np.ndarray, mom: NodeMoments) -> np.ndarray:
+        """``W`` (..., n, G n), one n x n block per hop depth: in the rows ``K_r Ĥ``, depth g's block from its rows
+        alone."""
+        if self.W is not None:
+            return self.W
+        n, G = Hw.shape[-1], mom.groups.shape[-1]
+        W = np.zeros(Hw.shape[:-2] + (n, G * n))
+        for g in range(G):
+            rows = np.flatnonzero(mom.groups[:, g])
+            if rows.size:
+                W[..., g * n:(g + 1) * n] = self.Kr[..., rows] @ Hw[..., rows, :]
+        return W
+
+
 def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
                  rtol: float = RTOL) -> tuple[np.ndarray, np.ndarray]:
-    """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(W, P_post)``, ``W``
-    (..., n, G n) one n x n block per hop depth.
+    """:func:`relay_gain` with its gain as the matrix ``W`` (..., n, G n): ``(W, P_post)``."""
+    gain, P = relay_gain(P_pred, Hw, mom, M, mu, rtol)
+    return gain.matrix(Hw, mom), P
+
+
+def relay_gain(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarray, mu: np.ndarray,
+               rtol: float = RTOL) -> tuple[RelayGain, np.ndarray]:
+    """The relay rule's gain and expected posterior covariance at one node, over a batch: ``(gain, P_post)``, the
+    gain a :class:`RelayGain` (``W`` (..., n, G n), one n x n block per hop depth, or its factors in the ball's rows).
 
     ``P_pred`` (..., n, n) the node's predicted covariance; ``Hw`` (..., r, n) the whitened Jacobian rows
     ``R_a^{-1/2} H_a`` of its ball's measurements (``mom.rows`` order) at its prediction; ``M``, ``mu`` the
@@ -606,7 +644,7 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
         Pb, Hb = np.broadcast_to(P_pred, lead + P_pred.shape[-2:]), Hw
         out = [relay_update(Pb[i], Hb[i], _take(mom, i)._replace(groups=groups[i]), M if M.ndim == 2 else M[i],
                             mu if mu.ndim == 1 else mu[i], rtol) for i in np.ndindex(lead)]
-        return (np.stack([w for w, _ in out]).reshape(lead + out[0][0].shape),
+        return (RelayGain(None, None, np.stack([w for w, _ in out]).reshape(lead + out[0][0].shape)),
                 np.stack([p for _, p in out]).reshape(lead + out[0][1].shape))
     n, G = P_pred.shape[-1], groups.shape[-1]
     HP = Hw @ P_pred
@@ -629,7 +667,8 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
             blocks.append((g * n + cols, rows, Hr[..., cols]))
     W = np.zeros(Hw.shape[:-2] + (n, G * n))
     if not blocks:  # no measurement sees a state: no update
-        return W, np.array(np.broadcast_to(0.5 * (P_pred + np.swapaxes(P_pred, -1, -2)), Hw.shape[:-2] + (n, n)))
+        return RelayGain(None, None, W), np.array(np.broadcast_to(0.5 * (P_pred + np.swapaxes(P_pred, -1, -2)),
+                                                                  Hw.shape[:-2] + (n, n)))
     act = np.concatenate([c for c, _, _ in blocks])
     SH = np.concatenate([S[..., :, rows] @ B for _, rows, B in blocks], axis=-1)  # S Ĥ on the active columns
     Q = np.concatenate([np.swapaxes(B, -1, -2) @ SH[..., rows, :] for _, rows, B in blocks], axis=-2)
@@ -638,29 +677,24 @@ def relay_update(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.nda
                         for _, rows, B in blocks], axis=-1)  # P⁻ Hwᵀ diag(p) Ĥ
     W[..., act] = C @ Qp
     P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
-    return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+    return RelayGain(None, None, W), 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
-    """:func:`relay_update` in the ball's rows (its comment says why and how): ``(W, P⁺)``, or None where some item's
-    ``S`` is not positive definite (then Q's own eigendecomposition)."""
+    """:func:`relay_gain` in the ball's rows (its comment says why and how): ``(gain, P⁺)``, the gain's ``K_r`` and
+    ``G0`` (:class:`RelayGain`), or None where some item's ``S`` is not positive definite (then Q's own
+    eigendecomposition)."""
     try:
         Ls = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
         return None
-    n, G = P_pred.shape[-1], mom.groups.shape[-1]
     same = mom.groups @ mom.groups.T  # (r, r) 1 where two rows are of the same hop depth
     G0 = same * (Hw @ np.swapaxes(Hw, -1, -2))  # Ĥ Ĥᵀ
     Mp = pseudo_inverse(np.swapaxes(Ls, -1, -2) @ G0 @ Ls, rtol)
     Y = np.linalg.solve(Ls, mom.p[..., :, None] * HP)  # Lₛ⁻¹ Xᵀ (r x n), Xᵀ = diag(p) Hw P⁻
     Kr = np.swapaxes(Mp @ Y, -1, -2) @ np.swapaxes(Ls, -1, -2)
-    W = np.zeros(Hw.shape[:-2] + (n, G * n))
-    for g in range(G):  # W = K_r Ĥ: depth g's block from its rows alone
-        rows = np.flatnonzero(mom.groups[:, g])
-        if rows.size:
-            W[..., g * n:(g + 1) * n] = Kr[..., rows] @ Hw[..., rows, :]
     P = P_pred - Kr @ (G0 @ (mom.p[..., :, None] * HP))
-    return W, 0.5 * (P + np.swapaxes(P, -1, -2))
+    return RelayGain(Kr, G0, None), 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 def pseudo_inverse(M: np.ndarray, rtol: float = RTOL) -> np.ndarray:

@@ -37,7 +37,7 @@ Each step, every sensor's ``h_s`` and ``H_s`` are evaluated once, at the predict
 (the receivers and, among them, the forwarding nodes) over all runs; the values are kept in one flat array of
 measurement rows laid out node by node (each node's rows contiguous, in its moments' order), so that the
 arrivals and offsets are a pass over the rounds and each node's update takes a slice.  The nodes of one shape
-(:func:`rules.relay.design.node_classes`) update in one :func:`rules.relay.design.relay_update` over them and the runs.  A
+(:func:`rules.relay.design.node_classes`) update in one :func:`rules.relay.design.relay_gain` over them and the runs.  A
 run alone is a batch of one (the same numbers, tested).
 """
 from __future__ import annotations
@@ -63,7 +63,7 @@ from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
 from .design import (MAX_HOPS, RTOL, NodeMoments, Routes, moment_bytes, node_classes, relay_carried,
-                     relay_information, relay_moments, relay_routes, relay_update)
+                     relay_gain, relay_moments, relay_routes)
 
 __all__ = ["run_relay_batch", "run_relay_design", "RelayNode", "RelayNetwork"]
 
@@ -381,8 +381,9 @@ def _relayed(routes: Routes, lay: _Layout, zk, H_rows, dos, fdi, xi):
 def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived, rtol: float = RTOL, which=None):
     """Every node's relay update from what arrived at its rows (what the node computes itself): the residuals
     ``values - h`` (angles wrapped) and ``H_rows`` whitened by ``R^{-1/2}`` (in place), then per class of nodes
-    :func:`rules.relay.design.relay_update` (its pseudo-inverse cut at ``rtol``) and
-    :func:`rules.relay.design.relay_information`; ``which`` (a,) each run's setting where the classes stack several
+    :func:`rules.relay.design.relay_gain` (its pseudo-inverse cut at ``rtol``) and the update its gain makes of the
+    residuals (in the ball's rows ``K_r G0 res``, the C node's way: :class:`rules.relay.design.RelayGain`; the
+    n x G n gain itself is never formed there); ``which`` (a,) each run's setting where the classes stack several
     (:func:`_setting_classes`).  Returns ``(x, P)``."""
     Hw = H_rows
     res = values - h
@@ -406,11 +407,9 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
                                       else getattr(stacked, f)[which, c:c + size]
                                       for f in NodeMoments._fields if f != "groups"})
             rows = lay.start[nodes][:, None] + np.arange(r)  # (g, r): each node's rows
-            Hc = Hw[:, rows]  # (a, g, r, nx)
-            W, P[:, nodes] = _node_update(Pp[:, nodes], Hc, mom, M if M.ndim == 2 else M[nodes],
-                                          mu if mu.ndim == 1 else mu[nodes], rtol, which is not None)
-            y = relay_information(Hc, mom, res[:, rows])  # (a, g, G nx): Σ_{arrived, depth g} Hwᵀ R^{-1/2} r
-            x[:, nodes] = xp[:, nodes] + (W @ y[..., None])[..., 0]
+            dx, P[:, nodes] = _node_update(Pp[:, nodes], Hw[:, rows], mom, M if M.ndim == 2 else M[nodes],
+                                           mu if mu.ndim == 1 else mu[nodes], res[:, rows], rtol, which is not None)
+            x[:, nodes] = xp[:, nodes] + dx
     return x, P
 
 
@@ -421,22 +420,25 @@ def _fuse(lay: _Layout, classes: list, M, mu, xp, Pp, h, H_rows, values, arrived
 CLASS_CHUNK = 200_000
 
 
-def _node_update(Pp, Hw, mom, M, mu, rtol: float = RTOL, per_run: bool = False):
-    """:func:`rules.relay.design.relay_update` over the runs; a run where it breaks down (LinAlgError) gets NaN (and stops
-    as diverged), the others their update.  ``per_run``: ``mom``'s :data:`_SETTING_FIELDS` have a first axis over the
-    runs (their settings')."""
+def _node_update(Pp, Hw, mom, M, mu, res, rtol: float = RTOL, per_run: bool = False):
+    """:func:`rules.relay.design.relay_gain` over the runs, and the update it makes of the whitened residuals ``res``
+    (..., r) (zero where a row did not arrive): ``(W y, P⁺)`` (:meth:`rules.relay.design.RelayGain.correction`, ``y``
+    the depths' information ``Σ_{arrived, depth g} Hwᵀ R^{-1/2} r``); a run where it breaks down (LinAlgError) gets
+    NaN (and stops as diverged), the others their update.  ``per_run``: ``mom``'s :data:`_SETTING_FIELDS` have a
+    first axis over the runs (their settings')."""
     try:
-        return relay_update(Pp, Hw, mom, M, mu, rtol)
+        gain, P = relay_gain(Pp, Hw, mom, M, mu, rtol)
+        return gain.correction(Hw, mom, res), P
     except np.linalg.LinAlgError:
-        n, G = Pp.shape[-1], mom.groups.shape[-1]
-        W, P = np.full(Pp.shape[:-1] + (G * n,), np.nan), np.full(Pp.shape, np.nan)
+        dx, P = np.full(Pp.shape[:-1], np.nan), np.full(Pp.shape, np.nan)
         for r in range(Pp.shape[0]):
             own = mom._replace(**{f: getattr(mom, f)[r] for f in _SETTING_FIELDS}) if per_run else mom
             try:
-                W[r], P[r] = relay_update(Pp[r], Hw[r], own, M, mu, rtol)
+                gain, P[r] = relay_gain(Pp[r], Hw[r], own, M, mu, rtol)
             except np.linalg.LinAlgError:
-                pass
-        return W, P
+                continue
+            dx[r] = gain.correction(Hw[r], own, res[r])
+        return dx, P
 
 
 def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
