@@ -68,7 +68,7 @@ __all__ = ["NodeExport", "c_text", "template", "C_TEMPLATES", "PLACEHOLDER", "de
            "replay_file", "REPLAY_TOLERANCE", "C_TEXT_MAX", "perturbed_twin", "replay_tolerances", "state_difference",
            "SENSITIVITY_SAFETY", "SENSITIVITY_TRIALS", "SENSITIVITY_SEED", "REPLAY_TOLERANCE_CAP", "FLOAT_EPSILON",
            "FLOAT_SEED", "arrival_flag", "perturb", "network_tolerances", "NETWORK_TOLERANCE_CAP", "REPLAY_TOLERANCES",
-           "DRIFT_SEED", "DRIFT_TRIALS"]
+           "DRIFT_SEED", "DRIFT_TRIALS", "network_copy", "drift_tolerances"]
 
 C_TEMPLATES = files(__package__) / "c"  # the frame's C files (frame/); a rule's node kind: its package's c/
 _FRAME = C_TEMPLATES / "frame"
@@ -286,12 +286,18 @@ def _configuration(net) -> dict:
     return memo
 
 
+def network_copy(net):
+    """A copy of the node network ``net`` that steps on its own: its state copied, its configuration shared
+    (:func:`_configuration`)."""
+    return copy.deepcopy(net, _configuration(net))
+
+
 def perturbed_twin(net, rng: np.random.Generator, eps: float = float(np.finfo(float).eps)):
-    """A copy of the node network ``net`` (its configuration shared: :func:`_configuration`) whose every node's
-    estimate and covariance are moved by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the
-    rounding unit, the double's machine epsilon unless given: :data:`FLOAT_EPSILON` for a float node; ``g`` standard
-    normal; the covariance's perturbation symmetric)."""
-    return perturb(copy.deepcopy(net, _configuration(net)), rng, eps)
+    """A copy of the node network ``net`` (:func:`network_copy`) whose every node's estimate and covariance are moved
+    by about one unit in the last place: each entry times ``1 + ε g`` (``ε`` the rounding unit, the double's machine
+    epsilon unless given: :data:`FLOAT_EPSILON` for a float node; ``g`` standard normal; the covariance's
+    perturbation symmetric)."""
+    return perturb(network_copy(net), rng, eps)
 
 
 def perturb(net, rng: np.random.Generator, eps: float = float(np.finfo(float).eps)):
@@ -359,6 +365,44 @@ def network_tolerances(net, drifting: Sequence, nodes: Sequence[int], previous, 
         moved = max((state_difference(t.nodes[i].x, t.nodes[i].P, ref.x, ref.P) for t in drifting), default=0.0)
         out[j] = max(out[j], SENSITIVITY_SAFETY * moved)
     return np.where(out <= NETWORK_TOLERANCE_CAP, out, np.inf)
+
+
+def drift_tolerances(net, exporter: "NodeExport", z: np.ndarray, attacks, u: np.ndarray, nodes: Sequence[int]
+                     ) -> np.ndarray:
+    """The network run's tolerances (:func:`network_tolerances`) at every step of the replayed run, a double node's
+    and a float node's: (steps, nodes, 2).  ``net`` is the node network at the start, stepped here (a copy:
+    :func:`network_copy`), beside its drifting copies (:data:`DRIFT_TRIALS` of each, perturbed before every step
+    from :data:`DRIFT_SEED`'s stream); ``z`` (steps, n_z) the run's measurements, ``attacks`` its
+    :class:`filters.consensus_batch.EdgeAttacks` (one run; None: none), ``u`` (steps, n_u) its inputs.  It ends where
+    ``net`` stops (diverged), as the replay does.  Independent of the per-step twins (:func:`replay_tolerances`):
+    the export computes it in a process of its own beside them (:class:`studies.runner.Background`), the same numbers."""
+    import warnings
+
+    rng = np.random.default_rng(DRIFT_SEED)
+    drifting = [perturbed_twin(net, rng, 0.0) for _ in range(DRIFT_TRIALS)]
+    drifting_float = [exporter.float_twin(net, rng) for _ in range(DRIFT_TRIALS)]
+    to_float = FLOAT_EPSILON / np.finfo(float).eps
+    tol = tol_float = None
+    out = []
+    for k in range(z.shape[0]):
+        e = (None, None, None) if attacks is None else (attacks.dos[0, k], attacks.fdi[0, k], attacks.xi[0, k])
+        for twin in drifting:
+            perturb(twin, rng)
+        for twin in drifting_float:
+            perturb(twin, rng, FLOAT_EPSILON)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):  # the replay warns of the run's own troubles
+            warnings.simplefilter("ignore")
+            net.step(z[k], *e, u=u[k])
+            if getattr(net, "stopped", False):
+                break
+            for twin in drifting + drifting_float:
+                twin.step(z[k], *e, u=u[k])
+        tol = network_tolerances(net, drifting, nodes, tol)
+        floor = tol * to_float  # a float node's at least the double's, scaled to its rounding
+        tol_float = network_tolerances(net, drifting_float, nodes,
+                                       floor if tol_float is None else np.maximum(floor, tol_float))
+        out.append(np.stack([tol, tol_float], -1))
+    return np.reshape(out, (len(out), len(nodes), 2))
 
 
 def check_prefix(prefix: str) -> str:

@@ -888,16 +888,14 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Returns the files written.
     """
     import rules
-    from designer.export_c import (DRIFT_SEED, DRIFT_TRIALS, FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE_CAP,
-                                   REPLAY_TOLERANCES, SENSITIVITY_SAFETY, SENSITIVITY_SEED, SENSITIVITY_TRIALS,
-                                   check_prefix, network_tolerances, perturb, perturbed_twin, prefixed,
-                                   replay_tolerances)
+    from designer.export_c import (FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCES, SENSITIVITY_SEED, check_prefix,
+                                   drift_tolerances, network_copy, prefixed)
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
-    from designer.progress import progress
     from .design_options import effective
     from .recorded import clip_message, design_options_of, read_design_record, read_log, recorded_design
+    from .runner import Background
 
     check_path("design_dir", design_dir)
     if target != "c":
@@ -952,23 +950,39 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     net = node_network(sc.model, sc.network, design)
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
     offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
-    steps, tolerances = [], []
     rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
     rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
     to_float = FLOAT_EPSILON / np.finfo(float).eps
-    # the network run's: copies run beside the network from the start, perturbed at every step (a double's, a float's)
-    rng_drift = np.random.default_rng(DRIFT_SEED)
-    drifting = [perturbed_twin(net, rng_drift, 0.0) for _ in range(DRIFT_TRIALS)]
-    drifting_float = [exporter.float_twin(net, rng_drift) for _ in range(DRIFT_TRIALS)]
-    network_tol = network_tol_float = None
+    # the network run's tolerances (copies run beside the network from the start, perturbed at every step: a double's,
+    # a float's), in a process of their own beside this one's per-step twins: the same numbers (tested)
+    with Background(drift_tolerances, network_copy(net), exporter, z, att, u, chosen) as drift:
+        steps, tolerances = _replay(exporter, net, z, att, u, offsets, chosen, mode, rng, rng_float, to_float)
+        network = drift.result()[:len(steps)]
+    if len(network) < len(steps):  # the copies' network stopped first (the same steps: not seen), unchecked from there
+        network = np.concatenate([network, np.full((len(steps) - len(network), len(chosen), 2), np.inf)])
+    tolerances = np.concatenate([tolerances, network], axis=-1)
+    verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
+    tolerances = np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES))
+    with replaced_outputs(out) as stage:
+        written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
+                                          tolerances=tolerances, verdict=verdict), prefix)
+    return [Path(out) / p.name for p in written]
+
+
+def _replay(exporter, net, z, att, u, offsets, chosen, mode, rng, rng_float, to_float):
+    """The export's replay of the run (:func:`export`): the node network ``net`` stepped over it, each step's replay
+    record and each exported node's per-step tolerances, a double node's and a float node's (steps, nodes, 2), from
+    twins of the network perturbed before the step (:func:`designer.export_c.replay_tolerances`); it ends before a
+    step where the filter diverged or that is too ill-conditioned to check (a warning says which)."""
+    from designer.export_c import REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY, SENSITIVITY_TRIALS, perturbed_twin, \
+        replay_tolerances
+    from designer.progress import progress
+
+    steps, tolerances = [], []
     for k in progress(range(z.shape[0]), z.shape[0], False, "export: replaying the run"):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
         twins = [perturbed_twin(net, rng) for _ in range(SENSITIVITY_TRIALS)]
         floats = [exporter.float_twin(net, rng_float) for _ in range(SENSITIVITY_TRIALS)]
-        for twin in drifting:
-            perturb(twin, rng_drift)
-        for twin in drifting_float:
-            perturb(twin, rng_drift, FLOAT_EPSILON)
         net.step(z[k], *e, u=u[k])
         if getattr(net, "stopped", False):
             warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
@@ -977,7 +991,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         step = exporter.replay_step(net, k, u[k], [z[k, offsets[i]:offsets[i + 1]] for i in chosen], chosen)
         with warnings.catch_warnings(), np.errstate(all="ignore"):  # a twin may break down where the run does not
             warnings.simplefilter("ignore")
-            for twin in twins + floats + drifting + drifting_float:
+            for twin in twins + floats:
                 twin.step(z[k], *e, u=u[k])
         tol = replay_tolerances(net, twins, chosen)
         if not np.all(tol <= REPLAY_TOLERANCE_CAP):  # beyond, C and Python may differ by rounding alone
@@ -987,16 +1001,6 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
                           f"of their scale, beyond make test's check at {REPLAY_TOLERANCE_CAP:g}): replay.txt "
                           f"holds the {k} steps before", RuntimeWarning, stacklevel=2)
             break
-        network_tol = network_tolerances(net, drifting, chosen, network_tol)
-        floor = network_tol * to_float  # a float node's at least the double's, scaled to its rounding
-        network_tol_float = network_tolerances(net, drifting_float, chosen, floor if network_tol_float is None
-                                               else np.maximum(floor, network_tol_float))
         steps.append(step)
-        tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen)),
-                                    network_tol, network_tol_float], -1))
-    verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
-    tolerances = np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES))
-    with replaced_outputs(out) as stage:
-        written = prefixed(exporter.write(sc.model, sc.network, design, net, steps, stage, nodes=chosen,
-                                          tolerances=tolerances, verdict=verdict), prefix)
-    return [Path(out) / p.name for p in written]
+        tolerances.append(np.stack([tol, np.maximum(tol * to_float, replay_tolerances(net, floats, chosen))], -1))
+    return steps, np.reshape(tolerances, (len(steps), len(chosen), 2))

@@ -144,6 +144,23 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     moved_replay_fails(out, 5, -n_x * n_x - n_x, "x", range(8))  # the first component of an expected estimate
 
 
+def test_the_network_runs_tolerances_are_the_same_beside_the_replay_or_after_it(tmp_path, monkeypatch):
+    """export runs the network run's drifting copies (designer.export_c.drift_tolerances) in a process of its own
+    beside the per-step twins (studies.runner.Background); with one usable core it runs them here, after the replay:
+    replay.txt, whose rows start with both tolerances, is the same file bit for bit."""
+    import designer.cores
+
+    if designer.cores.usable_cores() < 2:
+        pytest.skip("one usable core: the drifting copies run here either way")
+    des = tmp_path / "design"
+    assert main(["design", "indoor-robot", "--mode", "relay", "--seed", "2", "--out", str(des)]) in (0, 1)
+    assert main(["export", str(des), "--target", "c", "--out", str(tmp_path / "beside")]) == 0
+    monkeypatch.setattr(designer.cores, "usable_cores", lambda: 1)
+    assert main(["export", str(des), "--target", "c", "--out", str(tmp_path / "after")]) == 0
+    beside, after = ((tmp_path / d / "replay.txt").read_bytes() for d in ("beside", "after"))
+    assert beside == after and len(beside.splitlines()) > 8
+
+
 @pytest.mark.slow
 def test_a_users_flood_design_in_c_replays_a_recorded_log(cart, tmp_path, capsys):
     """The user's cart (a known input, bearings wrapped at +-pi, ranges), its flood design exported for two nodes and
