@@ -30,7 +30,7 @@ import numpy as np
 from .validation import InputError
 
 __all__ = ["SENSED", "sensed_regions", "resolve_regions", "region_mask", "region_traces", "region_error2",
-           "describe_regions", "region_detail", "dynamics_support", "carried_states", "carried_index",
+           "describe_regions", "region_detail", "region_sums", "dynamics_support", "carried_states", "carried_index",
            "carried_positions", "carried_region_traces", "Carried"]
 
 #: ``REGIONS = "sensed"``: each node's region is the states its own sensor's measurement depends on.
@@ -228,8 +228,13 @@ def region_mask(regions: Sequence[np.ndarray], n_x: int) -> np.ndarray:
 def region_traces(P: np.ndarray, regions: Sequence[np.ndarray]) -> np.ndarray:
     """Each node's covariance traced over its region: ``P`` (..., nodes, n, n), one matrix per node (a centralized
     filter's one matrix as (..., 1, n, n): broadcast to every node), gives (..., nodes)."""
-    P = np.asarray(P, dtype=float)
-    return np.where(region_mask(regions, P.shape[-1]), np.diagonal(P, axis1=-2, axis2=-1), 0.0).sum(-1)
+    return region_sums(np.diagonal(np.asarray(P, dtype=float), axis1=-2, axis2=-1), regions)
+
+
+def region_sums(d: np.ndarray, regions: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`region_traces` of the covariances' diagonals ``d`` (..., nodes, n)."""
+    d = np.asarray(d, dtype=float)
+    return np.where(region_mask(regions, d.shape[-1]), d, 0.0).sum(-1)
 
 
 def region_error2(err: np.ndarray, regions: Sequence[np.ndarray]) -> np.ndarray:

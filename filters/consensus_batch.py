@@ -40,7 +40,7 @@ written from is kept as the tests' reference (``tests/consensus_reference.py``).
 from __future__ import annotations
 
 import inspect
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -63,7 +63,7 @@ from designer.validation import InputError, check_covariance, check_finite
 
 from .attacks import AttackPattern, channel_attacks, channel_draws
 from .channels import GATE_COUNTS, channel_packets, gate_channels
-from .engine import Latest, Step, history, run_batch
+from .engine import Diagonal, Latest, Step, diagonals, history, run_batch
 from .result import DIVERGED_REASON, HARD_CONDITIONS, FilterResult, constant_messages, diverged_nodes
 from .rrp import wrap_angles
 
@@ -74,7 +74,7 @@ __all__ = ["EdgeAttacks", "ConsensusResult", "ConsensusBatchResult", "run_consen
            "COVARIANCE_FIELDS", "PREDICTION_FIELDS",
            "NodeRule", "PredictionChoice",
            "UpdateChoice", "LIMIT_REASON", "wrap_residuals", "run_networks",
-           "batch_inputs", "result_arrays",
+           "batch_inputs", "result_arrays", "consensus_arrays",
            "per_run", "predict_nodes", "update_nodes", "node_groups", "first_step_error", "weighted_items", "Exchange"]
 
 
@@ -279,14 +279,18 @@ PREDICTION_FIELDS = ("phi_pred", "K", "C")
 
 
 def result_arrays(runs: int, steps: int, n: int, nx: int, nz: int, *, latest: Sequence[str] = (),
-                  **given: np.ndarray) -> dict:
+                  variances: bool = False, **given: np.ndarray) -> dict:
     """The fields of an empty :class:`ConsensusBatchResult` (NaN, invalid, no violation, no packet) for ``runs``
     runs of ``steps`` steps of ``n`` nodes (``nz`` the widest measurement), with the optional ones; the fields in
     ``given`` are taken as they are, not allocated (at a hundred states each covariance field is a gigabyte), those
-    in ``latest`` kept at their latest step only (:class:`filters.engine.Latest`)."""
+    in ``latest`` kept at their latest step only (:class:`filters.engine.Latest`); with ``variances`` Φ
+    (``phi_post``) as its diagonals over the steps (:class:`filters.engine.Diagonal`: :func:`consensus_arrays`
+    gives them as ``phi_variances``)."""
     def full(name, shape):
         if name in given:
             return given[name]
+        if name == "phi_post" and variances and name not in latest:
+            return Diagonal(shape)
         return Latest(shape[:1] + shape[2:]) if name in latest else np.full(shape, np.nan)
 
     return dict(x_post=full("x_post", (runs, steps + 1, n, nx)), x_pred=full("x_pred", (runs, steps, n, nx)),
@@ -324,6 +328,8 @@ class ConsensusBatchResult(NamedTuple):
     # (N, m) each node's carried states (-1: unused) when the nodes carry their regions (designer.regions): phi_post,
     # phi_pred, K and C are then in those coordinates (m wide), x_post and x_pred NaN where a node does not carry
     carried: np.ndarray | None = None
+    # (runs, steps+1, N, n_x): Φ's diagonal over the steps, where a run kept it alone (variances=True: phi_post None)
+    phi_variances: np.ndarray | None = None
 
     @property
     def runs(self) -> int:
@@ -333,7 +339,7 @@ class ConsensusBatchResult(NamedTuple):
         """Run ``r`` as the :class:`ConsensusResult` of :func:`run_consensus`."""
         optional = ("predicted_mse", "gate_counts", "gain_condition")
         fields = [self.violations[r] if f == "violations" else None if getattr(self, f) is None else getattr(self, f)[r]
-                  for f in ConsensusResult._fields if f not in optional + ("carried",)]
+                  for f in ConsensusResult._fields if f not in optional + ("carried", "phi_variances")]
         return ConsensusResult(*fields, *(None if getattr(self, f) is None else getattr(self, f)[r] for f in optional),
                                self.carried)
 
@@ -602,7 +608,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
                         attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
                         phi0=None, gains: tuple[np.ndarray, np.ndarray] | None = None, runtime: str | None = None,
                         cov_kind: str = "bound", messages: int | None = None, covariances: bool = True,
-                        predictions: bool = True) -> FilterResult:
+                        predictions: bool = True, variances: bool = False) -> FilterResult:
     """Run the consensus filter at every node over many runs of measurements ``z`` (runs, steps, n_z).
 
     Parameters
@@ -643,6 +649,10 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
         False: the predictions' Φ and the gains are kept at their latest step only (None in the ``detail``), Φ
         over the steps kept: what a study that scores a designed filter's estimates and bounds asks (the rules'
         own batch filters take it too, :meth:`designer.rule.GainRule.batch_filter`).
+    variances : bool
+        True: Φ over the steps kept as its diagonals alone (``phi_variances``; the result's ``cov`` None and its
+        ``cov_diagonal`` them, ``valid`` and the estimates the same), what a study that judges a designed filter's
+        bounds by their traces asks (a rule's own batch filter that takes no ``variances`` keeps Φ whole).
 
     Returns
     -------
@@ -663,9 +673,17 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     network, nets = run_networks(network, runs)
     design = validate_design(design, model, network)
     res = _consensus_runs(model, network, nets, z, u, x0, phi0, design, inputs, attacks, gains, covariances,
-                          predictions)
+                          predictions, variances)
     return consensus_result(res, network, design, runtime=runtime, cov_kind=cov_kind, messages=messages,
                             replay=gains is not None)
+
+
+def consensus_arrays(out: Mapping) -> ConsensusBatchResult:
+    """The :class:`ConsensusBatchResult` of a run's records (:func:`result_arrays`): a record kept at its latest step
+    only None (:func:`filters.engine.history`), Φ kept as its diagonals given as ``phi_variances``."""
+    fields = {name: history(value) for name, value in out.items() if name in ConsensusBatchResult._fields}
+    return ConsensusBatchResult(**{"phi_variances": None if fields.get("phi_post") is not None
+                                   else diagonals(out["phi_post"]), **fields})
 
 
 def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, design: ConsensusDesign, *,
@@ -684,12 +702,12 @@ def consensus_result(detail: ConsensusBatchResult, network: SensorNetwork, desig
     return FilterResult(detail.x_post, detail.phi_post, cov_kind, detail.valid, detail.violations,
                         constant_messages(runs, steps, messages), runtime,
                         delivered=None if detail.gate_counts is None else detail.gate_counts[..., 0],
-                        detail=detail, carried=detail.carried).check()
+                        detail=detail, carried=detail.carried, cov_diagonal=detail.phi_variances).check()
 
 
 def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, u, x0, phi0, design: ConsensusDesign,
                     inputs, attacks, gains, covariances: bool = True,
-                    predictions: bool = True) -> ConsensusBatchResult:
+                    predictions: bool = True, variances: bool = False) -> ConsensusBatchResult:
     """The runs of :func:`run_consensus_batch` (its inputs checked), as the family's arrays."""
     runs, steps = z.shape[:2]
     ex = Exchange(network)
@@ -697,7 +715,10 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
     filt = None if gains is not None else design.rule.batch_filter()
     if filt is not None and not isinstance(filt, NodeRule):
         # a rule's own filter may take no `predictions` (one written before it, outside the repository): it keeps them
-        lean = {} if predictions or "predictions" not in inspect.signature(filt).parameters else {"predictions": False}
+        takes = inspect.signature(filt).parameters
+        lean = {} if predictions or "predictions" not in takes else {"predictions": False}
+        if variances and "variances" in takes:
+            lean["variances"] = True
         return filt(model, network if nets is None else nets, z, design, inputs=inputs, attacks=attacks, x0=x0,
                     phi0=phi0, **lean).detail
     n, nx = network.n_nodes, model.n_x
@@ -722,7 +743,8 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         W = np.full((runs, n, d_max + 2), np.nan)  # each node's weights at its last weighted update, by slot
 
     out = result_arrays(runs, steps, n, nx, nz, latest=(COVARIANCE_FIELDS if not covariances else
-                                                        () if predictions else PREDICTION_FIELDS))
+                                                        () if predictions else PREDICTION_FIELDS),
+                        variances=variances)
     del out["predicted_mse"], out["gain_condition"]  # modes mse and scheduled only
     violations = out["violations"]
     proper = np.full((runs, n), not replay)  # a node still on Theorem 1's recursion (a replay claims no bound)
@@ -808,7 +830,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         rr, ii = np.nonzero(th < 0)
         for r, i, mg in zip(act[rr].tolist(), ii.tolist(), th[rr, ii].tolist()):
             violations[r].append({"node": i, "step": steps, "condition": "theorem2", "margin": mg})
-    return ConsensusBatchResult(**{name: history(value) for name, value in out.items()})
+    return consensus_arrays(out)
 
 
 def _channel_slots(ex: Exchange, d_max: int) -> np.ndarray:

@@ -75,7 +75,9 @@ class FilterResult(NamedTuple):
     ``runtime``: what the filter needs at run time (:data:`designer.rule.FILTER_RUNTIMES`).
     ``detail``: the family's own result (gains, margins, packet counts), for what is the family's
     alone.  ``seconds`` (runs,): wall time per run, where the caller measured it.  ``ess`` (runs, steps): a particle
-    filter's effective sample size after each step's weighting (None for a filter without weights).  ``carried``
+    filter's effective sample size after each step's weighting (None for a filter without weights).
+    ``cov_diagonal`` (runs, steps + 1, nodes, m): ``cov``'s diagonal, where the filter kept that alone (``cov`` then
+    None: :meth:`variance`).  ``carried``
     (nodes, m): when each node carries only some states (:mod:`designer.regions`, a regional rule's design), their
     indices (``-1``: a place not used); ``cov`` is then (runs, steps + 1, nodes, m, m) in those coordinates (zero in
     the unused places) and ``x`` NaN at the states a node does not carry.
@@ -93,6 +95,15 @@ class FilterResult(NamedTuple):
     seconds: np.ndarray | None = None
     carried: np.ndarray | None = None
     ess: np.ndarray | None = None
+    cov_diagonal: np.ndarray | None = None
+
+    def variance(self) -> np.ndarray | None:
+        """(runs, steps + 1, nodes, m): the diagonal of ``cov`` over the steps, or the filter's own record of it
+        where it kept its covariance's diagonal alone (``cov_diagonal``, ``cov`` None: what a study that judges a
+        bound by its trace asks); None without either."""
+        if self.cov_diagonal is not None:
+            return self.cov_diagonal
+        return None if self.cov is None else np.diagonal(self.cov, axis1=-2, axis2=-1)
 
     def check(self) -> "FilterResult":
         """This result, its shapes and kinds checked (``InputError`` naming the field)."""
@@ -107,6 +118,8 @@ class FilterResult(NamedTuple):
             m = self.carried.shape[1]
         if self.cov is not None and self.cov.shape != (runs, k1, nodes, m, m):
             raise InputError(f"cov must have shape {(runs, k1, nodes, m, m)}, got {self.cov.shape}")
+        if self.cov_diagonal is not None and self.cov_diagonal.shape != (runs, k1, nodes, m):
+            raise InputError(f"cov_diagonal must have shape {(runs, k1, nodes, m)}, got {self.cov_diagonal.shape}")
         if self.cov_kind not in COV_KINDS:
             raise InputError(f"cov_kind must be one of {', '.join(COV_KINDS)}, got {self.cov_kind!r}")
         if self.valid.shape != (runs, k1, nodes):

@@ -332,12 +332,12 @@ def _settings(sc: Scenario, values: Sequence[float]) -> list[tuple]:
 
 
 def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations: int, run_ids: Sequence[int],
-            truth: np.ndarray | None = None, covariances: bool = True) -> Batch:
+            truth: np.ndarray | None = None, covariances: bool = True, variances: bool = False) -> Batch:
     """The comparison's realisations of the runs ``seeds`` at the settings ``scs`` (the main one first), as the
     :class:`studies.filter_registry.Batch` every filter runs on: run ``r`` draws its truth and measurements, the
     channel draws that every setting turns into its attacks (common random numbers) and its particle filters' seed
     from ``seeds[r].spawn(3)``.  ``truth`` (runs, K + 1, n_x), when given, receives each run's true states;
-    ``covariances``: the batch's (:class:`studies.filter_registry.Batch`)."""
+    ``covariances``, ``variances``: the batch's (:class:`studies.filter_registry.Batch`)."""
     sc = scs[0]
     K, n = sc.steps, sc.network.n_nodes
     trajs, draws, ys, fss = [], [], [[] for _ in scs], []
@@ -357,7 +357,7 @@ def realise(scs: Sequence[Scenario], seeds, *, particles: int | None, iterations
     return Batch(tuple(scs), np.stack([t.z for t in trajs]),
                  None if trajs[0].inputs is None else np.stack([t.inputs for t in trajs]), edges,
                  received=tuple(map(tuple, ys)), particle_seeds=tuple(fss), particles=particles,
-                 iterations=iterations, run_ids=tuple(run_ids), covariances=covariances)
+                 iterations=iterations, run_ids=tuple(run_ids), covariances=covariances, variances=variances)
 
 
 def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, main_only: Sequence[str] = (),
@@ -412,9 +412,10 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
             if j == 0:
                 est[a, f] = xs[:, 0]
 
-    # the filters that are not designed are scored on their estimates alone: no covariance over the steps
+    # the filters that are not designed are scored on their estimates alone (no covariance over the steps), the designed
+    # ones on their estimates and their bounds' traces (their diagonals over the steps)
     batch = realise(scs, seeds, particles=particles, iterations=hcmci_iterations, run_ids=run_ids, truth=truth,
-                    covariances=False)
+                    covariances=False, variances=True)
 
     for f, e in enumerate(entries):
         if not e.attacked:  # uses no channel: the same numbers at every setting, run once
@@ -447,7 +448,7 @@ def _runs(run_ids, seeds, *, ref, settings: Sequence[tuple], particles: int, mai
                 secs[:, :, f] = secs[:, :1, f]
             if e.designed:
                 design = e.design_for(designs[js[0]][e.mode], m)
-                for (j, a), v in zip(rows, bound_verdicts(sc, res.cov, res.valid,
+                for (j, a), v in zip(rows, bound_verdicts(sc, res.variance(), res.valid,
                                                           [feasible[a, j, f] == 1 for j, a in rows], design,
                                                           res.carried)):
                     verdict[a, j, f], bounded[a, j, f] = VERDICTS.index(v.verdict), float(v.bounded)

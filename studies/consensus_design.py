@@ -25,7 +25,7 @@ from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, 
 from designer.rule import GainRule
 from designer.joint import conditioning
 from designer.observability import kalman_references, observability
-from designer.regions import carried_positions, region_detail, region_mask, region_traces
+from designer.regions import carried_positions, region_detail, region_mask, region_sums, region_traces
 from designer.progress import phase
 from designer.schedule import GainSchedule
 from designer.validation import InputError, check_int
@@ -299,11 +299,13 @@ def design_verdict(model, x0, u0, trace: np.ndarray, violations: list[dict], ref
 def bound_traces(phi: np.ndarray, valid: np.ndarray, positions=None) -> np.ndarray:
     """tr Φ per run, node and step, (runs, nodes, steps), NaN where Φ is not a bound: what
     :func:`designer.verdict.verdict` and :func:`designer.verdict.informative` judge.  ``phi`` (runs, steps, nodes,
-    n_x, n_x) and ``valid`` (runs, steps, nodes) of a consensus filter run along each run; ``positions``: when the
+    n_x, n_x), or its diagonals (runs, steps, nodes, n_x: :meth:`filters.result.FilterResult.variance`, the same
+    traces), and ``valid`` (runs, steps, nodes) of a consensus filter run along each run; ``positions``: when the
     nodes carry their regions, where each region sits in ``phi``'s coordinates (:func:`judged_positions`), the
     trace then over each node's region."""
+    d = phi if np.ndim(phi) == np.ndim(valid) + 1 else np.diagonal(phi, axis1=-2, axis2=-1)
     with np.errstate(invalid="ignore", over="ignore"):
-        tr = np.trace(phi, axis1=-2, axis2=-1) if positions is None else region_traces(phi, positions)
+        tr = d.sum(axis=-1) if positions is None else region_sums(d, positions)
         return np.where(valid, tr, np.nan).swapaxes(1, 2)
 
 

@@ -64,7 +64,9 @@ class Batch:
 (its setting's channel probabilities), or the main one for all rows (False); ``covariances``: False where the study
 scores the estimates of the filters that are not designed and nothing else of them (KCF, HCMCI, the local and the
 centralized EKF then keep no covariance over the steps: ``cov`` None, the same estimates), and of a designed filter
-its estimates and bounds (it keeps Φ, not its predictions' Φ nor its gains).  A filter run on settings
+its estimates and bounds (it keeps Φ, not its predictions' Φ nor its gains); ``variances``: a designed filter keeps
+Φ's diagonals over the steps alone (``cov_diagonal``, ``cov`` None), where the study judges its bounds by their
+traces (the comparison), not by the errors they whiten.  A filter run on settings
 ``js`` returns rows in
     setting-major order, row ``i R + a`` for setting ``js[i]`` and run ``a``.  ``cache`` holds results
     that several entries share (the particle filters run as one batch).
@@ -81,6 +83,7 @@ its estimates and bounds (it keeps Φ, not its predictions' Φ nor its gains).  
     run_ids: tuple = ()
     per_row_networks: bool = True
     covariances: bool = True
+    variances: bool = False
     cache: dict = field(default_factory=dict)
 
     @property
@@ -248,7 +251,7 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
     def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
         return run_consensus_batch(batch.model, batch.network_rows(js), batch.z_rows(js), design,
                                    attacks=batch.attack_rows(js), inputs=batch.input_rows(js),
-                                   predictions=batch.covariances)
+                                   predictions=batch.covariances, variances=batch.variances)
 
     return FilterEntry(name, "consensus", rules.get(mode).runtime, description, run,
                        _links_per_round, mode=mode, designed=True,

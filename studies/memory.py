@@ -196,16 +196,18 @@ def _step_hessians(model, centres: int, linearization: str | None, reduce: str) 
 
 
 def _consensus(model, network, rows: int, steps: int, mode: str | None, linearization: str | None, what: str,
-               reduce: str, predictions: bool = True, dense: bool = True) -> list[Part]:
+               reduce: str, predictions: bool = True, dense: bool = True, variances: bool = False) -> list[Part]:
     """A consensus filter (or KCF, HCMCI) on ``rows`` runs at once: its per-step results, attacks and one step
     (``predictions``: with the record of every step's predicted covariance and gains, which a comparison does not
-    keep: ``filters.consensus_batch.run_consensus_batch``'s ``predictions``; ``dense``: the attacks given as dense
+    keep: ``filters.consensus_batch.run_consensus_batch``'s ``predictions``; ``variances``: its bounds over the steps
+    as their diagonals, as a comparison keeps them, and whole at one step; ``dense``: the attacks given as dense
     N x N patterns besides their channels', where a comparison gives its channels' alone)."""
     n_x, nz = model.n_x, max(model.sensor_dims)
     n = network.n_nodes
     channels = int(network.adjacency.sum())
     per_step = 3 * n_x * n_x + n_x * nz + n_x + 12 if predictions else n_x + 12
-    per_row = (steps * n * per_step + (steps + 1) * n * (n_x * n_x + n_x + 3)) * _D
+    bound = n_x if variances else n_x * n_x  # each node's bound at a step
+    per_row = (steps * n * per_step + (steps + 1) * n * (bound + n_x + 3) + variances * n * n_x * n_x) * _D
     parts = [Part(f"{what}: the bounds, gains and estimates of every node and step", _RESULT_COPIES * rows * per_row,
                   f"{rows} runs x {steps} steps x {n} nodes x {n_x} x {n_x} states", reduce),
              Part(f"{what}: the channel attacks", rows * steps * (channels + dense * n * n) * (n_x * _D + 2),
@@ -430,9 +432,10 @@ def _comparison(sc, so, uses=None) -> tuple[list, list, list]:
     reduce = f"{_STEPS} (a model file's STEPS)"
     modes, particles, main_only = (rules.names(), True, ()) if uses is None else uses  # the filters --filters leaves
     # each design's filter on the chunk's runs at every setting (at the main one alone: studies.comparison.
-    # sweeps_left_out), without the record of its predictions (the comparison keeps the bounds and estimates)
+    # sweeps_left_out), without the record of its predictions (the comparison keeps the estimates and the bounds'
+    # diagonals)
     designs = [_consensus(m, net, R if mode in main_only else rows, K, mode, lin, f"the {mode} design", reduce,
-                          predictions=False, dense=False) for mode in modes]
+                          predictions=False, dense=False, variances=True) for mode in modes]
     sir = [_particles(m, 2 * rows, so.particles or 0, "the particle filters", _CENTRALIZED_PF_DOUBLES),
            Part("the particle filters' means and covariances", 2 * rows * (K + 1) * (n_x + n_x**2) * _D,
                 f"{2 * rows} runs x {K + 1} steps x {n_x} x {n_x} states", reduce)] if particles else []

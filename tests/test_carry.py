@@ -150,6 +150,10 @@ def test_the_node_filters_carrying_regions_replay_the_batch_bit_for_bit(mode):
     x, P = nodes.run(z[0], att)
     assert np.array_equal(x, batch.x[0], equal_nan=True)
     assert np.array_equal(P, batch.cov[0])
+    # Φ kept as its diagonals alone (a comparison's), in the carried coordinates: the same numbers
+    from test_consensus_batch import assert_variances_are_the_diagonals
+    full, lean = assert_variances_are_the_diagonals(model, net, z, design, attacks=[att])
+    assert lean.cov_diagonal.shape[-1] == batch.carried.shape[-1] and lean.carried is not None
     assert all(np.array_equal(nd.states, row) for nd, row in zip(nodes.nodes, batch.carried))
 
 

@@ -102,6 +102,32 @@ def test_robot_paper_design_matches_per_run(robot):
     np.testing.assert_array_equal(again.x_post, batch.x_post)
 
 
+def assert_variances_are_the_diagonals(model, net, z, des, **kw):
+    """run_consensus_batch with variances keeps Φ's diagonals over the steps alone: the same estimates, validity,
+    violations and predicted traces bit for bit, ``cov_diagonal`` the diagonals of the full run's Φ, ``cov`` None,
+    and the comparison's verdicts on them those on the whole matrices."""
+    from studies.consensus_design import bound_traces
+
+    full = run_consensus_batch(model, net, z, des, **kw)
+    lean = run_consensus_batch(model, net, z, des, variances=True, **kw)
+    assert lean.cov is None and lean.detail.phi_post is None and full.cov_diagonal is None
+    np.testing.assert_array_equal(lean.x, full.x)
+    np.testing.assert_array_equal(lean.valid, full.valid)
+    assert lean.violations == full.violations
+    np.testing.assert_array_equal(lean.cov_diagonal, np.diagonal(full.cov, axis1=-2, axis2=-1))
+    np.testing.assert_array_equal(lean.variance(), full.variance())
+    if full.detail.predicted_mse is not None:
+        np.testing.assert_array_equal(lean.detail.predicted_mse, full.detail.predicted_mse)
+    np.testing.assert_array_equal(bound_traces(lean.variance(), lean.valid), bound_traces(full.cov, full.valid))
+    return full, lean
+
+
+def test_a_run_keeping_its_bounds_diagonals_alone_has_the_same_numbers(robot):
+    """The paper design on the robot (its own steps, (28) and (29) failing at some nodes, the fallback taken)."""
+    sc, net, traj, atts = robot
+    assert_variances_are_the_diagonals(sc.model, net, traj.z, robot_design(), inputs=traj.inputs, attacks=atts)
+
+
 @pytest.mark.parametrize("rule", ["hessian", "structured"])
 def test_robot_linearisation_rules_with_inputs_and_priors_per_run(robot, rule):
     """Hessian-derived scalings per node and step; inputs, x0 and Φ0 that differ between runs."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from filters.engine import Latest, Step, estimate_arrays, history, run_batch
+from filters.engine import Diagonal, Latest, Step, diagonals, estimate_arrays, history, run_batch
 from filters.result import DIVERGED_REASON, diverged_nodes
 
 Q, R = 0.1, 0.5
@@ -41,11 +41,11 @@ def reference(z, x0, P0):
     return x_post, P_post, gain, []
 
 
-def run_toy(z, x0, P0, seen=None, covariances=True):
+def run_toy(z, x0, P0, seen=None, covariances=True, variances=False):
     """The toy filter on the engine over the runs of ``z`` (runs, steps, nodes)."""
     runs = z.shape[0]
     out = estimate_arrays(runs, STEPS, NODES, 1, np.full((runs, 1), x0), np.full((runs, 1, 1), P0), 2,
-                          covariances=covariances)
+                          covariances=covariances, variances=variances)
     out["gain"] = np.full((runs, STEPS, NODES), np.nan)
     out["valid"] = np.zeros((runs, STEPS + 1, NODES), dtype=bool)
     out["valid"][:, 0] = True
@@ -128,6 +128,22 @@ def test_covariances_kept_at_their_latest_step_give_the_same_estimates(measureme
     # each run's latest: its last posterior, NaN for the runs that stopped
     np.testing.assert_array_equal(lean["P_post"].value, full["P_post"][:, -1])
     assert np.isnan(lean["P_post"].value[[1, 3]]).all() and np.isfinite(lean["P_post"].value[[0, 2]]).all()
+
+
+def test_covariances_kept_as_their_diagonals_give_the_same_estimates_and_diagonals(measurements):
+    """With variances P_post is kept whole at its latest step and as its diagonals and finiteness over the steps
+    (filters.engine.Diagonal): the same estimates and stops, the full record's diagonals bit for bit (NaN from a
+    stopped run's step, not finite there), and the result holds None for the matrices (history)."""
+    full, v_full, _ = run_toy(measurements, 0.2, 1.0)
+    lean, v_lean, _ = run_toy(measurements, 0.2, 1.0, variances=True)
+    assert isinstance(lean["P_post"], Diagonal) and history(lean["P_post"]) is None
+    assert v_lean == v_full
+    np.testing.assert_array_equal(lean["x_post"], full["x_post"])
+    np.testing.assert_array_equal(diagonals(lean["P_post"]), diagonals(full["P_post"]))
+    np.testing.assert_array_equal(lean["P_post"].finite, np.isfinite(full["P_post"]).all(axis=(-2, -1)))
+    assert not lean["P_post"].finite[1, 4:].any() and lean["P_post"].finite[0].all()
+    np.testing.assert_array_equal(lean["P_post"].value, full["P_post"][:, -1])
+    assert diagonals(Latest((2, 1, 1))) is None
 
 
 def test_a_batch_whose_every_run_stops_ends_there():

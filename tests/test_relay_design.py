@@ -51,6 +51,9 @@ def test_the_rules_filter_is_the_relay_filter_on_each_runs_network(mode, stack, 
     att = edge_attacks(nets[0], runs, 6, model.n_x, seed=5)
     design = relay_design(model, nets[0], 2, mode=mode)
     res = run_consensus_batch(model, nets, z, design, attacks=att).detail
+    # Φ kept as its diagonals alone (a comparison's): the same numbers, the groups' diagonals gathered alike
+    from test_consensus_batch import assert_variances_are_the_diagonals
+    assert_variances_are_the_diagonals(model, nets, z, design, attacks=att)
     for r in range(runs):
         one = att._replace(dos=att.dos[r:r + 1], fdi=att.fdi[r:r + 1], xi=att.xi[r:r + 1])
         ref = run_relay_batch(model, nets[r], z[r:r + 1], 2, attacks=one, signal=SIGNAL,

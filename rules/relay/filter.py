@@ -55,10 +55,10 @@ from designer.regions import Carried
 from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
-from filters.consensus_batch import (PREDICTION_FIELDS, ConsensusBatchResult, EdgeAttacks, batch_inputs,
-                              consensus_result, edge_attacks, result_arrays, run_networks, wrap_residuals)
+from filters.consensus_batch import (PREDICTION_FIELDS, EdgeAttacks, batch_inputs, consensus_arrays, consensus_result,
+                              edge_attacks, result_arrays, run_networks, wrap_residuals)
 from filters.distributed import DistributedBatchResult, distributed_result
-from filters.engine import Step, estimate_arrays, history, run_batch
+from filters.engine import Diagonal, Step, estimate_arrays, history, run_batch
 from filters.node import NodeInputs, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
@@ -191,9 +191,10 @@ def run_relay_batch(model: Model, network: SensorNetwork, z: np.ndarray, hops: i
 def _relay_runs(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray, hops: int, *,
                 inputs=None, attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None, P0=None,
                 signal: FDISignal | None = None, routing: str = "tree", regions=None,
-                predictions: bool = True) -> DistributedBatchResult:
+                predictions: bool = True, variances: bool = False) -> DistributedBatchResult:
     """The runs of :func:`run_relay_batch` (its parameters), as the distributed family's arrays; without
-    ``predictions`` no record of the predictions' covariances (``P_pred`` None).  ``network`` may be one network
+    ``predictions`` no record of the predictions' covariances (``P_pred`` None); with ``variances`` ``P_post`` a
+    :class:`filters.engine.Diagonal` (its diagonals and finiteness over the steps).  ``network`` may be one network
     per run (:func:`filters.consensus_batch.run_networks`: one graph, e.g. a sweep's settings): the runs then
     update together, each with its own network's moments (:func:`_setting_classes`)."""
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
@@ -212,11 +213,12 @@ def _relay_runs(model: Model, network: SensorNetwork | Sequence[SensorNetwork], 
     classes, M, mu = _setting_classes(model, routes, settings, signal, carry)
     which = None if len(settings) == 1 else which
     if carry is None:
-        out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops), predictions=predictions)
+        out = estimate_arrays(runs, steps, n, nx, x0, P0, network.messages_per_step(hops), predictions=predictions,
+                              variances=variances)
     else:
         m = carry.m
         out = estimate_arrays(runs, steps, n, m, np.zeros((runs, m)), np.zeros((runs, m, m)),
-                              network.messages_per_step(hops), predictions=predictions)
+                              network.messages_per_step(hops), predictions=predictions, variances=variances)
         out["x_post"][:, 0] = carry.vector(np.broadcast_to(x0[:, None], (runs, n, nx)))
         out["P_post"][:, 0] = carry.matrix(np.broadcast_to(P0[:, None], (runs, n, nx, nx)))
     violations: list[list[dict]] = [[] for _ in range(runs)]
@@ -444,7 +446,7 @@ def _node_update(Pp, Hw, mom, M, mu, res, rtol: float = RTOL, per_run: bool = Fa
 def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwork], z: np.ndarray,
                      design: ConsensusDesign, *, inputs=None,
                      attacks: EdgeAttacks | Sequence[AttackPattern] | None = None, x0=None,
-                     phi0=None, predictions: bool = True) -> FilterResult:
+                     phi0=None, predictions: bool = True, variances: bool = False) -> FilterResult:
     """The filter of a gain rule that relays (``design.rule``, :attr:`designer.rule.GainRule.relays`):
     the relay filter (:func:`run_relay_batch`) over ``design.rounds`` hops with the rule's routing, for the FDI signal
     the design was made for, with the parameters of :func:`filters.consensus_batch.run_consensus_batch`.
@@ -458,7 +460,8 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
     the :func:`filters.consensus_batch.consensus_result` it returns.  A design whose nodes carry their regions
     (``design.carried_regions``) gives ``carried`` and Φ, K and C in the carried coordinates
     (:func:`run_relay_batch`'s ``regions``).  Without ``predictions`` the detail has no ``phi_pred``, ``K`` nor
-    ``C`` (None: :meth:`designer.rule.GainRule.batch_filter`).
+    ``C`` (None: :meth:`designer.rule.GainRule.batch_filter`); with ``variances`` Φ over the steps is kept as its
+    diagonals alone (``phi_variances``, ``phi_post`` None: :func:`filters.consensus_batch.run_consensus_batch`).
     """
     z, u, x0, phi0 = batch_inputs(model, z, inputs, x0, phi0)
     runs, steps = z.shape[:2]
@@ -480,33 +483,40 @@ def run_relay_design(model: Model, network: SensorNetwork | Sequence[SensorNetwo
                                                              xi=attacks.xi[idx])
         res = _relay_runs(model, [nets[r] for r in idx], z[idx], design.rounds, inputs=u if u.ndim == 2 else u[idx],
                           attacks=att, x0=x0[idx], P0=phi0[idx], signal=design.fdi_signal, routing=rule.routing,
-                          regions=design.carried_regions, predictions=predictions)
+                          regions=design.carried_regions, predictions=predictions, variances=variances)
         own = dict(x_post=res.x_post, x_pred=res.x_pred, phi_post=res.P_post)
         if predictions:
             own["phi_pred"] = res.P_pred
         if out is None:  # C zero: no consensus on estimates (np.zeros: pages the system gives only when written)
-            m = res.P_post.shape[-1]  # the carried states' (the whole state's without regions)
+            m = res.x_post.shape[-1] if res.carried is None else res.carried.shape[-1]  # the states a node carries
             if len(groups) == 1:  # one group: its arrays, not a copy of them
                 given = own
             else:  # the groups' arrays gathered (carried ones m x m, not the whole state's)
-                given = {} if res.carried is None else {"phi_post": np.full((runs, steps + 1, n, m, m), np.nan),
+                given = {} if res.carried is None else {"phi_post": (Diagonal((runs, steps + 1, n, m, m)) if variances
+                                                                     else np.full((runs, steps + 1, n, m, m), np.nan)),
                                                         "phi_pred": np.full((runs, steps, n, m, m), np.nan)}
                 given = {name: value for name, value in given.items() if name in own}
             gains = {} if not predictions else dict(C=np.zeros((runs, steps, n, m, m)),
                                                     K=np.full((runs, steps, n, m, max(model.sensor_dims)), np.nan))
             out = result_arrays(runs, steps, n, nx, max(model.sensor_dims), **gains, **given,
-                                latest=() if predictions else PREDICTION_FIELDS)
+                                latest=() if predictions else PREDICTION_FIELDS, variances=variances)
             carried = res.carried
         if len(groups) > 1:
             for name, value in own.items():
-                out[name][idx] = value
+                if isinstance(value, Diagonal):  # Φ's diagonals and finiteness over the steps
+                    out[name].diagonal[idx], out[name].finite[idx] = value.diagonal, value.finite
+                else:
+                    out[name][idx] = value
         out["gate_counts"][idx, :, 0] = res.delivered_per_step
         for r, vs in zip(idx, res.violations):
             out["violations"][r] = vs
-    out["valid"][:] = np.isfinite(out["phi_post"]).all(axis=(-2, -1))
-    out["predicted_mse"][:] = np.trace(out["phi_post"], axis1=-2, axis2=-1)
-    return consensus_result(ConsensusBatchResult(**{name: history(value) for name, value in out.items()},
-                                                 carried=carried), first, design)
+    phi = out["phi_post"]
+    if isinstance(phi, Diagonal):
+        out["valid"][:], out["predicted_mse"][:] = phi.finite, phi.diagonal.sum(axis=-1)
+    else:
+        out["valid"][:] = np.isfinite(phi).all(axis=(-2, -1))
+        out["predicted_mse"][:] = np.trace(phi, axis1=-2, axis2=-1)
+    return consensus_result(consensus_arrays(out)._replace(carried=carried), first, design)
 
 
 #: The most bytes of node moments stacked over channel settings (:func:`_setting_classes`): the settings of a sweep

@@ -41,9 +41,9 @@ from filters.attacks import AttackPattern
 from filters.channels import channel_packets
 from filters.node import NodeInputs, NodeNetwork
 from filters.result import FilterResult, diverged_nodes
-from filters.consensus_batch import (PREDICTION_FIELDS, ConsensusBatchResult, EdgeAttacks, batch_inputs,
+from filters.consensus_batch import (PREDICTION_FIELDS, EdgeAttacks, batch_inputs, consensus_arrays,
                               consensus_result, edge_attacks, result_arrays, run_networks, wrap_residuals)
-from filters.engine import Step, history, run_batch
+from filters.engine import Step, run_batch
 
 from .design import colour, link_gains, pad_measurements
 
@@ -146,8 +146,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
               invalid_from=("valid",))
     if steps > T:  # beyond the horizon the certificate was not computed: no bound claimed
         out["valid"][:, T + 1:] = False
-    return consensus_result(ConsensusBatchResult(**{name: history(value) for name, value in out.items()}), network,
-                            design)
+    return consensus_result(consensus_arrays(out), network, design)
 
 
 def scheduled_prediction(model: Model, tables, k: int, x, P, u):
