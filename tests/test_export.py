@@ -144,6 +144,39 @@ def test_the_robots_relay_design_in_c_replays_the_python_node_filter(tmp_path, c
     moved_replay_fails(out, 5, -n_x * n_x - n_x, "x", range(8))  # the first component of an expected estimate
 
 
+def test_an_estimates_entry_is_checked_on_its_standard_deviation(tmp_path):
+    """make test compares an estimate's x[i] with Python's on max(|x[i]|, sqrt(P[i][i])): at the entry where the
+    standard deviation is largest against max(|x[i]|, P[i][i]) (the variance, on which the driver had compared it,
+    so that a correct export of a 24-state beam of ours failed), an expected value moved by half the row's tolerance
+    times sqrt(P[i][i]) passes and by three times fails, naming that entry."""
+    des, out = tmp_path / "design", tmp_path / "c"
+    assert main(["design", "indoor-robot", "--mode", "relay", "--seed", "2", "--out", str(des)]) in (0, 1)
+    assert main(["export", str(des), "--target", "c", "--out", str(out)]) == 0
+    lines = (out / "replay.txt").read_text().splitlines()
+    n_x, n_nodes = 3, int(lines[0].split()[1])
+    best = None
+    for at, line in enumerate(lines[1:], 1):  # each row: 4 tolerances, ..., the expected x, then P
+        cells = [float(c) for c in line.split()]
+        x, P = cells[-n_x * n_x - n_x:-n_x * n_x], np.reshape(cells[-n_x * n_x:], (n_x, n_x))
+        for i in range(n_x):
+            ratio = np.sqrt(P[i, i]) / max(abs(x[i]), P[i, i])
+            if best is None or ratio > best[0]:
+                best = (ratio, at, i, np.sqrt(P[i, i]), min(cells[0], cells[2]))
+    ratio, at, i, sd, tol = best
+    assert ratio > 4  # the variance's scale would be at most a quarter of the deviation's: the check has power
+    for factor, passes in ((0.5, True), (3.0, False)):
+        moved = list(lines)
+        cells = moved[at].split()
+        k = len(cells) - n_x * n_x - n_x + i
+        cells[k] = repr(float(float(cells[k]) + factor * tol * sd))
+        moved[at] = " ".join(cells)
+        (out / "replay.txt").write_text("\n".join(moved) + "\n")
+        run = make_test(out)
+        assert (run.returncode == 0) == passes, run.stdout
+        step, node = (at - 1) // n_nodes + 1, (at - 1) % n_nodes
+        assert passes or re.search(rf"^step {step}, node {node}: x\[{i}\] is ", run.stdout, re.M), run.stdout
+
+
 def test_the_network_runs_tolerances_are_the_same_beside_the_replay_or_after_it(tmp_path, monkeypatch):
     """export runs the network run's drifting copies (designer.export_c.drift_tolerances) in a process of its own
     beside the per-step twins (studies.runner.Background); with one usable core it runs them here, after the replay:

@@ -123,7 +123,7 @@ static double scaled_difference(double got, double want, double scale) {
  * max(|P[i][j]|, sqrt(P[i][i] P[j][j])), Python's values */
 static double scale_of(const double *xw, const double *Pw, int i, int j) {
     double a = j < 0 ? fabs(xw[i]) : fabs(Pw[i * CFD_NC + j]);
-    double c = sqrt(fabs(Pw[i * CFD_NC + i] * Pw[(j < 0 ? i : j) * CFD_NC + (j < 0 ? i : j)]));
+    double c = j < 0 ? sqrt(fabs(Pw[i * CFD_NC + i])) : sqrt(fabs(Pw[i * CFD_NC + i] * Pw[j * CFD_NC + j]));
     return a > c ? a : c;
 }
 
