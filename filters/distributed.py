@@ -136,13 +136,10 @@ class DistributedResult(NamedTuple):
         return next((v for v in self.violations if v["condition"] == "diverged"), None)
 
 
-def kcf_payload(n_x: int, network, sensor_dims=None) -> int:
-    """The numbers KCF sends per step: one packet per directed channel carrying ``u_j`` (n), ``U_j`` as its factor
-    ``L_j`` (``m_j`` rows of n: ``sensor_dims[j]``; without them the distinct entries of ``U_j``, n (n + 1) / 2) and
-    the prediction ``x̄_j`` (n)."""
+def kcf_payload(n_x: int, network, sensor_dims) -> int:
+    """The numbers KCF sends per step: one packet per directed channel carrying ``u_j`` (n), ``U_j`` as its rows
+    ``L_j`` (``m_j`` rows of n, ``sensor_dims[j]``) and the prediction ``x̄_j`` (n)."""
     adj = np.asarray(network.adjacency, dtype=bool)
-    if sensor_dims is None:
-        return int(adj.sum()) * (2 * n_x + n_x * (n_x + 1) // 2)
     out_degree = adj.sum(axis=0)  # adjacency[i, j]: the channel j -> i
     return int(out_degree.sum()) * 2 * n_x + int(out_degree @ np.asarray(sensor_dims, dtype=int)) * n_x
 
@@ -283,22 +280,16 @@ def _kcf_combine(eps: float, xp, Pp, rows, y, diff):
     return xp + (M @ innov[..., None])[..., 0], M
 
 
-class _Slots(NamedTuple):
-    """The nodes by in-degree ``d`` (``classes``: ``(d, nodes (g,), channels (g, d))``, each node's incoming channels
-    in the channels' order): KCF stacks a node's own measurement rows and its ``d`` channels' as one (1 + d) m x n
-    matrix, the nodes of one degree together."""
-
-    classes: list
-
-
-def _slots(ex: Exchange) -> _Slots:
+def _slots(ex: Exchange) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """The nodes by in-degree ``d``: ``(d, nodes (g,), channels (g, d))``, each node's incoming channels in the
+    channels' order.  KCF stacks a node's own measurement rows and its ``d`` channels' as one (1 + d) m x n matrix,
+    the nodes of one degree together."""
     deg = np.bincount(ex.receiver, minlength=ex.n)
     first = np.cumsum(deg) - deg
-    return _Slots([(int(d), np.flatnonzero(deg == d), first[deg == d][:, None] + np.arange(d))
-                   for d in np.unique(deg)])
+    return [(int(d), np.flatnonzero(deg == d), first[deg == d][:, None] + np.arange(d)) for d in np.unique(deg)]
 
 
-def _kcf_update(ex: Exchange, slots: _Slots, eps: float, packet: bool, xp, Pp, L, u, recv, fdi=None, xi=None):
+def _kcf_update(ex: Exchange, slots: list, eps: float, packet: bool, xp, Pp, L, u, recv, fdi=None, xi=None):
     """KCF's update of every node from its prediction ``(xp, Pp)`` and the measurement rows and information
     ``(L, u)`` of all nodes (stacks over runs; ``L`` (runs, N, m, n), ``m`` the model's largest sensor, zero rows
     below a node's own); ``recv`` (runs, N, N) the packets that arrived, ``fdi`` (runs, E), ``xi`` (runs, E, n) the
@@ -312,7 +303,7 @@ def _kcf_update(ex: Exchange, slots: _Slots, eps: float, packet: bool, xp, Pp, L
     diff = ex.sum(r[..., None] * x_t) - ex.sum(r)[..., None] * xp
     x, M = np.empty_like(xp), np.empty_like(Pp)
     a, m, n = L.shape[0], L.shape[-2], L.shape[-1]
-    for d, nodes, chans in slots.classes:  # J_i's rows: the node's own, then each channel's (zero where lost)
+    for d, nodes, chans in slots:  # J_i's rows: the node's own, then each channel's (zero where lost)
         heard = r[:, chans, None, None] * L[:, snd[chans]]  # (runs, g, d, m, n)
         rows = np.concatenate([L[:, nodes, None], heard], axis=2).reshape(a, nodes.size, (1 + d) * m, n)
         x[:, nodes], M[:, nodes] = _kcf_combine(eps, xp[:, nodes], Pp[:, nodes], rows, y[:, nodes], diff[:, nodes])

@@ -888,8 +888,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     Returns the files written.
     """
     import rules
-    from designer.export_c import (FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCES, SENSITIVITY_SEED, check_prefix,
-                                   drift_tolerances, network_copy, prefixed)
+    from designer.export_c import REPLAY_TOLERANCES, check_prefix, drift_tolerances, network_copy, prefixed
     from filters.consensus_batch import EdgeAttacks
     from filters.node import node_network
 
@@ -949,18 +948,12 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
         z, attacks, u = log.z, log.attacks, (np.zeros((log.steps, 0)) if log.inputs is None else log.inputs)
     net = node_network(sc.model, sc.network, design)
     att = None if attacks is None else EdgeAttacks.from_patterns(sc.network, [attacks])
-    offsets = np.concatenate([[0], np.cumsum(sc.model.sensor_dims)])
-    rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
-    rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
-    to_float = FLOAT_EPSILON / np.finfo(float).eps
     # the network run's tolerances (copies run beside the network from the start, perturbed at every step: a double's,
-    # a float's), in a process of their own beside this one's per-step twins: the same numbers (tested)
+    # a float's), in a process of their own beside this one's per-step twins: the same numbers (tested); their
+    # network stops where this one does, and this one's replay may end sooner (an ill-conditioned step)
     with Background(drift_tolerances, network_copy(net), exporter, z, att, u, chosen) as drift:
-        steps, tolerances = _replay(exporter, net, z, att, u, offsets, chosen, mode, rng, rng_float, to_float)
-        network = drift.result()[:len(steps)]
-    if len(network) < len(steps):  # the copies' network stopped first (the same steps: not seen), unchecked from there
-        network = np.concatenate([network, np.full((len(steps) - len(network), len(chosen), 2), np.inf)])
-    tolerances = np.concatenate([tolerances, network], axis=-1)
+        steps, tolerances = _replay(exporter, net, z, att, u, sc.model.sensor_dims, chosen, mode)
+        tolerances = np.concatenate([tolerances, drift.result()[:len(steps)]], axis=-1)
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     tolerances = np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES))
     with replaced_outputs(out) as stage:
@@ -969,15 +962,19 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     return [Path(out) / p.name for p in written]
 
 
-def _replay(exporter, net, z, att, u, offsets, chosen, mode, rng, rng_float, to_float):
+def _replay(exporter, net, z, att, u, sensor_dims, chosen, mode):
     """The export's replay of the run (:func:`export`): the node network ``net`` stepped over it, each step's replay
     record and each exported node's per-step tolerances, a double node's and a float node's (steps, nodes, 2), from
     twins of the network perturbed before the step (:func:`designer.export_c.replay_tolerances`); it ends before a
     step where the filter diverged or that is too ill-conditioned to check (a warning says which)."""
-    from designer.export_c import REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY, SENSITIVITY_TRIALS, perturbed_twin, \
-        replay_tolerances
+    from designer.export_c import (FLOAT_EPSILON, FLOAT_SEED, REPLAY_TOLERANCE_CAP, SENSITIVITY_SAFETY,
+                                   SENSITIVITY_SEED, SENSITIVITY_TRIALS, perturbed_twin, replay_tolerances)
     from designer.progress import progress
 
+    offsets = np.concatenate([[0], np.cumsum(sensor_dims)])
+    rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
+    rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
+    to_float = FLOAT_EPSILON / np.finfo(float).eps
     steps, tolerances = [], []
     for k in progress(range(z.shape[0]), z.shape[0], False, "export: replaying the run"):
         e = (None, None, None) if att is None else (att.dos[0, k], att.fdi[0, k], att.xi[0, k])
