@@ -681,7 +681,7 @@ def run_consensus_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
 def consensus_arrays(out: Mapping) -> ConsensusBatchResult:
     """The :class:`ConsensusBatchResult` of a run's records (:func:`result_arrays`): a record kept at its latest step
     only None (:func:`filters.engine.history`), Φ kept as its diagonals given as ``phi_variances``."""
-    fields = {name: history(value) for name, value in out.items() if name in ConsensusBatchResult._fields}
+    fields = {name: history(value) for name, value in out.items()}
     return ConsensusBatchResult(**{"phi_variances": None if fields.get("phi_post") is not None
                                    else diagonals(out["phi_post"]), **fields})
 

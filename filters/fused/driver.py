@@ -42,13 +42,12 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
 from numba.core import types
 
+from designer.cores import kept_pool
 from designer.model import Model
 from designer.validation import InputError, check_int
 from filters.particle import LOG_TINY, check_finite_means
@@ -377,33 +376,9 @@ def spread(one, R: int, threads: int) -> None:
                 return
             one(r)
 
-    ex = _spreading(min(threads, R))
+    ex = kept_pool("particles", min(threads, R))  # its own pool: designer.cores.thread_pool's tasks may wait on it
     for f in [ex.submit(worker) for _ in range(min(threads, R))]:
         f.result()  # re-raise any exception from a worker
-
-
-_SPREAD: tuple[ThreadPoolExecutor, int] | None = None  # :func:`spread`'s threads and their number, kept between calls
-
-
-def _spreading(threads: int) -> ThreadPoolExecutor:
-    """A pool of at least ``threads`` threads for :func:`spread`, kept for the process's later calls: starting the
-    threads anew at each call was 9 % of a warm ``rrp-deception`` study (70 calls).  Its own pool, not
-    :func:`designer.cores.thread_pool`'s, whose tasks may be waiting on it; forgotten in a forked child."""
-    global _SPREAD
-    if _SPREAD is None or _SPREAD[1] < threads:
-        if _SPREAD is not None:
-            _SPREAD[0].shutdown(wait=False)
-        _SPREAD = (ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cfdesign-particles"), threads)
-    return _SPREAD[0]
-
-
-def _forget_spreading() -> None:
-    global _SPREAD
-    _SPREAD = None
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_spreading)
 
 
 def run_all(data_type, kernels, data_of_run, x0, gens, K, scheme, thr, covariance, threads,
