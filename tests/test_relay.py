@@ -461,7 +461,9 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
     """relay_update works in the ball's r rows (M = Lₛᵀ Ĥ Ĥᵀ Lₛ, r x r, the same nonzero eigenvalues as Q) where the
     rows are fewer than Q's G n columns and their weights S are positive definite, in Q's columns where they are
     not (a row that never arrives: p = 0) or where the rows are as many (a small state, many rows): each gives the
-    pseudo-inverse formula, and the rows' way is taken exactly where it can be and pays."""
+    pseudo-inverse formula, and the rows' way is taken exactly where it can be and pays.  In the rows, an item whose
+    M is certified invertible is solved directly (K_r G0 = X S⁻¹); one with two rows of one depth along one
+    direction (G0 singular) takes M's pseudo-inverse: both are seen, and both give the formula."""
     import rules.relay.design as rd
 
     model, net = bearing_model(), varied_network()
@@ -469,9 +471,17 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
     signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
     M, mu = signal.moment(4), signal.mean(4)
     rng = np.random.default_rng(6)
-    taken, seen = [], set()
+    taken, seen, direct = [], set(), []
     real = rd._row_space_update
-    monkeypatch.setattr(rd, "_row_space_update", lambda *a: taken.append(real(*a) is not None) or real(*a))
+
+    def spy(*a):
+        out = real(*a)
+        taken.append(out is not None)
+        if out is not None:
+            direct.extend(np.ravel(out[0].direct).tolist())
+        return out
+
+    monkeypatch.setattr(rd, "_row_space_update", spy)
     for i in range(N):
         mom = node_moments(rt, net, model.sensor_dims, i)
         r = mom.rows.size
@@ -481,8 +491,12 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
         lost = mom._replace(p=np.where(np.arange(r) == r - 1, 0.0, mom.p), A=mom.A * keep, F1=mom.F1 * keep,
                             F2=mom.F2 * keep)
         fewer = r < mom.groups.shape[-1] * 4  # than Q's G n columns
-        for m, way in ((mom, True), (lost, False)):
+        depth = mom.groups.argmax(axis=1)
+        twice = [(a, b) for a in range(r) for b in range(a + 1, r) if depth[a] == depth[b]][:1]
+        for m, way, repeat in ((mom, True, []), (mom, True, twice), (lost, False, [])):
             Hw = rng.normal(size=(2, r, 4))
+            for a, b in repeat:  # one depth's two rows along one direction: G0 singular
+                Hw[:, b] = -2.0 * Hw[:, a]
             A = rng.normal(size=(2, 4, 4))
             P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
             taken.clear()
@@ -504,6 +518,7 @@ def test_the_update_in_the_balls_rows_and_in_qs_columns_are_the_same_formula(mon
             for b in range(2):
                 _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], many, M, mu, (i, "many", b))
     assert {True, False, "columns"} <= seen, seen
+    assert True in direct and False in direct, direct
 
 
 def test_stacked_nodes_with_their_own_depths_update_as_each_alone():
