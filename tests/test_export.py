@@ -593,19 +593,33 @@ def model() -> Model:
 
 @pytest.mark.skipif(shutil.which("gcov") is None, reason="no gcov")
 def test_the_relay_nodes_two_ways_agree_where_rows_repeat_and_where_the_fast_inverse_gives_way(tmp_path):
-    """The C relay node updates in its ball's rows (M = Ls^T G0 Ls, r x r), and where S is not positive definite
-    reduces each hop group's rows to an orthonormal basis of their span (-DCFD_BASES_ONLY=1 takes that way at every
-    step); neither is numpy's pseudo-inverse of the whole G n x G n Q, as rules.relay.design.relay_update's fallback
-    computes it.  On a model where two sensors of one hop depth measure one direction (a row the reduction drops) and
-    one sensor is 1e7 x more precise (M and Q' beyond the certified Cholesky inverse, so the eigen-decomposition
-    decides), both ways replay the Python node filter, and coverage (gcov) shows that their branches ran."""
-    model = tmp_path / "twins.py"
-    model.write_text(TWINS)
-    des, out = tmp_path / "design", tmp_path / "c"
-    assert main(["design", str(model), "--mode", "relay", "--out", str(des)]) in (0, 1)
-    studies.export(des, out=out)
-    keys = ("if (nr > GS_TOL", "kg_[nk++] = g", "eigsym(&wk->m, nk", "eigsym(&wk->m, r,")
-    counts = {}
+    """The C relay node updates in its ball's rows (directly, K_r G0 = X S^-1, where the traces of S and of G0's
+    blocks certify M = Ls^T G0 Ls), and where S is not positive definite or M has no certified inverse (two rows of
+    one depth along one direction) reduces each hop group's rows to an orthonormal basis of their span
+    (-DCFD_BASES_ONLY=1 takes that way at every step); neither is numpy's pseudo-inverse of the whole G n x G n Q, as
+    rules.relay.design.relay_update's fallback computes it.  On a model where two sensors of one hop depth measure one
+    direction (a row the reduction drops) and one sensor is 1e7 x more precise (Q' beyond the certified Cholesky
+    inverse, so the eigen-decomposition decides), and on the same model with that sensor as precise as the others
+    (balls whose depths' rows are independent: the direct update), both ways replay the Python node filter, and
+    coverage (gcov) shows that their branches ran: in the rows the direct update and the bases' where rows repeat a
+    direction."""
+    keys = ("if (nr > GS_TOL", "kg_[nk++] = g", "eigsym(&wk->m, nk", "lp = l * cfd_p[r0 + c]")
+    counts = dict.fromkeys(((way, key) for way in ("rows", "bases") for key in keys), 0)
+    for name, text in (("twins", TWINS), ("alike", TWINS.replace("g(1e-14)", "g(1.0)"))):
+        model = tmp_path / f"{name}.py"
+        model.write_text(text)
+        des, out = tmp_path / f"design-{name}", tmp_path / f"c-{name}"
+        assert main(["design", str(model), "--mode", "relay", "--out", str(des)]) in (0, 1)
+        studies.export(des, out=out)
+        _count_relay_ways(out, keys, counts)
+    assert counts["rows", "lp = l * cfd_p[r0 + c]"] > 0 and counts["rows", "if (nr > GS_TOL"] > 0
+    assert counts["bases", "if (nr > GS_TOL"] > counts["bases", "kg_[nk++] = g"] > 0  # rows dropped, directions kept
+    assert counts["bases", "eigsym(&wk->m, nk"] > 0 and counts["bases", "lp = l * cfd_p[r0 + c]"] == 0
+
+
+def _count_relay_ways(out, keys, counts):
+    """Build the relay export in ``out`` with coverage each way (in the rows where they can be, by bases at every
+    step), check that its replay passes, and add how often each line holding a key ran to ``counts[way, key]``."""
     for flag, way in (("-DCFD_BASES_ONLY=0", "rows"), ("-DCFD_BASES_ONLY=1", "bases")):
         build = subprocess.run([CC, "-std=c99", "-O0", "--coverage", flag, "-o", "cov", "cfd_test.c", "cfd_node.c",
                                 "cfd_model.c", "-lm"], cwd=out, capture_output=True, text=True, timeout=300)
@@ -619,10 +633,7 @@ def test_the_relay_nodes_two_ways_agree_where_rows_repeat_and_where_the_fast_inv
             count, _, code = (part.strip() for part in line.split(":", 2))
             for key in keys:
                 if key in code:
-                    counts[way, key] = 0 if count.startswith("#") else int(count.rstrip("*"))
-    assert counts["rows", "eigsym(&wk->m, r,"] > 0 and counts["rows", "if (nr > GS_TOL"] == 0
-    assert counts["bases", "if (nr > GS_TOL"] > counts["bases", "kg_[nk++] = g"] > 0  # rows dropped, directions kept
-    assert counts["bases", "eigsym(&wk->m, nk"] > 0 and counts["bases", "eigsym(&wk->m, r,"] == 0
+                    counts[way, key] += 0 if count.startswith("#") else int(count.rstrip("*"))
 
 
 @pytest.mark.slow
