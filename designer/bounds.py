@@ -41,7 +41,8 @@ from .validation import InputError
 __all__ = [
     "PredictionBound", "prediction_bound", "prediction_recursion", "optimal_gain", "optimal_gain_from",
     "update_bound", "update_bound_from", "condition28_margin", "condition29_margin", "theorem2_margin",
-    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh", "eigvalsh", "sqrtm_psd", "BOUND_LIMIT",
+    "shifted_inverse", "symmetrize", "Spectrum", "spectrum", "eigh", "eigvalsh", "sqrtm_psd", "lower_inverse",
+    "BOUND_LIMIT",
 ]
 
 #: A bound whose trace reaches this certifies nothing, and the prediction bound (26) overflows beyond it: every
@@ -141,6 +142,31 @@ def eigh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def eigvalsh(a: np.ndarray) -> np.ndarray:
     """``numpy.linalg.eigvalsh(a)`` (the eigenvalues alone: less than half of :func:`eigh`'s work), split alike."""
     return _split(np.linalg.eigvalsh, a, vectors=False)
+
+
+#: rows from which :func:`lower_inverse` inverts matrix by matrix (below, one batched call costs less than the loop)
+_TRTRI_ROWS = 16
+
+
+def lower_inverse(L: np.ndarray) -> np.ndarray:
+    """The inverses of lower triangular matrices ``L`` (..., m, m) with a nonzero diagonal (Cholesky factors: their
+    strict upper triangle zero, as the inverse's is).  From :data:`_TRTRI_ROWS` rows by LAPACK's ``trtri``, matrix
+    by matrix: a third of ``numpy.linalg.inv``'s time at 30 to 64 rows (it factors the triangle by LU first);
+    below, numpy's.  Either way each matrix alone: the same bits for a matrix alone or in a stack."""
+    L = np.asarray(L, dtype=float)
+    m = L.shape[-1]
+    if m < _TRTRI_ROWS:
+        return np.linalg.inv(L)
+    from scipy.linalg.lapack import dtrtri
+
+    flat = L.reshape((-1, m, m))
+    out = np.empty(flat.shape)
+    for k, low in enumerate(flat):
+        inv, info = dtrtri(low.T, lower=0)  # Lᵀ, upper, in Fortran's order as it lies: its inverse is (L⁻¹)ᵀ
+        if info:
+            raise np.linalg.LinAlgError("Singular matrix")
+        out[k] = inv.T
+    return out.reshape(L.shape)
 
 
 def sqrtm_psd(P: np.ndarray, inverse: bool = False) -> np.ndarray:

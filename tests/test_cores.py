@@ -1,4 +1,5 @@
-"""designer.cores and the stacked eigh that splits a stack over the cores (designer.bounds.eigh)."""
+"""designer.cores and the stacked eigh that splits a stack over the cores (designer.bounds.eigh); the stacked inverse of
+Cholesky factors (designer.bounds.lower_inverse)."""
 from __future__ import annotations
 
 import os
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from designer import cores
-from designer.bounds import eigh
+from designer.bounds import eigh, lower_inverse
 
 
 def _stack(shape, seed=0):
@@ -23,6 +24,24 @@ def test_eigh_of_a_stack_is_numpys_to_the_bit(shape):
     ref_lam, ref_Q = np.linalg.eigh(a)
     assert lam.shape == ref_lam.shape and Q.shape == ref_Q.shape
     assert np.array_equal(lam, ref_lam) and np.array_equal(Q, ref_Q)
+
+
+@pytest.mark.parametrize("shape", [(3, 5, 5), (2, 3, 15, 15), (4, 16, 16), (2, 2, 48, 48), (40, 40)])
+def test_the_inverse_of_cholesky_factors_is_lower_triangular_and_the_same_bits_alone_or_stacked(shape):
+    """lower_inverse (LAPACK's trtri from 16 rows, numpy's inv below) against numpy's inv to rounding, its strict
+    upper triangle exactly zero, and each matrix alone giving the bits it gives in the stack."""
+    m = shape[-1]
+    L = np.linalg.cholesky(_stack(shape) + m * np.eye(m))
+    Li = lower_inverse(L)
+    ref = np.linalg.inv(L)
+    assert Li.shape == L.shape and not np.triu(Li, 1).any()
+    assert np.allclose(Li, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    assert np.allclose(Li @ L, np.eye(m), rtol=0, atol=1e-12)
+    flat, one = L.reshape(-1, m, m), Li.reshape(-1, m, m)
+    for k in range(flat.shape[0]):
+        assert np.array_equal(lower_inverse(flat[k]), one[k])
+    with pytest.raises(np.linalg.LinAlgError):
+        lower_inverse(np.tril(np.ones((m, m))) - np.eye(m))
 
 
 def _counted_eigh(monkeypatch, n_cores: int) -> list:

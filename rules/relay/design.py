@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 from designer.anderson import Anderson
-from designer.bounds import sqrtm_psd
+from designer.bounds import lower_inverse, sqrtm_psd
 from designer.cores import SOLVER_SETTINGS
 from designer.network import SensorNetwork
 from designer.regions import Carried, carried_positions, carried_states
@@ -712,7 +712,7 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     same = mom.groups @ mom.groups.T  # (r, r) 1 where two rows are of the same hop depth
     G0 = same * (Hw @ np.swapaxes(Hw, -1, -2))  # Ĥ Ĥᵀ
     X = np.broadcast_to(mom.p[..., :, None] * HP, lead + (r, n))  # Xᵀ = diag(p) Hw P⁻
-    Li = np.linalg.inv(Ls)
+    Li = lower_inverse(Ls)
     Y = Li @ X  # Lₛ⁻¹ Xᵀ (r x n)
     direct = _direct(S, Li, G0, mom.groups, rtol)
     Kr, G, P = np.empty(lead + (n, r)), np.empty(lead + (r, r)), np.empty(lead + (n, n))
@@ -740,12 +740,12 @@ def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, r
     lead = G0.shape[:-2]
     bound = np.trace(S, axis1=-2, axis2=-1) * np.sum(Li * Li, axis=(-2, -1))  # ≥ cond(S)
     top, inv = np.zeros(lead), np.zeros(lead)
-    for g in range(groups.shape[-1]):
-        rows = np.flatnonzero(groups[:, g])
-        if rows.size:
-            B = G0[..., rows[:, None], rows]
-            top = np.maximum(top, np.trace(B, axis1=-2, axis2=-1))
-            inv = np.maximum(inv, _inverse_trace(B))
+    rows = [np.flatnonzero(groups[:, g]) for g in range(groups.shape[-1])]
+    for size in {r.size for r in rows} - {0}:  # the blocks of one size at once: (..., blocks, size, size)
+        idx = np.stack([r for r in rows if r.size == size])
+        B = G0[..., idx[:, :, None], idx[:, None, :]]
+        top = np.maximum(top, np.trace(B, axis1=-2, axis2=-1).max(axis=-1))
+        inv = np.maximum(inv, _inverse_trace(B).max(axis=-1))
     return np.asarray(bound * top * inv * rtol < 1.0)
 
 
@@ -753,7 +753,7 @@ def _inverse_trace(B: np.ndarray) -> np.ndarray:
     """``tr B⁻¹ = |L⁻¹|²`` (``B = L Lᵀ``) of symmetric matrices (..., m, m), ``inf`` where one has no Cholesky factor
     (found item by item, only when the batch's factorisation fails)."""
     try:
-        Li = np.linalg.inv(np.linalg.cholesky(B))
+        Li = lower_inverse(np.linalg.cholesky(B))
     except np.linalg.LinAlgError:
         if B.ndim == 2:
             return np.array(np.inf)
@@ -774,7 +774,7 @@ def pseudo_inverse(M: np.ndarray, rtol: float = RTOL) -> np.ndarray:
     out = np.empty_like(M)
     todo = np.ones(M.shape[:-2], dtype=bool)  # the matrices not certified
     try:
-        Li = np.linalg.inv(np.linalg.cholesky(M))  # M = L Lᵀ, M⁻¹ = L⁻ᵀ L⁻¹, tr M⁻¹ = |L⁻¹|² > 0
+        Li = lower_inverse(np.linalg.cholesky(M))  # M = L Lᵀ, M⁻¹ = L⁻ᵀ L⁻¹, tr M⁻¹ = |L⁻¹|² > 0
     except np.linalg.LinAlgError:
         pass
     else:
