@@ -161,28 +161,53 @@ class EdgeAttacks(NamedTuple):
 
 
 class Exchange:
-    """Sums over each node's incoming channels, for stacks ``(runs, E, ...)`` of per-channel values."""
+    """Sums over each node's incoming channels, for stacks ``(runs, E, ...)`` of per-channel values.
+
+    Every sum adds a node's channels in their order from the first, ``((v_0 + v_1) + v_2) + ...`` (:meth:`sum`,
+    :meth:`weighted_sum`, and :meth:`node_sum` for one node alone): a node filter's numbers are the batch's bit for
+    bit, whatever numpy's reductions do (``np.add.reduceat`` associates differently from 4 terms on, and from one
+    numpy to another)."""
 
     def __init__(self, network: SensorNetwork):
         self.receiver, self.sender = _channels(network)
         self.n = network.n_nodes
         deg = np.bincount(self.receiver, minlength=self.n)
-        self.has = deg > 0
-        self.starts = (np.cumsum(deg) - deg)[self.has]
+        first = np.cumsum(deg) - deg
+        # a node's k-th incoming channel, for the nodes that have one: (nodes, channels) for k = 0, 1, ...
+        self._positions = [(np.flatnonzero(deg > k), first[deg > k] + k) for k in range(int(deg.max(initial=0)))]
+
+    def _fold(self, term, shape: tuple) -> np.ndarray:
+        out = np.zeros(shape)
+        for k, (nodes, chans) in enumerate(self._positions):
+            if k:
+                out[:, nodes] += term(chans)
+            else:
+                out[:, nodes] = term(chans)
+        return out
 
     def sum(self, values: np.ndarray) -> np.ndarray:
-        out = np.zeros((values.shape[0], self.n) + values.shape[2:])
-        if self.starts.size:
-            out[:, self.has] = np.add.reduceat(values, self.starts, axis=1)
-        return out
+        """Each node's sum of ``values`` (runs, E, ...) over its incoming channels: (runs, N, ...)."""
+        return self._fold(lambda chans: values[:, chans], (values.shape[0], self.n) + values.shape[2:])
+
+    def weighted_sum(self, w: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """``sum(w * values[:, sender])`` for weights ``w`` (runs, E) and per-node ``values`` (runs, N, ...), the same
+        bits, without forming the (runs, E, ...) products: a channel position at a time (64 nodes' 64 x 64
+        information matrices in 2 runs: 17 ms a sum with the products, 6 without)."""
+        tail = (slice(None), slice(None)) + (None,) * (values.ndim - 2)
+        return self._fold(lambda chans: w[:, chans][tail] * values[:, self.sender[chans]],
+                          (values.shape[0], self.n) + values.shape[2:])
 
     @staticmethod
     def node_sum(values: np.ndarray) -> np.ndarray:
         """One node's sum over its incoming channels ``(a, d, ...)`` -> ``(a, ...)``, added as :meth:`sum` adds
         every node's (a node filter's numbers are the batch's bit for bit)."""
-        if values.shape[1] == 0:
-            return np.zeros(values.shape[:1] + values.shape[2:])
-        return np.add.reduceat(values, [0], axis=1)[:, 0]
+        out = np.zeros(values.shape[:1] + values.shape[2:])
+        for k in range(values.shape[1]):
+            if k:
+                out += values[:, k]
+            else:
+                out[...] = values[:, 0]
+        return out
 
 
 def edge_attacks(network: SensorNetwork, attacks, runs: int, steps: int, nx: int) -> EdgeAttacks | None:
@@ -771,7 +796,7 @@ def _consensus_runs(model: Model, network: SensorNetwork, nets: list | None, z, 
         s = ex.sum(recv.astype(float))
         innovation = ex.sum(recv[..., None] * channel_packets(xp[:, ex.sender], fdi, xi)) - s[..., None] * xp
         each = slice(None) if nets is None else at  # the runs' channel statistics
-        neigh = ex.sum(w_phi[each][:, :, None, None] * Pp[:, ex.sender]) + w_xi[each][..., None, None] * eye
+        neigh = ex.weighted_sum(w_phi[each], Pp) + w_xi[each][..., None, None] * eye
 
         def extra(grp):  # a group's items beyond the update's own: a replayed schedule's gains, the weighted weights'
             ns = grp.nodes

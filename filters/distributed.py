@@ -356,8 +356,8 @@ def _hcmci_update(ex: Exchange, network: SensorNetwork, L: int, omega: str, pack
         q_t, dq_t = hcmci_packets(O[:, snd], q[:, snd], dO[:, snd], dq[:, snd], f, xi, packet)
         q, dq = (w_self[..., None] * q + ex.sum(w[..., None] * q_t),
                  w_self[..., None] * dq + ex.sum(w[..., None] * dq_t))
-        O, dO = (w_self[..., None, None] * O + ex.sum(w[..., None, None] * O[:, snd]),
-                 w_self[..., None, None] * dO + ex.sum(w[..., None, None] * dO[:, snd]))
+        O, dO = (w_self[..., None, None] * O + ex.weighted_sum(w, O),
+                 w_self[..., None, None] * dO + ex.weighted_sum(w, dO))
     if omega == "size":
         x, P = _hcmci_combine(n, O, q, dO, dq)
         return x, P, np.full(xp.shape[:-1], float(n))
