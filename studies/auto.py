@@ -46,7 +46,7 @@ import numpy as np
 
 import rules
 from designer.design import DesignOptions
-from designer.progress import counter
+from designer.progress import counter, phase
 from designer.validation import ComputationError, InputError, check_int
 from designer.verdict import json_number, steadiness_window
 
@@ -567,8 +567,9 @@ def validation(pick: Design, runs: int, seed: int) -> dict:
     from .pipeline import run_study
 
     opts = replace(pick.options, mode=pick.gain_rule.name)
-    res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=False,
-                    backend=_validation_backend(), **VALIDATION_OPTIONS)  # the runner's progress bar on a terminal
+    with phase(f"validation, {runs} fresh runs"):  # its lines say so, not only the study it runs
+        res = run_study("consensus-robot", [pick.scenario], runs=runs, seed=seed, options=opts, quiet=False,
+                        backend=_validation_backend(), **VALIDATION_OPTIONS)  # the runner's progress bar on a terminal
     filters = res.results["filters"]
     mine = next((n for n in filters if n.startswith("consensus-EKF") and f"({pick.gain_rule.name}" in n), None)
     key = "rmse_region" if pick.scenario.regions is not None else "rmse"  # what the pick was ranked by

@@ -83,3 +83,13 @@ def test_the_parent_says_where_its_worker_processes_are_while_they_compute(capsy
         monte_carlo(_slow_task, runs=2, seed=0, chunk_size=1, backend=Backend("processes", workers=2), label="slow",
                     quiet=True)
     assert _lines(capsys.readouterr().err) == []
+
+
+def test_a_designs_validation_says_it_is_the_validation(tmp_path, capsys, eager):
+    """The Monte Carlo runs of --validate are the consensus-robot study on the user's model: its lines name the
+    validation first, so that a user designing a field is not told about a robot."""
+    assert main(["design", "examples/ring_model.py", "--mode", "relay", "--steps", "6", "--validate", "2",
+                 "--out", str(tmp_path / "d")]) in (0, 1)
+    lines = _lines(capsys.readouterr().err)
+    runs = [ln for ln in lines if "chunks)" in ln]
+    assert runs and all(ln.startswith("cfdesign: validation, 2 fresh runs: ") for ln in runs), lines
