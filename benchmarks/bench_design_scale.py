@@ -29,8 +29,8 @@ For every size, in this one process:
   arrives, none falsified: the best the sensors allow).  The error is the position RMSE over the runs, the
   steps 1..K and (for the consensus filter) every node, as the comparison scores it; a run whose error
   leaves ``DIVERGENCE_SPREAD`` prior spreads diverged and is left out of the RMSE (and counted).
-  ``--local`` adds the local EKFs (every node alone with its own range sensor; the comparison's
-  ``local_ekf_design``).
+  ``--local`` adds the local EKFs (every node alone with its own range sensor; the comparison's,
+  ``filters.distributed.run_local_batch``).
 
 The issue's targets are printed beside the numbers: the 512-node design in <= ``TARGET_512_S`` = 120 s, and
 an error within ``ERROR_TARGET`` = 3 x the centralized EKF's.
@@ -133,13 +133,11 @@ import numpy as np
 
 from designer.cores import one_blas_thread
 from designer.regions import Carried
-from designer.network import SensorNetwork
 from filters.attacks import attack_pattern, channel_draws, receive, uplink_attacks
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
-from filters.distributed import run_hcmci_batch
+from filters.distributed import run_hcmci_batch, run_local_batch
 from filters.ekf import run_ekf_batch
 from filters.uplink import split_received
-from studies.filter_registry import local_ekf_design
 from studies.consensus_design import consensus_design
 from studies.results import DIVERGENCE_SPREAD, divergence_limit, first_divergence
 from studies.scenarios import load_scenario
@@ -294,8 +292,7 @@ def measure(folder: Path, nodes: int, steps: int, runs: int, seed: int, local: b
                         "centralized (clean)": clean_div},
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     if local:
-        isolated = SensorNetwork(nodes, np.zeros((nodes, nodes), int), require_connected=False)
-        res = run_consensus_batch(m, isolated, z, local_ekf_design(consensus_design(sc))).detail
+        res = run_local_batch(m, z).detail
         row["rmse_local"], row["diverged"]["local"] = position_rmse(sc, truth, res.x_post)
         row["ratio_local"] = row["rmse_local"] / cekf
     for L in hcmci:  # the literature's rounds on the clean runs, against the clean centralized EKF

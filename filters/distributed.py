@@ -1,4 +1,4 @@
-"""The distributed filters of the literature, as baselines: the Kalman consensus filter and HCMCI.
+"""The distributed filters of the literature, as baselines: the Kalman consensus filter and HCMCI; and the local EKFs.
 
 Both run at every node of the project's :class:`designer.network.SensorNetwork` on the
 model layer's transition and sensors (extended, EKF-linearised forms: ``F``, ``H_i`` from
@@ -48,6 +48,10 @@ independent measurement noise), ``ω_i → N`` as ``L → ∞`` and ``ω_i = 1``
 when every channel of the node is lost.  A node can track ``r_i`` by running the same
 consensus on the ``N``-vector ``e_i`` (``N`` more numbers per packet; not counted as packets).
 
+**The local EKFs** — every node an EKF on its own sensor alone, nothing sent (the baseline a network must beat):
+the prediction above, then the update of its sensor's rows whitened, ``L = R^{-1/2} H``, ``w = R^{-1/2} (z - h(x̄))``:
+``S = L P Lᵀ + I``, ``G = P Lᵀ S⁻¹``, ``x̂ = x̄ + G w`` and Joseph's form expanded (:func:`run_local_batch`).
+
 Assumptions where the papers are silent (attacks are not part of either paper):
 
 * **KCF gain**: the CDC 2009 Algorithm 1 consensus gain ``γ M_i`` with
@@ -83,7 +87,8 @@ batch are the same numbers).  Every received packet is formed first (:func:`kcf_
 and summed over each node's incoming channels (:class:`filters.consensus_batch.Exchange`), so that one node handed
 the packets that arrived computes the batch's numbers bit for bit: the node filters :class:`KCFNode` (``predict``
 with its measurement, then ``update``) and :class:`HCMCINode` (``predict``, then ``round`` per consensus round;
-``omega='size'``), driven over a run by :class:`KCFNetwork`, :class:`HCMCINetwork`.  The node-by-node loop they
+``omega='size'``), driven over a run by :class:`KCFNetwork`, :class:`HCMCINetwork`; the local EKFs' node filter is
+:class:`LocalEKFNode` (``step``), :class:`LocalEKFNetwork` all of them.  The node-by-node loop they
 replaced is the tests' independent reference (``tests/distributed_reference.py``).
 """
 from __future__ import annotations
@@ -107,7 +112,8 @@ from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 __all__ = ["DistributedResult", "DistributedBatchResult", "distributed_result", "run_kcf", "run_hcmci", "run_kcf_batch",
            "run_hcmci_batch", "kcf_payload", "hcmci_payload", "metropolis_weights", "OMEGA_CHOICES", "FALSIFY_CHOICES", "kcf_packets",
            "measurement_information", "measurement_rows", "whitening", "KCFPacket", "KCFNode", "KCFNetwork", "hcmci_packets", "hcmci_weights",
-           "HCMCIPacket", "HCMCINode", "HCMCINetwork"]
+           "HCMCIPacket", "HCMCINode", "HCMCINetwork", "run_local_batch", "measurement_whitened",
+           "isolated", "LocalEKFNode", "LocalEKFNetwork"]
 
 OMEGA_CHOICES = ("size", "consistent")
 FALSIFY_CHOICES = ("packet", "estimate")
@@ -516,6 +522,15 @@ def measurement_rows(model: Model, i: int, x_pred, z, W, k: int):
     return L, (np.swapaxes(L, -1, -2) @ (W @ (res + (H @ x_pred[..., None])[..., 0])[..., None]))[..., 0]
 
 
+def measurement_whitened(model: Model, i: int, x_pred, z, W, k: int):
+    """Sensor ``i``'s rows and residual whitened: ``(W H, W (z - h(x̄)))`` at the predictions ``x_pred`` (a, n_x) for
+    its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped), ``W`` its :func:`whitening` (the
+    rows' noise the identity): what the local EKF's covariance-form update takes."""
+    H = model.H(i, x_pred, k + 1)
+    res = wrap_residuals(z - model.h(i, x_pred, k + 1), model.sensors[i].angles)
+    return W @ H, (W @ res[..., None])[..., 0]
+
+
 def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
     """Sensor ``i``'s information ``(U, u)`` = ``(Hᵀ R⁻¹ H, Hᵀ R⁻¹ (z - h(x̄) + H x̄))`` at the predictions
     ``x_pred`` (a, n_x) for its measurements ``z`` (a, n_z_i) of the state at ``k + 1`` (angles wrapped)."""
@@ -527,13 +542,15 @@ def measurement_information(model: Model, i: int, x_pred, z, R_inv, k: int):
 
 
 def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, update, rounds: int,
-                  covariances: bool = True, as_rows: bool = False) -> DistributedBatchResult:
-    """The step both filters share, run by :func:`filters.engine.run_batch` over many runs at once: every step,
-    predict at every node of the runs still going, compute every node's measurement information, ``update`` them;
-    a run stops at its first divergence (the others go on).  ``update(k, act, x_pred, P_pred, U, u, recv)`` takes
-    stacks over the runs ``act`` (``recv`` (a, N, N); with ``as_rows`` the information's rows ``L`` (a, N, m, n_x) of
-    :func:`measurement_rows` in place of ``U``, zero below a sensor's own, ``m`` the largest sensor's) and returns
-    their posteriors and ``ω`` (or None); where it
+                  covariances: bool = True, measure: str = "information") -> DistributedBatchResult:
+    """The step the baselines share (KCF, HCMCI, the local EKFs), run by :func:`filters.engine.run_batch` over many
+    runs at once: every step, predict at every node of the runs still going, compute every node's measurement's
+    terms, ``update`` them; a run stops at its first divergence (the others go on).  ``update(k, act, x_pred, P_pred,
+    U, u, recv)`` takes stacks over the runs ``act`` (``recv`` (a, N, N)) and the terms ``measure`` names: its
+    information ``U`` (a, N, n_x, n_x), ``u`` (a, N, n_x) (:func:`measurement_information`, ``"information"``), the
+    information's rows ``L`` (a, N, m, n_x) in place of ``U`` (:func:`measurement_rows`, ``"rows"``), or those rows
+    and the whitened residual (a, N, m) in place of ``u`` (:func:`measurement_whitened`, ``"whitened"``), zero below
+    a sensor's own rows, ``m`` the largest sensor's; it returns their posteriors and ``ω`` (or None); where it
     raises ``LinAlgError``, the runs are updated one at a time to find those that break down.  Without
     ``covariances`` the nodes' covariances are kept at their latest step only (:class:`filters.engine.Latest`)."""
     n, nx = network.n_nodes, model.n_x
@@ -561,15 +578,22 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
             every = go.size == act.size
             xg, Pg, rg = (v if every else v[go] for v in (xp, Pp, recv))
             # every node's measurement information, linearised at its own prediction (stacked over the runs)
-            u = np.empty(xg.shape)
-            U = np.zeros(xg.shape[:-1] + (max(model.sensor_dims), nx)) if as_rows else np.empty(xg.shape + (nx,))
+            m = max(model.sensor_dims)
+            if measure == "information":
+                U, u = np.empty(xg.shape + (nx,)), np.empty(xg.shape)
+            else:
+                U = np.zeros(xg.shape[:-1] + (m, nx))
+                u = np.empty(xg.shape) if measure == "rows" else np.zeros(xg.shape[:-1] + (m,))
             zk = inp.z[act[go], k]
             for i in range(n):
                 zi = zk[:, offsets[i]:offsets[i + 1]]
-                if as_rows:
-                    U[:, i, :zi.shape[-1]], u[:, i] = measurement_rows(model, i, xg[:, i], zi, inp.R_root[i], k)
-                else:
+                d = zi.shape[-1]
+                if measure == "information":
                     U[:, i], u[:, i] = measurement_information(model, i, xg[:, i], zi, inp.R_inv[i], k)
+                elif measure == "rows":
+                    U[:, i, :d], u[:, i] = measurement_rows(model, i, xg[:, i], zi, inp.R_root[i], k)
+                else:
+                    U[:, i, :d], u[:, i, :d] = measurement_whitened(model, i, xg[:, i], zi, inp.R_root[i], k)
             try:
                 x, P, om = update(k, act[go], xg, Pg, U, u, rg)
             except np.linalg.LinAlgError:
@@ -627,7 +651,7 @@ def run_kcf_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, inputs
         at = () if inp.attacks is None else (inp.attacks.fdi[act, k], inp.attacks.xi[act, k])
         return _kcf_update(ex, slots, eps, packet, xp, Pp, L, u, recv, *at)
 
-    return distributed_result(_filter_batch(model, network, inp, update, 1, covariances, as_rows=True
+    return distributed_result(_filter_batch(model, network, inp, update, 1, covariances, measure="rows"
                                             )._replace(omega=None))
 
 
@@ -648,6 +672,51 @@ def run_hcmci_batch(model: Model, network: SensorNetwork, z: np.ndarray, *, iter
         return _hcmci_update(ex, network, L, omega, packet, xp, Pp, dO, dq, recv, *at)
 
     return distributed_result(_filter_batch(model, network, inp, update, L, covariances))
+
+
+def isolated(n: int) -> SensorNetwork:
+    """``n`` nodes without a link: the network of the local EKFs (every node alone)."""
+    return SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
+
+
+def _outer(A, B):
+    """``A Bᵀ`` of stacks (..., n, m) with few columns ``m``: a sum of ``m`` outer products, each an elementwise
+    product (a matrix product of inner dimension 1 or 2 is NumPy's slow loop)."""
+    out = A[..., :, 0, None] * B[..., None, :, 0]
+    for j in range(1, A.shape[-1]):
+        out += A[..., :, j, None] * B[..., None, :, j]
+    return out
+
+
+def _local_update(xp, Pp, L, w):
+    """The EKF update of stacked nodes (..., n_x) with their whitened rows ``L`` (..., m, n_x) and residuals ``w``
+    (..., m) (:func:`measurement_whitened`; zero rows measure nothing): ``S = L P Lᵀ + I``, ``G = P Lᵀ S⁻¹``, ``x⁺ =
+    x⁻ + G w`` and ``P⁺ = P - P Lᵀ Gᵀ + G Dᵀ`` with ``D = G S - P Lᵀ``: Joseph's form ``(I - G L) P (I - G L)ᵀ + G
+    Gᵀ`` rearranged (the same for any ``G``, so an error in ``G`` enters to second order only: ``D`` vanishes at the
+    exact gain), in ``n² m`` where Joseph's products take ``2 n³``."""
+    PL = Pp @ np.swapaxes(L, -1, -2)
+    S = L @ PL + np.eye(L.shape[-2])
+    G = np.swapaxes(np.linalg.solve(S, np.swapaxes(PL, -1, -2)), -1, -2)
+    D = G @ S - PL
+    return xp + (G * w[..., None, :]).sum(axis=-1), Pp - _outer(PL, G) + _outer(G, D)
+
+
+def run_local_batch(model: Model, z: np.ndarray, *, inputs=None, x0=None, P0=None,
+                    covariances: bool = True) -> FilterResult:
+    """An EKF at every node on its own sensor alone (the local EKFs: nothing sent, nothing attacked), on many runs at
+    once: ``z`` (runs, steps, n_z), ``inputs``, ``x0``, ``P0`` and ``covariances`` as :func:`run_kcf_batch`.  Every
+    step is one stack over the runs and nodes: the prediction of :func:`run_kcf_batch`, then the update of each node's
+    sensor in covariance form (:func:`_local_update`); a run whose node diverges stops there, as KCF's.  Returns
+    :func:`distributed_result` of the runs on the network without links (``messages`` 0, no packet counted:
+    ``delivered`` None); :class:`LocalEKFNode` is one node of it, bit for bit."""
+    alone = isolated(model.n_sensors)
+    inp = _check_batch(model, alone, z, inputs, None, x0, P0, "packet")
+
+    def update(k, act, xp, Pp, L, w, recv):
+        return (*_local_update(xp, Pp, L, w), None)
+
+    return distributed_result(_filter_batch(model, alone, inp, update, 1, covariances, measure="whitened"
+                                            )._replace(omega=None))._replace(delivered=None)
 
 
 # --------------------------------------------------------------------------- KCF's node filter
@@ -691,6 +760,20 @@ class _InformationNode:
         L = np.zeros((1, max(m.sensor_dims), m.n_x))
         L[:, :z.shape[-1]], v = measurement_rows(m, i, xp[:, 0], z[None], self._R_root, self.k)
         return xp, Pp, L, v
+
+    def _posterior(self, combine, like: tuple, failed: bool) -> np.ndarray:
+        """The step's end: ``combine()``, the posterior ``(x, P)`` (stacks of one, shaped as ``like``) as the batch
+        computes it (NaN where it breaks down), becomes the node's state, marked diverged as the batch marks it
+        (:func:`_failures`; ``failed``: the step's prediction did).  Returns the estimate."""
+        try:
+            x, P = combine()
+        except np.linalg.LinAlgError:
+            x, P = np.full_like(like[0], np.nan), np.full_like(like[1], np.nan)
+        if failed or _failures(x, P)[0] < 1:
+            self.diverged = True
+        self.x, self.P = x[0, 0], 0.5 * (P[0, 0] + P[0, 0].T)
+        self.k += 1
+        return self.x
 
     def _packets(self, received, kind: type, fields: tuple) -> tuple[np.ndarray, list]:
         """``received`` ``{neighbour: packet}`` checked (:class:`filters.node.NodeInputs`: its keys in-neighbours,
@@ -744,16 +827,9 @@ class KCFNode(_InformationNode):
         # the sums over its incoming channels as the batch adds them (a lost packet an exact zero there)
         y = v + Exchange.node_sum(r[..., None] * pu)[:, None]
         diff = Exchange.node_sum(r[..., None] * px)[:, None] - Exchange.node_sum(r)[:, None, None] * xp
-        try:
-            x, M = _kcf_combine(self.eps, xp, Pp, rows.reshape(1, 1, (1 + d) * m, nx), y, diff)
-        except np.linalg.LinAlgError:
-            x, M = np.full_like(xp, np.nan), np.full_like(Pp, np.nan)
-        if _failures(xp, Pp)[0] < 1 or _failures(x, M)[0] < 1:
-            self.diverged = True
-        self.x, self.P = x[0, 0], 0.5 * (M[0, 0] + M[0, 0].T)
-        self.k += 1
         self._pred = None
-        return self.x
+        return self._posterior(lambda: _kcf_combine(self.eps, xp, Pp, rows.reshape(1, 1, (1 + d) * m, nx), y, diff),
+                               (xp, Pp), _failures(xp, Pp)[0] < 1)
 
 
 class KCFNetwork(NodeNetwork):
@@ -784,6 +860,42 @@ class KCFNetwork(NodeNetwork):
         for nd, got in zip(self.nodes, delivered):
             nd.update(got)
         return packets, [delivered]
+
+
+# --------------------------------------------------------------------------- the local EKF's node filter
+class LocalEKFNode(_InformationNode):
+    """The EKF one node runs on its own sensor alone (:func:`run_local_batch` at node ``node``): ``node.step(z, u)``
+    with its measurement ``z``; it sends and receives nothing.  Driven over a run through :class:`LocalEKFNetwork`, the
+    batch's numbers bit for bit (the same functions on a stack of one)."""
+
+    def __init__(self, model: Model, node: int, *, x0=None, P0=None):
+        super().__init__(model, isolated(model.n_sensors), node, x0, P0, "packet")
+
+    def step(self, z, u=None) -> np.ndarray:
+        """The prediction and the update with the node's measurement ``z``.  Returns the estimate (also ``self.x``;
+        ``self.P`` its covariance)."""
+        m, i = self.model, self.node
+        chk = NodeInputs.of(self)
+        z = chk.array("z", z, (m.sensor_dims[i],))
+        u = chk.inputs(u, m.n_u)
+        xp, Pp = _predict(m, self.x[None, None], self.P[None, None], self.k, u)
+        L, w = np.zeros((1, 1, max(m.sensor_dims), m.n_x)), np.zeros((1, 1, max(m.sensor_dims)))
+        L[:, 0, :z.size], w[:, 0, :z.size] = measurement_whitened(m, i, xp[:, 0], z[None], self._R_root, self.k)
+        return self._posterior(lambda: _local_update(xp, Pp, L, w), (xp, Pp), _failures(xp, Pp)[0] < 1)
+
+
+class LocalEKFNetwork(NodeNetwork):
+    """Every node as a :class:`LocalEKFNode`, driven over a run (``run``, ``step``): nothing crosses a channel.  Once
+    a node diverges the run stops (NaN from then on), as the batch stops it."""
+
+    def __init__(self, model: Model, *, x0=None, P0=None):
+        self.model, self.network = model, isolated(model.n_sensors)
+        self.nodes = [LocalEKFNode(model, i, x0=x0, P0=P0) for i in range(model.n_sensors)]
+
+    def _exchange(self, z, dos, fdi, xi, u):
+        for nd, z_i in zip(self.nodes, z):
+            nd.step(z_i, u)
+        return [None] * len(self.nodes), []
 
 
 # --------------------------------------------------------------------------- HCMCI's node filter
@@ -862,15 +974,8 @@ class HCMCINode(_InformationNode):
         if self._round < self.rounds:
             self._round += 1
             return HCMCIPacket(O[0, 0], q[0, 0], dO[0, 0], dq[0, 0])
-        try:
-            x, P = _hcmci_combine(self.network.n_nodes, O, q, dO, dq)
-        except np.linalg.LinAlgError:
-            x, P = np.full_like(q, np.nan), np.full_like(O, np.nan)
-        if self.diverged or _failures(x, P)[0] < 1:
-            self.diverged = True
-        self.x, self.P = x[0, 0], 0.5 * (P[0, 0] + P[0, 0].T)
-        self.k += 1
         self._state = None
+        self._posterior(lambda: _hcmci_combine(self.network.n_nodes, O, q, dO, dq), (q, O), self.diverged)
         return None
 
 

@@ -2,18 +2,18 @@
 
 Every batched filter returns it; what is its family's alone is the one field ``detail``:
 
-* the consensus EKF (every gain rule, the local EKFs as isolated nodes, a replayed gain schedule, the design
-  reduced to the EKF at a fusion centre): :func:`filters.consensus_batch.run_consensus_batch` — ``cov`` is the
-  bound Φ (``cov_kind = "bound"``; ``"covariance"`` for the design reduced to the EKF), ``valid`` where it is
-  one; ``detail`` a :class:`filters.consensus_batch.ConsensusBatchResult` (the predictions, the gains K and C,
-  σ, β, the margins of (28), (29) and Theorem 2, the gate counts; mse's predicted MSE and gain condition;
-  ``detail.run(r)`` a run alone);
-* the literature's distributed filters (KCF, HCMCI) and the relay filter:
+* the consensus EKF (every gain rule, a replayed gain schedule, the design reduced to the EKF at a fusion
+  centre): :func:`filters.consensus_batch.run_consensus_batch` — ``cov`` is the bound Φ (``cov_kind = "bound"``;
+  ``"covariance"`` for the design reduced to the EKF), ``valid`` where it is one; ``detail`` a
+  :class:`filters.consensus_batch.ConsensusBatchResult` (the predictions, the gains K and C, σ, β, the margins of
+  (28), (29) and Theorem 2, the gate counts; mse's predicted MSE and gain condition; ``detail.run(r)`` a run alone);
+* the literature's distributed filters (KCF, HCMCI), the local EKFs (every node alone) and the relay filter:
   :func:`filters.distributed.run_kcf_batch`, :func:`~filters.distributed.run_hcmci_batch`,
-  :func:`rules.relay.filter.run_relay_batch` (each through :func:`filters.distributed.distributed_result`) —
-  ``cov`` is each node's own covariance P (``"covariance"``), ``messages`` and ``delivered`` as the filter
-  counted them; ``detail`` a :class:`filters.distributed.DistributedBatchResult` (the predictions, the rounds,
-  HCMCI's ω; ``detail.run(r)`` a run alone);
+  :func:`~filters.distributed.run_local_batch`, :func:`rules.relay.filter.run_relay_batch` (each through
+  :func:`filters.distributed.distributed_result`) — ``cov`` is each node's own covariance P (``"covariance"``),
+  ``messages`` and ``delivered`` as the filter counted them (the local EKFs none); ``detail`` a
+  :class:`filters.distributed.DistributedBatchResult` (the predictions, the rounds, HCMCI's ω; ``detail.run(r)`` a
+  run alone);
 * the centralized EKF, :func:`filters.ekf.run_ekf_batch`, and the particle filters,
   :func:`filters.particle.run_sir` — one estimate, so ``nodes = 1`` (the fusion centre,
   :func:`centralized_result`), ``cov`` the filter's covariance (the particles' weighted one); ``detail`` a
@@ -28,7 +28,7 @@ Every batched filter returns it; what is its family's alone is the one field ``d
 trace, the energy ratio) checks for it; :attr:`FilterResult.trace` is then None.
 
 A filter takes what its result must say and its family cannot know itself (e.g. the runtime of a consensus
-filter run for the local or centralized EKF, the uplinks of a fusion centre) as parameters.
+filter run for the centralized EKF, the uplinks of a fusion centre) as parameters.
 
 Messages are counted as the studies' contract counts them (``messages_per_step`` /
 ``communications``): transmissions attempted per step, a packet lost to DoS included; one per

@@ -748,12 +748,12 @@ def node_filter(scenario, *, schedule: str | Path | None = None, mode: str | Non
     filter : str, optional
         Or a filter of the comparison by its name or short name (:func:`studies.recorded.filter_keys`): ``kcf``
         (:class:`filters.distributed.KCFNode`), ``hcmci`` (:class:`filters.distributed.HCMCINode`, ``iterations``
-        consensus rounds a step), the local EKFs (``local``: every node alone, the paper design reduced to the EKF on
-        a network without links), or a designed consensus filter (as ``mode``).
+        consensus rounds a step), the local EKFs (``local``: every node alone, an EKF on its own sensor,
+        :class:`filters.distributed.LocalEKFNode`), or a designed consensus filter (as ``mode``).
     node : int, optional
         The node (0..N-1): its node filter (``step(z, received, u)`` for relay and flood; ``predict``, then
         ``update`` for paper, tuned and KCF; ``predict``, ``update``, then ``round`` per further exchange round for
-        scheduled; ``predict``, then ``round`` per consensus round for HCMCI).  Default: every node's, as a network
+        scheduled; ``predict``, then ``round`` per consensus round for HCMCI; ``step(z, u)`` for the local EKF).  Default: every node's, as a network
         to drive over a run (``run(z, attacks, inputs)`` or ``step(z, dos, fdi, xi, u)``; ``deliver`` says what
         reaches each node).
     """

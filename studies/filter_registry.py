@@ -11,7 +11,7 @@ over a :class:`FilterRegistry`: a new filter is one entry (``registry.register(e
 Every filter returns its :class:`filters.result.FilterResult` itself (its family's arrays in ``detail``), so an
 entry's ``run`` is a call of its filter on the batch's rows and nothing else: no conversion happens here.  The
 entries of the project's filter families are made by the factories below: :func:`designed_consensus` (the
-consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone), :func:`replayed_schedule` (a
+consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone: an EKF on its sensor), :func:`replayed_schedule` (a
 gain schedule replayed), :func:`kcf` and :func:`hcmci` (the literature's distributed filters),
 :func:`centralized_consensus_ekf`, :func:`centralized_ekf` and :func:`particle_filters` (a fusion centre receiving
 every uplink).  The registry lives in ``studies`` (not in
@@ -31,7 +31,8 @@ from designer.rule import FILTER_RUNTIMES
 from designer.network import SensorNetwork
 from designer.validation import InputError
 from filters.consensus_batch import EdgeAttacks, run_consensus_batch
-from filters.distributed import HCMCINetwork, KCFNetwork, hcmci_payload, kcf_payload, run_hcmci_batch, run_kcf_batch
+from filters.distributed import (HCMCINetwork, KCFNetwork, LocalEKFNetwork, hcmci_payload, kcf_payload, run_hcmci_batch,
+                                 run_kcf_batch, run_local_batch)
 from filters.ekf import run_ekf_batch
 from filters.node import node_network
 from filters.particle import run_sir
@@ -260,22 +261,15 @@ def designed_consensus(name: str, mode: str, description: str, *, start_check: b
 
 
 def local_ekfs(name: str, description: str) -> FilterEntry:
-    """An EKF at every node on its own sensor: the consensus filter of the paper design (at the main setting)
-    reduced to the EKF (:func:`local_ekf_design`) on the network without links; nothing to attack, no message."""
+    """An EKF at every node on its own sensor (:func:`filters.distributed.run_local_batch`: every node alone); nothing
+    to attack, no message, no design."""
 
-    def run(batch: Batch, js: Sequence[int], design: ConsensusDesign | None) -> FilterResult:
-        n = batch.network.n_nodes
-        alone = SensorNetwork(n, np.zeros((n, n), int), require_connected=False)
-        return run_consensus_batch(batch.model, alone, batch.z_rows(js), design, attacks=None,
-                                   inputs=batch.input_rows(js), runtime="local", cov_kind="covariance",
-                                   covariances=batch.covariances)
+    def run(batch: Batch, js: Sequence[int], design) -> FilterResult:
+        return run_local_batch(batch.model, batch.z_rows(js), inputs=batch.input_rows(js),
+                               covariances=batch.covariances)
 
-    def nodes(model, network: SensorNetwork, design: ConsensusDesign, iterations: int):
-        n = network.n_nodes
-        return node_network(model, SensorNetwork(n, np.zeros((n, n), int), require_connected=False), design)
-
-    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, mode=rules.PUBLISHED, attacked=False,
-                       derive=lambda design, model: local_ekf_design(design), node_filters=nodes,
+    return FilterEntry(name, "local", "local", description, run, lambda net, L: 0, attacked=False,
+                       node_filters=lambda model, network, design, iterations: LocalEKFNetwork(model),
                        payload=lambda model, network, iterations: 0)
 
 

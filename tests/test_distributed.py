@@ -532,3 +532,51 @@ def test_batch_bad_inputs_name_the_parameter():
         run_kcf_batch(m, net, z, inputs=u, epsilon=-1.0)
     with pytest.raises(InputError, match="one node per sensor"):
         run_kcf_batch(m, ring(4), z, inputs=u)
+
+
+# ------------------------------------------------------------------------ the local EKFs: every node alone
+def test_the_local_ekfs_are_the_ekf_on_each_nodes_sensor_alone():
+    """run_local_batch against run_ekf with every other sensor missing (another implementation: Joseph's form in full,
+    the gain from a Cholesky solve on the sensor's own rows, no whitening): on a user's model of sensors of dimension
+    1 and 2 (bearings wrapped across ±π, so padding rows) and on the robot, whose known inputs differ per run.  Equal
+    to rounding; nothing sent or counted; each run alone (a batch of one) is its row of the batch, bit for bit."""
+    m = mixed_user_model()
+    tr = simulate_runs(m, 25, [np.random.default_rng(s) for s in np.random.SeedSequence(8).spawn(3)])
+    sc, zr, ur, _ = robot_runs(3, 0.0, 0.0, steps=20)
+    for model, z, u in ((m, tr.z, None), (sc.model, zr, ur)):
+        res = distributed.run_local_batch(model, z, inputs=u)
+        assert res.runtime == "local" and res.cov_kind == "covariance" and res.delivered is None
+        assert not res.messages.any() and not any(res.violations) and np.isfinite(res.cov).all()
+        for r in range(len(z)):
+            for i in range(model.n_sensors):
+                ref = local_ekf(model, z[r], i, inputs=None if u is None else u[r])
+                scale = np.abs(ref.P).max(axis=(-2, -1))[:, None, None]
+                assert np.abs(res.x[r, :, i] - ref.x).max() < 1e-9 * max(1.0, np.abs(ref.x).max()), (r, i)
+                assert (np.abs(res.cov[r, :, i] - ref.P) / scale).max() < 1e-10, (r, i)
+            one = distributed.run_local_batch(model, z[r:r + 1], inputs=None if u is None else u[r:r + 1])
+            assert np.array_equal(one.x[0], res.x[r]) and np.array_equal(one.cov[0], res.cov[r])
+
+
+def test_the_local_ekfs_node_filters_are_the_batch_bit_for_bit_and_stop_where_it_stops():
+    """LocalEKFNetwork (every node's LocalEKFNode, step(z, u)) over each run of a user's mixed-sensor model: the batch's
+    estimates and covariances bit for bit; a run whose measurement at step 3 is 1e300 stops there in both, with one
+    'diverged' violation at that step (NaN from it on), the other runs untouched; a node refuses a measurement of the
+    wrong size, naming node and step, and is left as it was."""
+    m = mixed_user_model()
+    z = simulate_runs(m, 12, [np.random.default_rng(s) for s in np.random.SeedSequence(9).spawn(3)]).z.copy()
+    z[1, 3, 0] = 1e300
+    res = distributed.run_local_batch(m, z)
+    for r in range(3):
+        x, P = distributed.LocalEKFNetwork(m).run(z[r])
+        assert np.array_equal(x, res.x[r], equal_nan=True) and np.array_equal(P, res.cov[r], equal_nan=True), r
+    assert res.violations[0] == res.violations[2] == []
+    (stop,) = res.violations[1]
+    assert stop["condition"] == "diverged" and stop["step"] == 4 and stop["node"] == 0
+    assert np.isfinite(res.x[1, :4]).all() and np.isnan(res.x[1, 4:]).all()
+    node = distributed.LocalEKFNode(m, 1)
+    node.step(z[0, 0, 1:3])
+    x, P = node.x.copy(), node.P.copy()
+    with pytest.raises(InputError, match=r"z of node 1 at step 1 must be 2 finite numbers"):
+        node.step([0.3])
+    assert node.k == 1 and np.array_equal(node.x, x) and np.array_equal(node.P, P)
+    assert node.senders.size == 0
