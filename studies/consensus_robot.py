@@ -384,7 +384,7 @@ def _variants(sc, paper: ConsensusDesign, tuned: ConsensusDesign | None, paper_r
     out[KCF] = _Variant(kcf(KCF, text[KCF]))
     out[HCMCI] = _Variant(hcmci(HCMCI, text[HCMCI]))
     local = local_ekfs(local_name, text[local_name])
-    out[local_name] = _Variant(local, local.design_for(paper, sc.model))
+    out[local_name] = _Variant(local)
     try:
         sc.model.with_stacked_sensors()
     except InputError:  # non-Gaussian sensor noise: no stacked Gaussian model
@@ -399,7 +399,7 @@ def _build(ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | 
     """The scenario, the paper design and the variants, from picklable arguments (in the parent and in a task).
     ``paper_reference`` False: the study's design runs without its reference, the paper's design beside another
     rule's or, when the mode is the paper's, its design without consensus (the paper's design still configures the
-    local and centralized EKFs).
+    centralized EKF).
 
     ``replay``: ``(mode, K (nodes, steps, n_x, n_z), C (nodes, steps, n_x, n_x))`` of a gain
     schedule, replayed without re-solving, or None.

@@ -97,3 +97,38 @@ def test_eigh_splits_a_few_large_matrices_too(monkeypatch):
     calls.clear()
     eigh(_stack((3, 10, 10)))
     assert calls == [3]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_the_allocator_keeps_freed_memory_so_temporaries_take_no_fresh_pages():
+    """keep_freed_memory (set by one_blas_thread, which every public computation runs in): a filter's step on stacks of
+    64 x 64 matrices over 2 runs and 64 nodes (4 MB each: products, a symmetrisation, inverses) repeated 30 times
+    takes its temporaries' pages from the heap, not fresh from the kernel each time: a process that set it sees less
+    than a quarter of the page faults of one that did not (measured: 2.6 against 32 thousand).  The numbers computed
+    are the same bits."""
+    import subprocess
+
+    code = """
+import hashlib, resource, sys, numpy as np
+from designer import cores
+if sys.argv[1] == "set":
+    assert cores.keep_freed_memory() and cores.keep_freed_memory()  # once; again is a no-op
+rng = np.random.default_rng(0)
+P, F = rng.standard_normal((2, 64, 64, 64)), rng.standard_normal((2, 64, 64, 64))
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for i in range(30):
+    Pp = F @ P @ np.swapaxes(F, -1, -2)
+    Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+    P = 1e-3 * (np.linalg.inv(Pp) + Pp)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before, hashlib.sha256(P.tobytes()).hexdigest())
+"""
+    out = {}
+    for how in ("set", "default"):
+        run = subprocess.run([sys.executable, "-c", code, how], capture_output=True, text=True, check=True,
+                             env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+        faults, digest = run.stdout.split()
+        out[how] = int(faults), digest
+    if not cores.keep_freed_memory():
+        pytest.skip("no glibc mallopt here")
+    assert 4 * out["set"][0] < out["default"][0], out
+    assert out["set"][1] == out["default"][1]
