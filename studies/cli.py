@@ -324,6 +324,15 @@ def _validation_lines(validation) -> None:
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
 
 
+def _clipped(text: str, width: int) -> str:
+    """``text`` in at most ``width`` characters and ``...``: cut at a space, never inside a word or a number (a reason
+    cut at ``got 0.1`` would read ``got 0``); the whole text is in candidates.json."""
+    if len(text) <= width:
+        return text
+    cut = text.rfind(" ", 0, width + 1)
+    return text[:cut if cut > 0 else width].rstrip() + " ..."
+
+
 def _auto_lines(res, out: str) -> None:
     """What ``cfdesign design --mode auto`` prints: the candidates, the pick, the validation; exit 1 without an
     eligible pick (:class:`studies.auto.AutoDesign`)."""
@@ -333,7 +342,7 @@ def _auto_lines(res, out: str) -> None:
     over = " over the regions" if res.scenario.regions is not None else ""
     for i, c in enumerate(res.candidates):
         what = (f"{c.verdict}" + (f", predicted tr Φ{over} {c.predicted:.4g}" if c.predicted is not None else "")
-                if c.status == "designed" else f"{c.status}: {(c.reason or '')[:100]}")
+                if c.status == "designed" else f"{c.status}: {_clipped(c.reason or '', 100)}")
         flags = "".join([" [pick]" if i == res.pick_index else "", "" if c.in_budget else " [over budget]",
                          " [no better than local EKFs]" if c.better_than_local is False else ""])
         click.echo(f"  {c.label:44s} {c.messages:5d} msgs {c.bytes:8d} B/step  {what}{flags}")

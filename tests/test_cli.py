@@ -519,3 +519,22 @@ def test_node_filter_refuses_iterations_for_a_filter_without_rounds():
     with pytest.raises(InputError, match="iterations does not apply to the designed filter of schedule or mode"):
         studies.node_filter("indoor-robot", mode="relay", iterations=1)
     assert len(studies.node_filter("indoor-robot", filter="hcmci", iterations=2).nodes) == 8
+
+
+def test_a_candidates_reason_is_clipped_at_a_space_never_inside_a_number():
+    """design --mode auto prints each candidate's reason in about 100 characters: cut at a space with ' ...', so that
+    a number is never cut into another (a reason ending 'got 0.1' printed 'got 0', which the paper's β is not)."""
+    from studies.cli import _clipped
+
+    reason = ("beta must satisfy (29) at the first step: beta < 1/lambda_max(Phi_1|0) = 0.00199997 at node 0, got 0.1"
+              " (and more)")
+    for width in range(20, len(reason) + 1):
+        got = _clipped(reason, width)
+        if width >= len(reason):
+            assert got == reason
+            continue
+        kept = got[:-4]
+        assert got.endswith(" ...") and len(kept) <= width
+        words = reason.split()
+        assert kept.split() == words[:len(kept.split())]  # whole words only
+    assert _clipped("x" * 150, 100) == "x" * 100 + " ..."  # no space: cut at the width
