@@ -18,13 +18,13 @@ def sim():
 
 
 def _make(kind: str):
-    if kind in ("kcf", "hcmci"):
+    if kind in ("kcf", "hcmci", "local"):
         return lambda node=None: studies.node_filter(SCENARIO, filter=kind, node=node,
                                                      iterations=2 if kind == "hcmci" else None)
     return lambda node=None: studies.node_filter(SCENARIO, mode=kind, node=node)
 
 
-@pytest.fixture(scope="module", params=["relay", "paper", "scheduled", "kcf", "hcmci"])
+@pytest.fixture(scope="module", params=["relay", "paper", "scheduled", "kcf", "hcmci", "local"])
 def driven(request, sim):
     """``(make, calls)``: how to make node NODE of ``kind`` and, step by step, the calls ``(method, args)`` that feed
     it what its network delivered to it over STEPS steps of ``sim``."""
@@ -39,6 +39,8 @@ def driven(request, sim):
         u = sim.inputs[k]
         if kind == "relay":
             calls.append([("step", (*rounds[0][NODE], u))])
+        elif kind == "local":  # every node alone: nothing delivered
+            calls.append([("step", (z_i(k), u))])
         elif kind == "paper":
             calls.append([("predict", (u,)), ("update", (z_i(k), *rounds[0][NODE]))])
         elif kind == "kcf":
@@ -63,7 +65,7 @@ def _nan_in(value):
 
 def _bad_calls(kind: str, method: str, args: tuple):
     """``(bad args, what the refusal names)`` for a call ``method(*args)``: every argument made wrong in turn."""
-    names = {"step": ("z", "received", "u"), "predict": ("u",) if kind == "paper" else ("z", "u"),
+    names = {"step": ("z", "u") if kind == "local" else ("z", "received", "u"), "predict": ("u",) if kind == "paper" else ("z", "u"),
              "update": ("z", "received", "bounds") if kind == "paper" else ("received",), "round": ("received",)}
     out = []
     for a, name in enumerate(names[method]):
@@ -137,7 +139,7 @@ def test_a_call_out_of_its_phase_names_the_call_expected(driven):
     """Two-phase nodes: an update (or a round) before the prediction, a second prediction before the update: refused
     naming the call expected next; the node then goes on as if they had not been made."""
     kind, make, calls = driven
-    if kind == "relay":
+    if kind in ("relay", "local"):
         pytest.skip("one call a step: no phases")
     node, ref = make(NODE), make(NODE)
     (first, first_args), (second, second_args) = calls[0][:2]
