@@ -50,7 +50,7 @@ consensus on the ``N``-vector ``e_i`` (``N`` more numbers per packet; not counte
 
 **The local EKFs** — every node an EKF on its own sensor alone, nothing sent (the baseline a network must beat):
 the prediction above, then the update of its sensor's rows whitened, ``L = R^{-1/2} H``, ``w = R^{-1/2} (z - h(x̄))``:
-``S = L P Lᵀ + I``, ``G = P Lᵀ S⁻¹``, ``x̂ = x̄ + G w`` and Joseph's form expanded (:func:`run_local_batch`).
+``S = L P Lᵀ + I``, ``G = P Lᵀ S⁻¹``, ``x̂ = x̄ + G w`` and Joseph's form rearranged (:func:`_local_update`).
 
 Assumptions where the papers are silent (attacks are not part of either paper):
 
