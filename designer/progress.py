@@ -5,7 +5,8 @@ Code that may run long marks where it is: :func:`phase` (a named stage, nested p
 
 * a bar (``tqdm``) over a stage's items where stderr is a terminal and the caller is not ``quiet``;
 * otherwise, once the command line has installed its sink (:func:`showing`; every ``cfdesign`` command but those
-  run with ``--quiet``), a line on stderr, ``cfdesign: <phase> > <phase>: <k>/<n> (<s> s)``, the first
+  run with ``--quiet``), a line on stderr, ``cfdesign: <phase> > <phase>: <k>/<n> (<s> s)`` (once the count has
+  advanced since its first line, ``<k>/<n>, about <t> left``, at its rate since then), the first
   :data:`FIRST_S` seconds after the command started and then at most every :data:`EVERY_S` seconds, so that a
   command that runs longer than a few seconds says what it is doing in a log or a pipe too.
 
@@ -32,15 +33,25 @@ class _Sink:
     def __init__(self, stream, start: float):
         self.stream, self.start, self.pid, self.last = stream, start, os.getpid(), None
         self.phases: list[str] = []
+        self.counts: dict = {}  # (phases, what, total) -> (time, k) of the count's first line: its rate since
 
     def due(self, now: float) -> bool:
         if os.getpid() != self.pid:
             return False
         return now - self.start >= FIRST_S if self.last is None else now - self.last >= EVERY_S
 
-    def write(self, now: float, where: str) -> None:
+    def write(self, now: float, where: str, count: tuple | None = None) -> None:
+        """A line: the phases, ``where``, the seconds since the command started; with ``count`` ``(what, k, total)``
+        ``what k/total`` and, once the count has advanced since its first line, the time left at its rate since then
+        (``about 7 min left``)."""
         self.last = now
         label = " > ".join(self.phases)
+        if count is not None:
+            what, k, total = count
+            where = f"{what} {k}/{total}".strip()
+            t0, k0 = self.counts.setdefault((label, what, total), (now, k))
+            if total is not None and k0 < k < total:
+                where += f", about {_duration((now - t0) / (k - k0) * (total - k))} left"
         text = f"cfdesign: {label}: {where}" if label and where else f"cfdesign: {label or where}"
         text += f" ({now - self.start:.0f} s)"
         if self.stream.isatty():  # above a bar a runner may be drawing on the terminal, not through it
@@ -49,6 +60,12 @@ class _Sink:
             tqdm.write(text, file=self.stream)
         else:
             print(text, file=self.stream, flush=True)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
 
 
 _SINK: _Sink | None = None
@@ -78,7 +95,7 @@ def line(what: str = "", k: int | None = None, total: int | None = None) -> None
     if sink is not None:
         now = time.perf_counter()
         if sink.due(now):
-            sink.write(now, what if k is None else f"{what} {k}/{total}".strip())
+            sink.write(now, what, None if k is None else (what, k, total))
 
 
 @contextlib.contextmanager

@@ -33,7 +33,7 @@ def test_a_design_names_its_phase_and_step_on_stderr(tmp_path, capsys, eager):
     lines = _lines(err)
     assert any(ln.startswith("cfdesign: gain tables: step ") for ln in lines), err
     steps = [ln for ln in lines if ln.startswith("cfdesign: seeded run: step ")]
-    assert [ln.split("step ")[1].split(" ")[0] for ln in steps] == [f"{k}/6" for k in range(6)]
+    assert [ln.split("step ")[1].split(" ")[0].rstrip(",") for ln in steps] == [f"{k}/6" for k in range(6)]
     assert any(ln.startswith("cfdesign: writing the schedule") for ln in lines)
     assert any(ln.startswith("cfdesign: writing the report") for ln in lines)
     seconds = [int(LINE.match(ln).group(2)) for ln in lines]
@@ -48,6 +48,34 @@ def test_lines_are_at_most_every_few_seconds_and_none_in_the_first(monkeypatch, 
             progress.line(f"step {k}/6")
     err = capsys.readouterr().err.splitlines()
     assert err == ["cfdesign: step 2/6 (5 s)", "cfdesign: step 5/6 (16 s)"]
+
+
+def test_a_count_says_the_time_left_at_its_rate_since_its_first_line(monkeypatch, capsys):
+    """A count (``line(what, k, total)``: a design's steps, a study's chunks) says, once it has advanced since its
+    first line, the time left at its rate since then: 4 steps in 20 s, 6 to go: about 30 s; in minutes or hours when
+    longer.  Its first line has none (no rate yet), nor its last, nor a line without a count; the seconds since the
+    command started stay last."""
+    clock = iter([100.0, 105.0, 125.0, 140.0, 140.0, 400.0, 401.0])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(progress, "EVERY_S", 0.0)
+    with progress.showing():  # started at 100
+        progress.line("step", 2, 12)  # 105: the count's first line
+        progress.line("step", 6, 12)  # 125: 4 steps in 20 s
+        progress.line("step", 12, 12)  # 140: done
+        progress.line("writing")  # 140: no count
+        with progress.phase("tables"):  # 400: another count: its own first line, then 300 s a step for 1 step
+            progress.line("step", 1, 40)
+    err = capsys.readouterr().err.splitlines()
+    assert err[:4] == ["cfdesign: step 2/12 (5 s)", "cfdesign: step 6/12, about 30 s left (25 s)",
+                       "cfdesign: step 12/12 (40 s)", "cfdesign: writing (40 s)"], err
+    assert err[4:] == ["cfdesign: tables (300 s)", "cfdesign: tables: step 1/40 (301 s)"], err
+    assert all(LINE.match(ln) for ln in err), err
+    clock = iter([0.0, 10.0, 3610.0])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    with progress.showing():
+        progress.line("step", 1, 60)
+        progress.line("step", 2, 60)  # an hour a step, 58 to go
+    assert capsys.readouterr().err.splitlines()[-1] == "cfdesign: step 2/60, about 58.0 h left (3610 s)"
 
 
 def test_quiet_library_and_forked_worker_write_nothing(tmp_path, capsys, eager, monkeypatch):
