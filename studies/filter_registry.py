@@ -11,10 +11,10 @@ over a :class:`FilterRegistry`: a new filter is one entry (``registry.register(e
 Every filter returns its :class:`filters.result.FilterResult` itself (its family's arrays in ``detail``), so an
 entry's ``run`` is a call of its filter on the batch's rows and nothing else: no conversion happens here.  The
 entries of the project's filter families are made by the factories below: :func:`designed_consensus` (the
-consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone: an EKF on its sensor), :func:`replayed_schedule` (a
-gain schedule replayed), :func:`kcf` and :func:`hcmci` (the literature's distributed filters),
-:func:`centralized_consensus_ekf`, :func:`centralized_ekf` and :func:`particle_filters` (a fusion centre receiving
-every uplink).  The registry lives in ``studies`` (not in
+consensus EKF with a design of a gain rule), :func:`local_ekfs` (every node alone: an EKF on its sensor),
+:func:`replayed_schedule` (a gain schedule replayed), :func:`kcf` and :func:`hcmci` (the literature's distributed
+filters), :func:`centralized_consensus_ekf`, :func:`centralized_ekf` and :func:`particle_filters` (a fusion centre
+receiving every uplink).  The registry lives in ``studies`` (not in
 ``filters``) because a designed entry needs a design made by :mod:`studies.consensus_design`.
 """
 from __future__ import annotations

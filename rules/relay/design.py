@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 from designer.anderson import Anderson
-from designer.bounds import lower_inverse, sqrtm_psd
+from designer.bounds import lower_inverse, sqrtm_psd, symmetrize
 from designer.cores import SOLVER_SETTINGS
 from designer.network import SensorNetwork
 from designer.regions import Carried, carried_positions, carried_states
@@ -718,7 +718,7 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     if direct.all():  # every item direct (a field's balls of independent rows): no item's arrays gathered
         Yt = np.swapaxes(Y, -1, -2)
         return (RelayGain(Yt @ Li, np.broadcast_to(np.eye(r), lead + (r, r)), None, direct),
-                _symmetric(P_pred - Yt @ Y))
+                symmetrize(P_pred - Yt @ Y))
     Kr, G, P = np.empty(lead + (n, r)), np.empty(lead + (r, r)), np.empty(lead + (n, n))
     if direct.any():
         Yd = Y[direct]
@@ -732,11 +732,8 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
         Kr[rest] = np.swapaxes(Mp @ Y[rest], -1, -2) @ np.swapaxes(Lr, -1, -2)
         G[rest] = G0r
         P[rest] = P_pred[rest] - Kr[rest] @ (G0r @ X[rest])
-    return RelayGain(Kr, G, None, direct), _symmetric(P)
+    return RelayGain(Kr, G, None, direct), symmetrize(P)
 
-
-def _symmetric(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float) -> np.ndarray:
