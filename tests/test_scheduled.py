@@ -16,7 +16,7 @@ from scipy.optimize import minimize
 
 import rules
 from designer.rule import ROBUSTNESS
-from rules.scheduled.design import channels, design_scheduled, link_gains
+from rules.scheduled.design import BlockSparse, channels, design_scheduled, link_gains
 from designer.validation import InputError
 from filters.consensus import run_consensus
 from filters.consensus_batch import run_consensus_batch
@@ -600,3 +600,33 @@ def test_the_tables_beyond_the_horizon_computed_beside_the_run_are_the_designs(t
     assert not np.array_equal(done.Gamma_inf, early.tables.Gamma_inf)  # the stationary part was computed
     with pytest.raises(ValueError, match="stationary=False"):
         stationary_tables(sc.model, sc.network, base, ref)
+
+
+def test_block_sparse_products_are_the_dense_ones():
+    """The joint recursion's block-sparse transition against the dense matrix it stands for (scipy's CSR of the same
+    blocks as a second reference): repeated positions add up, a block row without blocks gives zeros, and ``T X``,
+    ``Y Tᵀ`` and ``T X Tᵀ`` (``X`` not symmetric, as the difference form's ``G`` is not) are the dense products."""
+    from scipy.sparse import coo_matrix
+
+    rng = np.random.default_rng(3)
+    N, r = 5, 3
+    rows = np.array([0, 0, 1, 3, 3, 4, 0, 4])  # block row 2 has no block; (0, 1) twice
+    cols = np.array([0, 1, 1, 2, 4, 0, 1, 4])
+    blocks = rng.standard_normal((rows.size, r, r))
+    T = BlockSparse.summed(rows, cols, blocks, N)
+    dense = np.zeros((N * r, N * r))
+    for b in range(rows.size):
+        dense[rows[b] * r:(rows[b] + 1) * r, cols[b] * r:(cols[b] + 1) * r] += blocks[b]
+    ri = np.broadcast_to(rows[:, None, None] * r + np.arange(r)[None, :, None], blocks.shape)
+    ci = np.broadcast_to(cols[:, None, None] * r + np.arange(r)[None, None, :], blocks.shape)
+    csr = coo_matrix((blocks.ravel(), (ri.ravel(), ci.ravel())), shape=dense.shape).tocsr()
+    np.testing.assert_allclose(csr.toarray(), dense, atol=1e-15)
+    np.testing.assert_array_equal(T.toarray(), dense)
+    X = rng.standard_normal((N * r, N * r))
+    Wd = rng.standard_normal((N * r, 4))[:, ::-1]  # not contiguous
+    np.testing.assert_allclose(T @ X, dense @ X, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(T @ Wd, dense @ Wd, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(T.right(X), X @ dense.T, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(T.sandwich(X), dense @ X @ dense.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(T.sandwich(X), (csr @ (csr @ X).T).T, rtol=1e-12, atol=1e-12)
+    assert not np.any(T.sandwich(X)[2 * r:3 * r]) and not np.any(T.sandwich(X)[:, 2 * r:3 * r])
