@@ -309,7 +309,9 @@ def joint_predict(P, F, Q: np.ndarray):
         return as_absolute(joint_predict(as_difference(P), F, Q))
     F = _per_node(F)
     FP = F @ P.P
-    G = _pairwise(FP, F) + _sandwich(F, P.G)
+    G = _sandwich(F, P.G)
+    if np.any(F != F[..., :1, :, :]):  # with one F for every node (a nominal design's), F_i - F_j = 0: no such term
+        G = _pairwise(FP, F) + G
     return JointCovariance(symmetrize(FP @ _t(F) + Q), _zero_diagonal(G, F.shape[-3]))
 
 

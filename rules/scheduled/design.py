@@ -344,11 +344,12 @@ class BlockSparse(NamedTuple):
     def __matmul__(self, X: np.ndarray) -> np.ndarray:
         """``T X`` for a dense ``X`` (N c, M)."""
         r, c = self.blocks.shape[1:]
-        Xb = np.ascontiguousarray(X).reshape(self.N, c, -1)
-        out = np.zeros((self.N, r, Xb.shape[-1]))
-        part = np.empty((r, Xb.shape[-1]))
-        for b, block in enumerate(self.blocks):
-            np.matmul(block, Xb[self.cols[b]], out=part)
+        X = np.asarray(X).reshape(self.N * c, -1)
+        out = np.zeros((self.N, r, X.shape[-1]))
+        part = np.empty((r, X.shape[-1]))
+        for b, block in enumerate(self.blocks):  # a slice of rows is a view in any layout (BLAS reads it as it is)
+            j = self.cols[b]
+            np.matmul(block, X[j * c:(j + 1) * c], out=part)
             out[self.rows[b]] += part
         return out.reshape(self.N * r, -1)
 
@@ -430,7 +431,7 @@ def measurement_noise(rule: _Rule, ch: Channels, N: int) -> np.ndarray:
     lam = _block_sparse(np.concatenate([idx, ch.receiver]), np.concatenate([idx, ch.sender]),
                         np.concatenate([K, ch.p[:, None, None] * rule.Kn]), (N * n, N * mz))
     Rs = _block_sparse(idx, idx, R, (N * mz, N * mz))
-    out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N).copy()
+    out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N)  # a view of the blocks of a new matrix
     var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
     np.add.at(out, (ch.receiver, ch.receiver), var)
     return out
@@ -452,11 +453,17 @@ def falsification_parts(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray
     return own, c
 
 
-def falsification_moment(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int) -> np.ndarray:
+def falsification_moment(rule: _Rule, ch: Channels, M: np.ndarray, mu: np.ndarray, N: int,
+                         out: np.ndarray | None = None) -> np.ndarray:
     """The falsifications' second moment ``E[b bᵀ]`` (N, N, n, n), ``b_i = Σ_j ρ γ W_ij ξ`` (links independent:
-    :func:`falsification_parts`)."""
+    :func:`falsification_parts`); with ``out`` added to it in place (no other array of its size)."""
     own, c = falsification_parts(rule, ch, M, mu, N)
-    out = c[:, None, :, None] * c[None, :, None, :]
+    n = own.shape[-1]
+    if out is None:
+        out = np.zeros((N, N, n, n))
+    if np.any(c):  # a biased signal's means c_i c_kᵀ, block row by block row
+        for r in range(N):
+            out[r] += c[r][None, :, None] * c[:, None, :]
     idx = np.arange(N)
     out[idx, idx] += own
     return out
@@ -498,17 +505,21 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
     np.add.at(A, i, pC - pW)
     c = rule.A @ Pm.P  # c_i = Σ_j T̄_ij P_jj
     np.add.at(c, i, -pW @ Pm.P[i] + pC @ Pm.P[j])
-    Y = _blocks(transition_matrix(rule, ch).sandwich(Pm.G), N)
+    G = transition_matrix(rule, ch).sandwich(Pm.G)  # Y, then G⁺ in its place (the joint matrices are the big ones)
+    Y = _blocks(G, N)
     idx = np.arange(N)
     Yd = Y[idx, idx]
     Gb = Pm.blocks()
-    Nz = measurement_noise(rule, ch, N) + falsification_moment(rule, ch, M, mu, N)
+    Nz = falsification_moment(rule, ch, M, mu, N, out=measurement_noise(rule, ch, N))
     Nz[idx, idx] += _dos_variance(rule, ch, Pm.P[i], symmetrize(Gb[i, j] + Gb[j, i]), Gb[i, j])
     Nd = Nz[idx, idx]
     P = symmetrize(c @ _t(A) - Yd + Nd)
-    G = (c[:, None] @ _t(A[:, None] - A[None, :])) - Yd[:, None] + Y + Nd[:, None] - Nz
-    G[idx, idx] = 0.0
-    return JointCovariance(P, to_dense(G))
+    for r in range(N):  # block row by block row: ((c_i (A_i - A_k)ᵀ - Y_ii) + Y_ik + N_ii) - N_ik
+        Y[r] += c[r] @ _t(A[r] - A) - Yd[r]
+        Y[r] += Nd[r]
+        Y[r] -= Nz[r]
+    Y[idx, idx] = 0.0
+    return JointCovariance(P, G)
 
 
 def _expected_sandwich(rule: _Rule, ch: Channels, X: np.ndarray, T: BlockSparse) -> np.ndarray:
