@@ -24,7 +24,7 @@ import numpy as np
 
 from .codegen import to_numpy
 from .noise import Noise
-from .validation import InputError, ModelWarning, check_finite, check_type
+from .validation import InputError, ModelWarning, check_finite, check_int, check_type
 
 __all__ = ["Sensor", "Model"]
 
@@ -345,6 +345,18 @@ class Model:
     def n_z(self) -> int:
         """Total measurement dimension over all sensors."""
         return int(self._offsets[-1])
+
+    @property
+    def sensor_offsets(self) -> np.ndarray:
+        """Where each sensor's rows start in the stacked measurement ``z`` (n_sensors + 1,): sensor ``i``'s rows are
+        ``z[..., offsets[i]:offsets[i + 1]]`` (a copy)."""
+        return self._offsets.copy()
+
+    def sensor_rows(self, i: int) -> slice:
+        """Sensor ``i``'s rows of the stacked measurement ``z`` (its measurement is ``z[..., model.sensor_rows(i)]``;
+        node ``i`` of a network owns sensor ``i``)."""
+        i = check_int("sensor", i, 0, self.n_sensors - 1)
+        return slice(int(self._offsets[i]), int(self._offsets[i + 1]))
 
     @property
     def angle_components(self) -> tuple[tuple[int, int], ...]:

@@ -129,7 +129,7 @@ def receive(model: Model, x: np.ndarray, z: np.ndarray, attacks: UplinkAttacks) 
         raise InputError(f"z must be ({steps}, {model.n_z}) and x ({steps + 1}, {model.n_x}) for {N} uplinks; "
                          f"got z {z.shape}, x {x.shape}, model with {model.n_sensors} sensors")
     y = z.copy()
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
     for i in range(N):
         a, b = offsets[i], offsets[i + 1]
         for k in np.flatnonzero(attacks.fdi[:, i]):

@@ -474,7 +474,7 @@ class _Group(NamedTuple):
 def node_groups(model: Model, design: ConsensusDesign, node: int | None = None) -> list[_Group]:
     """The nodes grouped by sensor shape, each with its columns of the stacked measurement; ``node``: that node
     alone, as one group over a block of one node whose measurement is its own sensor's."""
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
     keys: dict = {}
     for i, dim in enumerate(model.sensor_dims):
         cover = hessian_cover(model.casadi_h_hess[i]) if design.linearization == "structured" else ()

@@ -37,7 +37,7 @@ from designer.validation import InputError, check_int
 from .channels import channel_packets, gate_channels
 from .consensus_batch import (Exchange, NodeRule, batch_inputs, first_step_error, node_groups, predict_nodes,
                               weighted_items, update_nodes)
-from .node import NodeInputs, NodeNetwork
+from .node import NodeInputs, NodeNetwork, OwnRows
 
 __all__ = ["Packet", "ConsensusNode", "ConsensusNetwork"]
 
@@ -51,7 +51,7 @@ class Packet(NamedTuple):
     ok: bool
 
 
-class ConsensusNode:
+class ConsensusNode(OwnRows):
     """The filter node ``node`` runs for a ``paper`` or ``tuned`` design: :meth:`predict`, then :meth:`update`.
 
     Its state: its estimate ``x``, its covariance ``P`` (the bound Φ while ``valid``), ``proper`` (still on Theorem

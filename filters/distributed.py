@@ -106,7 +106,7 @@ from .attacks import AttackPattern
 from .consensus import check_run_inputs
 from .consensus_batch import EdgeAttacks, Exchange, batch_inputs, edge_attacks, wrap_residuals
 from .engine import Step, estimate_arrays, history, run_batch
-from .node import NodeInputs, NodeNetwork
+from .node import NodeInputs, NodeNetwork, OwnRows
 from .result import DIVERGED, DIVERGED_REASON, FilterResult, diverged_nodes
 
 __all__ = ["DistributedResult", "DistributedBatchResult", "distributed_result", "run_kcf", "run_hcmci", "run_kcf_batch",
@@ -568,7 +568,7 @@ def _filter_batch(model: Model, network: SensorNetwork, inp: _BatchInputs, updat
                           covariances=covariances)
     out["omega"] = np.full((runs, steps, n), np.nan)
     violations: list[list[dict]] = [[] for _ in range(runs)]
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
 
     def step(k, act, at):
         if inp.attacks is None:
@@ -738,7 +738,7 @@ class KCFPacket(NamedTuple):
     x: np.ndarray
 
 
-class _InformationNode:
+class _InformationNode(OwnRows):
     """What the information-form baselines' node filters share (:class:`KCFNode`, :class:`HCMCINode`): the node, its
     in-neighbours, its sensor's information, its state, and the prediction with its measurement."""
 

@@ -39,7 +39,7 @@ from designer.design import ConsensusDesign
 from designer.validation import InputError, check_int
 
 __all__ = ["node_filter", "node_network", "run_network", "NodeNetwork",
-           "NodeInputs", "check_step"]
+           "NodeInputs", "OwnRows", "check_step"]
 
 def node_filter(model, network, design: ConsensusDesign, node: int, **kw: Any):
     """The filter node ``node`` of ``network`` runs for ``design`` (its gain rule's node filter)."""
@@ -71,6 +71,16 @@ def _numbers(shape: tuple) -> str:
     if len(shape) == 1:
         return f"{shape[0]} finite number{'s' if shape[0] != 1 else ''}"
     return "a " + "x".join(map(str, shape)) + " array of finite numbers"
+
+
+class OwnRows:
+    """What every node filter has (its ``model`` and ``node``): ``rows``, its own sensor's rows of a run's stacked
+    measurement, so that ``z[k, node.rows]`` is what it measures at step k (:meth:`designer.model.Model.sensor_rows`:
+    node ``i`` owns sensor ``i``)."""
+
+    @property
+    def rows(self) -> slice:
+        return self.model.sensor_rows(self.node)
 
 
 class NodeInputs:
@@ -225,7 +235,7 @@ class NodeNetwork:
             for nd in self.nodes:
                 nd.k += 1
         else:
-            offsets = np.concatenate([[0], np.cumsum(self.model.sensor_dims)])
+            offsets = self.model.sensor_offsets
             self.last = self._exchange([z[offsets[i]:offsets[i + 1]] for i in range(len(self.nodes))], dos, fdi,
                                        xi, u)
             self.attacks = (dos, fdi)

@@ -73,7 +73,7 @@ def uplink_loglik(model: Model, *, fdi_prob: float = 0.0, fdi_covs=None, angles=
             lqs = [(np.log(q[:, i])[:, None], np.log1p(-q[:, i])[:, None]) for i in range(model.n_sensors)]
         else:  # per run (or one for all), broadcast over particles
             lqs = [(np.log(q)[..., None], np.log1p(-q)[..., None])] * model.n_sensors
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
 
     def loglik(x, k1, y):
         values, avail = split_received(model, np.asarray(y, dtype=float))

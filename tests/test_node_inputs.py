@@ -189,3 +189,37 @@ def test_nan_into_a_relay_node_is_refused_at_once():
     with pytest.raises(InputError, match=r"^z of node 3 at step 0 must be 2 finite numbers, got \[nan, 1.0\]$"):
         node.step([np.nan, 1.0], {}, [0.0, 0.0])
     assert node.k == 0 and np.isfinite(node.step([0.1, 1.0], {}, [0.0, 0.0])).all() and node.k == 1
+
+
+def test_a_node_names_its_own_rows_of_the_stacked_measurement(driven, sim):
+    """``node.rows`` is node i's sensor's rows of a run's ``z`` (the test counts them itself from the sensors'
+    dimensions), for every node of every kind; the rows of all nodes in order tile ``z`` exactly."""
+    kind, make, _ = driven
+    dims = [s.dim for s in make().model.sensors]
+    starts = np.concatenate([[0], np.cumsum(dims)])
+    nodes = [make(i) for i in range(len(dims))]
+    assert [nd.rows for nd in nodes] == [slice(a, b) for a, b in zip(starts[:-1], starts[1:])]
+    np.testing.assert_array_equal(np.concatenate([sim.z[0, nd.rows] for nd in nodes]), sim.z[0])
+
+
+def test_a_nodes_rows_on_a_model_of_mixed_sensor_sizes():
+    """On a user's model whose sensors have 1, 2, 1 and 2 rows, node i's rows are not i: they start after the rows of
+    the sensors before it, and a node stepped on ``z[k, node.rows]`` is the local EKFs' batch on that run.  A sensor
+    that does not exist is refused by name."""
+    from designer.simulate import simulate_runs
+    from filters.distributed import LocalEKFNode, run_local_batch
+    from test_distributed import mixed_user_model
+
+    m = mixed_user_model()
+    nodes = [LocalEKFNode(m, i) for i in range(m.n_sensors)]
+    assert [nd.rows for nd in nodes] == [slice(0, 1), slice(1, 3), slice(3, 4), slice(4, 6)]
+    assert [m.sensor_rows(i) for i in range(4)] == [nd.rows for nd in nodes]
+    np.testing.assert_array_equal(m.sensor_offsets, [0, 1, 3, 4, 6])
+    z = simulate_runs(m, 3, [np.random.default_rng(5)]).z
+    batch = run_local_batch(m, z)
+    for k in range(3):
+        for nd in nodes:
+            nd.step(z[0, k, nd.rows])
+    np.testing.assert_array_equal(np.stack([nd.x for nd in nodes]), batch.x[0, -1])
+    with pytest.raises(InputError, match="sensor must be an integer in 0..3, got 4"):
+        m.sensor_rows(4)

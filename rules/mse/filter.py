@@ -137,7 +137,7 @@ class _Runs:
         self.receiver, self.sender = np.nonzero(network.adjacency)
         self.q = q  # (1 or runs, N, N): the probability that a received packet is falsified, per channel (and run)
         self.R = [model.measurement_cov(i) for i in range(self.n)]
-        offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+        offsets = model.sensor_offsets
         self.columns = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
         self.Bj = joint_prior(phi0, self.n)  # the certificate (the bound of the stacked error), absolute blocks
         self.Pj = as_difference(self.Bj)  # the joint error covariance the gains are chosen for (difference form)

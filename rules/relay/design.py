@@ -944,7 +944,7 @@ def relay_stationary(model, network: SensorNetwork, design, *, x, u=None, lmi: b
     Hall = whitened_rows(model, x, 1)
     M = np.zeros((n, n)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
     mu = np.zeros(n) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
     moments = relay_moments(routes, network, model.sensor_dims)
     N = network.n_nodes
     P0 = np.asarray(model.prior.cov, dtype=float)

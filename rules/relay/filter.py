@@ -59,7 +59,7 @@ from filters.consensus_batch import (PREDICTION_FIELDS, EdgeAttacks, batch_input
                               edge_attacks, result_arrays, run_networks, wrap_residuals)
 from filters.distributed import DistributedBatchResult, distributed_result
 from filters.engine import Diagonal, Step, estimate_arrays, history, run_batch
-from filters.node import NodeInputs, check_step, run_network
+from filters.node import NodeInputs, OwnRows, check_step, run_network
 from filters.result import DIVERGED_REASON, FilterResult, diverged_nodes
 
 from .design import (MAX_HOPS, RTOL, NodeMoments, Routes, moment_bytes, node_classes, relay_carried,
@@ -526,7 +526,7 @@ SETTINGS_STACK_BYTES = 256 * 2**20
 
 
 
-class RelayNode:
+class RelayNode(OwnRows):
     """The filter one node of a ``relay`` or ``flood`` design runs (gain rule ``local``), step by step.
 
     Its state is its estimate ``x`` and its expected covariance ``P`` (the relay rule's bound; the linearisation

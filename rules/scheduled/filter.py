@@ -39,7 +39,7 @@ from designer.validation import InputError, check_int
 
 from filters.attacks import AttackPattern
 from filters.channels import channel_packets
-from filters.node import NodeInputs, NodeNetwork
+from filters.node import NodeInputs, NodeNetwork, OwnRows
 from filters.result import FilterResult, diverged_nodes
 from filters.consensus_batch import (PREDICTION_FIELDS, EdgeAttacks, batch_inputs, consensus_arrays,
                               consensus_result, edge_attacks, result_arrays, run_networks, wrap_residuals)
@@ -82,7 +82,7 @@ def run_scheduled_batch(model: Model, network: SensorNetwork | Sequence[SensorNe
     nz = max(model.sensor_dims)
     M = np.zeros((nx, nx)) if design.fdi_moment is None else np.asarray(design.fdi_moment, dtype=float)
     mu = np.zeros(nx) if design.fdi_mean is None else np.asarray(design.fdi_mean, dtype=float)
-    offsets = np.concatenate([[0], np.cumsum(model.sensor_dims)])
+    offsets = model.sensor_offsets
     cols = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
     T = tables.steps
     out = result_arrays(runs, steps, n, nx, nz, latest=() if predictions else PREDICTION_FIELDS)
@@ -264,7 +264,7 @@ class ScheduledPacket(NamedTuple):
     z: np.ndarray | None
 
 
-class ScheduledNode:
+class ScheduledNode(OwnRows):
     """The filter node ``node`` of a ``scheduled`` design runs, with the design's tables (the whitened covariance
     factors of its links per step, :class:`rules.scheduled.design.ScheduledTables`), in phases:
 
@@ -359,7 +359,7 @@ class ScheduledNode:
             (("z", (m.sensor_dims[j],)),) if self.tables.exchange else ()))
         z, xp, Pp, choice = self._step
         zk = np.zeros((1, m.n_z))
-        offsets = np.concatenate([[0], np.cumsum(m.sensor_dims)])
+        offsets = m.sensor_offsets
         zk[0, offsets[i]:offsets[i + 1]] = z
         return xp, Pp, choice, zk, got, sent_x, sent_z
 
