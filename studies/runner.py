@@ -727,7 +727,8 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
         done.add(c, arrays)
         computed.append(c)
 
-    bar_desc = f"{label} ({len(pending)} of {len(ranges)} chunks)"
+    # not the label (the study's name): a design's validation runs study consensus-robot on the user's model
+    bar_desc = f"Monte Carlo runs ({len(pending)} of {len(ranges)} chunks)"
     with Interrupts() as interrupts:
         if not pending:
             pass

@@ -121,3 +121,4 @@ def test_a_designs_validation_says_it_is_the_validation(tmp_path, capsys, eager)
     lines = _lines(capsys.readouterr().err)
     runs = [ln for ln in lines if "chunks)" in ln]
     assert runs and all(ln.startswith("cfdesign: validation, 2 fresh runs: ") for ln in runs), lines
+    assert not any("robot" in ln for ln in lines), lines
