@@ -38,11 +38,54 @@ __all__ = [
 
 # --------------------------------------------------------------------------- consensus channels (seed 003)
 class AttackPattern(NamedTuple):
-    """Realised attacks: entry ``[k, i, j]`` concerns the channel j -> i at time k + 1."""
+    """Realised attacks: entry ``[k, i, j]`` of ``dos`` and ``fdi`` (bool (steps, N, N)) concerns the channel j -> i at
+    time k + 1.  The injected signal is kept where it was injected: ``xi_fdi`` (count, n_x) holds the signals of
+    ``fdi``'s true entries in row-major order.  :attr:`xi` is the dense (steps, N, N, n_x) array (zero where no FDI),
+    built when asked (784 MB for a run of the 118-bus grid, nearly all zeros); :meth:`xi_of` gives the entries of an
+    index without it; :meth:`dense` makes a pattern from a dense ``xi``."""
 
-    dos: np.ndarray  # bool (steps, N, N)
-    fdi: np.ndarray  # bool (steps, N, N)
-    xi: np.ndarray  # (steps, N, N, n_x) injected signal (zero where no FDI)
+    dos: np.ndarray
+    fdi: np.ndarray
+    xi_fdi: np.ndarray
+
+    @classmethod
+    def dense(cls, dos, fdi, xi) -> "AttackPattern":
+        """The pattern of a dense signal ``xi`` (steps, N, N, n_x): its entries where ``fdi``, the others dropped."""
+        fdi = np.asarray(fdi, dtype=bool)
+        return cls(np.asarray(dos, dtype=bool), fdi, np.asarray(xi, dtype=float)[fdi])
+
+    @property
+    def n_x(self) -> int:
+        return int(self.xi_fdi.shape[-1])
+
+    @property
+    def xi(self) -> np.ndarray:
+        """The dense injected signal (steps, N, N, n_x), zero where no FDI (a new array)."""
+        out = np.zeros(self.fdi.shape + (self.n_x,))
+        out[self.fdi] = self.xi_fdi
+        return out
+
+    def xi_of(self, index) -> np.ndarray:
+        """``xi[index]`` for an index of the (steps, N, N) entries, without the dense array."""
+        f = self.fdi[index]
+        out = np.zeros(np.shape(f) + (self.n_x,))
+        if np.any(f):
+            rank = (np.cumsum(self.fdi.ravel()) - 1).reshape(self.fdi.shape)[index]
+            out[f] = self.xi_fdi[rank[f]]
+        return out
+
+    def fits(self, n_nodes: int, steps: int | None = None, n_x: int | None = None) -> bool:
+        """Whether the pattern holds (steps, n_nodes, n_nodes) channels (``steps``, ``n_x``: when given, those) and
+        one signal of ``n_x`` components per falsified entry."""
+        d, f, x = np.shape(self.dos), np.shape(self.fdi), np.shape(self.xi_fdi)
+        return (len(d) == 3 and d[1:] == (n_nodes, n_nodes) and f == d and (steps is None or d[0] == steps)
+                and len(x) == 2 and x[0] == np.count_nonzero(self.fdi) and (n_x is None or x[1] == n_x))
+
+    @staticmethod
+    def expected(n_nodes: int, steps: int | None = None, n_x: int | None = None) -> str:
+        """What :meth:`fits` asks, in words (a refusal's)."""
+        return (f"dos, fdi of shape ({'steps' if steps is None else steps}, {n_nodes}, {n_nodes}) and xi_fdi one "
+                f"signal{'' if n_x is None else f' of {n_x} components'} per falsified entry")
 
 
 def channel_draws(steps: int, n_nodes: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -66,16 +109,22 @@ def channel_attacks(u: np.ndarray, s: np.ndarray, dos_prob, fdi_prob, n_x: int, 
     the network): DoS iff ``u < φ̄``, FDI iff ``φ̄ <= u < φ̄ + γ̄``, ``ξ = a g(s)`` where FDI
     (:meth:`designer.attacks.FDISignal.inject`).  :func:`attack_pattern` applies it to every pair of nodes,
     :meth:`filters.consensus_batch.EdgeAttacks.simulate` to the network's channels alone."""
-    dos = on & (u < dos_prob)
-    fdi = on & ~dos & (u < dos_prob + fdi_prob)
+    dos, fdi = _channel_flags(u, dos_prob, fdi_prob, on)
     return dos, fdi, signal.inject(s, fdi, n_x)
+
+
+def _channel_flags(u: np.ndarray, dos_prob, fdi_prob, on=True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`channel_attacks`' DoS and FDI flags."""
+    dos = on & (u < dos_prob)
+    return dos, on & ~dos & (u < dos_prob + fdi_prob)
 
 
 def attack_pattern(network: SensorNetwork, u: np.ndarray, s: np.ndarray, n_x: int, signal: FDISignal
                    ) -> AttackPattern:
-    """Channel attacks from the draws of :func:`channel_draws` (see :func:`simulate_attacks`)."""
-    return AttackPattern(*channel_attacks(u, s, network.dos_prob[None], network.fdi_prob[None], n_x, signal,
-                                          network.adjacency[None]))
+    """Channel attacks from the draws of :func:`channel_draws` (see :func:`simulate_attacks`): the law of
+    :func:`channel_attacks`, its signal drawn at the falsified entries alone (the same numbers)."""
+    dos, fdi = _channel_flags(u, network.dos_prob[None], network.fdi_prob[None], network.adjacency[None])
+    return AttackPattern(dos, fdi, signal.inject(s[fdi], np.ones(np.count_nonzero(fdi), dtype=bool), n_x))
 
 
 def simulate_attacks(network: SensorNetwork, steps: int, n_x: int, rng: np.random.Generator, signal: FDISignal

@@ -108,13 +108,13 @@ class EdgeAttacks(NamedTuple):
         for r, p in enumerate(patterns):
             if not isinstance(p, AttackPattern):
                 raise InputError(f"attacks[{r}] must be a filters.attacks.AttackPattern, got {type(p).__name__}")
-            if p.dos.ndim != 3 or p.dos.shape[1:] != (n, n) or p.fdi.shape != p.dos.shape \
-                    or p.xi.shape[:3] != p.dos.shape:
-                raise InputError(f"attacks[{r}] must hold (steps, {n}, {n}) channels for the {n}-node network, "
-                                 f"got dos {p.dos.shape}, fdi {p.fdi.shape}, xi {p.xi.shape}")
+            if not p.fits(n):
+                raise InputError(f"attacks[{r}] must hold the channels of the {n}-node network: "
+                                 f"{AttackPattern.expected(n)}; got dos {np.shape(p.dos)}, fdi {np.shape(p.fdi)}, "
+                                 f"xi_fdi {np.shape(p.xi_fdi)}")
             dos.append(p.dos[:, receiver, sender])
             fdi.append(p.fdi[:, receiver, sender])
-            xi.append(p.xi[:, receiver, sender])
+            xi.append(p.xi_of((slice(None), receiver, sender)))
         if not dos:
             raise InputError("attacks must hold one AttackPattern per run, got none")
         return cls(receiver, sender, np.stack(dos), np.stack(fdi), np.stack(xi))
@@ -150,14 +150,14 @@ class EdgeAttacks(NamedTuple):
     def pattern(self, r: int, n_nodes: int) -> AttackPattern:
         """Run ``r``'s attacks as the dense :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`
         (``filters.consensus.run_consensus``)."""
-        steps, n_x = self.xi.shape[1], self.xi.shape[3]
+        steps = self.xi.shape[1]
         dos = np.zeros((steps, n_nodes, n_nodes), dtype=bool)
         fdi = np.zeros_like(dos)
-        xi = np.zeros((steps, n_nodes, n_nodes, n_x))
         dos[:, self.receiver, self.sender] = self.dos[r]
         fdi[:, self.receiver, self.sender] = self.fdi[r]
-        xi[:, self.receiver, self.sender] = self.xi[r]
-        return AttackPattern(dos, fdi, xi)
+        k, e = np.nonzero(self.fdi[r])  # the falsified entries, in the pattern's row-major order
+        order = np.argsort((k * n_nodes + self.receiver[e]) * n_nodes + self.sender[e], kind="stable")
+        return AttackPattern(dos, fdi, self.xi[r][k[order], e[order]])
 
 
 class Exchange:

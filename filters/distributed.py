@@ -181,10 +181,8 @@ def _check_run(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P0,
         raise InputError(f"z must have shape (steps, {model.n_z}) with steps >= 1, got {z.shape}")
     _check_falsify(falsify)
     if attacks is not None:
-        want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
-        if not isinstance(attacks, AttackPattern) or [np.shape(a) for a in attacks] != want:
-            raise InputError(f"attacks must be an AttackPattern with dos, fdi of shape {want[0]} and xi of shape "
-                             f"{want[2]}")
+        if not isinstance(attacks, AttackPattern) or not attacks.fits(n, steps, model.n_x):
+            raise InputError(f"attacks must be an AttackPattern with {AttackPattern.expected(n, steps, model.n_x)}")
     return z, u, x0, P0
 
 
@@ -488,11 +486,10 @@ def _check_batch(model: Model, network: SensorNetwork, z, inputs, attacks, x0, P
     z, u, x0, P0 = batch_inputs(model, z, inputs, x0, P0, "P0")
     runs, steps, n = z.shape[0], z.shape[1], network.n_nodes
     if attacks is not None and not isinstance(attacks, EdgeAttacks):
-        want = [(steps, n, n), (steps, n, n), (steps, n, n, model.n_x)]
-        if len(attacks) != runs or not all(isinstance(a, AttackPattern) and [np.shape(f) for f in a] == want
+        if len(attacks) != runs or not all(isinstance(a, AttackPattern) and a.fits(n, steps, model.n_x)
                                            for a in attacks):
-            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), each with dos, fdi of shape "
-                             f"{want[0]} and xi of shape {want[2]}")
+            raise InputError(f"attacks must hold one AttackPattern per run ({runs}), each with "
+                             f"{AttackPattern.expected(n, steps, model.n_x)}")
     # on the channels alone (a dense pattern holds N² x n_x numbers a step: 0.8 GB a run on a 118-node grid)
     attacks = edge_attacks(network, attacks, runs, steps, model.n_x)
     return _BatchInputs(z, u, x0, P0, attacks, [_spd_inverse(model.measurement_cov(i)) for i in range(model.n_sensors)],

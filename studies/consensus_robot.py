@@ -854,7 +854,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     for ax, node1 in zip(axes[:, 0], shown_nodes):
         i = node1 - 1
         for c, j in enumerate(net.neighbours[i]):
-            xi = attacks0.xi[:, i, j, comp]
+            xi = attacks0.xi_of((slice(None), i, j))[:, comp]
             fdi = attacks0.fdi[:, i, j]
             dos = attacks0.dos[:, i, j]
             off = 0.15 * (c - 1)

@@ -274,7 +274,7 @@ def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
                     raise _fail(source, "array 'channel_xi' is missing: it gives the signal injected into each "
                                         "falsified packet (channel_fdi)")
                 xi = np.zeros((K, N, N, m.n_x))
-            attacks = AttackPattern(dos, fdi, np.where(fdi[..., None], xi, 0.0))
+            attacks = AttackPattern.dense(dos, fdi, xi)
     return Log(z, inputs, attacks, z if uplink is None else uplink, x, _integer(data, "seed", source),
                _integer(data, "run", source), source)
 
@@ -332,7 +332,7 @@ def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed:
     received = np.concatenate([np.where(lost, 0.0, log.uplink), avail.astype(float)], axis=1)
     N = sc.network.n_nodes
     attacks = log.attacks or AttackPattern(np.zeros((log.steps, N, N), bool), np.zeros((log.steps, N, N), bool),
-                                           np.zeros((log.steps, N, N, m.n_x)))
+                                           np.zeros((0, m.n_x)))
     batch = Batch((sc,), log.z[None], None if log.inputs is None else log.inputs[None], ((attacks,),),
                   received=((received,),), particle_seeds=(particle_seed(seed, run),), particles=particles,
                   iterations=iterations, run_ids=(run,))

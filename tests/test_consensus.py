@@ -430,6 +430,38 @@ def test_simulate_attacks_reproducible(robot):
         simulate_attacks(net, 5, 3, 3, signal=FDISignal(1.0, (0,)))
 
 
+def test_an_attack_pattern_keeps_the_signal_where_it_was_injected(robot):
+    """A pattern holds ξ at its falsified entries alone: the dense ξ it gives is the channel law's dense draw on the
+    same uniforms and normals (``channel_attacks``, a second computation), bit for bit; ``xi_of`` is the dense array's
+    entries for any index; a pattern through the channels' form (``EdgeAttacks``) and back is itself; and a pattern
+    whose signals do not match its falsified entries is refused by the filters, naming what it needs."""
+    from filters.attacks import AttackPattern, channel_attacks, channel_draws, attack_pattern
+    from filters.consensus_batch import EdgeAttacks
+    from filters.distributed import run_kcf
+
+    net = robot.network.with_attacks(0.2, 0.3)
+    steps, n, nx = 40, net.n_nodes, 3
+    u, s = channel_draws(steps, n, np.random.default_rng(11))
+    signal = FDISignal(0.8, (0, 2))
+    att = attack_pattern(net, u, s, nx, signal)
+    dos, fdi, xi = channel_attacks(u, s, net.dos_prob[None], net.fdi_prob[None], nx, signal, net.adjacency[None])
+    assert att.fdi.sum() > 20 and att.xi_fdi.shape == (att.fdi.sum(), nx)
+    np.testing.assert_array_equal(att.dos, dos)
+    np.testing.assert_array_equal(att.fdi, fdi)
+    np.testing.assert_array_equal(att.xi, xi)
+    receiver, sender = np.nonzero(net.adjacency)
+    for index in ((5,), (slice(None), receiver, sender), (slice(3, 9), 2), (np.array([0, 7, 7]), 1, 0), att.fdi):
+        np.testing.assert_array_equal(att.xi_of(index), xi[index])
+    np.testing.assert_array_equal(AttackPattern.dense(dos, fdi, xi + 1.0).xi, np.where(fdi[..., None], xi + 1.0, 0.0))
+    back = EdgeAttacks.from_patterns(net, [att]).pattern(0, n)
+    for a, b in zip(back, att):
+        np.testing.assert_array_equal(a, b)
+    m = robot.model
+    torn = att._replace(fdi=att.fdi | net.adjacency[None].astype(bool))  # more falsified entries than signals
+    with pytest.raises(InputError, match="one signal of 3 components per falsified entry"):  # refused before a step
+        run_kcf(m, net, np.zeros((steps, m.n_z)), inputs=np.zeros((steps, m.n_u)), attacks=torn)
+
+
 # ----------------------------------------------------------------------------- 6. exchange
 def _exchange_ref(x_pred, net, dos=None, fdi=None, xi=None):
     n, nx = x_pred.shape

@@ -88,7 +88,8 @@ def local_ekf(model: Model, z: np.ndarray, i: int, **kw) -> np.ndarray:
 
 
 def no_attacks(steps: int, n: int, nx: int) -> AttackPattern:
-    return AttackPattern(np.zeros((steps, n, n), bool), np.zeros((steps, n, n), bool), np.zeros((steps, n, n, nx)))
+    none = np.zeros((steps, n, n), bool)
+    return AttackPattern.dense(none, none.copy(), np.zeros((steps, n, n, nx)))
 
 
 @pytest.fixture(scope="module")
@@ -257,9 +258,9 @@ def test_a_falsified_packet_is_what_the_displaced_neighbour_would_send(linear_ru
     m, traj = linear_run
     net, z = ring(), traj.z[:1]
     i, j, xi = 0, 1, np.array([0.7, -0.4])
-    att = no_attacks(1, N, 2)
-    att.fdi[0, i, j] = True
-    att.xi[0, i, j] = xi
+    fdi, signal = np.zeros((1, N, N), bool), np.zeros((1, N, N, 2))
+    fdi[0, i, j], signal[0, i, j] = True, xi
+    att = AttackPattern.dense(np.zeros_like(fdi), fdi, signal)
     U_j = H_ROWS[j].T @ H_ROWS[j] / R_VARS[j]
     clean = run_kcf(m, net, z)
     M = clean.P_post[1, i]
