@@ -210,7 +210,8 @@ def _consensus(model, network, rows: int, steps: int, mode: str | None, lineariz
     per_row = (steps * n * per_step + (steps + 1) * n * (bound + n_x + 3) + variances * n * n_x * n_x) * _D
     parts = [Part(f"{what}: the bounds, gains and estimates of every node and step", _RESULT_COPIES * rows * per_row,
                   f"{rows} runs x {steps} steps x {n} nodes x {n_x} x {n_x} states", reduce),
-             Part(f"{what}: the channel attacks", rows * steps * (channels + dense * n * n) * (n_x * _D + 2),
+             Part(f"{what}: the channel attacks",  # a dense pattern: its flags, its signal where falsified
+                  rows * steps * (channels * (n_x * _D + 2) + dense * (2 * n * n + channels * n_x * _D)),
                   f"{rows} runs x {steps} steps x " + (f"{n} x {n}" if dense else f"{channels}")
                   + f" channels x {n_x} states", reduce),
              Part(f"{what}: one step", rows * n * n_x * n_x * _D * _STEP_MATRICES,
@@ -282,6 +283,7 @@ class LogSize:
     steps: int
     values: int
     stored: int = 0
+    signal: int = 0  # of ``values``, the channels' injected signal as stored: dense, N x N x n_x a step
 
     def reading(self) -> Part:
         """While it is read: an ``.npz``'s arrays as stored and their float copies, or a CSV's arrays as parsed and
@@ -290,10 +292,12 @@ class LogSize:
                     self.stored + (1 if self.stored else _LOG_COPIES) * self.values * _D,
                     f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
 
-    def held(self) -> Part:
-        """Once read: one float copy of its arrays."""
-        return Part(f"the arrays of log {self.source}", self.values * _D, f"{self.steps} steps, {self.values} numbers",
-                    _SHORTER_LOG)
+    def held(self, signal_at_most: int) -> Part:
+        """Once read: one float copy of its arrays, the channels' signal kept at its falsified entries alone
+        (:class:`filters.attacks.AttackPattern`): at most ``signal_at_most`` numbers (the network's channels at every
+        step, where a log may falsify)."""
+        kept = self.values - self.signal + min(self.signal, int(signal_at_most))
+        return Part(f"the arrays of log {self.source}", kept * _D, f"{self.steps} steps, {kept} numbers", _SHORTER_LOG)
 
 
 def log_need(log: LogSize) -> Need:
@@ -334,7 +338,8 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     design = [] if options is None else _consensus_design(sc, options, steps, _SHORTER_LOG)
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
-    return _need("filter", [log.reading()], *([log.held(), *(p for p in ph if p is not None)] for ph in [*design, run]))
+    held = log.held(steps * int(sc.network.adjacency.sum()) * n_x)
+    return _need("filter", [log.reading()], *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
 
 
 def node_filter_need(sc, options=None) -> Need:
@@ -365,7 +370,7 @@ def export_need(sc, options, steps: int, log: LogSize | None = None, *, record: 
     reduce = f"{_STEPS} (steps = {steps})"
     design = _consensus_design(sc, options, steps, reduce)
     tables = design[-1][0] if len(design) > 1 else None
-    run = [log.held()] if log is not None else list(simulate_need(sc, K).peak)
+    run = [log.held(K * int(sc.network.adjacency.sum()) * n_x)] if log is not None else list(simulate_need(sc, K).peak)
     if record is None:
         record = exported * ((n + 2) * (n_x * n_x + n_x) + m.n_z)  # each node's packets, state and measurement
     replayed = K * record

@@ -185,7 +185,8 @@ def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) 
             z = shapes.get("z", ())
             steps = z[0] if z else 0
             log = memory.LogSize(source, steps, sum(math.prod(s) for s in shapes.values()),
-                                 sum(info.file_size for info, _ in members.values()))
+                                 sum(info.file_size for info, _ in members.values()),
+                                 math.prod(shapes["channel_xi"]) if "channel_xi" in shapes else 0)
             memory.check(memory.log_need(log) if need is None else need(log))
             data = {}
             for key, (info, _) in members.items():
@@ -683,7 +684,7 @@ def read_log_csv(path, sc: Scenario, need: Callable[[LogSize], Need] | None = No
     if not rows:
         raise _fail(source, "holds no measurement row")
     K = max(k for k, _ in rows)
-    log = memory.LogSize(source, K, K * memory.log_values(m, N) + m.n_x)
+    log = memory.LogSize(source, K, K * memory.log_values(m, N) + m.n_x, signal=K * N * N * m.n_x)
     memory.check(memory.log_need(log) if need is None else need(log))
     z = np.full((K, m.n_z), np.nan)
     uplink = np.full((K, m.n_z), np.nan) if has_up else None
