@@ -148,7 +148,7 @@ class EdgeAttacks(NamedTuple):
         return cls(receiver, sender, np.stack(dos), np.stack(fdi), np.stack(xi))
 
     def pattern(self, r: int, n_nodes: int) -> AttackPattern:
-        """Run ``r``'s attacks as the dense :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`
+        """Run ``r``'s attacks as the N x N :class:`~filters.attacks.AttackPattern` of :func:`run_consensus`
         (``filters.consensus.run_consensus``)."""
         steps = self.xi.shape[1]
         dos = np.zeros((steps, n_nodes, n_nodes), dtype=bool)

@@ -292,11 +292,11 @@ class LogSize:
                     self.stored + (1 if self.stored else _LOG_COPIES) * self.values * _D,
                     f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
 
-    def held(self, signal_at_most: int) -> Part:
+    def held(self, network, n_x: int) -> Part:
         """Once read: one float copy of its arrays, the channels' signal kept at its falsified entries alone
-        (:class:`filters.attacks.AttackPattern`): at most ``signal_at_most`` numbers (the network's channels at every
-        step, where a log may falsify)."""
-        kept = self.values - self.signal + min(self.signal, int(signal_at_most))
+        (:class:`filters.attacks.AttackPattern`): at most ``n_x`` numbers on each of ``network``'s channels at every
+        step (where a log may falsify)."""
+        kept = self.values - self.signal + min(self.signal, self.steps * int(network.adjacency.sum()) * n_x)
         return Part(f"the arrays of log {self.source}", kept * _D, f"{self.steps} steps, {kept} numbers", _SHORTER_LOG)
 
 
@@ -338,7 +338,7 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     design = [] if options is None else _consensus_design(sc, options, steps, _SHORTER_LOG)
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
-    held = log.held(steps * int(sc.network.adjacency.sum()) * n_x)
+    held = log.held(sc.network, n_x)
     return _need("filter", [log.reading()], *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
 
 
@@ -370,7 +370,7 @@ def export_need(sc, options, steps: int, log: LogSize | None = None, *, record: 
     reduce = f"{_STEPS} (steps = {steps})"
     design = _consensus_design(sc, options, steps, reduce)
     tables = design[-1][0] if len(design) > 1 else None
-    run = [log.held(K * int(sc.network.adjacency.sum()) * n_x)] if log is not None else list(simulate_need(sc, K).peak)
+    run = [log.held(sc.network, n_x)] if log is not None else list(simulate_need(sc, K).peak)
     if record is None:
         record = exported * ((n + 2) * (n_x * n_x + n_x) + m.n_z)  # each node's packets, state and measurement
     replayed = K * record

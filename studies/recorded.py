@@ -270,12 +270,10 @@ def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
                 k, i, j = (int(v) for v in np.argwhere(both)[0])
                 raise _fail(source, f"the packet from node {j} to node {i} at step {k + 1} is marked both lost "
                                     "(channel_dos) and falsified (channel_fdi)")
-            if xi is None:
-                if np.any(fdi):
-                    raise _fail(source, "array 'channel_xi' is missing: it gives the signal injected into each "
-                                        "falsified packet (channel_fdi)")
-                xi = np.zeros((K, N, N, m.n_x))
-            attacks = AttackPattern.dense(dos, fdi, xi)
+            if xi is None and np.any(fdi):
+                raise _fail(source, "array 'channel_xi' is missing: it gives the signal injected into each "
+                                    "falsified packet (channel_fdi)")
+            attacks = AttackPattern(dos, fdi, np.zeros((0, m.n_x))) if xi is None else AttackPattern.dense(dos, fdi, xi)
     return Log(z, inputs, attacks, z if uplink is None else uplink, x, _integer(data, "seed", source),
                _integer(data, "run", source), source)
 
