@@ -735,7 +735,6 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     return RelayGain(Kr, G, None, direct), symmetrize(P)
 
 
-
 def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float) -> np.ndarray:
     """Which items' ``M = Lₛᵀ G0 Lₛ`` is certified to keep every eigenvalue above ``rtol`` times the largest, without
     forming it (:func:`_row_space_update`): ``M``'s eigenvalues lie in ``[λmin(S) λmin(G0), λmax(S) λmax(G0)]``,
