@@ -104,8 +104,9 @@ static void put(const double *a, int count) {
 }
 
 int main(void) {
-    static double L[@MM@], Li[@MM@], X[@MC@], acc[@C@], Y[@MC@], P[@PP@];
+    static double L[@MM@], Li[@MM@], X[@MC@], acc[@C@], Y[@MC@], P[@PP@], P3[@R@ * 3];
     static const double A[@MM@] = {@A@}, B[@MC@] = {@B@}, E[@MM@] = {@E@}, a[@RM@] = {@MA@}, b[@MC@] = {@MB@};
+    static const double b3[@M@ * 3] = {@MB3@};
     double tri;
     int i, k;
     if (cholesky(@M@, A, L)) return 3;
@@ -121,8 +122,10 @@ int main(void) {
     spd_solve_rows(@M@, Li, Y, @C@);
     put(Y, @MC@);
     printf("%d\n", cholesky(@M@, E, L)); /* not positive definite */
-    mul(a, b, P, @R@, @M@, @C@);
+    mul(a, b, P, @R@, @M@, @C@); /* 9 columns: mul's row form */
     put(P, @PP@);
+    mul(a, b3, P3, @R@, @M@, 3); /* 3: its dot products */
+    put(P3, @R@ * 3);
     return 0;
 }
 """
@@ -132,11 +135,11 @@ def c_list(a: np.ndarray) -> str:
     return ", ".join(float(v).hex() for v in np.ravel(a))
 
 
-def run_harness(tmp: Path, form_min: int, A, B, E, a, b) -> list[list[float]]:
+def run_harness(tmp: Path, form_min: int, A, B, E, a, b, b3) -> list[list[float]]:
     m, c = B.shape
     r = a.shape[0]
     fill = {"CODE": frame_code(), "M": m, "C": c, "R": r, "MM": m * m, "MC": m * c, "RM": r * m, "PP": r * c,
-            "A": c_list(A), "B": c_list(B), "E": c_list(E), "MA": c_list(a), "MB": c_list(b)}
+            "A": c_list(A), "B": c_list(B), "E": c_list(E), "MA": c_list(a), "MB": c_list(b), "MB3": c_list(b3)}
     src = HARNESS
     for key, value in fill.items():
         src = src.replace(f"@{key}@", str(value))
@@ -154,16 +157,16 @@ def test_both_forms_are_the_textbook_sums_bit_for_bit(tmp_path, m):
     G = rng.standard_normal((m, m + 3))
     A = G @ G.T + 0.1 * np.eye(m)  # symmetric positive definite, condition up to about 1e3
     A = 0.5 * (A + A.T)
-    c = 7
+    c = 9
     B = rng.standard_normal((m, c))
     E = A - (np.linalg.eigvalsh(A)[0] + 1.0) * np.eye(m)  # one eigenvalue -1: no Cholesky factor
-    a, b = rng.standard_normal((3, m)), rng.standard_normal((m, c))
-    row, textbook = (run_harness(tmp_path, form, A, B, E, a, b) for form in (0, 10**6))
+    a, b, b3 = rng.standard_normal((3, m)), rng.standard_normal((m, c)), rng.standard_normal((m, 3))
+    row, textbook = (run_harness(tmp_path, form, A, B, E, a, b, b3) for form in (0, 10**6))
     assert row == textbook  # the two forms: the same bits
 
     L = textbook_cholesky(A.tolist())
     Li, tri = textbook_tri_inverse(L)
-    got_L, got_Li, (got_tri,), got_X, got_Y, (bad,), got_P = row
+    got_L, got_Li, (got_tri,), got_X, got_Y, (bad,), got_P, got_P3 = row
     assert got_L == [v for r in L for v in r]  # the upper triangle zeroed, the lower the textbook's
     assert got_Li == [Li[i][j] if j <= i else 0.0 for i in range(m) for j in range(m)]
     assert got_tri == tri
@@ -172,6 +175,7 @@ def test_both_forms_are_the_textbook_sums_bit_for_bit(tmp_path, m):
     assert got_Y == solved.ravel().tolist()
     assert bad == -1
     assert got_P == textbook_mul(a, b).ravel().tolist()
+    assert got_P3 == textbook_mul(a, b3).ravel().tolist()
 
     # and what they compute: L L^T = A, L L^-1 = I, tr A^-1, A^-1 B, a b
     Lm, Lim = np.array(got_L).reshape(m, m), np.array(got_Li).reshape(m, m)
