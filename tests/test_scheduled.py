@@ -292,6 +292,38 @@ def test_a_nominal_that_leaves_the_operating_points_geometry_keeps_each_steps_ta
     assert consensus_design(sc, mode="scheduled", steps=6, table_kind="stationary").tables.kind == "stationary"
 
 
+def test_an_export_whose_tables_are_large_says_why_and_what_is_smaller(tmp_path, monkeypatch):
+    """Tables' C beyond ``LARGE_TABLES_BYTES`` is said, with its reason: each step's own tables kept by default (the
+    robot's nominal moves) or asked for, or neither (the stationary tables), and the smaller exports; within it,
+    nothing is said."""
+    import warnings
+
+    import rules.scheduled.design as tabled
+    import rules.scheduled.export_c as exporter
+    from studies.scenarios import load_scenario
+
+    sc = load_scenario("indoor-robot")
+    monkeypatch.setattr(tabled, "TABLES_PER_STEP_MAX", 2 * tabled.table_numbers(sc.network, sc.model.n_x))
+
+    def said(kind, limit):
+        monkeypatch.setattr(exporter, "LARGE_TABLES_BYTES", limit)
+        des = consensus_design(sc, mode="scheduled", steps=6, table_kind=kind)
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            exporter.write_scheduled_c(sc.model, sc.network, des, tmp_path / f"{kind}{limit}", nodes=[0, 1])
+        return [str(w.message) for w in got if issubclass(w.category, RuntimeWarning)]
+
+    (default,) = said(None, 0)
+    assert "the 2 nodes' tables are" in default and "MB of C" in default
+    assert "each of the first 6 steps' own tables (the default keeps them" in default
+    assert "--table-kind stationary" in default and "--node" in default
+    (asked,) = said("per-step", 0)
+    assert "each of the 6 steps' own tables (--table-kind per-step)" in asked
+    (stationary,) = said("stationary", 0)
+    assert "own tables" not in stationary and "--node" in stationary
+    assert said(None, 2**30) == []
+
+
 def test_a_design_directory_writes_the_steps_own_tables_once_and_reads_back_the_design(tmp_path, tank_model,
                                                                                       monkeypatch):
     """A design whose later steps use the stationary tables writes only its steps' own tables to schedule.npz (the

@@ -102,11 +102,12 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
                       WORK=work_code(sizes, "CFD_WMAX"),
                       EXCH=int(bool(tables.exchange)), EXCHANGE="exchanged" if tables.exchange else "not exchanged",
                       **described(model, nodes, verdict))
+    table_code = c_array("cfd_gam", gam.data()) + c_array("cfd_sig", sig.data())
+    _say_large_tables(len(table_code), gam.size + sig.size, tables, design.table_kind, len(nodes))
     data = "".join([
         c_array("cfd_node_id", nodes, "int"), c_array("cfd_nb_start", nb_start, "int"), c_array("cfd_nb", nb, "int"),
         c_array("cfd_p", p), c_array("cfd_q", q), c_array("cfd_tab_start", tab_start, "int"),
-        c_array("cfd_gam_off", gam.offsets, "int"), c_array("cfd_sig_off", sig.offsets, "int"),
-        c_array("cfd_gam", gam.data()), c_array("cfd_sig", sig.data()),
+        c_array("cfd_gam_off", gam.offsets, "int"), c_array("cfd_sig_off", sig.offsets, "int"), table_code,
         c_array("cfd_cert", cert), c_array("cfd_Rpad", R_pad), c_array("cfd_M", M), c_array("cfd_mu", mu),
         c_array("cfd_nominal", nominal), c_array("cfd_bank_points", tables.bank_points if B else []),
         c_array("cfd_bank_metric", tables.bank_metric if B else []), layout,
@@ -117,6 +118,35 @@ def write_scheduled_c(model, network, design, out: Path, *, nodes: Sequence[int]
         A=0 if not B else int(tables.bank_metric.shape[0]),
         MARGIN=repr(float(tables.robustness)), GAIN_RCOND=repr(float(GAIN_RCOND)), DIVERGED=repr(1e12))
     return write_node(out, header, source, template(_C / "driver_main.c"), replay)
+
+
+#: Tables' C beyond this many bytes is said (a RuntimeWarning, which ``cfdesign export`` prints): what makes it large
+#: and what would not be.  An assumption: a few MB is what issue 41 asks of 30 nodes.
+LARGE_TABLES_BYTES = 16 * 2**20
+
+
+def _say_large_tables(code_bytes: int, numbers: int, tables, asked: str | None, exported: int) -> None:
+    """Warn when the exported tables' C passes :data:`LARGE_TABLES_BYTES`: why (each step's own tables, asked for or
+    kept by default where the nominal's linearisation moves with the step; else the nodes' count) and the smaller
+    exports.  ``asked``: the design's ``--table-kind`` (None: its default)."""
+    if code_bytes <= LARGE_TABLES_BYTES:
+        return
+    import warnings
+
+    from .design import PER_STEP_KIND, STATIONARY_KIND
+
+    own = tables.steps if tables.kind == PER_STEP_KIND else (tables.own_steps or 0)
+    if not own:
+        why = ""
+    elif asked == PER_STEP_KIND:
+        why = f"each of the {own} steps' own tables (--table-kind {PER_STEP_KIND}), "
+    else:
+        why = (f"each of the first {own} steps' own tables (the default keeps them where the design's nominal leaves "
+               f"its operating point's linearisation, which the stationary tables are of), ")
+    warnings.warn(f"the {exported} nodes' tables are {numbers} numbers, {code_bytes / 2**20:.0f} MB of C: {why}"
+                  f"a C compiler takes long over them; smaller: a design with --table-kind {STATIONARY_KIND} (its "
+                  f"operating point's tables at every step, one step's size), or fewer nodes (--node)",
+                  RuntimeWarning, stacklevel=2)
 
 
 class _Entries:
@@ -137,6 +167,11 @@ class _Entries:
             self._parts.append(a)
             self._size += a.size
         self.offsets.append(self._seen[key])
+
+    @property
+    def size(self) -> int:
+        """The numbers written (each distinct entry once)."""
+        return self._size
 
     def data(self) -> np.ndarray:
         return np.concatenate(self._parts) if self._parts else np.zeros(0)
