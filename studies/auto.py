@@ -524,7 +524,10 @@ def _choose(candidates: list[Candidate], cap, cap_bytes, regions: bool = False) 
         return i, "picked", (f"picked {c.label}: certified, predicted node-average tr Φ "
                              + ("over each node's region " if regions else "") + f"{c.predicted:.4g}"
                              + (f" ({c.ratio_centralized:.3g} x the centralized EKF's"
-                                + (" on the same states)" if regions else ")") if c.ratio_centralized else "")
+                                + (" on the same states" if regions else "")
+                                + (" steady state at the operating point: below it only where the run has left that "
+                                   "point's geometry" if c.ratio_centralized < 1 else "") + ")"
+                                if c.ratio_centralized else "")
                              + f", {c.messages} messages and {c.bytes} bytes per step"
                              + f", of {len(candidates)} candidates ({len(eligible)} eligible)")
     in_budget = [i for i in designed if candidates[i].in_budget]

@@ -25,10 +25,11 @@ from studies.runner import run_forked
 
 
 def _cand(rule="relay", predicted=1.0, certified=True, messages=10, nbytes=100, in_budget=True, better=True,
-          status="designed", **kw) -> Candidate:
+          status="designed", ratio_centralized=None, **kw) -> Candidate:
     return Candidate(rule=rule, options=kw, rounds=kw.get("rounds", 1), exchange="relay", messages=messages,
                      bytes=nbytes, status=status, verdict="certified" if certified else "vacuous",
-                     certified=certified, predicted=predicted, in_budget=in_budget, better_than_local=better)
+                     certified=certified, predicted=predicted, in_budget=in_budget, better_than_local=better,
+                     ratio_centralized=ratio_centralized)
 
 
 def _choose(cands, cap=None, cap_bytes=None):
@@ -44,6 +45,15 @@ def test_the_pick_is_the_eligible_candidate_with_the_smallest_predicted_error():
     i, outcome, message = _choose(cands)
     assert (i, outcome) == (5, "picked")
     assert "rounds=6" in message
+
+
+def test_a_pick_below_the_centralized_steady_state_says_what_that_reference_is():
+    """The centralized reference is its steady state at the operating point: a pick predicted below it (a run that
+    left that point's geometry) says so, one above it is a plain ratio."""
+    _, _, below = _choose([_cand(predicted=0.4, ratio_centralized=0.4)])
+    assert "0.4 x the centralized EKF's steady state at the operating point: below it only where the run has left" in below
+    _, _, above = _choose([_cand(predicted=2.0, ratio_centralized=2.0)])
+    assert "(2 x the centralized EKF's)" in above
 
 
 def test_a_tie_within_the_tolerance_goes_to_the_fewest_bytes_and_beyond_it_does_not():
