@@ -289,8 +289,9 @@ def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(
     network drift beyond 1e-10 (which failed the check before it re-synchronised): the network run is checked at
     the drift of a perturbed Python network, which grows step by step (in float it passes its cap: information
     there); at a flat 1e-12 it fails correct code.  Its ill-conditioned steps are checked at their measured
-    sensitivity: at a flat 1e-12 they fail correct code.  A step too ill-conditioned for the check (here: a cap
-    lowered to 1e-9) ends the replay, and export says which."""
+    sensitivity: at a flat 1e-12 they fail correct code.  A node step too ill-conditioned for the check (here: a cap
+    lowered to 1e-9) is information, counted and named by export and by make test, and the steps after it are
+    checked (a changed number after one fails)."""
     import pathlib
 
     import designer.export_c
@@ -326,12 +327,37 @@ def test_a_diverging_paper_design_is_replayed_step_by_step_up_to_its_divergence(
     flat = make_test(out)
     assert flat.returncode != 0 and re.search(r"^step \d+, node \d+: P", flat.stdout, re.M), flat.stdout
     first = int(np.argmax(tol.max(axis=1) > 1e-9))  # the first step the lowered cap refuses (0-based)
+    ill = int((tol > 1e-9).sum())
     monkeypatch.setattr(designer.export_c, "REPLAY_TOLERANCE_CAP", 1e-9)
-    with pytest.warns(RuntimeWarning, match=rf"step {first + 1} of the replayed run is ill-conditioned at node \d+ "
-                                            rf".*replay.txt holds the {first} steps before"):
+    with pytest.warns(RuntimeWarning, match=rf"ill-conditioned at {ill} of its 24 node steps, the first at step "
+                                            rf"{first + 1}, node \d+ .*make test keeps them as information"):
         studies.export(des, out=out)
     run = make_test(out)  # the driver's own cap is the export's
-    assert run.returncode == 0 and f"{first} steps x 4 nodes" in run.stdout, run.stdout + run.stderr
+    assert run.returncode == 0 and "6 steps x 4 nodes" in run.stdout, run.stdout + run.stderr
+    assert re.search(rf"information: at {ill} of the 24 node steps \(the first at step {first + 1}, node \d+\)",
+                     run.stdout), run.stdout
+    # a node step kept as information (tolerance inf, here also its network run's) is not checked; the step after one
+    # is, from Python's state
+    lines = (out / "replay.txt").read_text().splitlines()
+    row = lambda k, i: 1 + 4 * k + i  # noqa: E731 - the replay's line of step k (0-based) and node slot i
+
+    def changed(line, tolerances):
+        values = line.split()
+        values[-1] = repr(float(values[-1]) * 1.001)  # its Python covariance's last entry
+        return " ".join(tolerances + values[len(tolerances):])
+
+    last = lines[:]
+    last[row(5, 0)] = changed(last[row(5, 0)], ["inf"] * 4)
+    (out / "replay.txt").write_text("\n".join(last) + "\n")
+    run = make_test(out)
+    assert run.returncode == 0 and "information: at" in run.stdout, run.stdout
+    after = lines[:]
+    after[row(0, 0)] = " ".join(["inf", "inf"] + after[row(0, 0)].split()[2:])
+    after[row(1, 0)] = changed(after[row(1, 0)], [])
+    (out / "replay.txt").write_text("\n".join(after) + "\n")
+    run = make_test(out)
+    assert run.returncode != 0 and re.search(r"^step 2, node \d+: P", run.stdout, re.M), run.stdout
+    assert "information: at" in run.stdout and "(the first at step 1, node" in run.stdout, run.stdout
 
 
 @pytest.mark.parametrize("target, options", [("indoor-robot", []),

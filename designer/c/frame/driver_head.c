@@ -8,8 +8,10 @@
  * cross terms are checked as closely as large ones.  Each row of the replay starts with its tolerances: the step's, a
  * double node's and a float node's (-DCFD_REAL=float): TOL (TOL scaled to float's rounding), or where the step
  * itself is ill-conditioned (Python measured how far it carries changes of its input by one unit of double's, of
- * float's rounding, and a float node's rank decisions) a multiple of that sensitivity, a double's at most TOL_CAP;
- * then the network run's, a double's and a float's.  A difference above the tolerance fails, naming the step, the
+ * float's rounding, and a float node's rank decisions) a multiple of that sensitivity, a double's at most TOL_CAP,
+ * or inf where it would need more (no check tells code from rounding there: that node step is information, counted
+ * and reported, and the steps after it are checked from Python's state again); then the network run's, a double's
+ * and a float's.  A difference above the tolerance fails, naming the step, the
  * node, the quantity and both values.
  *
  * As a network: a second set of nodes runs from the prior on its own, never re-synchronised, each node taking what
@@ -65,6 +67,9 @@ typedef struct {
     double worst;       /* the largest difference relative to its entry's scale */
     double worst_tol;   /* the largest tolerance a step needed */
     int bad;            /* entries above their tolerance */
+    int info_rows;      /* node steps too ill-conditioned to check from Python's state (tolerance inf) */
+    int info_step, info_node; /* the first of them (1-based step, node; 0: none) */
+    double info;        /* their largest difference */
     double net_worst;   /* the network run's largest difference where it is checked */
     double net_worst_tol; /* its largest tolerance */
     int net_bad;        /* its entries above their tolerance */
@@ -77,21 +82,31 @@ typedef struct {
 
 /* read a row's tolerances (TOLERANCES numbers); -1 for a replay that ended or tolerances out of their range */
 static int read_tolerances(FILE *fh, double *tol) {
-    if (read_numbers(fh, tol, TOLERANCES) || !(tol[0] >= TOL && tol[0] <= TOL_CAP) || !(tol[1] >= TOL * PRECISION)
-        || !(tol[1] < HUGE_VAL) || !(tol[2] >= TOL) || !(tol[2] <= NET_CAP || tol[2] == HUGE_VAL)
+    if (read_numbers(fh, tol, TOLERANCES) || !(tol[0] >= TOL && (tol[0] <= TOL_CAP || tol[0] == HUGE_VAL))
+        || !(tol[1] >= TOL * PRECISION) || !(tol[1] < HUGE_VAL || tol[0] == HUGE_VAL)
+        || !(tol[2] >= TOL) || !(tol[2] <= NET_CAP || tol[2] == HUGE_VAL)
         || !(tol[3] >= TOL * PRECISION) || !(tol[3] <= NET_CAP || tol[3] == HUGE_VAL))
         return -1;
     return 0;
 }
 
 /* the row of step k (0-based) and node `node` with its tolerances `tol` (read_tolerances): the comparisons that
- * follow are of it */
-static void at_row(cfd_tally *t, int k, int node, const double *tol) {
+ * follow are of it; `counted` 1 for its step from Python's state (its row counted once), 0 for the network run's */
+static void at_row(cfd_tally *t, int k, int node, const double *tol, int counted) {
     t->step = k + 1;
     t->node = node;
     t->tol = tol[FLOAT_NODE ? 1 : 0];
     t->net_tol = tol[FLOAT_NODE ? 3 : 2];
-    if (t->tol > t->worst_tol) t->worst_tol = t->tol;
+    if (!counted) return;
+    if (t->tol == HUGE_VAL) { /* too ill-conditioned to check: information */
+        t->info_rows += 1;
+        if (!t->info_step) {
+            t->info_step = t->step;
+            t->info_node = node;
+        }
+    } else if (t->tol > t->worst_tol) {
+        t->worst_tol = t->tol;
+    }
 }
 
 /* a replay row's d arrival flags (designer.export_c.arrival_flag: 0 lost, 1 arrived as sent, 2 arrived falsified) as
@@ -132,7 +147,7 @@ static double scale_of(const double *xw, const double *Pw, int i, int j) {
 static void entry(cfd_tally *t, int counted, const char *what, int i, int j, double got, double want,
                   double scale) {
     double d = scaled_difference(got, want, scale), tol = counted ? t->tol : t->net_tol;
-    double *worst = counted ? &t->worst : tol < HUGE_VAL ? &t->net_worst : &t->net_info;
+    double *worst = counted ? (tol < HUGE_VAL ? &t->worst : &t->info) : tol < HUGE_VAL ? &t->net_worst : &t->net_info;
     if (d > *worst) *worst = d;
     if (d <= tol) return;
     if ((counted ? t->bad : t->net_bad) < REPORTED) {
@@ -192,6 +207,12 @@ static int finish(FILE *fh, int steps, const cfd_tally *t) {
     printf("as a network (the nodes exchanging their own packets over the log's arrivals from the prior, never "
            "re-synchronised): largest difference from the Python node network %.3g (of each entry's scale), %d above "
            "its tolerance (rounding's drift: at most %.3g)\n", t->net_worst, t->net_bad, t->net_worst_tol);
+    if (t->info_rows)
+        printf("information: at %d of the %d node steps (the first at step %d, node %d) the step is too "
+               "ill-conditioned for a check at %g of each entry's scale (changes of its input by one unit in the last "
+               "place move it further: no check tells code from rounding), so they are not checked, and the steps "
+               "after them are, from Python's state: their largest difference %.3g\n", t->info_rows,
+               steps * CFD_NODES, t->info_step, t->info_node, TOL_CAP, t->info);
     if (t->net_info_rows)
         printf("information: at %d of its %d node steps (the first at step %d), rounding alone may carry the network "
                "run beyond %g of each entry's scale (a chaotic or ill-conditioned run, a float node's rank cuts), so "

@@ -50,7 +50,7 @@ int main(int argc, char **argv) {
         for (j = 0; j < CFD_NODES; ++j) { /* each node's step from the Python node's state */
             replay_row *r = &rows[j];
             int e = cfd_predict(&nodes[j], CFD_NU ? r->u : NULL, &mine);
-            at_row(&t, k, nodes[j].node, r->tol);
+            at_row(&t, k, nodes[j].node, r->tol, 1);
             if (e) {
                 fprintf(stderr, "step %d, node %d: cfd_predict returned %d\n", k + 1, nodes[j].node, e);
                 return 1;
@@ -84,7 +84,7 @@ int main(int argc, char **argv) {
             if (e) {
                 network_stops(&t, k, net[j].node, "cfd_update", e);
             } else {
-                at_row(&t, k, net[j].node, r->tol);
+                at_row(&t, k, net[j].node, r->tol, 0);
                 check(&t, 0, "x", "P", net[j].x, net[j].P, r->x, r->P);
             }
         }

@@ -20,7 +20,7 @@ int main(int argc, char **argv) {
                     || read_numbers(fh, P, CFD_NC * CFD_NC)) {
                 return short_replay(argv[1], k, nodes[j].node);
             }
-            at_row(&t, k, nodes[j].node, tol);
+            at_row(&t, k, nodes[j].node, tol, 1);
             arrivals(flags, nb - 1, arrived, NULL);
             e = cfd_step(&nodes[j], z, arrived, rec, CFD_NU ? u : NULL);
             if (e) {

@@ -49,7 +49,7 @@ int main(int argc, char **argv) {
                 fprintf(stderr, "step %d, node %d: the node filter returned %d\n", k + 1, nodes[j].node, e);
                 return 1;
             }
-            at_row(&t, k, nodes[j].node, w->tol);
+            at_row(&t, k, nodes[j].node, w->tol, 1);
             check(&t, 1, "x", "P", nodes[j].x, nodes[j].P, w->x, w->P);
             resync(nodes[j].x, nodes[j].P, w->x, w->P);
         }
@@ -86,7 +86,7 @@ int main(int argc, char **argv) {
             }
         }
         for (j = 0; j < CFD_NODES && !t.net_stopped; ++j) {
-            at_row(&t, k, net[j].node, rows[j].tol);
+            at_row(&t, k, net[j].node, rows[j].tol, 0);
             check(&t, 0, "x", "P", net[j].x, net[j].P, rows[j].x, rows[j].P);
         }
     }
