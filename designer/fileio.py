@@ -54,7 +54,7 @@ import numpy as np
 
 from .validation import InputError
 
-__all__ = ["atomic_write", "write_json", "write_npz", "output_lock", "append_line", "code_fingerprint",
+__all__ = ["atomic_write", "write_json", "write_npz", "Slabs", "output_lock", "append_line", "code_fingerprint",
            "check_output_file", "check_path", "check_apart", "writing", "replaced_outputs", "check_json_finite",
            "own_dir", "open_own", "refuse_link", "temporary_of", "LOCK_NAME", "OUTPUTS_NAME", "CHUNKS_DIR",
            "STAGING_PREFIX", "OUTPUT_PATTERNS", "REPORT_NAMES"]
@@ -226,14 +226,44 @@ def write_json(path, data: Any) -> Path:
 NPZ_LEVEL = 1
 
 
+class Slabs:
+    """An array given slab by slab along its first axis, ``slab(k)`` of shape ``shape[1:]``, so that
+    :func:`write_npz` writes it without it ever being whole in memory (a log's channel signal: dense N x N x n_x a
+    step, nearly all zeros).  ``a[k, ...]`` indexes it (the slab of ``k`` is kept until another is asked for)."""
+
+    def __init__(self, shape: tuple, dtype, slab):
+        self.shape, self.dtype, self._slab = tuple(int(n) for n in shape), np.dtype(dtype), slab
+        self._kept: tuple[int, np.ndarray] | None = None
+
+    def slab(self, k: int) -> np.ndarray:
+        if self._kept is None or self._kept[0] != k:
+            a = np.ascontiguousarray(self._slab(k), dtype=self.dtype)
+            if a.shape != self.shape[1:]:
+                raise ValueError(f"slab {k} has shape {a.shape}, not {self.shape[1:]}")
+            self._kept = (k, a)
+        return self._kept[1]
+
+    def __getitem__(self, index):
+        index = index if isinstance(index, tuple) else (index,)
+        return self.slab(int(index[0]))[index[1:]]
+
+
 def write_npz(path, **arrays) -> Path:
     """Write ``arrays`` as a compressed ``.npz`` (what ``np.savez_compressed`` writes, at zlib level
-    :data:`NPZ_LEVEL`; ``np.load`` reads it) atomically."""
+    :data:`NPZ_LEVEL`; ``np.load`` reads it) atomically; a :class:`Slabs` value is written slab by slab (the same
+    ``.npy`` member as its whole array's)."""
     def write(fh):
         with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=NPZ_LEVEL) as zf:
             for name, value in arrays.items():
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+                    if isinstance(value, Slabs):
+                        np.lib.format.write_array_header_1_0(member, {
+                            "descr": np.lib.format.dtype_to_descr(value.dtype), "fortran_order": False,
+                            "shape": value.shape})
+                        for k in range(value.shape[0]):
+                            member.write(value.slab(k).tobytes())
+                    else:
+                        np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
     return atomic_write(path, write)
 

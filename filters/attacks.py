@@ -67,6 +67,13 @@ class AttackPattern(NamedTuple):
 
     def xi_of(self, index) -> np.ndarray:
         """``xi[index]`` for an index of the (steps, N, N) entries, without the dense array."""
+        if isinstance(index, (int, np.integer)):  # one step: its entries are one run of xi_fdi, after the steps before
+            k = range(self.fdi.shape[0])[index]
+            f = self.fdi[k]
+            start = int(np.count_nonzero(self.fdi[:k]))
+            out = np.zeros(f.shape + (self.n_x,))
+            out[f] = self.xi_fdi[start:start + int(np.count_nonzero(f))]
+            return out
         f = self.fdi[index]
         out = np.zeros(np.shape(f) + (self.n_x,))
         if np.any(f):

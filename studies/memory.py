@@ -284,10 +284,19 @@ class LogSize:
     values: int
     stored: int = 0
     signal: int = 0  # of ``values``, the channels' injected signal as stored: dense, N x N x n_x a step
+    # the signal read step by step (an .npz's: studies.recorded.read_log), never whole: the most of its numbers kept
+    # (its falsified entries, at most every channel at every step); None: read whole
+    signal_kept: int | None = None
 
     def reading(self) -> Part:
-        """While it is read: an ``.npz``'s arrays as stored and their float copies, or a CSV's arrays as parsed and
-        their float copies (studies.recorded.check_log)."""
+        """While it is read: an ``.npz``'s arrays as stored and their float copies (a streamed signal: one step's
+        slab, read and as floats, and its falsified entries kept), or a CSV's arrays as parsed and their float
+        copies (studies.recorded.check_log)."""
+        if self.signal_kept is not None and self.signal:
+            slab = self.signal // max(self.steps, 1)
+            need = self.stored - self.signal * _D + (self.values - self.signal + 2 * slab + self.signal_kept) * _D
+            return Part(f"reading the arrays of log {self.source}", max(need, 0),
+                        f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
         return Part(f"reading the arrays of log {self.source}",
                     self.stored + (1 if self.stored else _LOG_COPIES) * self.values * _D,
                     f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
@@ -334,7 +343,8 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     else:
         opts = None if options is None else effective(sc, options)[1]
         run = _consensus(m, sc.network, 1, steps, None if opts is None else opts.mode,
-                         None if opts is None else opts.linearization, "the filter", _SHORTER_LOG)
+                         None if opts is None else opts.linearization, "the filter", _SHORTER_LOG,
+                         predictions=opts is not None)  # KCF, HCMCI, the local EKFs: no gains recorded
     design = [] if options is None else _consensus_design(sc, options, steps, _SHORTER_LOG)
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]

@@ -33,6 +33,7 @@ from typing import Callable
 import numpy as np
 
 from designer.design import DesignOptions
+from designer.fileio import Slabs
 from designer.validation import InputError
 from filters.attacks import AttackPattern, attack_pattern, receive, uplink_attacks
 from filters.result import FilterResult
@@ -93,9 +94,10 @@ def log_arrays(model, z, inputs, attacks: AttackPattern | None, received: np.nda
     out = {"schema": np.array(LOG_SCHEMA), "z": np.asarray(z, float)}
     if inputs is not None:
         out["inputs"] = np.asarray(inputs, float)
-    if attacks is not None:
+    if attacks is not None:  # the signal step by step from the falsified entries: never the dense array whole
+        K, N = attacks.dos.shape[:2]
         out.update(channel_dos=attacks.dos.astype(np.uint8), channel_fdi=attacks.fdi.astype(np.uint8),
-                   channel_xi=np.asarray(attacks.xi, float))
+                   channel_xi=Slabs((K, N, N, model.n_x), float, attacks.xi_of))
     if received is not None:
         values, avail = received[:, :model.n_z], received[:, model.n_z:] > 0.5
         lost = np.repeat(~avail, model.sensor_dims, axis=1)
@@ -116,32 +118,70 @@ def _array(data: dict, key: str, source: str, shape: tuple, *, optional: bool = 
             return None
         raise _fail(source, f"array {key!r} is missing (a log holds {', '.join(LOG_KEYS)})")
     a = np.asarray(data[key])
-    if a.dtype.kind not in ("biuf" if flags else "iuf"):
-        raise _fail(source, f"array {key!r} must hold numbers (an integer or floating-point dtype"
-                            + (", or booleans" if flags else "") + f"), got dtype {a.dtype}"
-                            + (" (booleans are not measurements)" if a.dtype.kind == "b" else ""))
+    _check_kind(key, source, a.dtype, a.shape, shape, flags)
     a = a.astype(float)
-    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)):
+    _check_values(key, source, a, nan)
+    return a
+
+
+def _check_kind(key: str, source: str, dtype, got: tuple, shape: tuple, flags: bool = False) -> None:
+    """:func:`_array`'s checks of an array's dtype and shape (``got``; None in ``shape``: a free axis)."""
+    if dtype.kind not in ("biuf" if flags else "iuf"):
+        raise _fail(source, f"array {key!r} must hold numbers (an integer or floating-point dtype"
+                            + (", or booleans" if flags else "") + f"), got dtype {dtype}"
+                            + (" (booleans are not measurements)" if dtype.kind == "b" else ""))
+    if len(got) != len(shape) or any(want is not None and g != want for g, want in zip(got, shape)):
         want = " x ".join("any" if w is None else str(w) for w in shape)
-        raise _fail(source, f"array {key!r} must have shape {want}, got {' x '.join(map(str, a.shape)) or 'scalar'}")
+        raise _fail(source, f"array {key!r} must have shape {want}, got {' x '.join(map(str, got)) or 'scalar'}")
+
+
+def _check_values(key: str, source: str, a: np.ndarray, nan: bool = False, at: tuple = ()) -> None:
+    """:func:`_array`'s check of the values: finite (NaN too with ``nan``); ``at``: the index of ``a`` in its array."""
     bad = ~np.isfinite(a) & (np.isinf(a) if nan else True)
     if np.any(bad):
         where = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise _fail(source, f"array {key!r} holds {a[where]} at index {list(where)}"
+        raise _fail(source, f"array {key!r} holds {a[where]} at index {list(at + where)}"
                             + (" (only NaN, a missing value, is allowed there)" if nan else " (values must be finite)"))
-    return a
+
+
+class _StreamedSignal:
+    """A log's ``channel_xi`` in its ``.npz`` (:func:`read_log`), read step by step from the archive's member by
+    :meth:`falsified`, so that the dense array (N x N x n_x a step, nearly all zeros: 0.8 GB for a run of the 118-bus
+    grid) is never whole in memory: only the signals of the falsified entries are kept."""
+
+    def __init__(self, zf: zipfile.ZipFile, info: zipfile.ZipInfo, shape: tuple, dtype):
+        self.zf, self.info, self.shape, self.dtype = zf, info, shape, dtype
+
+    def falsified(self, fdi: np.ndarray, source: str, shape: tuple) -> np.ndarray:
+        """The signals at ``fdi``'s entries in row-major order (:class:`filters.attacks.AttackPattern`'s ``xi_fdi``),
+        each step's slab checked as :func:`_array` checks the whole (dtype, ``shape``, finite values)."""
+        _check_kind("channel_xi", source, self.dtype, self.shape, shape)
+        per = math.prod(self.shape[1:])
+        parts = []
+        with self.zf.open(self.info) as fh:
+            version = np.lib.format.read_magic(fh)
+            (np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0)(fh)
+            for k in range(self.shape[0]):
+                raw = fh.read(per * self.dtype.itemsize)
+                step = np.frombuffer(raw, self.dtype, count=per).reshape(self.shape[1:]).astype(float)
+                _check_values("channel_xi", source, step, at=(k,))
+                parts.append(step[fdi[k]])
+        return np.concatenate(parts) if parts else np.zeros((0, shape[-1]))
 
 
 LOG_KEYS = ("z", "inputs", "channel_dos", "channel_fdi", "channel_xi", "uplink", "x", "seed", "run")
 
 
 def _flags(data: dict, key: str, source: str, shape: tuple, links: np.ndarray) -> np.ndarray | None:
-    a = _array(data, key, source, shape, optional=True, flags=True)
-    if a is None:
+    """A flag array, checked as :func:`_array` checks it, without its float copy (K x N x N, 8 bytes an entry)."""
+    if key not in data:
         return None
+    a = np.asarray(data[key])
+    _check_kind(key, source, a.dtype, a.shape, shape, flags=True)
+    _check_values(key, source, a)
     if np.any((a != 0) & (a != 1)):
         where = tuple(int(i) for i in np.argwhere((a != 0) & (a != 1))[0])
-        raise _fail(source, f"array {key!r} must hold 0 or 1, got {a[where]} at index {list(where)}")
+        raise _fail(source, f"array {key!r} must hold 0 or 1, got {float(a[where])} at index {list(where)}")
     off = (a == 1) & ~links[None]
     if np.any(off):
         k, i, j = (int(v) for v in np.argwhere(off)[0])
@@ -181,27 +221,34 @@ def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) 
     try:
         with zipfile.ZipFile(p) as zf:
             members = _npz_members(zf, source)
-            shapes = {k: shape for k, (_, shape) in members.items()}
+            shapes = {k: shape for k, (_, shape, _, _) in members.items()}
             z = shapes.get("z", ())
             steps = z[0] if z else 0
+            streamed = "channel_xi" in members and not members["channel_xi"][3]  # C order: step by step
+            signal = math.prod(shapes["channel_xi"]) if "channel_xi" in shapes else 0
+            links = int(np.asarray(sc.network.adjacency, bool).sum()) if sc.network is not None else 0
+            kept = min(signal, steps * links * sc.model.n_x) if streamed else None
             log = memory.LogSize(source, steps, sum(math.prod(s) for s in shapes.values()),
-                                 sum(info.file_size for info, _ in members.values()),
-                                 math.prod(shapes["channel_xi"]) if "channel_xi" in shapes else 0)
+                                 sum(info.file_size for info, _, _, _ in members.values()), signal, kept)
             memory.check(memory.log_need(log) if need is None else need(log))
             data = {}
-            for key, (info, _) in members.items():
+            for key, (info, shape, dtype, _) in members.items():
+                if key == "channel_xi" and streamed:
+                    data[key] = _StreamedSignal(zf, info, shape, dtype)
+                    continue
                 with zf.open(info) as fh:
                     data[key] = np.lib.format.read_array(fh, allow_pickle=False)
+            return check_log(data, sc, source)  # the signal read from the archive, still open
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
         raise _fail(source, f"cannot be read: {type(exc).__name__}: {exc}") from None
-    return check_log(data, sc, source)
 
 
-def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.ZipInfo, tuple[int, ...]]]:
+def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.ZipInfo, tuple[int, ...], np.dtype, bool]]:
     """The members of an ``.npz`` that a log reads (``schema`` and :data:`LOG_KEYS`; others are ignored, unread):
-    each with the shape its ``.npy`` header declares, read from the zip directory and the headers alone.  A header
+    each with the shape, dtype and Fortran order its ``.npy`` header declares, read from the zip directory and the
+    headers alone.  A header
     that does not parse, an array of objects or records, or a shape that disagrees with the member's size (a
     damaged or forged file) is refused naming the array."""
     out = {}
@@ -215,7 +262,7 @@ def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.Zi
                 version = np.lib.format.read_magic(fh)
                 read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
                     np.lib.format.read_array_header_2_0
-                shape, _, dtype = read(fh)
+                shape, fortran, dtype = read(fh)
                 header = fh.tell()
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise _fail(source, f"array {key!r} has no readable .npy header: {exc}") from None
@@ -226,7 +273,7 @@ def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.Zi
             raise _fail(source, f"array {key!r} declares shape {' x '.join(map(str, shape)) or 'scalar'} of "
                                 f"{dtype} ({math.prod(shape) * dtype.itemsize} bytes), but the archive holds "
                                 f"{info.file_size - header} bytes for it: the file is damaged")
-        out[key] = (info, tuple(int(n) for n in shape))
+        out[key] = (info, tuple(int(n) for n in shape), dtype, bool(fortran))
     return out
 
 
@@ -261,7 +308,9 @@ def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
         links = np.asarray(net.adjacency, bool)
         dos = _flags(data, "channel_dos", source, (K, N, N), links)
         fdi = _flags(data, "channel_fdi", source, (K, N, N), links)
-        xi = _array(data, "channel_xi", source, (K, N, N, m.n_x), optional=True)
+        streamed = data.get("channel_xi")
+        streamed = streamed if isinstance(streamed, _StreamedSignal) else None
+        xi = None if streamed else _array(data, "channel_xi", source, (K, N, N, m.n_x), optional=True)
         if dos is not None or fdi is not None:
             dos = np.zeros((K, N, N), bool) if dos is None else dos
             fdi = np.zeros((K, N, N), bool) if fdi is None else fdi
@@ -270,10 +319,14 @@ def check_log(data: dict, sc: Scenario, source: str = "<memory>") -> Log:
                 k, i, j = (int(v) for v in np.argwhere(both)[0])
                 raise _fail(source, f"the packet from node {j} to node {i} at step {k + 1} is marked both lost "
                                     "(channel_dos) and falsified (channel_fdi)")
-            if xi is None and np.any(fdi):
+            if xi is None and streamed is None and np.any(fdi):
                 raise _fail(source, "array 'channel_xi' is missing: it gives the signal injected into each "
                                     "falsified packet (channel_fdi)")
-            attacks = AttackPattern(dos, fdi, np.zeros((0, m.n_x))) if xi is None else AttackPattern.dense(dos, fdi, xi)
+            if streamed is not None:
+                attacks = AttackPattern(dos, fdi, streamed.falsified(fdi, source, (K, N, N, m.n_x)))
+            else:
+                attacks = AttackPattern(dos, fdi, np.zeros((0, m.n_x))) if xi is None else \
+                    AttackPattern.dense(dos, fdi, xi)
     return Log(z, inputs, attacks, z if uplink is None else uplink, x, _integer(data, "seed", source),
                _integer(data, "run", source), source)
 

@@ -450,7 +450,8 @@ def test_an_attack_pattern_keeps_the_signal_where_it_was_injected(robot):
     np.testing.assert_array_equal(att.fdi, fdi)
     np.testing.assert_array_equal(att.xi, xi)
     receiver, sender = np.nonzero(net.adjacency)
-    for index in ((5,), (slice(None), receiver, sender), (slice(3, 9), 2), (np.array([0, 7, 7]), 1, 0), att.fdi):
+    for index in ((5,), (slice(None), receiver, sender), (slice(3, 9), 2), (np.array([0, 7, 7]), 1, 0), att.fdi,
+                  0, 5, np.int64(9), -1):  # an integer: one step, its entries a run of xi_fdi
         np.testing.assert_array_equal(att.xi_of(index), xi[index])
     np.testing.assert_array_equal(AttackPattern.dense(dos, fdi, xi + 1.0).xi, np.where(fdi[..., None], xi + 1.0, 0.0))
     back = EdgeAttacks.from_patterns(net, [att]).pattern(0, n)

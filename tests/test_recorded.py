@@ -605,3 +605,66 @@ def test_recorded_tables_of_another_kind_are_refused_naming_the_array(tmp_path):
     np.savez(des / "schedule.npz", **{**good, "table_p": good["table_p"] * 0.5})
     with pytest.raises(InputError, match="other channel probabilities"):
         studies.filter(ring, log, schedule=des)
+
+
+def test_a_logs_channel_signal_is_written_and_read_step_by_step(tmp_path):
+    """A log's channel_xi (dense N x N x n_x a step, nearly all zeros) is written from the falsified entries and read
+    back to them one step at a time: the file holds the dense array (np.load reads it, equal to the pattern's), the
+    read log holds the same signals, and neither writing nor reading ever holds the dense array (tracemalloc's peak
+    below half of it, on a model of 40 states where it is most of the log); a value that is not finite is refused
+    naming its index, as before."""
+    import tracemalloc
+
+    from studies.recorded import read_log
+    from studies.scenarios import load_scenario
+
+    model = tmp_path / "wide.py"
+    model.write_text(WIDE_MODEL)
+    sim = studies.simulate(str(model), steps=400, seed=3)
+    dense = sim.attacks.xi
+    assert sim.attacks.fdi.sum() > 1000 and dense.nbytes > 4e6
+    path = tmp_path / "log.npz"
+    sc = load_scenario(str(model))
+    tracemalloc.start()
+    try:
+        sim.save(path)
+        write_peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        log = read_log(path, sc)
+        read_peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    with np.load(path) as f:
+        np.testing.assert_array_equal(f["channel_xi"], dense)
+    np.testing.assert_array_equal(log.attacks.fdi, sim.attacks.fdi)
+    np.testing.assert_array_equal(log.attacks.xi_fdi, sim.attacks.xi_fdi)
+    # reading held the dense signal twice (as stored and as floats), writing once: now neither
+    assert write_peak < dense.nbytes / 2 and read_peak < dense.nbytes / 2, (write_peak, read_peak, dense.nbytes)
+
+    bad = dense.copy()
+    k, i, j = (int(v) for v in np.argwhere(sim.attacks.fdi)[5])
+    bad[k, i, j, 1] = np.nan
+    with np.load(path) as f:
+        arrays = {key: f[key] for key in f.files}
+    arrays["channel_xi"] = bad
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match=rf"array 'channel_xi' holds nan at index \[{k}, {i}, {j}, 1\]"):
+        read_log(tmp_path / "bad.npz", sc)
+
+
+#: 40 states watched by a ring of 6 nodes, each measuring 3 of them, every channel attacked: a log whose dense channel
+#: signal (N x N x 40 a step) is most of it
+WIDE_MODEL = """
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+STEPS = 400
+NETWORK = SensorNetwork.from_edges(6, [(i, (i + 1) % 6) for i in range(6)])
+ATTACKS = AttackSpec(dos=0.2, fdi=0.4, signal=FDISignal(amplitude=0.5))
+def model() -> Model:
+    x = ca.SX.sym("x", 40)
+    sensors = [Sensor(f"s{i}", ca.vertcat(x[3 * i], x[3 * i + 1], x[3 * i + 2]), Gaussian.zero_mean(0.1 * np.eye(3)))
+               for i in range(6)]
+    return Model("wide", x, 0.98 * x, sensors, process_noise=Gaussian.zero_mean(1e-2 * np.eye(40)),
+                 prior=Gaussian(np.zeros(40), np.eye(40)))
+"""
