@@ -245,12 +245,12 @@ def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) 
         raise _fail(source, f"cannot be read: {type(exc).__name__}: {exc}") from None
 
 
-def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.ZipInfo, tuple[int, ...], np.dtype, bool]]:
+def _npz_members(zf: zipfile.ZipFile, source: str) -> dict[str, tuple[zipfile.ZipInfo, tuple[int, ...], np.dtype,
+                                                                       bool]]:
     """The members of an ``.npz`` that a log reads (``schema`` and :data:`LOG_KEYS`; others are ignored, unread):
     each with the shape, dtype and Fortran order its ``.npy`` header declares, read from the zip directory and the
-    headers alone.  A header
-    that does not parse, an array of objects or records, or a shape that disagrees with the member's size (a
-    damaged or forged file) is refused naming the array."""
+    headers alone.  A header that does not parse, an array of objects or records, or a shape that disagrees with the
+    member's size (a damaged or forged file) is refused naming the array."""
     out = {}
     for key in ("schema", *LOG_KEYS):
         try:
