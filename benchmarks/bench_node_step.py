@@ -46,7 +46,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 TARGET_RATIO = 50.0
 EKF_TARGET = 3.0  # issue 41: a node step in C at most this many times a plain EKF step of its states and rows
@@ -412,11 +411,10 @@ def measure(scenario: str, mode: str, repeat: int, folder: Path) -> dict:
     net = studies.node_filter(scenario, schedule=design)
     att = EdgeAttacks.from_patterns(net.network, [sim.attacks])
     given = []  # per step and node what the node is fed: computed by the network's step (its last exchange)
-    offsets = np.concatenate([[0], np.cumsum(net.model.sensor_dims)])
     for k in range(steps):
         net.step(sim.z[k], att.dos[0, k], att.fdi[0, k], att.xi[0, k], u=sim.inputs[k])
         _, rounds = net.last
-        z_of = [sim.z[k, offsets[i]:offsets[i + 1]] for i in range(len(net.nodes))]
+        z_of = [sim.z[k, net.model.sensor_rows(i)] for i in range(len(net.nodes))]
         if mode == "paper":
             given.append([(z_of[i], *rounds[0][i]) for i in range(len(z_of))])
         elif mode == "scheduled":

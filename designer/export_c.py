@@ -197,7 +197,7 @@ def model_code(model, out: Path) -> tuple[dict, np.ndarray, str]:
     code.write_text(template(_FRAME / "model_prelude.c") + code.read_text())
     sizes = {name: max(max(getattr(fn, name)() for fn in fns), 1) for name in ("sz_arg", "sz_res", "sz_iw", "sz_w")}
     dims = np.asarray(model.sensor_dims, dtype=int)
-    zoff = np.concatenate([[0], np.cumsum(dims)])
+    zoff = model.sensor_offsets
     angle = np.zeros(int(dims.sum()), dtype=int)
     for s, sen in enumerate(model.sensors):
         for c in sen.angles:

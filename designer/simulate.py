@@ -89,7 +89,7 @@ def check_simulated(model: Model, xs: np.ndarray, zs: np.ndarray) -> None:
         raise InputError(f"the transition f is not finite at {at(r, k_x)}: f(x) from x = {vec(X[r, k_x - 1])}")
     r = int(np.argmax(bad_z[:, k_z - 1].any(axis=-1)))
     comp = int(np.argmax(bad_z[r, k_z - 1]))
-    sensor = int(np.searchsorted(np.cumsum(model.sensor_dims), comp, side="right"))
+    sensor = int(np.searchsorted(model.sensor_offsets[1:], comp, side="right"))
     raise InputError(f"sensor {model.sensors[sensor].name!r}: h is not finite at {at(r, k_z)} "
                      f"(x = {vec(X[r, k_z])})")
 

@@ -952,7 +952,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     # a float's), in a process of their own beside this one's per-step twins: the same numbers (tested); their
     # network stops where this one does, and this one's replay may end sooner (an ill-conditioned step)
     with Background(drift_tolerances, network_copy(net), exporter, z, att, u, chosen) as drift:
-        steps, tolerances = _replay(exporter, net, z, att, u, sc.model.sensor_dims, chosen, mode)
+        steps, tolerances = _replay(exporter, net, z, att, u, sc.model, chosen, mode)
         tolerances = np.concatenate([tolerances, drift.result()[:len(steps)]], axis=-1)
     verdict = meta.get("verdict")  # the writers state it as a word of designer.verdict's vocabulary only
     tolerances = np.reshape(tolerances, (len(steps), len(chosen), REPLAY_TOLERANCES))
@@ -962,7 +962,7 @@ def export(design_dir, *, target: str = "c", out, nodes: Sequence[int] | None = 
     return [Path(out) / p.name for p in written]
 
 
-def _replay(exporter, net, z, att, u, sensor_dims, chosen, mode):
+def _replay(exporter, net, z, att, u, model, chosen, mode):
     """The export's replay of the run (:func:`export`): the node network ``net`` stepped over it, each step's replay
     record and each exported node's per-step tolerances, a double node's and a float node's (steps, nodes, 2), from
     twins of the network perturbed before the step (:func:`designer.export_c.replay_tolerances`); it ends before a
@@ -973,7 +973,6 @@ def _replay(exporter, net, z, att, u, sensor_dims, chosen, mode):
                                    SENSITIVITY_SEED, SENSITIVITY_TRIALS, perturbed_twin, replay_tolerances)
     from designer.progress import progress
 
-    offsets = np.concatenate([[0], np.cumsum(sensor_dims)])
     rng = np.random.default_rng(SENSITIVITY_SEED)  # the perturbed twins measuring each step's own sensitivity,
     rng_float = np.random.default_rng(FLOAT_SEED)  # at a double's rounding and at a float node's
     to_float = FLOAT_EPSILON / np.finfo(float).eps
@@ -988,7 +987,7 @@ def _replay(exporter, net, z, att, u, sensor_dims, chosen, mode):
             warnings.warn(f"the {mode} filter diverged at step {k + 1} of the replayed run: replay.txt holds the {k} "
                           "steps before", RuntimeWarning, stacklevel=2)
             break
-        step = exporter.replay_step(net, k, u[k], [z[k, offsets[i]:offsets[i + 1]] for i in chosen], chosen)
+        step = exporter.replay_step(net, k, u[k], [z[k, model.sensor_rows(i)] for i in chosen], chosen)
         with warnings.catch_warnings(), np.errstate(all="ignore"):  # a twin may break down where the run does not
             warnings.simplefilter("ignore")
             for twin in twins + floats:

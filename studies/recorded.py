@@ -380,7 +380,7 @@ def run_filter(sc: Scenario, log: Log, entry: FilterEntry, *, design=None, seed:
                                 "measurement at every step; the centralized filters (EKF, particle filters) "
                                 "skip a missing one")
     lost = np.isnan(log.uplink)
-    avail = ~np.add.reduceat(lost, np.concatenate([[0], np.cumsum(m.sensor_dims)[:-1]]), axis=1).astype(bool)
+    avail = ~np.add.reduceat(lost, m.sensor_offsets[:-1], axis=1).astype(bool)
     received = np.concatenate([np.where(lost, 0.0, log.uplink), avail.astype(float)], axis=1)
     N = sc.network.n_nodes
     attacks = log.attacks or AttackPattern(np.zeros((log.steps, N, N), bool), np.zeros((log.steps, N, N), bool),
@@ -552,7 +552,7 @@ def write_log_csv(path, data: dict, model, network) -> Path:
     z, K = np.asarray(data["z"], float), data["z"].shape[0]
     N = m.n_sensors
     dims = list(m.sensor_dims)
-    off = np.concatenate([[0], np.cumsum(dims)])
+    off = m.sensor_offsets
     up, x = data.get("uplink"), data.get("x")
     has_ch = "channel_dos" in data and network is not None
     cols = _csv_columns(m, N, uplink=up is not None, channels=has_ch, truth=x is not None)
@@ -609,7 +609,7 @@ def read_log_csv(path, sc: Scenario, need: Callable[[LogSize], Need] | None = No
     source = str(p)
     N = net.n_nodes
     dims = list(m.sensor_dims)
-    off = np.concatenate([[0], np.cumsum(dims)])
+    off = m.sensor_offsets
     adj = np.asarray(net.adjacency, bool)
     try:
         fh = p.open(newline="", encoding="utf-8-sig")  # skips a UTF-8 BOM (as spreadsheets write)

@@ -110,7 +110,7 @@ def _layout(model: Model, routes: Routes, nodes: Sequence[int] | None = None) ->
     start = np.append(first[:N] if nodes is None else first[np.asarray(nodes, dtype=int)], T)
     comp = np.arange(T) - np.repeat(first[order], length[order])
     row_slot = np.repeat(order, length[order])
-    offsets = np.concatenate([[0], np.cumsum(dims)])
+    offsets = model.sensor_offsets
     zcol = offsets[slot_sensor[row_slot]] + comp
     pair_rows = np.flatnonzero(row_slot >= N)
     pair_of_row = row_slot[pair_rows] - N

@@ -170,7 +170,7 @@ def scheduled_update(model: Model, tables, design: ConsensusDesign, k: int, node
     a, g, nx = xp.shape
     dims = model.sensor_dims
     nz = max(dims)
-    offsets = np.concatenate([[0], np.cumsum(dims)])
+    offsets = model.sensor_offsets
     chan, mask = ch.slots
     R_all = _padded_R(model, nz)  # (N, nz, nz)
     R_pad = R_all[nodes]
