@@ -284,17 +284,23 @@ class LogSize:
     values: int
     stored: int = 0
     signal: int = 0  # of ``values``, the channels' injected signal as stored: dense, N x N x n_x a step
-    # the signal read step by step (an .npz's: studies.recorded.read_log), never whole: the most of its numbers kept
-    # (its falsified entries, at most every channel at every step); None: read whole
-    signal_kept: int | None = None
+    streamed: bool = False  # the signal read step by step (an .npz's: studies.recorded.read_log), never whole
 
-    def reading(self) -> Part:
+    def kept_signal(self, network, n_x: int) -> int:
+        """The most numbers of the signal kept once read: its falsified entries alone
+        (:class:`filters.attacks.AttackPattern`), at most ``n_x`` on each of ``network``'s channels at every step."""
+        if not self.signal or network is None:
+            return self.signal
+        return min(self.signal, self.steps * int(network.adjacency.sum()) * n_x)
+
+    def reading(self, network=None, n_x: int = 0) -> Part:
         """While it is read: an ``.npz``'s arrays as stored and their float copies (a streamed signal: one step's
-        slab, read and as floats, and its falsified entries kept), or a CSV's arrays as parsed and their float
-        copies (studies.recorded.check_log)."""
-        if self.signal_kept is not None and self.signal:
+        slab, read and as floats, and what it keeps, :meth:`kept_signal` on ``network``'s channels), or a CSV's
+        arrays as parsed and their float copies (studies.recorded.check_log)."""
+        if self.streamed and self.signal:
             slab = self.signal // max(self.steps, 1)
-            need = self.stored - self.signal * _D + (self.values - self.signal + 2 * slab + self.signal_kept) * _D
+            kept = self.kept_signal(network, n_x)
+            need = self.stored - self.signal * _D + (self.values - self.signal + 2 * slab + kept) * _D
             return Part(f"reading the arrays of log {self.source}", max(need, 0),
                         f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
         return Part(f"reading the arrays of log {self.source}",
@@ -302,16 +308,15 @@ class LogSize:
                     f"{self.steps} steps, {self.values} numbers", _SHORTER_LOG)
 
     def held(self, network, n_x: int) -> Part:
-        """Once read: one float copy of its arrays, the channels' signal kept at its falsified entries alone
-        (:class:`filters.attacks.AttackPattern`): at most ``n_x`` numbers on each of ``network``'s channels at every
-        step (where a log may falsify)."""
-        kept = self.values - self.signal + min(self.signal, self.steps * int(network.adjacency.sum()) * n_x)
+        """Once read: one float copy of its arrays, the channels' signal as :meth:`kept_signal`."""
+        kept = self.values - self.signal + self.kept_signal(network, n_x)
         return Part(f"the arrays of log {self.source}", kept * _D, f"{self.steps} steps, {kept} numbers", _SHORTER_LOG)
 
 
-def log_need(log: LogSize) -> Need:
-    """Reading a log alone, where no command's need is given."""
-    return _need("reading the log", [log.reading()])
+def log_need(log: LogSize, network=None, n_x: int = 0) -> Need:
+    """Reading a log alone, where no command's need is given (``network``, ``n_x``: the scenario's, whose channels
+    bound a streamed signal's falsified entries)."""
+    return _need("reading the log", [log.reading(network, n_x)])
 
 
 def _consensus_design(sc, options, steps: int, reduce: str) -> list[list[Part]]:
@@ -349,7 +354,7 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
     held = log.held(sc.network, n_x)
-    return _need("filter", [log.reading()], *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
+    return _need("filter", [log.reading(sc.network, n_x)], *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
 
 
 def node_filter_need(sc, options=None) -> Need:

@@ -225,12 +225,10 @@ def read_log(path, sc: Scenario, need: Callable[[LogSize], Need] | None = None) 
             z = shapes.get("z", ())
             steps = z[0] if z else 0
             streamed = "channel_xi" in members and not members["channel_xi"][3]  # C order: step by step
-            signal = math.prod(shapes["channel_xi"]) if "channel_xi" in shapes else 0
-            links = int(np.asarray(sc.network.adjacency, bool).sum()) if sc.network is not None else 0
-            kept = min(signal, steps * links * sc.model.n_x) if streamed else None
             log = memory.LogSize(source, steps, sum(math.prod(s) for s in shapes.values()),
-                                 sum(info.file_size for info, _, _, _ in members.values()), signal, kept)
-            memory.check(memory.log_need(log) if need is None else need(log))
+                                 sum(info.file_size for info, _, _, _ in members.values()),
+                                 math.prod(shapes["channel_xi"]) if "channel_xi" in shapes else 0, streamed)
+            memory.check(memory.log_need(log, sc.network, sc.model.n_x) if need is None else need(log))
             data = {}
             for key, (info, shape, dtype, _) in members.items():
                 if key == "channel_xi" and streamed:
@@ -736,7 +734,7 @@ def read_log_csv(path, sc: Scenario, need: Callable[[LogSize], Need] | None = No
         raise _fail(source, "holds no measurement row")
     K = max(k for k, _ in rows)
     log = memory.LogSize(source, K, K * memory.log_values(m, N) + m.n_x, signal=K * N * N * m.n_x)
-    memory.check(memory.log_need(log) if need is None else need(log))
+    memory.check(memory.log_need(log, net, m.n_x) if need is None else need(log))
     z = np.full((K, m.n_z), np.nan)
     uplink = np.full((K, m.n_z), np.nan) if has_up else None
     dos = np.zeros((K, N, N), bool)
