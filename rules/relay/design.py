@@ -565,6 +565,9 @@ def _rows_to_groups(K: np.ndarray, Hw: np.ndarray, Hg: np.ndarray, groups: np.nd
 #: a float C node's (``-DCFD_REAL=float``, rules.relay.export_c), which float cannot resolve below
 RTOL = 1e-12
 FLOAT_RTOL = 1e-5
+#: :func:`_basis_update`'s cut of a depth's Gram eigenvalues, relative to the largest and per row or column of the
+#: Gram: directions at rounding's level (a row that repeats a direction of its depth) are left out
+BASIS_TOL = 64 * np.finfo(float).eps
 
 
 class RelayGain(NamedTuple):
@@ -648,8 +651,9 @@ def relay_gain(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarr
     # as many rows, M is singular and its work the larger: the robot's 16 rows against 15 columns) and S is positive
     # definite (else a row never arrives); otherwise Q's own (below).  The C node decides alike
     # (rules/relay/c/cfd_node.c.in: 5 x slower on the robot in the rows), and where M has no certified inverse (rows
-    # that repeat a direction of their depth: Q's rank below r) it takes Q's way, in Q's range, the same P⁺ to
-    # rounding, in place of M's eigendecomposition (2.4 x less time a step on a 24-state beam of 26 rows).
+    # that repeat a direction of their depth: Q's rank below r) both reduce Q to a basis of each depth's rows, in Q's
+    # range, the same P⁺ to rounding, in place of M's eigendecomposition (:func:`_basis_update`; in C 2.4 x less time
+    # a step on a 24-state beam of 26 rows).
     groups = mom.groups
     if groups.ndim > 2:  # depths at different rows for different items: one item at a time
         lead = Hw.shape[:-2]
@@ -701,14 +705,14 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     ``M``), ``M⁺ = M⁻¹ = Lₛ⁻¹ G0⁻¹ Lₛ⁻ᵀ`` and the gain reduces to ``K_r G0 = X S⁻¹``: ``x⁺ = x⁻ + X S⁻¹ res`` and
     ``P⁺ = P⁻ - X S⁻¹ Xᵀ``, a Kalman update in the ball's rows with the attack-weighted ``S`` (``Ĥ`` of full row
     rank: ``Ĥ (Ĥᵀ S Ĥ)⁺ Ĥᵀ = S⁻¹``).  Those items' ``G0`` is the identity (``K_r = X S⁻¹``, ``direct`` set); the
-    others take ``M``'s pseudo-inverse."""
+    others reduce ``Q`` to a basis of each depth's rows (:func:`_basis_update`), as the C node does."""
     try:
         Ls = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
         return None
     n, r = Hw.shape[-1], Hw.shape[-2]
     lead = np.broadcast_shapes(P_pred.shape[:-2], Hw.shape[:-2], S.shape[:-2])
-    Ls, Hw, P_pred = (np.broadcast_to(a, lead + a.shape[-2:]) for a in (Ls, Hw, P_pred))
+    Ls, Hw, P_pred, S = (np.broadcast_to(a, lead + a.shape[-2:]) for a in (Ls, Hw, P_pred, S))
     same = mom.groups @ mom.groups.T  # (r, r) 1 where two rows are of the same hop depth
     G0 = same * (Hw @ np.swapaxes(Hw, -1, -2))  # Ĥ Ĥᵀ
     X = np.broadcast_to(mom.p[..., :, None] * HP, lead + (r, n))  # Xᵀ = diag(p) Hw P⁻
@@ -727,12 +731,58 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
         P[direct] = P_pred[direct] - np.swapaxes(Yd, -1, -2) @ Yd
     rest = ~direct
     if rest.any():
-        Lr, G0r = Ls[rest], G0[rest]
-        Mp = pseudo_inverse(np.swapaxes(Lr, -1, -2) @ G0r @ Lr, rtol)
-        Kr[rest] = np.swapaxes(Mp @ Y[rest], -1, -2) @ np.swapaxes(Lr, -1, -2)
-        G[rest] = G0r
-        P[rest] = P_pred[rest] - Kr[rest] @ (G0r @ X[rest])
+        Kr[rest], dP = _basis_update(S[rest], Hw[rest], X[rest], mom.groups, rtol)
+        G[rest] = G0[rest]
+        P[rest] = P_pred[rest] + dP
     return RelayGain(Kr, G, None, direct), symmetrize(P)
+
+
+def _basis_update(S, Hw, X, groups, rtol: float):
+    """:func:`_row_space_update` for the items whose ``M`` is not certified (rows of one hop depth that repeat a
+    direction: a line's flow measured at both its ends, the lines of a loop): ``(K_r, P⁺ - P⁻)`` over a basis of each
+    depth's rows, as the C node reduces ``Q`` (rules/relay/c/cfd_node.c.in), in place of ``M``'s eigendecomposition.
+
+    Depth g's rows ``Hw_g`` (on their nonzero columns) are ``B_g T_g`` with ``T_g`` an orthonormal basis of their span
+    from the eigenvectors of their smaller Gram matrix (``Hw_gᵀ Hw_g = V diag(μ) Vᵀ``: ``T_g = Vᵀ``, ``B_g = Hw_g V``;
+    or ``Hw_g Hw_gᵀ = U diag(μ) Uᵀ``: ``B_g = U diag(μ)^½``), the directions with ``μ`` at rounding's level of the
+    largest left out (``B``'s column zero).  Then ``Q = Tᵀ Q' T`` with ``Q' = Bᵀ S B`` holding ``Q``'s nonzero
+    eigenvalues, so ``W = C Q⁺ = E Q'⁺ T`` (``E = P⁻ Hwᵀ diag(p) B``) and ``P⁺ = P⁻ - E Q'⁺ Eᵀ``; in the rows,
+    ``K_r = E Q'⁺ diag(μ)⁻¹ Bᵀ`` (``Bᵀ B = diag(μ)``, ``B Bᵀ = G0``, so ``K_r G0 res = E Q'⁺ Bᵀ res = W y``).  A left-out
+    direction keeps a diagonal entry in ``Q'`` (its row's mean, so the items keep one shape) that no ``E`` reads."""
+    swap = lambda a: np.swapaxes(a, -1, -2)  # noqa: E731
+    lead, r = Hw.shape[:-2], Hw.shape[-2]
+    blocks = []
+    for g in range(groups.shape[-1]):
+        rows = np.flatnonzero(groups[:, g])
+        Hr = Hw[..., rows, :]
+        cols = np.flatnonzero(np.any(Hr != 0.0, axis=tuple(range(Hr.ndim - 1))))
+        if not (rows.size and cols.size):
+            continue
+        Ha = Hr[..., cols]
+        if cols.size <= rows.size:
+            mu, V = np.linalg.eigh(swap(Ha) @ Ha)
+            B = Ha @ V
+        else:
+            mu, U = np.linalg.eigh(Ha @ swap(Ha))
+            B = U * np.sqrt(np.maximum(mu, 0.0))[..., None, :]
+        keep = mu > BASIS_TOL * max(rows.size, cols.size) * mu[..., -1:]
+        blocks.append((rows, np.where(keep[..., None, :], B, 0.0), np.where(keep, mu, 1.0), keep))
+    k = sum(b.shape[-1] for _, b, _, _ in blocks)
+    Bf = np.zeros(lead + (r, k))
+    mu = np.empty(lead + (k,))
+    keep = np.empty(lead + (k,), dtype=bool)
+    c = 0
+    for rows, B, m, kp in blocks:
+        Bf[..., rows, c:c + B.shape[-1]] = B
+        mu[..., c:c + B.shape[-1]], keep[..., c:c + B.shape[-1]] = m, kp
+        c += B.shape[-1]
+    Qr = swap(Bf) @ S @ Bf
+    d = np.einsum("...ii->...i", Qr)
+    scale = np.sum(d, axis=-1, keepdims=True) / np.maximum(np.sum(keep, axis=-1, keepdims=True), 1)
+    Qr[..., np.arange(k), np.arange(k)] = np.where(keep, d, scale)
+    E = swap(X) @ Bf  # (n, k)
+    K = E @ pseudo_inverse(Qr, rtol)
+    return (K / mu[..., None, :]) @ swap(Bf), -(K @ swap(E))
 
 
 def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float) -> np.ndarray:
