@@ -513,7 +513,7 @@ def _failures(x: np.ndarray, P: np.ndarray) -> np.ndarray:
 def _predict(model: Model, x, P, k: int, u):
     """The EKF prediction of stacked nodes ``(a, g)`` at their own estimates: ``f(x)``, ``F P Fᵀ + Q``."""
     xp, F = model.f_expected(x, k, u), model.F_expected(x, k, u)
-    Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+    Pp = model.propagate(F, P) + model.process_cov
     return xp, 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
 
 

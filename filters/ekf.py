@@ -118,7 +118,7 @@ def run_ekf_batch(model: Model, z: np.ndarray, *, available: np.ndarray | None =
         uk = None if not model.n_u else (u[k] if u.ndim == 2 else u[act, k])
         F = model.F_expected(x, k, uk)
         x = model.f_expected(x, k, uk)
-        P = F @ P @ np.swapaxes(F, -1, -2) + Q
+        P = model.propagate(F, P) + Q
         got = rows[act, k]
         H = np.where(got[..., None], np.concatenate([model.H(i, x, k + 1) for i in range(N)], axis=-2), 0.0)
         r = np.concatenate([wrap_angles(z[act, k, offsets[i]:offsets[i + 1]] - model.h(i, x, k + 1), wraps[i])

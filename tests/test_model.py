@@ -327,3 +327,24 @@ def test_a_simulated_nan_names_the_sensor_the_step_and_the_run():
                   Gaussian([0.0], [[1e-12]]))
     with pytest.raises(InputError, match=r"the transition f is not finite at step 3: f\(x\) from x = \[2"):
         simulate(grows, 5, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("coupled", [False, True])
+def test_propagate_is_the_covariance_product_bit_for_bit(coupled):
+    """Model.propagate(F, P) = F P Fᵀ: by elements where the dynamics' Jacobian is structurally diagonal (a
+    state-dependent decay here), the same bits as numpy's products over a batch, and the products themselves where a
+    state reads another (the elementwise form would drop the coupling)."""
+    x = ca.SX.sym("x", 4)
+    f = x + 0.1 * ca.sin(x) - 0.05 * x**3
+    if coupled:
+        f[0] += 0.2 * x[3]
+    model = Model("decay", x, f, [Sensor("s", x[0], Gaussian.zero_mean([[1.0]]))], Gaussian.zero_mean(np.eye(4)),
+                  Gaussian(np.zeros(4), np.eye(4)))
+    rng = np.random.default_rng(7)
+    xs = rng.normal(size=(3, 5, 4))
+    F = model.F(xs)
+    A = rng.normal(size=(3, 5, 4, 4))
+    P = A @ np.swapaxes(A, -1, -2)
+    want = F @ P @ np.swapaxes(F, -1, -2)
+    assert np.array_equal(model.propagate(F, P), want)
+    assert (np.abs(F[..., 0, 3]) > 0).all() == coupled  # the coupling the elementwise form would drop

@@ -307,7 +307,7 @@ def _predict(model: Model, k: int, x, P, u, carry: Carried | None = None, fill=N
     if carry is not None:
         xp, F, Q = carry.vector(xp), carry.matrix(F), carry.matrix(Q)
     with np.errstate(over="ignore", invalid="ignore"):  # a run beyond finite numbers stops just below
-        Pp = F @ P @ np.swapaxes(F, -1, -2) + Q
+        Pp = model.propagate(F, P) + Q
         Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
     return xp, Pp, (xp if carry is None else carry.full(xp, fill))
 

@@ -155,7 +155,7 @@ def scheduled_prediction(model: Model, tables, k: int, x, P, u):
     a bank)."""
     F = model.F_expected(x, k, u)
     xp = model.f_expected(x, k, u)
-    Pp = F @ P @ np.swapaxes(F, -1, -2) + model.process_cov
+    Pp = model.propagate(F, P) + model.process_cov
     Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
     return xp, Pp, tables.choose(k, xp)
 
