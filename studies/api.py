@@ -282,7 +282,8 @@ def design(scenario, *, mode: str | None = None, steps: int | None = None, seed:
     validate : int, optional
         Fresh Monte Carlo runs of the design (mode ``auto``: of its pick) beside KCF, HCMCI, the local and the
         centralized EKF, ``.validation`` and ``validation.json`` (default: :data:`studies.auto.VALIDATE_RUNS` in mode
-        ``auto``, as many as fit in memory when fewer do, as its message says; 0 with a rule).  Runs given that do
+        ``auto``, fewer on a large network (:func:`studies.auto.default_validation`) and as many as fit in memory
+        when fewer do, as its message says; 0 with a rule).  Runs given that do
         not fit are refused before any candidate is designed.
     steps, seed : int
         Horizon of the run (default: the scenario's) and its seed (truth and measurements

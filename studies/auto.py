@@ -57,13 +57,21 @@ from .scenarios import Scenario
 
 __all__ = ["AUTO", "AUTO_SECONDS", "TIE", "BYTES_PER_NUMBER", "VALIDATE_RUNS", "AUTO_ASSUMPTIONS", "Candidate",
            "AutoDesign", "run_auto", "check_auto", "offered", "refusal", "label", "best", "below_local", "budget_record", "message_budget", "predicted_error", "references", "reference_costs",
-           "validation"]
+           "validation", "default_validation", "VALIDATE_ROWS", "VALIDATE_MIN_RUNS"]
 
 AUTO = "auto"  # the --mode of the automatic design (not a gain rule: it chooses among them)
 AUTO_SECONDS = 45.0  # the candidates' time budget (s): with the pick's design and 20 validation runs, within a minute
 TIE = 0.01  # predicted errors within 1 % of the smallest are a tie (the cheaper wins)
 BYTES_PER_NUMBER = 8  # a number in a packet: a float64 (an index too: no header is counted)
 VALIDATE_RUNS = 20  # fresh Monte Carlo runs of an automatic design's validation, by default
+#: The node-state rows N n a default validation's runs hold together, at most (fewer runs, VALIDATE_MIN_RUNS at the
+#: least, on a larger network): the validation's whole-state references cost about N n³ a step and run, and its
+#: answers are averages over the nodes as well as the runs, so a large network's run weighs like several small
+#: ones'.  An assumption, chosen: every model to the 64-cell field (4096 rows) keeps its 20 runs; the 118-bus grid
+#: (13 806 rows) gets 5, whose paired interval of the pick over the local EKFs was [0.084, 0.096] from 8 runs,
+#: [0.089, 0.097] from 20.
+VALIDATE_ROWS = 20 * 4096
+VALIDATE_MIN_RUNS = 5
 
 AUTO_ASSUMPTIONS = (
     "auto: the predicted error of a design is the node-average tr Phi over the last W = max(2, ceil(K/4)) steps of "
@@ -94,6 +102,19 @@ def message_budget(value, network) -> int | None:
     return check_int("budget", value, 1)
 
 
+def default_validation(network, n_x: int) -> tuple[int, str | None]:
+    """The default validation's runs on ``network`` with ``n_x`` states: :data:`VALIDATE_RUNS`, or fewer where they
+    would hold more than :data:`VALIDATE_ROWS` node-state rows (at least :data:`VALIDATE_MIN_RUNS`), and why (None
+    where not cut).  A property of the model, never of the machine."""
+    rows = int(network.n_nodes) * int(n_x)
+    runs = min(VALIDATE_RUNS, max(VALIDATE_MIN_RUNS, VALIDATE_ROWS // rows))
+    if runs == VALIDATE_RUNS:
+        return runs, None
+    return runs, (f"validated on {runs} fresh runs, not the default {VALIDATE_RUNS}: a run of this network holds "
+                  f"{rows} node-state rows, and the default runs hold at most {VALIDATE_ROWS} together "
+                  f"(--validate {VALIDATE_RUNS} runs them)")
+
+
 def check_auto(sc: Scenario, budget=None, budget_bytes=None, validate=None, seconds=None) -> tuple:
     """The automatic design's own arguments checked (InputError naming the parameter and its range) before any
     computation: ``(messages cap or None, bytes cap or None, validation runs, seconds)``."""
@@ -103,7 +124,8 @@ def check_auto(sc: Scenario, budget=None, budget_bytes=None, validate=None, seco
     cap = message_budget(budget, sc.network)
     if budget_bytes is not None:
         budget_bytes = check_int("budget_bytes", budget_bytes, 1)
-    validate = VALIDATE_RUNS if validate is None else check_int("validate", validate, 0)
+    validate = default_validation(sc.network, sc.model.n_x)[0] if validate is None else \
+        check_int("validate", validate, 0)
     seconds = AUTO_SECONDS if seconds is None else seconds
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (0 < seconds < math.inf):
         raise InputError(f"auto_seconds must be a positive number of seconds, got {seconds!r}")
@@ -413,9 +435,10 @@ def run_auto(sc: Scenario, options: DesignOptions | None = None, *, steps: int |
     if not any(p[3] is not None for p in plans):  # nothing can start: the model (or its size) is the problem
         raise InputError(next(p[4] for p in plans)) if plans else InputError(
             "no deployable gain rule offers a design on this network (rules.names() lists the rules)")
-    cut = None
+    cut = None if given else default_validation(net, model.n_x)[1]  # the default runs of a large network: fewer
     if validate:  # before the candidates are designed: a validation that cannot fit is refused now, not after
-        validate, cut = _check_validation(sc, next(p[3] for p in plans if p[3] is not None), validate, given)
+        validate, memory_cut = _check_validation(sc, next(p[3] for p in plans if p[3] is not None), validate, given)
+        cut = memory_cut or cut
     # the cheap ones first: the rules that relay by their hops (each hop's designs side by side), then the others'
     # single exchange, the rules of offline tables last; within the time the candidates are given, every rule gets
     # its cheapest designs before any gets its dearest

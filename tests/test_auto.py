@@ -356,3 +356,25 @@ def test_the_validation_runs_no_paper_design_and_its_memory_counts_one_bound():
         return study_need("consensus-robot", sc, so).nbytes
 
     assert need(auto.VALIDATION_OPTIONS) < need({})
+
+
+def test_the_default_validation_is_cut_on_a_large_network_by_its_rows_and_says_how_to_run_the_rest():
+    """default_validation: 20 runs while N n x 20 stays within VALIDATE_ROWS, then VALIDATE_ROWS // (N n) runs, never
+    fewer than VALIDATE_MIN_RUNS, with a message naming the runs, the rows and --validate 20; check_auto takes it as
+    the default and keeps runs the user gave."""
+    from types import SimpleNamespace
+
+    from studies.auto import VALIDATE_MIN_RUNS, VALIDATE_ROWS, VALIDATE_RUNS, check_auto, default_validation
+
+    def ring(n):
+        return SensorNetwork.from_edges(n, [(i, (i + 1) % n) for i in range(n)])
+
+    assert default_validation(ring(64), 64) == (VALIDATE_RUNS, None)  # the 64-cell field keeps its 20
+    for nodes, n_x in ((65, 64), (100, 100), (118, 117), (400, 400)):
+        runs, why = default_validation(ring(nodes), n_x)
+        assert runs == max(VALIDATE_MIN_RUNS, VALIDATE_ROWS // (nodes * n_x)) < VALIDATE_RUNS
+        assert f"validated on {runs} fresh runs" in why and f"{nodes * n_x} node-state rows" in why
+        assert f"--validate {VALIDATE_RUNS}" in why
+        sc = SimpleNamespace(network=ring(nodes), model=SimpleNamespace(n_x=n_x))
+        assert check_auto(sc)[2] == runs and check_auto(sc, validate=VALIDATE_RUNS)[2] == VALIDATE_RUNS
+    assert default_validation(ring(118), 117)[0] == 5
