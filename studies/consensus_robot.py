@@ -74,7 +74,7 @@ from .study_registry import StudyText
 __all__ = ["STUDY", "bound_check", "bound_statistics", "per_run_check", "excess_quantile", "Z_EXCESS",
            "MIN_RUNS_FOR_CHECK",
            "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE",
-           "CHUNK_BOUND_BYTES", "chunk_size"]
+           "CHUNK_BOUND_BYTES", "chunk_size", "whole_bounds"]
 
 Z_EXCESS = 3.0  # an excess over Φ counts at the level of this many normal standard errors (one-sided 0.135%),
 #                 Student's t's quantile with the runs' degrees of freedom at that level (excess_quantile)
@@ -221,7 +221,9 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
 def bound_statistics(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, positions=None) -> dict[str, np.ndarray]:
     """What :func:`bound_check` needs of the bounds ``phi`` (runs, steps, nodes, m, m) of the runs with errors ``err``
     (runs, steps, nodes, m), valid where ``valid`` (runs, steps, nodes): a run's numbers of the size of its errors,
-    not of its bounds, and one sum of the bounds over the runs (a study keeps these, chunk by chunk).
+    not of its bounds, and one sum of the bounds over the runs (a study keeps these, chunk by chunk).  Given the
+    bounds' diagonals alone (runs, steps, nodes, m: a study of fewer runs than the per-pair test needs,
+    :func:`whole_bounds`), ``trace`` and ``judged`` alone.
 
     ``trace`` (runs, steps, nodes): tr Φ where valid, else 0; ``judged``: the trace :func:`_worth` and the verdicts
     judge (:func:`studies.consensus_design.bound_traces` over each node's region with ``positions``), (runs, steps,
@@ -230,6 +232,10 @@ def bound_statistics(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, positi
     valid; ``phi_sum`` (steps, nodes, m, m): Φ summed over the runs where valid, one run after the other (as
     :mod:`studies.runner` sums a study's runs' :data:`studies.runner.SUMMED` rows: the same bits)."""
     R, K, N, m = err.shape
+    if np.ndim(phi) == np.ndim(valid) + 1:  # the diagonals: the traces alone
+        with np.errstate(invalid="ignore", over="ignore"):
+            trace = np.where(valid, phi.sum(axis=-1), 0.0)
+        return {"trace": trace, "judged": bound_traces(phi, valid, positions).swapaxes(1, 2)}
     out = {"trace": np.zeros((R, K, N)), "judged": bound_traces(phi, valid, positions).swapaxes(1, 2),
            "white": np.full((R, K, N, m), np.nan), "phi_sum": np.zeros((K, N, m, m))}
     for k in range(K):  # a step at a time: no copy of the runs' bounds
@@ -240,7 +246,7 @@ def bound_statistics(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, positi
         out["trace"][:, k][ok] = np.trace(ph, axis1=-2, axis2=-1)
         out["white"][:, k][ok] = _whitened(err[:, k][ok], ph)
     for r in range(R):
-        out["phi_sum"] += _masked(phi[r], valid[r])
+        np.add(out["phi_sum"], phi[r], out=out["phi_sum"], where=valid[r][..., None, None])
     return out
 
 
@@ -441,7 +447,7 @@ def _decode(codes: np.ndarray) -> str:
 
 def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
           hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD,
-          paper_reference: bool = True) -> dict:
+          paper_reference: bool = True, whole: bool = True) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`) ``v{j}_err`` (R, K + 1,
@@ -452,7 +458,9 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     carrying their regions: in their carried coordinates, m wide, and ``v{j}_err`` NaN where a node does not carry);
     ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29)
     violation (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
-    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.
+    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`whole_bounds`: a study of
+    fewer runs than the per-pair test needs) the designed filters keep their bounds' diagonals alone, and a variant's
+    arrays are ``v{j}_trace`` and ``v{j}_judged`` (no whitened errors, no sum of the bounds).
     """
     sc, paper, variants = _build(ref, mode, options, replay, paper_reference)
     m, net = sc.model, sc.network
@@ -482,7 +490,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     batch = Batch((sc,), np.stack([tr.z for tr in trajs]),
                   None if trajs[0].inputs is None else np.stack([tr.inputs for tr in trajs]), (atts,),
                   iterations=hcmci_iterations, run_ids=tuple(run_ids), per_row_networks=False,
-                  covariances=False)  # the filters that are not designed are scored on their estimates alone
+                  covariances=False,  # the filters that are not designed are scored on their estimates alone
+                  variances=not whole)  # the designed ones on their bounds' diagonals where no test reads more
     for j, v in enumerate(variants.values()):
         if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
             continue
@@ -512,11 +521,13 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
             out[f"v{j}_first_violation"][a] = min(hard) if hard else -1
         if v.entry.designed:  # what the bound check needs of the runs' Φ, in the coordinates the nodes carry
             err = out[f"v{j}_err"] if res.carried is None else Carried(res.carried, nx).vector(out[f"v{j}_err"])
-            stats = bound_statistics(err, res.cov, out[f"v{j}_valid"],
+            stats = bound_statistics(err, res.cov if whole else res.variance(), out[f"v{j}_valid"],
                                      None if res.carried is None else judged_positions(res.carried, v.design))
-            phi = _masked(res.cov, out[f"v{j}_valid"], res.cov if res.cov.flags.writeable else None)
-            out.update({f"v{j}_trace": stats["trace"], f"v{j}_judged": stats["judged"], f"v{j}_white": stats["white"],
-                        f"{SUMMED}v{j}_phi": phi})  # the runner keeps their sum over the runs
+            out.update({f"v{j}_trace": stats["trace"], f"v{j}_judged": stats["judged"]})
+            if whole:
+                phi = _masked(res.cov, out[f"v{j}_valid"], res.cov if res.cov.flags.writeable else None)
+                out.update({f"v{j}_white": stats["white"],
+                            f"{SUMMED}v{j}_phi": phi})  # the runner keeps their sum over the runs
         del res
     return out
 
@@ -524,11 +535,22 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
 def chunk_size(sc: Scenario, runs: int) -> int:
     """Runs per chunk: the comparison's cut (:func:`studies.comparison.chunk_size`: a quarter of the runs on a large
     model, so that the cores share them), and no more runs than keep a chunk's bounds Φ within
-    :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run), at least one.
-    A property of the model and the runs, never of the machine: the numbers do not depend on it (the bounds' sum
-    too is added run after run, :data:`studies.runner.SUMMED`)."""
-    one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * sc.model.n_x**2 * 8
+    :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run; their diagonals
+    alone below :func:`whole_bounds`' runs), at least one.  A property of the model and the runs, never of the
+    machine: the numbers do not depend on it (the bounds' sum too is added run after run,
+    :data:`studies.runner.SUMMED`)."""
+    n_x = sc.model.n_x
+    one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * n_x * (
+        n_x if whole_bounds(runs) else 1) * 8
     return max(1, min(balanced_chunk_size(sc, runs), CHUNK_BOUND_BYTES // one))
+
+
+def whole_bounds(runs: int) -> bool:
+    """Whether a study of ``runs`` runs keeps its designed filters' bounds Φ whole: only its per-pair test
+    (:func:`bound_check`, from :data:`MIN_RUNS_FOR_CHECK` runs of a (node, step)) reads more than their traces.  With
+    fewer runs the filters keep the diagonals alone (:class:`filters.engine.Diagonal`): on the 118-bus grid a run's
+    bounds are 0.8 GB whole and 6.7 MB so, and an automatic design's 20 validation runs can be batched."""
+    return int(runs) >= MIN_RUNS_FOR_CHECK
 
 
 def _load_replay(schedule, sc) -> tuple:
@@ -585,12 +607,13 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
     spread = check_positive("divergence_spread", so["divergence_spread"]).item()
     task = functools.partial(_runs, ref=ref, mode=_mode(so), options=options, replay=replay,
                              hcmci_iterations=_iterations(so), divergence_spread=spread,
-                             paper_reference=paper_reference(so))
+                             paper_reference=paper_reference(so), whole=whole_bounds(so.runs))
     params = dict(ref.params)
     config = {"study": "consensus-robot", "scenario": sc.name, "params": params, "mode": _mode(so),
               "attacks": sc.attacks.describe(),
               "design_options": {k: v for k, v in options.as_dict().items() if v is not None},
               "variants": list(variants), "hcmci_iterations": _iterations(so), "divergence_spread": spread,
+              "bounds": "whole" if whole_bounds(so.runs) else "diagonals",
               "schedule": None if replay is None else {
                   "mode": replay[0], "sha256": hashlib.sha256(replay[1].tobytes() + replay[2].tobytes()).hexdigest()}}
     return Plan(task, "consensus-robot", config)
@@ -640,17 +663,20 @@ def _stored(A: dict, j: int) -> dict:
     """Variant ``j``'s arrays of the runs (:func:`_runs`): ``err``, ``valid`` and, for a variant checked against its
     bound, :func:`bound_statistics`' (``trace``, ``judged``, ``white``; ``phi_sum`` over the runs)."""
     st = {"err": A[f"v{j}_err"], "valid": A[f"v{j}_valid"]}
-    if f"v{j}_white" in A:
-        st.update(trace=A[f"v{j}_trace"], judged=A[f"v{j}_judged"], white=A[f"v{j}_white"],
-                  phi_sum=A[f"{SUMMED}v{j}_phi"])
+    if f"v{j}_trace" in A:
+        st.update(trace=A[f"v{j}_trace"], judged=A[f"v{j}_judged"])
+    if f"v{j}_white" in A:  # the bounds kept whole (whole_bounds)
+        st.update(white=A[f"v{j}_white"], phi_sum=A[f"{SUMMED}v{j}_phi"])
     return st
 
 
 def _checked(st: dict, ok: np.ndarray) -> dict:
     """:func:`bound_statistics` of the runs ``ok`` at steps 1..K (``phi_sum`` needs no selection: a diverged run's Φ
     is a bound nowhere, so it adds nothing)."""
-    return {"trace": st["trace"][ok][:, 1:], "judged": st["judged"][ok][:, 1:], "white": st["white"][ok][:, 1:],
-            "phi_sum": st["phi_sum"][1:]}
+    out = {"trace": st["trace"][ok][:, 1:], "judged": st["judged"][ok][:, 1:]}
+    if "white" in st:
+        out.update(white=st["white"][ok][:, 1:], phi_sum=st["phi_sum"][1:])
+    return out
 
 
 def _judged_traces(st: dict, steps: int) -> np.ndarray:
@@ -839,7 +865,7 @@ def _study_figures(out: Path, results: dict, built: dict, arrays: dict) -> None:
 
 
 def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
-    from .figures import filter_colours, legend_beside, plotting
+    from .figures import filter_colours, legend_beside, node_label, node_legend, plotting
 
     plt = plotting()
     colours = filter_colours(filters)
@@ -874,7 +900,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
     # the first filter with a finite run 0, one estimate per node if any has (a centralized one has a single one)
     name = next((k for k, e in est0.items() if e.shape[1] == net.n_nodes), next(iter(est0)))
     est = est0[name]
-    lines = ([(i, f"node {i + 1}") for i in range(est.shape[1])] if est.shape[1] == net.n_nodes
+    lines = ([(i, node_label(i, net.n_nodes)) for i in range(est.shape[1])] if est.shape[1] == net.n_nodes
              else [(0, "estimate")])
     whose = f"the {net.n_nodes} node estimates" if est.shape[1] == net.n_nodes else "the estimate"
     if len(m.position_index) == 2:
@@ -893,7 +919,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         ax.set_ylabel(m.state_names[py] + (" (m)" if robot else ""))
         ax.set_title(f"{'robot' if robot else 'true'} path and {whose}, {name} (run 0)")
         ax.set_aspect("equal")
-        legend_beside(ax)
+        node_legend(ax, len(lines))
     else:
         comps = list(m.position_index) or list(range(min(m.n_x, 4)))
         fig, axs = plt.subplots(len(comps), 1, figsize=(8, 2.2 * len(comps)), sharex=True, squeeze=False)
@@ -904,7 +930,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
             ax.set_ylabel(m.state_names[c])
         axs[0, 0].set_title(f"truth and {whose}, {name} (run 0)")
         axs[-1, 0].set_xlabel("time step k")
-        legend_beside(axs[0, 0])
+        node_legend(axs[0, 0], len(lines))
     save_figure(fig, out / "fig_trajectories.png")
 
     # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
@@ -913,11 +939,11 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
         for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
             for nd in res["nodes"]:
-                ax.plot(t, nd["rmse_position_curve"], lw=1, label=f"node {nd['node'] + 1}")
+                ax.plot(t, nd["rmse_position_curve"], lw=1, label=node_label(nd["node"], len(res["nodes"])))
             ax.set_title(fname, fontsize=9)
             ax.set_xlabel("time step k")
         np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
-        legend_beside(np.atleast_1d(axes)[-1])
+        node_legend(np.atleast_1d(axes)[-1], max(len(res["nodes"]) for res in shown.values()))
         save_figure(fig, out / "fig_rmse_nodes.png")
 
     # Every filter: position RMSE over time (mean over nodes), log scale.

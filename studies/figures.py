@@ -364,6 +364,30 @@ def filter_colours(names) -> dict[str, str]:
     return {str(n): PALETTE[i % len(PALETTE)] for i, n in enumerate(names)}
 
 
+#: Past this many nodes a figure's one line per node gets no legend entry each (a legend of 118 entries squeezed the
+#: axes to nothing): the figure says how many lines it draws instead (:func:`node_legend`).
+NODE_LEGEND_MAX = 20
+
+
+def node_label(i: int, nodes: int, first: int = 1) -> str | None:
+    """The legend label of the line of node ``i`` (0-based; named from ``first``) among ``nodes`` such lines, None past
+    :data:`NODE_LEGEND_MAX`."""
+    return f"node {i + first}" if nodes <= NODE_LEGEND_MAX else None
+
+
+def node_legend(ax, nodes: int, y: float | None = None, **kw) -> None:
+    """The legend of a figure's one line per node beside the axes (:func:`legend_beside`; at height ``y`` in axes
+    units, centred there, when given), past :data:`NODE_LEGEND_MAX` nodes (their lines unlabelled,
+    :func:`node_label`) a note of how many lines there are, and the legend of the other labelled lines."""
+    if nodes > NODE_LEGEND_MAX:
+        ax.text(0.99, 0.02, f"{nodes} nodes, one line each", fontsize=7, ha="right", va="bottom",
+                transform=ax.transAxes)
+    if y is None:
+        legend_beside(ax, **kw)
+    elif ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, ncol=1 if nodes <= 10 else 2, loc="center left", bbox_to_anchor=(1.01, y), **kw)
+
+
 def legend_beside(ax, **kw) -> None:
     """The legend of ``ax`` to its right, off the data (the figure's constrained layout makes room for it)."""
     if not ax.get_legend_handles_labels()[0]:

@@ -466,6 +466,8 @@ def _comparison(sc, so, uses=None) -> tuple[list, list, list]:
 
 
 def _consensus_robot(sc, so) -> tuple[list, list, list]:
+    from .consensus_robot import whole_bounds
+
     sc, opts = _designed(sc, so)
     m, net = sc.model, sc.network
     n_x, n, K = m.n_x, net.n_nodes, sc.steps
@@ -475,17 +477,20 @@ def _consensus_robot(sc, so) -> tuple[list, list, list]:
     # an automatic design's validation)
     checked, variants = (1, 6) if so.extra.get("paper_reference", True) is False else (2, 7)
     reduce = f"{_STEPS} (a model file's STEPS)"
-    chunk = _consensus(m, net, R, K, opts.mode, opts.linearization, "a consensus filter", reduce)
-    # a run keeps, of each checked bound, its errors whitened by it and two traces (studies.consensus_robot.
+    whole = whole_bounds(so.runs)  # below the per-pair test's runs, the bounds' diagonals alone
+    # the study's filters keep no record of their predictions (its batch's covariances: studies.consensus_robot._runs)
+    chunk = _consensus(m, net, R, K, opts.mode, opts.linearization, "a consensus filter", reduce, predictions=False,
+                       variances=not whole)
+    # a run keeps, of each checked bound, two traces and, whole, its errors whitened by it (studies.consensus_robot.
     # bound_statistics); the bounds' sum over the runs is one n_x x n_x per node and step, in a chunk and in the total
-    per_run = (K + 1) * n * (checked * (n_x + 2) + variants * (n_x + 1)) * _D
-    summed = checked * (K + 1) * n * n_x * n_x * _D
+    per_run = (K + 1) * n * (checked * (whole * n_x + 2) + variants * (n_x + 1)) * _D
+    summed = whole * checked * (K + 1) * n * n_x * n_x * _D
     sizes = f"{K + 1} steps x {n} nodes x {n_x} states"
     return ([_prior_hessians(m, opts)],
             [*chunk, Part("the chunk's results", R * per_run + summed, f"{R} runs x {sizes}", reduce)],
-            [_results(so.runs, per_run, f"{checked} whitened errors and {variants} estimates per run", sizes),
+            [_results(so.runs, per_run, f"{checked} bounds' traces and {variants} estimates per run", sizes),
              Part("the bounds' sum over the runs", 2 * summed, f"{checked} x {K + 1} steps x {n} nodes x {n_x} x "
-                  f"{n_x}", reduce)])
+                  f"{n_x}", reduce) if whole else None])
 
 
 def _particle_study(sc, so) -> tuple[list, list, list]:

@@ -233,3 +233,33 @@ def test_the_study_gives_the_same_check_in_chunks_of_one_run_and_in_one_chunk(mo
     assert a["pairs_checked"] > 0 and a["max_excess"] is not None
     assert a == b
     assert whole["filters"][name]["verdicts"] == cut.results["filters"][name]["verdicts"]
+
+
+def test_a_study_of_fewer_runs_than_the_per_pair_test_keeps_the_bounds_diagonals_and_the_same_numbers(monkeypatch):
+    """Below MIN_RUNS_FOR_CHECK runs no test reads more of a run's bounds than their traces (whole_bounds): the
+    designed filters keep Φ's diagonals alone, a chunk stores no whitened errors and no sum of the bounds, and the
+    results are those of the same study made to keep Φ whole, number for number; the statistics of the diagonals are
+    the traces of the whole bounds."""
+    import studies.consensus_robot as cr
+    from designer.design import DesignOptions
+    from studies.pipeline import run_study
+
+    assert not cr.whole_bounds(MIN_RUNS_FOR_CHECK - 1) and cr.whole_bounds(MIN_RUNS_FOR_CHECK)
+    rng = np.random.default_rng(3)
+    phi = _random_bounds(rng, (4, 3, 2), 3)
+    err, valid = rng.normal(size=(4, 3, 2, 3)), rng.random((4, 3, 2)) > 0.2
+    full, diag = (cr.bound_statistics(err, p, valid) for p in (phi, np.diagonal(phi, axis1=-2, axis2=-1)))
+    assert set(diag) == {"trace", "judged"} and {"white", "phi_sum"} <= set(full)
+    for key in diag:
+        assert np.array_equal(diag[key], full[key], equal_nan=True), key
+    kw = dict(runs=3, seed=2, quiet=True, options=DesignOptions(mode="tuned"), **{"paper_reference": False})
+    lean = run_study("consensus-robot", ["indoor-robot"], **kw)
+    monkeypatch.setattr(cr, "whole_bounds", lambda runs: True)
+    whole = run_study("consensus-robot", ["indoor-robot"], **kw)
+    kept = [{k for k in r.arrays["indoor-robot"] if "white" in k or k.endswith("_phi")} for r in (lean, whole)]
+    assert not kept[0] and kept[1], kept
+    name = next(n for n, f in whole.results["filters"].items() if f.get("bound_check"))
+    assert whole.results["filters"][name]["bound_check"]["runs"] > 0
+    timeless = [{n: {k: v for k, v in f.items() if k != "time_per_step_s"} for n, f in r.results["filters"].items()}
+                for r in (lean, whole)]
+    assert timeless[0] == timeless[1]

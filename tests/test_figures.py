@@ -303,3 +303,28 @@ def test_the_colour_check_sees_a_figure_that_ignores_the_mapping():
     F.legend_beside(ax)
     seen, wrong = _filter_colours_in(fig, colours)
     assert seen == ["a", "b (node 1)"] and [w[0] for w in wrong] == ["b (node 1)"]
+
+
+@pytest.mark.parametrize("nodes", [3, F.NODE_LEGEND_MAX, F.NODE_LEGEND_MAX + 1, 118])
+def test_one_line_per_node_names_the_nodes_in_a_legend_only_while_it_fits(nodes, tmp_path):
+    """node_label and node_legend: up to NODE_LEGEND_MAX nodes each line is named beside the axes (1-based), with
+    the figure's other labelled lines; past it the nodes' lines are unnamed, a note says how many there are and the
+    other lines keep their legend, and the figure saves without matplotlib's warning that its axes collapsed (a
+    118-entry legend beside a 4-inch figure squeezed them to nothing)."""
+    import warnings
+
+    fig, ax = F.plotting().subplots(figsize=(8, 4))
+    ax.plot(np.arange(5), np.zeros(5), "k-", label="truth")
+    for i in range(nodes):
+        ax.plot(np.arange(5), np.full(5, i + 1.0), label=F.node_label(i, nodes))
+    F.node_legend(ax, nodes)
+    names = [t.get_text() for t in ax.get_legend().get_texts()]
+    notes = [t.get_text() for t in ax.texts]
+    if nodes <= F.NODE_LEGEND_MAX:
+        assert names == ["truth"] + [f"node {i + 1}" for i in range(nodes)] and not notes
+    else:
+        assert names == ["truth"] and notes == [f"{nodes} nodes, one line each"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        F.save_figure(fig, tmp_path / "nodes.png")
+    assert F.node_label(4, nodes, first=0) == ("node 4" if nodes <= F.NODE_LEGEND_MAX else None)

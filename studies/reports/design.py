@@ -214,23 +214,8 @@ def _order(v: Mapping):
 # Figures.
 
 
-#: The most nodes a figure names in a legend (two columns beside the axes); beyond, a legend taller than the figure
-#: would squeeze the axes to nothing: the figure says how many lines it draws instead.
-NODE_LEGEND_MAX = 20
-
-
-def _node_legend(ax, nodes: int, y: float) -> None:
-    """The legend of a figure's one line per node, beside the axes at height ``y`` (axes units), or past
-    :data:`NODE_LEGEND_MAX` nodes a note of how many lines there are."""
-    if nodes <= NODE_LEGEND_MAX:
-        ax.legend(fontsize=7, ncol=1 if nodes <= 10 else 2, loc="center left", bbox_to_anchor=(1.01, y))
-    else:
-        ax.text(0.99, 0.02, f"{nodes} nodes, one line each", fontsize=7, ha="right", va="bottom",
-                transform=ax.transAxes)
-
-
 def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
-    from ..figures import plotting, save_figure
+    from ..figures import node_label, node_legend, plotting, save_figure
 
     plt = plotting()
     fig, ax = plt.subplots(figsize=(8, 4.6))
@@ -240,13 +225,13 @@ def _trace_figure(path: Path, s: _Schedule, title: str) -> None:
     if positive.any():
         for i in range(tr.shape[0]):
             y = np.where(positive[i], tr[i], np.nan)
-            (line,) = ax.plot(steps, y, lw=1.3, label=f"node {i}")
+            (line,) = ax.plot(steps, y, lw=1.3, label=node_label(i, tr.shape[0], first=0))
             first = s.first_hard(i)
             ok = np.nonzero(positive[i])[0]
             if first is not None and ok.size:
                 ax.plot(steps[ok[-1]], y[ok[-1]], "x", color=line.get_color(), ms=9, mew=2)
         ax.set_yscale("log")
-        _node_legend(ax, tr.shape[0], 0.5)
+        node_legend(ax, tr.shape[0], 0.5)
     else:
         ax.text(0.5, 0.5, "no node has a bound at any step", ha="center", va="center", transform=ax.transAxes)
     ax.set_xlim(0, max(1, tr.shape[1] - 1))
@@ -265,7 +250,7 @@ def _linthresh(values: np.ndarray) -> float:
 
 
 def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
-    from ..figures import plotting, save_figure
+    from ..figures import node_label, node_legend, plotting, save_figure
 
     plt = plotting()
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
@@ -274,7 +259,7 @@ def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
     k = np.arange(s.steps)
     for ax, m, shift, name in ((axes[0], s.m28, 0, "(28)"), (axes[1], s.m29, 1, "(29)")):
         for i in range(m.shape[0]):
-            (line,) = ax.plot(k + shift, m[i], lw=1.2, label=f"node {i}")
+            (line,) = ax.plot(k + shift, m[i], lw=1.2, label=node_label(i, m.shape[0], first=0))
             bad = np.isfinite(m[i]) & (m[i] <= 0)
             if bad.any():
                 ax.plot((k + shift)[bad], m[i][bad], "x", color=line.get_color(), ms=9, mew=2)
@@ -283,7 +268,7 @@ def _margin_figure(path: Path, s: _Schedule, title: str) -> None:
             ax.set_yscale("symlog", linthresh=thresh)
         ax.set_ylabel(f"margin of {name}")
         ax.grid(True, which="both", alpha=0.3)
-    _node_legend(axes[0], s.nodes, 0.0)
+    node_legend(axes[0], s.nodes, 0.0)
     axes[1].set_xlabel("step ((28) at k, (29) at k + 1)")
     axes[0].set_title(title, fontsize=10)
     save_figure(fig, path)
