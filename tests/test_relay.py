@@ -547,3 +547,34 @@ def test_stacked_nodes_with_their_own_depths_update_as_each_alone():
         Wb, Pb = relay_update(P[b], Hw[b], mom, M, mu)
         assert np.allclose(W[b], Wb, rtol=1e-12, atol=1e-14) and np.allclose(Pn[b], Pb, rtol=1e-12, atol=1e-14)
         assert np.allclose(y[b], relay_information(Hw[b], mom, res[b]), rtol=1e-12, atol=1e-14)
+
+
+def test_a_depth_with_more_rows_than_columns_is_left_to_the_bases_as_its_factor_would_leave_it():
+    """rules.relay.design._direct: a hop depth whose rows touch fewer columns than it has rows (two nodes of one
+    depth reading one line's flow from its two ends) cannot be certified invertible; given the rows it says so for
+    every item without trying the block's factor, the decision the factor's failure gives (without the rows), and
+    the update through the bases is the pseudo-inverse formula."""
+    import rules.relay.design as rd
+
+    model, net = bearing_model(), varied_network()
+    mom = next(m for m in (node_moments(relay_routes(net, 3), net, model.sensor_dims, i) for i in range(N))
+               if np.bincount(m.groups.argmax(-1)).max() >= 3)
+    r, depth = mom.rows.size, mom.groups.argmax(-1)
+    g = np.bincount(depth).argmax()
+    rows = np.flatnonzero(depth == g)
+    rng = np.random.default_rng(9)
+    Hw = rng.normal(size=(3, r, 4))
+    Hw[:, rows, 2:] = 0.0  # the depth's rows on two columns
+    Hw[:, rows[2:], :2] = rng.normal(size=(3, rows.size - 2, 2))
+    A = rng.normal(size=(3, 4, 4))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+    S = np.eye(r) + 0.1 * Hw @ P @ np.swapaxes(Hw, -1, -2)
+    Li = np.linalg.inv(np.linalg.cholesky(S))
+    G0 = (mom.groups @ mom.groups.T) * (Hw @ np.swapaxes(Hw, -1, -2))
+    assert not rd._direct(S, Li, G0, mom.groups, rd.RTOL, Hw).any()
+    assert not rd._direct(S, Li, G0, mom.groups, rd.RTOL).any()
+    signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
+    M, mu = signal.moment(4), signal.mean(4)
+    W, Pn = relay_update(P, Hw, mom, M, mu)
+    for b in range(3):
+        _assert_pseudo_inverse_formula(W[b], Pn[b], P[b], Hw[b], mom, M, mu, b)

@@ -718,7 +718,7 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     X = np.broadcast_to(mom.p[..., :, None] * HP, lead + (r, n))  # Xᵀ = diag(p) Hw P⁻
     Li = lower_inverse(Ls)
     Y = Li @ X  # Lₛ⁻¹ Xᵀ (r x n)
-    direct = _direct(S, Li, G0, mom.groups, rtol)
+    direct = _direct(S, Li, G0, mom.groups, rtol, Hw)
     if direct.all():  # every item direct (a field's balls of independent rows): no item's arrays gathered
         Yt = np.swapaxes(Y, -1, -2)
         return (RelayGain(Yt @ Li, np.broadcast_to(np.eye(r), lead + (r, r)), None, direct),
@@ -785,13 +785,23 @@ def _basis_update(S, Hw, X, groups, rtol: float):
     return (K / mu[..., None, :]) @ swap(Bf), -(K @ swap(E))
 
 
-def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float) -> np.ndarray:
+def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float,
+            Hw: np.ndarray | None = None) -> np.ndarray:
     """Which items' ``M = Lₛᵀ G0 Lₛ`` is certified to keep every eigenvalue above ``rtol`` times the largest, without
     forming it (:func:`_row_space_update`): ``M``'s eigenvalues lie in ``[λmin(S) λmin(G0), λmax(S) λmax(G0)]``,
     ``G0`` is block-diagonal by hop depth, and for ``S`` and each block ``λmax ≤ tr`` and ``1 / λmin ≤ tr`` of the
     inverse (``|L⁻¹|²`` of a Cholesky factor ``L``).  A block without a Cholesky factor (rows of one depth that
-    repeat a direction, or see no state) leaves its item to ``M``'s eigenvalues.  The C node certifies alike."""
+    repeat a direction, or see no state) leaves its item to the bases (:func:`_basis_update`); so does, for every
+    item at once and without trying its factor, a depth with more rows than the columns its rows ``Hw`` touch (its
+    block singular by its structure: a line's flow measured at both ends by two nodes of one depth).  The C node
+    certifies alike."""
     lead = G0.shape[:-2]
+    if Hw is not None:
+        for g in range(groups.shape[-1]):
+            rows = np.flatnonzero(groups[:, g])
+            if rows.size > 1 and np.count_nonzero(np.any(Hw[..., rows, :] != 0.0,
+                                                          axis=tuple(range(Hw.ndim - 2)) + (-2,))) < rows.size:
+                return np.zeros(lead, dtype=bool)
     bound = np.trace(S, axis1=-2, axis2=-1) * np.sum(Li * Li, axis=(-2, -1))  # ≥ cond(S)
     top, inv = np.zeros(lead), np.zeros(lead)
     rows = [np.flatnonzero(groups[:, g]) for g in range(groups.shape[-1])]
