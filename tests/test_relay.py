@@ -571,7 +571,7 @@ def test_a_depth_with_more_rows_than_columns_is_left_to_the_bases_as_its_factor_
     S = np.eye(r) + 0.1 * Hw @ P @ np.swapaxes(Hw, -1, -2)
     Li = np.linalg.inv(np.linalg.cholesky(S))
     G0 = (mom.groups @ mom.groups.T) * (Hw @ np.swapaxes(Hw, -1, -2))
-    assert not rd._direct(S, Li, G0, mom.groups, rd.RTOL, Hw).any()
+    assert not rd._direct(S, Li, G0, mom.groups, rd.RTOL, rd._depth_columns(Hw, mom.groups)).any()
     assert not rd._direct(S, Li, G0, mom.groups, rd.RTOL).any()
     signal = FDISignal(amplitude=(0.8, 0.5), components=(0, 1), law="constant")
     M, mu = signal.moment(4), signal.mean(4)

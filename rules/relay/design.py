@@ -674,13 +674,8 @@ def relay_gain(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarr
     # where a depth's sensors see a few of the states, products and an eigh a few times smaller than G n); Ĥ is
     # never formed: its depth g's block is the depth's rows Hw_g on their nonzero columns, so that each product with
     # it takes that depth's rows alone
-    blocks = []  # (rows, columns, Hw_g on them) of each depth with a nonzero column
-    for g in range(G):
-        rows = np.flatnonzero(groups[:, g])
-        Hr = Hw[..., rows, :]
-        cols = np.flatnonzero(np.any(Hr != 0.0, axis=tuple(range(Hr.ndim - 1))))
-        if cols.size:
-            blocks.append((g * n + cols, rows, Hr[..., cols]))
+    blocks = [(g * n + cols, rows, Hw[..., rows[:, None], cols])  # (columns, rows, Hw_g on them) of each depth
+              for g, rows, cols in _depth_columns(Hw, groups) if cols.size]  # with a nonzero column
     W = np.zeros(Hw.shape[:-2] + (n, G * n))
     if not blocks:  # no measurement sees a state: no update
         return RelayGain(None, None, W), np.array(np.broadcast_to(0.5 * (P_pred + np.swapaxes(P_pred, -1, -2)),
@@ -694,6 +689,18 @@ def relay_gain(P_pred: np.ndarray, Hw: np.ndarray, mom: NodeMoments, M: np.ndarr
     W[..., act] = C @ Qp
     P = P_pred - W[..., act] @ np.swapaxes(C, -1, -2)
     return RelayGain(None, None, W), 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def _depth_columns(Hw: np.ndarray, groups: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Each hop depth's rows and the columns they touch in some item of ``Hw`` (..., r, n): ``(g, rows, cols)``, the
+    depths without rows left out (``cols`` may be empty: rows that see no state)."""
+    out = []
+    for g in range(groups.shape[-1]):
+        rows = np.flatnonzero(groups[:, g])
+        if rows.size:
+            out.append((g, rows, np.flatnonzero(np.any(Hw[..., rows, :] != 0.0,
+                                                       axis=tuple(range(Hw.ndim - 2)) + (-2,)))))
+    return out
 
 
 def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
@@ -718,7 +725,8 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
     X = np.broadcast_to(mom.p[..., :, None] * HP, lead + (r, n))  # Xᵀ = diag(p) Hw P⁻
     Li = lower_inverse(Ls)
     Y = Li @ X  # Lₛ⁻¹ Xᵀ (r x n)
-    direct = _direct(S, Li, G0, mom.groups, rtol, Hw)
+    depths = _depth_columns(Hw, mom.groups)
+    direct = _direct(S, Li, G0, mom.groups, rtol, depths)
     if direct.all():  # every item direct (a field's balls of independent rows): no item's arrays gathered
         Yt = np.swapaxes(Y, -1, -2)
         return (RelayGain(Yt @ Li, np.broadcast_to(np.eye(r), lead + (r, r)), None, direct),
@@ -731,13 +739,13 @@ def _row_space_update(P_pred, Hw, HP, S, mom: NodeMoments, rtol: float):
         P[direct] = P_pred[direct] - np.swapaxes(Yd, -1, -2) @ Yd
     rest = ~direct
     if rest.any():
-        Kr[rest], dP = _basis_update(S[rest], Hw[rest], X[rest], mom.groups, rtol)
+        Kr[rest], dP = _basis_update(S[rest], Hw[rest], X[rest], depths, rtol)
         G[rest] = G0[rest]
         P[rest] = P_pred[rest] + dP
     return RelayGain(Kr, G, None, direct), symmetrize(P)
 
 
-def _basis_update(S, Hw, X, groups, rtol: float):
+def _basis_update(S, Hw, X, depths, rtol: float):
     """:func:`_row_space_update` for the items whose ``M`` is not certified (rows of one hop depth that repeat a
     direction: a line's flow measured at both its ends, the lines of a loop): ``(K_r, P⁺ - P⁻)`` over a basis of each
     depth's rows, as the C node reduces ``Q`` (rules/relay/c/cfd_node.c.in), in place of ``M``'s eigendecomposition.
@@ -748,17 +756,15 @@ def _basis_update(S, Hw, X, groups, rtol: float):
     largest left out (``B``'s column zero).  Then ``Q = Tᵀ Q' T`` with ``Q' = Bᵀ S B`` holding ``Q``'s nonzero
     eigenvalues, so ``W = C Q⁺ = E Q'⁺ T`` (``E = P⁻ Hwᵀ diag(p) B``) and ``P⁺ = P⁻ - E Q'⁺ Eᵀ``; in the rows,
     ``K_r = E Q'⁺ diag(μ)⁻¹ Bᵀ`` (``Bᵀ B = diag(μ)``, ``B Bᵀ = G0``, so ``K_r G0 res = E Q'⁺ Bᵀ res = W y``).  A left-out
-    direction keeps a diagonal entry in ``Q'`` (its row's mean, so the items keep one shape) that no ``E`` reads."""
+    direction keeps a diagonal entry in ``Q'`` (the mean of the kept ones', so the items keep one shape) that no
+    ``E`` reads.  ``depths``: :func:`_depth_columns` of ``Hw``."""
     swap = lambda a: np.swapaxes(a, -1, -2)  # noqa: E731
     lead, r = Hw.shape[:-2], Hw.shape[-2]
     blocks = []
-    for g in range(groups.shape[-1]):
-        rows = np.flatnonzero(groups[:, g])
-        Hr = Hw[..., rows, :]
-        cols = np.flatnonzero(np.any(Hr != 0.0, axis=tuple(range(Hr.ndim - 1))))
-        if not (rows.size and cols.size):
+    for _, rows, cols in depths:
+        if not cols.size:
             continue
-        Ha = Hr[..., cols]
+        Ha = Hw[..., rows[:, None], cols]
         if cols.size <= rows.size:
             mu, V = np.linalg.eigh(swap(Ha) @ Ha)
             B = Ha @ V
@@ -786,22 +792,18 @@ def _basis_update(S, Hw, X, groups, rtol: float):
 
 
 def _direct(S: np.ndarray, Li: np.ndarray, G0: np.ndarray, groups: np.ndarray, rtol: float,
-            Hw: np.ndarray | None = None) -> np.ndarray:
+            depths: list | None = None) -> np.ndarray:
     """Which items' ``M = Lₛᵀ G0 Lₛ`` is certified to keep every eigenvalue above ``rtol`` times the largest, without
     forming it (:func:`_row_space_update`): ``M``'s eigenvalues lie in ``[λmin(S) λmin(G0), λmax(S) λmax(G0)]``,
     ``G0`` is block-diagonal by hop depth, and for ``S`` and each block ``λmax ≤ tr`` and ``1 / λmin ≤ tr`` of the
     inverse (``|L⁻¹|²`` of a Cholesky factor ``L``).  A block without a Cholesky factor (rows of one depth that
     repeat a direction, or see no state) leaves its item to the bases (:func:`_basis_update`); so does, for every
-    item at once and without trying its factor, a depth with more rows than the columns its rows ``Hw`` touch (its
-    block singular by its structure: a line's flow measured at both ends by two nodes of one depth).  The C node
-    certifies alike."""
+    item at once and without trying its factor, a depth with more rows than the columns its rows touch (``depths``,
+    :func:`_depth_columns`: its block singular by its structure, as where a line's flow is measured at both ends by
+    two nodes of one depth).  The C node certifies alike."""
     lead = G0.shape[:-2]
-    if Hw is not None:
-        for g in range(groups.shape[-1]):
-            rows = np.flatnonzero(groups[:, g])
-            if rows.size > 1 and np.count_nonzero(np.any(Hw[..., rows, :] != 0.0,
-                                                          axis=tuple(range(Hw.ndim - 2)) + (-2,))) < rows.size:
-                return np.zeros(lead, dtype=bool)
+    if depths is not None and any(cols.size < rows.size for _, rows, cols in depths):
+        return np.zeros(lead, dtype=bool)
     bound = np.trace(S, axis1=-2, axis2=-1) * np.sum(Li * Li, axis=(-2, -1))  # ≥ cond(S)
     top, inv = np.zeros(lead), np.zeros(lead)
     rows = [np.flatnonzero(groups[:, g]) for g in range(groups.shape[-1])]
