@@ -549,7 +549,7 @@ def whole_bounds(runs: int) -> bool:
     """Whether a study of ``runs`` runs keeps its designed filters' bounds Φ whole: only its per-pair test
     (:func:`bound_check`, from :data:`MIN_RUNS_FOR_CHECK` runs of a (node, step)) reads more than their traces.  With
     fewer runs the filters keep the diagonals alone (:class:`filters.engine.Diagonal`): on the 118-bus grid a run's
-    bounds are 0.8 GB whole and 6.7 MB so, and an automatic design's 20 validation runs can be batched."""
+    bounds are 0.8 GB whole and 6.7 MB so, and an automatic design's validation runs can be batched."""
     return int(runs) >= MIN_RUNS_FOR_CHECK
 
 
@@ -632,8 +632,8 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
         "family": e.family, "runtime": e.runtime, "carried": True,
         "rmse_position": None, "rmse_position_ci95": None, "rmse_position_median_run": None,
         "rmse_position_curve": None,
-        "nodes": [{"node": i, "rmse_position": None, "rmse_region": float(np.sqrt(per_node[:, :, i].mean()))}
-                  for i in range(err.shape[2])],
+        "nodes": [{"node": i, "rmse_position": None, "rmse_region": float(np.sqrt(per_node[:, :, i].mean())),
+                   "rmse_region_curve": curve} for i, curve in enumerate(_node_region_curves(per_node))],
         "node_spread": None,
         "time_per_step_s": time_per_step,
         "communications": e.messages_per_step(net, L, so.design),
@@ -652,11 +652,19 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
 def _region_metrics(err: np.ndarray, regions, boot: np.random.Generator) -> dict:
     """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
     region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
-    ``study comparison`` scores it, its 95 % bootstrap interval over the runs (``boot``) and
-    ``rmse_region_median_run``."""
-    per_run = region_error2(err, regions).mean(axis=(1, 2))
+    ``study comparison`` scores it, its 95 % bootstrap interval over the runs (``boot``),
+    ``rmse_region_median_run`` and ``rmse_region_curve`` (per step, over the runs and nodes)."""
+    per_node = region_error2(err, regions)
+    per_run = per_node.mean(axis=(1, 2))
     return {"rmse_region": float(np.sqrt(per_run.mean())), "rmse_region_ci95": bootstrap_rmse_ci(per_run, boot),
-            "rmse_region_median_run": float(np.median(np.sqrt(per_run)))}
+            "rmse_region_median_run": float(np.median(np.sqrt(per_run))),
+            "rmse_region_curve": [float(x) for x in np.sqrt(per_node.mean(axis=(0, 2)))]}
+
+
+def _node_region_curves(per_node: np.ndarray) -> list[list[float]]:
+    """Each node's region RMSE per step, over the runs, of its squared region errors ``per_node`` (runs, steps,
+    nodes): what the per-node figure draws with regions."""
+    return [[float(x) for x in c] for c in np.sqrt(per_node.mean(axis=0)).T]
 
 
 def _stored(A: dict, j: int) -> dict:
@@ -766,6 +774,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             continue
         e2 = err[..., pos] ** 2
         node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
+        regional = None if sc.regions is None else _node_region_curves(region_error2(err, sc.regions))
         spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
         filters[name] = {
@@ -779,7 +788,9 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             "rmse_ci95": bootstrap_rmse_ci((err**2).sum(-1).mean(axis=(1, 2)), boot),
             "rmse_position_curve": [float(x) for x in np.sqrt(e2.sum(-1).mean(axis=(0, 2)))],
             "nodes": [{"node": i, "rmse_position": float(np.sqrt(e2[:, :, i].sum(-1).mean())),
-                       "rmse_position_curve": [float(x) for x in node_curve[:, i]]} for i in range(err.shape[2])],
+                       "rmse_position_curve": [float(x) for x in node_curve[:, i]],
+                       **({"rmse_region_curve": regional[i]} if regional is not None else {})}
+                      for i in range(err.shape[2])],
             "node_spread": float(spread),
             "time_per_step_s": time_per_step,
             "communications": e.messages_per_step(net, L, so.design),
@@ -933,28 +944,31 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         node_legend(axs[0, 0], len(lines))
     save_figure(fig, out / "fig_trajectories.png")
 
-    # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs).
-    shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v["rmse_position"]}
+    # Fig. 5: per-node RMSE of the consensus filters (and the local EKFs); with regions, each node's on its region,
+    # as the study scores them (a design whose nodes carry their regions has no whole-state RMSE)
+    metric = "rmse_region" if sc.regions is not None else "rmse_position"
+    measure = ("RMSE on each node's region" if sc.regions is not None else
+               "position RMSE" if m.position_index else "state RMSE")
+    shown = {k: v for k, v in filters.items() if v["family"] in ("consensus", "local") and v.get(metric)}
     if shown:  # not when every consensus and local filter diverged in every run
         fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 4), sharey=True)
         for ax, (fname, res) in zip(np.atleast_1d(axes), shown.items()):
             for nd in res["nodes"]:
-                ax.plot(t, nd["rmse_position_curve"], lw=1, label=node_label(nd["node"], len(res["nodes"])))
+                ax.plot(t, nd[f"{metric}_curve"], lw=1, label=node_label(nd["node"], len(res["nodes"])))
             ax.set_title(fname, fontsize=9)
             ax.set_xlabel("time step k")
-        np.atleast_1d(axes)[0].set_ylabel("position RMSE" if m.position_index else "state RMSE")
+        np.atleast_1d(axes)[0].set_ylabel(measure)
         node_legend(np.atleast_1d(axes)[-1], max(len(res["nodes"]) for res in shown.values()))
         save_figure(fig, out / "fig_rmse_nodes.png")
 
-    # Every filter: position RMSE over time (mean over nodes), log scale.
+    # Every filter: position RMSE over time (mean over nodes; with regions each node's on its region), log scale.
     fig, ax = plt.subplots(figsize=(9.5, 4))
     for fname, res in filters.items():
-        if res["rmse_position"] is None:
+        if res.get(metric) is None:
             continue
-        ax.semilogy(t, res["rmse_position_curve"], lw=1.5, color=colours[fname],
-                    label=f"{fname} ({res['rmse_position']:.3g})")
+        ax.semilogy(t, res[f"{metric}_curve"], lw=1.5, color=colours[fname], label=f"{fname} ({res[metric]:.3g})")
     ax.set_xlabel("time step k")
-    ax.set_ylabel("position RMSE" if m.position_index else "state RMSE")
+    ax.set_ylabel(measure)
     ax.set_title("RMSE over the same runs (legend: time average)")
     legend_beside(ax)
     save_figure(fig, out / "fig_compare.png")

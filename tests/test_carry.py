@@ -291,6 +291,15 @@ def test_a_study_of_nodes_carrying_regions_scores_them_as_the_whole_state_design
     assert part["rmse_position"] is None and "rmse_state" not in part and whole["rmse_position"] is not None
     assert part["verdicts"]["certified"] == 6 and part["bound_check"]["verdict"] == "holds"
     assert part["bound_check"]["informative"] == 6
+    # the curves the figures draw with regions: the carried design's equal the whole design's, each step's mean square
+    # over the nodes is the filter's, and the steps' mean square is rmse_region
+    curves = {k: np.array([n["rmse_region_curve"] for n in f["nodes"]]) for k, f in out.items()}
+    np.testing.assert_allclose(curves["region"], curves["whole"], rtol=1e-9)
+    for f in (whole, part):
+        node = np.array([n["rmse_region_curve"] for n in f["nodes"]])
+        np.testing.assert_allclose(np.mean(node ** 2, axis=0), np.square(f["rmse_region_curve"]), rtol=1e-9)
+        assert np.mean(np.square(f["rmse_region_curve"])) == pytest.approx(f["rmse_region"] ** 2, rel=1e-9)
+    assert {"fig_compare.png", "fig_rmse_nodes.png"} <= {p.name for p in (tmp_path / "region").iterdir()}
 
 
 @pytest.mark.slow
