@@ -65,8 +65,8 @@ from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, des
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
-from .results import (DIVERGENCE_SPREAD, bootstrap_rmse_ci, compared_with_local, divergence_limit,
-                      first_divergence)
+from .results import (DIVERGENCE_SPREAD, MIN_RUNS_FOR_CHECK, bootstrap_rmse_ci, compared_with_local, divergence_limit,
+                      first_divergence, whole_bounds)
 from .runner import SUMMED, run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
@@ -74,11 +74,10 @@ from .study_registry import StudyText
 __all__ = ["STUDY", "bound_check", "bound_statistics", "per_run_check", "excess_quantile", "Z_EXCESS",
            "MIN_RUNS_FOR_CHECK",
            "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE",
-           "CHUNK_BOUND_BYTES", "chunk_size", "whole_bounds"]
+           "CHUNK_BOUND_BYTES", "chunk_size"]
 
 Z_EXCESS = 3.0  # an excess over Φ counts at the level of this many normal standard errors (one-sided 0.135%),
 #                 Student's t's quantile with the runs' degrees of freedom at that level (excess_quantile)
-MIN_RUNS_FOR_CHECK = 30  # a (node, step) is checked when Φ is a bound in at least this many runs
 MAX_FRACTION_EXCEEDING = 0.05  # more checked (node, step) pairs in excess than this: the bound is violated
 MARKOV_LEVELS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)  # the run test's levels c
 BOUND_TEST_ALPHA = 0.01  # the run test's level: a bound that holds is called violated at most this often
@@ -223,7 +222,7 @@ def bound_statistics(err: np.ndarray, phi: np.ndarray, valid: np.ndarray, positi
     (runs, steps, nodes, m), valid where ``valid`` (runs, steps, nodes): a run's numbers of the size of its errors,
     not of its bounds, and one sum of the bounds over the runs (a study keeps these, chunk by chunk).  Given the
     bounds' diagonals alone (runs, steps, nodes, m: a study of fewer runs than the per-pair test needs,
-    :func:`whole_bounds`), ``trace`` and ``judged`` alone.
+    :func:`studies.results.whole_bounds`), ``trace`` and ``judged`` alone.
 
     ``trace`` (runs, steps, nodes): tr Φ where valid, else 0; ``judged``: the trace :func:`_worth` and the verdicts
     judge (:func:`studies.consensus_design.bound_traces` over each node's region with ``positions``), (runs, steps,
@@ -458,7 +457,7 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     carrying their regions: in their carried coordinates, m wide, and ``v{j}_err`` NaN where a node does not carry);
     ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29)
     violation (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
-    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`whole_bounds`: a study of
+    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`studies.results.whole_bounds`: a study of
     fewer runs than the per-pair test needs) the designed filters keep their bounds' diagonals alone, and a variant's
     arrays are ``v{j}_trace`` and ``v{j}_judged`` (no whitened errors, no sum of the bounds).
     """
@@ -536,21 +535,13 @@ def chunk_size(sc: Scenario, runs: int) -> int:
     """Runs per chunk: the comparison's cut (:func:`studies.comparison.chunk_size`: a quarter of the runs on a large
     model, so that the cores share them), and no more runs than keep a chunk's bounds Φ within
     :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run; their diagonals
-    alone below :func:`whole_bounds`' runs), at least one.  A property of the model and the runs, never of the
+    alone below :func:`studies.results.whole_bounds`' runs), at least one.  A property of the model and the runs, never of the
     machine: the numbers do not depend on it (the bounds' sum too is added run after run,
     :data:`studies.runner.SUMMED`)."""
     n_x = sc.model.n_x
     one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * n_x * (
         n_x if whole_bounds(runs) else 1) * 8
     return max(1, min(balanced_chunk_size(sc, runs), CHUNK_BOUND_BYTES // one))
-
-
-def whole_bounds(runs: int) -> bool:
-    """Whether a study of ``runs`` runs keeps its designed filters' bounds Φ whole: only its per-pair test
-    (:func:`bound_check`, from :data:`MIN_RUNS_FOR_CHECK` runs of a (node, step)) reads more than their traces.  With
-    fewer runs the filters keep the diagonals alone (:class:`filters.engine.Diagonal`): on the 118-bus grid a run's
-    bounds are 0.8 GB whole and 6.7 MB so, and an automatic design's validation runs can be batched."""
-    return int(runs) >= MIN_RUNS_FOR_CHECK
 
 
 def _load_replay(schedule, sc) -> tuple:

@@ -466,7 +466,7 @@ def _comparison(sc, so, uses=None) -> tuple[list, list, list]:
 
 
 def _consensus_robot(sc, so) -> tuple[list, list, list]:
-    from .consensus_robot import whole_bounds
+    from .results import whole_bounds
 
     sc, opts = _designed(sc, so)
     m, net = sc.model, sc.network

@@ -18,10 +18,22 @@ import numpy as np
 __all__ = ["SCHEMA", "versions", "error_metrics", "curve_mean_ci", "bootstrap_rmse_ci", "markdown_table",
            "BOOTSTRAP", "rmse_with_ci", "study_header", "DIVERGENCE_SPREAD", "divergence_limit", "first_divergence",
            "cv_velocity_at_position_rmse", "better_than", "per_run_mse",
-           "compared_with_local", "local_ratio_text"]
+           "compared_with_local", "local_ratio_text", "MIN_RUNS_FOR_CHECK", "whole_bounds"]
 
 SCHEMA = "cfdesign.study/1"
 BOOTSTRAP = 1000  # bootstrap resamples of the runs for the intervals
+#: a (node, step) is checked against its bound by the per-pair test (studies.consensus_robot.bound_check) when Φ is
+#: a bound there in at least this many runs
+MIN_RUNS_FOR_CHECK = 30
+
+
+def whole_bounds(runs: int) -> bool:
+    """Whether a study of ``runs`` runs keeps its designed filters' bounds Φ whole: only the per-pair test
+    (:func:`studies.consensus_robot.bound_check`, from :data:`MIN_RUNS_FOR_CHECK` runs of a (node, step)) reads more
+    than their traces.  With fewer runs the filters keep the diagonals alone (:class:`filters.engine.Diagonal`): on
+    the 118-bus grid a run's bounds are 0.8 GB whole and 6.7 MB so, and an automatic design's validation runs can be
+    batched.  Here, not beside the test, so that the studies' memory estimate (:mod:`studies.memory`) reads it too."""
+    return int(runs) >= MIN_RUNS_FOR_CHECK
 
 
 def versions() -> dict:
