@@ -378,3 +378,23 @@ def test_the_default_validation_is_cut_on_a_large_network_by_its_rows_and_says_h
         sc = SimpleNamespace(network=ring(nodes), model=SimpleNamespace(n_x=n_x))
         assert check_auto(sc)[2] == runs and check_auto(sc, validate=VALIDATE_RUNS)[2] == VALIDATE_RUNS
     assert default_validation(ring(118), 117)[0] == 5
+
+
+def test_the_validation_report_with_regions_shows_the_region_rmse_its_ratios_are_of():
+    """With regions the validation's ratios are of each node's region RMSE (studies.auto.validation): the report's
+    table shows that column beside the whole-state one, says the ratios are on the regions, and says why a pick whose
+    nodes carry their regions has no whole-state RMSE; without regions neither appears."""
+    from studies.reports.auto import validation_lines
+
+    rows = {"pick": {"filter": "flood", "rmse": None, "rmse_region": 0.0008, "rmse_region_ci95": [0.0007, 0.0009]},
+            "KCF": {"filter": "KCF", "rmse": 0.21, "mse": 0.044, "rmse_region": 0.0023}}
+    said = "\n".join(validation_lines({"runs": 5, "seeds": "s", "filters": rows,
+                                       "pick_rmse_ratio": {"KCF": 0.0008 / 0.0023}}))
+    assert "| RMSE on each node's region | RMSE, whole state |" in said
+    assert "| KCF | 0.0023 | 0.21 | 0.044 |" in said and "| flood (pick) | 0.0008 | — | — |" in said
+    assert "RMSE on each node's region on these runs is 0.348 x KCF's" in said
+    assert "no whole-state RMSE" in said
+    plain = {"pick": {"filter": "relay", "rmse": 0.9}, "KCF": {"filter": "KCF", "rmse": 1.8}}
+    said = "\n".join(validation_lines({"runs": 5, "seeds": "s", "filters": plain, "pick_rmse_ratio": {"KCF": 0.5}}))
+    assert "region" not in said and "| filter | RMSE | mean squared error |" in said
+    assert "The design's RMSE on these runs is 0.5 x KCF's" in said

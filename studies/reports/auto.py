@@ -124,20 +124,27 @@ def validation_lines(val: Mapping[str, Any]) -> list[str]:
     out = ["## Validation", "",
            f"The design on {fmt_num(val.get('runs'))} fresh Monte Carlo runs ({md_escape(val.get('seeds'))}), beside "
            "KCF, HCMCI, the local and the centralized EKF on the same runs and channel attacks.", ""]
+    # with regions each filter is ranked, and the ratios taken, on each node's region (studies.auto.validation)
+    regional = any(f.get("rmse_region") is not None for f in rows.values())
     table = []
     for name, f in rows.items():
         bc = f.get("bound_check") if isinstance(f.get("bound_check"), Mapping) else {}
-        table.append([md_cell(f.get("filter", name)) + (" (pick)" if name == "pick" else ""),
-                      fmt_num(f.get("rmse")),
-                      fmt_num(_mse(f)), fmt_num(f.get("diverged_runs")),
-                      md_cell(bc.get("verdict", "—")) if bc else "—",
-                      md_cell(bc.get("verdict_reason", "")) if bc else ""])
-    out += md_table(["filter", "RMSE", "mean squared error", "diverged runs", "bound check", "why"], table,
-                    ["l", "r", "r", "r", "l", "l"])
+        table.append([md_cell(f.get("filter", name)) + (" (pick)" if name == "pick" else "")]
+                     + ([fmt_num(f.get("rmse_region"))] if regional else [])
+                     + [fmt_num(f.get("rmse")), fmt_num(_mse(f)), fmt_num(f.get("diverged_runs")),
+                        md_cell(bc.get("verdict", "—")) if bc else "—",
+                        md_cell(bc.get("verdict_reason", "")) if bc else ""])
+    out += md_table(["filter"] + (["RMSE on each node's region", "RMSE, whole state", "mean squared error, whole state"]
+                                  if regional else ["RMSE", "mean squared error"])
+                    + ["diverged runs", "bound check", "why"], table, ["l"] + ["r"] * (3 + regional) + ["l", "l"])
+    if regional and rows.get("pick", {}).get("rmse") is None and rows.get("pick", {}).get("rmse_region") is not None:
+        out += ["The pick's nodes carry their regions: a node has no estimate of the other states, so the pick has "
+                "no whole-state RMSE (—).", ""]
     ratios = val.get("pick_rmse_ratio") if isinstance(val.get("pick_rmse_ratio"), Mapping) else {}
     said = [f"{fmt_num(r, 3)} x {md_escape(n)}'s" for n, r in ratios.items() if _num(r) is not None]
     if said:
-        out += [f"The design's RMSE on these runs is {', '.join(said)}.", ""]
+        on = " on each node's region" if regional else ""
+        out += [f"The design's RMSE{on} on these runs is {', '.join(said)}.", ""]
     if rows.get("pick", {}).get("better_than_local") is False:  # studies.results.better_than: the one definition
         out += ["**On these runs the design is no better than the nodes alone**: its RMSE over the local EKFs' on "
                 f"the same runs is {local_ratio_text(rows['pick'])}, the 95 % paired interval not entirely below 1.",
