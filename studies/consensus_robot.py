@@ -46,6 +46,7 @@ from typing import NamedTuple
 import numpy as np
 
 import rules
+import studies.results as study_results  # MIN_RUNS_FOR_CHECK read there at each call: its one home
 from designer.design import DESIGN_ASSUMPTIONS, ConsensusDesign, DesignOptions, describe_design
 from designer.regions import Carried, region_error2, region_mask
 from designer.rule import DEPLOYABLE
@@ -65,14 +66,13 @@ from .filter_registry import (Batch, FilterEntry, centralized_consensus_ekf, des
                               local_ekfs, replayed_schedule)
 from .pipeline import Plan, Study, StudyOptions
 from .figures import save_figure
-from .results import (DIVERGENCE_SPREAD, MIN_RUNS_FOR_CHECK, bootstrap_rmse_ci, compared_with_local, divergence_limit,
-                      first_divergence, whole_bounds)
+from .results import (DIVERGENCE_SPREAD, bootstrap_rmse_ci, compared_with_local, divergence_limit, first_divergence,
+                      whole_bounds)
 from .runner import SUMMED, run_seed
 from .scenarios import Scenario, ScenarioRef, reference
 from .study_registry import StudyText
 
 __all__ = ["STUDY", "bound_check", "bound_statistics", "per_run_check", "excess_quantile", "Z_EXCESS",
-           "MIN_RUNS_FOR_CHECK",
            "MAX_FRACTION_EXCEEDING", "MARKOV_LEVELS", "BOUND_TEST_ALPHA", "WINSOR_QUANTILE", "CHUNK_SIZE",
            "CHUNK_BOUND_BYTES", "chunk_size"]
 
@@ -109,7 +109,7 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         ``fill``) is then judged on each node's region, as the design judges it.
 
     **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
-    least ``MIN_RUNS_FOR_CHECK`` valid runs, each run's error whitened by its own bound, ``w_r = L_r⁻¹ e_r`` with
+    least :data:`studies.results.MIN_RUNS_FOR_CHECK` valid runs, each run's error whitened by its own bound, ``w_r = L_r⁻¹ e_r`` with
     ``Φ_r = L_r L_rᵀ`` (where Φ_r bounds the run's error covariance, ``E[w_r w_rᵀ] ≤ I``: each direction on its
     own scale, a small variance as much as a large one), the direction ``u`` of largest eigenvalue of the runs' mean
     ``w wᵀ``, the per-run excesses ``d_r = (uᵀ w_r)² - 1``, and an excess when ``mean(d) > t * std(d) / sqrt(n)``
@@ -153,7 +153,7 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         for i in range(nodes):
             sel = valid[:, k, i]
             n = int(sel.sum())
-            if n < MIN_RUNS_FOR_CHECK:
+            if n < study_results.MIN_RUNS_FOR_CHECK:
                 continue
             e = err[sel, k, i]
             P = e.T @ e / n
@@ -194,7 +194,7 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         why = (f"no check finds an excess: the error energy of the {rt['runs']} runs is {rt['ratio_mean']:.3g} times "
                f"their bound's on average (largest run {rt['ratio_max']:.3g}){unseen}"
                + (f"; {exceed} of {checked} checked (node, step) pairs exceed it beyond the Monte Carlo tolerance"
-                  if checked else f"; no (node, step) pair has the {MIN_RUNS_FOR_CHECK} runs of the per-pair test"))
+                  if checked else f"; no (node, step) pair has the {study_results.MIN_RUNS_FOR_CHECK} runs of the per-pair test"))
         share = float(valid.mean())
         if share < 1:
             why += (f"; Φ is a bound at only {share:.0%} of the (run, node, step) triples (none after a node's first "
@@ -209,7 +209,7 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         "trace_ratio_mean": float(np.mean(ratios)) if ratios else None,
         "trace_ratio_max": float(np.max(ratios)) if ratios else None,
         "z_threshold": Z_EXCESS,
-        "min_runs_per_pair": MIN_RUNS_FOR_CHECK,
+        "min_runs_per_pair": study_results.MIN_RUNS_FOR_CHECK,
         "run_test": rt,
         "verdict": verdict,
         "verdict_reason": why,
@@ -977,7 +977,7 @@ def _figures(out: Path, sc, truth0, est0, attacks0, filters, store) -> None:
         trP, trPhi = [], []
         for k in range(steps):
             sel = valid[:, k, i]
-            if sel.sum() < MIN_RUNS_FOR_CHECK:
+            if sel.sum() < study_results.MIN_RUNS_FOR_CHECK:
                 trP.append(np.nan)
                 trPhi.append(np.nan)
                 continue

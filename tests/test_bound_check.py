@@ -7,7 +7,8 @@ import pytest
 from scipy.stats import binom
 
 from designer.verdict import settled_steps, verdict
-from studies.consensus_robot import BOUND_TEST_ALPHA, MIN_RUNS_FOR_CHECK, bound_check, per_run_check
+from studies.consensus_robot import BOUND_TEST_ALPHA, bound_check, per_run_check
+from studies.results import MIN_RUNS_FOR_CHECK
 
 P = np.array([[2.0, 0.3], [0.3, 1.0]])
 L = np.linalg.cholesky(P)

@@ -13,7 +13,8 @@ import pytest
 import rules
 from designer.schedule import SCHEMA, load_schedule
 from studies.cli import main
-from studies.consensus_robot import MIN_RUNS_FOR_CHECK, bound_check
+from studies.consensus_robot import bound_check
+from studies.results import MIN_RUNS_FOR_CHECK
 
 ROOT = Path(__file__).resolve().parents[1]
 LINEAR = str(ROOT / "examples" / "linear_network_model.py")

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-import studies.consensus_robot as cr
+import studies.results as study_results
 from designer import InputError
 from filters.attacks import simulate_attacks
 from filters.consensus import run_consensus
@@ -63,7 +63,7 @@ CR = dict(runs=10, seed=2, quiet=True, chunk_size=4)  # chunks 0-3, 4-7, 8-9; ru
 @pytest.fixture
 def few_runs_checked(monkeypatch):
     """Check the bound at every (node, step) valid in 5 runs, so that a 10-run study exercises Φ."""
-    monkeypatch.setattr(cr, "MIN_RUNS_FOR_CHECK", 5)
+    monkeypatch.setattr(study_results, "MIN_RUNS_FOR_CHECK", 5)  # the per-pair test's and whole_bounds' one home
 
 
 def test_consensus_robot_same_numbers_with_every_backend(tmp_path, cluster, few_runs_checked):
