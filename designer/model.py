@@ -445,7 +445,7 @@ class Model:
         dynamics read no other) and covariances ``P`` (..., m, m).  Where CasADi's Jacobian of the dynamics is
         structurally diagonal (each state's next value reads itself alone: a random walk, a decay, a grid's angles),
         by elements, ``F_ii P_ij F_jj``: the products' numbers (each of their sums has one term that is not an exact
-        zero), in n² in place of 2 n³ (the 118-bus grid's whole-state filters: 27 ms a step to below 1)."""
+        zero), in n² in place of 2 n³ (the 118-bus grid's 118 nodes of 117 states, two runs: 26 → 2.7 ms a call)."""
         if self._F_diagonal:
             d = np.diagonal(F, axis1=-2, axis2=-1)
             return d[..., :, None] * P * d[..., None, :]
