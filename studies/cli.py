@@ -261,8 +261,8 @@ def _budget_options(f):
 @_budget_options
 @click.option("--validate", type=int, default=None, metavar="R",
               help="fresh Monte Carlo runs of the design (mode auto: of its pick) beside KCF, HCMCI, the local and "
-                   "the centralized EKF, written to validation.json, >= 0 [default: 20 in mode auto (fewer, at least 5, on a "
-                   "network of more than 4096 node-state rows N n), else 0]")
+                   "the centralized EKF, written to validation.json, >= 0 [default: 20 in mode auto (fewer, at "
+                   "least 5, on a network of more than 4096 node-state rows N n), else 0]")
 @click.option("--auto-seconds", "auto_seconds", type=float, default=None, metavar="S",
               help="mode auto: seconds the candidate designs may take; one not done by then is listed as not "
                    "computed, > 0 [default: 45]")

@@ -109,7 +109,8 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         ``fill``) is then judged on each node's region, as the design judges it.
 
     **Per (node, step), on the second moments** (``fraction_exceeding``): at each pair with at
-    least :data:`studies.results.MIN_RUNS_FOR_CHECK` valid runs, each run's error whitened by its own bound, ``w_r = L_r⁻¹ e_r`` with
+    least :data:`studies.results.MIN_RUNS_FOR_CHECK` valid runs, each run's error whitened by its own bound,
+    ``w_r = L_r⁻¹ e_r`` with
     ``Φ_r = L_r L_rᵀ`` (where Φ_r bounds the run's error covariance, ``E[w_r w_rᵀ] ≤ I``: each direction on its
     own scale, a small variance as much as a large one), the direction ``u`` of largest eigenvalue of the runs' mean
     ``w wᵀ``, the per-run excesses ``d_r = (uᵀ w_r)² - 1``, and an excess when ``mean(d) > t * std(d) / sqrt(n)``
@@ -194,7 +195,8 @@ def bound_check(err: np.ndarray, phi, valid: np.ndarray, open_loop: np.ndarray |
         why = (f"no check finds an excess: the error energy of the {rt['runs']} runs is {rt['ratio_mean']:.3g} times "
                f"their bound's on average (largest run {rt['ratio_max']:.3g}){unseen}"
                + (f"; {exceed} of {checked} checked (node, step) pairs exceed it beyond the Monte Carlo tolerance"
-                  if checked else f"; no (node, step) pair has the {study_results.MIN_RUNS_FOR_CHECK} runs of the per-pair test"))
+                  if checked else f"; no (node, step) pair has the {study_results.MIN_RUNS_FOR_CHECK} runs of the "
+                                  "per-pair test"))
         share = float(valid.mean())
         if share < 1:
             why += (f"; Φ is a bound at only {share:.0%} of the (run, node, step) triples (none after a node's first "
@@ -457,8 +459,9 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     carrying their regions: in their carried coordinates, m wide, and ``v{j}_err`` NaN where a node does not carry);
     ``v{j}_seconds`` (R,) the variant's wall time, ``v{j}_first_violation`` (R,) the first step of a (28)/(29)
     violation (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
-    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`studies.results.whole_bounds`: a study of
-    fewer runs than the per-pair test needs) the designed filters keep their bounds' diagonals alone, and a variant's
+    ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`studies.results.whole_bounds`:
+    a study of fewer runs than the per-pair test needs) the designed filters keep their bounds' diagonals alone, and
+    a variant's
     arrays are ``v{j}_trace`` and ``v{j}_judged`` (no whitened errors, no sum of the bounds).
     """
     sc, paper, variants = _build(ref, mode, options, replay, paper_reference)
@@ -535,8 +538,8 @@ def chunk_size(sc: Scenario, runs: int) -> int:
     """Runs per chunk: the comparison's cut (:func:`studies.comparison.chunk_size`: a quarter of the runs on a large
     model, so that the cores share them), and no more runs than keep a chunk's bounds Φ within
     :data:`CHUNK_BOUND_BYTES` (a worker holds them along its runs: on a 64-cell field 128 MB a run; their diagonals
-    alone below :func:`studies.results.whole_bounds`' runs), at least one.  A property of the model and the runs, never of the
-    machine: the numbers do not depend on it (the bounds' sum too is added run after run,
+    alone below :func:`studies.results.whole_bounds`' runs), at least one.  A property of the model and the runs,
+    never of the machine: the numbers do not depend on it (the bounds' sum too is added run after run,
     :data:`studies.runner.SUMMED`)."""
     n_x = sc.model.n_x
     one = (sc.steps + 1) * (sc.network.n_nodes if sc.network is not None else 1) * n_x * (
@@ -636,16 +639,15 @@ def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs
         "diverged_runs": failed,
         "diverged_fraction": len(failed) / runs,
         "design": describe_design(v.design),
-        **_region_metrics(err, regions, boot),
+        **_region_metrics(per_node, boot),
     }
 
 
-def _region_metrics(err: np.ndarray, regions, boot: np.random.Generator) -> dict:
+def _region_metrics(per_node: np.ndarray, boot: np.random.Generator) -> dict:
     """With regions (:mod:`designer.regions`): ``rmse_region``, the root of each node's squared error summed over its
-    region's states and averaged over the runs, steps and nodes (``err``: runs x steps x nodes x n_x), as
-    ``study comparison`` scores it, its 95 % bootstrap interval over the runs (``boot``),
+    region's states (``per_node``: runs x steps x nodes, :func:`designer.regions.region_error2`) and averaged over the
+    runs, steps and nodes, as ``study comparison`` scores it, its 95 % bootstrap interval over the runs (``boot``),
     ``rmse_region_median_run`` and ``rmse_region_curve`` (per step, over the runs and nodes)."""
-    per_node = region_error2(err, regions)
     per_run = per_node.mean(axis=(1, 2))
     return {"rmse_region": float(np.sqrt(per_run.mean())), "rmse_region_ci95": bootstrap_rmse_ci(per_run, boot),
             "rmse_region_median_run": float(np.median(np.sqrt(per_run))),
@@ -757,15 +759,15 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
         } if e.designed else None
         boot = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2**31, j)))  # apart from the runs'
         mse[name] = np.full(runs, np.nan)
-        mse[name][ok] = (region_error2(err, sc.regions) if sc.regions is not None else
-                         (err**2).sum(-1)).mean(axis=(1, 2))
+        per_node = None if sc.regions is None else region_error2(err, sc.regions)  # each node on its region
+        mse[name][ok] = (per_node if per_node is not None else (err**2).sum(-1)).mean(axis=(1, 2))
         if carried is not None:
             filters[name] = _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts,
                                              bounded_runs, so, L, feasibility, boot)
             continue
         e2 = err[..., pos] ** 2
         node_curve = np.sqrt(e2.sum(-1).mean(axis=0))  # (steps, nodes)
-        regional = None if sc.regions is None else _node_region_curves(region_error2(err, sc.regions))
+        regional = None if per_node is None else _node_region_curves(per_node)
         spread = np.linalg.norm(err - err.mean(axis=2, keepdims=True), axis=-1).mean()
         per_run = e2.sum(-1).mean(axis=(1, 2))  # each run's mean squared error over steps and nodes
         filters[name] = {
@@ -796,7 +798,7 @@ def _summarise(sc: Scenario, mc, so: StudyOptions) -> dict:
             **({"exchange": exchange_counts(A[f"v{j}_gate"][ok])}
                if e.mode is not None and e.attacked and net.adjacency.any() else {}),
             **({"consensus_iterations": L} if e.rounds else {}),
-            **(_region_metrics(err, sc.regions, boot) if sc.regions is not None else {}),
+            **(_region_metrics(per_node, boot) if per_node is not None else {}),
         }
     _compare_with_the_nodes_alone(filters, mse, baseline_names(sc)[0], seed)
     return {

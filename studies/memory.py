@@ -354,7 +354,8 @@ def filter_need(sc, log: LogSize, *, options=None, centralized: bool = False, pa
     if len(design) > 1:  # the offline tables are held through the run
         run = [*run, replace(design[-1][0], what="the design's offline tables, held through the run")]
     held = log.held(sc.network, n_x)
-    return _need("filter", [log.reading(sc.network, n_x)], *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
+    return _need("filter", [log.reading(sc.network, n_x)],
+                 *([held, *(p for p in ph if p is not None)] for ph in [*design, run]))
 
 
 def node_filter_need(sc, options=None) -> Need:

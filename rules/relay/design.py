@@ -755,33 +755,31 @@ def _basis_update(S, Hw, X, depths, rtol: float):
     or ``Hw_g Hw_gᵀ = U diag(μ) Uᵀ``: ``B_g = U diag(μ)^½``), the directions with ``μ`` at rounding's level of the
     largest left out (``B``'s column zero).  Then ``Q = Tᵀ Q' T`` with ``Q' = Bᵀ S B`` holding ``Q``'s nonzero
     eigenvalues, so ``W = C Q⁺ = E Q'⁺ T`` (``E = P⁻ Hwᵀ diag(p) B``) and ``P⁺ = P⁻ - E Q'⁺ Eᵀ``; in the rows,
-    ``K_r = E Q'⁺ diag(μ)⁻¹ Bᵀ`` (``Bᵀ B = diag(μ)``, ``B Bᵀ = G0``, so ``K_r G0 res = E Q'⁺ Bᵀ res = W y``).  A left-out
-    direction keeps a diagonal entry in ``Q'`` (the mean of the kept ones', so the items keep one shape) that no
-    ``E`` reads.  ``depths``: :func:`_depth_columns` of ``Hw``."""
+    ``K_r = E Q'⁺ diag(μ)⁻¹ Bᵀ`` (``Bᵀ B = diag(μ)``, ``B Bᵀ = G0``, so ``K_r G0 res = E Q'⁺ Bᵀ res = W y``).  A
+    left-out direction keeps a diagonal entry in ``Q'`` (the mean of the kept ones', so the items keep one shape)
+    that no ``E`` reads.  ``depths``: :func:`_depth_columns` of ``Hw``."""
     swap = lambda a: np.swapaxes(a, -1, -2)  # noqa: E731
     lead, r = Hw.shape[:-2], Hw.shape[-2]
-    blocks = []
+    k = sum(min(rows.size, cols.size) for _, rows, cols in depths)  # each depth's basis: its smaller Gram's size
+    Bf = np.zeros(lead + (r, k))
+    mu = np.empty(lead + (k,))
+    keep = np.empty(lead + (k,), dtype=bool)
+    c = 0
     for _, rows, cols in depths:
         if not cols.size:
             continue
         Ha = Hw[..., rows[:, None], cols]
         if cols.size <= rows.size:
-            mu, V = np.linalg.eigh(swap(Ha) @ Ha)
+            m, V = np.linalg.eigh(swap(Ha) @ Ha)
             B = Ha @ V
         else:
-            mu, U = np.linalg.eigh(Ha @ swap(Ha))
-            B = U * np.sqrt(np.maximum(mu, 0.0))[..., None, :]
-        keep = mu > BASIS_TOL * max(rows.size, cols.size) * mu[..., -1:]
-        blocks.append((rows, np.where(keep[..., None, :], B, 0.0), np.where(keep, mu, 1.0), keep))
-    k = sum(b.shape[-1] for _, b, _, _ in blocks)
-    Bf = np.zeros(lead + (r, k))
-    mu = np.empty(lead + (k,))
-    keep = np.empty(lead + (k,), dtype=bool)
-    c = 0
-    for rows, B, m, kp in blocks:
-        Bf[..., rows, c:c + B.shape[-1]] = B
-        mu[..., c:c + B.shape[-1]], keep[..., c:c + B.shape[-1]] = m, kp
-        c += B.shape[-1]
+            m, U = np.linalg.eigh(Ha @ swap(Ha))
+            B = U * np.sqrt(np.maximum(m, 0.0))[..., None, :]
+        kp = m > BASIS_TOL * max(rows.size, cols.size) * m[..., -1:]
+        end = c + m.shape[-1]
+        Bf[..., rows, c:end] = np.where(kp[..., None, :], B, 0.0)
+        mu[..., c:end], keep[..., c:end] = np.where(kp, m, 1.0), kp
+        c = end
     Qr = swap(Bf) @ S @ Bf
     d = np.einsum("...ii->...i", Qr)
     scale = np.sum(d, axis=-1, keepdims=True) / np.maximum(np.sum(keep, axis=-1, keepdims=True), 1)
