@@ -6,7 +6,8 @@ Code that may run long marks where it is: :func:`phase` (a named stage, nested p
 * a bar (``tqdm``) over a stage's items where stderr is a terminal and the caller is not ``quiet``;
 * otherwise, once the command line has installed its sink (:func:`showing`; every ``cfdesign`` command but those
   run with ``--quiet``), a line on stderr, ``cfdesign: <phase> > <phase>: <k>/<n> (<s> s)`` (once the count has
-  advanced since its first line, ``<k>/<n>, about <t> left``, at its rate since then), the first
+  advanced since its first line, ``<k>/<n>, about <t> left``: at its rate from that line to its last advance, less
+  the time since that advance, so that the time left shrinks while an item is under way), the first
   :data:`FIRST_S` seconds after the command started and then at most every :data:`EVERY_S` seconds, so that a
   command that runs longer than a few seconds says what it is doing in a log or a pipe too.
 
@@ -33,25 +34,33 @@ class _Sink:
     def __init__(self, stream, start: float):
         self.stream, self.start, self.pid, self.last = stream, start, os.getpid(), None
         self.phases: list[str] = []
-        self.counts: dict = {}  # (phases, what, total) -> (time, k) of the count's first line: its rate since
+        # (phases, what, total) -> [time, k] of the count's first line and [time, k] of its last advance since
+        self.counts: dict = {}
 
     def due(self, now: float) -> bool:
         if os.getpid() != self.pid:
             return False
         return now - self.start >= FIRST_S if self.last is None else now - self.last >= EVERY_S
 
+    def advance(self, now: float, what: str, k: int, total) -> None:
+        """Note when a count written before last advanced (called at every :func:`line`, due or not)."""
+        seen = self.counts.get((" > ".join(self.phases), what, total))
+        if seen is not None and k > seen[3]:
+            seen[2], seen[3] = now, k
+
     def write(self, now: float, where: str, count: tuple | None = None) -> None:
         """A line: the phases, ``where``, the seconds since the command started; with ``count`` ``(what, k, total)``
-        ``what k/total`` and, once the count has advanced since its first line, the time left at its rate since then
-        (``about 7 min left``)."""
+        ``what k/total`` and, once the count has advanced since its first line, the time left (``about 7 min
+        left``): the remaining items at the rate from its first line to its last advance, less the time since that
+        advance (never below 0: an item under way longer than the rate says is due now)."""
         self.last = now
         label = " > ".join(self.phases)
         if count is not None:
             what, k, total = count
             where = f"{what} {k}/{total}".strip()
-            t0, k0 = self.counts.setdefault((label, what, total), (now, k))
-            if total is not None and k0 < k < total:
-                where += f", about {_duration((now - t0) / (k - k0) * (total - k))} left"
+            t0, k0, t1, k1 = self.counts.setdefault((label, what, total), [now, k, now, k])
+            if total is not None and k0 < k1 < total and k1 == k:
+                where += f", about {_duration(max(0.0, (t1 - t0) / (k1 - k0) * (total - k) - (now - t1)))} left"
         text = f"cfdesign: {label}: {where}" if label and where else f"cfdesign: {label or where}"
         text += f" ({now - self.start:.0f} s)"
         if self.stream.isatty():  # above a bar a runner may be drawing on the terminal, not through it
@@ -94,6 +103,8 @@ def line(what: str = "", k: int | None = None, total: int | None = None) -> None
     sink = _SINK
     if sink is not None:
         now = time.perf_counter()
+        if k is not None:
+            sink.advance(now, what, k, total)
         if sink.due(now):
             sink.write(now, what, None if k is None else (what, k, total))
 

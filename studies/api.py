@@ -399,7 +399,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
         The same design options as :func:`design`, with the same defaults (``carry`` whole only: the map judges
         each node's whole state).
     workers, dask, dask_security, backend
-        Where the chunks of grid points run (the map does not depend on it); ``dask_security``: a
+        Where the chunks of grid points run (the map does not depend on it; default: a worker process per usable
+        core, :func:`studies.runner.every_core`); ``dask_security``: a
         JSON file of TLS options for the Dask scheduler (:func:`studies.runner.load_security`).
     force, quiet
         Recompute points stored in ``out``; no progress bar.
@@ -422,7 +423,7 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     :mod:`studies.feasibility_map` for when the two disagree.
     """
     from .feasibility_map import run_feasibility
-    from .runner import Backend, make_backend
+    from .runner import Backend, every_core, make_backend
 
     _check_arguments(out=out, network=network, attacks=attacks, design_defaults=design_defaults, inputs=inputs,
                      overrides=overrides, assignments=assignments, force=force, quiet=quiet,
@@ -441,8 +442,9 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
                                   robustness=robustness, rounds=rounds, bank=bank,
                                   table_kind=table_kind))
     opts = replace(opts, carry="whole")  # the map judges each node's whole state, with or without REGIONS
-    if backend is None:
-        backend = make_backend(workers, dask, dask_security)
+    if backend is None:  # none given: a worker process per usable core (a point's candidates cost seconds each)
+        given = workers is not None or dask is not None or dask_security is not None
+        backend = make_backend(workers, dask, dask_security) if given else every_core()
     elif workers is not None or dask is not None or dask_security is not None:
         raise InputError("give either backend or workers/dask, not both")
     sc = _scenario(scenario, network, attacks, design_defaults, None, x0, inputs, overrides, assignments)

@@ -124,7 +124,7 @@ def _runner_options(f):
     opts = [
         click.option("--workers", type=int, default=None,
                      help="local worker processes that compute the chunks (the numbers do not depend on it) "
-                          "[default: this process; study comparison: one per usable core]"),
+                          "[default: this process; study comparison and feasibility: one per usable core]"),
         click.option("--dask", "dask", default=None, metavar="ADDRESS",
                      help="compute the chunks on the Dask scheduler at ADDRESS (e.g. tcp://host:8786); the "
                           "scheduler and its workers must be trusted"),

@@ -40,7 +40,7 @@ from designer.fileio import writing
 from designer.validation import ComputationError, InputError, NonFiniteError, check_int
 
 from .invocation import study_invocation
-from .runner import Backend, MonteCarloResult, monte_carlo
+from .runner import Backend, MonteCarloResult, every_core, monte_carlo
 from .study_registry import StudyText, get_study
 
 __all__ = ["Plan", "Study", "StudyOptions", "StudyResult", "run_study", "naming_filter"]
@@ -158,10 +158,7 @@ class Study:
     def default_backend(self) -> Backend:
         """Where the chunks run when the caller gives no backend: this process, or for a study with
         ``every_core`` one worker process per usable core (this process when it may use one core only)."""
-        from designer.cores import usable_cores
-
-        cores = usable_cores()
-        return Backend("processes", workers=cores) if self.every_core and cores > 1 else Backend()
+        return every_core() if self.every_core else Backend()
 
     def default_runs(self, scenario: str) -> int:
         if isinstance(self.runs, Mapping):

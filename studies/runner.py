@@ -91,7 +91,8 @@ from designer.validation import ComputationError, InputError, check_int
 from .interrupts import Interrupts
 from .memory import available_memory
 
-__all__ = ["SUMMED", "Backend", "Timed", "run_forked", "make_backend", "load_security", "run_seed", "chunk_ranges",
+__all__ = ["SUMMED", "Backend", "Timed", "run_forked", "make_backend", "every_core", "load_security", "run_seed",
+           "chunk_ranges",
            "monte_carlo", "MonteCarloResult", "RunFailed", "CHUNKS_DIR"]
 
 _MANIFEST_SCHEMA = "cfdesign.chunks/2"
@@ -200,6 +201,15 @@ def make_backend(workers: int | None = None, dask: str | None = None, dask_secur
         return Backend("batched")
     workers = check_int("workers", workers, 1)
     return Backend("batched") if workers == 1 else Backend("processes", workers=workers)
+
+
+def every_core() -> Backend:
+    """A worker process per usable core (:func:`designer.cores.usable_cores`), or this process when it may use one
+    core only: the default of the commands whose chunks cost seconds each (a comparison study, a feasibility map)."""
+    from designer.cores import usable_cores
+
+    cores = usable_cores()
+    return Backend("processes", workers=cores) if cores > 1 else Backend()
 
 
 def run_seed(seed: int, run: int) -> np.random.SeedSequence:

@@ -78,6 +78,28 @@ def test_a_count_says_the_time_left_at_its_rate_since_its_first_line(monkeypatch
     assert capsys.readouterr().err.splitlines()[-1] == "cfdesign: step 2/60, about 58.0 h left (3610 s)"
 
 
+def test_the_time_left_shrinks_while_an_item_is_under_way(monkeypatch, capsys):
+    """Between two advances of a count the time left counts down from the last advance (the validation's last chunk
+    on a 118-bus grid had said 25, 30, 35 s left while it ran), never below 0; an advance not written (no line due)
+    still sets the rate and the time it is counted from."""
+    clock = iter([100.0, 105.0, 125.0, 135.0, 170.0, 180.0, 190.0])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(progress, "EVERY_S", 0.0)
+    with progress.showing():  # started at 100
+        progress.line("chunk", 0, 4)  # 105: the count's first line
+        progress.line("chunk", 2, 4)  # 125: 2 in 20 s, 2 to go: 20 s
+        progress.line("chunk", 2, 4)  # 135: 10 s of them spent
+        progress.line("chunk", 2, 4)  # 170: overdue
+        monkeypatch.setattr(progress, "EVERY_S", 100.0)
+        progress.line("chunk", 3, 4)  # 180: no line due, but the advance is noted: 3 in 75 s
+        monkeypatch.setattr(progress, "EVERY_S", 0.0)
+        progress.line("chunk", 3, 4)  # 190: 25 s for the last, 10 s spent
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["cfdesign: chunk 0/4 (5 s)", "cfdesign: chunk 2/4, about 20 s left (25 s)",
+                   "cfdesign: chunk 2/4, about 10 s left (35 s)", "cfdesign: chunk 2/4, about 0 s left (70 s)",
+                   "cfdesign: chunk 3/4, about 15 s left (90 s)"], err
+
+
 def test_quiet_library_and_forked_worker_write_nothing(tmp_path, capsys, eager, monkeypatch):
     assert main(["feasibility", "examples/ring_model.py", "--grid", "dos=0:0.2:2", "--quiet",
                  "--out", str(tmp_path / "f")]) == 0

@@ -373,6 +373,35 @@ def test_stationary_certificate_of_a_linear_network_is_its_steady_covariance_and
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("exchange", [True, False])
+def test_the_accelerated_stationary_certificate_is_the_plain_recursions_fixed_point(monkeypatch, exchange):
+    """The stationary bound's recursion is Anderson-accelerated (rules.scheduled.certificate.STATIONARY_CERT_MEMORY):
+    on a nonlinear model, whose remainders make the map's multipliers change at every iteration, its fixed point is
+    the plain recursion's (memory 0: every point the map's image), in fewer iterations; both converged in Φ."""
+    import casadi as ca
+    import rules.scheduled.certificate as cert_mod
+    from designer import AttackSpec, FDISignal, Gaussian, Model, Sensor, SensorNetwork
+    from studies.scenarios import scenario_of
+
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(x[0] + 0.05 * x[1], x[1] - 0.05 * (9.81 * ca.sin(x[0]) + 0.5 * x[1]))
+    sensors = [Sensor(f"s{i}", ca.sin(x[0] + 0.3 * i) + 0.1 * i * x[1], Gaussian.zero_mean([[1e-3]]))
+               for i in range(4)]
+    m = Model("pend4", x, f, sensors, Gaussian.zero_mean(np.diag([1e-5, 1e-4])), Gaussian([0.3, 0.0],
+                                                                                          np.diag([0.02, 0.02])))
+    sc = scenario_of(m, network=SensorNetwork.from_edges(4, [(0, 1), (1, 2), (2, 3), (3, 0)]),
+                     attacks=AttackSpec(dos=0.2, fdi=0.05, signal=FDISignal(0.05)), steps=10)
+    des = consensus_design(sc, mode="scheduled", exchange="measurements" if exchange else "predictions")
+    fast = cert_mod.stationary_certificate(m, sc.network, des, x=m.prior.mean, exchange=exchange, lmi=False)
+    monkeypatch.setattr(cert_mod, "STATIONARY_CERT_MEMORY", 0)
+    plain = cert_mod.stationary_certificate(m, sc.network, des, x=m.prior.mean, exchange=exchange, lmi=False)
+    assert fast.converged and plain.converged, (fast.reason, plain.reason)
+    assert fast.iterations < plain.iterations
+    np.testing.assert_allclose(fast.Phi, plain.Phi, rtol=1e-7, atol=1e-7 * np.abs(plain.Phi).max())
+    np.testing.assert_allclose([fast.sigma, fast.beta], [plain.sigma, plain.beta], rtol=1e-6)
+
+
+@pytest.mark.slow
 def test_stationary_certificate_says_when_the_bound_grows():
     """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
     import casadi as ca

@@ -128,7 +128,8 @@ __all__ = ["Channels", "channels", "link_gains", "expected_update", "expected_ce
            "STATIONARY_MAX", "table_arrays", "table_memory", "JOINT_COPIES", "CERTIFICATE_MAX_DIM", "BANK_SPREAD",
            # what the stationary certificate (rules.scheduled.certificate) shares with the design
            "prepare", "stationary_gains", "measurement_noise", "falsification_moment", "transition_matrix",
-           "update_structure", "to_dense", "diag_blocks", "remainder_reach", "scaled_remainders", "linearisation_noise",
+           "update_structure", "to_dense", "blocks_of", "diag_blocks", "remainder_reach", "scaled_remainders",
+           "linearisation_noise",
            "recorded_tables", "falsification_parts", "own_steps", "table_numbers", "PER_STEP_KIND", "STATIONARY_KIND",
            "TABLES_PER_STEP_MAX"]
 
@@ -396,7 +397,8 @@ def to_dense(B: np.ndarray) -> np.ndarray:
     return np.swapaxes(B, 1, 2).reshape(N * n, M * m)
 
 
-def _blocks(X: np.ndarray, N: int) -> np.ndarray:
+def blocks_of(X: np.ndarray, N: int) -> np.ndarray:
+    """The (N, N, n, n) blocks of a dense (N n, N n) matrix: a view (the inverse of :func:`to_dense`)."""
     n = X.shape[-1] // N
     return np.swapaxes(X.reshape(N, n, N, n), 1, 2)
 
@@ -432,7 +434,7 @@ def measurement_noise(rule: _Rule, ch: Channels, N: int) -> np.ndarray:
     lam = _block_sparse(np.concatenate([idx, ch.receiver]), np.concatenate([idx, ch.sender]),
                         np.concatenate([K, ch.p[:, None, None] * rule.Kn]), (N * n, N * mz))
     Rs = _block_sparse(idx, idx, R, (N * mz, N * mz))
-    out = _blocks(np.asarray((lam @ Rs @ lam.T).todense()), N)  # a view of the blocks of a new matrix
+    out = blocks_of(np.asarray((lam @ Rs @ lam.T).todense()), N)  # a view of the blocks of a new matrix
     var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ rule.Rn @ _t(rule.Kn))
     np.add.at(out, (ch.receiver, ch.receiver), var)
     return out
@@ -507,7 +509,7 @@ def expected_update(Pm: JointCovariance, rule: _Rule, ch: Channels, M: np.ndarra
     c = rule.A @ Pm.P  # c_i = Σ_j T̄_ij P_jj
     np.add.at(c, i, -pW @ Pm.P[i] + pC @ Pm.P[j])
     G = transition_matrix(rule, ch).sandwich(Pm.G)  # Y, then G⁺ in its place (the joint matrices are the big ones)
-    Y = _blocks(G, N)
+    Y = blocks_of(G, N)
     idx = np.arange(N)
     Yd = Y[idx, idx]
     Gb = Pm.blocks()
@@ -529,14 +531,14 @@ def _expected_sandwich(rule: _Rule, ch: Channels, X: np.ndarray, T: BlockSparse)
     N = rule.A.shape[0]
     out = T.sandwich(X)
     if ch.receiver.size:
-        Xb = _blocks(X, N)
+        Xb = blocks_of(X, N)
         i, j = ch.receiver, ch.sender
         W, C = rule.W, rule.C
         WXC = W @ Xb[i, j] @ _t(C)
         v = W @ Xb[i, i] @ _t(W) - WXC - _t(WXC) + C @ Xb[j, j] @ _t(C)
         add = np.zeros((N,) + v.shape[1:])
         np.add.at(add, i, (ch.p * (1 - ch.p))[:, None, None] * v)
-        view = _blocks(out, N)  # a view of ``out``'s blocks
+        view = blocks_of(out, N)  # a view of ``out``'s blocks
         idx = np.arange(N)
         view[idx, idx] += add
     return out
@@ -562,7 +564,7 @@ def _remainder_moments(rule: _Rule, ch: Channels, V, Vn, N: int) -> tuple[np.nda
         var = (ch.p * (1 - ch.p))[:, None, None] * (lv @ _t(lv))  # the arrivals' variance, on the receiver alone
         add = np.zeros((N, n, n))
         np.add.at(add, ch.receiver, var)
-        view = _blocks(common, N)
+        view = blocks_of(common, N)
         view[np.arange(N), np.arange(N)] += add
     else:
         common = to_dense(diag_blocks(KVV, N))
@@ -583,11 +585,11 @@ def _joint_common(rule: _Rule, ch: Channels, gram: np.ndarray, N: int) -> np.nda
     Gd = G.reshape(N * n, N * mz)
     out = Gd @ gram @ Gd.T
     if rule.Kn is not None and ch.receiver.size:
-        blocks = _blocks(gram, N)[ch.sender, ch.sender]  # (E, mz, mz): each link's sensor block
+        blocks = blocks_of(gram, N)[ch.sender, ch.sender]  # (E, mz, mz): each link's sensor block
         var = (ch.p * (1 - ch.p))[:, None, None] * (rule.Kn @ blocks @ _t(rule.Kn))
         add = np.zeros((N, n, n))
         np.add.at(add, ch.receiver, var)
-        view = _blocks(out, N)
+        view = blocks_of(out, N)
         view[np.arange(N), np.arange(N)] += add
     return symmetrize(out)
 
@@ -651,13 +653,13 @@ def expected_certificate_update(Phi: np.ndarray, rule: _Rule, ch: Channels, V, V
                 pi = tb / (ta + tb) if ta + tb > 0 else 0.5
                 own, f = own / (1.0 - pi), f / pi
             out = own + f + to_dense(meas)
-        return float(np.trace(out)), JointBound(_blocks(symmetrize(out), N), beta, 1.0 / lam[-1] - beta)
+        return float(np.trace(out)), JointBound(blocks_of(symmetrize(out), N), beta, 1.0 / lam[-1] - beta)
 
     if shared:
         if gram is not None:  # the common parts one remainder; each node's deviations one (the sensors it uses)
             common = _joint_common(rule, ch, gram, N)
             idx = np.arange(N)
-            own_dev = to_dense(diag_blocks(_blocks(common, N)[idx, idx], N))
+            own_dev = to_dense(diag_blocks(blocks_of(common, N)[idx, idx], N))
             A, Dd, t0 = shared_structure(P, N, float(N), None, W)
         else:
             own_dev = to_dense(diag_blocks(KVV, N))
@@ -977,8 +979,11 @@ def stationary_gains(st: _Setting, Pm: JointCovariance, Fs: np.ndarray, x: np.nd
         rule, G_new, S_new = _gains(st, Pm, x, k1)
         Pm = expected_update(Pm, rule, st.ch, st.M, st.mu)
         Pm, rG, rS = _more_rounds(st, Pm, x, k1)
-        done = last is not None and max(np.max(np.abs(G_new - last[0]), initial=0.0),
-                                        np.max(np.abs(S_new - last[1]), initial=0.0)) <= tol
+        change = np.inf if last is None else max(np.max(np.abs(G_new - last[0]), initial=0.0),
+                                                 np.max(np.abs(S_new - last[1]), initial=0.0))
+        line(f"step {extra} (at most {STATIONARY_MAX})" + (
+            f": the tables changed by {change:.2g}, settled below {tol:g}" if np.isfinite(change) else ""))
+        done = change <= tol
         last = (G_new, S_new)
         if done:
             record = {"converged": True, "extra_steps": extra, "tolerance": tol}
