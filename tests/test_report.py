@@ -570,6 +570,26 @@ def test_design_report_verdict(design_dir):
     assert ("Feasible." if sched["feasible"] else "Infeasible.") in page
 
 
+def test_a_bound_without_multipliers_is_reported_without_conditions_28_29(tmp_path):
+    """A relay design's bound (each node's expected covariance) has no σ, β: its report neither says that (28)-(29)
+    held nor that no node had a bound (it had one at every step), and shows no margins (the buoys of session 63:
+    'Conditions (28) and (29) held' and 'No margin was checked at any node (no node had a bound)' for a certified
+    flood design)."""
+    d = tmp_path / "relay"
+    res = api.design(LINEAR, mode="relay", seed=2, out=d, steps=8)
+    z = np.load(d / "schedule.npz")
+    assert z["valid"].all() and not np.isfinite(z["margin28"]).any()  # the premise: bounds, no margins
+    md = (d / "report.md").read_text()
+    assert "(28) and (29) held" not in md and "(28)-(29) held" not in md and "no node had a bound" not in md
+    assert "\n## Which condition binds where\n" not in md and "fig_margins.png" not in md
+    assert not (d / "fig_margins.png").exists()
+    verdict = _section(md, "Verdict")
+    assert verdict.startswith("**Feasible.** This rule's bound has no multipliers σ, β: conditions (28)-(29) do "
+                              "not apply to it") and res.feasible
+    assert "Yes, along this run: every node's bound was finite at every step" in md
+    assert "| rank | node | sensor | first violation | final tr Φ |" in md
+
+
 def test_design_report_binding_table_follows_the_margins(design_dir):
     d, _ = design_dir
     sched = json.loads((d / "schedule.json").read_text())

@@ -178,6 +178,13 @@ class _Schedule:
         m28, m29 = arrays.get("margin28"), arrays.get("margin29")
         self.m28 = m28 if _shaped(m28, shape) else None
         self.m29 = m29 if _shaped(m29, shape) else None
+        # a bound without the multipliers σ, β of (26)-(27) (the relay rules' expected covariance): no margin of
+        # (28)-(29) anywhere while some node has a bound; its report shows no margins and names no such conditions
+        self.multipliers = not (self.m28 is not None and self.m29 is not None and self.trace is not None
+                                and np.isfinite(self.trace).any() and not np.isfinite(self.m28).any()
+                                and not np.isfinite(self.m29).any())
+        if not self.multipliers:
+            self.m28 = self.m29 = None
         self.gain_norms = {}  # per gain, each node's largest spectral norm over the steps (the per-node table)
         for name in ("K", "C"):
             a = arrays.get(name)
@@ -365,6 +372,11 @@ def _bounded_lines(s: _Schedule) -> list[str]:
     return [line, ""]
 
 
+#: What the report says of a bound without multipliers (:attr:`_Schedule.multipliers`).
+_NO_MULTIPLIERS = ("This rule's bound has no multipliers σ, β: conditions (28)-(29) do not apply to it, so there are "
+                   "no margins to show.")
+
+
 def _verdict_section(s: _Schedule, tight) -> list[str]:
     out = ["## Verdict", ""]
     size = f"{s.nodes} nodes, {s.steps} steps"
@@ -375,7 +387,9 @@ def _verdict_section(s: _Schedule, tight) -> list[str]:
         return out
     if s.feasible:
         line = (f"**Feasible.** Conditions (28) and (29) held at every node and every step of the run ({size}) and "
-                "no node diverged: every node's Φ is a bound along the whole run.")
+                "no node diverged: every node's Φ is a bound along the whole run.") if s.multipliers else (
+                f"**Feasible.** {_NO_MULTIPLIERS} Every node's Φ was finite at every step of the run ({size}) and no "
+                "node diverged: every node's Φ is a bound along the whole run.")
         if tight:
             i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
             line += (f" The tightest spot: condition {cond} at node {i}, step {step}, margin {fmt_num(m)}.")
@@ -551,7 +565,8 @@ def _node_section(s: _Schedule) -> list[str]:
                      s.gain_norms["K"][i], s.gain_norms["C"][i], md_cell(_final_bound(s, i)),
                      md_cell(_plain_violation(first)) if first else "none"])
     what = ("the paper's fixed σ and β (a node on its fallback uses 0)" if fixed else
-            "σ and β as min / median / max over the steps where the node had a bound")
+            "σ and β as min / median / max over the steps where the node had a bound" if s.multipliers else
+            "this rule's bound has no σ and β (—)")
     out = ["## Per node: ε, σ, β, gains and the final bound", "",
            f"ε is the same at every node; {what}. Gains: the largest spectral norm over the steps of the update "
            "gain K_i and of the consensus gain C_i. Final tr Φ: the bound at the last step (or the last step that "
@@ -582,7 +597,10 @@ def _meaning_section(s: _Schedule) -> list[str]:
     out = ["## What the bound means and where it holds", "",
            "Φ_{i,k|k} is Theorem 1's upper bound on the covariance of node i's estimation error at step k, so tr Φ "
            "bounds the node's mean-square error E‖x_k − x̂_{i,k}‖². It is a bound while (28) and (29) hold at the "
-           "node and its neighbours; after a violation the schedule stores none (NaN).", ""]
+           "node and its neighbours; after a violation the schedule stores none (NaN)." if s.multipliers else
+           "Φ_{i,k|k} is this rule's bound on the covariance of node i's estimation error at step k (what it is and "
+           "what it leaves out: below), so tr Φ is its bound on the node's mean-square error E‖x_k − x̂_{i,k}‖². "
+           "It has no multipliers σ, β, hence no conditions (28)-(29); a node that diverged has none (NaN).", ""]
     if isinstance(meta.get("carried"), list):
         out += ["Each node carries only its region and the states its ball's measurements and their dynamics need "
                 "(`--carry region`; `carried` in `schedule.json`): its Φ is over those states, the same numbers as "
@@ -803,6 +821,9 @@ def _summary_table(s: _Schedule, tight) -> list[str]:
         rows.append([f"{rank}", f"{i}", md_cell(s.sensor(i)) or "—",
                      md_cell(_plain_violation(first)) if first else "none",
                      f"{t[1]} at step {t[2]}, margin {fmt_num(t[3])}" if t else "—", md_cell(_final_bound(s, i))])
+    if not s.multipliers:  # no condition to be tight
+        return md_table(["rank", "node", "sensor", "first violation", "final tr Φ"], [r[:4] + r[5:] for r in rows],
+                        ["r", "r", "l", "l", "r"])
     return md_table(["rank", "node", "sensor", "first violation", "tightest condition", "final tr Φ"], rows,
                     ["r", "r", "l", "l", "l", "r"])
 
@@ -878,8 +899,9 @@ def _summary_sentence(s: _Schedule, tight) -> str:
         return (lead + "Not as a certified design: its certificate was not computed ("
                 f"{md_escape(_not_computed_reason(s))}), so it claims no bound; it is not infeasible, and a study "
                 "(`cfdesign study consensus-robot`) measures what it delivers.")
+    held = "(28)-(29) held at every node and step" if s.multipliers else "every node's bound was finite at every step"
     if s.feasible and s.meta.get("certified") is False:
-        return (lead + f"Not as a certified design: (28)-(29) held at every node and step, but the bound is "
+        return (lead + f"Not as a certified design: {held}, but the bound is "
                 f"{md_escape(s.meta.get('verdict'))}, so it does not show what the filter delivers (see the first "
                 "line; change the options or the horizon and design again).")
     if not s.feasible:
@@ -888,7 +910,7 @@ def _summary_sentence(s: _Schedule, tight) -> str:
         if first is not None:
             line += f"; the first violation is {_violation_words(first)}, and from there on that node has no bound"
         return line + " (change the options, e.g. `--mode tuned`, or the attacks, and design again)."
-    line = lead + "Yes, along this run: (28)-(29) held at every node and step"
+    line = lead + f"Yes, along this run: {held}"
     if tight:
         i, cond, step, m, *_ = min(tight, key=lambda t: (t[3], t[0]))
         line += f"; the node closest to failing is {i} ({cond} at step {step}, margin {fmt_num(m)})"
@@ -907,7 +929,9 @@ def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
     first = _verdict_words(s)
     out = ["## Summary", "", *([first, ""] if first else []),
            f"One seeded run of {s.steps} steps, so no Monte Carlo intervals: the nodes from the closest to failing "
-           "to the farthest (a violation first, then the smallest margin of (28)-(29)).", "", *_summary_table(s, tight)]
+           "to the farthest (a violation first, then the smallest margin of (28)-(29))." if s.multipliers else
+           f"One seeded run of {s.steps} steps, so no Monte Carlo intervals: the nodes, a violation or divergence "
+           "first (this rule's bound has no margins of (28)-(29)).", "", *_summary_table(s, tight)]
     if "fig_trace_bound.png" in figures:
         out += figure_lines(1, "fig_trace_bound.png", FIGURES["fig_trace_bound.png"])
     return out + [_summary_sentence(s, tight), ""]
