@@ -667,7 +667,7 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
     if auto:
         config["candidates"] = [[c.label, c.status] for c in candidates]
     mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=chunk, backend=backend, store=store,
-                     label="feasibility", config=config, force=force, quiet=quiet)
+                     label="feasibility", config=config, force=force, quiet=quiet, unit="grid points")
     a = mc.arrays
     rows = [{**p, "feasible": int(a["feasible"][i]), "trace_bound": float(a["trace_bound"][i]),
              "binding": str(a["binding"][i]), "theorem2": int(a["theorem2"][i]),

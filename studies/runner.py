@@ -668,6 +668,7 @@ def monte_carlo(
     config: Mapping[str, Any] | None = None,
     force: bool = False,
     quiet: bool = False,
+    unit: str = "Monte Carlo runs",
 ) -> MonteCarloResult:
     """Run ``task`` on runs ``0..runs-1`` in chunks and return their arrays in run order.
 
@@ -691,6 +692,8 @@ def monte_carlo(
         another config are refused unless ``force``.
     force : bool
         Delete the stored chunks first (only the files the store wrote) and recompute every run.
+    unit : str
+        What the progress shows the runs as (a feasibility map's are its grid points).
     """
     runs = check_int("runs", runs, 1)
     seed = check_int("seed", seed, 0)
@@ -701,10 +704,12 @@ def monte_carlo(
     if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
         raise InputError(f"label must be a plain non-empty name, got {label!r}")
     with writing(store, name="store", replaces=()):  # the store's one-writer lock (held already under a command)
-        return _monte_carlo(task, runs, seed, ranges, int(chunk_size), backend, store, label, config, force, quiet)
+        return _monte_carlo(task, runs, seed, ranges, int(chunk_size), backend, store, label, config, force, quiet,
+                            unit)
 
 
-def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, config, force, quiet) -> MonteCarloResult:
+def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, config, force, quiet,
+                 unit) -> MonteCarloResult:
     t0 = time.perf_counter()
     st = None
     if store is not None:
@@ -738,7 +743,7 @@ def _monte_carlo(task, runs, seed, ranges, chunk_size, backend, store, label, co
         computed.append(c)
 
     # not the label (the study's name): a design's validation runs study consensus-robot on the user's model
-    bar_desc = f"Monte Carlo runs ({len(pending)} of {len(ranges)} chunks)"
+    bar_desc = f"{unit} ({len(pending)} of {len(ranges)} chunks)"
     with Interrupts() as interrupts:
         if not pending:
             pass

@@ -144,3 +144,12 @@ def test_a_designs_validation_says_it_is_the_validation(tmp_path, capsys, eager)
     runs = [ln for ln in lines if "chunks)" in ln]
     assert runs and all(ln.startswith("cfdesign: validation, 2 fresh runs: ") for ln in runs), lines
     assert not any("robot" in ln for ln in lines), lines
+
+
+def test_a_feasibility_map_counts_grid_points_not_monte_carlo_runs(tmp_path, capsys, eager):
+    """A map's chunks are of grid points: its lines say so (they had said 'Monte Carlo runs')."""
+    assert main(["feasibility", "examples/ring_model.py", "--grid", "dos=0:0.2:3", "--mode", "relay",
+                 "--workers", "1", "--out", str(tmp_path / "m")]) == 0
+    lines = _lines(capsys.readouterr().err)
+    assert any("grid points (" in ln for ln in lines), lines
+    assert not any("Monte Carlo" in ln for ln in lines), lines
