@@ -576,7 +576,7 @@ def test_a_bound_without_multipliers_is_reported_without_conditions_28_29(tmp_pa
     'Conditions (28) and (29) held' and 'No margin was checked at any node (no node had a bound)' for a certified
     flood design)."""
     d = tmp_path / "relay"
-    res = api.design(LINEAR, mode="relay", seed=2, out=d, steps=8)
+    res = api.design(LINEAR, mode="relay", seed=2, out=d, steps=8, validate=2)
     z = np.load(d / "schedule.npz")
     assert z["valid"].all() and not np.isfinite(z["margin28"]).any()  # the premise: bounds, no margins
     md = (d / "report.md").read_text()
@@ -587,6 +587,7 @@ def test_a_bound_without_multipliers_is_reported_without_conditions_28_29(tmp_pa
     assert verdict.startswith("**Feasible.** This rule's bound has no multipliers σ, β: conditions (28)-(29) do "
                               "not apply to it") and res.feasible
     assert "Yes, along this run: every node's bound was finite at every step" in md
+    assert "[Validation](#validation) checks it on fresh runs" in md and "\n## Validation\n" in md
     assert "| rank | node | sensor | first violation | final tr Φ |" in md
 
 

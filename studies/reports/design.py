@@ -893,7 +893,7 @@ def _verdict_words(s: _Schedule) -> str | None:
     return f"**{_lead(s.meta)}.** {md_escape(text[0].upper() + text[1:])}{md_escape(oracle)}."
 
 
-def _summary_sentence(s: _Schedule, tight) -> str:
+def _summary_sentence(s: _Schedule, tight, validated: bool = False) -> str:
     lead = "**Use this schedule?** "
     if s.meta.get("verdict") == "not computed":
         return (lead + "Not as a certified design: its certificate was not computed ("
@@ -921,11 +921,13 @@ def _summary_sentence(s: _Schedule, tight) -> str:
     if s.theorem2:
         line += ("; Theorem 2's condition failed at some node-steps, which does not contradict this: it would claim "
                  "more (the error bounded for all time), and the verdict rests on Theorem 1's bound (see the verdict)")
-    return line + ". The bound holds for this run's linearisation points and DoS pattern; a study replaying the " \
-                  "schedule (`cfdesign study consensus-robot ... --schedule DIR`) checks it over many runs."
+    check = ("[Validation](#validation) checks it on fresh runs" if validated else
+             "a study replaying the schedule (`cfdesign study consensus-robot ... --schedule DIR`) checks it over "
+             "many runs")
+    return line + f". The bound holds for this run's linearisation points and DoS pattern; {check}."
 
 
-def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
+def _summary(s: _Schedule, tight, figures: list[str], validated: bool = False) -> list[str]:
     first = _verdict_words(s)
     out = ["## Summary", "", *([first, ""] if first else []),
            f"One seeded run of {s.steps} steps, so no Monte Carlo intervals: the nodes from the closest to failing "
@@ -934,7 +936,7 @@ def _summary(s: _Schedule, tight, figures: list[str]) -> list[str]:
            "first (this rule's bound has no margins of (28)-(29)).", "", *_summary_table(s, tight)]
     if "fig_trace_bound.png" in figures:
         out += figure_lines(1, "fig_trace_bound.png", FIGURES["fig_trace_bound.png"])
-    return out + [_summary_sentence(s, tight), ""]
+    return out + [_summary_sentence(s, tight, validated), ""]
 
 
 def render_design(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray] | None = None,
@@ -966,7 +968,8 @@ def _render(s: "_Schedule", meta: Mapping[str, Any], figures, note: str | None, 
         _attack_section(meta), _network_section(meta), observability_section(meta), _scenario_section(meta),
         assumption_section(meta.get("assumptions"), "Everything the paper leaves open and the scenario or the "
                            "design had to decide:"),
-        _files_section(meta, s.shapes, note, list(figures))], _summary(s, tight, list(figures)))
+        _files_section(meta, s.shapes, note, list(figures))], _summary(s, tight, list(figures),
+                                                                   "## Validation" in (extra or [])))
 
 
 def design_report(d: Path, into: Path | None = None) -> tuple[str, dict[str, bytes], str]:
