@@ -433,15 +433,11 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     if gate:
         raise InputError("gate does not apply to feasibility: the maps iterate the bound at an operating point, "
                          "with no packets to test (use it with design or study)")
-    if carry == "region" or (options is not None and options.carry == "region"):
-        raise InputError("carry 'region' does not apply to feasibility: the map judges each node's whole state (use "
-                         "it with design)")
     opts = _options(options, dict(mode=mode, epsilon=epsilon, sigma=sigma, beta=beta, tau=tau, dos=dos, fdi=fdi,
                                   delta=delta, amplitude=amplitude, u_scale=u_scale, v_scale=v_scale,
                                   linearization=linearization, radius=radius, exchange=exchange,
                                   robustness=robustness, rounds=rounds, bank=bank,
-                                  table_kind=table_kind))
-    opts = replace(opts, carry="whole")  # the map judges each node's whole state, with or without REGIONS
+                                  table_kind=table_kind, carry=carry))
     if backend is None:  # none given: a worker process per usable core (a point's candidates cost seconds each)
         given = workers is not None or dask is not None or dask_security is not None
         backend = make_backend(workers, dask, dask_security) if given else every_core()

@@ -198,7 +198,7 @@ def check_first_step(sc: Scenario, design: ConsensusDesign, name: str,
 LMI_TOLERANCE = 1e-6
 
 
-def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True) -> dict:
+def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True, regions=None) -> dict:
     """The design's stationary certificate at the operating point (its rule's,
     :meth:`designer.rule.GainRule.stationary`) with its verdict and boundedness (:func:`designer.verdict.verdict`
     with ``fixed_point``): ``certified`` and ``bounded`` when the bound's recursion with the stationary gains reaches
@@ -207,7 +207,9 @@ def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True
     point; ``infeasible`` when it breaks (28)/(29) or the LMI does not confirm the fixed point; ``not computed``
     (with the reason) when the rule did not compute it
     (:attr:`designer.stationary.StationaryCertificate.not_computed`).  ``lmi`` False: the fixed point without the
-    LMI that confirms it (a screening: its verdict is what the LMI would confirm or refuse)."""
+    LMI that confirms it (a screening: its verdict is what the LMI would confirm or refuse).  ``regions``: the record
+    also holds ``region_trace``, each node's tr Φ̄ over its region, for a design whose nodes carry the whole state
+    (what an automatic map ranks it by on a model with ``REGIONS``; its verdict stays the whole state's)."""
     x0, u0 = sc.operating_point
     m = sc.model
     cert, where = design.rule.stationary(m, sc.network, design, x=x0, u=u0, lmi=lmi)
@@ -229,8 +231,11 @@ def stationary_record(sc: Scenario, design: ConsensusDesign, *, lmi: bool = True
     v = verdict(trace, open_loop, feasible=not broken, fixed_point=cert.converged and not broken,
                 infeasible_reason=cert.reason if broken else None, open_loop_how=how,
                 not_computed=cert.reason if skipped else None)
+    extra = {}
+    if regions is not None and cert.converged and cert.positions is None and cert.Phi is not None:
+        extra["region_trace"] = [float(t) for t in region_traces(cert.Phi, regions)]
     return {**cert.describe(), "verdict": v.verdict, "bounded": v.bounded, "growing": v.growing,
-            "bounded_reason": v.bounded_reason, "lmi_tolerance": LMI_TOLERANCE, "where": where}
+            "bounded_reason": v.bounded_reason, "lmi_tolerance": LMI_TOLERANCE, "where": where, **extra}
 
 
 def _offline_extras(sc: Scenario, design: ConsensusDesign, steps: int) -> tuple[dict, object]:

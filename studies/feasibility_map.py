@@ -64,6 +64,7 @@ from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
 from designer.linearization import prediction_scaling, update_scaling
 from designer.validation import ComputationError, InputError, check_strings
+from designer.regions import region_traces
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, json_number, open_loop_reference, verdict
 
 import studies.memory as memory
@@ -200,7 +201,7 @@ def _design_at(sc: Scenario, options: DesignOptions, point: dict, *, strict: boo
     try:
         with np.errstate(over="ignore", invalid="ignore"):  # extreme values overflow: the finiteness checks judge
             return sc_p, make_design(sc_p.model, sc_p.network, rule=rule_of(opts), delta=att.delta, options=opts, x0=x0,
-                                     u0=u0, signal=att.signal)
+                                     u0=u0, signal=att.signal, regions=sc_p.regions)
     except _POINT_ERRORS as exc:
         if strict:
             raise
@@ -235,8 +236,14 @@ def _open_loop_record(sc: Scenario) -> dict:
     return {"trace": trace if math.isfinite(trace) else None, "how": how}
 
 
-def _row(r, open_loop: float, nodes: int) -> dict:
-    return {"feasible": int(r.feasible), "trace_bound": r.trace_bound, "binding": r.binding,
+def _row(r, open_loop: float, nodes: int, regions=None) -> dict:
+    """A point's row from its iteration ``r``; with ``regions`` its ``trace_bound`` is over each node's region (the
+    node average of tr Φ̄ there, where it reached a fixed point), its verdict the whole state's, as ``design`` judges
+    a design of this rule."""
+    trace = r.trace_bound
+    if regions is not None and r.phi is not None:
+        trace = float(np.mean(region_traces(r.phi, regions)))
+    return {"feasible": int(r.feasible), "trace_bound": trace, "binding": r.binding,
             "theorem2": int(r.theorem2), "iterations": r.iterations, "verdict": point_verdict(r, open_loop, nodes)}
 
 
@@ -249,13 +256,15 @@ def stationary_open_loop(sc: Scenario) -> tuple[float, str]:
 
 
 def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, batched: bool = True,
-               lmi: bool = True) -> list[dict]:
+               lmi: bool = True, regions=None) -> list[dict]:
     """The rows (``OUTPUTS``) of the grid ``points`` (dicts of grid values) of ``sc``'s map for ``options``.
 
     ``batched``: every point's fixed-point iteration at once (:func:`designer.feasibility.steady_state_batch`);
     False: point by point (:func:`designer.feasibility.steady_state`), the same numbers, much more slowly.
     ``lmi`` False: a rule with a stationary certificate maps its fixed point without the LMI that confirms it (the
-    automatic map's screening, :func:`auto_rows`).
+    automatic map's screening, :func:`auto_rows`).  ``regions`` (an automatic map of a model with ``REGIONS``): every
+    row's ``trace_bound`` over each node's region, where the candidates are ranked as ``design --mode auto`` ranks
+    them; each verdict stays the design's own (on the regions where its nodes carry them, else on the whole state).
 
     A point whose design cannot be built or whose iteration raises (an overflow, an eigenvalue problem that does
     not converge at an extreme value) is not feasible and has no bound; its ``binding`` is ``"failed: "`` and the
@@ -270,7 +279,7 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     designed = [_design_at(sc, options, p) for p in points]
     ok = [d for d in designed if isinstance(d, tuple)]
     if rule_of(options).stationary_certificate:  # the design's own at each point
-        res = iter([_scheduled_row(*item, lmi=lmi) for item in ok])
+        res = iter([_scheduled_row(*item, lmi=lmi, regions=regions) for item in ok])
         return [d if isinstance(d, dict) else next(res) for d in designed]
     kw = dict(phi0=m.prior.cov, scaling=_scaling(m, ok[0][1], x0, u0, xp) if ok else None)
 
@@ -287,17 +296,17 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
         s, d = item
         try:
             if batched:
-                return _row(batch([item])[0], ol, N)
+                return _row(batch([item])[0], ol, N, regions)
             return _row(steady_state(F, H, m.process_cov, R, s.network, epsilon=d.epsilon, delta=d.delta, U=d.U,
                                      V=d.V, fixed_multipliers=d.rule.fixed_multipliers, sigma=d.sigma, beta=d.beta,
-                                     tau=d.tau, fdi_span=d.fdi_span, **kw), ol, N)
+                                     tau=d.tau, fdi_span=d.fdi_span, **kw), ol, N, regions)
         except _POINT_ERRORS as exc:
             return _failed(exc)
 
     rows = None
     if batched and ok:
         try:
-            rows = [_row(r, ol, N) for r in batch(ok)]
+            rows = [_row(r, ol, N, regions) for r in batch(ok)]
         except _POINT_ERRORS:
             rows = None  # one of them raised: each point alone
     if rows is None:
@@ -306,15 +315,16 @@ def map_points(sc: Scenario, options: DesignOptions, points: Sequence[dict], *, 
     return [d if isinstance(d, dict) else next(res) for d in designed]
 
 
-def _scheduled_row(sc: Scenario, design, *, lmi: bool = True) -> dict:
+def _scheduled_row(sc: Scenario, design, *, lmi: bool = True, regions=None) -> dict:
     """A grid point of a rule with a stationary certificate (scheduled, relay): the stationary certificate that
     ``cfdesign design`` records for the same options (:func:`studies.consensus_design.stationary_record`), so that
-    map and design agree by construction."""
+    map and design agree by construction (a design whose nodes carry their regions judged on them, as its design
+    is).  ``regions``: ``trace_bound`` over each node's region (:func:`map_points`)."""
     try:
-        rec = stationary_record(sc, design, lmi=lmi)
+        rec = stationary_record(sc, design, lmi=lmi, regions=regions)
     except _POINT_ERRORS as exc:
         return _failed(exc)
-    tr = rec["trace"]
+    tr = rec.get("region_trace") or rec["trace"]
     return {"feasible": int(rec["verdict"] not in ("infeasible", "not computed") and rec["converged"]),
             "trace_bound": float(np.mean(tr)) if tr else float("nan"),
             "binding": rec["reason"] or "none (a fixed point)", "theorem2": 0, "iterations": rec["iterations"],
@@ -332,12 +342,12 @@ def _linearisation(sc: Scenario):
 
 
 def _points(run_ids, seeds, *, ref: ScenarioRef, options: DesignOptions, points: Sequence[dict], local,
-            candidates=None) -> dict:
+            candidates=None, regions=None) -> dict:
     """Runner task: the grid points ``run_ids`` (deterministic: the seeds are not used), batched; ``candidates``: an
-    automatic map's (:func:`auto_rows`)."""
+    automatic map's (:func:`auto_rows`), ranked on ``regions`` when given."""
     sc, mine = ref.build(), [points[int(i)] for i in run_ids]
     if candidates is not None:
-        rows = auto_rows(sc, candidates, mine, local)
+        rows = auto_rows(sc, candidates, mine, local, regions)
     else:
         name = effective(sc, options)[1].mode or rules.DEFAULT
         rows = [{**r, "rule": name, "better_than_local": int(_better(r, local))} for r in map_points(sc, options, mine)]
@@ -385,7 +395,8 @@ def _eligible(row: dict, local) -> bool:
     return row["verdict"] == "certified" and bool(row["feasible"]) and _better(row, local)
 
 
-def auto_rows(sc: Scenario, candidates: Sequence[MapCandidate], points: Sequence[dict], local) -> list[dict]:
+def auto_rows(sc: Scenario, candidates: Sequence[MapCandidate], points: Sequence[dict], local,
+              regions=None) -> list[dict]:
     """The automatic map's rows of ``points``: every mapped candidate's row (:func:`map_points`, the rules with a
     stationary certificate screened without their LMI), and at each point the pick as ``design --mode auto`` picks:
     among the eligible candidates (certified, bounded, below the local EKFs' ``local``) the smallest steady-state
@@ -393,9 +404,10 @@ def auto_rows(sc: Scenario, candidates: Sequence[MapCandidate], points: Sequence
     stationary certificate is mapped again with its LMI; when the LMI does not confirm it, the next is tried.  With
     no eligible candidate, the best of the others (certified first, then bounded, then the smallest bound) is the
     point's row, its verdict its own.  Each row names its candidate (``rule``) and says whether it is below the
-    local EKFs (``better_than_local``)."""
+    local EKFs (``better_than_local``).  With ``regions`` (a model with ``REGIONS``) the bounds and ``local`` are over
+    each node's region (:func:`map_points`), as ``design --mode auto`` ranks its candidates."""
     mapped = [c for c in candidates if c.status == "mapped"]
-    screened = [map_points(sc, c.design_options, points, lmi=False) for c in mapped]
+    screened = [map_points(sc, c.design_options, points, lmi=False, regions=regions) for c in mapped]
     out = []
     for p, point in enumerate(points):
         rows = [s[p] for s in screened]
@@ -411,7 +423,7 @@ def auto_rows(sc: Scenario, candidates: Sequence[MapCandidate], points: Sequence
             if j in confirmed or not rules.get(mapped[j].rule).stationary_certificate or \
                     rows[j]["verdict"] != "certified":
                 break
-            rows[j] = map_points(sc, mapped[j].design_options, [point])[0]  # with its LMI
+            rows[j] = map_points(sc, mapped[j].design_options, [point], regions=regions)[0]  # with its LMI
             confirmed.add(j)
         out.append({**rows[j], "rule": mapped[j].label, "better_than_local": int(_better(rows[j], local))})
     return out
@@ -648,7 +660,12 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         memory.check(need(options))
         _design_at(sc, options, {}, strict=True)  # the options' own errors: bad input, before any point
     x0, u0 = sc_eff.operating_point
-    refs = kalman_references(sc_eff.model, x0, u0)
+    # on a model with REGIONS: an automatic map ranks every candidate on the regions (as design --mode auto), a map of
+    # one rule whose nodes carry their regions judges them there (as its design); the references on the same states
+    regions = None
+    if sc_eff.regions is not None and (options.carry != "whole" if auto else opts.carry == "region"):
+        regions = sc_eff.regions
+    refs = kalman_references(sc_eff.model, x0, u0, regions)
     c_ref, l_ref = references(refs)
     parsed = [(n, _grid_values(start, stop, count)) for n, start, stop, count in specs]
     points = [dict(zip(names, map(float, combo))) for combo in itertools.product(*[v for _, v in parsed])]
@@ -660,10 +677,11 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
 
         load_kernels()  # once, before the workers are forked, rather than in every worker
     task = functools.partial(_points, ref=ref, options=opts if auto else options, points=points, local=l_ref,
-                             candidates=candidates)
+                             candidates=candidates, regions=regions if auto else None)
     config = {"study": "feasibility", "scenario": sc.name, "model": ref.digest,
               "grids": [[n, v.tolist()] for n, v in parsed], "options": opts.as_dict() if auto else options.as_dict(),
-              "params": dict(ref.params), "attacks": sc.attacks.describe()}
+              "params": dict(ref.params), "attacks": sc.attacks.describe(),
+              "ranked_on": "the whole state" if regions is None else "each node's region"}
     if auto:
         config["candidates"] = [[c.label, c.status] for c in candidates]
     mc = monte_carlo(task, runs=len(points), seed=0, chunk_size=chunk, backend=backend, store=store,
@@ -680,5 +698,6 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
                                       for c in candidates],
                        "budget": budget_record(sc_eff.network, cap, budget, budget_bytes)}
     return FeasibilityMap(sc_eff, opts, parsed, rows, mc.describe(), feasibility_invocation(sc, grids, options),
-                          references={"centralized": json_number(c_ref), "local_mean": json_number(l_ref)},
+                          references={"centralized": json_number(c_ref), "local_mean": json_number(l_ref),
+                                      "over": "the whole state" if regions is None else "each node's region"},
                           auto=auto_record)

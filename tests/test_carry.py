@@ -17,6 +17,7 @@ filter on them.
 """
 from __future__ import annotations
 
+import csv
 import json
 
 import casadi as ca
@@ -250,6 +251,56 @@ def test_a_design_carrying_regions_is_judged_on_them_with_the_whole_designs_numb
         shutil.copytree(b, copy)
         np.savez(copy / "schedule.npz", **{**arrays, **bad})
         assert main(["report", str(copy)]) == 0 and (copy / "report.md").is_file()
+
+
+@pytest.mark.slow
+def test_a_map_judges_and_ranks_nodes_carrying_regions_as_their_design_does(tmp_path):
+    """cfdesign feasibility on a model with REGIONS: a relay map's nodes carry their regions and each point is the
+    design's stationary certificate there (the map had judged the whole state: 'vacuous' where the design said
+    'certified' on a 24-buoy model); --carry whole maps the whole state; an automatic map ranks its whole-state
+    candidates on the regions too, with the references on the same states."""
+    from studies.consensus_design import consensus_design, stationary_record
+    from studies.scenarios import load_scenario
+
+    path = model_file(tmp_path)
+    grid = "dos=0.1:0.3:2"
+    assert main(["feasibility", str(path), "--mode", "relay", "--rounds", "2", "--grid", grid, "--workers", "1",
+                 "--out", str(tmp_path / "m")]) == 0
+    rows = list(csv.DictReader((tmp_path / "m" / "feasibility.csv").open()))
+    rec = json.loads((tmp_path / "m" / "feasibility.json").read_text())
+    assert rec["options"]["carry"] == "region" and rec["references"]["over"] == "each node's region"
+    sc = load_scenario(str(path))
+    for row in rows:
+        d = consensus_design(sc, mode="relay", rounds=2, dos=float(row["dos"]))  # REGIONS: carried, as design
+        assert d.carried_regions is not None
+        want = stationary_record(sc.with_attacks(dos=float(row["dos"])), d)
+        assert row["verdict"] == want["verdict"]
+        assert float(row["trace_bound"]) == pytest.approx(np.mean(want["trace"]), rel=1e-12)
+    assert main(["feasibility", str(path), "--mode", "relay", "--rounds", "2", "--grid", grid, "--carry", "whole",
+                 "--workers", "1", "--out", str(tmp_path / "w")]) == 0
+    whole = list(csv.DictReader((tmp_path / "w" / "feasibility.csv").open()))
+    assert json.loads((tmp_path / "w" / "feasibility.json").read_text())["references"]["over"] == "the whole state"
+    assert all(float(w["trace_bound"]) > float(r["trace_bound"]) for w, r in zip(whole, rows))
+    # the automatic map: every row's bound over the regions, a whole-state pick's too
+    from studies import api
+    from studies.feasibility_map import map_points
+
+    m = api.feasibility(str(path), grid, workers=1)
+    assert m.references["over"] == "each node's region"
+    assert set(m.rule.ravel()) <= {c["label"] for c in m.auto["candidates"]}
+    # a whole-state candidate (scheduled, screened without its LMI): ranked by the node average of its fixed point's
+    # trace over each node's region, judged (its verdict) on the whole state as its design is
+    from rules.scheduled.certificate import stationary_certificate
+
+    opts = DesignOptions(mode="scheduled")
+    ranked = map_points(sc, opts, [{"dos": 0.1}], lmi=False, regions=sc.regions)[0]
+    plain = map_points(sc, opts, [{"dos": 0.1}], lmi=False)[0]
+    assert plain["feasible"] and ranked["verdict"] == plain["verdict"] == "certified"  # the premise: a fixed point
+    d = consensus_design(sc, opts, dos=0.1)
+    cert = stationary_certificate(sc.model, sc.with_attacks(dos=0.1).network, d, x=sc.operating_point[0], lmi=False)
+    by_hand = np.mean([np.trace(cert.Phi[i][np.ix_(r, r)]) for i, r in enumerate(sc.regions)])
+    assert ranked["trace_bound"] == pytest.approx(by_hand, rel=1e-9)
+    assert plain["trace_bound"] == pytest.approx(np.mean(np.trace(cert.Phi, axis1=-2, axis2=-1)), rel=1e-9)
 
 
 def test_carry_region_needs_regions_and_a_rule_that_may_and_exits_2(tmp_path, capsys):

@@ -76,8 +76,8 @@ def test_a_pick_the_lmi_refuses_gives_way_to_the_next(monkeypatch, auto_map, per
     _, fmap = auto_map
     real = fm.stationary_record
 
-    def refusing(sc, design, *, lmi=True):
-        rec = real(sc, design, lmi=lmi)
+    def refusing(sc, design, *, lmi=True, regions=None):
+        rec = real(sc, design, lmi=lmi, regions=regions)
         if lmi and design.rule.name in ("relay", "flood"):
             return {**rec, "verdict": "infeasible", "converged": False,
                     "reason": "the stationary LMI does not confirm the fixed point"}

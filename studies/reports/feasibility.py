@@ -238,13 +238,17 @@ def _candidates_lines(meta: Mapping) -> list[str]:
     ref = [f"{w} {fmt_num(refs[k])}" for k, w in (("centralized", "the centralized EKF's"),
                                                   ("local_mean", "the local EKFs' (node average)"))
            if is_num(refs.get(k))]
+    # a model with REGIONS: the candidates ranked on the regions (studies.feasibility_map.run_feasibility)
+    over = ", over each node's region, where the candidates are ranked" if refs.get("over") == "each node's region" \
+        else ""
     body = [[md_cell(c.get("label")), str(c.get("messages_per_step")), str(c.get("bytes_per_step")),
              md_cell(c.get("status") if not c.get("reason") else f"{c.get('status')}: {c.get('reason')}"),
              str(c.get("picked_points"))] for c in cands if isinstance(c, Mapping)]
     return (["The candidates (" + (f"budget: {', '.join(caps)} per step" if caps else "no budget") + "):", "",
              *md_table(["candidate", "messages / step", "bytes / step", "status", "picked at"], body,
                        ["l", "r", "r", "l", "r"])]
-            + ([f"The references (steady-state tr P at the operating point): {'; '.join(ref)}.", ""] if ref else []))
+            + ([f"The references (steady-state tr P at the operating point{over}): {'; '.join(ref)}.", ""]
+               if ref else []))
 
 
 def _result_section(rows: Sequence[Mapping]) -> list[str]:
