@@ -402,6 +402,33 @@ def test_the_accelerated_stationary_certificate_is_the_plain_recursions_fixed_po
 
 
 @pytest.mark.slow
+def test_the_stationary_lmi_is_left_unsolved_beyond_its_coefficients_with_the_reason(monkeypatch):
+    """The LMI's cost follows the coefficients of T̄ X T̄ᵀ (nnz(T̄)²), not N n alone: an 8-node ring of 8 coupled states
+    (N n = 64) held 10 GB for minutes in the solver.  Up to LMI_MAX_TERMS it is solved; one beyond, the fixed point
+    stands without it and its status says why."""
+    import rules.scheduled.certificate as cert_mod
+    from designer.joint import as_difference, joint_prior
+    from rules.scheduled.design import prepare, stationary_gains, transition_matrix
+
+    sc = linear_ring(n_nodes=4, fdi=0.1, dos=0.3, steps=10)
+    des = _scheduled(sc)
+    first = cert_mod.stationary_certificate(sc.model, sc.network, des, x=sc.model.prior.mean, lmi=False)
+    assert first.converged
+    st = prepare(sc.model, sc.network, des, True, None)[0]
+    _, rule, *_ = stationary_gains(st, as_difference(joint_prior(sc.model.prior.cov, 4)),
+                                   np.broadcast_to(sc.model.F_expected(sc.model.prior.mean, 0, None), (4, 2, 2)),
+                                   sc.model.prior.mean, 1, None)
+    terms = np.count_nonzero(transition_matrix(rule, st.ch).toarray()) ** 2
+    monkeypatch.setattr(cert_mod, "LMI_MAX_TERMS", terms)
+    solved = cert_mod.stationary_certificate(sc.model, sc.network, des, x=sc.model.prior.mean)
+    assert solved.lmi["status"] == "optimal"
+    monkeypatch.setattr(cert_mod, "LMI_MAX_TERMS", terms - 1)
+    left = cert_mod.stationary_certificate(sc.model, sc.network, des, x=sc.model.prior.mean)
+    assert left.converged and left.lmi["status"] == "not solved" and f"{terms:.3g} coefficients" in left.lmi["reason"]
+    np.testing.assert_array_equal(left.Phi, solved.Phi)
+
+
+@pytest.mark.slow
 def test_stationary_certificate_says_when_the_bound_grows():
     """An unstable plant seen by nobody useful: the stationary recursion cannot settle."""
     import casadi as ca

@@ -21,13 +21,13 @@ from designer.stationary import StationaryCertificate
 from designer.verdict import NOT_COMPUTED
 
 from .nodewise import nodewise_predict, nodewise_stationary, nodewise_update
-from .design import (CERTIFICATE_MAX_DIM, Channels, blocks_of, diag_blocks, expected_certificate_update, falsification_moment,
-                     falsification_parts, measurement_noise, prepare, remainder_reach, scaled_remainders,
-                     stationary_gains, to_dense, transition_matrix, update_structure)
+from .design import (CERTIFICATE_MAX_DIM, Channels, blocks_of, diag_blocks, expected_certificate_update,
+                     falsification_moment, falsification_parts, measurement_noise, prepare, remainder_reach,
+                     scaled_remainders, stationary_gains, to_dense, transition_matrix, update_structure)
 
 __all__ = ["stationary_certificate", "STATIONARY_CERT_MAX", "STATIONARY_GROWTH", "STATIONARY_CERT_TOL",
            "STATIONARY_CERT_MEMORY",
-           "LMI_MAX_DIM"]
+           "LMI_MAX_DIM", "LMI_MAX_TERMS"]
 
 #: Iterations of the stationary bound recursion before it counts as not converging.
 STATIONARY_CERT_MAX = 1000
@@ -42,6 +42,12 @@ STATIONARY_CERT_TOL = 1e-9
 STATIONARY_CERT_MEMORY = 5
 #: The largest N n for which the stationary LMI is solved (cvxpy + Clarabel; three N n x N n variables).
 LMI_MAX_DIM = 160
+#: The most coefficients of ``T̄ X T̄ᵀ`` (``nnz(T̄)²``) for which the stationary LMI is solved: the solver's cost
+#: follows them, not N n alone.  Measured (2 cores): a 32-node ring of 2 states (N n = 64, nnz(T̄)² = 1.5e5) 14 s and
+#: 1.1 GB; an 8-node ring of 8 coupled states (N n = 64 too, 2.8e6) had not finished after 5 minutes and held 10 GB.
+#: An assumption, chosen from those: 2e5 (about 20 s).  Beyond, the fixed point stands without the LMI's
+#: confirmation (its status says why).
+LMI_MAX_TERMS = 200_000
 
 
 def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exchange: bool = True,
@@ -169,6 +175,10 @@ def _stationary_lmi(Phi_fp: np.ndarray, rule, ch: Channels, F, U, V, Vn, st, eps
     W2 = to_dense(measurement_noise(rule, ch, N) + falsification_moment(rule, ch, st.M, st.mu, N)) \
         + (to_dense(diag_blocks(KVV, N)) / beta if beta > 0 else 0.0)
     T = transition_matrix(rule, ch).toarray()
+    terms = np.count_nonzero(T) ** 2
+    if terms > LMI_MAX_TERMS:
+        return {"status": "not solved", "reason": f"T X T^T has {terms:.3g} coefficients > {LMI_MAX_TERMS:.3g} (the "
+                f"solver's time and memory grow with them)", "trace": None, "max_residual": None}
     Bs, ws = [], []
     for e in range(ch.receiver.size):  # B_e X B_eᵀ: B_e = -W_e on the receiver's own error, +C_e on the sender's
         if ch.p[e] * (1 - ch.p[e]) <= 0:
