@@ -63,8 +63,8 @@ import rules
 from designer.design import DesignOptions, make_design
 from designer.feasibility import steady_state, steady_state_batch
 from designer.linearization import prediction_scaling, update_scaling
-from designer.validation import ComputationError, InputError, check_strings
 from designer.regions import region_traces
+from designer.validation import ComputationError, InputError, check_strings
 from designer.verdict import VERDICT_ASSUMPTIONS, count_verdicts, json_number, open_loop_reference, verdict
 
 import studies.memory as memory
