@@ -398,7 +398,8 @@ def feasibility(scenario, grid: str | Sequence[str], *, mode: str | None = None,
     robustness, rounds, bank, table_kind, carry, options
         The same design options as :func:`design`, with the same defaults: on a model with ``REGIONS`` the relay
         and flood nodes carry their regions and are judged on them, as their designs are (``carry='whole'``: the
-        whole state), and the automatic map ranks every candidate on the regions, as ``design`` does.
+        whole state), and the automatic map ranks every candidate on the regions, whatever its nodes carry, as
+        ``design`` does.
     workers, dask, dask_security, backend
         Where the chunks of grid points run (the map does not depend on it; default: a worker process per usable
         core, :func:`studies.runner.every_core`); ``dask_security``: a

@@ -660,10 +660,11 @@ def run_feasibility(sc: Scenario, grids: Sequence[str], options: DesignOptions |
         memory.check(need(options))
         _design_at(sc, options, {}, strict=True)  # the options' own errors: bad input, before any point
     x0, u0 = sc_eff.operating_point
-    # on a model with REGIONS: an automatic map ranks every candidate on the regions (as design --mode auto), a map of
-    # one rule whose nodes carry their regions judges them there (as its design); the references on the same states
+    # on a model with REGIONS: an automatic map ranks every candidate on the regions, whatever its nodes carry (as
+    # design --mode auto), a map of one rule whose nodes carry their regions judges them there (as its design); the
+    # references on the same states
     regions = None
-    if sc_eff.regions is not None and (options.carry != "whole" if auto else opts.carry == "region"):
+    if sc_eff.regions is not None and (auto or opts.carry == "region"):
         regions = sc_eff.regions
     refs = kalman_references(sc_eff.model, x0, u0, regions)
     c_ref, l_ref = references(refs)

@@ -287,6 +287,8 @@ def test_a_map_judges_and_ranks_nodes_carrying_regions_as_their_design_does(tmp_
 
     m = api.feasibility(str(path), grid, workers=1)
     assert m.references["over"] == "each node's region"
+    # whatever its nodes carry, as design --mode auto ranks its candidates
+    assert api.feasibility(str(path), grid, workers=1, carry="whole").references["over"] == "each node's region"
     assert set(m.rule.ravel()) <= {c["label"] for c in m.auto["candidates"]}
     # a whole-state candidate (scheduled, screened without its LMI): ranked by the node average of its fixed point's
     # trace over each node's region, judged (its verdict) on the whole state as its design is
