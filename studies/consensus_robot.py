@@ -448,7 +448,7 @@ def _decode(codes: np.ndarray) -> str:
 
 def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions, replay: tuple | None,
           hcmci_iterations: int = HCMCI_ITERATIONS, divergence_spread: float = DIVERGENCE_SPREAD,
-          paper_reference: bool = True, whole: bool = True) -> dict:
+          paper_reference: bool = True, whole: bool = True, share: tuple[int, int] | None = None) -> dict:
     """Task of the runner: every variant on the runs ``run_ids``; per-run arrays (first axis: the run).
 
     Keys: ``truth`` (R, K + 1, n_x), and for variant ``j`` (in the order of :func:`_variants`) ``v{j}_err`` (R, K + 1,
@@ -461,16 +461,21 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
     violation (-1: none), and ``v{j}_diverged`` (R,) with ``v{j}_diverged_node``, ``v{j}_diverged_step`` and
     ``v{j}_diverged_reason`` (R, REASON_BYTES) UTF-8 codes.  Without ``whole`` (:func:`studies.results.whole_bounds`:
     a study of fewer runs than the per-pair test needs) the designed filters keep their bounds' diagonals alone, and
-    a variant's
-    arrays are ``v{j}_trace`` and ``v{j}_judged`` (no whitened errors, no sum of the bounds).
+    a variant's arrays are ``v{j}_trace`` and ``v{j}_judged`` (no whitened errors, no sum of the bounds).
+
+    ``share`` ``(k, s)``: the variants of share k of s alone (:func:`shared_out`), with the runs' truth (the runner
+    merges a chunk's shares, :func:`studies.runner.monte_carlo`).
     """
     sc, paper, variants = _build(ref, mode, options, replay, paper_reference)
+    mine = shared_out(len(variants), share)
     m, net = sc.model, sc.network
     steps, nx = sc.steps, m.n_x
     signal = sc.resolved_attacks.signal
     R = len(run_ids)
     out = {"truth": np.empty((R, steps + 1, nx))}
     for j, v in enumerate(variants.values()):
+        if j not in mine:
+            continue
         n = v.entry.nodes(net)
         out.update({f"v{j}_err": np.full((R, steps + 1, n, nx), np.nan),
                     f"v{j}_valid": np.zeros((R, steps + 1, n), bool),
@@ -495,8 +500,8 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                   covariances=False,  # the filters that are not designed are scored on their estimates alone
                   variances=not whole)  # the designed ones on their bounds' diagonals where no test reads more
     for j, v in enumerate(variants.values()):
-        if v.infeasible is not None:  # cannot start: its arrays keep their defaults, the summary says why
-            continue
+        if j not in mine or v.infeasible is not None:  # another share's, or cannot start (its arrays keep their
+            continue  # defaults, the summary says why)
         t = time.perf_counter()
         res = v.entry.run(batch, [0], v.design)  # every run of the chunk at once (its wall time shared by them)
         out[f"v{j}_seconds"][:] = (time.perf_counter() - t) / R if res.seconds is None else res.seconds
@@ -532,6 +537,19 @@ def _runs(run_ids, seeds, *, ref: ScenarioRef, mode: str, options: DesignOptions
                             f"{SUMMED}v{j}_phi": phi})  # the runner keeps their sum over the runs
         del res
     return out
+
+
+def shared_out(count: int, share: tuple[int, int] | None) -> set[int]:
+    """The variants (indices of :func:`_variants`' ``count``) that share ``(k, s)`` of a chunk runs (None: all):
+    dealt out in their order, which runs the dearest first (the designed filters, the literature's distributed ones,
+    then the local and the centralized EKFs), back and forth (0, 1, .., s-1, s-1, .., 0, 0, 1, ..) so that each
+    share gets some of the dear and some of the cheap (a 118-bus grid's validation, 2 shares: the flood design with
+    the local and the centralized EKFs, then KCF with HCMCI)."""
+    if share is None:
+        return set(range(count))
+    k, s = share
+    order = [j % s if (j // s) % 2 == 0 else s - 1 - j % s for j in range(count)]
+    return {j for j in range(count) if order[j] == k}
 
 
 def chunk_size(sc: Scenario, runs: int) -> int:
@@ -610,7 +628,7 @@ def _plan(sc: Scenario, so: StudyOptions) -> Plan:
               "bounds": "whole" if whole_bounds(so.runs) else "diagonals",
               "schedule": None if replay is None else {
                   "mode": replay[0], "sha256": hashlib.sha256(replay[1].tobytes() + replay[2].tobytes()).hexdigest()}}
-    return Plan(task, "consensus-robot", config)
+    return Plan(task, "consensus-robot", config, shares=len(variants))
 
 
 def _carried_metrics(sc, e, v, err, st, ok, carried, time_per_step, failed, runs, verdicts, bounded_runs, so,

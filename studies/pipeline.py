@@ -91,6 +91,7 @@ class Plan:
     config: Mapping[str, Any]
     runs: int | None = None  # default: the study's runs
     before: Callable[[], None] | None = None  # run in the parent first (not for Dask)
+    shares: int = 1  # into how many shares the task can cut a chunk (studies.runner.monte_carlo's shares)
 
 
 @dataclass(frozen=True)
@@ -370,7 +371,7 @@ def _compute(study: Study, name: str, scenarios, *, out, runs, particles, seed, 
         # the stored runs are those of this model's content (Scenario.digest), wherever its file lies
         mc = monte_carlo(plan.task, runs=plan.runs or so.runs, seed=seed, chunk_size=so.chunk_size, backend=backend,
                          store=out, label=plan.label, config={**plan.config, "model": sc.digest}, force=force,
-                         quiet=quiet)
+                         quiet=quiet, shares=plan.shares)
         blocks[sc.name] = study.summarise(sc, mc, so)
         arrays[sc.name], built[sc.name] = mc.arrays, sc
     body = study.combine(blocks) if study.combine is not None else next(iter(blocks.values()))

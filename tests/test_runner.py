@@ -396,3 +396,55 @@ def test_a_ctrl_c_while_waiting_for_the_background_is_the_ctrl_c(monkeypatch):
     monkeypatch.undo()
     with pytest.raises(ChildProcessError):
         os.waitpid(child, os.WNOHANG)
+
+
+def shared_task(run_ids, seeds, *, share=None, disagree=False):
+    """:func:`toy_task`'s two outputs, as two shares: share 0 computes ``x``, share 1 ``run``; both the runs' ``truth``
+    (its first normal, drawn again), different in share 1 with ``disagree``."""
+    whole = toy_task(run_ids, seeds)
+    truth = whole["x"][:, 0] + (1.0 if disagree and share == (1, 2) else 0.0)
+    if share is None:
+        return {**whole, "truth": truth}
+    k, s = share
+    assert s == 2, "the runner cuts 3 chunks on 2 workers into 2 shares"
+    return {"truth": truth, **({"x": whole["x"]} if k == 0 else {"run": whole["run"]})}
+
+
+def test_split_into_makes_the_pieces_of_work_a_multiple_of_the_workers():
+    from studies.runner import split_into
+
+    assert [split_into(5, c, 2) for c in (1, 2, 3, 4, 5)] == [2, 1, 2, 1, 2]  # odd chunks on 2 workers: 2 shares
+    assert [split_into(5, c, 4) for c in (1, 2, 3, 4, 6)] == [4, 2, 4, 1, 2]
+    assert split_into(1, 3, 2) == 1 and split_into(5, 3, 1) == 1  # a task that cannot cut; one worker
+    for shares in (1, 2, 3, 8):
+        for workers in (2, 3, 4):
+            for chunks in range(1, 12):
+                s = split_into(shares, chunks, workers)
+                assert 1 <= s <= shares
+                if s == workers // np.gcd(chunks, workers):  # not capped by shares: the pieces fill the workers
+                    assert (chunks * s) % workers == 0
+
+
+def test_shares_of_a_chunk_merge_to_the_whole_chunks_bits():
+    kw = dict(runs=11, seed=7, chunk_size=4)  # 3 chunks on 2 workers: each cut in 2 shares
+    whole = monte_carlo(shared_task, **kw).arrays
+    cut = monte_carlo(shared_task, backend=Backend("processes", workers=2), shares=2, **kw).arrays
+    assert cut.keys() == whole.keys() == {"x", "run", "truth"}
+    for k in whole:
+        assert np.array_equal(cut[k], whole[k]), k
+    assert np.array_equal(cut["x"], reference(11, 7))
+    with pytest.raises(ComputationError, match="shares of runs .* return different 'truth'"):
+        monte_carlo(functools.partial(shared_task, disagree=True), backend=Backend("processes", workers=2),
+                    shares=2, **kw)
+
+
+def test_consensus_robot_deals_its_filters_out_to_the_shares_once_each():
+    from studies.consensus_robot import shared_out
+
+    assert shared_out(5, None) == set(range(5))
+    assert shared_out(5, (0, 2)) == {0, 3, 4} and shared_out(5, (1, 2)) == {1, 2}  # back and forth: 0 1 1 0 0
+    for count in range(1, 9):
+        for s in range(1, 6):
+            parts = [shared_out(count, (k, s)) for k in range(s)]
+            assert set().union(*parts) == set(range(count)) and sum(map(len, parts)) == count  # each once
+            assert max(map(len, parts)) - min(map(len, parts)) <= 1

@@ -72,6 +72,9 @@ def test_consensus_robot_same_numbers_with_every_backend(tmp_path, cluster, few_
     c = run_consensus_robot(out=tmp_path / "c", backend=make_backend(dask=cluster.scheduler_address), **CR)
     assert _numbers(a) == _numbers(b) == _numbers(c)
     assert a["runner"]["chunks"] == 3 and b["runner"]["workers"] == 2 and c["runner"]["backend"] == "dask"
+    # the 3 chunks on 2 workers each in 2 shares (studies.runner.split_into): the filters of a chunk split between
+    # the workers, the same numbers
+    assert a["runner"]["shares"] == 1 and b["runner"]["shares"] == 2 and c["runner"]["shares"] == 1
     assert _numbers(json.loads((tmp_path / "c" / "results.json").read_text())) == _numbers(a)
     checked = [f["bound_check"] for f in a["filters"].values() if f["bound_check"]]
     assert checked and all(bc["pairs_checked"] > 0 for bc in checked)
