@@ -499,7 +499,7 @@ def code_fingerprint() -> str:
 
 
 @contextlib.contextmanager
-def replaced_outputs(directory, *, keep_others: bool = False) -> Iterator[Path]:
+def replaced_outputs(directory, *, keep_others: bool = False, retire=()) -> Iterator[Path]:
     """Yield a staging directory inside ``directory``; on success its files replace the last outputs.
 
     The directory's one-writer lock is held throughout (:func:`output_lock`; at once if this
@@ -513,7 +513,8 @@ def replaced_outputs(directory, *, keep_others: bool = False) -> Iterator[Path]:
 
     ``keep_others``: the new files are added to the last outputs instead (``cfdesign report``:
     the directory's report is rebuilt, its results kept) and replace files of their names whoever
-    wrote them (the user asked for this directory's report).
+    wrote them (the user asked for this directory's report); of the last outputs, those named in ``retire`` (the
+    report's own figures) that the new files do not have are removed all the same.
     """
     directory = check_path("out", directory)
     with output_lock(directory, replaces=() if keep_others else REPORT_NAMES):
@@ -526,15 +527,15 @@ def replaced_outputs(directory, *, keep_others: bool = False) -> Iterator[Path]:
                 if name is not None and Path(name).parent == stage:
                     raise _naming(exc, directory / Path(name).name) from exc
                 raise
-            _commit(directory, stage, keep_others)
+            _commit(directory, stage, keep_others, frozenset(retire))
         finally:
             shutil.rmtree(stage, ignore_errors=True)
 
 
-def _commit(directory: Path, stage: Path, keep_others: bool) -> None:
+def _commit(directory: Path, stage: Path, keep_others: bool, retire: frozenset = frozenset()) -> None:
     old = _listed(directory)
     new = sorted(p.name for p in stage.iterdir())
-    gone = [] if keep_others else sorted(n for n in old - set(new) if _is_output(n))
+    gone = sorted(n for n in old - set(new) if _is_output(n) and (not keep_others or n in retire))
     for n in new + gone:  # everything checked before anything changes
         target = directory / n
         try:
@@ -557,7 +558,7 @@ def _commit(directory: Path, stage: Path, keep_others: bool) -> None:
                 os.unlink(target)
     for n in new:
         os.replace(stage / n, directory / n)
-    write_json(directory / OUTPUTS_NAME, {"files": sorted(old | set(new)) if keep_others else new})
+    write_json(directory / OUTPUTS_NAME, {"files": sorted((old - set(gone)) | set(new)) if keep_others else new})
 
 
 def check_json_finite(data: Any, name: str) -> None:

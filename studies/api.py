@@ -530,12 +530,14 @@ def report(directory: str | Path) -> tuple[Path, Path]:
     feasibility map's (``feasibility.csv``).  The commands write their reports already; this
     rebuilds them, e.g. after editing the output or for results of an older version.  It holds
     the directory's one-writer lock (a directory another command is writing is refused, naming
-    it) and replaces the report's files as a whole (:func:`designer.fileio.replaced_outputs`).
+    it) and replaces the report's files as a whole (:func:`designer.fileio.replaced_outputs`), a figure the
+    report drew before and no longer draws included (:func:`studies.reports.report_figures`).
     """
-    from .reports import check_directory, write_report
+    from .reports import check_directory, report_figures, write_report
 
     d = check_directory(directory)
-    with writing(d, name="directory", replaces=()), replaced_outputs(d, keep_others=True) as stage:
+    with writing(d, name="directory", replaces=()), replaced_outputs(d, keep_others=True,
+                                                                     retire=report_figures(d)) as stage:
         write_report(d, into=stage)
     return d / "report.html", d / "report.md"
 

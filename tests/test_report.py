@@ -1127,3 +1127,29 @@ def test_design_and_map_reports_open_with_a_summary(designs, maps):
         assert len(rows) == min(len(ok), 6) and (not ok or f"{ok[0]:.4g}" in rows[0])
         if len(fmap.grids) <= 2:
             assert "](feasibility.png)" in summary
+
+
+def test_the_report_again_retires_a_figure_it_no_longer_draws_and_keeps_the_rest(tmp_path):
+    """``cfdesign report`` on an older design directory: a figure the design report drew then (an empty margins
+    figure of a relay design, whose bound has no (28)-(29)) and no longer draws is removed with the new report; the
+    results, the figures it draws and a user's own file stay."""
+    import studies
+    from designer.fileio import OUTPUTS_NAME
+
+    d = tmp_path / "relay"
+    studies.design("indoor-robot", mode="relay", out=d)
+    assert (d / "fig_trace_bound.png").is_file() and not (d / "fig_margins.png").exists()
+    (d / "fig_margins.png").write_bytes(b"\x89PNG an older version's")  # as an older version left it, listed
+    listed = json.loads((d / OUTPUTS_NAME).read_text())
+    (d / OUTPUTS_NAME).write_text(json.dumps({"files": sorted(listed["files"] + ["fig_margins.png"])}))
+    (d / "notes.txt").write_text("mine")
+    npz = (d / "schedule.npz").read_bytes()
+    studies.report(d)
+    assert not (d / "fig_margins.png").exists()
+    assert "fig_margins.png" not in json.loads((d / OUTPUTS_NAME).read_text())["files"]
+    assert (d / "fig_trace_bound.png").is_file() and (d / "report.html").is_file()
+    assert (d / "schedule.npz").read_bytes() == npz and (d / "notes.txt").read_text() == "mine"
+    p = tmp_path / "paper"  # a report that draws its margins keeps them
+    studies.design("indoor-robot", mode="paper", out=p)
+    studies.report(p)
+    assert (p / "fig_margins.png").is_file() and "fig_margins.png" in json.loads((p / OUTPUTS_NAME).read_text())["files"]

@@ -30,12 +30,26 @@ from designer.validation import InputError
 from .render import markdown_to_html
 from .study import render_markdown
 
-__all__ = ["write_report", "check_directory", "render_markdown", "markdown_to_html"]
+__all__ = ["write_report", "check_directory", "report_figures", "render_markdown", "markdown_to_html"]
 
 # what a directory must hold for each kind of report, in the order they are looked for
 KINDS = (("results.json", "a study's, from `cfdesign study STUDY --out DIR`"),
          ("schedule.json", "a design's, from `cfdesign design SCENARIO --out DIR`"),
          ("feasibility.csv", "a feasibility map's, from `cfdesign feasibility SCENARIO --grid ... --out DIR`"))
+
+
+def report_figures(directory) -> tuple[str, ...]:
+    """The figures the report of ``directory`` draws itself and so owns, whether this report draws them or not: a
+    design's (its bound, its margins, its candidates), which :func:`studies.api.report` removes where the report no
+    longer draws them (a relay design has no margins: an older version's empty figure would stay beside the new
+    report); none for a study's or a map's report, whose figures may come from the command that computed them."""
+    d = Path(directory)
+    if not (d / "results.json").is_file() and (d / "schedule.json").is_file():
+        from .auto import CANDIDATES_FIGURE
+        from .design import FIGURES
+
+        return (*FIGURES, CANDIDATES_FIGURE)
+    return ()
 
 
 def check_directory(directory) -> Path:
