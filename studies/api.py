@@ -556,7 +556,8 @@ class FilterRun:
     ``messages`` (K,): transmissions per step; ``truth`` (K + 1, n_x) when the log holds it; ``design``: the gain
     rule and options of the design it ran with; ``carried`` (nodes, m): when the nodes carry their regions
     (``--carry region``), each node's carried states (``cov`` in their coordinates, ``x_hat`` NaN elsewhere), and
-    the RMSE is then over each node's region.
+    the RMSE is then over each node's region; ``regions``: each node's region (those its nodes carry, else the
+    model's ``REGIONS``; None without), on which :meth:`rmse_region` scores every filter, as the studies do.
     """
 
     scenario: Scenario
@@ -573,7 +574,7 @@ class FilterRun:
     log: str
     design: dict | None
     carried: np.ndarray | None = None
-    regions: tuple | None = None  # with carried: each node's region (the states it answers for)
+    regions: tuple | None = None  # each node's region (the states it answers for), where the model declares them
 
     @property
     def diverged(self) -> dict | None:
@@ -595,6 +596,15 @@ class FilterRun:
         m = self.scenario.model
         idx = list(m.position_index) or list(range(m.n_x))
         return float(np.sqrt((e[1:][..., idx] ** 2).sum(-1).mean()))
+
+    def rmse_region(self) -> float | None:
+        """RMSE of each node's error on its region (:func:`designer.regions.region_error2`) over steps 1..K and the
+        nodes, as the studies' ``rmse_region`` scores every filter of a model with ``REGIONS`` (a centralized
+        filter's one estimate on every node's region); None without truth or regions."""
+        e = self.errors()
+        if e is None or self.regions is None:
+            return None
+        return float(np.sqrt(region_error2(e[1:], self.regions).mean()))
 
     def per_node(self) -> dict[str, np.ndarray] | None:
         """Each node's errors against the log's truth (None without truth): ``rmse`` (nodes,) of the position (or
@@ -726,7 +736,7 @@ def filter(scenario, data, *, filter: str | None = None, schedule: str | Path | 
             verdict = bound_verdicts(sc, res.cov, res.valid, [ok], design, res.carried)[0].verdict
         done = FilterRun(sc, entry.name, res.runtime, res.x[0], None if res.cov is None else res.cov[0],
                          res.cov_kind, res.valid[0], res.violations[0], verdict, res.messages[0], log.x, log.source,
-                         design_meta, res.carried, None if res.carried is None else design.carried_regions)
+                         design_meta, res.carried, design.carried_regions if res.carried is not None else sc.regions)
         if out is not None:
             done.save(out)
     return done

@@ -235,11 +235,18 @@ def filter_cmd(scenario, data, name, schedule, seed, run, particles, iterations,
     res = filter_log(scenario, data, filter=name, schedule=schedule, seed=seed, run=run, particles=particles,
                      iterations=iterations, out=out, assignments=assignments)
     K1, nodes, _ = res.x_hat.shape
-    rmse = res.rmse()
+    rmse, region = res.rmse(), res.rmse_region()
+    if rmse is None:
+        score = ""
+    elif res.carried is not None:  # its nodes estimate their regions alone
+        score = f", RMSE {rmse:.4g} against the log's truth on each node's region"
+    elif region is not None:  # on the regions first, as the studies and a design's validation score it
+        whole = "the position" if res.scenario.model.position_index else "the whole state"
+        score = f", RMSE {region:.4g} against the log's truth on each node's region ({rmse:.4g} over {whole})"
+    else:
+        score = f", RMSE {rmse:.4g} against the log's truth"
     click.echo(f"wrote {out}/estimates.npz, estimates.csv and report.md: {res.name}, {K1 - 1} steps, {nodes} "
-               f"estimate{'s' if nodes > 1 else ''}, runtime {res.runtime}"
-               + ("" if rmse is None else f", RMSE {rmse:.4g} against the log's truth"
-                  + (" on each node's region" if res.carried is not None else ""))
+               f"estimate{'s' if nodes > 1 else ''}, runtime {res.runtime}{score}"
                + ("" if res.verdict is None else f", bound {res.verdict}"))
     if res.diverged is not None:
         raise ComputationError(f"filter {res.name!r} diverged at step {res.diverged['step']} (estimates written)")

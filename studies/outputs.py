@@ -240,8 +240,13 @@ def filter_report(run, directory: Path) -> None:
         lines += [f"**Diverged** at step {d['step']} (node {d['node']}): {d.get('reason', '')}; the estimates after "
                   "it are not numbers.", ""]
     if rmse is not None:
-        over = "each node on its region, which it carries" if run.carried is not None else "position"
+        over = "each node on its region, which it carries" if run.carried is not None else \
+            "position" if run.scenario.model.position_index else "the whole state"
         lines += [f"RMSE against the log's truth ({over}, over steps 1..K and the nodes): {rmse:.4g}.", ""]
+        region = None if run.carried is not None else run.rmse_region()
+        if region is not None:  # the model's REGIONS: as the studies and a design's validation score every filter
+            lines += [f"On each node's region (the model's `REGIONS`, over steps 1..K and the nodes): {region:.4g}.",
+                      ""]
         per = run.per_node()
         what = "bound" if key == "Phi" else "believed covariance"
         lines += [f"Per node: its RMSE and the mean over the steps of its squared error over the trace of its {what} "

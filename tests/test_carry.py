@@ -18,6 +18,7 @@ filter on them.
 from __future__ import annotations
 
 import csv
+import re
 import json
 
 import casadi as ca
@@ -403,3 +404,25 @@ def test_the_automatic_designs_validation_line_says_whether_the_picks_bound_held
     assert f"its bound {check['verdict']} on these runs" in line
     if check["verdict"] == "violated":
         assert check["verdict_reason"] in line
+
+
+@pytest.mark.slow
+def test_a_whole_state_filter_on_a_log_is_scored_on_the_regions_too(tmp_path, capsys):
+    """``cfdesign filter --filter kcf`` on a model with REGIONS says its RMSE on each node's region first, as the
+    studies and a design's validation score every filter (it had said the whole state's alone, beside a carried
+    design's regional one): the number from the written estimates and the truth, by hand; the whole state's after."""
+    path = model_file(tmp_path, regions="REGIONS = [[i, (i + 1) % N] for i in range(N)]")
+    log, out = tmp_path / "log.npz", tmp_path / "kcf"
+    assert main(["simulate", str(path), "--seed", "2", "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["filter", str(path), "--data", str(log), "--filter", "kcf", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    with np.load(out / "estimates.npz") as d:
+        e = d["x"][1:, None, :] - d["x_hat"][1:]  # (K, N, n)
+    region = np.sqrt(np.mean([[e[k, i, i] ** 2 + e[k, i, (i + 1) % N] ** 2 for i in range(N)]
+                              for k in range(e.shape[0])]))
+    whole = np.sqrt(np.mean(np.sum(e ** 2, axis=-1)))
+    m = re.search(r"RMSE (\S+) against the log's truth on each node's region \((\S+) over the whole state\)", said)
+    assert m, said
+    assert float(m.group(1)) == pytest.approx(region, rel=1e-3) and float(m.group(2)) == pytest.approx(whole, rel=1e-3)
+    assert "On each node's region (the model's `REGIONS`" in (out / "report.md").read_text()
