@@ -479,6 +479,8 @@ def study_cmd(study, targets, out, scenarios, runs, particles, seed, workers, da
                f"{r['wall_time_s']:.1f} s; {done} chunks computed, {reused} reused)")
     for name, f in r["filters"].items():
         click.echo(f"  {name}: {_summary(f)}")
+    for name, why in (r.get("left_out") or {}).items():  # not run, and why: said here, not in the report alone
+        click.echo(f"  {name}: left out: {why}")
 
 
 def _summary(f: dict) -> str:

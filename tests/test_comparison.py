@@ -495,11 +495,11 @@ def model() -> Model:
 '''
 
 
-def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_at_size(tmp_path):
+def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_at_size(tmp_path, capsys):
     """On a 15-node, 15-state rod (N n = 225 > JOINT_ROWS_DEFAULT) the default comparison leaves out exactly the
-    filters of the gain rules that carry all nodes' joint covariance, says why in results.json (left_out) and in its
-    assumptions, and does not count their designs in its memory estimate; named in --filters, such a filter runs.
-    On the robot (N n = 24) nothing is left out."""
+    filters of the gain rules that carry all nodes' joint covariance, says why in results.json (left_out), in its
+    assumptions and on the command line, and does not count their designs in its memory estimate; named in
+    --filters, such a filter runs.  On the robot (N n = 24) nothing is left out."""
     import rules
     from designer.design import DesignOptions
     from studies import memory
@@ -549,9 +549,14 @@ def test_an_oracle_carrying_the_joint_covariance_is_left_out_of_the_default_set_
     kw = dict(scenarios=[str(path)], runs=2, particles=20, sweep_values=[0.1], quiet=True)
     named_run = run_comparison(filters="kcf", **kw)  # named: nothing is left out
     assert named_run["left_out"] == {}
-    res = run_comparison(out=tmp_path / "d", **kw)
+    capsys.readouterr()  # the command line, as run_comparison's options: what it runs and what it says
+    assert main(["study", "comparison", str(path), "--runs", "2", "--particles", "20", "--set", "sweep_values=[0.1]",
+                 "--set", "tuned_in_sweeps=false", "--quiet", "--out", str(tmp_path / "d")]) == 0
+    told = capsys.readouterr().out
+    res = json.loads((tmp_path / "d" / "results.json").read_text())
     pfs = {e.name for e in FILTER_REGISTRY if e.particles}  # 20 particles on 15 precise cells: degenerate in the pilot
     assert set(res["left_out"]) == joint | pfs and not set(res["filters"]) & (joint | pfs)
+    assert all(f"  {n}: left out: {res['left_out'][n]}\n" in told for n in joint | pfs), told
     said = (tmp_path / "d" / "table.md").read_text().split("Left out of the default filters")[1]
     assert all(f"{n}: {res['left_out'][n]}" in said for n in joint | pfs)
     assert any("left out of the default filters" in a for a in res["assumptions"])
