@@ -52,7 +52,8 @@ class _Sink:
         """A line: the phases, ``where``, the seconds since the command started; with ``count`` ``(what, k, total)``
         ``what k/total`` and, once the count has advanced since its first line, the time left (``about 7 min
         left``): the remaining items at the rate from its first line to its last advance, less the time since that
-        advance (never below 0: an item under way longer than the rate says is due now)."""
+        advance; once that is spent (the items under way take longer than the rate says), that the time left is
+        unknown, not "about 0 s" (a map's last grid point had said so for a minute)."""
         self.last = now
         label = " > ".join(self.phases)
         if count is not None:
@@ -60,7 +61,9 @@ class _Sink:
             where = f"{what} {k}/{total}".strip()
             t0, k0, t1, k1 = self.counts.setdefault((label, what, total), [now, k, now, k])
             if total is not None and k0 < k1 < total and k1 == k:
-                where += f", about {_duration(max(0.0, (t1 - t0) / (k1 - k0) * (total - k) - (now - t1)))} left"
+                left = (t1 - t0) / (k1 - k0) * (total - k) - (now - t1)
+                where += f", about {_duration(left)} left" if left >= 0.5 else \
+                    ", slower than so far: time left unknown"
         text = f"cfdesign: {label}: {where}" if label and where else f"cfdesign: {label or where}"
         text += f" ({now - self.start:.0f} s)"
         if self.stream.isatty():  # above a bar a runner may be drawing on the terminal, not through it

@@ -81,7 +81,9 @@ __all__ = ["parse_grid", "FeasibilityMap", "MapCandidate", "run_feasibility", "m
            "AUTO_CHUNK_SIZE", "point_verdict", "stationary_open_loop"]
 
 CHUNK_SIZE = 32  # grid points per chunk (the unit of resumption and of work sent to a worker; one batch)
-AUTO_CHUNK_SIZE = 2  # grid points per chunk of an automatic map (each point maps every candidate: spread them out)
+AUTO_CHUNK_SIZE = 1  # grid points per chunk of an automatic map (each point maps every candidate, alone: spread them
+#: out one by one, since points cost unlike: a 2 x 2 map of my 21-zone greenhouse in chunks of 2 kept one core idle
+#: for a minute)
 
 _PAPER_ONLY = ("tau", "sigma", "beta")
 
