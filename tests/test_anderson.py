@@ -102,3 +102,37 @@ def test_positive_definite_checks_every_matrix_of_an_item():
     assert positive_definite(np.stack([good, good])).tolist() == [True, True]
     assert positive_definite(np.stack([good, bad, nan])).tolist() == [True, False, False]
     assert positive_definite(np.eye(2)[None]).tolist() == [True]
+
+
+def test_out_of_reach_never_stops_a_linear_iteration_that_settles_within_its_budget():
+    """A linear iteration's relative change shrinks by ρ an iteration: where ρ^k r0 reaches the tolerance within the
+    budget, no prefix is called out of reach (the rate it extrapolates is exact, the iterations it needs are those
+    left at most); where it would need far more, it stops at its first judgment, two windows in, and its count of
+    the iterations needed is the closed form's."""
+    from designer.anderson import REACH_WINDOW, out_of_reach
+
+    tol, budget = 1e-9, 1000
+    for rho in (0.5, 0.9, 0.97, 0.975, 0.979):
+        r = 0.8 * rho ** np.arange(budget)
+        settles = int(np.argmax(r <= tol)) if (r <= tol).any() else None
+        assert settles is not None and settles < budget, rho
+        assert all(out_of_reach(r[:k], tol, budget) is None for k in range(1, settles + 1)), rho
+    r = 0.8 * 0.999 ** np.arange(budget)  # needs about 20 700 iterations: out of reach at once
+    assert all(out_of_reach(r[:k], tol, budget) is None for k in range(1, 2 * REACH_WINDOW))
+    why = out_of_reach(r[:2 * REACH_WINDOW], tol, budget)
+    need = np.log(tol / r[2 * REACH_WINDOW - 1]) / np.log(0.999)
+    assert why is not None and f"about {need:.3g} more" in why and "beyond the 1000 allowed" in why
+
+
+def test_out_of_reach_calls_a_stalled_or_growing_change_out_of_reach_and_not_a_settled_one():
+    from designer.anderson import REACH_WINDOW, out_of_reach
+
+    k = 2 * REACH_WINDOW
+    stalled = np.full(k, 4e-3)
+    growing = 4e-3 * 1.001 ** np.arange(k)
+    assert "stopped shrinking" in out_of_reach(stalled, 1e-9, 1000)
+    assert "stopped shrinking" in out_of_reach(growing, 1e-9, 1000)
+    assert out_of_reach(np.r_[stalled[:-1], 1e-10], 1e-9, 1000) is None  # at the tolerance: the caller's to stop
+    assert out_of_reach(np.r_[stalled[:-1], np.nan], 1e-9, 1000) is None  # not finite: the caller's to judge
+    jumpy = 0.8 * 0.97 ** np.arange(k) * np.where(np.arange(k) % 7 == 0, 5.0, 1.0)  # accelerated jumps on a rate
+    assert out_of_reach(jumpy, 1e-9, 1000) is None

@@ -445,6 +445,17 @@ def test_stationary_certificate_says_when_the_bound_grows():
     des = consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0)
     cert = stationary_certificate(m, sc.network, des, x=m.prior.mean)
     assert not cert.converged and "grows" in cert.reason and cert.Phi is None
+    # growing slowly (1.01 a step: 1e8 x only after about 900 iterations) it is said as soon as its change per
+    # iteration has stopped shrinking (designer.anderson.out_of_reach), two windows in
+    from designer.anderson import REACH_WINDOW
+
+    slow = Model("unobs", x, ca.vertcat(x[0], 1.01 * x[1]), sensors, Gaussian.zero_mean(0.01 * np.eye(2)),
+                 Gaussian([0.0, 0.0], np.eye(2)))
+    sc = scenario_of(slow, network=sc.network, attacks=sc.attacks, steps=20)
+    cert = stationary_certificate(slow, sc.network, consensus_design(sc, mode="scheduled", u_scale=0, v_scale=0),
+                                  x=slow.prior.mean)
+    assert not cert.converged and cert.Phi is None and cert.iterations == 2 * REACH_WINDOW, cert
+    assert "grows without settling" in cert.reason and "beyond the 1000 allowed" in cert.reason, cert.reason
 
 
 @pytest.mark.slow

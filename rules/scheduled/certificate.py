@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from designer.anderson import Anderson
+from designer.anderson import REACH_WINDOW, Anderson, out_of_reach
 from designer.bounds import BOUND_LIMIT, symmetrize
 from designer.cores import SOLVER_SETTINGS
 from designer.joint import as_difference, certificate_predict, joint_predict, joint_prior
@@ -93,6 +93,7 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
     x = joint_prior(phi0, N)  # the point the map is applied to: the prior, then the accelerated iterates
     sigma = beta = np.nan
     first = None
+    changes, traces = [], []  # the relative change from each point to its image (Frobenius), and its trace
     for it in range(1, STATIONARY_CERT_MAX + 1):
         jb = certificate_predict(x, Fs, Us, st.Q, design.epsilon, Wn, tight=True)
         ju, why = None, None
@@ -121,6 +122,15 @@ def stationary_certificate(model, network, design, *, x, u=None, phi0=None, exch
                 out = out._replace(lmi=_stationary_lmi(Phi, rule, ch, F, Us, Vs, Vns, st, design.epsilon, sigma, beta,
                                                        W))
             return out
+        changes.append(float(np.linalg.norm(gd - xd) / np.linalg.norm(gd)))
+        traces.append(tr)
+        stuck = out_of_reach(changes, STATIONARY_CERT_TOL, STATIONARY_CERT_MAX)
+        if stuck is not None:  # it would end unsettled: said now, not after the iterations left
+            grew = tr > traces[-1 - REACH_WINDOW]
+            return StationaryCertificate(False, None, sigma, beta, it, (
+                f"the bound grows without settling ({tr / first:.3g} x its first value at iteration {it}, "
+                f"{tr / traces[-1 - REACH_WINDOW]:.3g} x over the last {REACH_WINDOW}; {stuck})" if grew else
+                f"the bound did not settle: {stuck}"), None)
         x = blocks_of(acc.step([0], xd[None], gd[None])[0], N)
     return StationaryCertificate(False, None, sigma, beta, STATIONARY_CERT_MAX,
                                  f"the bound did not settle in {STATIONARY_CERT_MAX} iterations", None)
