@@ -33,8 +33,8 @@ def out_of_reach(residuals, tol: float, budget: int, window: int = REACH_WINDOW,
                  margin: float = REACH_MARGIN) -> str | None:
     """Why a fixed-point iteration cannot reach ``tol`` within ``budget`` iterations in all, or None while it may.
 
-    ``residuals``: its relative change from each point to its image, one per iteration, newest last.  From two
-    ``window`` s of iterations on, its rate over the last ``window`` (the smallest residual of the last tenth of the
+    ``residuals``: its relative change from each point to its image, one per iteration, newest last.  From
+    ``2 window`` iterations on, its rate over the last ``window`` (the smallest residual of the last tenth of the
     window against the smallest of the tenth a window before: the accelerated iteration's jumps smoothed) is
     extrapolated: where the residual has not shrunk, or shrinks too slowly to reach ``tol`` within ``margin`` times
     the iterations left, it is out of reach.  A prediction, used only to stop early an iteration that would end

@@ -707,9 +707,8 @@ def monte_carlo(
         ``processes`` backend cuts each chunk into the fewest shares that make the pieces of work a multiple of
         its workers (:func:`split_into`), so that the last chunk does not compute alone while the other cores idle
         (a design's validation: 5 runs of a 118-bus grid in chunks of 2, 2 and 1 on 2 cores); other backends
-        compute whole chunks.  The numbers do
-        not depend on it: a chunk's outputs are the same whatever its shares (the task's contract), and the store
-        keeps whole chunks.
+        compute whole chunks.  The numbers do not depend on it: a chunk's outputs are the same whatever its shares
+        (the task's contract), and the store keeps whole chunks.
     """
     runs = check_int("runs", runs, 1)
     seed = check_int("seed", seed, 0)
