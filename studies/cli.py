@@ -319,8 +319,10 @@ def _validation_lines(validation) -> None:
                  if isinstance(f.get(key), (int, float))]
         check = f.get("bound_check") or {}  # the pick's: does its bound hold on the fresh runs?
         if check.get("verdict") in ("holds", "violated"):
-            parts.append(f"its bound {check['verdict']} on these runs"
-                         + (f" ({check['verdict_reason']})" if check["verdict"] == "violated" else ""))
+            mean = (check.get("run_test") or {}).get("ratio_mean")
+            parts.append(f"its bound violated on these runs ({check['verdict_reason']})" if check["verdict"] ==
+                         "violated" else f"its bound {'is not refuted' if _above(mean) else 'holds'} on these "
+                         f"runs{_held_how(check, said=_above(mean))}")
         if f.get("better_than_local") is not None:  # the pick's, as study comparison says it of a filter
             from .results import local_ratio_text
 
@@ -330,6 +332,27 @@ def _validation_lines(validation) -> None:
         if parts:
             click.echo(f"  validation, {validation['runs']} fresh runs: {f['filter']}: {', '.join(parts)}"
                        + (f", {f['diverged_runs']} diverged" if f.get("diverged_runs") else ""))
+
+
+def _above(mean) -> bool:
+    """A bound check's runs' error energy over their bound on average, above 1."""
+    return isinstance(mean, (int, float)) and mean > 1.0
+
+
+def _held_how(check: dict, said: bool = False) -> str:
+    """What a bound check that found no excess measured (``" (...)"``, or ``""`` without its run test): the runs'
+    error energy over their bound on average, and where that is above 1 that the bound is not refuted (not shown
+    to hold: ``holds`` alone would read stronger than its numbers), with the excess these runs cannot see; ``said``:
+    the caller says "not refuted" itself."""
+    rt = check.get("run_test") or {}
+    mean, tol = rt.get("ratio_mean"), rt.get("tolerance")
+    if not isinstance(mean, (int, float)):
+        return ""
+    text = f"their error energy {mean:.3g} x the bound on average"
+    if _above(mean):
+        text = ("" if said else "not refuted: ") + text + (
+            f"; an excess below {1 + tol:.3g} x goes unseen in these runs" if isinstance(tol, (int, float)) else "")
+    return f" ({text})"
 
 
 def _clipped(text: str, width: int) -> str:
@@ -518,6 +541,7 @@ def _summary(f: dict) -> str:
         frac = "n/a" if bc["fraction_exceeding"] is None else f"{bc['fraction_exceeding']:.3f}"
         parts.append(f"bound checked at {bc['pairs_checked']}/{bc['pairs_total']} (node, step) pairs, exceeded at "
                      f"{frac}" + (f", verdict: {bc['verdict']}" if bc.get("verdict") else "")
+                     + (_held_how(bc) if bc.get("verdict") == "holds" else "")
                      + (f", informative in {bc['informative']}/{bc['runs']} runs" if bc.get("informative") is not None
                         else "")
                      + (f", filled to {bc['fill']:.2g} over steps {bc['fill_steps'][0]}..{bc['fill_steps'][1]}"

@@ -395,15 +395,29 @@ def test_the_trade_off_leaves_out_the_hop_counts_that_cost_more_than_the_designs
 @pytest.mark.slow
 def test_the_automatic_designs_validation_line_says_whether_the_picks_bound_held(tmp_path, capsys):
     """The terminal says what validation.json's bound check found for the pick (held, or violated with why): a
-    certified pick whose bound the fresh runs exceed must not read as sound."""
+    certified pick whose bound the fresh runs exceed must not read as sound.  Where no check finds an excess it says
+    the runs' error energy over the bound on average; above 1, that the bound is not refuted (not that it holds),
+    with the excess these runs cannot see."""
+    from studies.cli import _held_how
+
     path = model_file(tmp_path)
     assert main(["design", str(path), "--validate", "3", "--out", str(tmp_path / "a")]) in (0, 1)
     out = capsys.readouterr().out
     check = json.loads((tmp_path / "a" / "validation.json").read_text())["filters"]["pick"]["bound_check"]
     line = next(x for x in out.splitlines() if "fresh runs" in x and "its bound" in x)
-    assert f"its bound {check['verdict']} on these runs" in line
+    mean = check["run_test"]["ratio_mean"]
     if check["verdict"] == "violated":
-        assert check["verdict_reason"] in line
+        assert f"its bound violated on these runs ({check['verdict_reason']})" in line
+    else:
+        words = "is not refuted" if mean > 1 else "holds"
+        assert f"its bound {words} on these runs (their error energy {mean:.3g} x the bound on average" in line
+    # both sides of 1, as the command line and a study's line say them
+    below = {"verdict": "holds", "run_test": {"ratio_mean": 0.887, "tolerance": 0.15}}
+    above = {"verdict": "holds", "run_test": {"ratio_mean": 1.18, "tolerance": 0.28}}
+    assert _held_how(below) == " (their error energy 0.887 x the bound on average)"
+    assert _held_how(above) == (" (not refuted: their error energy 1.18 x the bound on average; an excess below "
+                                "1.28 x goes unseen in these runs)")
+    assert _held_how(above, said=True).startswith(" (their error energy 1.18 x") and _held_how({}) == ""
 
 
 @pytest.mark.slow
