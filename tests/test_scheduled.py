@@ -729,3 +729,78 @@ def test_block_sparse_products_are_the_dense_ones():
     np.testing.assert_allclose(T.sandwich(X), dense @ X @ dense.T, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(T.sandwich(X), (csr @ (csr @ X).T).T, rtol=1e-12, atol=1e-12)
     assert not np.any(T.sandwich(X)[2 * r:3 * r]) and not np.any(T.sandwich(X)[:, 2 * r:3 * r])
+
+
+_SWING4 = '''
+import casadi as ca
+import numpy as np
+from designer import AttackSpec, FDISignal, Gaussian, Model, SensorNetwork, Sensor
+
+N, DT, STEPS = 4, 0.05, 40
+LINES = [(0, 1), (0, 2), (1, 3), (2, 3)]
+B = {(0, 1): 2.5, (0, 2): 3.0, (1, 3): 2.0, (2, 3): 3.5}
+D0 = 0.05 * np.sin(np.arange(N))
+NETWORK = SensorNetwork.from_edges(N, LINES)
+ATTACKS = AttackSpec(dos=0.1, fdi=0.05, signal=FDISignal(amplitude=0.02))
+
+
+def _lines(i):
+    return [(j if a == i else a, B[(a, j)]) for (a, j) in LINES if i in (a, j)]
+
+
+def model():
+    x = ca.SX.sym("x", 2 * N)
+    d, w = x[0::2], x[1::2]
+    f = []
+    for i in range(N):
+        p = sum(b * np.sin(D0[i] - D0[j]) for j, b in _lines(i))
+        f += [d[i] + DT * w[i], w[i] + DT / 4.0 * (p - w[i] - sum(b * ca.sin(d[i] - d[j]) for j, b in _lines(i)))]
+    sensors = []
+    for i in range(N):
+        j, b = _lines(i)[0]
+        rows, var = [w[i], b * ca.sin(d[i] - d[j])], [1e-4, 4e-4]
+        if i == 0:
+            rows, var = rows + [d[i]], var + [2.5e-5]
+        sensors.append(Sensor(f"bus{i}", ca.vertcat(*rows), Gaussian.zero_mean(np.diag(var))))
+    x0 = np.zeros(2 * N)
+    x0[0::2] = D0
+    return Model("swing4", x, ca.vertcat(*f), sensors, process_noise=Gaussian.zero_mean(np.diag([1e-6, 4e-4] * N)),
+                 prior=Gaussian(x0, 0.01 * np.eye(2 * N)))
+'''
+
+
+def test_the_default_gives_up_stationary_tables_that_do_worse_than_the_open_loop(tmp_path, monkeypatch):
+    """A 4-bus swing-equation grid (nonlinear, mixed sensors) exchanging predictions: from the prior, the stationary
+    tables held at every step make the expected covariance diverge (outside their basin: from their own fixed point
+    they hold it).  The default kind (here held from step 0, the budget set to nothing) gives them up at the first
+    step where a node's expected covariance exceeds the open loop's and designs each step's own tables: the
+    per-step design bit for bit, every node within the open loop at every step, the reason recorded.  Chosen
+    explicitly (--table-kind stationary) they are kept, and the divergence is an error naming the way out, not
+    LAPACK's failure on infinite numbers."""
+    import rules.scheduled.design as tabled
+    from designer.validation import ComputationError
+    from studies.scenarios import load_scenario
+
+    (tmp_path / "swing4.py").write_text(_SWING4)
+    sc = load_scenario(str(tmp_path / "swing4.py"))
+    monkeypatch.setattr(tabled, "TABLES_PER_STEP_MAX", 0)
+
+    def tables(**kw):
+        des = consensus_design(sc, mode="scheduled", exchange="predictions", **kw)
+        return design_scheduled(sc.model, sc.network, des, sc.steps, x0=sc.model.prior.mean, exchange=False,
+                                stationary=False)
+
+    default, per = tables(), tables(table_kind="per-step")
+    assert default.kind == per.kind == "per-step" and default.own_steps == sc.steps
+    assert "above the open loop's" in default.stationary["held_failed"]
+    assert "held_failed" not in per.stationary
+    for name in ("Gamma", "Sigma", "K", "C", "P_post"):
+        np.testing.assert_array_equal(getattr(default, name), getattr(per, name))
+    F = np.asarray(sc.model.F_expected(sc.model.prior.mean, 0, None))
+    P_open, tr_open = sc.model.prior.cov, []
+    for _ in range(sc.steps):
+        P_open = F @ P_open @ F.T + sc.model.process_cov
+        tr_open.append(np.trace(P_open))
+    assert np.all(np.trace(per.P_post[1:], axis1=-2, axis2=-1) <= np.array(tr_open)[:, None])
+    with pytest.raises(ComputationError, match="diverged.*--table-kind per-step"):
+        tables(table_kind="stationary")

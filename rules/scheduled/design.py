@@ -118,8 +118,9 @@ from designer.joint import (JointBound, JointCovariance, as_difference, certific
                           joint_predict, joint_prior, shared_search, shared_structure, solve_gains)
 from designer.progress import line
 from designer.tuning import MARGIN
-from designer.validation import InputError
+from designer.validation import ComputationError, InputError
 from designer.verdict import NOT_COMPUTED
+from filters.result import DIVERGED
 
 from .nodewise import nodewise_predict, nodewise_update
 
@@ -1003,10 +1004,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     records that they were not sought): for a design wanted only for its expected covariance over the horizon.
     """
     st, U, V, Vn, phi0 = prepare(model, network, design, exchange, phi0)
-    ch, mz = st.ch, st.mz
-    N, n = network.n_nodes, model.n_x
-    E = ch.receiver.size
-    own = own_steps(network, n, steps, st.rounds, design.table_kind)
+    own = own_steps(network, model.n_x, steps, st.rounds, design.table_kind)
     u = None if inputs is None else np.asarray(inputs, dtype=float)
 
     def u_at(k):
@@ -1014,7 +1012,30 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
 
     if design.table_kind is None and own < steps and not _settled(model, x0, steps, u_at):
         own = steps  # by default the stationary tables serve a nominal that stays at the operating point's geometry
+    held_failed = None  # why the default's stationary tables were given up for each step's own (None: they were not)
+    while True:
+        tables = _horizon(model, network, design, steps, st, U, V, Vn, phi0, exchange, own, u_at, x0,
+                          fallback=design.table_kind is None)
+        if not isinstance(tables, str):
+            break
+        held_failed, own = tables, steps
+    if held_failed is not None:
+        tables = tables._replace(stationary={**tables.stationary, "held_failed": held_failed})
+    if not stationary:
+        return tables
+    return tables._replace(**stationary_tables(model, network, design, tables, inputs=inputs), horizon_state=None)
 
+
+def _horizon(model, network, design, steps: int, st: _Setting, U, V, Vn, phi0, exchange: bool, own: int, u_at, x0,
+             fallback: bool):
+    """:func:`design_scheduled`'s recursion over the horizon, the steps from ``own`` on with the stationary tables at
+    the operating point: its :class:`ScheduledTables` without the stationary ones (``horizon_state`` set).  With
+    ``fallback`` (the default kind, not one the user chose), where those tables make a node's expected covariance's
+    trace exceed the open loop's (worse than a node that ignores every measurement and packet: the prior's transient
+    outside their basin), the reason instead, for the caller to design each step's own tables."""
+    ch, mz = st.ch, st.mz
+    N, n = network.n_nodes, model.n_x
+    E = ch.receiver.size
     fixed = None
     if own < steps:  # the tables of the later steps: the expected recursion's fixed point at the operating point
         x_op = np.asarray(x0, dtype=float)
@@ -1109,6 +1130,17 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
         Pm = expected_update(Pm, rule, ch, st.M, st.mu)
         Pm, out["round_Gamma"][k], out["round_Sigma"][k] = _more_rounds(st, Pm, x, k + 1, fixed[2:] if held else None)
         out["P_post"][k + 1] = Pm.P
+        tr, tr_open = np.trace(Pm.P, axis1=-2, axis2=-1), float(np.trace(P_open))
+        i = int(np.nanargmax(np.where(np.isfinite(tr), tr, np.inf)))
+        if held and fallback and not tr[i] <= tr_open:
+            return (f"the stationary tables held from step {own} made node {i}'s expected covariance's trace "
+                    f"{tr[i]:.4g} at step {k + 1}, above the open loop's {tr_open:.4g} (a node ignoring every "
+                    "measurement and packet): each step has its own tables instead")
+        if held and not tr[i] < DIVERGED and not tr[i] <= tr_open:  # the tables', not the model's, divergence
+            raise ComputationError(
+                f"the scheduled design's expected covariance diverged with the stationary tables held from step "
+                f"{own}: node {i}'s trace {tr[i]:.4g} at step {k + 1}, the open loop's {tr_open:.4g} (--table-kind "
+                "per-step designs each step's own)")
     if proper:
         out["theorem2"][steps] = theorem2_margin(Phi[idx, idx], out["sigma"][steps - 1], network.d_max)
     if fixed is None:
@@ -1124,9 +1156,7 @@ def design_scheduled(model, network, design, steps: int, *, x0, inputs=None, phi
     tables = ScheduledTables(channels=ch, violations=violations, stationary=record, nominal=nominal,
                              exchange=bool(exchange), robustness=st.margin, rounds=st.rounds, horizon_state=start,
                              own_steps=own, **beyond, **out)
-    if not stationary:
-        return tables
-    return tables._replace(**stationary_tables(model, network, design, tables, inputs=inputs), horizon_state=None)
+    return tables
 
 
 def stationary_tables(model, network, design, tables: ScheduledTables, *, inputs=None) -> dict:
@@ -1152,8 +1182,9 @@ def stationary_tables(model, network, design, tables: ScheduledTables, *, inputs
     Pm_inf, _, last_G, last_S, record, rG_inf, rS_inf = stationary_gains(
         st, JointCovariance(P, G), np.broadcast_to(F, (N, n, n)), x, steps, (tables.Gamma[-1], tables.Sigma[-1]))
     bank = _bank(st, Pm_inf, P_open, x, steps, u, int(design.bank)) if design.bank else {}
+    kept = {k: v for k, v in tables.stationary.items() if k == "held_failed"}  # why each step has its own tables
     return {"Gamma_inf": last_G, "Sigma_inf": last_S, "round_Gamma_inf": rG_inf, "round_Sigma_inf": rS_inf,
-            "stationary": record, **bank}
+            "stationary": {**record, **kept}, **bank}
 
 
 def table_numbers(network, n_x: int, rounds: int = 1) -> int:

@@ -33,7 +33,9 @@ def settings(meta: Mapping, fmt) -> list[str]:
                 "node's own covariance is what the stationary tables say of its links, not its expected one "
                 "(on a linear 5-node ring up to 20 % below it).")
                if meta.get("tables_kind") not in (None, "per-step") else
-               ("The tables beyond the horizon are the recursion continued at the last nominal point"
+               ((f"The default's stationary tables were not used: "
+                 f"{fmt.md_escape(str(st['held_failed']))}. " if st.get("held_failed") else "")
+                + "The tables beyond the horizon are the recursion continued at the last nominal point"
                 + (f", stationary after {st.get('extra_steps')} more steps." if st.get("converged") else
                    ", which did not settle within the steps tried: beyond the horizon the gains are the last ones "
                    "computed.")))
