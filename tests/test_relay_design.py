@@ -89,6 +89,29 @@ def test_stationary_certificate_is_where_the_filters_covariance_settles(hops):
     assert np.trace(clean.Phi, axis1=-2, axis2=-1).sum() < np.trace(cert.Phi, axis1=-2, axis2=-1).sum()
 
 
+def test_a_fixed_point_out_of_reach_stops_the_stationary_recursion_early():
+    """A mode no sensor sees, growing 0.3 % a step: its covariance reached the recursion's limit (1e12) after 4368
+    iterations, and the recursion ran all of them to "grows without settling".  Its relative change per iteration
+    hardly shrinks (towards the growth's 0.6 %), and the recursion stops within a few judgments of the first (at
+    2 x REACH_WINDOW iterations), with the weaker verdict of the same kind (no fixed point) and the reason; the
+    observed model's recursion still settles."""
+    import casadi as ca
+
+    from designer import Gaussian, Model, Sensor
+    from designer.anderson import REACH_WINDOW
+
+    x = ca.SX.sym("x", 2)
+    sensors = [Sensor(f"s{i}", x[1], Gaussian.zero_mean([[0.1 + 0.05 * i]])) for i in range(N)]
+    model = Model("unseen", x, ca.vertcat(1.003 * x[0], 0.9 * x[1]), sensors, Gaussian.zero_mean(0.02 * np.eye(2)),
+                  Gaussian([0.0, 0.0], np.eye(2)))
+    net = network(0.1, 0.1)
+    cert = relay_stationary(model, net, relay_design(model, net, 1), x=np.zeros(2), lmi=False)
+    assert not cert.converged and 2 * REACH_WINDOW <= cert.iterations <= 4 * REACH_WINDOW
+    assert "did not settle (node 0: its change per iteration" in cert.reason and "beyond the 5000" in cert.reason
+    seen = linear_model()
+    assert relay_stationary(seen, net, relay_design(seen, net, 1), x=np.zeros(2), lmi=False).converged
+
+
 def test_an_lmi_too_large_to_hold_is_not_solved_and_says_why(monkeypatch):
     """The relay LMI writes each node's update as an n² x n² matrix (8.6 GB on a 64-cell field): above
     LMI_MAX_ENTRIES numbers it is not solved, the reason names the sizes, and the fixed point is kept."""
