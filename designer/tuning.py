@@ -225,7 +225,12 @@ def _fixed_beta_kernel(phi, G, mu, H, s, VVt, R, has_v, it, beta, w, N, M, C, K,
     proposal)``.  Item by item in compiled loops (these systems are 3-8 wide, where NumPy's stacked calls
     cost microseconds per item); the same arithmetic for an item in any stack.  The (C, K) system is solved
     by Cholesky on its lower triangle; a pivot that is not positive (an exactly zero block: C of a node
-    that received no packet) drops its unknown (zero gains, the minimum-norm solution for such a block)."""
+    that received no packet) drops its unknown (zero gains, the minimum-norm solution for such a block).
+
+    Every sum runs over its terms in a fixed order, and the loops are written row by row (``y[:] += f x[:]``, the
+    innermost loop along a row) rather than as one dot product per entry: the same additions in the same order,
+    which the compiler vectorises across the row (a dot product's order it may not change).  At 40 states a call
+    took 0.49 ms as dot products."""
     n, r, mz = phi.shape[1], mu.shape[1], H.shape[1]
     kk = n + mz
     d = np.empty(r)
@@ -237,23 +242,30 @@ def _fixed_beta_kernel(phi, G, mu, H, s, VVt, R, has_v, it, beta, w, N, M, C, K,
     inv = np.empty(kk)
     Y = np.empty((kk, n))
     X = np.empty((kk, n))
+    Gt = np.empty((r, n))
+    row = np.empty(r)
     for j in range(it.size):
         i = it[j]
         b, wj, sj = beta[j], w[j], s[i]
         for l in range(r):
             d[l] = b / (1.0 - b * mu[i, l])
+        for c in range(n):
+            for l in range(r):
+                Gt[l, c] = G[i, c, l]
         for a in range(n):  # M = Φ + Γ diag(d) Γᵀ
             for c in range(n):
-                acc = phi[i, a, c]
-                for l in range(r):
-                    acc += G[i, a, l] * d[l] * G[i, c, l]
-                Mm[a, c] = acc
+                Mm[a, c] = phi[i, a, c]
+            for l in range(r):
+                f = G[i, a, l] * d[l]
+                for c in range(n):
+                    Mm[a, c] += f * Gt[l, c]
         for p in range(mz):
             for c in range(n):
-                acc = 0.0
-                for a in range(n):
-                    acc += H[i, p, a] * Mm[a, c]
-                HM[p, c] = acc
+                HM[p, c] = 0.0
+            for a in range(n):
+                f = H[i, p, a]
+                for c in range(n):
+                    HM[p, c] += f * Mm[a, c]
         lin = wj / b if has_v[i] else 0.0
         ws = wj * sj
         for a in range(n):  # the system's lower triangle and right-hand side w Bᵀ M
@@ -281,16 +293,22 @@ def _fixed_beta_kernel(phi, G, mu, H, s, VVt, R, has_v, it, beta, w, N, M, C, K,
                 L[q, c] = acc * inv[c]
         for c in range(kk):  # L Y = rhs
             for e in range(n):
-                acc = rhs[c, e]
-                for l in range(c):
-                    acc -= L[c, l] * Y[l, e]
-                Y[c, e] = acc * inv[c]
+                Y[c, e] = rhs[c, e]
+            for l in range(c):
+                f = L[c, l]
+                for e in range(n):
+                    Y[c, e] -= f * Y[l, e]
+            for e in range(n):
+                Y[c, e] *= inv[c]
         for c in range(kk - 1, -1, -1):  # Lᵀ X = Y
             for e in range(n):
-                acc = Y[c, e]
-                for l in range(c + 1, kk):
-                    acc -= L[l, c] * X[l, e]
-                X[c, e] = acc * inv[c]
+                X[c, e] = Y[c, e]
+            for l in range(c + 1, kk):
+                f = L[l, c]
+                for e in range(n):
+                    X[c, e] -= f * X[l, e]
+            for e in range(n):
+                X[c, e] *= inv[c]
         trace, fit = 0.0, 0.0
         for a in range(n):
             trace += Mm[a, a]
@@ -304,18 +322,22 @@ def _fixed_beta_kernel(phi, G, mu, H, s, VVt, R, has_v, it, beta, w, N, M, C, K,
                 fit += X[c, e] * rhs[c, e]
         for a in range(n):  # A = I - sC - KH
             for c in range(n):
-                acc = (1.0 if a == c else 0.0) - sj * C[j, a, c]
-                for p in range(mz):
-                    acc -= K[j, a, p] * H[i, p, c]
-                A[j, a, c] = acc
+                A[j, a, c] = (1.0 if a == c else 0.0) - sj * C[j, a, c]
+            for p in range(mz):
+                f = K[j, a, p]
+                for c in range(n):
+                    A[j, a, c] -= f * H[i, p, c]
         pos, neg = 0.0, 0.0
         for a in range(n):  # the envelope slope: w tr A M'(β) Aᵀ and w tr K V Vᵀ Kᵀ
             for l in range(r):
-                acc = 0.0
-                for c in range(n):
-                    acc += A[j, a, c] * G[i, c, l]
+                row[l] = 0.0
+            for c in range(n):
+                f = A[j, a, c]
+                for l in range(r):
+                    row[l] += f * G[i, c, l]
+            for l in range(r):
                 e = 1.0 - b * mu[i, l]
-                pos += acc * acc / (e * e)
+                pos += row[l] * row[l] / (e * e)
             for p in range(mz):
                 for q in range(mz):
                     neg += K[j, a, p] * VVt[i, p, q] * K[j, a, q]
